@@ -1,0 +1,233 @@
+"""The runtime every service stands on: a Zenoh session, liveliness, heartbeat, counters, clean shutdown.
+
+A service subclass declares its subscriptions with :meth:`Service.subscribe`, which decodes and validates
+every payload on Zenoh's callback thread and hands only valid models to the handler; anything malformed is
+rejected, counted (``rejected`` and ``rejected.<key>``) and logged once per burst, and the service keeps
+running. Handlers must be short (decode, enqueue): Zenoh runs each subscriber's callbacks on its own thread
+behind a bounded FIFO, so a slow handler stalls the receive path.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import threading
+import time
+from collections.abc import Callable
+from typing import Any, TypeVar
+
+import zenoh
+from pydantic import BaseModel
+
+from ..schemas import DecodeError, decode, encode, keys
+from ..schemas.models import Heartbeat
+from .zenoh_config import ZenohOptions, build_config
+
+M = TypeVar("M", bound=BaseModel)
+log = logging.getLogger("jitterguard")
+
+HEARTBEAT_PERIOD_S = 1.0
+REJECT_LOG_QUIET_S = 5.0
+
+
+class Counters:
+    """Thread-safe named counters (received / rejected / published / anything a service adds)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._values: dict[str, int] = {}
+
+    def inc(self, name: str, n: int = 1) -> None:
+        with self._lock:
+            self._values[name] = self._values.get(name, 0) + n
+
+    def get(self, name: str) -> int:
+        with self._lock:
+            return self._values.get(name, 0)
+
+    def snapshot(self) -> dict[str, int]:
+        with self._lock:
+            return dict(self._values)
+
+
+class _BurstLogger:
+    """Log the first of a burst of similar events, then stay quiet until the burst has passed."""
+
+    def __init__(self, logger: logging.Logger, quiet_s: float = REJECT_LOG_QUIET_S) -> None:
+        self._log = logger
+        self._quiet = quiet_s
+        self._lock = threading.Lock()
+        self._last = -1e18
+        self._suppressed = 0
+
+    def warn(self, msg: str) -> None:
+        now = time.monotonic()
+        with self._lock:
+            if now - self._last < self._quiet:
+                self._suppressed += 1
+                self._last = now
+                return
+            suppressed, self._suppressed, self._last = self._suppressed, 0, now
+        extra = f" ({suppressed} similar since the last message)" if suppressed else ""
+        self._log.warning("%s%s", msg, extra)
+
+
+class Service:
+    """Base class of every jitterguard process: owns one Zenoh session and its lifecycle."""
+
+    name = "service"
+
+    def __init__(self, opts: ZenohOptions) -> None:
+        self.opts = opts
+        self.ns = opts.ns
+        self.log = logging.getLogger(f"jitterguard.{self.name}")
+        self.counters = Counters()
+        self.stop_event = threading.Event()
+        self.started_at = time.monotonic()
+        self.last_seq = -1
+        self._reject_log = _BurstLogger(self.log)
+        self._declared: list[Any] = []
+        self._threads: list[threading.Thread] = []
+        self.session: zenoh.Session = zenoh.open(build_config(opts))
+        self._declared.append(self.session.liveliness().declare_token(keys.alive(self.ns, self.name)))
+        self._hb_pub = self.session.declare_publisher(keys.heartbeat(self.ns, self.name))
+        self.spawn(self._heartbeat_loop, "heartbeat")
+
+    # ------------------------------------------------------------------ wiring helpers for subclasses
+
+    def subscribe(self, key: str, model: type[M], handler: Callable[[M, str], None]) -> None:
+        """Subscribe ``key``; ``handler(message, key)`` gets only payloads that validate as ``model``."""
+        short = key.split("/", 2)[-1]
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            self.counters.inc("received")
+            try:
+                msg = decode(model, sample.payload.to_bytes())
+            except DecodeError as exc:
+                self.counters.inc("rejected")
+                self.counters.inc(f"rejected.{short}")
+                self._reject_log.warn(f"rejected payload on {sample.key_expr}: {exc}")
+                return
+            try:
+                handler(msg, str(sample.key_expr))
+            except Exception:  # a bug in a handler must not kill the subscriber thread
+                self.counters.inc("handler_errors")
+                self.log.exception("handler for %s failed", key)
+
+        self._declared.append(self.session.declare_subscriber(key, on_sample))
+
+    def publisher(self, key: str, *, block: bool = True) -> zenoh.Publisher:
+        """A declared publisher; BLOCK congestion control by default (losing a frame is wrong)."""
+        cc = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
+        pub = self.session.declare_publisher(key, congestion_control=cc)
+        self._declared.append(pub)
+        return pub
+
+    def publish(self, pub: zenoh.Publisher, model: BaseModel) -> None:
+        pub.put(encode(model))
+        self.counters.inc("published")
+
+    def put(self, key: str, model: BaseModel | bytes, *, block: bool = True) -> None:
+        """Publish on a key that changes per message (``tracks/{id}``, ``motion/{id}``)."""
+        payload = model if isinstance(model, bytes) else encode(model)
+        cc = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
+        self.session.put(key, payload, congestion_control=cc)
+        self.counters.inc("published")
+
+    def queryable(self, key: str, handler: Callable[[zenoh.Query], None]) -> None:
+        """Serve ``key``; the query is always finalised, even if ``handler`` raises."""
+
+        def on_query(query: zenoh.Query) -> None:
+            with query:
+                try:
+                    handler(query)
+                except Exception as exc:
+                    self.counters.inc("query_errors")
+                    self.log.exception("query on %s failed", key)
+                    query.reply_err(f"internal error: {type(exc).__name__}: {exc}".encode())
+
+        self._declared.append(self.session.declare_queryable(key, on_query))
+
+    def spawn(self, target: Callable[[], None], name: str) -> threading.Thread:
+        """Start a daemon worker thread that the service joins on shutdown."""
+        t = threading.Thread(target=target, name=f"{self.name}-{name}", daemon=True)
+        t.start()
+        self._threads.append(t)
+        return t
+
+    # ------------------------------------------------------------------ lifecycle
+
+    def heartbeat(self) -> Heartbeat:
+        return Heartbeat(
+            service=self.name,
+            pid=os.getpid(),
+            stamp=time.time_ns(),
+            last_seq=self.last_seq,
+            uptime_s=time.monotonic() - self.started_at,
+            counters=self.counters.snapshot(),
+        )
+
+    def _heartbeat_loop(self) -> None:
+        while not self.stop_event.wait(HEARTBEAT_PERIOD_S):
+            try:
+                self._hb_pub.put(encode(self.heartbeat()))
+            except Exception:  # session closing underneath us
+                if self.stop_event.is_set():
+                    return
+                self.log.exception("heartbeat failed")
+
+    def run_forever(self) -> None:
+        """Block until SIGINT/SIGTERM (main thread) or :meth:`stop`, then close everything."""
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                signal.signal(sig, lambda *_: self.stop())
+        self.log.info("%s up (ns=%s, pid=%d)", self.name, self.ns, os.getpid())
+        try:
+            while not self.stop_event.wait(0.2):
+                pass
+        finally:
+            self.close()
+
+    def stop(self) -> None:
+        self.stop_event.set()
+
+    def close(self) -> None:
+        """Stop workers, undeclare everything and close the session (no hang at exit)."""
+        self.stop_event.set()
+        self.on_close()
+        for t in self._threads:
+            if t is not threading.current_thread():
+                t.join(timeout=2.0)
+        for entity in reversed(self._declared):
+            try:
+                entity.undeclare()
+            except Exception:
+                pass
+        self._declared.clear()
+        try:
+            self._hb_pub.undeclare()
+        except Exception:
+            pass
+        try:
+            self.session.close()
+        except Exception:
+            pass
+        self.log.info("%s stopped: %s", self.name, self.counters.snapshot())
+
+    def on_close(self) -> None:
+        """Hook for subclasses: called once the stop event is set, before the session closes."""
+
+    def __enter__(self) -> "Service":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def setup_logging(level: str = "INFO") -> None:
+    """One log line format for every service (supervisord captures stderr)."""
+    logging.basicConfig(
+        level=getattr(logging, level.upper(), logging.INFO),
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )

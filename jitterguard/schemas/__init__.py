@@ -1,0 +1,38 @@
+"""The wire contract: models, the msgpack codec and key-expression builders. No I/O."""
+
+from . import keys
+from .codec import DecodeError, decode, encode
+from .models import *  # noqa: F401,F403  (the models are the contract; re-export them all)
+from .models import (
+    AUTHORS_ALPHA,
+    LABEL_BY_NAME,
+    LABEL_NAMES,
+    PRESETS,
+    SCHEMA_VERSION,
+    ClassifierConfig,
+    DetectedObjects,
+    Label,
+    MotionState,
+    PointCloud,
+    TrackedObjects,
+    TrackObservation,
+)
+
+__all__ = [
+    "keys",
+    "encode",
+    "decode",
+    "DecodeError",
+    "SCHEMA_VERSION",
+    "Label",
+    "LABEL_NAMES",
+    "LABEL_BY_NAME",
+    "AUTHORS_ALPHA",
+    "PRESETS",
+    "ClassifierConfig",
+    "DetectedObjects",
+    "MotionState",
+    "PointCloud",
+    "TrackedObjects",
+    "TrackObservation",
+]

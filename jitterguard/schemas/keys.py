@@ -1,0 +1,81 @@
+"""Key-expression builders: the only place key strings are spelled (DESIGN.md, "The contract")."""
+
+from __future__ import annotations
+
+import re
+
+PREFIX = "jg"
+DEFAULT_NS = "default"
+_NS = re.compile(r"^[A-Za-z0-9_\-]+$")
+
+
+def check_namespace(ns: str) -> str:
+    """A namespace is one key chunk: letters, digits, ``_`` and ``-`` (no ``/``, ``*``, ``$``, ``?``, ``#``)."""
+    if not _NS.match(ns):
+        raise ValueError(f"namespace {ns!r} must be letters, digits, '_' or '-'")
+    return ns
+
+
+def _base(ns: str) -> str:
+    return f"{PREFIX}/{check_namespace(ns)}"
+
+
+def points(ns: str = DEFAULT_NS) -> str:
+    return f"{_base(ns)}/points"
+
+
+def detections(ns: str = DEFAULT_NS) -> str:
+    return f"{_base(ns)}/detections"
+
+
+def track(ns: str, track_id: str) -> str:
+    return f"{_base(ns)}/tracks/{track_id}"
+
+
+def tracks_all(ns: str = DEFAULT_NS) -> str:
+    return f"{_base(ns)}/tracks/*"
+
+
+def tracked(ns: str = DEFAULT_NS) -> str:
+    return f"{_base(ns)}/tracked"
+
+
+def motion(ns: str, track_id: str) -> str:
+    return f"{_base(ns)}/motion/{track_id}"
+
+
+def motion_all(ns: str = DEFAULT_NS) -> str:
+    return f"{_base(ns)}/motion/*"
+
+
+def objects(ns: str = DEFAULT_NS) -> str:
+    return f"{_base(ns)}/objects"
+
+
+def classifier_config(ns: str = DEFAULT_NS) -> str:
+    return f"{_base(ns)}/classifier/config"
+
+
+def classifier_state(ns: str = DEFAULT_NS) -> str:
+    return f"{_base(ns)}/classifier/state"
+
+
+def alive(ns: str, service: str) -> str:
+    return f"{_base(ns)}/alive/{service}"
+
+
+def alive_all(ns: str = DEFAULT_NS) -> str:
+    return f"{_base(ns)}/alive/*"
+
+
+def heartbeat(ns: str, service: str) -> str:
+    return f"{_base(ns)}/heartbeat/{service}"
+
+
+def heartbeat_all(ns: str = DEFAULT_NS) -> str:
+    return f"{_base(ns)}/heartbeat/*"
+
+
+def last_chunk(key: str) -> str:
+    """The final chunk of a key expression: the track ID of ``.../tracks/{id}``, the service of ``alive/{s}``."""
+    return key.rsplit("/", 1)[-1]

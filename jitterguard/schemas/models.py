@@ -1,0 +1,403 @@
+"""The wire contract: pydantic v2 models for every payload jitterguard puts on Zenoh.
+
+Field names and semantics mirror Autoware's ``autoware_perception_msgs`` (and the ``geometry_msgs`` types
+they use) so that a bridge to a ROS 2 / Autoware stack is a mechanical field copy. Where jitterguard needs
+more than Autoware carries (a frame's expected track IDs, the classifier's statistics) the extra fields are
+named plainly and documented here.
+
+Validation is strict on purpose: a payload from another process is untrusted input. Every float is finite,
+covariances are 36 long (row-major 6x6 over x, y, z, roll, pitch, yaw) with non-negative variances,
+labels are Autoware's 0..7, track IDs are 32 lowercase hex digits (a 16-byte UUID), and a point buffer's
+length must match its field count.
+"""
+
+from __future__ import annotations
+
+import re
+from enum import IntEnum
+from typing import Annotated, ClassVar, Literal
+
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    NonNegativeInt,
+    field_validator,
+    model_validator,
+)
+
+SCHEMA_VERSION = 1
+"""Bumped on any incompatible change of a model below; every top-level payload carries it."""
+
+COVARIANCE_SIZE = 36
+# Autoware's covariance index constants (row-major 6x6 over x, y, z, roll, pitch, yaw).
+X_X, X_Y, Y_X, Y_Y, Z_Z, ROLL_ROLL, PITCH_PITCH, YAW_YAW = 0, 1, 6, 7, 14, 21, 28, 35
+DIAGONAL = (X_X, Y_Y, Z_Z, ROLL_ROLL, PITCH_PITCH, YAW_YAW)
+
+
+class Label(IntEnum):
+    """``autoware_perception_msgs/ObjectClassification`` label constants."""
+
+    UNKNOWN = 0
+    CAR = 1
+    TRUCK = 2
+    BUS = 3
+    TRAILER = 4
+    MOTORCYCLE = 5
+    BICYCLE = 6
+    PEDESTRIAN = 7
+
+
+LABEL_NAMES: dict[int, str] = {int(v): v.name.lower() for v in Label}
+LABEL_BY_NAME: dict[str, int] = {v: k for k, v in LABEL_NAMES.items()}
+
+_UUID_HEX = re.compile(r"^[0-9a-f]{32}$")
+
+
+def _check_uuid(value: str) -> str:
+    if not _UUID_HEX.match(value):
+        raise ValueError("must be 32 lowercase hex digits (a 16-byte UUID)")
+    return value
+
+
+TrackId = Annotated[str, AfterValidator(_check_uuid)]
+
+
+class _Strict(BaseModel):
+    """Base of every model: unknown fields and non-finite floats are errors, not silently kept."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, validate_default=False)
+
+
+class Message(_Strict):
+    """Base of every top-level payload: it carries the schema version it was written with."""
+
+    schema_version: Literal[1] = SCHEMA_VERSION
+
+
+class Header(_Strict):
+    """``std_msgs/Header`` with an integer stamp (ns since epoch) and a monotonically increasing ``seq``."""
+
+    stamp: NonNegativeInt
+    frame_id: str = "map"
+    seq: NonNegativeInt = 0
+
+
+class Point(_Strict):
+    x: float = 0.0
+    y: float = 0.0
+    z: float = 0.0
+
+
+class Vector3(_Strict):
+    x: float = 0.0
+    y: float = 0.0
+    z: float = 0.0
+
+
+class Quaternion(_Strict):
+    x: float = 0.0
+    y: float = 0.0
+    z: float = 0.0
+    w: float = 1.0
+
+    @model_validator(mode="after")
+    def _non_zero(self) -> "Quaternion":
+        if self.x * self.x + self.y * self.y + self.z * self.z + self.w * self.w < 1e-12:
+            raise ValueError("quaternion must have non-zero norm")
+        return self
+
+
+class Pose(_Strict):
+    position: Point = Field(default_factory=Point)
+    orientation: Quaternion = Field(default_factory=Quaternion)
+
+
+class Twist(_Strict):
+    linear: Vector3 = Field(default_factory=Vector3)
+    angular: Vector3 = Field(default_factory=Vector3)
+
+
+def _zero_cov() -> list[float]:
+    return [0.0] * COVARIANCE_SIZE
+
+
+def _check_covariance(cov: list[float]) -> list[float]:
+    if len(cov) != COVARIANCE_SIZE:
+        raise ValueError(f"covariance must hold {COVARIANCE_SIZE} floats (row-major 6x6), got {len(cov)}")
+    for i in DIAGONAL:
+        if cov[i] < 0.0:
+            raise ValueError(f"negative variance {cov[i]!r} at index {i}")
+    return cov
+
+
+Covariance = Annotated[list[float], AfterValidator(_check_covariance)]
+
+
+class PoseWithCovariance(_Strict):
+    pose: Pose = Field(default_factory=Pose)
+    covariance: Covariance = Field(default_factory=_zero_cov)
+
+
+class TwistWithCovariance(_Strict):
+    twist: Twist = Field(default_factory=Twist)
+    covariance: Covariance = Field(default_factory=_zero_cov)
+
+
+class AccelWithCovariance(_Strict):
+    accel: Twist = Field(default_factory=Twist)
+    covariance: Covariance = Field(default_factory=_zero_cov)
+
+
+class ObjectClassification(_Strict):
+    label: Annotated[int, Field(ge=0, le=7)] = Label.UNKNOWN
+    probability: Annotated[float, Field(ge=0.0, le=1.0)] = 1.0
+
+
+class Shape(_Strict):
+    """``autoware_perception_msgs/Shape``: BOUNDING_BOX=0, CYLINDER=1, POLYGON=2; dimensions are x=length."""
+
+    BOUNDING_BOX: ClassVar[int] = 0
+    CYLINDER: ClassVar[int] = 1
+    POLYGON: ClassVar[int] = 2
+
+    type: Annotated[int, Field(ge=0, le=2)] = 0
+    footprint: list[Point] = Field(default_factory=list)
+    dimensions: Vector3 = Field(default_factory=Vector3)
+
+
+class OrientationAvailability(IntEnum):
+    UNAVAILABLE = 0
+    SIGN_UNKNOWN = 1
+    AVAILABLE = 2
+
+
+class DetectedObjectKinematics(_Strict):
+    pose_with_covariance: PoseWithCovariance = Field(default_factory=PoseWithCovariance)
+    has_position_covariance: bool = False
+    orientation_availability: Annotated[int, Field(ge=0, le=2)] = OrientationAvailability.AVAILABLE
+    twist_with_covariance: TwistWithCovariance = Field(default_factory=TwistWithCovariance)
+    has_twist: bool = False
+    has_twist_covariance: bool = False
+
+
+class DetectedObject(_Strict):
+    existence_probability: Annotated[float, Field(ge=0.0, le=1.0)] = 1.0
+    classification: list[ObjectClassification] = Field(default_factory=list)
+    kinematics: DetectedObjectKinematics = Field(default_factory=DetectedObjectKinematics)
+    shape: Shape = Field(default_factory=Shape)
+
+
+class TrackedObjectKinematics(_Strict):
+    pose_with_covariance: PoseWithCovariance = Field(default_factory=PoseWithCovariance)
+    twist_with_covariance: TwistWithCovariance = Field(default_factory=TwistWithCovariance)
+    acceleration_with_covariance: AccelWithCovariance = Field(default_factory=AccelWithCovariance)
+    orientation_availability: Annotated[int, Field(ge=0, le=2)] = OrientationAvailability.AVAILABLE
+    is_stationary: bool = False
+
+
+class TrackedObject(_Strict):
+    object_id: TrackId
+    existence_probability: Annotated[float, Field(ge=0.0, le=1.0)] = 1.0
+    classification: list[ObjectClassification] = Field(default_factory=list)
+    kinematics: TrackedObjectKinematics = Field(default_factory=TrackedObjectKinematics)
+    shape: Shape = Field(default_factory=Shape)
+
+
+# --------------------------------------------------------------------------------------------- payloads
+
+
+class PointCloud(Message):
+    """One LiDAR scan: ``num_points`` rows of packed little-endian float32, one column per name in ``fields``.
+
+    ``ego_pose`` is the sensor's pose in the world frame at ``header.stamp`` (points are in the sensor frame).
+    """
+
+    header: Header
+    ego_pose: Pose = Field(default_factory=Pose)
+    fields: list[str] = Field(default_factory=lambda: ["x", "y", "z", "intensity"], min_length=3)
+    num_points: NonNegativeInt
+    data: bytes
+
+    @field_validator("fields")
+    @classmethod
+    def _xyz_first(cls, v: list[str]) -> list[str]:
+        if v[:3] != ["x", "y", "z"]:
+            raise ValueError("the first three fields must be x, y, z")
+        if len(set(v)) != len(v):
+            raise ValueError("field names must be unique")
+        return v
+
+    @model_validator(mode="after")
+    def _buffer_matches(self) -> "PointCloud":
+        expected = self.num_points * len(self.fields) * 4
+        if len(self.data) != expected:
+            raise ValueError(
+                f"data: {len(self.data)} bytes do not match {self.num_points} points x {len(self.fields)} float32 fields"
+                f" ({expected} bytes)"
+            )
+        return self
+
+
+class DetectedObjects(Message):
+    """One scan's detections, in the sensor frame (``header.frame_id``), with the scan's ego pose."""
+
+    header: Header
+    ego_pose: Pose = Field(default_factory=Pose)
+    objects: list[DetectedObject] = Field(default_factory=list)
+
+
+class TrackObservation(Message):
+    """What the tracker associated to one track in one frame (``header.seq`` is the frame's seq).
+
+    ``detection`` is in the world frame with its covariance rotated into the world frame (R Σ Rᵀ);
+    ``track`` is the tracker's state after the update.
+    """
+
+    header: Header
+    detection: DetectedObject
+    track: TrackedObject
+
+
+class TrackedObjects(Message):
+    """``autoware_perception_msgs/TrackedObjects`` plus the frame-closing list ``observed_track_ids``.
+
+    The tracker publishes one ``tracks/{id}`` per ID in ``observed_track_ids`` before this message, so the
+    classifier knows which stragglers to wait for. The classifier's ``objects`` output leaves it empty.
+    """
+
+    header: Header
+    objects: list[TrackedObject] = Field(default_factory=list)
+    observed_track_ids: list[TrackId] = Field(default_factory=list)
+
+
+MotionLabel = Literal["static", "dynamic", "undecided"]
+TestMode = Literal["z_test", "chi2", "velocity_threshold"]
+EffectiveN = Literal["cluster", "independent"]
+
+
+class MotionState(Message):
+    """The classifier's decision for one track in one frame, with the statistics behind it."""
+
+    header: Header
+    track_id: TrackId
+    label: Annotated[int, Field(ge=0, le=7)] = Label.UNKNOWN
+    state: MotionLabel
+    mode: TestMode
+    z_x: float = 0.0
+    z_y: float = 0.0
+    chi2: float = 0.0
+    threshold: float = Field(description="the value the statistic was compared with (alpha, χ² quantile or m/s)")
+    alpha: float
+    window_length: NonNegativeInt
+    speed: Annotated[float, Field(ge=0.0)] = 0.0
+    mean_x: float = 0.0
+    mean_y: float = 0.0
+
+
+def _default_alpha_per_class() -> dict[str, float]:
+    return {}
+
+
+class ClassifierConfig(Message):
+    """Everything that tunes the motion classifier; a write applies from the next frame on."""
+
+    mode: TestMode = "z_test"
+    alpha_default: Annotated[float, Field(gt=0.0, le=100.0)] = 1.96
+    alpha_per_class: dict[str, Annotated[float, Field(gt=0.0, le=100.0)]] = Field(
+        default_factory=_default_alpha_per_class,
+        description="per-class alpha overrides, keyed by lowercase Autoware class name (car, truck, ...)",
+    )
+    window_size: Annotated[int, Field(ge=2, le=1000)] = 10
+    min_window: Annotated[int, Field(ge=2, le=1000)] = 2
+    variance_floor: Annotated[float, Field(gt=0.0, le=1e6)] = 1e-4
+    effective_n: EffectiveN = "cluster"
+    velocity_threshold: Annotated[float, Field(ge=0.0, le=100.0)] = 1.0
+
+    @field_validator("alpha_per_class")
+    @classmethod
+    def _known_classes(cls, v: dict[str, float]) -> dict[str, float]:
+        unknown = sorted(set(v) - set(LABEL_BY_NAME))
+        if unknown:
+            raise ValueError(f"unknown class name(s) {unknown}; expected some of {sorted(LABEL_BY_NAME)}")
+        return v
+
+    @model_validator(mode="after")
+    def _window_order(self) -> "ClassifierConfig":
+        if self.min_window > self.window_size:
+            raise ValueError(f"min_window ({self.min_window}) must not exceed window_size ({self.window_size})")
+        return self
+
+    def alpha_for(self, label: int) -> float:
+        return self.alpha_per_class.get(LABEL_NAMES.get(label, "unknown"), self.alpha_default)
+
+
+AUTHORS_ALPHA = {
+    "car": 2.58,
+    "truck": 2.58,
+    "bus": 2.58,
+    "trailer": 1.64,
+    "motorcycle": 1.96,
+    "bicycle": 1.64,
+    "pedestrian": 1.28,
+    "unknown": 1.96,
+}
+"""The per-class alpha the paper's authors deployed (DESIGN.md); the ``authors`` preset."""
+
+PRESETS: dict[str, dict[str, object]] = {
+    "paper": {"alpha_default": 1.96, "alpha_per_class": {}},
+    "authors": {"alpha_default": 1.96, "alpha_per_class": dict(AUTHORS_ALPHA)},
+}
+"""Named config presets; applying one keeps every other field as it is."""
+
+
+class ConfigReply(Message):
+    """The classifier's answer to a config get/set: what is in force now, or why the write was refused."""
+
+    ok: bool
+    config: ClassifierConfig
+    error: str | None = None
+
+
+class TrackStateEntry(_Strict):
+    """One track as the classifier sees it (the ``classifier/state`` queryable)."""
+
+    track_id: TrackId
+    label: Annotated[int, Field(ge=0, le=7)]
+    state: MotionLabel
+    z_x: float
+    z_y: float
+    chi2: float
+    alpha: float
+    threshold: float
+    window_length: NonNegativeInt
+    window_size: NonNegativeInt
+    speed: float
+    x: float
+    y: float
+    yaw: float = 0.0
+    length: float = 0.0
+    width: float = 0.0
+    last_update_ns: NonNegativeInt
+    last_seq: NonNegativeInt
+
+
+class ClassifierStateSnapshot(Message):
+    """The live per-track state of the classifier after its latest frame."""
+
+    header: Header
+    config: ClassifierConfig
+    tracks: list[TrackStateEntry] = Field(default_factory=list)
+    counters: dict[str, int] = Field(default_factory=dict)
+
+
+class Heartbeat(Message):
+    """Published every second by every service on ``jg/{ns}/heartbeat/{service}``: health beyond liveliness."""
+
+    service: str
+    pid: NonNegativeInt
+    stamp: NonNegativeInt
+    last_seq: int = -1
+    uptime_s: Annotated[float, Field(ge=0.0)] = 0.0
+    counters: dict[str, int] = Field(default_factory=dict)
