@@ -1,0 +1,48 @@
+"""Flags every service command shares, and the one way a command reports bad input (one line, exit 2).
+
+Each area of jitterguard registers its own commands with ``register(app)`` in its ``cli.py``; this module
+holds what they all reuse so the flags are spelled once.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from typing import Annotated, NoReturn
+
+import typer
+
+from .runtime import ZenohOptions
+from .runtime.zenoh_config import ENV_CONFIG, ENV_NS
+
+NsOpt = Annotated[str, typer.Option("--ns", envvar=ENV_NS, help="Namespace: keys live under jg/{ns}/...")]
+ZenohConfigOpt = Annotated[
+    str | None, typer.Option("--zenoh-config", envvar=ENV_CONFIG, help="Zenoh json5 config file.")
+]
+ConnectOpt = Annotated[
+    list[str] | None, typer.Option("--connect", help="Zenoh endpoint to connect to (repeatable), e.g. tcp/127.0.0.1:7447.")
+]
+ListenOpt = Annotated[
+    list[str] | None, typer.Option("--listen", help="Zenoh endpoint to listen on (repeatable).")
+]
+LogLevelOpt = Annotated[str, typer.Option("--log-level", help="DEBUG, INFO, WARNING or ERROR.")]
+
+
+def fail(message: str) -> NoReturn:
+    """Print a one-line error to stderr and exit with status 2 (bad input)."""
+    print(f"jitterguard: error: {message}", file=sys.stderr)
+    raise SystemExit(2)
+
+
+def zenoh_options(ns: str, zenoh_config: str | None, connect: list[str] | None, listen: list[str] | None) -> ZenohOptions:
+    """Validate the shared flags into :class:`ZenohOptions`, failing with one line on bad input."""
+    try:
+        opts = ZenohOptions(ns=ns, config_file=zenoh_config, connect=tuple(connect or ()), listen=tuple(listen or ()))
+    except ValueError as exc:
+        fail(f"--ns: {exc}")
+    if zenoh_config and not os.path.isfile(zenoh_config):
+        fail(f"--zenoh-config: file not found: {zenoh_config}")
+    for ep in (*opts.connect, *opts.listen):
+        if "/" not in ep:
+            fail(f"endpoint {ep!r} must look like tcp/HOST:PORT")
+    return opts
