@@ -42,6 +42,10 @@ class Counters:
         with self._lock:
             self._values[name] = self._values.get(name, 0) + n
 
+    def set(self, name: str, value: int) -> None:
+        with self._lock:
+            self._values[name] = value
+
     def get(self, name: str) -> int:
         with self._lock:
             return self._values.get(name, 0)

@@ -1,7 +1,7 @@
 """The wire contract: models, the msgpack codec and key-expression builders. No I/O."""
 
 from . import keys
-from .codec import DecodeError, decode, encode
+from .codec import DecodeError, decode, decode_with_raw, encode
 from .models import *  # noqa: F401,F403  (the models are the contract; re-export them all)
 from .models import (
     AUTHORS_ALPHA,
@@ -22,6 +22,7 @@ __all__ = [
     "keys",
     "encode",
     "decode",
+    "decode_with_raw",
     "DecodeError",
     "SCHEMA_VERSION",
     "Label",

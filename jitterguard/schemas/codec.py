@@ -25,13 +25,24 @@ class DecodeError(ValueError):
         super().__init__(f"{model}.{field}: {reason}" if field else f"{model}: {reason}")
 
 
-def encode(model: BaseModel) -> bytes:
-    """Serialise a model (all fields, defaults included) to msgpack bytes."""
-    return msgpack.packb(model.model_dump(mode="python"), use_bin_type=True)
+def encode(model: BaseModel | dict) -> bytes:
+    """Serialise a model (all fields, defaults included) — or a map from :func:`decode_with_raw` — to msgpack."""
+    data = model if isinstance(model, dict) else model.model_dump(mode="python")
+    return msgpack.packb(data, use_bin_type=True)
 
 
 def decode(cls: type[M], data: bytes | bytearray | memoryview) -> M:
     """Parse msgpack ``data`` and validate it as ``cls``; any failure raises :class:`DecodeError`."""
+    return decode_with_raw(cls, data)[0]
+
+
+def decode_with_raw(cls: type[M], data: bytes | bytearray | memoryview) -> tuple[M, dict]:
+    """Like :func:`decode`, also returning the validated msgpack map.
+
+    For adapters that forward a payload with small edits (the classifier re-publishes the tracker's
+    objects): editing the already-validated map and packing it is several times cheaper than dumping the
+    model again, and this is the per-frame hot path.
+    """
     name = cls.__name__
     try:
         raw = msgpack.unpackb(bytes(data), raw=False, strict_map_key=True, use_list=True)
@@ -40,7 +51,7 @@ def decode(cls: type[M], data: bytes | bytearray | memoryview) -> M:
     if not isinstance(raw, dict):
         raise DecodeError(name, "", f"expected a msgpack map, got {type(raw).__name__}")
     try:
-        return cls.model_validate(raw)
+        return cls.model_validate(raw), raw
     except ValidationError as exc:
         err = exc.errors(include_url=False)[0]
         field = ".".join(str(p) for p in err.get("loc", ())) or ""

@@ -1,0 +1,101 @@
+"""Frame assembly: pair the tracker's per-track observations with the message that closes their frame.
+
+Zenoh gives no ordering between two subscribers, so ``tracks/{id}`` samples of frame *s* may arrive after
+the ``tracked`` message that closes *s*. The closing message lists the IDs it expects; a frame is complete
+when all of them are in, or when the straggler timeout has passed since its close arrived (then the missing
+ones are counted). Pure: the caller passes the clock.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from ...schemas.models import TrackedObjects, TrackObservation
+
+RESTART_GAP = 20
+"""A closing seq this far below the last one means the tracker restarted (its seq began again)."""
+
+
+@dataclass
+class CompleteFrame:
+    seq: int
+    tracked: TrackedObjects
+    observations: list[TrackObservation]
+    received_at: float  # when the closing message arrived (for latency)
+    missing: int  # expected observations that never came
+
+
+@dataclass
+class FrameAssembler:
+    straggler_timeout_s: float = 0.05
+    max_pending_frames: int = 64
+    last_done: int = -1
+    counts: dict[str, int] = field(default_factory=dict)
+    _obs: dict[int, dict[str, TrackObservation]] = field(default_factory=dict)
+    _closes: dict[int, tuple[TrackedObjects, float]] = field(default_factory=dict)
+
+    def _count(self, name: str, n: int = 1) -> None:
+        self.counts[name] = self.counts.get(name, 0) + n
+
+    def add_observation(self, obs: TrackObservation) -> None:
+        seq = obs.header.seq
+        if seq <= self.last_done and self.last_done - seq <= RESTART_GAP:
+            self._count("late_observations")
+            return
+        bucket = self._obs.setdefault(seq, {})
+        if obs.track.object_id in bucket:
+            self._count("duplicate_observations")
+        bucket[obs.track.object_id] = obs
+        if len(self._obs) > self.max_pending_frames:  # closes that never come must not grow memory
+            oldest = min(self._obs)
+            self._count("orphaned_observations", len(self._obs.pop(oldest)))
+
+    def add_close(self, tracked: TrackedObjects, now: float) -> bool:
+        """Register a frame-closing message; returns False (and counts) when it is stale or a duplicate.
+
+        A seq far below the last one processed is taken as an upstream restart: state is reset and the
+        caller learns it through ``counts['upstream_restarts']``.
+        """
+        seq = tracked.header.seq
+        if seq <= self.last_done:
+            if self.last_done - seq > RESTART_GAP:
+                self._count("upstream_restarts")
+                self.last_done = -1
+                self._obs = {s: b for s, b in self._obs.items() if s <= seq + RESTART_GAP}
+                self._closes.clear()
+            else:
+                self._count("duplicate_or_late_frames")
+                return False
+        if seq in self._closes:
+            self._count("duplicate_or_late_frames")
+            return False
+        self._closes[seq] = (tracked, now)
+        return True
+
+    def pop_ready(self, now: float) -> list[CompleteFrame]:
+        """Frames that are complete or timed out, in seq order; older pending frames are flushed first."""
+        out: list[CompleteFrame] = []
+        for seq in sorted(self._closes):
+            tracked, t0 = self._closes[seq]
+            got = self._obs.get(seq, {})
+            expected = tracked.observed_track_ids
+            missing = sum(1 for i in expected if i not in got)
+            if missing and now - t0 < self.straggler_timeout_s:
+                break  # keep order: later frames wait behind this one
+            del self._closes[seq]
+            bucket = self._obs.pop(seq, {})
+            wanted = set(expected)
+            observations = [o for i, o in bucket.items() if i in wanted]
+            if len(observations) != len(bucket):
+                self._count("unexpected_observations", len(bucket) - len(observations))
+            for stale in [s for s in self._obs if s < seq]:
+                self._count("orphaned_observations", len(self._obs.pop(stale)))
+            if missing:
+                self._count("missing_observations", missing)
+            self.last_done = seq
+            out.append(CompleteFrame(seq, tracked, observations, t0, missing))
+        return out
+
+    @property
+    def pending(self) -> int:
+        return len(self._closes)

@@ -1,0 +1,284 @@
+"""The classifier as a Zenoh service: a thin adapter around :class:`MotionClassifierCore`.
+
+Threads: Zenoh's subscriber callbacks only decode and enqueue; one worker thread owns the core, assembles
+frames (observations + the closing ``tracked``), decides, and publishes ``objects`` first (what the
+predictor waits for) and then ``motion/{id}``. Config writes go through the same queue, so a write is
+applied between two frames and the reply reports what is in force from the next frame on.
+"""
+
+from __future__ import annotations
+
+import math
+import queue
+import threading
+import time
+from collections import deque
+from concurrent.futures import Future
+from dataclasses import dataclass
+
+import numpy as np
+import zenoh
+
+from ...geometry import yaw_from_quaternion
+from ...runtime import Service, ZenohOptions
+from ...schemas import DecodeError, decode, decode_with_raw, encode, keys
+from ...schemas.models import (
+    X_X,
+    X_Y,
+    Y_Y,
+    ClassifierConfig,
+    ClassifierStateSnapshot,
+    ConfigReply,
+    Header,
+    MotionState,
+    TrackedObjects,
+    TrackObservation,
+    TrackStateEntry,
+)
+from .core import STATE_NAMES, STATIC, Decisions, MotionClassifierCore, Observations
+from .frames import CompleteFrame, FrameAssembler
+
+CONFIG_APPLY_TIMEOUT_S = 2.0
+LATENCY_WINDOW = 4096
+
+
+def observations_from_messages(msgs: list[TrackObservation], seq: int, stamp_ns: int) -> Observations:
+    """Flatten one frame's TrackObservation messages into the core's arrays (world frame)."""
+    ids, labels, x, y, cxx, cxy, cyy, speed = [], [], [], [], [], [], [], []
+    for m in msgs:
+        det = m.detection
+        cov = det.kinematics.pose_with_covariance.covariance
+        pos = det.kinematics.pose_with_covariance.pose.position
+        cls = m.track.classification or det.classification
+        tw = m.track.kinematics.twist_with_covariance.twist.linear
+        ids.append(m.track.object_id)
+        labels.append(max(cls, key=lambda c: c.probability).label if cls else 0)
+        x.append(pos.x)
+        y.append(pos.y)
+        cxx.append(cov[X_X])
+        cxy.append(cov[X_Y])
+        cyy.append(cov[Y_Y])
+        speed.append(math.hypot(tw.x, tw.y))
+    return Observations.from_lists(ids, labels, x, y, cxx, cxy, cyy, speed, stamp_ns=stamp_ns, seq=seq)
+
+
+def apply_decisions_to_objects(objects: list[dict], dec: Decisions) -> None:
+    """Edit the tracker's objects (validated msgpack maps) in place: static ⇒ zero twist, window-mean
+    position, ``is_stationary``; dynamic and undecided pass through with ``is_stationary = false``."""
+    states = dec.state.tolist()
+    mx, my = dec.mean_x.tolist(), dec.mean_y.tolist()
+    for obj, state, x, y in zip(objects, states, mx, my):
+        kin = obj["kinematics"]
+        if state == STATIC:
+            kin["is_stationary"] = True
+            pos = kin["pose_with_covariance"]["pose"]["position"]
+            pos["x"], pos["y"] = x, y
+            twist = kin["twist_with_covariance"]["twist"]
+            twist["linear"] = {"x": 0.0, "y": 0.0, "z": 0.0}
+            twist["angular"] = {"x": 0.0, "y": 0.0, "z": 0.0}
+        else:
+            kin["is_stationary"] = False
+
+
+@dataclass
+class _Latest:
+    """What the state queryable reports: the last processed frame (immutable once stored)."""
+
+    header: Header
+    tracked: TrackedObjects
+    decisions: Decisions
+    labels: np.ndarray
+    stamps: np.ndarray
+    seqs: np.ndarray
+    config: ClassifierConfig
+    encoded: bytes | None = None
+
+
+class ClassifierService(Service):
+    name = "classifier"
+
+    def __init__(self, opts: ZenohOptions, config: ClassifierConfig | None = None, *,
+                 straggler_timeout_s: float = 0.05) -> None:
+        super().__init__(opts)
+        self.core = MotionClassifierCore(config or ClassifierConfig())
+        self.assembler = FrameAssembler(straggler_timeout_s=straggler_timeout_s)
+        self.latencies_ms: deque[float] = deque(maxlen=LATENCY_WINDOW)
+        self._queue: queue.Queue = queue.Queue()
+        self._latest: _Latest | None = None
+        self._latest_lock = threading.Lock()
+        self._objects_pub = self.publisher(keys.objects(self.ns))
+        self.subscribe(keys.tracks_all(self.ns), TrackObservation, self._on_observation)
+        self._declare_tracked_subscriber()
+        self.queryable(keys.classifier_config(self.ns), self._on_config_query)
+        self.queryable(keys.classifier_state(self.ns), self._on_state_query)
+        self.spawn(self._worker, "worker")
+
+    # ---------------------------------------------------------------- callbacks: decode and enqueue
+
+    def _on_observation(self, msg: TrackObservation, _key: str) -> None:
+        self._queue.put(("obs", msg, None))
+
+    def _declare_tracked_subscriber(self) -> None:
+        # Not Service.subscribe: the worker forwards this payload's validated map, so keep it (decode_with_raw),
+        # and stamp the arrival before decoding so the latency figure includes it.
+        def on_sample(sample: zenoh.Sample) -> None:
+            t0 = time.perf_counter()
+            self.counters.inc("received")
+            try:
+                msg, raw = decode_with_raw(TrackedObjects, sample.payload.to_bytes())
+            except DecodeError as exc:
+                self.counters.inc("rejected")
+                self.counters.inc("rejected.tracked")
+                self._reject_log.warn(f"rejected payload on {sample.key_expr}: {exc}")
+                return
+            self._queue.put(("close", (msg, raw), t0))
+
+        self._declared.append(self.session.declare_subscriber(keys.tracked(self.ns), on_sample))
+
+    # ---------------------------------------------------------------- the worker
+
+    def _worker(self) -> None:
+        raws: dict[int, dict] = {}
+        while not self.stop_event.is_set():
+            try:
+                kind, item, t0 = self._queue.get(timeout=0.005)
+            except queue.Empty:
+                kind = None
+            if kind == "obs":
+                self.assembler.add_observation(item)
+            elif kind == "close":
+                msg, raw = item
+                restarts = self.assembler.counts.get("upstream_restarts", 0)
+                if self.assembler.add_close(msg, t0):
+                    raws[msg.header.seq] = raw
+                if self.assembler.counts.get("upstream_restarts", 0) != restarts:
+                    self.core.reset()
+                    raws = {msg.header.seq: raw}
+            elif kind == "config":
+                cfg, fut = item
+                self.core.configure(cfg)
+                self.counters.inc("config_changes")
+                fut.set_result(self.core.config)
+            elif kind == "call":  # run a function on the worker (tests, state maintenance)
+                fn, fut = item
+                fut.set_result(fn())
+            for frame in self.assembler.pop_ready(time.perf_counter()):
+                self._process(frame, raws.pop(frame.seq, None))
+            for k, v in self.assembler.counts.items():
+                self.counters.set(f"frames.{k}", v)
+
+    def _process(self, frame: CompleteFrame, raw: dict | None) -> None:
+        header = frame.tracked.header
+        obs = observations_from_messages(frame.observations, header.seq, header.stamp)
+        if len(obs):
+            decided = self.core.update(obs)
+        else:
+            decided = None
+        reported = np.asarray([o.object_id for o in frame.tracked.objects], dtype="S32")
+        evicted = self.core.retain(reported)
+        if evicted:
+            self.counters.inc("windows_evicted", evicted)
+        dec = self.core.last_decisions(reported)
+
+        out = raw if raw is not None else frame.tracked.model_dump(mode="python")
+        apply_decisions_to_objects(out["objects"], dec)
+        out["observed_track_ids"] = []
+        self._objects_pub.put(encode(out))
+        self.latencies_ms.append((time.perf_counter() - frame.received_at) * 1e3)
+        self.counters.inc("published")
+        self.counters.inc("frames_processed")
+        self.last_seq = header.seq
+
+        if decided is not None:
+            self._publish_motion(header, obs, decided)
+        labels, stamps, seqs = self.core.last_meta(reported)
+        with self._latest_lock:
+            self._latest = _Latest(header, frame.tracked, dec, labels, stamps, seqs, self.core.config)
+
+    def _publish_motion(self, header: Header, obs: Observations, dec: Decisions) -> None:
+        mode = self.core.config.mode
+        h = Header(stamp=header.stamp, frame_id="map", seq=header.seq)
+        names = dec.state_names()
+        for i, tid in enumerate(obs.track_ids.tolist()):
+            tid_s = tid.decode()
+            ms = MotionState.model_construct(
+                schema_version=1, header=h, track_id=tid_s, label=int(obs.labels[i]), state=names[i], mode=mode,
+                z_x=float(dec.z_x[i]), z_y=float(dec.z_y[i]), chi2=float(dec.chi2[i]),
+                threshold=float(dec.threshold[i]), alpha=float(dec.alpha[i]),
+                window_length=int(dec.window_length[i]), speed=float(dec.speed[i]),
+                mean_x=float(dec.mean_x[i]), mean_y=float(dec.mean_y[i]),
+            )
+            self.put(keys.motion(self.ns, tid_s), ms)
+
+    # ---------------------------------------------------------------- queryables
+
+    def run_on_worker(self, fn, timeout: float = CONFIG_APPLY_TIMEOUT_S):
+        """Run ``fn()`` on the worker thread between two frames and return its result."""
+        fut: Future = Future()
+        self._queue.put(("call", (fn, fut), None))
+        return fut.result(timeout=timeout)
+
+    def _on_config_query(self, query: zenoh.Query) -> None:
+        payload = query.payload.to_bytes() if query.payload is not None else b""
+        if not payload:
+            query.reply(query.key_expr, encode(ConfigReply(ok=True, config=self.core.config)))
+            return
+        try:
+            cfg = decode(ClassifierConfig, payload)
+        except DecodeError as exc:
+            self.counters.inc("rejected")
+            self.counters.inc("rejected.classifier/config")
+            query.reply_err(encode(ConfigReply(ok=False, config=self.core.config, error=str(exc))))
+            return
+        fut: Future = Future()
+        self._queue.put(("config", (cfg, fut), None))
+        try:
+            in_force = fut.result(timeout=CONFIG_APPLY_TIMEOUT_S)
+        except Exception as exc:  # worker stuck or stopping: say so, the write may not be in force
+            query.reply_err(encode(ConfigReply(ok=False, config=self.core.config, error=f"not applied: {exc}")))
+            return
+        self.log.info("config applied: %s", in_force.model_dump(exclude={"schema_version"}))
+        query.reply(query.key_expr, encode(ConfigReply(ok=True, config=in_force)))
+
+    def state_snapshot(self) -> ClassifierStateSnapshot:
+        with self._latest_lock:
+            latest = self._latest
+        if latest is None:
+            return ClassifierStateSnapshot(header=Header(stamp=0, seq=0), config=self.core.config,
+                                           counters=self.counters.snapshot())
+        entries = []
+        dec = latest.decisions
+        for i, obj in enumerate(latest.tracked.objects):
+            pose = obj.kinematics.pose_with_covariance.pose
+            static = dec.state[i] == STATIC
+            entries.append(TrackStateEntry(
+                track_id=obj.object_id, label=int(latest.labels[i]), state=STATE_NAMES[int(dec.state[i])],
+                z_x=float(dec.z_x[i]), z_y=float(dec.z_y[i]), chi2=float(dec.chi2[i]), alpha=float(dec.alpha[i]),
+                threshold=float(dec.threshold[i]), window_length=int(dec.window_length[i]),
+                window_size=latest.config.window_size, speed=float(dec.speed[i]),
+                x=float(dec.mean_x[i]) if static else pose.position.x,
+                y=float(dec.mean_y[i]) if static else pose.position.y,
+                yaw=yaw_from_quaternion(pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w),
+                length=obj.shape.dimensions.x, width=obj.shape.dimensions.y,
+                last_update_ns=int(latest.stamps[i]), last_seq=int(latest.seqs[i]),
+            ))
+        return ClassifierStateSnapshot(header=latest.header, config=latest.config, tracks=entries,
+                                       counters=self.counters.snapshot())
+
+    def _on_state_query(self, query: zenoh.Query) -> None:
+        with self._latest_lock:
+            latest = self._latest
+        if latest is not None and latest.encoded is not None:
+            query.reply(query.key_expr, latest.encoded)
+            return
+        data = encode(self.state_snapshot())
+        if latest is not None:
+            latest.encoded = data  # same frame, same answer: encode once per frame
+        query.reply(query.key_expr, data)
+
+    def latency_percentiles(self) -> dict[str, float]:
+        lat = np.asarray(self.latencies_ms, dtype=np.float64)
+        if lat.size == 0:
+            return {"p50_ms": float("nan"), "p99_ms": float("nan")}
+        return {"p50_ms": float(np.percentile(lat, 50)), "p99_ms": float(np.percentile(lat, 99))}
+
