@@ -33,6 +33,7 @@ class FrameAssembler:
     counts: dict[str, int] = field(default_factory=dict)
     _obs: dict[int, dict[str, TrackObservation]] = field(default_factory=dict)
     _closes: dict[int, tuple[TrackedObjects, float]] = field(default_factory=dict)
+    _waiting: dict[int, set[str]] = field(default_factory=dict)  # per closed seq: expected IDs not yet in
 
     def _count(self, name: str, n: int = 1) -> None:
         self.counts[name] = self.counts.get(name, 0) + n
@@ -46,6 +47,9 @@ class FrameAssembler:
         if obs.track.object_id in bucket:
             self._count("duplicate_observations")
         bucket[obs.track.object_id] = obs
+        waiting = self._waiting.get(seq)
+        if waiting is not None:
+            waiting.discard(obs.track.object_id)
         if len(self._obs) > self.max_pending_frames:  # closes that never come must not grow memory
             oldest = min(self._obs)
             self._count("orphaned_observations", len(self._obs.pop(oldest)))
@@ -63,6 +67,7 @@ class FrameAssembler:
                 self.last_done = -1
                 self._obs = {s: b for s, b in self._obs.items() if s <= seq + RESTART_GAP}
                 self._closes.clear()
+                self._waiting.clear()
             else:
                 self._count("duplicate_or_late_frames")
                 return False
@@ -70,6 +75,8 @@ class FrameAssembler:
             self._count("duplicate_or_late_frames")
             return False
         self._closes[seq] = (tracked, now)
+        got = self._obs.get(seq, {})
+        self._waiting[seq] = {i for i in tracked.observed_track_ids if i not in got}
         return True
 
     def pop_ready(self, now: float) -> list[CompleteFrame]:
@@ -77,14 +84,13 @@ class FrameAssembler:
         out: list[CompleteFrame] = []
         for seq in sorted(self._closes):
             tracked, t0 = self._closes[seq]
-            got = self._obs.get(seq, {})
-            expected = tracked.observed_track_ids
-            missing = sum(1 for i in expected if i not in got)
+            missing = len(self._waiting[seq])
             if missing and now - t0 < self.straggler_timeout_s:
                 break  # keep order: later frames wait behind this one
             del self._closes[seq]
+            del self._waiting[seq]
             bucket = self._obs.pop(seq, {})
-            wanted = set(expected)
+            wanted = set(tracked.observed_track_ids)
             observations = [o for i, o in bucket.items() if i in wanted]
             if len(observations) != len(bucket):
                 self._count("unexpected_observations", len(bucket) - len(observations))

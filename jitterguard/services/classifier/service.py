@@ -21,7 +21,7 @@ import zenoh
 
 from ...geometry import yaw_from_quaternion
 from ...runtime import Service, ZenohOptions
-from ...schemas import DecodeError, decode, decode_with_raw, encode, keys
+from ...schemas import SCHEMA_VERSION, DecodeError, decode, decode_with_raw, encode, keys
 from ...schemas.models import (
     X_X,
     X_Y,
@@ -30,7 +30,6 @@ from ...schemas.models import (
     ClassifierStateSnapshot,
     ConfigReply,
     Header,
-    MotionState,
     TrackedObjects,
     TrackObservation,
     TrackStateEntry,
@@ -141,31 +140,43 @@ class ClassifierService(Service):
         raws: dict[int, dict] = {}
         while not self.stop_event.is_set():
             try:
-                kind, item, t0 = self._queue.get(timeout=0.005)
+                events = [self._queue.get(timeout=0.005)]
             except queue.Empty:
-                kind = None
-            if kind == "obs":
-                self.assembler.add_observation(item)
-            elif kind == "close":
-                msg, raw = item
-                restarts = self.assembler.counts.get("upstream_restarts", 0)
-                if self.assembler.add_close(msg, t0):
-                    raws[msg.header.seq] = raw
-                if self.assembler.counts.get("upstream_restarts", 0) != restarts:
-                    self.core.reset()
-                    raws = {msg.header.seq: raw}
-            elif kind == "config":
-                cfg, fut = item
-                self.core.configure(cfg)
-                self.counters.inc("config_changes")
-                fut.set_result(self.core.config)
-            elif kind == "call":  # run a function on the worker (tests, state maintenance)
-                fn, fut = item
-                fut.set_result(fn())
-            for frame in self.assembler.pop_ready(time.perf_counter()):
+                events = []
+            while len(events) < 4096:  # drain what is there: readiness is checked once per batch
+                try:
+                    events.append(self._queue.get_nowait())
+                except queue.Empty:
+                    break
+            for kind, item, t0 in events:
+                self._handle(kind, item, t0, raws)
+            frames = self.assembler.pop_ready(time.perf_counter())
+            for frame in frames:
                 self._process(frame, raws.pop(frame.seq, None))
-            for k, v in self.assembler.counts.items():
-                self.counters.set(f"frames.{k}", v)
+            if events:
+                for k, v in self.assembler.counts.items():
+                    self.counters.set(f"frames.{k}", v)
+
+    def _handle(self, kind: str, item, t0: float | None, raws: dict[int, dict]) -> None:
+        if kind == "obs":
+            self.assembler.add_observation(item)
+        elif kind == "close":
+            msg, raw = item
+            restarts = self.assembler.counts.get("upstream_restarts", 0)
+            if self.assembler.add_close(msg, t0):
+                raws[msg.header.seq] = raw
+            if self.assembler.counts.get("upstream_restarts", 0) != restarts:
+                self.core.reset()
+                raws.clear()
+                raws[msg.header.seq] = raw
+        elif kind == "config":
+            cfg, fut = item
+            self.core.configure(cfg)
+            self.counters.inc("config_changes")
+            fut.set_result(self.core.config)
+        elif kind == "call":  # run a function on the worker, between frames
+            fn, fut = item
+            fut.set_result(fn())
 
     def _process(self, frame: CompleteFrame, raw: dict | None) -> None:
         header = frame.tracked.header
@@ -196,19 +207,19 @@ class ClassifierService(Service):
             self._latest = _Latest(header, frame.tracked, dec, labels, stamps, seqs, self.core.config)
 
     def _publish_motion(self, header: Header, obs: Observations, dec: Decisions) -> None:
-        mode = self.core.config.mode
-        h = Header(stamp=header.stamp, frame_id="map", seq=header.seq)
+        """One MotionState per observed track. Built as plain maps from arrays the core just computed
+        (every value finite and in range by construction): a model per track costs more than the frame."""
+        cfg = self.core.config
+        h = {"stamp": header.stamp, "frame_id": "map", "seq": header.seq}
         names = dec.state_names()
+        cols = {k: getattr(dec, k).tolist() for k in
+                ("z_x", "z_y", "chi2", "threshold", "alpha", "window_length", "speed", "mean_x", "mean_y")}
+        labels = obs.labels.tolist()
         for i, tid in enumerate(obs.track_ids.tolist()):
             tid_s = tid.decode()
-            ms = MotionState.model_construct(
-                schema_version=1, header=h, track_id=tid_s, label=int(obs.labels[i]), state=names[i], mode=mode,
-                z_x=float(dec.z_x[i]), z_y=float(dec.z_y[i]), chi2=float(dec.chi2[i]),
-                threshold=float(dec.threshold[i]), alpha=float(dec.alpha[i]),
-                window_length=int(dec.window_length[i]), speed=float(dec.speed[i]),
-                mean_x=float(dec.mean_x[i]), mean_y=float(dec.mean_y[i]),
-            )
-            self.put(keys.motion(self.ns, tid_s), ms)
+            msg = {"schema_version": SCHEMA_VERSION, "header": h, "track_id": tid_s, "label": labels[i],
+                   "state": names[i], "mode": cfg.mode, **{k: v[i] for k, v in cols.items()}}
+            self.put(keys.motion(self.ns, tid_s), encode(msg))
 
     # ---------------------------------------------------------------- queryables
 

@@ -1,0 +1,112 @@
+"""Benchmarks of the classifier: the pure core per frame, and the live service over Zenoh.
+
+The service figure times a frame inside the classifier process from the moment its ``tracked`` sample
+arrives (before decoding) to the moment ``objects`` is published; the classifier runs in its own process
+(spawned, as under the supervisor), fed over loopback Zenoh at a fixed rate.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import time
+
+import numpy as np
+
+from ...schemas.models import ClassifierConfig
+from .core import MotionClassifierCore, Observations
+
+
+def _frame(rng: np.random.Generator, ids: list[str], t: int) -> Observations:
+    n = len(ids)
+    moving = np.arange(n) % 2 == 0
+    return Observations.from_lists(
+        ids, np.ones(n), rng.normal(0, 0.1, n) + moving * 0.5 * t, rng.normal(0, 0.1, n),
+        np.full(n, 0.01), np.zeros(n), np.full(n, 0.02), np.where(moving, 5.0, 0.2), seq=t,
+    )
+
+
+def bench_core(sizes: tuple[int, ...] = (10, 100, 1000), window: int = 10, frames: int = 300, seed: int = 0) -> dict:
+    """Median time of one ``update`` (window full, after warm-up) for each track count."""
+    out: dict[str, dict[str, float]] = {}
+    for n in sizes:
+        rng = np.random.default_rng(seed)
+        ids = [f"{i:032x}" for i in range(n)]
+        core = MotionClassifierCore(ClassifierConfig(window_size=window), capacity=n)
+        batches = [_frame(rng, ids, t) for t in range(frames + window)]
+        for b in batches[:window]:  # warm-up: fill every window
+            core.update(b)
+        times = []
+        for b in batches[window:]:
+            t0 = time.perf_counter()
+            core.update(b)
+            times.append(time.perf_counter() - t0)
+        med = float(np.median(times))
+        out[f"tracks_{n}"] = {"median_ms": med * 1e3, "updates_per_s": n / med}
+    return out
+
+
+def _classifier_process(opts, conn) -> None:  # runs in a spawned child
+    from .service import ClassifierService
+
+    svc = ClassifierService(opts)
+    conn.send("ready")
+    conn.recv()  # wait for "stop"
+    time.sleep(0.3)  # let the last frames finish
+    conn.send({"latencies_ms": list(svc.latencies_ms), "counters": svc.counters.snapshot()})
+    svc.close()
+
+
+def bench_service(tracks: int = 200, rate_hz: float = 20.0, duration_s: float = 60.0, seed: int = 0) -> dict:
+    """Run the real classifier service for ``duration_s`` at ``tracks`` × ``rate_hz``; latency percentiles."""
+    from ...runtime import Service, free_tcp_port, loopback_options
+    from ...schemas import keys
+    from .feeder import publish_track_frame
+    from .synthetic_tracks import TrackScenario, generate
+
+    port = free_tcp_port()
+    ns = "bench"
+    ctx = mp.get_context("spawn")
+    parent, child = ctx.Pipe()
+    proc = ctx.Process(target=_classifier_process, args=(loopback_options(ns, port, listen_self=True), child))
+    proc.start()
+    parent.recv()
+
+    class _Feeder(Service):
+        name = "bench-feeder"
+
+    feeder = _Feeder(loopback_options(ns, port))
+    received = []
+    feeder.session.declare_subscriber(keys.objects(ns), lambda s: received.append(1))
+    time.sleep(1.0)  # let the mesh settle before the clock starts
+    sc = TrackScenario(n_static=tracks // 2, n_moving=tracks - tracks // 2 - 1, n_starting=1, seed=seed, rate_hz=rate_hz)
+    pool = list(generate(sc, 40))
+    n_frames = int(duration_s * rate_hz)
+    period = 1.0 / rate_hz
+    t_next = time.monotonic()
+    from .feeder import _renumber
+
+    for i in range(n_frames):
+        publish_track_frame(feeder, _renumber(pool[i % len(pool)], i), ns)
+        t_next += period
+        time.sleep(max(0.0, t_next - time.monotonic()))
+    time.sleep(1.0)
+    parent.send("stop")
+    result = parent.recv()
+    proc.join(10)
+    feeder.close()
+    lat = np.asarray(result["latencies_ms"])
+    processed = result["counters"].get("frames_processed", 0)
+    return {
+        "tracks": tracks,
+        "rate_hz": rate_hz,
+        "duration_s": duration_s,
+        "p50_ms": float(np.percentile(lat, 50)) if lat.size else None,
+        "p99_ms": float(np.percentile(lat, 99)) if lat.size else None,
+        "max_ms": float(lat.max()) if lat.size else None,
+        "frames_sent": n_frames,
+        "frames_processed": processed,
+        "frames_received_downstream": len(received),
+        "frames_dropped": n_frames - processed,
+        "rejected": result["counters"].get("rejected", 0),
+        "counters": {k: v for k, v in result["counters"].items() if k.startswith("frames.")},
+    }
