@@ -1,0 +1,203 @@
+"""``jitterguard replay SOURCE`` and ``jitterguard bench replay``.
+
+Bad input (unknown source, bad ``--rate``, missing file) is one line on stderr and exit 2. A frame that
+cannot be read is one line naming the file; with ``--on-error skip`` (default) replay goes on and the final
+summary counts it, with ``--on-error stop`` replay ends there with exit 1.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import signal
+import sys
+import threading
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+
+from ...cli_common import ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ZenohConfigOpt, fail, zenoh_options
+from ...runtime import setup_logging
+from .frames import Frame, FrameError, SourceError
+from .pacing import parse_rate
+from .runner import ReplayPlan
+
+log = logging.getLogger("jitterguard.replay")
+
+EXAMPLES = """
+Examples:\n
+  jitterguard replay synthetic:parking-street --seed 3 --rate 2\n
+  jitterguard replay synthetic:mixed --level detections --loop\n
+  jitterguard replay ../shared/data/nuscenes-scene-0523 --rate max\n
+  jitterguard replay sequences/00/velodyne --poses poses/00.txt --start 100 --limit 50\n
+  jitterguard replay run.mcap --topic /sensing/lidar/top/pointcloud --pose-topic /localization/kinematic_state
+"""
+
+
+def _path(value: str | None, flag: str) -> Path | None:
+    if value is None:
+        return None
+    p = Path(value)
+    if not p.is_file():
+        fail(f"{flag}: file not found: {value}")
+    return p
+
+
+class _Progress:
+    """tqdm on stderr when it is a terminal (or forced); error lines go through it so the bar stays intact."""
+
+    def __init__(self, enabled: bool, total: int | None, desc: str) -> None:
+        self.bar: Any = None
+        if enabled:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=total, desc=desc, unit="scan", file=sys.stderr, dynamic_ncols=True, leave=True)
+        self.errors = 0
+
+    def published(self, _frame: Frame, _seq: int) -> None:
+        if self.bar is not None:
+            self.bar.update(1)
+
+    def error(self, err: FrameError) -> None:
+        self.errors += 1
+        line = f"jitterguard: unreadable frame skipped: {err}"
+        if self.bar is not None:
+            self.bar.set_postfix(errors=self.errors, refresh=False)
+            self.bar.write(line, file=sys.stderr)
+        else:
+            print(line, file=sys.stderr)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def replay_command(
+    source: Annotated[str, typer.Argument(help="synthetic:SCENARIO, a nuScenes dataroot, a bag (.mcap/.db3/folder), a folder of .bin or .pcd scans, or one such file.")],
+    rate: Annotated[str, typer.Option("--rate", help="Factor on the recorded rate (1 = real time, 2 = twice as fast), or 'max'.")] = "1",
+    loop: Annotated[bool, typer.Option("--loop", help="Start over at the end, forever (seq and stamps keep increasing).")] = False,
+    start: Annotated[int, typer.Option("--start", help="First recorded frame to replay (0-based).")] = 0,
+    limit: Annotated[int | None, typer.Option("--limit", help="Replay at most this many frames (per pass when looping).")] = None,
+    on_error: Annotated[str, typer.Option("--on-error", help="A frame that cannot be read: 'skip' (count it, go on) or 'stop' (exit 1).")] = "skip",
+    level: Annotated[str, typer.Option("--level", help="Synthetic sources: 'points' (ray-cast scans) or 'detections' (the synthetic detector).")] = "points",
+    seed: Annotated[int, typer.Option("--seed", help="Synthetic sources: scenario and noise seed.")] = 0,
+    duration: Annotated[float, typer.Option("--duration", help="Synthetic sources: scenario length in seconds.")] = 20.0,
+    scene: Annotated[str | None, typer.Option("--scene", help="nuScenes: scene name or token (needed when the dataroot holds several).")] = None,
+    nuscenes_version: Annotated[str | None, typer.Option("--nuscenes-version", help="nuScenes: table folder, e.g. v1.0-mini (default: the only one).")] = None,
+    sweeps: Annotated[bool, typer.Option("--sweeps", help="nuScenes: replay every LiDAR sweep, not only key frames.")] = False,
+    poses: Annotated[str | None, typer.Option("--poses", help="KITTI: odometry poses file (poses/NN.txt).")] = None,
+    calib: Annotated[str | None, typer.Option("--calib", help="KITTI: calib.txt with the Tr line (default: calib.txt next to the scans).")] = None,
+    times: Annotated[str | None, typer.Option("--times", help="KITTI: times.txt (default: next to the scans; else --hz).")] = None,
+    bin_fields: Annotated[str | None, typer.Option("--bin-fields", help="Raw .bin columns, e.g. x,y,z,intensity (default by name: .pcd.bin has 5, .bin 4).")] = None,
+    hz: Annotated[float, typer.Option("--hz", help="Stamp spacing for recordings without time (KITTI without times.txt, .pcd).")] = 10.0,
+    topic: Annotated[str | None, typer.Option("--topic", help="Bags: the PointCloud2 or Autoware DetectedObjects topic.")] = None,
+    pose_topic: Annotated[str | None, typer.Option("--pose-topic", help="Bags: Odometry/PoseStamped topic giving the ego pose.")] = None,
+    wait_subscriber: Annotated[float, typer.Option("--wait-subscriber", help="Seconds to wait for a subscriber before the first frame (0: do not wait).")] = 5.0,
+    progress: Annotated[bool | None, typer.Option("--progress/--no-progress", help="Progress bar (default: when stderr is a terminal).")] = None,
+    ns: NsOpt = "default",
+    zenoh_config: ZenohConfigOpt = None,
+    connect: ConnectOpt = None,
+    listen: ListenOpt = None,
+    log_level: LogLevelOpt = "INFO",
+) -> None:
+    """Replay a recording onto jg/{ns}/points (scans with ego pose) or jg/{ns}/detections."""
+    setup_logging(log_level)
+    try:
+        rate_value = parse_rate(rate)
+    except ValueError as exc:
+        fail(str(exc))
+    if not (hz > 0 and hz < 1e6):
+        fail(f"--hz must be positive, got {hz}")
+    if wait_subscriber < 0:
+        fail(f"--wait-subscriber must be >= 0, got {wait_subscriber}")
+    try:
+        plan = ReplayPlan(rate=rate_value, loop=loop, start=start, limit=limit, on_error=on_error)  # type: ignore[arg-type]
+    except ValueError as exc:
+        fail(str(exc))
+    fields = tuple(f.strip() for f in bin_fields.split(",")) if bin_fields else None
+    from .sources import SourceOptions, open_source
+
+    src_opts = SourceOptions(
+        level=level, seed=seed, duration_s=duration, scene=scene, nuscenes_version=nuscenes_version, sweeps=sweeps,
+        poses=_path(poses, "--poses"), calib=_path(calib, "--calib"), times=_path(times, "--times"),
+        bin_fields=fields, topic=topic, pose_topic=pose_topic, period_ns=int(round(1e9 / hz)),
+    )
+    zopts = zenoh_options(ns, zenoh_config, connect, listen)
+    try:
+        src = open_source(source, src_opts)
+    except SourceError as exc:
+        fail(str(exc))
+    except Exception as exc:  # a reader that failed in a way it did not foresee: still one line
+        fail(f"{source}: cannot open: {type(exc).__name__}: {exc}")
+    with src:
+        for note in src.info.notes:
+            log.info("%s", note)
+        from .publisher import ReplayService
+
+        try:
+            svc = ReplayService(zopts, src.info.kind)
+        except Exception as exc:
+            fail(f"cannot open a Zenoh session: {exc}")
+        code = _run(svc, src, plan, wait_subscriber, progress)
+    raise typer.Exit(code)
+
+
+def _run(svc: Any, src: Any, plan: ReplayPlan, wait_s: float, progress: bool | None) -> int:
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: svc.stop())
+    try:
+        if wait_s > 0 and not svc.wait_for_subscribers(wait_s):
+            log.info("no subscriber on %s after %.1f s; replaying anyway", svc.key, wait_s)
+        total = None
+        if src.info.num_frames is not None and not plan.loop:
+            total = max(0, src.info.num_frames - plan.start)
+            if plan.limit is not None:
+                total = min(total, plan.limit)
+        bar = _Progress(sys.stderr.isatty() if progress is None else progress, total, src.info.name)
+        try:
+            stats = svc.replay(src, plan, on_error=bar.error, on_published=bar.published)
+        except SourceError as exc:
+            bar.close()
+            print(f"jitterguard: error: {exc}", file=sys.stderr)
+            return 2
+        finally:
+            bar.close()
+    finally:
+        svc.close()
+    summary = (
+        f"replayed {stats.published} frame(s) on {svc.key} in {stats.passes} pass(es)"
+        f"; {stats.errors} unreadable" + (f"; {stats.late} late re-anchor(s)" if stats.late else "")
+        + (" (interrupted)" if stats.interrupted else "")
+    )
+    print(f"jitterguard: {summary}", file=sys.stderr)
+    if stats.stopped_by is not None:
+        print(f"jitterguard: error: stopped at unreadable frame {stats.stopped_by}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def bench_command(
+    json_out: Annotated[bool, typer.Option("--json", help="Print the figures as one JSON object (the default output).")] = True,
+    frames: Annotated[int, typer.Option("--frames", help="Scans to publish.")] = 600,
+    points: Annotated[int, typer.Option("--points", help="Points per in-memory scan.")] = 35_000,
+    source: Annotated[str | None, typer.Option("--source", help="Bench a real recording (looped) instead of in-memory scans.")] = None,
+    no_decode: Annotated[bool, typer.Option("--no-decode", help="Subscriber counts raw payloads instead of decoding them.")] = False,
+) -> None:
+    """Replay --rate max into an in-process subscriber: scans/s and dropped count, as JSON."""
+    if frames < 1 or points < 1:
+        fail("--frames and --points must be >= 1")
+    from .bench import bench_replay
+
+    try:
+        result = bench_replay(frames=frames, points=points, source=source, decode_payloads=not no_decode)
+    except SourceError as exc:
+        fail(str(exc))
+    print(json.dumps(result, indent=None if json_out else 2))
+
+
+def register(app: typer.Typer, bench_app: typer.Typer) -> None:
+    """Add ``replay`` to the main app and ``replay`` to ``bench``."""
+    app.command("replay", help=(replay_command.__doc__ or "") + "\n\n" + EXAMPLES, no_args_is_help=True)(replay_command)
+    bench_app.command("replay")(bench_command)

@@ -1,0 +1,213 @@
+"""What every replay source yields: scans, detection sets, or a per-frame read error.
+
+Sources are pure readers: they turn a recording into a lazy stream of these values and know nothing about
+Zenoh, pacing or sequence numbers. A frame that cannot be read is *yielded* as a :class:`FrameError` rather
+than raised, so one corrupt file does not end the iteration and the publisher can choose to skip it (and
+count it) or stop — a generator that raises cannot be resumed.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Union
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ...geometry import quaternion_from_yaw, yaw_from_quaternion
+from ...schemas.models import DetectedObject, Point, Pose, Quaternion
+
+DEFAULT_PERIOD_NS = 100_000_000
+"""10 Hz: the stamp spacing used for recordings that carry no time (KITTI without times.txt, loose PCDs)."""
+
+
+class SourceError(Exception):
+    """A recording that cannot be opened at all (missing path, wrong layout). The message names the path."""
+
+
+@dataclass(frozen=True)
+class EgoPose:
+    """The sensor's pose in the world frame: position and a unit quaternion (x, y, z, w)."""
+
+    x: float = 0.0
+    y: float = 0.0
+    z: float = 0.0
+    qx: float = 0.0
+    qy: float = 0.0
+    qz: float = 0.0
+    qw: float = 1.0
+
+    @classmethod
+    def from_yaw(cls, x: float, y: float, yaw: float, z: float = 0.0) -> "EgoPose":
+        qx, qy, qz, qw = quaternion_from_yaw(yaw)
+        return cls(x, y, z, qx, qy, qz, qw)
+
+    @classmethod
+    def from_matrix(cls, m: NDArray[np.float64]) -> "EgoPose":
+        """From a 4x4 (or 3x4) homogeneous transform; the rotation is re-orthonormalised first."""
+        m = np.asarray(m, dtype=np.float64)
+        qx, qy, qz, qw = quaternion_from_rotation(m[:3, :3])
+        return cls(float(m[0, 3]), float(m[1, 3]), float(m[2, 3]), qx, qy, qz, qw)
+
+    @property
+    def yaw(self) -> float:
+        return yaw_from_quaternion(self.qx, self.qy, self.qz, self.qw)
+
+    def to_schema(self) -> Pose:
+        n = math.sqrt(self.qx**2 + self.qy**2 + self.qz**2 + self.qw**2) or 1.0
+        return Pose(
+            position=Point(x=self.x, y=self.y, z=self.z),
+            orientation=Quaternion(x=self.qx / n, y=self.qy / n, z=self.qz / n, w=self.qw / n),
+        )
+
+    def matrix(self) -> NDArray[np.float64]:
+        """The 4x4 homogeneous transform sensor -> world."""
+        m = np.eye(4)
+        m[:3, :3] = rotation_from_quaternion(self.qx, self.qy, self.qz, self.qw)
+        m[:3, 3] = (self.x, self.y, self.z)
+        return m
+
+
+IDENTITY = EgoPose()
+
+
+@dataclass(frozen=True)
+class ScanFrame:
+    """One LiDAR scan in the sensor frame. ``points`` is (P, F) float32 whose columns are ``fields``."""
+
+    stamp_ns: int
+    pose: EgoPose
+    points: NDArray[np.float32]
+    fields: tuple[str, ...]
+    origin: str
+    """Where it came from (file name, ``bag:topic#index``): named in every message about this frame."""
+    frame_id: str = "lidar"
+
+    def __post_init__(self) -> None:
+        if self.points.ndim != 2 or self.points.shape[1] != len(self.fields):
+            raise ValueError(f"{self.origin}: points {self.points.shape} do not match fields {self.fields}")
+        if self.fields[:3] != ("x", "y", "z"):
+            raise ValueError(f"{self.origin}: the first three fields must be x, y, z, got {self.fields}")
+
+
+@dataclass(frozen=True)
+class DetectionFrame:
+    """One frame of detection-level input: objects in the sensor frame (``frame_id``) plus the ego pose."""
+
+    stamp_ns: int
+    pose: EgoPose
+    objects: list[DetectedObject]
+    origin: str
+    frame_id: str = "lidar"
+
+
+@dataclass(frozen=True)
+class FrameError:
+    """A frame that could not be read; ``origin`` names the file (and record), ``reason`` says why."""
+
+    origin: str
+    reason: str
+
+    def __str__(self) -> str:
+        return f"{self.origin}: {self.reason}"
+
+
+Frame = Union[ScanFrame, DetectionFrame]
+Item = Union[ScanFrame, DetectionFrame, FrameError]
+
+
+@dataclass
+class SourceInfo:
+    """What a source tells the publisher up front: its kind, a display name and (if known) its length."""
+
+    name: str
+    kind: str  # "points" or "detections"
+    num_frames: int | None = None
+    notes: list[str] = field(default_factory=list)
+
+
+# ----------------------------------------------------------------------------------------- point helpers
+
+
+def finite_rows(points: NDArray[np.float32]) -> tuple[NDArray[np.float32], int]:
+    """Drop rows whose x, y or z is not finite (organised clouds mark missing returns with NaN).
+
+    Returns the kept rows and how many were dropped. Other columns may legitimately hold anything finite;
+    a non-finite intensity is zeroed rather than dropping a valid point.
+    """
+    xyz_ok = np.isfinite(points[:, :3]).all(axis=1)
+    dropped = int(points.shape[0] - np.count_nonzero(xyz_ok))
+    if dropped:
+        points = points[xyz_ok]
+    if points.shape[1] > 3:
+        rest = points[:, 3:]
+        bad = ~np.isfinite(rest)
+        if bad.any():
+            points = points.copy()
+            points[:, 3:][bad] = 0.0
+    return np.ascontiguousarray(points, dtype=np.float32), dropped
+
+
+# ------------------------------------------------------------------------------------- rotation helpers
+
+
+def rotation_from_quaternion(x: float, y: float, z: float, w: float) -> NDArray[np.float64]:
+    """3x3 rotation of a (not necessarily unit) quaternion."""
+    n = math.sqrt(x * x + y * y + z * z + w * w)
+    if n < 1e-12:
+        raise ValueError("zero quaternion")
+    x, y, z, w = x / n, y / n, z / n, w / n
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def quaternion_from_rotation(r: NDArray[np.float64]) -> tuple[float, float, float, float]:
+    """(x, y, z, w) of a 3x3 rotation (projected onto SO(3) first, so slightly noisy matrices are fine)."""
+    u, _, vt = np.linalg.svd(np.asarray(r, dtype=np.float64))
+    r = u @ vt
+    if np.linalg.det(r) < 0:
+        raise ValueError("matrix is a reflection, not a rotation")
+    tr = r[0, 0] + r[1, 1] + r[2, 2]
+    if tr > 0:
+        s = math.sqrt(tr + 1.0) * 2
+        w, x, y, z = 0.25 * s, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s
+    elif r[0, 0] > r[1, 1] and r[0, 0] > r[2, 2]:
+        s = math.sqrt(1.0 + r[0, 0] - r[1, 1] - r[2, 2]) * 2
+        w, x, y, z = (r[2, 1] - r[1, 2]) / s, 0.25 * s, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s
+    elif r[1, 1] > r[2, 2]:
+        s = math.sqrt(1.0 + r[1, 1] - r[0, 0] - r[2, 2]) * 2
+        w, x, y, z = (r[0, 2] - r[2, 0]) / s, (r[0, 1] + r[1, 0]) / s, 0.25 * s, (r[1, 2] + r[2, 1]) / s
+    else:
+        s = math.sqrt(1.0 + r[2, 2] - r[0, 0] - r[1, 1]) * 2
+        w, x, y, z = (r[1, 0] - r[0, 1]) / s, (r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, 0.25 * s
+    if w < 0:  # one canonical sign, so equal rotations compare equal
+        x, y, z, w = -x, -y, -z, -w
+    return float(x), float(y), float(z), float(w)
+
+
+def quaternion_multiply(
+    a: tuple[float, float, float, float], b: tuple[float, float, float, float]
+) -> tuple[float, float, float, float]:
+    """Hamilton product a * b of (x, y, z, w) quaternions: rotate by b first, then by a."""
+    ax, ay, az, aw = a
+    bx, by, bz, bw = b
+    return (
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+        aw * bw - ax * bx - ay * by - az * bz,
+    )
+
+
+def compose(parent: EgoPose, child: EgoPose) -> EgoPose:
+    """``parent ∘ child``: the pose of a frame given in ``parent``'s frame, expressed in the world."""
+    r = rotation_from_quaternion(parent.qx, parent.qy, parent.qz, parent.qw)
+    t = r @ np.array([child.x, child.y, child.z]) + np.array([parent.x, parent.y, parent.z])
+    q = quaternion_multiply((parent.qx, parent.qy, parent.qz, parent.qw), (child.qx, child.qy, child.qz, child.qw))
+    return EgoPose(float(t[0]), float(t[1]), float(t[2]), *q)

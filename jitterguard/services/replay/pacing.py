@@ -1,0 +1,150 @@
+"""Pacing and re-stamping: pure logic, driven by an injectable clock so tests run on a fake one.
+
+Replay publishes frame *i* at ``anchor_wall + (stamp_i - anchor_stamp) / rate``: the recording's own
+spacing, sped up or slowed down by ``--rate``. ``--rate max`` never sleeps; the publisher's BLOCK
+congestion control then makes it go exactly as fast as the consumer keeps up, with nothing dropped.
+
+When replay falls behind (a slow disk, a blocked publisher) by more than ``max_lag_s`` it re-anchors on the
+late frame instead of bursting to catch up, because a burst would hand downstream services a rate the
+recording never had; each re-anchor is counted as ``late``.
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+import threading
+import time
+from typing import Protocol
+
+from .frames import DEFAULT_PERIOD_NS
+
+
+def parse_rate(text: str) -> float | None:
+    """``--rate``: a positive finite factor on the recorded rate, or ``max`` (returned as ``None``)."""
+    t = text.strip().lower()
+    if t in ("max", "inf", "unlimited"):
+        return None
+    try:
+        value = float(t.rstrip("x"))
+    except ValueError:
+        raise ValueError(f"--rate must be a positive number (e.g. 1, 0.5, 2x) or 'max', got {text!r}") from None
+    if not math.isfinite(value) or value <= 0.0:
+        raise ValueError(f"--rate must be a positive number or 'max', got {text!r}")
+    return value
+
+
+class Clock(Protocol):
+    """Time source for pacing. ``sleep`` returns False when interrupted by a stop request."""
+
+    def now(self) -> float: ...
+
+    def sleep(self, seconds: float) -> bool: ...
+
+
+class RealClock:
+    """Monotonic wall clock whose sleep wakes at once when ``stop`` is set (Ctrl-C, service close)."""
+
+    def __init__(self, stop: threading.Event | None = None) -> None:
+        self._stop = stop or threading.Event()
+
+    def now(self) -> float:
+        return time.monotonic()
+
+    def sleep(self, seconds: float) -> bool:
+        if seconds <= 0:
+            return not self._stop.is_set()
+        return not self._stop.wait(seconds)
+
+
+class FakeClock:
+    """A clock that only moves when slept on (or advanced by hand); records every sleep."""
+
+    def __init__(self, start: float = 1000.0) -> None:
+        self.t = start
+        self.sleeps: list[float] = []
+
+    def now(self) -> float:
+        return self.t
+
+    def sleep(self, seconds: float) -> bool:
+        self.sleeps.append(seconds)
+        self.t += max(0.0, seconds)
+        return True
+
+    def advance(self, seconds: float) -> None:
+        self.t += seconds
+
+
+class Pacer:
+    """Decides how long to wait before publishing a frame with a given (re-stamped) stamp."""
+
+    def __init__(self, rate: float | None, clock: Clock, max_lag_s: float = 0.5) -> None:
+        if rate is not None and not (rate > 0 and math.isfinite(rate)):
+            raise ValueError(f"rate must be positive and finite, got {rate!r}")
+        self.rate = rate
+        self.clock = clock
+        self.max_lag_s = max_lag_s
+        self.late = 0
+        self._anchor: tuple[float, int] | None = None
+
+    def target(self, stamp_ns: int) -> float:
+        """Wall time (clock seconds) at which ``stamp_ns`` is due; anchors on the first stamp seen."""
+        if self._anchor is None:
+            self._anchor = (self.clock.now(), stamp_ns)
+        wall0, stamp0 = self._anchor
+        assert self.rate is not None
+        return wall0 + (stamp_ns - stamp0) / 1e9 / self.rate
+
+    def wait(self, stamp_ns: int) -> bool:
+        """Sleep until ``stamp_ns`` is due. Returns False if the sleep was interrupted by a stop."""
+        if self.rate is None:
+            return True
+        delay = self.target(stamp_ns) - self.clock.now()
+        if delay > 0:
+            return self.clock.sleep(delay)
+        if -delay > self.max_lag_s:
+            self.late += 1
+            self._anchor = (self.clock.now(), stamp_ns)
+        return True
+
+
+class Restamper:
+    """Maps recorded stamps to published ones: strictly increasing, continuous across ``--loop`` passes.
+
+    Within a pass a stamp keeps its recorded value (shifted by the pass offset) unless it would not exceed the
+    previous one (out-of-order bag stamps), in which case it becomes previous + 1 ns. A new pass starts one
+    typical frame period (the median recorded spacing) after the last published stamp, so looping a 20 s
+    recording yields one uninterrupted, monotonic timeline.
+    """
+
+    def __init__(self, default_period_ns: int = DEFAULT_PERIOD_NS) -> None:
+        self._offset = 0
+        self._last_in: int | None = None
+        self._last_out: int | None = None
+        self._diffs: list[int] = []
+        self._new_pass = False
+        self._default_period = default_period_ns
+
+    @property
+    def period_ns(self) -> int:
+        return int(statistics.median(self._diffs)) if self._diffs else self._default_period
+
+    def begin_pass(self) -> None:
+        """Call before the first frame of every pass after the first."""
+        self._new_pass = True
+        self._last_in = None
+
+    def __call__(self, stamp_ns: int) -> int:
+        if self._last_in is not None and stamp_ns > self._last_in and len(self._diffs) < 1000:
+            self._diffs.append(stamp_ns - self._last_in)
+        if self._new_pass and self._last_out is not None:
+            self._offset = self._last_out + self.period_ns - stamp_ns
+            self._new_pass = False
+        out = stamp_ns + self._offset
+        if self._last_out is not None and out <= self._last_out:
+            out = self._last_out + 1
+        out = max(out, 0)
+        self._last_in = stamp_ns
+        self._last_out = out
+        return out

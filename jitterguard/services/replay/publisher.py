@@ -1,0 +1,101 @@
+"""The thin Zenoh adapter: turn frames into wire messages and put them on ``points`` or ``detections``.
+
+Puts use BLOCK congestion control, so with ``--rate max`` a consumer that falls behind slows the replay
+down instead of losing scans. The replay runs on the caller's thread (the CLI's main thread) and stops
+promptly when the service's stop event is set.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+from ...runtime import Service, ZenohOptions
+from ...schemas import DetectedObjects, PointCloud, encode, keys
+from ...schemas.models import Header
+from .frames import DetectionFrame, Frame, FrameError, ScanFrame
+from .pacing import Clock
+from .runner import ReplayPlan, ReplayStats, run_replay
+from .sources.base import Source
+
+
+def point_cloud_message(frame: ScanFrame, seq: int, stamp_ns: int) -> PointCloud:
+    """The ``points`` payload of one scan under the given header seq and stamp."""
+    pts = frame.points
+    return PointCloud(
+        header=Header(stamp=stamp_ns, frame_id=frame.frame_id, seq=seq),
+        ego_pose=frame.pose.to_schema(),
+        fields=list(frame.fields),
+        num_points=int(pts.shape[0]),
+        data=pts.astype("<f4", copy=False).tobytes(),
+    )
+
+
+def detections_message(frame: DetectionFrame, seq: int, stamp_ns: int) -> DetectedObjects:
+    """The ``detections`` payload of one detection frame under the given header seq and stamp."""
+    return DetectedObjects(
+        header=Header(stamp=stamp_ns, frame_id=frame.frame_id, seq=seq),
+        ego_pose=frame.pose.to_schema(),
+        objects=frame.objects,
+    )
+
+
+def message_for(frame: Frame, seq: int, stamp_ns: int) -> PointCloud | DetectedObjects:
+    if isinstance(frame, ScanFrame):
+        return point_cloud_message(frame, seq, stamp_ns)
+    return detections_message(frame, seq, stamp_ns)
+
+
+class ReplayService(Service):
+    """Publishes one source's frames on ``jg/{ns}/points`` or ``jg/{ns}/detections``."""
+
+    name = "replay"
+
+    def __init__(self, opts: ZenohOptions, kind: str = "points") -> None:
+        if kind not in ("points", "detections"):
+            raise ValueError(f"kind must be 'points' or 'detections', got {kind!r}")
+        super().__init__(opts)
+        self.kind = kind
+        self.key = keys.points(self.ns) if kind == "points" else keys.detections(self.ns)
+        self.pub = self.publisher(self.key, block=True)
+
+    def wait_for_subscribers(self, timeout_s: float) -> bool:
+        """Wait until some subscriber matches our key (a replay into the void loses its first frames)."""
+        deadline = time.monotonic() + timeout_s
+        while not self.stop_event.is_set():
+            if self.pub.matching_status.matching:
+                return True
+            if time.monotonic() >= deadline:
+                return False
+            self.stop_event.wait(0.02)
+        return False
+
+    def emit(self, frame: Frame, seq: int, stamp_ns: int) -> None:
+        if (self.kind == "points") != isinstance(frame, ScanFrame):
+            raise TypeError(f"{frame.origin}: a {type(frame).__name__} cannot go on {self.key}")
+        self.pub.put(encode(message_for(frame, seq, stamp_ns)))
+        self.counters.inc("published")
+        self.last_seq = seq
+
+    def replay(
+        self,
+        source: Source,
+        plan: ReplayPlan,
+        *,
+        clock: Clock | None = None,
+        on_error: Callable[[FrameError], None] | None = None,
+        on_published: Callable[[Frame, int], None] | None = None,
+    ) -> ReplayStats:
+        """Run the replay on this thread until it ends, fails on a bad frame (``on_error='stop'``) or stops."""
+
+        def count_error(err: FrameError) -> None:
+            self.counters.inc("frame_errors")
+            if on_error:
+                on_error(err)
+
+        stats = run_replay(
+            source, plan, self.emit, clock=clock, stop=self.stop_event, on_error=count_error, on_published=on_published
+        )
+        self.counters.inc("late", stats.late)
+        return stats
+

@@ -1,0 +1,165 @@
+"""The replay loop, without Zenoh: window (``--start``/``--limit``), loop, re-stamp, pace, number, emit.
+
+Kept apart from the publisher so that every rule here — seq strictly increasing across loops, stamps
+re-stamped monotonically, skip-and-count versus stop on a corrupt frame, stop requests honoured mid-sleep —
+is tested with a fake clock and a list as the sink.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from typing import Literal
+
+from .frames import Frame, FrameError, Item, SourceError
+from .pacing import Clock, Pacer, RealClock, Restamper
+from .sources.base import Source
+
+OnError = Literal["skip", "stop"]
+Emit = Callable[[Frame, int, int], None]
+"""``emit(frame, seq, stamp_ns)``: publish one frame under the given header seq and (re-stamped) stamp."""
+
+
+@dataclass(frozen=True)
+class ReplayPlan:
+    """What to replay and how fast. ``rate=None`` is ``--rate max``."""
+
+    rate: float | None = 1.0
+    loop: bool = False
+    passes: int | None = None
+    """With ``loop``: stop after this many passes (None: until stopped)."""
+    start: int = 0
+    limit: int | None = None
+    on_error: OnError = "skip"
+    seq_start: int = 0
+    max_lag_s: float = 0.5
+
+    def __post_init__(self) -> None:
+        if self.start < 0:
+            raise ValueError(f"--start must be >= 0, got {self.start}")
+        if self.limit is not None and self.limit < 1:
+            raise ValueError(f"--limit must be >= 1, got {self.limit}")
+        if self.passes is not None and self.passes < 1:
+            raise ValueError(f"passes must be >= 1, got {self.passes}")
+        if self.on_error not in ("skip", "stop"):
+            raise ValueError(f"--on-error must be 'skip' or 'stop', got {self.on_error!r}")
+
+
+@dataclass
+class ReplayStats:
+    """What a replay did; ``stopped_by`` is set when ``on_error='stop'`` ended it on a bad frame."""
+
+    published: int = 0
+    errors: int = 0
+    passes: int = 0
+    late: int = 0
+    last_seq: int = -1
+    first_stamp_ns: int | None = None
+    last_stamp_ns: int | None = None
+    interrupted: bool = False
+    stopped_by: FrameError | None = None
+    error_origins: list[str] = field(default_factory=list)
+
+    def as_dict(self) -> dict[str, object]:
+        return {
+            "published": self.published,
+            "errors": self.errors,
+            "passes": self.passes,
+            "late": self.late,
+            "last_seq": self.last_seq,
+            "interrupted": self.interrupted,
+            "stopped_by": str(self.stopped_by) if self.stopped_by else None,
+        }
+
+
+def _window(source: Source, start: int, limit: int | None) -> Iterator[Item]:
+    """One pass over ``source``: at most ``limit`` positions from ``start``; a reader crash becomes an error item.
+
+    A source is meant to yield :class:`FrameError` for bad frames; if its generator raises anyway (an I/O
+    error it did not foresee), the pass ends with one error item naming the source instead of a traceback.
+    """
+    it = source.frames(start)
+    n = 0
+    while limit is None or n < limit:
+        try:
+            item = next(it)
+        except StopIteration:
+            return
+        except Exception as exc:  # a reader bug or an unforeseen I/O error: report, do not crash
+            yield FrameError(source.info.name, f"reading failed after frame {start + n}: {type(exc).__name__}: {exc}")
+            return
+        n += 1
+        yield item
+
+
+def run_replay(
+    source: Source,
+    plan: ReplayPlan,
+    emit: Emit,
+    *,
+    clock: Clock | None = None,
+    stop: threading.Event | None = None,
+    on_error: Callable[[FrameError], None] | None = None,
+    on_published: Callable[[Frame, int], None] | None = None,
+) -> ReplayStats:
+    """Replay ``source`` through ``emit`` according to ``plan`` and return what happened.
+
+    Raises :class:`SourceError` if ``--start`` lies past the end of the recording (nothing to replay).
+    """
+    stop = stop or threading.Event()
+    clock = clock or RealClock(stop)
+    pacer = Pacer(plan.rate, clock, plan.max_lag_s)
+    restamp = Restamper()
+    stats = ReplayStats()
+    seq = plan.seq_start
+    while not stop.is_set():
+        if stats.passes:
+            restamp.begin_pass()
+        positions = good = 0
+        for item in _window(source, plan.start, plan.limit):
+            positions += 1
+            if stop.is_set():
+                stats.interrupted = True
+                break
+            if isinstance(item, FrameError):
+                stats.errors += 1
+                if len(stats.error_origins) < 100:
+                    stats.error_origins.append(item.origin)
+                if on_error:
+                    on_error(item)
+                if plan.on_error == "stop":
+                    stats.stopped_by = item
+                    stats.passes += 1
+                    stats.late = pacer.late
+                    return stats
+                continue
+            stamp = restamp(item.stamp_ns)
+            if not pacer.wait(stamp):
+                stats.interrupted = True
+                break
+            emit(item, seq, stamp)
+            good += 1
+            stats.published += 1
+            stats.last_seq = seq
+            if stats.first_stamp_ns is None:
+                stats.first_stamp_ns = stamp
+            stats.last_stamp_ns = stamp
+            if on_published:
+                on_published(item, seq)
+            seq += 1
+        stats.passes += 1
+        if stats.interrupted:
+            break
+        if positions == 0 and stats.passes == 1:
+            n = source.info.num_frames
+            where = f" ({n} frames)" if n is not None else ""
+            raise SourceError(f"--start {plan.start} is past the end of {source.info.name}{where}")
+        if not plan.loop or good == 0:  # a loop over a recording with no readable frame would spin forever
+            break
+        if plan.passes is not None and stats.passes >= plan.passes:
+            break
+    else:
+        stats.interrupted = True
+    stats.late = pacer.late
+    return stats

@@ -1,0 +1,122 @@
+"""Pure readers, one per recording format, and :func:`open_source` which picks one from a SOURCE argument.
+
+SOURCE forms:
+
+- ``synthetic:SCENARIO`` — the synthetic world (``parking-street``, ``diagonal-lot``, ``intersection``,
+  ``mixed``) generated on the fly from ``seed``; ``level='detections'`` replays the synthetic detection model
+  instead of ray-cast scans.
+- a nuScenes dataroot (a folder holding ``v1.0-*/scene.json``), with ``scene``.
+- a ROS 2 bag folder (``metadata.yaml``), a ``.mcap`` / ``.db3`` file, or a ROS 1 ``.bag``.
+- a folder of (or one) KITTI ``.bin`` / nuScenes ``.pcd.bin`` scans, with optional KITTI ``poses``.
+- a folder of (or one) ``.pcd`` files.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..frames import DEFAULT_PERIOD_NS, SourceError
+from .base import MemorySource, Source
+
+__all__ = ["Source", "MemorySource", "SourceOptions", "SourceError", "open_source", "SYNTHETIC_PREFIX"]
+
+SYNTHETIC_PREFIX = "synthetic:"
+
+
+@dataclass(frozen=True)
+class SourceOptions:
+    """Every reader option the CLI exposes; each reader uses the ones that apply to it."""
+
+    level: str = "points"
+    seed: int = 0
+    duration_s: float = 20.0
+    rate_hz: float = 10.0
+    scene: str | None = None
+    nuscenes_version: str | None = None
+    channel: str = "LIDAR_TOP"
+    sweeps: bool = False
+    poses: Path | None = None
+    calib: Path | None = None
+    times: Path | None = None
+    bin_fields: tuple[str, ...] | None = None
+    topic: str | None = None
+    pose_topic: str | None = None
+    period_ns: int = DEFAULT_PERIOD_NS
+
+
+def _only_for(opts: SourceOptions, kind: str, allowed: set[str]) -> None:
+    """Refuse flags that the chosen reader would silently ignore: a typo'd source must not look like success."""
+    given = {
+        "--scene": opts.scene is not None,
+        "--nuscenes-version": opts.nuscenes_version is not None,
+        "--sweeps": opts.sweeps,
+        "--poses": opts.poses is not None,
+        "--calib": opts.calib is not None,
+        "--times": opts.times is not None,
+        "--bin-fields": opts.bin_fields is not None,
+        "--topic": opts.topic is not None,
+        "--pose-topic": opts.pose_topic is not None,
+    }
+    stray = sorted(flag for flag, on in given.items() if on and flag not in allowed)
+    if stray:
+        verb = "does" if len(stray) == 1 else "do"
+        raise SourceError(f"{', '.join(stray)} {verb} not apply to a {kind} source")
+    if opts.level != "points" and kind != "synthetic":
+        raise SourceError(f"--level {opts.level} applies to synthetic sources only (a bag's topic type decides)")
+
+
+def open_source(spec: str, opts: SourceOptions | None = None) -> Source:
+    """Open SOURCE (see the module docstring). Raises :class:`SourceError` with one line naming the problem."""
+    opts = opts or SourceOptions()
+    if opts.level not in ("points", "detections"):
+        raise SourceError(f"--level must be 'points' or 'detections', got {opts.level!r}")
+    if spec.startswith(SYNTHETIC_PREFIX):
+        _only_for(opts, "synthetic", set())
+        from .synthetic import SyntheticSource
+
+        return SyntheticSource(
+            spec[len(SYNTHETIC_PREFIX) :], seed=opts.seed, duration_s=opts.duration_s, rate_hz=opts.rate_hz, level=opts.level
+        )
+    path = Path(spec)
+    if not path.exists():
+        hint = " (synthetic scenarios are spelled synthetic:NAME)" if ":" not in spec and "/" not in spec else ""
+        raise SourceError(f"{spec}: no such file or folder{hint}")
+    from .bag import BagSource, is_bag
+    from .kitti import BinScanSource
+    from .nuscenes import NuScenesSource, is_nuscenes_root
+    from .pcd import PcdSource
+
+    if is_nuscenes_root(path):
+        _only_for(opts, "nuScenes", {"--scene", "--nuscenes-version", "--sweeps"})
+        return NuScenesSource(path, scene=opts.scene, version=opts.nuscenes_version, channel=opts.channel, sweeps=opts.sweeps)
+    if is_bag(path):
+        _only_for(opts, "bag", {"--topic", "--pose-topic"})
+        return BagSource(path, topic=opts.topic, pose_topic=opts.pose_topic)
+    if path.is_dir():
+        try:
+            names = [p.name for p in path.iterdir() if p.is_file()]
+        except OSError as exc:
+            raise SourceError(f"{path}: cannot list folder: {exc}") from None
+        has_bin = any(n.endswith(".bin") for n in names)
+        has_pcd = any(n.lower().endswith(".pcd") for n in names)
+        if has_bin and has_pcd:
+            raise SourceError(f"{path}: holds both .bin and .pcd files; point SOURCE at one kind")
+        if has_pcd:
+            _only_for(opts, "PCD", set())
+            return PcdSource(path, period_ns=opts.period_ns)
+        if has_bin:
+            _only_for(opts, "KITTI .bin", {"--poses", "--calib", "--times", "--bin-fields"})
+            return BinScanSource(
+                path, poses=opts.poses, calib=opts.calib, times=opts.times, fields=opts.bin_fields, period_ns=opts.period_ns
+            )
+        raise SourceError(
+            f"{path}: cannot tell what this folder is (no nuScenes tables, bag metadata.yaml, .bin or .pcd files)"
+        )
+    if path.name.endswith(".bin"):
+        _only_for(opts, "KITTI .bin", {"--poses", "--calib", "--times", "--bin-fields"})
+        return BinScanSource(path, poses=opts.poses, calib=opts.calib, times=opts.times, fields=opts.bin_fields, period_ns=opts.period_ns)
+    if path.suffix.lower() == ".pcd":
+        _only_for(opts, "PCD", set())
+        return PcdSource(path, period_ns=opts.period_ns)
+    raise SourceError(f"{path}: unknown recording type (expected .bin, .pcd, .mcap, .db3, .bag or a folder)")

@@ -1,0 +1,171 @@
+"""ROS 2 bags (sqlite3 ``.db3`` or MCAP, a bag folder or a bare ``.mcap``) and ROS 1 ``.bag`` via rosbags.
+
+One topic is replayed: a ``sensor_msgs/PointCloud2`` topic (``points``) or an Autoware
+``autoware_perception_msgs/DetectedObjects`` topic (``detections``). With ``--topic`` unset, the bag's only
+topic of either type is picked (PointCloud2 first); several candidates are an error that lists them.
+Stamps come from each message's header (the sensor's time), falling back to the bag's receive time when a
+driver left the header stamp at zero. The ego pose comes from ``--pose-topic`` (Odometry, PoseStamped or
+PoseWithCovarianceStamped), interpolated to each stamp; without it the pose is the identity.
+
+rosbags is an optional dependency: it is imported when a bag is opened, and its absence is a one-line error.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+from pydantic import ValidationError
+
+from ..frames import IDENTITY, DetectionFrame, EgoPose, FrameError, Item, ScanFrame, SourceError, SourceInfo, finite_rows
+from .base import Source
+from .ros_types import (
+    DETECTED_OBJECTS,
+    POINTCLOUD2,
+    POSE_TYPES,
+    detected_object_from_ros,
+    interpolate_pose,
+    pointcloud2_to_array,
+    pose_of,
+    stamp_ns,
+    typestore,
+)
+
+BAG_SUFFIXES = (".mcap", ".db3", ".bag")
+
+
+def is_bag(path: Path) -> bool:
+    """A bag folder (``metadata.yaml``) or a bag file by suffix."""
+    if path.is_dir():
+        return (path / "metadata.yaml").is_file()
+    return path.suffix.lower() in BAG_SUFFIXES
+
+
+def _open_reader(path: Path) -> Any:
+    try:
+        from rosbags.highlevel import AnyReader
+    except ImportError:
+        raise SourceError(f"{path}: reading bags needs the 'rosbags' package (pip install rosbags)") from None
+    try:
+        reader = AnyReader([path], default_typestore=typestore())
+        reader.open()
+    except FileNotFoundError:
+        raise SourceError(f"{path}: no such bag") from None
+    except Exception as exc:  # rosbags raises several error types (AnyReaderError, ReaderError, sqlite errors)
+        raise SourceError(f"{path}: cannot open bag: {exc}") from None
+    return reader
+
+
+class BagSource(Source):
+    """One PointCloud2 or DetectedObjects topic of a bag, with optional poses from an odometry topic."""
+
+    def __init__(self, path: Path, *, topic: str | None = None, pose_topic: str | None = None) -> None:
+        self.path = Path(path)
+        if not self.path.exists():
+            raise SourceError(f"{self.path}: no such bag")
+        self.reader = _open_reader(self.path)
+        try:
+            self._select(topic, pose_topic)
+        except BaseException:
+            self.close()
+            raise
+
+    def _select(self, topic: str | None, pose_topic: str | None) -> None:
+        conns = self.reader.connections
+        by_topic: dict[str, list[Any]] = {}
+        for c in conns:
+            by_topic.setdefault(c.topic, []).append(c)
+        listing = ", ".join(f"{t} ({cs[0].msgtype})" for t, cs in sorted(by_topic.items())) or "none"
+        if topic is not None:
+            if topic not in by_topic:
+                raise SourceError(f"{self.path}: no topic {topic!r} (topics: {listing})")
+            msgtype = by_topic[topic][0].msgtype
+            if msgtype not in (POINTCLOUD2, DETECTED_OBJECTS):
+                raise SourceError(f"{self.path}: topic {topic} is {msgtype}, not {POINTCLOUD2} or {DETECTED_OBJECTS}")
+        else:
+            for wanted in (POINTCLOUD2, DETECTED_OBJECTS):
+                cands = sorted(t for t, cs in by_topic.items() if cs[0].msgtype == wanted)
+                if len(cands) > 1:
+                    raise SourceError(f"{self.path}: several {wanted} topics ({', '.join(cands)}); pick one with --topic")
+                if cands:
+                    topic = cands[0]
+                    break
+            else:
+                raise SourceError(f"{self.path}: no {POINTCLOUD2} or {DETECTED_OBJECTS} topic (topics: {listing})")
+        assert topic is not None
+        self.topic = topic
+        self.msgtype = by_topic[topic][0].msgtype
+        self.connections = by_topic[topic]
+        kind = "points" if self.msgtype == POINTCLOUD2 else "detections"
+        count = sum(c.msgcount for c in self.connections)
+
+        self.pose_times: list[int] = []
+        self.poses: list[EgoPose] = []
+        notes = [f"topic {topic} ({self.msgtype}), {count} messages"]
+        if pose_topic is not None:
+            if pose_topic not in by_topic:
+                raise SourceError(f"{self.path}: no pose topic {pose_topic!r} (topics: {listing})")
+            ptype = by_topic[pose_topic][0].msgtype
+            if ptype not in POSE_TYPES:
+                raise SourceError(f"{self.path}: pose topic {pose_topic} is {ptype}, not one of {', '.join(POSE_TYPES)}")
+            samples: list[tuple[int, EgoPose]] = []
+            for conn, t_bag, raw in self.reader.messages(connections=by_topic[pose_topic]):
+                try:
+                    msg = self.reader.deserialize(raw, conn.msgtype)
+                except Exception as exc:
+                    raise SourceError(f"{self.path}: pose topic {pose_topic}: undecodable message: {exc}") from None
+                samples.append((stamp_ns(msg.header) or t_bag, pose_of(msg)))
+            if not samples:
+                raise SourceError(f"{self.path}: pose topic {pose_topic} holds no message")
+            samples.sort(key=lambda s: s[0])
+            self.pose_times = [s[0] for s in samples]
+            self.poses = [s[1] for s in samples]
+            notes.append(f"poses from {pose_topic} ({len(samples)} samples)")
+        self.info = SourceInfo(name=f"{self.path}:{topic}", kind=kind, num_frames=count, notes=notes)
+
+    def _pose(self, t: int) -> EgoPose:
+        return interpolate_pose(self.pose_times, self.poses, t) if self.poses else IDENTITY
+
+    def frames(self, start: int = 0) -> Iterator[Item]:
+        index = -1
+        for conn, t_bag, raw in self.reader.messages(connections=self.connections):
+            index += 1
+            if index < start:
+                continue  # skipping costs no deserialisation
+            origin = f"{self.path}:{self.topic}#{index}"
+            try:
+                msg = self.reader.deserialize(raw, conn.msgtype)
+            except Exception as exc:
+                yield FrameError(origin, f"undecodable {conn.msgtype} message: {exc}")
+                continue
+            stamp = stamp_ns(msg.header) or int(t_bag)
+            frame_id = msg.header.frame_id or "lidar"
+            if self.msgtype == POINTCLOUD2:
+                try:
+                    pts, names = pointcloud2_to_array(msg)
+                except ValueError as exc:
+                    yield FrameError(origin, f"bad PointCloud2: {exc}")
+                    continue
+                pts, _ = finite_rows(pts)
+                yield ScanFrame(stamp, self._pose(stamp), pts, names, origin, frame_id)
+            else:
+                try:
+                    objects = [detected_object_from_ros(o) for o in msg.objects]
+                except ValidationError as exc:
+                    err = exc.errors(include_url=False)[0]
+                    loc = ".".join(str(p) for p in err.get("loc", ()))
+                    yield FrameError(origin, f"invalid DetectedObject ({loc}: {err.get('msg')})")
+                    continue
+                except (AttributeError, TypeError, ValueError) as exc:
+                    yield FrameError(origin, f"unexpected DetectedObjects layout: {exc}")
+                    continue
+                yield DetectionFrame(stamp, self._pose(stamp), objects, origin, frame_id)
+
+    def close(self) -> None:
+        reader, self.reader = getattr(self, "reader", None), None
+        if reader is not None:
+            try:
+                reader.close()
+            except Exception:
+                pass

@@ -1,0 +1,44 @@
+"""The one interface every replay source implements: a description and a lazy, restartable frame stream."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Iterator
+
+from ..frames import Item, SourceInfo
+
+
+class Source(ABC):
+    """A recording opened for replay.
+
+    ``frames(start)`` starts a fresh pass at recorded frame ``start`` every time it is called (``--loop``
+    calls it once per pass), reads lazily (one frame in memory at a time), and yields a
+    :class:`~jitterguard.services.replay.frames.FrameError` naming the file for a frame it cannot read.
+    Problems that make the whole recording unusable are raised from the constructor as ``SourceError``.
+    """
+
+    info: SourceInfo
+
+    @abstractmethod
+    def frames(self, start: int = 0) -> Iterator[Item]:
+        """Yield frames (or per-frame errors) from position ``start`` on."""
+
+    def close(self) -> None:
+        """Release file handles (bags); the default has nothing to release."""
+
+    def __enter__(self) -> "Source":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class MemorySource(Source):
+    """Frames already in memory: for benchmarks (no disk in the measured path) and tests."""
+
+    def __init__(self, items: list[Item], name: str = "memory", kind: str = "points") -> None:
+        self.items = list(items)
+        self.info = SourceInfo(name=name, kind=kind, num_frames=len(self.items))
+
+    def frames(self, start: int = 0) -> Iterator[Item]:
+        yield from self.items[start:]

@@ -1,0 +1,231 @@
+"""Raw float32 scan files: KITTI velodyne ``.bin`` (x, y, z, reflectance) and nuScenes ``.pcd.bin``
+(x, y, z, intensity, ring), one file per scan, with optional KITTI odometry poses and times.
+
+KITTI odometry poses (``poses/NN.txt``) are 3x4 ``[R|t]`` per line: the pose of the *left camera* at scan i
+in the camera frame of scan 0 (x right, y down, z forward). The replay contract wants the LiDAR's pose in a
+z-up world, so each pose is conjugated with the velodyne-to-camera extrinsic ``Tr`` from ``calib.txt``:
+``T_world_velo(i) = Tr⁻¹ · P_i · Tr`` — the world is the LiDAR frame of scan 0. Without a calib file the
+nominal axis permutation (camera x = −velo y, y = −velo z, z = velo x) stands in for ``Tr``; it ignores the
+≈0.3 m lever arm and sub-degree mounting error, which is why a calib file found next to the data wins.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..frames import DEFAULT_PERIOD_NS, IDENTITY, EgoPose, FrameError, Item, ScanFrame, SourceError, SourceInfo, finite_rows
+from .base import Source
+
+log = logging.getLogger("jitterguard.replay")
+
+KITTI_FIELDS = ("x", "y", "z", "intensity")
+NUSCENES_FIELDS = ("x", "y", "z", "intensity", "ring")
+
+NOMINAL_TR = np.array(
+    [[0.0, -1.0, 0.0, 0.0], [0.0, 0.0, -1.0, 0.0], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
+)
+"""Velodyne -> camera axes of the KITTI rig without its lever arm: the fallback when no calib.txt is given."""
+
+
+def fields_for(path: Path) -> tuple[str, ...]:
+    """Column names implied by the file name: ``*.pcd.bin`` is nuScenes (5 columns), ``*.bin`` is KITTI (4)."""
+    return NUSCENES_FIELDS if path.name.endswith(".pcd.bin") else KITTI_FIELDS
+
+
+def read_bin(path: Path, num_fields: int) -> NDArray[np.float32]:
+    """Read one raw float32 scan as (P, num_fields). Raises ``ValueError`` on a size that is not whole rows."""
+    size = path.stat().st_size
+    row = 4 * num_fields
+    if size == 0:
+        raise ValueError("empty file (0 points)")
+    if size % row:
+        raise ValueError(
+            f"{size} bytes is not a whole number of {num_fields}-float32 points ({row} bytes each): truncated or not a scan"
+        )
+    return np.fromfile(path, dtype="<f4").reshape(-1, num_fields)
+
+
+def _read_matrix_lines(path: Path, what: str) -> list[NDArray[np.float64]]:
+    """Lines of 12 floats as 4x4 homogeneous matrices; errors name the file and line."""
+    out: list[NDArray[np.float64]] = []
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise SourceError(f"{path}: cannot read {what}: {exc}") from None
+    for lineno, line in enumerate(text.splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            vals = [float(v) for v in line.split()]
+        except ValueError:
+            raise SourceError(f"{path}:{lineno}: {what} line is not 12 numbers") from None
+        if len(vals) != 12 or not np.all(np.isfinite(vals)):
+            raise SourceError(f"{path}:{lineno}: {what} line must hold 12 finite numbers, got {len(vals)}")
+        m = np.eye(4)
+        m[:3, :] = np.array(vals).reshape(3, 4)
+        out.append(m)
+    return out
+
+
+def read_poses(path: Path) -> list[NDArray[np.float64]]:
+    """KITTI odometry poses file: one 3x4 row-major ``[R|t]`` per line."""
+    poses = _read_matrix_lines(path, "pose")
+    if not poses:
+        raise SourceError(f"{path}: poses file holds no pose")
+    return poses
+
+
+def read_calib_tr(path: Path) -> NDArray[np.float64]:
+    """The ``Tr:`` (velodyne -> camera 0) line of a KITTI odometry ``calib.txt``."""
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise SourceError(f"{path}: cannot read calib: {exc}") from None
+    for line in text.splitlines():
+        if line.startswith("Tr:") or line.startswith("Tr_velo_to_cam:"):
+            vals = line.split(":", 1)[1].split()
+            try:
+                arr = np.array([float(v) for v in vals])
+            except ValueError:
+                break
+            if arr.size == 12 and np.all(np.isfinite(arr)):
+                m = np.eye(4)
+                m[:3, :] = arr.reshape(3, 4)
+                return m
+            break
+    raise SourceError(f"{path}: no valid 'Tr:' line (12 numbers) in calib file")
+
+
+def read_times(path: Path) -> list[int]:
+    """KITTI ``times.txt``: seconds since the start of the sequence, one per line, as integer ns."""
+    out: list[int] = []
+    try:
+        lines = path.read_text().splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise SourceError(f"{path}: cannot read times: {exc}") from None
+    for lineno, line in enumerate(lines, 1):
+        if not line.strip():
+            continue
+        try:
+            t = float(line.split()[0])
+        except ValueError:
+            raise SourceError(f"{path}:{lineno}: not a time in seconds") from None
+        if not np.isfinite(t) or t < 0:
+            raise SourceError(f"{path}:{lineno}: time must be finite and >= 0")
+        out.append(int(round(t * 1e9)))
+    return out
+
+
+def velo_poses(cam_poses: list[NDArray[np.float64]], tr: NDArray[np.float64]) -> list[EgoPose]:
+    """``Tr⁻¹ · P_i · Tr`` for each camera pose: LiDAR poses in the z-up frame of the first scan."""
+    tr_inv = np.linalg.inv(tr)
+    return [EgoPose.from_matrix(tr_inv @ p @ tr) for p in cam_poses]
+
+
+def _first_existing(*candidates: Path | None) -> Path | None:
+    for c in candidates:
+        if c is not None and c.is_file():
+            return c
+    return None
+
+
+_NUM = re.compile(r"^(\d+)")
+
+
+class BinScanSource(Source):
+    """A folder of ``.bin`` / ``.pcd.bin`` scans (sorted by name) or one such file."""
+
+    def __init__(
+        self,
+        path: Path,
+        *,
+        poses: Path | None = None,
+        calib: Path | None = None,
+        times: Path | None = None,
+        fields: tuple[str, ...] | None = None,
+        period_ns: int = DEFAULT_PERIOD_NS,
+        frame_id: str | None = None,
+    ) -> None:
+        path = Path(path)
+        if path.is_dir():
+            files = sorted(p for p in path.iterdir() if p.name.endswith(".bin") and p.is_file())
+            if not files:
+                raise SourceError(f"{path}: no .bin scans in this folder")
+        elif path.is_file():
+            files = [path]
+        else:
+            raise SourceError(f"{path}: no such file or folder")
+        self.path = path
+        self.files = files
+        self.fields = tuple(fields) if fields else fields_for(files[0])
+        if len(self.fields) < 3 or self.fields[:3] != ("x", "y", "z"):
+            raise SourceError(f"--bin-fields must start with x,y,z, got {','.join(self.fields)}")
+        self.period_ns = period_ns
+        is_nusc = files[0].name.endswith(".pcd.bin")
+        self.frame_id = frame_id or ("LIDAR_TOP" if is_nusc else "velodyne")
+        folder = path if path.is_dir() else path.parent
+        notes: list[str] = []
+
+        self.poses: list[EgoPose] | None = None
+        if poses is not None:
+            if not Path(poses).is_file():
+                raise SourceError(f"{poses}: poses file not found")
+            calib_path = _first_existing(calib, folder / "calib.txt", folder.parent / "calib.txt")
+            if calib is not None and calib_path != calib:
+                raise SourceError(f"{calib}: calib file not found")
+            if calib_path is not None:
+                tr = read_calib_tr(calib_path)
+                notes.append(f"poses from {poses} with Tr from {calib_path}")
+            else:
+                tr = NOMINAL_TR
+                notes.append(f"poses from {poses}; no calib.txt found, using the nominal velodyne->camera axes")
+            self.poses = velo_poses(read_poses(Path(poses)), tr)
+        elif calib is not None:
+            raise SourceError("--calib only makes sense with --poses")
+
+        times_path = _first_existing(times, folder / "times.txt", folder.parent / "times.txt")
+        if times is not None and times_path != times:
+            raise SourceError(f"{times}: times file not found")
+        self.times = read_times(times_path) if times_path else None
+        if times_path:
+            notes.append(f"stamps from {times_path}")
+        # KITTI numbers scans 000000.bin, 000001.bin...: the poses/times row is the file number when every
+        # name is a number, so a folder holding a slice of a sequence still finds its own poses.
+        nums = [_NUM.match(p.name) for p in files]
+        self.rows = [int(m.group(1)) for m in nums] if all(nums) and not is_nusc else list(range(len(files)))
+        self.info = SourceInfo(name=str(path), kind="points", num_frames=len(files), notes=notes)
+
+    def _pose(self, i: int) -> EgoPose | str:
+        if self.poses is None:
+            return IDENTITY
+        row = self.rows[i]
+        if row >= len(self.poses):
+            return f"no pose for scan row {row} (poses file has {len(self.poses)} lines)"
+        return self.poses[row]
+
+    def _stamp(self, i: int) -> int:
+        row = self.rows[i]
+        if self.times is not None and row < len(self.times):
+            return self.times[row]
+        return row * self.period_ns
+
+    def frames(self, start: int = 0) -> Iterator[Item]:
+        for i in range(start, len(self.files)):
+            f = self.files[i]
+            try:
+                pts = read_bin(f, len(self.fields))
+            except (OSError, ValueError) as exc:
+                yield FrameError(str(f), str(exc) if isinstance(exc, ValueError) else f"cannot read: {exc.strerror or exc}")
+                continue
+            pose = self._pose(i)
+            if isinstance(pose, str):
+                yield FrameError(str(f), pose)
+                continue
+            pts, _ = finite_rows(pts)
+            yield ScanFrame(self._stamp(i), pose, pts, self.fields, str(f), self.frame_id)

@@ -1,0 +1,167 @@
+"""A nuScenes scene's LiDAR, read straight from the dataroot's JSON tables (no devkit needed at run time).
+
+It walks the scene the way ``nuscenes-devkit`` does: ``scene.first_sample_token`` → ``sample.next`` …, and
+for each sample the ``sample_data`` record of the channel (default ``LIDAR_TOP``) that is a key frame —
+devkit's ``sample['data'][channel]``. With ``sweeps=True`` it follows that record's ``sample_data.next``
+chain instead, which in a full dataroot adds the 20 Hz non-key sweeps between key frames.
+
+The published pose is the LiDAR's pose in the world: ``ego_pose ∘ calibrated_sensor`` of that sample_data,
+the same chain devkit's tutorials compose (nuScenes quaternions are stored w, x, y, z). The tests check
+tokens, files, stamps and poses against devkit itself when it is installed.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..frames import EgoPose, FrameError, Item, ScanFrame, SourceError, SourceInfo, compose, finite_rows
+from .base import Source
+from .kitti import NUSCENES_FIELDS, read_bin
+
+TABLES = ("scene", "sample", "sample_data", "ego_pose", "calibrated_sensor", "sensor")
+
+
+def find_version(dataroot: Path, version: str | None) -> str:
+    """The table folder to use: ``version`` if given, else the only ``v1.0-*`` folder holding ``scene.json``."""
+    if version:
+        if not (dataroot / version / "scene.json").is_file():
+            raise SourceError(f"{dataroot / version}: no nuScenes tables (scene.json) for version {version!r}")
+        return version
+    found = sorted(p.name for p in dataroot.iterdir() if p.is_dir() and (p / "scene.json").is_file())
+    if not found:
+        raise SourceError(f"{dataroot}: not a nuScenes dataroot (no <version>/scene.json)")
+    if len(found) > 1:
+        raise SourceError(f"{dataroot}: several versions {found}; pick one with --nuscenes-version")
+    return found[0]
+
+
+def is_nuscenes_root(path: Path) -> bool:
+    try:
+        return path.is_dir() and any((p / "scene.json").is_file() for p in path.iterdir() if p.is_dir())
+    except OSError:
+        return False
+
+
+def _load_table(folder: Path, name: str) -> list[dict[str, Any]]:
+    path = folder / f"{name}.json"
+    try:
+        with path.open() as fh:
+            table = json.load(fh)
+    except FileNotFoundError:
+        raise SourceError(f"{path}: nuScenes table missing") from None
+    except (OSError, ValueError) as exc:
+        raise SourceError(f"{path}: unreadable nuScenes table: {exc}") from None
+    if not isinstance(table, list):
+        raise SourceError(f"{path}: nuScenes table must be a JSON list")
+    return table
+
+
+def pose_from_record(rec: dict[str, Any]) -> EgoPose:
+    """A nuScenes ``translation`` + ``rotation`` (w, x, y, z) record as an :class:`EgoPose`."""
+    t = rec["translation"]
+    w, x, y, z = rec["rotation"]
+    return EgoPose(float(t[0]), float(t[1]), float(t[2]), float(x), float(y), float(z), float(w))
+
+
+class NuScenesSource(Source):
+    """One scene of a nuScenes dataroot, as LiDAR scans with the sensor's world pose."""
+
+    def __init__(
+        self,
+        dataroot: Path,
+        *,
+        scene: str | None = None,
+        version: str | None = None,
+        channel: str = "LIDAR_TOP",
+        sweeps: bool = False,
+    ) -> None:
+        dataroot = Path(dataroot)
+        if not dataroot.is_dir():
+            raise SourceError(f"{dataroot}: no such folder")
+        self.dataroot = dataroot
+        self.version = find_version(dataroot, version)
+        folder = dataroot / self.version
+        t = {name: _load_table(folder, name) for name in TABLES}
+        try:
+            self._index(t, scene, channel, sweeps)
+        except (KeyError, TypeError, ValueError, IndexError) as exc:
+            raise SourceError(f"{folder}: inconsistent nuScenes tables ({type(exc).__name__}: {exc})") from None
+        self.channel = channel
+        self.info = SourceInfo(
+            name=f"{dataroot} ({self.scene_name}, {channel})",
+            kind="points",
+            num_frames=len(self.records),
+            notes=[f"nuScenes {self.version} scene {self.scene_name}: {len(self.records)} {channel} scans"],
+        )
+
+    def _index(self, t: dict[str, list[dict[str, Any]]], scene: str | None, channel: str, sweeps: bool) -> None:
+        scenes = t["scene"]
+        if scene is None:
+            if len(scenes) != 1:
+                names = ", ".join(sorted(s["name"] for s in scenes))
+                raise SourceError(f"{self.dataroot}: {len(scenes)} scenes, pick one with --scene ({names})")
+            sc = scenes[0]
+        else:
+            matches = [s for s in scenes if scene in (s["name"], s["token"])]
+            if not matches:
+                names = ", ".join(sorted(s["name"] for s in scenes))
+                raise SourceError(f"{self.dataroot}: no scene {scene!r} (have: {names})")
+            sc = matches[0]
+        self.scene_name: str = sc["name"]
+        samples = {s["token"]: s for s in t["sample"]}
+        ego = {e["token"]: e for e in t["ego_pose"]}
+        calib = {c["token"]: c for c in t["calibrated_sensor"]}
+        sensor_channel = {s["token"]: s["channel"] for s in t["sensor"]}
+        sd_by_token = {sd["token"]: sd for sd in t["sample_data"]}
+        keyframe_sd: dict[str, dict[str, Any]] = {}
+        for sd in t["sample_data"]:
+            if sd.get("is_key_frame") and sensor_channel[calib[sd["calibrated_sensor_token"]]["sensor_token"]] == channel:
+                keyframe_sd[sd["sample_token"]] = sd
+        chain: list[dict[str, Any]] = []
+        token = sc["first_sample_token"]
+        seen: set[str] = set()
+        while token and token not in seen:
+            seen.add(token)
+            sample = samples[token]
+            if token in keyframe_sd:
+                chain.append(keyframe_sd[token])
+            if token == sc["last_sample_token"]:
+                break
+            token = sample["next"]
+        if not chain:
+            raise SourceError(f"{self.dataroot}: scene {self.scene_name} has no {channel} key frames")
+        if sweeps:
+            end_ts = chain[-1]["timestamp"]
+            full: list[dict[str, Any]] = []
+            sd = chain[0]
+            while sd is not None and sd["timestamp"] <= end_ts:
+                full.append(sd)
+                sd = sd_by_token.get(sd.get("next", ""))
+            chain = full
+        self.records = [
+            (
+                int(sd["timestamp"]) * 1000,
+                compose(pose_from_record(ego[sd["ego_pose_token"]]), pose_from_record(calib[sd["calibrated_sensor_token"]])),
+                sd["filename"],
+            )
+            for sd in chain
+        ]
+
+    def frames(self, start: int = 0) -> Iterator[Item]:
+        for stamp_ns, pose, filename in self.records[start:]:
+            path = self.dataroot / filename
+            try:
+                pts = read_bin(path, len(NUSCENES_FIELDS))
+            except FileNotFoundError:
+                yield FrameError(str(path), "scan file missing from the dataroot")
+                continue
+            except (OSError, ValueError) as exc:
+                yield FrameError(str(path), str(exc) if isinstance(exc, ValueError) else f"cannot read: {exc}")
+                continue
+            pts, _ = finite_rows(np.asarray(pts))
+            yield ScanFrame(stamp_ns, pose, pts, NUSCENES_FIELDS, str(path), self.channel)
