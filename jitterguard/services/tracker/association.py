@@ -1,0 +1,174 @@
+"""Track-to-detection association as Autoware's multi_object_tracker gates it, vectorised.
+
+Autoware scores every (track, detection) pair: zero unless the label pair may be assigned
+(``can_assign``), the centres are within ``max_dist``, the detection's footprint area is within
+``[min_area, max_area]``, the heading difference (mod pi) is within ``max_rad`` and the Mahalanobis distance of
+the position is below 3.035 (the 99% gate of a chi-square with 2 dof); otherwise the score is
+``(max_dist - dist) / max_dist``. The optimal assignment maximises the total score, and pairs scoring below
+``score_threshold`` stay unassigned. Autoware's 2D-IoU gate is not applied: for boxes that already passed the
+distance and area gates it rarely changes the outcome and would cost a polygon clip per pair.
+
+Why vectorised and sparse: with 200 tracks and 200 detections a Python double loop is 40,000 iterations per
+frame. Here the cheap gates (label pair, distance) run as one ``N x M`` array expression, the expensive ones
+only on the few pairs that survive, and ``scipy.optimize.linear_sum_assignment`` only sees the rows and
+columns that actually compete for each other — most pairs are unambiguous and are assigned directly.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import linear_sum_assignment
+
+from .config import ConfigTables
+from .kalman import wrap_half_pi
+
+F64 = NDArray[np.float64]
+IntArr = NDArray[np.intp]
+
+
+@dataclass(frozen=True)
+class Candidates:
+    """The gated pairs of one frame: ``rows[k]`` (track) may take ``cols[k]`` (detection) with ``score[k]``."""
+
+    rows: IntArr
+    cols: IntArr
+    score: F64
+    dist: F64
+    mahalanobis: F64
+
+
+def gate(
+    track_pos: F64,
+    track_label: NDArray[np.integer],
+    track_yaw: F64,
+    track_pos_cov: F64,
+    det_pos: F64,
+    det_label: NDArray[np.integer],
+    det_area: F64,
+    det_yaw: F64,
+    det_yaw_valid: NDArray[np.bool_],
+    det_pos_cov: F64,
+    tables: ConfigTables,
+    mahalanobis_gate: float,
+    use_innovation: bool,
+    score_threshold: float,
+    gate_min_variance: float = 0.0,
+) -> Candidates:
+    """Apply Autoware's gates to every (track, detection) pair and score the survivors.
+
+    ``*_pos_cov`` are world-frame 2x2 position covariances: the track's predicted one and the detection's
+    measurement covariance. With ``use_innovation`` the Mahalanobis distance uses their sum (the innovation
+    covariance); without it only the track's, exactly as Autoware does. ``gate_min_variance`` is added to
+    the gate covariance's diagonal so an over-confident detector cannot make a track reject its own object.
+    """
+    n, m = track_pos.shape[0], det_pos.shape[0]
+    empty_i = np.empty(0, dtype=np.intp)
+    empty_f = np.empty(0)
+    if n == 0 or m == 0:
+        return Candidates(empty_i, empty_i, empty_f, empty_f, empty_f)
+
+    tl = track_label.astype(np.intp)
+    dl = det_label.astype(np.intp)
+    dx = det_pos[None, :, 0] - track_pos[:, 0, None]
+    dy = det_pos[None, :, 1] - track_pos[:, 1, None]
+    dist2 = dx * dx + dy * dy
+    max_dist = tables.max_dist[tl[:, None], dl[None, :]]
+    ok = tables.can_assign[tl[:, None], dl[None, :]] & (dist2 <= max_dist * max_dist)
+    rows, cols = np.nonzero(ok)
+    if rows.size == 0:
+        return Candidates(empty_i, empty_i, empty_f, empty_f, empty_f)
+
+    tlr, dlc = tl[rows], dl[cols]
+    ex, ey = dx[rows, cols], dy[rows, cols]
+    dist = np.sqrt(ex * ex + ey * ey)
+    mdist = max_dist[rows, cols]
+
+    # area gate: the detection's footprint against the label pair's bounds
+    area = det_area[cols]
+    keep = (area >= tables.min_area[tlr, dlc]) & (area <= tables.max_area[tlr, dlc])
+
+    # heading gate (front/back not distinguished); a bound above pi disables it, as in Autoware
+    max_rad = tables.max_rad[tlr, dlc]
+    use_rad = (max_rad < np.pi) & det_yaw_valid[cols]
+    dyaw = np.abs(wrap_half_pi(det_yaw[cols] - track_yaw[rows]))
+    keep &= ~use_rad | (dyaw <= max_rad)
+
+    # Mahalanobis gate on the 2x2 position covariance (closed-form inverse)
+    S = track_pos_cov[rows]
+    if use_innovation:
+        S = S + det_pos_cov[cols]
+    a, b, c = S[:, 0, 0] + gate_min_variance, S[:, 0, 1], S[:, 1, 1] + gate_min_variance
+    det = np.maximum(a * c - b * b, 1e-12)
+    md2 = (c * ex * ex - 2.0 * b * ex * ey + a * ey * ey) / det
+    keep &= md2 < mahalanobis_gate * mahalanobis_gate
+
+    score = (mdist - np.minimum(dist, mdist)) / mdist
+    keep &= score >= score_threshold
+    return Candidates(rows[keep], cols[keep], score[keep], dist[keep], np.sqrt(np.maximum(md2[keep], 0.0)))
+
+
+def assign(n_tracks: int, n_dets: int, cand: Candidates) -> tuple[IntArr, IntArr]:
+    """Maximum-total-score one-to-one assignment over the gated pairs; returns (track rows, detection cols).
+
+    A pair that is the only candidate of both its track and its detection is assigned directly (the optimum
+    cannot do otherwise); the rest — tracks and detections that compete — go to ``linear_sum_assignment`` on
+    the dense sub-matrix they span, where a zero means "not allowed" and is dropped from the answer.
+    """
+    if cand.rows.size == 0:
+        e = np.empty(0, dtype=np.intp)
+        return e, e
+    row_deg = np.bincount(cand.rows, minlength=n_tracks)
+    col_deg = np.bincount(cand.cols, minlength=n_dets)
+    simple = (row_deg[cand.rows] == 1) & (col_deg[cand.cols] == 1)
+    out_r = [cand.rows[simple]]
+    out_c = [cand.cols[simple]]
+    hard = ~simple
+    if hard.any():
+        hr, hc, hs = cand.rows[hard], cand.cols[hard], cand.score[hard]
+        ur, ir = np.unique(hr, return_inverse=True)
+        uc, ic = np.unique(hc, return_inverse=True)
+        mat = np.zeros((ur.size, uc.size))
+        mat[ir, ic] = hs
+        r, c = linear_sum_assignment(mat, maximize=True)
+        good = mat[r, c] > 0.0
+        out_r.append(ur[r[good]])
+        out_c.append(uc[c[good]])
+    rows = np.concatenate(out_r)
+    cols = np.concatenate(out_c)
+    order = np.argsort(rows, kind="stable")
+    return rows[order], cols[order]
+
+
+def overlapping(
+    pos: F64,
+    label: NDArray[np.integer],
+    width: F64,
+    hits: NDArray[np.integer],
+    can_assign: NDArray[np.bool_],
+    factor: float,
+) -> NDArray[np.bool_]:
+    """Rows to delete because another track describes the same object (Autoware's overlapped-tracker removal).
+
+    Two tracks overlap when their labels may share a detection and their centres are closer than ``factor``
+    times the narrower box's width; of such a pair the one with fewer hits goes (the younger on a tie).
+    Without this a detection that once missed its track's gate starts a twin that then steals every other
+    detection, and both live on, alternating, as duplicate confirmed tracks.
+    """
+    n = pos.shape[0]
+    drop = np.zeros(n, dtype=bool)
+    if n < 2 or factor <= 0.0:
+        return drop
+    d2 = (pos[:, None, 0] - pos[None, :, 0]) ** 2 + (pos[:, None, 1] - pos[None, :, 1]) ** 2
+    lim = factor * np.minimum(width[:, None], width[None, :])
+    tl = label.astype(np.intp)
+    close = (d2 < lim * lim) & can_assign[tl[:, None], tl[None, :]]
+    i, j = np.nonzero(np.triu(close, k=1))
+    if i.size == 0:
+        return drop
+    # rows are in birth order, so j (> i) is the younger: it goes unless it has strictly more hits
+    loser = np.where(hits[j] > hits[i], i, j)
+    drop[loser] = True
+    return drop

@@ -1,0 +1,300 @@
+"""Tracker configuration: Autoware's association gates, per-class motion/measurement noise, track lifecycle.
+
+The association matrices ship as ``data_association_matrix.yaml`` beside this module (Autoware's defaults) and
+are loaded by default, so what a user edits is a file they can diff against Autoware's own. ``--config FILE``
+overrides any subset of the keys: the association matrices (flat, or in Autoware's ``/**: ros__parameters:``
+wrapper) and every other field of :class:`TrackerConfig`. Unknown keys are errors, not silently ignored,
+because a misspelt gate that quietly keeps its default is the kind of bug that costs a day on the vehicle.
+
+Everything here is plain data; :meth:`TrackerConfig.tables` turns it into the numpy lookup tables the core
+indexes by label on the hot path.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import numpy as np
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from ...schemas.models import LABEL_BY_NAME, LABEL_NAMES
+
+NUM_LABELS = 8
+MATRIX_KEYS = ("can_assign_matrix", "max_dist_matrix", "max_area_matrix", "min_area_matrix", "max_rad_matrix")
+DEFAULT_MATRIX_FILE = "data_association_matrix.yaml"
+
+MotionModel = Literal["cv", "ctrv"]
+MeasurementCovariance = Literal["detector", "class"]
+MahalanobisCovariance = Literal["innovation", "track"]
+
+PosFloat = Annotated[float, Field(gt=0.0, allow_inf_nan=False)]
+NonNegFloat = Annotated[float, Field(ge=0.0, allow_inf_nan=False)]
+
+
+class ConfigError(ValueError):
+    """A tracker config that cannot be used; the message names the file and the key."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+class ClassParams(_Strict):
+    """Motion and measurement noise of one object class.
+
+    Measurement standard deviations are in the object's own frame (along / across its heading), as in
+    Autoware's trackers, and are rotated into the world frame with the measured heading; they are used when
+    ``measurement_covariance`` is ``class`` or when a detection carries no covariance of its own.
+    """
+
+    model: MotionModel = "cv"
+    # process noise
+    q_acc: PosFloat = Field(2.0, description="CV: white-noise acceleration stddev (m/s^2); CTRV: longitudinal")
+    q_acc_lat: PosFloat = Field(1.5, description="CTRV: lateral acceleration stddev (m/s^2) on the position")
+    q_yaw: PosFloat = Field(0.3, description="heading random-walk stddev (rad/sqrt(s))")
+    q_yaw_rate_acc: PosFloat = Field(0.5, description="CTRV: yaw-rate random-walk stddev (rad/s^2)")
+    # measurement noise (class-based defaults)
+    r_long: PosFloat = Field(0.5, description="position stddev along the heading (m)")
+    r_lat: PosFloat = Field(0.4, description="position stddev across the heading (m)")
+    r_yaw: PosFloat = Field(0.0873, description="heading stddev (rad)")
+    # initial state uncertainty of a new track
+    p0_vel: PosFloat = Field(5.0, description="initial speed stddev (m/s)")
+    p0_yaw_rate: PosFloat = Field(0.5, description="CTRV: initial yaw-rate stddev (rad/s)")
+    max_speed: PosFloat = Field(40.0, description="speed clamp (m/s): a filter never reports more")
+    max_yaw_rate: PosFloat = Field(1.5, description="CTRV: yaw-rate clamp (rad/s)")
+
+
+def _default_classes() -> dict[str, ClassParams]:
+    vehicle = dict(model="ctrv", q_acc=3.43, q_acc_lat=1.47, q_yaw=0.05, q_yaw_rate_acc=0.6,
+                   r_long=0.5, r_lat=0.4, r_yaw=0.0873, p0_vel=10.0, p0_yaw_rate=0.3, max_speed=45.0,
+                   max_yaw_rate=1.0)
+    return {
+        "unknown": ClassParams(model="cv", q_acc=2.0, q_yaw=0.5, r_long=0.5, r_lat=0.5, r_yaw=0.5, p0_vel=5.0,
+                               max_speed=30.0),
+        "car": ClassParams(**vehicle),
+        "truck": ClassParams(**{**vehicle, "r_long": 0.8, "q_acc": 2.5}),
+        "bus": ClassParams(**{**vehicle, "r_long": 0.8, "q_acc": 2.5}),
+        "trailer": ClassParams(**{**vehicle, "r_long": 0.8, "q_acc": 2.5}),
+        "motorcycle": ClassParams(model="cv", q_acc=3.0, q_yaw=0.5, r_long=0.5, r_lat=0.4, r_yaw=0.3,
+                                  p0_vel=8.0, max_speed=40.0),
+        "bicycle": ClassParams(model="cv", q_acc=2.0, q_yaw=0.5, r_long=0.5, r_lat=0.4, r_yaw=0.5236,
+                               p0_vel=5.0, max_speed=15.0),
+        "pedestrian": ClassParams(model="cv", q_acc=1.5, q_yaw=1.0, r_long=0.4, r_lat=0.4, r_yaw=0.5236,
+                                  p0_vel=2.5, max_speed=5.0),
+    }
+
+
+class TrackerConfig(_Strict):
+    """Everything that tunes the tracker. Defaults: Autoware's gates, Autoware-like noise, 1 s coast."""
+
+    # ---- association (Autoware's data_association_matrix.param.yaml; rows = track label, cols = measurement)
+    can_assign_matrix: list[int]
+    max_dist_matrix: list[PosFloat]
+    max_area_matrix: list[NonNegFloat]
+    min_area_matrix: list[NonNegFloat]
+    max_rad_matrix: list[NonNegFloat]
+    mahalanobis_gate: PosFloat = 3.035
+    mahalanobis_covariance: MahalanobisCovariance = Field(
+        "innovation",
+        description="innovation: gate on the track's predicted position covariance plus the detection's"
+        " (the statistically sound gate); track: on the track's covariance alone, as Autoware does",
+    )
+    score_threshold: NonNegFloat = 0.01
+    gate_min_variance: NonNegFloat = Field(
+        0.04,
+        description="added to the Mahalanobis gate's covariance diagonal (m^2): a converged track of a parked"
+        " object with an over-confident detector would otherwise reject its own detection and spawn a twin",
+    )
+    overlap_factor: NonNegFloat = Field(
+        0.75,
+        description="two tracks whose labels may share a detection and whose centres are closer than this"
+        " times the narrower box's width describe one object: the one with fewer hits is deleted, as"
+        " Autoware's removal of overlapped trackers does (0 disables)",
+    )
+
+    # ---- measurement model
+    measurement_covariance: MeasurementCovariance = Field(
+        "detector",
+        description="detector: the detector's own variances (rotated into the world frame) where a detection"
+        " has them, class defaults where it has not; class: always the class defaults",
+    )
+    min_position_variance: PosFloat = Field(1e-3, description="floor on a detector's position variance (m^2)")
+    classes: dict[str, ClassParams] = Field(default_factory=_default_classes)
+
+    # ---- lifecycle
+    confirm_hits: Annotated[int, Field(ge=1, le=100)] = 3
+    tentative_max_gap_s: PosFloat = Field(0.25, description="a tentative track missing longer is deleted")
+    max_coast_s: PosFloat = Field(1.0, description="a confirmed track without a detection longer is deleted")
+    max_position_stddev: PosFloat = Field(5.0, description="a track whose position stddev grows past it is deleted")
+    rewind_reset_s: NonNegFloat = Field(
+        10.0,
+        description="a frame whose stamp is this much older than the last one means the source restarted"
+        " (a replay loop): the tracker resets instead of dropping every later frame; 0 disables",
+    )
+    shape_smoothing: Annotated[float, Field(gt=0.0, le=1.0)] = Field(
+        0.3, description="weight of a new detection's box dimensions in the track's running estimate"
+    )
+
+    @field_validator("classes", mode="before")
+    @classmethod
+    def _merge_classes(cls, v: Any) -> Any:
+        """A user file may tune one field of one class; everything it does not name keeps its default."""
+        if not isinstance(v, dict):
+            return v
+        unknown = sorted(set(v) - set(LABEL_BY_NAME))
+        if unknown:
+            raise ValueError(f"unknown class name(s) {unknown}; expected some of {sorted(LABEL_BY_NAME)}")
+        merged: dict[str, Any] = {k: p.model_dump() for k, p in _default_classes().items()}
+        for name, params in v.items():
+            if isinstance(params, ClassParams):
+                params = params.model_dump()
+            if not isinstance(params, dict):
+                raise ValueError(f"classes.{name} must be a mapping")
+            merged[name] = {**merged[name], **params}
+        return merged
+
+    @model_validator(mode="after")
+    def _check_matrices(self) -> "TrackerConfig":
+        n2 = NUM_LABELS * NUM_LABELS
+        for key in MATRIX_KEYS:
+            values = getattr(self, key)
+            if len(values) != n2:
+                raise ValueError(f"{key} must hold {n2} values (8x8, row-major), got {len(values)}")
+        if any(v not in (0, 1) for v in self.can_assign_matrix):
+            raise ValueError("can_assign_matrix entries must be 0 or 1")
+        mn = np.asarray(self.min_area_matrix)
+        mx = np.asarray(self.max_area_matrix)
+        bad = np.flatnonzero(mn > mx)
+        if bad.size:
+            i = int(bad[0])
+            raise ValueError(f"min_area_matrix exceeds max_area_matrix at row {i // 8}, column {i % 8}")
+        return self
+
+    def params_for(self, label: int) -> ClassParams:
+        return self.classes[LABEL_NAMES[label]]
+
+    def tables(self) -> "ConfigTables":
+        """The numpy lookup tables the core indexes by label on every frame (built once per core)."""
+        by = [self.params_for(lbl) for lbl in range(NUM_LABELS)]
+
+        def col(name: str) -> np.ndarray:
+            return np.array([getattr(p, name) for p in by], dtype=np.float64)
+
+        return ConfigTables(
+            can_assign=np.asarray(self.can_assign_matrix, dtype=bool).reshape(NUM_LABELS, NUM_LABELS),
+            max_dist=np.asarray(self.max_dist_matrix, dtype=np.float64).reshape(NUM_LABELS, NUM_LABELS),
+            max_area=np.asarray(self.max_area_matrix, dtype=np.float64).reshape(NUM_LABELS, NUM_LABELS),
+            min_area=np.asarray(self.min_area_matrix, dtype=np.float64).reshape(NUM_LABELS, NUM_LABELS),
+            max_rad=np.asarray(self.max_rad_matrix, dtype=np.float64).reshape(NUM_LABELS, NUM_LABELS),
+            model=np.array([1 if p.model == "ctrv" else 0 for p in by], dtype=np.int8),
+            q_acc=col("q_acc"),
+            q_acc_lat=col("q_acc_lat"),
+            q_yaw=col("q_yaw"),
+            q_yaw_rate_acc=col("q_yaw_rate_acc"),
+            r_long=col("r_long"),
+            r_lat=col("r_lat"),
+            r_yaw=col("r_yaw"),
+            p0_vel=col("p0_vel"),
+            p0_yaw_rate=col("p0_yaw_rate"),
+            max_speed=col("max_speed"),
+            max_yaw_rate=col("max_yaw_rate"),
+        )
+
+
+@dataclass(frozen=True)
+class ConfigTables:
+    """Per-label lookup tables (8 entries, or 8x8 for label pairs indexed [track_label, measurement_label])."""
+
+    can_assign: np.ndarray
+    max_dist: np.ndarray
+    max_area: np.ndarray
+    min_area: np.ndarray
+    max_rad: np.ndarray
+    model: np.ndarray
+    q_acc: np.ndarray
+    q_acc_lat: np.ndarray
+    q_yaw: np.ndarray
+    q_yaw_rate_acc: np.ndarray
+    r_long: np.ndarray
+    r_lat: np.ndarray
+    r_yaw: np.ndarray
+    p0_vel: np.ndarray
+    p0_yaw_rate: np.ndarray
+    max_speed: np.ndarray
+    max_yaw_rate: np.ndarray
+
+
+# ------------------------------------------------------------------------------------------------ loading
+
+
+def _unwrap_ros(doc: dict[str, Any]) -> dict[str, Any]:
+    """Accept Autoware's ``/**: ros__parameters: {...}`` layout as well as a flat mapping."""
+    if len(doc) == 1:
+        (only,) = doc.values()
+        if isinstance(only, dict) and "ros__parameters" in only and isinstance(only["ros__parameters"], dict):
+            return dict(only["ros__parameters"])
+    if "ros__parameters" in doc and isinstance(doc["ros__parameters"], dict):
+        return dict(doc["ros__parameters"])
+    return doc
+
+
+def _read_yaml(text: str, origin: str) -> dict[str, Any]:
+    try:
+        doc = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{origin}: not valid YAML ({exc.__class__.__name__})") from None
+    if doc is None:
+        return {}
+    if not isinstance(doc, dict):
+        raise ConfigError(f"{origin}: expected a mapping at the top level, got {type(doc).__name__}")
+    return _unwrap_ros(doc)
+
+
+def default_matrix_text() -> str:
+    """The shipped association-matrix file (Autoware's defaults), as text."""
+    return resources.files(__package__).joinpath(DEFAULT_MATRIX_FILE).read_text(encoding="utf-8")
+
+
+def _validate(values: dict[str, Any], origin: str) -> TrackerConfig:
+    try:
+        return TrackerConfig.model_validate(values)
+    except ValidationError as exc:
+        err = exc.errors(include_url=False)[0]
+        field = ".".join(str(p) for p in err.get("loc", ())) or "(top level)"
+        raise ConfigError(f"{origin}: {field}: {err.get('msg', 'invalid')}") from None
+
+
+def default_config(**overrides: Any) -> TrackerConfig:
+    """The shipped defaults, with keyword overrides (what tests and the bench use)."""
+    values = _read_yaml(default_matrix_text(), DEFAULT_MATRIX_FILE)
+    values.update(overrides)
+    return _validate(values, "tracker config")
+
+
+def load_config(path: str | Path | None = None, **overrides: Any) -> TrackerConfig:
+    """Shipped defaults, then the keys of ``path`` (if given), then ``overrides`` (CLI flags)."""
+    values = _read_yaml(default_matrix_text(), DEFAULT_MATRIX_FILE)
+    origin = "tracker config"
+    if path is not None:
+        p = Path(path)
+        if not p.is_file():
+            raise ConfigError(f"config file not found: {path}")
+        try:
+            text = p.read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ConfigError(f"{path}: cannot read ({exc.__class__.__name__})") from None
+        user = _read_yaml(text, str(path))
+        user.pop("min_iou_matrix", None)  # Autoware's IoU gate is not applied here (see association.py)
+        values.update(user)
+        origin = str(path)
+    values.update({k: v for k, v in overrides.items() if v is not None})
+    return _validate(values, origin)
+
+
+def dump_config(config: TrackerConfig) -> str:
+    """The effective config as YAML (what ``jitterguard tracker --print-config`` shows)."""
+    return yaml.safe_dump(config.model_dump(mode="python"), sort_keys=False, default_flow_style=None)

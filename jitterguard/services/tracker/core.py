@@ -1,0 +1,281 @@
+"""The tracker core: one call per detection frame, numpy in, numpy out, no I/O and no globals.
+
+Per frame (all steps batched over every track / detection):
+
+1. reject a duplicate or out-of-order frame (by ``seq``, and by stamp going backwards);
+2. move the detections from the sensor frame into the world frame with the scan's ego pose, rotating their
+   covariances with them (R Σ Rᵀ) and choosing each one's measurement covariance (the detector's or the
+   class default's);
+3. predict every track to the frame's stamp (CV or CTRV Kalman filters);
+4. gate and score every (track, detection) pair as Autoware does, then assign optimally;
+5. update the associated tracks, start tentative tracks from the unclaimed detections, confirm, delete;
+6. report the confirmed tracks and which detection each of them received.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ...geometry import rotate_cov2
+from . import kalman
+from .association import assign, gate, overlapping
+from .config import ConfigTables, TrackerConfig, default_config
+from .frames import DetectionFrame, FrameResult, TrackSnapshot, WorldDetections
+from .kalman import CTRV, STATE_DIM, wrap_pi
+from .lifecycle import TrackTable, new_track_id
+
+F64 = NDArray[np.float64]
+
+UNMEASURED_YAW_VAR = 1e6
+"""Heading variance given to a detection without a usable heading: the update then leaves the heading alone."""
+
+
+class FrameRejected(Exception):
+    """A frame the tracker will not process; ``reason`` is ``duplicate`` or ``out_of_order``."""
+
+    def __init__(self, reason: str, seq: int, last_seq: int) -> None:
+        self.reason = reason
+        super().__init__(f"{reason} frame: seq {seq} after seq {last_seq}")
+
+
+class TrackerCore:
+    """Multi-object tracker state and its per-frame update (see the module docstring)."""
+
+    def __init__(self, config: TrackerConfig | None = None,
+                 id_factory: Callable[[], str] = new_track_id) -> None:
+        self.config = config or default_config()
+        self.tables: ConfigTables = self.config.tables()
+        self.id_factory = id_factory
+        self.tracks = TrackTable()
+        self.last_seq: int | None = None
+        self.last_stamp_ns: int | None = None
+
+    # ----------------------------------------------------------------------------------------------- API
+
+    def reset(self) -> list[str]:
+        """Forget every track (a source restart); returns the IDs dropped."""
+        dropped = list(self.tracks.ids)
+        self.tracks = TrackTable()
+        self.last_seq = None
+        self.last_stamp_ns = None
+        return dropped
+
+    def check_order(self, seq: int, stamp_ns: int) -> bool:
+        """Raise :class:`FrameRejected` for a duplicate / out-of-order frame; True if it means a restart."""
+        if self.last_seq is None or self.last_stamp_ns is None:
+            return False
+        rewind_ns = self.config.rewind_reset_s * 1e9
+        went_back = stamp_ns < self.last_stamp_ns
+        if rewind_ns > 0 and went_back and self.last_stamp_ns - stamp_ns > rewind_ns and seq != self.last_seq:
+            return True
+        if seq == self.last_seq:
+            raise FrameRejected("duplicate", seq, self.last_seq)
+        if seq < self.last_seq or went_back:
+            raise FrameRejected("out_of_order", seq, self.last_seq)
+        return False
+
+    def step(self, frame: DetectionFrame) -> FrameResult:
+        """Process one detection frame; raises :class:`FrameRejected` (state untouched) for a stale one."""
+        restarted = self.check_order(frame.seq, frame.stamp_ns)
+        deleted: list[str] = self.reset() if restarted else []
+        self.last_seq = frame.seq
+        self.last_stamp_ns = frame.stamp_ns
+
+        cfg, tb, tr = self.config, self.tables, self.tracks
+        stamp = frame.stamp_ns
+        det = self._to_world(frame)
+        m = len(frame)
+
+        # ---- predict every track to this frame's stamp
+        n = len(tr)
+        if n:
+            dt = np.maximum((stamp - tr.t_ns) * 1e-9, 0.0)
+            lbl = tr.label.astype(np.intp)
+            tr.x, tr.P = kalman.predict(
+                tr.x, tr.P, dt, tr.model, tb.q_acc[lbl], tb.q_acc_lat[lbl], tb.q_yaw[lbl],
+                tb.q_yaw_rate_acc[lbl], tb.max_speed[lbl], tb.max_yaw_rate[lbl],
+            )
+            tr.t_ns[:] = stamp
+
+        # ---- associate
+        det_pos = np.stack([det.x, det.y], axis=1)
+        det_pos_cov = det.R[:, :2, :2]
+        area = frame.length * frame.width
+        yaw_valid = frame.orientation > 0
+        cand = gate(
+            tr.x[:, :2], tr.label, tr.x[:, 2], tr.P[:, :2, :2],
+            det_pos, frame.label, area, det.yaw, yaw_valid, det_pos_cov,
+            tb, cfg.mahalanobis_gate, cfg.mahalanobis_covariance == "innovation", cfg.score_threshold,
+            cfg.gate_min_variance,
+        )
+        rows, cols = assign(n, m, cand)
+
+        # ---- update the associated tracks
+        if rows.size:
+            z = np.stack([det.x[cols], det.y[cols], det.yaw[cols]], axis=1)
+            xr, Pr = kalman.update(tr.x[rows], tr.P[rows], z, det.R[cols])
+            lbl = tr.label[rows].astype(np.intp)
+            kalman.clamp(xr, tr.model[rows], tb.max_speed[lbl], tb.max_yaw_rate[lbl])
+            tr.x[rows] = xr
+            tr.P[rows] = Pr
+            tr.record_hits(
+                rows, stamp, frame.label[cols], frame.label_prob[cols], frame.existence[cols], det.z[cols],
+                np.stack([frame.length[cols], frame.width[cols], frame.height[cols]], axis=1),
+                frame.orientation[cols], cfg.confirm_hits, cfg.shape_smoothing,
+            )
+
+        # ---- delete what the lifecycle rules expire (before births: a newborn never expires at once)
+        if n:
+            keep = ~tr.expired(stamp, cfg.tentative_max_gap_s, cfg.max_coast_s, cfg.max_position_stddev)
+            keep &= ~overlapping(tr.x[:, :2], tr.label, tr.dims[:, 1], tr.hits, tb.can_assign,
+                                 cfg.overlap_factor)
+            keep_rows = np.flatnonzero(keep)
+            if keep_rows.size < n:
+                remap = np.full(n, -1, dtype=np.intp)
+                remap[keep_rows] = np.arange(keep_rows.size)
+                deleted += tr.keep(keep)
+                new_rows = remap[rows]
+                alive = new_rows >= 0
+                rows, cols = new_rows[alive], cols[alive]
+
+        # ---- births from the detections nobody claimed (a newborn's detection is its first observation)
+        free = np.ones(m, dtype=bool)
+        free[cols] = False
+        new = np.flatnonzero(free)
+        born: list[str] = []
+        if new.size:
+            start = len(tr)
+            born = self._birth(frame, det, new)
+            rows = np.concatenate([rows, np.arange(start, start + new.size)])
+            cols = np.concatenate([cols, new])
+
+        snapshot, obs_track, obs_det = self._snapshot(rows, cols)
+        return FrameResult(
+            seq=frame.seq,
+            stamp_ns=stamp,
+            detections=det,
+            tracks=snapshot,
+            obs_track=obs_track,
+            obs_det=obs_det,
+            born=born,
+            deleted=deleted,
+            reset=restarted,
+        )
+
+    def apply_static_hints(self, track_ids: Sequence[str], mean_x: Sequence[float],
+                           mean_y: Sequence[float]) -> int:
+        """Autoware's setStaticState for each known ID: zero velocity, position = the classifier's mean.
+
+        Returns how many IDs were known (hints for tracks already deleted are ignored).
+        """
+        where = self.tracks.row_of()
+        picked = [(where[t], x, y) for t, x, y in zip(track_ids, mean_x, mean_y) if t in where]
+        if not picked:
+            return 0
+        rows = np.array([p[0] for p in picked], dtype=np.intp)
+        kalman.set_static(self.tracks.x, self.tracks.P, rows,
+                          np.array([p[1] for p in picked]), np.array([p[2] for p in picked]))
+        return len(picked)
+
+    # ------------------------------------------------------------------------------------------ helpers
+
+    def _to_world(self, f: DetectionFrame) -> WorldDetections:
+        """Sensor frame -> world frame, with each detection's measurement covariance over (x, y, yaw)."""
+        cfg, tb = self.config, self.tables
+        c, s = math.cos(f.ego_yaw), math.sin(f.ego_yaw)
+        x = f.ego_x + c * f.x - s * f.y
+        y = f.ego_y + s * f.x + c * f.y
+        yaw = wrap_pi(f.yaw + f.ego_yaw)
+        cxx, cxy, cyy = rotate_cov2(f.cov_xx, f.cov_xy, f.cov_yy, f.ego_yaw)
+
+        m = len(f)
+        lbl = f.label.astype(np.intp)
+        R = np.zeros((m, 3, 3))
+        # class defaults: along / across the measured heading (isotropic where there is no heading)
+        rl, rt = tb.r_long[lbl] ** 2, tb.r_lat[lbl] ** 2
+        no_yaw = f.orientation == 0
+        iso = np.maximum(rl, rt)
+        rl = np.where(no_yaw, iso, rl)
+        rt = np.where(no_yaw, iso, rt)
+        ch, sh = np.cos(yaw), np.sin(yaw)
+        R[:, 0, 0] = ch * ch * rl + sh * sh * rt
+        R[:, 1, 1] = sh * sh * rl + ch * ch * rt
+        R[:, 0, 1] = R[:, 1, 0] = ch * sh * (rl - rt)
+        yaw_var = tb.r_yaw[lbl] ** 2
+        if cfg.measurement_covariance == "detector":
+            use = f.has_cov & ((f.cov_xx > 0.0) | (f.cov_yy > 0.0))
+            if use.any():
+                floor = cfg.min_position_variance
+                R[use, 0, 0] = np.maximum(cxx[use], floor)
+                R[use, 1, 1] = np.maximum(cyy[use], floor)
+                lim = 0.999 * np.sqrt(R[use, 0, 0] * R[use, 1, 1])  # keep it positive definite
+                R[use, 0, 1] = R[use, 1, 0] = np.clip(cxy[use], -lim, lim)
+                yaw_var = np.where(use & (f.var_yaw > 0.0), f.var_yaw, yaw_var)
+        R[:, 2, 2] = np.where(no_yaw, UNMEASURED_YAW_VAR, yaw_var)
+        return WorldDetections(x=x, y=y, z=f.z + f.ego_z, yaw=yaw, cov_xx=cxx, cov_xy=cxy, cov_yy=cyy, R=R)
+
+    def _birth(self, f: DetectionFrame, det: WorldDetections, idx: NDArray[np.intp]) -> list[str]:
+        """Start a tentative track from each detection in ``idx`` (zero velocity, the class's spread)."""
+        tb = self.tables
+        k = idx.size
+        lbl = f.label[idx].astype(np.intp)
+        x0 = np.zeros((k, STATE_DIM))
+        x0[:, 0] = det.x[idx]
+        x0[:, 1] = det.y[idx]
+        x0[:, 2] = det.yaw[idx]
+        P0 = np.zeros((k, STATE_DIM, STATE_DIM))
+        P0[:, :3, :3] = det.R[idx]
+        P0[:, 2, 2] = np.minimum(P0[:, 2, 2], (0.5 * np.pi) ** 2)
+        model = tb.model[lbl]
+        pv = tb.p0_vel[lbl] ** 2
+        P0[:, 3, 3] = pv
+        P0[:, 4, 4] = np.where(model == CTRV, tb.p0_yaw_rate[lbl] ** 2, pv)
+        dims = np.stack([f.length[idx], f.width[idx], f.height[idx]], axis=1)
+        return self.tracks.append(
+            x0, P0, f.stamp_ns, model, f.label[idx], f.label_prob[idx], f.existence[idx], det.z[idx], dims,
+            f.orientation[idx], self.config.confirm_hits, self.id_factory,
+        )
+
+    def _snapshot(self, rows: NDArray[np.intp], cols: NDArray[np.intp]
+                  ) -> tuple[TrackSnapshot, NDArray[np.intp], NDArray[np.intp]]:
+        """Copy out the confirmed tracks, and map this frame's (track row, detection) pairs onto them."""
+        tr = self.tracks
+        conf = np.flatnonzero(tr.confirmed)
+        pos_in_conf = np.full(len(tr), -1, dtype=np.intp)
+        pos_in_conf[conf] = np.arange(conf.size)
+        obs = pos_in_conf[rows]
+        ok = obs >= 0
+        order = np.argsort(obs[ok], kind="stable")
+        obs_track = obs[ok][order]
+        obs_det = cols[ok][order]
+
+        x = tr.x[conf]
+        P = tr.P[conf]
+        vel, vel_cov, w, wvar = kalman.world_velocity(x, P, tr.model[conf])
+        lbl = tr.label[conf]
+        votes = tr.votes[conf]
+        total = np.maximum(votes.sum(axis=1), 1e-12)
+        snapshot = TrackSnapshot(
+            ids=[tr.ids[i] for i in conf],
+            label=lbl.copy(),
+            label_prob=np.clip(votes[np.arange(conf.size), lbl.astype(np.intp)] / total, 0.0, 1.0),
+            existence=np.clip(tr.existence[conf], 0.0, 1.0),
+            x=x[:, 0].copy(),
+            y=x[:, 1].copy(),
+            z=tr.z[conf].copy(),
+            yaw=x[:, 2].copy(),
+            pose_cov=P[:, :3, :3].copy(),
+            vel=vel,
+            vel_cov=vel_cov,
+            yaw_rate=w,
+            yaw_rate_var=wvar,
+            dims=tr.dims[conf].copy(),
+            orientation=tr.orientation[conf].copy(),
+            hits=tr.hits[conf].copy(),
+            last_update_ns=tr.last_update_ns[conf].copy(),
+        )
+        return snapshot, obs_track, obs_det

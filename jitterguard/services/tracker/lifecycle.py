@@ -1,0 +1,147 @@
+"""The track table (struct of arrays) and the lifecycle rules: birth, confirmation, deletion.
+
+Why a struct of arrays: the filters, the gates and the lifecycle rules all run as array expressions over every
+track; a list of track objects would force a Python loop per frame per track. Rows are in birth order, and
+deleting tracks compacts every array with one boolean mask.
+
+Lifecycle (Autoware-like): a detection nobody claims starts a *tentative* track; it becomes *confirmed* after
+``confirm_hits`` associated detections. A tentative track that misses for longer than ``tentative_max_gap_s``
+is deleted (that is what filters one-off false positives), a confirmed one after ``max_coast_s`` without a
+detection or once its position uncertainty has grown past ``max_position_stddev``. IDs are fresh 16-byte UUIDs
+(``uuid4``): they never repeat, not even across restarts, because nothing is derived from a counter.
+"""
+
+from __future__ import annotations
+
+import uuid
+from collections.abc import Callable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .config import NUM_LABELS
+from .kalman import STATE_DIM
+
+F64 = NDArray[np.float64]
+
+LABEL_DECAY = 0.8
+"""How fast a track's class vote forgets: a detector that flickers car/truck for a frame does not flip it."""
+
+
+def new_track_id() -> str:
+    """A fresh 32-hex-digit track ID (a random 16-byte UUID)."""
+    return uuid.uuid4().hex
+
+
+class TrackTable:
+    """Every track's state and bookkeeping, one row per track."""
+
+    def __init__(self) -> None:
+        self.ids: list[str] = []
+        self.x = np.zeros((0, STATE_DIM))
+        self.P = np.zeros((0, STATE_DIM, STATE_DIM))
+        self.t_ns = np.zeros(0, dtype=np.int64)  # time the state refers to
+        self.model = np.zeros(0, dtype=np.int8)
+        self.votes = np.zeros((0, NUM_LABELS))  # decayed class votes; the label is their argmax
+        self.label = np.zeros(0, dtype=np.int8)
+        self.existence = np.zeros(0)
+        self.z = np.zeros(0)
+        self.dims = np.zeros((0, 3))
+        self.orientation = np.zeros(0, dtype=np.int8)
+        self.hits = np.zeros(0, dtype=np.int64)
+        self.confirmed = np.zeros(0, dtype=bool)
+        self.born_ns = np.zeros(0, dtype=np.int64)
+        self.last_update_ns = np.zeros(0, dtype=np.int64)
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def append(
+        self,
+        x: F64,
+        P: F64,
+        stamp_ns: int,
+        model: NDArray[np.int8],
+        label: NDArray[np.int8],
+        label_prob: F64,
+        existence: F64,
+        z: F64,
+        dims: F64,
+        orientation: NDArray[np.int8],
+        confirm_hits: int,
+        id_factory: Callable[[], str] = new_track_id,
+    ) -> list[str]:
+        """Add ``len(x)`` new tracks born from one detection each; returns their fresh IDs."""
+        k = x.shape[0]
+        if k == 0:
+            return []
+        ids = [id_factory() for _ in range(k)]
+        votes = np.zeros((k, NUM_LABELS))
+        votes[np.arange(k), label.astype(np.intp)] = label_prob
+        self.ids.extend(ids)
+        self.x = np.concatenate([self.x, x])
+        self.P = np.concatenate([self.P, P])
+        self.t_ns = np.concatenate([self.t_ns, np.full(k, stamp_ns, dtype=np.int64)])
+        self.model = np.concatenate([self.model, model.astype(np.int8)])
+        self.votes = np.concatenate([self.votes, votes])
+        self.label = np.concatenate([self.label, label.astype(np.int8)])
+        self.existence = np.concatenate([self.existence, existence])
+        self.z = np.concatenate([self.z, z])
+        self.dims = np.concatenate([self.dims, dims])
+        self.orientation = np.concatenate([self.orientation, orientation.astype(np.int8)])
+        self.hits = np.concatenate([self.hits, np.ones(k, dtype=np.int64)])
+        self.confirmed = np.concatenate([self.confirmed, np.full(k, confirm_hits <= 1)])
+        self.born_ns = np.concatenate([self.born_ns, np.full(k, stamp_ns, dtype=np.int64)])
+        self.last_update_ns = np.concatenate([self.last_update_ns, np.full(k, stamp_ns, dtype=np.int64)])
+        return ids
+
+    def record_hits(
+        self,
+        rows: NDArray[np.intp],
+        stamp_ns: int,
+        label: NDArray[np.int8],
+        label_prob: F64,
+        existence: F64,
+        z: F64,
+        dims: F64,
+        orientation: NDArray[np.int8],
+        confirm_hits: int,
+        smoothing: float,
+    ) -> None:
+        """Bookkeeping for tracks that received a detection: hit count, class vote, shape, confirmation."""
+        if rows.size == 0:
+            return
+        self.hits[rows] += 1
+        self.last_update_ns[rows] = stamp_ns
+        self.votes[rows] *= LABEL_DECAY
+        self.votes[rows, label.astype(np.intp)] += label_prob
+        self.label[rows] = np.argmax(self.votes[rows], axis=1).astype(np.int8)
+        a = smoothing
+        self.existence[rows] = (1.0 - a) * self.existence[rows] + a * existence
+        self.z[rows] = (1.0 - a) * self.z[rows] + a * z
+        self.dims[rows] = (1.0 - a) * self.dims[rows] + a * dims
+        self.orientation[rows] = orientation
+        self.confirmed[rows] |= self.hits[rows] >= confirm_hits
+
+    def expired(self, stamp_ns: int, tentative_max_gap_s: float, max_coast_s: float,
+                max_position_stddev: float) -> NDArray[np.bool_]:
+        """Which rows the lifecycle rules delete at ``stamp_ns``."""
+        gap = (stamp_ns - self.last_update_ns) * 1e-9
+        too_old = np.where(self.confirmed, gap > max_coast_s, gap > tentative_max_gap_s)
+        pos_var = np.maximum(self.P[:, 0, 0], self.P[:, 1, 1])
+        return too_old | (pos_var > max_position_stddev * max_position_stddev)
+
+    def keep(self, mask: NDArray[np.bool_]) -> list[str]:
+        """Drop the rows where ``mask`` is false; returns the IDs dropped."""
+        if mask.all():
+            return []
+        dropped = [i for i, k in zip(self.ids, mask) if not k]
+        self.ids = [i for i, k in zip(self.ids, mask) if k]
+        for name in ("x", "P", "t_ns", "model", "votes", "label", "existence", "z", "dims", "orientation",
+                     "hits", "confirmed", "born_ns", "last_update_ns"):
+            setattr(self, name, getattr(self, name)[mask])
+        return dropped
+
+    def row_of(self) -> dict[str, int]:
+        """ID -> row, for the few lookups by ID (static hints)."""
+        return {tid: i for i, tid in enumerate(self.ids)}
