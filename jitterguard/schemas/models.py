@@ -232,6 +232,25 @@ class DetectedObjects(Message):
     objects: list[DetectedObject] = Field(default_factory=list)
 
 
+class TrackState(_Strict):
+    """The tracker's estimate of one track after this frame's update, world frame.
+
+    Deliberately compact: thousands of these cross the wire per second (one per track per frame) and each
+    is validated on receipt; the full ``TrackedObject`` travels once per frame in ``tracked``.
+    """
+
+    object_id: TrackId
+    label: Annotated[int, Field(ge=0, le=7)] = Label.UNKNOWN
+    existence_probability: Annotated[float, Field(ge=0.0, le=1.0)] = 1.0
+    x: float
+    y: float
+    yaw: float = 0.0
+    vx: float = 0.0
+    vy: float = 0.0
+    hits: NonNegativeInt = 0
+    age_s: Annotated[float, Field(ge=0.0)] = 0.0
+
+
 class TrackObservation(Message):
     """What the tracker associated to one track in one frame (``header.seq`` is the frame's seq).
 
@@ -241,7 +260,7 @@ class TrackObservation(Message):
 
     header: Header
     detection: DetectedObject
-    track: TrackedObject
+    track: TrackState
 
 
 class TrackedObjects(Message):

@@ -48,16 +48,15 @@ def observations_from_messages(msgs: list[TrackObservation], seq: int, stamp_ns:
         det = m.detection
         cov = det.kinematics.pose_with_covariance.covariance
         pos = det.kinematics.pose_with_covariance.pose.position
-        cls = m.track.classification or det.classification
-        tw = m.track.kinematics.twist_with_covariance.twist.linear
-        ids.append(m.track.object_id)
-        labels.append(max(cls, key=lambda c: c.probability).label if cls else 0)
+        trk = m.track
+        ids.append(trk.object_id)
+        labels.append(trk.label)
         x.append(pos.x)
         y.append(pos.y)
         cxx.append(cov[X_X])
         cxy.append(cov[X_Y])
         cyy.append(cov[Y_Y])
-        speed.append(math.hypot(tw.x, tw.y))
+        speed.append(math.hypot(trk.vx, trk.vy))
     return Observations.from_lists(ids, labels, x, y, cxx, cxy, cyy, speed, stamp_ns=stamp_ns, seq=seq)
 
 
@@ -106,62 +105,57 @@ class ClassifierService(Service):
         self._latest: _Latest | None = None
         self._latest_lock = threading.Lock()
         self._objects_pub = self.publisher(keys.objects(self.ns))
-        self.subscribe(keys.tracks_all(self.ns), TrackObservation, self._on_observation)
-        self._declare_tracked_subscriber()
+        # Both inputs are pulled and decoded by the worker, so one thread owns all per-frame work.
+        self._obs_sub = self.subscribe_channel(keys.tracks_all(self.ns))
+        self._tracked_sub = self.subscribe_channel(keys.tracked(self.ns))
         self.queryable(keys.classifier_config(self.ns), self._on_config_query)
         self.queryable(keys.classifier_state(self.ns), self._on_state_query)
         self.spawn(self._worker, "worker")
 
-    # ---------------------------------------------------------------- callbacks: decode and enqueue
-
-    def _on_observation(self, msg: TrackObservation, _key: str) -> None:
-        self._queue.put(("obs", msg, None))
-
-    def _declare_tracked_subscriber(self) -> None:
-        # Not Service.subscribe: the worker forwards this payload's validated map, so keep it (decode_with_raw),
-        # and stamp the arrival before decoding so the latency figure includes it.
-        def on_sample(sample: zenoh.Sample) -> None:
-            t0 = time.perf_counter()
-            self.counters.inc("received")
-            try:
-                msg, raw = decode_with_raw(TrackedObjects, sample.payload.to_bytes())
-            except DecodeError as exc:
-                self.counters.inc("rejected")
-                self.counters.inc("rejected.tracked")
-                self._reject_log.warn(f"rejected payload on {sample.key_expr}: {exc}")
-                return
-            self._queue.put(("close", (msg, raw), t0))
-
-        self._declared.append(self.session.declare_subscriber(keys.tracked(self.ns), on_sample))
-
     # ---------------------------------------------------------------- the worker
+
+    def _pull(self, sub: zenoh.Subscriber, kind: str, events: list, limit: int) -> None:
+        while len(events) < limit:
+            sample = sub.try_recv()
+            if sample is None:
+                return
+            self.counters.inc("received")
+            events.append((kind, (sample.payload.to_bytes(), str(sample.key_expr)), time.perf_counter()))
 
     def _worker(self) -> None:
         raws: dict[int, dict] = {}
         while not self.stop_event.is_set():
-            try:
-                events = [self._queue.get(timeout=0.005)]
-            except queue.Empty:
-                events = []
-            while len(events) < 4096:  # drain what is there: readiness is checked once per batch
+            events: list = []
+            # Observations first: the tracker sent them before the message that closes their frame.
+            self._pull(self._obs_sub, "obs", events, 4096)
+            self._pull(self._tracked_sub, "close", events, 4096 + 64)
+            while len(events) < 8192:
                 try:
                     events.append(self._queue.get_nowait())
                 except queue.Empty:
                     break
             for kind, item, t0 in events:
                 self._handle(kind, item, t0, raws)
-            frames = self.assembler.pop_ready(time.perf_counter())
-            for frame in frames:
+            for frame in self.assembler.pop_ready(time.perf_counter()):
                 self._process(frame, raws.pop(frame.seq, None))
             if events:
                 for k, v in self.assembler.counts.items():
                     self.counters.set(f"frames.{k}", v)
+            else:
+                time.sleep(0.0005)
 
     def _handle(self, kind: str, item, t0: float | None, raws: dict[int, dict]) -> None:
         if kind == "obs":
-            self.assembler.add_observation(item)
+            obs = self.accept(TrackObservation, *item)
+            if obs is not None:
+                self.assembler.add_observation(obs)
         elif kind == "close":
-            msg, raw = item
+            data, key = item
+            try:
+                msg, raw = decode_with_raw(TrackedObjects, data)
+            except DecodeError:
+                self.accept(TrackedObjects, data, key)  # counts and logs the rejection
+                return
             restarts = self.assembler.counts.get("upstream_restarts", 0)
             if self.assembler.add_close(msg, t0):
                 raws[msg.header.seq] = raw

@@ -36,6 +36,7 @@ from ...schemas.models import (
     TrackedObjectKinematics,
     TrackedObjects,
     TrackObservation,
+    TrackState,
     Twist,
     TwistWithCovariance,
     Vector3,
@@ -152,7 +153,11 @@ def generate(sc: TrackScenario, num_frames: int) -> Iterator[TrackFrame]:
                 shape=shape,
             )
             tracked.append(trk)
-            observations.append(TrackObservation(header=header, detection=det, track=trk))
+            tw = trk.kinematics.twist_with_covariance.twist.linear
+            state = TrackState(object_id=ids[i], label=int(labels[i]), existence_probability=0.9,
+                               x=float(wx[i]), y=float(wy[i]), yaw=float(heading[i]), vx=tw.x, vy=tw.y,
+                               hits=f + 1, age_s=f * dt)
+            observations.append(TrackObservation(header=header, detection=det, track=state))
         yield TrackFrame(
             seq=f,
             stamp_ns=stamp,
