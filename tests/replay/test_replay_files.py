@@ -1,0 +1,315 @@
+"""File readers: KITTI / nuScenes raw .bin (with poses, calib, times), PCD (3 encodings), a small nuScenes
+dataroot built here, and SOURCE dispatch. Corrupt files must yield one error naming the file."""
+
+from __future__ import annotations
+
+import json
+import math
+import struct
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from jitterguard.services.replay.frames import EgoPose, FrameError, ScanFrame, SourceError, compose
+from jitterguard.services.replay.sources import SourceOptions, open_source
+from jitterguard.services.replay.sources.kitti import NOMINAL_TR, BinScanSource
+from jitterguard.services.replay.sources.nuscenes import NuScenesSource
+from jitterguard.services.replay.sources.pcd import PcdSource, lzf_decompress, lzf_literal, read_pcd
+
+from .helpers import MS, write_bin
+
+
+def _scans(folder: Path, n: int, cols: int = 4, suffix: str = ".bin") -> list[np.ndarray]:
+    out = []
+    for i in range(n):
+        pts = np.random.default_rng(i).normal(size=(10 + i, cols)).astype(np.float32)
+        write_bin(folder / f"{i:06d}{suffix}", pts)
+        out.append(pts)
+    return out
+
+
+# ------------------------------------------------------------------------------------------ KITTI .bin
+
+
+def test_kitti_folder_reads_every_scan_exactly_with_identity_pose_and_10hz(tmp_path: Path) -> None:
+    want = _scans(tmp_path, 3)
+    frames = list(BinScanSource(tmp_path).frames())
+    assert all(isinstance(f, ScanFrame) for f in frames)
+    assert [f.stamp_ns for f in frames] == [0, 100 * MS, 200 * MS]
+    for f, w in zip(frames, want):
+        assert f.fields == ("x", "y", "z", "intensity") and f.frame_id == "velodyne"
+        np.testing.assert_array_equal(f.points, w)
+        assert f.pose == EgoPose()
+
+
+def test_kitti_truncated_file_is_an_error_naming_it_and_the_rest_still_reads(tmp_path: Path) -> None:
+    _scans(tmp_path, 3)
+    bad = tmp_path / "000001.bin"
+    bad.write_bytes(bad.read_bytes()[:-3])
+    items = list(BinScanSource(tmp_path).frames())
+    assert isinstance(items[1], FrameError) and items[1].origin == str(bad) and "whole number" in items[1].reason
+    assert isinstance(items[0], ScanFrame) and isinstance(items[2], ScanFrame)
+
+
+def test_empty_bin_is_an_error(tmp_path: Path) -> None:
+    (tmp_path / "000000.bin").write_bytes(b"")
+    [item] = list(BinScanSource(tmp_path).frames())
+    assert isinstance(item, FrameError) and "empty" in item.reason
+
+
+def test_start_skips_without_reading(tmp_path: Path) -> None:
+    _scans(tmp_path, 4)
+    (tmp_path / "000000.bin").write_bytes(b"xx")  # corrupt, but before --start
+    items = list(BinScanSource(tmp_path).frames(start=2))
+    assert [Path(i.origin).name for i in items] == ["000002.bin", "000003.bin"]
+
+
+def test_non_finite_xyz_rows_are_dropped(tmp_path: Path) -> None:
+    pts = np.array([[1, 2, 3, 0.5], [np.nan, 0, 0, 1], [4, 5, 6, np.inf]], dtype=np.float32)
+    write_bin(tmp_path / "000000.bin", pts)
+    [f] = list(BinScanSource(tmp_path).frames())
+    np.testing.assert_array_equal(f.points, [[1, 2, 3, 0.5], [4, 5, 6, 0.0]])
+
+
+def _pose_line(m: np.ndarray) -> str:
+    return " ".join(f"{v:.9e}" for v in m[:3, :].reshape(-1))
+
+
+def test_kitti_poses_with_calib_give_the_lidar_pose_in_a_z_up_world(tmp_path: Path) -> None:
+    scans = tmp_path / "velodyne"
+    _scans(scans, 2)
+    # Camera 0 drives 2 m forward (camera z) and turns 90° left (about camera -y, which is "up" negated).
+    p0 = np.eye(4)
+    yaw = math.pi / 2
+    p1 = np.eye(4)
+    p1[:3, :3] = [[math.cos(yaw), 0, -math.sin(yaw)], [0, 1, 0], [math.sin(yaw), 0, math.cos(yaw)]]
+    p1[:3, 3] = [0, 0, 2.0]
+    (tmp_path / "poses.txt").write_text(_pose_line(p0) + "\n" + _pose_line(p1) + "\n")
+    (tmp_path / "calib.txt").write_text("P0: " + " ".join(["0"] * 12) + "\nTr: " + _pose_line(NOMINAL_TR) + "\n")
+    src = BinScanSource(scans, poses=tmp_path / "poses.txt")
+    f0, f1 = list(src.frames())
+    assert f0.pose.x == pytest.approx(0) and f0.pose.yaw == pytest.approx(0)
+    assert (f1.pose.x, f1.pose.y, f1.pose.z) == pytest.approx((2.0, 0.0, 0.0), abs=1e-9)  # forward is +x
+    assert f1.pose.yaw == pytest.approx(yaw)  # left turn is +yaw about +z
+    assert any("calib.txt" in n for n in src.info.notes)
+
+
+def test_kitti_times_file_gives_stamps_and_numbered_files_index_rows(tmp_path: Path) -> None:
+    write_bin(tmp_path / "000005.bin", np.zeros((2, 4)))
+    write_bin(tmp_path / "000007.bin", np.zeros((2, 4)))
+    (tmp_path / "times.txt").write_text("\n".join(f"{0.1037 * i:.6e}" for i in range(10)) + "\n")
+    stamps = [f.stamp_ns for f in BinScanSource(tmp_path).frames()]
+    assert stamps == [int(round(0.1037 * 5 * 1e9)), int(round(0.1037 * 7 * 1e9))]
+
+
+def test_kitti_missing_pose_row_is_a_frame_error(tmp_path: Path) -> None:
+    _scans(tmp_path / "s", 2)
+    (tmp_path / "poses.txt").write_text(_pose_line(np.eye(4)) + "\n")
+    items = list(BinScanSource(tmp_path / "s", poses=tmp_path / "poses.txt").frames())
+    assert isinstance(items[0], ScanFrame) and isinstance(items[1], FrameError) and "no pose" in items[1].reason
+
+
+@pytest.mark.parametrize("content,match", [("1 2 3\n", "12 finite numbers"), ("a b c\n", "not 12 numbers"), ("", "no pose")])
+def test_bad_poses_file_is_a_source_error_naming_it(tmp_path: Path, content: str, match: str) -> None:
+    _scans(tmp_path / "s", 1)
+    (tmp_path / "p.txt").write_text(content)
+    with pytest.raises(SourceError, match=match) as exc:
+        BinScanSource(tmp_path / "s", poses=tmp_path / "p.txt")
+    assert "p.txt" in str(exc.value)
+
+
+def test_pcd_bin_suffix_means_five_nuscenes_columns(tmp_path: Path) -> None:
+    want = _scans(tmp_path, 1, cols=5, suffix=".pcd.bin")
+    [f] = list(BinScanSource(tmp_path).frames())
+    assert f.fields == ("x", "y", "z", "intensity", "ring") and f.frame_id == "LIDAR_TOP"
+    np.testing.assert_array_equal(f.points, want[0])
+
+
+# ------------------------------------------------------------------------------------------------- PCD
+
+PCD_HEADER = """# .PCD v0.7 - Point Cloud Data file format
+VERSION 0.7
+FIELDS x y z intensity _ normal
+SIZE 4 4 4 2 1 4
+TYPE F F F U U F
+COUNT 1 1 1 1 1 3
+WIDTH {n}
+HEIGHT 1
+VIEWPOINT 1 2 3 {qw} 0 0 {qz}
+POINTS {n}
+DATA {data}
+"""
+
+
+def _pcd_points(n: int) -> np.ndarray:
+    dt = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<u2"), ("pad", "u1"), ("normal", "<f4", (3,))])
+    arr = np.zeros(n, dtype=dt)
+    rng = np.random.default_rng(0)
+    arr["x"], arr["y"], arr["z"] = rng.normal(size=(3, n)).astype(np.float32)
+    arr["intensity"] = np.arange(n) * 7
+    arr["normal"] = 1.0
+    return arr
+
+
+def _write_pcd(path: Path, arr: np.ndarray, data: str) -> None:
+    yaw = 0.5
+    head = PCD_HEADER.format(n=len(arr), data=data, qw=math.cos(yaw / 2), qz=math.sin(yaw / 2)).encode()
+    if data == "binary":
+        body = arr.tobytes()
+    elif data == "binary_compressed":
+        raw = b"".join(np.ascontiguousarray(arr[name]).tobytes() for name in arr.dtype.names)
+        comp = lzf_literal(raw)
+        body = struct.pack("<II", len(comp), len(raw)) + comp
+    else:
+        body = "".join(
+            f"{r['x']:.9g} {r['y']:.9g} {r['z']:.9g} {r['intensity']} 0 1 1 1\n" for r in arr
+        ).encode()
+    path.write_bytes(head + body)
+
+
+@pytest.mark.parametrize("data", ["ascii", "binary", "binary_compressed"])
+def test_pcd_encodings_read_the_same_columns_and_viewpoint(tmp_path: Path, data: str) -> None:
+    arr = _pcd_points(50)
+    _write_pcd(tmp_path / "a.pcd", arr, data)
+    pts, names, pose = read_pcd(tmp_path / "a.pcd")
+    assert names == ("x", "y", "z", "intensity")  # padding and the 3-count normal are dropped
+    np.testing.assert_allclose(pts[:, 0], arr["x"], rtol=1e-6)
+    np.testing.assert_array_equal(pts[:, 3], arr["intensity"].astype(np.float32))
+    assert (pose.x, pose.y, pose.z) == (1, 2, 3) and pose.yaw == pytest.approx(0.5)
+
+
+def test_pcd_truncated_binary_is_an_error_naming_the_file(tmp_path: Path) -> None:
+    _write_pcd(tmp_path / "a.pcd", _pcd_points(20), "binary")
+    (tmp_path / "b.pcd").write_bytes((tmp_path / "a.pcd").read_bytes()[:-10])
+    items = list(PcdSource(tmp_path).frames())
+    assert isinstance(items[0], ScanFrame)
+    assert isinstance(items[1], FrameError) and items[1].origin.endswith("b.pcd") and "truncated" in items[1].reason
+
+
+@pytest.mark.parametrize("blob", [b"", b"\x00\x01garbage" * 100, b"VERSION 0.7\nFIELDS a b\nSIZE 4 4\nTYPE F F\nWIDTH 1\nHEIGHT 1\nDATA binary\n"])
+def test_pcd_garbage_is_a_frame_error(tmp_path: Path, blob: bytes) -> None:
+    (tmp_path / "x.pcd").write_bytes(blob)
+    [item] = list(PcdSource(tmp_path / "x.pcd").frames())
+    assert isinstance(item, FrameError) and "not a valid PCD" in item.reason
+
+
+def test_lzf_back_references_including_overlapping_runs() -> None:
+    # literal "abc", then copy 6 bytes from 3 back (overlapping): "abcabcabc"; then a long ref (len 9+) of "abcabcabc"
+    data = bytes([2]) + b"abc" + bytes([(4 << 5) | 0, 2]) + bytes([(7 << 5) | 0, 9 - 7 - 2 + 0, 8])
+    assert lzf_decompress(data, 18) == b"abc" * 6
+    with pytest.raises(ValueError):
+        lzf_decompress(bytes([(1 << 5), 40]), 3)  # reference before the start
+    with pytest.raises(ValueError):
+        lzf_decompress(bytes([5]) + b"ab", 6)  # truncated literal
+
+
+# ------------------------------------------------------------------------------------ nuScenes dataroot
+
+
+def _quat_wxyz(yaw: float) -> list[float]:
+    return [math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)]
+
+
+def make_nuscenes_root(root: Path, n: int = 3, drop_file: int | None = None) -> Path:
+    """A dataroot with one scene of ``n`` LIDAR_TOP key frames (plus one CAM_FRONT sample_data to ignore)."""
+    tables = root / "v1.0-mini"
+    tables.mkdir(parents=True)
+    (root / "samples" / "LIDAR_TOP").mkdir(parents=True)
+    sensors = [{"token": "s-lidar", "channel": "LIDAR_TOP", "modality": "lidar"},
+               {"token": "s-cam", "channel": "CAM_FRONT", "modality": "camera"}]
+    calib = [{"token": "c-lidar", "sensor_token": "s-lidar", "translation": [1.0, 0.0, 1.8], "rotation": _quat_wxyz(-math.pi / 2), "camera_intrinsic": []},
+             {"token": "c-cam", "sensor_token": "s-cam", "translation": [0, 0, 0], "rotation": [1, 0, 0, 0], "camera_intrinsic": []}]
+    samples, sds, egos = [], [], []
+    for i in range(n):
+        ts = 1_500_000_000_000_000 + i * 500_000
+        samples.append({"token": f"smp{i}", "timestamp": ts, "prev": f"smp{i-1}" if i else "", "next": f"smp{i+1}" if i < n - 1 else "", "scene_token": "scn"})
+        egos.append({"token": f"ego{i}", "timestamp": ts, "translation": [10.0 + i, 20.0, 0.0], "rotation": _quat_wxyz(math.pi / 2)})
+        fname = f"samples/LIDAR_TOP/scan{i}.pcd.bin"
+        sds.append({"token": f"sd{i}", "sample_token": f"smp{i}", "ego_pose_token": f"ego{i}", "calibrated_sensor_token": "c-lidar",
+                    "timestamp": ts, "fileformat": "pcd", "is_key_frame": True, "filename": fname,
+                    "prev": f"sd{i-1}" if i else "", "next": f"sd{i+1}" if i < n - 1 else ""})
+        if i != drop_file:
+            write_bin(root / fname, np.full((4 + i, 5), i, dtype=np.float32))
+    sds.append({"token": "cam0", "sample_token": "smp0", "ego_pose_token": "ego0", "calibrated_sensor_token": "c-cam",
+                "timestamp": samples[0]["timestamp"], "fileformat": "jpg", "is_key_frame": True, "filename": "samples/CAM_FRONT/x.jpg", "prev": "", "next": ""})
+    scene = [{"token": "scn", "log_token": "log", "nbr_samples": n, "first_sample_token": "smp0", "last_sample_token": f"smp{n-1}", "name": "scene-0001", "description": ""}]
+    # Tables listed out of order on purpose: the chain, not the file order, decides.
+    for name, table in {"scene": scene, "sample": samples[::-1], "sample_data": sds[::-1], "ego_pose": egos,
+                        "calibrated_sensor": calib, "sensor": sensors}.items():
+        (tables / f"{name}.json").write_text(json.dumps(table))
+    return root
+
+
+def test_nuscenes_walks_the_scene_and_composes_the_lidar_world_pose(tmp_path: Path) -> None:
+    root = make_nuscenes_root(tmp_path / "nusc")
+    src = NuScenesSource(root)
+    frames = list(src.frames())
+    assert [f.points[0, 0] for f in frames] == [0, 1, 2]
+    assert [f.stamp_ns for f in frames] == [1_500_000_000_000_000_000 + i * 500_000_000 for i in range(3)]
+    f1 = frames[1]
+    # ego at (11, 20) facing +y; the LiDAR sits 1 m ahead (-> +y in the world), 1.8 m up, rotated -90°.
+    assert (f1.pose.x, f1.pose.y, f1.pose.z) == pytest.approx((11.0, 21.0, 1.8))
+    assert f1.pose.yaw == pytest.approx(0.0, abs=1e-9)
+    assert f1.fields == ("x", "y", "z", "intensity", "ring") and f1.frame_id == "LIDAR_TOP"
+
+
+def test_nuscenes_missing_scan_file_is_a_frame_error_naming_it(tmp_path: Path) -> None:
+    root = make_nuscenes_root(tmp_path / "nusc", drop_file=1)
+    items = list(NuScenesSource(root).frames())
+    assert isinstance(items[1], FrameError) and items[1].origin.endswith("scan1.pcd.bin")
+
+
+def test_nuscenes_unknown_scene_lists_the_scenes(tmp_path: Path) -> None:
+    root = make_nuscenes_root(tmp_path / "nusc")
+    with pytest.raises(SourceError, match="scene-0001"):
+        NuScenesSource(root, scene="scene-9999")
+
+
+def test_nuscenes_broken_table_is_a_source_error_naming_it(tmp_path: Path) -> None:
+    root = make_nuscenes_root(tmp_path / "nusc")
+    (root / "v1.0-mini" / "ego_pose.json").write_text("{not json")
+    with pytest.raises(SourceError, match="ego_pose.json"):
+        NuScenesSource(root)
+
+
+def test_compose_matches_matrix_product() -> None:
+    a = EgoPose(1, 2, 3, *(0.1, 0.2, 0.3, 0.9))
+    b = EgoPose(-1, 0.5, 2, *(0.0, 0.6, 0.0, 0.8))
+    c = compose(a, b)
+    np.testing.assert_allclose(c.matrix(), a.matrix() @ b.matrix(), atol=1e-12)
+
+
+# ----------------------------------------------------------------------------------------- dispatch
+
+
+def test_open_source_picks_the_reader_from_the_path(tmp_path: Path) -> None:
+    _scans(tmp_path / "kitti", 1)
+    (tmp_path / "pcds").mkdir()
+    _write_pcd(tmp_path / "pcds" / "a.pcd", _pcd_points(3), "binary")
+    root = make_nuscenes_root(tmp_path / "nusc")
+    assert type(open_source(str(tmp_path / "kitti"))).__name__ == "BinScanSource"
+    assert type(open_source(str(tmp_path / "pcds"))).__name__ == "PcdSource"
+    assert type(open_source(str(tmp_path / "pcds" / "a.pcd"))).__name__ == "PcdSource"
+    assert type(open_source(str(root))).__name__ == "NuScenesSource"
+
+
+@pytest.mark.parametrize(
+    "spec,opts,match",
+    [
+        ("nowhere", SourceOptions(), "no such file"),
+        ("synthetic:moon", SourceOptions(), "unknown scenario"),
+        ("{kitti}", SourceOptions(scene="x"), "--scene does not apply"),
+        ("{kitti}", SourceOptions(level="detections"), "--level detections"),
+        ("{empty}", SourceOptions(), "cannot tell"),
+        ("{kitti}/readme.txt", SourceOptions(), "unknown recording type"),
+    ],
+)
+def test_open_source_refuses_bad_input_with_one_line(tmp_path: Path, spec: str, opts: SourceOptions, match: str) -> None:
+    _scans(tmp_path / "kitti", 1)
+    (tmp_path / "kitti" / "readme.txt").write_text("hi")
+    (tmp_path / "empty").mkdir()
+    spec = spec.format(kitti=tmp_path / "kitti", empty=tmp_path / "empty")
+    with pytest.raises(SourceError, match=match) as exc:
+        open_source(spec, opts)
+    assert "\n" not in str(exc.value)

@@ -1,0 +1,118 @@
+"""The replay loop without Zenoh: windowing, looping, numbering, re-stamping, error policy, stopping."""
+
+from __future__ import annotations
+
+import threading
+
+import pytest
+
+from jitterguard.services.replay.frames import Frame, FrameError, SourceError
+from jitterguard.services.replay.pacing import FakeClock
+from jitterguard.services.replay.runner import ReplayPlan, run_replay
+
+from .helpers import MS, ExplodingSource, memory
+
+
+class Sink:
+    def __init__(self) -> None:
+        self.out: list[tuple[str, int, int]] = []
+
+    def __call__(self, frame: Frame, seq: int, stamp: int) -> None:
+        self.out.append((frame.origin, seq, stamp))
+
+
+def test_plays_every_frame_once_in_order_with_recorded_stamps() -> None:
+    sink = Sink()
+    stats = run_replay(memory(4), ReplayPlan(rate=None), sink, clock=FakeClock())
+    assert [o for o, _, _ in sink.out] == ["mem#0", "mem#1", "mem#2", "mem#3"]
+    assert [s for _, s, _ in sink.out] == [0, 1, 2, 3]
+    assert [t for _, _, t in sink.out] == [0, 100 * MS, 200 * MS, 300 * MS]
+    assert (stats.published, stats.passes, stats.errors, stats.last_seq) == (4, 1, 0, 3)
+
+
+def test_real_rate_sleeps_the_recorded_spacing_on_the_fake_clock() -> None:
+    clock = FakeClock()
+    run_replay(memory(3), ReplayPlan(rate=0.5), Sink(), clock=clock)
+    assert clock.sleeps == pytest.approx([0.2, 0.2])
+
+
+def test_loop_keeps_seq_and_stamps_increasing_across_passes() -> None:
+    sink = Sink()
+    stats = run_replay(memory(3), ReplayPlan(rate=None, loop=True, passes=3), sink, clock=FakeClock())
+    seqs = [s for _, s, _ in sink.out]
+    stamps = [t for _, _, t in sink.out]
+    assert seqs == list(range(9))
+    assert all(b > a for a, b in zip(stamps, stamps[1:]))
+    assert stamps[3] - stamps[2] == 100 * MS  # the next pass starts one period later
+    assert stats.passes == 3
+
+
+def test_start_and_limit_select_a_window_per_pass() -> None:
+    sink = Sink()
+    run_replay(memory(10), ReplayPlan(rate=None, start=4, limit=3, loop=True, passes=2), sink, clock=FakeClock())
+    assert [o for o, _, _ in sink.out] == ["mem#4", "mem#5", "mem#6"] * 2
+    assert [s for _, s, _ in sink.out] == list(range(6))
+
+
+def test_seq_start_offsets_the_numbering() -> None:
+    sink = Sink()
+    run_replay(memory(2), ReplayPlan(rate=None, seq_start=41), sink, clock=FakeClock())
+    assert [s for _, s, _ in sink.out] == [41, 42]
+
+
+def test_skip_counts_bad_frames_names_them_and_goes_on() -> None:
+    sink = Sink()
+    seen: list[FrameError] = []
+    stats = run_replay(memory(5, errors=(1, 3)), ReplayPlan(rate=None), sink, clock=FakeClock(), on_error=seen.append)
+    assert [o for o, _, _ in sink.out] == ["mem#0", "mem#2", "mem#4"]
+    assert [s for _, s, _ in sink.out] == [0, 1, 2]  # no gaps for skipped frames
+    assert stats.errors == 2 and stats.error_origins == ["bad1.bin", "bad3.bin"]
+    assert [str(e) for e in seen] == ["bad1.bin: corrupt", "bad3.bin: corrupt"]
+    assert stats.stopped_by is None
+
+
+def test_stop_policy_ends_at_the_first_bad_frame() -> None:
+    sink = Sink()
+    stats = run_replay(memory(5, errors=(2,)), ReplayPlan(rate=None, on_error="stop"), sink, clock=FakeClock())
+    assert [o for o, _, _ in sink.out] == ["mem#0", "mem#1"]
+    assert stats.stopped_by is not None and stats.stopped_by.origin == "bad2.bin"
+
+
+def test_looping_a_recording_with_no_readable_frame_terminates() -> None:
+    stats = run_replay(memory(3, errors=(0, 1, 2)), ReplayPlan(rate=None, loop=True), Sink(), clock=FakeClock())
+    assert stats.published == 0 and stats.errors == 3 and stats.passes == 1
+
+
+def test_start_past_the_end_is_a_source_error() -> None:
+    with pytest.raises(SourceError, match="--start 7 is past the end"):
+        run_replay(memory(3), ReplayPlan(rate=None, start=7), Sink(), clock=FakeClock())
+
+
+def test_a_reader_that_raises_becomes_one_error_naming_the_source() -> None:
+    sink = Sink()
+    seen: list[FrameError] = []
+    stats = run_replay(ExplodingSource(), ReplayPlan(rate=None), sink, clock=FakeClock(), on_error=seen.append)
+    assert len(sink.out) == 2
+    assert stats.errors == 1 and seen[0].origin == "exploding" and "disk went away" in seen[0].reason
+
+
+def test_stop_event_ends_a_looping_replay() -> None:
+    stop = threading.Event()
+    sink = Sink()
+
+    def emit(frame: Frame, seq: int, stamp: int) -> None:
+        sink(frame, seq, stamp)
+        if seq == 6:
+            stop.set()
+
+    stats = run_replay(memory(3), ReplayPlan(rate=None, loop=True), emit, clock=FakeClock(), stop=stop)
+    assert stats.interrupted and stats.published == 7
+
+
+@pytest.mark.parametrize(
+    "kwargs,match",
+    [({"start": -1}, "--start"), ({"limit": 0}, "--limit"), ({"on_error": "ignore"}, "--on-error"), ({"passes": 0}, "passes")],
+)
+def test_plan_rejects_bad_values(kwargs: dict, match: str) -> None:
+    with pytest.raises(ValueError, match=match):
+        ReplayPlan(**kwargs)
