@@ -1,0 +1,257 @@
+"""The sidecar's one Zenoh session: the classifier seen from outside, over queries and subscriptions only.
+
+:class:`ClassifierClient` is a :class:`~jitterguard.runtime.Service` (so the sidecar has its own liveliness
+token and heartbeat like every process), and it
+
+- watches the classifier's liveliness token and heartbeat (readiness: both must hold);
+- polls ``classifier/state`` in a background thread and renders each new snapshot to JSON once, so that
+  ``GET /v1/state`` is a pointer read however many tracks there are and however many clients ask;
+- turns consecutive snapshots into change events (state transitions, config changes, readiness flips) for
+  listeners (the SSE broker). Events come from snapshots rather than ``motion/*``: at 500 tracks × 20 Hz
+  that subscription is 10 000 Python callbacks a second in this process for no information a viewer at the
+  poll rate could see;
+- reads and writes the config through the ``classifier/config`` queryable. A write returns only what the
+  classifier replied is in force; the classifier swaps its config whole between two frames, so a write is
+  applied entirely or not at all.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import zenoh
+
+from ...runtime import Service, ZenohOptions
+from ...schemas import DecodeError, decode, encode, keys
+from ...schemas.models import ClassifierConfig, ClassifierStateSnapshot, ConfigReply, Heartbeat
+from .core import RenderedState, config_to_api, diff_states, render_state
+from .metrics import SidecarMetrics
+
+CLASSIFIER = "classifier"
+Listener = Callable[[str, dict[str, Any]], None]
+
+
+class ClassifierUnavailable(RuntimeError):
+    """The classifier cannot be reached or did not confirm in time (HTTP 503)."""
+
+
+class ClassifierRejected(RuntimeError):
+    """The classifier answered with an error reply (HTTP 502: the sidecar validated, the classifier refused)."""
+
+
+class ClassifierClient(Service):
+    """Owns the sidecar's Zenoh session and everything it knows about the classifier."""
+
+    name = "sidecar"
+
+    def __init__(self, opts: ZenohOptions, *, poll_period_s: float = 0.05, query_timeout_s: float = 3.0,
+                 state_timeout_s: float = 1.0, stale_after_s: float = 3.0,
+                 metrics: SidecarMetrics | None = None) -> None:
+        super().__init__(opts)
+        self.poll_period_s = poll_period_s
+        self.query_timeout_s = query_timeout_s
+        self.state_timeout_s = state_timeout_s
+        self.stale_after_s = stale_after_s
+        self.metrics = metrics or SidecarMetrics()
+        self._lock = threading.Lock()
+        self._write_lock = threading.Lock()
+        self._alive = False
+        self._hb: Heartbeat | None = None
+        self._hb_at: float | None = None  # monotonic receive time of the last heartbeat
+        self._rendered: RenderedState | None = None
+        self._last_payload: bytes | None = None
+        self._listeners: list[Listener] = []
+        self._alive_key = keys.alive(self.ns, CLASSIFIER)
+        self._declared.append(self.session.liveliness().declare_subscriber(
+            self._alive_key, self._on_liveliness, history=True))
+        self.subscribe(keys.heartbeat(self.ns, CLASSIFIER), Heartbeat, self._on_heartbeat)
+        self.metrics.attach(self)
+        self.spawn(self._poll_loop, "poll")
+
+    # ------------------------------------------------------------------ liveliness, heartbeat, readiness
+
+    def _on_liveliness(self, sample: zenoh.Sample) -> None:
+        alive = sample.kind == zenoh.SampleKind.PUT
+        with self._lock:
+            self._alive = alive
+            if not alive:
+                self._hb_at = None  # a new instance must prove itself with a fresh heartbeat
+
+    def _on_heartbeat(self, hb: Heartbeat, _key: str) -> None:
+        with self._lock:
+            self._hb, self._hb_at = hb, time.monotonic()
+
+    def readiness(self) -> dict[str, Any]:
+        """Whether the classifier is usable now, and why not (the ``/readyz`` body)."""
+        with self._lock:
+            alive, hb, hb_at = self._alive, self._hb, self._hb_at
+        age = time.monotonic() - hb_at if hb_at is not None else None
+        if not alive:
+            reason = f"no classifier: liveliness token {self._alive_key} is absent"
+        elif age is None:
+            reason = f"no heartbeat yet on {keys.heartbeat(self.ns, CLASSIFIER)}"
+        elif age > self.stale_after_s:
+            reason = f"classifier heartbeat is {age:.1f} s old (stale after {self.stale_after_s:g} s)"
+        else:
+            reason = "ok"
+        st = self._rendered
+        return {"ready": reason == "ok", "reason": reason, "liveliness": alive,
+                "heartbeat_age_s": round(age, 3) if age is not None else None,
+                "last_seq": hb.last_seq if hb is not None and hb_at is not None else None,
+                "state_seq": st.seq if st is not None else None}
+
+    def readiness_flag(self) -> bool:
+        return bool(self.readiness()["ready"])
+
+    def is_alive(self) -> bool:
+        with self._lock:
+            return self._alive
+
+    # ------------------------------------------------------------------ state cache
+
+    def rendered_state(self) -> RenderedState | None:
+        """The latest rendered snapshot (an immutable object; replaced, never mutated)."""
+        return self._rendered
+
+    def add_listener(self, fn: Listener) -> None:
+        """``fn(kind, data)`` for every change event; called on the poll or request thread, keep it short."""
+        self._listeners.append(fn)
+
+    def _emit(self, kind: str, data: dict[str, Any]) -> None:
+        for fn in list(self._listeners):
+            try:
+                fn(kind, data)
+            except Exception:
+                self.log.exception("event listener failed")
+
+    def _poll_loop(self) -> None:
+        next_t = time.monotonic()
+        was_ready: bool | None = None
+        while not self.stop_event.is_set():
+            ready = self.readiness()
+            if ready["ready"] != was_ready:
+                was_ready = ready["ready"]
+                self._emit("ready", {"ready": ready["ready"], "reason": ready["reason"]})
+            if self.is_alive():
+                try:
+                    self.poll_once()
+                except Exception:  # never let the cache thread die
+                    if self.stop_event.is_set():
+                        return
+                    self.log.exception("state poll failed")
+            next_t += self.poll_period_s
+            delay = next_t - time.monotonic()
+            if delay < 0:  # fell behind (a slow reply): start afresh rather than burst
+                next_t, delay = time.monotonic(), 0.0
+            self.stop_event.wait(delay)
+
+    def poll_once(self) -> RenderedState | None:
+        """Fetch ``classifier/state`` once; render and publish it if it changed. Returns what is cached."""
+        t0 = time.perf_counter()
+        try:
+            kind, data = self._query(keys.classifier_state(self.ns), None, self.state_timeout_s)
+        except ClassifierUnavailable:
+            self.metrics.poll_failures.inc()
+            return self._rendered
+        self.metrics.poll_seconds.observe(time.perf_counter() - t0)
+        if kind != "ok":
+            self.metrics.poll_failures.inc()
+            return self._rendered
+        if data == self._last_payload:
+            return self._rendered
+        try:
+            snap = decode(ClassifierStateSnapshot, data)
+        except DecodeError as exc:
+            self._reject("classifier/state", exc)
+            return self._rendered
+        prev = self._rendered
+        new = render_state(snap, time.time_ns())
+        self._last_payload = data
+        self._rendered = new
+        if prev is None or new.seq != prev.seq or new.tracks.keys() != prev.tracks.keys():
+            changes = diff_states(prev, new)
+            if changes:
+                self._emit("changes", {"seq": new.seq, "stamp_ns": new.stamp_ns, "changes": changes})
+        if prev is not None and prev.config != new.config:
+            self._emit("config", config_to_api(new.config))
+        return new
+
+    def _reject(self, key: str, exc: Exception) -> None:
+        self.counters.inc("rejected")
+        self.counters.inc(f"rejected.{key}")
+        self.metrics.rejected.labels(key).inc()
+        self._reject_log.warn(f"rejected payload on {key}: {exc}")
+
+    # ------------------------------------------------------------------ config
+
+    def _query(self, key: str, payload: bytes | None, timeout: float) -> tuple[str, bytes]:
+        """One get; ``("ok"|"err", payload)`` of the first reply, or :class:`ClassifierUnavailable`."""
+        try:
+            replies = list(self.session.get(key, payload=payload, timeout=timeout))
+        except Exception as exc:  # session closing, or a zenoh error
+            raise ClassifierUnavailable(f"query on {key} failed: {exc}") from None
+        for reply in replies:
+            if reply.ok is not None:
+                return "ok", reply.ok.payload.to_bytes()
+            return "err", reply.err.payload.to_bytes()
+        raise ClassifierUnavailable(f"no reply on {key} within {timeout:g} s")
+
+    def _require_alive(self, action: str) -> None:
+        if not self.is_alive():
+            raise ClassifierUnavailable(
+                f"classifier unreachable (liveliness token {self._alive_key} is absent); {action}")
+
+    def _config_reply(self, kind: str, data: bytes, key: str) -> ConfigReply:
+        try:
+            reply = decode(ConfigReply, data)
+        except DecodeError as exc:
+            self._reject("classifier/config", exc)
+            if kind == "ok":
+                raise ClassifierRejected(f"the classifier's reply on {key} is invalid: {exc}") from None
+            raise ClassifierRejected(f"the classifier refused: {data[:200].decode(errors='replace')}") from None
+        if kind != "ok" or not reply.ok:
+            if (reply.error or "").startswith("not applied"):
+                raise ClassifierUnavailable(f"the classifier did not apply the write: {reply.error}")
+            raise ClassifierRejected(f"the classifier refused the config: {reply.error}")
+        return reply
+
+    def get_config(self, action: str = "cannot read the config") -> ClassifierConfig:
+        """The config the classifier has in force now (asked, not cached)."""
+        self._require_alive(action)
+        key = keys.classifier_config(self.ns)
+        try:
+            kind, data = self._query(key, None, self.query_timeout_s)
+        except ClassifierUnavailable as exc:
+            raise ClassifierUnavailable(f"classifier unreachable: {exc}; {action}") from None
+        return self._config_reply(kind, data, key).config
+
+    def put_config(self, cfg: ClassifierConfig) -> ClassifierConfig:
+        """Put ``cfg`` in force; returns what the classifier says is in force after applying it."""
+        self._require_alive("nothing was applied")
+        key = keys.classifier_config(self.ns)
+        try:
+            kind, data = self._query(key, encode(cfg), self.query_timeout_s)
+        except ClassifierUnavailable as exc:
+            raise ClassifierUnavailable(
+                f"the classifier did not confirm the write ({exc}); a config is applied whole or not at all — "
+                f"GET /v1/config shows what is in force") from None
+        in_force = self._config_reply(kind, data, key).config
+        self._emit("config", config_to_api(in_force))
+        return in_force
+
+    def update_config(self, change: Callable[[ClassifierConfig], ClassifierConfig]) -> ClassifierConfig:
+        """Read-modify-write under one lock, so two concurrent PATCHes never lose each other's fields.
+
+        ``change`` may raise (e.g. a validation error): then nothing is sent to the classifier.
+        """
+        with self._write_lock:
+            current = self.get_config("nothing was applied")
+            return self.put_config(change(current))
+
+    def replace_config(self, cfg: ClassifierConfig) -> ClassifierConfig:
+        """Put a whole config in force (PUT), serialised with the read-modify-writes."""
+        with self._write_lock:
+            return self.put_config(cfg)

@@ -1,0 +1,429 @@
+"""The sidecar's pure core: HTTP view models, snapshot → JSON, config merge and validation, change
+detection, metric aggregation and the bind policy.
+
+Nothing here does I/O or reads a clock, so every rule the HTTP API promises (what a track looks like, what
+PATCH means, which field a 422 names, when a bind is refused) is unit-tested without a network.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import json
+import math
+import socket
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, create_model
+from pydantic.fields import FieldInfo
+
+from ...schemas.models import (
+    LABEL_NAMES,
+    PRESETS,
+    ClassifierConfig,
+    ClassifierStateSnapshot,
+    TrackStateEntry,
+)
+
+STATES: tuple[str, ...] = ("static", "dynamic", "undecided")
+CLASS_NAMES: tuple[str, ...] = tuple(LABEL_NAMES[i] for i in sorted(LABEL_NAMES))
+ClassName = Literal[CLASS_NAMES]  # type: ignore[valid-type]
+PresetName = Literal[tuple(PRESETS)]  # type: ignore[valid-type]
+
+# ----------------------------------------------------------------------------------------- view models
+# These models document the JSON the API returns (OpenAPI) and are what the tests validate against. The hot
+# path (``GET /v1/state``) builds the same shape as plain dicts and serialises them once per snapshot.
+
+
+class TrackView(BaseModel):
+    """One track as the classifier decided it in its latest frame."""
+
+    model_config = ConfigDict(populate_by_name=True)
+
+    id: str = Field(description="track ID: 32 hex digits (a 16-byte UUID)")
+    label: int = Field(ge=0, le=7, description="Autoware ObjectClassification label (0..7)")
+    class_: str = Field(alias="class", description="lowercase class name (car, truck, ..., pedestrian)")
+    state: Literal["static", "dynamic", "undecided"]
+    z_x: float = Field(description="two-sample z statistic along world x")
+    z_y: float = Field(description="two-sample z statistic along world y")
+    z: float = Field(description="max(z_x, z_y): what the z-test compares with alpha")
+    chi2: float = Field(description="the chi2 statistic (chi2 mode)")
+    statistic: float = Field(description="the value compared with `threshold` in the mode in force "
+                                         "(z, chi2, or speed in m/s)")
+    alpha: float = Field(description="the alpha used for this track's class")
+    threshold: float = Field(description="what `statistic` was compared with (alpha, chi2 quantile or m/s)")
+    window_length: int = Field(ge=0, description="observations in the track's window")
+    window_size: int = Field(ge=0, description="the window's capacity (config `window_size`)")
+    window_fill: float = Field(ge=0.0, le=1.0, description="window_length / window_size")
+    speed: float = Field(description="the tracker's speed estimate, m/s")
+    x: float = Field(description="position x, world frame, m (static tracks: the window mean)")
+    y: float = Field(description="position y, world frame, m (static tracks: the window mean)")
+    yaw: float = Field(description="heading, rad")
+    length: float = Field(description="box length, m")
+    width: float = Field(description="box width, m")
+    last_update_ns: int = Field(ge=0, description="stamp of the track's latest observation, ns")
+    last_seq: int = Field(ge=0, description="frame seq of the track's latest observation")
+    frames_since_update: int = Field(ge=0, description="frames between the snapshot and the last observation")
+
+
+class StateCounts(BaseModel):
+    static: int = Field(ge=0)
+    dynamic: int = Field(ge=0)
+    undecided: int = Field(ge=0)
+    total: int = Field(ge=0)
+
+
+class StateView(BaseModel):
+    """The classifier's live state after its latest frame, as last polled by the sidecar."""
+
+    seq: int = Field(ge=0, description="seq of the classifier's latest frame")
+    stamp_ns: int = Field(ge=0, description="stamp of the classifier's latest frame, ns")
+    frame_id: str
+    mode: Literal["z_test", "chi2", "velocity_threshold"]
+    polled_at_ns: int = Field(ge=0, description="wall time (ns since epoch) when the sidecar fetched it")
+    counts: StateCounts
+    tracks: list[TrackView]
+
+
+class ErrorBody(BaseModel):
+    """Why a request could not be served (503/502/401/404)."""
+
+    detail: str
+
+
+class HealthView(BaseModel):
+    status: Literal["ok"]
+
+
+class ReadyView(BaseModel):
+    """Readiness: the classifier's liveliness token is present and its heartbeat is recent."""
+
+    ready: bool
+    reason: str = Field(description="why not ready, or 'ok'")
+    liveliness: bool = Field(description="the classifier's liveliness token is present")
+    heartbeat_age_s: float | None = Field(description="seconds since the last classifier heartbeat, if any")
+    last_seq: int | None = Field(description="the last frame seq the classifier reported in its heartbeat")
+    state_seq: int | None = Field(description="seq of the state snapshot the sidecar serves, if any")
+
+
+# ----------------------------------------------------------------------------------------- config models
+
+_CONFIG_DOCS: dict[str, str] = {
+    "mode": "test: `z_test` (the paper), `chi2` (joint x/y), or `velocity_threshold` (Autoware's baseline)",
+    "alpha_default": "z threshold for classes without an override (1.96 ≈ 95 %)",
+    "alpha_per_class": "per-class alpha overrides keyed by lowercase class name",
+    "window_size": "observations kept per track (sliding window)",
+    "min_window": "observations needed before a track is tested (must not exceed window_size)",
+    "variance_floor": "lower bound on each half's mean predicted variance, m²",
+    "effective_n": "`cluster`: each half counts as one sample (the paper); `independent`: real counts",
+    "velocity_threshold": "speed above which the baseline calls a track dynamic, m/s",
+}
+CONFIG_FIELDS: tuple[str, ...] = tuple(n for n in ClassifierConfig.model_fields if n != "schema_version")
+
+
+def _api_annotation(name: str, info: FieldInfo) -> Any:
+    """The wire field's type, with class-name keys spelled as an enum so the OpenAPI schema lists them."""
+    if name == "alpha_per_class":
+        value = info.annotation.__args__[1]  # type: ignore[union-attr]  # Annotated[float, gt/le]
+        return dict[ClassName, value]  # type: ignore[valid-type]
+    return info.annotation
+
+
+def _build_config_models() -> tuple[type[BaseModel], type[BaseModel]]:
+    """Derive the HTTP config models from the wire model so the constraints can never drift apart.
+
+    ``Config`` is the full config (PUT body, GET reply): every field with its default. ``ConfigPatch`` is a
+    JSON merge patch (RFC 7386) of it: absent = unchanged, ``null`` = back to the default, and inside
+    ``alpha_per_class`` a ``null`` value removes that class's override.
+    """
+    full: dict[str, Any] = {}
+    patch: dict[str, Any] = {}
+    for name in CONFIG_FIELDS:
+        info = ClassifierConfig.model_fields[name]
+        ann = _api_annotation(name, info)
+        doc = _CONFIG_DOCS[name]
+        constrained = Annotated[(ann, *info.metadata)] if info.metadata else ann  # type: ignore[valid-type]
+        if info.default_factory is not None:
+            spec = Field(default_factory=info.default_factory, description=doc)  # type: ignore[arg-type]
+        else:
+            spec = Field(default=info.default, description=doc)
+        full[name] = (constrained, spec)
+        if name == "alpha_per_class":
+            value = info.annotation.__args__[1]  # type: ignore[union-attr]
+            pann = dict[ClassName, value | None] | None  # type: ignore[valid-type]
+        else:
+            pann = constrained | None
+        patch[name] = (pann, Field(default=None, description=doc + "; null resets it to the default"))
+    cfg = ConfigDict(extra="forbid", allow_inf_nan=False)
+    config_model = create_model("Config", __config__=cfg, **full)  # type: ignore[call-overload]
+    config_model.__doc__ = "The motion classifier's tunables (what is in force, or what to put in force)."
+    patch_model = create_model("ConfigPatch", __config__=cfg, **patch)  # type: ignore[call-overload]
+    patch_model.__doc__ = ("A JSON merge patch of the config: absent fields stay, `null` resets a field to its "
+                           "default, a `null` in alpha_per_class removes that class's override.")
+    return config_model, patch_model
+
+
+ConfigModel, ConfigPatchModel = _build_config_models()
+
+
+class ConfigError(ValueError):
+    """A config that the classifier would refuse; ``errors`` is FastAPI's 422 ``detail`` list."""
+
+    def __init__(self, errors: list[dict[str, Any]]) -> None:
+        self.errors = errors
+        super().__init__("; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in errors))
+
+
+def config_to_api(cfg: ClassifierConfig) -> dict[str, Any]:
+    """The HTTP form of a config: the wire model without its schema version."""
+    return cfg.model_dump(mode="json", exclude={"schema_version"})
+
+
+def _window_field(touched: Iterable[str]) -> str:
+    """Which field the window-order error should name: the one the request changed (min_window if both)."""
+    touched = set(touched)
+    if "window_size" in touched and "min_window" not in touched:
+        return "window_size"
+    return "min_window"
+
+
+def validate_config(data: Mapping[str, Any], touched: Iterable[str] | None = None) -> ClassifierConfig:
+    """Validate a full config dict with the classifier's own model; raise :class:`ConfigError` naming fields.
+
+    The model's cross-field rule (min_window ≤ window_size) has no field of its own in pydantic's error, so
+    it is attributed to the field the request touched; a 422 always names a field.
+    """
+    try:
+        return ClassifierConfig.model_validate(dict(data))
+    except ValidationError as exc:
+        errors = []
+        for err in exc.errors(include_url=False, include_context=False):
+            loc = tuple(err.get("loc", ()))
+            value = err.get("input")
+            if not loc:  # the model-level rule: name the field the request touched, echo its value
+                name = _window_field(touched if touched is not None else data)
+                loc, value = (name,), data.get(name)
+            errors.append({"type": err.get("type", "value_error"), "loc": ["body", *loc], "msg": err.get("msg", ""),
+                           "input": _jsonable(value)})
+        raise ConfigError(errors) from None
+
+
+def _jsonable(value: Any) -> Any:
+    """Echo an offending input back only if it survives strict JSON (no NaN/inf, plain containers)."""
+    try:
+        json.dumps(value, allow_nan=False)
+        return value
+    except (TypeError, ValueError):
+        return repr(value)
+
+
+def merge_patch(current: ClassifierConfig, patch: Mapping[str, Any]) -> ClassifierConfig:
+    """Apply a JSON merge patch (RFC 7386) to ``current`` and validate the result.
+
+    ``patch`` holds only the fields the client sent. ``null`` resets a field to its default; in
+    ``alpha_per_class`` the patch merges key by key and a ``null`` value drops that class's override.
+    """
+    unknown = sorted(set(patch) - set(CONFIG_FIELDS))
+    if unknown:
+        raise ConfigError([{"type": "extra_forbidden", "loc": ["body", unknown[0]],
+                            "msg": "Extra inputs are not permitted", "input": _jsonable(patch[unknown[0]])}])
+    merged = config_to_api(current)
+    defaults = config_to_api(ClassifierConfig())
+    for name, value in patch.items():
+        if value is None:
+            merged[name] = defaults[name]
+        elif name == "alpha_per_class":
+            if not isinstance(value, Mapping):
+                merged[name] = value  # let validation name it
+                continue
+            per_class = dict(merged["alpha_per_class"])
+            for cls, alpha in value.items():
+                if alpha is None:
+                    per_class.pop(cls, None)
+                else:
+                    per_class[cls] = alpha
+            merged[name] = per_class
+        else:
+            merged[name] = value
+    return validate_config(merged, touched=patch.keys())
+
+
+def apply_preset(current: ClassifierConfig, name: str) -> ClassifierConfig:
+    """A named preset on top of ``current``: the preset's fields replace, every other field stays."""
+    if name not in PRESETS:
+        raise KeyError(name)
+    return validate_config({**config_to_api(current), **PRESETS[name]}, touched=PRESETS[name].keys())
+
+
+# ----------------------------------------------------------------------------------------- state → JSON
+
+
+def _statistic(mode: str, e: TrackStateEntry) -> float:
+    if mode == "chi2":
+        return e.chi2
+    if mode == "velocity_threshold":
+        return e.speed
+    return max(e.z_x, e.z_y)
+
+
+def track_view(e: TrackStateEntry, mode: str, snapshot_seq: int) -> dict[str, Any]:
+    """One wire track entry → the HTTP track dict (the shape of :class:`TrackView`)."""
+    fill = e.window_length / e.window_size if e.window_size else 0.0
+    return {
+        "id": e.track_id, "label": e.label, "class": LABEL_NAMES.get(e.label, "unknown"), "state": e.state,
+        "z_x": e.z_x, "z_y": e.z_y, "z": max(e.z_x, e.z_y), "chi2": e.chi2, "statistic": _statistic(mode, e),
+        "alpha": e.alpha, "threshold": e.threshold, "window_length": e.window_length,
+        "window_size": e.window_size, "window_fill": min(1.0, fill), "speed": e.speed,
+        "x": e.x, "y": e.y, "yaw": e.yaw, "length": e.length, "width": e.width,
+        "last_update_ns": e.last_update_ns, "last_seq": e.last_seq,
+        "frames_since_update": max(0, snapshot_seq - e.last_seq),
+    }
+
+
+def dumps(obj: Any) -> bytes:
+    """Compact strict JSON (a non-finite number is a bug upstream, never silently sent as NaN)."""
+    return json.dumps(obj, separators=(",", ":"), allow_nan=False).encode()
+
+
+@dataclass(frozen=True)
+class RenderedState:
+    """One classifier snapshot, rendered once for every reader until the next one arrives."""
+
+    seq: int
+    stamp_ns: int
+    polled_at_ns: int
+    config: ClassifierConfig
+    counters: dict[str, int]
+    tracks: dict[str, dict[str, Any]]  # id -> track dict, in id order
+    counts: dict[str, int]
+    by_class_state: dict[tuple[str, str], int]
+    body: bytes  # the whole ``GET /v1/state`` response
+
+    def states(self) -> dict[str, str]:
+        return {tid: t["state"] for tid, t in self.tracks.items()}
+
+
+def render_state(snap: ClassifierStateSnapshot, polled_at_ns: int) -> RenderedState:
+    """Snapshot → the ``/v1/state`` body, the per-track dicts and the aggregates, computed once."""
+    mode = snap.config.mode
+    seq = snap.header.seq
+    entries = sorted(snap.tracks, key=lambda e: e.track_id)
+    tracks = {e.track_id: track_view(e, mode, seq) for e in entries}
+    by_class_state = aggregate_by_class_state(tracks.values())
+    counts = {s: 0 for s in STATES}
+    for (_, state), n in by_class_state.items():
+        counts[state] += n
+    counts["total"] = len(tracks)
+    view = {
+        "seq": seq, "stamp_ns": snap.header.stamp, "frame_id": snap.header.frame_id, "mode": mode,
+        "polled_at_ns": polled_at_ns, "counts": counts, "tracks": list(tracks.values()),
+    }
+    return RenderedState(seq=seq, stamp_ns=snap.header.stamp, polled_at_ns=polled_at_ns, config=snap.config,
+                         counters=dict(snap.counters), tracks=tracks, counts=counts,
+                         by_class_state=by_class_state, body=dumps(view))
+
+
+# ----------------------------------------------------------------------------------------- changes (SSE)
+
+
+def diff_states(prev: RenderedState | None, new: RenderedState) -> list[dict[str, Any]]:
+    """State transitions between two snapshots: a track that appeared (``from`` null), vanished (``to``
+    null) or changed state. Sorted by track ID so the event stream is deterministic."""
+    old = prev.states() if prev is not None else {}
+    changes = []
+    for tid in sorted(set(old) | set(new.tracks)):
+        before, t = old.get(tid), new.tracks.get(tid)
+        after = t["state"] if t is not None else None
+        if before == after:
+            continue
+        src = t if t is not None else prev.tracks[tid]  # type: ignore[union-attr]
+        changes.append({"id": tid, "class": src["class"], "from": before, "to": after,
+                        "statistic": src["statistic"], "threshold": src["threshold"],
+                        "x": src["x"], "y": src["y"]})
+    return changes
+
+
+# ----------------------------------------------------------------------------------------- metrics
+
+
+def aggregate_by_class_state(tracks: Iterable[Mapping[str, Any]]) -> dict[tuple[str, str], int]:
+    """Track counts for every (class, state) pair, zeros included so every series always exists."""
+    out = {(c, s): 0 for c in CLASS_NAMES for s in STATES}
+    for t in tracks:
+        key = (t["class"], t["state"])
+        out[key] = out.get(key, 0) + 1
+    return out
+
+
+LATENCY_PREFIX = "frame_latency_ms.bucket."
+LATENCY_SUM = "frame_latency_ms.sum_us"
+LATENCY_COUNT = "frame_latency_ms.count"
+
+
+@dataclass(frozen=True)
+class Histogram:
+    """A Prometheus histogram in seconds: cumulative ``(upper bound, count)`` pairs ending at +Inf."""
+
+    buckets: list[tuple[float, int]] = field(default_factory=list)
+    sum_s: float = 0.0
+    count: int = 0
+
+
+def latency_histogram(counters: Mapping[str, int]) -> Histogram | None:
+    """Rebuild the classifier's frame-latency histogram from its integer counters, if it exports them.
+
+    Counters, per frame one bucket incremented (not cumulative): ``frame_latency_ms.bucket.<le>`` where
+    ``<le>`` is the bucket's upper bound in ms (``inf`` for the overflow bucket), ``frame_latency_ms.sum_us``
+    (total µs) and ``frame_latency_ms.count``. Integers only, because heartbeat/snapshot counters are ints.
+    """
+    raw: list[tuple[float, int]] = []
+    for name, value in counters.items():
+        if name.startswith(LATENCY_PREFIX):
+            try:
+                le = float(name[len(LATENCY_PREFIX):])
+            except ValueError:
+                continue
+            if math.isnan(le):
+                continue
+            raw.append((le, int(value)))
+    if not raw:
+        return None
+    raw.sort()
+    buckets, total = [], 0
+    for le_ms, n in raw:
+        total += n
+        buckets.append((le_ms / 1e3 if math.isfinite(le_ms) else math.inf, total))
+    count = int(counters.get(LATENCY_COUNT, total))
+    if buckets[-1][0] != math.inf:
+        buckets.append((math.inf, max(count, total)))
+    return Histogram(buckets=buckets, sum_s=counters.get(LATENCY_SUM, 0) / 1e6, count=max(count, total))
+
+
+# ----------------------------------------------------------------------------------------- bind policy
+
+
+def is_loopback(host: str) -> bool:
+    """True if every address ``host`` names is a loopback address (``localhost`` and 127/8, ::1)."""
+    h = host.strip("[]")
+    try:
+        return ipaddress.ip_address(h).is_loopback
+    except ValueError:
+        pass
+    try:
+        infos = socket.getaddrinfo(h, None)
+    except (socket.gaierror, UnicodeError):
+        return False
+    addrs = {info[4][0] for info in infos}
+    return bool(addrs) and all(ipaddress.ip_address(a.split("%", 1)[0]).is_loopback for a in addrs)
+
+
+def bind_refusal(host: str, token: str | None) -> str | None:
+    """Why the sidecar must not start on ``host`` (None if it may): a non-loopback bind needs a token,
+    or anyone on the network could retune the classifier."""
+    if token:
+        return None
+    if is_loopback(host):
+        return None
+    return (f"refusing to bind {host} without JG_API_TOKEN: the config endpoints would be writable from the "
+            f"network; set JG_API_TOKEN or bind 127.0.0.1")

@@ -1,0 +1,106 @@
+"""Server-sent events: fan change events out from the client's threads to every open ``/v1/events`` stream.
+
+Events are produced on plain threads (the state poll, request handlers) and consumed by async generators on
+the server's event loop. Each stream gets a bounded queue fed with ``call_soon_threadsafe``; a client that
+reads too slowly loses events rather than growing memory, and is told so with a ``resync`` event (refetch
+``/v1/state``) — the producer never blocks on a consumer.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import json
+import threading
+from collections.abc import AsyncIterator, Callable
+from typing import Any
+
+QUEUE_SIZE = 256
+KEEPALIVE_S = 15.0
+_CLOSE = b""  # sentinel: the server is shutting down
+
+
+def format_event(event_id: int, kind: str, data: dict[str, Any]) -> bytes:
+    """One SSE frame: ``id``, ``event`` and a single-line JSON ``data`` field."""
+    payload = json.dumps(data, separators=(",", ":"), allow_nan=False)
+    return f"id: {event_id}\nevent: {kind}\ndata: {payload}\n\n".encode()
+
+
+class _Stream:
+    def __init__(self, loop: asyncio.AbstractEventLoop) -> None:
+        self.loop = loop
+        self.queue: asyncio.Queue[bytes] = asyncio.Queue(QUEUE_SIZE)
+        self.overflowed = False
+
+    def offer(self, frame: bytes, on_drop: Callable[[], None]) -> None:
+        """Runs on the event loop."""
+        try:
+            self.queue.put_nowait(frame)
+        except asyncio.QueueFull:
+            self.overflowed = True
+            on_drop()
+
+
+class EventBroker:
+    """Thread-safe publish; one bounded queue per subscriber; a close that ends every stream."""
+
+    def __init__(self, on_drop: Callable[[], None] = lambda: None,
+                 on_count: Callable[[int], None] = lambda n: None) -> None:
+        self._lock = threading.Lock()
+        self._streams: set[_Stream] = set()
+        self._ids = itertools.count(1)
+        self._on_drop = on_drop
+        self._on_count = on_count
+        self._closed = False
+
+    def publish(self, kind: str, data: dict[str, Any]) -> None:
+        """Send an event to every stream (callable from any thread)."""
+        frame = format_event(next(self._ids), kind, data)
+        self._deliver(frame)
+
+    def _deliver(self, frame: bytes) -> None:
+        with self._lock:
+            streams = list(self._streams)
+        for s in streams:
+            try:
+                s.loop.call_soon_threadsafe(s.offer, frame, self._on_drop)
+            except RuntimeError:  # that loop is closed: the stream is gone
+                self._remove(s)
+
+    def _remove(self, s: _Stream) -> None:
+        with self._lock:
+            self._streams.discard(s)
+            n = len(self._streams)
+        self._on_count(n)
+
+    def close(self) -> None:
+        """End every open stream (server shutdown) and refuse new ones."""
+        self._closed = True
+        self._deliver(_CLOSE)
+
+    async def stream(self, hello: dict[str, Any], is_disconnected: Callable[[], Any]) -> AsyncIterator[bytes]:
+        """The body of one ``/v1/events`` response: ``hello`` first, then events until disconnect/close."""
+        s = _Stream(asyncio.get_running_loop())
+        with self._lock:
+            self._streams.add(s)
+            n = len(self._streams)
+        self._on_count(n)
+        try:
+            yield format_event(next(self._ids), "hello", hello)
+            while not self._closed:
+                try:
+                    frame = await asyncio.wait_for(s.queue.get(), KEEPALIVE_S)
+                except asyncio.TimeoutError:
+                    if await is_disconnected():
+                        return
+                    yield b": keepalive\n\n"
+                    continue
+                if frame is _CLOSE or frame == _CLOSE:
+                    return
+                if s.overflowed:
+                    s.overflowed = False
+                    yield format_event(next(self._ids), "resync",
+                                       {"reason": "events were dropped for this slow client; refetch /v1/state"})
+                yield frame
+        finally:
+            self._remove(s)

@@ -1,0 +1,120 @@
+"""Prometheus exposition for ``GET /metrics``.
+
+The classifier's figures are read from the sidecar's latest state snapshot at scrape time (a custom
+collector), not mirrored into live metric objects on every poll: a scrape then costs one pass over the
+cached aggregates, and what ``/metrics`` says always matches what ``/v1/state`` serves. The sidecar's own
+figures (poll timing, config writes, SSE clients) are ordinary metric objects in a private registry, so two
+apps in one process (tests) never collide in the global registry.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterator
+from typing import TYPE_CHECKING
+
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, HistogramMetricFamily
+from prometheus_client.registry import Collector
+
+from .core import CLASS_NAMES, STATES, latency_histogram
+
+if TYPE_CHECKING:
+    from .client import ClassifierClient
+
+FRAMES_COUNTER = "frames_processed"
+REJECTED_COUNTER = "rejected"
+
+
+class SidecarMetrics:
+    """The sidecar's own metric objects, in a registry of their own."""
+
+    def __init__(self) -> None:
+        self.registry = CollectorRegistry(auto_describe=True)
+        r = self.registry
+        self.poll_seconds = Histogram(
+            "jitterguard_sidecar_state_poll_seconds", "Round trip of one classifier/state query",
+            buckets=(0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0), registry=r)
+        self.poll_failures = Counter(
+            "jitterguard_sidecar_state_poll_failures", "classifier/state polls with no valid reply", registry=r)
+        self.rejected = Counter(
+            "jitterguard_sidecar_rejected_messages", "Zenoh payloads the sidecar dropped as invalid",
+            ["key"], registry=r)
+        self.config_writes = Counter(
+            "jitterguard_sidecar_config_writes", "Config writes through the API by outcome",
+            ["result"], registry=r)
+        self.sse_clients = Gauge("jitterguard_sidecar_sse_clients", "Open /v1/events streams", registry=r)
+        self.sse_dropped = Counter(
+            "jitterguard_sidecar_sse_dropped_events", "Events dropped for SSE clients that read too slowly",
+            registry=r)
+
+    def attach(self, client: "ClassifierClient") -> None:
+        """Expose the classifier's figures through ``client``'s snapshot cache."""
+        self.registry.register(ClassifierCollector(client.rendered_state, client.readiness_flag))
+
+
+class ClassifierCollector(Collector):
+    """Classifier metrics computed at scrape time from the cached snapshot."""
+
+    def __init__(self, rendered: Callable[[], object], ready: Callable[[], bool]) -> None:
+        self._rendered = rendered
+        self._ready = ready
+
+    def describe(self) -> list:
+        return []  # families vary with what the classifier exports; skip describe-time collection
+
+    def collect(self) -> Iterator:
+        up = GaugeMetricFamily("jitterguard_classifier_up",
+                               "1 if the classifier's liveliness token is present and its heartbeat is recent")
+        up.add_metric([], 1.0 if self._ready() else 0.0)
+        yield up
+        st = self._rendered()
+        if st is None:
+            return
+        counters: dict[str, int] = st.counters  # type: ignore[attr-defined]
+        frames = CounterMetricFamily("jitterguard_classifier_frames", "Frames the classifier has processed")
+        frames.add_metric([], float(counters.get(FRAMES_COUNTER, 0)))
+        yield frames
+        seq = GaugeMetricFamily("jitterguard_classifier_last_seq", "Seq of the classifier's latest frame")
+        seq.add_metric([], float(st.seq))  # type: ignore[attr-defined]
+        yield seq
+        tracks = GaugeMetricFamily("jitterguard_classifier_tracks", "Tracks in the classifier's latest frame")
+        tracks.add_metric([], float(st.counts["total"]))  # type: ignore[attr-defined]
+        yield tracks
+        by = GaugeMetricFamily("jitterguard_classifier_tracks_by_state",
+                               "Tracks in the latest frame by class and motion state", labels=["class", "state"])
+        agg = st.by_class_state  # type: ignore[attr-defined]
+        for cls in CLASS_NAMES:
+            for state in STATES:
+                by.add_metric([cls, state], float(agg.get((cls, state), 0)))
+        yield by
+        rej = CounterMetricFamily("jitterguard_classifier_rejected_messages",
+                                  "Payloads the classifier dropped as invalid")
+        rej.add_metric([], float(counters.get(REJECTED_COUNTER, 0)))
+        yield rej
+        rej_key = CounterMetricFamily("jitterguard_classifier_rejected_messages_by_key",
+                                      "Payloads the classifier dropped as invalid, by key", labels=["key"])
+        for name, value in sorted(counters.items()):
+            if name.startswith(REJECTED_COUNTER + "."):
+                rej_key.add_metric([name[len(REJECTED_COUNTER) + 1:]], float(value))
+        yield rej_key
+        raw = CounterMetricFamily("jitterguard_classifier_counter",
+                                  "Every counter the classifier reports, by name", labels=["name"])
+        for name, value in sorted(counters.items()):
+            raw.add_metric([name], float(value))
+        yield raw
+        cfg = st.config  # type: ignore[attr-defined]
+        alpha = GaugeMetricFamily("jitterguard_classifier_alpha", "Alpha in force per class", labels=["class"])
+        for label, cls in enumerate(CLASS_NAMES):
+            alpha.add_metric([cls], float(cfg.alpha_for(label)))
+        yield alpha
+        hist = latency_histogram(counters)
+        if hist is not None:
+            fam = HistogramMetricFamily("jitterguard_classifier_frame_latency_seconds",
+                                        "Classifier latency per frame: closing message in to objects out")
+            fam.add_metric([], [(_le(le), float(n)) for le, n in hist.buckets], sum_value=hist.sum_s)
+            yield fam
+
+
+def _le(bound: float) -> str:
+    return "+Inf" if math.isinf(bound) else repr(bound)
