@@ -1,0 +1,136 @@
+"""Write small ROS 2 bags with rosbags, so the bag source is tested without external recordings.
+
+``write_bag`` makes a bag with a ``sensor_msgs/PointCloud2`` topic (with a padding byte per point, like
+real drivers), a ``nav_msgs/Odometry`` topic and an Autoware ``DetectedObjects`` topic, optionally with one
+garbage message, and returns what a reader should get back.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from jitterguard.services.replay.sources.ros_types import DETECTED_OBJECTS, POINTCLOUD2, typestore
+
+CLOUD_TOPIC = "/sensing/lidar/top/pointcloud"
+ODOM_TOPIC = "/localization/kinematic_state"
+DET_TOPIC = "/perception/object_recognition/detection/objects"
+T0 = 1_700_000_000 * 10**9
+
+
+@dataclass
+class BagContents:
+    path: Path
+    clouds: list[np.ndarray] = field(default_factory=list)
+    stamps: list[int] = field(default_factory=list)
+    odom: list[tuple[int, float, float, float]] = field(default_factory=list)  # t, x, y, yaw
+    det_positions: list[list[tuple[float, float]]] = field(default_factory=list)
+
+
+def _header(ts: Any, t_ns: int, frame_id: str) -> Any:
+    Time = ts.types["builtin_interfaces/msg/Time"]
+    Header = ts.types["std_msgs/msg/Header"]
+    return Header(stamp=Time(sec=t_ns // 10**9, nanosec=t_ns % 10**9), frame_id=frame_id)
+
+
+def _cloud(ts: Any, t_ns: int, pts: np.ndarray) -> Any:
+    """x, y, z, intensity float32 + one padding byte per point (point_step 17), one row."""
+    PointField = ts.types["sensor_msgs/msg/PointField"]
+    PointCloud2 = ts.types[POINTCLOUD2]
+    n = pts.shape[0]
+    dt = np.dtype({"names": ["x", "y", "z", "intensity"], "formats": ["<f4"] * 4, "offsets": [0, 4, 8, 12], "itemsize": 17})
+    rec = np.zeros(n, dtype=dt)
+    for j, name in enumerate(("x", "y", "z", "intensity")):
+        rec[name] = pts[:, j]
+    fields = [PointField(name=nm, offset=4 * j, datatype=7, count=1) for j, nm in enumerate(("x", "y", "z", "intensity"))]
+    return PointCloud2(
+        header=_header(ts, t_ns, "lidar_top"), height=1, width=n, fields=fields, is_bigendian=False,
+        point_step=17, row_step=17 * n, data=np.frombuffer(rec.tobytes(), dtype=np.uint8), is_dense=True,
+    )
+
+
+def _odom(ts: Any, t_ns: int, x: float, y: float, yaw: float) -> Any:
+    g = ts.types
+    pose = g["geometry_msgs/msg/Pose"](
+        position=g["geometry_msgs/msg/Point"](x=x, y=y, z=0.0),
+        orientation=g["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2)),
+    )
+    zero3 = g["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)
+    return g["nav_msgs/msg/Odometry"](
+        header=_header(ts, t_ns, "map"), child_frame_id="base_link",
+        pose=g["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.zeros(36)),
+        twist=g["geometry_msgs/msg/TwistWithCovariance"](twist=g["geometry_msgs/msg/Twist"](linear=zero3, angular=zero3), covariance=np.zeros(36)),
+    )
+
+
+def _detections(ts: Any, t_ns: int, positions: list[tuple[float, float]], label: int = 1, prob: float = 0.9) -> Any:
+    g = ts.types
+    P = "autoware_perception_msgs/msg/"
+    zero3 = g["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)
+    objs = []
+    for x, y in positions:
+        cov = np.zeros(36)
+        cov[0], cov[7] = 0.04, 0.09
+        pose = g["geometry_msgs/msg/Pose"](
+            position=g["geometry_msgs/msg/Point"](x=x, y=y, z=0.5),
+            orientation=g["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
+        )
+        kin = g[P + "DetectedObjectKinematics"](
+            pose_with_covariance=g["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=cov),
+            has_position_covariance=True, orientation_availability=2,
+            twist_with_covariance=g["geometry_msgs/msg/TwistWithCovariance"](twist=g["geometry_msgs/msg/Twist"](linear=zero3, angular=zero3), covariance=np.zeros(36)),
+            has_twist=False, has_twist_covariance=False,
+        )
+        shape = g[P + "Shape"](type=0, footprint=g["geometry_msgs/msg/Polygon"](points=[]), dimensions=g["geometry_msgs/msg/Vector3"](x=4.5, y=1.8, z=1.5))
+        objs.append(g[P + "DetectedObject"](
+            existence_probability=prob, classification=[g[P + "ObjectClassification"](label=label, probability=prob)],
+            kinematics=kin, shape=shape,
+        ))
+    return g[DETECTED_OBJECTS](header=_header(ts, t_ns, "base_link"), objects=objs)
+
+
+def write_bag(
+    path: Path,
+    *,
+    storage: str = "sqlite3",
+    n: int = 4,
+    points: int = 50,
+    garbage_at: int | None = None,
+    bad_label_at: int | None = None,
+    second_cloud_topic: bool = False,
+) -> BagContents:
+    """Write the bag at ``path`` (a folder that must not exist) and return what it holds."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    ts = typestore()
+    plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+    out = BagContents(path)
+    rng = np.random.default_rng(7)
+    with Writer(path, version=9, storage_plugin=plugin) as w:
+        c_cloud = w.add_connection(CLOUD_TOPIC, POINTCLOUD2, typestore=ts)
+        c_odom = w.add_connection(ODOM_TOPIC, "nav_msgs/msg/Odometry", typestore=ts)
+        c_det = w.add_connection(DET_TOPIC, DETECTED_OBJECTS, typestore=ts)
+        c_cloud2 = w.add_connection("/other/points", POINTCLOUD2, typestore=ts) if second_cloud_topic else None
+        for k in range(2 * n + 1):  # odometry at 20 Hz, starting 50 ms before the first cloud
+            t = T0 - 50_000_000 + k * 50_000_000
+            x, y, yaw = 1.0 * k, 0.5 * k, 0.05 * k
+            out.odom.append((t, x, y, yaw))
+            w.write(c_odom, t, ts.serialize_cdr(_odom(ts, t, x, y, yaw), "nav_msgs/msg/Odometry"))
+        for i in range(n):
+            t = T0 + i * 100_000_000
+            pts = rng.normal(size=(points, 4)).astype(np.float32)
+            out.clouds.append(pts)
+            out.stamps.append(t)
+            raw = b"\x00\x01\x02 not cdr" if i == garbage_at else ts.serialize_cdr(_cloud(ts, t, pts), POINTCLOUD2)
+            w.write(c_cloud, t + 1_000_000, raw)  # received 1 ms after the sensor stamp
+            positions = [(10.0 + i, 2.0), (-5.0, 3.0 - i)]
+            out.det_positions.append(positions)
+            label = 9 if i == bad_label_at else 1
+            w.write(c_det, t + 30_000_000, ts.serialize_cdr(_detections(ts, t, positions, label=label), DETECTED_OBJECTS))
+            if c_cloud2 is not None:
+                w.write(c_cloud2, t, ts.serialize_cdr(_cloud(ts, t, pts), POINTCLOUD2))
+    return out
