@@ -1,0 +1,34 @@
+"""Shared fixtures: real Zenoh sessions on loopback (peer mode, multicast scouting off, free ports)."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterator
+
+import pytest
+import zenoh
+
+from jitterguard.runtime import build_config, free_tcp_port, loopback_options
+
+
+@pytest.fixture
+def zenoh_port() -> int:
+    return free_tcp_port()
+
+
+@pytest.fixture
+def client_session(zenoh_port: int) -> Iterator[zenoh.Session]:
+    """A plain Zenoh session connected to the test's listening endpoint (tests act as tracker/consumer)."""
+    s = zenoh.open(build_config(loopback_options("test", zenoh_port)))
+    yield s
+    s.close()
+
+
+def wait_until(pred: Callable[[], bool], timeout: float = 10.0, period: float = 0.02) -> bool:
+    """Poll ``pred`` until it holds or ``timeout`` passes (no fixed sleeps in tests)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if pred():
+            return True
+        time.sleep(period)
+    return pred()

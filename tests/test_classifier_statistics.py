@@ -1,0 +1,189 @@
+"""The z-test (eq. 1, 2) and the χ² variant against independent computations and their statistical promises."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy import stats
+
+from jitterguard.schemas.models import ClassifierConfig
+from jitterguard.services.classifier.core import DYNAMIC, STATIC, UNDECIDED, MotionClassifierCore, Observations
+from jitterguard.services.classifier.statistics import chi2_2_threshold, two_sided_p
+
+
+def _ids(n: int) -> list[str]:
+    return [f"{i + 1:032x}" for i in range(n)]
+
+
+def feed(core: MotionClassifierCore, ids, xs, ys, cxx, cyy, cxy=None, labels=None, speed=None):
+    """Feed per-frame columns: xs[t][k] is track k's x at frame t. Returns the last Decisions."""
+    n = len(ids)
+    dec = None
+    for t in range(len(xs)):
+        dec = core.update(Observations.from_lists(
+            ids, labels if labels is not None else np.ones(n), xs[t], ys[t], cxx[t], np.zeros(n) if cxy is None else cxy[t],
+            cyy[t], speed, seq=t))
+    return dec
+
+
+def reference_z(x: np.ndarray, var: np.ndarray, independent: bool, floor: float = 1e-4) -> float:
+    """Straight from the paper: older floor(N/2) vs newer ceil(N/2), eq. 2 variances, eq. 1 statistic."""
+    n = len(x)
+    n1 = n // 2
+    a, b = x[:n1], x[n1:]
+    v1, v2 = max(var[:n1].mean(), floor), max(var[n1:].mean(), floor)
+    k1, k2 = (len(a), len(b)) if independent else (1, 1)
+    return abs(a.mean() - b.mean()) / np.sqrt(v1 / k1 + v2 / k2)
+
+
+@pytest.mark.parametrize("independent", [False, True])
+@pytest.mark.parametrize("n_frames", [2, 3, 7, 10, 14])
+def test_z_matches_reference(independent, n_frames):
+    rng = np.random.default_rng(n_frames)
+    window = 10
+    core = MotionClassifierCore(ClassifierConfig(window_size=window, effective_n="independent" if independent else "cluster"))
+    x = rng.normal(0, 0.3, n_frames) + np.linspace(0, 0.5, n_frames)
+    y = rng.normal(0, 0.3, n_frames)
+    vx = rng.uniform(0.01, 0.2, n_frames)
+    vy = rng.uniform(0.01, 0.2, n_frames)
+    dec = feed(core, _ids(1), x[:, None], y[:, None], vx[:, None], vy[:, None])
+    w = min(window, n_frames)
+    assert dec.window_length[0] == w
+    assert dec.z_x[0] == pytest.approx(reference_z(x[-w:], vx[-w:], independent), rel=1e-9)
+    assert dec.z_y[0] == pytest.approx(reference_z(y[-w:], vy[-w:], independent), rel=1e-9)
+    assert dec.mean_x[0] == pytest.approx(x[-w:].mean())
+
+
+def test_variance_floor_applies_to_each_half():
+    core = MotionClassifierCore(ClassifierConfig(variance_floor=0.01))
+    x = np.array([0.0, 0.0, 0.1, 0.1])
+    dec = feed(core, _ids(1), x[:, None], np.zeros((4, 1)), np.full((4, 1), 1e-9), np.full((4, 1), 1e-9))
+    assert dec.z_x[0] == pytest.approx(0.1 / np.sqrt(0.02))
+
+
+def test_alpha_threshold_matches_normal_quantile():
+    assert float(two_sided_p(1.96)) == pytest.approx(2 * stats.norm.sf(1.96))
+    for alpha in (1.28, 1.64, 1.96, 2.58):
+        p = 2 * stats.norm.sf(alpha)
+        assert float(chi2_2_threshold(alpha)) == pytest.approx(stats.chi2.isf(p, df=2), rel=1e-9)
+
+
+def test_chi2_statistic_matches_direct_matrix_computation():
+    rng = np.random.default_rng(3)
+    core = MotionClassifierCore(ClassifierConfig(mode="chi2", effective_n="independent"))
+    n = 8
+    x, y = rng.normal(0, 0.2, n), rng.normal(0, 0.2, n)
+    cxx, cyy = rng.uniform(0.02, 0.05, n), rng.uniform(0.02, 0.05, n)
+    cxy = rng.uniform(-0.01, 0.01, n)
+    dec = feed(core, _ids(1), x[:, None], y[:, None], cxx[:, None], cyy[:, None], cxy[:, None])
+    h = n // 2
+    d = np.array([x[h:].mean() - x[:h].mean(), y[h:].mean() - y[:h].mean()])
+    s1 = np.array([[cxx[:h].mean(), cxy[:h].mean()], [cxy[:h].mean(), cyy[:h].mean()]]) / h
+    s2 = np.array([[cxx[h:].mean(), cxy[h:].mean()], [cxy[h:].mean(), cyy[h:].mean()]]) / (n - h)
+    assert dec.chi2[0] == pytest.approx(d @ np.linalg.solve(s1 + s2, d), rel=1e-9)
+
+
+def _static_noise_rates(mode: str, n_tracks=4000, frames=10, seed=11):
+    """Parked objects whose detections are drawn from exactly the covariance they report."""
+    rng = np.random.default_rng(seed)
+    core = MotionClassifierCore(ClassifierConfig(mode=mode, effective_n="independent"), capacity=n_tracks)
+    sx = rng.uniform(0.05, 0.4, n_tracks)
+    sy = rng.uniform(0.05, 0.4, n_tracks)
+    xs = rng.normal(0, 1, (frames, n_tracks)) * sx + rng.uniform(-50, 50, n_tracks)
+    ys = rng.normal(0, 1, (frames, n_tracks)) * sy
+    dec = feed(core, _ids(n_tracks), xs, ys, np.tile(sx**2, (frames, 1)), np.tile(sy**2, (frames, 1)))
+    return dec
+
+
+def test_nominal_false_alarm_rate_in_independent_mode():
+    """Under H0 each axis' z is |N(0,1)|: P(z_x > 1.96) = 5%; the χ² decision fires at exactly 5%;
+    max(z_x, z_y) fires at 1 − 0.95² ≈ 9.75% — why the χ² variant exists."""
+    dec = _static_noise_rates("z_test")
+    n = len(dec.z_x)
+    se = np.sqrt(0.05 * 0.95 / n)
+    assert abs((dec.z_x > 1.96).mean() - 0.05) < 4 * se
+    assert abs((dec.z_y > 1.96).mean() - 0.05) < 4 * se
+    both = 1 - 0.95**2
+    assert abs((dec.state == DYNAMIC).mean() - both) < 4 * np.sqrt(both * (1 - both) / n)
+    chi = _static_noise_rates("chi2")
+    assert abs((chi.state == DYNAMIC).mean() - 0.05) < 4 * se
+
+
+def test_cluster_mode_is_more_conservative_than_independent():
+    rng = np.random.default_rng(5)
+    xs = rng.normal(0, 0.1, (10, 50)) + np.linspace(0, 0.3, 10)[:, None]
+    v = np.full((10, 50), 0.01)
+    z = {}
+    for mode in ("cluster", "independent"):
+        core = MotionClassifierCore(ClassifierConfig(effective_n=mode))
+        z[mode] = feed(core, _ids(50), xs, np.zeros((10, 50)), v, v).z_x
+    # equal halves of 5 and equal variances: sqrt(v/5 + v/5) vs sqrt(v + v) -> ratio sqrt(5)
+    np.testing.assert_allclose(z["independent"], z["cluster"] * np.sqrt(5.0), rtol=1e-9)
+    assert (z["independent"] > z["cluster"]).all()
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    seed=st.integers(0, 10_000),
+    shift=st.tuples(st.floats(-1e4, 1e4), st.floats(-1e4, 1e4)),
+    mode=st.sampled_from(["z_test", "chi2"]),
+)
+def test_translation_and_arrival_order_invariance(seed, shift, mode):
+    rng = np.random.default_rng(seed)
+    n, frames = 12, 10
+    ids = _ids(n)
+    xs = rng.normal(0, 0.3, (frames, n)) + rng.uniform(0, 1, n) * np.arange(frames)[:, None] * 0.2
+    ys = rng.normal(0, 0.3, (frames, n))
+    cxx = rng.uniform(0.01, 0.1, (frames, n))
+    cyy = rng.uniform(0.01, 0.1, (frames, n))
+    cxy = rng.uniform(-0.005, 0.005, (frames, n))
+    cfg = ClassifierConfig(mode=mode)
+    base = feed(MotionClassifierCore(cfg), ids, xs, ys, cxx, cyy, cxy)
+    moved = feed(MotionClassifierCore(cfg), ids, xs + shift[0], ys + shift[1], cxx, cyy, cxy)
+    np.testing.assert_allclose(moved.z_x, base.z_x, rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(moved.chi2, base.chi2, rtol=1e-6, atol=1e-6)
+    np.testing.assert_array_equal(moved.state, base.state)
+    # arrival order: a different permutation every frame
+    core = MotionClassifierCore(cfg)
+    for t in range(frames):
+        p = rng.permutation(n)
+        dec = core.update(Observations.from_lists([ids[i] for i in p], np.ones(n), xs[t, p], ys[t, p], cxx[t, p],
+                                                  cxy[t, p], cyy[t, p], seq=t))
+    inv = np.argsort(p)
+    np.testing.assert_allclose(dec.z_x[inv], base.z_x, rtol=1e-12)
+    np.testing.assert_array_equal(dec.state[inv], base.state)
+
+
+def test_chi2_is_rotation_invariant_max_z_is_not():
+    rng = np.random.default_rng(9)
+    n, frames = 200, 10
+    xs = rng.normal(0, 0.2, (frames, n)) + np.arange(frames)[:, None] * 0.05
+    ys = rng.normal(0, 0.1, (frames, n))
+    cxx, cyy, cxy = np.full((frames, n), 0.04), np.full((frames, n), 0.01), np.zeros((frames, n))
+    th = 0.7
+    c, s = np.cos(th), np.sin(th)
+    rx, ry = c * xs - s * ys, s * xs + c * ys
+    from jitterguard.geometry import rotate_cov2
+
+    rcxx, rcxy, rcyy = rotate_cov2(cxx, cxy, cyy, th)
+    out = {}
+    for mode in ("z_test", "chi2"):
+        a = feed(MotionClassifierCore(ClassifierConfig(mode=mode)), _ids(n), xs, ys, cxx, cyy, cxy)
+        b = feed(MotionClassifierCore(ClassifierConfig(mode=mode)), _ids(n), rx, ry, rcxx, rcyy, rcxy)
+        out[mode] = (a, b)
+    np.testing.assert_allclose(out["chi2"][1].chi2, out["chi2"][0].chi2, rtol=1e-9)
+    za = np.maximum(out["z_test"][0].z_x, out["z_test"][0].z_y)
+    zb = np.maximum(out["z_test"][1].z_x, out["z_test"][1].z_y)
+    assert np.abs(za - zb).max() > 0.1
+
+
+def test_undecided_until_min_window():
+    core = MotionClassifierCore(ClassifierConfig(min_window=4))
+    ids = _ids(1)
+    states = []
+    for t in range(5):
+        states.append(int(core.update(Observations.from_lists(ids, [1], [t * 5.0], [0], [0.01], [0], [0.01])).state[0]))
+    assert states == [UNDECIDED, UNDECIDED, UNDECIDED, DYNAMIC, DYNAMIC]
+    assert STATIC not in states

@@ -1,0 +1,66 @@
+"""Frame assembly: stragglers, timeouts, duplicates, upstream restarts."""
+
+from __future__ import annotations
+
+from jitterguard.schemas.models import DetectedObject, Header, TrackedObject, TrackedObjects, TrackObservation, TrackState
+from jitterguard.services.classifier.frames import FrameAssembler
+
+IDS = [f"{i:032x}" for i in range(1, 4)]
+
+
+def ob(seq: int, tid: str) -> TrackObservation:
+    return TrackObservation(header=Header(stamp=seq, seq=seq), detection=DetectedObject(), track=TrackState(object_id=tid, x=0, y=0))
+
+
+def close(seq: int, ids=IDS) -> TrackedObjects:
+    return TrackedObjects(header=Header(stamp=seq, seq=seq), objects=[TrackedObject(object_id=i) for i in ids],
+                          observed_track_ids=list(ids))
+
+
+def test_frame_waits_for_stragglers_then_completes():
+    fa = FrameAssembler(straggler_timeout_s=0.05)
+    fa.add_observation(ob(0, IDS[0]))
+    assert fa.add_close(close(0), now=0.0)
+    assert fa.pop_ready(0.01) == []
+    fa.add_observation(ob(0, IDS[1]))
+    fa.add_observation(ob(0, IDS[2]))
+    (frame,) = fa.pop_ready(0.02)
+    assert frame.seq == 0 and frame.missing == 0 and len(frame.observations) == 3
+
+
+def test_timeout_releases_frame_and_counts_missing_and_late():
+    fa = FrameAssembler(straggler_timeout_s=0.05)
+    fa.add_close(close(0), now=0.0)
+    fa.add_observation(ob(0, IDS[0]))
+    (frame,) = fa.pop_ready(0.06)
+    assert frame.missing == 2 and fa.counts["missing_observations"] == 2
+    fa.add_observation(ob(0, IDS[1]))
+    assert fa.counts["late_observations"] == 1
+
+
+def test_frames_released_in_order_and_duplicates_dropped():
+    fa = FrameAssembler(straggler_timeout_s=1.0)
+    for s in (1, 0):
+        for i in IDS:
+            fa.add_observation(ob(s, i))
+        fa.add_close(close(s), now=0.0)
+    assert [f.seq for f in fa.pop_ready(0.0)] == [0, 1]
+    assert not fa.add_close(close(1), now=0.0)
+    assert not fa.add_close(close(0), now=0.0)
+    assert fa.counts["duplicate_or_late_frames"] == 2
+
+
+def test_upstream_restart_is_detected():
+    fa = FrameAssembler()
+    fa.add_close(close(100, []), now=0.0)
+    assert fa.pop_ready(0.0)[0].seq == 100
+    assert fa.add_close(close(0, []), now=0.0)
+    assert fa.counts["upstream_restarts"] == 1
+    assert fa.pop_ready(0.0)[0].seq == 0
+
+
+def test_observations_without_close_do_not_grow_forever():
+    fa = FrameAssembler(max_pending_frames=4)
+    for s in range(10):
+        fa.add_observation(ob(s, IDS[0]))
+    assert fa.counts["orphaned_observations"] == 6
