@@ -140,7 +140,7 @@ def default_world(rng: np.random.Generator, duration: float) -> list[Obj]:
     add(label=PED, x0=10.0, y0=8.0, yaw0=0.0, speed=1.3)
     add(label=PED, x0=10.0, y0=8.9, yaw0=0.0, speed=1.3)
     add(label=PED, x0=20.0, y0=12.0, yaw0=math.pi / 4, speed=1.3, occlusions=[(4.0, 4.5)])
-    add(label=PED, x0=20.0, y0=20.0 + 1.3, yaw0=-math.pi / 4, speed=1.3)
+    add(label=PED, x0=21.3, y0=20.0, yaw0=-math.pi / 4, speed=1.3)
     add(label=PED, x0=40.0, y0=8.5, yaw0=1.0, speed=0.0)
     add(label=PED, x0=15.0, y0=-7.5, yaw0=0.0, speed=0.0)
     # an object that appears late and one that leaves early (births and deaths inside the sequence)

@@ -97,18 +97,17 @@ class TrackerCore:
             lbl = tr.label.astype(np.intp)
             tr.x, tr.P = kalman.predict(
                 tr.x, tr.P, dt, tr.model, tb.q_acc[lbl], tb.q_acc_lat[lbl], tb.q_yaw[lbl],
-                tb.q_yaw_rate_acc[lbl], tb.max_speed[lbl], tb.max_yaw_rate[lbl],
+                tb.q_yaw_rate_acc[lbl],
             )
             tr.t_ns[:] = stamp
 
         # ---- associate
         det_pos = np.stack([det.x, det.y], axis=1)
         det_pos_cov = det.R[:, :2, :2]
-        area = frame.length * frame.width
         yaw_valid = frame.orientation > 0
         cand = gate(
             tr.x[:, :2], tr.label, tr.x[:, 2], tr.P[:, :2, :2],
-            det_pos, frame.label, area, det.yaw, yaw_valid, det_pos_cov,
+            det_pos, frame.label, frame.area, det.yaw, yaw_valid, det_pos_cov,
             tb, cfg.mahalanobis_gate, cfg.mahalanobis_covariance == "innovation", cfg.score_threshold,
             cfg.gate_min_variance,
         )

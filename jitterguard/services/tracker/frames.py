@@ -46,6 +46,7 @@ class DetectionFrame:
     label_prob: F64 | None = None
     existence: F64 | None = None
     orientation: NDArray[np.int8] | None = None
+    area: F64 | None = None  # footprint area for the area gate; length * width when not given
 
     def __post_init__(self) -> None:
         """Fill the optional columns so the core never branches on ``None`` (and check lengths once)."""
@@ -72,8 +73,9 @@ class DetectionFrame:
         self.label_prob = fill(self.label_prob, 1.0)
         self.existence = fill(self.existence, 1.0)
         self.orientation = fill(self.orientation, 2, np.int8)
+        self.area = self.length * self.width if self.area is None else np.asarray(self.area, dtype=np.float64)
         for name in ("y", "yaw", "label", "z", "length", "width", "height", "cov_xx", "cov_xy", "cov_yy",
-                     "var_yaw", "has_cov", "label_prob", "existence", "orientation"):
+                     "var_yaw", "has_cov", "label_prob", "existence", "orientation", "area"):
             if getattr(self, name).shape != (m,):
                 raise ValueError(f"DetectionFrame.{name} has shape {getattr(self, name).shape}, expected ({m},)")
 
