@@ -1,0 +1,145 @@
+"""``jitterguard sidecar`` (the HTTP sidecar under uvicorn) and ``jitterguard bench sidecar``.
+
+Bad input is reported on one line with exit status 2 before anything starts (no Zenoh session opened, no
+port bound): an unusable port, a non-loopback bind without ``JG_API_TOKEN``, a malformed Zenoh flag.
+"""
+
+from __future__ import annotations
+
+import json
+import socket
+from typing import TYPE_CHECKING, Annotated
+
+import typer
+
+from ...cli_common import ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ZenohConfigOpt, fail, zenoh_options
+from ...schemas import keys
+
+if TYPE_CHECKING:
+    from .app import SidecarSettings
+
+HostOpt = Annotated[str, typer.Option("--host", help="Address to bind; non-loopback needs JG_API_TOKEN.")]
+PortOpt = Annotated[str, typer.Option("--port", help="TCP port to bind (1-65535).")]
+CorsOpt = Annotated[list[str] | None, typer.Option(
+    "--cors-origin", help="Allow this browser origin (repeatable). CORS is off unless given.")]
+PollOpt = Annotated[str, typer.Option("--poll-ms", help="How often to refresh the classifier state cache, ms.")]
+
+
+def _parse_port(text: str) -> int:
+    try:
+        port = int(text)
+    except ValueError:
+        fail(f"--port: {text!r} is not an integer")
+    if not 1 <= port <= 65535:
+        fail(f"--port: {port} is outside 1-65535")
+    return port
+
+
+def _parse_float(flag: str, text: str, lo: float, hi: float) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        fail(f"{flag}: {text!r} is not a number")
+    if not lo <= value <= hi:
+        fail(f"{flag}: {value:g} is outside {lo:g}-{hi:g}")
+    return value
+
+
+def _check_bindable(host: str, port: int) -> None:
+    """Fail now, on one line, if uvicorn could not bind (it would only log it after opening Zenoh)."""
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+    except (socket.gaierror, UnicodeError) as exc:
+        fail(f"--host: cannot resolve {host!r}: {exc}")
+    family, stype, proto, _, addr = infos[0]
+    with socket.socket(family, stype, proto) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind(addr)
+        except OSError as exc:
+            fail(f"--port: cannot bind {host}:{port}: {exc.strerror or exc}")
+
+
+def register(app: typer.Typer, bench_app: typer.Typer) -> None:
+    """Add ``jitterguard sidecar`` and ``jitterguard bench sidecar``."""
+
+    @app.command("sidecar")
+    def sidecar(
+        ns: NsOpt = keys.DEFAULT_NS,
+        zenoh_config: ZenohConfigOpt = None,
+        connect: ConnectOpt = None,
+        listen: ListenOpt = None,
+        host: HostOpt = "127.0.0.1",
+        port: PortOpt = "8000",
+        cors_origin: CorsOpt = None,
+        poll_ms: PollOpt = "50",
+        log_level: LogLevelOpt = "INFO",
+    ) -> None:
+        """HTTP sidecar: live classifier state, tunable thresholds, metrics and a bird's-eye page."""
+        from ...runtime import setup_logging
+        from ...runtime.zenoh_config import build_config
+        from .app import SidecarSettings
+        from .core import bind_refusal
+
+        opts = zenoh_options(ns, zenoh_config, connect, listen)
+        port_n = _parse_port(port)
+        poll_s = _parse_float("--poll-ms", poll_ms, 5.0, 10_000.0) / 1e3
+        if log_level.upper() not in ("DEBUG", "INFO", "WARNING", "ERROR"):
+            fail(f"--log-level: {log_level!r} is not one of DEBUG, INFO, WARNING, ERROR")
+        token = SidecarSettings.token_from_env()
+        reason = bind_refusal(host, token)
+        if reason:
+            fail(reason)
+        for origin in cors_origin or ():
+            if not origin.startswith(("http://", "https://")) and origin != "*":
+                fail(f"--cors-origin: {origin!r} must look like https://host[:port]")
+        try:
+            build_config(opts)
+        except ValueError as exc:
+            fail(str(exc))
+        _check_bindable(host, port_n)
+        setup_logging(log_level)
+        serve(SidecarSettings(zenoh=opts, api_token=token, cors_origins=tuple(cors_origin or ()),
+                              poll_period_s=poll_s), host, port_n, log_level)
+
+    @bench_app.command("sidecar")
+    def bench_sidecar(
+        as_json: Annotated[bool, typer.Option("--json", help="Print the result as JSON only.")] = False,
+        tracks: Annotated[str, typer.Option("--tracks", help="Live tracks in every frame.")] = "500",
+        rate: Annotated[str, typer.Option("--rate", help="Pipeline frame rate, Hz.")] = "20",
+        duration: Annotated[str, typer.Option("--duration", help="Measured seconds.")] = "15",
+        warmup: Annotated[str, typer.Option("--warmup", help="Seconds of load before measuring.")] = "3",
+        request_rate: Annotated[str, typer.Option(
+            "--request-rate", help="GET /v1/state per second from the load client (0: back to back).")] = "50",
+        seed: Annotated[str, typer.Option("--seed", help="Scenario seed.")] = "0",
+    ) -> None:
+        """GET /v1/state latency with N live tracks while the classifier runs at the given rate."""
+        from .bench import BenchParams, run_bench
+
+        n = int(_parse_float("--tracks", tracks, 1, 20_000))
+        params = BenchParams(
+            tracks=n, rate_hz=_parse_float("--rate", rate, 0.5, 100.0),
+            duration_s=_parse_float("--duration", duration, 1.0, 3600.0),
+            warmup_s=_parse_float("--warmup", warmup, 0.0, 600.0),
+            request_rate_hz=_parse_float("--request-rate", request_rate, 0.0, 10_000.0),
+            seed=int(_parse_float("--seed", seed, 0, 2**31)))
+        result = run_bench(params)
+        if as_json:
+            print(json.dumps(result, indent=2))
+        else:
+            lat = result["get_state_ms"]
+            print(f"GET /v1/state, {result['tracks_seen']} tracks, pipeline {result['pipeline_hz']:.1f} Hz: "
+                  f"p50 {lat['p50']:.2f} ms, p99 {lat['p99']:.2f} ms, max {lat['max']:.2f} ms "
+                  f"over {lat['n']} requests")
+
+
+def serve(settings: SidecarSettings, host: str, port: int, log_level: str = "INFO") -> None:
+    """Run the sidecar under uvicorn until SIGINT/SIGTERM."""
+    import uvicorn
+
+    from .app import create_app
+
+    config = uvicorn.Config(create_app(settings), host=host, port=port, log_level=log_level.lower(),
+                            access_log=log_level.upper() == "DEBUG", timeout_graceful_shutdown=2,
+                            lifespan="on")
+    uvicorn.Server(config).run()
