@@ -2,8 +2,7 @@
 
 from __future__ import annotations
 
-import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 
 import pytest
 import zenoh
@@ -22,13 +21,3 @@ def client_session(zenoh_port: int) -> Iterator[zenoh.Session]:
     s = zenoh.open(build_config(loopback_options("test", zenoh_port)))
     yield s
     s.close()
-
-
-def wait_until(pred: Callable[[], bool], timeout: float = 10.0, period: float = 0.02) -> bool:
-    """Poll ``pred`` until it holds or ``timeout`` passes (no fixed sleeps in tests)."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(period)
-    return pred()

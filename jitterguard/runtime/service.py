@@ -100,15 +100,15 @@ class Service:
 
     # ------------------------------------------------------------------ wiring helpers for subclasses
 
-    def accept(self, model: type[M], data: bytes, key: str) -> M | None:
-        """Decode and validate one payload; a bad one is counted (``rejected``, ``rejected.<key>``), logged
-        once per burst, and ``None`` comes back — the caller just moves on."""
+    def accept(self, model: type[M], data: bytes, sub_key: str, sample_key: str | None = None) -> M | None:
+        """Decode and validate one payload; a bad one is counted (``rejected`` and ``rejected.<sub_key>``
+        without the ``jg/{ns}/`` prefix), logged once per burst, and ``None`` comes back."""
         try:
             return decode(model, data)
         except DecodeError as exc:
             self.counters.inc("rejected")
-            self.counters.inc(f"rejected.{key.split('/', 2)[-1]}")
-            self._reject_log.warn(f"rejected payload on {key}: {exc}")
+            self.counters.inc(f"rejected.{sub_key.split('/', 2)[-1]}")
+            self._reject_log.warn(f"rejected payload on {sample_key or sub_key}: {exc}")
             return None
 
     def subscribe(self, key: str, model: type[M], handler: Callable[[M, str], None]) -> None:
@@ -116,7 +116,7 @@ class Service:
 
         def on_sample(sample: zenoh.Sample) -> None:
             self.counters.inc("received")
-            msg = self.accept(model, sample.payload.to_bytes(), key)
+            msg = self.accept(model, sample.payload.to_bytes(), key, str(sample.key_expr))
             if msg is None:
                 return
             try:

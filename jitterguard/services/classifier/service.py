@@ -146,7 +146,7 @@ class ClassifierService(Service):
 
     def _handle(self, kind: str, item, t0: float | None, raws: dict[int, dict]) -> None:
         if kind == "obs":
-            obs = self.accept(TrackObservation, *item)
+            obs = self.accept(TrackObservation, item[0], keys.tracks_all(self.ns), item[1])
             if obs is not None:
                 self.assembler.add_observation(obs)
         elif kind == "close":
@@ -154,7 +154,7 @@ class ClassifierService(Service):
             try:
                 msg, raw = decode_with_raw(TrackedObjects, data)
             except DecodeError:
-                self.accept(TrackedObjects, data, key)  # counts and logs the rejection
+                self.accept(TrackedObjects, data, keys.tracked(self.ns), key)  # counts and logs it
                 return
             restarts = self.assembler.counts.get("upstream_restarts", 0)
             if self.assembler.add_close(msg, t0):

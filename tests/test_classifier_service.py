@@ -1,0 +1,165 @@
+"""The classifier service over real in-process Zenoh (peer mode, loopback, multicast off)."""
+
+from __future__ import annotations
+
+import msgpack
+import pytest
+
+from jitterguard.runtime import loopback_options
+from jitterguard.schemas import decode, encode, keys
+from jitterguard.schemas.models import (
+    ClassifierConfig,
+    ClassifierStateSnapshot,
+    ConfigReply,
+    MotionState,
+    TrackedObjects,
+)
+from jitterguard.services.classifier.service import ClassifierService
+from jitterguard.services.classifier.synthetic_tracks import TrackScenario, generate
+
+from helpers import wait_until
+
+pytestmark = pytest.mark.integration
+NS = "test"
+
+
+@pytest.fixture
+def service(zenoh_port):
+    svc = ClassifierService(loopback_options(NS, zenoh_port, listen_self=True), straggler_timeout_s=0.5)
+    yield svc
+    svc.close()
+
+
+def _collect(session):
+    got = {"objects": [], "motion": {}}
+    session.declare_subscriber(keys.objects(NS), lambda s: got["objects"].append(decode(TrackedObjects, s.payload.to_bytes())))
+    session.declare_subscriber(
+        keys.motion_all(NS),
+        lambda s: got["motion"].__setitem__(keys.last_chunk(str(s.key_expr)), decode(MotionState, s.payload.to_bytes())),
+    )
+    return got
+
+
+def _send(session, frame):
+    for o in frame.observations:
+        session.put(keys.track(NS, o.track.object_id), encode(o))
+    session.put(keys.tracked(NS), encode(frame.tracked))
+
+
+def _wait_connected(session):
+    assert wait_until(lambda: any(True for _ in session.liveliness().get(keys.alive(NS, "classifier"), timeout=0.5)), 10)
+
+
+def _query(session, key, payload=None):
+    replies = list(session.get(key, payload=payload, timeout=5.0))
+    assert len(replies) == 1
+    return replies[0]
+
+
+def test_static_and_moving_objects_get_the_right_states(service, client_session):
+    got = _collect(client_session)
+    _wait_connected(client_session)
+    frames = list(generate(TrackScenario(n_static=5, n_moving=4, n_starting=0, seed=1), 15))
+    for f in frames:
+        _send(client_session, f)
+    assert wait_until(lambda: len(got["objects"]) == 15)
+    truth = frames[-1].moving
+    assert wait_until(lambda: len(got["motion"]) == len(truth) and all(m.header.seq == 14 for m in got["motion"].values()))
+    for tid, m in got["motion"].items():
+        assert m.state == ("dynamic" if truth[tid] else "static"), (tid, m)
+        assert m.window_length == 10
+    last = got["objects"][-1]
+    assert last.header.seq == 14 and last.observed_track_ids == []
+    for obj in last.objects:
+        kin = obj.kinematics
+        if truth[obj.object_id]:
+            assert not kin.is_stationary
+            assert abs(kin.twist_with_covariance.twist.linear.x) > 1.0  # passes through untouched
+        else:
+            assert kin.is_stationary
+            assert kin.twist_with_covariance.twist.linear.x == 0.0
+            assert kin.pose_with_covariance.pose.position.x == pytest.approx(got["motion"][obj.object_id].mean_x)
+    assert service.counters.get("rejected") == 0
+
+
+def test_car_that_starts_moving_flips_within_the_window(service, client_session):
+    got = _collect(client_session)
+    _wait_connected(client_session)
+    sc = TrackScenario(n_static=0, n_moving=0, n_starting=1, start_frame=12, seed=4)
+    frames = list(generate(sc, 24))
+    history = []
+    for f in frames:
+        _send(client_session, f)
+        assert wait_until(lambda: len(got["objects"]) == f.seq + 1)
+        history.append(next(iter(got["motion"].values())).state)
+    assert history[11] == "static"
+    first_dynamic = history.index("dynamic")
+    assert 12 <= first_dynamic <= 12 + 10
+
+
+def test_alpha_change_through_queryable_flips_a_borderline_object(service, client_session):
+    got = _collect(client_session)
+    _wait_connected(client_session)
+    frames = list(generate(TrackScenario(n_static=0, n_moving=1, n_starting=0, speed_mps=1.0, seed=2), 30))
+    for f in frames[:10]:
+        _send(client_session, f)
+    assert wait_until(lambda: len(got["objects"]) == 10)
+    m = next(iter(got["motion"].values()))
+    z = max(m.z_x, m.z_y)
+    assert m.state == "dynamic" and z > 1.96, m
+    reply = _query(client_session, keys.classifier_config(NS), encode(ClassifierConfig(alpha_default=z + 5.0)))
+    in_force = decode(ConfigReply, reply.ok.payload.to_bytes())
+    assert in_force.ok and in_force.config.alpha_default == pytest.approx(z + 5.0)
+    _send(client_session, frames[10])
+    assert wait_until(lambda: len(got["objects"]) == 11)
+    m2 = next(iter(got["motion"].values()))
+    assert m2.header.seq == 10 and m2.alpha == pytest.approx(z + 5.0)
+    assert m2.state == "static"
+    assert got["objects"][-1].objects[0].kinematics.is_stationary
+    # a plain get reports what is in force; the state queryable shows the track
+    plain = decode(ConfigReply, _query(client_session, keys.classifier_config(NS)).ok.payload.to_bytes())
+    assert plain.config.alpha_default == pytest.approx(z + 5.0)
+    snap = decode(ClassifierStateSnapshot, _query(client_session, keys.classifier_state(NS)).ok.payload.to_bytes())
+    assert [t.state for t in snap.tracks] == ["static"] and snap.tracks[0].window_length == 10
+
+
+def test_invalid_config_write_is_refused_and_nothing_changes(service, client_session):
+    _wait_connected(client_session)
+    bad = msgpack.packb({**ClassifierConfig().model_dump(), "window_size": 1})
+    reply = _query(client_session, keys.classifier_config(NS), bad)
+    assert reply.err is not None
+    err = decode(ConfigReply, reply.err.payload.to_bytes())
+    assert not err.ok and "window_size" in err.error
+    assert service.core.config == ClassifierConfig()
+
+
+def test_malformed_payloads_on_every_key_are_counted_and_service_keeps_running(service, client_session):
+    got = _collect(client_session)
+    _wait_connected(client_session)
+    frames = list(generate(TrackScenario(n_static=2, n_moving=1, n_starting=0, seed=3), 4))
+    tid = frames[0].observations[0].track.object_id
+    junk = [b"", b"\x00\xff", msgpack.packb({"schema_version": 1}), encode(frames[0].tracked)[:-7]]
+    for j in junk:
+        client_session.put(keys.track(NS, tid), j)
+        client_session.put(keys.tracked(NS), j)
+    for f in frames:
+        _send(client_session, f)
+    assert wait_until(lambda: len(got["objects"]) == 4)
+    assert wait_until(lambda: service.counters.get("rejected") == 2 * len(junk))
+    assert service.counters.get("rejected.tracks/*") == len(junk)
+    assert service.counters.get("rejected.tracked") == len(junk)
+
+
+def test_restarted_tracker_leaves_no_stale_windows(service, client_session):
+    got = _collect(client_session)
+    _wait_connected(client_session)
+    first = list(generate(TrackScenario(n_static=3, n_moving=0, n_starting=0, seed=5), 30))
+    for f in first:
+        _send(client_session, f)
+    assert wait_until(lambda: len(got["objects"]) == 30), (len(got["objects"]), service.counters.snapshot())
+    second = list(generate(TrackScenario(n_static=2, n_moving=0, n_starting=0, seed=6), 2))  # seq restarts at 0
+    for f in second:
+        _send(client_session, f)
+    assert wait_until(lambda: len(got["objects"]) == 32)
+    new_ids = {o.track.object_id for o in second[0].observations}
+    assert set(service.run_on_worker(service.core.track_ids)) == new_ids
