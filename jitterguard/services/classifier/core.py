@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ...schemas.models import LABEL_NAMES, ClassifierConfig
-from .statistics import chi2_2_threshold, split_halves, window_statistics
+from .statistics import CHANNELS, chi2_2_threshold, split_halves, window_statistics
 
 F64 = NDArray[np.float64]
 IDS = NDArray[np.bytes_]
@@ -82,21 +82,16 @@ class Decisions:
 
 @dataclass
 class _Table:
-    """Per-row storage; grows by doubling."""
+    """Per-row storage; grows by doubling. ``win`` is (capacity, window, 5) over ``CHANNELS``."""
 
     window: int
     capacity: int
-    x: F64 = field(init=False)
-    y: F64 = field(init=False)
-    cxx: F64 = field(init=False)
-    cxy: F64 = field(init=False)
-    cyy: F64 = field(init=False)
+    win: F64 = field(init=False)
     head: NDArray[np.int64] = field(init=False)
     count: NDArray[np.int64] = field(init=False)
     label: NDArray[np.int64] = field(init=False)
     last: dict[str, np.ndarray] = field(init=False)
 
-    _WINDOWED = ("x", "y", "cxx", "cxy", "cyy")
     _LAST = {
         "state": np.int8, "z_x": np.float64, "z_y": np.float64, "chi2": np.float64, "alpha": np.float64,
         "threshold": np.float64, "mean_x": np.float64, "mean_y": np.float64, "speed": np.float64,
@@ -104,8 +99,7 @@ class _Table:
     }
 
     def __post_init__(self) -> None:
-        for name in self._WINDOWED:
-            setattr(self, name, np.zeros((self.capacity, self.window)))
+        self.win = np.zeros((self.capacity, self.window, len(CHANNELS)))
         self.head = np.zeros(self.capacity, dtype=np.int64)
         self.count = np.zeros(self.capacity, dtype=np.int64)
         self.label = np.zeros(self.capacity, dtype=np.int64)
@@ -113,8 +107,7 @@ class _Table:
 
     def grow(self, capacity: int) -> None:
         extra = capacity - self.capacity
-        for name in self._WINDOWED:
-            setattr(self, name, np.vstack([getattr(self, name), np.zeros((extra, self.window))]))
+        self.win = np.concatenate([self.win, np.zeros((extra, self.window, len(CHANNELS)))])
         self.head = np.concatenate([self.head, np.zeros(extra, dtype=np.int64)])
         self.count = np.concatenate([self.count, np.zeros(extra, dtype=np.int64)])
         self.label = np.concatenate([self.label, np.zeros(extra, dtype=np.int64)])
@@ -130,16 +123,14 @@ class _Table:
     def rewindow(self, window: int) -> None:
         """Change the window length keeping each row's newest min(N, window) observations in order."""
         keep = np.minimum(self.count, window)
-        rows = np.arange(self.capacity)[:, None]
         k = np.arange(window)[None, :]  # k-th newest
         src = (self.head[:, None] - 1 - k) % self.window
-        dst = keep[:, None] - 1 - k  # newest goes to slot keep-1
+        dst = keep[:, None] - 1 - k  # the newest goes to slot keep-1
         ok = k < keep[:, None]
-        for name in self._WINDOWED:
-            old = getattr(self, name)
-            new = np.zeros((self.capacity, window))
-            new[np.broadcast_to(rows, ok.shape)[ok], dst[ok]] = old[np.broadcast_to(rows, ok.shape)[ok], src[ok]]
-            setattr(self, name, new)
+        rows = np.broadcast_to(np.arange(self.capacity)[:, None], ok.shape)[ok]
+        new = np.zeros((self.capacity, window, len(CHANNELS)))
+        new[rows, dst[ok]] = self.win[rows, src[ok]]
+        self.win = new
         self.window = window
         self.count = keep
         self.head = keep % window
@@ -225,19 +216,18 @@ class MotionClassifierCore:
     def update(self, obs: Observations) -> Decisions:
         """Append one observation per track to its window and decide every observed track."""
         ids = obs.track_ids
-        if ids.shape[0] != np.unique(ids).shape[0]:
-            raise ValueError("track_ids must be unique within a frame")
         rows, found = self._lookup(ids)
         if not found.all():
-            rows[~found] = self._allocate(ids[~found])
+            new_ids = ids[~found]
+            if np.unique(new_ids).shape[0] != new_ids.shape[0]:
+                raise ValueError("track_ids must be unique within a frame")
+            rows[~found] = self._allocate(new_ids)
         t = self._table
+        if rows.shape[0] and np.bincount(rows, minlength=1).max() > 1:
+            raise ValueError("track_ids must be unique within a frame")
         w = t.window
         slot = t.head[rows]
-        t.x[rows, slot] = obs.x
-        t.y[rows, slot] = obs.y
-        t.cxx[rows, slot] = obs.cxx
-        t.cxy[rows, slot] = obs.cxy
-        t.cyy[rows, slot] = obs.cyy
+        t.win[rows, slot] = np.stack([obs.x, obs.y, obs.cxx, obs.cxy, obs.cyy], axis=1)
         t.head[rows] = (slot + 1) % w
         t.count[rows] = np.minimum(t.count[rows] + 1, w)
         t.label[rows] = np.clip(obs.labels, 0, _NUM_LABELS - 1)
@@ -249,8 +239,7 @@ class MotionClassifierCore:
         count = t.count[rows]
         masks = split_halves(t.head[rows], count, t.window)
         stats = window_statistics(
-            t.x[rows], t.y[rows], t.cxx[rows], t.cxy[rows], t.cyy[rows], masks,
-            variance_floor=cfg.variance_floor, independent=cfg.effective_n == "independent",
+            t.win[rows], masks, variance_floor=cfg.variance_floor, independent=cfg.effective_n == "independent"
         )
         alpha = self._alpha_table[t.label[rows]]
         decided = count >= cfg.min_window

@@ -74,10 +74,6 @@ class WindowStats:
     mean_y: F64
 
 
-def _masked_mean(values: F64, mask: NDArray[np.bool_], n: F64) -> F64:
-    return np.where(mask, values, 0.0).sum(axis=1) / np.maximum(n, 1.0)
-
-
 def _floor_min_eigen(a: F64, b: F64, c: F64, floor: float) -> tuple[F64, F64]:
     """Raise the smaller eigenvalue of [[a, b], [b, c]] to ``floor`` by adding a multiple of I."""
     lam_min = 0.5 * (a + c) - np.sqrt(0.25 * (a - c) ** 2 + b * b)
@@ -85,29 +81,24 @@ def _floor_min_eigen(a: F64, b: F64, c: F64, floor: float) -> tuple[F64, F64]:
     return a + shift, c + shift
 
 
-def window_statistics(
-    x: F64,
-    y: F64,
-    cxx: F64,
-    cxy: F64,
-    cyy: F64,
-    masks: HalfMasks,
-    *,
-    variance_floor: float,
-    independent: bool,
-) -> WindowStats:
-    """z_x, z_y (eq. 1 with eq. 2) and the 2-D χ² statistic for every window in the batch."""
-    old, new = masks.old, masks.new
-    n_old, n_new = masks.n_old, masks.n_new
+CHANNELS = ("x", "y", "cxx", "cxy", "cyy")
+"""Order of the last axis of a window array: position and the 2x2 world-frame covariance."""
 
-    dx = _masked_mean(x, new, n_new) - _masked_mean(x, old, n_old)
-    dy = _masked_mean(y, new, n_new) - _masked_mean(y, old, n_old)
-    vxx_old = _masked_mean(cxx, old, n_old)
-    vxx_new = _masked_mean(cxx, new, n_new)
-    vyy_old = _masked_mean(cyy, old, n_old)
-    vyy_new = _masked_mean(cyy, new, n_new)
-    vxy_old = _masked_mean(cxy, old, n_old)
-    vxy_new = _masked_mean(cxy, new, n_new)
+
+def window_statistics(windows: F64, masks: HalfMasks, *, variance_floor: float, independent: bool) -> WindowStats:
+    """z_x, z_y (eq. 1 with eq. 2) and the 2-D χ² statistic for every window in the batch.
+
+    ``windows`` is ``(K, W, 5)`` over :data:`CHANNELS`. Each half's means of all five channels come out of
+    one weighted contraction, so the cost is two passes over the batch whatever the statistic.
+    """
+    n_old, n_new = masks.n_old, masks.n_new
+    w_old = masks.old / np.maximum(n_old, 1.0)[:, None]
+    w_new = masks.new / np.maximum(n_new, 1.0)[:, None]
+    m_old = np.einsum("kwc,kw->ck", windows, w_old)
+    m_new = np.einsum("kwc,kw->ck", windows, w_new)
+    dx, dy = m_new[0] - m_old[0], m_new[1] - m_old[1]
+    vxx_old, vxy_old, vyy_old = m_old[2], m_old[3], m_old[4]
+    vxx_new, vxy_new, vyy_new = m_new[2], m_new[3], m_new[4]
 
     if independent:
         k_old, k_new = np.maximum(n_old, 1.0), np.maximum(n_new, 1.0)
@@ -127,12 +118,11 @@ def window_statistics(
     det = a * c - b * b
     chi2 = (c * dx * dx - 2.0 * b * dx * dy + a * dy * dy) / det
 
-    n_all = n_old + n_new
-    valid = old | new
+    n_all = np.maximum(n_old + n_new, 1.0)
     return WindowStats(
         z_x=z_x,
         z_y=z_y,
         chi2=chi2,
-        mean_x=_masked_mean(x, valid, n_all),
-        mean_y=_masked_mean(y, valid, n_all),
+        mean_x=(m_old[0] * n_old + m_new[0] * n_new) / n_all,
+        mean_y=(m_old[1] * n_old + m_new[1] * n_new) / n_all,
     )
