@@ -17,6 +17,7 @@ from importlib import resources
 from typing import Annotated, Any
 
 from fastapi import Depends, FastAPI, HTTPException, Path, Query, Request
+from fastapi.exceptions import RequestValidationError
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import HTMLResponse, JSONResponse, Response, StreamingResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
@@ -39,6 +40,7 @@ from .core import (
     apply_preset,
     config_to_api,
     dumps,
+    jsonable_errors,
     merge_patch,
     validate_config,
 )
@@ -142,6 +144,11 @@ def create_app(settings: SidecarSettings) -> FastAPI:
         write_errors[401] = _E401
 
     # ------------------------------------------------------------------ error bodies
+
+    @app.exception_handler(RequestValidationError)
+    async def _invalid_request(_r: Request, exc: RequestValidationError) -> JSONResponse:
+        # FastAPI's own handler echoes inputs as-is; a NaN input would then fail to serialise (a 500).
+        return JSONResponse({"detail": jsonable_errors(exc.errors())}, status_code=422)
 
     @app.exception_handler(ConfigError)
     async def _config_error(_r: Request, exc: ConfigError) -> JSONResponse:

@@ -209,13 +209,35 @@ def validate_config(data: Mapping[str, Any], touched: Iterable[str] | None = Non
         raise ConfigError(errors) from None
 
 
-def _jsonable(value: Any) -> Any:
-    """Echo an offending input back only if it survives strict JSON (no NaN/inf, plain containers)."""
-    try:
-        json.dumps(value, allow_nan=False)
+def _jsonable(value: Any, depth: int = 0) -> Any:
+    """An offending input made safe to echo in strict JSON: non-finite numbers and unknown objects become
+    their ``repr``, containers are walked (bounded depth). A 422 must never turn into a 500 because the bad
+    value itself cannot be serialised (``NaN`` is valid Python JSON input but not valid JSON output)."""
+    if value is None or isinstance(value, (bool, int, str)):
         return value
-    except (TypeError, ValueError):
-        return repr(value)
+    if isinstance(value, float):
+        return value if math.isfinite(value) else repr(value)
+    if depth > 20:
+        return "..."
+    if isinstance(value, Mapping):
+        return {str(k): _jsonable(v, depth + 1) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v, depth + 1) for v in value]
+    return repr(value)
+
+
+def jsonable_errors(errors: Iterable[Mapping[str, Any]]) -> list[dict[str, Any]]:
+    """Validation errors (pydantic's or ours) as a strict-JSON 422 ``detail`` list."""
+    out = []
+    for e in errors:
+        item: dict[str, Any] = {"type": str(e.get("type", "value_error")), "loc": [
+            p if isinstance(p, (int, str)) else str(p) for p in e.get("loc", ())], "msg": str(e.get("msg", ""))}
+        if "input" in e:
+            item["input"] = _jsonable(e["input"])
+        if e.get("ctx"):
+            item["ctx"] = _jsonable(dict(e["ctx"]))
+        out.append(item)
+    return out
 
 
 def merge_patch(current: ClassifierConfig, patch: Mapping[str, Any]) -> ClassifierConfig:

@@ -1,0 +1,289 @@
+"""The sidecar over real HTTP against a real classifier over real Zenoh (see ``stack.py``)."""
+
+from __future__ import annotations
+
+import json
+import re
+
+import httpx
+import pytest
+
+from jitterguard.schemas import keys
+from jitterguard.schemas.models import AUTHORS_ALPHA, ClassifierConfig
+from jitterguard.services.sidecar.core import StateView, TrackView
+
+from .stack import Stack, wait_for
+
+pytestmark = pytest.mark.integration
+
+DEFAULTS = ClassifierConfig().model_dump(mode="json", exclude={"schema_version"})
+
+
+def _state_of(body: dict, track_id: str) -> str | None:
+    return next((t["state"] for t in body["tracks"] if t["id"] == track_id), None)
+
+
+@pytest.fixture(autouse=True)
+def _reset_config(stack: Stack):
+    """Every test starts from the default config (and leaves it so)."""
+    with stack.http() as c:
+        assert c.put("/v1/config", json={}).status_code == 200
+    yield
+    with stack.http() as c:
+        c.put("/v1/config", json={})
+
+
+def test_health_and_readiness(stack: Stack) -> None:
+    with stack.http(auth=False) as c:
+        assert c.get("/healthz").json() == {"status": "ok"}
+        r = c.get("/readyz")
+        assert r.status_code == 200
+        body = r.json()
+        assert body["ready"] is True and body["liveliness"] is True and body["reason"] == "ok"
+        assert body["heartbeat_age_s"] is not None and body["last_seq"] >= 0
+
+
+def test_state_appears_with_every_track(stack: Stack) -> None:
+    with stack.http(auth=False) as c:
+        r = c.get("/v1/state")
+    assert r.status_code == 200 and r.headers["content-type"] == "application/json"
+    body = r.json()
+    view = StateView.model_validate(body)
+    assert view.counts.total == len(stack.tracks) == len(view.tracks)
+    by_id = {t.id: t for t in view.tracks}
+    assert set(by_id) == {t.track_id for t in stack.tracks}
+    for t in stack.tracks:
+        v = by_id[t.track_id]
+        expected = {"parked": "static", "mover": "dynamic", "creeper": "static"}[t.kind]
+        assert v.state == expected, (t.kind, v)
+        assert v.window_fill == 1.0 and v.alpha == 1.96 and v.threshold == 1.96
+    creeper = by_id[stack.track("creeper").track_id]
+    assert 0.9 <= creeper.z <= 1.5, creeper  # the borderline: between 0.5 and 1.96 by construction
+    assert by_id[stack.tracks[5].track_id].class_ == "pedestrian"
+    assert int(r.headers["x-classifier-seq"]) == body["seq"]
+
+
+def test_state_filters(stack: Stack) -> None:
+    with stack.http(auth=False) as c:
+        dyn = c.get("/v1/state", params={"state": "dynamic"}).json()
+        peds = c.get("/v1/state", params={"class": "pedestrian"}).json()
+        assert c.get("/v1/state", params={"state": "moving"}).status_code == 422
+    assert dyn["tracks"] and all(t["state"] == "dynamic" for t in dyn["tracks"])
+    assert [t["class"] for t in peds["tracks"]] == ["pedestrian"]
+
+
+def test_one_track_and_404(stack: Stack) -> None:
+    tid = stack.track("mover").track_id
+    with stack.http(auth=False) as c:
+        r = c.get(f"/v1/state/{tid}")
+        assert r.status_code == 200
+        t = TrackView.model_validate(r.json())
+        assert t.id == tid and t.state == "dynamic" and t.speed > 5.0
+        assert c.get(f"/v1/state/{tid.upper()}").json()["id"] == tid
+        r = c.get(f"/v1/state/{'0' * 32}")
+        assert r.status_code == 404 and "0" * 32 in r.json()["detail"]
+        assert c.get("/v1/state/not-a-track").status_code == 422
+
+
+def test_get_config_is_what_the_classifier_has(stack: Stack) -> None:
+    with stack.http(auth=False) as c:
+        assert c.get("/v1/config").json() == DEFAULTS
+    assert stack.classifier.core.config == ClassifierConfig()
+
+
+def test_alpha_change_flips_the_borderline_track(stack: Stack) -> None:
+    creeper = stack.track("creeper").track_id
+    parked = stack.track("parked").track_id
+    stack.wait_state(lambda b: _state_of(b, creeper) == "static", "creeper static at alpha 1.96")
+    with stack.http() as c:
+        r = c.patch("/v1/config", json={"alpha_default": 0.5})
+        assert r.status_code == 200 and r.json() == {**DEFAULTS, "alpha_default": 0.5}
+        # Applied before the reply: the classifier's own config already says so, and so does a fresh GET.
+        assert stack.classifier.core.config.alpha_default == 0.5
+        assert c.get("/v1/config").json()["alpha_default"] == 0.5
+    body = stack.wait_state(lambda b: _state_of(b, creeper) == "dynamic", "creeper dynamic at alpha 0.5")
+    assert _state_of(body, parked) == "static"  # real jitter stays below even the low threshold
+    assert next(t for t in body["tracks"] if t["id"] == creeper)["alpha"] == 0.5
+    with stack.http() as c:  # null resets to the default: the creeper goes back to static
+        assert c.patch("/v1/config", json={"alpha_default": None}).json()["alpha_default"] == 1.96
+    stack.wait_state(lambda b: _state_of(b, creeper) == "static", "creeper static again")
+
+
+def test_per_class_alpha_flips_only_that_class(stack: Stack) -> None:
+    creeper = stack.track("creeper").track_id
+    with stack.http() as c:
+        r = c.patch("/v1/config", json={"alpha_per_class": {"car": 0.5, "pedestrian": 1.0}})
+        assert r.json()["alpha_per_class"] == {"car": 0.5, "pedestrian": 1.0}
+    body = stack.wait_state(lambda b: _state_of(b, creeper) == "dynamic", "creeper dynamic at car alpha 0.5")
+    bicycle = next(t for t in body["tracks"] if t["class"] == "bicycle")
+    assert bicycle["alpha"] == 1.96  # no override for bicycles
+    with stack.http() as c:
+        r = c.patch("/v1/config", json={"alpha_per_class": {"car": None}})
+        assert r.json()["alpha_per_class"] == {"pedestrian": 1.0}
+
+
+def test_preset_and_put(stack: Stack) -> None:
+    with stack.http() as c:
+        assert c.patch("/v1/config", json={"window_size": 12, "min_window": 3}).status_code == 200
+        r = c.post("/v1/config/preset/authors")
+        assert r.status_code == 200
+        cfg = r.json()
+        assert cfg["alpha_per_class"] == AUTHORS_ALPHA and cfg["window_size"] == 12 and cfg["min_window"] == 3
+        assert stack.classifier.core.config.alpha_per_class == AUTHORS_ALPHA
+        assert c.get("/v1/config/presets").json()["authors"]["alpha_per_class"] == AUTHORS_ALPHA
+        assert c.post("/v1/config/preset/bogus").status_code == 422
+        full = {**DEFAULTS, "mode": "chi2", "effective_n": "independent", "variance_floor": 0.01,
+                "velocity_threshold": 2.0}
+        r = c.put("/v1/config", json=full)
+        assert r.status_code == 200 and r.json() == full
+        assert stack.classifier.core.config.mode == "chi2"
+        body = stack.wait_state(lambda b: b["mode"] == "chi2", "chi2 mode in the state")
+        assert all(t["statistic"] == t["chi2"] for t in body["tracks"])
+
+
+@pytest.mark.parametrize(("method", "path"), [
+    ("PATCH", "/v1/config"), ("PUT", "/v1/config"), ("POST", "/v1/config/preset/authors")])
+@pytest.mark.parametrize("auth", [None, "Bearer wrong-token", "Basic czNjcmV0LXRva2Vu", "Bearer s3cret-token-and-more"])
+def test_writes_need_the_token(stack: Stack, method: str, path: str, auth: str | None) -> None:
+    headers = {"Authorization": auth} if auth is not None else {}
+    body = None if method == "POST" else {"alpha_default": 0.3}
+    with stack.http(auth=False) as c:
+        r = c.request(method, path, json=body, headers=headers)
+        assert r.status_code == 401, r.text
+        assert r.headers["www-authenticate"] == "Bearer"
+        assert "token" in r.json()["detail"]
+        assert c.get("/v1/config").json() == DEFAULTS  # nothing applied
+        assert c.get("/v1/state").status_code == 200  # reads stay open
+
+
+@pytest.mark.parametrize(("method", "body", "field"), [
+    ("PATCH", {"alpha_default": -1}, "alpha_default"),
+    ("PATCH", {"alpha_default": "NaN"}, "alpha_default"),
+    ("PATCH", {"window_size": 1}, "window_size"),
+    ("PATCH", {"min_window": 50}, "min_window"),
+    ("PATCH", {"mode": "t_test"}, "mode"),
+    ("PATCH", {"alpha_per_class": {"spaceship": 2.0}}, "alpha_per_class"),
+    ("PATCH", {"alpha_per_class": {"car": 0}}, "alpha_per_class"),
+    ("PATCH", {"effective_n": 3}, "effective_n"),
+    ("PATCH", {"velocity_threshold": 1e9}, "velocity_threshold"),
+    ("PATCH", {"bogus": 1}, "bogus"),
+    ("PUT", {"window_size": 4, "min_window": 5}, "min_window"),
+    ("PUT", {"variance_floor": 0}, "variance_floor"),
+])
+def test_invalid_values_get_422_naming_the_field(stack: Stack, method: str, body: dict, field: str) -> None:
+    with stack.http() as c:
+        r = c.request(method, "/v1/config", json=body)
+        assert r.status_code == 422, r.text
+        locs = [e["loc"] for e in r.json()["detail"]]
+        assert any(loc[:2] == ["body", field] for loc in locs), locs
+        assert c.get("/v1/config").json() == DEFAULTS  # nothing applied
+
+
+def test_malformed_json_is_422(stack: Stack) -> None:
+    with stack.http() as c:
+        r = c.patch("/v1/config", content=b"{not json", headers={"Content-Type": "application/json"})
+        assert r.status_code == 422
+        r = c.patch("/v1/config", content=b'{"alpha_default": NaN}', headers={"Content-Type": "application/json"})
+        assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["body", "alpha_default"]
+        r = c.patch("/v1/config", content=b'{"alpha_default": 0.7}',
+                    headers={"Content-Type": "application/merge-patch+json"})
+        assert r.status_code == 200 and r.json()["alpha_default"] == 0.7
+
+
+def _metric(text: str, name: str, labels: str = "") -> float:
+    m = re.search(rf"^{re.escape(name)}{re.escape(labels)} (\S+)$", text, re.M)
+    assert m, f"{name}{labels} not in /metrics"
+    return float(m.group(1))
+
+
+def test_metrics(stack: Stack) -> None:
+    with stack.http(auth=False) as c:
+        text = c.get("/metrics").text
+        state = c.get("/v1/state").json()
+    assert _metric(text, "jitterguard_classifier_up") == 1.0
+    assert _metric(text, "jitterguard_classifier_frames_total") > 10
+    assert _metric(text, "jitterguard_classifier_tracks") == len(stack.tracks)
+    for cls, st in (("car", "static"), ("car", "dynamic"), ("pedestrian", "static"), ("bus", "dynamic")):
+        n = sum(1 for t in state["tracks"] if t["class"] == cls and t["state"] == st)
+        assert _metric(text, "jitterguard_classifier_tracks_by_state", f'{{class="{cls}",state="{st}"}}') == n
+    assert _metric(text, "jitterguard_classifier_alpha", '{class="car"}') == 1.96
+    assert _metric(text, "jitterguard_sidecar_state_poll_seconds_count") > 0
+    before = _metric(text, "jitterguard_classifier_rejected_messages_total")
+    # A malformed payload on the tracker's key: the classifier drops and counts it; /metrics shows it.
+    stack.feeder.session.put(keys.track(stack.ns, "f" * 32), b"\x93not-msgpack-of-a-TrackObservation")
+
+    def rejected() -> float | None:
+        with stack.http(auth=False) as c:
+            v = _metric(c.get("/metrics").text, "jitterguard_classifier_rejected_messages_total")
+        return v if v > before else None
+    assert wait_for(rejected, "the reject to show in /metrics") >= before + 1
+
+
+def test_frame_latency_histogram_when_the_classifier_exports_it(stack: Stack) -> None:
+    """The histogram appears as soon as the classifier's counters carry frame_latency_ms.* (see core)."""
+    with stack.http(auth=False) as c:
+        text = c.get("/metrics").text
+    exported = any(k.startswith("frame_latency_ms.") for k in stack.classifier.counters.snapshot())
+    has_hist = "jitterguard_classifier_frame_latency_seconds_bucket" in text
+    assert has_hist == exported
+    if has_hist:
+        assert _metric(text, "jitterguard_classifier_frame_latency_seconds_count") > 0
+
+
+def test_events_stream_state_and_config_changes(stack: Stack) -> None:
+    creeper = stack.track("creeper").track_id
+    stack.wait_state(lambda b: _state_of(b, creeper) == "static", "creeper static")
+    seen: dict[str, list[dict]] = {}
+    with httpx.Client(base_url=stack.url, timeout=20.0) as c, c.stream("GET", "/v1/events") as r:
+        assert r.status_code == 200 and r.headers["content-type"].startswith("text/event-stream")
+        lines = r.iter_lines()
+        event = None
+        patched = False
+        for line in lines:
+            if line.startswith("event: "):
+                event = line[7:]
+            elif line.startswith("data: "):
+                seen.setdefault(event or "", []).append(json.loads(line[6:]))
+                if event == "hello" and not patched:
+                    assert seen["hello"][0]["ready"] is True
+                    with stack.http() as w:
+                        assert w.patch("/v1/config", json={"alpha_default": 0.5}).status_code == 200
+                    patched = True
+                flips = [ch for d in seen.get("changes", []) for ch in d["changes"] if ch["id"] == creeper]
+                if flips and "config" in seen:
+                    break
+    assert seen["config"][0]["alpha_default"] == 0.5
+    assert flips[0]["from"] == "static" and flips[0]["to"] == "dynamic" and flips[0]["threshold"] == 0.5
+    assert flips[0]["statistic"] > 0.5
+
+
+def test_openapi_documents_every_endpoint(stack: Stack) -> None:
+    with stack.http(auth=False) as c:
+        spec = c.get("/openapi.json").json()
+    paths = spec["paths"]
+    for path, methods in {"/healthz": {"get"}, "/readyz": {"get"}, "/v1/state": {"get"},
+                          "/v1/state/{track_id}": {"get"}, "/v1/config": {"get", "put", "patch"},
+                          "/v1/config/preset/{name}": {"post"}, "/metrics": {"get"}, "/v1/events": {"get"},
+                          "/": {"get"}}.items():
+        assert methods <= set(paths[path]), path
+    assert "401" in paths["/v1/config"]["patch"]["responses"] and "503" in paths["/v1/config"]["put"]["responses"]
+    assert paths["/v1/config"]["patch"]["security"]  # the bearer scheme is declared for writes
+    assert "security" not in paths["/v1/state"]["get"]
+
+
+def test_page_is_self_contained(stack: Stack) -> None:
+    with stack.http(auth=False) as c:
+        r = c.get("/")
+    assert r.status_code == 200 and r.headers["content-type"].startswith("text/html")
+    assert "default-src 'self'" in r.headers["content-security-policy"]
+    assert not re.search(r"""(src|href)=["']?(https?:)?//""", r.text)  # nothing from the internet
+    assert "<canvas" in r.text
+
+
+def test_cors_is_off_by_default(stack: Stack) -> None:
+    with stack.http(auth=False) as c:
+        r = c.options("/v1/config", headers={"Origin": "https://evil.example",
+                                             "Access-Control-Request-Method": "PATCH"})
+        assert "access-control-allow-origin" not in r.headers
+        r = c.get("/v1/state", headers={"Origin": "https://evil.example"})
+        assert "access-control-allow-origin" not in r.headers
