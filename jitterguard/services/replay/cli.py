@@ -150,6 +150,8 @@ def _run(svc: Any, src: Any, plan: ReplayPlan, wait_s: float, progress: bool | N
     try:
         if wait_s > 0 and not svc.wait_for_subscribers(wait_s):
             log.info("no subscriber on %s after %.1f s; replaying anyway", svc.key, wait_s)
+        rate_txt = "max" if plan.rate is None else f"x{plan.rate:g}"
+        log.info("replaying %s on %s at rate %s%s", src.info.name, svc.key, rate_txt, " (looping)" if plan.loop else "")
         total = None
         if src.info.num_frames is not None and not plan.loop:
             total = max(0, src.info.num_frames - plan.start)

@@ -1,0 +1,175 @@
+"""Integration: the replay publisher on real Zenoh sessions (peer mode, loopback, multicast off, free ports),
+in-process and through the ``jitterguard replay`` command in a subprocess."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zenoh
+
+from jitterguard.runtime import build_config, free_tcp_port, loopback_options
+from jitterguard.schemas import DetectedObjects, PointCloud, decode, keys
+from jitterguard.schemas.models import DetectedObject, ObjectClassification
+from jitterguard.services.replay.frames import DetectionFrame, EgoPose
+from jitterguard.services.replay.publisher import ReplayService
+from jitterguard.services.replay.runner import ReplayPlan
+from jitterguard.services.replay.sources.base import MemorySource
+
+from .helpers import MS, memory, scan, write_bin
+
+pytestmark = pytest.mark.integration
+REPO = Path(__file__).resolve().parents[2]
+
+
+class Collector:
+    """A subscriber session listening on a free loopback port; keeps raw payloads per key."""
+
+    def __init__(self, ns: str, *key_fns) -> None:
+        self.port = free_tcp_port()
+        self.session = zenoh.open(build_config(loopback_options(ns, self.port, listen_self=True)))
+        self.lock = threading.Lock()
+        self.payloads: dict[str, list[bytes]] = {}
+        self.subs = [self.session.declare_subscriber(fn(ns), self._on) for fn in key_fns]
+
+    def _on(self, sample: zenoh.Sample) -> None:
+        with self.lock:
+            self.payloads.setdefault(str(sample.key_expr), []).append(sample.payload.to_bytes())
+
+    def wait_for(self, key: str, n: int, timeout: float = 20.0) -> list[bytes]:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            with self.lock:
+                got = list(self.payloads.get(key, []))
+            if len(got) >= n:
+                return got
+            time.sleep(0.02)
+        return got
+
+    def close(self) -> None:
+        for s in self.subs:
+            s.undeclare()
+        self.session.close()
+
+
+@pytest.fixture
+def ns(request: pytest.FixtureRequest) -> str:
+    return f"t{os.getpid()}-{abs(hash(request.node.name)) % 10**8}"
+
+
+def test_points_arrive_complete_in_order_with_pose_and_exact_data(ns: str) -> None:
+    col = Collector(ns, keys.points)
+    try:
+        src = memory(12)
+        with ReplayService(loopback_options(ns, col.port)) as svc:
+            assert svc.wait_for_subscribers(10.0)
+            stats = svc.replay(src, ReplayPlan(rate=None, loop=True, passes=2))
+            assert svc.counters.get("published") == 24
+        got = [decode(PointCloud, p) for p in col.wait_for(keys.points(ns), 24)]
+    finally:
+        col.close()
+    assert stats.published == 24 and len(got) == 24
+    assert [m.header.seq for m in got] == list(range(24))
+    stamps = [m.header.stamp for m in got]
+    assert all(b > a for a, b in zip(stamps, stamps[1:]))
+    for m in got[:12]:
+        want = scan(m.header.seq)
+        assert m.fields == ["x", "y", "z", "intensity"] and m.header.frame_id == want.frame_id
+        pts = np.frombuffer(m.data, dtype="<f4").reshape(m.num_points, 4)
+        np.testing.assert_array_equal(pts, want.points)
+        assert m.ego_pose.position.x == pytest.approx(want.pose.x)
+        assert m.ego_pose.orientation.z == pytest.approx(want.pose.qz)
+
+
+def test_detection_frames_go_on_the_detections_key(ns: str) -> None:
+    col = Collector(ns, keys.detections, keys.points)
+    obj = DetectedObject(classification=[ObjectClassification(label=7, probability=0.8)])
+    frames = [DetectionFrame(i * 100 * MS, EgoPose.from_yaw(i, 0, 0), [obj] * i, f"d#{i}", "base_link") for i in range(3)]
+    try:
+        with ReplayService(loopback_options(ns, col.port), kind="detections") as svc:
+            assert svc.wait_for_subscribers(10.0)
+            svc.replay(MemorySource(frames, kind="detections"), ReplayPlan(rate=None))
+        got = [decode(DetectedObjects, p) for p in col.wait_for(keys.detections(ns), 3)]
+        with col.lock:
+            assert keys.points(ns) not in col.payloads
+    finally:
+        col.close()
+    assert [len(m.objects) for m in got] == [0, 1, 2]
+    assert got[2].objects[0].classification[0].label == 7 and got[2].header.frame_id == "base_link"
+    assert got[1].ego_pose.position.x == pytest.approx(1.0)
+
+
+def test_a_scan_cannot_go_on_the_detections_key(ns: str) -> None:
+    with ReplayService(loopback_options(ns, free_tcp_port(), listen_self=True), kind="detections") as svc:
+        with pytest.raises(TypeError, match="cannot go on"):
+            svc.emit(scan(0), 0, 0)
+
+
+# -------------------------------------------------------------------------------------- the command
+
+
+def _cli(*args: str, timeout: float = 60.0) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "jitterguard.cli", *args], cwd=REPO, capture_output=True, text=True, timeout=timeout
+    )
+
+
+def test_cli_replays_a_kitti_folder_skipping_and_naming_the_corrupt_scan(ns: str, tmp_path: Path) -> None:
+    for i in range(5):
+        write_bin(tmp_path / f"{i:06d}.bin", np.full((100, 4), i, dtype=np.float32))
+    (tmp_path / "000002.bin").write_bytes(b"\x00" * 7)
+    col = Collector(ns, keys.points)
+    try:
+        proc = _cli("replay", str(tmp_path), "--rate", "max", "--ns", ns, "--connect", f"tcp/127.0.0.1:{col.port}",
+                    "--no-progress", "--wait-subscriber", "20", "--log-level", "WARNING")
+        got = [decode(PointCloud, p) for p in col.wait_for(keys.points(ns), 4)]
+    finally:
+        col.close()
+    assert proc.returncode == 0, proc.stderr
+    assert "Traceback" not in proc.stderr
+    bad_lines = [ln for ln in proc.stderr.splitlines() if "000002.bin" in ln]
+    assert len(bad_lines) == 1 and "whole number" in bad_lines[0]
+    assert "replayed 4 frame(s)" in proc.stderr and "1 unreadable" in proc.stderr
+    assert [m.header.seq for m in got] == [0, 1, 2, 3]
+    assert [int(np.frombuffer(m.data, "<f4")[0]) for m in got] == [0, 1, 3, 4]
+    assert [m.header.stamp for m in got] == [0, 100 * MS, 300 * MS, 400 * MS]
+
+
+def test_cli_on_error_stop_exits_1_naming_the_file(ns: str, tmp_path: Path) -> None:
+    write_bin(tmp_path / "000000.bin", np.zeros((3, 4)))
+    (tmp_path / "000001.bin").write_bytes(b"\x01\x02")
+    proc = _cli("replay", str(tmp_path), "--rate", "max", "--on-error", "stop", "--ns", ns,
+                "--listen", f"tcp/127.0.0.1:{free_tcp_port()}", "--no-progress", "--wait-subscriber", "0")
+    assert proc.returncode == 1
+    assert "Traceback" not in proc.stderr
+    assert any("stopped at unreadable frame" in ln and "000001.bin" in ln for ln in proc.stderr.splitlines())
+
+
+def test_cli_sigint_stops_a_looping_replay_cleanly(ns: str, tmp_path: Path) -> None:
+    write_bin(tmp_path / "000000.bin", np.zeros((3, 4)))
+    col = Collector(ns, keys.points)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "jitterguard.cli", "replay", str(tmp_path), "--loop", "--rate", "1", "--ns", ns,
+         "--connect", f"tcp/127.0.0.1:{col.port}", "--no-progress", "--wait-subscriber", "20"],
+        cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    try:
+        got = col.wait_for(keys.points(ns), 2, timeout=30)  # it is looping: interrupt it mid-replay
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+        col.close()
+    assert len(got) >= 2
+    assert proc.returncode == 0, err
+    assert "interrupted" in err and "Traceback" not in err
+    assert [decode(PointCloud, p).header.seq for p in got[:2]] == [0, 1]
