@@ -296,5 +296,19 @@ def load_config(path: str | Path | None = None, **overrides: Any) -> TrackerConf
 
 
 def dump_config(config: TrackerConfig) -> str:
-    """The effective config as YAML (what ``jitterguard tracker --print-config`` shows)."""
-    return yaml.safe_dump(config.model_dump(mode="python"), sort_keys=False, default_flow_style=None)
+    """The effective config as YAML (what ``jitterguard tracker --print-config`` shows), matrices as 8 rows.
+
+    The output loads back with ``--config`` to the identical config, so it is a starting point for edits.
+    """
+    values = config.model_dump(mode="python")
+    names = ", ".join(LABEL_NAMES[i].upper() for i in range(NUM_LABELS))
+    lines = ["# jitterguard tracker: effective configuration",
+             f"# matrices: rows = track label, columns = measurement label ({names})"]
+    for key in MATRIX_KEYS:
+        vals = values.pop(key)
+        lines.append(f"{key}:")
+        for r in range(NUM_LABELS):
+            row = ", ".join(repr(v) for v in vals[r * NUM_LABELS:(r + 1) * NUM_LABELS])
+            lines.append(f"  {'[' if r == 0 else ' '}{row}{']' if r == NUM_LABELS - 1 else ','}  # {LABEL_NAMES[r]}")
+    lines.append(yaml.safe_dump(values, sort_keys=False, default_flow_style=False).rstrip())
+    return "\n".join(lines) + "\n"

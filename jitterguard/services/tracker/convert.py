@@ -1,6 +1,8 @@
-"""Wire models <-> the core's arrays: ``DetectedObjects`` in, ``TrackObservation`` / ``TrackedObjects`` out.
+"""Wire payloads <-> the core's arrays: ``DetectedObjects`` in, ``TrackObservation`` / ``TrackedObjects`` out.
 
-Pure functions (no I/O). Planar throughout: the ego pose contributes x, y, z and yaw; detections keep their own
+Pure functions (no I/O). Input is the validated model; output is msgpack-ready maps laid out exactly as the
+models dump (the tests decode them with the models), because constructing hundreds of nested pydantic models
+per frame would cost more than the whole tracker update. Planar throughout: the ego pose contributes x, y, z and yaw; detections keep their own
 roll and pitch (the world orientation is ``q(ego_yaw) * q_detection``).
 
 A detection republished on ``tracks/{id}`` is moved into the world frame whole: position, orientation, and
@@ -13,12 +15,14 @@ is rotated the same way (its linear x/y and their covariance block).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 
-from ...geometry import quaternion_from_yaw, rotate_cov2, yaw_from_quaternion
+from ...geometry import rotate_cov2, yaw_from_quaternion
 from ...schemas.models import (
     COVARIANCE_SIZE,
+    SCHEMA_VERSION,
     PITCH_PITCH,
     ROLL_ROLL,
     X_X,
@@ -29,20 +33,7 @@ from ...schemas.models import (
     Z_Z,
     DetectedObject,
     DetectedObjects,
-    Header,
-    ObjectClassification,
-    Point,
-    Pose,
-    PoseWithCovariance,
-    Quaternion,
     Shape,
-    TrackedObject,
-    TrackedObjectKinematics,
-    TrackedObjects,
-    TrackObservation,
-    Twist,
-    TwistWithCovariance,
-    Vector3,
 )
 from .frames import DetectionFrame, FrameResult
 
@@ -108,103 +99,137 @@ def frame_from_message(msg: DetectedObjects) -> DetectionFrame:
     )
 
 
-def _qmul(a: tuple[float, float, float, float], b: Quaternion) -> Quaternion:
-    ax, ay, az, aw = a
-    return Quaternion(
-        x=aw * b.x + ax * b.w + ay * b.z - az * b.y,
-        y=aw * b.y - ax * b.z + ay * b.w + az * b.x,
-        z=aw * b.z + ax * b.y - ay * b.x + az * b.w,
-        w=aw * b.w - ax * b.x - ay * b.y - az * b.z,
-    )
+def _qmul_yaw(yaw: float, q: dict) -> dict:
+    """``q(yaw) * q`` for a quaternion map: the detection's orientation carried into the world frame."""
+    az, aw = math.sin(0.5 * yaw), math.cos(0.5 * yaw)
+    bx, by, bz, bw = q["x"], q["y"], q["z"], q["w"]
+    return {"x": aw * bx - az * by, "y": aw * by + az * bx, "z": aw * bz + az * bw, "w": aw * bw - az * bz}
 
 
-def _rotate_cov36(cov: list[float], cxx: float, cxy: float, cyy: float, c: float, s: float) -> list[float]:
+def _rotate_cov36(cov: Sequence[float], cxx: float, cxy: float, cyy: float, c: float, s: float) -> list[float]:
     """A 6x6 covariance with its x/y block replaced by the rotated one and its x/y cross terms rotated."""
     out = list(cov)
     out[X_X], out[X_Y], out[Y_X], out[Y_Y] = cxx, cxy, cxy, cyy
     for k in range(2, 6):
-        a, b = cov[k], cov[6 + k]  # row x, row y at column k
+        a, b = cov[k], cov[6 + k]  # rows x and y at column k
         out[k], out[6 + k] = c * a - s * b, s * a + c * b
-        a, b = cov[6 * k], cov[6 * k + 1]  # row k, columns x and y
+        a, b = cov[6 * k], cov[6 * k + 1]  # row k at columns x and y
         out[6 * k], out[6 * k + 1] = c * a - s * b, s * a + c * b
     return out
 
 
-def detection_to_world(obj: DetectedObject, frame: DetectionFrame, result: FrameResult, j: int) -> DetectedObject:
-    """Detection ``j`` of the frame, moved into the world frame (pose, orientation, covariances, twist)."""
+def detection_to_world(raw: dict, frame: DetectionFrame, result: FrameResult, j: int) -> dict:
+    """Detection ``j`` (its validated msgpack map, edited in place and returned) moved into the world frame:
+    position, orientation, pose covariance (R Σ Rᵀ via rotate_cov2) and twist with its covariance."""
     det = result.detections
     c, s = math.cos(frame.ego_yaw), math.sin(frame.ego_yaw)
-    kin = obj.kinematics
-    pc = kin.pose_with_covariance
-    pose = Pose(
-        position=Point(x=float(det.x[j]), y=float(det.y[j]), z=float(det.z[j])),
-        orientation=_qmul(quaternion_from_yaw(frame.ego_yaw), pc.pose.orientation),
-    )
-    cov = _rotate_cov36(pc.covariance, float(det.cov_xx[j]), float(det.cov_xy[j]), float(det.cov_yy[j]), c, s)
-    tw = kin.twist_with_covariance
-    lin = tw.twist.linear
-    tcov = tw.covariance
-    txx, txy, tyy = rotate_cov2(tcov[X_X], tcov[X_Y], tcov[Y_Y], frame.ego_yaw)
-    twist = TwistWithCovariance(
-        twist=Twist(linear=Vector3(x=c * lin.x - s * lin.y, y=s * lin.x + c * lin.y, z=lin.z),
-                    angular=tw.twist.angular),
-        covariance=_rotate_cov36(tcov, float(txx), float(txy), float(tyy), c, s),
-    )
-    return obj.model_copy(update={
-        "kinematics": kin.model_copy(update={
-            "pose_with_covariance": PoseWithCovariance(pose=pose, covariance=cov),
-            "twist_with_covariance": twist,
-        }),
-    })
+    kin = raw["kinematics"]
+    pc = kin["pose_with_covariance"]
+    pc["pose"] = {
+        "position": {"x": float(det.x[j]), "y": float(det.y[j]), "z": float(det.z[j])},
+        "orientation": _qmul_yaw(frame.ego_yaw, pc["pose"]["orientation"]),
+    }
+    pc["covariance"] = _rotate_cov36(pc["covariance"], float(det.cov_xx[j]), float(det.cov_xy[j]),
+                                     float(det.cov_yy[j]), c, s)
+    tw = kin["twist_with_covariance"]
+    lin = tw["twist"]["linear"]
+    lin["x"], lin["y"] = c * lin["x"] - s * lin["y"], s * lin["x"] + c * lin["y"]
+    tc = tw["covariance"]
+    if any(tc):
+        txx, txy, tyy = rotate_cov2(tc[X_X], tc[X_Y], tc[Y_Y], frame.ego_yaw)
+        tw["covariance"] = _rotate_cov36(tc, float(txx), float(txy), float(tyy), c, s)
+    return raw
 
 
-def tracked_object(result: FrameResult, i: int) -> TrackedObject:
-    """Confirmed track ``i`` of the frame as Autoware's TrackedObject (world frame, twist in world axes)."""
+def _vec(x: float = 0.0, y: float = 0.0, z: float = 0.0) -> dict:
+    return {"x": x, "y": y, "z": z}
+
+
+_ZERO36 = [0.0] * COVARIANCE_SIZE
+
+
+def tracked_object_dicts(result: FrameResult) -> list[dict]:
+    """Every confirmed track as a ``TrackedObject`` map (world frame; twist linear x/y = world vx, vy).
+
+    Maps, not models: building ~200 nested pydantic models per frame costs tens of milliseconds, and the
+    receivers validate anyway; the tests decode these maps with the models to keep them honest.
+    """
     t = result.tracks
-    P = t.pose_cov[i]
-    pcov = [0.0] * COVARIANCE_SIZE
-    pcov[X_X], pcov[X_Y], pcov[Y_X], pcov[Y_Y] = float(P[0, 0]), float(P[0, 1]), float(P[1, 0]), float(P[1, 1])
-    pcov[YAW_YAW] = float(P[2, 2])
-    pcov[X_YAW] = pcov[YAW_X] = float(P[0, 2])
-    pcov[Y_YAW] = pcov[YAW_Y] = float(P[1, 2])
-    pcov[Z_Z], pcov[ROLL_ROLL], pcov[PITCH_PITCH] = Z_VAR, ROLL_PITCH_VAR, ROLL_PITCH_VAR
-    V = t.vel_cov[i]
-    tcov = [0.0] * COVARIANCE_SIZE
-    tcov[X_X], tcov[X_Y], tcov[Y_X], tcov[Y_Y] = float(V[0, 0]), float(V[0, 1]), float(V[1, 0]), float(V[1, 1])
-    tcov[YAW_YAW] = float(t.yaw_rate_var[i])
-    qx, qy, qz, qw = quaternion_from_yaw(float(t.yaw[i]))
-    return TrackedObject(
-        object_id=t.ids[i],
-        existence_probability=float(t.existence[i]),
-        classification=[ObjectClassification(label=int(t.label[i]), probability=float(t.label_prob[i]))],
-        kinematics=TrackedObjectKinematics(
-            pose_with_covariance=PoseWithCovariance(
-                pose=Pose(position=Point(x=float(t.x[i]), y=float(t.y[i]), z=float(t.z[i])),
-                          orientation=Quaternion(x=qx, y=qy, z=qz, w=qw)),
-                covariance=pcov,
-            ),
-            twist_with_covariance=TwistWithCovariance(
-                twist=Twist(linear=Vector3(x=float(t.vel[i, 0]), y=float(t.vel[i, 1])),
-                            angular=Vector3(z=float(t.yaw_rate[i]))),
-                covariance=tcov,
-            ),
-            orientation_availability=int(t.orientation[i]),
-            is_stationary=False,
-        ),
-        shape=Shape(type=Shape.BOUNDING_BOX,
-                    dimensions=Vector3(x=float(t.dims[i, 0]), y=float(t.dims[i, 1]), z=float(t.dims[i, 2]))),
-    )
+    n = len(t)
+    if n == 0:
+        return []
+    P = t.pose_cov
+    V = t.vel_cov
+    cols = {
+        "pxx": P[:, 0, 0], "pxy": P[:, 0, 1], "pyy": P[:, 1, 1], "pyaw": P[:, 2, 2], "pxyaw": P[:, 0, 2],
+        "pyyaw": P[:, 1, 2], "vxx": V[:, 0, 0], "vxy": V[:, 0, 1], "vyy": V[:, 1, 1], "wvar": t.yaw_rate_var,
+        "x": t.x, "y": t.y, "z": t.z, "yaw": t.yaw, "vx": t.vel[:, 0], "vy": t.vel[:, 1], "w": t.yaw_rate,
+        "L": t.dims[:, 0], "W": t.dims[:, 1], "H": t.dims[:, 2], "ex": t.existence, "lp": t.label_prob,
+    }
+    lst = {k: np.asarray(v, dtype=np.float64).tolist() for k, v in cols.items()}
+    labels = t.label.tolist()
+    orient = t.orientation.tolist()
+    out = []
+    for i in range(n):
+        pcov = list(_ZERO36)
+        pcov[X_X], pcov[X_Y], pcov[Y_X], pcov[Y_Y] = lst["pxx"][i], lst["pxy"][i], lst["pxy"][i], lst["pyy"][i]
+        pcov[YAW_YAW] = lst["pyaw"][i]
+        pcov[X_YAW] = pcov[YAW_X] = lst["pxyaw"][i]
+        pcov[Y_YAW] = pcov[YAW_Y] = lst["pyyaw"][i]
+        pcov[Z_Z], pcov[ROLL_ROLL], pcov[PITCH_PITCH] = Z_VAR, ROLL_PITCH_VAR, ROLL_PITCH_VAR
+        tcov = list(_ZERO36)
+        tcov[X_X], tcov[X_Y], tcov[Y_X], tcov[Y_Y] = lst["vxx"][i], lst["vxy"][i], lst["vxy"][i], lst["vyy"][i]
+        tcov[YAW_YAW] = lst["wvar"][i]
+        half = 0.5 * lst["yaw"][i]
+        out.append({
+            "object_id": t.ids[i],
+            "existence_probability": lst["ex"][i],
+            "classification": [{"label": labels[i], "probability": lst["lp"][i]}],
+            "kinematics": {
+                "pose_with_covariance": {
+                    "pose": {"position": _vec(lst["x"][i], lst["y"][i], lst["z"][i]),
+                             "orientation": {"x": 0.0, "y": 0.0, "z": math.sin(half), "w": math.cos(half)}},
+                    "covariance": pcov,
+                },
+                "twist_with_covariance": {
+                    "twist": {"linear": _vec(lst["vx"][i], lst["vy"][i]), "angular": _vec(0.0, 0.0, lst["w"][i])},
+                    "covariance": tcov,
+                },
+                "acceleration_with_covariance": {"accel": {"linear": _vec(), "angular": _vec()},
+                                                 "covariance": list(_ZERO36)},
+                "orientation_availability": orient[i],
+                "is_stationary": False,
+            },
+            "shape": {"type": Shape.BOUNDING_BOX, "footprint": [],
+                      "dimensions": _vec(lst["L"][i], lst["W"][i], lst["H"][i])},
+        })
+    return out
 
 
-def frame_messages(msg: DetectedObjects, frame: DetectionFrame, result: FrameResult
-                   ) -> tuple[list[TrackObservation], TrackedObjects]:
-    """The frame's ``tracks/{id}`` observations (in track order) and the closing ``TrackedObjects``."""
-    header = Header(stamp=msg.header.stamp, frame_id=WORLD_FRAME, seq=msg.header.seq)
-    tracked = [tracked_object(result, i) for i in range(len(result.tracks))]
+def track_state_dict(result: FrameResult, i: int) -> dict:
+    """Confirmed track ``i`` as the compact ``TrackState`` map that rides along with each observation."""
+    t = result.tracks
+    return {
+        "object_id": t.ids[i], "label": int(t.label[i]), "existence_probability": float(t.existence[i]),
+        "x": float(t.x[i]), "y": float(t.y[i]), "yaw": float(t.yaw[i]),
+        "vx": float(t.vel[i, 0]), "vy": float(t.vel[i, 1]), "hits": int(t.hits[i]),
+        "age_s": max(0.0, (result.stamp_ns - int(t.born_ns[i])) * 1e-9),
+    }
+
+
+def frame_messages(raw_msg: dict, frame: DetectionFrame, result: FrameResult) -> tuple[list[dict], dict]:
+    """The frame's ``TrackObservation`` maps (in track order) and the closing ``TrackedObjects`` map.
+
+    ``raw_msg`` is the validated msgpack map of the ``DetectedObjects`` message; the observed detections in it
+    are edited in place into the world frame. Encode the results with :func:`jitterguard.schemas.encode`.
+    """
+    header = {"stamp": frame.stamp_ns, "frame_id": WORLD_FRAME, "seq": frame.seq}
+    objects = raw_msg["objects"]
     observations = [
-        TrackObservation(header=header, detection=detection_to_world(msg.objects[int(j)], frame, result, int(j)),
-                         track=tracked[int(i)])
-        for i, j in zip(result.obs_track, result.obs_det)
+        {"schema_version": SCHEMA_VERSION, "header": header,
+         "detection": detection_to_world(objects[j], frame, result, j), "track": track_state_dict(result, i)}
+        for i, j in zip(result.obs_track.tolist(), result.obs_det.tolist())
     ]
-    closing = TrackedObjects(header=header, objects=tracked, observed_track_ids=result.observed_ids)
+    closing = {"schema_version": SCHEMA_VERSION, "header": header, "objects": tracked_object_dicts(result),
+               "observed_track_ids": result.observed_ids}
     return observations, closing

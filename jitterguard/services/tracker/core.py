@@ -276,5 +276,6 @@ class TrackerCore:
             orientation=tr.orientation[conf].copy(),
             hits=tr.hits[conf].copy(),
             last_update_ns=tr.last_update_ns[conf].copy(),
+            born_ns=tr.born_ns[conf].copy(),
         )
         return snapshot, obs_track, obs_det

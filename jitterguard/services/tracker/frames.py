@@ -119,6 +119,7 @@ class TrackSnapshot:
     orientation: NDArray[np.int8]
     hits: NDArray[np.int64]
     last_update_ns: NDArray[np.int64]
+    born_ns: NDArray[np.int64]
 
     def __len__(self) -> int:
         return len(self.ids)
