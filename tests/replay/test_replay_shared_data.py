@@ -1,0 +1,85 @@
+"""Readers on the real recordings in ../shared/data (skipped when that folder is absent).
+
+The nuScenes reader reads the JSON tables itself; here it must agree with nuscenes-devkit (when installed)
+on every key frame: file, timestamp and the LiDAR's world pose built from devkit's own records.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from jitterguard.services.replay.frames import ScanFrame
+from jitterguard.services.replay.sources import open_source
+
+from .helpers import SHARED_DATA
+
+NUSC = SHARED_DATA / "nuscenes-scene-0523"
+KITTI = SHARED_DATA / "kitti-velodyne-6"
+SINGLE = SHARED_DATA / "single-frames"
+
+needs_nusc = pytest.mark.skipif(not NUSC.is_dir(), reason="../shared/data/nuscenes-scene-0523 absent")
+needs_kitti = pytest.mark.skipif(not KITTI.is_dir(), reason="../shared/data/kitti-velodyne-6 absent")
+
+
+@needs_nusc
+def test_nuscenes_scene_reads_40_keyframes_of_about_34k_points() -> None:
+    src = open_source(str(NUSC))
+    frames = list(src.frames())
+    assert len(frames) == 40 and all(isinstance(f, ScanFrame) for f in frames)
+    stamps = [f.stamp_ns for f in frames]
+    assert all(b > a for a, b in zip(stamps, stamps[1:]))
+    assert all(30_000 < f.points.shape[0] < 40_000 for f in frames)
+    assert frames[0].fields == ("x", "y", "z", "intensity", "ring")
+    # the LiDAR sits ~1.84 m above the ego origin, which nuScenes puts on the ground
+    assert all(1.5 < f.pose.z < 2.2 for f in frames)
+
+
+@needs_nusc
+def test_nuscenes_reader_agrees_with_devkit() -> None:
+    nuscenes = pytest.importorskip("nuscenes.nuscenes", reason="nuscenes-devkit not installed")
+    from pyquaternion import Quaternion
+
+    nusc = nuscenes.NuScenes(version="v1.0-mini", dataroot=str(NUSC), verbose=False)
+    scene = nusc.scene[0]
+    want = []
+    token = scene["first_sample_token"]
+    while token:
+        sample = nusc.get("sample", token)
+        sd = nusc.get("sample_data", sample["data"]["LIDAR_TOP"])
+        ego = nusc.get("ego_pose", sd["ego_pose_token"])
+        cs = nusc.get("calibrated_sensor", sd["calibrated_sensor_token"])
+        q = Quaternion(ego["rotation"]) * Quaternion(cs["rotation"])
+        t = np.array(ego["translation"]) + Quaternion(ego["rotation"]).rotate(np.array(cs["translation"]))
+        want.append((sd["filename"], sd["timestamp"] * 1000, t, q))
+        token = sample["next"]
+    frames = list(open_source(str(NUSC)).frames())
+    assert len(frames) == len(want)
+    for f, (fname, stamp, t, q) in zip(frames, want):
+        assert f.origin.endswith(fname) and f.stamp_ns == stamp
+        np.testing.assert_allclose([f.pose.x, f.pose.y, f.pose.z], t, atol=1e-9)
+        np.testing.assert_allclose(f.pose.matrix()[:3, :3], q.rotation_matrix, atol=1e-9)
+        pts = np.fromfile(NUSC / fname, dtype=np.float32).reshape(-1, 5)
+        np.testing.assert_array_equal(f.points, pts[np.isfinite(pts[:, :3]).all(axis=1)])
+
+
+@needs_kitti
+def test_kitti_six_scans_read_with_identity_pose_and_10hz() -> None:
+    frames = list(open_source(str(KITTI)).frames())
+    assert len(frames) == 6 and all(isinstance(f, ScanFrame) for f in frames)
+    assert [f.stamp_ns for f in frames] == [i * 100_000_000 for i in range(6)]
+    assert all(100_000 < f.points.shape[0] < 150_000 and f.points.shape[1] == 4 for f in frames)
+    assert all(f.pose.x == 0 and f.pose.qw == 1 for f in frames)
+
+
+@pytest.mark.skipif(not SINGLE.is_dir(), reason="../shared/data/single-frames absent")
+def test_single_frames_pick_their_column_count_from_the_name() -> None:
+    files = {p.name: p for p in SINGLE.iterdir()}
+    nusc = next(p for n, p in files.items() if n.endswith(".pcd.bin"))
+    kitti = next(p for n, p in files.items() if n.endswith(".bin") and not n.endswith(".pcd.bin"))
+    [fn] = list(open_source(str(nusc)).frames())
+    [fk] = list(open_source(str(kitti)).frames())
+    assert fn.points.shape[1] == 5 and fk.points.shape[1] == 4
+    assert fn.points.shape[0] * 20 == Path(nusc).stat().st_size
