@@ -37,12 +37,26 @@ for _mod in _AREAS:
     _m.register(app, bench_app)
 
 
-def main() -> None:
-    """Console entry point. Usage errors exit 2 with a one-line message (Click's convention)."""
+def main(argv: list[str] | None = None) -> None:
+    """Console entry point. Bad input (usage errors, bad values) exits 2 with one line on stderr."""
+    try:  # typer >= 0.20 vendors click as typer._click; older typer uses click itself
+        from typer._click import exceptions as click_exc  # type: ignore[import-not-found]
+    except ImportError:  # pragma: no cover - depends on the installed typer
+        from click import exceptions as click_exc
+
     try:
-        app(standalone_mode=True)
-    except KeyboardInterrupt:
+        rv = app(args=argv, standalone_mode=False)
+    except getattr(click_exc, "NoArgsIsHelpError", ()) as exc:
+        print(exc.ctx.get_help())
+        sys.exit(0)
+    except click_exc.UsageError as exc:
+        where = exc.ctx.command_path if exc.ctx is not None else "jitterguard"
+        msg = exc.format_message().replace("\n", " ")
+        print(f"{where}: error: {msg} (see --help)", file=sys.stderr)
+        sys.exit(2)
+    except (KeyboardInterrupt, getattr(click_exc, "Abort", KeyboardInterrupt)):
         sys.exit(130)
+    sys.exit(rv if isinstance(rv, int) else 0)
 
 
 if __name__ == "__main__":
