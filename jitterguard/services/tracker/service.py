@@ -8,7 +8,7 @@ and skipped), owns the :class:`TrackerCore` — nothing else touches it — and 
 silently shorten a classifier window. A full channel slows BLOCK publishers instead of dropping frames.
 
 Counters (in the heartbeat): ``frames``, ``dropped_duplicate``, ``dropped_out_of_order``, ``tracks_born``,
-``tracks_deleted``, ``resets`` (the source rewound), ``static_hints_applied`` / ``static_hints_unknown`` and
+``tracks_deleted``, ``resets`` (the source rewound), ``static_hints_received`` / ``_applied`` / ``_unknown`` and
 the runtime's ``received`` / ``rejected`` / ``published``.
 """
 
@@ -60,6 +60,7 @@ class TrackerService(Service):
     def _on_motion(self, msg: MotionState, _key: str) -> None:
         """Zenoh callback: keep the static decisions for the worker (applied before the next frame)."""
         if msg.state == "static":
+            self.counters.inc("static_hints_received")
             with self._hints_lock:
                 self._hints.append(msg)
 
