@@ -173,3 +173,13 @@ def test_cli_sigint_stops_a_looping_replay_cleanly(ns: str, tmp_path: Path) -> N
     assert proc.returncode == 0, err
     assert "interrupted" in err and "Traceback" not in err
     assert [decode(PointCloud, p).header.seq for p in got[:2]] == [0, 1]
+
+
+def test_bench_counts_every_scan_at_rate_max_with_none_dropped() -> None:
+    from jitterguard.services.replay.bench import bench_replay_repeated
+
+    r = bench_replay_repeated(2, frames=40, points=2000)
+    assert r["sent"] == 40 and r["received"] == 40
+    assert r["dropped_all_runs"] == 0 and r["out_of_order_all_runs"] == 0 and r["decode_errors"] == 0
+    assert r["points_per_scan"] == 2000
+    assert len(r["scans_per_s_runs"]) == 2

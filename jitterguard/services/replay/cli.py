@@ -186,14 +186,15 @@ def bench_command(
     points: Annotated[int, typer.Option("--points", help="Points per in-memory scan.")] = 35_000,
     source: Annotated[str | None, typer.Option("--source", help="Bench a real recording (looped) instead of in-memory scans.")] = None,
     no_decode: Annotated[bool, typer.Option("--no-decode", help="Subscriber counts raw payloads instead of decoding them.")] = False,
+    repeat: Annotated[int, typer.Option("--repeat", help="Runs; the median one is reported with every run's scans/s.")] = 3,
 ) -> None:
     """Replay --rate max into an in-process subscriber: scans/s and dropped count, as JSON."""
-    if frames < 1 or points < 1:
-        fail("--frames and --points must be >= 1")
-    from .bench import bench_replay
+    if frames < 1 or points < 1 or repeat < 1:
+        fail("--frames, --points and --repeat must be >= 1")
+    from .bench import bench_replay_repeated
 
     try:
-        result = bench_replay(frames=frames, points=points, source=source, decode_payloads=not no_decode)
+        result = bench_replay_repeated(repeat, frames=frames, points=points, source=source, decode_payloads=not no_decode)
     except SourceError as exc:
         fail(str(exc))
     print(json.dumps(result, indent=None if json_out else 2))
