@@ -183,3 +183,20 @@ def test_bench_counts_every_scan_at_rate_max_with_none_dropped() -> None:
     assert r["dropped_all_runs"] == 0 and r["out_of_order_all_runs"] == 0 and r["decode_errors"] == 0
     assert r["points_per_scan"] == 2000
     assert len(r["scans_per_s_runs"]) == 2
+
+
+@pytest.mark.skipif(
+    __import__("importlib.util").util.find_spec("jitterguard.sim.detection_model") is None, reason="jitterguard.sim not there yet"
+)
+def test_cli_replays_synthetic_detections(ns: str) -> None:
+    col = Collector(ns, keys.detections)
+    try:
+        proc = _cli("replay", "synthetic:parking-street", "--level", "detections", "--duration", "0.5", "--seed", "3",
+                    "--rate", "max", "--ns", ns, "--connect", f"tcp/127.0.0.1:{col.port}", "--no-progress",
+                    "--wait-subscriber", "20")
+        got = [decode(DetectedObjects, p) for p in col.wait_for(keys.detections(ns), 5)]
+    finally:
+        col.close()
+    assert proc.returncode == 0, proc.stderr
+    assert [m.header.seq for m in got] == [0, 1, 2, 3, 4]
+    assert all(len(m.objects) > 0 for m in got) and got[0].header.frame_id == "lidar"

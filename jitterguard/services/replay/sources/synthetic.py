@@ -14,12 +14,20 @@ from .base import Source
 SCENARIOS = ("parking-street", "diagonal-lot", "intersection", "mixed")
 
 
-def _sim() -> tuple[Any, Any]:
+def _world() -> Any:
     try:
-        from ....sim import lidar, world
+        from ....sim import world
     except ImportError as exc:
         raise SourceError(f"synthetic sources need jitterguard.sim ({exc})") from None
-    return world, lidar
+    return world
+
+
+def _lidar() -> Any:
+    try:
+        from ....sim import lidar
+    except ImportError as exc:
+        raise SourceError(f"synthetic scans need the ray-cast LiDAR jitterguard.sim.lidar ({exc})") from None
+    return lidar
 
 
 class SyntheticSource(Source):
@@ -30,13 +38,14 @@ class SyntheticSource(Source):
             raise SourceError(f"synthetic:{name}: unknown scenario (have: {', '.join(SCENARIOS)})")
         if not (duration_s > 0) or not (rate_hz > 0):
             raise SourceError(f"synthetic:{name}: --duration and the frame rate must be positive")
-        world, lidar = _sim()
+        world = _world()
+        self._lidar = _lidar() if level == "points" else None
+        self._sensor_z = float(getattr(world, "SENSOR_HEIGHT_M", 0.0))
         self.name, self.seed, self.level = name, seed, level
         try:
             self.scenario = world.make_scenario(name, seed, duration_s=duration_s, rate_hz=rate_hz)
         except (ValueError, KeyError) as exc:
             raise SourceError(f"synthetic:{name}: {exc}") from None
-        self._lidar = lidar
         self.info = SourceInfo(
             name=f"synthetic:{name} (seed {seed})",
             kind=level,
@@ -62,7 +71,7 @@ class SyntheticSource(Source):
                 yield FrameError(origin, f"ray-cast failed: {type(exc).__name__}: {exc}")
                 continue
             pts, _ = finite_rows(pts.astype("float32", copy=False))
-            pose = EgoPose.from_yaw(float(gt.ego_x), float(gt.ego_y), float(gt.ego_yaw))
+            pose = EgoPose.from_yaw(float(gt.ego_x), float(gt.ego_y), float(gt.ego_yaw), z=self._sensor_z)
             yield ScanFrame(int(gt.stamp_ns), pose, pts, ("x", "y", "z", "intensity"), origin, "lidar")
 
     def _detections(self, start: int) -> Iterator[Item]:
