@@ -1,0 +1,138 @@
+"""Tracker + classifier over in-process Zenoh: the classifier reuses the tracker's associations (paper §III-C).
+
+Three processes' worth of sessions on one loopback mesh: the tracker service (listening), the classifier
+service and a client that plays the detector and watches ``motion/*`` and ``objects``. The detections jitter
+with realistic, range-dependent noise and report matching variances; the ego is parked.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+import zenoh
+
+from jitterguard.runtime import build_config, free_tcp_port, loopback_options
+from jitterguard.schemas import decode, encode, keys
+from jitterguard.schemas.models import ClassifierConfig, DetectedObjects, Header, MotionState, TrackedObjects
+from jitterguard.services.classifier.service import ClassifierService
+from jitterguard.services.tracker.service import TrackerService
+from tracker_simseq import CAR, Obj, make_sequence, to_message
+
+pytestmark = pytest.mark.integration
+NS = "trk_cls"
+WINDOW = 10
+START_MOVING_S = 3.0
+DT = 0.1
+
+
+def wait_for(pred, timeout: float = 10.0) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if pred():
+            return True
+        time.sleep(0.01)
+    return pred()
+
+
+@pytest.fixture
+def pipeline():
+    port = free_tcp_port()
+    tracker = TrackerService(loopback_options(NS, port, listen_self=True))
+    classifier = ClassifierService(loopback_options(NS, port), ClassifierConfig(window_size=WINDOW),
+                                   straggler_timeout_s=0.5)
+    client = zenoh.open(build_config(loopback_options(NS, port)))
+    got: dict[str, list] = {"motion": [], "objects": [], "tracked": []}
+    lock = threading.Lock()
+
+    def keep(kind, model):
+        def cb(s: zenoh.Sample) -> None:
+            with lock:
+                got[kind].append(decode(model, s.payload.to_bytes()))
+        return cb
+
+    client.declare_subscriber(keys.motion_all(NS), keep("motion", MotionState))
+    client.declare_subscriber(keys.objects(NS), keep("objects", TrackedObjects))
+    client.declare_subscriber(keys.tracked(NS), keep("tracked", TrackedObjects))
+    yield tracker, classifier, client, got, lock
+    client.close()
+    classifier.close()
+    tracker.close()
+
+
+def test_parked_stays_static_moving_is_dynamic_and_a_car_pulling_out_flips_within_the_window(pipeline) -> None:
+    tracker, classifier, client, got, lock = pipeline
+    stamp0 = 1_700_000_000_000_000_000
+    # connectivity: empty frames until the classifier answers one (tracker and classifier both up and routed)
+    k = 0
+
+    def answered() -> bool:
+        nonlocal k
+        client.put(keys.detections(NS), encode(DetectedObjects(header=Header(stamp=stamp0 + k, seq=k))),
+                   congestion_control=zenoh.CongestionControl.BLOCK)
+        k += 1
+        return wait_for(lambda: len(got["objects"]) > 0, 0.3)
+
+    assert wait_for(answered, 20.0), "pipeline never answered"
+
+    objects = [
+        Obj(gid=0, label=CAR, x0=15.0, y0=6.0, yaw0=0.3),  # parked
+        Obj(gid=1, label=CAR, x0=-20.0, y0=-2.0, yaw0=0.0, speed=8.0),  # driving past
+        Obj(gid=2, label=CAR, x0=25.0, y0=-6.0, yaw0=0.0, speed=2.0, t_move=START_MOVING_S),  # pulls out
+    ]
+    seq = make_sequence(21, n_frames=60, objects=objects, ego_speed=0.0, ego_yaw_rate=0.0, miss_rate=0.0,
+                        fp_rate=0.0, flip_rate=0.0, class_flicker=0.0, noise_base=0.08)
+    base = k + 10
+    for n, sf in enumerate(seq.frames):
+        msg = to_message(sf).model_copy(
+            update={"header": Header(stamp=stamp0 + 10**9 + n * 100_000_000, frame_id="lidar", seq=base + n)})
+        client.put(keys.detections(NS), encode(msg), congestion_control=zenoh.CongestionControl.BLOCK)
+        time.sleep(0.01)
+    last_seq = base + len(seq.frames) - 1
+    assert wait_for(lambda: any(o.header.seq == last_seq for o in got["objects"]), 20.0), "last frame never classified"
+
+    with lock:
+        tracked = {t.header.seq: t for t in got["tracked"]}
+        motion = list(got["motion"])
+        objects_out = {o.header.seq: o for o in got["objects"]}
+
+    # which track is which object: nearest confirmed track to the ground truth in the last frame
+    final = tracked[last_seq]
+    gt = seq.frames[-1]
+    tid = {}
+    for gid, (gx, gy) in zip(gt.gt_ids, gt.gt_xy):
+        d = [np.hypot(o.kinematics.pose_with_covariance.pose.position.x - gx,
+                      o.kinematics.pose_with_covariance.pose.position.y - gy) for o in final.objects]
+        assert min(d) < 1.0
+        tid[int(gid)] = final.objects[int(np.argmin(d))].object_id
+    assert len(set(tid.values())) == 3  # three objects, three tracks (the association the classifier reuses)
+
+    states: dict[str, dict[int, str]] = {}
+    for m in motion:
+        states.setdefault(m.track_id, {})[m.header.seq - base] = m.state
+
+    # the parked car: static at the end, never dynamic once the window was full
+    parked = states[tid[0]]
+    assert parked[max(parked)] == "static"
+    assert all(s != "dynamic" for f, s in parked.items() if f >= WINDOW)
+    out = next(o for o in objects_out[last_seq].objects if o.object_id == tid[0])
+    assert out.kinematics.is_stationary
+    tw = out.kinematics.twist_with_covariance.twist.linear
+    assert (tw.x, tw.y) == (0.0, 0.0)
+
+    # the passing car: dynamic at the end (and from early on)
+    passing = states[tid[1]]
+    assert passing[max(passing)] == "dynamic"
+    assert sum(s == "dynamic" for s in passing.values()) >= len(passing) - 5
+
+    # the car pulling out: static while parked, dynamic within one window of starting to move
+    pull = states[tid[2]]
+    start = int(round(START_MOVING_S / DT))
+    assert pull[start - 1] == "static"
+    flips = [f for f in sorted(pull) if f >= start and pull[f] == "dynamic"]
+    assert flips, pull
+    assert flips[0] - start <= WINDOW, f"flipped {flips[0] - start} frames after it started moving"
+    assert pull[max(pull)] == "dynamic"
+    assert tracker.counters.get("rejected") == 0 and classifier.counters.get("rejected") == 0
