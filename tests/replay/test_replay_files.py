@@ -313,3 +313,19 @@ def test_open_source_refuses_bad_input_with_one_line(tmp_path: Path, spec: str, 
     with pytest.raises(SourceError, match=match) as exc:
         open_source(spec, opts)
     assert "\n" not in str(exc.value)
+
+
+def test_nuscenes_sweeps_adds_the_non_key_frames_between_key_frames(tmp_path: Path) -> None:
+    root = make_nuscenes_root(tmp_path / "nusc")
+    path = root / "v1.0-mini" / "sample_data.json"
+    sds = json.loads(path.read_text())
+    by = {sd["token"]: sd for sd in sds}
+    sweep = dict(by["sd0"], token="sw0", is_key_frame=False, sample_token="smp1", timestamp=by["sd0"]["timestamp"] + 250_000,
+                 filename="sweeps/LIDAR_TOP/sw0.pcd.bin", prev="sd0", next="sd1")
+    by["sd0"]["next"], by["sd1"]["prev"] = "sw0", "sw0"
+    write_bin(root / sweep["filename"], np.full((3, 5), 9, dtype=np.float32))
+    path.write_text(json.dumps([*by.values(), sweep]))
+    keyframes = [f.points[0, 0] for f in NuScenesSource(root).frames()]
+    everything = [f.points[0, 0] for f in NuScenesSource(root, sweeps=True).frames()]
+    assert keyframes == [0, 1, 2]
+    assert everything == [0, 9, 1, 2]
