@@ -7,7 +7,7 @@ import os
 import signal
 import subprocess
 import sys
-import time
+import threading
 from pathlib import Path
 
 import pytest
@@ -73,24 +73,27 @@ def test_tracker_process_starts_and_stops_cleanly_on_sigterm() -> None:
          "--static-hints", "--log-level", "INFO"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"},
     )
-    try:
-        deadline = time.monotonic() + 20
-        up = False
-        while time.monotonic() < deadline and proc.poll() is None:
-            try:
-                import socket
+    lines: list[str] = []
+    up = threading.Event()
 
-                with socket.create_connection(("127.0.0.1", port), timeout=0.2):
-                    up = True
-                    break
-            except OSError:
-                time.sleep(0.1)
-        assert up, "tracker never listened"
+    def read() -> None:
+        assert proc.stderr is not None
+        for line in proc.stderr:
+            lines.append(line)
+            if "tracker up" in line:
+                up.set()  # logged once the signal handlers are installed
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    try:
+        assert up.wait(30), "".join(lines)
         proc.send_signal(signal.SIGTERM)
-        out, err = proc.communicate(timeout=20)
+        proc.wait(timeout=20)
+        reader.join(timeout=5)
     finally:
         if proc.poll() is None:
             proc.kill()
-            proc.communicate()
+            proc.wait()
+    err = "".join(lines)
     assert proc.returncode == 0, err
-    assert "tracker up" in err and "tracker stopped" in err
+    assert "tracker stopped" in err
