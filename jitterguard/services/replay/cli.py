@@ -161,9 +161,12 @@ def _run(svc: Any, src: Any, plan: ReplayPlan, wait_s: float, progress: bool | N
         try:
             stats = svc.replay(src, plan, on_error=bar.error, on_published=bar.published)
         except SourceError as exc:
-            bar.close()
             print(f"jitterguard: error: {exc}", file=sys.stderr)
             return 2
+        except Exception as exc:  # a failed put (session gone) ends the replay with one line, not a traceback
+            log.debug("replay failed", exc_info=True)
+            print(f"jitterguard: error: replay failed: {type(exc).__name__}: {exc}", file=sys.stderr)
+            return 1
         finally:
             bar.close()
     finally:
@@ -197,6 +200,9 @@ def bench_command(
         result = bench_replay_repeated(repeat, frames=frames, points=points, source=source, decode_payloads=not no_decode)
     except SourceError as exc:
         fail(str(exc))
+    except RuntimeError as exc:
+        print(f"jitterguard: error: bench failed: {exc}", file=sys.stderr)
+        raise typer.Exit(1) from None
     print(json.dumps(result, indent=None if json_out else 2))
 
 
