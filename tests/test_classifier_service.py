@@ -90,7 +90,7 @@ def test_car_that_starts_moving_flips_within_the_window(service, client_session)
     history = []
     for f in frames:
         _send(client_session, f)
-        assert wait_until(lambda: len(got["objects"]) == f.seq + 1)
+        assert wait_until(lambda: got["motion"] and next(iter(got["motion"].values())).header.seq == f.seq)
         history.append(next(iter(got["motion"].values())).state)
     assert history[11] == "static"
     first_dynamic = history.index("dynamic")
@@ -104,6 +104,7 @@ def test_alpha_change_through_queryable_flips_a_borderline_object(service, clien
     for f in frames[:10]:
         _send(client_session, f)
     assert wait_until(lambda: len(got["objects"]) == 10)
+    assert wait_until(lambda: next(iter(got["motion"].values())).header.seq == 9)
     m = next(iter(got["motion"].values()))
     z = max(m.z_x, m.z_y)
     assert m.state == "dynamic" and z > 1.96, m
@@ -112,6 +113,7 @@ def test_alpha_change_through_queryable_flips_a_borderline_object(service, clien
     assert in_force.ok and in_force.config.alpha_default == pytest.approx(z + 5.0)
     _send(client_session, frames[10])
     assert wait_until(lambda: len(got["objects"]) == 11)
+    assert wait_until(lambda: next(iter(got["motion"].values())).header.seq == 10)
     m2 = next(iter(got["motion"].values()))
     assert m2.header.seq == 10 and m2.alpha == pytest.approx(z + 5.0)
     assert m2.state == "static"
