@@ -270,6 +270,8 @@ def start_stack(ns: str, token: str | None = None, *, window_ready: bool = True)
     app = create_app(SidecarSettings(zenoh=loopback_options(ns, zport), api_token=token))
     server = Uvicorn(app)
     stack = Stack(ns, zport, classifier, feeder, server, token, tracks)
+    with stack.http() as c:
+        wait_for(lambda: c.get("/readyz").status_code == 200, "the sidecar to see the classifier ready")
     if window_ready:  # every track present and past its first full window
         stack.wait_state(lambda b: b["counts"]["total"] == len(tracks) and
                          all(t["window_length"] == t["window_size"] for t in b["tracks"]), "a full window")

@@ -10,6 +10,7 @@ at runtime, and those name locals of :func:`create_app`.
 
 import hmac
 import os
+import time
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from dataclasses import dataclass, field
@@ -27,6 +28,7 @@ from ...runtime import ZenohOptions
 from ...schemas.models import PRESETS, ClassifierConfig
 from .client import ClassifierClient, ClassifierRejected, ClassifierUnavailable
 from .core import (
+    RenderedState,
     CLASS_NAMES,
     ConfigError,
     ConfigModel,
@@ -162,12 +164,20 @@ def create_app(settings: SidecarSettings) -> FastAPI:
     async def _rejected(_r: Request, exc: ClassifierRejected) -> JSONResponse:
         return JSONResponse({"detail": str(exc)}, status_code=502)
 
-    def _require_ready(c: ClassifierClient) -> None:
-        ready = c.readiness()
-        if not ready["ready"]:
-            raise ClassifierUnavailable(f"classifier not ready: {ready['reason']}")
-        if c.rendered_state() is None:
+    def _live_state(c: ClassifierClient) -> tuple[RenderedState, dict[str, str]]:
+        """The cached snapshot while the classifier is alive, with freshness headers; 503 once it is gone.
+
+        A late heartbeat alone does not hide the state: an overloaded classifier is exactly when an operator
+        needs to see it. ``X-Classifier-Ready`` and ``X-State-Age-Ms`` say how far to trust it.
+        """
+        if not c.is_alive():
+            raise ClassifierUnavailable(f"classifier not ready: {c.readiness()['reason']}")
+        st = c.rendered_state()
+        if st is None:
             raise ClassifierUnavailable("no state from the classifier yet")
+        age_ms = max(0.0, (time.time_ns() - st.polled_at_ns) / 1e6)
+        return st, {"X-Classifier-Seq": str(st.seq), "X-Classifier-Ready": str(c.readiness_flag()).lower(),
+                    "X-State-Age-Ms": f"{age_ms:.1f}"}
 
     # ------------------------------------------------------------------ health
 
@@ -191,13 +201,13 @@ def create_app(settings: SidecarSettings) -> FastAPI:
                                               description="only tracks of this class")]
 
     @app.get("/v1/state", tags=["state"], response_model=StateView, responses={503: _E503},
-             summary="Every track the classifier decided in its latest frame")
+             summary="Every track the classifier decided in its latest frame",
+             description=("Served from a cache refreshed every poll period. Headers: `X-Classifier-Seq` (the "
+                          "frame), `X-Classifier-Ready` (false while the heartbeat is late: the state may be "
+                          "stale), `X-State-Age-Ms` (since the sidecar fetched it). 503 once the classifier's "
+                          "liveliness token is gone."))
     async def get_state(state: StateFilter = None, cls: ClassFilter = None) -> Response:
-        c = client()
-        _require_ready(c)
-        st = c.rendered_state()
-        assert st is not None
-        headers = {"X-Classifier-Seq": str(st.seq)}
+        st, headers = _live_state(client())
         if state is None and cls is None:
             return Response(st.body, media_type="application/json", headers=headers)
         tracks = [t for t in st.tracks.values()
@@ -211,14 +221,11 @@ def create_app(settings: SidecarSettings) -> FastAPI:
              summary="One track by ID")
     async def get_track(track_id: Annotated[str, Path(pattern="^[0-9a-fA-F]{32}$",
                                                       description="32 hex digits")]) -> Response:
-        c = client()
-        _require_ready(c)
-        st = c.rendered_state()
-        assert st is not None
+        st, headers = _live_state(client())
         t = st.tracks.get(track_id.lower())
         if t is None:
             raise HTTPException(404, f"no track {track_id.lower()} in the classifier's frame {st.seq}")
-        return Response(dumps(t), media_type="application/json", headers={"X-Classifier-Seq": str(st.seq)})
+        return Response(dumps(t), media_type="application/json", headers=headers)
 
     # ------------------------------------------------------------------ config
 

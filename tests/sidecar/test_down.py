@@ -1,0 +1,59 @@
+"""The classifier goes away: the sidecar stays up, says so clearly, and applies nothing."""
+
+from __future__ import annotations
+
+import pytest
+
+from jitterguard.runtime import loopback_options
+from jitterguard.schemas.models import ClassifierConfig
+from jitterguard.services.classifier.service import ClassifierService
+
+from .stack import start_stack, wait_for
+
+pytestmark = pytest.mark.integration
+
+
+def test_503_when_the_classifier_is_gone_and_recovery() -> None:
+    stack = start_stack("sc-down")  # no token: writes are open on loopback
+    try:
+        with stack.http() as c:
+            assert c.get("/readyz").status_code == 200
+            assert c.patch("/v1/config", json={"alpha_default": 1.5}).status_code == 200
+            stack.classifier.close()  # the classifier process is gone
+
+            def not_ready() -> dict | None:
+                r = c.get("/readyz")
+                return r.json() if r.status_code == 503 else None
+            body = wait_for(not_ready, "readyz to report the classifier gone")
+            assert body["ready"] is False and body["liveliness"] is False
+            assert "liveliness" in body["reason"] and "classifier" in body["reason"]
+
+            for method, path, payload in (("PATCH", "/v1/config", {"alpha_default": 0.5}),
+                                          ("PUT", "/v1/config", {"alpha_default": 0.5}),
+                                          ("POST", "/v1/config/preset/authors", None)):
+                r = c.request(method, path, json=payload)
+                assert r.status_code == 503, (method, r.text)
+                detail = r.json()["detail"]
+                assert "classifier" in detail and "nothing was applied" in detail, detail
+                assert r.headers["retry-after"] == "1"
+            r = c.get("/v1/config")
+            assert r.status_code == 503 and "unreachable" in r.json()["detail"]
+            r = c.get("/v1/state")
+            assert r.status_code == 503 and "not ready" in r.json()["detail"]
+            assert c.get(f"/v1/state/{stack.tracks[0].track_id}").status_code == 503
+            assert c.get("/healthz").status_code == 200  # the sidecar itself is fine
+            metrics = c.get("/metrics").text
+            assert "jitterguard_classifier_up 0.0" in metrics
+            assert 'jitterguard_sidecar_config_writes_total{result="unavailable"} 3.0' in metrics
+
+            # A new classifier on the same endpoint: the sidecar reconnects on its own, and the config in
+            # force is the new process's own (the refused writes above never reached anything).
+            stack.classifier = ClassifierService(loopback_options(stack.ns, stack.zport, listen_self=True))
+            wait_for(lambda: c.get("/readyz").status_code == 200, "readiness after restart", timeout=30)
+            assert c.get("/v1/config").json()["alpha_default"] == ClassifierConfig().alpha_default
+            stack.wait_state(lambda b: b["counts"]["total"] == len(stack.tracks), "state after restart",
+                             timeout=30)
+            r = c.patch("/v1/config", json={"alpha_default": 0.5})
+            assert r.status_code == 200 and stack.classifier.core.config.alpha_default == 0.5
+    finally:
+        stack.close()
