@@ -52,7 +52,7 @@ class _Progress:
         if enabled:
             from tqdm import tqdm
 
-            self.bar = tqdm(total=total, desc=desc, unit="scan", file=sys.stderr, dynamic_ncols=True, leave=True)
+            self.bar = tqdm(total=total, desc=desc, unit="scan", file=sys.stderr, leave=True)
         self.errors = 0
 
     def published(self, _frame: Frame, _seq: int) -> None:
@@ -157,7 +157,8 @@ def _run(svc: Any, src: Any, plan: ReplayPlan, wait_s: float, progress: bool | N
             total = max(0, src.info.num_frames - plan.start)
             if plan.limit is not None:
                 total = min(total, plan.limit)
-        bar = _Progress(sys.stderr.isatty() if progress is None else progress, total, src.info.name)
+        short = Path(src.info.name.split(" ")[0].rstrip(":")).name or src.info.name
+        bar = _Progress(sys.stderr.isatty() if progress is None else progress, total, short)
         try:
             stats = svc.replay(src, plan, on_error=bar.error, on_published=bar.published)
         except SourceError as exc:
