@@ -82,7 +82,7 @@ def test_assignment_is_optimal_not_greedy() -> None:
     assert dict(zip(rows.tolist(), cols.tolist())) == {0: 1, 1: 0}
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=60, deadline=None, derandomize=True)
 @given(st.integers(1, 6), st.integers(1, 6), st.data())
 def test_assignment_matches_brute_force(n: int, m: int, data: st.DataObject) -> None:
     mask = data.draw(arrays(bool, (n, m)))
@@ -101,7 +101,7 @@ def test_assignment_matches_brute_force(n: int, m: int, data: st.DataObject) -> 
     assert got == pytest.approx(best)
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=60, deadline=None, derandomize=True)
 @given(arrays(float, st.tuples(st.integers(0, 30), st.just(2)), elements=st.floats(-20, 20)),
        arrays(float, st.tuples(st.integers(0, 30), st.just(2)), elements=st.floats(-20, 20)),
        st.floats(0.1, 10))

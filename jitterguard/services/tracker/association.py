@@ -53,8 +53,9 @@ def near_pairs(a: F64, b: F64, r: float) -> tuple[IntArr, IntArr]:
         return e, e
     order = np.argsort(b[:, 0], kind="stable")
     bx = b[order, 0]
-    lo = np.searchsorted(bx, a[:, 0] - r, side="left")
-    hi = np.searchsorted(bx, a[:, 0] + r, side="right")
+    pad = r + 1e-9 * (1.0 + r + float(np.abs(bx).max()))  # rounding in a ± r must not lose a boundary pair
+    lo = np.searchsorted(bx, a[:, 0] - pad, side="left")
+    hi = np.searchsorted(bx, a[:, 0] + pad, side="right")
     counts = hi - lo
     total = int(counts.sum())
     if total == 0:
@@ -63,7 +64,7 @@ def near_pairs(a: F64, b: F64, r: float) -> tuple[IntArr, IntArr]:
     i = np.repeat(np.arange(a.shape[0]), counts)
     starts = np.repeat(lo - (np.cumsum(counts) - counts), counts)
     j = order[starts + np.arange(total)]
-    keep = np.abs(a[i, 1] - b[j, 1]) <= r
+    keep = (np.abs(a[i, 0] - b[j, 0]) <= r) & (np.abs(a[i, 1] - b[j, 1]) <= r)
     return i[keep], j[keep]
 
 

@@ -112,6 +112,7 @@ class TrackerCore:
             cfg.gate_min_variance,
         )
         rows, cols = assign(n, m, cand)
+        claimed = cols.copy()  # a detection whose track is deleted below must not start a twin of it
 
         # ---- update the associated tracks
         if rows.size:
@@ -143,7 +144,7 @@ class TrackerCore:
 
         # ---- births from the detections nobody claimed (a newborn's detection is its first observation)
         free = np.ones(m, dtype=bool)
-        free[cols] = False
+        free[claimed] = False
         new = np.flatnonzero(free)
         born: list[str] = []
         if new.size:
