@@ -1,0 +1,179 @@
+"""Ground truth of the synthetic world: determinism, kinematic consistency, nuScenes attribute semantics."""
+
+from __future__ import annotations
+
+import math
+from collections import defaultdict
+
+import numpy as np
+import pytest
+
+from jitterguard.schemas import Label
+from jitterguard.sim import SCENARIO_NAMES, GroundTruthFrame, Scenario, make_scenario
+from jitterguard.sim.catalog import ATTRIBUTES, MOVING_SPEED_MPS
+from jitterguard.sim.layout import rectangles_overlap
+
+
+def _common(a: GroundTruthFrame, b: GroundTruthFrame, c: GroundTruthFrame):
+    ids = np.intersect1d(np.intersect1d(a.instance_ids, b.instance_ids), c.instance_ids)
+    return (ids, np.searchsorted(a.instance_ids, ids), np.searchsorted(b.instance_ids, ids),
+            np.searchsorted(c.instance_ids, ids))
+
+
+def test_every_named_scenario_builds_with_expected_frame_count(
+        scenarios: dict[str, Scenario], all_frames: dict[str, list[GroundTruthFrame]]) -> None:
+    assert set(scenarios) == set(SCENARIO_NAMES)
+    for sc in scenarios.values():
+        assert sc.num_frames == 120 == len(sc)
+        assert len(all_frames[sc.name]) == 120
+        f = sc.frame(5)
+        assert f.seq == 5 and f.stamp_ns - sc.frame(4).stamp_ns == 100_000_000
+        assert f.num_objects > 10
+
+
+def test_unknown_scenario_and_bad_arguments_are_rejected() -> None:
+    with pytest.raises(ValueError, match="unknown scenario"):
+        make_scenario("highway", 0)
+    with pytest.raises(ValueError):
+        make_scenario("mixed", 0, duration_s=-1.0)
+    sc = make_scenario("parking-street", 0, duration_s=2.0)
+    with pytest.raises(IndexError):
+        sc.frame(sc.num_frames)
+
+
+def test_same_seed_same_world_different_seed_different_world() -> None:
+    a = make_scenario("intersection", 3, duration_s=6.0)
+    b = make_scenario("intersection", 3, duration_s=6.0)
+    c = make_scenario("intersection", 4, duration_s=6.0)
+    for i in (0, 31, 59):
+        fa, fb = a.frame(i), b.frame(i)
+        np.testing.assert_array_equal(fa.instance_ids, fb.instance_ids)
+        np.testing.assert_array_equal(fa.centers, fb.centers)
+        np.testing.assert_array_equal(fa.velocities, fb.velocities)
+        assert fa.attributes == fb.attributes
+        assert (fa.ego_x, fa.ego_y, fa.ego_yaw) == (fb.ego_x, fb.ego_y, fb.ego_yaw)
+    fc = c.frame(31)
+    assert fc.num_objects != a.frame(31).num_objects or not np.allclose(fc.centers, a.frame(31).centers)
+
+
+def test_instances_keep_label_and_size_and_ids_are_unique(all_frames: dict[str, list[GroundTruthFrame]]) -> None:
+    for frames in all_frames.values():
+        seen: dict[int, tuple[int, tuple[float, ...]]] = {}
+        for f in frames:
+            assert len(np.unique(f.instance_ids)) == f.num_objects
+            assert np.all(f.instance_ids > 0)
+            for iid, lab, size in zip(f.instance_ids.tolist(), f.labels.tolist(), f.sizes):
+                key = (lab, tuple(np.round(size, 9)))
+                assert seen.setdefault(iid, key) == key
+
+
+def test_parked_objects_never_move(all_frames: dict[str, list[GroundTruthFrame]]) -> None:
+    static_attrs = ("vehicle.parked", "cycle.without_rider", "pedestrian.sitting_lying_down")
+    for name, frames in all_frames.items():
+        first: dict[int, np.ndarray] = {}
+        n_parked = 0
+        for f in frames:
+            rows = [n for n, a in enumerate(f.attributes) if a in static_attrs]
+            assert np.all(f.velocities[rows] == 0.0) and not np.any(f.moving[rows])
+            poses = np.column_stack([f.centers[rows], f.yaws[rows]])
+            for iid, pose in zip(f.instance_ids[rows].tolist(), poses):
+                assert np.array_equal(first.setdefault(iid, pose), pose), (name, iid)
+            n_parked += len(rows)
+        assert n_parked > 0, name
+
+
+def test_velocities_match_finite_differences_of_positions(scenarios: dict[str, Scenario],
+                                                          all_frames: dict[str, list[GroundTruthFrame]]) -> None:
+    for sc in scenarios.values():
+        frames = all_frames[sc.name]
+        dt = 2.0 / sc.rate_hz
+        checked = 0
+        for a, b, c in zip(frames, frames[1:], frames[2:]):
+            _, ia, ib, ic = _common(a, b, c)
+            v_fd = (c.centers[ic, :2] - a.centers[ia, :2]) / dt
+            v = b.velocities[ib]
+            # on straight stretches the central difference is the velocity; on curves the chord is shorter than
+            # the arc, so compare speeds there
+            straight = np.abs(np.angle(np.exp(1j * (c.yaws[ic] - a.yaws[ia])))) < 1e-9
+            assert np.all(np.abs(v_fd - v)[straight] < 0.2), sc.name
+            assert np.all(np.abs(np.hypot(*v_fd.T) - np.hypot(*v.T)) < 0.2), sc.name
+            checked += int(np.sum(np.hypot(*v.T) > 1.0))
+        assert checked > 50, sc.name
+
+
+def test_motion_state_and_attributes_follow_nuscenes_semantics(
+        all_frames: dict[str, list[GroundTruthFrame]]) -> None:
+    vehicle = {Label.CAR, Label.TRUCK, Label.BUS, Label.TRAILER}
+    counts: dict[str, int] = defaultdict(int)
+    for frames in all_frames.values():
+        for f in frames:
+            speed = np.hypot(f.velocities[:, 0], f.velocities[:, 1])
+            np.testing.assert_array_equal(f.moving, speed > MOVING_SPEED_MPS)
+            for lab, attr, mv in zip(f.labels.tolist(), f.attributes, f.moving.tolist()):
+                assert attr in ATTRIBUTES
+                counts[attr] += 1
+                if lab in vehicle:
+                    assert attr.startswith("vehicle.")
+                    assert mv == (attr == "vehicle.moving")
+                elif lab == Label.PEDESTRIAN:
+                    assert attr.startswith("pedestrian.")
+                    assert mv == (attr == "pedestrian.moving")
+                else:
+                    assert lab in (Label.BICYCLE, Label.MOTORCYCLE) and attr.startswith("cycle.")
+                    if attr == "cycle.without_rider":
+                        assert not mv
+    for attr in ATTRIBUTES:  # the four scenarios together exercise every attribute
+        assert counts[attr] > 0, attr
+
+
+def test_stop_and_go_the_ego_stops_at_the_red_light() -> None:
+    sc = make_scenario("intersection", 11, duration_s=25.0, rate_hz=10.0)
+    speeds = np.array([f.ego_speed for f in sc])
+    xs = np.array([f.ego_x for f in sc])
+    assert speeds.min() < 0.1 < 8.0 < speeds.max()
+    assert np.all(np.diff(xs) >= -1e-9)  # never backs up
+    stopped_x = xs[speeds < 0.1]
+    assert np.all(stopped_x < -11.0)  # waits before the stop line
+
+
+def test_ego_passes_parked_cars_at_street_speed(scenarios: dict[str, Scenario]) -> None:
+    sc = scenarios["parking-street"]
+    f0, f1 = sc.frame(0), sc.frame(sc.num_frames - 1)
+    assert 0.0 < f1.ego_x - f0.ego_x <= 12.0 * sc.duration_s
+    assert abs(f0.ego_yaw) < 1e-9
+    parked = [n for n, a in enumerate(f0.attributes) if a == "vehicle.parked"]
+    rel_y = np.abs(f0.centers[parked, 1] - f0.ego_y)
+    assert len(parked) > 15 and np.all((rel_y > 3.0) & (rel_y < 9.0))
+
+
+def test_vehicles_never_overlap(scenarios: dict[str, Scenario]) -> None:
+    for sc in scenarios.values():
+        for i in range(0, sc.num_frames, 20):
+            f = sc.frame(i)
+            rect = np.column_stack([f.centers[:, :2], f.sizes[:, 0] / 2 - 0.05, f.sizes[:, 1] / 2 - 0.05, f.yaws])
+            big = np.flatnonzero(f.labels != Label.PEDESTRIAN)
+            for a in big:
+                for b in range(f.num_objects):
+                    if b == a or (b in big and b < a):
+                        continue
+                    if np.hypot(*(rect[a, :2] - rect[b, :2])) < 8.0:
+                        assert not rectangles_overlap(rect[a], rect[b]), (sc.name, i, a, b)
+
+
+def test_visibility_is_a_fraction_and_occlusion_lowers_it(scenarios: dict[str, Scenario]) -> None:
+    f = scenarios["diagonal-lot"].frame(30)
+    assert np.all((f.visibility >= 0.0) & (f.visibility <= 1.0))
+    rel_y = np.abs(f.centers[:, 1] - f.ego_y)
+    close = (np.abs(f.centers[:, 0] - f.ego_x) < 20.0) & (f.labels == Label.CAR)
+    near_row = (rel_y < 8.0) & close  # the rows lining the ego's aisle
+    far_row = (rel_y > 9.0) & (rel_y < 17.0) & close  # back-to-back rows behind them
+    assert near_row.sum() > 5 and far_row.sum() > 5
+    assert f.visibility[near_row].mean() > f.visibility[far_row].mean() + 0.2
+
+
+def test_objects_listed_only_within_the_radius() -> None:
+    sc = make_scenario("parking-street", 2, duration_s=3.0, gt_radius_m=30.0)
+    for f in sc:
+        d = np.hypot(f.centers[:, 0] - f.ego_x, f.centers[:, 1] - f.ego_y)
+        assert np.all(d <= 30.0)
+        assert math.isfinite(f.time_s)
