@@ -20,6 +20,7 @@ CLOUD_TOPIC = "/sensing/lidar/top/pointcloud"
 ODOM_TOPIC = "/localization/kinematic_state"
 DET_TOPIC = "/perception/object_recognition/detection/objects"
 T0 = 1_700_000_000 * 10**9
+LIDAR_MOUNT = (1.0, 0.0, 2.0, 0.5)  # base_link -> lidar_top: x, y, z, yaw (what /tf_static says)
 
 
 @dataclass
@@ -37,7 +38,7 @@ def _header(ts: Any, t_ns: int, frame_id: str) -> Any:
     return Header(stamp=Time(sec=t_ns // 10**9, nanosec=t_ns % 10**9), frame_id=frame_id)
 
 
-def _cloud(ts: Any, t_ns: int, pts: np.ndarray) -> Any:
+def _cloud(ts: Any, t_ns: int, pts: np.ndarray, frame_id: str = "lidar_top") -> Any:
     """x, y, z, intensity float32 + one padding byte per point (point_step 17), one row."""
     PointField = ts.types["sensor_msgs/msg/PointField"]
     PointCloud2 = ts.types[POINTCLOUD2]
@@ -48,7 +49,7 @@ def _cloud(ts: Any, t_ns: int, pts: np.ndarray) -> Any:
         rec[name] = pts[:, j]
     fields = [PointField(name=nm, offset=4 * j, datatype=7, count=1) for j, nm in enumerate(("x", "y", "z", "intensity"))]
     return PointCloud2(
-        header=_header(ts, t_ns, "lidar_top"), height=1, width=n, fields=fields, is_bigendian=False,
+        header=_header(ts, t_ns, frame_id), height=1, width=n, fields=fields, is_bigendian=False,
         point_step=17, row_step=17 * n, data=np.frombuffer(rec.tobytes(), dtype=np.uint8), is_dense=True,
     )
 
@@ -65,6 +66,21 @@ def _odom(ts: Any, t_ns: int, x: float, y: float, yaw: float) -> Any:
         pose=g["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.zeros(36)),
         twist=g["geometry_msgs/msg/TwistWithCovariance"](twist=g["geometry_msgs/msg/Twist"](linear=zero3, angular=zero3), covariance=np.zeros(36)),
     )
+
+
+TF = "tf2_msgs/msg/TFMessage"
+
+
+def _tf(ts: Any, edges: list[tuple[int, str, str, float, float, float, float]]) -> Any:
+    g = ts.types
+    out = []
+    for t, parent, child, x, y, z, yaw in edges:
+        tr = g["geometry_msgs/msg/Transform"](
+            translation=g["geometry_msgs/msg/Vector3"](x=x, y=y, z=z),
+            rotation=g["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2)),
+        )
+        out.append(g["geometry_msgs/msg/TransformStamped"](header=_header(ts, t, parent), child_frame_id=child, transform=tr))
+    return g[TF](transforms=out)
 
 
 def _detections(ts: Any, t_ns: int, positions: list[tuple[float, float]], label: int = 1, prob: float = 0.9) -> Any:
@@ -102,6 +118,8 @@ def write_bag(
     garbage_at: int | None = None,
     bad_label_at: int | None = None,
     second_cloud_topic: bool = False,
+    with_tf: bool = False,
+    cloud_frame: str = "lidar_top",
 ) -> BagContents:
     """Write the bag at ``path`` (a folder that must not exist) and return what it holds."""
     from rosbags.rosbag2 import StoragePlugin, Writer
@@ -115,17 +133,24 @@ def write_bag(
         c_odom = w.add_connection(ODOM_TOPIC, "nav_msgs/msg/Odometry", typestore=ts)
         c_det = w.add_connection(DET_TOPIC, DETECTED_OBJECTS, typestore=ts)
         c_cloud2 = w.add_connection("/other/points", POINTCLOUD2, typestore=ts) if second_cloud_topic else None
+        if with_tf:
+            c_tf = w.add_connection("/tf", TF, typestore=ts)
+            c_static = w.add_connection("/tf_static", TF, typestore=ts)
+            mx, my, mz, myaw = LIDAR_MOUNT
+            w.write(c_static, T0 - 10**9, ts.serialize_cdr(_tf(ts, [(T0, "base_link", "lidar_top", mx, my, mz, myaw)]), TF))
         for k in range(2 * n + 1):  # odometry at 20 Hz, starting 50 ms before the first cloud
             t = T0 - 50_000_000 + k * 50_000_000
             x, y, yaw = 1.0 * k, 0.5 * k, 0.05 * k
             out.odom.append((t, x, y, yaw))
             w.write(c_odom, t, ts.serialize_cdr(_odom(ts, t, x, y, yaw), "nav_msgs/msg/Odometry"))
+            if with_tf:
+                w.write(c_tf, t, ts.serialize_cdr(_tf(ts, [(t, "map", "base_link", x, y, 0.0, yaw)]), TF))
         for i in range(n):
             t = T0 + i * 100_000_000
             pts = rng.normal(size=(points, 4)).astype(np.float32)
             out.clouds.append(pts)
             out.stamps.append(t)
-            raw = b"\x00\x01\x02 not cdr" if i == garbage_at else ts.serialize_cdr(_cloud(ts, t, pts), POINTCLOUD2)
+            raw = b"\x00\x01\x02 not cdr" if i == garbage_at else ts.serialize_cdr(_cloud(ts, t, pts, cloud_frame), POINTCLOUD2)
             w.write(c_cloud, t + 1_000_000, raw)  # received 1 ms after the sensor stamp
             positions = [(10.0 + i, 2.0), (-5.0, 3.0 - i)]
             out.det_positions.append(positions)

@@ -13,7 +13,7 @@ from jitterguard.services.replay.frames import DetectionFrame, EgoPose, FrameErr
 
 from jitterguard.services.replay.sources import SourceOptions, open_source  # noqa: E402
 
-from .bagfixture import CLOUD_TOPIC, DET_TOPIC, ODOM_TOPIC, write_bag  # noqa: E402
+from .bagfixture import CLOUD_TOPIC, DET_TOPIC, LIDAR_MOUNT, ODOM_TOPIC, write_bag  # noqa: E402
 
 
 @pytest.mark.parametrize("storage", ["sqlite3", "mcap"])
@@ -115,3 +115,44 @@ def test_a_file_that_is_not_a_bag_is_a_source_error(tmp_path: Path) -> None:
     (tmp_path / "x.mcap").write_bytes(b"definitely not mcap")
     with pytest.raises(SourceError, match="x.mcap"):
         open_source(str(tmp_path / "x.mcap"))
+
+
+def _expected_lidar(k: float) -> tuple[float, float, float, float]:
+    """World pose of lidar_top when base_link is at odometry sample k (x = k, y = k/2, yaw = 0.05 k)."""
+    import math
+
+    bx, by, byaw = 1.0 * k, 0.5 * k, 0.05 * k
+    mx, my, mz, myaw = LIDAR_MOUNT
+    c, s = math.cos(byaw), math.sin(byaw)
+    return bx + c * mx - s * my, by + s * mx + c * my, mz, byaw + myaw
+
+
+@pytest.mark.parametrize("pose_topic", ["/tf", ODOM_TOPIC])
+def test_bag_sensor_pose_composes_tf_static_mount_with_the_vehicle_pose(tmp_path: Path, pose_topic: str) -> None:
+    bag = write_bag(tmp_path / "bag", with_tf=True)
+    src = open_source(str(bag.path), SourceOptions(pose_topic=pose_topic))
+    frames = list(src.frames())
+    assert len(frames) == 4
+    for i, f in enumerate(frames):
+        x, y, z, yaw = _expected_lidar(2 * i + 1)
+        assert (f.pose.x, f.pose.y, f.pose.z) == pytest.approx((x, y, z), abs=1e-9)
+        assert f.pose.yaw == pytest.approx(yaw)
+    src.close()
+
+
+def test_bag_detections_in_base_link_get_the_vehicle_pose_from_tf(tmp_path: Path) -> None:
+    bag = write_bag(tmp_path / "bag", with_tf=True, n=1)
+    src = open_source(str(bag.path), SourceOptions(pose_topic="/tf", topic=DET_TOPIC))
+    [f] = list(src.frames())
+    assert isinstance(f, DetectionFrame)
+    # the detections are stamped T0, the time of odometry/TF sample 1 (x = 1, y = 0.5)
+    assert (f.pose.x, f.pose.y, f.pose.z) == pytest.approx((1.0, 0.5, 0.0))
+    src.close()
+
+
+def test_bag_cloud_frame_missing_from_tf_is_a_frame_error_per_scan(tmp_path: Path) -> None:
+    bag = write_bag(tmp_path / "bag", with_tf=True, n=2, cloud_frame="velodyne")
+    src = open_source(str(bag.path), SourceOptions(pose_topic="/tf"))
+    items = list(src.frames())
+    assert len(items) == 2 and all(isinstance(i, FrameError) and "velodyne" in i.reason for i in items)
+    src.close()

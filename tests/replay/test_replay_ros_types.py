@@ -75,3 +75,23 @@ def test_interpolate_pose_takes_the_short_way_round() -> None:
     a, b = EgoPose.from_yaw(0, 0, math.pi - 0.1), EgoPose.from_yaw(0, 0, -math.pi + 0.1)
     mid = interpolate_pose([0, 2], [a, b], 1)
     assert abs(mid.yaw) == pytest.approx(math.pi, abs=1e-6)
+
+
+
+def test_tf_tree_composes_static_and_interpolated_dynamic_links() -> None:
+    from jitterguard.services.replay.sources.tf import TfTree
+
+    tf = TfTree()
+    tf.add("map", "base_link", 0, EgoPose.from_yaw(0.0, 0.0, 0.0))
+    tf.add("map", "base_link", 100, EgoPose.from_yaw(10.0, 0.0, math.pi / 2))
+    tf.add("/base_link", "lidar", 0, EgoPose.from_yaw(1.0, 0.0, 0.0, z=2.0), static=True)
+    p = tf.lookup("lidar", 100)
+    assert (p.x, p.y, p.z) == pytest.approx((10.0, 1.0, 2.0)) and p.yaw == pytest.approx(math.pi / 2)
+    mid = tf.lookup("lidar", 50)
+    assert mid.yaw == pytest.approx(math.pi / 4) and mid.x == pytest.approx(5.0 + math.cos(math.pi / 4))
+    assert tf.lookup("lidar", 50, ancestor="base_link").x == pytest.approx(1.0)
+    assert tf.root("lidar") == "map"
+    with pytest.raises(KeyError, match="not in the TF tree"):
+        tf.lookup("camera", 0)
+    with pytest.raises(KeyError, match="not above"):
+        tf.lookup("base_link", 0, ancestor="lidar")

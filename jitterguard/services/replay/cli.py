@@ -92,7 +92,7 @@ def replay_command(
     bin_fields: Annotated[str | None, typer.Option("--bin-fields", help="Raw .bin columns, e.g. x,y,z,intensity (default by name: .pcd.bin has 5, .bin 4).")] = None,
     hz: Annotated[float, typer.Option("--hz", help="Stamp spacing for recordings without time (KITTI without times.txt, .pcd).")] = 10.0,
     topic: Annotated[str | None, typer.Option("--topic", help="Bags: the PointCloud2 or Autoware DetectedObjects topic.")] = None,
-    pose_topic: Annotated[str | None, typer.Option("--pose-topic", help="Bags: Odometry/PoseStamped topic giving the ego pose.")] = None,
+    pose_topic: Annotated[str | None, typer.Option("--pose-topic", help="Bags: /tf (TF tree + /tf_static) or an Odometry/PoseStamped topic giving the ego pose.")] = None,
     wait_subscriber: Annotated[float, typer.Option("--wait-subscriber", help="Seconds to wait for a subscriber before the first frame (0: do not wait).")] = 5.0,
     progress: Annotated[bool | None, typer.Option("--progress/--no-progress", help="Progress bar (default: when stderr is a terminal).")] = None,
     ns: NsOpt = "default",

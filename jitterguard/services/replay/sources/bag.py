@@ -4,24 +4,45 @@ One topic is replayed: a ``sensor_msgs/PointCloud2`` topic (``points``) or an Au
 ``autoware_perception_msgs/DetectedObjects`` topic (``detections``). With ``--topic`` unset, the bag's only
 topic of either type is picked (PointCloud2 first); several candidates are an error that lists them.
 Stamps come from each message's header (the sensor's time), falling back to the bag's receive time when a
-driver left the header stamp at zero. The ego pose comes from ``--pose-topic`` (Odometry, PoseStamped or
-PoseWithCovarianceStamped), interpolated to each stamp; without it the pose is the identity.
+driver left the header stamp at zero. The ego pose (the pose of the message's ``frame_id`` in the world)
+comes from ``--pose-topic``:
+
+- a ``tf2_msgs/TFMessage`` topic (``/tf``): the TF chain from the tree's root (``map``) down to the cloud's
+  frame, with ``/tf_static`` for the fixed links, each dynamic link interpolated at the scan's stamp;
+- an Odometry / PoseStamped / PoseWithCovarianceStamped topic, interpolated to each stamp, then composed
+  with the ``/tf_static`` chain from the odometry's ``child_frame_id`` (e.g. ``base_link``) to the cloud's
+  frame when the bag has one (otherwise the vehicle's pose is taken for the sensor's, and a note says so).
+
+Without ``--pose-topic`` the pose is the identity.
 
 rosbags is an optional dependency: it is imported when a bag is opened, and its absence is a one-line error.
 """
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 from pydantic import ValidationError
 
-from ..frames import IDENTITY, DetectionFrame, EgoPose, FrameError, Item, ScanFrame, SourceError, SourceInfo, finite_rows
+from ..frames import (
+    IDENTITY,
+    DetectionFrame,
+    EgoPose,
+    FrameError,
+    Item,
+    ScanFrame,
+    SourceError,
+    SourceInfo,
+    compose,
+    finite_rows,
+)
 from .base import Source
 from .ros_types import (
     DETECTED_OBJECTS,
+    TF_MESSAGE,
     POINTCLOUD2,
     POSE_TYPES,
     detected_object_from_ros,
@@ -31,6 +52,9 @@ from .ros_types import (
     stamp_ns,
     typestore,
 )
+from .tf import TfTree
+
+log = logging.getLogger("jitterguard.replay")
 
 BAG_SUFFIXES = (".mcap", ".db3", ".bag")
 
@@ -62,6 +86,7 @@ class BagSource(Source):
 
     def __init__(self, path: Path, *, topic: str | None = None, pose_topic: str | None = None) -> None:
         self.path = Path(path)
+        self._warned_extrinsic = False
         if not self.path.exists():
             raise SourceError(f"{self.path}: no such bag")
         self.reader = _open_reader(self.path)
@@ -102,30 +127,76 @@ class BagSource(Source):
 
         self.pose_times: list[int] = []
         self.poses: list[EgoPose] = []
+        self.tf = TfTree()
+        self.use_tf = False
+        self.base_frame: str | None = None
         notes = [f"topic {topic} ({self.msgtype}), {count} messages"]
+        statics = [t for t, cs in by_topic.items() if cs[0].msgtype == TF_MESSAGE and t.rstrip("/").endswith("tf_static")]
+        for t in statics:
+            self._read_tf(by_topic[t], static=True)
         if pose_topic is not None:
             if pose_topic not in by_topic:
                 raise SourceError(f"{self.path}: no pose topic {pose_topic!r} (topics: {listing})")
             ptype = by_topic[pose_topic][0].msgtype
-            if ptype not in POSE_TYPES:
-                raise SourceError(f"{self.path}: pose topic {pose_topic} is {ptype}, not one of {', '.join(POSE_TYPES)}")
-            samples: list[tuple[int, EgoPose]] = []
-            for conn, t_bag, raw in self.reader.messages(connections=by_topic[pose_topic]):
-                try:
-                    msg = self.reader.deserialize(raw, conn.msgtype)
-                except Exception as exc:
-                    raise SourceError(f"{self.path}: pose topic {pose_topic}: undecodable message: {exc}") from None
-                samples.append((stamp_ns(msg.header) or t_bag, pose_of(msg)))
-            if not samples:
-                raise SourceError(f"{self.path}: pose topic {pose_topic} holds no message")
-            samples.sort(key=lambda s: s[0])
-            self.pose_times = [s[0] for s in samples]
-            self.poses = [s[1] for s in samples]
-            notes.append(f"poses from {pose_topic} ({len(samples)} samples)")
+            if ptype == TF_MESSAGE:
+                self._read_tf(by_topic[pose_topic], static=pose_topic in statics)
+                self.use_tf = True
+                notes.append(f"poses from the TF tree ({pose_topic}{' + ' + ', '.join(statics) if statics else ''})")
+            elif ptype in POSE_TYPES:
+                self._read_pose_topic(pose_topic, by_topic[pose_topic])
+                notes.append(f"poses from {pose_topic} ({len(self.poses)} samples)")
+            else:
+                raise SourceError(
+                    f"{self.path}: pose topic {pose_topic} is {ptype}, not {TF_MESSAGE} or one of {', '.join(POSE_TYPES)}"
+                )
         self.info = SourceInfo(name=f"{self.path}:{topic}", kind=kind, num_frames=count, notes=notes)
 
-    def _pose(self, t: int) -> EgoPose:
-        return interpolate_pose(self.pose_times, self.poses, t) if self.poses else IDENTITY
+    def _messages(self, conns: list[Any], what: str) -> Iterator[tuple[int, Any]]:
+        for conn, t_bag, raw in self.reader.messages(connections=conns):
+            try:
+                yield int(t_bag), self.reader.deserialize(raw, conn.msgtype)
+            except Exception as exc:
+                raise SourceError(f"{self.path}: {what} {conn.topic}: undecodable message: {exc}") from None
+
+    def _read_tf(self, conns: list[Any], *, static: bool) -> None:
+        for t_bag, msg in self._messages(conns, "TF topic"):
+            for tr in msg.transforms:
+                r, q = tr.transform.translation, tr.transform.rotation
+                pose = EgoPose(float(r.x), float(r.y), float(r.z), float(q.x), float(q.y), float(q.z), float(q.w))
+                self.tf.add(tr.header.frame_id, tr.child_frame_id, stamp_ns(tr.header) or t_bag, pose, static=static)
+
+    def _read_pose_topic(self, topic: str, conns: list[Any]) -> None:
+        samples: list[tuple[int, EgoPose]] = []
+        for t_bag, msg in self._messages(conns, "pose topic"):
+            samples.append((stamp_ns(msg.header) or t_bag, pose_of(msg)))
+            if self.base_frame is None:
+                self.base_frame = getattr(msg, "child_frame_id", "") or None
+        if not samples:
+            raise SourceError(f"{self.path}: pose topic {topic} holds no message")
+        samples.sort(key=lambda s: s[0])
+        self.pose_times = [s[0] for s in samples]
+        self.poses = [s[1] for s in samples]
+
+    def _pose(self, frame_id: str, t: int) -> EgoPose | str:
+        """The pose of ``frame_id`` in the world at ``t``, or why there is none."""
+        if self.use_tf:
+            try:
+                return self.tf.lookup(frame_id, t)
+            except KeyError as exc:
+                return f"no TF for the scan: {exc.args[0]}"
+        if not self.poses:
+            return IDENTITY
+        base = interpolate_pose(self.pose_times, self.poses, t)
+        if self.base_frame and frame_id in self.tf and self.base_frame in self.tf:
+            try:
+                return compose(base, self.tf.lookup(frame_id, t, ancestor=self.base_frame))
+            except KeyError:
+                pass
+        if not self._warned_extrinsic:
+            self._warned_extrinsic = True
+            log.info("%s: no /tf_static path from %s to %s: the vehicle pose stands in for the sensor's",
+                     self.path, self.base_frame or "the pose topic's frame", frame_id)
+        return base
 
     def frames(self, start: int = 0) -> Iterator[Item]:
         index = -1
@@ -141,6 +212,10 @@ class BagSource(Source):
                 continue
             stamp = stamp_ns(msg.header) or int(t_bag)
             frame_id = msg.header.frame_id or "lidar"
+            pose = self._pose(frame_id, stamp)
+            if isinstance(pose, str):
+                yield FrameError(origin, pose)
+                continue
             if self.msgtype == POINTCLOUD2:
                 try:
                     pts, names = pointcloud2_to_array(msg)
@@ -148,7 +223,7 @@ class BagSource(Source):
                     yield FrameError(origin, f"bad PointCloud2: {exc}")
                     continue
                 pts, _ = finite_rows(pts)
-                yield ScanFrame(stamp, self._pose(stamp), pts, names, origin, frame_id)
+                yield ScanFrame(stamp, pose, pts, names, origin, frame_id)
             else:
                 try:
                     objects = [detected_object_from_ros(o) for o in msg.objects]
@@ -160,7 +235,7 @@ class BagSource(Source):
                 except (AttributeError, TypeError, ValueError) as exc:
                     yield FrameError(origin, f"unexpected DetectedObjects layout: {exc}")
                     continue
-                yield DetectionFrame(stamp, self._pose(stamp), objects, origin, frame_id)
+                yield DetectionFrame(stamp, pose, objects, origin, frame_id)
 
     def close(self) -> None:
         reader, self.reader = getattr(self, "reader", None), None

@@ -22,6 +22,7 @@ from ..frames import EgoPose
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 DETECTED_OBJECTS = "autoware_perception_msgs/msg/DetectedObjects"
+TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 POSE_TYPES = (
     "nav_msgs/msg/Odometry",
     "geometry_msgs/msg/PoseStamped",

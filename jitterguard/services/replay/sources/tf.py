@@ -1,0 +1,93 @@
+"""A minimal TF tree for bags: enough to give a point cloud its sensor pose in the world.
+
+Real ROS 2 recordings rarely carry the LiDAR's world pose directly: ``/tf`` holds ``map → base_link`` from
+localisation and ``/tf_static`` the chain ``base_link → … → lidar``. The replay contract wants the pose of
+the cloud's own ``frame_id`` in the world, so the bag source composes the chain from the tree's root down to
+that frame, interpolating each dynamic edge at the scan's stamp (linear position, slerp rotation) and
+using static edges as they are. Pure: fed with (parent, child, stamp, pose) tuples, no rosbags here.
+"""
+
+from __future__ import annotations
+
+from ..frames import IDENTITY, EgoPose, compose
+from .ros_types import interpolate_pose
+
+
+class TfTree:
+    """Edges child → parent; each child has exactly one parent (as tf2 requires)."""
+
+    def __init__(self) -> None:
+        self.parent: dict[str, str] = {}
+        self.static: dict[str, EgoPose] = {}
+        self._times: dict[str, list[int]] = {}
+        self._poses: dict[str, list[EgoPose]] = {}
+        self._sorted = True
+
+    @staticmethod
+    def _norm(frame: str) -> str:
+        return frame.lstrip("/")  # ROS 1 habit: "/base_link" and "base_link" are the same frame
+
+    def add(self, parent: str, child: str, stamp_ns: int, pose: EgoPose, *, static: bool = False) -> None:
+        """Record the pose of ``child`` in ``parent`` at ``stamp_ns`` (static edges ignore the stamp)."""
+        parent, child = self._norm(parent), self._norm(child)
+        if not parent or not child or parent == child:
+            return
+        self.parent[child] = parent
+        if static:
+            self.static[child] = pose
+            self._times.pop(child, None)
+            self._poses.pop(child, None)
+        else:
+            self._times.setdefault(child, []).append(stamp_ns)
+            self._poses.setdefault(child, []).append(pose)
+            self._sorted = False
+
+    def _sort(self) -> None:
+        for child, times in self._times.items():
+            order = sorted(range(len(times)), key=times.__getitem__)
+            self._times[child] = [times[i] for i in order]
+            self._poses[child] = [self._poses[child][i] for i in order]
+        self._sorted = True
+
+    def __contains__(self, frame: str) -> bool:
+        frame = self._norm(frame)
+        return frame in self.parent or frame in self.parent.values()
+
+    def root(self, frame: str) -> str:
+        frame = self._norm(frame)
+        seen = {frame}
+        while frame in self.parent:
+            frame = self.parent[frame]
+            if frame in seen:
+                raise ValueError(f"TF cycle through {frame!r}")
+            seen.add(frame)
+        return frame
+
+    def edge(self, child: str, stamp_ns: int) -> EgoPose:
+        if child in self.static:
+            return self.static[child]
+        if not self._sorted:
+            self._sort()
+        return interpolate_pose(self._times[child], self._poses[child], stamp_ns)
+
+    def lookup(self, frame: str, stamp_ns: int, ancestor: str | None = None) -> EgoPose:
+        """Pose of ``frame`` in ``ancestor`` (default: the root of its tree) at ``stamp_ns``.
+
+        Raises ``KeyError`` naming the frames when ``frame`` is unknown or ``ancestor`` is not above it."""
+        frame = self._norm(frame)
+        target = self._norm(ancestor) if ancestor else None
+        if frame not in self:
+            raise KeyError(f"frame {frame!r} is not in the TF tree")
+        chain: list[str] = []
+        cur = frame
+        while cur != target and cur in self.parent:
+            chain.append(cur)
+            cur = self.parent[cur]
+            if len(chain) > 1000:
+                raise KeyError(f"TF cycle above {frame!r}")
+        if target is not None and cur != target:
+            raise KeyError(f"frame {target!r} is not above {frame!r} in the TF tree")
+        pose = IDENTITY
+        for child in reversed(chain):
+            pose = compose(pose, self.edge(child, stamp_ns))
+        return pose
