@@ -82,7 +82,7 @@ def _open_reader(path: Path) -> Any:
 
 
 class BagSource(Source):
-    """One PointCloud2 or DetectedObjects topic of a bag, with optional poses from an odometry topic."""
+    """One PointCloud2 or DetectedObjects topic of a bag, posed by the TF tree or an odometry topic."""
 
     def __init__(self, path: Path, *, topic: str | None = None, pose_topic: str | None = None) -> None:
         self.path = Path(path)
