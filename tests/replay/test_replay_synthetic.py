@@ -71,11 +71,36 @@ def test_unknown_level_and_bad_duration_are_source_errors() -> None:
 
 @needs_world
 @needs_lidar
-def test_synthetic_scans_have_points_and_the_sensor_pose() -> None:
+def test_synthetic_scans_have_points_rings_and_the_sensor_pose() -> None:
+    from jitterguard.sim.world import make_scenario
+
     src = open_source("synthetic:parking-street", SourceOptions(seed=2, duration_s=0.3))
     frames = list(src.frames())
     assert len(frames) == 3 and all(isinstance(f, ScanFrame) for f in frames)
-    f = frames[0]
-    assert f.fields == ("x", "y", "z", "intensity") and f.points.dtype == np.float32
+    f = frames[1]
+    assert f.fields == ("x", "y", "z", "intensity", "ring") and f.points.dtype == np.float32
     assert f.points.shape[0] > 1000 and np.isfinite(f.points).all()
-    assert f.pose.z > 0  # the sensor is mounted above the ground
+    rings = f.points[:, 4]
+    assert rings.min() >= 0 and rings.max() <= 31 and len(np.unique(rings)) > 16  # HDL-32E
+    gt = make_scenario("parking-street", 2, duration_s=0.3).frame(1)
+    assert (f.pose.x, f.pose.y, f.pose.yaw) == pytest.approx((gt.ego_x, gt.ego_y, gt.ego_yaw))
+    # the sensor is mounted above flat ground: the lowest returns lie one mount height below it
+    assert np.percentile(f.points[:, 2], 5) == pytest.approx(-f.pose.z, abs=0.15)
+
+
+@needs_world
+@needs_lidar
+def test_synthetic_scans_repeat_exactly_across_passes_and_differ_across_seeds() -> None:
+    src = open_source("synthetic:diagonal-lot", SourceOptions(seed=1, duration_s=0.2, lidar="vlp16"))
+    a, b = list(src.frames()), list(src.frames(start=1))
+    np.testing.assert_array_equal(a[1].points, b[0].points)
+    assert a[0].points[:, 4].max() <= 15  # VLP-16
+    c = list(open_source("synthetic:diagonal-lot", SourceOptions(seed=2, duration_s=0.2, lidar="vlp16")).frames())
+    assert a[0].points.shape != c[0].points.shape or not np.array_equal(a[0].points, c[0].points)
+
+
+@needs_world
+@needs_lidar
+def test_unknown_lidar_is_a_source_error_listing_the_sensors() -> None:
+    with pytest.raises(SourceError, match="hdl32e"):
+        open_source("synthetic:mixed", SourceOptions(lidar="hdl64"))

@@ -200,3 +200,20 @@ def test_cli_replays_synthetic_detections(ns: str) -> None:
     assert proc.returncode == 0, proc.stderr
     assert [m.header.seq for m in got] == [0, 1, 2, 3, 4]
     assert all(len(m.objects) > 0 for m in got) and got[0].header.frame_id == "lidar"
+
+
+@pytest.mark.skipif(
+    __import__("importlib.util").util.find_spec("jitterguard.sim.lidar") is None, reason="jitterguard.sim.lidar not there yet"
+)
+def test_cli_replays_synthetic_scans_with_ego_pose(ns: str) -> None:
+    col = Collector(ns, keys.points)
+    try:
+        proc = _cli("replay", "synthetic:intersection", "--duration", "0.3", "--seed", "1", "--rate", "max", "--ns", ns,
+                    "--connect", f"tcp/127.0.0.1:{col.port}", "--no-progress", "--wait-subscriber", "20")
+        got = [decode(PointCloud, p) for p in col.wait_for(keys.points(ns), 3)]
+    finally:
+        col.close()
+    assert proc.returncode == 0, proc.stderr
+    assert [m.header.seq for m in got] == [0, 1, 2]
+    assert all(m.num_points > 1000 and m.fields == ["x", "y", "z", "intensity", "ring"] for m in got)
+    assert all(m.ego_pose.position.z > 1.0 for m in got)  # the sensor pose, not the ground point under the car

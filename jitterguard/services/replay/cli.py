@@ -83,6 +83,7 @@ def replay_command(
     level: Annotated[str, typer.Option("--level", help="Synthetic sources: 'points' (ray-cast scans) or 'detections' (the synthetic detector).")] = "points",
     seed: Annotated[int, typer.Option("--seed", help="Synthetic sources: scenario and noise seed.")] = 0,
     duration: Annotated[float, typer.Option("--duration", help="Synthetic sources: scenario length in seconds.")] = 20.0,
+    lidar: Annotated[str, typer.Option("--lidar", help="Synthetic scans: sensor model (hdl32e, vlp16, os1-64).")] = "hdl32e",
     scene: Annotated[str | None, typer.Option("--scene", help="nuScenes: scene name or token (needed when the dataroot holds several).")] = None,
     nuscenes_version: Annotated[str | None, typer.Option("--nuscenes-version", help="nuScenes: table folder, e.g. v1.0-mini (default: the only one).")] = None,
     sweeps: Annotated[bool, typer.Option("--sweeps", help="nuScenes: replay every LiDAR sweep, not only key frames.")] = False,
@@ -90,7 +91,7 @@ def replay_command(
     calib: Annotated[str | None, typer.Option("--calib", help="KITTI: calib.txt with the Tr line (default: calib.txt next to the scans).")] = None,
     times: Annotated[str | None, typer.Option("--times", help="KITTI: times.txt (default: next to the scans; else --hz).")] = None,
     bin_fields: Annotated[str | None, typer.Option("--bin-fields", help="Raw .bin columns, e.g. x,y,z,intensity (default by name: .pcd.bin has 5, .bin 4).")] = None,
-    hz: Annotated[float, typer.Option("--hz", help="Stamp spacing for recordings without time (KITTI without times.txt, .pcd).")] = 10.0,
+    hz: Annotated[float, typer.Option("--hz", help="Frame rate of synthetic sources, and stamp spacing of recordings without time (KITTI without times.txt, .pcd).")] = 10.0,
     topic: Annotated[str | None, typer.Option("--topic", help="Bags: the PointCloud2 or Autoware DetectedObjects topic.")] = None,
     pose_topic: Annotated[str | None, typer.Option("--pose-topic", help="Bags: /tf (TF tree + /tf_static) or an Odometry/PoseStamped topic giving the ego pose.")] = None,
     wait_subscriber: Annotated[float, typer.Option("--wait-subscriber", help="Seconds to wait for a subscriber before the first frame (0: do not wait).")] = 5.0,
@@ -119,7 +120,7 @@ def replay_command(
     from .sources import SourceOptions, open_source
 
     src_opts = SourceOptions(
-        level=level, seed=seed, duration_s=duration, scene=scene, nuscenes_version=nuscenes_version, sweeps=sweeps,
+        level=level, seed=seed, duration_s=duration, rate_hz=hz, lidar=lidar, scene=scene, nuscenes_version=nuscenes_version, sweeps=sweeps,
         poses=_path(poses, "--poses"), calib=_path(calib, "--calib"), times=_path(times, "--times"),
         bin_fields=fields, topic=topic, pose_topic=pose_topic, period_ns=int(round(1e9 / hz)),
     )

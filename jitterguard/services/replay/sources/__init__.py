@@ -43,6 +43,7 @@ class SourceOptions:
     topic: str | None = None
     pose_topic: str | None = None
     period_ns: int = DEFAULT_PERIOD_NS
+    lidar: str = "hdl32e"
 
 
 def _only_for(opts: SourceOptions, kind: str, allowed: set[str]) -> None:
@@ -57,6 +58,7 @@ def _only_for(opts: SourceOptions, kind: str, allowed: set[str]) -> None:
         "--bin-fields": opts.bin_fields is not None,
         "--topic": opts.topic is not None,
         "--pose-topic": opts.pose_topic is not None,
+        "--lidar": opts.lidar != "hdl32e",
     }
     stray = sorted(flag for flag, on in given.items() if on and flag not in allowed)
     if stray:
@@ -72,11 +74,16 @@ def open_source(spec: str, opts: SourceOptions | None = None) -> Source:
     if opts.level not in ("points", "detections"):
         raise SourceError(f"--level must be 'points' or 'detections', got {opts.level!r}")
     if spec.startswith(SYNTHETIC_PREFIX):
-        _only_for(opts, "synthetic", set())
+        _only_for(opts, "synthetic", {"--lidar"})
         from .synthetic import SyntheticSource
 
         return SyntheticSource(
-            spec[len(SYNTHETIC_PREFIX) :], seed=opts.seed, duration_s=opts.duration_s, rate_hz=opts.rate_hz, level=opts.level
+            spec[len(SYNTHETIC_PREFIX) :],
+            seed=opts.seed,
+            duration_s=opts.duration_s,
+            rate_hz=opts.rate_hz,
+            level=opts.level,
+            lidar=opts.lidar,
         )
     path = Path(spec)
     if not path.exists():

@@ -8,10 +8,14 @@ from __future__ import annotations
 from collections.abc import Iterator
 from typing import Any
 
+import numpy as np
+
 from ..frames import DetectionFrame, EgoPose, FrameError, Item, ScanFrame, SourceError, SourceInfo, finite_rows
 from .base import Source
 
 SCENARIOS = ("parking-street", "diagonal-lot", "intersection", "mixed")
+SCAN_FIELDS = ("x", "y", "z", "intensity", "ring")
+"""nuScenes' LIDAR_TOP columns: a detector trained on either reads both the same way."""
 
 
 def _world() -> Any:
@@ -33,14 +37,31 @@ def _lidar() -> Any:
 class SyntheticSource(Source):
     """``synthetic:NAME`` for one of :data:`SCENARIOS`."""
 
-    def __init__(self, name: str, *, seed: int = 0, duration_s: float = 20.0, rate_hz: float = 10.0, level: str = "points") -> None:
+    def __init__(
+        self,
+        name: str,
+        *,
+        seed: int = 0,
+        duration_s: float = 20.0,
+        rate_hz: float = 10.0,
+        level: str = "points",
+        lidar: str = "hdl32e",
+    ) -> None:
         if name not in SCENARIOS:
             raise SourceError(f"synthetic:{name}: unknown scenario (have: {', '.join(SCENARIOS)})")
         if not (duration_s > 0) or not (rate_hz > 0):
             raise SourceError(f"synthetic:{name}: --duration and the frame rate must be positive")
         world = _world()
         self._lidar = _lidar() if level == "points" else None
+        self._spec = None
         self._sensor_z = float(getattr(world, "SENSOR_HEIGHT_M", 0.0))
+        if self._lidar is not None:
+            from ....sim.sensors import SENSORS
+
+            if lidar not in SENSORS:
+                raise SourceError(f"--lidar {lidar!r}: unknown sensor (have: {', '.join(sorted(SENSORS))})")
+            self._spec = SENSORS[lidar]()
+            self._sensor_z = float(self._spec.mount_height_m)
         self.name, self.seed, self.level = name, seed, level
         try:
             self.scenario = world.make_scenario(name, seed, duration_s=duration_s, rate_hz=rate_hz)
@@ -50,7 +71,7 @@ class SyntheticSource(Source):
             name=f"synthetic:{name} (seed {seed})",
             kind=level,
             num_frames=int(self.scenario.num_frames),
-            notes=[f"{self.scenario.num_frames} frames at {rate_hz:g} Hz"],
+            notes=[f"{self.scenario.num_frames} frames at {rate_hz:g} Hz" + (f", {lidar}" if level == "points" else "")],
         )
 
     def frames(self, start: int = 0) -> Iterator[Item]:
@@ -60,19 +81,20 @@ class SyntheticSource(Source):
             yield from self._scans(start)
 
     def _scans(self, start: int) -> Iterator[Item]:
-        lidar = self._lidar
-        sensor = lidar.default_sensor() if hasattr(lidar, "default_sensor") else None
         for i in range(start, self.scenario.num_frames):
             gt = self.scenario.frame(i)
             origin = f"synthetic:{self.name}#{i}"
             try:
-                pts = lidar.scan(gt, sensor) if sensor is not None else lidar.scan(gt)
+                res, _ = self._lidar.cast_frame(gt, self._spec, self.seed)
             except Exception as exc:  # a ray-cast failure is one bad frame, not the end of the replay
                 yield FrameError(origin, f"ray-cast failed: {type(exc).__name__}: {exc}")
                 continue
-            pts, _ = finite_rows(pts.astype("float32", copy=False))
+            pts = np.empty((res.points.shape[0], 5), dtype=np.float32)
+            pts[:, :4] = res.points
+            pts[:, 4] = res.ring
+            pts, _ = finite_rows(pts)
             pose = EgoPose.from_yaw(float(gt.ego_x), float(gt.ego_y), float(gt.ego_yaw), z=self._sensor_z)
-            yield ScanFrame(int(gt.stamp_ns), pose, pts, ("x", "y", "z", "intensity"), origin, "lidar")
+            yield ScanFrame(int(gt.stamp_ns), pose, pts, SCAN_FIELDS, origin, "lidar")
 
     def _detections(self, start: int) -> Iterator[Item]:
         from ....sim.detection_model import DetectionModel, NoiseConfig
