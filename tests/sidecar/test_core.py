@@ -240,3 +240,17 @@ def test_sse_frame_format() -> None:
     assert frame == 'id: 7\nevent: changes\ndata: {"a":[1,2]}\n\n'
     with pytest.raises(ValueError):
         format_event(1, "x", {"v": float("nan")})
+
+
+@pytest.mark.parametrize("body", [{"velocity_threshold": False}, {"alpha_default": "1.5"}, {"window_size": "10"},
+                                  {"window_size": True}, {"window_size": 10.5}, {"alpha_per_class": {"car": "1"}}])
+def test_http_models_take_only_the_json_types_they_document(body: dict) -> None:
+    """No lax coercion at the HTTP boundary: ``false`` is not 0 m/s and ``"10"`` is not a window size."""
+    for model in (ConfigModel, ConfigPatchModel):
+        with pytest.raises(ValidationError) as exc:
+            model.model_validate(body)
+        assert exc.value.errors()[0]["loc"][0] == next(iter(body))
+
+
+def test_json_integers_may_be_written_as_integral_floats() -> None:
+    assert ConfigModel.model_validate({"window_size": 12.0, "alpha_default": 2}).window_size == 12

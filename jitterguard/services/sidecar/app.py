@@ -23,6 +23,8 @@ from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import HTMLResponse, JSONResponse, Response, StreamingResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match
 
 from ...runtime import ZenohOptions
 from ...schemas.models import PRESETS, ClassifierConfig
@@ -132,7 +134,8 @@ def create_app(settings: SidecarSettings) -> FastAPI:
     # ------------------------------------------------------------------ auth
 
     write_deps: list[Any] = []
-    write_errors: dict[int | str, dict[str, Any]] = {503: _E503, 502: _E502}
+    write_errors: dict[int | str, dict[str, Any]] = {
+        503: _E503, 502: _E502, 400: {"model": ErrorBody, "description": "The body is not readable text"}}
     if settings.api_token:
         bearer = HTTPBearer(auto_error=False, description="the value of JG_API_TOKEN")
         token = settings.api_token.encode()
@@ -146,6 +149,20 @@ def create_app(settings: SidecarSettings) -> FastAPI:
         write_errors[401] = _E401
 
     # ------------------------------------------------------------------ error bodies
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+        # Starlette's 405 lists only the first matching route's methods; FastAPI has one route per method,
+        # so ``Allow`` would omit PUT/PATCH on /v1/config. List every method the path really serves.
+        headers = dict(exc.headers or {})
+        if exc.status_code == 405:
+            allowed: set[str] = set()
+            for route in app.router.routes:
+                match, _ = route.matches(request.scope)
+                if match != Match.NONE:
+                    allowed |= set(getattr(route, "methods", None) or ())
+            headers["Allow"] = ", ".join(sorted(allowed))
+        return JSONResponse({"detail": exc.detail}, status_code=exc.status_code, headers=headers)
 
     @app.exception_handler(RequestValidationError)
     async def _invalid_request(_r: Request, exc: RequestValidationError) -> JSONResponse:

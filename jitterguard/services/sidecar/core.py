@@ -15,7 +15,7 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, create_model
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, Strict, ValidationError, create_model
 from pydantic.fields import FieldInfo
 
 from ...schemas.models import (
@@ -122,12 +122,30 @@ _CONFIG_DOCS: dict[str, str] = {
 CONFIG_FIELDS: tuple[str, ...] = tuple(n for n in ClassifierConfig.model_fields if n != "schema_version")
 
 
-def _api_annotation(name: str, info: FieldInfo) -> Any:
-    """The wire field's type, with class-name keys spelled as an enum so the OpenAPI schema lists them."""
-    if name == "alpha_per_class":
-        value = info.annotation.__args__[1]  # type: ignore[union-attr]  # Annotated[float, gt/le]
-        return dict[ClassName, value]  # type: ignore[valid-type]
-    return info.annotation
+def _json_integer(value: Any) -> Any:
+    """JSON Schema's ``integer`` includes ``213.0``; it never includes ``true`` or ``"213"``."""
+    if isinstance(value, (bool, str)):
+        raise ValueError("Input should be a valid integer")
+    return value
+
+
+def _strict_json(tp: Any, metadata: list[Any]) -> Any:
+    """``tp`` with its constraints, accepting exactly the JSON values its JSON Schema type admits.
+
+    pydantic's lax mode would take ``false`` or ``"1.5"`` for a number (a client bug silently applied);
+    its strict mode would refuse ``213.0`` for an integer, which JSON Schema calls an integer.
+    """
+    if tp is float:
+        return Annotated[(float, Strict(), *metadata)]
+    if tp is int:
+        return Annotated[(int, *metadata, BeforeValidator(_json_integer))]  # bounds first: JSON Schema keeps them
+    return Annotated[(tp, *metadata)] if metadata else tp  # Literal: only its exact strings match anyway
+
+
+def _alpha_type(info: FieldInfo) -> Any:
+    """The per-class alpha value type (Annotated[float, gt, le] in the wire model), JSON-strict."""
+    value = info.annotation.__args__[1]  # type: ignore[union-attr]
+    return _strict_json(float, list(getattr(value, "__metadata__", ())))
 
 
 def _build_config_models() -> tuple[type[BaseModel], type[BaseModel]]:
@@ -141,17 +159,18 @@ def _build_config_models() -> tuple[type[BaseModel], type[BaseModel]]:
     patch: dict[str, Any] = {}
     for name in CONFIG_FIELDS:
         info = ClassifierConfig.model_fields[name]
-        ann = _api_annotation(name, info)
         doc = _CONFIG_DOCS[name]
-        constrained = Annotated[(ann, *info.metadata)] if info.metadata else ann  # type: ignore[valid-type]
+        if name == "alpha_per_class":  # class-name keys as an enum, so the OpenAPI schema lists them
+            constrained: Any = dict[ClassName, _alpha_type(info)]  # type: ignore[valid-type]
+        else:
+            constrained = _strict_json(info.annotation, list(info.metadata))
         if info.default_factory is not None:
             spec = Field(default_factory=info.default_factory, description=doc)  # type: ignore[arg-type]
         else:
             spec = Field(default=info.default, description=doc)
         full[name] = (constrained, spec)
         if name == "alpha_per_class":
-            value = info.annotation.__args__[1]  # type: ignore[union-attr]
-            pann = dict[ClassName, value | None] | None  # type: ignore[valid-type]
+            pann = dict[ClassName, _alpha_type(info) | None] | None  # type: ignore[valid-type]
         else:
             pann = constrained | None
         patch[name] = (pann, Field(default=None, description=doc + "; null resets it to the default"))
