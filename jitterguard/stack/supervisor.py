@@ -61,7 +61,8 @@ def programs(spec: StackSpec) -> list[Program]:
         Program("classifier", _cmd("classifier", *common), priority=20),
     ]
     have_tracker = has_area("jitterguard.services.tracker.service")
-    have_replay = all(has_area(m) for m in ("jitterguard.services.replay.cli", "jitterguard.sim.world", "jitterguard.sim.lidar"))
+    have_replay = all(has_area(m) for m in ("jitterguard.services.replay.cli", "jitterguard.sim.world",
+                                             "jitterguard.sim.detection_model"))
     have_detector = has_area("jitterguard.services.detector.service")
     mode = spec.input
     if mode == "auto":
