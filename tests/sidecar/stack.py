@@ -97,8 +97,9 @@ def _parked(x: float, y: float, yaw: float) -> Callable[[int], tuple]:
 def scenario() -> list[Track]:
     """The fixed cast: 6 parked (4 cars, a truck, a pedestrian), 3 movers, 1 creeper; all inside
     the world window (-40, -25)..(40, 25)."""
-    parked = [(-30.0, 12.0, 0.0, 1), (-18.0, 12.0, 0.0, 1), (-6.0, 12.0, 0.0, 1), (8.0, -14.0, math.pi, 1),
-              (22.0, -14.0, math.pi, 2), (30.0, 14.0, 0.0, 7)]
+    # Parked objects stay clear of the movers' circle (radius 15 around the origin) so no two boxes overlap.
+    parked = [(-30.0, 19.0, 0.0, 1), (-18.0, 19.0, 0.0, 1), (-6.0, 19.0, 0.0, 1), (8.0, -19.0, math.pi, 1),
+              (22.0, -19.0, math.pi, 2), (30.0, 14.0, 0.0, 7)]
     tracks = [Track(_tid(i), label, "parked", _parked(x, y, yaw), jitter=0.02,
                     length=10.0 if label == 2 else (0.8 if label == 7 else 4.5),
                     width=2.5 if label == 2 else (0.8 if label == 7 else 1.9))
