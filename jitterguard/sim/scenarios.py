@@ -199,7 +199,7 @@ def _sidewalk_people(b: LayoutBuilder, x0: float, x1: float, y_inner: float, sid
         def in_clear(s: float, base: float = base, direction: int = direction) -> bool:
             return keep_clear is not None and keep_clear[0] < base + direction * s < keep_clear[1]
 
-        _fill_lane(b, lane, s_lo, s_hi, (8.0 / density, 40.0 / density), (1.2, 1.6),
+        _fill_lane(b, lane, s_lo, s_hi, (12.0 / density, 60.0 / density), (1.2, 1.6),
                    {"pedestrian": 0.92, "child": 0.08}, skip=in_clear)
     facing = -side * math.pi / 2
     for key, per_m, attr in (("pedestrian", 1 / 30.0, cat.PED_STANDING), ("sitting", 1 / 90.0, cat.PED_SITTING)):
@@ -495,7 +495,7 @@ def _intersection(rng: np.random.Generator, duration_s: float, mixed: bool) -> L
             def in_road(s: float, direction: int = direction) -> bool:
                 return y_lo < direction * (s - far) < y_hi
 
-            _fill_lane(b, lane, far - y_far - 1.6 * duration_s, far + y_far, (8.0 / dens, 40.0 / dens), (1.2, 1.6),
+            _fill_lane(b, lane, far - y_far - 1.6 * duration_s, far + y_far, (12.0 / dens, 60.0 / dens), (1.2, 1.6),
                        {"pedestrian": 0.9, "child": 0.1}, skip=in_road)
     return b.build()
 

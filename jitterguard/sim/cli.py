@@ -1,0 +1,219 @@
+"""``jitterguard sim ...`` (generate, export, bev, list) and ``jitterguard bench sim``.
+
+Bad input is one line on stderr and exit 2 (``cli_common.fail``); long work shows a tqdm bar on stderr.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from collections import Counter
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+
+from ..cli_common import fail
+
+sim_app = typer.Typer(help="Synthetic world: scenarios with ground truth, ray-cast LiDAR, nuScenes export.",
+                      no_args_is_help=True)
+
+ScenarioArg = Annotated[str, typer.Argument(help="parking-street, diagonal-lot, intersection or mixed.")]
+SeedOpt = Annotated[int, typer.Option("--seed", help="Seed: the same seed gives the same world.")]
+DurationOpt = Annotated[float, typer.Option("--duration", help="Seconds (10–60 is the intended range).")]
+LidarOpt = Annotated[str, typer.Option("--lidar", help="hdl32e, vlp16 or os1-64.")]
+
+
+def _check(scenario: str, duration: float, rate: float, lidar: str | None = None) -> None:
+    from .sensors import SENSORS
+    from .world import SCENARIO_NAMES
+
+    if scenario not in SCENARIO_NAMES:
+        fail(f"unknown scenario {scenario!r} (have: {', '.join(SCENARIO_NAMES)})")
+    if not 0 < duration <= 600:
+        fail("--duration must be in (0, 600] seconds")
+    if not 0 < rate <= 100:
+        fail("--rate must be in (0, 100] Hz")
+    if lidar is not None and lidar not in SENSORS:
+        fail(f"--lidar {lidar!r}: unknown sensor (have: {', '.join(SENSORS)})")
+
+
+def _bar(iterable: Any, total: int, desc: str, enabled: bool) -> Any:
+    if not enabled:
+        return iterable
+    from tqdm import tqdm
+
+    return tqdm(iterable, total=total, desc=desc, unit="frame", file=sys.stderr, leave=False)
+
+
+def _frame_json(frame: Any, categories: dict[int, str]) -> dict[str, Any]:
+    return {
+        "seq": frame.seq, "stamp_ns": frame.stamp_ns,
+        "ego": {"x": frame.ego_x, "y": frame.ego_y, "yaw": frame.ego_yaw, "speed": frame.ego_speed},
+        "objects": [
+            {"instance_id": int(frame.instance_ids[n]), "label": int(frame.labels[n]),
+             "category": categories[int(frame.instance_ids[n])], "attribute": frame.attributes[n],
+             "moving": bool(frame.moving[n]), "center": [float(v) for v in frame.centers[n]],
+             "size": [float(v) for v in frame.sizes[n]], "yaw": float(frame.yaws[n]),
+             "velocity": [float(v) for v in frame.velocities[n]], "visibility": round(float(frame.visibility[n]), 4),
+             "num_points": int(frame.num_points[n])}
+            for n in range(frame.num_objects)
+        ],
+    }
+
+
+def generate_command(
+    scenario: ScenarioArg,
+    seed: SeedOpt = 0,
+    duration: DurationOpt = 20.0,
+    rate: Annotated[float, typer.Option("--rate", help="Frames per second.")] = 10.0,
+    out: Annotated[str | None, typer.Option("--out", help="Write the ground truth as JSON lines (one frame each).")] = None,
+    lidar: Annotated[str | None, typer.Option("--lidar", help="Also ray-cast every frame (hdl32e, vlp16, os1-64) to fill point counts and visibility.")] = None,
+    progress: Annotated[bool | None, typer.Option("--progress/--no-progress", help="Progress bar (default: when stderr is a terminal).")] = None,
+) -> None:
+    """Generate a scenario; print a JSON summary, optionally write its ground truth."""
+    _check(scenario, duration, rate, lidar)
+    from .lidar import cast_frame
+    from .sensors import SENSORS
+    from .world import make_scenario
+
+    sc = make_scenario(scenario, seed, duration_s=duration, rate_hz=rate)
+    spec = SENSORS[lidar]() if lidar else None
+    attrs: Counter[str] = Counter()
+    ids: set[int] = set()
+    fh = None
+    if out:
+        try:
+            fh = open(out, "w", encoding="utf-8")
+        except OSError as exc:
+            fail(f"--out: cannot write {out}: {exc.strerror}")
+    try:
+        frames = _bar(iter(sc), sc.num_frames, scenario, sys.stderr.isatty() if progress is None else progress)
+        first = last = None
+        for frame in frames:
+            if spec is not None:
+                _, frame = cast_frame(frame, spec, seed)
+            attrs.update(frame.attributes)
+            ids.update(frame.instance_ids.tolist())
+            first = first or frame
+            last = frame
+            if fh is not None:
+                fh.write(json.dumps(_frame_json(frame, sc.categories)) + "\n")
+    finally:
+        if fh is not None:
+            fh.close()
+    summary = {
+        "scenario": scenario, "seed": seed, "frames": sc.num_frames, "rate_hz": rate,
+        "instances_seen": len(ids), "annotations": sum(attrs.values()), "attributes": dict(sorted(attrs.items())),
+        "ego_distance_m": round(float(((last.ego_x - first.ego_x) ** 2 + (last.ego_y - first.ego_y) ** 2) ** 0.5), 2)
+        if first is not None and last is not None else 0.0,
+    }
+    if out:
+        summary["out"] = out
+    print(json.dumps(summary))
+
+
+def export_command(
+    scenario: ScenarioArg,
+    dataroot: Annotated[str, typer.Argument(help="Folder to write (v1.0-mini/*.json and samples/LIDAR_TOP/*.pcd.bin).")],
+    seed: SeedOpt = 0,
+    duration: DurationOpt = 20.0,
+    rate: Annotated[float, typer.Option("--rate", help="Keyframes per second (nuScenes: 2).")] = 2.0,
+    lidar: LidarOpt = "hdl32e",
+    min_points: Annotated[int, typer.Option("--min-points", help="Annotate only objects with at least this many LiDAR points.")] = 0,
+    progress: Annotated[bool | None, typer.Option("--progress/--no-progress", help="Progress bar (default: when stderr is a terminal).")] = None,
+) -> None:
+    """Export a scenario as a nuScenes-format dataroot (loads with nuscenes-devkit, version v1.0-mini)."""
+    _check(scenario, duration, rate, lidar)
+    if min_points < 0:
+        fail("--min-points must be >= 0")
+    root = Path(dataroot)
+    if root.exists() and not root.is_dir():
+        fail(f"{dataroot}: exists and is not a folder")
+    if (root / "v1.0-mini").exists():
+        fail(f"{dataroot}: already holds a v1.0-mini dataroot; choose an empty folder")
+    from .export import export_scenario
+    from .sensors import SENSORS
+    from .world import make_scenario
+
+    sc = make_scenario(scenario, seed, duration_s=duration, rate_hz=rate)
+    show = sys.stderr.isatty() if progress is None else progress
+    try:
+        sizes = export_scenario(sc, str(root), SENSORS[lidar](), seed, min_points=min_points,
+                                progress=lambda it: _bar(it, sc.num_frames, f"export {scenario}", show))
+    except OSError as exc:
+        fail(f"{dataroot}: cannot write: {exc.strerror or exc}")
+    print(json.dumps({"dataroot": str(root), "version": "v1.0-mini", "scenario": scenario, "seed": seed,
+                      "tables": sizes}))
+
+
+def bev_command(
+    scenario: ScenarioArg,
+    out: Annotated[str, typer.Option("--out", help="PNG file to write.")],
+    seed: SeedOpt = 0,
+    frame: Annotated[int, typer.Option("--frame", help="Frame index.")] = 50,
+    duration: DurationOpt = 20.0,
+    rate: Annotated[float, typer.Option("--rate", help="Frames per second.")] = 10.0,
+    lidar: LidarOpt = "hdl32e",
+    extent: Annotated[float, typer.Option("--extent", help="Half-width of the view in metres.")] = 40.0,
+) -> None:
+    """Render one ray-cast scan with its ground-truth boxes (colour = motion state) as a bird's-eye PNG."""
+    _check(scenario, duration, rate, lidar)
+    if not 5.0 <= extent <= 200.0:
+        fail("--extent must be in [5, 200] metres")
+    if not out.lower().endswith(".png"):
+        fail("--out must name a .png file")
+    from .bev import render_bev
+    from .lidar import cast_frame
+    from .sensors import SENSORS
+    from .world import make_scenario
+
+    sc = make_scenario(scenario, seed, duration_s=duration, rate_hz=rate)
+    if not 0 <= frame < sc.num_frames:
+        fail(f"--frame must be in [0, {sc.num_frames - 1}] for {duration:g} s at {rate:g} Hz")
+    spec = SENSORS[lidar]()
+    res, gt = cast_frame(sc.frame(frame), spec, seed)
+    title = f"{scenario} seed {seed}, frame {frame} (t = {frame / rate:.1f} s), {spec.name}: {len(res.points)} points"
+    try:
+        render_bev(gt, res.points, out, extent_m=extent, title=title)
+    except OSError as exc:
+        fail(f"--out: cannot write {out}: {exc.strerror or exc}")
+    print(json.dumps({"out": out, "points": int(len(res.points)), "objects": gt.num_objects}))
+
+
+def list_command() -> None:
+    """List scenarios and LiDAR presets as JSON."""
+    from .sensors import SENSORS
+    from .world import SCENARIO_NAMES
+
+    sensors = {k: {"name": s.name, "beams": s.num_beams, "azimuth_steps": s.azimuth_steps, "rate_hz": s.rate_hz,
+                   "elevation_deg": [round(float(s.elevations_deg[0]), 2), round(float(s.elevations_deg[-1]), 2)]}
+               for k, s in ((k, f()) for k, f in SENSORS.items())}
+    print(json.dumps({"scenarios": list(SCENARIO_NAMES), "sensors": sensors}))
+
+
+def bench_command(
+    json_out: Annotated[bool, typer.Option("--json", help="Print the figures as one JSON object (the default output).")] = True,
+    scans: Annotated[int, typer.Option("--scans", help="Scans per run.")] = 40,
+    objects: Annotated[int, typer.Option("--objects", help="Road users in the scene (nearest kept).")] = 60,
+    scenario: Annotated[str, typer.Option("--scenario", help="Scenario the scene comes from.")] = "parking-street",
+    lidar: LidarOpt = "hdl32e",
+    repeat: Annotated[int, typer.Option("--repeat", help="Runs; the median is reported with every run.")] = 3,
+) -> None:
+    """Ray-casting throughput (full scans/s on one core), as JSON."""
+    _check(scenario, 10.0, 10.0, lidar)
+    if scans < 1 or objects < 0 or repeat < 1:
+        fail("--scans and --repeat must be >= 1, --objects >= 0")
+    from .bench import bench_raycast
+
+    print(json.dumps(bench_raycast(lidar, scenario, objects, scans, repeat), indent=None if json_out else 2))
+
+
+def register(app: typer.Typer, bench_app: typer.Typer) -> None:
+    """Add ``sim`` (generate, export, bev, list) to the main app and ``sim`` to ``bench``."""
+    sim_app.command("generate")(generate_command)
+    sim_app.command("export")(export_command)
+    sim_app.command("bev")(bev_command)
+    sim_app.command("list")(list_command)
+    app.add_typer(sim_app, name="sim")
+    bench_app.command("sim")(bench_command)

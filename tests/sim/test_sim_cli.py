@@ -1,0 +1,74 @@
+"""``jitterguard sim`` and ``jitterguard bench sim``: outputs, files, and one-line errors with exit 2."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from typer.testing import CliRunner
+
+from jitterguard.cli import app
+
+runner = CliRunner()
+
+
+def run(*args: str):
+    return runner.invoke(app, list(args))
+
+
+def test_list_names_scenarios_and_sensors() -> None:
+    r = run("sim", "list")
+    assert r.exit_code == 0
+    out = json.loads(r.stdout)
+    assert out["scenarios"] == ["parking-street", "diagonal-lot", "intersection", "mixed"]
+    assert out["sensors"]["hdl32e"]["beams"] == 32
+
+
+def test_generate_writes_ground_truth_lines(tmp_path) -> None:
+    path = tmp_path / "gt.jsonl"
+    r = run("sim", "generate", "parking-street", "--seed", "2", "--duration", "1", "--rate", "5", "--out", str(path),
+            "--lidar", "vlp16", "--no-progress")
+    assert r.exit_code == 0, r.output
+    summary = json.loads(r.stdout)
+    assert summary["frames"] == 5 and summary["attributes"]["vehicle.parked"] > 0
+    lines = [json.loads(x) for x in path.read_text().splitlines()]
+    assert len(lines) == 5 and lines[0]["objects"][0]["category"].count(".") >= 1
+    assert any(o["num_points"] > 0 for o in lines[0]["objects"])
+
+
+def test_export_and_bev_write_files(tmp_path) -> None:
+    root = tmp_path / "nusc"
+    r = run("sim", "export", "diagonal-lot", str(root), "--duration", "1", "--rate", "2", "--no-progress")
+    assert r.exit_code == 0, r.output
+    assert json.loads(r.stdout)["tables"]["sample"] == 2
+    assert len(list((root / "samples" / "LIDAR_TOP").glob("*.pcd.bin"))) == 2
+    again = run("sim", "export", "diagonal-lot", str(root), "--duration", "1")
+    assert again.exit_code == 2 and "already holds" in again.output
+    png = tmp_path / "bev.png"
+    r = run("sim", "bev", "intersection", "--frame", "3", "--duration", "1", "--out", str(png))
+    assert r.exit_code == 0, r.output
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.parametrize("args, message", [
+    (("sim", "generate", "highway"), "unknown scenario"),
+    (("sim", "generate", "mixed", "--duration", "0"), "--duration"),
+    (("sim", "generate", "mixed", "--rate", "-1"), "--rate"),
+    (("sim", "bev", "mixed", "--out", "x.jpg"), ".png"),
+    (("sim", "bev", "mixed", "--out", "x.png", "--frame", "99999"), "--frame"),
+    (("sim", "export", "mixed", "/tmp/x", "--lidar", "hdl64"), "--lidar"),
+    (("bench", "sim", "--scans", "0"), "--scans"),
+])
+def test_bad_input_is_one_line_and_exit_2(args, message) -> None:
+    r = run(*args)
+    assert r.exit_code == 2
+    lines = [ln for ln in r.output.splitlines() if ln.strip()]
+    assert len(lines) == 1 and message in lines[0] and lines[0].startswith("jitterguard: error:")
+
+
+def test_bench_prints_json() -> None:
+    r = run("bench", "sim", "--json", "--scans", "2", "--repeat", "1", "--objects", "10")
+    assert r.exit_code == 0, r.output
+    out = json.loads(r.stdout)
+    assert out["sensor"] == "HDL-32E" and out["rays_per_scan"] == 34720 and out["objects"] == 10
+    assert out["scans_per_s"] > 0
