@@ -32,7 +32,7 @@ import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from ..geometry import quaternion_from_yaw
 from ..schemas.models import (
@@ -135,8 +135,10 @@ class _JitterState:
     stamp_ns: int
 
 
-def beam_covariance(x: F64, y: F64, var_long: F64, var_lat: F64) -> tuple[F64, F64, F64]:
+def beam_covariance(x: ArrayLike, y: ArrayLike, var_long: ArrayLike, var_lat: ArrayLike) -> tuple[F64, F64, F64]:
     """Sensor-frame (cxx, cxy, cyy) of variances given along the beam to (x, y) and across it."""
+    var_long = np.asarray(var_long, dtype=np.float64)
+    var_lat = np.asarray(var_lat, dtype=np.float64)
     phi = np.arctan2(y, x)
     c, s = np.cos(phi), np.sin(phi)
     return c * c * var_long + s * s * var_lat, c * s * (var_long - var_lat), s * s * var_long + c * c * var_lat
@@ -237,7 +239,7 @@ class DetectionModel:
                         0.05, 1.0)
 
         objects: list[DetectedObject] = []
-        for j, i in enumerate(idx):
+        for j, i in enumerate(idx.tolist()):
             objects.append(_make_object(
                 int(frame.labels[i]), float(score[j]), sx[i] + ex[j], sy[i] + ey[j], float(z_det[j]),
                 float(yaw_det[j]), sizes[j], float(rxx[j]), float(rxy[j]), float(ryy[j]), float(sig_yaw[j] ** 2),
@@ -255,7 +257,7 @@ class DetectionModel:
             fx, fy = r * math.cos(a), r * math.sin(a)
             vl = (cfg.sigma_long_0 + cfg.sigma_long_per_m * r) ** 2 * 4
             vt = (cfg.sigma_lat_0 + cfg.sigma_lat_per_m * r) ** 2 * 4
-            bxx, bxy, byy = beam_covariance(np.float64(fx), np.float64(fy), np.float64(vl), np.float64(vt))
+            bxx, bxy, byy = beam_covariance(fx, fy, vl, vt)
             objects.append(_make_object(
                 label, float(rng.uniform(0.1, 0.45)), fx, fy, size[2] / 2 - SENSOR_HEIGHT_M,
                 float(rng.uniform(-math.pi, math.pi)), size, float(bxx), float(bxy), float(byy), 0.3, 0.04,

@@ -151,8 +151,8 @@ def nuscenes_tables(scenario_name: str, seed: int, frames: Iterable[tuple[Ground
             a["next"], b["prev"] = b["token"], a["token"]
     instances = []
     for iid, rows in sorted(by_instance.items()):
-        for a, b in zip(rows, rows[1:]):
-            annotations[a]["next"], annotations[b]["prev"] = annotations[b]["token"], annotations[a]["token"]
+        for ra, rb in zip(rows, rows[1:]):
+            annotations[ra]["next"], annotations[rb]["prev"] = annotations[rb]["token"], annotations[ra]["token"]
         cat = categories[iid]
         instances.append({"token": token(key, "instance", iid), "category_token": cat_tokens[cat],
                           "nbr_annotations": len(rows), "first_annotation_token": annotations[rows[0]]["token"],

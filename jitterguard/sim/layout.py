@@ -130,7 +130,7 @@ class LayoutBuilder:
 
     # ------------------------------------------------------------------ static objects
     def add_static(self, cls_key: str, x: float, y: float, yaw: float, attribute: str,
-                   size: Sequence[float] | None = None, clearance: float = 0.05) -> int:
+                   size: Sequence[float] | F64 | None = None, clearance: float = 0.05) -> int:
         """A road user that never moves in this scenario (parked car, standing/sitting pedestrian, parked bike).
 
         Returns its instance id, or -1 (and adds nothing) if its footprint, grown by ``clearance``, would overlap
@@ -166,13 +166,15 @@ class LayoutBuilder:
 
     def add_agent(self, lane: int, cls_key: str, s0: float, v_desired: float, *,
                   stops: Sequence[ScriptedStop] = (), start_delay_s: float = 0.0,
-                  parks_after_s: float | None = None, size: Sequence[float] | None = None,
-                  v0: float | None = None, is_ego: bool = False, **idm: float) -> int:
-        """Put a road user on ``lane`` at arc length ``s0``; returns its instance id (0 for the ego)."""
+                  parks_after_s: float | None = None, size: Sequence[float] | F64 | None = None,
+                  v0: float | None = None, is_ego: bool = False, idm: dict[str, float] | None = None) -> int:
+        """Put a road user on ``lane`` at arc length ``s0``; returns its instance id (0 for the ego).
+
+        ``idm`` overrides :class:`~jitterguard.sim.traffic.LaneAgent`'s IDM parameters (a_max, b_comfort, ...)."""
         cls = CLASSES[cls_key]
         sz = cls.sample_size(self.rng) if size is None else np.asarray(size, dtype=np.float64)
         agent = LaneAgent(s0=s0, v_desired=v_desired, length=float(sz[0]), v0=v0, stops=tuple(stops),
-                          start_delay_s=start_delay_s, **idm)
+                          start_delay_s=start_delay_s, **(idm or {}))
         iid = 0 if is_ego else self._new_id()
         member = _LaneMember(iid, cls, sz, agent, parks_after_s, is_ego)
         self._lanes[lane].members.append(member)
@@ -209,7 +211,8 @@ class LayoutBuilder:
         k = len(t_grid)
 
         def stack(i: int) -> F64:
-            return np.stack([d[i] for d in dyn], axis=1) if dyn else np.zeros((k, 0))
+            cols: list[F64] = [d[i] for d in dyn]  # type: ignore[misc]
+            return np.stack(cols, axis=1) if dyn else np.zeros((k, 0))
 
         st = self._static
         return Layout(

@@ -21,7 +21,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from .primitives import BOX, CYLINDER, Primitives, Tag
+from .primitives import BOX, Primitives, Tag
 from .sensors import LidarSpec, azimuths, hdl32e
 from .shapes import object_primitives
 from .world import GroundTruthFrame
@@ -39,12 +39,14 @@ _GROUND_OWNER = -2
 class ScanResult:
     """A scan: ``points`` (P, 4) float32 x, y, z, intensity in the sensor frame; ``ring`` (P,) beam index (0 =
     lowest); ``owner`` (P,) the frame row of the object hit (−1 clutter, −2 ground); per object row,
-    ``num_points`` (returns on it) and ``num_rays_alone`` (returns it would get with nothing in front of it)."""
+    ``num_points`` (returns on it), ``num_rays_visible`` (rays whose first hit is the object, before range
+    limits and dropout) and ``num_rays_alone`` (rays that would hit it with nothing in front of it)."""
 
     points: F32
     ring: NDArray[np.int16]
     owner: NDArray[np.int64]
     num_points: NDArray[np.int64]
+    num_rays_visible: NDArray[np.int64]
     num_rays_alone: NDArray[np.int64]
 
 
@@ -238,7 +240,11 @@ def cast(prims: Primitives, owner: NDArray[np.int64], spec: LidarSpec, rng: np.r
     prim_hit = best_prim[idx]
     own = np.append(owner, _GROUND_OWNER)[prim_hit]
     counts = np.bincount(own[own >= 0], minlength=num_objects) if num_objects else np.zeros(0, np.int64)
-    return ScanResult(pts, bm.astype(np.int16), own.astype(np.int64), counts.astype(np.int64), alone)
+    first_owner = np.append(owner, _GROUND_OWNER)[best_prim]
+    first_owner = first_owner[first_owner >= 0]
+    visible = np.bincount(first_owner, minlength=num_objects) if num_objects else np.zeros(0, np.int64)
+    return ScanResult(pts, bm.astype(np.int16), own.astype(np.int64), counts.astype(np.int64),
+                      visible.astype(np.int64), alone)
 
 
 def scene_primitives(frame: GroundTruthFrame, spec: LidarSpec) -> tuple[Primitives, NDArray[np.int64]]:
@@ -261,8 +267,8 @@ def cast_frame(frame: GroundTruthFrame, sensor: LidarSpec | None = None, seed: i
                ) -> tuple[ScanResult, GroundTruthFrame]:
     """Scan ``frame`` and return the scan plus the frame with ``num_points`` and ray-cast ``visibility`` filled in.
 
-    Visibility = returns on the object / rays that would hit it alone (before dropout); objects no ray reaches
-    keep their analytic estimate. Randomness is seeded by (``seed``, frame seq), so a frame always scans the same.
+    Visibility = rays whose first hit is the object / rays that would hit it alone (porous crowns and fences
+    count as occluding only where they stopped the ray); objects no ray reaches keep their analytic estimate. Randomness is seeded by (``seed``, frame seq), so a frame always scans the same.
     """
     spec = sensor or hdl32e()
     prims, owner = scene_primitives(frame, spec)
@@ -270,8 +276,7 @@ def cast_frame(frame: GroundTruthFrame, sensor: LidarSpec | None = None, seed: i
     res = cast(prims, owner, spec, rng, frame.num_objects)
     vis = frame.visibility.copy()
     reached = res.num_rays_alone > 0
-    # the hit count before dropout: divide the observed returns by the mean keep rate
-    vis[reached] = np.clip(res.num_points[reached] / ((1.0 - spec.dropout) * res.num_rays_alone[reached]), 0.0, 1.0)
+    vis[reached] = np.clip(res.num_rays_visible[reached] / res.num_rays_alone[reached], 0.0, 1.0)
     return res, replace(frame, num_points=res.num_points.copy(), visibility=vis)
 
 

@@ -8,7 +8,7 @@ Extents scale with the duration so that a 60 s drive still passes parked cars an
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -64,12 +64,12 @@ def _fill_lane(b: LayoutBuilder, lane: int, s_from: float, s_to: float, gap: tup
                     stops.append(ScriptedStop(pos, float(rng.uniform(3.0, 9.0))))
                 pos += rng.uniform(*stops_every)
         if (skip is None or not skip(s)) and b.lane_is_free(lane, s, 12.0, 2.0):
-            b.add_agent(lane, key, s, v, stops=stops, **_idm_for(key))
+            b.add_agent(lane, key, s, v, stops=stops, idm=_idm_for(key))
         s -= rng.uniform(*gap)
 
 
 def _parallel_parking(b: LayoutBuilder, x0: float, x1: float, y: float, heading: float,
-                      keep_clear: list[tuple[float, float]] = (), p_gap: float = 0.12, along_x: bool = True) -> None:
+                      keep_clear: Sequence[tuple[float, float]] = (), p_gap: float = 0.12, along_x: bool = True) -> None:
     """Parallel-parked vehicles along y = ``y`` between x0 and x1, bumper gaps 0.6–2.5 m, some empty spots
     (``along_x=False``: along the line x = ``y`` between y = x0 and x1)."""
     rng = b.rng
@@ -134,7 +134,7 @@ def _sign(b: LayoutBuilder, x: float, y: float, facing: float) -> None:
 
 
 def _curb_furniture(b: LayoutBuilder, x0: float, x1: float, y: float, along_x: bool = True,
-                    keep_clear: list[tuple[float, float]] = ()) -> None:
+                    keep_clear: Sequence[tuple[float, float]] = ()) -> None:
     """Trees, lamp poles and signs on the curb strip (line ``y`` if along x, else line x = ``y``)."""
     rng = b.rng
     x = x0 + rng.uniform(0, 6)
@@ -265,7 +265,7 @@ def parking_street(rng: np.random.Generator, duration_s: float) -> Layout:
         while pos < s_lead + v_ego * duration_s:
             stops.append(ScriptedStop(pos, float(rng.uniform(3.0, 8.0))))
             pos += rng.uniform(60.0, 160.0)
-        b.add_agent(ego_lane, key, s_lead, v_ego * rng.uniform(0.9, 1.15), stops=stops, **_idm_for(key))
+        b.add_agent(ego_lane, key, s_lead, v_ego * rng.uniform(0.9, 1.15), stops=stops, idm=_idm_for(key))
     _fill_lane(b, ego_lane, far + 70.0, far + 70.0 + v_ego * duration_s, (30.0, 80.0), (v_ego + 1.0, v_ego + 4.0),
                {"car": 0.85, "van": 0.1, "motorcycle": 0.05})
     _fill_lane(b, ego_lane, far - 60.0, far - 12.0, (15.0, 40.0), (v_ego, v_ego + 2.0), {"car": 1.0})

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -46,7 +47,7 @@ class LidarSpec:
 
 
 def _spec(name: str, elev_deg: NDArray[np.float64], steps: int, rate: float, sigma: float, max_range: float,
-          **kw: float) -> LidarSpec:
+          **kw: Any) -> LidarSpec:
     return LidarSpec(name, np.radians(np.sort(np.asarray(elev_deg, dtype=np.float64))), steps, rate, sigma, max_range,
                      **kw)
 
@@ -72,4 +73,4 @@ SENSORS = {"hdl32e": hdl32e, "vlp16": vlp16, "os1-64": os1_64}
 
 def azimuths(spec: LidarSpec) -> NDArray[np.float64]:
     """Azimuth of every column (radians, −π … π, column centres)."""
-    return -math.pi + (np.arange(spec.azimuth_steps) + 0.5) * (2.0 * math.pi / spec.azimuth_steps)
+    return (-math.pi + (np.arange(spec.azimuth_steps) + 0.5) * (2.0 * math.pi / spec.azimuth_steps)).astype(np.float64)
