@@ -7,11 +7,14 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
-from jitterguard.geometry import sensor_to_world_xy, yaw_from_quaternion
+from jitterguard.geometry import rotate_cov2, sensor_to_world_xy, yaw_from_quaternion
 from jitterguard.schemas import DetectedObjects, Label, decode, encode
 from jitterguard.schemas.models import X_X, X_Y, Y_X, Y_Y, YAW_YAW
 from jitterguard.sim import DetectionModel, GroundTruthFrame, NoiseConfig, Scenario, make_scenario
+from jitterguard.sim.detection_model import beam_covariance, miscalibrate
 from jitterguard.sim.world import BASE_STAMP_NS, SENSOR_HEIGHT_M
 
 
@@ -204,3 +207,22 @@ def test_same_seed_same_detections() -> None:
     c = [DetectionModel(NoiseConfig.jittery(), 5).detect(f) for f in sc]
     assert all(x.detections == y.detections and np.array_equal(x.gt_index, y.gt_index) for x, y in zip(a, b))
     assert any(x.detections != y.detections for x, y in zip(a, c))
+
+
+_coord = st.floats(-80, 80).filter(lambda v: abs(v) > 0.5)
+_var = st.floats(1e-4, 4.0)
+_scale = st.floats(0.1, 10.0)
+
+
+@settings(max_examples=200, deadline=None)
+@given(_coord, _coord, _var, _var, _scale, _scale)
+def test_beam_frame_covariance_algebra(x: float, y: float, vl: float, vt: float, kl: float, kt: float) -> None:
+    cxx, cxy, cyy = beam_covariance(x, y, vl, vt)
+    rxx, rxy, ryy = rotate_cov2(vl, 0.0, vt, math.atan2(y, x))  # the shared geometry helper agrees
+    assert np.allclose([cxx, cxy, cyy], [rxx, rxy, ryy], rtol=1e-9, atol=1e-12)
+    same = miscalibrate(x, y, cxx, cxy, cyy, 1.0, 1.0)
+    assert np.allclose(same, [cxx, cxy, cyy], rtol=1e-9, atol=1e-12)
+    sk = miscalibrate(x, y, cxx, cxy, cyy, kl, kt)
+    assert sk[0] * sk[2] - sk[1] ** 2 > 0  # still positive definite
+    back = miscalibrate(x, y, *sk, 1.0 / kl, 1.0 / kt)
+    assert np.allclose(back, [cxx, cxy, cyy], rtol=1e-7, atol=1e-10)
