@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import socket
@@ -95,3 +96,20 @@ def test_real_process_serves_and_stops_on_sigterm() -> None:
             proc.kill()
             proc.wait()
         classifier.close()
+
+
+@pytest.mark.integration
+@pytest.mark.slow
+def test_bench_prints_json() -> None:
+    """A tiny real run of ``jitterguard bench sidecar --json`` (separate processes): the JSON has the
+    figures the issue asks for, and every request was served."""
+    out = subprocess.run(
+        [sys.executable, "-m", "jitterguard.cli", "bench", "sidecar", "--json", "--tracks", "30",
+         "--duration", "1", "--warmup", "0.2", "--request-rate", "20", "--state-source", "synthetic"],
+        capture_output=True, text=True, timeout=180)
+    assert out.returncode == 0, out.stderr
+    result = json.loads(out.stdout)
+    assert result["tracks_seen"] == {"min": 30, "max": 30}
+    assert result["status_counts"] == {"200": result["get_state_ms"]["n"]} and result["get_state_ms"]["n"] >= 10
+    assert result["get_state_ms"]["p50"] <= result["get_state_ms"]["p99"] <= result["get_state_ms"]["max"]
+    assert result["pipeline_hz"] > 0 and result["state_source"] == "synthetic"

@@ -186,6 +186,19 @@ def test_render_state_matches_the_documented_view() -> None:
     assert r.by_class_state[("car", "dynamic")] == 1 and r.by_class_state[("bus", "static")] == 0
 
 
+def test_render_from_the_raw_wire_map_equals_render_from_the_model() -> None:
+    """The client renders from decode_with_raw's map (faster); a producer may omit defaulted fields."""
+    import msgpack
+
+    from jitterguard.schemas import decode_with_raw
+    snap = _snap([_entry(2, "dynamic"), _entry(1, "static", label=7)])
+    data = msgpack.packb(snap.model_dump(mode="python", exclude={"tracks": {0: {"yaw", "length", "width"}}}))
+    model, raw = decode_with_raw(ClassifierStateSnapshot, data)
+    fast, slow = render_state(model, 5, raw), render_state(model, 5)
+    assert json.loads(fast.body) == json.loads(slow.body)
+    assert fast.tracks[f"{2:032x}"]["yaw"] == 0.0
+
+
 def test_statistic_follows_the_mode() -> None:
     e = _entry(1, "dynamic")
     assert render_state(_snap([e], mode="chi2"), 0).tracks[e.track_id]["statistic"] == 6.0

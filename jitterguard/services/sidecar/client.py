@@ -25,7 +25,7 @@ from typing import Any
 import zenoh
 
 from ...runtime import Service, ZenohOptions
-from ...schemas import DecodeError, decode, encode, keys
+from ...schemas import DecodeError, decode, decode_with_raw, encode, keys
 from ...schemas.models import ClassifierConfig, ClassifierStateSnapshot, ConfigReply, Heartbeat
 from .core import RenderedState, config_to_api, diff_states, render_state
 from .metrics import SidecarMetrics
@@ -163,12 +163,12 @@ class ClassifierClient(Service):
         if data == self._last_payload:
             return self._rendered
         try:
-            snap = decode(ClassifierStateSnapshot, data)
+            snap, raw = decode_with_raw(ClassifierStateSnapshot, data)
         except DecodeError as exc:
             self._reject("classifier/state", exc)
             return self._rendered
         prev = self._rendered
-        new = render_state(snap, time.time_ns())
+        new = render_state(snap, time.time_ns(), raw)
         self._last_payload = data
         self._rendered = new
         if prev is None or new.seq != prev.seq or new.tracks.keys() != prev.tracks.keys():
