@@ -87,8 +87,7 @@ def test_real_process_serves_and_stops_on_sigterm() -> None:
         r = httpx.patch(f"{url}/v1/config", json={"alpha_default": 2.2}, timeout=5)
         assert r.status_code == 200 and classifier.core.config.alpha_default == 2.2
         proc.send_signal(signal.SIGTERM)
-        # uvicorn shuts down gracefully, then re-raises the signal it caught (exit status -SIGTERM).
-        assert proc.wait(timeout=20) in (0, -signal.SIGTERM)
+        assert proc.wait(timeout=20) == 0  # a graceful stop is a clean exit (supervisord logs no warning)
         out = proc.stdout.read().decode() if proc.stdout else ""
         assert "sidecar stopped" in out, out  # the lifespan closed the Zenoh session (no hang at exit)
     finally:

@@ -6,9 +6,13 @@ port bound): an unusable port, a non-loopback bind without ``JG_API_TOKEN``, a m
 
 from __future__ import annotations
 
+import contextlib
 import json
+import signal
 import socket
 import sys
+import threading
+from collections.abc import Iterator
 from typing import TYPE_CHECKING, Annotated
 
 import typer
@@ -161,4 +165,31 @@ def serve(settings: SidecarSettings, host: str, port: int, log_level: str = "INF
     config = uvicorn.Config(create_app(settings), host=host, port=port, log_level=log_level.lower(),
                             access_log=log_level.upper() == "DEBUG", timeout_graceful_shutdown=2,
                             lifespan="on")
-    uvicorn.Server(config).run()
+    _clean_exit_server_class()(config).run()
+
+
+def _clean_exit_server_class() -> type:
+    """Built on demand: uvicorn is imported only by the commands that serve."""
+    import uvicorn
+
+    class CleanExitServer(uvicorn.Server):
+        """uvicorn's server, exiting 0 after a graceful SIGTERM/SIGINT shutdown.
+
+        Stock uvicorn re-raises the signal once it has shut down, so the process dies "terminated by SIGTERM"
+        and supervisord logs every ordinary stop as a warning; the shutdown itself was clean.
+        """
+
+        @contextlib.contextmanager
+        def capture_signals(self) -> Iterator[None]:
+            if threading.current_thread() is not threading.main_thread():
+                yield
+                return
+            old = {sig: signal.signal(sig, self.handle_exit) for sig in (signal.SIGINT, signal.SIGTERM)}
+            try:
+                yield
+            finally:
+                for sig, handler in old.items():
+                    signal.signal(sig, handler)
+
+    return CleanExitServer
+
