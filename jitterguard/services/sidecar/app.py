@@ -273,7 +273,7 @@ def create_app(settings: SidecarSettings) -> FastAPI:
 
     @app.post("/v1/config/preset/{name}", tags=["config"], response_model=ConfigModel, dependencies=write_deps,
               responses=write_errors, summary="Apply a named preset; every field it does not name stays")
-    def post_preset(name: Annotated[PresetName, Path(description="preset name")]) -> dict[str, Any]:
+    def post_preset(name: Annotated[PresetName, Path(description="preset name")]) -> dict[str, Any]:  # type: ignore[valid-type]
         return _write(lambda: client().update_config(lambda cur: apply_preset(cur, name)))
 
     def _write(do: Any) -> dict[str, Any]:

@@ -127,7 +127,8 @@ def _synthetic_snapshots(params: BenchParams) -> list[dict]:
             q = pose.orientation
             entries.append(TrackStateEntry(
                 track_id=obj.object_id, label=obj.classification[0].label if obj.classification else 0,
-                state=STATE_NAMES[int(dec.state[i])], z_x=float(dec.z_x[i]), z_y=float(dec.z_y[i]),
+                state=STATE_NAMES[int(dec.state[i])],  # type: ignore[arg-type]  # one of the three names
+                z_x=float(dec.z_x[i]), z_y=float(dec.z_y[i]),
                 chi2=float(dec.chi2[i]), alpha=float(dec.alpha[i]), threshold=float(dec.threshold[i]),
                 window_length=int(dec.window_length[i]), window_size=cfg.window_size, speed=float(dec.speed[i]),
                 x=float(dec.mean_x[i]) if static else pose.position.x,

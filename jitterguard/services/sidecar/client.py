@@ -196,7 +196,8 @@ class ClassifierClient(Service):
         for reply in replies:
             if reply.ok is not None:
                 return "ok", reply.ok.payload.to_bytes()
-            return "err", reply.err.payload.to_bytes()
+            if reply.err is not None:
+                return "err", reply.err.payload.to_bytes()
         raise ClassifierUnavailable(f"no reply on {key} within {timeout:g} s")
 
     def _require_alive(self, action: str) -> None:

@@ -135,10 +135,11 @@ def _strict_json(tp: Any, metadata: list[Any]) -> Any:
     its strict mode would refuse ``213.0`` for an integer, which JSON Schema calls an integer.
     """
     if tp is float:
-        return Annotated[(float, Strict(), *metadata)]
+        return Annotated[(float, Strict(), *metadata)]  # type: ignore[misc]
     if tp is int:
-        return Annotated[(int, *metadata, BeforeValidator(_json_integer))]  # bounds first: JSON Schema keeps them
-    return Annotated[(tp, *metadata)] if metadata else tp  # Literal: only its exact strings match anyway
+        # bounds before the validator, so the JSON Schema keeps them as minimum/maximum
+        return Annotated[(int, *metadata, BeforeValidator(_json_integer))]  # type: ignore[misc]
+    return Annotated[(tp, *metadata)] if metadata else tp  # type: ignore[misc]  # Literal: exact strings only
 
 
 def _alpha_type(info: FieldInfo) -> Any:
@@ -160,7 +161,7 @@ def _build_config_models() -> tuple[type[BaseModel], type[BaseModel]]:
         info = ClassifierConfig.model_fields[name]
         doc = _CONFIG_DOCS[name]
         if name == "alpha_per_class":  # class-name keys as an enum, so the OpenAPI schema lists them
-            constrained: Any = dict[ClassName, _alpha_type(info)]  # type: ignore[valid-type]
+            constrained: Any = dict[ClassName, _alpha_type(info)]  # type: ignore[valid-type,misc]
         else:
             constrained = _strict_json(info.annotation, list(info.metadata))
         if info.default_factory is not None:
@@ -169,7 +170,7 @@ def _build_config_models() -> tuple[type[BaseModel], type[BaseModel]]:
             spec = Field(default=info.default, description=doc)
         full[name] = (constrained, spec)
         if name == "alpha_per_class":
-            pann = dict[ClassName, _alpha_type(info) | None] | None  # type: ignore[valid-type]
+            pann = dict[ClassName, _alpha_type(info) | None] | None  # type: ignore[valid-type,misc]
         else:
             pann = constrained | None
         patch[name] = (pann, Field(default=None, description=doc + "; null resets it to the default"))
@@ -326,6 +327,7 @@ def track_view(e: Mapping[str, Any], mode: str, snapshot_seq: int) -> dict[str, 
     }
 
 
+_orjson: Any
 try:  # optional: ~10x faster on the 500-track body; the stdlib fallback gives the same JSON
     import orjson as _orjson
 except ImportError:  # pragma: no cover - depends on the environment
@@ -473,7 +475,7 @@ def is_loopback(host: str) -> bool:
         infos = socket.getaddrinfo(h, None)
     except (socket.gaierror, UnicodeError):
         return False
-    addrs = {info[4][0] for info in infos}
+    addrs = {str(info[4][0]) for info in infos}
     return bool(addrs) and all(ipaddress.ip_address(a.split("%", 1)[0]).is_loopback for a in addrs)
 
 
