@@ -229,7 +229,7 @@ def create_app(settings: SidecarSettings) -> FastAPI:
             return Response(st.body, media_type="application/json", headers=headers)
         tracks = [t for t in st.tracks.values()
                   if (state is None or t["state"] == state) and (cls is None or t["class"] == cls)]
-        view = {"seq": st.seq, "stamp_ns": st.stamp_ns, "frame_id": "map", "mode": st.config.mode,
+        view = {"seq": st.seq, "stamp_ns": st.stamp_ns, "frame_id": st.frame_id, "mode": st.config.mode,
                 "polled_at_ns": st.polled_at_ns, "counts": st.counts, "tracks": tracks}
         return Response(dumps(view), media_type="application/json", headers=headers)
 

@@ -64,6 +64,7 @@ class ClassifierClient(Service):
         self._rendered: RenderedState | None = None
         self._last_payload: bytes | None = None
         self._listeners: list[Listener] = []
+        self._last_config_event: dict[str, Any] | None = None
         self._alive_key = keys.alive(self.ns, CLASSIFIER)
         self._declared.append(self.session.liveliness().declare_subscriber(
             self._alive_key, self._on_liveliness, history=True))
@@ -121,6 +122,11 @@ class ClassifierClient(Service):
         self._listeners.append(fn)
 
     def _emit(self, kind: str, data: dict[str, Any]) -> None:
+        if kind == "config":  # a write reports it, then the next snapshot carries it: say it once
+            with self._lock:
+                if data == self._last_config_event:
+                    return
+                self._last_config_event = data
         for fn in list(self._listeners):
             try:
                 fn(kind, data)
@@ -175,7 +181,10 @@ class ClassifierClient(Service):
             changes = diff_states(prev, new)
             if changes:
                 self._emit("changes", {"seq": new.seq, "stamp_ns": new.stamp_ns, "changes": changes})
-        if prev is not None and prev.config != new.config:
+        if prev is None:
+            with self._lock:
+                self._last_config_event = config_to_api(new.config)
+        elif prev.config != new.config:
             self._emit("config", config_to_api(new.config))
         return new
 

@@ -348,6 +348,7 @@ class RenderedState:
 
     seq: int
     stamp_ns: int
+    frame_id: str
     polled_at_ns: int
     config: ClassifierConfig
     counters: dict[str, int]
@@ -380,7 +381,8 @@ def render_state(snap: ClassifierStateSnapshot, polled_at_ns: int,
         "seq": seq, "stamp_ns": snap.header.stamp, "frame_id": snap.header.frame_id, "mode": mode,
         "polled_at_ns": polled_at_ns, "counts": counts, "tracks": list(tracks.values()),
     }
-    return RenderedState(seq=seq, stamp_ns=snap.header.stamp, polled_at_ns=polled_at_ns, config=snap.config,
+    return RenderedState(seq=seq, stamp_ns=snap.header.stamp, frame_id=snap.header.frame_id,
+                         polled_at_ns=polled_at_ns, config=snap.config,
                          counters=dict(snap.counters), tracks=tracks, counts=counts,
                          by_class_state=by_class_state, body=dumps(view))
 
