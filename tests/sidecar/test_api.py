@@ -25,9 +25,11 @@ def _state_of(body: dict, track_id: str) -> str | None:
 
 @pytest.fixture(autouse=True)
 def _reset_config(stack: Stack):
-    """Every test starts from the default config (and leaves it so)."""
+    """Every test starts from the default config (and leaves it so), already seen in the served state."""
     with stack.http() as c:
         assert c.put("/v1/config", json={}).status_code == 200
+    stack.wait_state(lambda b: b["mode"] == "z_test" and all(t["alpha"] == 1.96 for t in b["tracks"]),
+                     "the default config in the served state")
     yield
     with stack.http() as c:
         c.put("/v1/config", json={})
@@ -197,9 +199,12 @@ def _metric(text: str, name: str, labels: str = "") -> float:
 
 
 def test_metrics(stack: Stack) -> None:
-    with stack.http(auth=False) as c:
-        text = c.get("/metrics").text
-        state = c.get("/v1/state").json()
+    def same_frame() -> tuple[str, dict] | None:  # /metrics and /v1/state from one snapshot
+        with stack.http(auth=False) as c:
+            state = c.get("/v1/state").json()
+            text = c.get("/metrics").text
+        return (text, state) if _metric(text, "jitterguard_classifier_last_seq") == state["seq"] else None
+    text, state = wait_for(same_frame, "metrics and state of the same frame")
     assert _metric(text, "jitterguard_classifier_up") == 1.0
     assert _metric(text, "jitterguard_classifier_frames_total") > 10
     assert _metric(text, "jitterguard_classifier_tracks") == len(stack.tracks)
@@ -287,3 +292,26 @@ def test_cors_is_off_by_default(stack: Stack) -> None:
         assert "access-control-allow-origin" not in r.headers
         r = c.get("/v1/state", headers={"Origin": "https://evil.example"})
         assert "access-control-allow-origin" not in r.headers
+
+
+def test_cors_only_for_configured_origins() -> None:
+    """``--cors-origin`` turns CORS on for exactly those origins (no classifier needed for a preflight)."""
+    from jitterguard.runtime import free_tcp_port, loopback_options
+    from jitterguard.services.sidecar.app import SidecarSettings, create_app
+
+    from .stack import Uvicorn
+
+    app = create_app(SidecarSettings(zenoh=loopback_options("sc-cors", free_tcp_port(), listen_self=True),
+                                     cors_origins=("https://ops.example",)))
+    server = Uvicorn(app)
+    try:
+        with httpx.Client(base_url=server.url, timeout=10) as c:
+            pre = {"Access-Control-Request-Method": "PATCH", "Access-Control-Request-Headers": "authorization"}
+            r = c.options("/v1/config", headers={"Origin": "https://ops.example", **pre})
+            assert r.status_code == 200 and r.headers["access-control-allow-origin"] == "https://ops.example"
+            r = c.options("/v1/config", headers={"Origin": "https://evil.example", **pre})
+            assert r.headers.get("access-control-allow-origin") != "https://evil.example"
+            r = c.get("/readyz")  # no classifier in this namespace: not ready, and says why
+            assert r.status_code == 503 and "liveliness" in r.json()["reason"]
+    finally:
+        server.close()

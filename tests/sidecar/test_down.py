@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import json
+
+import httpx
 import pytest
 
 from jitterguard.runtime import loopback_options
@@ -16,10 +19,22 @@ pytestmark = pytest.mark.integration
 def test_503_when_the_classifier_is_gone_and_recovery() -> None:
     stack = start_stack("sc-down")  # no token: writes are open on loopback
     try:
-        with stack.http() as c:
+        with stack.http() as c, httpx.Client(base_url=stack.url, timeout=20.0) as sse, \
+                sse.stream("GET", "/v1/events") as events:
             assert c.get("/readyz").status_code == 200
             assert c.patch("/v1/config", json={"alpha_default": 1.5}).status_code == 200
             stack.classifier.close()  # the classifier process is gone
+
+            # Open event streams hear about it.
+            kind = None
+            for line in events.iter_lines():
+                if line.startswith("event: "):
+                    kind = line[7:]
+                elif line.startswith("data: ") and kind == "ready":
+                    lost = json.loads(line[6:])
+                    if not lost["ready"]:
+                        break
+            assert "liveliness" in lost["reason"]
 
             def not_ready() -> dict | None:
                 r = c.get("/readyz")
