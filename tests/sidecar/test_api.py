@@ -283,6 +283,8 @@ def test_page_is_self_contained(stack: Stack) -> None:
     assert "default-src 'self'" in r.headers["content-security-policy"]
     assert not re.search(r"""(src|href)=["']?(https?:)?//""", r.text)  # nothing from the internet
     assert "<canvas" in r.text
+    with stack.http(auth=False) as c:  # no CDN-backed doc viewers either
+        assert c.get("/docs").status_code == 404 and c.get("/redoc").status_code == 404
 
 
 def test_cors_is_off_by_default(stack: Stack) -> None:

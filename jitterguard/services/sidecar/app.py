@@ -119,6 +119,10 @@ def create_app(settings: SidecarSettings) -> FastAPI:
                      "<JG_API_TOKEN>` when that variable is set. A write is applied by the classifier between "
                      "two frames before the reply, which returns the config now in force."),
         lifespan=lifespan,
+        # Swagger UI / ReDoc would pull their scripts from a CDN: nothing here loads assets from the internet
+        # (vehicle networks are often offline). The schema itself stays at /openapi.json.
+        docs_url=None,
+        redoc_url=None,
     )
     if settings.cors_origins:
         app.add_middleware(CORSMiddleware, allow_origins=list(settings.cors_origins),
