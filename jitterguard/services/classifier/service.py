@@ -39,6 +39,8 @@ from .frames import CompleteFrame, FrameAssembler
 
 CONFIG_APPLY_TIMEOUT_S = 2.0
 LATENCY_WINDOW = 4096
+LATENCY_BUCKETS_MS = (0.5, 1, 2, 5, 10, 20, 50, 100, 200, 500, 1000)
+"""Frame-latency histogram buckets; exported as counters so the sidecar's /metrics can rebuild it."""
 
 
 def observations_from_messages(msgs: list[TrackObservation], seq: int, stamp_ns: int) -> Observations:
@@ -189,7 +191,7 @@ class ClassifierService(Service):
         apply_decisions_to_objects(out["objects"], dec)
         out["observed_track_ids"] = []
         self._objects_pub.put(encode(out))
-        self.latencies_ms.append((time.perf_counter() - frame.received_at) * 1e3)
+        self._record_latency((time.perf_counter() - frame.received_at) * 1e3)
         self.counters.inc("published")
         self.counters.inc("frames_processed")
         self.last_seq = header.seq
@@ -199,6 +201,13 @@ class ClassifierService(Service):
         labels, stamps, seqs = self.core.last_meta(reported)
         with self._latest_lock:
             self._latest = _Latest(header, frame.tracked, dec, labels, stamps, seqs, self.core.config)
+
+    def _record_latency(self, ms: float) -> None:
+        self.latencies_ms.append(ms)
+        le = next((b for b in LATENCY_BUCKETS_MS if ms <= b), math.inf)
+        self.counters.inc(f"frame_latency_ms.bucket.{le:g}")
+        self.counters.inc("frame_latency_ms.sum_us", int(ms * 1000))
+        self.counters.inc("frame_latency_ms.count")
 
     def _publish_motion(self, header: Header, obs: Observations, dec: Decisions) -> None:
         """One MotionState per observed track. Built as plain maps from arrays the core just computed
