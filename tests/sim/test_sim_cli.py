@@ -67,8 +67,10 @@ def test_bad_input_is_one_line_and_exit_2(args, message) -> None:
 
 
 def test_bench_prints_json() -> None:
-    r = run("bench", "sim", "--json", "--scans", "2", "--repeat", "1", "--objects", "10")
+    r = run("bench", "sim", "--json", "--scans", "2", "--repeat", "1", "--objects", "10", "--replay-scans", "20")
     assert r.exit_code == 0, r.output
     out = json.loads(r.stdout)
-    assert out["sensor"] == "HDL-32E" and out["rays_per_scan"] == 34720 and out["objects"] == 10
-    assert out["scans_per_s"] > 0
+    rc, rp = out["raycast"], out["replay"]
+    assert rc["sensor"] == "hdl32e" and rc["rays"] == 34720 and rc["objects"] == 10
+    assert rc["scans_per_s"] > 0
+    assert rp["points_per_scan"] == 35_000 and rp["dropped"] == 0 and rp["scans_per_s"] > 0
