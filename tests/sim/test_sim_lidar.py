@@ -139,3 +139,20 @@ def test_scenario_scans_fill_point_counts_and_see_clutter() -> None:
         hit = frame.num_points > 0
         assert hit.sum() > 5 and np.all(frame.visibility[hit] > 0)
         assert 20_000 < len(res.points) <= hdl32e().num_rays
+
+
+def test_only_the_faces_turned_to_the_sensor_are_hit() -> None:
+    """An axis-aligned box at (10, 6): the sensor sees its -x and -y faces, never its +x or +y faces."""
+    prims = PrimitiveList()
+    prims.box(10.0, 6.0, 4.0, 2.0, -1.8, 0.0, reflectivity=0.9)  # x 8..12, y 5..7; no range noise below
+    spec = replace(hdl32e(), range_sigma_m=0.0)
+    res = cast(prims.build(), np.array([-1]), spec, np.random.default_rng(0), 0, with_ground=False)
+    p = res.points[:, :3].astype(np.float64)
+    assert len(p) > 50
+    on_near_x = np.abs(p[:, 0] - 8.0) < 0.1
+    on_near_y = np.abs(p[:, 1] - 5.0) < 0.1
+    assert np.all(on_near_x | on_near_y)
+    assert on_near_x.sum() > 10 and on_near_y.sum() > 10
+    # nothing from the far faces' interiors (points there would be off both near faces)
+    assert not np.any((np.abs(p[:, 0] - 12.0) < 0.05) & (p[:, 1] > 5.1))
+    assert not np.any((np.abs(p[:, 1] - 7.0) < 0.05) & (p[:, 0] > 8.1))
