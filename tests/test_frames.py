@@ -64,3 +64,24 @@ def test_observations_without_close_do_not_grow_forever():
     for s in range(10):
         fa.add_observation(ob(s, IDS[0]))
     assert fa.counts["orphaned_observations"] == 6
+
+
+def test_late_is_only_within_the_restart_gap():
+    fa = FrameAssembler()
+    fa.add_close(close(50, []), now=0.0)
+    fa.pop_ready(0.0)
+    assert fa.is_late(50) and fa.is_late(40)
+    assert not fa.is_late(51)
+    assert not fa.is_late(5)  # far below: an upstream restart, to be decoded
+
+
+def test_peek_header_seq_reads_without_validating():
+    import msgpack
+
+    from jitterguard.schemas import encode, peek_header_seq
+
+    assert peek_header_seq(encode(ob(17, IDS[0]))) == 17
+    assert peek_header_seq(encode(close(3))) == 3
+    assert peek_header_seq(b"\x00garbage") is None
+    assert peek_header_seq(msgpack.packb({"header": {"seq": "x"}})) is None
+    assert peek_header_seq(msgpack.packb([1, 2])) is None

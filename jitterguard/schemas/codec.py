@@ -59,3 +59,24 @@ def decode_with_raw(cls: type[M], data: bytes | bytearray | memoryview) -> tuple
         raise DecodeError(name, field, f"{err.get('msg', 'invalid')}{more}") from None
     except (RecursionError, TypeError, ValueError) as exc:  # pathological nesting or unhashable keys
         raise DecodeError(name, "", f"{type(exc).__name__}: {exc}") from None
+
+
+def peek_header_seq(data: bytes | bytearray | memoryview) -> int | None:
+    """``header.seq`` of an encoded message, read without validating the rest (``None`` if not found).
+
+    For load shedding only: a service that is behind can tell a stale payload from a current one for a few
+    microseconds instead of a full validation. Anything it then keeps still goes through :func:`decode`.
+    """
+    up = msgpack.Unpacker(raw=False)
+    try:
+        up.feed(bytes(data))
+        for _ in range(up.read_map_header()):
+            key = up.unpack()
+            if key == "header":
+                header = up.unpack()
+                seq = header.get("seq") if isinstance(header, dict) else None
+                return seq if isinstance(seq, int) and not isinstance(seq, bool) else None
+            up.skip()
+    except Exception:
+        return None
+    return None

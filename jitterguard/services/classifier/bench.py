@@ -48,19 +48,6 @@ def bench_core(sizes: tuple[int, ...] = (10, 100, 1000), window: int = 10, frame
     return out
 
 
-def _header_seq(payload: bytes) -> int:
-    """Read ``header.seq`` off an encoded TrackedObjects without decoding its objects."""
-    import msgpack
-
-    up = msgpack.Unpacker(raw=False)
-    up.feed(payload)
-    for _ in range(up.read_map_header()):
-        if up.unpack() == "header":
-            return int(up.unpack()["seq"])
-        up.skip()
-    return -1
-
-
 def _classifier_process(opts, conn) -> None:  # runs in a spawned child
     from .service import ClassifierService
 
@@ -75,7 +62,7 @@ def _classifier_process(opts, conn) -> None:  # runs in a spawned child
 def bench_service(tracks: int = 200, rate_hz: float = 20.0, duration_s: float = 60.0, seed: int = 0) -> dict:
     """Run the real classifier service for ``duration_s`` at ``tracks`` × ``rate_hz``; latency percentiles."""
     from ...runtime import Service, free_tcp_port, loopback_options
-    from ...schemas import encode, keys
+    from ...schemas import encode, keys, peek_header_seq
     from .synthetic_tracks import TrackScenario, generate
 
     port = free_tcp_port()
@@ -94,7 +81,7 @@ def bench_service(tracks: int = 200, rate_hz: float = 20.0, duration_s: float = 
     sent: dict[int, float] = {}
 
     def on_objects(sample) -> None:
-        received[_header_seq(sample.payload.to_bytes())] = time.perf_counter()
+        received[peek_header_seq(sample.payload.to_bytes())] = time.perf_counter()
 
     feeder.session.declare_subscriber(keys.objects(ns), on_objects)
     time.sleep(1.0)  # let the mesh settle before the clock starts

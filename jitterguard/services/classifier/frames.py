@@ -35,24 +35,32 @@ class FrameAssembler:
     _closes: dict[int, tuple[TrackedObjects, float]] = field(default_factory=dict)
     _waiting: dict[int, set[str]] = field(default_factory=dict)  # per closed seq: expected IDs not yet in
 
-    def _count(self, name: str, n: int = 1) -> None:
+    def is_late(self, seq: int) -> bool:
+        """An observation for a frame already processed: it would be dropped, so it need not be decoded.
+
+        Lets a service that fell behind skip validating stragglers it cannot use (a seq far below the last
+        one is an upstream restart, not late).
+        """
+        return seq <= self.last_done and self.last_done - seq <= RESTART_GAP
+
+    def count(self, name: str, n: int = 1) -> None:
         self.counts[name] = self.counts.get(name, 0) + n
 
     def add_observation(self, obs: TrackObservation) -> None:
         seq = obs.header.seq
-        if seq <= self.last_done and self.last_done - seq <= RESTART_GAP:
-            self._count("late_observations")
+        if self.is_late(seq):
+            self.count("late_observations")
             return
         bucket = self._obs.setdefault(seq, {})
         if obs.track.object_id in bucket:
-            self._count("duplicate_observations")
+            self.count("duplicate_observations")
         bucket[obs.track.object_id] = obs
         waiting = self._waiting.get(seq)
         if waiting is not None:
             waiting.discard(obs.track.object_id)
         if len(self._obs) > self.max_pending_frames:  # closes that never come must not grow memory
             oldest = min(self._obs)
-            self._count("orphaned_observations", len(self._obs.pop(oldest)))
+            self.count("orphaned_observations", len(self._obs.pop(oldest)))
 
     def add_close(self, tracked: TrackedObjects, now: float) -> bool:
         """Register a frame-closing message; returns False (and counts) when it is stale or a duplicate.
@@ -63,16 +71,16 @@ class FrameAssembler:
         seq = tracked.header.seq
         if seq <= self.last_done:
             if self.last_done - seq > RESTART_GAP:
-                self._count("upstream_restarts")
+                self.count("upstream_restarts")
                 self.last_done = -1
                 self._obs = {s: b for s, b in self._obs.items() if s <= seq + RESTART_GAP}
                 self._closes.clear()
                 self._waiting.clear()
             else:
-                self._count("duplicate_or_late_frames")
+                self.count("duplicate_or_late_frames")
                 return False
         if seq in self._closes:
-            self._count("duplicate_or_late_frames")
+            self.count("duplicate_or_late_frames")
             return False
         self._closes[seq] = (tracked, now)
         got = self._obs.get(seq, {})
@@ -93,11 +101,11 @@ class FrameAssembler:
             wanted = set(tracked.observed_track_ids)
             observations = [o for i, o in bucket.items() if i in wanted]
             if len(observations) != len(bucket):
-                self._count("unexpected_observations", len(bucket) - len(observations))
+                self.count("unexpected_observations", len(bucket) - len(observations))
             for stale in [s for s in self._obs if s < seq]:
-                self._count("orphaned_observations", len(self._obs.pop(stale)))
+                self.count("orphaned_observations", len(self._obs.pop(stale)))
             if missing:
-                self._count("missing_observations", missing)
+                self.count("missing_observations", missing)
             self.last_done = seq
             out.append(CompleteFrame(seq, tracked, observations, t0, missing))
         return out

@@ -21,7 +21,7 @@ import zenoh
 
 from ...geometry import yaw_from_quaternion
 from ...runtime import Service, ZenohOptions
-from ...schemas import SCHEMA_VERSION, DecodeError, decode, decode_with_raw, encode, keys
+from ...schemas import SCHEMA_VERSION, DecodeError, decode, decode_with_raw, encode, keys, peek_header_seq
 from ...schemas.models import (
     X_X,
     X_Y,
@@ -137,6 +137,11 @@ class ClassifierService(Service):
                 except queue.Empty:
                     break
             for kind, item, t0 in events:
+                if kind == "obs":  # a straggler for a frame already closed is dropped: skip validating it
+                    seq = peek_header_seq(item[0])
+                    if seq is not None and self.assembler.is_late(seq):
+                        self.assembler.count("late_observations")
+                        continue
                 self._handle(kind, item, t0, raws)
             for frame in self.assembler.pop_ready(time.perf_counter()):
                 self._process(frame, raws.pop(frame.seq, None))
