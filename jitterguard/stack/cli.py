@@ -13,6 +13,7 @@ from typing import Annotated
 import typer
 
 from ..cli_common import NsOpt, fail
+from .status import collect, load_spec, render_table, save_spec
 from .supervisor import StackSpec, programs, render_config
 
 RunDirOpt = Annotated[str | None, typer.Option("--run-dir", envvar="JG_RUN_DIR", help="Where config, socket and logs live.")]
@@ -74,6 +75,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         progs = programs(spec)
         conf = rd / "supervisord.conf"
         conf.write_text(render_config(spec, rd, progs, nodaemon=not detach))
+        save_spec(rd, spec)
         cmd = [sys.executable, "-m", "supervisor.supervisord", "-c", str(conf)]
         names = ", ".join(p.name for p in progs)
         if detach:
@@ -116,13 +118,29 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         print(res.stdout.strip() or res.stderr.strip())
 
     @app.command("status")
-    def status_cmd(ns: NsOpt = "default", run_dir: RunDirOpt = None) -> None:
-        """Per service: supervisor state, pid and uptime."""
+    def status_cmd(
+        ns: NsOpt = "default",
+        run_dir: RunDirOpt = None,
+        as_json: Annotated[bool, typer.Option("--json", help="Machine-readable output.")] = False,
+        listen: Annotated[float, typer.Option("--listen-s", min=0.1, help="Seconds to listen for heartbeats.")] = 1.5,
+    ) -> None:
+        """Per service: supervisor state, pid, uptime, liveliness on Zenoh and last frame seq."""
         rd = Path(run_dir) if run_dir else default_run_dir(ns)
         res = _ctl(rd, "status")
-        print(res.stdout.rstrip())
         if res.returncode not in (0, 3):  # 3: some program is not RUNNING
+            print(res.stdout.rstrip() or res.stderr.rstrip(), file=sys.stderr)
             raise SystemExit(1)
+        spec = load_spec(rd)
+        rows = collect(res.stdout, spec, listen_s=listen)
+        if as_json:
+            import json
+
+            print(json.dumps({"ns": spec.ns if spec else ns, "endpoint": spec.endpoint if spec else None,
+                              "run_dir": str(rd), "services": [r.as_dict() for r in rows]}, indent=2))
+        else:
+            render_table(rows, spec, rd)
+        if res.returncode == 3:
+            raise SystemExit(3)
 
     @app.command("logs")
     def logs_cmd(
