@@ -158,10 +158,26 @@ def test_restarted_tracker_leaves_no_stale_windows(service, client_session):
     first = list(generate(TrackScenario(n_static=3, n_moving=0, n_starting=0, seed=5), 30))
     for f in first:
         _send(client_session, f)
-    assert wait_until(lambda: len(got["objects"]) == 30), (len(got["objects"]), service.counters.snapshot())
+    assert wait_until(lambda: len(got["objects"]) == 30, timeout=30), (len(got["objects"]), service.counters.snapshot())
     second = list(generate(TrackScenario(n_static=2, n_moving=0, n_starting=0, seed=6), 2))  # seq restarts at 0
     for f in second:
         _send(client_session, f)
-    assert wait_until(lambda: len(got["objects"]) == 32)
+    assert wait_until(lambda: len(got["objects"]) == 32, timeout=30)
     new_ids = {o.track.object_id for o in second[0].observations}
     assert set(service.run_on_worker(service.core.track_ids)) == new_ids
+
+
+def test_state_map_validates_as_the_snapshot_model(service, client_session):
+    got = _collect(client_session)
+    _wait_connected(client_session)
+    for f in generate(TrackScenario(n_static=2, n_moving=2, n_starting=0, seed=8), 6):
+        _send(client_session, f)
+    assert wait_until(lambda: len(got["objects"]) == 6)
+    snap = service.state_snapshot()  # validates the plain map the queryable sends
+    assert snap.header.seq == 5 and len(snap.tracks) == 4
+    by_id = {t.track_id: t for t in snap.tracks}
+    for m in got["motion"].values():
+        t = by_id[m.track_id]
+        assert t.state == m.state and t.z_x == pytest.approx(m.z_x) and t.window_length == m.window_length
+        if t.state == "static":
+            assert (t.x, t.y) == (pytest.approx(m.mean_x), pytest.approx(m.mean_y))

@@ -32,7 +32,6 @@ from ...schemas.models import (
     Header,
     TrackedObjects,
     TrackObservation,
-    TrackStateEntry,
 )
 from .core import STATE_NAMES, STATIC, Decisions, MotionClassifierCore, Observations
 from .frames import CompleteFrame, FrameAssembler
@@ -259,30 +258,46 @@ class ClassifierService(Service):
         self.log.info("config applied: %s", in_force.model_dump(exclude={"schema_version"}))
         query.reply(query.key_expr, encode(ConfigReply(ok=True, config=in_force)))
 
-    def state_snapshot(self) -> ClassifierStateSnapshot:
+    def state_map(self) -> dict:
+        """The ``classifier/state`` payload as a plain map (a ``ClassifierStateSnapshot`` when validated).
+
+        Built from the arrays of the last frame with one ``tolist`` per column: a sidecar polls this at frame
+        rate, and a model per track would cost the classifier more than the frame itself.
+        """
         with self._latest_lock:
             latest = self._latest
+        base = {"schema_version": SCHEMA_VERSION, "counters": self.counters.snapshot()}
         if latest is None:
-            return ClassifierStateSnapshot(header=Header(stamp=0, seq=0), config=self.core.config,
-                                           counters=self.counters.snapshot())
-        entries = []
+            return {**base, "header": {"stamp": 0, "frame_id": "map", "seq": 0},
+                    "config": self.core.config.model_dump(mode="python"), "tracks": []}
         dec = latest.decisions
+        col = {k: getattr(dec, k).tolist() for k in
+               ("z_x", "z_y", "chi2", "alpha", "threshold", "window_length", "speed", "mean_x", "mean_y")}
+        states, labels = dec.state.tolist(), latest.labels.tolist()
+        stamps, seqs = latest.stamps.tolist(), latest.seqs.tolist()
+        window_size = latest.config.window_size
+        tracks = []
         for i, obj in enumerate(latest.tracked.objects):
             pose = obj.kinematics.pose_with_covariance.pose
-            static = dec.state[i] == STATIC
-            entries.append(TrackStateEntry(
-                track_id=obj.object_id, label=int(latest.labels[i]), state=STATE_NAMES[int(dec.state[i])],
-                z_x=float(dec.z_x[i]), z_y=float(dec.z_y[i]), chi2=float(dec.chi2[i]), alpha=float(dec.alpha[i]),
-                threshold=float(dec.threshold[i]), window_length=int(dec.window_length[i]),
-                window_size=latest.config.window_size, speed=float(dec.speed[i]),
-                x=float(dec.mean_x[i]) if static else pose.position.x,
-                y=float(dec.mean_y[i]) if static else pose.position.y,
-                yaw=yaw_from_quaternion(pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w),
-                length=obj.shape.dimensions.x, width=obj.shape.dimensions.y,
-                last_update_ns=int(latest.stamps[i]), last_seq=int(latest.seqs[i]),
-            ))
-        return ClassifierStateSnapshot(header=latest.header, config=latest.config, tracks=entries,
-                                       counters=self.counters.snapshot())
+            q = pose.orientation
+            static = states[i] == STATIC
+            tracks.append({
+                "track_id": obj.object_id, "label": labels[i], "state": STATE_NAMES[states[i]],
+                "z_x": col["z_x"][i], "z_y": col["z_y"][i], "chi2": col["chi2"][i], "alpha": col["alpha"][i],
+                "threshold": col["threshold"][i], "window_length": col["window_length"][i],
+                "window_size": window_size, "speed": col["speed"][i],
+                "x": col["mean_x"][i] if static else pose.position.x,
+                "y": col["mean_y"][i] if static else pose.position.y,
+                "yaw": yaw_from_quaternion(q.x, q.y, q.z, q.w),
+                "length": obj.shape.dimensions.x, "width": obj.shape.dimensions.y,
+                "last_update_ns": stamps[i], "last_seq": seqs[i],
+            })
+        return {**base, "header": latest.header.model_dump(mode="python"),
+                "config": latest.config.model_dump(mode="python"), "tracks": tracks}
+
+    def state_snapshot(self) -> ClassifierStateSnapshot:
+        """:meth:`state_map`, validated (for in-process users and tests)."""
+        return ClassifierStateSnapshot.model_validate(self.state_map())
 
     def _on_state_query(self, query: zenoh.Query) -> None:
         with self._latest_lock:
@@ -290,7 +305,7 @@ class ClassifierService(Service):
         if latest is not None and latest.encoded is not None:
             query.reply(query.key_expr, latest.encoded)
             return
-        data = encode(self.state_snapshot())
+        data = encode(self.state_map())
         if latest is not None:
             latest.encoded = data  # same frame, same answer: encode once per frame
         query.reply(query.key_expr, data)
