@@ -61,6 +61,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         host: Annotated[str, typer.Option("--host", help="Sidecar bind address.")] = "127.0.0.1",
         port: Annotated[int, typer.Option("--port", min=1, max=65535, help="Sidecar port.")] = 8000,
         run_dir: RunDirOpt = None,
+        no_sidecar: Annotated[bool, typer.Option("--no-sidecar", help="Leave the HTTP sidecar out.")] = False,
         duration: Annotated[float | None, typer.Option("--duration", min=1.0, help="Stop after this many seconds.")] = None,
     ) -> None:
         """Start router, replay, (detector,) tracker, classifier and sidecar under supervisord."""
@@ -71,7 +72,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             fail(f"a stack is already running from {rd} (stop it with `jitterguard down --ns {ns}`)")
         (rd / "logs").mkdir(parents=True, exist_ok=True)
         spec = StackSpec(ns=ns, router_port=router_port, sidecar_host=host, sidecar_port=port, source=source,
-                         input=input_level)
+                         input=input_level, sidecar=not no_sidecar)
         progs = programs(spec)
         conf = rd / "supervisord.conf"
         conf.write_text(render_config(spec, rd, progs, nodaemon=not detach))

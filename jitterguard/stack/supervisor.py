@@ -34,6 +34,7 @@ class StackSpec:
     sidecar_port: int = 8000
     source: str | None = None  # replay SOURCE; None = the built-in synthetic scenario
     input: str = "auto"  # auto | points | detections | tracks
+    sidecar: bool = True
     extra_env: dict[str, str] = field(default_factory=dict)
 
     @property
@@ -71,7 +72,7 @@ def programs(spec: StackSpec) -> list[Program]:
         progs.append(Program("tracker", _cmd("tracker", *common), priority=30))
     if mode == "points" and have_detector:
         progs.append(Program("detector", _cmd("detector", *common), priority=35))
-    if has_area("jitterguard.services.sidecar.cli"):
+    if spec.sidecar and has_area("jitterguard.services.sidecar.cli"):
         progs.append(Program("sidecar", _cmd("sidecar", *common, "--host", spec.sidecar_host,
                                              "--port", str(spec.sidecar_port)), priority=40))
     if mode == "tracks":
