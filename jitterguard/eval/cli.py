@@ -1,0 +1,122 @@
+"""``jitterguard eval``: the paper's offline validation (§IV-B) on a synthetic scenario or a nuScenes scene.
+
+Runs ground truth → detection-level noise → tracker core → classifier cores in-process and writes report.md,
+metrics.json and figures into ``--out``. ``--input detector`` is reserved for the CenterPoint detector,
+which is not built yet: it fails with one line rather than silently evaluating something else.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+
+from ..cli_common import fail
+
+INPUTS = ("gt-noise", "detector")
+
+
+def eval_command(
+    out: Annotated[Path, typer.Option("--out", help="Folder for report.md, metrics.json and the PNGs.")],
+    scenario: Annotated[str | None, typer.Option("--scenario", help="Synthetic scenario (default parking-street).")] = None,
+    seed: Annotated[int, typer.Option("--seed", help="Seeds the scenario and the noise model.")] = 0,
+    input_: Annotated[str, typer.Option("--input", help="gt-noise (ground truth through the noise model) or detector.")] = "gt-noise",
+    noise: Annotated[str, typer.Option("--noise", help="Noise preset: clean, jittery or paper.")] = "jittery",
+    nuscenes: Annotated[Path | None, typer.Option("--nuscenes", help="nuScenes dataroot instead of a scenario.")] = None,
+    scene: Annotated[str | None, typer.Option("--scene", help="Scene name in the nuScenes dataroot.")] = None,
+    duration: Annotated[float, typer.Option("--duration", help="Synthetic scenario length [s].")] = 15.0,
+    rate: Annotated[float, typer.Option("--rate", help="Synthetic frame rate [Hz].")] = 10.0,
+    preset: Annotated[str | None, typer.Option("--preset", help="Classifier alpha preset: paper or authors.")] = None,
+    alpha: Annotated[float | None, typer.Option("--alpha", help="alpha_default of the z-test (no per-class overrides).")] = None,
+    velocity_threshold: Annotated[float | None, typer.Option("--velocity-threshold", help="Speed cut-off [m/s].")] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="Also print metrics.json to stdout.")] = False,
+) -> None:
+    """Evaluate tracker → motion classifier offline against ground-truth motion labels."""
+    from ..schemas.models import PRESETS, ClassifierConfig
+    from .pipeline import NOISE_PRESETS
+
+    if input_ == "detector":
+        fail("--input detector: the detector is not built yet (services/detector); use --input gt-noise")
+    if input_ not in INPUTS:
+        fail(f"--input: unknown input {input_!r}; expected one of {', '.join(INPUTS)}")
+    if noise not in NOISE_PRESETS:
+        fail(f"--noise: unknown preset {noise!r}; expected one of {', '.join(NOISE_PRESETS)}")
+    if nuscenes is not None and scenario is not None:
+        fail("give --scenario or --nuscenes, not both")
+    if scene is not None and nuscenes is None:
+        fail("--scene needs --nuscenes")
+    if preset is not None and preset not in PRESETS:
+        fail(f"--preset: unknown preset {preset!r}; expected one of {', '.join(PRESETS)}")
+    if not 0 < duration <= 600 or not 0 < rate <= 100:
+        fail("--duration must be in (0, 600] and --rate in (0, 100]")
+    if out.exists() and not out.is_dir():
+        fail(f"--out: {out} exists and is not a folder")
+    upd: dict[str, Any] = dict(PRESETS[preset]) if preset else {}
+    if alpha is not None:
+        upd.update(alpha_default=alpha, alpha_per_class={})
+    if velocity_threshold is not None:
+        upd["velocity_threshold"] = velocity_threshold
+    try:
+        cfg = ClassifierConfig.model_validate({**ClassifierConfig().model_dump(), **upd})
+    except ValueError as exc:
+        fail(f"classifier config: {str(exc).splitlines()[0]}")
+
+    metrics = evaluate(out, scenario=scenario, seed=seed, noise=noise, nuscenes=nuscenes, scene=scene,
+                       duration=duration, rate=rate, classifier=cfg)
+    if as_json:
+        sys.stdout.write(json.dumps(metrics, indent=2, sort_keys=True) + "\n")
+    else:
+        print(f"wrote {out / 'report.md'}, metrics.json and 3 figures")
+
+
+def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str, nuscenes: Path | None,
+             scene: str | None, duration: float, rate: float, classifier: Any) -> dict[str, Any]:
+    """Load the frames, run the pipeline, score, write the outputs; returns metrics.json's content."""
+    from tqdm import tqdm
+
+    from .groundtruth import NuScenesError, load_nuscenes_frames
+    from .metrics import REPORT_GROUPS, alpha_from_labels, compute_metrics
+    from .pipeline import MATCH_DISTANCE_M, NOISE_PRESETS, run_pipeline
+    from .report import write_outputs
+
+    if nuscenes is not None:
+        try:
+            name, frames = load_nuscenes_frames(nuscenes, scene)
+        except NuScenesError as exc:
+            fail(f"--nuscenes: {exc}")
+        source = f"nuScenes {name} ({nuscenes})"
+        total = len(frames)
+    else:
+        from ..sim.world import SCENARIO_NAMES, make_scenario
+
+        scenario = scenario or "parking-street"
+        if scenario not in SCENARIO_NAMES:
+            fail(f"--scenario: unknown scenario {scenario!r}; expected one of {', '.join(SCENARIO_NAMES)}")
+        sc = make_scenario(scenario, seed, duration, rate)
+        frames = sc  # type: ignore[assignment]
+        source = f"scenario {scenario} seed {seed} ({duration:g} s @ {rate:g} Hz)"
+        total = len(sc)
+
+    rec = run_pipeline(frames, NOISE_PRESETS[noise](), seed, classifier,
+                       progress=lambda it: tqdm(it, total=total, desc="eval", unit="frame", file=sys.stderr,
+                                                leave=False))
+    alpha_desc = classifier.alpha_default if not classifier.alpha_per_class else dict(
+        classifier.alpha_per_class, default=classifier.alpha_default)
+    metrics: dict[str, Any] = {
+        "run": {"source": source, "input": "gt-noise", "noise": noise, "seed": seed, "frames": total,
+                "rows": len(rec), "matched_rows": int((rec.gt_instance >= 0).sum()),
+                "match_distance_m": MATCH_DISTANCE_M, "alpha": alpha_desc,
+                "velocity_threshold": classifier.velocity_threshold, "min_window": classifier.min_window,
+                "window_size": classifier.window_size},
+        "motion": compute_metrics(rec),
+        "alpha_from_labels": {g: alpha_from_labels(rec, g) for g in REPORT_GROUPS},
+    }
+    return write_outputs(out, rec, metrics)
+
+
+def register(app: typer.Typer, bench_app: typer.Typer) -> None:
+    """Add ``eval`` to the main app (no benchmark: evaluation measures quality, not speed)."""
+    app.command("eval")(eval_command)

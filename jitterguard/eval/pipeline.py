@@ -1,0 +1,168 @@
+"""The offline pipeline: ground-truth frames → detection-level noise → tracker core → classifier cores.
+
+Why in-process and through the same functions as the services: what is measured offline must be what runs
+live. Each frame goes through exactly the adapters' conversions — ``frame_from_message`` into the tracker
+core, ``frame_messages`` out of it (the ``TrackObservation`` maps the tracker publishes, validated here with
+the model as the classifier does on receipt), ``observations_from_messages`` into the classifier core, and
+``retain`` with the tracker's reported IDs. Two classifier cores (z-test and velocity threshold) see the
+identical observations, so their comparison is not confounded by tracking.
+
+Pure: frames in, a :class:`Records` table out; no files, no clock. Deterministic given ``seed``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import linear_sum_assignment
+
+from ..schemas.models import ClassifierConfig, TrackObservation
+from ..services.classifier.core import MotionClassifierCore
+from ..services.classifier.service import observations_from_messages
+from ..services.tracker.config import TrackerConfig, default_config
+from ..services.tracker.convert import frame_from_message, frame_messages
+from ..services.tracker.core import FrameRejected, TrackerCore
+from ..sim.detection_model import DetectionModel, NoiseConfig
+from ..sim.world import GroundTruthFrame
+from .groundtruth import group_of, is_dynamic
+
+MATCH_DISTANCE_M = 2.0
+"""A track is the ground-truth object whose centre is within this distance (optimal one-to-one per frame)."""
+
+NOISE_PRESETS: dict[str, Callable[[], NoiseConfig]] = {
+    "clean": NoiseConfig.clean,
+    "jittery": NoiseConfig.jittery,
+    "paper": NoiseConfig.paper_like,
+}
+
+
+def match_tracks(track_xy: NDArray[np.float64], gt_xy: NDArray[np.float64],
+                 max_dist: float = MATCH_DISTANCE_M) -> NDArray[np.int64]:
+    """Per track, the row of its ground-truth object (−1: none within ``max_dist``).
+
+    Hungarian assignment on centre distance, pairs farther than ``max_dist`` forbidden, so two tracks never
+    share one object and a near object is not stolen by a greedy earlier track.
+    """
+    out = np.full(len(track_xy), -1, dtype=np.int64)
+    if len(track_xy) == 0 or len(gt_xy) == 0:
+        return out
+    d = np.hypot(track_xy[:, None, 0] - gt_xy[None, :, 0], track_xy[:, None, 1] - gt_xy[None, :, 1])
+    big = 1e6
+    cost = np.where(d <= max_dist, d, big)
+    rows, cols = linear_sum_assignment(cost)
+    ok = cost[rows, cols] < big
+    out[rows[ok]] = cols[ok]
+    return out
+
+
+@dataclass
+class Records:
+    """One row per (frame, observed track): the tracker/classifier outputs and the matched ground truth.
+
+    ``z`` is max(z_x, z_y) of the z-test core; ``speed`` the tracker's speed (what the velocity-threshold rule
+    reads); ``state_z`` / ``state_v`` the two cores' decisions (0 undecided, 1 static, 2 dynamic).
+    ``group`` is '' for tracks matched to no ground truth (false positives): they are not scored.
+    """
+
+    t_s: NDArray[np.float64]
+    seq: NDArray[np.int64]
+    track_id: NDArray[np.str_]
+    label: NDArray[np.int64]
+    z: NDArray[np.float64]
+    speed: NDArray[np.float64]
+    window: NDArray[np.int64]
+    state_z: NDArray[np.int8]
+    state_v: NDArray[np.int8]
+    gt_instance: NDArray[np.int64]
+    gt_dynamic: NDArray[np.bool_]
+    group: NDArray[np.str_]
+    alpha: NDArray[np.float64]
+    velocity_threshold: float
+    min_window: int
+
+    def __len__(self) -> int:
+        return int(self.t_s.shape[0])
+
+    def subset(self, mask: NDArray[np.bool_]) -> "Records":
+        """The rows where ``mask`` holds (scalars kept)."""
+        kw = {k: (v[mask] if isinstance(v, np.ndarray) else v) for k, v in self.__dict__.items()}
+        return Records(**kw)
+
+
+def _id_factory() -> Callable[[], str]:
+    """Deterministic 32-hex track IDs (the live tracker's are random UUIDs; the evaluator must repeat)."""
+    counter = iter(range(1, 1 << 62))
+    return lambda: f"{next(counter):032x}"
+
+
+def run_pipeline(frames: Iterable[GroundTruthFrame], noise: NoiseConfig, seed: int,
+                 classifier: ClassifierConfig | None = None, tracker: TrackerConfig | None = None,
+                 match_distance_m: float = MATCH_DISTANCE_M,
+                 progress: Callable[[Iterable[GroundTruthFrame]], Iterable[GroundTruthFrame]] | None = None,
+                 ) -> Records:
+    """Run GT → DetectionModel → TrackerCore → MotionClassifierCore (z_test and velocity_threshold).
+
+    ``classifier`` supplies alpha / window / velocity threshold; its ``mode`` is overridden per core.
+    ``progress`` wraps the frame iterable (e.g. tqdm) — the caller's choice, so this stays I/O-free.
+    """
+    base = classifier or ClassifierConfig()
+    det_model = DetectionModel(noise, seed)
+    trk = TrackerCore(tracker or default_config(), _id_factory())
+    core_z = MotionClassifierCore(base.model_copy(update={"mode": "z_test"}))
+    core_v = MotionClassifierCore(base.model_copy(update={"mode": "velocity_threshold"}))
+    cols: dict[str, list] = {k: [] for k in ("t_s", "seq", "track_id", "label", "z", "speed", "window", "state_z",
+                                             "state_v", "gt_instance", "gt_dynamic", "group", "alpha")}
+    t0: int | None = None
+    it = progress(frames) if progress is not None else frames
+    for gt in it:
+        t0 = gt.stamp_ns if t0 is None else t0
+        msg = det_model.detect(gt).detections
+        frame = frame_from_message(msg)
+        try:
+            result = trk.step(frame)
+        except FrameRejected:
+            continue
+        obs_maps, closing = frame_messages(msg.model_dump(mode="python"), frame, result)
+        obs_msgs = [TrackObservation.model_validate(m) for m in obs_maps]
+        reported = np.asarray([o["object_id"] for o in closing["objects"]], dtype="S32")
+        if obs_msgs:
+            obs = observations_from_messages(obs_msgs, frame.seq, frame.stamp_ns)
+            dz = core_z.update(obs)
+            dv = core_v.update(obs)
+            txy = np.array([[m.track.x, m.track.y] for m in obs_msgs], dtype=np.float64)
+            gi = match_tracks(txy, gt.centers[:, :2], match_distance_m)
+            n = len(obs_msgs)
+            cols["t_s"].append(np.full(n, (gt.stamp_ns - t0) * 1e-9))
+            cols["seq"].append(np.full(n, gt.seq))
+            cols["track_id"].append(np.array([m.track.object_id for m in obs_msgs]))
+            cols["label"].append(obs.labels.astype(np.int64))
+            cols["z"].append(np.maximum(dz.z_x, dz.z_y))
+            cols["speed"].append(np.asarray(obs.speed, dtype=np.float64))
+            cols["window"].append(dz.window_length.astype(np.int64))
+            cols["state_z"].append(dz.state.astype(np.int8))
+            cols["state_v"].append(dv.state.astype(np.int8))
+            cols["alpha"].append(dz.alpha.astype(np.float64))
+            inst = np.where(gi >= 0, gt.instance_ids[np.maximum(gi, 0)] if gt.num_objects else -1, -1)
+            cols["gt_instance"].append(inst.astype(np.int64))
+            cols["gt_dynamic"].append(np.array(
+                [is_dynamic(gt.attributes[g], bool(gt.moving[g])) if g >= 0 else False for g in gi.tolist()],
+                dtype=bool))
+            cols["group"].append(np.array(
+                [(group_of(int(gt.labels[g])) or "") if g >= 0 else "" for g in gi.tolist()], dtype="U12"))
+        core_z.retain(reported)
+        core_v.retain(reported)
+
+    def cat(k: str, dtype: object) -> np.ndarray:
+        return np.concatenate(cols[k]).astype(dtype) if cols[k] else np.empty(0, dtype=dtype)
+
+    return Records(
+        t_s=cat("t_s", np.float64), seq=cat("seq", np.int64), track_id=cat("track_id", "U32"),
+        label=cat("label", np.int64), z=cat("z", np.float64), speed=cat("speed", np.float64),
+        window=cat("window", np.int64), state_z=cat("state_z", np.int8), state_v=cat("state_v", np.int8),
+        gt_instance=cat("gt_instance", np.int64), gt_dynamic=cat("gt_dynamic", bool), group=cat("group", "U12"),
+        alpha=cat("alpha", np.float64), velocity_threshold=float(base.velocity_threshold),
+        min_window=int(base.min_window),
+    )
