@@ -100,6 +100,18 @@ def plot_alpha_sweep(rec: Records, path: Path) -> dict[str, Any]:
     return sweeps
 
 
+def finite_json(obj: Any) -> Any:
+    """``obj`` with every NaN / inf float replaced by None: metrics.json must be strict JSON (an undefined
+    AP — no dynamic object in a group — is null, not a non-standard NaN token)."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: finite_json(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [finite_json(v) for v in obj]
+    return obj
+
+
 def _fmt(v: Any) -> str:
     if v is None or (isinstance(v, float) and math.isnan(v)):
         return "—"
@@ -112,6 +124,7 @@ def write_outputs(out: Path, rec: Records, metrics: dict[str, Any]) -> dict[str,
     plot_speed_vs_z(rec, out / "speed_vs_z.png")
     plot_pr(rec, out / "pr_curves.png")
     metrics["alpha_sweep"] = plot_alpha_sweep(rec, out / "alpha_sweep.png")
+    metrics = finite_json(metrics)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2, sort_keys=True, allow_nan=False) + "\n")
     run = metrics["run"]
     lines = [

@@ -1,0 +1,121 @@
+"""Metrics of the offline evaluator: AP, PR ties, operating-point rates, matching, label mapping."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from jitterguard.eval.groundtruth import group_of, is_dynamic, nuscenes_label
+from jitterguard.eval.metrics import (
+    alpha_from_labels,
+    alpha_sweep,
+    average_precision,
+    compute_metrics,
+    pr_curve,
+    rate,
+    time_to_first_correct,
+)
+from jitterguard.eval.pipeline import Records, match_tracks
+from jitterguard.services.classifier.core import DYNAMIC, STATIC, UNDECIDED
+
+
+def test_ap_of_perfect_score_is_one() -> None:
+    pos = np.array([0, 1, 0, 1, 1, 0], bool)
+    assert average_precision(pos.astype(float) * 3 + 0.5, pos) == pytest.approx(1.0)
+
+
+def test_ap_of_reversed_score_is_low() -> None:
+    rng = np.random.default_rng(0)
+    pos = rng.random(400) < 0.3
+    score = np.where(pos, 0.0, 1.0) + 0.01 * rng.random(400)
+    ap = average_precision(score, pos)
+    assert ap < 0.35  # near the base rate, far from 1
+    assert average_precision(-score, pos) == pytest.approx(1.0)
+
+
+def test_ap_matches_hand_computation() -> None:
+    # ranks: P N P N  -> precision at positives 1/1 and 2/3 -> AP = (1 + 2/3) / 2
+    assert average_precision([4, 3, 2, 1], [1, 0, 1, 0]) == pytest.approx((1 + 2 / 3) / 2)
+
+
+def test_tied_scores_get_no_credit_for_order() -> None:
+    # a constant score cannot separate anything: AP equals the positive rate whichever way rows are ordered
+    assert average_precision([1, 1, 1, 1], [1, 0, 0, 0]) == pytest.approx(0.25)
+    assert average_precision([1, 1, 1, 1], [0, 0, 0, 1]) == pytest.approx(0.25)
+    p, r, t = pr_curve([2, 1, 1], [1, 0, 1])
+    assert t.tolist() == [2, 1] and r.tolist() == [0.5, 1.0]
+
+
+def test_ap_undefined_without_positives() -> None:
+    assert math.isnan(average_precision([0.3, 0.2], [0, 0]))
+
+
+def test_rate_counts_only_masked_rows() -> None:
+    d = np.array([DYNAMIC, STATIC, DYNAMIC, UNDECIDED])
+    assert rate(d, [1, 1, 0, 0], DYNAMIC) == 0.5
+    assert math.isnan(rate(d, [0, 0, 0, 0], DYNAMIC))
+
+
+def test_match_tracks_is_optimal_and_gated() -> None:
+    gt = np.array([[0.0, 0.0], [1.5, 0.0]])
+    # track 0 sits at 1.0: greedy would give it gt 0 (1.0 m) and leave track 1 (at -0.4) only gt 1 (1.9 m)
+    tracks = np.array([[1.0, 0.0], [-0.4, 0.0], [50.0, 0.0]])
+    m = match_tracks(tracks, gt, 2.0)
+    assert m.tolist() == [1, 0, -1]
+    assert match_tracks(np.array([[3.0, 0.0]]), gt, 1.0).tolist() == [-1]
+    assert match_tracks(np.empty((0, 2)), gt).tolist() == []
+
+
+@pytest.mark.parametrize(("attr", "moving", "want"), [
+    ("vehicle.moving", False, True), ("vehicle.parked", True, False), ("vehicle.stopped", False, False),
+    ("pedestrian.moving", False, True), ("pedestrian.standing", True, False),
+    ("pedestrian.sitting_lying_down", False, False), ("cycle.without_rider", True, False),
+    ("cycle.with_rider", True, True), ("cycle.with_rider", False, False), ("", True, True),
+])
+def test_attribute_mapping(attr: str, moving: bool, want: bool) -> None:
+    assert is_dynamic(attr, moving) is want
+
+
+def test_groups_and_nuscenes_labels() -> None:
+    assert [group_of(x) for x in (1, 2, 3, 4, 5, 6, 7, 0)] == [
+        "vehicle"] * 5 + ["bicycle", "pedestrian", None]
+    assert nuscenes_label("human.pedestrian.child") == 7
+    assert nuscenes_label("vehicle.bus.bendy") == 3
+    assert nuscenes_label("movable_object.barrier") is None
+
+
+def _records(**kw: object) -> Records:
+    n = len(kw["z"])  # type: ignore[arg-type]
+    base = dict(t_s=np.arange(n) * 0.1, seq=np.arange(n), track_id=np.array(["a"] * n), label=np.ones(n, np.int64),
+                speed=np.zeros(n), window=np.full(n, 5), state_z=np.full(n, STATIC, np.int8),
+                state_v=np.full(n, STATIC, np.int8), gt_instance=np.zeros(n, np.int64),
+                gt_dynamic=np.zeros(n, bool), group=np.array(["vehicle"] * n), alpha=np.full(n, 1.96),
+                velocity_threshold=1.0, min_window=2)
+    base.update({k: np.asarray(v) if isinstance(v, list) else v for k, v in kw.items()})
+    return Records(**base)  # type: ignore[arg-type]
+
+
+def test_time_to_first_correct() -> None:
+    rec = _records(z=[0, 0, 0, 0], gt_dynamic=[True] * 4,
+                   state_z=np.array([UNDECIDED, STATIC, DYNAMIC, DYNAMIC], np.int8))
+    assert time_to_first_correct(rec, rec.state_z).tolist() == pytest.approx([0.2])
+    assert math.isnan(time_to_first_correct(rec, rec.state_v)[0])  # never dynamic
+
+
+def test_group_metrics_and_sweep() -> None:
+    dyn = np.array([False, False, True, True])
+    rec = _records(z=[0.5, 3.0, 5.0, 1.0], speed=[0.2, 1.5, 4.0, 2.0], gt_dynamic=dyn,
+                   state_z=np.array([STATIC, DYNAMIC, DYNAMIC, STATIC], np.int8),
+                   state_v=np.array([STATIC, DYNAMIC, DYNAMIC, DYNAMIC], np.int8))
+    m = compute_metrics(rec)["vehicle"]
+    assert (m["n_static"], m["n_dynamic"]) == (2, 2)
+    assert m["false_dynamic_z"] == 0.5 and m["missed_dynamic_z"] == 0.5
+    assert m["false_dynamic_speed"] == 0.5 and m["missed_dynamic_speed"] == 0.0
+    assert m["ap_speed"] == pytest.approx(1.0)
+    assert m["ap_z"] < 1.0
+    sw = alpha_sweep(rec, "vehicle", [0.0, 10.0])
+    assert sw["false_dynamic"] == [1.0, 0.0] and sw["missed_dynamic"] == [0.0, 1.0]
+    a = alpha_from_labels(rec, "vehicle", max_missed=0.0)
+    assert a is not None and a < 1.0 and np.mean(rec.z[dyn] <= a) == 0.0
