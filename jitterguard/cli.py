@@ -25,6 +25,7 @@ _AREAS = (
     "jitterguard.services.sidecar.cli",
     "jitterguard.sim.cli",
     "jitterguard.stack.cli",
+    "jitterguard.stack.bench",
     "jitterguard.eval.cli",
 )
 
