@@ -25,12 +25,6 @@ def quaternion_from_yaw(yaw: float) -> tuple[float, float, float, float]:
     return (0.0, 0.0, math.sin(yaw / 2.0), math.cos(yaw / 2.0))
 
 
-def wrap_angle(a: ArrayLike) -> F64:
-    """Wrap angles to [-pi, pi)."""
-    a = np.asarray(a, dtype=np.float64)
-    return (a + np.pi) % (2.0 * np.pi) - np.pi
-
-
 def rotate_cov2(cxx: ArrayLike, cxy: ArrayLike, cyy: ArrayLike, yaw: ArrayLike) -> tuple[F64, F64, F64]:
     """Rotate 2x2 covariances [[cxx, cxy], [cxy, cyy]] by ``yaw``: returns the entries of R Σ Rᵀ."""
     cxx = np.asarray(cxx, dtype=np.float64)

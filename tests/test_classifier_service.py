@@ -173,6 +173,7 @@ def test_state_map_validates_as_the_snapshot_model(service, client_session):
     for f in generate(TrackScenario(n_static=2, n_moving=2, n_starting=0, seed=8), 6):
         _send(client_session, f)
     assert wait_until(lambda: len(got["objects"]) == 6)
+    assert wait_until(lambda: len(got["motion"]) == 4 and all(m.header.seq == 5 for m in got["motion"].values()))
     snap = service.state_snapshot()  # validates the plain map the queryable sends
     assert snap.header.seq == 5 and len(snap.tracks) == 4
     by_id = {t.track_id: t for t in snap.tracks}

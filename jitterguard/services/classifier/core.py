@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from ...schemas.models import LABEL_NAMES, ClassifierConfig
+from ...schemas.models import ClassifierConfig
 from .statistics import CHANNELS, chi2_2_threshold, split_halves, window_statistics
 
 F64 = NDArray[np.float64]
@@ -295,6 +295,3 @@ class MotionClassifierCore:
         t = self._table
         return t.label[r], t.last["stamp_ns"][r], t.last["seq"][r]
 
-
-def label_name(label: int) -> str:
-    return LABEL_NAMES.get(int(label), "unknown")

@@ -9,7 +9,7 @@ from __future__ import annotations
 import time
 
 from ...runtime import Service, ZenohOptions
-from ...schemas import encode, keys
+from ...schemas import keys
 from .synthetic_tracks import TrackFrame, TrackScenario, generate
 
 

@@ -310,9 +310,3 @@ class ClassifierService(Service):
             latest.encoded = data  # same frame, same answer: encode once per frame
         query.reply(query.key_expr, data)
 
-    def latency_percentiles(self) -> dict[str, float]:
-        lat = np.asarray(self.latencies_ms, dtype=np.float64)
-        if lat.size == 0:
-            return {"p50_ms": float("nan"), "p99_ms": float("nan")}
-        return {"p50_ms": float(np.percentile(lat, 50)), "p99_ms": float(np.percentile(lat, 99))}
-
