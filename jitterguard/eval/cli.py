@@ -114,9 +114,57 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str, nuscenes
         "motion": compute_metrics(rec),
         "alpha_from_labels": {g: alpha_from_labels(rec, g) for g in REPORT_GROUPS},
     }
+    metrics["alpha_from_labels_preset"] = labels_preset(metrics["alpha_from_labels"])
     return write_outputs(out, rec, metrics)
 
 
+def study_command(
+    out: Annotated[Path, typer.Option("--out", help="Folder for study.md, study.json and one folder per run.")],
+    seed: Annotated[int, typer.Option("--seed", help="Seeds every scenario and noise model.")] = 0,
+    duration: Annotated[float, typer.Option("--duration", help="Scenario length [s].")] = 15.0,
+    as_json: Annotated[bool, typer.Option("--json", help="Also print study.json to stdout.")] = False,
+) -> None:
+    """The jitter-band study: parking-street and diagonal-lot under clean, jittery and paper-like noise."""
+    from ..schemas.models import ClassifierConfig
+    from .study import STUDY_RUNS, study_markdown, summarize
+
+    if not 0 < duration <= 600:
+        fail("--duration must be in (0, 600]")
+    if out.exists() and not out.is_dir():
+        fail(f"--out: {out} exists and is not a folder")
+    results = {}
+    for scenario, noise in STUDY_RUNS:
+        key = f"{scenario}/{noise}"
+        results[key] = evaluate(out / f"{scenario}-{noise}", scenario=scenario, seed=seed, noise=noise,
+                                nuscenes=None, scene=None, duration=duration, rate=10.0,
+                                classifier=ClassifierConfig())
+    summary = {"seed": seed, "duration_s": duration, "runs": summarize(results)}
+    (out / "study.json").write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
+    (out / "study.md").write_text(f"# Jitter-band study (seed {seed}, {duration:g} s, vehicles)\n\n"
+                                  + study_markdown(summary["runs"]))
+    if as_json:
+        sys.stdout.write(json.dumps(summary, indent=2, sort_keys=True) + "\n")
+    else:
+        sys.stdout.write(study_markdown(summary["runs"]))
+
+
+LABEL_CLASSES = {"vehicle": ("car", "truck", "bus", "trailer", "motorcycle"), "pedestrian": ("pedestrian",),
+                 "bicycle": ("bicycle",)}
+
+
+def labels_preset(alphas: dict[str, float | None]) -> dict[str, Any]:
+    """A ClassifierConfig update (like ``PRESETS``) with each group's alpha-from-labels on its classes,
+    rounded to 2 decimals and clamped to the config's (0, 100] range; groups without labels are left out."""
+    per_class = {}
+    for g, a in alphas.items():
+        if a is None:
+            continue
+        for c in LABEL_CLASSES[g]:
+            per_class[c] = round(min(max(float(a), 0.01), 100.0), 2)
+    return {"alpha_default": 1.96, "alpha_per_class": per_class}
+
+
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:
-    """Add ``eval`` to the main app (no benchmark: evaluation measures quality, not speed)."""
+    """Add ``eval`` and ``eval-study`` (no benchmark: evaluation measures quality, not speed)."""
     app.command("eval")(eval_command)
+    app.command("eval-study")(study_command)
