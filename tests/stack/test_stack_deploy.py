@@ -1,0 +1,97 @@
+"""deploy/: the Zenoh multi-host configs parse and really do mutual TLS; the systemd units are consistent."""
+
+from __future__ import annotations
+
+import configparser
+import json
+import shutil
+import subprocess
+import threading
+from pathlib import Path
+
+import pytest
+import zenoh
+
+from jitterguard.runtime import free_tcp_port
+
+from helpers import wait_until
+
+DEPLOY = Path(__file__).resolve().parents[2] / "deploy"
+SERVICES = ("router", "classifier", "tracker", "replay", "sidecar")
+
+
+@pytest.mark.parametrize("name", ["router-host.json5", "service-host.json5", "single-host.json5"])
+def test_zenoh_configs_parse(name):
+    zenoh.Config.from_file(str(DEPLOY / "zenoh" / name))
+
+
+def test_systemd_units_are_consistent():
+    target = configparser.ConfigParser(interpolation=None, strict=False)
+    target.read(DEPLOY / "systemd" / "jitterguard.target")
+    wants = target["Unit"]["Wants"].split()
+    for svc in SERVICES:
+        unit = DEPLOY / "systemd" / f"jitterguard-{svc}.service"
+        cp = configparser.ConfigParser(interpolation=None, strict=False)
+        cp.read(unit)
+        exec_start = cp["Service"]["ExecStart"].split()
+        assert exec_start[:2] == ["/opt/jitterguard/venv/bin/jitterguard", svc]
+        assert cp["Service"]["Restart"] == "always"
+        assert cp["Unit"]["PartOf"] == "jitterguard.target" and cp["Install"]["WantedBy"] == "jitterguard.target"
+        assert f"jitterguard-{svc}.service" in wants
+        if svc != "router":
+            assert "jitterguard-router.service" in cp["Unit"]["After"]
+
+
+def _openssl(*args: str, cwd: Path) -> None:
+    subprocess.run(["openssl", *args], cwd=cwd, check=True, capture_output=True)
+
+
+def _make_pki(d: Path) -> None:
+    _openssl("req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout", "ca-key.pem", "-out", "ca.pem", "-days", "2",
+             "-subj", "/CN=jitterguard-test-ca", cwd=d)
+    for name, cn, san in (("router", "router", "DNS:localhost,IP:127.0.0.1"),
+                          ("host", "jitterguard-tracker", "DNS:jitterguard-tracker")):
+        _openssl("req", "-newkey", "rsa:2048", "-nodes", "-keyout", f"{name}-key.pem", "-out", f"{name}.csr",
+                 "-subj", f"/CN={cn}", cwd=d)
+        (d / f"{name}.ext").write_text(f"subjectAltName={san}\n")
+        _openssl("x509", "-req", "-in", f"{name}.csr", "-CA", "ca.pem", "-CAkey", "ca-key.pem", "-CAcreateserial",
+                 "-out", f"{name}.pem", "-days", "2", "-extfile", f"{name}.ext", cwd=d)
+
+
+@pytest.mark.integration
+@pytest.mark.skipif(shutil.which("openssl") is None, reason="needs the openssl CLI to make a test PKI")
+def test_mtls_router_and_service_hosts(tmp_path):
+    """deploy/zenoh/*-host.json5 with a throwaway CA: a certified client gets data through, one without a
+    certificate is refused by the router."""
+    _make_pki(tmp_path)
+    port = free_tcp_port()
+    rcfg = zenoh.Config.from_file(str(DEPLOY / "zenoh" / "router-host.json5"))
+    rcfg.insert_json5("listen/endpoints", json.dumps([f"tls/127.0.0.1:{port}"]))
+    rcfg.insert_json5("access_control/enabled", "false")  # the ACL is an example; mTLS is what is tested here
+    for key, val in (("root_ca_certificate", "ca.pem"), ("listen_certificate", "router.pem"),
+                     ("listen_private_key", "router-key.pem")):
+        rcfg.insert_json5(f"transport/link/tls/{key}", json.dumps(str(tmp_path / val)))
+
+    def client(cert: bool) -> zenoh.Config:
+        c = zenoh.Config.from_file(str(DEPLOY / "zenoh" / "service-host.json5"))
+        c.insert_json5("connect/endpoints", json.dumps([f"tls/localhost:{port}"]))
+        c.insert_json5("connect/timeout_ms", "3000")
+        c.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(str(tmp_path / "ca.pem")))
+        if cert:
+            c.insert_json5("transport/link/tls/connect_certificate", json.dumps(str(tmp_path / "host.pem")))
+            c.insert_json5("transport/link/tls/connect_private_key", json.dumps(str(tmp_path / "host-key.pem")))
+        else:
+            c.insert_json5("transport/link/tls/connect_certificate", "null")
+            c.insert_json5("transport/link/tls/connect_private_key", "null")
+        return c
+
+    got: list[bytes] = []
+    ev = threading.Event()
+    with zenoh.open(rcfg):
+        with zenoh.open(client(True)) as sub_s, zenoh.open(client(True)) as pub_s:
+            sub = sub_s.declare_subscriber("jg/mtls/objects", lambda s: (got.append(s.payload.to_bytes()), ev.set()))
+            assert wait_until(lambda: (pub_s.put("jg/mtls/objects", b"hello"), ev.wait(0.2))[1], timeout=20)
+            sub.undeclare()
+        assert got and got[0] == b"hello"
+        with pytest.raises(Exception):
+            zenoh.open(client(False)).close()
