@@ -50,7 +50,8 @@ def _make_pki(d: Path) -> None:
     _openssl("req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout", "ca-key.pem", "-out", "ca.pem", "-days", "2",
              "-subj", "/CN=jitterguard-test-ca", cwd=d)
     for name, cn, san in (("router", "router", "DNS:localhost,IP:127.0.0.1"),
-                          ("host", "jitterguard-tracker", "DNS:jitterguard-tracker")):
+                          ("host", "jitterguard-tracker", "DNS:jitterguard-tracker"),
+                          ("ops", "jitterguard-ops", "DNS:jitterguard-ops")):
         _openssl("req", "-newkey", "rsa:2048", "-nodes", "-keyout", f"{name}-key.pem", "-out", f"{name}.csr",
                  "-subj", f"/CN={cn}", cwd=d)
         (d / f"{name}.ext").write_text(f"subjectAltName={san}\n")
@@ -95,3 +96,44 @@ def test_mtls_router_and_service_hosts(tmp_path):
         assert got and got[0] == b"hello"
         with pytest.raises(Exception):
             zenoh.open(client(False)).close()
+
+
+@pytest.mark.integration
+@pytest.mark.skipif(shutil.which("openssl") is None, reason="needs the openssl CLI to make a test PKI")
+def test_access_control_example_limits_puts_by_certificate(tmp_path):
+    """The router-host ACL: the tracker host (CN jitterguard-tracker) may publish ``tracked`` but not
+    ``objects``; the ops host reads everything."""
+    _make_pki(tmp_path)
+    port = free_tcp_port()
+    rcfg = zenoh.Config.from_file(str(DEPLOY / "zenoh" / "router-host.json5"))
+    rcfg.insert_json5("listen/endpoints", json.dumps([f"tls/127.0.0.1:{port}"]))
+    for key, val in (("root_ca_certificate", "ca.pem"), ("listen_certificate", "router.pem"),
+                     ("listen_private_key", "router-key.pem")):
+        rcfg.insert_json5(f"transport/link/tls/{key}", json.dumps(str(tmp_path / val)))
+    # Everything here runs on loopback, which the example trusts as "local" (services on the router host):
+    # take that subject out so the certificate subjects are what decides.
+    acl = json.loads(rcfg.get_json("access_control"))
+    acl["subjects"] = [s for s in acl["subjects"] if s["id"] != "local"]
+    for pol in acl["policies"]:
+        pol["subjects"] = [s for s in pol["subjects"] if s != "local"]
+    rcfg.insert_json5("access_control", json.dumps(acl))
+
+    def client(who: str) -> zenoh.Config:
+        c = zenoh.Config.from_file(str(DEPLOY / "zenoh" / "service-host.json5"))
+        c.insert_json5("connect/endpoints", json.dumps([f"tls/localhost:{port}"]))
+        for key, val in (("root_ca_certificate", "ca.pem"), ("connect_certificate", f"{who}.pem"),
+                         ("connect_private_key", f"{who}-key.pem")):
+            c.insert_json5(f"transport/link/tls/{key}", json.dumps(str(tmp_path / val)))
+        return c
+
+    got: dict[str, int] = {}
+    with zenoh.open(rcfg), zenoh.open(client("ops")) as ops, zenoh.open(client("host")) as tracker:
+        ops.declare_subscriber("jg/acl/**", lambda s: got.__setitem__(str(s.key_expr), got.get(str(s.key_expr), 0) + 1))
+        assert wait_until(lambda: (tracker.put("jg/acl/tracked", b"x"), got.get("jg/acl/tracked", 0) > 0)[1],
+                          timeout=20)
+        for _ in range(20):
+            tracker.put("jg/acl/objects", b"forged")
+        tracker.put("jg/acl/tracked", b"fence")
+        n = got["jg/acl/tracked"]
+        assert wait_until(lambda: got["jg/acl/tracked"] > n, timeout=10)
+    assert "jg/acl/objects" not in got
