@@ -44,12 +44,13 @@ def plot_speed_vs_z(rec: Records, path: Path) -> None:
         ax.axvline(alpha, ls="--", c="k", lw=1, label=f"alpha {alpha:g}")
         ax.axhline(rec.velocity_threshold, ls=":", c="k", lw=1, label=f"{rec.velocity_threshold:g} m/s")
         ax.set_xscale("log")
+        ax.set_xlim(1e-2, 1e3)  # one z range in every panel, so groups and runs compare at a glance
         ax.set_xlabel("z = max(z_x, z_y)")
         ax.set_ylabel("tracker speed [m/s]")
         ax.set_title(g)
         ax.legend(fontsize=7, loc="upper left")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=90)
     plt.close(fig)
 
 
@@ -71,7 +72,7 @@ def plot_pr(rec: Records, path: Path) -> None:
         ax.set_title(g)
         ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=90)
     plt.close(fig)
 
 
@@ -95,7 +96,7 @@ def plot_alpha_sweep(rec: Records, path: Path) -> dict[str, Any]:
         ax.set_title(g)
         ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=90)
     plt.close(fig)
     return sweeps
 
