@@ -75,7 +75,7 @@ def eval_command(
 def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str, nuscenes: Path | None,
              scene: str | None, duration: float, rate: float, classifier: Any) -> dict[str, Any]:
     """Load the frames, run the pipeline, score, write the outputs; returns metrics.json's content."""
-    from tqdm import tqdm
+    from tqdm import tqdm  # type: ignore[import-untyped]
 
     from .groundtruth import NuScenesError, load_nuscenes_frames
     from .metrics import REPORT_GROUPS, alpha_from_labels, compute_metrics
@@ -138,7 +138,7 @@ def study_command(
         results[key] = evaluate(out / f"{scenario}-{noise}", scenario=scenario, seed=seed, noise=noise,
                                 nuscenes=None, scene=None, duration=duration, rate=10.0,
                                 classifier=ClassifierConfig())
-    summary = {"seed": seed, "duration_s": duration, "runs": summarize(results)}
+    summary: dict[str, Any] = {"seed": seed, "duration_s": duration, "runs": summarize(results)}
     (out / "study.json").write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
     (out / "study.md").write_text(f"# Jitter-band study (seed {seed}, {duration:g} s, vehicles)\n\n"
                                   + study_markdown(summary["runs"]))

@@ -14,10 +14,11 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import linear_sum_assignment
+from scipy.optimize import linear_sum_assignment  # type: ignore[import-untyped]
 
 from ..schemas.models import ClassifierConfig, TrackObservation
 from ..services.classifier.core import MotionClassifierCore
@@ -89,7 +90,7 @@ class Records:
     def subset(self, mask: NDArray[np.bool_]) -> "Records":
         """The rows where ``mask`` holds (scalars kept)."""
         kw = {k: (v[mask] if isinstance(v, np.ndarray) else v) for k, v in self.__dict__.items()}
-        return Records(**kw)
+        return Records(**kw)  # type: ignore[arg-type]
 
 
 def _id_factory() -> Callable[[], str]:
@@ -155,7 +156,7 @@ def run_pipeline(frames: Iterable[GroundTruthFrame], noise: NoiseConfig, seed: i
         core_z.retain(reported)
         core_v.retain(reported)
 
-    def cat(k: str, dtype: object) -> np.ndarray:
+    def cat(k: str, dtype: Any) -> np.ndarray:
         return np.concatenate(cols[k]).astype(dtype) if cols[k] else np.empty(0, dtype=dtype)
 
     return Records(

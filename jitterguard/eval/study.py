@@ -35,9 +35,9 @@ def check_jitter_band(vehicle: dict[str, Any], fd_ratio: float = 0.2, md_slack: 
     """Jitter criterion: FD_z ≤ fd_ratio · FD_speed and MD_z ≤ MD_speed + md_slack (None if undefined)."""
     fz, fv = vehicle.get("false_dynamic_z"), vehicle.get("false_dynamic_speed")
     mz, mv = vehicle.get("missed_dynamic_z"), vehicle.get("missed_dynamic_speed")
-    if None in (fz, fv, mz, mv):
+    if fz is None or fv is None or mz is None or mv is None:
         return None
-    return fz <= fd_ratio * fv and mz <= mv + md_slack
+    return float(fz) <= fd_ratio * float(fv) and float(mz) <= float(mv) + md_slack
 
 
 def summarize(results: dict[str, dict[str, Any]]) -> dict[str, Any]:
