@@ -167,3 +167,22 @@ def run_pipeline(frames: Iterable[GroundTruthFrame], noise: NoiseConfig, seed: i
         alpha=cat("alpha", np.float64), velocity_threshold=float(base.velocity_threshold),
         min_window=int(base.min_window),
     )
+
+
+def concat_records(parts: list[Records], tags: list[str]) -> Records:
+    """Pool several runs (e.g. seeds) into one table; track IDs get ``tag/`` prefixes because the evaluator's
+    deterministic IDs restart in every run, and two runs' tracks must never merge."""
+    if not parts:
+        raise ValueError("nothing to pool")
+    if len({(p.velocity_threshold, p.min_window) for p in parts}) != 1:
+        raise ValueError("pooled runs must share the classifier operating point")
+    kw: dict[str, Any] = {}
+    for k, v in parts[0].__dict__.items():
+        if isinstance(v, np.ndarray):
+            arrays = [getattr(p, k) for p in parts]
+            if k == "track_id":
+                arrays = [np.char.add(f"{t}/", a.astype(str)) for a, t in zip(arrays, tags)]
+            kw[k] = np.concatenate(arrays)
+        else:
+            kw[k] = v
+    return Records(**kw)

@@ -98,3 +98,13 @@ def test_nuscenes_scene_loads_and_scores(tmp_path: Path) -> None:
     m = compute_metrics(rec)
     assert m["vehicle"]["n_static"] > 0 and m["vehicle"]["n_dynamic"] > 0
     assert m["vehicle"]["ap_z"] is not None and m["vehicle"]["ap_z"] > 0.8
+
+
+def test_pooled_runs_keep_tracks_apart(records) -> None:
+    from jitterguard.eval.pipeline import concat_records
+
+    pooled = concat_records([records, records], ["0", "1"])
+    assert len(pooled) == 2 * len(records)
+    n_tracks = len(np.unique(records.track_id))
+    assert len(np.unique(pooled.track_id)) == 2 * n_tracks  # same IDs in both runs, never merged
+    np.testing.assert_array_equal(pooled.z[: len(records)], records.z)
