@@ -146,7 +146,12 @@ def _largest_gap(watcher: Watcher, t_kill: float) -> tuple[float, float]:
 @pytest.mark.parametrize("name", ["classifier", "tracker", "replay", "router"])
 def test_sigkill_restarts_service_and_objects_resume(stack, name):
     run_dir, watcher, times = stack
+    before = _tracker_counters(run_dir) if name == "replay" else {}
     figures = kill_and_wait(run_dir, watcher, name)
+    if name == "replay":  # recorded for the report (see the xfail test below)
+        figures["tracker_dropped_out_of_order"] = (_tracker_counters(run_dir).get("dropped_out_of_order", 0)
+                                                   - before.get("dropped_out_of_order", 0))
+        figures["tracker_resets"] = _tracker_counters(run_dir).get("resets", 0) - before.get("resets", 0)
     times[name] = figures
     statuses = sup_pids(run_dir)
     assert all(st == "RUNNING" for st, _ in statuses.values()), statuses
@@ -203,3 +208,25 @@ def test_status_reports_the_healed_stack(stack):
         assert r["state"] == "RUNNING" and r["pid"] and r["alive"], r
     assert rows["classifier"]["last_seq"] is not None and rows["classifier"]["last_seq"] >= 0
     assert rows["classifier"]["heartbeat_pid"] == rows["classifier"]["pid"]
+
+
+def _tracker_counters(run_dir: Path) -> dict[str, int]:
+    res = jg("status", "--run-dir", str(run_dir), "--json", "--listen-s", "1.2")
+    rows = {r["name"]: r for r in json.loads(res.stdout)["services"]} if res.stdout else {}
+    return rows.get("tracker", {}).get("counters") or {}
+
+
+@pytest.mark.xfail(strict=False, reason="known issue (tracker/replay): a restarted replay starts again at seq 0 with "
+                   "scenario stamps from its start; when the killed replay was younger than the tracker's "
+                   "rewind_reset_s (10 s), the stamps go back by less than that, so the tracker drops the new "
+                   "replay's frames as out of order until they pass the old last stamp (a stall of up to 10 s)")
+def test_young_replay_restart_is_accepted_at_once_by_the_tracker(stack):
+    run_dir, watcher, times = stack
+    kill_and_wait(run_dir, watcher, "replay")  # now the replay is a few seconds old
+    before = _tracker_counters(run_dir)
+    assert before, "no tracker heartbeat"
+    figures = kill_and_wait(run_dir, watcher, "replay")
+    after = _tracker_counters(run_dir)
+    dropped = after.get("dropped_out_of_order", 0) - before.get("dropped_out_of_order", 0)
+    times["young_replay"] = {**figures, "tracker_dropped_out_of_order": dropped}
+    assert dropped <= 10, f"the tracker dropped {dropped} frames of the restarted replay as out of order"
