@@ -144,7 +144,10 @@ def render_table(rows: list[ServiceStatus], spec: StackSpec | None, run_dir: Pat
     from rich.table import Table
 
     title = f"jitterguard stack {spec.ns!r} via {spec.endpoint}" if spec else f"jitterguard stack in {run_dir}"
-    table = Table(title=title)
+    console = Console()
+    # A terminal gets a boxed table; a pipe gets plain aligned columns, one service per line starting with its
+    # name (as `supervisorctl status` prints), so `grep`/`awk` keep working.
+    table = Table(title=title) if console.is_terminal else Table(title=title, box=None, pad_edge=False)
     for col in ("service", "state", "pid", "uptime", "zenoh alive", "last seq"):
         table.add_column(col, justify="right" if col in ("pid", "uptime", "last seq") else "left")
     for r in rows:
@@ -152,4 +155,4 @@ def render_table(rows: list[ServiceStatus], spec: StackSpec | None, run_dir: Pat
         alive = "-" if r.alive is None else ("[green]yes[/]" if r.alive else "[red]no[/]")
         seq = "-" if r.last_seq is None else ("none yet" if r.last_seq < 0 else str(r.last_seq))
         table.add_row(r.name, f"[{color}]{r.state}[/]", str(r.pid or "-"), _fmt_uptime(r.uptime_s), alive, seq)
-    Console().print(table)
+    console.print(table)
