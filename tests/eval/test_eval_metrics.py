@@ -119,3 +119,12 @@ def test_group_metrics_and_sweep() -> None:
     assert sw["false_dynamic"] == [1.0, 0.0] and sw["missed_dynamic"] == [0.0, 1.0]
     a = alpha_from_labels(rec, "vehicle", max_missed=0.0)
     assert a is not None and a < 1.0 and np.mean(rec.z[dyn] <= a) == 0.0
+
+
+def test_ap_agrees_with_scikit_learn_including_ties() -> None:
+    sk = pytest.importorskip("sklearn.metrics")
+    rng = np.random.default_rng(1)
+    for _ in range(3):
+        y = rng.random(300) < 0.3
+        s = np.round(rng.random(300) + 0.3 * y, 2)  # rounding makes ties
+        assert average_precision(s, y) == pytest.approx(sk.average_precision_score(y, s), abs=1e-12)
