@@ -75,7 +75,7 @@ class SceneGenerator:
         self.objs = self.template["objects"]
 
     def frame(self, seq: int, stamp_ns: int) -> bytes:
-        import msgpack
+        import msgpack  # type: ignore[import-untyped]
 
         t = seq * self.dt
         d = self.amp * np.sin(self.omega * t)
@@ -200,8 +200,10 @@ def bench_pipeline(objects: int = 200, rate_hz: float = 20.0, duration_s: float 
     with lock:
         lat = [(recv[s] - sent[s]) * 1e3 for s in sent if s in recv]
         late_or_lost = len(sent) - len(lat)
-    growth = {n: (round(100.0 * (rss_end[n] - rss_first[n]) / rss_first[n], 2)
-                  if rss_first.get(n) and rss_end.get(n) else None) for n in procs}
+    growth: dict[str, float | None] = {}
+    for n in procs:
+        first, end = rss_first.get(n), rss_end.get(n)
+        growth[n] = round(100.0 * (end - first) / first, 2) if first and end else None
     return {
         "objects": objects, "rate_hz": rate_hz, "duration_s": round(wall, 2),
         "frames_in": len(sent), "frames_out": len(lat), "frames_missing": late_or_lost,
