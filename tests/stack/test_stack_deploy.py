@@ -46,10 +46,10 @@ def _openssl(*args: str, cwd: Path) -> None:
     subprocess.run(["openssl", *args], cwd=cwd, check=True, capture_output=True)
 
 
-def _make_pki(d: Path) -> None:
+def _make_pki(d: Path, router_san: str = "DNS:localhost,IP:127.0.0.1") -> None:
     _openssl("req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout", "ca-key.pem", "-out", "ca.pem", "-days", "2",
              "-subj", "/CN=jitterguard-test-ca", cwd=d)
-    for name, cn, san in (("router", "router", "DNS:localhost,IP:127.0.0.1"),
+    for name, cn, san in (("router", "router", router_san),
                           ("host", "jitterguard-tracker", "DNS:jitterguard-tracker"),
                           ("ops", "jitterguard-ops", "DNS:jitterguard-ops")):
         _openssl("req", "-newkey", "rsa:2048", "-nodes", "-keyout", f"{name}-key.pem", "-out", f"{name}.csr",
