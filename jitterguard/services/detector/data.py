@@ -1,0 +1,213 @@
+"""Training data for the detector: synthetic scans with ground truth, a disk cache, and (re-exported) the
+nuScenes loader and the augmentations.
+
+Everything here speaks :class:`~jitterguard.services.detector.config.Sample` — points (P, 4) and boxes (N, 9)
+in the *sensor* frame — so the training loop does not care where a scan came from.
+
+Synthetic path: :func:`synthetic_samples` generates scenarios with :func:`jitterguard.sim.world.make_scenario`,
+ray-casts frames spread over each scenario with :func:`jitterguard.sim.lidar.cast_frame` and converts the
+world-frame ground truth into sensor-frame boxes (:func:`frame_to_sensor_boxes`, pure). Ray-casting costs
+≈ 15–20 ms a scan, so a training run that sees the same scans every epoch writes them once with
+:func:`build_cache` and reads them back with :class:`CachedSamples` (one uncompressed ``.npz`` per sample:
+random access for a shuffled epoch costs one small file read, no torch needed).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+from collections.abc import Iterable, Iterator, Sequence
+from pathlib import Path
+from typing import overload
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ...sim.lidar import ScanResult, cast_frame
+from ...sim.sensors import LidarSpec, hdl32e
+from ...sim.world import GroundTruthFrame, make_scenario
+from .augment import (  # noqa: F401  (re-exported: one import site for the training code)
+    flip_x,
+    flip_y,
+    global_rotate,
+    global_scale,
+    random_augment,
+    filter_range,
+    drop_empty,
+    points_in_boxes,
+    GTDatabase,
+    build_gt_database,
+    gt_sample,
+)
+from .config import AUTOWARE_TO_CLASS, BOX_DIM, Sample
+
+F32 = NDArray[np.float32]
+I64 = NDArray[np.int64]
+
+CACHE_INDEX = "index.json"
+CACHE_FORMAT = 1
+
+
+# ------------------------------------------------------------------------------------------ synthetic
+
+
+def frame_to_sensor_boxes(frame: GroundTruthFrame, mount_height_m: float) -> tuple[F32, I64]:
+    """All of ``frame``'s objects as sensor-frame boxes (N, 9) and class indices (N,), −1 where the Autoware
+    label is not a detector class. Rows stay aligned with the frame (and so with ``ScanResult.owner``).
+
+    The sensor sits at the ego pose, ``mount_height_m`` above the ground (world z = 0); centres are rotated and
+    translated into the sensor frame, z becomes relative to the sensor, yaw relative to the ego's heading, and
+    velocities are rotated but not made ego-relative (nuScenes' convention: a parked car has zero velocity
+    whatever the ego does)."""
+    n = frame.num_objects
+    c, s = math.cos(frame.ego_yaw), math.sin(frame.ego_yaw)
+    dx = frame.centers[:, 0] - frame.ego_x
+    dy = frame.centers[:, 1] - frame.ego_y
+    vx, vy = frame.velocities[:, 0], frame.velocities[:, 1]
+    boxes = np.empty((n, BOX_DIM), np.float64)
+    boxes[:, 0] = c * dx + s * dy
+    boxes[:, 1] = -s * dx + c * dy
+    boxes[:, 2] = frame.centers[:, 2] - mount_height_m
+    boxes[:, 3:6] = frame.sizes
+    boxes[:, 6] = _wrap(frame.yaws - frame.ego_yaw)
+    boxes[:, 7] = c * vx + s * vy
+    boxes[:, 8] = -s * vx + c * vy
+    labels = np.array([AUTOWARE_TO_CLASS.get(int(lab), -1) for lab in frame.labels], np.int64)
+    return boxes.astype(np.float32), labels
+
+
+def sample_from_scan(frame: GroundTruthFrame, scan: ScanResult, mount_height_m: float, token: str = "") -> Sample:
+    """One :class:`Sample` from a frame and its scan: detector classes only (unmapped labels dropped), point
+    counts from the ray-cast."""
+    boxes, labels = frame_to_sensor_boxes(frame, mount_height_m)
+    keep = labels >= 0
+    return Sample(
+        points=np.ascontiguousarray(scan.points, np.float32),
+        boxes=np.ascontiguousarray(boxes[keep]),
+        labels=labels[keep],
+        num_points=np.asarray(scan.num_points, np.int64)[keep],
+        token=token,
+    )
+
+
+def spread_indices(num_frames: int, k: int) -> list[int]:
+    """``k`` frame indices evenly spread over ``[0, num_frames)`` (all of them if ``k >= num_frames``), so that
+    consecutive samples of a scenario are not near-duplicates of each other."""
+    if k <= 0 or num_frames <= 0:
+        return []
+    if k >= num_frames:
+        return list(range(num_frames))
+    return sorted({int(round(v)) for v in np.linspace(0, num_frames - 1, k)})
+
+
+def synthetic_samples(
+    scenarios: Sequence[str],
+    seeds: Sequence[int],
+    *,
+    frames_per_scenario: int,
+    duration_s: float = 20.0,
+    sensor: LidarSpec | None = None,
+    scan_seed: int = 0,
+    rate_hz: float = 10.0,
+) -> Iterator[Sample]:
+    """Labelled synthetic scans: for every (scenario, seed), ``frames_per_scenario`` frames spread evenly over a
+    ``duration_s`` scenario, ray-cast with ``sensor`` (HDL-32E, nuScenes' LIDAR_TOP, by default).
+
+    Deterministic: the same arguments give the same samples (the scan's noise is seeded by ``scan_seed`` and
+    the frame). Tokens are ``synthetic/{scenario}/{seed}/{seq}``. Yields ``len(scenarios) * len(seeds) *
+    frames_per_scenario`` samples (fewer if a scenario has fewer frames), scenario-major."""
+    spec = sensor or hdl32e()
+    for name in scenarios:
+        for seed in seeds:
+            sc = make_scenario(name, int(seed), duration_s, rate_hz)
+            for i in spread_indices(len(sc), frames_per_scenario):
+                scan, frame = cast_frame(sc.frame(i), spec, scan_seed)
+                yield sample_from_scan(frame, scan, spec.mount_height_m, f"synthetic/{name}/{seed}/{frame.seq}")
+
+
+def _wrap(a: NDArray[np.float64]) -> NDArray[np.float64]:
+    return (np.asarray(a) + np.pi) % (2.0 * np.pi) - np.pi
+
+
+# ------------------------------------------------------------------------------------------ disk cache
+
+
+def _progress(it: Iterable[Sample], total: int | None, desc: str, enabled: bool) -> Iterable[Sample]:
+    if not enabled:
+        return it
+    from tqdm import tqdm
+
+    return tqdm(it, total=total, desc=desc, unit="scan", file=sys.stderr)
+
+
+def build_cache(out_dir: str | os.PathLike[str], samples: Iterable[Sample], *, total: int | None = None,
+                progress: bool = True, meta: dict[str, object] | None = None) -> int:
+    """Write ``samples`` to ``out_dir`` (one uncompressed ``NNNNNN.npz`` per sample) and an ``index.json``
+    naming them; returns the number written. ``total`` sizes the progress bar (stderr); ``meta`` is stored in
+    the index (e.g. the scenarios and seeds, to tell caches apart).
+
+    The index is written last, so a cache interrupted mid-way has none and :class:`CachedSamples` refuses it
+    rather than silently training on a partial set. Uncompressed because the float scans barely compress and
+    decompression would cost more than the read."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    idx_path = out / CACHE_INDEX
+    if idx_path.exists():
+        idx_path.unlink()
+    entries: list[dict[str, object]] = []
+    for k, s in enumerate(_progress(samples, total, f"cache {out.name}", progress)):
+        name = f"{k:06d}.npz"
+        with (out / name).open("wb") as fh:
+            np.savez(fh, points=np.asarray(s.points, np.float32), boxes=np.asarray(s.boxes, np.float32),
+                     labels=np.asarray(s.labels, np.int64), num_points=np.asarray(s.num_points, np.int64))
+        entries.append({"file": name, "token": s.token, "num_points": int(len(s.points)),
+                        "num_boxes": int(len(s.boxes))})
+    index = {"format": CACHE_FORMAT, "count": len(entries), "meta": meta or {}, "samples": entries}
+    tmp = out / (CACHE_INDEX + ".tmp")
+    tmp.write_text(json.dumps(index, indent=0))
+    tmp.replace(idx_path)
+    return len(entries)
+
+
+class CachedSamples(Sequence[Sample]):
+    """A cache written by :func:`build_cache`, as a lazy random-access sequence of :class:`Sample` (each item is
+    read from disk when asked for; nothing is kept in memory but the index). Torch-free, so a DataLoader's
+    workers can each hold one."""
+
+    def __init__(self, out_dir: str | os.PathLike[str]) -> None:
+        self.root = Path(out_dir)
+        idx_path = self.root / CACHE_INDEX
+        if not idx_path.is_file():
+            raise FileNotFoundError(f"{self.root}: no sample cache here ({CACHE_INDEX} missing; build it first)")
+        index = json.loads(idx_path.read_text())
+        if index.get("format") != CACHE_FORMAT:
+            raise ValueError(f"{idx_path}: cache format {index.get('format')!r}, expected {CACHE_FORMAT}")
+        self.meta: dict[str, object] = index.get("meta", {})
+        self._entries: list[dict[str, object]] = index["samples"]
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+    @property
+    def tokens(self) -> list[str]:
+        return [str(e["token"]) for e in self._entries]
+
+    @overload
+    def __getitem__(self, i: int) -> Sample: ...
+
+    @overload
+    def __getitem__(self, i: slice) -> list[Sample]: ...
+
+    def __getitem__(self, i: int | slice) -> Sample | list[Sample]:
+        if isinstance(i, slice):
+            return [self[j] for j in range(*i.indices(len(self)))]
+        e = self._entries[i]
+        with np.load(self.root / str(e["file"])) as z:
+            return Sample(points=z["points"], boxes=z["boxes"], labels=z["labels"], num_points=z["num_points"],
+                          token=str(e["token"]))
+
+    def __iter__(self) -> Iterator[Sample]:
+        for i in range(len(self)):
+            yield self[i]
