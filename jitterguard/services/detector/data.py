@@ -42,6 +42,14 @@ from .augment import (  # noqa: F401  (re-exported: one import site for the trai
     gt_sample,
 )
 from .config import AUTOWARE_TO_CLASS, BOX_DIM, Sample
+from .data_nuscenes import (  # noqa: F401  (re-exported)
+    NUSCENES_TO_CLASS,
+    iter_nuscenes_samples,
+    nuscenes_class,
+    nuscenes_samples,
+    scene_of,
+    split_holdout,
+)
 
 F32 = NDArray[np.float32]
 I64 = NDArray[np.int64]

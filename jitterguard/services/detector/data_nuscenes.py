@@ -1,0 +1,221 @@
+"""nuScenes-format dataroots (the real scene in ``shared/data`` and ``jitterguard sim export`` output) as
+detector :class:`~jitterguard.services.detector.config.Sample`s, read straight from the JSON tables.
+
+For every LIDAR_TOP key frame: the sweep's points (``.pcd.bin``, 5 float32 per point; x, y, z, intensity kept,
+the ring dropped) and the sample's annotations moved global → ego (``ego_pose``) → sensor
+(``calibrated_sensor``) exactly as nuscenes-devkit's ``get_sample_data`` does, so boxes match devkit's (the
+tests compare them). nuScenes stores sizes as (width, length, height) and quaternions as (w, x, y, z).
+
+Velocities: nuScenes has none; like devkit's ``box_velocity`` they are the centre difference of the previous
+and next annotation of the instance over their sample timestamps (one-sided at a track's ends; none when the
+gap exceeds ``max_time_diff`` — doubled for a centred difference — or the instance has a single annotation).
+Where there is no estimate the velocity is set to 0, as mmdet3d's NuScenesDataset does, rather than NaN:
+``Sample`` carries no per-box validity flag and a NaN would poison any loss that forgets to mask it. Such boxes
+are few (single-annotation instances) and mostly static clutter at the edge of the range.
+
+The table readers and pose records are the replay's (``replay/sources/nuscenes.py``), so replay, evaluation and
+training walk a scene identically.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..replay.frames import SourceError
+from ..replay.sources.kitti import read_bin
+from ..replay.sources.nuscenes import _load_table, find_version
+from .config import BOX_DIM, CLASS_NAMES, Sample
+
+F64 = NDArray[np.float64]
+
+CHANNEL = "LIDAR_TOP"
+NUSCENES_FIELDS = 5
+
+NUSCENES_TO_CLASS: dict[str, int] = {
+    "vehicle.car": CLASS_NAMES.index("car"),
+    "vehicle.emergency.police": CLASS_NAMES.index("car"),
+    "vehicle.truck": CLASS_NAMES.index("truck"),
+    "vehicle.trailer": CLASS_NAMES.index("truck"),
+    "vehicle.construction": CLASS_NAMES.index("truck"),
+    "vehicle.emergency.ambulance": CLASS_NAMES.index("truck"),
+    "vehicle.bus.rigid": CLASS_NAMES.index("bus"),
+    "vehicle.bus.bendy": CLASS_NAMES.index("bus"),
+    "vehicle.bicycle": CLASS_NAMES.index("bicycle"),
+    "vehicle.motorcycle": CLASS_NAMES.index("bicycle"),
+}
+"""nuScenes category → detector class (Autoware's CenterPoint folding: trailers and construction vehicles are
+trucks, motorcycles bicycles; emergency vehicles as the evaluator maps them). ``human.pedestrian.*`` →
+pedestrian; every other category (barriers, cones, debris, animals, bicycle racks) is dropped."""
+
+
+def nuscenes_class(category: str) -> int:
+    """Detector class index of a nuScenes category name, −1 if it is not a detector target."""
+    if category.startswith("human.pedestrian."):
+        return CLASS_NAMES.index("pedestrian")
+    return NUSCENES_TO_CLASS.get(category, -1)
+
+
+def _rotations_wxyz(q: F64) -> F64:
+    """(N, 3, 3) rotation matrices of (N, 4) quaternions stored w, x, y, z (normalised first)."""
+    q = np.asarray(q, np.float64).reshape(-1, 4)
+    q = q / np.linalg.norm(q, axis=1, keepdims=True)
+    w, x, y, z = q.T
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
+    ], 1)
+
+
+def box_velocity(ann: dict[str, Any], anns: dict[str, dict[str, Any]], sample_ts: dict[str, int],
+                 max_time_diff: float = 1.5) -> F64:
+    """devkit's ``NuScenes.box_velocity`` on plain tables: global (vx, vy, vz) in m/s, NaN when unknown."""
+    has_prev, has_next = bool(ann["prev"]), bool(ann["next"])
+    if not has_prev and not has_next:
+        return np.full(3, np.nan)
+    first = anns[ann["prev"]] if has_prev else ann
+    last = anns[ann["next"]] if has_next else ann
+    dt = 1e-6 * (sample_ts[last["sample_token"]] - sample_ts[first["sample_token"]])
+    limit = max_time_diff * (2.0 if has_prev and has_next else 1.0)
+    if dt > limit or dt <= 0:
+        return np.full(3, np.nan)
+    return (np.asarray(last["translation"], np.float64) - np.asarray(first["translation"], np.float64)) / dt
+
+
+def annotations_to_sensor(anns: Sequence[dict[str, Any]], velocities: F64, ego: dict[str, Any],
+                          calib: dict[str, Any]) -> F64:
+    """(N, 9) sensor-frame boxes of global-frame annotations: centre, size and orientation moved through the
+    inverse ego pose and the inverse sensor calibration (devkit's ``get_sample_data`` chain), velocity rotated
+    the same way (3-D rotations throughout: nuScenes' ego poses are not flat). Yaw is the heading of the
+    rotated box's forward axis projected on the ground (devkit's evaluation ``quaternion_yaw``; pyquaternion's
+    ``yaw_pitch_roll[0]``, which mmdet3d's converter uses, differs by ~1e-4 rad where the ego is pitched or
+    rolled). NaN velocities stay NaN."""
+    n = len(anns)
+    out = np.zeros((n, BOX_DIM), np.float64)
+    if n == 0:
+        return out
+    r_ego = _rotations_wxyz(np.asarray(ego["rotation"]))[0]
+    r_cal = _rotations_wxyz(np.asarray(calib["rotation"]))[0]
+    r = r_cal.T @ r_ego.T  # global → sensor
+    t = np.array([a["translation"] for a in anns], np.float64)
+    centre = ((t - np.asarray(ego["translation"], np.float64)) @ r_ego - np.asarray(calib["translation"])) @ r_cal
+    rb = r[None] @ _rotations_wxyz(np.array([a["rotation"] for a in anns], np.float64))
+    size = np.array([a["size"] for a in anns], np.float64)  # (w, l, h)
+    out[:, 0:3] = centre
+    out[:, 3] = size[:, 1]
+    out[:, 4] = size[:, 0]
+    out[:, 5] = size[:, 2]
+    out[:, 6] = np.arctan2(rb[:, 1, 0], rb[:, 0, 0])
+    out[:, 7:9] = (np.asarray(velocities, np.float64).reshape(n, 3) @ r.T)[:, :2]
+    return out
+
+
+def _scene_chain(scene: dict[str, Any], samples: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
+    chain: list[dict[str, Any]] = []
+    token, seen = scene["first_sample_token"], set()
+    while token and token not in seen:
+        seen.add(token)
+        chain.append(samples[token])
+        if token == scene["last_sample_token"]:
+            break
+        token = samples[token]["next"]
+    return chain
+
+
+def iter_nuscenes_samples(dataroot: str | Path, version: str | None = None,
+                          scene_names: Sequence[str] | None = None, *, max_time_diff: float = 1.5,
+                          nan_velocity: float = 0.0) -> Iterator[Sample]:
+    """Like :func:`nuscenes_samples`, one key frame at a time (for :func:`~.data.build_cache` on big datasets).
+
+    ``nan_velocity``: the value given to velocities devkit cannot estimate (0.0, see the module docstring; pass
+    ``float('nan')`` to keep devkit's NaN)."""
+    root = Path(dataroot)
+    if not root.is_dir():
+        raise SourceError(f"{root}: no such folder")
+    folder = root / find_version(root, version)
+    t = {n: _load_table(folder, n) for n in ("scene", "sample", "sample_data", "ego_pose", "calibrated_sensor",
+                                             "sensor", "sample_annotation", "instance", "category")}
+    scenes = t["scene"]
+    if scene_names is not None:
+        by_name = {s["name"]: s for s in scenes}
+        missing = [n for n in scene_names if n not in by_name]
+        if missing:
+            raise SourceError(f"{root}: no scene {', '.join(missing)} (have: {', '.join(sorted(by_name))})")
+        scenes = [by_name[n] for n in scene_names]
+    samples = {s["token"]: s for s in t["sample"]}
+    sample_ts = {k: int(s["timestamp"]) for k, s in samples.items()}
+    ego = {e["token"]: e for e in t["ego_pose"]}
+    calib = {c["token"]: c for c in t["calibrated_sensor"]}
+    channel_of = {s["token"]: s["channel"] for s in t["sensor"]}
+    lidar_sd: dict[str, dict[str, Any]] = {}
+    for sd in t["sample_data"]:
+        if sd.get("is_key_frame") and channel_of[calib[sd["calibrated_sensor_token"]]["sensor_token"]] == CHANNEL:
+            lidar_sd[sd["sample_token"]] = sd
+    cat_name = {c["token"]: c["name"] for c in t["category"]}
+    inst_class = {i["token"]: nuscenes_class(cat_name[i["category_token"]]) for i in t["instance"]}
+    anns = {a["token"]: a for a in t["sample_annotation"]}
+    by_sample: dict[str, list[dict[str, Any]]] = {}
+    for a in t["sample_annotation"]:
+        if inst_class[a["instance_token"]] >= 0:
+            by_sample.setdefault(a["sample_token"], []).append(a)
+    for sc in scenes:
+        for smp in _scene_chain(sc, samples):
+            sd = lidar_sd.get(smp["token"])
+            if sd is None:
+                continue
+            path = root / sd["filename"]
+            try:
+                raw = read_bin(path, NUSCENES_FIELDS)
+            except FileNotFoundError:
+                raise SourceError(f"{path}: LIDAR_TOP sweep missing from the dataroot") from None
+            except (OSError, ValueError) as exc:
+                raise SourceError(f"{path}: {exc}") from None
+            pts = np.ascontiguousarray(raw[:, :4], np.float32)
+            pts = pts[np.isfinite(pts).all(axis=1)]
+            rows = by_sample.get(smp["token"], [])
+            vel = np.array([box_velocity(a, anns, sample_ts, max_time_diff) for a in rows], np.float64).reshape(-1, 3)
+            boxes = annotations_to_sensor(rows, vel, ego[sd["ego_pose_token"]], calib[sd["calibrated_sensor_token"]])
+            boxes[:, 7:9] = np.where(np.isnan(boxes[:, 7:9]), nan_velocity, boxes[:, 7:9])
+            yield Sample(
+                points=pts,
+                boxes=boxes.astype(np.float32),
+                labels=np.array([inst_class[a["instance_token"]] for a in rows], np.int64),
+                num_points=np.array([int(a.get("num_lidar_pts", 0)) for a in rows], np.int64),
+                token=f"nuscenes/{sc['name']}/{smp['token']}",
+            )
+
+
+def nuscenes_samples(dataroot: str | Path, version: str | None = None, scene_names: Sequence[str] | None = None,
+                     *, max_time_diff: float = 1.5, nan_velocity: float = 0.0) -> list[Sample]:
+    """Every LIDAR_TOP key frame of ``scene_names`` (default: all scenes, table order) of a nuScenes dataroot,
+    in scene order, as sensor-frame Samples. Tokens are ``nuscenes/{scene name}/{sample token}``.
+
+    Raises :class:`~jitterguard.services.replay.frames.SourceError` (one-line message) for a folder that is not
+    a dataroot, an unknown scene or a missing sweep."""
+    return list(iter_nuscenes_samples(dataroot, version, scene_names, max_time_diff=max_time_diff,
+                                      nan_velocity=nan_velocity))
+
+
+def scene_of(token: str) -> str:
+    """The group a Sample token belongs to: everything before its last ``/`` (``nuscenes/scene-0523``,
+    ``synthetic/mixed/3``)."""
+    return token.rsplit("/", 1)[0] if "/" in token else ""
+
+
+def split_holdout(samples: Sequence[Sample], last_n: int = 10) -> tuple[list[Sample], list[Sample]]:
+    """(train, holdout): the last ``last_n`` samples of every scene (grouped by :func:`scene_of` of the token,
+    in the order given) are held out, the rest trained on. Holding out the *end* of a scene rather than random
+    key frames keeps near-duplicate neighbours (0.5 s apart) out of the held-out set."""
+    if last_n < 0:
+        raise ValueError("last_n must be >= 0")
+    by_scene: dict[str, list[int]] = {}
+    for i, s in enumerate(samples):
+        by_scene.setdefault(scene_of(s.token), []).append(i)
+    held = {i for rows in by_scene.values() for i in (rows[-last_n:] if last_n else [])}
+    return ([s for i, s in enumerate(samples) if i not in held], [s for i, s in enumerate(samples) if i in held])
+
