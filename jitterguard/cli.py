@@ -21,6 +21,7 @@ app.add_typer(bench_app, name="bench")
 _AREAS = (
     "jitterguard.services.classifier.cli",
     "jitterguard.services.tracker.cli",
+    "jitterguard.services.detector.cli",
     "jitterguard.services.replay.cli",
     "jitterguard.services.sidecar.cli",
     "jitterguard.sim.cli",

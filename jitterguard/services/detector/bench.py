@@ -1,0 +1,111 @@
+"""``jitterguard bench detector``: end-to-end detector time per HDL-32E scan, per preset.
+
+What is timed is exactly :meth:`Detector.detect` on one scan — voxelisation into pillars, the network (pillar
+encoder, scatter, SECOND backbone, FPN neck, heads), decoding (peaks, top-K, boxes) and per-class circle NMS —
+on real ray-cast HDL-32E scans of a synthetic scenario (:func:`jitterguard.services.detector.data.synthetic_samples`),
+after untimed warm-up scans. Ray casting, Zenoh and message building are not included: they are the replay's and
+the adapter's cost. torch uses ``threads`` intra-op threads (default: every core of the machine), because a
+deployed detector owns its cores.
+
+Weights do not change the network's cost, only how many candidates pass the score threshold into NMS; a
+randomly initialised network (no shipped weights) passes many, so its decode time is an upper bound. Each
+preset's row says which weights it ran. ``p99_ms`` over a few dozen scans is close to the maximum.
+"""
+
+from __future__ import annotations
+
+import os
+import statistics
+import sys
+import time
+from collections.abc import Iterable, Mapping, Sequence
+from typing import Any, TypeVar
+
+import numpy as np
+
+from .config import PRESETS
+
+SCENARIOS = ("parking-street", "diagonal-lot", "intersection", "mixed")
+STAGES = ("voxelize", "network", "decode")
+T = TypeVar("T")
+
+
+def _bar(it: Iterable[T], total: int, desc: str, enabled: bool) -> Iterable[T]:
+    """tqdm on stderr (stdout stays clean JSON)."""
+    if not enabled:
+        return it
+    from tqdm import tqdm
+
+    return tqdm(it, total=total, desc=desc, unit="scan", file=sys.stderr, leave=False)
+
+
+def bench_scans(n: int, scenario: str = "mixed", seed: int = 0, progress: bool = False) -> list[np.ndarray]:
+    """``n`` HDL-32E scans (P, 4) spread over a scenario long enough that they are not near-duplicates."""
+    from .data import synthetic_samples
+
+    duration = max(4.0, n / 2.0)  # 10 Hz: every 5th frame at most
+    samples = synthetic_samples([scenario], [seed], frames_per_scenario=n, duration_s=duration)
+    return [s.points for s in _bar(samples, n, "ray-casting scans", progress)]
+
+
+def percentile(values: Sequence[float], q: float) -> float:
+    """Linear-interpolated percentile (numpy's default), as a float."""
+    return float(np.percentile(np.asarray(values, dtype=np.float64), q))
+
+
+def time_preset(detector: Any, scans: Sequence[np.ndarray], warmup: int, desc: str = "",
+                progress: bool = False) -> dict[str, Any]:
+    """Per-scan end-to-end times of ``detector.detect`` over ``scans`` (the first ``warmup`` untimed)."""
+    for pts in scans[:warmup]:
+        detector.detect(pts)
+    timed = scans[warmup:]
+    total: list[float] = []
+    stages: dict[str, list[float]] = {s: [] for s in STAGES}
+    found: list[int] = []
+    for pts in _bar(timed, len(timed), desc, progress):
+        t0 = time.perf_counter()
+        det = detector.detect(pts)
+        total.append((time.perf_counter() - t0) * 1e3)
+        for s in STAGES:
+            stages[s].append(float(detector.timings.get(s, float("nan"))))
+        found.append(len(det))
+    return {
+        "points": round(float(np.mean([len(p) for p in timed])), 1),
+        "p50_ms": round(percentile(total, 50), 2),
+        "p99_ms": round(percentile(total, 99), 2),
+        "mean_ms": round(statistics.fmean(total), 2),
+        "stages_ms": {s: round(statistics.median(v), 2) for s, v in stages.items()},
+        "detections": round(statistics.fmean(found), 1),
+        "scans": len(timed),
+    }
+
+
+def run(presets: Sequence[str], *, scans: int = 40, warmup: int = 3, threads: int | None = None,
+        weights: Mapping[str, str] | None = None, scenario: str = "mixed", seed: int = 0,
+        progress: bool = True) -> dict[str, dict[str, Any]]:
+    """``{preset: {"points", "p50_ms", "p99_ms", "mean_ms", "stages_ms", "detections", "scans", "threads",
+    "weights"}}`` — the same scans for every preset."""
+    import torch
+
+    from .inference import Detector, shipped_weights
+
+    unknown = [p for p in presets if p not in PRESETS]
+    if unknown:
+        raise ValueError(f"unknown preset(s) {unknown}; expected some of {list(PRESETS)}")
+    weights = dict(weights or {})
+    n_threads = threads or os.cpu_count() or 1
+    data = bench_scans(warmup + scans, scenario, seed, progress)
+    out: dict[str, dict[str, Any]] = {}
+    for name in presets:
+        det = Detector.load(weights.get(name), name, threads=n_threads)
+        torch.set_num_threads(n_threads)  # the same for every preset, whatever a previous load did
+        if name in weights:
+            which = weights[name]
+        elif shipped_weights(name).is_file():
+            which = "shipped"
+        else:
+            which = "random-init"
+        row = time_preset(det, data, warmup, f"timing {name}", progress)
+        row.update({"threads": n_threads, "weights": which})
+        out[name] = row
+    return out

@@ -1,0 +1,131 @@
+"""CLI of the detector area: ``jitterguard detector`` and ``jitterguard bench detector``."""
+
+from __future__ import annotations
+
+import json
+import os
+from typing import Annotated
+
+import typer
+
+from ...cli_common import ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ZenohConfigOpt, fail, zenoh_options
+from .config import PRESETS
+
+WeightsOpt = Annotated[
+    str | None,
+    typer.Option("--weights", help="Weights file (torch.save dict, loaded weights_only). Default: the shipped"
+                 " weights of --preset; without them a randomly initialised network (logged loudly)."),
+]
+PresetOpt = Annotated[str, typer.Option("--preset", help=f"Architecture preset: {', '.join(PRESETS)}.")]
+ThreadsOpt = Annotated[
+    int | None, typer.Option("--threads", min=1, max=1024, help="torch CPU threads (default: the machine's cores).")
+]
+
+
+def _parse_presets(text: str) -> tuple[str, ...]:
+    names = tuple(s.strip() for s in text.split(",") if s.strip())
+    unknown = [n for n in names if n not in PRESETS]
+    if not names or unknown:
+        fail(f"--presets: expected comma-separated names from {', '.join(PRESETS)}, got {text!r}")
+    return tuple(dict.fromkeys(names))
+
+
+def register(app: typer.Typer, bench_app: typer.Typer) -> None:
+    @app.command("detector")
+    def detector_cmd(
+        ns: NsOpt = "default",
+        zenoh_config: ZenohConfigOpt = None,
+        connect: ConnectOpt = None,
+        listen: ListenOpt = None,
+        weights: WeightsOpt = None,
+        preset: PresetOpt = "lite",
+        threads: ThreadsOpt = None,
+        score_threshold: Annotated[
+            float | None,
+            typer.Option("--score-threshold", min=0.0, max=1.0,
+                         help="Keep detections scoring above this (default: the weights' config)."),
+        ] = None,
+        twist: Annotated[
+            bool, typer.Option("--twist/--no-twist", help="Publish the network's velocity as the twist.")
+        ] = True,
+        log_level: LogLevelOpt = "INFO",
+    ) -> None:
+        """Run the detector: points in; one DetectedObjects per scan (sensor frame, with variances) out."""
+        if preset not in PRESETS:
+            fail(f"--preset: expected one of {', '.join(PRESETS)}, got {preset!r}")
+        if weights is not None and not os.path.isfile(weights):
+            fail(f"--weights: file not found: {weights}")
+        opts = zenoh_options(ns, zenoh_config, connect, listen)
+
+        from ...runtime import setup_logging
+
+        setup_logging(log_level)
+        from .inference import Detector, WeightsError
+        from .service import DetectorService
+
+        try:  # load before the session opens: a bad weights file fails before anything is on the network
+            det = Detector.load(weights, preset, threads=threads, score_threshold=score_threshold)
+        except WeightsError as exc:
+            fail(f"--weights: {exc}")
+        try:
+            service = DetectorService(opts, det, has_twist=twist)
+        except ValueError as exc:  # build_config names the bad endpoint / setting
+            fail(str(exc))
+        service.run_forever()
+
+    @bench_app.command("detector")
+    def bench_detector_cmd(
+        json_out: Annotated[bool, typer.Option("--json", help="Print the result as one JSON document.")] = False,
+        presets: Annotated[str, typer.Option("--presets", help="Comma-separated presets to time.")] = "lite,paper",
+        scans: Annotated[int, typer.Option("--scans", min=1, max=10_000, help="Timed scans per preset.")] = 40,
+        warmup: Annotated[int, typer.Option("--warmup", min=0, max=1000, help="Untimed scans first.")] = 3,
+        threads: ThreadsOpt = None,
+        weights: Annotated[
+            list[str] | None,
+            typer.Option("--weights", help="PRESET=FILE: time these weights for PRESET (repeatable); default the"
+                         " shipped weights, else random init (same cost)."),
+        ] = None,
+        scenario: Annotated[str, typer.Option("--scenario", help="Synthetic scenario the scans come from.")] = "mixed",
+        seed: Annotated[int, typer.Option("--seed")] = 0,
+        progress: Annotated[bool, typer.Option("--progress/--no-progress", help="Progress bar on stderr.")] = True,
+    ) -> None:
+        """Time the detector end to end per HDL-32E scan (voxelisation, network, decode, NMS)."""
+        from .bench import SCENARIOS, run
+
+        names = _parse_presets(presets)
+        if scenario not in SCENARIOS:
+            fail(f"--scenario: expected one of {', '.join(SCENARIOS)}, got {scenario!r}")
+        files: dict[str, str] = {}
+        for item in weights or []:
+            name, sep, path = item.partition("=")
+            if not sep or name not in PRESETS or not path:
+                fail(f"--weights: expected PRESET=FILE with PRESET one of {', '.join(PRESETS)}, got {item!r}")
+            if not os.path.isfile(path):
+                fail(f"--weights: file not found: {path}")
+            files[name] = path
+        from .inference import WeightsError
+
+        try:
+            result = run(names, scans=scans, warmup=warmup, threads=threads, weights=files, scenario=scenario,
+                         seed=seed, progress=progress)
+        except WeightsError as exc:
+            fail(f"--weights: {exc}")
+        if json_out:
+            typer.echo(json.dumps(result))
+            return
+        from rich.console import Console
+        from rich.table import Table
+
+        table = Table(title=f"detector end to end per scan ({result_threads(result)} threads)")
+        for col in ("preset", "points", "p50 ms", "p99 ms", "voxelize", "network", "decode", "detections"):
+            table.add_column(col, justify="right")
+        for name, row in result.items():
+            st = row["stages_ms"]
+            table.add_row(name, f"{row['points']:.0f}", f"{row['p50_ms']:.1f}", f"{row['p99_ms']:.1f}",
+                          f"{st['voxelize']:.1f}", f"{st['network']:.1f}", f"{st['decode']:.1f}",
+                          f"{row['detections']:.0f}")
+        Console().print(table)
+
+
+def result_threads(result: dict) -> str:
+    return ",".join(sorted({str(r["threads"]) for r in result.values()}))

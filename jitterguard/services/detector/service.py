@@ -1,0 +1,147 @@
+"""The detector's Zenoh adapter: ``points`` in, one ``detections`` message per processed scan out.
+
+Threading. The ``points`` subscriber's callback only decodes and validates the scan (the runtime counts and
+logs a malformed payload as ``rejected`` and the service goes on) and drops it into a depth-1 slot; one worker
+thread takes the slot's scan, runs the network and publishes. A scan costs the network tens to hundreds of
+milliseconds, so a queue would only grow: when a scan arrives while the previous one is still waiting in the
+slot, the waiting one is replaced — the detector always works on the newest scan, and a stale one is worth
+less to a tracker than a fresh one. Never silently: every replaced scan counts as ``skipped_scans`` and each
+burst of them is logged once with the seq gap. The callback never blocks, so a BLOCK-publishing replay is not
+slowed by a slow detector (it is by a slow network link, as it should be).
+
+Frames and covariances follow :mod:`.convert`: sensor frame, the scan's header and ego pose carried over, the
+network's sensor-frame variances in the covariance fields; the tracker rotates them into the world frame.
+
+Counters (in the heartbeat): ``scans`` (processed), ``skipped_scans``, ``detections`` (objects published),
+``empty_scans`` (no finite point: published with no objects so the tracker still sees the frame),
+``nonfinite_points``, ``nonfinite_detections``, ``detect_errors``, ``detect_ms_last`` (end-to-end time of the
+latest scan, rounded) and the runtime's ``received`` / ``rejected`` / ``published``.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+
+from ...runtime import Service, ZenohOptions
+from ...runtime.service import _BurstLogger
+from ...schemas import encode, keys
+from ...schemas.models import PointCloud
+from .config import Detections3D
+from .convert import class_labels, detections_map, finite_detections, scan_points
+from .inference import Detector
+
+WAIT_S = 0.2
+"""How often the idle worker looks at the stop event."""
+
+
+class _Slot:
+    """The newest scan not yet taken by the worker, and what it replaced since the worker last took one."""
+
+    def __init__(self) -> None:
+        self.cond = threading.Condition()
+        self.scan: PointCloud | None = None
+        self.skipped = 0
+        self.skipped_first = -1
+        self.skipped_last = -1
+
+    def put(self, scan: PointCloud) -> bool:
+        """Store ``scan``; True when it replaced one the worker had not taken yet."""
+        with self.cond:
+            replaced = self.scan is not None
+            if self.scan is not None:
+                if self.skipped == 0:
+                    self.skipped_first = self.scan.header.seq
+                self.skipped += 1
+                self.skipped_last = self.scan.header.seq
+            self.scan = scan
+            self.cond.notify()
+            return replaced
+
+    def take(self, timeout: float) -> tuple[PointCloud, int, int, int] | None:
+        """(scan, scans skipped before it, first and last skipped seq), or None after ``timeout``."""
+        with self.cond:
+            if self.scan is None:
+                self.cond.wait(timeout)
+            if self.scan is None:
+                return None
+            out = (self.scan, self.skipped, self.skipped_first, self.skipped_last)
+            self.scan, self.skipped, self.skipped_first, self.skipped_last = None, 0, -1, -1
+            return out
+
+    def wake(self) -> None:
+        with self.cond:
+            self.cond.notify_all()
+
+
+class DetectorService(Service):
+    """The ``jitterguard detector`` process."""
+
+    name = "detector"
+
+    def __init__(self, opts: ZenohOptions, detector: Detector, *, has_twist: bool = True) -> None:
+        # check the model's classes before the session opens: a bad config must fail before anything is on the network
+        class_labels(detector.config.class_names)
+        self.detector = detector
+        self.has_twist = has_twist
+        self._slot = _Slot()
+        super().__init__(opts)
+        self._behind_log = _BurstLogger(self.log)
+        self._error_log = _BurstLogger(self.log)
+        self._pub = self.publisher(keys.detections(self.ns))
+        self.spawn(self._worker, "worker")
+        self.subscribe(keys.points(self.ns), PointCloud, self._on_scan)
+
+    def _on_scan(self, msg: PointCloud, _key: str) -> None:
+        """Zenoh callback (the scan is already validated): newest scan into the slot, count what it replaced."""
+        if self._slot.put(msg):
+            self.counters.inc("skipped_scans")
+
+    def on_close(self) -> None:
+        self._slot.wake()
+
+    # ------------------------------------------------------------------ the worker (owns the network)
+
+    def _worker(self) -> None:
+        while not self.stop_event.is_set():
+            got = self._slot.take(WAIT_S)
+            if got is None:
+                continue
+            scan, skipped, first, last = got
+            if skipped:
+                gap = f"seq {first}" if first == last else f"seqs {first}..{last}"
+                self._behind_log.warn(
+                    f"falling behind: skipped {skipped} scan(s) ({gap}) that arrived while the network was busy"
+                    f" (last scan took {self.counters.get('detect_ms_last')} ms); processing the newest,"
+                    f" seq {scan.header.seq}")
+            try:
+                self.process(scan)
+            except Exception as exc:  # a bad scan or a bug must not stop detection: count, log, next scan
+                self.counters.inc("detect_errors")
+                self._error_log.warn(f"scan seq {scan.header.seq} failed: {type(exc).__name__}: {exc}")
+                self.log.debug("scan seq %d failed", scan.header.seq, exc_info=True)
+
+    def process(self, scan: PointCloud) -> None:
+        """Detect on one validated scan and publish its ``DetectedObjects``."""
+        t0 = time.perf_counter()
+        points, bad = scan_points(scan)
+        if bad:
+            self.counters.inc("nonfinite_points", bad)
+        if len(points) == 0:
+            det = Detections3D.empty(self.detector.config.uncertainty)
+            self.counters.inc("empty_scans")
+        else:
+            det = self.detector.detect(points)
+        det, dropped = finite_detections(det)
+        if dropped:
+            self.counters.inc("nonfinite_detections", dropped)
+            self._error_log.warn(f"scan seq {scan.header.seq}: dropped {dropped} detection(s) holding a"
+                                 " non-finite number")
+        payload = detections_map(det, scan.header, scan.ego_pose, self.detector.config.class_names,
+                                 has_twist=self.has_twist)
+        self._pub.put(encode(payload))
+        self.counters.inc("published")
+        self.counters.inc("scans")
+        self.counters.inc("detections", len(det))
+        self.counters.set("detect_ms_last", round((time.perf_counter() - t0) * 1e3))
+        self.last_seq = scan.header.seq
