@@ -239,7 +239,7 @@ def gt_sample(sample: Sample, db: GTDatabase, rng: np.random.Generator,
         return sample
     rng.shuffle(picks)
     cand = db.boxes[picks]
-    clash_scene = bev_overlaps(cand, sample.boxes).any(axis=1)
+    clash_scene = np.asarray(bev_overlaps(cand, sample.boxes).any(axis=1))
     clash_self = bev_overlaps(cand, cand)
     accepted: list[int] = []
     for i in range(len(picks)):

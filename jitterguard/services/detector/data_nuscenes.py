@@ -153,9 +153,9 @@ def iter_nuscenes_samples(dataroot: str | Path, version: str | None = None,
     calib = {c["token"]: c for c in t["calibrated_sensor"]}
     channel_of = {s["token"]: s["channel"] for s in t["sensor"]}
     lidar_sd: dict[str, dict[str, Any]] = {}
-    for sd in t["sample_data"]:
-        if sd.get("is_key_frame") and channel_of[calib[sd["calibrated_sensor_token"]]["sensor_token"]] == CHANNEL:
-            lidar_sd[sd["sample_token"]] = sd
+    for rec in t["sample_data"]:
+        if rec.get("is_key_frame") and channel_of[calib[rec["calibrated_sensor_token"]]["sensor_token"]] == CHANNEL:
+            lidar_sd[rec["sample_token"]] = rec
     cat_name = {c["token"]: c["name"] for c in t["category"]}
     inst_class = {i["token"]: nuscenes_class(cat_name[i["category_token"]]) for i in t["instance"]}
     anns = {a["token"]: a for a in t["sample_annotation"]}
