@@ -1,0 +1,185 @@
+"""The detector service over real in-process Zenoh (peer mode, loopback, multicast off, free ports).
+
+The network is the real lite CenterPoint, randomly initialised (its detections are meaningless but it produces
+hundreds above a low threshold), on real ray-cast HDL-32E scans from the synthetic world. What is tested is the
+wiring: header and ego pose carried over, covariance fields filled from the model's variances, newest-scan
+dropping with every skipped scan counted and logged, malformed payloads rejected without stopping the service.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Iterator
+
+import msgpack
+import numpy as np
+import pytest
+import torch
+import zenoh
+
+from jitterguard.geometry import quaternion_from_yaw
+from jitterguard.runtime import loopback_options
+from jitterguard.schemas import decode, encode, keys
+from jitterguard.schemas.models import X_X, Y_Y, YAW_YAW, DetectedObjects, Header, Point, PointCloud, Pose, Quaternion
+from jitterguard.services.detector.inference import Detector
+from jitterguard.services.detector.service import DetectorService
+from jitterguard.sim.lidar import cast_frame
+from jitterguard.sim.world import make_scenario
+
+from helpers import wait_until
+
+pytestmark = pytest.mark.integration
+NS = "dettest"
+STAMP0 = 1_700_000_000_000_000_000
+TIMEOUT = 60.0  # generous: the machine is shared; nothing here asserts a duration
+
+
+class GatedDetector(Detector):
+    """The real detector behind a gate the test opens: lets a test hold the worker inside ``detect`` so scans
+    pile up deterministically, however fast or slow the machine is."""
+
+    gate: threading.Event
+    entered: threading.Event
+
+    def detect(self, points: np.ndarray):  # type: ignore[override]
+        self.entered.set()
+        assert self.gate.wait(TIMEOUT), "test never opened the gate"
+        return super().detect(points)
+
+
+@pytest.fixture(scope="module")
+def scans() -> list[tuple[np.ndarray, Pose]]:
+    """Two real HDL-32E scans (x, y, z, intensity, ring) with their sensor poses."""
+    sc = make_scenario("parking-street", 0, duration_s=2.0, rate_hz=10.0)
+    out = []
+    for i in (0, 5):
+        res, gt = cast_frame(sc.frame(i), seed=0)
+        pts = np.column_stack([res.points, res.ring]).astype(np.float32)
+        qx, qy, qz, qw = quaternion_from_yaw(float(gt.ego_yaw))
+        pose = Pose(position=Point(x=float(gt.ego_x), y=float(gt.ego_y), z=1.84),
+                    orientation=Quaternion(x=qx, y=qy, z=qz, w=qw))
+        out.append((pts, pose))
+    return out
+
+
+@pytest.fixture(scope="module")
+def detector() -> Detector:
+    torch.set_num_threads(1)
+    det = GatedDetector.load(None, "lite", threads=1, score_threshold=0.05)
+    det.gate, det.entered = threading.Event(), threading.Event()
+    det.gate.set()
+    return det
+
+
+class Client:
+    """Plays replay (publishes ``points``) and tracker (collects ``detections``)."""
+
+    def __init__(self, session: zenoh.Session) -> None:
+        self.session = session
+        self.lock = threading.Lock()
+        self.got: list[DetectedObjects] = []
+        self.sub = session.declare_subscriber(keys.detections(NS), self._on)
+        self.pub = session.declare_publisher(keys.points(NS), congestion_control=zenoh.CongestionControl.BLOCK)
+
+    def _on(self, s: zenoh.Sample) -> None:
+        msg = decode(DetectedObjects, s.payload.to_bytes())
+        with self.lock:
+            self.got.append(msg)
+
+    def seqs(self) -> list[int]:
+        with self.lock:
+            return [m.header.seq for m in self.got]
+
+    def send(self, pts: np.ndarray, pose: Pose, seq: int) -> PointCloud:
+        msg = PointCloud(header=Header(stamp=STAMP0 + seq * 50_000_000, frame_id="lidar", seq=seq), ego_pose=pose,
+                         fields=["x", "y", "z", "intensity", "ring"], num_points=len(pts),
+                         data=pts.astype("<f4").tobytes())
+        self.pub.put(encode(msg))
+        return msg
+
+
+@pytest.fixture
+def harness(zenoh_port: int, client_session: zenoh.Session, detector: Detector) -> Iterator[tuple[DetectorService, Client]]:
+    detector.gate.set()
+    svc = DetectorService(loopback_options(NS, zenoh_port, listen_self=True), detector)
+    client = Client(client_session)
+    assert wait_until(lambda: client.pub.matching_status.matching, TIMEOUT), "service never subscribed points"
+    yield svc, client
+    detector.gate.set()
+    svc.close()
+
+
+def test_scan_in_detections_out_with_header_pose_and_variances(harness, scans, detector) -> None:
+    svc, client = harness
+    pts, pose = scans[0]
+    sent = client.send(pts, pose, seq=7)
+    assert wait_until(lambda: client.seqs() == [7], TIMEOUT)
+    msg = client.got[0]
+    assert msg.header == sent.header and msg.ego_pose == pose
+    # the same network on the same points, here: the published variances are exp(its log-variances)
+    want = detector.detect(pts[:, :4])
+    assert len(want) > 0 and len(msg.objects) == len(want)
+    var = np.exp(want.log_variances.astype(np.float64))
+    for o, v, b in zip(msg.objects, var, want.boxes):
+        cov = o.kinematics.pose_with_covariance.covariance
+        tcov = o.kinematics.twist_with_covariance.covariance
+        assert o.kinematics.has_position_covariance and o.kinematics.has_twist_covariance
+        assert (cov[X_X], cov[Y_Y], cov[YAW_YAW], tcov[X_X], tcov[Y_Y]) == pytest.approx(
+            (v[0], v[1], v[4], v[2], v[3]), rel=1e-4)
+        assert o.kinematics.pose_with_covariance.pose.position.x == pytest.approx(float(b[0]), abs=1e-4)
+    c = svc.counters.snapshot()
+    assert c["scans"] == 1 and c["detections"] == len(want) and c.get("skipped_scans", 0) == 0
+    assert svc.last_seq == 7
+
+
+def test_flooded_detector_skips_to_the_newest_scan_and_says_so(harness, scans, detector, caplog) -> None:
+    svc, client = harness
+    n = 8
+    detector.gate.clear()
+    detector.entered.clear()
+    with caplog.at_level(logging.WARNING, logger="jitterguard.detector"):
+        client.send(*scans[0], seq=0)
+        assert detector.entered.wait(TIMEOUT)  # the worker holds scan 0 inside the network
+        for seq in range(1, n):
+            client.send(*scans[seq % 2], seq=seq)
+        assert wait_until(lambda: svc.counters.get("received") == n, TIMEOUT)
+        detector.gate.set()
+        assert wait_until(lambda: client.seqs()[-1:] == [n - 1], TIMEOUT)
+    c = svc.counters.snapshot()
+    # scan 0 was being processed; 1..6 were each replaced by a newer one before the worker came back
+    assert client.seqs() == [0, n - 1]
+    assert c["skipped_scans"] == n - 2 and c["scans"] == 2
+    assert c["scans"] + c["skipped_scans"] == c["received"]  # every scan accounted for
+    assert svc.heartbeat().counters["skipped_scans"] == n - 2
+    behind = [r.getMessage() for r in caplog.records if "falling behind" in r.getMessage()]
+    assert len(behind) == 1, behind  # one burst, one line
+    assert "skipped 6 scan(s) (seqs 1..6)" in behind[0] and "seq 7" in behind[0]
+
+
+def test_malformed_payloads_are_rejected_and_the_next_scan_still_runs(harness, scans) -> None:
+    svc, client = harness
+    client.pub.put(b"\x00 not msgpack")
+    bad = msgpack.unpackb(encode(client_cloud(scans[0][0][:10])), raw=False)
+    bad["num_points"] = 11  # buffer no longer matches: schema validation must refuse it
+    client.pub.put(msgpack.packb(bad, use_bin_type=True))
+    assert wait_until(lambda: svc.counters.get("rejected") == 2, TIMEOUT)
+    client.send(*scans[1], seq=3)
+    assert wait_until(lambda: client.seqs() == [3], TIMEOUT)
+    c = svc.counters.snapshot()
+    assert c["rejected.points"] == 2 and c["scans"] == 1 and c.get("detect_errors", 0) == 0
+
+
+def test_a_scan_without_finite_points_still_closes_its_frame(harness) -> None:
+    svc, client = harness
+    pts = np.full((5, 5), np.nan, np.float32)
+    client.send(pts, Pose(), seq=1)
+    assert wait_until(lambda: client.seqs() == [1], TIMEOUT)
+    assert client.got[0].objects == []
+    c = svc.counters.snapshot()
+    assert c["empty_scans"] == 1 and c["nonfinite_points"] == 5
+
+
+def client_cloud(pts: np.ndarray) -> PointCloud:
+    return PointCloud(header=Header(stamp=STAMP0, frame_id="lidar", seq=0), fields=["x", "y", "z", "intensity", "ring"],
+                      num_points=len(pts), data=pts.astype("<f4").tobytes())
