@@ -34,7 +34,7 @@ def _bar(it: Iterable[T], total: int, desc: str, enabled: bool) -> Iterable[T]:
     """tqdm on stderr (stdout stays clean JSON)."""
     if not enabled:
         return it
-    from tqdm import tqdm
+    from tqdm import tqdm  # type: ignore[import-untyped]
 
     return tqdm(it, total=total, desc=desc, unit="scan", file=sys.stderr, leave=False)
 

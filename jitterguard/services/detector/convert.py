@@ -128,8 +128,9 @@ def detections_map(
     lbl = [labels[int(i)] for i in det.labels.tolist()]
     half = 0.5 * det.boxes[:, 6].astype(np.float64)
     qz, qw = np.sin(half).tolist(), np.cos(half).tolist()
-    has_cov = det.log_variances is not None
-    var = np.exp(det.log_variances.astype(np.float64)).tolist() if has_cov else None  # x, y, vx, vy, yaw
+    lv = det.log_variances
+    has_cov = lv is not None
+    var = np.exp(lv.astype(np.float64)).tolist() if lv is not None else None  # x, y, vx, vy, yaw
     zero = [0.0] * COVARIANCE_SIZE
     objects = []
     for i in range(n):
