@@ -33,10 +33,11 @@ def calibration_plot(result: dict[str, Any], path: str | Path, *, title: str = "
         obs = np.asarray(b["obs_sd"], dtype=float)
         lo = np.asarray(b["sigma_lo"], dtype=float)
         hi = np.asarray(b["sigma_hi"], dtype=float)
-        top = float(max(pred.max(initial=0.0), obs.max(initial=0.0), 1e-3)) * 1.1
+        top = float(max(pred.max(initial=0.0), obs.max(initial=0.0), hi.max(initial=0.0), 1e-3)) * 1.05
         counts_ax = ax.twinx()
-        counts_ax.bar((lo + hi) / 2, b["count"], width=np.maximum(hi - lo, top / 200), color="0.85", zorder=0,
-                      label="matches per bin")
+        # one bar per bin, spanning its σ range: equal-count bins show as equal heights of varying width
+        counts_ax.bar((lo + hi) / 2, b["count"], width=np.maximum(hi - lo, top / 200), color="0.85",
+                      edgecolor="white", linewidth=1.0, zorder=0)
         counts_ax.set_ylabel("matches per bin", color="0.45")
         counts_ax.set_ylim(0, max(b["count"], default=1) * 4)  # bars stay in the lower quarter
         ax.set_zorder(counts_ax.get_zorder() + 1)
