@@ -22,6 +22,7 @@ _AREAS = (
     "jitterguard.services.classifier.cli",
     "jitterguard.services.tracker.cli",
     "jitterguard.services.detector.cli",
+    "jitterguard.services.detector.train_cli",
     "jitterguard.services.replay.cli",
     "jitterguard.services.sidecar.cli",
     "jitterguard.sim.cli",

@@ -1,0 +1,139 @@
+"""Run a trained detector on one scan; load and save weight files.
+
+A weight file is a plain dict saved with ``torch.save``: ``{"format": 1, "config": {...}, "state_dict": {...},
+"recalibration": [s2_x, s2_y] | None, "meta": {...}}``. It holds only tensors and builtins so that it loads
+with ``torch.load(weights_only=True)`` — no pickled code runs when a file is opened. The package ships the
+``lite`` weights (``weights/lite.pt``); presets without shipped weights start from random initialisation,
+loudly.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from dataclasses import asdict, fields, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from .config import PRESETS, DetectorConfig, Detections3D
+from .decode import decode
+from .evaluate import apply_recalibration
+from .network import CenterPointNet
+from .pillars import voxelize
+
+log = logging.getLogger(__name__)
+
+WEIGHTS_DIR = Path(__file__).with_name("weights")
+FORMAT = 1
+
+
+class WeightsError(ValueError):
+    """A weight file that cannot be used (missing, wrong format, or not matching its config)."""
+
+
+def shipped_weights(preset: str) -> Path:
+    """Where the package keeps the weights of ``preset`` (may not exist)."""
+    return WEIGHTS_DIR / f"{preset}.pt"
+
+
+def config_to_dict(config: DetectorConfig) -> dict[str, Any]:
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(config).items()}
+
+
+def config_from_dict(d: dict[str, Any]) -> DetectorConfig:
+    known = {f.name for f in fields(DetectorConfig)}
+    unknown = set(d) - known
+    if unknown:
+        raise WeightsError(f"weights config has unknown fields {sorted(unknown)}")
+    return DetectorConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
+
+
+def save_weights(path: str | Path, model: CenterPointNet, *, recalibration: tuple[float, float] | None = None,
+                 meta: dict[str, Any] | None = None) -> None:
+    """Write ``model`` as a weights-only file (fp32 state dict + config + optional variance recalibration)."""
+    state = {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
+    payload = {"format": FORMAT, "config": config_to_dict(model.config), "state_dict": state,
+               "recalibration": list(recalibration) if recalibration else None, "meta": meta or {}}
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    torch.save(payload, str(path))
+
+
+def load_weights(path: str | Path) -> tuple[CenterPointNet, tuple[float, float] | None, dict[str, Any]]:
+    """Load a weights file (``weights_only=True``) → (model in eval mode, recalibration, meta)."""
+    p = Path(path)
+    if not p.is_file():
+        raise WeightsError(f"{p}: no such weights file")
+    try:
+        payload = torch.load(str(p), map_location="cpu", weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - torch raises many types for a bad file
+        raise WeightsError(f"{p}: not a loadable weights file ({type(exc).__name__}: {exc})") from None
+    if not isinstance(payload, dict) or payload.get("format") != FORMAT or "state_dict" not in payload:
+        raise WeightsError(f"{p}: not a jitterguard detector weights file (format {FORMAT})")
+    config = config_from_dict(payload["config"])
+    model = CenterPointNet(config)
+    try:
+        model.load_state_dict(payload["state_dict"])
+    except RuntimeError as exc:
+        raise WeightsError(f"{p}: weights do not match their config: {exc}") from None
+    model.eval()
+    rec = payload.get("recalibration")
+    return model, (float(rec[0]), float(rec[1])) if rec else None, dict(payload.get("meta") or {})
+
+
+class Detector:
+    """A detector ready for inference on single scans (sensor frame in, sensor frame out)."""
+
+    def __init__(self, model: CenterPointNet, *, recalibration: tuple[float, float] | None = None,
+                 score_threshold: float | None = None, threads: int | None = None,
+                 meta: dict[str, Any] | None = None) -> None:
+        self.model = model.eval()
+        self.config = model.config
+        self.recalibration = recalibration
+        self.score_threshold = score_threshold
+        self.meta = meta or {}
+        self.timings: dict[str, float] = {}
+        torch.set_num_threads(threads or os.cpu_count() or 1)
+
+    @classmethod
+    def load(cls, weights: str | Path | None = None, preset: str | None = "lite", *, threads: int | None = None,
+             score_threshold: float | None = None, recalibrate: bool = True) -> "Detector":
+        """``weights`` if given; else the shipped weights of ``preset``; else a randomly initialised ``preset``
+        (logged as a warning — its detections are meaningless). ``recalibrate`` applies the file's fitted
+        per-axis variance scales when it has them."""
+        if weights is None and preset is not None and shipped_weights(preset).is_file():
+            weights = shipped_weights(preset)
+        if weights is not None:
+            model, rec, meta = load_weights(weights)
+            return cls(model, recalibration=rec if recalibrate else None, score_threshold=score_threshold,
+                       threads=threads, meta=meta)
+        if preset not in PRESETS:
+            raise WeightsError(f"unknown preset {preset!r}; expected one of {', '.join(PRESETS)}")
+        log.warning("no weights for preset %r: using a randomly initialised network", preset)
+        torch.manual_seed(0)
+        return cls(CenterPointNet(PRESETS[preset]), score_threshold=score_threshold, threads=threads,
+                   meta={"random_init": True})
+
+    def with_config(self, **changes: Any) -> "Detector":
+        """Same weights, changed post-processing fields (e.g. ``score_threshold``)."""
+        self.model.config = replace(self.config, **changes)
+        self.config = self.model.config
+        return self
+
+    @torch.inference_mode()
+    def detect(self, points: np.ndarray) -> Detections3D:
+        """Detections of one scan: ``points`` (P, ≥4) float32 x, y, z, intensity (0–255) in the sensor frame."""
+        t0 = time.perf_counter()
+        pillars = voxelize([torch.from_numpy(np.ascontiguousarray(points[:, :4], dtype=np.float32))], self.config)
+        t1 = time.perf_counter()
+        out = self.model.forward_pillars(pillars)
+        t2 = time.perf_counter()
+        det = decode(out, self.config, self.score_threshold)[0]
+        if self.recalibration is not None and det.log_variances is not None:
+            det = apply_recalibration(det, self.recalibration)
+        t3 = time.perf_counter()
+        self.timings = {"voxelize": (t1 - t0) * 1e3, "network": (t2 - t1) * 1e3, "decode": (t3 - t2) * 1e3}
+        return det

@@ -1,0 +1,85 @@
+"""Training losses: Gaussian focal loss on the heatmap; L1 or Gaussian NLL on the regression targets (paper eq. in §III-A).
+
+The uncertainty-aware model replaces L1 by the Gaussian NLL ½·exp(−s)·(x̄ − x)² + ½·s for x, y, vx, vy and
+yaw, with s = log σ² clamped to [−10, ∞). Position residuals are taken in metres (not output cells) so that
+the predicted σ² is in m² and goes onto the wire as is. z, dimensions and the (sin, cos) of yaw keep
+CenterPoint's L1.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from .config import DetectorConfig
+
+VEL_WEIGHT = 0.2
+"""CenterPoint's code weight on the velocity targets (nuScenes config)."""
+REG_WEIGHT = 0.25
+"""CenterPoint's weight of the regression loss against the heatmap loss."""
+
+
+def gaussian_focal_loss(logits: Tensor, target: Tensor) -> Tensor:
+    """CornerNet's penalty-reduced focal loss (α = 2, β = 4), normalised by the number of object centres."""
+    p = torch.sigmoid(logits).clamp(1e-4, 1 - 1e-4)
+    pos = target.eq(1).float()
+    pos_loss = torch.log(p) * (1 - p).pow(2) * pos
+    neg_loss = torch.log(1 - p) * p.pow(2) * (1 - target).pow(4) * (1 - pos)
+    return -(pos_loss.sum() + neg_loss.sum()) / pos.sum().clamp(min=1.0)
+
+
+def gaussian_nll(mean: Tensor, target: Tensor, logvar: Tensor, logvar_min: float = -10.0) -> Tensor:
+    """Element-wise ½·exp(−s)·(mean − target)² + ½·s with s clamped at ``logvar_min`` (below it s gets no gradient)."""
+    s = logvar.clamp(min=logvar_min)
+    return 0.5 * torch.exp(-s) * (mean - target).pow(2) + 0.5 * s
+
+
+def gather(feature: Tensor, ind: Tensor) -> Tensor:
+    """(B, C, H, W) map, (B, K) flat cell indices → (B, K, C)."""
+    b, c = feature.shape[:2]
+    flat = feature.view(b, c, -1)
+    return flat.gather(2, ind.unsqueeze(1).expand(b, c, ind.shape[1])).transpose(1, 2)
+
+
+def wrap_angle(a: Tensor) -> Tensor:
+    return torch.remainder(a + math.pi, 2 * math.pi) - math.pi
+
+
+def centerpoint_loss(out: dict[str, Tensor], batch: dict[str, Tensor], config: DetectorConfig) -> dict[str, Tensor]:
+    """All loss terms of one batch; ``loss`` is what to minimise. ``batch`` holds stacked
+    :class:`~.targets.Targets` fields: heatmap (B, C, H, W), ind/mask/yaw (B, K), box (B, K, 10)."""
+    hm = gaussian_focal_loss(out["heatmap"], batch["heatmap"])
+    ind, mask = batch["ind"], batch["mask"].float()
+    tgt = batch["box"]
+    num = mask.sum().clamp(min=1.0)
+    m = mask.unsqueeze(-1)
+    reg = gather(out["reg"], ind)
+    height = gather(out["height"], ind)
+    dim = gather(out["dim"], ind)
+    rot = gather(out["rot"], ind)
+    vel = gather(out["vel"], ind)
+    l1_shape = ((height - tgt[..., 2:3]).abs() + (dim - tgt[..., 3:6]).abs().sum(-1, keepdim=True)
+                + (rot - tgt[..., 6:8]).abs().sum(-1, keepdim=True))
+    terms = {"heatmap": hm, "shape": (l1_shape * m).sum() / num}
+    if config.uncertainty:
+        s = gather(out["logvar"], ind)
+        cell = torch.tensor([config.voxel_size[0] * config.out_size_factor,
+                             config.voxel_size[1] * config.out_size_factor], dtype=reg.dtype)
+        nll_xy = gaussian_nll(reg * cell, tgt[..., 0:2] * cell, s[..., 0:2], config.logvar_min)
+        nll_v = gaussian_nll(vel, tgt[..., 8:10], s[..., 2:4], config.logvar_min)
+        # yaw: the NLL trains the variance only; the mean is learned through (sin, cos) above, because
+        # atan2's gradient is unbounded where the predicted (sin, cos) is near zero.
+        yaw_pred = torch.atan2(rot[..., 0], rot[..., 1]).detach()
+        yaw_err = wrap_angle(yaw_pred - batch["yaw"]).unsqueeze(-1)
+        nll_yaw = gaussian_nll(torch.zeros_like(yaw_err), yaw_err, s[..., 4:5], config.logvar_min)
+        terms["position"] = (nll_xy.sum(-1, keepdim=True) * m).sum() / num
+        terms["velocity"] = VEL_WEIGHT * (nll_v.sum(-1, keepdim=True) * m).sum() / num
+        terms["yaw_var"] = (nll_yaw * m).sum() / num
+    else:
+        terms["position"] = ((reg - tgt[..., 0:2]).abs().sum(-1, keepdim=True) * m).sum() / num
+        terms["velocity"] = VEL_WEIGHT * ((vel - tgt[..., 8:10]).abs().sum(-1, keepdim=True) * m).sum() / num
+    regression = sum(v for k, v in terms.items() if k != "heatmap")
+    terms["loss"] = hm + REG_WEIGHT * regression
+    return terms
