@@ -112,11 +112,14 @@ def _checkpoint(path: Path, model: CenterPointNet, opt: torch.optim.Optimizer, s
 
 def train(model: CenterPointNet, train_samples: Sequence[Sample], val_samples: Sequence[Sample], tcfg: TrainConfig,
           out_dir: str | Path, *, augment: Augment | None = None, evaluate: Evaluate | None = None,
-          resume: bool = False, progress: bool = True, meta: dict[str, Any] | None = None) -> TrainState:
+          resume: bool = False, progress: bool = True, meta: dict[str, Any] | None = None,
+          stop_after: int | None = None) -> TrainState:
     """Train ``model`` in place; write ``checkpoint.pt`` each epoch, ``history.json`` and finally ``weights.pt``.
 
     ``resume`` continues from ``out_dir/checkpoint.pt`` (same data and settings expected). ``evaluate`` gets
     the validation detections and samples each ``eval_every`` epochs; its dict lands in the history.
+    ``stop_after`` ends this run after that many epochs (a time-boxed job); ``weights.pt`` is then not
+    written, and a later ``resume`` finishes the schedule exactly as one uninterrupted run would have.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -140,7 +143,8 @@ def train(model: CenterPointNet, train_samples: Sequence[Sample], val_samples: S
         state = TrainState(int(c["epoch"]), json.loads(c["history"]))
         log.info("resumed from %s at epoch %d", ckpt, state.epoch)
     bar = _bar(progress, tcfg.epochs * steps, state.epoch * steps)
-    for epoch in range(state.epoch, tcfg.epochs):
+    last = tcfg.epochs if stop_after is None else min(tcfg.epochs, state.epoch + stop_after)
+    for epoch in range(state.epoch, last):
         ds.epoch = epoch
         gen.manual_seed(tcfg.seed * 1000 + epoch)  # same order for an epoch whether resumed or not
         model.train()
@@ -180,6 +184,8 @@ def train(model: CenterPointNet, train_samples: Sequence[Sample], val_samples: S
             bar.write(f"epoch {epoch + 1}/{tcfg.epochs}: {_summary(record)}")
     if bar is not None:
         bar.close()
+    if state.epoch < tcfg.epochs:
+        return state
     save_weights(out / "weights.pt", model, meta={**(meta or {}), "epochs": state.epoch,
                                                   "train_config": asdict(tcfg)})
     return state
