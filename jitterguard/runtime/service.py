@@ -106,10 +106,15 @@ class Service:
         try:
             return decode(model, data)
         except DecodeError as exc:
-            self.counters.inc("rejected")
-            self.counters.inc(f"rejected.{sub_key.split('/', 2)[-1]}")
-            self._reject_log.warn(f"rejected payload on {sample_key or sub_key}: {exc}")
+            self.reject(exc, sub_key, sample_key)
             return None
+
+    def reject(self, exc: DecodeError, sub_key: str, sample_key: str | None = None) -> None:
+        """Count and log (once per burst) a payload that failed to decode, as :meth:`accept` does; for
+        services that decode on their own path (e.g. to plain maps with :func:`~jitterguard.schemas.decode_map`)."""
+        self.counters.inc("rejected")
+        self.counters.inc(f"rejected.{sub_key.split('/', 2)[-1]}")
+        self._reject_log.warn(f"rejected payload on {sample_key or sub_key}: {exc}")
 
     def subscribe(self, key: str, model: type[M], handler: Callable[[M, str], None]) -> None:
         """Subscribe ``key``; ``handler(message, key)`` gets only payloads that validate as ``model``."""

@@ -1,7 +1,7 @@
 """The wire contract: models, the msgpack codec and key-expression builders. No I/O."""
 
 from . import keys
-from .codec import DecodeError, decode, decode_with_raw, encode, peek_header_seq
+from .codec import DecodeError, decode, decode_map, decode_with_raw, encode, peek_header_seq, unpack_map, validate_map
 from .models import *  # noqa: F401,F403  (the models are the contract; re-export them all)
 from .models import (
     AUTHORS_ALPHA,
@@ -23,6 +23,9 @@ __all__ = [
     "encode",
     "decode",
     "decode_with_raw",
+    "decode_map",
+    "unpack_map",
+    "validate_map",
     "peek_header_seq",
     "DecodeError",
     "SCHEMA_VERSION",

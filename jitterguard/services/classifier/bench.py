@@ -48,10 +48,76 @@ def bench_core(sizes: tuple[int, ...] = (10, 100, 1000), window: int = 10, frame
     return out
 
 
-def _classifier_process(opts, conn) -> None:  # runs in a spawned child
+def _encoded_frames(tracks: int, n_frames: int, rate_hz: float, seed: int, ns: str) -> list[tuple[list[tuple[str, bytes]], bytes]]:
+    """``n_frames`` of the synthetic track scenario as the tracker puts them: ``(tracks/{id} key, payload)``
+    per observation, then the ``tracked`` payload; 40 distinct frames looped with fresh seqs."""
+    from ...schemas import encode, keys
+    from .feeder import _renumber
+    from .synthetic_tracks import TrackScenario, generate
+
+    sc = TrackScenario(n_static=tracks // 2, n_moving=tracks - tracks // 2 - 1, n_starting=1, seed=seed, rate_hz=rate_hz)
+    pool = list(generate(sc, 40))
+    out = []
+    for i in range(n_frames):
+        f = _renumber(pool[i % len(pool)], i)
+        out.append(([(keys.track(ns, o.track.object_id), encode(o)) for o in f.observations], encode(f.tracked)))
+    return out
+
+
+def bench_frame_cost(tracks: int = 200, frames: int = 200, seed: int = 0) -> dict:
+    """CPU time of the classifier's per-frame work in this process, no transport: median ms per frame of
+    validating the observations, validating the closing ``tracked``, deciding and packing ``objects``
+    (together: the work left when ``tracked`` arrives, once the observations are in), and building the
+    ``motion/{id}`` payloads. Thread CPU time, so it is insensitive to contention, unlike the service figures
+    (cache effects of a busy machine remain); garbage collection is managed as in the service process."""
+    import gc
+
+    from .pipeline import ClassifierPipeline
+
+    encoded = _encoded_frames(tracks, frames, 20.0, seed, "bench")
+    pipe = ClassifierPipeline()
+    thresholds = gc.get_threshold()
+    gc.collect()
+    gc.set_threshold(50_000, 1000, 1000)  # as manage_gc_for_latency, without freezing the caller's heap
+    parts: dict[str, list[float]] = {"observations_ms": [], "close_ms": [], "finish_ms": [], "motion_ms": []}
+    try:
+        _drive(pipe, encoded, parts)
+    finally:
+        gc.set_threshold(*thresholds)
+    warm = frames // 10  # the first frames fill the windows and warm the caches
+    at_close = np.add(parts["close_ms"], parts["finish_ms"])[warm:]
+    res: dict[str, float | int] = {"tracks": tracks, "frames": frames - warm}
+    res.update({k: float(np.median(v[warm:])) for k, v in parts.items()})
+    res["at_close_ms"] = float(np.median(at_close))
+    res["at_close_p99_ms"] = float(np.percentile(at_close, 99))
+    return res
+
+
+def _drive(pipe, encoded: list, parts: dict[str, list[float]]) -> None:
+    import gc
+
+    for obs_payloads, tracked_payload in encoded:
+        t0 = time.thread_time()
+        for _, payload in obs_payloads:
+            pipe.observation(payload)
+        t1 = time.thread_time()
+        pipe.close(tracked_payload, t1)
+        t2 = time.thread_time()
+        (frame,) = pipe.ready(t2)
+        out = pipe.finish(frame)
+        t3 = time.thread_time()
+        for _ in pipe.motion_payloads(out):
+            pass
+        t4 = time.thread_time()
+        for k, a, b in (("observations_ms", t0, t1), ("close_ms", t1, t2), ("finish_ms", t2, t3), ("motion_ms", t3, t4)):
+            parts[k].append((b - a) * 1e3)
+        gc.collect(1)  # the service's worker does this between frames
+
+
+def _classifier_process(opts, conn) -> None:  # runs in a spawned child, as `jitterguard classifier` would
     from .service import ClassifierService
 
-    svc = ClassifierService(opts)
+    svc = ClassifierService(opts, manage_gc=True)
     conn.send("ready")
     conn.recv()  # wait for "stop"
     time.sleep(0.3)  # let the last frames finish
@@ -62,8 +128,7 @@ def _classifier_process(opts, conn) -> None:  # runs in a spawned child
 def bench_service(tracks: int = 200, rate_hz: float = 20.0, duration_s: float = 60.0, seed: int = 0) -> dict:
     """Run the real classifier service for ``duration_s`` at ``tracks`` × ``rate_hz``; latency percentiles."""
     from ...runtime import Service, free_tcp_port, loopback_options
-    from ...schemas import encode, keys, peek_header_seq
-    from .synthetic_tracks import TrackScenario, generate
+    from ...schemas import keys, peek_header_seq
 
     port = free_tcp_port()
     ns = "bench"
@@ -85,19 +150,11 @@ def bench_service(tracks: int = 200, rate_hz: float = 20.0, duration_s: float = 
 
     feeder.session.declare_subscriber(keys.objects(ns), on_objects)
     time.sleep(1.0)  # let the mesh settle before the clock starts
-    sc = TrackScenario(n_static=tracks // 2, n_moving=tracks - tracks // 2 - 1, n_starting=1, seed=seed, rate_hz=rate_hz)
-    pool = list(generate(sc, 40))
     n_frames = int(duration_s * rate_hz)
     period = 1.0 / rate_hz
-    from .feeder import _renumber
-
     # Encode every frame before the clock starts: the feeder shares these cores with the classifier,
     # and what is measured is the classifier, not the feeder's encoder.
-    encoded = []
-    for i in range(n_frames):
-        f = _renumber(pool[i % len(pool)], i)
-        encoded.append(([(keys.track(ns, o.track.object_id), encode(o)) for o in f.observations],
-                        encode(f.tracked)))
+    encoded = _encoded_frames(tracks, n_frames, rate_hz, seed, ns)
     t_next = time.monotonic()
     for i, (obs_payloads, tracked_payload) in enumerate(encoded):
         for key, payload in obs_payloads:

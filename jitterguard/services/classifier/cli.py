@@ -65,7 +65,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         cfg = _load_config(config, preset, {"alpha_default": alpha, "window_size": window_size,
                                              "min_window": min_window, "mode": mode, "effective_n": effective_n})
         setup_logging(log_level)
-        ClassifierService(opts, cfg).run_forever()
+        ClassifierService(opts, cfg, manage_gc=True).run_forever()
 
     @app.command("feed-tracks")
     def feed_tracks_cmd(
@@ -108,10 +108,11 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         rate: Annotated[float, typer.Option("--rate", min=1.0)] = 20.0,
         skip_service: Annotated[bool, typer.Option("--core-only", help="Skip the 60 s service run.")] = False,
     ) -> None:
-        """Time the core (10/100/1000 tracks) and the live service over Zenoh; prints JSON."""
-        from .bench import bench_core, bench_service
+        """Time the core (10/100/1000 tracks), the per-frame work in-process and the live service over Zenoh;
+        prints JSON."""
+        from .bench import bench_core, bench_frame_cost, bench_service
 
-        result: dict[str, object] = {"core": bench_core()}
+        result: dict[str, object] = {"core": bench_core(), "frame_cost": bench_frame_cost(tracks=tracks)}
         if not skip_service:
             result["service"] = bench_service(tracks=tracks, rate_hz=rate, duration_s=duration)
         print(json.dumps(result, indent=2))

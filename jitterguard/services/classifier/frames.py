@@ -4,39 +4,49 @@ Zenoh gives no ordering between two subscribers, so ``tracks/{id}`` samples of f
 the ``tracked`` message that closes *s*. The closing message lists the IDs it expects; a frame is complete
 when all of them are in, or when the straggler timeout has passed since its close arrived (then the missing
 ones are counted). Pure: the caller passes the clock.
+
+The assembler only looks at a frame's seq and track IDs; what it stores per observation and per close is the
+caller's business (``*_item`` methods). The live service stores the few numbers the core needs per
+observation and the validated ``tracked`` map, so no model is built on the hot path; the model-taking
+methods are for everyone else.
 """
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass, field
+from typing import Any, Generic, TypeVar
 
 from ...schemas.models import TrackedObjects, TrackObservation
 
 RESTART_GAP = 20
 """A closing seq this far below the last one means the tracker restarted (its seq began again)."""
 
+O = TypeVar("O")  # noqa: E741  what is stored per observation
+C = TypeVar("C")  # what is stored per close
+
 
 @dataclass
-class CompleteFrame:
+class CompleteFrame(Generic[O, C]):
     seq: int
-    tracked: TrackedObjects
-    observations: list[TrackObservation]
+    tracked: C
+    observations: list[O]
     received_at: float  # when the closing message arrived (for latency)
     missing: int  # expected observations that never came
 
 
 @dataclass
-class FrameAssembler:
+class FrameAssembler(Generic[O, C]):
     straggler_timeout_s: float = 0.05
     max_pending_frames: int = 64
     last_done: int = -1
     counts: dict[str, int] = field(default_factory=dict)
-    _obs: dict[int, dict[str, TrackObservation]] = field(default_factory=dict)
-    _closes: dict[int, tuple[TrackedObjects, float]] = field(default_factory=dict)
+    _obs: dict[int, dict[str, O]] = field(default_factory=dict)
+    _closes: dict[int, tuple[C, float, frozenset[str]]] = field(default_factory=dict)
     _waiting: dict[int, set[str]] = field(default_factory=dict)  # per closed seq: expected IDs not yet in
 
     def is_late(self, seq: int) -> bool:
-        """An observation for a frame already processed: it would be dropped, so it need not be decoded.
+        """An observation for a frame already processed: it would be dropped, so it need not be validated.
 
         Lets a service that fell behind skip validating stragglers it cannot use (a seq far below the last
         one is an upstream restart, not late).
@@ -47,28 +57,33 @@ class FrameAssembler:
         self.counts[name] = self.counts.get(name, 0) + n
 
     def add_observation(self, obs: TrackObservation) -> None:
-        seq = obs.header.seq
+        self.add_observation_item(obs.header.seq, obs.track.object_id, obs)  # type: ignore[arg-type]
+
+    def add_observation_item(self, seq: int, track_id: str, item: O) -> None:
+        """Register what the caller keeps of the observation of ``track_id`` in frame ``seq``."""
         if self.is_late(seq):
             self.count("late_observations")
             return
         bucket = self._obs.setdefault(seq, {})
-        if obs.track.object_id in bucket:
+        if track_id in bucket:
             self.count("duplicate_observations")
-        bucket[obs.track.object_id] = obs
+        bucket[track_id] = item
         waiting = self._waiting.get(seq)
         if waiting is not None:
-            waiting.discard(obs.track.object_id)
+            waiting.discard(track_id)
         if len(self._obs) > self.max_pending_frames:  # closes that never come must not grow memory
             oldest = min(self._obs)
             self.count("orphaned_observations", len(self._obs.pop(oldest)))
 
     def add_close(self, tracked: TrackedObjects, now: float) -> bool:
+        return self.add_close_item(tracked.header.seq, tracked.observed_track_ids, tracked, now)  # type: ignore[arg-type]
+
+    def add_close_item(self, seq: int, expected_ids: Iterable[str], item: C, now: float) -> bool:
         """Register a frame-closing message; returns False (and counts) when it is stale or a duplicate.
 
         A seq far below the last one processed is taken as an upstream restart: state is reset and the
         caller learns it through ``counts['upstream_restarts']``.
         """
-        seq = tracked.header.seq
         if seq <= self.last_done:
             if self.last_done - seq > RESTART_GAP:
                 self.count("upstream_restarts")
@@ -82,23 +97,23 @@ class FrameAssembler:
         if seq in self._closes:
             self.count("duplicate_or_late_frames")
             return False
-        self._closes[seq] = (tracked, now)
+        expected = frozenset(expected_ids)
+        self._closes[seq] = (item, now, expected)
         got = self._obs.get(seq, {})
-        self._waiting[seq] = {i for i in tracked.observed_track_ids if i not in got}
+        self._waiting[seq] = {i for i in expected if i not in got}
         return True
 
-    def pop_ready(self, now: float) -> list[CompleteFrame]:
+    def pop_ready(self, now: float) -> list[CompleteFrame[O, C]]:
         """Frames that are complete or timed out, in seq order; older pending frames are flushed first."""
-        out: list[CompleteFrame] = []
+        out: list[CompleteFrame[O, C]] = []
         for seq in sorted(self._closes):
-            tracked, t0 = self._closes[seq]
+            item, t0, wanted = self._closes[seq]
             missing = len(self._waiting[seq])
             if missing and now - t0 < self.straggler_timeout_s:
                 break  # keep order: later frames wait behind this one
             del self._closes[seq]
             del self._waiting[seq]
             bucket = self._obs.pop(seq, {})
-            wanted = set(tracked.observed_track_ids)
             observations = [o for i, o in bucket.items() if i in wanted]
             if len(observations) != len(bucket):
                 self.count("unexpected_observations", len(bucket) - len(observations))
@@ -107,7 +122,7 @@ class FrameAssembler:
             if missing:
                 self.count("missing_observations", missing)
             self.last_done = seq
-            out.append(CompleteFrame(seq, tracked, observations, t0, missing))
+            out.append(CompleteFrame(seq, item, observations, t0, missing))
         return out
 
     @property
