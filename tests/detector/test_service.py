@@ -8,9 +8,15 @@ dropping with every skipped scan counted and logged, malformed payloads rejected
 
 from __future__ import annotations
 
+import json
 import logging
+import os
+import signal
+import subprocess
+import sys
 import threading
 from collections.abc import Iterator
+from pathlib import Path
 
 import msgpack
 import numpy as np
@@ -183,3 +189,80 @@ def test_a_scan_without_finite_points_still_closes_its_frame(harness) -> None:
 def client_cloud(pts: np.ndarray) -> PointCloud:
     return PointCloud(header=Header(stamp=STAMP0, frame_id="lidar", seq=0), fields=["x", "y", "z", "intensity", "ring"],
                       num_points=len(pts), data=pts.astype("<f4").tobytes())
+
+
+# ------------------------------------------------------------------------------------------------ the CLI
+
+
+def test_bench_detector_json_has_the_documented_shape() -> None:
+    from typer.testing import CliRunner
+
+    from jitterguard.cli import app
+
+    res = CliRunner().invoke(app, ["bench", "detector", "--json", "--presets", "lite", "--scans", "2", "--warmup",
+                                   "1", "--threads", "1", "--no-progress"])
+    assert res.exit_code == 0, res.output
+    doc = json.loads(res.stdout.strip().splitlines()[-1])
+    assert set(doc) == {"lite"}
+    row = doc["lite"]
+    assert row["points"] > 10_000  # a real HDL-32E scan, not a toy cloud
+    assert 0 < row["p50_ms"] <= row["p99_ms"] and row["scans"] == 2 and row["threads"] == 1
+    assert set(row["stages_ms"]) == {"voxelize", "network", "decode"}
+    assert row["weights"] in ("shipped", "random-init")
+
+
+@pytest.mark.parametrize(
+    ("args", "needle"),
+    [
+        (["detector", "--preset", "huge"], "--preset"),
+        (["detector", "--weights", "/nonexistent/lite.pt"], "not found"),
+        (["detector", "--ns", "bad/ns"], "--ns"),
+        (["detector", "--connect", "nonsense"], "endpoint"),
+        (["bench", "detector", "--presets", "lite,huge"], "--presets"),
+        (["bench", "detector", "--scenario", "moon"], "--scenario"),
+        (["bench", "detector", "--weights", "lite"], "--weights"),
+    ],
+)
+def test_bad_input_is_one_line_and_exit_2(args: list[str], needle: str) -> None:
+    res = subprocess.run([sys.executable, "-m", "jitterguard.cli", *args], capture_output=True, text=True, timeout=60)
+    assert res.returncode == 2, res.stderr
+    lines = [ln for ln in res.stderr.strip().splitlines() if ln.strip()]
+    assert len(lines) == 1 and needle in lines[0], res.stderr
+
+
+def test_a_file_that_is_not_weights_is_refused_in_one_line(tmp_path: Path) -> None:
+    bad = tmp_path / "lite.pt"
+    bad.write_bytes(b"definitely not a torch file")
+    res = subprocess.run([sys.executable, "-m", "jitterguard.cli", "detector", "--weights", str(bad)],
+                         capture_output=True, text=True, timeout=60)
+    assert res.returncode == 2
+    lines = [ln for ln in res.stderr.strip().splitlines() if ln.strip()]
+    assert len(lines) == 1 and "--weights" in lines[0] and "lite.pt" in lines[0], res.stderr
+
+
+def test_detector_process_detects_and_stops_cleanly_on_sigterm(scans, client_session, zenoh_port) -> None:
+    """``jitterguard detector`` as its own process: one scan in, one DetectedObjects out, SIGTERM exits 0."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "jitterguard.cli", "detector", "--ns", NS, "--listen", f"tcp/127.0.0.1:{zenoh_port}",
+         "--threads", "1", "--score-threshold", "0.05"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
+    lines: list[str] = []
+    reader = threading.Thread(target=lambda: lines.extend(proc.stdout or []), daemon=True)
+    reader.start()
+    try:
+        client = Client(client_session)
+        assert wait_until(lambda: client.pub.matching_status.matching, TIMEOUT), "".join(lines)
+        client.send(*scans[0], seq=11)
+        assert wait_until(lambda: client.seqs() == [11], TIMEOUT), "".join(lines)
+        assert len(client.got[0].objects) > 0
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=30)
+        reader.join(timeout=5)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    out = "".join(lines)
+    assert proc.returncode == 0, out
+    assert "detector up" in out and "detector stopped" in out

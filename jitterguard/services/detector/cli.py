@@ -22,6 +22,12 @@ ThreadsOpt = Annotated[
 ]
 
 
+def _one_line(exc: Exception, limit: int = 240) -> str:
+    """An exception's message on one line (torch's load errors run to several paragraphs)."""
+    msg = " ".join(str(exc).split())
+    return msg if len(msg) <= limit else msg[: limit - 1] + "…"
+
+
 def _parse_presets(text: str) -> tuple[str, ...]:
     names = tuple(s.strip() for s in text.split(",") if s.strip())
     unknown = [n for n in names if n not in PRESETS]
@@ -66,7 +72,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         try:  # load before the session opens: a bad weights file fails before anything is on the network
             det = Detector.load(weights, preset, threads=threads, score_threshold=score_threshold)
         except WeightsError as exc:
-            fail(f"--weights: {exc}")
+            fail(f"--weights: {_one_line(exc)}")
         try:
             service = DetectorService(opts, det, has_twist=twist)
         except ValueError as exc:  # build_config names the bad endpoint / setting
@@ -109,7 +115,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             result = run(names, scans=scans, warmup=warmup, threads=threads, weights=files, scenario=scenario,
                          seed=seed, progress=progress)
         except WeightsError as exc:
-            fail(f"--weights: {exc}")
+            fail(f"--weights: {_one_line(exc)}")
         if json_out:
             typer.echo(json.dumps(result))
             return
