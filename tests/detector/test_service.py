@@ -29,7 +29,7 @@ from jitterguard.runtime import loopback_options
 from jitterguard.schemas import decode, encode, keys
 from jitterguard.schemas.models import X_X, Y_Y, YAW_YAW, DetectedObjects, Header, Point, PointCloud, Pose, Quaternion
 from jitterguard.services.detector.inference import Detector
-from jitterguard.services.detector.service import DetectorService
+from jitterguard.services.detector.service import BehindReport, DetectorService
 from jitterguard.sim.lidar import cast_frame
 from jitterguard.sim.world import make_scenario
 
@@ -161,6 +161,26 @@ def test_flooded_detector_skips_to_the_newest_scan_and_says_so(harness, scans, d
     behind = [r.getMessage() for r in caplog.records if "falling behind" in r.getMessage()]
     assert len(behind) == 1, behind  # one burst, one line
     assert "skipped 6 scan(s) (seqs 1..6)" in behind[0] and "seq 7" in behind[0]
+
+
+def test_steady_overload_is_summarised_and_a_new_burst_reported_at_once() -> None:
+    rep = BehindReport(quiet_s=5.0, summary_s=30.0)
+    assert rep.taken(0.0, seq=0, skipped=0, first=-1, last=-1, detect_ms=90) is None
+    first = rep.taken(0.25, seq=3, skipped=2, first=1, last=2, detect_ms=300)
+    assert first is not None and "skipped 2 scan(s) (seqs 1..2)" in first and "seq 3" in first
+    t, lines = 0.25, []
+    for k in range(120):  # a steady overload: every take skips two scans, 0.25 s apart (exact in binary), 30 s
+        t += 0.25
+        line = rep.taken(t, seq=6 + 3 * k, skipped=2, first=4 + 3 * k, last=5 + 3 * k, detect_ms=300)
+        if line:
+            lines.append((t, line))
+    assert len(lines) == 1  # quiet in between, one summary once 30 s passed
+    when, summary = lines[0]
+    assert when == 30.25 and "still falling behind" in summary
+    assert "skipped 240 scan(s) and processed 120 in the last 30 s" in summary
+    assert rep.taken(t + 1.0, seq=400, skipped=0, first=-1, last=-1, detect_ms=80) is None  # caught up
+    again = rep.taken(t + 7.0, seq=402, skipped=1, first=401, last=401, detect_ms=300)  # after a quiet gap
+    assert again is not None and again.startswith("falling behind: skipped 1 scan(s) (seq 401)")
 
 
 def test_malformed_payloads_are_rejected_and_the_next_scan_still_runs(harness, scans) -> None:

@@ -6,7 +6,8 @@ thread takes the slot's scan, runs the network and publishes. A scan costs the n
 milliseconds, so a queue would only grow: when a scan arrives while the previous one is still waiting in the
 slot, the waiting one is replaced — the detector always works on the newest scan, and a stale one is worth
 less to a tracker than a fresh one. Never silently: every replaced scan counts as ``skipped_scans`` and each
-burst of them is logged once with the seq gap. The callback never blocks, so a BLOCK-publishing replay is not
+burst of them is logged at once with the seq gap, a steady overload every 30 s with a summary
+(:class:`BehindReport`). The callback never blocks, so a BLOCK-publishing replay is not
 slowed by a slow detector (it is by a slow network link, as it should be).
 
 Frames and covariances follow :mod:`.convert`: sensor frame, the scan's header and ego pose carried over, the
@@ -33,6 +34,47 @@ from .inference import Detector
 
 WAIT_S = 0.2
 """How often the idle worker looks at the stop event."""
+BURST_QUIET_S = 5.0
+"""A burst of skipping ends after this long without a skipped scan; the next skip starts a new one."""
+SUMMARY_S = 30.0
+"""While a burst goes on, one summary line at most this often (a steady overload is not silent either)."""
+
+
+class BehindReport:
+    """Decides when falling behind is worth a log line, and what the line says. Pure: times are passed in.
+
+    The first skip of a burst is reported at once with its seq gap; while skipping continues (no gap of
+    ``quiet_s`` without a skip) a summary follows at most every ``summary_s``, counting scans skipped and
+    processed since the last line.
+    """
+
+    def __init__(self, quiet_s: float = BURST_QUIET_S, summary_s: float = SUMMARY_S) -> None:
+        self.quiet_s, self.summary_s = quiet_s, summary_s
+        self._last_skip = -1e18
+        self._last_line = -1e18
+        self._skipped = 0
+        self._processed = 0
+
+    def taken(self, now: float, seq: int, skipped: int, first: int, last: int, detect_ms: int) -> str | None:
+        """The worker took scan ``seq`` after ``skipped`` replaced ones (seqs ``first``..``last``): a log line or None."""
+        self._processed += 1
+        if not skipped:
+            return None
+        new_burst = now - self._last_skip >= self.quiet_s
+        self._last_skip = now
+        self._skipped += skipped
+        if new_burst:
+            gap = f"seq {first}" if first == last else f"seqs {first}..{last}"
+            line = (f"falling behind: skipped {skipped} scan(s) ({gap}) that arrived while the network was busy"
+                    f" (last scan took {detect_ms} ms); processing the newest, seq {seq}")
+        elif now - self._last_line >= self.summary_s:
+            line = (f"still falling behind: skipped {self._skipped} scan(s) and processed {self._processed} in the"
+                    f" last {now - self._last_line:.0f} s (last scan took {detect_ms} ms); now at seq {seq}")
+        else:
+            return None
+        self._last_line = now
+        self._skipped = self._processed = 0
+        return line
 
 
 class _Slot:
@@ -86,7 +128,7 @@ class DetectorService(Service):
         self.has_twist = has_twist
         self._slot = _Slot()
         super().__init__(opts)
-        self._behind_log = _BurstLogger(self.log)
+        self._behind = BehindReport()
         self._error_log = _BurstLogger(self.log)
         self._pub = self.publisher(keys.detections(self.ns))
         self.spawn(self._worker, "worker")
@@ -108,12 +150,10 @@ class DetectorService(Service):
             if got is None:
                 continue
             scan, skipped, first, last = got
-            if skipped:
-                gap = f"seq {first}" if first == last else f"seqs {first}..{last}"
-                self._behind_log.warn(
-                    f"falling behind: skipped {skipped} scan(s) ({gap}) that arrived while the network was busy"
-                    f" (last scan took {self.counters.get('detect_ms_last')} ms); processing the newest,"
-                    f" seq {scan.header.seq}")
+            line = self._behind.taken(time.monotonic(), scan.header.seq, skipped, first, last,
+                                      self.counters.get("detect_ms_last"))
+            if line:
+                self.log.warning("%s", line)
             try:
                 self.process(scan)
             except Exception as exc:  # a bad scan or a bug must not stop detection: count, log, next scan
