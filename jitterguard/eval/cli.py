@@ -1,8 +1,9 @@
 """``jitterguard eval``: the paper's offline validation (§IV-B) on a synthetic scenario or a nuScenes scene.
 
-Runs ground truth → detection-level noise → tracker core → classifier cores in-process and writes report.md,
-metrics.json and figures into ``--out``. ``--input detector`` is reserved for the CenterPoint detector,
-which is not built yet: it fails with one line rather than silently evaluating something else.
+Runs ground truth → detection-level noise (``--input gt-noise``) or ray-cast / recorded scans → the CenterPoint
+detector (``--input detector``) → tracker core → classifier cores in-process, and writes report.md,
+metrics.json and figures into ``--out``. With the detector in the loop metrics.json also holds its nuScenes
+AP and positional calibration (``detection``), and the calibration and detection PR figures are written.
 """
 
 from __future__ import annotations
@@ -10,11 +11,14 @@ from __future__ import annotations
 import json
 import sys
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
 from ..cli_common import fail
+
+if TYPE_CHECKING:
+    from ..services.detector.inference import Detector
 
 INPUTS = ("gt-noise", "detector")
 
@@ -24,7 +28,12 @@ def eval_command(
     scenario: Annotated[str | None, typer.Option("--scenario", help="Synthetic scenario (default parking-street).")] = None,
     seed: Annotated[int, typer.Option("--seed", help="Seeds the scenario and the noise model.")] = 0,
     input_: Annotated[str, typer.Option("--input", help="gt-noise (ground truth through the noise model) or detector.")] = "gt-noise",
-    noise: Annotated[str, typer.Option("--noise", help="Noise preset: clean, jittery or paper.")] = "jittery",
+    noise: Annotated[str | None, typer.Option("--noise", help="Noise preset of --input gt-noise: clean, jittery"
+                                              " (default) or paper.")] = None,
+    weights: Annotated[Path | None, typer.Option("--weights", help="Detector weights file for --input detector"
+                                                 " (default: the shipped lite weights).")] = None,
+    threads: Annotated[int | None, typer.Option("--threads", min=1, max=1024, help="torch CPU threads of the"
+                                                " detector (default: the machine's cores).")] = None,
     nuscenes: Annotated[Path | None, typer.Option("--nuscenes", help="nuScenes dataroot instead of a scenario.")] = None,
     scene: Annotated[str | None, typer.Option("--scene", help="Scene name in the nuScenes dataroot.")] = None,
     duration: Annotated[float, typer.Option("--duration", help="Synthetic scenario length [s].")] = 15.0,
@@ -39,11 +48,19 @@ def eval_command(
     from ..schemas.models import PRESETS, ClassifierConfig
     from .pipeline import NOISE_PRESETS
 
-    if input_ == "detector":
-        fail("--input detector: the detector is not built yet (services/detector); use --input gt-noise")
     if input_ not in INPUTS:
         fail(f"--input: unknown input {input_!r}; expected one of {', '.join(INPUTS)}")
-    if noise not in NOISE_PRESETS:
+    if input_ == "detector":
+        if noise is not None:
+            fail("--noise applies to --input gt-noise; the detector's errors are its own")
+        if nuscenes is not None and runs > 1:
+            fail("--runs pools noise draws or synthetic seeds; with --input detector a nuScenes scene gives the "
+                 "same run every time")
+    else:
+        if weights is not None or threads is not None:
+            fail("--weights and --threads need --input detector")
+        noise = noise or "jittery"
+    if noise is not None and noise not in NOISE_PRESETS:
         fail(f"--noise: unknown preset {noise!r}; expected one of {', '.join(NOISE_PRESETS)}")
     if nuscenes is not None and scenario is not None:
         fail("give --scenario or --nuscenes, not both")
@@ -66,24 +83,60 @@ def eval_command(
         cfg = ClassifierConfig.model_validate({**ClassifierConfig().model_dump(), **upd})
     except ValueError as exc:
         fail(f"classifier config: {str(exc).splitlines()[0]}")
+    detector, weights_desc = load_detector(weights, threads) if input_ == "detector" else (None, None)
 
     metrics = evaluate(out, scenario=scenario, seed=seed, noise=noise, nuscenes=nuscenes, scene=scene,
                        duration=duration, rate=rate, classifier=cfg,
-                       extra_seeds=tuple(range(seed + 1, seed + runs)))
+                       extra_seeds=tuple(range(seed + 1, seed + runs)), detector=detector,
+                       weights_desc=weights_desc)
     if as_json:
         sys.stdout.write(json.dumps(metrics, indent=2, sort_keys=True) + "\n")
     else:
-        print(f"wrote {out / 'report.md'}, metrics.json and 3 figures")
+        n_fig = 3 + (len(metrics["run"]["detector"]["figures"]) if detector is not None else 0)
+        print(f"wrote {out / 'report.md'}, metrics.json and {n_fig} figures")
 
 
-def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str, nuscenes: Path | None,
+def load_detector(weights: Path | None, threads: int | None) -> tuple["Detector", str | None]:
+    """The detector the live service would load for the same flags (``--weights``, else the shipped lite
+    weights, else a random network, which ``Detector.load`` warns about) and a description of the file
+    (name and the first 12 hex digits of its SHA-256, so a metrics.json names the exact weights; None for
+    random initialisation). A missing or unusable file fails with one line."""
+    import hashlib
+
+    from ..services.detector.inference import Detector, WeightsError, shipped_weights
+
+    if weights is not None and not weights.is_file():
+        fail(f"--weights: file not found: {weights}")
+    path = weights if weights is not None else shipped_weights("lite")
+    try:
+        det = Detector.load(weights, "lite", threads=threads)
+    except WeightsError as exc:
+        fail(f"--weights: {' '.join(str(exc).split())[:240]}")
+    if det.meta.get("random_init"):
+        return det, None
+    digest = hashlib.sha256(path.read_bytes()).hexdigest()[:12]
+    return det, f"{path if weights is not None else 'shipped ' + path.name} (sha256 {digest})"
+
+
+def detector_run_info(detector: "Detector", weights_desc: str | None) -> dict[str, Any]:
+    """metrics.json's ``run.detector``: which network produced the detections (scalar training meta only)."""
+    meta = {k: v for k, v in detector.meta.items() if isinstance(v, (str, int, float, bool)) and k != "random_init"}
+    return {"weights": weights_desc, "preset": detector.config.name, "random_init": weights_desc is None,
+            "uncertainty": detector.config.uncertainty,
+            "score_threshold": detector.score_threshold if detector.score_threshold is not None
+            else detector.config.score_threshold, "meta": meta}
+
+
+def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, nuscenes: Path | None,
              scene: str | None, duration: float, rate: float, classifier: Any,
-             extra_seeds: tuple[int, ...] = ()) -> dict[str, Any]:
+             extra_seeds: tuple[int, ...] = (), detector: "Detector | None" = None,
+             weights_desc: str | None = None) -> dict[str, Any]:
     """Load the frames, run the pipeline, score, write the outputs; returns metrics.json's content.
 
     ``extra_seeds`` pools more runs (a fresh scenario and noise draw per seed; for nuScenes only the noise
     changes) into one scored table, because one 15 s scene holds few moving objects and single-seed rates
-    swing by tens of points."""
+    swing by tens of points. With ``detector`` the detections come from it (``noise`` is unused) and its
+    AP / calibration over all pooled scans go into ``detection``."""
     from tqdm import tqdm  # type: ignore[import-untyped]
 
     from .groundtruth import NuScenesError, load_nuscenes_frames
@@ -109,10 +162,32 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str, nuscenes
         source = f"scenario {scenario} seed {seed} ({duration:g} s @ {rate:g} Hz)"
         total = len(sc)
 
+    predictions: list[Any] = []
+    samples: list[Any] = []
+
+    def bar(it: Any, s: int) -> Any:
+        desc = f"eval seed {s}" + (" (detector)" if detector is not None else "")
+        return tqdm(it, total=total, desc=desc, unit="frame", file=sys.stderr, leave=False)
+
     def one(fr: Any, s: int) -> Records:
-        return run_pipeline(fr, NOISE_PRESETS[noise](), s, classifier,
-                            progress=lambda it: tqdm(it, total=total, desc=f"eval seed {s}", unit="frame",
-                                                     file=sys.stderr, leave=False))
+        if detector is None:
+            return run_pipeline(fr, NOISE_PRESETS[noise or "jittery"](), s, classifier,
+                                progress=lambda it: bar(it, s))
+        from .detector_input import detector_frames, nuscenes_scans, run_detector_pipeline, synthetic_scans
+
+        if nuscenes is not None:
+            try:
+                scans: Any = nuscenes_scans(nuscenes, scene, fr)
+            except NuScenesError as exc:
+                fail(f"--nuscenes: {exc}")
+        else:
+            scans = synthetic_scans(fr, s)
+        det_frames = detector_frames(bar(scans, s), detector.detect, class_names=detector.config.class_names,
+                                     uncertainty=detector.config.uncertainty)
+        rec_s, preds, smp = run_detector_pipeline(det_frames, classifier)
+        predictions.extend(preds)
+        samples.extend(smp)
+        return rec_s
 
     rec = one(frames, seed)
     if extra_seeds:
@@ -126,7 +201,8 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str, nuscenes
     alpha_desc = classifier.alpha_default if not classifier.alpha_per_class else dict(
         classifier.alpha_per_class, default=classifier.alpha_default)
     metrics: dict[str, Any] = {
-        "run": {"source": source, "input": "gt-noise", "noise": noise, "seed": seed, "frames": total,
+        "run": {"source": source, "input": "gt-noise" if detector is None else "detector",
+                "noise": noise if detector is None else None, "seed": seed, "frames": total,
                 "rows": len(rec), "matched_rows": int((rec.gt_instance >= 0).sum()),
                 "match_distance_m": MATCH_DISTANCE_M, "alpha": alpha_desc,
                 "velocity_threshold": classifier.velocity_threshold, "min_window": classifier.min_window,
@@ -135,7 +211,16 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str, nuscenes
         "alpha_from_labels": {g: alpha_from_labels(rec, g) for g in REPORT_GROUPS},
     }
     metrics["alpha_from_labels_preset"] = labels_preset(metrics["alpha_from_labels"])
-    return write_outputs(out, rec, metrics)
+    if detector is None:
+        return write_outputs(out, rec, metrics)
+    from .detector_input import detection_metrics
+    from .report import DETECTION_FIGURES
+
+    metrics["detection"], det_report = detection_metrics(predictions, samples, detector.config.class_names)
+    metrics["run"]["detector"] = detector_run_info(detector, weights_desc)
+    metrics["run"]["detector"]["figures"] = [f for f in DETECTION_FIGURES
+                                             if f != DETECTION_FIGURES[0] or det_report["calibration"] is not None]
+    return write_outputs(out, rec, metrics, det_report)
 
 
 def study_command(

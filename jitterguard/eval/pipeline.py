@@ -1,4 +1,8 @@
-"""The offline pipeline: ground-truth frames → detection-level noise → tracker core → classifier cores.
+"""The offline pipeline: ground-truth frames → detections → tracker core → classifier cores.
+
+Detections come from the detection-level noise model (:func:`run_pipeline`, ``--input gt-noise``) or from the
+CenterPoint detector on ray-cast / recorded scans (:mod:`.detector_input`, ``--input detector``); both hand
+(ground truth, ``DetectedObjects``) pairs to :func:`track_and_classify`.
 
 Why in-process and through the same functions as the services: what is measured offline must be what runs
 live. Each frame goes through exactly the adapters' conversions — ``frame_from_message`` into the tracker
@@ -20,7 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment  # type: ignore[import-untyped]
 
-from ..schemas.models import ClassifierConfig, TrackObservation
+from ..schemas.models import ClassifierConfig, DetectedObjects, TrackObservation
 from ..services.classifier.core import MotionClassifierCore
 from ..services.classifier.service import observations_from_messages
 from ..services.tracker.config import TrackerConfig, default_config
@@ -109,18 +113,30 @@ def run_pipeline(frames: Iterable[GroundTruthFrame], noise: NoiseConfig, seed: i
     ``classifier`` supplies alpha / window / velocity threshold; its ``mode`` is overridden per core.
     ``progress`` wraps the frame iterable (e.g. tqdm) — the caller's choice, so this stays I/O-free.
     """
-    base = classifier or ClassifierConfig()
     det_model = DetectionModel(noise, seed)
+    it = progress(frames) if progress is not None else frames
+    return track_and_classify(((gt, det_model.detect(gt).detections) for gt in it), classifier, tracker,
+                              match_distance_m)
+
+
+def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame, DetectedObjects]],
+                       classifier: ClassifierConfig | None = None, tracker: TrackerConfig | None = None,
+                       match_distance_m: float = MATCH_DISTANCE_M) -> Records:
+    """TrackerCore → MotionClassifierCore (z_test and velocity_threshold) over (ground truth, detections) pairs.
+
+    The detections are whatever feeds the live tracker — the noise model's output or the detector service's
+    ``DetectedObjects`` — so both ``--input`` modes share everything from here on; the ground truth (world
+    frame) only labels the tracks. ``classifier``'s ``mode`` is overridden per core.
+    """
+    base = classifier or ClassifierConfig()
     trk = TrackerCore(tracker or default_config(), _id_factory())
     core_z = MotionClassifierCore(base.model_copy(update={"mode": "z_test"}))
     core_v = MotionClassifierCore(base.model_copy(update={"mode": "velocity_threshold"}))
     cols: dict[str, list] = {k: [] for k in ("t_s", "seq", "track_id", "label", "z", "speed", "window", "state_z",
                                              "state_v", "gt_instance", "gt_dynamic", "group", "alpha")}
     t0: int | None = None
-    it = progress(frames) if progress is not None else frames
-    for gt in it:
+    for gt, msg in inputs:
         t0 = gt.stamp_ns if t0 is None else t0
-        msg = det_model.detect(gt).detections
         frame = frame_from_message(msg)
         try:
             result = trk.step(frame)

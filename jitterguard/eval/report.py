@@ -2,7 +2,8 @@
 
 Figures: speed vs z per group coloured by ground-truth state (the paper's Fig. 5, where the jitter band shows
 as static points with non-zero speed and moderate z), precision–recall curves of both scores, and the
-false-/missed-dynamic rates as alpha sweeps.
+false-/missed-dynamic rates as alpha sweeps. With the detector in the loop also its positional calibration
+(the paper's Fig. 3) and per-class detection precision–recall, drawn by the detector's own plotting code.
 """
 
 from __future__ import annotations
@@ -65,12 +66,14 @@ def plot_pr(rec: Records, path: Path) -> None:
             for score, name in ((rec.z[m], "z-test"), (rec.speed[m], "speed")):
                 p, r, _ = pr_curve(score, dyn)
                 ax.plot(np.r_[0.0, r], np.r_[1.0, p], label=name)
+            ax.legend(fontsize=8)
+        else:
+            ax.text(0.5, 0.5, "no dynamic ground truth", ha="center", va="center", transform=ax.transAxes)
         ax.set_xlim(0, 1.01)
         ax.set_ylim(0, 1.01)
         ax.set_xlabel("recall (dynamic)")
         ax.set_ylabel("precision")
         ax.set_title(g)
-        ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
@@ -119,19 +122,65 @@ def _fmt(v: Any) -> str:
     return f"{v:.3f}" if isinstance(v, float) else str(v)
 
 
-def write_outputs(out: Path, rec: Records, metrics: dict[str, Any]) -> dict[str, Any]:
-    """Write figures, metrics.json (with the alpha sweep added) and report.md into ``out``."""
+DETECTION_FIGURES = ("detection_calibration.png", "detection_pr.png")
+
+
+def plot_detection(report: dict[str, Any], out: Path) -> list[str]:
+    """The detector's calibration plot (only for a model with variance heads) and its PR curves at 2 m;
+    returns the file names written. ``report`` is :func:`~jitterguard.services.detector.evaluate.
+    evaluation_report` with curves."""
+    from ..services.detector.plots import calibration_plot, pr_plot
+
+    written = []
+    if report.get("calibration") is not None:
+        calibration_plot(report["calibration"], out / DETECTION_FIGURES[0])
+        written.append(DETECTION_FIGURES[0])
+    pr_plot(report["detection"], out / DETECTION_FIGURES[1])
+    written.append(DETECTION_FIGURES[1])
+    return written
+
+
+def detection_lines(det: dict[str, Any], figures: list[str]) -> list[str]:
+    """report.md's detection section: mAP, positional ECE and per-class AP / counts."""
+    lines = ["", "## Detector", "",
+             f"nuScenes mAP {_fmt(det['map'])} over {det['num_samples']} scans (classes with ground truth); "
+             f"positional ECE {_fmt(det['ece_pos'])} m (x {_fmt(det['ece_x'])}, y {_fmt(det['ece_y'])}; "
+             f"{det['num_matched'] if det['num_matched'] is not None else '—'} true positives at 2 m), "
+             f"coverage of ±1σ {_fmt(det['coverage_1sigma'])} (calibrated: 0.683).",
+             "", "| class | AP | n GT | n pred | TP | FP | FN |", "|---|---|---|---|---|---|---|"]
+    for name, c in det.items():
+        if isinstance(c, dict) and "ap" in c:
+            lines.append(f"| {name} | {_fmt(c['ap'])} | {c['num_gt']} | {c['num_pred']} | {c['tp']} | {c['fp']} | "
+                         f"{c['fn']} |")
+    for f in figures:
+        lines += ["", f"![{f[:-4].replace('_', ' ')}]({f})"]
+    return lines
+
+
+def _input_desc(run: dict[str, Any]) -> str:
+    det = run.get("detector")
+    if det is None:
+        return f"noise `{run['noise']}`"
+    w = "random initialisation (meaningless detections)" if det.get("random_init") else f"`{det['weights']}`"
+    return f"detector weights {w}, preset `{det['preset']}`"
+
+
+def write_outputs(out: Path, rec: Records, metrics: dict[str, Any],
+                  detection_report: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Write figures, metrics.json (with the alpha sweep added) and report.md into ``out``; with the detector
+    in the loop (``detection_report``, whose summary is already ``metrics["detection"]``) its figures too."""
     out.mkdir(parents=True, exist_ok=True)
     plot_speed_vs_z(rec, out / "speed_vs_z.png")
     plot_pr(rec, out / "pr_curves.png")
     metrics["alpha_sweep"] = plot_alpha_sweep(rec, out / "alpha_sweep.png")
+    det_figures = plot_detection(detection_report, out) if detection_report is not None else []
     metrics = finite_json(metrics)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2, sort_keys=True, allow_nan=False) + "\n")
     run = metrics["run"]
     lines = [
         f"# jitterguard eval — {run['source']}",
         "",
-        f"Input `{run['input']}`, noise `{run['noise']}`, seed {run['seed']}, {run['frames']} frames, "
+        f"Input `{run['input']}`, {_input_desc(run)}, seed {run['seed']}, {run['frames']} frames, "
         f"{run['rows']} (frame, track) rows, {run['matched_rows']} matched to ground truth "
         f"(≤ {run['match_distance_m']} m). Operating points: z-test alpha {run['alpha']}, "
         f"velocity threshold {run['velocity_threshold']} m/s. Scored rows: matched, z-test window ≥ "
@@ -152,5 +201,7 @@ def write_outputs(out: Path, rec: Records, metrics: dict[str, Any]) -> dict[str,
                   + ", ".join(f"{g} {_fmt(a)}" for g, a in metrics["alpha_from_labels"].items())]
     lines += ["", "![speed vs z](speed_vs_z.png)", "", "![PR curves](pr_curves.png)", "",
               "![alpha sweep](alpha_sweep.png)", ""]
+    if metrics.get("detection") is not None:
+        lines += detection_lines(metrics["detection"], det_figures) + [""]
     (out / "report.md").write_text("\n".join(lines))
     return metrics

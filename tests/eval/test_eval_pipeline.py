@@ -69,7 +69,7 @@ def test_cli_writes_report_metrics_and_figures(tmp_path: Path, capsys) -> None:
 
 
 @pytest.mark.parametrize("argv", [
-    ["--input", "detector"],
+    ["--input", "detector", "--noise", "clean"],
     ["--input", "lidar"],
     ["--noise", "loud"],
     ["--scenario", "moon"],
@@ -82,7 +82,7 @@ def test_cli_bad_input_is_one_line_exit_2(tmp_path: Path, capsys, argv: list[str
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1
     if "detector" in argv:
-        assert "detector is not built yet" in err
+        assert "--noise applies to --input gt-noise" in err
 
 
 @pytest.mark.skipif(not NUSC.is_dir(), reason="../shared/data/nuscenes-scene-0523 absent")

@@ -1,0 +1,239 @@
+"""``jitterguard eval --input detector``: scans as the replay publishes them → detector → tracker → classifier.
+
+Two kinds of detector: a tiny randomly initialised network saved as a weights file (exercises the real load /
+inference / conversion path; its detections are meaningless, so no quality is asserted), and an *oracle* that
+returns each scan's sensor-frame ground truth in place of the network. The oracle is the only stand-in: it
+makes the expected numbers exact (AP 1, ECE = the constant σ it reports), so it can tell whether scans, sensor-
+frame boxes, world-frame labels and poses line up — a frame or ordering bug would show as unmatched tracks.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from jitterguard.cli import main
+from jitterguard.eval.detector_input import (
+    LabelledScan,
+    detection_metrics,
+    detector_frames,
+    nuscenes_scans,
+    run_detector_pipeline,
+    synthetic_scans,
+)
+from jitterguard.eval.metrics import compute_metrics
+from jitterguard.services.detector.config import CLASS_NAMES, LITE, Detections3D
+from jitterguard.services.detector.inference import save_weights
+from jitterguard.services.detector.network import CenterPointNet
+from jitterguard.sim.world import make_scenario
+
+NUSC = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "nuscenes-scene-0523"
+TINY = dataclasses.replace(
+    LITE, name="tiny", point_cloud_range=(-12.8, -12.8, -3.0, 12.8, 12.8, 3.0), voxel_size=(0.2, 0.2, 6.0),
+    pfn_channels=8, backbone_layers=(1, 1, 1), backbone_channels=(8, 16, 16), neck_channels=(8, 8, 8),
+    head_channels=8, max_pillars=4000,
+)
+"""tests/detector/test_model.py's unit-test network: 128×128 pillars, cheap enough for a 10-scan run."""
+ORACLE_VAR = 0.01
+DET_ARGS = ["eval", "--scenario", "parking-street", "--seed", "2", "--duration", "1", "--input", "detector",
+            "--threads", "1"]
+
+
+@pytest.fixture(autouse=True)
+def _one_thread() -> None:
+    torch.set_num_threads(1)
+
+
+def _weights(path: Path, uncertainty: bool = True) -> Path:
+    torch.manual_seed(0)
+    save_weights(path, CenterPointNet(dataclasses.replace(TINY, uncertainty=uncertainty)))
+    return path
+
+
+@pytest.fixture(scope="module")
+def tiny_weights(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return _weights(tmp_path_factory.mktemp("w") / "tiny.pt")
+
+
+def _oracle(scans: list[LabelledScan]) -> Callable[[np.ndarray], Detections3D]:
+    """A 'network' that returns the visible ground truth of the scan it is given, σ² = ORACLE_VAR on every
+    axis. It is handed the scans' samples in order and checks that the points it receives are that sample's
+    (the scan the tracker's detections come from is the scan the metrics score against)."""
+    it: Iterator[LabelledScan] = iter(scans)
+
+    def detect(points: np.ndarray) -> Detections3D:
+        s = next(it).sample
+        np.testing.assert_array_equal(points, s.points[np.isfinite(s.points).all(axis=1)])
+        keep = s.num_points >= 1
+        n = int(keep.sum())
+        return Detections3D(s.boxes[keep], np.full(n, 0.9, np.float32), s.labels[keep],
+                            np.full((n, 5), math.log(ORACLE_VAR), np.float32))
+
+    return detect
+
+
+def _run_cli(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    cap = capsys.readouterr()
+    return int(exc.value.code or 0), cap.out, cap.err
+
+
+# ------------------------------------------------------------------------------------------- scan sources
+
+
+def test_synthetic_scan_is_what_the_replay_publishes() -> None:
+    from jitterguard.services.replay.publisher import point_cloud_message
+    from jitterguard.services.replay.sources.synthetic import SyntheticSource
+
+    frame = next(iter(SyntheticSource("parking-street", seed=2, duration_s=1.0, rate_hz=10.0).frames(3)))
+    sc = make_scenario("parking-street", 2, 1.0, 10.0)
+    ours = [ls for ls, _ in zip(synthetic_scans(sc, 2), range(4))][3]
+    replay = point_cloud_message(frame, 3, frame.stamp_ns)
+    assert ours.scan.fields == replay.fields and ours.scan.num_points == replay.num_points > 1000
+    assert ours.scan.data == replay.data
+    assert ours.scan.ego_pose == replay.ego_pose and ours.scan.header == replay.header
+    assert ours.gt.seq == 3 and ours.sample.token == "synthetic/parking-street/2/3"
+    assert (ours.sample.num_points > 0).any() and len(ours.sample.boxes) == len(ours.sample.labels)
+
+
+# ------------------------------------------------------------------------------------------- oracle runs
+
+
+def test_oracle_detector_gives_exact_metrics_and_tracks_on_the_ground_truth() -> None:
+    sc = make_scenario("parking-street", 1, 3.0, 10.0)
+    scans = list(synthetic_scans(sc, 1))
+    frames = list(detector_frames(scans, _oracle(scans)))
+    # what the tracker receives: the service's conversion, sensor frame, the variances as covariances
+    msg = frames[5].detections
+    assert msg.header == scans[5].scan.header and msg.ego_pose == scans[5].scan.ego_pose
+    assert len(msg.objects) == int((scans[5].sample.num_points >= 1).sum()) > 5
+    assert all(o.kinematics.has_position_covariance for o in msg.objects)
+    assert msg.objects[0].kinematics.pose_with_covariance.covariance[0] == pytest.approx(ORACLE_VAR, rel=1e-5)
+
+    rec, preds, samples = run_detector_pipeline(iter(frames))
+    assert len(preds) == len(samples) == len(sc)
+    block, report = detection_metrics(preds, samples)
+    assert block["map"] == pytest.approx(1.0)
+    for name in CLASS_NAMES:
+        assert block[name]["ap"] == (pytest.approx(1.0) if block[name]["num_gt"] else None), name
+        assert block[name]["fp"] == 0
+    assert block["car"]["num_gt"] > 100
+    assert block["ece_pos"] == pytest.approx(math.sqrt(ORACLE_VAR), rel=1e-4)  # residual 0, predicted σ 0.1
+    assert report["detection"]["classes"]["car"]["precision"]["2"][:10] == pytest.approx([1.0] * 10)
+    # the tracker puts its tracks onto the world-frame ground truth, and motion is plain to see
+    assert (rec.gt_instance >= 0).mean() > 0.95
+    motion = compute_metrics(rec)["vehicle"]
+    assert motion["n_dynamic"] > 0 and motion["n_static"] > 0
+    assert motion["ap_z"] > 0.9
+
+
+@pytest.mark.skipif(not NUSC.is_dir(), reason="../shared/data/nuscenes-scene-0523 absent")
+def test_oracle_on_nuscenes_scans_labels_and_poses_line_up() -> None:
+    from jitterguard.eval.groundtruth import load_nuscenes_frames
+
+    _, gt = load_nuscenes_frames(NUSC)
+    scans = nuscenes_scans(NUSC, None, gt)
+    assert len(scans) == len(gt) >= 30
+    assert scans[0].scan.fields == ["x", "y", "z", "intensity", "ring"]
+    rec, preds, samples = run_detector_pipeline(detector_frames(scans, _oracle(scans)))
+    block, _ = detection_metrics(preds, samples)
+    assert block["map"] == pytest.approx(1.0) and block["car"]["num_gt"] > 100
+    # sensor-frame boxes (detector loader) → LIDAR_TOP pose → tracker world frame ≈ the evaluator's world GT
+    assert (rec.gt_instance >= 0).mean() > 0.9
+
+
+# ------------------------------------------------------------------------------------------- the CLI
+
+
+GROUP_KEYS = ("ap_z", "ap_speed", "false_dynamic_z", "missed_dynamic_z", "n_static", "n_dynamic")
+
+
+def _check_detection_block(det: dict, has_variances: bool) -> None:
+    assert det["num_samples"] > 0
+    for name in CLASS_NAMES:
+        c = det[name]
+        assert c["ap"] is None if c["num_gt"] == 0 else 0.0 <= c["ap"] <= 1.0, name
+    assert det["map"] is None or 0.0 <= det["map"] <= 1.0
+    if has_variances:
+        assert det["ece_pos"] is None or det["ece_pos"] >= 0.0
+    else:
+        assert det["ece_pos"] is None and det["num_matched"] is None
+
+
+def test_cli_detector_run_writes_detection_metrics_and_is_deterministic(
+        tmp_path: Path, tiny_weights: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out1, out2 = tmp_path / "a", tmp_path / "b"
+    code, stdout, err = _run_cli([*DET_ARGS, "--weights", str(tiny_weights), "--out", str(out1), "--json"], capsys)
+    assert code == 0, err
+    m = json.loads((out1 / "metrics.json").read_text())
+    assert json.loads(stdout) == m
+    assert m["run"]["input"] == "detector" and m["run"]["noise"] is None and m["run"]["frames"] == 10
+    assert m["run"]["detector"]["preset"] == "tiny" and not m["run"]["detector"]["random_init"]
+    assert "sha256" in m["run"]["detector"]["weights"]
+    _check_detection_block(m["detection"], has_variances=True)
+    assert m["detection"]["car"]["num_gt"] > 0 and m["detection"]["car"]["num_pred"] > 0
+    for g in ("vehicle", "pedestrian"):
+        for k in GROUP_KEYS:
+            assert k in m["motion"][g], (g, k)
+    for name in ("report.md", "speed_vs_z.png", "pr_curves.png", "alpha_sweep.png", "detection_calibration.png",
+                 "detection_pr.png"):
+        assert (out1 / name).stat().st_size > 0, name
+    report = (out1 / "report.md").read_text()
+    assert "## Detector" in report and "| car |" in report and "detection_calibration.png" in report
+
+    code, _, _ = _run_cli([*DET_ARGS, "--weights", str(tiny_weights), "--out", str(out2)], capsys)
+    assert code == 0
+    assert (out2 / "metrics.json").read_text() == (out1 / "metrics.json").read_text()
+
+
+def test_cli_vanilla_model_has_no_calibration(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    w = _weights(tmp_path / "vanilla.pt", uncertainty=False)
+    code, stdout, err = _run_cli([*DET_ARGS, "--duration", "0.5", "--weights", str(w), "--out",
+                                  str(tmp_path / "o"), "--json"], capsys)
+    assert code == 0, err
+    m = json.loads(stdout)
+    _check_detection_block(m["detection"], has_variances=False)
+    assert m["run"]["detector"]["figures"] == ["detection_pr.png"]
+    assert not (tmp_path / "o" / "detection_calibration.png").exists()
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["--input", "detector", "--weights", "/nonexistent/w.pt"], "--weights: file not found"),
+    (["--input", "detector", "--weights", "GARBAGE"], "--weights:"),
+    (["--input", "detector", "--noise", "clean"], "--noise applies to --input gt-noise"),
+    (["--input", "gt-noise", "--weights", "x.pt"], "--weights and --threads need --input detector"),
+    (["--input", "gt-noise", "--threads", "2"], "--weights and --threads need --input detector"),
+    (["--input", "detector", "--nuscenes", "/nonexistent", "--runs", "2"], "--runs"),
+])
+def test_cli_bad_detector_input_is_one_line_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                   argv: list[str], needle: str) -> None:
+    if "GARBAGE" in argv:
+        garbage = tmp_path / "garbage.pt"
+        garbage.write_bytes(b"not a torch file\n" * 10)
+        argv = [str(garbage) if a == "GARBAGE" else a for a in argv]
+    code, _, err = _run_cli(["eval", "--out", str(tmp_path / "x"), *argv], capsys)
+    assert code == 2
+    assert len(err.strip().splitlines()) == 1 and needle in err
+    assert not (tmp_path / "x").exists()
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not NUSC.is_dir(), reason="../shared/data/nuscenes-scene-0523 absent")
+def test_cli_detector_on_the_nuscenes_scene(tmp_path: Path, tiny_weights: Path,
+                                            capsys: pytest.CaptureFixture[str]) -> None:
+    code, stdout, err = _run_cli(["eval", "--nuscenes", str(NUSC), "--input", "detector", "--threads", "1",
+                                  "--weights", str(tiny_weights), "--out", str(tmp_path / "nu"), "--json"], capsys)
+    assert code == 0, err
+    m = json.loads(stdout)
+    assert m["run"]["frames"] == m["detection"]["num_samples"] >= 30
+    _check_detection_block(m["detection"], has_variances=True)
+    assert m["detection"]["car"]["num_gt"] > 100 and m["detection"]["pedestrian"]["num_gt"] > 0
+    assert (tmp_path / "nu" / "detection_calibration.png").stat().st_size > 0
