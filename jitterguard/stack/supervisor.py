@@ -80,7 +80,10 @@ def programs(spec: StackSpec) -> list[Program]:
     else:
         source = spec.source or "synthetic:mixed"
         flags = ("--level", "detections") if mode == "detections" else ()
-        progs.append(Program("replay", _cmd("replay", source, *common, "--loop", *flags), priority=60, startsecs=2))
+        # the stack's replay stands in for a live sensor: wall-clock stamps, so that when supervisord restarts
+        # it the tracker sees a restarted source going on in time, not a recording rewound (see stream_order)
+        progs.append(Program("replay", _cmd("replay", source, *common, "--loop", "--stamps", "wall", *flags),
+                             priority=60, startsecs=2))
     return progs
 
 

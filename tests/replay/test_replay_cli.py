@@ -38,6 +38,7 @@ CASES = [
     (["replay", "{k}", "--start", "-2"], "--start must be >= 0"),
     (["replay", "{k}", "--limit", "0"], "--limit must be >= 1"),
     (["replay", "{k}", "--on-error", "explode"], "--on-error"),
+    (["replay", "{k}", "--stamps", "now"], "--stamps must be"),
     (["replay", "{k}", "--topic", "/x"], "--topic does not apply"),
     (["replay", "{k}", "--hz", "0"], "--hz must be positive"),
     (["replay", "{k}", "--ns", "a/b"], "--ns"),

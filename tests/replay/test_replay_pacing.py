@@ -91,6 +91,24 @@ def test_restamper_continues_the_timeline_across_loops() -> None:
     assert second == [1300 * MS, 1400 * MS, 1500 * MS]  # one median period after the last stamp
 
 
+def test_restamper_on_wall_time_starts_at_the_origin_read_at_the_first_frame_and_keeps_the_spacing() -> None:
+    reads: list[int] = []
+
+    def wall() -> int:
+        reads.append(1)
+        return 1_700_000_000 * 10**9
+
+    r = Restamper(origin=wall)
+    assert not reads  # read when the first frame is stamped, not before (the replay may wait for subscribers)
+    first = [r(s) for s in (5 * MS, 105 * MS, 255 * MS)]
+    r.begin_pass()
+    second = [r(s) for s in (5 * MS, 105 * MS)]
+    t0 = 1_700_000_000 * 10**9
+    assert first == [t0, t0 + 100 * MS, t0 + 250 * MS]
+    assert second == [t0 + 375 * MS, t0 + 475 * MS]  # loops go on from there, one median period later
+    assert len(reads) == 1
+
+
 def test_restamper_forces_out_of_order_stamps_forward() -> None:
     r = Restamper()
     out = [r(s) for s in (100, 300, 200, 200, 400)]

@@ -47,6 +47,29 @@ def test_loop_keeps_seq_and_stamps_increasing_across_passes() -> None:
     assert stats.passes == 3
 
 
+def test_wall_stamps_make_a_restarted_replay_go_on_in_time_where_recorded_stamps_rewind() -> None:
+    """Two runs of the same replay, the second started (as supervisord would) 0.5 s after the first ended:
+    seq begins again either way; on wall stamps time goes on (a restarted source), on recorded ones it goes back."""
+    wall = [1_700_000_000 * 10**9]
+    runs = {}
+    for stamps in ("recorded", "wall"):
+        out = []
+        for _ in range(2):
+            sink = Sink()
+            clock = FakeClock()
+            t_start = clock.now()
+            run_replay(memory(5), ReplayPlan(rate=1.0, stamps=stamps), sink, clock=clock, wall_ns=lambda: wall[0])
+            wall[0] += int((clock.now() - t_start + 0.5) * 1e9)  # the run took its paced time, then a restart
+            out.append(sink.out)
+        runs[stamps] = out
+    for stamps, (first, second) in runs.items():
+        assert [s for _, s, _ in second] == [0, 1, 2, 3, 4]
+        assert [b[2] - a[2] for a, b in zip(second, second[1:])] == [100 * MS] * 4  # recorded spacing kept
+    assert runs["recorded"][1][0][2] < runs["recorded"][0][-1][2]
+    assert runs["wall"][1][0][2] > runs["wall"][0][-1][2]
+    assert runs["wall"][1][0][2] - runs["wall"][0][-1][2] == pytest.approx(500 * MS, abs=MS)  # the restart gap
+
+
 def test_start_and_limit_select_a_window_per_pass() -> None:
     sink = Sink()
     run_replay(memory(10), ReplayPlan(rate=None, start=4, limit=3, loop=True, passes=2), sink, clock=FakeClock())

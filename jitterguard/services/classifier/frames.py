@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from typing import Any, Generic, TypeVar
 
 from ...schemas.models import TrackedObjects, TrackObservation
+from ...stream_order import BehindRun
 
 RESTART_GAP = 20
 """A closing seq this far below the last one means the tracker restarted (its seq began again)."""
@@ -44,6 +45,8 @@ class FrameAssembler(Generic[O, C]):
     _obs: dict[int, dict[str, O]] = field(default_factory=dict)
     _closes: dict[int, tuple[C, float, frozenset[str]]] = field(default_factory=dict)
     _waiting: dict[int, set[str]] = field(default_factory=dict)  # per closed seq: expected IDs not yet in
+    _newest_stamp: int | None = None  # of the closes accepted since the last restart
+    _behind: BehindRun = field(default_factory=BehindRun)
 
     def is_late(self, seq: int) -> bool:
         """An observation for a frame already processed: it would be dropped, so it need not be validated.
@@ -76,18 +79,24 @@ class FrameAssembler(Generic[O, C]):
             self.count("orphaned_observations", len(self._obs.pop(oldest)))
 
     def add_close(self, tracked: TrackedObjects, now: float) -> bool:
-        return self.add_close_item(tracked.header.seq, tracked.observed_track_ids, tracked, now)  # type: ignore[arg-type]
+        return self.add_close_item(tracked.header.seq, tracked.observed_track_ids, tracked, now,  # type: ignore[arg-type]
+                                   stamp_ns=tracked.header.stamp)
 
-    def add_close_item(self, seq: int, expected_ids: Iterable[str], item: C, now: float) -> bool:
+    def add_close_item(self, seq: int, expected_ids: Iterable[str], item: C, now: float,
+                       stamp_ns: int | None = None) -> bool:
         """Register a frame-closing message; returns False (and counts) when it is stale or a duplicate.
 
-        A seq far below the last one processed is taken as an upstream restart: state is reset and the
-        caller learns it through ``counts['upstream_restarts']``.
+        A seq at or below the last one processed is an upstream restart when it is far below, or (given
+        ``stamp_ns``) when its stamp is newer than every close so far (the source's seq began again while time
+        went on), or when such closes keep coming behind, each after the previous (a recording that started
+        over; :mod:`jitterguard.stream_order`). State is then reset and the caller learns it through
+        ``counts['upstream_restarts']``.
         """
         if seq <= self.last_done:
-            if self.last_done - seq > RESTART_GAP:
+            if self._restarted(seq, stamp_ns):
                 self.count("upstream_restarts")
                 self.last_done = -1
+                self._newest_stamp = None
                 self._obs = {s: b for s, b in self._obs.items() if s <= seq + RESTART_GAP}
                 self._closes.clear()
                 self._waiting.clear()
@@ -97,11 +106,24 @@ class FrameAssembler(Generic[O, C]):
         if seq in self._closes:
             self.count("duplicate_or_late_frames")
             return False
+        self._behind.clear()
+        if stamp_ns is not None and (self._newest_stamp is None or stamp_ns > self._newest_stamp):
+            self._newest_stamp = stamp_ns
         expected = frozenset(expected_ids)
         self._closes[seq] = (item, now, expected)
         got = self._obs.get(seq, {})
         self._waiting[seq] = {i for i in expected if i not in got}
         return True
+
+    def _restarted(self, seq: int, stamp_ns: int | None) -> bool:
+        """A close at or below ``last_done``: the upstream's restart rather than a late or duplicate frame?"""
+        if self.last_done - seq > RESTART_GAP:
+            return True
+        if stamp_ns is None or self._newest_stamp is None:
+            return False
+        if stamp_ns > self._newest_stamp:
+            return True
+        return stamp_ns < self._newest_stamp and self._behind.behind(seq, stamp_ns)
 
     def pop_ready(self, now: float) -> list[CompleteFrame[O, C]]:
         """Frames that are complete or timed out, in seq order; older pending frames are flushed first."""

@@ -28,7 +28,7 @@ log = logging.getLogger("jitterguard.replay")
 EXAMPLES = """
 Examples:\n
   jitterguard replay synthetic:parking-street --seed 3 --rate 2\n
-  jitterguard replay synthetic:mixed --level detections --loop\n
+  jitterguard replay synthetic:mixed --level detections --loop --stamps wall\n
   jitterguard replay ../shared/data/nuscenes-scene-0523 --rate max\n
   jitterguard replay sequences/00/velodyne --poses poses/00.txt --start 100 --limit 50\n
   jitterguard replay run.mcap --topic /sensing/lidar/top/pointcloud --pose-topic /localization/kinematic_state
@@ -80,6 +80,7 @@ def replay_command(
     start: Annotated[int, typer.Option("--start", help="First recorded frame to replay (0-based).")] = 0,
     limit: Annotated[int | None, typer.Option("--limit", help="Replay at most this many frames (per pass when looping).")] = None,
     on_error: Annotated[str, typer.Option("--on-error", help="A frame that cannot be read: 'skip' (count it, go on) or 'stop' (exit 1).")] = "skip",
+    stamps: Annotated[str, typer.Option("--stamps", help="'recorded': the recording's own stamps (moved forward across --loop passes); 'wall': the first frame gets the current wall-clock time and the rest their recorded spacing after it, like a live sensor (a restarted replay then goes on forward in time instead of rewinding).")] = "recorded",
     level: Annotated[str, typer.Option("--level", help="Synthetic sources: 'points' (ray-cast scans) or 'detections' (the synthetic detector).")] = "points",
     seed: Annotated[int, typer.Option("--seed", help="Synthetic sources: scenario and noise seed.")] = 0,
     duration: Annotated[float, typer.Option("--duration", help="Synthetic sources: scenario length in seconds.")] = 20.0,
@@ -113,7 +114,8 @@ def replay_command(
     if wait_subscriber < 0:
         fail(f"--wait-subscriber must be >= 0, got {wait_subscriber}")
     try:
-        plan = ReplayPlan(rate=rate_value, loop=loop, start=start, limit=limit, on_error=on_error)  # type: ignore[arg-type]
+        plan = ReplayPlan(rate=rate_value, loop=loop, start=start, limit=limit, on_error=on_error,  # type: ignore[arg-type]
+                          stamps=stamps)  # type: ignore[arg-type]
     except ValueError as exc:
         fail(str(exc))
     fields = tuple(f.strip() for f in bin_fields.split(",")) if bin_fields else None

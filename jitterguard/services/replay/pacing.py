@@ -15,6 +15,7 @@ import math
 import statistics
 import threading
 import time
+from collections.abc import Callable
 from typing import Protocol
 
 from .frames import DEFAULT_PERIOD_NS
@@ -116,9 +117,15 @@ class Restamper:
     previous one (out-of-order bag stamps), in which case it becomes previous + 1 ns. A new pass starts one
     typical frame period (the median recorded spacing) after the last published stamp, so looping a 20 s
     recording yields one uninterrupted, monotonic timeline.
+
+    With ``origin`` (``--stamps wall``: ``time.time_ns``) the timeline starts at ``origin()``, read when the
+    first frame is stamped, instead of at the recorded stamp; the recorded spacing is kept. Published in real
+    time, the stamps then follow the wall clock like a live sensor's, so a replay that is restarted goes on
+    forward in time (a restarted source) instead of rewinding to the recording's first stamp.
     """
 
-    def __init__(self, default_period_ns: int = DEFAULT_PERIOD_NS) -> None:
+    def __init__(self, default_period_ns: int = DEFAULT_PERIOD_NS, origin: Callable[[], int] | None = None) -> None:
+        self._origin = origin
         self._offset = 0
         self._last_in: int | None = None
         self._last_out: int | None = None
@@ -138,6 +145,8 @@ class Restamper:
     def __call__(self, stamp_ns: int) -> int:
         if self._last_in is not None and stamp_ns > self._last_in and len(self._diffs) < 1000:
             self._diffs.append(stamp_ns - self._last_in)
+        if self._last_out is None and self._origin is not None:
+            self._offset = int(self._origin()) - stamp_ns
         if self._new_pass and self._last_out is not None:
             self._offset = self._last_out + self.period_ns - stamp_ns
             self._new_pass = False

@@ -8,6 +8,7 @@ is tested with a fake clock and a list as the sink.
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Literal
@@ -17,6 +18,7 @@ from .pacing import Clock, Pacer, RealClock, Restamper
 from .sources.base import Source
 
 OnError = Literal["skip", "stop"]
+Stamps = Literal["recorded", "wall"]
 Emit = Callable[[Frame, int, int], None]
 """``emit(frame, seq, stamp_ns)``: publish one frame under the given header seq and (re-stamped) stamp."""
 
@@ -34,6 +36,9 @@ class ReplayPlan:
     on_error: OnError = "skip"
     seq_start: int = 0
     max_lag_s: float = 0.5
+    stamps: Stamps = "recorded"
+    """``recorded``: the recording's stamps (shifted forward across loop passes); ``wall``: the first frame is
+    stamped with the wall clock and the rest keep the recorded spacing after it (see :class:`Restamper`)."""
 
     def __post_init__(self) -> None:
         if self.start < 0:
@@ -44,6 +49,8 @@ class ReplayPlan:
             raise ValueError(f"passes must be >= 1, got {self.passes}")
         if self.on_error not in ("skip", "stop"):
             raise ValueError(f"--on-error must be 'skip' or 'stop', got {self.on_error!r}")
+        if self.stamps not in ("recorded", "wall"):
+            raise ValueError(f"--stamps must be 'recorded' or 'wall', got {self.stamps!r}")
 
 
 @dataclass
@@ -102,15 +109,17 @@ def run_replay(
     stop: threading.Event | None = None,
     on_error: Callable[[FrameError], None] | None = None,
     on_published: Callable[[Frame, int], None] | None = None,
+    wall_ns: Callable[[], int] = time.time_ns,
 ) -> ReplayStats:
     """Replay ``source`` through ``emit`` according to ``plan`` and return what happened.
 
+    ``wall_ns`` is the wall clock that ``plan.stamps == 'wall'`` starts the timeline at (injectable for tests).
     Raises :class:`SourceError` if ``--start`` lies past the end of the recording (nothing to replay).
     """
     stop = stop or threading.Event()
     clock = clock or RealClock(stop)
     pacer = Pacer(plan.rate, clock, plan.max_lag_s)
-    restamp = Restamper()
+    restamp = Restamper(origin=wall_ns if plan.stamps == "wall" else None)
     stats = ReplayStats()
     seq = plan.seq_start
     while not stop.is_set():

@@ -135,6 +135,13 @@ class TrackerConfig(_Strict):
         description="a frame whose stamp is this much older than the last one means the source restarted"
         " (a replay loop): the tracker resets instead of dropping every later frame; 0 disables",
     )
+    rewind_confirm_frames: Annotated[int, Field(ge=0, le=100)] = Field(
+        3,
+        description="this many frames in a row behind the newest one, each after the previous (in seq and"
+        " stamp) with nothing newer in between, mean the source went back by less than rewind_reset_s (a"
+        " recording restarted soon after it began): the tracker resets; a lone late frame is still dropped;"
+        " 0 disables",
+    )
     shape_smoothing: Annotated[float, Field(gt=0.0, le=1.0)] = Field(
         0.3, description="weight of a new detection's box dimensions in the track's running estimate"
     )

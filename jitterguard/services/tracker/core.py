@@ -2,7 +2,9 @@
 
 Per frame (all steps batched over every track / detection):
 
-1. reject a duplicate or out-of-order frame (by ``seq``, and by stamp going backwards);
+1. reject a duplicate or out-of-order frame, or follow a source that started over
+   (:mod:`jitterguard.stream_order`: seq back with time going on is a restart, tracks carry on; time going
+   back far, or persistently, is a rewound recording, tracks are reset);
 2. move the detections from the sensor frame into the world frame with the scan's ego pose, rotating their
    covariances with them (R Σ Rᵀ) and choosing each one's measurement covariance (the detector's or the
    class default's);
@@ -21,6 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ...geometry import rotate_cov2
+from ...stream_order import BehindRun, Verdict, judge
 from . import kalman
 from .association import assign, gate, overlapping
 from .config import ConfigTables, TrackerConfig, default_config
@@ -53,6 +56,7 @@ class TrackerCore:
         self.tracks = TrackTable()
         self.last_seq: int | None = None
         self.last_stamp_ns: int | None = None
+        self._behind = BehindRun(self.config.rewind_confirm_frames)
 
     # ----------------------------------------------------------------------------------------------- API
 
@@ -62,26 +66,29 @@ class TrackerCore:
         self.tracks = TrackTable()
         self.last_seq = None
         self.last_stamp_ns = None
+        self._behind.clear()
         return dropped
 
-    def check_order(self, seq: int, stamp_ns: int) -> bool:
-        """Raise :class:`FrameRejected` for a duplicate / out-of-order frame; True if it means a restart."""
-        if self.last_seq is None or self.last_stamp_ns is None:
-            return False
-        rewind_ns = self.config.rewind_reset_s * 1e9
-        went_back = stamp_ns < self.last_stamp_ns
-        if rewind_ns > 0 and went_back and self.last_stamp_ns - stamp_ns > rewind_ns and seq != self.last_seq:
-            return True
-        if seq == self.last_seq:
-            raise FrameRejected("duplicate", seq, self.last_seq)
-        if seq < self.last_seq or went_back:
-            raise FrameRejected("out_of_order", seq, self.last_seq)
-        return False
+    def check_order(self, seq: int, stamp_ns: int) -> Verdict:
+        """Raise :class:`FrameRejected` for a duplicate / late frame; else say how the frame continues the stream.
+
+        ``NEXT`` and ``RESTARTED`` (the source's seq began again while time went on: a restarted driver, a
+        replay on wall-clock stamps) keep the tracks; ``REWOUND`` (time went back) means reset first.
+        """
+        verdict = judge(seq, stamp_ns, self.last_seq, self.last_stamp_ns, self.config.rewind_reset_s * 1e9)
+        if verdict is Verdict.LATE and self._behind.behind(seq, stamp_ns):
+            verdict = Verdict.REWOUND
+        if verdict is Verdict.DUPLICATE:
+            raise FrameRejected("duplicate", seq, self.last_seq if self.last_seq is not None else -1)
+        if verdict is Verdict.LATE:
+            raise FrameRejected("out_of_order", seq, self.last_seq if self.last_seq is not None else -1)
+        return verdict
 
     def step(self, frame: DetectionFrame) -> FrameResult:
         """Process one detection frame; raises :class:`FrameRejected` (state untouched) for a stale one."""
-        restarted = self.check_order(frame.seq, frame.stamp_ns)
-        deleted: list[str] = self.reset() if restarted else []
+        verdict = self.check_order(frame.seq, frame.stamp_ns)
+        deleted: list[str] = self.reset() if verdict is Verdict.REWOUND else []
+        self._behind.clear()
         self.last_seq = frame.seq
         self.last_stamp_ns = frame.stamp_ns
 
@@ -163,7 +170,8 @@ class TrackerCore:
             obs_det=obs_det,
             born=born,
             deleted=deleted,
-            reset=restarted,
+            reset=verdict is Verdict.REWOUND,
+            source_restarted=verdict is Verdict.RESTARTED,
         )
 
     def apply_static_hints(self, track_ids: Sequence[str], mean_x: Sequence[float],

@@ -139,6 +139,9 @@ class FrameResult:
     born: list[str] = field(default_factory=list)
     deleted: list[str] = field(default_factory=list)
     reset: bool = False
+    """The source went back in time (a recording started over): every earlier track was dropped first."""
+    source_restarted: bool = False
+    """The source's seq began again while time went on (a restarted driver): tracks carried on."""
 
     @property
     def observed_ids(self) -> list[str]:

@@ -8,8 +8,10 @@ and skipped), owns the :class:`TrackerCore` — nothing else touches it — and 
 silently shorten a classifier window. A full channel slows BLOCK publishers instead of dropping frames.
 
 Counters (in the heartbeat): ``frames``, ``dropped_duplicate``, ``dropped_out_of_order``, ``tracks_born``,
-``tracks_deleted``, ``resets`` (the source rewound), ``static_hints_received`` / ``_applied`` / ``_unknown`` and
-the runtime's ``received`` / ``rejected`` / ``published``.
+``tracks_deleted``, ``resets`` (the source went back in time: tracks dropped), ``source_restarts`` (its seq began
+again while time went on: tracks kept), ``static_hints_received`` / ``_applied`` / ``_unknown`` and the runtime's
+``received`` / ``rejected`` / ``published``. How a frame is told apart from a late one is
+:mod:`jitterguard.stream_order`.
 """
 
 from __future__ import annotations
@@ -109,7 +111,11 @@ class TrackerService(Service):
             return
         if result.reset:
             self.counters.inc("resets")
-            self.log.warning("detections rewound to seq %d: source restarted, tracker reset", frame.seq)
+            self.log.warning("detections went back in time (seq %d): source rewound, tracker reset", frame.seq)
+        elif result.source_restarted:
+            self.counters.inc("source_restarts")
+            self.log.warning("detections restarted at seq %d with time going on: source restarted, tracks kept",
+                             frame.seq)
         observations, closing = frame_messages(raw, frame, result)
         for obs in observations:
             self.put(keys.track(self.ns, obs["track"]["object_id"]), encode(obs))
