@@ -136,3 +136,78 @@ def test_parked_stays_static_moving_is_dynamic_and_a_car_pulling_out_flips_withi
     assert flips[0] - start <= WINDOW, f"flipped {flips[0] - start} frames after it started moving"
     assert pull[max(pull)] == "dynamic"
     assert tracker.counters.get("rejected") == 0 and classifier.counters.get("rejected") == 0
+
+
+@pytest.mark.parametrize("stamps", ["wall", "recorded"])
+def test_a_restarted_source_is_followed_by_tracker_and_classifier_without_a_stall(pipeline, stamps: str) -> None:
+    """The detection source is killed 2 s into its run and started again (what supervisord does).
+
+    ``wall``: it numbers from 0 again and stamps on the wall clock, so time goes on — tracker and classifier
+    follow from its very first frame, and the tracks carry on. ``recorded``: it repeats its own first headers
+    (stamps back by 2 s, less than rewind_reset_s) — three frames in a row behind the stream confirm the rewind
+    to the tracker and, after the tracker's reset, to the classifier.
+    """
+    tracker, classifier, client, got, lock = pipeline
+    stamp0 = 1_700_000_000_000_000_000
+    k = 0
+
+    def answered() -> bool:
+        nonlocal k
+        client.put(keys.detections(NS), encode(DetectedObjects(header=Header(stamp=stamp0 + k, seq=k))),
+                   congestion_control=zenoh.CongestionControl.BLOCK)
+        k += 1
+        return wait_for(lambda: len(got["objects"]) > 0, 0.3)
+
+    assert wait_for(answered, 20.0), "pipeline never answered"
+    objects = [Obj(gid=0, label=CAR, x0=15.0, y0=6.0, yaw0=0.3), Obj(gid=1, label=CAR, x0=-20.0, y0=-2.0, yaw0=0.0,
+                                                                     speed=8.0)]
+    scene = make_sequence(5, n_frames=20, objects=objects, ego_speed=0.0, ego_yaw_rate=0.0, miss_rate=0.0,
+                          fp_rate=0.0, flip_rate=0.0, class_flicker=0.0, noise_base=0.08)
+    t1 = stamp0 + 10**9
+
+    def play(headers: list[tuple[int, int]]) -> None:
+        for sf, (s, t) in zip(scene.frames, headers):
+            msg = to_message(sf).model_copy(update={"header": Header(stamp=t, frame_id="lidar", seq=s)})
+            client.put(keys.detections(NS), encode(msg), congestion_control=zenoh.CongestionControl.BLOCK)
+            time.sleep(0.01)
+
+    base = k + 10
+    first = [(base + n, t1 + n * 100_000_000) for n in range(20)]
+    play(first)
+    assert wait_for(lambda: any(o.header.seq == first[-1][0] for o in got["objects"]), 20.0)
+    with lock:
+        n_before = len(got["objects"])
+        parked_id = _nearest_id(got["objects"][-1], _parked_xy(scene.frames[-1]))
+    counters0 = {n: tracker.counters.get(n) for n in ("dropped_out_of_order", "resets", "source_restarts")}
+
+    if stamps == "wall":  # seq from 0, stamps 2.5 s after the old stream's last (the restart took 0.5 s)
+        again = [(n, first[-1][1] + 500_000_000 + n * 100_000_000) for n in range(10)]
+    else:  # the recording from its start: the very headers it had the first time
+        again = first[:10]
+    play(again)
+    assert wait_for(lambda: any(o.header.seq == again[-1][0] for o in got["objects"][n_before:]), 20.0)
+    with lock:
+        new = list(got["objects"][n_before:])
+    delta = {n: tracker.counters.get(n) - v for n, v in counters0.items()}
+    assert wait_for(lambda: classifier.counters.get("frames.upstream_restarts") == 1)
+    if stamps == "wall":
+        assert [o.header.seq for o in new] == [s for s, _ in again]  # from the first frame on
+        assert delta == {"dropped_out_of_order": 0, "resets": 0, "source_restarts": 1}
+        # time went on, the world with it: the parked car keeps its track through the restart
+        assert _nearest_id(new[-1], _parked_xy(scene.frames[9])) == parked_id
+    else:
+        assert [o.header.seq for o in new] == [s for s, _ in again[4:]]  # tracker drops 2, classifier 2 more
+        assert delta == {"dropped_out_of_order": 2, "resets": 1, "source_restarts": 0}
+        assert classifier.counters.get("frames.duplicate_or_late_frames") == 2
+        assert _nearest_id(new[-1], _parked_xy(scene.frames[9])) != parked_id  # time went back: tracks reset
+
+
+def _nearest_id(msg: TrackedObjects, xy) -> str:
+    d = [np.hypot(o.kinematics.pose_with_covariance.pose.position.x - xy[0],
+                  o.kinematics.pose_with_covariance.pose.position.y - xy[1]) for o in msg.objects]
+    assert d and min(d) < 1.5, d
+    return msg.objects[int(np.argmin(d))].object_id
+
+
+def _parked_xy(frame) -> tuple[float, float]:
+    return tuple(frame.gt_xy[list(frame.gt_ids).index(0)])
