@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import math
 
 import msgpack
@@ -172,3 +173,163 @@ def test_fuzz_mutated_valid_payloads_raise_only_decode_error(i, data):
         decode(_MODELS[i], bytes(payload))
     except DecodeError as exc:
         assert str(exc).startswith(_MODELS[i].__name__)
+
+
+# ------------------------------------------------------------------ the hot-path decoders agree with the models
+# decode_map (pydantic-core on plain maps) and StructCodec (msgspec Structs generated from the models) must
+# accept exactly what decode accepts, return what it returns, and name the same field when they refuse.
+
+from jitterguard.schemas import decode_map  # noqa: E402
+from jitterguard.schemas.fast import StructCodec, struct_type  # noqa: E402
+from jitterguard.schemas.models import (  # noqa: E402
+    Point,
+    Pose,
+    PoseWithCovariance,
+    Quaternion,
+    Shape,
+    TrackedObjectKinematics,
+    Vector3,
+)
+
+
+def _cov(seed: float) -> tuple[float, ...]:
+    return tuple(seed * (i + 1) if i in (0, 7, 14, 21, 28, 35) else -seed * i / 7 for i in range(36))
+
+
+def _rich_tracked() -> TrackedObjects:
+    ids = [TID, "fedcba9876543210fedcba9876543210"]
+    objs = [
+        TrackedObject(
+            object_id=tid, existence_probability=0.75,
+            classification=[ObjectClassification(label=Label.CAR, probability=0.6),
+                            ObjectClassification(label=Label.TRUCK, probability=0.4)],
+            kinematics=TrackedObjectKinematics(
+                pose_with_covariance=PoseWithCovariance(
+                    pose=Pose(position=Point(x=12.5 * k, y=-3.25, z=0.5), orientation=Quaternion(z=0.38, w=0.92)),
+                    covariance=_cov(0.01 * (k + 1))),
+                orientation_availability=1, is_stationary=bool(k)),
+            shape=Shape(type=2, footprint=[Point(x=1.0, y=2.0), Point(x=-1.0, y=0.5)], dimensions=Vector3(x=4.5, y=1.9, z=1.6)),
+        )
+        for k, tid in enumerate(ids)
+    ]
+    return TrackedObjects(header=Header(stamp=1_700_000_000_000_000_000, frame_id="map", seq=42), objects=objs,
+                          observed_track_ids=ids)
+
+
+def _rich_observation() -> TrackObservation:
+    det = DetectedObject(existence_probability=0.9, classification=[ObjectClassification(label=Label.PEDESTRIAN)])
+    det.kinematics.pose_with_covariance.covariance = _cov(0.02)
+    det.kinematics.has_position_covariance = True
+    return TrackObservation(header=Header(stamp=5, seq=3), detection=det,
+                            track=TrackState(object_id=TID, label=7, x=-1.5, y=2.5, yaw=0.3, vx=1.25, vy=-0.5, hits=4, age_s=0.4))
+
+
+_FAST = {
+    TrackedObjects: _rich_tracked(),
+    TrackObservation: _rich_observation(),
+    MotionState: MotionState(header=Header(stamp=1), track_id=TID, state="dynamic", mode="chi2", threshold=5.99,
+                             alpha=1.96, window_length=10, speed=3.5, z_x=4.0, z_y=-1.0, mean_x=1.0, mean_y=2.0),
+}
+_CODECS = {m: StructCodec(m) for m in _FAST}
+
+_ODD_VALUES = st.one_of(
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.integers(-(2**63), 2**64 - 1),
+    st.booleans(),
+    st.none(),
+    st.text(max_size=34),
+    st.binary(max_size=8),
+    st.sampled_from([TID, TID.upper(), TID + "\n", "\n" + TID, TID[:-1], "1.5", "7", "static", "z_test",
+                     [], {}, [0.0] * 35, [0.0] * 36, [0.0] * 37, [1] * 36, [-1.0] * 36, ["0"] * 36,
+                     {"x": 1.0}, {"bogus": 1}, [{"label": 1}], [TID, TID]]).map(copy.deepcopy),  # fresh each draw
+    st.lists(st.floats(allow_nan=False, allow_infinity=False), max_size=3),
+)
+
+
+def _paths(node, prefix=()) -> list[tuple]:
+    out = [prefix]
+    if isinstance(node, dict):
+        for k, v in node.items():
+            out += _paths(v, prefix + (k,))
+    elif isinstance(node, list):
+        for i, v in enumerate(node):
+            out += _paths(v, prefix + (i,))
+    return out
+
+
+def _mutated(model, data) -> bytes:
+    raw = msgpack.unpackb(encode(model))
+    for _ in range(data.draw(st.integers(1, 3))):
+        path = data.draw(st.sampled_from(_paths(raw)))
+        op = data.draw(st.sampled_from(["replace", "replace", "delete", "add"]))
+        if not path:
+            if op == "replace":
+                raw = data.draw(_ODD_VALUES)
+            break
+        parent = raw
+        for p in path[:-1]:
+            parent = parent[p]
+        if op == "replace":
+            parent[path[-1]] = data.draw(_ODD_VALUES)
+        elif op == "delete":
+            del parent[path[-1]]
+        elif isinstance(parent, dict):
+            parent[data.draw(st.sampled_from(["bogus", "X", "x", "seq", "objects"]))] = data.draw(_ODD_VALUES)
+        else:
+            parent.append(data.draw(_ODD_VALUES))
+    return msgpack.packb(raw, use_bin_type=True)
+
+
+def _outcome(fn, payload):
+    try:
+        return True, fn(payload)
+    except DecodeError as exc:
+        return False, exc.field
+
+
+@settings(max_examples=600, deadline=None)
+@given(st.sampled_from(list(_FAST)), st.data())
+def test_fast_decoders_accept_reject_and_return_exactly_what_the_model_does(model, data):
+    payload = _mutated(_FAST[model], data)
+    codec = _CODECS[model]
+    ok, ref = _outcome(lambda b: decode(model, b), payload)
+    ok_map, got_map = _outcome(lambda b: decode_map(model, b), payload)
+    ok_fast, got_fast = _outcome(codec.decode, payload)
+    assert ok_map == ok and ok_fast == ok, (ok, ref, got_map, got_fast)
+    if ok:
+        want = msgpack.unpackb(encode(ref))
+        assert msgpack.unpackb(encode(got_map)) == want
+        assert msgpack.unpackb(codec.encode(got_fast)) == want
+    else:
+        assert got_map == ref and got_fast == ref  # the same field is named
+    try:  # msgspec on its own (before any pydantic fallback) must never accept what the model refuses
+        alone = codec._decoder.decode(payload)
+    except Exception:
+        return
+    assert ok and msgpack.unpackb(codec.encode(alone)) == msgpack.unpackb(encode(ref))
+
+
+def test_fast_decoder_round_trips_and_refuses_models_it_cannot_mirror():
+    for model, inst in _FAST.items():
+        codec = _CODECS[model]
+        got = codec.decode(encode(inst))
+        assert msgpack.unpackb(codec.encode(got)) == msgpack.unpackb(encode(inst))
+        assert decode_map(model, encode(inst)) == inst.model_dump(mode="python")
+    obs = _CODECS[TrackObservation].decode(encode(_rich_observation()))
+    assert obs.track.object_id == TID and obs.detection.kinematics.pose_with_covariance.covariance[7] == pytest.approx(0.16)
+    for model in (PointCloud, ClassifierConfig):  # Python validators: no exact Struct, no plain-map path
+        with pytest.raises(TypeError):
+            struct_type(model)
+        with pytest.raises(TypeError):
+            decode_map(model, encode(_points() if model is PointCloud else ClassifierConfig()))
+
+
+def test_fast_decoder_takes_what_only_pydantic_coerces():
+    raw = msgpack.unpackb(encode(_rich_observation()))
+    raw["track"]["x"] = "1.5"  # pydantic's lax mode parses numeric strings; msgspec alone refuses them
+    raw["detection"]["kinematics"]["has_twist"] = 1
+    got = _CODECS[TrackObservation].decode(msgpack.packb(raw))
+    assert got.track.x == 1.5 and got.detection.kinematics.has_twist is True
+    raw["track"]["object_id"] = TID + "\n"  # Python's `$` would match before the newline; the model's does not
+    with pytest.raises(DecodeError, match="object_id"):
+        _CODECS[TrackObservation].decode(msgpack.packb(raw))

@@ -71,8 +71,9 @@ def decode_map(cls: type[BaseModel], data: bytes | bytearray | memoryview) -> di
 def validate_map(cls: type[BaseModel], raw: dict) -> dict[str, Any]:
     """:func:`decode_map` for an already unpacked msgpack map (``raw`` is not modified)."""
     name = cls.__name__
+    validator = plain_validator(cls)  # TypeError for a model it cannot mirror: a caller's bug, not bad input
     try:
-        return plain_validator(cls).validate_python(raw)
+        return validator.validate_python(raw)
     except ValidationError as exc:
         raise _validation_error(name, exc) from None
     except (RecursionError, TypeError, ValueError) as exc:

@@ -78,13 +78,13 @@ class FrameOutput:
     header: Any  # the ``tracked`` header (Struct)
     objects: list[Any]  # the published objects (Structs), decisions applied; not edited afterwards
     payload: bytes  # ``objects``, ready to put
+    reported: np.ndarray  # the IDs of ``objects`` (S32)
     decisions: Decisions  # one per object in ``objects``
     observed: Observations  # this frame's observations (the tracks that get a ``motion/{id}``)
     decided: Decisions | None  # the core's decisions for ``observed``; None when nothing was observed
     config: ClassifierConfig  # in force for this frame
     received_at: float
     missing: int
-    evicted: int
 
 
 class ClassifierPipeline:
@@ -137,17 +137,19 @@ class ClassifierPipeline:
         decided = self.core.update(obs) if len(obs) else None
         objects = tracked.objects
         reported = np.asarray([o.object_id for o in objects], dtype="S32")
-        evicted = self.core.retain(reported)
         dec = self.core.last_decisions(reported)
         apply_decisions_to_objects(objects, dec)
         tracked.observed_track_ids = []
         return FrameOutput(seq=header.seq, header=header, objects=objects, payload=self._tracked_codec.encode(tracked),
-                           decisions=dec, observed=obs, decided=decided, config=self.core.config,
-                           received_at=frame.received_at, missing=frame.missing, evicted=evicted)
+                           reported=reported, decisions=dec, observed=obs, decided=decided, config=self.core.config,
+                           received_at=frame.received_at, missing=frame.missing)
 
-    def last_meta(self, out: FrameOutput) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Label, last update stamp and seq of each object of ``out`` (call before the next frame)."""
-        return self.core.last_meta(np.asarray([o.object_id for o in out.objects], dtype="S32"))
+    def settle(self, out: FrameOutput) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
+        """The bookkeeping that can wait until ``objects`` is out (call before the next frame): evict the
+        windows of tracks ``out`` no longer reports; returns how many, and each reported object's label, last
+        update stamp and seq (for the state queryable)."""
+        evicted = self.core.retain(out.reported)
+        return (evicted, *self.core.last_meta(out.reported))
 
     def motion_payloads(self, out: FrameOutput) -> Iterator[tuple[str, bytes]]:
         """``(track_id, MotionState payload)`` per observed track of ``out``.

@@ -33,9 +33,6 @@ from ...geometry import yaw_from_quaternion
 from ...runtime import Service, ZenohOptions
 from ...schemas import SCHEMA_VERSION, DecodeError, decode, encode, keys
 from ...schemas.models import (
-    X_X,
-    X_Y,
-    Y_Y,
     ClassifierConfig,
     ClassifierStateSnapshot,
     ConfigReply,
@@ -83,14 +80,9 @@ def manage_gc_for_latency(gen0_threshold: int = GC_GEN0_THRESHOLD) -> None:
 def observations_from_messages(msgs: list[TrackObservation], seq: int, stamp_ns: int) -> Observations:
     """Flatten one frame's TrackObservation models into the core's arrays (world frame).
 
-    For in-process users that hold models (the offline evaluator); the service works on validated maps.
+    For in-process users that hold models (the offline evaluator); the service keeps rows as samples arrive.
     """
-    rows = []
-    for m in msgs:
-        pwc = m.detection.kinematics.pose_with_covariance
-        cov, pos, trk = pwc.covariance, pwc.pose.position, m.track
-        rows.append((trk.object_id, trk.label, pos.x, pos.y, cov[X_X], cov[X_Y], cov[Y_Y], math.hypot(trk.vx, trk.vy)))
-    return observations_from_rows(rows, seq, stamp_ns)
+    return observations_from_rows([observation_row(m) for m in msgs], seq, stamp_ns)
 
 
 @dataclass
@@ -98,7 +90,7 @@ class _Latest:
     """What the state queryable reports: the last processed frame (immutable once stored)."""
 
     header: dict[str, Any]
-    objects: list[dict[str, Any]]
+    objects: list[Any]  # TrackedObject Structs, as published
     decisions: Decisions
     labels: np.ndarray
     stamps: np.ndarray
@@ -220,17 +212,18 @@ class ClassifierService(Service):
         self._record_latency((time.perf_counter() - out.received_at) * 1e3)
         self.counters.inc("published")
         self.counters.inc("frames_processed")
-        if out.evicted:
-            self.counters.inc("windows_evicted", out.evicted)
         self.last_seq = out.seq
         if out.decided is not None:
             if self._closes or self.pipeline.pending:  # behind: the next frame is already here
                 self.counters.inc("motion_frames_shed")
             else:
                 self._publish_motion(out)
-        labels, stamps, seqs = self.pipeline.last_meta(out)
+        evicted, labels, stamps, seqs = self.pipeline.settle(out)
+        if evicted:
+            self.counters.inc("windows_evicted", evicted)
         with self._latest_lock:
-            self._latest = _Latest(out.header, out.objects, out.decisions, labels, stamps, seqs, out.config)
+            header = {"stamp": out.header.stamp, "frame_id": out.header.frame_id, "seq": out.header.seq}
+            self._latest = _Latest(header, out.objects, out.decisions, labels, stamps, seqs, out.config)
 
     def _record_latency(self, ms: float) -> None:
         self.latencies_ms.append(ms)
@@ -297,18 +290,18 @@ class ClassifierService(Service):
         window_size = latest.config.window_size
         tracks = []
         for i, obj in enumerate(latest.objects):
-            pose = obj["kinematics"]["pose_with_covariance"]["pose"]
-            q, pos, dims = pose["orientation"], pose["position"], obj["shape"]["dimensions"]
+            pose = obj.kinematics.pose_with_covariance.pose
+            q = pose.orientation
             static = states[i] == STATIC
             tracks.append({
-                "track_id": obj["object_id"], "label": labels[i], "state": STATE_NAMES[states[i]],
+                "track_id": obj.object_id, "label": labels[i], "state": STATE_NAMES[states[i]],
                 "z_x": col["z_x"][i], "z_y": col["z_y"][i], "chi2": col["chi2"][i], "alpha": col["alpha"][i],
                 "threshold": col["threshold"][i], "window_length": col["window_length"][i],
                 "window_size": window_size, "speed": col["speed"][i],
-                "x": col["mean_x"][i] if static else pos["x"],
-                "y": col["mean_y"][i] if static else pos["y"],
-                "yaw": yaw_from_quaternion(q["x"], q["y"], q["z"], q["w"]),
-                "length": dims["x"], "width": dims["y"],
+                "x": col["mean_x"][i] if static else pose.position.x,
+                "y": col["mean_y"][i] if static else pose.position.y,
+                "yaw": yaw_from_quaternion(q.x, q.y, q.z, q.w),
+                "length": obj.shape.dimensions.x, "width": obj.shape.dimensions.y,
                 "last_update_ns": stamps[i], "last_seq": seqs[i],
             })
         return {**base, "header": dict(latest.header),
