@@ -44,7 +44,7 @@ def eval_command(
     runs: Annotated[int, typer.Option("--runs", help="Pool seeds seed … seed+runs-1 into one scored table.")] = 1,
     as_json: Annotated[bool, typer.Option("--json", help="Also print metrics.json to stdout.")] = False,
 ) -> None:
-    """Evaluate tracker → motion classifier offline against ground-truth motion labels."""
+    """Evaluate (detector →) tracker → motion classifier offline against ground truth."""
     from ..schemas.models import PRESETS, ClassifierConfig
     from .pipeline import NOISE_PRESETS
 
