@@ -13,7 +13,8 @@ preset's row says which weights it ran. ``p99_ms`` over a few dozen scans is clo
 
 ``cpu_p50_ms`` is the process's CPU time per scan (all threads summed; OpenMP's spin-waiting counts too). On a
 shared, busy machine wall time measures the neighbours as much as the detector; with ``--threads 1`` the CPU
-time is what a scan costs one otherwise idle core, the figure to compare across runs.
+time is what a scan costs one otherwise idle core, the figure to compare across runs. The CLI runs with
+``OMP_WAIT_POLICY=PASSIVE`` unless the environment sets it (as the service does; see ``cli.passive_openmp``).
 """
 
 from __future__ import annotations
@@ -91,7 +92,7 @@ def run(presets: Sequence[str], *, scans: int = 40, warmup: int = 3, threads: in
         weights: Mapping[str, str] | None = None, scenario: str = "mixed", seed: int = 0,
         progress: bool = True) -> dict[str, dict[str, Any]]:
     """``{preset: {"points", "p50_ms", "p99_ms", "mean_ms", "cpu_p50_ms", "stages_ms", "detections", "scans",
-    "threads", "weights"}}`` — the same scans for every preset."""
+    "threads", "weights", "omp_wait_policy"}}`` — the same scans for every preset."""
     import torch
 
     from .inference import Detector, shipped_weights
@@ -113,6 +114,7 @@ def run(presets: Sequence[str], *, scans: int = 40, warmup: int = 3, threads: in
         else:
             which = "random-init"
         row = time_preset(det, data, warmup, f"timing {name}", progress)
-        row.update({"threads": n_threads, "weights": which})
+        row.update({"threads": n_threads, "weights": which,
+                    "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", "default")})
         out[name] = row
     return out
