@@ -180,7 +180,7 @@ def test_fuzz_mutated_valid_payloads_raise_only_decode_error(i, data):
 # accept exactly what decode accepts, return what it returns, and name the same field when they refuse.
 
 from jitterguard.schemas import decode_map  # noqa: E402
-from jitterguard.schemas.fast import StructCodec, struct_type  # noqa: E402
+from jitterguard.schemas.fast import StructCodec, block_values, struct_type  # noqa: E402
 from jitterguard.schemas.models import (  # noqa: E402
     Point,
     Pose,
@@ -231,6 +231,7 @@ _FAST = {
                              alpha=1.96, window_length=10, speed=3.5, z_x=4.0, z_y=-1.0, mean_x=1.0, mean_y=2.0),
 }
 _CODECS = {m: StructCodec(m) for m in _FAST}
+_RAW_CODEC = StructCodec(TrackedObjects, raw_float_blocks=16)  # what the classifier decodes `tracked` with
 
 _ODD_VALUES = st.one_of(
     st.floats(allow_nan=True, allow_infinity=True),
@@ -259,6 +260,7 @@ def _paths(node, prefix=()) -> list[tuple]:
 
 def _mutated(model, data) -> bytes:
     raw = msgpack.unpackb(encode(model))
+    single = data.draw(st.integers(0, 9)) == 0  # now and then every float as float32: legal, not canonical
     for _ in range(data.draw(st.integers(1, 3))):
         path = data.draw(st.sampled_from(_paths(raw)))
         op = data.draw(st.sampled_from(["replace", "replace", "delete", "add"]))
@@ -277,7 +279,10 @@ def _mutated(model, data) -> bytes:
             parent[data.draw(st.sampled_from(["bogus", "X", "x", "seq", "objects"]))] = data.draw(_ODD_VALUES)
         else:
             parent.append(data.draw(_ODD_VALUES))
-    return msgpack.packb(raw, use_bin_type=True)
+    try:
+        return msgpack.packb(raw, use_bin_type=True, use_single_float=single)
+    except OverflowError:  # a float beyond float32's range
+        return msgpack.packb(raw, use_bin_type=True)
 
 
 def _outcome(fn, payload):
@@ -287,11 +292,12 @@ def _outcome(fn, payload):
         return False, exc.field
 
 
-@settings(max_examples=600, deadline=None)
-@given(st.sampled_from(list(_FAST)), st.data())
+@settings(max_examples=800, deadline=None)
+@given(st.sampled_from([*_FAST, "raw"]), st.data())
 def test_fast_decoders_accept_reject_and_return_exactly_what_the_model_does(model, data):
+    codec = _RAW_CODEC if model == "raw" else _CODECS[model]
+    model = codec.model
     payload = _mutated(_FAST[model], data)
-    codec = _CODECS[model]
     ok, ref = _outcome(lambda b: decode(model, b), payload)
     ok_map, got_map = _outcome(lambda b: decode_map(model, b), payload)
     ok_fast, got_fast = _outcome(codec.decode, payload)
@@ -302,11 +308,9 @@ def test_fast_decoders_accept_reject_and_return_exactly_what_the_model_does(mode
         assert msgpack.unpackb(codec.encode(got_fast)) == want
     else:
         assert got_map == ref and got_fast == ref  # the same field is named
-    try:  # msgspec on its own (before any pydantic fallback) must never accept what the model refuses
-        alone = codec._decoder.decode(payload)
-    except Exception:
-        return
-    assert ok and msgpack.unpackb(codec.encode(alone)) == msgpack.unpackb(encode(ref))
+    alone = codec._fast(payload)  # msgspec on its own, before any pydantic fallback: never more permissive
+    if alone is not None:
+        assert ok and msgpack.unpackb(codec.encode(alone)) == msgpack.unpackb(encode(ref))
 
 
 def test_fast_decoder_round_trips_and_refuses_models_it_cannot_mirror():
@@ -333,3 +337,27 @@ def test_fast_decoder_takes_what_only_pydantic_coerces():
     raw["track"]["object_id"] = TID + "\n"  # Python's `$` would match before the newline; the model's does not
     with pytest.raises(DecodeError, match="object_id"):
         _CODECS[TrackObservation].decode(msgpack.packb(raw))
+
+
+def test_raw_covariance_blocks_are_checked_like_the_model_checks_them():
+    inst = _rich_tracked()
+    got = _RAW_CODEC.decode(encode(inst))
+    assert list(block_values(got.objects[1].kinematics.pose_with_covariance.covariance)) == list(_cov(0.02))
+    path = ["objects", 1, "kinematics", "twist_with_covariance", "covariance"]
+    for idx, value in ((14, -0.5), (3, math.nan), (35, math.inf)):  # negative variance, non-finite anywhere
+        cov = list(_cov(0.01))
+        cov[idx] = value
+        with pytest.raises(DecodeError, match=f"covariance.{idx}"):
+            _RAW_CODEC.decode(_mutate(inst, path, cov))
+    for cov in ([0.0] * 35, [0.0] * 37):
+        with pytest.raises(DecodeError, match="covariance"):
+            _RAW_CODEC.decode(_mutate(inst, path, cov))
+    ints = _mutate(inst, path, [1] * 36)  # ints and float32s are legal, just not the canonical encoding
+    assert list(block_values(_RAW_CODEC.decode(ints).objects[1].kinematics.twist_with_covariance.covariance)) == [1.0] * 36
+    raw = inst.model_dump(mode="python")
+    del raw["objects"][0]["kinematics"]  # defaults fill in: their covariances must be raw blocks too
+    got = _RAW_CODEC.decode(msgpack.packb(raw))
+    assert list(block_values(got.objects[0].kinematics.acceleration_with_covariance.covariance)) == [0.0] * 36
+    assert msgpack.unpackb(_RAW_CODEC.encode(got)) == msgpack.unpackb(encode(decode(TrackedObjects, msgpack.packb(raw))))
+    single = msgpack.packb(inst.model_dump(mode="python"), use_single_float=True)
+    assert msgpack.unpackb(_RAW_CODEC.encode(_RAW_CODEC.decode(single))) == msgpack.unpackb(encode(decode(TrackedObjects, single)))

@@ -147,7 +147,10 @@ def bench_service(tracks: int = 200, rate_hz: float = 20.0, duration_s: float = 
     sent: dict[int, float] = {}
 
     def on_objects(sample) -> None:
-        received[peek_header_seq(sample.payload.to_bytes())] = time.perf_counter()
+        t = time.perf_counter()
+        seq = peek_header_seq(sample.payload.to_bytes())
+        if seq is not None:
+            received[seq] = t
 
     feeder.session.declare_subscriber(keys.objects(ns), on_objects)
     time.sleep(1.0)  # let the mesh settle before the clock starts

@@ -94,7 +94,7 @@ class ClassifierPipeline:
         self.core = MotionClassifierCore(config or ClassifierConfig())
         self.assembler: FrameAssembler[ObservationRow, Any] = FrameAssembler(straggler_timeout_s=straggler_timeout_s)
         self._observation_codec = StructCodec(TrackObservation)
-        self._tracked_codec = StructCodec(TrackedObjects)
+        self._tracked_codec = StructCodec(TrackedObjects, raw_float_blocks=16)  # covariances stay bytes
         self._encoder = msgspec.msgpack.Encoder()
 
     def observation(self, data: bytes) -> None:
