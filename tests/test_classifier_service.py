@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import msgpack
+import numpy as np
 import pytest
 
 from jitterguard.runtime import loopback_options
@@ -183,3 +184,65 @@ def test_state_map_validates_as_the_snapshot_model(service, client_session):
         assert t.state == m.state and t.z_x == pytest.approx(m.z_x) and t.window_length == m.window_length
         if t.state == "static":
             assert (t.x, t.y) == (pytest.approx(m.mean_x), pytest.approx(m.mean_y))
+
+
+# ------------------------------------------------------------ the pipeline (no Zenoh): same answers as the models
+
+def _reference_objects(frames, config=None):
+    """What the classifier must publish, computed the slow way: pydantic models, model dumps, the core."""
+    from jitterguard.services.classifier.core import MotionClassifierCore
+    from jitterguard.services.classifier.service import apply_decisions_to_objects, observations_from_messages
+
+    core = MotionClassifierCore(config or ClassifierConfig())
+    out = []
+    for f in frames:
+        tracked = decode(TrackedObjects, encode(f.tracked))
+        obs = [decode(type(o), encode(o)) for o in f.observations]
+        core.update(observations_from_messages(obs, tracked.header.seq, tracked.header.stamp))
+        ids = np.asarray([o.object_id for o in tracked.objects], dtype="S32")
+        dec = core.last_decisions(ids)
+        core.retain(ids)
+        apply_decisions_to_objects(tracked.objects, dec)  # works on the models as on the Structs
+        tracked.observed_track_ids = []
+        out.append(msgpack.unpackb(encode(tracked)))
+    return out
+
+
+def test_pipeline_publishes_exactly_what_the_model_path_computes():
+    from jitterguard.services.classifier.pipeline import ClassifierPipeline
+
+    frames = list(generate(TrackScenario(n_static=6, n_moving=5, n_starting=1, seed=11), 14))
+    pipe = ClassifierPipeline()
+    got = []
+    for i, f in enumerate(frames):
+        for o in reversed(f.observations):  # arrival order within a frame does not matter
+            pipe.observation(encode(o))
+        assert pipe.close(encode(f.tracked), received_at=float(i))
+        (frame,) = pipe.ready(float(i))
+        out = pipe.finish(frame)
+        got.append(msgpack.unpackb(out.payload))
+        motion = [decode(MotionState, p) for _, p in pipe.motion_payloads(out)]  # valid MotionStates
+        assert {m.track_id for m in motion} == {o.track.object_id for o in f.observations}
+        pipe.settle(out)
+    assert got == _reference_objects(frames)
+    assert any(o["kinematics"]["is_stationary"] for o in got[-1]["objects"])
+
+
+def test_pipeline_rejects_bad_payloads_and_counts_stragglers():
+    from jitterguard.schemas import DecodeError
+    from jitterguard.services.classifier.pipeline import ClassifierPipeline
+
+    f0, f1 = generate(TrackScenario(n_static=2, n_moving=1, n_starting=0, seed=3), 2)
+    pipe = ClassifierPipeline()
+    bad = msgpack.unpackb(encode(f0.observations[0]))
+    bad["detection"]["kinematics"]["pose_with_covariance"]["covariance"][7] = -1.0
+    with pytest.raises(DecodeError, match="covariance.7"):
+        pipe.observation(msgpack.packb(bad))
+    with pytest.raises(DecodeError, match="TrackedObjects"):
+        pipe.close(encode(f0.tracked)[:-3], received_at=0.0)
+    for o in f0.observations:
+        pipe.observation(encode(o))
+    pipe.close(encode(f0.tracked), received_at=0.0)
+    pipe.finish(pipe.ready(0.0)[0])
+    pipe.observation(encode(f0.observations[0]))  # frame 0 is decided: a straggler now
+    assert pipe.assembler.counts["late_observations"] == 1

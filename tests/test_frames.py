@@ -85,3 +85,14 @@ def test_peek_header_seq_reads_without_validating():
     assert peek_header_seq(b"\x00garbage") is None
     assert peek_header_seq(msgpack.packb({"header": {"seq": "x"}})) is None
     assert peek_header_seq(msgpack.packb([1, 2])) is None
+
+
+def test_no_giving_up_while_the_caller_is_still_behind():
+    fa = FrameAssembler(straggler_timeout_s=0.05)
+    fa.add_close(close(0), now=0.0)
+    fa.add_observation(ob(0, IDS[0]))
+    assert fa.pop_ready(10.0, give_up=False) == []  # long past the timeout, but stragglers may be queued
+    fa.add_observation(ob(0, IDS[1]))
+    fa.add_observation(ob(0, IDS[2]))
+    (frame,) = fa.pop_ready(10.0, give_up=False)
+    assert frame.missing == 0 and "missing_observations" not in fa.counts

@@ -125,13 +125,17 @@ class FrameAssembler(Generic[O, C]):
             return True
         return stamp_ns < self._newest_stamp and self._behind.behind(seq, stamp_ns)
 
-    def pop_ready(self, now: float) -> list[CompleteFrame[O, C]]:
-        """Frames that are complete or timed out, in seq order; older pending frames are flushed first."""
+    def pop_ready(self, now: float, *, give_up: bool = True) -> list[CompleteFrame[O, C]]:
+        """Frames that are complete or timed out, in seq order; older pending frames are flushed first.
+
+        ``give_up=False``: release complete frames only. For a caller that has not yet read everything that
+        arrived (its own backlog may hold the stragglers), so a frame is not given up on for its lateness.
+        """
         out: list[CompleteFrame[O, C]] = []
         for seq in sorted(self._closes):
             item, t0, wanted = self._closes[seq]
             missing = len(self._waiting[seq])
-            if missing and now - t0 < self.straggler_timeout_s:
+            if missing and (not give_up or now - t0 < self.straggler_timeout_s):
                 break  # keep order: later frames wait behind this one
             del self._closes[seq]
             del self._waiting[seq]

@@ -120,9 +120,9 @@ class ClassifierPipeline:
             self.core.reset()
         return ok
 
-    def ready(self, now: float) -> list[CompleteFrame[ObservationRow, Any]]:
-        """Frames complete (or given up on stragglers) at ``now``, in seq order."""
-        return self.assembler.pop_ready(now)
+    def ready(self, now: float, *, give_up: bool = True) -> list[CompleteFrame[ObservationRow, Any]]:
+        """Frames complete (or, with ``give_up``, timed out waiting for stragglers) at ``now``, in seq order."""
+        return self.assembler.pop_ready(now, give_up=give_up)
 
     @property
     def pending(self) -> int:

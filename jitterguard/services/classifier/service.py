@@ -150,8 +150,11 @@ class ClassifierService(Service):
             while not self._queue.empty():
                 busy = True
                 self._run_control(self._queue.get_nowait())
-            busy = self._take_observations(OBS_CHUNK) or busy
-            for frame in self.pipeline.ready(time.perf_counter()):
+            taken = self._take_observations(OBS_CHUNK)
+            busy = busy or taken > 0
+            # A close is stamped when it arrives, so its straggler timeout runs while this worker may still
+            # be behind on observations that did arrive: give up on missing ones only once the channel is empty.
+            for frame in self.pipeline.ready(time.perf_counter(), give_up=taken < OBS_CHUNK):
                 self._publish(self.pipeline.finish(frame))
                 collect_when_idle = self._manage_gc
             if busy:
@@ -180,7 +183,8 @@ class ClassifierService(Service):
                 self.reject(exc, self._tracked_key, str(key))
         return took
 
-    def _take_observations(self, limit: int) -> bool:
+    def _take_observations(self, limit: int) -> int:
+        """Validate up to ``limit`` observations from the channel; returns how many were taken."""
         n = 0
         while n < limit:
             sample = self._obs_sub.try_recv()
@@ -193,7 +197,7 @@ class ClassifierService(Service):
                 self.reject(exc, self._obs_key, str(sample.key_expr))
         if n:
             self.counters.inc("received", n)
-        return n > 0
+        return n
 
     def _run_control(self, item: tuple[str, tuple, None]) -> None:
         kind, (arg, fut), _ = item
