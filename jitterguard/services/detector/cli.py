@@ -34,6 +34,29 @@ def passive_openmp() -> None:
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 
+def retain_heap() -> None:
+    """Keep freed memory in the process instead of handing it back to the kernel after every step.
+
+    Training allocates and frees the same multi-megabyte activation buffers every step; glibc serves them with
+    mmap and returns them with munmap, so each step pays page faults on fresh zeroed pages. On this project's
+    2-core VM a training run drifted into ~70 % system time and 4.4 s per step; with a 1 GiB mmap threshold
+    and no trimming (plus passive OpenMP) the same run went at 0.39 s per step. A no-op where glibc's
+    ``mallopt`` is not available.
+    """
+    import ctypes
+    import ctypes.util
+
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):  # not glibc
+        return
+    m_trim_threshold, m_top_pad, m_mmap_threshold = -1, -2, -3
+    mallopt(m_mmap_threshold, 1 << 30)
+    mallopt(m_trim_threshold, 1 << 31)
+    mallopt(m_top_pad, 256 << 20)
+
+
 def _one_line(exc: Exception, limit: int = 240) -> str:
     """An exception's message on one line (torch's load errors run to several paragraphs)."""
     msg = " ".join(str(exc).split())

@@ -150,6 +150,10 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         if set(tr_seeds) & set(va_seeds) and nuscenes is None:
             fail("--val-seeds: must not overlap --train-seeds")
         logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+        from .cli import passive_openmp, retain_heap
+
+        passive_openmp()  # before torch is imported
+        retain_heap()
         import dataclasses
 
         import torch
@@ -238,6 +242,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             fail(f"--weights: file not found: {weights}")
         scen = _scenarios(scenarios)
         sd = parse_seeds(seeds, "--seeds")
+        from .cli import passive_openmp
+
+        passive_openmp()  # before torch is imported
         from .inference import Detector, WeightsError
 
         try:
