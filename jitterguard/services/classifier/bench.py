@@ -1,11 +1,12 @@
-"""Benchmarks of the classifier: the pure core per frame, and the live service over Zenoh.
+"""Benchmarks of the classifier: the pure core per frame, the per-frame work in-process, and the live service.
 
 Two service figures: ``p50_ms``/``p99_ms`` time a frame inside the classifier process, from the moment its
-worker takes the ``tracked`` sample off Zenoh's queue (before decoding) to the moment ``objects`` is
-published; ``e2e_p50_ms``/``e2e_p99_ms`` time it from the feeder's ``put`` of ``tracked`` to the arrival of
-``objects`` back at the feeder — an upper bound that includes both transports and any queueing. The
-classifier runs in its own process (spawned, as under the supervisor), fed over loopback Zenoh at a fixed
-rate.
+``tracked`` sample reaches the classifier's Zenoh subscriber (stamped on the subscriber's callback, before any
+queueing or decoding) to the return of the ``objects`` put; ``e2e_p50_ms``/``e2e_p99_ms`` time it from the
+feeder's ``put`` of ``tracked`` to the arrival of ``objects`` back at the feeder — an upper bound that
+includes both transports. The classifier runs in its own process (spawned, as under the supervisor, with
+``manage_gc`` as ``jitterguard classifier`` runs it), fed over loopback Zenoh at a fixed rate.
+``frame_cost`` is the same per-frame work without transport or threads, in thread CPU time.
 """
 
 from __future__ import annotations
