@@ -246,3 +246,24 @@ def test_pipeline_rejects_bad_payloads_and_counts_stragglers():
     pipe.finish(pipe.ready(0.0)[0])
     pipe.observation(encode(f0.observations[0]))  # frame 0 is decided: a straggler now
     assert pipe.assembler.counts["late_observations"] == 1
+
+
+def test_a_frame_already_behind_sheds_its_motion_messages_but_not_its_objects(service, client_session):
+    import threading
+
+    got = _collect(client_session)
+    _wait_connected(client_session)
+    frames = list(generate(TrackScenario(n_static=2, n_moving=1, n_starting=0, seed=9), 3))
+    _send_paced(client_session, frames[:1], got)
+    release = threading.Event()
+    blocked = threading.Thread(target=service.run_on_worker, args=(lambda: release.wait(10),), kwargs={"timeout": 15})
+    blocked.start()  # the worker is busy: the next two frames queue up behind it
+    for f in frames[1:]:
+        _send(client_session, f)
+    assert wait_until(lambda: len(service._closes) == 2)
+    release.set()
+    blocked.join()
+    assert wait_until(lambda: len(got["objects"]) == 3)
+    assert [o.header.seq for o in got["objects"]] == [0, 1, 2]
+    assert service.counters.get("motion_frames_shed") == 1  # frame 1: frame 2 was already waiting
+    assert wait_until(lambda: all(m.header.seq == 2 for m in got["motion"].values()))

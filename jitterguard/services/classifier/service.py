@@ -9,8 +9,9 @@ first (what the predictor waits for, and where the frame latency ends) and then 
 messages; the contract does not order the two. Config writes go through the same worker, so a write is
 applied between two frames and the reply reports what is in force from the next frame on.
 
-Overload degrades instead of backing up: a straggler of a frame already decided is dropped without being
-validated, and when the next frame's ``tracked`` is already waiting the ``motion/{id}`` messages of the
+Overload degrades instead of backing up: a straggler of a frame already decided is dropped (counted
+``frames.late_observations``), a frame is not given up on for stragglers while the worker is still behind on
+what arrived, and when the next frame's ``tracked`` is already waiting the ``motion/{id}`` messages of the
 current frame are skipped (counted ``motion_frames_shed``; the next frame's supersede them).
 """
 
@@ -65,12 +66,13 @@ GC_FULL_EVERY = 100
 def manage_gc_for_latency(gen0_threshold: int = GC_GEN0_THRESHOLD) -> None:
     """Process-wide: keep the cyclic garbage collector out of the frame path.
 
-    Decoding a 200-object frame allocates ~10,000 maps; with CPython's defaults that triggers a dozen young
-    collections per frame and, every few seconds, a full one that walks the whole heap (16 ms measured here,
-    a frame's whole budget). Freezing what start-up allocated takes that heap out of every later collection,
-    and a high gen-0 threshold leaves collecting to the worker, which does it between frames (the payloads
-    are acyclic, so reference counting frees them either way). For a process that runs the classifier
-    (``jitterguard classifier``, the benchmark's child), not for one that merely embeds it.
+    A 200-object frame allocates thousands of container objects (the decoded Structs are untracked, their
+    lists and everything around them are not); with CPython's defaults that triggers young collections inside
+    frames and, every few seconds, a full one that walks the whole heap (16 ms measured here with dict
+    payloads, a frame's whole budget). Freezing what start-up allocated takes that heap out of every later
+    collection, and a high gen-0 threshold leaves collecting to the worker, which does it between frames (the
+    payloads are acyclic, so reference counting frees them either way). For a process that runs the
+    classifier (``jitterguard classifier``, the benchmark's child), not for one that merely embeds it.
     """
     gc.collect()
     gc.freeze()
@@ -154,8 +156,9 @@ class ClassifierService(Service):
             busy = busy or taken > 0
             # A close is stamped when it arrives, so its straggler timeout runs while this worker may still
             # be behind on observations that did arrive: give up on missing ones only once the channel is empty.
-            for frame in self.pipeline.ready(time.perf_counter(), give_up=taken < OBS_CHUNK):
-                self._publish(self.pipeline.finish(frame))
+            frames = self.pipeline.ready(time.perf_counter(), give_up=taken < OBS_CHUNK)
+            for i, frame in enumerate(frames):
+                self._publish(self.pipeline.finish(frame), behind=i + 1 < len(frames))
                 collect_when_idle = self._manage_gc
             if busy:
                 for k, v in self.pipeline.assembler.counts.items():
@@ -211,14 +214,16 @@ class ClassifierService(Service):
             except Exception as exc:
                 fut.set_exception(exc)
 
-    def _publish(self, out: FrameOutput) -> None:
+    def _publish(self, out: FrameOutput, *, behind: bool = False) -> None:
+        """Put ``objects`` (the frame latency ends here), then, unless a later frame is already waiting
+        (``behind``, or a close queued or pending), the frame's ``motion/{id}`` messages."""
         self._objects_pub.put(out.payload)
         self._record_latency((time.perf_counter() - out.received_at) * 1e3)
         self.counters.inc("published")
         self.counters.inc("frames_processed")
         self.last_seq = out.seq
         if out.decided is not None:
-            if self._closes or self.pipeline.pending:  # behind: the next frame is already here
+            if behind or self._closes or self.pipeline.pending:  # the next frame is already here
                 self.counters.inc("motion_frames_shed")
             else:
                 self._publish_motion(out)
