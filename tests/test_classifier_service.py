@@ -255,9 +255,15 @@ def test_a_frame_already_behind_sheds_its_motion_messages_but_not_its_objects(se
     _wait_connected(client_session)
     frames = list(generate(TrackScenario(n_static=2, n_moving=1, n_starting=0, seed=9), 3))
     _send_paced(client_session, frames[:1], got)
-    release = threading.Event()
-    blocked = threading.Thread(target=service.run_on_worker, args=(lambda: release.wait(10),), kwargs={"timeout": 15})
+    entered, release = threading.Event(), threading.Event()
+
+    def hold() -> None:
+        entered.set()
+        release.wait(10)
+
+    blocked = threading.Thread(target=service.run_on_worker, args=(hold,), kwargs={"timeout": 15})
     blocked.start()  # the worker is busy: the next two frames queue up behind it
+    assert entered.wait(10)
     for f in frames[1:]:
         _send(client_session, f)
     assert wait_until(lambda: len(service._closes) == 2)
