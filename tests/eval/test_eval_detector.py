@@ -150,6 +150,28 @@ def test_oracle_on_nuscenes_scans_labels_and_poses_line_up() -> None:
     assert (rec.gt_instance >= 0).mean() > 0.9
 
 
+@pytest.mark.skipif(not NUSC.is_dir(), reason="../shared/data/nuscenes-scene-0523 absent")
+def test_detections_equal_the_detector_evaluations_own_on_nuscenes(tiny_weights: Path) -> None:
+    """The replay-message path (five columns, picked by name) gives the detector exactly the points its own
+    evaluation (``eval-detector``, via ``nuscenes_samples``) feeds it, hence the same boxes and the same AP."""
+    from jitterguard.eval.groundtruth import load_nuscenes_frames
+    from jitterguard.services.detector.convert import finite_detections
+    from jitterguard.services.detector.evaluate import evaluation_report
+    from jitterguard.services.detector.inference import Detector
+
+    det = Detector.load(tiny_weights, threads=1)
+    _, gt = load_nuscenes_frames(NUSC)
+    scans = nuscenes_scans(NUSC, None, gt)[:12]
+    ours = [f.predictions for f in detector_frames(scans, det.detect)]
+    direct = [finite_detections(det.detect(ls.sample.points))[0] for ls in scans]
+    assert sum(len(d) for d in ours) > 0
+    for a, b in zip(ours, direct):
+        np.testing.assert_array_equal(a.boxes, b.boxes)
+        np.testing.assert_array_equal(a.log_variances, b.log_variances)
+    samples = [ls.sample for ls in scans]
+    assert detection_metrics(ours, samples)[0]["map"] == evaluation_report(direct, samples)["summary"]["mAP"]
+
+
 # ------------------------------------------------------------------------------------------- the CLI
 
 
