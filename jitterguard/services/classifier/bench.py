@@ -16,6 +16,7 @@ import time
 
 import numpy as np
 
+from ...runtime.gc_policy import GC_GEN0_THRESHOLD
 from ...schemas.models import ClassifierConfig
 from .core import MotionClassifierCore, Observations
 
@@ -79,7 +80,7 @@ def bench_frame_cost(tracks: int = 200, frames: int = 200, seed: int = 0) -> dic
     pipe = ClassifierPipeline()
     thresholds = gc.get_threshold()
     gc.collect()
-    gc.set_threshold(50_000, 1000, 1000)  # as manage_gc_for_latency, without freezing the caller's heap
+    gc.set_threshold(GC_GEN0_THRESHOLD, 1000, 1000)  # as manage_gc_for_latency, without freezing the caller's heap
     parts: dict[str, list[float]] = {"observations_ms": [], "close_ms": [], "finish_ms": [], "after_put_ms": []}
     try:
         _drive(pipe, encoded, parts)

@@ -17,7 +17,6 @@ current frame are skipped (counted ``motion_frames_shed``; the next frame's supe
 
 from __future__ import annotations
 
-import gc
 import math
 import queue
 import threading
@@ -32,6 +31,7 @@ import zenoh
 
 from ...geometry import yaw_from_quaternion
 from ...runtime import Service, ZenohOptions
+from ...runtime.gc_policy import IdleCollector, manage_gc_for_latency
 from ...schemas import SCHEMA_VERSION, DecodeError, decode, encode, keys
 from ...schemas.models import (
     ClassifierConfig,
@@ -57,28 +57,6 @@ OBS_CHUNK = 64
 """Observations validated per pass before the worker looks for a newly arrived ``tracked`` again."""
 IDLE_POLL_S = 0.0005
 """How long the idle worker waits for a ``tracked`` wake-up before polling the observation channel again."""
-GC_GEN0_THRESHOLD = 50_000
-"""With ``manage_gc``: allocations before an automatic collection (CPython's default is 700)."""
-GC_FULL_EVERY = 100
-"""With ``manage_gc``: idle young-generation collections between two idle full ones."""
-
-
-def manage_gc_for_latency(gen0_threshold: int = GC_GEN0_THRESHOLD) -> None:
-    """Process-wide: keep the cyclic garbage collector out of the frame path.
-
-    A 200-object frame allocates thousands of container objects (the decoded Structs are untracked, their
-    lists and everything around them are not); with CPython's defaults that triggers young collections inside
-    frames and, every few seconds, a full one that walks the whole heap (16 ms measured here with dict
-    payloads, a frame's whole budget). Freezing what start-up allocated takes that heap out of every later
-    collection, and a high gen-0 threshold leaves collecting to the worker, which does it between frames (the
-    payloads are acyclic, so reference counting frees them either way). For a process that runs the
-    classifier (``jitterguard classifier``, the benchmark's child), not for one that merely embeds it.
-    """
-    gc.collect()
-    gc.freeze()
-    gc.set_threshold(gen0_threshold, 1000, 1000)
-
-
 def observations_from_messages(msgs: list[TrackObservation], seq: int, stamp_ns: int) -> Observations:
     """Flatten one frame's TrackObservation models into the core's arrays (world frame).
 
@@ -110,7 +88,7 @@ class ClassifierService(Service):
         for the process that runs the classifier, not for tests that embed it)."""
         super().__init__(opts)
         self._manage_gc = manage_gc
-        self._idle_collections = 0
+        self._idle_gc = IdleCollector()
         if manage_gc:
             manage_gc_for_latency()
         self.pipeline = ClassifierPipeline(config, straggler_timeout_s=straggler_timeout_s)
@@ -170,9 +148,8 @@ class ClassifierService(Service):
                 self._wake.clear()
 
     def _collect_garbage(self) -> None:
-        """Between frames: the young generations every frame, everything every ``GC_FULL_EVERY`` frames."""
-        self._idle_collections += 1
-        gc.collect(2 if self._idle_collections % GC_FULL_EVERY == 0 else 1)
+        """Between frames (see :mod:`jitterguard.runtime.gc_policy`)."""
+        self._idle_gc.collect()
 
     def _take_closes(self) -> bool:
         took = False

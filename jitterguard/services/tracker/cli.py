@@ -69,7 +69,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
 
         setup_logging(log_level)
         try:
-            service = TrackerService(opts, cfg, static_hints=static_hints)
+            service = TrackerService(opts, cfg, static_hints=static_hints, manage_gc=True)
         except ValueError as exc:  # build_config names the bad endpoint / setting
             fail(str(exc))
         service.run_forever()

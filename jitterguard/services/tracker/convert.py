@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
@@ -68,8 +69,9 @@ def shape_area(shape: Shape) -> float:
     return shape.dimensions.x * shape.dimensions.y
 
 
-def frame_from_message(msg: DetectedObjects) -> DetectionFrame:
-    """The core's input arrays for one ``DetectedObjects`` message (sensor frame, with the ego pose)."""
+def frame_from_message(msg: DetectedObjects | Any) -> DetectionFrame:
+    """The core's input arrays for one ``DetectedObjects`` message (sensor frame, with the ego pose): the model
+    or its generated Struct (:mod:`jitterguard.schemas.fast`), which the service decodes into."""
     objs = msg.objects
     m = len(objs)
     cols = np.zeros((13, m))

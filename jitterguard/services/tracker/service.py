@@ -19,10 +19,12 @@ from __future__ import annotations
 import threading
 from collections.abc import Callable
 
-import msgpack
+import msgspec
 
 from ...runtime import Service, ZenohOptions
-from ...schemas import encode, keys
+from ...runtime.gc_policy import IdleCollector, manage_gc_for_latency
+from ...schemas import DecodeError, encode, keys
+from ...schemas.fast import StructCodec
 from ...schemas.models import DetectedObjects, MotionState
 from .config import TrackerConfig, default_config
 from .convert import frame_from_message, frame_messages
@@ -45,12 +47,19 @@ class TrackerService(Service):
         *,
         static_hints: bool = False,
         id_factory: Callable[[], str] = new_track_id,
+        manage_gc: bool = False,
     ) -> None:
+        """``manage_gc``: take the garbage collector off the frame path (process-wide, see
+        :mod:`jitterguard.runtime.gc_policy`; for the ``jitterguard tracker`` process, not for embedders)."""
         # build the core before the session opens: a bad config must fail before anything is on the network
         self.core = TrackerCore(config or default_config(), id_factory)
         self.static_hints = static_hints
         self._hints: list[MotionState] = []
         self._hints_lock = threading.Lock()
+        self._codec = StructCodec(DetectedObjects)
+        self._idle_gc = IdleCollector() if manage_gc else None
+        if manage_gc:
+            manage_gc_for_latency()
         super().__init__(opts)
         self._det_key = keys.detections(self.ns)
         self._tracked_pub = self.publisher(keys.tracked(self.ns))
@@ -69,22 +78,28 @@ class TrackerService(Service):
     # ------------------------------------------------------------------ the worker (owns the core)
 
     def _worker(self) -> None:
+        collect = False  # a frame was processed since the last idle collection
         while not self.stop_event.is_set():
             try:
                 sample = self._det_sub.try_recv()
             except Exception:  # the channel closes under us at shutdown
                 return
             if sample is None:
+                if collect:
+                    self._idle_gc.collect()  # type: ignore[union-attr]
+                    collect = False
                 self.stop_event.wait(IDLE_WAIT_S)
                 continue
             self.counters.inc("received")
-            data = sample.payload.to_bytes()
-            msg = self.accept(DetectedObjects, data, self._det_key)
-            if msg is None:
+            try:  # the contract's validation, on msgspec Structs generated from the model (schemas.fast)
+                msg = self._codec.decode(sample.payload.to_bytes())
+            except DecodeError as exc:
+                self.reject(exc, self._det_key)
                 continue
+            collect = self._idle_gc is not None
             try:
                 self._apply_hints()
-                self.process(msg, msgpack.unpackb(data, raw=False))
+                self.process(msg, msgspec.to_builtins(msg))
             except Exception:  # a bug must not silently stop tracking: count, log, go on with the next frame
                 self.counters.inc("handler_errors")
                 self.log.exception("frame seq %d failed", msg.header.seq)
@@ -101,8 +116,9 @@ class TrackerService(Service):
         if applied < len(ids):
             self.counters.inc("static_hints_unknown", len(ids) - applied)
 
-    def process(self, msg: DetectedObjects, raw: dict) -> None:
-        """Track one validated frame (``raw`` is its msgpack map) and publish observations, then ``tracked``."""
+    def process(self, msg: DetectedObjects | msgspec.Struct, raw: dict) -> None:
+        """Track one validated frame — the model or its generated Struct; ``raw`` is its validated map, every
+        field present — and publish the observations, then ``tracked``."""
         frame = frame_from_message(msg)
         try:
             result = self.core.step(frame)
