@@ -11,8 +11,7 @@ import torch
 
 from jitterguard.services.detector.config import LITE, PAPER, Sample
 from jitterguard.services.detector.decode import circle_nms, decode
-from jitterguard.services.detector.inference import (Detector, WeightsError, load_weights, save_weights,
-                                                     shipped_weights)
+from jitterguard.services.detector.inference import Detector, WeightsError, load_weights, save_weights
 from jitterguard.services.detector.losses import centerpoint_loss, gaussian_focal_loss, gaussian_nll
 from jitterguard.services.detector.network import CenterPointNet
 from jitterguard.services.detector.pillars import NUM_PILLAR_FEATURES, voxelize
