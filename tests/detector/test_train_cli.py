@@ -50,8 +50,9 @@ def test_tiny_training_run_writes_weights_history_and_report(tmp_path: Path) -> 
     assert summary["epochs"] == 1 and Path(summary["weights"]).is_file()
     history = json.loads((out / "history.json").read_text())
     assert len(history) == 1 and history[0]["loss"] > 0 and "mAP" in history[0]["eval"]
-    model, _, meta = load_weights(out / "weights.pt")
+    model, rec, meta = load_weights(out / "weights.pt")
     assert model.config.uncertainty and "train" in meta["command"]
+    assert summary["recalibration"] is None and rec is None  # not asked for (--fit-recalibration)
     assert (out / "report" / "validation.json").is_file() and (out / "report" / "validation_pr.png").is_file()
     # the same weights through eval-detector on one hold-out seed
     ev = _jg("eval-detector", "--out", str(tmp_path / "ev"), "--weights", str(out / "weights.pt"),

@@ -159,7 +159,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         import torch
 
         from .augment import random_augment
-        from .evaluate import evaluation_report, fit_recalibration
+        from .evaluate import evaluation_report
+        from .evaluate import fit_recalibration as fit_scales  # not `fit_recalibration`: that is the flag
         from .inference import WeightsError, load_weights, save_weights
         from .network import CenterPointNet
         from .train import TrainConfig, predict, train
@@ -208,7 +209,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         rec = None
         if fit_recalibration and model.config.uncertainty:
             try:
-                rec = fit_recalibration(dets, val_list)
+                rec = fit_scales(dets, val_list)
             except ValueError as exc:  # no true positives yet (a tiny run): keep the raw variances
                 log.warning("no recalibration fitted: %s", exc)
         if rec is not None:
