@@ -130,14 +130,17 @@ def bench_pipeline(objects: int = 200, rate_hz: float = 20.0, duration_s: float 
     gen = SceneGenerator(objects, rate_hz, seed)
     sent: dict[int, float] = {}
     recv: dict[int, float] = {}
+    tracked_at: dict[int, float] = {}  # where the time goes: detections put -> tracked seen -> objects seen
     lock = threading.Lock()
 
-    def on_objects(sample: Any) -> None:
-        t = time.perf_counter()
-        seq = peek_header_seq(sample.payload.to_bytes())
-        if seq is not None:
-            with lock:
-                recv.setdefault(seq, t)
+    def stamp_into(into: dict[int, float]) -> Any:
+        def on_sample(sample: Any) -> None:
+            t = time.perf_counter()
+            seq = peek_header_seq(sample.payload.to_bytes())
+            if seq is not None:
+                with lock:
+                    into.setdefault(seq, t)
+        return on_sample
 
     try:
         for name, args in specs.items():
@@ -149,7 +152,8 @@ def bench_pipeline(objects: int = 200, rate_hz: float = 20.0, duration_s: float 
                 time.sleep(0.5)
         cfg = build_config(ZenohOptions(ns=ns, connect=(endpoint,), listen=()))
         with zenoh.open(cfg) as session:
-            sub = session.declare_subscriber(keys.objects(ns), on_objects)
+            sub = session.declare_subscriber(keys.objects(ns), stamp_into(recv))
+            sub_tracked = session.declare_subscriber(keys.tracked(ns), stamp_into(tracked_at))
             pub = session.declare_publisher(keys.detections(ns), congestion_control=zenoh.CongestionControl.BLOCK)
             deadline = time.monotonic() + startup_timeout_s
             while True:
@@ -187,6 +191,7 @@ def bench_pipeline(objects: int = 200, rate_hz: float = 20.0, duration_s: float 
                 time.sleep(0.05)
             rss_end = {n: vm_rss_kb(p.pid) for n, p in procs.items()}
             sub.undeclare()
+            sub_tracked.undeclare()
             pub.undeclare()
     finally:
         for p in procs.values():
@@ -199,6 +204,7 @@ def bench_pipeline(objects: int = 200, rate_hz: float = 20.0, duration_s: float 
                 p.kill()
     with lock:
         lat = [(recv[s] - sent[s]) * 1e3 for s in sent if s in recv]
+        to_tracked = [(tracked_at[s] - sent[s]) * 1e3 for s in sent if s in tracked_at]
         late_or_lost = len(sent) - len(lat)
     growth: dict[str, float | None] = {}
     for n in procs:
@@ -211,6 +217,8 @@ def bench_pipeline(objects: int = 200, rate_hz: float = 20.0, duration_s: float 
         "p90_ms": round(_pct(lat, 90), 2) if lat else None,
         "p99_ms": round(_pct(lat, 99), 2) if lat else None,
         "max_ms": round(max(lat), 2) if lat else None,
+        "to_tracked_ms": {"p50": round(statistics.median(to_tracked), 2), "p99": round(_pct(to_tracked, 99), 2)}
+        if to_tracked else None,
         "rss_sampled_after_s": round(min(60.0, 0.2 * duration_s), 1),
         "rss_kb": {n: {"first": rss_first.get(n), "end": rss_end.get(n)} for n in procs},
         "rss_growth_pct": growth,
