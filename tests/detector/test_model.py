@@ -190,7 +190,7 @@ def test_perfect_maps_have_lower_loss_than_random_ones() -> None:
     rnd = centerpoint_loss(CenterPointNet(TINY)([torch.from_numpy(s.points)]), batch, TINY)
     assert float(good["heatmap"].detach()) < 0.01 < float(rnd["heatmap"].detach())
     assert float(good["shape"].detach()) < 1e-5 < float(rnd["shape"].detach())
-    assert float(good["loss"]) < float(rnd["loss"])
+    assert float(good["loss"].detach()) < float(rnd["loss"].detach())
 
 
 def test_circle_nms_suppresses_close_lower_scores_only() -> None:
