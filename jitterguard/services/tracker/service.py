@@ -57,7 +57,8 @@ class TrackerService(Service):
         self._hints: list[MotionState] = []
         self._hints_lock = threading.Lock()
         self._codec = StructCodec(DetectedObjects)
-        self._idle_gc = IdleCollector() if manage_gc else None
+        self._manage_gc = manage_gc
+        self._idle_gc = IdleCollector()
         if manage_gc:
             manage_gc_for_latency()
         super().__init__(opts)
@@ -86,7 +87,7 @@ class TrackerService(Service):
                 return
             if sample is None:
                 if collect:
-                    self._idle_gc.collect()  # type: ignore[union-attr]
+                    self._idle_gc.collect()
                     collect = False
                 self.stop_event.wait(IDLE_WAIT_S)
                 continue
@@ -96,7 +97,7 @@ class TrackerService(Service):
             except DecodeError as exc:
                 self.reject(exc, self._det_key)
                 continue
-            collect = self._idle_gc is not None
+            collect = self._manage_gc
             try:
                 self._apply_hints()
                 self.process(msg, msgspec.to_builtins(msg))
