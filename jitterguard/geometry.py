@@ -20,6 +20,12 @@ def yaw_from_quaternion(x: float, y: float, z: float, w: float) -> float:
     return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
 
 
+def yaws_from_quaternions(x: ArrayLike, y: ArrayLike, z: ArrayLike, w: ArrayLike) -> F64:
+    """:func:`yaw_from_quaternion` over arrays."""
+    x, y, z, w = (np.asarray(a, dtype=np.float64) for a in (x, y, z, w))
+    return np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+
+
 def quaternion_from_yaw(yaw: float) -> tuple[float, float, float, float]:
     """(x, y, z, w) of a pure rotation about +z."""
     return (0.0, 0.0, math.sin(yaw / 2.0), math.cos(yaw / 2.0))

@@ -6,7 +6,7 @@ CenterPoint detector on ray-cast / recorded scans (:mod:`.detector_input`, ``--i
 
 Why in-process and through the same functions as the services: what is measured offline must be what runs
 live. Each frame goes through exactly the adapters' conversions — ``frame_from_message`` into the tracker
-core, ``frame_messages`` out of it (the ``TrackObservation`` maps the tracker publishes, validated here with
+core, ``frame_payloads`` out of it (the ``TrackObservation`` payloads the tracker publishes, decoded here with
 the model as the classifier does on receipt), ``observations_from_messages`` into the classifier core, and
 ``retain`` with the tracker's reported IDs. Two classifier cores (z-test and velocity threshold) see the
 identical observations, so their comparison is not confounded by tracking.
@@ -24,11 +24,12 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment  # type: ignore[import-untyped]
 
-from ..schemas.models import ClassifierConfig, DetectedObjects, TrackObservation
+from ..schemas import decode, encode
+from ..schemas.models import ClassifierConfig, DetectedObjects, TrackedObjects, TrackObservation
 from ..services.classifier.core import MotionClassifierCore
 from ..services.classifier.service import observations_from_messages
 from ..services.tracker.config import TrackerConfig, default_config
-from ..services.tracker.convert import frame_from_message, frame_messages
+from ..services.tracker.convert import detections_codec, frame_from_message, frame_payloads
 from ..services.tracker.core import FrameRejected, TrackerCore
 from ..sim.detection_model import DetectionModel, NoiseConfig
 from ..sim.world import GroundTruthFrame
@@ -135,6 +136,7 @@ def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame, DetectedObjects]
     cols: dict[str, list] = {k: [] for k in ("t_s", "seq", "track_id", "label", "z", "speed", "window", "state_z",
                                              "state_v", "gt_instance", "gt_dynamic", "group", "alpha")}
     t0: int | None = None
+    det_codec = detections_codec()  # the tracker service's own decoding of `detections`
     for gt, msg in inputs:
         t0 = gt.stamp_ns if t0 is None else t0
         frame = frame_from_message(msg)
@@ -142,9 +144,9 @@ def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame, DetectedObjects]
             result = trk.step(frame)
         except FrameRejected:
             continue
-        obs_maps, closing = frame_messages(msg.model_dump(mode="python"), frame, result)
-        obs_msgs = [TrackObservation.model_validate(m) for m in obs_maps]
-        reported = np.asarray([o["object_id"] for o in closing["objects"]], dtype="S32")
+        obs_payloads, closing = frame_payloads(det_codec.decode(encode(msg)), frame, result)
+        obs_msgs = [decode(TrackObservation, p) for _, p in obs_payloads]
+        reported = np.asarray([o.object_id for o in decode(TrackedObjects, closing).objects], dtype="S32")
         if obs_msgs:
             obs = observations_from_messages(obs_msgs, frame.seq, frame.stamp_ns)
             dz = core_z.update(obs)

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import math
 
-import msgpack
 import numpy as np
 import pytest
 
@@ -33,7 +32,7 @@ from jitterguard.services.detector.convert import (
     scan_points,
 )
 from jitterguard.services.tracker.config import default_config
-from jitterguard.services.tracker.convert import frame_from_message, frame_messages
+from jitterguard.services.tracker.convert import detections_codec, frame_from_message, frame_payloads
 from jitterguard.services.tracker.core import TrackerCore
 
 HEADER = Header(stamp=1_700_000_000_123_456_789, frame_id="lidar", seq=42)
@@ -181,9 +180,9 @@ def test_tracker_reads_the_sensor_frame_and_rotates_the_covariance_once() -> Non
         frame = frame_from_message(msg)
         assert (frame.cov_xx[0], frame.cov_yy[0], frame.cov_xy[0]) == pytest.approx((var_x, var_y, 0.0), rel=1e-5)
         res = core.step(frame)
-        obs, _closing = frame_messages(msgpack.unpackb(encode(raw), raw=False), frame, res)
+        obs, _closing = frame_payloads(detections_codec().decode(encode(raw)), frame, res)
     assert len(obs) == 1
-    o = decode(TrackObservation, encode(obs[0]))
+    o = decode(TrackObservation, obs[0][1])
     c = o.detection.kinematics.pose_with_covariance.covariance
     want = rotate_cov2(var_x, 0.0, var_y, EGO_YAW)
     assert (c[X_X], c[1], c[Y_Y]) == pytest.approx(tuple(float(v) for v in want), rel=1e-5)

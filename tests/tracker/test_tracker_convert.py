@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import math
 
-import msgpack
 import numpy as np
 import pytest
 
@@ -33,19 +32,19 @@ from jitterguard.schemas.models import (
     Vector3,
 )
 from jitterguard.services.tracker.config import default_config
-from jitterguard.services.tracker.convert import frame_from_message, frame_messages, shape_area
+from jitterguard.services.tracker.convert import detections_codec, frame_from_message, frame_payloads, shape_area
 from jitterguard.services.tracker.core import TrackerCore
 from tracker_simseq import make_sequence, to_message
 
 
 def _run(seq_frames):
     core = TrackerCore()
+    codec = detections_codec()
     for sf in seq_frames:
         msg = to_message(sf)
-        raw = msgpack.unpackb(encode(msg), raw=False)
         frame = frame_from_message(decode(DetectedObjects, encode(msg)))
         res = core.step(frame)
-        yield sf, msg, frame, res, frame_messages(raw, frame, res)
+        yield sf, msg, frame, res, frame_payloads(codec.decode(encode(msg)), frame, res)
 
 
 def test_frame_from_message_recovers_the_detector_arrays() -> None:
@@ -62,16 +61,14 @@ def test_frame_from_message_recovers_the_detector_arrays() -> None:
 
 
 def test_the_services_struct_path_gives_the_models_frame_and_outputs() -> None:
-    """The service decodes into msgspec Structs (schemas.fast) and forwards their builtins; the arrays and
-    the published maps must be exactly what the pydantic model path gives (the eval and tests use models)."""
+    """The service decodes into msgspec Structs with raw covariance blocks (``detections_codec``); the core's
+    arrays must be exactly what the pydantic model gives, and the payloads exactly what Structs with plain
+    float tuples give (the two ways ``frame_payloads`` reads and rewrites covariances)."""
     import dataclasses
 
-    import msgspec
-
-    from jitterguard.schemas import decode_with_raw
     from jitterguard.schemas.fast import StructCodec
 
-    codec = StructCodec(DetectedObjects)
+    raw_codec, plain_codec = detections_codec(), StructCodec(DetectedObjects)
     ids = iter(f"{i:032x}" for i in range(10**6))
     core_m = TrackerCore(id_factory=lambda: next(ids))
     ids2 = iter(f"{i:032x}" for i in range(10**6))
@@ -79,21 +76,19 @@ def test_the_services_struct_path_gives_the_models_frame_and_outputs() -> None:
     checked = 0
     for sf in make_sequence(7, n_frames=10).frames:
         data = encode(to_message(sf))
-        model, raw_m = decode_with_raw(DetectedObjects, data)
-        struct = codec.decode(data)
-        raw_s = msgspec.to_builtins(struct)
-        assert msgpack.packb(raw_s) == msgpack.packb(raw_m)  # the forwarded map: every field, same values
-        fm, fs = frame_from_message(model), frame_from_message(struct)
+        model, raw_struct, plain_struct = decode(DetectedObjects, data), raw_codec.decode(data), plain_codec.decode(data)
+        fm, fs = frame_from_message(model), frame_from_message(raw_struct)
         for f in dataclasses.fields(fm):
             a, b = getattr(fm, f.name), getattr(fs, f.name)
             if isinstance(a, np.ndarray):
                 np.testing.assert_array_equal(a, b, err_msg=f.name)
             else:
                 assert a == b, f.name
-        out_m = frame_messages(raw_m, fm, core_m.step(fm))
-        out_s = frame_messages(raw_s, fs, core_s.step(fs))
-        assert encode(out_m[1]) == encode(out_s[1]) and [encode(o) for o in out_m[0]] == [encode(o) for o in out_s[0]]
-        checked += len(out_s[0])
+        res_m, res_s = core_m.step(fm), core_s.step(fs)
+        out_plain = frame_payloads(plain_struct, fm, res_m)
+        out_raw = frame_payloads(raw_struct, fs, res_s)
+        assert out_plain == out_raw
+        checked += len(out_raw[0])
     assert checked > 20
 
 
@@ -118,14 +113,14 @@ def test_footprint_area_follows_autowares_getarea() -> None:
 def test_outputs_decode_as_the_contract_models_and_carry_the_frame() -> None:
     seq = make_sequence(5, n_frames=12)
     for sf, msg, frame, res, (obs, closing) in _run(seq.frames):
-        tracked = decode(TrackedObjects, encode(closing))
+        tracked = decode(TrackedObjects, closing)
         assert tracked.header.seq == msg.header.seq and tracked.header.stamp == msg.header.stamp
         assert tracked.header.frame_id == "map"
         assert [o.object_id for o in tracked.objects] == res.tracks.ids
-        assert tracked.observed_track_ids == [o["track"]["object_id"] for o in obs] == res.observed_ids
-        for o in obs:
-            m = decode(TrackObservation, encode(o))
-            assert m.header == tracked.header
+        assert tracked.observed_track_ids == [tid for tid, _ in obs] == res.observed_ids
+        for tid, payload in obs:
+            m = decode(TrackObservation, payload)
+            assert m.header == tracked.header and m.track.object_id == tid
     assert len(tracked.objects) > 5 and len(obs) > 5  # the loop really checked something
 
 
@@ -156,9 +151,9 @@ def test_observation_detection_is_in_the_world_frame_with_rotated_covariance() -
                           objects=[obj])
     frame = frame_from_message(msg)
     res = core.step(frame)
-    obs, closing = frame_messages(msgpack.unpackb(encode(msg), raw=False), frame, res)
+    obs, closing = frame_payloads(detections_codec().decode(encode(msg)), frame, res)
     assert len(obs) == 1
-    det = decode(TrackObservation, encode(obs[0])).detection
+    det = decode(TrackObservation, obs[0][1]).detection
     pose = det.kinematics.pose_with_covariance.pose
     c, s = math.cos(ego_yaw), math.sin(ego_yaw)
     assert (pose.position.x, pose.position.y, pose.position.z) == pytest.approx(
@@ -175,7 +170,7 @@ def test_observation_detection_is_in_the_world_frame_with_rotated_covariance() -
     lin = det.kinematics.twist_with_covariance.twist.linear
     assert (lin.x, lin.y) == pytest.approx((3 * c, 3 * s))
     # the track state riding along
-    st = decode(TrackObservation, encode(obs[0])).track
+    st = decode(TrackObservation, obs[0][1]).track
     assert (st.x, st.y) == pytest.approx((res.tracks.x[0], res.tracks.y[0]))
     assert st.hits == 1 and st.label == 1 and st.age_s == 0.0
 
@@ -183,7 +178,7 @@ def test_observation_detection_is_in_the_world_frame_with_rotated_covariance() -
 def test_tracked_object_carries_filter_state_and_world_twist() -> None:
     seq = make_sequence(6, n_frames=30)
     *_, (sf, msg, frame, res, (obs, closing)) = _run(seq.frames)
-    tracked = decode(TrackedObjects, encode(closing))
+    tracked = decode(TrackedObjects, closing)
     for i, o in enumerate(tracked.objects):
         k = o.kinematics
         assert k.twist_with_covariance.twist.linear.x == pytest.approx(res.tracks.vel[i, 0])

@@ -13,8 +13,10 @@ so:
 * an observation is validated and reduced to the eight numbers the core needs *as it arrives*
   (:meth:`ClassifierPipeline.observation`), so when the frame-closing ``tracked`` arrives only that message
   and the frame itself remain;
-* the validated ``tracked`` Structs are edited in place and encoded as ``objects`` (no model dump), and the
-  ``motion/{id}`` payloads are only built after ``objects`` is out (:meth:`ClassifierPipeline.motion_payloads`).
+* ``tracked`` is read as records (:mod:`jitterguard.schemas.tracked_layout`: the payload's bytes viewed as a
+  numpy structured array and checked column-wise) whenever it has the usual shape, so deciding a frame is a few
+  column writes and ``objects`` is the edited copy's bytes; any other valid shape goes through the Structs;
+* the ``motion/{id}`` payloads are only built after ``objects`` is out (:meth:`ClassifierPipeline.motion_payloads`).
 """
 
 from __future__ import annotations
@@ -27,7 +29,10 @@ from typing import Any
 import msgspec
 import numpy as np
 
+from ...geometry import yaw_from_quaternion, yaws_from_quaternions
 from ...schemas import SCHEMA_VERSION
+from ...schemas import tracked_layout as tl
+from ...schemas.layout import RecordLayout
 from ...schemas.fast import StructCodec
 from ...schemas.models import X_X, X_Y, Y_Y, ClassifierConfig, TrackedObjects, TrackObservation
 from .core import STATIC, Decisions, MotionClassifierCore, Observations
@@ -71,12 +76,81 @@ def apply_decisions_to_objects(objects: list[Any], dec: Decisions) -> None:
 
 
 @dataclass
+class Poses:
+    """What the state queryable reports of each object besides the decision."""
+
+    x: np.ndarray
+    y: np.ndarray
+    yaw: np.ndarray
+    length: np.ndarray
+    width: np.ndarray
+
+
+class RecordObjects:
+    """A frame's ``tracked`` objects as records (:mod:`jitterguard.schemas.tracked_layout`), the fast form:
+    deciding is a few column writes on a copy, encoding is the copy's bytes."""
+
+    def __init__(self, header: Any, records: np.ndarray) -> None:
+        self.header, self.records = header, records
+
+    @property
+    def ids(self) -> np.ndarray:
+        return np.asarray(self.records[tl.ID], dtype="S32")
+
+    def decided(self, dec: Decisions) -> tuple[RecordObjects, bytes]:
+        """The objects with ``dec`` applied (as :func:`apply_decisions_to_objects`) and their payload."""
+        out = RecordLayout.copy(self.records)
+        static = dec.state == STATIC
+        out[tl.STATIONARY] = np.where(static, 0xC3, 0xC2)
+        out[tl.X] = np.where(static, dec.mean_x, out[tl.X])
+        out[tl.Y] = np.where(static, dec.mean_y, out[tl.Y])
+        for name in (tl.VX, tl.VY, tl.VZ, tl.WX, tl.WY, tl.WZ):
+            out[name] = np.where(static, 0.0, out[name])
+        h = self.header
+        header = {"stamp": h.stamp, "frame_id": h.frame_id, "seq": h.seq}
+        return RecordObjects(h, out), tl.encode_tracked_objects(header, out)
+
+    def poses(self) -> Poses:
+        r = self.records
+        return Poses(r[tl.X].astype(np.float64), r[tl.Y].astype(np.float64),
+                     yaws_from_quaternions(r[tl.QX], r[tl.QY], r[tl.QZ], r[tl.QW]),
+                     r[tl.LENGTH].astype(np.float64), r[tl.WIDTH].astype(np.float64))
+
+
+class StructObjects:
+    """A frame's ``tracked`` message as the generated Structs, the general form: any valid ``TrackedObjects``
+    (several classifications, a polygon footprint, ...) that :class:`RecordObjects` cannot hold."""
+
+    def __init__(self, tracked: Any, codec: StructCodec) -> None:
+        self.tracked, self._codec = tracked, codec
+        self.header = tracked.header
+
+    @property
+    def ids(self) -> np.ndarray:
+        return np.asarray([o.object_id for o in self.tracked.objects], dtype="S32")
+
+    def decided(self, dec: Decisions) -> tuple[StructObjects, bytes]:
+        """The objects with ``dec`` applied (in place: this frame's Structs are not used again) and the payload."""
+        apply_decisions_to_objects(self.tracked.objects, dec)
+        self.tracked.observed_track_ids = []
+        return self, self._codec.encode(self.tracked)
+
+    def poses(self) -> Poses:
+        objs = self.tracked.objects
+        pos = [o.kinematics.pose_with_covariance.pose for o in objs]
+        return Poses(np.array([p.position.x for p in pos]), np.array([p.position.y for p in pos]),
+                     np.array([yaw_from_quaternion(p.orientation.x, p.orientation.y, p.orientation.z,
+                                                   p.orientation.w) for p in pos]),
+                     np.array([o.shape.dimensions.x for o in objs]), np.array([o.shape.dimensions.y for o in objs]))
+
+
+@dataclass
 class FrameOutput:
     """One decided frame: the ``objects`` payload and what the motion messages and the state are built from."""
 
     seq: int
     header: Any  # the ``tracked`` header (Struct)
-    objects: list[Any]  # the published objects (Structs), decisions applied; not edited afterwards
+    objects: RecordObjects | StructObjects  # the published objects, decisions applied; not edited afterwards
     payload: bytes  # ``objects``, ready to put
     reported: np.ndarray  # the IDs of ``objects`` (S32)
     decisions: Decisions  # one per object in ``objects``
@@ -112,10 +186,15 @@ class ClassifierPipeline:
 
         Raises :class:`~jitterguard.schemas.DecodeError` for a payload that fails validation.
         """
-        msg = self._tracked_codec.decode(data)
+        fast = tl.decode_tracked_records(data)
+        if fast is not None:
+            header, expected = fast.header, fast.observed_track_ids
+            objects: RecordObjects | StructObjects = RecordObjects(header, fast.records)
+        else:  # another shape, or invalid: the general decoder decides (and names the field)
+            msg = self._tracked_codec.decode(data)
+            header, expected, objects = msg.header, msg.observed_track_ids, StructObjects(msg, self._tracked_codec)
         restarts = self.assembler.counts.get("upstream_restarts", 0)
-        ok = self.assembler.add_close_item(msg.header.seq, msg.observed_track_ids, msg, received_at,
-                                           stamp_ns=msg.header.stamp)
+        ok = self.assembler.add_close_item(header.seq, expected, objects, received_at, stamp_ns=header.stamp)
         if self.assembler.counts.get("upstream_restarts", 0) != restarts:
             self.core.reset()
         return ok
@@ -130,17 +209,15 @@ class ClassifierPipeline:
         return self.assembler.pending
 
     def finish(self, frame: CompleteFrame[ObservationRow, Any]) -> FrameOutput:
-        """Decide a complete frame and encode its ``objects`` payload (the ``tracked`` Structs, edited in place)."""
-        tracked = frame.tracked
+        """Decide a complete frame and encode its ``objects`` payload."""
+        tracked: RecordObjects | StructObjects = frame.tracked
         header = tracked.header
         obs = observations_from_rows(frame.observations, header.seq, header.stamp)
         decided = self.core.update(obs) if len(obs) else None
-        objects = tracked.objects
-        reported = np.asarray([o.object_id for o in objects], dtype="S32")
+        reported = tracked.ids
         dec = self.core.last_decisions(reported)
-        apply_decisions_to_objects(objects, dec)
-        tracked.observed_track_ids = []
-        return FrameOutput(seq=header.seq, header=header, objects=objects, payload=self._tracked_codec.encode(tracked),
+        objects, payload = tracked.decided(dec)
+        return FrameOutput(seq=header.seq, header=header, objects=objects, payload=payload,
                            reported=reported, decisions=dec, observed=obs, decided=decided, config=self.core.config,
                            received_at=frame.received_at, missing=frame.missing)
 

@@ -29,7 +29,6 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from ...geometry import yaw_from_quaternion
 from ...runtime import Service, ZenohOptions
 from ...runtime.gc_policy import IdleCollector, manage_gc_for_latency
 from ...schemas import SCHEMA_VERSION, DecodeError, decode, encode, keys
@@ -39,11 +38,13 @@ from ...schemas.models import (
     ConfigReply,
     TrackObservation,
 )
-from .core import STATE_NAMES, STATIC, Decisions, MotionClassifierCore, Observations
+from .core import STATE_NAMES, Decisions, MotionClassifierCore, Observations
 from .frames import FrameAssembler
 from .pipeline import (  # noqa: F401  (re-exported: eval and the sidecar bench use them from here)
     ClassifierPipeline,
     FrameOutput,
+    RecordObjects,
+    StructObjects,
     apply_decisions_to_objects,
     observation_row,
     observations_from_rows,
@@ -70,7 +71,7 @@ class _Latest:
     """What the state queryable reports: the last processed frame (immutable once stored)."""
 
     header: dict[str, Any]
-    objects: list[Any]  # TrackedObject Structs, as published
+    objects: RecordObjects | StructObjects  # as published
     decisions: Decisions
     labels: np.ndarray
     stamps: np.ndarray
@@ -270,25 +271,22 @@ class ClassifierService(Service):
                     "config": self.core.config.model_dump(mode="python"), "tracks": []}
         dec = latest.decisions
         col = {k: getattr(dec, k).tolist() for k in
-               ("z_x", "z_y", "chi2", "alpha", "threshold", "window_length", "speed", "mean_x", "mean_y")}
+               ("z_x", "z_y", "chi2", "alpha", "threshold", "window_length", "speed")}
         states, labels = dec.state.tolist(), latest.labels.tolist()
         stamps, seqs = latest.stamps.tolist(), latest.seqs.tolist()
         window_size = latest.config.window_size
+        poses = latest.objects.poses()  # static objects already carry their window mean
+        ids = [i.decode() for i in latest.objects.ids.tolist()]
+        px, py, yaw = poses.x.tolist(), poses.y.tolist(), poses.yaw.tolist()
+        length, width = poses.length.tolist(), poses.width.tolist()
         tracks = []
-        for i, obj in enumerate(latest.objects):
-            pose = obj.kinematics.pose_with_covariance.pose
-            q = pose.orientation
-            static = states[i] == STATIC
+        for i, tid in enumerate(ids):
             tracks.append({
-                "track_id": obj.object_id, "label": labels[i], "state": STATE_NAMES[states[i]],
+                "track_id": tid, "label": labels[i], "state": STATE_NAMES[states[i]],
                 "z_x": col["z_x"][i], "z_y": col["z_y"][i], "chi2": col["chi2"][i], "alpha": col["alpha"][i],
                 "threshold": col["threshold"][i], "window_length": col["window_length"][i],
-                "window_size": window_size, "speed": col["speed"][i],
-                "x": col["mean_x"][i] if static else pose.position.x,
-                "y": col["mean_y"][i] if static else pose.position.y,
-                "yaw": yaw_from_quaternion(q.x, q.y, q.z, q.w),
-                "length": obj.shape.dimensions.x, "width": obj.shape.dimensions.y,
-                "last_update_ns": stamps[i], "last_seq": seqs[i],
+                "window_size": window_size, "speed": col["speed"][i], "x": px[i], "y": py[i], "yaw": yaw[i],
+                "length": length[i], "width": width[i], "last_update_ns": stamps[i], "last_seq": seqs[i],
             })
         return {**base, "header": dict(latest.header),
                 "config": latest.config.model_dump(mode="python"), "tracks": tracks}

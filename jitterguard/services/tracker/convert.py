@@ -1,9 +1,11 @@
 """Wire payloads <-> the core's arrays: ``DetectedObjects`` in, ``TrackObservation`` / ``TrackedObjects`` out.
 
-Pure functions (no I/O). Input is the validated model; output is msgpack-ready maps laid out exactly as the
-models dump (the tests decode them with the models), because constructing hundreds of nested pydantic models
-per frame would cost more than the whole tracker update. Planar throughout: the ego pose contributes x, y, z and yaw; detections keep their own
-roll and pitch (the world orientation is ``q(ego_yaw) * q_detection``).
+Pure functions (no I/O). Input is the validated message (the model, or the Struct the service decodes into);
+output is payload bytes (:func:`frame_payloads`): the arithmetic on arrays, the ``TrackedObject``s and track
+states as records (:mod:`jitterguard.schemas.tracked_layout`), because building and encoding hundreds of nested
+maps per frame cost more than the tracker update itself; the tests decode the payloads with the models.
+Planar throughout: the ego pose contributes x, y, z and yaw; detections keep their own roll and pitch (the
+world orientation is ``q(ego_yaw) * q_detection``).
 
 A detection republished on ``tracks/{id}`` is moved into the world frame whole: position, orientation, and
 the covariance — the 2x2 position block with :func:`jitterguard.geometry.rotate_cov2` (R Σ Rᵀ), and the
@@ -15,12 +17,15 @@ is rotated the same way (its linear x/y and their covariance block).
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 from typing import Any
 
+import msgspec
 import numpy as np
 
 from ...geometry import rotate_cov2, yaw_from_quaternion
+from ...schemas import tracked_layout as tl
+from ...schemas.fast import StructCodec
+from ...schemas.layout import RecordLayout
 from ...schemas.models import (
     COVARIANCE_SIZE,
     SCHEMA_VERSION,
@@ -69,26 +74,63 @@ def shape_area(shape: Shape) -> float:
     return shape.dimensions.x * shape.dimensions.y
 
 
+COV_BLOCK = 16
+"""Covariances (36 floats) decoded by :func:`detections_codec` stay raw msgpack bytes (``raw_float_blocks``)."""
+_COV_BYTES = 3 + 9 * COVARIANCE_SIZE  # array16 header, then 0xcb + float64 per item
+
+
+def detections_codec() -> StructCodec:
+    """How the tracker decodes ``detections``: the generated Structs, covariances left as raw bytes (validated
+    for the whole message at once; read and rewritten as arrays here, no Python float per entry)."""
+    return StructCodec(DetectedObjects, raw_float_blocks=COV_BLOCK)
+
+
+def covariance_rows(covs: list[Any]) -> np.ndarray:
+    """``(M, 36)`` float64 from covariances as tuples (models, plain Structs) or raw blocks (:func:`detections_codec`)."""
+    if not covs:
+        return np.zeros((0, COVARIANCE_SIZE))
+    if not isinstance(covs[0], msgspec.Raw):
+        return np.array(covs, dtype=np.float64).reshape(len(covs), COVARIANCE_SIZE)
+    raw = np.frombuffer(b"".join(covs), dtype=np.uint8).reshape(len(covs), _COV_BYTES)
+    return np.ascontiguousarray(raw[:, 3:].reshape(len(covs), COVARIANCE_SIZE, 9)[:, :, 1:]).view(">f8")[:, :, 0] \
+        .astype(np.float64)
+
+
+def covariance_blocks(rows: np.ndarray) -> list[msgspec.Raw]:
+    """``(M, 36)`` floats as raw msgpack blocks (what :func:`covariance_rows` reads), one per row."""
+    m = len(rows)
+    out = np.empty((m, _COV_BYTES), dtype=np.uint8)
+    out[:, :3] = (0xDC, 0, COVARIANCE_SIZE)
+    items = out[:, 3:].reshape(m, COVARIANCE_SIZE, 9)
+    items[:, :, 0] = 0xCB
+    items[:, :, 1:] = np.ascontiguousarray(rows, dtype=">f8").view(np.uint8).reshape(m, COVARIANCE_SIZE, 8)
+    data = out.tobytes()
+    return [msgspec.Raw(data[i * _COV_BYTES:(i + 1) * _COV_BYTES]) for i in range(m)]
+
+
 def frame_from_message(msg: DetectedObjects | Any) -> DetectionFrame:
     """The core's input arrays for one ``DetectedObjects`` message (sensor frame, with the ego pose): the model
-    or its generated Struct (:mod:`jitterguard.schemas.fast`), which the service decodes into."""
+    or its generated Struct (:func:`detections_codec`), which the service decodes into."""
     objs = msg.objects
     m = len(objs)
-    cols = np.zeros((13, m))
+    cols = np.zeros((11, m))
     label = np.zeros(m, dtype=np.int8)
     has_cov = np.zeros(m, dtype=bool)
     orient = np.zeros(m, dtype=np.int8)
+    covs = []
     for i, o in enumerate(objs):
         pc = o.kinematics.pose_with_covariance
-        p, q, c = pc.pose.position, pc.pose.orientation, pc.covariance
+        p, q = pc.pose.position, pc.pose.orientation
+        covs.append(pc.covariance)
         lbl, prob = highest_prob_label(o)
         d = o.shape.dimensions
         length, width = (d.x, d.x) if o.shape.type == Shape.CYLINDER else (d.x, d.y)
         cols[:, i] = (p.x, p.y, p.z, yaw_from_quaternion(q.x, q.y, q.z, q.w), length, width, d.z,
-                      c[X_X], c[X_Y], c[Y_Y], c[YAW_YAW], prob, o.existence_probability)
+                      prob, o.existence_probability, 0.0, 0.0)
         label[i] = lbl
         has_cov[i] = o.kinematics.has_position_covariance
         orient[i] = o.kinematics.orientation_availability
+    cov = covariance_rows(covs)
     area = np.array([shape_area(o.shape) for o in objs], dtype=np.float64)
     eq = msg.ego_pose.orientation
     ep = msg.ego_pose.position
@@ -96,142 +138,133 @@ def frame_from_message(msg: DetectedObjects | Any) -> DetectionFrame:
         seq=msg.header.seq, stamp_ns=msg.header.stamp, frame_id=msg.header.frame_id,
         ego_x=ep.x, ego_y=ep.y, ego_z=ep.z, ego_yaw=yaw_from_quaternion(eq.x, eq.y, eq.z, eq.w),
         x=cols[0], y=cols[1], z=cols[2], yaw=cols[3], length=cols[4], width=cols[5], height=cols[6],
-        cov_xx=cols[7], cov_xy=cols[8], cov_yy=cols[9], var_yaw=cols[10], label_prob=np.maximum(cols[11], 1e-3),
-        existence=cols[12], label=label, has_cov=has_cov, orientation=orient, area=area,
+        cov_xx=cov[:, X_X], cov_xy=cov[:, X_Y], cov_yy=cov[:, Y_Y], var_yaw=cov[:, YAW_YAW],
+        label_prob=np.maximum(cols[7], 1e-3), existence=cols[8], label=label, has_cov=has_cov, orientation=orient,
+        area=area,
     )
 
 
-def _qmul_yaw(yaw: float, q: dict) -> dict:
-    """``q(yaw) * q`` for a quaternion map: the detection's orientation carried into the world frame."""
-    az, aw = math.sin(0.5 * yaw), math.cos(0.5 * yaw)
-    bx, by, bz, bw = q["x"], q["y"], q["z"], q["w"]
-    return {"x": aw * bx - az * by, "y": aw * by + az * bx, "z": aw * bz + az * bw, "w": aw * bw - az * bz}
-
-
-def _rotate_cov36(cov: Sequence[float], cxx: float, cxy: float, cyy: float, c: float, s: float) -> list[float]:
-    """A 6x6 covariance with its x/y block replaced by the rotated one and its x/y cross terms rotated."""
-    out = list(cov)
-    out[X_X], out[X_Y], out[Y_X], out[Y_Y] = cxx, cxy, cxy, cyy
+def _rotate_cov36(cov: np.ndarray, cxx: np.ndarray, cxy: np.ndarray, cyy: np.ndarray, c: float,
+                  s: float) -> np.ndarray:
+    """6x6 covariances ``(M, 36)`` with the x/y block replaced by the rotated one and the x/y cross terms
+    rotated with it (R Σ Rᵀ for a rotation about z by the angle with cosine ``c`` and sine ``s``)."""
+    out = cov.copy()
+    out[:, X_X], out[:, X_Y], out[:, Y_X], out[:, Y_Y] = cxx, cxy, cxy, cyy
     for k in range(2, 6):
-        a, b = cov[k], cov[6 + k]  # rows x and y at column k
-        out[k], out[6 + k] = c * a - s * b, s * a + c * b
-        a, b = cov[6 * k], cov[6 * k + 1]  # row k at columns x and y
-        out[6 * k], out[6 * k + 1] = c * a - s * b, s * a + c * b
+        a, b = cov[:, k], cov[:, 6 + k]  # rows x and y at column k
+        out[:, k], out[:, 6 + k] = c * a - s * b, s * a + c * b
+        a, b = cov[:, 6 * k], cov[:, 6 * k + 1]  # row k at columns x and y
+        out[:, 6 * k], out[:, 6 * k + 1] = c * a - s * b, s * a + c * b
     return out
 
 
-def detection_to_world(raw: dict, frame: DetectionFrame, result: FrameResult, j: int) -> dict:
-    """Detection ``j`` (its validated msgpack map, edited in place and returned) moved into the world frame:
-    position, orientation, pose covariance (R Σ Rᵀ via rotate_cov2) and twist with its covariance."""
+def detections_to_world(objects: list[Any], frame: DetectionFrame, result: FrameResult,
+                        rows: np.ndarray) -> None:
+    """Move detections (generated ``DetectedObject`` Structs, edited in place) into the world frame: position,
+    orientation (``q(ego_yaw) * q``), pose covariance (R Σ Rᵀ via rotate_cov2, cross terms rotated) and twist
+    with its covariance. ``rows`` indexes each object's row in ``result.detections``. The arithmetic is done
+    on arrays for all of them at once; only the writes are per object."""
+    if not objects:
+        return
     det = result.detections
     c, s = math.cos(frame.ego_yaw), math.sin(frame.ego_yaw)
-    kin = raw["kinematics"]
-    pc = kin["pose_with_covariance"]
-    pc["pose"] = {
-        "position": {"x": float(det.x[j]), "y": float(det.y[j]), "z": float(det.z[j])},
-        "orientation": _qmul_yaw(frame.ego_yaw, pc["pose"]["orientation"]),
-    }
-    pc["covariance"] = _rotate_cov36(pc["covariance"], float(det.cov_xx[j]), float(det.cov_xy[j]),
-                                     float(det.cov_yy[j]), c, s)
-    tw = kin["twist_with_covariance"]
-    lin = tw["twist"]["linear"]
-    lin["x"], lin["y"] = c * lin["x"] - s * lin["y"], s * lin["x"] + c * lin["y"]
-    tc = tw["covariance"]
-    if any(tc):
-        txx, txy, tyy = rotate_cov2(tc[X_X], tc[X_Y], tc[Y_Y], frame.ego_yaw)
-        tw["covariance"] = _rotate_cov36(tc, float(txx), float(txy), float(tyy), c, s)
-    return raw
+    az, aw = math.sin(0.5 * frame.ego_yaw), math.cos(0.5 * frame.ego_yaw)
+    kins = [o.kinematics for o in objects]
+    pcs = [k.pose_with_covariance for k in kins]
+    twists = [k.twist_with_covariance for k in kins]
+    q = np.array([(p.pose.orientation.x, p.pose.orientation.y, p.pose.orientation.z, p.pose.orientation.w)
+                  for p in pcs])
+    qx = (aw * q[:, 0] - az * q[:, 1]).tolist()
+    qy = (aw * q[:, 1] + az * q[:, 0]).tolist()
+    qz = (aw * q[:, 2] + az * q[:, 3]).tolist()
+    qw = (aw * q[:, 3] - az * q[:, 2]).tolist()
+    px, py, pz = det.x[rows].tolist(), det.y[rows].tolist(), det.z[rows].tolist()
+    raw = isinstance(pcs[0].covariance, msgspec.Raw)  # decoded by detections_codec: write raw blocks back
+    pack = covariance_blocks if raw else (lambda a: a.tolist())
+    pcov = pack(_rotate_cov36(covariance_rows([p.covariance for p in pcs]), det.cov_xx[rows], det.cov_xy[rows],
+                              det.cov_yy[rows], c, s))
+    lin = np.array([(t.twist.linear.x, t.twist.linear.y) for t in twists], dtype=np.float64)
+    vx, vy = (c * lin[:, 0] - s * lin[:, 1]).tolist(), (s * lin[:, 0] + c * lin[:, 1]).tolist()
+    tcov = covariance_rows([t.covariance for t in twists])
+    moving = np.flatnonzero(tcov.any(axis=1))  # a zero twist covariance rotates to itself
+    if moving.size:
+        sub = tcov[moving]
+        txx, txy, tyy = rotate_cov2(sub[:, X_X], sub[:, X_Y], sub[:, Y_Y], frame.ego_yaw)
+        rotated = pack(_rotate_cov36(sub, txx, txy, tyy, c, s))
+    for i, (pc, tw) in enumerate(zip(pcs, twists)):
+        pose = pc.pose
+        pos, ori = pose.position, pose.orientation
+        pos.x, pos.y, pos.z = px[i], py[i], pz[i]
+        ori.x, ori.y, ori.z, ori.w = qx[i], qy[i], qz[i], qw[i]
+        pc.covariance = pcov[i]
+        v = tw.twist.linear
+        v.x, v.y = vx[i], vy[i]
+    for k, i in enumerate(moving.tolist()):
+        twists[i].covariance = rotated[k]
 
 
-def _vec(x: float = 0.0, y: float = 0.0, z: float = 0.0) -> dict:
-    return {"x": x, "y": y, "z": z}
+def tracked_records(result: FrameResult) -> np.ndarray:
+    """Every confirmed track as a ``TrackedObject`` record (:mod:`jitterguard.schemas.tracked_layout`; world
+    frame, twist linear x/y = world vx, vy, angular z = yaw rate).
 
-
-_ZERO36 = [0.0] * COVARIANCE_SIZE
-
-
-def tracked_object_dicts(result: FrameResult) -> list[dict]:
-    """Every confirmed track as a ``TrackedObject`` map (world frame; twist linear x/y = world vx, vy).
-
-    Maps, not models: building ~200 nested pydantic models per frame costs tens of milliseconds, and the
-    receivers validate anyway; the tests decode these maps with the models to keep them honest.
+    Records, not maps: ~200 nested maps per frame cost milliseconds to build and encode; the records are a few
+    column assignments. The tests decode them with the models to keep them honest.
     """
     t = result.tracks
     n = len(t)
-    if n == 0:
-        return []
-    P = t.pose_cov
-    V = t.vel_cov
-    cols = {
-        "pxx": P[:, 0, 0], "pxy": P[:, 0, 1], "pyy": P[:, 1, 1], "pyaw": P[:, 2, 2], "pxyaw": P[:, 0, 2],
-        "pyyaw": P[:, 1, 2], "vxx": V[:, 0, 0], "vxy": V[:, 0, 1], "vyy": V[:, 1, 1], "wvar": t.yaw_rate_var,
-        "x": t.x, "y": t.y, "z": t.z, "yaw": t.yaw, "vx": t.vel[:, 0], "vy": t.vel[:, 1], "w": t.yaw_rate,
-        "L": t.dims[:, 0], "W": t.dims[:, 1], "H": t.dims[:, 2], "ex": t.existence, "lp": t.label_prob,
-    }
-    lst = {k: np.asarray(v, dtype=np.float64).tolist() for k, v in cols.items()}
-    labels = t.label.tolist()
-    orient = t.orientation.tolist()
-    out = []
-    for i in range(n):
-        pcov = list(_ZERO36)
-        pcov[X_X], pcov[X_Y], pcov[Y_X], pcov[Y_Y] = lst["pxx"][i], lst["pxy"][i], lst["pxy"][i], lst["pyy"][i]
-        pcov[YAW_YAW] = lst["pyaw"][i]
-        pcov[X_YAW] = pcov[YAW_X] = lst["pxyaw"][i]
-        pcov[Y_YAW] = pcov[YAW_Y] = lst["pyyaw"][i]
-        pcov[Z_Z], pcov[ROLL_ROLL], pcov[PITCH_PITCH] = Z_VAR, ROLL_PITCH_VAR, ROLL_PITCH_VAR
-        tcov = list(_ZERO36)
-        tcov[X_X], tcov[X_Y], tcov[Y_X], tcov[Y_Y] = lst["vxx"][i], lst["vxy"][i], lst["vxy"][i], lst["vyy"][i]
-        tcov[YAW_YAW] = lst["wvar"][i]
-        half = 0.5 * lst["yaw"][i]
-        out.append({
-            "object_id": t.ids[i],
-            "existence_probability": lst["ex"][i],
-            "classification": [{"label": labels[i], "probability": lst["lp"][i]}],
-            "kinematics": {
-                "pose_with_covariance": {
-                    "pose": {"position": _vec(lst["x"][i], lst["y"][i], lst["z"][i]),
-                             "orientation": {"x": 0.0, "y": 0.0, "z": math.sin(half), "w": math.cos(half)}},
-                    "covariance": pcov,
-                },
-                "twist_with_covariance": {
-                    "twist": {"linear": _vec(lst["vx"][i], lst["vy"][i]), "angular": _vec(0.0, 0.0, lst["w"][i])},
-                    "covariance": tcov,
-                },
-                "acceleration_with_covariance": {"accel": {"linear": _vec(), "angular": _vec()},
-                                                 "covariance": list(_ZERO36)},
-                "orientation_availability": orient[i],
-                "is_stationary": False,
-            },
-            "shape": {"type": Shape.BOUNDING_BOX, "footprint": [],
-                      "dimensions": _vec(lst["L"][i], lst["W"][i], lst["H"][i])},
-        })
-    return out
+    P, V = t.pose_cov, t.vel_cov
+    pcov = np.zeros((n, COVARIANCE_SIZE))
+    pcov[:, X_X], pcov[:, X_Y], pcov[:, Y_X], pcov[:, Y_Y] = P[:, 0, 0], P[:, 0, 1], P[:, 0, 1], P[:, 1, 1]
+    pcov[:, YAW_YAW] = P[:, 2, 2]
+    pcov[:, X_YAW] = pcov[:, YAW_X] = P[:, 0, 2]
+    pcov[:, Y_YAW] = pcov[:, YAW_Y] = P[:, 1, 2]
+    pcov[:, Z_Z], pcov[:, ROLL_ROLL], pcov[:, PITCH_PITCH] = Z_VAR, ROLL_PITCH_VAR, ROLL_PITCH_VAR
+    tcov = np.zeros((n, COVARIANCE_SIZE))
+    tcov[:, X_X], tcov[:, X_Y], tcov[:, Y_X], tcov[:, Y_Y] = V[:, 0, 0], V[:, 0, 1], V[:, 0, 1], V[:, 1, 1]
+    tcov[:, YAW_YAW] = t.yaw_rate_var
+    half = 0.5 * np.asarray(t.yaw, dtype=np.float64)
+    return tl.tracked_object_layout().pack(n, {
+        tl.ID: t.ids, tl.EXISTENCE: t.existence, tl.LABEL: t.label, tl.LABEL_PROB: t.label_prob,
+        tl.X: t.x, tl.Y: t.y, tl.Z: t.z, tl.QZ: np.sin(half), tl.QW: np.cos(half), tl.POSE_COV: pcov,
+        tl.VX: t.vel[:, 0], tl.VY: t.vel[:, 1], tl.WZ: t.yaw_rate, tl.TWIST_COV: tcov,
+        tl.ORIENTATION: t.orientation, tl.STATIONARY: np.zeros(n, dtype=bool), tl.SHAPE_TYPE: Shape.BOUNDING_BOX,
+        tl.LENGTH: t.dims[:, 0], tl.WIDTH: t.dims[:, 1], tl.HEIGHT: t.dims[:, 2],
+    })
 
 
-def track_state_dict(result: FrameResult, i: int) -> dict:
-    """Confirmed track ``i`` as the compact ``TrackState`` map that rides along with each observation."""
-    t = result.tracks
-    return {
-        "object_id": t.ids[i], "label": int(t.label[i]), "existence_probability": float(t.existence[i]),
-        "x": float(t.x[i]), "y": float(t.y[i]), "yaw": float(t.yaw[i]),
-        "vx": float(t.vel[i, 0]), "vy": float(t.vel[i, 1]), "hits": int(t.hits[i]),
-        "age_s": max(0.0, (result.stamp_ns - int(t.born_ns[i])) * 1e-9),
-    }
+def track_state_records(result: FrameResult) -> np.ndarray:
+    """The observed tracks' compact ``TrackState`` records (in ``result.obs_track`` order)."""
+    t, i = result.tracks, result.obs_track
+    return tl.track_state_layout().pack(len(i), {
+        "object_id": [t.ids[k] for k in i.tolist()], "label": t.label[i], "existence_probability": t.existence[i],
+        "x": t.x[i], "y": t.y[i], "yaw": t.yaw[i], "vx": t.vel[i, 0], "vy": t.vel[i, 1], "hits": t.hits[i],
+        "age_s": np.maximum(0.0, (result.stamp_ns - t.born_ns[i]) * 1e-9),
+    })
 
 
-def frame_messages(raw_msg: dict, frame: DetectionFrame, result: FrameResult) -> tuple[list[dict], dict]:
-    """The frame's ``TrackObservation`` maps (in track order) and the closing ``TrackedObjects`` map.
+_ENCODER = msgspec.msgpack.Encoder()
+_TRACK_KEY = _ENCODER.encode("track")
 
-    ``raw_msg`` is the validated msgpack map of the ``DetectedObjects`` message; the observed detections in it
-    are edited in place into the world frame. Encode the results with :func:`jitterguard.schemas.encode`.
+
+def frame_payloads(msg: Any, frame: DetectionFrame, result: FrameResult) -> tuple[list[tuple[str, bytes]], bytes]:
+    """The frame's ``tracks/{id}`` payloads as ``(track_id, TrackObservation payload)`` in track order, and the
+    closing ``TrackedObjects`` payload.
+
+    ``msg`` is the frame's validated ``DetectedObjects`` as the generated Struct (:mod:`jitterguard.schemas.fast`);
+    the observed detections in it are moved into the world frame in place and encoded by msgspec; the track
+    state beside each and the ``tracked`` objects are records (:mod:`jitterguard.schemas.tracked_layout`).
     """
     header = {"stamp": frame.stamp_ns, "frame_id": WORLD_FRAME, "seq": frame.seq}
-    objects = raw_msg["objects"]
-    observations = [
-        {"schema_version": SCHEMA_VERSION, "header": header,
-         "detection": detection_to_world(objects[j], frame, result, j), "track": track_state_dict(result, i)}
-        for i, j in zip(result.obs_track.tolist(), result.obs_det.tolist())
-    ]
-    closing = {"schema_version": SCHEMA_VERSION, "header": header, "objects": tracked_object_dicts(result),
-               "observed_track_ids": result.observed_ids}
+    rows = result.obs_det
+    dets = [msg.objects[j] for j in rows.tolist()]
+    detections_to_world(dets, frame, result, rows)
+    prefix = b"".join((b"\x84", _ENCODER.encode("schema_version"), _ENCODER.encode(SCHEMA_VERSION),
+                       _ENCODER.encode("header"), _ENCODER.encode(header), _ENCODER.encode("detection")))
+    states = track_state_records(result)
+    raw, size = RecordLayout.to_bytes(states), states.dtype.itemsize
+    ids = result.observed_ids
+    encode = _ENCODER.encode
+    observations = [(ids[k], b"".join((prefix, encode(d), _TRACK_KEY, raw[k * size:(k + 1) * size])))
+                    for k, d in enumerate(dets)]
+    closing = tl.encode_tracked_objects(header, tracked_records(result), ids)
     return observations, closing

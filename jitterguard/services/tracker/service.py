@@ -23,11 +23,10 @@ import msgspec
 
 from ...runtime import Service, ZenohOptions
 from ...runtime.gc_policy import IdleCollector, manage_gc_for_latency
-from ...schemas import DecodeError, encode, keys
-from ...schemas.fast import StructCodec
-from ...schemas.models import DetectedObjects, MotionState
+from ...schemas import DecodeError, keys
+from ...schemas.models import MotionState
 from .config import TrackerConfig, default_config
-from .convert import frame_from_message, frame_messages
+from .convert import detections_codec, frame_from_message, frame_payloads
 from .core import FrameRejected, TrackerCore
 from .lifecycle import new_track_id
 
@@ -56,7 +55,7 @@ class TrackerService(Service):
         self.static_hints = static_hints
         self._hints: list[MotionState] = []
         self._hints_lock = threading.Lock()
-        self._codec = StructCodec(DetectedObjects)
+        self._codec = detections_codec()
         self._manage_gc = manage_gc
         self._idle_gc = IdleCollector()
         if manage_gc:
@@ -100,7 +99,7 @@ class TrackerService(Service):
             collect = self._manage_gc
             try:
                 self._apply_hints()
-                self.process(msg, msgspec.to_builtins(msg))
+                self.process(msg)
             except Exception:  # a bug must not silently stop tracking: count, log, go on with the next frame
                 self.counters.inc("handler_errors")
                 self.log.exception("frame seq %d failed", msg.header.seq)
@@ -117,9 +116,9 @@ class TrackerService(Service):
         if applied < len(ids):
             self.counters.inc("static_hints_unknown", len(ids) - applied)
 
-    def process(self, msg: DetectedObjects | msgspec.Struct, raw: dict) -> None:
-        """Track one validated frame — the model or its generated Struct; ``raw`` is its validated map, every
-        field present — and publish the observations, then ``tracked``."""
+    def process(self, msg: msgspec.Struct) -> None:
+        """Track one validated frame (the generated Struct of ``DetectedObjects``, edited in place) and publish
+        the observations, then ``tracked``."""
         frame = frame_from_message(msg)
         try:
             result = self.core.step(frame)
@@ -133,10 +132,11 @@ class TrackerService(Service):
             self.counters.inc("source_restarts")
             self.log.warning("detections restarted at seq %d with time going on: source restarted, tracks kept",
                              frame.seq)
-        observations, closing = frame_messages(raw, frame, result)
-        for obs in observations:
-            self.put(keys.track(self.ns, obs["track"]["object_id"]), encode(obs))
-        self.publish(self._tracked_pub, closing)
+        observations, closing = frame_payloads(msg, frame, result)
+        for track_id, payload in observations:
+            self.put(keys.track(self.ns, track_id), payload)
+        self._tracked_pub.put(closing)
+        self.counters.inc("published")
         self.counters.inc("frames")
         self.counters.inc("tracks_born", len(result.born))
         self.counters.inc("tracks_deleted", len(result.deleted))

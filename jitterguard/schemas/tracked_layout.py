@@ -1,0 +1,118 @@
+"""``TrackedObjects`` with its objects as one record array (:mod:`.layout`): the tracker writes ``tracked`` this
+way and the classifier reads ``tracked`` and writes ``objects`` this way (and the tracker writes the
+``TrackState`` of each ``TrackObservation`` as a record too).
+
+The shape is the one every tracker output here has — one classification, no footprint, a 32-hex-digit
+``object_id`` — and, because msgspec and msgpack-python write floats as float64 and these small ints as fixints,
+it is also the shape of any such ``TrackedObjects`` encoded by them. A payload of another shape (several
+classifications, a polygon footprint) or with any value the model refuses is not read here:
+:func:`decode_tracked_records` returns ``None`` and the caller falls back to the general decoder.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from functools import cache
+from typing import Any
+
+import msgspec
+import numpy as np
+
+from .fast import struct_type
+from .layout import RecordLayout, array_header
+from .models import SCHEMA_VERSION, TrackedObject, TrackedObjects, TrackState
+
+ID = "object_id"
+EXISTENCE = "existence_probability"
+LABEL = "classification.0.label"
+LABEL_PROB = "classification.0.probability"
+_POSE = "kinematics.pose_with_covariance"
+X, Y, Z = (f"{_POSE}.pose.position.{a}" for a in "xyz")
+QX, QY, QZ, QW = (f"{_POSE}.pose.orientation.{a}" for a in "xyzw")
+POSE_COV = f"{_POSE}.covariance"
+_TWIST = "kinematics.twist_with_covariance"
+VX, VY, VZ = (f"{_TWIST}.twist.linear.{a}" for a in "xyz")
+WX, WY, WZ = (f"{_TWIST}.twist.angular.{a}" for a in "xyz")
+TWIST_COV = f"{_TWIST}.covariance"
+ORIENTATION = "kinematics.orientation_availability"
+STATIONARY = "kinematics.is_stationary"
+SHAPE_TYPE = "shape.type"
+LENGTH, WIDTH, HEIGHT = (f"shape.dimensions.{a}" for a in "xyz")
+
+
+@cache
+def tracked_object_layout() -> RecordLayout:
+    """The record layout of a ``TrackedObject`` with one classification and no footprint."""
+    t = struct_type(TrackedObject)
+    example = msgspec.convert({"object_id": "0" * 32, "classification": [{"label": 0, "probability": 1.0}]}, t)
+    return RecordLayout.of(t, example)
+
+
+@cache
+def track_state_layout() -> RecordLayout:
+    """The record layout of the ``TrackState`` that rides with each ``TrackObservation``."""
+    t = struct_type(TrackState)
+    return RecordLayout.of(t, msgspec.convert({"object_id": "0" * 32, "x": 0.0, "y": 0.0}, t))
+
+
+@cache
+def _envelope() -> tuple[type[msgspec.Struct], msgspec.msgpack.Decoder]:
+    """``TrackedObjects``'s generated Struct with ``objects`` left as raw bytes (header and IDs validated)."""
+    fields: list[Any] = []
+    for f in msgspec.structs.fields(struct_type(TrackedObjects)):
+        ftype = msgspec.Raw if f.name == "objects" else f.type
+        if f.required:
+            fields.append((f.name, ftype))
+        elif f.default_factory is not msgspec.NODEFAULT:
+            fields.append((f.name, ftype, msgspec.field(default_factory=f.default_factory)))
+        else:
+            fields.append((f.name, ftype, f.default))
+    env = msgspec.defstruct("TrackedObjectsEnvelope", fields, kw_only=True, forbid_unknown_fields=True, gc=False)
+    return env, msgspec.msgpack.Decoder(env)
+
+
+_ENCODER = msgspec.msgpack.Encoder()
+
+
+def encode_tracked_objects(header: Mapping[str, Any], records: np.ndarray,
+                           observed_track_ids: Sequence[str] = ()) -> bytes:
+    """The ``TrackedObjects`` payload of ``records`` (from :func:`tracked_object_layout`)."""
+    objects = msgspec.Raw(array_header(len(records)) + RecordLayout.to_bytes(records))
+    return _ENCODER.encode({"schema_version": SCHEMA_VERSION, "header": dict(header), "objects": objects,
+                            "observed_track_ids": list(observed_track_ids)})
+
+
+@dataclass
+class TrackedRecords:
+    """A validated ``TrackedObjects`` whose objects are records (read-only view of the payload)."""
+
+    header: Any  # the generated Header Struct
+    records: np.ndarray
+    observed_track_ids: list[str]
+
+
+def decode_tracked_records(data: bytes | memoryview) -> TrackedRecords | None:
+    """``data`` as :class:`TrackedRecords` if it is a valid ``TrackedObjects`` of the layout's shape, else None
+    (invalid, or valid in another shape: the general decoder decides)."""
+    _, decoder = _envelope()
+    try:
+        env = decoder.decode(data)
+    except (msgspec.ValidationError, msgspec.DecodeError):
+        return None
+    raw = memoryview(env.objects)
+    if not raw:
+        return None
+    first = raw[0]
+    if first & 0xF0 == 0x90:
+        n, start = first & 0x0F, 1
+    elif first == 0xDC and len(raw) >= 3:
+        n, start = int.from_bytes(raw[1:3], "big"), 3
+    elif first == 0xDD and len(raw) >= 5:
+        n, start = int.from_bytes(raw[1:5], "big"), 5
+    else:
+        return None
+    records = tracked_object_layout().view(raw[start:], n)
+    if records is None:
+        return None
+    return TrackedRecords(env.header, records, env.observed_track_ids)
