@@ -208,10 +208,18 @@ def _reference_objects(frames, config=None):
     return out
 
 
-def test_pipeline_publishes_exactly_what_the_model_path_computes():
-    from jitterguard.services.classifier.pipeline import ClassifierPipeline
+@pytest.mark.parametrize("shape", ["records", "structs"])
+def test_pipeline_publishes_exactly_what_the_model_path_computes(shape):
+    """``tracked`` of the usual shape is decided as records; any other valid shape (here: two classifications
+    per object) as Structs; both publish what the models compute."""
+    from jitterguard.schemas.models import ObjectClassification
+    from jitterguard.services.classifier.pipeline import ClassifierPipeline, RecordObjects, StructObjects
 
     frames = list(generate(TrackScenario(n_static=6, n_moving=5, n_starting=1, seed=11), 14))
+    if shape == "structs":
+        for f in frames:
+            for o in f.tracked.objects:
+                o.classification = [*o.classification, ObjectClassification(label=0, probability=0.01)]
     pipe = ClassifierPipeline()
     got = []
     for i, f in enumerate(frames):
@@ -219,6 +227,7 @@ def test_pipeline_publishes_exactly_what_the_model_path_computes():
             pipe.observation(encode(o))
         assert pipe.close(encode(f.tracked), received_at=float(i))
         (frame,) = pipe.ready(float(i))
+        assert isinstance(frame.tracked, RecordObjects if shape == "records" else StructObjects)
         out = pipe.finish(frame)
         got.append(msgpack.unpackb(out.payload))
         motion = [decode(MotionState, p) for _, p in pipe.motion_payloads(out)]  # valid MotionStates

@@ -361,3 +361,13 @@ def test_raw_covariance_blocks_are_checked_like_the_model_checks_them():
     assert msgpack.unpackb(_RAW_CODEC.encode(got)) == msgpack.unpackb(encode(decode(TrackedObjects, msgpack.packb(raw))))
     single = msgpack.packb(inst.model_dump(mode="python"), use_single_float=True)
     assert msgpack.unpackb(_RAW_CODEC.encode(_RAW_CODEC.decode(single))) == msgpack.unpackb(encode(decode(TrackedObjects, single)))
+
+
+def test_struct_codec_turns_a_key_that_is_not_utf8_into_a_decode_error():
+    """msgspec raises UnicodeDecodeError (not its DecodeError) for such a key; a service catching DecodeError
+    must still see a rejection, not a crash of its worker."""
+    from jitterguard.schemas.fast import StructCodec
+    from jitterguard.schemas.models import DetectedObjects
+
+    with pytest.raises(DecodeError, match="DetectedObjects"):
+        StructCodec(DetectedObjects).decode(b"\x81\xa2\xca\xca\x01")

@@ -374,7 +374,7 @@ class StructCodec(Generic[M]):
     def _fast(self, data: bytes | bytearray | memoryview) -> Any | None:
         try:
             obj = self._decoder.decode(data)
-        except (msgspec.ValidationError, msgspec.DecodeError):
+        except (msgspec.DecodeError, ValueError):  # ValueError: e.g. a key that is not UTF-8
             return None
         if self._collect is not None:
             found: list[list] = [[] for _ in self._block_specs]

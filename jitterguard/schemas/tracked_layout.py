@@ -98,7 +98,7 @@ def decode_tracked_records(data: bytes | memoryview) -> TrackedRecords | None:
     _, decoder = _envelope()
     try:
         env = decoder.decode(data)
-    except (msgspec.ValidationError, msgspec.DecodeError):
+    except (msgspec.DecodeError, ValueError):  # ValueError: e.g. a key that is not UTF-8
         return None
     raw = memoryview(env.objects)
     if not raw:
