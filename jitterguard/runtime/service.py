@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import os
+import queue
 import signal
 import threading
 import time
@@ -131,6 +132,28 @@ class Service:
                 self.log.exception("handler for %s failed", key)
 
         self._declared.append(self.session.declare_subscriber(key, on_sample))
+
+    def subscribe_inbox(self, key: str, capacity: int = 64) -> queue.Queue[tuple[bytes, str]]:
+        """Subscribe ``key`` into a queue of ``(payload, key)`` that a worker blocks on with ``get(timeout=...)``.
+
+        For a few large messages a second (a frame's ``detections``): the worker wakes the moment one arrives
+        instead of polling a channel, and the one callback per message only copies the payload. A full queue
+        blocks Zenoh's delivery (BLOCK publishers are slowed, not dropped) until the worker catches up or the
+        service stops.
+        """
+        inbox: queue.Queue[tuple[bytes, str]] = queue.Queue(maxsize=capacity)
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            item = (sample.payload.to_bytes(), str(sample.key_expr))
+            while not self.stop_event.is_set():
+                try:
+                    inbox.put(item, timeout=0.1)
+                    return
+                except queue.Full:
+                    continue
+
+        self._declared.append(self.session.declare_subscriber(key, on_sample))
+        return inbox
 
     def subscribe_channel(self, key: str, capacity: int = 65536) -> zenoh.Subscriber:
         """Subscribe ``key`` into a FIFO channel that a worker drains with ``try_recv()``.
