@@ -21,9 +21,11 @@ def yaw_from_quaternion(x: float, y: float, z: float, w: float) -> float:
 
 
 def yaws_from_quaternions(x: ArrayLike, y: ArrayLike, z: ArrayLike, w: ArrayLike) -> F64:
-    """:func:`yaw_from_quaternion` over arrays."""
+    """:func:`yaw_from_quaternion` over arrays, bit for bit (``math.atan2`` per element: numpy's ``arctan2``
+    can differ in the last bit, and a tracker fed records must compute what it computes from models)."""
     x, y, z, w = (np.asarray(a, dtype=np.float64) for a in (x, y, z, w))
-    return np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+    num, den = 2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z)
+    return np.fromiter(map(math.atan2, num.tolist(), den.tolist()), dtype=np.float64, count=num.size)
 
 
 def quaternion_from_yaw(yaw: float) -> tuple[float, float, float, float]:

@@ -1,6 +1,7 @@
-"""``TrackedObjects`` with its objects as one record array (:mod:`.layout`): the tracker writes ``tracked`` this
-way and the classifier reads ``tracked`` and writes ``objects`` this way (and the tracker writes the
-``TrackState`` of each ``TrackObservation`` as a record too).
+"""The hot messages' object lists as record arrays (:mod:`.layout`): the tracker reads ``detections`` and
+writes ``tracked`` (and each ``TrackObservation``'s detection and ``TrackState``) this way, and the classifier
+reads ``tracked`` and writes ``objects`` this way. The slot names below are shared by ``TrackedObject`` and
+``DetectedObject`` where their paths are the same.
 
 The shape is the one every tracker output here has — one classification, no footprint, a 32-hex-digit
 ``object_id`` — and, because msgspec and msgpack-python write floats as float64 and these small ints as fixints,
@@ -21,7 +22,7 @@ import numpy as np
 
 from .fast import struct_type
 from .layout import RecordLayout, array_header
-from .models import SCHEMA_VERSION, TrackedObject, TrackedObjects, TrackState
+from .models import SCHEMA_VERSION, DetectedObject, DetectedObjects, TrackedObject, TrackedObjects, TrackState
 
 ID = "object_id"
 EXISTENCE = "existence_probability"
@@ -36,6 +37,7 @@ VX, VY, VZ = (f"{_TWIST}.twist.linear.{a}" for a in "xyz")
 WX, WY, WZ = (f"{_TWIST}.twist.angular.{a}" for a in "xyz")
 TWIST_COV = f"{_TWIST}.covariance"
 ORIENTATION = "kinematics.orientation_availability"
+HAS_POSITION_COV = "kinematics.has_position_covariance"  # DetectedObject only
 STATIONARY = "kinematics.is_stationary"
 SHAPE_TYPE = "shape.type"
 LENGTH, WIDTH, HEIGHT = (f"shape.dimensions.{a}" for a in "xyz")
@@ -57,10 +59,18 @@ def track_state_layout() -> RecordLayout:
 
 
 @cache
-def _envelope() -> tuple[type[msgspec.Struct], msgspec.msgpack.Decoder]:
-    """``TrackedObjects``'s generated Struct with ``objects`` left as raw bytes (header and IDs validated)."""
+def detected_object_layout() -> RecordLayout:
+    """The record layout of a ``DetectedObject`` with one classification and no footprint (what the detector,
+    the replay's detection-level sources and msgspec/msgpack writers of such objects produce)."""
+    t = struct_type(DetectedObject)
+    return RecordLayout.of(t, msgspec.convert({"classification": [{"label": 0, "probability": 1.0}]}, t))
+
+
+@cache
+def _envelope(model: type) -> msgspec.msgpack.Decoder:
+    """A decoder for ``model``'s generated Struct with its ``objects`` left as raw bytes (the rest validated)."""
     fields: list[Any] = []
-    for f in msgspec.structs.fields(struct_type(TrackedObjects)):
+    for f in msgspec.structs.fields(struct_type(model)):
         ftype = msgspec.Raw if f.name == "objects" else f.type
         if f.required:
             fields.append((f.name, ftype))
@@ -68,8 +78,30 @@ def _envelope() -> tuple[type[msgspec.Struct], msgspec.msgpack.Decoder]:
             fields.append((f.name, ftype, msgspec.field(default_factory=f.default_factory)))
         else:
             fields.append((f.name, ftype, f.default))
-    env = msgspec.defstruct("TrackedObjectsEnvelope", fields, kw_only=True, forbid_unknown_fields=True, gc=False)
-    return env, msgspec.msgpack.Decoder(env)
+    env = msgspec.defstruct(f"{model.__name__}Envelope", fields, kw_only=True, forbid_unknown_fields=True, gc=False)
+    return msgspec.msgpack.Decoder(env)
+
+
+def _decode_records(model: type, layout: RecordLayout, data: bytes | memoryview) -> tuple[Any, np.ndarray] | None:
+    """``model``'s envelope and its ``objects`` as records, or None where either is not valid in this shape."""
+    try:
+        env = _envelope(model).decode(data)
+    except (msgspec.DecodeError, ValueError):  # ValueError: e.g. a key that is not UTF-8
+        return None
+    raw = memoryview(env.objects)
+    if not raw:
+        return None
+    first = raw[0]
+    if first & 0xF0 == 0x90:
+        n, start = first & 0x0F, 1
+    elif first == 0xDC and len(raw) >= 3:
+        n, start = int.from_bytes(raw[1:3], "big"), 3
+    elif first == 0xDD and len(raw) >= 5:
+        n, start = int.from_bytes(raw[1:5], "big"), 5
+    else:
+        return None
+    records = layout.view(raw[start:], n)
+    return None if records is None else (env, records)
 
 
 _ENCODER = msgspec.msgpack.Encoder()
@@ -95,24 +127,27 @@ class TrackedRecords:
 def decode_tracked_records(data: bytes | memoryview) -> TrackedRecords | None:
     """``data`` as :class:`TrackedRecords` if it is a valid ``TrackedObjects`` of the layout's shape, else None
     (invalid, or valid in another shape: the general decoder decides)."""
-    _, decoder = _envelope()
-    try:
-        env = decoder.decode(data)
-    except (msgspec.DecodeError, ValueError):  # ValueError: e.g. a key that is not UTF-8
+    got = _decode_records(TrackedObjects, tracked_object_layout(), data)
+    if got is None:
         return None
-    raw = memoryview(env.objects)
-    if not raw:
-        return None
-    first = raw[0]
-    if first & 0xF0 == 0x90:
-        n, start = first & 0x0F, 1
-    elif first == 0xDC and len(raw) >= 3:
-        n, start = int.from_bytes(raw[1:3], "big"), 3
-    elif first == 0xDD and len(raw) >= 5:
-        n, start = int.from_bytes(raw[1:5], "big"), 5
-    else:
-        return None
-    records = tracked_object_layout().view(raw[start:], n)
-    if records is None:
-        return None
+    env, records = got
     return TrackedRecords(env.header, records, env.observed_track_ids)
+
+
+@dataclass
+class DetectedRecords:
+    """A validated ``DetectedObjects`` whose objects are records (read-only view of the payload)."""
+
+    header: Any  # the generated Header Struct
+    ego_pose: Any  # the generated Pose Struct
+    records: np.ndarray
+
+
+def decode_detected_records(data: bytes | memoryview) -> DetectedRecords | None:
+    """``data`` as :class:`DetectedRecords` if it is a valid ``DetectedObjects`` of the layout's shape, else
+    None (the general decoder decides)."""
+    got = _decode_records(DetectedObjects, detected_object_layout(), data)
+    if got is None:
+        return None
+    env, records = got
+    return DetectedRecords(env.header, env.ego_pose, records)

@@ -32,7 +32,13 @@ from jitterguard.schemas.models import (
     Vector3,
 )
 from jitterguard.services.tracker.config import default_config
-from jitterguard.services.tracker.convert import detections_codec, frame_from_message, frame_payloads, shape_area
+from jitterguard.services.tracker.convert import (
+    decode_detections,
+    detections_codec,
+    frame_from_message,
+    frame_payloads,
+    shape_area,
+)
 from jitterguard.services.tracker.core import TrackerCore
 from tracker_simseq import make_sequence, to_message
 
@@ -60,12 +66,14 @@ def test_frame_from_message_recovers_the_detector_arrays() -> None:
     np.testing.assert_allclose(frame.area, d.length * d.width)
 
 
-def test_the_services_struct_path_gives_the_models_frame_and_outputs() -> None:
-    """The service decodes into msgspec Structs with raw covariance blocks (``detections_codec``); the core's
-    arrays must be exactly what the pydantic model gives, and the payloads exactly what Structs with plain
-    float tuples give (the two ways ``frame_payloads`` reads and rewrites covariances)."""
+@pytest.mark.parametrize("form", ["records", "raw_structs"])
+def test_the_services_decodings_give_the_models_frame_and_the_same_payloads(form) -> None:
+    """The service reads ``detections`` as records (the usual shape) or as Structs with raw covariance blocks
+    (``decode_detections``); either way the core's arrays must be exactly what the pydantic model gives, and
+    the payloads byte for byte what Structs with plain float tuples give."""
     import dataclasses
 
+    from jitterguard.schemas import tracked_layout as tl
     from jitterguard.schemas.fast import StructCodec
 
     raw_codec, plain_codec = detections_codec(), StructCodec(DetectedObjects)
@@ -76,20 +84,33 @@ def test_the_services_struct_path_gives_the_models_frame_and_outputs() -> None:
     checked = 0
     for sf in make_sequence(7, n_frames=10).frames:
         data = encode(to_message(sf))
-        model, raw_struct, plain_struct = decode(DetectedObjects, data), raw_codec.decode(data), plain_codec.decode(data)
-        fm, fs = frame_from_message(model), frame_from_message(raw_struct)
+        fast = decode_detections(raw_codec, data)
+        assert isinstance(fast, tl.DetectedRecords)  # the usual shape
+        under_test = fast if form == "records" else raw_codec.decode(data)
+        model, plain_struct = decode(DetectedObjects, data), plain_codec.decode(data)
+        fm, fs = frame_from_message(model), frame_from_message(under_test)
         for f in dataclasses.fields(fm):
             a, b = getattr(fm, f.name), getattr(fs, f.name)
             if isinstance(a, np.ndarray):
-                np.testing.assert_array_equal(a, b, err_msg=f.name)
+                np.testing.assert_allclose(a, b, rtol=0, atol=1e-15, err_msg=f.name)
+                assert a.dtype == b.dtype, f.name
             else:
                 assert a == b, f.name
         res_m, res_s = core_m.step(fm), core_s.step(fs)
         out_plain = frame_payloads(plain_struct, fm, res_m)
-        out_raw = frame_payloads(raw_struct, fs, res_s)
-        assert out_plain == out_raw
-        checked += len(out_raw[0])
+        out = frame_payloads(under_test, fs, res_s)
+        assert out_plain == out
+        checked += len(out[0])
     assert checked > 20
+
+
+def test_detections_of_another_shape_are_read_as_structs() -> None:
+    from jitterguard.schemas import tracked_layout as tl
+
+    msg = DetectedObjects(header=Header(stamp=1, seq=0), objects=[DetectedObject(classification=[
+        ObjectClassification(label=7, probability=0.3), ObjectClassification(label=6, probability=0.6)])])
+    got = decode_detections(detections_codec(), encode(msg))
+    assert not isinstance(got, tl.DetectedRecords) and frame_from_message(got).label.tolist() == [6]
 
 
 def test_highest_probability_class_wins_and_no_class_means_unknown() -> None:

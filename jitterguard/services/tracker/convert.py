@@ -17,12 +17,13 @@ is rotated the same way (its linear x/y and their covariance block).
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any
 
 import msgspec
 import numpy as np
 
-from ...geometry import rotate_cov2, yaw_from_quaternion
+from ...geometry import rotate_cov2, yaw_from_quaternion, yaws_from_quaternions
 from ...schemas import tracked_layout as tl
 from ...schemas.fast import StructCodec
 from ...schemas.layout import RecordLayout
@@ -108,9 +109,45 @@ def covariance_blocks(rows: np.ndarray) -> list[msgspec.Raw]:
     return [msgspec.Raw(data[i * _COV_BYTES:(i + 1) * _COV_BYTES]) for i in range(m)]
 
 
-def frame_from_message(msg: DetectedObjects | Any) -> DetectionFrame:
-    """The core's input arrays for one ``DetectedObjects`` message (sensor frame, with the ego pose): the model
-    or its generated Struct (:func:`detections_codec`), which the service decodes into."""
+def decode_detections(codec: StructCodec, data: bytes) -> tl.DetectedRecords | Any:
+    """How the tracker service reads a ``detections`` payload: as records when it has the usual shape (one
+    classification, no footprint — :func:`~jitterguard.schemas.tracked_layout.decode_detected_records`), else
+    as the generated Structs of ``codec`` (:func:`detections_codec`), which decide and name what is invalid.
+
+    Raises :class:`~jitterguard.schemas.DecodeError` for an invalid payload.
+    """
+    fast = tl.decode_detected_records(data)
+    return fast if fast is not None else codec.decode(data)
+
+
+def _frame_from_records(msg: tl.DetectedRecords) -> DetectionFrame:
+    """:func:`frame_from_message` for records: the same arrays, computed column-wise."""
+    r = msg.records
+    f64 = lambda name: r[name].astype(np.float64)  # noqa: E731  (big-endian wire columns to native floats)
+    kind = r[tl.SHAPE_TYPE]
+    dx, dy = f64(tl.LENGTH), f64(tl.WIDTH)
+    cylinder = kind == Shape.CYLINDER
+    area = np.where(cylinder, math.pi * (0.5 * dx) * (0.5 * dx), np.where(kind == Shape.POLYGON, 0.0, dx * dy))
+    cov = r[tl.POSE_COV]["v"]  # no footprint in this shape: a polygon's area is 0, as getArea gives
+    eq, ep = msg.ego_pose.orientation, msg.ego_pose.position
+    return DetectionFrame(
+        seq=msg.header.seq, stamp_ns=msg.header.stamp, frame_id=msg.header.frame_id,
+        ego_x=ep.x, ego_y=ep.y, ego_z=ep.z, ego_yaw=yaw_from_quaternion(eq.x, eq.y, eq.z, eq.w),
+        x=f64(tl.X), y=f64(tl.Y), z=f64(tl.Z), yaw=yaws_from_quaternions(r[tl.QX], r[tl.QY], r[tl.QZ], r[tl.QW]),
+        length=dx, width=np.where(cylinder, dx, dy), height=f64(tl.HEIGHT),
+        cov_xx=cov[:, X_X].astype(np.float64), cov_xy=cov[:, X_Y].astype(np.float64),
+        cov_yy=cov[:, Y_Y].astype(np.float64), var_yaw=cov[:, YAW_YAW].astype(np.float64),
+        label_prob=np.maximum(f64(tl.LABEL_PROB), 1e-3), existence=f64(tl.EXISTENCE),
+        label=r[tl.LABEL].astype(np.int8), has_cov=r[tl.HAS_POSITION_COV] == 0xC3,
+        orientation=r[tl.ORIENTATION].astype(np.int8), area=area,
+    )
+
+
+def frame_from_message(msg: DetectedObjects | tl.DetectedRecords | Any) -> DetectionFrame:
+    """The core's input arrays for one ``DetectedObjects`` message (sensor frame, with the ego pose): the model,
+    or what :func:`decode_detections` gives (records or the generated Struct)."""
+    if isinstance(msg, tl.DetectedRecords):
+        return _frame_from_records(msg)
     objs = msg.objects
     m = len(objs)
     cols = np.zeros((11, m))
@@ -158,39 +195,62 @@ def _rotate_cov36(cov: np.ndarray, cxx: np.ndarray, cxy: np.ndarray, cyy: np.nda
     return out
 
 
-def detections_to_world(objects: list[Any], frame: DetectionFrame, result: FrameResult,
-                        rows: np.ndarray) -> None:
-    """Move detections (generated ``DetectedObject`` Structs, edited in place) into the world frame: position,
-    orientation (``q(ego_yaw) * q``), pose covariance (R Σ Rᵀ via rotate_cov2, cross terms rotated) and twist
-    with its covariance. ``rows`` indexes each object's row in ``result.detections``. The arithmetic is done
-    on arrays for all of them at once; only the writes are per object."""
-    if not objects:
-        return
+@dataclass
+class _WorldColumns:
+    """Observed detections' world-frame values (one row each), computed on arrays."""
+
+    x: np.ndarray
+    y: np.ndarray
+    z: np.ndarray
+    q: np.ndarray  # (M, 4) x, y, z, w
+    pose_cov: np.ndarray  # (M, 36)
+    vx: np.ndarray
+    vy: np.ndarray
+    twist_cov: np.ndarray  # (M, 36); rows that were all zero stay zero
+    moving: np.ndarray  # rows whose twist covariance was not all zero (the only ones that change)
+
+
+def _world_columns(frame: DetectionFrame, result: FrameResult, rows: np.ndarray, q: np.ndarray,
+                   pose_cov: np.ndarray, lin: np.ndarray, twist_cov: np.ndarray) -> _WorldColumns:
+    """Detections moved into the world frame: position (the core's), orientation ``q(ego_yaw) * q``, pose
+    covariance (R Σ Rᵀ via rotate_cov2 — the core's — with the cross terms rotated) and the twist's linear x/y
+    with its covariance. ``rows`` indexes each detection's row in ``result.detections``."""
     det = result.detections
     c, s = math.cos(frame.ego_yaw), math.sin(frame.ego_yaw)
     az, aw = math.sin(0.5 * frame.ego_yaw), math.cos(0.5 * frame.ego_yaw)
+    qw = np.column_stack([aw * q[:, 0] - az * q[:, 1], aw * q[:, 1] + az * q[:, 0],
+                          aw * q[:, 2] + az * q[:, 3], aw * q[:, 3] - az * q[:, 2]])
+    pcov = _rotate_cov36(pose_cov, det.cov_xx[rows], det.cov_xy[rows], det.cov_yy[rows], c, s)
+    moving = np.flatnonzero(twist_cov.any(axis=1))  # a zero twist covariance rotates to itself
+    tcov = twist_cov.copy()
+    if moving.size:
+        sub = twist_cov[moving]
+        txx, txy, tyy = rotate_cov2(sub[:, X_X], sub[:, X_Y], sub[:, Y_Y], frame.ego_yaw)
+        tcov[moving] = _rotate_cov36(sub, txx, txy, tyy, c, s)
+    return _WorldColumns(det.x[rows], det.y[rows], det.z[rows], qw, pcov, c * lin[:, 0] - s * lin[:, 1],
+                         s * lin[:, 0] + c * lin[:, 1], tcov, moving)
+
+
+def detections_to_world(objects: list[Any], frame: DetectionFrame, result: FrameResult,
+                        rows: np.ndarray) -> None:
+    """Move detections (generated ``DetectedObject`` Structs, edited in place) into the world frame
+    (:func:`_world_columns`; the arithmetic on arrays, only the writes per object)."""
+    if not objects:
+        return
     kins = [o.kinematics for o in objects]
     pcs = [k.pose_with_covariance for k in kins]
     twists = [k.twist_with_covariance for k in kins]
     q = np.array([(p.pose.orientation.x, p.pose.orientation.y, p.pose.orientation.z, p.pose.orientation.w)
                   for p in pcs])
-    qx = (aw * q[:, 0] - az * q[:, 1]).tolist()
-    qy = (aw * q[:, 1] + az * q[:, 0]).tolist()
-    qz = (aw * q[:, 2] + az * q[:, 3]).tolist()
-    qw = (aw * q[:, 3] - az * q[:, 2]).tolist()
-    px, py, pz = det.x[rows].tolist(), det.y[rows].tolist(), det.z[rows].tolist()
+    lin = np.array([(t.twist.linear.x, t.twist.linear.y) for t in twists], dtype=np.float64)
+    w = _world_columns(frame, result, rows, q, covariance_rows([p.covariance for p in pcs]), lin,
+                       covariance_rows([t.covariance for t in twists]))
     raw = isinstance(pcs[0].covariance, msgspec.Raw)  # decoded by detections_codec: write raw blocks back
     pack = covariance_blocks if raw else (lambda a: a.tolist())
-    pcov = pack(_rotate_cov36(covariance_rows([p.covariance for p in pcs]), det.cov_xx[rows], det.cov_xy[rows],
-                              det.cov_yy[rows], c, s))
-    lin = np.array([(t.twist.linear.x, t.twist.linear.y) for t in twists], dtype=np.float64)
-    vx, vy = (c * lin[:, 0] - s * lin[:, 1]).tolist(), (s * lin[:, 0] + c * lin[:, 1]).tolist()
-    tcov = covariance_rows([t.covariance for t in twists])
-    moving = np.flatnonzero(tcov.any(axis=1))  # a zero twist covariance rotates to itself
-    if moving.size:
-        sub = tcov[moving]
-        txx, txy, tyy = rotate_cov2(sub[:, X_X], sub[:, X_Y], sub[:, Y_Y], frame.ego_yaw)
-        rotated = pack(_rotate_cov36(sub, txx, txy, tyy, c, s))
+    pcov = pack(w.pose_cov)
+    px, py, pz = w.x.tolist(), w.y.tolist(), w.z.tolist()
+    qx, qy, qz, qw = w.q.T.tolist()
+    vx, vy = w.vx.tolist(), w.vy.tolist()
     for i, (pc, tw) in enumerate(zip(pcs, twists)):
         pose = pc.pose
         pos, ori = pose.position, pose.orientation
@@ -199,8 +259,30 @@ def detections_to_world(objects: list[Any], frame: DetectionFrame, result: Frame
         pc.covariance = pcov[i]
         v = tw.twist.linear
         v.x, v.y = vx[i], vy[i]
-    for k, i in enumerate(moving.tolist()):
-        twists[i].covariance = rotated[k]
+    if w.moving.size:
+        for i, cov in zip(w.moving.tolist(), pack(w.twist_cov[w.moving])):
+            twists[i].covariance = cov
+
+
+def _world_records(msg: tl.DetectedRecords, frame: DetectionFrame, result: FrameResult,
+                   rows: np.ndarray) -> np.ndarray:
+    """The observed detections' records (copies of ``rows``) moved into the world frame."""
+    layout = tl.detected_object_layout()
+    src = msg.records
+    out = np.ascontiguousarray(src.view(np.uint8).reshape(len(src), layout.itemsize)[rows]).reshape(-1) \
+        .view(layout.dtype)  # whole rows, the bytes between fields included
+    if not len(out):
+        return out
+    q = np.column_stack([out[tl.QX], out[tl.QY], out[tl.QZ], out[tl.QW]]).astype(np.float64)
+    lin = np.column_stack([out[tl.VX], out[tl.VY]]).astype(np.float64)
+    w = _world_columns(frame, result, rows, q, out[tl.POSE_COV]["v"].astype(np.float64), lin,
+                       out[tl.TWIST_COV]["v"].astype(np.float64))
+    out[tl.X], out[tl.Y], out[tl.Z] = w.x, w.y, w.z
+    out[tl.QX], out[tl.QY], out[tl.QZ], out[tl.QW] = w.q.T
+    out[tl.POSE_COV]["v"] = w.pose_cov
+    out[tl.VX], out[tl.VY] = w.vx, w.vy
+    out[tl.TWIST_COV]["v"] = w.twist_cov
+    return out
 
 
 def tracked_records(result: FrameResult) -> np.ndarray:
@@ -250,21 +332,27 @@ def frame_payloads(msg: Any, frame: DetectionFrame, result: FrameResult) -> tupl
     """The frame's ``tracks/{id}`` payloads as ``(track_id, TrackObservation payload)`` in track order, and the
     closing ``TrackedObjects`` payload.
 
-    ``msg`` is the frame's validated ``DetectedObjects`` as the generated Struct (:mod:`jitterguard.schemas.fast`);
-    the observed detections in it are moved into the world frame in place and encoded by msgspec; the track
-    state beside each and the ``tracked`` objects are records (:mod:`jitterguard.schemas.tracked_layout`).
+    ``msg`` is the frame as :func:`decode_detections` gives it: records (the observed rows are copied and moved
+    into the world frame column-wise) or the generated Struct (the observed detections are moved into the world
+    frame in place and encoded by msgspec) — the same bytes either way. The track state beside each and the
+    ``tracked`` objects are records (:mod:`jitterguard.schemas.tracked_layout`).
     """
     header = {"stamp": frame.stamp_ns, "frame_id": WORLD_FRAME, "seq": frame.seq}
     rows = result.obs_det
-    dets = [msg.objects[j] for j in rows.tolist()]
-    detections_to_world(dets, frame, result, rows)
+    if isinstance(msg, tl.DetectedRecords):
+        recs = _world_records(msg, frame, result, rows)
+        det_raw, det_size = RecordLayout.to_bytes(recs), recs.dtype.itemsize
+        det_bytes = [det_raw[k * det_size:(k + 1) * det_size] for k in range(len(recs))]
+    else:
+        dets = [msg.objects[j] for j in rows.tolist()]
+        detections_to_world(dets, frame, result, rows)
+        det_bytes = [_ENCODER.encode(d) for d in dets]
     prefix = b"".join((b"\x84", _ENCODER.encode("schema_version"), _ENCODER.encode(SCHEMA_VERSION),
                        _ENCODER.encode("header"), _ENCODER.encode(header), _ENCODER.encode("detection")))
     states = track_state_records(result)
     raw, size = RecordLayout.to_bytes(states), states.dtype.itemsize
     ids = result.observed_ids
-    encode = _ENCODER.encode
-    observations = [(ids[k], b"".join((prefix, encode(d), _TRACK_KEY, raw[k * size:(k + 1) * size])))
-                    for k, d in enumerate(dets)]
+    observations = [(ids[k], b"".join((prefix, d, _TRACK_KEY, raw[k * size:(k + 1) * size])))
+                    for k, d in enumerate(det_bytes)]
     closing = tl.encode_tracked_objects(header, tracked_records(result), ids)
     return observations, closing

@@ -19,8 +19,8 @@ from __future__ import annotations
 import queue
 import threading
 from collections.abc import Callable
+from typing import Any
 
-import msgspec
 import zenoh
 
 from ...runtime import Service, ZenohOptions
@@ -28,7 +28,7 @@ from ...runtime.gc_policy import IdleCollector, manage_gc_for_latency
 from ...schemas import DecodeError, keys
 from ...schemas.models import MotionState
 from .config import TrackerConfig, default_config
-from .convert import detections_codec, frame_from_message, frame_payloads
+from .convert import decode_detections, detections_codec, frame_from_message, frame_payloads
 from .core import FrameRejected, TrackerCore
 from .lifecycle import new_track_id
 
@@ -93,7 +93,7 @@ class TrackerService(Service):
                 continue
             self.counters.inc("received")
             try:  # the contract's validation, on msgspec Structs generated from the model (schemas.fast)
-                msg = self._codec.decode(payload)
+                msg = decode_detections(self._codec, payload)
             except DecodeError as exc:
                 self.reject(exc, self._det_key)
                 continue
@@ -117,9 +117,9 @@ class TrackerService(Service):
         if applied < len(ids):
             self.counters.inc("static_hints_unknown", len(ids) - applied)
 
-    def process(self, msg: msgspec.Struct) -> None:
-        """Track one validated frame (the generated Struct of ``DetectedObjects``, edited in place) and publish
-        the observations, then ``tracked``."""
+    def process(self, msg: Any) -> None:
+        """Track one validated frame (as :func:`~.convert.decode_detections` gives it; a Struct is edited in
+        place) and publish the observations, then ``tracked``."""
         frame = frame_from_message(msg)
         try:
             result = self.core.step(frame)
