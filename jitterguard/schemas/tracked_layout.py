@@ -110,9 +110,11 @@ _ENCODER = msgspec.msgpack.Encoder()
 def encode_tracked_objects(header: Mapping[str, Any], records: np.ndarray,
                            observed_track_ids: Sequence[str] = ()) -> bytes:
     """The ``TrackedObjects`` payload of ``records`` (from :func:`tracked_object_layout`)."""
-    objects = msgspec.Raw(array_header(len(records)) + RecordLayout.to_bytes(records))
-    return _ENCODER.encode({"schema_version": SCHEMA_VERSION, "header": dict(header), "objects": objects,
-                            "observed_track_ids": list(observed_track_ids)})
+    enc = _ENCODER.encode
+    head = b"".join((b"\x84", enc("schema_version"), enc(SCHEMA_VERSION), enc("header"), enc(dict(header)),
+                     enc("objects"), array_header(len(records))))
+    tail = enc("observed_track_ids") + enc(list(observed_track_ids))
+    return b"".join((head, memoryview(records.view(np.uint8)), tail))  # one copy of the records
 
 
 @dataclass
