@@ -135,7 +135,7 @@ def bench_pipeline(objects: int = 200, rate_hz: float = 20.0, duration_s: float 
     sent: dict[int, float] = {}
     recv: dict[int, float] = {}
     tracked_at: dict[int, float] = {}  # where the time goes: detections put -> tracked seen -> objects seen
-    lock = threading.Lock()
+    lock = threading.Condition()  # guards the stamps; notified when one arrives
 
     def stamp_into(into: dict[int, float]) -> Any:
         def on_sample(sample: Any) -> None:
@@ -144,6 +144,7 @@ def bench_pipeline(objects: int = 200, rate_hz: float = 20.0, duration_s: float 
             if seq is not None:
                 with lock:
                     into.setdefault(seq, t)
+                    lock.notify_all()
         return on_sample
 
     try:
@@ -175,17 +176,23 @@ def bench_pipeline(objects: int = 200, rate_hz: float = 20.0, duration_s: float 
             rss_first: dict[str, int | None] = {}
             t0 = time.perf_counter()
             stamp0 = time.time_ns()
+            data = gen.frame(0, stamp0)
             for k in range(n_frames):
                 target = t0 + k / rate_hz
                 if not rss_first and target - t0 >= rss_at:
                     rss_first = {n: vm_rss_kb(p.pid) for n, p in procs.items()}
-                data = gen.frame(k, stamp0 + int(k * 1e9 / rate_hz))
                 now = time.perf_counter()
                 if target > now:
                     time.sleep(target - now)
                 with lock:
                     sent[k] = time.perf_counter()
                 pub.put(data)
+                # Build the next frame once this one is through (or half a period on), not while the pipeline
+                # works on it: the load generator must not take the CPU from what it measures.
+                settle = target + 0.5 / rate_hz
+                with lock:
+                    lock.wait_for(lambda: k in recv, timeout=max(0.0, settle - time.perf_counter()))
+                data = gen.frame(k + 1, stamp0 + int((k + 1) * 1e9 / rate_hz))
             wall = time.perf_counter() - t0
             drain = time.monotonic() + 5.0
             while time.monotonic() < drain:
