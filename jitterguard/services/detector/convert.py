@@ -6,7 +6,7 @@ Frames. The detector publishes in the *sensor* frame, exactly like the replay's 
 sensor-frame boxes (z = box centre relative to the sensor) and the covariances are the network's sensor-frame
 variances. Nothing here rotates: the tracker moves each detection into the world frame itself, the 2x2 position
 covariance with R Σ Rᵀ (``TrackerCore._to_world`` for gating and the measurement,
-:func:`jitterguard.services.tracker.convert.detection_to_world` for what it republishes), and the classifier reads
+:func:`jitterguard.services.tracker.convert.detections_to_world` for what it republishes), and the classifier reads
 the world-frame covariance the tracker republishes on ``tracks/{id}``. Rotating here as well would rotate twice.
 
 Covariance layout (Autoware's, row-major 6x6 over x, y, z, roll, pitch, yaw): the pose covariance carries

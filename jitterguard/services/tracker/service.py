@@ -1,11 +1,14 @@
 """The tracker's Zenoh adapter: ``detections`` in; ``tracks/{id}`` per observed track, then ``tracked``.
 
-Threading: detections arrive in a Zenoh FIFO channel (no Python callback thread to hand the GIL around); one
-worker thread pulls them, validates each through the runtime (a malformed payload is counted as ``rejected``
-and skipped), owns the :class:`TrackerCore` — nothing else touches it — and per frame publishes every
-``tracks/{id}`` first and the closing ``tracked`` last (the classifier waits for the IDs that
-``tracked.observed_track_ids`` names). All puts use BLOCK congestion control: a lost observation would
-silently shorten a classifier window. A full channel slows BLOCK publishers instead of dropping frames.
+Threading: a detections frame arrives through one callback that only copies the payload into an inbox queue
+(:meth:`~jitterguard.runtime.Service.subscribe_inbox`); one worker thread, blocked on that queue, wakes at once,
+validates the frame (:func:`~.convert.decode_detections`: records for the usual shape, generated Structs
+otherwise; a malformed payload is counted as ``rejected`` and skipped), owns the :class:`TrackerCore` — nothing
+else touches it — and per frame publishes every ``tracks/{id}`` first (one declared publisher per live track,
+:class:`~jitterguard.runtime.keyed_publishers.KeyedPublishers`) and the closing ``tracked`` last (the classifier
+waits for the IDs that ``tracked.observed_track_ids`` names). All puts use BLOCK congestion control: a lost
+observation would silently shorten a classifier window. A full inbox slows BLOCK publishers instead of
+dropping frames.
 
 Counters (in the heartbeat): ``frames``, ``dropped_duplicate``, ``dropped_out_of_order``, ``tracks_born``,
 ``tracks_deleted``, ``resets`` (the source went back in time: tracks dropped), ``source_restarts`` (its seq began
