@@ -328,16 +328,18 @@ _ENCODER = msgspec.msgpack.Encoder()
 _TRACK_KEY = _ENCODER.encode("track")
 
 
-def frame_payloads(msg: Any, frame: DetectionFrame, result: FrameResult) -> tuple[list[tuple[str, bytes]], bytes]:
-    """The frame's ``tracks/{id}`` payloads as ``(track_id, TrackObservation payload)`` in track order, and the
-    closing ``TrackedObjects`` payload.
+def _header(frame: DetectionFrame) -> dict[str, Any]:
+    return {"stamp": frame.stamp_ns, "frame_id": WORLD_FRAME, "seq": frame.seq}
+
+
+def observation_payloads(msg: Any, frame: DetectionFrame, result: FrameResult) -> list[tuple[str, bytes]]:
+    """The frame's ``tracks/{id}`` payloads as ``(track_id, TrackObservation payload)``, in track order.
 
     ``msg`` is the frame as :func:`decode_detections` gives it: records (the observed rows are copied and moved
     into the world frame column-wise) or the generated Struct (the observed detections are moved into the world
-    frame in place and encoded by msgspec) — the same bytes either way. The track state beside each and the
-    ``tracked`` objects are records (:mod:`jitterguard.schemas.tracked_layout`).
+    frame in place and encoded by msgspec) — the same bytes either way. The track state beside each is a record
+    (:mod:`jitterguard.schemas.tracked_layout`).
     """
-    header = {"stamp": frame.stamp_ns, "frame_id": WORLD_FRAME, "seq": frame.seq}
     rows = result.obs_det
     if isinstance(msg, tl.DetectedRecords):
         recs = _world_records(msg, frame, result, rows)
@@ -348,11 +350,19 @@ def frame_payloads(msg: Any, frame: DetectionFrame, result: FrameResult) -> tupl
         detections_to_world(dets, frame, result, rows)
         det_bytes = [_ENCODER.encode(d) for d in dets]
     prefix = b"".join((b"\x84", _ENCODER.encode("schema_version"), _ENCODER.encode(SCHEMA_VERSION),
-                       _ENCODER.encode("header"), _ENCODER.encode(header), _ENCODER.encode("detection")))
+                       _ENCODER.encode("header"), _ENCODER.encode(_header(frame)), _ENCODER.encode("detection")))
     states = track_state_records(result)
     raw, size = RecordLayout.to_bytes(states), states.dtype.itemsize
     ids = result.observed_ids
-    observations = [(ids[k], b"".join((prefix, d, _TRACK_KEY, raw[k * size:(k + 1) * size])))
-                    for k, d in enumerate(det_bytes)]
-    closing = tl.encode_tracked_objects(header, tracked_records(result), ids)
-    return observations, closing
+    return [(ids[k], b"".join((prefix, d, _TRACK_KEY, raw[k * size:(k + 1) * size]))) for k, d in enumerate(det_bytes)]
+
+
+def tracked_payload(frame: DetectionFrame, result: FrameResult) -> bytes:
+    """The frame's closing ``TrackedObjects`` payload (every confirmed track, :func:`tracked_records`)."""
+    return tl.encode_tracked_objects(_header(frame), tracked_records(result), result.observed_ids)
+
+
+def frame_payloads(msg: Any, frame: DetectionFrame, result: FrameResult) -> tuple[list[tuple[str, bytes]], bytes]:
+    """:func:`observation_payloads` and :func:`tracked_payload` together (the service builds ``tracked`` only
+    once the observations are out, so the classifier starts on them sooner)."""
+    return observation_payloads(msg, frame, result), tracked_payload(frame, result)

@@ -31,7 +31,7 @@ from ...runtime.keyed_publishers import KeyedPublishers
 from ...schemas import DecodeError, keys
 from ...schemas.models import MotionState
 from .config import TrackerConfig, default_config
-from .convert import decode_detections, detections_codec, frame_from_message, frame_payloads
+from .convert import decode_detections, detections_codec, frame_from_message, observation_payloads, tracked_payload
 from .core import FrameRejected, TrackerCore
 from .lifecycle import new_track_id
 
@@ -136,19 +136,18 @@ class TrackerService(Service):
             self.counters.inc("source_restarts")
             self.log.warning("detections restarted at seq %d with time going on: source restarted, tracks kept",
                              frame.seq)
-        observations, closing = frame_payloads(msg, frame, result)
-        self._publish(observations, closing, result.tracks.ids)
+        self._publish(observation_payloads(msg, frame, result), result.tracks.ids)
+        self._tracked_pub.put(tracked_payload(frame, result))  # built after the observations went out
         self.counters.inc("frames")
         self.counters.inc("tracks_born", len(result.born))
         self.counters.inc("tracks_deleted", len(result.deleted))
         self.last_seq = frame.seq
 
-    def _publish(self, observations: list[tuple[str, bytes]], closing: bytes, live_ids: list[str]) -> None:
-        """Put each ``tracks/{id}`` (one declared publisher per live track), then ``tracked``."""
+    def _publish(self, observations: list[tuple[str, bytes]], live_ids: list[str]) -> None:
+        """Put each ``tracks/{id}`` (one declared publisher per live track; ``tracked`` follows)."""
         self._track_pubs.retain(live_ids)
         for tid, payload in observations:
             self._track_pubs.put(tid, payload)
-        self._tracked_pub.put(closing)
         self.counters.inc("published", len(observations) + 1)
 
     def on_close(self) -> None:
