@@ -13,6 +13,7 @@ reported variances, 5 % misses.
 
 from __future__ import annotations
 
+import gc
 import json
 import math
 import os
@@ -177,6 +178,8 @@ def bench_pipeline(objects: int = 200, rate_hz: float = 20.0, duration_s: float 
             t0 = time.perf_counter()
             stamp0 = time.time_ns()
             data = gen.frame(0, stamp0)
+            gc.collect()
+            gc.disable()  # collected between frames below: the load generator must not pause mid-frame
             for k in range(n_frames):
                 target = t0 + k / rate_hz
                 if not rss_first and target - t0 >= rss_at:
@@ -193,6 +196,8 @@ def bench_pipeline(objects: int = 200, rate_hz: float = 20.0, duration_s: float 
                 with lock:
                     lock.wait_for(lambda: k in recv, timeout=max(0.0, settle - time.perf_counter()))
                 data = gen.frame(k + 1, stamp0 + int((k + 1) * 1e9 / rate_hz))
+                gc.collect(1)
+            gc.enable()
             wall = time.perf_counter() - t0
             drain = time.monotonic() + 5.0
             while time.monotonic() < drain:

@@ -87,12 +87,12 @@ class TrackerService(Service):
     def _worker(self) -> None:
         collect = False  # a frame was processed since the last idle collection
         while not self.stop_event.is_set():
+            if collect and self._det_inbox.empty():  # between frames: the collector's turn (gc_policy)
+                self._idle_gc.collect()
+                collect = False
             try:
                 payload, _key = self._det_inbox.get(timeout=IDLE_WAIT_S)
             except queue.Empty:
-                if collect:
-                    self._idle_gc.collect()
-                    collect = False
                 continue
             self.counters.inc("received")
             try:  # the contract's validation, on msgspec Structs generated from the model (schemas.fast)
