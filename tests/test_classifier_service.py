@@ -146,7 +146,8 @@ def test_malformed_payloads_on_every_key_are_counted_and_service_keeps_running(s
     _wait_connected(client_session)
     frames = list(generate(TrackScenario(n_static=2, n_moving=1, n_starting=0, seed=3), 4))
     tid = frames[0].observations[0].track.object_id
-    junk = [b"", b"\x00\xff", msgpack.packb({"schema_version": 1}), encode(frames[0].tracked)[:-7]]
+    junk = [b"", b"\x00\xff", msgpack.packb({"schema_version": 1}), encode(frames[0].tracked)[:-7],
+            b"\x81\xa2\xca\xca\x01"]  # the last: a map key that is not UTF-8
     for j in junk:
         client_session.put(keys.track(NS, tid), j)
         client_session.put(keys.tracked(NS), j)
