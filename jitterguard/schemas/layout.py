@@ -27,8 +27,6 @@ from typing import Any
 import msgspec
 import numpy as np
 
-_MAX = np.finfo(np.float64).max
-
 
 @dataclass(frozen=True)
 class Slot:
