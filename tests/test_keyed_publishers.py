@@ -44,6 +44,6 @@ def test_puts_reach_the_subscriber_and_retain_drops_publishers_of_gone_ids(zenoh
         assert wait_until(lambda: len(tagged(b"back")) == 1)
         assert tagged(b"back") == [(f"kp/tracks/{ids[4]}", b"back")]
         assert len(pubs) == 3
-        pubs.close()
+        pubs.undeclare()
         assert len(pubs) == 0
         sub.undeclare()

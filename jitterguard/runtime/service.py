@@ -23,6 +23,7 @@ from pydantic import BaseModel
 
 from ..schemas import DecodeError, decode, encode, keys
 from ..schemas.models import Heartbeat
+from .keyed_publishers import KeyedPublishers
 from .zenoh_config import ZenohOptions, build_config
 
 M = TypeVar("M", bound=BaseModel)
@@ -173,6 +174,14 @@ class Service:
         pub = self.session.declare_publisher(key, congestion_control=cc)
         self._declared.append(pub)
         return pub
+
+    def keyed_publishers(self, key_of: Callable[[str], str], *,
+                         priority: zenoh.Priority = zenoh.Priority.DATA) -> KeyedPublishers:
+        """One declared publisher per track ID on ``key_of(id)`` (:mod:`.keyed_publishers`), undeclared with the
+        service's other entities once its workers have stopped."""
+        pubs = KeyedPublishers(self.session, key_of, priority=priority)
+        self._declared.append(pubs)
+        return pubs
 
     def publish(self, pub: zenoh.Publisher, model: BaseModel) -> None:
         pub.put(encode(model))

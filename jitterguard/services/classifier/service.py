@@ -31,7 +31,6 @@ import zenoh
 
 from ...runtime import Service, ZenohOptions
 from ...runtime.gc_policy import IdleCollector, manage_gc_for_latency
-from ...runtime.keyed_publishers import KeyedPublishers
 from ...schemas import SCHEMA_VERSION, DecodeError, decode, encode, keys
 from ...schemas.models import (
     ClassifierConfig,
@@ -103,8 +102,8 @@ class ClassifierService(Service):
         self._obs_key = keys.tracks_all(self.ns)
         self._tracked_key = keys.tracked(self.ns)
         self._objects_pub = self.publisher(keys.objects(self.ns))
-        self._motion_pubs = KeyedPublishers(self.session, lambda tid: keys.motion(self.ns, tid),
-                                            priority=zenoh.Priority.DATA_LOW)
+        self._motion_pubs = self.keyed_publishers(lambda tid: keys.motion(self.ns, tid),
+                                                  priority=zenoh.Priority.DATA_LOW)
         self._obs_sub = self.subscribe_channel(self._obs_key)
         self._declared.append(self.session.declare_subscriber(self._tracked_key, self._on_tracked))
         self.queryable(keys.classifier_config(self.ns), self._on_config_query)
@@ -231,13 +230,6 @@ class ClassifierService(Service):
             self._motion_pubs.put(tid, payload)
             n += 1
         self.counters.inc("published", n)
-
-    def on_close(self) -> None:
-        """The worker has stopped (or is stopping): drop the per-track publishers before the session closes."""
-        for t in self._threads:
-            if t.name.endswith("-worker") and t is not threading.current_thread():
-                t.join(timeout=2.0)
-        self._motion_pubs.close()
 
     # ---------------------------------------------------------------- queryables
 

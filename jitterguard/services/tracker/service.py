@@ -24,10 +24,8 @@ import threading
 from collections.abc import Callable
 from typing import Any
 
-
 from ...runtime import Service, ZenohOptions
 from ...runtime.gc_policy import IdleCollector, manage_gc_for_latency
-from ...runtime.keyed_publishers import KeyedPublishers
 from ...schemas import DecodeError, keys
 from ...schemas.models import MotionState
 from .config import TrackerConfig, default_config
@@ -70,7 +68,7 @@ class TrackerService(Service):
         self._det_key = keys.detections(self.ns)
         self._tracked_pub = self.publisher(keys.tracked(self.ns))
         self._det_inbox = self.subscribe_inbox(self._det_key, capacity=FRAME_CHANNEL)
-        self._track_pubs = KeyedPublishers(self.session, lambda tid: keys.track(self.ns, tid))
+        self._track_pubs = self.keyed_publishers(lambda tid: keys.track(self.ns, tid))
         if static_hints:
             self.subscribe(keys.motion_all(self.ns), MotionState, self._on_motion)
         self.spawn(self._worker, "worker")
@@ -149,10 +147,3 @@ class TrackerService(Service):
         for tid, payload in observations:
             self._track_pubs.put(tid, payload)
         self.counters.inc("published", len(observations) + 1)
-
-    def on_close(self) -> None:
-        """The worker has stopped (or is stopping): drop the per-track publishers before the session closes."""
-        for t in self._threads:
-            if t.name.endswith("-worker") and t is not threading.current_thread():
-                t.join(timeout=2.0)
-        self._track_pubs.close()
