@@ -341,9 +341,31 @@ def _blocks_valid(raws: list, block: _Block) -> bool:
     return bool(((values >= block.lo_array) & (values <= block.hi_array)).all())
 
 
+def block_rows(raws: list[msgspec.Raw], n: int) -> np.ndarray:
+    """``(len(raws), n)`` float64: the floats of raw blocks of ``n`` items from a ``raw_float_blocks`` codec
+    (already validated), all read in one pass."""
+    size = 3 + 9 * n  # array16 header, then one float64 (0xcb + 8 bytes) per item
+    a = np.frombuffer(b"".join(raws), dtype=np.uint8).reshape(len(raws), size)
+    return np.ascontiguousarray(a[:, 3:].reshape(len(raws), n, 9)[:, :, 1:]).view(">f8")[:, :, 0].astype(np.float64)
+
+
+def raw_blocks(rows: np.ndarray) -> list[msgspec.Raw]:
+    """The inverse of :func:`block_rows`: each row of floats as a canonical raw block (what such a codec keeps
+    and its encoder writes back verbatim)."""
+    m, n = rows.shape
+    size = 3 + 9 * n
+    out = np.empty((m, size), dtype=np.uint8)
+    out[:, :3] = (0xDC, n >> 8, n & 0xFF)
+    items = out[:, 3:].reshape(m, n, 9)
+    items[:, :, 0] = 0xCB
+    items[:, :, 1:] = np.ascontiguousarray(rows, dtype=">f8").view(np.uint8).reshape(m, n, 8)
+    data = out.tobytes()
+    return [msgspec.Raw(data[i * size:(i + 1) * size]) for i in range(m)]
+
+
 def block_values(raw: msgspec.Raw) -> np.ndarray:
-    """The floats of a raw block from a ``raw_float_blocks`` codec (already validated), as float64."""
-    return np.frombuffer(bytes(raw)[3:], dtype=np.uint8).reshape(-1, 9)[:, 1:].copy().view(">f8").ravel().astype(np.float64)
+    """The floats of one raw block from a ``raw_float_blocks`` codec (already validated), as float64."""
+    return block_rows([raw], (len(raw) - 3) // 9)[0]
 
 
 class StructCodec(Generic[M]):

@@ -25,7 +25,7 @@ import numpy as np
 
 from ...geometry import rotate_cov2, yaw_from_quaternion, yaws_from_quaternions
 from ...schemas import tracked_layout as tl
-from ...schemas.fast import StructCodec
+from ...schemas.fast import StructCodec, block_rows, raw_blocks
 from ...schemas.layout import RecordLayout
 from ...schemas.models import (
     COVARIANCE_SIZE,
@@ -77,7 +77,6 @@ def shape_area(shape: Shape) -> float:
 
 COV_BLOCK = 16
 """Covariances (36 floats) decoded by :func:`detections_codec` stay raw msgpack bytes (``raw_float_blocks``)."""
-_COV_BYTES = 3 + 9 * COVARIANCE_SIZE  # array16 header, then 0xcb + float64 per item
 
 
 def detections_codec() -> StructCodec:
@@ -90,23 +89,9 @@ def covariance_rows(covs: list[Any]) -> np.ndarray:
     """``(M, 36)`` float64 from covariances as tuples (models, plain Structs) or raw blocks (:func:`detections_codec`)."""
     if not covs:
         return np.zeros((0, COVARIANCE_SIZE))
-    if not isinstance(covs[0], msgspec.Raw):
-        return np.array(covs, dtype=np.float64).reshape(len(covs), COVARIANCE_SIZE)
-    raw = np.frombuffer(b"".join(covs), dtype=np.uint8).reshape(len(covs), _COV_BYTES)
-    return np.ascontiguousarray(raw[:, 3:].reshape(len(covs), COVARIANCE_SIZE, 9)[:, :, 1:]).view(">f8")[:, :, 0] \
-        .astype(np.float64)
-
-
-def covariance_blocks(rows: np.ndarray) -> list[msgspec.Raw]:
-    """``(M, 36)`` floats as raw msgpack blocks (what :func:`covariance_rows` reads), one per row."""
-    m = len(rows)
-    out = np.empty((m, _COV_BYTES), dtype=np.uint8)
-    out[:, :3] = (0xDC, 0, COVARIANCE_SIZE)
-    items = out[:, 3:].reshape(m, COVARIANCE_SIZE, 9)
-    items[:, :, 0] = 0xCB
-    items[:, :, 1:] = np.ascontiguousarray(rows, dtype=">f8").view(np.uint8).reshape(m, COVARIANCE_SIZE, 8)
-    data = out.tobytes()
-    return [msgspec.Raw(data[i * _COV_BYTES:(i + 1) * _COV_BYTES]) for i in range(m)]
+    if isinstance(covs[0], msgspec.Raw):
+        return block_rows(covs, COVARIANCE_SIZE)
+    return np.array(covs, dtype=np.float64).reshape(len(covs), COVARIANCE_SIZE)
 
 
 def decode_detections(codec: StructCodec, data: bytes) -> tl.DetectedRecords | Any:
@@ -150,7 +135,7 @@ def frame_from_message(msg: DetectedObjects | tl.DetectedRecords | Any) -> Detec
         return _frame_from_records(msg)
     objs = msg.objects
     m = len(objs)
-    cols = np.zeros((11, m))
+    cols = np.zeros((9, m))
     label = np.zeros(m, dtype=np.int8)
     has_cov = np.zeros(m, dtype=bool)
     orient = np.zeros(m, dtype=np.int8)
@@ -163,7 +148,7 @@ def frame_from_message(msg: DetectedObjects | tl.DetectedRecords | Any) -> Detec
         d = o.shape.dimensions
         length, width = (d.x, d.x) if o.shape.type == Shape.CYLINDER else (d.x, d.y)
         cols[:, i] = (p.x, p.y, p.z, yaw_from_quaternion(q.x, q.y, q.z, q.w), length, width, d.z,
-                      prob, o.existence_probability, 0.0, 0.0)
+                      prob, o.existence_probability)
         label[i] = lbl
         has_cov[i] = o.kinematics.has_position_covariance
         orient[i] = o.kinematics.orientation_availability
@@ -246,7 +231,7 @@ def detections_to_world(objects: list[Any], frame: DetectionFrame, result: Frame
     w = _world_columns(frame, result, rows, q, covariance_rows([p.covariance for p in pcs]), lin,
                        covariance_rows([t.covariance for t in twists]))
     raw = isinstance(pcs[0].covariance, msgspec.Raw)  # decoded by detections_codec: write raw blocks back
-    pack = covariance_blocks if raw else (lambda a: a.tolist())
+    pack = raw_blocks if raw else (lambda a: a.tolist())
     pcov = pack(w.pose_cov)
     px, py, pz = w.x.tolist(), w.y.tolist(), w.z.tolist()
     qx, qy, qz, qw = w.q.T.tolist()
