@@ -180,24 +180,26 @@ def bench_pipeline(objects: int = 200, rate_hz: float = 20.0, duration_s: float 
             data = gen.frame(0, stamp0)
             gc.collect()
             gc.disable()  # collected between frames below: the load generator must not pause mid-frame
-            for k in range(n_frames):
-                target = t0 + k / rate_hz
-                if not rss_first and target - t0 >= rss_at:
-                    rss_first = {n: vm_rss_kb(p.pid) for n, p in procs.items()}
-                now = time.perf_counter()
-                if target > now:
-                    time.sleep(target - now)
-                with lock:
-                    sent[k] = time.perf_counter()
-                pub.put(data)
-                # Build the next frame once this one is through (or half a period on), not while the pipeline
-                # works on it: the load generator must not take the CPU from what it measures.
-                settle = target + 0.5 / rate_hz
-                with lock:
-                    lock.wait_for(lambda: k in recv, timeout=max(0.0, settle - time.perf_counter()))
-                data = gen.frame(k + 1, stamp0 + int((k + 1) * 1e9 / rate_hz))
-                gc.collect(1)
-            gc.enable()
+            try:
+                for k in range(n_frames):
+                    target = t0 + k / rate_hz
+                    if not rss_first and target - t0 >= rss_at:
+                        rss_first = {n: vm_rss_kb(p.pid) for n, p in procs.items()}
+                    now = time.perf_counter()
+                    if target > now:
+                        time.sleep(target - now)
+                    with lock:
+                        sent[k] = time.perf_counter()
+                    pub.put(data)
+                    # Build the next frame once this one is through (or half a period on), not while the
+                    # pipeline works on it: the load generator must not take the CPU from what it measures.
+                    settle = target + 0.5 / rate_hz
+                    with lock:
+                        lock.wait_for(lambda: k in recv, timeout=max(0.0, settle - time.perf_counter()))
+                    data = gen.frame(k + 1, stamp0 + int((k + 1) * 1e9 / rate_hz))
+                    gc.collect(1)
+            finally:
+                gc.enable()
             wall = time.perf_counter() - t0
             drain = time.monotonic() + 5.0
             while time.monotonic() < drain:
