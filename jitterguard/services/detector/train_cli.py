@@ -54,11 +54,17 @@ def _scenarios(text: str) -> list[str]:
     return names
 
 
-def synthetic_cache(root: Path, scenarios: list[str], seeds: list[int], frames: int, progress: bool) -> Any:
+def synthetic_cache(root: Path, scenarios: list[str], seeds: list[int], frames: int, progress: bool,
+                    effects: str = "none") -> Any:
     """The cached synthetic samples for this recipe, ray-casting them first if the cache is missing or stale."""
     from .data import CachedSamples, build_cache, synthetic_samples
 
-    recipe = {"scenarios": scenarios, "seeds": seeds, "frames_per_scenario": frames}
+    recipe: dict[str, Any] = {"scenarios": scenarios, "seeds": seeds, "frames_per_scenario": frames}
+    if effects != "none":  # (keeps the name of caches written before effects existed)
+        from ...sim.effects import EFFECTS_VERSION
+
+        recipe["effects"] = effects
+        recipe["effects_version"] = EFFECTS_VERSION
     import hashlib
 
     name = "cache-" + hashlib.sha1(json.dumps(recipe, sort_keys=True).encode()).hexdigest()[:10]
@@ -70,9 +76,20 @@ def synthetic_cache(root: Path, scenarios: list[str], seeds: list[int], frames: 
     except Exception:  # noqa: BLE001 - missing or interrupted cache: rebuild
         pass
     total = len(scenarios) * len(seeds) * frames
-    build_cache(path, synthetic_samples(scenarios, seeds, frames_per_scenario=frames), total=total,
+    build_cache(path, synthetic_samples(scenarios, seeds, frames_per_scenario=frames, effects=effects), total=total,
                 progress=progress, meta={"recipe": recipe})
     return CachedSamples(path)
+
+
+def _present(dataroot: str, version: str | None, names: list[str]) -> list[str]:
+    """The scenes of an official split that this dataroot holds (a partial download trains on what is there)."""
+    from ..replay.sources.nuscenes import _load_table, find_version
+
+    have = {s["name"] for s in _load_table(Path(dataroot) / find_version(Path(dataroot), version), "scene")}
+    kept = [n for n in names if n in have]
+    if not kept:
+        fail(f"--split: none of the split's {len(names)} scenes is in {dataroot}")
+    return kept
 
 
 class _Prepared:
@@ -120,31 +137,60 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         train_seeds: Annotated[str, typer.Option("--train-seeds", help="Scenario seeds for training, e.g. 0-59.")] = "0-59",
         val_seeds: Annotated[str, typer.Option("--val-seeds", help="Seeds for per-epoch evaluation.")] = "900-901",
         frames: Annotated[int, typer.Option("--frames-per-scenario", min=1, max=600)] = 10,
-        nuscenes: Annotated[str | None, typer.Option("--nuscenes", help="Fine-tune on this nuScenes dataroot instead"
-                                                      " of synthetic scans.")] = None,
+        effects: Annotated[str, typer.Option("--effects", help="Synthetic scans: 'random' (uneven ground, glass,"
+                                             " dropout, measured intensity, drawn per scan), 'random-no-intensity',"
+                                             " or 'none' (ideal).")] = "random",
+        nuscenes: Annotated[str | None, typer.Option("--nuscenes", help="Train on this nuScenes dataroot instead of"
+                                                      " synthetic scans (with --init: fine-tune).")] = None,
+        nuscenes_version: Annotated[str | None, typer.Option("--nuscenes-version", help="Table folder, e.g."
+                                                              " v1.0-trainval (default: the only one).")] = None,
+        split: Annotated[str | None, typer.Option("--split", help="Official nuScenes split to train on (train,"
+                                                  " mini_train, ...); default: every scene minus --holdout-last.")] = None,
+        val_split: Annotated[str | None, typer.Option("--val-split", help="Official split to validate on (val,"
+                                                      " mini_val); with --split.")] = None,
+        sweeps: Annotated[int, typer.Option("--sweeps", min=1, max=20, help="LIDAR_TOP sweeps stacked per key frame"
+                                            " with a time channel (nuScenes; CenterPoint uses 10).")] = 1,
         holdout_last: Annotated[int, typer.Option("--holdout-last", min=1, help="Keyframes held out per scene"
-                                                  " (nuScenes).")] = 10,
+                                                  " (nuScenes without --split).")] = 10,
         init: Annotated[str | None, typer.Option("--init", help="Start from these weights (fine-tuning); the"
                                                  " learning-rate schedule starts afresh.")] = None,
         epochs: Annotated[int, typer.Option("--epochs", min=1, max=1000)] = 10,
-        batch_size: Annotated[int, typer.Option("--batch-size", min=1, max=256)] = 4,
+        batch_size: Annotated[int, typer.Option("--batch-size", min=1, max=256, help="Per process and"
+                                                " micro-batch.")] = 4,
+        accumulate: Annotated[int, typer.Option("--accumulate", min=1, max=256, help="Micro-batches per optimiser"
+                                                " step (gradient accumulation).")] = 1,
         lr: Annotated[float, typer.Option("--lr", min=1e-7, max=1.0)] = 2e-3,
         seed: Annotated[int, typer.Option("--seed", min=0)] = 0,
         threads: Annotated[int | None, typer.Option("--threads", min=1, max=1024)] = None,
         workers: Annotated[int, typer.Option("--workers", min=0, max=64, help="Data-loader processes.")] = 0,
+        amp: Annotated[bool, typer.Option("--amp/--no-amp", help="Mixed precision (CUDA only).")] = True,
+        sync_bn: Annotated[bool, typer.Option("--sync-bn/--no-sync-bn", help="Synchronise BatchNorm across"
+                                              " GPUs (CUDA, several processes).")] = True,
+        checkpoint_every: Annotated[int, typer.Option("--checkpoint-every", min=0, help="Also checkpoint every N"
+                                                      " steps within an epoch (0: per epoch).")] = 0,
+        max_steps: Annotated[int | None, typer.Option("--max-steps-per-epoch", min=1, help="Cut epochs short"
+                                                      " (quick runs, tests).")] = None,
         resume: Annotated[bool, typer.Option("--resume", help="Continue from OUT/checkpoint.pt.")] = False,
         fit_recalibration: Annotated[bool, typer.Option("--fit-recalibration/--no-fit-recalibration",
                                                         help="Fit per-axis variance scales on the validation split"
                                                         " and store them in weights.pt.")] = False,
         progress: Annotated[bool, typer.Option("--progress/--no-progress")] = True,
     ) -> None:
-        """Train the detector on synthetic scans, or fine-tune it on a nuScenes dataroot (``--nuscenes``)."""
+        """Train the detector on synthetic scans or a nuScenes dataroot; runs unchanged under ``torchrun``."""
+        from .data import EFFECTS
+
         if preset not in PRESETS:
             fail(f"--preset: expected one of {', '.join(PRESETS)}, got {preset!r}")
+        if effects not in EFFECTS:
+            fail(f"--effects: expected one of {', '.join(EFFECTS)}, got {effects!r}")
         if init is not None and not os.path.isfile(init):
             fail(f"--init: file not found: {init}")
         if nuscenes is not None and not os.path.isdir(nuscenes):
             fail(f"--nuscenes: not a directory: {nuscenes}")
+        if (split or val_split or sweeps > 1) and nuscenes is None:
+            fail("--split/--val-split/--sweeps: need --nuscenes")
+        if val_split and not split:
+            fail("--val-split: needs --split")
         scen = _scenarios(scenarios)
         tr_seeds, va_seeds = parse_seeds(train_seeds, "--train-seeds"), parse_seeds(val_seeds, "--val-seeds")
         if set(tr_seeds) & set(va_seeds) and nuscenes is None:
@@ -163,10 +209,11 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         from .evaluate import fit_recalibration as fit_scales  # not `fit_recalibration`: that is the flag
         from .inference import WeightsError, load_weights, save_weights
         from .network import CenterPointNet
-        from .train import TrainConfig, predict, train
+        from .train import TrainConfig, init_distributed, predict, train
 
         if threads:
             torch.set_num_threads(threads)
+        dc = init_distributed()
         root = Path(out)
         root.mkdir(parents=True, exist_ok=True)
         if init is not None:
@@ -177,34 +224,58 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             if vanilla == model.config.uncertainty:
                 fail("--init: weights are " + ("uncertainty-aware" if model.config.uncertainty else "vanilla")
                      + "; drop or add --vanilla to match")
+            if (sweeps > 1) != (model.config.num_point_features == 5):
+                fail(f"--init: weights take {model.config.num_point_features} point fields; --sweeps {sweeps} gives"
+                     f" {5 if sweeps > 1 else 4}")
         else:
             torch.manual_seed(seed)
-            model = CenterPointNet(dataclasses.replace(PRESETS[preset], uncertainty=not vanilla))
+            model = CenterPointNet(dataclasses.replace(PRESETS[preset], uncertainty=not vanilla,
+                                                       num_point_features=5 if sweeps > 1 else 4))
         pcr = model.config.point_cloud_range
         if nuscenes is not None:
             from ..replay.frames import SourceError
-            from .data import nuscenes_samples, split_holdout
+            from .data import NuScenesKeyframes, official_split, split_holdout
 
             try:
-                train_s, val_s = split_holdout(nuscenes_samples(nuscenes), last_n=holdout_last)
+                if split:
+                    train_s: Any = NuScenesKeyframes(nuscenes, nuscenes_version, _present(nuscenes, nuscenes_version,
+                                                     official_split(split)), sweeps=sweeps)
+                    val_s: Any = NuScenesKeyframes(nuscenes, nuscenes_version, _present(
+                        nuscenes, nuscenes_version, official_split(val_split)), sweeps=sweeps) if val_split else []
+                else:
+                    train_s, val_s = split_holdout(NuScenesKeyframes(nuscenes, nuscenes_version, sweeps=sweeps),
+                                                   last_n=holdout_last)
             except SourceError as exc:
                 fail(f"--nuscenes: {exc}")
-            source: dict[str, Any] = {"nuscenes": os.path.abspath(nuscenes), "holdout_last": holdout_last}
+            source: dict[str, Any] = {"nuscenes": os.path.abspath(nuscenes), "version": nuscenes_version,
+                                      "split": split, "val_split": val_split, "sweeps": sweeps,
+                                      "holdout_last": None if split else holdout_last}
         else:
-            train_s = synthetic_cache(root, scen, tr_seeds, frames, progress)
-            val_s = synthetic_cache(root, scen, va_seeds, frames, progress)
+            if dc.main:  # one process casts the caches, the others wait for them
+                synthetic_cache(root, scen, tr_seeds, frames, progress, effects)
+                synthetic_cache(root, scen, va_seeds, frames, progress, effects)
+            dc.barrier()
+            train_s = synthetic_cache(root, scen, tr_seeds, frames, False, effects)
+            val_s = synthetic_cache(root, scen, va_seeds, frames, False, effects)
             source = {"scenarios": scen, "train_seeds": train_seeds, "val_seeds": val_seeds,
-                      "frames_per_scenario": frames}
+                      "frames_per_scenario": frames, "effects": effects}
         train_v, val_v = _Prepared(train_s, pcr), _Prepared(val_s, pcr)
-        tcfg = TrainConfig(epochs=epochs, batch_size=batch_size, lr=lr, seed=seed, num_workers=workers)
+        tcfg = TrainConfig(epochs=epochs, batch_size=batch_size, lr=lr, seed=seed, num_workers=workers,
+                           accumulate=accumulate, amp=amp, sync_bn=sync_bn, checkpoint_every=checkpoint_every,
+                           max_steps_per_epoch=max_steps)
 
         def evaluate(dets: Any, samples: Any) -> dict[str, Any]:
             return evaluation_report(dets, samples)["summary"]
 
         meta = {"source": source, "init": init, "command": " ".join(["jitterguard", *sys.argv[1:]])}
+        if dc.distributed:
+            meta["launcher"] = f"torchrun, {dc.world} processes"
         state = train(model, train_v, val_v, tcfg, root, augment=random_augment, evaluate=evaluate,
-                      resume=resume, progress=progress, meta=meta)
-        val_list = [val_v[i] for i in range(len(val_v))]
+                      resume=resume, progress=progress, meta=meta, dist_ctx=dc)
+        if not dc.main:
+            return
+        model.cpu()
+        val_list = [val_v[i] for i in range(min(len(val_v), tcfg.max_eval_samples * 5))]
         dets = predict(model, val_list)
         rec = None
         if fit_recalibration and model.config.uncertainty:
@@ -215,7 +286,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         if rec is not None:
             save_weights(root / "weights.pt", model, recalibration=rec,
                          meta={**meta, "epochs": state.epoch, "recalibration_fit_on": "validation split"})
-        summary = write_report(root / "report", "validation", dets, val_list)["summary"]
+        summary = write_report(root / "report", "validation", dets, val_list)["summary"] if val_list else None
         typer.echo(json.dumps({"weights": str(root / "weights.pt"), "epochs": state.epoch,
                                "recalibration": rec, "validation": summary}))
 
