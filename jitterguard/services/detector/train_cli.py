@@ -92,6 +92,12 @@ def _present(dataroot: str, version: str | None, names: list[str]) -> list[str]:
     return kept
 
 
+def dataclasses_asdict(obj: Any) -> dict[str, Any]:
+    import dataclasses
+
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(obj).items()}
+
+
 class _Prepared:
     """Range-filtered view of a sample sequence (the network never sees points outside its grid)."""
 
@@ -109,12 +115,18 @@ class _Prepared:
         return filter_range(self.samples[i], self.pcr)
 
 
-def write_report(out: Path, name: str, dets: Any, samples: Any) -> dict[str, Any]:
-    """Evaluation JSON plus the PR and calibration PNGs under ``out``."""
-    from .evaluate import evaluation_report
+def write_report(out: Path, name: str, dets: Any, samples: Any, *, bootstrap: int = 0,
+                 extra: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Evaluation JSON plus the PR and calibration PNGs under ``out``; ``bootstrap`` resamples of the frames
+    give 90 % intervals of the per-class AP and the ±1σ coverage (``summary["intervals"]``)."""
+    from .evaluate import bootstrap_intervals, evaluation_report
     from .plots import calibration_plot, pr_plot
 
     rep = evaluation_report(dets, samples, include_curves=True)
+    if bootstrap:
+        rep["summary"]["intervals"] = bootstrap_intervals(dets, samples, resamples=bootstrap)
+    if extra:
+        rep.update(extra)
     out.mkdir(parents=True, exist_ok=True)
     pr_plot(rep["detection"], out / f"{name}_pr.png")
     if rep["calibration"] is not None:
@@ -290,6 +302,100 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         typer.echo(json.dumps({"weights": str(root / "weights.pt"), "epochs": state.epoch,
                                "recalibration": rec, "validation": summary}))
 
+    @app.command("adapt")
+    def adapt_cmd(
+        weights: Annotated[str, typer.Option("--weights", help="Weights to adapt (e.g. the shipped synthetic ones).")],
+        out: Annotated[str, typer.Option("--out", help="Run folder: rounds, weights.pt, adapt.json.")],
+        scans: Annotated[list[str], typer.Option("--scans", help="Unlabelled real recordings (repeatable): a nuScenes"
+                                                 " dataroot, KITTI .bin folder or file, PCD, bag. Labels are never"
+                                                 " read.")],
+        rounds: Annotated[int, typer.Option("--rounds", min=0, max=20, help="Self-training rounds (0: only"
+                                            " normalisation statistics and recalibration).")] = 2,
+        epochs: Annotated[int, typer.Option("--epochs", min=1, max=100, help="Epochs per round.")] = 2,
+        batch_size: Annotated[int, typer.Option("--batch-size", min=1, max=64)] = 2,
+        lr: Annotated[float, typer.Option("--lr", min=1e-7, max=1.0)] = 5e-4,
+        scenarios: Annotated[str, typer.Option("--scenarios", help="Synthetic scenarios mixed in.")] = DEFAULT_SCENARIOS,
+        synthetic_seeds: Annotated[str, typer.Option("--synthetic-seeds", help="Labelled synthetic scans mixed into"
+                                                     " self-training (seeds).")] = "0-9",
+        frames: Annotated[int, typer.Option("--frames-per-scenario", min=1, max=600)] = 5,
+        effects: Annotated[str, typer.Option("--effects")] = "random",
+        real_repeat: Annotated[int, typer.Option("--real-repeat", min=1, max=100, help="Times each real scan is"
+                                                 " seen per epoch.")] = 2,
+        threshold: Annotated[list[str] | None, typer.Option("--threshold", help="CLASS=SCORE minimum score of a"
+                                                            " pseudo-label (repeatable).")] = None,
+        max_scans: Annotated[int | None, typer.Option("--max-scans", min=1)] = None,
+        recalibrate: Annotated[bool, typer.Option("--recalibrate/--no-recalibrate", help="Fit per-axis variance"
+                                                  " scales from tracked residuals (recordings with poses).")] = True,
+        seed: Annotated[int, typer.Option("--seed", min=0)] = 0,
+        threads: Annotated[int | None, typer.Option("--threads", min=1, max=1024)] = None,
+        progress: Annotated[bool, typer.Option("--progress/--no-progress")] = True,
+    ) -> None:
+        """Adapt weights to unlabelled real scans: normalisation statistics, self-training, recalibration."""
+        from .adapt import DEFAULT_PSEUDO_THRESHOLDS
+        from .config import CLASS_NAMES
+        from .data import EFFECTS
+
+        if not os.path.isfile(weights):
+            fail(f"--weights: file not found: {weights}")
+        if effects not in EFFECTS:
+            fail(f"--effects: expected one of {', '.join(EFFECTS)}, got {effects!r}")
+        thr = list(DEFAULT_PSEUDO_THRESHOLDS)
+        for item in threshold or []:
+            name, sep, val = item.partition("=")
+            try:
+                score = float(val)
+            except ValueError:
+                score = -1.0
+            if not sep or name not in CLASS_NAMES or not 0.0 < score < 1.0:
+                fail(f"--threshold: expected CLASS=SCORE with CLASS one of {', '.join(CLASS_NAMES)} and 0 < SCORE < 1,"
+                     f" got {item!r}")
+            thr[CLASS_NAMES.index(name)] = score
+        scen = _scenarios(scenarios)
+        syn_seeds = parse_seeds(synthetic_seeds, "--synthetic-seeds")
+        logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+        from .cli import passive_openmp, retain_heap
+
+        passive_openmp()  # before torch is imported
+        retain_heap()
+        import hashlib
+
+        import torch
+
+        from ..replay.frames import SourceError
+        from .adapt import AdaptConfig, adapt, describe, read_unlabelled
+        from .augment import random_augment
+        from .inference import WeightsError, load_weights, save_weights
+
+        if threads:
+            torch.set_num_threads(threads)
+        try:
+            model, source_rec, source_meta = load_weights(weights)
+        except WeightsError as exc:
+            fail(f"--weights: {exc}")
+        try:
+            real = read_unlabelled(scans, max_scans=max_scans)
+        except SourceError as exc:
+            fail(f"--scans: {exc}")
+        root = Path(out)
+        root.mkdir(parents=True, exist_ok=True)
+        synthetic = _Prepared(synthetic_cache(root, scen, syn_seeds, frames, progress, effects),
+                              model.config.point_cloud_range) if rounds else []
+        cfg = AdaptConfig(rounds=rounds, epochs=epochs, batch_size=batch_size, lr=lr, seed=seed, thresholds=tuple(thr),
+                          real_repeat=real_repeat, recalibrate=recalibrate)
+        report = adapt(model, real, synthetic, cfg, root, augment=random_augment, progress=progress)
+        rec = report["recalibration"]
+        scales = tuple(rec["scales"]) if rec else source_rec
+        sha = hashlib.sha256(Path(weights).read_bytes()).hexdigest()[:16]
+        meta = {"command": " ".join(["jitterguard", *sys.argv[1:]]), "adapted_from": {"path": os.path.abspath(weights),
+                "sha256_16": sha, "source": source_meta.get("source")}, "unlabelled_scans": describe(real),
+                "labels_read": False, "adapt": {**dataclasses_asdict(cfg), "synthetic_seeds": synthetic_seeds,
+                                                "scenarios": scen, "effects": effects},
+                "report": report,
+                "recalibration_fit_on": rec["fit_on"] if rec else "unchanged from the source weights"}
+        save_weights(root / "weights.pt", model, recalibration=scales, meta=meta)
+        (root / "adapt.json").write_text(json.dumps(meta, indent=1))
+        typer.echo(json.dumps({"weights": str(root / "weights.pt"), "scans": len(real), "report": report}))
+
     @app.command("eval-detector")
     def eval_detector_cmd(
         out: Annotated[str, typer.Option("--out", help="Folder for the JSON report and the PR/calibration PNGs.")],
@@ -298,9 +404,13 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         scenarios: Annotated[str, typer.Option("--scenarios")] = DEFAULT_SCENARIOS,
         seeds: Annotated[str, typer.Option("--seeds", help="Hold-out seeds (never used in training).")] = "1000-1004",
         frames: Annotated[int, typer.Option("--frames-per-scenario", min=1, max=600)] = 10,
-        nuscenes: Annotated[str | None, typer.Option("--nuscenes", help="Evaluate on this dataroot's held-out"
-                                                      " keyframes instead.")] = None,
-        holdout_last: Annotated[int, typer.Option("--holdout-last", min=1)] = 10,
+        nuscenes: Annotated[str | None, typer.Option("--nuscenes", help="Evaluate on this nuScenes dataroot's key"
+                                                      " frames instead (all of them, unless the weights were"
+                                                      " trained on it: then its held-out ones).")] = None,
+        holdout_last: Annotated[int | None, typer.Option("--holdout-last", min=1, help="Score only each scene's"
+                                                         " last N key frames.")] = None,
+        bootstrap: Annotated[int, typer.Option("--bootstrap", min=0, max=10000, help="Resamples over frames for"
+                                               " 90 %% intervals of AP and coverage (0: none).")] = 1000,
         recalibrate: Annotated[bool, typer.Option("--recalibrate/--no-recalibrate",
                                                   help="Apply the weights' fitted variance scales.")] = True,
         threads: Annotated[int | None, typer.Option("--threads", min=1, max=1024)] = None,
@@ -323,10 +433,26 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             det = Detector.load(weights, preset, threads=threads, recalibrate=recalibrate)
         except WeightsError as exc:
             fail(f"--weights: {exc}")
+        scored_on: dict[str, Any] = {}
         if nuscenes is not None:
+            from ..replay.frames import SourceError
             from .data import nuscenes_samples, split_holdout
 
-            samples: Any = split_holdout(nuscenes_samples(nuscenes), last_n=holdout_last)[1]
+            if not os.path.isdir(nuscenes):
+                fail(f"--nuscenes: not a directory: {nuscenes}")
+            trained = (det.meta.get("source") or {}) if isinstance(det.meta.get("source"), dict) else {}
+            seen = trained.get("nuscenes") == os.path.abspath(nuscenes)
+            last = holdout_last or (int(trained.get("holdout_last") or 10) if seen else None)
+            try:
+                every = nuscenes_samples(nuscenes)
+            except SourceError as exc:
+                fail(f"--nuscenes: {exc}")
+            samples: Any = split_holdout(every, last_n=last)[1] if last else every
+            scored_on = {"nuscenes": os.path.abspath(nuscenes), "key_frames": len(samples),
+                         "holdout_last": last, "weights_trained_on_it": seen}
+            if seen and not holdout_last:
+                log.warning("these weights were trained on %s: scoring only its held-out last %d key frames",
+                            nuscenes, last)
         else:
             samples = synthetic_cache(Path(out), scen, sd, frames, progress)
         view = _Prepared(samples, det.config.point_cloud_range)
@@ -339,5 +465,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             dets.append(det.detect(s.points))
             bar.update(1)
         bar.close()
-        summary = write_report(Path(out), name, dets, items)["summary"]
+        summary = write_report(Path(out), name, dets, items, bootstrap=bootstrap, extra={"scored_on": scored_on,
+                               "weights": os.path.abspath(weights) if weights else "shipped " + preset,
+                               "recalibrated": det.recalibration is not None})["summary"]
         typer.echo(json.dumps({"samples": len(items), **summary}))
