@@ -12,6 +12,9 @@ import re
 from pathlib import Path
 
 import pytest
+import typer
+
+from jitterguard.cli import app
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
@@ -130,3 +133,24 @@ def test_readme_is_short_and_names_the_commands_ci_runs() -> None:
     assert len(readme.splitlines()) <= 250
     assert "bash scripts/run.sh" in readme and "bash scripts/test.sh" in readme
     assert "bash scripts/test.sh" in (ROOT / ".ci" / "run").read_text(encoding="utf-8")
+
+
+def test_cli_page_lists_every_command_and_flag() -> None:
+    """docs/cli.md promises every command and flag: each command has its section and each option its name."""
+    page = (DOCS / "cli.md").read_text(encoding="utf-8")
+    missing: list[str] = []
+
+    def walk(cmd, path: str) -> None:
+        if hasattr(cmd, "commands"):
+            for name, sub in cmd.commands.items():
+                walk(sub, f"{path} {name}")
+            return
+        if f"### `{path}`" not in page:
+            missing.append(path)
+        for param in cmd.params:
+            for opt in getattr(param, "opts", []) + getattr(param, "secondary_opts", []):
+                if opt.startswith("-") and opt != "--help" and f"`{opt}`" not in page:
+                    missing.append(f"{path} {opt}")
+
+    walk(typer.main.get_command(app), "jitterguard")
+    assert missing == []
