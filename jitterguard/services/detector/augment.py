@@ -127,6 +127,28 @@ def random_augment(
     return out
 
 
+@dataclass(frozen=True)
+class TrainAugment:
+    """The training augmentation as one picklable callable (DataLoader workers get a copy): CenterPoint's
+    :func:`random_augment` with rotations uniform in ±``rotation_deg``, then — when ``tilt_deg`` > 0 — a
+    :func:`global_tilt` with pitch and roll ~ N(0, ``tilt_deg``) and a height shift ~ N(0, 0.05 m per degree).
+
+    A full ±180° rotation makes the detector indifferent to how its sensor frame is turned (nuScenes' LIDAR_TOP
+    has x to the right, KITTI's x forward, synthetic scans x forward)."""
+
+    rotation_deg: float = 45.0
+    tilt_deg: float = 0.0
+
+    def __call__(self, sample: Sample, rng: np.random.Generator) -> Sample:
+        r = math.radians(self.rotation_deg)
+        out = random_augment(sample, rng, rotation=(-r, r))
+        if self.tilt_deg > 0:
+            t = math.radians(self.tilt_deg)
+            out = global_tilt(out, float(rng.normal(0, t)), float(rng.normal(0, t)),
+                              float(rng.normal(0, 0.05 * self.tilt_deg)))
+        return out
+
+
 def filter_range(sample: Sample, point_cloud_range: Sequence[float]) -> Sample:
     """Drop points outside the detector's ``(x_min, y_min, z_min, x_max, y_max, z_max)`` and boxes whose
     centre lies outside it in bird's-eye view (as mmdet3d's ObjectRangeFilter: heights are not checked, because

@@ -25,7 +25,7 @@ from typing import overload
 import numpy as np
 from numpy.typing import NDArray
 
-from ...sim.effects import draw_effects
+from ...sim.effects import draw_effects, parse_components
 from ...sim.lidar import ScanResult, cast_frame
 from ...sim.sensors import LidarSpec, hdl32e
 from ...sim.world import GroundTruthFrame, make_scenario
@@ -56,9 +56,6 @@ from .data_nuscenes import (  # noqa: F401  (re-exported)
 
 F32 = NDArray[np.float32]
 I64 = NDArray[np.int64]
-
-EFFECTS: tuple[str, ...] = ("none", "random", "random-no-intensity")
-"""Choices of :func:`synthetic_samples`' ``effects``."""
 
 CACHE_INDEX = "index.json"
 CACHE_FORMAT = 1
@@ -133,26 +130,25 @@ def synthetic_samples(
     ``duration_s`` scenario, ray-cast with ``sensor`` (HDL-32E, nuScenes' LIDAR_TOP, by default).
 
     ``effects``: ``"none"`` casts the ideal scan; ``"random"`` draws each scan's
-    :class:`~jitterguard.sim.effects.ScanEffects` (uneven ground, glass, dropout, noise, measured intensity) with
-    :func:`~jitterguard.sim.effects.draw_effects` — the domain randomisation the shipped weights train with;
-    ``"random-no-intensity"`` the same with every intensity 0.
+    :class:`~jitterguard.sim.effects.ScanEffects` (uneven ground, glass, dropout, noise, the ego's roof, mixed
+    pixels, street clutter, open scenery, measured intensity) with :func:`~jitterguard.sim.effects.draw_effects`
+    — the domain randomisation the shipped weights train with; a comma list picks components
+    (:func:`~jitterguard.sim.effects.parse_components`, e.g. ``"ground,glass"`` or ``"random,no-intensity"``).
 
     Deterministic: the same arguments give the same samples (the scan's noise and effects are seeded by
     ``scan_seed``, the scenario, its seed and the frame). Tokens are ``synthetic/{scenario}/{seed}/{seq}``.
     Yields ``len(scenarios) * len(seeds) * frames_per_scenario`` samples (fewer if a scenario has fewer
     frames), scenario-major."""
-    if effects not in EFFECTS:
-        raise ValueError(f"effects must be one of {', '.join(EFFECTS)}, got {effects!r}")
+    components = parse_components(effects)
     spec = sensor or hdl32e()
     for name in scenarios:
         for seed in seeds:
             sc = make_scenario(name, int(seed), duration_s, rate_hz)
             for i in spread_indices(len(sc), frames_per_scenario):
                 fx = None
-                if effects != "none":
+                if components:
                     key = int.from_bytes(name.encode(), "little") % (2**31)
-                    fx = draw_effects(np.random.default_rng([scan_seed, key, int(seed), i]),
-                                      intensity="none" if effects == "random-no-intensity" else "measured")
+                    fx = draw_effects(np.random.default_rng([scan_seed, key, int(seed), i]), components)
                 scan, frame = cast_frame(sc.frame(i), spec, scan_seed, effects=fx)
                 yield sample_from_scan(frame, scan, spec.mount_height_m, f"synthetic/{name}/{seed}/{frame.seq}")
 

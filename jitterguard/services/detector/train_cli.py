@@ -59,11 +59,12 @@ def synthetic_cache(root: Path, scenarios: list[str], seeds: list[int], frames: 
     """The cached synthetic samples for this recipe, ray-casting them first if the cache is missing or stale."""
     from .data import CachedSamples, build_cache, synthetic_samples
 
-    recipe: dict[str, Any] = {"scenarios": scenarios, "seeds": seeds, "frames_per_scenario": frames}
-    if effects != "none":  # (keeps the name of caches written before effects existed)
-        from ...sim.effects import EFFECTS_VERSION
+    from ...sim.effects import EFFECTS_VERSION, parse_components
 
-        recipe["effects"] = effects
+    recipe: dict[str, Any] = {"scenarios": scenarios, "seeds": seeds, "frames_per_scenario": frames}
+    components = parse_components(effects)
+    if components:  # (keeps the name of caches written before effects existed)
+        recipe["effects"] = ",".join(components)
         recipe["effects_version"] = EFFECTS_VERSION
     import hashlib
 
@@ -79,6 +80,15 @@ def synthetic_cache(root: Path, scenarios: list[str], seeds: list[int], frames: 
     build_cache(path, synthetic_samples(scenarios, seeds, frames_per_scenario=frames, effects=effects), total=total,
                 progress=progress, meta={"recipe": recipe})
     return CachedSamples(path)
+
+
+def _effects(spec: str) -> tuple[str, ...]:
+    from ...sim.effects import parse_components
+
+    try:
+        return parse_components(spec)
+    except ValueError as exc:
+        fail(f"--effects: {exc}")
 
 
 def _present(dataroot: str, version: str | None, names: list[str]) -> list[str]:
@@ -149,9 +159,14 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         train_seeds: Annotated[str, typer.Option("--train-seeds", help="Scenario seeds for training, e.g. 0-59.")] = "0-59",
         val_seeds: Annotated[str, typer.Option("--val-seeds", help="Seeds for per-epoch evaluation.")] = "900-901",
         frames: Annotated[int, typer.Option("--frames-per-scenario", min=1, max=600)] = 10,
-        effects: Annotated[str, typer.Option("--effects", help="Synthetic scans: 'random' (uneven ground, glass,"
-                                             " dropout, measured intensity, drawn per scan), 'random-no-intensity',"
-                                             " or 'none' (ideal).")] = "random",
+        effects: Annotated[str, typer.Option("--effects", help="Sim-to-real effects of the synthetic scans, drawn"
+                                             " per scan: 'random' (all), 'none' (ideal scans), or a comma list of"
+                                             " ground, glass, dropout, noise, roof, mixed, clutter, open, intensity,"
+                                             " no-intensity.")] = "random",
+        rotation: Annotated[float, typer.Option("--rotation", min=0.0, max=180.0, help="Global rotation"
+                                                " augmentation: uniform in ± this many degrees.")] = 45.0,
+        tilt_aug: Annotated[float, typer.Option("--tilt-aug", min=0.0, max=10.0, help="Pitch/roll augmentation SD"
+                                                " in degrees (and 0.05 m per degree of height).")] = 0.0,
         nuscenes: Annotated[str | None, typer.Option("--nuscenes", help="Train on this nuScenes dataroot instead of"
                                                       " synthetic scans (with --init: fine-tune).")] = None,
         nuscenes_version: Annotated[str | None, typer.Option("--nuscenes-version", help="Table folder, e.g."
@@ -189,12 +204,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         progress: Annotated[bool, typer.Option("--progress/--no-progress")] = True,
     ) -> None:
         """Train the detector on synthetic scans or a nuScenes dataroot; runs unchanged under ``torchrun``."""
-        from .data import EFFECTS
-
         if preset not in PRESETS:
             fail(f"--preset: expected one of {', '.join(PRESETS)}, got {preset!r}")
-        if effects not in EFFECTS:
-            fail(f"--effects: expected one of {', '.join(EFFECTS)}, got {effects!r}")
+        _effects(effects)
         if init is not None and not os.path.isfile(init):
             fail(f"--init: file not found: {init}")
         if nuscenes is not None and not os.path.isdir(nuscenes):
@@ -216,7 +228,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
 
         import torch
 
-        from .augment import random_augment
+        from .augment import TrainAugment
         from .evaluate import evaluation_report
         from .evaluate import fit_recalibration as fit_scales  # not `fit_recalibration`: that is the flag
         from .inference import WeightsError, load_weights, save_weights
@@ -270,7 +282,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             train_s = synthetic_cache(root, scen, tr_seeds, frames, False, effects)
             val_s = synthetic_cache(root, scen, va_seeds, frames, False, effects)
             source = {"scenarios": scen, "train_seeds": train_seeds, "val_seeds": val_seeds,
-                      "frames_per_scenario": frames, "effects": effects}
+                      "frames_per_scenario": frames, "effects": ",".join(_effects(effects)) or "none"}
         train_v, val_v = _Prepared(train_s, pcr), _Prepared(val_s, pcr)
         tcfg = TrainConfig(epochs=epochs, batch_size=batch_size, lr=lr, seed=seed, num_workers=workers,
                            accumulate=accumulate, amp=amp, sync_bn=sync_bn, checkpoint_every=checkpoint_every,
@@ -282,7 +294,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         meta = {"source": source, "init": init, "command": " ".join(["jitterguard", *sys.argv[1:]])}
         if dc.distributed:
             meta["launcher"] = f"torchrun, {dc.world} processes"
-        state = train(model, train_v, val_v, tcfg, root, augment=random_augment, evaluate=evaluate,
+        augment = TrainAugment(rotation, tilt_aug)
+        meta["augment"] = {"rotation_deg": rotation, "tilt_deg": tilt_aug}
+        state = train(model, train_v, val_v, tcfg, root, augment=augment, evaluate=evaluate,
                       resume=resume, progress=progress, meta=meta, dist_ctx=dc)
         if not dc.main:
             return
@@ -333,12 +347,10 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         """Adapt weights to unlabelled real scans: normalisation statistics, self-training, recalibration."""
         from .adapt import DEFAULT_PSEUDO_THRESHOLDS
         from .config import CLASS_NAMES
-        from .data import EFFECTS
 
         if not os.path.isfile(weights):
             fail(f"--weights: file not found: {weights}")
-        if effects not in EFFECTS:
-            fail(f"--effects: expected one of {', '.join(EFFECTS)}, got {effects!r}")
+        _effects(effects)
         thr = list(DEFAULT_PSEUDO_THRESHOLDS)
         for item in threshold or []:
             name, sep, val = item.partition("=")
@@ -363,7 +375,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
 
         from ..replay.frames import SourceError
         from .adapt import AdaptConfig, adapt, describe, read_unlabelled
-        from .augment import random_augment
+        from .augment import TrainAugment
         from .inference import WeightsError, load_weights, save_weights
 
         if threads:
@@ -382,7 +394,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                               model.config.point_cloud_range) if rounds else []
         cfg = AdaptConfig(rounds=rounds, epochs=epochs, batch_size=batch_size, lr=lr, seed=seed, thresholds=tuple(thr),
                           real_repeat=real_repeat, recalibrate=recalibrate)
-        report = adapt(model, real, synthetic, cfg, root, augment=random_augment, progress=progress)
+        aug = TrainAugment(**(source_meta.get("augment") or {}))  # as the source weights were trained
+        report = adapt(model, real, synthetic, cfg, root, augment=aug, progress=progress)
         rec = report["recalibration"]
         scales = tuple(rec["scales"]) if rec else source_rec
         sha = hashlib.sha256(Path(weights).read_bytes()).hexdigest()[:16]
@@ -395,6 +408,46 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         save_weights(root / "weights.pt", model, recalibration=scales, meta=meta)
         (root / "adapt.json").write_text(json.dumps(meta, indent=1))
         typer.echo(json.dumps({"weights": str(root / "weights.pt"), "scans": len(real), "report": report}))
+
+    @app.command("domain-gap")
+    def domain_gap_cmd(
+        out: Annotated[str, typer.Option("--out", help="Folder for domain_gap.json and domain_gap.png.")],
+        nuscenes: Annotated[str, typer.Option("--nuscenes", help="Real nuScenes dataroot (its boxes give the"
+                                              " per-car figures).")],
+        effects: Annotated[list[str] | None, typer.Option("--effects", help="Synthetic scans to compare, one set per"
+                                                          " flag (see train --effects).")] = None,
+        scenarios: Annotated[str, typer.Option("--scenarios")] = DEFAULT_SCENARIOS,
+        seeds: Annotated[str, typer.Option("--seeds")] = "1000-1001",
+        frames: Annotated[int, typer.Option("--frames-per-scenario", min=1, max=600)] = 5,
+    ) -> None:
+        """Measure how real scans differ from synthetic ones (returns by range, on cars, road height)."""
+        if not os.path.isdir(nuscenes):
+            fail(f"--nuscenes: not a directory: {nuscenes}")
+        specs = effects or ["none", "random"]
+        for e in specs:
+            _effects(e)
+        scen = _scenarios(scenarios)
+        sd = parse_seeds(seeds, "--seeds")
+        from ..replay.frames import SourceError
+        from .data import nuscenes_samples, synthetic_samples
+        from .domain_gap import comparison_plot, scan_statistics
+
+        try:
+            real = nuscenes_samples(nuscenes)
+        except SourceError as exc:
+            fail(f"--nuscenes: {exc}")
+        stats = {f"real ({Path(nuscenes).name})": scan_statistics(real)}
+        for e in specs:
+            stats[f"synthetic, effects {e}"] = scan_statistics(
+                list(synthetic_samples(scen, sd, frames_per_scenario=frames, effects=e)))
+        root = Path(out)
+        root.mkdir(parents=True, exist_ok=True)
+        (root / "domain_gap.json").write_text(json.dumps(stats, indent=1))
+        comparison_plot(stats, str(root / "domain_gap.png"))
+        typer.echo(json.dumps({name: {"valid_returns_per_scan": round(st["valid_returns_per_scan"]),
+                                      "car_intensity_p10_50_90": st["car_intensity_p10_50_90"],
+                                      "returns_per_car_10_20m": st["bands"][2]["returns_per_car_median"]}
+                               for name, st in stats.items()}))
 
     @app.command("eval-detector")
     def eval_detector_cmd(
