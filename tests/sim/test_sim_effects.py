@@ -106,3 +106,20 @@ def test_drawn_effects_are_seeded_and_within_their_ranges() -> None:
         assert abs(fx.ground_offset(np.array([0.0]), np.array([0.0]))[0]) < 0.6
     with pytest.raises(ValueError, match="intensity"):
         ScanEffects(intensity="bright")
+
+
+def test_components_switch_effects_on_one_at_a_time_with_the_same_draws() -> None:
+    from jitterguard.sim.effects import COMPONENTS, parse_components
+
+    assert parse_components("random") == tuple(sorted(COMPONENTS)) and parse_components("none") == ()
+    assert parse_components("glass, ground") == ("glass", "ground")
+    assert "intensity" not in parse_components("random,no-intensity")
+    with pytest.raises(ValueError, match="moon"):
+        parse_components("ground,moon")
+    full = draw_effects(np.random.default_rng(4))
+    glass = draw_effects(np.random.default_rng(4), ("glass",))
+    assert glass.glass_pass == full.glass_pass and glass.flat and glass.object_dropout == 0.0
+    assert glass.intensity == "legacy" and glass.clutter_density == 0.0 and not glass.ego_body
+    ground = draw_effects(np.random.default_rng(4), ("ground",))
+    assert ground.tilt == full.tilt and ground.glass_pass == 0.0
+    assert draw_effects(np.random.default_rng(4), ("no-intensity",)).intensity == "none"
