@@ -33,7 +33,7 @@ from .primitives import PrimitiveList, Primitives, Tag
 
 F64 = NDArray[np.float64]
 
-EFFECTS_VERSION = 2
+EFFECTS_VERSION = 3
 """Bumped whenever :func:`draw_effects` or the way effects are applied changes: caches of scans cast with
 effects name it in their recipe, so a stale cache is rebuilt rather than silently reused."""
 
@@ -92,6 +92,13 @@ class ScanEffects:
     """Extra street clutter per scan (kerbs, low walls, fences, bushes, bollards, barriers, bins), in pieces per
     100 m² of the 60 m × 60 m around the sensor; placed off the road users (see :func:`street_clutter`)."""
     clutter_seed: int = 0
+    motion: bool = False
+    """Motion within the sweep: the scan takes one turn (1 / spin rate); each azimuth sector is measured when
+    the sensor and the road users were where they were at that moment, and reported in the sensor frame at the
+    end of the turn without de-skewing (nuScenes' LIDAR_TOP sweeps are not motion-compensated), so a static
+    world is smeared by up to the ego's speed × 50 ms along the heading and moving objects by their own motion."""
+    sweep_start: float = 0.0
+    """Azimuth (rad) at which the turn starts (where the seam between the oldest and newest returns lies)."""
     building_drop: float = 0.0
     """Probability that each building block of the scenery is left out of this scan: open squares, lots and
     roundabouts instead of street canyons (real scans see the ground rings to 40 m in many directions)."""
@@ -121,7 +128,8 @@ class ScanEffects:
         return h
 
 
-COMPONENTS: tuple[str, ...] = ("ground", "glass", "dropout", "noise", "roof", "mixed", "clutter", "open", "intensity")
+COMPONENTS: tuple[str, ...] = ("ground", "glass", "dropout", "noise", "roof", "mixed", "clutter", "open", "intensity",
+                                "motion")
 """What :func:`draw_effects` can switch on, one at a time (``parse_components``): uneven ground, glass, lost
 returns on road users, range noise, the ego's roof, mixed pixels, street clutter, open scenery (buildings
 left out) and measured intensities (without it: the ideal intensity model; ``no-intensity``: all zeros)."""
@@ -180,6 +188,7 @@ def draw_effects(rng: np.random.Generator, components: Sequence[str] = COMPONENT
     mixed = float(rng.uniform(0.0, 0.3))
     clutter, clutter_seed = float(rng.uniform(0.05, 0.4)), int(rng.integers(2**31))
     drop = float(rng.uniform(0.0, 0.9))
+    start = float(rng.uniform(-math.pi, math.pi))
     return ScanEffects(
         mount_offset_m=mount if s else 0.0,
         tilt=(float(tilt[0]), float(tilt[1])) if s else (0.0, 0.0),
@@ -195,6 +204,8 @@ def draw_effects(rng: np.random.Generator, components: Sequence[str] = COMPONENT
         clutter_density=clutter if "clutter" in on else 0.0,
         clutter_seed=clutter_seed,
         building_drop=drop if "open" in on else 0.0,
+        motion="motion" in on,
+        sweep_start=start,
     )
 
 

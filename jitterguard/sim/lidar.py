@@ -137,15 +137,18 @@ def _extents(p: Primitives) -> tuple[F64, F64, F64, F64]:
     return lo, hi, near, far
 
 
-def terrain_rho(spec: LidarSpec, effects: ScanEffects) -> F64:
+def terrain_rho(spec: LidarSpec, effects: ScanEffects, columns: NDArray[np.bool_] | None = None) -> F64:
     """Horizontal distance (per ray, column-major like :func:`cast`'s ray index) at which each ray meets the
-    effects' ground, inf where it does not within the grid: the first sample where the ray has dropped below
-    the surface, interpolated linearly between that sample and the one before."""
+    effects' ground, inf where it does not within the grid (or its column is not in ``columns``): the first
+    sample where the ray has dropped below the surface, interpolated linearly between that sample and the one
+    before."""
     tb = _tables(spec)
     nb, na = spec.num_beams, spec.azimuth_steps
-    out = np.full((na, nb), np.inf)
+    full = np.full((na, nb), np.inf)
+    cols_idx = np.arange(na) if columns is None else np.flatnonzero(columns)
+    out = np.full((len(cols_idx), nb), np.inf)
     tan_el = np.tan(tb.el)
-    ca, sa = tb.cos_az.astype(np.float64), tb.sin_az.astype(np.float64)
+    ca, sa = tb.cos_az[cols_idx].astype(np.float64), tb.sin_az[cols_idx].astype(np.float64)
     rho = _RHO_GRID
     x = ca[:, None] * rho[None, :]  # (na, K)
     y = sa[:, None] * rho[None, :]
@@ -160,14 +163,17 @@ def terrain_rho(spec: LidarSpec, effects: ScanEffects) -> F64:
         f0, f1 = f[cols, k1 - 1], f[cols, k1]
         r0, r1 = rho[k1 - 1], rho[k1]
         out[cols, b] = r0 + (r1 - r0) * f0 / (f0 - f1)
-    return out.reshape(-1)
+    full[cols_idx] = out
+    return full.reshape(-1)
 
 
 def cast(prims: Primitives, owner: NDArray[np.int64], spec: LidarSpec, rng: np.random.Generator,
-         num_objects: int, *, with_ground: bool = True, effects: ScanEffects | None = None) -> ScanResult:
+         num_objects: int, *, with_ground: bool = True, effects: ScanEffects | None = None,
+         columns: NDArray[np.bool_] | None = None) -> ScanResult:
     """Cast every ray of ``spec`` against sensor-frame ``prims`` (``owner``: object row, −1 for clutter, −3 the
     sensor's own vehicle). ``effects`` (see the module doc) changes the ground, porosity, dropout, noise and
-    intensity; the primitives must already stand on its ground (:func:`cast_frame` lifts them)."""
+    intensity; the primitives must already stand on its ground (:func:`cast_frame` lifts them). ``columns``
+    (azimuth steps,) casts only those azimuth columns (one sector of a sweep with motion)."""
     fx = effects or ScanEffects()
     tb = _tables(spec)
     nb, na = spec.num_beams, spec.azimuth_steps
@@ -194,6 +200,9 @@ def cast(prims: Primitives, owner: NDArray[np.int64], spec: LidarSpec, rng: np.r
     nbp = nbeam[prim_idx]
     col = (j0[prim_idx] + k // nbp) % na
     beam = b0[prim_idx] + k % nbp
+    if columns is not None:
+        sel = columns[col]
+        prim_idx, col, beam = prim_idx[sel], col[sel], beam[sel]
     ca, sa = tb.cos_az[col], tb.sin_az[col]
     cot = tb.cot_el[beam]
     # z-slab in horizontal distance: rho in [z0·cot, z1·cot] (sorted)
@@ -251,7 +260,9 @@ def cast(prims: Primitives, owner: NDArray[np.int64], spec: LidarSpec, rng: np.r
     # nearest hit per ray: sort by (ray, rho) and keep the first of each ray
     best_rho = np.full(na * nb, np.inf)
     if with_ground:
-        best_rho = np.tile(tb.rho_ground, na) if fx.flat else terrain_rho(spec, fx)
+        best_rho = np.tile(tb.rho_ground, na) if fx.flat else terrain_rho(spec, fx, columns)
+    if columns is not None:
+        best_rho[~np.repeat(columns, nb)] = np.inf
     best_prim = np.full(na * nb, -1, np.int64)
     if len(hit_ray):
         order = np.lexsort((hit_rho, hit_ray))
@@ -404,13 +415,48 @@ def cast_frame(frame: GroundTruthFrame, sensor: LidarSpec | None = None, seed: i
         body = ego_body(effects, spec, rng)
         prims = Primitives.concat([prims, body])
         owner = np.concatenate([owner, np.full(len(body), _EGO_OWNER, np.int64)])
-    res = cast(prims, owner, spec, rng, frame.num_objects, effects=effects)
+    if effects is not None and effects.motion:
+        res = _cast_moving(frame, prims, owner, spec, rng, effects)
+    else:
+        res = cast(prims, owner, spec, rng, frame.num_objects, effects=effects)
     if effects is not None:
         res = replace(res, object_lift=lift)
     vis = frame.visibility.copy()
     reached = res.num_rays_alone > 0
     vis[reached] = np.clip(res.num_rays_visible[reached] / res.num_rays_alone[reached], 0.0, 1.0)
     return res, replace(frame, num_points=res.num_points.copy(), visibility=vis)
+
+
+MOTION_SECTORS = 12
+"""Azimuth sectors a sweep with motion is cast in (each at its own moment: 4.2 ms apart at 20 Hz)."""
+
+
+def _cast_moving(frame: GroundTruthFrame, prims: Primitives, owner: NDArray[np.int64], spec: LidarSpec,
+                 rng: np.random.Generator, effects: ScanEffects) -> ScanResult:
+    """One turn cast sector by sector, each with the scene where it was when the beams swept it (see
+    :attr:`~jitterguard.sim.effects.ScanEffects.motion`), reported in the sensor frame at the end of the turn."""
+    period = 1.0 / spec.rate_hz
+    c, s = math.cos(frame.ego_yaw), math.sin(frame.ego_yaw)
+    v_obj = np.column_stack([c * frame.velocities[:, 0] + s * frame.velocities[:, 1],
+                             -s * frame.velocities[:, 0] + c * frame.velocities[:, 1]]) if frame.num_objects \
+        else np.zeros((0, 2))
+    v_prim = np.zeros((len(prims), 2))
+    is_obj = owner >= 0
+    v_prim[is_obj] = v_obj[owner[is_obj]]
+    v_prim[owner == _EGO_OWNER] = frame.ego_speed, 0.0  # the roof moves with the sensor
+    az = azimuths(spec)
+    phase = ((az - effects.sweep_start) % (2 * math.pi)) / (2 * math.pi)  # 0 at the start of the turn … 1 at its end
+    sector = np.minimum((phase * MOTION_SECTORS).astype(np.int64), MOTION_SECTORS - 1)
+    parts: list[ScanResult] = []
+    for k in range(MOTION_SECTORS):
+        lag = period * (1.0 - (k + 0.5) / MOTION_SECTORS)  # how long before the end of the turn
+        shift = np.column_stack([np.full(len(prims), frame.ego_speed * lag), np.zeros(len(prims))]) - v_prim * lag
+        moved = replace(prims, center=prims.center + shift)
+        parts.append(cast(moved, owner, spec, rng, frame.num_objects, effects=effects, columns=sector == k))
+    return ScanResult(
+        np.concatenate([p.points for p in parts]), np.concatenate([p.ring for p in parts]),
+        np.concatenate([p.owner for p in parts]), sum(p.num_points for p in parts),
+        sum(p.num_rays_visible for p in parts), sum(p.num_rays_alone for p in parts))
 
 
 def scan(frame: GroundTruthFrame, sensor: LidarSpec | None = None, seed: int = 0) -> F32:
