@@ -15,6 +15,7 @@ from jitterguard.schemas.models import (
     MotionState,
     TrackedObjects,
 )
+from jitterguard.services.classifier.config_writes import ConfigWritePolicy
 from jitterguard.services.classifier.service import ClassifierService
 from jitterguard.services.classifier.synthetic_tracks import TrackScenario, generate
 
@@ -26,7 +27,8 @@ NS = "test"
 
 @pytest.fixture
 def service(zenoh_port):
-    svc = ClassifierService(loopback_options(NS, zenoh_port, listen_self=True), straggler_timeout_s=0.5)
+    svc = ClassifierService(loopback_options(NS, zenoh_port, listen_self=True), straggler_timeout_s=0.5,
+                            config_writes=ConfigWritePolicy.open())
     yield svc
     svc.close()
 

@@ -24,7 +24,7 @@ from pydantic import BaseModel
 from ..schemas import DecodeError, decode, encode, keys
 from ..schemas.models import Heartbeat
 from .keyed_publishers import KeyedPublishers
-from .zenoh_config import ZenohOptions, build_config
+from .zenoh_config import ZenohOptions, build_config, open_session
 
 M = TypeVar("M", bound=BaseModel)
 log = logging.getLogger("jitterguard")
@@ -95,7 +95,7 @@ class Service:
         self._reject_log = _BurstLogger(self.log)
         self._declared: list[Any] = []
         self._threads: list[threading.Thread] = []
-        self.session: zenoh.Session = zenoh.open(build_config(opts))
+        self.session: zenoh.Session = open_session(build_config(opts), stop=self.stop_event, log=self.log)
         self._declared.append(self.session.liveliness().declare_token(keys.alive(self.ns, self.name)))
         self._hb_pub = self.session.declare_publisher(keys.heartbeat(self.ns, self.name))
         self.spawn(self._heartbeat_loop, "heartbeat")
@@ -177,8 +177,7 @@ class Service:
 
     def keyed_publishers(self, key_of: Callable[[str], str], *,
                          priority: zenoh.Priority = zenoh.Priority.DATA) -> KeyedPublishers:
-        """One declared publisher per track ID on ``key_of(id)`` (:mod:`.keyed_publishers`), undeclared with the
-        service's other entities once its workers have stopped."""
+        """Puts on ``key_of(id)`` per track ID (:mod:`.keyed_publishers`)."""
         pubs = KeyedPublishers(self.session, key_of, priority=priority)
         self._declared.append(pubs)
         return pubs

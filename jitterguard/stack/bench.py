@@ -120,7 +120,7 @@ def bench_pipeline(objects: int = 200, rate_hz: float = 20.0, duration_s: float 
     this process CPU while the classifier works, so it adds to what it measures."""
     import zenoh
 
-    from ..runtime import ZenohOptions, build_config, free_tcp_port
+    from ..runtime import ZenohOptions, build_config, free_tcp_port, open_session
     from ..schemas import keys, peek_header_seq
 
     ns = f"bench{os.getpid()}"
@@ -156,8 +156,8 @@ def bench_pipeline(objects: int = 200, rate_hz: float = 20.0, duration_s: float 
             out.close()
             if name == "router":
                 time.sleep(0.5)
-        cfg = build_config(ZenohOptions(ns=ns, connect=(endpoint,), listen=()))
-        with zenoh.open(cfg) as session:
+        cfg = build_config(ZenohOptions(ns=ns, connect=(endpoint,)))
+        with open_session(cfg, timeout_s=startup_timeout_s) as session:
             sub = session.declare_subscriber(keys.objects(ns), stamp_into(recv))
             sub_tracked = session.declare_subscriber(keys.tracked(ns), stamp_into(tracked_at)) if split else None
             pub = session.declare_publisher(keys.detections(ns), congestion_control=zenoh.CongestionControl.BLOCK)

@@ -22,7 +22,7 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from jitterguard.runtime import ZenohOptions, build_config, free_tcp_port
+from jitterguard.runtime import ZenohOptions, build_config, free_tcp_port, open_session
 from jitterguard.schemas import decode, keys
 from jitterguard.schemas.models import ClassifierStateSnapshot, TrackedObjects
 
@@ -58,7 +58,7 @@ class Watcher:
         self.lock = threading.Lock()
         self.objects: list[tuple[float, int, frozenset[str]]] = []  # (arrival, seq, ids)
         self.tracked: dict[int, frozenset[str]] = {}
-        self.session = zenoh.open(build_config(ZenohOptions(ns=ns, connect=(endpoint,), listen=())))
+        self.session = open_session(build_config(ZenohOptions(ns=ns, connect=(endpoint,))), timeout_s=60)
         self.session.declare_subscriber(keys.objects(ns), self._on_objects)
         self.session.declare_subscriber(keys.tracked(ns), self._on_tracked)
 

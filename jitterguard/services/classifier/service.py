@@ -38,6 +38,8 @@ from ...schemas.models import (
     ConfigReply,
     TrackObservation,
 )
+from .config_store import ConfigStore
+from .config_writes import ConfigWritePolicy
 from .core import STATE_NAMES, Decisions, MotionClassifierCore, Observations
 from .frames import FrameAssembler
 from .pipeline import (  # noqa: F401  (re-exported: eval and the sidecar bench use them from here)
@@ -84,10 +86,21 @@ class ClassifierService(Service):
     name = "classifier"
 
     def __init__(self, opts: ZenohOptions, config: ClassifierConfig | None = None, *,
-                 straggler_timeout_s: float = 0.05, manage_gc: bool = False) -> None:
+                 straggler_timeout_s: float = 0.05, manage_gc: bool = False,
+                 config_writes: ConfigWritePolicy | None = None, config_store: ConfigStore | None = None) -> None:
         """``manage_gc``: call :func:`manage_gc_for_latency` and collect garbage between frames (process-wide;
-        for the process that runs the classifier, not for tests that embed it)."""
+        for the process that runs the classifier, not for tests that embed it). ``config_writes``: who may
+        write the config over Zenoh (default: ``JG_API_TOKEN`` holders, nobody without one). ``config_store``:
+        where writes are kept so that a restart restores them (:mod:`.config_store`)."""
         super().__init__(opts)
+        self.config_writes = config_writes or ConfigWritePolicy.from_env()
+        self._started_with = config or ClassifierConfig()
+        self._store = config_store
+        if config_store is not None:
+            restored, why = config_store.load(self._started_with)
+            self.log.info("%s", why)
+            config = restored or config
+        self.log.info("%s", self.config_writes.describe())
         self._manage_gc = manage_gc
         self._idle_gc = IdleCollector()
         if manage_gc:
@@ -185,6 +198,13 @@ class ClassifierService(Service):
     def _run_control(self, item: tuple[str, tuple, None]) -> None:
         kind, (arg, fut), _ = item
         if kind == "config":
+            if self._store is not None:  # stored before applied: a restart restores exactly what is in force
+                try:
+                    self._store.save(self._started_with, arg)
+                except OSError as exc:
+                    self.counters.inc("config_store_errors")
+                    fut.set_exception(RuntimeError(f"cannot store the config in {self._store.path}: {exc}"))
+                    return
             self.core.configure(arg)
             self.counters.inc("config_changes")
             fut.set_result(self.core.config)
@@ -223,8 +243,7 @@ class ClassifierService(Service):
 
     def _publish_motion(self, out: FrameOutput) -> None:
         """One MotionState per observed track (after ``objects``: the frame latency has already ended), at a
-        lower Zenoh priority than ``objects``, through one declared publisher per reported track."""
-        self._motion_pubs.retain(i.decode() for i in out.reported.tolist())
+        lower Zenoh priority than ``objects``."""
         n = 0
         for tid, payload in self.pipeline.motion_payloads(out):
             self._motion_pubs.put(tid, payload)
@@ -243,6 +262,12 @@ class ClassifierService(Service):
         payload = query.payload.to_bytes() if query.payload is not None else b""
         if not payload:
             query.reply(query.key_expr, encode(ConfigReply(ok=True, config=self.core.config)))
+            return
+        refused = self.config_writes.refusal(query.attachment.to_bytes() if query.attachment is not None else None)
+        if refused:
+            self.counters.inc("config_writes_refused")
+            self._reject_log.warn(f"config write on {query.key_expr} refused: {refused}")
+            query.reply_err(encode(ConfigReply(ok=False, config=self.core.config, error=refused)))
             return
         try:
             cfg = decode(ClassifierConfig, payload)

@@ -49,8 +49,11 @@ class ClassifierClient(Service):
 
     def __init__(self, opts: ZenohOptions, *, poll_period_s: float = 0.05, query_timeout_s: float = 3.0,
                  state_timeout_s: float = 1.0, stale_after_s: float = 3.0,
-                 metrics: SidecarMetrics | None = None) -> None:
+                 metrics: SidecarMetrics | None = None, api_token: str | None = None) -> None:
+        """``api_token``: sent with every config write (the query's attachment); the classifier checks it
+        against its own ``JG_API_TOKEN``."""
         super().__init__(opts)
+        self._api_token = api_token
         self.poll_period_s = poll_period_s
         self.query_timeout_s = query_timeout_s
         self.state_timeout_s = state_timeout_s
@@ -196,10 +199,11 @@ class ClassifierClient(Service):
 
     # ------------------------------------------------------------------ config
 
-    def _query(self, key: str, payload: bytes | None, timeout: float) -> tuple[str, bytes]:
+    def _query(self, key: str, payload: bytes | None, timeout: float,
+               attachment: bytes | None = None) -> tuple[str, bytes]:
         """One get; ``("ok"|"err", payload)`` of the first reply, or :class:`ClassifierUnavailable`."""
         try:
-            replies = list(self.session.get(key, payload=payload, timeout=timeout))
+            replies = list(self.session.get(key, payload=payload, timeout=timeout, attachment=attachment))
         except Exception as exc:  # session closing, or a zenoh error
             raise ClassifierUnavailable(f"query on {key} failed: {exc}") from None
         for reply in replies:
@@ -243,7 +247,8 @@ class ClassifierClient(Service):
         self._require_alive("nothing was applied")
         key = keys.classifier_config(self.ns)
         try:
-            kind, data = self._query(key, encode(cfg), self.query_timeout_s)
+            kind, data = self._query(key, encode(cfg), self.query_timeout_s,
+                                     attachment=self._api_token.encode() if self._api_token else None)
         except ClassifierUnavailable as exc:
             raise ClassifierUnavailable(
                 f"the classifier did not confirm the write ({exc}); a config is applied whole or not at all — "

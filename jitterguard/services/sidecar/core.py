@@ -7,10 +7,8 @@ PATCH means, which field a 422 names, when a bind is refused) is unit-tested wit
 
 from __future__ import annotations
 
-import ipaddress
 import json
 import math
-import socket
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Annotated, Any, Literal
@@ -18,6 +16,7 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, Strict, ValidationError, create_model
 from pydantic.fields import FieldInfo
 
+from ...runtime.bind_policy import is_loopback
 from ...schemas.models import (
     LABEL_NAMES,
     PRESETS,
@@ -464,21 +463,6 @@ def latency_histogram(counters: Mapping[str, int]) -> Histogram | None:
 
 
 # ----------------------------------------------------------------------------------------- bind policy
-
-
-def is_loopback(host: str) -> bool:
-    """True if every address ``host`` names is a loopback address (``localhost`` and 127/8, ::1)."""
-    h = host.strip("[]")
-    try:
-        return ipaddress.ip_address(h).is_loopback
-    except ValueError:
-        pass
-    try:
-        infos = socket.getaddrinfo(h, None)
-    except (socket.gaierror, UnicodeError):
-        return False
-    addrs = {str(info[4][0]) for info in infos}
-    return bool(addrs) and all(ipaddress.ip_address(a.split("%", 1)[0]).is_loopback for a in addrs)
 
 
 def bind_refusal(host: str, token: str | None) -> str | None:

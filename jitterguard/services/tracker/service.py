@@ -4,8 +4,7 @@ Threading: a detections frame arrives through one callback that only copies the 
 (:meth:`~jitterguard.runtime.Service.subscribe_inbox`); one worker thread, blocked on that queue, wakes at once,
 validates the frame (:func:`~.convert.decode_detections`: records for the usual shape, generated Structs
 otherwise; a malformed payload is counted as ``rejected`` and skipped), owns the :class:`TrackerCore` — nothing
-else touches it — and per frame publishes every ``tracks/{id}`` first (one declared publisher per live track,
-:class:`~jitterguard.runtime.keyed_publishers.KeyedPublishers`) and the closing ``tracked`` last (the classifier
+else touches it — and per frame publishes every ``tracks/{id}`` first (:class:`~jitterguard.runtime.keyed_publishers.KeyedPublishers`) and the closing ``tracked`` last (the classifier
 waits for the IDs that ``tracked.observed_track_ids`` names). All puts use BLOCK congestion control: a lost
 observation would silently shorten a classifier window. A full inbox slows BLOCK publishers instead of
 dropping frames.
@@ -134,16 +133,15 @@ class TrackerService(Service):
             self.counters.inc("source_restarts")
             self.log.warning("detections restarted at seq %d with time going on: source restarted, tracks kept",
                              frame.seq)
-        self._publish(observation_payloads(msg, frame, result), result.tracks.ids)
+        self._publish(observation_payloads(msg, frame, result))
         self._tracked_pub.put(tracked_payload(frame, result))  # built after the observations went out
         self.counters.inc("frames")
         self.counters.inc("tracks_born", len(result.born))
         self.counters.inc("tracks_deleted", len(result.deleted))
         self.last_seq = frame.seq
 
-    def _publish(self, observations: list[tuple[str, bytes]], live_ids: list[str]) -> None:
-        """Put each ``tracks/{id}`` (one declared publisher per live track; ``tracked`` follows)."""
-        self._track_pubs.retain(live_ids)
+    def _publish(self, observations: list[tuple[str, bytes]]) -> None:
+        """Put each ``tracks/{id}`` (``tracked`` follows)."""
         for tid, payload in observations:
             self._track_pubs.put(tid, payload)
         self.counters.inc("published", len(observations) + 1)
