@@ -209,6 +209,7 @@ def test_status_reports_the_healed_stack(stack):
         assert r["state"] == "RUNNING" and r["pid"] and r["alive"], r
     assert rows["classifier"]["last_seq"] is not None and rows["classifier"]["last_seq"] >= 0
     assert rows["classifier"]["heartbeat_pid"] == rows["classifier"]["pid"]
+    assert rows["tracker"]["health"] == "ok" and rows["classifier"]["health"] == "ok"  # making progress
 
 
 def _tracker_counters(run_dir: Path) -> dict[str, int]:

@@ -117,6 +117,7 @@ class ClassifierService(Service):
         self._objects_pub = self.publisher(keys.objects(self.ns))
         self._motion_pubs = self.keyed_publishers(lambda tid: keys.motion(self.ns, tid),
                                                   priority=zenoh.Priority.DATA_LOW)
+        self.monitor_progress()  # tracked in -> objects out (runtime.progress)
         self._obs_sub = self.subscribe_channel(self._obs_key)
         self._declared.append(self.session.declare_subscriber(self._tracked_key, self._on_tracked))
         self.queryable(keys.classifier_config(self.ns), self._on_config_query)
@@ -136,32 +137,46 @@ class ClassifierService(Service):
     def _on_tracked(self, sample: zenoh.Sample) -> None:
         """Zenoh's callback thread: stamp the arrival, hand the bytes to the worker, wake it. Nothing else."""
         t0 = time.perf_counter()
+        self.progress.input(time.monotonic())
         self._closes.append((sample.payload.to_bytes(), sample.key_expr, t0))
         self._wake.set()
 
     def _worker(self) -> None:
         collect_when_idle = False
         while not self.stop_event.is_set():
-            busy = self._take_closes()
-            while not self._queue.empty():
-                busy = True
-                self._run_control(self._queue.get_nowait())
-            taken = self._take_observations(OBS_CHUNK)
-            busy = busy or taken > 0
-            # A close is stamped when it arrives, so its straggler timeout runs while this worker may still
-            # be behind on observations that did arrive: give up on missing ones only once the channel is empty.
-            frames = self.pipeline.ready(time.perf_counter(), give_up=taken < OBS_CHUNK)
-            for i, frame in enumerate(frames):
-                self._publish(self.pipeline.finish(frame), behind=i + 1 < len(frames))
-                collect_when_idle = self._manage_gc
-            if busy:
-                for k, v in self.pipeline.assembler.counts.items():
-                    self.counters.set(f"frames.{k}", v)
-            elif collect_when_idle and not self.pipeline.pending:
-                collect_when_idle = False
-                self._collect_garbage()
-            elif self._wake.wait(IDLE_POLL_S):
-                self._wake.clear()
+            try:
+                collect_when_idle = self._work_once(collect_when_idle)
+            except Exception as exc:  # a bug must not silently stop the classifier: count, log, go on
+                self.counters.inc("handler_errors")
+                self.progress.failure(time.monotonic(), f"{type(exc).__name__}: {exc}"[:200])
+                self.log.exception("classifier worker failed")
+
+    def _work_once(self, collect_when_idle: bool) -> bool:
+        """One pass of the worker: closes, control calls, observations, ready frames; idles when there is
+        nothing to do. Returns whether to collect garbage at the next idle moment."""
+        busy = self._take_closes()
+        if busy and not self.pipeline.pending:  # every close taken was decided or dropped (counted)
+            self.progress.output(time.monotonic())
+        while not self._queue.empty():
+            busy = True
+            self._run_control(self._queue.get_nowait())
+        taken = self._take_observations(OBS_CHUNK)
+        busy = busy or taken > 0
+        # A close is stamped when it arrives, so its straggler timeout runs while this worker may still
+        # be behind on observations that did arrive: give up on missing ones only once the channel is empty.
+        frames = self.pipeline.ready(time.perf_counter(), give_up=taken < OBS_CHUNK)
+        for i, frame in enumerate(frames):
+            self._publish(self.pipeline.finish(frame), behind=i + 1 < len(frames))
+            collect_when_idle = self._manage_gc
+        if busy:
+            for k, v in self.pipeline.assembler.counts.items():
+                self.counters.set(f"frames.{k}", v)
+        elif collect_when_idle and not self.pipeline.pending:
+            collect_when_idle = False
+            self._collect_garbage()
+        elif self._wake.wait(IDLE_POLL_S):
+            self._wake.clear()
+        return collect_when_idle
 
     def _collect_garbage(self) -> None:
         """Between frames (see :mod:`jitterguard.runtime.gc_policy`)."""
@@ -218,6 +233,7 @@ class ClassifierService(Service):
         """Put ``objects`` (the frame latency ends here), then, unless a later frame is already waiting
         (``behind``, or a close queued or pending), the frame's ``motion/{id}`` messages."""
         self._objects_pub.put(out.payload)
+        self.progress.output(time.monotonic())
         self._record_latency((time.perf_counter() - out.received_at) * 1e3)
         self.counters.inc("published")
         self.counters.inc("frames_processed")

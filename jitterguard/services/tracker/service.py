@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import queue
 import threading
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -66,7 +67,8 @@ class TrackerService(Service):
         super().__init__(opts)
         self._det_key = keys.detections(self.ns)
         self._tracked_pub = self.publisher(keys.tracked(self.ns))
-        self._det_inbox = self.subscribe_inbox(self._det_key, capacity=FRAME_CHANNEL)
+        self.monitor_progress()  # detections in -> tracked out (runtime.progress)
+        self._det_inbox = self.subscribe_inbox(self._det_key, capacity=FRAME_CHANNEL, progress=True)
         self._track_pubs = self.keyed_publishers(lambda tid: keys.track(self.ns, tid))
         if static_hints:
             self.subscribe(keys.motion_all(self.ns), MotionState, self._on_motion)
@@ -96,14 +98,18 @@ class TrackerService(Service):
                 msg = decode_detections(self._codec, payload)
             except DecodeError as exc:
                 self.reject(exc, self._det_key)
+                self.progress.output(time.monotonic())  # dealt with: rejected and counted
                 continue
             collect = self._manage_gc
             try:
                 self._apply_hints()
                 self.process(msg)
-            except Exception:  # a bug must not silently stop tracking: count, log, go on with the next frame
+            except Exception as exc:  # a bug must not silently stop tracking: count, log, go on with the next frame
                 self.counters.inc("handler_errors")
+                self.progress.failure(time.monotonic(), f"{type(exc).__name__}: {exc}"[:200])
                 self.log.exception("frame seq %d failed", msg.header.seq)
+            else:
+                self.progress.output(time.monotonic())  # published, or dropped on purpose (counted)
 
     def _apply_hints(self) -> None:
         with self._hints_lock:
