@@ -32,6 +32,7 @@ from pydantic import BaseModel
 
 from ..schemas import DecodeError, decode, encode, keys
 from ..schemas.models import Heartbeat
+from . import memtrace
 from .keyed_publishers import KeyedPublishers
 from .progress import Health, ProgressMonitor, ProgressPolicy
 from .zenoh_config import ZenohOptions, build_config, open_session
@@ -118,6 +119,7 @@ class Service:
         self._declared.append(self.session.liveliness().declare_token(keys.alive(self.ns, self.name)))
         self._hb_pub = self.session.declare_publisher(keys.heartbeat(self.ns, self.name))
         self.spawn(self._heartbeat_loop, "heartbeat")
+        memtrace.start_from_env(self.name, self.stop_event, self.log)
 
     # ------------------------------------------------------------------ wiring helpers for subclasses
 
