@@ -48,6 +48,8 @@ EXIT_NO_PROGRESS = 70
 """Exit status of a service the watchdog stopped (EX_SOFTWARE): the supervisor restarts it."""
 HANG_GRACE_S = 5.0
 """The heartbeat thread silent this much longer than the watchdog period: a hard hang (faulthandler exits)."""
+SHUTDOWN_LIMIT_S = 20.0
+"""A watched service's shutdown taking longer than this is hung: faulthandler dumps the stacks and exits."""
 
 
 class Counters:
@@ -308,6 +310,8 @@ class Service:
                 pass
         finally:
             self.close()
+            if self._watchdog_s is not None:
+                faulthandler.cancel_dump_traceback_later()
         if self.exit_code:
             raise SystemExit(self.exit_code)
 
@@ -317,8 +321,8 @@ class Service:
     def close(self) -> None:
         """Stop workers, undeclare everything and close the session (no hang at exit)."""
         self.stop_event.set()
-        if self._watchdog_s is not None:
-            faulthandler.cancel_dump_traceback_later()
+        if self._watchdog_s is not None:  # a shutdown that hangs (a put blocked for good) still ends
+            faulthandler.dump_traceback_later(SHUTDOWN_LIMIT_S, exit=True)
         self.on_close()
         for t in self._threads:
             if t is not threading.current_thread():

@@ -149,7 +149,9 @@ class ClassifierService(Service):
             except Exception as exc:  # a bug must not silently stop the classifier: count, log, go on
                 self.counters.inc("handler_errors")
                 self.progress.failure(time.monotonic(), f"{type(exc).__name__}: {exc}"[:200])
-                self.log.exception("classifier worker failed")
+                self._reject_log.warn(f"classifier worker failed: {type(exc).__name__}: {exc}")
+                self.log.debug("classifier worker failed", exc_info=True)
+                self.stop_event.wait(IDLE_POLL_S)  # a failure that repeats must not spin the CPU
 
     def _work_once(self, collect_when_idle: bool) -> bool:
         """One pass of the worker: closes, control calls, observations, ready frames; idles when there is
