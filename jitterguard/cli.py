@@ -23,6 +23,7 @@ _AREAS = (
     "jitterguard.services.tracker.cli",
     "jitterguard.services.detector.cli",
     "jitterguard.services.detector.train_cli",
+    "jitterguard.services.detector.onnx_cli",
     "jitterguard.services.replay.cli",
     "jitterguard.services.sidecar.cli",
     "jitterguard.sim.cli",
