@@ -26,6 +26,8 @@ _AREAS = (
     "jitterguard.services.detector.onnx_cli",
     "jitterguard.services.replay.cli",
     "jitterguard.services.sidecar.cli",
+    "jitterguard.services.foxglove.cli",
+    "jitterguard.services.recorder.cli",
     "jitterguard.sim.cli",
     "jitterguard.stack.cli",
     "jitterguard.stack.bench",
