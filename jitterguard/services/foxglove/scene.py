@@ -119,14 +119,19 @@ def box_outline(length: float, width: float, height: float) -> list[fm.Point3]:
     return [fm.Point3(x=c[i][0], y=c[i][1], z=c[i][2]) for e in edges for i in e]
 
 
-def ellipse_points(cov_xx: float, cov_xy: float, cov_yy: float, sigma: float,
-                   segments: int = ELLIPSE_SEGMENTS) -> list[fm.Point3]:
-    """The ``sigma``-σ contour of a 2-D Gaussian with that covariance, centred at the origin (a LINE_LOOP)."""
+def ellipse_xy(cov_xx: float, cov_xy: float, cov_yy: float, sigma: float,
+               segments: int = ELLIPSE_SEGMENTS) -> np.ndarray:
+    """(segments, 2) points of the ``sigma``-σ contour of a 2-D Gaussian with that covariance, centred at the
+    origin: eigen-decomposed, so correlated errors tilt the ellipse."""
     vals, vecs = np.linalg.eigh(np.array([[cov_xx, cov_xy], [cov_xy, cov_yy]], dtype=np.float64))
     radii = sigma * np.sqrt(np.clip(vals, 0.0, None))
     t = np.linspace(0.0, 2 * np.pi, segments, endpoint=False)
-    pts = vecs @ (radii[:, None] * np.stack([np.cos(t), np.sin(t)]))
-    return [fm.Point3(x=float(x), y=float(y), z=0.0) for x, y in pts.T]
+    return (vecs @ (radii[:, None] * np.stack([np.cos(t), np.sin(t)]))).T
+
+
+def ellipse_points(cov_xx: float, cov_xy: float, cov_yy: float, sigma: float) -> list[fm.Point3]:
+    """:func:`ellipse_xy` as a LINE_LOOP's points."""
+    return [fm.Point3(x=float(x), y=float(y), z=0.0) for x, y in ellipse_xy(cov_xx, cov_xy, cov_yy, sigma)]
 
 
 # ----------------------------------------------------------------------------------------- per topic
