@@ -9,6 +9,7 @@ import math
 from collections import Counter, defaultdict
 from typing import Any
 
+import numpy as np
 import pytest
 from google.protobuf.json_format import MessageToDict
 from mcap.reader import make_reader
@@ -119,9 +120,15 @@ def test_points_detections_and_ground_truth_match_what_was_published(pipeline_ru
         ents = upd.get("entities", [])
         assert len(ents) == len(dets)
         for e, d in zip(ents, dets):
-            outline, *ellipses = e["lines"]
-            assert len(outline["points"]) == 24  # 12 edges
-            assert len(ellipses) == (2 if d.kinematics.has_position_covariance else 0)  # 1σ and 2σ
+            (cube,) = e["cubes"]
+            assert cube["size"]["x"] == pytest.approx(d.shape.dimensions.x)
+            discs = e.get("cylinders", [])
+            assert len(discs) == (2 if d.kinematics.has_position_covariance else 0)  # 1σ and 2σ
+            if discs:  # the 2σ disc is twice the 1σ one; its axes are the covariance's (the eigenvalues' roots)
+                c = d.kinematics.pose_with_covariance.covariance
+                lam = np.linalg.eigvalsh([[c[0], c[1]], [c[6], c[7]]])
+                assert discs[0]["size"]["x"] == pytest.approx(2 * math.sqrt(lam[1]), rel=1e-5)
+                assert discs[1]["size"]["y"] == pytest.approx(4 * math.sqrt(lam[0]), rel=1e-5)
     truths = [len(u.get("entities", [])) for _, u in msgs[GROUNDTRUTH]]
     assert min(truths) > 10  # the parking street's labelled cars
     states = [r["state"] for _, m in msgs[MOTION] for r in m["tracks"]]

@@ -7,7 +7,8 @@ behind, the bounded inbox drops the newest message and counts it (``inbox_droppe
 delivery to the pipeline's own subscribers. A sink that fails on a frame is counted (``sink_errors``) and logged
 once per burst; the next frame is tried again.
 
-Counters (heartbeat): ``frames`` (written), ``inbox_dropped``, ``sink_errors`` and the joiner's (``motion_missing``,
+Counters (heartbeat): ``frames`` (written), ``write_ms_last`` (the sink's time on the latest frame), ``inbox_dropped``,
+``sink_errors`` and the joiner's (``motion_missing``,
 ``dropped_pending``, ``late_messages``, ``seq_restarts``), plus the runtime's ``received`` / ``rejected``.
 """
 
@@ -31,6 +32,8 @@ from .joiner import DEFAULT_MOTION_WAIT_S, FrameJoiner, JoinedFrame
 
 INBOX_CAPACITY = 8192
 POLL_S = 0.02
+FEED_BATCH = 64
+"""Messages joined between two looks for ready frames."""
 
 
 class FrameSink(Protocol):
@@ -93,6 +96,7 @@ class BridgeService(Service):
 
     def _write(self, frames: list[JoinedFrame]) -> None:
         for f in frames:
+            t0 = time.perf_counter()
             try:
                 self.sink.write(f)
             except Exception as exc:  # noqa: BLE001 - a sink failure loses one frame, never the bridge
@@ -100,6 +104,7 @@ class BridgeService(Service):
                 self._sink_log.warn(f"writing frame seq {f.seq} failed: {type(exc).__name__}: {exc}")
                 continue
             self.counters.inc("frames")
+            self.counters.set("write_ms_last", round((time.perf_counter() - t0) * 1e3))
             self.last_seq = f.seq
         for k, v in self.joiner.counters.items():
             if k != "frames":
@@ -108,11 +113,15 @@ class BridgeService(Service):
     def _worker(self) -> None:
         while not self.stop_event.is_set():
             try:
-                item = self._inbox.get(timeout=POLL_S)
+                item: tuple[str, Any, float] | None = self._inbox.get(timeout=POLL_S)
             except queue.Empty:
                 item = None
+            fed = 0
             while item is not None:
                 self._feed(*item)
+                fed += 1
+                if fed >= FEED_BATCH:  # a busy inbox must not keep ready frames waiting (their inputs age out)
+                    break
                 try:
                     item = self._inbox.get_nowait()
                 except queue.Empty:

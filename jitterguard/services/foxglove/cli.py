@@ -83,3 +83,23 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         if record is not None:
             service.log.info("recording to %s", record)
         service.run_forever()
+
+    @app.command("render-mcap")
+    def render_mcap_cmd(
+        mcap: Annotated[str, typer.Argument(help="A recording of `jitterguard foxglove --record`.")],
+        out: Annotated[str, typer.Option("--out", help="PNG to write.")],
+        index: Annotated[int | None, typer.Option("--index", help="Frame to draw (negative: from the end). Default: the one with the most static and dynamic tracks.")] = None,
+        span: Annotated[float, typer.Option("--span", min=5.0, max=500.0, help="Half-width of the view around the ego, m.")] = 50.0,
+    ) -> None:
+        """Draw one recorded frame bird's-eye (scan, ground truth, detection ellipses, tracks by motion state with
+        velocity arrows) to a PNG."""
+        if not Path(mcap).is_file():
+            fail(f"{mcap}: no such file")
+        from .render import RenderError, pick_frame, read_frames, render
+
+        try:
+            frame = pick_frame(read_frames(mcap), index)
+        except RenderError as exc:
+            fail(str(exc))
+        print(render(frame, out, span_m=span))
+

@@ -23,9 +23,9 @@ def layout() -> fl.Layout:
         topics={
             POINTS: fl.BaseRendererPointCloudTopicSettings(visible=True, point_size=2.0, color_mode="colormap",
                                                            color_field="intensity", color_map="turbo"),
-            DETECTIONS: fl.BaseRendererSceneUpdateTopicSettings(visible=True),
+            DETECTIONS: fl.BaseRendererSceneUpdateTopicSettings(visible=True, show_outlines=True),
             TRACKS: fl.BaseRendererSceneUpdateTopicSettings(visible=True, show_outlines=True),
-            GROUNDTRUTH: fl.BaseRendererSceneUpdateTopicSettings(visible=True),
+            GROUNDTRUTH: fl.BaseRendererSceneUpdateTopicSettings(visible=True, show_outlines=True),
         },
     ))
     plot = fl.PlotPanel(title="z per track (dynamic above α)", config=fl.PlotConfig(

@@ -6,15 +6,16 @@ Topics (one message per frame on each that applies; ``TOPICS`` names them):
   sensor pose on the ground plane, a gravity-aligned frame to follow in the 3D panel; composed, the two transforms
   are the sensor pose the wire carries).
 - ``/jitterguard/points`` (``foxglove.PointCloud``, sensor frame): the scan's float32 columns as they came.
-- ``/jitterguard/detections`` (``foxglove.SceneUpdate``, sensor frame): each detection's box outline and its 1σ and
-  2σ position ellipses from the detector's 2×2 x/y covariance (eigen-decomposed, so correlated errors tilt them).
+- ``/jitterguard/detections`` (``foxglove.SceneUpdate``, sensor frame): each detection's box and its 1σ and 2σ
+  position ellipses (flat discs) from the detector's 2×2 x/y covariance (eigen-decomposed, so correlated errors tilt
+  them).
 - ``/jitterguard/tracks`` (``foxglove.SceneUpdate``, world frame): the classifier's ``objects`` as boxes coloured by
   motion state (static blue, dynamic orange, undecided grey, never decided white; a track not observed this frame
   shows its latest decision, its label naming the frame it is from), a velocity arrow for
   every object with a non-zero twist (static objects leave the classifier with zero twist: no arrow), a label
   ``class state z=… α=…``, and metadata (state, vx, vy, z_x, z_y, alpha, is_stationary) on each entity.
 - ``/jitterguard/groundtruth`` (``foxglove.SceneUpdate``, world frame): labelled boxes when the source has them
-  (green moving, grey not moving), each with its attribute.
+  (green moving, grey not moving; translucent, outlined by the panel), each with its attribute.
 - ``/jitterguard/motion`` (JSON, :data:`MOTION_SCHEMA`): the classifier's per-track statistics of the frame, for the
   Plot panel (``z_by_track``: one dynamic series per track) and the Table panel (``tracks``).
 
@@ -42,7 +43,6 @@ EGO_FRAME = "ego"
 ARROW_SECONDS = 1.0
 """A velocity arrow is as long as the distance covered in this many seconds."""
 ELLIPSE_SIGMAS = (1.0, 2.0)
-ELLIPSE_SEGMENTS = 48
 
 STATE_COLORS: dict[str, tuple[float, float, float, float]] = {
     "static": (0.20, 0.55, 1.00, 0.55),
@@ -50,9 +50,9 @@ STATE_COLORS: dict[str, tuple[float, float, float, float]] = {
     "undecided": (0.65, 0.65, 0.65, 0.45),
     "unknown": (1.00, 1.00, 1.00, 0.30),
 }
-DETECTION_COLOR = (1.0, 0.9, 0.2, 0.9)
-ELLIPSE_COLORS = ((1.0, 0.9, 0.2, 1.0), (1.0, 0.9, 0.2, 0.45))
-TRUTH_COLORS = {True: (0.2, 0.95, 0.35, 0.9), False: (0.55, 0.55, 0.55, 0.9)}
+DETECTION_COLOR = (1.0, 0.9, 0.2, 0.12)
+ELLIPSE_COLORS = ((1.0, 0.9, 0.2, 0.55), (1.0, 0.9, 0.2, 0.25))
+TRUTH_COLORS = {True: (0.2, 0.95, 0.35, 0.12), False: (0.55, 0.55, 0.55, 0.12)}
 
 MOTION_SCHEMA: dict[str, Any] = {
     "title": "jitterguard.MotionStatistics",
@@ -111,27 +111,22 @@ def _class_name(classification: list[Any]) -> str:
     return LABEL_NAMES.get(int(max(classification, key=lambda c: c.probability).label), "unknown")
 
 
-def box_outline(length: float, width: float, height: float) -> list[fm.Point3]:
-    """The 12 edges of a box centred at the origin, as a LINE_LIST's point pairs."""
-    hx, hy, hz = length / 2, width / 2, height / 2
-    c = [(sx * hx, sy * hy, sz * hz) for sz in (-1, 1) for sx, sy in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
-    edges = [(0, 1), (1, 2), (2, 3), (3, 0), (4, 5), (5, 6), (6, 7), (7, 4), (0, 4), (1, 5), (2, 6), (3, 7)]
-    return [fm.Point3(x=c[i][0], y=c[i][1], z=c[i][2]) for e in edges for i in e]
-
-
-def ellipse_xy(cov_xx: float, cov_xy: float, cov_yy: float, sigma: float,
-               segments: int = ELLIPSE_SEGMENTS) -> np.ndarray:
-    """(segments, 2) points of the ``sigma``-σ contour of a 2-D Gaussian with that covariance, centred at the
-    origin: eigen-decomposed, so correlated errors tilt the ellipse."""
+def ellipse_axes(cov_xx: float, cov_xy: float, cov_yy: float) -> tuple[float, float, float]:
+    """(σ along the major axis, σ along the minor axis, heading of the major axis in rad) of a 2-D Gaussian:
+    eigen-decomposed, so correlated errors tilt the ellipse."""
     vals, vecs = np.linalg.eigh(np.array([[cov_xx, cov_xy], [cov_xy, cov_yy]], dtype=np.float64))
-    radii = sigma * np.sqrt(np.clip(vals, 0.0, None))
+    major = vecs[:, 1]
+    return (math.sqrt(max(float(vals[1]), 0.0)), math.sqrt(max(float(vals[0]), 0.0)),
+            math.atan2(float(major[1]), float(major[0])))
+
+
+def ellipse_xy(cov_xx: float, cov_xy: float, cov_yy: float, sigma: float, segments: int = 48) -> np.ndarray:
+    """(segments, 2) points of the ``sigma``-σ contour centred at the origin (what an ellipse disc's rim covers)."""
+    a, b, th = ellipse_axes(cov_xx, cov_xy, cov_yy)
     t = np.linspace(0.0, 2 * np.pi, segments, endpoint=False)
-    return (vecs @ (radii[:, None] * np.stack([np.cos(t), np.sin(t)]))).T
-
-
-def ellipse_points(cov_xx: float, cov_xy: float, cov_yy: float, sigma: float) -> list[fm.Point3]:
-    """:func:`ellipse_xy` as a LINE_LOOP's points."""
-    return [fm.Point3(x=float(x), y=float(y), z=0.0) for x, y in ellipse_xy(cov_xx, cov_xy, cov_yy, sigma)]
+    c, s = math.cos(th), math.sin(th)
+    ex, ey = sigma * a * np.cos(t), sigma * b * np.sin(t)
+    return np.column_stack([c * ex - s * ey, s * ex + c * ey])
 
 
 # ----------------------------------------------------------------------------------------- per topic
@@ -170,20 +165,26 @@ def _clear_all(stamp: fm.Timestamp) -> list[fm.SceneEntityDeletion]:
 
 
 def _detection_entity(i: int, d: DetectedObject, frame_id: str, stamp: fm.Timestamp) -> fm.SceneEntity:
+    """The detection's box (a translucent cube; the panel outlines it) and its 1σ and 2σ position ellipses as flat
+    discs (a cylinder ``2kσ_major × 2kσ_minor`` turned to the major axis): two primitives, not hundreds of points —
+    a scan has a hundred detections and the bridge builds them ten times a second."""
     k = d.kinematics
     p = k.pose_with_covariance.pose
     dims = d.shape.dimensions
-    lines = [fm.LinePrimitive(type=fm.LinePrimitiveLineType.LineList, pose=_wire_pose(p), thickness=0.04,
-                              points=box_outline(dims.x, dims.y, dims.z), color=_color(DETECTION_COLOR))]
+    cubes = [fm.CubePrimitive(pose=_wire_pose(p), size=fm.Vector3(x=dims.x, y=dims.y, z=dims.z),
+                              color=_color(DETECTION_COLOR))]
+    cylinders = []
     meta: dict[str, Any] = {"class": _class_name(d.classification), "score": float(d.existence_probability)}
     if k.has_position_covariance:
         c = k.pose_with_covariance.covariance
-        meta.update(sigma_x=math.sqrt(c[X_X]), sigma_y=math.sqrt(c[Y_Y]))
-        at = _pose(p.position.x, p.position.y, p.position.z)
+        a, b, heading = ellipse_axes(c[X_X], c[X_Y], c[Y_Y])
+        meta.update(sigma_x=math.sqrt(c[X_X]), sigma_y=math.sqrt(c[Y_Y]), sigma_major=a, sigma_minor=b)
+        at = _pose(p.position.x, p.position.y, p.position.z - dims.z / 2 + 0.05, heading)
         for sigma, rgba in zip(ELLIPSE_SIGMAS, ELLIPSE_COLORS, strict=True):
-            lines.append(fm.LinePrimitive(type=fm.LinePrimitiveLineType.LineLoop, pose=at, thickness=0.03,
-                                          points=ellipse_points(c[X_X], c[X_Y], c[Y_Y], sigma), color=_color(rgba)))
-    return fm.SceneEntity(timestamp=stamp, frame_id=frame_id, id=f"det-{i}", lines=lines, metadata=_kv(**meta))
+            cylinders.append(fm.CylinderPrimitive(pose=at, size=fm.Vector3(x=2 * sigma * a, y=2 * sigma * b, z=0.04),
+                                                  bottom_scale=1.0, top_scale=1.0, color=_color(rgba)))
+    return fm.SceneEntity(timestamp=stamp, frame_id=frame_id, id=f"det-{i}", cubes=cubes, cylinders=cylinders,
+                          metadata=_kv(**meta))
 
 
 def detections_scene(frame: JoinedFrame) -> fm.SceneUpdate | None:
@@ -206,14 +207,15 @@ def motion_of(frame: JoinedFrame, obj: TrackedObject) -> tuple[Any, bool]:
 
 
 def track_state(frame: JoinedFrame, obj: TrackedObject) -> str:
-    """The classifier's decision for ``obj``: this frame's, else its latest, else ``static`` for an object the
-    classifier marked stationary and ``unknown`` for one it never decided on."""
-    m, _ = motion_of(frame, obj)
+    """The classifier's decision for ``obj`` as the published object states it: ``static`` when it is stationary;
+    else this frame's decision, else the latest earlier one; ``unknown`` when there is none, or when the latest one
+    seen was ``static`` although the object no longer is (a decision message was missed)."""
     if obj.kinematics.is_stationary:
         return "static"
-    if m is not None:
-        return m.state
-    return "unknown"
+    m, _ = motion_of(frame, obj)
+    if m is None or m.state == "static":
+        return "unknown"
+    return m.state
 
 
 def _track_entity(frame: JoinedFrame, obj: TrackedObject, stamp: fm.Timestamp) -> fm.SceneEntity:
@@ -263,12 +265,11 @@ def groundtruth_scene(frame: JoinedFrame) -> fm.SceneUpdate | None:
     stamp = timestamp(frame.stamp_ns)
     ents = []
     for o in gt.objects:
-        rgba = TRUTH_COLORS[o.moving]
         d = o.dimensions
         ents.append(fm.SceneEntity(
             timestamp=stamp, frame_id=gt.header.frame_id or frame.world_frame, id=f"gt-{o.instance_id}",
-            lines=[fm.LinePrimitive(type=fm.LinePrimitiveLineType.LineList, pose=_wire_pose(o.pose), thickness=0.05,
-                                    points=box_outline(d.x, d.y, d.z), color=_color(rgba))],
+            cubes=[fm.CubePrimitive(pose=_wire_pose(o.pose), size=fm.Vector3(x=d.x, y=d.y, z=d.z),
+                                    color=_color(TRUTH_COLORS[o.moving]))],
             metadata=_kv(instance=o.instance_id, label=LABEL_NAMES.get(o.label, "unknown"), moving=str(o.moving).lower(),
                          attribute=o.attribute, vx=float(o.velocity.x), vy=float(o.velocity.y))))
     return fm.SceneUpdate(deletions=_clear_all(stamp), entities=ents)
