@@ -10,9 +10,8 @@ from typing import Any
 
 import numpy as np
 
-from ....geometry import quaternion_from_yaw
-from ....schemas.models import GroundTruthObjects
 from ..frames import DetectionFrame, EgoPose, FrameError, Item, ScanFrame, SourceError, SourceInfo, finite_rows
+from ..truth import truth_message
 from .base import Source
 
 SCENARIOS = ("parking-street", "diagonal-lot", "intersection", "mixed")
@@ -34,26 +33,6 @@ def _lidar() -> Any:
     except ImportError as exc:
         raise SourceError(f"synthetic scans need the ray-cast LiDAR jitterguard.sim.lidar ({exc})") from None
     return lidar
-
-
-def truth_message(gt: Any) -> GroundTruthObjects:
-    """A synthetic frame's labels as the wire's ``GroundTruthObjects`` (world frame; the publisher sets the header's
-    seq and stamp). ``moving`` is the evaluator's motion truth (:func:`jitterguard.eval.groundtruth.is_dynamic`)."""
-    from ....eval.groundtruth import is_dynamic
-
-    objs = []
-    for k in range(gt.num_objects):
-        x, y, z = (float(v) for v in gt.centers[k])
-        q = quaternion_from_yaw(float(gt.yaws[k]))
-        objs.append({
-            "instance_id": str(int(gt.instance_ids[k])), "label": int(gt.labels[k]),
-            "pose": {"position": {"x": x, "y": y, "z": z}, "orientation": dict(zip("xyzw", q, strict=True))},
-            "dimensions": dict(zip("xyz", (float(v) for v in gt.sizes[k]), strict=True)),
-            "velocity": {"x": float(gt.velocities[k][0]), "y": float(gt.velocities[k][1]), "z": 0.0},
-            "moving": is_dynamic(gt.attributes[k], bool(gt.moving[k])), "attribute": gt.attributes[k],
-        })
-    return GroundTruthObjects.model_validate({"header": {"stamp": int(gt.stamp_ns), "frame_id": "map",
-                                                         "seq": int(gt.seq)}, "objects": objs})
 
 
 class SyntheticSource(Source):
