@@ -34,6 +34,9 @@ def _session(path: Path, threads: int | None) -> Any:
     except ImportError:
         raise WeightsError("the onnxruntime backend needs the 'onnxruntime' package (pip install 'jitterguard[onnx]')") from None
     opts = ort.SessionOptions()
+    # idle ORT workers sleep instead of spinning, as OpenMP's do for torch (cli.passive_openmp): on cores shared
+    # with the tracker, classifier and this process's own decode, a spinning pool steals the CPU they need
+    opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
     if threads:
         opts.intra_op_num_threads = threads
         opts.inter_op_num_threads = 1
@@ -102,7 +105,7 @@ class OnnxNetwork:
         else:
             feats = padded_point_features(p, self._features, self.config.max_points_per_pillar)
             (pillar_feats,) = self._encoder.run(["pillar_features"], {"input_features": feats.numpy()})
-            canvas = bev_scatter(torch.from_numpy(pillar_feats[:, 0, :]), p.coords, self.config)
+            canvas = bev_scatter(torch.from_numpy(pillar_feats), p.coords, self.config)
             outs = self._head.run(self._names, {"spatial_features": np.ascontiguousarray(canvas.numpy())})
         return {n: torch.from_numpy(o) for n, o in zip(self._names, outs, strict=True)}
 

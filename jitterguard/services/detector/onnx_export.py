@@ -8,7 +8,7 @@ Two layouts:
   int64 (0, iy, ix) — with N and V dynamic. The pillar encoder, the scatter onto the BEV canvas, SECOND, the FPN
   and every head run inside the graph.
 - ``autoware`` (two files, the split of Autoware's ``lidar_centerpoint``): ``pts_voxel_encoder.onnx`` maps
-  padded per-pillar point features ``input_features`` (V, M, 9) to ``pillar_features`` (V, 1, C), V dynamic;
+  padded per-pillar point features ``input_features`` (V, M, 9) to ``pillar_features`` (V, C), V dynamic;
   the host scatters them onto the canvas; ``pts_backbone_neck_head.onnx`` maps ``spatial_features``
   (1, C, ny, nx) to the head maps. The nine features are PointPillars' (x, y, z, intensity/255, offsets to the
   pillar's point mean, offsets to the pillar centre); padded rows are all zero and the encoder ignores them.
@@ -105,7 +105,7 @@ class SingleGraph(nn.Module):
 
 
 class VoxelEncoderGraph(nn.Module):
-    """The ``autoware`` layout's first file: padded point features (V, M, 9) → pillar features (V, 1, C).
+    """The ``autoware`` layout's first file: padded point features (V, M, 9) → pillar features (V, C).
 
     The same Linear + BatchNorm + ReLU + max as :class:`~.pillars.PillarFeatureNet`; a padded row (all nine
     features zero) is masked out, which reproduces the point-major encoder exactly: there the maximum starts
@@ -120,7 +120,7 @@ class VoxelEncoderGraph(nn.Module):
         v, m, f = input_features.shape
         mask = (input_features != 0).any(dim=2, keepdim=True).to(input_features.dtype)
         x = torch.relu(self.norm(self.linear(input_features.reshape(v * m, f)))).reshape(v, m, -1)
-        return (x * mask).amax(dim=1, keepdim=True)
+        return (x * mask).amax(dim=1)
 
 
 class BackboneNeckHeadGraph(nn.Module):
@@ -227,7 +227,7 @@ def manifest_for(config: DetectorConfig, layout: str, opset: int, files: dict[st
         graphs = {
             "voxel_encoder": {"file": files["voxel_encoder"].name, "sha256": _sha256(files["voxel_encoder"]),
                               "inputs": {"input_features": ["V", config.max_points_per_pillar, NUM_PILLAR_FEATURES, "float32"]},
-                              "outputs": {"pillar_features": ["V", 1, c, "float32"]}},
+                              "outputs": {"pillar_features": ["V", c, "float32"]}},
             "backbone_neck_head": {"file": files["backbone_neck_head"].name, "sha256": _sha256(files["backbone_neck_head"]),
                                    "inputs": {"spatial_features": [1, c, ny, nx, "float32"]},
                                    "outputs": {n: [1, w, fy, fx] for n, w in _widths(config).items()}},
