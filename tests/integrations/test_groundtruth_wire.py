@@ -17,7 +17,7 @@ from jitterguard.services.replay.publisher import ReplayService
 from jitterguard.services.replay.runner import ReplayPlan
 from jitterguard.services.replay.sources import SourceOptions, open_source
 
-from helpers import wait_until
+from helpers import collector, wait_until
 
 NUSC = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "nuscenes-scene-0523"
 
@@ -29,14 +29,8 @@ def test_the_replay_publishes_each_frames_labels_under_its_seq_and_stamp() -> No
     got: dict[str, list] = {"gt": [], "points": []}
     lock = threading.Lock()
 
-    def keep(kind, model):
-        def cb(s):
-            with lock:
-                got[kind].append(decode(model, s.payload.to_bytes()))
-        return cb
-
-    subs = [client.declare_subscriber(keys.groundtruth(ns), keep("gt", GroundTruthObjects)),
-            client.declare_subscriber(keys.points(ns), keep("points", PointCloud))]
+    subs = [client.declare_subscriber(keys.groundtruth(ns), collector(got, lock, "gt", GroundTruthObjects)),
+            client.declare_subscriber(keys.points(ns), collector(got, lock, "points", PointCloud))]
     svc = ReplayService(loopback_options(ns, port), "points")
     try:
         assert svc.wait_for_subscribers(10)

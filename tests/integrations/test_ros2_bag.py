@@ -20,9 +20,11 @@ from mcap.reader import make_reader  # noqa: E402
 from mcap_ros2.decoder import DecoderFactory  # noqa: E402
 
 from jitterguard.runtime import build_config, free_tcp_port, loopback_options  # noqa: E402
-from jitterguard.schemas import decode, keys  # noqa: E402
+from jitterguard.schemas import keys  # noqa: E402
 from jitterguard.schemas.models import DetectedObjects, TrackedObjects  # noqa: E402
 from jitterguard.services.recorder.rosbag import DETECTIONS_TOPIC, POINTS_TOPIC, TF_TOPIC, TRACKING_TOPIC  # noqa: E402
+
+from helpers import collector  # noqa: E402
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
@@ -150,14 +152,8 @@ def test_jitterguard_replay_of_the_bag_feeds_the_tracker(pipeline_run) -> None:
     got: dict[str, list] = {"tracked": [], "detections": []}
     lock = threading.Lock()
 
-    def keep(kind, model):
-        def cb(s):
-            with lock:
-                got[kind].append(decode(model, s.payload.to_bytes()))
-        return cb
-
-    subs = [client.declare_subscriber(keys.tracked(ns), keep("tracked", TrackedObjects)),
-            client.declare_subscriber(keys.detections(ns), keep("detections", DetectedObjects))]
+    subs = [client.declare_subscriber(keys.tracked(ns), collector(got, lock, "tracked", TrackedObjects)),
+            client.declare_subscriber(keys.detections(ns), collector(got, lock, "detections", DetectedObjects))]
     try:
         time.sleep(0.5)
         res = subprocess.run(

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 from collections import OrderedDict
 from dataclasses import dataclass, field
-from typing import Generic, TypeVar
+from typing import Any, Generic, TypeVar
 
 from ...schemas.models import (
     DetectedObjects,
@@ -144,21 +144,21 @@ class FrameJoiner:
 
     # ---------------------------------------------------------------------------------------- inputs
 
-    def add_points(self, msg: PointCloud) -> None:
+    def _keep(self, buffer: _BySeq[Any], msg: Any) -> None:
         if self._restart_check(msg.header.seq):
-            self._count("dropped_pending", self._points.put(msg.header.seq, msg))
+            self._count("dropped_pending", buffer.put(msg.header.seq, msg))
+
+    def add_points(self, msg: PointCloud) -> None:
+        self._keep(self._points, msg)
 
     def add_detections(self, msg: DetectedObjects) -> None:
-        if self._restart_check(msg.header.seq):
-            self._count("dropped_pending", self._detections.put(msg.header.seq, msg))
+        self._keep(self._detections, msg)
 
     def add_groundtruth(self, msg: GroundTruthObjects) -> None:
-        if self._restart_check(msg.header.seq):
-            self._count("dropped_pending", self._truth.put(msg.header.seq, msg))
+        self._keep(self._truth, msg)
 
     def add_tracked(self, msg: TrackedObjects) -> None:
-        if self._restart_check(msg.header.seq):
-            self._count("dropped_pending", self._tracked.put(msg.header.seq, msg))
+        self._keep(self._tracked, msg)
 
     def add_motion(self, msg: MotionState) -> None:
         seq = msg.header.seq
