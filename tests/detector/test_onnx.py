@@ -5,6 +5,7 @@ opset >= 17; the backend switch runs the service's Detector; bad input is refuse
 from __future__ import annotations
 
 import json
+import math
 import shutil
 from pathlib import Path
 
@@ -231,3 +232,52 @@ def test_bench_detector_reports_torch_and_onnxruntime_side_by_side() -> None:
     assert ort["scans"] == row["scans"] == 2 and ort["points"] == row["points"]  # the same scans
     assert ort["detections"] == row["detections"]  # the same network gives the same detections
     assert row["onnxruntime_over_torch_p50"] == pytest.approx(ort["p50_ms"] / row["p50_ms"], rel=0.01)
+
+
+@pytest.mark.slow
+@pytest.mark.integration
+def test_the_detector_service_on_onnxruntime_publishes_what_torch_would(torch_det, synthetic_scans) -> None:
+    """``jitterguard detector --backend onnxruntime`` without ``--onnx``: the weights are exported at start-up and the
+    very service publishes the ONNX Runtime network's detections over Zenoh."""
+    import threading
+
+    import zenoh
+
+    from jitterguard.runtime import build_config, free_tcp_port, loopback_options
+    from jitterguard.schemas import decode, encode, keys
+    from jitterguard.schemas.models import X_X, DetectedObjects, Header, PointCloud
+    from jitterguard.services.detector.onnx_backend import open_onnx_detector
+    from jitterguard.services.detector.service import DetectorService
+
+    det = open_onnx_detector(None, None, "lite", threads=2)
+    assert isinstance(det.model, OnnxNetwork) and det.meta["backend"] == "onnxruntime"
+    ns, port = "onnx_svc", free_tcp_port()
+    svc = DetectorService(loopback_options(ns, port, listen_self=True), det)
+    client = zenoh.open(build_config(loopback_options(ns, port)))
+    got: list[DetectedObjects] = []
+    lock = threading.Lock()
+
+    def on(s: zenoh.Sample) -> None:
+        with lock:
+            got.append(decode(DetectedObjects, s.payload.to_bytes()))
+
+    sub = client.declare_subscriber(keys.detections(ns), on)
+    pub = client.declare_publisher(keys.points(ns), congestion_control=zenoh.CongestionControl.BLOCK)
+    try:
+        from helpers import wait_until
+
+        assert wait_until(lambda: pub.matching_status.matching, 10)
+        pts = synthetic_scans[0]
+        pub.put(encode(PointCloud(header=Header(stamp=1, frame_id="lidar", seq=3), fields=["x", "y", "z", "intensity"],
+                                  num_points=len(pts), data=np.ascontiguousarray(pts[:, :4], dtype="<f4").tobytes())))
+        assert wait_until(lambda: len(got) == 1, 30)
+    finally:
+        sub.undeclare()
+        client.close()
+        svc.close()
+    want = torch_det.detect(np.ascontiguousarray(pts[:, :4]))
+    msg = got[0]
+    assert msg.header.seq == 3 and len(msg.objects) == len(want) > 5
+    for o, b, lv in zip(msg.objects, want.boxes, want.log_variances):
+        assert o.kinematics.pose_with_covariance.pose.position.x == pytest.approx(float(b[0]), abs=TOL)
+        assert o.kinematics.pose_with_covariance.covariance[X_X] == pytest.approx(math.exp(float(lv[0])), rel=TOL)
