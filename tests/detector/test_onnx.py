@@ -177,6 +177,14 @@ def test_compare_detections_reports_a_count_mismatch_instead_of_comparing(torch_
     assert cmp["count_mismatch"] == 1 and cmp["box_columns"] is None
     moved = replace(a, boxes=a.boxes + np.float32(0.5))
     assert compare_detections(a, moved)["box_columns"]["yaw"] == pytest.approx(0.5)
+    # the same detections in another order are paired by class and centre, not by position in the list
+    rev = replace(a, boxes=a.boxes[::-1], scores=a.scores[::-1], labels=a.labels[::-1],
+                  log_variances=a.log_variances[::-1])
+    cmp = compare_detections(a, rev)
+    assert cmp["labels_equal"] and max(cmp["box_columns"].values()) == 0.0 and cmp["scores"] == 0.0
+    flipped = a.boxes.copy()
+    flipped[:, 6] = np.where(flipped[:, 6] > 0, flipped[:, 6] - 2 * np.pi, flipped[:, 6] + 2 * np.pi)
+    assert compare_detections(a, replace(a, boxes=flipped))["box_columns"]["yaw"] < 1e-5  # ±π is one heading
 
 
 # ------------------------------------------------------------------------------------------------ the CLI

@@ -3,7 +3,9 @@
 After writing, the export is checked: ONNX Runtime runs it on real HDL-32E scans of the synthetic world and the
 raw head maps and the decoded boxes, scores and log-variances are compared with torch's; the maximum absolute
 differences are printed (and the command fails, exit 1, if they exceed ``--tolerance`` — ``--yaw-tolerance`` for
-the yaw angle — or the detections differ in number or class).
+the yaw angle — or the detections differ in number or class). Randomly initialised weights (a preset without
+shipped weights) are checked on the raw head maps only: they score every cell about alike, and which of hundreds
+of near-ties make the top-K is float32 noise.
 """
 
 from __future__ import annotations
@@ -31,25 +33,46 @@ onnxruntime 5e-5 on the log-variance map), while a wrong graph differs by O(1); 
 ``--tolerance`` bounds."""
 
 
+def pair_detections(a: Any, b: Any) -> Any:
+    """Row of ``b`` paired with each row of ``a``: the same detection, found by class and BEV centre (an optimal
+    assignment), not by list position — two detections whose scores differ by float32 noise may swap places in the
+    score order without being different detections."""
+    import numpy as np
+    from scipy.optimize import linear_sum_assignment
+
+    cost = np.linalg.norm(a.boxes[:, None, :2].astype(np.float64) - b.boxes[None, :, :2], axis=2)
+    cost += 1e6 * (a.labels[:, None] != b.labels[None, :])
+    rows, cols = linear_sum_assignment(cost)
+    order = np.empty(len(a), dtype=np.int64)
+    order[rows] = cols
+    return order
+
+
 def compare_detections(a: Any, b: Any) -> dict[str, Any]:
-    """Max |a − b| per box column, over scores and over log-variances of two decodings of one scan (None where
-    either is empty); ``count_mismatch`` is the difference in the number of detections (then nothing else is
-    compared)."""
-    out: dict[str, Any] = {"detections": len(a), "count_mismatch": abs(len(a) - len(b)),
+    """Max |a − b| per box column, over scores and over log-variances of two decodings of one scan, detections
+    paired by :func:`pair_detections` (None where either is empty); ``count_mismatch`` is the difference in the
+    number of detections (then nothing else is compared); ``labels_equal`` whether every pair has one class."""
+    out: dict[str, Any] = {"detections": len(a), "count_mismatch": abs(len(a) - len(b)), "labels_equal": True,
                            "box_columns": None, "scores": None, "log_variances": None}
     if len(a) != len(b) or len(a) == 0:
         return out
     import numpy as np
 
-    cols = np.abs(a.boxes - b.boxes).max(axis=0)
+    j = pair_detections(a, b)
+    out["labels_equal"] = bool((a.labels == b.labels[j]).all())
+    diff = np.abs(a.boxes - b.boxes[j]).astype(np.float64)
+    d_yaw = a.boxes[:, 6].astype(np.float64) - b.boxes[j, 6]
+    diff[:, 6] = np.abs(np.arctan2(np.sin(d_yaw), np.cos(d_yaw)))  # ±π is one heading
+    cols = diff.max(axis=0)
     out["box_columns"] = {c: float(v) for c, v in zip(BOX_COLUMNS, cols, strict=True)}
-    out["scores"] = float(np.abs(a.scores - b.scores).max())
+    out["scores"] = float(np.abs(a.scores - b.scores[j]).max())
     if a.log_variances is not None and b.log_variances is not None:
-        out["log_variances"] = float(np.abs(a.log_variances - b.log_variances).max())
+        out["log_variances"] = float(np.abs(a.log_variances - b.log_variances[j]).max())
+    out["pairing"] = j
     return out
 
 
-def check_export(torch_det: Any, onnx_det: Any, scans: list[Any]) -> dict[str, Any]:
+def check_export(torch_det: Any, onnx_det: Any, scans: list[Any], *, decoded: bool = True) -> dict[str, Any]:
     """Both detectors on ``scans``: maximum absolute differences of the raw head maps (every cell of every map)
     and of the decoded detections (per box column, scores, log-variances), and whether labels agree.
 
@@ -71,6 +94,8 @@ def check_export(torch_det: Any, onnx_det: Any, scans: list[Any]) -> dict[str, A
             ra, rb = torch_det.model.forward_pillars(p), onnx_det.model.forward_pillars(p)
         for k, v in ra.items():
             maps[k] = max(maps.get(k, 0.0), float((v - rb[k]).abs().max()))
+        if not decoded:
+            continue
         a, b = torch_det.detect(pts), onnx_det.detect(pts)
         cmp = compare_detections(a, b)
         if cmp["count_mismatch"]:
@@ -78,18 +103,21 @@ def check_export(torch_det: Any, onnx_det: Any, scans: list[Any]) -> dict[str, A
             continue
         if not len(a):
             continue
-        labels_equal &= bool((a.labels == b.labels).all())
+        labels_equal &= cmp["labels_equal"]
         for k in worst:
             if cmp[k] is not None:
                 worst[k] = max(worst[k], float(cmp[k]))
-        dyaw = np.abs(a.boxes[:, 6] - b.boxes[:, 6])
+        d = a.boxes[:, 6].astype(np.float64) - b.boxes[cmp["pairing"], 6]
+        dyaw = np.abs(np.arctan2(np.sin(d), np.cos(d)))
         if float(dyaw.max()) >= cols["yaw"]:
             i = int(dyaw.argmax())
             yaw_norm = _rot_norm_at(ra["rot"], a.boxes[i], torch_det.config)
         for c, v in cmp["box_columns"].items():
             cols[c] = max(cols[c], v)
     boxes_but_yaw = max(v for c, v in cols.items() if c != "yaw")
-    return {"scans": len(scans), "scans_with_count_mismatch": mismatched, "labels_equal": labels_equal,
+    if not decoded:
+        return {"scans": len(scans), "decoded": False, "head_maps": maps}
+    return {"scans": len(scans), "decoded": True, "scans_with_count_mismatch": mismatched, "labels_equal": labels_equal,
             "max_abs_error": {"boxes": max(cols.values()), "boxes_except_yaw": boxes_but_yaw, "yaw": cols["yaw"],
                               "scores": worst["scores"], "log_variances": worst["log_variances"]},
             "box_columns": cols, "head_maps": maps, "yaw_worst_rot_norm": yaw_norm}
@@ -107,7 +135,10 @@ def _rot_norm_at(rot: Any, box: Any, config: Any) -> float | None:
 
 
 def export_ok(check: dict[str, Any], tolerance: float, yaw_tolerance: float) -> bool:
-    """The export check passes: same detections, labels, and every difference within its tolerance."""
+    """The export check passes: same detections, labels, and every difference within its tolerance (the head maps
+    only when the decoded detections were not compared)."""
+    if not check["decoded"]:
+        return max(check["head_maps"].values()) <= MAP_TOLERANCE
     err = check["max_abs_error"]
     return (not check["scans_with_count_mismatch"] and check["labels_equal"]
             and max(err["boxes_except_yaw"], err["scores"], err["log_variances"]) <= tolerance
@@ -162,10 +193,13 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             from .bench import bench_scans
 
             onnx_det = load_onnx_detector(res.out_dir, threads=threads)
-            report["check"] = check = check_export(det, onnx_det, bench_scans(check_scans))
+            # randomly initialised weights score every cell about alike: which of hundreds of near-ties make the
+            # top-K is float32 noise, so only the raw head maps are a meaningful comparison there
+            decoded = not det.meta.get("random_init")
+            report["check"] = check = check_export(det, onnx_det, bench_scans(check_scans), decoded=decoded)
             print(json.dumps(report))
             if not export_ok(check, tolerance, yaw_tolerance):
-                print(f"jitterguard: error: onnxruntime and torch disagree beyond --tolerance {tolerance:g} / --yaw-tolerance {yaw_tolerance:g}: {check['max_abs_error']}",
+                print(f"jitterguard: error: onnxruntime and torch disagree beyond --tolerance {tolerance:g} / --yaw-tolerance {yaw_tolerance:g}: {check.get('max_abs_error', check['head_maps'])}",
                       file=sys.stderr)
                 raise typer.Exit(1)
             return
