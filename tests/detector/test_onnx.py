@@ -107,7 +107,7 @@ def test_the_graph_has_dynamic_points_and_pillars_and_a_recent_opset(single_dir)
     outs = [o.name for o in model.graph.output]
     assert outs == ["heatmap", "reg", "height", "dim", "rot", "vel", "logvar"]  # the variance heads are exported
     doc = read_manifest(single_dir)
-    assert doc["layout"] == "single" and doc["opset"] >= 17
+    assert doc["layout"] == "single" and doc["opset"] >= 17 and doc["graphs"]["detector"]["opset"] == doc["opset"]
     assert doc["preprocessing"]["intensity_scale"] == pytest.approx(1 / 255)
     assert doc["postprocessing"]["class_names"] == ["car", "truck", "bus", "bicycle", "pedestrian"]
 

@@ -188,7 +188,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             print(f"jitterguard: error: {_one_line(exc, 600)}", file=sys.stderr)
             raise typer.Exit(1) from None
         report: dict[str, Any] = {"out": str(res.out_dir), "files": [p.name for p in (*res.files, res.manifest_path)],
-                                  "layout": layout, "opset": opset, "preset": det.config.name, "weights": meta["weights"]}
+                                  "layout": layout, "opset": res.manifest["opset"], "opset_requested": opset,
+                                  "graph_opsets": {k: g["opset"] for k, g in res.manifest["graphs"].items()},
+                                  "preset": det.config.name, "weights": meta["weights"]}
         if check_scans:
             from .bench import bench_scans
 

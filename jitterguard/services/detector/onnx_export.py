@@ -193,6 +193,15 @@ def _export(module: nn.Module, args: tuple[Tensor, ...], path: Path, inputs: tup
             raise ExportError(f"torch.onnx.export of {path.name} failed: {type(exc).__name__}: {exc} {tail}".strip()) from exc
 
 
+def graph_opset(path: Path) -> int:
+    """The default-domain opset a written graph declares. torch's exporter raises it above the requested one where
+    an operator needs it (the pillar max is a ``max`` reduction: ScatterElements / ReduceMax of opset 18)."""
+    import onnx
+
+    model = onnx.load(str(path), load_external_data=False)
+    return max(o.version for o in model.opset_import if o.domain in ("", "ai.onnx"))
+
+
 def _sha256(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
@@ -313,7 +322,11 @@ def export_onnx(net: CenterPointNet, out_dir: str | Path, *, layout: str = "sing
             canvas = torch.zeros(1, config.pfn_channels, ny, nx)
             _export(BackboneNeckHeadGraph(net), (canvas,), files["backbone_neck_head"], ("spatial_features",), names,
                     ({},), opset)
-    manifest = manifest_for(config, layout, opset, files, recalibration, dict(meta or {}))
+    actual = {name: graph_opset(path) for name, path in files.items()}
+    manifest = manifest_for(config, layout, max(actual.values()), files, recalibration, dict(meta or {}))
+    manifest["opset_requested"] = opset
+    for name, v in actual.items():
+        manifest["graphs"][name]["opset"] = v
     path = out / MANIFEST
     path.write_text(json.dumps(manifest, indent=2) + "\n")
     return ExportResult(out, tuple(files.values()), path, manifest)
