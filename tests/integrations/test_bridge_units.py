@@ -232,3 +232,51 @@ def test_the_shipped_layout_is_the_generated_one_and_names_only_real_topics() ->
         assert topic in TOPICS, topic
     for field in re.findall(r'/jitterguard/motion\.(\w+)', text):
         assert field in MOTION_SCHEMA["properties"], field
+
+
+@pytest.mark.integration
+def test_a_bridge_counts_malformed_payloads_per_key_and_keeps_joining() -> None:
+    """Garbage on any input key is rejected and counted per key (the runtime's rule); the next valid frame still
+    reaches the sink, joined with its motion."""
+    import zenoh
+
+    from jitterguard.runtime import build_config, free_tcp_port, loopback_options
+    from jitterguard.schemas import encode, keys
+    from jitterguard.services.bridge.service import BridgeService
+
+    from helpers import wait_until
+
+    class ListSink:
+        def __init__(self) -> None:
+            self.frames: list[JoinedFrame] = []
+            self.closed = False
+
+        def write(self, frame: JoinedFrame) -> None:
+            self.frames.append(frame)
+
+        def close(self) -> None:
+            self.closed = True
+
+    ns, port = "bridge_bad", free_tcp_port()
+    sink = ListSink()
+    svc = BridgeService(loopback_options(ns, port, listen_self=True), sink, motion_wait_s=0.2)
+    client = zenoh.open(build_config(loopback_options(ns, port)))
+    try:
+        pub = client.declare_publisher(keys.objects(ns))
+        assert wait_until(lambda: pub.matching_status.matching, 10)
+        client.put(keys.objects(ns), b"\x93not a model")
+        client.put(keys.motion(ns, A), encode(motion(1, A)).replace(b"z_test", b"zztest"))
+        client.put(keys.points(ns), b"")
+        assert wait_until(lambda: svc.counters.get("rejected") == 3, 10)
+        c = svc.counters.snapshot()
+        assert c["rejected.objects"] == 1 and c["rejected.motion/*"] == 1 and c["rejected.points"] == 1
+        client.put(keys.tracked(ns), encode(tracked(4, observed=(A,))))
+        client.put(keys.motion(ns, A), encode(motion(4, A, "dynamic", 3.0)))
+        client.put(keys.objects(ns), encode(objects(4, ids=(A,))))
+        assert wait_until(lambda: len(sink.frames) == 1, 10)
+        assert sink.frames[0].seq == 4 and sink.frames[0].motion[A].state == "dynamic"
+        assert svc.last_seq == 4
+    finally:
+        client.close()
+        svc.close()
+    assert sink.closed
