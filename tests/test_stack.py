@@ -8,7 +8,7 @@ import sys
 import pytest
 import zenoh
 
-from jitterguard.runtime import ZenohOptions, build_config, free_tcp_port
+from jitterguard.runtime import ZenohOptions, build_config, free_tcp_port, open_session
 from jitterguard.schemas import decode, keys
 from jitterguard.schemas.models import TrackedObjects
 from jitterguard.stack.supervisor import StackSpec, programs, render_config
@@ -45,7 +45,7 @@ def test_up_detached_runs_the_stack_until_down(tmp_path):
     try:
         got: list[TrackedObjects] = []
         cfg = build_config(ZenohOptions(ns=ns, connect=(f"tcp/127.0.0.1:{router}",), listen=()))
-        with zenoh.open(cfg) as s:
+        with open_session(cfg, timeout_s=60) as s:
             s.declare_subscriber(keys.objects(ns), lambda x: got.append(decode(TrackedObjects, x.payload.to_bytes())))
             assert wait_until(lambda: len(got) >= 5, timeout=60), (run_dir / "logs" / "classifier.log").read_text()
         assert any(o.kinematics.is_stationary for o in got[-1].objects)
