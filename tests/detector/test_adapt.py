@@ -16,6 +16,7 @@ import torch
 
 from jitterguard.services.detector.adapt import (
     UnlabelledScan,
+    adapted_on,
     pseudo_samples,
     read_unlabelled,
     recompute_norm_stats,
@@ -123,6 +124,7 @@ def test_unlabelled_scans_read_without_any_annotation_table(tmp_path: Path) -> N
     assert len(scans) == 4 and all(s.has_pose and s.points.shape[1] == 4 for s in scans)
     assert scans[0].source.endswith("#parking-street-3") or "#" in scans[0].source
     assert not np.allclose(scans[0].pose, scans[-1].pose)  # the ego moved
+    assert all(s.source.split("#")[0] == str(root.resolve()) for s in scans)  # absolute: metadata survives a cd
 
 
 @pytest.mark.slow
@@ -139,7 +141,9 @@ def test_adapt_cli_writes_weights_that_name_their_scans(tmp_path: Path) -> None:
     assert report["scans"] == 4 and len(report["report"]["rounds"]) == 1
     model, rec, meta = load_weights(out / "weights.pt")
     assert meta["labels_read"] is False and meta["unlabelled_scans"][0]["scans"] == 4
-    assert meta["unlabelled_scans"][0]["recording"].startswith(str(root))
+    assert meta["unlabelled_scans"][0]["recording"].startswith(str(root.resolve()))
+    # eval-detector can tell that scoring these weights on this dataroot is test-time adaptation
+    assert adapted_on(meta, root) and not adapted_on(meta, tmp_path) and not adapted_on({}, root)
     assert "adapt" in meta["command"] and meta["adapted_from"]["sha256_16"]
     assert rec is not None and json.loads((out / "adapt.json").read_text())["labels_read"] is False
     bad = subprocess.run([sys.executable, "-m", "jitterguard.cli", "adapt", "--weights", str(out / "weights.pt"),

@@ -78,6 +78,8 @@ def read_unlabelled(specs: Sequence[str], *, max_scans: int | None = None,
     out: list[UnlabelledScan] = []
     for spec in specs:
         path = Path(spec)
+        # the absolute path names the recording in the metadata, so eval-detector can tell adapted-on scans
+        name = str(path.resolve()) if path.exists() else spec
         scenes: list[str | None] = [None]
         if path.exists() and is_nuscenes_root(path):
             scenes = [s["name"] for s in _load_table(path / find_version(path, None), "scene")]
@@ -91,13 +93,24 @@ def read_unlabelled(specs: Sequence[str], *, max_scans: int | None = None,
                 if len(pts) and float(np.nanmax(pts[:, 3])) <= 1.0:
                     pts = pts.copy()
                     pts[:, 3] *= 255.0
-                out.append(UnlabelledScan(pts, item.pose.matrix(), spec if scene is None else f"{spec}#{scene}",
+                out.append(UnlabelledScan(pts, item.pose.matrix(), name if scene is None else f"{name}#{scene}",
                                           Path(item.origin).name, item.pose != IDENTITY))
                 if max_scans is not None and len(out) >= max_scans:
                     return out
             if len(out) == n_before:
                 raise SourceError(f"{spec}: no scans read")
     return out
+
+
+def adapted_on(meta: dict[str, Any], recording: str | Path) -> bool:
+    """Whether weights with metadata ``meta`` were adapted on scans of ``recording`` (a folder or file; for a
+    nuScenes dataroot any of its scenes): scoring them there is test-time adaptation, not a cross-scene test."""
+    target = str(Path(recording).resolve())
+    for rec in meta.get("unlabelled_scans") or []:
+        src = str(rec.get("recording", "")) if isinstance(rec, dict) else ""
+        if src.split("#", 1)[0] == target:
+            return True
+    return False
 
 
 def describe(scans: Sequence[UnlabelledScan]) -> list[dict[str, Any]]:

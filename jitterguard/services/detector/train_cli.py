@@ -501,8 +501,15 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             except SourceError as exc:
                 fail(f"--nuscenes: {exc}")
             samples: Any = split_holdout(every, last_n=last)[1] if last else every
+            from .adapt import adapted_on
+
+            transductive = adapted_on(det.meta, nuscenes)
             scored_on = {"nuscenes": os.path.abspath(nuscenes), "key_frames": len(samples),
-                         "holdout_last": last, "weights_trained_on_it": seen}
+                         "holdout_last": last, "weights_trained_on_it": seen,
+                         "weights_adapted_on_its_scans": transductive}
+            if transductive:
+                log.warning("these weights were adapted on %s's unlabelled scans: this scores test-time adaptation,"
+                            " not a scene the weights have never seen", nuscenes)
             if seen and not holdout_last:
                 log.warning("these weights were trained on %s: scoring only its held-out last %d key frames",
                             nuscenes, last)
