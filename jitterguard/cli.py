@@ -29,6 +29,7 @@ _AREAS = (
     "jitterguard.stack.cli",
     "jitterguard.stack.bench",
     "jitterguard.eval.cli",
+    "jitterguard.eval.survival_cli",
 )
 
 for _mod in _AREAS:
