@@ -27,6 +27,7 @@ _AREAS = (
     "jitterguard.services.sidecar.cli",
     "jitterguard.sim.cli",
     "jitterguard.stack.cli",
+    "jitterguard.stack.monitor",
     "jitterguard.stack.bench",
     "jitterguard.eval.cli",
     "jitterguard.eval.survival_cli",

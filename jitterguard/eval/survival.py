@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -62,83 +62,122 @@ def in_view(gt: GroundTruthFrame, min_points: int) -> set[int]:
     return out
 
 
-def wilson(k: int, n: int, z: float = 1.96) -> list[float] | None:
-    """95 % Wilson score interval of k successes in n trials (None when n = 0)."""
-    if n == 0:
+@dataclass
+class SurvivalRun:
+    """What one sequence gave: per confirmed track, its trials and how many it survived; and the churn counts."""
+
+    per_track: dict[str, list[int]] = field(default_factory=dict)  # track ID -> [trials, alive, same object]
+    counts: dict[str, int] = field(default_factory=dict)
+    horizon_s: float = 1.0
+    min_points: int = DEFAULT_MIN_POINTS
+
+
+BOOTSTRAP_REPS = 1000
+
+
+def _rate_ci(trials: np.ndarray, hits: np.ndarray, rng: np.random.Generator) -> list[float] | None:
+    """95 % interval of sum(hits)/sum(trials) by resampling whole tracks (a track's trials, one per frame, are
+    far from independent: a binomial interval over them would be several times too narrow)."""
+    n = trials.size
+    if n == 0 or trials.sum() == 0:
         return None
-    p = k / n
-    d = 1 + z * z / n
-    c = (p + z * z / (2 * n)) / d
-    h = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / d
-    return [round(c - h, 4), round(c + h, 4)]
+    idx = rng.integers(0, n, size=(BOOTSTRAP_REPS, n))
+    t = trials[idx].sum(axis=1)
+    rates = hits[idx].sum(axis=1) / np.maximum(t, 1)
+    lo, hi = np.percentile(rates[t > 0], [2.5, 97.5])
+    return [round(float(lo), 4), round(float(hi), 4)]
 
 
-def survival(frames: Iterable[tuple[GroundTruthFrame, DetectedObjects]], tracker: TrackerConfig | None = None, *,
-             horizon_s: float = 1.0, min_points: int = DEFAULT_MIN_POINTS,
-             match_distance_m: float = MATCH_DISTANCE_M) -> dict[str, Any]:
-    """Run the tracker core over (ground truth, detections) pairs and score track-ID survival (module docstring).
+def score(runs: list[SurvivalRun], seed: int = 0) -> dict[str, Any]:
+    """Survival over one or more runs (pooled), with track-resampled 95 % intervals (seeded)."""
+    rows = np.array([v for r in runs for v in r.per_track.values()], dtype=np.int64).reshape(-1, 3)
+    trials, alive, same = (rows[:, k] for k in range(3))
+    n = int(trials.sum())
+    c: dict[str, int] = {}
+    for r in runs:
+        for k, v in r.counts.items():
+            c[k] = c.get(k, 0) + v
+    rng = np.random.default_rng(seed)
 
-    The detections go through the tracker service's own conversion (``frame_from_message``); track IDs are
-    deterministic so a run repeats.
-    """
+    def ratio(a: int, b: int, nd: int = 4) -> float | None:
+        return round(a / b, nd) if b else None
+
+    return {
+        "survival": ratio(int(alive.sum()), n),
+        "survival_ci95": _rate_ci(trials, alive, rng),
+        "survival_same_object": ratio(int(same.sum()), n),
+        "survival_same_object_ci95": _rate_ci(trials, same, rng),
+        "trials": n,
+        "tracks": int((trials > 0).sum()),
+        "coverage": ratio(c.get("covered", 0), c.get("seen", 0)),
+        "all_confirmed_survival": ratio(c.get("any_alive", 0), c.get("any", 0)),
+        "unmatched_confirmed_fraction": ratio(c.get("ghosts", 0), c.get("any", 0)),
+        "frames": c.get("frames", 0),
+        "tracks_born_per_frame": ratio(c.get("born", 0), c.get("frames", 0), 2),
+        "confirmed_per_frame": ratio(c.get("confirmed", 0), c.get("frames", 0), 2),
+        "tentative_published": c.get("tentative_published", 0),
+        "horizon_s": runs[0].horizon_s if runs else None,
+        "min_points": runs[0].min_points if runs else None,
+    }
+
+
+def survival_run(frames: Iterable[tuple[GroundTruthFrame, DetectedObjects]], tracker: TrackerConfig | None = None, *,
+                 horizon_s: float = 1.0, min_points: int = DEFAULT_MIN_POINTS,
+                 match_distance_m: float = MATCH_DISTANCE_M) -> SurvivalRun:
+    """Run the tracker core over (ground truth, detections) pairs and collect the survival trials (module
+    docstring). The detections go through the tracker service's own conversion (``frame_from_message``); track
+    IDs are deterministic so a run repeats."""
     counter = iter(range(1, 1 << 62))
     core = TrackerCore(tracker or default_config(), lambda: f"{next(counter):032x}")
     recs: list[_FrameRecord] = []
-    born = frames_n = confirmed_total = tentative_published = seen = covered = 0
+    c = dict.fromkeys(("frames", "born", "confirmed", "tentative_published", "seen", "covered", "any", "any_alive",
+                       "ghosts"), 0)
     for gt, msg in frames:
         frame = frame_from_message(msg)
         try:
             res = core.step(frame)
         except FrameRejected:
             continue
-        frames_n += 1
-        born += len(res.born)
+        c["frames"] += 1
+        c["born"] += len(res.born)
         snap = res.tracks
         ids = list(snap.ids)
         confirmed = set(core.tracks.ids[i] for i in np.flatnonzero(core.tracks.confirmed))
-        tentative_published += sum(1 for t in ids if t not in confirmed)
-        confirmed_total += len(ids)
+        c["tentative_published"] += sum(1 for t in ids if t not in confirmed)
+        c["confirmed"] += len(ids)
         xy = np.stack([np.asarray(snap.x), np.asarray(snap.y)], axis=1) if ids else np.zeros((0, 2))
         gi = match_tracks(xy, gt.centers[:, :2], match_distance_m) if gt.num_objects else np.full(len(ids), -1)
         match = {tid: int(gt.instance_ids[g]) for tid, g in zip(ids, gi.tolist()) if g >= 0}
         visible = in_view(gt, min_points)
-        seen += len(visible)
-        covered += len(visible & set(match.values()))
+        c["seen"] += len(visible)
+        c["covered"] += len(visible & set(match.values()))
         recs.append(_FrameRecord(int(gt.stamp_ns), set(ids), match, visible))
 
+    run = SurvivalRun(counts=c, horizon_s=horizon_s, min_points=min_points)
     horizon_ns = int(round(horizon_s * 1e9))
     stamps = np.array([r.stamp_ns for r in recs], dtype=np.int64)
-    trials = alive = same = any_n = any_alive = ghosts = 0
     for i, r in enumerate(recs):
         j = int(np.searchsorted(stamps, r.stamp_ns + horizon_ns, side="left"))
         if j >= len(recs):
             break
-        window = recs[i + 1 : j + 1]
-        any_n += len(r.reported)
-        any_alive += len(r.reported & recs[j].reported)
-        ghosts += len(r.reported) - len(r.match)
+        window, end = recs[i + 1 : j + 1], recs[j]
+        c["any"] += len(r.reported)
+        c["any_alive"] += len(r.reported & end.reported)
+        c["ghosts"] += len(r.reported) - len(r.match)
         for tid, inst in r.match.items():
             if inst not in r.in_view or any(inst not in w.in_view for w in window):
                 continue
-            trials += 1
-            end = recs[j]
+            row = run.per_track.setdefault(tid, [0, 0, 0])
+            row[0] += 1
             if tid in end.reported:
-                alive += 1
-                if end.match.get(tid) == inst:
-                    same += 1
-    return {
-        "survival": round(alive / trials, 4) if trials else None,
-        "survival_ci95": wilson(alive, trials),
-        "survival_same_object": round(same / trials, 4) if trials else None,
-        "survival_same_object_ci95": wilson(same, trials),
-        "trials": trials,
-        "coverage": round(covered / seen, 4) if seen else None,
-        "all_confirmed_survival": round(any_alive / any_n, 4) if any_n else None,
-        "unmatched_confirmed_fraction": round(ghosts / any_n, 4) if any_n else None,
-        "frames": frames_n,
-        "tracks_born_per_frame": round(born / frames_n, 2) if frames_n else None,
-        "confirmed_per_frame": round(confirmed_total / frames_n, 2) if frames_n else None,
-        "tentative_published": tentative_published,
-        "horizon_s": horizon_s,
-        "min_points": min_points,
-    }
+                row[1] += 1
+                row[2] += int(end.match.get(tid) == inst)
+    return run
+
+
+def survival(frames: Iterable[tuple[GroundTruthFrame, DetectedObjects]], tracker: TrackerConfig | None = None, *,
+             horizon_s: float = 1.0, min_points: int = DEFAULT_MIN_POINTS,
+             match_distance_m: float = MATCH_DISTANCE_M) -> dict[str, Any]:
+    """:func:`score` of one :func:`survival_run`."""
+    return score([survival_run(frames, tracker, horizon_s=horizon_s, min_points=min_points,
+                               match_distance_m=match_distance_m)])

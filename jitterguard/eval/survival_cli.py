@@ -54,7 +54,7 @@ def survival_command(
 ) -> None:
     """Track-ID survival with the shipped detector on a synthetic scenario, as JSON (pooled and per seed)."""
     from ..services.tracker.config import ConfigError, default_config, load_config
-    from .survival import survival, wilson
+    from .survival import score, survival_run
 
     try:
         seed_list = [int(s) for s in seeds.split(",") if s.strip()]
@@ -68,27 +68,20 @@ def survival_command(
         cfg = load_config(tracker_config) if tracker_config else default_config()
     except ConfigError as exc:
         fail(str(exc))
+    runs = []
     per_seed: dict[str, Any] = {}
-    totals = {"trials": 0, "alive": 0, "same": 0}
     for s in seed_list:
-        r = survival(detector_frames_for(scenario, s, duration, rate, threads, sys.stderr.isatty()), cfg,
-                     horizon_s=horizon, min_points=min_points)
-        per_seed[f"seed_{s}"] = r
-        totals["trials"] += r["trials"]
-        if r["trials"]:
-            totals["alive"] += round(r["survival"] * r["trials"])
-            totals["same"] += round(r["survival_same_object"] * r["trials"])
-    n = totals["trials"]
+        run = survival_run(detector_frames_for(scenario, s, duration, rate, threads, sys.stderr.isatty()), cfg,
+                           horizon_s=horizon, min_points=min_points)
+        runs.append(run)
+        per_seed[f"seed_{s}"] = score([run])
     pooled = {
-        "survival": round(totals["alive"] / n, 4) if n else None,
-        "survival_ci95": wilson(totals["alive"], n),
-        "survival_same_object": round(totals["same"] / n, 4) if n else None,
-        "survival_same_object_ci95": wilson(totals["same"], n),
-        "survival_min_seed": min((r["survival"] for r in per_seed.values() if r["survival"] is not None), default=None),
-        "trials": n,
-        "tentative_published": sum(r["tentative_published"] for r in per_seed.values()),
-        "scenario": scenario, "duration_s": duration, "rate_hz": rate, "horizon_s": horizon,
-        "min_points": min_points, "confirm_hits": cfg.confirm_hits, "max_coast_s": cfg.max_coast_s,
+        **score(runs),
+        "survival_min_seed": min((r["survival"] for r in per_seed.values() if r["survival"] is not None),
+                                 default=None),
+        "seeds": seed_list, "scenario": scenario, "duration_s": duration, "rate_hz": rate,
+        "confirm_hits": cfg.confirm_hits, "confirm_min_existence": cfg.confirm_min_existence,
+        "max_coast_s": cfg.max_coast_s,
     }
     print(json.dumps({"pooled": pooled, **per_seed}, indent=2))
 

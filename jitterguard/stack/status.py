@@ -2,26 +2,26 @@
 
 supervisord knows the process (state, pid, uptime); Zenoh knows whether the service is actually on the bus
 (liveliness token on ``alive/{service}``) and whether frames are flowing (``last_seq`` of the heartbeat on
-``heartbeat/{service}``). Both views come from a run directory that ``jitterguard up`` wrote, including the
-``stack.json`` that records the namespace and router endpoint.
+``heartbeat/{service}``, and any health verdict the heartbeat carries). Both views come from a run directory
+that ``jitterguard up`` wrote, including the ``stack.json`` that records the namespace and router endpoint.
+
+A service is *up* when supervisord says RUNNING, its token is visible through the router, and its heartbeat
+does not report it unhealthy; ``jitterguard status`` exits 3 unless every service is up.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
-import re
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from .control import ProcessInfo
 from .supervisor import StackSpec
 
 SPEC_FILE = "stack.json"
-_LINE = re.compile(r"^(?P<name>\S+)\s+(?P<state>[A-Z]+)\s*(?P<rest>.*)$")
-_UPTIME = re.compile(r"uptime (?:(?P<d>\d+) days?, )?(?P<h>\d+):(?P<m>\d+):(?P<s>\d+)")
-_PID = re.compile(r"pid (\d+)")
 
 
 def save_spec(run_dir: Path, spec: StackSpec) -> Path:
@@ -31,12 +31,20 @@ def save_spec(run_dir: Path, spec: StackSpec) -> Path:
 
 
 def load_spec(run_dir: Path) -> StackSpec | None:
+    """The spec ``up`` wrote into ``run_dir`` (None if there is none or it cannot be read)."""
     path = run_dir / SPEC_FILE
-    if not path.is_file():
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError):
         return None
-    data = json.loads(path.read_text())
     known = {f.name for f in dataclasses.fields(StackSpec)}
-    return StackSpec(**{k: v for k, v in data.items() if k in known})
+    values = {k: v for k, v in data.items() if k in known}
+    if isinstance(values.get("replay_args"), list):
+        values["replay_args"] = tuple(values["replay_args"])
+    try:
+        return StackSpec(**values)
+    except TypeError:
+        return None
 
 
 @dataclass
@@ -50,28 +58,38 @@ class ServiceStatus:
     heartbeat_uptime_s: float | None = None
     heartbeat_pid: int | None = None
     counters: dict[str, int] = dataclasses.field(default_factory=dict)
+    healthy: bool | None = None  # the heartbeat's own verdict, where it carries one
+    health_detail: str = ""
     detail: str = ""
 
     def as_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
 
+    @property
+    def up(self) -> bool:
+        """RUNNING, on the bus, and not reporting itself unhealthy."""
+        return self.state == "RUNNING" and self.alive is not False and self.healthy is not False
 
-def parse_supervisorctl(text: str) -> list[ServiceStatus]:
-    """Parse ``supervisorctl status`` lines: ``name  RUNNING   pid 123, uptime 0:01:02``."""
-    out = []
-    for line in text.splitlines():
-        m = _LINE.match(line.strip())
-        if not m:
-            continue
-        rest = m.group("rest")
-        st = ServiceStatus(name=m.group("name"), state=m.group("state"), detail=rest.strip())
-        if (p := _PID.search(rest)) is not None:
-            st.pid = int(p.group(1))
-        if (u := _UPTIME.search(rest)) is not None:
-            st.uptime_s = float(int(u.group("d") or 0) * 86400 + int(u.group("h")) * 3600
-                                + int(u.group("m")) * 60 + int(u.group("s")))
-        out.append(st)
-    return out
+
+def rows_from_processes(procs: list[ProcessInfo]) -> list[ServiceStatus]:
+    return [ServiceStatus(name=p.name, state=p.state, pid=p.pid, uptime_s=p.uptime_s, detail=p.description)
+            for p in procs]
+
+
+HEALTH_FIELDS = ("healthy", "ok", "live")
+"""Boolean heartbeat fields read as the service's own health verdict (first one present wins)."""
+DETAIL_FIELDS = ("problem", "problems", "reason", "health", "status")
+
+
+def heartbeat_health(hb: Any) -> tuple[bool | None, str]:
+    """The health verdict a heartbeat carries, if its schema has one (None: it does not say)."""
+    verdict = next((getattr(hb, f) for f in HEALTH_FIELDS if isinstance(getattr(hb, f, None), bool)), None)
+    details = []
+    for f in DETAIL_FIELDS:
+        v = getattr(hb, f, None)
+        if v:
+            details.append(", ".join(map(str, v)) if isinstance(v, (list, tuple)) else str(v))
+    return verdict, "; ".join(details)
 
 
 def probe_zenoh(ns: str, endpoint: str, listen_s: float = 1.5) -> tuple[set[str], dict[str, Any]]:
@@ -112,8 +130,8 @@ def probe_zenoh(ns: str, endpoint: str, listen_s: float = 1.5) -> tuple[set[str]
     return alive, beats
 
 
-def collect(sup_text: str, spec: StackSpec | None, listen_s: float = 1.5) -> list[ServiceStatus]:
-    rows = parse_supervisorctl(sup_text)
+def collect(procs: list[ProcessInfo], spec: StackSpec | None, listen_s: float = 1.5) -> list[ServiceStatus]:
+    rows = rows_from_processes(procs)
     if spec is None:
         return rows
     alive, beats = probe_zenoh(spec.ns, spec.endpoint, listen_s)
@@ -129,6 +147,7 @@ def collect(sup_text: str, spec: StackSpec | None, listen_s: float = 1.5) -> lis
             row.heartbeat_uptime_s = round(hb.uptime_s, 1)
             row.heartbeat_pid = hb.pid
             row.counters = dict(hb.counters)
+            row.healthy, row.health_detail = heartbeat_health(hb)
     return rows
 
 
@@ -148,11 +167,17 @@ def render_table(rows: list[ServiceStatus], spec: StackSpec | None, run_dir: Pat
     # A terminal gets a boxed table; a pipe gets plain aligned columns, one service per line starting with its
     # name (as `supervisorctl status` prints), so `grep`/`awk` keep working.
     table = Table(title=title) if console.is_terminal else Table(title=title, box=None, pad_edge=False)
-    for col in ("service", "state", "pid", "uptime", "zenoh alive", "last seq"):
+    with_health = any(r.healthy is not None for r in rows)
+    cols = ["service", "state", "pid", "uptime", "zenoh alive", "last seq"] + (["health"] if with_health else [])
+    for col in cols:
         table.add_column(col, justify="right" if col in ("pid", "uptime", "last seq") else "left")
     for r in rows:
         color = "green" if r.state == "RUNNING" else ("yellow" if r.state in ("STARTING", "BACKOFF") else "red")
         alive = "-" if r.alive is None else ("[green]yes[/]" if r.alive else "[red]no[/]")
         seq = "-" if r.last_seq is None else ("none yet" if r.last_seq < 0 else str(r.last_seq))
-        table.add_row(r.name, f"[{color}]{r.state}[/]", str(r.pid or "-"), _fmt_uptime(r.uptime_s), alive, seq)
+        cells = [r.name, f"[{color}]{r.state}[/]", str(r.pid or "-"), _fmt_uptime(r.uptime_s), alive, seq]
+        if with_health:
+            cells.append("-" if r.healthy is None else ("[green]ok[/]" if r.healthy else
+                                                         f"[red]{r.health_detail or 'unhealthy'}[/]"))
+        table.add_row(*cells)
     console.print(table)

@@ -83,3 +83,17 @@ def test_in_view_needs_points_and_range() -> None:
     assert in_view(gt_frame(0, points=9), 10) == set()
     assert in_view(gt_frame(0, x=55.0), 1) == set()  # cars are scored to 50 m
     assert survival_cli.DEFAULT_MIN_POINTS == DEFAULT_MIN_POINTS
+
+
+def test_score_pools_runs_and_resamples_whole_tracks() -> None:
+    from jitterguard.eval.survival import SurvivalRun, score
+
+    a = SurvivalRun(per_track={"t1": [10, 10, 10], "t2": [10, 0, 0]}, counts={"frames": 5, "born": 10})
+    b = SurvivalRun(per_track={"t1": [20, 20, 18]}, counts={"frames": 5, "born": 0})  # another run's own t1
+    r = score([a, b])
+    assert r["trials"] == 40 and r["tracks"] == 3
+    assert r["survival"] == 0.75 and r["survival_same_object"] == 0.7
+    assert r["tracks_born_per_frame"] == 1.0
+    lo, hi = r["survival_ci95"]
+    assert lo < 0.75 < hi and hi - lo > 0.3  # three tracks: wide, as it must be
+    assert score([a, b]) == r  # seeded

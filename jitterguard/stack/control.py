@@ -1,0 +1,144 @@
+"""Talking to a stack's supervisord over its unix socket (XML-RPC), with one line for every state it can be in.
+
+Why not ``supervisorctl``: it is a second Python start-up per call (slow to poll), and when there is no
+supervisord, or one that is shutting down, it prints raw XML-RPC tracebacks. Here every such state is a
+:class:`StackUnavailable` whose message is one line a user can act on.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import time
+import xmlrpc.client
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from supervisor.xmlrpc import SupervisorTransport
+
+SOCKET = "supervisor.sock"
+PIDFILE = "supervisord.pid"
+CONFIG = "supervisord.conf"
+MAX_SOCKET_PATH = 100
+"""A unix socket path longer than this does not fit ``sockaddr_un`` (108 bytes on Linux, 104 on macOS)."""
+
+
+class StackUnavailable(Exception):
+    """No supervisord answers for this run directory; ``state`` says why: ``absent`` (nothing was ever started
+    there), ``stopped`` (it ran and has exited), ``stale`` (it died without cleaning up), ``shutting_down``."""
+
+    def __init__(self, state: str, message: str) -> None:
+        self.state = state
+        super().__init__(message)
+
+
+@dataclass(frozen=True)
+class ProcessInfo:
+    """What supervisord says about one program."""
+
+    name: str
+    state: str  # RUNNING, STARTING, BACKOFF, STOPPING, STOPPED, EXITED, FATAL, UNKNOWN
+    pid: int | None
+    uptime_s: float | None
+    exitstatus: int | None
+    description: str
+    logfile: str
+
+    @classmethod
+    def from_rpc(cls, d: dict[str, Any]) -> "ProcessInfo":
+        running = d.get("statename") == "RUNNING" and d.get("pid")
+        return cls(name=str(d.get("name")), state=str(d.get("statename")), pid=int(d["pid"]) if d.get("pid") else None,
+                   uptime_s=float(d["now"] - d["start"]) if running and d.get("start") else None,
+                   exitstatus=d.get("exitstatus"), description=str(d.get("description", "")),
+                   logfile=str(d.get("stdout_logfile", "")))
+
+
+def pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def read_pid(run_dir: Path) -> int | None:
+    try:
+        return int((run_dir / PIDFILE).read_text().strip())
+    except (OSError, ValueError):
+        return None
+
+
+class Supervisor:
+    """The supervisord of one run directory."""
+
+    def __init__(self, run_dir: Path, label: str | None = None) -> None:
+        self.run_dir = run_dir
+        self.label = label or f"in {run_dir}"
+        self.sock = run_dir / SOCKET
+
+    def _proxy(self) -> Any:
+        transport = SupervisorTransport(None, None, f"unix://{self.sock}")
+        return xmlrpc.client.ServerProxy("http://127.0.0.1", transport=transport)
+
+    def _unavailable(self) -> StackUnavailable:
+        pid = read_pid(self.run_dir)
+        if pid is not None and pid_alive(pid):
+            return StackUnavailable("starting", f"the stack {self.label} is starting or stopping (supervisord pid"
+                                    f" {pid} does not answer yet)")
+        if pid is not None:
+            return StackUnavailable("stale", f"the stack {self.label} is not running: its supervisord (pid {pid})"
+                                    " died without cleaning up; `jitterguard up` starts it again")
+        if (self.run_dir / CONFIG).is_file():
+            return StackUnavailable("stopped", f"the stack {self.label} is not running")
+        return StackUnavailable("absent", f"no stack {self.label} (start one with `jitterguard up`)")
+
+    def call(self, method: str, *args: Any) -> Any:
+        """One XML-RPC call (``supervisor.<method>``); raises :class:`StackUnavailable` with one line."""
+        if not self.sock.exists():
+            raise self._unavailable()
+        try:
+            return getattr(self._proxy().supervisor, method)(*args)
+        except xmlrpc.client.Fault as exc:
+            if "SHUTDOWN_STATE" in exc.faultString:
+                raise StackUnavailable("shutting_down", f"the stack {self.label} is shutting down") from None
+            raise StackUnavailable("error", f"supervisord {self.label}: {exc.faultString}") from None
+        except (OSError, socket.error, xmlrpc.client.ProtocolError, ConnectionError):
+            raise self._unavailable() from None
+
+    def running(self) -> bool:
+        try:
+            return self.call("getState").get("statename") == "RUNNING"
+        except StackUnavailable:
+            return False
+
+    def processes(self) -> list[ProcessInfo]:
+        return [ProcessInfo.from_rpc(d) for d in self.call("getAllProcessInfo")]
+
+    def shutdown(self) -> None:
+        self.call("shutdown")
+
+    def wait_gone(self, timeout: float) -> bool:
+        """Wait until supervisord has exited (its pid file is gone or its process is); True if it did."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            pid = read_pid(self.run_dir)
+            if pid is None or not pid_alive(pid):
+                return True
+            time.sleep(0.1)
+        return False
+
+
+def tail(path: Path | str, lines: int) -> list[str]:
+    """The last ``lines`` lines of a text file ([] if it cannot be read)."""
+    try:
+        with open(path, "rb") as fh:
+            fh.seek(0, os.SEEK_END)
+            size = fh.tell()
+            fh.seek(max(0, size - 64 * 1024 * max(1, lines // 50)))
+            data = fh.read()
+    except OSError:
+        return []
+    return data.decode(errors="replace").splitlines()[-lines:]
