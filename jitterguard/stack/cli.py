@@ -122,26 +122,31 @@ def _print_summary(rd: Path, *, as_json: bool = False) -> bool:
     return True
 
 
-def _check_source(source: str | None, mode: str, ropts: "R.ReplayOptions"
+def _check_source(source: str | None, input_level: str, ropts: "R.ReplayOptions"
                   ) -> tuple[str | None, str, "R.ReplayOptions", list[str]]:
-    """Resolve and probe SOURCE: (absolute source, input mode, replay options, warnings); bad ones exit 2."""
+    """Resolve and probe SOURCE: (absolute source, input mode, replay options, warnings); bad ones exit 2.
+
+    ``--input auto`` takes a source's own level where it has one (a bag of DetectedObjects), else points with
+    the detector (detections without it)."""
     from ..services.replay.options import absolute_source
     from ..services.replay.sources import SourceError, probe_source
 
-    if mode == "tracks":
+    if input_level == "tracks":
         if source is not None or ropts.argv():
             fail("--input tracks feeds the built-in track scenario: SOURCE and replay options do not apply")
-        return None, mode, ropts, []
+        return None, "tracks", ropts, []
     src = absolute_source(source) if source is not None else None
     ropts = ropts.absolute()
     try:
         src_opts = ropts.check()
         info = probe_source(src or DEFAULT_SOURCE, src_opts)
-        if info.kind == "detections" and ropts.level == "points":  # a bag of DetectedObjects: its own level
-            if mode == "points":
+        if info.kind == "detections":  # a bag of DetectedObjects: its own level
+            if input_level == "points":
                 fail(f"{source}: holds detections ({info.name}); --input points needs scans")
             mode = "detections"
-        elif mode == "detections":
+        else:
+            mode = input_mode(StackSpec(input=input_level))
+        if mode == "detections" and info.kind == "points":
             ropts = replace(ropts, level="detections")
             info = probe_source(src or DEFAULT_SOURCE, ropts.check())
     except (ValueError, SourceError) as exc:
@@ -205,10 +210,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             fail(f"--ns: {exc}")
         rd, label = resolve(run_dir, name, ns)
         stack = name or ns
-        mode = input_mode(StackSpec(input=input_level))
-        if source is None and scenario_duration is None and mode != "tracks":
+        if source is None and scenario_duration is None and input_level != "tracks":
             ropts = replace(ropts, duration=DEFAULT_SCENARIO_S)
-        src, mode, ropts, warnings = _check_source(source, mode, ropts)
+        src, mode, ropts, warnings = _check_source(source, input_level, ropts)
         try:
             for flag_value in ropts.argv() + ([src] if src else []):
                 check_text(flag_value, "SOURCE" if flag_value == src else "replay option")

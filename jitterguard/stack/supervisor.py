@@ -105,10 +105,12 @@ def programs(spec: StackSpec) -> list[Program]:
         progs.append(Program("replay", _cmd("feed-tracks", *common, "--loop"), priority=60, startsecs=2))
     else:
         source = spec.source or DEFAULT_SOURCE
+        # replay_args come from `up`, which probed the source and says its level (a bag's topic decides its own);
+        # the built-in scenario gets its defaults here
         args = list(spec.replay_args)
         if spec.source is None and "--duration" not in args:
             args += ["--duration", f"{DEFAULT_SCENARIO_S:g}"]
-        if mode == "detections" and "--level" not in args:
+        if spec.source is None and mode == "detections" and "--level" not in args:
             args += ["--level", "detections"]
         # the stack's replay stands in for a live sensor: wall-clock stamps, so that when supervisord restarts
         # it the tracker sees a restarted source going on in time, not a recording rewound (see stream_order);

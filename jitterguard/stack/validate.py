@@ -64,6 +64,8 @@ def check_run_dir(run_dir: Path) -> Path:
     from .control import MAX_SOCKET_PATH, SOCKET
 
     rd = Path(check_text(str(run_dir), "--run-dir")).expanduser().absolute()
+    if "%" in str(rd):  # supervisord expands log file names twice: no escaping survives that
+        raise ArgumentError(f"--run-dir: {rd}: '%' is not allowed in the run directory (supervisord expands it)")
     if len(str(rd / SOCKET)) > MAX_SOCKET_PATH:
         raise ArgumentError(f"--run-dir: {rd} is too long for supervisord's unix socket (at most"
                             f" {MAX_SOCKET_PATH - len(SOCKET) - 1} characters)")
