@@ -43,6 +43,26 @@ for _mod in _AREAS:
     _m.register(app, bench_app)
 
 
+def _plain_flags(command: object) -> None:
+    """Blank the type column of on/off flags in ``--help`` (Typer prints ``<bool>`` after ``--detach``, as if it
+    took a value), for every command of the tree."""
+    for param in getattr(command, "params", ()):
+        if getattr(param, "is_flag", False) and getattr(param, "metavar", None) is None:
+            param.metavar = ""
+    make_help = getattr(command, "get_help_option", None)
+    if make_help is not None:  # --help itself is made per context
+
+        def help_option(ctx: object, _make: object = make_help) -> object:
+            opt = _make(ctx)  # type: ignore[operator]
+            if opt is not None and getattr(opt, "metavar", None) is None:
+                opt.metavar = ""
+            return opt
+
+        command.get_help_option = help_option  # type: ignore[attr-defined]
+    for sub in getattr(command, "commands", {}).values():
+        _plain_flags(sub)
+
+
 def main(argv: list[str] | None = None) -> None:
     """Console entry point. Bad input (usage errors, bad values) exits 2 with one line on stderr."""
     try:  # typer >= 0.20 vendors click as typer._click; older typer uses click itself
@@ -50,8 +70,10 @@ def main(argv: list[str] | None = None) -> None:
     except ImportError:  # pragma: no cover - depends on the installed typer
         from click import exceptions as click_exc
 
+    command = typer.main.get_command(app)
+    _plain_flags(command)
     try:
-        rv = app(args=argv, standalone_mode=False)
+        rv = command.main(args=argv, standalone_mode=False, prog_name="jitterguard")
     except getattr(click_exc, "NoArgsIsHelpError", ()) as exc:
         print(exc.ctx.get_help())
         sys.exit(0)

@@ -50,3 +50,12 @@ def test_help_lists_the_commands():
     assert res.returncode == 0
     for cmd in ("classifier", "router", "up", "down", "status", "logs", "bench", "feed-tracks"):
         assert cmd in res.stdout
+
+
+def test_help_shows_no_value_type_after_plain_flags():
+    """`--detach` takes no value: the help must not print `<bool>` after it (nor after any other flag)."""
+    for cmd in (["up", "--help"], ["replay", "--help"], ["status", "--help"]):
+        res = subprocess.run([sys.executable, "-m", "jitterguard.cli", *cmd], capture_output=True, text=True,
+                             timeout=60, env={**__import__("os").environ, "COLUMNS": "200"})
+        assert res.returncode == 0 and "--" in res.stdout
+        assert "<bool>" not in res.stdout, res.stdout

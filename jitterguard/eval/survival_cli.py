@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
-from ..cli_common import fail
+from ..cli_common import fail, progress_on
 
 if TYPE_CHECKING:
     from ..schemas.models import DetectedObjects
@@ -71,7 +71,7 @@ def survival_command(
     runs = []
     per_seed: dict[str, Any] = {}
     for s in seed_list:
-        run = survival_run(detector_frames_for(scenario, s, duration, rate, threads, sys.stderr.isatty()), cfg,
+        run = survival_run(detector_frames_for(scenario, s, duration, rate, threads, progress_on(None)), cfg,
                            horizon_s=horizon, min_points=min_points)
         runs.append(run)
         per_seed[f"seed_{s}"] = score([run])

@@ -8,7 +8,8 @@ from typing import Annotated
 
 import typer
 
-from ...cli_common import ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ZenohConfigOpt, fail, zenoh_options
+from ...cli_common import (ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ProgressOpt, ZenohConfigOpt, fail, progress_on,
+                           zenoh_options)
 from .config import PRESETS
 
 WeightsOpt = Annotated[
@@ -129,9 +130,10 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         ] = None,
         scenario: Annotated[str, typer.Option("--scenario", help="Synthetic scenario the scans come from.")] = "mixed",
         seed: Annotated[int, typer.Option("--seed")] = 0,
-        progress: Annotated[bool, typer.Option("--progress/--no-progress", help="Progress bar on stderr.")] = True,
+        progress: ProgressOpt = None,
     ) -> None:
         """Time the detector end to end per HDL-32E scan (voxelisation, network, decode, NMS)."""
+        progress = progress_on(progress)
         from .bench import SCENARIOS, run
 
         names = _parse_presets(presets)

@@ -17,7 +17,8 @@ from typing import Annotated, Any
 
 import typer
 
-from ...cli_common import ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ZenohConfigOpt, fail, zenoh_options
+from ...cli_common import (ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ProgressOpt, ZenohConfigOpt, fail, progress_on,
+                           zenoh_options)
 from ...runtime import setup_logging
 from .frames import Frame, FrameError, SourceError
 from .options import ReplayOptions
@@ -107,7 +108,7 @@ def replay_command(
     topic: TopicOpt = None,
     pose_topic: PoseTopicOpt = None,
     wait_subscriber: Annotated[float, typer.Option("--wait-subscriber", help="Seconds to wait for a subscriber before the first frame (0: do not wait).")] = 5.0,
-    progress: Annotated[bool | None, typer.Option("--progress/--no-progress", help="Progress bar (default: when stderr is a terminal).")] = None,
+    progress: ProgressOpt = None,
     ns: NsOpt = "default",
     zenoh_config: ZenohConfigOpt = None,
     connect: ConnectOpt = None,
@@ -166,7 +167,7 @@ def _run(svc: Any, src: Any, plan: ReplayPlan, wait_s: float, progress: bool | N
             if plan.limit is not None:
                 total = min(total, plan.limit)
         short = Path(src.info.name.split(" ")[0].rstrip(":")).name or src.info.name
-        bar = _Progress(sys.stderr.isatty() if progress is None else progress, total, short)
+        bar = _Progress(progress_on(progress), total, short)
         try:
             stats = svc.replay(src, plan, on_error=bar.error, on_published=bar.published)
         except SourceError as exc:
