@@ -101,6 +101,20 @@ class _ObjectsWatch:
             pass
 
 
+DEFERRED_START_S = 10.0
+"""A foreground ``up`` starts the deferred programs at the first objects, or after this long without them (the
+sidecar is how an operator looks at a stack that does not come up)."""
+
+
+def _start_deferred(sup: Supervisor, progs: list[Any]) -> None:
+    for p in progs:
+        if p.deferred:
+            try:
+                sup.call("startProcess", p.name, False)
+            except StackUnavailable:
+                pass
+
+
 def _crash_report(rd: Path, name: str, events: dict[str, summary.ProgramEvents]) -> str:
     ev = events.get(name, summary.ProgramEvents())
     why = "supervisord gave up on it" if ev.fatal else f"{len(ev.crashes)} unexpected exits"
@@ -274,6 +288,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         """``up -d``: wait until every program runs (0), or one keeps crashing (stop the stack, 1)."""
         deadline = time.monotonic() + DETACH_WAIT_S
         states: dict[str, str] = {}
+        deferred = {p.name for p in progs if p.deferred}
+        started_deferred = False
         while time.monotonic() < deadline:
             time.sleep(0.3)
             events = summary.supervisor_events(rd / "logs" / "supervisord.log", since=wall0 - 1)
@@ -286,7 +302,11 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                 states = {p.name: p.state for p in sup.processes()}
             except StackUnavailable:
                 continue
-            if states and all(s == "RUNNING" for s in states.values()):
+            if not started_deferred and states and all(s == "RUNNING" for n, s in states.items() if n not in deferred):
+                _start_deferred(sup, progs)
+                started_deferred = True
+                continue
+            if started_deferred and states and all(s == "RUNNING" for s in states.values()):
                 print(f"jitterguard: started {names} (stack {label}, run dir {rd})")
                 if any(p.name == "sidecar" for p in progs):
                     print(f"sidecar: http://{host}:{port}/")
@@ -306,7 +326,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
     def _foreground(proc: subprocess.Popen, sup: Supervisor, rd: Path, stop: threading.Event, watch: _ObjectsWatch,
                     duration: float | None, t0: float, wall0: float, host: str, port: int, progs: list[Any]) -> int:
         """Watch a foreground stack until Ctrl-C, ``--duration`` or a crash loop; stop it; print the summary."""
-        announced = warned = False
+        announced = warned = deferred_started = False
         crashed: str | None = None
         events: dict[str, summary.ProgramEvents] = {}
         next_check = 0.0
@@ -314,6 +334,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             now = time.monotonic()
             if duration is not None and now - t0 >= duration:
                 break
+            if not deferred_started and (watch.first is not None or now - t0 > DEFERRED_START_S):
+                deferred_started = True
+                _start_deferred(sup, progs)
             if watch.first is not None and not announced:
                 announced = True
                 print(f"jitterguard: first classified objects after {watch.first:.1f} s", flush=True)

@@ -23,13 +23,21 @@ from ..runtime import Service, ZenohOptions, setup_logging
 from ..schemas import DecodeError, decode, keys
 from ..schemas.models import Heartbeat
 from . import summary
-from .status import load_spec
+from .status import SPEC_FILE, load_spec
 
 WRITE_PERIOD_S = 1.0
 
 
 def _iso(t: float) -> str:
     return datetime.fromtimestamp(t, timezone.utc).isoformat(timespec="seconds")
+
+
+def _spec_written_at(run_dir: Path) -> float | None:
+    """When ``up`` wrote stack.json, just before it started supervisord: the run's start."""
+    try:
+        return (run_dir / SPEC_FILE).stat().st_mtime
+    except OSError:
+        return None
 
 
 class StackMonitor(Service):
@@ -39,7 +47,7 @@ class StackMonitor(Service):
         self.run_dir = run_dir
         prev = summary.load(run_dir) or {}
         self.ledger = summary.Ledger.from_json(prev.get("ledger", {}))
-        self.run_started_at = float(prev.get("started_at_s") or time.time())
+        self.run_started_at = float(prev.get("started_at_s") or _spec_written_at(run_dir) or time.time())
         self.dirty = True
         super().__init__(opts)
         self._declared.append(self.session.declare_subscriber(keys.heartbeat_all(self.ns), self._on_beat))

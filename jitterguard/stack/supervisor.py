@@ -21,12 +21,18 @@ from .validate import check_text, supervisor_escape
 
 @dataclass(frozen=True)
 class Program:
-    """One supervised process. Lower ``priority`` starts first (the router is 10)."""
+    """One supervised process. Lower ``priority`` starts first (the router is 10).
+
+    A ``deferred`` program is not started with the others: ``jitterguard up`` starts it once the pipeline runs
+    (first objects, or every other program RUNNING). Programs off the path to the first objects (the sidecar,
+    the monitor) would otherwise spend the seconds of CPU that the pipeline needs to come up on a small machine.
+    """
 
     name: str
     args: tuple[str, ...]
     priority: int = 50
     startsecs: int = 1
+    deferred: bool = False
 
 
 @dataclass(frozen=True)
@@ -100,7 +106,7 @@ def programs(spec: StackSpec) -> list[Program]:
         progs.append(Program("detector", _cmd("detector", *common), priority=35))
     if spec.sidecar and has_area("jitterguard.services.sidecar.cli"):
         progs.append(Program("sidecar", _cmd("sidecar", *common, "--host", spec.sidecar_host,
-                                             "--port", str(spec.sidecar_port)), priority=40))
+                                             "--port", str(spec.sidecar_port)), priority=40, deferred=True))
     if mode == "tracks":
         progs.append(Program("replay", _cmd("feed-tracks", *common, "--loop"), priority=60, startsecs=2))
     else:
@@ -117,10 +123,11 @@ def programs(spec: StackSpec) -> list[Program]:
         # each loop pass is such a restart too
         progs.append(Program("replay", _cmd("replay", source, *common, "--loop", "--stamps", "wall", *args),
                              priority=60, startsecs=2))
-    # the run's bookkeeping: sums every service's heartbeat counters across restarts into summary.json; it
-    # starts first and stops last (supervisord stops in reverse priority), so it hears the final heartbeats
+    # the run's bookkeeping: sums every service's heartbeat counters across restarts into summary.json; it stops
+    # last (supervisord stops in reverse priority), so it hears the final heartbeats; started once the pipeline
+    # runs (a process's counters are cumulative, so its first heartbeat heard carries everything before it)
     progs.append(Program("monitor", _cmd("stack-monitor", *common, "--run-dir", spec.run_dir),
-                         priority=5))
+                         priority=5, deferred=True))
     return progs
 
 
@@ -165,7 +172,7 @@ def render_config(spec: StackSpec, run_dir: Path, progs: list[Program], *, nodae
             f"[program:{v(p.name, 'program name')}]",
             f"command={v(shlex.join(p.args), p.name + ' command')}",
             f"priority={p.priority}",
-            "autostart=true",
+            f"autostart={'false' if p.deferred else 'true'}",
             "autorestart=true",
             f"startsecs={p.startsecs}",
             "startretries=10",
