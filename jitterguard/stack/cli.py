@@ -28,7 +28,7 @@ import typer
 from ..cli_common import NsOpt, fail
 from ..services.replay import cli as R  # the replay's own option declarations, shared with `up`
 from . import summary
-from .control import StackUnavailable, Supervisor, tail
+from .control import StackUnavailable, Supervisor, orphans, stop_orphans, tail
 from .status import collect, load_spec, render_table, save_spec
 from .supervisor import DEFAULT_SCENARIO_S, DEFAULT_SOURCE, StackSpec, input_mode, programs, render_config
 from .validate import ArgumentError, check_name, check_run_dir, check_text, port_in_use
@@ -236,6 +236,10 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             print(f"jitterguard: warning: {w}", file=sys.stderr)
 
         sup = Supervisor(rd, label)
+        left = orphans(rd) if not sup.running() else {}
+        if left:
+            fail(f"the stack {label} died but its programs still run ({', '.join(sorted(left))}); `jitterguard down"
+                 f"{' --name ' + stack if not run_dir else ' --run-dir ' + str(rd)}` stops them")
         if sup.running():
             fail(f"the stack {label} is already running (run dir {rd}); `jitterguard down"
                  f"{' --name ' + stack if not run_dir else ' --run-dir ' + str(rd)}` stops it")
@@ -383,6 +387,11 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         try:
             sup.shutdown()
         except StackUnavailable as exc:
+            if exc.state == "stale":  # supervisord died; its programs may still run without it
+                stopped = stop_orphans(rd)
+                print(f"jitterguard: {exc}" + (f"; stopped its programs left running: {', '.join(stopped)}"
+                                               if stopped else ""))
+                return
             if exc.state != "shutting_down":
                 print(f"jitterguard: {exc}")
                 return

@@ -8,6 +8,7 @@ supervisord, or one that is shutting down, it prints raw XML-RPC tracebacks. Her
 from __future__ import annotations
 
 import os
+import signal
 import socket
 import time
 import xmlrpc.client
@@ -90,7 +91,7 @@ class Supervisor:
                                     f" {pid} does not answer yet)")
         if pid is not None:
             return StackUnavailable("stale", f"the stack {self.label} is not running: its supervisord (pid {pid})"
-                                    " died without cleaning up; `jitterguard up` starts it again")
+                                    " died without cleaning up; `jitterguard down` stops what it left running")
         if (self.run_dir / CONFIG).is_file():
             return StackUnavailable("stopped", f"the stack {self.label} is not running")
         return StackUnavailable("absent", f"no stack {self.label} (start one with `jitterguard up`)")
@@ -142,3 +143,54 @@ def tail(path: Path | str, lines: int) -> list[str]:
     except OSError:
         return []
     return data.decode(errors="replace").splitlines()[-lines:]
+
+
+def orphans(run_dir: Path) -> dict[str, int]:
+    """Programs of this run directory still alive after their supervisord died: the last pid supervisord's log
+    says it spawned for each program, if that process is alive and is a jitterguard command of this stack (its
+    command line holds the run's router endpoint or run directory, so a recycled pid is never taken)."""
+    from .status import load_spec
+    from .summary import SPAWNED
+
+    spec = load_spec(run_dir)
+    marks = [m for m in ((spec.endpoint if spec else ""), str(run_dir)) if m]
+    last: dict[str, int] = {}
+    try:
+        text = (run_dir / "logs" / "supervisord.log").read_text(errors="replace")
+    except OSError:
+        return {}
+    for m in SPAWNED.finditer(text):
+        last[m.group(1)] = int(m.group(2))
+    out = {}
+    for name, pid in last.items():
+        try:
+            cmdline = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:
+            continue
+        if "jitterguard" in cmdline and any(mark in cmdline for mark in marks):
+            out[name] = pid
+    return out
+
+
+def stop_orphans(run_dir: Path, timeout: float = 15.0) -> list[str]:
+    """SIGTERM each orphan's process group (SIGKILL after ``timeout``); returns the programs stopped."""
+    found = orphans(run_dir)
+    def kill(pid: int, sig: int) -> None:
+        try:  # supervisord makes every program a process-group leader; only then take the group
+            if os.getpgid(pid) == pid:
+                os.killpg(pid, sig)
+            else:
+                os.kill(pid, sig)
+        except (ProcessLookupError, PermissionError):
+            pass
+
+    for pid in found.values():
+        kill(pid, signal.SIGTERM)
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and any(pid_alive(p) for p in found.values()):
+        time.sleep(0.1)
+    for pid in found.values():
+        if pid_alive(pid):
+            kill(pid, signal.SIGKILL)
+    (run_dir / PIDFILE).unlink(missing_ok=True)
+    return sorted(found)

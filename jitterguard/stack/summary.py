@@ -83,7 +83,7 @@ class Ledger:
 
 
 _LOG_TIME = re.compile(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d),(\d{3}) ")
-_SPAWNED = re.compile(r"spawned: '([^']+)' with pid (\d+)")
+SPAWNED = re.compile(r"spawned: '([^']+)' with pid (\d+)")
 _EXITED = re.compile(r"exited: (\S+) \((.*); not expected\)")
 _FATAL = re.compile(r"gave up: (\S+) entered FATAL state")
 
@@ -117,7 +117,7 @@ def supervisor_events(log_path: Path, since: float = 0.0) -> dict[str, ProgramEv
             t = datetime.strptime(m.group(1), "%Y-%m-%d %H:%M:%S").timestamp() + int(m.group(2)) / 1000
             if t < since:
                 continue
-            if (s := _SPAWNED.search(line)) is not None:
+            if (s := SPAWNED.search(line)) is not None:
                 out.setdefault(s.group(1), ProgramEvents()).spawns.append(t)
             elif (e := _EXITED.search(line)) is not None:
                 out.setdefault(e.group(1), ProgramEvents()).crashes.append((t, e.group(2)))

@@ -248,3 +248,35 @@ def test_a_foreground_stack_whose_replay_crash_loops_stops_with_its_last_log_lin
     assert "replay keeps failing" in err and "last lines of" in err and "no such file or folder" in err
     assert "run summary of stack 'fg'" in out and "unexpected exits: replay" in out
     assert not Supervisor(tmp_path / "xdg" / "jitterguard" / "fg").running()
+
+
+def test_a_stack_whose_supervisord_died_is_reported_and_down_stops_what_it_left(tmp_path):
+    write_bag(tmp_path / "bag", n=20)
+    env = {**os.environ, "XDG_RUNTIME_DIR": str(tmp_path / "xdg")}
+    rd = tmp_path / "xdg" / "jitterguard" / "orph"
+    res = jg("up", "bag", "-d", "--name", "orph", "--ns", f"orph{os.getpid()}", "--router-port",
+             str(free_tcp_port()), "--no-sidecar", "--topic", DET_TOPIC, cwd=tmp_path, env=env)
+    assert res.returncode == 0, res.stdout + res.stderr
+    from jitterguard.stack.control import orphans, read_pid
+
+    sup_pid = read_pid(rd)
+    programs = {p.name: p.pid for p in Supervisor(rd).processes()}
+    os.kill(sup_pid, signal.SIGKILL)
+    try:
+        assert wait_until(lambda: not Supervisor(rd).running(), timeout=30)
+        st = jg("status", "--name", "orph", env=env)
+        assert st.returncode == 3 and "died without cleaning up" in one_line(st)
+        assert set(orphans(rd)) == set(programs)  # every program still runs, unsupervised
+        again = jg("up", "bag", "-d", "--name", "orph", "--no-sidecar", "--topic", DET_TOPIC, "--pose-topic",
+                   ODOM_TOPIC, cwd=tmp_path, env=env)
+        assert again.returncode == 2 and "programs still run" in one_line(again)
+        down = jg("down", "--name", "orph", env=env)
+        assert down.returncode == 0 and "stopped its programs left running" in one_line(down)
+        assert wait_until(lambda: not any(Path(f"/proc/{p}").exists() for p in programs.values()), timeout=30)
+        assert "not running" in one_line(jg("status", "--name", "orph", env=env))
+    finally:
+        for pid in programs.values():
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
