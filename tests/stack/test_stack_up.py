@@ -114,6 +114,9 @@ def test_summary_adds_up_the_run(stacks):
     data = json.loads(jg("summary", "--name", "a", "--json", env=stacks["env"]).stdout)
     assert data["stack"] == "a" and data["frames"]["replayed"] > 0 and data["tracks"]["born"] > 0
     assert data["rejected_total"] == 0 and "ledger" not in data
+    # the 2 s bag has looped: each pass is a restarted source to the tracker and a restart to the classifier
+    assert data["restarts"]["source_restarts"] >= 1 and data["restarts"]["tracker_resets"] == 0
+    assert data["restarts"]["classifier_upstream_restarts"] >= 1
     text = jg("summary", "--name", "a", env=stacks["env"]).stdout
     assert "run summary of stack 'a'" in text and "tracks    born" in text
 
