@@ -204,10 +204,11 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         t0 = time.monotonic()
         if input_level not in ("auto", "points", "detections", "tracks"):
             fail(f"--input: expected auto, points, detections or tracks, got {input_level!r}")
-        ropts = R.ReplayOptions(rate=rate, start=start, limit=limit, on_error=on_error, seed=seed,
-                                duration=20.0 if scenario_duration is None else scenario_duration, lidar=lidar, hz=hz, scene=scene,
-                                nuscenes_version=nuscenes_version, sweeps=sweeps, poses=poses, calib=calib,
-                                times=times, bin_fields=bin_fields, topic=topic, pose_topic=pose_topic)
+        ropts = R.ReplayOptions(rate=rate, start=start, limit=limit, on_error=on_error, seed=seed, lidar=lidar,
+                                hz=hz, scene=scene, nuscenes_version=nuscenes_version, sweeps=sweeps, poses=poses,
+                                calib=calib, times=times, bin_fields=bin_fields, topic=topic, pose_topic=pose_topic)
+        if scenario_duration is not None:
+            ropts = replace(ropts, duration=scenario_duration)
         try:  # nothing a user typed may change supervisord.conf's structure
             for what, value in (("SOURCE", source), ("--host", host), ("--ns", ns), ("--name", name)):
                 if value is not None:
