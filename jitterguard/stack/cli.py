@@ -76,29 +76,46 @@ def _port_owner(port: int, run_dir: Path) -> str | None:
 
 
 class _ObjectsWatch:
-    """A Zenoh subscriber that notes when the first classified ``objects`` arrives (time since ``t0``)."""
+    """Notes when the first classified ``objects`` arrives (seconds since ``t0``), from a Zenoh session opened in
+    the background: the router is only now being started, and a client-mode open fails until it listens."""
 
     def __init__(self, ns: str, endpoint: str, t0: float) -> None:
+        self.ns, self.endpoint, self.t0 = ns, endpoint, t0
+        self.first: float | None = None
+        self._stop = threading.Event()
+        self._session: Any = None
+        self._thread = threading.Thread(target=self._open, name="objects-watch", daemon=True)
+        self._thread.start()
+
+    def _open(self) -> None:
         import zenoh
 
         from ..runtime import ZenohOptions, build_config
         from ..schemas import keys
 
-        self.t0 = t0
-        self.first: float | None = None
-        self._session = zenoh.open(build_config(ZenohOptions(ns=ns, connect=(endpoint,), listen=())))
-        self._sub = self._session.declare_subscriber(keys.objects(ns), self._on)
+        cfg = build_config(ZenohOptions(ns=self.ns, connect=(self.endpoint,), listen=()))
+        while not self._stop.is_set():
+            try:
+                session = zenoh.open(cfg)
+            except Exception:  # no router yet
+                self._stop.wait(0.2)
+                continue
+            session.declare_subscriber(keys.objects(self.ns), self._on)
+            self._session = session
+            return
 
     def _on(self, _sample: Any) -> None:
         if self.first is None:
             self.first = time.monotonic() - self.t0
 
     def close(self) -> None:
-        try:
-            self._sub.undeclare()
-            self._session.close()
-        except Exception:
-            pass
+        self._stop.set()
+        self._thread.join(timeout=5.0)
+        if self._session is not None:
+            try:
+                self._session.close()
+            except Exception:
+                pass
 
 
 DEFERRED_START_S = 10.0

@@ -78,18 +78,22 @@ def rows_from_processes(procs: list[ProcessInfo]) -> list[ServiceStatus]:
 
 HEALTH_FIELDS = ("healthy", "ok", "live")
 """Boolean heartbeat fields read as the service's own health verdict (first one present wins)."""
-DETAIL_FIELDS = ("problem", "problems", "reason", "health", "status")
+DETAIL_FIELDS = ("health_reason", "problem", "problems", "reason")
 
 
 def heartbeat_health(hb: Any) -> tuple[bool | None, str]:
-    """The health verdict a heartbeat carries, if its schema has one (None: it does not say)."""
+    """The health verdict a heartbeat carries, if its schema has one (None: it does not say): a boolean field
+    (``healthy`` …), or a ``health`` word where ``ok`` is healthy and anything else (``failing``, ``stalled``)
+    is not; the reason, where given, comes with it."""
     verdict = next((getattr(hb, f) for f in HEALTH_FIELDS if isinstance(getattr(hb, f, None), bool)), None)
-    details = []
-    for f in DETAIL_FIELDS:
-        v = getattr(hb, f, None)
-        if v:
-            details.append(", ".join(map(str, v)) if isinstance(v, (list, tuple)) else str(v))
-    return verdict, "; ".join(details)
+    word = getattr(hb, "health", None)
+    if verdict is None and isinstance(word, str) and word:
+        verdict = word == "ok"
+    reasons = [getattr(hb, f) for f in DETAIL_FIELDS if getattr(hb, f, None)]
+    reason = "; ".join(", ".join(map(str, r)) if isinstance(r, (list, tuple)) else str(r) for r in reasons)
+    if verdict is False and isinstance(word, str) and word != "ok":
+        return verdict, f"{word}: {reason}" if reason else word
+    return verdict, reason
 
 
 def probe_zenoh(ns: str, endpoint: str, listen_s: float = 1.5) -> tuple[set[str], dict[str, Any]]:

@@ -33,6 +33,9 @@ def test_heartbeat_health_reads_whatever_verdict_the_heartbeat_carries():
     assert heartbeat_health(SimpleNamespace(healthy=False, problems=["frames failing", "output stalled"])) == (
         False, "frames failing, output stalled")
     assert heartbeat_health(SimpleNamespace(ok=True)) == (True, "")
+    assert heartbeat_health(SimpleNamespace(health="ok", health_reason="")) == (True, "")
+    assert heartbeat_health(SimpleNamespace(health="stalled", health_reason="no output for 5 s")) == (
+        False, "stalled: no output for 5 s")
 
 
 def test_collect_without_router_marks_nothing_alive_and_nothing_up():
