@@ -166,7 +166,8 @@ def render_table(rows: list[ServiceStatus], spec: StackSpec | None, run_dir: Pat
     from rich.console import Console
     from rich.table import Table
 
-    title = f"jitterguard stack {spec.ns!r} via {spec.endpoint}" if spec else f"jitterguard stack in {run_dir}"
+    title = (f"jitterguard stack {spec.name!r} (ns {spec.ns}) via {spec.endpoint}" if spec
+             else f"jitterguard stack in {run_dir}")
     console = Console()
     # A terminal gets a boxed table; a pipe gets plain aligned columns, one service per line starting with its
     # name (as `supervisorctl status` prints), so `grep`/`awk` keep working.

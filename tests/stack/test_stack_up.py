@@ -1,7 +1,8 @@
 """`jitterguard up` as an operator meets it, under a real supervisord with real processes (issue 19).
 
-Two named stacks run side by side from recorded bags (detection level: no detector, so they start fast): one
-given by a relative path with --topic/--pose-topic, one whose path holds a '%' and a space. Around them: sources
+Two named stacks run side by side at detection level (no detector, so they start fast): one from a bag given by
+a relative path with --topic/--pose-topic, one from a nuScenes-format dataroot whose annotated boxes go through
+the noise model (--input detections), at a path holding a '%' and a space. Around them: sources
 and arguments refused before anything starts, a third stack refused on a port in use, status/down/summary
 in every state, a replay driven into BACKOFF, and a foreground stack stopped by a crash loop.
 """
@@ -21,6 +22,8 @@ import pytest
 
 from jitterguard.runtime import free_tcp_port
 from jitterguard.stack.control import Supervisor
+from jitterguard.sim.export import export_scenario
+from jitterguard.sim.world import make_scenario
 from replay.bagfixture import DET_TOPIC, ODOM_TOPIC, write_bag
 
 from helpers import wait_until
@@ -49,19 +52,19 @@ def stacks(tmp_path_factory):
     data = home / "data"
     data.mkdir()
     write_bag(data / "bag_a", n=20)
-    weird = home / "50% data" / "bag b"
+    weird = home / "50% data" / "nu scenes"
     weird.parent.mkdir()
-    write_bag(weird, n=20)
+    export_scenario(make_scenario("parking-street", 1, duration_s=3.0, rate_hz=2.0), str(weird), seed=1)
     ports = {s: (free_tcp_port(), free_tcp_port()) for s in ("a", "b")}
     info = {"home": home, "env": env, "ports": ports, "bag_a": data / "bag_a", "bag_b": weird,
             "run": {s: home / "xdg" / "jitterguard" / s for s in ("a", "b")}}
     started = []
     try:
-        for name, src, cwd in (("a", "bag_a", data), ("b", str(weird), None)):
+        for name, src, cwd, extra in (("a", "bag_a", data, ("--topic", DET_TOPIC, "--pose-topic", ODOM_TOPIC)),
+                                      ("b", str(weird), None, ("--input", "detections", "--seed", "2"))):
             r, h = ports[name]
             res = jg("up", src, "-d", "--name", name, "--ns", f"up{name}{os.getpid()}", "--router-port", str(r),
-                     "--port", str(h), "--no-sidecar", "--topic", DET_TOPIC, "--pose-topic", ODOM_TOPIC,
-                     cwd=cwd, env=env)
+                     "--port", str(h), "--no-sidecar", *extra, cwd=cwd, env=env)
             info[f"up_{name}"] = res
             assert res.returncode == 0, res.stdout + res.stderr
             started.append(name)
@@ -90,12 +93,15 @@ def test_a_relative_source_with_replay_options_runs(stacks):
     assert str(stacks["bag_a"]) in conf and f"--topic {DET_TOPIC}" in conf  # made absolute, passed through
 
 
-def test_a_percent_and_a_space_in_the_source_path_work(stacks):
+def test_nuscenes_boxes_run_live_from_a_path_with_a_percent_and_a_space(stacks):
     def frames() -> int:
         res = jg("summary", "--name", "b", "--json", env=stacks["env"])
         return (json.loads(res.stdout)["frames"]["classified"] or 0) if res.returncode == 0 else 0
 
-    assert wait_until(lambda: frames() > 5, timeout=60, period=1.0), (stacks["run"]["b"] / "logs" / "replay.log").read_text()
+    log = stacks["run"]["b"] / "logs" / "replay.log"
+    assert wait_until(lambda: frames() > 5, timeout=60, period=1.0), log.read_text()
+    assert "boxes through the detection-level noise model (seed 2)" in log.read_text()
+    assert "--level detections" in (stacks["run"]["b"] / "supervisord.conf").read_text()
 
 
 def test_a_second_stack_on_a_port_in_use_or_under_a_running_name_is_refused(stacks):
@@ -138,9 +144,19 @@ def test_a_replay_in_backoff_makes_status_exit_3(stacks):
 
 
 def test_down_then_status_summary_and_down_again_say_one_line(stacks):
+    """While `down` stops the stack, `status` (asked over and over) answers with a table or one line, never a
+    traceback; afterwards every command says one line."""
     env = stacks["env"]
-    down = jg("down", "--name", "b", env=env)
-    assert down.returncode == 0 and "stopped" in down.stdout and "run summary" in down.stdout
+    proc = subprocess.Popen([sys.executable, "-m", "jitterguard.cli", "down", "--name", "b"], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    seen = []
+    while proc.poll() is None:
+        st = jg("status", "--name", "b", "--listen-s", "0.2", env=env)
+        assert "Traceback" not in st.stdout + st.stderr and st.returncode in (0, 3), st.stdout + st.stderr
+        seen.append(st.stdout.splitlines()[0] if st.stdout else "")
+    out, err = proc.communicate()
+    print(f"\nstatus while stopping: {seen}")
+    assert proc.returncode == 0 and "stopped" in out and "run summary" in out, out + err
     st = jg("status", "--name", "b", env=env)
     assert st.returncode == 3 and "not running" in one_line(st)
     again = jg("down", "--name", "b", env=env)
