@@ -24,9 +24,14 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import typer
+import zenoh
 
 from ..cli_common import NsOpt, fail
+from ..runtime import ZenohOptions, build_config
+from ..schemas import keys
 from ..services.replay import cli as R  # the replay's own option declarations, shared with `up`
+from ..services.replay.options import absolute_source
+from ..services.replay.sources import SourceError, probe_source
 from . import summary
 from .control import StackUnavailable, Supervisor, orphans, stop_orphans, tail
 from .status import collect, load_spec, render_table, save_spec
@@ -88,11 +93,6 @@ class _ObjectsWatch:
         self._thread.start()
 
     def _open(self) -> None:
-        import zenoh
-
-        from ..runtime import ZenohOptions, build_config
-        from ..schemas import keys
-
         cfg = build_config(ZenohOptions(ns=self.ns, connect=(self.endpoint,), listen=()))
         while not self._stop.is_set():
             try:
@@ -159,9 +159,6 @@ def _check_source(source: str | None, input_level: str, ropts: "R.ReplayOptions"
 
     ``--input auto`` takes a source's own level where it has one (a bag of DetectedObjects), else points with
     the detector (detections without it)."""
-    from ..services.replay.options import absolute_source
-    from ..services.replay.sources import SourceError, probe_source
-
     if input_level == "tracks":
         if source is not None or ropts.argv():
             fail("--input tracks feeds the built-in track scenario: SOURCE and replay options do not apply")
@@ -234,8 +231,6 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                 check_text(flag_value, "replay option")
         except ArgumentError as exc:
             fail(str(exc))
-        from ..runtime import ZenohOptions
-
         try:
             ZenohOptions(ns=ns)
         except ValueError as exc:

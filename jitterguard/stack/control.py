@@ -16,8 +16,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from supervisor.xmlrpc import SupervisorTransport
-
 SOCKET = "supervisor.sock"
 PIDFILE = "supervisord.pid"
 CONFIG = "supervisord.conf"
@@ -81,6 +79,9 @@ class Supervisor:
         self.sock = run_dir / SOCKET
 
     def _proxy(self) -> Any:
+        # supervisor comes with the `deploy` extra: the rest of the CLI must work without it
+        from supervisor.xmlrpc import SupervisorTransport
+
         transport = SupervisorTransport(None, None, f"unix://{self.sock}")
         return xmlrpc.client.ServerProxy("http://127.0.0.1", transport=transport)
 
@@ -149,7 +150,7 @@ def orphans(run_dir: Path) -> dict[str, int]:
     """Programs of this run directory still alive after their supervisord died: the last pid supervisord's log
     says it spawned for each program, if that process is alive and is a jitterguard command of this stack (its
     command line holds the run's router endpoint or run directory, so a recycled pid is never taken)."""
-    from .status import load_spec
+    from .status import load_spec  # status imports this module
     from .summary import SPAWNED
 
     spec = load_spec(run_dir)

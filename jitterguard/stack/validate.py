@@ -15,6 +15,8 @@ import re
 import socket
 from pathlib import Path
 
+from .control import MAX_SOCKET_PATH, SOCKET
+
 _CONTROL = re.compile(r"[\x00-\x1f\x7f]")
 _COMMENT = re.compile(r"\s[;#]")
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
@@ -61,8 +63,6 @@ def port_in_use(host: str, port: int) -> bool:
 
 def check_run_dir(run_dir: Path) -> Path:
     """The run directory, absolute; refused if its socket path would not fit a unix socket address."""
-    from .control import MAX_SOCKET_PATH, SOCKET
-
     rd = Path(check_text(str(run_dir), "--run-dir")).expanduser().absolute()
     if "%" in str(rd):  # supervisord expands log file names twice: no escaping survives that
         raise ArgumentError(f"--run-dir: {rd}: '%' is not allowed in the run directory (supervisord expands it)")

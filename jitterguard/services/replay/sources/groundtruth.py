@@ -24,7 +24,7 @@ def noisy_detections(frame_at: Callable[[int], Any], num_frames: int, seed: int,
     Every frame is drawn from the model, also those before ``start``, so a ``--start`` window sees the same noise
     as a full pass.
     """
-    from ....sim.detection_model import DetectionModel, NoiseConfig
+    from ....sim.detection_model import DetectionModel, NoiseConfig  # the simulator is an optional area
 
     model = DetectionModel(NoiseConfig(), seed)
     for i in range(num_frames):
@@ -42,7 +42,7 @@ class NuScenesBoxes(Source):
     """A nuScenes scene's annotated boxes (every key frame) as noisy detections at the LIDAR_TOP pose."""
 
     def __init__(self, dataroot: Path, *, scene: str | None = None, seed: int = 0) -> None:
-        from ....eval.groundtruth import NuScenesError, load_nuscenes_frames
+        from ....eval.groundtruth import NuScenesError, load_nuscenes_frames  # evaluation: an optional area
 
         try:
             self.scene_name, self.gt = load_nuscenes_frames(Path(dataroot), scene)
