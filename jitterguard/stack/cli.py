@@ -75,7 +75,7 @@ def _port_owner(port: int, run_dir: Path) -> str | None:
         return None
     for other in others:
         spec = load_spec(other)
-        if spec and port in (spec.router_port, spec.sidecar_port) and Supervisor(other).running():
+        if spec and port in (spec.router_port, spec.sidecar_port, spec.foxglove_port) and Supervisor(other).running():
             return spec.name
     return None
 
@@ -132,6 +132,17 @@ def _start_deferred(sup: Supervisor, progs: list[Any]) -> None:
                 pass
 
 
+def _addresses(spec: StackSpec, progs: list[Any]) -> list[str]:
+    """Where to look at the stack: the sidecar's page, the Foxglove WebSocket (one line each)."""
+    names = {p.name for p in progs}
+    out = []
+    if "sidecar" in names:
+        out.append(f"sidecar: http://{spec.sidecar_host}:{spec.sidecar_port}/")
+    if spec.foxglove:
+        out.append(f"foxglove: ws://127.0.0.1:{spec.foxglove_port}  (layout: deploy/foxglove/jitterguard.json)")
+    return out
+
+
 def _crash_report(rd: Path, name: str, events: dict[str, summary.ProgramEvents]) -> str:
     ev = events.get(name, summary.ProgramEvents())
     why = "supervisord gave up on it" if ev.fatal else f"{len(ev.crashes)} unexpected exits"
@@ -182,6 +193,18 @@ def _check_source(source: str | None, input_level: str, ropts: "R.ReplayOptions"
     return src, mode, ropts, list(info.warnings)
 
 
+def _recording_path(value: str | None, flag: str) -> str | None:
+    """An absolute path for a recording (supervisord runs programs in the run dir) that does not exist yet."""
+    if value is None:
+        return None
+    p = Path(value).expanduser().resolve()
+    if p.exists():
+        fail(f"{flag}: {value} exists")
+    if not p.parent.is_dir():
+        fail(f"{flag}: no folder {p.parent}")
+    return str(p)
+
+
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:
     @app.command("up")
     def up_cmd(
@@ -196,6 +219,10 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         run_dir: RunDirOpt = None,
         no_sidecar: Annotated[bool, typer.Option("--no-sidecar", help="Leave the HTTP sidecar out.")] = False,
         duration: Annotated[float | None, typer.Option("--duration", min=1.0, help="Stop after this many seconds (foreground).")] = None,
+        foxglove: Annotated[bool, typer.Option("--foxglove", help="Serve the pipeline to Foxglove (ws://127.0.0.1:PORT).")] = False,
+        foxglove_port: Annotated[int, typer.Option("--foxglove-port", min=1, max=65535)] = 8765,
+        record_mcap: Annotated[str | None, typer.Option("--record-mcap", help="Record the Foxglove channels to this MCAP file.")] = None,
+        record_ros2: Annotated[str | None, typer.Option("--record-ros2", help="Record a ROS 2 bag for Autoware into this new folder.")] = None,
         rate: R.RateOpt = "1",
         start: R.StartOpt = 0,
         limit: R.LimitOpt = None,
@@ -256,13 +283,23 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         if sup.running():
             fail(f"the stack {label} is already running (run dir {rd}); `jitterguard down"
                  f"{' --name ' + stack if not run_dir else ' --run-dir ' + str(rd)}` stops it")
+        mcap_path, bag_path = _recording_path(record_mcap, "--record-mcap"), _recording_path(record_ros2, "--record-ros2")
+        try:
+            for what, value in (("--record-mcap", mcap_path), ("--record-ros2", bag_path)):
+                if value is not None:
+                    check_text(value, what)
+        except ArgumentError as exc:
+            fail(str(exc))
         spec = StackSpec(ns=ns, name=stack, router_port=router_port, sidecar_host=host, sidecar_port=port,
                          source=src, input=mode, sidecar=not no_sidecar, replay_args=tuple(ropts.argv()),
-                         run_dir=str(rd))
+                         run_dir=str(rd), foxglove=foxglove, foxglove_port=foxglove_port, record_mcap=mcap_path,
+                         record_ros2=bag_path)
         progs = programs(spec)
         wanted = [(router_port, "127.0.0.1", "--router-port")]
         if any(p.name == "sidecar" for p in progs):
             wanted.append((port, host, "--port"))
+        if foxglove:
+            wanted.append((foxglove_port, "127.0.0.1", "--foxglove-port"))
         for p, h, flag in wanted:
             if port_in_use(h, p):
                 owner = _port_owner(p, rd)
@@ -288,7 +325,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                 print(f"jitterguard: error: supervisord did not start: {(res.stderr or res.stdout).strip()}",
                       file=sys.stderr)
                 raise SystemExit(1)
-            raise SystemExit(_wait_started(sup, rd, label, names, host, port, progs, wall0))
+            raise SystemExit(_wait_started(sup, rd, label, names, _addresses(spec, progs), progs, wall0))
 
         proc = subprocess.Popen(cmd)
         stop = threading.Event()
@@ -296,11 +333,11 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         signal.signal(signal.SIGTERM, lambda *_: stop.set())
         print(f"jitterguard: starting {names} (stack {label}, logs in {rd / 'logs'})", flush=True)
         watch = _ObjectsWatch(ns, spec.endpoint, t0)
-        code = _foreground(proc, sup, rd, stop, watch, duration, t0, wall0, host, port, progs)
+        code = _foreground(proc, sup, rd, stop, watch, duration, t0, wall0, _addresses(spec, progs), progs)
         watch.close()
         raise SystemExit(code)
 
-    def _wait_started(sup: Supervisor, rd: Path, label: str, names: str, host: str, port: int,
+    def _wait_started(sup: Supervisor, rd: Path, label: str, names: str, addresses: list[str],
                       progs: list[Any], wall0: float) -> int:
         """``up -d``: wait until every program runs (0), or one keeps crashing (stop the stack, 1)."""
         deadline = time.monotonic() + DETACH_WAIT_S
@@ -325,8 +362,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                 continue
             if started_deferred and states and all(s == "RUNNING" for s in states.values()):
                 print(f"jitterguard: started {names} (stack {label}, run dir {rd})")
-                if any(p.name == "sidecar" for p in progs):
-                    print(f"sidecar: http://{host}:{port}/")
+                for line in addresses:
+                    print(line)
                 return 0
         waiting = ", ".join(f"{n} {s}" for n, s in sorted(states.items()) if s != "RUNNING") or "supervisord"
         print(f"jitterguard: error: not every program runs after {DETACH_WAIT_S:.0f} s ({waiting}); the stack is"
@@ -341,7 +378,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         sup.wait_gone(STOP_WAIT_S)
 
     def _foreground(proc: subprocess.Popen, sup: Supervisor, rd: Path, stop: threading.Event, watch: _ObjectsWatch,
-                    duration: float | None, t0: float, wall0: float, host: str, port: int, progs: list[Any]) -> int:
+                    duration: float | None, t0: float, wall0: float, addresses: list[str], progs: list[Any]) -> int:
         """Watch a foreground stack until Ctrl-C, ``--duration`` or a crash loop; stop it; print the summary."""
         announced = warned = deferred_started = False
         crashed: str | None = None
@@ -357,8 +394,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             if watch.first is not None and not announced:
                 announced = True
                 print(f"jitterguard: first classified objects after {watch.first:.1f} s", flush=True)
-                if any(p.name == "sidecar" for p in progs):
-                    print(f"sidecar: http://{host}:{port}/  (Ctrl-C stops the stack)", flush=True)
+                for line in addresses:
+                    print(line, flush=True)
+                print("jitterguard: Ctrl-C stops the stack", flush=True)
             if watch.first is None and not warned and now - t0 > FIRST_OBJECTS_WARN_S:
                 warned = True
                 try:

@@ -14,12 +14,14 @@ from pathlib import Path
 from typing import Any
 
 from ..frames import DetectionFrame, EgoPose, Item, SourceError, SourceInfo
+from ..truth import truth_message
 from .base import Source
 
 
 def noisy_detections(frame_at: Callable[[int], Any], num_frames: int, seed: int, start: int,
                      origin: str) -> Iterator[Item]:
-    """One pass of ``DetectedObjects`` from ground-truth frames ``frame_at(0..num_frames-1)`` from ``start`` on.
+    """One pass of ``DetectedObjects`` from ground-truth frames ``frame_at(0..num_frames-1)`` from ``start`` on,
+    each with its labels for ``jg/{ns}/groundtruth`` (viewers only; nothing in the pipeline reads them).
 
     Every frame is drawn from the model, also those before ``start``, so a ``--start`` window sees the same noise
     as a full pass.
@@ -35,7 +37,8 @@ def noisy_detections(frame_at: Callable[[int], Any], num_frames: int, seed: int,
         p = det.ego_pose
         pose = EgoPose(p.position.x, p.position.y, p.position.z, p.orientation.x, p.orientation.y, p.orientation.z,
                        p.orientation.w)
-        yield DetectionFrame(int(gt.stamp_ns), pose, list(det.objects), f"{origin}#{i}", det.header.frame_id)
+        yield DetectionFrame(int(gt.stamp_ns), pose, list(det.objects), f"{origin}#{i}", det.header.frame_id,
+                             truth=truth_message(gt))
 
 
 class NuScenesBoxes(Source):

@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from ..frames import EgoPose, FrameError, Item, ScanFrame, SourceError, SourceInfo, finite_rows
+from ..truth import truth_message
 from .base import Source
 
 SCENARIOS = ("parking-street", "diagonal-lot", "intersection", "mixed")
@@ -112,7 +113,7 @@ class SyntheticSource(Source):
             pts[:, 4] = res.ring
             pts, _ = finite_rows(pts)
             pose = EgoPose.from_yaw(float(gt.ego_x), float(gt.ego_y), float(gt.ego_yaw), z=self._sensor_z)
-            yield ScanFrame(int(gt.stamp_ns), pose, pts, SCAN_FIELDS, origin, "lidar")
+            yield ScanFrame(int(gt.stamp_ns), pose, pts, SCAN_FIELDS, origin, "lidar", truth=truth_message(gt))
 
     def _detections(self, start: int) -> Iterator[Item]:
         from .groundtruth import noisy_detections
