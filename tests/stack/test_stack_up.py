@@ -285,7 +285,10 @@ def test_a_stack_whose_supervisord_died_is_reported_and_down_stops_what_it_left(
         assert wait_until(lambda: not Supervisor(rd).running(), timeout=30)
         st = jg("status", "--name", "orph", env=env)
         assert st.returncode == 3 and "died without cleaning up" in one_line(st)
-        assert set(orphans(rd)) == set(programs)  # every program still runs, unsupervised
+        # the programs run on unsupervised (one that writes to its log dies of the broken pipe; the router, which
+        # logs nothing while it runs, certainly lives)
+        left = orphans(rd)
+        assert "router" in left and set(left) <= set(programs), (left, programs)
         again = jg("up", "bag", "-d", "--name", "orph", "--no-sidecar", "--topic", DET_TOPIC, "--pose-topic",
                    ODOM_TOPIC, cwd=tmp_path, env=env)
         assert again.returncode == 2 and "programs still run" in one_line(again)
