@@ -24,14 +24,14 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import typer
-import zenoh
 
 from ..cli_common import NsOpt, fail
-from ..runtime import ZenohOptions, build_config
+from ..runtime import ZenohOptions, build_config, open_session
 from ..schemas import keys
 from ..services.replay import cli as R  # the replay's own option declarations, shared with `up`
 from ..services.replay.options import absolute_source
 from ..services.replay.sources import SourceError, probe_source
+from ..services.sidecar.core import bind_refusal
 from . import summary
 from .control import StackUnavailable, Supervisor, orphans, stop_orphans, tail
 from .status import collect, load_spec, render_table, save_spec
@@ -93,16 +93,13 @@ class _ObjectsWatch:
         self._thread.start()
 
     def _open(self) -> None:
-        cfg = build_config(ZenohOptions(ns=self.ns, connect=(self.endpoint,), listen=()))
-        while not self._stop.is_set():
-            try:
-                session = zenoh.open(cfg)
-            except Exception:  # no router yet
-                self._stop.wait(0.2)
-                continue
-            session.declare_subscriber(keys.objects(self.ns), self._on)
-            self._session = session
+        cfg = build_config(ZenohOptions(ns=self.ns, connect=(self.endpoint,)))
+        try:
+            session = open_session(cfg, stop=self._stop)  # retried until the router listens
+        except Exception:  # stopped before the router came up
             return
+        session.declare_subscriber(keys.objects(self.ns), self._on)
+        self._session = session
 
     def _on(self, _sample: Any) -> None:
         if self.first is None:
@@ -254,8 +251,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             for what, value in (("SOURCE", source), ("--host", host), ("--ns", ns), ("--name", name)):
                 if value is not None:
                     check_text(value, what)
-            for flag_value in ropts.argv():
-                check_text(flag_value, "replay option")
+            for flag, value in ropts.changed():
+                check_text(str(value), flag)
         except ArgumentError as exc:
             fail(str(exc))
         try:
@@ -267,10 +264,10 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         if source is None and scenario_duration is None and input_level != "tracks":
             ropts = replace(ropts, duration=DEFAULT_SCENARIO_S)
         src, mode, ropts, warnings = _check_source(source, input_level, ropts)
-        try:
-            for flag_value in ropts.argv() + ([src] if src else []):
-                check_text(flag_value, "SOURCE" if flag_value == src else "replay option")
-        except ArgumentError as exc:  # the absolute path adds the current folder's name
+        try:  # the absolute paths add the current folder's name
+            for flag, value in ropts.changed() + ([("SOURCE", src)] if src else []):
+                check_text(str(value), flag)
+        except ArgumentError as exc:
             fail(str(exc))
         for w in warnings:
             print(f"jitterguard: warning: {w}", file=sys.stderr)
@@ -297,6 +294,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         progs = programs(spec)
         wanted = [(router_port, "127.0.0.1", "--router-port")]
         if any(p.name == "sidecar" for p in progs):
+            refusal = bind_refusal(host, os.environ.get("JG_API_TOKEN"))  # the sidecar's own check, done first
+            if refusal:
+                fail(f"--host: {refusal}")
             wanted.append((port, host, "--port"))
         if foxglove:
             wanted.append((foxglove_port, "127.0.0.1", "--foxglove-port"))

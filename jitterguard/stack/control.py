@@ -54,13 +54,18 @@ class ProcessInfo:
 
 
 def pid_alive(pid: int) -> bool:
+    """Whether ``pid`` is a running process. A zombie (killed, not yet reaped by its parent — for a daemonised
+    supervisord that is init, which may take its time or, in some containers, never come) counts as dead."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
         return False
     except PermissionError:
-        return True
-    return True
+        pass
+    try:  # /proc/PID/stat: "pid (comm) STATE ..."; comm may itself hold spaces and parentheses
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except (OSError, IndexError):
+        return True  # no /proc (not Linux) or it went away meanwhile: what kill said
 
 
 def read_pid(run_dir: Path) -> int | None:

@@ -57,9 +57,9 @@ class ServiceStatus:
     last_seq: int | None = None  # from the latest heartbeat
     heartbeat_uptime_s: float | None = None
     heartbeat_pid: int | None = None
+    health: str | None = None  # ok | failing | stalled, from the heartbeat (jitterguard.runtime.progress)
+    health_reason: str = ""
     counters: dict[str, int] = dataclasses.field(default_factory=dict)
-    healthy: bool | None = None  # the heartbeat's own verdict, where it carries one
-    health_detail: str = ""
     detail: str = ""
 
     def as_dict(self) -> dict[str, Any]:
@@ -68,32 +68,12 @@ class ServiceStatus:
     @property
     def up(self) -> bool:
         """RUNNING, on the bus, and not reporting itself unhealthy."""
-        return self.state == "RUNNING" and self.alive is not False and self.healthy is not False
+        return self.state == "RUNNING" and self.alive is not False and self.health in (None, "ok")
 
 
 def rows_from_processes(procs: list[ProcessInfo]) -> list[ServiceStatus]:
     return [ServiceStatus(name=p.name, state=p.state, pid=p.pid, uptime_s=p.uptime_s, detail=p.description)
             for p in procs]
-
-
-HEALTH_FIELDS = ("healthy", "ok", "live")
-"""Boolean heartbeat fields read as the service's own health verdict (first one present wins)."""
-DETAIL_FIELDS = ("health_reason", "problem", "problems", "reason")
-
-
-def heartbeat_health(hb: Any) -> tuple[bool | None, str]:
-    """The health verdict a heartbeat carries, if its schema has one (None: it does not say): a boolean field
-    (``healthy`` …), or a ``health`` word where ``ok`` is healthy and anything else (``failing``, ``stalled``)
-    is not; the reason, where given, comes with it."""
-    verdict = next((getattr(hb, f) for f in HEALTH_FIELDS if isinstance(getattr(hb, f, None), bool)), None)
-    word = getattr(hb, "health", None)
-    if verdict is None and isinstance(word, str) and word:
-        verdict = word == "ok"
-    reasons = [getattr(hb, f) for f in DETAIL_FIELDS if getattr(hb, f, None)]
-    reason = "; ".join(", ".join(map(str, r)) if isinstance(r, (list, tuple)) else str(r) for r in reasons)
-    if verdict is False and isinstance(word, str) and word != "ok":
-        return verdict, f"{word}: {reason}" if reason else word
-    return verdict, reason
 
 
 def probe_zenoh(ns: str, endpoint: str, listen_s: float = 1.5) -> tuple[set[str], dict[str, Any]]:
@@ -150,8 +130,8 @@ def collect(procs: list[ProcessInfo], spec: StackSpec | None, listen_s: float = 
             row.last_seq = hb.last_seq
             row.heartbeat_uptime_s = round(hb.uptime_s, 1)
             row.heartbeat_pid = hb.pid
+            row.health, row.health_reason = hb.health, hb.health_reason
             row.counters = dict(hb.counters)
-            row.healthy, row.health_detail = heartbeat_health(hb)
     return rows
 
 
@@ -172,17 +152,14 @@ def render_table(rows: list[ServiceStatus], spec: StackSpec | None, run_dir: Pat
     # A terminal gets a boxed table; a pipe gets plain aligned columns, one service per line starting with its
     # name (as `supervisorctl status` prints), so `grep`/`awk` keep working.
     table = Table(title=title) if console.is_terminal else Table(title=title, box=None, pad_edge=False)
-    with_health = any(r.healthy is not None for r in rows)
-    cols = ["service", "state", "pid", "uptime", "zenoh alive", "last seq"] + (["health"] if with_health else [])
-    for col in cols:
+    for col in ("service", "state", "pid", "uptime", "zenoh alive", "last seq", "progress"):
         table.add_column(col, justify="right" if col in ("pid", "uptime", "last seq") else "left")
     for r in rows:
         color = "green" if r.state == "RUNNING" else ("yellow" if r.state in ("STARTING", "BACKOFF") else "red")
         alive = "-" if r.alive is None else ("[green]yes[/]" if r.alive else "[red]no[/]")
         seq = "-" if r.last_seq is None else ("none yet" if r.last_seq < 0 else str(r.last_seq))
-        cells = [r.name, f"[{color}]{r.state}[/]", str(r.pid or "-"), _fmt_uptime(r.uptime_s), alive, seq]
-        if with_health:
-            cells.append("-" if r.healthy is None else ("[green]ok[/]" if r.healthy else
-                                                         f"[red]{r.health_detail or 'unhealthy'}[/]"))
-        table.add_row(*cells)
+        progress = "-" if r.health is None else ("[green]ok[/]" if r.health == "ok" else
+                                                 f"[red]{r.health}[/]: {r.health_reason}")
+        table.add_row(r.name, f"[{color}]{r.state}[/]", str(r.pid or "-"), _fmt_uptime(r.uptime_s), alive, seq,
+                      progress)
     console.print(table)

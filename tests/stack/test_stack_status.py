@@ -2,10 +2,15 @@
 
 from __future__ import annotations
 
-from types import SimpleNamespace
+import os
+import subprocess
+import sys
+from pathlib import Path
 
-from jitterguard.stack.control import ProcessInfo
-from jitterguard.stack.status import collect, heartbeat_health, load_spec, save_spec
+from helpers import wait_until
+
+from jitterguard.stack.control import ProcessInfo, pid_alive
+from jitterguard.stack.status import ServiceStatus, collect, load_spec, save_spec
 from jitterguard.stack.supervisor import StackSpec
 
 
@@ -28,14 +33,14 @@ def test_process_info_from_supervisor_rpc():
     assert b.pid is None and b.uptime_s is None and b.state == "BACKOFF"
 
 
-def test_heartbeat_health_reads_whatever_verdict_the_heartbeat_carries():
-    assert heartbeat_health(SimpleNamespace(last_seq=3)) == (None, "")
-    assert heartbeat_health(SimpleNamespace(healthy=False, problems=["frames failing", "output stalled"])) == (
-        False, "frames failing, output stalled")
-    assert heartbeat_health(SimpleNamespace(ok=True)) == (True, "")
-    assert heartbeat_health(SimpleNamespace(health="ok", health_reason="")) == (True, "")
-    assert heartbeat_health(SimpleNamespace(health="stalled", health_reason="no output for 5 s")) == (
-        False, "stalled: no output for 5 s")
+def test_a_service_is_up_only_when_running_on_the_bus_and_making_progress():
+    def row(**kw):
+        return ServiceStatus(**{"name": "tracker", "state": "RUNNING", "alive": True, **kw})
+
+    assert row().up and row(health="ok").up  # a heartbeat without a verdict yet does not count against it
+    assert not row(health="stalled", health_reason="no output for 5.0 s").up
+    assert not row(health="failing").up
+    assert not row(alive=False).up and not row(state="BACKOFF").up
 
 
 def test_collect_without_router_marks_nothing_alive_and_nothing_up():
@@ -45,3 +50,16 @@ def test_collect_without_router_marks_nothing_alive_and_nothing_up():
     procs = [ProcessInfo("classifier", "RUNNING", 5, 1.0, None, "", "")]
     rows = collect(procs, spec, listen_s=0.2)
     assert rows[0].alive is False and rows[0].last_seq is None and not rows[0].up
+
+
+def test_a_killed_supervisord_not_yet_reaped_counts_as_dead():
+    """A daemonised supervisord killed by SIGKILL stays a zombie until init reaps it: `status` must not take it
+    for a stack that is still starting."""
+    child = subprocess.Popen([sys.executable, "-c", "pass"])
+    try:
+        assert wait_until(lambda: Path(f"/proc/{child.pid}/stat").read_text().rsplit(")", 1)[1].split()[0] == "Z",
+                          timeout=30)
+        assert not pid_alive(child.pid)
+    finally:
+        child.wait()
+    assert pid_alive(os.getpid()) and not pid_alive(child.pid)

@@ -216,9 +216,24 @@ def test_sources_that_cannot_be_replayed_are_refused_before_anything_starts(tmp_
 def test_a_source_with_control_characters_starts_nothing(tmp_path, bad):
     flag = tmp_path / "pwned"
     res, _ = _refused(tmp_path, bad.format(flag=flag))
-    assert "control character" in one_line(res)
-    time.sleep(0.5)
-    assert not flag.exists()
+    assert "SOURCE: control character" in one_line(res)
+    assert not flag.exists()  # nothing was started that could have run it (no run directory: _refused)
+
+
+@pytest.mark.parametrize("flag", ["--topic", "--scene", "--lidar", "--poses"])
+def test_a_replay_option_with_a_control_character_is_refused_naming_its_flag(tmp_path, flag):
+    res, _ = _refused(tmp_path, flag, "x\n[program:evil]")
+    assert f"{flag}: control character" in one_line(res)
+
+
+def test_a_sidecar_off_loopback_without_a_token_is_refused_before_anything_starts(tmp_path):
+    """The sidecar would refuse to bind and crash-loop; `up` says why first, with the sidecar's own reason."""
+    env = {k: v for k, v in os.environ.items() if k != "JG_API_TOKEN"}
+    env["XDG_RUNTIME_DIR"] = str(tmp_path / "xdg")
+    res = jg("up", "--name", "open", "--host", "0.0.0.0", "--router-port", str(free_tcp_port()), "--port",
+             str(free_tcp_port()), env=env, cwd=tmp_path, timeout=60)
+    assert res.returncode == 2 and "--host: refusing to bind 0.0.0.0 without JG_API_TOKEN" in one_line(res)
+    assert not (tmp_path / "xdg").exists()
 
 
 def test_a_moving_sensor_without_poses_is_warned_about(tmp_path):
@@ -276,13 +291,13 @@ def test_a_stack_whose_supervisord_died_is_reported_and_down_stops_what_it_left(
     res = jg("up", "bag", "-d", "--name", "orph", "--ns", f"orph{os.getpid()}", "--router-port",
              str(free_tcp_port()), "--no-sidecar", "--topic", DET_TOPIC, cwd=tmp_path, env=env)
     assert res.returncode == 0, res.stdout + res.stderr
-    from jitterguard.stack.control import orphans, read_pid
+    from jitterguard.stack.control import orphans, pid_alive, read_pid
 
     sup_pid = read_pid(rd)
     programs = {p.name: p.pid for p in Supervisor(rd).processes()}
     os.kill(sup_pid, signal.SIGKILL)
     try:
-        assert wait_until(lambda: not Supervisor(rd).running(), timeout=30)
+        assert wait_until(lambda: not Supervisor(rd).running() and not pid_alive(sup_pid), timeout=30)
         st = jg("status", "--name", "orph", env=env)
         assert st.returncode == 3 and "died without cleaning up" in one_line(st)
         # the programs run on unsupervised (one that writes to its log dies of the broken pipe; the router, which

@@ -85,17 +85,16 @@ class ReplayOptions:
             name: os.path.normpath(os.path.join(base, os.path.expanduser(v)))
             for name in PATH_FIELDS if (v := getattr(self, name)) is not None})
 
+    def changed(self) -> list[tuple[str, object]]:
+        """(flag, value) for every option that differs from its default, in field order."""
+        return [(self.flag(f.name), getattr(self, f.name)) for f in dataclasses.fields(self)
+                if getattr(self, f.name) != f.default]
+
     def argv(self) -> list[str]:
         """The flags that differ from the defaults, in field order (what the stack's replay program gets)."""
         out: list[str] = []
-        for f in dataclasses.fields(self):
-            value = getattr(self, f.name)
-            if value == f.default:
-                continue
-            if isinstance(value, bool):
-                out.append(self.flag(f.name))
-            else:
-                out += [self.flag(f.name), str(value)]
+        for flag, value in self.changed():
+            out += [flag] if isinstance(value, bool) else [flag, str(value)]
         return out
 
 
