@@ -45,7 +45,8 @@ def eval_command(
     as_json: Annotated[bool, typer.Option("--json", help="Also print metrics.json to stdout.")] = False,
 ) -> None:
     """Evaluate (detector →) tracker → motion classifier offline against ground truth."""
-    from ..schemas.models import PRESETS, ClassifierConfig
+    from ..schemas.models import ClassifierConfig
+    from ..services.classifier.config import PRESETS
     from .pipeline import NOISE_PRESETS
 
     if input_ not in INPUTS:

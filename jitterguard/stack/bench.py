@@ -4,7 +4,7 @@ processes over a real Zenoh router.
 The bench spawns ``jitterguard router``, ``jitterguard tracker`` and ``jitterguard classifier`` as separate
 processes (exactly what supervisord runs), publishes ``DetectedObjects`` of ``--objects`` objects at ``--rate`` Hz
 on ``detections`` itself, and times each frame from its ``put`` to the arrival of the classifier's ``objects``
-with the same ``header.seq`` (read with :func:`peek_header_seq`, no validation in the timing path). RSS of each
+with the same ``header.seq`` (read with :func:`~jitterguard.schemas.peek_header`, no validation in the timing path). RSS of each
 child comes from ``/proc/<pid>/status`` (VmRSS), sampled after the first minute (or 20 % of a shorter run) and at
 the end. The scene: objects on a jittered 8 m grid, 30 % parked, the rest oscillating along their heading (so
 the run can go on for any length without objects drifting away), detector noise 0.1-0.3 m with matching
@@ -121,7 +121,7 @@ def bench_pipeline(objects: int = 200, rate_hz: float = 20.0, duration_s: float 
     import zenoh
 
     from ..runtime import ZenohOptions, build_config, free_tcp_port
-    from ..schemas import keys, peek_header_seq
+    from ..schemas import keys, peek_header
 
     ns = f"bench{os.getpid()}"
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
@@ -141,10 +141,10 @@ def bench_pipeline(objects: int = 200, rate_hz: float = 20.0, duration_s: float 
     def stamp_into(into: dict[int, float]) -> Any:
         def on_sample(sample: Any) -> None:
             t = time.perf_counter()
-            seq = peek_header_seq(sample.payload.to_bytes())
-            if seq is not None:
+            head = peek_header(sample.payload.to_bytes())
+            if head is not None:
                 with lock:
-                    into.setdefault(seq, t)
+                    into.setdefault(head[0], t)
                     lock.notify_all()
         return on_sample
 

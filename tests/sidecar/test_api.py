@@ -9,7 +9,10 @@ import httpx
 import pytest
 
 from jitterguard.schemas import keys
-from jitterguard.schemas.models import AUTHORS_ALPHA, ClassifierConfig
+from jitterguard.schemas.models import ClassifierConfig
+from jitterguard.services.classifier.config import PRESETS
+
+AUTHORS_ALPHA = PRESETS["authors"]["alpha_per_class"]
 from jitterguard.services.sidecar.core import StateView, TrackView
 
 from .stack import Stack, wait_for

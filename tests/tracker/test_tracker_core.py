@@ -12,7 +12,7 @@ import pytest
 from jitterguard.geometry import rotate_cov2
 from jitterguard.services.tracker.config import default_config
 from jitterguard.services.tracker.core import FrameRejected, TrackerCore
-from jitterguard.services.tracker.frames import DetectionFrame
+from jitterguard.services.tracker.arrays import DetectionFrame
 from tracker_simseq import CAR, PED, Obj, make_sequence
 
 DT = 0.1

@@ -13,10 +13,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from jitterguard.services.classifier.frames import RESTART_GAP, FrameAssembler
+from jitterguard.services.classifier.assembly import RESTART_GAP, FrameAssembler
 from jitterguard.services.tracker.config import default_config
 from jitterguard.services.tracker.core import FrameRejected, TrackerCore
-from jitterguard.services.tracker.frames import DetectionFrame
+from jitterguard.services.tracker.arrays import DetectionFrame
 from jitterguard.stream_order import BehindRun, Verdict, judge
 from tracker_simseq import CAR
 

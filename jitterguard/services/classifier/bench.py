@@ -53,16 +53,17 @@ def bench_core(sizes: tuple[int, ...] = (10, 100, 1000), window: int = 10, frame
 def _encoded_frames(tracks: int, n_frames: int, rate_hz: float, seed: int, ns: str) -> list[tuple[list[tuple[str, bytes]], bytes]]:
     """``n_frames`` of the synthetic track scenario as the tracker puts them: ``(tracks/{id} key, payload)``
     per observation, then the ``tracked`` payload; 40 distinct frames looped with fresh seqs."""
-    from ...schemas import encode, keys
-    from .feeder import _renumber
-    from .synthetic_tracks import TrackScenario, generate
+    from ...schemas import keys
+    from ...schemas.models import Header
+    from .synthetic_tracks import FrameRecords, TrackScenario, generate
 
     sc = TrackScenario(n_static=tracks // 2, n_moving=tracks - tracks // 2 - 1, n_starting=1, seed=seed, rate_hz=rate_hz)
-    pool = list(generate(sc, 40))
+    pool = [FrameRecords.of(f) for f in generate(sc, 40)]
     out = []
     for i in range(n_frames):
-        f = _renumber(pool[i % len(pool)], i)
-        out.append(([(keys.track(ns, o.track.object_id), encode(o)) for o in f.observations], encode(f.tracked)))
+        header = Header(stamp=1_700_000_000_000_000_000 + round(i * 1e9 / rate_hz), frame_id="map", seq=i)
+        obs, tracked = pool[i % len(pool)].payloads(header)
+        out.append(([(keys.track(ns, tid), p) for tid, p in obs], tracked))
     return out
 
 
@@ -74,10 +75,10 @@ def bench_frame_cost(tracks: int = 200, frames: int = 200, seed: int = 0) -> dic
     (cache effects of a busy machine remain); garbage collection is managed as in the service process."""
     import gc
 
-    from .pipeline import ClassifierPipeline
+    from .adapter import ClassifierAdapter
 
     encoded = _encoded_frames(tracks, frames, 20.0, seed, "bench")
-    pipe = ClassifierPipeline()
+    pipe = ClassifierAdapter()
     thresholds = gc.get_threshold()
     gc.collect()
     gc.set_threshold(GC_GEN0_THRESHOLD, 1000, 1000)  # as manage_gc_for_latency, without freezing the caller's heap
@@ -100,8 +101,8 @@ def _drive(pipe, encoded: list, parts: dict[str, list[float]]) -> None:
 
     for obs_payloads, tracked_payload in encoded:
         t0 = time.thread_time()
-        for _, payload in obs_payloads:
-            pipe.observation(payload)
+        for k in range(0, len(obs_payloads), 64):  # as the service takes them off its channel
+            pipe.observations([p for _, p in obs_payloads[k:k + 64]])
         t1 = time.thread_time()
         pipe.close(tracked_payload, t1)
         t2 = time.thread_time()
@@ -131,7 +132,7 @@ def _classifier_process(opts, conn) -> None:  # runs in a spawned child, as `jit
 def bench_service(tracks: int = 200, rate_hz: float = 20.0, duration_s: float = 60.0, seed: int = 0) -> dict:
     """Run the real classifier service for ``duration_s`` at ``tracks`` × ``rate_hz``; latency percentiles."""
     from ...runtime import Service, free_tcp_port, loopback_options
-    from ...schemas import keys, peek_header_seq
+    from ...schemas import keys, peek_header
 
     port = free_tcp_port()
     ns = "bench"
@@ -150,9 +151,9 @@ def bench_service(tracks: int = 200, rate_hz: float = 20.0, duration_s: float = 
 
     def on_objects(sample) -> None:
         t = time.perf_counter()
-        seq = peek_header_seq(sample.payload.to_bytes())
-        if seq is not None:
-            received[seq] = t
+        head = peek_header(sample.payload.to_bytes())
+        if head is not None:
+            received[head[0]] = t
 
     feeder.session.declare_subscriber(keys.objects(ns), on_objects)
     time.sleep(1.0)  # let the mesh settle before the clock starts

@@ -4,41 +4,20 @@ and ``jitterguard bench classifier``."""
 from __future__ import annotations
 
 import json
-from pathlib import Path
 from typing import Annotated
 
 import typer
 
 from ...cli_common import ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ZenohConfigOpt, fail, zenoh_options
-from ...schemas.models import PRESETS, ClassifierConfig
+from ...config import ConfigError, load
+from .config import PRESETS, ClassifierParams
 
 
-def _load_config(path: str | None, preset: str | None, overrides: dict[str, object]) -> ClassifierConfig:
-    base: dict[str, object] = {}
-    if path:
-        p = Path(path)
-        if not p.is_file():
-            fail(f"--config: file not found: {path}")
-        try:
-            import yaml
-
-            loaded = yaml.safe_load(p.read_text()) or {}
-        except Exception as exc:
-            fail(f"--config: {path}: cannot parse: {exc}")
-        if not isinstance(loaded, dict):
-            fail(f"--config: {path}: expected a mapping of ClassifierConfig fields")
-        base.update(loaded)
-    if preset:
-        if preset not in PRESETS:
-            fail(f"--preset: unknown preset {preset!r}; choose from {sorted(PRESETS)}")
-        base.update(PRESETS[preset])
-    base.update({k: v for k, v in overrides.items() if v is not None})
+def _load_config(path: str | None, preset: str | None, overrides: dict[str, object]) -> ClassifierParams:
     try:
-        return ClassifierConfig.model_validate(base)
-    except Exception as exc:
-        err = exc.errors()[0] if hasattr(exc, "errors") else {"loc": (), "msg": str(exc)}
-        field = ".".join(str(x) for x in err["loc"]) or "config"
-        fail(f"{field}: {err['msg']}")
+        return load(ClassifierParams, path, service="classifier", preset=preset, overrides=overrides)
+    except ConfigError as exc:
+        fail(f"--config: {exc}" if path else str(exc))
 
 
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:
@@ -48,8 +27,10 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         zenoh_config: ZenohConfigOpt = None,
         connect: ConnectOpt = None,
         listen: ListenOpt = None,
-        config: Annotated[str | None, typer.Option("--config", help="YAML file of ClassifierConfig fields.")] = None,
-        preset: Annotated[str | None, typer.Option("--preset", help="Named alpha preset: paper or authors.")] = None,
+        config: Annotated[str | None, typer.Option(
+            "--config", help="Parameter file (flat, or Autoware's ros__parameters form); defaults:"
+            " jitterguard/config/classifier.param.yaml.")] = None,
+        preset: Annotated[str | None, typer.Option("--preset", help=f"Named preset: {', '.join(PRESETS)}.")] = None,
         alpha: Annotated[float | None, typer.Option("--alpha", help="Default alpha (z threshold).")] = None,
         window_size: Annotated[int | None, typer.Option("--window-size")] = None,
         min_window: Annotated[int | None, typer.Option("--min-window")] = None,
@@ -62,10 +43,11 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         from .service import ClassifierService
 
         opts = zenoh_options(ns, zenoh_config, connect, listen)
-        cfg = _load_config(config, preset, {"alpha_default": alpha, "window_size": window_size,
-                                             "min_window": min_window, "mode": mode, "effective_n": effective_n})
+        params = _load_config(config, preset, {"alpha_default": alpha, "window_size": window_size,
+                                               "min_window": min_window, "mode": mode, "effective_n": effective_n})
         setup_logging(log_level)
-        ClassifierService(opts, cfg, manage_gc=True).run_forever()
+        ClassifierService(opts, params.wire(), straggler_timeout_s=params.straggler_timeout_s, limits=params.limits,
+                          manage_gc=True).run_forever()
 
     @app.command("feed-tracks")
     def feed_tracks_cmd(

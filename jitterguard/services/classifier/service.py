@@ -1,7 +1,7 @@
-"""The classifier as a Zenoh service: a thin adapter around :class:`~.pipeline.ClassifierPipeline`.
+"""The classifier as a Zenoh service: transport and threads around :class:`~.adapter.ClassifierAdapter`.
 
 Threads. Observations (``tracks/*``, thousands per second) wait in a Zenoh FIFO channel that one worker
-thread drains and validates as they arrive, so no Python callback runs per sample. The frame-closing
+thread drains and reads in batches as they arrive, so no Python callback runs per sample. The frame-closing
 ``tracked`` (once per frame) comes through a callback that only stamps its arrival and wakes the worker:
 the frame latency counts from that stamp, i.e. from the sample reaching this process's subscriber, queueing
 included. The worker owns the pipeline: it validates, assembles frames, decides, and publishes ``objects``
@@ -32,23 +32,11 @@ import zenoh
 from ...runtime import Service, ZenohOptions
 from ...runtime.gc_policy import IdleCollector, manage_gc_for_latency
 from ...schemas import SCHEMA_VERSION, DecodeError, decode, encode, keys
-from ...schemas.models import (
-    ClassifierConfig,
-    ClassifierStateSnapshot,
-    ConfigReply,
-    TrackObservation,
-)
-from .core import STATE_NAMES, Decisions, MotionClassifierCore, Observations
-from .frames import FrameAssembler
-from .pipeline import (  # noqa: F401  (re-exported: eval and the sidecar bench use them from here)
-    ClassifierPipeline,
-    FrameOutput,
-    RecordObjects,
-    StructObjects,
-    apply_decisions_to_objects,
-    observation_row,
-    observations_from_rows,
-)
+from ...schemas.models import ClassifierConfig, ClassifierStateSnapshot, ConfigReply
+from ...schemas.wire import LIMITS, Limits
+from .adapter import ClassifierAdapter, FrameOutput, Poses
+from .assembly import FrameAssembler
+from .core import STATE_NAMES, Decisions, MotionClassifierCore
 
 CONFIG_APPLY_TIMEOUT_S = 2.0
 LATENCY_WINDOW = 4096
@@ -58,12 +46,6 @@ OBS_CHUNK = 64
 """Observations validated per pass before the worker looks for a newly arrived ``tracked`` again."""
 IDLE_POLL_S = 0.0005
 """How long the idle worker waits for a ``tracked`` wake-up before polling the observation channel again."""
-def observations_from_messages(msgs: list[TrackObservation], seq: int, stamp_ns: int) -> Observations:
-    """Flatten one frame's TrackObservation models into the core's arrays (world frame).
-
-    For in-process users that hold models (the offline evaluator); the service keeps rows as samples arrive.
-    """
-    return observations_from_rows([observation_row(m) for m in msgs], seq, stamp_ns)
 
 
 @dataclass
@@ -71,7 +53,7 @@ class _Latest:
     """What the state queryable reports: the last processed frame (immutable once stored)."""
 
     header: dict[str, Any]
-    objects: RecordObjects | StructObjects  # as published
+    objects: np.ndarray  # as published
     decisions: Decisions
     labels: np.ndarray
     stamps: np.ndarray
@@ -84,7 +66,7 @@ class ClassifierService(Service):
     name = "classifier"
 
     def __init__(self, opts: ZenohOptions, config: ClassifierConfig | None = None, *,
-                 straggler_timeout_s: float = 0.05, manage_gc: bool = False) -> None:
+                 straggler_timeout_s: float = 0.05, limits: Limits = LIMITS, manage_gc: bool = False) -> None:
         """``manage_gc``: call :func:`manage_gc_for_latency` and collect garbage between frames (process-wide;
         for the process that runs the classifier, not for tests that embed it)."""
         super().__init__(opts)
@@ -92,7 +74,7 @@ class ClassifierService(Service):
         self._idle_gc = IdleCollector()
         if manage_gc:
             manage_gc_for_latency()
-        self.pipeline = ClassifierPipeline(config, straggler_timeout_s=straggler_timeout_s)
+        self.pipeline = ClassifierAdapter(config, straggler_timeout_s=straggler_timeout_s, limits=limits)
         self.latencies_ms: deque[float] = deque(maxlen=LATENCY_WINDOW)
         self._queue: queue.Queue = queue.Queue()  # config writes and calls, run between frames
         self._closes: deque[tuple[bytes, zenoh.KeyExpr, float]] = deque()
@@ -161,26 +143,31 @@ class ClassifierService(Service):
             took = True
             self.counters.inc("received")
             try:
-                self.pipeline.close(data, t0)
+                cols = self.pipeline.close(data, t0)
             except DecodeError as exc:
                 self.reject(exc, self._tracked_key, str(key))
+                continue
+            if cols is not None and cols.normalised:
+                self.counters.inc("normalised.tracked")
         return took
 
     def _take_observations(self, limit: int) -> int:
-        """Validate up to ``limit`` observations from the channel; returns how many were taken."""
-        n = 0
-        while n < limit:
+        """Read up to ``limit`` observations from the channel, as one batch; returns how many were taken."""
+        samples = []
+        while len(samples) < limit:
             sample = self._obs_sub.try_recv()
             if sample is None:
                 break
-            n += 1
-            try:
-                self.pipeline.observation(sample.payload.to_bytes())
-            except DecodeError as exc:
-                self.reject(exc, self._obs_key, str(sample.key_expr))
-        if n:
-            self.counters.inc("received", n)
-        return n
+            samples.append(sample)
+        if not samples:
+            return 0
+        self.counters.inc("received", len(samples))
+        cols = self.pipeline.observations([s.payload.to_bytes() for s in samples])
+        for i, exc in cols.errors:
+            self.reject(exc, self._obs_key, str(samples[i].key_expr))
+        if cols.normalised:
+            self.counters.inc("normalised.tracks", cols.normalised)
+        return len(samples)
 
     def _run_control(self, item: tuple[str, tuple, None]) -> None:
         kind, (arg, fut), _ = item
@@ -279,8 +266,8 @@ class ClassifierService(Service):
         states, labels = dec.state.tolist(), latest.labels.tolist()
         stamps, seqs = latest.stamps.tolist(), latest.seqs.tolist()
         window_size = latest.config.window_size
-        poses = latest.objects.poses()  # static objects already carry their window mean
-        ids = [i.decode() for i in latest.objects.ids.tolist()]
+        poses = Poses.of(latest.objects)  # static objects already carry their window mean
+        ids = [i.decode() for i in latest.objects["object_id"].tolist()]
         px, py, yaw = poses.x.tolist(), poses.y.tolist(), poses.yaw.tolist()
         length, width = poses.length.tolist(), poses.width.tolist()
         tracks = []

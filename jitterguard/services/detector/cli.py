@@ -9,14 +9,14 @@ from typing import Annotated
 import typer
 
 from ...cli_common import ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ZenohConfigOpt, fail, zenoh_options
-from .config import PRESETS
+from ...config import ConfigError, load
+from .config import PRESETS, DetectorParams
 
 WeightsOpt = Annotated[
     str | None,
     typer.Option("--weights", help="Weights file (torch.save dict, loaded weights_only). Default: the shipped"
                  " weights of --preset; without them a randomly initialised network (logged loudly)."),
 ]
-PresetOpt = Annotated[str, typer.Option("--preset", help=f"Architecture preset: {', '.join(PRESETS)}.")]
 ThreadsOpt = Annotated[
     int | None, typer.Option("--threads", min=1, max=1024, help="torch CPU threads (default: the machine's cores).")
 ]
@@ -78,8 +78,12 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         zenoh_config: ZenohConfigOpt = None,
         connect: ConnectOpt = None,
         listen: ListenOpt = None,
+        config: Annotated[str | None, typer.Option(
+            "--config", help="Parameter file (flat, or Autoware's ros__parameters form); defaults:"
+            " jitterguard/config/detector.param.yaml.")] = None,
         weights: WeightsOpt = None,
-        preset: PresetOpt = "lite",
+        preset: Annotated[str | None, typer.Option(
+            "--preset", help=f"Architecture preset: {', '.join(PRESETS)} (default lite).")] = None,
         threads: ThreadsOpt = None,
         score_threshold: Annotated[
             float | None,
@@ -87,15 +91,20 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                          help="Keep detections scoring above this (default: the weights' config)."),
         ] = None,
         twist: Annotated[
-            bool, typer.Option("--twist/--no-twist", help="Publish the network's velocity as the twist.")
-        ] = True,
+            bool | None, typer.Option("--twist/--no-twist", help="Publish the network's velocity as the twist.")
+        ] = None,
         log_level: LogLevelOpt = "INFO",
     ) -> None:
         """Run the detector: points in; one DetectedObjects per scan (sensor frame, with variances) out."""
-        if preset not in PRESETS:
-            fail(f"--preset: expected one of {', '.join(PRESETS)}, got {preset!r}")
-        if weights is not None and not os.path.isfile(weights):
-            fail(f"--weights: file not found: {weights}")
+        try:
+            params = load(DetectorParams, config, overrides={"weights": weights, "preset": preset, "threads": threads,
+                                                             "score_threshold": score_threshold, "twist": twist})
+        except ConfigError as exc:
+            fail(f"--config: {exc}" if config else str(exc))
+        if params.preset not in PRESETS:
+            fail(f"--preset: expected one of {', '.join(PRESETS)}, got {params.preset!r}")
+        if params.weights is not None and not os.path.isfile(params.weights):
+            fail(f"--weights: file not found: {params.weights}")
         opts = zenoh_options(ns, zenoh_config, connect, listen)
 
         from ...runtime import setup_logging
@@ -106,11 +115,12 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         from .service import DetectorService
 
         try:  # load before the session opens: a bad weights file fails before anything is on the network
-            det = Detector.load(weights, preset, threads=threads, score_threshold=score_threshold)
+            det = Detector.load(params.weights, params.preset, threads=params.threads,
+                                score_threshold=params.score_threshold)
         except WeightsError as exc:
             fail(f"--weights: {_one_line(exc)}")
         try:
-            service = DetectorService(opts, det, has_twist=twist)
+            service = DetectorService(opts, det, has_twist=params.twist)
         except ValueError as exc:  # build_config names the bad endpoint / setting
             fail(str(exc))
         service.run_forever()

@@ -154,8 +154,6 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
 
         passive_openmp()  # before torch is imported
         retain_heap()
-        import dataclasses
-
         import torch
 
         from .augment import random_augment
@@ -179,7 +177,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                      + "; drop or add --vanilla to match")
         else:
             torch.manual_seed(seed)
-            model = CenterPointNet(dataclasses.replace(PRESETS[preset], uncertainty=not vanilla))
+            model = CenterPointNet(PRESETS[preset].model_copy(update={"uncertainty": not vanilla}))
         pcr = model.config.point_cloud_range
         if nuscenes is not None:
             from ..replay.frames import SourceError

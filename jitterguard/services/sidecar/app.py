@@ -27,7 +27,8 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
 
 from ...runtime import ZenohOptions
-from ...schemas.models import PRESETS, ClassifierConfig
+from ...schemas.models import ClassifierConfig
+from ..classifier.config import PRESETS
 from .client import ClassifierClient, ClassifierRejected, ClassifierUnavailable
 from .core import (
     RenderedState,

@@ -63,21 +63,18 @@ def _classifier_main(zport: int) -> None:
 
 
 def _feeder_main(zport: int, params: BenchParams, ready: Any) -> None:
-    import msgpack
     import zenoh
 
     from ...runtime.zenoh_config import build_config
     from ...schemas import keys
-    from ..classifier.synthetic_tracks import TrackScenario, generate
+    from ...schemas.models import Header
+    from ..classifier.synthetic_tracks import FrameRecords, TrackScenario, generate
 
     stop = _stop_on_sigterm()
     n = params.tracks
     sc = TrackScenario(n_static=n - n // 4 - n // 20, n_moving=n // 4, n_starting=n // 20, rate_hz=params.rate_hz,
                        start_frame=params.base_frames // 2, seed=params.seed)
-    base = []
-    for fr in generate(sc, params.base_frames):
-        obs = [(keys.track(NS, o.track.object_id), o.model_dump(mode="python")) for o in fr.observations]
-        base.append((obs, fr.tracked.model_dump(mode="python")))
+    base = [FrameRecords.of(fr) for fr in generate(sc, params.base_frames)]
     session = zenoh.open(build_config(loopback_options(NS, zport)))
     ready.set()
     block = zenoh.CongestionControl.BLOCK
@@ -86,13 +83,11 @@ def _feeder_main(zport: int, params: BenchParams, ready: Any) -> None:
     stamp0 = time.time_ns()
     try:
         while not stop.is_set():
-            obs, tracked = base[seq % len(base)]
-            header = {"stamp": stamp0 + int(seq * period * 1e9), "frame_id": "map", "seq": seq}
-            for key, d in obs:
-                d["header"] = header
-                session.put(key, msgpack.packb(d, use_bin_type=True), congestion_control=block)
-            tracked["header"] = header
-            session.put(keys.tracked(NS), msgpack.packb(tracked, use_bin_type=True), congestion_control=block)
+            header = Header(stamp=stamp0 + int(seq * period * 1e9), frame_id="map", seq=seq)
+            obs, tracked = base[seq % len(base)].payloads(header)
+            for tid, payload in obs:
+                session.put(keys.track(NS, tid), payload, congestion_control=block)
+            session.put(keys.tracked(NS), tracked, congestion_control=block)
             seq += 1
             next_t += period
             delay = next_t - time.monotonic()
@@ -108,8 +103,9 @@ def _synthetic_snapshots(params: BenchParams) -> list[dict]:
     from ...geometry import yaw_from_quaternion
     from ...schemas.models import ClassifierConfig, ClassifierStateSnapshot, Header, TrackStateEntry
     from ..classifier.core import STATE_NAMES, STATIC, MotionClassifierCore
-    from ..classifier.service import observations_from_messages
-    from ..classifier.synthetic_tracks import TrackScenario, generate
+    from ...schemas import read_track_observations
+    from ..classifier.adapter import observation_rows, observations_from_rows
+    from ..classifier.synthetic_tracks import FrameRecords, TrackScenario, generate
 
     n = params.tracks
     sc = TrackScenario(n_static=n - n // 4 - n // 20, n_moving=n // 4, n_starting=n // 20, rate_hz=params.rate_hz,
@@ -119,7 +115,9 @@ def _synthetic_snapshots(params: BenchParams) -> list[dict]:
     out = []
     for fr in generate(sc, params.base_frames):
         h = fr.tracked.header
-        dec = core.update(observations_from_messages(fr.observations, h.seq, h.stamp))
+        obs, _ = FrameRecords.of(fr).payloads()
+        rows = [r for _, _, r in observation_rows(read_track_observations([p for _, p in obs]))]
+        dec = core.update(observations_from_rows(rows, h.seq, h.stamp))
         entries = []
         for i, obj in enumerate(fr.tracked.objects):
             pose = obj.kinematics.pose_with_covariance.pose

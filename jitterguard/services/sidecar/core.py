@@ -20,10 +20,10 @@ from pydantic.fields import FieldInfo
 
 from ...schemas.models import (
     LABEL_NAMES,
-    PRESETS,
     ClassifierConfig,
     ClassifierStateSnapshot,
 )
+from ..classifier.config import PRESETS
 
 STATES: tuple[str, ...] = ("static", "dynamic", "undecided")
 CLASS_NAMES: tuple[str, ...] = tuple(LABEL_NAMES[i] for i in sorted(LABEL_NAMES))

@@ -24,7 +24,7 @@ import numpy as np
 
 from .config import TrackerConfig, default_config
 from .core import TrackerCore
-from .frames import DetectionFrame
+from .arrays import DetectionFrame
 
 SIZES = (50, 200, 500)
 DIMS = {1: (4.5, 1.9, 1.6), 7: (0.6, 0.6, 1.7), 6: (1.8, 0.6, 1.6), 0: (1.0, 1.0, 1.0)}

@@ -31,8 +31,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         listen: ListenOpt = None,
         config: Annotated[
             str | None,
-            typer.Option("--config", help="YAML overriding the shipped data_association_matrix.yaml and any"
-                         " other tracker setting (Autoware's ros__parameters layout is accepted)."),
+            typer.Option("--config", help="Parameter file overriding any of the defaults in"
+                         " jitterguard/config/tracker.param.yaml (flat, or Autoware's ros__parameters form)."),
         ] = None,
         measurement_covariance: Annotated[
             str | None,
@@ -51,7 +51,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         log_level: LogLevelOpt = "INFO",
     ) -> None:
         """Run the tracker: detections in; tracks/{id} for each track observed this frame, then tracked."""
-        from .config import ConfigError, dump_config, load_config
+        from ...config import ConfigError
+        from .config import dump_config, load_config
 
         if measurement_covariance is not None and measurement_covariance not in MEAS_CHOICES:
             fail(f"--measurement-covariance: expected one of {', '.join(MEAS_CHOICES)}, got {measurement_covariance!r}")

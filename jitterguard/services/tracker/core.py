@@ -16,18 +16,17 @@ Per frame (all steps batched over every track / detection):
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
 
-from ...geometry import rotate_cov2
+from ...geometry import rotate_cov2, sensor_to_world_xy
 from ...stream_order import BehindRun, Verdict, judge
 from . import kalman
 from .association import assign, gate, overlapping
 from .config import ConfigTables, TrackerConfig, default_config
-from .frames import DetectionFrame, FrameResult, TrackSnapshot, WorldDetections
+from .arrays import DetectionFrame, FrameResult, TrackSnapshot, WorldDetections
 from .kalman import CTRV, STATE_DIM, wrap_pi
 from .lifecycle import TrackTable, new_track_id
 
@@ -194,9 +193,7 @@ class TrackerCore:
     def _to_world(self, f: DetectionFrame) -> WorldDetections:
         """Sensor frame -> world frame, with each detection's measurement covariance over (x, y, yaw)."""
         cfg, tb = self.config, self.tables
-        c, s = math.cos(f.ego_yaw), math.sin(f.ego_yaw)
-        x = f.ego_x + c * f.x - s * f.y
-        y = f.ego_y + s * f.x + c * f.y
+        x, y = sensor_to_world_xy(f.x, f.y, f.ego_x, f.ego_y, f.ego_yaw)
         yaw = wrap_pi(f.yaw + f.ego_yaw)
         cxx, cxy, cyy = rotate_cov2(f.cov_xx, f.cov_xy, f.cov_yy, f.ego_yaw)
 

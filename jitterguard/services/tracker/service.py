@@ -2,8 +2,8 @@
 
 Threading: a detections frame arrives through one callback that only copies the payload into an inbox queue
 (:meth:`~jitterguard.runtime.Service.subscribe_inbox`); one worker thread, blocked on that queue, wakes at once,
-validates the frame (:func:`~.convert.decode_detections`: records for the usual shape, generated Structs
-otherwise; a malformed payload is counted as ``rejected`` and skipped), owns the :class:`TrackerCore` — nothing
+reads the frame (:func:`~jitterguard.schemas.read_detected_objects`; a malformed or oversized payload is
+counted as ``rejected`` and skipped, one read by the model in another shape as ``normalised``), owns the :class:`TrackerCore` — nothing
 else touches it — and per frame publishes every ``tracks/{id}`` first (one declared publisher per live track,
 :class:`~jitterguard.runtime.keyed_publishers.KeyedPublishers`) and the closing ``tracked`` last (the classifier
 waits for the IDs that ``tracked.observed_track_ids`` names). All puts use BLOCK congestion control: a lost
@@ -22,14 +22,13 @@ from __future__ import annotations
 import queue
 import threading
 from collections.abc import Callable
-from typing import Any
 
 from ...runtime import Service, ZenohOptions
 from ...runtime.gc_policy import IdleCollector, manage_gc_for_latency
-from ...schemas import DecodeError, keys
+from ...schemas import DecodeError, DetectedColumns, keys, read_detected_objects
 from ...schemas.models import MotionState
+from .adapter import detection_frame, observation_payloads, tracked_payload
 from .config import TrackerConfig, default_config
-from .convert import decode_detections, detections_codec, frame_from_message, observation_payloads, tracked_payload
 from .core import FrameRejected, TrackerCore
 from .lifecycle import new_track_id
 
@@ -59,7 +58,6 @@ class TrackerService(Service):
         self.static_hints = static_hints
         self._hints: list[MotionState] = []
         self._hints_lock = threading.Lock()
-        self._codec = detections_codec()
         self._manage_gc = manage_gc
         self._idle_gc = IdleCollector()
         if manage_gc:
@@ -93,18 +91,20 @@ class TrackerService(Service):
             except queue.Empty:
                 continue
             self.counters.inc("received")
-            try:  # the contract's validation, on msgspec Structs generated from the model (schemas.fast)
-                msg = decode_detections(self._codec, payload)
+            try:
+                cols = read_detected_objects(payload, self.core.config.limits)
             except DecodeError as exc:
                 self.reject(exc, self._det_key)
                 continue
+            if cols.normalised:
+                self.counters.inc("normalised.detections")
             collect = self._manage_gc
             try:
                 self._apply_hints()
-                self.process(msg)
+                self.process(cols)
             except Exception:  # a bug must not silently stop tracking: count, log, go on with the next frame
                 self.counters.inc("handler_errors")
-                self.log.exception("frame seq %d failed", msg.header.seq)
+                self.log.exception("frame seq %d failed", cols.header.seq)
 
     def _apply_hints(self) -> None:
         with self._hints_lock:
@@ -118,10 +118,10 @@ class TrackerService(Service):
         if applied < len(ids):
             self.counters.inc("static_hints_unknown", len(ids) - applied)
 
-    def process(self, msg: Any) -> None:
-        """Track one validated frame (as :func:`~.convert.decode_detections` gives it; a Struct is edited in
-        place) and publish the observations, then ``tracked``."""
-        frame = frame_from_message(msg)
+    def process(self, cols: DetectedColumns) -> None:
+        """Track one frame (as :func:`~jitterguard.schemas.read_detected_objects` gives it) and publish the
+        observations, then ``tracked``."""
+        frame = detection_frame(cols)
         try:
             result = self.core.step(frame)
         except FrameRejected as rej:
@@ -134,8 +134,8 @@ class TrackerService(Service):
             self.counters.inc("source_restarts")
             self.log.warning("detections restarted at seq %d with time going on: source restarted, tracks kept",
                              frame.seq)
-        self._publish(observation_payloads(msg, frame, result), result.tracks.ids)
-        self._tracked_pub.put(tracked_payload(frame, result))  # built after the observations went out
+        self._publish(observation_payloads(cols, frame, result), result.tracks.ids)
+        self._tracked_pub.put(tracked_payload(cols, frame, result))  # built after the observations went out
         self.counters.inc("frames")
         self.counters.inc("tracks_born", len(result.born))
         self.counters.inc("tracks_deleted", len(result.deleted))

@@ -1,6 +1,6 @@
 """The tracker core's inputs and outputs: plain numpy arrays, one row per object (no models, no I/O).
 
-The Zenoh adapter converts wire models to these and back (``convert.py``); the offline evaluator and the
+The Zenoh adapter converts wire columns to these and back (``adapter.py``); the offline evaluator and the
 benchmark build them directly, so the core is measured and tested without any serialisation in the way.
 """
 

@@ -6,18 +6,16 @@ when all of them are in, or when the straggler timeout has passed since its clos
 ones are counted). Pure: the caller passes the clock.
 
 The assembler only looks at a frame's seq and track IDs; what it stores per observation and per close is the
-caller's business (``*_item`` methods). The live service stores the few numbers the core needs per
-observation and the validated ``tracked`` map, so no model is built on the hot path; the model-taking
-methods are for everyone else.
+caller's business (``*_item`` methods): the adapter stores the few numbers the core needs per observation and
+the ``tracked`` columns.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass, field
-from typing import Any, Generic, TypeVar
+from typing import Generic, TypeVar
 
-from ...schemas.models import TrackedObjects, TrackObservation
 from ...stream_order import BehindRun
 
 RESTART_GAP = 20
@@ -59,9 +57,6 @@ class FrameAssembler(Generic[O, C]):
     def count(self, name: str, n: int = 1) -> None:
         self.counts[name] = self.counts.get(name, 0) + n
 
-    def add_observation(self, obs: TrackObservation) -> None:
-        self.add_observation_item(obs.header.seq, obs.track.object_id, obs)  # type: ignore[arg-type]
-
     def add_observation_item(self, seq: int, track_id: str, item: O) -> None:
         """Register what the caller keeps of the observation of ``track_id`` in frame ``seq``."""
         if self.is_late(seq):
@@ -77,10 +72,6 @@ class FrameAssembler(Generic[O, C]):
         if len(self._obs) > self.max_pending_frames:  # closes that never come must not grow memory
             oldest = min(self._obs)
             self.count("orphaned_observations", len(self._obs.pop(oldest)))
-
-    def add_close(self, tracked: TrackedObjects, now: float) -> bool:
-        return self.add_close_item(tracked.header.seq, tracked.observed_track_ids, tracked, now,  # type: ignore[arg-type]
-                                   stamp_ns=tracked.header.stamp)
 
     def add_close_item(self, seq: int, expected_ids: Iterable[str], item: C, now: float,
                        stamp_ns: int | None = None) -> bool:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import msgpack
 import numpy as np
 import pytest
@@ -187,74 +189,89 @@ def test_state_map_validates_as_the_snapshot_model(service, client_session):
             assert (t.x, t.y) == (pytest.approx(m.mean_x), pytest.approx(m.mean_y))
 
 
-# ------------------------------------------------------------ the pipeline (no Zenoh): same answers as the models
+# ------------------------------------------------------------ the adapter (no Zenoh): same answers as the models
 
 def _reference_objects(frames, config=None):
-    """What the classifier must publish, computed the slow way: pydantic models, model dumps, the core."""
-    from jitterguard.services.classifier.core import MotionClassifierCore
-    from jitterguard.services.classifier.service import apply_decisions_to_objects, observations_from_messages
+    """What the classifier must publish, computed the slow way and independently: pydantic models, the core, the
+    decisions applied to the models by hand (static: window mean, zero twist, is_stationary)."""
+    from jitterguard.services.classifier.adapter import observations_from_rows
+    from jitterguard.services.classifier.core import STATIC, MotionClassifierCore
 
     core = MotionClassifierCore(config or ClassifierConfig())
     out = []
     for f in frames:
         tracked = decode(TrackedObjects, encode(f.tracked))
-        obs = [decode(type(o), encode(o)) for o in f.observations]
-        core.update(observations_from_messages(obs, tracked.header.seq, tracked.header.stamp))
+        rows = []
+        for o in (decode(type(o), encode(o)) for o in f.observations):
+            pwc = o.detection.kinematics.pose_with_covariance
+            rows.append((o.track.object_id, o.track.label, pwc.pose.position.x, pwc.pose.position.y,
+                         pwc.covariance[0], pwc.covariance[1], pwc.covariance[7], math.hypot(o.track.vx, o.track.vy)))
+        core.update(observations_from_rows(rows, tracked.header.seq, tracked.header.stamp))
         ids = np.asarray([o.object_id for o in tracked.objects], dtype="S32")
         dec = core.last_decisions(ids)
         core.retain(ids)
-        apply_decisions_to_objects(tracked.objects, dec)  # works on the models as on the Structs
+        for obj, state, mx, my in zip(tracked.objects, dec.state.tolist(), dec.mean_x.tolist(), dec.mean_y.tolist()):
+            kin = obj.kinematics
+            kin.is_stationary = state == STATIC
+            if state == STATIC:
+                kin.pose_with_covariance.pose.position.x, kin.pose_with_covariance.pose.position.y = mx, my
+                tw = kin.twist_with_covariance.twist
+                for v in (tw.linear, tw.angular):
+                    v.x = v.y = v.z = 0.0
+            obj.classification = [max(obj.classification, key=lambda c: c.probability)]  # the record shape
         tracked.observed_track_ids = []
         out.append(msgpack.unpackb(encode(tracked)))
     return out
 
 
-@pytest.mark.parametrize("shape", ["records", "structs"])
-def test_pipeline_publishes_exactly_what_the_model_path_computes(shape):
-    """``tracked`` of the usual shape is decided as records; any other valid shape (here: two classifications
-    per object) as Structs; both publish what the models compute."""
+@pytest.mark.parametrize("shape", ["records", "other"])
+def test_adapter_publishes_exactly_what_the_model_path_computes(shape):
+    """``tracked`` of the usual shape is decided as a view of its records; any other valid shape (here: two
+    classifications per object, written by the model) is normalised into the same records and said so; both
+    publish what the models compute."""
     from jitterguard.schemas.models import ObjectClassification
-    from jitterguard.services.classifier.pipeline import ClassifierPipeline, RecordObjects, StructObjects
+    from jitterguard.services.classifier.adapter import ClassifierAdapter
+    from jitterguard.services.classifier.synthetic_tracks import FrameRecords
 
     frames = list(generate(TrackScenario(n_static=6, n_moving=5, n_starting=1, seed=11), 14))
-    if shape == "structs":
+    if shape == "other":
         for f in frames:
             for o in f.tracked.objects:
                 o.classification = [*o.classification, ObjectClassification(label=0, probability=0.01)]
-    pipe = ClassifierPipeline()
+    pipe = ClassifierAdapter()
     got = []
     for i, f in enumerate(frames):
-        for o in reversed(f.observations):  # arrival order within a frame does not matter
-            pipe.observation(encode(o))
-        assert pipe.close(encode(f.tracked), received_at=float(i))
+        observations, _ = FrameRecords.of(f).payloads()
+        pipe.observations([p for _, p in reversed(observations)])  # arrival order within a frame does not matter
+        cols = pipe.close(encode(f.tracked), received_at=float(i))
+        assert cols is not None and cols.normalised == (shape == "other")
         (frame,) = pipe.ready(float(i))
-        assert isinstance(frame.tracked, RecordObjects if shape == "records" else StructObjects)
         out = pipe.finish(frame)
         got.append(msgpack.unpackb(out.payload))
         motion = [decode(MotionState, p) for _, p in pipe.motion_payloads(out)]  # valid MotionStates
         assert {m.track_id for m in motion} == {o.track.object_id for o in f.observations}
+        assert got[-1]["ego_pose"] == f.tracked.ego_pose.model_dump()  # passed through unchanged
         pipe.settle(out)
     assert got == _reference_objects(frames)
     assert any(o["kinematics"]["is_stationary"] for o in got[-1]["objects"])
 
 
-def test_pipeline_rejects_bad_payloads_and_counts_stragglers():
+def test_adapter_rejects_bad_payloads_and_counts_stragglers():
     from jitterguard.schemas import DecodeError
-    from jitterguard.services.classifier.pipeline import ClassifierPipeline
+    from jitterguard.services.classifier.adapter import ClassifierAdapter
 
     f0, f1 = generate(TrackScenario(n_static=2, n_moving=1, n_starting=0, seed=3), 2)
-    pipe = ClassifierPipeline()
+    pipe = ClassifierAdapter()
     bad = msgpack.unpackb(encode(f0.observations[0]))
     bad["detection"]["kinematics"]["pose_with_covariance"]["covariance"][7] = -1.0
-    with pytest.raises(DecodeError, match="covariance.7"):
-        pipe.observation(msgpack.packb(bad))
+    (err,) = pipe.observations([msgpack.packb(bad)]).errors
+    assert err[0] == 0 and "covariance.7" in str(err[1])
     with pytest.raises(DecodeError, match="TrackedObjects"):
         pipe.close(encode(f0.tracked)[:-3], received_at=0.0)
-    for o in f0.observations:
-        pipe.observation(encode(o))
+    pipe.observations([encode(o) for o in f0.observations])
     pipe.close(encode(f0.tracked), received_at=0.0)
     pipe.finish(pipe.ready(0.0)[0])
-    pipe.observation(encode(f0.observations[0]))  # frame 0 is decided: a straggler now
+    pipe.observations([encode(f0.observations[0])])  # frame 0 is decided: a straggler now
     assert pipe.assembler.counts["late_observations"] == 1
 
 

@@ -1,4 +1,5 @@
-"""Wire conversion: DetectedObjects -> core arrays, core result -> TrackObservation / TrackedObjects maps."""
+"""The tracker's adapter: detections columns -> core arrays, core result -> TrackObservation / TrackedObjects
+payloads."""
 
 from __future__ import annotations
 
@@ -8,7 +9,8 @@ import numpy as np
 import pytest
 
 from jitterguard.geometry import quaternion_from_yaw, rotate_cov2, yaw_from_quaternion
-from jitterguard.schemas import decode, encode
+from jitterguard.schemas import decode, encode, read_detected_objects
+from jitterguard.schemas.wire import _area as shape_area
 from jitterguard.schemas.models import (
     X_X,
     X_Y,
@@ -32,25 +34,23 @@ from jitterguard.schemas.models import (
     Vector3,
 )
 from jitterguard.services.tracker.config import default_config
-from jitterguard.services.tracker.convert import (
-    decode_detections,
-    detections_codec,
-    frame_from_message,
-    frame_payloads,
-    shape_area,
-)
+from jitterguard.services.tracker.adapter import detection_frame, observation_payloads, tracked_payload
 from jitterguard.services.tracker.core import TrackerCore
 from tracker_simseq import make_sequence, to_message
 
 
+def frame_from_message(msg: DetectedObjects):
+    return detection_frame(read_detected_objects(encode(msg)))
+
+
 def _run(seq_frames):
     core = TrackerCore()
-    codec = detections_codec()
     for sf in seq_frames:
         msg = to_message(sf)
-        frame = frame_from_message(decode(DetectedObjects, encode(msg)))
+        cols = read_detected_objects(encode(msg))
+        frame = detection_frame(cols)
         res = core.step(frame)
-        yield sf, msg, frame, res, frame_payloads(codec.decode(encode(msg)), frame, res)
+        yield sf, msg, frame, res, (observation_payloads(cols, frame, res), tracked_payload(cols, frame, res))
 
 
 def test_frame_from_message_recovers_the_detector_arrays() -> None:
@@ -66,51 +66,43 @@ def test_frame_from_message_recovers_the_detector_arrays() -> None:
     np.testing.assert_allclose(frame.area, d.length * d.width)
 
 
-@pytest.mark.parametrize("form", ["records", "raw_structs"])
-def test_the_services_decodings_give_the_models_frame_and_the_same_payloads(form) -> None:
-    """The service reads ``detections`` as records (the usual shape) or as Structs with raw covariance blocks
-    (``decode_detections``); either way the core's arrays must be exactly what the pydantic model gives, and
-    the payloads byte for byte what Structs with plain float tuples give."""
+def test_detections_of_another_shape_give_the_same_frame_and_payloads() -> None:
+    """A payload the records cannot view (here: floats written as float32, legal msgpack) is read by the model and
+    normalised into the same columns; the core's arrays and the payloads must be what the record form gives."""
     import dataclasses
 
-    from jitterguard.schemas import tracked_layout as tl
-    from jitterguard.schemas.fast import StructCodec
-
-    raw_codec, plain_codec = detections_codec(), StructCodec(DetectedObjects)
     ids = iter(f"{i:032x}" for i in range(10**6))
-    core_m = TrackerCore(id_factory=lambda: next(ids))
+    core_r = TrackerCore(id_factory=lambda: next(ids))
     ids2 = iter(f"{i:032x}" for i in range(10**6))
-    core_s = TrackerCore(id_factory=lambda: next(ids2))
+    core_m = TrackerCore(id_factory=lambda: next(ids2))
     checked = 0
     for sf in make_sequence(7, n_frames=10).frames:
-        data = encode(to_message(sf))
-        fast = decode_detections(raw_codec, data)
-        assert isinstance(fast, tl.DetectedRecords)  # the usual shape
-        under_test = fast if form == "records" else raw_codec.decode(data)
-        model, plain_struct = decode(DetectedObjects, data), plain_codec.decode(data)
-        fm, fs = frame_from_message(model), frame_from_message(under_test)
-        for f in dataclasses.fields(fm):
-            a, b = getattr(fm, f.name), getattr(fs, f.name)
+        msg = to_message(sf)
+        data = encode(msg)
+        cols, cols_m = read_detected_objects(data), read_detected_objects(_reordered(data))
+        assert not cols.normalised and cols_m.normalised
+        fr, fm = detection_frame(cols), detection_frame(cols_m)
+        for f in dataclasses.fields(fr):
+            a, b = getattr(fr, f.name), getattr(fm, f.name)
             if isinstance(a, np.ndarray):
-                np.testing.assert_allclose(a, b, rtol=0, atol=1e-15, err_msg=f.name)
+                np.testing.assert_array_equal(a, b, err_msg=f.name)
                 assert a.dtype == b.dtype, f.name
             else:
                 assert a == b, f.name
-        res_m, res_s = core_m.step(fm), core_s.step(fs)
-        out_plain = frame_payloads(plain_struct, fm, res_m)
-        out = frame_payloads(under_test, fs, res_s)
-        assert out_plain == out
-        checked += len(out[0])
+        res_r, res_m = core_r.step(fr), core_m.step(fm)
+        assert observation_payloads(cols, fr, res_r) == observation_payloads(cols_m, fm, res_m)
+        assert tracked_payload(cols, fr, res_r) == tracked_payload(cols_m, fm, res_m)
+        checked += len(res_r.observed_ids)
     assert checked > 20
 
 
-def test_detections_of_another_shape_are_read_as_structs() -> None:
-    from jitterguard.schemas import tracked_layout as tl
+def _reordered(data: bytes) -> bytes:
+    """The same message with each object's keys in another order: valid, not the record shape."""
+    import msgpack
 
-    msg = DetectedObjects(header=Header(stamp=1, seq=0), objects=[DetectedObject(classification=[
-        ObjectClassification(label=7, probability=0.3), ObjectClassification(label=6, probability=0.6)])])
-    got = decode_detections(detections_codec(), encode(msg))
-    assert not isinstance(got, tl.DetectedRecords) and frame_from_message(got).label.tolist() == [6]
+    raw = msgpack.unpackb(data)
+    raw["objects"] = [dict(reversed(list(o.items()))) for o in raw["objects"]]
+    return msgpack.packb(raw)
 
 
 def test_highest_probability_class_wins_and_no_class_means_unknown() -> None:
@@ -170,9 +162,10 @@ def test_observation_detection_is_in_the_world_frame_with_rotated_covariance() -
                           ego_pose=Pose(position=Point(x=100.0, y=50.0, z=1.8),
                                         orientation=Quaternion(x=qx, y=qy, z=qz, w=qw)),
                           objects=[obj])
-    frame = frame_from_message(msg)
+    cols = read_detected_objects(encode(msg))
+    frame = detection_frame(cols)
     res = core.step(frame)
-    obs, closing = frame_payloads(detections_codec().decode(encode(msg)), frame, res)
+    obs = observation_payloads(cols, frame, res)
     assert len(obs) == 1
     det = decode(TrackObservation, obs[0][1]).detection
     pose = det.kinematics.pose_with_covariance.pose
@@ -194,6 +187,7 @@ def test_observation_detection_is_in_the_world_frame_with_rotated_covariance() -
     st = decode(TrackObservation, obs[0][1]).track
     assert (st.x, st.y) == pytest.approx((res.tracks.x[0], res.tracks.y[0]))
     assert st.hits == 1 and st.label == 1 and st.age_s == 0.0
+    assert decode(TrackedObjects, tracked_payload(cols, frame, res)).ego_pose == msg.ego_pose  # the contract's ego pose
 
 
 def test_tracked_object_carries_filter_state_and_world_twist() -> None:

@@ -175,12 +175,12 @@ def test_fuzz_mutated_valid_payloads_raise_only_decode_error(i, data):
         assert str(exc).startswith(_MODELS[i].__name__)
 
 
-# ------------------------------------------------------------------ the hot-path decoders agree with the models
-# decode_map (pydantic-core on plain maps) and StructCodec (msgspec Structs generated from the models) must
-# accept exactly what decode accepts, return what it returns, and name the same field when they refuse.
+# ------------------------------------------------------------------ the read functions agree with the models
+# read_<message> views records where the payload has their shape and asks the model otherwise: it must accept
+# exactly what decode accepts (within the limits), give the columns the model's values give, and name the same
+# field when it refuses.
 
-from jitterguard.schemas import decode_map  # noqa: E402
-from jitterguard.schemas.fast import StructCodec, block_values, struct_type  # noqa: E402
+from jitterguard.schemas import wire  # noqa: E402
 from jitterguard.schemas.models import (  # noqa: E402
     Point,
     Pose,
@@ -190,30 +190,41 @@ from jitterguard.schemas.models import (  # noqa: E402
     TrackedObjectKinematics,
     Vector3,
 )
+from jitterguard.schemas.records import RecordLayout  # noqa: E402
 
 
 def _cov(seed: float) -> tuple[float, ...]:
     return tuple(seed * (i + 1) if i in (0, 7, 14, 21, 28, 35) else -seed * i / 7 for i in range(36))
 
 
-def _rich_tracked() -> TrackedObjects:
+def _rich_tracked(odd: bool = True) -> TrackedObjects:
     ids = [TID, "fedcba9876543210fedcba9876543210"]
+    classes = [ObjectClassification(label=Label.CAR, probability=0.4), ObjectClassification(label=Label.TRUCK, probability=0.6)]
     objs = [
         TrackedObject(
-            object_id=tid, existence_probability=0.75,
-            classification=[ObjectClassification(label=Label.CAR, probability=0.6),
-                            ObjectClassification(label=Label.TRUCK, probability=0.4)],
+            object_id=tid, existence_probability=0.75, classification=classes if odd else classes[1:],
             kinematics=TrackedObjectKinematics(
                 pose_with_covariance=PoseWithCovariance(
                     pose=Pose(position=Point(x=12.5 * k, y=-3.25, z=0.5), orientation=Quaternion(z=0.38, w=0.92)),
                     covariance=_cov(0.01 * (k + 1))),
                 orientation_availability=1, is_stationary=bool(k)),
-            shape=Shape(type=2, footprint=[Point(x=1.0, y=2.0), Point(x=-1.0, y=0.5)], dimensions=Vector3(x=4.5, y=1.9, z=1.6)),
+            shape=Shape(type=2, footprint=[Point(x=1.0, y=2.0), Point(x=-1.0, y=0.5), Point(x=0.0, y=-1.0)] if odd else [],
+                        dimensions=Vector3(x=4.5, y=1.9, z=1.6)),
         )
         for k, tid in enumerate(ids)
     ]
-    return TrackedObjects(header=Header(stamp=1_700_000_000_000_000_000, frame_id="map", seq=42), objects=objs,
-                          observed_track_ids=ids)
+    return TrackedObjects(header=Header(stamp=1_700_000_000_000_000_000, frame_id="map", seq=42),
+                          ego_pose=Pose(position=Point(x=3.0, y=4.0)), objects=objs, observed_track_ids=ids)
+
+
+def _rich_detections(odd: bool = True) -> DetectedObjects:
+    t = _rich_tracked(odd)
+    objs = [DetectedObject(existence_probability=o.existence_probability, classification=o.classification,
+                           shape=o.shape) for o in t.objects]
+    for o, src in zip(objs, t.objects):
+        o.kinematics.pose_with_covariance = src.kinematics.pose_with_covariance
+        o.kinematics.has_position_covariance = True
+    return DetectedObjects(header=Header(stamp=5, frame_id="lidar", seq=3), ego_pose=t.ego_pose, objects=objs)
 
 
 def _rich_observation() -> TrackObservation:
@@ -224,14 +235,48 @@ def _rich_observation() -> TrackObservation:
                             track=TrackState(object_id=TID, label=7, x=-1.5, y=2.5, yaw=0.3, vx=1.25, vy=-0.5, hits=4, age_s=0.4))
 
 
-_FAST = {
-    TrackedObjects: _rich_tracked(),
-    TrackObservation: _rich_observation(),
-    MotionState: MotionState(header=Header(stamp=1), track_id=TID, state="dynamic", mode="chi2", threshold=5.99,
-                             alpha=1.96, window_length=10, speed=3.5, z_x=4.0, z_y=-1.0, mean_x=1.0, mean_y=2.0),
-}
-_CODECS = {m: StructCodec(m) for m in _FAST}
-_RAW_CODEC = StructCodec(TrackedObjects, raw_float_blocks=16)  # what the classifier decodes `tracked` with
+def _expected_objects(layout: RecordLayout, objs: list) -> list[dict]:
+    """What the columns must hold: the model's objects, normalised to the record shape."""
+    return _got_objects(wire.records_of(layout, objs))
+
+
+def _got_objects(records) -> list[dict]:
+    return [msgpack.unpackb(RecordLayout.to_bytes(records[k:k + 1])) for k in range(len(records))]
+
+
+_NO_LIMITS = wire.Limits(max_abs_coordinate_m=1.7e308, max_abs_speed_mps=1.7e308, max_variance=1.7e308)
+"""The limits are tested on their own below; here the read functions must agree with the model exactly."""
+
+
+def _read(model, payload):
+    if model is TrackObservation:
+        cols = wire.read_track_observations([payload], _NO_LIMITS)
+        if cols.errors:
+            raise cols.errors[0][1]
+        return cols
+    return (wire.read_tracked_objects if model is TrackedObjects else wire.read_detected_objects)(payload, _NO_LIMITS)
+
+
+def _agree(model, payload) -> None:
+    ok, ref = _outcome(lambda b: decode(model, b), payload)
+    ok_read, got = _outcome(lambda b: _read(model, b), payload)
+    assert ok_read == ok, (ref, got)
+    if not ok:
+        assert got == ref  # the same field is named
+        return
+    if model is TrackObservation:
+        assert got.seq.tolist() == [ref.header.seq] and got.stamp.tolist() == [ref.header.stamp]
+        assert _got_objects(got.detections) == _expected_objects(wire.DETECTED, [ref.detection])
+        assert _got_objects(got.tracks) == _expected_objects(wire.TRACK_STATE, [ref.track])
+        return
+    assert got.header == ref.header and got.ego_pose == ref.ego_pose
+    layout = wire.TRACKED if model is TrackedObjects else wire.DETECTED
+    assert _got_objects(got.objects) == _expected_objects(layout, ref.objects)
+    if model is TrackedObjects:
+        assert got.observed_track_ids == ref.observed_track_ids
+    else:
+        assert got.area.tolist() == pytest.approx([wire._area(o.shape) for o in ref.objects])
+
 
 _ODD_VALUES = st.one_of(
     st.floats(allow_nan=True, allow_infinity=True),
@@ -261,7 +306,7 @@ def _paths(node, prefix=()) -> list[tuple]:
 def _mutated(model, data) -> bytes:
     raw = msgpack.unpackb(encode(model))
     single = data.draw(st.integers(0, 9)) == 0  # now and then every float as float32: legal, not canonical
-    for _ in range(data.draw(st.integers(1, 3))):
+    for _ in range(data.draw(st.integers(0, 3))):
         path = data.draw(st.sampled_from(_paths(raw)))
         op = data.draw(st.sampled_from(["replace", "replace", "delete", "add"]))
         if not path:
@@ -292,82 +337,85 @@ def _outcome(fn, payload):
         return False, exc.field
 
 
-@settings(max_examples=800, deadline=None)
-@given(st.sampled_from([*_FAST, "raw"]), st.data())
-def test_fast_decoders_accept_reject_and_return_exactly_what_the_model_does(model, data):
-    codec = _RAW_CODEC if model == "raw" else _CODECS[model]
-    model = codec.model
-    payload = _mutated(_FAST[model], data)
-    ok, ref = _outcome(lambda b: decode(model, b), payload)
-    ok_map, got_map = _outcome(lambda b: decode_map(model, b), payload)
-    ok_fast, got_fast = _outcome(codec.decode, payload)
-    assert ok_map == ok and ok_fast == ok, (ok, ref, got_map, got_fast)
-    if ok:
-        want = msgpack.unpackb(encode(ref))
-        assert msgpack.unpackb(encode(got_map)) == want
-        assert msgpack.unpackb(codec.encode(got_fast)) == want
-    else:
-        assert got_map == ref and got_fast == ref  # the same field is named
-    alone = codec._fast(payload)  # msgspec on its own, before any pydantic fallback: never more permissive
-    if alone is not None:
-        assert ok and msgpack.unpackb(codec.encode(alone)) == msgpack.unpackb(encode(ref))
+_READ = {TrackedObjects: _rich_tracked, DetectedObjects: _rich_detections, TrackObservation: _rich_observation}
 
 
-def test_fast_decoder_round_trips_and_refuses_models_it_cannot_mirror():
-    for model, inst in _FAST.items():
-        codec = _CODECS[model]
-        got = codec.decode(encode(inst))
-        assert msgpack.unpackb(codec.encode(got)) == msgpack.unpackb(encode(inst))
-        assert decode_map(model, encode(inst)) == inst.model_dump(mode="python")
-    obs = _CODECS[TrackObservation].decode(encode(_rich_observation()))
-    assert obs.track.object_id == TID and obs.detection.kinematics.pose_with_covariance.covariance[7] == pytest.approx(0.16)
-    for model in (PointCloud, ClassifierConfig):  # Python validators: no exact Struct, no plain-map path
-        with pytest.raises(TypeError):
-            struct_type(model)
-        with pytest.raises(TypeError):
-            decode_map(model, encode(_points() if model is PointCloud else ClassifierConfig()))
+@settings(max_examples=600, deadline=None)
+@given(st.sampled_from(list(_READ)), st.booleans(), st.data())
+def test_read_functions_accept_reject_and_return_what_the_model_does(model, odd, data):
+    make = _READ[model]
+    inst = make(odd) if model is not TrackObservation else make()
+    _agree(model, _mutated(inst, data))
 
 
-def test_fast_decoder_takes_what_only_pydantic_coerces():
-    raw = msgpack.unpackb(encode(_rich_observation()))
-    raw["track"]["x"] = "1.5"  # pydantic's lax mode parses numeric strings; msgspec alone refuses them
-    raw["detection"]["kinematics"]["has_twist"] = 1
-    got = _CODECS[TrackObservation].decode(msgpack.packb(raw))
-    assert got.track.x == 1.5 and got.detection.kinematics.has_twist is True
-    raw["track"]["object_id"] = TID + "\n"  # Python's `$` would match before the newline; the model's does not
-    with pytest.raises(DecodeError, match="object_id"):
-        _CODECS[TrackObservation].decode(msgpack.packb(raw))
+def test_records_shape_is_read_as_records_and_the_rest_is_normalised_and_said():
+    plain = wire.read_tracked_objects(encode(_rich_tracked(odd=False)))
+    assert not plain.normalised and not plain.objects.flags.writeable  # a view of the payload
+    odd = wire.read_tracked_objects(encode(_rich_tracked(odd=True)))
+    assert odd.normalised
+    assert odd.objects[wire.LABEL].tolist() == [Label.TRUCK, Label.TRUCK]  # the most probable class
+    det = wire.read_detected_objects(encode(_rich_detections(odd=True)))
+    assert det.normalised and det.area.tolist() == pytest.approx([2.25, 2.25])  # the polygon's area, kept
+    assert wire.write_tracked_objects(plain) == encode(_rich_tracked(odd=False))  # written back byte for byte
+    single = msgpack.packb(_rich_tracked(odd=False).model_dump(mode="python"), use_single_float=True)
+    assert wire.read_tracked_objects(single).normalised  # float32 is legal msgpack, not the record shape
 
 
-def test_raw_covariance_blocks_are_checked_like_the_model_checks_them():
-    inst = _rich_tracked()
-    got = _RAW_CODEC.decode(encode(inst))
-    assert list(block_values(got.objects[1].kinematics.pose_with_covariance.covariance)) == list(_cov(0.02))
-    path = ["objects", 1, "kinematics", "twist_with_covariance", "covariance"]
-    for idx, value in ((14, -0.5), (3, math.nan), (35, math.inf)):  # negative variance, non-finite anywhere
-        cov = list(_cov(0.01))
-        cov[idx] = value
-        with pytest.raises(DecodeError, match=f"covariance.{idx}"):
-            _RAW_CODEC.decode(_mutate(inst, path, cov))
-    for cov in ([0.0] * 35, [0.0] * 37):
-        with pytest.raises(DecodeError, match="covariance"):
-            _RAW_CODEC.decode(_mutate(inst, path, cov))
-    ints = _mutate(inst, path, [1] * 36)  # ints and float32s are legal, just not the canonical encoding
-    assert list(block_values(_RAW_CODEC.decode(ints).objects[1].kinematics.twist_with_covariance.covariance)) == [1.0] * 36
-    raw = inst.model_dump(mode="python")
-    del raw["objects"][0]["kinematics"]  # defaults fill in: their covariances must be raw blocks too
-    got = _RAW_CODEC.decode(msgpack.packb(raw))
-    assert list(block_values(got.objects[0].kinematics.acceleration_with_covariance.covariance)) == [0.0] * 36
-    assert msgpack.unpackb(_RAW_CODEC.encode(got)) == msgpack.unpackb(encode(decode(TrackedObjects, msgpack.packb(raw))))
-    single = msgpack.packb(inst.model_dump(mode="python"), use_single_float=True)
-    assert msgpack.unpackb(_RAW_CODEC.encode(_RAW_CODEC.decode(single))) == msgpack.unpackb(encode(decode(TrackedObjects, single)))
+def test_observations_are_read_in_batches_and_a_bad_one_costs_only_itself():
+    good = wire.write_track_observations(Header(stamp=5, seq=3), wire.records_of(wire.DETECTED, [_rich_observation().detection]),
+                                         wire.records_of(wire.TRACK_STATE, [_rich_observation().track]))[0]
+    assert decode(TrackObservation, good) == _rich_observation()
+    cols = wire.read_track_observations([good, b"\x00junk", encode(_rich_observation()), good[:-1], good])
+    assert cols.index.tolist() == [0, 2, 4] and cols.normalised == 1  # the model read the third
+    assert [i for i, _ in cols.errors] == [1, 3] and all(isinstance(e, DecodeError) for _, e in cols.errors)
+    assert cols.tracks["object_id"].tolist() == [TID.encode()] * 3
 
 
-def test_struct_codec_turns_a_key_that_is_not_utf8_into_a_decode_error():
-    """msgspec raises UnicodeDecodeError (not its DecodeError) for such a key; a service catching DecodeError
-    must still see a rejection, not a crash of its worker."""
-    from jitterguard.schemas.fast import StructCodec
-    from jitterguard.schemas.models import DetectedObjects
+def test_a_key_that_is_not_utf8_is_a_decode_error():
+    for read in (wire.read_detected_objects, wire.read_tracked_objects):
+        with pytest.raises(DecodeError):
+            read(b"\x81\xa2\xca\xca\x01")
 
-    with pytest.raises(DecodeError, match="DetectedObjects"):
-        StructCodec(DetectedObjects).decode(b"\x81\xa2\xca\xca\x01")
+
+# ------------------------------------------------------------------ limits: bounded work per message
+
+
+def test_oversized_payloads_are_refused_from_their_headers():
+    limits = wire.Limits(max_objects=10, max_payload_bytes=4096)
+    many = msgpack.packb({"schema_version": 1, "header": {"stamp": 1}, "objects": [{}] * 11})
+    with pytest.raises(wire.LimitExceeded, match="11 objects exceed max_objects 10"):
+        wire.read_detected_objects(many, limits)
+    with pytest.raises(wire.LimitExceeded, match="objects"):  # in another form too: counted before validation
+        wire.read_detected_objects(msgpack.packb({"objects": [{}] * 11, "header": {"stamp": 1}, "x": 1}), limits)
+    with pytest.raises(wire.LimitExceeded, match="bytes exceed"):
+        wire.read_tracked_objects(b"\x80" + b"\x00" * 5000, limits)
+    huge = msgpack.packb({"schema_version": 1, "header": {"stamp": 1}, "objects": [{}] * 1_000_000})
+    with pytest.raises(wire.LimitExceeded):  # the default limit: read from the header, in no time
+        wire.read_detected_objects(huge)
+
+
+@pytest.mark.parametrize(("path", "value", "field"), [
+    (["objects", 0, "kinematics", "pose_with_covariance", "pose", "position", "x"], 1e300, "position.x"),
+    (["objects", 1, "kinematics", "pose_with_covariance", "covariance"], [0.0] * 7 + [1e9] + [0.0] * 28, "covariance"),
+    (["objects", 0, "kinematics", "twist_with_covariance", "twist", "linear", "y"], -5e3, "linear.y"),
+    (["ego_pose", "position", "y"], 2e7, "ego_pose.position"),
+])
+def test_coordinates_variances_and_speeds_beyond_the_limits_are_refused(path, value, field):
+    payload = _mutate(_rich_tracked(odd=False), path, value)
+    decode(TrackedObjects, payload)  # valid for the model...
+    with pytest.raises(wire.LimitExceeded, match=field):  # ...but beyond what any real sensor reports
+        wire.read_tracked_objects(payload)
+
+
+def test_a_stamp_beyond_int64_is_refused_on_receipt():
+    for stamp in (2**63, 2**64 - 1):
+        with pytest.raises(DecodeError, match="header.stamp"):
+            wire.read_detected_objects(_mutate(_rich_detections(odd=False), ["header", "stamp"], stamp))
+
+
+def test_peek_header_reads_seq_and_stamp_without_validating():
+    assert wire.peek_header(encode(_rich_observation())) == (3, 5)
+    assert wire.peek_header(encode(_rich_tracked())) == (42, 1_700_000_000_000_000_000)
+    assert wire.peek_header(b"\x00garbage") is None
+    assert wire.peek_header(msgpack.packb({"header": {"seq": "x", "stamp": 1}})) is None
+    assert wire.peek_header(msgpack.packb([1, 2])) is None

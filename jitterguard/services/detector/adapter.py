@@ -6,7 +6,7 @@ Frames. The detector publishes in the *sensor* frame, exactly like the replay's 
 sensor-frame boxes (z = box centre relative to the sensor) and the covariances are the network's sensor-frame
 variances. Nothing here rotates: the tracker moves each detection into the world frame itself, the 2x2 position
 covariance with R Σ Rᵀ (``TrackerCore._to_world`` for gating and the measurement,
-:func:`jitterguard.services.tracker.convert.detections_to_world` for what it republishes), and the classifier reads
+:func:`jitterguard.services.tracker.adapter.world_detections` for what it republishes), and the classifier reads
 the world-frame covariance the tracker republishes on ``tracks/{id}``. Rotating here as well would rotate twice.
 
 Covariance layout (Autoware's, row-major 6x6 over x, y, z, roll, pitch, yaw): the pose covariance carries
@@ -16,9 +16,9 @@ no head and stay 0 too (as in Autoware's lidar_centerpoint, whose ``has_position
 The vanilla model (no variance heads) publishes ``has_position_covariance = false`` and all-zero covariances,
 which the tracker reads as "use the class defaults".
 
-The service publishes plain maps (:func:`detections_map`), as the tracker does, because building and dumping
-hundreds of nested models costs a tenth of the detection budget; a detection holding a non-finite number is
-dropped (and counted by the caller) first, so the map always validates on receipt.
+The service writes records (:func:`detections_payload`, :mod:`jitterguard.schemas.wire`), as the tracker does,
+because building and dumping hundreds of nested models costs a tenth of the detection budget; a detection holding a
+non-finite number is dropped (and counted by the caller) first, so the payload always validates on receipt.
 """
 
 from __future__ import annotations
@@ -28,21 +28,21 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import NDArray
 
+from ...schemas import wire
 from ...schemas.models import (
     COVARIANCE_SIZE,
     LABEL_BY_NAME,
-    SCHEMA_VERSION,
     X_X,
     Y_Y,
     YAW_YAW,
-    DetectedObjects,
     Header,
     OrientationAvailability,
     PointCloud,
     Pose,
     Shape,
 )
-from .config import CLASS_NAMES, Detections3D
+from ...schemas.wire import DetectedColumns, write_detected_objects
+from .config import CLASS_NAMES, VAR_NAMES, Detections3D
 
 F32 = NDArray[np.float32]
 
@@ -94,87 +94,41 @@ def finite_detections(det: Detections3D) -> tuple[Detections3D, int]:
     return Detections3D(det.boxes[ok], det.scores[ok], det.labels[ok], lv), dropped
 
 
-def _cov(entries: dict[int, float]) -> list[float]:
-    c = [0.0] * COVARIANCE_SIZE
-    for k, v in entries.items():
-        c[k] = v
-    return c
-
-
-def detections_map(
+def detections_payload(
     det: Detections3D,
     header: Header,
     ego_pose: Pose,
     class_names: Sequence[str] = CLASS_NAMES,
     *,
     has_twist: bool = True,
-) -> dict:
-    """One scan's ``DetectedObjects`` as a msgpack-ready map (sensor frame, see the module doc).
+) -> bytes:
+    """One scan's ``DetectedObjects`` payload (sensor frame, see the module doc), written as records.
 
     ``det`` must be finite (:func:`finite_detections`); ``header`` and ``ego_pose`` are the scan's and are
     carried over unchanged. Scores become both ``existence_probability`` and the single class's probability
     (CenterPoint has one score per box). ``has_twist`` says whether the network's velocity heads are meant to be
-    used; the twist is the sensor-frame (vx, vy), as the replay's detection model writes it.
-
-    A map, not a model: validating and dumping 300 nested models costs ~10 ms a scan, a tenth of the lite
-    detector's budget, and every receiver validates anyway. The map is valid by construction (finite rows,
-    scores clipped to [0, 1], variances = exp(·) ≥ 0); :func:`detections_message` validates it, and the tests
-    hold the two together.
+    used; the twist is the sensor-frame (vx, vy), as the replay's detection model writes it. Valid by
+    construction (finite rows, scores clipped to [0, 1], variances = exp(·) ≥ 0); every receiver reads it with
+    :func:`~jitterguard.schemas.read_detected_objects`, and the tests validate it with the model.
     """
-    labels = class_labels(class_names)
+    labels = np.asarray(class_labels(class_names), dtype=np.int64)
     n = len(det)
-    boxes = det.boxes.astype(np.float64).tolist()
-    scores = np.clip(det.scores.astype(np.float64), 0.0, 1.0).tolist()
-    lbl = [labels[int(i)] for i in det.labels.tolist()]
-    half = 0.5 * det.boxes[:, 6].astype(np.float64)
-    qz, qw = np.sin(half).tolist(), np.cos(half).tolist()
+    b = det.boxes.astype(np.float64)
+    scores = np.clip(det.scores.astype(np.float64), 0.0, 1.0)
+    half = 0.5 * b[:, 6]
     lv = det.log_variances
-    has_cov = lv is not None
-    var = np.exp(lv.astype(np.float64)).tolist() if lv is not None else None  # x, y, vx, vy, yaw
-    zero = [0.0] * COVARIANCE_SIZE
-    objects = []
-    for i in range(n):
-        x, y, z, length, width, height, _yaw, vx, vy = boxes[i]
-        v = var[i] if var is not None else None
-        pose_cov = _cov({X_X: v[0], Y_Y: v[1], YAW_YAW: v[4]}) if v is not None else list(zero)
-        twist_cov = _cov({X_X: v[2], Y_Y: v[3]}) if (v is not None and has_twist) else list(zero)
-        objects.append({
-            "existence_probability": scores[i],
-            "classification": [{"label": lbl[i], "probability": scores[i]}],
-            "kinematics": {
-                "pose_with_covariance": {
-                    "pose": {"position": {"x": x, "y": y, "z": z},
-                             "orientation": {"x": 0.0, "y": 0.0, "z": qz[i], "w": qw[i]}},
-                    "covariance": pose_cov,
-                },
-                "has_position_covariance": has_cov,
-                "orientation_availability": int(OrientationAvailability.AVAILABLE),
-                "twist_with_covariance": {
-                    "twist": {"linear": {"x": vx if has_twist else 0.0, "y": vy if has_twist else 0.0, "z": 0.0},
-                              "angular": {"x": 0.0, "y": 0.0, "z": 0.0}},
-                    "covariance": twist_cov,
-                },
-                "has_twist": has_twist,
-                "has_twist_covariance": has_cov and has_twist,
-            },
-            "shape": {"type": Shape.BOUNDING_BOX, "footprint": [],
-                      "dimensions": {"x": length, "y": width, "z": height}},
-        })
-    return {
-        "schema_version": SCHEMA_VERSION,
-        "header": header.model_dump(),
-        "ego_pose": ego_pose.model_dump(),
-        "objects": objects,
-    }
-
-
-def detections_message(
-    det: Detections3D,
-    header: Header,
-    ego_pose: Pose,
-    class_names: Sequence[str] = CLASS_NAMES,
-    *,
-    has_twist: bool = True,
-) -> DetectedObjects:
-    """:func:`detections_map` validated into the ``DetectedObjects`` model."""
-    return DetectedObjects.model_validate(detections_map(det, header, ego_pose, class_names, has_twist=has_twist))
+    var = np.exp(lv.astype(np.float64)) if lv is not None else np.zeros((n, len(VAR_NAMES)))  # x, y, vx, vy, yaw
+    pose_cov, twist_cov = np.zeros((n, COVARIANCE_SIZE)), np.zeros((n, COVARIANCE_SIZE))
+    pose_cov[:, X_X], pose_cov[:, Y_Y], pose_cov[:, YAW_YAW] = var[:, 0], var[:, 1], var[:, 4]
+    if has_twist:
+        twist_cov[:, X_X], twist_cov[:, Y_Y] = var[:, 2], var[:, 3]
+    objects = wire.DETECTED.pack(n, {
+        wire.EXISTENCE: scores, wire.LABEL: labels[det.labels.astype(np.int64)], wire.LABEL_PROB: scores,
+        wire.X: b[:, 0], wire.Y: b[:, 1], wire.Z: b[:, 2], wire.QZ: np.sin(half), wire.QW: np.cos(half),
+        wire.POSE_COV: pose_cov, wire.HAS_POSITION_COV: np.full(n, lv is not None),
+        wire.ORIENTATION: int(OrientationAvailability.AVAILABLE),
+        wire.VX: b[:, 7] if has_twist else 0.0, wire.VY: b[:, 8] if has_twist else 0.0, wire.TWIST_COV: twist_cov,
+        "kinematics.has_twist": np.full(n, has_twist), "kinematics.has_twist_covariance": np.full(n, lv is not None and has_twist),
+        wire.SHAPE_TYPE: Shape.BOUNDING_BOX, wire.LENGTH: b[:, 3], wire.WIDTH: b[:, 4], wire.HEIGHT: b[:, 5],
+    })
+    return write_detected_objects(DetectedColumns(header, ego_pose, objects, np.zeros(n)))

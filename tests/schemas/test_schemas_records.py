@@ -1,30 +1,44 @@
-"""Fixed-layout msgpack records (schemas.layout, schemas.tracked_layout): what they write is what the models
-read, and what they read back is only ever what the models accept."""
+"""Fixed-layout msgpack records (schemas.records, the record shapes of schemas.wire): what they write is what the
+models read, and what they read back is only ever what the models accept."""
 
 from __future__ import annotations
 
-import msgspec
+import msgpack
 import numpy as np
 import pytest
 
-from jitterguard.schemas import DecodeError, decode, encode
-from jitterguard.schemas import tracked_layout as tl
-from jitterguard.schemas.layout import RecordLayout
+from jitterguard.schemas import DecodeError, TrackedColumns, decode, encode, read_tracked_objects
+from jitterguard.schemas import wire as tl
 from jitterguard.schemas.models import (
     Header,
     ObjectClassification,
+    Pose,
     TrackedObject,
     TrackedObjects,
     TrackObservation,
     TrackState,
 )
+from jitterguard.schemas.records import RecordLayout
+
+
+def _decode_records(data: bytes):
+    """The records of a ``tracked`` payload when it is in the record shape, else None."""
+    try:
+        cols = read_tracked_objects(data)
+    except DecodeError:
+        return None
+    return None if cols.normalised else cols
+
+
+def _write(header: dict, records: np.ndarray, observed: list[str] = ()) -> bytes:
+    return tl.write_tracked_objects(TrackedColumns(Header(**header), Pose(), records, list(observed)))
 
 
 def _records(n: int, seed: int = 0) -> np.ndarray:
     rng = np.random.default_rng(seed)
     cov = rng.normal(0, 0.1, (n, 36))
     cov[:, [0, 7, 14, 21, 28, 35]] = rng.uniform(0, 1, (n, 6))  # the diagonal is non-negative
-    return tl.tracked_object_layout().pack(n, {
+    return tl.TRACKED.pack(n, {
         tl.ID: [f"{int(v):032x}" for v in rng.integers(0, 2**62, n)], tl.EXISTENCE: rng.uniform(0, 1, n),
         tl.LABEL: rng.integers(0, 8, n), tl.LABEL_PROB: rng.uniform(0, 1, n), tl.X: rng.normal(0, 50, n),
         tl.Y: rng.normal(0, 50, n), tl.QZ: rng.uniform(-1, 1, n), tl.POSE_COV: cov, tl.VX: rng.normal(0, 5, n),
@@ -34,7 +48,7 @@ def _records(n: int, seed: int = 0) -> np.ndarray:
 
 def _payload(n: int = 12, seed: int = 0) -> tuple[bytes, np.ndarray]:
     rec = _records(n, seed)
-    return tl.encode_tracked_objects({"stamp": 5, "frame_id": "map", "seq": 3}, rec, ["ab" * 16]), rec
+    return _write({"stamp": 5, "frame_id": "map", "seq": 3}, rec, ["ab" * 16]), rec
 
 
 def test_packed_records_decode_with_the_model_to_the_columns() -> None:
@@ -57,22 +71,22 @@ def test_packed_records_decode_with_the_model_to_the_columns() -> None:
 def test_a_model_encoded_payload_of_that_shape_is_read_back_as_records() -> None:
     data, rec = _payload(seed=1)
     again = encode(decode(TrackedObjects, data))
-    got = tl.decode_tracked_records(again)
+    got = _decode_records(again)
     assert got is not None and got.header.seq == 3
-    assert RecordLayout.to_bytes(got.records) == RecordLayout.to_bytes(rec)
-    empty = tl.decode_tracked_records(encode(TrackedObjects(header=Header(stamp=1))))
-    assert empty is not None and len(empty.records) == 0
+    assert RecordLayout.to_bytes(got.objects) == RecordLayout.to_bytes(rec)
+    empty = _decode_records(encode(TrackedObjects(header=Header(stamp=1))))
+    assert empty is not None and len(empty.objects) == 0
 
 
 def test_other_shapes_are_left_to_the_general_decoder() -> None:
     obj = TrackedObject(object_id="cd" * 16, classification=[ObjectClassification(label=1, probability=0.6),
                                                              ObjectClassification(label=2, probability=0.4)])
     two_classes = encode(TrackedObjects(header=Header(stamp=1), objects=[obj]))
-    assert tl.decode_tracked_records(two_classes) is None
+    assert _decode_records(two_classes) is None
     assert decode(TrackedObjects, two_classes).objects[0].classification[1].label == 2  # valid all the same
-    as_ints = msgspec.msgpack.encode({**msgspec.msgpack.decode(encode(TrackedObjects(header=Header(stamp=1), objects=[
-        TrackedObject(object_id="cd" * 16, classification=[ObjectClassification()])]))), "schema_version": 1})
-    assert tl.decode_tracked_records(as_ints) is not None
+    one_class = encode(TrackedObjects(header=Header(stamp=1), objects=[
+        TrackedObject(object_id="cd" * 16, classification=[ObjectClassification()])]))
+    assert _decode_records(one_class) is not None
 
 
 @pytest.mark.parametrize("name, value", [
@@ -82,8 +96,8 @@ def test_a_value_the_model_refuses_is_never_read_as_a_record(name: str, value: f
     data, rec = _payload()
     bad = RecordLayout.copy(rec)
     bad[name][4] = value
-    payload = tl.encode_tracked_objects({"stamp": 5, "frame_id": "map", "seq": 3}, bad)
-    assert tl.decode_tracked_records(payload) is None
+    payload = _write({"stamp": 5, "frame_id": "map", "seq": 3}, bad)
+    assert _decode_records(payload) is None
     with pytest.raises(DecodeError):
         decode(TrackedObjects, payload)
 
@@ -97,7 +111,7 @@ def test_random_corruptions_are_read_only_where_the_model_accepts_them_and_then_
         buf = bytearray(data)
         for pos in rng.integers(0, len(buf), rng.integers(1, 4)):
             buf[pos] = int(rng.integers(0, 256))
-        got = tl.decode_tracked_records(bytes(buf))
+        got = _decode_records(bytes(buf))
         try:
             model = decode(TrackedObjects, bytes(buf))
         except DecodeError:
@@ -106,10 +120,10 @@ def test_random_corruptions_are_read_only_where_the_model_accepts_them_and_then_
             continue
         if got is not None:
             read += 1
-            assert [o.object_id for o in model.objects] == [i.decode() for i in got.records[tl.ID].tolist()]
+            assert [o.object_id for o in model.objects] == [i.decode() for i in got.objects[tl.ID].tolist()]
             assert [o.kinematics.pose_with_covariance.pose.position.x for o in model.objects] == \
-                got.records[tl.X].tolist()
-            assert [o.existence_probability for o in model.objects] == got.records[tl.EXISTENCE].tolist()
+                got.objects[tl.X].tolist()
+            assert [o.existence_probability for o in model.objects] == got.objects[tl.EXISTENCE].tolist()
     assert read > 50 and refused_by_model > 50  # both sides were exercised
 
 
@@ -118,24 +132,31 @@ def test_copy_keeps_the_bytes_between_fields() -> None:
     dup = RecordLayout.copy(rec)
     dup[tl.X] = 1.0
     assert RecordLayout.to_bytes(dup)[:20] == RecordLayout.to_bytes(rec)[:20]
-    assert decode(TrackedObjects, tl.encode_tracked_objects({"stamp": 1}, dup)).objects[2].kinematics \
+    assert decode(TrackedObjects, _write({"stamp": 1}, dup)).objects[2].kinematics \
         .pose_with_covariance.pose.position.x == 1.0
 
 
 def test_pack_refuses_an_id_of_the_wrong_length() -> None:
     with pytest.raises(ValueError, match="object_id"):
-        tl.tracked_object_layout().pack(1, {tl.ID: ["abc"]})
+        tl.TRACKED.pack(1, {tl.ID: ["abc"]})
 
 
 def test_track_state_records_are_valid_observations() -> None:
-    layout = tl.track_state_layout()
+    layout = tl.TRACK_STATE
     rec = layout.pack(2, {"object_id": ["ef" * 16, "01" * 16], "label": [7, 1], "x": [1.5, -2.0], "hits": [3, 10**6],
                           "age_s": [0.0, 12.5]})
-    raw = RecordLayout.to_bytes(rec)
-    size = layout.itemsize
-    for k in range(2):
-        msg = msgspec.msgpack.encode({"schema_version": 1, "header": {"stamp": 1, "frame_id": "map", "seq": 0},
-                                      "detection": {}, "track": msgspec.Raw(raw[k * size:(k + 1) * size])})
-        st = decode(TrackObservation, msg).track
+    dets = tl.DETECTED.pack(2, {})
+    for k, payload in enumerate(tl.write_track_observations(Header(stamp=1, seq=9), dets, rec)):
+        st = decode(TrackObservation, payload).track
         assert st == TrackState(object_id=["ef" * 16, "01" * 16][k], label=[7, 1][k], x=[1.5, -2.0][k],
                                 y=0.0, hits=[3, 10**6][k], age_s=[0.0, 12.5][k])
+        assert msgpack.unpackb(payload)["header"] == {"stamp": 1, "frame_id": "map", "seq": 9}
+
+
+def test_a_layout_refuses_rules_it_cannot_carry() -> None:
+    from jitterguard.schemas.models import ClassifierConfig, PointCloud
+
+    for model, example in ((ClassifierConfig, ClassifierConfig()),
+                           (PointCloud, PointCloud(header=Header(stamp=1), num_points=0, data=b""))):
+        with pytest.raises(TypeError):
+            RecordLayout.of(model, example)

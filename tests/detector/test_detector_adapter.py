@@ -1,4 +1,4 @@
-"""Detector wire conversion: PointCloud -> network points, Detections3D -> DetectedObjects (sensor frame)."""
+"""The detector's adapter: PointCloud -> network points, Detections3D -> DetectedObjects payload (sensor frame)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from jitterguard.geometry import quaternion_from_yaw, rotate_cov2, yaw_from_quaternion
-from jitterguard.schemas import decode, encode
+from jitterguard.schemas import decode, read_detected_objects
 from jitterguard.schemas.models import (
     COVARIANCE_SIZE,
     X_X,
@@ -24,15 +24,9 @@ from jitterguard.schemas.models import (
     TrackObservation,
 )
 from jitterguard.services.detector.config import CLASS_NAMES, Detections3D
-from jitterguard.services.detector.convert import (
-    class_labels,
-    detections_map,
-    detections_message,
-    finite_detections,
-    scan_points,
-)
+from jitterguard.services.detector.adapter import class_labels, detections_payload, finite_detections, scan_points
+from jitterguard.services.tracker.adapter import detection_frame, observation_payloads
 from jitterguard.services.tracker.config import default_config
-from jitterguard.services.tracker.convert import detections_codec, frame_from_message, frame_payloads
 from jitterguard.services.tracker.core import TrackerCore
 
 HEADER = Header(stamp=1_700_000_000_123_456_789, frame_id="lidar", seq=42)
@@ -49,6 +43,12 @@ def _dets(n: int = 6, seed: int = 0, uncertainty: bool = True) -> Detections3D:
     ]).astype(np.float32)
     lv = rng.uniform(-10, 3, (n, 5)).astype(np.float32) if uncertainty else None
     return Detections3D(boxes, rng.uniform(0.05, 1.0, n).astype(np.float32), np.arange(n) % 5, lv)
+
+
+def detections_message(det: Detections3D, header: Header, ego: Pose, class_names=CLASS_NAMES, *,
+                       has_twist: bool = True) -> DetectedObjects:
+    """What the receiver validates: the payload read by the model (a second, independent reader)."""
+    return decode(DetectedObjects, detections_payload(det, header, ego, class_names, has_twist=has_twist))
 
 
 def test_every_field_is_filled_from_the_network_output() -> None:
@@ -82,10 +82,9 @@ def test_every_field_is_filled_from_the_network_output() -> None:
         assert k.has_position_covariance and k.has_twist and k.has_twist_covariance
 
 
-def test_the_published_map_is_exactly_the_validated_model() -> None:
-    det = _dets(20, seed=3)
-    raw = detections_map(det, HEADER, EGO)
-    assert decode(DetectedObjects, encode(raw)) == detections_message(det, HEADER, EGO)
+def test_the_payload_is_in_the_record_shape_the_tracker_views() -> None:
+    cols = read_detected_objects(detections_payload(_dets(20, seed=3), HEADER, EGO))
+    assert not cols.normalised and len(cols.objects) == 20
 
 
 def test_autoware_labels_follow_the_class_names() -> None:
@@ -113,7 +112,7 @@ def test_without_twist_the_velocity_is_not_claimed() -> None:
 
 
 def test_empty_detections_make_a_valid_empty_frame() -> None:
-    msg = decode(DetectedObjects, encode(detections_map(Detections3D.empty(), HEADER, EGO)))
+    msg = detections_message(Detections3D.empty(), HEADER, EGO)
     assert msg.objects == [] and msg.header.seq == 42 and msg.ego_pose == EGO
 
 
@@ -121,7 +120,7 @@ def test_extreme_but_finite_values_still_validate() -> None:
     det = _dets(3)
     det.scores[:] = [1.0000001, 0.0, 1e-9]  # sigmoid may round to 1 in float32 and above it after a cast
     det.log_variances[:] = [[-10.0] * 5, [50.0] * 5, [0.0] * 5]
-    msg = decode(DetectedObjects, encode(detections_map(det, HEADER, EGO)))
+    msg = detections_message(det, HEADER, EGO)
     assert msg.objects[0].existence_probability == 1.0
     assert msg.objects[1].kinematics.pose_with_covariance.covariance[X_X] == pytest.approx(math.exp(50.0), rel=1e-6)
 
@@ -136,7 +135,7 @@ def test_non_finite_detections_are_dropped_and_counted() -> None:
     assert dropped == 3
     np.testing.assert_array_equal(kept.boxes, det.boxes[[0, 4, 5]])
     np.testing.assert_array_equal(kept.labels, det.labels[[0, 4, 5]])
-    decode(DetectedObjects, encode(detections_map(kept, HEADER, EGO)))  # validates
+    detections_message(kept, HEADER, EGO)  # validates
     clean, none = finite_detections(_dets(4, uncertainty=False))
     assert none == 0 and clean.log_variances is None
 
@@ -175,12 +174,11 @@ def test_tracker_reads_the_sensor_frame_and_rotates_the_covariance_once() -> Non
     obs = []
     for seq in range(4):
         header = Header(stamp=HEADER.stamp + seq * 100_000_000, frame_id="lidar", seq=seq)
-        raw = detections_map(det, header, EGO)
-        msg = decode(DetectedObjects, encode(raw))
-        frame = frame_from_message(msg)
+        cols = read_detected_objects(detections_payload(det, header, EGO))
+        frame = detection_frame(cols)
         assert (frame.cov_xx[0], frame.cov_yy[0], frame.cov_xy[0]) == pytest.approx((var_x, var_y, 0.0), rel=1e-5)
         res = core.step(frame)
-        obs, _closing = frame_payloads(detections_codec().decode(encode(raw)), frame, res)
+        obs = observation_payloads(cols, frame, res)
     assert len(obs) == 1
     o = decode(TrackObservation, obs[0][1])
     c = o.detection.kinematics.pose_with_covariance.covariance
