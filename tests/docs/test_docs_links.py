@@ -16,7 +16,7 @@ import typer
 
 from jitterguard.cli import app
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 DOCS = ROOT / "docs"
 PAGES = sorted(DOCS.glob("*.md"))
 MARKDOWN = [ROOT / "README.md", *PAGES]
