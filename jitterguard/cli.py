@@ -27,7 +27,7 @@ _AREAS = (
     "jitterguard.services.sidecar.cli",
     "jitterguard.sim.cli",
     "jitterguard.stack.cli",
-    "jitterguard.stack.bench",
+    "jitterguard.bench.cli",
     "jitterguard.eval.cli",
 )
 

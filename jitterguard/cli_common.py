@@ -34,6 +34,17 @@ def fail(message: str) -> NoReturn:
     raise SystemExit(2)
 
 
+def parse_float(flag: str, text: str, lo: float, hi: float) -> float:
+    """``text`` as a number in [lo, hi], or a one-line error naming ``flag`` (exit 2)."""
+    try:
+        value = float(text)
+    except ValueError:
+        fail(f"{flag}: {text!r} is not a number")
+    if not lo <= value <= hi:
+        fail(f"{flag}: {value:g} is outside {lo:g}-{hi:g}")
+    return value
+
+
 def zenoh_options(ns: str, zenoh_config: str | None, connect: list[str] | None, listen: list[str] | None) -> ZenohOptions:
     """Validate the shared flags into :class:`ZenohOptions`, failing with one line on bad input."""
     try:

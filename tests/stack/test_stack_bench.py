@@ -26,7 +26,7 @@ def test_bench_pipeline_smoke(tmp_path):
 def test_scene_generator_frames_validate():
     from jitterguard.schemas import decode, peek_header
     from jitterguard.schemas.models import DetectedObjects
-    from jitterguard.stack.bench import SceneGenerator
+    from jitterguard.bench.pipeline import SceneGenerator
 
     gen = SceneGenerator(200, 20.0, seed=1)
     a, b = decode(DetectedObjects, gen.frame(0, 10)), decode(DetectedObjects, gen.frame(1, 20))

@@ -13,7 +13,7 @@ from jitterguard.geometry import rotate_cov2
 from jitterguard.services.tracker.config import default_config
 from jitterguard.services.tracker.core import FrameRejected, TrackerCore
 from jitterguard.services.tracker.arrays import DetectionFrame
-from tracker_simseq import CAR, PED, Obj, make_sequence
+from jitterguard.bench.tracker_sequences import CAR, PED, Obj, make_sequence
 
 DT = 0.1
 T0 = 1_700_000_000_000_000_000

@@ -18,7 +18,7 @@ from jitterguard.services.tracker.config import default_config
 from jitterguard.services.tracker.core import FrameRejected, TrackerCore
 from jitterguard.services.tracker.arrays import DetectionFrame
 from jitterguard.stream_order import BehindRun, Verdict, judge
-from tracker_simseq import CAR
+from jitterguard.bench.tracker_sequences import CAR
 
 T0 = 1_700_000_000_000_000_000
 MS = 1_000_000

@@ -24,7 +24,7 @@ from jitterguard.schemas.models import (
 )
 from jitterguard.services.tracker.config import default_config
 from jitterguard.services.tracker.service import TrackerService
-from tracker_simseq import make_sequence, to_message
+from jitterguard.bench.tracker_sequences import make_sequence, to_message
 
 pytestmark = pytest.mark.integration
 

@@ -3,7 +3,6 @@ and ``jitterguard bench classifier``."""
 
 from __future__ import annotations
 
-import json
 from typing import Annotated
 
 import typer
@@ -82,19 +81,3 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         setup_logging(log_level)
         run_router(list(listen or ["tcp/127.0.0.1:7447"]), zenoh_config)
 
-    @bench_app.command("classifier")
-    def bench_classifier_cmd(
-        as_json: Annotated[bool, typer.Option("--json", help="Print JSON (the only format).")] = True,
-        duration: Annotated[float, typer.Option("--duration", min=1.0, help="Service run, seconds.")] = 60.0,
-        tracks: Annotated[int, typer.Option("--tracks", min=1)] = 200,
-        rate: Annotated[float, typer.Option("--rate", min=1.0)] = 20.0,
-        skip_service: Annotated[bool, typer.Option("--core-only", help="Skip the 60 s service run.")] = False,
-    ) -> None:
-        """Time the core (10/100/1000 tracks), the per-frame work in-process and the live service over Zenoh;
-        prints JSON."""
-        from .bench import bench_core, bench_frame_cost, bench_service
-
-        result: dict[str, object] = {"core": bench_core(), "frame_cost": bench_frame_cost(tracks=tracks)}
-        if not skip_service:
-            result["service"] = bench_service(tracks=tracks, rate_hz=rate, duration_s=duration)
-        print(json.dumps(result, indent=2))

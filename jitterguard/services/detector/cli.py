@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import os
 from typing import Annotated
 
@@ -63,14 +62,6 @@ def _one_line(exc: Exception, limit: int = 240) -> str:
     return msg if len(msg) <= limit else msg[: limit - 1] + "…"
 
 
-def _parse_presets(text: str) -> tuple[str, ...]:
-    names = tuple(s.strip() for s in text.split(",") if s.strip())
-    unknown = [n for n in names if n not in PRESETS]
-    if not names or unknown:
-        fail(f"--presets: expected comma-separated names from {', '.join(PRESETS)}, got {text!r}")
-    return tuple(dict.fromkeys(names))
-
-
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:
     @app.command("detector")
     def detector_cmd(
@@ -125,60 +116,3 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             fail(str(exc))
         service.run_forever()
 
-    @bench_app.command("detector")
-    def bench_detector_cmd(
-        json_out: Annotated[bool, typer.Option("--json", help="Print the result as one JSON document.")] = False,
-        presets: Annotated[str, typer.Option("--presets", help="Comma-separated presets to time.")] = "lite,paper",
-        scans: Annotated[int, typer.Option("--scans", min=1, max=10_000, help="Timed scans per preset.")] = 40,
-        warmup: Annotated[int, typer.Option("--warmup", min=0, max=1000, help="Untimed scans first.")] = 3,
-        threads: ThreadsOpt = None,
-        weights: Annotated[
-            list[str] | None,
-            typer.Option("--weights", help="PRESET=FILE: time these weights for PRESET (repeatable); default the"
-                         " shipped weights, else random init (same cost)."),
-        ] = None,
-        scenario: Annotated[str, typer.Option("--scenario", help="Synthetic scenario the scans come from.")] = "mixed",
-        seed: Annotated[int, typer.Option("--seed")] = 0,
-        progress: Annotated[bool, typer.Option("--progress/--no-progress", help="Progress bar on stderr.")] = True,
-    ) -> None:
-        """Time the detector end to end per HDL-32E scan (voxelisation, network, decode, NMS)."""
-        from .bench import SCENARIOS, run
-
-        names = _parse_presets(presets)
-        if scenario not in SCENARIOS:
-            fail(f"--scenario: expected one of {', '.join(SCENARIOS)}, got {scenario!r}")
-        files: dict[str, str] = {}
-        for item in weights or []:
-            name, sep, path = item.partition("=")
-            if not sep or name not in PRESETS or not path:
-                fail(f"--weights: expected PRESET=FILE with PRESET one of {', '.join(PRESETS)}, got {item!r}")
-            if not os.path.isfile(path):
-                fail(f"--weights: file not found: {path}")
-            files[name] = path
-        passive_openmp()
-        from .inference import WeightsError
-
-        try:
-            result = run(names, scans=scans, warmup=warmup, threads=threads, weights=files, scenario=scenario,
-                         seed=seed, progress=progress)
-        except WeightsError as exc:
-            fail(f"--weights: {_one_line(exc)}")
-        if json_out:
-            typer.echo(json.dumps(result))
-            return
-        from rich.console import Console
-        from rich.table import Table
-
-        table = Table(title=f"detector end to end per scan ({result_threads(result)} threads)")
-        for col in ("preset", "points", "p50 ms", "p99 ms", "voxelize", "network", "decode", "detections"):
-            table.add_column(col, justify="right")
-        for name, row in result.items():
-            st = row["stages_ms"]
-            table.add_row(name, f"{row['points']:.0f}", f"{row['p50_ms']:.1f}", f"{row['p99_ms']:.1f}",
-                          f"{st['voxelize']:.1f}", f"{st['network']:.1f}", f"{st['decode']:.1f}",
-                          f"{row['detections']:.0f}")
-        Console().print(table)
-
-
-def result_threads(result: dict) -> str:
-    return ",".join(sorted({str(r["threads"]) for r in result.values()}))

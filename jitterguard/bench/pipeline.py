@@ -14,7 +14,6 @@ reported variances, 5 % misses.
 from __future__ import annotations
 
 import gc
-import json
 import math
 import os
 import signal
@@ -25,10 +24,9 @@ import tempfile
 import threading
 import time
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Any
 
 import numpy as np
-import typer
 
 CLASSES = {1: (4.5, 1.9, 1.6), 7: (0.6, 0.6, 1.7), 6: (1.8, 0.6, 1.6)}
 
@@ -245,17 +243,3 @@ def bench_pipeline(objects: int = 200, rate_hz: float = 20.0, duration_s: float 
     }
 
 
-def register(app: typer.Typer, bench_app: typer.Typer) -> None:
-    @bench_app.command("pipeline")
-    def pipeline_cmd(
-        objects: Annotated[int, typer.Option("--objects", min=1, help="Detections per frame.")] = 200,
-        rate: Annotated[float, typer.Option("--rate", min=0.1, help="Frames per second.")] = 20.0,
-        duration: Annotated[float, typer.Option("--duration", min=1.0, help="Seconds of load.")] = 60.0,
-        seed: Annotated[int, typer.Option("--seed")] = 0,
-        split: Annotated[bool, typer.Option("--split", help="Also time detections -> tracked (to_tracked_ms); "
-                                                              "the extra subscriber adds load.")] = False,
-        as_json: Annotated[bool, typer.Option("--json", help="JSON on stdout (the only output format).")] = True,
-    ) -> None:
-        """Detections -> tracker -> classifier -> objects through real processes: latency, losses, RSS growth."""
-        res = bench_pipeline(objects, rate, duration, seed, split=split)
-        print(json.dumps(res, indent=None if as_json else 2))

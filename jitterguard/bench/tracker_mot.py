@@ -9,12 +9,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import motmetrics as mm
+import motmetrics as mm  # the eval extra; this module is imported only by the tracker-mot bench and tests
 import numpy as np
 
-from jitterguard.services.tracker.config import TrackerConfig
-from jitterguard.services.tracker.core import TrackerCore
-from tracker_simseq import Sequence
+from ..services.tracker.config import TrackerConfig, default_config
+from ..services.tracker.core import TrackerCore
+from .tracker_sequences import Sequence, make_sequence
 
 METRICS = ["mota", "idf1", "num_switches", "num_false_positives", "num_misses", "num_objects", "motp",
            "num_unique_objects", "mostly_tracked"]
@@ -52,3 +52,20 @@ def evaluate(seq: Sequence, config: TrackerConfig | None = None, max_dist: float
         motp=float(np.sqrt(s["motp"])) if np.isfinite(s["motp"]) else float("nan"),
         unique_objects=int(s["num_unique_objects"]), mostly_tracked=int(s["mostly_tracked"]),
     )
+
+
+def mot_summary(seeds: list[int], frames: int = 150, measurement_covariance: str = "detector") -> dict:
+    """MOTA, IDF1 and ID switches per seeded sequence and over all of them (``jitterguard bench tracker-mot``)."""
+    cfg = default_config(measurement_covariance=measurement_covariance)
+    per_seed = {f"seed_{s}": evaluate(make_sequence(s, n_frames=frames), cfg).as_dict() for s in seeds}
+    rows = list(per_seed.values())
+    summary = {
+        "mota_mean": round(sum(r["mota"] for r in rows) / len(rows), 4),
+        "idf1_mean": round(sum(r["idf1"] for r in rows) / len(rows), 4),
+        "mota_min": min(r["mota"] for r in rows),
+        "idf1_min": min(r["idf1"] for r in rows),
+        "id_switches_total": sum(r["id_switches"] for r in rows),
+        "frames_per_seed": frames,
+        "measurement_covariance": measurement_covariance,
+    }
+    return {"summary": summary, **per_seed}

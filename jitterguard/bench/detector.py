@@ -28,7 +28,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from .config import PRESETS
+from ..services.detector.config import PRESETS
 
 SCENARIOS = ("parking-street", "diagonal-lot", "intersection", "mixed")
 STAGES = ("voxelize", "network", "decode")
@@ -46,7 +46,7 @@ def _bar(it: Iterable[T], total: int, desc: str, enabled: bool) -> Iterable[T]:
 
 def bench_scans(n: int, scenario: str = "mixed", seed: int = 0, progress: bool = False) -> list[np.ndarray]:
     """``n`` HDL-32E scans (P, 4) spread over a scenario long enough that they are not near-duplicates."""
-    from .data import synthetic_samples
+    from ..services.detector.data import synthetic_samples
 
     duration = max(4.0, n / 2.0)  # 10 Hz: every 5th frame at most
     samples = synthetic_samples([scenario], [seed], frames_per_scenario=n, duration_s=duration)
@@ -95,7 +95,7 @@ def run(presets: Sequence[str], *, scans: int = 40, warmup: int = 3, threads: in
     "threads", "weights", "omp_wait_policy"}}`` — the same scans for every preset."""
     import torch
 
-    from .inference import Detector, shipped_weights
+    from ..services.detector.inference import Detector, shipped_weights
 
     unknown = [p for p in presets if p not in PRESETS]
     if unknown:

@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from ...runtime import free_tcp_port, loopback_options
+from ..runtime import free_tcp_port, loopback_options
 
 NS = "bench-sidecar"
 
@@ -55,8 +55,8 @@ def _stop_on_sigterm() -> threading.Event:
 
 
 def _classifier_main(zport: int) -> None:
-    from ...runtime import setup_logging
-    from ..classifier.service import ClassifierService
+    from ..runtime import setup_logging
+    from ..services.classifier.service import ClassifierService
 
     setup_logging("WARNING")
     ClassifierService(loopback_options(NS, zport, listen_self=True)).run_forever()
@@ -65,10 +65,10 @@ def _classifier_main(zport: int) -> None:
 def _feeder_main(zport: int, params: BenchParams, ready: Any) -> None:
     import zenoh
 
-    from ...runtime.zenoh_config import build_config
-    from ...schemas import keys
-    from ...schemas.models import Header
-    from ..classifier.synthetic_tracks import FrameRecords, TrackScenario, generate
+    from ..runtime.zenoh_config import build_config
+    from ..schemas import keys
+    from ..schemas.models import Header
+    from ..services.classifier.synthetic_tracks import FrameRecords, TrackScenario, generate
 
     stop = _stop_on_sigterm()
     n = params.tracks
@@ -100,12 +100,12 @@ def _feeder_main(zport: int, params: BenchParams, ready: Any) -> None:
 
 def _synthetic_snapshots(params: BenchParams) -> list[dict]:
     """``base_frames`` state snapshots (as msgpack-ready maps) decided by the real classifier core."""
-    from ...geometry import yaw_from_quaternion
-    from ...schemas.models import ClassifierConfig, ClassifierStateSnapshot, Header, TrackStateEntry
-    from ..classifier.core import STATE_NAMES, STATIC, MotionClassifierCore
-    from ...schemas import read_track_observations
-    from ..classifier.adapter import observation_rows, observations_from_rows
-    from ..classifier.synthetic_tracks import FrameRecords, TrackScenario, generate
+    from ..geometry import yaw_from_quaternion
+    from ..schemas.models import ClassifierConfig, ClassifierStateSnapshot, Header, TrackStateEntry
+    from ..services.classifier.core import STATE_NAMES, STATIC, MotionClassifierCore
+    from ..schemas import read_track_observations
+    from ..services.classifier.adapter import observation_rows, observations_from_rows
+    from ..services.classifier.synthetic_tracks import FrameRecords, TrackScenario, generate
 
     n = params.tracks
     sc = TrackScenario(n_static=n - n // 4 - n // 20, n_moving=n // 4, n_starting=n // 20, rate_hz=params.rate_hz,
@@ -149,9 +149,9 @@ def _synthetic_main(zport: int, params: BenchParams, ready: Any) -> None:
     import msgpack
     import zenoh
 
-    from ...runtime.zenoh_config import build_config
-    from ...schemas import encode, keys
-    from ...schemas.models import Heartbeat
+    from ..runtime.zenoh_config import build_config
+    from ..schemas import encode, keys
+    from ..schemas.models import Heartbeat
 
     stop = _stop_on_sigterm()
     snaps = _synthetic_snapshots(params)
@@ -195,9 +195,9 @@ def _synthetic_main(zport: int, params: BenchParams, ready: Any) -> None:
 
 
 def _sidecar_main(zport: int, port: int, poll_period_s: float) -> None:
-    from ...runtime import setup_logging
-    from .app import SidecarSettings
-    from .cli import serve
+    from ..runtime import setup_logging
+    from ..services.sidecar.app import SidecarSettings
+    from ..services.sidecar.cli import serve
 
     setup_logging("WARNING")
     serve(SidecarSettings(zenoh=loopback_options(NS, zport), poll_period_s=poll_period_s), "127.0.0.1", port,

@@ -15,8 +15,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from jitterguard.geometry import quaternion_from_yaw, world_to_sensor_xy
-from jitterguard.schemas.models import (
+from ..geometry import quaternion_from_yaw, world_to_sensor_xy
+from ..schemas.models import (
     X_X,
     X_Y,
     Y_X,
@@ -34,7 +34,7 @@ from jitterguard.schemas.models import (
     Shape,
     Vector3,
 )
-from jitterguard.services.tracker.arrays import DetectionFrame
+from ..services.tracker.arrays import DetectionFrame
 
 CAR, TRUCK, PED, BICYCLE = 1, 2, 7, 6
 DIMS = {CAR: (4.5, 1.9, 1.6), TRUCK: (8.0, 2.5, 3.0), PED: (0.6, 0.6, 1.7), BICYCLE: (1.8, 0.6, 1.6)}

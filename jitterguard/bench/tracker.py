@@ -22,9 +22,9 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from .config import TrackerConfig, default_config
-from .core import TrackerCore
-from .arrays import DetectionFrame
+from ..services.tracker.config import TrackerConfig, default_config
+from ..services.tracker.core import TrackerCore
+from ..services.tracker.arrays import DetectionFrame
 
 SIZES = (50, 200, 500)
 DIMS = {1: (4.5, 1.9, 1.6), 7: (0.6, 0.6, 1.7), 6: (1.8, 0.6, 1.6), 0: (1.0, 1.0, 1.0)}

@@ -15,9 +15,9 @@ from typing import Any
 
 import numpy as np
 
-from .lidar import cast_frame, scene_primitives
-from .sensors import SENSORS
-from .world import GroundTruthFrame, make_scenario
+from ..sim.lidar import cast_frame, scene_primitives
+from ..sim.sensors import SENSORS
+from ..sim.world import GroundTruthFrame, make_scenario
 
 
 def nearest_objects(frame: GroundTruthFrame, n: int) -> GroundTruthFrame:

@@ -16,9 +16,9 @@ import time
 
 import numpy as np
 
-from ...runtime.gc_policy import GC_GEN0_THRESHOLD
-from ...schemas.models import ClassifierConfig
-from .core import MotionClassifierCore, Observations
+from ..runtime.gc_policy import GC_GEN0_THRESHOLD
+from ..schemas.models import ClassifierConfig
+from ..services.classifier.core import MotionClassifierCore, Observations
 
 
 def _frame(rng: np.random.Generator, ids: list[str], t: int) -> Observations:
@@ -53,9 +53,9 @@ def bench_core(sizes: tuple[int, ...] = (10, 100, 1000), window: int = 10, frame
 def _encoded_frames(tracks: int, n_frames: int, rate_hz: float, seed: int, ns: str) -> list[tuple[list[tuple[str, bytes]], bytes]]:
     """``n_frames`` of the synthetic track scenario as the tracker puts them: ``(tracks/{id} key, payload)``
     per observation, then the ``tracked`` payload; 40 distinct frames looped with fresh seqs."""
-    from ...schemas import keys
-    from ...schemas.models import Header
-    from .synthetic_tracks import FrameRecords, TrackScenario, generate
+    from ..schemas import keys
+    from ..schemas.models import Header
+    from ..services.classifier.synthetic_tracks import FrameRecords, TrackScenario, generate
 
     sc = TrackScenario(n_static=tracks // 2, n_moving=tracks - tracks // 2 - 1, n_starting=1, seed=seed, rate_hz=rate_hz)
     pool = [FrameRecords.of(f) for f in generate(sc, 40)]
@@ -75,7 +75,7 @@ def bench_frame_cost(tracks: int = 200, frames: int = 200, seed: int = 0) -> dic
     (cache effects of a busy machine remain); garbage collection is managed as in the service process."""
     import gc
 
-    from .adapter import ClassifierAdapter
+    from ..services.classifier.adapter import ClassifierAdapter
 
     encoded = _encoded_frames(tracks, frames, 20.0, seed, "bench")
     pipe = ClassifierAdapter()
@@ -119,7 +119,7 @@ def _drive(pipe, encoded: list, parts: dict[str, list[float]]) -> None:
 
 
 def _classifier_process(opts, conn) -> None:  # runs in a spawned child, as `jitterguard classifier` would
-    from .service import ClassifierService
+    from ..services.classifier.service import ClassifierService
 
     svc = ClassifierService(opts, manage_gc=True)
     conn.send("ready")
@@ -131,8 +131,8 @@ def _classifier_process(opts, conn) -> None:  # runs in a spawned child, as `jit
 
 def bench_service(tracks: int = 200, rate_hz: float = 20.0, duration_s: float = 60.0, seed: int = 0) -> dict:
     """Run the real classifier service for ``duration_s`` at ``tracks`` × ``rate_hz``; latency percentiles."""
-    from ...runtime import Service, free_tcp_port, loopback_options
-    from ...schemas import keys, peek_header
+    from ..runtime import Service, free_tcp_port, loopback_options
+    from ..schemas import keys, peek_header
 
     port = free_tcp_port()
     ns = "bench"

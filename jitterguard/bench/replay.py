@@ -19,13 +19,13 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from ...runtime import build_config, free_tcp_port, loopback_options
-from ...schemas import DecodeError, PointCloud, decode, keys
-from .frames import IDENTITY, EgoPose, Item, ScanFrame
-from .publisher import ReplayService
-from .runner import ReplayPlan
-from .sources import SourceOptions, open_source
-from .sources.base import MemorySource, Source
+from ..runtime import build_config, free_tcp_port, loopback_options
+from ..schemas import DecodeError, PointCloud, decode, keys
+from ..services.replay.frames import IDENTITY, EgoPose, Item, ScanFrame
+from ..services.replay.publisher import ReplayService
+from ..services.replay.runner import ReplayPlan
+from ..services.replay.sources import SourceOptions, open_source
+from ..services.replay.sources.base import MemorySource, Source
 
 
 def synthetic_clouds(distinct: int, points: int, seed: int = 0) -> list[np.ndarray]:
