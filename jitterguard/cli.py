@@ -1,4 +1,9 @@
-"""The ``jitterguard`` command: one Typer app; each area registers its own sub-commands."""
+"""The ``jitterguard`` command: one Typer app; each area registers its own sub-commands.
+
+Every area's command bodies import what they run inside the command (the only function-level imports of the
+``cli`` modules, and deliberate): start-up time — ``jitterguard --help`` or a one-line usage error must not load
+torch, FastAPI or a Zenoh session.
+"""
 
 from __future__ import annotations
 

@@ -11,14 +11,20 @@ includes both transports. The classifier runs in its own process (spawned, as un
 
 from __future__ import annotations
 
+import gc
 import multiprocessing as mp
 import time
 
 import numpy as np
 
+from ..runtime import Service, free_tcp_port, loopback_options
 from ..runtime.gc_policy import GC_GEN0_THRESHOLD
-from ..schemas.models import ClassifierConfig
+from ..schemas import keys, peek_header
+from ..schemas.models import ClassifierConfig, Header
+from ..services.classifier.adapter import ClassifierAdapter
 from ..services.classifier.core import MotionClassifierCore, Observations
+from ..services.classifier.service import ClassifierService
+from ..services.classifier.synthetic_tracks import FrameRecords, TrackScenario, generate
 
 
 def _frame(rng: np.random.Generator, ids: list[str], t: int) -> Observations:
@@ -53,10 +59,6 @@ def bench_core(sizes: tuple[int, ...] = (10, 100, 1000), window: int = 10, frame
 def _encoded_frames(tracks: int, n_frames: int, rate_hz: float, seed: int, ns: str) -> list[tuple[list[tuple[str, bytes]], bytes]]:
     """``n_frames`` of the synthetic track scenario as the tracker puts them: ``(tracks/{id} key, payload)``
     per observation, then the ``tracked`` payload; 40 distinct frames looped with fresh seqs."""
-    from ..schemas import keys
-    from ..schemas.models import Header
-    from ..services.classifier.synthetic_tracks import FrameRecords, TrackScenario, generate
-
     sc = TrackScenario(n_static=tracks // 2, n_moving=tracks - tracks // 2 - 1, n_starting=1, seed=seed, rate_hz=rate_hz)
     pool = [FrameRecords.of(f) for f in generate(sc, 40)]
     out = []
@@ -73,10 +75,6 @@ def bench_frame_cost(tracks: int = 200, frames: int = 200, seed: int = 0) -> dic
     (together: the work left when ``tracked`` arrives, once the observations are in), and what follows the
     ``objects`` put (building the ``motion/{id}`` payloads, evicting windows). Thread CPU time, so it is insensitive to contention, unlike the service figures
     (cache effects of a busy machine remain); garbage collection is managed as in the service process."""
-    import gc
-
-    from ..services.classifier.adapter import ClassifierAdapter
-
     encoded = _encoded_frames(tracks, frames, 20.0, seed, "bench")
     pipe = ClassifierAdapter()
     thresholds = gc.get_threshold()
@@ -97,8 +95,6 @@ def bench_frame_cost(tracks: int = 200, frames: int = 200, seed: int = 0) -> dic
 
 
 def _drive(pipe, encoded: list, parts: dict[str, list[float]]) -> None:
-    import gc
-
     for obs_payloads, tracked_payload in encoded:
         t0 = time.thread_time()
         for k in range(0, len(obs_payloads), 64):  # as the service takes them off its channel
@@ -119,8 +115,6 @@ def _drive(pipe, encoded: list, parts: dict[str, list[float]]) -> None:
 
 
 def _classifier_process(opts, conn) -> None:  # runs in a spawned child, as `jitterguard classifier` would
-    from ..services.classifier.service import ClassifierService
-
     svc = ClassifierService(opts, manage_gc=True)
     conn.send("ready")
     conn.recv()  # wait for "stop"
@@ -131,9 +125,6 @@ def _classifier_process(opts, conn) -> None:  # runs in a spawned child, as `jit
 
 def bench_service(tracks: int = 200, rate_hz: float = 20.0, duration_s: float = 60.0, seed: int = 0) -> dict:
     """Run the real classifier service for ``duration_s`` at ``tracks`` × ``rate_hz``; latency percentiles."""
-    from ..runtime import Service, free_tcp_port, loopback_options
-    from ..schemas import keys, peek_header
-
     port = free_tcp_port()
     ns = "bench"
     ctx = mp.get_context("spawn")

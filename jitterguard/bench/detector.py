@@ -39,14 +39,14 @@ def _bar(it: Iterable[T], total: int, desc: str, enabled: bool) -> Iterable[T]:
     """tqdm on stderr (stdout stays clean JSON)."""
     if not enabled:
         return it
-    from tqdm import tqdm  # type: ignore[import-untyped]
+    from tqdm import tqdm  # type: ignore[import-untyped]  # only when a bar is asked for
 
     return tqdm(it, total=total, desc=desc, unit="scan", file=sys.stderr, leave=False)
 
 
 def bench_scans(n: int, scenario: str = "mixed", seed: int = 0, progress: bool = False) -> list[np.ndarray]:
     """``n`` HDL-32E scans (P, 4) spread over a scenario long enough that they are not near-duplicates."""
-    from ..services.detector.data import synthetic_samples
+    from ..services.detector.data import synthetic_samples  # torch: the optional "torch" extra
 
     duration = max(4.0, n / 2.0)  # 10 Hz: every 5th frame at most
     samples = synthetic_samples([scenario], [seed], frames_per_scenario=n, duration_s=duration)
@@ -93,9 +93,9 @@ def run(presets: Sequence[str], *, scans: int = 40, warmup: int = 3, threads: in
         progress: bool = True) -> dict[str, dict[str, Any]]:
     """``{preset: {"points", "p50_ms", "p99_ms", "mean_ms", "cpu_p50_ms", "stages_ms", "detections", "scans",
     "threads", "weights", "omp_wait_policy"}}`` — the same scans for every preset."""
-    import torch
+    import torch  # the optional "torch" extra, after passive_openmp() has set OpenMP's policy
 
-    from ..services.detector.inference import Detector, shipped_weights
+    from ..services.detector.inference import Detector, shipped_weights  # torch, as above
 
     unknown = [p for p in presets if p not in PRESETS]
     if unknown:

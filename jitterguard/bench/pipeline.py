@@ -26,7 +26,14 @@ import time
 from pathlib import Path
 from typing import Any
 
+import msgpack
 import numpy as np
+import zenoh
+
+from ..geometry import quaternion_from_yaw
+from ..runtime import ZenohOptions, build_config, free_tcp_port
+from ..schemas import keys, peek_header
+from ..schemas.models import DetectedObjects
 
 CLASSES = {1: (4.5, 1.9, 1.6), 7: (0.6, 0.6, 1.7), 6: (1.8, 0.6, 1.6)}
 
@@ -35,9 +42,6 @@ class SceneGenerator:
     """Detection-level frames as msgpack maps, patched in place from one validated template (cheap per frame)."""
 
     def __init__(self, n_objects: int, rate_hz: float, seed: int = 0) -> None:
-        from ..geometry import quaternion_from_yaw
-        from ..schemas.models import DetectedObjects
-
         self.rng = np.random.default_rng(seed)
         self.n, self.dt = n_objects, 1.0 / rate_hz
         side = int(math.ceil(math.sqrt(n_objects)))
@@ -74,8 +78,6 @@ class SceneGenerator:
         self.objs = self.template["objects"]
 
     def frame(self, seq: int, stamp_ns: int) -> bytes:
-        import msgpack  # type: ignore[import-untyped]
-
         t = seq * self.dt
         d = self.amp * np.sin(self.omega * t)
         x = self.x0 + d * np.cos(self.heading) + self.rng.normal(0, 1, self.n) * self.sig
@@ -116,11 +118,6 @@ def bench_pipeline(objects: int = 200, rate_hz: float = 20.0, duration_s: float 
     """Run the pipeline bench; ``split`` also subscribes ``tracked`` to report ``to_tracked_ms`` (the tracker's
     leg). Off by default: that extra subscriber makes the tracker send each 330 kB ``tracked`` twice and costs
     this process CPU while the classifier works, so it adds to what it measures."""
-    import zenoh
-
-    from ..runtime import ZenohOptions, build_config, free_tcp_port
-    from ..schemas import keys, peek_header
-
     ns = f"bench{os.getpid()}"
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
     log_dir = Path(log_dir or tempfile.mkdtemp(prefix="jg-bench-pipeline-"))

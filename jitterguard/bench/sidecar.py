@@ -24,9 +24,19 @@ import time
 from dataclasses import asdict, dataclass
 from typing import Any
 
+import msgpack
 import numpy as np
+import zenoh
 
-from ..runtime import free_tcp_port, loopback_options
+from ..geometry import yaw_from_quaternion
+from ..runtime import free_tcp_port, loopback_options, setup_logging
+from ..runtime.zenoh_config import build_config
+from ..schemas import encode, keys, read_track_observations
+from ..schemas.models import ClassifierConfig, ClassifierStateSnapshot, Header, Heartbeat, TrackStateEntry
+from ..services.classifier.adapter import observation_rows, observations_from_rows
+from ..services.classifier.core import STATE_NAMES, STATIC, MotionClassifierCore
+from ..services.classifier.service import ClassifierService
+from ..services.classifier.synthetic_tracks import FrameRecords, TrackScenario, generate
 
 NS = "bench-sidecar"
 
@@ -55,21 +65,11 @@ def _stop_on_sigterm() -> threading.Event:
 
 
 def _classifier_main(zport: int) -> None:
-    from ..runtime import setup_logging
-    from ..services.classifier.service import ClassifierService
-
     setup_logging("WARNING")
     ClassifierService(loopback_options(NS, zport, listen_self=True)).run_forever()
 
 
 def _feeder_main(zport: int, params: BenchParams, ready: Any) -> None:
-    import zenoh
-
-    from ..runtime.zenoh_config import build_config
-    from ..schemas import keys
-    from ..schemas.models import Header
-    from ..services.classifier.synthetic_tracks import FrameRecords, TrackScenario, generate
-
     stop = _stop_on_sigterm()
     n = params.tracks
     sc = TrackScenario(n_static=n - n // 4 - n // 20, n_moving=n // 4, n_starting=n // 20, rate_hz=params.rate_hz,
@@ -100,13 +100,6 @@ def _feeder_main(zport: int, params: BenchParams, ready: Any) -> None:
 
 def _synthetic_snapshots(params: BenchParams) -> list[dict]:
     """``base_frames`` state snapshots (as msgpack-ready maps) decided by the real classifier core."""
-    from ..geometry import yaw_from_quaternion
-    from ..schemas.models import ClassifierConfig, ClassifierStateSnapshot, Header, TrackStateEntry
-    from ..services.classifier.core import STATE_NAMES, STATIC, MotionClassifierCore
-    from ..schemas import read_track_observations
-    from ..services.classifier.adapter import observation_rows, observations_from_rows
-    from ..services.classifier.synthetic_tracks import FrameRecords, TrackScenario, generate
-
     n = params.tracks
     sc = TrackScenario(n_static=n - n // 4 - n // 20, n_moving=n // 4, n_starting=n // 20, rate_hz=params.rate_hz,
                        start_frame=params.base_frames // 2, seed=params.seed)
@@ -146,13 +139,6 @@ def _synthetic_main(zport: int, params: BenchParams, ready: Any) -> None:
     the classifier got there; this isolates the sidecar at the target load when the real classifier cannot
     sustain it on the bench host. The snapshots are real core decisions over the synthetic scenario.
     """
-    import msgpack
-    import zenoh
-
-    from ..runtime.zenoh_config import build_config
-    from ..schemas import encode, keys
-    from ..schemas.models import Heartbeat
-
     stop = _stop_on_sigterm()
     snaps = _synthetic_snapshots(params)
     session = zenoh.open(build_config(loopback_options(NS, zport, listen_self=True)))
@@ -195,8 +181,7 @@ def _synthetic_main(zport: int, params: BenchParams, ready: Any) -> None:
 
 
 def _sidecar_main(zport: int, port: int, poll_period_s: float) -> None:
-    from ..runtime import setup_logging
-    from ..services.sidecar.app import SidecarSettings
+    from ..services.sidecar.app import SidecarSettings  # FastAPI and uvicorn: the optional "api" extra
     from ..services.sidecar.cli import serve
 
     setup_logging("WARNING")
@@ -233,7 +218,7 @@ def _poll_stats(metrics: str) -> dict[str, float]:
 
 def run_bench(params: BenchParams) -> dict[str, Any]:
     """Start the three processes, measure, stop them; returns the result as a JSON-able dict."""
-    import httpx
+    import httpx  # the optional "api" extra
 
     ctx = mp.get_context("spawn")
     zport, port = free_tcp_port(), free_tcp_port()

@@ -11,26 +11,23 @@ from pathlib import Path
 
 from pydantic import BaseModel
 
+from ..services.classifier.config import ClassifierParams
+from ..services.detector.config import DetectorConfig, DetectorParams
+from ..services.tracker.config import default_config, dump_config
 from . import dump_params, param_file, schema_file
 
 
 def _tracker() -> tuple[BaseModel, str]:
-    from ..services.tracker.config import default_config, dump_config  # config models import this package
-
     return default_config(), dump_config(default_config())
 
 
 def _classifier() -> tuple[BaseModel, str]:
-    from ..services.classifier.config import ClassifierParams
-
     p = ClassifierParams()
     return p, dump_params(p, "jitterguard classifier (jitterguard classifier --config FILE); presets:"
                           " classifier.<name>.param.yaml", exclude={"schema_version"})
 
 
 def _detector() -> tuple[BaseModel, str]:
-    from ..services.detector.config import DetectorParams
-
     p = DetectorParams()
     return p, dump_params(p, "jitterguard detector (jitterguard detector --config FILE); architectures:"
                           " detector.<preset>.param.yaml")
@@ -42,8 +39,6 @@ DEFAULTS: dict[str, Callable[[], tuple[BaseModel, str]]] = {
 
 def expected_files() -> dict[Path, str]:
     """Every generated file and the text it must hold."""
-    from ..services.detector.config import DetectorConfig
-
     out: dict[Path, str] = {}
     for service, make in DEFAULTS.items():
         model, text = make()

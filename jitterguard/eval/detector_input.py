@@ -95,6 +95,7 @@ def nuscenes_scans(dataroot: Path, scene: str | None, gt_frames: Sequence[Ground
     three walk the scene's sample chain; stamps are checked to agree, so a misalignment fails loudly instead
     of scoring one frame's detections against another's boxes. Raises :class:`NuScenesError` (one line).
     """
+    # only for --nuscenes: the nuScenes readers (and the devkit they may use) are an optional extra
     from ..services.detector.data_nuscenes import nuscenes_samples
     from ..services.replay.frames import FrameError, SourceError
     from ..services.replay.sources.nuscenes import NuScenesSource

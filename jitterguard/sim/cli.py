@@ -1,6 +1,8 @@
-"""``jitterguard sim ...`` (generate, export, bev, list) and ``jitterguard bench sim``.
+"""``jitterguard sim ...`` (generate, export, bev, list).
 
 Bad input is one line on stderr and exit 2 (``cli_common.fail``); long work shows a tqdm bar on stderr.
+
+Commands import their implementation when they run (start-up time: see :mod:`jitterguard.cli`).
 """
 
 from __future__ import annotations

@@ -1,4 +1,7 @@
-"""``jitterguard up / down / status / logs``: the stack under supervisord, from one command."""
+"""``jitterguard up / down / status / logs``: the stack under supervisord, from one command.
+
+Commands import their implementation when they run (start-up time: see :mod:`jitterguard.cli`).
+"""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
-"""CLI of the classifier area: ``jitterguard classifier``, ``jitterguard feed-tracks``, ``jitterguard router``
-and ``jitterguard bench classifier``."""
+"""CLI of the classifier area: ``jitterguard classifier``, ``jitterguard feed-tracks``, ``jitterguard router``.
+Commands import their implementation when they run (start-up time: see :mod:`jitterguard.cli`)."""
 
 from __future__ import annotations
 

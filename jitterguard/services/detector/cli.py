@@ -1,4 +1,7 @@
-"""CLI of the detector area: ``jitterguard detector`` and ``jitterguard bench detector``."""
+"""CLI of the detector area: ``jitterguard detector``.
+
+Commands import their implementation when they run (start-up time: see :mod:`jitterguard.cli`).
+"""
 
 from __future__ import annotations
 

@@ -3,6 +3,8 @@
 Synthetic data is ray-cast once into an on-disk cache (``OUT/cache-*``, reused when it exists with the same
 recipe), so epochs read numpy files instead of re-casting. Fine-tuning on a nuScenes-format dataroot holds
 out each scene's last ``--holdout-last`` keyframes as the validation/test split (the issue's protocol).
+
+Commands import their implementation when they run (start-up time: see :mod:`jitterguard.cli`).
 """
 
 from __future__ import annotations

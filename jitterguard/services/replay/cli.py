@@ -1,8 +1,10 @@
-"""``jitterguard replay SOURCE`` and ``jitterguard bench replay``.
+"""``jitterguard replay SOURCE``.
 
 Bad input (unknown source, bad ``--rate``, missing file) is one line on stderr and exit 2. A frame that
 cannot be read is one line naming the file; with ``--on-error skip`` (default) replay goes on and the final
 summary counts it, with ``--on-error stop`` replay ends there with exit 1.
+
+Commands import their implementation when they run (start-up time: see :mod:`jitterguard.cli`).
 """
 
 from __future__ import annotations

@@ -1,7 +1,9 @@
-"""``jitterguard sidecar`` (the HTTP sidecar under uvicorn) and ``jitterguard bench sidecar``.
+"""``jitterguard sidecar`` (the HTTP sidecar under uvicorn).
 
 Bad input is reported on one line with exit status 2 before anything starts (no Zenoh session opened, no
 port bound): an unusable port, a non-loopback bind without ``JG_API_TOKEN``, a malformed Zenoh flag.
+
+Commands import their implementation when they run (start-up time: see :mod:`jitterguard.cli`).
 """
 
 from __future__ import annotations
@@ -55,7 +57,7 @@ def _check_bindable(host: str, port: int) -> None:
 
 
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:
-    """Add ``jitterguard sidecar`` and ``jitterguard bench sidecar``."""
+    """Add ``jitterguard sidecar``."""
 
     @app.command("sidecar")
     def sidecar(

@@ -1,4 +1,7 @@
-"""CLI of the tracker area: ``jitterguard tracker`` and ``jitterguard bench tracker``."""
+"""CLI of the tracker area: ``jitterguard tracker``.
+
+Commands import their implementation when they run (start-up time: see :mod:`jitterguard.cli`).
+"""
 
 from __future__ import annotations
 
