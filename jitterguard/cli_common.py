@@ -26,6 +26,9 @@ ListenOpt = Annotated[
     list[str] | None, typer.Option("--listen", help="Zenoh endpoint to listen on (repeatable).")
 ]
 LogLevelOpt = Annotated[str, typer.Option("--log-level", help="DEBUG, INFO, WARNING or ERROR.")]
+ParamFileOpt = Annotated[str | None, typer.Option(
+    "--config", help="Parameter file (flat, or Autoware's ros__parameters form) overriding the service's defaults"
+    " in jitterguard/config/<service>.param.yaml; the flags below override it.")]
 
 
 def fail(message: str) -> NoReturn:

@@ -23,6 +23,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
@@ -110,6 +111,19 @@ def _pct(values: list[float], q: float) -> float:
         return float("nan")
     s = sorted(values)
     return s[min(len(s) - 1, max(0, int(math.ceil(q / 100 * len(s))) - 1))]
+
+
+def stop_processes(procs: Iterable[subprocess.Popen], timeout_s: float = 15.0) -> None:
+    """SIGTERM every process still running, then wait for each (killing one that does not stop in time)."""
+    procs = list(procs)
+    for p in procs:
+        if p.poll() is None:
+            p.send_signal(signal.SIGTERM)
+    for p in procs:
+        try:
+            p.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            p.kill()
 
 
 def bench_pipeline(objects: int = 200, rate_hz: float = 20.0, duration_s: float = 60.0, seed: int = 0,
@@ -208,14 +222,7 @@ def bench_pipeline(objects: int = 200, rate_hz: float = 20.0, duration_s: float 
                 sub_tracked.undeclare()
             pub.undeclare()
     finally:
-        for p in procs.values():
-            if p.poll() is None:
-                p.send_signal(signal.SIGTERM)
-        for p in procs.values():
-            try:
-                p.wait(timeout=15)
-            except subprocess.TimeoutExpired:
-                p.kill()
+        stop_processes(procs.values())
     with lock:
         lat = [(recv[s] - sent[s]) * 1e3 for s in sent if s in recv]
         to_tracked = [(tracked_at[s] - sent[s]) * 1e3 for s in sent if s in tracked_at]

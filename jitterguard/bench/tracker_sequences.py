@@ -15,25 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..geometry import quaternion_from_yaw, world_to_sensor_xy
-from ..schemas.models import (
-    X_X,
-    X_Y,
-    Y_X,
-    Y_Y,
-    YAW_YAW,
-    DetectedObject,
-    DetectedObjectKinematics,
-    DetectedObjects,
-    Header,
-    ObjectClassification,
-    Point,
-    Pose,
-    PoseWithCovariance,
-    Quaternion,
-    Shape,
-    Vector3,
-)
+from ..geometry import world_to_sensor_xy
 from ..services.tracker.arrays import DetectionFrame
 
 CAR, TRUCK, PED, BICYCLE = 1, 2, 7, 6
@@ -259,36 +241,3 @@ def _detect(rng: np.random.Generator, o: Obj, x: float, y: float, yaw: float, ex
     return dict(gid=o.gid, x=sx + dx, y=sy + dy, z=H / 2, yaw=yaw - eyaw + dyaw, label=label,
                 L=max(0.3, L * (1 + dims_noise[0])), W=max(0.3, W * (1 + dims_noise[1])), H=H * (1 + dims_noise[2]),
                 cxx=cxx, cxy=cxy, cyy=cyy, vyaw=syaw * syaw, prob=float(rng.uniform(0.6, 0.95)))
-
-
-def to_message(frame: SimFrame, *, with_covariance: bool = True) -> DetectedObjects:
-    """The scan as the wire message a detector publishes (sensor frame, ego pose in the world)."""
-    d = frame.detections
-    objs = []
-    for i in range(len(d)):
-        cov = [0.0] * 36
-        if with_covariance:
-            cov[X_X] = float(d.cov_xx[i])
-            cov[X_Y] = cov[Y_X] = float(d.cov_xy[i])
-            cov[Y_Y] = float(d.cov_yy[i])
-            cov[YAW_YAW] = float(d.var_yaw[i])
-        qx, qy, qz, qw = quaternion_from_yaw(float(d.yaw[i]))
-        objs.append(DetectedObject(
-            existence_probability=float(d.existence[i]),
-            classification=[ObjectClassification(label=int(d.label[i]), probability=float(d.label_prob[i]))],
-            kinematics=DetectedObjectKinematics(
-                pose_with_covariance=PoseWithCovariance(
-                    pose=Pose(position=Point(x=float(d.x[i]), y=float(d.y[i]), z=float(d.z[i])),
-                              orientation=Quaternion(x=qx, y=qy, z=qz, w=qw)),
-                    covariance=cov,
-                ),
-                has_position_covariance=with_covariance,
-            ),
-            shape=Shape(type=0, dimensions=Vector3(x=float(d.length[i]), y=float(d.width[i]), z=float(d.height[i]))),
-        ))
-    qx, qy, qz, qw = quaternion_from_yaw(d.ego_yaw)
-    return DetectedObjects(
-        header=Header(stamp=d.stamp_ns, frame_id="lidar", seq=d.seq),
-        ego_pose=Pose(position=Point(x=d.ego_x, y=d.ego_y, z=0.0), orientation=Quaternion(x=qx, y=qy, z=qz, w=qw)),
-        objects=objs,
-    )

@@ -179,7 +179,7 @@ def test_state_map_validates_as_the_snapshot_model(service, client_session):
     _wait_connected(client_session)
     _send_paced(client_session, list(generate(TrackScenario(n_static=2, n_moving=2, n_starting=0, seed=8), 6)), got)
     assert wait_until(lambda: len(got["motion"]) == 4 and all(m.header.seq == 5 for m in got["motion"].values()))
-    snap = service.state_snapshot()  # validates the plain map the queryable sends
+    snap = ClassifierStateSnapshot.model_validate(service.state_map())  # validates the map the queryable sends
     assert snap.header.seq == 5 and len(snap.tracks) == 4
     by_id = {t.track_id: t for t in snap.tracks}
     for m in got["motion"].values():

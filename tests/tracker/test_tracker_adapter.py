@@ -36,7 +36,8 @@ from jitterguard.schemas.models import (
 from jitterguard.services.tracker.config import default_config
 from jitterguard.services.tracker.adapter import detection_frame, observation_payloads, tracked_payload
 from jitterguard.services.tracker.core import TrackerCore
-from jitterguard.bench.tracker_sequences import make_sequence, to_message
+from helpers import to_message
+from jitterguard.bench.tracker_sequences import make_sequence
 
 
 def frame_from_message(msg: DetectedObjects):

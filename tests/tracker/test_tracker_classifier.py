@@ -19,7 +19,8 @@ from jitterguard.schemas import decode, encode, keys
 from jitterguard.schemas.models import ClassifierConfig, DetectedObjects, Header, MotionState, TrackedObjects
 from jitterguard.services.classifier.service import ClassifierService
 from jitterguard.services.tracker.service import TrackerService
-from jitterguard.bench.tracker_sequences import CAR, Obj, make_sequence, to_message
+from helpers import to_message
+from jitterguard.bench.tracker_sequences import CAR, Obj, make_sequence
 
 pytestmark = pytest.mark.integration
 NS = "trk_cls"

@@ -24,7 +24,8 @@ from jitterguard.schemas.models import (
 )
 from jitterguard.services.tracker.config import default_config
 from jitterguard.services.tracker.service import TrackerService
-from jitterguard.bench.tracker_sequences import make_sequence, to_message
+from helpers import to_message
+from jitterguard.bench.tracker_sequences import make_sequence
 
 pytestmark = pytest.mark.integration
 

@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from ...cli_common import ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ZenohConfigOpt, fail, zenoh_options
+from ...cli_common import ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ParamFileOpt, ZenohConfigOpt, fail, zenoh_options
 from ...config import ConfigError, load
 from .config import PRESETS, ClassifierParams
 
@@ -26,9 +26,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         zenoh_config: ZenohConfigOpt = None,
         connect: ConnectOpt = None,
         listen: ListenOpt = None,
-        config: Annotated[str | None, typer.Option(
-            "--config", help="Parameter file (flat, or Autoware's ros__parameters form); defaults:"
-            " jitterguard/config/classifier.param.yaml.")] = None,
+        config: ParamFileOpt = None,
         preset: Annotated[str | None, typer.Option("--preset", help=f"Named preset: {', '.join(PRESETS)}.")] = None,
         alpha: Annotated[float | None, typer.Option("--alpha", help="Default alpha (z threshold).")] = None,
         window_size: Annotated[int | None, typer.Option("--window-size")] = None,

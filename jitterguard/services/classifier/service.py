@@ -32,7 +32,7 @@ import zenoh
 from ...runtime import Service, ZenohOptions
 from ...runtime.gc_policy import IdleCollector, manage_gc_for_latency
 from ...schemas import SCHEMA_VERSION, DecodeError, decode, encode, keys
-from ...schemas.models import ClassifierConfig, ClassifierStateSnapshot, ConfigReply
+from ...schemas.models import ClassifierConfig, ConfigReply
 from ...schemas.wire import LIMITS, Limits
 from .adapter import ClassifierAdapter, FrameOutput, Poses
 from .assembly import FrameAssembler
@@ -281,10 +281,6 @@ class ClassifierService(Service):
             })
         return {**base, "header": dict(latest.header),
                 "config": latest.config.model_dump(mode="python"), "tracks": tracks}
-
-    def state_snapshot(self) -> ClassifierStateSnapshot:
-        """:meth:`state_map`, validated (for in-process users and tests)."""
-        return ClassifierStateSnapshot.model_validate(self.state_map())
 
     def _on_state_query(self, query: zenoh.Query) -> None:
         with self._latest_lock:

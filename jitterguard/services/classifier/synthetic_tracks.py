@@ -25,31 +25,10 @@ from ...schemas.wire import (
     write_track_observations,
     write_tracked_objects,
 )
-from ...schemas.models import (
-    X_X,
-    X_Y,
-    Y_X,
-    Y_Y,
-    YAW_YAW,
-    DetectedObject,
-    DetectedObjectKinematics,
-    Header,
-    Label,
-    ObjectClassification,
-    Point,
-    Pose,
-    PoseWithCovariance,
-    Quaternion,
-    Shape,
-    TrackedObject,
-    TrackedObjectKinematics,
-    TrackedObjects,
-    TrackObservation,
-    TrackState,
-    Twist,
-    TwistWithCovariance,
-    Vector3,
-)
+from ...schemas.models import (X_X, X_Y, Y_X, Y_Y, YAW_YAW, DetectedObject, DetectedObjectKinematics, Header,
+    Label, ObjectClassification, Point, Pose, PoseWithCovariance, Quaternion, Shape, TrackedObject,
+    TrackedObjectKinematics, TrackedObjects, TrackObservation, TrackState, Twist, TwistWithCovariance,
+    Vector3)
 
 
 @dataclass(frozen=True)

@@ -10,7 +10,7 @@ from typing import Annotated
 
 import typer
 
-from ...cli_common import ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ZenohConfigOpt, fail, zenoh_options
+from ...cli_common import ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ParamFileOpt, ZenohConfigOpt, fail, zenoh_options
 from ...config import ConfigError, load
 from .config import PRESETS, DetectorParams
 
@@ -72,9 +72,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         zenoh_config: ZenohConfigOpt = None,
         connect: ConnectOpt = None,
         listen: ListenOpt = None,
-        config: Annotated[str | None, typer.Option(
-            "--config", help="Parameter file (flat, or Autoware's ros__parameters form); defaults:"
-            " jitterguard/config/detector.param.yaml.")] = None,
+        config: ParamFileOpt = None,
         weights: WeightsOpt = None,
         preset: Annotated[str | None, typer.Option(
             "--preset", help=f"Architecture preset: {', '.join(PRESETS)} (default lite).")] = None,

@@ -9,7 +9,7 @@ from typing import Annotated
 
 import typer
 
-from ...cli_common import ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ZenohConfigOpt, fail, zenoh_options
+from ...cli_common import ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ParamFileOpt, ZenohConfigOpt, fail, zenoh_options
 
 MEAS_CHOICES = ("detector", "class")
 
@@ -21,11 +21,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         zenoh_config: ZenohConfigOpt = None,
         connect: ConnectOpt = None,
         listen: ListenOpt = None,
-        config: Annotated[
-            str | None,
-            typer.Option("--config", help="Parameter file overriding any of the defaults in"
-                         " jitterguard/config/tracker.param.yaml (flat, or Autoware's ros__parameters form)."),
-        ] = None,
+        config: ParamFileOpt = None,
         measurement_covariance: Annotated[
             str | None,
             typer.Option("--measurement-covariance",
