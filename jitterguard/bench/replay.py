@@ -22,7 +22,7 @@ import zenoh
 from ..runtime import build_config, free_tcp_port, loopback_options
 from ..schemas import DecodeError, PointCloud, decode, keys
 from ..services.replay.frames import IDENTITY, EgoPose, Item, ScanFrame
-from ..services.replay.publisher import ReplayService
+from ..services.replay.service import ReplayService
 from ..services.replay.runner import ReplayPlan
 from ..services.replay.sources import SourceOptions, open_source
 from ..services.replay.sources.base import MemorySource, Source

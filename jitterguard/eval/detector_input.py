@@ -1,7 +1,7 @@
 """``--input detector``: the CenterPoint detector in the evaluation loop, scan by scan as the live stack runs it.
 
 Why through the wire messages: what is scored offline must be what the live detector publishes. Each scan is
-built as the replay publishes it (:func:`~jitterguard.services.replay.publisher.point_cloud_message` of the
+built as the replay publishes it (:func:`~jitterguard.services.replay.adapter.point_cloud_message` of the
 replay's own ``ScanFrame``: x, y, z, intensity, ring and the sensor's world pose), goes through the detector
 service's steps (:func:`detect_scan`: ``scan_points`` → ``Detector.detect`` → ``finite_detections``) and is
 converted with the service's :func:`~jitterguard.services.detector.adapter.detections_payload` into the
@@ -32,7 +32,7 @@ from ..services.detector.config import CLASS_NAMES, Detections3D, Sample
 from ..services.detector.adapter import detections_payload, finite_detections, scan_points
 from ..services.detector.data import sample_from_scan
 from ..services.replay.frames import EgoPose, ScanFrame, finite_rows
-from ..services.replay.publisher import point_cloud_message
+from ..services.replay.adapter import point_cloud_message
 from ..services.replay.sources.synthetic import SCAN_FIELDS
 from ..services.tracker.config import TrackerConfig
 from ..sim.lidar import cast_frame

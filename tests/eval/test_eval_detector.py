@@ -91,7 +91,7 @@ def _run_cli(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, 
 
 
 def test_synthetic_scan_is_what_the_replay_publishes() -> None:
-    from jitterguard.services.replay.publisher import point_cloud_message
+    from jitterguard.services.replay.adapter import point_cloud_message
     from jitterguard.services.replay.sources.synthetic import SyntheticSource
 
     frame = next(iter(SyntheticSource("parking-street", seed=2, duration_s=1.0, rate_hz=10.0).frames(3)))

@@ -19,7 +19,7 @@ from jitterguard.runtime import build_config, free_tcp_port, loopback_options
 from jitterguard.schemas import DetectedObjects, PointCloud, decode, keys
 from jitterguard.schemas.models import DetectedObject, ObjectClassification
 from jitterguard.services.replay.frames import DetectionFrame, EgoPose
-from jitterguard.services.replay.publisher import ReplayService
+from jitterguard.services.replay.service import ReplayService
 from jitterguard.services.replay.runner import ReplayPlan
 from jitterguard.services.replay.sources.base import MemorySource
 

@@ -137,7 +137,7 @@ def replay_command(
     with src:
         for note in src.info.notes:
             log.info("%s", note)
-        from .publisher import ReplayService
+        from .service import ReplayService
 
         try:
             svc = ReplayService(zopts, src.info.kind)

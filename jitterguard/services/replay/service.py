@@ -1,4 +1,4 @@
-"""The thin Zenoh adapter: turn frames into wire messages and put them on ``points`` or ``detections``.
+"""The replay as a Zenoh service: frames into wire messages (:mod:`.adapter`), put on ``points`` or ``detections``.
 
 Puts use BLOCK congestion control, so with ``--rate max`` a consumer that falls behind slows the replay
 down instead of losing scans. The replay runs on the caller's thread (the CLI's main thread) and stops
@@ -11,39 +11,12 @@ import time
 from collections.abc import Callable
 
 from ...runtime import Service, ZenohOptions
-from ...schemas import DetectedObjects, PointCloud, encode, keys
-from ...schemas.models import Header
-from .frames import DetectionFrame, Frame, FrameError, ScanFrame
+from ...schemas import encode, keys
+from .adapter import message_for
+from .frames import Frame, FrameError, ScanFrame
 from .pacing import Clock
 from .runner import ReplayPlan, ReplayStats, run_replay
 from .sources.base import Source
-
-
-def point_cloud_message(frame: ScanFrame, seq: int, stamp_ns: int) -> PointCloud:
-    """The ``points`` payload of one scan under the given header seq and stamp."""
-    pts = frame.points
-    return PointCloud(
-        header=Header(stamp=stamp_ns, frame_id=frame.frame_id, seq=seq),
-        ego_pose=frame.pose.to_schema(),
-        fields=list(frame.fields),
-        num_points=int(pts.shape[0]),
-        data=pts.astype("<f4", copy=False).tobytes(),
-    )
-
-
-def detections_message(frame: DetectionFrame, seq: int, stamp_ns: int) -> DetectedObjects:
-    """The ``detections`` payload of one detection frame under the given header seq and stamp."""
-    return DetectedObjects(
-        header=Header(stamp=stamp_ns, frame_id=frame.frame_id, seq=seq),
-        ego_pose=frame.pose.to_schema(),
-        objects=frame.objects,
-    )
-
-
-def message_for(frame: Frame, seq: int, stamp_ns: int) -> PointCloud | DetectedObjects:
-    if isinstance(frame, ScanFrame):
-        return point_cloud_message(frame, seq, stamp_ns)
-    return detections_message(frame, seq, stamp_ns)
 
 
 class ReplayService(Service):
