@@ -21,7 +21,7 @@ from typing import Any, TypeVar
 import zenoh
 from pydantic import BaseModel
 
-from ..schemas import DecodeError, decode, encode, keys
+from ..schemas import DecodeError, LimitExceeded, decode, encode, keys
 from ..schemas.models import Heartbeat
 from .keyed_publishers import KeyedPublishers
 from .zenoh_config import ZenohOptions, build_config
@@ -112,10 +112,14 @@ class Service:
             return None
 
     def reject(self, exc: DecodeError, sub_key: str, sample_key: str | None = None) -> None:
-        """Count and log (once per burst) a payload that failed to decode, as :meth:`accept` does; for
-        services that decode on their own path (e.g. to plain maps with :func:`~jitterguard.schemas.decode_map`)."""
+        """Count and log (once per burst) a payload that failed to decode, as :meth:`accept` does; for services
+        that read on their own path (the read functions of :mod:`jitterguard.schemas.wire`). A payload beyond a
+        limit is also counted ``over_limit.<key>``."""
+        key = sub_key.split('/', 2)[-1]
         self.counters.inc("rejected")
-        self.counters.inc(f"rejected.{sub_key.split('/', 2)[-1]}")
+        self.counters.inc(f"rejected.{key}")
+        if isinstance(exc, LimitExceeded):
+            self.counters.inc(f"over_limit.{key}")
         self._reject_log.warn(f"rejected payload on {sample_key or sub_key}: {exc}")
 
     def subscribe(self, key: str, model: type[M], handler: Callable[[M, str], None]) -> None:
@@ -134,37 +138,44 @@ class Service:
 
         self._declared.append(self.session.declare_subscriber(key, on_sample))
 
-    def subscribe_inbox(self, key: str, capacity: int = 64) -> queue.Queue[tuple[bytes, str]]:
-        """Subscribe ``key`` into a queue of ``(payload, key)`` that a worker blocks on with ``get(timeout=...)``.
+    def subscribe_inbox(self, key: str, capacity: int = 64) -> queue.Queue[tuple[bytes, str, float]]:
+        """Subscribe ``key`` into a bounded queue of ``(payload, key, arrival time)`` that a worker blocks on with
+        ``get(timeout=...)``.
 
         For a few large messages a second (a frame's ``detections``): the worker wakes the moment one arrives
-        instead of polling a channel, and the one callback per message only copies the payload. A full queue
-        blocks Zenoh's delivery (BLOCK publishers are slowed, not dropped) until the worker catches up or the
-        service stops.
+        instead of polling a channel, and the one callback per message only copies the payload. A full queue drops
+        its oldest item (counted ``dropped_queue.<key>``): a worker that fell behind catches up on the newest
+        frames, and a flood costs a bounded amount of memory, never Zenoh's receive path.
         """
-        inbox: queue.Queue[tuple[bytes, str]] = queue.Queue(maxsize=capacity)
+        inbox: queue.Queue[tuple[bytes, str, float]] = queue.Queue(maxsize=capacity)
+        counter = f"dropped_queue.{key.split('/', 2)[-1]}"
 
         def on_sample(sample: zenoh.Sample) -> None:
-            item = (sample.payload.to_bytes(), str(sample.key_expr))
-            while not self.stop_event.is_set():
+            item = (sample.payload.to_bytes(), str(sample.key_expr), time.monotonic())
+            while True:
                 try:
-                    inbox.put(item, timeout=0.1)
+                    inbox.put_nowait(item)
                     return
                 except queue.Full:
-                    continue
+                    try:
+                        inbox.get_nowait()
+                        self.counters.inc(counter)
+                    except queue.Empty:
+                        pass
 
         self._declared.append(self.session.declare_subscriber(key, on_sample))
         return inbox
 
-    def subscribe_channel(self, key: str, capacity: int = 65536) -> zenoh.Subscriber:
-        """Subscribe ``key`` into a FIFO channel that a worker drains with ``try_recv()``.
+    def subscribe_channel(self, key: str, capacity: int = 8192) -> zenoh.Subscriber:
+        """Subscribe ``key`` into a bounded ring channel that a worker drains with ``try_recv()``.
 
         No Python callback thread: samples wait in Zenoh's own (Rust) queue until the worker pulls them. At
         thousands of samples per second, per-sample callbacks spend more time handing the GIL around than
-        decoding; one worker that pulls and decodes in order does the same work without the contention.
-        BLOCK-publishing senders are slowed, not dropped, when the channel is full.
+        decoding; one worker that pulls and decodes in order does the same work without the contention. When the
+        ring is full Zenoh drops its oldest sample (bounded memory, no blocked receive path); the caller counts
+        what is lost where it notices it (the classifier: ``frames.missing_observations``).
         """
-        sub = self.session.declare_subscriber(key, zenoh.handlers.FifoChannel(capacity))
+        sub = self.session.declare_subscriber(key, zenoh.handlers.RingChannel(capacity))
         self._declared.append(sub)
         return sub
 

@@ -68,7 +68,7 @@ class Limits(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     max_payload_bytes: int = Field(8 << 20, ge=1024, description="larger payloads are refused unread")
-    max_objects: int = Field(5000, ge=1, description="objects per message, read from the list's header")
+    max_objects: int = Field(1000, ge=1, description="objects per message, read from the list's header")
     max_abs_coordinate_m: float = Field(1e7, gt=0, description="|x|, |y|, |z| of every position (UTM fits)")
     max_abs_speed_mps: float = Field(1e3, gt=0, description="|vx|, |vy|, |vz| of every twist")
     max_variance: float = Field(1e6, gt=0, description="every variance of a pose or twist covariance")

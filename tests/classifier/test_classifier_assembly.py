@@ -49,9 +49,9 @@ def test_timeout_releases_frame_and_counts_missing_and_late():
     assert fa.counts["late_observations"] == 1
 
 
-def test_frames_released_in_order_and_duplicates_dropped():
+def test_frames_released_in_order_and_duplicates_and_late_closes_dropped():
     fa = _Assembler(straggler_timeout_s=1.0)
-    for s in (1, 0):
+    for s in (0, 1):
         for i in IDS:
             fa.add_observation(ob(s, i))
         fa.add_close(close(s), now=0.0)
@@ -61,13 +61,15 @@ def test_frames_released_in_order_and_duplicates_dropped():
     assert fa.counts["duplicate_or_late_frames"] == 2
 
 
-def test_upstream_restart_is_detected():
+def test_upstream_restart_is_followed_once_confirmed():
     fa = _Assembler()
     fa.add_close(close(100, []), now=0.0)
     assert fa.pop_ready(0.0)[0].seq == 100
-    assert fa.add_close(close(0, []), now=0.0)
-    assert fa.counts["upstream_restarts"] == 1
-    assert fa.pop_ready(0.0)[0].seq == 0
+    assert not fa.add_close(close(0, []), now=0.1) and not fa.add_close(close(1, []), now=0.2)
+    assert not fa.add_close(close(2, []), now=0.3)  # three frames, but only 0.2 s of them
+    assert fa.add_close(close(3, []), now=0.4)  # 0.3 s: confirmed
+    assert fa.counts["upstream_restarts"] == 1 and fa.counts["duplicate_or_late_frames"] == 3
+    assert fa.pop_ready(0.4)[0].seq == 3
 
 
 def test_observations_without_close_do_not_grow_forever():

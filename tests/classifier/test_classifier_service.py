@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import time
 
 import msgpack
 import numpy as np
@@ -166,10 +167,12 @@ def test_restarted_tracker_leaves_no_stale_windows(service, client_session):
     _wait_connected(client_session)
     first = list(generate(TrackScenario(n_static=3, n_moving=0, n_starting=0, seed=5), 30))
     _send_paced(client_session, first, got)
-    second = list(generate(TrackScenario(n_static=2, n_moving=0, n_starting=0, seed=6), 2))  # seq restarts at 0
-    for f in second:
+    second = list(generate(TrackScenario(n_static=2, n_moving=0, n_starting=0, seed=6), 10))  # seq restarts at 0
+    for f in second:  # at 10 Hz: the restart is followed once a run of its frames has lasted confirm_s
         _send(client_session, f)
-    assert wait_until(lambda: len(got["objects"]) == 32, timeout=30)
+        time.sleep(0.1)
+    assert wait_until(lambda: got["objects"] and got["objects"][-1].header.seq == 9, timeout=30)
+    assert service.counters.get("frames.upstream_restarts") == 1
     new_ids = {o.track.object_id for o in second[0].observations}
     assert set(service.run_on_worker(service.core.track_ids)) == new_ids
 

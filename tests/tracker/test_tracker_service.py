@@ -139,7 +139,7 @@ def test_malformed_payloads_are_rejected_and_counted_and_tracking_goes_on(harnes
     h = harness_factory("trk_reject")
     before = h.service.counters.get("rejected")
     h.put(b"\x00\x01garbage")
-    h.put(encode(TrackedObjects(header=Header(stamp=1))))  # valid msgpack, wrong schema
+    h.put(encode(TrackedObjects(header=Header(stamp=h.stamp0 + 4, seq=h.next_seq + 1))))  # valid msgpack, wrong schema
     h.put(encode(h.empty_frame(h.next_seq + 1, h.stamp0 + 5))[:-3])  # truncated
     h.put(b"\x81\xa2\xca\xca\x01")  # a map key that is not UTF-8
     assert wait_for(lambda: h.service.counters.get("rejected") >= before + 4)

@@ -25,11 +25,13 @@ from ...schemas.wire import (
     Limits,
     ObservationColumns,
     TrackedColumns,
+    peek_header,
     read_track_observations,
     read_tracked_objects,
     write_motion_states,
     write_tracked_objects,
 )
+from ...stream_order import StreamGuard, StreamLimits
 from .assembly import CompleteFrame, FrameAssembler
 from .core import STATIC, Decisions, MotionClassifierCore, Observations
 
@@ -106,10 +108,10 @@ class ClassifierAdapter:
     """Frame assembly plus the core, fed with payloads. Not thread-safe: one worker owns it."""
 
     def __init__(self, config: ClassifierConfig | None = None, *, straggler_timeout_s: float = 0.05,
-                 limits: Limits = LIMITS) -> None:
+                 limits: Limits = LIMITS, stream: StreamLimits | None = None) -> None:
         self.core = MotionClassifierCore(config or ClassifierConfig())
         self.assembler: FrameAssembler[ObservationRow, TrackedColumns] = FrameAssembler(
-            straggler_timeout_s=straggler_timeout_s)
+            straggler_timeout_s=straggler_timeout_s, guard=StreamGuard(stream or StreamLimits()))
         self.limits = limits
 
     def observations(self, payloads: Sequence[bytes]) -> ObservationColumns:
@@ -121,15 +123,20 @@ class ClassifierAdapter:
         return cols
 
     def close(self, data: bytes, received_at: float) -> TrackedColumns | None:
-        """Read one ``tracked`` payload and register it as the close of its frame; None when it was a duplicate
-        or stale. A tracker restart (its seq starting again) resets the core.
+        """Read one ``tracked`` payload and register it as the close of its frame; None when it was dropped (a
+        duplicate, a late frame or a jump not yet confirmed: judged from its header, before it is read). A
+        confirmed restart of the tracker (its seq starting again, or its time going back) resets the core.
 
         Raises :class:`~jitterguard.schemas.DecodeError` for a payload that fails validation.
         """
+        head = peek_header(data)
+        verdict = self.assembler.admit(*head, received_at) if head is not None else None
+        if verdict is not None and not verdict.accepted:
+            return None
         cols = read_tracked_objects(data, self.limits)
         h = cols.header
         restarts = self.assembler.counts.get("upstream_restarts", 0)
-        ok = self.assembler.add_close_item(h.seq, cols.observed_track_ids, cols, received_at, stamp_ns=h.stamp)
+        ok = self.assembler.add_close_item(h.seq, cols.observed_track_ids, cols, received_at, h.stamp, verdict)
         if self.assembler.counts.get("upstream_restarts", 0) != restarts:
             self.core.reset()
         return cols if ok else None

@@ -16,7 +16,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Generic, TypeVar
 
-from ...stream_order import BehindRun
+from ...stream_order import StreamGuard, Verdict
 
 RESTART_GAP = 20
 """A closing seq this far below the last one means the tracker restarted (its seq began again)."""
@@ -43,8 +43,7 @@ class FrameAssembler(Generic[O, C]):
     _obs: dict[int, dict[str, O]] = field(default_factory=dict)
     _closes: dict[int, tuple[C, float, frozenset[str]]] = field(default_factory=dict)
     _waiting: dict[int, set[str]] = field(default_factory=dict)  # per closed seq: expected IDs not yet in
-    _newest_stamp: int | None = None  # of the closes accepted since the last restart
-    _behind: BehindRun = field(default_factory=BehindRun)
+    guard: StreamGuard = field(default_factory=StreamGuard)  # over the closes: which frames to take
 
     def is_late(self, seq: int) -> bool:
         """An observation for a frame already processed: it would be dropped, so it need not be validated.
@@ -70,51 +69,43 @@ class FrameAssembler(Generic[O, C]):
         if waiting is not None:
             waiting.discard(track_id)
         if len(self._obs) > self.max_pending_frames:  # closes that never come must not grow memory
-            oldest = min(self._obs)
+            oldest = next(iter(self._obs))  # the first begun: a flood of made-up seqs cannot pin current frames
             self.count("orphaned_observations", len(self._obs.pop(oldest)))
 
-    def add_close_item(self, seq: int, expected_ids: Iterable[str], item: C, now: float,
-                       stamp_ns: int | None = None) -> bool:
-        """Register a frame-closing message; returns False (and counts) when it is stale or a duplicate.
-
-        A seq at or below the last one processed is an upstream restart when it is far below, or (given
-        ``stamp_ns``) when its stamp is newer than every close so far (the source's seq began again while time
-        went on), or when such closes keep coming behind, each after the previous (a recording that started
-        over; :mod:`jitterguard.stream_order`). State is then reset and the caller learns it through
-        ``counts['upstream_restarts']``.
-        """
-        if seq <= self.last_done:
-            if self._restarted(seq, stamp_ns):
-                self.count("upstream_restarts")
-                self.last_done = -1
-                self._newest_stamp = None
-                self._obs = {s: b for s, b in self._obs.items() if s <= seq + RESTART_GAP}
-                self._closes.clear()
-                self._waiting.clear()
-            else:
-                self.count("duplicate_or_late_frames")
-                return False
-        if seq in self._closes:
+    def admit(self, seq: int, stamp_ns: int, now: float | None = None) -> Verdict:
+        """Judge a frame-closing header (:mod:`jitterguard.stream_order`) before its payload is read; a dropped
+        one is counted (``duplicate_or_late_frames``, or ``held_jumps`` for a jump not yet confirmed)."""
+        verdict = self.guard.admit(seq, stamp_ns, now)
+        if verdict is Verdict.JUMP:
+            self.count("held_jumps")
+        elif not verdict.accepted:
             self.count("duplicate_or_late_frames")
+        return verdict
+
+    def add_close_item(self, seq: int, expected_ids: Iterable[str], item: C, now: float, stamp_ns: int,
+                       verdict: Verdict | None = None) -> bool:
+        """Register a frame-closing message; returns False (and counts) when it is dropped. ``verdict``: what
+        :meth:`admit` already said of its header. A confirmed restart or rewind of the upstream resets the frames
+        in flight and the caller learns it through ``counts['upstream_restarts']``; a confirmed jump ahead is
+        counted ``jumps`` and followed."""
+        if verdict is None:
+            verdict = self.admit(seq, stamp_ns, now)
+        if not verdict.accepted:
             return False
-        self._behind.clear()
-        if stamp_ns is not None and (self._newest_stamp is None or stamp_ns > self._newest_stamp):
-            self._newest_stamp = stamp_ns
+        if verdict in (Verdict.RESTARTED, Verdict.REWOUND):
+            self.count("upstream_restarts")
+            self.last_done = -1
+            self._obs = {s: b for s, b in self._obs.items() if s <= seq + RESTART_GAP}
+            self._closes.clear()
+            self._waiting.clear()
+        elif verdict is Verdict.JUMPED:
+            self.count("jumps")
+        self.guard.accept(seq, stamp_ns)
         expected = frozenset(expected_ids)
         self._closes[seq] = (item, now, expected)
         got = self._obs.get(seq, {})
         self._waiting[seq] = {i for i in expected if i not in got}
         return True
-
-    def _restarted(self, seq: int, stamp_ns: int | None) -> bool:
-        """A close at or below ``last_done``: the upstream's restart rather than a late or duplicate frame?"""
-        if self.last_done - seq > RESTART_GAP:
-            return True
-        if stamp_ns is None or self._newest_stamp is None:
-            return False
-        if stamp_ns > self._newest_stamp:
-            return True
-        return stamp_ns < self._newest_stamp and self._behind.behind(seq, stamp_ns)
 
     def pop_ready(self, now: float, *, give_up: bool = True) -> list[CompleteFrame[O, C]]:
         """Frames that are complete or timed out, in seq order; older pending frames are flushed first.

@@ -44,7 +44,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                                                "min_window": min_window, "mode": mode, "effective_n": effective_n})
         setup_logging(log_level)
         ClassifierService(opts, params.wire(), straggler_timeout_s=params.straggler_timeout_s, limits=params.limits,
-                          manage_gc=True).run_forever()
+                          stream=params.stream, manage_gc=True).run_forever()
 
     @app.command("feed-tracks")
     def feed_tracks_cmd(

@@ -12,6 +12,7 @@ from pydantic import Field
 from ...config import presets, preset_values
 from ...schemas.models import ClassifierConfig
 from ...schemas.wire import Limits
+from ...stream_order import StreamLimits
 
 PRESETS: dict[str, dict[str, object]] = {name: preset_values("classifier", name) for name in presets("classifier")}
 """Named config presets: the keys each sets."""
@@ -23,6 +24,10 @@ class ClassifierParams(ClassifierConfig):
     straggler_timeout_s: float = Field(
         0.05, gt=0.0, le=10.0, description="how long a closed frame waits for observations that have not arrived")
     limits: Limits = Field(default_factory=Limits, description="bounds on the work one message may cause")
+    stream: StreamLimits = Field(
+        default_factory=StreamLimits, description="how far a tracked frame may step from the last one taken; a"
+        " discontinuity (the tracker restarted or rewound, a long gap) is followed only once successive frames"
+        " confirm it")
 
     def wire(self) -> ClassifierConfig:
         """The part that travels on the config queryable."""

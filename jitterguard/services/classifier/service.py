@@ -1,6 +1,6 @@
 """The classifier as a Zenoh service: transport and threads around :class:`~.adapter.ClassifierAdapter`.
 
-Threads. Observations (``tracks/*``, thousands per second) wait in a Zenoh FIFO channel that one worker
+Threads. Observations (``tracks/*``, thousands per second) wait in a Zenoh ring channel that one worker
 thread drains and reads in batches as they arrive, so no Python callback runs per sample. The frame-closing
 ``tracked`` (once per frame) comes through a callback that only stamps its arrival and wakes the worker:
 the frame latency counts from that stamp, i.e. from the sample reaching this process's subscriber, queueing
@@ -9,7 +9,10 @@ first (what the predictor waits for, and where the frame latency ends) and then 
 messages; the contract does not order the two. Config writes go through the same worker, so a write is
 applied between two frames and the reply reports what is in force from the next frame on.
 
-Overload degrades instead of backing up: a straggler of a frame already decided is dropped (counted
+Overload degrades instead of backing up, and every queue is bounded: ``tracked`` waits in a queue of
+:data:`CLOSE_QUEUE` (the oldest goes, counted ``dropped_queue.tracked``), observations in Zenoh's ring channel (the
+oldest goes; what a frame then lacks is counted ``frames.missing_observations``), config writes in a queue of 64; a
+``tracked`` that is a duplicate, late or a jump is dropped from its header, unread. A straggler of a frame already decided is dropped (counted
 ``frames.late_observations``), a frame is not given up on for stragglers while the worker is still behind on
 what arrived, and when the next frame's ``tracked`` is already waiting the ``motion/{id}`` messages of the
 current frame are skipped (counted ``motion_frames_shed``; the next frame's supersede them).
@@ -34,6 +37,7 @@ from ...runtime.gc_policy import IdleCollector, manage_gc_for_latency
 from ...schemas import SCHEMA_VERSION, DecodeError, decode, encode, keys
 from ...schemas.models import ClassifierConfig, ConfigReply
 from ...schemas.wire import LIMITS, Limits
+from ...stream_order import StreamLimits
 from .adapter import ClassifierAdapter, FrameOutput, Poses
 from .assembly import FrameAssembler
 from .core import STATE_NAMES, Decisions, MotionClassifierCore
@@ -42,6 +46,8 @@ CONFIG_APPLY_TIMEOUT_S = 2.0
 LATENCY_WINDOW = 4096
 LATENCY_BUCKETS_MS = (0.5, 1, 2, 5, 10, 20, 50, 100, 200, 500, 1000)
 """Frame-latency histogram buckets; exported as counters so the sidecar's /metrics can rebuild it."""
+CLOSE_QUEUE = 16
+"""``tracked`` messages waiting for the worker (0.8 s at 20 Hz); beyond that the oldest goes."""
 OBS_CHUNK = 64
 """Observations validated per pass before the worker looks for a newly arrived ``tracked`` again."""
 IDLE_POLL_S = 0.0005
@@ -66,7 +72,8 @@ class ClassifierService(Service):
     name = "classifier"
 
     def __init__(self, opts: ZenohOptions, config: ClassifierConfig | None = None, *,
-                 straggler_timeout_s: float = 0.05, limits: Limits = LIMITS, manage_gc: bool = False) -> None:
+                 straggler_timeout_s: float = 0.05, limits: Limits = LIMITS, stream: StreamLimits | None = None,
+                 manage_gc: bool = False) -> None:
         """``manage_gc``: call :func:`manage_gc_for_latency` and collect garbage between frames (process-wide;
         for the process that runs the classifier, not for tests that embed it)."""
         super().__init__(opts)
@@ -74,10 +81,10 @@ class ClassifierService(Service):
         self._idle_gc = IdleCollector()
         if manage_gc:
             manage_gc_for_latency()
-        self.pipeline = ClassifierAdapter(config, straggler_timeout_s=straggler_timeout_s, limits=limits)
+        self.pipeline = ClassifierAdapter(config, straggler_timeout_s=straggler_timeout_s, limits=limits, stream=stream)
         self.latencies_ms: deque[float] = deque(maxlen=LATENCY_WINDOW)
-        self._queue: queue.Queue = queue.Queue()  # config writes and calls, run between frames
-        self._closes: deque[tuple[bytes, zenoh.KeyExpr, float]] = deque()
+        self._queue: queue.Queue = queue.Queue(maxsize=64)  # config writes and calls, run between frames
+        self._closes: deque[tuple[bytes, zenoh.KeyExpr, float]] = deque(maxlen=CLOSE_QUEUE)
         self._wake = threading.Event()
         self._latest: _Latest | None = None
         self._latest_lock = threading.Lock()
@@ -103,8 +110,11 @@ class ClassifierService(Service):
     # ---------------------------------------------------------------- the worker
 
     def _on_tracked(self, sample: zenoh.Sample) -> None:
-        """Zenoh's callback thread: stamp the arrival, hand the bytes to the worker, wake it. Nothing else."""
+        """Zenoh's callback thread: stamp the arrival, hand the bytes to the worker, wake it. Nothing else. The
+        queue is bounded: a worker that fell behind loses the oldest close (counted ``dropped_queue.tracked``)."""
         t0 = time.perf_counter()
+        if len(self._closes) == CLOSE_QUEUE:
+            self.counters.inc("dropped_queue.tracked")
         self._closes.append((sample.payload.to_bytes(), sample.key_expr, t0))
         self._wake.set()
 
@@ -223,7 +233,7 @@ class ClassifierService(Service):
     def run_on_worker(self, fn, timeout: float = CONFIG_APPLY_TIMEOUT_S):
         """Run ``fn()`` on the worker thread between two frames and return its result."""
         fut: Future = Future()
-        self._queue.put(("call", (fn, fut), None))
+        self._queue.put(("call", (fn, fut), None), timeout=timeout)  # bounded: queue.Full when the worker is stuck
         return fut.result(timeout=timeout)
 
     def _on_config_query(self, query: zenoh.Query) -> None:
@@ -239,7 +249,7 @@ class ClassifierService(Service):
             query.reply_err(encode(ConfigReply(ok=False, config=self.core.config, error=str(exc))))
             return
         fut: Future = Future()
-        self._queue.put(("config", (cfg, fut), None))
+        self._queue.put(("config", (cfg, fut), None), timeout=CONFIG_APPLY_TIMEOUT_S)  # bounded, as above
         try:
             in_force = fut.result(timeout=CONFIG_APPLY_TIMEOUT_S)
         except Exception as exc:  # worker stuck or stopping: say so, the write may not be in force

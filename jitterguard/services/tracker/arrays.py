@@ -142,6 +142,8 @@ class FrameResult:
     """The source went back in time (a recording started over): every earlier track was dropped first."""
     source_restarted: bool = False
     """The source's seq began again while time went on (a restarted driver): tracks carried on."""
+    jumped: bool = False
+    """The source jumped ahead (a long gap, confirmed by the frames after it): tracks carried on and aged by it."""
 
     @property
     def observed_ids(self) -> list[str]:

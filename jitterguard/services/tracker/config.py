@@ -21,6 +21,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 from ...config import dump_params, load
 from ...schemas.models import LABEL_BY_NAME, LABEL_NAMES
 from ...schemas.wire import Limits
+from ...stream_order import StreamLimits
 
 NUM_LABELS = 8
 MATRIX_KEYS = ("can_assign_matrix", "max_dist_matrix", "max_area_matrix", "min_area_matrix", "max_rad_matrix")
@@ -169,6 +170,9 @@ class TrackerConfig(_Strict):
         description="added to the Mahalanobis gate's covariance diagonal (m^2): a converged track of a parked"
         " object with an over-confident detector would otherwise reject its own detection and spawn a twin",
     )
+    max_candidates: Annotated[int, Field(ge=1, le=10_000)] = Field(
+        32, description="at most this many detections per track are scored, the nearest: a crowd of co-located"
+        " objects costs memory bounded by the gating, not by the product of the counts")
     overlap_factor: NonNegFloat = Field(
         0.75,
         description="two tracks whose labels may share a detection and whose centres are closer than this"
@@ -190,18 +194,9 @@ class TrackerConfig(_Strict):
     tentative_max_gap_s: PosFloat = Field(0.25, description="a tentative track missing longer is deleted")
     max_coast_s: PosFloat = Field(1.0, description="a confirmed track without a detection longer is deleted")
     max_position_stddev: PosFloat = Field(5.0, description="a track whose position stddev grows past it is deleted")
-    rewind_reset_s: NonNegFloat = Field(
-        10.0,
-        description="a frame whose stamp is this much older than the last one means the source restarted"
-        " (a replay loop): the tracker resets instead of dropping every later frame; 0 disables",
-    )
-    rewind_confirm_frames: Annotated[int, Field(ge=0, le=100)] = Field(
-        3,
-        description="this many frames in a row behind the newest one, each after the previous (in seq and"
-        " stamp) with nothing newer in between, mean the source went back by less than rewind_reset_s (a"
-        " recording restarted soon after it began): the tracker resets; a lone late frame is still dropped;"
-        " 0 disables",
-    )
+    stream: StreamLimits = Field(
+        default_factory=StreamLimits, description="how far a detections frame may step from the last one taken;"
+        " a discontinuity (restart, rewind, long gap) is followed only once successive frames confirm it")
     shape_smoothing: Annotated[float, Field(gt=0.0, le=1.0)] = Field(
         0.3, description="weight of a new detection's box dimensions in the track's running estimate"
     )

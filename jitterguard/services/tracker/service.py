@@ -7,14 +7,15 @@ counted as ``rejected`` and skipped, one read by the model in another shape as `
 else touches it — and per frame publishes every ``tracks/{id}`` first (one declared publisher per live track,
 :class:`~jitterguard.runtime.keyed_publishers.KeyedPublishers`) and the closing ``tracked`` last (the classifier
 waits for the IDs that ``tracked.observed_track_ids`` names). All puts use BLOCK congestion control: a lost
-observation would silently shorten a classifier window. A full inbox slows BLOCK publishers instead of
-dropping frames.
+observation would silently shorten a classifier window. The inbox is bounded: when the worker falls behind, the
+oldest frame goes (counted ``dropped_queue.detections``).
 
-Counters (in the heartbeat): ``frames``, ``dropped_duplicate``, ``dropped_out_of_order``, ``tracks_born``,
-``tracks_deleted``, ``resets`` (the source went back in time: tracks dropped), ``source_restarts`` (its seq began
-again while time went on: tracks kept), ``static_hints_received`` / ``_applied`` / ``_unknown`` and the runtime's
-``received`` / ``rejected`` / ``published``. How a frame is told apart from a late one is
-:mod:`jitterguard.stream_order`.
+Counters (in the heartbeat): ``frames``, ``dropped_duplicate``, ``dropped_out_of_order``, ``dropped_jump`` (held,
+judged from the header before the payload is read), ``tracks_born``, ``tracks_deleted``, ``resets`` (the source went
+back in time, confirmed: tracks dropped), ``source_restarts`` (its seq began again while time went on, confirmed:
+tracks kept), ``jumps`` (it jumped ahead, confirmed), ``normalised.detections``, ``dropped_queue.detections``,
+``static_hints_received`` / ``_applied`` / ``_unknown`` and the runtime's ``received`` / ``rejected`` (and
+``over_limit``) / ``published``. How a frame is told apart from a late one is :mod:`jitterguard.stream_order`.
 """
 
 from __future__ import annotations
@@ -25,8 +26,9 @@ from collections.abc import Callable
 
 from ...runtime import Service, ZenohOptions
 from ...runtime.gc_policy import IdleCollector, manage_gc_for_latency
-from ...schemas import DecodeError, DetectedColumns, keys, read_detected_objects
+from ...schemas import DecodeError, DetectedColumns, keys, peek_header, read_detected_objects
 from ...schemas.models import MotionState
+from ...stream_order import Verdict
 from .adapter import detection_frame, observation_payloads, tracked_payload
 from .config import TrackerConfig, default_config
 from .core import FrameRejected, TrackerCore
@@ -87,10 +89,18 @@ class TrackerService(Service):
                 self._idle_gc.collect()
                 collect = False
             try:
-                payload, _key = self._det_inbox.get(timeout=IDLE_WAIT_S)
+                payload, _key, arrived = self._det_inbox.get(timeout=IDLE_WAIT_S)
             except queue.Empty:
                 continue
             self.counters.inc("received")
+            head = peek_header(payload)
+            verdict = None
+            if head is not None:  # the order is judged before the payload is read: a replay costs nothing
+                try:
+                    verdict = self.core.check_order(*head, now_s=arrived)
+                except FrameRejected as rej:
+                    self.counters.inc(f"dropped_{rej.reason}")
+                    continue
             try:
                 cols = read_detected_objects(payload, self.core.config.limits)
             except DecodeError as exc:
@@ -101,7 +111,7 @@ class TrackerService(Service):
             collect = self._manage_gc
             try:
                 self._apply_hints()
-                self.process(cols)
+                self.process(cols, verdict)
             except Exception:  # a bug must not silently stop tracking: count, log, go on with the next frame
                 self.counters.inc("handler_errors")
                 self.log.exception("frame seq %d failed", cols.header.seq)
@@ -118,22 +128,24 @@ class TrackerService(Service):
         if applied < len(ids):
             self.counters.inc("static_hints_unknown", len(ids) - applied)
 
-    def process(self, cols: DetectedColumns) -> None:
-        """Track one frame (as :func:`~jitterguard.schemas.read_detected_objects` gives it) and publish the
-        observations, then ``tracked``."""
+    def process(self, cols: DetectedColumns, verdict: Verdict | None = None) -> None:
+        """Track one frame (as :func:`~jitterguard.schemas.read_detected_objects` gives it; ``verdict``: what
+        the core already said of its header) and publish the observations, then ``tracked``."""
         frame = detection_frame(cols)
         try:
-            result = self.core.step(frame)
+            result = self.core.step(frame, verdict)
         except FrameRejected as rej:
             self.counters.inc(f"dropped_{rej.reason}")
             return
         if result.reset:
             self.counters.inc("resets")
-            self.log.warning("detections went back in time (seq %d): source rewound, tracker reset", frame.seq)
+            self.log.warning("detections went back in time (seq %d, confirmed): source rewound, tracker reset", frame.seq)
         elif result.source_restarted:
             self.counters.inc("source_restarts")
-            self.log.warning("detections restarted at seq %d with time going on: source restarted, tracks kept",
-                             frame.seq)
+            self.log.warning("detections restarted at seq %d with time going on (confirmed): tracks kept", frame.seq)
+        elif result.jumped:
+            self.counters.inc("jumps")
+            self.log.warning("detections jumped ahead to seq %d (confirmed): tracks kept", frame.seq)
         self._publish(observation_payloads(cols, frame, result), result.tracks.ids)
         self._tracked_pub.put(tracked_payload(cols, frame, result))  # built after the observations went out
         self.counters.inc("frames")
