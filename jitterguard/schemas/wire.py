@@ -126,27 +126,17 @@ class ObservationColumns:
 
 def read_detected_objects(data: bytes, limits: Limits = LIMITS) -> DetectedColumns:
     """``data`` as :class:`DetectedColumns`; :class:`~.codec.DecodeError` (or :class:`LimitExceeded`) if not valid."""
-    env, objects = _read_listed(DetectedObjects, data, DETECTED, limits)
-    if objects is not None:
-        area = _box_area(objects)
-        normalised = False
-    else:
-        msg = _decode_bounded(DetectedObjects, data, limits)
-        objects, area = records_of(DETECTED, msg.objects), np.array([_area(o.shape) for o in msg.objects])
-        env, normalised = msg, True
+    env, objects, models = _read_listed(DetectedObjects, data, DETECTED, limits)
+    area = _box_area(objects) if models is None else np.array([_area(o.shape) for o in models], dtype=np.float64)
     _check_objects(DetectedObjects.__name__, objects, limits, env.ego_pose)
-    return DetectedColumns(env.header, env.ego_pose, objects, area.reshape(-1), normalised)
+    return DetectedColumns(env.header, env.ego_pose, objects, area, models is not None)
 
 
 def read_tracked_objects(data: bytes, limits: Limits = LIMITS) -> TrackedColumns:
     """``data`` as :class:`TrackedColumns`; :class:`~.codec.DecodeError` (or :class:`LimitExceeded`) if not valid."""
-    env, objects = _read_listed(TrackedObjects, data, TRACKED, limits)
-    normalised = objects is None
-    if objects is None:
-        env = _decode_bounded(TrackedObjects, data, limits)
-        objects = records_of(TRACKED, env.objects)
+    env, objects, models = _read_listed(TrackedObjects, data, TRACKED, limits)
     _check_objects(TrackedObjects.__name__, objects, limits, env.ego_pose)
-    return TrackedColumns(env.header, env.ego_pose, objects, list(env.observed_track_ids), normalised)
+    return TrackedColumns(env.header, env.ego_pose, objects, list(env.observed_track_ids), models is not None)
 
 
 def read_track_observations(payloads: Sequence[bytes], limits: Limits = LIMITS) -> ObservationColumns:
@@ -196,7 +186,7 @@ def read_track_observations(payloads: Sequence[bytes], limits: Limits = LIMITS) 
             errors.append((i, LimitExceeded(TrackObservation.__name__, why, "beyond the configured limit")))
     keep = np.flatnonzero(ok)
     return ObservationColumns(keep, seq[keep], stamp[keep], DETECTED.select(dets, keep), TRACK_STATE.select(tracks, keep),
-                              sorted(errors, key=_first), normalised)
+                              sorted(errors, key=lambda e: e[0]), normalised)
 
 
 def peek_header(data: bytes) -> tuple[int, int] | None:
@@ -293,26 +283,27 @@ def _motion_layout(state: str, mode: str, frame_id: str) -> RecordLayout:
                                                     state=state, mode=mode, threshold=0.0, alpha=0.0, window_length=0))
 
 
-def _first(e: tuple[int, DecodeError]) -> int:
-    return e[0]
-
-
-def _decode_bounded(model: type[M], data: bytes, limits: Limits) -> M:
-    """The model's own reading of a payload in another form, its object count checked before validation."""
-    raw = unpack_map(model, data)
-    if isinstance(raw.get("objects"), list) and len(raw["objects"]) > limits.max_objects:
-        raise LimitExceeded(model.__name__, "objects", f"{len(raw['objects'])} objects exceed max_objects {limits.max_objects}")
-    return validate(model, raw)
-
-
-def _read_listed(model: type[BaseModel], data: bytes, layout: RecordLayout, limits: Limits
-                 ) -> tuple[Any, np.ndarray | None]:
-    """The envelope (every top-level field but ``objects``, validated by ``model``) and ``objects`` as records —
-    or ``(None, None)`` where the payload is not in that form (the caller asks the model). The payload's size and
-    the object count (from the list's header) are checked first, whatever the form."""
+def _read_listed(model: type[M], data: bytes, layout: RecordLayout, limits: Limits
+                 ) -> tuple[M, np.ndarray, list[Any] | None]:
+    """``data`` as ``model``: the envelope (every top-level field but ``objects``, validated by the model), the
+    objects as records of ``layout``, and — where the payload is not in the record shape and the model read it —
+    the model's objects (None otherwise). The size and the object count (from the list's header) are checked first,
+    whatever the form."""
     name = model.__name__
     if len(data) > limits.max_payload_bytes:
         raise LimitExceeded(name, "", f"{len(data)} bytes exceed max_payload_bytes {limits.max_payload_bytes}")
+    got = _view_listed(model, data, layout, limits)
+    if got is not None:
+        return got[0], got[1], None
+    raw = unpack_map(model, data)  # another form: the model decides, its object count checked first
+    if isinstance(raw.get("objects"), list) and len(raw["objects"]) > limits.max_objects:
+        raise LimitExceeded(name, "objects", f"{len(raw['objects'])} objects exceed max_objects {limits.max_objects}")
+    msg = validate(model, raw)
+    return msg, records_of(layout, msg.objects), msg.objects
+
+
+def _view_listed(model: type[M], data: bytes, layout: RecordLayout, limits: Limits) -> tuple[M, np.ndarray] | None:
+    """The envelope and a view of the objects when the payload is a map in the record shape; None otherwise."""
     up = msgpack.Unpacker(raw=False, strict_map_key=True, max_buffer_size=max(len(data), 1))
     env: dict[str, Any] = {}
     try:
@@ -321,35 +312,32 @@ def _read_listed(model: type[BaseModel], data: bytes, layout: RecordLayout, limi
         for k in range(keys):
             key = up.unpack()
             if key in env or not isinstance(key, str):
-                return None, None
+                return None
             if key != "objects":
                 env[key] = up.unpack()
                 continue
             n = up.read_array_header()
             if n > limits.max_objects:
-                raise LimitExceeded(name, "objects", f"{n} objects exceed max_objects {limits.max_objects}")
-            start = up.tell()
-            records = layout.view(memoryview(data)[start:start + n * layout.itemsize], n)
+                raise LimitExceeded(model.__name__, "objects", f"{n} objects exceed max_objects {limits.max_objects}")
+            start, end = up.tell(), up.tell() + n * layout.itemsize
+            records = layout.view(memoryview(data)[start:end], n)
             if records is None:
-                return None, None
+                return None
             rest = msgpack.Unpacker(raw=False, strict_map_key=True, max_buffer_size=max(len(data), 1))
-            rest.feed(memoryview(data)[start + n * layout.itemsize:])
+            rest.feed(memoryview(data)[end:])
             for _ in range(keys - k - 1):
                 key = rest.unpack()
                 if key in env or key == "objects" or not isinstance(key, str):
-                    return None, None
+                    return None
                 env[key] = rest.unpack()
-            if rest.tell() != len(data) - start - n * layout.itemsize:
-                return None, None
-            try:
-                return model.model_validate({**env, "objects": []}), records
-            except Exception:  # the model names what is wrong
-                return None, None
+            if rest.tell() != len(data) - end:
+                return None
+            return model.model_validate({**env, "objects": []}), records
     except LimitExceeded:
         raise
-    except Exception:  # malformed msgpack: the model's decoder says what is wrong
-        return None, None
-    return None, None
+    except Exception:  # malformed msgpack, or an envelope the model refuses: the model says what is wrong
+        return None
+    return None
 
 
 def _write_listed(head: dict[str, BaseModel], records: np.ndarray, tail: dict[str, Any]) -> bytes:
