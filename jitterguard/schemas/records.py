@@ -158,10 +158,11 @@ def _valid(s: Slot, col: np.ndarray, rows: np.ndarray) -> np.ndarray:
     """Per value: the checks :meth:`RecordLayout.valid_rows` does not batch (strings, 64-bit ints)."""
     if s.kind == "int64":
         return (col >= s.lo) & (col <= s.hi)
+    raw = rows[:, s.offset:s.offset + s.count]
     if s.table is not None:  # one lookup per byte instead of a regex per value (NUL is never in the class)
-        return s.table[rows[:, s.offset:s.offset + s.count]].all(axis=1)
-    ok = np.char.str_len(col) == s.count  # a trailing NUL byte shortens it: the model decides
-    for i in np.flatnonzero(ok).tolist():
+        return s.table[raw].all(axis=1)
+    ok = (raw != 0).all(axis=1)  # a NUL byte: the model decides
+    for i in np.flatnonzero(ok & ~(raw < 0x80).all(axis=1)).tolist():  # ASCII is valid UTF-8; the rest, one by one
         try:
             text = col[i].decode()
         except UnicodeDecodeError:

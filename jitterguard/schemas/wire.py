@@ -157,12 +157,14 @@ def read_track_observations(payloads: Sequence[bytes], limits: Limits = LIMITS) 
         if layout is None:
             general += idx
             continue
-        good = layout.valid_rows(b"".join(payloads[i] for i in idx), len(idx))
-        general += [i for i, g in zip(idx, good.tolist()) if not g]
-        rows = np.frombuffer(b"".join(payloads[i] for i in np.asarray(idx)[good].tolist()), np.uint8)
-        rows = rows.reshape(-1, layout.itemsize)
+        joined = b"".join([payloads[i] for i in idx])
+        good = layout.valid_rows(joined, len(idx))
+        rows = np.frombuffer(joined, np.uint8).reshape(len(idx), layout.itemsize)
+        if not good.all():
+            general += [i for i, g in zip(idx, good.tolist()) if not g]
+            rows = rows[good]
         take = np.asarray(idx, dtype=np.intp)[good]
-        rec = rows.reshape(-1).view(layout.dtype)
+        rec = np.ascontiguousarray(rows).reshape(-1).view(layout.dtype)
         seq[take], stamp[take] = rec["header.seq"], rec["header.stamp"]
         (a, b), (c, d) = layout.spans["detection"], layout.spans["track"]
         det_bytes[take], track_bytes[take] = rows[:, a:b], rows[:, c:d]
@@ -180,10 +182,14 @@ def read_track_observations(payloads: Sequence[bytes], limits: Limits = LIMITS) 
         det_bytes[i] = records_of(DETECTED, [msg.detection]).view(np.uint8)
         track_bytes[i] = records_of(TRACK_STATE, [msg.track]).view(np.uint8)
         ok[i], normalised = True, normalised + 1
-    for bad, why in _beyond(dets, limits, "detection.") + _beyond(tracks, limits, "track.", state=True):
-        for i in np.flatnonzero(bad & ok).tolist():
-            ok[i] = False
-            errors.append((i, LimitExceeded(TrackObservation.__name__, why, "beyond the configured limit")))
+    beyond = _beyond(dets, limits, "detection.") + _beyond(tracks, limits, "track.", state=True)
+    if np.logical_or.reduce([bad for bad, _ in beyond]).any():
+        for bad, why in beyond:
+            for i in np.flatnonzero(bad & ok).tolist():
+                ok[i] = False
+                errors.append((i, LimitExceeded(TrackObservation.__name__, why, "beyond the configured limit")))
+    if ok.all():
+        return ObservationColumns(np.arange(n), seq, stamp, dets, tracks, [], normalised)
     keep = np.flatnonzero(ok)
     return ObservationColumns(keep, seq[keep], stamp[keep], DETECTED.select(dets, keep), TRACK_STATE.select(tracks, keep),
                               sorted(errors, key=lambda e: e[0]), normalised)

@@ -3,7 +3,8 @@
 Zenoh gives no ordering between two subscribers, so ``tracks/{id}`` samples of frame *s* may arrive after
 the ``tracked`` message that closes *s*. The closing message lists the IDs it expects; a frame is complete
 when all of them are in, or when the straggler timeout has passed since its close arrived (then the missing
-ones are counted). Pure: the caller passes the clock.
+ones are counted). Which closes are taken at all — duplicates, late frames, jumps, a restarted tracker — is the
+:class:`~jitterguard.stream_order.StreamGuard`'s call. Pure: the caller passes the clock.
 
 The assembler only looks at a frame's seq and track IDs; what it stores per observation and per close is the
 caller's business (``*_item`` methods): the adapter stores the few numbers the core needs per observation and

@@ -1,10 +1,11 @@
-"""The tracker's Zenoh adapter: ``detections`` in; ``tracks/{id}`` per observed track, then ``tracked``.
+"""The tracker as a Zenoh service: ``detections`` in; ``tracks/{id}`` per observed track, then ``tracked``.
 
 Threading: a detections frame arrives through one callback that only copies the payload into an inbox queue
 (:meth:`~jitterguard.runtime.Service.subscribe_inbox`); one worker thread, blocked on that queue, wakes at once,
-reads the frame (:func:`~jitterguard.schemas.read_detected_objects`; a malformed or oversized payload is
-counted as ``rejected`` and skipped, one read by the model in another shape as ``normalised``), owns the :class:`TrackerCore` — nothing
-else touches it — and per frame publishes every ``tracks/{id}`` first (one declared publisher per live track,
+judges the frame's header (:mod:`jitterguard.stream_order`), reads it (:func:`~jitterguard.schemas.read_detected_objects`:
+a malformed or oversized payload is counted ``rejected`` and skipped, one the model read in another shape
+``normalised``), owns the :class:`TrackerCore` — nothing else touches it — and, through the adapter
+(:mod:`.adapter`), per frame publishes every ``tracks/{id}`` first (one declared publisher per live track,
 :class:`~jitterguard.runtime.keyed_publishers.KeyedPublishers`) and the closing ``tracked`` last (the classifier
 waits for the IDs that ``tracked.observed_track_ids`` names). All puts use BLOCK congestion control: a lost
 observation would silently shorten a classifier window. The inbox is bounded: when the worker falls behind, the
