@@ -108,7 +108,10 @@ class RecordLayout:
             elif s.kind == "bool":
                 rec[name] = np.where(np.asarray(values, dtype=bool), 0xC3, 0xC2)
             elif s.kind == "str":
-                arr = np.asarray([v.encode() if isinstance(v, str) else v for v in values], dtype=f"S{s.count}")
+                try:  # numpy encodes ASCII str itself, in C
+                    arr = np.asarray(values, dtype=f"S{s.count}")
+                except UnicodeEncodeError:
+                    arr = np.asarray([v.encode() if isinstance(v, str) else v for v in values], dtype=f"S{s.count}")
                 if n and (np.char.str_len(arr) != s.count).any():
                     raise ValueError(f"{name}: every value must be {s.count} bytes long")
                 rec[name] = arr

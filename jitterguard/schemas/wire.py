@@ -351,7 +351,7 @@ def _write_listed(head: dict[str, BaseModel], records: np.ndarray, tail: dict[st
     parts = [bytes([0x80 | (len(head) + len(tail) + 2)]), pack("schema_version"), pack(SCHEMA_VERSION)]
     for k, v in head.items():
         parts += [pack(k), pack(v.model_dump())]
-    parts += [pack("objects"), array_header(len(records)), RecordLayout.to_bytes(records)]
+    parts += [pack("objects"), array_header(len(records)), memoryview(records.view(np.uint8))]  # one copy, in join
     for k, v in tail.items():
         parts += [pack(k), pack(v)]
     return b"".join(parts)

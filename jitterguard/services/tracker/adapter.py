@@ -73,7 +73,10 @@ def world_detections(cols: DetectedColumns, frame: DetectionFrame, result: Frame
     out[wire.QX], out[wire.QY], out[wire.QZ], out[wire.QW] = quaternions_about_z(q, yaw).T
     out[wire.POSE_COV]["v"] = rotate_cov6(out[wire.POSE_COV]["v"], yaw)
     out[wire.VX], out[wire.VY] = rotate_xy(out[wire.VX], out[wire.VY], yaw)
-    out[wire.TWIST_COV]["v"] = rotate_cov6(out[wire.TWIST_COV]["v"], yaw)
+    tcov = out[wire.TWIST_COV]["v"]
+    moving = np.flatnonzero(tcov.any(axis=1))  # a zero covariance (no twist reported) rotates to itself
+    if moving.size:
+        out[wire.TWIST_COV]["v"][moving] = rotate_cov6(tcov[moving], yaw)
     return out
 
 
