@@ -166,7 +166,7 @@ class Service:
         self._declared.append(self.session.declare_subscriber(key, on_sample))
         return inbox
 
-    def subscribe_channel(self, key: str, capacity: int = 8192) -> zenoh.Subscriber:
+    def subscribe_channel(self, key: str, capacity: int = 16384) -> zenoh.Subscriber:
         """Subscribe ``key`` into a bounded ring channel that a worker drains with ``try_recv()``.
 
         No Python callback thread: samples wait in Zenoh's own (Rust) queue until the worker pulls them. At

@@ -46,8 +46,8 @@ CONFIG_APPLY_TIMEOUT_S = 2.0
 LATENCY_WINDOW = 4096
 LATENCY_BUCKETS_MS = (0.5, 1, 2, 5, 10, 20, 50, 100, 200, 500, 1000)
 """Frame-latency histogram buckets; exported as counters so the sidecar's /metrics can rebuild it."""
-CLOSE_QUEUE = 16
-"""``tracked`` messages waiting for the worker (0.8 s at 20 Hz); beyond that the oldest goes."""
+CLOSE_QUEUE = 64
+"""``tracked`` messages waiting for the worker (3.2 s at 20 Hz, as the tracker's inbox); beyond that the oldest goes."""
 OBS_CHUNK = 64
 """Observations validated per pass before the worker looks for a newly arrived ``tracked`` again."""
 IDLE_POLL_S = 0.0005
