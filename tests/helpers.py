@@ -7,6 +7,7 @@ from collections.abc import Callable, Iterable, Iterator
 
 from jitterguard.bench.tracker_sequences import SimFrame
 from jitterguard.geometry import quaternion_from_yaw
+from jitterguard.schemas import decode
 from jitterguard.schemas.models import (X_X, X_Y, Y_X, Y_Y, YAW_YAW, DetectedObject, DetectedObjectKinematics,
     DetectedObjects, Header, ObjectClassification, Point, Pose, PoseWithCovariance, Quaternion, Shape, Vector3)
 from jitterguard.sim.lidar import LidarSpec, ScanResult, cast_frame, hdl32e
@@ -63,3 +64,15 @@ def to_message(frame: SimFrame, *, with_covariance: bool = True) -> DetectedObje
         ego_pose=Pose(position=Point(x=d.ego_x, y=d.ego_y, z=0.0), orientation=Quaternion(x=qx, y=qy, z=qz, w=qw)),
         objects=objs,
     )
+
+
+def collector(store: dict, lock, kind: str, model):
+    """A Zenoh subscriber callback that decodes each sample as ``model`` (the wire's own validation) into
+    ``store[kind]`` under ``lock``: the tests' independent observer of what a service published."""
+    def cb(sample) -> None:
+        msg = decode(model, sample.payload.to_bytes())
+        with lock:
+            store[kind].append(msg)
+
+    return cb
+

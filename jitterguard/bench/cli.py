@@ -101,10 +101,21 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         scenario: Annotated[str, typer.Option("--scenario", help="Synthetic scenario the scans come from.")] = "mixed",
         seed: Annotated[int, typer.Option("--seed")] = 0,
         progress: Annotated[bool, typer.Option("--progress/--no-progress", help="Progress bar on stderr.")] = True,
+        backends: Annotated[
+            str | None,
+            typer.Option("--backends", help="torch or torch,onnxruntime (timed side by side in this process, scan"
+                         " by scan). Default: both when onnxruntime is installed."),
+        ] = None,
     ) -> None:
         """Time the detector end to end per HDL-32E scan (voxelisation, network, decode, NMS)."""
-        from .detector import SCENARIOS, run
+        from .detector import SCENARIOS, available_backends, run
 
+        chosen = available_backends() if backends is None else tuple(dict.fromkeys(
+            b.strip() for b in backends.split(",") if b.strip()))
+        if "torch" not in chosen or any(b not in ("torch", "onnxruntime") for b in chosen):
+            fail(f"--backends: expected torch or torch,onnxruntime, got {backends!r}")
+        if "onnxruntime" in chosen and "onnxruntime" not in available_backends():
+            fail("--backends: onnxruntime needs the onnxruntime, onnx and onnxscript packages (pip install 'jitterguard[onnx]')")
         names = _parse_presets(presets)
         if scenario not in SCENARIOS:
             fail(f"--scenario: expected one of {', '.join(SCENARIOS)}, got {scenario!r}")
@@ -121,7 +132,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
 
         try:
             result = run(names, scans=scans, warmup=warmup, threads=threads, weights=files, scenario=scenario,
-                         seed=seed, progress=progress)
+                         seed=seed, progress=progress, backends=chosen)
         except WeightsError as exc:
             fail(f"--weights: {_one_line(exc)}")
         if json_out:
@@ -134,12 +145,14 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         for col in ("preset", "points", "p50 ms", "p99 ms", "voxelize", "network", "decode", "detections"):
             table.add_column(col, justify="right")
         for name, row in result.items():
-            st = row["stages_ms"]
-            table.add_row(name, f"{row['points']:.0f}", f"{row['p50_ms']:.1f}", f"{row['p99_ms']:.1f}",
-                          f"{st['voxelize']:.1f}", f"{st['network']:.1f}", f"{st['decode']:.1f}",
-                          f"{row['detections']:.0f}")
+            for label, r in ((name, row), (f"{name} (onnxruntime)", row.get("onnxruntime"))):
+                if r is None:
+                    continue
+                st = r["stages_ms"]
+                table.add_row(label, f"{r['points']:.0f}", f"{r['p50_ms']:.1f}", f"{r['p99_ms']:.1f}",
+                              f"{st['voxelize']:.1f}", f"{st['network']:.1f}", f"{st['decode']:.1f}",
+                              f"{r['detections']:.0f}")
         Console().print(table)
-
 
     @bench_app.command("sidecar")
     def bench_sidecar(

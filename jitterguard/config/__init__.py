@@ -74,9 +74,11 @@ def preset_values(service: str, name: str) -> dict[str, Any]:
 
 
 def load(model: type[M], path: str | Path | None = None, *, service: str | None = None, preset: str | None = None,
-         overrides: dict[str, Any] | None = None, base: dict[str, Any] | None = None) -> M:
+         overrides: dict[str, Any] | None = None, base: dict[str, Any] | None = None,
+         flags: dict[str, str] | None = None) -> M:
     """``model`` from its defaults (or ``base``), then ``service``'s ``preset``, the file at ``path`` and the
-    ``overrides`` that are not None; ConfigError names the file and the field that fails."""
+    ``overrides`` that are not None (command-line flags: ``flags`` names each key's flag, ``--key-name`` if not);
+    ConfigError names the flag, or the file and the field, that fails."""
     values: dict[str, Any] = dict(base or {})
     origin = f"{model.__name__}"
     if preset is not None:
@@ -85,12 +87,17 @@ def load(model: type[M], path: str | Path | None = None, *, service: str | None 
     if path is not None:
         _merge(values, read_params(path))
         origin = str(path)
-    _merge(values, {k: v for k, v in (overrides or {}).items() if v is not None})
+    given = {k: v for k, v in (overrides or {}).items() if v is not None}
+    _merge(values, given)
     try:
         return model.model_validate(values)
     except ValidationError as exc:
         err = exc.errors(include_url=False)[0]
-        field = ".".join(str(p) for p in err.get("loc", ())) or "(top level)"
+        loc = err.get("loc", ())
+        if loc and loc[0] in given:  # a flag's value: name the flag
+            flag = (flags or {}).get(str(loc[0]), "--" + str(loc[0]).replace("_", "-"))
+            raise ConfigError(f"{flag}: {err.get('msg', 'invalid')}") from None
+        field = ".".join(str(p) for p in loc) or "(top level)"
         raise ConfigError(f"{origin}: {field}: {err.get('msg', 'invalid')}") from None
 
 

@@ -3,8 +3,8 @@
 from . import keys
 from .codec import DecodeError, decode, decode_with_raw, encode
 from .models import *  # noqa: F401,F403  (the models are the contract; re-export them all)
-from .models import SCHEMA_VERSION, ClassifierConfig, DetectedObjects, Label, MotionState, PointCloud, TrackedObjects
-from .models import TrackObservation
+from .models import SCHEMA_VERSION, ClassifierConfig, DetectedObjects, GroundTruthObjects, Label, MotionState, PointCloud
+from .models import TrackedObjects, TrackObservation
 from .wire import (
     DetectedColumns,
     LimitExceeded,
@@ -26,6 +26,7 @@ __all__ = [
     "DetectedColumns", "TrackedColumns", "ObservationColumns",
     "read_detected_objects", "write_detected_objects", "read_track_observations", "write_track_observations",
     "read_tracked_objects", "write_tracked_objects", "write_motion_states",
-    "SCHEMA_VERSION", "Label", "ClassifierConfig", "DetectedObjects", "MotionState", "PointCloud", "TrackedObjects",
+    "SCHEMA_VERSION", "Label", "ClassifierConfig", "DetectedObjects", "GroundTruthObjects", "MotionState", "PointCloud",
+    "TrackedObjects",
     "TrackObservation",
 ]

@@ -282,6 +282,29 @@ class TrackedObjects(Message):
     observed_track_ids: list[TrackId] = Field(default_factory=list)
 
 
+class GroundTruthObject(_Strict):
+    """One labelled object of a replayed frame, world frame (box centre, ``dimensions`` x = length)."""
+
+    instance_id: Annotated[str, StringConstraints(min_length=1, max_length=64)]
+    label: Annotated[int, Field(ge=0, le=7)] = Label.UNKNOWN
+    pose: Pose = Field(default_factory=Pose)
+    dimensions: Vector3 = Field(default_factory=Vector3)
+    velocity: Vector3 = Field(default_factory=Vector3)
+    moving: bool = Field(description="motion truth as the evaluator scores it (nuScenes attribute, else speed)")
+    attribute: Annotated[str, StringConstraints(max_length=64)] = ""
+
+
+class GroundTruthObjects(Message):
+    """Ground truth of one replayed frame, for viewers (Foxglove) and recorders; never an input of the pipeline.
+
+    Published by the replay on ``groundtruth`` when its source has labels (the synthetic world), before the frame's
+    ``points`` / ``detections``, with the same ``header.seq`` and ``stamp``; ``header.frame_id`` is the world frame.
+    """
+
+    header: Header
+    objects: list[GroundTruthObject] = Field(default_factory=list)
+
+
 MotionLabel = Literal["static", "dynamic", "undecided"]
 TestMode = Literal["z_test", "chi2", "velocity_threshold"]
 EffectiveN = Literal["cluster", "independent"]

@@ -36,6 +36,10 @@ class StackSpec:
     input: str = "auto"  # auto | points | detections | tracks
     sidecar: bool = True
     extra_env: dict[str, str] = field(default_factory=dict)
+    foxglove: bool = False  # the Foxglove WebSocket server (loopback, foxglove_port)
+    foxglove_port: int = 8765
+    record_mcap: str | None = None  # absolute path: the Foxglove channels recorded to MCAP
+    record_ros2: str | None = None  # absolute path: a rosbag2 for Autoware
 
     @property
     def endpoint(self) -> str:
@@ -75,6 +79,7 @@ def programs(spec: StackSpec) -> list[Program]:
     if spec.sidecar and has_area("jitterguard.services.sidecar.cli"):
         progs.append(Program("sidecar", _cmd("sidecar", *common, "--host", spec.sidecar_host,
                                              "--port", str(spec.sidecar_port)), priority=40))
+    progs += bridge_programs(spec, common)
     if mode == "tracks":
         progs.append(Program("replay", _cmd("feed-tracks", *common, "--loop"), priority=60, startsecs=2))
     else:
@@ -84,6 +89,23 @@ def programs(spec: StackSpec) -> list[Program]:
         # it the tracker sees a restarted source going on in time, not a recording rewound (see stream_order)
         progs.append(Program("replay", _cmd("replay", source, *common, "--loop", "--stamps", "wall", *flags),
                              priority=60, startsecs=2))
+    return progs
+
+
+def bridge_programs(spec: StackSpec, common: tuple[str, ...]) -> list[Program]:
+    """The optional viewers/recorders beside the pipeline: ``foxglove`` (server and/or MCAP) and ``record`` (ROS 2
+    bag). A recorder that supervisord restarts writes ``NAME.1``, ``NAME.2``, ... rather than over its last run."""
+    progs = []
+    if spec.foxglove or spec.record_mcap:
+        args = [*common, "--port", str(spec.foxglove_port)]
+        if not spec.foxglove:
+            args.append("--no-server")
+        if spec.record_mcap:
+            args += ["--record", spec.record_mcap, "--number-if-exists"]
+        progs.append(Program("foxglove", _cmd("foxglove", *args), priority=45))
+    if spec.record_ros2:
+        progs.append(Program("record", _cmd("record", *common, "--ros2", spec.record_ros2, "--number-if-exists"),
+                             priority=45))
     return progs
 
 

@@ -14,7 +14,8 @@ from .config import PRESETS, ClassifierParams
 
 def _load_config(path: str | None, preset: str | None, overrides: dict[str, object]) -> ClassifierParams:
     try:
-        return load(ClassifierParams, path, service="classifier", preset=preset, overrides=overrides)
+        return load(ClassifierParams, path, service="classifier", preset=preset, overrides=overrides,
+                    flags={"alpha_default": "--alpha"})
     except ConfigError as exc:
         fail(f"--config: {exc}" if path else str(exc))
 

@@ -19,6 +19,13 @@ WeightsOpt = Annotated[
     typer.Option("--weights", help="Weights file (torch.save dict, loaded weights_only). Default: the shipped"
                  " weights of --preset; without them a randomly initialised network (logged loudly)."),
 ]
+PresetOpt = Annotated[str, typer.Option("--preset", help=f"Architecture preset: {', '.join(PRESETS)}.")]
+BackendOpt = Annotated[str | None, typer.Option("--backend", help="What runs the network: torch or onnxruntime.")]
+OnnxDirOpt = Annotated[
+    str | None,
+    typer.Option("--onnx", help="onnxruntime backend: a folder written by `jitterguard export-onnx`. Default: export"
+                 " --weights / --preset at start-up into a temporary folder."),
+]
 ThreadsOpt = Annotated[
     int | None, typer.Option("--threads", min=1, max=1024, help="torch CPU threads (default: the machine's cores).")
 ]
@@ -85,18 +92,25 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         twist: Annotated[
             bool | None, typer.Option("--twist/--no-twist", help="Publish the network's velocity as the twist.")
         ] = None,
+        backend: BackendOpt = None,
+        onnx_dir: OnnxDirOpt = None,
         log_level: LogLevelOpt = "INFO",
     ) -> None:
         """Run the detector: points in; one DetectedObjects per scan (sensor frame, with variances) out."""
         try:
-            params = load(DetectorParams, config, overrides={"weights": weights, "preset": preset, "threads": threads,
-                                                             "score_threshold": score_threshold, "twist": twist})
+            params = load(DetectorParams, config, overrides={
+                "weights": weights, "preset": preset, "threads": threads, "score_threshold": score_threshold,
+                "twist": twist, "backend": backend, "onnx": onnx_dir})
         except ConfigError as exc:
             fail(f"--config: {exc}" if config else str(exc))
         if params.preset not in PRESETS:
             fail(f"--preset: expected one of {', '.join(PRESETS)}, got {params.preset!r}")
         if params.weights is not None and not os.path.isfile(params.weights):
             fail(f"--weights: file not found: {params.weights}")
+        if params.onnx is not None and (params.backend != "onnxruntime" or params.weights is not None):
+            fail("--onnx: goes with --backend onnxruntime and replaces --weights")
+        if params.onnx is not None and not os.path.isdir(params.onnx):
+            fail(f"--onnx: folder not found: {params.onnx}")
         opts = zenoh_options(ns, zenoh_config, connect, listen)
 
         from ...runtime import setup_logging
@@ -107,10 +121,16 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         from .service import DetectorService
 
         try:  # load before the session opens: a bad weights file fails before anything is on the network
-            det = Detector.load(params.weights, params.preset, threads=params.threads,
-                                score_threshold=params.score_threshold)
+            if params.backend == "onnxruntime":
+                from .onnx_backend import open_onnx_detector
+
+                det = open_onnx_detector(params.onnx, params.weights, params.preset, threads=params.threads,
+                                         score_threshold=params.score_threshold)
+            else:
+                det = Detector.load(params.weights, params.preset, threads=params.threads,
+                                    score_threshold=params.score_threshold)
         except WeightsError as exc:
-            fail(f"--weights: {_one_line(exc)}")
+            fail(f"{'--onnx' if params.onnx else '--weights'}: {_one_line(exc)}")
         try:
             service = DetectorService(opts, det, has_twist=params.twist)
         except ValueError as exc:  # build_config names the bad endpoint / setting

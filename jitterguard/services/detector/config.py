@@ -8,7 +8,7 @@ Kept free of torch so that data, evaluation and the service adapter import it ch
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Annotated
+from typing import Annotated, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -125,6 +125,9 @@ class DetectorParams(BaseModel):
     score_threshold: Annotated[float, Field(ge=0.0, le=1.0)] | None = Field(
         None, description="keep detections scoring above this (null: the weights' config)")
     twist: bool = Field(True, description="publish the network's velocity as the twist")
+    backend: Literal["torch", "onnxruntime"] = Field("torch", description="what runs the network")
+    onnx: str | None = Field(None, description="onnxruntime backend: a folder written by `jitterguard export-onnx`"
+                             " (null: export weights / preset at start-up into a temporary folder)")
 
 
 @dataclass(frozen=True)

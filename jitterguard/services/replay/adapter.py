@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-from ...schemas import DetectedObjects, PointCloud
+from ...schemas import DetectedObjects, GroundTruthObjects, PointCloud
 from ...schemas.models import Header
 from .frames import DetectionFrame, Frame, ScanFrame
 
@@ -27,6 +27,13 @@ def detections_message(frame: DetectionFrame, seq: int, stamp_ns: int) -> Detect
         ego_pose=frame.pose.to_schema(),
         objects=frame.objects,
     )
+
+
+def truth_for(frame: Frame, seq: int, stamp_ns: int) -> GroundTruthObjects | None:
+    """The frame's labels under the seq and stamp its ``points`` / ``detections`` go out with, if it has any."""
+    if frame.truth is None:
+        return None
+    return frame.truth.model_copy(update={"header": Header(stamp=stamp_ns, frame_id=frame.truth.header.frame_id, seq=seq)})
 
 
 def message_for(frame: Frame, seq: int, stamp_ns: int) -> PointCloud | DetectedObjects:

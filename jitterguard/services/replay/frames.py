@@ -22,7 +22,7 @@ from ...geometry import (
     rotation_from_quaternion,
     yaw_from_quaternion,
 )
-from ...schemas.models import DetectedObject, Point, Pose, Quaternion
+from ...schemas.models import DetectedObject, GroundTruthObjects, Point, Pose, Quaternion
 
 DEFAULT_PERIOD_NS = 100_000_000
 """10 Hz: the stamp spacing used for recordings that carry no time (KITTI without times.txt, loose PCDs)."""
@@ -89,6 +89,8 @@ class ScanFrame:
     origin: str
     """Where it came from (file name, ``bag:topic#index``): named in every message about this frame."""
     frame_id: str = "lidar"
+    truth: GroundTruthObjects | None = field(default=None, repr=False, compare=False)
+    """The frame's labels when the source has them (its header is filled in when published)."""
 
     def __post_init__(self) -> None:
         if self.points.ndim != 2 or self.points.shape[1] != len(self.fields):
@@ -106,6 +108,7 @@ class DetectionFrame:
     objects: list[DetectedObject]
     origin: str
     frame_id: str = "lidar"
+    truth: GroundTruthObjects | None = field(default=None, repr=False, compare=False)
 
 
 @dataclass(frozen=True)

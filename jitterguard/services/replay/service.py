@@ -12,7 +12,7 @@ from collections.abc import Callable
 
 from ...runtime import Service, ZenohOptions
 from ...schemas import encode, keys
-from .adapter import message_for
+from .adapter import message_for, truth_for
 from .frames import Frame, FrameError, ScanFrame
 from .pacing import Clock
 from .runner import ReplayPlan, ReplayStats, run_replay
@@ -31,6 +31,7 @@ class ReplayService(Service):
         self.kind = kind
         self.key = keys.points(self.ns) if kind == "points" else keys.detections(self.ns)
         self.pub = self.publisher(self.key, block=True)
+        self._truth_pub: object | None = None  # declared with the first frame that has labels
 
     def wait_for_subscribers(self, timeout_s: float) -> bool:
         """Wait until some subscriber matches our key (a replay into the void loses its first frames)."""
@@ -46,6 +47,12 @@ class ReplayService(Service):
     def emit(self, frame: Frame, seq: int, stamp_ns: int) -> None:
         if (self.kind == "points") != isinstance(frame, ScanFrame):
             raise TypeError(f"{frame.origin}: a {type(frame).__name__} cannot go on {self.key}")
+        truth = truth_for(frame, seq, stamp_ns)
+        if truth is not None:  # before the frame, so a viewer holds the labels when the frame's results close it
+            if self._truth_pub is None:
+                self._truth_pub = self.publisher(keys.groundtruth(self.ns), block=False)
+            self._truth_pub.put(encode(truth))  # type: ignore[attr-defined]
+            self.counters.inc("groundtruth_published")
         self.pub.put(encode(message_for(frame, seq, stamp_ns)))
         self.counters.inc("published")
         self.last_seq = seq
