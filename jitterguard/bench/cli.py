@@ -197,6 +197,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         rate: Annotated[float, typer.Option("--rate", min=0.1, help="Frames per second.")] = 20.0,
         duration: Annotated[float, typer.Option("--duration", min=1.0, help="Seconds of load.")] = 60.0,
         seed: Annotated[int, typer.Option("--seed")] = 0,
+        churn: Annotated[int, typer.Option("--churn", min=0, help="Objects moved to a new place each frame, so N "
+                                                                  "new track IDs a frame (default 0).")] = 0,
         split: Annotated[bool, typer.Option("--split", help="Also time detections -> tracked (to_tracked_ms); "
                                                               "the extra subscriber adds load.")] = False,
         as_json: Annotated[bool, typer.Option("--json", help="JSON on stdout (the only output format).")] = True,
@@ -204,7 +206,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         """Detections -> tracker -> classifier -> objects through real processes: latency, losses, RSS growth."""
         from .pipeline import bench_pipeline
 
-        res = bench_pipeline(objects, rate, duration, seed, split=split)
+        res = bench_pipeline(objects, rate, duration, seed, split=split, churn=churn)
         print(json.dumps(res, indent=None if as_json else 2))
 
     @bench_app.command("tracker-mot")

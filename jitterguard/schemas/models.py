@@ -415,3 +415,6 @@ class Heartbeat(Message):
     last_seq: int = -1
     uptime_s: Annotated[float, Field(ge=0.0)] = 0.0
     counters: dict[str, int] = Field(default_factory=dict)
+    health: Literal["ok", "failing", "stalled"] = Field(
+        "ok", description="whether the service turns its input into output (jitterguard.runtime.progress)")
+    health_reason: Annotated[str, Field(max_length=500)] = ""

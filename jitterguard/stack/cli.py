@@ -37,15 +37,17 @@ def _ctl(run_dir: Path, *args: str, check: bool = False) -> subprocess.Completed
 
 def _wait_for_objects(ns: str, endpoint: str, timeout: float) -> float | None:
     """Seconds until the first classified ``objects`` arrives, or None."""
-    import zenoh
-
-    from ..runtime import ZenohOptions, build_config
+    from ..runtime import ZenohOptions, build_config, open_session
     from ..schemas import keys
 
     got: list[float] = []
     t0 = time.monotonic()
-    cfg = build_config(ZenohOptions(ns=ns, connect=(endpoint,), listen=()))
-    with zenoh.open(cfg) as session:
+    cfg = build_config(ZenohOptions(ns=ns, connect=(endpoint,)))
+    try:  # a client of the stack's router, which supervisord may still be starting
+        session = open_session(cfg, timeout_s=timeout)
+    except Exception:
+        return None
+    with session:
         sub = session.declare_subscriber(keys.objects(ns), lambda s: got.append(time.monotonic()))
         while not got and time.monotonic() - t0 < timeout:
             time.sleep(0.05)

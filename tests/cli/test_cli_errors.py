@@ -50,3 +50,15 @@ def test_help_lists_the_commands():
     assert res.returncode == 0
     for cmd in ("classifier", "router", "up", "down", "status", "logs", "bench", "feed-tracks"):
         assert cmd in res.stdout
+
+
+def test_an_unwritable_config_store_names_where_it_came_from(tmp_path):
+    """``config_store`` is a field of the classifier's parameter file as well as a flag: a bad one is refused
+    before anything starts, named as the user gave it."""
+    bad = tmp_path / "no-such-dir" / "store.json"
+    res = run(["classifier", "--config-store", str(bad)])
+    assert res.returncode == 2 and res.stderr.count("\n") == 1 and "--config-store" in res.stderr
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(f"/**:\n  ros__parameters:\n    config_store: {bad}\n    open_config_writes: true\n")
+    res = run(["classifier", "--config", str(cfg)])
+    assert res.returncode == 2 and "config_store" in res.stderr and "--config-store" not in res.stderr

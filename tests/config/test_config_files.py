@@ -67,3 +67,17 @@ def test_a_bad_file_names_the_file_and_the_key(tmp_path) -> None:
         load(DetectorParams, p)
     with pytest.raises(ConfigError, match="not found"):
         load(DetectorParams, tmp_path / "nope.yaml")
+
+
+def test_the_classifiers_process_fields_come_from_its_file_but_never_travel(tmp_path) -> None:
+    """``config_store`` and ``open_config_writes`` (start-up only) are read from the parameter file; the config
+    that travels on the queryable (``wire()``) has neither."""
+    from jitterguard.services.classifier.config import ClassifierParams
+
+    path = tmp_path / "c.param.yaml"
+    path.write_text("/**:\n  ros__parameters:\n    config_store: /var/lib/jg/c.json\n    open_config_writes: true\n"
+                    "    alpha_default: 3.0\n")
+    params = load(ClassifierParams, path, service="classifier")
+    assert params.config_store == "/var/lib/jg/c.json" and params.open_config_writes is True
+    wire = params.wire().model_dump()
+    assert wire["alpha_default"] == 3.0 and "config_store" not in wire and "open_config_writes" not in wire

@@ -11,7 +11,7 @@ import pytest
 import yaml
 import zenoh
 
-from jitterguard.runtime import ZenohOptions, build_config, free_tcp_port
+from jitterguard.runtime import ZenohOptions, build_config, free_tcp_port, open_session
 from jitterguard.schemas import decode, keys
 from jitterguard.schemas.models import Heartbeat
 from jitterguard.stack.supervisor import StackSpec, programs
@@ -80,8 +80,8 @@ def test_up_with_foxglove_and_both_recordings_until_down(tmp_path) -> None:
     assert res.returncode == 0, res.stderr
     beats: dict[str, Heartbeat] = {}
     try:
-        cfg = build_config(ZenohOptions(ns=ns, connect=(f"tcp/127.0.0.1:{router}",), listen=()))
-        with zenoh.open(cfg) as s:
+        cfg = build_config(ZenohOptions(ns=ns, connect=(f"tcp/127.0.0.1:{router}",)))
+        with open_session(cfg, timeout_s=60) as s:  # a client of the stack's router, which may be starting
             def on_beat(x: zenoh.Sample) -> None:
                 hb = decode(Heartbeat, x.payload.to_bytes())
                 beats[hb.service] = hb

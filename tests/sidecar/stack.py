@@ -53,6 +53,7 @@ from jitterguard.schemas.models import (
     TwistWithCovariance,
     Vector3,
 )
+from jitterguard.services.classifier.config_writes import ConfigWritePolicy
 from jitterguard.services.classifier.service import ClassifierService
 from jitterguard.services.sidecar.app import SidecarSettings, create_app
 
@@ -265,7 +266,8 @@ class Stack:
 def start_stack(ns: str, token: str | None = None, *, window_ready: bool = True) -> Stack:
     """Classifier listening on a free port; feeder and sidecar connect to it; wait until state flows."""
     zport = free_tcp_port()
-    classifier = ClassifierService(loopback_options(ns, zport, listen_self=True))
+    writes = ConfigWritePolicy(token=token) if token else ConfigWritePolicy.open()
+    classifier = ClassifierService(loopback_options(ns, zport, listen_self=True), config_writes=writes)
     tracks = scenario()
     feeder = Feeder(ns, zport, tracks)
     app = create_app(SidecarSettings(zenoh=loopback_options(ns, zport), api_token=token))

@@ -22,8 +22,8 @@ from helpers import to_message, wait_until
 from jitterguard.bench.pipeline import stop_processes, vm_rss_kb
 from jitterguard.bench.tracker_sequences import CAR, Obj, make_sequence
 from jitterguard.runtime import build_config, free_tcp_port, loopback_options
-from jitterguard.schemas import encode, keys, peek_header
-from jitterguard.schemas.models import Header
+from jitterguard.schemas import decode, encode, keys, peek_header
+from jitterguard.schemas.models import Header, Heartbeat
 from jitterguard.services.classifier.service import ClassifierService
 from jitterguard.services.classifier.synthetic_tracks import FrameRecords, TrackScenario, generate
 from jitterguard.services.tracker.service import TrackerService
@@ -101,6 +101,9 @@ def test_a_flood_of_tracked_keeps_the_classifier_bounded_and_objects_resume() ->
     client = zenoh.open(build_config(loopback_options(ns, port)))
     seen: list[int] = []
     client.declare_subscriber(keys.objects(ns), lambda s: seen.append(peek_header(s.payload.to_bytes())[0]))
+    beats: list[Heartbeat] = []  # the classifier's counters
+    client.declare_subscriber(keys.heartbeat(ns, "classifier"),
+                              lambda s: beats.append(decode(Heartbeat, s.payload.to_bytes())))
     pool = [FrameRecords.of(f) for f in generate(TrackScenario(n_static=10, n_moving=10, n_starting=0, seed=4), 20)]
     block = zenoh.CongestionControl.BLOCK
 
@@ -154,6 +157,11 @@ def test_a_flood_of_tracked_keeps_the_classifier_bounded_and_objects_resume() ->
         assert resumed, f"objects did not resume within 2 s after the flood ({took:.2f} s)"
         assert peak < 2 * baseline, f"RSS {peak} kB against a baseline of {baseline} kB"
         assert proc.poll() is None
+        # The replayed frames are old and the far seqs never confirmed: dropped and counted, nothing reset.
+        assert wait_until(lambda: beats and beats[-1].last_seq == i, 5)  # a heartbeat after the live frame
+        counters = beats[-1].counters
+        assert counters.get("frames.upstream_restarts", 0) == 0 and counters.get("frames.jumps", 0) == 0, counters
+        assert counters.get("frames.duplicate_or_late_frames", 0) > 0, counters
     finally:
         client.close()
         stop_processes([proc])

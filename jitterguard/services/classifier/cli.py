@@ -3,6 +3,8 @@ Commands import their implementation when they run (start-up time: see :mod:`jit
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
 from typing import Annotated
 
 import typer
@@ -34,18 +36,36 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         min_window: Annotated[int | None, typer.Option("--min-window")] = None,
         mode: Annotated[str | None, typer.Option("--mode", help="z_test, chi2 or velocity_threshold.")] = None,
         effective_n: Annotated[str | None, typer.Option("--effective-n", help="cluster or independent.")] = None,
+        config_store: Annotated[str | None, typer.Option(
+            "--config-store", envvar="JG_CONFIG_STORE",
+            help="JSON file keeping config writes across restarts (restored while the flags stay the same).")] = None,
+        open_config_writes: Annotated[bool, typer.Option(
+            "--open-config-writes", help="Accept config writes over Zenoh without a token (when JG_API_TOKEN is "
+                                         "unset). Only where the router listens on loopback alone.")] = False,
         log_level: LogLevelOpt = "INFO",
     ) -> None:
         """Run the motion classifier service: tracks/* + tracked in, motion/{id} + objects out."""
         from ...runtime import setup_logging
+        from .config_store import ConfigStore
+        from .config_writes import ConfigWritePolicy
         from .service import ClassifierService
 
         opts = zenoh_options(ns, zenoh_config, connect, listen)
         params = _load_config(config, preset, {"alpha_default": alpha, "window_size": window_size,
-                                               "min_window": min_window, "mode": mode, "effective_n": effective_n})
+                                               "min_window": min_window, "mode": mode, "effective_n": effective_n,
+                                               "config_store": config_store,
+                                               "open_config_writes": open_config_writes or None})
+        store = None
+        if params.config_store:
+            path = Path(params.config_store).absolute()
+            if path.is_dir() or not path.parent.is_dir() or not os.access(path.parent, os.W_OK):
+                fail(f"{'--config-store' if config_store else 'config_store'}: {params.config_store} must be a file in a writable directory")
+            store = ConfigStore(path)
         setup_logging(log_level)
         ClassifierService(opts, params.wire(), straggler_timeout_s=params.straggler_timeout_s, limits=params.limits,
-                          stream=params.stream, manage_gc=True).run_forever()
+                          stream=params.stream, manage_gc=True, config_store=store,
+                          config_writes=ConfigWritePolicy.from_env(open_writes=params.open_config_writes)
+                          ).run_forever()
 
     @app.command("feed-tracks")
     def feed_tracks_cmd(
@@ -69,14 +89,20 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
 
     @app.command("router")
     def router_cmd(
-        listen: Annotated[list[str] | None, typer.Option("--listen", help="Endpoint(s); default tcp/127.0.0.1:7447.")] = None,
+        listen: Annotated[list[str] | None, typer.Option(
+            "--listen", help="Endpoint(s); default: the config file's, else tcp/127.0.0.1:7447. Off loopback only "
+                             "tls/ with mutual TLS.")] = None,
         zenoh_config: ZenohConfigOpt = None,
         log_level: LogLevelOpt = "INFO",
     ) -> None:
         """Run a Zenoh router in this Python process (no separate zenohd binary needed)."""
         from ...runtime import setup_logging
-        from ...runtime.router import run_router
+        from ...runtime.router import router_config, run_router
 
+        try:
+            router_config(list(listen or ()), zenoh_config)
+        except ValueError as exc:
+            fail(str(exc))
         setup_logging(log_level)
-        run_router(list(listen or ["tcp/127.0.0.1:7447"]), zenoh_config)
+        run_router(list(listen or ()), zenoh_config)
 

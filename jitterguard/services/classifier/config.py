@@ -28,6 +28,13 @@ class ClassifierParams(ClassifierConfig):
         default_factory=StreamLimits, description="how far a tracked frame may step from the last one taken; a"
         " discontinuity (the tracker restarted or rewound, a long gap) is followed only once successive frames"
         " confirm it")
+    config_store: str | None = Field(
+        None, min_length=1, description="JSON file keeping config writes across restarts (restored while the"
+        " start-up config stays the same); none: writes last until the classifier stops (flag --config-store,"
+        " env JG_CONFIG_STORE)")
+    open_config_writes: bool = Field(
+        False, description="accept config writes over Zenoh without a token when JG_API_TOKEN is unset; only where"
+        " the router listens on loopback alone")
 
     def wire(self) -> ClassifierConfig:
         """The part that travels on the config queryable."""

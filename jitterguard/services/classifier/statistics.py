@@ -89,8 +89,14 @@ def window_statistics(windows: F64, masks: HalfMasks, *, variance_floor: float, 
     """z_x, z_y (eq. 1 with eq. 2) and the 2-D χ² statistic for every window in the batch.
 
     ``windows`` is ``(K, W, 5)`` over :data:`CHANNELS`. Each half's means of all five channels come out of
-    one weighted contraction, so the cost is two passes over the batch whatever the statistic.
+    one weighted contraction, so the cost is two passes over the batch whatever the statistic. A statistic
+    that overflows saturates (:func:`_saturate`).
     """
+    with np.errstate(over="ignore", invalid="ignore"):
+        return _window_statistics(windows, masks, variance_floor=variance_floor, independent=independent)
+
+
+def _window_statistics(windows: F64, masks: HalfMasks, *, variance_floor: float, independent: bool) -> WindowStats:
     n_old, n_new = masks.n_old, masks.n_new
     w_old = masks.old / np.maximum(n_old, 1.0)[:, None]
     w_new = masks.new / np.maximum(n_new, 1.0)[:, None]
@@ -120,9 +126,20 @@ def window_statistics(windows: F64, masks: HalfMasks, *, variance_floor: float, 
 
     n_all = np.maximum(n_old + n_new, 1.0)
     return WindowStats(
-        z_x=z_x,
-        z_y=z_y,
-        chi2=chi2,
-        mean_x=(m_old[0] * n_old + m_new[0] * n_new) / n_all,
-        mean_y=(m_old[1] * n_old + m_new[1] * n_new) / n_all,
+        z_x=_saturate(z_x),
+        z_y=_saturate(z_y),
+        chi2=_saturate(chi2),
+        # weights before sums: n * mean overflows for positions near the float limit, the weighted mean does not
+        mean_x=m_old[0] * (n_old / n_all) + m_new[0] * (n_new / n_all),
+        mean_y=m_old[1] * (n_old / n_all) + m_new[1] * (n_new / n_all),
     )
+
+
+_MAX = float(np.finfo(np.float64).max)
+
+
+def _saturate(stat: F64) -> F64:
+    """A statistic that overflowed (positions ~1e300 apart square to inf; inf - inf is NaN) is beyond any
+    threshold: the largest finite float, so the decision is "dynamic" and every message carrying it stays valid
+    (the wire contract, and the classifier's own readers, reject non-finite numbers)."""
+    return np.clip(np.nan_to_num(stat, nan=_MAX, posinf=_MAX, neginf=0.0), 0.0, _MAX)

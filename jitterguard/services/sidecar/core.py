@@ -7,10 +7,8 @@ PATCH means, which field a 422 names, when a bind is refused) is unit-tested wit
 
 from __future__ import annotations
 
-import ipaddress
 import json
 import math
-import socket
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Annotated, Any, Literal
@@ -18,6 +16,7 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, Strict, ValidationError, create_model
 from pydantic.fields import FieldInfo
 
+from ...runtime.bind_policy import is_loopback
 from ...schemas.models import (
     LABEL_NAMES,
     ClassifierConfig,
@@ -95,8 +94,19 @@ class HealthView(BaseModel):
     status: Literal["ok"]
 
 
+class ServiceHealthView(BaseModel):
+    """One service of the pipeline as its latest heartbeat describes it."""
+
+    health: Literal["ok", "failing", "stalled"] = Field(
+        description="ok, failing (frames keep failing) or stalled (input arrives, no output)")
+    reason: str = Field(description="why not ok ('' when ok)")
+    heartbeat_age_s: float = Field(ge=0.0, description="seconds since this heartbeat arrived")
+    last_seq: int = Field(description="the last frame seq the service reported")
+
+
 class ReadyView(BaseModel):
-    """Readiness: the classifier's liveliness token is present and its heartbeat is recent."""
+    """Readiness: the classifier's liveliness token is present and its heartbeat is recent, and no service of the
+    pipeline reports (in a recent heartbeat) that its frames fail or its output stalled."""
 
     ready: bool
     reason: str = Field(description="why not ready, or 'ok'")
@@ -104,6 +114,15 @@ class ReadyView(BaseModel):
     heartbeat_age_s: float | None = Field(description="seconds since the last classifier heartbeat, if any")
     last_seq: int | None = Field(description="the last frame seq the classifier reported in its heartbeat")
     state_seq: int | None = Field(description="seq of the state snapshot the sidecar serves, if any")
+    services: dict[str, ServiceHealthView] = Field(
+        default_factory=dict, description="every service heard from in the namespace, by name")
+
+
+def pipeline_problems(services: Mapping[str, Mapping[str, Any]], stale_after_s: float) -> list[str]:
+    """``"tracker failing: ..."`` for each service whose heartbeat, still recent, reports no progress (a stale
+    heartbeat is a service gone or restarting: liveliness says that, not its last words)."""
+    return [f"{name} {v['health']}: {v['reason']}" for name, v in sorted(services.items())
+            if v["health"] != "ok" and v["heartbeat_age_s"] <= stale_after_s]
 
 
 # ----------------------------------------------------------------------------------------- config models
@@ -464,21 +483,6 @@ def latency_histogram(counters: Mapping[str, int]) -> Histogram | None:
 
 
 # ----------------------------------------------------------------------------------------- bind policy
-
-
-def is_loopback(host: str) -> bool:
-    """True if every address ``host`` names is a loopback address (``localhost`` and 127/8, ::1)."""
-    h = host.strip("[]")
-    try:
-        return ipaddress.ip_address(h).is_loopback
-    except ValueError:
-        pass
-    try:
-        infos = socket.getaddrinfo(h, None)
-    except (socket.gaierror, UnicodeError):
-        return False
-    addrs = {str(info[4][0]) for info in infos}
-    return bool(addrs) and all(ipaddress.ip_address(a.split("%", 1)[0]).is_loopback for a in addrs)
 
 
 def bind_refusal(host: str, token: str | None) -> str | None:

@@ -5,7 +5,7 @@ Threading: a detections frame arrives through one callback that only copies the 
 judges the frame's header (:mod:`jitterguard.stream_order`), reads it (:func:`~jitterguard.schemas.read_detected_objects`:
 a malformed or oversized payload is counted ``rejected`` and skipped, one the model read in another shape
 ``normalised``), owns the :class:`TrackerCore` — nothing else touches it — and, through the adapter
-(:mod:`.adapter`), per frame publishes every ``tracks/{id}`` first (one declared publisher per live track,
+(:mod:`.adapter`), per frame publishes every ``tracks/{id}`` first (plain puts per key,
 :class:`~jitterguard.runtime.keyed_publishers.KeyedPublishers`) and the closing ``tracked`` last (the classifier
 waits for the IDs that ``tracked.observed_track_ids`` names). All puts use BLOCK congestion control: a lost
 observation would silently shorten a classifier window. The inbox is bounded: when the worker falls behind, the
@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import queue
 import threading
+import time
 from collections.abc import Callable
 
 from ...runtime import Service, ZenohOptions
@@ -68,7 +69,8 @@ class TrackerService(Service):
         super().__init__(opts)
         self._det_key = keys.detections(self.ns)
         self._tracked_pub = self.publisher(keys.tracked(self.ns))
-        self._det_inbox = self.subscribe_inbox(self._det_key, capacity=FRAME_CHANNEL)
+        self.monitor_progress()  # detections in -> tracked out (runtime.progress)
+        self._det_inbox = self.subscribe_inbox(self._det_key, capacity=FRAME_CHANNEL, progress=True)
         self._track_pubs = self.keyed_publishers(lambda tid: keys.track(self.ns, tid))
         if static_hints:
             self.subscribe(keys.motion_all(self.ns), MotionState, self._on_motion)
@@ -101,11 +103,13 @@ class TrackerService(Service):
                     verdict = self.core.check_order(*head, now_s=arrived)
                 except FrameRejected as rej:
                     self.counters.inc(f"dropped_{rej.reason}")
+                    self.progress.output(time.monotonic())  # dealt with: dropped and counted
                     continue
             try:
                 cols = read_detected_objects(payload, self.core.config.limits)
             except DecodeError as exc:
                 self.reject(exc, self._det_key)
+                self.progress.output(time.monotonic())  # dealt with: rejected and counted
                 continue
             if cols.normalised:
                 self.counters.inc("normalised.detections")
@@ -113,9 +117,12 @@ class TrackerService(Service):
             try:
                 self._apply_hints()
                 self.process(cols, verdict)
-            except Exception:  # a bug must not silently stop tracking: count, log, go on with the next frame
+            except Exception as exc:  # a bug must not silently stop tracking: count, log, go on with the next frame
                 self.counters.inc("handler_errors")
+                self.progress.failure(time.monotonic(), f"{type(exc).__name__}: {exc}"[:200])
                 self.log.exception("frame seq %d failed", cols.header.seq)
+            else:
+                self.progress.output(time.monotonic())  # published, or dropped on purpose (counted)
 
     def _apply_hints(self) -> None:
         with self._hints_lock:
@@ -147,16 +154,15 @@ class TrackerService(Service):
         elif result.jumped:
             self.counters.inc("jumps")
             self.log.warning("detections jumped ahead to seq %d (confirmed): tracks kept", frame.seq)
-        self._publish(observation_payloads(cols, frame, result), result.tracks.ids)
+        self._publish(observation_payloads(cols, frame, result))
         self._tracked_pub.put(tracked_payload(cols, frame, result))  # built after the observations went out
         self.counters.inc("frames")
         self.counters.inc("tracks_born", len(result.born))
         self.counters.inc("tracks_deleted", len(result.deleted))
         self.last_seq = frame.seq
 
-    def _publish(self, observations: list[tuple[str, bytes]], live_ids: list[str]) -> None:
-        """Put each ``tracks/{id}`` (one declared publisher per live track; ``tracked`` follows)."""
-        self._track_pubs.retain(live_ids)
+    def _publish(self, observations: list[tuple[str, bytes]]) -> None:
+        """Put each ``tracks/{id}`` (``tracked`` follows)."""
         for tid, payload in observations:
             self._track_pubs.put(tid, payload)
         self.counters.inc("published", len(observations) + 1)
