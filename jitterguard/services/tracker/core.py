@@ -27,12 +27,18 @@ from .association import assign, gate, overlapping
 from .config import ConfigTables, TrackerConfig, default_config
 from .arrays import DetectionFrame, FrameResult, TrackSnapshot, WorldDetections
 from .kalman import CTRV, STATE_DIM, wrap_pi
-from .lifecycle import TrackTable, new_track_id
+from .lifecycle import Seen, TrackTable, new_track_id
 
 F64 = NDArray[np.float64]
 
 UNMEASURED_YAW_VAR = 1e6
 """Heading variance given to a detection without a usable heading: the update then leaves the heading alone."""
+
+
+def _seen(f: DetectionFrame, det: WorldDetections, idx: NDArray[np.intp]) -> Seen:
+    """What the detections ``idx`` tell their tracks besides the filtered position."""
+    return Seen(f.label[idx], f.label_prob[idx], f.existence[idx], det.z[idx],
+                np.stack([f.length[idx], f.width[idx], f.height[idx]], axis=1), f.orientation[idx])
 
 
 class FrameRejected(Exception):
@@ -121,11 +127,7 @@ class TrackerCore:
             kalman.clamp(xr, tr.model[rows], tb.max_speed[lbl], tb.max_yaw_rate[lbl])
             tr.x[rows] = xr
             tr.P[rows] = Pr
-            tr.record_hits(
-                rows, stamp, frame.label[cols], frame.label_prob[cols], frame.existence[cols], det.z[cols],
-                np.stack([frame.length[cols], frame.width[cols], frame.height[cols]], axis=1),
-                frame.orientation[cols], cfg.confirm_hits, cfg.shape_smoothing,
-            )
+            tr.record_hits(rows, stamp, _seen(frame, det, cols), cfg.confirm_hits, cfg.shape_smoothing)
 
         # ---- delete what the lifecycle rules expire (before births: a newborn never expires at once)
         if n:
@@ -233,11 +235,8 @@ class TrackerCore:
         pv = tb.p0_vel[lbl] ** 2
         P0[:, 3, 3] = pv
         P0[:, 4, 4] = np.where(model == CTRV, tb.p0_yaw_rate[lbl] ** 2, pv)
-        dims = np.stack([f.length[idx], f.width[idx], f.height[idx]], axis=1)
-        return self.tracks.append(
-            x0, P0, f.stamp_ns, model, f.label[idx], f.label_prob[idx], f.existence[idx], det.z[idx], dims,
-            f.orientation[idx], self.config.confirm_hits, self.id_factory,
-        )
+        return self.tracks.append(x0, P0, f.stamp_ns, model, _seen(f, det, idx), self.config.confirm_hits,
+                                  self.id_factory)
 
     def _snapshot(self, rows: NDArray[np.intp], cols: NDArray[np.intp]
                   ) -> tuple[TrackSnapshot, NDArray[np.intp], NDArray[np.intp]]:
