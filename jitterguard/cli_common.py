@@ -29,6 +29,15 @@ LogLevelOpt = Annotated[str, typer.Option("--log-level", help="DEBUG, INFO, WARN
 ParamFileOpt = Annotated[str | None, typer.Option(
     "--config", help="Parameter file (flat, or Autoware's ros__parameters form) overriding the service's defaults"
     " in jitterguard/config/<service>.param.yaml; the flags below override it.")]
+ProgressOpt = Annotated[
+    bool | None, typer.Option("--progress/--no-progress", help="Progress bar on stderr (default: when stderr is a terminal).")
+]
+
+
+def progress_on(flag: bool | None) -> bool:
+    """Whether to draw a progress bar: as asked, else only on a terminal (a redirected log gets no carriage
+    returns)."""
+    return sys.stderr.isatty() if flag is None else flag
 
 
 def fail(message: str) -> NoReturn:

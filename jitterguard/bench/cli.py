@@ -13,11 +13,12 @@ from typing import Annotated
 
 import typer
 
-from ..cli_common import fail, parse_float
+from ..cli_common import ProgressOpt, fail, parse_float, progress_on
 from ..services.detector.cli import ThreadsOpt, _one_line, passive_openmp
 from ..services.detector.config import PRESETS
 from ..services.replay.frames import SourceError
 from ..sim.cli import LidarOpt, _check
+from .survival import survival_command
 
 
 def _parse_sizes(text: str) -> tuple[int, ...]:
@@ -44,6 +45,8 @@ def result_threads(result: dict) -> str:
 
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 - only bench commands here
     """Add every benchmark to ``jitterguard bench``."""
+    bench_app.command("track-survival")(survival_command)
+
     @bench_app.command("classifier")
     def bench_classifier_cmd(
         as_json: Annotated[bool, typer.Option("--json", help="Print JSON (the only format).")] = True,
@@ -100,7 +103,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         ] = None,
         scenario: Annotated[str, typer.Option("--scenario", help="Synthetic scenario the scans come from.")] = "mixed",
         seed: Annotated[int, typer.Option("--seed")] = 0,
-        progress: Annotated[bool, typer.Option("--progress/--no-progress", help="Progress bar on stderr.")] = True,
+        progress: ProgressOpt = None,
         backends: Annotated[
             str | None,
             typer.Option("--backends", help="torch or torch,onnxruntime (timed side by side in this process, scan"
@@ -108,6 +111,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         ] = None,
     ) -> None:
         """Time the detector end to end per HDL-32E scan (voxelisation, network, decode, NMS)."""
+        progress = progress_on(progress)
         from .detector import SCENARIOS, available_backends, run
 
         chosen = available_backends() if backends is None else tuple(dict.fromkeys(

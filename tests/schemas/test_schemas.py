@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import math
+import sys
 
 import msgpack
 import numpy as np
@@ -244,8 +245,10 @@ def _got_objects(records) -> list[dict]:
     return [msgpack.unpackb(RecordLayout.to_bytes(records[k:k + 1])) for k in range(len(records))]
 
 
-_NO_LIMITS = wire.Limits(max_abs_coordinate_m=1.7e308, max_abs_speed_mps=1.7e308, max_variance=1.7e308)
-"""The limits are tested on their own below; here the read functions must agree with the model exactly."""
+_NO_LIMITS = wire.Limits(max_abs_coordinate_m=sys.float_info.max, max_abs_speed_mps=sys.float_info.max,
+                         max_variance=sys.float_info.max)
+"""The limits are tested on their own below; here the read functions must agree with the model exactly (every
+finite value is within these; hypothesis once drew 1.7000000000000001e+308, just past a rounder bound)."""
 
 
 def _read(model, payload):

@@ -27,7 +27,7 @@ from .association import assign, gate, overlapping
 from .config import ConfigTables, TrackerConfig, default_config
 from .arrays import DetectionFrame, FrameResult, TrackSnapshot, WorldDetections
 from .kalman import CTRV, STATE_DIM, wrap_pi
-from .lifecycle import Seen, TrackTable, new_track_id
+from .lifecycle import Confirmation, Seen, TrackTable, new_track_id
 
 F64 = NDArray[np.float64]
 
@@ -56,6 +56,7 @@ class TrackerCore:
                  id_factory: Callable[[], str] = new_track_id) -> None:
         self.config = config or default_config()
         self.tables: ConfigTables = self.config.tables()
+        self.confirmation = Confirmation(self.tables.confirm_hits, self.config.confirm_min_existence)
         self.id_factory = id_factory
         self.tracks = TrackTable()
         self.guard = StreamGuard(self.config.stream)
@@ -127,7 +128,7 @@ class TrackerCore:
             kalman.clamp(xr, tr.model[rows], tb.max_speed[lbl], tb.max_yaw_rate[lbl])
             tr.x[rows] = xr
             tr.P[rows] = Pr
-            tr.record_hits(rows, stamp, _seen(frame, det, cols), cfg.confirm_hits, cfg.shape_smoothing)
+            tr.record_hits(rows, stamp, _seen(frame, det, cols), self.confirmation, cfg.shape_smoothing)
 
         # ---- delete what the lifecycle rules expire (before births: a newborn never expires at once)
         if n:
@@ -235,7 +236,7 @@ class TrackerCore:
         pv = tb.p0_vel[lbl] ** 2
         P0[:, 3, 3] = pv
         P0[:, 4, 4] = np.where(model == CTRV, tb.p0_yaw_rate[lbl] ** 2, pv)
-        return self.tracks.append(x0, P0, f.stamp_ns, model, _seen(f, det, idx), self.config.confirm_hits,
+        return self.tracks.append(x0, P0, f.stamp_ns, model, _seen(f, det, idx), self.confirmation,
                                   self.id_factory)
 
     def _snapshot(self, rows: NDArray[np.intp], cols: NDArray[np.intp]
