@@ -5,11 +5,11 @@ CenterPoint detector on ray-cast / recorded scans (:mod:`.detector_input`, ``--i
 (ground truth, ``DetectedObjects``) pairs to :func:`track_and_classify`.
 
 Why in-process and through the same functions as the services: what is measured offline must be what runs
-live. Each frame goes through exactly the adapters' conversions — ``frame_from_message`` into the tracker
-core, ``frame_payloads`` out of it (the ``TrackObservation`` payloads the tracker publishes, decoded here with
-the model as the classifier does on receipt), ``observations_from_messages`` into the classifier core, and
-``retain`` with the tracker's reported IDs. Two classifier cores (z-test and velocity threshold) see the
-identical observations, so their comparison is not confounded by tracking.
+live. Each frame goes through exactly the services' seams — the ``detections`` payload read by
+:func:`~jitterguard.schemas.read_detected_objects` into the tracker core through the tracker's adapter, the
+``tracks/{id}`` and ``tracked`` payloads it writes fed, as bytes, to two :class:`ClassifierAdapter` s (z-test and
+velocity threshold) exactly as the classifier service feeds its own. Both see the identical payloads, so their
+comparison is not confounded by tracking.
 
 Pure: frames in, a :class:`Records` table out; no files, no clock. Deterministic given ``seed``.
 """
@@ -24,12 +24,11 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment  # type: ignore[import-untyped]
 
-from ..schemas import decode, encode
-from ..schemas.models import ClassifierConfig, DetectedObjects, TrackedObjects, TrackObservation
-from ..services.classifier.core import MotionClassifierCore
-from ..services.classifier.service import observations_from_messages
+from ..schemas import encode, read_detected_objects
+from ..schemas.models import ClassifierConfig
+from ..services.classifier.adapter import ClassifierAdapter, FrameOutput
+from ..services.tracker.adapter import detection_frame, observation_payloads, tracked_payload
 from ..services.tracker.config import TrackerConfig, default_config
-from ..services.tracker.convert import detections_codec, frame_from_message, frame_payloads
 from ..services.tracker.core import FrameRejected, TrackerCore
 from ..sim.detection_model import DetectionModel, NoiseConfig
 from ..sim.world import GroundTruthFrame
@@ -116,63 +115,62 @@ def run_pipeline(frames: Iterable[GroundTruthFrame], noise: NoiseConfig, seed: i
     """
     det_model = DetectionModel(noise, seed)
     it = progress(frames) if progress is not None else frames
-    return track_and_classify(((gt, det_model.detect(gt).detections) for gt in it), classifier, tracker,
+    return track_and_classify(((gt, encode(det_model.detect(gt).detections)) for gt in it), classifier, tracker,
                               match_distance_m)
 
 
-def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame, DetectedObjects]],
+def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame, bytes]],
                        classifier: ClassifierConfig | None = None, tracker: TrackerConfig | None = None,
                        match_distance_m: float = MATCH_DISTANCE_M) -> Records:
     """TrackerCore → MotionClassifierCore (z_test and velocity_threshold) over (ground truth, detections) pairs.
 
-    The detections are whatever feeds the live tracker — the noise model's output or the detector service's
-    ``DetectedObjects`` — so both ``--input`` modes share everything from here on; the ground truth (world
+    The detections are the ``DetectedObjects`` payloads that feed the live tracker — the noise model's output as
+    the replay publishes it, or the detector service's — so both ``--input`` modes share everything from here on; the ground truth (world
     frame) only labels the tracks. ``classifier``'s ``mode`` is overridden per core.
     """
     base = classifier or ClassifierConfig()
     trk = TrackerCore(tracker or default_config(), _id_factory())
-    core_z = MotionClassifierCore(base.model_copy(update={"mode": "z_test"}))
-    core_v = MotionClassifierCore(base.model_copy(update={"mode": "velocity_threshold"}))
+    limits = trk.config.limits
+    adapters = [ClassifierAdapter(base.model_copy(update={"mode": m}), limits=limits)
+                for m in ("z_test", "velocity_threshold")]
     cols: dict[str, list] = {k: [] for k in ("t_s", "seq", "track_id", "label", "z", "speed", "window", "state_z",
                                              "state_v", "gt_instance", "gt_dynamic", "group", "alpha")}
     t0: int | None = None
-    det_codec = detections_codec()  # the tracker service's own decoding of `detections`
-    for gt, msg in inputs:
+    for gt, payload in inputs:
         t0 = gt.stamp_ns if t0 is None else t0
-        frame = frame_from_message(msg)
+        det = read_detected_objects(payload, limits)
+        frame = detection_frame(det)
         try:
             result = trk.step(frame)
         except FrameRejected:
             continue
-        obs_payloads, closing = frame_payloads(det_codec.decode(encode(msg)), frame, result)
-        obs_msgs = [decode(TrackObservation, p) for _, p in obs_payloads]
-        reported = np.asarray([o.object_id for o in decode(TrackedObjects, closing).objects], dtype="S32")
-        if obs_msgs:
-            obs = observations_from_messages(obs_msgs, frame.seq, frame.stamp_ns)
-            dz = core_z.update(obs)
-            dv = core_v.update(obs)
-            txy = np.array([[m.track.x, m.track.y] for m in obs_msgs], dtype=np.float64)
-            gi = match_tracks(txy, gt.centers[:, :2], match_distance_m)
-            n = len(obs_msgs)
-            cols["t_s"].append(np.full(n, (gt.stamp_ns - t0) * 1e-9))
-            cols["seq"].append(np.full(n, gt.seq))
-            cols["track_id"].append(np.array([m.track.object_id for m in obs_msgs]))
-            cols["label"].append(obs.labels.astype(np.int64))
-            cols["z"].append(np.maximum(dz.z_x, dz.z_y))
-            cols["speed"].append(np.asarray(obs.speed, dtype=np.float64))
-            cols["window"].append(dz.window_length.astype(np.int64))
-            cols["state_z"].append(dz.state.astype(np.int8))
-            cols["state_v"].append(dv.state.astype(np.int8))
-            cols["alpha"].append(dz.alpha.astype(np.float64))
-            inst = np.where(gi >= 0, gt.instance_ids[np.maximum(gi, 0)] if gt.num_objects else -1, -1)
-            cols["gt_instance"].append(inst.astype(np.int64))
-            cols["gt_dynamic"].append(np.array(
-                [is_dynamic(gt.attributes[g], bool(gt.moving[g])) if g >= 0 else False for g in gi.tolist()],
-                dtype=bool))
-            cols["group"].append(np.array(
-                [(group_of(int(gt.labels[g])) or "") if g >= 0 else "" for g in gi.tolist()], dtype="U12"))
-        core_z.retain(reported)
-        core_v.retain(reported)
+        observations = [p for _, p in observation_payloads(det, frame, result)]
+        oz, ov = (_classify(a, observations, tracked_payload(det, frame, result)) for a in adapters)
+        if oz.decided is None or ov.decided is None:
+            continue
+        obs, dz, dv = oz.observed, oz.decided, ov.decided
+        where = {t.encode(): k for k, t in enumerate(result.tracks.ids)}
+        rows = np.array([where[t] for t in obs.track_ids.tolist()], dtype=np.intp)
+        txy = np.column_stack([result.tracks.x[rows], result.tracks.y[rows]])
+        gi = match_tracks(txy, gt.centers[:, :2], match_distance_m)
+        n = len(obs)
+        cols["t_s"].append(np.full(n, (gt.stamp_ns - t0) * 1e-9))
+        cols["seq"].append(np.full(n, gt.seq))
+        cols["track_id"].append(obs.track_ids.astype("U32"))
+        cols["label"].append(obs.labels.astype(np.int64))
+        cols["z"].append(np.maximum(dz.z_x, dz.z_y))
+        cols["speed"].append(np.asarray(obs.speed, dtype=np.float64))
+        cols["window"].append(dz.window_length.astype(np.int64))
+        cols["state_z"].append(dz.state.astype(np.int8))
+        cols["state_v"].append(dv.state.astype(np.int8))
+        cols["alpha"].append(dz.alpha.astype(np.float64))
+        inst = np.where(gi >= 0, gt.instance_ids[np.maximum(gi, 0)] if gt.num_objects else -1, -1)
+        cols["gt_instance"].append(inst.astype(np.int64))
+        cols["gt_dynamic"].append(np.array(
+            [is_dynamic(gt.attributes[g], bool(gt.moving[g])) if g >= 0 else False for g in gi.tolist()],
+            dtype=bool))
+        cols["group"].append(np.array(
+            [(group_of(int(gt.labels[g])) or "") if g >= 0 else "" for g in gi.tolist()], dtype="U12"))
 
     def cat(k: str, dtype: Any) -> np.ndarray:
         return np.concatenate(cols[k]).astype(dtype) if cols[k] else np.empty(0, dtype=dtype)
@@ -185,6 +183,17 @@ def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame, DetectedObjects]
         alpha=cat("alpha", np.float64), velocity_threshold=float(base.velocity_threshold),
         min_window=int(base.min_window),
     )
+
+
+def _classify(adapter: ClassifierAdapter, observations: list[bytes], closing: bytes) -> FrameOutput:
+    """One frame through a classifier adapter as the service runs it: the observations, then the close; every
+    observation is in, so the frame is complete at once."""
+    adapter.observations(observations)
+    adapter.close(closing, 0.0)
+    (frame,) = adapter.ready(0.0)
+    out = adapter.finish(frame)
+    adapter.settle(out)
+    return out
 
 
 def concat_records(parts: list[Records], tags: list[str]) -> Records:

@@ -67,12 +67,16 @@ class Message(_Strict):
     schema_version: Literal[1] = SCHEMA_VERSION
 
 
-class Header(_Strict):
-    """``std_msgs/Header`` with an integer stamp (ns since epoch) and a monotonically increasing ``seq``."""
+Int64 = Annotated[int, Field(ge=0, le=2**63 - 1)]
+"""A non-negative int that fits the wire's int64 (and numpy's): a stamp 2^64 - 1 is refused on receipt, not later."""
 
-    stamp: NonNegativeInt
+
+class Header(_Strict):
+    """``std_msgs/Header`` with an integer stamp (ns since epoch, int64) and a monotonically increasing ``seq``."""
+
+    stamp: Int64
     frame_id: str = "map"
-    seq: NonNegativeInt = 0
+    seq: Int64 = 0
 
 
 class Point(_Strict):
@@ -247,7 +251,7 @@ class TrackState(_Strict):
     yaw: float = 0.0
     vx: float = 0.0
     vy: float = 0.0
-    hits: NonNegativeInt = 0
+    hits: Int64 = 0
     age_s: Annotated[float, Field(ge=0.0)] = 0.0
 
 
@@ -268,9 +272,12 @@ class TrackedObjects(Message):
 
     The tracker publishes one ``tracks/{id}`` per ID in ``observed_track_ids`` before this message, so the
     classifier knows which stragglers to wait for. The classifier's ``objects`` output leaves it empty.
+    ``ego_pose`` is the sensor's pose in the world frame at ``header.stamp``, copied from the ``detections``
+    the frame came from (identity where unknown): the line of sight to each object, and the ego frame to draw.
     """
 
     header: Header
+    ego_pose: Pose = Field(default_factory=Pose)
     objects: list[TrackedObject] = Field(default_factory=list)
     observed_track_ids: list[TrackId] = Field(default_factory=list)
 
@@ -316,7 +323,7 @@ class MotionState(Message):
     chi2: float = 0.0
     threshold: float = Field(description="the value the statistic was compared with (alpha, χ² quantile or m/s)")
     alpha: float
-    window_length: NonNegativeInt
+    window_length: Int64
     speed: Annotated[float, Field(ge=0.0)] = 0.0
     mean_x: float = 0.0
     mean_y: float = 0.0
@@ -359,25 +366,6 @@ class ClassifierConfig(Message):
         return self.alpha_per_class.get(LABEL_NAMES.get(label, "unknown"), self.alpha_default)
 
 
-AUTHORS_ALPHA = {
-    "car": 2.58,
-    "truck": 2.58,
-    "bus": 2.58,
-    "trailer": 1.64,
-    "motorcycle": 1.96,
-    "bicycle": 1.64,
-    "pedestrian": 1.28,
-    "unknown": 1.96,
-}
-"""The per-class alpha the paper's authors deployed (DESIGN.md); the ``authors`` preset."""
-
-PRESETS: dict[str, dict[str, object]] = {
-    "paper": {"alpha_default": 1.96, "alpha_per_class": {}},
-    "authors": {"alpha_default": 1.96, "alpha_per_class": dict(AUTHORS_ALPHA)},
-}
-"""Named config presets; applying one keeps every other field as it is."""
-
-
 class ConfigReply(Message):
     """The classifier's answer to a config get/set: what is in force now, or why the write was refused."""
 
@@ -397,7 +385,7 @@ class TrackStateEntry(_Strict):
     chi2: float
     alpha: float
     threshold: float
-    window_length: NonNegativeInt
+    window_length: Int64
     window_size: NonNegativeInt
     speed: float
     x: float

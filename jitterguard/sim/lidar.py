@@ -21,7 +21,6 @@ Without it the ideal scan comes out bit for bit as before.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -462,12 +461,3 @@ def _cast_moving(frame: GroundTruthFrame, prims: Primitives, owner: NDArray[np.i
 def scan(frame: GroundTruthFrame, sensor: LidarSpec | None = None, seed: int = 0) -> F32:
     """(P, 4) float32 x, y, z, intensity in the sensor frame: one full turn of ``sensor`` (HDL-32E by default)."""
     return cast_frame(frame, sensor, seed)[0].points
-
-
-def iter_scans(scenario: Iterable[GroundTruthFrame], sensor: LidarSpec | None = None, seed: int = 0
-               ) -> Iterator[tuple[GroundTruthFrame, ScanResult]]:
-    """Every frame of a scenario with its scan: (frame with point counts and ray-cast visibility, scan)."""
-    spec = sensor or hdl32e()
-    for frame in scenario:
-        res, f = cast_frame(frame, spec, seed)
-        yield f, res

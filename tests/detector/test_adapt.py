@@ -30,11 +30,11 @@ from jitterguard.services.detector.targets import build_targets
 from jitterguard.sim.export import export_scenario
 from jitterguard.sim.world import make_scenario
 
-TINY = dataclasses.replace(
-    LITE, name="tiny", point_cloud_range=(-12.8, -12.8, -3.0, 12.8, 12.8, 3.0), voxel_size=(0.2, 0.2, 6.0),
+TINY = LITE.model_copy(update=dict(
+    name="tiny", point_cloud_range=(-12.8, -12.8, -3.0, 12.8, 12.8, 3.0), voxel_size=(0.2, 0.2, 6.0),
     pfn_channels=8, backbone_layers=(1, 1, 1), backbone_channels=(8, 16, 16), neck_channels=(8, 8, 8),
     head_channels=8, max_pillars=4000,
-)
+))
 
 
 @pytest.fixture(autouse=True)

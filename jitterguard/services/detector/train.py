@@ -28,6 +28,7 @@ import json
 import logging
 import math
 import os
+import sys
 import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import nullcontext
@@ -401,8 +402,6 @@ def _json_default(o: Any) -> Any:
 def _bar(enabled: bool, total: int, initial: int) -> Any:
     if not enabled:
         return None
-    import sys
-
-    from tqdm import tqdm
+    from tqdm import tqdm  # only when a bar is asked for
 
     return tqdm(total=total, initial=initial, unit="step", file=sys.stderr, dynamic_ncols=True)
