@@ -70,10 +70,11 @@ def read_unlabelled(specs: Sequence[str], *, max_scans: int | None = None,
     —, a folder of KITTI ``.bin`` scans or one file, PCD, bags), points picked by field name as the detector
     service picks them. KITTI-style reflectance in 0…1 is scaled to 0…255 (a scan whose intensities all lie
     in [0, 1]). Raises :class:`~..replay.frames.SourceError` naming the recording."""
+    # the replay's readers (and through them rosbags, PCD) load only when scans are read, not when the CLI starts
     from ..replay.frames import IDENTITY, ScanFrame, SourceError
     from ..replay.sources import SourceOptions, open_source
     from ..replay.sources.nuscenes import _load_table, find_version, is_nuscenes_root
-    from .convert import points_from_fields
+    from .adapter import points_from_fields
 
     out: list[UnlabelledScan] = []
     for spec in specs:
