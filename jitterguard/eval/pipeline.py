@@ -16,8 +16,9 @@ Pure: frames in, a :class:`Records` table out; no files, no clock. Deterministic
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -26,7 +27,9 @@ from scipy.optimize import linear_sum_assignment  # type: ignore[import-untyped]
 
 from ..schemas import decode, encode
 from ..schemas.models import ClassifierConfig, DetectedObjects, TrackedObjects, TrackObservation
+from ..services.classifier.calibration import NoiseModel, OnlineCalibration
 from ..services.classifier.core import MotionClassifierCore
+from ..services.classifier.pipeline import sensor_position
 from ..services.classifier.service import observations_from_messages
 from ..services.tracker.config import TrackerConfig, default_config
 from ..services.tracker.convert import detections_codec, frame_from_message, frame_payloads
@@ -42,7 +45,9 @@ NOISE_PRESETS: dict[str, Callable[[], NoiseConfig]] = {
     "clean": NoiseConfig.clean,
     "jittery": NoiseConfig.jittery,
     "paper": NoiseConfig.paper_like,
+    "oracle": NoiseConfig.oracle,
 }
+"""Noise presets of ``--input gt-noise``; all but ``oracle`` report variances with a real detector's errors."""
 
 
 def match_tracks(track_xy: NDArray[np.float64], gt_xy: NDArray[np.float64],
@@ -69,8 +74,10 @@ class Records:
     """One row per (frame, observed track): the tracker/classifier outputs and the matched ground truth.
 
     ``z`` is max(z_x, z_y) of the z-test core; ``speed`` the tracker's speed (what the velocity-threshold rule
-    reads); ``state_z`` / ``state_v`` the two cores' decisions (0 undecided, 1 static, 2 dynamic).
-    ``group`` is '' for tracks matched to no ground truth (false positives): they are not scored.
+    reads, against its per-class ``speed_threshold``); ``state_z`` / ``state_v`` the two cores' decisions
+    (0 undecided, 1 static, 2 dynamic). ``group`` is the matched object's evaluation group, '' for tracks
+    matched to no ground truth (ghosts: scored as static truth in ``ghost.*`` by ``track_group``, the group
+    of the track's own label); ``gt_attribute`` / ``gt_speed`` the matched object's attribute and speed.
     """
 
     t_s: NDArray[np.float64]
@@ -88,6 +95,11 @@ class Records:
     alpha: NDArray[np.float64]
     velocity_threshold: float
     min_window: int
+    gt_attribute: NDArray[np.str_] = field(default_factory=lambda: np.empty(0, dtype="U32"))
+    gt_speed: NDArray[np.float64] = field(default_factory=lambda: np.empty(0))
+    speed_threshold: NDArray[np.float64] = field(default_factory=lambda: np.empty(0))
+    track_group: NDArray[np.str_] = field(default_factory=lambda: np.empty(0, dtype="U12"))
+    window_size: int = 10
 
     def __len__(self) -> int:
         return int(self.t_s.shape[0])
@@ -108,7 +120,8 @@ def run_pipeline(frames: Iterable[GroundTruthFrame], noise: NoiseConfig, seed: i
                  classifier: ClassifierConfig | None = None, tracker: TrackerConfig | None = None,
                  match_distance_m: float = MATCH_DISTANCE_M,
                  progress: Callable[[Iterable[GroundTruthFrame]], Iterable[GroundTruthFrame]] | None = None,
-                 ) -> Records:
+                 calibration: OnlineCalibration | None = None, variance_scale: float = 1.0,
+                 calibration_model: NoiseModel | None = None) -> Records:
     """Run GT → DetectionModel → TrackerCore → MotionClassifierCore (z_test and velocity_threshold).
 
     ``classifier`` supplies alpha / window / velocity threshold; its ``mode`` is overridden per core.
@@ -117,27 +130,58 @@ def run_pipeline(frames: Iterable[GroundTruthFrame], noise: NoiseConfig, seed: i
     det_model = DetectionModel(noise, seed)
     it = progress(frames) if progress is not None else frames
     return track_and_classify(((gt, det_model.detect(gt).detections) for gt in it), classifier, tracker,
-                              match_distance_m)
+                              match_distance_m, calibration=calibration, variance_scale=variance_scale,
+                              calibration_model=calibration_model)
+
+
+def scale_variances(msg: DetectedObjects, factor: float) -> DetectedObjects:
+    """``msg`` with every detection's reported position covariance (the x/y block and its cross terms with
+    z / roll / pitch / yaw, so the 6×6 stays consistent) multiplied by ``factor``: a detector off by a
+    constant factor (``jitterguard eval --variance-scale``)."""
+    if factor == 1.0:
+        return msg
+    r = math.sqrt(factor)
+    objects = []
+    for o in msg.objects:
+        cov = list(o.kinematics.pose_with_covariance.covariance)
+        for i in range(6):
+            for j in range(6):
+                k = (i < 2) + (j < 2)
+                if k:
+                    cov[6 * i + j] *= factor if k == 2 else r
+        pwc = o.kinematics.pose_with_covariance.model_copy(update={"covariance": tuple(cov)})
+        kin = o.kinematics.model_copy(update={"pose_with_covariance": pwc})
+        objects.append(o.model_copy(update={"kinematics": kin}))
+    return msg.model_copy(update={"objects": objects})
 
 
 def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame, DetectedObjects]],
                        classifier: ClassifierConfig | None = None, tracker: TrackerConfig | None = None,
-                       match_distance_m: float = MATCH_DISTANCE_M) -> Records:
+                       match_distance_m: float = MATCH_DISTANCE_M, *, calibration: OnlineCalibration | None = None,
+                       variance_scale: float = 1.0, calibration_model: NoiseModel | None = None) -> Records:
     """TrackerCore → MotionClassifierCore (z_test and velocity_threshold) over (ground truth, detections) pairs.
 
     The detections are whatever feeds the live tracker — the noise model's output or the detector service's
     ``DetectedObjects`` — so both ``--input`` modes share everything from here on; the ground truth (world
     frame) only labels the tracks. ``classifier``'s ``mode`` is overridden per core.
+
+    ``calibration``: the online calibration to continue (pooled recordings of one drive share it; it is
+    updated in place); ``variance_scale`` multiplies every reported variance before the tracker
+    (:func:`scale_variances`); ``calibration_model``: the scales for ``calibration: file``.
     """
     base = classifier or ClassifierConfig()
     trk = TrackerCore(tracker or default_config(), _id_factory())
-    core_z = MotionClassifierCore(base.model_copy(update={"mode": "z_test"}))
-    core_v = MotionClassifierCore(base.model_copy(update={"mode": "velocity_threshold"}))
+    core_z = MotionClassifierCore(base.model_copy(update={"mode": "z_test"}), calibration_model=calibration_model,
+                                  online=calibration)
+    # the baseline reads only speeds: it needs no calibration
+    core_v = MotionClassifierCore(base.model_copy(update={"mode": "velocity_threshold", "calibration": "off"}))
     cols: dict[str, list] = {k: [] for k in ("t_s", "seq", "track_id", "label", "z", "speed", "window", "state_z",
-                                             "state_v", "gt_instance", "gt_dynamic", "group", "alpha")}
+                                             "state_v", "gt_instance", "gt_dynamic", "group", "alpha",
+                                             "gt_attribute", "gt_speed", "speed_threshold", "track_group")}
     t0: int | None = None
     det_codec = detections_codec()  # the tracker service's own decoding of `detections`
     for gt, msg in inputs:
+        msg = scale_variances(msg, variance_scale)
         t0 = gt.stamp_ns if t0 is None else t0
         frame = frame_from_message(msg)
         try:
@@ -146,9 +190,10 @@ def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame, DetectedObjects]
             continue
         obs_payloads, closing = frame_payloads(det_codec.decode(encode(msg)), frame, result)
         obs_msgs = [decode(TrackObservation, p) for _, p in obs_payloads]
-        reported = np.asarray([o.object_id for o in decode(TrackedObjects, closing).objects], dtype="S32")
+        closed = decode(TrackedObjects, closing)
+        reported = np.asarray([o.object_id for o in closed.objects], dtype="S32")
         if obs_msgs:
-            obs = observations_from_messages(obs_msgs, frame.seq, frame.stamp_ns)
+            obs = observations_from_messages(obs_msgs, frame.seq, frame.stamp_ns, sensor_position(closed.ego_pose))
             dz = core_z.update(obs)
             dv = core_v.update(obs)
             txy = np.array([[m.track.x, m.track.y] for m in obs_msgs], dtype=np.float64)
@@ -171,6 +216,12 @@ def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame, DetectedObjects]
                 dtype=bool))
             cols["group"].append(np.array(
                 [(group_of(int(gt.labels[g])) or "") if g >= 0 else "" for g in gi.tolist()], dtype="U12"))
+            cols["gt_attribute"].append(np.array([gt.attributes[g] if g >= 0 else "" for g in gi.tolist()],
+                                                 dtype="U32"))
+            gspeed = np.hypot(gt.velocities[:, 0], gt.velocities[:, 1]) if gt.num_objects else np.zeros(0)
+            cols["gt_speed"].append(np.where(gi >= 0, gspeed[np.maximum(gi, 0)] if gt.num_objects else 0.0, np.nan))
+            cols["speed_threshold"].append(dv.threshold.astype(np.float64))
+            cols["track_group"].append(np.array([group_of(int(lb)) or "" for lb in obs.labels.tolist()], dtype="U12"))
         core_z.retain(reported)
         core_v.retain(reported)
 
@@ -183,7 +234,9 @@ def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame, DetectedObjects]
         window=cat("window", np.int64), state_z=cat("state_z", np.int8), state_v=cat("state_v", np.int8),
         gt_instance=cat("gt_instance", np.int64), gt_dynamic=cat("gt_dynamic", bool), group=cat("group", "U12"),
         alpha=cat("alpha", np.float64), velocity_threshold=float(base.velocity_threshold),
-        min_window=int(base.min_window),
+        min_window=int(base.min_window), gt_attribute=cat("gt_attribute", "U32"), gt_speed=cat("gt_speed", np.float64),
+        speed_threshold=cat("speed_threshold", np.float64), track_group=cat("track_group", "U12"),
+        window_size=int(base.window_size),
     )
 
 
@@ -192,7 +245,7 @@ def concat_records(parts: list[Records], tags: list[str]) -> Records:
     deterministic IDs restart in every run, and two runs' tracks must never merge."""
     if not parts:
         raise ValueError("nothing to pool")
-    if len({(p.velocity_threshold, p.min_window) for p in parts}) != 1:
+    if len({(p.velocity_threshold, p.min_window, p.window_size) for p in parts}) != 1:
         raise ValueError("pooled runs must share the classifier operating point")
     kw: dict[str, Any] = {}
     for k, v in parts[0].__dict__.items():

@@ -268,16 +268,21 @@ class TrackedObjects(Message):
 
     The tracker publishes one ``tracks/{id}`` per ID in ``observed_track_ids`` before this message, so the
     classifier knows which stragglers to wait for. The classifier's ``objects`` output leaves it empty.
+    ``ego_pose`` is the sensor's pose in the world frame at ``header.stamp``, copied by the tracker from the
+    ``detections`` the frame came from (identity when unknown); the classifier passes it through and takes its
+    position as the origin of the line of sight for its variance calibration.
     """
 
     header: Header
+    ego_pose: Pose = Field(default_factory=Pose)
     objects: list[TrackedObject] = Field(default_factory=list)
     observed_track_ids: list[TrackId] = Field(default_factory=list)
 
 
 MotionLabel = Literal["static", "dynamic", "undecided"]
 TestMode = Literal["z_test", "chi2", "velocity_threshold"]
-EffectiveN = Literal["cluster", "independent"]
+EffectiveN = Literal["cluster", "independent", "measured"]
+CalibrationMode = Literal["off", "online", "file"]
 
 
 class MotionState(Message):
@@ -303,6 +308,33 @@ def _default_alpha_per_class() -> dict[str, float]:
     return {}
 
 
+AUTOWARE_SPEED_THRESHOLDS = {"pedestrian": 0.28, "bicycle": 0.28, "motorcycle": 0.28, "unknown": 0.28}
+"""Autoware's static-obstacle-avoidance ``th_moving_speed`` for the classes below 1.0 m/s (vehicles: 1.0,
+``velocity_threshold``'s default)."""
+AUTOWARE_SUSTAIN_S = {"car": 2.0, "truck": 2.0, "bus": 2.0, "trailer": 2.0, "motorcycle": 1.0, "bicycle": 1.0,
+                      "pedestrian": 1.0, "unknown": 1.0}
+"""Autoware's ``th_moving_time``: how long a speed above the threshold must last before an object is moving."""
+
+
+def _default_speed_thresholds() -> dict[str, float]:
+    return dict(AUTOWARE_SPEED_THRESHOLDS)
+
+
+def _default_sustain() -> dict[str, float]:
+    return {}
+
+
+def _default_bands() -> list[float]:
+    return [20.0, 40.0]
+
+
+def _check_class_names(v: dict[str, float]) -> dict[str, float]:
+    unknown = sorted(set(v) - set(LABEL_BY_NAME))
+    if unknown:
+        raise ValueError(f"unknown class name(s) {unknown}; expected some of {sorted(LABEL_BY_NAME)}")
+    return v
+
+
 class ClassifierConfig(Message):
     """Everything that tunes the motion classifier; a write applies from the next frame on."""
 
@@ -315,25 +347,65 @@ class ClassifierConfig(Message):
     window_size: Annotated[int, Field(ge=2, le=1000)] = 10
     min_window: Annotated[int, Field(ge=2, le=1000)] = 2
     variance_floor: Annotated[float, Field(gt=0.0, le=1e6)] = 1e-4
-    effective_n: EffectiveN = "cluster"
+    effective_n: EffectiveN = Field(
+        "measured", description="cluster: each half is one sample (the paper); independent: real counts; "
+        "measured: the variance of the half-mean difference under the calibrated serial correlation")
+    calibration: CalibrationMode = Field(
+        "online", description="off: reported variances as they are; online: learnt from the tracks, without "
+        "labels (docs/calibration.md); file: the scales in calibration_file (jitterguard calibrate)")
+    calibration_file: Annotated[str, StringConstraints(min_length=1, max_length=4096)] | None = Field(
+        None, description="YAML written by `jitterguard calibrate`, read by the classifier when calibration is "
+        "file")
+    calibration_range_bands_m: Annotated[list[Annotated[float, Field(gt=0.0, le=1000.0)]],
+                                         Field(max_length=8)] = Field(
+        default_factory=_default_bands, description="range bands of the calibration split at these distances, m")
+    calibration_prior_blocks: Annotated[float, Field(ge=0.0, le=1e6)] = Field(
+        20.0, description="pseudo-blocks of the calibration prior at each level (class group, range band)")
+    calibration_half_life_s: Annotated[float, Field(gt=0.0, le=1e7)] = Field(
+        600.0, description="data time after which a calibration block counts half")
+    min_speed_mps: Annotated[float, Field(ge=0.0, le=10.0)] = Field(
+        0.1, description="the test's null hypothesis is |v| ≤ this, m/s: slower drifts (annotation or box wander) "
+        "are not motion (0: the paper's H0, v = 0)")
     velocity_threshold: Annotated[float, Field(ge=0.0, le=100.0)] = 1.0
+    velocity_threshold_per_class: dict[str, Annotated[float, Field(ge=0.0, le=100.0)]] = Field(
+        default_factory=_default_speed_thresholds,
+        description="per-class speed thresholds of the baseline, m/s (default: Autoware's 0.28 for vulnerable "
+        "road users and unknown)")
+    velocity_sustain_s_per_class: dict[str, Annotated[float, Field(ge=0.0, le=60.0)]] = Field(
+        default_factory=_default_sustain,
+        description="per-class time the speed must stay above the threshold before the baseline says dynamic, s "
+        "(Autoware's th_moving_time: the `autoware-sustain` preset)")
 
-    @field_validator("alpha_per_class")
+    @field_validator("alpha_per_class", "velocity_threshold_per_class", "velocity_sustain_s_per_class")
     @classmethod
     def _known_classes(cls, v: dict[str, float]) -> dict[str, float]:
-        unknown = sorted(set(v) - set(LABEL_BY_NAME))
-        if unknown:
-            raise ValueError(f"unknown class name(s) {unknown}; expected some of {sorted(LABEL_BY_NAME)}")
+        return _check_class_names(v)
+
+    @field_validator("calibration_range_bands_m")
+    @classmethod
+    def _increasing(cls, v: list[float]) -> list[float]:
+        if any(b <= a for a, b in zip(v, v[1:])):
+            raise ValueError("range band edges must be strictly increasing")
         return v
 
     @model_validator(mode="after")
     def _window_order(self) -> "ClassifierConfig":
         if self.min_window > self.window_size:
             raise ValueError(f"min_window ({self.min_window}) must not exceed window_size ({self.window_size})")
+        if self.calibration == "file" and not self.calibration_file:
+            raise ValueError("calibration 'file' needs calibration_file")
         return self
 
     def alpha_for(self, label: int) -> float:
         return self.alpha_per_class.get(LABEL_NAMES.get(label, "unknown"), self.alpha_default)
+
+    def speed_threshold_for(self, label: int) -> float:
+        """The baseline's speed threshold for an Autoware label, m/s."""
+        return self.velocity_threshold_per_class.get(LABEL_NAMES.get(label, "unknown"), self.velocity_threshold)
+
+    def sustain_for(self, label: int) -> float:
+        """How long the baseline's speed must exceed the threshold before it says dynamic, s (0: at once)."""
+        return self.velocity_sustain_s_per_class.get(LABEL_NAMES.get(label, "unknown"), 0.0)
 
 
 AUTHORS_ALPHA = {
@@ -351,6 +423,7 @@ AUTHORS_ALPHA = {
 PRESETS: dict[str, dict[str, object]] = {
     "paper": {"alpha_default": 1.96, "alpha_per_class": {}},
     "authors": {"alpha_default": 1.96, "alpha_per_class": dict(AUTHORS_ALPHA)},
+    "autoware-sustain": {"velocity_sustain_s_per_class": dict(AUTOWARE_SUSTAIN_S)},
 }
 """Named config presets; applying one keeps every other field as it is."""
 

@@ -107,12 +107,23 @@ def _decode_records(model: type, layout: RecordLayout, data: bytes | memoryview)
 _ENCODER = msgspec.msgpack.Encoder()
 
 
+def pose_map(pose: Any) -> dict[str, Any] | None:
+    """A ``Pose`` (model or generated Struct) as the plain map :func:`encode_tracked_objects` writes; None stays
+    None (the field keeps its default)."""
+    if pose is None:
+        return None
+    p, q = pose.position, pose.orientation
+    return {"position": {"x": p.x, "y": p.y, "z": p.z}, "orientation": {"x": q.x, "y": q.y, "z": q.z, "w": q.w}}
+
+
 def encode_tracked_objects(header: Mapping[str, Any], records: np.ndarray,
-                           observed_track_ids: Sequence[str] = ()) -> bytes:
-    """The ``TrackedObjects`` payload of ``records`` (from :func:`tracked_object_layout`)."""
+                           observed_track_ids: Sequence[str] = (), ego_pose: Mapping[str, Any] | None = None) -> bytes:
+    """The ``TrackedObjects`` payload of ``records`` (from :func:`tracked_object_layout`); ``ego_pose`` (a
+    ``Pose`` as a plain map) is written when given, else left to its default (identity)."""
     enc = _ENCODER.encode
-    head = b"".join((b"\x84", enc("schema_version"), enc(SCHEMA_VERSION), enc("header"), enc(dict(header)),
-                     enc("objects"), array_header(len(records))))
+    pose = b"" if ego_pose is None else enc("ego_pose") + enc(ego_pose)
+    head = b"".join((b"\x84" if ego_pose is None else b"\x85", enc("schema_version"), enc(SCHEMA_VERSION),
+                     enc("header"), enc(dict(header)), pose, enc("objects"), array_header(len(records))))
     tail = enc("observed_track_ids") + enc(list(observed_track_ids))
     return b"".join((head, memoryview(records.view(np.uint8)), tail))  # one copy of the records
 
@@ -124,6 +135,7 @@ class TrackedRecords:
     header: Any  # the generated Header Struct
     records: np.ndarray
     observed_track_ids: list[str]
+    ego_pose: Any = None  # the generated Pose Struct
 
 
 def decode_tracked_records(data: bytes | memoryview) -> TrackedRecords | None:
@@ -133,7 +145,7 @@ def decode_tracked_records(data: bytes | memoryview) -> TrackedRecords | None:
     if got is None:
         return None
     env, records = got
-    return TrackedRecords(env.header, records, env.observed_track_ids)
+    return TrackedRecords(env.header, records, env.observed_track_ids, env.ego_pose)
 
 
 @dataclass

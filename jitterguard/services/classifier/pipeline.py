@@ -49,12 +49,23 @@ def observation_row(msg: Any) -> ObservationRow:
     return (trk.object_id, trk.label, pos.x, pos.y, cov[X_X], cov[X_Y], cov[Y_Y], math.hypot(trk.vx, trk.vy))
 
 
-def observations_from_rows(rows: list[ObservationRow], seq: int, stamp_ns: int) -> Observations:
-    """One frame's observation rows as the core's arrays."""
+def observations_from_rows(rows: list[ObservationRow], seq: int, stamp_ns: int,
+                           sensor_xy: tuple[float, float] = (0.0, 0.0)) -> Observations:
+    """One frame's observation rows as the core's arrays (``sensor_xy``: the frame's ``ego_pose`` position)."""
+    sx, sy = sensor_xy
     if not rows:
-        return Observations.from_lists([], [], [], [], [], [], [], [], stamp_ns=stamp_ns, seq=seq)
+        return Observations.from_lists([], [], [], [], [], [], [], [], stamp_ns=stamp_ns, seq=seq, sensor_x=sx,
+                                       sensor_y=sy)
     ids, labels, x, y, cxx, cxy, cyy, speed = zip(*rows)
-    return Observations.from_lists(list(ids), labels, x, y, cxx, cxy, cyy, speed, stamp_ns=stamp_ns, seq=seq)
+    return Observations.from_lists(list(ids), labels, x, y, cxx, cxy, cyy, speed, stamp_ns=stamp_ns, seq=seq,
+                                   sensor_x=sx, sensor_y=sy)
+
+
+def sensor_position(ego_pose: Any) -> tuple[float, float]:
+    """The sensor's world x, y from a frame's ``ego_pose`` (origin when the message has none)."""
+    if ego_pose is None:
+        return 0.0, 0.0
+    return float(ego_pose.position.x), float(ego_pose.position.y)
 
 
 def apply_decisions_to_objects(objects: list[Any], dec: Decisions) -> None:
@@ -90,8 +101,8 @@ class RecordObjects:
     """A frame's ``tracked`` objects as records (:mod:`jitterguard.schemas.tracked_layout`), the fast form:
     deciding is a few column writes on a copy, encoding is the copy's bytes."""
 
-    def __init__(self, header: Any, records: np.ndarray) -> None:
-        self.header, self.records = header, records
+    def __init__(self, header: Any, records: np.ndarray, ego_pose: Any = None) -> None:
+        self.header, self.records, self.ego_pose = header, records, ego_pose
 
     @property
     def ids(self) -> np.ndarray:
@@ -108,7 +119,8 @@ class RecordObjects:
             out[name] = np.where(static, 0.0, out[name])
         h = self.header
         header = {"stamp": h.stamp, "frame_id": h.frame_id, "seq": h.seq}
-        return RecordObjects(h, out), tl.encode_tracked_objects(header, out)
+        return RecordObjects(h, out, self.ego_pose), tl.encode_tracked_objects(header, out, (),
+                                                                               tl.pose_map(self.ego_pose))
 
     def poses(self) -> Poses:
         r = self.records
@@ -124,6 +136,7 @@ class StructObjects:
     def __init__(self, tracked: Any, codec: StructCodec) -> None:
         self.tracked, self._codec = tracked, codec
         self.header = tracked.header
+        self.ego_pose = tracked.ego_pose
 
     @property
     def ids(self) -> np.ndarray:
@@ -189,7 +202,7 @@ class ClassifierPipeline:
         fast = tl.decode_tracked_records(data)
         if fast is not None:
             header, expected = fast.header, fast.observed_track_ids
-            objects: RecordObjects | StructObjects = RecordObjects(header, fast.records)
+            objects: RecordObjects | StructObjects = RecordObjects(header, fast.records, fast.ego_pose)
         else:  # another shape, or invalid: the general decoder decides (and names the field)
             msg = self._tracked_codec.decode(data)
             header, expected, objects = msg.header, msg.observed_track_ids, StructObjects(msg, self._tracked_codec)
@@ -212,7 +225,7 @@ class ClassifierPipeline:
         """Decide a complete frame and encode its ``objects`` payload."""
         tracked: RecordObjects | StructObjects = frame.tracked
         header = tracked.header
-        obs = observations_from_rows(frame.observations, header.seq, header.stamp)
+        obs = observations_from_rows(frame.observations, header.seq, header.stamp, sensor_position(tracked.ego_pose))
         decided = self.core.update(obs) if len(obs) else None
         reported = tracked.ids
         dec = self.core.last_decisions(reported)

@@ -58,12 +58,14 @@ OBS_CHUNK = 64
 """Observations validated per pass before the worker looks for a newly arrived ``tracked`` again."""
 IDLE_POLL_S = 0.0005
 """How long the idle worker waits for a ``tracked`` wake-up before polling the observation channel again."""
-def observations_from_messages(msgs: list[TrackObservation], seq: int, stamp_ns: int) -> Observations:
-    """Flatten one frame's TrackObservation models into the core's arrays (world frame).
+def observations_from_messages(msgs: list[TrackObservation], seq: int, stamp_ns: int,
+                               sensor_xy: tuple[float, float] = (0.0, 0.0)) -> Observations:
+    """Flatten one frame's TrackObservation models into the core's arrays (world frame; ``sensor_xy``: the
+    position of the closing ``tracked`` message's ``ego_pose``).
 
     For in-process users that hold models (the offline evaluator); the service keeps rows as samples arrive.
     """
-    return observations_from_rows([observation_row(m) for m in msgs], seq, stamp_ns)
+    return observations_from_rows([observation_row(m) for m in msgs], seq, stamp_ns, sensor_xy)
 
 
 @dataclass

@@ -342,12 +342,18 @@ def observation_payloads(msg: Any, frame: DetectionFrame, result: FrameResult) -
     return [(ids[k], b"".join((prefix, d, _TRACK_KEY, raw[k * size:(k + 1) * size]))) for k, d in enumerate(det_bytes)]
 
 
-def tracked_payload(frame: DetectionFrame, result: FrameResult) -> bytes:
-    """The frame's closing ``TrackedObjects`` payload (every confirmed track, :func:`tracked_records`)."""
-    return tl.encode_tracked_objects(_header(frame), tracked_records(result), result.observed_ids)
+def ego_pose_map(msg: Any) -> dict[str, Any] | None:
+    """The ``ego_pose`` of a decoded ``detections`` message (model, Struct or records) as a plain map."""
+    return tl.pose_map(getattr(msg, "ego_pose", None))
+
+
+def tracked_payload(frame: DetectionFrame, result: FrameResult, ego_pose: dict[str, Any] | None = None) -> bytes:
+    """The frame's closing ``TrackedObjects`` payload (every confirmed track, :func:`tracked_records`), with
+    the ``ego_pose`` of the detections it came from (:func:`ego_pose_map`)."""
+    return tl.encode_tracked_objects(_header(frame), tracked_records(result), result.observed_ids, ego_pose)
 
 
 def frame_payloads(msg: Any, frame: DetectionFrame, result: FrameResult) -> tuple[list[tuple[str, bytes]], bytes]:
     """:func:`observation_payloads` and :func:`tracked_payload` together (the service builds ``tracked`` only
     once the observations are out, so the classifier starts on them sooner)."""
-    return observation_payloads(msg, frame, result), tracked_payload(frame, result)
+    return observation_payloads(msg, frame, result), tracked_payload(frame, result, ego_pose_map(msg))

@@ -29,7 +29,8 @@ from ...runtime.gc_policy import IdleCollector, manage_gc_for_latency
 from ...schemas import DecodeError, keys
 from ...schemas.models import MotionState
 from .config import TrackerConfig, default_config
-from .convert import decode_detections, detections_codec, frame_from_message, observation_payloads, tracked_payload
+from .convert import (decode_detections, detections_codec, ego_pose_map, frame_from_message, observation_payloads,
+                      tracked_payload)
 from .core import FrameRejected, TrackerCore
 from .lifecycle import new_track_id
 
@@ -135,7 +136,7 @@ class TrackerService(Service):
             self.log.warning("detections restarted at seq %d with time going on: source restarted, tracks kept",
                              frame.seq)
         self._publish(observation_payloads(msg, frame, result), result.tracks.ids)
-        self._tracked_pub.put(tracked_payload(frame, result))  # built after the observations went out
+        self._tracked_pub.put(tracked_payload(frame, result, ego_pose_map(msg)))  # after the observations went out
         self.counters.inc("frames")
         self.counters.inc("tracks_born", len(result.born))
         self.counters.inc("tracks_deleted", len(result.deleted))
