@@ -152,6 +152,8 @@ def test_flooded_detector_skips_to_the_newest_scan_and_says_so(harness, scans, d
         assert wait_until(lambda: svc.counters.get("received") == n, TIMEOUT)
         detector.gate.set()
         assert wait_until(lambda: client.seqs()[-1:] == [n - 1], TIMEOUT)
+        # the worker counts a scan after its put, so the output can arrive before the counter moves
+        assert wait_until(lambda: svc.counters.get("scans") == 2, TIMEOUT)
     c = svc.counters.snapshot()
     # scan 0 was being processed; 1..6 were each replaced by a newer one before the worker came back
     assert client.seqs() == [0, n - 1]
