@@ -29,6 +29,7 @@ _AREAS = (
     "jitterguard.stack.cli",
     "jitterguard.stack.bench",
     "jitterguard.eval.cli",
+    "jitterguard.eval.calibrate",
 )
 
 for _mod in _AREAS:

@@ -17,9 +17,9 @@ Pure: frames in, a :class:`Records` table out; no files, no clock. Deterministic
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -28,12 +28,13 @@ from scipy.optimize import linear_sum_assignment  # type: ignore[import-untyped]
 from ..schemas import decode, encode
 from ..schemas.models import ClassifierConfig, DetectedObjects, TrackedObjects, TrackObservation
 from ..services.classifier.calibration import NoiseModel, OnlineCalibration
-from ..services.classifier.core import MotionClassifierCore
+from ..services.classifier.core import MotionClassifierCore, Observations
 from ..services.classifier.pipeline import sensor_position
 from ..services.classifier.service import observations_from_messages
 from ..services.tracker.config import TrackerConfig, default_config
 from ..services.tracker.convert import detections_codec, frame_from_message, frame_payloads
 from ..services.tracker.core import FrameRejected, TrackerCore
+from ..services.tracker.frames import DetectionFrame
 from ..sim.detection_model import DetectionModel, NoiseConfig
 from ..sim.world import GroundTruthFrame
 from .groundtruth import group_of, is_dynamic
@@ -155,6 +156,47 @@ def scale_variances(msg: DetectedObjects, factor: float) -> DetectedObjects:
     return msg.model_copy(update={"objects": objects})
 
 
+@dataclass
+class TrackerStep:
+    """One frame through the tracker as the classifier receives it: the decoded ``tracks/{id}`` payloads and
+    the closing ``tracked`` message."""
+
+    frame: DetectionFrame
+    observations: list[TrackObservation]
+    closed: TrackedObjects
+
+    @property
+    def reported(self) -> NDArray[np.bytes_]:
+        """The IDs the tracker reports this frame (the classifier keeps only their windows)."""
+        return np.asarray([o.object_id for o in self.closed.objects], dtype="S32")
+
+    def classifier_input(self) -> Observations:
+        """The classifier core's input, built as the service builds it."""
+        return observations_from_messages(self.observations, self.frame.seq, self.frame.stamp_ns,
+                                          sensor_position(self.closed.ego_pose))
+
+
+T = TypeVar("T")
+
+
+def tracker_steps(inputs: Iterable[tuple[T, DetectedObjects]], tracker: TrackerConfig | None = None
+                  ) -> Iterator[tuple[T, TrackerStep]]:
+    """Run ``TrackerCore`` over ``(tag, detections)`` pairs through exactly the tracker service's conversions
+    (``frame_from_message``, ``frame_payloads``) and decode its payloads with the models, as the classifier
+    does on receipt; yields ``(tag, step)`` per frame the tracker accepted. Deterministic track IDs."""
+    trk = TrackerCore(tracker or default_config(), _id_factory())
+    det_codec = detections_codec()  # the tracker service's own decoding of `detections`
+    for tag, msg in inputs:
+        frame = frame_from_message(msg)
+        try:
+            result = trk.step(frame)
+        except FrameRejected:
+            continue
+        obs_payloads, closing = frame_payloads(det_codec.decode(encode(msg)), frame, result)
+        obs_msgs = [decode(TrackObservation, p) for _, p in obs_payloads]
+        yield tag, TrackerStep(frame, obs_msgs, decode(TrackedObjects, closing))
+
+
 def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame, DetectedObjects]],
                        classifier: ClassifierConfig | None = None, tracker: TrackerConfig | None = None,
                        match_distance_m: float = MATCH_DISTANCE_M, *, calibration: OnlineCalibration | None = None,
@@ -170,7 +212,6 @@ def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame, DetectedObjects]
     (:func:`scale_variances`); ``calibration_model``: the scales for ``calibration: file``.
     """
     base = classifier or ClassifierConfig()
-    trk = TrackerCore(tracker or default_config(), _id_factory())
     core_z = MotionClassifierCore(base.model_copy(update={"mode": "z_test"}), calibration_model=calibration_model,
                                   online=calibration)
     # the baseline reads only speeds: it needs no calibration
@@ -179,21 +220,12 @@ def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame, DetectedObjects]
                                              "state_v", "gt_instance", "gt_dynamic", "group", "alpha",
                                              "gt_attribute", "gt_speed", "speed_threshold", "track_group")}
     t0: int | None = None
-    det_codec = detections_codec()  # the tracker service's own decoding of `detections`
-    for gt, msg in inputs:
-        msg = scale_variances(msg, variance_scale)
+    scaled = ((gt, scale_variances(msg, variance_scale)) for gt, msg in inputs)
+    for gt, step in tracker_steps(scaled, tracker):
         t0 = gt.stamp_ns if t0 is None else t0
-        frame = frame_from_message(msg)
-        try:
-            result = trk.step(frame)
-        except FrameRejected:
-            continue
-        obs_payloads, closing = frame_payloads(det_codec.decode(encode(msg)), frame, result)
-        obs_msgs = [decode(TrackObservation, p) for _, p in obs_payloads]
-        closed = decode(TrackedObjects, closing)
-        reported = np.asarray([o.object_id for o in closed.objects], dtype="S32")
+        obs_msgs = step.observations
         if obs_msgs:
-            obs = observations_from_messages(obs_msgs, frame.seq, frame.stamp_ns, sensor_position(closed.ego_pose))
+            obs = step.classifier_input()
             dz = core_z.update(obs)
             dv = core_v.update(obs)
             txy = np.array([[m.track.x, m.track.y] for m in obs_msgs], dtype=np.float64)
@@ -222,8 +254,8 @@ def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame, DetectedObjects]
             cols["gt_speed"].append(np.where(gi >= 0, gspeed[np.maximum(gi, 0)] if gt.num_objects else 0.0, np.nan))
             cols["speed_threshold"].append(dv.threshold.astype(np.float64))
             cols["track_group"].append(np.array([group_of(int(lb)) or "" for lb in obs.labels.tolist()], dtype="U12"))
-        core_z.retain(reported)
-        core_v.retain(reported)
+        core_z.retain(step.reported)
+        core_v.retain(step.reported)
 
     def cat(k: str, dtype: Any) -> np.ndarray:
         return np.concatenate(cols[k]).astype(dtype) if cols[k] else np.empty(0, dtype=dtype)

@@ -304,8 +304,21 @@ class MotionState(Message):
     mean_y: float = 0.0
 
 
+AUTHORS_ALPHA = {
+    "car": 2.58,
+    "truck": 2.58,
+    "bus": 2.58,
+    "trailer": 1.64,
+    "motorcycle": 1.96,
+    "bicycle": 1.64,
+    "pedestrian": 1.28,
+    "unknown": 1.96,
+}
+"""The per-class alpha the paper's authors deployed (DESIGN.md); the ``authors`` preset."""
+
+
 def _default_alpha_per_class() -> dict[str, float]:
-    return {}
+    return dict(AUTHORS_ALPHA)
 
 
 AUTOWARE_SPEED_THRESHOLDS = {"pedestrian": 0.28, "bicycle": 0.28, "motorcycle": 0.28, "unknown": 0.28}
@@ -342,7 +355,8 @@ class ClassifierConfig(Message):
     alpha_default: Annotated[float, Field(gt=0.0, le=100.0)] = 1.96
     alpha_per_class: dict[str, Annotated[float, Field(gt=0.0, le=100.0)]] = Field(
         default_factory=_default_alpha_per_class,
-        description="per-class alpha overrides, keyed by lowercase Autoware class name (car, truck, ...)",
+        description="per-class alpha overrides, keyed by lowercase Autoware class name (car, truck, ...); default: "
+        "the authors' deployed values (vehicles 2.58, pedestrian 1.28, ...)",
     )
     window_size: Annotated[int, Field(ge=2, le=1000)] = 10
     min_window: Annotated[int, Field(ge=2, le=1000)] = 2
@@ -408,24 +422,15 @@ class ClassifierConfig(Message):
         return self.velocity_sustain_s_per_class.get(LABEL_NAMES.get(label, "unknown"), 0.0)
 
 
-AUTHORS_ALPHA = {
-    "car": 2.58,
-    "truck": 2.58,
-    "bus": 2.58,
-    "trailer": 1.64,
-    "motorcycle": 1.96,
-    "bicycle": 1.64,
-    "pedestrian": 1.28,
-    "unknown": 1.96,
-}
-"""The per-class alpha the paper's authors deployed (DESIGN.md); the ``authors`` preset."""
-
 PRESETS: dict[str, dict[str, object]] = {
-    "paper": {"alpha_default": 1.96, "alpha_per_class": {}},
+    "paper": {"alpha_default": 1.96, "alpha_per_class": {}, "effective_n": "cluster", "calibration": "off",
+              "min_speed_mps": 0.0},
     "authors": {"alpha_default": 1.96, "alpha_per_class": dict(AUTHORS_ALPHA)},
     "autoware-sustain": {"velocity_sustain_s_per_class": dict(AUTOWARE_SUSTAIN_S)},
 }
-"""Named config presets; applying one keeps every other field as it is."""
+"""Named config presets; applying one keeps every other field as it is. ``paper``: the paper's final method
+(α 1.96 for every class, each half one cluster, reported variances as they are, H0 v = 0); ``authors``: the
+authors' deployed per-class α (also the default); ``autoware-sustain``: the baseline's Autoware sustain times."""
 
 
 class ConfigReply(Message):
@@ -459,17 +464,62 @@ class TrackStateEntry(_Strict):
     last_seq: NonNegativeInt
 
 
+_Scale = Annotated[float, Field(ge=0.0, le=1e6)]
+
+
+class CalibrationAxis(_Strict):
+    """The calibration of one class group on one line-of-sight axis (docs/calibration.md)."""
+
+    scale: dict[str, _Scale] = Field(description="true / reported variance per range band (e.g. '0-20'), "
+                                     "established tracks")
+    scale_young: dict[str, _Scale] = Field(description="the same for a track's first window_size observations")
+    blocks: dict[str, Annotated[float, Field(ge=0.0)]] = Field(description="evidence per band: blocks pooled "
+                                                                "(after forgetting)")
+    blocks_young: dict[str, Annotated[float, Field(ge=0.0)]]
+    correlation: Annotated[float, Field(ge=0.0, le=1.0)] = Field(description="serially correlated share m")
+    correlation_time_s: Annotated[float, Field(gt=0.0)]
+    variance_factor: Annotated[float, Field(ge=0.0)] = Field(
+        description="Var(half-mean difference) of a full window under the serial correlation / that of "
+        "independent observations (1: none; window/2: the paper's cluster assumption)")
+
+
+class CalibrationGroup(_Strict):
+    track_dof: Annotated[float, Field(gt=0.0)] = Field(
+        description="ν₀: prior degrees of freedom of a track's own scale (smaller: tracks differ more)")
+    along: CalibrationAxis
+    across: CalibrationAxis
+
+
+class CalibrationState(_Strict):
+    """What the classifier's variance calibration uses now (``GET /v1/state``'s ``calibration``)."""
+
+    mode: CalibrationMode
+    effective_n: EffectiveN
+    range_bands_m: list[float]
+    frame_interval_s: Annotated[float, Field(gt=0.0)]
+    window: Annotated[int, Field(ge=1)]
+    groups: dict[str, CalibrationGroup]
+    counts: dict[str, int] = Field(default_factory=dict, description="blocks pooled, too fast to pool, "
+                                   "down-weighted as outliers")
+    effective_blocks: Annotated[float, Field(ge=0.0)] = 0.0
+
+
 class ClassifierStateSnapshot(Message):
-    """The live per-track state of the classifier after its latest frame."""
+    """The live per-track state of the classifier after its latest frame, and its variance calibration."""
 
     header: Header
     config: ClassifierConfig
     tracks: list[TrackStateEntry] = Field(default_factory=list)
     counters: dict[str, int] = Field(default_factory=dict)
+    calibration: CalibrationState | None = None
 
 
 class Heartbeat(Message):
-    """Published every second by every service on ``jg/{ns}/heartbeat/{service}``: health beyond liveliness."""
+    """Published every second by every service on ``jg/{ns}/heartbeat/{service}``: health beyond liveliness.
+
+    ``counters`` are integer event counts; ``gauges`` are current values that are not counts (the classifier:
+    its variance scales and correlation factors, e.g. ``calibration.vehicle.along.scale.0-20``).
+    """
 
     service: str
     pid: NonNegativeInt
@@ -477,3 +527,4 @@ class Heartbeat(Message):
     last_seq: int = -1
     uptime_s: Annotated[float, Field(ge=0.0)] = 0.0
     counters: dict[str, int] = Field(default_factory=dict)
+    gauges: dict[str, float] = Field(default_factory=dict)

@@ -63,8 +63,8 @@ SCALE_BOUNDS = (1e-2, 1e2)
 """A variance scale is clipped to this range (σ off by at most 10× either way)."""
 PRIOR_CORRELATION = 0.5
 """Prior correlated fraction m: successive detections are correlated (paper §III-B, condition iii)."""
-PRIOR_TAU_S = 0.5
-"""Prior correlation time [s]."""
+PRIOR_TAU_S = float(TAU_GRID_S[6])
+"""Prior correlation time [s] (0.47 s, on the grid so that the prior is exactly representable)."""
 MAX_BLOCK_SPEED = 1.0
 """Blocks whose fitted line is faster than this [m/s] are not pooled: the test's null is an object standing
 still, and the residuals of faster objects mix in manoeuvres (turns, braking) that look like correlated noise

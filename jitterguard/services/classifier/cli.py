@@ -54,18 +54,33 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         window_size: Annotated[int | None, typer.Option("--window-size")] = None,
         min_window: Annotated[int | None, typer.Option("--min-window")] = None,
         mode: Annotated[str | None, typer.Option("--mode", help="z_test, chi2 or velocity_threshold.")] = None,
-        effective_n: Annotated[str | None, typer.Option("--effective-n", help="cluster or independent.")] = None,
+        effective_n: Annotated[str | None, typer.Option("--effective-n", help="measured (default), cluster or "
+                                                        "independent.")] = None,
+        calibration: Annotated[str | None, typer.Option("--calibration", help="online (default), off or file "
+                                                        "(with --calibration-file).")] = None,
+        calibration_file: Annotated[str | None, typer.Option("--calibration-file", help="YAML from `jitterguard "
+                                                             "calibrate`; implies --calibration file.")] = None,
         log_level: LogLevelOpt = "INFO",
     ) -> None:
         """Run the motion classifier service: tracks/* + tracked in, motion/{id} + objects out."""
         from ...runtime import setup_logging
+        from .calibration_file import CalibrationFileError, read_calibration
         from .service import ClassifierService
 
         opts = zenoh_options(ns, zenoh_config, connect, listen)
+        if calibration_file is not None and calibration is None:
+            calibration = "file"
         cfg = _load_config(config, preset, {"alpha_default": alpha, "window_size": window_size,
-                                             "min_window": min_window, "mode": mode, "effective_n": effective_n})
+                                             "min_window": min_window, "mode": mode, "effective_n": effective_n,
+                                             "calibration": calibration, "calibration_file": calibration_file})
+        model = None
+        if cfg.calibration == "file":
+            try:
+                model = read_calibration(cfg.calibration_file or "")
+            except CalibrationFileError as exc:
+                fail(f"--calibration-file: {exc}")
         setup_logging(log_level)
-        ClassifierService(opts, cfg, manage_gc=True).run_forever()
+        ClassifierService(opts, cfg, manage_gc=True, calibration_model=model).run_forever()
 
     @app.command("feed-tracks")
     def feed_tracks_cmd(

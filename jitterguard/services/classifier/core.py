@@ -178,6 +178,7 @@ class MotionClassifierCore:
         self._online = online if online is not None else self._make_online(self._config)
         self._file_model = calibration_model
         self._check_file_model(self._config)
+        self._state_cache: tuple[tuple, dict] | None = None
 
     # ------------------------------------------------------------------ configuration
 
@@ -238,12 +239,18 @@ class MotionClassifierCore:
         return NoiseModel.prior(tuple(self._config.calibration_range_bands_m))
 
     def calibration_state(self) -> dict:
-        """What the calibration knows now: :meth:`NoiseModel.to_mapping` (at this window size), the mode, and
-        the online estimator's counters (blocks pooled, blocks down-weighted as outliers)."""
+        """What the calibration uses now (a ``CalibrationState`` map): :meth:`NoiseModel.to_mapping` at this
+        window size, the mode, and the online estimator's counters (blocks pooled, too fast to pool,
+        down-weighted as outliers). Rebuilt only when the model or the config changed."""
         model = self.noise_model()
-        return {"mode": self._config.calibration, "effective_n": self._config.effective_n,
-                **model.to_mapping(self._config.window_size), "counts": dict(self._online.counts),
-                "effective_blocks": round(self._online.effective_blocks, 3)}
+        key = (id(model), self._config.calibration, self._config.effective_n, self._config.window_size,
+               self._online.counts["blocks"])
+        if self._state_cache is None or self._state_cache[0] != key:
+            state = {"mode": self._config.calibration, "effective_n": self._config.effective_n,
+                     **model.to_mapping(self._config.window_size), "counts": dict(self._online.counts),
+                     "effective_blocks": round(self._online.effective_blocks, 3)}
+            self._state_cache = (key, state)
+        return self._state_cache[1]
 
     def _harvest(self, rows: NDArray[np.int64], lengths: NDArray[np.int64]) -> None:
         """Give the newest ``lengths[i]`` observations of ``rows[i]`` to the online calibration as one block
@@ -359,7 +366,7 @@ class MotionClassifierCore:
         else:
             stats = calibrated_statistics(t.win[rows], masks, group_of_labels(t.label[rows]), self.noise_model(),
                                           variance_floor=cfg.variance_floor, effective_n=cfg.effective_n,
-                                          min_speed=cfg.min_speed_mps)
+                                          track_scale_prior=cfg.calibration != "off", min_speed=cfg.min_speed_mps)
         if (count < 2).any():  # one observation: no older half, nothing to compare (z is not defined)
             one = count < 2
             stats = replace(stats, z_x=np.where(one, 0.0, stats.z_x), z_y=np.where(one, 0.0, stats.z_y),
@@ -424,3 +431,20 @@ class MotionClassifierCore:
         t = self._table
         return t.label[r], t.last["stamp_ns"][r], t.last["seq"][r]
 
+
+
+def calibration_gauges(state: dict) -> dict[str, float]:
+    """A ``calibration_state`` as flat heartbeat gauges: ``calibration.{group}.{axis}.{scale|scale_young}.{band}``,
+    ``calibration.{group}.{axis}.{correlation|correlation_time_s|variance_factor}``,
+    ``calibration.{group}.track_dof`` and ``calibration.effective_blocks``."""
+    out: dict[str, float] = {"calibration.effective_blocks": float(state.get("effective_blocks", 0.0))}
+    for g, entry in state.get("groups", {}).items():
+        out[f"calibration.{g}.track_dof"] = float(entry["track_dof"])
+        for axis in ("along", "across"):
+            a = entry[axis]
+            for key in ("scale", "scale_young"):
+                for band, v in a[key].items():
+                    out[f"calibration.{g}.{axis}.{key}.{band}"] = float(v)
+            for key in ("correlation", "correlation_time_s", "variance_factor"):
+                out[f"calibration.{g}.{axis}.{key}"] = float(a[key])
+    return out

@@ -35,6 +35,7 @@ from ...schemas import tracked_layout as tl
 from ...schemas.layout import RecordLayout
 from ...schemas.fast import StructCodec
 from ...schemas.models import X_X, X_Y, Y_Y, ClassifierConfig, TrackedObjects, TrackObservation
+from .calibration import NoiseModel
 from .core import STATIC, Decisions, MotionClassifierCore, Observations
 from .frames import CompleteFrame, FrameAssembler
 
@@ -177,8 +178,9 @@ class FrameOutput:
 class ClassifierPipeline:
     """Frame assembly plus the core, fed with raw payloads. Not thread-safe: one worker owns it."""
 
-    def __init__(self, config: ClassifierConfig | None = None, *, straggler_timeout_s: float = 0.05) -> None:
-        self.core = MotionClassifierCore(config or ClassifierConfig())
+    def __init__(self, config: ClassifierConfig | None = None, *, straggler_timeout_s: float = 0.05,
+                 calibration_model: NoiseModel | None = None) -> None:
+        self.core = MotionClassifierCore(config or ClassifierConfig(), calibration_model=calibration_model)
         self.assembler: FrameAssembler[ObservationRow, Any] = FrameAssembler(straggler_timeout_s=straggler_timeout_s)
         self._observation_codec = StructCodec(TrackObservation)
         self._tracked_codec = StructCodec(TrackedObjects, raw_float_blocks=16)  # covariances stay bytes

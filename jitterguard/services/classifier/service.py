@@ -38,7 +38,9 @@ from ...schemas.models import (
     ConfigReply,
     TrackObservation,
 )
-from .core import STATE_NAMES, Decisions, MotionClassifierCore, Observations
+from .calibration import NoiseModel
+from .calibration_file import CalibrationFileError, read_calibration
+from .core import STATE_NAMES, Decisions, MotionClassifierCore, Observations, calibration_gauges
 from .frames import FrameAssembler
 from .pipeline import (  # noqa: F401  (re-exported: eval and the sidecar bench use them from here)
     ClassifierPipeline,
@@ -86,15 +88,23 @@ class ClassifierService(Service):
     name = "classifier"
 
     def __init__(self, opts: ZenohOptions, config: ClassifierConfig | None = None, *,
-                 straggler_timeout_s: float = 0.05, manage_gc: bool = False) -> None:
+                 straggler_timeout_s: float = 0.05, manage_gc: bool = False,
+                 calibration_model: NoiseModel | None = None) -> None:
         """``manage_gc``: call :func:`manage_gc_for_latency` and collect garbage between frames (process-wide;
-        for the process that runs the classifier, not for tests that embed it)."""
+        for the process that runs the classifier, not for tests that embed it). ``calibration_model``: the
+        scales for ``calibration: file`` (read from ``config.calibration_file`` when not given)."""
+        config = config or ClassifierConfig()
+        if calibration_model is None and config.calibration == "file" and config.calibration_file:
+            calibration_model = read_calibration(config.calibration_file)
         super().__init__(opts)
         self._manage_gc = manage_gc
         self._idle_gc = IdleCollector()
         if manage_gc:
             manage_gc_for_latency()
-        self.pipeline = ClassifierPipeline(config, straggler_timeout_s=straggler_timeout_s)
+        self.pipeline = ClassifierPipeline(config, straggler_timeout_s=straggler_timeout_s,
+                                           calibration_model=calibration_model)
+        self._calibration = self.core.calibration_state()  # what the latest frame used (state queryable)
+        self._gauges = calibration_gauges(self._calibration)  # ... flattened for the heartbeat
         self.latencies_ms: deque[float] = deque(maxlen=LATENCY_WINDOW)
         self._queue: queue.Queue = queue.Queue()  # config writes and calls, run between frames
         self._closes: deque[tuple[bytes, zenoh.KeyExpr, float]] = deque()
@@ -185,9 +195,13 @@ class ClassifierService(Service):
         return n
 
     def _run_control(self, item: tuple[str, tuple, None]) -> None:
-        kind, (arg, fut), _ = item
+        kind, (arg, fut), model = item
         if kind == "config":
-            self.core.configure(arg)
+            try:
+                self.core.configure(arg, model)
+            except ValueError as exc:
+                fut.set_exception(exc)
+                return
             self.counters.inc("config_changes")
             fut.set_result(self.core.config)
         elif kind == "call":  # run a function on the worker, between frames
@@ -212,6 +226,9 @@ class ClassifierService(Service):
         evicted, labels, stamps, seqs = self.pipeline.settle(out)
         if evicted:
             self.counters.inc("windows_evicted", evicted)
+        cal = self.core.calibration_state()
+        if cal is not self._calibration:
+            self._calibration, self._gauges = cal, calibration_gauges(cal)
         with self._latest_lock:
             header = {"stamp": out.header.stamp, "frame_id": out.header.frame_id, "seq": out.header.seq}
             self._latest = _Latest(header, out.objects, out.decisions, labels, stamps, seqs, out.config)
@@ -253,8 +270,17 @@ class ClassifierService(Service):
             self.counters.inc("rejected.classifier/config")
             query.reply_err(encode(ConfigReply(ok=False, config=self.core.config, error=str(exc))))
             return
+        model = None
+        if cfg.calibration == "file" and cfg.calibration_file:
+            try:  # read here, off the worker: a slow disk must not stall frames
+                model = read_calibration(cfg.calibration_file)
+            except CalibrationFileError as exc:
+                self.counters.inc("rejected.classifier/config")
+                query.reply_err(encode(ConfigReply(ok=False, config=self.core.config,
+                                                   error=f"calibration_file: {exc}")))
+                return
         fut: Future = Future()
-        self._queue.put(("config", (cfg, fut), None))
+        self._queue.put(("config", (cfg, fut), model))
         try:
             in_force = fut.result(timeout=CONFIG_APPLY_TIMEOUT_S)
         except Exception as exc:  # worker stuck or stopping: say so, the write may not be in force
@@ -271,7 +297,8 @@ class ClassifierService(Service):
         """
         with self._latest_lock:
             latest = self._latest
-        base = {"schema_version": SCHEMA_VERSION, "counters": self.counters.snapshot()}
+        base = {"schema_version": SCHEMA_VERSION, "counters": self.counters.snapshot(),
+                "calibration": self._calibration}
         if latest is None:
             return {**base, "header": {"stamp": 0, "frame_id": "map", "seq": 0},
                     "config": self.core.config.model_dump(mode="python"), "tracks": []}
@@ -296,6 +323,10 @@ class ClassifierService(Service):
             })
         return {**base, "header": dict(latest.header),
                 "config": latest.config.model_dump(mode="python"), "tracks": tracks}
+
+    def gauges(self) -> dict[str, float]:
+        """The heartbeat's gauges: the calibration the latest frame was decided with (:func:`calibration_gauges`)."""
+        return self._gauges
 
     def state_snapshot(self) -> ClassifierStateSnapshot:
         """:meth:`state_map`, validated (for in-process users and tests)."""

@@ -21,6 +21,7 @@ from pydantic.fields import FieldInfo
 from ...schemas.models import (
     LABEL_NAMES,
     PRESETS,
+    CalibrationState,
     ClassifierConfig,
     ClassifierStateSnapshot,
 )
@@ -83,6 +84,9 @@ class StateView(BaseModel):
     polled_at_ns: int = Field(ge=0, description="wall time (ns since epoch) when the sidecar fetched it")
     counts: StateCounts
     tracks: list[TrackView]
+    calibration: CalibrationState | None = Field(
+        None, description="the variance calibration the frame was decided with: scales per class group, "
+        "line-of-sight axis, range band and track age, and the measured serial correlation (docs/calibration.md)")
 
 
 class ErrorBody(BaseModel):
@@ -116,8 +120,11 @@ _CONFIG_DOCS: dict[str, str] = {
     "min_window": "observations needed before a track is tested (must not exceed window_size)",
     "variance_floor": "lower bound on each half's mean predicted variance, m²",
     "effective_n": "`cluster`: each half counts as one sample (the paper); `independent`: real counts",
-    "velocity_threshold": "speed above which the baseline calls a track dynamic, m/s",
+    "velocity_threshold": "speed above which the baseline calls a track dynamic, m/s (classes not in "
+                          "velocity_threshold_per_class)",
 }
+_CONFIG_DOCS.update({name: (info.description or name) for name, info in ClassifierConfig.model_fields.items()
+                     if name not in _CONFIG_DOCS and name != "schema_version"})
 CONFIG_FIELDS: tuple[str, ...] = tuple(n for n in ClassifierConfig.model_fields if n != "schema_version")
 
 
@@ -353,6 +360,7 @@ class RenderedState:
     config: ClassifierConfig
     counters: dict[str, int]
     tracks: dict[str, dict[str, Any]]  # id -> track dict, in id order
+    calibration: dict[str, Any] | None
     counts: dict[str, int]
     by_class_state: dict[tuple[str, str], int]
     body: bytes  # the whole ``GET /v1/state`` response
@@ -369,7 +377,8 @@ def render_state(snap: ClassifierStateSnapshot, polled_at_ns: int,
     """
     mode = snap.config.mode
     seq = snap.header.seq
-    entries = (raw or snap.model_dump(mode="python"))["tracks"]
+    data = raw or snap.model_dump(mode="python")
+    entries = data["tracks"]
     entries = sorted(entries, key=lambda e: e["track_id"])
     tracks = {e["track_id"]: track_view(e, mode, seq) for e in entries}
     by_class_state = aggregate_by_class_state(tracks.values())
@@ -380,10 +389,12 @@ def render_state(snap: ClassifierStateSnapshot, polled_at_ns: int,
     view = {
         "seq": seq, "stamp_ns": snap.header.stamp, "frame_id": snap.header.frame_id, "mode": mode,
         "polled_at_ns": polled_at_ns, "counts": counts, "tracks": list(tracks.values()),
+        "calibration": data.get("calibration"),
     }
     return RenderedState(seq=seq, stamp_ns=snap.header.stamp, frame_id=snap.header.frame_id,
                          polled_at_ns=polled_at_ns, config=snap.config,
-                         counters=dict(snap.counters), tracks=tracks, counts=counts,
+                         counters=dict(snap.counters), tracks=tracks, calibration=data.get("calibration"),
+                         counts=counts,
                          by_class_state=by_class_state, body=dumps(view))
 
 
