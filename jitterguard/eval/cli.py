@@ -47,6 +47,9 @@ def eval_command(
     variance_scale: Annotated[float, typer.Option("--variance-scale", help="Multiply every reported position "
                                                   "variance by this before the tracker (a detector off by a "
                                                   "constant factor).")] = 1.0,
+    variance_scale_at: Annotated[str, typer.Option("--variance-scale-at", help="detector (its output: the tracker "
+                                                   "sees the scaled variances too) or classifier (only what "
+                                                   "the classifier receives).")] = "detector",
     calibration: Annotated[str | None, typer.Option("--calibration", help="online (default), off or file.")] = None,
     calibration_file: Annotated[Path | None, typer.Option("--calibration-file", help="YAML from `jitterguard "
                                                           "calibrate`; implies --calibration file.")] = None,
@@ -90,6 +93,8 @@ def eval_command(
         fail("--runs must be in [1, 50]")
     if not 1e-3 <= variance_scale <= 1e3:
         fail("--variance-scale must be in [0.001, 1000]")
+    if variance_scale_at not in ("detector", "classifier"):
+        fail(f"--variance-scale-at: expected detector or classifier, got {variance_scale_at!r}")
     upd: dict[str, Any] = dict(PRESETS[preset]) if preset else {}
     if alpha is not None:
         upd.update(alpha_default=alpha, alpha_per_class={})
@@ -122,7 +127,8 @@ def eval_command(
     metrics = evaluate(out, scenario=scenario, seed=seed, noise=noise, nuscenes=nuscenes, scene=scene,
                        duration=duration, rate=rate, classifier=cfg,
                        extra_seeds=tuple(range(seed + 1, seed + runs)), detector=detector,
-                       weights_desc=weights_desc, variance_scale=variance_scale, calibration_model=model)
+                       weights_desc=weights_desc, variance_scale=variance_scale, calibration_model=model,
+                       variance_scale_at=variance_scale_at)
     if as_json:
         sys.stdout.write(json.dumps(metrics, indent=2, sort_keys=True) + "\n")
     else:
@@ -165,7 +171,7 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
              scene: str | None, duration: float, rate: float, classifier: Any,
              extra_seeds: tuple[int, ...] = (), detector: "Detector | None" = None,
              weights_desc: str | None = None, variance_scale: float = 1.0,
-             calibration_model: Any = None) -> dict[str, Any]:
+             calibration_model: Any = None, variance_scale_at: str = "detector") -> dict[str, Any]:
     """Load the frames, run the pipeline, score, write the outputs; returns metrics.json's content.
 
     ``extra_seeds`` pools more runs (a fresh scenario and noise draw per seed; for nuScenes only the noise
@@ -223,7 +229,7 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
         if detector is None:
             return run_pipeline(fr, NOISE_PRESETS[noise or "jittery"](), s, classifier,
                                 progress=lambda it: bar(it, s), calibration=carry, variance_scale=variance_scale,
-                                calibration_model=calibration_model)
+                                calibration_model=calibration_model, variance_scale_at=variance_scale_at)
         from .detector_input import detector_frames, nuscenes_scans, run_detector_pipeline, synthetic_scans
 
         if nuscenes is not None:
@@ -237,7 +243,8 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
                                      uncertainty=detector.config.uncertainty)
         rec_s, preds, smp = run_detector_pipeline(det_frames, classifier, calibration=carry,
                                                   variance_scale=variance_scale,
-                                                  calibration_model=calibration_model)
+                                                  calibration_model=calibration_model,
+                                                  variance_scale_at=variance_scale_at)
         predictions.extend(preds)
         samples.extend(smp)
         return rec_s
@@ -263,7 +270,8 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
                 "velocity_sustain_s_per_class": dict(classifier.velocity_sustain_s_per_class),
                 "min_window": classifier.min_window, "window_size": classifier.window_size,
                 "calibration": classifier.calibration, "effective_n": classifier.effective_n,
-                "min_speed_mps": classifier.min_speed_mps, "variance_scale": variance_scale},
+                "min_speed_mps": classifier.min_speed_mps, "variance_scale": variance_scale,
+                "variance_scale_at": variance_scale_at},
         "motion": compute_metrics(rec),
         **planner_metrics(rec),
         "calibration": drive.snapshot(classifier.window_size) if classifier.calibration == "online" else None,

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Iterable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, TypeVar
 
 import numpy as np
@@ -38,6 +38,9 @@ from ..services.tracker.frames import DetectionFrame
 from ..sim.detection_model import DetectionModel, NoiseConfig
 from ..sim.world import GroundTruthFrame
 from .groundtruth import group_of, is_dynamic
+
+VARIANCE_SCALE_AT = ("detector", "classifier")
+"""Where ``--variance-scale`` applies: the detector's output (the tracker sees it too) or the classifier's input."""
 
 MATCH_DISTANCE_M = 2.0
 """A track is the ground-truth object whose centre is within this distance (optimal one-to-one per frame)."""
@@ -102,6 +105,19 @@ class Records:
     track_group: NDArray[np.str_] = field(default_factory=lambda: np.empty(0, dtype="U12"))
     window_size: int = 10
 
+    def __post_init__(self) -> None:
+        """Tables built without the planner-view columns get neutral ones: no attribute, unknown speed, the
+        single velocity threshold, and the track's group taken from its match."""
+        n = len(self)
+        if len(self.gt_attribute) != n:
+            self.gt_attribute = np.full(n, "", dtype="U32")
+        if len(self.gt_speed) != n:
+            self.gt_speed = np.full(n, np.nan)
+        if len(self.speed_threshold) != n:
+            self.speed_threshold = np.full(n, float(self.velocity_threshold))
+        if len(self.track_group) != n:
+            self.track_group = np.asarray(self.group, dtype="U12").copy()
+
     def __len__(self) -> int:
         return int(self.t_s.shape[0])
 
@@ -122,7 +138,7 @@ def run_pipeline(frames: Iterable[GroundTruthFrame], noise: NoiseConfig, seed: i
                  match_distance_m: float = MATCH_DISTANCE_M,
                  progress: Callable[[Iterable[GroundTruthFrame]], Iterable[GroundTruthFrame]] | None = None,
                  calibration: OnlineCalibration | None = None, variance_scale: float = 1.0,
-                 calibration_model: NoiseModel | None = None) -> Records:
+                 calibration_model: NoiseModel | None = None, variance_scale_at: str = "detector") -> Records:
     """Run GT → DetectionModel → TrackerCore → MotionClassifierCore (z_test and velocity_threshold).
 
     ``classifier`` supplies alpha / window / velocity threshold; its ``mode`` is overridden per core.
@@ -132,7 +148,7 @@ def run_pipeline(frames: Iterable[GroundTruthFrame], noise: NoiseConfig, seed: i
     it = progress(frames) if progress is not None else frames
     return track_and_classify(((gt, det_model.detect(gt).detections) for gt in it), classifier, tracker,
                               match_distance_m, calibration=calibration, variance_scale=variance_scale,
-                              calibration_model=calibration_model)
+                              calibration_model=calibration_model, variance_scale_at=variance_scale_at)
 
 
 def scale_variances(msg: DetectedObjects, factor: float) -> DetectedObjects:
@@ -200,7 +216,8 @@ def tracker_steps(inputs: Iterable[tuple[T, DetectedObjects]], tracker: TrackerC
 def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame, DetectedObjects]],
                        classifier: ClassifierConfig | None = None, tracker: TrackerConfig | None = None,
                        match_distance_m: float = MATCH_DISTANCE_M, *, calibration: OnlineCalibration | None = None,
-                       variance_scale: float = 1.0, calibration_model: NoiseModel | None = None) -> Records:
+                       variance_scale: float = 1.0, calibration_model: NoiseModel | None = None,
+                       variance_scale_at: str = "detector") -> Records:
     """TrackerCore → MotionClassifierCore (z_test and velocity_threshold) over (ground truth, detections) pairs.
 
     The detections are whatever feeds the live tracker — the noise model's output or the detector service's
@@ -208,9 +225,15 @@ def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame, DetectedObjects]
     frame) only labels the tracks. ``classifier``'s ``mode`` is overridden per core.
 
     ``calibration``: the online calibration to continue (pooled recordings of one drive share it; it is
-    updated in place); ``variance_scale`` multiplies every reported variance before the tracker
-    (:func:`scale_variances`); ``calibration_model``: the scales for ``calibration: file``.
+    updated in place); ``variance_scale`` multiplies every reported variance — at the detector's output, so
+    the tracker sees it too (``variance_scale_at="detector"``, :func:`scale_variances`), or only in what the
+    classifier receives (``"classifier"``: the classifier's own invariance, with identical tracks);
+    ``calibration_model``: the scales for ``calibration: file``.
     """
+    if variance_scale_at not in VARIANCE_SCALE_AT:
+        raise ValueError(f"variance_scale_at must be one of {VARIANCE_SCALE_AT}, got {variance_scale_at!r}")
+    at_detector = variance_scale if variance_scale_at == "detector" else 1.0
+    at_classifier = variance_scale if variance_scale_at == "classifier" else 1.0
     base = classifier or ClassifierConfig()
     core_z = MotionClassifierCore(base.model_copy(update={"mode": "z_test"}), calibration_model=calibration_model,
                                   online=calibration)
@@ -220,12 +243,15 @@ def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame, DetectedObjects]
                                              "state_v", "gt_instance", "gt_dynamic", "group", "alpha",
                                              "gt_attribute", "gt_speed", "speed_threshold", "track_group")}
     t0: int | None = None
-    scaled = ((gt, scale_variances(msg, variance_scale)) for gt, msg in inputs)
+    scaled = ((gt, scale_variances(msg, at_detector)) for gt, msg in inputs)
     for gt, step in tracker_steps(scaled, tracker):
         t0 = gt.stamp_ns if t0 is None else t0
         obs_msgs = step.observations
         if obs_msgs:
             obs = step.classifier_input()
+            if at_classifier != 1.0:
+                obs = replace(obs, cxx=obs.cxx * at_classifier, cxy=obs.cxy * at_classifier,
+                              cyy=obs.cyy * at_classifier)
             dz = core_z.update(obs)
             dv = core_v.update(obs)
             txy = np.array([[m.track.x, m.track.y] for m in obs_msgs], dtype=np.float64)
