@@ -73,7 +73,7 @@ def test_merge_patch_semantics() -> None:
     assert out.alpha_default == ClassifierConfig().alpha_default and out.window_size == 10
     out = merge_patch(cur, {"alpha_per_class": {"car": None, "pedestrian": 1.28}})  # per-key merge
     assert out.alpha_per_class == {"bus": 3.0, "pedestrian": 1.28}
-    assert merge_patch(cur, {"alpha_per_class": None}).alpha_per_class == {}
+    assert merge_patch(cur, {"alpha_per_class": None}).alpha_per_class == ClassifierConfig().alpha_per_class
 
 
 @pytest.mark.parametrize(("patch", "field"), [
