@@ -107,6 +107,9 @@ def _decode_records(model: type, layout: RecordLayout, data: bytes | memoryview)
 _ENCODER = msgspec.msgpack.Encoder()
 
 
+_IDENTITY_POSE = {"position": {"x": 0.0, "y": 0.0, "z": 0.0}, "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}}
+
+
 def pose_map(pose: Any) -> dict[str, Any] | None:
     """A ``Pose`` (model or generated Struct) as the plain map :func:`encode_tracked_objects` writes; None stays
     None (the field keeps its default)."""
@@ -118,12 +121,13 @@ def pose_map(pose: Any) -> dict[str, Any] | None:
 
 def encode_tracked_objects(header: Mapping[str, Any], records: np.ndarray,
                            observed_track_ids: Sequence[str] = (), ego_pose: Mapping[str, Any] | None = None) -> bytes:
-    """The ``TrackedObjects`` payload of ``records`` (from :func:`tracked_object_layout`); ``ego_pose`` (a
-    ``Pose`` as a plain map) is written when given, else left to its default (identity)."""
+    """The ``TrackedObjects`` payload of ``records`` (from :func:`tracked_object_layout`); ``ego_pose`` is a
+    ``Pose`` as a plain map (:func:`pose_map`; None: identity). Every field is written, in the model's order,
+    so the bytes are what encoding the model gives."""
     enc = _ENCODER.encode
-    pose = b"" if ego_pose is None else enc("ego_pose") + enc(ego_pose)
-    head = b"".join((b"\x84" if ego_pose is None else b"\x85", enc("schema_version"), enc(SCHEMA_VERSION),
-                     enc("header"), enc(dict(header)), pose, enc("objects"), array_header(len(records))))
+    pose = enc(ego_pose if ego_pose is not None else _IDENTITY_POSE)
+    head = b"".join((b"\x85", enc("schema_version"), enc(SCHEMA_VERSION), enc("header"), enc(dict(header)),
+                     enc("ego_pose"), pose, enc("objects"), array_header(len(records))))
     tail = enc("observed_track_ids") + enc(list(observed_track_ids))
     return b"".join((head, memoryview(records.view(np.uint8)), tail))  # one copy of the records
 
