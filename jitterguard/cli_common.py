@@ -12,7 +12,7 @@ from typing import Annotated, NoReturn
 
 import typer
 
-from .runtime import ZenohOptions
+from .runtime import ZenohOptions, build_config
 from .runtime.zenoh_config import ENV_CONFIG, ENV_NS
 
 NsOpt = Annotated[str, typer.Option("--ns", envvar=ENV_NS, help="Namespace: keys live under jg/{ns}/...")]
@@ -45,4 +45,8 @@ def zenoh_options(ns: str, zenoh_config: str | None, connect: list[str] | None, 
     for ep in (*opts.connect, *opts.listen):
         if "/" not in ep:
             fail(f"endpoint {ep!r} must look like tcp/HOST:PORT")
+    try:  # the whole config, now: a bad file or an exposed listener is a one-line error before anything starts
+        build_config(opts)
+    except ValueError as exc:
+        fail(str(exc))
     return opts

@@ -14,3 +14,17 @@ def wait_until(pred: Callable[[], bool], timeout: float = 10.0, period: float = 
             return True
         time.sleep(period)
     return pred()
+
+
+def collector(store: dict, lock, kind: str, model):
+    """A Zenoh subscriber callback that decodes each sample as ``model`` (the wire's own validation) into
+    ``store[kind]`` under ``lock``: the tests' independent observer of what a service published."""
+    from jitterguard.schemas import decode
+
+    def cb(sample) -> None:
+        msg = decode(model, sample.payload.to_bytes())
+        with lock:
+            store[kind].append(msg)
+
+    return cb
+

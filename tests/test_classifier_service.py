@@ -15,6 +15,7 @@ from jitterguard.schemas.models import (
     MotionState,
     TrackedObjects,
 )
+from jitterguard.services.classifier.config_writes import ConfigWritePolicy
 from jitterguard.services.classifier.service import ClassifierService
 from jitterguard.services.classifier.synthetic_tracks import TrackScenario, generate
 
@@ -26,7 +27,8 @@ NS = "test"
 
 @pytest.fixture
 def service(zenoh_port):
-    svc = ClassifierService(loopback_options(NS, zenoh_port, listen_self=True), straggler_timeout_s=0.5)
+    svc = ClassifierService(loopback_options(NS, zenoh_port, listen_self=True), straggler_timeout_s=0.5,
+                            config_writes=ConfigWritePolicy.open())
     yield svc
     svc.close()
 
@@ -323,3 +325,26 @@ def test_a_frame_already_behind_sheds_its_motion_messages_but_not_its_objects(se
     assert [o.header.seq for o in got["objects"]] == [0, 1, 2]
     assert service.counters.get("motion_frames_shed") == 1  # frame 1: frame 2 was already waiting
     assert wait_until(lambda: all(m.header.seq == 2 for m in got["motion"].values()))
+
+
+def test_a_track_at_1e300_keeps_every_output_valid(service, client_session):
+    """x = 1e300 from a broken upstream used to make chi2 infinite, and the state feed (classifier/state, read by
+    the sidecar) was rejected by its own reader until the track aged out. Every output stays valid: the state,
+    the track's MotionState and ``objects``."""
+    got = _collect(client_session)
+    _wait_connected(client_session)
+    frames = list(generate(TrackScenario(n_static=2, n_moving=0, n_starting=0, seed=5), 12))
+    tid = frames[0].observations[0].track.object_id
+    for f in frames[6:]:
+        for o in f.observations:
+            if o.track.object_id == tid:
+                o.detection.kinematics.pose_with_covariance.pose.position.x = 1e300
+    _send_paced(client_session, frames, got)
+    assert wait_until(lambda: tid in got["motion"] and got["motion"][tid].header.seq == 11)
+    m = got["motion"][tid]
+    assert m.state == "dynamic" and np.isfinite([m.chi2, m.z_x, m.z_y]).all() and m.z_x > 1e6
+    snap = decode(ClassifierStateSnapshot, _query(client_session, keys.classifier_state(NS)).ok.payload.to_bytes())
+    entry = next(t for t in snap.tracks if t.track_id == tid)
+    assert entry.state == "dynamic" and entry.chi2 > 1e6
+    assert got["objects"][-1].header.seq == 11  # decoded, so valid
+    assert service.counters.get("rejected") == 0

@@ -198,3 +198,24 @@ def test_undecided_until_min_window():
         states.append(int(core.update(Observations.from_lists(ids, [1], [t * 5.0], [0], [0.01], [0], [0.01])).state[0]))
     assert states == [UNDECIDED, UNDECIDED, UNDECIDED, DYNAMIC, DYNAMIC]
     assert STATIC not in states
+
+
+def test_statistics_stay_finite_and_dynamic_at_the_float_limit() -> None:
+    """Positions ~1e300 apart (a broken upstream) used to give chi2 = inf (and NaN from inf - inf), which the
+    state feed's own reader rejects until the track ages out: the statistics saturate instead."""
+    from jitterguard.services.classifier.statistics import split_halves, window_statistics
+
+    big = 1e300
+    w = np.zeros((3, 4, 5))
+    w[:, :, 2] = w[:, :, 4] = 0.01  # cxx, cyy
+    w[0, 2:, 0] = big                # x jumps by 1e300: chi2 overflows
+    w[1, 2:, 0] = w[1, 2:, 1] = big  # both axes, with a correlated covariance: inf - inf
+    w[1, :, 3] = 0.005
+    w[2, :2, 0], w[2, 2:, 0] = -1.7e308, 1.7e308  # the difference itself overflows
+    masks = split_halves(np.zeros(3, dtype=np.int64), np.full(3, 4, dtype=np.int64), 4)  # slots 2, 3 newer
+    for independent in (False, True):
+        st = window_statistics(w, masks, variance_floor=1e-4, independent=independent)
+        for arr in (st.z_x, st.z_y, st.chi2, st.mean_x, st.mean_y):
+            assert np.isfinite(arr).all(), arr
+        assert (st.chi2 > 1e6).all() and (np.maximum(st.z_x, st.z_y) > 1e6).all()
+        assert st.mean_x[0] == pytest.approx(big / 2) and st.mean_x[2] == pytest.approx(0.0, abs=1e300)

@@ -8,7 +8,7 @@ import sys
 import pytest
 import zenoh
 
-from jitterguard.runtime import ZenohOptions, build_config, free_tcp_port
+from jitterguard.runtime import ZenohOptions, build_config, free_tcp_port, open_session
 from jitterguard.schemas import decode, keys
 from jitterguard.schemas.models import TrackedObjects
 from jitterguard.stack.supervisor import StackSpec, programs, render_config
@@ -45,13 +45,16 @@ def test_up_detached_runs_the_stack_until_down(tmp_path):
     try:
         got: list[TrackedObjects] = []
         cfg = build_config(ZenohOptions(ns=ns, connect=(f"tcp/127.0.0.1:{router}",), listen=()))
-        with zenoh.open(cfg) as s:
+        with open_session(cfg, timeout_s=60) as s:
             s.declare_subscriber(keys.objects(ns), lambda x: got.append(decode(TrackedObjects, x.payload.to_bytes())))
             assert wait_until(lambda: len(got) >= 5, timeout=60), (run_dir / "logs" / "classifier.log").read_text()
         assert any(o.kinematics.is_stationary for o in got[-1].objects)
-        status = jg("status", "--run-dir", str(run_dir))
-        for name in ("router", "classifier", "replay"):
-            assert any(line.startswith(name) and "RUNNING" in line for line in status.stdout.splitlines()), status.stdout
+        # replay publishes at once but supervisord calls it RUNNING only after its startsecs: poll, do not race it
+        def all_running() -> bool:
+            out = jg("status", "--run-dir", str(run_dir)).stdout
+            return all(any(line.startswith(name) and "RUNNING" in line for line in out.splitlines())
+                       for name in ("router", "classifier", "replay"))
+        assert wait_until(all_running, timeout=30), jg("status", "--run-dir", str(run_dir)).stdout
         logs = jg("logs", "classifier", "--run-dir", str(run_dir))
         assert "classifier up" in logs.stdout
     finally:

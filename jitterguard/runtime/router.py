@@ -1,22 +1,45 @@
-"""A Zenoh router inside a Python process, so a deployment needs no separate ``zenohd`` binary."""
+"""A Zenoh router inside a Python process, so a deployment needs no separate ``zenohd`` binary.
+
+The router is the one process of the stack that listens (DESIGN "Security defaults"): on loopback by default,
+and off loopback only with mutual TLS (:func:`~.bind_policy.listen_refusal` refuses anything else).
+"""
 
 from __future__ import annotations
 
 import json
 import logging
+import os
 import signal
 import threading
 
 import zenoh
 
-from .zenoh_config import ZenohOptions, build_config
+from .zenoh_config import DEFAULT_ROUTER, ENV_CONFIG, ZenohOptions, build_config, open_session
 
 log = logging.getLogger("jitterguard.router")
 
 
+def _file_listen(config_file: str | None) -> tuple[str, ...]:
+    """The router endpoints a Zenoh config file names (none if it names none or cannot be read: then
+    :func:`build_config` reports the file's problem)."""
+    path = config_file or os.environ.get(ENV_CONFIG)
+    if not path:
+        return ()
+    try:
+        eps = json.loads(zenoh.Config.from_file(path).get_json("listen/endpoints"))
+    except Exception:
+        return ()
+    if isinstance(eps, dict):  # mode dependent
+        eps = eps.get("router")
+    return tuple(str(e) for e in eps or ())
+
+
 def router_config(listen: list[str], config_file: str | None = None) -> zenoh.Config:
-    """Router mode, listening on ``listen``, multicast scouting off (services connect explicitly)."""
-    cfg = build_config(ZenohOptions(config_file=config_file, listen=tuple(listen), mode="router"))
+    """Router mode, listening on ``listen``; with none, on the config file's endpoints, else on
+    ``tcp/127.0.0.1:7447``. Multicast scouting off (services connect explicitly). Raises ``ValueError`` for
+    a listener off loopback without mutual TLS, or a bad config file."""
+    endpoints = tuple(listen) or _file_listen(config_file) or (DEFAULT_ROUTER,)
+    cfg = build_config(ZenohOptions(config_file=config_file, listen=endpoints, mode="router"))
     cfg.insert_json5("scouting/multicast/enabled", json.dumps(False))
     return cfg
 
@@ -27,8 +50,9 @@ def run_router(listen: list[str], config_file: str | None = None, stop: threadin
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, lambda *_: stop.set())
-    session = zenoh.open(router_config(listen, config_file))
-    log.info("zenoh router %s listening on %s", session.zid(), ", ".join(listen))
+    cfg = router_config(listen, config_file)
+    session = open_session(cfg, stop=stop, log=log)  # a port still held by a router that just died: retry
+    log.info("zenoh router %s listening on %s", session.zid(), cfg.get_json("listen/endpoints"))
     try:
         while not stop.wait(0.5):
             pass

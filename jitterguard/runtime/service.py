@@ -1,5 +1,13 @@
 """The runtime every service stands on: a Zenoh session, liveliness, heartbeat, counters, clean shutdown.
 
+Health means progress (:mod:`.progress`): a service with an input → output relation calls
+:meth:`Service.monitor_progress` and reports inputs, outputs and failures; its heartbeat carries the verdict,
+and under :meth:`Service.run_forever` (the CLI processes) a service that stays failing or stalled for
+``JG_WATCHDOG_S`` seconds (default 10; 0 turns the watchdog off) exits with status 70 for supervisord or
+systemd to restart it. A process hung so hard that its heartbeat thread cannot run (a deadlock, a C call that
+never returns) is caught by :mod:`faulthandler`'s timer thread, which needs no GIL: it dumps every thread's
+stack to stderr and exits with status 1.
+
 A service subclass declares its subscriptions with :meth:`Service.subscribe`, which decodes and validates
 every payload on Zenoh's callback thread and hands only valid models to the handler; anything malformed is
 rejected, counted (``rejected`` and ``rejected.<key>``) and logged once per burst, and the service keeps
@@ -9,6 +17,7 @@ behind a bounded FIFO, so a slow handler stalls the receive path.
 
 from __future__ import annotations
 
+import faulthandler
 import logging
 import os
 import queue
@@ -23,14 +32,24 @@ from pydantic import BaseModel
 
 from ..schemas import DecodeError, decode, encode, keys
 from ..schemas.models import Heartbeat
+from . import memtrace
 from .keyed_publishers import KeyedPublishers
-from .zenoh_config import ZenohOptions, build_config
+from .progress import Health, ProgressMonitor, ProgressPolicy
+from .zenoh_config import ZenohOptions, build_config, open_session
 
 M = TypeVar("M", bound=BaseModel)
 log = logging.getLogger("jitterguard")
 
 HEARTBEAT_PERIOD_S = 1.0
 REJECT_LOG_QUIET_S = 5.0
+ENV_WATCHDOG = "JG_WATCHDOG_S"
+DEFAULT_WATCHDOG_S = 10.0
+EXIT_NO_PROGRESS = 70
+"""Exit status of a service the watchdog stopped (EX_SOFTWARE): the supervisor restarts it."""
+HANG_GRACE_S = 5.0
+"""The heartbeat thread silent this much longer than the watchdog period: a hard hang (faulthandler exits)."""
+SHUTDOWN_LIMIT_S = 20.0
+"""A watched service's shutdown taking longer than this is hung: faulthandler dumps the stacks and exits."""
 
 
 class Counters:
@@ -92,13 +111,17 @@ class Service:
         self.stop_event = threading.Event()
         self.started_at = time.monotonic()
         self.last_seq = -1
+        self.progress: ProgressMonitor | None = None
+        self.exit_code = 0
+        self._watchdog_s: float | None = None  # set by run_forever
         self._reject_log = _BurstLogger(self.log)
         self._declared: list[Any] = []
         self._threads: list[threading.Thread] = []
-        self.session: zenoh.Session = zenoh.open(build_config(opts))
+        self.session: zenoh.Session = open_session(build_config(opts), stop=self.stop_event, log=self.log)
         self._declared.append(self.session.liveliness().declare_token(keys.alive(self.ns, self.name)))
         self._hb_pub = self.session.declare_publisher(keys.heartbeat(self.ns, self.name))
         self.spawn(self._heartbeat_loop, "heartbeat")
+        memtrace.start_from_env(self.name, self.stop_event, self.log)
 
     # ------------------------------------------------------------------ wiring helpers for subclasses
 
@@ -134,17 +157,31 @@ class Service:
 
         self._declared.append(self.session.declare_subscriber(key, on_sample))
 
-    def subscribe_inbox(self, key: str, capacity: int = 64) -> queue.Queue[tuple[bytes, str]]:
+    def monitor_progress(self, policy: ProgressPolicy | None = None) -> ProgressMonitor:
+        """Report health as progress (:mod:`.progress`): the subclass calls ``input`` / ``output`` / ``failure``
+        on the returned monitor (``subscribe_inbox(..., progress=True)`` records arrivals itself)."""
+        self.progress = ProgressMonitor(policy)
+        return self.progress
+
+    def health(self) -> Health:
+        """The progress verdict now (``ok`` for a service with no input → output relation)."""
+        return self.progress.assess(time.monotonic()) if self.progress is not None else Health("ok")
+
+    def subscribe_inbox(self, key: str, capacity: int = 64, *,
+                        progress: bool = False) -> queue.Queue[tuple[bytes, str]]:
         """Subscribe ``key`` into a queue of ``(payload, key)`` that a worker blocks on with ``get(timeout=...)``.
 
         For a few large messages a second (a frame's ``detections``): the worker wakes the moment one arrives
         instead of polling a channel, and the one callback per message only copies the payload. A full queue
         blocks Zenoh's delivery (BLOCK publishers are slowed, not dropped) until the worker catches up or the
-        service stops.
+        service stops. ``progress``: each arrival is an input of :attr:`progress` (a worker stuck on one message
+        then shows as stalled while more arrive).
         """
         inbox: queue.Queue[tuple[bytes, str]] = queue.Queue(maxsize=capacity)
 
         def on_sample(sample: zenoh.Sample) -> None:
+            if progress and self.progress is not None:
+                self.progress.input(time.monotonic())
             item = (sample.payload.to_bytes(), str(sample.key_expr))
             while not self.stop_event.is_set():
                 try:
@@ -177,8 +214,7 @@ class Service:
 
     def keyed_publishers(self, key_of: Callable[[str], str], *,
                          priority: zenoh.Priority = zenoh.Priority.DATA) -> KeyedPublishers:
-        """One declared publisher per track ID on ``key_of(id)`` (:mod:`.keyed_publishers`), undeclared with the
-        service's other entities once its workers have stopped."""
+        """Puts on ``key_of(id)`` per track ID (:mod:`.keyed_publishers`)."""
         pubs = KeyedPublishers(self.session, key_of, priority=priority)
         self._declared.append(pubs)
         return pubs
@@ -217,7 +253,8 @@ class Service:
 
     # ------------------------------------------------------------------ lifecycle
 
-    def heartbeat(self) -> Heartbeat:
+    def heartbeat(self, health: Health | None = None) -> Heartbeat:
+        health = health or self.health()
         return Heartbeat(
             service=self.name,
             pid=os.getpid(),
@@ -226,6 +263,8 @@ class Service:
             uptime_s=time.monotonic() - self.started_at,
             counters=self.counters.snapshot(),
             gauges=self.gauges(),
+            health=health.state,
+            health_reason=health.reason[:500],
         )
 
     def gauges(self) -> dict[str, float]:
@@ -235,24 +274,52 @@ class Service:
 
     def _heartbeat_loop(self) -> None:
         while not self.stop_event.wait(HEARTBEAT_PERIOD_S):
+            health = self.health()
             try:
-                self._hb_pub.put(encode(self.heartbeat()))
+                self._hb_pub.put(encode(self.heartbeat(health)))
             except Exception:  # session closing underneath us
                 if self.stop_event.is_set():
                     return
                 self.log.exception("heartbeat failed")
+            self._watch(health)
+
+    def _watch(self, health: Health) -> None:
+        """Under :meth:`run_forever`: re-arm the hang timer; stop with :data:`EXIT_NO_PROGRESS` once the
+        service has been failing or stalled for the watchdog period."""
+        if self._watchdog_s is None:
+            return
+        faulthandler.dump_traceback_later(self._watchdog_s + HANG_GRACE_S, exit=True)
+        if not health.ok and health.unhealthy_for_s >= self._watchdog_s and not self.stop_event.is_set():
+            self.log.error("no progress for %.0f s (%s: %s); exiting with status %d for the supervisor to "
+                           "restart this process", health.unhealthy_for_s, health.state, health.reason,
+                           EXIT_NO_PROGRESS)
+            self.exit_code = EXIT_NO_PROGRESS
+            self.stop()
 
     def run_forever(self) -> None:
-        """Block until SIGINT/SIGTERM (main thread) or :meth:`stop`, then close everything."""
+        """Block until SIGINT/SIGTERM (main thread) or :meth:`stop`, then close everything. With the watchdog on
+        (``JG_WATCHDOG_S``, default 10 s), a service that stopped making progress exits with status 70."""
         if threading.current_thread() is threading.main_thread():
             for sig in (signal.SIGINT, signal.SIGTERM):
                 signal.signal(sig, lambda *_: self.stop())
+        try:
+            self._watchdog_s = watchdog_period()
+        except ValueError as exc:
+            self.log.error("%s", exc)
+            self.close()
+            raise SystemExit(2) from None
+        if self._watchdog_s is not None:  # armed now: a worker may hang before the first heartbeat
+            faulthandler.dump_traceback_later(self._watchdog_s + HANG_GRACE_S, exit=True)
         self.log.info("%s up (ns=%s, pid=%d)", self.name, self.ns, os.getpid())
         try:
             while not self.stop_event.wait(0.2):
                 pass
         finally:
             self.close()
+            if self._watchdog_s is not None:
+                faulthandler.cancel_dump_traceback_later()
+        if self.exit_code:
+            raise SystemExit(self.exit_code)
 
     def stop(self) -> None:
         self.stop_event.set()
@@ -260,6 +327,8 @@ class Service:
     def close(self) -> None:
         """Stop workers, undeclare everything and close the session (no hang at exit)."""
         self.stop_event.set()
+        if self._watchdog_s is not None:  # a shutdown that hangs (a put blocked for good) still ends
+            faulthandler.dump_traceback_later(SHUTDOWN_LIMIT_S, exit=True)
         self.on_close()
         for t in self._threads:
             if t is not threading.current_thread():
@@ -288,6 +357,18 @@ class Service:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def watchdog_period() -> float | None:
+    """``JG_WATCHDOG_S`` (default 10 s; 0 or negative: no watchdog). A malformed value is a startup error."""
+    raw = os.environ.get(ENV_WATCHDOG, "").strip()
+    if not raw:
+        return DEFAULT_WATCHDOG_S
+    try:
+        value = float(raw)
+    except ValueError:
+        raise ValueError(f"{ENV_WATCHDOG}={raw!r} is not a number of seconds") from None
+    return value if value > 0 else None
 
 
 def setup_logging(level: str = "INFO") -> None:

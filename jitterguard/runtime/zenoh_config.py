@@ -1,25 +1,45 @@
-"""Build a Zenoh session config from the flags every service shares.
+"""Build a Zenoh session config from the flags every service shares, and open it.
 
-Precedence: ``--zenoh-config FILE`` (json5), else the ``JG_ZENOH_CONFIG`` environment variable, else Zenoh's
-defaults (peer mode with multicast scouting, which finds the other services on one host with no flags).
-``--connect`` / ``--listen`` endpoints are added on top; giving either turns multicast scouting off, because
-explicit endpoints mean the user chose the topology (and tests must not find each other's sessions).
+Only the router listens (DESIGN "Security defaults"): a service is a Zenoh *client* of the router unless told
+otherwise. Precedence for the mode: ``ZenohOptions.mode``, else the mode a ``--zenoh-config FILE`` (json5, or
+the ``JG_ZENOH_CONFIG`` environment variable) sets, else ``peer`` when ``--listen`` endpoints are given (the user
+chose a mesh), else ``client``. A client with no endpoint connects to the local router on
+``tcp/127.0.0.1:7447`` (what ``jitterguard router`` listens on by default). ``--connect`` / ``--listen`` are added
+on top; giving either, or running as a client, turns multicast scouting off unless a config file says
+otherwise (explicit endpoints mean the user chose the topology, and tests must not find each other's sessions).
+
+Every listener must pass :func:`~.bind_policy.listen_refusal` (loopback, or mutual TLS): :func:`build_config`
+raises ``ValueError`` otherwise. A peer with no listen endpoint would listen on ``tcp/[::]:0`` (Zenoh's
+default), so that is refused too.
+
+A client's ``open`` fails at once while the router is not up (under supervisord the services start beside
+it, in any order): :func:`open_session` retries until it is, and once connected Zenoh itself reconnects a
+client whose router went away (``connect/retry`` below: 0.1 s, doubling to at most 1 s).
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import os
 import socket
+import threading
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import zenoh
 
 from ..schemas import keys
+from .bind_policy import listen_refusal
 
 ENV_CONFIG = "JG_ZENOH_CONFIG"
 ENV_NS = "JG_NS"
+DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
+CLIENT_RETRY = {"period_init_ms": 100, "period_max_ms": 1000, "period_increase_factor": 2}
+"""How fast a client reconnects to a router that went away (Zenoh's default backs off to 4 s)."""
+OPEN_RETRY_S = 0.25
+OPEN_LOG_EVERY_S = 30.0
 
 
 @dataclass(frozen=True)
@@ -37,33 +57,95 @@ class ZenohOptions:
         keys.check_namespace(self.ns)
 
 
-def build_config(opts: ZenohOptions) -> zenoh.Config:
-    """Turn :class:`ZenohOptions` into a ``zenoh.Config`` (raises ``ValueError`` naming the bad input)."""
-    path = opts.config_file or os.environ.get(ENV_CONFIG) or None
-    if path:
-        p = Path(path)
-        if not p.is_file():
-            raise ValueError(f"zenoh config file not found: {path}")
-        try:
-            cfg = zenoh.Config.from_file(str(p))
-        except Exception as exc:  # zenoh raises ZError with the parser's message
-            raise ValueError(f"zenoh config {path}: {exc}") from None
-    else:
-        cfg = zenoh.Config()
+def _get(cfg: zenoh.Config, key: str) -> object:
     try:
-        if opts.mode:
-            cfg.insert_json5("mode", json.dumps(opts.mode))
-        if opts.connect or opts.listen:
+        return json.loads(cfg.get_json(key))
+    except Exception:
+        return None
+
+
+def _for_mode(value: object, mode: str) -> object:
+    """A Zenoh "mode dependent" value: either the value or ``{router: ..., peer: ..., client: ...}``."""
+    if isinstance(value, dict) and set(value) <= {"router", "peer", "client"}:
+        return value.get(mode)
+    return value
+
+
+def _load(opts: ZenohOptions) -> tuple[zenoh.Config, bool]:
+    path = opts.config_file or os.environ.get(ENV_CONFIG) or None
+    if not path:
+        return zenoh.Config(), False
+    p = Path(path)
+    if not p.is_file():
+        raise ValueError(f"zenoh config file not found: {path}")
+    try:
+        return zenoh.Config.from_file(str(p)), True
+    except Exception as exc:  # zenoh raises ZError with the parser's message
+        raise ValueError(f"zenoh config {path}: {exc}") from None
+
+
+def build_config(opts: ZenohOptions) -> zenoh.Config:
+    """Turn :class:`ZenohOptions` into a ``zenoh.Config`` (raises ``ValueError`` naming the bad input, including
+    a listener that :func:`~.bind_policy.listen_refusal` refuses)."""
+    cfg, from_file = _load(opts)
+    mode = opts.mode or _get(cfg, "mode") or ("peer" if opts.listen else "client")
+    if mode not in ("client", "peer", "router"):
+        raise ValueError(f"zenoh mode must be client, peer or router, got {mode!r}")
+    try:
+        cfg.insert_json5("mode", json.dumps(mode))
+        if opts.connect or opts.listen or (mode == "client" and not from_file):
             cfg.insert_json5("scouting/multicast/enabled", "false")
         if opts.connect:
             cfg.insert_json5("connect/endpoints", json.dumps(list(opts.connect)))
+        elif mode == "client" and not _for_mode(_get(cfg, "connect/endpoints"), mode):
+            cfg.insert_json5("connect/endpoints", json.dumps([DEFAULT_ROUTER]))
+        if mode == "client" and _get(cfg, "connect/retry") is None:
+            cfg.insert_json5("connect/retry", json.dumps(CLIENT_RETRY))
         if opts.listen:
             cfg.insert_json5("listen/endpoints", json.dumps(list(opts.listen)))
         for key, value in opts.extra.items():
             cfg.insert_json5(key, json.dumps(value))
     except Exception as exc:
         raise ValueError(f"invalid zenoh endpoint or setting: {exc}") from None
+    reason = listen_refusal(listen_endpoints(cfg, mode), mtls=_get(cfg, "transport/link/tls/enable_mtls") is True)
+    if reason:
+        raise ValueError(reason)
     return cfg
+
+
+def listen_endpoints(cfg: zenoh.Config, mode: str | None = None) -> list[str]:
+    """The endpoints a session opened with ``cfg`` listens on, Zenoh's defaults included (a peer with none
+    listens on ``tcp/[::]:0``, a router on ``tcp/[::]:7447``; a client listens on nothing)."""
+    mode = mode or _get(cfg, "mode") or "peer"
+    if mode == "client":
+        return []
+    eps = _for_mode(_get(cfg, "listen/endpoints"), mode)
+    if eps:
+        return [str(e) for e in eps]  # type: ignore[union-attr]
+    return ["tcp/[::]:7447"] if mode == "router" else ["tcp/[::]:0"]
+
+
+def open_session(cfg: zenoh.Config, *, stop: threading.Event | None = None, timeout_s: float | None = None,
+                 log: logging.Logger | None = None) -> zenoh.Session:
+    """``zenoh.open(cfg)``, retried every 0.25 s while it fails (a client whose router is not up yet), until
+    ``stop`` is set or ``timeout_s`` passes (then the last error is raised). Says so in ``log`` at the first
+    failure and every 30 s after."""
+    stop = stop or threading.Event()
+    deadline = None if timeout_s is None else time.monotonic() + timeout_s
+    last_log = None
+    while True:
+        try:
+            return zenoh.open(cfg)
+        except Exception as exc:  # zenoh.ZError: e.g. "Unable to connect to any of [tcp/127.0.0.1:7447]"
+            now = time.monotonic()
+            if stop.is_set() or (deadline is not None and now >= deadline):
+                raise
+            if log is not None and (last_log is None or now - last_log >= OPEN_LOG_EVERY_S):
+                endpoints = _get(cfg, "connect/endpoints")
+                log.warning("cannot open the Zenoh session (%s); retrying until the router at %s is up",
+                            str(exc).splitlines()[0] if str(exc) else type(exc).__name__, endpoints)
+                last_log = now
+            stop.wait(OPEN_RETRY_S if deadline is None else max(0.0, min(OPEN_RETRY_S, deadline - now)))
 
 
 def free_tcp_port(host: str = "127.0.0.1") -> int:
@@ -74,11 +156,13 @@ def free_tcp_port(host: str = "127.0.0.1") -> int:
 
 
 def loopback_options(ns: str, port: int, *, listen_self: bool = False, mode: str = "peer") -> ZenohOptions:
-    """Options for a single-host mesh around one listening endpoint on ``tcp/127.0.0.1:port``.
+    """Options for a single-host mesh around one listening endpoint on ``tcp/127.0.0.1:port`` (tests, benches).
 
     The session that owns ``port`` passes ``listen_self=True``; everyone else connects to it.
     """
     ep = f"tcp/127.0.0.1:{port}"
     if listen_self:
         return ZenohOptions(ns=ns, listen=(ep,), mode=mode)
+    if mode == "client":
+        return ZenohOptions(ns=ns, connect=(ep,), mode=mode)
     return ZenohOptions(ns=ns, connect=(ep,), listen=("tcp/127.0.0.1:0",), mode=mode)

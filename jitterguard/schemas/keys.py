@@ -24,6 +24,11 @@ def points(ns: str = DEFAULT_NS) -> str:
     return f"{_base(ns)}/points"
 
 
+def groundtruth(ns: str = DEFAULT_NS) -> str:
+    """Optional: the replay's labels of the frame it publishes (sources with ground truth only)."""
+    return f"{_base(ns)}/groundtruth"
+
+
 def detections(ns: str = DEFAULT_NS) -> str:
     return f"{_base(ns)}/detections"
 

@@ -279,6 +279,29 @@ class TrackedObjects(Message):
     observed_track_ids: list[TrackId] = Field(default_factory=list)
 
 
+class GroundTruthObject(_Strict):
+    """One labelled object of a replayed frame, world frame (box centre, ``dimensions`` x = length)."""
+
+    instance_id: Annotated[str, StringConstraints(min_length=1, max_length=64)]
+    label: Annotated[int, Field(ge=0, le=7)] = Label.UNKNOWN
+    pose: Pose = Field(default_factory=Pose)
+    dimensions: Vector3 = Field(default_factory=Vector3)
+    velocity: Vector3 = Field(default_factory=Vector3)
+    moving: bool = Field(description="motion truth as the evaluator scores it (nuScenes attribute, else speed)")
+    attribute: Annotated[str, StringConstraints(max_length=64)] = ""
+
+
+class GroundTruthObjects(Message):
+    """Ground truth of one replayed frame, for viewers (Foxglove) and recorders; never an input of the pipeline.
+
+    Published by the replay on ``groundtruth`` when its source has labels (the synthetic world), before the frame's
+    ``points`` / ``detections``, with the same ``header.seq`` and ``stamp``; ``header.frame_id`` is the world frame.
+    """
+
+    header: Header
+    objects: list[GroundTruthObject] = Field(default_factory=list)
+
+
 MotionLabel = Literal["static", "dynamic", "undecided"]
 TestMode = Literal["z_test", "chi2", "velocity_threshold"]
 EffectiveN = Literal["cluster", "independent", "measured"]
@@ -348,6 +371,10 @@ def _check_class_names(v: dict[str, float]) -> dict[str, float]:
     return v
 
 
+MAX_WINDOW = 64
+"""Largest ``window_size`` (6.4 s at 10 Hz; the paper uses 10)."""
+
+
 class ClassifierConfig(Message):
     """Everything that tunes the motion classifier; a write applies from the next frame on."""
 
@@ -358,8 +385,10 @@ class ClassifierConfig(Message):
         description="per-class alpha overrides, keyed by lowercase Autoware class name (car, truck, ...); default: "
         "the authors' deployed values (vehicles 2.58, pedestrian 1.28, ...)",
     )
-    window_size: Annotated[int, Field(ge=2, le=1000)] = 10
-    min_window: Annotated[int, Field(ge=2, le=1000)] = 2
+    window_size: Annotated[int, Field(ge=2, le=MAX_WINDOW, description=(
+        "observations per track window (the calibrated test and the online calibration hold W × W matrices per "
+        "window: bounded so that a config write cannot exhaust memory)"))] = 10
+    min_window: Annotated[int, Field(ge=2, le=MAX_WINDOW)] = 2
     variance_floor: Annotated[float, Field(gt=0.0, le=1e6)] = 1e-4
     effective_n: EffectiveN = Field(
         "measured", description="cluster: each half is one sample (the paper); independent: real counts; "
@@ -372,7 +401,8 @@ class ClassifierConfig(Message):
         "file")
     calibration_range_bands_m: Annotated[list[Annotated[float, Field(gt=0.0, le=1000.0)]],
                                          Field(max_length=8)] = Field(
-        default_factory=_default_bands, description="range bands of the calibration split at these distances, m")
+        default_factory=_default_bands, description="range bands of the calibration split at these distances, m "
+        "(kept sorted, repeats dropped)")
     calibration_prior_blocks: Annotated[float, Field(ge=0.0, le=1e6)] = Field(
         20.0, description="pseudo-blocks of the calibration prior at each level (class group, range band)")
     calibration_half_life_s: Annotated[float, Field(gt=0.0, le=1e7)] = Field(
@@ -398,9 +428,8 @@ class ClassifierConfig(Message):
     @field_validator("calibration_range_bands_m")
     @classmethod
     def _increasing(cls, v: list[float]) -> list[float]:
-        if any(b <= a for a, b in zip(v, v[1:])):
-            raise ValueError("range band edges must be strictly increasing")
-        return v
+        """Band edges are a set of distances: kept sorted and without repeats (any order is accepted)."""
+        return sorted(set(v))
 
     @model_validator(mode="after")
     def _window_order(self) -> "ClassifierConfig":
@@ -528,3 +557,6 @@ class Heartbeat(Message):
     uptime_s: Annotated[float, Field(ge=0.0)] = 0.0
     counters: dict[str, int] = Field(default_factory=dict)
     gauges: dict[str, float] = Field(default_factory=dict)
+    health: Literal["ok", "failing", "stalled"] = Field(
+        "ok", description="whether the service turns its input into output (jitterguard.runtime.progress)")
+    health_reason: Annotated[str, Field(max_length=500)] = ""

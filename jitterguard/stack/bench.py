@@ -8,7 +8,11 @@ with the same ``header.seq`` (read with :func:`peek_header_seq`, no validation i
 child comes from ``/proc/<pid>/status`` (VmRSS), sampled after the first minute (or 20 % of a shorter run) and at
 the end. The scene: objects on a jittered 8 m grid, 30 % parked, the rest oscillating along their heading (so
 the run can go on for any length without objects drifting away), detector noise 0.1-0.3 m with matching
-reported variances, 5 % misses.
+reported variances, 5 % misses. ``--churn N`` moves N objects a frame (round robin) to a far, empty cell of the
+grid, so the tracker loses N tracks a frame (they coast out over ``max_coast_s``) and confirms N new ones: N new
+track IDs, hence N new ``tracks/{id}`` keys, a frame, as a detector produces on real scans. A freed cell rests
+for about three seconds before it is used again, longer than a lost track coasts, so a new object is never
+taken for the old one. ``tracks_born_per_frame`` (from the tracker's heartbeat) says what churn was reached.
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections import deque
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -31,21 +36,28 @@ import numpy as np
 import typer
 
 CLASSES = {1: (4.5, 1.9, 1.6), 7: (0.6, 0.6, 1.7), 6: (1.8, 0.6, 1.6)}
+CELL_M = 8.0
+"""Grid spacing of the scene, m: wider than any association gate and than an object's oscillation."""
+CELL_REST_S = 3.0
+"""How long a cell an object left stays empty (the tracker's lost track coasts 1 s by default)."""
 
 
 class SceneGenerator:
     """Detection-level frames as msgpack maps, patched in place from one validated template (cheap per frame)."""
 
-    def __init__(self, n_objects: int, rate_hz: float, seed: int = 0) -> None:
+    def __init__(self, n_objects: int, rate_hz: float, seed: int = 0, churn: int = 0) -> None:
         from ..geometry import quaternion_from_yaw
         from ..schemas.models import DetectedObjects
 
         self.rng = np.random.default_rng(seed)
-        self.n, self.dt = n_objects, 1.0 / rate_hz
-        side = int(math.ceil(math.sqrt(n_objects)))
-        cells = self.rng.permutation(side * side)[:n_objects]
-        self.x0 = (cells % side - side / 2) * 8.0 + self.rng.uniform(-1, 1, n_objects)
-        self.y0 = (cells // side - side / 2) * 8.0 + self.rng.uniform(-1, 1, n_objects)
+        self.n, self.dt, self.churn = n_objects, 1.0 / rate_hz, min(churn, n_objects)
+        rest_frames = int(math.ceil(CELL_REST_S * rate_hz))
+        self.side = side = int(math.ceil(math.sqrt(n_objects + self.churn * rest_frames)))
+        order = self.rng.permutation(side * side)
+        self.cell = order[:n_objects].copy()  # each object's cell
+        self.free = deque(order[n_objects:].tolist())  # cells to move to, the longest-free first
+        self.next_mover = 0
+        self.x0, self.y0 = self._place(self.cell)
         self.kind = self.rng.choice([1, 7, 6], size=n_objects, p=[0.75, 0.2, 0.05])
         self.heading = self.rng.uniform(-math.pi, math.pi, n_objects)
         self.amp = np.where(self.rng.random(n_objects) < 0.3, 0.0, self.rng.uniform(1.0, 3.0, n_objects))
@@ -75,9 +87,25 @@ class SceneGenerator:
         self.template = model.model_dump(mode="python")
         self.objs = self.template["objects"]
 
+    def _place(self, cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        half = self.side / 2
+        return ((cells % self.side - half) * CELL_M + self.rng.uniform(-1, 1, len(cells)),
+                (cells // self.side - half) * CELL_M + self.rng.uniform(-1, 1, len(cells)))
+
+    def _move_churned(self) -> None:
+        """``churn`` objects (round robin) to the longest-free cells; their old cells rest at the back."""
+        movers = (self.next_mover + np.arange(self.churn)) % self.n
+        self.next_mover = (self.next_mover + self.churn) % self.n
+        new = np.array([self.free.popleft() for _ in movers], dtype=self.cell.dtype)
+        self.free.extend(self.cell[movers].tolist())
+        self.cell[movers] = new
+        self.x0[movers], self.y0[movers] = self._place(new)
+
     def frame(self, seq: int, stamp_ns: int) -> bytes:
         import msgpack  # type: ignore[import-untyped]
 
+        if self.churn and seq > 0:
+            self._move_churned()
         t = seq * self.dt
         d = self.amp * np.sin(self.omega * t)
         x = self.x0 + d * np.cos(self.heading) + self.rng.normal(0, 1, self.n) * self.sig
@@ -114,14 +142,15 @@ def _pct(values: list[float], q: float) -> float:
 
 def bench_pipeline(objects: int = 200, rate_hz: float = 20.0, duration_s: float = 60.0, seed: int = 0,
                    log_dir: Path | None = None, startup_timeout_s: float = 60.0,
-                   split: bool = False) -> dict[str, Any]:
+                   split: bool = False, churn: int = 0) -> dict[str, Any]:
     """Run the pipeline bench; ``split`` also subscribes ``tracked`` to report ``to_tracked_ms`` (the tracker's
     leg). Off by default: that extra subscriber makes the tracker send each 330 kB ``tracked`` twice and costs
     this process CPU while the classifier works, so it adds to what it measures."""
     import zenoh
 
-    from ..runtime import ZenohOptions, build_config, free_tcp_port
-    from ..schemas import keys, peek_header_seq
+    from ..runtime import ZenohOptions, build_config, free_tcp_port, open_session
+    from ..schemas import DecodeError, decode, keys, peek_header_seq
+    from ..schemas.models import Heartbeat
 
     ns = f"bench{os.getpid()}"
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
@@ -132,7 +161,8 @@ def bench_pipeline(objects: int = 200, rate_hz: float = 20.0, duration_s: float 
     common = ("--ns", ns, "--connect", endpoint)
     specs = {"router": ("router", "--listen", endpoint), "classifier": ("classifier", *common),
              "tracker": ("tracker", *common)}
-    gen = SceneGenerator(objects, rate_hz, seed)
+    gen = SceneGenerator(objects, rate_hz, seed, churn=churn)
+    born: dict[str, int] = {}  # the tracker's latest tracks_born counter, from its heartbeat
     sent: dict[int, float] = {}
     recv: dict[int, float] = {}
     tracked_at: dict[int, float] = {}  # where the time goes: detections put -> tracked seen -> objects seen
@@ -156,10 +186,18 @@ def bench_pipeline(objects: int = 200, rate_hz: float = 20.0, duration_s: float 
             out.close()
             if name == "router":
                 time.sleep(0.5)
-        cfg = build_config(ZenohOptions(ns=ns, connect=(endpoint,), listen=()))
-        with zenoh.open(cfg) as session:
+        cfg = build_config(ZenohOptions(ns=ns, connect=(endpoint,)))
+        with open_session(cfg, timeout_s=startup_timeout_s) as session:
             sub = session.declare_subscriber(keys.objects(ns), stamp_into(recv))
             sub_tracked = session.declare_subscriber(keys.tracked(ns), stamp_into(tracked_at)) if split else None
+
+            def on_beat(sample: Any) -> None:
+                try:
+                    born["now"] = decode(Heartbeat, sample.payload.to_bytes()).counters.get("tracks_born", 0)
+                except DecodeError:
+                    pass
+
+            sub_beat = session.declare_subscriber(keys.heartbeat(ns, "tracker"), on_beat)
             pub = session.declare_publisher(keys.detections(ns), congestion_control=zenoh.CongestionControl.BLOCK)
             deadline = time.monotonic() + startup_timeout_s
             while True:
@@ -175,6 +213,9 @@ def bench_pipeline(objects: int = 200, rate_hz: float = 20.0, duration_s: float 
             n_frames = int(round(duration_s * rate_hz))
             rss_at = min(60.0, 0.2 * duration_s)
             rss_first: dict[str, int | None] = {}
+            timeline_every = max(10.0, duration_s / 30)  # about 30 points however long the run
+            timeline: list[dict[str, Any]] = []
+            born_first: tuple[int | None, int] = (None, 0)
             t0 = time.perf_counter()
             stamp0 = time.time_ns()
             data = gen.frame(0, stamp0)
@@ -183,8 +224,11 @@ def bench_pipeline(objects: int = 200, rate_hz: float = 20.0, duration_s: float 
             try:
                 for k in range(n_frames):
                     target = t0 + k / rate_hz
+                    if target - t0 >= len(timeline) * timeline_every:
+                        timeline.append({"t_s": round(target - t0), **{n: vm_rss_kb(p.pid) for n, p in procs.items()}})
                     if not rss_first and target - t0 >= rss_at:
                         rss_first = {n: vm_rss_kb(p.pid) for n, p in procs.items()}
+                        born_first = (born.get("now"), k)
                     now = time.perf_counter()
                     if target > now:
                         time.sleep(target - now)
@@ -208,7 +252,10 @@ def bench_pipeline(objects: int = 200, rate_hz: float = 20.0, duration_s: float 
                         break
                 time.sleep(0.05)
             rss_end = {n: vm_rss_kb(p.pid) for n, p in procs.items()}
+            time.sleep(1.2)  # one more tracker heartbeat, with every frame counted
+            born_end = (born.get("now"), len(sent))
             sub.undeclare()
+            sub_beat.undeclare()
             if sub_tracked is not None:
                 sub_tracked.undeclare()
             pub.undeclare()
@@ -229,8 +276,12 @@ def bench_pipeline(objects: int = 200, rate_hz: float = 20.0, duration_s: float 
     for n in procs:
         first, end = rss_first.get(n), rss_end.get(n)
         growth[n] = round(100.0 * (end - first) / first, 2) if first and end else None
+    births = None
+    if born_first[0] is not None and born_end[0] is not None and born_end[1] > born_first[1]:
+        births = round((born_end[0] - born_first[0]) / (born_end[1] - born_first[1]), 2)
     return {
-        "objects": objects, "rate_hz": rate_hz, "duration_s": round(wall, 2),
+        "objects": objects, "rate_hz": rate_hz, "churn": churn, "duration_s": round(wall, 2),
+        "tracks_born_per_frame": births,
         "frames_in": len(sent), "frames_out": len(lat), "frames_missing": late_or_lost,
         "p50_ms": round(statistics.median(lat), 2) if lat else None,
         "p90_ms": round(_pct(lat, 90), 2) if lat else None,
@@ -241,6 +292,7 @@ def bench_pipeline(objects: int = 200, rate_hz: float = 20.0, duration_s: float 
         "rss_sampled_after_s": round(min(60.0, 0.2 * duration_s), 1),
         "rss_kb": {n: {"first": rss_first.get(n), "end": rss_end.get(n)} for n in procs},
         "rss_growth_pct": growth,
+        "rss_timeline_kb": timeline,
         "logs": str(log_dir),
     }
 
@@ -252,10 +304,12 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         rate: Annotated[float, typer.Option("--rate", min=0.1, help="Frames per second.")] = 20.0,
         duration: Annotated[float, typer.Option("--duration", min=1.0, help="Seconds of load.")] = 60.0,
         seed: Annotated[int, typer.Option("--seed")] = 0,
+        churn: Annotated[int, typer.Option("--churn", min=0, help="Objects moved to a new place each frame, so N "
+                                                                  "new track IDs a frame (default 0).")] = 0,
         split: Annotated[bool, typer.Option("--split", help="Also time detections -> tracked (to_tracked_ms); "
                                                               "the extra subscriber adds load.")] = False,
         as_json: Annotated[bool, typer.Option("--json", help="JSON on stdout (the only output format).")] = True,
     ) -> None:
         """Detections -> tracker -> classifier -> objects through real processes: latency, losses, RSS growth."""
-        res = bench_pipeline(objects, rate, duration, seed, split=split)
+        res = bench_pipeline(objects, rate, duration, seed, split=split, churn=churn)
         print(json.dumps(res, indent=None if as_json else 2))

@@ -34,20 +34,34 @@ def _ctl(run_dir: Path, *args: str, check: bool = False) -> subprocess.Completed
 
 def _wait_for_objects(ns: str, endpoint: str, timeout: float) -> float | None:
     """Seconds until the first classified ``objects`` arrives, or None."""
-    import zenoh
-
-    from ..runtime import ZenohOptions, build_config
+    from ..runtime import ZenohOptions, build_config, open_session
     from ..schemas import keys
 
     got: list[float] = []
     t0 = time.monotonic()
-    cfg = build_config(ZenohOptions(ns=ns, connect=(endpoint,), listen=()))
-    with zenoh.open(cfg) as session:
+    cfg = build_config(ZenohOptions(ns=ns, connect=(endpoint,)))
+    try:  # a client of the stack's router, which supervisord may still be starting
+        session = open_session(cfg, timeout_s=timeout)
+    except Exception:
+        return None
+    with session:
         sub = session.declare_subscriber(keys.objects(ns), lambda s: got.append(time.monotonic()))
         while not got and time.monotonic() - t0 < timeout:
             time.sleep(0.05)
         sub.undeclare()
     return (got[0] - t0) if got else None
+
+
+def _recording_path(value: str | None, flag: str) -> str | None:
+    """An absolute path for a recording (supervisord runs programs in the run dir) that does not exist yet."""
+    if value is None:
+        return None
+    p = Path(value).expanduser().resolve()
+    if p.exists():
+        fail(f"{flag}: {value} exists")
+    if not p.parent.is_dir():
+        fail(f"{flag}: no folder {p.parent}")
+    return str(p)
 
 
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:
@@ -63,6 +77,10 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         run_dir: RunDirOpt = None,
         no_sidecar: Annotated[bool, typer.Option("--no-sidecar", help="Leave the HTTP sidecar out.")] = False,
         duration: Annotated[float | None, typer.Option("--duration", min=1.0, help="Stop after this many seconds.")] = None,
+        foxglove: Annotated[bool, typer.Option("--foxglove", help="Serve the pipeline to Foxglove (ws://127.0.0.1:PORT).")] = False,
+        foxglove_port: Annotated[int, typer.Option("--foxglove-port", min=1, max=65535)] = 8765,
+        record_mcap: Annotated[str | None, typer.Option("--record-mcap", help="Record the Foxglove channels to this MCAP file.")] = None,
+        record_ros2: Annotated[str | None, typer.Option("--record-ros2", help="Record a ROS 2 bag for Autoware into this new folder.")] = None,
     ) -> None:
         """Start router, replay, (detector,) tracker, classifier and sidecar under supervisord."""
         if input_level not in ("auto", "points", "detections", "tracks"):
@@ -71,8 +89,10 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         if (rd / "supervisor.sock").exists() and _ctl(rd, "pid").returncode == 0:
             fail(f"a stack is already running from {rd} (stop it with `jitterguard down --ns {ns}`)")
         (rd / "logs").mkdir(parents=True, exist_ok=True)
+        mcap_path, bag_path = _recording_path(record_mcap, "--record-mcap"), _recording_path(record_ros2, "--record-ros2")
         spec = StackSpec(ns=ns, router_port=router_port, sidecar_host=host, sidecar_port=port, source=source,
-                         input=input_level, sidecar=not no_sidecar)
+                         input=input_level, sidecar=not no_sidecar, foxglove=foxglove, foxglove_port=foxglove_port,
+                         record_mcap=mcap_path, record_ros2=bag_path)
         progs = programs(spec)
         conf = rd / "supervisord.conf"
         conf.write_text(render_config(spec, rd, progs, nodaemon=not detach))
@@ -101,6 +121,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             print(f"jitterguard: first classified objects after {first:.1f} s", flush=True)
         if any(p.name == "sidecar" for p in progs):
             print(f"sidecar: http://{host}:{port}/  (Ctrl-C stops the stack)", flush=True)
+        if foxglove:
+            print(f"foxglove: ws://127.0.0.1:{foxglove_port}  (layout: deploy/foxglove/jitterguard.json)", flush=True)
         t_end = time.monotonic() + duration if duration else None
         while not stop["flag"] and proc.poll() is None and (t_end is None or time.monotonic() < t_end):
             time.sleep(0.2)

@@ -49,6 +49,8 @@ class ServiceStatus:
     last_seq: int | None = None  # from the latest heartbeat
     heartbeat_uptime_s: float | None = None
     heartbeat_pid: int | None = None
+    health: str | None = None  # ok | failing | stalled, from the heartbeat (jitterguard.runtime.progress)
+    health_reason: str = ""
     counters: dict[str, int] = dataclasses.field(default_factory=dict)
     detail: str = ""
 
@@ -128,6 +130,7 @@ def collect(sup_text: str, spec: StackSpec | None, listen_s: float = 1.5) -> lis
             row.last_seq = hb.last_seq
             row.heartbeat_uptime_s = round(hb.uptime_s, 1)
             row.heartbeat_pid = hb.pid
+            row.health, row.health_reason = hb.health, hb.health_reason
             row.counters = dict(hb.counters)
     return rows
 
@@ -148,11 +151,14 @@ def render_table(rows: list[ServiceStatus], spec: StackSpec | None, run_dir: Pat
     # A terminal gets a boxed table; a pipe gets plain aligned columns, one service per line starting with its
     # name (as `supervisorctl status` prints), so `grep`/`awk` keep working.
     table = Table(title=title) if console.is_terminal else Table(title=title, box=None, pad_edge=False)
-    for col in ("service", "state", "pid", "uptime", "zenoh alive", "last seq"):
+    for col in ("service", "state", "pid", "uptime", "zenoh alive", "last seq", "progress"):
         table.add_column(col, justify="right" if col in ("pid", "uptime", "last seq") else "left")
     for r in rows:
         color = "green" if r.state == "RUNNING" else ("yellow" if r.state in ("STARTING", "BACKOFF") else "red")
         alive = "-" if r.alive is None else ("[green]yes[/]" if r.alive else "[red]no[/]")
         seq = "-" if r.last_seq is None else ("none yet" if r.last_seq < 0 else str(r.last_seq))
-        table.add_row(r.name, f"[{color}]{r.state}[/]", str(r.pid or "-"), _fmt_uptime(r.uptime_s), alive, seq)
+        progress = "-" if r.health is None else ("[green]ok[/]" if r.health == "ok" else
+                                                 f"[red]{r.health}[/]: {r.health_reason}")
+        table.add_row(r.name, f"[{color}]{r.state}[/]", str(r.pid or "-"), _fmt_uptime(r.uptime_s), alive, seq,
+                      progress)
     console.print(table)

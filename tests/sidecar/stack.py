@@ -57,6 +57,7 @@ from jitterguard.schemas.models import (
     TwistWithCovariance,
     Vector3,
 )
+from jitterguard.services.classifier.config_writes import ConfigWritePolicy
 from jitterguard.services.classifier.service import ClassifierService
 from jitterguard.services.sidecar.app import SidecarSettings, create_app
 
@@ -274,8 +275,9 @@ PAPER_STATISTIC: dict[str, Any] = {"calibration": "off", "effective_n": "cluster
 def start_stack(ns: str, token: str | None = None, *, window_ready: bool = True) -> Stack:
     """Classifier listening on a free port; feeder and sidecar connect to it; wait until state flows."""
     zport = free_tcp_port()
+    writes = ConfigWritePolicy(token=token) if token else ConfigWritePolicy.open()
     classifier = ClassifierService(loopback_options(ns, zport, listen_self=True),
-                                   ClassifierConfig(**PAPER_STATISTIC))
+                                   ClassifierConfig(**PAPER_STATISTIC), config_writes=writes)
     tracks = scenario()
     feeder = Feeder(ns, zport, tracks)
     app = create_app(SidecarSettings(zenoh=loopback_options(ns, zport), api_token=token))

@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import json
 import re
+import time
 
 import httpx
 import pytest
+import zenoh
 
-from jitterguard.schemas import keys
-from jitterguard.schemas.models import AUTHORS_ALPHA, ClassifierConfig
+from jitterguard.runtime import build_config, loopback_options
+from jitterguard.schemas import encode, keys
+from jitterguard.schemas.models import AUTHORS_ALPHA, ClassifierConfig, Heartbeat
 from jitterguard.services.sidecar.core import StateView, TrackView
 
 from .stack import PAPER_STATISTIC, Stack, wait_for
@@ -44,6 +47,29 @@ def test_health_and_readiness(stack: Stack) -> None:
         body = r.json()
         assert body["ready"] is True and body["liveliness"] is True and body["reason"] == "ok"
         assert body["heartbeat_age_s"] is not None and body["last_seq"] >= 0
+        assert body["services"]["classifier"]["health"] == "ok"
+
+
+def test_readiness_reports_a_service_of_the_pipeline_that_makes_no_progress(stack: Stack) -> None:
+    """A tracker whose frames keep failing (its heartbeat says so) makes the sidecar not ready, with the reason;
+    once its heartbeat says ok again, the sidecar is ready again."""
+    def beat(health: str, reason: str) -> bytes:
+        return encode(Heartbeat(service="tracker", pid=1, stamp=time.time_ns(), last_seq=41, health=health,
+                                health_reason=reason))
+
+    with zenoh.open(build_config(loopback_options(stack.ns, stack.zport))) as s, stack.http(auth=False) as c:
+        def readyz_after(payload: bytes, status: int) -> dict | None:
+            s.put(keys.heartbeat(stack.ns, "tracker"), payload)
+            r = c.get("/readyz")
+            return r.json() if r.status_code == status else None
+
+        body = wait_for(lambda: readyz_after(beat("failing", "the last 7 frames failed (MemoryError)"), 503),
+                        "readyz to report the failing tracker")
+        assert body["ready"] is False and body["liveliness"] is True
+        assert "tracker failing: the last 7 frames failed (MemoryError)" in body["reason"]
+        assert body["services"]["tracker"] == {**body["services"]["tracker"], "health": "failing", "last_seq": 41}
+        body = wait_for(lambda: readyz_after(beat("ok", ""), 200), "readyz once the tracker recovers")
+        assert body["reason"] == "ok" and body["services"]["tracker"]["health"] == "ok"
 
 
 def test_state_appears_with_every_track(stack: Stack) -> None:

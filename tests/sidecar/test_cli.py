@@ -15,6 +15,7 @@ from typer.testing import CliRunner
 
 from jitterguard.cli import app
 from jitterguard.runtime import free_tcp_port, loopback_options
+from jitterguard.services.classifier.config_writes import ConfigWritePolicy
 from jitterguard.services.classifier.service import ClassifierService
 
 from .stack import wait_for
@@ -67,7 +68,8 @@ def test_token_allows_a_non_loopback_bind_decision() -> None:
 @pytest.mark.integration
 def test_real_process_serves_and_stops_on_sigterm() -> None:
     zport = free_tcp_port()
-    classifier = ClassifierService(loopback_options("sc-cli", zport, listen_self=True))
+    classifier = ClassifierService(loopback_options("sc-cli", zport, listen_self=True),
+                                   config_writes=ConfigWritePolicy.open())
     port = free_tcp_port()
     env = {k: v for k, v in os.environ.items() if k != "JG_API_TOKEN"}
     proc = subprocess.Popen(

@@ -9,6 +9,7 @@ import pytest
 
 from jitterguard.runtime import loopback_options
 from jitterguard.schemas.models import ClassifierConfig
+from jitterguard.services.classifier.config_writes import ConfigWritePolicy
 from jitterguard.services.classifier.service import ClassifierService
 
 from .stack import start_stack, wait_for
@@ -63,7 +64,8 @@ def test_503_when_the_classifier_is_gone_and_recovery() -> None:
 
             # A new classifier on the same endpoint: the sidecar reconnects on its own, and the config in
             # force is the new process's own (the refused writes above never reached anything).
-            stack.classifier = ClassifierService(loopback_options(stack.ns, stack.zport, listen_self=True))
+            stack.classifier = ClassifierService(loopback_options(stack.ns, stack.zport, listen_self=True),
+                                                 config_writes=ConfigWritePolicy.open())
             wait_for(lambda: c.get("/readyz").status_code == 200, "readiness after restart", timeout=30)
             assert c.get("/v1/config").json()["alpha_default"] == ClassifierConfig().alpha_default
             stack.wait_state(lambda b: b["counts"]["total"] == len(stack.tracks), "state after restart",

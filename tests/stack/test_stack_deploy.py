@@ -12,7 +12,11 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from jitterguard.runtime import free_tcp_port
+from jitterguard.runtime import ZenohOptions, free_tcp_port
+from jitterguard.schemas import decode, encode, keys
+from jitterguard.schemas.models import ClassifierConfig, ConfigReply
+from jitterguard.services.classifier.config_writes import ConfigWritePolicy
+from jitterguard.services.classifier.service import ClassifierService
 
 from helpers import wait_until
 
@@ -51,7 +55,9 @@ def _make_pki(d: Path, router_san: str = "DNS:localhost,IP:127.0.0.1") -> None:
              "-subj", "/CN=jitterguard-test-ca", cwd=d)
     for name, cn, san in (("router", "router", router_san),
                           ("host", "jitterguard-tracker", "DNS:jitterguard-tracker"),
-                          ("ops", "jitterguard-ops", "DNS:jitterguard-ops")):
+                          ("ops", "jitterguard-ops", "DNS:jitterguard-ops"),
+                          ("sensor", "jitterguard-sensor", "DNS:jitterguard-sensor"),
+                          ("classifier", "jitterguard-classifier", "DNS:jitterguard-classifier")):
         _openssl("req", "-newkey", "rsa:2048", "-nodes", "-keyout", f"{name}-key.pem", "-out", f"{name}.csr",
                  "-subj", f"/CN={cn}", cwd=d)
         (d / f"{name}.ext").write_text(f"subjectAltName={san}\n")
@@ -98,6 +104,38 @@ def test_mtls_router_and_service_hosts(tmp_path):
             zenoh.open(client(False)).close()
 
 
+def _acl_router(pki: Path, port: int) -> zenoh.Config:
+    """deploy/zenoh/router-host.json5 on ``tls/127.0.0.1:port`` with the test CA, ACL as shipped except that
+    loopback is not trusted: everything here runs on loopback, which the example trusts as "local" (services on
+    the router host), so that subject is taken out and the certificate subjects are what decides."""
+    rcfg = zenoh.Config.from_file(str(DEPLOY / "zenoh" / "router-host.json5"))
+    rcfg.insert_json5("listen/endpoints", json.dumps([f"tls/127.0.0.1:{port}"]))
+    for key, val in (("root_ca_certificate", "ca.pem"), ("listen_certificate", "router.pem"),
+                     ("listen_private_key", "router-key.pem")):
+        rcfg.insert_json5(f"transport/link/tls/{key}", json.dumps(str(pki / val)))
+    acl = json.loads(rcfg.get_json("access_control"))
+    acl["subjects"] = [s for s in acl["subjects"] if s["id"] != "local"]
+    for pol in acl["policies"]:
+        pol["subjects"] = [s for s in pol["subjects"] if s != "local"]
+    rcfg.insert_json5("access_control", json.dumps(acl))
+    return rcfg
+
+
+def _host_settings(pki: Path, port: int, who: str) -> dict[str, object]:
+    """What a service host changes in deploy/zenoh/service-host.json5: the router's address, its certificate."""
+    return {"connect/endpoints": [f"tls/localhost:{port}"],
+            "transport/link/tls/root_ca_certificate": str(pki / "ca.pem"),
+            "transport/link/tls/connect_certificate": str(pki / f"{who}.pem"),
+            "transport/link/tls/connect_private_key": str(pki / f"{who}-key.pem")}
+
+
+def _host(pki: Path, port: int, who: str) -> zenoh.Config:
+    c = zenoh.Config.from_file(str(DEPLOY / "zenoh" / "service-host.json5"))
+    for key, value in _host_settings(pki, port, who).items():
+        c.insert_json5(key, json.dumps(value))
+    return c
+
+
 @pytest.mark.integration
 @pytest.mark.skipif(shutil.which("openssl") is None, reason="needs the openssl CLI to make a test PKI")
 def test_access_control_example_limits_puts_by_certificate(tmp_path):
@@ -105,29 +143,9 @@ def test_access_control_example_limits_puts_by_certificate(tmp_path):
     ``objects``; the ops host reads everything."""
     _make_pki(tmp_path)
     port = free_tcp_port()
-    rcfg = zenoh.Config.from_file(str(DEPLOY / "zenoh" / "router-host.json5"))
-    rcfg.insert_json5("listen/endpoints", json.dumps([f"tls/127.0.0.1:{port}"]))
-    for key, val in (("root_ca_certificate", "ca.pem"), ("listen_certificate", "router.pem"),
-                     ("listen_private_key", "router-key.pem")):
-        rcfg.insert_json5(f"transport/link/tls/{key}", json.dumps(str(tmp_path / val)))
-    # Everything here runs on loopback, which the example trusts as "local" (services on the router host):
-    # take that subject out so the certificate subjects are what decides.
-    acl = json.loads(rcfg.get_json("access_control"))
-    acl["subjects"] = [s for s in acl["subjects"] if s["id"] != "local"]
-    for pol in acl["policies"]:
-        pol["subjects"] = [s for s in pol["subjects"] if s != "local"]
-    rcfg.insert_json5("access_control", json.dumps(acl))
-
-    def client(who: str) -> zenoh.Config:
-        c = zenoh.Config.from_file(str(DEPLOY / "zenoh" / "service-host.json5"))
-        c.insert_json5("connect/endpoints", json.dumps([f"tls/localhost:{port}"]))
-        for key, val in (("root_ca_certificate", "ca.pem"), ("connect_certificate", f"{who}.pem"),
-                         ("connect_private_key", f"{who}-key.pem")):
-            c.insert_json5(f"transport/link/tls/{key}", json.dumps(str(tmp_path / val)))
-        return c
-
     got: dict[str, int] = {}
-    with zenoh.open(rcfg), zenoh.open(client("ops")) as ops, zenoh.open(client("host")) as tracker:
+    with zenoh.open(_acl_router(tmp_path, port)), zenoh.open(_host(tmp_path, port, "ops")) as ops, \
+            zenoh.open(_host(tmp_path, port, "host")) as tracker:
         ops.declare_subscriber("jg/acl/**", lambda s: got.__setitem__(str(s.key_expr), got.get(str(s.key_expr), 0) + 1))
         assert wait_until(lambda: (tracker.put("jg/acl/tracked", b"x"), got.get("jg/acl/tracked", 0) > 0)[1],
                           timeout=20)
@@ -137,3 +155,33 @@ def test_access_control_example_limits_puts_by_certificate(tmp_path):
         n = got["jg/acl/tracked"]
         assert wait_until(lambda: got["jg/acl/tracked"] > n, timeout=10)
     assert "jg/acl/objects" not in got
+
+
+def _ok_replies(session: zenoh.Session, selector: str, payload: bytes | None = None) -> list[bytes]:
+    return [r.ok.payload.to_bytes() for r in session.get(selector, payload=payload, timeout=2.0) if r.ok is not None]
+
+
+@pytest.mark.integration
+@pytest.mark.skipif(shutil.which("openssl") is None, reason="needs the openssl CLI to make a test PKI")
+def test_access_control_example_lets_only_the_ops_host_write_the_config(tmp_path):
+    """A certified sensor host cannot change the classifier's config, neither on its key nor through a wildcard
+    query (the classifier accepts writes without a token here, so the ACL alone is what stops them); it can
+    still read the state. The ops host can write (the control)."""
+    _make_pki(tmp_path)
+    port = free_tcp_port()
+    ns = "aclcfg"
+    forged = encode(ClassifierConfig(alpha_default=99.0))
+    with zenoh.open(_acl_router(tmp_path, port)):
+        opts = ZenohOptions(ns=ns, config_file=str(DEPLOY / "zenoh" / "service-host.json5"),
+                            extra=_host_settings(tmp_path, port, "classifier"))
+        with ClassifierService(opts, config_writes=ConfigWritePolicy.open()) as classifier, \
+                zenoh.open(_host(tmp_path, port, "sensor")) as sensor, zenoh.open(_host(tmp_path, port, "ops")) as ops:
+            assert wait_until(lambda: bool(_ok_replies(ops, keys.classifier_config(ns))), timeout=30)
+            assert _ok_replies(sensor, keys.classifier_state(ns))  # reads stay open to certified hosts
+            for selector in (keys.classifier_config(ns), f"jg/{ns}/classifier/*", f"jg/{ns}/**", "jg/**", "**"):
+                assert _ok_replies(sensor, selector, forged) == [], selector
+            assert classifier.core.config == ClassifierConfig()
+            assert classifier.counters.get("config_changes") == 0
+            reply = decode(ConfigReply, _ok_replies(ops, keys.classifier_config(ns),
+                                                    encode(ClassifierConfig(alpha_default=2.5)))[0])
+            assert reply.ok and classifier.core.config.alpha_default == 2.5

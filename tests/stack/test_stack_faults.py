@@ -22,9 +22,9 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from jitterguard.runtime import ZenohOptions, build_config, free_tcp_port
-from jitterguard.schemas import decode, keys
-from jitterguard.schemas.models import ClassifierStateSnapshot, TrackedObjects
+from jitterguard.runtime import ZenohOptions, build_config, free_tcp_port, open_session
+from jitterguard.schemas import decode, encode, keys
+from jitterguard.schemas.models import ClassifierConfig, ClassifierStateSnapshot, ConfigReply, TrackedObjects
 
 from helpers import wait_until
 
@@ -58,7 +58,7 @@ class Watcher:
         self.lock = threading.Lock()
         self.objects: list[tuple[float, int, frozenset[str]]] = []  # (arrival, seq, ids)
         self.tracked: dict[int, frozenset[str]] = {}
-        self.session = zenoh.open(build_config(ZenohOptions(ns=ns, connect=(endpoint,), listen=())))
+        self.session = open_session(build_config(ZenohOptions(ns=ns, connect=(endpoint,))), timeout_s=60)
         self.session.declare_subscriber(keys.objects(ns), self._on_objects)
         self.session.declare_subscriber(keys.tracked(ns), self._on_tracked)
 
@@ -209,6 +209,7 @@ def test_status_reports_the_healed_stack(stack):
         assert r["state"] == "RUNNING" and r["pid"] and r["alive"], r
     assert rows["classifier"]["last_seq"] is not None and rows["classifier"]["last_seq"] >= 0
     assert rows["classifier"]["heartbeat_pid"] == rows["classifier"]["pid"]
+    assert rows["tracker"]["health"] == "ok" and rows["classifier"]["health"] == "ok"  # making progress
 
 
 def _tracker_counters(run_dir: Path) -> dict[str, int]:
@@ -238,3 +239,27 @@ def test_young_replay_restart_is_accepted_at_once_by_the_tracker(stack):
     assert age < 10.0, f"the replay was {age:.1f} s old: not the young case (rewind_reset_s is 10 s)"
     assert figures["tracker_dropped_out_of_order"] == 0, figures
     assert figures["tracker_source_restarts"] >= 1 and figures["tracker_resets"] == 0, figures
+
+
+def _config_query(watcher: Watcher, payload: bytes | None = None) -> ConfigReply | None:
+    for reply in watcher.session.get(keys.classifier_config(watcher.ns), payload=payload, timeout=5.0):
+        if reply.ok is not None:
+            return decode(ConfigReply, reply.ok.payload.to_bytes())
+    return None
+
+
+def test_config_write_survives_a_classifier_sigkill(stack):
+    """A write (over Zenoh, as the sidecar makes it) is stored in the run directory before it is applied; the
+    classifier supervisord restarts after a SIGKILL starts from it."""
+    run_dir, watcher, times = stack
+    written = _config_query(watcher, encode(ClassifierConfig(alpha_default=2.2, window_size=8)))
+    assert written is not None and written.ok and written.config.alpha_default == 2.2
+    stored = json.loads((run_dir / "classifier-config.json").read_text())
+    assert stored["config"]["alpha_default"] == 2.2 and stored["config"]["window_size"] == 8
+    kill_and_wait(run_dir, watcher, "classifier")
+    try:
+        after = _config_query(watcher)
+        assert after is not None and after.config.alpha_default == 2.2 and after.config.window_size == 8
+        assert "config restored from" in (run_dir / "logs" / "classifier.log").read_text()
+    finally:
+        _config_query(watcher, encode(ClassifierConfig()))

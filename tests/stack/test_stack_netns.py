@@ -4,7 +4,9 @@ throwaway CA). Needs root and ``ip netns``; skipped otherwise."""
 
 from __future__ import annotations
 
+import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -14,6 +16,7 @@ from pathlib import Path
 
 import pytest
 
+from helpers import wait_until
 from test_stack_deploy import DEPLOY, _make_pki
 
 pytestmark = pytest.mark.integration
@@ -122,3 +125,80 @@ def test_router_host_and_service_host_over_mtls(two_hosts, tmp_path):
                 p.wait(timeout=15)
             except subprocess.TimeoutExpired:
                 p.kill()
+
+
+PROBE = textwrap.dedent("""
+    import json, socket, sys
+    host, ports = sys.argv[1], json.loads(sys.argv[2])
+    reached = []
+    for port in ports:
+        try:
+            socket.create_connection((host, port), timeout=2).close()
+            reached.append(port)
+        except OSError:
+            pass
+    print(json.dumps(reached))
+""")
+
+
+def _listeners(netns: str, proto: str) -> list[tuple[str, int, int | None]]:
+    """(local address, port, pid) of every listening TCP socket / bound UDP socket in ``netns``."""
+    out = subprocess.run(["ip", "netns", "exec", netns, "ss", "-Hnp", f"-l{proto}"], capture_output=True,
+                         text=True, check=True).stdout
+    rows = []
+    for line in out.splitlines():
+        parts = line.split()
+        local = parts[3]
+        addr, _, port = local.rpartition(":")
+        m = re.search(r"pid=(\d+)", line)
+        rows.append((addr.strip("[]"), int(port), int(m.group(1)) if m else None))
+    return rows
+
+
+def test_only_the_router_listens_and_nothing_is_reachable_from_another_namespace(two_hosts, tmp_path):
+    """The whole stack (`jitterguard up`: router, replay, tracker, classifier, sidecar) runs in one namespace;
+    from another one, joined by a veth link, no port of it can be reached. Every listening socket belongs to
+    the router or the sidecar and is bound to loopback (before issue 18 every service listened on
+    ``tcp/[::]:0`` and a client in the other namespace could set the classifier's alpha). A plain listener on
+    all interfaces shows that the probe does reach what is exposed."""
+    r, s = two_hosts
+    run_dir = tmp_path / "run"
+    py = [sys.executable, "-m", "jitterguard.cli"]
+    env = {k: v for k, v in os.environ.items() if k != "JG_API_TOKEN"}
+
+    def in_r(*args: str, timeout: float = 60) -> subprocess.CompletedProcess:
+        return subprocess.run(["ip", "netns", "exec", r, *args], capture_output=True, text=True, timeout=timeout,
+                              env=env)
+
+    up = in_r(*py, "up", "-d", "--ns", "exposed", "--input", "detections", "--run-dir", str(run_dir))
+    assert up.returncode == 0, up.stdout + up.stderr
+    exposed = subprocess.Popen(["ip", "netns", "exec", r, sys.executable, "-c",
+                                "import socket,time; s=socket.socket(); s.bind(('0.0.0.0', 9999)); s.listen(); "
+                                "time.sleep(600)"])
+    try:
+        def all_alive() -> dict | None:
+            res = in_r(*py, "status", "--run-dir", str(run_dir), "--json", "--listen-s", "1.2")
+            rows = {row["name"]: row for row in json.loads(res.stdout)["services"]} if res.stdout else {}
+            ok = rows and all(row["alive"] for row in rows.values()) and \
+                (rows.get("classifier", {}).get("last_seq") or -1) >= 0
+            return rows if ok else None
+
+        assert wait_until(lambda: all_alive() is not None, timeout=120, period=1.0), \
+            (run_dir / "logs" / "classifier.log").read_text()[-2000:]
+        rows = all_alive()
+        assert rows is not None and {"router", "replay", "tracker", "classifier", "sidecar"} <= set(rows)
+        pids = {name: row["pid"] for name, row in rows.items()}
+        tcp = [t for t in _listeners(r, "t") if t[1] != 9999]
+        udp = [u for u in _listeners(r, "u") if u[2] in pids.values()]
+        owners = {name for name, pid in pids.items() if any(t[2] == pid for t in tcp)}
+        assert owners <= {"router", "sidecar"} and "router" in owners, (owners, tcp)
+        assert all(addr in ("127.0.0.1", "::1") for addr, _, _ in tcp), tcp
+        assert udp == [], udp  # no scouting socket either
+        ports = sorted({port for _, port, _ in tcp} | {9999})
+        probe = subprocess.run(["ip", "netns", "exec", s, sys.executable, "-c", PROBE, R_IP, json.dumps(ports)],
+                               capture_output=True, text=True, timeout=120)
+        assert json.loads(probe.stdout) == [9999], probe.stdout + probe.stderr
+    finally:
+        exposed.kill()
+        in_r(*py, "down", "--run-dir", str(run_dir))
+        wait_until(lambda: not (run_dir / "supervisord.pid").exists(), timeout=30)

@@ -22,7 +22,7 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from jitterguard.runtime import ZenohOptions, build_config, free_tcp_port
+from jitterguard.runtime import ZenohOptions, build_config, free_tcp_port, open_session
 from jitterguard.schemas import decode, keys
 from jitterguard.schemas.models import Heartbeat
 
@@ -48,7 +48,7 @@ def test_lossy_duplicating_relay(tmp_path):
     old_tracked: deque[bytes] = deque(maxlen=10)
     try:
         cfg = build_config(ZenohOptions(ns="src", connect=(ep,), listen=()))
-        with zenoh.open(cfg) as s:
+        with open_session(cfg, timeout_s=60) as s:
             pub_det = s.declare_publisher(keys.detections("up"), congestion_control=zenoh.CongestionControl.BLOCK)
             pub_tracked = s.declare_publisher(keys.tracked("down"), congestion_control=zenoh.CongestionControl.BLOCK)
 

@@ -300,6 +300,11 @@ def block_moments(t: F64, pos: F64, cov: F64, sensor: F64, *, variance_floor: fl
     ``sensor`` (N, n, 2) the sensor's position at each observation. The line-of-sight axes are taken per
     observation; the residuals are those of the world-frame line fit projected on them.
     """
+    with np.errstate(over="ignore", invalid="ignore"):  # non-finite blocks are dropped by the pooling
+        return _block_moments(t, pos, cov, sensor, variance_floor)
+
+
+def _block_moments(t: F64, pos: F64, cov: F64, sensor: F64, variance_floor: float) -> BlockMoments:
     t = np.asarray(t, dtype=np.float64)
     n = t.shape[1]
     tc = t - t.mean(axis=1, keepdims=True)
@@ -422,7 +427,7 @@ class OnlineCalibration:
         self._interval = np.zeros(2)
         self._het = np.zeros((g, 4))
         self._model = NoiseModel.prior(self.band_edges_m)
-        self.counts = {"blocks": 0, "blocks_fast": 0, "blocks_downweighted": 0}
+        self.counts = {"blocks": 0, "blocks_fast": 0, "blocks_downweighted": 0, "blocks_invalid": 0}
 
     @property
     def effective_blocks(self) -> float:
@@ -460,6 +465,15 @@ class OnlineCalibration:
     def add(self, groups: NDArray[np.int64], mom: BlockMoments, young: NDArray[np.bool_] | None = None) -> None:
         """Pool N blocks (``groups`` their class-group index, ``young`` whether each is a track's first) with
         Huber weights against the current model."""
+        finite = (np.isfinite(mom.Y).all(axis=(1, 2, 3)) & np.isfinite(mom.Ew).all(axis=(1, 2, 3))
+                  & np.isfinite(mom.Et).all(axis=(1, 2, 3, 4)) & np.isfinite(mom.range_m) & np.isfinite(mom.speed))
+        if not finite.all():  # positions far beyond any sensor (a broken upstream): nothing to learn from them
+            self.counts["blocks_invalid"] += int((~finite).sum())
+            keep = np.flatnonzero(finite)
+            mom = BlockMoments(mom.Y[keep], mom.Ew[keep], mom.Et[keep], mom.range_m[keep], mom.interval_s[keep],
+                               mom.speed[keep])
+            groups = np.asarray(groups)[keep]
+            young = None if young is None else np.asarray(young)[keep]
         if len(mom) == 0:
             return
         if mom.size > self.window:

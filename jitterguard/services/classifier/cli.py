@@ -4,6 +4,7 @@ and ``jitterguard bench classifier``."""
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 from typing import Annotated
 
@@ -60,11 +61,19 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                                                         "(with --calibration-file).")] = None,
         calibration_file: Annotated[str | None, typer.Option("--calibration-file", help="YAML from `jitterguard "
                                                              "calibrate`; implies --calibration file.")] = None,
+        config_store: Annotated[str | None, typer.Option(
+            "--config-store", envvar="JG_CONFIG_STORE",
+            help="JSON file keeping config writes across restarts (restored while the flags stay the same).")] = None,
+        open_config_writes: Annotated[bool, typer.Option(
+            "--open-config-writes", help="Accept config writes over Zenoh without a token (when JG_API_TOKEN is "
+                                         "unset). Only where the router listens on loopback alone.")] = False,
         log_level: LogLevelOpt = "INFO",
     ) -> None:
         """Run the motion classifier service: tracks/* + tracked in, motion/{id} + objects out."""
         from ...runtime import setup_logging
         from .calibration_file import CalibrationFileError, read_calibration
+        from .config_store import ConfigStore
+        from .config_writes import ConfigWritePolicy
         from .service import ClassifierService
 
         opts = zenoh_options(ns, zenoh_config, connect, listen)
@@ -79,8 +88,15 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                 model = read_calibration(cfg.calibration_file or "")
             except CalibrationFileError as exc:
                 fail(f"--calibration-file: {exc}")
+        store = None
+        if config_store:
+            parent = Path(config_store).absolute().parent
+            if Path(config_store).is_dir() or not parent.is_dir() or not os.access(parent, os.W_OK):
+                fail(f"--config-store: {config_store} must be a file in a writable directory")
+            store = ConfigStore(Path(config_store).absolute())
         setup_logging(log_level)
-        ClassifierService(opts, cfg, manage_gc=True, calibration_model=model).run_forever()
+        ClassifierService(opts, cfg, manage_gc=True, calibration_model=model, config_store=store,
+                          config_writes=ConfigWritePolicy.from_env(open_writes=open_config_writes)).run_forever()
 
     @app.command("feed-tracks")
     def feed_tracks_cmd(
@@ -104,16 +120,22 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
 
     @app.command("router")
     def router_cmd(
-        listen: Annotated[list[str] | None, typer.Option("--listen", help="Endpoint(s); default tcp/127.0.0.1:7447.")] = None,
+        listen: Annotated[list[str] | None, typer.Option(
+            "--listen", help="Endpoint(s); default: the config file's, else tcp/127.0.0.1:7447. Off loopback only "
+                             "tls/ with mutual TLS.")] = None,
         zenoh_config: ZenohConfigOpt = None,
         log_level: LogLevelOpt = "INFO",
     ) -> None:
         """Run a Zenoh router in this Python process (no separate zenohd binary needed)."""
         from ...runtime import setup_logging
-        from ...runtime.router import run_router
+        from ...runtime.router import router_config, run_router
 
+        try:
+            router_config(list(listen or ()), zenoh_config)
+        except ValueError as exc:
+            fail(str(exc))
         setup_logging(log_level)
-        run_router(list(listen or ["tcp/127.0.0.1:7447"]), zenoh_config)
+        run_router(list(listen or ()), zenoh_config)
 
     @bench_app.command("classifier")
     def bench_classifier_cmd(

@@ -177,7 +177,7 @@ class MotionClassifierCore:
         self._speed_table, self._sustain_table = self._make_speed_tables(self._config)
         self._online = online if online is not None else self._make_online(self._config)
         self._file_model = calibration_model
-        self._check_file_model(self._config)
+        self.check_config(self._config)
         self._state_cache: tuple[tuple, dict] | None = None
 
     # ------------------------------------------------------------------ configuration
@@ -190,9 +190,9 @@ class MotionClassifierCore:
         """Apply a new config; a changed window length keeps each track's newest observations. The online
         calibration keeps what it learnt unless its range bands change; ``calibration_model`` replaces the
         scales used with ``calibration: file`` (the last one given stays otherwise)."""
+        self.check_config(config, calibration_model)
         if calibration_model is not None:
             self._file_model = calibration_model
-        self._check_file_model(config)
         if config.window_size != self._table.window:
             self._table.rewindow(config.window_size)
         old = self._config
@@ -204,8 +204,9 @@ class MotionClassifierCore:
             self._online = self._make_online(config)
         self._online.half_life_s = config.calibration_half_life_s
 
-    def _check_file_model(self, config: ClassifierConfig) -> None:
-        if config.calibration == "file" and self._file_model is None:
+    def check_config(self, config: ClassifierConfig, calibration_model: NoiseModel | None = None) -> None:
+        """Raise ``ValueError`` if :meth:`configure` would refuse ``config`` (changes nothing)."""
+        if config.calibration == "file" and calibration_model is None and self._file_model is None:
             raise ValueError("calibration 'file' needs the file's scales (load calibration_file first)")
 
     @staticmethod

@@ -40,6 +40,8 @@ from ...schemas.models import (
 )
 from .calibration import NoiseModel
 from .calibration_file import CalibrationFileError, read_calibration
+from .config_store import ConfigStore
+from .config_writes import ConfigWritePolicy
 from .core import STATE_NAMES, Decisions, MotionClassifierCore, Observations, calibration_gauges
 from .frames import FrameAssembler
 from .pipeline import (  # noqa: F401  (re-exported: eval and the sidecar bench use them from here)
@@ -89,14 +91,25 @@ class ClassifierService(Service):
 
     def __init__(self, opts: ZenohOptions, config: ClassifierConfig | None = None, *,
                  straggler_timeout_s: float = 0.05, manage_gc: bool = False,
+                 config_writes: ConfigWritePolicy | None = None, config_store: ConfigStore | None = None,
                  calibration_model: NoiseModel | None = None) -> None:
         """``manage_gc``: call :func:`manage_gc_for_latency` and collect garbage between frames (process-wide;
-        for the process that runs the classifier, not for tests that embed it). ``calibration_model``: the
-        scales for ``calibration: file`` (read from ``config.calibration_file`` when not given)."""
+        for the process that runs the classifier, not for tests that embed it). ``config_writes``: who may
+        write the config over Zenoh (default: ``JG_API_TOKEN`` holders, nobody without one). ``config_store``:
+        where writes are kept so that a restart restores them (:mod:`.config_store`). ``calibration_model``: the
+        scales for ``calibration: file`` (read from the config's ``calibration_file`` when not given)."""
+        super().__init__(opts)
+        self.config_writes = config_writes or ConfigWritePolicy.from_env()
+        self._started_with = config or ClassifierConfig()
+        self._store = config_store
+        if config_store is not None:
+            restored, why = config_store.load(self._started_with)
+            self.log.info("%s", why)
+            config = restored or config
         config = config or ClassifierConfig()
         if calibration_model is None and config.calibration == "file" and config.calibration_file:
             calibration_model = read_calibration(config.calibration_file)
-        super().__init__(opts)
+        self.log.info("%s", self.config_writes.describe())
         self._manage_gc = manage_gc
         self._idle_gc = IdleCollector()
         if manage_gc:
@@ -116,6 +129,7 @@ class ClassifierService(Service):
         self._objects_pub = self.publisher(keys.objects(self.ns))
         self._motion_pubs = self.keyed_publishers(lambda tid: keys.motion(self.ns, tid),
                                                   priority=zenoh.Priority.DATA_LOW)
+        self.monitor_progress()  # tracked in -> objects out (runtime.progress)
         self._obs_sub = self.subscribe_channel(self._obs_key)
         self._declared.append(self.session.declare_subscriber(self._tracked_key, self._on_tracked))
         self.queryable(keys.classifier_config(self.ns), self._on_config_query)
@@ -135,32 +149,48 @@ class ClassifierService(Service):
     def _on_tracked(self, sample: zenoh.Sample) -> None:
         """Zenoh's callback thread: stamp the arrival, hand the bytes to the worker, wake it. Nothing else."""
         t0 = time.perf_counter()
+        self.progress.input(time.monotonic())
         self._closes.append((sample.payload.to_bytes(), sample.key_expr, t0))
         self._wake.set()
 
     def _worker(self) -> None:
         collect_when_idle = False
         while not self.stop_event.is_set():
-            busy = self._take_closes()
-            while not self._queue.empty():
-                busy = True
-                self._run_control(self._queue.get_nowait())
-            taken = self._take_observations(OBS_CHUNK)
-            busy = busy or taken > 0
-            # A close is stamped when it arrives, so its straggler timeout runs while this worker may still
-            # be behind on observations that did arrive: give up on missing ones only once the channel is empty.
-            frames = self.pipeline.ready(time.perf_counter(), give_up=taken < OBS_CHUNK)
-            for i, frame in enumerate(frames):
-                self._publish(self.pipeline.finish(frame), behind=i + 1 < len(frames))
-                collect_when_idle = self._manage_gc
-            if busy:
-                for k, v in self.pipeline.assembler.counts.items():
-                    self.counters.set(f"frames.{k}", v)
-            elif collect_when_idle and not self.pipeline.pending:
-                collect_when_idle = False
-                self._collect_garbage()
-            elif self._wake.wait(IDLE_POLL_S):
-                self._wake.clear()
+            try:
+                collect_when_idle = self._work_once(collect_when_idle)
+            except Exception as exc:  # a bug must not silently stop the classifier: count, log, go on
+                self.counters.inc("handler_errors")
+                self.progress.failure(time.monotonic(), f"{type(exc).__name__}: {exc}"[:200])
+                self._reject_log.warn(f"classifier worker failed: {type(exc).__name__}: {exc}")
+                self.log.debug("classifier worker failed", exc_info=True)
+                self.stop_event.wait(IDLE_POLL_S)  # a failure that repeats must not spin the CPU
+
+    def _work_once(self, collect_when_idle: bool) -> bool:
+        """One pass of the worker: closes, control calls, observations, ready frames; idles when there is
+        nothing to do. Returns whether to collect garbage at the next idle moment."""
+        busy = self._take_closes()
+        if busy and not self.pipeline.pending:  # every close taken was decided or dropped (counted)
+            self.progress.output(time.monotonic())
+        while not self._queue.empty():
+            busy = True
+            self._run_control(self._queue.get_nowait())
+        taken = self._take_observations(OBS_CHUNK)
+        busy = busy or taken > 0
+        # A close is stamped when it arrives, so its straggler timeout runs while this worker may still
+        # be behind on observations that did arrive: give up on missing ones only once the channel is empty.
+        frames = self.pipeline.ready(time.perf_counter(), give_up=taken < OBS_CHUNK)
+        for i, frame in enumerate(frames):
+            self._publish(self.pipeline.finish(frame), behind=i + 1 < len(frames))
+            collect_when_idle = self._manage_gc
+        if busy:
+            for k, v in self.pipeline.assembler.counts.items():
+                self.counters.set(f"frames.{k}", v)
+        elif collect_when_idle and not self.pipeline.pending:
+            collect_when_idle = False
+            self._collect_garbage()
+        elif self._wake.wait(IDLE_POLL_S):
+            self._wake.clear()
+        return collect_when_idle
 
     def _collect_garbage(self) -> None:
         """Between frames (see :mod:`jitterguard.runtime.gc_policy`)."""
@@ -198,10 +228,18 @@ class ClassifierService(Service):
         kind, (arg, fut), model = item
         if kind == "config":
             try:
-                self.core.configure(arg, model)
+                self.core.check_config(arg, model)  # before it is stored: a refused write is not restored
             except ValueError as exc:
                 fut.set_exception(exc)
                 return
+            if self._store is not None:  # stored before applied: a restart restores exactly what is in force
+                try:
+                    self._store.save(self._started_with, arg)
+                except OSError as exc:
+                    self.counters.inc("config_store_errors")
+                    fut.set_exception(RuntimeError(f"cannot store the config in {self._store.path}: {exc}"))
+                    return
+            self.core.configure(arg, model)
             self.counters.inc("config_changes")
             fut.set_result(self.core.config)
         elif kind == "call":  # run a function on the worker, between frames
@@ -214,6 +252,7 @@ class ClassifierService(Service):
         """Put ``objects`` (the frame latency ends here), then, unless a later frame is already waiting
         (``behind``, or a close queued or pending), the frame's ``motion/{id}`` messages."""
         self._objects_pub.put(out.payload)
+        self.progress.output(time.monotonic())
         self._record_latency((time.perf_counter() - out.received_at) * 1e3)
         self.counters.inc("published")
         self.counters.inc("frames_processed")
@@ -242,8 +281,7 @@ class ClassifierService(Service):
 
     def _publish_motion(self, out: FrameOutput) -> None:
         """One MotionState per observed track (after ``objects``: the frame latency has already ended), at a
-        lower Zenoh priority than ``objects``, through one declared publisher per reported track."""
-        self._motion_pubs.retain(i.decode() for i in out.reported.tolist())
+        lower Zenoh priority than ``objects``."""
         n = 0
         for tid, payload in self.pipeline.motion_payloads(out):
             self._motion_pubs.put(tid, payload)
@@ -262,6 +300,12 @@ class ClassifierService(Service):
         payload = query.payload.to_bytes() if query.payload is not None else b""
         if not payload:
             query.reply(query.key_expr, encode(ConfigReply(ok=True, config=self.core.config)))
+            return
+        refused = self.config_writes.refusal(query.attachment.to_bytes() if query.attachment is not None else None)
+        if refused:
+            self.counters.inc("config_writes_refused")
+            self._reject_log.warn(f"config write on {query.key_expr} refused: {refused}")
+            query.reply_err(encode(ConfigReply(ok=False, config=self.core.config, error=refused)))
             return
         try:
             cfg = decode(ClassifierConfig, payload)
@@ -283,6 +327,10 @@ class ClassifierService(Service):
         self._queue.put(("config", (cfg, fut), model))
         try:
             in_force = fut.result(timeout=CONFIG_APPLY_TIMEOUT_S)
+        except ValueError as exc:  # refused by the core (check_config): nothing applied
+            self.counters.inc("rejected.classifier/config")
+            query.reply_err(encode(ConfigReply(ok=False, config=self.core.config, error=str(exc))))
+            return
         except Exception as exc:  # worker stuck or stopping: say so, the write may not be in force
             query.reply_err(encode(ConfigReply(ok=False, config=self.core.config, error=f"not applied: {exc}")))
             return

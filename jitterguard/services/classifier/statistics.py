@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from .calibration import NoiseModel, line_of_sight, project_covariance
+from .calibration import SCALE_BOUNDS, NoiseModel, line_of_sight, project_covariance
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -95,9 +95,14 @@ def window_statistics(windows: F64, masks: HalfMasks, *, variance_floor: float, 
 
     ``windows`` is ``(K, W, ≥5)`` over :data:`CHANNELS` (only the first five are read). Each half's means of the
     five channels come out of one weighted contraction, so the cost is two passes over the batch whatever the
-    statistic. The reported variances are taken as they are (``calibration: off``).
+    statistic. The reported variances are taken as they are (``calibration: off``). A statistic that overflows
+    saturates (:func:`_saturate`).
     """
-    windows = windows[..., :5]
+    with np.errstate(over="ignore", invalid="ignore"):
+        return _window_statistics(windows[..., :5], masks, variance_floor=variance_floor, independent=independent)
+
+
+def _window_statistics(windows: F64, masks: HalfMasks, *, variance_floor: float, independent: bool) -> WindowStats:
     n_old, n_new = masks.n_old, masks.n_new
     w_old = masks.old / np.maximum(n_old, 1.0)[:, None]
     w_new = masks.new / np.maximum(n_new, 1.0)[:, None]
@@ -127,11 +132,12 @@ def window_statistics(windows: F64, masks: HalfMasks, *, variance_floor: float, 
 
     n_all = np.maximum(n_old + n_new, 1.0)
     return WindowStats(
-        z_x=z_x,
-        z_y=z_y,
-        chi2=chi2,
-        mean_x=(m_old[0] * n_old + m_new[0] * n_new) / n_all,
-        mean_y=(m_old[1] * n_old + m_new[1] * n_new) / n_all,
+        z_x=_saturate(z_x),
+        z_y=_saturate(z_y),
+        chi2=_saturate(chi2),
+        # weights before sums: n * mean overflows for positions near the float limit, the weighted mean does not
+        mean_x=m_old[0] * (n_old / n_all) + m_new[0] * (n_new / n_all),
+        mean_y=m_old[1] * (n_old / n_all) + m_new[1] * (n_new / n_all),
     )
 
 
@@ -152,7 +158,19 @@ def calibrated_statistics(windows: F64, masks: HalfMasks, groups: I64, model: No
       the Cholesky factor of Σ'_j in the (u, v) frame (h_j0 along the line of sight),
       Cov(e_i, e_j) = Σ_k [(1 − m_k)·[i = j] + m_k exp(−|t_i − t_j| / τ_k)] h_ik h_jkᵀ, which is positive
       semi-definite by construction and gives Cov(e_j, e_j) = Σ'_j.
+
+    A statistic that overflows saturates (:func:`_saturate`), as in :func:`window_statistics`.
     """
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        st = _calibrated_statistics(windows, masks, groups, model, variance_floor=variance_floor,
+                                    effective_n=effective_n, track_scale_prior=track_scale_prior, min_speed=min_speed)
+    return WindowStats(z_x=_saturate(st.z_x), z_y=_saturate(st.z_y), chi2=_saturate(st.chi2),
+                       mean_x=st.mean_x, mean_y=st.mean_y)
+
+
+def _calibrated_statistics(windows: F64, masks: HalfMasks, groups: I64, model: NoiseModel, *,
+                           variance_floor: float, effective_n: str, track_scale_prior: bool,
+                           min_speed: float) -> WindowStats:
     k_old, k_new = masks.n_old, masks.n_new
     valid = masks.old | masks.new
     pos = windows[..., 0:2]
@@ -282,4 +300,17 @@ def track_scale(windows: F64, valid: NDArray[np.bool_], groups: I64, model: Nois
     nu_own = np.where(ok & (T2 > 0), T * T / np.where(T2 > 0, T2, 1.0), 0.0)
     ratio = np.where(ok & (T > 0), S / np.where(T > 0, T, 1.0), 1.0)
     lam = (prior_dof + nu_own * ratio) / (prior_dof + nu_own)
+    # bounded like a class scale: a window whose residuals overflow (a jump to 1e300 from a broken upstream) or
+    # dwarf its σ a thousandfold is not "a noisier track" whose test should shrink to nothing
+    lam = np.clip(np.nan_to_num(lam, nan=1.0, posinf=SCALE_BOUNDS[1]), *SCALE_BOUNDS)
     return lam, prior_dof + nu_own
+
+
+_MAX = float(np.finfo(np.float64).max)
+
+
+def _saturate(stat: F64) -> F64:
+    """A statistic that overflowed (positions ~1e300 apart square to inf; inf - inf is NaN) is beyond any
+    threshold: the largest finite float, so the decision is "dynamic" and every message carrying it stays valid
+    (the wire contract, and the classifier's own readers, reject non-finite numbers)."""
+    return np.clip(np.nan_to_num(stat, nan=_MAX, posinf=_MAX, neginf=0.0), 0.0, _MAX)

@@ -58,24 +58,8 @@ def percentile(values: Sequence[float], q: float) -> float:
     return float(np.percentile(np.asarray(values, dtype=np.float64), q))
 
 
-def time_preset(detector: Any, scans: Sequence[np.ndarray], warmup: int, desc: str = "",
-                progress: bool = False) -> dict[str, Any]:
-    """Per-scan end-to-end times of ``detector.detect`` over ``scans`` (the first ``warmup`` untimed)."""
-    for pts in scans[:warmup]:
-        detector.detect(pts)
-    timed = scans[warmup:]
-    total: list[float] = []
-    cpu: list[float] = []
-    stages: dict[str, list[float]] = {s: [] for s in STAGES}
-    found: list[int] = []
-    for pts in _bar(timed, len(timed), desc, progress):
-        c0, t0 = time.process_time(), time.perf_counter()
-        det = detector.detect(pts)
-        total.append((time.perf_counter() - t0) * 1e3)
-        cpu.append((time.process_time() - c0) * 1e3)
-        for s in STAGES:
-            stages[s].append(float(detector.timings.get(s, float("nan"))))
-        found.append(len(det))
+def _row(timed: Sequence[np.ndarray], total: list[float], cpu: list[float], stages: dict[str, list[float]],
+         found: list[int]) -> dict[str, Any]:
     return {
         "points": round(float(np.mean([len(p) for p in timed])), 1),
         "p50_ms": round(percentile(total, 50), 2),
@@ -88,11 +72,58 @@ def time_preset(detector: Any, scans: Sequence[np.ndarray], warmup: int, desc: s
     }
 
 
+def time_preset(detector: Any, scans: Sequence[np.ndarray], warmup: int, desc: str = "",
+                progress: bool = False) -> dict[str, Any]:
+    """Per-scan end-to-end times of ``detector.detect`` over ``scans`` (the first ``warmup`` untimed)."""
+    return time_backends({"": detector}, scans, warmup, desc, progress)[""]
+
+
+def time_backends(detectors: Mapping[str, Any], scans: Sequence[np.ndarray], warmup: int, desc: str = "",
+                  progress: bool = False) -> dict[str, dict[str, Any]]:
+    """:func:`time_preset` for several detectors of one network at once, interleaved: every scan goes through each
+    detector back to back (the order rotating from scan to scan), so a change in the machine's load lands on all
+    of them alike and their ratio is measured under the same conditions."""
+    names = list(detectors)
+    for pts in scans[:warmup]:
+        for n in names:
+            detectors[n].detect(pts)
+    timed = scans[warmup:]
+    total: dict[str, list[float]] = {n: [] for n in names}
+    cpu: dict[str, list[float]] = {n: [] for n in names}
+    stages: dict[str, dict[str, list[float]]] = {n: {s: [] for s in STAGES} for n in names}
+    found: dict[str, list[int]] = {n: [] for n in names}
+    for i, pts in enumerate(_bar(timed, len(timed), desc, progress)):
+        for n in names[i % len(names):] + names[: i % len(names)]:
+            det = detectors[n]
+            c0, t0 = time.process_time(), time.perf_counter()
+            out = det.detect(pts)
+            total[n].append((time.perf_counter() - t0) * 1e3)
+            cpu[n].append((time.process_time() - c0) * 1e3)
+            for s in STAGES:
+                stages[n][s].append(float(det.timings.get(s, float("nan"))))
+            found[n].append(len(out))
+    return {n: _row(timed, total[n], cpu[n], stages[n], found[n]) for n in names}
+
+
+def available_backends() -> tuple[str, ...]:
+    """torch always; onnxruntime when it and the ONNX exporter's packages are installed."""
+    import importlib.util
+
+    have = all(importlib.util.find_spec(m) is not None for m in ("onnxruntime", "onnx", "onnxscript"))
+    return ("torch", "onnxruntime") if have else ("torch",)
+
+
 def run(presets: Sequence[str], *, scans: int = 40, warmup: int = 3, threads: int | None = None,
         weights: Mapping[str, str] | None = None, scenario: str = "mixed", seed: int = 0,
-        progress: bool = True) -> dict[str, dict[str, Any]]:
+        progress: bool = True, backends: Sequence[str] = ("torch",)) -> dict[str, dict[str, Any]]:
     """``{preset: {"points", "p50_ms", "p99_ms", "mean_ms", "cpu_p50_ms", "stages_ms", "detections", "scans",
-    "threads", "weights", "omp_wait_policy"}}`` — the same scans for every preset."""
+    "threads", "weights", "omp_wait_policy"}}`` — the same scans for every preset — for the torch backend.
+
+    With ``"onnxruntime"`` in ``backends`` the preset's network is exported to ONNX (in a temporary folder) and
+    timed in the same process on the same scans, interleaved with torch scan by scan (:func:`time_backends`); its
+    row goes under ``"onnxruntime"`` in the preset's row, with ``"onnxruntime_over_torch_p50"`` (< 1: faster)."""
+    import tempfile
+
     import torch
 
     from .inference import Detector, shipped_weights
@@ -100,6 +131,9 @@ def run(presets: Sequence[str], *, scans: int = 40, warmup: int = 3, threads: in
     unknown = [p for p in presets if p not in PRESETS]
     if unknown:
         raise ValueError(f"unknown preset(s) {unknown}; expected some of {list(PRESETS)}")
+    bad = [b for b in backends if b not in ("torch", "onnxruntime")]
+    if bad or "torch" not in backends:
+        raise ValueError(f"backends must include torch and be some of torch, onnxruntime; got {list(backends)}")
     weights = dict(weights or {})
     n_threads = threads or os.cpu_count() or 1
     data = bench_scans(warmup + scans, scenario, seed, progress)
@@ -113,8 +147,30 @@ def run(presets: Sequence[str], *, scans: int = 40, warmup: int = 3, threads: in
             which = "shipped"
         else:
             which = "random-init"
-        row = time_preset(det, data, warmup, f"timing {name}", progress)
-        row.update({"threads": n_threads, "weights": which,
-                    "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", "default")})
+        common = {"threads": n_threads, "weights": which, "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", "default")}
+        if "onnxruntime" not in backends:
+            row = time_preset(det, data, warmup, f"timing {name}", progress)
+            row.update(common)
+            out[name] = row
+            continue
+        from .onnx_backend import load_onnx_detector
+        from .onnx_export import export_onnx
+
+        with tempfile.TemporaryDirectory(prefix="jitterguard-bench-onnx-") as tmp:
+            export_onnx(det.model, tmp, recalibration=det.recalibration)
+            ort_det = load_onnx_detector(tmp, threads=n_threads)
+            torch.set_num_threads(n_threads)
+            rows = time_backends({"torch": det, "onnxruntime": ort_det}, data, warmup,
+                                 f"timing {name} (torch, onnxruntime)", progress)
+        row = {**rows["torch"], **common, "backend": "torch"}
+        row["onnxruntime"] = {**rows["onnxruntime"], **common, "backend": "onnxruntime", "layout": "single",
+                              "onnxruntime_version": _ort_version()}
+        row["onnxruntime_over_torch_p50"] = round(rows["onnxruntime"]["p50_ms"] / rows["torch"]["p50_ms"], 3)
         out[name] = row
     return out
+
+
+def _ort_version() -> str:
+    import onnxruntime
+
+    return str(onnxruntime.__version__)

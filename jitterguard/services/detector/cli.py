@@ -17,6 +17,12 @@ WeightsOpt = Annotated[
                  " weights of --preset; without them a randomly initialised network (logged loudly)."),
 ]
 PresetOpt = Annotated[str, typer.Option("--preset", help=f"Architecture preset: {', '.join(PRESETS)}.")]
+BackendOpt = Annotated[str, typer.Option("--backend", help="What runs the network: torch or onnxruntime.")]
+OnnxDirOpt = Annotated[
+    str | None,
+    typer.Option("--onnx", help="onnxruntime backend: a folder written by `jitterguard export-onnx`. Default: export"
+                 " --weights / --preset at start-up into a temporary folder."),
+]
 ThreadsOpt = Annotated[
     int | None, typer.Option("--threads", min=1, max=1024, help="torch CPU threads (default: the machine's cores).")
 ]
@@ -89,6 +95,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         twist: Annotated[
             bool, typer.Option("--twist/--no-twist", help="Publish the network's velocity as the twist.")
         ] = True,
+        backend: BackendOpt = "torch",
+        onnx_dir: OnnxDirOpt = None,
         log_level: LogLevelOpt = "INFO",
     ) -> None:
         """Run the detector: points in; one DetectedObjects per scan (sensor frame, with variances) out."""
@@ -96,6 +104,12 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             fail(f"--preset: expected one of {', '.join(PRESETS)}, got {preset!r}")
         if weights is not None and not os.path.isfile(weights):
             fail(f"--weights: file not found: {weights}")
+        if backend not in ("torch", "onnxruntime"):
+            fail(f"--backend: expected torch or onnxruntime, got {backend!r}")
+        if onnx_dir is not None and (backend != "onnxruntime" or weights is not None):
+            fail("--onnx: goes with --backend onnxruntime and replaces --weights")
+        if onnx_dir is not None and not os.path.isdir(onnx_dir):
+            fail(f"--onnx: folder not found: {onnx_dir}")
         opts = zenoh_options(ns, zenoh_config, connect, listen)
 
         from ...runtime import setup_logging
@@ -106,9 +120,14 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         from .service import DetectorService
 
         try:  # load before the session opens: a bad weights file fails before anything is on the network
-            det = Detector.load(weights, preset, threads=threads, score_threshold=score_threshold)
+            if backend == "onnxruntime":
+                from .onnx_backend import open_onnx_detector
+
+                det = open_onnx_detector(onnx_dir, weights, preset, threads=threads, score_threshold=score_threshold)
+            else:
+                det = Detector.load(weights, preset, threads=threads, score_threshold=score_threshold)
         except WeightsError as exc:
-            fail(f"--weights: {_one_line(exc)}")
+            fail(f"{'--onnx' if onnx_dir else '--weights'}: {_one_line(exc)}")
         try:
             service = DetectorService(opts, det, has_twist=twist)
         except ValueError as exc:  # build_config names the bad endpoint / setting
@@ -130,9 +149,21 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         scenario: Annotated[str, typer.Option("--scenario", help="Synthetic scenario the scans come from.")] = "mixed",
         seed: Annotated[int, typer.Option("--seed")] = 0,
         progress: Annotated[bool, typer.Option("--progress/--no-progress", help="Progress bar on stderr.")] = True,
+        backends: Annotated[
+            str | None,
+            typer.Option("--backends", help="torch or torch,onnxruntime (timed side by side in this process, scan"
+                         " by scan). Default: both when onnxruntime is installed."),
+        ] = None,
     ) -> None:
         """Time the detector end to end per HDL-32E scan (voxelisation, network, decode, NMS)."""
-        from .bench import SCENARIOS, run
+        from .bench import SCENARIOS, available_backends, run
+
+        chosen = available_backends() if backends is None else tuple(dict.fromkeys(
+            b.strip() for b in backends.split(",") if b.strip()))
+        if "torch" not in chosen or any(b not in ("torch", "onnxruntime") for b in chosen):
+            fail(f"--backends: expected torch or torch,onnxruntime, got {backends!r}")
+        if "onnxruntime" in chosen and "onnxruntime" not in available_backends():
+            fail("--backends: onnxruntime needs the onnxruntime, onnx and onnxscript packages (pip install 'jitterguard[onnx]')")
 
         names = _parse_presets(presets)
         if scenario not in SCENARIOS:
@@ -150,7 +181,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
 
         try:
             result = run(names, scans=scans, warmup=warmup, threads=threads, weights=files, scenario=scenario,
-                         seed=seed, progress=progress)
+                         seed=seed, progress=progress, backends=chosen)
         except WeightsError as exc:
             fail(f"--weights: {_one_line(exc)}")
         if json_out:
@@ -163,10 +194,13 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         for col in ("preset", "points", "p50 ms", "p99 ms", "voxelize", "network", "decode", "detections"):
             table.add_column(col, justify="right")
         for name, row in result.items():
-            st = row["stages_ms"]
-            table.add_row(name, f"{row['points']:.0f}", f"{row['p50_ms']:.1f}", f"{row['p99_ms']:.1f}",
-                          f"{st['voxelize']:.1f}", f"{st['network']:.1f}", f"{st['decode']:.1f}",
-                          f"{row['detections']:.0f}")
+            for label, r in ((name, row), (f"{name} (onnxruntime)", row.get("onnxruntime"))):
+                if r is None:
+                    continue
+                st = r["stages_ms"]
+                table.add_row(label, f"{r['points']:.0f}", f"{r['p50_ms']:.1f}", f"{r['p99_ms']:.1f}",
+                              f"{st['voxelize']:.1f}", f"{st['network']:.1f}", f"{st['decode']:.1f}",
+                              f"{r['detections']:.0f}")
         Console().print(table)
 
 

@@ -89,7 +89,7 @@ class PillarFeatureNet(nn.Module):
         r = self.config.point_cloud_range
         vx, vy, _ = self.config.voxel_size
         pts = p.points
-        sums = pts.new_zeros(len(p.num_points), 3).index_add_(0, p.pillar, pts[:, :3])
+        sums = pts.new_zeros(p.num_points.shape[0], 3).index_add_(0, p.pillar, pts[:, :3])
         mean = sums / p.num_points.clamp(min=1).to(pts.dtype).unsqueeze(1)
         coords = p.coords[p.pillar].to(pts.dtype)
         centre_x = coords[:, 2] * vx + (vx / 2 + r[0])
@@ -99,7 +99,7 @@ class PillarFeatureNet(nn.Module):
 
     def forward(self, p: Pillars) -> Tensor:
         x = torch.relu(self.norm(self.linear(self.point_features(p))))  # (N, C) ≥ 0
-        out = x.new_zeros(len(p.num_points), x.shape[1])
+        out = x.new_zeros(p.num_points.shape[0], x.shape[1])
         index = p.pillar.unsqueeze(1).expand_as(x)
         return out.scatter_reduce_(0, index, x, "amax", include_self=True)  # max over each pillar's points
 

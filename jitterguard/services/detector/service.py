@@ -25,6 +25,7 @@ import threading
 import time
 
 from ...runtime import Service, ZenohOptions
+from ...runtime.progress import ProgressPolicy
 from ...runtime.service import _BurstLogger
 from ...schemas import encode, keys
 from ...schemas.models import PointCloud
@@ -33,6 +34,8 @@ from .convert import class_labels, detections_map, finite_detections, scan_point
 from .inference import Detector
 
 WAIT_S = 0.2
+STALL_S = 30.0
+"""A scan waiting this long with no detections out is a stall (a CPU network takes up to a few seconds)."""
 """How often the idle worker looks at the stop event."""
 BURST_QUIET_S = 5.0
 """A burst of skipping ends after this long without a skipped scan; the next skip starts a new one."""
@@ -131,11 +134,13 @@ class DetectorService(Service):
         self._behind = BehindReport()
         self._error_log = _BurstLogger(self.log)
         self._pub = self.publisher(keys.detections(self.ns))
+        self.monitor_progress(ProgressPolicy(stall_s=STALL_S))  # points in -> detections out (runtime.progress)
         self.spawn(self._worker, "worker")
         self.subscribe(keys.points(self.ns), PointCloud, self._on_scan)
 
     def _on_scan(self, msg: PointCloud, _key: str) -> None:
         """Zenoh callback (the scan is already validated): newest scan into the slot, count what it replaced."""
+        self.progress.input(time.monotonic())
         if self._slot.put(msg):
             self.counters.inc("skipped_scans")
 
@@ -158,8 +163,11 @@ class DetectorService(Service):
                 self.process(scan)
             except Exception as exc:  # a bad scan or a bug must not stop detection: count, log, next scan
                 self.counters.inc("detect_errors")
+                self.progress.failure(time.monotonic(), f"{type(exc).__name__}: {exc}"[:200])
                 self._error_log.warn(f"scan seq {scan.header.seq} failed: {type(exc).__name__}: {exc}")
                 self.log.debug("scan seq %d failed", scan.header.seq, exc_info=True)
+            else:
+                self.progress.output(time.monotonic())
 
     def process(self, scan: PointCloud) -> None:
         """Detect on one validated scan and publish its ``DetectedObjects``."""

@@ -16,7 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ...geometry import quaternion_from_yaw, yaw_from_quaternion
-from ...schemas.models import DetectedObject, Point, Pose, Quaternion
+from ...schemas.models import DetectedObject, GroundTruthObjects, Point, Pose, Quaternion
 
 DEFAULT_PERIOD_NS = 100_000_000
 """10 Hz: the stamp spacing used for recordings that carry no time (KITTI without times.txt, loose PCDs)."""
@@ -83,6 +83,8 @@ class ScanFrame:
     origin: str
     """Where it came from (file name, ``bag:topic#index``): named in every message about this frame."""
     frame_id: str = "lidar"
+    truth: GroundTruthObjects | None = field(default=None, repr=False, compare=False)
+    """The frame's labels when the source has them (its header is filled in when published)."""
 
     def __post_init__(self) -> None:
         if self.points.ndim != 2 or self.points.shape[1] != len(self.fields):
@@ -100,6 +102,7 @@ class DetectionFrame:
     objects: list[DetectedObject]
     origin: str
     frame_id: str = "lidar"
+    truth: GroundTruthObjects | None = field(default=None, repr=False, compare=False)
 
 
 @dataclass(frozen=True)

@@ -11,7 +11,7 @@ import time
 from collections.abc import Callable
 
 from ...runtime import Service, ZenohOptions
-from ...schemas import DetectedObjects, PointCloud, encode, keys
+from ...schemas import DetectedObjects, GroundTruthObjects, PointCloud, encode, keys
 from ...schemas.models import Header
 from .frames import DetectionFrame, Frame, FrameError, ScanFrame
 from .pacing import Clock
@@ -40,6 +40,13 @@ def detections_message(frame: DetectionFrame, seq: int, stamp_ns: int) -> Detect
     )
 
 
+def truth_for(frame: Frame, seq: int, stamp_ns: int) -> GroundTruthObjects | None:
+    """The frame's labels under the seq and stamp its ``points`` / ``detections`` go out with, if it has any."""
+    if frame.truth is None:
+        return None
+    return frame.truth.model_copy(update={"header": Header(stamp=stamp_ns, frame_id=frame.truth.header.frame_id, seq=seq)})
+
+
 def message_for(frame: Frame, seq: int, stamp_ns: int) -> PointCloud | DetectedObjects:
     if isinstance(frame, ScanFrame):
         return point_cloud_message(frame, seq, stamp_ns)
@@ -58,6 +65,7 @@ class ReplayService(Service):
         self.kind = kind
         self.key = keys.points(self.ns) if kind == "points" else keys.detections(self.ns)
         self.pub = self.publisher(self.key, block=True)
+        self._truth_pub: object | None = None  # declared with the first frame that has labels
 
     def wait_for_subscribers(self, timeout_s: float) -> bool:
         """Wait until some subscriber matches our key (a replay into the void loses its first frames)."""
@@ -73,6 +81,12 @@ class ReplayService(Service):
     def emit(self, frame: Frame, seq: int, stamp_ns: int) -> None:
         if (self.kind == "points") != isinstance(frame, ScanFrame):
             raise TypeError(f"{frame.origin}: a {type(frame).__name__} cannot go on {self.key}")
+        truth = truth_for(frame, seq, stamp_ns)
+        if truth is not None:  # before the frame, so a viewer holds the labels when the frame's results close it
+            if self._truth_pub is None:
+                self._truth_pub = self.publisher(keys.groundtruth(self.ns), block=False)
+            self._truth_pub.put(encode(truth))  # type: ignore[attr-defined]
+            self.counters.inc("groundtruth_published")
         self.pub.put(encode(message_for(frame, seq, stamp_ns)))
         self.counters.inc("published")
         self.last_seq = seq

@@ -27,6 +27,9 @@ HostOpt = Annotated[str, typer.Option("--host", help="Address to bind; non-loopb
 PortOpt = Annotated[str, typer.Option("--port", help="TCP port to bind (1-65535).")]
 CorsOpt = Annotated[list[str] | None, typer.Option(
     "--cors-origin", help="Allow this browser origin (repeatable). CORS is off unless given.")]
+AllowedHostOpt = Annotated[list[str] | None, typer.Option(
+    "--allowed-host", help="A host name this sidecar answers to besides its IP address (and localhost on "
+                           "loopback), e.g. the vehicle's DNS name (repeatable). Other Host headers get 400.")]
 PollOpt = Annotated[str, typer.Option("--poll-ms", help="How often to refresh the classifier state cache, ms.")]
 
 
@@ -77,12 +80,12 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         host: HostOpt = "127.0.0.1",
         port: PortOpt = "8000",
         cors_origin: CorsOpt = None,
+        allowed_host: AllowedHostOpt = None,
         poll_ms: PollOpt = "50",
         log_level: LogLevelOpt = "INFO",
     ) -> None:
         """HTTP sidecar: live classifier state, tunable thresholds, metrics and a bird's-eye page."""
         from ...runtime import setup_logging
-        from ...runtime.zenoh_config import build_config
         from .app import SidecarSettings
         from .core import bind_refusal
 
@@ -98,14 +101,14 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         for origin in cors_origin or ():
             if not origin.startswith(("http://", "https://")) and origin != "*":
                 fail(f"--cors-origin: {origin!r} must look like https://host[:port]")
-        try:
-            build_config(opts)
-        except ValueError as exc:
-            fail(str(exc))
+        for name in allowed_host or ():
+            if not name or any(c in name for c in "/:@ \t") or name != name.strip():
+                fail(f"--allowed-host: {name!r} must be a bare host name (no scheme, port or path)")
         _check_bindable(host, port_n)
         setup_logging(log_level)
         serve(SidecarSettings(zenoh=opts, api_token=token, cors_origins=tuple(cors_origin or ()),
-                              poll_period_s=poll_s), host, port_n, log_level)
+                              poll_period_s=poll_s, bind_host=host, allowed_hosts=tuple(allowed_host or ())),
+              host, port_n, log_level)
 
     @bench_app.command("sidecar")
     def bench_sidecar(

@@ -27,10 +27,12 @@ import zenoh
 from ...runtime import Service, ZenohOptions
 from ...schemas import DecodeError, decode, decode_with_raw, encode, keys
 from ...schemas.models import ClassifierConfig, ClassifierStateSnapshot, ConfigReply, Heartbeat
-from .core import RenderedState, config_to_api, diff_states, render_state
+from .core import ConfigError, RenderedState, config_to_api, diff_states, pipeline_problems, render_state
 from .metrics import SidecarMetrics
 
 CLASSIFIER = "classifier"
+MAX_SERVICES = 64
+"""Heartbeats kept by service name (the namespace's services; a flood of made-up names cannot grow this)."""
 Listener = Callable[[str, dict[str, Any]], None]
 
 
@@ -49,8 +51,11 @@ class ClassifierClient(Service):
 
     def __init__(self, opts: ZenohOptions, *, poll_period_s: float = 0.05, query_timeout_s: float = 3.0,
                  state_timeout_s: float = 1.0, stale_after_s: float = 3.0,
-                 metrics: SidecarMetrics | None = None) -> None:
+                 metrics: SidecarMetrics | None = None, api_token: str | None = None) -> None:
+        """``api_token``: sent with every config write (the query's attachment); the classifier checks it
+        against its own ``JG_API_TOKEN``."""
         super().__init__(opts)
+        self._api_token = api_token
         self.poll_period_s = poll_period_s
         self.query_timeout_s = query_timeout_s
         self.state_timeout_s = state_timeout_s
@@ -60,7 +65,8 @@ class ClassifierClient(Service):
         self._write_lock = threading.Lock()
         self._alive = False
         self._hb: Heartbeat | None = None
-        self._hb_at: float | None = None  # monotonic receive time of the last heartbeat
+        self._hb_at: float | None = None  # monotonic receive time of the last classifier heartbeat
+        self._beats: dict[str, tuple[Heartbeat, float]] = {}  # every service's latest heartbeat, receive time
         self._rendered: RenderedState | None = None
         self._last_payload: bytes | None = None
         self._listeners: list[Listener] = []
@@ -68,7 +74,7 @@ class ClassifierClient(Service):
         self._alive_key = keys.alive(self.ns, CLASSIFIER)
         self._declared.append(self.session.liveliness().declare_subscriber(
             self._alive_key, self._on_liveliness, history=True))
-        self.subscribe(keys.heartbeat(self.ns, CLASSIFIER), Heartbeat, self._on_heartbeat)
+        self.subscribe(keys.heartbeat_all(self.ns), Heartbeat, self._on_heartbeat)
         self.metrics.attach(self)
         self.spawn(self._poll_loop, "poll")
 
@@ -81,28 +87,40 @@ class ClassifierClient(Service):
             if not alive:
                 self._hb_at = None  # a new instance must prove itself with a fresh heartbeat
 
-    def _on_heartbeat(self, hb: Heartbeat, _key: str) -> None:
+    def _on_heartbeat(self, hb: Heartbeat, key: str) -> None:
+        name, now = keys.last_chunk(key), time.monotonic()
         with self._lock:
-            self._hb, self._hb_at = hb, time.monotonic()
+            if name not in self._beats and len(self._beats) >= MAX_SERVICES:
+                self._beats.pop(min(self._beats, key=lambda n: self._beats[n][1]))
+            self._beats[name] = (hb, now)
+            if name == CLASSIFIER:
+                self._hb, self._hb_at = hb, now
 
     def readiness(self) -> dict[str, Any]:
-        """Whether the classifier is usable now, and why not (the ``/readyz`` body)."""
+        """Whether the classifier is usable now and the pipeline makes progress, and why not (``/readyz``)."""
+        now = time.monotonic()
         with self._lock:
             alive, hb, hb_at = self._alive, self._hb, self._hb_at
-        age = time.monotonic() - hb_at if hb_at is not None else None
+            services = {name: {"health": b.health, "reason": b.health_reason,
+                               "heartbeat_age_s": round(now - at, 3), "last_seq": b.last_seq}
+                        for name, (b, at) in self._beats.items()}
+        age = now - hb_at if hb_at is not None else None
+        problems = pipeline_problems(services, self.stale_after_s)
         if not alive:
             reason = f"no classifier: liveliness token {self._alive_key} is absent"
         elif age is None:
             reason = f"no heartbeat yet on {keys.heartbeat(self.ns, CLASSIFIER)}"
         elif age > self.stale_after_s:
             reason = f"classifier heartbeat is {age:.1f} s old (stale after {self.stale_after_s:g} s)"
+        elif problems:
+            reason = "; ".join(problems)
         else:
             reason = "ok"
         st = self._rendered
         return {"ready": reason == "ok", "reason": reason, "liveliness": alive,
                 "heartbeat_age_s": round(age, 3) if age is not None else None,
                 "last_seq": hb.last_seq if hb is not None and hb_at is not None else None,
-                "state_seq": st.seq if st is not None else None}
+                "state_seq": st.seq if st is not None else None, "services": services}
 
     def readiness_flag(self) -> bool:
         return bool(self.readiness()["ready"])
@@ -196,10 +214,11 @@ class ClassifierClient(Service):
 
     # ------------------------------------------------------------------ config
 
-    def _query(self, key: str, payload: bytes | None, timeout: float) -> tuple[str, bytes]:
+    def _query(self, key: str, payload: bytes | None, timeout: float,
+               attachment: bytes | None = None) -> tuple[str, bytes]:
         """One get; ``("ok"|"err", payload)`` of the first reply, or :class:`ClassifierUnavailable`."""
         try:
-            replies = list(self.session.get(key, payload=payload, timeout=timeout))
+            replies = list(self.session.get(key, payload=payload, timeout=timeout, attachment=attachment))
         except Exception as exc:  # session closing, or a zenoh error
             raise ClassifierUnavailable(f"query on {key} failed: {exc}") from None
         for reply in replies:
@@ -214,7 +233,7 @@ class ClassifierClient(Service):
             raise ClassifierUnavailable(
                 f"classifier unreachable (liveliness token {self._alive_key} is absent); {action}")
 
-    def _config_reply(self, kind: str, data: bytes, key: str) -> ConfigReply:
+    def _config_reply(self, kind: str, data: bytes, key: str, sent: ClassifierConfig | None = None) -> ConfigReply:
         try:
             reply = decode(ConfigReply, data)
         except DecodeError as exc:
@@ -225,6 +244,12 @@ class ClassifierClient(Service):
         if kind != "ok" or not reply.ok:
             if (reply.error or "").startswith("not applied"):
                 raise ClassifierUnavailable(f"the classifier did not apply the write: {reply.error}")
+            field, sep, why = (reply.error or "").partition(": ")
+            if sep and sent is not None and field in ClassifierConfig.model_fields:
+                # a field only the classifier can check (calibration_file: a path on its host): the client's
+                # input, so a 422 naming it
+                raise ConfigError([{"type": "value_error", "loc": ["body", field], "msg": why,
+                                    "input": getattr(sent, field)}])
             raise ClassifierRejected(f"the classifier refused the config: {reply.error}")
         return reply
 
@@ -243,12 +268,13 @@ class ClassifierClient(Service):
         self._require_alive("nothing was applied")
         key = keys.classifier_config(self.ns)
         try:
-            kind, data = self._query(key, encode(cfg), self.query_timeout_s)
+            kind, data = self._query(key, encode(cfg), self.query_timeout_s,
+                                     attachment=self._api_token.encode() if self._api_token else None)
         except ClassifierUnavailable as exc:
             raise ClassifierUnavailable(
                 f"the classifier did not confirm the write ({exc}); a config is applied whole or not at all — "
                 f"GET /v1/config shows what is in force") from None
-        in_force = self._config_reply(kind, data, key).config
+        in_force = self._config_reply(kind, data, key, cfg).config
         self._emit("config", config_to_api(in_force))
         return in_force
 

@@ -7,10 +7,8 @@ PATCH means, which field a 422 names, when a bind is refused) is unit-tested wit
 
 from __future__ import annotations
 
-import ipaddress
 import json
 import math
-import socket
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Annotated, Any, Literal
@@ -18,6 +16,7 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, Strict, ValidationError, create_model
 from pydantic.fields import FieldInfo
 
+from ...runtime.bind_policy import is_loopback
 from ...schemas.models import (
     LABEL_NAMES,
     PRESETS,
@@ -99,8 +98,19 @@ class HealthView(BaseModel):
     status: Literal["ok"]
 
 
+class ServiceHealthView(BaseModel):
+    """One service of the pipeline as its latest heartbeat describes it."""
+
+    health: Literal["ok", "failing", "stalled"] = Field(
+        description="ok, failing (frames keep failing) or stalled (input arrives, no output)")
+    reason: str = Field(description="why not ok ('' when ok)")
+    heartbeat_age_s: float = Field(ge=0.0, description="seconds since this heartbeat arrived")
+    last_seq: int = Field(description="the last frame seq the service reported")
+
+
 class ReadyView(BaseModel):
-    """Readiness: the classifier's liveliness token is present and its heartbeat is recent."""
+    """Readiness: the classifier's liveliness token is present and its heartbeat is recent, and no service of the
+    pipeline reports (in a recent heartbeat) that its frames fail or its output stalled."""
 
     ready: bool
     reason: str = Field(description="why not ready, or 'ok'")
@@ -108,6 +118,15 @@ class ReadyView(BaseModel):
     heartbeat_age_s: float | None = Field(description="seconds since the last classifier heartbeat, if any")
     last_seq: int | None = Field(description="the last frame seq the classifier reported in its heartbeat")
     state_seq: int | None = Field(description="seq of the state snapshot the sidecar serves, if any")
+    services: dict[str, ServiceHealthView] = Field(
+        default_factory=dict, description="every service heard from in the namespace, by name")
+
+
+def pipeline_problems(services: Mapping[str, Mapping[str, Any]], stale_after_s: float) -> list[str]:
+    """``"tracker failing: ..."`` for each service whose heartbeat, still recent, reports no progress (a stale
+    heartbeat is a service gone or restarting: liveliness says that, not its last words)."""
+    return [f"{name} {v['health']}: {v['reason']}" for name, v in sorted(services.items())
+            if v["health"] != "ok" and v["heartbeat_age_s"] <= stale_after_s]
 
 
 # ----------------------------------------------------------------------------------------- config models
@@ -119,7 +138,8 @@ _CONFIG_DOCS: dict[str, str] = {
     "window_size": "observations kept per track (sliding window)",
     "min_window": "observations needed before a track is tested (must not exceed window_size)",
     "variance_floor": "lower bound on each half's mean predicted variance, m²",
-    "effective_n": "`cluster`: each half counts as one sample (the paper); `independent`: real counts",
+    "effective_n": "`measured` (default): the variance of the half-mean difference under the calibrated serial "
+                   "correlation; `cluster`: each half counts as one sample (the paper); `independent`: real counts",
     "velocity_threshold": "speed above which the baseline calls a track dynamic, m/s (classes not in "
                           "velocity_threshold_per_class)",
 }
@@ -149,8 +169,13 @@ def _strict_json(tp: Any, metadata: list[Any]) -> Any:
     return Annotated[(tp, *metadata)] if metadata else tp  # type: ignore[misc]  # Literal: exact strings only
 
 
+PER_CLASS_FIELDS = ("alpha_per_class", "velocity_threshold_per_class", "velocity_sustain_s_per_class")
+"""Config maps keyed by lowercase class name: the keys are an enum in the OpenAPI schema, and a merge patch
+merges them key by key."""
+
+
 def _alpha_type(info: FieldInfo) -> Any:
-    """The per-class alpha value type (Annotated[float, gt, le] in the wire model), JSON-strict."""
+    """The value type of a per-class map (Annotated[float, …] in the wire model), JSON-strict."""
     value = info.annotation.__args__[1]  # type: ignore[union-attr]
     return _strict_json(float, list(getattr(value, "__metadata__", ())))
 
@@ -160,14 +185,14 @@ def _build_config_models() -> tuple[type[BaseModel], type[BaseModel]]:
 
     ``Config`` is the full config (PUT body, GET reply): every field with its default. ``ConfigPatch`` is a
     JSON merge patch (RFC 7386) of it: absent = unchanged, ``null`` = back to the default, and inside
-    ``alpha_per_class`` a ``null`` value removes that class's override.
+    a per-class map (:data:`PER_CLASS_FIELDS`) a ``null`` value removes that class's entry.
     """
     full: dict[str, Any] = {}
     patch: dict[str, Any] = {}
     for name in CONFIG_FIELDS:
         info = ClassifierConfig.model_fields[name]
         doc = _CONFIG_DOCS[name]
-        if name == "alpha_per_class":  # class-name keys as an enum, so the OpenAPI schema lists them
+        if name in PER_CLASS_FIELDS:  # class-name keys as an enum, so the OpenAPI schema lists them
             constrained: Any = dict[ClassName, _alpha_type(info)]  # type: ignore[valid-type,misc]
         else:
             constrained = _strict_json(info.annotation, list(info.metadata))
@@ -176,7 +201,7 @@ def _build_config_models() -> tuple[type[BaseModel], type[BaseModel]]:
         else:
             spec = Field(default=info.default, description=doc)
         full[name] = (constrained, spec)
-        if name == "alpha_per_class":
+        if name in PER_CLASS_FIELDS:
             pann = dict[ClassName, _alpha_type(info) | None] | None  # type: ignore[valid-type,misc]
         else:
             pann = constrained | None
@@ -186,7 +211,7 @@ def _build_config_models() -> tuple[type[BaseModel], type[BaseModel]]:
     config_model.__doc__ = "The motion classifier's tunables (what is in force, or what to put in force)."
     patch_model = create_model("ConfigPatch", __config__=cfg, **patch)  # type: ignore[call-overload]
     patch_model.__doc__ = ("A JSON merge patch of the config: absent fields stay, `null` resets a field to its "
-                           "default, a `null` in alpha_per_class removes that class's override.")
+                           "default, a `null` inside a per-class map removes that class's entry.")
     return config_model, patch_model
 
 
@@ -270,7 +295,8 @@ def merge_patch(current: ClassifierConfig, patch: Mapping[str, Any]) -> Classifi
     """Apply a JSON merge patch (RFC 7386) to ``current`` and validate the result.
 
     ``patch`` holds only the fields the client sent. ``null`` resets a field to its default; in
-    ``alpha_per_class`` the patch merges key by key and a ``null`` value drops that class's override.
+    a per-class map (:data:`PER_CLASS_FIELDS`) the patch merges key by key and a ``null`` value drops that
+    class's entry.
     """
     unknown = sorted(set(patch) - set(CONFIG_FIELDS))
     if unknown:
@@ -281,11 +307,11 @@ def merge_patch(current: ClassifierConfig, patch: Mapping[str, Any]) -> Classifi
     for name, value in patch.items():
         if value is None:
             merged[name] = defaults[name]
-        elif name == "alpha_per_class":
+        elif name in PER_CLASS_FIELDS:
             if not isinstance(value, Mapping):
                 merged[name] = value  # let validation name it
                 continue
-            per_class = dict(merged["alpha_per_class"])
+            per_class = dict(merged[name])
             for cls, alpha in value.items():
                 if alpha is None:
                     per_class.pop(cls, None)
@@ -475,21 +501,6 @@ def latency_histogram(counters: Mapping[str, int]) -> Histogram | None:
 
 
 # ----------------------------------------------------------------------------------------- bind policy
-
-
-def is_loopback(host: str) -> bool:
-    """True if every address ``host`` names is a loopback address (``localhost`` and 127/8, ::1)."""
-    h = host.strip("[]")
-    try:
-        return ipaddress.ip_address(h).is_loopback
-    except ValueError:
-        pass
-    try:
-        infos = socket.getaddrinfo(h, None)
-    except (socket.gaierror, UnicodeError):
-        return False
-    addrs = {str(info[4][0]) for info in infos}
-    return bool(addrs) and all(ipaddress.ip_address(a.split("%", 1)[0]).is_loopback for a in addrs)
 
 
 def bind_refusal(host: str, token: str | None) -> str | None:

@@ -4,8 +4,7 @@ Threading: a detections frame arrives through one callback that only copies the 
 (:meth:`~jitterguard.runtime.Service.subscribe_inbox`); one worker thread, blocked on that queue, wakes at once,
 validates the frame (:func:`~.convert.decode_detections`: records for the usual shape, generated Structs
 otherwise; a malformed payload is counted as ``rejected`` and skipped), owns the :class:`TrackerCore` — nothing
-else touches it — and per frame publishes every ``tracks/{id}`` first (one declared publisher per live track,
-:class:`~jitterguard.runtime.keyed_publishers.KeyedPublishers`) and the closing ``tracked`` last (the classifier
+else touches it — and per frame publishes every ``tracks/{id}`` first (:class:`~jitterguard.runtime.keyed_publishers.KeyedPublishers`) and the closing ``tracked`` last (the classifier
 waits for the IDs that ``tracked.observed_track_ids`` names). All puts use BLOCK congestion control: a lost
 observation would silently shorten a classifier window. A full inbox slows BLOCK publishers instead of
 dropping frames.
@@ -21,6 +20,7 @@ from __future__ import annotations
 
 import queue
 import threading
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -68,7 +68,8 @@ class TrackerService(Service):
         super().__init__(opts)
         self._det_key = keys.detections(self.ns)
         self._tracked_pub = self.publisher(keys.tracked(self.ns))
-        self._det_inbox = self.subscribe_inbox(self._det_key, capacity=FRAME_CHANNEL)
+        self.monitor_progress()  # detections in -> tracked out (runtime.progress)
+        self._det_inbox = self.subscribe_inbox(self._det_key, capacity=FRAME_CHANNEL, progress=True)
         self._track_pubs = self.keyed_publishers(lambda tid: keys.track(self.ns, tid))
         if static_hints:
             self.subscribe(keys.motion_all(self.ns), MotionState, self._on_motion)
@@ -98,14 +99,18 @@ class TrackerService(Service):
                 msg = decode_detections(self._codec, payload)
             except DecodeError as exc:
                 self.reject(exc, self._det_key)
+                self.progress.output(time.monotonic())  # dealt with: rejected and counted
                 continue
             collect = self._manage_gc
             try:
                 self._apply_hints()
                 self.process(msg)
-            except Exception:  # a bug must not silently stop tracking: count, log, go on with the next frame
+            except Exception as exc:  # a bug must not silently stop tracking: count, log, go on with the next frame
                 self.counters.inc("handler_errors")
+                self.progress.failure(time.monotonic(), f"{type(exc).__name__}: {exc}"[:200])
                 self.log.exception("frame seq %d failed", msg.header.seq)
+            else:
+                self.progress.output(time.monotonic())  # published, or dropped on purpose (counted)
 
     def _apply_hints(self) -> None:
         with self._hints_lock:
@@ -135,16 +140,15 @@ class TrackerService(Service):
             self.counters.inc("source_restarts")
             self.log.warning("detections restarted at seq %d with time going on: source restarted, tracks kept",
                              frame.seq)
-        self._publish(observation_payloads(msg, frame, result), result.tracks.ids)
+        self._publish(observation_payloads(msg, frame, result))
         self._tracked_pub.put(tracked_payload(frame, result, ego_pose_map(msg)))  # after the observations went out
         self.counters.inc("frames")
         self.counters.inc("tracks_born", len(result.born))
         self.counters.inc("tracks_deleted", len(result.deleted))
         self.last_seq = frame.seq
 
-    def _publish(self, observations: list[tuple[str, bytes]], live_ids: list[str]) -> None:
-        """Put each ``tracks/{id}`` (one declared publisher per live track; ``tracked`` follows)."""
-        self._track_pubs.retain(live_ids)
+    def _publish(self, observations: list[tuple[str, bytes]]) -> None:
+        """Put each ``tracks/{id}`` (``tracked`` follows)."""
         for tid, payload in observations:
             self._track_pubs.put(tid, payload)
         self.counters.inc("published", len(observations) + 1)

@@ -13,6 +13,7 @@ tokens, files, stamps and poses against devkit itself when it is installed.
 from __future__ import annotations
 
 import json
+import logging
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -22,6 +23,8 @@ import numpy as np
 from ..frames import EgoPose, FrameError, Item, ScanFrame, SourceError, SourceInfo, compose, finite_rows
 from .base import Source
 from .kitti import NUSCENES_FIELDS, read_bin
+
+log = logging.getLogger("jitterguard.replay")
 
 TABLES = ("scene", "sample", "sample_data", "ego_pose", "calibrated_sensor", "sensor")
 
@@ -92,6 +95,7 @@ class NuScenesSource(Source):
         except (KeyError, TypeError, ValueError, IndexError) as exc:
             raise SourceError(f"{folder}: inconsistent nuScenes tables ({type(exc).__name__}: {exc})") from None
         self.channel = channel
+        self._truth: dict[int, Any] | None = None  # key-frame stamp → GroundTruthObjects, built on the first pass
         self.info = SourceInfo(
             name=f"{dataroot} ({self.scene_name}, {channel})",
             kind="points",
@@ -152,7 +156,23 @@ class NuScenesSource(Source):
             for sd in chain
         ]
 
+    def truth(self) -> dict[int, Any]:
+        """The scene's annotations per key-frame stamp (for ``jg/{ns}/groundtruth``); empty when the tables cannot
+        give them (a note says why once)."""
+        if self._truth is None:
+            from ....eval.groundtruth import NuScenesError, load_nuscenes_frames
+            from ..truth import truth_message
+
+            try:
+                _, gts = load_nuscenes_frames(self.dataroot, scene=self.scene_name)
+                self._truth = {int(g.stamp_ns): truth_message(g) for g in gts}
+            except (NuScenesError, OSError, KeyError, ValueError) as exc:
+                log.info("%s: no ground truth published: %s", self.dataroot, exc)
+                self._truth = {}
+        return self._truth
+
     def frames(self, start: int = 0) -> Iterator[Item]:
+        truth = self.truth() if self.channel == "LIDAR_TOP" else {}
         for stamp_ns, pose, filename in self.records[start:]:
             path = self.dataroot / filename
             try:
@@ -164,4 +184,4 @@ class NuScenesSource(Source):
                 yield FrameError(str(path), str(exc) if isinstance(exc, ValueError) else f"cannot read: {exc}")
                 continue
             pts, _ = finite_rows(np.asarray(pts))
-            yield ScanFrame(stamp_ns, pose, pts, NUSCENES_FIELDS, str(path), self.channel)
+            yield ScanFrame(stamp_ns, pose, pts, NUSCENES_FIELDS, str(path), self.channel, truth=truth.get(stamp_ns))

@@ -3,8 +3,8 @@ the wire model, pose messages -> :class:`EgoPose`, and pose interpolation. Pure 
 objects rosbags deserialises (attribute access only), so they are tested on hand-built messages.
 
 Autoware's ``autoware_perception_msgs`` are not in any stock ROS 2 type store; bags recorded since Humble
-embed their definitions and rosbags uses those. For older bags that do not, the definitions below (from
-``autoware_msgs``; field order matters for CDR) are registered on top of the Humble store.
+embed their definitions and rosbags uses those. For older bags that do not, the definitions shipped in
+``jitterguard/ros2/msg`` (Autoware's published ``.msg`` files) are registered on top of the Humble store.
 """
 
 from __future__ import annotations
@@ -17,74 +17,16 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from ....geometry import yaw_from_quaternion
+from ....ros2.autoware import twist_from_object_frame
+from ....ros2.types import DETECTED_OBJECTS, POINTCLOUD2, TF_MESSAGE, typestore  # noqa: F401  (re-exported)
 from ....schemas.models import DetectedObject
 from ..frames import EgoPose
-
-POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
-DETECTED_OBJECTS = "autoware_perception_msgs/msg/DetectedObjects"
-TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 POSE_TYPES = (
     "nav_msgs/msg/Odometry",
     "geometry_msgs/msg/PoseStamped",
     "geometry_msgs/msg/PoseWithCovarianceStamped",
 )
-
-AUTOWARE_MSGS: dict[str, str] = {
-    "autoware_perception_msgs/msg/ObjectClassification": """
-uint8 UNKNOWN = 0
-uint8 CAR = 1
-uint8 TRUCK = 2
-uint8 BUS = 3
-uint8 TRAILER = 4
-uint8 MOTORCYCLE = 5
-uint8 BICYCLE = 6
-uint8 PEDESTRIAN = 7
-uint8 label
-float32 probability
-""",
-    "autoware_perception_msgs/msg/Shape": """
-uint8 BOUNDING_BOX = 0
-uint8 CYLINDER = 1
-uint8 POLYGON = 2
-uint8 type
-geometry_msgs/Polygon footprint
-geometry_msgs/Vector3 dimensions
-""",
-    "autoware_perception_msgs/msg/DetectedObjectKinematics": """
-uint8 UNAVAILABLE = 0
-uint8 SIGN_UNKNOWN = 1
-uint8 AVAILABLE = 2
-geometry_msgs/PoseWithCovariance pose_with_covariance
-bool has_position_covariance
-uint8 orientation_availability
-geometry_msgs/TwistWithCovariance twist_with_covariance
-bool has_twist
-bool has_twist_covariance
-""",
-    "autoware_perception_msgs/msg/DetectedObject": """
-float32 existence_probability
-autoware_perception_msgs/ObjectClassification[] classification
-autoware_perception_msgs/DetectedObjectKinematics kinematics
-autoware_perception_msgs/Shape shape
-""",
-    "autoware_perception_msgs/msg/DetectedObjects": """
-std_msgs/Header header
-autoware_perception_msgs/DetectedObject[] objects
-""",
-}
-
-
-def typestore() -> Any:
-    """The ROS 2 Humble type store plus Autoware's perception messages (rosbags imported lazily)."""
-    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
-
-    store = get_typestore(Stores.ROS2_HUMBLE)
-    types: dict[str, Any] = {}
-    for name, text in AUTOWARE_MSGS.items():
-        types.update(get_types_from_msg(text, name))
-    store.register(types)
-    return store
-
 
 def stamp_ns(header: Any) -> int:
     return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
@@ -209,8 +151,15 @@ def _prob(p: float) -> float:
 
 
 def detected_object_from_ros(obj: Any) -> DetectedObject:
-    """An ``autoware_perception_msgs/DetectedObject`` as the wire model (validated: may raise ValidationError)."""
+    """An ``autoware_perception_msgs/DetectedObject`` as the wire model (validated: may raise ValidationError).
+
+    Autoware states an object's twist in the object's own frame (x along its heading); the contract states it on the
+    axes of the message's frame. The linear x/y and their covariance block are rotated by the object's yaw
+    (:func:`jitterguard.ros2.autoware.twist_from_object_frame`)."""
     k = obj.kinematics
+    o = k.pose_with_covariance.pose.orientation
+    lin, tcov = twist_from_object_frame(k.twist_with_covariance.twist.linear, k.twist_with_covariance.covariance,
+                                        yaw_from_quaternion(float(o.x), float(o.y), float(o.z), float(o.w)))
     return DetectedObject.model_validate(
         {
             "existence_probability": _prob(obj.existence_probability),
@@ -223,8 +172,8 @@ def detected_object_from_ros(obj: Any) -> DetectedObject:
                 "has_position_covariance": bool(k.has_position_covariance),
                 "orientation_availability": int(k.orientation_availability),
                 "twist_with_covariance": {
-                    "twist": {"linear": _vec(k.twist_with_covariance.twist.linear), "angular": _vec(k.twist_with_covariance.twist.angular)},
-                    "covariance": [float(v) for v in k.twist_with_covariance.covariance],
+                    "twist": {"linear": lin, "angular": _vec(k.twist_with_covariance.twist.angular)},
+                    "covariance": tcov,
                 },
                 "has_twist": bool(k.has_twist),
                 "has_twist_covariance": bool(k.has_twist_covariance),

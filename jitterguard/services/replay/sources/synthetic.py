@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from ..frames import DetectionFrame, EgoPose, FrameError, Item, ScanFrame, SourceError, SourceInfo, finite_rows
+from ..truth import truth_message
 from .base import Source
 
 SCENARIOS = ("parking-street", "diagonal-lot", "intersection", "mixed")
@@ -94,7 +95,7 @@ class SyntheticSource(Source):
             pts[:, 4] = res.ring
             pts, _ = finite_rows(pts)
             pose = EgoPose.from_yaw(float(gt.ego_x), float(gt.ego_y), float(gt.ego_yaw), z=self._sensor_z)
-            yield ScanFrame(int(gt.stamp_ns), pose, pts, SCAN_FIELDS, origin, "lidar")
+            yield ScanFrame(int(gt.stamp_ns), pose, pts, SCAN_FIELDS, origin, "lidar", truth=truth_message(gt))
 
     def _detections(self, start: int) -> Iterator[Item]:
         from ....sim.detection_model import DetectionModel, NoiseConfig
@@ -108,4 +109,5 @@ class SyntheticSource(Source):
                 continue
             p = det.ego_pose
             pose = EgoPose(p.position.x, p.position.y, p.position.z, p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w)
-            yield DetectionFrame(int(gt.stamp_ns), pose, list(det.objects), f"synthetic:{self.name}#{i}", det.header.frame_id)
+            yield DetectionFrame(int(gt.stamp_ns), pose, list(det.objects), f"synthetic:{self.name}#{i}",
+                                 det.header.frame_id, truth=truth_message(gt))

@@ -1,0 +1,219 @@
+"""Join one frame's messages from every stage into one :class:`JoinedFrame` — the pure core of the bridges out of
+jitterguard (the Foxglove server and MCAP recorder, the ROS 2 bag recorder).
+
+A frame is the set of messages that share a ``header.seq``: the replay's ``points`` (or ``detections`` at detection
+level) and optional ``groundtruth``, the detector's ``detections``, the tracker's ``tracked`` (whose
+``observed_track_ids`` say which ``motion/{id}`` messages the frame will have), the classifier's ``objects`` and
+its ``motion/{id}``. Nothing orders messages across keys (DESIGN.md), and the classifier publishes ``objects`` before
+the frame's ``motion/{id}``, so:
+
+- ``objects`` of seq N opens the frame for output; it is emitted once every ``motion/{id}`` of the IDs ``tracked`` N
+  listed has arrived, or ``motion_wait_s`` after ``objects`` N arrived (what arrived by then goes out; the rest is
+  counted ``motion_missing``), or as soon as a later frame's ``objects`` arrives (the classifier sheds the motion
+  messages of a frame when it is behind; a viewer must not fall behind waiting for them);
+- inputs (points, detections, ground truth, tracked, motion) wait in per-seq buffers holding at most
+  ``max_pending`` frames; the oldest go first (counted) — a frame that never gets its ``objects`` (the classifier
+  was down) must not pin memory;
+- a seq lower than the last emitted one means the upstream restarted (a replay restarted by supervisord starts
+  again at seq 0): the buffers are cleared and counted ``seq_restarts``.
+
+No I/O, no clock: callers pass ``now`` (monotonic seconds).
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from typing import Any, Generic, TypeVar
+
+from ...schemas.models import (
+    DetectedObjects,
+    GroundTruthObjects,
+    MotionState,
+    PointCloud,
+    Pose,
+    TrackedObjects,
+)
+
+T = TypeVar("T")
+DEFAULT_MOTION_WAIT_S = 0.25
+DEFAULT_MAX_PENDING = 32
+
+
+@dataclass
+class JoinedFrame:
+    """Everything the pipeline said about one frame (``objects`` always; the rest when it exists)."""
+
+    seq: int
+    stamp_ns: int
+    objects: TrackedObjects
+    points: PointCloud | None = None
+    detections: DetectedObjects | None = None
+    groundtruth: GroundTruthObjects | None = None
+    tracked: TrackedObjects | None = None
+    motion: dict[str, MotionState] = field(default_factory=dict)
+    """This frame's ``MotionState`` per track ID (only tracks observed in the frame have one)."""
+    last_motion: dict[str, MotionState] = field(default_factory=dict)
+    """For tracks in ``objects`` without a ``MotionState`` this frame: the latest one of an earlier frame."""
+
+    @property
+    def sensor_pose(self) -> Pose | None:
+        """The sensor's pose in the world at this frame (from the scan, else from the detections)."""
+        if self.points is not None:
+            return self.points.ego_pose
+        if self.detections is not None:
+            return self.detections.ego_pose
+        return None
+
+    @property
+    def sensor_frame(self) -> str:
+        for msg in (self.points, self.detections):
+            if msg is not None and msg.header.frame_id:
+                return msg.header.frame_id
+        return "lidar"
+
+    @property
+    def world_frame(self) -> str:
+        return self.objects.header.frame_id or "map"
+
+
+class _BySeq(Generic[T]):
+    """A bounded seq → value map that forgets its oldest entries first."""
+
+    def __init__(self, cap: int) -> None:
+        self.cap = cap
+        self.items: OrderedDict[int, T] = OrderedDict()
+
+    def put(self, seq: int, value: T) -> int:
+        """Store; returns how many old entries were dropped to stay within ``cap``."""
+        self.items[seq] = value
+        self.items.move_to_end(seq)
+        dropped = 0
+        while len(self.items) > self.cap:
+            self.items.popitem(last=False)
+            dropped += 1
+        return dropped
+
+    def pop(self, seq: int) -> T | None:
+        return self.items.pop(seq, None)
+
+    def drop_through(self, seq: int) -> None:
+        for s in [s for s in self.items if s <= seq]:
+            del self.items[s]
+
+    def clear(self) -> None:
+        self.items.clear()
+
+
+class FrameJoiner:
+    """Collects messages per seq and releases :class:`JoinedFrame` s in seq order (see the module docstring)."""
+
+    def __init__(self, motion_wait_s: float = DEFAULT_MOTION_WAIT_S, max_pending: int = DEFAULT_MAX_PENDING) -> None:
+        if motion_wait_s < 0 or max_pending < 1:
+            raise ValueError("motion_wait_s must be >= 0 and max_pending >= 1")
+        self.motion_wait_s = motion_wait_s
+        self.counters: dict[str, int] = {}
+        self._points: _BySeq[PointCloud] = _BySeq(max_pending)
+        self._detections: _BySeq[DetectedObjects] = _BySeq(max_pending)
+        self._truth: _BySeq[GroundTruthObjects] = _BySeq(max_pending)
+        self._tracked: _BySeq[TrackedObjects] = _BySeq(max_pending)
+        self._motion: _BySeq[dict[str, MotionState]] = _BySeq(max_pending)
+        self._open: OrderedDict[int, tuple[TrackedObjects, float]] = OrderedDict()  # seq → (objects, arrived at)
+        self._last_emitted = -1
+        self._latest: dict[str, MotionState] = {}  # track ID → its latest MotionState, for tracks still reported
+
+    def _count(self, name: str, n: int = 1) -> None:
+        if n:
+            self.counters[name] = self.counters.get(name, 0) + n
+
+    def _restart_check(self, seq: int) -> bool:
+        """False if ``seq`` belongs to a frame already emitted (a straggler); clears everything when the seqs went
+        back further than a straggler could (an upstream restart)."""
+        if seq > self._last_emitted:
+            return True
+        if self._last_emitted - seq > self._points.cap:
+            for b in (self._points, self._detections, self._truth, self._tracked, self._motion):
+                b.clear()
+            self._open.clear()
+            self._latest.clear()
+            self._last_emitted = -1
+            self._count("seq_restarts")
+            return True
+        self._count("late_messages")
+        return False
+
+    # ---------------------------------------------------------------------------------------- inputs
+
+    def _keep(self, buffer: _BySeq[Any], msg: Any) -> None:
+        if self._restart_check(msg.header.seq):
+            self._count("dropped_pending", buffer.put(msg.header.seq, msg))
+
+    def add_points(self, msg: PointCloud) -> None:
+        self._keep(self._points, msg)
+
+    def add_detections(self, msg: DetectedObjects) -> None:
+        self._keep(self._detections, msg)
+
+    def add_groundtruth(self, msg: GroundTruthObjects) -> None:
+        self._keep(self._truth, msg)
+
+    def add_tracked(self, msg: TrackedObjects) -> None:
+        self._keep(self._tracked, msg)
+
+    def add_motion(self, msg: MotionState) -> None:
+        seq = msg.header.seq
+        if not self._restart_check(seq):
+            return
+        per = self._motion.items.get(seq)
+        if per is None:
+            per = {}
+            self._count("dropped_pending", self._motion.put(seq, per))
+        per[msg.track_id] = msg
+
+    def add_objects(self, msg: TrackedObjects, now: float) -> None:
+        seq = msg.header.seq
+        if self._restart_check(seq):
+            self._open[seq] = (msg, now)
+            self._open.move_to_end(seq)
+
+    # ---------------------------------------------------------------------------------------- output
+
+    def _complete(self, seq: int) -> bool:
+        tracked = self._tracked.items.get(seq)
+        if tracked is None:
+            return False
+        got = self._motion.items.get(seq, {})
+        return all(t in got for t in tracked.observed_track_ids)
+
+    def poll(self, now: float) -> list[JoinedFrame]:
+        """Frames ready to go out, in seq order: complete, timed out, or overtaken by a later ``objects``."""
+        out: list[JoinedFrame] = []
+        for seq in sorted(self._open):
+            objects, t_open = self._open[seq]
+            later = any(s > seq for s in self._open)
+            if not (later or self._complete(seq) or now - t_open >= self.motion_wait_s):
+                break  # frames go out in order: a waiting frame holds the later ones back
+            del self._open[seq]
+            out.append(self._take(seq, objects))
+        return out
+
+    def flush(self) -> list[JoinedFrame]:
+        """Every open frame, now (at shutdown)."""
+        return [self._take(seq, self._open.pop(seq)[0]) for seq in sorted(self._open)]
+
+    def _take(self, seq: int, objects: TrackedObjects) -> JoinedFrame:
+        tracked = self._tracked.pop(seq)
+        motion = self._motion.pop(seq) or {}
+        if tracked is not None:
+            self._count("motion_missing", sum(1 for t in tracked.observed_track_ids if t not in motion))
+        ids = [o.object_id for o in objects.objects]
+        last = {t: self._latest[t] for t in ids if t not in motion and t in self._latest}
+        self._latest = {t: m for t in ids if (m := motion.get(t) or self._latest.get(t)) is not None}
+        frame = JoinedFrame(seq=seq, stamp_ns=objects.header.stamp, objects=objects, points=self._points.pop(seq),
+                            detections=self._detections.pop(seq), groundtruth=self._truth.pop(seq),
+                            tracked=tracked, motion=motion, last_motion=last)
+        for b in (self._points, self._detections, self._truth, self._tracked, self._motion):
+            b.drop_through(seq)  # older frames never got their objects: they will not be emitted
+        self._last_emitted = max(self._last_emitted, seq)
+        self._count("frames")
+        return frame

@@ -1,0 +1,144 @@
+"""Run an exported detector (:mod:`.onnx_export`) with ONNX Runtime in place of the torch network.
+
+:class:`OnnxNetwork` stands where :class:`~.network.CenterPointNet` stands in :class:`~.inference.Detector`: it
+takes the same :class:`~.pillars.Pillars` and returns the same head maps, so voxelisation, decoding, NMS and the
+variance recalibration are the very code the torch backend runs — the backends differ only in what evaluates
+the network. The ``autoware`` layout runs its two graphs with the BEV scatter between them on the host, as
+Autoware's ``lidar_centerpoint`` does.
+
+onnxruntime is an optional dependency, imported when a model is opened.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .config import DetectorConfig
+from .inference import Detector, WeightsError, config_from_dict
+from .onnx_export import FORMAT, FORMAT_VERSION, MANIFEST, bev_scatter, output_names, padded_point_features
+from .pillars import PillarFeatureNet, Pillars
+
+BACKENDS = ("torch", "onnxruntime")
+
+
+def _session(path: Path, threads: int | None) -> Any:
+    try:
+        import onnxruntime as ort
+    except ImportError:
+        raise WeightsError("the onnxruntime backend needs the 'onnxruntime' package (pip install 'jitterguard[onnx]')") from None
+    opts = ort.SessionOptions()
+    # idle ORT workers sleep instead of spinning, as OpenMP's do for torch (cli.passive_openmp): on cores shared
+    # with the tracker, classifier and this process's own decode, a spinning pool steals the CPU they need
+    opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    if threads:
+        opts.intra_op_num_threads = threads
+        opts.inter_op_num_threads = 1
+    try:
+        return ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+    except Exception as exc:  # noqa: BLE001 - ORT raises its own exception types for bad files
+        raise WeightsError(f"{path}: onnxruntime cannot load it ({type(exc).__name__}: {exc})") from None
+
+
+def read_manifest(model_dir: str | Path) -> dict[str, Any]:
+    """``detector.json`` of an export folder, checked (format, files present and matching their sha256)."""
+    d = Path(model_dir)
+    path = d / MANIFEST
+    if not path.is_file():
+        raise WeightsError(f"{d}: no {MANIFEST} (export one with `jitterguard export-onnx --out {d}`)")
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise WeightsError(f"{path}: not readable JSON ({exc})") from None
+    if not isinstance(doc, dict) or doc.get("format") != FORMAT or doc.get("format_version") != FORMAT_VERSION:
+        raise WeightsError(f"{path}: not a {FORMAT} v{FORMAT_VERSION} manifest")
+    for name, graph in doc.get("graphs", {}).items():
+        f = d / str(graph.get("file", ""))
+        if not f.is_file():
+            raise WeightsError(f"{path}: graph {name!r} file {f.name} is missing")
+        if hashlib.sha256(f.read_bytes()).hexdigest() != graph.get("sha256"):
+            raise WeightsError(f"{f}: sha256 does not match {MANIFEST} (a partial copy or a different export)")
+    return doc
+
+
+class OnnxNetwork:
+    """The network of an export folder under ONNX Runtime, with :class:`~.network.CenterPointNet`'s inference
+    interface (``config``, ``eval()``, ``forward_pillars``)."""
+
+    def __init__(self, model_dir: str | Path, *, threads: int | None = None) -> None:
+        self.dir = Path(model_dir)
+        self.manifest = read_manifest(self.dir)
+        try:
+            self.config: DetectorConfig = config_from_dict(self.manifest["config"])
+        except (TypeError, KeyError) as exc:
+            raise WeightsError(f"{self.dir / MANIFEST}: bad config ({exc})") from None
+        self.layout = str(self.manifest["layout"])
+        graphs = self.manifest["graphs"]
+        self._names = list(output_names(self.config))
+        if self.layout == "single":
+            self._net = _session(self.dir / graphs["detector"]["file"], threads)
+        elif self.layout == "autoware":
+            self._encoder = _session(self.dir / graphs["voxel_encoder"]["file"], threads)
+            self._head = _session(self.dir / graphs["backbone_neck_head"]["file"], threads)
+            self._features = PillarFeatureNet(self.config)  # its weightless point_features only
+        else:
+            raise WeightsError(f"{self.dir / MANIFEST}: unknown layout {self.layout!r}")
+        rec = self.manifest.get("recalibration")
+        self.recalibration = (float(rec[0]), float(rec[1])) if rec else None
+
+    def eval(self) -> "OnnxNetwork":
+        return self
+
+    def forward_pillars(self, p: Pillars) -> dict[str, Tensor]:
+        """Head maps for one scan's pillars (batch size 1), as torch tensors for :func:`~.decode.decode`."""
+        if p.batch_size != 1:
+            raise ValueError(f"the ONNX graphs take one scan at a time, got a batch of {p.batch_size}")
+        if self.layout == "single":
+            outs = self._net.run(self._names, {"points": p.points.numpy(), "pillar": p.pillar.numpy(),
+                                               "num_points": p.num_points.numpy(), "coords": p.coords.numpy()})
+        else:
+            feats = padded_point_features(p, self._features, self.config.max_points_per_pillar)
+            (pillar_feats,) = self._encoder.run(["pillar_features"], {"input_features": feats.numpy()})
+            canvas = bev_scatter(torch.from_numpy(pillar_feats), p.coords, self.config)
+            outs = self._head.run(self._names, {"spatial_features": np.ascontiguousarray(canvas.numpy())})
+        return {n: torch.from_numpy(o) for n, o in zip(self._names, outs, strict=True)}
+
+
+def load_onnx_detector(model_dir: str | Path, *, threads: int | None = None, score_threshold: float | None = None,
+                       recalibrate: bool = True) -> Detector:
+    """A :class:`~.inference.Detector` whose network runs under ONNX Runtime (recalibration from the manifest)."""
+    net = OnnxNetwork(model_dir, threads=threads)
+    return Detector(net, recalibration=net.recalibration if recalibrate else None,  # type: ignore[arg-type]
+                    score_threshold=score_threshold, threads=threads,
+                    meta={**dict(net.manifest.get("meta") or {}), "backend": "onnxruntime", "layout": net.layout})
+
+
+def open_onnx_detector(model_dir: str | Path | None, weights: str | Path | None, preset: str | None, *,
+                       threads: int | None = None, score_threshold: float | None = None) -> Detector:
+    """The onnxruntime-backed detector the service runs: from an export folder, or — without one — the torch
+    weights (``weights`` / ``preset``, as :meth:`Detector.load` picks them) exported into a temporary folder first
+    (needs onnx + onnxscript; the folder is removed at exit)."""
+    if model_dir is not None:
+        return load_onnx_detector(model_dir, threads=threads, score_threshold=score_threshold)
+    import atexit
+    import logging
+    import shutil
+    import tempfile
+
+    from .onnx_export import ExportError, export_onnx
+
+    src = Detector.load(weights, preset, threads=threads)
+    tmp = tempfile.mkdtemp(prefix="jitterguard-onnx-")
+    atexit.register(shutil.rmtree, tmp, ignore_errors=True)
+    logging.getLogger(__name__).info("exporting %s to ONNX in %s for the onnxruntime backend", src.config.name, tmp)
+    try:
+        export_onnx(src.model, tmp, recalibration=src.recalibration, meta=src.meta)
+    except ExportError as exc:
+        raise WeightsError(str(exc)) from None
+    return load_onnx_detector(tmp, threads=threads, score_threshold=score_threshold)

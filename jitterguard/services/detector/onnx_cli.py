@@ -1,0 +1,208 @@
+"""``jitterguard export-onnx``: write the detector (with its variance heads) as ONNX plus ``detector.json``.
+
+After writing, the export is checked: ONNX Runtime runs it on real HDL-32E scans of the synthetic world and the
+raw head maps and the decoded boxes, scores and log-variances are compared with torch's; the maximum absolute
+differences are printed (and the command fails, exit 1, if they exceed ``--tolerance`` — ``--yaw-tolerance`` for
+the yaw angle — or the detections differ in number or class). Randomly initialised weights (a preset without
+shipped weights) are checked on the raw head maps only: they score every cell about alike, and which of hundreds
+of near-ties make the top-K is float32 noise.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+
+from ...cli_common import fail
+from .cli import PresetOpt, ThreadsOpt, WeightsOpt, _one_line, passive_openmp
+from .config import PRESETS
+
+LayoutOpt = Annotated[str, typer.Option("--layout", help="single (one file) or autoware (voxel encoder + backbone/neck/head, as lidar_centerpoint).")]
+
+
+BOX_COLUMNS = ("x", "y", "z", "length", "width", "height", "yaw", "vx", "vy")
+MAP_TOLERANCE = 1e-3
+"""Largest accepted difference anywhere in the raw head maps. Two correct float32 evaluations of this network
+differ by up to ~2e-4 in the raw maps of a real scan (against a float64 evaluation of the lite model: torch 3e-5,
+onnxruntime 5e-5 on the log-variance map), while a wrong graph differs by O(1); the decoded detections are what
+``--tolerance`` bounds."""
+
+
+def pair_detections(a: Any, b: Any) -> Any:
+    """Row of ``b`` paired with each row of ``a``: the same detection, found by class and BEV centre (an optimal
+    assignment), not by list position — two detections whose scores differ by float32 noise may swap places in the
+    score order without being different detections."""
+    import numpy as np
+    from scipy.optimize import linear_sum_assignment
+
+    cost = np.linalg.norm(a.boxes[:, None, :2].astype(np.float64) - b.boxes[None, :, :2], axis=2)
+    cost += 1e6 * (a.labels[:, None] != b.labels[None, :])
+    rows, cols = linear_sum_assignment(cost)
+    order = np.empty(len(a), dtype=np.int64)
+    order[rows] = cols
+    return order
+
+
+def compare_detections(a: Any, b: Any) -> dict[str, Any]:
+    """Max |a − b| per box column, over scores and over log-variances of two decodings of one scan, detections
+    paired by :func:`pair_detections` (None where either is empty); ``count_mismatch`` is the difference in the
+    number of detections (then nothing else is compared); ``labels_equal`` whether every pair has one class."""
+    out: dict[str, Any] = {"detections": len(a), "count_mismatch": abs(len(a) - len(b)), "labels_equal": True,
+                           "box_columns": None, "scores": None, "log_variances": None}
+    if len(a) != len(b) or len(a) == 0:
+        return out
+    import numpy as np
+
+    j = pair_detections(a, b)
+    out["labels_equal"] = bool((a.labels == b.labels[j]).all())
+    diff = np.abs(a.boxes - b.boxes[j]).astype(np.float64)
+    d_yaw = a.boxes[:, 6].astype(np.float64) - b.boxes[j, 6]
+    diff[:, 6] = np.abs(np.arctan2(np.sin(d_yaw), np.cos(d_yaw)))  # ±π is one heading
+    cols = diff.max(axis=0)
+    out["box_columns"] = {c: float(v) for c, v in zip(BOX_COLUMNS, cols, strict=True)}
+    out["scores"] = float(np.abs(a.scores - b.scores[j]).max())
+    if a.log_variances is not None and b.log_variances is not None:
+        out["log_variances"] = float(np.abs(a.log_variances - b.log_variances[j]).max())
+    out["pairing"] = j
+    return out
+
+
+def check_export(torch_det: Any, onnx_det: Any, scans: list[Any], *, decoded: bool = True) -> dict[str, Any]:
+    """Both detectors on ``scans``: maximum absolute differences of the raw head maps (every cell of every map)
+    and of the decoded detections (per box column, scores, log-variances), and whether labels agree.
+
+    ``yaw`` is reported on its own: it is ``atan2`` of the rot head's (sin, cos), so a float32 difference ε in the
+    maps becomes ε / |(sin, cos)| in the angle; ``yaw_worst_rot_norm`` is that norm where the yaw differs most.
+    """
+    import numpy as np
+    import torch
+
+    from .pillars import voxelize
+
+    maps: dict[str, float] = {}
+    cols = dict.fromkeys(BOX_COLUMNS, 0.0)
+    worst = {"scores": 0.0, "log_variances": 0.0}
+    mismatched, labels_equal, yaw_norm = 0, True, None
+    for pts in scans:
+        p = voxelize([torch.from_numpy(np.ascontiguousarray(pts[:, :4], dtype=np.float32))], torch_det.config)
+        with torch.inference_mode():
+            ra, rb = torch_det.model.forward_pillars(p), onnx_det.model.forward_pillars(p)
+        for k, v in ra.items():
+            maps[k] = max(maps.get(k, 0.0), float((v - rb[k]).abs().max()))
+        if not decoded:
+            continue
+        a, b = torch_det.detect(pts), onnx_det.detect(pts)
+        cmp = compare_detections(a, b)
+        if cmp["count_mismatch"]:
+            mismatched += 1
+            continue
+        if not len(a):
+            continue
+        labels_equal &= cmp["labels_equal"]
+        for k in worst:
+            if cmp[k] is not None:
+                worst[k] = max(worst[k], float(cmp[k]))
+        d = a.boxes[:, 6].astype(np.float64) - b.boxes[cmp["pairing"], 6]
+        dyaw = np.abs(np.arctan2(np.sin(d), np.cos(d)))
+        if float(dyaw.max()) >= cols["yaw"]:
+            i = int(dyaw.argmax())
+            yaw_norm = _rot_norm_at(ra["rot"], a.boxes[i], torch_det.config)
+        for c, v in cmp["box_columns"].items():
+            cols[c] = max(cols[c], v)
+    boxes_but_yaw = max(v for c, v in cols.items() if c != "yaw")
+    if not decoded:
+        return {"scans": len(scans), "decoded": False, "head_maps": maps}
+    return {"scans": len(scans), "decoded": True, "scans_with_count_mismatch": mismatched, "labels_equal": labels_equal,
+            "max_abs_error": {"boxes": max(cols.values()), "boxes_except_yaw": boxes_but_yaw, "yaw": cols["yaw"],
+                              "scores": worst["scores"], "log_variances": worst["log_variances"]},
+            "box_columns": cols, "head_maps": maps, "yaw_worst_rot_norm": yaw_norm}
+
+
+def _rot_norm_at(rot: Any, box: Any, config: Any) -> float | None:
+    """|(sin, cos)| of the rot head at the output cell a decoded box came from (the nearest cell centre)."""
+    r = config.point_cloud_range
+    cell = (config.voxel_size[0] * config.out_size_factor, config.voxel_size[1] * config.out_size_factor)
+    h, w = rot.shape[2], rot.shape[3]
+    ix, iy = int((box[0] - r[0]) // cell[0]), int((box[1] - r[1]) // cell[1])
+    if not (0 <= ix < w and 0 <= iy < h):
+        return None
+    return float(rot[0, :, iy, ix].norm())
+
+
+def export_ok(check: dict[str, Any], tolerance: float, yaw_tolerance: float) -> bool:
+    """The export check passes: same detections, labels, and every difference within its tolerance (the head maps
+    only when the decoded detections were not compared)."""
+    if not check["decoded"]:
+        return max(check["head_maps"].values()) <= MAP_TOLERANCE
+    err = check["max_abs_error"]
+    return (not check["scans_with_count_mismatch"] and check["labels_equal"]
+            and max(err["boxes_except_yaw"], err["scores"], err["log_variances"]) <= tolerance
+            and max(check["head_maps"].values()) <= MAP_TOLERANCE and err["yaw"] <= yaw_tolerance)
+
+
+def register(app: typer.Typer, bench_app: typer.Typer) -> None:
+    @app.command("export-onnx")
+    def export_onnx_cmd(
+        out: Annotated[str, typer.Option("--out", help="Folder to write the ONNX file(s) and detector.json into.")],
+        preset: PresetOpt = "lite",
+        weights: WeightsOpt = None,
+        layout: LayoutOpt = "single",
+        opset: Annotated[int, typer.Option("--opset", help="ONNX opset (>= 17).")] = 18,
+        check_scans: Annotated[int, typer.Option("--check-scans", min=0, max=100, help="Synthetic scans to compare ONNX Runtime with torch on (0: skip).")] = 3,
+        tolerance: Annotated[float, typer.Option("--tolerance", min=0.0, help="Largest accepted |onnxruntime - torch| on the head maps and on boxes (but yaw), scores and log-variances.")] = 1e-4,
+        yaw_tolerance: Annotated[float, typer.Option("--yaw-tolerance", min=0.0, help="Largest accepted yaw difference, rad (atan2 of the rot head amplifies float32 noise where |(sin, cos)| is small).")] = 1e-3,
+        threads: ThreadsOpt = None,
+    ) -> None:
+        """Export the detector with its variance heads to ONNX (dynamic number of pillars) plus detector.json."""
+        from .onnx_export import LAYOUTS, MIN_OPSET
+
+        if preset not in PRESETS:
+            fail(f"--preset: expected one of {', '.join(PRESETS)}, got {preset!r}")
+        if layout not in LAYOUTS:
+            fail(f"--layout: expected one of {', '.join(LAYOUTS)}, got {layout!r}")
+        if opset < MIN_OPSET:
+            fail(f"--opset: must be >= {MIN_OPSET}, got {opset}")
+        if weights is not None and not os.path.isfile(weights):
+            fail(f"--weights: file not found: {weights}")
+        if Path(out).exists() and not Path(out).is_dir():
+            fail(f"--out: {out} exists and is not a folder")
+        passive_openmp()
+        from .inference import Detector, WeightsError, shipped_weights
+        from .onnx_backend import load_onnx_detector
+        from .onnx_export import ExportError, export_onnx
+
+        try:
+            det = Detector.load(weights, preset, threads=threads)
+        except WeightsError as exc:
+            fail(f"--weights: {_one_line(exc)}")
+        source = weights or (str(shipped_weights(preset)) if shipped_weights(preset).is_file() else "random-init")
+        meta = {**det.meta, "preset": det.config.name, "weights": Path(source).name if source != "random-init" else source}
+        try:
+            res = export_onnx(det.model, out, layout=layout, opset=opset, recalibration=det.recalibration, meta=meta)
+        except ExportError as exc:
+            print(f"jitterguard: error: {_one_line(exc, 600)}", file=sys.stderr)
+            raise typer.Exit(1) from None
+        report: dict[str, Any] = {"out": str(res.out_dir), "files": [p.name for p in (*res.files, res.manifest_path)],
+                                  "layout": layout, "opset": res.manifest["opset"], "opset_requested": opset,
+                                  "graph_opsets": {k: g["opset"] for k, g in res.manifest["graphs"].items()},
+                                  "preset": det.config.name, "weights": meta["weights"]}
+        if check_scans:
+            from .bench import bench_scans
+
+            onnx_det = load_onnx_detector(res.out_dir, threads=threads)
+            # randomly initialised weights score every cell about alike: which of hundreds of near-ties make the
+            # top-K is float32 noise, so only the raw head maps are a meaningful comparison there
+            decoded = not det.meta.get("random_init")
+            report["check"] = check = check_export(det, onnx_det, bench_scans(check_scans), decoded=decoded)
+            print(json.dumps(report))
+            if not export_ok(check, tolerance, yaw_tolerance):
+                print(f"jitterguard: error: onnxruntime and torch disagree beyond --tolerance {tolerance:g} / --yaw-tolerance {yaw_tolerance:g}: {check.get('max_abs_error', check['head_maps'])}",
+                      file=sys.stderr)
+                raise typer.Exit(1)
+            return
+        print(json.dumps(report))

@@ -1,0 +1,332 @@
+"""Export the detector to ONNX, with its variance heads, for ONNX Runtime, TensorRT or Autoware.
+
+Two layouts:
+
+- ``single`` (one file, ``detector.onnx``): the network from pillars to head maps. Inputs are exactly what
+  :func:`~.pillars.voxelize` returns for one scan — ``points`` (N, 4) the kept points (x, y, z, intensity/255),
+  ``pillar`` (N,) int64 the pillar of each point, ``num_points`` (V,) int64 points per pillar, ``coords`` (V, 3)
+  int64 (0, iy, ix) — with N and V dynamic. The pillar encoder, the scatter onto the BEV canvas, SECOND, the FPN
+  and every head run inside the graph.
+- ``autoware`` (two files, the split of Autoware's ``lidar_centerpoint``): ``pts_voxel_encoder.onnx`` maps
+  padded per-pillar point features ``input_features`` (V, M, 9) to ``pillar_features`` (V, C), V dynamic;
+  the host scatters them onto the canvas; ``pts_backbone_neck_head.onnx`` maps ``spatial_features``
+  (1, C, ny, nx) to the head maps. The nine features are PointPillars' (x, y, z, intensity/255, offsets to the
+  pillar's point mean, offsets to the pillar centre); padded rows are all zero and the encoder ignores them.
+
+Outputs, both layouts: ``heatmap`` (classes), ``reg`` (2), ``height`` (1), ``dim`` (3, log metres), ``rot``
+(sin, cos), ``vel`` (2) and — the uncertainty-aware model — ``logvar`` (5: x, y, vx, vy, yaw), each
+(1, ·, H, W) at ``out_size_factor`` times the pillar grid. Decoding (sigmoid, 3×3 peak pooling, top-K, box
+assembly, per-class circle NMS) stays outside the graph, as in Autoware; ``detector.json`` beside the model
+carries every constant pre- and post-processing needs, and the variance recalibration of the weights.
+
+Everything here imports torch; onnx and onnxscript (needed by torch's exporter) are imported when an export
+runs, so the detector's other commands work without them.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import io
+import json
+import logging
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from .config import CLASS_LABELS, VAR_NAMES, DetectorConfig
+from .inference import config_to_dict
+from .network import HEAD_CHANNELS, CenterPointNet
+from .pillars import NUM_PILLAR_FEATURES, PillarFeatureNet, Pillars, voxelize
+
+FORMAT = "jitterguard-detector-onnx"
+FORMAT_VERSION = 1
+MANIFEST = "detector.json"
+SINGLE_FILE = "detector.onnx"
+ENCODER_FILE = "pts_voxel_encoder.onnx"
+HEAD_FILE = "pts_backbone_neck_head.onnx"
+LAYOUTS = ("single", "autoware")
+DEFAULT_OPSET = 18
+MIN_OPSET = 17
+SINGLE_INPUTS = ("points", "pillar", "num_points", "coords")
+POINT_FEATURES = ("x", "y", "z", "intensity/255", "x - x_mean", "y - y_mean", "z - z_mean", "x - x_centre",
+                  "y - y_centre")
+"""The nine per-point features of the pillar encoder, in order (the ``autoware`` layout's ``input_features``)."""
+LOG_DIM_MAX = 5.0
+"""The decoder clamps the log dimensions at this value before ``exp`` (:func:`~.decode.decode`)."""
+
+
+class ExportError(RuntimeError):
+    """An export that could not be written or did not reproduce the torch model (the message says which)."""
+
+
+def output_names(config: DetectorConfig) -> tuple[str, ...]:
+    """Head outputs in graph order: the heatmap, CenterPoint's regression heads, then the log-variances."""
+    return ("heatmap", *HEAD_CHANNELS, *(("logvar",) if config.uncertainty else ()))
+
+
+# ------------------------------------------------------------------------------------------- graphs
+
+
+def bev_scatter(features: Tensor, coords: Tensor, config: DetectorConfig) -> Tensor:
+    """(V, C) pillar features onto the (1, C, ny, nx) canvas — the same values as :func:`~.pillars.scatter_to_bev`
+    for one scan.
+
+    Written with ``index_put`` on a cell-major canvas because ``index_copy_`` (what the torch path uses, to spare
+    a transposing copy on CPU) decomposes under ``torch.export`` into ops that pin the number of pillars to the
+    sample's; ONNX Runtime fuses the transpose away.
+    """
+    nx, ny = config.grid_size
+    lin = coords[:, 1] * nx + coords[:, 2]
+    canvas = features.new_zeros(ny * nx, features.shape[1]).index_put((lin,), features)
+    return canvas.t().reshape(1, features.shape[1], ny, nx)
+
+
+def _head_tuple(net: CenterPointNet, bev: Tensor) -> tuple[Tensor, ...]:
+    out = net.head(net.neck(net.backbone(bev)))
+    return tuple(out[name] for name in output_names(net.config))
+
+
+class SingleGraph(nn.Module):
+    """The ``single`` layout: pillars (point-major, as :func:`voxelize` gives them) → head maps."""
+
+    def __init__(self, net: CenterPointNet) -> None:
+        super().__init__()
+        self.net = net
+
+    def forward(self, points: Tensor, pillar: Tensor, num_points: Tensor, coords: Tensor) -> tuple[Tensor, ...]:
+        feats = self.net.pfn(Pillars(points, pillar, num_points, coords, 1))
+        return _head_tuple(self.net, bev_scatter(feats, coords, self.net.config))
+
+
+class VoxelEncoderGraph(nn.Module):
+    """The ``autoware`` layout's first file: padded point features (V, M, 9) → pillar features (V, C).
+
+    The same Linear + BatchNorm + ReLU + max as :class:`~.pillars.PillarFeatureNet`; a padded row (all nine
+    features zero) is masked out, which reproduces the point-major encoder exactly: there the maximum starts
+    from zero and every activation is ≥ 0, so a masked row (0) can never win.
+    """
+
+    def __init__(self, pfn: PillarFeatureNet) -> None:
+        super().__init__()
+        self.linear, self.norm = pfn.linear, pfn.norm
+
+    def forward(self, input_features: Tensor) -> Tensor:
+        v, m, f = input_features.shape
+        mask = (input_features != 0).any(dim=2, keepdim=True).to(input_features.dtype)
+        x = torch.relu(self.norm(self.linear(input_features.reshape(v * m, f)))).reshape(v, m, -1)
+        return (x * mask).amax(dim=1)
+
+
+class BackboneNeckHeadGraph(nn.Module):
+    """The ``autoware`` layout's second file: the BEV canvas (1, C, ny, nx) → head maps."""
+
+    def __init__(self, net: CenterPointNet) -> None:
+        super().__init__()
+        self.net = net
+
+    def forward(self, spatial_features: Tensor) -> tuple[Tensor, ...]:
+        return _head_tuple(self.net, spatial_features)
+
+
+def padded_point_features(pillars: Pillars, pfn: PillarFeatureNet, max_points: int) -> Tensor:
+    """The ``autoware`` layout's ``input_features``: each kept point's nine features in its pillar's row, in input
+    order, zero-padded to ``max_points`` slots. :func:`voxelize` keeps a pillar's points contiguous."""
+    feats = pfn.point_features(pillars)
+    v = pillars.num_points.shape[0]
+    starts = torch.cumsum(pillars.num_points, 0) - pillars.num_points
+    slot = torch.arange(feats.shape[0]) - starts[pillars.pillar]
+    out = feats.new_zeros(v, max_points, feats.shape[1])
+    out[pillars.pillar, slot] = feats
+    return out
+
+
+# ------------------------------------------------------------------------------------------- export
+
+
+def sample_pillars(config: DetectorConfig, n_points: int = 6000, seed: int = 0) -> Pillars:
+    """A deterministic random scan's pillars: the example input the exporter traces (its sizes are only an
+    example; N and V stay dynamic). Fewer pillars than ``max_pillars``, so no size is pinned by the cap."""
+    r = config.point_cloud_range
+    rng = np.random.default_rng(seed)
+    pts = np.column_stack([rng.uniform(r[0] * 0.6, r[3] * 0.6, n_points), rng.uniform(r[1] * 0.6, r[4] * 0.6, n_points),
+                           rng.uniform(r[2], r[5], n_points), rng.uniform(0, 255, n_points)]).astype(np.float32)
+    return voxelize([torch.from_numpy(pts)], config)
+
+
+@contextlib.contextmanager
+def _quiet_exporter() -> Any:
+    """torch's exporter prints progress lines on stdout (which carries JSON for our commands) and warns about
+    torchvision ops it cannot register; keep both off the user's terminal unless something fails."""
+    names = ("torch.onnx", "torch.onnx._internal.exporter._registration", "torch._export", "torch.export")
+    levels = {n: logging.getLogger(n).level for n in names}
+    for n in names:
+        logging.getLogger(n).setLevel(logging.ERROR)
+    buf = io.StringIO()
+    try:
+        with contextlib.redirect_stdout(buf), warnings.catch_warnings():
+            warnings.simplefilter("ignore", FutureWarning)  # torch.export's own deprecations, not ours to fix
+            warnings.filterwarnings("ignore", message=".*axis name.*will not be used", category=UserWarning)
+            yield buf
+    finally:
+        for n, lvl in levels.items():
+            logging.getLogger(n).setLevel(lvl)
+
+
+def _export(module: nn.Module, args: tuple[Tensor, ...], path: Path, inputs: tuple[str, ...],
+            outputs: tuple[str, ...], dynamic: tuple[dict[int, Any], ...], opset: int) -> None:
+    try:
+        import onnxscript  # noqa: F401  (torch's exporter needs it; a clear message beats its ImportError)
+    except ImportError:
+        raise ExportError("exporting needs the 'onnx' and 'onnxscript' packages (pip install 'jitterguard[onnx]')") from None
+    with _quiet_exporter() as log_buf:
+        try:
+            torch.onnx.export(module.eval(), args, str(path), dynamo=True, opset_version=opset, external_data=False,
+                              input_names=list(inputs), output_names=list(outputs), dynamic_shapes=dynamic)
+        except Exception as exc:  # noqa: BLE001 - the exporter raises many types; one line with its tail
+            tail = " ".join(log_buf.getvalue().split()[-40:])
+            raise ExportError(f"torch.onnx.export of {path.name} failed: {type(exc).__name__}: {exc} {tail}".strip()) from exc
+
+
+def graph_opset(path: Path) -> int:
+    """The default-domain opset a written graph declares. torch's exporter raises it above the requested one where
+    an operator needs it (the pillar max is a ``max`` reduction: ScatterElements / ReduceMax of opset 18)."""
+    import onnx
+
+    model = onnx.load(str(path), load_external_data=False)
+    return max(o.version for o in model.opset_import if o.domain in ("", "ai.onnx"))
+
+
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+@dataclass(frozen=True)
+class ExportResult:
+    """What :func:`export_onnx` wrote: the model file(s), the manifest and its content."""
+
+    out_dir: Path
+    files: tuple[Path, ...]
+    manifest_path: Path
+    manifest: dict[str, Any]
+
+
+def manifest_for(config: DetectorConfig, layout: str, opset: int, files: dict[str, Path],
+                 recalibration: tuple[float, float] | None, meta: dict[str, Any]) -> dict[str, Any]:
+    """The JSON beside the model: every constant a runtime needs to feed it and to decode its outputs."""
+    nx, ny = config.grid_size
+    fx, fy = config.feature_map_size
+    c = config.pfn_channels
+    graphs: dict[str, Any]
+    if layout == "single":
+        graphs = {"detector": {
+            "file": files["detector"].name, "sha256": _sha256(files["detector"]),
+            "inputs": {"points": ["N", 4, "float32", "x, y, z, intensity/255 of the kept points, grouped by pillar"],
+                       "pillar": ["N", "int64", "pillar index of each point"],
+                       "num_points": ["V", "int64", "points per pillar (<= max_points_per_pillar)"],
+                       "coords": ["V", 3, "int64", "(0, iy, ix) of each pillar"]},
+            "outputs": {n: [1, w, fy, fx] for n, w in _widths(config).items()},
+        }}
+    else:
+        graphs = {
+            "voxel_encoder": {"file": files["voxel_encoder"].name, "sha256": _sha256(files["voxel_encoder"]),
+                              "inputs": {"input_features": ["V", config.max_points_per_pillar, NUM_PILLAR_FEATURES, "float32"]},
+                              "outputs": {"pillar_features": ["V", c, "float32"]}},
+            "backbone_neck_head": {"file": files["backbone_neck_head"].name, "sha256": _sha256(files["backbone_neck_head"]),
+                                   "inputs": {"spatial_features": [1, c, ny, nx, "float32"]},
+                                   "outputs": {n: [1, w, fy, fx] for n, w in _widths(config).items()}},
+        }
+    return {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "layout": layout,
+        "opset": opset,
+        "graphs": graphs,
+        "config": config_to_dict(config),
+        "recalibration": list(recalibration) if recalibration else None,
+        "preprocessing": {
+            "frame": "sensor (x forward, y left, z up), metres",
+            "point_cloud_range": list(config.point_cloud_range),
+            "voxel_size": list(config.voxel_size),
+            "grid_size_xy": [nx, ny],
+            "max_points_per_pillar": config.max_points_per_pillar,
+            "max_pillars": config.max_pillars,
+            "pillar_selection": "points in range sorted by cell (iy * nx + ix), stable; a pillar keeps its first "
+                                "max_points_per_pillar points; over max_pillars, the most populated pillars are kept",
+            "intensity_scale": 1.0 / 255.0,
+            "point_features": list(POINT_FEATURES),
+            "pillar_centre": "x = ix * vx + vx / 2 + x_min, y = iy * vy + vy / 2 + y_min",
+        },
+        "postprocessing": {
+            "heatmap": "sigmoid; peaks = cells equal to their 3x3 max; top max_objects over classes and cells",
+            "out_size_factor": config.out_size_factor,
+            "cell_size_m": [config.voxel_size[0] * config.out_size_factor, config.voxel_size[1] * config.out_size_factor],
+            "x": "(ix + reg[0]) * cell_size_m[0] + x_min", "y": "(iy + reg[1]) * cell_size_m[1] + y_min",
+            "z": "height", "dims": f"exp(min(dim, {LOG_DIM_MAX})) as length, width, height",
+            "yaw": "atan2(rot[0], rot[1])", "velocity": "vel (m/s, sensor frame)",
+            "log_variances": f"max(logvar, logvar_min) in m^2, m^2, m^2/s^2, m^2/s^2, rad^2 for {', '.join(VAR_NAMES)};"
+                             " then + log(recalibration) on x and y when recalibration is set",
+            "score_threshold": config.score_threshold,
+            "max_objects": config.max_objects,
+            "nms": "per class, greedy circle NMS on squared BEV centre distance",
+            "nms_dist2_m2": dict(zip(config.class_names, config.nms_dist2, strict=True)),
+            "post_max_size": config.post_max_size,
+            "logvar_min": config.logvar_min,
+            "class_names": list(config.class_names),
+            "autoware_labels": [int(v) for v in CLASS_LABELS[: config.num_classes]],
+        },
+        "meta": meta,
+    }
+
+
+def _widths(config: DetectorConfig) -> dict[str, int]:
+    w = {"heatmap": config.num_classes, **HEAD_CHANNELS}
+    if config.uncertainty:
+        w["logvar"] = len(VAR_NAMES)
+    return w
+
+
+def export_onnx(net: CenterPointNet, out_dir: str | Path, *, layout: str = "single", opset: int = DEFAULT_OPSET,
+                recalibration: tuple[float, float] | None = None, meta: dict[str, Any] | None = None) -> ExportResult:
+    """Write ``net`` in ``layout`` plus ``detector.json`` into ``out_dir`` (created). Raises :class:`ExportError`."""
+    if layout not in LAYOUTS:
+        raise ExportError(f"layout must be one of {', '.join(LAYOUTS)}, got {layout!r}")
+    if opset < MIN_OPSET:
+        raise ExportError(f"opset must be >= {MIN_OPSET}, got {opset}")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    net = net.eval()
+    config = net.config
+    sample = sample_pillars(config)
+    v_dim, n_dim = torch.export.Dim("V", min=2, max=max(config.max_pillars, 3)), torch.export.Dim("N", min=2)
+    files: dict[str, Path] = {}
+    names = output_names(config)
+    with torch.no_grad():
+        if layout == "single":
+            files["detector"] = out / SINGLE_FILE
+            args = (sample.points, sample.pillar, sample.num_points, sample.coords)
+            _export(SingleGraph(net), args, files["detector"], SINGLE_INPUTS, names,
+                    ({0: n_dim}, {0: n_dim}, {0: v_dim}, {0: v_dim}), opset)
+        else:
+            files["voxel_encoder"] = out / ENCODER_FILE
+            files["backbone_neck_head"] = out / HEAD_FILE
+            feats = padded_point_features(sample, net.pfn, config.max_points_per_pillar)
+            _export(VoxelEncoderGraph(net.pfn), (feats,), files["voxel_encoder"], ("input_features",),
+                    ("pillar_features",), ({0: v_dim},), opset)
+            nx, ny = config.grid_size
+            canvas = torch.zeros(1, config.pfn_channels, ny, nx)
+            _export(BackboneNeckHeadGraph(net), (canvas,), files["backbone_neck_head"], ("spatial_features",), names,
+                    ({},), opset)
+    actual = {name: graph_opset(path) for name, path in files.items()}
+    manifest = manifest_for(config, layout, max(actual.values()), files, recalibration, dict(meta or {}))
+    manifest["opset_requested"] = opset
+    for name, v in actual.items():
+        manifest["graphs"][name]["opset"] = v
+    path = out / MANIFEST
+    path.write_text(json.dumps(manifest, indent=2) + "\n")
+    return ExportResult(out, tuple(files.values()), path, manifest)

@@ -1,0 +1,114 @@
+"""Joined frames (:mod:`..bridge`) as a rosbag2 for Autoware: MCAP storage, ``metadata.yaml``, and the topics
+Autoware's perception and prediction use:
+
+| topic | type | what |
+|---|---|---|
+| ``/sensing/lidar/top/pointcloud`` | ``sensor_msgs/msg/PointCloud2`` | the scan (sensor frame, float32 columns as sent) |
+| ``/perception/object_recognition/detection/objects`` | ``autoware_perception_msgs/msg/DetectedObjects`` | the detector's output (sensor frame, with its variances) |
+| ``/perception/object_recognition/tracking/objects`` | ``autoware_perception_msgs/msg/TrackedObjects`` | the classifier's ``objects``: what Autoware's prediction subscribes to |
+| ``/tf`` | ``tf2_msgs/msg/TFMessage`` | ``map → base_link → <sensor frame>`` per frame (:mod:`..bridge.frames`) |
+
+Each message is written at its header stamp (the sensor's time), so ``ros2 bag play`` replays sensor time. The
+object conversions are :mod:`jitterguard.ros2.autoware`'s (twists in the object frame, as Autoware states them);
+static objects arrive from the classifier with zero twist, the window-mean pose and ``is_stationary`` set, and are
+written as they are. The bag is complete (``metadata.yaml`` written) when the recorder stops cleanly (SIGINT or
+SIGTERM); a killed recorder leaves an MCAP file without it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ...ros2.autoware import RosBuilder
+from ...ros2.types import DETECTED_OBJECTS, POINTCLOUD2, TF_MESSAGE, TRACKED_OBJECTS, typestore
+from ...schemas.models import PointCloud, Pose
+from ..bridge.frames import ground_split
+from ..bridge.joiner import JoinedFrame
+
+POINTS_TOPIC = "/sensing/lidar/top/pointcloud"
+DETECTIONS_TOPIC = "/perception/object_recognition/detection/objects"
+TRACKING_TOPIC = "/perception/object_recognition/tracking/objects"
+TF_TOPIC = "/tf"
+BASE_FRAME = "base_link"
+FLOAT32 = 7  # sensor_msgs/PointField.FLOAT32
+
+
+class RosbagError(RuntimeError):
+    """The bag cannot be written (the folder exists, rosbags missing, a write failed)."""
+
+
+def pointcloud2(b: RosBuilder, pc: PointCloud) -> Any:
+    """The wire scan as a PointCloud2: one row, every column float32 at 4-byte offsets, the bytes as they came."""
+    g = b.t
+    n_fields = len(pc.fields)
+    fields = [g["sensor_msgs/msg/PointField"](name=name, offset=4 * j, datatype=FLOAT32, count=1)
+              for j, name in enumerate(pc.fields)]
+    return g[POINTCLOUD2](header=b.header(pc.header.stamp, pc.header.frame_id), height=1, width=pc.num_points,
+                          fields=fields, is_bigendian=False, point_step=4 * n_fields,
+                          row_step=4 * n_fields * pc.num_points, data=np.frombuffer(pc.data, dtype=np.uint8),
+                          is_dense=True)
+
+
+def tf_message(b: RosBuilder, stamp_ns: int, world: str, sensor_frame: str, pose: Pose) -> Any:
+    """``world → base_link`` (the sensor pose on the ground plane) and ``base_link → sensor`` (the rest)."""
+    g = b.t
+    s = ground_split(pose)
+    half = s.yaw / 2
+
+    def transform(parent: str, child: str, xyz: tuple[float, float, float], q: tuple[float, float, float, float]) -> Any:
+        return g["geometry_msgs/msg/TransformStamped"](
+            header=b.header(stamp_ns, parent), child_frame_id=child,
+            transform=g["geometry_msgs/msg/Transform"](translation=b.vector3(*xyz),
+                                                       rotation=g["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3])))
+
+    return g[TF_MESSAGE](transforms=[
+        transform(world, BASE_FRAME, (s.x, s.y, 0.0), (0.0, 0.0, float(np.sin(half)), float(np.cos(half)))),
+        transform(BASE_FRAME, sensor_frame, (0.0, 0.0, s.z), s.rest),
+    ])
+
+
+class Rosbag2Sink:
+    """Writes joined frames into a new rosbag2 folder ``path`` (MCAP storage)."""
+
+    def __init__(self, path: str | Path, *, points: bool = True) -> None:
+        try:
+            from rosbags.rosbag2 import StoragePlugin, Writer
+        except ImportError:
+            raise RosbagError("writing ROS 2 bags needs the 'rosbags' package (pip install 'jitterguard[ros2]')") from None
+        self.path = Path(path)
+        if self.path.exists():
+            raise RosbagError(f"{self.path} exists (rosbag2 writes a new folder)")
+        self.store = typestore()
+        self.builder = RosBuilder(self.store)
+        self.points = points
+        self.writer = Writer(self.path, version=8, storage_plugin=StoragePlugin.MCAP)
+        self.writer.open()
+        self._conns: dict[str, Any] = {}
+        self.counts: dict[str, int] = {}
+        for topic, msgtype in ((TRACKING_TOPIC, TRACKED_OBJECTS), (DETECTIONS_TOPIC, DETECTED_OBJECTS),
+                               (TF_TOPIC, TF_MESSAGE), *(((POINTS_TOPIC, POINTCLOUD2),) if points else ())):
+            self._conns[topic] = self.writer.add_connection(topic, msgtype, typestore=self.store)
+
+    def _write(self, topic: str, stamp_ns: int, msg: Any) -> None:
+        conn = self._conns[topic]
+        self.writer.write(conn, stamp_ns, bytes(self.store.serialize_cdr(msg, conn.msgtype)))
+        self.counts[topic] = self.counts.get(topic, 0) + 1
+
+    def write(self, frame: JoinedFrame) -> None:
+        b = self.builder
+        pose = frame.sensor_pose
+        if pose is not None:
+            self._write(TF_TOPIC, frame.stamp_ns, tf_message(b, frame.stamp_ns, frame.world_frame, frame.sensor_frame, pose))
+        if self.points and frame.points is not None:
+            self._write(POINTS_TOPIC, frame.points.header.stamp, pointcloud2(b, frame.points))
+        if frame.detections is not None:
+            self._write(DETECTIONS_TOPIC, frame.detections.header.stamp, b.detected_objects(frame.detections))
+        self._write(TRACKING_TOPIC, frame.objects.header.stamp, b.tracked_objects(frame.objects))
+
+    def close(self) -> None:
+        if self.writer is not None:
+            self.writer.close()  # writes metadata.yaml
+            self.writer = None

@@ -1,0 +1,259 @@
+"""The sidecar's HTTP routes, as module-level FastAPI routers: health, state, config, and the rest (metrics,
+events, the page). Every rule lives in ``core``; every Zenoh call in ``client``; what a route needs at run time
+(settings, client, metrics, event broker) it takes from :class:`SidecarContext` on ``app.state``.
+
+Reads of live state are ``async`` and return bytes pre-rendered by the client's poll thread (no thread hop,
+no serialisation per request). Config endpoints are plain ``def``: each makes blocking Zenoh queries, so they
+run in the server's thread pool and never stall the event loop.
+
+No ``from __future__ import annotations`` here: FastAPI reads the routes' ``Annotated`` parameters at import.
+"""
+
+import hmac
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request
+from fastapi.responses import HTMLResponse, JSONResponse, Response, StreamingResponse
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
+
+from ...schemas.models import PRESETS, ClassifierConfig
+from .client import ClassifierClient, ClassifierRejected, ClassifierUnavailable
+from .core import (
+    CLASS_NAMES,
+    ConfigError,
+    ConfigModel,
+    ConfigPatchModel,
+    ErrorBody,
+    HealthView,
+    PresetName,
+    ReadyView,
+    RenderedState,
+    StateView,
+    TrackView,
+    apply_preset,
+    config_to_api,
+    dumps,
+    merge_patch,
+    validate_config,
+)
+from .events import EventBroker
+from .metrics import SidecarMetrics
+
+CSP = ("default-src 'self'; script-src 'self' 'unsafe-inline'; style-src 'self' 'unsafe-inline'; "
+       "img-src 'self' data:; connect-src 'self'; base-uri 'none'; form-action 'none'; frame-ancestors 'none'")
+
+E503 = {"model": ErrorBody, "description": "The classifier is unreachable or did not confirm; nothing applied"}
+E502 = {"model": ErrorBody, "description": "The classifier refused the config"}
+WRITE_ERRORS: dict[int | str, dict[str, Any]] = {
+    503: E503, 502: E502,
+    400: {"model": ErrorBody, "description": "The body is not readable text, or the Host header is foreign"},
+    401: {"model": ErrorBody, "description": "Missing or wrong bearer token (only when JG_API_TOKEN is set)"},
+    403: {"model": ErrorBody, "description": "A cross-site write (Origin not this sidecar's)"},
+    413: {"model": ErrorBody, "description": "Body over 64 KB"},
+    415: {"model": ErrorBody, "description": "A body or Content-Type other than application/json"},
+}
+
+
+@dataclass
+class SidecarContext:
+    """What the routes share for the app's lifetime; ``client`` exists between startup and shutdown."""
+
+    api_token: str | None
+    metrics: SidecarMetrics
+    broker: EventBroker
+    page: str
+    client: ClassifierClient | None = None
+
+
+def context(request: Request) -> SidecarContext:
+    return request.app.state.sidecar
+
+
+def client(ctx: Annotated[SidecarContext, Depends(context)]) -> ClassifierClient:
+    if ctx.client is None:  # only between construction and startup
+        raise ClassifierUnavailable("the sidecar is starting")
+    return ctx.client
+
+
+Ctx = Annotated[SidecarContext, Depends(context)]
+Client = Annotated[ClassifierClient, Depends(client)]
+_bearer = HTTPBearer(auto_error=False, description="the value of JG_API_TOKEN (writes need it when it is set)")
+
+
+def require_writer(ctx: Ctx, creds: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]) -> None:
+    """Writes need ``Authorization: Bearer <JG_API_TOKEN>`` when the sidecar has a token."""
+    if ctx.api_token is None:
+        return
+    if creds is None or not hmac.compare_digest(creds.credentials.encode(), ctx.api_token.encode()):
+        raise HTTPException(401, "missing or wrong bearer token (JG_API_TOKEN)", headers={"WWW-Authenticate": "Bearer"})
+
+
+# ---------------------------------------------------------------------------------------------- health
+
+health_routes = APIRouter(tags=["health"])
+
+
+@health_routes.get("/healthz", response_model=HealthView, summary="The sidecar process is up (says nothing about the classifier)")
+async def healthz() -> dict[str, str]:
+    return {"status": "ok"}
+
+
+@health_routes.get("/readyz", response_model=ReadyView,
+            responses={503: {"model": ReadyView, "description": "The classifier is not reachable, or a service of "
+                                                                "the pipeline reports no progress"}},
+            summary="The classifier is reachable (liveliness and a recent heartbeat) and no service of the pipeline "
+                    "reports failing or stalled frames")
+async def readyz(c: Client) -> JSONResponse:
+    ready = c.readiness()
+    return JSONResponse(ready, status_code=200 if ready["ready"] else 503)
+
+
+# ---------------------------------------------------------------------------------------------- state
+
+state_routes = APIRouter(tags=["state"])
+StateFilter = Annotated[str | None, Query(pattern="^(static|dynamic|undecided)$", description="only tracks in this state")]
+ClassFilter = Annotated[str | None, Query(alias="class", pattern="^(" + "|".join(CLASS_NAMES) + ")$",
+                                          description="only tracks of this class")]
+
+
+def _live_state(c: ClassifierClient) -> tuple[RenderedState, dict[str, str]]:
+    """The cached snapshot while the classifier is alive, with freshness headers; 503 once it is gone.
+
+    A late heartbeat alone does not hide the state: an overloaded classifier is exactly when an operator
+    needs to see it. ``X-Classifier-Ready`` and ``X-State-Age-Ms`` say how far to trust it.
+    """
+    if not c.is_alive():
+        raise ClassifierUnavailable(f"classifier not ready: {c.readiness()['reason']}")
+    st = c.rendered_state()
+    if st is None:
+        raise ClassifierUnavailable("no state from the classifier yet")
+    age_ms = max(0.0, (time.time_ns() - st.polled_at_ns) / 1e6)
+    return st, {"X-Classifier-Seq": str(st.seq), "X-Classifier-Ready": str(c.readiness_flag()).lower(),
+                "X-State-Age-Ms": f"{age_ms:.1f}"}
+
+
+@state_routes.get("/v1/state", response_model=StateView, responses={503: E503},
+           summary="Every track the classifier decided in its latest frame",
+           description=("Served from a cache refreshed every poll period. Headers: `X-Classifier-Seq` (the frame), "
+                        "`X-Classifier-Ready` (false while the heartbeat is late: the state may be stale), "
+                        "`X-State-Age-Ms` (since the sidecar fetched it). 503 once the classifier's liveliness "
+                        "token is gone."))
+async def get_state(c: Client, state: StateFilter = None, cls: ClassFilter = None) -> Response:
+    st, headers = _live_state(c)
+    if state is None and cls is None:
+        return Response(st.body, media_type="application/json", headers=headers)
+    tracks = [t for t in st.tracks.values()
+              if (state is None or t["state"] == state) and (cls is None or t["class"] == cls)]
+    view = {"seq": st.seq, "stamp_ns": st.stamp_ns, "frame_id": st.frame_id, "mode": st.config.mode,
+            "polled_at_ns": st.polled_at_ns, "counts": st.counts, "tracks": tracks}
+    return Response(dumps(view), media_type="application/json", headers=headers)
+
+
+@state_routes.get("/v1/state/{track_id}", response_model=TrackView,
+           responses={404: {"model": ErrorBody, "description": "No such track in the latest frame"}, 503: E503},
+           summary="One track by ID")
+async def get_track(c: Client, track_id: Annotated[str, Path(pattern="^[0-9a-fA-F]{32}$",
+                                                             description="32 hex digits")]) -> Response:
+    st, headers = _live_state(c)
+    t = st.tracks.get(track_id.lower())
+    if t is None:
+        raise HTTPException(404, f"no track {track_id.lower()} in the classifier's frame {st.seq}")
+    return Response(dumps(t), media_type="application/json", headers=headers)
+
+
+@state_routes.get("/v1/events", response_class=StreamingResponse,
+           responses={200: {"content": {"text/event-stream": {"schema": {"type": "string"}}},
+                            "description": (
+                                "Server-sent events. `hello` (counts, seq, ready) on connect; `changes` "
+                                "{seq, changes: [{id, class, from, to, statistic, threshold, x, y}]} when "
+                                "tracks appear (from null), vanish (to null) or change state; `config` "
+                                "(the config now in force); `ready` {ready, reason}; `resync` if this "
+                                "client fell behind and lost events.")}},
+           summary="Server-sent events of state changes")
+async def events(request: Request, ctx: Ctx, c: Client) -> StreamingResponse:
+    st = c.rendered_state()
+    ready = c.readiness()
+    hello = {"ready": ready["ready"], "reason": ready["reason"], "seq": st.seq if st else None,
+             "counts": st.counts if st else None}
+    return StreamingResponse(ctx.broker.stream(hello, request.is_disconnected), media_type="text/event-stream",
+                             headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
+
+
+# ---------------------------------------------------------------------------------------------- config
+
+config_routes = APIRouter(tags=["config"])
+Writer = [Depends(require_writer)]
+
+
+def _write(ctx: SidecarContext, do: Callable[[], ClassifierConfig]) -> dict[str, Any]:
+    """Run one write and count its outcome (``jitterguard_sidecar_config_writes{result}``)."""
+    try:
+        cfg = do()
+    except ConfigError:
+        ctx.metrics.config_writes.labels("invalid").inc()
+        raise
+    except ClassifierUnavailable:
+        ctx.metrics.config_writes.labels("unavailable").inc()
+        raise
+    except ClassifierRejected:
+        ctx.metrics.config_writes.labels("rejected").inc()
+        raise
+    ctx.metrics.config_writes.labels("ok").inc()
+    return config_to_api(cfg)
+
+
+@config_routes.get("/v1/config", response_model=ConfigModel, responses={503: E503, 502: E502},
+            summary="The config in force now (asked from the classifier, not cached)")
+def get_config(c: Client) -> dict[str, Any]:
+    return config_to_api(c.get_config())
+
+
+@config_routes.put("/v1/config", response_model=ConfigModel, dependencies=Writer, responses=WRITE_ERRORS,
+            summary="Replace the whole config (omitted fields take their defaults)")
+def put_config(ctx: Ctx, c: Client, body: ConfigModel) -> dict[str, Any]:  # type: ignore[valid-type]
+    cfg = validate_config(body.model_dump(), touched=body.model_fields_set)  # type: ignore[attr-defined]
+    return _write(ctx, lambda: c.replace_config(cfg))
+
+
+@config_routes.patch("/v1/config", response_model=ConfigModel, dependencies=Writer, responses=WRITE_ERRORS,
+              summary="Change some fields (JSON merge patch: null resets a field, a null class alpha drops it)")
+def patch_config(ctx: Ctx, c: Client, body: ConfigPatchModel) -> dict[str, Any]:  # type: ignore[valid-type]
+    patch = body.model_dump(exclude_unset=True)  # type: ignore[attr-defined]
+    return _write(ctx, lambda: c.update_config(lambda cur: merge_patch(cur, patch)))
+
+
+@config_routes.get("/v1/config/presets", summary="The named presets and the fields each one sets")
+async def list_presets() -> dict[str, dict[str, Any]]:
+    return {name: dict(fields) for name, fields in PRESETS.items()}
+
+
+@config_routes.post("/v1/config/preset/{name}", response_model=ConfigModel, dependencies=Writer, responses=WRITE_ERRORS,
+             summary="Apply a named preset; every field it does not name stays")
+def post_preset(ctx: Ctx, c: Client,
+                name: Annotated[PresetName, Path(description="preset name")]) -> dict[str, Any]:  # type: ignore[valid-type]
+    return _write(ctx, lambda: c.update_config(lambda cur: apply_preset(cur, name)))
+
+
+# ---------------------------------------------------------------------------------------------- metrics, page
+
+misc_routes = APIRouter()
+
+
+@misc_routes.get("/metrics", tags=["metrics"], response_class=Response,
+          responses={200: {"content": {CONTENT_TYPE_LATEST.split(";")[0]: {"schema": {"type": "string"}}},
+                           "description": "Prometheus text exposition"}},
+          summary="Prometheus metrics: frames, tracks, static/dynamic by class, rejects, frame latency")
+def get_metrics(ctx: Ctx) -> Response:
+    return Response(generate_latest(ctx.metrics.registry), media_type=CONTENT_TYPE_LATEST)
+
+
+@misc_routes.get("/", response_class=HTMLResponse, tags=["page"], summary="Live bird's-eye view of the tracks")
+async def index(ctx: Ctx) -> HTMLResponse:
+    return HTMLResponse(ctx.page, headers={"Content-Security-Policy": CSP, "Cache-Control": "no-cache"})
+
+
+ROUTERS = (health_routes, state_routes, config_routes, misc_routes)

@@ -1,0 +1,291 @@
+"""The detector exported to ONNX: ONNX Runtime reproduces torch (boxes, scores, log-variances within 1e-4) on 20
+synthetic HDL-32E scans and 5 real nuScenes scans, in both layouts; the graphs carry dynamic pillar counts and
+opset >= 17; the backend switch runs the service's Detector; bad input is refused with one line."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+pytest.importorskip("onnxruntime")
+pytest.importorskip("onnxscript")
+onnx = pytest.importorskip("onnx")
+
+from jitterguard.services.detector.bench import bench_scans  # noqa: E402
+from jitterguard.services.detector.inference import Detector, WeightsError  # noqa: E402
+from jitterguard.services.detector.onnx_backend import OnnxNetwork, load_onnx_detector, read_manifest  # noqa: E402
+from jitterguard.services.detector.onnx_cli import MAP_TOLERANCE, check_export, compare_detections  # noqa: E402
+from jitterguard.services.detector.onnx_export import (  # noqa: E402
+    VoxelEncoderGraph,
+    bev_scatter,
+    export_onnx,
+    padded_point_features,
+    sample_pillars,
+)
+from jitterguard.services.detector.pillars import scatter_to_bev  # noqa: E402
+
+TOL = 1e-4
+SHARED_NUSC = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "nuscenes-scene-0523"
+
+
+@pytest.fixture(scope="module")
+def torch_det() -> Detector:
+    return Detector.load(None, "lite", threads=2)
+
+
+@pytest.fixture(scope="module")
+def single_dir(torch_det: Detector, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("onnx_single")
+    export_onnx(torch_det.model, out, recalibration=torch_det.recalibration, meta={"preset": "lite"})
+    return out
+
+
+@pytest.fixture(scope="module")
+def synthetic_scans() -> list[np.ndarray]:
+    return bench_scans(20, "mixed", seed=4)
+
+
+def _assert_equal_within_tol(torch_det: Detector, onnx_det: Detector, scans: list[np.ndarray]) -> dict:
+    check = check_export(torch_det, onnx_det, scans)
+    assert check["scans"] == len(scans)
+    assert check["scans_with_count_mismatch"] == 0, check
+    assert check["labels_equal"], check
+    for name, err in check["head_maps"].items():  # every cell of every raw output map, variance heads included
+        assert err <= MAP_TOLERANCE, f"head map {name}: |onnxruntime - torch| = {err:.3g} > {MAP_TOLERANCE}"
+    err = check["max_abs_error"]
+    for field in ("boxes_except_yaw", "scores", "log_variances"):
+        assert err[field] <= TOL, f"{field}: |onnxruntime - torch| = {err[field]:.3g} > {TOL}"
+    # yaw = atan2(sin, cos) of the rot head: a map difference within TOL is divided by |(sin, cos)|, which is tiny
+    # where the network is unsure of the heading. Within TOL, or else explained by such a cell (and still small).
+    if err["yaw"] > TOL:
+        norm = check["yaw_worst_rot_norm"]
+        assert norm is not None and norm < 0.05 and err["yaw"] <= 1e-3, check
+    return check
+
+
+@pytest.mark.slow
+def test_onnxruntime_equals_torch_on_20_synthetic_scans(torch_det, single_dir, synthetic_scans) -> None:
+    onnx_det = load_onnx_detector(single_dir, threads=2)
+    assert onnx_det.recalibration == torch_det.recalibration  # the manifest carries the weights' variance scales
+    check = _assert_equal_within_tol(torch_det, onnx_det, synthetic_scans)
+    # the comparison is not vacuous: the scans hold detections and the scores are not all alike
+    n = [len(torch_det.detect(p)) for p in synthetic_scans[:3]]
+    assert min(n) > 5, n
+    print("synthetic max abs errors:", json.dumps({**check["max_abs_error"], "maps": check["head_maps"],
+                                                   "yaw_rot_norm": check["yaw_worst_rot_norm"]}))
+
+
+@pytest.mark.skipif(not SHARED_NUSC.is_dir(), reason="../shared/data/nuscenes-scene-0523 absent")
+def test_onnxruntime_equals_torch_on_5_real_nuscenes_scans(torch_det, single_dir) -> None:
+    from jitterguard.services.replay.frames import ScanFrame
+    from jitterguard.services.replay.sources import open_source
+
+    with open_source(str(SHARED_NUSC)) as src:
+        frames = [f for f in src.frames() if isinstance(f, ScanFrame)][:5]
+    assert len(frames) == 5
+    scans = [np.ascontiguousarray(f.points[:, :4]) for f in frames]
+    onnx_det = load_onnx_detector(single_dir, threads=2)
+    check = _assert_equal_within_tol(torch_det, onnx_det, scans)
+    print("real max abs errors:", json.dumps({**check["max_abs_error"], "maps": check["head_maps"],
+                                              "yaw_rot_norm": check["yaw_worst_rot_norm"]}))
+
+
+def test_the_graph_has_dynamic_points_and_pillars_and_a_recent_opset(single_dir) -> None:
+    model = onnx.load(str(single_dir / "detector.onnx"))
+    onnx.checker.check_model(model)
+    assert max(o.version for o in model.opset_import if o.domain in ("", "ai.onnx")) >= 17
+    dims = {i.name: [d.dim_param or d.dim_value for d in i.type.tensor_type.shape.dim] for i in model.graph.input}
+    assert set(dims) == {"points", "pillar", "num_points", "coords"}
+    assert isinstance(dims["points"][0], str) and dims["points"][1] == 4
+    assert isinstance(dims["num_points"][0], str) and dims["coords"][0] == dims["num_points"][0]
+    outs = [o.name for o in model.graph.output]
+    assert outs == ["heatmap", "reg", "height", "dim", "rot", "vel", "logvar"]  # the variance heads are exported
+    doc = read_manifest(single_dir)
+    assert doc["layout"] == "single" and doc["opset"] >= 17 and doc["graphs"]["detector"]["opset"] == doc["opset"]
+    assert doc["preprocessing"]["intensity_scale"] == pytest.approx(1 / 255)
+    assert doc["postprocessing"]["class_names"] == ["car", "truck", "bus", "bicycle", "pedestrian"]
+
+
+def test_one_export_runs_scans_of_very_different_sizes(torch_det, single_dir) -> None:
+    net = OnnxNetwork(single_dir, threads=1)
+    from jitterguard.services.detector.pillars import voxelize
+
+    for n in (50, 3000, 40_000):
+        p = sample_pillars(torch_det.config, n_points=n, seed=n)
+        with torch.inference_mode():
+            ref = torch_det.model.forward_pillars(p)
+        got = net.forward_pillars(p)
+        for k, v in ref.items():
+            assert float((got[k] - v).abs().max()) < MAP_TOLERANCE, (n, k)
+    # over the pillar budget (V = max_pillars) still runs
+    rng = np.random.default_rng(1)
+    pts = np.column_stack([rng.uniform(-51, 51, (60_000, 2)), rng.uniform(-2, 1, 60_000), rng.uniform(0, 255, 60_000)])
+    p = voxelize([torch.from_numpy(pts.astype(np.float32))], torch_det.config)
+    assert p.num_points.shape[0] == torch_det.config.max_pillars
+    assert net.forward_pillars(p)["heatmap"].shape[1] == 5
+
+
+def test_autoware_layout_splits_the_network_where_lidar_centerpoint_does(torch_det, synthetic_scans, tmp_path) -> None:
+    res = export_onnx(torch_det.model, tmp_path, layout="autoware", recalibration=torch_det.recalibration)
+    assert sorted(p.name for p in res.files) == ["pts_backbone_neck_head.onnx", "pts_voxel_encoder.onnx"]
+    enc = onnx.load(str(tmp_path / "pts_voxel_encoder.onnx"))
+    shape = [d.dim_param or d.dim_value for d in enc.graph.input[0].type.tensor_type.shape.dim]
+    assert enc.graph.input[0].name == "input_features" and isinstance(shape[0], str) and shape[1:] == [16, 9]
+    assert [o.name for o in enc.graph.output] == ["pillar_features"]
+    onnx_det = load_onnx_detector(tmp_path, threads=2)
+    _assert_equal_within_tol(torch_det, onnx_det, synthetic_scans[:4])
+
+
+def test_padded_encoder_and_export_scatter_reproduce_the_point_major_torch_path(torch_det) -> None:
+    net, cfg = torch_det.model, torch_det.config
+    p = sample_pillars(cfg, n_points=5000, seed=3)
+    with torch.inference_mode():
+        point_major = net.pfn(p)
+        padded = VoxelEncoderGraph(net.pfn)(padded_point_features(p, net.pfn, cfg.max_points_per_pillar))
+        assert padded.shape == point_major.shape  # (V, C), as lidar_centerpoint's encoder binding
+        assert float((padded - point_major).abs().max()) < 1e-6
+        assert torch.equal(bev_scatter(point_major, p.coords, cfg), scatter_to_bev(point_major, p, cfg))
+
+
+def test_a_tampered_or_incomplete_export_is_refused(single_dir, tmp_path) -> None:
+    copy = tmp_path / "copy"
+    shutil.copytree(single_dir, copy)
+    with open(copy / "detector.onnx", "r+b") as f:
+        f.seek(200)
+        f.write(b"\x00\x01\x02")
+    with pytest.raises(WeightsError, match="sha256"):
+        load_onnx_detector(copy)
+    (copy / "detector.onnx").unlink()
+    with pytest.raises(WeightsError, match="missing"):
+        load_onnx_detector(copy)
+    with pytest.raises(WeightsError, match="detector.json"):
+        load_onnx_detector(tmp_path / "nothing-here")
+
+
+def test_compare_detections_reports_a_count_mismatch_instead_of_comparing(torch_det, synthetic_scans) -> None:
+    from dataclasses import replace
+
+    a = torch_det.detect(synthetic_scans[0])
+    b = replace(a, boxes=a.boxes[:-1], scores=a.scores[:-1], labels=a.labels[:-1], log_variances=a.log_variances[:-1])
+    cmp = compare_detections(a, b)
+    assert cmp["count_mismatch"] == 1 and cmp["box_columns"] is None
+    moved = replace(a, boxes=a.boxes + np.float32(0.5))
+    assert compare_detections(a, moved)["box_columns"]["yaw"] == pytest.approx(0.5)
+    # the same detections in another order are paired by class and centre, not by position in the list
+    rev = replace(a, boxes=a.boxes[::-1], scores=a.scores[::-1], labels=a.labels[::-1],
+                  log_variances=a.log_variances[::-1])
+    cmp = compare_detections(a, rev)
+    assert cmp["labels_equal"] and max(cmp["box_columns"].values()) == 0.0 and cmp["scores"] == 0.0
+    flipped = a.boxes.copy()
+    flipped[:, 6] = np.where(flipped[:, 6] > 0, flipped[:, 6] - 2 * np.pi, flipped[:, 6] + 2 * np.pi)
+    assert compare_detections(a, replace(a, boxes=flipped))["box_columns"]["yaw"] < 1e-5  # ±π is one heading
+
+
+# ------------------------------------------------------------------------------------------------ the CLI
+
+
+def _cli(args: list[str]):
+    from typer.testing import CliRunner
+
+    from jitterguard.cli import app
+
+    return CliRunner().invoke(app, args)
+
+
+@pytest.mark.parametrize(
+    ("args", "needle"),
+    [
+        (["export-onnx", "--out", "/tmp/x", "--layout", "tensorrt"], "--layout"),
+        (["export-onnx", "--out", "/tmp/x", "--opset", "13"], "--opset"),
+        (["export-onnx", "--out", "/tmp/x", "--preset", "huge"], "--preset"),
+        (["detector", "--backend", "tensorrt"], "--backend"),
+        (["detector", "--backend", "onnxruntime", "--onnx", "/nonexistent/dir"], "--onnx"),
+        (["detector", "--onnx", "/tmp"], "--onnx"),
+        (["bench", "detector", "--backends", "onnxruntime"], "--backends"),
+    ],
+)
+def test_bad_cli_input_is_one_line_and_exit_2(args: list[str], needle: str, capsys) -> None:
+    from jitterguard.cli import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(args)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and needle in err[0], err
+
+
+def test_export_onnx_cli_writes_the_files_and_reports_its_check(tmp_path) -> None:
+    res = _cli(["export-onnx", "--out", str(tmp_path), "--check-scans", "1", "--threads", "1"])
+    assert res.exit_code == 0, res.output
+    doc = json.loads(res.stdout.strip().splitlines()[-1])
+    assert doc["files"] == ["detector.onnx", "detector.json"] and doc["weights"] == "lite.pt"
+    assert doc["check"]["scans"] == 1 and all(v <= TOL for v in doc["check"]["max_abs_error"].values())
+    assert read_manifest(tmp_path)["meta"]["preset"] == "lite"
+
+
+@pytest.mark.slow
+def test_bench_detector_reports_torch_and_onnxruntime_side_by_side() -> None:
+    res = _cli(["bench", "detector", "--json", "--presets", "lite", "--scans", "2", "--warmup", "1", "--threads", "1",
+                "--no-progress", "--backends", "torch,onnxruntime"])
+    assert res.exit_code == 0, res.output
+    row = json.loads(res.stdout.strip().splitlines()[-1])["lite"]
+    ort = row["onnxruntime"]
+    assert row["backend"] == "torch" and ort["backend"] == "onnxruntime"
+    assert ort["scans"] == row["scans"] == 2 and ort["points"] == row["points"]  # the same scans
+    assert ort["detections"] == row["detections"]  # the same network gives the same detections
+    assert row["onnxruntime_over_torch_p50"] == pytest.approx(ort["p50_ms"] / row["p50_ms"], rel=0.01)
+
+
+@pytest.mark.slow
+@pytest.mark.integration
+def test_the_detector_service_on_onnxruntime_publishes_what_torch_would(torch_det, synthetic_scans) -> None:
+    """``jitterguard detector --backend onnxruntime`` without ``--onnx``: the weights are exported at start-up and the
+    very service publishes the ONNX Runtime network's detections over Zenoh."""
+    import threading
+
+    import zenoh
+
+    from jitterguard.runtime import build_config, free_tcp_port, loopback_options
+    from jitterguard.schemas import decode, encode, keys
+    from jitterguard.schemas.models import X_X, DetectedObjects, Header, PointCloud
+    from jitterguard.services.detector.onnx_backend import open_onnx_detector
+    from jitterguard.services.detector.service import DetectorService
+
+    det = open_onnx_detector(None, None, "lite", threads=2)
+    assert isinstance(det.model, OnnxNetwork) and det.meta["backend"] == "onnxruntime"
+    ns, port = "onnx_svc", free_tcp_port()
+    svc = DetectorService(loopback_options(ns, port, listen_self=True), det)
+    client = zenoh.open(build_config(loopback_options(ns, port)))
+    got: list[DetectedObjects] = []
+    lock = threading.Lock()
+
+    def on(s: zenoh.Sample) -> None:
+        with lock:
+            got.append(decode(DetectedObjects, s.payload.to_bytes()))
+
+    sub = client.declare_subscriber(keys.detections(ns), on)
+    pub = client.declare_publisher(keys.points(ns), congestion_control=zenoh.CongestionControl.BLOCK)
+    try:
+        from helpers import wait_until
+
+        assert wait_until(lambda: pub.matching_status.matching, 10)
+        pts = synthetic_scans[0]
+        pub.put(encode(PointCloud(header=Header(stamp=1, frame_id="lidar", seq=3), fields=["x", "y", "z", "intensity"],
+                                  num_points=len(pts), data=np.ascontiguousarray(pts[:, :4], dtype="<f4").tobytes())))
+        assert wait_until(lambda: len(got) == 1, 30)
+    finally:
+        sub.undeclare()
+        client.close()
+        svc.close()
+    want = torch_det.detect(np.ascontiguousarray(pts[:, :4]))
+    msg = got[0]
+    assert msg.header.seq == 3 and len(msg.objects) == len(want) > 5
+    for o, b, lv in zip(msg.objects, want.boxes, want.log_variances):
+        assert o.kinematics.pose_with_covariance.pose.position.x == pytest.approx(float(b[0]), abs=TOL)
+        assert o.kinematics.pose_with_covariance.covariance[X_X] == pytest.approx(math.exp(float(lv[0])), rel=TOL)

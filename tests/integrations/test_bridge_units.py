@@ -1,0 +1,282 @@
+"""Pure parts of the bridges: the frame joiner, the Foxglove scene builders, the ground split of the sensor pose,
+and the Autoware twist convention. No network, no files."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from jitterguard.ros2.autoware import twist_from_object_frame, twist_to_object_frame, uuid_bytes
+from jitterguard.schemas.models import (
+    DetectedObjects,
+    GroundTruthObjects,
+    Header,
+    MotionState,
+    PointCloud,
+    Pose,
+    TrackedObjects,
+    Vector3,
+)
+from jitterguard.services.bridge.frames import ground_split
+from jitterguard.services.bridge.joiner import FrameJoiner, JoinedFrame
+from jitterguard.services.bridge.paths import next_free_path
+
+A, B, C = "a" * 32, "b" * 32, "c" * 32
+
+
+def hdr(seq: int, frame_id: str = "map") -> Header:
+    return Header(stamp=1_000 + seq, seq=seq, frame_id=frame_id)
+
+
+def objects(seq: int, ids=(A, B), stationary=()) -> TrackedObjects:
+    return TrackedObjects.model_validate({"header": hdr(seq).model_dump(), "objects": [
+        {"object_id": i, "kinematics": {"is_stationary": i in stationary,
+                                        "twist_with_covariance": {"twist": {"linear": {"x": 0.0 if i in stationary else 2.0}}}},
+         "shape": {"dimensions": {"x": 4.0, "y": 1.8, "z": 1.5}}} for i in ids]})
+
+
+def tracked(seq: int, observed=(A, B)) -> TrackedObjects:
+    return TrackedObjects(header=hdr(seq), observed_track_ids=list(observed))
+
+
+def motion(seq: int, tid: str, state: str = "static", z: float = 0.5) -> MotionState:
+    return MotionState(header=hdr(seq), track_id=tid, state=state, mode="z_test", z_x=z, z_y=z / 2, threshold=1.96,
+                       alpha=1.96, window_length=5)
+
+
+# ------------------------------------------------------------------------------------------------ joiner
+
+
+def test_a_frame_goes_out_once_all_its_motion_arrived_with_everything_of_its_seq() -> None:
+    j = FrameJoiner(motion_wait_s=1.0)
+    j.add_points(PointCloud(header=hdr(3, "lidar"), num_points=0, data=b""))
+    j.add_detections(DetectedObjects(header=hdr(3, "lidar")))
+    j.add_groundtruth(GroundTruthObjects(header=hdr(3)))
+    j.add_tracked(tracked(3))
+    j.add_objects(objects(3), now=0.0)  # the classifier puts objects before the frame's motion messages
+    j.add_motion(motion(3, A))
+    assert j.poll(now=0.1) == []  # B's decision has not arrived yet
+    j.add_motion(motion(3, B, "dynamic"))
+    (f,) = j.poll(now=0.1)
+    assert f.seq == 3 and f.points is not None and f.detections is not None and f.groundtruth is not None
+    assert set(f.motion) == {A, B} and f.sensor_frame == "lidar"
+    assert j.counters.get("motion_missing", 0) == 0
+
+
+def test_missing_motion_times_out_and_a_later_frame_overtakes_a_waiting_one() -> None:
+    j = FrameJoiner(motion_wait_s=0.25)
+    j.add_tracked(tracked(1))
+    j.add_objects(objects(1), now=0.0)
+    j.add_motion(motion(1, A))
+    assert j.poll(now=0.2) == []
+    (f1,) = j.poll(now=0.3)  # B's motion was shed: the frame goes with what it has
+    assert set(f1.motion) == {A} and j.counters["motion_missing"] == 1
+    j.add_tracked(tracked(2))
+    j.add_objects(objects(2), now=1.0)
+    j.add_objects(objects(3), now=1.05)
+    out = j.poll(now=1.06)  # frame 3's objects: frame 2 will get no more motion
+    assert [f.seq for f in out] == [2]
+    assert [f.seq for f in j.poll(now=2.0)] == [3]
+
+
+def test_a_track_without_a_decision_this_frame_keeps_its_latest_one() -> None:
+    j = FrameJoiner(motion_wait_s=0.0)
+    j.add_motion(motion(1, A, "dynamic", z=5.0))
+    j.add_objects(objects(1), now=0.0)
+    j.poll(now=0.0)
+    j.add_objects(objects(2), now=1.0)  # A not observed in frame 2
+    (f,) = j.poll(now=1.0)
+    assert A not in f.motion and f.last_motion[A].state == "dynamic" and f.last_motion[A].header.seq == 1
+    j.add_objects(objects(3, ids=(B,)), now=2.0)  # A is gone: forgotten
+    j.poll(now=2.0)
+    j.add_objects(objects(4, ids=(A,)), now=3.0)
+    (f4,) = j.poll(now=3.0)
+    assert f4.last_motion == {}
+
+
+def test_stragglers_are_dropped_and_an_upstream_restart_starts_over() -> None:
+    j = FrameJoiner(motion_wait_s=0.0, max_pending=4)
+    for s in range(10, 13):
+        j.add_objects(objects(s), now=0.0)
+    assert [f.seq for f in j.poll(now=0.0)] == [10, 11, 12]
+    j.add_motion(motion(11, A))  # a straggler of a frame already out
+    assert j.counters["late_messages"] == 1
+    j.add_objects(objects(0), now=1.0)  # the replay restarted at seq 0
+    assert [f.seq for f in j.poll(now=1.0)] == [0] and j.counters["seq_restarts"] == 1
+
+
+def test_inputs_of_frames_that_never_close_are_bounded() -> None:
+    j = FrameJoiner(max_pending=3)
+    for s in range(10):
+        j.add_points(PointCloud(header=hdr(s, "lidar"), num_points=0, data=b""))
+    assert j.counters["dropped_pending"] == 7
+    j.add_objects(objects(9), now=0.0)
+    (f,) = j.poll(now=1.0)
+    assert f.points is not None
+
+
+def test_bad_joiner_settings_are_refused() -> None:
+    with pytest.raises(ValueError):
+        FrameJoiner(motion_wait_s=-1)
+    with pytest.raises(ValueError):
+        FrameJoiner(max_pending=0)
+
+
+# ------------------------------------------------------------------------------------------------ frames
+
+
+@pytest.mark.parametrize("yaw,roll,pitch,z", [(0.0, 0.0, 0.0, 1.8), (2.9, 0.02, -0.03, 1.73), (-1.2, -0.1, 0.05, 0.4)])
+def test_ground_split_composes_back_to_the_sensor_pose(yaw, roll, pitch, z) -> None:
+    from scipy.spatial.transform import Rotation
+
+    r = Rotation.from_euler("ZYX", [yaw, pitch, roll])
+    x, y, zq, w = r.as_quat()
+    pose = Pose.model_validate({"position": {"x": 12.0, "y": -3.0, "z": z},
+                                "orientation": {"x": x, "y": y, "z": zq, "w": w}})
+    g = ground_split(pose)
+    back = Rotation.from_euler("z", g.yaw) * Rotation.from_quat(g.rest)
+    assert (back * r.inv()).magnitude() < 1e-12
+    assert (g.x, g.y, g.z) == (12.0, -3.0, z)
+    assert abs(Rotation.from_quat(g.rest).as_euler("ZYX")[0]) < 1e-12  # no yaw left below the ground frame
+
+
+# ------------------------------------------------------------------------------------------------ Autoware
+
+
+def test_autoware_twists_are_in_the_object_frame_and_round_trip() -> None:
+    yaw = math.radians(30)
+    lin = Vector3(x=math.cos(yaw) * 5.0, y=math.sin(yaw) * 5.0, z=0.1)  # 5 m/s along the heading, frame axes
+    cov = np.zeros(36)
+    cov[0], cov[7], cov[1], cov[6], cov[35] = 0.4, 0.1, 0.05, 0.05, 0.02
+    (vx, vy, vz), ocov = twist_to_object_frame(lin, cov, yaw)
+    assert (vx, vy, vz) == pytest.approx((5.0, 0.0, 0.1), abs=1e-12)  # Autoware: speed on linear.x
+    o = np.asarray(ocov).reshape(6, 6)
+    assert np.trace(o[:2, :2]) == pytest.approx(0.5) and o[5, 5] == 0.02 and np.allclose(o, o.T)
+    back, bcov = twist_from_object_frame(Vector3(x=vx, y=vy, z=vz), ocov, yaw)
+    assert (back["x"], back["y"]) == pytest.approx((lin.x, lin.y), abs=1e-12)
+    assert bcov == pytest.approx(list(cov), abs=1e-12)
+    zero, zcov = twist_to_object_frame(Vector3(), np.zeros(36), yaw)  # a static object stays exactly zero
+    assert zero == (0.0, 0.0, 0.0) and not any(zcov)
+
+
+def test_track_ids_become_the_uuid_bytes_they_spell() -> None:
+    tid = "0123456789abcdef0011223344556677"
+    assert bytes(uuid_bytes(tid)).hex() == tid and len(uuid_bytes(tid)) == 16
+
+
+def test_next_free_path_never_overwrites(tmp_path) -> None:
+    p = tmp_path / "run.mcap"
+    assert next_free_path(p) == p
+    p.write_text("x")
+    (tmp_path / "run.1.mcap").write_text("x")
+    assert next_free_path(p) == tmp_path / "run.2.mcap"
+
+
+# ------------------------------------------------------------------------------------------------ scene
+
+fm = pytest.importorskip("foxglove.messages")
+
+
+def test_ellipses_are_the_sigma_contours_of_the_covariance() -> None:
+    from jitterguard.services.foxglove.scene import ellipse_xy
+
+    cov = np.array([[0.5, 0.2], [0.2, 0.1]])
+    for sigma in (1.0, 2.0):
+        pts = ellipse_xy(cov[0, 0], cov[0, 1], cov[1, 1], sigma)
+        maha = np.einsum("ij,jk,ik->i", pts, np.linalg.inv(cov), pts)
+        assert maha == pytest.approx(sigma**2, rel=1e-9)  # every point on the σ-contour
+
+
+def test_tracks_scene_colours_by_state_and_gives_static_objects_no_arrow() -> None:
+    from jitterguard.services.foxglove.scene import STATE_COLORS, frame_messages, motion_statistics
+
+    f = JoinedFrame(seq=5, stamp_ns=1_005, objects=objects(5, ids=(A, B, C), stationary=(A,)),
+                    motion={A: motion(5, A, "static", 0.4), B: motion(5, B, "dynamic", 6.0)})
+    msgs = frame_messages(f)
+    assert set(msgs) == {"/jitterguard/tracks", "/jitterguard/motion"}  # no pose, points or detections this frame
+    upd = msgs["/jitterguard/tracks"]
+    schema = upd.get_schema()
+    from google.protobuf.json_format import MessageToDict
+
+    from .decoding import protobuf_class
+
+    decoded = MessageToDict(protobuf_class(schema.name, schema.data).FromString(upd.encode()))
+    ents = {e["id"]: e for e in decoded["entities"]}
+    assert len(ents) == 3
+    assert "arrows" not in ents[A] and len(ents[B]["arrows"]) == 1 and len(ents[C]["arrows"]) == 1
+    assert ents[A]["cubes"][0]["color"]["b"] == pytest.approx(STATE_COLORS["static"][2])
+    assert ents[B]["cubes"][0]["color"]["r"] == pytest.approx(STATE_COLORS["dynamic"][0])
+    assert "z=6.00" in ents[B]["texts"][0]["text"] and ents[C]["texts"][0]["text"].endswith("unknown")
+    stats = motion_statistics(f)
+    assert stats["counts"] == {"static": 1, "dynamic": 1, "undecided": 0, "unknown": 1}
+    assert stats["max_z"] == 6.0 and [r["value"] for r in stats["z_by_track"]] == [0.4, 6.0]
+
+
+def test_the_shipped_layout_is_the_generated_one_and_names_only_real_topics() -> None:
+    import json
+    import re
+    from pathlib import Path
+
+    from jitterguard.services.foxglove.layout import layout_json
+    from jitterguard.services.foxglove.scene import MOTION_SCHEMA, TOPICS
+
+    shipped = Path(__file__).resolve().parents[2] / "deploy" / "foxglove" / "jitterguard.json"
+    assert shipped.read_text() == layout_json(), "regenerate: python -m jitterguard.services.foxglove.layout"
+    doc = json.loads(layout_json())
+    text = json.dumps(doc)
+    panels = re.findall(r'"panelType": "(\w+)"', text)
+    assert sorted(panels) == ["Plot", "Table", "ThreeDee"]
+    for topic in set(re.findall(r'"(/jitterguard/[a-z_]+)', text)):
+        assert topic in TOPICS, topic
+    for field in re.findall(r'/jitterguard/motion\.(\w+)', text):
+        assert field in MOTION_SCHEMA["properties"], field
+
+
+@pytest.mark.integration
+def test_a_bridge_counts_malformed_payloads_per_key_and_keeps_joining() -> None:
+    """Garbage on any input key is rejected and counted per key (the runtime's rule); the next valid frame still
+    reaches the sink, joined with its motion."""
+    import zenoh
+
+    from jitterguard.runtime import build_config, free_tcp_port, loopback_options
+    from jitterguard.schemas import encode, keys
+    from jitterguard.services.bridge.service import BridgeService
+
+    from helpers import wait_until
+
+    class ListSink:
+        def __init__(self) -> None:
+            self.frames: list[JoinedFrame] = []
+            self.closed = False
+
+        def write(self, frame: JoinedFrame) -> None:
+            self.frames.append(frame)
+
+        def close(self) -> None:
+            self.closed = True
+
+    ns, port = "bridge_bad", free_tcp_port()
+    sink = ListSink()
+    svc = BridgeService(loopback_options(ns, port, listen_self=True), sink, motion_wait_s=0.2)
+    client = zenoh.open(build_config(loopback_options(ns, port)))
+    try:
+        pub = client.declare_publisher(keys.objects(ns))
+        assert wait_until(lambda: pub.matching_status.matching, 10)
+        client.put(keys.objects(ns), b"\x93not a model")
+        client.put(keys.motion(ns, A), encode(motion(1, A)).replace(b"z_test", b"zztest"))
+        client.put(keys.points(ns), b"")
+        assert wait_until(lambda: svc.counters.get("rejected") == 3, 10)
+        c = svc.counters.snapshot()
+        assert c["rejected.objects"] == 1 and c["rejected.motion/*"] == 1 and c["rejected.points"] == 1
+        client.put(keys.tracked(ns), encode(tracked(4, observed=(A,))))
+        client.put(keys.motion(ns, A), encode(motion(4, A, "dynamic", 3.0)))
+        client.put(keys.objects(ns), encode(objects(4, ids=(A,))))
+        assert wait_until(lambda: len(sink.frames) == 1, 10)
+        assert sink.frames[0].seq == 4 and sink.frames[0].motion[A].state == "dynamic"
+        assert svc.last_seq == 4
+    finally:
+        client.close()
+        svc.close()
+    assert sink.closed

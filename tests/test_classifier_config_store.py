@@ -1,0 +1,77 @@
+"""The classifier's config survives its restart: ConfigStore on disk (read back with plain ``json``, a second
+reader), and the service storing a write before applying it and restoring it at start."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from jitterguard.runtime import loopback_options
+from jitterguard.schemas import decode, encode, keys
+from jitterguard.schemas.models import ClassifierConfig, ConfigReply
+from jitterguard.services.classifier.config_store import FORMAT, ConfigStore
+from jitterguard.services.classifier.config_writes import ConfigWritePolicy
+from jitterguard.services.classifier.service import ClassifierService
+
+from helpers import wait_until
+
+FLAGS = ClassifierConfig(window_size=12)
+SET = ClassifierConfig(window_size=12, alpha_default=2.5, alpha_per_class={"car": 3.0}, mode="chi2")
+
+
+def test_save_then_load_and_the_file_as_plain_json(tmp_path: Path) -> None:
+    store = ConfigStore(tmp_path / "classifier-config.json")
+    assert store.load(FLAGS)[0] is None
+    store.save(FLAGS, SET)
+    doc = json.loads((tmp_path / "classifier-config.json").read_text())
+    assert doc["format"] == FORMAT and doc["config"]["alpha_default"] == 2.5 and doc["config"]["mode"] == "chi2"
+    assert doc["started_with"]["window_size"] == 12 and doc["config"]["alpha_per_class"] == {"car": 3.0}
+    assert store.load(FLAGS) == (SET, f"config restored from {store.path}")
+    assert [p.name for p in tmp_path.iterdir()] == ["classifier-config.json"]  # no temp file left behind
+
+
+def test_changed_flags_win_over_the_stored_config(tmp_path: Path) -> None:
+    store = ConfigStore(tmp_path / "c.json")
+    store.save(FLAGS, SET)
+    config, why = store.load(ClassifierConfig(window_size=14))
+    assert config is None and "flags changed" in why
+
+
+@pytest.mark.parametrize("text", ["{not json", "[]", json.dumps({"format": "other"}),
+                                  json.dumps({"format": FORMAT, "started_with": {}, "config": {"window_size": 1}})])
+def test_unreadable_or_invalid_files_are_ignored_with_a_reason(tmp_path: Path, text: str) -> None:
+    (tmp_path / "c.json").write_text(text)
+    config, why = ConfigStore(tmp_path / "c.json").load(ClassifierConfig())
+    assert config is None and "starting from the flags" in why
+
+
+def _write(session, payload: bytes):
+    return [r for r in session.get(keys.classifier_config("cs"), payload=payload, timeout=5.0)][0]
+
+
+@pytest.mark.integration
+def test_a_write_survives_the_classifiers_restart_and_an_unstorable_write_is_refused(tmp_path, zenoh_port,
+                                                                                   client_session) -> None:
+    store = ConfigStore(tmp_path / "run" / "classifier-config.json")
+    opts = loopback_options("cs", zenoh_port, listen_self=True)
+    with ClassifierService(opts, FLAGS, config_store=store, config_writes=ConfigWritePolicy.open()) as svc:
+        assert wait_until(lambda: any(True for _ in client_session.liveliness().get(keys.alive("cs", "classifier"),
+                                                                                      timeout=0.5)), 10)
+        reply = decode(ConfigReply, _write(client_session, encode(SET)).ok.payload.to_bytes())
+        assert reply.ok and svc.core.config == SET
+    assert json.loads(store.path.read_text())["config"]["alpha_default"] == 2.5
+    with ClassifierService(opts, FLAGS, config_store=store) as svc:  # restarted with the same flags
+        assert svc.core.config == SET
+    with ClassifierService(opts, ClassifierConfig(window_size=20), config_store=store) as svc:  # new flags
+        assert svc.core.config == ClassifierConfig(window_size=20)
+    blocked = ConfigStore(tmp_path / "run" / "classifier-config.json" / "inside-a-file.json")
+    with ClassifierService(opts, FLAGS, config_store=blocked, config_writes=ConfigWritePolicy.open()) as svc:
+        assert wait_until(lambda: any(True for _ in client_session.liveliness().get(keys.alive("cs", "classifier"),
+                                                                                      timeout=0.5)), 10)
+        err = _write(client_session, encode(SET)).err
+        assert err is not None
+        refused = decode(ConfigReply, err.payload.to_bytes())
+        assert not refused.ok and "not applied" in refused.error and "cannot store" in refused.error
+        assert svc.core.config == FLAGS and svc.counters.get("config_store_errors") == 1
