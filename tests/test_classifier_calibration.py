@@ -345,8 +345,11 @@ def test_file_mode_needs_scales_and_uses_them() -> None:
 def test_calibration_config_validates() -> None:
     with pytest.raises(ValueError, match="calibration_file"):
         ClassifierConfig(calibration="file")
-    with pytest.raises(ValueError, match="increasing"):
-        ClassifierConfig(calibration_range_bands_m=[40.0, 20.0])
+    # band edges are a set of distances: any order, repeats dropped (JSON Schema cannot say "increasing", so
+    # the HTTP API must accept what its schema admits)
+    assert ClassifierConfig(calibration_range_bands_m=[40.0, 20.0, 40.0]).calibration_range_bands_m == [20.0, 40.0]
+    with pytest.raises(ValueError):
+        ClassifierConfig(calibration_range_bands_m=[0.0])
     with pytest.raises(ValueError):
         ClassifierConfig(effective_n="sometimes")
 
