@@ -1,21 +1,31 @@
-"""The ``jitterguard`` command: one Typer app; each area registers its own sub-commands."""
+"""The ``jitterguard`` command: one Typer app; each area registers its own sub-commands.
+
+``app`` (imported by the tests and docs checks) has every area registered. A long-running service started by
+supervisord (``jitterguard tracker ...``) registers only its own area: seven services importing every area at
+once cost seconds of CPU before the first frame on a two-core machine.
+"""
 
 from __future__ import annotations
 
 import importlib
 import sys
+from typing import Any
 
 import typer
 
-app = typer.Typer(
-    name="jitterguard",
-    help="Tell real motion from perception jitter in LiDAR stacks.",
-    no_args_is_help=True,
-    pretty_exceptions_enable=False,
-    add_completion=False,
-)
-bench_app = typer.Typer(help="Benchmarks; each prints JSON.", no_args_is_help=True)
-app.add_typer(bench_app, name="bench")
+
+def _new_app() -> tuple[typer.Typer, typer.Typer]:
+    root = typer.Typer(
+        name="jitterguard",
+        help="Tell real motion from perception jitter in LiDAR stacks.",
+        no_args_is_help=True,
+        pretty_exceptions_enable=False,
+        add_completion=False,
+    )
+    bench = typer.Typer(help="Benchmarks; each prints JSON.", no_args_is_help=True)
+    root.add_typer(bench, name="bench")
+    return root, bench
+
 
 # Modules exposing ``register(app, bench_app)``; a missing optional area is skipped, not fatal.
 _AREAS = (
@@ -30,19 +40,71 @@ _AREAS = (
     "jitterguard.services.recorder.cli",
     "jitterguard.sim.cli",
     "jitterguard.stack.cli",
+    "jitterguard.stack.monitor",
     "jitterguard.stack.bench",
     "jitterguard.eval.cli",
     "jitterguard.eval.calibrate",
+    "jitterguard.eval.survival_cli",
 )
 
-for _mod in _AREAS:
-    try:
-        _m = importlib.import_module(_mod)
-    except ModuleNotFoundError as _exc:
-        if _exc.name and _mod.startswith(_exc.name):
-            continue  # that area is not part of this build
-        raise
-    _m.register(app, bench_app)
+SERVICE_AREAS = {
+    "router": "jitterguard.services.classifier.cli",
+    "classifier": "jitterguard.services.classifier.cli",
+    "feed-tracks": "jitterguard.services.classifier.cli",
+    "tracker": "jitterguard.services.tracker.cli",
+    "detector": "jitterguard.services.detector.cli",
+    "replay": "jitterguard.services.replay.cli",
+    "sidecar": "jitterguard.services.sidecar.cli",
+    "stack-monitor": "jitterguard.stack.monitor",
+}
+"""The programs ``jitterguard up`` runs, and the one area each needs (a test holds this table to the full app)."""
+
+
+def build_app(areas: tuple[str, ...] = _AREAS) -> tuple[typer.Typer, typer.Typer]:
+    """An app with ``areas`` registered (a missing optional area is skipped, not fatal)."""
+    root, bench = _new_app()
+    for mod in areas:
+        try:
+            m = importlib.import_module(mod)
+        except ModuleNotFoundError as exc:
+            if exc.name and mod.startswith(exc.name):
+                continue  # that area is not part of this build
+            raise
+        m.register(root, bench)
+    return root, bench
+
+
+_full: tuple[typer.Typer, typer.Typer] | None = None
+
+
+def __getattr__(name: str) -> Any:
+    """``app`` and ``bench_app``: the full command tree, built on first use."""
+    global _full
+    if name in ("app", "bench_app"):
+        if _full is None:
+            _full = build_app()
+        return _full[0] if name == "app" else _full[1]
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def _plain_flags(command: object) -> None:
+    """Blank the type column of on/off flags in ``--help`` (Typer prints ``<bool>`` after ``--detach``, as if it
+    took a value), for every command of the tree."""
+    for param in getattr(command, "params", ()):
+        if getattr(param, "is_flag", False) and getattr(param, "metavar", None) is None:
+            param.metavar = ""
+    make_help = getattr(command, "get_help_option", None)
+    if make_help is not None:  # --help itself is made per context
+
+        def help_option(ctx: object, _make: object = make_help) -> object:
+            opt = _make(ctx)  # type: ignore[operator]
+            if opt is not None and getattr(opt, "metavar", None) is None:
+                opt.metavar = ""
+            return opt
+
+        command.get_help_option = help_option  # type: ignore[attr-defined]
+    for sub in getattr(command, "commands", {}).values():
+        _plain_flags(sub)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -52,8 +114,13 @@ def main(argv: list[str] | None = None) -> None:
     except ImportError:  # pragma: no cover - depends on the installed typer
         from click import exceptions as click_exc
 
+    args = sys.argv[1:] if argv is None else list(argv)
+    area = SERVICE_AREAS.get(args[0]) if args else None
+    root = build_app((area,))[0] if area is not None else __getattr__("app")
+    command = typer.main.get_command(root)
+    _plain_flags(command)
     try:
-        rv = app(args=argv, standalone_mode=False)
+        rv = command.main(args=args, standalone_mode=False, prog_name="jitterguard")
     except getattr(click_exc, "NoArgsIsHelpError", ()) as exc:
         print(exc.ctx.get_help())
         sys.exit(0)

@@ -26,6 +26,15 @@ ListenOpt = Annotated[
     list[str] | None, typer.Option("--listen", help="Zenoh endpoint to listen on (repeatable).")
 ]
 LogLevelOpt = Annotated[str, typer.Option("--log-level", help="DEBUG, INFO, WARNING or ERROR.")]
+ProgressOpt = Annotated[
+    bool | None, typer.Option("--progress/--no-progress", help="Progress bar on stderr (default: when stderr is a terminal).")
+]
+
+
+def progress_on(flag: bool | None) -> bool:
+    """Whether to draw a progress bar: as asked, else only on a terminal (a redirected log gets no carriage
+    returns)."""
+    return sys.stderr.isatty() if flag is None else flag
 
 
 def fail(message: str) -> NoReturn:

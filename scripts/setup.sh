@@ -1,28 +1,56 @@
 #!/usr/bin/env bash
 # Install jitterguard and everything it needs into ./.venv (idempotent; safe to run again).
 # Used by scripts/run.sh and scripts/test.sh, the two set-up commands README.md names.
+#
+# Quiet unless something fails: each installer's output goes to a temporary log that is printed only when the
+# step fails (pip's expected notes, build-backend banners and the dependency-resolver complaint about
+# nuscenes-devkit's numpy pin are not failures). When pyproject.toml and this script are unchanged since the
+# last successful run, the install steps are skipped.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
+
+quiet() {  # run "$@" with its output kept aside; show it (and fail) only if the command fails
+  local log
+  log=$(mktemp)
+  if ! "$@" >"$log" 2>&1; then
+    echo "setup: failed: $*" >&2
+    cat "$log" >&2
+    rm -f "$log"
+    return 1
+  fi
+  rm -f "$log"
+}
+
 if [ ! -x .venv/bin/python ]; then
-  "$PY" -m venv .venv
+  quiet "$PY" -m venv .venv
 fi
 # shellcheck disable=SC1091
 source .venv/bin/activate
-python -m pip install -q --upgrade pip >/dev/null
+stamp=".venv/.jitterguard-setup-$(cat pyproject.toml scripts/setup.sh | sha256sum | cut -c1-16)"
+if [ -f "$stamp" ] && python -c "import importlib.util as u, sys; sys.exit(not (u.find_spec('jitterguard') and u.find_spec('torch')))" 2>/dev/null; then
+  exit 0
+fi
+quiet python -m pip install --upgrade pip
 # The CPU build of torch first (a bare `torch` requirement would pull a multi-GB CUDA build).
 if ! python -c "import torch" >/dev/null 2>&1; then
-  python -m pip install -q "torch==2.13.0" || python -m pip install -q --index-url https://download.pytorch.org/whl/cpu "torch>=2.2,<2.14"
+  quiet python -m pip install "torch==2.13.0" \
+    || quiet python -m pip install --index-url https://download.pytorch.org/whl/cpu "torch>=2.2,<2.14"
 fi
-python -m pip install -q -e ".[all]"
+quiet python -m pip install -e ".[all]"
 # nuscenes-devkit: its metadata pins numpy<2 (it runs fine on numpy 2), so install it without its pins and
-# add what it imports; used to cross-check nuScenes-format exports and detection AP.
+# add what it imports; used to cross-check nuScenes-format exports and detection AP. pip's resolver then
+# reports the numpy pin as a conflict; that is expected, so only a failed install is shown.
 if ! python -c "import nuscenes.nuscenes" >/dev/null 2>&1; then
-  python -m pip install -q --no-deps "nuscenes-devkit>=1.1" \
-    && python -m pip install -q cachetools descartes fire parameterized pycocotools pyquaternion scikit-learn shapely "opencv-python-headless>=4.10" \
+  { quiet python -m pip install --no-deps "nuscenes-devkit>=1.1" \
+      && quiet python -m pip install cachetools descartes fire parameterized pycocotools pyquaternion scikit-learn \
+        shapely "opencv-python-headless>=4.10"; } \
     || echo "setup: nuscenes-devkit not installed; its cross-check tests will skip" >&2
 fi
 # Headless Chromium renders the sidecar page in its test; the test skips where it cannot be installed.
 if [ "${JG_SKIP_SYSTEM_DEPS:-0}" != "1" ] && ! command -v chromium >/dev/null 2>&1 && [ "$(id -u)" = "0" ] && command -v apt-get >/dev/null 2>&1; then
-  (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null) || echo "setup: chromium not installed; its page test will skip" >&2
+  (quiet apt-get update -qq && DEBIAN_FRONTEND=noninteractive quiet apt-get install -y -qq chromium) \
+    || echo "setup: chromium not installed; its page test will skip" >&2
 fi
+rm -f .venv/.jitterguard-setup-*
+touch "$stamp"

@@ -50,3 +50,26 @@ def test_help_lists_the_commands():
     assert res.returncode == 0
     for cmd in ("classifier", "router", "up", "down", "status", "logs", "bench", "feed-tracks"):
         assert cmd in res.stdout
+
+
+def test_help_shows_no_value_type_after_plain_flags():
+    """`--detach` takes no value: the help must not print `<bool>` after it (nor after any other flag)."""
+    for cmd in (["up", "--help"], ["replay", "--help"], ["status", "--help"]):
+        res = subprocess.run([sys.executable, "-m", "jitterguard.cli", *cmd], capture_output=True, text=True,
+                             timeout=60, env={**__import__("os").environ, "COLUMNS": "200"})
+        assert res.returncode == 0 and "--" in res.stdout
+        assert "<bool>" not in res.stdout, res.stdout
+
+
+def test_each_service_command_is_registered_by_the_one_area_it_loads():
+    """`jitterguard tracker` under supervisord imports only the tracker's area: the table must name the area
+    that really registers the command, with the same options as in the full app."""
+    import typer
+
+    from jitterguard.cli import SERVICE_AREAS, app, build_app
+
+    full = typer.main.get_command(app).commands
+    for name, area in SERVICE_AREAS.items():
+        alone = typer.main.get_command(build_app((area,))[0]).commands
+        assert name in alone, (name, area)
+        assert [p.name for p in alone[name].params] == [p.name for p in full[name].params]

@@ -25,7 +25,10 @@ def jg(*args: str, timeout: float = 60) -> subprocess.CompletedProcess:
 def test_rendered_config_starts_router_first_and_restarts_everything(tmp_path):
     spec = StackSpec(ns="x", router_port=1234, input="tracks")
     progs = programs(spec)
-    assert progs[0].name == "router" and min(p.priority for p in progs) == progs[0].priority
+    prio = {p.name: p.priority for p in progs}
+    # the router before every service; the monitor (bookkeeping) first of all, so it is also stopped last
+    assert all(prio["router"] < v for k, v in prio.items() if k not in ("router", "monitor"))
+    assert prio["monitor"] < prio["router"]
     conf = render_config(spec, tmp_path, progs, nodaemon=True)
     for p in progs:
         section = conf.split(f"[program:{p.name}]")[1].split("[program:")[0]

@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
-from ..cli_common import fail
+from ..cli_common import fail, progress_on
 
 if TYPE_CHECKING:
     from ..schemas.models import ClassifierConfig, DetectedObjects
@@ -137,8 +137,7 @@ def calibrate_command(
             fail("--weights and --threads apply to scan sources; this one holds detections")
         errors: list[str] = []
         msgs: Iterable[Any] = recording_detections(src, detector, start, limit, errors)
-        show = sys.stderr.isatty() if progress is None else progress
-        if show:
+        if progress_on(progress):
             from tqdm import tqdm  # type: ignore[import-untyped]
 
             total = src.info.num_frames

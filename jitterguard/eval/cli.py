@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
-from ..cli_common import fail
+from ..cli_common import fail, progress_on
 
 if TYPE_CHECKING:
     from ..services.detector.inference import Detector
@@ -222,7 +222,7 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
     def bar(it: Any, s: int) -> Any:
         desc = f"eval seed {s}" + (" (detector)" if detector is not None else "")
         return tqdm(it, total=total, desc=desc, unit="frame", file=sys.stderr, leave=False,
-                    disable=not sys.stderr.isatty())  # a bar on a terminal only, never into a log
+                    disable=not progress_on(None))  # a bar on a terminal only: no carriage returns in a log
 
     def one(fr: Any, s: int) -> Records:
         carry = calibration_for_run()

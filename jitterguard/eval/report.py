@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from .metrics import alpha_sweep, ghost_rows, pr_curve, scored_rows
+from .metrics import alpha_sweep, average_precision, ghost_rows, pr_curve, scored_rows
 from .pipeline import Records
 
 PLOT_GROUPS = ("vehicle", "pedestrian", "bicycle")
@@ -33,12 +33,23 @@ def _plt():  # type: ignore[no-untyped-def]
     return plt
 
 
+def _panels(rec: Records, height: float, *, with_ghosts: bool = False) -> tuple[Any, Any, list[str]]:
+    """A figure with one panel per group that has scored rows (or, ``with_ghosts``, ghost rows: a scene without
+    cyclists gets no empty bicycle panel); one panel saying so when no group has any."""
+    plt = _plt()
+    groups = [g for g in PLOT_GROUPS if scored_rows(rec, g).any() or (with_ghosts and ghost_rows(rec, g).any())]
+    fig, axes = plt.subplots(1, max(1, len(groups)), figsize=(5 * max(1, len(groups)), height), squeeze=False)
+    if not groups:
+        axes[0][0].text(0.5, 0.5, "no scored rows", ha="center", va="center", transform=axes[0][0].transAxes)
+        axes[0][0].set_axis_off()
+    return plt, fig, list(zip(axes[0], groups))
+
+
 def plot_speed_vs_z(rec: Records, path: Path) -> None:
     """Per group: tracker speed against z (log), static and dynamic GT and ghost tracks in three colours, both
     cut-offs drawn (the median over the group's classes where they differ)."""
-    plt = _plt()
-    fig, axes = plt.subplots(1, 3, figsize=(15, 4.5))
-    for ax, g in zip(axes, PLOT_GROUPS):
+    plt, fig, panels = _panels(rec, 4.5, with_ghosts=True)
+    for ax, g in panels:
         m = scored_rows(rec, g)
         gh = ghost_rows(rec, g)
         for mask, colour, name in ((m & ~rec.gt_dynamic, "tab:blue", "static (GT)"),
@@ -64,19 +75,25 @@ def plot_speed_vs_z(rec: Records, path: Path) -> None:
 
 
 def plot_pr(rec: Records, path: Path) -> None:
-    """Precision–recall of "dynamic" per group, z and speed as scores."""
-    plt = _plt()
-    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
-    for ax, g in zip(axes, PLOT_GROUPS):
+    """Precision–recall of "dynamic" per group, z and speed as scores.
+
+    The z-test is drawn thick and solid, the speed rule thin and dashed on top of it, each with its AP in the
+    legend: where the curves coincide (both perfect on an easy scene) the dashes show over the solid line."""
+    plt, fig, panels = _panels(rec, 4.2)
+    styles = (("z-test", rec.z, dict(lw=3.0, ls="-", c="tab:blue", zorder=2)),
+              ("speed", rec.speed, dict(lw=1.4, ls=(0, (4, 3)), c="tab:orange", zorder=3)))
+    for ax, g in panels:
         m = scored_rows(rec, g)
         dyn = rec.gt_dynamic[m]
-        if dyn.any():
-            for score, name in ((rec.z[m], "z-test"), (rec.speed[m], "speed")):
-                p, r, _ = pr_curve(score, dyn)
-                ax.plot(np.r_[0.0, r], np.r_[1.0, p], label=name)
-            ax.legend(fontsize=8)
+        if dyn.any() and not dyn.all():
+            for name, score, style in styles:
+                p, r, _ = pr_curve(score[m], dyn)
+                ax.plot(np.r_[0.0, r], np.r_[1.0, p], label=f"{name} (AP {average_precision(score[m], dyn):.3f})",
+                        **style)
+            ax.legend(fontsize=8, loc="lower left")
         else:
-            ax.text(0.5, 0.5, "no dynamic ground truth", ha="center", va="center", transform=ax.transAxes)
+            what = "no dynamic ground truth" if not dyn.any() else "no static ground truth"
+            ax.text(0.5, 0.5, what, ha="center", va="center", transform=ax.transAxes)
         ax.set_xlim(0, 1.01)
         ax.set_ylim(0, 1.01)
         ax.set_xlabel("recall (dynamic)")
@@ -91,13 +108,11 @@ ALPHAS = np.round(np.linspace(0.25, 8.0, 32), 3)
 
 
 def plot_alpha_sweep(rec: Records, path: Path) -> dict[str, Any]:
-    """False-/missed-dynamic rate against alpha per group; returns the sweep for metrics.json."""
-    plt = _plt()
-    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
-    sweeps = {}
-    for ax, g in zip(axes, PLOT_GROUPS):
-        sw = alpha_sweep(rec, g, ALPHAS)
-        sweeps[g] = sw
+    """False-/missed-dynamic rate against alpha per group; returns the sweep for metrics.json (every group)."""
+    sweeps = {g: alpha_sweep(rec, g, ALPHAS) for g in PLOT_GROUPS}
+    plt, fig, panels = _panels(rec, 4.2)
+    for ax, g in panels:
+        sw = sweeps[g]
         ax.plot(sw["alpha"], sw["false_dynamic"], label="false dynamic (static GT)")
         ax.plot(sw["alpha"], sw["missed_dynamic"], label="missed dynamic (moving GT)")
         ax.axvline(1.96, ls="--", c="grey", lw=1)

@@ -333,6 +333,10 @@ class Service:
         for t in self._threads:
             if t is not threading.current_thread():
                 t.join(timeout=2.0)
+        try:  # the final counts, for whoever sums the run up (the stack's monitor)
+            self._hb_pub.put(encode(self.heartbeat()))
+        except Exception:
+            pass
         for entity in reversed(self._declared):
             try:
                 entity.undeclare()

@@ -13,7 +13,7 @@ from typing import Annotated, Any
 
 import typer
 
-from ..cli_common import fail
+from ..cli_common import ProgressOpt, fail, progress_on
 
 sim_app = typer.Typer(help="Synthetic world: scenarios with ground truth, ray-cast LiDAR, nuScenes export.",
                       no_args_is_help=True)
@@ -69,7 +69,7 @@ def generate_command(
     rate: Annotated[float, typer.Option("--rate", help="Frames per second.")] = 10.0,
     out: Annotated[str | None, typer.Option("--out", help="Write the ground truth as JSON lines (one frame each).")] = None,
     lidar: Annotated[str | None, typer.Option("--lidar", help="Also ray-cast every frame (hdl32e, vlp16, os1-64) to fill point counts and visibility.")] = None,
-    progress: Annotated[bool | None, typer.Option("--progress/--no-progress", help="Progress bar (default: when stderr is a terminal).")] = None,
+    progress: ProgressOpt = None,
 ) -> None:
     """Generate a scenario; print a JSON summary, optionally write its ground truth."""
     _check(scenario, duration, rate, lidar)
@@ -88,7 +88,7 @@ def generate_command(
         except OSError as exc:
             fail(f"--out: cannot write {out}: {exc.strerror}")
     try:
-        frames = _bar(iter(sc), sc.num_frames, scenario, sys.stderr.isatty() if progress is None else progress)
+        frames = _bar(iter(sc), sc.num_frames, scenario, progress_on(progress))
         first = last = None
         for frame in frames:
             if spec is not None:
@@ -121,7 +121,7 @@ def export_command(
     rate: Annotated[float, typer.Option("--rate", help="Keyframes per second (nuScenes: 2).")] = 2.0,
     lidar: LidarOpt = "hdl32e",
     min_points: Annotated[int, typer.Option("--min-points", help="Annotate only objects with at least this many LiDAR points.")] = 0,
-    progress: Annotated[bool | None, typer.Option("--progress/--no-progress", help="Progress bar (default: when stderr is a terminal).")] = None,
+    progress: ProgressOpt = None,
 ) -> None:
     """Export a scenario as a nuScenes-format dataroot (loads with nuscenes-devkit, version v1.0-mini)."""
     _check(scenario, duration, rate, lidar)
@@ -137,7 +137,7 @@ def export_command(
     from .world import make_scenario
 
     sc = make_scenario(scenario, seed, duration_s=duration, rate_hz=rate)
-    show = sys.stderr.isatty() if progress is None else progress
+    show = progress_on(progress)
     try:
         sizes = export_scenario(sc, str(root), SENSORS[lidar](), seed, min_points=min_points,
                                 progress=lambda it: _bar(it, sc.num_frames, f"export {scenario}", show))

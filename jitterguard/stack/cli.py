@@ -1,55 +1,193 @@
-"""``jitterguard up / down / status / logs``: the stack under supervisord, from one command."""
+"""``jitterguard up / down / status / summary / logs``: the stack under supervisord, from one command.
+
+``up`` checks everything before it writes or starts anything: its arguments (:mod:`.validate`), the source
+(opened with its reader, exit 2 with the reader's one-line error), the run directory (one stack per name) and
+the ports (one stack per router and sidecar port). In the foreground it then watches the stack: the first
+classified objects, a program that keeps crashing (the stack is stopped and that program's last log lines
+shown), and at the end it prints the run's summary (:mod:`.summary`).
+
+Exit codes: 0 done; 1 the stack failed (a crash loop, no objects, a stop that did not finish); 2 bad input or a
+refused start; ``status`` 3 when the stack or any of its services is not up (see :func:`status_cmd`).
+"""
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
 import sys
+import threading
 import time
+from dataclasses import replace
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
 from ..cli_common import NsOpt, fail
+from ..runtime import ZenohOptions, build_config, open_session
+from ..schemas import keys
+from ..services.replay import cli as R  # the replay's own option declarations, shared with `up`
+from ..services.replay.options import absolute_source
+from ..services.replay.sources import SourceError, probe_source
+from ..services.sidecar.core import bind_refusal
+from . import summary
+from .control import StackUnavailable, Supervisor, orphans, stop_orphans, tail
 from .status import collect, load_spec, render_table, save_spec
-from .supervisor import StackSpec, programs, render_config
+from .supervisor import DEFAULT_SCENARIO_S, DEFAULT_SOURCE, StackSpec, input_mode, programs, render_config
+from .validate import ArgumentError, check_name, check_run_dir, check_text, port_in_use
 
-RunDirOpt = Annotated[str | None, typer.Option("--run-dir", envvar="JG_RUN_DIR", help="Where config, socket and logs live.")]
+RunDirOpt = Annotated[str | None, typer.Option("--run-dir", envvar="JG_RUN_DIR", help="Where config, socket, logs and summary live (default: a folder named after the stack).")]
+NameOpt = Annotated[str | None, typer.Option("--name", envvar="JG_STACK", help="The stack's name (default: its --ns); each named stack has its own run directory.")]
+
+FIRST_OBJECTS_WARN_S = 60.0
+DETACH_WAIT_S = 30.0
+STOP_WAIT_S = 90.0
+CRASH_TAIL_LINES = 12
 
 
-def default_run_dir(ns: str) -> Path:
+def base_dir() -> Path:
+    """Where run directories live: ``$XDG_RUNTIME_DIR/jitterguard`` or ``~/.cache/jitterguard``."""
     base = os.environ.get("XDG_RUNTIME_DIR") or str(Path.home() / ".cache")
-    return Path(base) / "jitterguard" / ns
+    return Path(base) / "jitterguard"
 
 
-def _ctl(run_dir: Path, *args: str, check: bool = False) -> subprocess.CompletedProcess:
-    conf = run_dir / "supervisord.conf"
-    if not conf.is_file():
-        fail(f"no stack found in {run_dir} (start one with `jitterguard up`)")
-    return subprocess.run([sys.executable, "-m", "supervisor.supervisorctl", "-c", str(conf), *args],
-                          capture_output=True, text=True, check=check)
+def default_run_dir(name: str) -> Path:
+    return base_dir() / name
 
 
-def _wait_for_objects(ns: str, endpoint: str, timeout: float) -> float | None:
-    """Seconds until the first classified ``objects`` arrives, or None."""
-    from ..runtime import ZenohOptions, build_config, open_session
-    from ..schemas import keys
+def resolve(run_dir: str | None, name: str | None, ns: str) -> tuple[Path, str]:
+    """(run directory, label for messages) from ``--run-dir`` / ``--name`` / ``--ns``; bad ones exit 2."""
+    try:
+        stack = check_name(name) if name is not None else check_name(ns)
+        rd = check_run_dir(Path(run_dir)) if run_dir else default_run_dir(stack)
+    except ArgumentError as exc:
+        fail(str(exc))
+    return rd, (f"{stack!r}" if not run_dir else f"in {rd}")
 
-    got: list[float] = []
-    t0 = time.monotonic()
-    cfg = build_config(ZenohOptions(ns=ns, connect=(endpoint,)))
-    try:  # a client of the stack's router, which supervisord may still be starting
-        session = open_session(cfg, timeout_s=timeout)
-    except Exception:
+
+def _port_owner(port: int, run_dir: Path) -> str | None:
+    """The name of another running stack (under :func:`base_dir`) that uses ``port``, if any."""
+    try:
+        others = [p for p in base_dir().iterdir() if p.is_dir() and p.resolve() != run_dir.resolve()]
+    except OSError:
         return None
-    with session:
-        sub = session.declare_subscriber(keys.objects(ns), lambda s: got.append(time.monotonic()))
-        while not got and time.monotonic() - t0 < timeout:
-            time.sleep(0.05)
-        sub.undeclare()
-    return (got[0] - t0) if got else None
+    for other in others:
+        spec = load_spec(other)
+        if spec and port in (spec.router_port, spec.sidecar_port, spec.foxglove_port) and Supervisor(other).running():
+            return spec.name
+    return None
+
+
+class _ObjectsWatch:
+    """Notes when the first classified ``objects`` arrives (seconds since ``t0``), from a Zenoh session opened in
+    the background: the router is only now being started, and a client-mode open fails until it listens."""
+
+    def __init__(self, ns: str, endpoint: str, t0: float) -> None:
+        self.ns, self.endpoint, self.t0 = ns, endpoint, t0
+        self.first: float | None = None
+        self._stop = threading.Event()
+        self._session: Any = None
+        self._thread = threading.Thread(target=self._open, name="objects-watch", daemon=True)
+        self._thread.start()
+
+    def _open(self) -> None:
+        cfg = build_config(ZenohOptions(ns=self.ns, connect=(self.endpoint,)))
+        try:
+            session = open_session(cfg, stop=self._stop)  # retried until the router listens
+        except Exception:  # stopped before the router came up
+            return
+        session.declare_subscriber(keys.objects(self.ns), self._on)
+        self._session = session
+
+    def _on(self, _sample: Any) -> None:
+        if self.first is None:
+            self.first = time.monotonic() - self.t0
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5.0)
+        if self._session is not None:
+            try:
+                self._session.close()
+            except Exception:
+                pass
+
+
+DEFERRED_START_S = 10.0
+"""A foreground ``up`` starts the deferred programs at the first objects, or after this long without them (the
+sidecar is how an operator looks at a stack that does not come up)."""
+
+
+def _start_deferred(sup: Supervisor, progs: list[Any]) -> None:
+    for p in progs:
+        if p.deferred:
+            try:
+                sup.call("startProcess", p.name, False)
+            except StackUnavailable:
+                pass
+
+
+def _addresses(spec: StackSpec, progs: list[Any]) -> list[str]:
+    """Where to look at the stack: the sidecar's page, the Foxglove WebSocket (one line each)."""
+    names = {p.name for p in progs}
+    out = []
+    if "sidecar" in names:
+        out.append(f"sidecar: http://{spec.sidecar_host}:{spec.sidecar_port}/")
+    if spec.foxglove:
+        out.append(f"foxglove: ws://127.0.0.1:{spec.foxglove_port}  (layout: deploy/foxglove/jitterguard.json)")
+    return out
+
+
+def _crash_report(rd: Path, name: str, events: dict[str, summary.ProgramEvents]) -> str:
+    ev = events.get(name, summary.ProgramEvents())
+    why = "supervisord gave up on it" if ev.fatal else f"{len(ev.crashes)} unexpected exits"
+    last = ev.crashes[-1][1] if ev.crashes else "no exit status"
+    lines = [f"jitterguard: error: {name} keeps failing ({why}; last: {last}); the stack is stopped.",
+             f"last lines of {rd / 'logs' / (name + '.log')}:"]
+    lines += [f"  {ln}" for ln in tail(rd / "logs" / f"{name}.log", CRASH_TAIL_LINES)] or ["  (empty)"]
+    return "\n".join(lines)
+
+
+def _print_summary(rd: Path, *, as_json: bool = False) -> bool:
+    data = summary.load(rd)
+    if data is None:
+        return False
+    if as_json:
+        print(json.dumps({k: v for k, v in data.items() if k != "ledger"}, indent=2, sort_keys=True))
+    else:
+        print(summary.render(data), flush=True)
+    return True
+
+
+def _check_source(source: str | None, input_level: str, ropts: "R.ReplayOptions"
+                  ) -> tuple[str | None, str, "R.ReplayOptions", list[str]]:
+    """Resolve and probe SOURCE: (absolute source, input mode, replay options, warnings); bad ones exit 2.
+
+    ``--input auto`` takes a source's own level where it has one (a bag of DetectedObjects), else points with
+    the detector (detections without it)."""
+    if input_level == "tracks":
+        if source is not None or ropts.argv():
+            fail("--input tracks feeds the built-in track scenario: SOURCE and replay options do not apply")
+        return None, "tracks", ropts, []
+    src = absolute_source(source) if source is not None else None
+    ropts = ropts.absolute()
+    try:
+        src_opts = ropts.check()
+        info = probe_source(src or DEFAULT_SOURCE, src_opts)
+        if info.kind == "detections":  # a bag of DetectedObjects: its own level
+            if input_level == "points":
+                fail(f"{source}: holds detections ({info.name}); --input points needs scans")
+            mode = "detections"
+        else:
+            mode = input_mode(StackSpec(input=input_level))
+        if mode == "detections" and info.kind == "points":
+            ropts = replace(ropts, level="detections")
+            info = probe_source(src or DEFAULT_SOURCE, ropts.check())
+    except (ValueError, SourceError) as exc:
+        fail(" ".join(str(exc).split()))
+    return src, mode, ropts, list(info.warnings)
 
 
 def _recording_path(value: str | None, flag: str) -> str | None:
@@ -67,114 +205,324 @@ def _recording_path(value: str | None, flag: str) -> str | None:
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:
     @app.command("up")
     def up_cmd(
-        source: Annotated[str | None, typer.Argument(help="Replay source (default: the built-in synthetic scenario).")] = None,
+        source: Annotated[str | None, typer.Argument(help="Replay source, as `jitterguard replay` takes it (default: the built-in synthetic scenario, 60 s of synthetic:mixed).")] = None,
+        name: NameOpt = None,
         ns: NsOpt = "default",
-        detach: Annotated[bool, typer.Option("-d", "--detach", help="Start in the background and return.")] = False,
-        input_level: Annotated[str, typer.Option("--input", help="auto, points, detections or tracks.")] = "auto",
+        detach: Annotated[bool, typer.Option("-d", "--detach", help="Start in the background and return once every program runs.")] = False,
+        input_level: Annotated[str, typer.Option("--input", help="auto, points, detections or tracks. 'detections' runs sources with ground-truth boxes (synthetic, nuScenes) through the detection-level noise model.")] = "auto",
         router_port: Annotated[int, typer.Option("--router-port", min=1, max=65535)] = 7447,
         host: Annotated[str, typer.Option("--host", help="Sidecar bind address.")] = "127.0.0.1",
         port: Annotated[int, typer.Option("--port", min=1, max=65535, help="Sidecar port.")] = 8000,
         run_dir: RunDirOpt = None,
         no_sidecar: Annotated[bool, typer.Option("--no-sidecar", help="Leave the HTTP sidecar out.")] = False,
-        duration: Annotated[float | None, typer.Option("--duration", min=1.0, help="Stop after this many seconds.")] = None,
+        duration: Annotated[float | None, typer.Option("--duration", min=1.0, help="Stop after this many seconds (foreground).")] = None,
         foxglove: Annotated[bool, typer.Option("--foxglove", help="Serve the pipeline to Foxglove (ws://127.0.0.1:PORT).")] = False,
         foxglove_port: Annotated[int, typer.Option("--foxglove-port", min=1, max=65535)] = 8765,
         record_mcap: Annotated[str | None, typer.Option("--record-mcap", help="Record the Foxglove channels to this MCAP file.")] = None,
         record_ros2: Annotated[str | None, typer.Option("--record-ros2", help="Record a ROS 2 bag for Autoware into this new folder.")] = None,
+        rate: R.RateOpt = "1",
+        start: R.StartOpt = 0,
+        limit: R.LimitOpt = None,
+        on_error: R.OnErrorOpt = "skip",
+        seed: R.SeedOpt = 0,
+        scenario_duration: Annotated[float | None, typer.Option("--scenario-duration", help="Synthetic sources: scenario length in seconds (the replay's --duration; default 60 for the built-in scenario, 20 otherwise).")] = None,
+        lidar: R.LidarOpt = "hdl32e",
+        hz: R.HzOpt = 10.0,
+        scene: R.SceneOpt = None,
+        nuscenes_version: R.NuScenesVersionOpt = None,
+        sweeps: R.SweepsOpt = False,
+        poses: R.PosesOpt = None,
+        calib: R.CalibOpt = None,
+        times: R.TimesOpt = None,
+        bin_fields: R.BinFieldsOpt = None,
+        topic: R.TopicOpt = None,
+        pose_topic: R.PoseTopicOpt = None,
     ) -> None:
-        """Start router, replay, (detector,) tracker, classifier and sidecar under supervisord."""
+        """Start router, replay, (detector,) tracker, classifier, sidecar and monitor under supervisord."""
+        t0 = time.monotonic()
         if input_level not in ("auto", "points", "detections", "tracks"):
             fail(f"--input: expected auto, points, detections or tracks, got {input_level!r}")
-        rd = Path(run_dir) if run_dir else default_run_dir(ns)
-        if (rd / "supervisor.sock").exists() and _ctl(rd, "pid").returncode == 0:
-            fail(f"a stack is already running from {rd} (stop it with `jitterguard down --ns {ns}`)")
-        (rd / "logs").mkdir(parents=True, exist_ok=True)
+        ropts = R.ReplayOptions(rate=rate, start=start, limit=limit, on_error=on_error, seed=seed, lidar=lidar,
+                                hz=hz, scene=scene, nuscenes_version=nuscenes_version, sweeps=sweeps, poses=poses,
+                                calib=calib, times=times, bin_fields=bin_fields, topic=topic, pose_topic=pose_topic)
+        if scenario_duration is not None:
+            ropts = replace(ropts, duration=scenario_duration)
+        try:  # nothing a user typed may change supervisord.conf's structure
+            for what, value in (("SOURCE", source), ("--host", host), ("--ns", ns), ("--name", name)):
+                if value is not None:
+                    check_text(value, what)
+            for flag, value in ropts.changed():
+                check_text(str(value), flag)
+        except ArgumentError as exc:
+            fail(str(exc))
+        try:
+            ZenohOptions(ns=ns)
+        except ValueError as exc:
+            fail(f"--ns: {exc}")
+        rd, label = resolve(run_dir, name, ns)
+        stack = name or ns
+        if source is None and scenario_duration is None and input_level != "tracks":
+            ropts = replace(ropts, duration=DEFAULT_SCENARIO_S)
+        src, mode, ropts, warnings = _check_source(source, input_level, ropts)
+        try:  # the absolute paths add the current folder's name
+            for flag, value in ropts.changed() + ([("SOURCE", src)] if src else []):
+                check_text(str(value), flag)
+        except ArgumentError as exc:
+            fail(str(exc))
+        for w in warnings:
+            print(f"jitterguard: warning: {w}", file=sys.stderr)
+
+        sup = Supervisor(rd, label)
+        left = orphans(rd) if not sup.running() else {}
+        if left:
+            fail(f"the stack {label} died but its programs still run ({', '.join(sorted(left))}); `jitterguard down"
+                 f"{' --name ' + stack if not run_dir else ' --run-dir ' + str(rd)}` stops them")
+        if sup.running():
+            fail(f"the stack {label} is already running (run dir {rd}); `jitterguard down"
+                 f"{' --name ' + stack if not run_dir else ' --run-dir ' + str(rd)}` stops it")
         mcap_path, bag_path = _recording_path(record_mcap, "--record-mcap"), _recording_path(record_ros2, "--record-ros2")
-        spec = StackSpec(ns=ns, router_port=router_port, sidecar_host=host, sidecar_port=port, source=source,
-                         input=input_level, sidecar=not no_sidecar, foxglove=foxglove, foxglove_port=foxglove_port,
-                         record_mcap=mcap_path, record_ros2=bag_path)
+        try:
+            for what, value in (("--record-mcap", mcap_path), ("--record-ros2", bag_path)):
+                if value is not None:
+                    check_text(value, what)
+        except ArgumentError as exc:
+            fail(str(exc))
+        spec = StackSpec(ns=ns, name=stack, router_port=router_port, sidecar_host=host, sidecar_port=port,
+                         source=src, input=mode, sidecar=not no_sidecar, replay_args=tuple(ropts.argv()),
+                         run_dir=str(rd), foxglove=foxglove, foxglove_port=foxglove_port, record_mcap=mcap_path,
+                         record_ros2=bag_path)
         progs = programs(spec)
+        wanted = [(router_port, "127.0.0.1", "--router-port")]
+        if any(p.name == "sidecar" for p in progs):
+            refusal = bind_refusal(host, os.environ.get("JG_API_TOKEN"))  # the sidecar's own check, done first
+            if refusal:
+                fail(f"--host: {refusal}")
+            wanted.append((port, host, "--port"))
+        if foxglove:
+            wanted.append((foxglove_port, "127.0.0.1", "--foxglove-port"))
+        for p, h, flag in wanted:
+            if port_in_use(h, p):
+                owner = _port_owner(p, rd)
+                who = f"the stack {owner!r}" if owner else "another program"
+                fail(f"port {p} on {h} is in use by {who}; give this stack another {flag}"
+                     + (f" (or `jitterguard down --name {owner}`)" if owner else ""))
+        try:
+            conf_text = render_config(spec, rd, progs, nodaemon=not detach)
+        except ValueError as exc:
+            fail(str(exc))
+        (rd / "logs").mkdir(parents=True, exist_ok=True)
+        for stale in (summary.SUMMARY_FILE, "supervisord.pid"):
+            (rd / stale).unlink(missing_ok=True)
         conf = rd / "supervisord.conf"
-        conf.write_text(render_config(spec, rd, progs, nodaemon=not detach))
+        conf.write_text(conf_text)
         save_spec(rd, spec)
         cmd = [sys.executable, "-m", "supervisor.supervisord", "-c", str(conf)]
         names = ", ".join(p.name for p in progs)
+        wall0 = time.time()
         if detach:
-            subprocess.run(cmd, check=True)
-            print(f"jitterguard: started {names} (run dir {rd})")
-            if any(p.name == "sidecar" for p in progs):
-                print(f"sidecar: http://{host}:{port}/")
-            return
+            res = subprocess.run(cmd, capture_output=True, text=True)
+            if res.returncode != 0:
+                print(f"jitterguard: error: supervisord did not start: {(res.stderr or res.stdout).strip()}",
+                      file=sys.stderr)
+                raise SystemExit(1)
+            raise SystemExit(_wait_started(sup, rd, label, names, _addresses(spec, progs), progs, wall0))
+
         proc = subprocess.Popen(cmd)
-        stop = {"flag": False}
+        stop = threading.Event()
+        signal.signal(signal.SIGINT, lambda *_: stop.set())
+        signal.signal(signal.SIGTERM, lambda *_: stop.set())
+        print(f"jitterguard: starting {names} (stack {label}, logs in {rd / 'logs'})", flush=True)
+        watch = _ObjectsWatch(ns, spec.endpoint, t0)
+        code = _foreground(proc, sup, rd, stop, watch, duration, t0, wall0, _addresses(spec, progs), progs)
+        watch.close()
+        raise SystemExit(code)
 
-        def _stop(*_: object) -> None:
-            stop["flag"] = True
+    def _wait_started(sup: Supervisor, rd: Path, label: str, names: str, addresses: list[str],
+                      progs: list[Any], wall0: float) -> int:
+        """``up -d``: wait until every program runs (0), or one keeps crashing (stop the stack, 1)."""
+        deadline = time.monotonic() + DETACH_WAIT_S
+        states: dict[str, str] = {}
+        deferred = {p.name for p in progs if p.deferred}
+        started_deferred = False
+        while time.monotonic() < deadline:
+            time.sleep(0.3)
+            events = summary.supervisor_events(rd / "logs" / "supervisord.log", since=wall0 - 1)
+            bad = summary.crash_loop(events, time.time())
+            if bad is not None:
+                print(_crash_report(rd, bad, events), file=sys.stderr)
+                _shutdown(sup)
+                return 1
+            try:
+                states = {p.name: p.state for p in sup.processes()}
+            except StackUnavailable:
+                continue
+            if not started_deferred and states and all(s == "RUNNING" for n, s in states.items() if n not in deferred):
+                _start_deferred(sup, progs)
+                started_deferred = True
+                continue
+            if started_deferred and states and all(s == "RUNNING" for s in states.values()):
+                print(f"jitterguard: started {names} (stack {label}, run dir {rd})")
+                for line in addresses:
+                    print(line)
+                return 0
+        waiting = ", ".join(f"{n} {s}" for n, s in sorted(states.items()) if s != "RUNNING") or "supervisord"
+        print(f"jitterguard: error: not every program runs after {DETACH_WAIT_S:.0f} s ({waiting}); the stack is"
+              " left running: see `jitterguard status` and `jitterguard logs NAME`", file=sys.stderr)
+        return 1
 
-        signal.signal(signal.SIGINT, _stop)
-        signal.signal(signal.SIGTERM, _stop)
-        print(f"jitterguard: starting {names} (logs in {rd / 'logs'})", flush=True)
-        first = _wait_for_objects(ns, spec.endpoint, timeout=60.0)
-        if first is None:
-            print("jitterguard: no classified objects within 60 s; see `jitterguard logs classifier`", file=sys.stderr)
-        else:
-            print(f"jitterguard: first classified objects after {first:.1f} s", flush=True)
-        if any(p.name == "sidecar" for p in progs):
-            print(f"sidecar: http://{host}:{port}/  (Ctrl-C stops the stack)", flush=True)
-        if foxglove:
-            print(f"foxglove: ws://127.0.0.1:{foxglove_port}  (layout: deploy/foxglove/jitterguard.json)", flush=True)
-        t_end = time.monotonic() + duration if duration else None
-        while not stop["flag"] and proc.poll() is None and (t_end is None or time.monotonic() < t_end):
-            time.sleep(0.2)
+    def _shutdown(sup: Supervisor) -> None:
+        try:
+            sup.shutdown()
+        except StackUnavailable:
+            return
+        sup.wait_gone(STOP_WAIT_S)
+
+    def _foreground(proc: subprocess.Popen, sup: Supervisor, rd: Path, stop: threading.Event, watch: _ObjectsWatch,
+                    duration: float | None, t0: float, wall0: float, addresses: list[str], progs: list[Any]) -> int:
+        """Watch a foreground stack until Ctrl-C, ``--duration`` or a crash loop; stop it; print the summary."""
+        announced = warned = deferred_started = False
+        crashed: str | None = None
+        events: dict[str, summary.ProgramEvents] = {}
+        next_check = 0.0
+        while not stop.is_set() and proc.poll() is None:
+            now = time.monotonic()
+            if duration is not None and now - t0 >= duration:
+                break
+            if not deferred_started and (watch.first is not None or now - t0 > DEFERRED_START_S):
+                deferred_started = True
+                _start_deferred(sup, progs)
+            if watch.first is not None and not announced:
+                announced = True
+                print(f"jitterguard: first classified objects after {watch.first:.1f} s", flush=True)
+                for line in addresses:
+                    print(line, flush=True)
+                print("jitterguard: Ctrl-C stops the stack", flush=True)
+            if watch.first is None and not warned and now - t0 > FIRST_OBJECTS_WARN_S:
+                warned = True
+                try:
+                    down = [f"{p.name} {p.state}" for p in sup.processes() if p.state != "RUNNING"]
+                except StackUnavailable:
+                    down = []
+                print(f"jitterguard: no classified objects within {FIRST_OBJECTS_WARN_S:.0f} s"
+                      + (f" ({', '.join(down)})" if down else "; every program runs")
+                      + "; see `jitterguard status` and `jitterguard logs NAME`", file=sys.stderr, flush=True)
+            if now >= next_check:
+                next_check = now + 0.5
+                events = summary.supervisor_events(rd / "logs" / "supervisord.log", since=wall0 - 1)
+                crashed = summary.crash_loop(events, time.time())
+                if crashed is not None:
+                    break
+            stop.wait(0.1)
         if proc.poll() is None:
+            print("jitterguard: stopping the stack", flush=True)
             proc.send_signal(signal.SIGTERM)
-            proc.wait(timeout=60)
-        print("jitterguard: stack stopped")
-        if first is None:
-            raise SystemExit(1)
+            try:
+                proc.wait(timeout=STOP_WAIT_S)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                print(f"jitterguard: error: supervisord did not stop within {STOP_WAIT_S:.0f} s; killed",
+                      file=sys.stderr)
+        if crashed is not None:
+            print(_crash_report(rd, crashed, events), file=sys.stderr)
+        if not _print_summary(rd):
+            print(f"jitterguard: no summary was written (see {rd / 'logs' / 'monitor.log'})", file=sys.stderr)
+        if crashed is not None or watch.first is None:
+            return 1
+        return 0
 
     @app.command("down")
-    def down_cmd(ns: NsOpt = "default", run_dir: RunDirOpt = None) -> None:
-        """Stop a stack started with `jitterguard up -d`."""
-        rd = Path(run_dir) if run_dir else default_run_dir(ns)
-        res = _ctl(rd, "shutdown")
-        print(res.stdout.strip() or res.stderr.strip())
+    def down_cmd(name: NameOpt = None, ns: NsOpt = "default", run_dir: RunDirOpt = None) -> None:
+        """Stop a stack started with `jitterguard up -d` (waits until it has stopped), then print its summary."""
+        rd, label = resolve(run_dir, name, ns)
+        sup = Supervisor(rd, label)
+        try:
+            sup.shutdown()
+        except StackUnavailable as exc:
+            if exc.state == "stale":  # supervisord died; its programs may still run without it
+                stopped = stop_orphans(rd)
+                print(f"jitterguard: {exc}" + (f"; stopped its programs left running: {', '.join(stopped)}"
+                                               if stopped else ""))
+                return
+            if exc.state != "shutting_down":
+                print(f"jitterguard: {exc}")
+                return
+        print(f"jitterguard: stopping the stack {label}", flush=True)
+        if not sup.wait_gone(STOP_WAIT_S):
+            print(f"jitterguard: error: the stack {label} is still stopping after {STOP_WAIT_S:.0f} s",
+                  file=sys.stderr)
+            raise SystemExit(1)
+        print(f"jitterguard: the stack {label} stopped")
+        _print_summary(rd)
 
     @app.command("status")
     def status_cmd(
+        name: NameOpt = None,
         ns: NsOpt = "default",
         run_dir: RunDirOpt = None,
         as_json: Annotated[bool, typer.Option("--json", help="Machine-readable output.")] = False,
         listen: Annotated[float, typer.Option("--listen-s", min=0.1, help="Seconds to listen for heartbeats.")] = 1.5,
     ) -> None:
-        """Per service: supervisor state, pid, uptime, liveliness on Zenoh and last frame seq."""
-        rd = Path(run_dir) if run_dir else default_run_dir(ns)
-        res = _ctl(rd, "status")
-        if res.returncode not in (0, 3):  # 3: some program is not RUNNING
-            print(res.stdout.rstrip() or res.stderr.rstrip(), file=sys.stderr)
-            raise SystemExit(1)
-        spec = load_spec(rd)
-        rows = collect(res.stdout, spec, listen_s=listen)
-        if as_json:
-            import json
+        """Per service: supervisor state, pid, uptime, liveliness on Zenoh, last frame seq (and health).
 
-            print(json.dumps({"ns": spec.ns if spec else ns, "endpoint": spec.endpoint if spec else None,
-                              "run_dir": str(rd), "services": [r.as_dict() for r in rows]}, indent=2))
+        Exit 0 when every program is RUNNING, on the bus and not reporting itself unhealthy; 3 otherwise, and
+        when the stack is not running (starting, shutting down, stopped, none); 2 bad input.
+        """
+        rd, label = resolve(run_dir, name, ns)
+        sup = Supervisor(rd, label)
+        spec = load_spec(rd)
+        try:
+            procs = sup.processes()
+        except StackUnavailable as exc:
+            if as_json:
+                print(json.dumps({"stack": name or ns, "run_dir": str(rd), "state": exc.state, "message": str(exc),
+                                  "services": []}, indent=2))
+            else:
+                print(f"jitterguard: {exc}")
+            raise SystemExit(3) from None
+        rows = collect(procs, spec, listen_s=listen)
+        healthy = bool(rows) and all(r.up for r in rows)
+        if as_json:
+            print(json.dumps({"stack": spec.name if spec else name or ns, "ns": spec.ns if spec else ns,
+                              "endpoint": spec.endpoint if spec else None, "run_dir": str(rd),
+                              "state": "up" if healthy else "degraded",
+                              "services": [r.as_dict() for r in rows]}, indent=2))
         else:
             render_table(rows, spec, rd)
-        if res.returncode == 3:
+        if not healthy:
             raise SystemExit(3)
+
+    @app.command("summary")
+    def summary_cmd(
+        name: NameOpt = None,
+        ns: NsOpt = "default",
+        run_dir: RunDirOpt = None,
+        as_json: Annotated[bool, typer.Option("--json", help="Machine-readable output.")] = False,
+    ) -> None:
+        """The run so far (or the last run): frames, tracks born/ended, static/dynamic, rejections, drops, restarts."""
+        rd, label = resolve(run_dir, name, ns)
+        if not _print_summary(rd, as_json=as_json):
+            running = Supervisor(rd, label).running()
+            print(f"jitterguard: no summary for the stack {label} "
+                  + ("yet (its monitor writes one every second)" if running else f"(nothing in {rd})"),
+                  file=sys.stderr)
+            raise SystemExit(1)
 
     @app.command("logs")
     def logs_cmd(
-        service: Annotated[str, typer.Argument(help="router, replay, detector, tracker, classifier or sidecar.")],
+        service: Annotated[str, typer.Argument(help="router, replay, detector, tracker, classifier, sidecar, monitor or supervisord.")],
+        name: NameOpt = None,
         ns: NsOpt = "default",
         run_dir: RunDirOpt = None,
         lines: Annotated[int, typer.Option("-n", "--lines", min=1)] = 50,
     ) -> None:
         """Show the last lines of one service's log."""
-        rd = Path(run_dir) if run_dir else default_run_dir(ns)
+        rd, _label = resolve(run_dir, name, ns)
+        try:
+            check_name(service)
+        except ArgumentError:
+            fail(f"no log for {service!r} in {rd / 'logs'}")
         log = rd / "logs" / f"{service}.log"
         if not log.is_file():
-            fail(f"no log for {service!r} in {rd / 'logs'}")
-        print("\n".join(log.read_text(errors="replace").splitlines()[-lines:]))
+            have = sorted(p.stem for p in (rd / "logs").glob("*.log")) if (rd / "logs").is_dir() else []
+            fail(f"no log for {service!r} in {rd / 'logs'}" + (f" (have: {', '.join(have)})" if have else ""))
+        print("\n".join(tail(log, lines)))

@@ -2,26 +2,26 @@
 
 supervisord knows the process (state, pid, uptime); Zenoh knows whether the service is actually on the bus
 (liveliness token on ``alive/{service}``) and whether frames are flowing (``last_seq`` of the heartbeat on
-``heartbeat/{service}``). Both views come from a run directory that ``jitterguard up`` wrote, including the
-``stack.json`` that records the namespace and router endpoint.
+``heartbeat/{service}``, and any health verdict the heartbeat carries). Both views come from a run directory
+that ``jitterguard up`` wrote, including the ``stack.json`` that records the namespace and router endpoint.
+
+A service is *up* when supervisord says RUNNING, its token is visible through the router, and its heartbeat
+does not report it unhealthy; ``jitterguard status`` exits 3 unless every service is up.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
-import re
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from .control import ProcessInfo
 from .supervisor import StackSpec
 
 SPEC_FILE = "stack.json"
-_LINE = re.compile(r"^(?P<name>\S+)\s+(?P<state>[A-Z]+)\s*(?P<rest>.*)$")
-_UPTIME = re.compile(r"uptime (?:(?P<d>\d+) days?, )?(?P<h>\d+):(?P<m>\d+):(?P<s>\d+)")
-_PID = re.compile(r"pid (\d+)")
 
 
 def save_spec(run_dir: Path, spec: StackSpec) -> Path:
@@ -31,12 +31,20 @@ def save_spec(run_dir: Path, spec: StackSpec) -> Path:
 
 
 def load_spec(run_dir: Path) -> StackSpec | None:
+    """The spec ``up`` wrote into ``run_dir`` (None if there is none or it cannot be read)."""
     path = run_dir / SPEC_FILE
-    if not path.is_file():
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError):
         return None
-    data = json.loads(path.read_text())
     known = {f.name for f in dataclasses.fields(StackSpec)}
-    return StackSpec(**{k: v for k, v in data.items() if k in known})
+    values = {k: v for k, v in data.items() if k in known}
+    if isinstance(values.get("replay_args"), list):
+        values["replay_args"] = tuple(values["replay_args"])
+    try:
+        return StackSpec(**values)
+    except TypeError:
+        return None
 
 
 @dataclass
@@ -57,23 +65,15 @@ class ServiceStatus:
     def as_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
 
+    @property
+    def up(self) -> bool:
+        """RUNNING, on the bus, and not reporting itself unhealthy."""
+        return self.state == "RUNNING" and self.alive is not False and self.health in (None, "ok")
 
-def parse_supervisorctl(text: str) -> list[ServiceStatus]:
-    """Parse ``supervisorctl status`` lines: ``name  RUNNING   pid 123, uptime 0:01:02``."""
-    out = []
-    for line in text.splitlines():
-        m = _LINE.match(line.strip())
-        if not m:
-            continue
-        rest = m.group("rest")
-        st = ServiceStatus(name=m.group("name"), state=m.group("state"), detail=rest.strip())
-        if (p := _PID.search(rest)) is not None:
-            st.pid = int(p.group(1))
-        if (u := _UPTIME.search(rest)) is not None:
-            st.uptime_s = float(int(u.group("d") or 0) * 86400 + int(u.group("h")) * 3600
-                                + int(u.group("m")) * 60 + int(u.group("s")))
-        out.append(st)
-    return out
+
+def rows_from_processes(procs: list[ProcessInfo]) -> list[ServiceStatus]:
+    return [ServiceStatus(name=p.name, state=p.state, pid=p.pid, uptime_s=p.uptime_s, detail=p.description)
+            for p in procs]
 
 
 def probe_zenoh(ns: str, endpoint: str, listen_s: float = 1.5) -> tuple[set[str], dict[str, Any]]:
@@ -114,8 +114,8 @@ def probe_zenoh(ns: str, endpoint: str, listen_s: float = 1.5) -> tuple[set[str]
     return alive, beats
 
 
-def collect(sup_text: str, spec: StackSpec | None, listen_s: float = 1.5) -> list[ServiceStatus]:
-    rows = parse_supervisorctl(sup_text)
+def collect(procs: list[ProcessInfo], spec: StackSpec | None, listen_s: float = 1.5) -> list[ServiceStatus]:
+    rows = rows_from_processes(procs)
     if spec is None:
         return rows
     alive, beats = probe_zenoh(spec.ns, spec.endpoint, listen_s)
@@ -146,7 +146,8 @@ def render_table(rows: list[ServiceStatus], spec: StackSpec | None, run_dir: Pat
     from rich.console import Console
     from rich.table import Table
 
-    title = f"jitterguard stack {spec.ns!r} via {spec.endpoint}" if spec else f"jitterguard stack in {run_dir}"
+    title = (f"jitterguard stack {spec.name!r} (ns {spec.ns}) via {spec.endpoint}" if spec
+             else f"jitterguard stack in {run_dir}")
     console = Console()
     # A terminal gets a boxed table; a pipe gets plain aligned columns, one service per line starting with its
     # name (as `supervisorctl status` prints), so `grep`/`awk` keep working.

@@ -1,8 +1,11 @@
 """The stack under supervisord: which programs run, and the config file that says so.
 
 Pure functions build the program list and render ``supervisord.conf``; :mod:`jitterguard.stack.cli` writes it
-into a run directory and drives ``supervisord`` / ``supervisorctl``. Every program is this same Python's
+into a run directory and drives ``supervisord`` (:mod:`.control`). Every program is this same Python's
 ``-m jitterguard.cli`` so the stack runs from whatever environment ``jitterguard up`` was started in.
+
+Every value that reaches the file was checked by :mod:`.validate` (no control characters, no comment starts)
+and is written with ``%`` doubled, so supervisord reads back exactly the argument the user gave.
 """
 
 from __future__ import annotations
@@ -14,15 +17,23 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from .validate import check_text, supervisor_escape
+
 
 @dataclass(frozen=True)
 class Program:
-    """One supervised process. Lower ``priority`` starts first (the router is 10)."""
+    """One supervised process. Lower ``priority`` starts first (the router is 10).
+
+    A ``deferred`` program is not started with the others: ``jitterguard up`` starts it once the pipeline runs
+    (first objects, or every other program RUNNING). Programs off the path to the first objects (the sidecar,
+    the monitor) would otherwise spend the seconds of CPU that the pipeline needs to come up on a small machine.
+    """
 
     name: str
     args: tuple[str, ...]
     priority: int = 50
     startsecs: int = 1
+    deferred: bool = False
 
 
 @dataclass(frozen=True)
@@ -30,11 +41,14 @@ class StackSpec:
     """What ``jitterguard up`` runs; defaults give the embedded demo on one host."""
 
     ns: str = "default"
+    name: str = "default"  # the stack's name: its run directory, and what down/status/summary/logs --name pick
     router_port: int = 7447
     sidecar_host: str = "127.0.0.1"
     sidecar_port: int = 8000
-    source: str | None = None  # replay SOURCE; None = the built-in synthetic scenario
+    source: str | None = None  # replay SOURCE (absolute path or synthetic:NAME); None = the default scenario
     input: str = "auto"  # auto | points | detections | tracks
+    replay_args: tuple[str, ...] = ()  # replay options (ReplayOptions.argv), paths absolute
+    run_dir: str = ""  # absolute; where config, socket, logs and summary.json live
     sidecar: bool = True
     extra_env: dict[str, str] = field(default_factory=dict)
     foxglove: bool = False  # the Foxglove WebSocket server (loopback, foxglove_port)
@@ -55,8 +69,30 @@ def has_area(module: str) -> bool:
         return False
 
 
+DEFAULT_SOURCE = "synthetic:mixed"
+DEFAULT_SCENARIO_S = 60.0
+"""The default scenario's length: the loop boundary (a restart, see ``replay --loop``) comes once a minute, not
+every 20 s. Longer costs start-up time: the replay simulates the whole scenario before its first frame (about
+0.04 s per scenario second on one loaded core), and the time to the first objects should stay near 5 s."""
+
+
 def _cmd(*args: str) -> tuple[str, ...]:
     return (sys.executable, "-m", "jitterguard.cli", *args)
+
+
+def input_mode(spec: StackSpec, source_kind: str | None = None) -> str:
+    """The input level the stack runs at: ``spec.input``, or for ``auto`` the source's own level if it has one
+    (a bag of DetectedObjects), else points when the detector is present, else detections, else tracks."""
+    if spec.input != "auto":
+        return spec.input
+    if source_kind == "detections":
+        return "detections"
+    have_tracker = has_area("jitterguard.services.tracker.service")
+    have_replay = all(has_area(m) for m in ("jitterguard.services.replay.cli", "jitterguard.sim.world",
+                                             "jitterguard.sim.detection_model"))
+    if has_area("jitterguard.services.detector.service"):
+        return "points"
+    return "detections" if (have_tracker and have_replay) else "tracks"
 
 
 def programs(spec: StackSpec) -> list[Program]:
@@ -69,29 +105,37 @@ def programs(spec: StackSpec) -> list[Program]:
                                                              ("--open-config-writes",))), priority=20),
     ]
     have_tracker = has_area("jitterguard.services.tracker.service")
-    have_replay = all(has_area(m) for m in ("jitterguard.services.replay.cli", "jitterguard.sim.world",
-                                             "jitterguard.sim.detection_model"))
     have_detector = has_area("jitterguard.services.detector.service")
-    mode = spec.input
-    if mode == "auto":
-        mode = "points" if have_detector else ("detections" if (have_tracker and have_replay) else "tracks")
+    mode = input_mode(spec)
     if mode in ("points", "detections") and have_tracker:
         progs.append(Program("tracker", _cmd("tracker", *common), priority=30))
     if mode == "points" and have_detector:
         progs.append(Program("detector", _cmd("detector", *common), priority=35))
     if spec.sidecar and has_area("jitterguard.services.sidecar.cli"):
         progs.append(Program("sidecar", _cmd("sidecar", *common, "--host", spec.sidecar_host,
-                                             "--port", str(spec.sidecar_port)), priority=40))
+                                             "--port", str(spec.sidecar_port)), priority=40, deferred=True))
     progs += bridge_programs(spec, common)
     if mode == "tracks":
         progs.append(Program("replay", _cmd("feed-tracks", *common, "--loop"), priority=60, startsecs=2))
     else:
-        source = spec.source or "synthetic:mixed"
-        flags = ("--level", "detections") if mode == "detections" else ()
+        source = spec.source or DEFAULT_SOURCE
+        # replay_args come from `up`, which probed the source and says its level (a bag's topic decides its own);
+        # the built-in scenario gets its defaults here
+        args = list(spec.replay_args)
+        if spec.source is None and "--duration" not in args:
+            args += ["--duration", f"{DEFAULT_SCENARIO_S:g}"]
+        if spec.source is None and mode == "detections" and "--level" not in args:
+            args += ["--level", "detections"]
         # the stack's replay stands in for a live sensor: wall-clock stamps, so that when supervisord restarts
-        # it the tracker sees a restarted source going on in time, not a recording rewound (see stream_order)
-        progs.append(Program("replay", _cmd("replay", source, *common, "--loop", "--stamps", "wall", *flags),
+        # it the tracker sees a restarted source going on in time, not a recording rewound (see stream_order);
+        # each loop pass is such a restart too
+        progs.append(Program("replay", _cmd("replay", source, *common, "--loop", "--stamps", "wall", *args),
                              priority=60, startsecs=2))
+    # the run's bookkeeping: sums every service's heartbeat counters across restarts into summary.json; it stops
+    # last (supervisord stops in reverse priority), so it hears the final heartbeats; started once the pipeline
+    # runs (a process's counters are cumulative, so its first heartbeat heard carries everything before it)
+    progs.append(Program("monitor", _cmd("stack-monitor", *common, "--run-dir", spec.run_dir),
+                         priority=5, deferred=True))
     return progs
 
 
@@ -113,40 +157,50 @@ def bridge_programs(spec: StackSpec, common: tuple[str, ...]) -> list[Program]:
 
 
 def render_config(spec: StackSpec, run_dir: Path, progs: list[Program], *, nodaemon: bool) -> str:
-    """supervisord.conf for ``progs``: autorestart, start retries, process-group stops, rotated logs."""
+    """supervisord.conf for ``progs``: autorestart, start retries, process-group stops, rotated logs.
+
+    Raises ``ValueError`` if a value could change the file's structure (:func:`.validate.check_text`; ``up``
+    checks its arguments earlier, with friendlier messages); every ``%`` is doubled for supervisord.
+    """
     run_dir = run_dir.resolve()
     logs = run_dir / "logs"
+
+    def v(value: object, what: str) -> str:
+        return supervisor_escape(check_text(str(value), what))
+
     # the classifier keeps config writes in the run directory, so a restart of it (or of the stack) keeps them
-    env = ",".join(f'{k}="{v}"' for k, v in {"PYTHONUNBUFFERED": "1",
-                                              "JG_CONFIG_STORE": str(run_dir / "classifier-config.json"),
-                                              **spec.extra_env}.items())
+    env = ",".join(f'{k}="{v(val, "environment")}"' for k, val in {
+        "PYTHONUNBUFFERED": "1", "JG_CONFIG_STORE": str(run_dir / "classifier-config.json"),
+        **spec.extra_env}.items())
     lines = [
         "; generated by `jitterguard up`; see deploy/supervisord.conf for a hand-editable system config",
         "[unix_http_server]",
-        f"file={run_dir / 'supervisor.sock'}",
+        f"file={v(run_dir / 'supervisor.sock', 'run dir')}",
+        "chmod=0700",
         "",
         "[supervisord]",
-        f"logfile={logs / 'supervisord.log'}",
+        f"logfile={v(logs / 'supervisord.log', 'run dir')}",
         "logfile_maxbytes=10MB",
         "logfile_backups=3",
-        f"pidfile={run_dir / 'supervisord.pid'}",
+        f"pidfile={v(run_dir / 'supervisord.pid', 'run dir')}",
         f"nodaemon={'true' if nodaemon else 'false'}",
-        f"directory={run_dir}",
+        "silent=true",
+        f"directory={v(run_dir, 'run dir')}",
         f"environment={env}",
         "",
         "[rpcinterface:supervisor]",
         "supervisor.rpcinterface_factory = supervisor.rpcinterface:make_main_rpcinterface",
         "",
         "[supervisorctl]",
-        f"serverurl=unix://{run_dir / 'supervisor.sock'}",
+        f"serverurl=unix://{v(run_dir / 'supervisor.sock', 'run dir')}",
         "",
     ]
     for p in progs:
         lines += [
-            f"[program:{p.name}]",
-            f"command={shlex.join(p.args)}",
+            f"[program:{v(p.name, 'program name')}]",
+            f"command={v(shlex.join(p.args), p.name + ' command')}",
             f"priority={p.priority}",
-            "autostart=true",
+            f"autostart={'false' if p.deferred else 'true'}",
             "autorestart=true",
             f"startsecs={p.startsecs}",
             "startretries=10",
@@ -155,7 +209,7 @@ def render_config(spec: StackSpec, run_dir: Path, progs: list[Program], *, nodae
             "stopasgroup=true",
             "killasgroup=true",
             "redirect_stderr=true",
-            f"stdout_logfile={logs / (p.name + '.log')}",
+            f"stdout_logfile={v(logs / (p.name + '.log'), 'run dir')}",
             "stdout_logfile_maxbytes=10MB",
             "stdout_logfile_backups=3",
             "",

@@ -139,3 +139,20 @@ def test_stop_event_ends_a_looping_replay() -> None:
 def test_plan_rejects_bad_values(kwargs: dict, match: str) -> None:
     with pytest.raises(ValueError, match=match):
         ReplayPlan(**kwargs)
+
+
+def test_a_wall_stamped_loop_restarts_seq_every_pass_while_time_goes_on() -> None:
+    """The loop boundary is a restarted source (seq from 0, stamps forward), not a jump inside one stream."""
+    sink = Sink()
+    run_replay(memory(3), ReplayPlan(rate=None, loop=True, passes=3, stamps="wall"), sink, clock=FakeClock(),
+               wall_ns=lambda: 1_700_000_000 * 10**9)
+    assert [s for _, s, _ in sink.out] == [0, 1, 2] * 3
+    stamps = [t for _, _, t in sink.out]
+    assert all(b > a for a, b in zip(stamps, stamps[1:]))
+
+
+def test_a_wall_stamped_loop_of_one_frame_keeps_counting() -> None:
+    sink = Sink()
+    run_replay(memory(1), ReplayPlan(rate=None, loop=True, passes=4, stamps="wall"), sink, clock=FakeClock(),
+               wall_ns=lambda: 1_700_000_000 * 10**9)
+    assert [s for _, s, _ in sink.out] == [0, 1, 2, 3]

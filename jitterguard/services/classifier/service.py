@@ -256,6 +256,7 @@ class ClassifierService(Service):
         self._record_latency((time.perf_counter() - out.received_at) * 1e3)
         self.counters.inc("published")
         self.counters.inc("frames_processed")
+        self._count_states(out.decisions.state)
         self.last_seq = out.seq
         if out.decided is not None:
             if behind or self._closes or self.pipeline.pending:  # the next frame is already here
@@ -271,6 +272,14 @@ class ClassifierService(Service):
         with self._latest_lock:
             header = {"stamp": out.header.stamp, "frame_id": out.header.frame_id, "seq": out.header.seq}
             self._latest = _Latest(header, out.objects, out.decisions, labels, stamps, seqs, out.config)
+
+    def _count_states(self, state: np.ndarray) -> None:
+        """Object-frames per decision (``objects.static`` …, running) and the last frame's (``now.static`` …):
+        what the run summary reports."""
+        per = np.bincount(state.astype(np.intp), minlength=len(STATE_NAMES)) if state.size else np.zeros(3, int)
+        for i, name in enumerate(STATE_NAMES):
+            self.counters.inc(f"objects.{name}", int(per[i]))
+            self.counters.set(f"now.{name}", int(per[i]))
 
     def _record_latency(self, ms: float) -> None:
         self.latencies_ms.append(ms)

@@ -8,7 +8,8 @@ from typing import Annotated
 
 import typer
 
-from ...cli_common import ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ZenohConfigOpt, fail, zenoh_options
+from ...cli_common import (ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ProgressOpt, ZenohConfigOpt, fail, progress_on,
+                           zenoh_options)
 from .config import PRESETS
 
 WeightsOpt = Annotated[
@@ -148,7 +149,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         ] = None,
         scenario: Annotated[str, typer.Option("--scenario", help="Synthetic scenario the scans come from.")] = "mixed",
         seed: Annotated[int, typer.Option("--seed")] = 0,
-        progress: Annotated[bool, typer.Option("--progress/--no-progress", help="Progress bar on stderr.")] = True,
+        progress: ProgressOpt = None,
         backends: Annotated[
             str | None,
             typer.Option("--backends", help="torch or torch,onnxruntime (timed side by side in this process, scan"
@@ -156,6 +157,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         ] = None,
     ) -> None:
         """Time the detector end to end per HDL-32E scan (voxelisation, network, decode, NMS)."""
+        progress = progress_on(progress)
         from .bench import SCENARIOS, available_backends, run
 
         chosen = available_backends() if backends is None else tuple(dict.fromkeys(

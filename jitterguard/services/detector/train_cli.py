@@ -16,7 +16,7 @@ from typing import Annotated, Any
 
 import typer
 
-from ...cli_common import fail
+from ...cli_common import ProgressOpt, fail, progress_on
 from .config import PRESETS
 
 log = logging.getLogger(__name__)
@@ -136,9 +136,10 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         fit_recalibration: Annotated[bool, typer.Option("--fit-recalibration/--no-fit-recalibration",
                                                         help="Fit per-axis variance scales on the validation split"
                                                         " and store them in weights.pt.")] = False,
-        progress: Annotated[bool, typer.Option("--progress/--no-progress")] = True,
+        progress: ProgressOpt = None,
     ) -> None:
         """Train the detector on synthetic scans, or fine-tune it on a nuScenes dataroot (``--nuscenes``)."""
+        progress = progress_on(progress)
         if preset not in PRESETS:
             fail(f"--preset: expected one of {', '.join(PRESETS)}, got {preset!r}")
         if init is not None and not os.path.isfile(init):
@@ -234,9 +235,10 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                                                   help="Apply the weights' fitted variance scales.")] = True,
         threads: Annotated[int | None, typer.Option("--threads", min=1, max=1024)] = None,
         name: Annotated[str, typer.Option("--name", help="File stem of the outputs.")] = "holdout",
-        progress: Annotated[bool, typer.Option("--progress/--no-progress")] = True,
+        progress: ProgressOpt = None,
     ) -> None:
         """Score weights on a hold-out set: nuScenes-style AP, positional ECE; JSON + PNGs."""
+        progress = progress_on(progress)
         if preset not in PRESETS:
             fail(f"--preset: expected one of {', '.join(PRESETS)}, got {preset!r}")
         if weights is not None and not os.path.isfile(weights):

@@ -17,10 +17,11 @@ from typing import Annotated, Any
 
 import typer
 
-from ...cli_common import ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ZenohConfigOpt, fail, zenoh_options
+from ...cli_common import (ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ProgressOpt, ZenohConfigOpt, fail, progress_on,
+                           zenoh_options)
 from ...runtime import setup_logging
 from .frames import Frame, FrameError, SourceError
-from .pacing import parse_rate
+from .options import ReplayOptions
 from .runner import ReplayPlan
 
 log = logging.getLogger("jitterguard.replay")
@@ -35,13 +36,24 @@ Examples:\n
 """
 
 
-def _path(value: str | None, flag: str) -> Path | None:
-    if value is None:
-        return None
-    p = Path(value)
-    if not p.is_file():
-        fail(f"{flag}: file not found: {value}")
-    return p
+# The options that say what to replay, shared with `jitterguard up` (which passes them to its replay program).
+SourceArg = Annotated[str, typer.Argument(help="synthetic:SCENARIO, a nuScenes dataroot, a bag (.mcap/.db3/folder), a folder of .bin or .pcd scans, or one such file.")]
+RateOpt = Annotated[str, typer.Option("--rate", help="Factor on the recorded rate (1 = real time, 2 = twice as fast), or 'max'.")]
+StartOpt = Annotated[int, typer.Option("--start", help="First recorded frame to replay (0-based).")]
+LimitOpt = Annotated[int | None, typer.Option("--limit", help="Replay at most this many frames (per pass when looping).")]
+OnErrorOpt = Annotated[str, typer.Option("--on-error", help="A frame that cannot be read: 'skip' (count it, go on) or 'stop' (exit 1).")]
+SeedOpt = Annotated[int, typer.Option("--seed", help="Synthetic sources and --level detections: scenario and noise seed.")]
+LidarOpt = Annotated[str, typer.Option("--lidar", help="Synthetic scans: sensor model (hdl32e, vlp16, os1-64).")]
+SceneOpt = Annotated[str | None, typer.Option("--scene", help="nuScenes: scene name or token (needed when the dataroot holds several).")]
+NuScenesVersionOpt = Annotated[str | None, typer.Option("--nuscenes-version", help="nuScenes: table folder, e.g. v1.0-mini (default: the only one).")]
+SweepsOpt = Annotated[bool, typer.Option("--sweeps", help="nuScenes: replay every LiDAR sweep, not only key frames.")]
+PosesOpt = Annotated[str | None, typer.Option("--poses", help="KITTI: odometry poses file (poses/NN.txt).")]
+CalibOpt = Annotated[str | None, typer.Option("--calib", help="KITTI: calib.txt with the Tr line (default: calib.txt next to the scans).")]
+TimesOpt = Annotated[str | None, typer.Option("--times", help="KITTI: times.txt (default: next to the scans; else --hz).")]
+BinFieldsOpt = Annotated[str | None, typer.Option("--bin-fields", help="Raw .bin columns, e.g. x,y,z,intensity (default by name: .pcd.bin has 5, .bin 4).")]
+HzOpt = Annotated[float, typer.Option("--hz", help="Frame rate of synthetic sources, and stamp spacing of recordings without time (KITTI without times.txt, .pcd).")]
+TopicOpt = Annotated[str | None, typer.Option("--topic", help="Bags: the PointCloud2 or Autoware DetectedObjects topic.")]
+PoseTopicOpt = Annotated[str | None, typer.Option("--pose-topic", help="Bags: /tf (TF tree + /tf_static) or an Odometry/PoseStamped topic giving the ego pose.")]
 
 
 class _Progress:
@@ -74,29 +86,29 @@ class _Progress:
 
 
 def replay_command(
-    source: Annotated[str, typer.Argument(help="synthetic:SCENARIO, a nuScenes dataroot, a bag (.mcap/.db3/folder), a folder of .bin or .pcd scans, or one such file.")],
-    rate: Annotated[str, typer.Option("--rate", help="Factor on the recorded rate (1 = real time, 2 = twice as fast), or 'max'.")] = "1",
-    loop: Annotated[bool, typer.Option("--loop", help="Start over at the end, forever (seq and stamps keep increasing).")] = False,
-    start: Annotated[int, typer.Option("--start", help="First recorded frame to replay (0-based).")] = 0,
-    limit: Annotated[int | None, typer.Option("--limit", help="Replay at most this many frames (per pass when looping).")] = None,
-    on_error: Annotated[str, typer.Option("--on-error", help="A frame that cannot be read: 'skip' (count it, go on) or 'stop' (exit 1).")] = "skip",
+    source: SourceArg,
+    rate: RateOpt = "1",
+    loop: Annotated[bool, typer.Option("--loop", help="Start over at the end, forever. With --stamps recorded, seq and stamps keep increasing across passes; with --stamps wall every pass is a restarted source (seq from 0 again, time going on), which the tracker and classifier take as a restart.")] = False,
+    start: StartOpt = 0,
+    limit: LimitOpt = None,
+    on_error: OnErrorOpt = "skip",
     stamps: Annotated[str, typer.Option("--stamps", help="'recorded': the recording's own stamps (moved forward across --loop passes); 'wall': the first frame gets the current wall-clock time and the rest their recorded spacing after it, like a live sensor (a restarted replay then goes on forward in time instead of rewinding).")] = "recorded",
-    level: Annotated[str, typer.Option("--level", help="Synthetic sources: 'points' (ray-cast scans) or 'detections' (the synthetic detector).")] = "points",
-    seed: Annotated[int, typer.Option("--seed", help="Synthetic sources: scenario and noise seed.")] = 0,
+    level: Annotated[str, typer.Option("--level", help="Sources with ground-truth boxes (synthetic, nuScenes): 'points' (scans) or 'detections' (the boxes through the detection-level noise model).")] = "points",
+    seed: SeedOpt = 0,
     duration: Annotated[float, typer.Option("--duration", help="Synthetic sources: scenario length in seconds.")] = 20.0,
-    lidar: Annotated[str, typer.Option("--lidar", help="Synthetic scans: sensor model (hdl32e, vlp16, os1-64).")] = "hdl32e",
-    scene: Annotated[str | None, typer.Option("--scene", help="nuScenes: scene name or token (needed when the dataroot holds several).")] = None,
-    nuscenes_version: Annotated[str | None, typer.Option("--nuscenes-version", help="nuScenes: table folder, e.g. v1.0-mini (default: the only one).")] = None,
-    sweeps: Annotated[bool, typer.Option("--sweeps", help="nuScenes: replay every LiDAR sweep, not only key frames.")] = False,
-    poses: Annotated[str | None, typer.Option("--poses", help="KITTI: odometry poses file (poses/NN.txt).")] = None,
-    calib: Annotated[str | None, typer.Option("--calib", help="KITTI: calib.txt with the Tr line (default: calib.txt next to the scans).")] = None,
-    times: Annotated[str | None, typer.Option("--times", help="KITTI: times.txt (default: next to the scans; else --hz).")] = None,
-    bin_fields: Annotated[str | None, typer.Option("--bin-fields", help="Raw .bin columns, e.g. x,y,z,intensity (default by name: .pcd.bin has 5, .bin 4).")] = None,
-    hz: Annotated[float, typer.Option("--hz", help="Frame rate of synthetic sources, and stamp spacing of recordings without time (KITTI without times.txt, .pcd).")] = 10.0,
-    topic: Annotated[str | None, typer.Option("--topic", help="Bags: the PointCloud2 or Autoware DetectedObjects topic.")] = None,
-    pose_topic: Annotated[str | None, typer.Option("--pose-topic", help="Bags: /tf (TF tree + /tf_static) or an Odometry/PoseStamped topic giving the ego pose.")] = None,
+    lidar: LidarOpt = "hdl32e",
+    scene: SceneOpt = None,
+    nuscenes_version: NuScenesVersionOpt = None,
+    sweeps: SweepsOpt = False,
+    poses: PosesOpt = None,
+    calib: CalibOpt = None,
+    times: TimesOpt = None,
+    bin_fields: BinFieldsOpt = None,
+    hz: HzOpt = 10.0,
+    topic: TopicOpt = None,
+    pose_topic: PoseTopicOpt = None,
     wait_subscriber: Annotated[float, typer.Option("--wait-subscriber", help="Seconds to wait for a subscriber before the first frame (0: do not wait).")] = 5.0,
-    progress: Annotated[bool | None, typer.Option("--progress/--no-progress", help="Progress bar (default: when stderr is a terminal).")] = None,
+    progress: ProgressOpt = None,
     ns: NsOpt = "default",
     zenoh_config: ZenohConfigOpt = None,
     connect: ConnectOpt = None,
@@ -105,27 +117,19 @@ def replay_command(
 ) -> None:
     """Replay a recording onto jg/{ns}/points (scans with ego pose) or jg/{ns}/detections."""
     setup_logging(log_level)
-    try:
-        rate_value = parse_rate(rate)
-    except ValueError as exc:
-        fail(str(exc))
-    if not (hz > 0 and hz < 1e6):
-        fail(f"--hz must be positive, got {hz}")
+    opts = ReplayOptions(rate=rate, start=start, limit=limit, on_error=on_error, level=level, seed=seed,
+                         duration=duration, lidar=lidar, hz=hz, scene=scene, nuscenes_version=nuscenes_version,
+                         sweeps=sweeps, poses=poses, calib=calib, times=times, bin_fields=bin_fields, topic=topic,
+                         pose_topic=pose_topic)
     if wait_subscriber < 0:
         fail(f"--wait-subscriber must be >= 0, got {wait_subscriber}")
     try:
-        plan = ReplayPlan(rate=rate_value, loop=loop, start=start, limit=limit, on_error=on_error,  # type: ignore[arg-type]
-                          stamps=stamps)  # type: ignore[arg-type]
+        src_opts = opts.check()
+        plan = opts.plan(loop=loop, stamps=stamps)
     except ValueError as exc:
         fail(str(exc))
-    fields = tuple(f.strip() for f in bin_fields.split(",")) if bin_fields else None
-    from .sources import SourceOptions, open_source
+    from .sources import open_source
 
-    src_opts = SourceOptions(
-        level=level, seed=seed, duration_s=duration, rate_hz=hz, lidar=lidar, scene=scene, nuscenes_version=nuscenes_version, sweeps=sweeps,
-        poses=_path(poses, "--poses"), calib=_path(calib, "--calib"), times=_path(times, "--times"),
-        bin_fields=fields, topic=topic, pose_topic=pose_topic, period_ns=int(round(1e9 / hz)),
-    )
     zopts = zenoh_options(ns, zenoh_config, connect, listen)
     try:
         src = open_source(source, src_opts)
@@ -136,6 +140,8 @@ def replay_command(
     with src:
         for note in src.info.notes:
             log.info("%s", note)
+        for warning in src.info.warnings:
+            log.warning("%s", warning)
         from .publisher import ReplayService
 
         try:
@@ -161,7 +167,7 @@ def _run(svc: Any, src: Any, plan: ReplayPlan, wait_s: float, progress: bool | N
             if plan.limit is not None:
                 total = min(total, plan.limit)
         short = Path(src.info.name.split(" ")[0].rstrip(":")).name or src.info.name
-        bar = _Progress(sys.stderr.isatty() if progress is None else progress, total, short)
+        bar = _Progress(progress_on(progress), total, short)
         try:
             stats = svc.replay(src, plan, on_error=bar.error, on_published=bar.published)
         except SourceError as exc:

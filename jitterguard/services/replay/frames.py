@@ -128,6 +128,8 @@ class SourceInfo:
     kind: str  # "points" or "detections"
     num_frames: int | None = None
     notes: list[str] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+    """What will likely make the result wrong though the source replays (a moving sensor without poses)."""
 
 
 # ----------------------------------------------------------------------------------------- point helpers

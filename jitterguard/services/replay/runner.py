@@ -38,7 +38,13 @@ class ReplayPlan:
     max_lag_s: float = 0.5
     stamps: Stamps = "recorded"
     """``recorded``: the recording's stamps (shifted forward across loop passes); ``wall``: the first frame is
-    stamped with the wall clock and the rest keep the recorded spacing after it (see :class:`Restamper`)."""
+    stamped with the wall clock and the rest keep the recorded spacing after it (see :class:`Restamper`).
+
+    Looping on ``wall`` stamps, every pass after the first is a restarted source: seq begins again at
+    ``seq_start`` while time goes on, as when supervisord restarts the replay. The jump back to the start of the
+    recording is a discontinuity of the world (objects and ego teleport); a consumer must take it as a restart
+    (:mod:`jitterguard.stream_order`: the classifier starts its windows afresh) and not as motion. A recording of
+    one frame has no such jump and keeps counting."""
 
     def __post_init__(self) -> None:
         if self.start < 0:
@@ -122,9 +128,12 @@ def run_replay(
     restamp = Restamper(origin=wall_ns if plan.stamps == "wall" else None)
     stats = ReplayStats()
     seq = plan.seq_start
+    good = 0
     while not stop.is_set():
         if stats.passes:
             restamp.begin_pass()
+            if plan.stamps == "wall" and good > 1:
+                seq = plan.seq_start
         positions = good = 0
         for item in _window(source, plan.start, plan.limit):
             positions += 1

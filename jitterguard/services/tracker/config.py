@@ -66,6 +66,10 @@ class ClassParams(_Strict):
     p0_yaw_rate: PosFloat = Field(0.5, description="CTRV: initial yaw-rate stddev (rad/s)")
     max_speed: PosFloat = Field(40.0, description="speed clamp (m/s): a filter never reports more")
     max_yaw_rate: PosFloat = Field(1.5, description="CTRV: yaw-rate clamp (rad/s)")
+    # lifecycle
+    confirm_hits: Annotated[int, Field(ge=1, le=100)] | None = Field(
+        None, description="associated detections before a track of this class is confirmed (published);"
+        " None: the global confirm_hits (Autoware's confident_count_threshold per class)")
 
 
 def _default_classes() -> dict[str, ClassParams]:
@@ -126,7 +130,16 @@ class TrackerConfig(_Strict):
     classes: dict[str, ClassParams] = Field(default_factory=_default_classes)
 
     # ---- lifecycle
-    confirm_hits: Annotated[int, Field(ge=1, le=100)] = 3
+    confirm_hits: Annotated[int, Field(ge=1, le=100)] = Field(
+        3, description="associated detections before a track is confirmed; only confirmed tracks are published"
+        " (Autoware's confident_count_threshold; a class may override it in classes.<name>.confirm_hits)")
+    confirm_min_existence: Annotated[float, Field(ge=0.0, le=1.0)] = Field(
+        0.25,
+        description="a track is confirmed only once its running existence probability (the smoothed scores of"
+        " its detections) reaches this as well: a clutter return that the detector scores low every frame"
+        " stays tentative and is never published, however often it recurs; 0 disables. Confirmation is"
+        " final: a confirmed track is published until the lifecycle deletes it",
+    )
     tentative_max_gap_s: PosFloat = Field(0.25, description="a tentative track missing longer is deleted")
     max_coast_s: PosFloat = Field(1.0, description="a confirmed track without a detection longer is deleted")
     max_position_stddev: PosFloat = Field(5.0, description="a track whose position stddev grows past it is deleted")
@@ -209,6 +222,8 @@ class TrackerConfig(_Strict):
             p0_yaw_rate=col("p0_yaw_rate"),
             max_speed=col("max_speed"),
             max_yaw_rate=col("max_yaw_rate"),
+            confirm_hits=np.array([self.confirm_hits if p.confirm_hits is None else p.confirm_hits for p in by],
+                                  dtype=np.int64),
         )
 
 
@@ -233,6 +248,7 @@ class ConfigTables:
     p0_yaw_rate: np.ndarray
     max_speed: np.ndarray
     max_yaw_rate: np.ndarray
+    confirm_hits: np.ndarray
 
 
 # ------------------------------------------------------------------------------------------------ loading

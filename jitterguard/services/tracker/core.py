@@ -29,7 +29,7 @@ from .association import assign, gate, overlapping
 from .config import ConfigTables, TrackerConfig, default_config
 from .frames import DetectionFrame, FrameResult, TrackSnapshot, WorldDetections
 from .kalman import CTRV, STATE_DIM, wrap_pi
-from .lifecycle import TrackTable, new_track_id
+from .lifecycle import Confirmation, TrackTable, new_track_id
 
 F64 = NDArray[np.float64]
 
@@ -52,6 +52,7 @@ class TrackerCore:
                  id_factory: Callable[[], str] = new_track_id) -> None:
         self.config = config or default_config()
         self.tables: ConfigTables = self.config.tables()
+        self.confirmation = Confirmation(self.tables.confirm_hits, self.config.confirm_min_existence)
         self.id_factory = id_factory
         self.tracks = TrackTable()
         self.last_seq: int | None = None
@@ -132,7 +133,7 @@ class TrackerCore:
             tr.record_hits(
                 rows, stamp, frame.label[cols], frame.label_prob[cols], frame.existence[cols], det.z[cols],
                 np.stack([frame.length[cols], frame.width[cols], frame.height[cols]], axis=1),
-                frame.orientation[cols], cfg.confirm_hits, cfg.shape_smoothing,
+                frame.orientation[cols], self.confirmation, cfg.shape_smoothing,
             )
 
         # ---- delete what the lifecycle rules expire (before births: a newborn never expires at once)
@@ -245,7 +246,7 @@ class TrackerCore:
         dims = np.stack([f.length[idx], f.width[idx], f.height[idx]], axis=1)
         return self.tracks.append(
             x0, P0, f.stamp_ns, model, f.label[idx], f.label_prob[idx], f.existence[idx], det.z[idx], dims,
-            f.orientation[idx], self.config.confirm_hits, self.id_factory,
+            f.orientation[idx], self.confirmation, self.id_factory,
         )
 
     def _snapshot(self, rows: NDArray[np.intp], cols: NDArray[np.intp]

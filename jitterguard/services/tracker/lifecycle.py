@@ -5,16 +5,22 @@ track; a list of track objects would force a Python loop per frame per track. Ro
 deleting tracks compacts every array with one boolean mask.
 
 Lifecycle (Autoware-like): a detection nobody claims starts a *tentative* track; it becomes *confirmed* after
-``confirm_hits`` associated detections. A tentative track that misses for longer than ``tentative_max_gap_s``
-is deleted (that is what filters one-off false positives), a confirmed one after ``max_coast_s`` without a
-detection or once its position uncertainty has grown past ``max_position_stddev``. IDs are fresh 16-byte UUIDs
-(``uuid4``): they never repeat, not even across restarts, because nothing is derived from a counter.
+``confirm_hits`` associated detections (per class, as Autoware's ``confident_count_threshold``) once its running
+existence probability (the smoothed detection scores) has also reached ``confirm_min_existence``. Only confirmed
+tracks are published, and confirmation is final, so an ID that reached the output stays there until the track is
+deleted instead of blinking in and out. A tentative track that misses for longer than ``tentative_max_gap_s`` is
+deleted (that is what filters one-off false positives; a low-scored clutter return that recurs stays tentative),
+a confirmed one after ``max_coast_s`` without a detection (Autoware's tracker lifetime: the detector's misses
+are bridged by prediction) or once its position uncertainty has grown past ``max_position_stddev``. IDs are
+fresh 16-byte UUIDs (``uuid4``): they never repeat, not even across restarts, because nothing is derived from a
+counter.
 """
 
 from __future__ import annotations
 
 import uuid
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -26,6 +32,22 @@ F64 = NDArray[np.float64]
 
 LABEL_DECAY = 0.8
 """How fast a track's class vote forgets: a detector that flickers car/truck for a frame does not flip it."""
+
+
+@dataclass(frozen=True)
+class Confirmation:
+    """When a tentative track becomes confirmed: ``hits[label]`` detections and ``min_existence`` reached."""
+
+    hits: NDArray[np.int64]
+    """Per Autoware label (8 entries): associated detections needed."""
+    min_existence: float = 0.0
+
+    @classmethod
+    def uniform(cls, hits: int, min_existence: float = 0.0) -> "Confirmation":
+        return cls(np.full(NUM_LABELS, hits, dtype=np.int64), min_existence)
+
+    def reached(self, hits: NDArray[np.int64], label: NDArray[np.int8], existence: F64) -> NDArray[np.bool_]:
+        return (hits >= self.hits[label.astype(np.intp)]) & (existence >= self.min_existence)
 
 
 def new_track_id() -> str:
@@ -68,7 +90,7 @@ class TrackTable:
         z: F64,
         dims: F64,
         orientation: NDArray[np.int8],
-        confirm_hits: int,
+        confirm: Confirmation,
         id_factory: Callable[[], str] = new_track_id,
     ) -> list[str]:
         """Add ``len(x)`` new tracks born from one detection each; returns their fresh IDs."""
@@ -90,7 +112,7 @@ class TrackTable:
         self.dims = np.concatenate([self.dims, dims])
         self.orientation = np.concatenate([self.orientation, orientation.astype(np.int8)])
         self.hits = np.concatenate([self.hits, np.ones(k, dtype=np.int64)])
-        self.confirmed = np.concatenate([self.confirmed, np.full(k, confirm_hits <= 1)])
+        self.confirmed = np.concatenate([self.confirmed, confirm.reached(np.ones(k, dtype=np.int64), label, existence)])
         self.born_ns = np.concatenate([self.born_ns, np.full(k, stamp_ns, dtype=np.int64)])
         self.last_update_ns = np.concatenate([self.last_update_ns, np.full(k, stamp_ns, dtype=np.int64)])
         return ids
@@ -105,7 +127,7 @@ class TrackTable:
         z: F64,
         dims: F64,
         orientation: NDArray[np.int8],
-        confirm_hits: int,
+        confirm: Confirmation,
         smoothing: float,
     ) -> None:
         """Bookkeeping for tracks that received a detection: hit count, class vote, shape, confirmation."""
@@ -121,7 +143,7 @@ class TrackTable:
         self.z[rows] = (1.0 - a) * self.z[rows] + a * z
         self.dims[rows] = (1.0 - a) * self.dims[rows] + a * dims
         self.orientation[rows] = orientation
-        self.confirmed[rows] |= self.hits[rows] >= confirm_hits
+        self.confirmed[rows] |= confirm.reached(self.hits[rows], self.label[rows], self.existence[rows])
 
     def expired(self, stamp_ns: int, tentative_max_gap_s: float, max_coast_s: float,
                 max_position_stddev: float) -> NDArray[np.bool_]:

@@ -5,7 +5,8 @@ SOURCE forms:
 - ``synthetic:SCENARIO`` — the synthetic world (``parking-street``, ``diagonal-lot``, ``intersection``,
   ``mixed``) generated on the fly from ``seed``; ``level='detections'`` replays the synthetic detection model
   instead of ray-cast scans.
-- a nuScenes dataroot (a folder holding ``v1.0-*/scene.json``), with ``scene``.
+- a nuScenes dataroot (a folder holding ``v1.0-*/scene.json``), with ``scene``; ``level='detections'`` replays
+  the scene's annotated boxes through the same detection model (:mod:`.groundtruth`).
 - a ROS 2 bag folder (``metadata.yaml``), a ``.mcap`` / ``.db3`` file, or a ROS 1 ``.bag``.
 - a folder of (or one) KITTI ``.bin`` / nuScenes ``.pcd.bin`` scans, with optional KITTI ``poses``.
 - a folder of (or one) ``.pcd`` files.
@@ -16,10 +17,15 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..frames import DEFAULT_PERIOD_NS, SourceError
+from ..frames import DEFAULT_PERIOD_NS, FrameError, SourceError, SourceInfo
 from .base import MemorySource, Source
 
-__all__ = ["Source", "MemorySource", "SourceOptions", "SourceError", "open_source", "SYNTHETIC_PREFIX"]
+__all__ = ["Source", "MemorySource", "SourceOptions", "SourceError", "open_source", "probe_source",
+           "SYNTHETIC_PREFIX"]
+
+PROBE_FRAMES = 10
+"""``probe_source`` reads up to this many frames looking for one that reads: one bad frame is skipped in a
+replay, a recording none of whose first frames reads is refused."""
 
 SYNTHETIC_PREFIX = "synthetic:"
 
@@ -64,8 +70,9 @@ def _only_for(opts: SourceOptions, kind: str, allowed: set[str]) -> None:
     if stray:
         verb = "does" if len(stray) == 1 else "do"
         raise SourceError(f"{', '.join(stray)} {verb} not apply to a {kind} source")
-    if opts.level != "points" and kind != "synthetic":
-        raise SourceError(f"--level {opts.level} applies to synthetic sources only (a bag's topic type decides)")
+    if opts.level != "points" and kind not in ("synthetic", "nuScenes"):
+        raise SourceError(f"--level {opts.level} needs ground-truth boxes: synthetic and nuScenes sources have"
+                          f" them, a {kind} source has not (a bag's topic type decides its level)")
 
 
 def open_source(spec: str, opts: SourceOptions | None = None) -> Source:
@@ -96,6 +103,13 @@ def open_source(spec: str, opts: SourceOptions | None = None) -> Source:
 
     if is_nuscenes_root(path):
         _only_for(opts, "nuScenes", {"--scene", "--nuscenes-version", "--sweeps"})
+        if opts.level == "detections":
+            if opts.sweeps or opts.nuscenes_version is not None:
+                raise SourceError("--level detections replays a scene's annotated key frames: --sweeps and"
+                                  " --nuscenes-version do not apply")
+            from .groundtruth import NuScenesBoxes
+
+            return NuScenesBoxes(path, scene=opts.scene, seed=opts.seed)
         return NuScenesSource(path, scene=opts.scene, version=opts.nuscenes_version, channel=opts.channel, sweeps=opts.sweeps)
     if is_bag(path):
         _only_for(opts, "bag", {"--topic", "--pose-topic"})
@@ -127,3 +141,44 @@ def open_source(spec: str, opts: SourceOptions | None = None) -> Source:
         _only_for(opts, "PCD", set())
         return PcdSource(path, period_ns=opts.period_ns)
     raise SourceError(f"{path}: unknown recording type (expected .bin, .pcd, .mcap, .db3, .bag or a folder)")
+
+
+def probe_source(spec: str, opts: SourceOptions | None = None) -> SourceInfo:
+    """Check SOURCE without replaying it: what ``jitterguard up`` does before it starts anything.
+
+    A synthetic scenario is checked by name and parameters only (generating it takes seconds, and the replay
+    process does that). Anything else is opened with its reader, which checks the kind, tables, topics and
+    poses, and read until its first frame reads (at most :data:`PROBE_FRAMES`). Raises :class:`SourceError`
+    with the reader's own one-line message.
+    """
+    opts = opts or SourceOptions()
+    if spec.startswith(SYNTHETIC_PREFIX):
+        if opts.level not in ("points", "detections"):
+            raise SourceError(f"--level must be 'points' or 'detections', got {opts.level!r}")
+        _only_for(opts, "synthetic", {"--lidar"})
+        from .synthetic import check_synthetic
+
+        return check_synthetic(spec[len(SYNTHETIC_PREFIX) :], duration_s=opts.duration_s, rate_hz=opts.rate_hz,
+                               level=opts.level, lidar=opts.lidar)
+    try:
+        src = open_source(spec, opts)
+    except SourceError:
+        raise
+    except Exception as exc:  # a reader that failed in a way it did not foresee: still one line
+        raise SourceError(f"{spec}: cannot open: {type(exc).__name__}: {exc}") from None
+    with src:
+        errors: list[str] = []
+        try:
+            for item in src.frames(0):
+                if not isinstance(item, FrameError):
+                    return src.info
+                errors.append(str(item))
+                if len(errors) >= PROBE_FRAMES:
+                    break
+        except SourceError:
+            raise
+        except Exception as exc:
+            raise SourceError(f"{spec}: reading failed: {type(exc).__name__}: {exc}") from None
+    if errors:
+        raise SourceError(f"none of the first {len(errors)} frame(s) reads; first: {errors[0]}")
+    raise SourceError(f"{spec}: holds no frame")

@@ -149,7 +149,12 @@ class BagSource(Source):
                 raise SourceError(
                     f"{self.path}: pose topic {pose_topic} is {ptype}, not {TF_MESSAGE} or one of {', '.join(POSE_TYPES)}"
                 )
-        self.info = SourceInfo(name=f"{self.path}:{topic}", kind=kind, num_frames=count, notes=notes)
+        warnings = []
+        if pose_topic is None and count > 1:
+            warnings.append(f"{self.path}: no --pose-topic: every {topic} message is published at the identity"
+                            " pose, so if the sensor moved, static objects will look dynamic")
+        self.info = SourceInfo(name=f"{self.path}:{topic}", kind=kind, num_frames=count, notes=notes,
+                               warnings=warnings)
 
     def _messages(self, conns: list[Any], what: str) -> Iterator[tuple[int, Any]]:
         for conn, t_bag, raw in self.reader.messages(connections=conns):

@@ -201,7 +201,11 @@ class BinScanSource(Source):
         # name is a number, so a folder holding a slice of a sequence still finds its own poses.
         nums = [_NUM.match(p.name) for p in files]
         self.rows = [int(m.group(1)) for m in nums] if all(nums) and not is_nusc else list(range(len(files)))
-        self.info = SourceInfo(name=str(path), kind="points", num_frames=len(files), notes=notes)
+        warnings = []
+        if self.poses is None and len(files) > 1:
+            warnings.append(f"{path}: {len(files)} scans and no --poses: every scan is published at the identity"
+                            " pose, so if the sensor moved, static objects will look dynamic")
+        self.info = SourceInfo(name=str(path), kind="points", num_frames=len(files), notes=notes, warnings=warnings)
 
     def _pose(self, i: int) -> EgoPose | str:
         if self.poses is None:

@@ -10,11 +10,13 @@ from typing import Any
 
 import numpy as np
 
-from ..frames import DetectionFrame, EgoPose, FrameError, Item, ScanFrame, SourceError, SourceInfo, finite_rows
+from ..frames import EgoPose, FrameError, Item, ScanFrame, SourceError, SourceInfo, finite_rows
 from ..truth import truth_message
 from .base import Source
 
 SCENARIOS = ("parking-street", "diagonal-lot", "intersection", "mixed")
+MAX_DURATION_S = 600.0
+"""The longest scenario the world generator makes."""
 SCAN_FIELDS = ("x", "y", "z", "intensity", "ring")
 """nuScenes' LIDAR_TOP columns: a detector trained on either reads both the same way."""
 
@@ -35,6 +37,27 @@ def _lidar() -> Any:
     return lidar
 
 
+def check_synthetic(name: str, *, duration_s: float = 20.0, rate_hz: float = 10.0, level: str = "points",
+                    lidar: str = "hdl32e") -> SourceInfo:
+    """What :class:`SyntheticSource` would say about these parameters, without generating the scenario; raises
+    :class:`SourceError` for the ones it would refuse."""
+    if name not in SCENARIOS:
+        raise SourceError(f"synthetic:{name}: unknown scenario (have: {', '.join(SCENARIOS)})")
+    if not (0 < duration_s <= MAX_DURATION_S) or not (rate_hz > 0):
+        raise SourceError(f"synthetic:{name}: --duration must be in (0, {MAX_DURATION_S:g}] s and the frame rate"
+                          " positive")
+    _world()
+    if level == "points":
+        _lidar()
+        from ....sim.sensors import SENSORS
+
+        if lidar not in SENSORS:
+            raise SourceError(f"--lidar {lidar!r}: unknown sensor (have: {', '.join(sorted(SENSORS))})")
+    n = int(round(duration_s * rate_hz))
+    return SourceInfo(name=f"synthetic:{name}", kind=level, num_frames=n,
+                      notes=[f"{n} frames at {rate_hz:g} Hz" + (f", {lidar}" if level == "points" else "")])
+
+
 class SyntheticSource(Source):
     """``synthetic:NAME`` for one of :data:`SCENARIOS`."""
 
@@ -48,10 +71,7 @@ class SyntheticSource(Source):
         level: str = "points",
         lidar: str = "hdl32e",
     ) -> None:
-        if name not in SCENARIOS:
-            raise SourceError(f"synthetic:{name}: unknown scenario (have: {', '.join(SCENARIOS)})")
-        if not (duration_s > 0) or not (rate_hz > 0):
-            raise SourceError(f"synthetic:{name}: --duration and the frame rate must be positive")
+        check_synthetic(name, duration_s=duration_s, rate_hz=rate_hz, level=level, lidar=lidar)
         world = _world()
         self._lidar = _lidar() if level == "points" else None
         self._spec = None
@@ -59,8 +79,6 @@ class SyntheticSource(Source):
         if self._lidar is not None:
             from ....sim.sensors import SENSORS
 
-            if lidar not in SENSORS:
-                raise SourceError(f"--lidar {lidar!r}: unknown sensor (have: {', '.join(sorted(SENSORS))})")
             self._spec = SENSORS[lidar]()
             self._sensor_z = float(self._spec.mount_height_m)
         self.name, self.seed, self.level = name, seed, level
@@ -98,16 +116,7 @@ class SyntheticSource(Source):
             yield ScanFrame(int(gt.stamp_ns), pose, pts, SCAN_FIELDS, origin, "lidar", truth=truth_message(gt))
 
     def _detections(self, start: int) -> Iterator[Item]:
-        from ....sim.detection_model import DetectionModel, NoiseConfig
+        from .groundtruth import noisy_detections
 
-        # A fresh model per pass: pass k of a loop sees the same noise as pass 1, like a recording would.
-        model = DetectionModel(NoiseConfig(), self.seed)
-        for i in range(0, self.scenario.num_frames):
-            gt = self.scenario.frame(i)
-            det = model.detect(gt).detections  # draw every frame so a --start window sees the same noise
-            if i < start:
-                continue
-            p = det.ego_pose
-            pose = EgoPose(p.position.x, p.position.y, p.position.z, p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w)
-            yield DetectionFrame(int(gt.stamp_ns), pose, list(det.objects), f"synthetic:{self.name}#{i}",
-                                 det.header.frame_id, truth=truth_message(gt))
+        yield from noisy_detections(self.scenario.frame, self.scenario.num_frames, self.seed, start,
+                                    f"synthetic:{self.name}")

@@ -1,0 +1,202 @@
+"""Talking to a stack's supervisord over its unix socket (XML-RPC), with one line for every state it can be in.
+
+Why not ``supervisorctl``: it is a second Python start-up per call (slow to poll), and when there is no
+supervisord, or one that is shutting down, it prints raw XML-RPC tracebacks. Here every such state is a
+:class:`StackUnavailable` whose message is one line a user can act on.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import time
+import xmlrpc.client
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+SOCKET = "supervisor.sock"
+PIDFILE = "supervisord.pid"
+CONFIG = "supervisord.conf"
+MAX_SOCKET_PATH = 100
+"""A unix socket path longer than this does not fit ``sockaddr_un`` (108 bytes on Linux, 104 on macOS)."""
+
+
+class StackUnavailable(Exception):
+    """No supervisord answers for this run directory; ``state`` says why: ``absent`` (nothing was ever started
+    there), ``stopped`` (it ran and has exited), ``stale`` (it died without cleaning up), ``shutting_down``."""
+
+    def __init__(self, state: str, message: str) -> None:
+        self.state = state
+        super().__init__(message)
+
+
+@dataclass(frozen=True)
+class ProcessInfo:
+    """What supervisord says about one program."""
+
+    name: str
+    state: str  # RUNNING, STARTING, BACKOFF, STOPPING, STOPPED, EXITED, FATAL, UNKNOWN
+    pid: int | None
+    uptime_s: float | None
+    exitstatus: int | None
+    description: str
+    logfile: str
+
+    @classmethod
+    def from_rpc(cls, d: dict[str, Any]) -> "ProcessInfo":
+        running = d.get("statename") == "RUNNING" and d.get("pid")
+        return cls(name=str(d.get("name")), state=str(d.get("statename")), pid=int(d["pid"]) if d.get("pid") else None,
+                   uptime_s=float(d["now"] - d["start"]) if running and d.get("start") else None,
+                   exitstatus=d.get("exitstatus"), description=str(d.get("description", "")),
+                   logfile=str(d.get("stdout_logfile", "")))
+
+
+def pid_alive(pid: int) -> bool:
+    """Whether ``pid`` is a running process. A zombie (killed, not yet reaped by its parent — for a daemonised
+    supervisord that is init, which may take its time or, in some containers, never come) counts as dead."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        pass
+    try:  # /proc/PID/stat: "pid (comm) STATE ..."; comm may itself hold spaces and parentheses
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except (OSError, IndexError):
+        return True  # no /proc (not Linux) or it went away meanwhile: what kill said
+
+
+def read_pid(run_dir: Path) -> int | None:
+    try:
+        return int((run_dir / PIDFILE).read_text().strip())
+    except (OSError, ValueError):
+        return None
+
+
+class Supervisor:
+    """The supervisord of one run directory."""
+
+    def __init__(self, run_dir: Path, label: str | None = None) -> None:
+        self.run_dir = run_dir
+        self.label = label or f"in {run_dir}"
+        self.sock = run_dir / SOCKET
+
+    def _proxy(self) -> Any:
+        # supervisor comes with the `deploy` extra: the rest of the CLI must work without it
+        from supervisor.xmlrpc import SupervisorTransport
+
+        transport = SupervisorTransport(None, None, f"unix://{self.sock}")
+        return xmlrpc.client.ServerProxy("http://127.0.0.1", transport=transport)
+
+    def _unavailable(self) -> StackUnavailable:
+        pid = read_pid(self.run_dir)
+        if pid is not None and pid_alive(pid):
+            return StackUnavailable("starting", f"the stack {self.label} is starting or stopping (supervisord pid"
+                                    f" {pid} does not answer yet)")
+        if pid is not None:
+            return StackUnavailable("stale", f"the stack {self.label} is not running: its supervisord (pid {pid})"
+                                    " died without cleaning up; `jitterguard down` stops what it left running")
+        if (self.run_dir / CONFIG).is_file():
+            return StackUnavailable("stopped", f"the stack {self.label} is not running")
+        return StackUnavailable("absent", f"no stack {self.label} (start one with `jitterguard up`)")
+
+    def call(self, method: str, *args: Any) -> Any:
+        """One XML-RPC call (``supervisor.<method>``); raises :class:`StackUnavailable` with one line."""
+        if not self.sock.exists():
+            raise self._unavailable()
+        try:
+            return getattr(self._proxy().supervisor, method)(*args)
+        except xmlrpc.client.Fault as exc:
+            if "SHUTDOWN_STATE" in exc.faultString:
+                raise StackUnavailable("shutting_down", f"the stack {self.label} is shutting down") from None
+            raise StackUnavailable("error", f"supervisord {self.label}: {exc.faultString}") from None
+        except (OSError, socket.error, xmlrpc.client.ProtocolError, ConnectionError):
+            raise self._unavailable() from None
+
+    def running(self) -> bool:
+        try:
+            return self.call("getState").get("statename") == "RUNNING"
+        except StackUnavailable:
+            return False
+
+    def processes(self) -> list[ProcessInfo]:
+        return [ProcessInfo.from_rpc(d) for d in self.call("getAllProcessInfo")]
+
+    def shutdown(self) -> None:
+        self.call("shutdown")
+
+    def wait_gone(self, timeout: float) -> bool:
+        """Wait until supervisord has exited (its pid file is gone or its process is); True if it did."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            pid = read_pid(self.run_dir)
+            if pid is None or not pid_alive(pid):
+                return True
+            time.sleep(0.1)
+        return False
+
+
+def tail(path: Path | str, lines: int) -> list[str]:
+    """The last ``lines`` lines of a text file ([] if it cannot be read)."""
+    try:
+        with open(path, "rb") as fh:
+            fh.seek(0, os.SEEK_END)
+            size = fh.tell()
+            fh.seek(max(0, size - 64 * 1024 * max(1, lines // 50)))
+            data = fh.read()
+    except OSError:
+        return []
+    return data.decode(errors="replace").splitlines()[-lines:]
+
+
+def orphans(run_dir: Path) -> dict[str, int]:
+    """Programs of this run directory still alive after their supervisord died: the last pid supervisord's log
+    says it spawned for each program, if that process is alive and is a jitterguard command of this stack (its
+    command line holds the run's router endpoint or run directory, so a recycled pid is never taken)."""
+    from .status import load_spec  # status imports this module
+    from .summary import SPAWNED
+
+    spec = load_spec(run_dir)
+    marks = [m for m in ((spec.endpoint if spec else ""), str(run_dir)) if m]
+    last: dict[str, int] = {}
+    try:
+        text = (run_dir / "logs" / "supervisord.log").read_text(errors="replace")
+    except OSError:
+        return {}
+    for m in SPAWNED.finditer(text):
+        last[m.group(1)] = int(m.group(2))
+    out = {}
+    for name, pid in last.items():
+        try:
+            cmdline = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:
+            continue
+        if "jitterguard" in cmdline and any(mark in cmdline for mark in marks):
+            out[name] = pid
+    return out
+
+
+def stop_orphans(run_dir: Path, timeout: float = 15.0) -> list[str]:
+    """SIGTERM each orphan's process group (SIGKILL after ``timeout``); returns the programs stopped."""
+    found = orphans(run_dir)
+    def kill(pid: int, sig: int) -> None:
+        try:  # supervisord makes every program a process-group leader; only then take the group
+            if os.getpgid(pid) == pid:
+                os.killpg(pid, sig)
+            else:
+                os.kill(pid, sig)
+        except (ProcessLookupError, PermissionError):
+            pass
+
+    for pid in found.values():
+        kill(pid, signal.SIGTERM)
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and any(pid_alive(p) for p in found.values()):
+        time.sleep(0.1)
+    for pid in found.values():
+        if pid_alive(pid):
+            kill(pid, signal.SIGKILL)
+    (run_dir / PIDFILE).unlink(missing_ok=True)
+    return sorted(found)

@@ -1,0 +1,220 @@
+"""The run's summary: frames, tracks born and ended, static/dynamic decisions, rejections, drops and restarts.
+
+Built from what the services themselves report (health means progress): every service's heartbeat carries its
+counters, which start again at zero when the process restarts. :class:`Ledger` keeps the last counters of every
+process (by pid) and sums them per service, so a service restarted five times still adds up to the whole run.
+The stack's ``monitor`` program (:mod:`.monitor`) feeds one and keeps it in ``summary.json`` in the run
+directory; supervisord's own log says how often each program was started and how often it died unexpectedly.
+
+Pure apart from :func:`supervisor_events` (reads the log) and :func:`load` / :func:`save` (the file).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+from dataclasses import dataclass, field
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+SUMMARY_FILE = "summary.json"
+GAUGE_PREFIXES = ("now.",)
+GAUGE_SUFFIXES = ("_last",)
+"""Counters that are a current value, not a running count: the newest process's value, never summed."""
+DROP_WORDS = frozenset({"dropped", "skipped", "shed", "late", "orphaned", "missing", "overflow"})
+"""A counter whose name holds one of these words (split at ``.`` and ``_``) counts something lost."""
+_WORD = re.compile(r"[._]")
+
+
+def is_gauge(name: str) -> bool:
+    return name.startswith(GAUGE_PREFIXES) or name.endswith(GAUGE_SUFFIXES)
+
+
+def is_drop(name: str) -> bool:
+    return not is_gauge(name) and bool(DROP_WORDS.intersection(_WORD.split(name)))
+
+
+def is_error(name: str) -> bool:
+    return name.endswith("errors")
+
+
+@dataclass
+class Ledger:
+    """Per service and process: the last heartbeat counters seen (and when)."""
+
+    procs: dict[str, dict[int, dict[str, Any]]] = field(default_factory=dict)
+
+    def observe(self, service: str, pid: int, counters: dict[str, int], stamp_ns: int,
+                extra: dict[str, Any] | None = None) -> None:
+        """Record one heartbeat; an older one than the last seen for that process is ignored."""
+        slot = self.procs.setdefault(service, {})
+        last = slot.get(pid)
+        if last is not None and last["stamp_ns"] > stamp_ns:
+            return
+        slot[pid] = {"stamp_ns": int(stamp_ns), "counters": dict(counters), **(extra or {})}
+
+    def totals(self, service: str) -> dict[str, int]:
+        """Running counters summed over the service's processes; gauges from its newest process."""
+        slot = self.procs.get(service, {})
+        out: dict[str, int] = {}
+        newest = max(slot.values(), key=lambda r: r["stamp_ns"], default=None)
+        for rec in slot.values():
+            for k, v in rec["counters"].items():
+                if not is_gauge(k):
+                    out[k] = out.get(k, 0) + int(v)
+        if newest is not None:
+            out.update({k: int(v) for k, v in newest["counters"].items() if is_gauge(k)})
+        return out
+
+    def processes(self, service: str) -> int:
+        return len(self.procs.get(service, {}))
+
+    def as_json(self) -> dict[str, Any]:
+        return {svc: {str(pid): rec for pid, rec in slot.items()} for svc, slot in self.procs.items()}
+
+    @classmethod
+    def from_json(cls, data: dict[str, Any]) -> "Ledger":
+        led = cls()
+        for svc, slot in data.items():
+            led.procs[svc] = {int(pid): dict(rec) for pid, rec in slot.items()}
+        return led
+
+
+_LOG_TIME = re.compile(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d),(\d{3}) ")
+SPAWNED = re.compile(r"spawned: '([^']+)' with pid (\d+)")
+_EXITED = re.compile(r"exited: (\S+) \((.*); not expected\)")
+_FATAL = re.compile(r"gave up: (\S+) entered FATAL state")
+
+
+@dataclass
+class ProgramEvents:
+    """From supervisord's log: when each program was spawned, died unexpectedly, or was given up on."""
+
+    spawns: list[float] = field(default_factory=list)
+    crashes: list[tuple[float, str]] = field(default_factory=list)  # (time, "exit status 1") of unexpected exits
+    fatal: bool = False
+
+    @property
+    def restarts(self) -> int:
+        return max(0, len(self.spawns) - 1)
+
+
+def supervisor_events(log_path: Path, since: float = 0.0) -> dict[str, ProgramEvents]:
+    """Parse supervisord's log (and its rotated ``.1``–``.3``) for events at or after ``since`` (epoch s)."""
+    out: dict[str, ProgramEvents] = {}
+    paths = [log_path.with_name(f"{log_path.name}.{i}") for i in (3, 2, 1)] + [log_path]
+    for path in paths:
+        try:
+            text = path.read_text(errors="replace")
+        except OSError:
+            continue
+        for line in text.splitlines():
+            m = _LOG_TIME.match(line)
+            if not m:
+                continue
+            t = datetime.strptime(m.group(1), "%Y-%m-%d %H:%M:%S").timestamp() + int(m.group(2)) / 1000
+            if t < since:
+                continue
+            if (s := SPAWNED.search(line)) is not None:
+                out.setdefault(s.group(1), ProgramEvents()).spawns.append(t)
+            elif (e := _EXITED.search(line)) is not None:
+                out.setdefault(e.group(1), ProgramEvents()).crashes.append((t, e.group(2)))
+            elif (f := _FATAL.search(line)) is not None:
+                out.setdefault(f.group(1), ProgramEvents()).fatal = True
+    return out
+
+
+def crash_loop(events: dict[str, ProgramEvents], now: float, *, crashes: int = 3, window_s: float = 60.0
+               ) -> str | None:
+    """The name of a program that supervisord gave up on, or that died unexpectedly ``crashes`` times within
+    the last ``window_s`` seconds (a SIGKILL now and then is healing, not a loop); None if there is none."""
+    for name, ev in sorted(events.items()):
+        if ev.fatal or sum(1 for t, _ in ev.crashes if now - t <= window_s) >= crashes:
+            return name
+    return None
+
+
+def _pick(totals: dict[str, int] | None, name: str) -> int | None:
+    """A service's counter; 0 if the service reported but never counted it, None if it never reported."""
+    return None if totals is None else int(totals.get(name, 0))
+
+
+def build(ledger: Ledger, events: dict[str, ProgramEvents], *, meta: dict[str, Any]) -> dict[str, Any]:
+    """The summary as a JSON-able dict (``meta``: stack name, ns, source, start and end times…)."""
+    t = {svc: ledger.totals(svc) for svc in ledger.procs}
+    replay, det, trk, cls = (t.get(s) for s in ("replay", "detector", "tracker", "classifier"))
+    rejected = {svc: c["rejected"] for svc, c in sorted(t.items()) if c.get("rejected")}
+    dropped = {f"{svc}.{k}": v for svc, c in sorted(t.items()) for k, v in sorted(c.items()) if v and is_drop(k)}
+    errors = {f"{svc}.{k}": v for svc, c in sorted(t.items()) for k, v in sorted(c.items()) if v and is_error(k)}
+    programs = {name: ev.restarts for name, ev in sorted(events.items()) if ev.restarts}
+    crashes = {name: len(ev.crashes) for name, ev in sorted(events.items()) if ev.crashes}
+    return {
+        **meta,
+        "frames": {"replayed": _pick(replay, "published"), "detected": _pick(det, "scans"),
+                   "tracked": _pick(trk, "frames"), "classified": _pick(cls, "frames_processed")},
+        "tracks": {"born": _pick(trk, "tracks_born"), "ended": _pick(trk, "tracks_deleted")},
+        "objects": {"static": _pick(cls, "objects.static"), "dynamic": _pick(cls, "objects.dynamic"),
+                    "undecided": _pick(cls, "objects.undecided"),
+                    "static_now": _pick(cls, "now.static"), "dynamic_now": _pick(cls, "now.dynamic")},
+        "rejected": rejected,
+        "rejected_total": sum(rejected.values()),
+        "dropped": dropped,
+        "dropped_total": sum(dropped.values()),
+        "errors": errors,
+        "restarts": {
+            "programs": programs,
+            "unexpected_exits": crashes,
+            "source_restarts": _pick(trk, "source_restarts"),
+            "tracker_resets": _pick(trk, "resets"),
+            "classifier_upstream_restarts": _pick(cls, "frames.upstream_restarts"),
+        },
+        "services": {svc: {"processes": ledger.processes(svc), "counters": c} for svc, c in sorted(t.items())},
+    }
+
+
+def render(summary: dict[str, Any]) -> str:
+    """The summary as a few lines for a terminal or a log."""
+
+    def n(v: Any) -> str:
+        return "-" if v is None else f"{v:,}" if isinstance(v, int) else str(v)
+
+    def kv(d: dict[str, Any]) -> str:
+        return ", ".join(f"{k} {n(v)}" for k, v in d.items()) or "none"
+
+    fr, tr, ob, rs = summary["frames"], summary["tracks"], summary["objects"], summary["restarts"]
+    dur = summary.get("duration_s")
+    head = f"run summary of stack {summary.get('stack', '?')!r}" + (f" ({dur:.1f} s)" if dur is not None else "")
+    lines = [
+        head,
+        f"  frames    replayed {n(fr['replayed'])}, detected {n(fr['detected'])}, tracked {n(fr['tracked'])},"
+        f" classified {n(fr['classified'])}",
+        f"  tracks    born {n(tr['born'])}, ended {n(tr['ended'])}",
+        f"  objects   static {n(ob['static'])}, dynamic {n(ob['dynamic'])}, undecided {n(ob['undecided'])}"
+        " (object-frames)" + (f"; last frame: {n(ob['static_now'])} static, {n(ob['dynamic_now'])} dynamic"
+                              if ob.get("static_now") is not None else ""),
+        f"  rejected  {kv(summary['rejected'])}",
+        f"  dropped   {kv(summary['dropped'])}",
+        f"  restarts  {kv(rs['programs'])}" + (f"; unexpected exits: {kv(rs['unexpected_exits'])}"
+                                               if rs["unexpected_exits"] else "")
+        + f"; source restarts {n(rs['source_restarts'])}, tracker resets {n(rs['tracker_resets'])}",
+    ]
+    if summary["errors"]:
+        lines.append(f"  errors    {kv(summary['errors'])}")
+    return "\n".join(lines)
+
+
+def save(run_dir: Path, data: dict[str, Any]) -> None:
+    """Write ``summary.json`` atomically (a reader never sees half a file)."""
+    path = run_dir / SUMMARY_FILE
+    tmp = path.with_suffix(f".tmp{os.getpid()}")
+    tmp.write_text(json.dumps(data, indent=2, sort_keys=True) + "\n")
+    os.replace(tmp, path)
+
+
+def load(run_dir: Path) -> dict[str, Any] | None:
+    try:
+        return json.loads((run_dir / SUMMARY_FILE).read_text())
+    except (OSError, ValueError):
+        return None

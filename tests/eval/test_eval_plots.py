@@ -1,0 +1,41 @@
+"""The report's figures show every curve and no empty panel (read back as images with Pillow)."""
+
+from __future__ import annotations
+
+import numpy as np
+from PIL import Image
+
+from jitterguard.eval.pipeline import Records
+from jitterguard.eval.report import plot_alpha_sweep, plot_pr, plot_speed_vs_z
+
+
+def records(groups: list[str], n: int = 40) -> Records:
+    rng = np.random.default_rng(0)
+    g = np.array([groups[i % len(groups)] for i in range(n)])
+    dyn = np.arange(n) % 3 == 0
+    z = np.where(dyn, 5.0, 0.5) + rng.normal(0, 0.1, n)
+    return Records(t_s=np.arange(n) * 0.1, seq=np.arange(n), track_id=np.array([f"t{i % 7}" for i in range(n)]),
+                   label=np.ones(n, np.int64), z=z, speed=np.where(dyn, 3.0, 0.1), window=np.full(n, 5),
+                   state_z=np.ones(n, np.int8), state_v=np.ones(n, np.int8), gt_instance=np.arange(n),
+                   gt_dynamic=dyn, group=g, alpha=np.full(n, 1.96), velocity_threshold=1.0, min_window=2)
+
+
+def test_a_scene_without_cyclists_gets_no_bicycle_panel(tmp_path):
+    for plot in (plot_pr, plot_speed_vs_z, plot_alpha_sweep):
+        plot(records(["vehicle", "pedestrian"]), tmp_path / "two.png")
+        plot(records(["vehicle", "pedestrian", "bicycle"]), tmp_path / "three.png")
+        w2, w3 = Image.open(tmp_path / "two.png").width, Image.open(tmp_path / "three.png").width
+        assert w2 * 3 == w3 * 2, (plot.__name__, w2, w3)
+
+
+def test_coinciding_pr_curves_both_stay_visible(tmp_path):
+    """Both scores separate the classes perfectly, so both curves lie on precision 1: the z-test's wide line
+    shows between the dashes of the speed rule drawn over it."""
+    plot_pr(records(["vehicle"]), tmp_path / "pr.png")
+    img = np.asarray(Image.open(tmp_path / "pr.png").convert("RGB")).astype(int)
+
+    def has(rgb: tuple[int, int, int]) -> bool:
+        return bool((np.abs(img - np.array(rgb)).sum(axis=2) < 60).sum() > 50)
+
+    assert has((31, 119, 180))  # tab:blue, the z-test line
+    assert has((255, 127, 14))  # tab:orange, the speed line (dashed, on top)

@@ -1,0 +1,101 @@
+"""What `jitterguard up` writes: arguments checked, paths absolute, and supervisord.conf read back by supervisord's
+own parser exactly as meant (a newline cannot add a program, a '%' stays a '%')."""
+
+from __future__ import annotations
+
+import shlex
+from pathlib import Path
+
+import pytest
+from supervisor.options import ServerOptions
+
+from jitterguard.services.replay.options import ReplayOptions, absolute_source
+from jitterguard.stack.supervisor import StackSpec, programs, render_config
+from jitterguard.stack.validate import ArgumentError, check_name, check_run_dir, check_text
+
+
+def parse(conf: Path) -> dict[str, list[str]]:
+    """supervisord's own reading of the file: program name -> argv."""
+    opts = ServerOptions()
+    opts.realize(args=["-c", str(conf)])
+    return {p.name: shlex.split(p.command) for g in opts.process_group_configs for p in g.process_configs}
+
+
+def write(tmp_path: Path, spec: StackSpec) -> Path:
+    rd = tmp_path / "run"
+    (rd / "logs").mkdir(parents=True, exist_ok=True)
+    conf = rd / "supervisord.conf"
+    conf.write_text(render_config(spec, rd, programs(spec), nodaemon=True))
+    return conf
+
+
+def test_a_percent_and_spaces_in_source_and_options_reach_the_replay_as_given(tmp_path):
+    src = "/data/50% run/%(ENV_HOME)s scans"
+    spec = StackSpec(ns="x", name="x", router_port=1234, source=src, input="detections",
+                     replay_args=("--topic", "/a%b", "--pose-topic", "/odom"), run_dir=str(tmp_path / "run"))
+    argv = parse(write(tmp_path, spec))
+    replay = argv["replay"]
+    assert replay[3:5] == ["replay", src]
+    assert replay[replay.index("--topic") + 1] == "/a%b" and "--pose-topic" in replay
+    assert set(argv) == {"router", "classifier", "tracker", "sidecar", "replay", "monitor"}
+    assert argv["monitor"][argv["monitor"].index("--run-dir") + 1] == str(tmp_path / "run")
+
+
+@pytest.mark.parametrize("bad", ["a\nb", "x\r[program:evil]", "tab\tx", "nul\x00", "del\x7f"])
+def test_control_characters_are_refused_before_rendering(tmp_path, bad):
+    with pytest.raises(ArgumentError, match="control character"):
+        check_text(bad, "SOURCE")
+    spec = StackSpec(ns="x", source="/d/" + bad, input="detections", run_dir=str(tmp_path / "run"))
+    with pytest.raises(ValueError, match="control character"):
+        render_config(spec, tmp_path, programs(spec), nodaemon=True)
+
+
+def test_a_newline_cannot_add_a_program(tmp_path):
+    """What issue 18 found: SOURCE "x\\n[program:evil]\\ncommand=..." used to become a program run as root."""
+    spec = StackSpec(ns="x", source="/d/x\n[program:evil]\ncommand=/bin/touch /tmp/pwned", input="detections")
+    with pytest.raises(ValueError):
+        render_config(spec, tmp_path, programs(spec), nodaemon=True)
+
+
+def test_comment_starts_and_bad_names_are_refused():
+    with pytest.raises(ArgumentError, match="comment"):
+        check_text("/data/run ;x", "SOURCE")
+    assert check_text("/data/run;x#y", "SOURCE") == "/data/run;x#y"  # without a space before, no comment
+    for bad in ("", "-x", "a/b", "a b", "x" * 65):
+        with pytest.raises(ArgumentError, match="--name"):
+            check_name(bad)
+    assert check_name("lidar-2.test_a") == "lidar-2.test_a"
+
+
+def test_run_dir_is_absolute_and_refused_when_supervisord_could_not_use_it(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert check_run_dir(Path("rel/run")) == tmp_path / "rel" / "run"
+    with pytest.raises(ArgumentError, match="'%'"):
+        check_run_dir(Path("run%1"))
+    with pytest.raises(ArgumentError, match="too long"):
+        check_run_dir(tmp_path / ("x" * 120))
+
+
+def test_relative_paths_become_absolute_against_the_current_folder(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert absolute_source("scans/../bag.mcap") == str(tmp_path / "bag.mcap")
+    assert absolute_source("synthetic:mixed") == "synthetic:mixed"
+    opts = ReplayOptions(poses="poses/00.txt", calib="/abs/calib.txt").absolute()
+    assert opts.poses == str(tmp_path / "poses" / "00.txt") and opts.calib == "/abs/calib.txt"
+
+
+def test_replay_options_give_only_the_flags_that_differ_and_the_replay_cli_takes_them():
+    from jitterguard.cli import app
+    from typer.testing import CliRunner
+
+    opts = ReplayOptions(rate="2", topic="/t", sweeps=True, duration=60.0, limit=5)
+    argv = opts.argv()
+    assert argv == ["--rate", "2", "--limit", "5", "--duration", "60.0", "--sweeps", "--topic", "/t"]
+    assert ReplayOptions().argv() == []
+    # every flag the stack passes is one `jitterguard replay` declares (a renamed flag would fail here)
+    res = CliRunner().invoke(app, ["replay", "--help"], terminal_width=200)
+    for flag in [a for a in ReplayOptions(rate="2", start=1, limit=1, on_error="stop", level="detections", seed=1,
+                                          duration=1.0, lidar="vlp16", hz=5.0, scene="s", nuscenes_version="v",
+                                          sweeps=True, poses="p", calib="c", times="t", bin_fields="x,y,z",
+                                          topic="/t", pose_topic="/p").argv() if a.startswith("--")]:
+        assert flag in res.output, flag

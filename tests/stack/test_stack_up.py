@@ -1,0 +1,319 @@
+"""`jitterguard up` as an operator meets it, under a real supervisord with real processes (issue 19).
+
+Two named stacks run side by side at detection level (no detector, so they start fast): one from a bag given by
+a relative path with --topic/--pose-topic, one from a nuScenes-format dataroot whose annotated boxes go through
+the noise model (--input detections), at a path holding a '%' and a space. Around them: sources
+and arguments refused before anything starts, a third stack refused on a port in use, status/down/summary
+in every state, a replay driven into BACKOFF, and a foreground stack stopped by a crash loop.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from jitterguard.runtime import free_tcp_port
+from jitterguard.stack.control import Supervisor
+from jitterguard.sim.export import export_scenario
+from jitterguard.sim.world import make_scenario
+from replay.bagfixture import DET_TOPIC, ODOM_TOPIC, write_bag
+
+from helpers import wait_until
+
+pytestmark = pytest.mark.integration
+
+
+def jg(*args: str, cwd: Path | None = None, env: dict[str, str] | None = None,
+       timeout: float = 120) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "jitterguard.cli", *args], capture_output=True, text=True,
+                          timeout=timeout, cwd=cwd, env=env)
+
+
+def one_line(res: subprocess.CompletedProcess) -> str:
+    """The command said exactly one line (stdout and stderr together) and no traceback."""
+    text = (res.stdout + res.stderr).strip()
+    assert "Traceback" not in text and len(text.splitlines()) == 1, text
+    return text
+
+
+@pytest.fixture(scope="module")
+def stacks(tmp_path_factory):
+    """Stacks 'a' (relative bag path) and 'b' (a '%' in its path) under a private $XDG_RUNTIME_DIR."""
+    home = tmp_path_factory.mktemp("up")
+    env = {**os.environ, "XDG_RUNTIME_DIR": str(home / "xdg")}
+    data = home / "data"
+    data.mkdir()
+    write_bag(data / "bag_a", n=20)
+    weird = home / "50% data" / "nu scenes"
+    weird.parent.mkdir()
+    export_scenario(make_scenario("parking-street", 1, duration_s=3.0, rate_hz=2.0), str(weird), seed=1)
+    ports = {s: (free_tcp_port(), free_tcp_port()) for s in ("a", "b")}
+    info = {"home": home, "env": env, "ports": ports, "bag_a": data / "bag_a", "bag_b": weird,
+            "run": {s: home / "xdg" / "jitterguard" / s for s in ("a", "b")}}
+    started = []
+    try:
+        for name, src, cwd, extra in (("a", "bag_a", data, ("--topic", DET_TOPIC, "--pose-topic", ODOM_TOPIC)),
+                                      ("b", str(weird), None, ("--input", "detections", "--seed", "2"))):
+            r, h = ports[name]
+            res = jg("up", src, "-d", "--name", name, "--ns", f"up{name}{os.getpid()}", "--router-port", str(r),
+                     "--port", str(h), "--no-sidecar", *extra, cwd=cwd, env=env)
+            info[f"up_{name}"] = res
+            assert res.returncode == 0, res.stdout + res.stderr
+            started.append(name)
+        yield info
+    finally:
+        for name in started:
+            jg("down", "--name", name, env=env)
+
+
+def _status(info, name: str, *extra: str) -> subprocess.CompletedProcess:
+    return jg("status", "--name", name, "--json", *extra, env=info["env"])
+
+
+def test_a_relative_source_with_replay_options_runs(stacks):
+    assert "started" in stacks["up_a"].stdout
+    rows: dict = {}
+
+    def classified() -> bool:
+        res = _status(stacks, "a")
+        rows.update({r["name"]: r for r in json.loads(res.stdout)["services"]})
+        return res.returncode == 0 and rows["classifier"]["counters"].get("frames_processed", 0) > 0
+
+    assert wait_until(classified, timeout=60, period=1.0), rows
+    assert set(rows) == {"router", "tracker", "classifier", "replay", "monitor"}  # detections: no detector
+    conf = (stacks["run"]["a"] / "supervisord.conf").read_text()
+    assert str(stacks["bag_a"]) in conf and f"--topic {DET_TOPIC}" in conf  # made absolute, passed through
+
+
+def test_nuscenes_boxes_run_live_from_a_path_with_a_percent_and_a_space(stacks):
+    def frames() -> int:
+        res = jg("summary", "--name", "b", "--json", env=stacks["env"])
+        return (json.loads(res.stdout)["frames"]["classified"] or 0) if res.returncode == 0 else 0
+
+    log = stacks["run"]["b"] / "logs" / "replay.log"
+    assert wait_until(lambda: frames() > 5, timeout=60, period=1.0), log.read_text()
+    assert "boxes through the detection-level noise model (seed 2)" in log.read_text()
+    assert "--level detections" in (stacks["run"]["b"] / "supervisord.conf").read_text()
+
+
+def test_a_second_stack_on_a_port_in_use_or_under_a_running_name_is_refused(stacks):
+    r_b, _ = stacks["ports"]["b"]
+    res = jg("up", "-d", "--name", "c", "--ns", "upc", "--router-port", str(r_b), "--port", str(free_tcp_port()),
+             "--no-sidecar", "--input", "detections", env=stacks["env"])
+    assert res.returncode == 2 and "in use by the stack 'b'" in one_line(res)
+    assert not (stacks["run"]["a"].parent / "c").exists()  # nothing written
+    res = jg("up", "-d", "--name", "a", "--router-port", str(free_tcp_port()), "--no-sidecar", "--input",
+             "detections", env=stacks["env"])
+    assert res.returncode == 2 and "already running" in one_line(res)
+
+
+def test_summary_adds_up_the_run(stacks):
+    assert wait_until(lambda: jg("summary", "--name", "a", "--json", env=stacks["env"]).returncode == 0, timeout=30)
+    data = json.loads(jg("summary", "--name", "a", "--json", env=stacks["env"]).stdout)
+    assert data["stack"] == "a" and data["frames"]["replayed"] > 0 and data["tracks"]["born"] > 0
+    assert data["rejected_total"] == 0 and "ledger" not in data
+    # the 2 s bag has looped: each pass is a restarted source to the tracker and a restart to the classifier
+    assert data["restarts"]["source_restarts"] >= 1 and data["restarts"]["tracker_resets"] == 0
+    assert data["restarts"]["classifier_upstream_restarts"] >= 1
+    text = jg("summary", "--name", "a", env=stacks["env"]).stdout
+    assert "run summary of stack 'a'" in text and "tracks    born" in text
+
+
+def test_a_replay_in_backoff_makes_status_exit_3(stacks):
+    """The bag disappears and the replay is killed: its restarts fail (no such file), supervisord backs off."""
+    sup = Supervisor(stacks["run"]["a"])
+    pid = next(p.pid for p in sup.processes() if p.name == "replay")
+    shutil.rmtree(stacks["bag_a"])
+    os.kill(pid, signal.SIGKILL)
+    assert wait_until(lambda: any(p.name == "replay" and p.state in ("BACKOFF", "FATAL") for p in sup.processes()),
+                      timeout=60, period=0.3)
+    res = jg("status", "--name", "a", env=stacks["env"])
+    assert res.returncode == 3, res.stdout
+    replay = next(line for line in res.stdout.splitlines() if line.startswith("replay"))
+    assert any(s in replay for s in ("BACKOFF", "STARTING", "FATAL")), replay  # retrying, never RUNNING
+    log = (stacks["run"]["a"] / "logs" / "replay.log").read_text()
+    assert "no such file or folder" in log
+
+
+def test_down_then_status_summary_and_down_again_say_one_line(stacks):
+    """While `down` stops the stack, `status` (asked over and over) answers with a table or one line, never a
+    traceback; afterwards every command says one line."""
+    env = stacks["env"]
+    proc = subprocess.Popen([sys.executable, "-m", "jitterguard.cli", "down", "--name", "b"], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    seen = []
+    while proc.poll() is None:
+        st = jg("status", "--name", "b", "--listen-s", "0.2", env=env)
+        assert "Traceback" not in st.stdout + st.stderr and st.returncode in (0, 3), st.stdout + st.stderr
+        seen.append(st.stdout.splitlines()[0] if st.stdout else "")
+    out, err = proc.communicate()
+    print(f"\nstatus while stopping: {seen}")
+    assert proc.returncode == 0 and "stopped" in out and "run summary" in out, out + err
+    st = jg("status", "--name", "b", env=env)
+    assert st.returncode == 3 and "not running" in one_line(st)
+    again = jg("down", "--name", "b", env=env)
+    assert again.returncode == 0 and "not running" in one_line(again)
+    assert "run summary" in jg("summary", "--name", "b", env=env).stdout  # the last run's, after down
+
+
+def test_no_stack_at_all_is_one_line_everywhere(tmp_path):
+    env = {**os.environ, "XDG_RUNTIME_DIR": str(tmp_path)}
+    st = jg("status", "--name", "ghost", env=env)
+    assert st.returncode == 3 and "no stack 'ghost'" in one_line(st)
+    js = jg("status", "--name", "ghost", "--json", env=env)
+    assert js.returncode == 3 and json.loads(js.stdout)["state"] == "absent"
+    assert jg("down", "--name", "ghost", env=env).returncode == 0
+    sm = jg("summary", "--name", "ghost", env=env)
+    assert sm.returncode == 1 and "no summary" in one_line(sm)
+    lg = jg("logs", "tracker", "--name", "ghost", env=env)
+    assert lg.returncode == 2 and "no log" in one_line(lg)
+
+
+def _refused(tmp_path: Path, *args: str) -> tuple[subprocess.CompletedProcess, float]:
+    env = {**os.environ, "XDG_RUNTIME_DIR": str(tmp_path / "xdg")}
+    t0 = time.monotonic()
+    res = jg("up", *args, "--name", "bad", "--router-port", str(free_tcp_port()), "--no-sidecar", env=env,
+             cwd=tmp_path, timeout=60)
+    elapsed = time.monotonic() - t0
+    assert res.returncode == 2, res.stdout + res.stderr
+    assert not (tmp_path / "xdg").exists(), "up wrote a run directory for a refused source"
+    return res, elapsed
+
+
+def test_sources_that_cannot_be_replayed_are_refused_before_anything_starts(tmp_path):
+    """Each answer is the reader's own line, in seconds (the old `up /nope/bag.mcap` waited 60 s)."""
+    (tmp_path / "garbage.mcap").write_bytes(b"\x00 not an mcap file" * 10)
+    write_bag(tmp_path / "bag", n=3)
+    (tmp_path / "scans").mkdir()
+    (tmp_path / "scans" / "000000.bin").write_bytes(b"\x00" * 10)  # not whole float32 points
+    cases = [
+        (("/nope/bag.mcap",), "no such file or folder"),
+        (("garbage.mcap",), "garbage.mcap"),
+        (("bag", "--topic", "/nope"), "no topic '/nope'"),
+        (("scans",), "not a whole number"),
+        (("scans", "--poses", "missing.txt"), "--poses: file not found"),
+        (("scans", "--topic", "/x"), "--topic does not apply"),
+        (("synthetic:nope",), "unknown scenario"),
+        (("bag", "--input", "points", "--topic", DET_TOPIC), "--input points needs scans"),
+    ]
+    times = {}
+    for args, reason in cases:
+        res, elapsed = _refused(tmp_path, *args)
+        assert reason in one_line(res), (args, res.stderr)
+        times[" ".join(args)] = round(elapsed, 2)
+    print(f"\nrefusal times (s): {json.dumps(times)}")
+
+
+@pytest.mark.parametrize("bad", ["synthetic:mixed\n[program:evil]\ncommand=/bin/touch {flag}", "x\x1b[31m"])
+def test_a_source_with_control_characters_starts_nothing(tmp_path, bad):
+    flag = tmp_path / "pwned"
+    res, _ = _refused(tmp_path, bad.format(flag=flag))
+    assert "SOURCE: control character" in one_line(res)
+    assert not flag.exists()  # nothing was started that could have run it (no run directory: _refused)
+
+
+@pytest.mark.parametrize("flag", ["--topic", "--scene", "--lidar", "--poses"])
+def test_a_replay_option_with_a_control_character_is_refused_naming_its_flag(tmp_path, flag):
+    res, _ = _refused(tmp_path, flag, "x\n[program:evil]")
+    assert f"{flag}: control character" in one_line(res)
+
+
+def test_a_sidecar_off_loopback_without_a_token_is_refused_before_anything_starts(tmp_path):
+    """The sidecar would refuse to bind and crash-loop; `up` says why first, with the sidecar's own reason."""
+    env = {k: v for k, v in os.environ.items() if k != "JG_API_TOKEN"}
+    env["XDG_RUNTIME_DIR"] = str(tmp_path / "xdg")
+    res = jg("up", "--name", "open", "--host", "0.0.0.0", "--router-port", str(free_tcp_port()), "--port",
+             str(free_tcp_port()), env=env, cwd=tmp_path, timeout=60)
+    assert res.returncode == 2 and "--host: refusing to bind 0.0.0.0 without JG_API_TOKEN" in one_line(res)
+    assert not (tmp_path / "xdg").exists()
+
+
+def test_a_moving_sensor_without_poses_is_warned_about(tmp_path):
+    from replay.helpers import write_bin
+
+    import numpy as np
+
+    (tmp_path / "scans").mkdir()
+    for i in range(3):
+        write_bin(tmp_path / "scans" / f"{i:06d}.bin", np.ones((10, 4), np.float32))
+    env = {**os.environ, "XDG_RUNTIME_DIR": str(tmp_path / "xdg")}
+    # a refused --port makes `up` stop right after the source check, so the warning is all that happens
+    busy = free_tcp_port()
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", busy))
+        s.listen()
+        res = jg("up", "scans", "--name", "w", "--router-port", str(busy), env=env, cwd=tmp_path)
+    assert res.returncode == 2 and "in use" in res.stderr
+    assert "warning" in res.stderr and "no --poses" in res.stderr
+
+
+def test_a_foreground_stack_whose_replay_crash_loops_stops_with_its_last_log_lines(tmp_path):
+    write_bag(tmp_path / "bag", n=20)
+    env = {**os.environ, "XDG_RUNTIME_DIR": str(tmp_path / "xdg")}
+    proc = subprocess.Popen([sys.executable, "-m", "jitterguard.cli", "up", "bag", "--name", "fg", "--ns",
+                             f"fg{os.getpid()}", "--router-port", str(free_tcp_port()), "--no-sidecar",
+                             "--topic", DET_TOPIC, "--duration", "240"],
+                            cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        first = proc.stdout.readline()
+        assert "starting" in first, first + proc.stderr.read()
+        line = proc.stdout.readline()
+        assert "first classified objects" in line, line
+        sup = Supervisor(tmp_path / "xdg" / "jitterguard" / "fg")
+        pid = next(p.pid for p in sup.processes() if p.name == "replay")
+        shutil.rmtree(tmp_path / "bag")
+        os.kill(pid, signal.SIGKILL)
+        out, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+            proc.wait(timeout=60)
+    assert proc.returncode == 1, out + err
+    assert "replay keeps failing" in err and "last lines of" in err and "no such file or folder" in err
+    assert "run summary of stack 'fg'" in out and "unexpected exits: replay" in out
+    assert not Supervisor(tmp_path / "xdg" / "jitterguard" / "fg").running()
+
+
+def test_a_stack_whose_supervisord_died_is_reported_and_down_stops_what_it_left(tmp_path):
+    write_bag(tmp_path / "bag", n=20)
+    env = {**os.environ, "XDG_RUNTIME_DIR": str(tmp_path / "xdg")}
+    rd = tmp_path / "xdg" / "jitterguard" / "orph"
+    res = jg("up", "bag", "-d", "--name", "orph", "--ns", f"orph{os.getpid()}", "--router-port",
+             str(free_tcp_port()), "--no-sidecar", "--topic", DET_TOPIC, cwd=tmp_path, env=env)
+    assert res.returncode == 0, res.stdout + res.stderr
+    from jitterguard.stack.control import orphans, pid_alive, read_pid
+
+    sup_pid = read_pid(rd)
+    programs = {p.name: p.pid for p in Supervisor(rd).processes()}
+    os.kill(sup_pid, signal.SIGKILL)
+    try:
+        assert wait_until(lambda: not Supervisor(rd).running() and not pid_alive(sup_pid), timeout=30)
+        st = jg("status", "--name", "orph", env=env)
+        assert st.returncode == 3 and "died without cleaning up" in one_line(st)
+        # the programs run on unsupervised (one that writes to its log dies of the broken pipe; the router, which
+        # logs nothing while it runs, certainly lives)
+        left = orphans(rd)
+        assert "router" in left and set(left) <= set(programs), (left, programs)
+        again = jg("up", "bag", "-d", "--name", "orph", "--no-sidecar", "--topic", DET_TOPIC, "--pose-topic",
+                   ODOM_TOPIC, cwd=tmp_path, env=env)
+        assert again.returncode == 2 and "programs still run" in one_line(again)
+        down = jg("down", "--name", "orph", env=env)
+        assert down.returncode == 0 and "stopped its programs left running" in one_line(down)
+        assert wait_until(lambda: not any(Path(f"/proc/{p}").exists() for p in programs.values()), timeout=30)
+        assert "not running" in one_line(jg("status", "--name", "orph", env=env))
+    finally:
+        for pid in programs.values():
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
