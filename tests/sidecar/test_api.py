@@ -196,6 +196,11 @@ def test_writes_need_the_token(stack: Stack, method: str, path: str, auth: str |
     ("PATCH", {"effective_n": 3}, "effective_n"),
     ("PATCH", {"velocity_threshold": 1e9}, "velocity_threshold"),
     ("PATCH", {"bogus": 1}, "bogus"),
+    ("PATCH", {"window_size": 65}, "window_size"),  # W × W state per window: bounded
+    ("PATCH", {"velocity_threshold_per_class": {"spaceship": 1.0}}, "velocity_threshold_per_class"),
+    ("PATCH", {"calibration": "file"}, "calibration_file"),  # none given
+    # a file only the classifier can look for (on its host): its refusal comes back as a 422 on the field
+    ("PATCH", {"calibration": "file", "calibration_file": "/nonexistent/calibration.yaml"}, "calibration_file"),
     ("PUT", {"window_size": 4, "min_window": 5}, "min_window"),
     ("PUT", {"variance_floor": 0}, "variance_floor"),
 ])

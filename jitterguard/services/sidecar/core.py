@@ -242,8 +242,9 @@ def _window_field(touched: Iterable[str]) -> str:
 def validate_config(data: Mapping[str, Any], touched: Iterable[str] | None = None) -> ClassifierConfig:
     """Validate a full config dict with the classifier's own model; raise :class:`ConfigError` naming fields.
 
-    The model's cross-field rule (min_window ≤ window_size) has no field of its own in pydantic's error, so
-    it is attributed to the field the request touched; a 422 always names a field.
+    The model's cross-field rules have no field of its own in pydantic's error: ``calibration: file`` without
+    a file is attributed to ``calibration_file``, min_window ≤ window_size to the window field the request
+    touched; a 422 always names a field.
     """
     try:
         return ClassifierConfig.model_validate(dict(data))
@@ -252,8 +253,9 @@ def validate_config(data: Mapping[str, Any], touched: Iterable[str] | None = Non
         for err in exc.errors(include_url=False, include_context=False):
             loc = tuple(err.get("loc", ()))
             value = err.get("input")
-            if not loc:  # the model-level rule: name the field the request touched, echo its value
-                name = _window_field(touched if touched is not None else data)
+            if not loc:  # a model-level rule: name the field it is about, echo its value
+                name = ("calibration_file" if "calibration_file" in err.get("msg", "")
+                        else _window_field(touched if touched is not None else data))
                 loc, value = (name,), data.get(name)
             errors.append({"type": err.get("type", "value_error"), "loc": ["body", *loc], "msg": err.get("msg", ""),
                            "input": _jsonable(value)})
