@@ -212,21 +212,19 @@ def _calibrated_statistics(windows: F64, masks: HalfMasks, groups: I64, model: N
         l21 = auv / l11
         l22 = np.sqrt(np.maximum(lvv - l21 * l21, variance_floor * 1e-6))
         h = ((l11 * ux + l21 * vx, l11 * uy + l21 * vy), (l22 * vx, l22 * vy))  # world columns per component
-        dt = np.abs(t[:, :, None] - t[:, None, :])
-        eye = np.eye(t.shape[1])[None]
         a = np.zeros(len(w))
         b = np.zeros(len(w))
         c = np.zeros(len(w))
+        corr = correlation_matrices(t, groups, model)
         for k, (hx, hy) in enumerate(h):
-            m = model.correlation[groups, k][:, None, None]
-            tau = model.tau_s[groups, k][:, None, None]
-            K = (1.0 - m) * eye + m * np.exp(-dt / tau)  # (K, W, W)
+            K = corr[k]  # (K, W, W)
             px, py = w * hx, w * hy
             Kx, Ky = (K @ px[..., None])[..., 0], (K @ py[..., None])[..., 0]
             a = a + (px * Kx).sum(1)
             b = b + (px * Ky).sum(1)
             c = c + (py * Ky).sum(1)
     else:
+        corr = None
         if effective_n == "independent":
             n_old, n_new = np.maximum(k_old, 1.0), np.maximum(k_new, 1.0)
         else:
@@ -244,7 +242,7 @@ def _calibrated_statistics(windows: F64, masks: HalfMasks, groups: I64, model: N
     if track_scale_prior:
         assert model.track_dof is not None
         lam, nu = track_scale(windows, valid, groups, model, ku, kv, vu, vv, u, v, model.track_dof[groups],
-                              variance_floor)
+                              variance_floor, corr)
         z_x = t_to_z(z_x / np.sqrt(lam), nu)
         z_y = t_to_z(z_y / np.sqrt(lam), nu)
         chi2 = chi2 / lam
@@ -265,11 +263,26 @@ def t_to_z(t: F64, dof: F64) -> F64:
     return np.where(p_half > 0, -ndtri(np.maximum(p_half, 1e-300)), np.abs(t))
 
 
+def correlation_matrices(t: F64, groups: I64, model: NoiseModel) -> tuple[F64, F64]:
+    """Per line-of-sight axis, the (K, W, W) correlation of each window's errors under ``model``:
+    (1 − m) I + m exp(−|t_i − t_j| / τ) with the (m, τ) of the window's class group."""
+    dt = np.abs(t[:, :, None] - t[:, None, :])
+    eye = np.eye(t.shape[1])[None]
+    out = []
+    for ai in range(2):
+        m = model.correlation[groups, ai][:, None, None]
+        tau = model.tau_s[groups, ai][:, None, None]
+        out.append((1.0 - m) * eye + m * np.exp(-dt / tau))
+    return out[0], out[1]
+
+
 def track_scale(windows: F64, valid: NDArray[np.bool_], groups: I64, model: NoiseModel, ku: F64, kv: F64,
-                vu: F64, vv: F64, u: F64, v: F64, prior_dof: F64, variance_floor: float) -> tuple[F64, F64]:
+                vu: F64, vv: F64, u: F64, v: F64, prior_dof: F64, variance_floor: float,
+                corr: tuple[F64, F64] | None = None) -> tuple[F64, F64]:
     """Per window: (λ, ν) — the track's own variance scale relative to its class calibration, from the
     residuals of its window about a constant-velocity fit, shrunk to 1 with ``prior_dof`` pseudo degrees of
-    freedom (an inverse-gamma prior), and the degrees of freedom of the resulting Student-t statistic."""
+    freedom (an inverse-gamma prior), and the degrees of freedom of the resulting Student-t statistic.
+    ``corr``: :func:`correlation_matrices` of these windows when the caller has them already."""
     t = windows[..., 5]
     pos = windows[..., 0:2]
     vm = valid.astype(np.float64)
@@ -282,7 +295,8 @@ def track_scale(windows: F64, valid: NDArray[np.bool_], groups: I64, model: Nois
     M = (vm[:, :, None] * np.eye(Wn)[None] - vm[:, :, None] * vm[:, None, :] / np.maximum(n, 1.0)[:, None, None]
          - tc[:, :, None] * tc[:, None, :] / np.where(stt > 0, stt, 1.0)[:, None, None])
     E = M @ pos
-    dt = np.abs(t[:, :, None] - t[:, None, :])
+    if corr is None:
+        corr = correlation_matrices(t, groups, model)
     S = np.zeros(len(n))
     T = np.zeros(len(n))
     T2 = np.zeros(len(n))
@@ -290,10 +304,7 @@ def track_scale(windows: F64, valid: NDArray[np.bool_], groups: I64, model: Nois
         sig = np.sqrt(np.maximum(kk * np.maximum(var, 0.0), variance_floor))  # calibrated σ
         r = (E * ax).sum(-1) / sig * vm
         G = M * sig[:, None, :] / sig[:, :, None]
-        m = model.correlation[groups, ai][:, None, None]
-        tau = model.tau_s[groups, ai][:, None, None]
-        R = (1 - m) * np.eye(Wn)[None] + m * np.exp(-dt / tau)
-        Q = G @ R @ np.swapaxes(G, -1, -2)
+        Q = G @ corr[ai] @ np.swapaxes(G, -1, -2)
         S += (r * r).sum(1)
         T += np.einsum("kii->k", Q)
         T2 += (Q * Q).sum((1, 2))
