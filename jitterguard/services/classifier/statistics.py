@@ -265,14 +265,22 @@ def t_to_z(t: F64, dof: F64) -> F64:
 
 def correlation_matrices(t: F64, groups: I64, model: NoiseModel) -> tuple[F64, F64]:
     """Per line-of-sight axis, the (K, W, W) correlation of each window's errors under ``model``:
-    (1 − m) I + m exp(−|t_i − t_j| / τ) with the (m, τ) of the window's class group."""
-    dt = np.abs(t[:, :, None] - t[:, None, :])
+    (1 − m) I + m exp(−|t_i − t_j| / τ) with the (m, τ) of the window's class group.
+
+    Computed once per distinct (time pattern, class group): in a steady stream most windows hold the same
+    frame spacing, and the exponentials are most of the cost."""
+    rel = t - t[:, :1]
+    key = np.concatenate([rel, groups[:, None].astype(np.float64)], axis=1)
+    _, first, inv = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    inv = inv.reshape(-1)
+    tu, gu = rel[first], groups[first]
+    dt = np.abs(tu[:, :, None] - tu[:, None, :])
     eye = np.eye(t.shape[1])[None]
     out = []
     for ai in range(2):
-        m = model.correlation[groups, ai][:, None, None]
-        tau = model.tau_s[groups, ai][:, None, None]
-        out.append((1.0 - m) * eye + m * np.exp(-dt / tau))
+        m = model.correlation[gu, ai][:, None, None]
+        tau = model.tau_s[gu, ai][:, None, None]
+        out.append(((1.0 - m) * eye + m * np.exp(-dt / tau))[inv])
     return out[0], out[1]
 
 
