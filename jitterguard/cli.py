@@ -1,5 +1,9 @@
 """The ``jitterguard`` command: one Typer app; each area registers its own sub-commands.
 
+Every area's command bodies import what they run inside the command (the only function-level imports of the
+``cli`` modules, and deliberate): start-up time — ``jitterguard --help`` or a one-line usage error must not load
+torch, FastAPI or a Zenoh session.
+
 ``app`` (imported by the tests and docs checks) has every area registered. A long-running service started by
 supervisord (``jitterguard tracker ...``) registers only its own area: seven services importing every area at
 once cost seconds of CPU before the first frame on a two-core machine.
@@ -41,10 +45,9 @@ _AREAS = (
     "jitterguard.sim.cli",
     "jitterguard.stack.cli",
     "jitterguard.stack.monitor",
-    "jitterguard.stack.bench",
+    "jitterguard.bench.cli",
     "jitterguard.eval.cli",
     "jitterguard.eval.calibrate",
-    "jitterguard.eval.survival_cli",
 )
 
 SERVICE_AREAS = {

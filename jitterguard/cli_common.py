@@ -26,6 +26,9 @@ ListenOpt = Annotated[
     list[str] | None, typer.Option("--listen", help="Zenoh endpoint to listen on (repeatable).")
 ]
 LogLevelOpt = Annotated[str, typer.Option("--log-level", help="DEBUG, INFO, WARNING or ERROR.")]
+ParamFileOpt = Annotated[str | None, typer.Option(
+    "--config", help="Parameter file (flat, or Autoware's ros__parameters form) overriding the service's defaults"
+    " in jitterguard/config/<service>.param.yaml; the flags below override it.")]
 ProgressOpt = Annotated[
     bool | None, typer.Option("--progress/--no-progress", help="Progress bar on stderr (default: when stderr is a terminal).")
 ]
@@ -41,6 +44,17 @@ def fail(message: str) -> NoReturn:
     """Print a one-line error to stderr and exit with status 2 (bad input)."""
     print(f"jitterguard: error: {message}", file=sys.stderr)
     raise SystemExit(2)
+
+
+def parse_float(flag: str, text: str, lo: float, hi: float) -> float:
+    """``text`` as a number in [lo, hi], or a one-line error naming ``flag`` (exit 2)."""
+    try:
+        value = float(text)
+    except ValueError:
+        fail(f"{flag}: {text!r} is not a number")
+    if not lo <= value <= hi:
+        fail(f"{flag}: {value:g} is outside {lo:g}-{hi:g}")
+    return value
 
 
 def zenoh_options(ns: str, zenoh_config: str | None, connect: list[str] | None, listen: list[str] | None) -> ZenohOptions:

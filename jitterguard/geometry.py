@@ -1,8 +1,10 @@
-"""Planar rigid-body helpers shared by every core: yaw <-> quaternion, sensor -> world transforms.
+"""Rigid-body transforms, each written once: yaw <-> quaternion, quaternion algebra, sensor -> world for points,
+orientations and covariances.
 
-All functions are pure and vectorised over leading array dimensions. Covariances are rotated as
-``R Σ Rᵀ`` — never by copying the diagonal — because a detector's along-beam and across-beam variances differ
-and the world axes are not the sensor's once the ego turns.
+All array functions are pure and vectorised over leading dimensions. Covariances are rotated as ``R Σ Rᵀ`` — never
+by copying the diagonal — because a detector's along-beam and across-beam variances differ and the world axes are
+not the sensor's once the ego turns. The tracker core (gating, measurement) and its adapter (what it republishes)
+rotate through the same :func:`rotate_cov2`, so both see the same world-frame numbers.
 """
 
 from __future__ import annotations
@@ -13,6 +15,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 F64 = NDArray[np.float64]
+Quat = tuple[float, float, float, float]
+X_X, X_Y, Y_X, Y_Y = 0, 1, 6, 7  # Autoware's 6x6 covariance indices (row-major over x, y, z, roll, pitch, yaw)
 
 
 def yaw_from_quaternion(x: float, y: float, z: float, w: float) -> float:
@@ -22,41 +26,109 @@ def yaw_from_quaternion(x: float, y: float, z: float, w: float) -> float:
 
 def yaws_from_quaternions(x: ArrayLike, y: ArrayLike, z: ArrayLike, w: ArrayLike) -> F64:
     """:func:`yaw_from_quaternion` over arrays, bit for bit (``math.atan2`` per element: numpy's ``arctan2``
-    can differ in the last bit, and a tracker fed records must compute what it computes from models)."""
+    can differ in the last bit, and the same detection must give the same heading whatever form it came in)."""
     x, y, z, w = (np.asarray(a, dtype=np.float64) for a in (x, y, z, w))
     num, den = 2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z)
     return np.fromiter(map(math.atan2, num.tolist(), den.tolist()), dtype=np.float64, count=num.size)
 
 
-def quaternion_from_yaw(yaw: float) -> tuple[float, float, float, float]:
+def quaternion_from_yaw(yaw: float) -> Quat:
     """(x, y, z, w) of a pure rotation about +z."""
     return (0.0, 0.0, math.sin(yaw / 2.0), math.cos(yaw / 2.0))
 
 
-def rotate_cov2(cxx: ArrayLike, cxy: ArrayLike, cyy: ArrayLike, yaw: ArrayLike) -> tuple[F64, F64, F64]:
-    """Rotate 2x2 covariances [[cxx, cxy], [cxy, cyy]] by ``yaw``: returns the entries of R Σ Rᵀ."""
-    cxx = np.asarray(cxx, dtype=np.float64)
-    cxy = np.asarray(cxy, dtype=np.float64)
-    cyy = np.asarray(cyy, dtype=np.float64)
-    c = np.cos(yaw)
-    s = np.sin(yaw)
-    rxx = c * c * cxx - 2.0 * c * s * cxy + s * s * cyy
-    ryy = s * s * cxx + 2.0 * c * s * cxy + c * c * cyy
-    rxy = c * s * (cxx - cyy) + (c * c - s * s) * cxy
-    return rxx, rxy, ryy
+def quaternion_multiply(a: Quat, b: Quat) -> Quat:
+    """Hamilton product a * b of (x, y, z, w) quaternions: rotate by b first, then by a."""
+    ax, ay, az, aw = a
+    bx, by, bz, bw = b
+    return (aw * bx + ax * bw + ay * bz - az * by, aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw, aw * bw - ax * bx - ay * by - az * bz)
+
+
+def quaternions_about_z(q: F64, yaw: float) -> F64:
+    """``q(yaw) * q`` for each row of ``q`` ((M, 4) x, y, z, w): orientations turned by ``yaw`` about +z."""
+    az, aw = math.sin(0.5 * yaw), math.cos(0.5 * yaw)
+    return np.column_stack([aw * q[:, 0] - az * q[:, 1], aw * q[:, 1] + az * q[:, 0],
+                            aw * q[:, 2] + az * q[:, 3], aw * q[:, 3] - az * q[:, 2]])
+
+
+def rotation_from_quaternion(x: float, y: float, z: float, w: float) -> F64:
+    """3x3 rotation of a (not necessarily unit) quaternion."""
+    n = math.sqrt(x * x + y * y + z * z + w * w)
+    if n < 1e-12:
+        raise ValueError("zero quaternion")
+    x, y, z, w = x / n, y / n, z / n, w / n
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def quaternion_from_rotation(r: F64) -> Quat:
+    """(x, y, z, w) of a 3x3 rotation (projected onto SO(3) first, so slightly noisy matrices are fine)."""
+    u, _, vt = np.linalg.svd(np.asarray(r, dtype=np.float64))
+    r = u @ vt
+    if np.linalg.det(r) < 0:
+        raise ValueError("matrix is a reflection, not a rotation")
+    tr = r[0, 0] + r[1, 1] + r[2, 2]
+    if tr > 0:
+        s = math.sqrt(tr + 1.0) * 2
+        w, x, y, z = 0.25 * s, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s
+    elif r[0, 0] > r[1, 1] and r[0, 0] > r[2, 2]:
+        s = math.sqrt(1.0 + r[0, 0] - r[1, 1] - r[2, 2]) * 2
+        w, x, y, z = (r[2, 1] - r[1, 2]) / s, 0.25 * s, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s
+    elif r[1, 1] > r[2, 2]:
+        s = math.sqrt(1.0 + r[1, 1] - r[0, 0] - r[2, 2]) * 2
+        w, x, y, z = (r[0, 2] - r[2, 0]) / s, (r[0, 1] + r[1, 0]) / s, 0.25 * s, (r[1, 2] + r[2, 1]) / s
+    else:
+        s = math.sqrt(1.0 + r[2, 2] - r[0, 0] - r[1, 1]) * 2
+        w, x, y, z = (r[1, 0] - r[0, 1]) / s, (r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, 0.25 * s
+    if w < 0:  # one canonical sign, so equal rotations compare equal
+        x, y, z, w = -x, -y, -z, -w
+    return float(x), float(y), float(z), float(w)
+
+
+def rotate_xy(x: ArrayLike, y: ArrayLike, yaw: float) -> tuple[F64, F64]:
+    """Planar vectors (velocities, offsets) turned by ``yaw`` about +z."""
+    x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
+    c, s = math.cos(yaw), math.sin(yaw)
+    return c * x - s * y, s * x + c * y
 
 
 def sensor_to_world_xy(x: ArrayLike, y: ArrayLike, ego_x: float, ego_y: float, ego_yaw: float) -> tuple[F64, F64]:
-    """Transform planar points from the sensor frame into the world frame given the ego pose."""
-    x = np.asarray(x, dtype=np.float64)
-    y = np.asarray(y, dtype=np.float64)
+    """Planar points from the sensor frame into the world frame given the ego pose."""
+    x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
     c, s = math.cos(ego_yaw), math.sin(ego_yaw)
     return ego_x + c * x - s * y, ego_y + s * x + c * y
 
 
 def world_to_sensor_xy(x: ArrayLike, y: ArrayLike, ego_x: float, ego_y: float, ego_yaw: float) -> tuple[F64, F64]:
     """Inverse of :func:`sensor_to_world_xy`."""
-    dx = np.asarray(x, dtype=np.float64) - ego_x
-    dy = np.asarray(y, dtype=np.float64) - ego_y
+    dx, dy = np.asarray(x, dtype=np.float64) - ego_x, np.asarray(y, dtype=np.float64) - ego_y
     c, s = math.cos(ego_yaw), math.sin(ego_yaw)
     return c * dx + s * dy, -s * dx + c * dy
+
+
+def rotate_cov2(cxx: ArrayLike, cxy: ArrayLike, cyy: ArrayLike, yaw: ArrayLike) -> tuple[F64, F64, F64]:
+    """Rotate 2x2 covariances [[cxx, cxy], [cxy, cyy]] by ``yaw``: returns the entries of R Σ Rᵀ."""
+    cxx, cxy, cyy = (np.asarray(a, dtype=np.float64) for a in (cxx, cxy, cyy))
+    c, s = np.cos(yaw), np.sin(yaw)
+    rxx = c * c * cxx - 2.0 * c * s * cxy + s * s * cyy
+    ryy = s * s * cxx + 2.0 * c * s * cxy + c * c * cyy
+    rxy = c * s * (cxx - cyy) + (c * c - s * s) * cxy
+    return rxx, rxy, ryy
+
+
+def rotate_cov6(cov: F64, yaw: float) -> F64:
+    """6x6 covariances ``(M, 36)`` (Autoware's layout) with x and y turned by ``yaw`` about +z: the x/y block by
+    :func:`rotate_cov2` and the x/y rows and columns against z, roll, pitch, yaw with it (R Σ Rᵀ, R = Rz ⊕ I4)."""
+    cov = np.asarray(cov, dtype=np.float64)
+    out = cov.copy()
+    xx, xy, yy = rotate_cov2(cov[:, X_X], cov[:, X_Y], cov[:, Y_Y], yaw)
+    out[:, X_X], out[:, X_Y], out[:, Y_X], out[:, Y_Y] = xx, xy, xy, yy
+    c, s = math.cos(yaw), math.sin(yaw)
+    for k in range(2, 6):
+        a, b = cov[:, k], cov[:, 6 + k]  # rows x and y at column k
+        out[:, k], out[:, 6 + k] = c * a - s * b, s * a + c * b
+        a, b = cov[:, 6 * k], cov[:, 6 * k + 1]  # row k at columns x and y
+        out[:, 6 * k], out[:, 6 * k + 1] = c * a - s * b, s * a + c * b
+    return out

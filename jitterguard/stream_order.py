@@ -1,95 +1,106 @@
-"""Telling a late frame from a restarted source, from its header alone (``seq``, ``stamp``). Pure, no I/O.
+"""Which frames of a stream to take, from their headers alone (``seq``, ``stamp``). Pure: the caller passes the clock.
 
 Every consumer of a frame stream (the tracker on ``detections``, the classifier on ``tracked``) must drop
-duplicates and frames that arrive late, yet follow a source that started over. Within one stream both ``seq``
-and ``stamp`` increase, so a frame's header, compared with the newest frame accepted, says which case it is:
+duplicates and frames that arrive late, follow a source that started over or went quiet for a while, and never let
+one message change its state: a stamp an hour ahead, a seq of 2^62 or a replayed capture is what a buggy upstream or
+an intruder sends. A frame *follows* the newest one taken when its seq is higher by at most ``max_seq_step`` and its
+stamp is not older and newer by at most ``max_stamp_step_s``. Then it is:
 
-* ``NEXT``: seq and stamp went on (an equal stamp under a higher seq too).
-* ``DUPLICATE``: the same seq, not newer.
-* ``RESTARTED``: seq went back (or stood) while the stamp went *forward*: a source whose seq began again
-  while time went on — a restarted sensor driver, or a replay stamping on the wall clock. A late frame
-  can never be newer than the frame that followed it, so this needs no confirmation: accept it at once.
-* ``REWOUND``: the stamp went back by more than the rewind threshold (a recording that started over), or
-  :class:`BehindRun` saw the stream persist behind us (see below). Time went back: reset and accept.
-* ``LATE``: anything else behind the newest frame (reordered or re-sent): drop and count.
+* ``NEXT``: it follows; take it.
+* ``DUPLICATE``: the same seq, not newer; drop it.
+* anything else is a *discontinuity*, held back: ``LATE`` (behind the stream: a re-send, a replay) or ``JUMP``
+  (ahead beyond the steps, or seq back with time going on) — dropped and counted, unless it confirms a run.
 
-A restarted *recording* is the ambiguous case: it starts again at seq 0 with the very stamps it had the first
-time, so its first frame is bit for bit a late re-send of the old stream's first frame. What tells them apart is
-persistence: a re-sent frame is a one-off between current frames, a restarted source keeps publishing behind
-us and nothing newer comes. :class:`BehindRun` counts such frames in a row, each newer than the one before;
-``confirm_frames`` of them (3 by default, 0.3 s at 10 Hz) confirm the rewind.
+A run is a series of held frames each following the previous one, with nothing taken in between. A real
+discontinuity keeps going — a restarted driver, a recording started over, a sensor back after a long gap — while
+the old stream has stopped; a forged or replayed frame is a one-off between current ones, and a flood of them
+still never outlasts the live stream's next frame. So ``confirm_frames`` frames in a run spanning at least
+``confirm_s`` on the receiver's clock confirm it, and the frame that does is taken as:
+
+* ``REWOUND`` (its stamp is behind the stream: the state is reset), ``RESTARTED`` (seq back, time going on: the
+  state carries on) or ``JUMPED`` (ahead: the state carries on, and ages by the gap).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from enum import Enum
 
-DEFAULT_CONFIRM_FRAMES = 3
-"""Frames in a row behind the stream (each after the previous) that prove the source went back in time."""
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class StreamLimits(BaseModel):
+    """How far a frame may step from the last one taken, and what confirms a discontinuity."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    max_stamp_step_s: float = Field(
+        10.0, gt=0.0, le=86400.0, description="a stamp further ahead than this is a jump, taken only once confirmed")
+    max_seq_step: int = Field(1000, ge=1, description="a seq further ahead than this is a jump, taken only once confirmed")
+    confirm_frames: int = Field(3, ge=1, le=100, description="held frames in a run, each following the previous,"
+                                " that confirm a discontinuity (a restart, a rewind, a jump)")
+    confirm_s: float = Field(0.3, ge=0.0, le=60.0, description="how long (receiver's clock) such a run must last,"
+                             " with nothing from the old stream in between")
 
 
 class Verdict(str, Enum):
-    """What a frame is relative to the newest frame accepted (see the module docstring)."""
+    """What a frame is relative to the stream (see the module docstring)."""
 
     NEXT = "next"
     DUPLICATE = "duplicate"
-    LATE = "late"
+    LATE = "out_of_order"
+    JUMP = "jump"
     RESTARTED = "restarted"
     REWOUND = "rewound"
+    JUMPED = "jumped"
 
     @property
     def accepted(self) -> bool:
-        return self in (Verdict.NEXT, Verdict.RESTARTED, Verdict.REWOUND)
-
-
-def judge(seq: int, stamp_ns: int, last_seq: int | None, last_stamp_ns: int | None,
-          rewind_reset_ns: float = 0.0) -> Verdict:
-    """Classify a frame by its header against the newest accepted one (``None``: nothing accepted yet).
-
-    ``rewind_reset_ns`` > 0: a stamp this much older than the newest means the source rewound (0 disables).
-    Never returns ``REWOUND`` for a short step back: that takes :class:`BehindRun`'s confirmation.
-    """
-    if last_seq is None or last_stamp_ns is None:
-        return Verdict.NEXT
-    if stamp_ns > last_stamp_ns:
-        return Verdict.NEXT if seq > last_seq else Verdict.RESTARTED
-    if seq == last_seq:
-        return Verdict.DUPLICATE
-    if rewind_reset_ns > 0 and last_stamp_ns - stamp_ns > rewind_reset_ns:
-        return Verdict.REWOUND
-    if stamp_ns == last_stamp_ns and seq > last_seq:
-        return Verdict.NEXT
-    return Verdict.LATE
+        return self not in (Verdict.DUPLICATE, Verdict.LATE, Verdict.JUMP)
 
 
 @dataclass
-class BehindRun:
-    """Frames that arrived behind the stream, one after another: after ``confirm_frames`` of them, each after
-    the previous in both seq and stamp and with nothing accepted in between, the source itself went back.
+class StreamGuard:
+    """The newest frame taken and the run of held frames behind or ahead of it. :meth:`admit` judges a header;
+    the caller :meth:`accept` s a frame once it has processed it (a frame whose body is invalid is not taken)."""
 
-    ``confirm_frames`` 0 disables the rule (a short rewind then waits until the stamps pass the old ones).
-    """
+    limits: StreamLimits = field(default_factory=StreamLimits)
+    last_seq: int | None = None
+    last_stamp_ns: int | None = None
+    _run: tuple[int, int] | None = None  # the last held frame of the run
+    _run_len: int = 0
+    _run_since: float | None = None
 
-    confirm_frames: int = DEFAULT_CONFIRM_FRAMES
-    length: int = 0
-    _seq: int = 0
-    _stamp_ns: int = 0
+    def follows(self, seq: int, stamp_ns: int, after_seq: int, after_stamp_ns: int) -> bool:
+        step_ns = self.limits.max_stamp_step_s * 1e9
+        return after_seq < seq <= after_seq + self.limits.max_seq_step and 0 <= stamp_ns - after_stamp_ns <= step_ns
 
-    def behind(self, seq: int, stamp_ns: int) -> bool:
-        """Note one frame judged ``LATE``; True when it completes a run (the run then starts afresh)."""
-        if self.confirm_frames <= 0:
-            return False
-        if self.length and seq > self._seq and stamp_ns > self._stamp_ns:
-            self.length += 1
+    def admit(self, seq: int, stamp_ns: int, now_s: float | None = None) -> Verdict:
+        """Judge one header; a held frame extends (or starts) the run. ``now_s`` None: no time condition."""
+        if self.last_seq is None or self.last_stamp_ns is None:
+            return Verdict.NEXT
+        if self.follows(seq, stamp_ns, self.last_seq, self.last_stamp_ns):
+            return Verdict.NEXT
+        if seq == self.last_seq and stamp_ns <= self.last_stamp_ns:
+            return Verdict.DUPLICATE
+        if self._run is not None and self.follows(seq, stamp_ns, *self._run):
+            self._run_len += 1
         else:
-            self.length = 1
-        self._seq, self._stamp_ns = seq, stamp_ns
-        if self.length >= self.confirm_frames:
-            self.length = 0
-            return True
-        return False
+            self._run_len, self._run_since = 1, now_s
+        self._run = (seq, stamp_ns)
+        lasted = now_s is None or self._run_since is None or now_s - self._run_since >= self.limits.confirm_s
+        if self._run_len >= self.limits.confirm_frames and lasted:
+            if stamp_ns < self.last_stamp_ns:
+                return Verdict.REWOUND
+            return Verdict.RESTARTED if seq <= self.last_seq else Verdict.JUMPED
+        return Verdict.LATE if stamp_ns <= self.last_stamp_ns else Verdict.JUMP
 
-    def clear(self) -> None:
-        """A frame was accepted: whatever was behind it was late after all."""
-        self.length = 0
+    def accept(self, seq: int, stamp_ns: int) -> None:
+        """The frame was taken: it is the stream's newest, and whatever was held is history."""
+        self.last_seq, self.last_stamp_ns = seq, stamp_ns
+        self._run, self._run_len, self._run_since = None, 0, None
+
+    def reset(self) -> None:
+        """Forget the stream (the next frame is taken as the first)."""
+        self.last_seq = self.last_stamp_ns = None
+        self._run, self._run_len, self._run_since = None, 0, None

@@ -3,7 +3,15 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Iterator
+
+from jitterguard.bench.tracker_sequences import SimFrame
+from jitterguard.geometry import quaternion_from_yaw
+from jitterguard.schemas import decode
+from jitterguard.schemas.models import (X_X, X_Y, Y_X, Y_Y, YAW_YAW, DetectedObject, DetectedObjectKinematics,
+    DetectedObjects, Header, ObjectClassification, Point, Pose, PoseWithCovariance, Quaternion, Shape, Vector3)
+from jitterguard.sim.lidar import LidarSpec, ScanResult, cast_frame, hdl32e
+from jitterguard.sim.world import GroundTruthFrame
 
 
 def wait_until(pred: Callable[[], bool], timeout: float = 10.0, period: float = 0.02) -> bool:
@@ -16,11 +24,51 @@ def wait_until(pred: Callable[[], bool], timeout: float = 10.0, period: float = 
     return pred()
 
 
+def iter_scans(scenario: Iterable[GroundTruthFrame], sensor: LidarSpec | None = None, seed: int = 0
+               ) -> Iterator[tuple[GroundTruthFrame, ScanResult]]:
+    """Every frame of a scenario with its scan: (frame with point counts and ray-cast visibility, scan)."""
+    spec = sensor or hdl32e()
+    for frame in scenario:
+        res, f = cast_frame(frame, spec, seed)
+        yield f, res
+
+
+def to_message(frame: SimFrame, *, with_covariance: bool = True) -> DetectedObjects:
+    """The scan as the wire message a detector publishes (sensor frame, ego pose in the world)."""
+    d = frame.detections
+    objs = []
+    for i in range(len(d)):
+        cov = [0.0] * 36
+        if with_covariance:
+            cov[X_X] = float(d.cov_xx[i])
+            cov[X_Y] = cov[Y_X] = float(d.cov_xy[i])
+            cov[Y_Y] = float(d.cov_yy[i])
+            cov[YAW_YAW] = float(d.var_yaw[i])
+        qx, qy, qz, qw = quaternion_from_yaw(float(d.yaw[i]))
+        objs.append(DetectedObject(
+            existence_probability=float(d.existence[i]),
+            classification=[ObjectClassification(label=int(d.label[i]), probability=float(d.label_prob[i]))],
+            kinematics=DetectedObjectKinematics(
+                pose_with_covariance=PoseWithCovariance(
+                    pose=Pose(position=Point(x=float(d.x[i]), y=float(d.y[i]), z=float(d.z[i])),
+                              orientation=Quaternion(x=qx, y=qy, z=qz, w=qw)),
+                    covariance=cov,
+                ),
+                has_position_covariance=with_covariance,
+            ),
+            shape=Shape(type=0, dimensions=Vector3(x=float(d.length[i]), y=float(d.width[i]), z=float(d.height[i]))),
+        ))
+    qx, qy, qz, qw = quaternion_from_yaw(d.ego_yaw)
+    return DetectedObjects(
+        header=Header(stamp=d.stamp_ns, frame_id="lidar", seq=d.seq),
+        ego_pose=Pose(position=Point(x=d.ego_x, y=d.ego_y, z=0.0), orientation=Quaternion(x=qx, y=qy, z=qz, w=qw)),
+        objects=objs,
+    )
+
+
 def collector(store: dict, lock, kind: str, model):
     """A Zenoh subscriber callback that decodes each sample as ``model`` (the wire's own validation) into
     ``store[kind]`` under ``lock``: the tests' independent observer of what a service published."""
-    from jitterguard.schemas import decode
-
     def cb(sample) -> None:
         msg = decode(model, sample.payload.to_bytes())
         with lock:

@@ -22,45 +22,58 @@ import typer
 from ..cli_common import fail, progress_on
 
 if TYPE_CHECKING:
-    from ..schemas.models import ClassifierConfig, DetectedObjects
+    from ..schemas.models import ClassifierConfig
     from ..services.classifier.calibration import OnlineCalibration
 
 
-def calibrate_detections(messages: Iterable["DetectedObjects"], config: "ClassifierConfig",
+def calibrate_detections(payloads: Iterable[bytes], config: "ClassifierConfig",
                          ) -> tuple["OnlineCalibration", dict[str, int]]:
-    """The online calibration after every message of a recording (in order), and what it saw.
+    """The online calibration after every ``DetectedObjects`` payload of a recording (in order), and what it saw.
 
-    Pure given its inputs: the tracker and classifier cores of :func:`.pipeline.tracker_steps`; the tracks
+    Pure given its inputs: the payloads go through exactly the services' seams, as in the evaluator
+    (:func:`.pipeline.track_and_classify`) — read by the tracker's read function into the tracker core, its
+    ``tracks/{id}`` and ``tracked`` payloads into a classifier adapter with ``calibration: online``; the tracks
     still alive at the end give their last observations too (as the live classifier does on eviction).
     """
+    from ..schemas import read_detected_objects
+    from ..services.classifier.adapter import ClassifierAdapter
     from ..services.classifier.calibration import OnlineCalibration
-    from ..services.classifier.core import MotionClassifierCore
-    from .pipeline import tracker_steps
+    from ..services.tracker.adapter import detection_frame, observation_payloads, tracked_payload
+    from ..services.tracker.config import default_config
+    from ..services.tracker.core import FrameRejected, TrackerCore
+    from .pipeline import _classify, _id_factory
 
     cfg = config.model_copy(update={"calibration": "online", "mode": "z_test"})
     cal = OnlineCalibration(tuple(cfg.calibration_range_bands_m), cfg.calibration_prior_blocks, math.inf,
                             cfg.window_size)
-    core = MotionClassifierCore(cfg, online=cal)
+    trk = TrackerCore(default_config(), _id_factory())
+    adapter = ClassifierAdapter(cfg, limits=trk.config.limits, calibration=cal)
     frames = observations = 0
-    for _, step in tracker_steps((None, m) for m in messages):
+    for payload in payloads:
+        det = read_detected_objects(payload, trk.config.limits)
+        frame = detection_frame(det)
+        try:
+            result = trk.step(frame)
+        except FrameRejected:
+            continue
         frames += 1
-        if step.observations:
-            observations += len(step.observations)
-            core.update(step.classifier_input())
-        core.retain(step.reported)
-    core.reset()
+        obs = [p for _, p in observation_payloads(det, frame, result)]
+        observations += len(obs)
+        _classify(adapter, obs, tracked_payload(det, frame, result))
+    adapter.core.reset()
     cal.refit()
     return cal, {"frames": frames, "observations": observations, **cal.counts}
 
 
 def recording_detections(source: Any, detector: Any, start: int, limit: int | None,
-                         errors: list[str]) -> Iterator["DetectedObjects"]:
-    """``DetectedObjects`` of every frame of a replay source: scans through the detector service's steps,
-    detection-level frames as the replay publishes them. Unreadable frames are skipped (appended to
+                         errors: list[str]) -> Iterator[bytes]:
+    """The ``DetectedObjects`` payload of every frame of a replay source: scans through the detector service's
+    steps, detection-level frames as the replay publishes them. Unreadable frames are skipped (appended to
     ``errors``)."""
-    from ..services.detector.convert import detections_message as detector_message
+    from ..schemas import encode
+    from ..services.detector.adapter import detections_payload
+    from ..services.replay.adapter import detections_message, point_cloud_message
     from ..services.replay.frames import FrameError, ScanFrame
-    from ..services.replay.publisher import detections_message, point_cloud_message
     from .detector_input import detect_scan
 
     for i, item in enumerate(source.frames(start)):
@@ -72,9 +85,9 @@ def recording_detections(source: Any, detector: Any, start: int, limit: int | No
         if isinstance(item, ScanFrame):
             scan = point_cloud_message(item, i, item.stamp_ns)
             det = detect_scan(detector.detect, scan, uncertainty=detector.config.uncertainty)
-            yield detector_message(det, scan.header, scan.ego_pose, detector.config.class_names)
+            yield detections_payload(det, scan.header, scan.ego_pose, detector.config.class_names)
         else:
-            yield detections_message(item, i, item.stamp_ns)
+            yield encode(detections_message(item, i, item.stamp_ns))
 
 
 def calibrate_command(
@@ -85,7 +98,7 @@ def calibrate_command(
                                                  "shipped lite weights).")] = None,
     threads: Annotated[int | None, typer.Option("--threads", min=1, max=1024, help="torch CPU threads of the "
                                                 "detector.")] = None,
-    window_size: Annotated[int, typer.Option("--window-size", min=5, max=1000, help="The classifier's window "
+    window_size: Annotated[int, typer.Option("--window-size", min=5, max=64, help="The classifier's window "
                                              "(blocks are windows).")] = 10,
     range_bands: Annotated[str, typer.Option("--range-bands", help="Range band edges in metres, comma-separated."
                                              )] = "20,40",

@@ -4,6 +4,8 @@ Runs ground truth → detection-level noise (``--input gt-noise``) or ray-cast /
 detector (``--input detector``) → tracker core → classifier cores in-process, and writes report.md,
 metrics.json and figures into ``--out``. With the detector in the loop metrics.json also holds its nuScenes
 AP and positional calibration (``detection``), and the calibration and detection PR figures are written.
+
+Commands import their implementation when they run (start-up time: see :mod:`jitterguard.cli`).
 """
 
 from __future__ import annotations
@@ -62,7 +64,8 @@ def eval_command(
     as_json: Annotated[bool, typer.Option("--json", help="Also print metrics.json to stdout.")] = False,
 ) -> None:
     """Evaluate (detector →) tracker → motion classifier offline against ground truth."""
-    from ..schemas.models import PRESETS, ClassifierConfig
+    from ..schemas.models import ClassifierConfig
+    from ..services.classifier.config import PRESETS
     from .pipeline import NOISE_PRESETS
 
     if input_ not in INPUTS:

@@ -1,10 +1,10 @@
 """``--input detector``: the CenterPoint detector in the evaluation loop, scan by scan as the live stack runs it.
 
 Why through the wire messages: what is scored offline must be what the live detector publishes. Each scan is
-built as the replay publishes it (:func:`~jitterguard.services.replay.publisher.point_cloud_message` of the
+built as the replay publishes it (:func:`~jitterguard.services.replay.adapter.point_cloud_message` of the
 replay's own ``ScanFrame``: x, y, z, intensity, ring and the sensor's world pose), goes through the detector
 service's steps (:func:`detect_scan`: ``scan_points`` → ``Detector.detect`` → ``finite_detections``) and is
-converted with the service's :func:`~jitterguard.services.detector.convert.detections_message` into the
+converted with the service's :func:`~jitterguard.services.detector.adapter.detections_payload` into the
 sensor-frame ``DetectedObjects`` the tracker receives. The tracker and classifier cores then run exactly as
 for the noise model (:func:`.pipeline.track_and_classify`).
 
@@ -27,12 +27,12 @@ from typing import Any
 
 import numpy as np
 
-from ..schemas.models import ClassifierConfig, DetectedObjects, PointCloud
+from ..schemas.models import ClassifierConfig, PointCloud
 from ..services.detector.config import CLASS_NAMES, Detections3D, Sample
-from ..services.detector.convert import detections_message, finite_detections, scan_points
+from ..services.detector.adapter import detections_payload, finite_detections, scan_points
 from ..services.detector.data import sample_from_scan
 from ..services.replay.frames import EgoPose, ScanFrame, finite_rows
-from ..services.replay.publisher import point_cloud_message
+from ..services.replay.adapter import point_cloud_message
 from ..services.replay.sources.synthetic import SCAN_FIELDS
 from ..services.tracker.config import TrackerConfig
 from ..sim.lidar import cast_frame
@@ -59,7 +59,7 @@ class DetectorFrame:
     """One scan after the detector: what the tracker receives, and the raw arrays the detection metrics read."""
 
     gt: GroundTruthFrame
-    detections: DetectedObjects
+    detections: bytes  # the ``DetectedObjects`` payload, as the detector service puts it
     predictions: Detections3D
     sample: Sample
 
@@ -95,6 +95,7 @@ def nuscenes_scans(dataroot: Path, scene: str | None, gt_frames: Sequence[Ground
     three walk the scene's sample chain; stamps are checked to agree, so a misalignment fails loudly instead
     of scoring one frame's detections against another's boxes. Raises :class:`NuScenesError` (one line).
     """
+    # only for --nuscenes: the nuScenes readers (and the devkit they may use) are an optional extra
     from ..services.detector.data_nuscenes import nuscenes_samples
     from ..services.replay.frames import FrameError, SourceError
     from ..services.replay.sources.nuscenes import NuScenesSource
@@ -134,12 +135,12 @@ def detector_frames(scans: Iterable[LabelledScan], detect: Callable[[np.ndarray]
                     class_names: Sequence[str] = CLASS_NAMES, uncertainty: bool = True,
                     has_twist: bool = True) -> Iterator[DetectorFrame]:
     """Run ``detect`` (e.g. ``Detector.detect``) on every scan and convert as the live service does:
-    the scan's header and ego pose carried over, sensor-frame boxes and variances, validated as
-    ``DetectedObjects`` (what the tracker validates on receipt)."""
+    the scan's header and ego pose carried over, sensor-frame boxes and variances, written as the
+    ``DetectedObjects`` payload the service puts on the wire."""
     for ls in scans:
         det = detect_scan(detect, ls.scan, uncertainty=uncertainty)
-        msg = detections_message(det, ls.scan.header, ls.scan.ego_pose, class_names, has_twist=has_twist)
-        yield DetectorFrame(ls.gt, msg, det, ls.sample)
+        payload = detections_payload(det, ls.scan.header, ls.scan.ego_pose, class_names, has_twist=has_twist)
+        yield DetectorFrame(ls.gt, payload, det, ls.sample)
 
 
 def run_detector_pipeline(frames: Iterable[DetectorFrame], classifier: ClassifierConfig | None = None,
@@ -151,7 +152,7 @@ def run_detector_pipeline(frames: Iterable[DetectorFrame], classifier: Classifie
     preds: list[Detections3D] = []
     samples: list[Sample] = []
 
-    def pairs() -> Iterator[tuple[GroundTruthFrame, DetectedObjects]]:
+    def pairs() -> Iterator[tuple[GroundTruthFrame, bytes]]:
         for f in frames:
             preds.append(f.predictions)
             samples.append(f.sample)

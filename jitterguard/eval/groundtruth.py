@@ -87,6 +87,7 @@ def load_nuscenes_frames(dataroot: Path, scene: str | None = None) -> tuple[str,
     differences of each instance's centre over neighbouring annotations (the devkit's box_velocity rule),
     used only where an attribute is silent (cycles).
     """
+    # only for nuScenes ground truth: its table readers are part of the replay's optional nuScenes support
     from ..services.replay.frames import SourceError
     from ..services.replay.sources.nuscenes import NuScenesSource, _load_table
 

@@ -5,11 +5,11 @@ CenterPoint detector on ray-cast / recorded scans (:mod:`.detector_input`, ``--i
 (ground truth, ``DetectedObjects``) pairs to :func:`track_and_classify`.
 
 Why in-process and through the same functions as the services: what is measured offline must be what runs
-live. Each frame goes through exactly the adapters' conversions — ``frame_from_message`` into the tracker
-core, ``frame_payloads`` out of it (the ``TrackObservation`` payloads the tracker publishes, decoded here with
-the model as the classifier does on receipt), ``observations_from_messages`` into the classifier core, and
-``retain`` with the tracker's reported IDs. Two classifier cores (z-test and velocity threshold) see the
-identical observations, so their comparison is not confounded by tracking.
+live. Each frame goes through exactly the services' seams — the ``detections`` payload read by
+:func:`~jitterguard.schemas.read_detected_objects` into the tracker core through the tracker's adapter, the
+``tracks/{id}`` and ``tracked`` payloads it writes fed, as bytes, to two :class:`ClassifierAdapter` s (z-test and
+velocity threshold) exactly as the classifier service feeds its own. Both see the identical payloads, so their
+comparison is not confounded by tracking.
 
 Pure: frames in, a :class:`Records` table out; no files, no clock. Deterministic given ``seed``.
 """
@@ -17,24 +17,21 @@ Pure: frames in, a :class:`Records` table out; no files, no clock. Deterministic
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field, replace
-from typing import Any, TypeVar
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment  # type: ignore[import-untyped]
 
-from ..schemas import decode, encode
-from ..schemas.models import ClassifierConfig, DetectedObjects, TrackedObjects, TrackObservation
+from ..schemas import DetectedColumns, encode, read_detected_objects, wire
+from ..schemas.models import ClassifierConfig
+from ..services.classifier.adapter import ClassifierAdapter, FrameOutput
 from ..services.classifier.calibration import NoiseModel, OnlineCalibration
-from ..services.classifier.core import MotionClassifierCore, Observations
-from ..services.classifier.pipeline import sensor_position
-from ..services.classifier.service import observations_from_messages
+from ..services.tracker.adapter import detection_frame, observation_payloads, tracked_payload
 from ..services.tracker.config import TrackerConfig, default_config
-from ..services.tracker.convert import detections_codec, frame_from_message, frame_payloads
 from ..services.tracker.core import FrameRejected, TrackerCore
-from ..services.tracker.frames import DetectionFrame
 from ..sim.detection_model import DetectionModel, NoiseConfig
 from ..sim.world import GroundTruthFrame
 from .groundtruth import group_of, is_dynamic
@@ -49,9 +46,7 @@ NOISE_PRESETS: dict[str, Callable[[], NoiseConfig]] = {
     "clean": NoiseConfig.clean,
     "jittery": NoiseConfig.jittery,
     "paper": NoiseConfig.paper_like,
-    "oracle": NoiseConfig.oracle,
 }
-"""Noise presets of ``--input gt-noise``; all but ``oracle`` report variances with a real detector's errors."""
 
 
 def match_tracks(track_xy: NDArray[np.float64], gt_xy: NDArray[np.float64],
@@ -142,146 +137,106 @@ def run_pipeline(frames: Iterable[GroundTruthFrame], noise: NoiseConfig, seed: i
     """Run GT → DetectionModel → TrackerCore → MotionClassifierCore (z_test and velocity_threshold).
 
     ``classifier`` supplies alpha / window / velocity threshold; its ``mode`` is overridden per core.
-    ``progress`` wraps the frame iterable (e.g. tqdm) — the caller's choice, so this stays I/O-free.
+    ``progress`` wraps the frame iterable (e.g. tqdm) — the caller's choice, so this stays I/O-free. The other
+    arguments as in :func:`track_and_classify`.
     """
     det_model = DetectionModel(noise, seed)
     it = progress(frames) if progress is not None else frames
-    return track_and_classify(((gt, det_model.detect(gt).detections) for gt in it), classifier, tracker,
+    return track_and_classify(((gt, encode(det_model.detect(gt).detections)) for gt in it), classifier, tracker,
                               match_distance_m, calibration=calibration, variance_scale=variance_scale,
                               calibration_model=calibration_model, variance_scale_at=variance_scale_at)
 
 
-def scale_variances(msg: DetectedObjects, factor: float) -> DetectedObjects:
-    """``msg`` with every detection's reported position covariance (the x/y block and its cross terms with
+def scale_variances(det: DetectedColumns, factor: float) -> DetectedColumns:
+    """``det`` with every detection's reported position covariance (the x/y block and its cross terms with
     z / roll / pitch / yaw, so the 6×6 stays consistent) multiplied by ``factor``: a detector off by a
     constant factor (``jitterguard eval --variance-scale``)."""
     if factor == 1.0:
-        return msg
-    r = math.sqrt(factor)
-    objects = []
-    for o in msg.objects:
-        cov = list(o.kinematics.pose_with_covariance.covariance)
-        for i in range(6):
-            for j in range(6):
-                k = (i < 2) + (j < 2)
-                if k:
-                    cov[6 * i + j] *= factor if k == 2 else r
-        pwc = o.kinematics.pose_with_covariance.model_copy(update={"covariance": tuple(cov)})
-        kin = o.kinematics.model_copy(update={"pose_with_covariance": pwc})
-        objects.append(o.model_copy(update={"kinematics": kin}))
-    return msg.model_copy(update={"objects": objects})
+        return det
+    objects = wire.DETECTED.copy(det.objects)
+    cov = objects[wire.POSE_COV]["v"]
+    for i in range(6):
+        for j in range(6):
+            k = (i < 2) + (j < 2)
+            if k:
+                cov[:, 6 * i + j] *= factor if k == 2 else math.sqrt(factor)
+    return replace(det, objects=objects)
 
 
-@dataclass
-class TrackerStep:
-    """One frame through the tracker as the classifier receives it: the decoded ``tracks/{id}`` payloads and
-    the closing ``tracked`` message."""
-
-    frame: DetectionFrame
-    observations: list[TrackObservation]
-    closed: TrackedObjects
-
-    @property
-    def reported(self) -> NDArray[np.bytes_]:
-        """The IDs the tracker reports this frame (the classifier keeps only their windows)."""
-        return np.asarray([o.object_id for o in self.closed.objects], dtype="S32")
-
-    def classifier_input(self) -> Observations:
-        """The classifier core's input, built as the service builds it."""
-        return observations_from_messages(self.observations, self.frame.seq, self.frame.stamp_ns,
-                                          sensor_position(self.closed.ego_pose))
-
-
-T = TypeVar("T")
-
-
-def tracker_steps(inputs: Iterable[tuple[T, DetectedObjects]], tracker: TrackerConfig | None = None
-                  ) -> Iterator[tuple[T, TrackerStep]]:
-    """Run ``TrackerCore`` over ``(tag, detections)`` pairs through exactly the tracker service's conversions
-    (``frame_from_message``, ``frame_payloads``) and decode its payloads with the models, as the classifier
-    does on receipt; yields ``(tag, step)`` per frame the tracker accepted. Deterministic track IDs."""
-    trk = TrackerCore(tracker or default_config(), _id_factory())
-    det_codec = detections_codec()  # the tracker service's own decoding of `detections`
-    for tag, msg in inputs:
-        frame = frame_from_message(msg)
-        try:
-            result = trk.step(frame)
-        except FrameRejected:
-            continue
-        obs_payloads, closing = frame_payloads(det_codec.decode(encode(msg)), frame, result)
-        obs_msgs = [decode(TrackObservation, p) for _, p in obs_payloads]
-        yield tag, TrackerStep(frame, obs_msgs, decode(TrackedObjects, closing))
-
-
-def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame, DetectedObjects]],
+def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame, bytes]],
                        classifier: ClassifierConfig | None = None, tracker: TrackerConfig | None = None,
                        match_distance_m: float = MATCH_DISTANCE_M, *, calibration: OnlineCalibration | None = None,
                        variance_scale: float = 1.0, calibration_model: NoiseModel | None = None,
                        variance_scale_at: str = "detector") -> Records:
     """TrackerCore → MotionClassifierCore (z_test and velocity_threshold) over (ground truth, detections) pairs.
 
-    The detections are whatever feeds the live tracker — the noise model's output or the detector service's
-    ``DetectedObjects`` — so both ``--input`` modes share everything from here on; the ground truth (world
-    frame) only labels the tracks. ``classifier``'s ``mode`` is overridden per core.
+    The detections are the ``DetectedObjects`` payloads that feed the live tracker — the noise model's output as
+    the replay publishes it, or the detector service's — so both ``--input`` modes share everything from here on;
+    the ground truth (world frame) only labels the tracks. ``classifier``'s ``mode`` is overridden per core.
 
     ``calibration``: the online calibration to continue (pooled recordings of one drive share it; it is
     updated in place); ``variance_scale`` multiplies every reported variance — at the detector's output, so
-    the tracker sees it too (``variance_scale_at="detector"``, :func:`scale_variances`), or only in what the
-    classifier receives (``"classifier"``: the classifier's own invariance, with identical tracks);
-    ``calibration_model``: the scales for ``calibration: file``.
+    the tracker sees it too (``variance_scale_at="detector"``, :func:`scale_variances`), or only in the
+    ``tracks/{id}`` payloads the classifier receives (``"classifier"``: the classifier's own invariance, with
+    identical tracks); ``calibration_model``: the scales for ``calibration: file``.
     """
     if variance_scale_at not in VARIANCE_SCALE_AT:
         raise ValueError(f"variance_scale_at must be one of {VARIANCE_SCALE_AT}, got {variance_scale_at!r}")
     at_detector = variance_scale if variance_scale_at == "detector" else 1.0
     at_classifier = variance_scale if variance_scale_at == "classifier" else 1.0
     base = classifier or ClassifierConfig()
-    core_z = MotionClassifierCore(base.model_copy(update={"mode": "z_test"}), calibration_model=calibration_model,
-                                  online=calibration)
+    trk = TrackerCore(tracker or default_config(), _id_factory())
+    limits = trk.config.limits
+    adapter_z = ClassifierAdapter(base.model_copy(update={"mode": "z_test"}), limits=limits,
+                                  calibration_model=calibration_model, calibration=calibration)
     # the baseline reads only speeds: it needs no calibration
-    core_v = MotionClassifierCore(base.model_copy(update={"mode": "velocity_threshold", "calibration": "off"}))
+    adapter_v = ClassifierAdapter(base.model_copy(update={"mode": "velocity_threshold", "calibration": "off"}),
+                                  limits=limits)
     cols: dict[str, list] = {k: [] for k in ("t_s", "seq", "track_id", "label", "z", "speed", "window", "state_z",
                                              "state_v", "gt_instance", "gt_dynamic", "group", "alpha",
                                              "gt_attribute", "gt_speed", "speed_threshold", "track_group")}
     t0: int | None = None
-    scaled = ((gt, scale_variances(msg, at_detector)) for gt, msg in inputs)
-    for gt, step in tracker_steps(scaled, tracker):
+    for gt, payload in inputs:
         t0 = gt.stamp_ns if t0 is None else t0
-        obs_msgs = step.observations
-        if obs_msgs:
-            obs = step.classifier_input()
-            if at_classifier != 1.0:
-                obs = replace(obs, cxx=obs.cxx * at_classifier, cxy=obs.cxy * at_classifier,
-                              cyy=obs.cyy * at_classifier)
-            dz = core_z.update(obs)
-            dv = core_v.update(obs)
-            txy = np.array([[m.track.x, m.track.y] for m in obs_msgs], dtype=np.float64)
-            gi = match_tracks(txy, gt.centers[:, :2], match_distance_m)
-            n = len(obs_msgs)
-            cols["t_s"].append(np.full(n, (gt.stamp_ns - t0) * 1e-9))
-            cols["seq"].append(np.full(n, gt.seq))
-            cols["track_id"].append(np.array([m.track.object_id for m in obs_msgs]))
-            cols["label"].append(obs.labels.astype(np.int64))
-            cols["z"].append(np.maximum(dz.z_x, dz.z_y))
-            cols["speed"].append(np.asarray(obs.speed, dtype=np.float64))
-            cols["window"].append(dz.window_length.astype(np.int64))
-            cols["state_z"].append(dz.state.astype(np.int8))
-            cols["state_v"].append(dv.state.astype(np.int8))
-            cols["alpha"].append(dz.alpha.astype(np.float64))
-            inst = np.where(gi >= 0, gt.instance_ids[np.maximum(gi, 0)] if gt.num_objects else -1, -1)
-            cols["gt_instance"].append(inst.astype(np.int64))
-            cols["gt_dynamic"].append(np.array(
-                [is_dynamic(gt.attributes[g], bool(gt.moving[g])) if g >= 0 else False for g in gi.tolist()],
-                dtype=bool))
-            cols["group"].append(np.array(
-                [(group_of(int(gt.labels[g])) or "") if g >= 0 else "" for g in gi.tolist()], dtype="U12"))
-            cols["gt_attribute"].append(np.array([gt.attributes[g] if g >= 0 else "" for g in gi.tolist()],
-                                                 dtype="U32"))
-            gspeed = np.hypot(gt.velocities[:, 0], gt.velocities[:, 1]) if gt.num_objects else np.zeros(0)
-            cols["gt_speed"].append(np.where(gi >= 0, gspeed[np.maximum(gi, 0)] if gt.num_objects else 0.0, np.nan))
-            cols["speed_threshold"].append(dv.threshold.astype(np.float64))
-            cols["track_group"].append(np.array([group_of(int(lb)) or "" for lb in obs.labels.tolist()], dtype="U12"))
-        core_z.retain(step.reported)
-        core_v.retain(step.reported)
+        det = scale_variances(read_detected_objects(payload, limits), at_detector)
+        frame = detection_frame(det)
+        try:
+            result = trk.step(frame)
+        except FrameRejected:
+            continue
+        observations = [p for _, p in observation_payloads(scale_variances(det, at_classifier), frame, result)]
+        closing = tracked_payload(det, frame, result)
+        oz, ov = (_classify(a, observations, closing) for a in (adapter_z, adapter_v))
+        if oz.decided is None or ov.decided is None:
+            continue
+        obs, dz, dv = oz.observed, oz.decided, ov.decided
+        where = {t.encode(): k for k, t in enumerate(result.tracks.ids)}
+        rows = np.array([where[t] for t in obs.track_ids.tolist()], dtype=np.intp)
+        txy = np.column_stack([result.tracks.x[rows], result.tracks.y[rows]])
+        gi = match_tracks(txy, gt.centers[:, :2], match_distance_m)
+        n = len(obs)
+        cols["t_s"].append(np.full(n, (gt.stamp_ns - t0) * 1e-9))
+        cols["seq"].append(np.full(n, gt.seq))
+        cols["track_id"].append(obs.track_ids.astype("U32"))
+        cols["label"].append(obs.labels.astype(np.int64))
+        cols["z"].append(np.maximum(dz.z_x, dz.z_y))
+        cols["speed"].append(np.asarray(obs.speed, dtype=np.float64))
+        cols["window"].append(dz.window_length.astype(np.int64))
+        cols["state_z"].append(dz.state.astype(np.int8))
+        cols["state_v"].append(dv.state.astype(np.int8))
+        cols["alpha"].append(dz.alpha.astype(np.float64))
+        inst = np.where(gi >= 0, gt.instance_ids[np.maximum(gi, 0)] if gt.num_objects else -1, -1)
+        cols["gt_instance"].append(inst.astype(np.int64))
+        cols["gt_dynamic"].append(np.array(
+            [is_dynamic(gt.attributes[g], bool(gt.moving[g])) if g >= 0 else False for g in gi.tolist()],
+            dtype=bool))
+        cols["group"].append(np.array(
+            [(group_of(int(gt.labels[g])) or "") if g >= 0 else "" for g in gi.tolist()], dtype="U12"))
+        cols["gt_attribute"].append(np.array([gt.attributes[g] if g >= 0 else "" for g in gi.tolist()], dtype="U32"))
+        gspeed = np.hypot(gt.velocities[:, 0], gt.velocities[:, 1]) if gt.num_objects else np.zeros(0)
+        cols["gt_speed"].append(np.where(gi >= 0, gspeed[np.maximum(gi, 0)] if gt.num_objects else 0.0, np.nan))
+        cols["speed_threshold"].append(dv.threshold.astype(np.float64))
+        cols["track_group"].append(np.array([group_of(int(lb)) or "" for lb in obs.labels.tolist()], dtype="U12"))
 
     def cat(k: str, dtype: Any) -> np.ndarray:
         return np.concatenate(cols[k]).astype(dtype) if cols[k] else np.empty(0, dtype=dtype)
@@ -296,6 +251,17 @@ def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame, DetectedObjects]
         speed_threshold=cat("speed_threshold", np.float64), track_group=cat("track_group", "U12"),
         window_size=int(base.window_size),
     )
+
+
+def _classify(adapter: ClassifierAdapter, observations: list[bytes], closing: bytes) -> FrameOutput:
+    """One frame through a classifier adapter as the service runs it: the observations, then the close; every
+    observation is in, so the frame is complete at once."""
+    adapter.observations(observations)
+    adapter.close(closing, 0.0)
+    (frame,) = adapter.ready(0.0)
+    out = adapter.finish(frame)
+    adapter.settle(out)
+    return out
 
 
 def concat_records(parts: list[Records], tags: list[str]) -> Records:

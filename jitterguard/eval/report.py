@@ -25,7 +25,7 @@ PLOT_GROUPS = ("vehicle", "pedestrian", "bicycle")
 
 
 def _plt():  # type: ignore[no-untyped-def]
-    import matplotlib
+    import matplotlib  # only when a plot is written (start-up time); the Agg backend is chosen first
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

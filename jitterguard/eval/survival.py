@@ -16,7 +16,7 @@ Also counted: tentative (unconfirmed) tracks reaching the output must be zero by
 tracks born per frame and confirmed tracks per frame describe the churn.
 
 :func:`survival` is pure (frames in, figures out); ``jitterguard bench track-survival``
-(:mod:`.survival_cli`) runs the shipped detector on ray-cast scans of a synthetic scenario, as the live stack
+(:mod:`jitterguard.bench.survival`) runs the shipped detector on ray-cast scans of a synthetic scenario, as the live stack
 does, and prints JSON.
 """
 
@@ -29,10 +29,11 @@ from typing import Any
 
 import numpy as np
 
+from ..schemas import encode, read_detected_objects
 from ..schemas.models import DetectedObjects
 from ..services.detector.config import AUTOWARE_TO_CLASS, CLASS_RANGE_M
 from ..services.tracker.config import TrackerConfig, default_config
-from ..services.tracker.convert import frame_from_message
+from ..services.tracker.adapter import detection_frame
 from ..services.tracker.core import FrameRejected, TrackerCore
 from ..sim.world import GroundTruthFrame
 from .pipeline import MATCH_DISTANCE_M, match_tracks
@@ -125,15 +126,16 @@ def survival_run(frames: Iterable[tuple[GroundTruthFrame, DetectedObjects]], tra
                  horizon_s: float = 1.0, min_points: int = DEFAULT_MIN_POINTS,
                  match_distance_m: float = MATCH_DISTANCE_M) -> SurvivalRun:
     """Run the tracker core over (ground truth, detections) pairs and collect the survival trials (module
-    docstring). The detections go through the tracker service's own conversion (``frame_from_message``); track
-    IDs are deterministic so a run repeats."""
+    docstring). The detections go through the wire and the tracker service's own read and conversion
+    (:func:`~jitterguard.schemas.read_detected_objects`, ``detection_frame``); track IDs are deterministic so a
+    run repeats."""
     counter = iter(range(1, 1 << 62))
     core = TrackerCore(tracker or default_config(), lambda: f"{next(counter):032x}")
     recs: list[_FrameRecord] = []
     c = dict.fromkeys(("frames", "born", "confirmed", "tentative_published", "seen", "covered", "any", "any_alive",
                        "ghosts"), 0)
     for gt, msg in frames:
-        frame = frame_from_message(msg)
+        frame = detection_frame(read_detected_objects(encode(msg)))
         try:
             res = core.step(frame)
         except FrameRejected:

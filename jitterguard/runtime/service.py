@@ -30,7 +30,7 @@ from typing import Any, TypeVar
 import zenoh
 from pydantic import BaseModel
 
-from ..schemas import DecodeError, decode, encode, keys
+from ..schemas import DecodeError, LimitExceeded, decode, encode, keys
 from ..schemas.models import Heartbeat
 from . import memtrace
 from .keyed_publishers import KeyedPublishers
@@ -135,10 +135,14 @@ class Service:
             return None
 
     def reject(self, exc: DecodeError, sub_key: str, sample_key: str | None = None) -> None:
-        """Count and log (once per burst) a payload that failed to decode, as :meth:`accept` does; for
-        services that decode on their own path (e.g. to plain maps with :func:`~jitterguard.schemas.decode_map`)."""
+        """Count and log (once per burst) a payload that failed to decode, as :meth:`accept` does; for services
+        that read on their own path (the read functions of :mod:`jitterguard.schemas.wire`). A payload beyond a
+        limit is also counted ``over_limit.<key>``."""
+        key = sub_key.split('/', 2)[-1]
         self.counters.inc("rejected")
-        self.counters.inc(f"rejected.{sub_key.split('/', 2)[-1]}")
+        self.counters.inc(f"rejected.{key}")
+        if isinstance(exc, LimitExceeded):
+            self.counters.inc(f"over_limit.{key}")
         self._reject_log.warn(f"rejected payload on {sample_key or sub_key}: {exc}")
 
     def subscribe(self, key: str, model: type[M], handler: Callable[[M, str], None]) -> None:
@@ -168,40 +172,49 @@ class Service:
         return self.progress.assess(time.monotonic()) if self.progress is not None else Health("ok")
 
     def subscribe_inbox(self, key: str, capacity: int = 64, *,
-                        progress: bool = False) -> queue.Queue[tuple[bytes, str]]:
-        """Subscribe ``key`` into a queue of ``(payload, key)`` that a worker blocks on with ``get(timeout=...)``.
+                        progress: bool = False) -> queue.Queue[tuple[bytes, str, float]]:
+        """Subscribe ``key`` into a bounded queue of ``(payload, key, arrival time)`` that a worker blocks on with
+        ``get(timeout=...)``.
 
         For a few large messages a second (a frame's ``detections``): the worker wakes the moment one arrives
-        instead of polling a channel, and the one callback per message only copies the payload. A full queue
-        blocks Zenoh's delivery (BLOCK publishers are slowed, not dropped) until the worker catches up or the
-        service stops. ``progress``: each arrival is an input of :attr:`progress` (a worker stuck on one message
-        then shows as stalled while more arrive).
+        instead of polling a channel, and the one callback per message only copies the payload. A full queue drops
+        its oldest item (counted ``dropped_queue.<key>``): a worker that fell behind catches up on the newest
+        frames, and a flood costs a bounded amount of memory, never Zenoh's receive path. ``progress``: each
+        arrival is an input of :attr:`progress` (a worker stuck on one message then shows as stalled while more
+        arrive).
         """
-        inbox: queue.Queue[tuple[bytes, str]] = queue.Queue(maxsize=capacity)
+        inbox: queue.Queue[tuple[bytes, str, float]] = queue.Queue(maxsize=capacity)
+        counter = f"dropped_queue.{key.split('/', 2)[-1]}"
 
         def on_sample(sample: zenoh.Sample) -> None:
+            now = time.monotonic()
             if progress and self.progress is not None:
-                self.progress.input(time.monotonic())
-            item = (sample.payload.to_bytes(), str(sample.key_expr))
+                self.progress.input(now)
+            item = (sample.payload.to_bytes(), str(sample.key_expr), now)
             while not self.stop_event.is_set():
                 try:
-                    inbox.put(item, timeout=0.1)
+                    inbox.put_nowait(item)
                     return
                 except queue.Full:
-                    continue
+                    try:
+                        inbox.get_nowait()
+                        self.counters.inc(counter)
+                    except queue.Empty:
+                        pass
 
         self._declared.append(self.session.declare_subscriber(key, on_sample))
         return inbox
 
-    def subscribe_channel(self, key: str, capacity: int = 65536) -> zenoh.Subscriber:
-        """Subscribe ``key`` into a FIFO channel that a worker drains with ``try_recv()``.
+    def subscribe_channel(self, key: str, capacity: int = 16384) -> zenoh.Subscriber:
+        """Subscribe ``key`` into a bounded ring channel that a worker drains with ``try_recv()``.
 
         No Python callback thread: samples wait in Zenoh's own (Rust) queue until the worker pulls them. At
         thousands of samples per second, per-sample callbacks spend more time handing the GIL around than
-        decoding; one worker that pulls and decodes in order does the same work without the contention.
-        BLOCK-publishing senders are slowed, not dropped, when the channel is full.
+        decoding; one worker that pulls and decodes in order does the same work without the contention. When the
+        ring is full Zenoh drops its oldest sample (bounded memory, no blocked receive path); the caller counts
+        what is lost where it notices it (the classifier: ``frames.missing_observations``).
         """
-        sub = self.session.declare_subscriber(key, zenoh.handlers.FifoChannel(capacity))
+        sub = self.session.declare_subscriber(key, zenoh.handlers.RingChannel(capacity))
         self._declared.append(sub)
         return sub
 

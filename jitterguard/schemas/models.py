@@ -67,12 +67,16 @@ class Message(_Strict):
     schema_version: Literal[1] = SCHEMA_VERSION
 
 
-class Header(_Strict):
-    """``std_msgs/Header`` with an integer stamp (ns since epoch) and a monotonically increasing ``seq``."""
+Int64 = Annotated[int, Field(ge=0, le=2**63 - 1)]
+"""A non-negative int that fits the wire's int64 (and numpy's): a stamp 2^64 - 1 is refused on receipt, not later."""
 
-    stamp: NonNegativeInt
+
+class Header(_Strict):
+    """``std_msgs/Header`` with an integer stamp (ns since epoch, int64) and a monotonically increasing ``seq``."""
+
+    stamp: Int64
     frame_id: str = "map"
-    seq: NonNegativeInt = 0
+    seq: Int64 = 0
 
 
 class Point(_Strict):
@@ -247,7 +251,7 @@ class TrackState(_Strict):
     yaw: float = 0.0
     vx: float = 0.0
     vy: float = 0.0
-    hits: NonNegativeInt = 0
+    hits: Int64 = 0
     age_s: Annotated[float, Field(ge=0.0)] = 0.0
 
 
@@ -268,9 +272,9 @@ class TrackedObjects(Message):
 
     The tracker publishes one ``tracks/{id}`` per ID in ``observed_track_ids`` before this message, so the
     classifier knows which stragglers to wait for. The classifier's ``objects`` output leaves it empty.
-    ``ego_pose`` is the sensor's pose in the world frame at ``header.stamp``, copied by the tracker from the
-    ``detections`` the frame came from (identity when unknown); the classifier passes it through and takes its
-    position as the origin of the line of sight for its variance calibration.
+    ``ego_pose`` is the sensor's pose in the world frame at ``header.stamp``, copied from the ``detections``
+    the frame came from (identity where unknown): the line of sight to each object (the origin of the
+    classifier's variance calibration), and the ego frame to draw.
     """
 
     header: Header
@@ -321,7 +325,7 @@ class MotionState(Message):
     chi2: float = 0.0
     threshold: float = Field(description="the value the statistic was compared with (alpha, χ² quantile or m/s)")
     alpha: float
-    window_length: NonNegativeInt
+    window_length: Int64
     speed: Annotated[float, Field(ge=0.0)] = 0.0
     mean_x: float = 0.0
     mean_y: float = 0.0
@@ -337,7 +341,7 @@ AUTHORS_ALPHA = {
     "pedestrian": 1.28,
     "unknown": 1.96,
 }
-"""The per-class alpha the paper's authors deployed (DESIGN.md); the ``authors`` preset."""
+"""The per-class alpha the paper's authors deployed (DESIGN.md): the default (and the ``authors`` preset file)."""
 
 
 def _default_alpha_per_class() -> dict[str, float]:
@@ -347,9 +351,6 @@ def _default_alpha_per_class() -> dict[str, float]:
 AUTOWARE_SPEED_THRESHOLDS = {"pedestrian": 0.28, "bicycle": 0.28, "motorcycle": 0.28, "unknown": 0.28}
 """Autoware's static-obstacle-avoidance ``th_moving_speed`` for the classes below 1.0 m/s (vehicles: 1.0,
 ``velocity_threshold``'s default)."""
-AUTOWARE_SUSTAIN_S = {"car": 2.0, "truck": 2.0, "bus": 2.0, "trailer": 2.0, "motorcycle": 1.0, "bicycle": 1.0,
-                      "pedestrian": 1.0, "unknown": 1.0}
-"""Autoware's ``th_moving_time``: how long a speed above the threshold must last before an object is moving."""
 
 
 def _default_speed_thresholds() -> dict[str, float]:
@@ -451,16 +452,6 @@ class ClassifierConfig(Message):
         return self.velocity_sustain_s_per_class.get(LABEL_NAMES.get(label, "unknown"), 0.0)
 
 
-PRESETS: dict[str, dict[str, object]] = {
-    "paper": {"alpha_default": 1.96, "alpha_per_class": {}, "effective_n": "cluster", "calibration": "off",
-              "min_speed_mps": 0.0},
-    "authors": {"alpha_default": 1.96, "alpha_per_class": dict(AUTHORS_ALPHA)},
-    "autoware-sustain": {"velocity_sustain_s_per_class": dict(AUTOWARE_SUSTAIN_S)},
-}
-"""Named config presets; applying one keeps every other field as it is. ``paper``: the paper's final method
-(α 1.96 for every class, each half one cluster, reported variances as they are, H0 v = 0); ``authors``: the
-authors' deployed per-class α (also the default); ``autoware-sustain``: the baseline's Autoware sustain times."""
-
 
 class ConfigReply(Message):
     """The classifier's answer to a config get/set: what is in force now, or why the write was refused."""
@@ -481,7 +472,7 @@ class TrackStateEntry(_Strict):
     chi2: float
     alpha: float
     threshold: float
-    window_length: NonNegativeInt
+    window_length: Int64
     window_size: NonNegativeInt
     speed: float
     x: float

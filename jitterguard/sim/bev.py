@@ -29,7 +29,7 @@ def state_colour(attribute: str, moving: bool) -> str:
 def render_bev(frame: GroundTruthFrame, points: NDArray[np.float32], path: str, *, extent_m: float = 50.0,
                title: str | None = None, dpi: int = 150) -> None:
     """Write a PNG of ``points`` (sensor frame) and ``frame``'s boxes, ego-centred, ±``extent_m`` metres."""
-    import matplotlib
+    import matplotlib  # only when a picture is drawn (start-up time); the Agg backend is chosen first
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

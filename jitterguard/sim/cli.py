@@ -1,6 +1,8 @@
-"""``jitterguard sim ...`` (generate, export, bev, list) and ``jitterguard bench sim``.
+"""``jitterguard sim ...`` (generate, export, bev, list).
 
 Bad input is one line on stderr and exit 2 (``cli_common.fail``); long work shows a tqdm bar on stderr.
+
+Commands import their implementation when they run (start-up time: see :mod:`jitterguard.cli`).
 """
 
 from __future__ import annotations
@@ -192,41 +194,10 @@ def list_command() -> None:
     print(json.dumps({"scenarios": list(SCENARIO_NAMES), "sensors": sensors}))
 
 
-def bench_command(
-    json_out: Annotated[bool, typer.Option("--json", help="Print the figures as one JSON object (the default output).")] = True,
-    scans: Annotated[int, typer.Option("--scans", help="Scans per run.")] = 40,
-    objects: Annotated[int, typer.Option("--objects", help="Road users in the scene (nearest kept).")] = 60,
-    scenario: Annotated[str, typer.Option("--scenario", help="Scenario the scene comes from.")] = "parking-street",
-    lidar: LidarOpt = "hdl32e",
-    repeat: Annotated[int, typer.Option("--repeat", help="Runs; the median is reported with every run.")] = 3,
-    replay_scans: Annotated[int, typer.Option("--replay-scans", help="Scans for the replay part (0 skips it).")] = 600,
-) -> None:
-    """Ray-casting throughput (full scans/s on one core) and replay at --rate max of 35k-point scans, as JSON:
-    ``{"raycast": {"sensor", "rays", "objects", "scans_per_s", ...}, "replay": {"points_per_scan",
-    "scans_per_s", "dropped", ...}}``."""
-    _check(scenario, 10.0, 10.0, lidar)
-    if scans < 1 or objects < 0 or repeat < 1 or replay_scans < 0:
-        fail("--scans and --repeat must be >= 1, --objects and --replay-scans >= 0")
-    from .bench import bench_raycast
-
-    rc = bench_raycast(lidar, scenario, objects, scans, repeat)
-    out: dict[str, object] = {"raycast": {"sensor": lidar, "rays": rc["rays_per_scan"], "objects": rc["objects"],
-                                          "scans_per_s": rc["scans_per_s"],
-                                          **{k: v for k, v in rc.items() if k != "sensor"}, "sensor_name": rc["sensor"]}}
-    if replay_scans:
-        from ..services.replay.bench import bench_replay_repeated
-
-        rp = bench_replay_repeated(repeat=repeat, frames=replay_scans, points=35_000)
-        out["replay"] = {"points_per_scan": rp["points_per_scan"], "scans_per_s": rp["scans_per_s"],
-                         "dropped": rp["dropped_all_runs"], **{k: v for k, v in rp.items() if k != "dropped"}}
-    print(json.dumps(out, indent=None if json_out else 2))
-
-
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:
-    """Add ``sim`` (generate, export, bev, list) to the main app and ``sim`` to ``bench``."""
+    """Add ``sim`` (generate, export, bev, list) to the main app."""
     sim_app.command("generate")(generate_command)
     sim_app.command("export")(export_command)
     sim_app.command("bev")(bev_command)
     sim_app.command("list")(list_command)
     app.add_typer(sim_app, name="sim")
-    bench_app.command("sim")(bench_command)

@@ -15,7 +15,6 @@ surface's reflectivity, falling off with range, on nuScenes' 0…255 scale. Moti
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -283,12 +282,3 @@ def cast_frame(frame: GroundTruthFrame, sensor: LidarSpec | None = None, seed: i
 def scan(frame: GroundTruthFrame, sensor: LidarSpec | None = None, seed: int = 0) -> F32:
     """(P, 4) float32 x, y, z, intensity in the sensor frame: one full turn of ``sensor`` (HDL-32E by default)."""
     return cast_frame(frame, sensor, seed)[0].points
-
-
-def iter_scans(scenario: Iterable[GroundTruthFrame], sensor: LidarSpec | None = None, seed: int = 0
-               ) -> Iterator[tuple[GroundTruthFrame, ScanResult]]:
-    """Every frame of a scenario with its scan: (frame with point counts and ray-cast visibility, scan)."""
-    spec = sensor or hdl32e()
-    for frame in scenario:
-        res, f = cast_frame(frame, spec, seed)
-        yield f, res

@@ -242,10 +242,6 @@ def _complement(green: tuple[tuple[float, float], ...], horizon: float) -> tuple
     return tuple(red)
 
 
-def _shorten(green: tuple[tuple[float, float], ...], by: float) -> tuple[tuple[float, float], ...]:
-    return tuple((a, max(a, e - by)) for a, e in green)
-
-
 # --------------------------------------------------------------------------------------------- scenarios
 
 

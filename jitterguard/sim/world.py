@@ -66,15 +66,6 @@ class GroundTruthFrame:
     def num_objects(self) -> int:
         return len(self.instance_ids)
 
-    @property
-    def time_s(self) -> float:
-        return (self.stamp_ns - BASE_STAMP_NS) / 1e9
-
-    def index_of(self, instance_id: int) -> int:
-        """Row of ``instance_id`` in this frame, or -1 if it is not listed."""
-        hits = np.flatnonzero(self.instance_ids == instance_id)
-        return int(hits[0]) if len(hits) else -1
-
 
 class Scenario:
     """A generated scenario: ``num_frames`` frames at ``rate_hz``; ``frame(i)`` samples ground truth at i/rate."""

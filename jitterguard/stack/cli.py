@@ -8,6 +8,8 @@ shown), and at the end it prints the run's summary (:mod:`.summary`).
 
 Exit codes: 0 done; 1 the stack failed (a crash loop, no objects, a stop that did not finish); 2 bad input or a
 refused start; ``status`` 3 when the stack or any of its services is not up (see :func:`status_cmd`).
+
+Commands import their implementation when they run (start-up time: see :mod:`jitterguard.cli`).
 """
 
 from __future__ import annotations

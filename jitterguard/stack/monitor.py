@@ -96,16 +96,16 @@ class StackMonitor(Service):
 
 def monitor_command(
     run_dir: Annotated[Path, typer.Option("--run-dir", help="The stack's run directory (summary.json goes there).")],
+    log_level: LogLevelOpt = "INFO",
     ns: NsOpt = "default",
     zenoh_config: ZenohConfigOpt = None,
     connect: ConnectOpt = None,
     listen: ListenOpt = None,
-    log_level: LogLevelOpt = "INFO",
 ) -> None:
     """The stack's bookkeeping program (started by `jitterguard up`): heartbeats in, summary.json out."""
-    setup_logging(log_level)
-    if not run_dir.is_dir():
+    if not run_dir.is_dir():  # bad input first: a one-line error before anything is set up
         fail(f"--run-dir: no such folder: {run_dir}")
+    setup_logging(log_level)
     StackMonitor(zenoh_options(ns, zenoh_config, connect, listen), run_dir).run_forever()
 
 

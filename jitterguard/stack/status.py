@@ -78,7 +78,7 @@ def rows_from_processes(procs: list[ProcessInfo]) -> list[ServiceStatus]:
 
 def probe_zenoh(ns: str, endpoint: str, listen_s: float = 1.5) -> tuple[set[str], dict[str, Any]]:
     """Liveliness tokens present and the latest heartbeat per service, listening ``listen_s`` seconds."""
-    import zenoh
+    import zenoh  # start-up time: `jitterguard status` renders its table without a session where it can
 
     from ..runtime import ZenohOptions, build_config
     from ..schemas import DecodeError, decode, keys

@@ -22,7 +22,7 @@ from jitterguard.services.detector.config import CLASS_NAMES, Detections3D, Samp
 from jitterguard.services.detector.evaluate import DIST_THRESHOLDS_M, detection_ap, threshold_key
 from jitterguard.sim import make_scenario
 from jitterguard.sim.export import export_scenario, quaternion_wxyz
-from jitterguard.sim.lidar import iter_scans
+from helpers import iter_scans
 from jitterguard.sim.world import SENSOR_HEIGHT_M, GroundTruthFrame
 
 nuscenes = pytest.importorskip("nuscenes.nuscenes")

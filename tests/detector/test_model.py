@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import numpy as np
@@ -18,11 +17,11 @@ from jitterguard.services.detector.pillars import NUM_PILLAR_FEATURES, voxelize
 from jitterguard.services.detector.targets import build_targets, gaussian_radius
 from jitterguard.services.detector.train import TrainConfig, collate, train
 
-TINY = dataclasses.replace(
-    LITE, name="tiny", point_cloud_range=(-12.8, -12.8, -3.0, 12.8, 12.8, 3.0), voxel_size=(0.2, 0.2, 6.0),
+TINY = LITE.model_copy(update=dict(
+    name="tiny", point_cloud_range=(-12.8, -12.8, -3.0, 12.8, 12.8, 3.0), voxel_size=(0.2, 0.2, 6.0),
     pfn_channels=8, backbone_layers=(1, 1, 1), backbone_channels=(8, 16, 16), neck_channels=(8, 8, 8),
     head_channels=8, max_pillars=4000,
-)
+))
 """128×128 pillars, 32×32 output cells of 0.8 m: big enough for boxes, small enough for a unit test."""
 
 
@@ -67,7 +66,7 @@ def test_voxelize_groups_points_by_cell_and_caps_each_pillar() -> None:
 
 
 def test_voxelize_keeps_the_most_populated_pillars_when_over_budget() -> None:
-    cfg = dataclasses.replace(TINY, max_pillars=2)
+    cfg = TINY.model_copy(update={"max_pillars": 2})
     pts = torch.tensor([[0.05, 0.05, 0, 0]] * 3 + [[1.05, 0.05, 0, 0]] + [[2.05, 0.05, 0, 0]] * 2, dtype=torch.float32)
     p = voxelize([pts], cfg)
     assert sorted(p.num_points.tolist()) == [2, 3]
@@ -86,7 +85,7 @@ def test_pillar_features_are_the_nine_of_pointpillars() -> None:
 
 @pytest.mark.parametrize("uncertainty", [True, False])
 def test_output_shapes(uncertainty: bool) -> None:
-    cfg = dataclasses.replace(TINY, uncertainty=uncertainty)
+    cfg = TINY.model_copy(update={"uncertainty": uncertainty})
     out = CenterPointNet(cfg)([torch.from_numpy(_scene(0).points)] * 2)
     w, h = cfg.feature_map_size
     assert out["heatmap"].shape == (2, 5, h, w)

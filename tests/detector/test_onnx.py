@@ -17,7 +17,7 @@ pytest.importorskip("onnxruntime")
 pytest.importorskip("onnxscript")
 onnx = pytest.importorskip("onnx")
 
-from jitterguard.services.detector.bench import bench_scans  # noqa: E402
+from jitterguard.bench.detector import bench_scans  # noqa: E402
 from jitterguard.services.detector.inference import Detector, WeightsError  # noqa: E402
 from jitterguard.services.detector.onnx_backend import OnnxNetwork, load_onnx_detector, read_manifest  # noqa: E402
 from jitterguard.services.detector.onnx_cli import MAP_TOLERANCE, check_export, compare_detections  # noqa: E402

@@ -9,7 +9,6 @@ frame boxes, world-frame labels and poses line up — a frame or ordering bug wo
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 from collections.abc import Callable, Iterator
@@ -20,6 +19,8 @@ import pytest
 import torch
 
 from jitterguard.cli import main
+from jitterguard.schemas import decode
+from jitterguard.schemas.models import DetectedObjects
 from jitterguard.eval.detector_input import (
     LabelledScan,
     detection_metrics,
@@ -35,11 +36,11 @@ from jitterguard.services.detector.network import CenterPointNet
 from jitterguard.sim.world import make_scenario
 
 NUSC = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "nuscenes-scene-0523"
-TINY = dataclasses.replace(
-    LITE, name="tiny", point_cloud_range=(-12.8, -12.8, -3.0, 12.8, 12.8, 3.0), voxel_size=(0.2, 0.2, 6.0),
+TINY = LITE.model_copy(update=dict(
+    name="tiny", point_cloud_range=(-12.8, -12.8, -3.0, 12.8, 12.8, 3.0), voxel_size=(0.2, 0.2, 6.0),
     pfn_channels=8, backbone_layers=(1, 1, 1), backbone_channels=(8, 16, 16), neck_channels=(8, 8, 8),
     head_channels=8, max_pillars=4000,
-)
+))
 """tests/detector/test_model.py's unit-test network: 128×128 pillars, cheap enough for a 10-scan run."""
 ORACLE_VAR = 0.01
 DET_ARGS = ["eval", "--scenario", "parking-street", "--seed", "2", "--duration", "1", "--input", "detector",
@@ -53,7 +54,7 @@ def _one_thread() -> None:
 
 def _weights(path: Path, uncertainty: bool = True) -> Path:
     torch.manual_seed(0)
-    save_weights(path, CenterPointNet(dataclasses.replace(TINY, uncertainty=uncertainty)))
+    save_weights(path, CenterPointNet(TINY.model_copy(update={"uncertainty": uncertainty})))
     return path
 
 
@@ -90,7 +91,7 @@ def _run_cli(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, 
 
 
 def test_synthetic_scan_is_what_the_replay_publishes() -> None:
-    from jitterguard.services.replay.publisher import point_cloud_message
+    from jitterguard.services.replay.adapter import point_cloud_message
     from jitterguard.services.replay.sources.synthetic import SyntheticSource
 
     frame = next(iter(SyntheticSource("parking-street", seed=2, duration_s=1.0, rate_hz=10.0).frames(3)))
@@ -112,7 +113,7 @@ def test_oracle_detector_gives_exact_metrics_and_tracks_on_the_ground_truth() ->
     scans = list(synthetic_scans(sc, 1))
     frames = list(detector_frames(scans, _oracle(scans)))
     # what the tracker receives: the service's conversion, sensor frame, the variances as covariances
-    msg = frames[5].detections
+    msg = decode(DetectedObjects, frames[5].detections)
     assert msg.header == scans[5].scan.header and msg.ego_pose == scans[5].scan.ego_pose
     assert len(msg.objects) == int((scans[5].sample.num_points >= 1).sum()) > 5
     assert all(o.kinematics.has_position_covariance for o in msg.objects)
@@ -155,7 +156,7 @@ def test_detections_equal_the_detector_evaluations_own_on_nuscenes(tiny_weights:
     """The replay-message path (five columns, picked by name) gives the detector exactly the points its own
     evaluation (``eval-detector``, via ``nuscenes_samples``) feeds it, hence the same boxes and the same AP."""
     from jitterguard.eval.groundtruth import load_nuscenes_frames
-    from jitterguard.services.detector.convert import finite_detections
+    from jitterguard.services.detector.adapter import finite_detections
     from jitterguard.services.detector.evaluate import evaluation_report
     from jitterguard.services.detector.inference import Detector
 

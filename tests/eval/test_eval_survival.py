@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from jitterguard.eval import survival_cli
+from jitterguard.bench import survival as survival_cli
 from jitterguard.eval.survival import DEFAULT_MIN_POINTS, in_view, survival
 from jitterguard.schemas.models import (
     DetectedObject,

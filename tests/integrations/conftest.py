@@ -101,7 +101,7 @@ def pipeline_run(tmp_path_factory: pytest.TempPathFactory) -> Run:
     from jitterguard.services.foxglove.service import FoxgloveService, FoxgloveSink
     from jitterguard.services.recorder.rosbag import Rosbag2Sink
     from jitterguard.services.recorder.service import RecorderService
-    from jitterguard.services.replay.publisher import ReplayService
+    from jitterguard.services.replay.service import ReplayService
     from jitterguard.services.replay.runner import ReplayPlan
     from jitterguard.services.replay.sources import SourceOptions, open_source
     from jitterguard.services.tracker.service import TrackerService

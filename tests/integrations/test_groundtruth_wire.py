@@ -13,7 +13,7 @@ import zenoh
 from jitterguard.runtime import build_config, free_tcp_port, loopback_options
 from jitterguard.schemas import DecodeError, decode, encode, keys
 from jitterguard.schemas.models import GroundTruthObjects, PointCloud
-from jitterguard.services.replay.publisher import ReplayService
+from jitterguard.services.replay.service import ReplayService
 from jitterguard.services.replay.runner import ReplayPlan
 from jitterguard.services.replay.sources import SourceOptions, open_source
 

@@ -45,3 +45,22 @@ def write_bin(path: Path, pts: np.ndarray) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     np.asarray(pts, dtype="<f4").tofile(path)
     return path
+
+
+class FakeClock:
+    """A clock that only moves when slept on (or advanced by hand); records every sleep."""
+
+    def __init__(self, start: float = 1000.0) -> None:
+        self.t = start
+        self.sleeps: list[float] = []
+
+    def now(self) -> float:
+        return self.t
+
+    def sleep(self, seconds: float) -> bool:
+        self.sleeps.append(seconds)
+        self.t += max(0.0, seconds)
+        return True
+
+    def advance(self, seconds: float) -> None:
+        self.t += seconds

@@ -9,6 +9,7 @@ import pytest
 import typer
 from typer.testing import CliRunner
 
+from jitterguard.bench.cli import register as register_bench
 from jitterguard.services.replay.cli import register
 
 from .helpers import write_bin
@@ -19,6 +20,7 @@ def app() -> typer.Typer:
     app = typer.Typer(pretty_exceptions_enable=False)
     bench = typer.Typer()
     register(app, bench)
+    register_bench(app, bench)
     app.add_typer(bench, name="bench")
     return app
 

@@ -15,9 +15,19 @@ from jitterguard.services.replay.frames import EgoPose, FrameError, ScanFrame, S
 from jitterguard.services.replay.sources import SourceOptions, open_source
 from jitterguard.services.replay.sources.kitti import NOMINAL_TR, BinScanSource
 from jitterguard.services.replay.sources.nuscenes import NuScenesSource
-from jitterguard.services.replay.sources.pcd import PcdSource, lzf_decompress, lzf_literal, read_pcd
+from jitterguard.services.replay.sources.pcd import PcdSource, lzf_decompress, read_pcd
 
 from .helpers import MS, write_bin
+
+
+def lzf_literal(data: bytes) -> bytes:
+    """The trivial valid LZF encoding (literal runs only): lets the tests write binary_compressed files."""
+    out = bytearray()
+    for i in range(0, len(data), 32):
+        chunk = data[i : i + 32]
+        out.append(len(chunk) - 1)
+        out += chunk
+    return bytes(out)
 
 
 def _scans(folder: Path, n: int, cols: int = 4, suffix: str = ".bin") -> list[np.ndarray]:

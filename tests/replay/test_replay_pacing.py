@@ -6,7 +6,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from jitterguard.services.replay.pacing import FakeClock, Pacer, Restamper, parse_rate
+from jitterguard.services.replay.pacing import Pacer, Restamper, parse_rate
+from replay.helpers import FakeClock
 
 MS = 1_000_000
 

@@ -7,7 +7,7 @@ import threading
 import pytest
 
 from jitterguard.services.replay.frames import Frame, FrameError, SourceError
-from jitterguard.services.replay.pacing import FakeClock
+from replay.helpers import FakeClock
 from jitterguard.services.replay.runner import ReplayPlan, run_replay
 
 from .helpers import MS, ExplodingSource, memory

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from jitterguard.services.replay.frames import DetectionFrame, ScanFrame, SourceError
-from jitterguard.services.replay.pacing import FakeClock
+from replay.helpers import FakeClock
 from jitterguard.services.replay.runner import ReplayPlan, run_replay
 from jitterguard.services.replay.sources import SourceOptions, open_source
 

@@ -19,7 +19,7 @@ from jitterguard.runtime import build_config, free_tcp_port, loopback_options
 from jitterguard.schemas import DetectedObjects, PointCloud, decode, keys
 from jitterguard.schemas.models import DetectedObject, ObjectClassification
 from jitterguard.services.replay.frames import DetectionFrame, EgoPose
-from jitterguard.services.replay.publisher import ReplayService
+from jitterguard.services.replay.service import ReplayService
 from jitterguard.services.replay.runner import ReplayPlan
 from jitterguard.services.replay.sources.base import MemorySource
 
@@ -176,7 +176,7 @@ def test_cli_sigint_stops_a_looping_replay_cleanly(ns: str, tmp_path: Path) -> N
 
 
 def test_bench_counts_every_scan_at_rate_max_with_none_dropped() -> None:
-    from jitterguard.services.replay.bench import bench_replay_repeated
+    from jitterguard.bench.replay import bench_replay_repeated
 
     r = bench_replay_repeated(2, frames=40, points=2000)
     assert r["sent"] == 40 and r["received"] == 40

@@ -12,7 +12,10 @@ import zenoh
 
 from jitterguard.runtime import build_config, loopback_options
 from jitterguard.schemas import encode, keys
-from jitterguard.schemas.models import AUTHORS_ALPHA, ClassifierConfig, Heartbeat
+from jitterguard.schemas.models import ClassifierConfig, Heartbeat
+from jitterguard.services.classifier.config import PRESETS
+
+AUTHORS_ALPHA = PRESETS["authors"]["alpha_per_class"]
 from jitterguard.services.sidecar.core import StateView, TrackView
 
 from .stack import PAPER_STATISTIC, Stack, wait_for

@@ -11,13 +11,13 @@ from hypothesis import strategies as st
 from pydantic import ValidationError
 
 from jitterguard.schemas.models import (
-    AUTHORS_ALPHA,
     LABEL_NAMES,
     ClassifierConfig,
     ClassifierStateSnapshot,
     Header,
     TrackStateEntry,
 )
+from jitterguard.services.classifier.config import PRESETS
 from jitterguard.services.sidecar.core import (
     CLASS_NAMES,
     CONFIG_FIELDS,
@@ -123,7 +123,7 @@ def test_window_order_error_names_the_field_the_request_changed() -> None:
 def test_presets_keep_every_other_field() -> None:
     cur = ClassifierConfig(window_size=20, min_window=4, mode="chi2", alpha_default=3.0)
     out = apply_preset(cur, "authors")
-    assert out.alpha_per_class == AUTHORS_ALPHA
+    assert out.alpha_per_class == PRESETS["authors"]["alpha_per_class"]
     assert (out.window_size, out.min_window, out.mode) == (20, 4, "chi2")
     assert apply_preset(out, "paper").alpha_per_class == {}
     with pytest.raises(KeyError):

@@ -11,7 +11,7 @@ import pytest
 
 from jitterguard.sim import make_scenario
 from jitterguard.sim.export import ATTRIBUTE_TOKENS, export_scenario, nuscenes_tables
-from jitterguard.sim.lidar import iter_scans
+from helpers import iter_scans
 
 
 @pytest.fixture(scope="module")

@@ -10,7 +10,8 @@ import pytest
 
 from jitterguard.schemas import Label
 from jitterguard.sim import GroundTruthFrame, SENSOR_HEIGHT_M, make_scenario
-from jitterguard.sim.lidar import cast, cast_frame, iter_scans, scan
+from helpers import iter_scans
+from jitterguard.sim.lidar import cast, cast_frame, scan
 from jitterguard.sim.primitives import PrimitiveList
 from jitterguard.sim.sensors import hdl32e, os1_64, vlp16
 from jitterguard.sim.shapes import TEMPLATES, object_primitives

@@ -24,11 +24,11 @@ def test_bench_pipeline_smoke(tmp_path):
 
 
 def test_scene_generator_frames_validate():
-    from jitterguard.schemas import decode, peek_header_seq
+    from jitterguard.schemas import decode, peek_header
     from jitterguard.schemas.models import DetectedObjects
-    from jitterguard.stack.bench import SceneGenerator
+    from jitterguard.bench.pipeline import SceneGenerator
 
     gen = SceneGenerator(200, 20.0, seed=1)
     a, b = decode(DetectedObjects, gen.frame(0, 10)), decode(DetectedObjects, gen.frame(1, 20))
-    assert 150 < len(a.objects) <= 200 and b.header.seq == 1 and peek_header_seq(gen.frame(7, 30)) == 7
+    assert 150 < len(a.objects) <= 200 and b.header.seq == 1 and peek_header(gen.frame(7, 30)) == (7, 30)
     assert all(o.kinematics.has_position_covariance for o in a.objects)

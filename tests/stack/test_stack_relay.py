@@ -12,7 +12,6 @@ classifier must count missing observations and duplicate or late frames and stil
 from __future__ import annotations
 
 import random
-import signal
 import subprocess
 import sys
 import threading
@@ -22,6 +21,7 @@ from pathlib import Path
 import pytest
 import zenoh
 
+from jitterguard.bench.pipeline import stop_processes
 from jitterguard.runtime import ZenohOptions, build_config, free_tcp_port, open_session
 from jitterguard.schemas import decode, keys
 from jitterguard.schemas.models import Heartbeat
@@ -129,11 +129,4 @@ def test_lossy_duplicating_relay(tmp_path):
             assert cc.get("rejected", 0) == 0 and tc.get("rejected", 0) == 0
             print(f"\nrelay: {stats}\ntracker: {tc}\nclassifier: { {k: v for k, v in cc.items() if 'bucket' not in k} }")
     finally:
-        for p in procs.values():
-            if p.poll() is None:
-                p.send_signal(signal.SIGTERM)
-        for p in procs.values():
-            try:
-                p.wait(timeout=15)
-            except subprocess.TimeoutExpired:
-                p.kill()
+        stop_processes(procs.values())

@@ -7,7 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from jitterguard.services.tracker.config import ConfigError, default_config, dump_config, load_config
+from jitterguard.config import ConfigError
+from jitterguard.services.tracker.config import default_config, dump_config, load_config
 
 # Autoware's data_association_matrix.param.yaml, row CAR (tracker) — spelled out here on purpose
 AUTOWARE_CAR_ROW = {

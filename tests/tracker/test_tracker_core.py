@@ -12,8 +12,8 @@ import pytest
 from jitterguard.geometry import rotate_cov2
 from jitterguard.services.tracker.config import default_config
 from jitterguard.services.tracker.core import FrameRejected, TrackerCore
-from jitterguard.services.tracker.frames import DetectionFrame
-from tracker_simseq import CAR, PED, Obj, make_sequence
+from jitterguard.services.tracker.arrays import DetectionFrame
+from jitterguard.bench.tracker_sequences import CAR, PED, Obj, make_sequence
 
 DT = 0.1
 T0 = 1_700_000_000_000_000_000
@@ -168,12 +168,16 @@ def test_duplicate_and_out_of_order_frames_are_rejected_without_touching_state()
     assert res.observed_ids == before[1]
 
 
-def test_a_source_that_rewinds_far_resets_the_tracker() -> None:
+def test_a_source_that_rewinds_far_resets_the_tracker_once_confirmed() -> None:
     core = TrackerCore()
     for k in range(5):
         core.step(frame(k, [[10.0, 0.0]], [CAR], t=100.0 + k * DT))
     old_ids = list(core.tracks.ids)
-    res = core.step(frame(0, [[10.0, 0.0]], [CAR], t=0.0))  # a replay that started over
+    for k in range(2):  # a replay that started over: held until a run confirms it
+        with pytest.raises(FrameRejected, match="out_of_order"):
+            core.step(frame(k, [[10.0, 0.0]], [CAR], t=k * DT))
+    assert list(core.tracks.ids) == old_ids
+    res = core.step(frame(2, [[10.0, 0.0]], [CAR], t=2 * DT))
     assert res.reset and set(old_ids) <= set(res.deleted)
     assert len(core.tracks) == 1 and core.tracks.ids[0] not in old_ids
 

@@ -6,10 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from jitterguard.services.tracker.config import ConfigError, default_config, load_config
+from jitterguard.config import ConfigError
+from jitterguard.services.tracker.config import default_config, load_config
 from jitterguard.services.tracker.core import TrackerCore
-from jitterguard.services.tracker.frames import DetectionFrame
-from tracker_simseq import CAR, PED
+from jitterguard.services.tracker.arrays import DetectionFrame
+from jitterguard.bench.tracker_sequences import CAR, PED
 
 DT = 0.1
 T0 = 1_700_000_000_000_000_000

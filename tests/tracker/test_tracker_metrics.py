@@ -1,8 +1,8 @@
 """Tracking quality on seeded synthetic sequences, scored with motmetrics (MOTA, IDF1, ID switches).
 
-The sequences (``tracker_simseq``) have range-dependent noise with mis-calibrated reported covariances, 7 %
+The sequences (:mod:`jitterguard.bench.tracker_sequences`) have range-dependent noise with mis-calibrated reported covariances, 7 %
 random misses, occlusion gaps, ~0.8 false positives per scan, heading flips and class flicker, seen from a
-moving, turning ego. Reproduce the figures with ``python benchmarks/tracker_mot.py``.
+moving, turning ego. Reproduce the figures with ``jitterguard bench tracker-mot``.
 """
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ from __future__ import annotations
 import pytest
 
 from jitterguard.services.tracker.config import default_config
-from tracker_mot import evaluate
-from tracker_simseq import make_sequence
+from jitterguard.bench.tracker_mot import evaluate
+from jitterguard.bench.tracker_sequences import make_sequence
 
 SEEDS = (0, 1, 2)
 

@@ -1,11 +1,11 @@
-"""Late frame or restarted source? The header rules (``jitterguard.stream_order``) and the two consumers that
-apply them — the tracker core on ``detections`` and the classifier's frame assembler on ``tracked`` — fed the
-same header sequences, so they agree on which frames start a new stream and which are dropped.
+"""Late frame, jump, or a source that really started over? The header rules (``jitterguard.stream_order``) and the two
+consumers that apply them — the tracker core on ``detections`` and the classifier's frame assembler on ``tracked`` —
+fed the same header sequences, so they agree on which frames are taken and which are dropped.
 
-The cases are the ones a deployment meets: a sensor driver (or a replay on ``--stamps wall``) restarted, seq
-from 0 with time going on; a recording restarted soon after it began, repeating its own first headers; a
-recording restarted long after (the old ``rewind_reset_s`` rule); and a relay re-sending old frames between
-current ones, which must stay dropped.
+The cases are the ones a deployment meets — a sensor driver restarted (seq from 0, time going on), a recording
+started over, a long gap — and the ones a buggy upstream or an intruder sends: a stamp an hour ahead or 2^64 - 1, a
+seq of 2^62, old frames re-sent between current ones, a replayed capture. One message never changes the state; a
+discontinuity is followed once successive frames confirm it.
 """
 
 from __future__ import annotations
@@ -13,16 +13,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from jitterguard.services.classifier.frames import RESTART_GAP, FrameAssembler
+from jitterguard.bench.tracker_sequences import CAR
+from jitterguard.services.classifier.assembly import FrameAssembler
+from jitterguard.services.tracker.arrays import DetectionFrame
 from jitterguard.services.tracker.config import default_config
 from jitterguard.services.tracker.core import FrameRejected, TrackerCore
-from jitterguard.services.tracker.frames import DetectionFrame
-from jitterguard.stream_order import BehindRun, Verdict, judge
-from tracker_simseq import CAR
+from jitterguard.stream_order import StreamGuard, StreamLimits, Verdict
 
 T0 = 1_700_000_000_000_000_000
 MS = 1_000_000
 PERIOD = 100 * MS
+HOUR = 3600 * 10**9
 
 
 def stream(n: int, *, seq0: int = 0, t0: int = T0) -> list[tuple[int, int]]:
@@ -36,7 +37,7 @@ def det_frame(seq: int, stamp: int, x: float = 10.0) -> DetectionFrame:
 
 
 def run_tracker(headers: list[tuple[int, int]], core: TrackerCore | None = None) -> tuple[list[str], TrackerCore]:
-    """What the tracker does with each header: next / restarted / rewound, or the drop reason."""
+    """What the tracker does with each header: next / restarted / rewound / jumped, or the drop reason."""
     core = core or TrackerCore()
     out = []
     for seq, stamp in headers:
@@ -45,17 +46,20 @@ def run_tracker(headers: list[tuple[int, int]], core: TrackerCore | None = None)
         except FrameRejected as rej:
             out.append(rej.reason)
             continue
-        out.append("rewound" if res.reset else "restarted" if res.source_restarted else "next")
+        out.append("rewound" if res.reset else "restarted" if res.source_restarted else "jumped" if res.jumped
+                   else "next")
     return out, core
 
 
 def run_assembler(headers: list[tuple[int, int]]) -> tuple[list[bool], FrameAssembler]:
-    """Which closes the classifier's assembler takes (each frame completes at once: no observations)."""
-    fa: FrameAssembler = FrameAssembler()
+    """Which closes the classifier's assembler takes (each frame completes at once: no observations). The time
+    condition of a confirmation is tested on its own above; here frames alone confirm, as in the tracker core
+    driven without a clock."""
+    fa: FrameAssembler = FrameAssembler(guard=StreamGuard(StreamLimits(confirm_s=0.0)))
     taken = []
-    for seq, stamp in headers:
-        taken.append(fa.add_close_item(seq, [], None, now=0.0, stamp_ns=stamp))
-        fa.pop_ready(0.0)
+    for k, (seq, stamp) in enumerate(headers):  # arriving at 10 Hz on the receiver's clock
+        taken.append(fa.add_close_item(seq, [], None, now=k * 0.1, stamp_ns=stamp))
+        fa.pop_ready(k * 0.1)
     return taken, fa
 
 
@@ -64,69 +68,90 @@ def run_assembler(headers: list[tuple[int, int]]) -> tuple[list[bool], FrameAsse
 
 @pytest.mark.parametrize(("seq", "stamp", "want"), [
     (11, T0 + PERIOD, Verdict.NEXT),
-    (11, T0, Verdict.NEXT),  # an equal stamp under a higher seq (as before)
+    (11, T0, Verdict.NEXT),  # an equal stamp under a higher seq
+    (1010, T0 + 9 * 10**9, Verdict.NEXT),  # within both steps: a sensor back after a short gap
     (10, T0, Verdict.DUPLICATE),
     (10, T0 - PERIOD, Verdict.DUPLICATE),
-    (0, T0 + PERIOD, Verdict.RESTARTED),  # seq began again, time went on: a restarted driver
-    (10, T0 + PERIOD, Verdict.RESTARTED),  # the same seq, but newer: not a duplicate
     (7, T0 - 3 * PERIOD, Verdict.LATE),
     (12, T0 - PERIOD, Verdict.LATE),  # a higher seq from the past
-    (0, T0 - 11 * 10**9, Verdict.REWOUND),  # further back than rewind_reset_s
+    (0, T0 - HOUR, Verdict.LATE),
+    (11, T0 + HOUR, Verdict.JUMP),  # a stamp an hour ahead
+    (11, 2**63 - 1, Verdict.JUMP),
+    (2**62, T0 + PERIOD, Verdict.JUMP),  # a seq far ahead
+    (0, T0 + PERIOD, Verdict.JUMP),  # seq began again, time went on: a restart, not yet confirmed
+    (10, T0 + PERIOD, Verdict.JUMP),  # the same seq, newer
 ])
-def test_judge(seq: int, stamp: int, want: Verdict) -> None:
-    assert judge(seq, stamp, 10, T0, rewind_reset_ns=10e9) is want
+def test_one_header_is_judged_against_the_newest_frame_taken(seq: int, stamp: int, want: Verdict) -> None:
+    g = StreamGuard()
+    assert g.admit(10, T0) is Verdict.NEXT  # the first frame is taken as it comes
+    g.accept(10, T0)
+    assert g.admit(seq, stamp) is want
 
 
-def test_judge_first_frame_and_disabled_rewind() -> None:
-    assert judge(5, T0, None, None) is Verdict.NEXT
-    assert judge(0, T0 - 3600 * 10**9, 10, T0, rewind_reset_ns=0) is Verdict.LATE
+def test_a_run_confirms_only_with_enough_frames_each_after_the_previous_and_enough_time() -> None:
+    g = StreamGuard(StreamLimits(confirm_frames=3, confirm_s=0.5))
+    g.accept(100, T0)
+    restarted = stream(6, t0=T0 + 50 * PERIOD)  # seq 0.. with time going on
+    assert [g.admit(s, t, now_s=k * 0.1) for k, (s, t) in enumerate(restarted)] == [Verdict.JUMP] * 5 + [Verdict.RESTARTED]
+    g = StreamGuard(StreamLimits(confirm_frames=3, confirm_s=0.0))
+    g.accept(100, T0)
+    assert [g.admit(s, t) for s, t in stream(3, t0=T0 - HOUR)] == [Verdict.LATE, Verdict.LATE, Verdict.REWOUND]
+    g = StreamGuard(StreamLimits(confirm_frames=3, confirm_s=0.0))
+    g.accept(100, T0)
+    assert [g.admit(s, t) for s, t in stream(3, seq0=2**62, t0=T0 + PERIOD)] == [Verdict.JUMP, Verdict.JUMP, Verdict.JUMPED]
+    g = StreamGuard(StreamLimits(confirm_frames=3, confirm_s=0.0))
+    g.accept(100, T0)
+    g.admit(0, T0 + HOUR), g.admit(1, T0 + HOUR + PERIOD)
+    g.accept(101, T0 + PERIOD)  # the live stream went on in between: the run is history
+    assert g.admit(2, T0 + HOUR + 2 * PERIOD) is Verdict.JUMP
 
 
-def test_behind_run_needs_consecutive_frames_each_after_the_previous() -> None:
-    run = BehindRun(3)
-    assert [run.behind(s, t) for s, t in stream(3)] == [False, False, True]
-    run = BehindRun(3)
-    assert not run.behind(0, T0) and not run.behind(1, T0 + PERIOD)
-    assert not run.behind(0, T0)  # went back within the run: starts again
-    assert not run.behind(1, T0 + PERIOD) and run.behind(2, T0 + 2 * PERIOD)
-    run = BehindRun(3)
-    run.behind(0, T0), run.behind(1, T0 + PERIOD)
-    run.clear()  # something newer was accepted in between
-    assert not run.behind(2, T0 + 2 * PERIOD)
-    assert not any(BehindRun(0).behind(s, t) for s, t in stream(10))
+def test_a_flood_of_a_replayed_capture_never_outlasts_the_live_stream() -> None:
+    """A capture of consecutive frames replayed as fast as it can be sent: every run starts afresh after the next live
+    frame, and none lasts ``confirm_s`` on the receiver's clock."""
+    g = StreamGuard()
+    capture = stream(20, t0=T0)
+    taken, now = 0, 0.0
+    for k, (seq, stamp) in enumerate(stream(100, seq0=1000, t0=T0 + 60 * 10**9)):
+        now = k * 0.05
+        if g.admit(seq, stamp, now).accepted:
+            g.accept(seq, stamp)
+            taken += 1
+        for s, t in capture:  # the whole capture between two live frames
+            assert not g.admit(s, t, now + 0.001).accepted
+    assert taken == 100
 
 
 # ------------------------------------------------------------------------------------- tracker and classifier
 
 
-def test_a_source_restarted_with_time_going_on_is_followed_at_once_and_tracks_carry_on() -> None:
+def test_a_restarted_source_is_followed_once_confirmed_and_tracks_carry_on() -> None:
     first = stream(40, t0=T0)
     restarted = stream(10, t0=T0 + 42 * PERIOD)  # seq from 0 again, stamps after the gap
     got, core = run_tracker(first[:1])
     ids = list(core.tracks.ids)
     got, core = run_tracker(first[1:] + restarted, core)
-    assert got == ["next"] * 39 + ["restarted"] + ["next"] * 9
+    assert got == ["next"] * 39 + ["jump", "jump", "restarted"] + ["next"] * 7
     assert list(core.tracks.ids) == ids  # the same car, the same track: time went on, nothing to forget
     taken, fa = run_assembler(first + restarted)
-    assert all(taken) and fa.counts["upstream_restarts"] == 1
+    assert taken == [True] * 40 + [False, False] + [True] * 8 and fa.counts["upstream_restarts"] == 1
 
 
-@pytest.mark.parametrize("age", [5, 15, 60])
-def test_a_young_recording_restarted_is_taken_after_three_frames(age: int) -> None:
-    """A replay killed ``age`` frames after it began starts again with its own first headers, stamps back by
-    less than rewind_reset_s: frame for frame a re-send of old frames. Three in a row settle it."""
+@pytest.mark.parametrize("age", [5, 15, 150])
+def test_a_recording_started_over_is_taken_after_three_frames(age: int) -> None:
+    """A replay killed ``age`` frames after it began starts again with its own first headers: frame for frame a
+    re-send of old frames. Three in a row, each after the previous, settle it."""
     first, again = stream(age), stream(10)
     got, core = run_tracker(first + again)
     assert got[age:] == ["out_of_order", "out_of_order", "rewound"] + ["next"] * 7
     assert len(core.tracks) == 1 and core.last_seq == 9
     taken, fa = run_assembler(first + again)
-    far = age - 1 > RESTART_GAP  # the assembler's older rule: a seq that far back is a restart at once
-    assert taken[age:] == [True] * 10 if far else [False, False, True] + [True] * 7
-    assert fa.counts["upstream_restarts"] == 1 and fa.counts.get("duplicate_or_late_frames", 0) == (0 if far else 2)
+    assert taken[age:] == [False, False] + [True] * 8
+    assert fa.counts["upstream_restarts"] == 1 and fa.counts["duplicate_or_late_frames"] == 2
 
 
 def test_the_assembler_follows_the_tracker_after_it_reset_on_a_rewind() -> None:
-    """What reaches the classifier after a young rewind: the tracker's frames from the third one on."""
+    """What reaches the classifier after a rewind: the tracker's frames from the third one on."""
     first = stream(15)
     got, _ = run_tracker(first + first[:10])
     published = [h for h, what in zip(first + first[:10], got) if what in ("next", "restarted", "rewound")]
@@ -135,10 +160,18 @@ def test_the_assembler_follows_the_tracker_after_it_reset_on_a_rewind() -> None:
     assert fa.counts["upstream_restarts"] == 1
 
 
-def test_a_recording_restarted_long_after_resets_at_once() -> None:
-    first = stream(150)  # 15 s: further than rewind_reset_s (10 s)
-    got, core = run_tracker(first + first[:3])
-    assert got[150:] == ["rewound", "next", "next"]
+@pytest.mark.parametrize("bad", [(40, T0 + HOUR), (40, 2**63 - 1), (2**62, T0 + 40 * PERIOD), (0, T0 + 40 * PERIOD)])
+def test_one_bad_header_changes_nothing_and_is_counted(bad: tuple[int, int]) -> None:
+    """A stamp an hour ahead (or the largest int64), a seq of 2^62, a lone seq 0: dropped, no track lost, and the
+    next normal frame is taken as if it had not been there."""
+    frames = stream(40)
+    got, core = run_tracker(frames)
+    ids = list(core.tracks.ids)
+    got, core = run_tracker([bad, *stream(5, seq0=40, t0=T0 + 40 * PERIOD)], core)
+    assert got == ["jump"] + ["next"] * 5 and list(core.tracks.ids) == ids and core.last_seq == 44
+    taken, fa = run_assembler([*frames, bad, *stream(5, seq0=40, t0=T0 + 40 * PERIOD)])
+    assert taken == [True] * 40 + [False] + [True] * 5 and fa.counts["held_jumps"] == 1
+    assert "upstream_restarts" not in fa.counts
 
 
 def test_old_frames_re_sent_between_current_ones_stay_dropped() -> None:
@@ -161,8 +194,7 @@ def test_old_frames_re_sent_between_current_ones_stay_dropped() -> None:
     assert sum(taken) == 200 and "upstream_restarts" not in fa.counts
 
 
-def test_a_short_rewind_without_confirmation_waits_for_the_stamps_to_pass() -> None:
-    first = stream(15)
-    core = TrackerCore(default_config(rewind_confirm_frames=0))
-    got, _ = run_tracker(first + stream(20), core)
-    assert got[15:] == ["out_of_order"] * 14 + ["duplicate", "next", "next", "next", "next", "next"]  # as before
+def test_a_long_gap_within_the_stamp_step_is_just_the_next_frame() -> None:
+    core = TrackerCore(default_config(stream=StreamLimits(max_stamp_step_s=30.0)))
+    got, core = run_tracker(stream(5) + stream(3, seq0=5, t0=T0 + 25 * 10**9), core)
+    assert got == ["next"] * 8

@@ -24,7 +24,8 @@ from jitterguard.schemas.models import (
 )
 from jitterguard.services.tracker.config import default_config
 from jitterguard.services.tracker.service import TrackerService
-from tracker_simseq import make_sequence, to_message
+from helpers import to_message
+from jitterguard.bench.tracker_sequences import make_sequence
 
 pytestmark = pytest.mark.integration
 
@@ -138,9 +139,9 @@ def test_malformed_payloads_are_rejected_and_counted_and_tracking_goes_on(harnes
     h = harness_factory("trk_reject")
     before = h.service.counters.get("rejected")
     h.put(b"\x00\x01garbage")
-    h.put(encode(TrackedObjects(header=Header(stamp=1))))  # valid msgpack, wrong schema
+    h.put(encode(TrackedObjects(header=Header(stamp=h.stamp0 + 4, seq=h.next_seq + 1))))  # valid msgpack, wrong schema
     h.put(encode(h.empty_frame(h.next_seq + 1, h.stamp0 + 5))[:-3])  # truncated
-    h.put(b"\x81\xa2\xca\xca\x01")  # a map key that is not UTF-8 (msgspec raises UnicodeDecodeError for it)
+    h.put(b"\x81\xa2\xca\xca\x01")  # a map key that is not UTF-8
     assert wait_for(lambda: h.service.counters.get("rejected") >= before + 4)
     assert h.service.counters.get("rejected.detections") >= 4
     seq = h.next_seq + 2

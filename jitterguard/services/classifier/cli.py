@@ -1,45 +1,25 @@
-"""CLI of the classifier area: ``jitterguard classifier``, ``jitterguard feed-tracks``, ``jitterguard router``
-and ``jitterguard bench classifier``."""
+"""CLI of the classifier area: ``jitterguard classifier``, ``jitterguard feed-tracks``, ``jitterguard router``.
+Commands import their implementation when they run (start-up time: see :mod:`jitterguard.cli`)."""
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
-from ...cli_common import ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ZenohConfigOpt, fail, zenoh_options
-from ...schemas.models import PRESETS, ClassifierConfig
+from ...cli_common import ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ParamFileOpt, ZenohConfigOpt, fail, zenoh_options
+from ...config import ConfigError, load
+from .config import PRESETS, ClassifierParams
 
 
-def _load_config(path: str | None, preset: str | None, overrides: dict[str, object]) -> ClassifierConfig:
-    base: dict[str, object] = {}
-    if path:
-        p = Path(path)
-        if not p.is_file():
-            fail(f"--config: file not found: {path}")
-        try:
-            import yaml
-
-            loaded = yaml.safe_load(p.read_text()) or {}
-        except Exception as exc:
-            fail(f"--config: {path}: cannot parse: {exc}")
-        if not isinstance(loaded, dict):
-            fail(f"--config: {path}: expected a mapping of ClassifierConfig fields")
-        base.update(loaded)
-    if preset:
-        if preset not in PRESETS:
-            fail(f"--preset: unknown preset {preset!r}; choose from {sorted(PRESETS)}")
-        base.update(PRESETS[preset])
-    base.update({k: v for k, v in overrides.items() if v is not None})
+def _load_config(path: str | None, preset: str | None, overrides: dict[str, object]) -> ClassifierParams:
     try:
-        return ClassifierConfig.model_validate(base)
-    except Exception as exc:
-        err = exc.errors()[0] if hasattr(exc, "errors") else {"loc": (), "msg": str(exc)}
-        field = ".".join(str(x) for x in err["loc"]) or "config"
-        fail(f"{field}: {err['msg']}")
+        return load(ClassifierParams, path, service="classifier", preset=preset, overrides=overrides,
+                    flags={"alpha_default": "--alpha"})
+    except ConfigError as exc:
+        fail(f"--config: {exc}" if path else str(exc))
 
 
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:
@@ -49,8 +29,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         zenoh_config: ZenohConfigOpt = None,
         connect: ConnectOpt = None,
         listen: ListenOpt = None,
-        config: Annotated[str | None, typer.Option("--config", help="YAML file of ClassifierConfig fields.")] = None,
-        preset: Annotated[str | None, typer.Option("--preset", help="Named alpha preset: paper or authors.")] = None,
+        config: ParamFileOpt = None,
+        preset: Annotated[str | None, typer.Option("--preset", help=f"Named preset: {', '.join(PRESETS)}.")] = None,
         alpha: Annotated[float | None, typer.Option("--alpha", help="Default alpha (z threshold).")] = None,
         window_size: Annotated[int | None, typer.Option("--window-size")] = None,
         min_window: Annotated[int | None, typer.Option("--min-window")] = None,
@@ -79,24 +59,28 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         opts = zenoh_options(ns, zenoh_config, connect, listen)
         if calibration_file is not None and calibration is None:
             calibration = "file"
-        cfg = _load_config(config, preset, {"alpha_default": alpha, "window_size": window_size,
-                                             "min_window": min_window, "mode": mode, "effective_n": effective_n,
-                                             "calibration": calibration, "calibration_file": calibration_file})
+        params = _load_config(config, preset, {"alpha_default": alpha, "window_size": window_size,
+                                               "min_window": min_window, "mode": mode, "effective_n": effective_n,
+                                               "calibration": calibration, "calibration_file": calibration_file,
+                                               "config_store": config_store,
+                                               "open_config_writes": open_config_writes or None})
         model = None
-        if cfg.calibration == "file":
+        if params.calibration == "file":
             try:
-                model = read_calibration(cfg.calibration_file or "")
+                model = read_calibration(params.calibration_file or "")
             except CalibrationFileError as exc:
-                fail(f"--calibration-file: {exc}")
+                fail(f"{'--calibration-file' if calibration_file else 'calibration_file'}: {exc}")
         store = None
-        if config_store:
-            parent = Path(config_store).absolute().parent
-            if Path(config_store).is_dir() or not parent.is_dir() or not os.access(parent, os.W_OK):
-                fail(f"--config-store: {config_store} must be a file in a writable directory")
-            store = ConfigStore(Path(config_store).absolute())
+        if params.config_store:
+            path = Path(params.config_store).absolute()
+            if path.is_dir() or not path.parent.is_dir() or not os.access(path.parent, os.W_OK):
+                fail(f"{'--config-store' if config_store else 'config_store'}: {params.config_store} must be a file in a writable directory")
+            store = ConfigStore(path)
         setup_logging(log_level)
-        ClassifierService(opts, cfg, manage_gc=True, calibration_model=model, config_store=store,
-                          config_writes=ConfigWritePolicy.from_env(open_writes=open_config_writes)).run_forever()
+        ClassifierService(opts, params.wire(), straggler_timeout_s=params.straggler_timeout_s, limits=params.limits,
+                          stream=params.stream, manage_gc=True, config_store=store, calibration_model=model,
+                          config_writes=ConfigWritePolicy.from_env(open_writes=params.open_config_writes)
+                          ).run_forever()
 
     @app.command("feed-tracks")
     def feed_tracks_cmd(
@@ -137,19 +121,3 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         setup_logging(log_level)
         run_router(list(listen or ()), zenoh_config)
 
-    @bench_app.command("classifier")
-    def bench_classifier_cmd(
-        as_json: Annotated[bool, typer.Option("--json", help="Print JSON (the only format).")] = True,
-        duration: Annotated[float, typer.Option("--duration", min=1.0, help="Service run, seconds.")] = 60.0,
-        tracks: Annotated[int, typer.Option("--tracks", min=1)] = 200,
-        rate: Annotated[float, typer.Option("--rate", min=1.0)] = 20.0,
-        skip_service: Annotated[bool, typer.Option("--core-only", help="Skip the 60 s service run.")] = False,
-    ) -> None:
-        """Time the core (10/100/1000 tracks), the per-frame work in-process and the live service over Zenoh;
-        prints JSON."""
-        from .bench import bench_core, bench_frame_cost, bench_service
-
-        result: dict[str, object] = {"core": bench_core(), "frame_cost": bench_frame_cost(tracks=tracks)}
-        if not skip_service:
-            result["service"] = bench_service(tracks=tracks, rate_hz=rate, duration_s=duration)
-        print(json.dumps(result, indent=2))

@@ -275,10 +275,6 @@ class MotionClassifierCore:
 
     # ------------------------------------------------------------------ ID -> row mapping
 
-    @property
-    def num_tracks(self) -> int:
-        return int(self._ids.shape[0])
-
     def track_ids(self) -> list[str]:
         return [i.decode() for i in self._ids.tolist()]
 

@@ -7,17 +7,21 @@ Per frame: one ``tracks/{id}`` per observed track, then ``tracked`` closing the 
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 from ...runtime import Service, ZenohOptions
 from ...schemas import keys
-from .synthetic_tracks import TrackFrame, TrackScenario, generate
+from ...schemas.models import Header
+from .synthetic_tracks import FrameRecords, TrackFrame, TrackScenario, generate
 
 
-def publish_track_frame(service: Service, frame: TrackFrame, ns: str) -> None:
-    """Put one frame on the wire in the tracker's order (observations, then the closing message)."""
-    for obs in frame.observations:
-        service.put(keys.track(ns, obs.track.object_id), obs)
-    service.put(keys.tracked(ns), frame.tracked)
+def publish_track_frame(service: Service, frame: TrackFrame, ns: str, header: Header | None = None) -> None:
+    """Put one frame on the wire as the tracker writes it, in its order (observations, then the closing message),
+    under ``header`` if given (a renumbered frame)."""
+    observations, tracked = FrameRecords.of(frame).payloads(header)
+    for tid, payload in observations:
+        service.put(keys.track(ns, tid), payload)
+    service.put(keys.tracked(ns), tracked)
 
 
 class TrackFeeder(Service):
@@ -31,17 +35,20 @@ class TrackFeeder(Service):
         self.spawn(self._run, "feed")
 
     def _run(self) -> None:
+        """Frames at ``rate_hz``; a loop starts the scenario over with new track IDs, seq and stamp going on (the
+        classifier takes a stream whose seq or stamp goes back for a restarted tracker)."""
         period = 1.0 / self.rate_hz
         seq = 0
         loop_no = 0
+        stamp0 = time.time_ns()
         next_t = time.monotonic()
         while not self.stop_event.is_set():
-            sc = TrackScenario(**{**self.scenario.__dict__, "seed": self.seed + loop_no})
+            sc = replace(self.scenario, seed=self.seed + loop_no)
             for frame in generate(sc, self.frames):
                 if self.stop_event.is_set():
                     return
-                frame = _renumber(frame, seq)
-                publish_track_frame(self, frame, self.ns)
+                header = Header(stamp=stamp0 + round(seq * period * 1e9), frame_id="map", seq=seq)
+                publish_track_frame(self, frame, self.ns, header)
                 self.last_seq = seq
                 seq += 1
                 next_t += period
@@ -51,13 +58,3 @@ class TrackFeeder(Service):
                 self.log.info("scenario done (%d frames)", seq)
                 self.stop()
                 return
-
-
-def _renumber(frame: TrackFrame, seq: int) -> TrackFrame:
-    """Give a looped frame a fresh, monotonically increasing seq (the classifier drops repeats)."""
-    if frame.seq == seq:
-        return frame
-    header = frame.tracked.header.model_copy(update={"seq": seq})
-    obs = [o.model_copy(update={"header": header}) for o in frame.observations]
-    tracked = frame.tracked.model_copy(update={"header": header})
-    return TrackFrame(seq=seq, stamp_ns=frame.stamp_ns, observations=obs, tracked=tracked, moving=frame.moving)

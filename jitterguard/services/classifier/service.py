@@ -1,7 +1,7 @@
-"""The classifier as a Zenoh service: a thin adapter around :class:`~.pipeline.ClassifierPipeline`.
+"""The classifier as a Zenoh service: transport and threads around :class:`~.adapter.ClassifierAdapter`.
 
-Threads. Observations (``tracks/*``, thousands per second) wait in a Zenoh FIFO channel that one worker
-thread drains and validates as they arrive, so no Python callback runs per sample. The frame-closing
+Threads. Observations (``tracks/*``, thousands per second) wait in a Zenoh ring channel that one worker
+thread drains and reads in batches as they arrive, so no Python callback runs per sample. The frame-closing
 ``tracked`` (once per frame) comes through a callback that only stamps its arrival and wakes the worker:
 the frame latency counts from that stamp, i.e. from the sample reaching this process's subscriber, queueing
 included. The worker owns the pipeline: it validates, assembles frames, decides, and publishes ``objects``
@@ -9,7 +9,10 @@ first (what the predictor waits for, and where the frame latency ends) and then 
 messages; the contract does not order the two. Config writes go through the same worker, so a write is
 applied between two frames and the reply reports what is in force from the next frame on.
 
-Overload degrades instead of backing up: a straggler of a frame already decided is dropped (counted
+Overload degrades instead of backing up, and every queue is bounded: ``tracked`` waits in a queue of
+:data:`CLOSE_QUEUE` (the oldest goes, counted ``dropped_queue.tracked``), observations in Zenoh's ring channel (the
+oldest goes; what a frame then lacks is counted ``frames.missing_observations``), config writes in a queue of 64; a
+``tracked`` that is a duplicate, late or a jump is dropped from its header, unread. A straggler of a frame already decided is dropped (counted
 ``frames.late_observations``), a frame is not given up on for stragglers while the worker is still behind on
 what arrived, and when the next frame's ``tracked`` is already waiting the ``motion/{id}`` messages of the
 current frame are skipped (counted ``motion_frames_shed``; the next frame's supersede them).
@@ -32,44 +35,27 @@ import zenoh
 from ...runtime import Service, ZenohOptions
 from ...runtime.gc_policy import IdleCollector, manage_gc_for_latency
 from ...schemas import SCHEMA_VERSION, DecodeError, decode, encode, keys
-from ...schemas.models import (
-    ClassifierConfig,
-    ClassifierStateSnapshot,
-    ConfigReply,
-    TrackObservation,
-)
+from ...schemas.models import ClassifierConfig, ConfigReply
+from ...schemas.wire import LIMITS, Limits
+from ...stream_order import StreamLimits
+from .adapter import ClassifierAdapter, FrameOutput, Poses
+from .assembly import FrameAssembler
 from .calibration import NoiseModel
 from .calibration_file import CalibrationFileError, read_calibration
 from .config_store import ConfigStore
 from .config_writes import ConfigWritePolicy
-from .core import STATE_NAMES, Decisions, MotionClassifierCore, Observations, calibration_gauges
-from .frames import FrameAssembler
-from .pipeline import (  # noqa: F401  (re-exported: eval and the sidecar bench use them from here)
-    ClassifierPipeline,
-    FrameOutput,
-    RecordObjects,
-    StructObjects,
-    apply_decisions_to_objects,
-    observation_row,
-    observations_from_rows,
-)
+from .core import STATE_NAMES, Decisions, MotionClassifierCore, calibration_gauges
 
 CONFIG_APPLY_TIMEOUT_S = 2.0
 LATENCY_WINDOW = 4096
 LATENCY_BUCKETS_MS = (0.5, 1, 2, 5, 10, 20, 50, 100, 200, 500, 1000)
 """Frame-latency histogram buckets; exported as counters so the sidecar's /metrics can rebuild it."""
+CLOSE_QUEUE = 64
+"""``tracked`` messages waiting for the worker (3.2 s at 20 Hz, as the tracker's inbox); beyond that the oldest goes."""
 OBS_CHUNK = 64
 """Observations validated per pass before the worker looks for a newly arrived ``tracked`` again."""
 IDLE_POLL_S = 0.0005
 """How long the idle worker waits for a ``tracked`` wake-up before polling the observation channel again."""
-def observations_from_messages(msgs: list[TrackObservation], seq: int, stamp_ns: int,
-                               sensor_xy: tuple[float, float] = (0.0, 0.0)) -> Observations:
-    """Flatten one frame's TrackObservation models into the core's arrays (world frame; ``sensor_xy``: the
-    position of the closing ``tracked`` message's ``ego_pose``).
-
-    For in-process users that hold models (the offline evaluator); the service keeps rows as samples arrive.
-    """
-    return observations_from_rows([observation_row(m) for m in msgs], seq, stamp_ns, sensor_xy)
 
 
 @dataclass
@@ -77,7 +63,7 @@ class _Latest:
     """What the state queryable reports: the last processed frame (immutable once stored)."""
 
     header: dict[str, Any]
-    objects: RecordObjects | StructObjects  # as published
+    objects: np.ndarray  # as published
     decisions: Decisions
     labels: np.ndarray
     stamps: np.ndarray
@@ -90,9 +76,9 @@ class ClassifierService(Service):
     name = "classifier"
 
     def __init__(self, opts: ZenohOptions, config: ClassifierConfig | None = None, *,
-                 straggler_timeout_s: float = 0.05, manage_gc: bool = False,
-                 config_writes: ConfigWritePolicy | None = None, config_store: ConfigStore | None = None,
-                 calibration_model: NoiseModel | None = None) -> None:
+                 straggler_timeout_s: float = 0.05, limits: Limits = LIMITS, stream: StreamLimits | None = None,
+                 manage_gc: bool = False, config_writes: ConfigWritePolicy | None = None,
+                 config_store: ConfigStore | None = None, calibration_model: NoiseModel | None = None) -> None:
         """``manage_gc``: call :func:`manage_gc_for_latency` and collect garbage between frames (process-wide;
         for the process that runs the classifier, not for tests that embed it). ``config_writes``: who may
         write the config over Zenoh (default: ``JG_API_TOKEN`` holders, nobody without one). ``config_store``:
@@ -114,13 +100,13 @@ class ClassifierService(Service):
         self._idle_gc = IdleCollector()
         if manage_gc:
             manage_gc_for_latency()
-        self.pipeline = ClassifierPipeline(config, straggler_timeout_s=straggler_timeout_s,
-                                           calibration_model=calibration_model)
+        self.pipeline = ClassifierAdapter(config, straggler_timeout_s=straggler_timeout_s, limits=limits, stream=stream,
+                                          calibration_model=calibration_model)
         self._calibration = self.core.calibration_state()  # what the latest frame used (state queryable)
         self._gauges = calibration_gauges(self._calibration)  # ... flattened for the heartbeat
         self.latencies_ms: deque[float] = deque(maxlen=LATENCY_WINDOW)
-        self._queue: queue.Queue = queue.Queue()  # config writes and calls, run between frames
-        self._closes: deque[tuple[bytes, zenoh.KeyExpr, float]] = deque()
+        self._queue: queue.Queue = queue.Queue(maxsize=64)  # config writes and calls, run between frames
+        self._closes: deque[tuple[bytes, zenoh.KeyExpr, float]] = deque(maxlen=CLOSE_QUEUE)
         self._wake = threading.Event()
         self._latest: _Latest | None = None
         self._latest_lock = threading.Lock()
@@ -147,9 +133,12 @@ class ClassifierService(Service):
     # ---------------------------------------------------------------- the worker
 
     def _on_tracked(self, sample: zenoh.Sample) -> None:
-        """Zenoh's callback thread: stamp the arrival, hand the bytes to the worker, wake it. Nothing else."""
+        """Zenoh's callback thread: stamp the arrival, hand the bytes to the worker, wake it. Nothing else. The
+        queue is bounded: a worker that fell behind loses the oldest close (counted ``dropped_queue.tracked``)."""
         t0 = time.perf_counter()
         self.progress.input(time.monotonic())
+        if len(self._closes) == CLOSE_QUEUE:
+            self.counters.inc("dropped_queue.tracked")
         self._closes.append((sample.payload.to_bytes(), sample.key_expr, t0))
         self._wake.set()
 
@@ -203,26 +192,31 @@ class ClassifierService(Service):
             took = True
             self.counters.inc("received")
             try:
-                self.pipeline.close(data, t0)
+                cols = self.pipeline.close(data, t0)
             except DecodeError as exc:
                 self.reject(exc, self._tracked_key, str(key))
+                continue
+            if cols is not None and cols.normalised:
+                self.counters.inc("normalised.tracked")
         return took
 
     def _take_observations(self, limit: int) -> int:
-        """Validate up to ``limit`` observations from the channel; returns how many were taken."""
-        n = 0
-        while n < limit:
+        """Read up to ``limit`` observations from the channel, as one batch; returns how many were taken."""
+        samples = []
+        while len(samples) < limit:
             sample = self._obs_sub.try_recv()
             if sample is None:
                 break
-            n += 1
-            try:
-                self.pipeline.observation(sample.payload.to_bytes())
-            except DecodeError as exc:
-                self.reject(exc, self._obs_key, str(sample.key_expr))
-        if n:
-            self.counters.inc("received", n)
-        return n
+            samples.append(sample)
+        if not samples:
+            return 0
+        self.counters.inc("received", len(samples))
+        cols = self.pipeline.observations([s.payload.to_bytes() for s in samples])
+        for i, exc in cols.errors:
+            self.reject(exc, self._obs_key, str(samples[i].key_expr))
+        if cols.normalised:
+            self.counters.inc("normalised.tracks", cols.normalised)
+        return len(samples)
 
     def _run_control(self, item: tuple[str, tuple, None]) -> None:
         kind, (arg, fut), model = item
@@ -302,7 +296,7 @@ class ClassifierService(Service):
     def run_on_worker(self, fn, timeout: float = CONFIG_APPLY_TIMEOUT_S):
         """Run ``fn()`` on the worker thread between two frames and return its result."""
         fut: Future = Future()
-        self._queue.put(("call", (fn, fut), None))
+        self._queue.put(("call", (fn, fut), None), timeout=timeout)  # bounded: queue.Full when the worker is stuck
         return fut.result(timeout=timeout)
 
     def _on_config_query(self, query: zenoh.Query) -> None:
@@ -333,7 +327,7 @@ class ClassifierService(Service):
                                                    error=f"calibration_file: {exc}")))
                 return
         fut: Future = Future()
-        self._queue.put(("config", (cfg, fut), model))
+        self._queue.put(("config", (cfg, fut), model), timeout=CONFIG_APPLY_TIMEOUT_S)  # bounded, as above
         try:
             in_force = fut.result(timeout=CONFIG_APPLY_TIMEOUT_S)
         except ValueError as exc:  # refused by the core (check_config): nothing applied
@@ -365,8 +359,8 @@ class ClassifierService(Service):
         states, labels = dec.state.tolist(), latest.labels.tolist()
         stamps, seqs = latest.stamps.tolist(), latest.seqs.tolist()
         window_size = latest.config.window_size
-        poses = latest.objects.poses()  # static objects already carry their window mean
-        ids = [i.decode() for i in latest.objects.ids.tolist()]
+        poses = Poses.of(latest.objects)  # static objects already carry their window mean
+        ids = [i.decode() for i in latest.objects["object_id"].tolist()]
         px, py, yaw = poses.x.tolist(), poses.y.tolist(), poses.yaw.tolist()
         length, width = poses.length.tolist(), poses.width.tolist()
         tracks = []
@@ -384,10 +378,6 @@ class ClassifierService(Service):
     def gauges(self) -> dict[str, float]:
         """The heartbeat's gauges: the calibration the latest frame was decided with (:func:`calibration_gauges`)."""
         return self._gauges
-
-    def state_snapshot(self) -> ClassifierStateSnapshot:
-        """:meth:`state_map`, validated (for in-process users and tests)."""
-        return ClassifierStateSnapshot.model_validate(self.state_map())
 
     def _on_state_query(self, query: zenoh.Query) -> None:
         with self._latest_lock:

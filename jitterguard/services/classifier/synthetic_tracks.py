@@ -11,36 +11,24 @@ from __future__ import annotations
 import math
 import uuid
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from ...geometry import quaternion_from_yaw, rotate_cov2, sensor_to_world_xy, world_to_sensor_xy
-from ...schemas.models import (
-    X_X,
-    X_Y,
-    Y_X,
-    Y_Y,
-    YAW_YAW,
-    DetectedObject,
-    DetectedObjectKinematics,
-    Header,
-    Label,
-    ObjectClassification,
-    Point,
-    Pose,
-    PoseWithCovariance,
-    Quaternion,
-    Shape,
-    TrackedObject,
-    TrackedObjectKinematics,
-    TrackedObjects,
-    TrackObservation,
-    TrackState,
-    Twist,
-    TwistWithCovariance,
-    Vector3,
+from ...schemas.wire import (
+    DETECTED,
+    TRACK_STATE,
+    TRACKED,
+    TrackedColumns,
+    records_of,
+    write_track_observations,
+    write_tracked_objects,
 )
+from ...schemas.models import (X_X, X_Y, Y_X, Y_Y, YAW_YAW, DetectedObject, DetectedObjectKinematics, Header,
+    Label, ObjectClassification, Point, Pose, PoseWithCovariance, Quaternion, Shape, TrackedObject,
+    TrackedObjectKinematics, TrackedObjects, TrackObservation, TrackState, Twist, TwistWithCovariance,
+    Vector3)
 
 
 @dataclass(frozen=True)
@@ -158,10 +146,37 @@ def generate(sc: TrackScenario, num_frames: int) -> Iterator[TrackFrame]:
                                x=float(wx[i]), y=float(wy[i]), yaw=float(heading[i]), vx=tw.x, vy=tw.y,
                                hits=f + 1, age_s=f * dt)
             observations.append(TrackObservation(header=header, detection=det, track=state))
+        ego_pose = Pose(position=Point(x=float(ego[0]), y=float(ego[1])),
+                        orientation=Quaternion(**dict(zip("xyzw", quaternion_from_yaw(float(ego[2]))))))
         yield TrackFrame(
             seq=f,
             stamp_ns=stamp,
             observations=observations,
-            tracked=TrackedObjects(header=header, objects=tracked, observed_track_ids=[o.object_id for o in tracked]),
+            tracked=TrackedObjects(header=header, ego_pose=ego_pose, objects=tracked,
+                                   observed_track_ids=[o.object_id for o in tracked]),
             moving={ids[i]: bool(moving_now[i]) for i in range(n)},
         )
+
+
+@dataclass(frozen=True)
+class FrameRecords:
+    """A :class:`TrackFrame` as the tracker writes it (records), ready to be put under any header."""
+
+    track_ids: list[str]
+    detections: np.ndarray
+    states: np.ndarray
+    tracked: TrackedColumns
+
+    @staticmethod
+    def of(frame: TrackFrame) -> FrameRecords:
+        t = frame.tracked
+        return FrameRecords([o.track.object_id for o in frame.observations],
+                            records_of(DETECTED, [o.detection for o in frame.observations]),
+                            records_of(TRACK_STATE, [o.track for o in frame.observations]),
+                            TrackedColumns(t.header, t.ego_pose, records_of(TRACKED, t.objects), t.observed_track_ids))
+
+    def payloads(self, header: Header | None = None) -> tuple[list[tuple[str, bytes]], bytes]:
+        """``(track_id, tracks/{id} payload)`` per observation and the closing ``tracked`` payload."""
+        h = header or self.tracked.header
+        obs = write_track_observations(h, self.detections, self.states)
+        return list(zip(self.track_ids, obs)), write_tracked_objects(replace(self.tracked, header=h))

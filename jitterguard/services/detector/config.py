@@ -7,11 +7,14 @@ Kept free of torch so that data, evaluation and the service adapter import it ch
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from typing import Annotated, Literal
 
 import numpy as np
 from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field, PositiveInt
 
+from ...config import load, param_file, presets
 from ...schemas.models import Label
 
 F32 = NDArray[np.float32]
@@ -42,45 +45,49 @@ VAR_NAMES: tuple[str, ...] = ("x", "y", "vx", "vy", "yaw")
 """Order of the log-variance channels (paper §III-A)."""
 
 
-@dataclass(frozen=True)
-class DetectorConfig:
-    """Architecture, grid and target parameters of one CenterPoint-PointPillars variant.
+class DetectorConfig(BaseModel):
+    """Architecture, grid and target parameters of one CenterPoint-PointPillars variant (a preset file, or the
+    ``config`` stored in a weights file).
 
     ``point_cloud_range`` is (x_min, y_min, z_min, x_max, y_max, z_max) in the sensor frame; the BEV grid is
     ``grid_size`` pillars of ``voxel_size`` metres; the heads run at ``out_size_factor`` times coarser.
     """
 
-    name: str
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+    name: str = Field(description="the preset this architecture is, or was derived from")
     point_cloud_range: tuple[float, float, float, float, float, float]
     voxel_size: tuple[float, float, float]
-    max_points_per_pillar: int
-    max_pillars: int
-    pfn_channels: int
+    max_points_per_pillar: PositiveInt
+    max_pillars: PositiveInt
+    pfn_channels: PositiveInt
     backbone_layers: tuple[int, ...]
     backbone_strides: tuple[int, ...]
     backbone_channels: tuple[int, ...]
     neck_upsample_strides: tuple[float, ...]
     neck_channels: tuple[int, ...]
-    head_channels: int
-    out_size_factor: int
-    head_conv_layers: int = 2
-    """3×3 conv layers per separate head, the output conv included (CenterPoint: one hidden + the output ⇒ 2;
-    ``lite``: the output conv straight off the shared conv ⇒ 1)."""
-    uncertainty: bool = True
-    """Variance heads (log σ² for x, y, vx, vy, yaw) trained with Gaussian NLL; False gives the vanilla model."""
+    head_channels: PositiveInt
+    out_size_factor: PositiveInt
+    head_conv_layers: PositiveInt = Field(
+        2, description="3x3 conv layers per separate head, the output conv included (CenterPoint: one hidden + the"
+        " output = 2; lite: the output conv straight off the shared conv = 1)")
+    uncertainty: bool = Field(
+        True, description="variance heads (log sigma^2 for x, y, vx, vy, yaw) trained with Gaussian NLL; false"
+        " gives the vanilla model")
     gaussian_overlap: float = 0.1
     min_radius: int = 2
-    max_objects: int = 500
-    score_threshold: float = 0.1
-    nms_dist2: tuple[float, ...] = (4.0, 12.0, 10.0, 0.85, 0.175)
-    """Circle-NMS threshold per class on the *squared* BEV centre distance in m² (CenterPoint's circle_nms
-    semantics and nuScenes values: car 4 ⇒ 2 m, pedestrian 0.175 ⇒ 0.42 m)."""
-    post_max_size: int = 300
-    """Detections kept per scan after NMS (a diagonal lot holds 100+ cars in range, more than nuScenes scenes)."""
-    num_point_features: int = 4
-    """Point fields fed in: x, y, z, intensity (intensity scaled to [0, 1] by dividing by 255)."""
+    max_objects: PositiveInt = 500
+    score_threshold: Annotated[float, Field(ge=0.0, le=1.0)] = 0.1
+    nms_dist2: tuple[float, ...] = Field(
+        (4.0, 12.0, 10.0, 0.85, 0.175),
+        description="circle-NMS threshold per class on the squared BEV centre distance in m^2 (CenterPoint's"
+        " circle_nms semantics and nuScenes values: car 4 = 2 m, pedestrian 0.175 = 0.42 m)")
+    post_max_size: PositiveInt = Field(
+        300, description="detections kept per scan after NMS (a diagonal lot holds 100+ cars in range)")
+    num_point_features: PositiveInt = Field(
+        4, description="point fields fed in: x, y, z, intensity (intensity scaled to [0, 1] by dividing by 255)")
     logvar_min: float = -10.0
-    class_names: tuple[str, ...] = field(default=CLASS_NAMES)
+    class_names: tuple[str, ...] = CLASS_NAMES
 
     @property
     def grid_size(self) -> tuple[int, int]:
@@ -99,42 +106,28 @@ class DetectorConfig:
         return len(self.class_names)
 
 
-PAPER = DetectorConfig(
-    name="paper",
-    point_cloud_range=(-100.0, -100.0, -5.0, 100.0, 100.0, 3.0),
-    voxel_size=(0.390625, 0.390625, 8.0),
-    max_points_per_pillar=20,
-    max_pillars=40000,
-    pfn_channels=64,
-    backbone_layers=(3, 5, 5),
-    backbone_strides=(2, 2, 2),
-    backbone_channels=(64, 128, 256),
-    neck_upsample_strides=(0.5, 1.0, 2.0),
-    neck_channels=(128, 128, 128),
-    head_channels=64,
-    out_size_factor=4,
-)
-"""The paper's deployed model (DESIGN.md): ±100 m, 0.390625 m pillars, 512×512, SECOND [3,5,5]/[64,128,256], FPN to 384."""
+PRESETS: dict[str, DetectorConfig] = {
+    name: load(DetectorConfig, param_file("detector", name)) for name in presets("detector")}
+"""The shipped architectures (``jitterguard/config/detector.<name>.param.yaml``): ``paper``, the paper's deployed
+model (±100 m, 0.390625 m pillars, 512×512, SECOND [3,5,5]/[64,128,256], FPN to 384), and ``lite``, real time on
+two CPU cores (nuScenes' ±51.2 m, 0.4 m pillars, 256×256, a thinner and shallower SECOND)."""
+PAPER, LITE = PRESETS["paper"], PRESETS["lite"]
 
-LITE = DetectorConfig(
-    name="lite",
-    point_cloud_range=(-51.2, -51.2, -3.0, 51.2, 51.2, 3.0),
-    voxel_size=(0.4, 0.4, 6.0),
-    max_points_per_pillar=16,
-    max_pillars=16000,
-    pfn_channels=32,
-    backbone_layers=(1, 2, 2),
-    backbone_strides=(2, 2, 2),
-    backbone_channels=(32, 64, 128),
-    neck_upsample_strides=(0.5, 1.0, 2.0),
-    neck_channels=(64, 64, 64),
-    head_channels=32,
-    out_size_factor=4,
-    head_conv_layers=1,
-)
-"""Real time on two CPU cores: nuScenes' ±51.2 m range, 0.4 m pillars (256×256), thinner and shallower SECOND."""
 
-PRESETS: dict[str, DetectorConfig] = {"paper": PAPER, "lite": LITE}
+class DetectorParams(BaseModel):
+    """``jitterguard detector --config FILE``: how the service runs (the architecture comes with the weights)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    preset: str = Field("lite", description="architecture preset whose shipped weights load when weights is null")
+    weights: str | None = Field(None, description="weights file (torch.save dict, loaded weights_only)")
+    threads: Annotated[int, Field(ge=1, le=1024)] | None = Field(None, description="torch CPU threads (null: all)")
+    score_threshold: Annotated[float, Field(ge=0.0, le=1.0)] | None = Field(
+        None, description="keep detections scoring above this (null: the weights' config)")
+    twist: bool = Field(True, description="publish the network's velocity as the twist")
+    backend: Literal["torch", "onnxruntime"] = Field("torch", description="what runs the network")
+    onnx: str | None = Field(None, description="onnxruntime backend: a folder written by `jitterguard export-onnx`"
+                             " (null: export weights / preset at start-up into a temporary folder)")
 
 
 @dataclass(frozen=True)

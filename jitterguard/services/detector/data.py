@@ -145,7 +145,7 @@ def _wrap(a: NDArray[np.float64]) -> NDArray[np.float64]:
 def _progress(it: Iterable[Sample], total: int | None, desc: str, enabled: bool) -> Iterable[Sample]:
     if not enabled:
         return it
-    from tqdm import tqdm  # type: ignore[import-untyped]
+    from tqdm import tqdm  # type: ignore[import-untyped]  # only when a bar is asked for
 
     return tqdm(it, total=total, desc=desc, unit="scan", file=sys.stderr)
 

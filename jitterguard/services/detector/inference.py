@@ -12,12 +12,12 @@ from __future__ import annotations
 import logging
 import os
 import time
-from dataclasses import asdict, fields, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
+from pydantic import ValidationError
 
 from .config import PRESETS, DetectorConfig, Detections3D
 from .decode import decode
@@ -41,15 +41,18 @@ def shipped_weights(preset: str) -> Path:
 
 
 def config_to_dict(config: DetectorConfig) -> dict[str, Any]:
-    return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(config).items()}
+    return config.model_dump(mode="json")
 
 
 def config_from_dict(d: dict[str, Any]) -> DetectorConfig:
-    known = {f.name for f in fields(DetectorConfig)}
-    unknown = set(d) - known
+    unknown = set(d) - set(DetectorConfig.model_fields)
     if unknown:
         raise WeightsError(f"weights config has unknown fields {sorted(unknown)}")
-    return DetectorConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
+    try:
+        return DetectorConfig.model_validate(d)
+    except ValidationError as exc:
+        err = exc.errors(include_url=False)[0]
+        raise WeightsError(f"weights config: {'.'.join(map(str, err['loc']))}: {err['msg']}") from None
 
 
 def save_weights(path: str | Path, model: CenterPointNet, *, recalibration: tuple[float, float] | None = None,
@@ -116,12 +119,6 @@ class Detector:
         torch.manual_seed(0)
         return cls(CenterPointNet(PRESETS[preset]), score_threshold=score_threshold, threads=threads,
                    meta={"random_init": True})
-
-    def with_config(self, **changes: Any) -> "Detector":
-        """Same weights, changed post-processing fields (e.g. ``score_threshold``)."""
-        self.model.config = replace(self.config, **changes)
-        self.config = self.model.config
-        return self
 
     @torch.inference_mode()
     def detect(self, points: np.ndarray) -> Detections3D:

@@ -192,7 +192,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                                   "graph_opsets": {k: g["opset"] for k, g in res.manifest["graphs"].items()},
                                   "preset": det.config.name, "weights": meta["weights"]}
         if check_scans:
-            from .bench import bench_scans
+            from ...bench.detector import bench_scans
 
             onnx_det = load_onnx_detector(res.out_dir, threads=threads)
             # randomly initialised weights score every cell about alike: which of hundreds of near-ties make the

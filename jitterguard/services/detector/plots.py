@@ -12,7 +12,7 @@ from .evaluate import AXES, COUNT_THRESHOLD_M, MIN_PRECISION, MIN_RECALL, thresh
 
 
 def _plt():  # type: ignore[no-untyped-def]
-    import matplotlib
+    import matplotlib  # only when a plot is written (start-up time); the Agg backend is chosen first
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

@@ -10,7 +10,7 @@ burst of them is logged at once with the seq gap, a steady overload every 30 s w
 (:class:`BehindReport`). The callback never blocks, so a BLOCK-publishing replay is not
 slowed by a slow detector (it is by a slow network link, as it should be).
 
-Frames and covariances follow :mod:`.convert`: sensor frame, the scan's header and ego pose carried over, the
+Frames and covariances follow :mod:`.adapter`: sensor frame, the scan's header and ego pose carried over, the
 network's sensor-frame variances in the covariance fields; the tracker rotates them into the world frame.
 
 Counters (in the heartbeat): ``scans`` (processed), ``skipped_scans``, ``detections`` (objects published),
@@ -27,10 +27,10 @@ import time
 from ...runtime import Service, ZenohOptions
 from ...runtime.progress import ProgressPolicy
 from ...runtime.service import _BurstLogger
-from ...schemas import encode, keys
+from ...schemas import keys
 from ...schemas.models import PointCloud
 from .config import Detections3D
-from .convert import class_labels, detections_map, finite_detections, scan_points
+from .adapter import class_labels, detections_payload, finite_detections, scan_points
 from .inference import Detector
 
 WAIT_S = 0.2
@@ -185,9 +185,8 @@ class DetectorService(Service):
             self.counters.inc("nonfinite_detections", dropped)
             self._error_log.warn(f"scan seq {scan.header.seq}: dropped {dropped} detection(s) holding a"
                                  " non-finite number")
-        payload = detections_map(det, scan.header, scan.ego_pose, self.detector.config.class_names,
-                                 has_twist=self.has_twist)
-        self._pub.put(encode(payload))
+        self._pub.put(detections_payload(det, scan.header, scan.ego_pose, self.detector.config.class_names,
+                                         has_twist=self.has_twist))
         self.counters.inc("published")
         self.counters.inc("scans")
         self.counters.inc("detections", len(det))

@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
@@ -211,8 +212,6 @@ def _json_default(o: Any) -> Any:
 def _bar(enabled: bool, total: int, initial: int) -> Any:
     if not enabled:
         return None
-    import sys
-
-    from tqdm import tqdm
+    from tqdm import tqdm  # only when a bar is asked for
 
     return tqdm(total=total, initial=initial, unit="step", file=sys.stderr, dynamic_ncols=True)

@@ -3,6 +3,8 @@
 Synthetic data is ray-cast once into an on-disk cache (``OUT/cache-*``, reused when it exists with the same
 recipe), so epochs read numpy files instead of re-casting. Fine-tuning on a nuScenes-format dataroot holds
 out each scene's last ``--holdout-last`` keyframes as the validation/test split (the issue's protocol).
+
+Commands import their implementation when they run (start-up time: see :mod:`jitterguard.cli`).
 """
 
 from __future__ import annotations
@@ -155,8 +157,6 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
 
         passive_openmp()  # before torch is imported
         retain_heap()
-        import dataclasses
-
         import torch
 
         from .augment import random_augment
@@ -180,7 +180,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                      + "; drop or add --vanilla to match")
         else:
             torch.manual_seed(seed)
-            model = CenterPointNet(dataclasses.replace(PRESETS[preset], uncertainty=not vanilla))
+            model = CenterPointNet(PRESETS[preset].model_copy(update={"uncertainty": not vanilla}))
         pcr = model.config.point_cloud_range
         if nuscenes is not None:
             from ..replay.frames import SourceError

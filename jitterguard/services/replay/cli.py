@@ -1,13 +1,14 @@
-"""``jitterguard replay SOURCE`` and ``jitterguard bench replay``.
+"""``jitterguard replay SOURCE``.
 
 Bad input (unknown source, bad ``--rate``, missing file) is one line on stderr and exit 2. A frame that
 cannot be read is one line naming the file; with ``--on-error skip`` (default) replay goes on and the final
 summary counts it, with ``--on-error stop`` replay ends there with exit 1.
+
+Commands import their implementation when they run (start-up time: see :mod:`jitterguard.cli`).
 """
 
 from __future__ import annotations
 
-import json
 import logging
 import signal
 import sys
@@ -142,7 +143,7 @@ def replay_command(
             log.info("%s", note)
         for warning in src.info.warnings:
             log.warning("%s", warning)
-        from .publisher import ReplayService
+        from .service import ReplayService
 
         try:
             svc = ReplayService(zopts, src.info.kind)
@@ -193,30 +194,6 @@ def _run(svc: Any, src: Any, plan: ReplayPlan, wait_s: float, progress: bool | N
     return 0
 
 
-def bench_command(
-    json_out: Annotated[bool, typer.Option("--json", help="Print the figures as one JSON object (the default output).")] = True,
-    frames: Annotated[int, typer.Option("--frames", help="Scans to publish.")] = 600,
-    points: Annotated[int, typer.Option("--points", help="Points per in-memory scan.")] = 35_000,
-    source: Annotated[str | None, typer.Option("--source", help="Bench a real recording (looped) instead of in-memory scans.")] = None,
-    no_decode: Annotated[bool, typer.Option("--no-decode", help="Subscriber counts raw payloads instead of decoding them.")] = False,
-    repeat: Annotated[int, typer.Option("--repeat", help="Runs; the median one is reported with every run's scans/s.")] = 3,
-) -> None:
-    """Replay --rate max into an in-process subscriber: scans/s and dropped count, as JSON."""
-    if frames < 1 or points < 1 or repeat < 1:
-        fail("--frames, --points and --repeat must be >= 1")
-    from .bench import bench_replay_repeated
-
-    try:
-        result = bench_replay_repeated(repeat, frames=frames, points=points, source=source, decode_payloads=not no_decode)
-    except SourceError as exc:
-        fail(str(exc))
-    except RuntimeError as exc:
-        print(f"jitterguard: error: bench failed: {exc}", file=sys.stderr)
-        raise typer.Exit(1) from None
-    print(json.dumps(result, indent=None if json_out else 2))
-
-
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:
-    """Add ``replay`` to the main app and ``replay`` to ``bench``."""
+    """Add ``replay`` to the main app (its benchmark is ``jitterguard bench replay``, :mod:`jitterguard.bench`)."""
     app.command("replay", help=(replay_command.__doc__ or "") + "\n\n" + EXAMPLES, no_args_is_help=True)(replay_command)
-    bench_app.command("replay")(bench_command)

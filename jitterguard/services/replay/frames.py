@@ -15,7 +15,13 @@ from typing import Union
 import numpy as np
 from numpy.typing import NDArray
 
-from ...geometry import quaternion_from_yaw, yaw_from_quaternion
+from ...geometry import (
+    quaternion_from_rotation,
+    quaternion_from_yaw,
+    quaternion_multiply,
+    rotation_from_quaternion,
+    yaw_from_quaternion,
+)
 from ...schemas.models import DetectedObject, GroundTruthObjects, Point, Pose, Quaternion
 
 DEFAULT_PERIOD_NS = 100_000_000
@@ -154,62 +160,6 @@ def finite_rows(points: NDArray[np.float32]) -> tuple[NDArray[np.float32], int]:
             points = points.copy()
             points[:, 3:][bad] = 0.0
     return np.ascontiguousarray(points, dtype=np.float32), dropped
-
-
-# ------------------------------------------------------------------------------------- rotation helpers
-
-
-def rotation_from_quaternion(x: float, y: float, z: float, w: float) -> NDArray[np.float64]:
-    """3x3 rotation of a (not necessarily unit) quaternion."""
-    n = math.sqrt(x * x + y * y + z * z + w * w)
-    if n < 1e-12:
-        raise ValueError("zero quaternion")
-    x, y, z, w = x / n, y / n, z / n, w / n
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
-def quaternion_from_rotation(r: NDArray[np.float64]) -> tuple[float, float, float, float]:
-    """(x, y, z, w) of a 3x3 rotation (projected onto SO(3) first, so slightly noisy matrices are fine)."""
-    u, _, vt = np.linalg.svd(np.asarray(r, dtype=np.float64))
-    r = u @ vt
-    if np.linalg.det(r) < 0:
-        raise ValueError("matrix is a reflection, not a rotation")
-    tr = r[0, 0] + r[1, 1] + r[2, 2]
-    if tr > 0:
-        s = math.sqrt(tr + 1.0) * 2
-        w, x, y, z = 0.25 * s, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s
-    elif r[0, 0] > r[1, 1] and r[0, 0] > r[2, 2]:
-        s = math.sqrt(1.0 + r[0, 0] - r[1, 1] - r[2, 2]) * 2
-        w, x, y, z = (r[2, 1] - r[1, 2]) / s, 0.25 * s, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s
-    elif r[1, 1] > r[2, 2]:
-        s = math.sqrt(1.0 + r[1, 1] - r[0, 0] - r[2, 2]) * 2
-        w, x, y, z = (r[0, 2] - r[2, 0]) / s, (r[0, 1] + r[1, 0]) / s, 0.25 * s, (r[1, 2] + r[2, 1]) / s
-    else:
-        s = math.sqrt(1.0 + r[2, 2] - r[0, 0] - r[1, 1]) * 2
-        w, x, y, z = (r[1, 0] - r[0, 1]) / s, (r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, 0.25 * s
-    if w < 0:  # one canonical sign, so equal rotations compare equal
-        x, y, z, w = -x, -y, -z, -w
-    return float(x), float(y), float(z), float(w)
-
-
-def quaternion_multiply(
-    a: tuple[float, float, float, float], b: tuple[float, float, float, float]
-) -> tuple[float, float, float, float]:
-    """Hamilton product a * b of (x, y, z, w) quaternions: rotate by b first, then by a."""
-    ax, ay, az, aw = a
-    bx, by, bz, bw = b
-    return (
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-        aw * bw - ax * bx - ay * by - az * bz,
-    )
 
 
 def compose(parent: EgoPose, child: EgoPose) -> EgoPose:

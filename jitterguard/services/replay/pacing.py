@@ -58,25 +58,6 @@ class RealClock:
         return not self._stop.wait(seconds)
 
 
-class FakeClock:
-    """A clock that only moves when slept on (or advanced by hand); records every sleep."""
-
-    def __init__(self, start: float = 1000.0) -> None:
-        self.t = start
-        self.sleeps: list[float] = []
-
-    def now(self) -> float:
-        return self.t
-
-    def sleep(self, seconds: float) -> bool:
-        self.sleeps.append(seconds)
-        self.t += max(0.0, seconds)
-        return True
-
-    def advance(self, seconds: float) -> None:
-        self.t += seconds
-
-
 class Pacer:
     """Decides how long to wait before publishing a frame with a given (re-stamped) stamp."""
 

@@ -1,13 +1,14 @@
-"""``jitterguard sidecar`` (the HTTP sidecar under uvicorn) and ``jitterguard bench sidecar``.
+"""``jitterguard sidecar`` (the HTTP sidecar under uvicorn).
 
 Bad input is reported on one line with exit status 2 before anything starts (no Zenoh session opened, no
 port bound): an unusable port, a non-loopback bind without ``JG_API_TOKEN``, a malformed Zenoh flag.
+
+Commands import their implementation when they run (start-up time: see :mod:`jitterguard.cli`).
 """
 
 from __future__ import annotations
 
 import contextlib
-import json
 import signal
 import socket
 import sys
@@ -17,7 +18,7 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from ...cli_common import ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ZenohConfigOpt, fail, zenoh_options
+from ...cli_common import ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ZenohConfigOpt, fail, parse_float, zenoh_options
 from ...schemas import keys
 
 if TYPE_CHECKING:
@@ -43,16 +44,6 @@ def _parse_port(text: str) -> int:
     return port
 
 
-def _parse_float(flag: str, text: str, lo: float, hi: float) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        fail(f"{flag}: {text!r} is not a number")
-    if not lo <= value <= hi:
-        fail(f"{flag}: {value:g} is outside {lo:g}-{hi:g}")
-    return value
-
-
 def _check_bindable(host: str, port: int) -> None:
     """Fail now, on one line, if uvicorn could not bind (it would only log it after opening Zenoh)."""
     try:
@@ -69,7 +60,7 @@ def _check_bindable(host: str, port: int) -> None:
 
 
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:
-    """Add ``jitterguard sidecar`` and ``jitterguard bench sidecar``."""
+    """Add ``jitterguard sidecar``."""
 
     @app.command("sidecar")
     def sidecar(
@@ -91,7 +82,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
 
         opts = zenoh_options(ns, zenoh_config, connect, listen)
         port_n = _parse_port(port)
-        poll_s = _parse_float("--poll-ms", poll_ms, 5.0, 10_000.0) / 1e3
+        poll_s = parse_float("--poll-ms", poll_ms, 5.0, 10_000.0) / 1e3
         if log_level.upper() not in ("DEBUG", "INFO", "WARNING", "ERROR"):
             fail(f"--log-level: {log_level!r} is not one of DEBUG, INFO, WARNING, ERROR")
         token = SidecarSettings.token_from_env()
@@ -109,43 +100,6 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         serve(SidecarSettings(zenoh=opts, api_token=token, cors_origins=tuple(cors_origin or ()),
                               poll_period_s=poll_s, bind_host=host, allowed_hosts=tuple(allowed_host or ())),
               host, port_n, log_level)
-
-    @bench_app.command("sidecar")
-    def bench_sidecar(
-        as_json: Annotated[bool, typer.Option("--json", help="Print the result as JSON only.")] = False,
-        tracks: Annotated[str, typer.Option("--tracks", help="Live tracks in every frame.")] = "500",
-        rate: Annotated[str, typer.Option("--rate", help="Pipeline frame rate, Hz.")] = "20",
-        duration: Annotated[str, typer.Option("--duration", help="Measured seconds.")] = "15",
-        warmup: Annotated[str, typer.Option("--warmup", help="Seconds of load before measuring.")] = "3",
-        request_rate: Annotated[str, typer.Option(
-            "--request-rate", help="GET /v1/state per second from the load client (0: back to back).")] = "50",
-        seed: Annotated[str, typer.Option("--seed", help="Scenario seed.")] = "0",
-        state_source: Annotated[str, typer.Option(
-            "--state-source", help="pipeline: the real classifier fed by a track feeder; synthetic: a stand-in "
-                                   "serving the classifier's state queryable at --rate (isolates the sidecar).")
-        ] = "pipeline",
-    ) -> None:
-        """GET /v1/state latency with N live tracks while the classifier runs at the given rate."""
-        from .bench import BenchParams, run_bench
-
-        if state_source not in ("pipeline", "synthetic"):
-            fail(f"--state-source: {state_source!r} is not one of pipeline, synthetic")
-        n = int(_parse_float("--tracks", tracks, 1, 20_000))
-        params = BenchParams(
-            tracks=n, rate_hz=_parse_float("--rate", rate, 0.5, 100.0),
-            duration_s=_parse_float("--duration", duration, 1.0, 3600.0),
-            warmup_s=_parse_float("--warmup", warmup, 0.0, 600.0),
-            request_rate_hz=_parse_float("--request-rate", request_rate, 0.0, 10_000.0),
-            seed=int(_parse_float("--seed", seed, 0, 2**31)), state_source=state_source)
-        result = run_bench(params)
-        if as_json:
-            print(json.dumps(result, indent=2))
-        else:
-            lat = result["get_state_ms"]
-            print(f"GET /v1/state, {result['tracks_seen']} tracks, pipeline {result['pipeline_hz']:.1f} Hz: "
-                  f"p50 {lat['p50']:.2f} ms, p99 {lat['p99']:.2f} ms, max {lat['max']:.2f} ms "
-                  f"over {lat['n']} requests")
-
 
 GIL_SWITCH_INTERVAL_S = 0.001
 

@@ -19,11 +19,11 @@ from pydantic.fields import FieldInfo
 from ...runtime.bind_policy import is_loopback
 from ...schemas.models import (
     LABEL_NAMES,
-    PRESETS,
     CalibrationState,
     ClassifierConfig,
     ClassifierStateSnapshot,
 )
+from ..classifier.config import PRESETS
 
 STATES: tuple[str, ...] = ("static", "dynamic", "undecided")
 CLASS_NAMES: tuple[str, ...] = tuple(LABEL_NAMES[i] for i in sorted(LABEL_NAMES))

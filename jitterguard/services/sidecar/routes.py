@@ -20,7 +20,8 @@ from fastapi.responses import HTMLResponse, JSONResponse, Response, StreamingRes
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
-from ...schemas.models import PRESETS, ClassifierConfig
+from ...schemas.models import ClassifierConfig
+from ..classifier.config import PRESETS
 from .client import ClassifierClient, ClassifierRejected, ClassifierUnavailable
 from .core import (
     CLASS_NAMES,

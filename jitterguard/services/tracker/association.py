@@ -22,6 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 from .config import ConfigTables
 from .kalman import wrap_half_pi
@@ -41,15 +43,22 @@ class Candidates:
     mahalanobis: F64
 
 
-def near_pairs(a: F64, b: F64, r: float) -> tuple[IntArr, IntArr]:
-    """All (i, j) with ``|a_i - b_j| <= r`` on both axes (a square, the caller checks the circle).
+MAX_PAIRS = 100_000
+"""Candidate pairs expanded at once (or ``max_per_row`` per row, if more) before :func:`near_pairs` bounds each row."""
+
+
+def near_pairs(a: F64, b: F64, r: float, max_per_row: int | None = None) -> tuple[IntArr, IntArr]:
+    """All (i, j) with ``|a_i - b_j| <= r`` on both axes (a square, the caller checks the circle); with
+    ``max_per_row``, at most that many per ``a_i``, the nearest.
 
     A sweep over x: ``b`` sorted by x, each ``a_i`` takes the slice within ``r`` by binary search and the
     pairs are expanded with ``repeat``; nothing is ``len(a) x len(b)`` unless every object is within ``r`` of
-    every other. This is what keeps 500 objects per frame in budget.
+    every other. That is what keeps 500 objects per frame in budget. Should the slices together exceed
+    :data:`MAX_PAIRS` (a crowd of co-located objects no sensor produces), ``max_per_row`` bounds the memory: a
+    row whose slice is wider is cut to its nearest, one row at a time.
     """
+    e = np.empty(0, dtype=np.intp)
     if a.shape[0] == 0 or b.shape[0] == 0:
-        e = np.empty(0, dtype=np.intp)
         return e, e
     order = np.argsort(b[:, 0], kind="stable")
     bx = b[order, 0]
@@ -57,15 +66,26 @@ def near_pairs(a: F64, b: F64, r: float) -> tuple[IntArr, IntArr]:
     lo = np.searchsorted(bx, a[:, 0] - pad, side="left")
     hi = np.searchsorted(bx, a[:, 0] + pad, side="right")
     counts = hi - lo
+    wide = e
+    if max_per_row is not None and int(counts.sum()) > max(MAX_PAIRS, max_per_row * a.shape[0]):  # a crowd
+        wide = np.flatnonzero(counts > max_per_row)
+        counts = np.where(counts > max_per_row, 0, counts)
     total = int(counts.sum())
-    if total == 0:
-        e = np.empty(0, dtype=np.intp)
-        return e, e
     i = np.repeat(np.arange(a.shape[0]), counts)
     starts = np.repeat(lo - (np.cumsum(counts) - counts), counts)
     j = order[starts + np.arange(total)]
     keep = (np.abs(a[i, 0] - b[j, 0]) <= r) & (np.abs(a[i, 1] - b[j, 1]) <= r)
-    return i[keep], j[keep]
+    rows, cols = [i[keep]], [j[keep]]
+    for k in wide.tolist():  # a crowd: the nearest max_per_row within the square, one row at a time
+        cand = order[lo[k]:hi[k]]
+        dx, dy = b[cand, 0] - a[k, 0], b[cand, 1] - a[k, 1]
+        inside = (np.abs(dx) <= r) & (np.abs(dy) <= r)
+        cand, d2 = cand[inside], (dx * dx + dy * dy)[inside]
+        if cand.size > max_per_row:
+            cand = cand[np.argpartition(d2, max_per_row - 1)[:max_per_row]]
+        rows.append(np.full(cand.size, k, dtype=np.intp))
+        cols.append(cand)
+    return np.concatenate(rows), np.concatenate(cols)
 
 
 def gate(
@@ -84,6 +104,7 @@ def gate(
     use_innovation: bool,
     score_threshold: float,
     gate_min_variance: float = 0.0,
+    max_candidates: int | None = None,
 ) -> Candidates:
     """Apply Autoware's gates to every (track, detection) pair and score the survivors.
 
@@ -91,6 +112,8 @@ def gate(
     measurement covariance. With ``use_innovation`` the Mahalanobis distance uses their sum (the innovation
     covariance); without it only the track's, exactly as Autoware does. ``gate_min_variance`` is added to
     the gate covariance's diagonal so an over-confident detector cannot make a track reject its own object.
+    ``max_candidates``: at most that many detections per track are scored, the nearest (memory stays bounded
+    by the gating, not by the product of the counts, whatever a frame holds).
     """
     n, m = track_pos.shape[0], det_pos.shape[0]
     empty_i = np.empty(0, dtype=np.intp)
@@ -101,7 +124,7 @@ def gate(
     tl = track_label.astype(np.intp)
     dl = det_label.astype(np.intp)
     r_max = float(tables.max_dist[tables.can_assign].max()) if tables.can_assign.any() else 0.0
-    rows, cols = near_pairs(track_pos, det_pos, r_max)
+    rows, cols = near_pairs(track_pos, det_pos, r_max, max_candidates)
     tlr, dlc = tl[rows], dl[cols]
     ex = det_pos[cols, 0] - track_pos[rows, 0]
     ey = det_pos[cols, 1] - track_pos[rows, 1]
@@ -156,19 +179,57 @@ def assign(n_tracks: int, n_dets: int, cand: Candidates) -> tuple[IntArr, IntArr
     out_c = [cand.cols[simple]]
     hard = ~simple
     if hard.any():
-        hr, hc, hs = cand.rows[hard], cand.cols[hard], cand.score[hard]
-        ur, ir = np.unique(hr, return_inverse=True)
-        uc, ic = np.unique(hc, return_inverse=True)
-        mat = np.zeros((ur.size, uc.size))
-        mat[ir, ic] = hs
-        r, c = linear_sum_assignment(mat, maximize=True)
-        good = mat[r, c] > 0.0
-        out_r.append(ur[r[good]])
-        out_c.append(uc[c[good]])
+        for hr, hc, hs in _components(cand.rows[hard], cand.cols[hard], cand.score[hard]):
+            ur, ir = np.unique(hr, return_inverse=True)
+            uc, ic = np.unique(hc, return_inverse=True)
+            if ur.size * uc.size > MAX_DENSE_CELLS:  # a crowd too big for an optimal solve in bounded memory
+                r_, c_ = _greedy(hr, hc, hs)
+                out_r.append(r_)
+                out_c.append(c_)
+                continue
+            mat = np.zeros((ur.size, uc.size))
+            mat[ir, ic] = hs
+            r, c = linear_sum_assignment(mat, maximize=True)
+            good = mat[r, c] > 0.0
+            out_r.append(ur[r[good]])
+            out_c.append(uc[c[good]])
     rows = np.concatenate(out_r)
     cols = np.concatenate(out_c)
     order = np.argsort(rows, kind="stable")
     return rows[order], cols[order]
+
+
+MAX_DENSE_CELLS = 250_000
+"""The largest (tracks x detections) block solved optimally at once (2 MB); a bigger block of competing pairs is
+split into its connected components, and one still bigger (a crowd no sensor produces) assigned greedily."""
+
+
+def _components(rows: IntArr, cols: IntArr, score: F64) -> list[tuple[IntArr, IntArr, F64]]:
+    """The competing pairs as one block when it is small enough, else one block per connected component."""
+    n_r, n_c = int(rows.max()) + 1, int(cols.max()) + 1
+    if np.unique(rows).size * np.unique(cols).size <= MAX_DENSE_CELLS:
+        return [(rows, cols, score)]
+    graph = coo_matrix((np.ones(rows.size), (rows, n_r + cols)), shape=(n_r + n_c, n_r + n_c))
+    _, label = connected_components(graph, directed=False)
+    comp = label[rows]
+    order = np.argsort(comp, kind="stable")
+    bounds = np.flatnonzero(np.diff(comp[order])) + 1
+    return [(rows[k], cols[k], score[k]) for k in np.split(order, bounds)]
+
+
+def _greedy(rows: IntArr, cols: IntArr, score: F64) -> tuple[IntArr, IntArr]:
+    """Pairs taken best score first, each track and detection once (positive scores only)."""
+    taken_r: set[int] = set()
+    taken_c: set[int] = set()
+    out_r, out_c = [], []
+    for k in np.argsort(-score, kind="stable").tolist():
+        r, c = int(rows[k]), int(cols[k])
+        if score[k] > 0.0 and r not in taken_r and c not in taken_c:
+            taken_r.add(r)
+            taken_c.add(c)
+            out_r.append(r)
+            out_c.append(c)
+    return np.asarray(out_r, dtype=np.intp), np.asarray(out_c, dtype=np.intp)
 
 
 def overlapping(
@@ -178,6 +239,7 @@ def overlapping(
     hits: NDArray[np.integer],
     can_assign: NDArray[np.bool_],
     factor: float,
+    max_per_row: int | None = None,
 ) -> NDArray[np.bool_]:
     """Rows to delete because another track describes the same object (Autoware's overlapped-tracker removal).
 
@@ -191,7 +253,7 @@ def overlapping(
     if n < 2 or factor <= 0.0:
         return drop
     r = factor * float(width.max())
-    i, j = near_pairs(pos, pos, r)
+    i, j = near_pairs(pos, pos, r, max_per_row)
     up = i < j
     i, j = i[up], j[up]
     d2 = (pos[i, 0] - pos[j, 0]) ** 2 + (pos[i, 1] - pos[j, 1]) ** 2

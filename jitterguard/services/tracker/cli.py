@@ -1,25 +1,17 @@
-"""CLI of the tracker area: ``jitterguard tracker`` and ``jitterguard bench tracker``."""
+"""CLI of the tracker area: ``jitterguard tracker``.
+
+Commands import their implementation when they run (start-up time: see :mod:`jitterguard.cli`).
+"""
 
 from __future__ import annotations
 
-import json
 from typing import Annotated
 
 import typer
 
-from ...cli_common import ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ZenohConfigOpt, fail, zenoh_options
+from ...cli_common import ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ParamFileOpt, ZenohConfigOpt, fail, zenoh_options
 
 MEAS_CHOICES = ("detector", "class")
-
-
-def _parse_sizes(text: str) -> tuple[int, ...]:
-    try:
-        sizes = tuple(int(s) for s in text.split(",") if s.strip())
-    except ValueError:
-        fail(f"--sizes: expected comma-separated object counts, got {text!r}")
-    if not sizes or any(n < 1 or n > 100_000 for n in sizes):
-        fail(f"--sizes: each object count must be between 1 and 100000, got {text!r}")
-    return sizes
 
 
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:
@@ -29,11 +21,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         zenoh_config: ZenohConfigOpt = None,
         connect: ConnectOpt = None,
         listen: ListenOpt = None,
-        config: Annotated[
-            str | None,
-            typer.Option("--config", help="YAML overriding the shipped data_association_matrix.yaml and any"
-                         " other tracker setting (Autoware's ros__parameters layout is accepted)."),
-        ] = None,
+        config: ParamFileOpt = None,
         measurement_covariance: Annotated[
             str | None,
             typer.Option("--measurement-covariance",
@@ -51,7 +39,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         log_level: LogLevelOpt = "INFO",
     ) -> None:
         """Run the tracker: detections in; tracks/{id} for each track observed this frame, then tracked."""
-        from .config import ConfigError, dump_config, load_config
+        from ...config import ConfigError
+        from .config import dump_config, load_config
 
         if measurement_covariance is not None and measurement_covariance not in MEAS_CHOICES:
             fail(f"--measurement-covariance: expected one of {', '.join(MEAS_CHOICES)}, got {measurement_covariance!r}")
@@ -74,29 +63,3 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             fail(str(exc))
         service.run_forever()
 
-    @bench_app.command("tracker")
-    def bench_tracker_cmd(
-        json_out: Annotated[bool, typer.Option("--json", help="Print the result as one JSON document.")] = False,
-        sizes: Annotated[str, typer.Option("--sizes", help="Comma-separated object counts.")] = "50,200,500",
-        frames: Annotated[int, typer.Option("--frames", min=5, max=10_000, help="Timed frames per size.")] = 60,
-        warmup: Annotated[int, typer.Option("--warmup", min=3, max=10_000, help="Untimed frames first.")] = 20,
-        seed: Annotated[int, typer.Option("--seed")] = 0,
-        pin: Annotated[bool, typer.Option("--pin/--no-pin", help="Pin to one CPU while timing.")] = True,
-    ) -> None:
-        """Time one frame's tracker update (core only, after warm-up) at several object counts."""
-        from .bench import run
-
-        result = run(_parse_sizes(sizes), frames=frames, warmup=warmup, seed=seed, pin=pin)
-        if json_out:
-            typer.echo(json.dumps(result))
-            return
-        from rich.console import Console
-        from rich.table import Table
-
-        table = Table(title="tracker core: one frame's update")
-        for col in ("objects", "median ms", "p90 ms", "max ms", "confirmed tracks"):
-            table.add_column(col, justify="right")
-        for key, row in result.items():
-            table.add_row(key.split("_", 1)[1], f"{row['median_ms']:.3f}", f"{row['p90_ms']:.3f}",
-                          f"{row['max_ms']:.3f}", str(row["confirmed_tracks"]))
-        Console().print(table)

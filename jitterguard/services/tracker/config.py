@@ -1,10 +1,9 @@
 """Tracker configuration: Autoware's association gates, per-class motion/measurement noise, track lifecycle.
 
-The association matrices ship as ``data_association_matrix.yaml`` beside this module (Autoware's defaults) and
-are loaded by default, so what a user edits is a file they can diff against Autoware's own. ``--config FILE``
-overrides any subset of the keys: the association matrices (flat, or in Autoware's ``/**: ros__parameters:``
-wrapper) and every other field of :class:`TrackerConfig`. Unknown keys are errors, not silently ignored,
-because a misspelt gate that quietly keeps its default is the kind of bug that costs a day on the vehicle.
+The association matrices default to Autoware's own, so ``jitterguard/config/tracker.param.yaml`` (written from
+this model) is a file a user can diff against Autoware's ``data_association_matrix.param.yaml``; ``--config FILE``
+overrides any subset of the keys (flat, or in Autoware's ``/**: ros__parameters:`` wrapper), through the one
+loader every service uses (:mod:`jitterguard.config`).
 
 Everything here is plain data; :meth:`TrackerConfig.tables` turns it into the numpy lookup tables the core
 indexes by label on the hot path.
@@ -13,19 +12,74 @@ indexes by label on the hot path.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from importlib import resources
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from ...config import dump_params, load
 from ...schemas.models import LABEL_BY_NAME, LABEL_NAMES
+from ...schemas.wire import Limits
+from ...stream_order import StreamLimits
 
 NUM_LABELS = 8
 MATRIX_KEYS = ("can_assign_matrix", "max_dist_matrix", "max_area_matrix", "min_area_matrix", "max_rad_matrix")
-DEFAULT_MATRIX_FILE = "data_association_matrix.yaml"
+
+# Autoware's multi_object_tracker defaults (autoware_multi_object_tracker/config/data_association_matrix.param.yaml),
+# so a user can compare the two trackers on identical inputs.
+CAN_ASSIGN = [  # rows: track label; columns: measurement label (UNKNOWN, CAR, TRUCK, BUS, TRAILER, MOTORBIKE, BICYCLE, PEDESTRIAN)
+    1, 0, 0, 0, 0, 0, 0, 0,
+    0, 1, 1, 1, 1, 0, 0, 0,
+    0, 1, 1, 1, 1, 0, 0, 0,
+    0, 1, 1, 1, 1, 0, 0, 0,
+    0, 1, 1, 1, 1, 0, 0, 0,
+    0, 0, 0, 0, 0, 1, 1, 1,
+    0, 0, 0, 0, 0, 1, 1, 1,
+    0, 0, 0, 0, 0, 1, 1, 1,
+]
+MAX_DIST = [  # rows: track label; columns: measurement label (UNKNOWN, CAR, TRUCK, BUS, TRAILER, MOTORBIKE, BICYCLE, PEDESTRIAN)
+    4.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0,
+    4.0, 2.0, 5.0, 5.0, 5.0, 1.0, 1.0, 1.0,
+    4.0, 2.0, 5.0, 5.0, 5.0, 1.0, 1.0, 1.0,
+    4.0, 2.0, 5.0, 5.0, 5.0, 1.0, 1.0, 1.0,
+    4.0, 2.0, 5.0, 5.0, 5.0, 1.0, 1.0, 1.0,
+    3.0, 1.0, 1.0, 1.0, 1.0, 3.0, 3.0, 2.0,
+    3.0, 1.0, 1.0, 1.0, 1.0, 3.0, 3.0, 2.0,
+    2.0, 1.0, 1.0, 1.0, 1.0, 3.0, 3.0, 2.0,
+]
+# the size of a truck is 12 m x 3 m with a margin; a trailer's bound is large not to be filtered
+MAX_AREA = [  # rows: track label; columns: measurement label (UNKNOWN, CAR, TRUCK, BUS, TRAILER, MOTORBIKE, BICYCLE, PEDESTRIAN)
+    10000.0, 10000.0, 10000.0, 10000.0, 10000.0, 10000.0, 10000.0, 10000.0,
+    12.1, 12.1, 36.0, 40.0, 3600.0, 10000.0, 10000.0, 10000.0,
+    36.0, 12.1, 36.0, 40.0, 3600.0, 10000.0, 10000.0, 10000.0,
+    40.0, 12.1, 36.0, 40.0, 3600.0, 10000.0, 10000.0, 10000.0,
+    3600.0, 12.1, 36.0, 40.0, 3600.0, 10000.0, 10000.0, 10000.0,
+    2.5, 10000.0, 10000.0, 10000.0, 10000.0, 2.5, 2.5, 1.0,
+    2.5, 10000.0, 10000.0, 10000.0, 10000.0, 2.5, 2.5, 1.0,
+    2.0, 10000.0, 10000.0, 10000.0, 10000.0, 1.5, 1.5, 1.0,
+]
+MIN_AREA = [  # rows: track label; columns: measurement label (UNKNOWN, CAR, TRUCK, BUS, TRAILER, MOTORBIKE, BICYCLE, PEDESTRIAN)
+    0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
+    3.6, 3.6, 6.0, 10.0, 10.0, 0.0, 0.0, 0.0,
+    6.0, 3.6, 6.0, 10.0, 10.0, 0.0, 0.0, 0.0,
+    10.0, 3.6, 6.0, 10.0, 10.0, 0.0, 0.0, 0.0,
+    10.0, 3.6, 6.0, 10.0, 10.0, 0.0, 0.0, 0.0,
+    0.001, 0.0, 0.0, 0.0, 0.0, 0.1, 0.1, 0.1,
+    0.001, 0.0, 0.0, 0.0, 0.0, 0.1, 0.1, 0.1,
+    0.001, 0.0, 0.0, 0.0, 0.0, 0.1, 0.1, 0.1,
+]
+# a value above pi disables the heading gate for that pair
+MAX_RAD = [  # rows: track label; columns: measurement label (UNKNOWN, CAR, TRUCK, BUS, TRAILER, MOTORBIKE, BICYCLE, PEDESTRIAN)
+    3.15, 3.15, 3.15, 3.15, 3.15, 3.15, 3.15, 3.15,
+    3.15, 1.047, 1.047, 1.047, 1.047, 3.15, 3.15, 3.15,
+    3.15, 1.047, 1.047, 1.047, 1.047, 3.15, 3.15, 3.15,
+    3.15, 1.047, 1.047, 1.047, 1.047, 3.15, 3.15, 3.15,
+    3.15, 1.047, 1.047, 1.047, 1.047, 3.15, 3.15, 3.15,
+    3.15, 3.15, 3.15, 3.15, 3.15, 3.15, 3.15, 3.15,
+    3.15, 3.15, 3.15, 3.15, 3.15, 3.15, 3.15, 3.15,
+    3.15, 3.15, 3.15, 3.15, 3.15, 3.15, 3.15, 3.15,
+]
 
 MotionModel = Literal["cv", "ctrv"]
 MeasurementCovariance = Literal["detector", "class"]
@@ -33,10 +87,6 @@ MahalanobisCovariance = Literal["innovation", "track"]
 
 PosFloat = Annotated[float, Field(gt=0.0, allow_inf_nan=False)]
 NonNegFloat = Annotated[float, Field(ge=0.0, allow_inf_nan=False)]
-
-
-class ConfigError(ValueError):
-    """A tracker config that cannot be used; the message names the file and the key."""
 
 
 class _Strict(BaseModel):
@@ -96,23 +146,37 @@ class TrackerConfig(_Strict):
     """Everything that tunes the tracker. Defaults: Autoware's gates, Autoware-like noise, 1 s coast."""
 
     # ---- association (Autoware's data_association_matrix.param.yaml; rows = track label, cols = measurement)
-    can_assign_matrix: list[int]
-    max_dist_matrix: list[PosFloat]
-    max_area_matrix: list[NonNegFloat]
-    min_area_matrix: list[NonNegFloat]
-    max_rad_matrix: list[NonNegFloat]
-    mahalanobis_gate: PosFloat = 3.035
+    can_assign_matrix: list[int] = Field(
+        default_factory=lambda: list(CAN_ASSIGN),
+        description="8x8, row-major: rows are the TRACK's label, columns the MEASUREMENT's, in Autoware's order"
+        " UNKNOWN, CAR, TRUCK, BUS, TRAILER, MOTORBIKE, BICYCLE, PEDESTRIAN. A (track, detection) pair is a"
+        " candidate only if can_assign is 1, the distance <= max_dist, min_area <= the detection's footprint area"
+        " <= max_area, the heading difference (mod pi) <= max_rad and the Mahalanobis distance < mahalanobis_gate;"
+        " its score is (max_dist - dist) / max_dist and the assignment maximises the total score")
+    max_dist_matrix: list[PosFloat] = Field(default_factory=lambda: list(MAX_DIST), description="metres")
+    max_area_matrix: list[NonNegFloat] = Field(default_factory=lambda: list(MAX_AREA), description="m^2")
+    min_area_matrix: list[NonNegFloat] = Field(default_factory=lambda: list(MIN_AREA), description="m^2")
+    max_rad_matrix: list[NonNegFloat] = Field(
+        default_factory=lambda: list(MAX_RAD), description="radians; above pi disables the heading gate")
+    min_iou_matrix: list[float] | None = Field(
+        None, description="accepted from an Autoware file and not applied: for boxes that passed the distance and"
+        " area gates Autoware's 2D-IoU gate rarely changes the outcome")
+    mahalanobis_gate: PosFloat = Field(
+        3.035, description="sqrt of the 99% quantile of chi-square with 2 dof (sqrt(9.21)), as in Autoware")
     mahalanobis_covariance: MahalanobisCovariance = Field(
         "innovation",
         description="innovation: gate on the track's predicted position covariance plus the detection's"
         " (the statistically sound gate); track: on the track's covariance alone, as Autoware does",
     )
-    score_threshold: NonNegFloat = 0.01
+    score_threshold: NonNegFloat = Field(0.01, description="pairs scoring below it are never assigned (Autoware's)")
     gate_min_variance: NonNegFloat = Field(
         0.04,
         description="added to the Mahalanobis gate's covariance diagonal (m^2): a converged track of a parked"
         " object with an over-confident detector would otherwise reject its own detection and spawn a twin",
     )
+    max_candidates: Annotated[int, Field(ge=1, le=10_000)] = Field(
+        32, description="at most this many detections per track are scored, the nearest: a crowd of co-located"
+        " objects costs memory bounded by the gating, not by the product of the counts")
     overlap_factor: NonNegFloat = Field(
         0.75,
         description="two tracks whose labels may share a detection and whose centres are closer than this"
@@ -143,21 +207,13 @@ class TrackerConfig(_Strict):
     tentative_max_gap_s: PosFloat = Field(0.25, description="a tentative track missing longer is deleted")
     max_coast_s: PosFloat = Field(1.0, description="a confirmed track without a detection longer is deleted")
     max_position_stddev: PosFloat = Field(5.0, description="a track whose position stddev grows past it is deleted")
-    rewind_reset_s: NonNegFloat = Field(
-        10.0,
-        description="a frame whose stamp is this much older than the last one means the source restarted"
-        " (a replay loop): the tracker resets instead of dropping every later frame; 0 disables",
-    )
-    rewind_confirm_frames: Annotated[int, Field(ge=0, le=100)] = Field(
-        3,
-        description="this many frames in a row behind the newest one, each after the previous (in seq and"
-        " stamp) with nothing newer in between, mean the source went back by less than rewind_reset_s (a"
-        " recording restarted soon after it began): the tracker resets; a lone late frame is still dropped;"
-        " 0 disables",
-    )
+    stream: StreamLimits = Field(
+        default_factory=StreamLimits, description="how far a detections frame may step from the last one taken;"
+        " a discontinuity (restart, rewind, long gap) is followed only once successive frames confirm it")
     shape_smoothing: Annotated[float, Field(gt=0.0, le=1.0)] = Field(
         0.3, description="weight of a new detection's box dimensions in the track's running estimate"
     )
+    limits: Limits = Field(default_factory=Limits, description="bounds on the work one detections message may cause")
 
     @field_validator("classes", mode="before")
     @classmethod
@@ -254,84 +310,18 @@ class ConfigTables:
 # ------------------------------------------------------------------------------------------------ loading
 
 
-def _unwrap_ros(doc: dict[str, Any]) -> dict[str, Any]:
-    """Accept Autoware's ``/**: ros__parameters: {...}`` layout as well as a flat mapping."""
-    if len(doc) == 1:
-        (only,) = doc.values()
-        if isinstance(only, dict) and "ros__parameters" in only and isinstance(only["ros__parameters"], dict):
-            return dict(only["ros__parameters"])
-    if "ros__parameters" in doc and isinstance(doc["ros__parameters"], dict):
-        return dict(doc["ros__parameters"])
-    return doc
-
-
-def _read_yaml(text: str, origin: str) -> dict[str, Any]:
-    try:
-        doc = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{origin}: not valid YAML ({exc.__class__.__name__})") from None
-    if doc is None:
-        return {}
-    if not isinstance(doc, dict):
-        raise ConfigError(f"{origin}: expected a mapping at the top level, got {type(doc).__name__}")
-    return _unwrap_ros(doc)
-
-
-def default_matrix_text() -> str:
-    """The shipped association-matrix file (Autoware's defaults), as text."""
-    return resources.files(__package__).joinpath(DEFAULT_MATRIX_FILE).read_text(encoding="utf-8")
-
-
-def _validate(values: dict[str, Any], origin: str) -> TrackerConfig:
-    try:
-        return TrackerConfig.model_validate(values)
-    except ValidationError as exc:
-        err = exc.errors(include_url=False)[0]
-        field = ".".join(str(p) for p in err.get("loc", ())) or "(top level)"
-        raise ConfigError(f"{origin}: {field}: {err.get('msg', 'invalid')}") from None
-
-
 def default_config(**overrides: Any) -> TrackerConfig:
     """The shipped defaults, with keyword overrides (what tests and the bench use)."""
-    values = _read_yaml(default_matrix_text(), DEFAULT_MATRIX_FILE)
-    values.update(overrides)
-    return _validate(values, "tracker config")
+    return load(TrackerConfig, overrides=overrides)
 
 
 def load_config(path: str | Path | None = None, **overrides: Any) -> TrackerConfig:
-    """Shipped defaults, then the keys of ``path`` (if given), then ``overrides`` (CLI flags)."""
-    values = _read_yaml(default_matrix_text(), DEFAULT_MATRIX_FILE)
-    origin = "tracker config"
-    if path is not None:
-        p = Path(path)
-        if not p.is_file():
-            raise ConfigError(f"config file not found: {path}")
-        try:
-            text = p.read_text(encoding="utf-8")
-        except (OSError, UnicodeDecodeError) as exc:
-            raise ConfigError(f"{path}: cannot read ({exc.__class__.__name__})") from None
-        user = _read_yaml(text, str(path))
-        user.pop("min_iou_matrix", None)  # Autoware's IoU gate is not applied here (see association.py)
-        values.update(user)
-        origin = str(path)
-    values.update({k: v for k, v in overrides.items() if v is not None})
-    return _validate(values, origin)
+    """Shipped defaults, then the keys of ``path`` (if given), then ``overrides`` (CLI flags; None = not given)."""
+    return load(TrackerConfig, path, overrides=overrides)
 
 
 def dump_config(config: TrackerConfig) -> str:
-    """The effective config as YAML (what ``jitterguard tracker --print-config`` shows), matrices as 8 rows.
-
-    The output loads back with ``--config`` to the identical config, so it is a starting point for edits.
-    """
-    values = config.model_dump(mode="python")
-    names = ", ".join(LABEL_NAMES[i].upper() for i in range(NUM_LABELS))
-    lines = ["# jitterguard tracker: effective configuration",
-             f"# matrices: rows = track label, columns = measurement label ({names})"]
-    for key in MATRIX_KEYS:
-        vals = values.pop(key)
-        lines.append(f"{key}:")
-        for r in range(NUM_LABELS):
-            row = ", ".join(repr(v) for v in vals[r * NUM_LABELS:(r + 1) * NUM_LABELS])
-            lines.append(f"  {'[' if r == 0 else ' '}{row}{']' if r == NUM_LABELS - 1 else ','}  # {LABEL_NAMES[r]}")
-    lines.append(yaml.safe_dump(values, sort_keys=False, default_flow_style=False).rstrip())
-    return "\n".join(lines) + "\n"
+    """The config as a parameter file (what ``--print-config`` shows and ``config/tracker.param.yaml`` holds):
+    it loads back with ``--config`` to the identical config, so it is a starting point for edits."""
+    return dump_params(config, "jitterguard tracker (jitterguard tracker --config FILE); Autoware's layout",
+                       rows=dict.fromkeys(MATRIX_KEYS, 8))

@@ -2,9 +2,8 @@
 
 Per frame (all steps batched over every track / detection):
 
-1. reject a duplicate or out-of-order frame, or follow a source that started over
-   (:mod:`jitterguard.stream_order`: seq back with time going on is a restart, tracks carry on; time going
-   back far, or persistently, is a rewound recording, tracks are reset);
+1. drop a duplicate, a late frame or a jump, and follow a discontinuity only once successive frames confirm it
+   (:mod:`jitterguard.stream_order`: time going back resets the tracks; a restarted seq or a long gap keeps them);
 2. move the detections from the sensor frame into the world frame with the scan's ego pose, rotating their
    covariances with them (R Σ Rᵀ) and choosing each one's measurement covariance (the detector's or the
    class default's);
@@ -16,20 +15,19 @@ Per frame (all steps batched over every track / detection):
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
 
-from ...geometry import rotate_cov2
-from ...stream_order import BehindRun, Verdict, judge
+from ...geometry import rotate_cov2, sensor_to_world_xy
+from ...stream_order import StreamGuard, Verdict
 from . import kalman
 from .association import assign, gate, overlapping
 from .config import ConfigTables, TrackerConfig, default_config
-from .frames import DetectionFrame, FrameResult, TrackSnapshot, WorldDetections
+from .arrays import DetectionFrame, FrameResult, TrackSnapshot, WorldDetections
 from .kalman import CTRV, STATE_DIM, wrap_pi
-from .lifecycle import Confirmation, TrackTable, new_track_id
+from .lifecycle import Confirmation, Seen, TrackTable, new_track_id
 
 F64 = NDArray[np.float64]
 
@@ -37,8 +35,14 @@ UNMEASURED_YAW_VAR = 1e6
 """Heading variance given to a detection without a usable heading: the update then leaves the heading alone."""
 
 
+def _seen(f: DetectionFrame, det: WorldDetections, idx: NDArray[np.intp]) -> Seen:
+    """What the detections ``idx`` tell their tracks besides the filtered position."""
+    return Seen(f.label[idx], f.label_prob[idx], f.existence[idx], det.z[idx],
+                np.stack([f.length[idx], f.width[idx], f.height[idx]], axis=1), f.orientation[idx])
+
+
 class FrameRejected(Exception):
-    """A frame the tracker will not process; ``reason`` is ``duplicate`` or ``out_of_order``."""
+    """A frame the tracker will not process; ``reason`` is ``duplicate``, ``out_of_order`` or ``jump``."""
 
     def __init__(self, reason: str, seq: int, last_seq: int) -> None:
         self.reason = reason
@@ -55,9 +59,7 @@ class TrackerCore:
         self.confirmation = Confirmation(self.tables.confirm_hits, self.config.confirm_min_existence)
         self.id_factory = id_factory
         self.tracks = TrackTable()
-        self.last_seq: int | None = None
-        self.last_stamp_ns: int | None = None
-        self._behind = BehindRun(self.config.rewind_confirm_frames)
+        self.guard = StreamGuard(self.config.stream)
 
     # ----------------------------------------------------------------------------------------------- API
 
@@ -65,33 +67,29 @@ class TrackerCore:
         """Forget every track (a source restart); returns the IDs dropped."""
         dropped = list(self.tracks.ids)
         self.tracks = TrackTable()
-        self.last_seq = None
-        self.last_stamp_ns = None
-        self._behind.clear()
+        self.guard.reset()
         return dropped
 
-    def check_order(self, seq: int, stamp_ns: int) -> Verdict:
-        """Raise :class:`FrameRejected` for a duplicate / late frame; else say how the frame continues the stream.
+    @property
+    def last_seq(self) -> int | None:
+        return self.guard.last_seq
 
-        ``NEXT`` and ``RESTARTED`` (the source's seq began again while time went on: a restarted driver, a
-        replay on wall-clock stamps) keep the tracks; ``REWOUND`` (time went back) means reset first.
-        """
-        verdict = judge(seq, stamp_ns, self.last_seq, self.last_stamp_ns, self.config.rewind_reset_s * 1e9)
-        if verdict is Verdict.LATE and self._behind.behind(seq, stamp_ns):
-            verdict = Verdict.REWOUND
-        if verdict is Verdict.DUPLICATE:
-            raise FrameRejected("duplicate", seq, self.last_seq if self.last_seq is not None else -1)
-        if verdict is Verdict.LATE:
-            raise FrameRejected("out_of_order", seq, self.last_seq if self.last_seq is not None else -1)
+    def check_order(self, seq: int, stamp_ns: int, now_s: float | None = None) -> Verdict:
+        """Judge a frame by its header (before it is read, if the caller likes); raise :class:`FrameRejected` for
+        one that is dropped. ``now_s``: the receiver's clock, for confirming a discontinuity (None: frames only)."""
+        verdict = self.guard.admit(seq, stamp_ns, now_s)
+        if not verdict.accepted:
+            last = self.guard.last_seq
+            raise FrameRejected(verdict.value, seq, last if last is not None else -1)
         return verdict
 
-    def step(self, frame: DetectionFrame) -> FrameResult:
-        """Process one detection frame; raises :class:`FrameRejected` (state untouched) for a stale one."""
-        verdict = self.check_order(frame.seq, frame.stamp_ns)
+    def step(self, frame: DetectionFrame, verdict: Verdict | None = None) -> FrameResult:
+        """Process one detection frame; raises :class:`FrameRejected` (state untouched) for a dropped one.
+        ``verdict``: what :meth:`check_order` already said of this frame's header."""
+        if verdict is None:
+            verdict = self.check_order(frame.seq, frame.stamp_ns)
         deleted: list[str] = self.reset() if verdict is Verdict.REWOUND else []
-        self._behind.clear()
-        self.last_seq = frame.seq
-        self.last_stamp_ns = frame.stamp_ns
+        self.guard.accept(frame.seq, frame.stamp_ns)
 
         cfg, tb, tr = self.config, self.tables, self.tracks
         stamp = frame.stamp_ns
@@ -117,7 +115,7 @@ class TrackerCore:
             tr.x[:, :2], tr.label, tr.x[:, 2], tr.P[:, :2, :2],
             det_pos, frame.label, frame.area, det.yaw, yaw_valid, det_pos_cov,
             tb, cfg.mahalanobis_gate, cfg.mahalanobis_covariance == "innovation", cfg.score_threshold,
-            cfg.gate_min_variance,
+            cfg.gate_min_variance, cfg.max_candidates,
         )
         rows, cols = assign(n, m, cand)
         claimed = cols.copy()  # a detection whose track is deleted below must not start a twin of it
@@ -130,17 +128,13 @@ class TrackerCore:
             kalman.clamp(xr, tr.model[rows], tb.max_speed[lbl], tb.max_yaw_rate[lbl])
             tr.x[rows] = xr
             tr.P[rows] = Pr
-            tr.record_hits(
-                rows, stamp, frame.label[cols], frame.label_prob[cols], frame.existence[cols], det.z[cols],
-                np.stack([frame.length[cols], frame.width[cols], frame.height[cols]], axis=1),
-                frame.orientation[cols], self.confirmation, cfg.shape_smoothing,
-            )
+            tr.record_hits(rows, stamp, _seen(frame, det, cols), self.confirmation, cfg.shape_smoothing)
 
         # ---- delete what the lifecycle rules expire (before births: a newborn never expires at once)
         if n:
             keep = ~tr.expired(stamp, cfg.tentative_max_gap_s, cfg.max_coast_s, cfg.max_position_stddev)
             keep &= ~overlapping(tr.x[:, :2], tr.label, tr.dims[:, 1], tr.hits, tb.can_assign,
-                                 cfg.overlap_factor)
+                                 cfg.overlap_factor, cfg.max_candidates)
             keep_rows = np.flatnonzero(keep)
             if keep_rows.size < n:
                 remap = np.full(n, -1, dtype=np.intp)
@@ -173,6 +167,7 @@ class TrackerCore:
             deleted=deleted,
             reset=verdict is Verdict.REWOUND,
             source_restarted=verdict is Verdict.RESTARTED,
+            jumped=verdict is Verdict.JUMPED,
         )
 
     def apply_static_hints(self, track_ids: Sequence[str], mean_x: Sequence[float],
@@ -195,9 +190,7 @@ class TrackerCore:
     def _to_world(self, f: DetectionFrame) -> WorldDetections:
         """Sensor frame -> world frame, with each detection's measurement covariance over (x, y, yaw)."""
         cfg, tb = self.config, self.tables
-        c, s = math.cos(f.ego_yaw), math.sin(f.ego_yaw)
-        x = f.ego_x + c * f.x - s * f.y
-        y = f.ego_y + s * f.x + c * f.y
+        x, y = sensor_to_world_xy(f.x, f.y, f.ego_x, f.ego_y, f.ego_yaw)
         yaw = wrap_pi(f.yaw + f.ego_yaw)
         cxx, cxy, cyy = rotate_cov2(f.cov_xx, f.cov_xy, f.cov_yy, f.ego_yaw)
 
@@ -243,11 +236,8 @@ class TrackerCore:
         pv = tb.p0_vel[lbl] ** 2
         P0[:, 3, 3] = pv
         P0[:, 4, 4] = np.where(model == CTRV, tb.p0_yaw_rate[lbl] ** 2, pv)
-        dims = np.stack([f.length[idx], f.width[idx], f.height[idx]], axis=1)
-        return self.tracks.append(
-            x0, P0, f.stamp_ns, model, f.label[idx], f.label_prob[idx], f.existence[idx], det.z[idx], dims,
-            f.orientation[idx], self.confirmation, self.id_factory,
-        )
+        return self.tracks.append(x0, P0, f.stamp_ns, model, _seen(f, det, idx), self.confirmation,
+                                  self.id_factory)
 
     def _snapshot(self, rows: NDArray[np.intp], cols: NDArray[np.intp]
                   ) -> tuple[TrackSnapshot, NDArray[np.intp], NDArray[np.intp]]:

@@ -55,6 +55,19 @@ def new_track_id() -> str:
     return uuid.uuid4().hex
 
 
+@dataclass(frozen=True)
+class Seen:
+    """What detections tell their tracks besides the position the filter takes: class and its probability,
+    existence, height, size and orientation, one row per detection (in the order of the rows they update)."""
+
+    label: NDArray[np.int8]
+    label_prob: F64
+    existence: F64
+    z: F64
+    dims: F64  # (k, 3): length, width, height
+    orientation: NDArray[np.int8]
+
+
 class TrackTable:
     """Every track's state and bookkeeping, one row per track."""
 
@@ -84,12 +97,7 @@ class TrackTable:
         P: F64,
         stamp_ns: int,
         model: NDArray[np.int8],
-        label: NDArray[np.int8],
-        label_prob: F64,
-        existence: F64,
-        z: F64,
-        dims: F64,
-        orientation: NDArray[np.int8],
+        seen: Seen,
         confirm: Confirmation,
         id_factory: Callable[[], str] = new_track_id,
     ) -> list[str]:
@@ -99,20 +107,20 @@ class TrackTable:
             return []
         ids = [id_factory() for _ in range(k)]
         votes = np.zeros((k, NUM_LABELS))
-        votes[np.arange(k), label.astype(np.intp)] = label_prob
+        votes[np.arange(k), seen.label.astype(np.intp)] = seen.label_prob
         self.ids.extend(ids)
         self.x = np.concatenate([self.x, x])
         self.P = np.concatenate([self.P, P])
         self.t_ns = np.concatenate([self.t_ns, np.full(k, stamp_ns, dtype=np.int64)])
         self.model = np.concatenate([self.model, model.astype(np.int8)])
         self.votes = np.concatenate([self.votes, votes])
-        self.label = np.concatenate([self.label, label.astype(np.int8)])
-        self.existence = np.concatenate([self.existence, existence])
-        self.z = np.concatenate([self.z, z])
-        self.dims = np.concatenate([self.dims, dims])
-        self.orientation = np.concatenate([self.orientation, orientation.astype(np.int8)])
+        self.label = np.concatenate([self.label, seen.label.astype(np.int8)])
+        self.existence = np.concatenate([self.existence, seen.existence])
+        self.z = np.concatenate([self.z, seen.z])
+        self.dims = np.concatenate([self.dims, seen.dims])
+        self.orientation = np.concatenate([self.orientation, seen.orientation.astype(np.int8)])
         self.hits = np.concatenate([self.hits, np.ones(k, dtype=np.int64)])
-        self.confirmed = np.concatenate([self.confirmed, confirm.reached(np.ones(k, dtype=np.int64), label, existence)])
+        self.confirmed = np.concatenate([self.confirmed, confirm.reached(np.ones(k, dtype=np.int64), seen.label, seen.existence)])
         self.born_ns = np.concatenate([self.born_ns, np.full(k, stamp_ns, dtype=np.int64)])
         self.last_update_ns = np.concatenate([self.last_update_ns, np.full(k, stamp_ns, dtype=np.int64)])
         return ids
@@ -121,12 +129,7 @@ class TrackTable:
         self,
         rows: NDArray[np.intp],
         stamp_ns: int,
-        label: NDArray[np.int8],
-        label_prob: F64,
-        existence: F64,
-        z: F64,
-        dims: F64,
-        orientation: NDArray[np.int8],
+        seen: Seen,
         confirm: Confirmation,
         smoothing: float,
     ) -> None:
@@ -136,13 +139,13 @@ class TrackTable:
         self.hits[rows] += 1
         self.last_update_ns[rows] = stamp_ns
         self.votes[rows] *= LABEL_DECAY
-        self.votes[rows, label.astype(np.intp)] += label_prob
+        self.votes[rows, seen.label.astype(np.intp)] += seen.label_prob
         self.label[rows] = np.argmax(self.votes[rows], axis=1).astype(np.int8)
         a = smoothing
-        self.existence[rows] = (1.0 - a) * self.existence[rows] + a * existence
-        self.z[rows] = (1.0 - a) * self.z[rows] + a * z
-        self.dims[rows] = (1.0 - a) * self.dims[rows] + a * dims
-        self.orientation[rows] = orientation
+        self.existence[rows] = (1.0 - a) * self.existence[rows] + a * seen.existence
+        self.z[rows] = (1.0 - a) * self.z[rows] + a * seen.z
+        self.dims[rows] = (1.0 - a) * self.dims[rows] + a * seen.dims
+        self.orientation[rows] = seen.orientation
         self.confirmed[rows] |= confirm.reached(self.hits[rows], self.label[rows], self.existence[rows])
 
     def expired(self, stamp_ns: int, tentative_max_gap_s: float, max_coast_s: float,

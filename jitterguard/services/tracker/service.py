@@ -1,19 +1,22 @@
-"""The tracker's Zenoh adapter: ``detections`` in; ``tracks/{id}`` per observed track, then ``tracked``.
+"""The tracker as a Zenoh service: ``detections`` in; ``tracks/{id}`` per observed track, then ``tracked``.
 
 Threading: a detections frame arrives through one callback that only copies the payload into an inbox queue
 (:meth:`~jitterguard.runtime.Service.subscribe_inbox`); one worker thread, blocked on that queue, wakes at once,
-validates the frame (:func:`~.convert.decode_detections`: records for the usual shape, generated Structs
-otherwise; a malformed payload is counted as ``rejected`` and skipped), owns the :class:`TrackerCore` — nothing
-else touches it — and per frame publishes every ``tracks/{id}`` first (:class:`~jitterguard.runtime.keyed_publishers.KeyedPublishers`) and the closing ``tracked`` last (the classifier
+judges the frame's header (:mod:`jitterguard.stream_order`), reads it (:func:`~jitterguard.schemas.read_detected_objects`:
+a malformed or oversized payload is counted ``rejected`` and skipped, one the model read in another shape
+``normalised``), owns the :class:`TrackerCore` — nothing else touches it — and, through the adapter
+(:mod:`.adapter`), per frame publishes every ``tracks/{id}`` first (plain puts per key,
+:class:`~jitterguard.runtime.keyed_publishers.KeyedPublishers`) and the closing ``tracked`` last (the classifier
 waits for the IDs that ``tracked.observed_track_ids`` names). All puts use BLOCK congestion control: a lost
-observation would silently shorten a classifier window. A full inbox slows BLOCK publishers instead of
-dropping frames.
+observation would silently shorten a classifier window. The inbox is bounded: when the worker falls behind, the
+oldest frame goes (counted ``dropped_queue.detections``).
 
-Counters (in the heartbeat): ``frames``, ``dropped_duplicate``, ``dropped_out_of_order``, ``tracks_born``,
-``tracks_deleted``, ``resets`` (the source went back in time: tracks dropped), ``source_restarts`` (its seq began
-again while time went on: tracks kept), ``static_hints_received`` / ``_applied`` / ``_unknown`` and the runtime's
-``received`` / ``rejected`` / ``published``. How a frame is told apart from a late one is
-:mod:`jitterguard.stream_order`.
+Counters (in the heartbeat): ``frames``, ``dropped_duplicate``, ``dropped_out_of_order``, ``dropped_jump`` (held,
+judged from the header before the payload is read), ``tracks_born``, ``tracks_deleted``, ``resets`` (the source went
+back in time, confirmed: tracks dropped), ``source_restarts`` (its seq began again while time went on, confirmed:
+tracks kept), ``jumps`` (it jumped ahead, confirmed), ``normalised.detections``, ``dropped_queue.detections``,
+``static_hints_received`` / ``_applied`` / ``_unknown`` and the runtime's ``received`` / ``rejected`` (and
+``over_limit``) / ``published``. How a frame is told apart from a late one is :mod:`jitterguard.stream_order`.
 """
 
 from __future__ import annotations
@@ -22,15 +25,14 @@ import queue
 import threading
 import time
 from collections.abc import Callable
-from typing import Any
 
 from ...runtime import Service, ZenohOptions
 from ...runtime.gc_policy import IdleCollector, manage_gc_for_latency
-from ...schemas import DecodeError, keys
+from ...schemas import DecodeError, DetectedColumns, keys, peek_header, read_detected_objects
 from ...schemas.models import MotionState
+from ...stream_order import Verdict
+from .adapter import detection_frame, observation_payloads, tracked_payload
 from .config import TrackerConfig, default_config
-from .convert import (decode_detections, detections_codec, ego_pose_map, frame_from_message, observation_payloads,
-                      tracked_payload)
 from .core import FrameRejected, TrackerCore
 from .lifecycle import new_track_id
 
@@ -60,7 +62,6 @@ class TrackerService(Service):
         self.static_hints = static_hints
         self._hints: list[MotionState] = []
         self._hints_lock = threading.Lock()
-        self._codec = detections_codec()
         self._manage_gc = manage_gc
         self._idle_gc = IdleCollector()
         if manage_gc:
@@ -91,24 +92,35 @@ class TrackerService(Service):
                 self._idle_gc.collect()
                 collect = False
             try:
-                payload, _key = self._det_inbox.get(timeout=IDLE_WAIT_S)
+                payload, _key, arrived = self._det_inbox.get(timeout=IDLE_WAIT_S)
             except queue.Empty:
                 continue
             self.counters.inc("received")
-            try:  # the contract's validation, on msgspec Structs generated from the model (schemas.fast)
-                msg = decode_detections(self._codec, payload)
+            head = peek_header(payload)
+            verdict = None
+            if head is not None:  # the order is judged before the payload is read: a replay costs nothing
+                try:
+                    verdict = self.core.check_order(*head, now_s=arrived)
+                except FrameRejected as rej:
+                    self.counters.inc(f"dropped_{rej.reason}")
+                    self.progress.output(time.monotonic())  # dealt with: dropped and counted
+                    continue
+            try:
+                cols = read_detected_objects(payload, self.core.config.limits)
             except DecodeError as exc:
                 self.reject(exc, self._det_key)
                 self.progress.output(time.monotonic())  # dealt with: rejected and counted
                 continue
+            if cols.normalised:
+                self.counters.inc("normalised.detections")
             collect = self._manage_gc
             try:
                 self._apply_hints()
-                self.process(msg)
+                self.process(cols, verdict)
             except Exception as exc:  # a bug must not silently stop tracking: count, log, go on with the next frame
                 self.counters.inc("handler_errors")
                 self.progress.failure(time.monotonic(), f"{type(exc).__name__}: {exc}"[:200])
-                self.log.exception("frame seq %d failed", msg.header.seq)
+                self.log.exception("frame seq %d failed", cols.header.seq)
             else:
                 self.progress.output(time.monotonic())  # published, or dropped on purpose (counted)
 
@@ -124,24 +136,26 @@ class TrackerService(Service):
         if applied < len(ids):
             self.counters.inc("static_hints_unknown", len(ids) - applied)
 
-    def process(self, msg: Any) -> None:
-        """Track one validated frame (as :func:`~.convert.decode_detections` gives it; a Struct is edited in
-        place) and publish the observations, then ``tracked``."""
-        frame = frame_from_message(msg)
+    def process(self, cols: DetectedColumns, verdict: Verdict | None = None) -> None:
+        """Track one frame (as :func:`~jitterguard.schemas.read_detected_objects` gives it; ``verdict``: what
+        the core already said of its header) and publish the observations, then ``tracked``."""
+        frame = detection_frame(cols)
         try:
-            result = self.core.step(frame)
+            result = self.core.step(frame, verdict)
         except FrameRejected as rej:
             self.counters.inc(f"dropped_{rej.reason}")
             return
         if result.reset:
             self.counters.inc("resets")
-            self.log.warning("detections went back in time (seq %d): source rewound, tracker reset", frame.seq)
+            self.log.warning("detections went back in time (seq %d, confirmed): source rewound, tracker reset", frame.seq)
         elif result.source_restarted:
             self.counters.inc("source_restarts")
-            self.log.warning("detections restarted at seq %d with time going on: source restarted, tracks kept",
-                             frame.seq)
-        self._publish(observation_payloads(msg, frame, result))
-        self._tracked_pub.put(tracked_payload(frame, result, ego_pose_map(msg)))  # after the observations went out
+            self.log.warning("detections restarted at seq %d with time going on (confirmed): tracks kept", frame.seq)
+        elif result.jumped:
+            self.counters.inc("jumps")
+            self.log.warning("detections jumped ahead to seq %d (confirmed): tracks kept", frame.seq)
+        self._publish(observation_payloads(cols, frame, result))
+        self._tracked_pub.put(tracked_payload(cols, frame, result))  # built after the observations went out
         self.counters.inc("frames")
         self.counters.inc("tracks_born", len(result.born))
         self.counters.inc("tracks_deleted", len(result.deleted))

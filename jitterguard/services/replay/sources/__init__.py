@@ -82,7 +82,7 @@ def open_source(spec: str, opts: SourceOptions | None = None) -> Source:
         raise SourceError(f"--level must be 'points' or 'detections', got {opts.level!r}")
     if spec.startswith(SYNTHETIC_PREFIX):
         _only_for(opts, "synthetic", {"--lidar"})
-        from .synthetic import SyntheticSource
+        from .synthetic import SyntheticSource  # each reader only when its format is asked for
 
         return SyntheticSource(
             spec[len(SYNTHETIC_PREFIX) :],
@@ -96,6 +96,7 @@ def open_source(spec: str, opts: SourceOptions | None = None) -> Source:
     if not path.exists():
         hint = " (synthetic scenarios are spelled synthetic:NAME)" if ":" not in spec and "/" not in spec else ""
         raise SourceError(f"{spec}: no such file or folder{hint}")
+    # each reader only when a path is given: rosbags and the nuScenes tables are optional extras
     from .bag import BagSource, is_bag
     from .kitti import BinScanSource
     from .nuscenes import NuScenesSource, is_nuscenes_root

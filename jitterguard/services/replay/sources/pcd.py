@@ -132,16 +132,6 @@ def lzf_decompress(data: bytes, out_len: int) -> bytes:
     return bytes(out)
 
 
-def lzf_literal(data: bytes) -> bytes:
-    """The trivial valid LZF encoding (literal runs only): lets tests write binary_compressed files."""
-    out = bytearray()
-    for i in range(0, len(data), 32):
-        chunk = data[i : i + 32]
-        out.append(len(chunk) - 1)
-        out += chunk
-    return bytes(out)
-
-
 def _columns(h: PcdHeader, structured: NDArray[np.void]) -> tuple[NDArray[np.float32], tuple[str, ...]]:
     keep = [f for f, c in zip(h.fields, h.counts) if c == 1 and f != "_" and f not in ("x", "y", "z")]
     names = ("x", "y", "z", *keep)

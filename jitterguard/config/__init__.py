@@ -1,0 +1,147 @@
+"""Configuration, the Autoware way, one loader for every service.
+
+Beside this module, per service, ``<service>.param.yaml`` holds the defaults in Autoware's layout
+(``/**: ros__parameters: {...}``), a preset is ``<service>.<preset>.param.yaml`` (the classifier's ``paper`` and
+``authors``, the detector's ``lite`` and ``paper``), and ``schema/<service>.schema.json`` is the JSON schema of the
+pydantic model that validates it. The models are the source: ``python -m jitterguard.config.generate`` writes the
+defaults files and the schemas from them, and a test fails when a checked-in file no longer matches its model.
+
+:func:`load` layers, each over the last: the model's defaults, a preset, the user's ``--config`` file (flat, or
+in Autoware's ``ros__parameters`` form), then command-line overrides. Unknown keys are errors, not silently kept:
+a misspelt gate that quietly keeps its default is the kind of bug that costs a day on the vehicle.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, TypeVar
+
+import yaml
+from pydantic import BaseModel, ValidationError
+
+M = TypeVar("M", bound=BaseModel)
+CONFIG_DIR = Path(__file__).resolve().parent
+
+
+class ConfigError(ValueError):
+    """A configuration that cannot be used; the message names the file and the key."""
+
+
+def param_file(service: str, preset: str | None = None) -> Path:
+    """Where the package keeps ``service``'s defaults (or one of its presets)."""
+    return CONFIG_DIR / (f"{service}.{preset}.param.yaml" if preset else f"{service}.param.yaml")
+
+
+def schema_file(name: str) -> Path:
+    """Where the package keeps the JSON schema ``name`` (a service, or ``detector.architecture``)."""
+    return CONFIG_DIR / "schema" / f"{name}.schema.json"
+
+
+def presets(service: str) -> list[str]:
+    """The names of ``service``'s shipped presets."""
+    return sorted(p.name[len(service) + 1: -len(".param.yaml")] for p in CONFIG_DIR.glob(f"{service}.*.param.yaml"))
+
+
+def read_params(path: str | Path) -> dict[str, Any]:
+    """A parameter file's mapping: flat, or unwrapped from Autoware's ``<node or /**>: ros__parameters:``."""
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(f"config file not found: {path}")
+    try:
+        doc = yaml.safe_load(p.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{path}: cannot read ({type(exc).__name__})") from None
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: not valid YAML ({type(exc).__name__})") from None
+    if doc is None:
+        return {}
+    if not isinstance(doc, dict):
+        raise ConfigError(f"{path}: expected a mapping at the top level, got {type(doc).__name__}")
+    if len(doc) == 1:
+        (only,) = doc.values()
+        if isinstance(only, dict) and isinstance(only.get("ros__parameters"), dict):
+            return dict(only["ros__parameters"])
+    if isinstance(doc.get("ros__parameters"), dict):
+        return dict(doc["ros__parameters"])
+    return doc
+
+
+def preset_values(service: str, name: str) -> dict[str, Any]:
+    """The keys a shipped preset sets (ConfigError naming the choices if there is no such preset)."""
+    if name not in presets(service):
+        raise ConfigError(f"unknown {service} preset {name!r}; expected one of {', '.join(presets(service))}")
+    return read_params(param_file(service, name))
+
+
+def load(model: type[M], path: str | Path | None = None, *, service: str | None = None, preset: str | None = None,
+         overrides: dict[str, Any] | None = None, base: dict[str, Any] | None = None,
+         flags: dict[str, str] | None = None) -> M:
+    """``model`` from its defaults (or ``base``), then ``service``'s ``preset``, the file at ``path`` and the
+    ``overrides`` that are not None (command-line flags: ``flags`` names each key's flag, ``--key-name`` if not);
+    ConfigError names the flag, or the file and the field, that fails."""
+    values: dict[str, Any] = dict(base or {})
+    origin = f"{model.__name__}"
+    if preset is not None:
+        _merge(values, preset_values(service or "", preset))
+        origin = f"preset {preset}"
+    if path is not None:
+        _merge(values, read_params(path))
+        origin = str(path)
+    given = {k: v for k, v in (overrides or {}).items() if v is not None}
+    _merge(values, given)
+    try:
+        return model.model_validate(values)
+    except ValidationError as exc:
+        err = exc.errors(include_url=False)[0]
+        loc = err.get("loc", ())
+        if loc and loc[0] in given:  # a flag's value: name the flag
+            flag = (flags or {}).get(str(loc[0]), "--" + str(loc[0]).replace("_", "-"))
+            raise ConfigError(f"{flag}: {err.get('msg', 'invalid')}") from None
+        field = ".".join(str(p) for p in loc) or "(top level)"
+        raise ConfigError(f"{origin}: {field}: {err.get('msg', 'invalid')}") from None
+
+
+def _merge(into: dict[str, Any], new: dict[str, Any]) -> None:
+    """Nested mappings are merged key by key (a file may tune one limit), everything else replaced."""
+    for k, v in new.items():
+        if isinstance(v, dict) and isinstance(into.get(k), dict):
+            into[k] = dict(into[k])
+            _merge(into[k], v)
+        else:
+            into[k] = v
+
+
+def dump_params(config: BaseModel, title: str, rows: dict[str, int] | None = None, exclude: set[str] = frozenset()
+                ) -> str:
+    """``config`` as a parameter file in Autoware's layout, each field's description as its comment; lists named
+    in ``rows`` are written ``rows[name]`` values a line (the tracker's 8x8 matrices)."""
+    lines = [f"# {line}" if line else "#" for line in title.splitlines()]
+    lines += ["/**:", "  ros__parameters:"]
+    values = config.model_dump(mode="json", exclude=set(exclude))
+    for name, value in values.items():
+        field = type(config).model_fields[name]
+        if field.description:
+            lines += [f"    # {line}" for line in _wrap(field.description, 110)]
+        if rows and name in rows and isinstance(value, list):
+            n = rows[name]
+            chunks = [", ".join(repr(v) for v in value[i:i + n]) for i in range(0, len(value), n)]
+            lines.append(f"    {name}:")
+            lines += [f"      {'[' if i == 0 else ' '}{c}{']' if i == len(chunks) - 1 else ','}" for i, c in enumerate(chunks)]
+        elif isinstance(value, dict) and value:
+            text = yaml.safe_dump({name: value}, sort_keys=False, default_flow_style=False, width=110).rstrip()
+            lines += [f"    {line}" for line in text.splitlines()]
+        else:
+            text = yaml.safe_dump(value, default_flow_style=True, width=10**6).replace("\n...", "").strip()
+            lines.append(f"    {name}: {text}")
+    return "\n".join(lines) + "\n"
+
+
+def _wrap(text: str, width: int) -> list[str]:
+    out, line = [], ""
+    for word in text.split():
+        if line and len(line) + 1 + len(word) > width:
+            out.append(line)
+            line = word
+        else:
+            line = f"{line} {word}" if line else word
+    return out + ([line] if line else [])

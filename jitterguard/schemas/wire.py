@@ -1,0 +1,422 @@
+"""One read and one write per hot message: payload bytes <-> columns, with the per-message limits.
+
+Every service and the offline evaluator go through these functions, so there is one way a ``DetectedObjects``,
+``TrackObservation``, ``TrackedObjects`` or ``MotionState`` crosses the wire. The objects of a message are
+numpy records (:mod:`.records`): a view of the payload's own bytes when it has the usual shape (one
+classification, no footprint, float64 values, as every writer here and msgpack writers of such objects produce),
+checked against the model's rules column-wise. Any other payload is read by the pydantic model — which decides
+what is valid and names the field that is not — and *normalised* into the same columns (the most probable
+classification, the footprint reduced to its area); the columns say so (``normalised``) and the services count it.
+
+Work per message is bounded before the expensive part (:class:`Limits`): the payload's size, then the object
+count read from the list's msgpack header, then coordinates and variances on the columns. A payload beyond a
+limit raises :class:`LimitExceeded` (a :class:`~.codec.DecodeError`, so it is rejected and counted per key).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from functools import cache
+from typing import Any
+
+import msgpack
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from .codec import M, DecodeError, decode, unpack_map, validate
+from .models import (
+    DIAGONAL,
+    SCHEMA_VERSION,
+    DetectedObject,
+    DetectedObjects,
+    Header,
+    MotionState,
+    ObjectClassification,
+    Pose,
+    Shape,
+    TrackedObject,
+    TrackedObjects,
+    TrackObservation,
+    TrackState,
+)
+from .records import RecordLayout, array_header
+
+_POSE, _TWIST = "kinematics.pose_with_covariance", "kinematics.twist_with_covariance"
+ID, EXISTENCE = "object_id", "existence_probability"
+LABEL, LABEL_PROB = "classification.0.label", "classification.0.probability"
+X, Y, Z = (f"{_POSE}.pose.position.{a}" for a in "xyz")
+QX, QY, QZ, QW = (f"{_POSE}.pose.orientation.{a}" for a in "xyzw")
+POSE_COV, TWIST_COV = f"{_POSE}.covariance", f"{_TWIST}.covariance"
+VX, VY, VZ = (f"{_TWIST}.twist.linear.{a}" for a in "xyz")
+WX, WY, WZ = (f"{_TWIST}.twist.angular.{a}" for a in "xyz")
+ORIENTATION, HAS_POSITION_COV = "kinematics.orientation_availability", "kinematics.has_position_covariance"
+STATIONARY, SHAPE_TYPE = "kinematics.is_stationary", "shape.type"
+LENGTH, WIDTH, HEIGHT = (f"shape.dimensions.{a}" for a in "xyz")
+"""Slot names of the object records (``TrackedObject`` and ``DetectedObject`` share them where paths agree)."""
+
+_ONE_CLASS = [ObjectClassification()]
+DETECTED = RecordLayout.of(DetectedObject, DetectedObject(classification=_ONE_CLASS))
+TRACKED = RecordLayout.of(TrackedObject, TrackedObject(object_id="0" * 32, classification=_ONE_CLASS))
+TRACK_STATE = RecordLayout.of(TrackState, TrackState(object_id="0" * 32, x=0.0, y=0.0))
+
+
+class Limits(BaseModel):
+    """Bounds on the work one message may cause; defaults no real sensor reaches (a service's ``limits:``)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    max_payload_bytes: int = Field(8 << 20, ge=1024, description="larger payloads are refused unread")
+    max_objects: int = Field(1000, ge=1, description="objects per message, read from the list's header")
+    max_abs_coordinate_m: float = Field(1e7, gt=0, description="|x|, |y|, |z| of every position (UTM fits)")
+    max_abs_speed_mps: float = Field(1e3, gt=0, description="|vx|, |vy|, |vz| of every twist")
+    max_variance: float = Field(1e6, gt=0, description="every variance of a pose or twist covariance")
+
+
+LIMITS = Limits()
+
+
+class LimitExceeded(DecodeError):
+    """A payload beyond a :class:`Limits` bound: rejected before (or instead of) being read in full."""
+
+
+# -------------------------------------------------------------------------------------------- columns
+
+
+@dataclass
+class DetectedColumns:
+    """A ``DetectedObjects``: header, ego pose, the objects as :data:`DETECTED` records and each footprint's area."""
+
+    header: Header
+    ego_pose: Pose
+    objects: np.ndarray
+    area: np.ndarray
+    normalised: bool = False
+
+
+@dataclass
+class TrackedColumns:
+    """A ``TrackedObjects``: header, ego pose, the objects as :data:`TRACKED` records, the frame-closing IDs."""
+
+    header: Header
+    ego_pose: Pose
+    objects: np.ndarray
+    observed_track_ids: list[str]
+    normalised: bool = False
+
+
+@dataclass
+class ObservationColumns:
+    """Many ``TrackObservation`` payloads: per valid one (in payload order; ``index`` says which) its header's
+    seq and stamp, the detection as a :data:`DETECTED` record and the state as a :data:`TRACK_STATE` record;
+    ``errors`` the refused ones as (index, error)."""
+
+    index: np.ndarray
+    seq: np.ndarray
+    stamp: np.ndarray
+    detections: np.ndarray
+    tracks: np.ndarray
+    errors: list[tuple[int, DecodeError]]
+    normalised: int = 0
+
+
+# -------------------------------------------------------------------------------------------- reading
+
+
+def read_detected_objects(data: bytes, limits: Limits = LIMITS) -> DetectedColumns:
+    """``data`` as :class:`DetectedColumns`; :class:`~.codec.DecodeError` (or :class:`LimitExceeded`) if not valid."""
+    env, objects, models = _read_listed(DetectedObjects, data, DETECTED, limits)
+    area = _box_area(objects) if models is None else np.array([_area(o.shape) for o in models], dtype=np.float64)
+    _check_objects(DetectedObjects.__name__, objects, limits, env.ego_pose)
+    return DetectedColumns(env.header, env.ego_pose, objects, area, models is not None)
+
+
+def read_tracked_objects(data: bytes, limits: Limits = LIMITS) -> TrackedColumns:
+    """``data`` as :class:`TrackedColumns`; :class:`~.codec.DecodeError` (or :class:`LimitExceeded`) if not valid."""
+    env, objects, models = _read_listed(TrackedObjects, data, TRACKED, limits)
+    _check_objects(TrackedObjects.__name__, objects, limits, env.ego_pose)
+    return TrackedColumns(env.header, env.ego_pose, objects, list(env.observed_track_ids), models is not None)
+
+
+def read_track_observations(payloads: Sequence[bytes], limits: Limits = LIMITS) -> ObservationColumns:
+    """Many ``TrackObservation`` payloads at once (the classifier reads thousands a second): those in the
+    record shape viewed together, the rest read one by one by the model. Never raises for a bad payload."""
+    n = len(payloads)
+    ok = np.zeros(n, dtype=bool)
+    seq, stamp = np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.int64)
+    dets, tracks = np.zeros(n, DETECTED.dtype), np.zeros(n, TRACK_STATE.dtype)
+    det_bytes, track_bytes = (a.view(np.uint8).reshape(n, a.itemsize) for a in (dets, tracks))
+    errors: list[tuple[int, DecodeError]] = []
+    by_size: dict[int, list[int]] = {}
+    for i, p in enumerate(payloads):
+        by_size.setdefault(len(p), []).append(i)
+    general: list[int] = []
+    for size, idx in by_size.items():
+        layout = _observation_layout(size - _observation_layout(0).itemsize)
+        if layout is None:
+            general += idx
+            continue
+        joined = b"".join([payloads[i] for i in idx])
+        good = layout.valid_rows(joined, len(idx))
+        rows = np.frombuffer(joined, np.uint8).reshape(len(idx), layout.itemsize)
+        if not good.all():
+            general += [i for i, g in zip(idx, good.tolist()) if not g]
+            rows = rows[good]
+        take = np.asarray(idx, dtype=np.intp)[good]
+        rec = np.ascontiguousarray(rows).reshape(-1).view(layout.dtype)
+        seq[take], stamp[take] = rec["header.seq"], rec["header.stamp"]
+        (a, b), (c, d) = layout.spans["detection"], layout.spans["track"]
+        det_bytes[take], track_bytes[take] = rows[:, a:b], rows[:, c:d]
+        ok[take] = True
+    normalised = 0
+    for i in general:
+        try:
+            if len(payloads[i]) > limits.max_payload_bytes:
+                raise LimitExceeded(TrackObservation.__name__, "", f"{len(payloads[i])} bytes exceed {limits.max_payload_bytes}")
+            msg = decode(TrackObservation, payloads[i])
+        except DecodeError as exc:
+            errors.append((i, exc))
+            continue
+        seq[i], stamp[i] = msg.header.seq, msg.header.stamp
+        det_bytes[i] = records_of(DETECTED, [msg.detection]).view(np.uint8)
+        track_bytes[i] = records_of(TRACK_STATE, [msg.track]).view(np.uint8)
+        ok[i], normalised = True, normalised + 1
+    beyond = _beyond(dets, limits, "detection.") + _beyond(tracks, limits, "track.", state=True)
+    if np.logical_or.reduce([bad for bad, _ in beyond]).any():
+        for bad, why in beyond:
+            for i in np.flatnonzero(bad & ok).tolist():
+                ok[i] = False
+                errors.append((i, LimitExceeded(TrackObservation.__name__, why, "beyond the configured limit")))
+    if ok.all():
+        return ObservationColumns(np.arange(n), seq, stamp, dets, tracks, [], normalised)
+    keep = np.flatnonzero(ok)
+    return ObservationColumns(keep, seq[keep], stamp[keep], DETECTED.select(dets, keep), TRACK_STATE.select(tracks, keep),
+                              sorted(errors, key=lambda e: e[0]), normalised)
+
+
+def peek_header(data: bytes) -> tuple[int, int] | None:
+    """``(header.seq, header.stamp)`` of an encoded message, read without validating the rest (None if not found).
+
+    For decisions that must come before the expensive part (a duplicate or a replay is dropped unread) and for
+    timing; whatever is kept still goes through the read functions.
+    """
+    up = msgpack.Unpacker(raw=False)
+    try:
+        up.feed(data)
+        for _ in range(up.read_map_header()):
+            if up.unpack() == "header":
+                h = up.unpack()
+                seq, stamp = h.get("seq", 0), h.get("stamp")
+                if all(isinstance(v, int) and not isinstance(v, bool) for v in (seq, stamp)):
+                    return seq, stamp
+                return None
+            up.skip()
+    except Exception:  # msgpack raises several unrelated types; any of them means "not found"
+        return None
+    return None
+
+
+# -------------------------------------------------------------------------------------------- writing
+
+
+def write_detected_objects(cols: DetectedColumns) -> bytes:
+    """The ``DetectedObjects`` payload of ``cols`` (objects as :data:`DETECTED` records)."""
+    return _write_listed({"header": cols.header, "ego_pose": cols.ego_pose}, cols.objects, {})
+
+
+def write_tracked_objects(cols: TrackedColumns) -> bytes:
+    """The ``TrackedObjects`` payload of ``cols`` (objects as :data:`TRACKED` records)."""
+    return _write_listed({"header": cols.header, "ego_pose": cols.ego_pose}, cols.objects,
+                         {"observed_track_ids": list(cols.observed_track_ids)})
+
+
+def write_track_observations(header: Header, detections: np.ndarray, tracks: np.ndarray) -> list[bytes]:
+    """One ``TrackObservation`` payload per row: ``detections`` (:data:`DETECTED`) beside ``tracks``
+    (:data:`TRACK_STATE`), all under ``header``."""
+    layout = _observation_layout(len(header.frame_id.encode()))
+    if layout is None:
+        raise ValueError(f"frame id {header.frame_id!r}: observations are written in frames named in < 32 bytes")
+    n = len(detections)
+    rec = layout.pack(n, {"header.stamp": np.full(n, header.stamp), "header.seq": np.full(n, header.seq),
+                          "header.frame_id": [header.frame_id] * n})
+    rows = rec.view(np.uint8).reshape(n, layout.itemsize)
+    (a, b), (c, d) = layout.spans["detection"], layout.spans["track"]
+    rows[:, a:b] = detections.view(np.uint8).reshape(n, b - a)
+    rows[:, c:d] = tracks.view(np.uint8).reshape(n, d - c)
+    raw, size = rows.tobytes(), layout.itemsize
+    return [raw[k * size:(k + 1) * size] for k in range(n)]
+
+
+def write_motion_states(header: Header, track_ids: Sequence[str], states: Sequence[str], mode: str,
+                        columns: dict[str, np.ndarray]) -> list[bytes]:
+    """One ``MotionState`` payload per track, in order; ``columns`` holds the numeric fields by name."""
+    n = len(track_ids)
+    out: list[bytes] = [b""] * n
+    by_state: dict[str, list[int]] = {}
+    for i, s in enumerate(states):
+        by_state.setdefault(s, []).append(i)
+    for state, idx in by_state.items():
+        layout = _motion_layout(state, mode, header.frame_id)
+        take = np.asarray(idx)
+        rec = layout.pack(len(idx), {"header.stamp": np.full(len(idx), header.stamp),
+                                     "header.seq": np.full(len(idx), header.seq),
+                                     "track_id": [track_ids[i] for i in idx],
+                                     **{k: np.asarray(v)[take] for k, v in columns.items()}})
+        raw, size = RecordLayout.to_bytes(rec), layout.itemsize
+        for k, i in enumerate(idx):
+            out[i] = raw[k * size:(k + 1) * size]
+    return out
+
+
+# -------------------------------------------------------------------------------------------- helpers
+
+
+@cache
+def _observation_layout(frame_id_bytes: int) -> RecordLayout | None:
+    """The whole-message layout of a ``TrackObservation`` whose header's frame id is this long (None: none)."""
+    if not 0 <= frame_id_bytes < 32:
+        return None
+    det = DetectedObject(classification=_ONE_CLASS)
+    return RecordLayout.of(TrackObservation, TrackObservation(
+        header=Header(stamp=0, frame_id="m" * frame_id_bytes), detection=det, track=TrackState(object_id="0" * 32,
+                                                                                              x=0.0, y=0.0)))
+
+
+@cache
+def _motion_layout(state: str, mode: str, frame_id: str) -> RecordLayout:
+    return RecordLayout.of(MotionState, MotionState(header=Header(stamp=0, frame_id=frame_id), track_id="0" * 32,
+                                                    state=state, mode=mode, threshold=0.0, alpha=0.0, window_length=0))
+
+
+def _read_listed(model: type[M], data: bytes, layout: RecordLayout, limits: Limits
+                 ) -> tuple[M, np.ndarray, list[Any] | None]:
+    """``data`` as ``model``: the envelope (every top-level field but ``objects``, validated by the model), the
+    objects as records of ``layout``, and — where the payload is not in the record shape and the model read it —
+    the model's objects (None otherwise). The size and the object count (from the list's header) are checked first,
+    whatever the form."""
+    name = model.__name__
+    if len(data) > limits.max_payload_bytes:
+        raise LimitExceeded(name, "", f"{len(data)} bytes exceed max_payload_bytes {limits.max_payload_bytes}")
+    got = _view_listed(model, data, layout, limits)
+    if got is not None:
+        return got[0], got[1], None
+    raw = unpack_map(model, data)  # another form: the model decides, its object count checked first
+    if isinstance(raw.get("objects"), list) and len(raw["objects"]) > limits.max_objects:
+        raise LimitExceeded(name, "objects", f"{len(raw['objects'])} objects exceed max_objects {limits.max_objects}")
+    msg = validate(model, raw)
+    return msg, records_of(layout, msg.objects), msg.objects
+
+
+def _view_listed(model: type[M], data: bytes, layout: RecordLayout, limits: Limits) -> tuple[M, np.ndarray] | None:
+    """The envelope and a view of the objects when the payload is a map in the record shape; None otherwise."""
+    up = msgpack.Unpacker(raw=False, strict_map_key=True, max_buffer_size=max(len(data), 1))
+    env: dict[str, Any] = {}
+    try:
+        up.feed(data)
+        keys = up.read_map_header()
+        for k in range(keys):
+            key = up.unpack()
+            if key in env or not isinstance(key, str):
+                return None
+            if key != "objects":
+                env[key] = up.unpack()
+                continue
+            n = up.read_array_header()
+            if n > limits.max_objects:
+                raise LimitExceeded(model.__name__, "objects", f"{n} objects exceed max_objects {limits.max_objects}")
+            start, end = up.tell(), up.tell() + n * layout.itemsize
+            records = layout.view(memoryview(data)[start:end], n)
+            if records is None:
+                return None
+            rest = msgpack.Unpacker(raw=False, strict_map_key=True, max_buffer_size=max(len(data), 1))
+            rest.feed(memoryview(data)[end:])
+            for _ in range(keys - k - 1):
+                key = rest.unpack()
+                if key in env or key == "objects" or not isinstance(key, str):
+                    return None
+                env[key] = rest.unpack()
+            if rest.tell() != len(data) - end:
+                return None
+            return model.model_validate({**env, "objects": []}), records
+    except LimitExceeded:
+        raise
+    except Exception:  # malformed msgpack, or an envelope the model refuses: the model says what is wrong
+        return None
+    return None
+
+
+def _write_listed(head: dict[str, BaseModel], records: np.ndarray, tail: dict[str, Any]) -> bytes:
+    pack = msgpack.packb
+    parts = [bytes([0x80 | (len(head) + len(tail) + 2)]), pack("schema_version"), pack(SCHEMA_VERSION)]
+    for k, v in head.items():
+        parts += [pack(k), pack(v.model_dump())]
+    parts += [pack("objects"), array_header(len(records)), memoryview(records.view(np.uint8))]  # one copy, in join
+    for k, v in tail.items():
+        parts += [pack(k), pack(v)]
+    return b"".join(parts)
+
+
+def records_of(layout: RecordLayout, objs: Sequence[BaseModel]) -> np.ndarray:
+    """Valid models as records of ``layout`` (:data:`DETECTED`, :data:`TRACKED`, :data:`TRACK_STATE`), normalised to
+    its shape: the most probable classification (UNKNOWN if none), no footprint."""
+    dicts = []
+    for o in objs:
+        d = o.model_dump()
+        if "classification" in d:
+            best = max(d["classification"], key=lambda c: c["probability"], default=None)
+            d["classification"] = [best or {"label": 0, "probability": 1.0}]
+        if "shape" in d:
+            d["shape"]["footprint"] = []
+        dicts.append(d)
+    if not dicts:
+        return layout.pack(0, {})
+    return layout.pack(len(dicts), {name: [_get(d, name) for d in dicts] for name in layout.slots})
+
+
+def _get(d: Any, path: str) -> Any:
+    for part in path.split("."):
+        d = d[int(part)] if isinstance(d, list) else d[part]
+    return d
+
+
+def _area(shape: Shape) -> float:
+    """Footprint area as Autoware's getArea computes it (box L*W, cylinder pi r^2, polygon shoelace)."""
+    if shape.type == Shape.CYLINDER:
+        return math.pi * (0.5 * shape.dimensions.x) ** 2
+    if shape.type == Shape.POLYGON:
+        pts = shape.footprint
+        return abs(0.5 * sum(a.x * b.y - b.x * a.y for a, b in zip(pts, pts[1:] + pts[:1]))) if len(pts) > 2 else 0.0
+    return shape.dimensions.x * shape.dimensions.y
+
+
+def _box_area(r: np.ndarray) -> np.ndarray:
+    """:func:`_area` over records (no footprint in this shape: a polygon's area is 0, as getArea gives)."""
+    kind, dx, dy = r[SHAPE_TYPE], r[LENGTH].astype(np.float64), r[WIDTH].astype(np.float64)
+    return np.where(kind == Shape.CYLINDER, math.pi * (0.5 * dx) ** 2, np.where(kind == Shape.POLYGON, 0.0, dx * dy))
+
+
+def _beyond(records: np.ndarray, limits: Limits, prefix: str = "", *, state: bool = False
+            ) -> list[tuple[np.ndarray, str]]:
+    """Per bounded column, which records break its limit, and the field to name."""
+    if not len(records):
+        return []
+    if state:  # a TrackState: planar position and velocity only
+        pos, vel, cov = ("x", "y"), ("vx", "vy"), ()
+    else:
+        pos, vel, cov = (X, Y, Z), (VX, VY, VZ), (POSE_COV, TWIST_COV)
+    out = [(~(np.abs(records[c]) <= limits.max_abs_coordinate_m), prefix + c) for c in pos]
+    out += [(~(np.abs(records[c]) <= limits.max_abs_speed_mps), prefix + c) for c in vel]
+    out += [(~(records[c]["v"][:, DIAGONAL] <= limits.max_variance).all(axis=1), prefix + c) for c in cov]
+    return out
+
+
+def _check_objects(name: str, objects: np.ndarray, limits: Limits, ego_pose: Pose) -> None:
+    p = ego_pose.position
+    if max(abs(p.x), abs(p.y), abs(p.z)) > limits.max_abs_coordinate_m:
+        raise LimitExceeded(name, "ego_pose.position", f"beyond max_abs_coordinate_m {limits.max_abs_coordinate_m}")
+    for bad, field in _beyond(objects, limits):
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise LimitExceeded(name, f"objects.{i}.{field}", "beyond the configured limit (see Limits)")
+

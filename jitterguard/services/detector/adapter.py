@@ -1,0 +1,134 @@
+"""Wire payloads <-> the detector's arrays: ``PointCloud`` in, ``DetectedObjects`` out. Pure (no I/O, no torch).
+
+Frames. The detector publishes in the *sensor* frame, exactly like the replay's detection-level model
+(:mod:`jitterguard.sim.detection_model`): ``header`` is the scan's (stamp, seq, ``frame_id`` — ``lidar``),
+``ego_pose`` is the scan's sensor pose in the world frame, positions / yaw / velocities are the network's
+sensor-frame boxes (z = box centre relative to the sensor) and the covariances are the network's sensor-frame
+variances. Nothing here rotates: the tracker moves each detection into the world frame itself, the 2x2 position
+covariance with R Σ Rᵀ (``TrackerCore._to_world`` for gating and the measurement,
+:func:`jitterguard.services.tracker.adapter.world_detections` for what it republishes), and the classifier reads
+the world-frame covariance the tracker republishes on ``tracks/{id}``. Rotating here as well would rotate twice.
+
+Covariance layout (Autoware's, row-major 6x6 over x, y, z, roll, pitch, yaw): the pose covariance carries
+σ²_x at X_X, σ²_y at Y_Y and σ²_yaw at YAW_YAW; the twist covariance σ²_vx at X_X and σ²_vy at Y_Y; every
+σ² = exp(log-variance). The heads predict independent axes, so the off-diagonals stay 0; z, roll and pitch have
+no head and stay 0 too (as in Autoware's lidar_centerpoint, whose ``has_position_covariance`` speaks for x/y).
+The vanilla model (no variance heads) publishes ``has_position_covariance = false`` and all-zero covariances,
+which the tracker reads as "use the class defaults".
+
+The service writes records (:func:`detections_payload`, :mod:`jitterguard.schemas.wire`), as the tracker does,
+because building and dumping hundreds of nested models costs a tenth of the detection budget; a detection holding a
+non-finite number is dropped (and counted by the caller) first, so the payload always validates on receipt.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ...schemas import wire
+from ...schemas.models import (
+    COVARIANCE_SIZE,
+    LABEL_BY_NAME,
+    X_X,
+    Y_Y,
+    YAW_YAW,
+    Header,
+    OrientationAvailability,
+    PointCloud,
+    Pose,
+    Shape,
+)
+from ...schemas.wire import DetectedColumns, write_detected_objects
+from .config import CLASS_NAMES, VAR_NAMES, Detections3D
+
+F32 = NDArray[np.float32]
+
+POINT_COLUMNS = ("x", "y", "z", "intensity")
+"""What the network reads, in this order (intensity 0–255; a cloud without an intensity field gets zeros)."""
+
+
+def scan_points(msg: PointCloud) -> tuple[F32, int]:
+    """The scan as the network's (P, 4) float32 x, y, z, intensity, and how many non-finite rows were dropped.
+
+    Columns are picked by name (replays send x, y, z, intensity, ring; other sources may order or omit them).
+    The schema already checked that the buffer length matches ``num_points × len(fields)``.
+    """
+    ncol = len(msg.fields)
+    raw = np.frombuffer(msg.data, dtype="<f4").reshape(msg.num_points, ncol)
+    cols = [msg.fields.index(c) if c in msg.fields else -1 for c in POINT_COLUMNS]
+    pts = np.zeros((msg.num_points, len(POINT_COLUMNS)), dtype=np.float32)
+    for j, c in enumerate(cols):
+        if c >= 0:
+            pts[:, j] = raw[:, c]
+    finite = np.isfinite(pts).all(axis=1)
+    dropped = int(finite.size - np.count_nonzero(finite))
+    if dropped:
+        pts = pts[finite]
+    return pts, dropped
+
+
+def class_labels(class_names: Sequence[str] = CLASS_NAMES) -> tuple[int, ...]:
+    """Autoware label of each class index of a detector config (by name, so a config's class order is honoured)."""
+    try:
+        return tuple(int(LABEL_BY_NAME[n]) for n in class_names)
+    except KeyError as exc:
+        raise ValueError(f"detector class {exc.args[0]!r} has no Autoware label") from None
+
+
+def finite_detections(det: Detections3D) -> tuple[Detections3D, int]:
+    """``det`` without rows that hold a non-finite number (box, score or log-variance), and how many went.
+
+    A log-variance that overflows ``exp`` (> ~709) counts as non-finite: such a variance says nothing usable.
+    """
+    ok = np.isfinite(det.boxes).all(axis=1) & np.isfinite(det.scores)
+    if det.log_variances is not None:
+        with np.errstate(over="ignore"):
+            ok &= np.isfinite(np.exp(det.log_variances.astype(np.float64))).all(axis=1)
+    dropped = int(ok.size - np.count_nonzero(ok))
+    if not dropped:
+        return det, 0
+    lv = det.log_variances[ok] if det.log_variances is not None else None
+    return Detections3D(det.boxes[ok], det.scores[ok], det.labels[ok], lv), dropped
+
+
+def detections_payload(
+    det: Detections3D,
+    header: Header,
+    ego_pose: Pose,
+    class_names: Sequence[str] = CLASS_NAMES,
+    *,
+    has_twist: bool = True,
+) -> bytes:
+    """One scan's ``DetectedObjects`` payload (sensor frame, see the module doc), written as records.
+
+    ``det`` must be finite (:func:`finite_detections`); ``header`` and ``ego_pose`` are the scan's and are
+    carried over unchanged. Scores become both ``existence_probability`` and the single class's probability
+    (CenterPoint has one score per box). ``has_twist`` says whether the network's velocity heads are meant to be
+    used; the twist is the sensor-frame (vx, vy), as the replay's detection model writes it. Valid by
+    construction (finite rows, scores clipped to [0, 1], variances = exp(·) ≥ 0); every receiver reads it with
+    :func:`~jitterguard.schemas.read_detected_objects`, and the tests validate it with the model.
+    """
+    labels = np.asarray(class_labels(class_names), dtype=np.int64)
+    n = len(det)
+    b = det.boxes.astype(np.float64)
+    scores = np.clip(det.scores.astype(np.float64), 0.0, 1.0)
+    half = 0.5 * b[:, 6]
+    lv = det.log_variances
+    var = np.exp(lv.astype(np.float64)) if lv is not None else np.zeros((n, len(VAR_NAMES)))  # x, y, vx, vy, yaw
+    pose_cov, twist_cov = np.zeros((n, COVARIANCE_SIZE)), np.zeros((n, COVARIANCE_SIZE))
+    pose_cov[:, X_X], pose_cov[:, Y_Y], pose_cov[:, YAW_YAW] = var[:, 0], var[:, 1], var[:, 4]
+    if has_twist:
+        twist_cov[:, X_X], twist_cov[:, Y_Y] = var[:, 2], var[:, 3]
+    objects = wire.DETECTED.pack(n, {
+        wire.EXISTENCE: scores, wire.LABEL: labels[det.labels.astype(np.int64)], wire.LABEL_PROB: scores,
+        wire.X: b[:, 0], wire.Y: b[:, 1], wire.Z: b[:, 2], wire.QZ: np.sin(half), wire.QW: np.cos(half),
+        wire.POSE_COV: pose_cov, wire.HAS_POSITION_COV: np.full(n, lv is not None),
+        wire.ORIENTATION: int(OrientationAvailability.AVAILABLE),
+        wire.VX: b[:, 7] if has_twist else 0.0, wire.VY: b[:, 8] if has_twist else 0.0, wire.TWIST_COV: twist_cov,
+        "kinematics.has_twist": np.full(n, has_twist), "kinematics.has_twist_covariance": np.full(n, lv is not None and has_twist),
+        wire.SHAPE_TYPE: Shape.BOUNDING_BOX, wire.LENGTH: b[:, 3], wire.WIDTH: b[:, 4], wire.HEIGHT: b[:, 5],
+    })
+    return write_detected_objects(DetectedColumns(header, ego_pose, objects, np.zeros(n)))

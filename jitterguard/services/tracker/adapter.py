@@ -1,0 +1,135 @@
+"""The tracker's seam between wire and core: ``detections`` columns in; ``tracks/{id}`` and ``tracked`` payloads out.
+
+Pure functions (no I/O), called by the service and by the offline evaluator alike, on the columns of
+:func:`~jitterguard.schemas.read_detected_objects` — one form for every well-formed payload. Planar throughout:
+the ego pose contributes x, y, z and yaw; detections keep their own roll and pitch (the world orientation is
+``q(ego_yaw) * q_detection``).
+
+A detection republished on ``tracks/{id}`` is moved into the world frame whole: position (the core's), orientation,
+the pose covariance and the twist with its covariance (:func:`~jitterguard.geometry.rotate_cov6`, the 2x2 position
+block through the very :func:`~jitterguard.geometry.rotate_cov2` the core gates with), so the classifier's z-test
+sees the detector's along-beam and across-beam variances on the right world axes.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ...geometry import quaternions_about_z, rotate_cov6, rotate_xy, yaw_from_quaternion, yaws_from_quaternions
+from ...schemas import wire
+from ...schemas.models import (
+    COVARIANCE_SIZE,
+    PITCH_PITCH,
+    ROLL_ROLL,
+    X_X,
+    X_Y,
+    Y_X,
+    Y_Y,
+    YAW_YAW,
+    Z_Z,
+    Header,
+    Shape,
+)
+from ...schemas.wire import DetectedColumns, TrackedColumns, write_track_observations, write_tracked_objects
+from .arrays import DetectionFrame, FrameResult
+
+WORLD_FRAME = "map"
+# Variances of what the planar tracker does not estimate (z, roll, pitch): conservative constants, not zeros,
+# so a consumer never reads "known exactly" into them.
+Z_VAR, ROLL_PITCH_VAR = 0.1, 0.01
+X_YAW, Y_YAW, YAW_X, YAW_Y = 5, 11, 30, 31
+
+
+def detection_frame(cols: DetectedColumns) -> DetectionFrame:
+    """The core's input arrays for one ``detections`` message (sensor frame, with the ego pose)."""
+    r = cols.objects
+    f64 = lambda name: r[name].astype(np.float64)  # noqa: E731  (big-endian wire columns to native floats)
+    dx, dy = f64(wire.LENGTH), f64(wire.WIDTH)
+    cov = r[wire.POSE_COV]["v"]
+    eq, ep, h = cols.ego_pose.orientation, cols.ego_pose.position, cols.header
+    return DetectionFrame(
+        seq=h.seq, stamp_ns=h.stamp, frame_id=h.frame_id,
+        ego_x=ep.x, ego_y=ep.y, ego_z=ep.z, ego_yaw=yaw_from_quaternion(eq.x, eq.y, eq.z, eq.w),
+        x=f64(wire.X), y=f64(wire.Y), z=f64(wire.Z),
+        yaw=yaws_from_quaternions(r[wire.QX], r[wire.QY], r[wire.QZ], r[wire.QW]),
+        length=dx, width=np.where(r[wire.SHAPE_TYPE] == Shape.CYLINDER, dx, dy), height=f64(wire.HEIGHT),
+        cov_xx=cov[:, X_X].astype(np.float64), cov_xy=cov[:, X_Y].astype(np.float64),
+        cov_yy=cov[:, Y_Y].astype(np.float64), var_yaw=cov[:, YAW_YAW].astype(np.float64),
+        label_prob=np.maximum(f64(wire.LABEL_PROB), 1e-3), existence=f64(wire.EXISTENCE),
+        label=r[wire.LABEL].astype(np.int8), has_cov=r[wire.HAS_POSITION_COV] == 0xC3,
+        orientation=r[wire.ORIENTATION].astype(np.int8), area=cols.area,
+    )
+
+
+def world_detections(cols: DetectedColumns, frame: DetectionFrame, result: FrameResult) -> np.ndarray:
+    """The observed detections (``result.obs_det``) as records moved into the world frame (copies)."""
+    rows = result.obs_det
+    out = wire.DETECTED.select(cols.objects, rows)
+    if not len(out):
+        return out
+    det, yaw = result.detections, frame.ego_yaw
+    out[wire.X], out[wire.Y], out[wire.Z] = det.x[rows], det.y[rows], det.z[rows]
+    q = np.column_stack([out[n] for n in (wire.QX, wire.QY, wire.QZ, wire.QW)]).astype(np.float64)
+    out[wire.QX], out[wire.QY], out[wire.QZ], out[wire.QW] = quaternions_about_z(q, yaw).T
+    out[wire.POSE_COV]["v"] = rotate_cov6(out[wire.POSE_COV]["v"], yaw)
+    out[wire.VX], out[wire.VY] = rotate_xy(out[wire.VX], out[wire.VY], yaw)
+    tcov = out[wire.TWIST_COV]["v"]
+    moving = np.flatnonzero(tcov.any(axis=1))  # a zero covariance (no twist reported) rotates to itself
+    if moving.size:
+        out[wire.TWIST_COV]["v"][moving] = rotate_cov6(tcov[moving], yaw)
+    return out
+
+
+def tracked_records(result: FrameResult) -> np.ndarray:
+    """Every confirmed track as a ``TrackedObject`` record (world frame, twist linear x/y = world vx, vy,
+    angular z = yaw rate)."""
+    t = result.tracks
+    n = len(t)
+    P, V = t.pose_cov, t.vel_cov
+    pcov = np.zeros((n, COVARIANCE_SIZE))
+    pcov[:, X_X], pcov[:, X_Y], pcov[:, Y_X], pcov[:, Y_Y] = P[:, 0, 0], P[:, 0, 1], P[:, 0, 1], P[:, 1, 1]
+    pcov[:, YAW_YAW] = P[:, 2, 2]
+    pcov[:, X_YAW] = pcov[:, YAW_X] = P[:, 0, 2]
+    pcov[:, Y_YAW] = pcov[:, YAW_Y] = P[:, 1, 2]
+    pcov[:, Z_Z], pcov[:, ROLL_ROLL], pcov[:, PITCH_PITCH] = Z_VAR, ROLL_PITCH_VAR, ROLL_PITCH_VAR
+    tcov = np.zeros((n, COVARIANCE_SIZE))
+    tcov[:, X_X], tcov[:, X_Y], tcov[:, Y_X], tcov[:, Y_Y] = V[:, 0, 0], V[:, 0, 1], V[:, 0, 1], V[:, 1, 1]
+    tcov[:, YAW_YAW] = t.yaw_rate_var
+    half = 0.5 * np.asarray(t.yaw, dtype=np.float64)
+    return wire.TRACKED.pack(n, {
+        wire.ID: t.ids, wire.EXISTENCE: t.existence, wire.LABEL: t.label, wire.LABEL_PROB: t.label_prob,
+        wire.X: t.x, wire.Y: t.y, wire.Z: t.z, wire.QZ: np.sin(half), wire.QW: np.cos(half), wire.POSE_COV: pcov,
+        wire.VX: t.vel[:, 0], wire.VY: t.vel[:, 1], wire.WZ: t.yaw_rate, wire.TWIST_COV: tcov,
+        wire.ORIENTATION: t.orientation, wire.STATIONARY: np.zeros(n, dtype=bool),
+        wire.SHAPE_TYPE: Shape.BOUNDING_BOX, wire.LENGTH: t.dims[:, 0], wire.WIDTH: t.dims[:, 1],
+        wire.HEIGHT: t.dims[:, 2],
+    })
+
+
+def track_state_records(result: FrameResult) -> np.ndarray:
+    """The observed tracks' compact ``TrackState`` records (in ``result.obs_track`` order)."""
+    t, i = result.tracks, result.obs_track
+    return wire.TRACK_STATE.pack(len(i), {
+        "object_id": [t.ids[k] for k in i.tolist()], "label": t.label[i], "existence_probability": t.existence[i],
+        "x": t.x[i], "y": t.y[i], "yaw": t.yaw[i], "vx": t.vel[i, 0], "vy": t.vel[i, 1], "hits": t.hits[i],
+        "age_s": np.maximum(0.0, (result.stamp_ns - t.born_ns[i]) * 1e-9),
+    })
+
+
+def observation_payloads(cols: DetectedColumns, frame: DetectionFrame, result: FrameResult
+                         ) -> list[tuple[str, bytes]]:
+    """The frame's ``tracks/{id}`` payloads as ``(track_id, TrackObservation payload)``, in track order."""
+    payloads = write_track_observations(_header(frame), world_detections(cols, frame, result),
+                                        track_state_records(result))
+    return list(zip(result.observed_ids, payloads))
+
+
+def tracked_payload(cols: DetectedColumns, frame: DetectionFrame, result: FrameResult) -> bytes:
+    """The frame's closing ``TrackedObjects`` payload: every confirmed track, the IDs observed this frame, and
+    the ego pose of the ``detections`` it came from."""
+    return write_tracked_objects(TrackedColumns(_header(frame), cols.ego_pose, tracked_records(result),
+                                                result.observed_ids))
+
+
+def _header(frame: DetectionFrame) -> Header:
+    return Header(stamp=frame.stamp_ns, frame_id=WORLD_FRAME, seq=frame.seq)

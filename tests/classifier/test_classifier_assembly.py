@@ -1,0 +1,99 @@
+"""Frame assembly: stragglers, timeouts, duplicates, upstream restarts."""
+
+from __future__ import annotations
+
+from jitterguard.schemas.models import DetectedObject, Header, TrackedObject, TrackedObjects, TrackObservation, TrackState
+from jitterguard.services.classifier.assembly import FrameAssembler
+
+IDS = [f"{i:032x}" for i in range(1, 4)]
+
+
+class _Assembler(FrameAssembler):
+    """The assembler fed with models, as the tests write frames (the service feeds it what it keeps)."""
+
+    def add_observation(self, obs: TrackObservation) -> None:
+        self.add_observation_item(obs.header.seq, obs.track.object_id, obs)
+
+    def add_close(self, tracked: TrackedObjects, now: float) -> bool:
+        return self.add_close_item(tracked.header.seq, tracked.observed_track_ids, tracked, now,
+                                   stamp_ns=tracked.header.stamp)
+
+
+def ob(seq: int, tid: str) -> TrackObservation:
+    return TrackObservation(header=Header(stamp=seq, seq=seq), detection=DetectedObject(), track=TrackState(object_id=tid, x=0, y=0))
+
+
+def close(seq: int, ids=IDS) -> TrackedObjects:
+    return TrackedObjects(header=Header(stamp=seq, seq=seq), objects=[TrackedObject(object_id=i) for i in ids],
+                          observed_track_ids=list(ids))
+
+
+def test_frame_waits_for_stragglers_then_completes():
+    fa = _Assembler(straggler_timeout_s=0.05)
+    fa.add_observation(ob(0, IDS[0]))
+    assert fa.add_close(close(0), now=0.0)
+    assert fa.pop_ready(0.01) == []
+    fa.add_observation(ob(0, IDS[1]))
+    fa.add_observation(ob(0, IDS[2]))
+    (frame,) = fa.pop_ready(0.02)
+    assert frame.seq == 0 and frame.missing == 0 and len(frame.observations) == 3
+
+
+def test_timeout_releases_frame_and_counts_missing_and_late():
+    fa = _Assembler(straggler_timeout_s=0.05)
+    fa.add_close(close(0), now=0.0)
+    fa.add_observation(ob(0, IDS[0]))
+    (frame,) = fa.pop_ready(0.06)
+    assert frame.missing == 2 and fa.counts["missing_observations"] == 2
+    fa.add_observation(ob(0, IDS[1]))
+    assert fa.counts["late_observations"] == 1
+
+
+def test_frames_released_in_order_and_duplicates_and_late_closes_dropped():
+    fa = _Assembler(straggler_timeout_s=1.0)
+    for s in (0, 1):
+        for i in IDS:
+            fa.add_observation(ob(s, i))
+        fa.add_close(close(s), now=0.0)
+    assert [f.seq for f in fa.pop_ready(0.0)] == [0, 1]
+    assert not fa.add_close(close(1), now=0.0)
+    assert not fa.add_close(close(0), now=0.0)
+    assert fa.counts["duplicate_or_late_frames"] == 2
+
+
+def test_upstream_restart_is_followed_once_confirmed():
+    fa = _Assembler()
+    fa.add_close(close(100, []), now=0.0)
+    assert fa.pop_ready(0.0)[0].seq == 100
+    assert not fa.add_close(close(0, []), now=0.1) and not fa.add_close(close(1, []), now=0.2)
+    assert not fa.add_close(close(2, []), now=0.3)  # three frames, but only 0.2 s of them
+    assert fa.add_close(close(3, []), now=0.4)  # 0.3 s: confirmed
+    assert fa.counts["upstream_restarts"] == 1 and fa.counts["duplicate_or_late_frames"] == 3
+    assert fa.pop_ready(0.4)[0].seq == 3
+
+
+def test_observations_without_close_do_not_grow_forever():
+    fa = _Assembler(max_pending_frames=4)
+    for s in range(10):
+        fa.add_observation(ob(s, IDS[0]))
+    assert fa.counts["orphaned_observations"] == 6
+
+
+def test_late_is_only_within_the_restart_gap():
+    fa = _Assembler()
+    fa.add_close(close(50, []), now=0.0)
+    fa.pop_ready(0.0)
+    assert fa.is_late(50) and fa.is_late(40)
+    assert not fa.is_late(51)
+    assert not fa.is_late(5)  # far below: an upstream restart, to be decoded
+
+
+def test_no_giving_up_while_the_caller_is_still_behind():
+    fa = _Assembler(straggler_timeout_s=0.05)
+    fa.add_close(close(0), now=0.0)
+    fa.add_observation(ob(0, IDS[0]))
+    assert fa.pop_ready(10.0, give_up=False) == []  # long past the timeout, but stragglers may be queued
+    fa.add_observation(ob(0, IDS[1]))
+    fa.add_observation(ob(0, IDS[2]))
+    (frame,) = fa.pop_ready(10.0, give_up=False)
+    assert frame.missing == 0 and "missing_observations" not in fa.counts

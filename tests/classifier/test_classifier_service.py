@@ -1,0 +1,398 @@
+"""The classifier service over real in-process Zenoh (peer mode, loopback, multicast off)."""
+
+from __future__ import annotations
+
+import math
+import time
+
+import msgpack
+import numpy as np
+import pytest
+
+from jitterguard.runtime import loopback_options
+from jitterguard.schemas import decode, encode, keys
+from jitterguard.schemas.models import (
+    ClassifierConfig,
+    ClassifierStateSnapshot,
+    ConfigReply,
+    MotionState,
+    TrackedObjects,
+)
+from jitterguard.schemas.wire import Limits
+from jitterguard.services.classifier.config_writes import ConfigWritePolicy
+from jitterguard.services.classifier.service import ClassifierService
+from jitterguard.services.classifier.synthetic_tracks import TrackScenario, generate
+
+from helpers import wait_until
+
+pytestmark = pytest.mark.integration
+NS = "test"
+
+
+@pytest.fixture
+def service(zenoh_port):
+    svc = ClassifierService(loopback_options(NS, zenoh_port, listen_self=True), straggler_timeout_s=0.5,
+                            config_writes=ConfigWritePolicy.open())
+    yield svc
+    svc.close()
+
+
+def _collect(session):
+    got = {"objects": [], "motion": {}}
+    session.declare_subscriber(keys.objects(NS), lambda s: got["objects"].append(decode(TrackedObjects, s.payload.to_bytes())))
+    session.declare_subscriber(
+        keys.motion_all(NS),
+        lambda s: got["motion"].__setitem__(keys.last_chunk(str(s.key_expr)), decode(MotionState, s.payload.to_bytes())),
+    )
+    return got
+
+
+def _send(session, frame):
+    for o in frame.observations:
+        session.put(keys.track(NS, o.track.object_id), encode(o))
+    session.put(keys.tracked(NS), encode(frame.tracked))
+
+
+def _send_paced(session, frames, got):
+    """Send frame by frame, each after the previous one's objects came back: on a loaded machine a burst
+    can outrun the straggler timeout, which is tested on its own (test_frames.py)."""
+    for f in frames:
+        n = len(got["objects"])
+        _send(session, f)
+        assert wait_until(lambda: len(got["objects"]) == n + 1, timeout=30)
+
+
+def _wait_connected(session):
+    assert wait_until(lambda: any(True for _ in session.liveliness().get(keys.alive(NS, "classifier"), timeout=0.5)), 10)
+
+
+def _query(session, key, payload=None):
+    replies = list(session.get(key, payload=payload, timeout=5.0))
+    assert len(replies) == 1
+    return replies[0]
+
+
+def test_static_and_moving_objects_get_the_right_states(service, client_session):
+    got = _collect(client_session)
+    _wait_connected(client_session)
+    frames = list(generate(TrackScenario(n_static=5, n_moving=4, n_starting=0, seed=1), 15))
+    _send_paced(client_session, frames, got)
+    truth = frames[-1].moving
+    assert wait_until(lambda: len(got["motion"]) == len(truth) and all(m.header.seq == 14 for m in got["motion"].values()))
+    for tid, m in got["motion"].items():
+        assert m.state == ("dynamic" if truth[tid] else "static"), (tid, m)
+        assert m.window_length == 10
+    last = got["objects"][-1]
+    assert last.header.seq == 14 and last.observed_track_ids == []
+    for obj in last.objects:
+        kin = obj.kinematics
+        if truth[obj.object_id]:
+            assert not kin.is_stationary
+            assert abs(kin.twist_with_covariance.twist.linear.x) > 1.0  # passes through untouched
+        else:
+            assert kin.is_stationary
+            assert kin.twist_with_covariance.twist.linear.x == 0.0
+            assert kin.pose_with_covariance.pose.position.x == pytest.approx(got["motion"][obj.object_id].mean_x)
+    assert service.counters.get("rejected") == 0
+
+
+def test_car_that_starts_moving_flips_within_the_window(service, client_session):
+    got = _collect(client_session)
+    _wait_connected(client_session)
+    sc = TrackScenario(n_static=0, n_moving=0, n_starting=1, start_frame=12, seed=4)
+    frames = list(generate(sc, 24))
+    history = []
+    for f in frames:
+        _send(client_session, f)
+        assert wait_until(lambda: got["motion"] and next(iter(got["motion"].values())).header.seq == f.seq)
+        history.append(next(iter(got["motion"].values())).state)
+    assert history[11] == "static"
+    first_dynamic = history.index("dynamic")
+    assert 12 <= first_dynamic <= 12 + 10
+
+
+def test_alpha_change_through_queryable_flips_a_borderline_object(service, client_session):
+    got = _collect(client_session)
+    _wait_connected(client_session)
+    frames = list(generate(TrackScenario(n_static=0, n_moving=1, n_starting=0, speed_mps=1.0, seed=2), 30))
+    _send_paced(client_session, frames[:10], got)
+    assert wait_until(lambda: next(iter(got["motion"].values())).header.seq == 9)
+    m = next(iter(got["motion"].values()))
+    z = max(m.z_x, m.z_y)
+    assert m.state == "dynamic" and z > 1.96, m
+    reply = _query(client_session, keys.classifier_config(NS),
+                   encode(ClassifierConfig(alpha_default=z + 5.0, alpha_per_class={})))
+    in_force = decode(ConfigReply, reply.ok.payload.to_bytes())
+    assert in_force.ok and in_force.config.alpha_default == pytest.approx(z + 5.0)
+    _send(client_session, frames[10])
+    assert wait_until(lambda: len(got["objects"]) == 11)
+    assert wait_until(lambda: next(iter(got["motion"].values())).header.seq == 10)
+    m2 = next(iter(got["motion"].values()))
+    assert m2.header.seq == 10 and m2.alpha == pytest.approx(z + 5.0)
+    assert m2.state == "static"
+    assert got["objects"][-1].objects[0].kinematics.is_stationary
+    # a plain get reports what is in force; the state queryable shows the track
+    plain = decode(ConfigReply, _query(client_session, keys.classifier_config(NS)).ok.payload.to_bytes())
+    assert plain.config.alpha_default == pytest.approx(z + 5.0)
+    snap = decode(ClassifierStateSnapshot, _query(client_session, keys.classifier_state(NS)).ok.payload.to_bytes())
+    assert [t.state for t in snap.tracks] == ["static"] and snap.tracks[0].window_length == 10
+
+
+def test_invalid_config_write_is_refused_and_nothing_changes(service, client_session):
+    _wait_connected(client_session)
+    bad = msgpack.packb({**ClassifierConfig().model_dump(), "window_size": 1})
+    reply = _query(client_session, keys.classifier_config(NS), bad)
+    assert reply.err is not None
+    err = decode(ConfigReply, reply.err.payload.to_bytes())
+    assert not err.ok and "window_size" in err.error
+    assert service.core.config == ClassifierConfig()
+
+
+def test_malformed_payloads_on_every_key_are_counted_and_service_keeps_running(service, client_session):
+    got = _collect(client_session)
+    _wait_connected(client_session)
+    frames = list(generate(TrackScenario(n_static=2, n_moving=1, n_starting=0, seed=3), 4))
+    tid = frames[0].observations[0].track.object_id
+    junk = [b"", b"\x00\xff", msgpack.packb({"schema_version": 1}), encode(frames[0].tracked)[:-7],
+            b"\x81\xa2\xca\xca\x01"]  # the last: a map key that is not UTF-8
+    for j in junk:
+        client_session.put(keys.track(NS, tid), j)
+        client_session.put(keys.tracked(NS), j)
+    for f in frames:
+        _send(client_session, f)
+    assert wait_until(lambda: len(got["objects"]) == 4)
+    assert wait_until(lambda: service.counters.get("rejected") == 2 * len(junk))
+    assert service.counters.get("rejected.tracks/*") == len(junk)
+    assert service.counters.get("rejected.tracked") == len(junk)
+
+
+def test_restarted_tracker_leaves_no_stale_windows(service, client_session):
+    got = _collect(client_session)
+    _wait_connected(client_session)
+    first = list(generate(TrackScenario(n_static=3, n_moving=0, n_starting=0, seed=5), 30))
+    _send_paced(client_session, first, got)
+    second = list(generate(TrackScenario(n_static=2, n_moving=0, n_starting=0, seed=6), 10))  # seq restarts at 0
+    for f in second:  # at 10 Hz: the restart is followed once a run of its frames has lasted confirm_s
+        _send(client_session, f)
+        time.sleep(0.1)
+    assert wait_until(lambda: got["objects"] and got["objects"][-1].header.seq == 9, timeout=30)
+    assert service.counters.get("frames.upstream_restarts") == 1
+    new_ids = {o.track.object_id for o in second[0].observations}
+    assert set(service.run_on_worker(service.core.track_ids)) == new_ids
+
+
+def test_calibration_is_in_the_state_and_the_heartbeat_and_a_file_can_be_put_in_force(
+        service, client_session, tmp_path):
+    """The calibration the frames were decided with shows in the state queryable and as heartbeat gauges; a
+    config write naming a calibration file loads it (the scales then in force are the file's); a bad file is
+    refused with the entry named and nothing changes."""
+    from jitterguard.schemas.models import Heartbeat
+    from jitterguard.services.classifier.calibration import NoiseModel
+    from jitterguard.services.classifier.calibration_file import write_calibration
+
+    beats = []
+    client_session.declare_subscriber(keys.heartbeat(NS, "classifier"),
+                                      lambda s: beats.append(decode(Heartbeat, s.payload.to_bytes())))
+    got = _collect(client_session)
+    _wait_connected(client_session)
+    frames = list(generate(TrackScenario(n_static=3, n_moving=1, n_starting=0, seed=9), 6))
+    _send_paced(client_session, frames[:4], got)
+    snap = decode(ClassifierStateSnapshot, _query(client_session, keys.classifier_state(NS)).ok.payload.to_bytes())
+    assert snap.calibration is not None and snap.calibration.mode == "online"
+    assert set(snap.calibration.groups) == {"vehicle", "pedestrian", "cycle", "unknown"}
+    assert wait_until(lambda: beats and "calibration.vehicle.along.scale.0-20" in beats[-1].gauges, timeout=10)
+    model = NoiseModel.prior()
+    model = NoiseModel(model.band_edges_m, model.scale * 7.0, model.correlation, model.tau_s, model.blocks)
+    good = tmp_path / "cal.yaml"
+    write_calibration(good, model, window=10)
+    cfg = ClassifierConfig(calibration="file", calibration_file=str(good))
+    reply = _query(client_session, keys.classifier_config(NS), encode(cfg))
+    assert decode(ConfigReply, reply.ok.payload.to_bytes()).config.calibration == "file"
+    _send_paced(client_session, frames[4:], got)
+    snap = decode(ClassifierStateSnapshot, _query(client_session, keys.classifier_state(NS)).ok.payload.to_bytes())
+    assert snap.calibration.mode == "file" and snap.calibration.groups["vehicle"].along.scale["0-20"] == 7.0
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("format: jitterguard-calibration/1\ngroups: {vehicle: {along: {scale: {0-20: -3}}}}\n")
+    reply = _query(client_session, keys.classifier_config(NS),
+                   encode(ClassifierConfig(calibration="file", calibration_file=str(bad))))
+    err = decode(ConfigReply, reply.err.payload.to_bytes())
+    assert not err.ok and "calibration_file" in err.error and "groups.vehicle.along.scale.0-20" in err.error
+    assert service.core.config.calibration_file == str(good)
+
+
+def test_state_map_validates_as_the_snapshot_model(service, client_session):
+    got = _collect(client_session)
+    _wait_connected(client_session)
+    _send_paced(client_session, list(generate(TrackScenario(n_static=2, n_moving=2, n_starting=0, seed=8), 6)), got)
+    assert wait_until(lambda: len(got["motion"]) == 4 and all(m.header.seq == 5 for m in got["motion"].values()))
+    snap = ClassifierStateSnapshot.model_validate(service.state_map())  # validates the map the queryable sends
+    assert snap.header.seq == 5 and len(snap.tracks) == 4
+    by_id = {t.track_id: t for t in snap.tracks}
+    for m in got["motion"].values():
+        t = by_id[m.track_id]
+        assert t.state == m.state and t.z_x == pytest.approx(m.z_x) and t.window_length == m.window_length
+        if t.state == "static":
+            assert (t.x, t.y) == (pytest.approx(m.mean_x), pytest.approx(m.mean_y))
+
+
+# ------------------------------------------------------------ the adapter (no Zenoh): same answers as the models
+
+def _reference_objects(frames, config=None):
+    """What the classifier must publish, computed the slow way and independently: pydantic models, the core, the
+    decisions applied to the models by hand (static: window mean, zero twist, is_stationary)."""
+    from jitterguard.services.classifier.adapter import observations_from_rows
+    from jitterguard.services.classifier.core import STATIC, MotionClassifierCore
+
+    core = MotionClassifierCore(config or ClassifierConfig())
+    out = []
+    for f in frames:
+        tracked = decode(TrackedObjects, encode(f.tracked))
+        rows = []
+        for o in (decode(type(o), encode(o)) for o in f.observations):
+            pwc = o.detection.kinematics.pose_with_covariance
+            rows.append((o.track.object_id, o.track.label, pwc.pose.position.x, pwc.pose.position.y,
+                         pwc.covariance[0], pwc.covariance[1], pwc.covariance[7], math.hypot(o.track.vx, o.track.vy)))
+        core.update(observations_from_rows(rows, tracked.header.seq, tracked.header.stamp))
+        ids = np.asarray([o.object_id for o in tracked.objects], dtype="S32")
+        dec = core.last_decisions(ids)
+        core.retain(ids)
+        for obj, state, mx, my in zip(tracked.objects, dec.state.tolist(), dec.mean_x.tolist(), dec.mean_y.tolist()):
+            kin = obj.kinematics
+            kin.is_stationary = state == STATIC
+            if state == STATIC:
+                kin.pose_with_covariance.pose.position.x, kin.pose_with_covariance.pose.position.y = mx, my
+                tw = kin.twist_with_covariance.twist
+                for v in (tw.linear, tw.angular):
+                    v.x = v.y = v.z = 0.0
+            obj.classification = [max(obj.classification, key=lambda c: c.probability)]  # the record shape
+        tracked.observed_track_ids = []
+        out.append(msgpack.unpackb(encode(tracked)))
+    return out
+
+
+@pytest.mark.parametrize("shape", ["records", "other"])
+def test_adapter_publishes_exactly_what_the_model_path_computes(shape):
+    """``tracked`` of the usual shape is decided as a view of its records; any other valid shape (here: two
+    classifications per object, written by the model) is normalised into the same records and said so; both
+    publish what the models compute."""
+    from jitterguard.schemas.models import ObjectClassification
+    from jitterguard.services.classifier.adapter import ClassifierAdapter
+    from jitterguard.services.classifier.synthetic_tracks import FrameRecords
+
+    frames = list(generate(TrackScenario(n_static=6, n_moving=5, n_starting=1, seed=11), 14))
+    if shape == "other":
+        for f in frames:
+            for o in f.tracked.objects:
+                o.classification = [*o.classification, ObjectClassification(label=0, probability=0.01)]
+    pipe = ClassifierAdapter()
+    got = []
+    for i, f in enumerate(frames):
+        observations, _ = FrameRecords.of(f).payloads()
+        pipe.observations([p for _, p in reversed(observations)])  # arrival order within a frame does not matter
+        cols = pipe.close(encode(f.tracked), received_at=float(i))
+        assert cols is not None and cols.normalised == (shape == "other")
+        (frame,) = pipe.ready(float(i))
+        out = pipe.finish(frame)
+        got.append(msgpack.unpackb(out.payload))
+        motion = [decode(MotionState, p) for _, p in pipe.motion_payloads(out)]  # valid MotionStates
+        assert {m.track_id for m in motion} == {o.track.object_id for o in f.observations}
+        assert got[-1]["ego_pose"] == f.tracked.ego_pose.model_dump()  # passed through unchanged
+        pipe.settle(out)
+    assert got == _reference_objects(frames)
+    assert any(o["kinematics"]["is_stationary"] for o in got[-1]["objects"])
+
+
+def test_adapter_rejects_bad_payloads_and_counts_stragglers():
+    from jitterguard.schemas import DecodeError
+    from jitterguard.services.classifier.adapter import ClassifierAdapter
+
+    f0, f1 = generate(TrackScenario(n_static=2, n_moving=1, n_starting=0, seed=3), 2)
+    pipe = ClassifierAdapter()
+    bad = msgpack.unpackb(encode(f0.observations[0]))
+    bad["detection"]["kinematics"]["pose_with_covariance"]["covariance"][7] = -1.0
+    (err,) = pipe.observations([msgpack.packb(bad)]).errors
+    assert err[0] == 0 and "covariance.7" in str(err[1])
+    with pytest.raises(DecodeError, match="TrackedObjects"):
+        pipe.close(encode(f0.tracked)[:-3], received_at=0.0)
+    pipe.observations([encode(o) for o in f0.observations])
+    pipe.close(encode(f0.tracked), received_at=0.0)
+    pipe.finish(pipe.ready(0.0)[0])
+    pipe.observations([encode(f0.observations[0])])  # frame 0 is decided: a straggler now
+    assert pipe.assembler.counts["late_observations"] == 1
+
+
+def test_a_frame_already_behind_sheds_its_motion_messages_but_not_its_objects(service, client_session):
+    import threading
+
+    got = _collect(client_session)
+    _wait_connected(client_session)
+    frames = list(generate(TrackScenario(n_static=2, n_moving=1, n_starting=0, seed=9), 3))
+    _send_paced(client_session, frames[:1], got)
+    entered, release = threading.Event(), threading.Event()
+
+    def hold() -> None:
+        entered.set()
+        release.wait(10)
+
+    blocked = threading.Thread(target=service.run_on_worker, args=(hold,), kwargs={"timeout": 15})
+    blocked.start()  # the worker is busy: the next two frames queue up behind it
+    assert entered.wait(10)
+    for f in frames[1:]:
+        _send(client_session, f)
+    assert wait_until(lambda: len(service._closes) == 2)
+    release.set()
+    blocked.join()
+    assert wait_until(lambda: len(got["objects"]) == 3)
+    assert [o.header.seq for o in got["objects"]] == [0, 1, 2]
+    assert service.counters.get("motion_frames_shed") == 1  # frame 1: frame 2 was already waiting
+    assert wait_until(lambda: all(m.header.seq == 2 for m in got["motion"].values()))
+
+
+def _frames_with_a_track_at_1e300():
+    frames = list(generate(TrackScenario(n_static=2, n_moving=0, n_starting=0, seed=5), 12))
+    tid = frames[0].observations[0].track.object_id
+    for f in frames[6:]:
+        for o in f.observations:
+            if o.track.object_id == tid:
+                o.detection.kinematics.pose_with_covariance.pose.position.x = 1e300
+    return frames, tid
+
+
+def test_a_track_at_1e300_is_refused_by_the_read_limits(service, client_session):
+    """x = 1e300 from a broken upstream is beyond ``limits.max_abs_coordinate_m``: each such observation is
+    refused at the read and counted (``rejected``, ``over_limit``), the frames still close and every output
+    stays valid."""
+    got = _collect(client_session)
+    _wait_connected(client_session)
+    frames, tid = _frames_with_a_track_at_1e300()
+    _send_paced(client_session, frames, got)
+    assert got["objects"][-1].header.seq == 11  # decoded, so valid
+    assert service.counters.get("rejected") == 6
+    assert service.counters.get("over_limit.tracks/*") == 6
+    snap = decode(ClassifierStateSnapshot, _query(client_session, keys.classifier_state(NS)).ok.payload.to_bytes())
+    entry = next(t for t in snap.tracks if t.track_id == tid)
+    assert np.isfinite([entry.chi2, entry.z_x, entry.z_y, entry.x]).all() and abs(entry.x) < 1e3
+
+
+def test_a_track_at_1e300_keeps_every_output_valid(zenoh_port, client_session):
+    """With the coordinate limit opened up, x = 1e300 reaches the statistics. It used to make chi2 infinite, and
+    the state feed (classifier/state, read by the sidecar) was rejected by its own reader until the track aged
+    out. Every output stays valid: the state, the track's MotionState and ``objects``."""
+    svc = ClassifierService(loopback_options(NS, zenoh_port, listen_self=True), straggler_timeout_s=0.5,
+                            limits=Limits(max_abs_coordinate_m=1e308), config_writes=ConfigWritePolicy.open())
+    try:
+        got = _collect(client_session)
+        _wait_connected(client_session)
+        frames, tid = _frames_with_a_track_at_1e300()
+        _send_paced(client_session, frames, got)
+        assert wait_until(lambda: tid in got["motion"] and got["motion"][tid].header.seq == 11)
+        m = got["motion"][tid]
+        assert m.state == "dynamic" and np.isfinite([m.chi2, m.z_x, m.z_y]).all() and m.z_x > 1e6
+        snap = decode(ClassifierStateSnapshot,
+                      _query(client_session, keys.classifier_state(NS)).ok.payload.to_bytes())
+        entry = next(t for t in snap.tracks if t.track_id == tid)
+        assert entry.state == "dynamic" and entry.chi2 > 1e6
+        assert got["objects"][-1].header.seq == 11  # decoded, so valid
+        assert svc.counters.get("rejected") == 0
+    finally:
+        svc.close()

@@ -1,0 +1,87 @@
+"""Bad CLI input: one line on stderr and exit status 2, never a traceback."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+CASES = [
+    ["classifier", "--bogus"],
+    ["classifier", "--alpha", "-1"],
+    ["classifier", "--mode", "zz"],
+    ["classifier", "--ns", "a/b"],
+    ["classifier", "--window-size", "3", "--min-window", "5"],
+    ["classifier", "--config", "/nonexistent/x.yaml"],
+    ["classifier", "--preset", "nope"],
+    ["classifier", "--connect", "nonsense"],
+    ["classifier", "--zenoh-config", "/nonexistent.json5"],
+    ["bench", "classifier", "--tracks", "0"],
+    ["feed-tracks", "--rate", "0"],
+    ["up", "--input", "video"],
+    ["logs", "classifier", "--run-dir", "/nonexistent-run-dir"],
+    ["no-such-command"],
+]
+
+
+def run(args: list[str]) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "jitterguard.cli", *args], capture_output=True, text=True, timeout=60)
+
+
+@pytest.mark.parametrize("args", CASES, ids=[" ".join(c) for c in CASES])
+def test_bad_input_is_one_line_and_exit_2(args):
+    res = run(args)
+    assert res.returncode == 2, res
+    lines = [line for line in res.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1, res.stderr
+    assert "error" in lines[0] and "Traceback" not in res.stderr
+
+
+def test_config_file_values_are_validated(tmp_path):
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("alpha_per_class: {spaceship: 2.0}\n")
+    res = run(["classifier", "--config", str(cfg)])
+    assert res.returncode == 2 and "alpha_per_class" in res.stderr
+
+
+def test_help_lists_the_commands():
+    res = run(["--help"])
+    assert res.returncode == 0
+    for cmd in ("classifier", "router", "up", "down", "status", "logs", "bench", "feed-tracks"):
+        assert cmd in res.stdout
+
+
+def test_an_unwritable_config_store_names_where_it_came_from(tmp_path):
+    """``config_store`` is a field of the classifier's parameter file as well as a flag: a bad one is refused
+    before anything starts, named as the user gave it."""
+    bad = tmp_path / "no-such-dir" / "store.json"
+    res = run(["classifier", "--config-store", str(bad)])
+    assert res.returncode == 2 and res.stderr.count("\n") == 1 and "--config-store" in res.stderr
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(f"/**:\n  ros__parameters:\n    config_store: {bad}\n    open_config_writes: true\n")
+    res = run(["classifier", "--config", str(cfg)])
+    assert res.returncode == 2 and "config_store" in res.stderr and "--config-store" not in res.stderr
+
+
+def test_help_shows_no_value_type_after_plain_flags():
+    """`--detach` takes no value: the help must not print `<bool>` after it (nor after any other flag)."""
+    for cmd in (["up", "--help"], ["replay", "--help"], ["status", "--help"]):
+        res = subprocess.run([sys.executable, "-m", "jitterguard.cli", *cmd], capture_output=True, text=True,
+                             timeout=60, env={**__import__("os").environ, "COLUMNS": "200"})
+        assert res.returncode == 0 and "--" in res.stdout
+        assert "<bool>" not in res.stdout, res.stdout
+
+
+def test_each_service_command_is_registered_by_the_one_area_it_loads():
+    """`jitterguard tracker` under supervisord imports only the tracker's area: the table must name the area
+    that really registers the command, with the same options as in the full app."""
+    import typer
+
+    from jitterguard.cli import SERVICE_AREAS, app, build_app
+
+    full = typer.main.get_command(app).commands
+    for name, area in SERVICE_AREAS.items():
+        alone = typer.main.get_command(build_app((area,))[0]).commands
+        assert name in alone, (name, area)
+        assert [p.name for p in alone[name].params] == [p.name for p in full[name].params]

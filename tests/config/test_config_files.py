@@ -1,0 +1,89 @@
+"""Configuration files: the shipped defaults and JSON schemas match their pydantic models, the presets load, and
+``--config`` takes a flat file or Autoware's ``ros__parameters`` form through the one loader."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import yaml
+
+from jitterguard.config import ConfigError, load, param_file, presets, read_params, schema_file
+from jitterguard.config.generate import expected_files
+from jitterguard.services.classifier.config import ClassifierParams
+from jitterguard.services.detector.config import PRESETS as DETECTOR_PRESETS
+from jitterguard.services.detector.config import DetectorConfig, DetectorParams
+from jitterguard.services.tracker.config import TrackerConfig
+
+
+def test_checked_in_defaults_and_schemas_are_what_the_models_generate() -> None:
+    stale = [str(p) for p, text in expected_files().items() if not p.is_file() or p.read_text() != text]
+    assert not stale, f"run `python -m jitterguard.config.generate` and commit: {stale}"
+
+
+@pytest.mark.parametrize(("service", "model"), [("tracker", TrackerConfig), ("classifier", ClassifierParams),
+                                                ("detector", DetectorParams)])
+def test_each_default_file_is_its_model_defaults_and_validates_against_its_schema(service, model) -> None:
+    import jsonschema
+
+    values = read_params(param_file(service))
+    assert load(model, param_file(service)) == load(model)  # the file holds exactly the defaults
+    doc = yaml.safe_load(param_file(service).read_text())
+    assert list(doc) == ["/**"] and list(doc["/**"]) == ["ros__parameters"]  # Autoware's layout
+    jsonschema.validate(values, json.loads(schema_file(service).read_text()))
+
+
+def test_shipped_presets_load_and_differ_where_they_should() -> None:
+    assert presets("classifier") == ["authors", "autoware-sustain", "paper"]
+    assert presets("detector") == ["lite", "paper"]
+    authors = load(ClassifierParams, service="classifier", preset="authors")
+    assert authors.alpha_per_class["pedestrian"] == 1.28 and authors.window_size == 10
+    paper = load(ClassifierParams, service="classifier", preset="paper")  # the paper's statistic, whole
+    assert (paper.alpha_per_class, paper.effective_n, paper.calibration, paper.min_speed_mps) == ({}, "cluster",
+                                                                                                  "off", 0.0)
+    sustain = load(ClassifierParams, service="classifier", preset="autoware-sustain")
+    assert sustain.sustain_for(1) == 2.0 and sustain.sustain_for(7) == 1.0  # car, pedestrian
+    assert DETECTOR_PRESETS["paper"].grid_size == (512, 512) and DETECTOR_PRESETS["lite"].grid_size == (256, 256)
+    for name in ("lite", "paper"):
+        assert DetectorConfig.model_validate(read_params(param_file("detector", name))) == DETECTOR_PRESETS[name]
+    with pytest.raises(ConfigError, match="unknown classifier preset 'fast'; expected one of authors, autoware-sustain, paper"):
+        load(ClassifierParams, service="classifier", preset="fast")
+
+
+@pytest.mark.parametrize("wrap", [lambda d: d, lambda d: {"/**": {"ros__parameters": d}},
+                                  lambda d: {"tracker_node": {"ros__parameters": d}}])
+def test_config_takes_a_flat_file_or_the_ros_parameters_form(tmp_path, wrap) -> None:
+    p = tmp_path / "t.param.yaml"
+    p.write_text(yaml.safe_dump(wrap({"confirm_hits": 5, "limits": {"max_objects": 100}})))
+    cfg = load(TrackerConfig, p)
+    assert cfg.confirm_hits == 5 and cfg.limits.max_objects == 100
+    assert cfg.limits.max_payload_bytes == TrackerConfig().limits.max_payload_bytes  # one key of a mapping tuned
+
+
+def test_a_bad_file_names_the_file_and_the_key(tmp_path) -> None:
+    p = tmp_path / "c.yaml"
+    p.write_text("windw_size: 5\n")
+    with pytest.raises(ConfigError, match=r"c.yaml: windw_size: Extra inputs are not permitted"):
+        load(ClassifierParams, p)
+    p.write_text("limits: {max_objects: 0}\n")
+    with pytest.raises(ConfigError, match="limits.max_objects"):
+        load(ClassifierParams, p)
+    p.write_text("[1, 2]\n")
+    with pytest.raises(ConfigError, match="expected a mapping"):
+        load(DetectorParams, p)
+    with pytest.raises(ConfigError, match="not found"):
+        load(DetectorParams, tmp_path / "nope.yaml")
+
+
+def test_the_classifiers_process_fields_come_from_its_file_but_never_travel(tmp_path) -> None:
+    """``config_store`` and ``open_config_writes`` (start-up only) are read from the parameter file; the config
+    that travels on the queryable (``wire()``) has neither."""
+    from jitterguard.services.classifier.config import ClassifierParams
+
+    path = tmp_path / "c.param.yaml"
+    path.write_text("/**:\n  ros__parameters:\n    config_store: /var/lib/jg/c.json\n    open_config_writes: true\n"
+                    "    alpha_default: 3.0\n")
+    params = load(ClassifierParams, path, service="classifier")
+    assert params.config_store == "/var/lib/jg/c.json" and params.open_config_writes is True
+    wire = params.wire().model_dump()
+    assert wire["alpha_default"] == 3.0 and "config_store" not in wire and "open_config_writes" not in wire

@@ -1,0 +1,156 @@
+"""The documentation holds together: every relative link in README.md and docs/*.md reaches an existing file
+(and, for `#anchor` links into Markdown, an existing heading), every docs page is linked from the README, and
+the README stays the short entry point that CI's test command is named in.
+
+Anchors follow GitHub's rule for heading ids (lowercase; drop everything but letters, digits, `_`, `-` and
+spaces; spaces become `-`; a repeated id gets `-1`, `-2`, ...), because that is where readers follow them.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+import typer
+
+from jitterguard.cli import app
+
+ROOT = Path(__file__).resolve().parents[2]
+DOCS = ROOT / "docs"
+PAGES = sorted(DOCS.glob("*.md"))
+MARKDOWN = [ROOT / "README.md", *PAGES]
+
+_FENCE = re.compile(r"^\s*(```|~~~)")
+_CODE_SPAN = re.compile(r"`+[^`]*`+")
+_LINK = re.compile(r"!?\[(?:[^\[\]]|\[[^\]]*\])*\]\(\s*<?([^)\s>]+)>?(?:\s+\"[^\"]*\")?\s*\)")
+_HEADING = re.compile(r"^(#{1,6})\s+(.*?)\s*#*\s*$")
+_HTML_ID = re.compile(r"<a\s+(?:name|id)=\"([^\"]+)\"")
+
+
+def _prose_lines(text: str) -> list[str]:
+    """The lines outside fenced code blocks (links and headings inside code are not links or headings)."""
+    out, fenced = [], False
+    for line in text.splitlines():
+        if _FENCE.match(line):
+            fenced = not fenced
+            continue
+        if not fenced:
+            out.append(line)
+    return out
+
+
+def github_slug(heading: str) -> str:
+    """GitHub's id for a heading's text (before de-duplication)."""
+    text = re.sub(r"!?\[([^\]]*)\]\([^)]*\)", r"\1", heading)  # a link in a heading keeps only its text
+    text = text.strip().lower()
+    text = re.sub(r"[^\w\- ]", "", text)
+    return text.replace(" ", "-")
+
+
+def anchors(path: Path) -> set[str]:
+    """Every id a link into ``path`` can target: its headings' slugs (de-duplicated as GitHub does)."""
+    seen: dict[str, int] = {}
+    out: set[str] = set()
+    for line in _prose_lines(path.read_text(encoding="utf-8")):
+        out.update(_HTML_ID.findall(line))
+        m = _HEADING.match(line)
+        if not m:
+            continue
+        slug = github_slug(m.group(2))
+        n = seen.get(slug, 0)
+        seen[slug] = n + 1
+        out.add(slug if n == 0 else f"{slug}-{n}")
+    return out
+
+
+def links(path: Path) -> list[str]:
+    """Targets of the Markdown links and images in ``path``'s prose (code spans and blocks excluded)."""
+    found: list[str] = []
+    for line in _prose_lines(path.read_text(encoding="utf-8")):
+        found.extend(_LINK.findall(_CODE_SPAN.sub("", line)))
+    return found
+
+
+def _shown(path: Path) -> str:
+    return str(path.relative_to(ROOT)) if path.is_relative_to(ROOT) else str(path)
+
+
+def broken_links(path: Path) -> list[str]:
+    """Each relative link of ``path`` whose file or heading does not exist, with the reason."""
+    bad: list[str] = []
+    for target in links(path):
+        if re.match(r"^[a-z][a-z0-9+.-]*:", target):  # http:, https:, mailto: ... are not checked here
+            continue
+        file_part, _, anchor = target.partition("#")
+        dest = path if not file_part else (path.parent / file_part).resolve()
+        if not dest.exists():
+            bad.append(f"{target}: no such file {_shown(dest)}")
+        elif anchor and dest.suffix == ".md" and anchor not in anchors(dest):
+            bad.append(f"{target}: no heading #{anchor} in {_shown(dest)}")
+    return bad
+
+
+def test_github_slugs_of_headings_like_ours() -> None:
+    assert github_slug("`jitterguard bench pipeline`") == "jitterguard-bench-pipeline"
+    assert github_slug("The detector (paper §III-A, §IV-A, Table I)") == "the-detector-paper-iii-a-iv-a-table-i"
+    assert github_slug("Several hosts: Zenoh router with mutual TLS (`deploy/zenoh/`)") == (
+        "several-hosts-zenoh-router-with-mutual-tls-deployzenoh")
+    assert github_slug("The classifier (`ClassifierConfig`)") == "the-classifier-classifierconfig"
+
+
+def test_the_checker_finds_a_broken_file_and_a_broken_anchor(tmp_path: Path) -> None:
+    (tmp_path / "a.md").write_text("# A\n\n## Real heading\n\nsee [b](b.md) and [x](#real-heading)\n", encoding="utf-8")
+    page = tmp_path / "b.md"
+    page.write_text(
+        "# B\n\n[ok](a.md#real-heading) [gone](missing.md) [no anchor](a.md#nope)\n"
+        "`[in code](missing2.md)`\n```\n[in a block](missing3.md)\n```\n[web](https://example.org/x)\n",
+        encoding="utf-8",
+    )
+    bad = [b.split(":")[0] for b in broken_links(page)]
+    assert bad == ["missing.md", "a.md#nope"]
+    assert broken_links(tmp_path / "a.md") == []
+
+
+@pytest.mark.parametrize("path", MARKDOWN, ids=lambda p: str(p.relative_to(ROOT)))
+def test_every_relative_link_resolves(path: Path) -> None:
+    assert broken_links(path) == []
+
+
+def test_every_docs_page_is_linked_from_the_readme_and_has_a_title_and_intro() -> None:
+    assert PAGES, "docs/*.md pages exist"
+    readme_targets = {t.partition("#")[0] for t in links(ROOT / "README.md")}
+    for page in PAGES:
+        rel = page.relative_to(ROOT).as_posix()
+        assert rel in readme_targets, f"README.md does not link {rel}"
+        lines = page.read_text(encoding="utf-8").splitlines()
+        assert lines[0].startswith("# "), f"{rel} starts with a title"
+        assert lines[1] == "" and lines[2].strip() and not lines[2].startswith("#"), f"{rel}: an intro paragraph"
+
+
+def test_readme_is_short_and_names_the_commands_ci_runs() -> None:
+    readme = (ROOT / "README.md").read_text(encoding="utf-8")
+    assert len(readme.splitlines()) <= 250
+    assert "bash scripts/run.sh" in readme and "bash scripts/test.sh" in readme
+    assert "bash scripts/test.sh" in (ROOT / ".ci" / "run").read_text(encoding="utf-8")
+
+
+def test_cli_page_lists_every_command_and_flag() -> None:
+    """docs/cli.md promises every command and flag: each command has its section and each option its name."""
+    page = (DOCS / "cli.md").read_text(encoding="utf-8")
+    missing: list[str] = []
+
+    def walk(cmd, path: str) -> None:
+        if hasattr(cmd, "commands"):
+            for name, sub in cmd.commands.items():
+                walk(sub, f"{path} {name}")
+            return
+        if f"### `{path}`" not in page:
+            missing.append(path)
+        for param in cmd.params:
+            for opt in getattr(param, "opts", []) + getattr(param, "secondary_opts", []):
+                if opt.startswith("-") and opt != "--help" and f"`{opt}`" not in page:
+                    missing.append(f"{path} {opt}")
+
+    walk(typer.main.get_command(app), "jitterguard")
+    assert missing == []
