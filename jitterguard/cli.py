@@ -47,6 +47,7 @@ _AREAS = (
     "jitterguard.stack.monitor",
     "jitterguard.bench.cli",
     "jitterguard.eval.cli",
+    "jitterguard.eval.calibrate",
 )
 
 SERVICE_AREAS = {

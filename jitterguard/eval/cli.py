@@ -31,7 +31,8 @@ def eval_command(
     seed: Annotated[int, typer.Option("--seed", help="Seeds the scenario and the noise model.")] = 0,
     input_: Annotated[str, typer.Option("--input", help="gt-noise (ground truth through the noise model) or detector.")] = "gt-noise",
     noise: Annotated[str | None, typer.Option("--noise", help="Noise preset of --input gt-noise: clean, jittery"
-                                              " (default) or paper.")] = None,
+                                              " (default), paper or oracle (exact variances: never a headline).")
+                     ] = None,
     weights: Annotated[Path | None, typer.Option("--weights", help="Detector weights file for --input detector"
                                                  " (default: the shipped lite weights).")] = None,
     threads: Annotated[int | None, typer.Option("--threads", min=1, max=1024, help="torch CPU threads of the"
@@ -43,7 +44,23 @@ def eval_command(
     preset: Annotated[str | None, typer.Option("--preset", help="Classifier alpha preset: paper or authors.")] = None,
     alpha: Annotated[float | None, typer.Option("--alpha", help="alpha_default of the z-test (no per-class overrides).")] = None,
     velocity_threshold: Annotated[float | None, typer.Option("--velocity-threshold", help="Speed cut-off [m/s].")] = None,
-    runs: Annotated[int, typer.Option("--runs", help="Pool seeds seed … seed+runs-1 into one scored table.")] = 1,
+    runs: Annotated[int, typer.Option("--runs", help="Pool seeds seed … seed+runs-1 into one scored table (one "
+                                      "drive: the online calibration carries over).")] = 1,
+    variance_scale: Annotated[float, typer.Option("--variance-scale", help="Multiply every reported position "
+                                                  "variance by this before the tracker (a detector off by a "
+                                                  "constant factor).")] = 1.0,
+    variance_scale_at: Annotated[str, typer.Option("--variance-scale-at", help="detector (its output: the tracker "
+                                                   "sees the scaled variances too) or classifier (only what "
+                                                   "the classifier receives).")] = "detector",
+    calibration: Annotated[str | None, typer.Option("--calibration", help="online (default), off or file.")] = None,
+    calibration_file: Annotated[Path | None, typer.Option("--calibration-file", help="YAML from `jitterguard "
+                                                          "calibrate`; implies --calibration file.")] = None,
+    effective_n: Annotated[str | None, typer.Option("--effective-n", help="measured (default), cluster or "
+                                                    "independent.")] = None,
+    min_speed: Annotated[float | None, typer.Option("--min-speed", help="The test's H0 speed bound, m/s "
+                                                    "(default 0.1).")] = None,
+    speed_sustain: Annotated[bool, typer.Option("--speed-sustain/--no-speed-sustain", help="The baseline holds "
+                                                "Autoware's sustain times (2 s vehicles, 1 s others).")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Also print metrics.json to stdout.")] = False,
 ) -> None:
     """Evaluate (detector →) tracker → motion classifier offline against ground truth."""
@@ -77,21 +94,44 @@ def eval_command(
         fail(f"--out: {out} exists and is not a folder")
     if not 1 <= runs <= 50:
         fail("--runs must be in [1, 50]")
+    if not 1e-3 <= variance_scale <= 1e3:
+        fail("--variance-scale must be in [0.001, 1000]")
+    if variance_scale_at not in ("detector", "classifier"):
+        fail(f"--variance-scale-at: expected detector or classifier, got {variance_scale_at!r}")
     upd: dict[str, Any] = dict(PRESETS[preset]) if preset else {}
     if alpha is not None:
         upd.update(alpha_default=alpha, alpha_per_class={})
     if velocity_threshold is not None:
         upd["velocity_threshold"] = velocity_threshold
+    if calibration_file is not None and calibration is None:
+        calibration = "file"
+    for key, value in (("calibration", calibration), ("effective_n", effective_n), ("min_speed_mps", min_speed),
+                       ("calibration_file", None if calibration_file is None else str(calibration_file))):
+        if value is not None:
+            upd[key] = value
+    if speed_sustain:
+        upd.update(PRESETS["autoware-sustain"])
     try:
         cfg = ClassifierConfig.model_validate({**ClassifierConfig().model_dump(), **upd})
     except ValueError as exc:
-        fail(f"classifier config: {str(exc).splitlines()[0]}")
+        err = exc.errors()[0] if hasattr(exc, "errors") else None
+        where = ".".join(str(x) for x in err["loc"]) if err and err.get("loc") else "classifier config"
+        fail(f"{where}: {err['msg'] if err else str(exc).splitlines()[0]}")
+    model = None
+    if cfg.calibration == "file":
+        from ..services.classifier.calibration_file import CalibrationFileError, read_calibration
+
+        try:
+            model = read_calibration(cfg.calibration_file or "")
+        except CalibrationFileError as exc:
+            fail(f"--calibration-file: {exc}")
     detector, weights_desc = load_detector(weights, threads) if input_ == "detector" else (None, None)
 
     metrics = evaluate(out, scenario=scenario, seed=seed, noise=noise, nuscenes=nuscenes, scene=scene,
                        duration=duration, rate=rate, classifier=cfg,
                        extra_seeds=tuple(range(seed + 1, seed + runs)), detector=detector,
-                       weights_desc=weights_desc)
+                       weights_desc=weights_desc, variance_scale=variance_scale, calibration_model=model,
+                       variance_scale_at=variance_scale_at)
     if as_json:
         sys.stdout.write(json.dumps(metrics, indent=2, sort_keys=True) + "\n")
     else:
@@ -133,17 +173,20 @@ def detector_run_info(detector: "Detector", weights_desc: str | None) -> dict[st
 def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, nuscenes: Path | None,
              scene: str | None, duration: float, rate: float, classifier: Any,
              extra_seeds: tuple[int, ...] = (), detector: "Detector | None" = None,
-             weights_desc: str | None = None) -> dict[str, Any]:
+             weights_desc: str | None = None, variance_scale: float = 1.0,
+             calibration_model: Any = None, variance_scale_at: str = "detector") -> dict[str, Any]:
     """Load the frames, run the pipeline, score, write the outputs; returns metrics.json's content.
 
     ``extra_seeds`` pools more runs (a fresh scenario and noise draw per seed; for nuScenes only the noise
     changes) into one scored table, because one 15 s scene holds few moving objects and single-seed rates
-    swing by tens of points. With ``detector`` the detections come from it (``noise`` is unused) and its
-    AP / calibration over all pooled scans go into ``detection``."""
+    swing by tens of points. The pooled runs are one drive: the online variance calibration carries from each
+    run to the next (only the first starts cold). With ``detector`` the detections come from it (``noise`` is
+    unused) and its AP / calibration over all pooled scans go into ``detection``."""
     from tqdm import tqdm  # type: ignore[import-untyped]
 
     from .groundtruth import NuScenesError, load_nuscenes_frames
-    from .metrics import REPORT_GROUPS, alpha_from_labels, compute_metrics
+    from ..services.classifier.calibration import OnlineCalibration
+    from .metrics import REPORT_GROUPS, alpha_from_labels, compute_metrics, planner_metrics
     from .pipeline import MATCH_DISTANCE_M, NOISE_PRESETS, Records, concat_records, run_pipeline
     from .report import write_outputs
 
@@ -167,6 +210,17 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
 
     predictions: list[Any] = []
     samples: list[Any] = []
+    drive = OnlineCalibration(tuple(classifier.calibration_range_bands_m), classifier.calibration_prior_blocks,
+                              classifier.calibration_half_life_s, classifier.window_size)
+    # synthetic seeds are different streets of one drive; repeated noise draws of one nuScenes scene are not,
+    # and carrying over would learn that scene's own boxes: each of them starts cold
+    def calibration_for_run() -> OnlineCalibration:
+        nonlocal drive
+        if nuscenes is not None:
+            drive = OnlineCalibration(tuple(classifier.calibration_range_bands_m),
+                                      classifier.calibration_prior_blocks, classifier.calibration_half_life_s,
+                                      classifier.window_size)
+        return drive
 
     def bar(it: Any, s: int) -> Any:
         desc = f"eval seed {s}" + (" (detector)" if detector is not None else "")
@@ -174,9 +228,11 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
                     disable=not progress_on(None))  # a bar on a terminal only: no carriage returns in a log
 
     def one(fr: Any, s: int) -> Records:
+        carry = calibration_for_run()
         if detector is None:
             return run_pipeline(fr, NOISE_PRESETS[noise or "jittery"](), s, classifier,
-                                progress=lambda it: bar(it, s))
+                                progress=lambda it: bar(it, s), calibration=carry, variance_scale=variance_scale,
+                                calibration_model=calibration_model, variance_scale_at=variance_scale_at)
         from .detector_input import detector_frames, nuscenes_scans, run_detector_pipeline, synthetic_scans
 
         if nuscenes is not None:
@@ -188,7 +244,10 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
             scans = synthetic_scans(fr, s)
         det_frames = detector_frames(bar(scans, s), detector.detect, class_names=detector.config.class_names,
                                      uncertainty=detector.config.uncertainty)
-        rec_s, preds, smp = run_detector_pipeline(det_frames, classifier)
+        rec_s, preds, smp = run_detector_pipeline(det_frames, classifier, calibration=carry,
+                                                  variance_scale=variance_scale,
+                                                  calibration_model=calibration_model,
+                                                  variance_scale_at=variance_scale_at)
         predictions.extend(preds)
         samples.extend(smp)
         return rec_s
@@ -209,9 +268,16 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
                 "noise": noise if detector is None else None, "seed": seed, "frames": total,
                 "rows": len(rec), "matched_rows": int((rec.gt_instance >= 0).sum()),
                 "match_distance_m": MATCH_DISTANCE_M, "alpha": alpha_desc,
-                "velocity_threshold": classifier.velocity_threshold, "min_window": classifier.min_window,
-                "window_size": classifier.window_size},
+                "velocity_threshold": classifier.velocity_threshold,
+                "velocity_threshold_per_class": dict(classifier.velocity_threshold_per_class),
+                "velocity_sustain_s_per_class": dict(classifier.velocity_sustain_s_per_class),
+                "min_window": classifier.min_window, "window_size": classifier.window_size,
+                "calibration": classifier.calibration, "effective_n": classifier.effective_n,
+                "min_speed_mps": classifier.min_speed_mps, "variance_scale": variance_scale,
+                "variance_scale_at": variance_scale_at},
         "motion": compute_metrics(rec),
+        **planner_metrics(rec),
+        "calibration": drive.snapshot(classifier.window_size) if classifier.calibration == "online" else None,
         "alpha_from_labels": {g: alpha_from_labels(rec, g) for g in REPORT_GROUPS},
     }
     metrics["alpha_from_labels_preset"] = labels_preset(metrics["alpha_from_labels"])

@@ -145,9 +145,10 @@ def detector_frames(scans: Iterable[LabelledScan], detect: Callable[[np.ndarray]
 
 def run_detector_pipeline(frames: Iterable[DetectorFrame], classifier: ClassifierConfig | None = None,
                           tracker: TrackerConfig | None = None, match_distance_m: float = MATCH_DISTANCE_M,
-                          ) -> tuple[Records, list[Detections3D], list[Sample]]:
+                          **kwargs: Any) -> tuple[Records, list[Detections3D], list[Sample]]:
     """Tracker and classifier cores over the detector's frames; also returns every scan's raw detections and
-    its sensor-frame ground truth, index-aligned, for :func:`detection_metrics`."""
+    its sensor-frame ground truth, index-aligned, for :func:`detection_metrics`. ``kwargs`` go to
+    :func:`~.pipeline.track_and_classify` (calibration to continue, variance scale, calibration file)."""
     preds: list[Detections3D] = []
     samples: list[Sample] = []
 
@@ -157,7 +158,7 @@ def run_detector_pipeline(frames: Iterable[DetectorFrame], classifier: Classifie
             samples.append(f.sample)
             yield f.gt, f.detections
 
-    rec = track_and_classify(pairs(), classifier, tracker, match_distance_m)
+    rec = track_and_classify(pairs(), classifier, tracker, match_distance_m, **kwargs)
     return rec, preds, samples
 
 

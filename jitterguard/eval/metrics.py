@@ -78,21 +78,110 @@ def time_to_first_correct(rec: Records, state: NDArray[np.int8]) -> NDArray[np.f
     return np.asarray(out, dtype=np.float64)
 
 
-def scored_rows(rec: Records, group: str) -> NDArray[np.bool_]:
-    """Rows scored for ``group``: matched, in the group, z-test window long enough to decide."""
-    return (rec.group == group) & (rec.window >= rec.min_window)
+def scored_rows(rec: Records, group: str, *, full_window: bool = False) -> NDArray[np.bool_]:
+    """Rows scored for ``group``: matched, in the group, z-test window long enough to decide (or, with
+    ``full_window``, holding ``window_size`` observations)."""
+    need = rec.window_size if full_window else rec.min_window
+    return (rec.group == group) & (rec.window >= need)
+
+
+def ghost_rows(rec: Records, group: str) -> NDArray[np.bool_]:
+    """Rows of tracks matched to no object whose own label is in ``group``, window long enough to decide."""
+    return (rec.gt_instance < 0) & (rec.track_group == group) & (rec.window >= rec.min_window)
 
 
 def _nan_to_none(x: float) -> float | None:
     return None if (isinstance(x, float) and math.isnan(x)) else round(float(x), 6)
 
 
-def group_metrics(rec: Records, group: str) -> dict[str, Any]:
-    """One group's AP (z and speed as scores), operating-point error rates, counts and decision latency."""
-    m = scored_rows(rec, group)
+def _clean(d: dict[str, Any]) -> dict[str, Any]:
+    return {k: (_nan_to_none(v) if isinstance(v, float) else v) for k, v in d.items()}
+
+
+BOOTSTRAP_RESAMPLES = 400
+"""Resamples of tracks behind every 90 % interval (seeded: the same table gives the same interval)."""
+
+
+class TrackBootstrap:
+    """90 % percentile intervals over tracks: resampling whole tracks (with replacement) keeps the rows of one
+    track together, since they are strongly dependent (one parked car gives hundreds of near-identical rows).
+
+    ``weights[b, i]`` is how often row i's track is drawn in resample b; a rate is Σ w·num / Σ w·den, an AP is
+    the weighted AP (:func:`weighted_average_precision`)."""
+
+    def __init__(self, track_ids: NDArray[np.str_], resamples: int = BOOTSTRAP_RESAMPLES, seed: int = 0) -> None:
+        self.uniq, self.inverse = np.unique(track_ids, return_inverse=True)
+        rng = np.random.default_rng(seed)
+        n = len(self.uniq)
+        draws = rng.integers(0, max(n, 1), size=(resamples, n)) if n else np.zeros((resamples, 0), np.int64)
+        self.track_weights = np.stack([np.bincount(d, minlength=n) for d in draws]).astype(np.float64) \
+            if n else np.zeros((resamples, 0))
+
+    def rows(self, mask: NDArray[np.bool_]) -> NDArray[np.float64]:
+        """(resamples, rows in mask) weights."""
+        return self.track_weights[:, self.inverse[mask]]
+
+    def rate(self, mask: NDArray[np.bool_], hit: NDArray[np.bool_]) -> list[float] | None:
+        """Interval of mean(hit[mask]); None where the mask is empty."""
+        if not mask.any():
+            return None
+        w = self.rows(mask)
+        den = w.sum(axis=1)
+        num = (w * hit[mask]).sum(axis=1)
+        r = num[den > 0] / den[den > 0]
+        return _interval(r)
+
+    def ap(self, mask: NDArray[np.bool_], score: NDArray[np.float64], positive: NDArray[np.bool_]) -> list[float] | None:
+        """Interval of the AP of ``score`` for ``positive`` on the rows in ``mask`` (None if undefined)."""
+        if not mask.any() or positive[mask].all() or not positive[mask].any():
+            return None
+        w = self.rows(mask)
+        s, p = score[mask], positive[mask]
+        vals = [weighted_average_precision(s, p, wb) for wb in w]
+        vals = [v for v in vals if not math.isnan(v)]
+        return _interval(np.asarray(vals)) if vals else None
+
+
+def _interval(values: NDArray[np.float64]) -> list[float] | None:
+    if len(values) == 0:
+        return None
+    lo, hi = np.percentile(values, [5.0, 95.0])
+    return [round(float(lo), 6), round(float(hi), 6)]
+
+
+def weighted_average_precision(scores: ArrayLike, positive: ArrayLike, weights: ArrayLike) -> float:
+    """:func:`average_precision` with row weights (a bootstrap resample); NaN without weighted positives."""
+    s = np.asarray(scores, dtype=np.float64)
+    p = np.asarray(positive, dtype=bool)
+    w = np.asarray(weights, dtype=np.float64)
+    order = np.argsort(-s, kind="stable")
+    s, p, w = s[order], p[order], w[order]
+    tp = np.cumsum(w * p)
+    fp = np.cumsum(w * ~p)
+    n_pos = tp[-1] if len(tp) else 0.0
+    if n_pos <= 0:
+        return math.nan
+    last = np.r_[np.flatnonzero(np.diff(s) != 0), len(s) - 1]
+    tp, fp = tp[last], fp[last]
+    precision = tp / np.maximum(tp + fp, 1e-300)
+    recall = tp / n_pos
+    return float(np.sum(np.diff(np.r_[0.0, recall]) * precision))
+
+
+def _defined(x: float, ok: bool) -> float:
+    return x if ok else math.nan
+
+
+def group_metrics(rec: Records, group: str, boot: TrackBootstrap | None = None, *,
+                  full_window: bool = False) -> dict[str, Any]:
+    """One group's AP (z and speed as scores), operating-point error rates, counts, decision latency and (with
+    ``boot``) their 90 % intervals over tracks. An AP needs both static and dynamic rows (else null, not 1.0);
+    a false-dynamic rate needs static rows, a missed-dynamic rate dynamic ones."""
+    m = scored_rows(rec, group, full_window=full_window)
     dyn = rec.gt_dynamic[m]
     z, sp = rec.z[m], rec.speed[m]
     sz, sv = rec.state_z[m], rec.state_v[m]
+    both = bool(dyn.any() and (~dyn).any())
     sub = rec.subset(rec.group == group)
     ttz = time_to_first_correct(sub, sub.state_z)
     ttv = time_to_first_correct(sub, sub.state_v)
@@ -101,27 +190,126 @@ def group_metrics(rec: Records, group: str) -> dict[str, Any]:
         a = a[np.isfinite(a)]
         return float(np.median(a)) if len(a) else math.nan
 
-    out = {
+    out: dict[str, Any] = {
         "n_static": int((~dyn).sum()),
         "n_dynamic": int(dyn.sum()),
-        "n_tracks": int(len(np.unique(sub.track_id))),
-        "ap_z": average_precision(z, dyn),
-        "ap_speed": average_precision(sp, dyn),
+        "n_tracks": int(len(np.unique(rec.track_id[m]))),
+        "ap_z": _defined(average_precision(z, dyn), both),
+        "ap_speed": _defined(average_precision(sp, dyn), both),
         "false_dynamic_z": rate(sz, ~dyn, DYNAMIC),
         "false_dynamic_speed": rate(sv, ~dyn, DYNAMIC),
         "missed_dynamic_z": rate(sz, dyn, STATIC),
         "missed_dynamic_speed": rate(sv, dyn, STATIC),
-        "time_to_first_correct_s_median_z": med(ttz),
-        "time_to_first_correct_s_median_speed": med(ttv),
-        "never_correct_fraction_z": float(np.mean(~np.isfinite(ttz))) if len(ttz) else math.nan,
-        "never_correct_fraction_speed": float(np.mean(~np.isfinite(ttv))) if len(ttv) else math.nan,
     }
-    return {k: (_nan_to_none(v) if isinstance(v, float) else v) for k, v in out.items()}
+    if not full_window:
+        out.update({
+            "time_to_first_correct_s_median_z": med(ttz),
+            "time_to_first_correct_s_median_speed": med(ttv),
+            "never_correct_fraction_z": float(np.mean(~np.isfinite(ttz))) if len(ttz) else math.nan,
+            "never_correct_fraction_speed": float(np.mean(~np.isfinite(ttv))) if len(ttv) else math.nan,
+        })
+    out = _clean(out)
+    if boot is not None:
+        static_m, dyn_m = m & ~rec.gt_dynamic, m & rec.gt_dynamic
+        out["ci90"] = {
+            "ap_z": boot.ap(m, rec.z, rec.gt_dynamic) if both else None,
+            "ap_speed": boot.ap(m, rec.speed, rec.gt_dynamic) if both else None,
+            "false_dynamic_z": boot.rate(static_m, rec.state_z == DYNAMIC),
+            "false_dynamic_speed": boot.rate(static_m, rec.state_v == DYNAMIC),
+            "missed_dynamic_z": boot.rate(dyn_m, rec.state_z == STATIC),
+            "missed_dynamic_speed": boot.rate(dyn_m, rec.state_v == STATIC),
+        }
+    return out
 
 
-def compute_metrics(rec: Records) -> dict[str, Any]:
-    """The ``motion`` block of metrics.json: ``{group: group_metrics}`` for vehicle, pedestrian, bicycle."""
-    return {g: group_metrics(rec, g) for g in REPORT_GROUPS}
+def ghost_metrics(rec: Records, group: str, boot: TrackBootstrap | None = None) -> dict[str, Any]:
+    """Tracks matched to no object (``ghost_rows``), scored as static truth: a ghost with a velocity is what
+    makes a planner brake for nothing."""
+    m = ghost_rows(rec, group)
+    out: dict[str, Any] = _clean({
+        "n": int(m.sum()),
+        "n_tracks": int(len(np.unique(rec.track_id[m]))),
+        "false_dynamic_z": rate(rec.state_z, m, DYNAMIC),
+        "false_dynamic_speed": rate(rec.state_v, m, DYNAMIC),
+    })
+    if boot is not None:
+        out["ci90"] = {"false_dynamic_z": boot.rate(m, rec.state_z == DYNAMIC),
+                       "false_dynamic_speed": boot.rate(m, rec.state_v == DYNAMIC)}
+    return out
+
+
+def _missed_at_fd(score: NDArray[np.float64], dyn: NDArray[np.bool_], fd_target: float) -> float:
+    """Missed-dynamic rate of ``score > t`` for the lowest t whose false-dynamic rate is ≤ ``fd_target``."""
+    if not dyn.any() or dyn.all() or math.isnan(fd_target):
+        return math.nan
+    st = np.sort(score[~dyn])[::-1]  # static scores, highest first
+    k = int(math.floor(fd_target * len(st) + 1e-9))  # this many static rows may score above t
+    t = st[k] if k < len(st) else -math.inf
+    return float(np.mean(score[dyn] <= t))
+
+
+def matched_metrics(rec: Records, group: str) -> dict[str, Any]:
+    """Each rule's missed-dynamic rate at the other rule's false-dynamic rate: the speed rule's normalised
+    score speed / class threshold and the z-test's z / class alpha are each swept over one factor, so both
+    keep their per-class structure. Answers "at equal false alarms, who misses less?"."""
+    m = scored_rows(rec, group)
+    dyn = rec.gt_dynamic[m]
+    zs = rec.z[m] / np.maximum(rec.alpha[m], 1e-9)
+    vs = rec.speed[m] / np.maximum(rec.speed_threshold[m], 1e-9)
+    fd_v = rate(rec.state_v[m], ~dyn, DYNAMIC)
+    fd_z = rate(rec.state_z[m], ~dyn, DYNAMIC)
+    return _clean({
+        "false_dynamic_speed": fd_v,
+        "missed_dynamic_z_at_speed_false_dynamic": _missed_at_fd(zs, dyn, fd_v),
+        "missed_dynamic_speed": rate(rec.state_v[m], dyn, STATIC),
+        "false_dynamic_z": fd_z,
+        "missed_dynamic_speed_at_z_false_dynamic": _missed_at_fd(vs, dyn, fd_z),
+        "missed_dynamic_z": rate(rec.state_z[m], dyn, STATIC),
+    })
+
+
+def attribute_metrics(rec: Records, boot: TrackBootstrap | None = None) -> dict[str, Any]:
+    """Per ground-truth attribute (``vehicle.parked``, ``pedestrian.moving``, …) of the scored rows: false
+    dynamic for static attributes, missed dynamic for moving ones (the other pair null), and row counts."""
+    out: dict[str, Any] = {}
+    decided = (rec.gt_instance >= 0) & (rec.group != "") & (rec.window >= rec.min_window)
+    for attr in sorted(set(rec.gt_attribute[decided].tolist()) - {""}):
+        m = decided & (rec.gt_attribute == attr)
+        dyn = rec.gt_dynamic[m]
+        st_m, dy_m = m & ~rec.gt_dynamic, m & rec.gt_dynamic
+        block: dict[str, Any] = _clean({
+            "n": int(m.sum()), "n_tracks": int(len(np.unique(rec.track_id[m]))),
+            "false_dynamic_z": rate(rec.state_z[m], ~dyn, DYNAMIC),
+            "false_dynamic_speed": rate(rec.state_v[m], ~dyn, DYNAMIC),
+            "missed_dynamic_z": rate(rec.state_z[m], dyn, STATIC),
+            "missed_dynamic_speed": rate(rec.state_v[m], dyn, STATIC),
+        })
+        if boot is not None:
+            block["ci90"] = {"false_dynamic_z": boot.rate(st_m, rec.state_z == DYNAMIC),
+                             "false_dynamic_speed": boot.rate(st_m, rec.state_v == DYNAMIC),
+                             "missed_dynamic_z": boot.rate(dy_m, rec.state_z == STATIC),
+                             "missed_dynamic_speed": boot.rate(dy_m, rec.state_v == STATIC)}
+        out[attr] = block
+    return out
+
+
+def compute_metrics(rec: Records, *, intervals: bool = True) -> dict[str, Any]:
+    """The ``motion`` block of metrics.json: ``{group: group_metrics}`` for vehicle, pedestrian, bicycle, each
+    with 90 % intervals over tracks unless ``intervals`` is false."""
+    boot = TrackBootstrap(rec.track_id) if intervals else None
+    return {g: group_metrics(rec, g, boot) for g in REPORT_GROUPS}
+
+
+def planner_metrics(rec: Records, *, intervals: bool = True) -> dict[str, Any]:
+    """What a planner sees beyond ``motion``: ``ghost.{group}``, ``matched.{group}``, ``by_attribute`` and
+    ``full_window.{group}`` (the rates on rows whose window has filled)."""
+    boot = TrackBootstrap(rec.track_id) if intervals else None
+    return {
+        "ghost": {g: ghost_metrics(rec, g, boot) for g in ("vehicle", "pedestrian", "bicycle")},
+        "matched": {g: matched_metrics(rec, g) for g in REPORT_GROUPS},
+        "by_attribute": attribute_metrics(rec, boot),
+        "full_window": {g: group_metrics(rec, g, boot, full_window=True) for g in REPORT_GROUPS},
+    }
 
 
 def alpha_sweep(rec: Records, group: str, alphas: ArrayLike) -> dict[str, list[float]]:

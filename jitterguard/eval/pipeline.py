@@ -16,23 +16,28 @@ Pure: frames in, a :class:`Records` table out; no files, no clock. Deterministic
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment  # type: ignore[import-untyped]
 
-from ..schemas import encode, read_detected_objects
+from ..schemas import DetectedColumns, encode, read_detected_objects, wire
 from ..schemas.models import ClassifierConfig
 from ..services.classifier.adapter import ClassifierAdapter, FrameOutput
+from ..services.classifier.calibration import NoiseModel, OnlineCalibration
 from ..services.tracker.adapter import detection_frame, observation_payloads, tracked_payload
 from ..services.tracker.config import TrackerConfig, default_config
 from ..services.tracker.core import FrameRejected, TrackerCore
 from ..sim.detection_model import DetectionModel, NoiseConfig
 from ..sim.world import GroundTruthFrame
 from .groundtruth import group_of, is_dynamic
+
+VARIANCE_SCALE_AT = ("detector", "classifier")
+"""Where ``--variance-scale`` applies: the detector's output (the tracker sees it too) or the classifier's input."""
 
 MATCH_DISTANCE_M = 2.0
 """A track is the ground-truth object whose centre is within this distance (optimal one-to-one per frame)."""
@@ -68,8 +73,10 @@ class Records:
     """One row per (frame, observed track): the tracker/classifier outputs and the matched ground truth.
 
     ``z`` is max(z_x, z_y) of the z-test core; ``speed`` the tracker's speed (what the velocity-threshold rule
-    reads); ``state_z`` / ``state_v`` the two cores' decisions (0 undecided, 1 static, 2 dynamic).
-    ``group`` is '' for tracks matched to no ground truth (false positives): they are not scored.
+    reads, against its per-class ``speed_threshold``); ``state_z`` / ``state_v`` the two cores' decisions
+    (0 undecided, 1 static, 2 dynamic). ``group`` is the matched object's evaluation group, '' for tracks
+    matched to no ground truth (ghosts: scored as static truth in ``ghost.*`` by ``track_group``, the group
+    of the track's own label); ``gt_attribute`` / ``gt_speed`` the matched object's attribute and speed.
     """
 
     t_s: NDArray[np.float64]
@@ -87,6 +94,24 @@ class Records:
     alpha: NDArray[np.float64]
     velocity_threshold: float
     min_window: int
+    gt_attribute: NDArray[np.str_] = field(default_factory=lambda: np.empty(0, dtype="U32"))
+    gt_speed: NDArray[np.float64] = field(default_factory=lambda: np.empty(0))
+    speed_threshold: NDArray[np.float64] = field(default_factory=lambda: np.empty(0))
+    track_group: NDArray[np.str_] = field(default_factory=lambda: np.empty(0, dtype="U12"))
+    window_size: int = 10
+
+    def __post_init__(self) -> None:
+        """Tables built without the planner-view columns get neutral ones: no attribute, unknown speed, the
+        single velocity threshold, and the track's group taken from its match."""
+        n = len(self)
+        if len(self.gt_attribute) != n:
+            self.gt_attribute = np.full(n, "", dtype="U32")
+        if len(self.gt_speed) != n:
+            self.gt_speed = np.full(n, np.nan)
+        if len(self.speed_threshold) != n:
+            self.speed_threshold = np.full(n, float(self.velocity_threshold))
+        if len(self.track_group) != n:
+            self.track_group = np.asarray(self.group, dtype="U12").copy()
 
     def __len__(self) -> int:
         return int(self.t_s.shape[0])
@@ -107,45 +132,81 @@ def run_pipeline(frames: Iterable[GroundTruthFrame], noise: NoiseConfig, seed: i
                  classifier: ClassifierConfig | None = None, tracker: TrackerConfig | None = None,
                  match_distance_m: float = MATCH_DISTANCE_M,
                  progress: Callable[[Iterable[GroundTruthFrame]], Iterable[GroundTruthFrame]] | None = None,
-                 ) -> Records:
+                 calibration: OnlineCalibration | None = None, variance_scale: float = 1.0,
+                 calibration_model: NoiseModel | None = None, variance_scale_at: str = "detector") -> Records:
     """Run GT → DetectionModel → TrackerCore → MotionClassifierCore (z_test and velocity_threshold).
 
     ``classifier`` supplies alpha / window / velocity threshold; its ``mode`` is overridden per core.
-    ``progress`` wraps the frame iterable (e.g. tqdm) — the caller's choice, so this stays I/O-free.
+    ``progress`` wraps the frame iterable (e.g. tqdm) — the caller's choice, so this stays I/O-free. The other
+    arguments as in :func:`track_and_classify`.
     """
     det_model = DetectionModel(noise, seed)
     it = progress(frames) if progress is not None else frames
     return track_and_classify(((gt, encode(det_model.detect(gt).detections)) for gt in it), classifier, tracker,
-                              match_distance_m)
+                              match_distance_m, calibration=calibration, variance_scale=variance_scale,
+                              calibration_model=calibration_model, variance_scale_at=variance_scale_at)
+
+
+def scale_variances(det: DetectedColumns, factor: float) -> DetectedColumns:
+    """``det`` with every detection's reported position covariance (the x/y block and its cross terms with
+    z / roll / pitch / yaw, so the 6×6 stays consistent) multiplied by ``factor``: a detector off by a
+    constant factor (``jitterguard eval --variance-scale``)."""
+    if factor == 1.0:
+        return det
+    objects = wire.DETECTED.copy(det.objects)
+    cov = objects[wire.POSE_COV]["v"]
+    for i in range(6):
+        for j in range(6):
+            k = (i < 2) + (j < 2)
+            if k:
+                cov[:, 6 * i + j] *= factor if k == 2 else math.sqrt(factor)
+    return replace(det, objects=objects)
 
 
 def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame, bytes]],
                        classifier: ClassifierConfig | None = None, tracker: TrackerConfig | None = None,
-                       match_distance_m: float = MATCH_DISTANCE_M) -> Records:
+                       match_distance_m: float = MATCH_DISTANCE_M, *, calibration: OnlineCalibration | None = None,
+                       variance_scale: float = 1.0, calibration_model: NoiseModel | None = None,
+                       variance_scale_at: str = "detector") -> Records:
     """TrackerCore → MotionClassifierCore (z_test and velocity_threshold) over (ground truth, detections) pairs.
 
     The detections are the ``DetectedObjects`` payloads that feed the live tracker — the noise model's output as
-    the replay publishes it, or the detector service's — so both ``--input`` modes share everything from here on; the ground truth (world
-    frame) only labels the tracks. ``classifier``'s ``mode`` is overridden per core.
+    the replay publishes it, or the detector service's — so both ``--input`` modes share everything from here on;
+    the ground truth (world frame) only labels the tracks. ``classifier``'s ``mode`` is overridden per core.
+
+    ``calibration``: the online calibration to continue (pooled recordings of one drive share it; it is
+    updated in place); ``variance_scale`` multiplies every reported variance — at the detector's output, so
+    the tracker sees it too (``variance_scale_at="detector"``, :func:`scale_variances`), or only in the
+    ``tracks/{id}`` payloads the classifier receives (``"classifier"``: the classifier's own invariance, with
+    identical tracks); ``calibration_model``: the scales for ``calibration: file``.
     """
+    if variance_scale_at not in VARIANCE_SCALE_AT:
+        raise ValueError(f"variance_scale_at must be one of {VARIANCE_SCALE_AT}, got {variance_scale_at!r}")
+    at_detector = variance_scale if variance_scale_at == "detector" else 1.0
+    at_classifier = variance_scale if variance_scale_at == "classifier" else 1.0
     base = classifier or ClassifierConfig()
     trk = TrackerCore(tracker or default_config(), _id_factory())
     limits = trk.config.limits
-    adapters = [ClassifierAdapter(base.model_copy(update={"mode": m}), limits=limits)
-                for m in ("z_test", "velocity_threshold")]
+    adapter_z = ClassifierAdapter(base.model_copy(update={"mode": "z_test"}), limits=limits,
+                                  calibration_model=calibration_model, calibration=calibration)
+    # the baseline reads only speeds: it needs no calibration
+    adapter_v = ClassifierAdapter(base.model_copy(update={"mode": "velocity_threshold", "calibration": "off"}),
+                                  limits=limits)
     cols: dict[str, list] = {k: [] for k in ("t_s", "seq", "track_id", "label", "z", "speed", "window", "state_z",
-                                             "state_v", "gt_instance", "gt_dynamic", "group", "alpha")}
+                                             "state_v", "gt_instance", "gt_dynamic", "group", "alpha",
+                                             "gt_attribute", "gt_speed", "speed_threshold", "track_group")}
     t0: int | None = None
     for gt, payload in inputs:
         t0 = gt.stamp_ns if t0 is None else t0
-        det = read_detected_objects(payload, limits)
+        det = scale_variances(read_detected_objects(payload, limits), at_detector)
         frame = detection_frame(det)
         try:
             result = trk.step(frame)
         except FrameRejected:
             continue
-        observations = [p for _, p in observation_payloads(det, frame, result)]
-        oz, ov = (_classify(a, observations, tracked_payload(det, frame, result)) for a in adapters)
+        observations = [p for _, p in observation_payloads(scale_variances(det, at_classifier), frame, result)]
+        closing = tracked_payload(det, frame, result)
+        oz, ov = (_classify(a, observations, closing) for a in (adapter_z, adapter_v))
         if oz.decided is None or ov.decided is None:
             continue
         obs, dz, dv = oz.observed, oz.decided, ov.decided
@@ -171,6 +232,11 @@ def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame, bytes]],
             dtype=bool))
         cols["group"].append(np.array(
             [(group_of(int(gt.labels[g])) or "") if g >= 0 else "" for g in gi.tolist()], dtype="U12"))
+        cols["gt_attribute"].append(np.array([gt.attributes[g] if g >= 0 else "" for g in gi.tolist()], dtype="U32"))
+        gspeed = np.hypot(gt.velocities[:, 0], gt.velocities[:, 1]) if gt.num_objects else np.zeros(0)
+        cols["gt_speed"].append(np.where(gi >= 0, gspeed[np.maximum(gi, 0)] if gt.num_objects else 0.0, np.nan))
+        cols["speed_threshold"].append(dv.threshold.astype(np.float64))
+        cols["track_group"].append(np.array([group_of(int(lb)) or "" for lb in obs.labels.tolist()], dtype="U12"))
 
     def cat(k: str, dtype: Any) -> np.ndarray:
         return np.concatenate(cols[k]).astype(dtype) if cols[k] else np.empty(0, dtype=dtype)
@@ -181,7 +247,9 @@ def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame, bytes]],
         window=cat("window", np.int64), state_z=cat("state_z", np.int8), state_v=cat("state_v", np.int8),
         gt_instance=cat("gt_instance", np.int64), gt_dynamic=cat("gt_dynamic", bool), group=cat("group", "U12"),
         alpha=cat("alpha", np.float64), velocity_threshold=float(base.velocity_threshold),
-        min_window=int(base.min_window),
+        min_window=int(base.min_window), gt_attribute=cat("gt_attribute", "U32"), gt_speed=cat("gt_speed", np.float64),
+        speed_threshold=cat("speed_threshold", np.float64), track_group=cat("track_group", "U12"),
+        window_size=int(base.window_size),
     )
 
 
@@ -201,7 +269,7 @@ def concat_records(parts: list[Records], tags: list[str]) -> Records:
     deterministic IDs restart in every run, and two runs' tracks must never merge."""
     if not parts:
         raise ValueError("nothing to pool")
-    if len({(p.velocity_threshold, p.min_window) for p in parts}) != 1:
+    if len({(p.velocity_threshold, p.min_window, p.window_size) for p in parts}) != 1:
         raise ValueError("pooled runs must share the classifier operating point")
     kw: dict[str, Any] = {}
     for k, v in parts[0].__dict__.items():

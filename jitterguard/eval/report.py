@@ -1,9 +1,12 @@
 """Files of an evaluation run: metrics.json, report.md and the figures (the only I/O of the eval package).
 
 Figures: speed vs z per group coloured by ground-truth state (the paper's Fig. 5, where the jitter band shows
-as static points with non-zero speed and moderate z), precision–recall curves of both scores, and the
-false-/missed-dynamic rates as alpha sweeps. With the detector in the loop also its positional calibration
-(the paper's Fig. 3) and per-class detection precision–recall, drawn by the detector's own plotting code.
+as static points with non-zero speed and moderate z) with the tracks matched to no object (ghosts) as a third
+colour, precision–recall curves of both scores, the false-/missed-dynamic rates as alpha sweeps, and the
+variance calibration the classifier ended with (scales per group, line-of-sight axis, range band and track
+age). With the detector in the loop also its positional calibration (the paper's Fig. 3) and per-class
+detection precision–recall, drawn by the detector's own plotting code. Every scored row is drawn: z is clipped
+into the axis range, not dropped.
 """
 
 from __future__ import annotations
@@ -15,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from .metrics import alpha_sweep, average_precision, pr_curve, scored_rows
+from .metrics import alpha_sweep, average_precision, ghost_rows, pr_curve, scored_rows
 from .pipeline import Records
 
 PLOT_GROUPS = ("vehicle", "pedestrian", "bicycle")
@@ -30,11 +33,11 @@ def _plt():  # type: ignore[no-untyped-def]
     return plt
 
 
-def _panels(rec: Records, height: float) -> tuple[Any, Any, list[str]]:
-    """A figure with one panel per group that has scored rows (a scene without cyclists gets no empty bicycle
-    panel); one panel saying so when no group has any."""
+def _panels(rec: Records, height: float, *, with_ghosts: bool = False) -> tuple[Any, Any, list[str]]:
+    """A figure with one panel per group that has scored rows (or, ``with_ghosts``, ghost rows: a scene without
+    cyclists gets no empty bicycle panel); one panel saying so when no group has any."""
     plt = _plt()
-    groups = [g for g in PLOT_GROUPS if scored_rows(rec, g).any()]
+    groups = [g for g in PLOT_GROUPS if scored_rows(rec, g).any() or (with_ghosts and ghost_rows(rec, g).any())]
     fig, axes = plt.subplots(1, max(1, len(groups)), figsize=(5 * max(1, len(groups)), height), squeeze=False)
     if not groups:
         axes[0][0].text(0.5, 0.5, "no scored rows", ha="center", va="center", transform=axes[0][0].transAxes)
@@ -43,18 +46,23 @@ def _panels(rec: Records, height: float) -> tuple[Any, Any, list[str]]:
 
 
 def plot_speed_vs_z(rec: Records, path: Path) -> None:
-    """Per group: tracker speed against z (log), static and dynamic GT in two colours, both cut-offs drawn."""
-    plt, fig, panels = _panels(rec, 4.5)
+    """Per group: tracker speed against z (log), static and dynamic GT and ghost tracks in three colours, both
+    cut-offs drawn (the median over the group's classes where they differ)."""
+    plt, fig, panels = _panels(rec, 4.5, with_ghosts=True)
     for ax, g in panels:
         m = scored_rows(rec, g)
-        z = np.clip(rec.z[m], 1e-2, 1e3)
-        for dyn, colour, name in ((False, "tab:blue", "static (GT)"), (True, "tab:red", "dynamic (GT)")):
-            k = rec.gt_dynamic[m] == dyn
-            ax.scatter(z[k], rec.speed[m][k], s=4, alpha=0.35, c=colour, label=f"{name} n={int(k.sum())}",
+        gh = ghost_rows(rec, g)
+        for mask, colour, name in ((m & ~rec.gt_dynamic, "tab:blue", "static (GT)"),
+                                   (m & rec.gt_dynamic, "tab:red", "dynamic (GT)"),
+                                   (gh, "tab:gray", "ghost (no object)")):
+            z = np.clip(rec.z[mask], 1e-2, 1e3)
+            ax.scatter(z, rec.speed[mask], s=4, alpha=0.35, c=colour, label=f"{name} n={int(mask.sum())}",
                        edgecolors="none")
-        alpha = float(np.median(rec.alpha[m])) if m.any() else 1.96
+        both = m | gh
+        alpha = float(np.median(rec.alpha[both])) if both.any() else 1.96
+        thr = float(np.median(rec.speed_threshold[both])) if both.any() else rec.velocity_threshold
         ax.axvline(alpha, ls="--", c="k", lw=1, label=f"alpha {alpha:g}")
-        ax.axhline(rec.velocity_threshold, ls=":", c="k", lw=1, label=f"{rec.velocity_threshold:g} m/s")
+        ax.axhline(thr, ls=":", c="k", lw=1, label=f"{thr:g} m/s")
         ax.set_xscale("log")
         ax.set_xlim(1e-2, 1e3)  # one z range in every panel, so groups and runs compare at a glance
         ax.set_xlabel("z = max(z_x, z_y)")
@@ -119,6 +127,43 @@ def plot_alpha_sweep(rec: Records, path: Path) -> dict[str, Any]:
     return sweeps
 
 
+def plot_calibration(cal: dict[str, Any] | None, path: Path) -> bool:
+    """The variance scales the online calibration ended with (log scale; 1 = the detector's variances as they
+    are), per group and line-of-sight axis, one bar per range band, established and young tracks side by side,
+    with the blocks behind each. Returns False (nothing written) without a calibration."""
+    if not cal:
+        return False
+    plt = _plt()
+    groups = list(cal["groups"])
+    fig, axes = plt.subplots(1, len(groups), figsize=(4 * len(groups), 4.2), sharey=True)
+    for ax, g in zip(np.atleast_1d(axes), groups):
+        entry = cal["groups"][g]
+        labels, vals, colours, blocks = [], [], [], []
+        for axis, colour in (("along", "tab:orange"), ("across", "tab:green")):
+            a = entry[axis]
+            for key, shade in (("scale", 1.0), ("scale_young", 0.45)):
+                for band, v in a[key].items():
+                    labels.append(f"{axis[:2]} {band}{' y' if key == 'scale_young' else ''}")
+                    vals.append(v)
+                    colours.append((*plt.matplotlib.colors.to_rgb(colour), shade))
+                    blocks.append(a["blocks" if key == "scale" else "blocks_young"][band])
+        x = np.arange(len(vals))
+        ax.bar(x, vals, color=colours)
+        for xi, v, b in zip(x, vals, blocks):
+            ax.text(xi, v, f"{b:.0f}", ha="center", va="bottom", fontsize=6)
+        ax.axhline(1.0, c="k", lw=0.8)
+        ax.set_yscale("log")
+        ax.set_xticks(x)
+        ax.set_xticklabels(labels, rotation=90, fontsize=6)
+        ax.set_title(f"{g}: m {entry['along']['correlation']:.2f}/{entry['across']['correlation']:.2f}, "
+                     f"ν₀ {entry['track_dof']:.0f}", fontsize=8)
+    np.atleast_1d(axes)[0].set_ylabel("true / reported variance (blocks on top)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return True
+
+
 def finite_json(obj: Any) -> Any:
     """``obj`` with every NaN / inf float replaced by None: metrics.json must be strict JSON (an undefined
     AP — no dynamic object in a group — is null, not a non-standard NaN token)."""
@@ -180,6 +225,42 @@ def _input_desc(run: dict[str, Any]) -> str:
     return f"detector weights {w}, preset `{det['preset']}`"
 
 
+def _ci(m: dict[str, Any], key: str) -> str:
+    ci = (m.get("ci90") or {}).get(key)
+    return f"{_fmt(m.get(key))}" + (f" [{ci[0]:.3f}, {ci[1]:.3f}]" if ci else "")
+
+
+def planner_lines(metrics: dict[str, Any]) -> list[str]:
+    """report.md's sections on what a planner sees: ghosts, matched operating points, attributes, full windows."""
+    lines = ["", "## Ghost tracks (matched to no object: static truth)", "",
+             "| track group | rows | tracks | false dyn z | false dyn speed |", "|---|---|---|---|---|"]
+    for g, m in metrics.get("ghost", {}).items():
+        lines.append(f"| {g} | {m['n']} | {m['n_tracks']} | {_ci(m, 'false_dynamic_z')} | "
+                     f"{_ci(m, 'false_dynamic_speed')} |")
+    lines += ["", "## At equal false alarms", "",
+              "Each rule's missed-dynamic rate at the other rule's false-dynamic rate (z / alpha and speed / class "
+              "threshold each swept over one factor).", "",
+              "| group | FD speed | MD z at FD speed | MD speed | FD z | MD speed at FD z | MD z |",
+              "|---|---|---|---|---|---|---|"]
+    for g, m in metrics.get("matched", {}).items():
+        lines.append(f"| {g} | {_fmt(m['false_dynamic_speed'])} | {_fmt(m['missed_dynamic_z_at_speed_false_dynamic'])}"
+                     f" | {_fmt(m['missed_dynamic_speed'])} | {_fmt(m['false_dynamic_z'])} | "
+                     f"{_fmt(m['missed_dynamic_speed_at_z_false_dynamic'])} | {_fmt(m['missed_dynamic_z'])} |")
+    lines += ["", "## By ground-truth attribute (90 % intervals over tracks)", "",
+              "| attribute | rows | tracks | false dyn z | false dyn speed | missed dyn z | missed dyn speed |",
+              "|---|---|---|---|---|---|---|"]
+    for attr, m in metrics.get("by_attribute", {}).items():
+        lines.append(f"| {attr} | {m['n']} | {m['n_tracks']} | {_ci(m, 'false_dynamic_z')} | "
+                     f"{_ci(m, 'false_dynamic_speed')} | {_ci(m, 'missed_dynamic_z')} | {_ci(m, 'missed_dynamic_speed')} |")
+    lines += ["", "## Rows whose window has filled", "",
+              "| group | n static | n dynamic | false dyn z | false dyn speed | missed dyn z | missed dyn speed |",
+              "|---|---|---|---|---|---|---|"]
+    for g, m in metrics.get("full_window", {}).items():
+        lines.append(f"| {g} | {m['n_static']} | {m['n_dynamic']} | {_ci(m, 'false_dynamic_z')} | "
+                     f"{_ci(m, 'false_dynamic_speed')} | {_ci(m, 'missed_dynamic_z')} | {_ci(m, 'missed_dynamic_speed')} |")
+    return lines
+
+
 def write_outputs(out: Path, rec: Records, metrics: dict[str, Any],
                   detection_report: dict[str, Any] | None = None) -> dict[str, Any]:
     """Write figures, metrics.json (with the alpha sweep added) and report.md into ``out``; with the detector
@@ -188,6 +269,7 @@ def write_outputs(out: Path, rec: Records, metrics: dict[str, Any],
     plot_speed_vs_z(rec, out / "speed_vs_z.png")
     plot_pr(rec, out / "pr_curves.png")
     metrics["alpha_sweep"] = plot_alpha_sweep(rec, out / "alpha_sweep.png")
+    has_cal = plot_calibration(metrics.get("calibration"), out / "calibration.png")
     det_figures = plot_detection(detection_report, out) if detection_report is not None else []
     metrics = finite_json(metrics)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2, sort_keys=True, allow_nan=False) + "\n")
@@ -197,9 +279,13 @@ def write_outputs(out: Path, rec: Records, metrics: dict[str, Any],
         "",
         f"Input `{run['input']}`, {_input_desc(run)}, seed {run['seed']}, {run['frames']} frames, "
         f"{run['rows']} (frame, track) rows, {run['matched_rows']} matched to ground truth "
-        f"(≤ {run['match_distance_m']} m). Operating points: z-test alpha {run['alpha']}, "
-        f"velocity threshold {run['velocity_threshold']} m/s. Scored rows: matched, z-test window ≥ "
-        f"{run['min_window']}.",
+        f"(≤ {run['match_distance_m']} m). Operating points: z-test alpha {run['alpha']} "
+        f"(effective_n `{run.get('effective_n')}`, calibration `{run.get('calibration')}`, H0 speed ≤ "
+        f"{run.get('min_speed_mps')} m/s), speed threshold {run['velocity_threshold']} m/s, per class "
+        f"{run.get('velocity_threshold_per_class')}"
+        + (f", sustain {run['velocity_sustain_s_per_class']} s" if run.get("velocity_sustain_s_per_class") else "")
+        + (f"; every reported variance ×{run['variance_scale']:g}" if run.get("variance_scale", 1.0) != 1.0 else "")
+        + f". Scored rows: matched, z-test window ≥ {run['min_window']}. Brackets: 90 % intervals over tracks.",
         "",
         "| group | n static | n dynamic | AP z | AP speed | false dyn z | false dyn speed | missed dyn z "
         "| missed dyn speed | first correct z [s] | first correct speed [s] |",
@@ -207,15 +293,18 @@ def write_outputs(out: Path, rec: Records, metrics: dict[str, Any],
     ]
     for g, m in metrics["motion"].items():
         lines.append(
-            f"| {g} | {m['n_static']} | {m['n_dynamic']} | {_fmt(m['ap_z'])} | {_fmt(m['ap_speed'])} | "
-            f"{_fmt(m['false_dynamic_z'])} | {_fmt(m['false_dynamic_speed'])} | {_fmt(m['missed_dynamic_z'])} | "
-            f"{_fmt(m['missed_dynamic_speed'])} | {_fmt(m['time_to_first_correct_s_median_z'])} | "
+            f"| {g} | {m['n_static']} | {m['n_dynamic']} | {_ci(m, 'ap_z')} | {_ci(m, 'ap_speed')} | "
+            f"{_ci(m, 'false_dynamic_z')} | {_ci(m, 'false_dynamic_speed')} | {_ci(m, 'missed_dynamic_z')} | "
+            f"{_ci(m, 'missed_dynamic_speed')} | {_fmt(m['time_to_first_correct_s_median_z'])} | "
             f"{_fmt(m['time_to_first_correct_s_median_speed'])} |")
+    lines += planner_lines(metrics)
     if metrics.get("alpha_from_labels"):
-        lines += ["", "Alpha from labels (missed dynamic ≤ 5 %): "
+        lines += ["", "Alpha from labels (missed dynamic ≤ 5 %; a diagnostic, never used at run time): "
                   + ", ".join(f"{g} {_fmt(a)}" for g, a in metrics["alpha_from_labels"].items())]
     lines += ["", "![speed vs z](speed_vs_z.png)", "", "![PR curves](pr_curves.png)", "",
               "![alpha sweep](alpha_sweep.png)", ""]
+    if has_cal:
+        lines += ["![variance calibration](calibration.png)", ""]
     if metrics.get("detection") is not None:
         lines += detection_lines(metrics["detection"], det_figures) + [""]
     (out / "report.md").write_text("\n".join(lines))

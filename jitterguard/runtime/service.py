@@ -275,9 +275,15 @@ class Service:
             last_seq=self.last_seq,
             uptime_s=time.monotonic() - self.started_at,
             counters=self.counters.snapshot(),
+            gauges=self.gauges(),
             health=health.state,
             health_reason=health.reason[:500],
         )
+
+    def gauges(self) -> dict[str, float]:
+        """Current values for the heartbeat besides the counters (none by default; called off the worker, so
+        a service returns what its worker last stored)."""
+        return {}
 
     def _heartbeat_loop(self) -> None:
         while not self.stop_event.wait(HEARTBEAT_PERIOD_S):

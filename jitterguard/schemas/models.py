@@ -273,7 +273,8 @@ class TrackedObjects(Message):
     The tracker publishes one ``tracks/{id}`` per ID in ``observed_track_ids`` before this message, so the
     classifier knows which stragglers to wait for. The classifier's ``objects`` output leaves it empty.
     ``ego_pose`` is the sensor's pose in the world frame at ``header.stamp``, copied from the ``detections``
-    the frame came from (identity where unknown): the line of sight to each object, and the ego frame to draw.
+    the frame came from (identity where unknown): the line of sight to each object (the origin of the
+    classifier's variance calibration), and the ego frame to draw.
     """
 
     header: Header
@@ -307,7 +308,8 @@ class GroundTruthObjects(Message):
 
 MotionLabel = Literal["static", "dynamic", "undecided"]
 TestMode = Literal["z_test", "chi2", "velocity_threshold"]
-EffectiveN = Literal["cluster", "independent"]
+EffectiveN = Literal["cluster", "independent", "measured"]
+CalibrationMode = Literal["off", "online", "file"]
 
 
 class MotionState(Message):
@@ -329,8 +331,49 @@ class MotionState(Message):
     mean_y: float = 0.0
 
 
+AUTHORS_ALPHA = {
+    "car": 2.58,
+    "truck": 2.58,
+    "bus": 2.58,
+    "trailer": 1.64,
+    "motorcycle": 1.96,
+    "bicycle": 1.64,
+    "pedestrian": 1.28,
+    "unknown": 1.96,
+}
+"""The per-class alpha the paper's authors deployed (DESIGN.md): the default (and the ``authors`` preset file)."""
+
+
 def _default_alpha_per_class() -> dict[str, float]:
+    return dict(AUTHORS_ALPHA)
+
+
+AUTOWARE_SPEED_THRESHOLDS = {"pedestrian": 0.28, "bicycle": 0.28, "motorcycle": 0.28, "unknown": 0.28}
+"""Autoware's static-obstacle-avoidance ``th_moving_speed`` for the classes below 1.0 m/s (vehicles: 1.0,
+``velocity_threshold``'s default)."""
+
+
+def _default_speed_thresholds() -> dict[str, float]:
+    return dict(AUTOWARE_SPEED_THRESHOLDS)
+
+
+def _default_sustain() -> dict[str, float]:
     return {}
+
+
+def _default_bands() -> list[float]:
+    return [20.0, 40.0]
+
+
+def _check_class_names(v: dict[str, float]) -> dict[str, float]:
+    unknown = sorted(set(v) - set(LABEL_BY_NAME))
+    if unknown:
+        raise ValueError(f"unknown class name(s) {unknown}; expected some of {sorted(LABEL_BY_NAME)}")
+    return v
+
+
+MAX_WINDOW = 64
+"""Largest ``window_size`` (6.4 s at 10 Hz; the paper uses 10)."""
 
 
 class ClassifierConfig(Message):
@@ -340,30 +383,74 @@ class ClassifierConfig(Message):
     alpha_default: Annotated[float, Field(gt=0.0, le=100.0)] = 1.96
     alpha_per_class: dict[str, Annotated[float, Field(gt=0.0, le=100.0)]] = Field(
         default_factory=_default_alpha_per_class,
-        description="per-class alpha overrides, keyed by lowercase Autoware class name (car, truck, ...)",
+        description="per-class alpha overrides, keyed by lowercase Autoware class name (car, truck, ...); default: "
+        "the authors' deployed values (vehicles 2.58, pedestrian 1.28, ...)",
     )
-    window_size: Annotated[int, Field(ge=2, le=1000)] = 10
-    min_window: Annotated[int, Field(ge=2, le=1000)] = 2
+    window_size: Annotated[int, Field(ge=2, le=MAX_WINDOW, description=(
+        "observations per track window (the calibrated test and the online calibration hold W × W matrices per "
+        "window: bounded so that a config write cannot exhaust memory)"))] = 10
+    min_window: Annotated[int, Field(ge=2, le=MAX_WINDOW)] = 2
     variance_floor: Annotated[float, Field(gt=0.0, le=1e6)] = 1e-4
-    effective_n: EffectiveN = "cluster"
+    effective_n: EffectiveN = Field(
+        "measured", description="cluster: each half is one sample (the paper); independent: real counts; "
+        "measured: the variance of the half-mean difference under the calibrated serial correlation")
+    calibration: CalibrationMode = Field(
+        "online", description="off: reported variances as they are; online: learnt from the tracks, without "
+        "labels (docs/calibration.md); file: the scales in calibration_file (jitterguard calibrate)")
+    calibration_file: Annotated[str, StringConstraints(min_length=1, max_length=4096)] | None = Field(
+        None, description="YAML written by `jitterguard calibrate`, read by the classifier when calibration is "
+        "file")
+    calibration_range_bands_m: Annotated[list[Annotated[float, Field(gt=0.0, le=1000.0)]],
+                                         Field(max_length=8)] = Field(
+        default_factory=_default_bands, description="range bands of the calibration split at these distances, m "
+        "(kept sorted, repeats dropped)")
+    calibration_prior_blocks: Annotated[float, Field(ge=0.0, le=1e6)] = Field(
+        20.0, description="pseudo-blocks of the calibration prior at each level (class group, range band)")
+    calibration_half_life_s: Annotated[float, Field(gt=0.0, le=1e7)] = Field(
+        600.0, description="data time after which a calibration block counts half")
+    min_speed_mps: Annotated[float, Field(ge=0.0, le=10.0)] = Field(
+        0.1, description="the test's null hypothesis is |v| ≤ this, m/s: slower drifts (annotation or box wander) "
+        "are not motion (0: the paper's H0, v = 0)")
     velocity_threshold: Annotated[float, Field(ge=0.0, le=100.0)] = 1.0
+    velocity_threshold_per_class: dict[str, Annotated[float, Field(ge=0.0, le=100.0)]] = Field(
+        default_factory=_default_speed_thresholds,
+        description="per-class speed thresholds of the baseline, m/s (default: Autoware's 0.28 for vulnerable "
+        "road users and unknown)")
+    velocity_sustain_s_per_class: dict[str, Annotated[float, Field(ge=0.0, le=60.0)]] = Field(
+        default_factory=_default_sustain,
+        description="per-class time the speed must stay above the threshold before the baseline says dynamic, s "
+        "(Autoware's th_moving_time: the `autoware-sustain` preset)")
 
-    @field_validator("alpha_per_class")
+    @field_validator("alpha_per_class", "velocity_threshold_per_class", "velocity_sustain_s_per_class")
     @classmethod
     def _known_classes(cls, v: dict[str, float]) -> dict[str, float]:
-        unknown = sorted(set(v) - set(LABEL_BY_NAME))
-        if unknown:
-            raise ValueError(f"unknown class name(s) {unknown}; expected some of {sorted(LABEL_BY_NAME)}")
-        return v
+        return _check_class_names(v)
+
+    @field_validator("calibration_range_bands_m")
+    @classmethod
+    def _increasing(cls, v: list[float]) -> list[float]:
+        """Band edges are a set of distances: kept sorted and without repeats (any order is accepted)."""
+        return sorted(set(v))
 
     @model_validator(mode="after")
     def _window_order(self) -> "ClassifierConfig":
         if self.min_window > self.window_size:
             raise ValueError(f"min_window ({self.min_window}) must not exceed window_size ({self.window_size})")
+        if self.calibration == "file" and not self.calibration_file:
+            raise ValueError("calibration 'file' needs calibration_file")
         return self
 
     def alpha_for(self, label: int) -> float:
         return self.alpha_per_class.get(LABEL_NAMES.get(label, "unknown"), self.alpha_default)
+
+    def speed_threshold_for(self, label: int) -> float:
+        """The baseline's speed threshold for an Autoware label, m/s."""
+        return self.velocity_threshold_per_class.get(LABEL_NAMES.get(label, "unknown"), self.velocity_threshold)
+
+    def sustain_for(self, label: int) -> float:
+        """How long the baseline's speed must exceed the threshold before it says dynamic, s (0: at once)."""
+        return self.velocity_sustain_s_per_class.get(LABEL_NAMES.get(label, "unknown"), 0.0)
+
 
 
 class ConfigReply(Message):
@@ -397,17 +484,62 @@ class TrackStateEntry(_Strict):
     last_seq: NonNegativeInt
 
 
+_Scale = Annotated[float, Field(ge=0.0, le=1e6)]
+
+
+class CalibrationAxis(_Strict):
+    """The calibration of one class group on one line-of-sight axis (docs/calibration.md)."""
+
+    scale: dict[str, _Scale] = Field(description="true / reported variance per range band (e.g. '0-20'), "
+                                     "established tracks")
+    scale_young: dict[str, _Scale] = Field(description="the same for a track's first window_size observations")
+    blocks: dict[str, Annotated[float, Field(ge=0.0)]] = Field(description="evidence per band: blocks pooled "
+                                                                "(after forgetting)")
+    blocks_young: dict[str, Annotated[float, Field(ge=0.0)]]
+    correlation: Annotated[float, Field(ge=0.0, le=1.0)] = Field(description="serially correlated share m")
+    correlation_time_s: Annotated[float, Field(gt=0.0)]
+    variance_factor: Annotated[float, Field(ge=0.0)] = Field(
+        description="Var(half-mean difference) of a full window under the serial correlation / that of "
+        "independent observations (1: none; window/2: the paper's cluster assumption)")
+
+
+class CalibrationGroup(_Strict):
+    track_dof: Annotated[float, Field(gt=0.0)] = Field(
+        description="ν₀: prior degrees of freedom of a track's own scale (smaller: tracks differ more)")
+    along: CalibrationAxis
+    across: CalibrationAxis
+
+
+class CalibrationState(_Strict):
+    """What the classifier's variance calibration uses now (``GET /v1/state``'s ``calibration``)."""
+
+    mode: CalibrationMode
+    effective_n: EffectiveN
+    range_bands_m: list[float]
+    frame_interval_s: Annotated[float, Field(gt=0.0)]
+    window: Annotated[int, Field(ge=1)]
+    groups: dict[str, CalibrationGroup]
+    counts: dict[str, int] = Field(default_factory=dict, description="blocks pooled, too fast to pool, "
+                                   "down-weighted as outliers")
+    effective_blocks: Annotated[float, Field(ge=0.0)] = 0.0
+
+
 class ClassifierStateSnapshot(Message):
-    """The live per-track state of the classifier after its latest frame."""
+    """The live per-track state of the classifier after its latest frame, and its variance calibration."""
 
     header: Header
     config: ClassifierConfig
     tracks: list[TrackStateEntry] = Field(default_factory=list)
     counters: dict[str, int] = Field(default_factory=dict)
+    calibration: CalibrationState | None = None
 
 
 class Heartbeat(Message):
-    """Published every second by every service on ``jg/{ns}/heartbeat/{service}``: health beyond liveliness."""
+    """Published every second by every service on ``jg/{ns}/heartbeat/{service}``: health beyond liveliness.
+
+    ``counters`` are integer event counts; ``gauges`` are current values that are not counts (the classifier:
+    its variance scales and correlation factors, e.g. ``calibration.vehicle.along.scale.0-20``).
+    """
 
     service: str
     pid: NonNegativeInt
@@ -415,6 +547,7 @@ class Heartbeat(Message):
     last_seq: int = -1
     uptime_s: Annotated[float, Field(ge=0.0)] = 0.0
     counters: dict[str, int] = Field(default_factory=dict)
+    gauges: dict[str, float] = Field(default_factory=dict)
     health: Literal["ok", "failing", "stalled"] = Field(
         "ok", description="whether the service turns its input into output (jitterguard.runtime.progress)")
     health_reason: Annotated[str, Field(max_length=500)] = ""

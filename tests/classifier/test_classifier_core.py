@@ -1,4 +1,8 @@
-"""Window bookkeeping of the classifier core: eviction, resizing, presets, the baseline, world-frame covariance."""
+"""Window bookkeeping of the classifier core: eviction, resizing, presets, the baseline, world-frame covariance.
+
+These tests pin the paper's statistic (``PAPER``: reported variances as they are, H0 v = 0) so their expected
+z values are the paper's equations; the calibrated statistic has its own tests (test_classifier_calibration.py).
+"""
 
 from __future__ import annotations
 
@@ -8,24 +12,30 @@ import pytest
 from jitterguard.geometry import rotate_cov2
 from jitterguard.schemas.models import ClassifierConfig, Label
 from jitterguard.services.classifier.config import PRESETS
+from jitterguard.services.classifier.core import DYNAMIC, STATIC, UNDECIDED, MotionClassifierCore, Observations
 
 AUTHORS_ALPHA = {"car": 2.58, "truck": 2.58, "bus": 2.58, "trailer": 1.64, "motorcycle": 1.96, "bicycle": 1.64,
                  "pedestrian": 1.28, "unknown": 1.96}
 """The authors' deployed per-class alpha as DESIGN.md lists them (spelled out: the preset file must hold these)."""
-from jitterguard.services.classifier.core import DYNAMIC, STATIC, UNDECIDED, MotionClassifierCore, Observations
 
 
-def obs(ids, x, y=None, label=Label.CAR, var=0.01, speed=None, seq=0):
+def obs(ids, x, y=None, label=Label.CAR, var=0.01, speed=None, seq=0, stamp_ns=0):
     n = len(ids)
     return Observations.from_lists(ids, np.full(n, int(label)), x, np.zeros(n) if y is None else y,
-                                   np.full(n, var), np.zeros(n), np.full(n, var), speed, seq=seq)
+                                   np.full(n, var), np.zeros(n), np.full(n, var), speed, seq=seq, stamp_ns=stamp_ns)
 
 
 A, B, C = (f"{i:032x}" for i in (10, 11, 12))
+PAPER = {"calibration": "off", "min_speed_mps": 0.0, "alpha_per_class": {}}
+
+
+def paper(**kw) -> ClassifierConfig:
+    """The paper's statistic with the given fields."""
+    return ClassifierConfig(**{**PAPER, "effective_n": "cluster", **kw})
 
 
 def test_split_uses_floor_older_and_ceil_newer():
-    core = MotionClassifierCore(ClassifierConfig(effective_n="independent", variance_floor=1e-9))
+    core = MotionClassifierCore(paper(effective_n="independent", variance_floor=1e-9))
     xs = [0.0, 0.0, 1.0]  # N=3: older = [0], newer = [0, 1] -> diff 0.5
     for x in xs:
         dec = core.update(obs([A], [x], var=1.0))
@@ -33,7 +43,7 @@ def test_split_uses_floor_older_and_ceil_newer():
 
 
 def test_sliding_window_forgets_old_observations():
-    core = MotionClassifierCore(ClassifierConfig(window_size=4))
+    core = MotionClassifierCore(paper(window_size=4))
     for t in range(4):
         core.update(obs([A], [t * 2.0]))  # moving
     assert core.last_decisions().state[0] == DYNAMIC
@@ -68,15 +78,15 @@ def test_capacity_grows_and_rows_are_reused():
 
 
 def test_resizing_the_window_keeps_newest_in_order():
-    core = MotionClassifierCore(ClassifierConfig(window_size=10, effective_n="independent", variance_floor=1e-9))
+    core = MotionClassifierCore(paper(window_size=10, effective_n="independent", variance_floor=1e-9))
     for x in [0, 0, 0, 0, 0, 0, 0, 1, 1, 1]:
         core.update(obs([A], [float(x)], var=1.0))
-    core.configure(ClassifierConfig(window_size=4, effective_n="independent", variance_floor=1e-9))
+    core.configure(paper(window_size=4, effective_n="independent", variance_floor=1e-9))
     d = core.last_decisions()
     assert d.window_length[0] == 4
     dec = core.update(obs([A], [1.0], var=1.0))  # window now [1, 1, 1, 1]
     assert dec.z_x[0] == pytest.approx(0.0)
-    core.configure(ClassifierConfig(window_size=6, effective_n="independent", variance_floor=1e-9))
+    core.configure(paper(window_size=6, effective_n="independent", variance_floor=1e-9))
     dec = core.update(obs([A], [3.0], var=1.0))  # [1,1,1,1,3] -> older [1,1], newer [1,1,3]
     assert dec.window_length[0] == 5
     assert dec.z_x[0] == pytest.approx((5 / 3 - 1) / np.sqrt(1 / 2 + 1 / 3))
@@ -84,7 +94,8 @@ def test_resizing_the_window_keeps_newest_in_order():
 
 def test_per_class_alpha_and_authors_preset():
     assert PRESETS["authors"] == {"alpha_default": 1.96, "alpha_per_class": AUTHORS_ALPHA}
-    cfg = ClassifierConfig(**PRESETS["authors"])
+    assert ClassifierConfig().alpha_per_class == AUTHORS_ALPHA  # also the default
+    cfg = paper(**PRESETS["authors"])
     core = MotionClassifierCore(cfg)
     ped, car = f"{1:032x}", f"{2:032x}"
     # both have z = 2.0: above the pedestrian's 1.28, below the car's 2.58
@@ -105,6 +116,30 @@ def test_velocity_threshold_baseline_uses_tracker_speed_only():
     assert list(dec.state) == [STATIC, DYNAMIC]
 
 
+def test_baseline_thresholds_are_autowares_per_class():
+    """Vehicles above 1.0 m/s, pedestrians (and bicycles, motorcycles, unknown) above 0.28 m/s."""
+    core = MotionClassifierCore(ClassifierConfig(mode="velocity_threshold"))
+    ids = [A, B, C]
+    dec = core.update(Observations.from_lists(ids, [int(Label.CAR), int(Label.PEDESTRIAN), int(Label.UNKNOWN)],
+                                              [0, 0, 0], [0, 0, 0], [0.01] * 3, [0] * 3, [0.01] * 3,
+                                              speed=[0.5, 0.5, 0.2]))
+    assert list(dec.state) == [STATIC, DYNAMIC, STATIC]
+    assert list(dec.threshold) == [1.0, 0.28, 0.28]
+
+
+def test_baseline_sustain_times_hold_the_speed_before_dynamic():
+    """With Autoware's sustain times a car must stay above 1 m/s for 2 s; dropping below restarts the clock."""
+    core = MotionClassifierCore(ClassifierConfig(mode="velocity_threshold", **PRESETS["autoware-sustain"]))
+    states = []
+    for k, v in enumerate([2.0] * 15 + [0.5] + [2.0] * 25):  # 10 Hz
+        dec = core.update(obs([A], [0.0], speed=[v], stamp_ns=k * 100_000_000))
+        states.append(int(dec.state[0]))
+    assert states[:15] == [STATIC] * 15  # 1.4 s above: not yet
+    assert states[15] == STATIC  # dropped below
+    assert states[16:36] == [STATIC] * 20 and states[36] == DYNAMIC  # 2.0 s after the drop
+
+
+
 def test_world_frame_rotation_of_covariance_matters():
     """A car parked along the world x-axis seen by a sensor rotated 90°: the detector is precise along
     its beam (sensor x) and loose across it. Rotated correctly, the loose axis is world x and the jitter
@@ -115,8 +150,8 @@ def test_world_frame_rotation_of_covariance_matters():
     cxx, cxy, cyy = rotate_cov2(sl**2, 0.0, sa**2, ego_yaw)
     assert cxx == pytest.approx(sa**2) and cyy == pytest.approx(sl**2)
     xs = np.concatenate([rng.normal(0, sa, 5) - 0.4, rng.normal(0, sa, 5) + 0.4])  # jitter along world x
-    right = MotionClassifierCore(ClassifierConfig())
-    wrong = MotionClassifierCore(ClassifierConfig())
+    right = MotionClassifierCore(paper())
+    wrong = MotionClassifierCore(paper())
     for x in xs:
         d_right = right.update(Observations.from_lists([A], [1], [x], [0.0], [cxx], [cxy], [cyy]))
         d_wrong = wrong.update(Observations.from_lists([A], [1], [x], [0.0], [sl**2], [0.0], [sa**2]))

@@ -120,7 +120,8 @@ def test_alpha_change_through_queryable_flips_a_borderline_object(service, clien
     m = next(iter(got["motion"].values()))
     z = max(m.z_x, m.z_y)
     assert m.state == "dynamic" and z > 1.96, m
-    reply = _query(client_session, keys.classifier_config(NS), encode(ClassifierConfig(alpha_default=z + 5.0)))
+    reply = _query(client_session, keys.classifier_config(NS),
+                   encode(ClassifierConfig(alpha_default=z + 5.0, alpha_per_class={})))
     in_force = decode(ConfigReply, reply.ok.payload.to_bytes())
     assert in_force.ok and in_force.config.alpha_default == pytest.approx(z + 5.0)
     _send(client_session, frames[10])
@@ -178,6 +179,45 @@ def test_restarted_tracker_leaves_no_stale_windows(service, client_session):
     assert service.counters.get("frames.upstream_restarts") == 1
     new_ids = {o.track.object_id for o in second[0].observations}
     assert set(service.run_on_worker(service.core.track_ids)) == new_ids
+
+
+def test_calibration_is_in_the_state_and_the_heartbeat_and_a_file_can_be_put_in_force(
+        service, client_session, tmp_path):
+    """The calibration the frames were decided with shows in the state queryable and as heartbeat gauges; a
+    config write naming a calibration file loads it (the scales then in force are the file's); a bad file is
+    refused with the entry named and nothing changes."""
+    from jitterguard.schemas.models import Heartbeat
+    from jitterguard.services.classifier.calibration import NoiseModel
+    from jitterguard.services.classifier.calibration_file import write_calibration
+
+    beats = []
+    client_session.declare_subscriber(keys.heartbeat(NS, "classifier"),
+                                      lambda s: beats.append(decode(Heartbeat, s.payload.to_bytes())))
+    got = _collect(client_session)
+    _wait_connected(client_session)
+    frames = list(generate(TrackScenario(n_static=3, n_moving=1, n_starting=0, seed=9), 6))
+    _send_paced(client_session, frames[:4], got)
+    snap = decode(ClassifierStateSnapshot, _query(client_session, keys.classifier_state(NS)).ok.payload.to_bytes())
+    assert snap.calibration is not None and snap.calibration.mode == "online"
+    assert set(snap.calibration.groups) == {"vehicle", "pedestrian", "cycle", "unknown"}
+    assert wait_until(lambda: beats and "calibration.vehicle.along.scale.0-20" in beats[-1].gauges, timeout=10)
+    model = NoiseModel.prior()
+    model = NoiseModel(model.band_edges_m, model.scale * 7.0, model.correlation, model.tau_s, model.blocks)
+    good = tmp_path / "cal.yaml"
+    write_calibration(good, model, window=10)
+    cfg = ClassifierConfig(calibration="file", calibration_file=str(good))
+    reply = _query(client_session, keys.classifier_config(NS), encode(cfg))
+    assert decode(ConfigReply, reply.ok.payload.to_bytes()).config.calibration == "file"
+    _send_paced(client_session, frames[4:], got)
+    snap = decode(ClassifierStateSnapshot, _query(client_session, keys.classifier_state(NS)).ok.payload.to_bytes())
+    assert snap.calibration.mode == "file" and snap.calibration.groups["vehicle"].along.scale["0-20"] == 7.0
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("format: jitterguard-calibration/1\ngroups: {vehicle: {along: {scale: {0-20: -3}}}}\n")
+    reply = _query(client_session, keys.classifier_config(NS),
+                   encode(ClassifierConfig(calibration="file", calibration_file=str(bad))))
+    err = decode(ConfigReply, reply.err.payload.to_bytes())
+    assert not err.ok and "calibration_file" in err.error and "groups.vehicle.along.scale.0-20" in err.error
+    assert service.core.config.calibration_file == str(good)
 
 
 def test_state_map_validates_as_the_snapshot_model(service, client_session):

@@ -1,4 +1,8 @@
-"""The z-test (eq. 1, 2) and the χ² variant against independent computations and their statistical promises."""
+"""The z-test (eq. 1, 2) and the χ² variant against independent computations and their statistical promises.
+
+The paper's statistic: every config here takes the reported variances as they are (``calibration: off``) with
+H0 v = 0 (``PAPER``); the calibrated statistic is tested in test_classifier_calibration.py.
+"""
 
 from __future__ import annotations
 
@@ -11,6 +15,13 @@ from scipy import stats
 from jitterguard.schemas.models import ClassifierConfig
 from jitterguard.services.classifier.core import DYNAMIC, STATIC, UNDECIDED, MotionClassifierCore, Observations
 from jitterguard.services.classifier.statistics import chi2_2_threshold, two_sided_p
+
+
+PAPER = {"calibration": "off", "min_speed_mps": 0.0, "effective_n": "cluster", "alpha_per_class": {}}
+
+
+def paper(**kw) -> ClassifierConfig:
+    return ClassifierConfig(**{**PAPER, **kw})
 
 
 def _ids(n: int) -> list[str]:
@@ -43,7 +54,7 @@ def reference_z(x: np.ndarray, var: np.ndarray, independent: bool, floor: float 
 def test_z_matches_reference(independent, n_frames):
     rng = np.random.default_rng(n_frames)
     window = 10
-    core = MotionClassifierCore(ClassifierConfig(window_size=window, effective_n="independent" if independent else "cluster"))
+    core = MotionClassifierCore(paper(window_size=window, effective_n="independent" if independent else "cluster"))
     x = rng.normal(0, 0.3, n_frames) + np.linspace(0, 0.5, n_frames)
     y = rng.normal(0, 0.3, n_frames)
     vx = rng.uniform(0.01, 0.2, n_frames)
@@ -57,7 +68,7 @@ def test_z_matches_reference(independent, n_frames):
 
 
 def test_variance_floor_applies_to_each_half():
-    core = MotionClassifierCore(ClassifierConfig(variance_floor=0.01))
+    core = MotionClassifierCore(paper(variance_floor=0.01))
     x = np.array([0.0, 0.0, 0.1, 0.1])
     dec = feed(core, _ids(1), x[:, None], np.zeros((4, 1)), np.full((4, 1), 1e-9), np.full((4, 1), 1e-9))
     assert dec.z_x[0] == pytest.approx(0.1 / np.sqrt(0.02))
@@ -72,7 +83,7 @@ def test_alpha_threshold_matches_normal_quantile():
 
 def test_chi2_statistic_matches_direct_matrix_computation():
     rng = np.random.default_rng(3)
-    core = MotionClassifierCore(ClassifierConfig(mode="chi2", effective_n="independent"))
+    core = MotionClassifierCore(paper(mode="chi2", effective_n="independent"))
     n = 8
     x, y = rng.normal(0, 0.2, n), rng.normal(0, 0.2, n)
     cxx, cyy = rng.uniform(0.02, 0.05, n), rng.uniform(0.02, 0.05, n)
@@ -88,7 +99,7 @@ def test_chi2_statistic_matches_direct_matrix_computation():
 def _static_noise_rates(mode: str, n_tracks=4000, frames=10, seed=11):
     """Parked objects whose detections are drawn from exactly the covariance they report."""
     rng = np.random.default_rng(seed)
-    core = MotionClassifierCore(ClassifierConfig(mode=mode, effective_n="independent"), capacity=n_tracks)
+    core = MotionClassifierCore(paper(mode=mode, effective_n="independent"), capacity=n_tracks)
     sx = rng.uniform(0.05, 0.4, n_tracks)
     sy = rng.uniform(0.05, 0.4, n_tracks)
     xs = rng.normal(0, 1, (frames, n_tracks)) * sx + rng.uniform(-50, 50, n_tracks)
@@ -117,7 +128,7 @@ def test_cluster_mode_is_more_conservative_than_independent():
     v = np.full((10, 50), 0.01)
     z = {}
     for mode in ("cluster", "independent"):
-        core = MotionClassifierCore(ClassifierConfig(effective_n=mode))
+        core = MotionClassifierCore(paper(effective_n=mode))
         z[mode] = feed(core, _ids(50), xs, np.zeros((10, 50)), v, v).z_x
     # equal halves of 5 and equal variances: sqrt(v/5 + v/5) vs sqrt(v + v) -> ratio sqrt(5)
     np.testing.assert_allclose(z["independent"], z["cluster"] * np.sqrt(5.0), rtol=1e-9)
@@ -139,7 +150,7 @@ def test_translation_and_arrival_order_invariance(seed, shift, mode):
     cxx = rng.uniform(0.01, 0.1, (frames, n))
     cyy = rng.uniform(0.01, 0.1, (frames, n))
     cxy = rng.uniform(-0.005, 0.005, (frames, n))
-    cfg = ClassifierConfig(mode=mode)
+    cfg = paper(mode=mode)
     base = feed(MotionClassifierCore(cfg), ids, xs, ys, cxx, cyy, cxy)
     moved = feed(MotionClassifierCore(cfg), ids, xs + shift[0], ys + shift[1], cxx, cyy, cxy)
     np.testing.assert_allclose(moved.z_x, base.z_x, rtol=1e-6, atol=1e-6)
@@ -170,8 +181,8 @@ def test_chi2_is_rotation_invariant_max_z_is_not():
     rcxx, rcxy, rcyy = rotate_cov2(cxx, cxy, cyy, th)
     out = {}
     for mode in ("z_test", "chi2"):
-        a = feed(MotionClassifierCore(ClassifierConfig(mode=mode)), _ids(n), xs, ys, cxx, cyy, cxy)
-        b = feed(MotionClassifierCore(ClassifierConfig(mode=mode)), _ids(n), rx, ry, rcxx, rcyy, rcxy)
+        a = feed(MotionClassifierCore(paper(mode=mode)), _ids(n), xs, ys, cxx, cyy, cxy)
+        b = feed(MotionClassifierCore(paper(mode=mode)), _ids(n), rx, ry, rcxx, rcyy, rcxy)
         out[mode] = (a, b)
     np.testing.assert_allclose(out["chi2"][1].chi2, out["chi2"][0].chi2, rtol=1e-9)
     za = np.maximum(out["z_test"][0].z_x, out["z_test"][0].z_y)
@@ -180,7 +191,7 @@ def test_chi2_is_rotation_invariant_max_z_is_not():
 
 
 def test_undecided_until_min_window():
-    core = MotionClassifierCore(ClassifierConfig(min_window=4))
+    core = MotionClassifierCore(paper(min_window=4))
     ids = _ids(1)
     states = []
     for t in range(5):

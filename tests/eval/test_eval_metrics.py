@@ -9,13 +9,19 @@ import pytest
 
 from jitterguard.eval.groundtruth import group_of, is_dynamic, nuscenes_label
 from jitterguard.eval.metrics import (
+    TrackBootstrap,
     alpha_from_labels,
     alpha_sweep,
+    attribute_metrics,
     average_precision,
     compute_metrics,
+    ghost_metrics,
+    matched_metrics,
+    planner_metrics,
     pr_curve,
     rate,
     time_to_first_correct,
+    weighted_average_precision,
 )
 from jitterguard.eval.pipeline import Records, match_tracks
 from jitterguard.services.classifier.core import DYNAMIC, STATIC, UNDECIDED
@@ -128,3 +134,80 @@ def test_ap_agrees_with_scikit_learn_including_ties() -> None:
         y = rng.random(300) < 0.3
         s = np.round(rng.random(300) + 0.3 * y, 2)  # rounding makes ties
         assert average_precision(s, y) == pytest.approx(sk.average_precision_score(y, s), abs=1e-12)
+
+
+def test_ap_is_null_without_static_or_without_dynamic_rows() -> None:
+    """A group with only dynamic rows gets AP null, not a free 1.0; its false-dynamic rate is null too."""
+    only_dyn = _records(z=[1.0, 2.0], speed=[2.0, 3.0], gt_dynamic=[True, True])
+    m = compute_metrics(only_dyn)["vehicle"]
+    assert m["ap_z"] is None and m["ap_speed"] is None and m["false_dynamic_z"] is None
+    assert m["missed_dynamic_z"] == 1.0 and m["ci90"]["ap_z"] is None and m["ci90"]["false_dynamic_z"] is None
+    only_static = _records(z=[1.0, 2.0], speed=[2.0, 3.0])
+    m = compute_metrics(only_static)["vehicle"]
+    assert m["ap_z"] is None and m["missed_dynamic_z"] is None and m["false_dynamic_z"] == 0.0
+
+
+def test_ghost_tracks_are_scored_as_static_by_their_own_label() -> None:
+    """Rows matched to no object count for the group of the track's label; dynamic there is a false alarm."""
+    rec = _records(z=[0, 0, 0, 0, 0], gt_instance=[-1, -1, -1, -1, 3], group=["", "", "", "", "vehicle"],
+                   label=[1, 1, 1, 7, 1], state_z=np.array([DYNAMIC, STATIC, STATIC, DYNAMIC, DYNAMIC], np.int8),
+                   state_v=np.array([DYNAMIC, DYNAMIC, STATIC, DYNAMIC, DYNAMIC], np.int8),
+                   track_group=["vehicle", "vehicle", "vehicle", "pedestrian", "vehicle"],
+                   track_id=["g1", "g1", "g2", "p", "real"])
+    v = ghost_metrics(rec, "vehicle")
+    assert (v["n"], v["n_tracks"]) == (3, 2)
+    assert v["false_dynamic_z"] == pytest.approx(1 / 3) and v["false_dynamic_speed"] == pytest.approx(2 / 3)
+    p = ghost_metrics(rec, "pedestrian")
+    assert p["n"] == 1 and p["false_dynamic_z"] == 1.0
+    assert ghost_metrics(rec, "bicycle")["false_dynamic_z"] is None
+
+
+def test_matched_compares_at_equal_false_alarms() -> None:
+    """Speed rule: 1 of 4 static rows above its threshold (FD 0.25). The z-test at that FD (its 2nd-highest
+    static z sets the cut) misses the dynamic rows at or below it."""
+    z = [0.1, 0.2, 0.3, 5.0, 0.25, 4.0, 6.0]
+    speed = [0.1, 0.2, 2.0, 0.3, 0.5, 3.0, 3.0]
+    dyn = [False, False, False, False, True, True, True]
+    rec = _records(z=z, speed=speed, gt_dynamic=dyn,
+                   state_z=np.where(np.array(z) > 1.96, DYNAMIC, STATIC).astype(np.int8),
+                   state_v=np.where(np.array(speed) > 1.0, DYNAMIC, STATIC).astype(np.int8))
+    m = matched_metrics(rec, "vehicle")
+    assert m["false_dynamic_speed"] == 0.25 and m["false_dynamic_z"] == 0.25
+    # z cut at the 2nd-highest static z (0.3): dynamic z 0.25 is missed, 4 and 6 caught
+    assert m["missed_dynamic_z_at_speed_false_dynamic"] == pytest.approx(1 / 3)
+    # speed cut (normalised by 1 m/s) at the 2nd-highest static speed (0.3): 0.5, 3, 3 all caught
+    assert m["missed_dynamic_speed_at_z_false_dynamic"] == 0.0
+
+
+def test_attributes_split_the_rates() -> None:
+    rec = _records(z=[0, 0, 0, 0], gt_dynamic=[False, False, True, True],
+                   gt_attribute=["vehicle.parked", "vehicle.parked", "vehicle.moving", "vehicle.moving"],
+                   state_z=np.array([DYNAMIC, STATIC, STATIC, DYNAMIC], np.int8),
+                   state_v=np.array([STATIC, STATIC, DYNAMIC, DYNAMIC], np.int8))
+    a = attribute_metrics(rec)
+    assert set(a) == {"vehicle.parked", "vehicle.moving"}
+    assert a["vehicle.parked"]["false_dynamic_z"] == 0.5 and a["vehicle.parked"]["missed_dynamic_z"] is None
+    assert a["vehicle.moving"]["missed_dynamic_z"] == 0.5 and a["vehicle.moving"]["missed_dynamic_speed"] == 0.0
+    assert set(planner_metrics(rec)) == {"ghost", "matched", "by_attribute", "full_window"}
+
+
+def test_bootstrap_intervals_resample_whole_tracks() -> None:
+    """Two tracks, one always wrong, one always right: every resample's rate is 0, ½ or 1 (rows of a track
+    move together), and the 90 % interval spans from 0 to 1; a single track gives a point interval."""
+    n = 40
+    rec = _records(z=np.zeros(n), track_id=np.array(["a"] * 20 + ["b"] * 20),
+                   state_z=np.array([DYNAMIC] * 20 + [STATIC] * 20, np.int8))
+    boot = TrackBootstrap(rec.track_id, resamples=400, seed=1)
+    hit = rec.state_z == DYNAMIC
+    lo, hi = boot.rate(np.ones(n, bool), hit)
+    assert (lo, hi) == (0.0, 1.0)
+    one = TrackBootstrap(np.array(["a"] * 5))
+    assert one.rate(np.ones(5, bool), np.array([True, False, True, False, True])) == [0.6, 0.6]
+
+
+def test_weighted_ap_matches_repeated_rows() -> None:
+    rng = np.random.default_rng(2)
+    s, y = rng.random(50), rng.random(50) < 0.4
+    w = rng.integers(0, 4, 50)
+    rep_s, rep_y = np.repeat(s, w), np.repeat(y, w)
+    assert weighted_average_precision(s, y, w) == pytest.approx(average_precision(rep_s, rep_y), abs=1e-12)

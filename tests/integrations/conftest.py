@@ -148,8 +148,19 @@ def pipeline_run(tmp_path_factory: pytest.TempPathFactory) -> Run:
         services.append(replay)
         assert replay.wait_for_subscribers(10)
         time.sleep(0.5)  # let every session's routes settle (the detector's slot takes the first scans)
+        def paced(_frame: Any, seq: int) -> None:
+            """Lock-step with the detector: the next scan goes out once this one's detections (same header seq) are
+            back, or after 3 s, so a loaded machine sees the whole run instead of the detector's latest-scan slot
+            skipping most of it. The scans keep their own stamps; only wall time stretches."""
+            deadline = time.monotonic() + 3.0
+            while time.monotonic() < deadline:
+                with lock:
+                    if any(d.header.seq >= seq for d in ref["detections"].values()):
+                        return
+                time.sleep(0.005)
+
         with open_source(SCENARIO, SourceOptions(duration_s=DURATION_S)) as src:
-            replay.replay(src, ReplayPlan(rate=1.0))
+            replay.replay(src, ReplayPlan(rate=1.0), on_published=paced)
         # the last frames drain through detector, tracker, classifier and both bridges
         deadline = time.monotonic() + 15
         while time.monotonic() < deadline:

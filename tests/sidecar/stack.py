@@ -11,6 +11,9 @@ The scenario is built so that the tests' expectations follow from the statistics
 - one noise-free *creeper* (a car at 0.8 m/s on a 4 m circle): with window 10 at 20 Hz, cluster mode and a
   reported σ = 0.1 m, its halves' means differ by 0.2 m, so max(z_x, z_y) ∈ [1.0, 1.42] — static at the
   default alpha 1.96, dynamic at alpha 0.5. That is the borderline track an alpha change flips.
+
+These z values are the paper's statistic, so the stack's classifier runs with ``PAPER_STATISTIC`` (variances
+as reported, clusters, H0 v = 0, α 1.96 for every class); the calibrated default has its own tests.
 """
 
 from __future__ import annotations
@@ -33,6 +36,7 @@ from jitterguard.runtime import free_tcp_port, loopback_options
 from jitterguard.runtime.zenoh_config import build_config
 from jitterguard.schemas import encode, keys
 from jitterguard.schemas.models import (
+    ClassifierConfig,
     X_X,
     Y_Y,
     DetectedObject,
@@ -263,11 +267,17 @@ class Stack:
         self.classifier.close()
 
 
+PAPER_STATISTIC: dict[str, Any] = {"calibration": "off", "effective_n": "cluster", "min_speed_mps": 0.0,
+                                   "alpha_per_class": {}}
+"""The config fields the scenario's expected z values are computed for (the rest stays default)."""
+
+
 def start_stack(ns: str, token: str | None = None, *, window_ready: bool = True) -> Stack:
     """Classifier listening on a free port; feeder and sidecar connect to it; wait until state flows."""
     zport = free_tcp_port()
     writes = ConfigWritePolicy(token=token) if token else ConfigWritePolicy.open()
-    classifier = ClassifierService(loopback_options(ns, zport, listen_self=True), config_writes=writes)
+    classifier = ClassifierService(loopback_options(ns, zport, listen_self=True),
+                                   ClassifierConfig(**PAPER_STATISTIC), config_writes=writes)
     tracks = scenario()
     feeder = Feeder(ns, zport, tracks)
     app = create_app(SidecarSettings(zenoh=loopback_options(ns, zport), api_token=token))

@@ -18,11 +18,12 @@ from jitterguard.services.classifier.config import PRESETS
 AUTHORS_ALPHA = PRESETS["authors"]["alpha_per_class"]
 from jitterguard.services.sidecar.core import StateView, TrackView
 
-from .stack import Stack, wait_for
+from .stack import PAPER_STATISTIC, Stack, wait_for
 
 pytestmark = pytest.mark.integration
 
-DEFAULTS = ClassifierConfig().model_dump(mode="json", exclude={"schema_version"})
+DEFAULTS = ClassifierConfig(**PAPER_STATISTIC).model_dump(mode="json", exclude={"schema_version"})
+"""The config every test starts from: the defaults with the paper's statistic (what the scenario is built for)."""
 
 
 def _state_of(body: dict, track_id: str) -> str | None:
@@ -31,14 +32,14 @@ def _state_of(body: dict, track_id: str) -> str | None:
 
 @pytest.fixture(autouse=True)
 def _reset_config(stack: Stack):
-    """Every test starts from the default config (and leaves it so), already seen in the served state."""
+    """Every test starts from DEFAULTS (and leaves it so), already seen in the served state."""
     with stack.http() as c:
-        assert c.put("/v1/config", json={}).status_code == 200
+        assert c.put("/v1/config", json=PAPER_STATISTIC).status_code == 200
     stack.wait_state(lambda b: b["mode"] == "z_test" and all(t["alpha"] == 1.96 for t in b["tracks"]),
                      "the default config in the served state")
     yield
     with stack.http() as c:
-        c.put("/v1/config", json={})
+        c.put("/v1/config", json=PAPER_STATISTIC)
 
 
 def test_health_and_readiness(stack: Stack) -> None:
@@ -119,7 +120,7 @@ def test_one_track_and_404(stack: Stack) -> None:
 def test_get_config_is_what_the_classifier_has(stack: Stack) -> None:
     with stack.http(auth=False) as c:
         assert c.get("/v1/config").json() == DEFAULTS
-    assert stack.classifier.core.config == ClassifierConfig()
+    assert stack.classifier.core.config == ClassifierConfig(**PAPER_STATISTIC)
 
 
 def test_alpha_change_flips_the_borderline_track(stack: Stack) -> None:
@@ -198,6 +199,11 @@ def test_writes_need_the_token(stack: Stack, method: str, path: str, auth: str |
     ("PATCH", {"effective_n": 3}, "effective_n"),
     ("PATCH", {"velocity_threshold": 1e9}, "velocity_threshold"),
     ("PATCH", {"bogus": 1}, "bogus"),
+    ("PATCH", {"window_size": 65}, "window_size"),  # W × W state per window: bounded
+    ("PATCH", {"velocity_threshold_per_class": {"spaceship": 1.0}}, "velocity_threshold_per_class"),
+    ("PATCH", {"calibration": "file"}, "calibration_file"),  # none given
+    # a file only the classifier can look for (on its host): its refusal comes back as a 422 on the field
+    ("PATCH", {"calibration": "file", "calibration_file": "/nonexistent/calibration.yaml"}, "calibration_file"),
     ("PUT", {"window_size": 4, "min_window": 5}, "min_window"),
     ("PUT", {"variance_floor": 0}, "variance_floor"),
 ])
@@ -346,3 +352,21 @@ def test_cors_only_for_configured_origins() -> None:
             assert r.status_code == 503 and "liveliness" in r.json()["reason"]
     finally:
         server.close()
+
+
+def test_state_and_metrics_show_the_variance_calibration(stack: Stack) -> None:
+    """The calibration the classifier decides with: in /v1/state (validated by the view model), as gauges in
+    /metrics, and live after a config write switches it on."""
+    with stack.http() as c:
+        assert c.patch("/v1/config", json={"calibration": "online", "effective_n": "measured"}).status_code == 200
+    body = stack.wait_state(lambda b: (b.get("calibration") or {}).get("mode") == "online", "calibration online")
+    view = StateView.model_validate(body)
+    assert view.calibration is not None and view.calibration.effective_n == "measured"
+    vehicle = view.calibration.groups["vehicle"]
+    assert set(vehicle.along.scale) == {"0-20", "20-40", "40-inf"} and 0 < vehicle.along.correlation <= 1
+    with stack.http(auth=False) as c:
+        text = c.get("/metrics").text
+    scale = _metric(text, "jitterguard_classifier_variance_scale",
+                    '{age="established",axis="along",band="0-20",group="vehicle"}')
+    assert scale is not None and scale > 0
+    assert _metric(text, "jitterguard_classifier_variance_factor", '{axis="across",group="pedestrian"}') > 0

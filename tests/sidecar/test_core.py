@@ -50,7 +50,8 @@ def test_http_config_model_carries_the_wire_constraints() -> None:
     for name in CONFIG_FIELDS:
         for bound in ("minimum", "maximum", "exclusiveMinimum", "enum", "default"):
             assert api[name].get(bound) == wire[name].get(bound), (name, bound)
-    assert api["alpha_per_class"]["propertyNames"]["enum"] == list(CLASS_NAMES)
+    for per_class in ("alpha_per_class", "velocity_threshold_per_class", "velocity_sustain_s_per_class"):
+        assert api[per_class]["propertyNames"]["enum"] == list(CLASS_NAMES), per_class  # keys an enum
     assert ConfigModel().model_dump() == config_to_api(ClassifierConfig())
 
 
@@ -73,7 +74,12 @@ def test_merge_patch_semantics() -> None:
     assert out.alpha_default == ClassifierConfig().alpha_default and out.window_size == 10
     out = merge_patch(cur, {"alpha_per_class": {"car": None, "pedestrian": 1.28}})  # per-key merge
     assert out.alpha_per_class == {"bus": 3.0, "pedestrian": 1.28}
-    assert merge_patch(cur, {"alpha_per_class": None}).alpha_per_class == {}
+    assert merge_patch(cur, {"alpha_per_class": None}).alpha_per_class == ClassifierConfig().alpha_per_class
+    # every per-class map merges key by key, a null value drops that class
+    out = merge_patch(cur, {"velocity_threshold_per_class": {"pedestrian": None, "car": 2.0}})
+    assert out.velocity_threshold_per_class == {"bicycle": 0.28, "motorcycle": 0.28, "unknown": 0.28, "car": 2.0}
+    out = merge_patch(out, {"velocity_sustain_s_per_class": {"car": 2.0}})
+    assert out.velocity_sustain_s_per_class == {"car": 2.0} and out.velocity_threshold_per_class["car"] == 2.0
 
 
 @pytest.mark.parametrize(("patch", "field"), [

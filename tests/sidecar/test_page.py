@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from .cdp import Chromium, find_chromium
-from .stack import Stack, start_stack, wait_for
+from .stack import PAPER_STATISTIC, Stack, start_stack, wait_for
 
 CHROMIUM = find_chromium()
 pytestmark = [pytest.mark.integration,
@@ -176,7 +176,7 @@ def test_change_alpha_from_the_page_flips_the_borderline_track(page_stack: Stack
     finally:
         page_stack.feeder.resume()
         with page_stack.http() as c:
-            c.put("/v1/config", json={})
+            c.put("/v1/config", json=PAPER_STATISTIC)
 
 
 def test_chromium_is_found_when_installed() -> None:

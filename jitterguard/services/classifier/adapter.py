@@ -33,6 +33,7 @@ from ...schemas.wire import (
 )
 from ...stream_order import StreamGuard, StreamLimits
 from .assembly import CompleteFrame, FrameAssembler
+from .calibration import NoiseModel, OnlineCalibration
 from .core import STATIC, Decisions, MotionClassifierCore, Observations
 
 ObservationRow = tuple[str, int, float, float, float, float, float, float]
@@ -49,12 +50,17 @@ def observation_rows(cols: ObservationColumns) -> list[tuple[int, str, Observati
     return [(s, r[0], r) for s, r in zip(cols.seq.tolist(), zip(*cols_))]
 
 
-def observations_from_rows(rows: Sequence[ObservationRow], seq: int, stamp_ns: int) -> Observations:
-    """One frame's observation rows as the core's arrays."""
+def observations_from_rows(rows: Sequence[ObservationRow], seq: int, stamp_ns: int,
+                           sensor_xy: tuple[float, float] = (0.0, 0.0)) -> Observations:
+    """One frame's observation rows as the core's arrays (``sensor_xy``: the frame's ``ego_pose`` position, the
+    origin of the line of sight along and across which the variances are calibrated)."""
+    sx, sy = sensor_xy
     if not rows:
-        return Observations.from_lists([], [], [], [], [], [], [], [], stamp_ns=stamp_ns, seq=seq)
+        return Observations.from_lists([], [], [], [], [], [], [], [], stamp_ns=stamp_ns, seq=seq, sensor_x=sx,
+                                       sensor_y=sy)
     ids, labels, x, y, cxx, cxy, cyy, speed = zip(*rows)
-    return Observations.from_lists(list(ids), labels, x, y, cxx, cxy, cyy, speed, stamp_ns=stamp_ns, seq=seq)
+    return Observations.from_lists(list(ids), labels, x, y, cxx, cxy, cyy, speed, stamp_ns=stamp_ns, seq=seq,
+                                   sensor_x=sx, sensor_y=sy)
 
 
 def decided_objects(objects: np.ndarray, dec: Decisions) -> np.ndarray:
@@ -108,8 +114,12 @@ class ClassifierAdapter:
     """Frame assembly plus the core, fed with payloads. Not thread-safe: one worker owns it."""
 
     def __init__(self, config: ClassifierConfig | None = None, *, straggler_timeout_s: float = 0.05,
-                 limits: Limits = LIMITS, stream: StreamLimits | None = None) -> None:
-        self.core = MotionClassifierCore(config or ClassifierConfig())
+                 limits: Limits = LIMITS, stream: StreamLimits | None = None,
+                 calibration_model: NoiseModel | None = None, calibration: OnlineCalibration | None = None) -> None:
+        """``calibration_model``: the scales for ``calibration: file``; ``calibration``: an online calibration to
+        continue (the evaluator carries one across the recordings of one drive)."""
+        self.core = MotionClassifierCore(config or ClassifierConfig(), calibration_model=calibration_model,
+                                         online=calibration)
         self.assembler: FrameAssembler[ObservationRow, TrackedColumns] = FrameAssembler(
             straggler_timeout_s=straggler_timeout_s, guard=StreamGuard(stream or StreamLimits()))
         self.limits = limits
@@ -154,7 +164,8 @@ class ClassifierAdapter:
         """Decide a complete frame and write its ``objects`` payload (``tracked`` with the decisions applied)."""
         tracked = frame.tracked
         h = tracked.header
-        obs = observations_from_rows(frame.observations, h.seq, h.stamp)
+        pos = tracked.ego_pose.position
+        obs = observations_from_rows(frame.observations, h.seq, h.stamp, (float(pos.x), float(pos.y)))
         decided = self.core.update(obs) if len(obs) else None
         reported = np.asarray(tracked.objects[wire.ID], dtype="S32")
         dec = self.core.last_decisions(reported)

@@ -35,7 +35,12 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         window_size: Annotated[int | None, typer.Option("--window-size")] = None,
         min_window: Annotated[int | None, typer.Option("--min-window")] = None,
         mode: Annotated[str | None, typer.Option("--mode", help="z_test, chi2 or velocity_threshold.")] = None,
-        effective_n: Annotated[str | None, typer.Option("--effective-n", help="cluster or independent.")] = None,
+        effective_n: Annotated[str | None, typer.Option("--effective-n", help="measured (default), cluster or "
+                                                        "independent.")] = None,
+        calibration: Annotated[str | None, typer.Option("--calibration", help="online (default), off or file "
+                                                        "(with --calibration-file).")] = None,
+        calibration_file: Annotated[str | None, typer.Option("--calibration-file", help="YAML from `jitterguard "
+                                                             "calibrate`; implies --calibration file.")] = None,
         config_store: Annotated[str | None, typer.Option(
             "--config-store", envvar="JG_CONFIG_STORE",
             help="JSON file keeping config writes across restarts (restored while the flags stay the same).")] = None,
@@ -46,15 +51,25 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
     ) -> None:
         """Run the motion classifier service: tracks/* + tracked in, motion/{id} + objects out."""
         from ...runtime import setup_logging
+        from .calibration_file import CalibrationFileError, read_calibration
         from .config_store import ConfigStore
         from .config_writes import ConfigWritePolicy
         from .service import ClassifierService
 
         opts = zenoh_options(ns, zenoh_config, connect, listen)
+        if calibration_file is not None and calibration is None:
+            calibration = "file"
         params = _load_config(config, preset, {"alpha_default": alpha, "window_size": window_size,
                                                "min_window": min_window, "mode": mode, "effective_n": effective_n,
+                                               "calibration": calibration, "calibration_file": calibration_file,
                                                "config_store": config_store,
                                                "open_config_writes": open_config_writes or None})
+        model = None
+        if params.calibration == "file":
+            try:
+                model = read_calibration(params.calibration_file or "")
+            except CalibrationFileError as exc:
+                fail(f"{'--calibration-file' if calibration_file else 'calibration_file'}: {exc}")
         store = None
         if params.config_store:
             path = Path(params.config_store).absolute()
@@ -63,7 +78,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             store = ConfigStore(path)
         setup_logging(log_level)
         ClassifierService(opts, params.wire(), straggler_timeout_s=params.straggler_timeout_s, limits=params.limits,
-                          stream=params.stream, manage_gc=True, config_store=store,
+                          stream=params.stream, manage_gc=True, config_store=store, calibration_model=model,
                           config_writes=ConfigWritePolicy.from_env(open_writes=params.open_config_writes)
                           ).run_forever()
 

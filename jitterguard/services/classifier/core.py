@@ -9,13 +9,14 @@ rows through a sorted ID array and ``np.searchsorted``, so the per-frame path ha
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
 
 from ...schemas.models import ClassifierConfig
-from .statistics import CHANNELS, chi2_2_threshold, split_halves, window_statistics
+from .calibration import MIN_BLOCK, NoiseModel, OnlineCalibration, block_moments, group_of_labels
+from .statistics import CHANNELS, calibrated_statistics, chi2_2_threshold, split_halves, window_statistics
 
 F64 = NDArray[np.float64]
 IDS = NDArray[np.bytes_]
@@ -30,7 +31,9 @@ class Observations:
     """One frame of associated detections, world frame, one row per track (IDs unique within the frame).
 
     ``cxx, cxy, cyy`` are the detection's 2x2 position covariance already rotated into the world frame;
-    ``speed`` is the tracker's speed estimate (used by the velocity-threshold baseline only).
+    ``speed`` is the tracker's speed estimate (used by the velocity-threshold baseline only);
+    ``sensor_x, sensor_y`` the sensor's world position at ``stamp_ns`` (the frame's ``ego_pose``: the origin
+    of the line of sight along which the calibration splits its scales).
     """
 
     track_ids: IDS
@@ -43,9 +46,12 @@ class Observations:
     speed: F64
     stamp_ns: int = 0
     seq: int = 0
+    sensor_x: float = 0.0
+    sensor_y: float = 0.0
 
     @staticmethod
-    def from_lists(track_ids: list[str], labels, x, y, cxx, cxy, cyy, speed=None, stamp_ns: int = 0, seq: int = 0) -> "Observations":
+    def from_lists(track_ids: list[str], labels, x, y, cxx, cxy, cyy, speed=None, stamp_ns: int = 0, seq: int = 0,
+                   sensor_x: float = 0.0, sensor_y: float = 0.0) -> "Observations":
         n = len(track_ids)
         f = lambda v: np.asarray(v, dtype=np.float64).reshape(n)  # noqa: E731
         return Observations(
@@ -53,7 +59,7 @@ class Observations:
             labels=np.asarray(labels, dtype=np.int64).reshape(n),
             x=f(x), y=f(y), cxx=f(cxx), cxy=f(cxy), cyy=f(cyy),
             speed=f(np.zeros(n) if speed is None else speed),
-            stamp_ns=stamp_ns, seq=seq,
+            stamp_ns=stamp_ns, seq=seq, sensor_x=float(sensor_x), sensor_y=float(sensor_y),
         )
 
     def __len__(self) -> int:
@@ -90,6 +96,9 @@ class _Table:
     head: NDArray[np.int64] = field(init=False)
     count: NDArray[np.int64] = field(init=False)
     label: NDArray[np.int64] = field(init=False)
+    since: NDArray[np.int64] = field(init=False)  # observations not yet given to the calibration
+    seen: NDArray[np.int64] = field(init=False)  # observations of the track so far
+    fast_since: F64 = field(init=False)  # baseline: stamp [s] since which the speed is above threshold (NaN: not)
     last: dict[str, np.ndarray] = field(init=False)
 
     _LAST = {
@@ -103,6 +112,9 @@ class _Table:
         self.head = np.zeros(self.capacity, dtype=np.int64)
         self.count = np.zeros(self.capacity, dtype=np.int64)
         self.label = np.zeros(self.capacity, dtype=np.int64)
+        self.since = np.zeros(self.capacity, dtype=np.int64)
+        self.seen = np.zeros(self.capacity, dtype=np.int64)
+        self.fast_since = np.full(self.capacity, np.nan)
         self.last = {k: np.zeros(self.capacity, dtype=t) for k, t in self._LAST.items()}
 
     def grow(self, capacity: int) -> None:
@@ -111,12 +123,18 @@ class _Table:
         self.head = np.concatenate([self.head, np.zeros(extra, dtype=np.int64)])
         self.count = np.concatenate([self.count, np.zeros(extra, dtype=np.int64)])
         self.label = np.concatenate([self.label, np.zeros(extra, dtype=np.int64)])
+        self.since = np.concatenate([self.since, np.zeros(extra, dtype=np.int64)])
+        self.seen = np.concatenate([self.seen, np.zeros(extra, dtype=np.int64)])
+        self.fast_since = np.concatenate([self.fast_since, np.full(extra, np.nan)])
         self.last = {k: np.concatenate([v, np.zeros(extra, dtype=v.dtype)]) for k, v in self.last.items()}
         self.capacity = capacity
 
     def reset_rows(self, rows: NDArray[np.int64]) -> None:
         self.head[rows] = 0
         self.count[rows] = 0
+        self.since[rows] = 0
+        self.seen[rows] = 0
+        self.fast_since[rows] = np.nan
         for v in self.last.values():
             v[rows] = 0
 
@@ -133,19 +151,34 @@ class _Table:
         self.win = new
         self.window = window
         self.count = keep
+        self.since = np.minimum(self.since, keep)
         self.head = keep % window
+
+    def ordered(self, rows: NDArray[np.int64], n: int) -> F64:
+        """The newest ``n`` observations of each row, oldest first: ``(len(rows), n, channels)``."""
+        k = np.arange(n)[None, :]
+        slots = (self.head[rows, None] - n + k) % self.window
+        return self.win[rows[:, None], slots]
 
 
 class MotionClassifierCore:
     """Sliding windows per track ID and the static/dynamic decision of DESIGN.md "The motion classifier"."""
 
-    def __init__(self, config: ClassifierConfig | None = None, capacity: int = 256) -> None:
+    def __init__(self, config: ClassifierConfig | None = None, capacity: int = 256,
+                 calibration_model: NoiseModel | None = None, online: OnlineCalibration | None = None) -> None:
+        """``calibration_model``: the scales for ``calibration: file`` (the adapter reads the file);
+        ``online``: an online calibration to continue (e.g. from the previous recording of one drive)."""
         self._config = config or ClassifierConfig()
         self._table = _Table(window=self._config.window_size, capacity=max(8, capacity))
         self._ids: IDS = np.empty(0, dtype="S32")  # sorted
         self._id_rows: NDArray[np.int64] = np.empty(0, dtype=np.int64)
         self._free: list[int] = list(range(self._table.capacity - 1, -1, -1))
         self._alpha_table = self._make_alpha_table(self._config)
+        self._speed_table, self._sustain_table = self._make_speed_tables(self._config)
+        self._online = online if online is not None else self._make_online(self._config)
+        self._file_model = calibration_model
+        self.check_config(self._config)
+        self._state_cache: tuple[tuple, dict] | None = None
 
     # ------------------------------------------------------------------ configuration
 
@@ -153,16 +186,92 @@ class MotionClassifierCore:
     def config(self) -> ClassifierConfig:
         return self._config
 
-    def configure(self, config: ClassifierConfig) -> None:
-        """Apply a new config; a changed window length keeps each track's newest observations."""
+    def configure(self, config: ClassifierConfig, calibration_model: NoiseModel | None = None) -> None:
+        """Apply a new config; a changed window length keeps each track's newest observations. The online
+        calibration keeps what it learnt unless its range bands change; ``calibration_model`` replaces the
+        scales used with ``calibration: file`` (the last one given stays otherwise)."""
+        self.check_config(config, calibration_model)
+        if calibration_model is not None:
+            self._file_model = calibration_model
         if config.window_size != self._table.window:
             self._table.rewindow(config.window_size)
+        old = self._config
         self._config = config
         self._alpha_table = self._make_alpha_table(config)
+        self._speed_table, self._sustain_table = self._make_speed_tables(config)
+        if (config.calibration_range_bands_m != old.calibration_range_bands_m
+                or config.calibration_prior_blocks != old.calibration_prior_blocks):
+            self._online = self._make_online(config)
+        self._online.half_life_s = config.calibration_half_life_s
+
+    def check_config(self, config: ClassifierConfig, calibration_model: NoiseModel | None = None) -> None:
+        """Raise ``ValueError`` if :meth:`configure` would refuse ``config`` (changes nothing)."""
+        if config.calibration == "file" and calibration_model is None and self._file_model is None:
+            raise ValueError("calibration 'file' needs the file's scales (load calibration_file first)")
+
+    @staticmethod
+    def _make_online(config: ClassifierConfig) -> OnlineCalibration:
+        return OnlineCalibration(tuple(config.calibration_range_bands_m), config.calibration_prior_blocks,
+                                 config.calibration_half_life_s, config.window_size)
 
     @staticmethod
     def _make_alpha_table(config: ClassifierConfig) -> F64:
         return np.array([config.alpha_for(label) for label in range(_NUM_LABELS)], dtype=np.float64)
+
+    @staticmethod
+    def _make_speed_tables(config: ClassifierConfig) -> tuple[F64, F64]:
+        return (np.array([config.speed_threshold_for(label) for label in range(_NUM_LABELS)], dtype=np.float64),
+                np.array([config.sustain_for(label) for label in range(_NUM_LABELS)], dtype=np.float64))
+
+    # ------------------------------------------------------------------ calibration
+
+    @property
+    def online_calibration(self) -> OnlineCalibration:
+        """The online estimator (learning whenever ``calibration`` is ``online``)."""
+        return self._online
+
+    def noise_model(self) -> NoiseModel:
+        """The scales and serial correlation the test uses now (the prior when calibration is off)."""
+        mode = self._config.calibration
+        if mode == "online":
+            return self._online.model()
+        if mode == "file" and self._file_model is not None:
+            return self._file_model
+        return NoiseModel.prior(tuple(self._config.calibration_range_bands_m))
+
+    def calibration_state(self) -> dict:
+        """What the calibration uses now (a ``CalibrationState`` map): :meth:`NoiseModel.to_mapping` at this
+        window size, the mode, and the online estimator's counters (blocks pooled, too fast to pool,
+        down-weighted as outliers). Rebuilt only when the model or the config changed."""
+        model = self.noise_model()
+        key = (id(model), self._config.calibration, self._config.effective_n, self._config.window_size,
+               self._online.counts["blocks"])
+        if self._state_cache is None or self._state_cache[0] != key:
+            state = {"mode": self._config.calibration, "effective_n": self._config.effective_n,
+                     **model.to_mapping(self._config.window_size), "counts": dict(self._online.counts),
+                     "effective_blocks": round(self._online.effective_blocks, 3)}
+            self._state_cache = (key, state)
+        return self._state_cache[1]
+
+    def _harvest(self, rows: NDArray[np.int64], lengths: NDArray[np.int64]) -> None:
+        """Give the newest ``lengths[i]`` observations of ``rows[i]`` to the online calibration as one block
+        each (only rows with at least MIN_BLOCK observations spread in time); marks them used."""
+        t = self._table
+        ok = lengths >= MIN_BLOCK
+        rows, lengths = rows[ok], lengths[ok]
+        for n in np.unique(lengths).tolist():
+            sel = rows[lengths == n]
+            blk = t.ordered(sel, int(n))
+            times = blk[..., 5]
+            spread = times[:, -1] > times[:, 0]
+            if not spread.any():
+                continue
+            blk = blk[spread]
+            mom = block_moments(times[spread], blk[..., 0:2], blk[..., 2:5], blk[..., 6:8],
+                                variance_floor=self._config.variance_floor)
+            young = blk[:, 0, 8] < t.window  # the block starts among the track's first W observations
+            self._online.add(group_of_labels(t.label[sel[spread]]), mom, young)
+        t.since[rows] = 0
 
     # ------------------------------------------------------------------ ID -> row mapping
 
@@ -198,13 +307,16 @@ class MotionClassifierCore:
         """Evict the windows of every track not in ``alive_ids`` (the tracker no longer reports it)."""
         keep = np.isin(self._ids, np.asarray(alive_ids, dtype="S32"))
         gone = self._id_rows[~keep]
+        if gone.size and self._config.calibration == "online":
+            self._harvest(gone, np.minimum(self._table.since[gone], self._table.count[gone]))
         self._free.extend(gone.tolist())
         self._table.reset_rows(gone)
         self._ids, self._id_rows = self._ids[keep], self._id_rows[keep]
         return int(gone.shape[0])
 
     def reset(self) -> None:
-        """Forget every track (e.g. the tracker restarted)."""
+        """Forget every track (e.g. the tracker restarted). The calibration stays: it describes the detector,
+        not the tracks."""
         self.retain(np.empty(0, dtype="S32"))
 
     # ------------------------------------------------------------------ the per-frame path
@@ -223,10 +335,21 @@ class MotionClassifierCore:
             raise ValueError("track_ids must be unique within a frame")
         w = t.window
         slot = t.head[rows]
-        t.win[rows, slot] = np.stack([obs.x, obs.y, obs.cxx, obs.cxy, obs.cyy], axis=1)
+        n = rows.shape[0]
+        stamp_s = obs.stamp_ns * 1e-9
+        t.win[rows, slot] = np.stack([obs.x, obs.y, obs.cxx, obs.cxy, obs.cyy, np.full(n, stamp_s),
+                                      np.full(n, obs.sensor_x), np.full(n, obs.sensor_y),
+                                      t.seen[rows].astype(np.float64)], axis=1)
         t.head[rows] = (slot + 1) % w
         t.count[rows] = np.minimum(t.count[rows] + 1, w)
+        t.since[rows] += 1
+        t.seen[rows] += 1
         t.label[rows] = np.clip(obs.labels, 0, _NUM_LABELS - 1)
+        if self._config.calibration == "online":
+            self._online.advance(stamp_s)
+            full = rows[(t.since[rows] >= w) & (t.count[rows] >= w)]
+            if full.size:
+                self._harvest(full, np.full(full.shape[0], w))
         return self._decide(rows, ids, obs.speed, obs.stamp_ns, obs.seq)
 
     def _decide(self, rows: NDArray[np.int64], ids: IDS, speed: F64, stamp_ns: int, seq: int) -> Decisions:
@@ -234,20 +357,34 @@ class MotionClassifierCore:
         t = self._table
         count = t.count[rows]
         masks = split_halves(t.head[rows], count, t.window)
-        stats = window_statistics(
-            t.win[rows], masks, variance_floor=cfg.variance_floor, independent=cfg.effective_n == "independent"
-        )
+        if cfg.calibration == "off" and cfg.effective_n != "measured" and cfg.min_speed_mps == 0:
+            stats = window_statistics(t.win[rows], masks, variance_floor=cfg.variance_floor,
+                                      independent=cfg.effective_n == "independent")
+        else:
+            stats = calibrated_statistics(t.win[rows], masks, group_of_labels(t.label[rows]), self.noise_model(),
+                                          variance_floor=cfg.variance_floor, effective_n=cfg.effective_n,
+                                          track_scale_prior=cfg.calibration != "off", min_speed=cfg.min_speed_mps)
+        if (count < 2).any():  # one observation: no older half, nothing to compare (z is not defined)
+            one = count < 2
+            stats = replace(stats, z_x=np.where(one, 0.0, stats.z_x), z_y=np.where(one, 0.0, stats.z_y),
+                            chi2=np.where(one, 0.0, stats.chi2))
         alpha = self._alpha_table[t.label[rows]]
         decided = count >= cfg.min_window
+        # the baseline's state is kept whatever the mode, so switching to it is immediate
+        threshold_v = self._speed_table[t.label[rows]]
+        fast = speed > threshold_v
+        now_s = stamp_ns * 1e-9
+        t.fast_since[rows] = np.where(fast, np.where(np.isnan(t.fast_since[rows]), now_s, t.fast_since[rows]), np.nan)
         if cfg.mode == "z_test":
             threshold = alpha
             dynamic = np.maximum(stats.z_x, stats.z_y) > alpha
         elif cfg.mode == "chi2":
             threshold = chi2_2_threshold(alpha)
             dynamic = stats.chi2 > threshold
-        else:  # velocity_threshold: Autoware's speed cut-off; decides from the first observation
-            threshold = np.full(rows.shape[0], cfg.velocity_threshold)
-            dynamic = speed > threshold
+        else:  # velocity_threshold: Autoware's per-class speed cut-off, held for its sustain time
+            threshold = threshold_v
+            sustain = self._sustain_table[t.label[rows]]
+            dynamic = fast & (now_s - t.fast_since[rows] >= sustain)
             decided = np.ones(rows.shape[0], dtype=bool)
         state = np.where(decided, np.where(dynamic, DYNAMIC, STATIC), UNDECIDED).astype(np.int8)
 
@@ -291,3 +428,20 @@ class MotionClassifierCore:
         t = self._table
         return t.label[r], t.last["stamp_ns"][r], t.last["seq"][r]
 
+
+
+def calibration_gauges(state: dict) -> dict[str, float]:
+    """A ``calibration_state`` as flat heartbeat gauges: ``calibration.{group}.{axis}.{scale|scale_young}.{band}``,
+    ``calibration.{group}.{axis}.{correlation|correlation_time_s|variance_factor}``,
+    ``calibration.{group}.track_dof`` and ``calibration.effective_blocks``."""
+    out: dict[str, float] = {"calibration.effective_blocks": float(state.get("effective_blocks", 0.0))}
+    for g, entry in state.get("groups", {}).items():
+        out[f"calibration.{g}.track_dof"] = float(entry["track_dof"])
+        for axis in ("along", "across"):
+            a = entry[axis]
+            for key in ("scale", "scale_young"):
+                for band, v in a[key].items():
+                    out[f"calibration.{g}.{axis}.{key}.{band}"] = float(v)
+            for key in ("correlation", "correlation_time_s", "variance_factor"):
+                out[f"calibration.{g}.{axis}.{key}"] = float(a[key])
+    return out

@@ -40,9 +40,11 @@ from ...schemas.wire import LIMITS, Limits
 from ...stream_order import StreamLimits
 from .adapter import ClassifierAdapter, FrameOutput, Poses
 from .assembly import FrameAssembler
+from .calibration import NoiseModel
+from .calibration_file import CalibrationFileError, read_calibration
 from .config_store import ConfigStore
 from .config_writes import ConfigWritePolicy
-from .core import STATE_NAMES, Decisions, MotionClassifierCore
+from .core import STATE_NAMES, Decisions, MotionClassifierCore, calibration_gauges
 
 CONFIG_APPLY_TIMEOUT_S = 2.0
 LATENCY_WINDOW = 4096
@@ -76,11 +78,12 @@ class ClassifierService(Service):
     def __init__(self, opts: ZenohOptions, config: ClassifierConfig | None = None, *,
                  straggler_timeout_s: float = 0.05, limits: Limits = LIMITS, stream: StreamLimits | None = None,
                  manage_gc: bool = False, config_writes: ConfigWritePolicy | None = None,
-                 config_store: ConfigStore | None = None) -> None:
+                 config_store: ConfigStore | None = None, calibration_model: NoiseModel | None = None) -> None:
         """``manage_gc``: call :func:`manage_gc_for_latency` and collect garbage between frames (process-wide;
         for the process that runs the classifier, not for tests that embed it). ``config_writes``: who may
         write the config over Zenoh (default: ``JG_API_TOKEN`` holders, nobody without one). ``config_store``:
-        where writes are kept so that a restart restores them (:mod:`.config_store`)."""
+        where writes are kept so that a restart restores them (:mod:`.config_store`). ``calibration_model``: the
+        scales for ``calibration: file`` (read from the config's ``calibration_file`` when not given)."""
         super().__init__(opts)
         self.config_writes = config_writes or ConfigWritePolicy.from_env()
         self._started_with = config or ClassifierConfig()
@@ -89,12 +92,18 @@ class ClassifierService(Service):
             restored, why = config_store.load(self._started_with)
             self.log.info("%s", why)
             config = restored or config
+        config = config or ClassifierConfig()
+        if calibration_model is None and config.calibration == "file" and config.calibration_file:
+            calibration_model = read_calibration(config.calibration_file)
         self.log.info("%s", self.config_writes.describe())
         self._manage_gc = manage_gc
         self._idle_gc = IdleCollector()
         if manage_gc:
             manage_gc_for_latency()
-        self.pipeline = ClassifierAdapter(config, straggler_timeout_s=straggler_timeout_s, limits=limits, stream=stream)
+        self.pipeline = ClassifierAdapter(config, straggler_timeout_s=straggler_timeout_s, limits=limits, stream=stream,
+                                          calibration_model=calibration_model)
+        self._calibration = self.core.calibration_state()  # what the latest frame used (state queryable)
+        self._gauges = calibration_gauges(self._calibration)  # ... flattened for the heartbeat
         self.latencies_ms: deque[float] = deque(maxlen=LATENCY_WINDOW)
         self._queue: queue.Queue = queue.Queue(maxsize=64)  # config writes and calls, run between frames
         self._closes: deque[tuple[bytes, zenoh.KeyExpr, float]] = deque(maxlen=CLOSE_QUEUE)
@@ -210,8 +219,13 @@ class ClassifierService(Service):
         return len(samples)
 
     def _run_control(self, item: tuple[str, tuple, None]) -> None:
-        kind, (arg, fut), _ = item
+        kind, (arg, fut), model = item
         if kind == "config":
+            try:
+                self.core.check_config(arg, model)  # before it is stored: a refused write is not restored
+            except ValueError as exc:
+                fut.set_exception(exc)
+                return
             if self._store is not None:  # stored before applied: a restart restores exactly what is in force
                 try:
                     self._store.save(self._started_with, arg)
@@ -219,7 +233,7 @@ class ClassifierService(Service):
                     self.counters.inc("config_store_errors")
                     fut.set_exception(RuntimeError(f"cannot store the config in {self._store.path}: {exc}"))
                     return
-            self.core.configure(arg)
+            self.core.configure(arg, model)
             self.counters.inc("config_changes")
             fut.set_result(self.core.config)
         elif kind == "call":  # run a function on the worker, between frames
@@ -246,6 +260,9 @@ class ClassifierService(Service):
         evicted, labels, stamps, seqs = self.pipeline.settle(out)
         if evicted:
             self.counters.inc("windows_evicted", evicted)
+        cal = self.core.calibration_state()
+        if cal is not self._calibration:
+            self._calibration, self._gauges = cal, calibration_gauges(cal)
         with self._latest_lock:
             header = {"stamp": out.header.stamp, "frame_id": out.header.frame_id, "seq": out.header.seq}
             self._latest = _Latest(header, out.objects, out.decisions, labels, stamps, seqs, out.config)
@@ -300,10 +317,23 @@ class ClassifierService(Service):
             self.counters.inc("rejected.classifier/config")
             query.reply_err(encode(ConfigReply(ok=False, config=self.core.config, error=str(exc))))
             return
+        model = None
+        if cfg.calibration == "file" and cfg.calibration_file:
+            try:  # read here, off the worker: a slow disk must not stall frames
+                model = read_calibration(cfg.calibration_file)
+            except CalibrationFileError as exc:
+                self.counters.inc("rejected.classifier/config")
+                query.reply_err(encode(ConfigReply(ok=False, config=self.core.config,
+                                                   error=f"calibration_file: {exc}")))
+                return
         fut: Future = Future()
-        self._queue.put(("config", (cfg, fut), None), timeout=CONFIG_APPLY_TIMEOUT_S)  # bounded, as above
+        self._queue.put(("config", (cfg, fut), model), timeout=CONFIG_APPLY_TIMEOUT_S)  # bounded, as above
         try:
             in_force = fut.result(timeout=CONFIG_APPLY_TIMEOUT_S)
+        except ValueError as exc:  # refused by the core (check_config): nothing applied
+            self.counters.inc("rejected.classifier/config")
+            query.reply_err(encode(ConfigReply(ok=False, config=self.core.config, error=str(exc))))
+            return
         except Exception as exc:  # worker stuck or stopping: say so, the write may not be in force
             query.reply_err(encode(ConfigReply(ok=False, config=self.core.config, error=f"not applied: {exc}")))
             return
@@ -318,7 +348,8 @@ class ClassifierService(Service):
         """
         with self._latest_lock:
             latest = self._latest
-        base = {"schema_version": SCHEMA_VERSION, "counters": self.counters.snapshot()}
+        base = {"schema_version": SCHEMA_VERSION, "counters": self.counters.snapshot(),
+                "calibration": self._calibration}
         if latest is None:
             return {**base, "header": {"stamp": 0, "frame_id": "map", "seq": 0},
                     "config": self.core.config.model_dump(mode="python"), "tracks": []}
@@ -343,6 +374,10 @@ class ClassifierService(Service):
             })
         return {**base, "header": dict(latest.header),
                 "config": latest.config.model_dump(mode="python"), "tracks": tracks}
+
+    def gauges(self) -> dict[str, float]:
+        """The heartbeat's gauges: the calibration the latest frame was decided with (:func:`calibration_gauges`)."""
+        return self._gauges
 
     def _on_state_query(self, query: zenoh.Query) -> None:
         with self._latest_lock:

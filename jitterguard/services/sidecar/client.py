@@ -27,7 +27,7 @@ import zenoh
 from ...runtime import Service, ZenohOptions
 from ...schemas import DecodeError, decode, decode_with_raw, encode, keys
 from ...schemas.models import ClassifierConfig, ClassifierStateSnapshot, ConfigReply, Heartbeat
-from .core import RenderedState, config_to_api, diff_states, pipeline_problems, render_state
+from .core import ConfigError, RenderedState, config_to_api, diff_states, pipeline_problems, render_state
 from .metrics import SidecarMetrics
 
 CLASSIFIER = "classifier"
@@ -233,7 +233,7 @@ class ClassifierClient(Service):
             raise ClassifierUnavailable(
                 f"classifier unreachable (liveliness token {self._alive_key} is absent); {action}")
 
-    def _config_reply(self, kind: str, data: bytes, key: str) -> ConfigReply:
+    def _config_reply(self, kind: str, data: bytes, key: str, sent: ClassifierConfig | None = None) -> ConfigReply:
         try:
             reply = decode(ConfigReply, data)
         except DecodeError as exc:
@@ -244,6 +244,12 @@ class ClassifierClient(Service):
         if kind != "ok" or not reply.ok:
             if (reply.error or "").startswith("not applied"):
                 raise ClassifierUnavailable(f"the classifier did not apply the write: {reply.error}")
+            field, sep, why = (reply.error or "").partition(": ")
+            if sep and sent is not None and field in ClassifierConfig.model_fields:
+                # a field only the classifier can check (calibration_file: a path on its host): the client's
+                # input, so a 422 naming it
+                raise ConfigError([{"type": "value_error", "loc": ["body", field], "msg": why,
+                                    "input": getattr(sent, field)}])
             raise ClassifierRejected(f"the classifier refused the config: {reply.error}")
         return reply
 
@@ -268,7 +274,7 @@ class ClassifierClient(Service):
             raise ClassifierUnavailable(
                 f"the classifier did not confirm the write ({exc}); a config is applied whole or not at all — "
                 f"GET /v1/config shows what is in force") from None
-        in_force = self._config_reply(kind, data, key).config
+        in_force = self._config_reply(kind, data, key, cfg).config
         self._emit("config", config_to_api(in_force))
         return in_force
 

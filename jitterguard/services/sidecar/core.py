@@ -19,6 +19,7 @@ from pydantic.fields import FieldInfo
 from ...runtime.bind_policy import is_loopback
 from ...schemas.models import (
     LABEL_NAMES,
+    CalibrationState,
     ClassifierConfig,
     ClassifierStateSnapshot,
 )
@@ -82,6 +83,9 @@ class StateView(BaseModel):
     polled_at_ns: int = Field(ge=0, description="wall time (ns since epoch) when the sidecar fetched it")
     counts: StateCounts
     tracks: list[TrackView]
+    calibration: CalibrationState | None = Field(
+        None, description="the variance calibration the frame was decided with: scales per class group, "
+        "line-of-sight axis, range band and track age, and the measured serial correlation (docs/calibration.md)")
 
 
 class ErrorBody(BaseModel):
@@ -134,9 +138,13 @@ _CONFIG_DOCS: dict[str, str] = {
     "window_size": "observations kept per track (sliding window)",
     "min_window": "observations needed before a track is tested (must not exceed window_size)",
     "variance_floor": "lower bound on each half's mean predicted variance, m²",
-    "effective_n": "`cluster`: each half counts as one sample (the paper); `independent`: real counts",
-    "velocity_threshold": "speed above which the baseline calls a track dynamic, m/s",
+    "effective_n": "`measured` (default): the variance of the half-mean difference under the calibrated serial "
+                   "correlation; `cluster`: each half counts as one sample (the paper); `independent`: real counts",
+    "velocity_threshold": "speed above which the baseline calls a track dynamic, m/s (classes not in "
+                          "velocity_threshold_per_class)",
 }
+_CONFIG_DOCS.update({name: (info.description or name) for name, info in ClassifierConfig.model_fields.items()
+                     if name not in _CONFIG_DOCS and name != "schema_version"})
 CONFIG_FIELDS: tuple[str, ...] = tuple(n for n in ClassifierConfig.model_fields if n != "schema_version")
 
 
@@ -161,8 +169,13 @@ def _strict_json(tp: Any, metadata: list[Any]) -> Any:
     return Annotated[(tp, *metadata)] if metadata else tp  # type: ignore[misc]  # Literal: exact strings only
 
 
+PER_CLASS_FIELDS = ("alpha_per_class", "velocity_threshold_per_class", "velocity_sustain_s_per_class")
+"""Config maps keyed by lowercase class name: the keys are an enum in the OpenAPI schema, and a merge patch
+merges them key by key."""
+
+
 def _alpha_type(info: FieldInfo) -> Any:
-    """The per-class alpha value type (Annotated[float, gt, le] in the wire model), JSON-strict."""
+    """The value type of a per-class map (Annotated[float, …] in the wire model), JSON-strict."""
     value = info.annotation.__args__[1]  # type: ignore[union-attr]
     return _strict_json(float, list(getattr(value, "__metadata__", ())))
 
@@ -172,14 +185,14 @@ def _build_config_models() -> tuple[type[BaseModel], type[BaseModel]]:
 
     ``Config`` is the full config (PUT body, GET reply): every field with its default. ``ConfigPatch`` is a
     JSON merge patch (RFC 7386) of it: absent = unchanged, ``null`` = back to the default, and inside
-    ``alpha_per_class`` a ``null`` value removes that class's override.
+    a per-class map (:data:`PER_CLASS_FIELDS`) a ``null`` value removes that class's entry.
     """
     full: dict[str, Any] = {}
     patch: dict[str, Any] = {}
     for name in CONFIG_FIELDS:
         info = ClassifierConfig.model_fields[name]
         doc = _CONFIG_DOCS[name]
-        if name == "alpha_per_class":  # class-name keys as an enum, so the OpenAPI schema lists them
+        if name in PER_CLASS_FIELDS:  # class-name keys as an enum, so the OpenAPI schema lists them
             constrained: Any = dict[ClassName, _alpha_type(info)]  # type: ignore[valid-type,misc]
         else:
             constrained = _strict_json(info.annotation, list(info.metadata))
@@ -188,7 +201,7 @@ def _build_config_models() -> tuple[type[BaseModel], type[BaseModel]]:
         else:
             spec = Field(default=info.default, description=doc)
         full[name] = (constrained, spec)
-        if name == "alpha_per_class":
+        if name in PER_CLASS_FIELDS:
             pann = dict[ClassName, _alpha_type(info) | None] | None  # type: ignore[valid-type,misc]
         else:
             pann = constrained | None
@@ -198,7 +211,7 @@ def _build_config_models() -> tuple[type[BaseModel], type[BaseModel]]:
     config_model.__doc__ = "The motion classifier's tunables (what is in force, or what to put in force)."
     patch_model = create_model("ConfigPatch", __config__=cfg, **patch)  # type: ignore[call-overload]
     patch_model.__doc__ = ("A JSON merge patch of the config: absent fields stay, `null` resets a field to its "
-                           "default, a `null` in alpha_per_class removes that class's override.")
+                           "default, a `null` inside a per-class map removes that class's entry.")
     return config_model, patch_model
 
 
@@ -229,8 +242,9 @@ def _window_field(touched: Iterable[str]) -> str:
 def validate_config(data: Mapping[str, Any], touched: Iterable[str] | None = None) -> ClassifierConfig:
     """Validate a full config dict with the classifier's own model; raise :class:`ConfigError` naming fields.
 
-    The model's cross-field rule (min_window ≤ window_size) has no field of its own in pydantic's error, so
-    it is attributed to the field the request touched; a 422 always names a field.
+    The model's cross-field rules have no field of its own in pydantic's error: ``calibration: file`` without
+    a file is attributed to ``calibration_file``, min_window ≤ window_size to the window field the request
+    touched; a 422 always names a field.
     """
     try:
         return ClassifierConfig.model_validate(dict(data))
@@ -239,8 +253,9 @@ def validate_config(data: Mapping[str, Any], touched: Iterable[str] | None = Non
         for err in exc.errors(include_url=False, include_context=False):
             loc = tuple(err.get("loc", ()))
             value = err.get("input")
-            if not loc:  # the model-level rule: name the field the request touched, echo its value
-                name = _window_field(touched if touched is not None else data)
+            if not loc:  # a model-level rule: name the field it is about, echo its value
+                name = ("calibration_file" if "calibration_file" in err.get("msg", "")
+                        else _window_field(touched if touched is not None else data))
                 loc, value = (name,), data.get(name)
             errors.append({"type": err.get("type", "value_error"), "loc": ["body", *loc], "msg": err.get("msg", ""),
                            "input": _jsonable(value)})
@@ -282,7 +297,8 @@ def merge_patch(current: ClassifierConfig, patch: Mapping[str, Any]) -> Classifi
     """Apply a JSON merge patch (RFC 7386) to ``current`` and validate the result.
 
     ``patch`` holds only the fields the client sent. ``null`` resets a field to its default; in
-    ``alpha_per_class`` the patch merges key by key and a ``null`` value drops that class's override.
+    a per-class map (:data:`PER_CLASS_FIELDS`) the patch merges key by key and a ``null`` value drops that
+    class's entry.
     """
     unknown = sorted(set(patch) - set(CONFIG_FIELDS))
     if unknown:
@@ -293,11 +309,11 @@ def merge_patch(current: ClassifierConfig, patch: Mapping[str, Any]) -> Classifi
     for name, value in patch.items():
         if value is None:
             merged[name] = defaults[name]
-        elif name == "alpha_per_class":
+        elif name in PER_CLASS_FIELDS:
             if not isinstance(value, Mapping):
                 merged[name] = value  # let validation name it
                 continue
-            per_class = dict(merged["alpha_per_class"])
+            per_class = dict(merged[name])
             for cls, alpha in value.items():
                 if alpha is None:
                     per_class.pop(cls, None)
@@ -372,6 +388,7 @@ class RenderedState:
     config: ClassifierConfig
     counters: dict[str, int]
     tracks: dict[str, dict[str, Any]]  # id -> track dict, in id order
+    calibration: dict[str, Any] | None
     counts: dict[str, int]
     by_class_state: dict[tuple[str, str], int]
     body: bytes  # the whole ``GET /v1/state`` response
@@ -388,7 +405,8 @@ def render_state(snap: ClassifierStateSnapshot, polled_at_ns: int,
     """
     mode = snap.config.mode
     seq = snap.header.seq
-    entries = (raw or snap.model_dump(mode="python"))["tracks"]
+    data = raw or snap.model_dump(mode="python")
+    entries = data["tracks"]
     entries = sorted(entries, key=lambda e: e["track_id"])
     tracks = {e["track_id"]: track_view(e, mode, seq) for e in entries}
     by_class_state = aggregate_by_class_state(tracks.values())
@@ -399,10 +417,12 @@ def render_state(snap: ClassifierStateSnapshot, polled_at_ns: int,
     view = {
         "seq": seq, "stamp_ns": snap.header.stamp, "frame_id": snap.header.frame_id, "mode": mode,
         "polled_at_ns": polled_at_ns, "counts": counts, "tracks": list(tracks.values()),
+        "calibration": data.get("calibration"),
     }
     return RenderedState(seq=seq, stamp_ns=snap.header.stamp, frame_id=snap.header.frame_id,
                          polled_at_ns=polled_at_ns, config=snap.config,
-                         counters=dict(snap.counters), tracks=tracks, counts=counts,
+                         counters=dict(snap.counters), tracks=tracks, calibration=data.get("calibration"),
+                         counts=counts,
                          by_class_state=by_class_state, body=dumps(view))
 
 

@@ -111,12 +111,39 @@ class ClassifierCollector(Collector):
         for label, cls in enumerate(CLASS_NAMES):
             alpha.add_metric([cls], float(cfg.alpha_for(label)))
         yield alpha
+        yield from calibration_families(getattr(st, "calibration", None))
         hist = latency_histogram(counters)
         if hist is not None:
             fam = HistogramMetricFamily("jitterguard_classifier_frame_latency_seconds",
                                         "Classifier latency per frame: closing message in to objects out")
             fam.add_metric([], [(_le(le), float(n)) for le, n in hist.buckets], sum_value=hist.sum_s)
             yield fam
+
+
+def calibration_families(cal: dict | None) -> Iterator:
+    """The classifier's variance calibration as gauges (absent before its first snapshot)."""
+    if not cal:
+        return
+    scale = GaugeMetricFamily("jitterguard_classifier_variance_scale",
+                              "True / reported positional variance the classifier applies, by class group, "
+                              "line-of-sight axis, range band and track age", labels=["group", "axis", "band", "age"])
+    corr = GaugeMetricFamily("jitterguard_classifier_serial_correlation",
+                             "Serially correlated share m of the detection error", labels=["group", "axis"])
+    tau = GaugeMetricFamily("jitterguard_classifier_correlation_time_seconds",
+                            "Correlation time of the serially correlated error", labels=["group", "axis"])
+    factor = GaugeMetricFamily("jitterguard_classifier_variance_factor",
+                               "Var(half-mean difference) under the serial correlation / under independence, "
+                               "full window", labels=["group", "axis"])
+    for g, entry in cal.get("groups", {}).items():
+        for axis in ("along", "across"):
+            a = entry[axis]
+            for key, age in (("scale", "established"), ("scale_young", "young")):
+                for band, v in a[key].items():
+                    scale.add_metric([g, axis, band, age], float(v))
+            corr.add_metric([g, axis], float(a["correlation"]))
+            tau.add_metric([g, axis], float(a["correlation_time_s"]))
+            factor.add_metric([g, axis], float(a["variance_factor"]))
+    yield from (scale, corr, tau, factor)
 
 
 def _le(bound: float) -> str:

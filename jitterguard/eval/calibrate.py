@@ -1,0 +1,172 @@
+"""``jitterguard calibrate RECORDING --out calibration.yaml``: fit the classifier's variance calibration offline.
+
+Why: the online calibration needs a few hundred track windows before it trusts itself; a vehicle that starts
+with last drive's scales decides well from its first frame. This command runs a recording through exactly the
+live path — replay source → (scans) the detector service's steps → the tracker core through its wire
+conversions → the classifier core with ``calibration: online`` — and writes the scales the online estimator
+ends with (no labels anywhere; each block of observations counted once; no forgetting, so every part of the
+recording counts the same). The classifier loads the file with ``calibration: file``
+(``jitterguard classifier --calibration-file``; ``calibration_file`` in the config).
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated, Any
+
+import typer
+
+from ..cli_common import fail, progress_on
+
+if TYPE_CHECKING:
+    from ..schemas.models import ClassifierConfig
+    from ..services.classifier.calibration import OnlineCalibration
+
+
+def calibrate_detections(payloads: Iterable[bytes], config: "ClassifierConfig",
+                         ) -> tuple["OnlineCalibration", dict[str, int]]:
+    """The online calibration after every ``DetectedObjects`` payload of a recording (in order), and what it saw.
+
+    Pure given its inputs: the payloads go through exactly the services' seams, as in the evaluator
+    (:func:`.pipeline.track_and_classify`) — read by the tracker's read function into the tracker core, its
+    ``tracks/{id}`` and ``tracked`` payloads into a classifier adapter with ``calibration: online``; the tracks
+    still alive at the end give their last observations too (as the live classifier does on eviction).
+    """
+    from ..schemas import read_detected_objects
+    from ..services.classifier.adapter import ClassifierAdapter
+    from ..services.classifier.calibration import OnlineCalibration
+    from ..services.tracker.adapter import detection_frame, observation_payloads, tracked_payload
+    from ..services.tracker.config import default_config
+    from ..services.tracker.core import FrameRejected, TrackerCore
+    from .pipeline import _classify, _id_factory
+
+    cfg = config.model_copy(update={"calibration": "online", "mode": "z_test"})
+    cal = OnlineCalibration(tuple(cfg.calibration_range_bands_m), cfg.calibration_prior_blocks, math.inf,
+                            cfg.window_size)
+    trk = TrackerCore(default_config(), _id_factory())
+    adapter = ClassifierAdapter(cfg, limits=trk.config.limits, calibration=cal)
+    frames = observations = 0
+    for payload in payloads:
+        det = read_detected_objects(payload, trk.config.limits)
+        frame = detection_frame(det)
+        try:
+            result = trk.step(frame)
+        except FrameRejected:
+            continue
+        frames += 1
+        obs = [p for _, p in observation_payloads(det, frame, result)]
+        observations += len(obs)
+        _classify(adapter, obs, tracked_payload(det, frame, result))
+    adapter.core.reset()
+    cal.refit()
+    return cal, {"frames": frames, "observations": observations, **cal.counts}
+
+
+def recording_detections(source: Any, detector: Any, start: int, limit: int | None,
+                         errors: list[str]) -> Iterator[bytes]:
+    """The ``DetectedObjects`` payload of every frame of a replay source: scans through the detector service's
+    steps, detection-level frames as the replay publishes them. Unreadable frames are skipped (appended to
+    ``errors``)."""
+    from ..schemas import encode
+    from ..services.detector.adapter import detections_payload
+    from ..services.replay.adapter import detections_message, point_cloud_message
+    from ..services.replay.frames import FrameError, ScanFrame
+    from .detector_input import detect_scan
+
+    for i, item in enumerate(source.frames(start)):
+        if limit is not None and i >= limit:
+            return
+        if isinstance(item, FrameError):
+            errors.append(str(item))
+            continue
+        if isinstance(item, ScanFrame):
+            scan = point_cloud_message(item, i, item.stamp_ns)
+            det = detect_scan(detector.detect, scan, uncertainty=detector.config.uncertainty)
+            yield detections_payload(det, scan.header, scan.ego_pose, detector.config.class_names)
+        else:
+            yield encode(detections_message(item, i, item.stamp_ns))
+
+
+def calibrate_command(
+    recording: Annotated[str, typer.Argument(help="Any replay source: synthetic:SCENARIO, a nuScenes dataroot, a "
+                                             "bag, a folder of .bin or .pcd scans.")],
+    out: Annotated[Path, typer.Option("--out", help="The calibration file to write (YAML).")],
+    weights: Annotated[Path | None, typer.Option("--weights", help="Detector weights for scan sources (default: the "
+                                                 "shipped lite weights).")] = None,
+    threads: Annotated[int | None, typer.Option("--threads", min=1, max=1024, help="torch CPU threads of the "
+                                                "detector.")] = None,
+    window_size: Annotated[int, typer.Option("--window-size", min=5, max=64, help="The classifier's window "
+                                             "(blocks are windows).")] = 10,
+    range_bands: Annotated[str, typer.Option("--range-bands", help="Range band edges in metres, comma-separated."
+                                             )] = "20,40",
+    start: Annotated[int, typer.Option("--start", min=0, help="First frame (0-based).")] = 0,
+    limit: Annotated[int | None, typer.Option("--limit", min=1, help="At most this many frames.")] = None,
+    level: Annotated[str, typer.Option("--level", help="Synthetic sources: 'points' or 'detections'.")] = "points",
+    seed: Annotated[int, typer.Option("--seed", help="Synthetic sources: scenario seed.")] = 0,
+    duration: Annotated[float, typer.Option("--duration", help="Synthetic sources: length in seconds.")] = 20.0,
+    hz: Annotated[float, typer.Option("--hz", help="Synthetic frame rate; stamp spacing of recordings without "
+                                      "time.")] = 10.0,
+    scene: Annotated[str | None, typer.Option("--scene", help="nuScenes: scene name or token.")] = None,
+    topic: Annotated[str | None, typer.Option("--topic", help="Bags: the PointCloud2 or DetectedObjects "
+                                              "topic.")] = None,
+    pose_topic: Annotated[str | None, typer.Option("--pose-topic", help="Bags: the ego pose topic (/tf, "
+                                                   "Odometry, PoseStamped).")] = None,
+    progress: Annotated[bool | None, typer.Option("--progress/--no-progress", help="Progress bar (default: when "
+                                                  "stderr is a terminal).")] = None,
+) -> None:
+    """Fit the classifier's variance calibration from a recording (no labels); write it for calibration: file."""
+    from ..schemas.models import ClassifierConfig
+    from ..services.classifier.calibration_file import write_calibration
+    from ..services.replay.frames import SourceError
+    from ..services.replay.sources import SourceOptions, open_source
+
+    try:
+        bands = [float(x) for x in range_bands.split(",") if x.strip()]
+        cfg = ClassifierConfig(window_size=window_size, calibration_range_bands_m=bands)
+    except ValueError as exc:
+        fail(f"--range-bands: {' '.join(str(exc).split())[:200]}")
+    if not 0 < hz < 1e6 or not 0 < duration <= 3600:
+        fail("--hz must be positive and --duration in (0, 3600]")
+    if out.exists() and out.is_dir():
+        fail(f"--out: {out} is a folder")
+    opts = SourceOptions(level=level, seed=seed, duration_s=duration, rate_hz=hz, scene=scene, topic=topic,
+                         pose_topic=pose_topic, period_ns=int(round(1e9 / hz)))
+    try:
+        src = open_source(recording, opts)
+    except SourceError as exc:
+        fail(str(exc))
+    except Exception as exc:  # a reader that failed in a way it did not foresee: still one line
+        fail(f"{recording}: cannot open: {type(exc).__name__}: {exc}")
+    detector = None
+    with src:
+        if src.info.kind == "points":
+            from .cli import load_detector
+
+            detector, _ = load_detector(weights, threads)
+        elif weights is not None or threads is not None:
+            fail("--weights and --threads apply to scan sources; this one holds detections")
+        errors: list[str] = []
+        msgs: Iterable[Any] = recording_detections(src, detector, start, limit, errors)
+        if progress_on(progress):
+            from tqdm import tqdm  # type: ignore[import-untyped]
+
+            total = src.info.num_frames
+            msgs = tqdm(msgs, total=None if total is None else max(0, min(total - start, limit or total)),
+                        desc="calibrate", unit="frame", file=sys.stderr)
+        cal, seen = calibrate_detections(msgs, cfg)
+    if seen["blocks"] == 0:
+        fail(f"{recording}: no track stood still long enough to calibrate on ({seen['frames']} frames, "
+             f"{seen['observations']} observations); use a longer recording")
+    source = {"recording": recording, "frames": seen["frames"], "observations": seen["observations"],
+              "blocks": seen["blocks"], "blocks_fast": seen["blocks_fast"], "unreadable_frames": len(errors)}
+    write_calibration(out, cal.model(), window=window_size, source=source)
+    print(f"wrote {out}: {seen['blocks']} blocks from {seen['frames']} frames"
+          + (f" ({len(errors)} unreadable frames skipped)" if errors else ""))
+
+
+def register(app: typer.Typer, bench_app: typer.Typer) -> None:
+    """Add ``calibrate`` (no benchmark)."""
+    app.command("calibrate")(calibrate_command)

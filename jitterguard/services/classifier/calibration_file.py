@@ -1,0 +1,81 @@
+"""The calibration file: what ``jitterguard calibrate`` writes and the classifier reads with ``calibration: file``.
+
+YAML, so a perception engineer can read and diff it::
+
+    format: jitterguard-calibration/1
+    range_bands_m: [20.0, 40.0]
+    frame_interval_s: 0.1
+    window: 10
+    groups:
+      vehicle:
+        track_dof: 6.5
+        along: {scale: {0-20: 0.41, ...}, scale_young: {...}, blocks: {...}, blocks_young: {...},
+                correlation: 0.58, correlation_time_s: 0.07, variance_factor: 1.15}
+        across: {...}
+      ...
+    source: {recording: ..., frames: ..., ...}     # free-form provenance, not read back
+
+The content is :meth:`~.calibration.NoiseModel.to_mapping`; reading validates every number (finite, in range)
+and names the first bad entry. The only I/O of the calibration; the core never reads files.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from .calibration import NoiseModel
+
+FORMAT = "jitterguard-calibration/1"
+MAX_BYTES = 1 << 20
+"""A calibration file is a few kilobytes; anything above this is refused unread."""
+
+
+class CalibrationFileError(ValueError):
+    """A calibration file that cannot be used (the message is one line and names the file and the entry)."""
+
+
+def dump_calibration(model: NoiseModel, *, window: int, source: dict[str, Any] | None = None) -> str:
+    """The YAML text of a calibration file for ``model`` (``source``: provenance, written as given)."""
+    data = {"format": FORMAT, **model.to_mapping(window)}
+    if source:
+        data["source"] = source
+    return yaml.safe_dump(data, sort_keys=False, default_flow_style=None, width=110)
+
+
+def write_calibration(path: Path, model: NoiseModel, *, window: int, source: dict[str, Any] | None = None) -> None:
+    """Write ``model`` to ``path`` (parents created)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(dump_calibration(model, window=window, source=source), encoding="utf-8")
+
+
+def parse_calibration(text: str, where: str = "calibration") -> NoiseModel:
+    """A :class:`NoiseModel` from the text of a calibration file; :class:`CalibrationFileError` otherwise."""
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise CalibrationFileError(f"{where}: not YAML: {' '.join(str(exc).split())[:200]}") from None
+    if not isinstance(data, dict):
+        raise CalibrationFileError(f"{where}: expected a mapping with format {FORMAT!r}")
+    if data.get("format") != FORMAT:
+        raise CalibrationFileError(f"{where}: format must be {FORMAT!r}, got {data.get('format')!r}")
+    try:
+        return NoiseModel.from_mapping(data)
+    except ValueError as exc:
+        raise CalibrationFileError(f"{where}: {exc}") from None
+
+
+def read_calibration(path: str | Path) -> NoiseModel:
+    """Read and validate a calibration file; :class:`CalibrationFileError` (one line) when it cannot be used."""
+    p = Path(path)
+    try:
+        if p.stat().st_size > MAX_BYTES:
+            raise CalibrationFileError(f"{p}: larger than {MAX_BYTES} bytes, not a calibration file")
+        text = p.read_text(encoding="utf-8")
+    except CalibrationFileError:
+        raise
+    except (OSError, UnicodeDecodeError) as exc:
+        raise CalibrationFileError(f"{p}: cannot read: {exc.__class__.__name__}: {exc}") from None
+    return parse_calibration(text, str(p))

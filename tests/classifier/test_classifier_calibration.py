@@ -1,0 +1,408 @@
+"""Variance self-calibration: the block moments, the online estimator, the calibrated statistic, the file.
+
+Every expectation here is computed independently of the code under test (simulated noise with known scale and
+correlation, plain numpy formulas), and every random draw is seeded.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from jitterguard.schemas.models import ClassifierConfig, Label
+from jitterguard.services.classifier.calibration import (
+    GROUPS,
+    MAX_BLOCK_SPEED,
+    SCALE_BOUNDS,
+    NoiseModel,
+    OnlineCalibration,
+    block_moments,
+    group_of_labels,
+)
+from jitterguard.services.classifier.calibration_file import (
+    FORMAT,
+    CalibrationFileError,
+    parse_calibration,
+    read_calibration,
+    write_calibration,
+)
+from jitterguard.services.classifier.core import (
+    DYNAMIC,
+    STATIC,
+    MotionClassifierCore,
+    Observations,
+    calibration_gauges,
+)
+from jitterguard.services.classifier.statistics import calibrated_statistics
+
+
+def ar_noise(rng: np.random.Generator, shape: tuple[int, int], dt: float, m: float, tau: float) -> np.ndarray:
+    """Unit-variance noise over the last axis: white share 1 − m, exp(−|Δt|/τ)-correlated share m."""
+    n_blk, n = shape
+    phi = math.exp(-dt / tau)
+    c = rng.standard_normal(n_blk)
+    out = np.empty(shape)
+    for j in range(n):
+        if j:
+            c = phi * c + math.sqrt(1 - phi * phi) * rng.standard_normal(n_blk)
+        out[:, j] = math.sqrt(1 - m) * rng.standard_normal(n_blk) + math.sqrt(m) * c
+    return out
+
+
+def blocks(rng: np.random.Generator, n_blk: int, k: float, m: float, tau: float, *, sigma: float = 0.2,
+           n: int = 10, dt: float = 0.1, speed: float = 0.0) -> tuple[np.ndarray, ...]:
+    """Objects 10–50 m from a sensor at the origin, moving at ``speed`` along a random heading, with errors
+    of true variance k·σ² (σ reported) along and across the line of sight."""
+    t = np.arange(n) * dt + rng.uniform(0, 100, (n_blk, 1))
+    rng_m = rng.uniform(10, 50, n_blk)
+    bearing = rng.uniform(-np.pi, np.pi, n_blk)
+    u = np.stack([np.cos(bearing), np.sin(bearing)], -1)
+    v = np.stack([-u[:, 1], u[:, 0]], -1)
+    head = rng.uniform(-np.pi, np.pi, n_blk)
+    vel = speed * np.stack([np.cos(head), np.sin(head)], -1)
+    e_u = ar_noise(rng, (n_blk, n), dt, m, tau) * sigma * math.sqrt(k)
+    e_v = ar_noise(rng, (n_blk, n), dt, m, tau) * sigma * math.sqrt(k)
+    pos = (rng_m[:, None, None] * u[:, None, :] + vel[:, None, :] * (t - t[:, :1])[..., None]
+           + e_u[..., None] * u[:, None, :] + e_v[..., None] * v[:, None, :])
+    cov = np.tile([sigma**2, 0.0, sigma**2], (n_blk, n, 1))
+    return t, pos, cov, np.zeros((n_blk, n, 2))
+
+
+def half_contrast_variance(k: float, m: float, tau: float, n: int = 10, dt: float = 0.1) -> float:
+    """Var(μ̄_new − μ̄_old) per unit reported variance, straight from the definition."""
+    t = np.arange(n) * dt
+    R = (1 - m) * np.eye(n) + m * np.exp(-np.abs(t[:, None] - t[None, :]) / tau)
+    h = n // 2
+    w = np.r_[np.full(h, -1 / h), np.full(n - h, 1 / (n - h))]
+    return float(k * w @ R @ w)
+
+
+def fitted(cal: OnlineCalibration, group: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    model = cal.refit()
+    return model.scale[group, :, 1, 0], model.correlation[group], model.tau_s[group]
+
+
+def feed(cal: OnlineCalibration, data: tuple[np.ndarray, ...], batch: int = 25, group: int = 0) -> None:
+    t, pos, cov, sensor = data
+    for i in range(0, len(t), batch):
+        sl = slice(i, i + batch)
+        cal.add(np.full(len(t[sl]), group), block_moments(t[sl], pos[sl], cov[sl], sensor[sl]))
+
+
+# ------------------------------------------------------------------------------------------- block moments
+
+
+def test_residuals_do_not_see_constant_velocity() -> None:
+    """A straight line in time leaves the residual moments unchanged: moving steadily looks like standing."""
+    rng = np.random.default_rng(0)
+    t, pos, cov, _ = blocks(rng, 20, 2.0, 0.3, 0.5)
+    sensor = np.full(pos.shape, -5000.0)  # far away: the line of sight does not turn while the object moves
+    still = block_moments(t, pos, cov, sensor)
+    vel = np.array([3.0, -2.0])
+    moving = block_moments(t, pos + vel * (t - t[:, :1])[..., None], cov, sensor)
+    np.testing.assert_allclose(moving.Y, still.Y, rtol=1e-2, atol=5e-3)
+
+
+def test_white_noise_expectation_is_exact() -> None:
+    """Σ over blocks of ε̃ε̃ᵀ approaches k·G Gᵀ: the trace of one block's residual sum is k (n − 2) on average."""
+    rng = np.random.default_rng(1)
+    mom = block_moments(*blocks(rng, 4000, 3.0, 0.0, 0.5))
+    tr_y = np.einsum("naii->na", mom.Y).mean()
+    tr_w = np.einsum("naii->na", mom.Ew).mean()
+    assert tr_w == pytest.approx(8.0, rel=1e-6)  # n − 2 residual degrees of freedom, equal variances
+    assert tr_y / tr_w == pytest.approx(3.0, rel=0.03)
+
+
+@pytest.mark.parametrize(("k", "m", "tau"), [(1.0, 0.0, 0.5), (4.0, 0.0, 0.5), (4.0, 0.5, 0.3),
+                                              (0.25, 0.5, 1.0), (1.0, 0.5, 0.2)])
+def test_online_fit_recovers_the_half_window_variance(k: float, m: float, tau: float) -> None:
+    """What the test needs — the variance of a half-window mean difference — within 30 % from 2000 blocks,
+    whatever the scale and the serial correlation (the slow part is only partly visible in a window: the
+    parametric model extrapolates it)."""
+    rng = np.random.default_rng(2)
+    cal = OnlineCalibration(prior_blocks=20.0, half_life_s=math.inf)
+    feed(cal, blocks(rng, 2000, k, m, tau))
+    ks, ms, ts = fitted(cal)
+    for ai in range(2):
+        est = half_contrast_variance(ks[ai], ms[ai], ts[ai])
+        assert est / half_contrast_variance(k, m, tau) == pytest.approx(1.0, abs=0.3)
+
+
+def test_white_scale_is_accurate_and_shared_by_every_range_band() -> None:
+    rng = np.random.default_rng(3)
+    cal = OnlineCalibration(prior_blocks=20.0, half_life_s=math.inf)
+    feed(cal, blocks(rng, 2000, 2.5, 0.0, 0.5))
+    model = cal.refit()
+    # the three range bands of vehicles (established tracks), both axes
+    assert np.allclose(model.scale[0, :, :, 0], 2.5, rtol=0.12)
+
+
+def test_scaling_every_reported_variance_scales_the_estimate() -> None:
+    """The invariance the classifier needs: report every variance ×¼ (or ×4) and the learnt scale moves by ×4
+    (×¼), so the calibrated variances — and every z — stay where they were."""
+    base = None
+    for factor in (0.25, 1.0, 4.0):
+        rng = np.random.default_rng(4)
+        t, pos, cov, sensor = blocks(rng, 1500, 2.0, 0.3, 0.4)
+        cal = OnlineCalibration(prior_blocks=20.0, half_life_s=math.inf)
+        feed(cal, (t, pos, cov * factor, sensor))
+        model = cal.refit()
+        calibrated = model.scale[0, :, :, 0] * factor
+        if base is None:
+            base = calibrated
+        np.testing.assert_allclose(calibrated, base, rtol=0.05)
+
+
+def test_outlier_blocks_barely_move_the_scale() -> None:
+    """Misassociations and ghosts: 5 % of blocks with a metre-sized outlier. Unweighted they would double the
+    scale; down-weighted each counts like HUBER_C ordinary blocks at most. (A jump that persists looks like
+    motion and the block is not pooled at all: ``test_fast_blocks_are_not_pooled``.)"""
+    rng = np.random.default_rng(5)
+    t, pos, cov, sensor = blocks(rng, 2000, 1.0, 0.0, 0.5)
+    clean = OnlineCalibration(prior_blocks=20.0, half_life_s=math.inf)
+    feed(clean, (t, pos, cov, sensor))
+    bad = pos.copy()
+    idx = rng.choice(len(t), 100, replace=False)
+    bad[idx, 4] += rng.normal(0, 1.5, (100, 2))  # one frame on a neighbour (a misassociation, a ghost)
+    dirty = OnlineCalibration(prior_blocks=20.0, half_life_s=math.inf)
+    feed(dirty, (t, bad, cov, sensor))
+    k_clean, k_dirty = fitted(clean)[0], fitted(dirty)[0]
+    assert np.all(k_dirty / k_clean < 1.3)
+    assert dirty.counts["blocks_downweighted"] > 50
+
+
+def test_fast_blocks_are_not_pooled() -> None:
+    rng = np.random.default_rng(6)
+    cal = OnlineCalibration(prior_blocks=20.0, half_life_s=math.inf)
+    feed(cal, blocks(rng, 200, 9.0, 0.0, 0.5, speed=3 * MAX_BLOCK_SPEED))
+    assert cal.counts["blocks"] == 0 and cal.counts["blocks_fast"] == 200
+    assert np.allclose(cal.refit().scale, 1.0)  # nothing learnt: the prior
+
+
+def test_a_handful_of_tracks_cannot_swing_a_cell_and_scales_stay_bounded() -> None:
+    rng = np.random.default_rng(7)
+    cal = OnlineCalibration(prior_blocks=20.0, half_life_s=math.inf)
+    feed(cal, blocks(rng, 3, 50.0, 0.0, 0.5), group=1)  # three pedestrian blocks, 50× too noisy
+    model = cal.refit()
+    assert np.all(model.scale[1, :, :, 0] < 10.0)
+    cal2 = OnlineCalibration(prior_blocks=0.0, half_life_s=math.inf)
+    feed(cal2, blocks(rng, 500, 1e5, 0.0, 0.5))
+    assert cal2.refit().scale.max() <= SCALE_BOUNDS[1]
+
+
+def test_forgetting_halves_the_evidence_per_half_life_and_time_may_restart() -> None:
+    rng = np.random.default_rng(8)
+    cal = OnlineCalibration(prior_blocks=20.0, half_life_s=60.0)
+    cal.advance(1000.0)
+    feed(cal, blocks(rng, 100, 2.0, 0.0, 0.5))
+    before = cal.effective_blocks
+    cal.advance(1060.0)
+    assert cal.effective_blocks == pytest.approx(before / 2)
+    cal.advance(5.0)  # a recording that started over: no forgetting, the clock restarts
+    assert cal.effective_blocks == pytest.approx(before / 2)
+    cal.advance(65.0)
+    assert cal.effective_blocks == pytest.approx(before / 4)
+
+
+def test_label_groups() -> None:
+    labels = [Label.UNKNOWN, Label.CAR, Label.TRUCK, Label.BUS, Label.TRAILER, Label.MOTORCYCLE, Label.BICYCLE,
+              Label.PEDESTRIAN, 99]
+    names = [GROUPS[g] for g in group_of_labels(np.array(labels))]
+    assert names == ["unknown", "vehicle", "vehicle", "vehicle", "vehicle", "cycle", "cycle", "pedestrian",
+                     "unknown"]
+
+
+# ------------------------------------------------------------------------------------------- the statistic
+
+
+def _windows(rng, n_trk, model, k, m, tau, *, sigma=0.2, n=10, dt=0.1, speed=0.0):
+    """Full windows of vehicles (channels of statistics.CHANNELS) whose errors follow (k, m, τ)."""
+    t, pos, cov, sensor = blocks(rng, n_trk, k, m, tau, sigma=sigma, n=n, dt=dt, speed=speed)
+    ordinal = np.tile(np.arange(n) + 100.0, (n_trk, 1))  # established tracks
+    return np.concatenate([pos, cov, t[..., None], sensor, ordinal[..., None]], axis=-1)
+
+
+def _stats(win, model, effective_n="measured", min_speed=0.0):
+    from jitterguard.services.classifier.statistics import split_halves as halves
+
+    n_trk, n = win.shape[:2]
+    masks = halves(np.zeros(n_trk, dtype=np.int64), np.full(n_trk, n), n)
+    return calibrated_statistics(win, masks, np.zeros(n_trk, dtype=np.int64), model, variance_floor=1e-6,
+                                 effective_n=effective_n, min_speed=min_speed)
+
+
+def _model(k: float, m: float, tau: float, track_dof: float = 1000.0) -> NoiseModel:
+    base = NoiseModel.prior()
+    g = len(GROUPS)
+    return NoiseModel(base.band_edges_m, np.full(base.scale.shape, k), np.full((g, 2), m), np.full((g, 2), tau),
+                      base.blocks, 0.1, np.full(g, track_dof))
+
+
+def test_measured_mode_fires_at_the_nominal_rate_under_correlated_noise() -> None:
+    """With the true scale and correlation, each axis' z of a parked car is |N(0, 1)|: P(z_x > 1.96) ≈ 5 %,
+    where counting observations as independent fires far more often and the paper's clusters far less."""
+    rng = np.random.default_rng(9)
+    k, m, tau = 3.0, 0.5, 0.4
+    win = _windows(rng, 6000, None, k, m, tau)
+    model = _model(k, m, tau)
+    z = _stats(win, model).z_x
+    se = math.sqrt(0.05 * 0.95 / len(z))
+    assert abs((z > 1.96).mean() - 0.05) < 4 * se
+    assert (_stats(win, model, "independent").z_x > 1.96).mean() > 0.08
+    assert (_stats(win, model, "cluster").z_x > 1.96).mean() < 0.01
+
+
+def test_measured_variance_stays_positive_with_strong_correlation_and_cross_terms() -> None:
+    """The denominator is a covariance: never negative, whatever m and the reported cross term."""
+    rng = np.random.default_rng(10)
+    win = _windows(rng, 500, None, 1.0, 0.0, 0.5)
+    win[..., 3] = rng.uniform(-0.039, 0.039, win.shape[:2])  # |cxy| up to almost sqrt(cxx·cyy)
+    stats = _stats(win, _model(1.0, 0.99, 3.0))
+    assert np.all(np.isfinite(stats.z_x)) and np.all(stats.z_x < 1e3)
+    assert np.all(np.isfinite(stats.chi2)) and np.all(stats.chi2 >= 0)
+
+
+def test_min_speed_is_the_null_hypothesis_speed() -> None:
+    """A box drifting at 8 cm/s with 5 mm noise is 'moving' against H0 v = 0 and static against |v| ≤ 0.1 m/s;
+    a car at 2 m/s is dynamic against either."""
+    rng = np.random.default_rng(12)
+    drift = _windows(rng, 50, None, 1.0, 0.0, 0.5, sigma=0.005, speed=0.08)
+    model = _model(1.0, 0.0, 0.5)
+    z0 = _stats(drift, model)
+    assert np.maximum(z0.z_x, z0.z_y).min() > 3
+    z01 = _stats(drift, model, min_speed=0.1)
+    assert np.all(np.maximum(z01.z_x, z01.z_y) == 0.0)
+    moving = _windows(rng, 50, None, 1.0, 0.0, 0.5, sigma=0.05, speed=2.0)
+    zm = _stats(moving, model, min_speed=0.1)
+    assert np.all(np.maximum(zm.z_x, zm.z_y) > 5)
+
+
+def test_a_track_noisier_than_its_class_learns_its_own_scale() -> None:
+    """Windows 4× noisier than the class calibration says: with a finite ν₀ their own residuals raise the
+    denominator, so far fewer of them are false alarms than with every track taken like its class."""
+    rng = np.random.default_rng(13)
+    win = _windows(rng, 3000, None, 4.0, 0.0, 0.5)
+    like_class = _stats(win, _model(1.0, 0.0, 0.5, track_dof=1000.0))
+    own = _stats(win, _model(1.0, 0.0, 0.5, track_dof=4.0))
+    fd = lambda s: (np.maximum(s.z_x, s.z_y) > 2.58).mean()  # noqa: E731
+    assert fd(like_class) > 0.2
+    assert fd(own) < fd(like_class) / 2
+
+
+# ------------------------------------------------------------------------------------------- the core
+
+
+def _obs(ids, x, y, t_s, sensor=(0.0, 0.0), var=0.01, label=Label.CAR):
+    n = len(ids)
+    return Observations.from_lists(ids, np.full(n, int(label)), x, y, np.full(n, var), np.zeros(n),
+                                   np.full(n, var), stamp_ns=int(round(t_s * 1e9)), sensor_x=sensor[0],
+                                   sensor_y=sensor[1])
+
+
+def test_core_learns_online_and_keeps_what_it_learnt_across_reset() -> None:
+    """Parked cars reported 3× too confident in σ (9× in variance): after a few seconds the online calibration
+    says so, the false alarms of the uncalibrated test are gone, and a tracker restart keeps the scales."""
+    rng = np.random.default_rng(14)
+    ids = [f"{i + 1:032x}" for i in range(60)]
+    base = rng.uniform(-40, 40, (60, 2))
+    cfg = ClassifierConfig()
+    core = MotionClassifierCore(cfg)
+    off = MotionClassifierCore(ClassifierConfig(calibration="off"))
+    fired_on = fired_off = 0
+    for f in range(150):
+        p = base + rng.normal(0, 0.3, (60, 2))  # true σ 0.3, reported 0.1
+        o = _obs(ids, p[:, 0], p[:, 1], f * 0.1)
+        d_on, d_off = core.update(o), off.update(o)
+        if f >= 100:
+            fired_on += int((d_on.state == DYNAMIC).sum())
+            fired_off += int((d_off.state == DYNAMIC).sum())
+    state = core.calibration_state()
+    assert state["mode"] == "online" and state["counts"]["blocks"] >= 60 * 14
+    scale = state["groups"]["vehicle"]["along"]["scale"]["20-40"]
+    assert scale == pytest.approx(9.0, rel=0.25)
+    assert fired_on < 0.05 * 50 * 60 < fired_off
+    core.reset()
+    assert core.calibration_state()["groups"]["vehicle"]["along"]["scale"]["20-40"] == pytest.approx(scale)
+    gauges = calibration_gauges(core.calibration_state())
+    assert gauges["calibration.vehicle.along.scale.20-40"] == pytest.approx(scale)
+    assert "calibration.vehicle.across.variance_factor" in gauges
+
+
+def test_file_mode_needs_scales_and_uses_them() -> None:
+    with pytest.raises(ValueError, match="file"):
+        MotionClassifierCore(ClassifierConfig(calibration="file", calibration_file="x.yaml"))
+    model = _model(9.0, 0.0, 0.5)
+    core = MotionClassifierCore(ClassifierConfig(calibration="file", calibration_file="x.yaml"),
+                                calibration_model=model)
+    assert core.noise_model() is model
+    assert core.calibration_state()["groups"]["vehicle"]["along"]["scale"]["0-20"] == 9.0
+
+
+def test_calibration_config_validates() -> None:
+    with pytest.raises(ValueError, match="calibration_file"):
+        ClassifierConfig(calibration="file")
+    # band edges are a set of distances: any order, repeats dropped (JSON Schema cannot say "increasing", so
+    # the HTTP API must accept what its schema admits)
+    assert ClassifierConfig(calibration_range_bands_m=[40.0, 20.0, 40.0]).calibration_range_bands_m == [20.0, 40.0]
+    with pytest.raises(ValueError):
+        ClassifierConfig(calibration_range_bands_m=[0.0])
+    with pytest.raises(ValueError):
+        ClassifierConfig(effective_n="sometimes")
+
+
+# ------------------------------------------------------------------------------------------- the file
+
+
+def test_calibration_file_round_trip_read_back_independently(tmp_path: Path) -> None:
+    rng = np.random.default_rng(15)
+    cal = OnlineCalibration(prior_blocks=20.0, half_life_s=math.inf)
+    feed(cal, blocks(rng, 300, 2.0, 0.3, 0.4))
+    model = cal.refit()
+    path = tmp_path / "cal.yaml"
+    write_calibration(path, model, window=10, source={"recording": "synthetic"})
+    raw = yaml.safe_load(path.read_text())  # an independent reader: plain YAML
+    assert raw["format"] == FORMAT and raw["source"]["recording"] == "synthetic"
+    assert raw["groups"]["vehicle"]["along"]["scale"]["20-40"] == pytest.approx(model.scale[0, 0, 1, 0], rel=1e-5)
+    back = read_calibration(path)
+    np.testing.assert_allclose(back.scale, model.scale, rtol=1e-5)
+    np.testing.assert_allclose(back.correlation, model.correlation, rtol=1e-5)
+    np.testing.assert_allclose(back.track_dof, model.track_dof, rtol=1e-3)
+
+
+@pytest.mark.parametrize(("text", "needle"), [
+    ("not: [yaml", "not YAML"),
+    ("format: other/1\n", "format"),
+    (f"format: {FORMAT}\ngroups: {{vehicle: {{along: {{scale: {{0-20: -1}}}}}}}}\n", "groups.vehicle.along.scale.0-20"),
+    (f"format: {FORMAT}\ngroups: {{lorry: {{}}}}\n", "groups.lorry"),
+    (f"format: {FORMAT}\ngroups: {{vehicle: {{along: {{correlation: .nan}}}}}}\n", "correlation"),
+])
+def test_bad_calibration_files_name_the_entry(text: str, needle: str) -> None:
+    with pytest.raises(CalibrationFileError, match=needle.replace(".", r"\.")):
+        parse_calibration(text)
+
+
+def test_missing_file_is_one_line(tmp_path: Path) -> None:
+    with pytest.raises(CalibrationFileError) as exc:
+        read_calibration(tmp_path / "nope.yaml")
+    assert "\n" not in str(exc.value) and "nope.yaml" in str(exc.value)
+
+
+def test_static_decisions_use_the_calibrated_scales() -> None:
+    """The same jittering window is dynamic with the detector's variances and static with the file's ×9."""
+    rng = np.random.default_rng(16)
+    ids = [f"{i + 1:032x}" for i in range(200)]
+    base = rng.uniform(10, 30, (200, 2))
+    plain = MotionClassifierCore(ClassifierConfig(calibration="off", alpha_per_class={}))
+    cal = MotionClassifierCore(ClassifierConfig(calibration="file", calibration_file="f", alpha_per_class={}),
+                               calibration_model=_model(9.0, 0.0, 0.5, track_dof=1000.0))
+    for f in range(10):
+        p = base + rng.normal(0, 0.3, (200, 2))
+        o = _obs(ids, p[:, 0], p[:, 1], 100 + f * 0.1)
+        dp, dc = plain.update(o), cal.update(o)
+    assert (dp.state == DYNAMIC).mean() > 0.3
+    assert (dc.state == DYNAMIC).mean() < 0.15
+    assert (dc.state == STATIC).mean() > 0.85
