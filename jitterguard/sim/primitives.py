@@ -30,6 +30,10 @@ class Tag(IntEnum):
     BUILDING = 6
     HEDGE = 7
     SIGN = 8
+    GLASS = 9
+    """A road user's windows: rays pass through with :attr:`~jitterguard.sim.effects.ScanEffects.glass_pass`."""
+    EGO = 10
+    """The sensor's own vehicle (roof around the mount); its hits return nothing."""
 
 
 @dataclass(frozen=True, eq=False)

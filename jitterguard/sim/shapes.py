@@ -103,6 +103,12 @@ TEMPLATES: dict[str, F64] = {
 }
 
 
+GLASS_PARTS: dict[str, tuple[int, ...]] = {"car": (1,), "van": (1,)}
+"""Template rows that are mostly glass (a car's cabin): tagged :attr:`Tag.GLASS` so that the LiDAR's effects
+can let rays through them (real cabins return little: nuScenes cars carry 22 % of their returns in the upper
+40 % of the box, ideal ray-cast ones 47 %)."""
+
+
 def template_key(label: int, attribute: str, size: F64) -> str:
     """Which part layout an object gets."""
     if label == Label.CAR:
@@ -120,6 +126,12 @@ def template_key(label: int, attribute: str, size: F64) -> str:
     if label == Label.PEDESTRIAN:
         return "sitting" if attribute == "pedestrian.sitting_lying_down" else "pedestrian"
     return "box"
+
+
+def _part_tags(key: str, m: int) -> NDArray[np.int16]:
+    tags = np.full(m, int(Tag.OBJECT), np.int16)
+    tags[list(GLASS_PARTS.get(key, ()))] = int(Tag.GLASS)
+    return tags
 
 
 def object_primitives(centers: F64, sizes: F64, yaws: F64, labels: NDArray[np.int64], attributes: tuple[str, ...],
@@ -149,7 +161,7 @@ def object_primitives(centers: F64, sizes: F64, yaws: F64, labels: NDArray[np.in
             kind.reshape(-1).copy(), np.stack([cx, cy], axis=-1).reshape(-1, 2),
             np.stack([z0, z1], axis=-1).reshape(-1, 2), np.stack([hl, hw], axis=-1).reshape(-1, 2),
             np.broadcast_to(yaws[rows][:, None], (n, m)).reshape(-1).copy(), refl.reshape(-1),
-            np.full(n * m, int(Tag.OBJECT), np.int16)))
+            np.tile(_part_tags(key, m), n)))
         owners.append(np.repeat(rows, m))
     if not parts:
         return Primitives.empty(), np.zeros(0, np.int64)

@@ -157,3 +157,29 @@ def test_gt_sampling_pastes_without_overlap(samples: list[Sample]) -> None:
     own = build_gt_database([s])
     same = gt_sample(s, own, np.random.default_rng(0), counts=(50,) * 5)
     assert len(same.boxes) == len(s.boxes)
+
+
+def test_train_augment_rotates_within_its_range_and_tilts_points_with_boxes(samples: list[Sample]) -> None:
+    import math
+
+    import dataclasses
+
+    from jitterguard.services.detector.augment import TrainAugment, global_tilt
+
+    s = samples[0]
+    centres = np.column_stack([s.boxes[:, :3], np.zeros(len(s.boxes))]).astype(np.float32)
+    with_centres = dataclasses.replace(s, points=np.concatenate([s.points, centres]))
+    t = global_tilt(with_centres, math.radians(3.0), math.radians(-2.0), 0.2)
+    np.testing.assert_allclose(t.points[len(s.points):, :3], t.boxes[:, :3], atol=1e-4)  # centres move as points
+    np.testing.assert_allclose(t.boxes[:, 3:7], s.boxes[:, 3:7])  # sizes and yaw kept (boxes stay upright)
+    t = global_tilt(s, math.radians(3.0), math.radians(-2.0), 0.2)
+    np.testing.assert_allclose(np.linalg.norm(t.points[:, :3] - [0, 0, 0.2], axis=1),
+                               np.linalg.norm(s.points[:, :3], axis=1), rtol=1e-5)
+    yaws = []
+    for seed in range(40):
+        a = TrainAugment(rotation_deg=180.0, tilt_deg=1.0)(s, np.random.default_rng(seed))
+        assert len(a.points) == len(s.points)
+        yaws.append(float(a.boxes[0, 6]))
+    assert np.ptp(yaws) > 4.0  # full turns, not ±45°
+    same = TrainAugment(0.0, 0.0)(s, np.random.default_rng(1))
+    assert same.points.shape == s.points.shape

@@ -281,7 +281,10 @@ def test_report_is_strict_json_and_plots_render(tmp_path) -> None:
     assert back["summary"]["bus_ap"] is None  # no bus ground truth: null, not NaN
     assert back["detection"]["classes"]["car"]["fp"] == 1
     assert "precision" not in back["detection"]["classes"]["car"]
-    assert set(back["summary"]) == {"mAP", "positional_ece", "nll"} | {f"{c}_ap" for c in CLASS_NAMES}
+    assert set(back["summary"]) == ({"mAP", "positional_ece", "nll", "coverage_1sigma", "num_matched"}
+                                    | {f"{c}_ap" for c in CLASS_NAMES})
+    assert back["summary"]["coverage_1sigma"] == pytest.approx(rep["calibration"]["coverage_1sigma"])
+    assert back["summary"]["num_matched"] == rep["calibration"]["num_matched"] > 0
     full = evaluation_report(dets, gts, include_curves=True)
     calibration_plot(full["calibration"], tmp_path / "calib.png")
     pr_plot(full["detection"], tmp_path / "pr.png")

@@ -58,8 +58,14 @@ def scan_points(msg: PointCloud) -> tuple[F32, int]:
     """
     ncol = len(msg.fields)
     raw = np.frombuffer(msg.data, dtype="<f4").reshape(msg.num_points, ncol)
-    cols = [msg.fields.index(c) if c in msg.fields else -1 for c in POINT_COLUMNS]
-    pts = np.zeros((msg.num_points, len(POINT_COLUMNS)), dtype=np.float32)
+    return points_from_fields(raw, tuple(msg.fields))
+
+
+def points_from_fields(raw: NDArray[np.floating], fields: Sequence[str]) -> tuple[F32, int]:
+    """(P, F) columns named ``fields`` → the network's (P, 4) float32 x, y, z, intensity (zeros where there is
+    no intensity field), non-finite rows dropped; returns the points and how many rows were dropped."""
+    cols = [list(fields).index(c) if c in fields else -1 for c in POINT_COLUMNS]
+    pts = np.zeros((len(raw), len(POINT_COLUMNS)), dtype=np.float32)
     for j, c in enumerate(cols):
         if c >= 0:
             pts[:, j] = raw[:, c]

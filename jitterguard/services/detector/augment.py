@@ -82,6 +82,26 @@ def flip_y(sample: Sample) -> Sample:
     return replace(sample, points=pts, boxes=b)
 
 
+def global_tilt(sample: Sample, pitch: float, roll: float, dz: float = 0.0) -> Sample:
+    """Tilt the scene about the sensor (``pitch`` about the y axis, nose down for positive values; ``roll``
+    about the x axis; radians) and shift it by ``dz`` metres in z: what a sensor on a vehicle sees when the
+    road ahead rises, falls or banks relative to the vehicle, and when the mounting height differs.
+
+    Points and box centres are rotated; boxes stay upright (their yaw is the heading of the rotated forward
+    axis, which a few degrees of tilt leave unchanged to first order) and velocities keep their ground-plane
+    components rotated with the centres."""
+    cp, sp, cr, sr = math.cos(pitch), math.sin(pitch), math.cos(roll), math.sin(roll)
+    # R = R_y(pitch) @ R_x(roll)
+    rot = np.array([[cp, sp * sr, sp * cr], [0.0, cr, -sr], [-sp, cp * sr, cp * cr]])
+    pts = sample.points.copy()
+    pts[:, :3] = (sample.points[:, :3].astype(np.float64) @ rot.T + (0.0, 0.0, dz)).astype(np.float32)
+    b = sample.boxes.astype(np.float64).copy()
+    b[:, :3] = b[:, :3] @ rot.T + (0.0, 0.0, dz)
+    v = np.column_stack([b[:, 7], b[:, 8], np.zeros(len(b))]) @ rot.T
+    b[:, 7:9] = v[:, :2]
+    return replace(sample, points=pts, boxes=b.astype(np.float32))
+
+
 def random_augment(
     sample: Sample,
     rng: np.random.Generator,
@@ -105,6 +125,28 @@ def random_augment(
     if scale[0] != scale[1] or scale[0] != 1.0:
         out = global_scale(out, float(factor))
     return out
+
+
+@dataclass(frozen=True)
+class TrainAugment:
+    """The training augmentation as one picklable callable (DataLoader workers get a copy): CenterPoint's
+    :func:`random_augment` with rotations uniform in ±``rotation_deg``, then — when ``tilt_deg`` > 0 — a
+    :func:`global_tilt` with pitch and roll ~ N(0, ``tilt_deg``) and a height shift ~ N(0, 0.05 m per degree).
+
+    A full ±180° rotation makes the detector indifferent to how its sensor frame is turned (nuScenes' LIDAR_TOP
+    has x to the right, KITTI's x forward, synthetic scans x forward)."""
+
+    rotation_deg: float = 45.0
+    tilt_deg: float = 0.0
+
+    def __call__(self, sample: Sample, rng: np.random.Generator) -> Sample:
+        r = math.radians(self.rotation_deg)
+        out = random_augment(sample, rng, rotation=(-r, r))
+        if self.tilt_deg > 0:
+            t = math.radians(self.tilt_deg)
+            out = global_tilt(out, float(rng.normal(0, t)), float(rng.normal(0, t)),
+                              float(rng.normal(0, 0.05 * self.tilt_deg)))
+        return out
 
 
 def filter_range(sample: Sample, point_cloud_range: Sequence[float]) -> Sample:

@@ -134,13 +134,16 @@ class DetectorParams(BaseModel):
 class Sample:
     """One labelled scan: points (P, 4) x, y, z, intensity (0–255) in the sensor frame; boxes (M, 9) and class
     indices (M,) in the same frame; ``num_points`` (M,) LiDAR returns inside each box (0 = not visible);
-    ``token`` names the scan (scenario/seed/frame or a nuScenes sample token)."""
+    ``token`` names the scan (scenario/seed/frame or a nuScenes sample token). ``pseudo``: the boxes are a
+    model's own detections (self-training), which teach where objects are but not how precisely — their
+    regression targets are not trained on (:func:`~.targets.build_targets`)."""
 
     points: F32
     boxes: F32
     labels: I64
     num_points: I64
     token: str = ""
+    pseudo: bool = False
 
 
 @dataclass(frozen=True)

@@ -25,6 +25,7 @@ from typing import overload
 import numpy as np
 from numpy.typing import NDArray
 
+from ...sim.effects import draw_effects, parse_components
 from ...sim.lidar import ScanResult, cast_frame
 from ...sim.sensors import LidarSpec, hdl32e
 from ...sim.world import GroundTruthFrame, make_scenario
@@ -44,6 +45,8 @@ from .augment import (  # noqa: F401  (re-exported: one import site for the trai
 from .config import AUTOWARE_TO_CLASS, BOX_DIM, Sample
 from .data_nuscenes import (  # noqa: F401  (re-exported)
     NUSCENES_TO_CLASS,
+    NuScenesKeyframes,
+    official_split,
     iter_nuscenes_samples,
     nuscenes_class,
     nuscenes_samples,
@@ -88,8 +91,10 @@ def frame_to_sensor_boxes(frame: GroundTruthFrame, mount_height_m: float) -> tup
 
 def sample_from_scan(frame: GroundTruthFrame, scan: ScanResult, mount_height_m: float, token: str = "") -> Sample:
     """One :class:`Sample` from a frame and its scan: detector classes only (unmapped labels dropped), point
-    counts from the ray-cast."""
+    counts from the ray-cast, boxes raised onto the scan's ground where its effects lifted them."""
     boxes, labels = frame_to_sensor_boxes(frame, mount_height_m)
+    if scan.object_lift is not None and len(boxes):
+        boxes[:, 2] += scan.object_lift.astype(np.float32)
     keep = labels >= 0
     return Sample(
         points=np.ascontiguousarray(scan.points, np.float32),
@@ -119,19 +124,32 @@ def synthetic_samples(
     sensor: LidarSpec | None = None,
     scan_seed: int = 0,
     rate_hz: float = 10.0,
+    effects: str = "none",
 ) -> Iterator[Sample]:
     """Labelled synthetic scans: for every (scenario, seed), ``frames_per_scenario`` frames spread evenly over a
     ``duration_s`` scenario, ray-cast with ``sensor`` (HDL-32E, nuScenes' LIDAR_TOP, by default).
 
-    Deterministic: the same arguments give the same samples (the scan's noise is seeded by ``scan_seed`` and
-    the frame). Tokens are ``synthetic/{scenario}/{seed}/{seq}``. Yields ``len(scenarios) * len(seeds) *
-    frames_per_scenario`` samples (fewer if a scenario has fewer frames), scenario-major."""
+    ``effects``: ``"none"`` casts the ideal scan; ``"random"`` draws each scan's
+    :class:`~jitterguard.sim.effects.ScanEffects` (uneven ground, glass, dropout, noise, the ego's roof, mixed
+    pixels, street clutter, open scenery, measured intensity) with :func:`~jitterguard.sim.effects.draw_effects`
+    — the domain randomisation the shipped weights train with; a comma list picks components
+    (:func:`~jitterguard.sim.effects.parse_components`, e.g. ``"ground,glass"`` or ``"random,no-intensity"``).
+
+    Deterministic: the same arguments give the same samples (the scan's noise and effects are seeded by
+    ``scan_seed``, the scenario, its seed and the frame). Tokens are ``synthetic/{scenario}/{seed}/{seq}``.
+    Yields ``len(scenarios) * len(seeds) * frames_per_scenario`` samples (fewer if a scenario has fewer
+    frames), scenario-major."""
+    components = parse_components(effects)
     spec = sensor or hdl32e()
     for name in scenarios:
         for seed in seeds:
             sc = make_scenario(name, int(seed), duration_s, rate_hz)
             for i in spread_indices(len(sc), frames_per_scenario):
-                scan, frame = cast_frame(sc.frame(i), spec, scan_seed)
+                fx = None
+                if components:
+                    key = int.from_bytes(name.encode(), "little") % (2**31)
+                    fx = draw_effects(np.random.default_rng([scan_seed, key, int(seed), i]), components)
+                scan, frame = cast_frame(sc.frame(i), spec, scan_seed, effects=fx)
                 yield sample_from_scan(frame, scan, spec.mount_height_m, f"synthetic/{name}/{seed}/{frame.seq}")
 
 

@@ -20,8 +20,9 @@ training walk a scene identically.
 from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, overload
 
 import numpy as np
 from numpy.typing import NDArray
@@ -127,67 +128,191 @@ def _scene_chain(scene: dict[str, Any], samples: dict[str, dict[str, Any]]) -> l
     return chain
 
 
+@dataclass(frozen=True)
+class SweepRef:
+    """One LIDAR_TOP sweep stacked onto a key frame: its file, the rigid transform of its sensor frame into the
+    key frame's (``rotation`` 3×3, ``translation`` 3) and how much older it is (seconds, ≥ 0)."""
+
+    path: Path
+    rotation: F64
+    translation: F64
+    time_lag_s: float
+
+
+@dataclass(frozen=True)
+class _Keyframe:
+    token: str
+    path: Path
+    boxes: NDArray[np.float32]
+    labels: NDArray[np.int64]
+    num_points: NDArray[np.int64]
+    sweeps: tuple[SweepRef, ...]
+
+
+def _pose_matrix(rec: dict[str, Any]) -> tuple[F64, F64]:
+    return _rotations_wxyz(np.asarray(rec["rotation"]))[0], np.asarray(rec["translation"], np.float64)
+
+
+class NuScenesKeyframes(Sequence[Sample]):
+    """The LIDAR_TOP key frames of a nuScenes-format dataroot as a lazy random-access sequence of
+    :class:`~.config.Sample`: the tables are read once (boxes in the sensor frame, the sweep chain of every key
+    frame), the point files only when a sample is asked for, so a DataLoader over full nuScenes
+    (v1.0-trainval, ~28k key frames, ~300k sweeps) holds no points in memory.
+
+    ``sweeps`` > 1 stacks the key frame with up to ``sweeps − 1`` earlier LIDAR_TOP sweeps no more than
+    ``max_sweep_lag_s`` older, each moved into the key frame's sensor frame through the ego poses (CenterPoint's
+    nuScenes input: 10 sweeps, 0.5 s), with the time lag in seconds as a fifth point column (0 for the key frame),
+    and points within ``min_sweep_range_m`` of an earlier sweep's sensor dropped (the ego's own body). With
+    ``sweeps == 1`` points are (P, 4) x, y, z, intensity. A dataroot without sweeps (``shared/data``'s
+    keyframes-only scene, where ``prev`` links key frames 0.5 s apart) stacks what there is within the lag.
+
+    Raises :class:`~jitterguard.services.replay.frames.SourceError` (one-line message) for a folder that is not
+    a dataroot or an unknown scene; a missing point file raises it when the sample is read.
+    """
+
+    def __init__(self, dataroot: str | Path, version: str | None = None, scene_names: Sequence[str] | None = None,
+                 *, sweeps: int = 1, max_sweep_lag_s: float = 0.55, min_sweep_range_m: float = 1.0,
+                 max_time_diff: float = 1.5, nan_velocity: float = 0.0) -> None:
+        if sweeps < 1:
+            raise ValueError("sweeps must be >= 1")
+        self.root = Path(dataroot)
+        self.sweeps, self.min_sweep_range_m = int(sweeps), float(min_sweep_range_m)
+        root = self.root
+        if not root.is_dir():
+            raise SourceError(f"{root}: no such folder")
+        self.version = find_version(root, version)
+        folder = root / self.version
+        t = {n: _load_table(folder, n) for n in ("scene", "sample", "sample_data", "ego_pose", "calibrated_sensor",
+                                                 "sensor", "sample_annotation", "instance", "category")}
+        scenes = t["scene"]
+        if scene_names is not None:
+            by_name = {s["name"]: s for s in scenes}
+            missing = [n for n in scene_names if n not in by_name]
+            if missing:
+                shown = ", ".join(sorted(by_name)[:20]) + (" …" if len(by_name) > 20 else "")
+                raise SourceError(f"{root}: no scene {', '.join(missing[:5])} (have: {shown})")
+            scenes = [by_name[n] for n in scene_names]
+        samples = {s["token"]: s for s in t["sample"]}
+        sample_ts = {k: int(s["timestamp"]) for k, s in samples.items()}
+        ego = {e["token"]: e for e in t["ego_pose"]}
+        calib = {c["token"]: c for c in t["calibrated_sensor"]}
+        channel_of = {s["token"]: s["channel"] for s in t["sensor"]}
+        lidar: dict[str, dict[str, Any]] = {}
+        key_sd: dict[str, dict[str, Any]] = {}
+        for rec in t["sample_data"]:
+            if channel_of[calib[rec["calibrated_sensor_token"]]["sensor_token"]] != CHANNEL:
+                continue
+            lidar[rec["token"]] = rec
+            if rec.get("is_key_frame"):
+                key_sd[rec["sample_token"]] = rec
+        cat_name = {c["token"]: c["name"] for c in t["category"]}
+        inst_class = {i["token"]: nuscenes_class(cat_name[i["category_token"]]) for i in t["instance"]}
+        anns = {a["token"]: a for a in t["sample_annotation"]}
+        by_sample: dict[str, list[dict[str, Any]]] = {}
+        for a in t["sample_annotation"]:
+            if inst_class[a["instance_token"]] >= 0:
+                by_sample.setdefault(a["sample_token"], []).append(a)
+        frames: list[_Keyframe] = []
+        for sc in scenes:
+            for smp in _scene_chain(sc, samples):
+                sd = key_sd.get(smp["token"])
+                if sd is None:
+                    continue
+                rows = by_sample.get(smp["token"], [])
+                vel = np.array([box_velocity(a, anns, sample_ts, max_time_diff) for a in rows],
+                               np.float64).reshape(-1, 3)
+                boxes = annotations_to_sensor(rows, vel, ego[sd["ego_pose_token"]], calib[sd["calibrated_sensor_token"]])
+                boxes[:, 7:9] = np.where(np.isnan(boxes[:, 7:9]), nan_velocity, boxes[:, 7:9])
+                frames.append(_Keyframe(
+                    token=f"nuscenes/{sc['name']}/{smp['token']}", path=root / sd["filename"],
+                    boxes=boxes.astype(np.float32),
+                    labels=np.array([inst_class[a["instance_token"]] for a in rows], np.int64),
+                    num_points=np.array([int(a.get("num_lidar_pts", 0)) for a in rows], np.int64),
+                    sweeps=self._sweep_chain(sd, lidar, ego, calib, max_sweep_lag_s)))
+        self._frames = frames
+
+    def _sweep_chain(self, sd: dict[str, Any], lidar: dict[str, dict[str, Any]], ego: dict[str, Any],
+                     calib: dict[str, Any], max_lag: float) -> tuple[SweepRef, ...]:
+        """Earlier sweeps of key frame ``sd`` (newest first) as :class:`SweepRef`: sensor_j → ego_j → global →
+        ego_key → sensor_key, as CenterPoint's and mmdet3d's nuScenes converters chain them."""
+        if self.sweeps <= 1:
+            return ()
+        r_ck, t_ck = _pose_matrix(calib[sd["calibrated_sensor_token"]])
+        r_ek, t_ek = _pose_matrix(ego[sd["ego_pose_token"]])
+        out: list[SweepRef] = []
+        ts0 = int(sd["timestamp"])
+        prev = sd.get("prev")
+        while prev and len(out) < self.sweeps - 1 and prev in lidar:
+            rec = lidar[prev]
+            lag = 1e-6 * (ts0 - int(rec["timestamp"]))
+            if lag > max_lag:
+                break
+            r_c, t_c = _pose_matrix(calib[rec["calibrated_sensor_token"]])
+            r_e, t_e = _pose_matrix(ego[rec["ego_pose_token"]])
+            # p_key = R_ck^T (R_ek^T (R_e (R_c p + t_c) + t_e − t_ek) − t_ck)
+            rot = r_ck.T @ r_ek.T @ r_e @ r_c
+            trans = r_ck.T @ (r_ek.T @ (r_e @ t_c + t_e - t_ek) - t_ck)
+            out.append(SweepRef(self.root / rec["filename"], rot, trans, lag))
+            prev = rec.get("prev")
+        return tuple(out)
+
+    def __len__(self) -> int:
+        return len(self._frames)
+
+    @property
+    def tokens(self) -> list[str]:
+        return [f.token for f in self._frames]
+
+    def _read(self, path: Path) -> NDArray[np.float32]:
+        try:
+            raw = read_bin(path, NUSCENES_FIELDS)
+        except FileNotFoundError:
+            raise SourceError(f"{path}: LIDAR_TOP sweep missing from the dataroot") from None
+        except (OSError, ValueError) as exc:
+            raise SourceError(f"{path}: {exc}") from None
+        pts = np.ascontiguousarray(raw[:, :4], np.float32)
+        return pts[np.isfinite(pts).all(axis=1)]
+
+    def points(self, i: int) -> NDArray[np.float32]:
+        """The (stacked) points of key frame ``i``: (P, 4), or (P, 5) with the time lag when ``sweeps`` > 1."""
+        f = self._frames[i]
+        key = self._read(f.path)
+        if self.sweeps <= 1:
+            return key
+        parts = [np.column_stack([key, np.zeros(len(key), np.float32)])]
+        for sw in f.sweeps:
+            p = self._read(sw.path)
+            p = p[np.hypot(p[:, 0], p[:, 1]) >= self.min_sweep_range_m]
+            xyz = p[:, :3].astype(np.float64) @ sw.rotation.T + sw.translation
+            parts.append(np.column_stack([xyz, p[:, 3], np.full(len(p), sw.time_lag_s)]).astype(np.float32))
+        return np.concatenate(parts)
+
+    @overload
+    def __getitem__(self, i: int) -> Sample: ...
+
+    @overload
+    def __getitem__(self, i: slice) -> list[Sample]: ...
+
+    def __getitem__(self, i: int | slice) -> Sample | list[Sample]:
+        if isinstance(i, slice):
+            return [self[j] for j in range(*i.indices(len(self)))]
+        f = self._frames[i]
+        return Sample(points=self.points(i), boxes=f.boxes, labels=f.labels, num_points=f.num_points, token=f.token)
+
+    def __iter__(self) -> Iterator[Sample]:
+        for i in range(len(self)):
+            yield self[i]
+
+
 def iter_nuscenes_samples(dataroot: str | Path, version: str | None = None,
                           scene_names: Sequence[str] | None = None, *, max_time_diff: float = 1.5,
                           nan_velocity: float = 0.0) -> Iterator[Sample]:
-    """Like :func:`nuscenes_samples`, one key frame at a time (for :func:`~.data.build_cache` on big datasets).
+    """Like :func:`nuscenes_samples`, one key frame at a time.
 
     ``nan_velocity``: the value given to velocities devkit cannot estimate (0.0, see the module docstring; pass
     ``float('nan')`` to keep devkit's NaN)."""
-    root = Path(dataroot)
-    if not root.is_dir():
-        raise SourceError(f"{root}: no such folder")
-    folder = root / find_version(root, version)
-    t = {n: _load_table(folder, n) for n in ("scene", "sample", "sample_data", "ego_pose", "calibrated_sensor",
-                                             "sensor", "sample_annotation", "instance", "category")}
-    scenes = t["scene"]
-    if scene_names is not None:
-        by_name = {s["name"]: s for s in scenes}
-        missing = [n for n in scene_names if n not in by_name]
-        if missing:
-            raise SourceError(f"{root}: no scene {', '.join(missing)} (have: {', '.join(sorted(by_name))})")
-        scenes = [by_name[n] for n in scene_names]
-    samples = {s["token"]: s for s in t["sample"]}
-    sample_ts = {k: int(s["timestamp"]) for k, s in samples.items()}
-    ego = {e["token"]: e for e in t["ego_pose"]}
-    calib = {c["token"]: c for c in t["calibrated_sensor"]}
-    channel_of = {s["token"]: s["channel"] for s in t["sensor"]}
-    lidar_sd: dict[str, dict[str, Any]] = {}
-    for rec in t["sample_data"]:
-        if rec.get("is_key_frame") and channel_of[calib[rec["calibrated_sensor_token"]]["sensor_token"]] == CHANNEL:
-            lidar_sd[rec["sample_token"]] = rec
-    cat_name = {c["token"]: c["name"] for c in t["category"]}
-    inst_class = {i["token"]: nuscenes_class(cat_name[i["category_token"]]) for i in t["instance"]}
-    anns = {a["token"]: a for a in t["sample_annotation"]}
-    by_sample: dict[str, list[dict[str, Any]]] = {}
-    for a in t["sample_annotation"]:
-        if inst_class[a["instance_token"]] >= 0:
-            by_sample.setdefault(a["sample_token"], []).append(a)
-    for sc in scenes:
-        for smp in _scene_chain(sc, samples):
-            sd = lidar_sd.get(smp["token"])
-            if sd is None:
-                continue
-            path = root / sd["filename"]
-            try:
-                raw = read_bin(path, NUSCENES_FIELDS)
-            except FileNotFoundError:
-                raise SourceError(f"{path}: LIDAR_TOP sweep missing from the dataroot") from None
-            except (OSError, ValueError) as exc:
-                raise SourceError(f"{path}: {exc}") from None
-            pts = np.ascontiguousarray(raw[:, :4], np.float32)
-            pts = pts[np.isfinite(pts).all(axis=1)]
-            rows = by_sample.get(smp["token"], [])
-            vel = np.array([box_velocity(a, anns, sample_ts, max_time_diff) for a in rows], np.float64).reshape(-1, 3)
-            boxes = annotations_to_sensor(rows, vel, ego[sd["ego_pose_token"]], calib[sd["calibrated_sensor_token"]])
-            boxes[:, 7:9] = np.where(np.isnan(boxes[:, 7:9]), nan_velocity, boxes[:, 7:9])
-            yield Sample(
-                points=pts,
-                boxes=boxes.astype(np.float32),
-                labels=np.array([inst_class[a["instance_token"]] for a in rows], np.int64),
-                num_points=np.array([int(a.get("num_lidar_pts", 0)) for a in rows], np.int64),
-                token=f"nuscenes/{sc['name']}/{smp['token']}",
-            )
+    yield from NuScenesKeyframes(dataroot, version, scene_names, max_time_diff=max_time_diff,
+                                 nan_velocity=nan_velocity)
 
 
 def nuscenes_samples(dataroot: str | Path, version: str | None = None, scene_names: Sequence[str] | None = None,
@@ -199,6 +324,19 @@ def nuscenes_samples(dataroot: str | Path, version: str | None = None, scene_nam
     a dataroot, an unknown scene or a missing sweep."""
     return list(iter_nuscenes_samples(dataroot, version, scene_names, max_time_diff=max_time_diff,
                                       nan_velocity=nan_velocity))
+
+
+def official_split(name: str) -> list[str]:
+    """Scene names of a nuScenes split (``train``, ``val``, ``test``, ``mini_train``, ``mini_val``) as
+    nuscenes-devkit defines them (``nuscenes.utils.splits``; an optional dependency)."""
+    try:
+        from nuscenes.utils.splits import create_splits_scenes  # optional: the devkit
+    except ImportError:  # pragma: no cover - depends on the environment
+        raise SourceError("official nuScenes splits need nuscenes-devkit (pip install nuscenes-devkit)") from None
+    splits = create_splits_scenes()
+    if name not in splits:
+        raise SourceError(f"unknown nuScenes split {name!r}; expected one of {', '.join(sorted(splits))}")
+    return list(splits[name])
 
 
 def scene_of(token: str) -> str:

@@ -58,6 +58,8 @@ def decode(out: dict[str, Tensor], config: DetectorConfig, score_threshold: floa
     boxes = torch.cat([xs[..., None], ys[..., None], height, dim.clamp(max=5.0).exp(), yaw[..., None], vel], dim=-1)
     logvar = take("logvar").clamp(min=config.logvar_min) if config.uncertainty and "logvar" in out else None
     results = []
+    boxes, scores, cls = boxes.float().cpu(), scores.float().cpu(), cls.cpu()
+    logvar = logvar.float().cpu() if logvar is not None else None
     for i in range(b):
         keep = scores[i] > thr
         bx = boxes[i][keep].numpy().astype(np.float32)

@@ -486,4 +486,47 @@ def evaluation_report(predictions: Sequence[Detections3D], ground_truth: Sequenc
     summary.update({f"{c}_ap": d["mean_ap"] for c, d in ap["classes"].items()})
     summary["positional_ece"] = cal["ece"] if cal else None
     summary["nll"] = cal["nll"] if cal else None
+    summary["coverage_1sigma"] = cal["coverage_1sigma"] if cal else None
+    summary["num_matched"] = cal["num_matched"] if cal else None
     return _finite({"num_samples": len(ground_truth), "summary": summary, "detection": ap, "calibration": cal})
+
+
+def bootstrap_intervals(predictions: Sequence[Detections3D], ground_truth: Sequence[Sample], *, resamples: int = 1000,
+                        level: float = 0.9, seed: int = 0, class_range: Sequence[float] = CLASS_RANGE_M,
+                        min_points: int = 1) -> dict[str, Any]:
+    """Percentile intervals of each class's mean AP and of the ±1σ coverage over ``resamples`` bootstrap
+    resamples of the *frames* (frames, not boxes, are the independent units: boxes of one frame share its
+    scan). ``{"level", "resamples", "<class>_ap": [lo, hi] | None, "coverage_1sigma": [lo, hi] | None}``;
+    None where the statistic is undefined in too many resamples (a class with no ground truth)."""
+    _check_pairs(predictions, ground_truth)
+    n = len(ground_truth)
+    out: dict[str, Any] = {"level": level, "resamples": resamples}
+    if n == 0 or resamples <= 0:
+        return out
+    rng = np.random.default_rng(seed)
+    has_var = all(d.log_variances is not None for d in predictions)
+    aps: dict[str, list[float]] = {c: [] for c in CLASS_NAMES}
+    cov: list[float] = []
+    for _ in range(resamples):
+        idx = rng.integers(0, n, n)
+        p = [predictions[i] for i in idx]
+        g = [ground_truth[i] for i in idx]
+        res = detection_ap(p, g, class_range=class_range, min_points=min_points)
+        for c, d in res["classes"].items():
+            aps[c].append(d["mean_ap"])
+        if has_var:
+            m = matched_residuals(p, g, class_range=class_range, min_points=min_points)
+            if len(m):
+                cov.append(float(np.mean(m.residual ** 2 / np.exp(m.log_variance) <= 1.0)))
+    lo, hi = (1 - level) / 2 * 100, (1 + level) / 2 * 100
+
+    def interval(vals: list[float]) -> list[float] | None:
+        v = np.asarray([x for x in vals if math.isfinite(x)])
+        if len(v) < 0.9 * resamples:
+            return None
+        return [float(np.percentile(v, lo)), float(np.percentile(v, hi))]
+
+    for c, vals in aps.items():
+        out[f"{c}_ap"] = interval(vals)
+    out["coverage_1sigma"] = interval(cov) if has_var else None
+    return out

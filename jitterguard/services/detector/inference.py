@@ -122,9 +122,11 @@ class Detector:
 
     @torch.inference_mode()
     def detect(self, points: np.ndarray) -> Detections3D:
-        """Detections of one scan: ``points`` (P, ≥4) float32 x, y, z, intensity (0–255) in the sensor frame."""
+        """Detections of one scan: ``points`` (P, ≥4) float32 x, y, z, intensity (0–255) in the sensor frame (and
+        the time lag in seconds as a fifth column for a model trained on stacked sweeps)."""
         t0 = time.perf_counter()
-        pillars = voxelize([torch.from_numpy(np.ascontiguousarray(points[:, :4], dtype=np.float32))], self.config)
+        nf = self.config.num_point_features
+        pillars = voxelize([torch.from_numpy(np.ascontiguousarray(points[:, :nf], dtype=np.float32))], self.config)
         t1 = time.perf_counter()
         out = self.model.forward_pillars(pillars)
         t2 = time.perf_counter()

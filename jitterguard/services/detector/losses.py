@@ -21,13 +21,22 @@ REG_WEIGHT = 0.25
 """CenterPoint's weight of the regression loss against the heatmap loss."""
 
 
-def gaussian_focal_loss(logits: Tensor, target: Tensor) -> Tensor:
-    """CornerNet's penalty-reduced focal loss (α = 2, β = 4), normalised by the number of object centres."""
+def gaussian_focal_loss(logits: Tensor, target: Tensor, num_pos: float | None = None) -> Tensor:
+    """CornerNet's penalty-reduced focal loss (α = 2, β = 4), normalised by the number of object centres
+    (``num_pos`` when given: the count over a whole global batch split into micro-batches)."""
     p = torch.sigmoid(logits).clamp(1e-4, 1 - 1e-4)
     pos = target.eq(1).float()
     pos_loss = torch.log(p) * (1 - p).pow(2) * pos
     neg_loss = torch.log(1 - p) * p.pow(2) * (1 - target).pow(4) * (1 - pos)
-    return -(pos_loss.sum() + neg_loss.sum()) / pos.sum().clamp(min=1.0)
+    denom = pos.sum().clamp(min=1.0) if num_pos is None else max(float(num_pos), 1.0)
+    return -(pos_loss.sum() + neg_loss.sum()) / denom
+
+
+def loss_normalisers(batch: dict[str, Tensor]) -> Tensor:
+    """(heatmap peaks, regression targets) in a batch of targets, float64: what :func:`centerpoint_loss`
+    divides by. Summed over the micro-batches of a global batch (and all-reduced over processes) they make
+    the split batch's loss exactly the whole batch's."""
+    return torch.tensor([float(batch["heatmap"].eq(1).sum()), float(batch["mask"].sum())], dtype=torch.float64)
 
 
 def gaussian_nll(mean: Tensor, target: Tensor, logvar: Tensor, logvar_min: float = -10.0) -> Tensor:
@@ -47,13 +56,16 @@ def wrap_angle(a: Tensor) -> Tensor:
     return torch.remainder(a + math.pi, 2 * math.pi) - math.pi
 
 
-def centerpoint_loss(out: dict[str, Tensor], batch: dict[str, Tensor], config: DetectorConfig) -> dict[str, Tensor]:
+def centerpoint_loss(out: dict[str, Tensor], batch: dict[str, Tensor], config: DetectorConfig, *,
+                     num_pos: float | None = None, num_obj: float | None = None) -> dict[str, Tensor]:
     """All loss terms of one batch; ``loss`` is what to minimise. ``batch`` holds stacked
-    :class:`~.targets.Targets` fields: heatmap (B, C, H, W), ind/mask/yaw (B, K), box (B, K, 10)."""
-    hm = gaussian_focal_loss(out["heatmap"], batch["heatmap"])
+    :class:`~.targets.Targets` fields: heatmap (B, C, H, W), ind/mask/yaw (B, K), box (B, K, 10).
+    ``num_pos`` / ``num_obj`` replace the batch's own heatmap-peak and object counts as normalisers (a
+    micro-batch of a larger global batch, see :func:`loss_normalisers`)."""
+    hm = gaussian_focal_loss(out["heatmap"], batch["heatmap"], num_pos)
     ind, mask = batch["ind"], batch["mask"].float()
     tgt = batch["box"]
-    num = mask.sum().clamp(min=1.0)
+    num = mask.sum().clamp(min=1.0) if num_obj is None else torch.tensor(max(float(num_obj), 1.0), device=mask.device)
     m = mask.unsqueeze(-1)
     reg = gather(out["reg"], ind)
     height = gather(out["height"], ind)
@@ -66,7 +78,7 @@ def centerpoint_loss(out: dict[str, Tensor], batch: dict[str, Tensor], config: D
     if config.uncertainty:
         s = gather(out["logvar"], ind)
         cell = torch.tensor([config.voxel_size[0] * config.out_size_factor,
-                             config.voxel_size[1] * config.out_size_factor], dtype=reg.dtype)
+                             config.voxel_size[1] * config.out_size_factor], dtype=reg.dtype, device=reg.device)
         nll_xy = gaussian_nll(reg * cell, tgt[..., 0:2] * cell, s[..., 0:2], config.logvar_min)
         nll_v = gaussian_nll(vel, tgt[..., 8:10], s[..., 2:4], config.logvar_min)
         # yaw: the NLL trains the variance only; the mean is learned through (sin, cos) above, because

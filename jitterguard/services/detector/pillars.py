@@ -15,11 +15,18 @@ from torch import Tensor, nn
 from .config import DetectorConfig
 
 NUM_PILLAR_FEATURES = 9
+"""Features per point of a single-sweep scan (x, y, z, intensity + 5 offsets); multi-sweep scans add the time
+lag (:func:`pillar_features`)."""
+
+
+def pillar_features(config: DetectorConfig) -> int:
+    """Features per point fed to the PFN: the point's own ``num_point_features`` plus the 5 offsets."""
+    return config.num_point_features + 5
 
 
 @dataclass
 class Pillars:
-    """A batch of pillars, point-major: ``points`` (N, 4) the kept points (x, y, z, intensity/255),
+    """A batch of pillars, point-major: ``points`` (N, F) the kept points (x, y, z, intensity/255[, time lag s]),
     ``pillar`` (N,) the pillar of each point, ``num_points`` (V,) points per pillar and ``coords`` (V, 3) as
     (batch index, iy, ix). Point-major (not PointPillars' padded (V, M, ·) tensor) because on CPU the padding
     costs more than the features: a scan fills ~10k pillars with ~3 points on average."""
@@ -36,7 +43,9 @@ def voxelize(batch: list[Tensor], config: DetectorConfig) -> Pillars:
 
     A pillar keeps its first ``max_points_per_pillar`` points in input order; a scan keeps at most
     ``max_pillars`` pillars (the most populated ones, so sparse far-away cells go first when over budget).
-    Intensity is divided by 255 so that nuScenes and synthetic scans (both 0–255) feed the same scale.
+    Intensity is divided by 255 so that nuScenes and synthetic scans (both 0–255) feed the same scale. The
+    first ``config.num_point_features`` columns are kept (a fifth is the time lag of stacked sweeps).
+    Tensors stay on the points' device.
     """
     r = config.point_cloud_range
     vx, vy, _ = config.voxel_size
@@ -44,8 +53,12 @@ def voxelize(batch: list[Tensor], config: DetectorConfig) -> Pillars:
     m = config.max_points_per_pillar
     all_pts, all_pillar, all_cnt, all_coords = [], [], [], []
     offset = 0
+    nf = config.num_point_features
     for b, pts in enumerate(batch):
-        pts = pts[:, :4].float()
+        if pts.shape[1] < nf:
+            raise ValueError(f"points have {pts.shape[1]} fields, the model needs {nf}")
+        pts = pts[:, :nf].float()
+        dev = pts.device
         keep = ((pts[:, 0] >= r[0]) & (pts[:, 0] < r[3]) & (pts[:, 1] >= r[1]) & (pts[:, 1] < r[4])
                 & (pts[:, 2] >= r[2]) & (pts[:, 2] < r[5]) & torch.isfinite(pts).all(dim=1))
         pts = pts[keep]
@@ -55,13 +68,13 @@ def voxelize(batch: list[Tensor], config: DetectorConfig) -> Pillars:
         lin_sorted, order = torch.sort(lin, stable=True)
         cells, counts = torch.unique_consecutive(lin_sorted, return_counts=True)
         starts = torch.cumsum(counts, 0) - counts
-        slot = torch.arange(len(lin_sorted)) - torch.repeat_interleave(starts, counts)
-        pillar = torch.repeat_interleave(torch.arange(len(cells)), counts)
+        slot = torch.arange(len(lin_sorted), device=dev) - torch.repeat_interleave(starts, counts)
+        pillar = torch.repeat_interleave(torch.arange(len(cells), device=dev), counts)
         if len(cells) > config.max_pillars:
             chosen = torch.argsort(counts, descending=True, stable=True)[: config.max_pillars]
             chosen, _ = torch.sort(chosen)
-            remap = torch.full((len(cells),), -1, dtype=torch.long)
-            remap[chosen] = torch.arange(len(chosen))
+            remap = torch.full((len(cells),), -1, dtype=torch.long, device=dev)
+            remap[chosen] = torch.arange(len(chosen), device=dev)
             pillar = remap[pillar]
             cells, counts = cells[chosen], counts[chosen]
         ok = (slot < m) & (pillar >= 0)
@@ -81,11 +94,11 @@ class PillarFeatureNet(nn.Module):
     def __init__(self, config: DetectorConfig) -> None:
         super().__init__()
         self.config = config
-        self.linear = nn.Linear(NUM_PILLAR_FEATURES, config.pfn_channels, bias=False)
+        self.linear = nn.Linear(pillar_features(config), config.pfn_channels, bias=False)
         self.norm = nn.BatchNorm1d(config.pfn_channels, eps=1e-3, momentum=0.1)
 
     def point_features(self, p: Pillars) -> Tensor:
-        """(N, 9) features of the kept points."""
+        """(N, F + 5) features of the kept points (9 for a single sweep)."""
         r = self.config.point_cloud_range
         vx, vy, _ = self.config.voxel_size
         pts = p.points

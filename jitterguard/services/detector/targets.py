@@ -73,7 +73,9 @@ def target_mask(sample: Sample, config: DetectorConfig) -> NDArray[np.bool_]:
 
 
 def build_targets(sample: Sample, config: DetectorConfig) -> Targets:
-    """Encode ``sample``'s boxes as CenterPoint targets on the output grid."""
+    """Encode ``sample``'s boxes as CenterPoint targets on the output grid. A pseudo-labelled sample's boxes
+    draw the heatmap but leave ``mask`` off, so no regression loss (position, its variance, size, velocity)
+    learns from a model's own guesses — trained on them the variance heads would shrink towards zero."""
     r = config.point_cloud_range
     cell_x = config.voxel_size[0] * config.out_size_factor
     cell_y = config.voxel_size[1] * config.out_size_factor
@@ -94,7 +96,7 @@ def build_targets(sample: Sample, config: DetectorConfig) -> Targets:
         radius = gaussian_radius(length / cell_x, width / cell_y, config.gaussian_overlap)
         draw_gaussian(heatmap[c], ix, iy, max(config.min_radius, int(radius)))
         ind[k] = iy * w + ix
-        mask[k] = True
+        mask[k] = not sample.pseudo
         box[k] = (fx - ix, fy - iy, z, math.log(max(length, 1e-3)), math.log(max(width, 1e-3)),
                   math.log(max(height, 1e-3)), math.sin(theta), math.cos(theta), vx, vy)
         yaw[k] = theta

@@ -1,9 +1,25 @@
-"""Training loop: AdamW + one-cycle schedule, gradient clipping, a checkpoint per epoch, resume, evaluation each epoch.
+"""Training loop: AdamW + one-cycle schedule, gradient clipping, checkpoints, resume, evaluation each epoch —
+on one CPU or on many GPUs under ``torchrun`` with DistributedDataParallel.
 
 Everything that decides a result is seeded: the torch initialisation, the sample order and each sample's
 augmentation (a generator seeded by (seed, epoch, index), so a resumed run sees exactly the augmentations the
 uninterrupted run would have). Checkpoints hold only tensors and builtins and load with
 ``torch.load(weights_only=True)``.
+
+**One step, many micro-batches.** An optimiser step consumes a *global batch* of ``batch_size × world_size ×
+accumulate`` samples: the epoch's seeded permutation is cut into global batches, and process ``r`` runs the
+micro-batches ``r·accumulate … (r+1)·accumulate − 1`` of each. The loss of a micro-batch is normalised by the
+object and heatmap-peak counts of the *whole* global batch (all-reduced), so the summed gradients are exactly
+those of the global batch in one piece — whether it is split over processes, over accumulation steps, or not
+at all. BatchNorm normalises each micro-batch by its own statistics (as on separate GPUs); its running
+statistics are the mean of what each micro-batch would have produced from the step's starting values, again
+the same however the global batch is split. Hence two gloo processes with ``accumulate=1`` and one process
+with ``accumulate=2`` train the same weights (up to float summation order; ``tests/detector/test_distributed.py``).
+On CUDA with several processes BatchNorm can instead be synchronised (``sync_bn``, CenterPoint's multi-GPU
+recipe), which normalises by the statistics of all processes' micro-batches together.
+
+**Mixed precision** (``amp``, CUDA only): the network runs under autocast (bfloat16 where the GPU supports it,
+else float16 with a gradient scaler); losses are computed in float32.
 """
 
 from __future__ import annotations
@@ -11,21 +27,25 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import nullcontext
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
+import torch.distributed as dist
+from torch import nn
 from torch.utils.data import DataLoader, Dataset
 
 from .config import DetectorConfig, Detections3D, Sample
 from .decode import decode
 from .inference import save_weights
-from .losses import centerpoint_loss
+from .losses import centerpoint_loss, loss_normalisers
 from .network import CenterPointNet
 from .targets import build_targets
 
@@ -34,10 +54,13 @@ log = logging.getLogger(__name__)
 Augment = Callable[[Sample, np.random.Generator], Sample]
 Evaluate = Callable[[Sequence[Detections3D], Sequence[Sample]], dict[str, Any]]
 
+CHECKPOINT_FORMAT = 2
+
 
 @dataclass
 class TrainConfig:
-    """Optimisation settings (CenterPoint's nuScenes recipe scaled to small CPU batches)."""
+    """Optimisation settings (CenterPoint's nuScenes recipe scaled to small CPU batches). ``batch_size`` is per
+    process and micro-batch; an optimiser step sees ``batch_size × world size × accumulate`` samples."""
 
     epochs: int = 20
     batch_size: int = 4
@@ -50,6 +73,68 @@ class TrainConfig:
     eval_every: int = 1
     max_eval_samples: int = 200
     max_steps_per_epoch: int | None = None
+    accumulate: int = 1
+    amp: bool = False
+    """Mixed precision on CUDA (ignored on CPU)."""
+    sync_bn: bool = True
+    """Synchronise BatchNorm over processes on CUDA (ignored on CPU and in a single process)."""
+    checkpoint_every: int = 0
+    """Also checkpoint every this many optimiser steps within an epoch (0: at the end of each epoch only); a
+    resumed run continues from the step after the checkpoint with the same batches."""
+
+
+@dataclass(frozen=True)
+class Dist:
+    """Where this process runs: its rank among ``world`` processes, its device, and whether it is rank 0."""
+
+    rank: int = 0
+    world: int = 1
+    local_rank: int = 0
+    device: torch.device = torch.device("cpu")
+
+    @property
+    def main(self) -> bool:
+        return self.rank == 0
+
+    @property
+    def distributed(self) -> bool:
+        return self.world > 1
+
+    def barrier(self) -> None:
+        if self.distributed:
+            dist.barrier()
+
+
+def init_distributed() -> Dist:
+    """Join the process group ``torchrun`` describes in the environment (``WORLD_SIZE`` > 1): NCCL with one GPU
+    per process when CUDA is available, gloo on CPU. A plain process (no ``WORLD_SIZE``) gets a one-process
+    :class:`Dist` on the first GPU, or the CPU."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    cuda = torch.cuda.is_available()
+    if world <= 1:
+        return Dist(device=torch.device("cuda", 0) if cuda else torch.device("cpu"))
+    rank, local = int(os.environ["RANK"]), int(os.environ.get("LOCAL_RANK", "0"))
+    if not dist.is_initialized():
+        if cuda:
+            torch.cuda.set_device(local)
+        dist.init_process_group("nccl" if cuda else "gloo")
+    return Dist(rank, world, local, torch.device("cuda", local) if cuda else torch.device("cpu"))
+
+
+def step_schedule(n: int, seed: int, epoch: int, batch: int, world: int, accumulate: int) -> list[list[list[int]]]:
+    """The epoch's global batches: ``[step][world · accumulate micro-batches][batch sample indices]`` from a
+    permutation seeded by (seed, epoch); a remainder that fills no global batch is dropped (all of it is one
+    smaller global batch when the data set is smaller than one)."""
+    perm = np.random.default_rng([seed, epoch]).permutation(n)
+    micro = world * accumulate
+    per_step = batch * micro
+    if n < per_step:
+        if n < micro:
+            raise ValueError(f"{n} samples cannot fill {micro} micro-batches (world {world} × accumulate {accumulate})")
+        b = n // micro
+        return [[perm[m * b:(m + 1) * b].tolist() for m in range(micro)]]
+    return [[perm[k * per_step + m * batch: k * per_step + (m + 1) * batch].tolist() for m in range(micro)]
+            for k in range(n // per_step)]
 
 
 class TargetDataset(Dataset[tuple[torch.Tensor, dict[str, np.ndarray]]]):
@@ -67,7 +152,8 @@ class TargetDataset(Dataset[tuple[torch.Tensor, dict[str, np.ndarray]]]):
         if self.augment is not None:
             s = self.augment(s, np.random.default_rng([self.seed, self.epoch, i]))
         t = build_targets(s, self.config)
-        return torch.from_numpy(np.ascontiguousarray(s.points[:, :4], np.float32)), {
+        nf = self.config.num_point_features
+        return torch.from_numpy(np.ascontiguousarray(s.points[:, :nf], np.float32)), {
             "heatmap": t.heatmap, "ind": t.ind, "mask": t.mask, "box": t.box, "yaw": t.yaw}
 
 
@@ -79,14 +165,16 @@ def collate(items: list[tuple[torch.Tensor, dict[str, np.ndarray]]]) -> tuple[li
 
 @torch.no_grad()
 def predict(model: CenterPointNet, samples: Sequence[Sample], batch_size: int = 4,
-            progress: Callable[[int], None] | None = None) -> list[Detections3D]:
+            progress: Callable[[int], None] | None = None, device: torch.device | None = None) -> list[Detections3D]:
     """Detections for every sample (eval mode; no augmentation)."""
     was_training = model.training
     model.eval()
+    dev = device or next(model.parameters()).device
+    nf = model.config.num_point_features
     out: list[Detections3D] = []
     for i in range(0, len(samples), batch_size):
         chunk = samples[i: i + batch_size]
-        pts = [torch.from_numpy(np.ascontiguousarray(s.points[:, :4], np.float32)) for s in chunk]
+        pts = [torch.from_numpy(np.ascontiguousarray(s.points[:, :nf], np.float32)).to(dev) for s in chunk]
         out.extend(decode(model(pts), model.config))
         if progress:
             progress(len(chunk))
@@ -97,89 +185,133 @@ def predict(model: CenterPointNet, samples: Sequence[Sample], batch_size: int = 
 @dataclass
 class TrainState:
     epoch: int = 0
+    step: int = 0
+    """Optimiser steps done within ``epoch`` (a mid-epoch checkpoint); 0 at an epoch boundary."""
     history: list[dict[str, Any]] = field(default_factory=list)
 
 
-def _checkpoint(path: Path, model: CenterPointNet, opt: torch.optim.Optimizer, sched: Any, state: TrainState,
-                tcfg: TrainConfig) -> None:
+def _bn_buffers(model: nn.Module) -> list[torch.Tensor]:
+    return [b for m in model.modules() if isinstance(m, nn.modules.batchnorm._BatchNorm)
+            for b in (m.running_mean, m.running_var, m.num_batches_tracked) if b is not None]
+
+
+def _checkpoint(path: Path, model: nn.Module, opt: torch.optim.Optimizer, sched: Any, scaler: Any,
+                state: TrainState, tcfg: TrainConfig, config: DetectorConfig) -> None:
     from .inference import config_to_dict
 
     tmp = path.with_suffix(".tmp")
-    torch.save({"format": 1, "config": config_to_dict(model.config), "model": model.state_dict(),
-                "optimizer": opt.state_dict(), "scheduler": sched.state_dict(), "epoch": state.epoch,
-                "history": json.dumps(state.history), "train_config": asdict(tcfg)}, str(tmp))
+    torch.save({"format": CHECKPOINT_FORMAT, "config": config_to_dict(config), "model": model.state_dict(),
+                "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
+                "scaler": scaler.state_dict() if scaler is not None else None, "epoch": state.epoch,
+                "step": state.step, "history": json.dumps(state.history, default=_json_default),
+                "train_config": asdict(tcfg)}, str(tmp))
     tmp.replace(path)
+
+
+def _autocast(device: torch.device, amp: bool) -> tuple[Any, Any]:
+    """(context factory, gradient scaler or None) for mixed precision on CUDA; plain float32 elsewhere."""
+    if not (amp and device.type == "cuda"):
+        return nullcontext, None
+    dtype = torch.bfloat16 if torch.cuda.is_bf16_supported() else torch.float16
+    scaler = torch.amp.GradScaler("cuda") if dtype == torch.float16 else None
+    return (lambda: torch.autocast("cuda", dtype=dtype)), scaler
 
 
 def train(model: CenterPointNet, train_samples: Sequence[Sample], val_samples: Sequence[Sample], tcfg: TrainConfig,
           out_dir: str | Path, *, augment: Augment | None = None, evaluate: Evaluate | None = None,
           resume: bool = False, progress: bool = True, meta: dict[str, Any] | None = None,
-          stop_after: int | None = None) -> TrainState:
+          stop_after: int | None = None, dist_ctx: Dist | None = None) -> TrainState:
     """Train ``model`` in place; write ``checkpoint.pt`` each epoch, ``history.json`` and finally ``weights.pt``.
 
     ``resume`` continues from ``out_dir/checkpoint.pt`` (same data and settings expected). ``evaluate`` gets
     the validation detections and samples each ``eval_every`` epochs; its dict lands in the history.
     ``stop_after`` ends this run after that many epochs (a time-boxed job); ``weights.pt`` is then not
     written, and a later ``resume`` finishes the schedule exactly as one uninterrupted run would have.
+    ``dist_ctx`` (from :func:`init_distributed`) places the run on its device and process group; only rank 0
+    writes files and evaluates.
     """
+    dc = dist_ctx or Dist()
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    if dc.main:
+        out.mkdir(parents=True, exist_ok=True)
+    if tcfg.accumulate < 1:
+        raise ValueError("accumulate must be >= 1")
     torch.manual_seed(tcfg.seed)
+    model.to(dc.device)
+    net: nn.Module = model
+    if dc.distributed:
+        if tcfg.sync_bn and dc.device.type == "cuda":
+            net = nn.SyncBatchNorm.convert_sync_batchnorm(model)
+        net = nn.parallel.DistributedDataParallel(
+            net, device_ids=[dc.local_rank] if dc.device.type == "cuda" else None, broadcast_buffers=False)
     ds = TargetDataset(train_samples, model.config, augment, tcfg.seed)
-    gen = torch.Generator().manual_seed(tcfg.seed)
-    loader = DataLoader(ds, batch_size=tcfg.batch_size, shuffle=True, drop_last=len(ds) >= tcfg.batch_size,
-                        num_workers=tcfg.num_workers, collate_fn=collate, generator=gen,
-                        persistent_workers=False)
-    steps = len(loader) if tcfg.max_steps_per_epoch is None else min(len(loader), tcfg.max_steps_per_epoch)
+    schedule = step_schedule(len(ds), tcfg.seed, 0, tcfg.batch_size, dc.world, tcfg.accumulate)
+    steps = len(schedule) if tcfg.max_steps_per_epoch is None else min(len(schedule), tcfg.max_steps_per_epoch)
     opt = torch.optim.AdamW(model.parameters(), lr=tcfg.lr, weight_decay=tcfg.weight_decay)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=tcfg.lr, total_steps=max(1, tcfg.epochs * steps),
                                                 pct_start=tcfg.pct_start, div_factor=10.0, final_div_factor=1e3)
+    autocast, scaler = _autocast(dc.device, tcfg.amp)
     state = TrainState()
     ckpt = out / "checkpoint.pt"
     if resume and ckpt.is_file():
-        c = torch.load(str(ckpt), map_location="cpu", weights_only=True)
+        c = torch.load(str(ckpt), map_location=dc.device, weights_only=True)
         model.load_state_dict(c["model"])
         opt.load_state_dict(c["optimizer"])
         sched.load_state_dict(c["scheduler"])
-        state = TrainState(int(c["epoch"]), json.loads(c["history"]))
-        log.info("resumed from %s at epoch %d", ckpt, state.epoch)
-    bar = _bar(progress, tcfg.epochs * steps, state.epoch * steps)
+        if scaler is not None and c.get("scaler"):
+            scaler.load_state_dict(c["scaler"])
+        state = TrainState(int(c["epoch"]), int(c.get("step", 0)), json.loads(c["history"]))
+        log.info("resumed from %s at epoch %d step %d", ckpt, state.epoch, state.step)
+    bar = _bar(progress and dc.main, tcfg.epochs * steps, state.epoch * steps + state.step)
     last = tcfg.epochs if stop_after is None else min(tcfg.epochs, state.epoch + stop_after)
+    buffers = _bn_buffers(model)
     for epoch in range(state.epoch, last):
         ds.epoch = epoch
-        gen.manual_seed(tcfg.seed * 1000 + epoch)  # same order for an epoch whether resumed or not
+        schedule = step_schedule(len(ds), tcfg.seed, epoch, tcfg.batch_size, dc.world, tcfg.accumulate)[:steps]
+        mine = [sch[dc.rank * tcfg.accumulate:(dc.rank + 1) * tcfg.accumulate] for sch in schedule]
+        first = state.step
+        loader = DataLoader(ds, batch_sampler=[mb for step in mine[first:] for mb in step],
+                            num_workers=tcfg.num_workers, collate_fn=collate, persistent_workers=False)
         model.train()
         sums: dict[str, float] = {}
         t0 = time.perf_counter()
         n = 0
-        for step, (points, batch) in enumerate(loader):
-            if step >= steps:
-                break
-            terms = centerpoint_loss(model(points), batch, model.config)
-            loss = terms["loss"]
-            if not torch.isfinite(loss):
-                raise FloatingPointError(f"non-finite loss at epoch {epoch} step {step}: "
-                                         f"{ {k: float(v) for k, v in terms.items()} }")
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
+        micro = iter(loader)
+        for step in range(first, len(mine)):
+            terms = _train_step(net, model, micro, tcfg, dc, buffers, autocast, scaler, epoch, step)
+            if scaler is not None:
+                scaler.unscale_(opt)
             torch.nn.utils.clip_grad_norm_(model.parameters(), tcfg.grad_clip)
-            opt.step()
+            if scaler is not None:
+                scaler.step(opt)
+                scaler.update()
+            else:
+                opt.step()
+            opt.zero_grad(set_to_none=True)
             sched.step()
             for k, v in terms.items():
-                sums[k] = sums.get(k, 0.0) + float(v.detach())
+                sums[k] = sums.get(k, 0.0) + v
             n += 1
+            state.step = step + 1
             if bar is not None:
                 bar.update(1)
                 bar.set_postfix(epoch=epoch + 1, loss=f"{sums['loss'] / n:.3f}")
+            if tcfg.checkpoint_every and state.step % tcfg.checkpoint_every == 0 and state.step < len(mine):
+                if dc.main:
+                    _checkpoint(ckpt, model, opt, sched, scaler, state, tcfg, model.config)
+                dc.barrier()
         record: dict[str, Any] = {"epoch": epoch + 1, "seconds": round(time.perf_counter() - t0, 1),
                                   "lr": sched.get_last_lr()[0], **{k: v / max(n, 1) for k, v in sums.items()}}
-        if evaluate is not None and val_samples and ((epoch + 1) % tcfg.eval_every == 0 or epoch + 1 == tcfg.epochs):
+        if (dc.main and evaluate is not None and val_samples
+                and ((epoch + 1) % tcfg.eval_every == 0 or epoch + 1 == tcfg.epochs)):
             vs = val_samples[: tcfg.max_eval_samples]
             record["eval"] = evaluate(predict(model, vs), vs)
-        state.epoch = epoch + 1
+        state.epoch, state.step = epoch + 1, 0
         state.history.append(record)
-        _checkpoint(ckpt, model, opt, sched, state, tcfg)
-        (out / "history.json").write_text(json.dumps(state.history, indent=1, default=_json_default))
+        if dc.main:
+            _checkpoint(ckpt, model, opt, sched, scaler, state, tcfg, model.config)
+            (out / "history.json").write_text(json.dumps(state.history, indent=1, default=_json_default))
+        dc.barrier()
         log.info("epoch %d: %s", epoch + 1, _summary(record))
         if bar is not None:
             bar.write(f"epoch {epoch + 1}/{tcfg.epochs}: {_summary(record)}")
@@ -187,16 +319,74 @@ def train(model: CenterPointNet, train_samples: Sequence[Sample], val_samples: S
         bar.close()
     if state.epoch < tcfg.epochs:
         return state
-    save_weights(out / "weights.pt", model, meta={**(meta or {}), "epochs": state.epoch,
-                                                  "train_config": asdict(tcfg)})
+    if dc.main:
+        save_weights(out / "weights.pt", model, meta={**(meta or {}), "epochs": state.epoch,
+                                                      "train_config": asdict(tcfg), "world_size": dc.world})
+    dc.barrier()
     return state
+
+
+def _train_step(net: nn.Module, model: CenterPointNet, micro: Iterator[Any], tcfg: TrainConfig, dc: Dist,
+                buffers: list[torch.Tensor], autocast: Any, scaler: Any, epoch: int, step: int) -> dict[str, float]:
+    """Forward and backward of this process's micro-batches of one global batch (gradients left in ``.grad``);
+    returns the global batch's loss terms (all-reduced)."""
+    batches = [next(micro) for _ in range(tcfg.accumulate)]
+    # normalisers of the whole global batch (every process's micro-batches)
+    norm = sum((loss_normalisers(b) for _, b in batches), torch.zeros(2, dtype=torch.float64))
+    if dc.distributed:
+        norm = norm.to(dc.device)
+        dist.all_reduce(norm)
+        norm = norm.cpu()
+    start = [b.clone() for b in buffers]
+    after = [torch.zeros_like(b, dtype=torch.float64) for b in buffers]
+    sums: dict[str, torch.Tensor] = {}
+    for a, (points, batch) in enumerate(batches):
+        for b, s in zip(buffers, start):
+            b.copy_(s)
+        points = [p.to(dc.device, non_blocking=True) for p in points]
+        batch = {k: v.to(dc.device, non_blocking=True) for k, v in batch.items()}
+        sync = nullcontext() if (a == len(batches) - 1 or not dc.distributed) else net.no_sync()  # type: ignore[operator]
+        with sync:
+            with autocast():
+                raw = net(points)
+            terms = centerpoint_loss({k: v.float() for k, v in raw.items()}, batch, model.config,
+                                     num_pos=float(norm[0]), num_obj=float(norm[1]))
+            loss = terms["loss"]
+            if not torch.isfinite(loss):
+                raise FloatingPointError(f"non-finite loss at epoch {epoch} step {step}: "
+                                         f"{ {k: float(v) for k, v in terms.items()} }")
+            scaled = loss * dc.world  # DDP averages gradients over processes; the global loss is their sum
+            (scaler.scale(scaled) if scaler is not None else scaled).backward()
+        for acc, b in zip(after, buffers):
+            acc += b.double()
+        for k, v in terms.items():
+            sums[k] = sums.get(k, 0.0) + v.detach().double()
+    # BatchNorm running statistics: the mean over every micro-batch of the global batch
+    for acc, b in zip(after, buffers):
+        acc /= len(batches)
+    if dc.distributed:
+        flat = torch.cat([acc.reshape(-1) for acc in after]).to(dc.device)
+        dist.all_reduce(flat)
+        flat = flat.cpu() / dc.world
+        off = 0
+        for acc in after:
+            acc.copy_(flat[off: off + acc.numel()].view_as(acc))
+            off += acc.numel()
+    for acc, b in zip(after, buffers):
+        b.copy_(acc.round() if not b.is_floating_point() else acc.to(b.dtype))
+    vals = torch.stack([sums[k] for k in sorted(sums)])
+    if dc.distributed:
+        vals = vals.to(dc.device)
+        dist.all_reduce(vals)
+        vals = vals.cpu()
+    return {k: float(v) for k, v in zip(sorted(sums), vals)}
 
 
 def _summary(record: dict[str, Any]) -> str:
     parts = [f"loss {record.get('loss', math.nan):.3f}", f"{record['seconds']:.0f} s"]
     ev = record.get("eval") or {}
     for key in ("mAP", "map"):
-        if key in ev:
+        if key in ev and ev[key] is not None:
             parts.append(f"mAP {ev[key]:.3f}")
     return ", ".join(parts)
 

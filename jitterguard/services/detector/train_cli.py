@@ -56,11 +56,18 @@ def _scenarios(text: str) -> list[str]:
     return names
 
 
-def synthetic_cache(root: Path, scenarios: list[str], seeds: list[int], frames: int, progress: bool) -> Any:
+def synthetic_cache(root: Path, scenarios: list[str], seeds: list[int], frames: int, progress: bool,
+                    effects: str = "none") -> Any:
     """The cached synthetic samples for this recipe, ray-casting them first if the cache is missing or stale."""
     from .data import CachedSamples, build_cache, synthetic_samples
 
-    recipe = {"scenarios": scenarios, "seeds": seeds, "frames_per_scenario": frames}
+    from ...sim.effects import EFFECTS_VERSION, parse_components
+
+    recipe: dict[str, Any] = {"scenarios": scenarios, "seeds": seeds, "frames_per_scenario": frames}
+    components = parse_components(effects)
+    if components:  # (keeps the name of caches written before effects existed)
+        recipe["effects"] = ",".join(components)
+        recipe["effects_version"] = EFFECTS_VERSION
     import hashlib
 
     name = "cache-" + hashlib.sha1(json.dumps(recipe, sort_keys=True).encode()).hexdigest()[:10]
@@ -72,9 +79,35 @@ def synthetic_cache(root: Path, scenarios: list[str], seeds: list[int], frames: 
     except Exception:  # noqa: BLE001 - missing or interrupted cache: rebuild
         pass
     total = len(scenarios) * len(seeds) * frames
-    build_cache(path, synthetic_samples(scenarios, seeds, frames_per_scenario=frames), total=total,
+    build_cache(path, synthetic_samples(scenarios, seeds, frames_per_scenario=frames, effects=effects), total=total,
                 progress=progress, meta={"recipe": recipe})
     return CachedSamples(path)
+
+
+def _effects(spec: str) -> tuple[str, ...]:
+    from ...sim.effects import parse_components
+
+    try:
+        return parse_components(spec)
+    except ValueError as exc:
+        fail(f"--effects: {exc}")
+
+
+def _present(dataroot: str, version: str | None, names: list[str]) -> list[str]:
+    """The scenes of an official split that this dataroot holds (a partial download trains on what is there)."""
+    from ..replay.sources.nuscenes import _load_table, find_version
+
+    have = {s["name"] for s in _load_table(Path(dataroot) / find_version(Path(dataroot), version), "scene")}
+    kept = [n for n in names if n in have]
+    if not kept:
+        fail(f"--split: none of the split's {len(names)} scenes is in {dataroot}")
+    return kept
+
+
+def dataclasses_asdict(obj: Any) -> dict[str, Any]:
+    import dataclasses
+
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(obj).items()}
 
 
 class _Prepared:
@@ -94,12 +127,18 @@ class _Prepared:
         return filter_range(self.samples[i], self.pcr)
 
 
-def write_report(out: Path, name: str, dets: Any, samples: Any) -> dict[str, Any]:
-    """Evaluation JSON plus the PR and calibration PNGs under ``out``."""
-    from .evaluate import evaluation_report
+def write_report(out: Path, name: str, dets: Any, samples: Any, *, bootstrap: int = 0,
+                 extra: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Evaluation JSON plus the PR and calibration PNGs under ``out``; ``bootstrap`` resamples of the frames
+    give 90 % intervals of the per-class AP and the ±1σ coverage (``summary["intervals"]``)."""
+    from .evaluate import bootstrap_intervals, evaluation_report
     from .plots import calibration_plot, pr_plot
 
     rep = evaluation_report(dets, samples, include_curves=True)
+    if bootstrap:
+        rep["summary"]["intervals"] = bootstrap_intervals(dets, samples, resamples=bootstrap)
+    if extra:
+        rep.update(extra)
     out.mkdir(parents=True, exist_ok=True)
     pr_plot(rep["detection"], out / f"{name}_pr.png")
     if rep["calibration"] is not None:
@@ -122,32 +161,63 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         train_seeds: Annotated[str, typer.Option("--train-seeds", help="Scenario seeds for training, e.g. 0-59.")] = "0-59",
         val_seeds: Annotated[str, typer.Option("--val-seeds", help="Seeds for per-epoch evaluation.")] = "900-901",
         frames: Annotated[int, typer.Option("--frames-per-scenario", min=1, max=600)] = 10,
-        nuscenes: Annotated[str | None, typer.Option("--nuscenes", help="Fine-tune on this nuScenes dataroot instead"
-                                                      " of synthetic scans.")] = None,
+        effects: Annotated[str, typer.Option("--effects", help="Sim-to-real effects of the synthetic scans, drawn"
+                                             " per scan: 'random' (all), 'none' (ideal scans), or a comma list of"
+                                             " ground, glass, dropout, noise, roof, mixed, clutter, open, intensity,"
+                                             " no-intensity.")] = "random",
+        rotation: Annotated[float, typer.Option("--rotation", min=0.0, max=180.0, help="Global rotation"
+                                                " augmentation: uniform in ± this many degrees.")] = 45.0,
+        tilt_aug: Annotated[float, typer.Option("--tilt-aug", min=0.0, max=10.0, help="Pitch/roll augmentation SD"
+                                                " in degrees (and 0.05 m per degree of height).")] = 0.0,
+        nuscenes: Annotated[str | None, typer.Option("--nuscenes", help="Train on this nuScenes dataroot instead of"
+                                                      " synthetic scans (with --init: fine-tune).")] = None,
+        nuscenes_version: Annotated[str | None, typer.Option("--nuscenes-version", help="Table folder, e.g."
+                                                              " v1.0-trainval (default: the only one).")] = None,
+        split: Annotated[str | None, typer.Option("--split", help="Official nuScenes split to train on (train,"
+                                                  " mini_train, ...); default: every scene minus --holdout-last.")] = None,
+        val_split: Annotated[str | None, typer.Option("--val-split", help="Official split to validate on (val,"
+                                                      " mini_val); with --split.")] = None,
+        sweeps: Annotated[int, typer.Option("--sweeps", min=1, max=20, help="LIDAR_TOP sweeps stacked per key frame"
+                                            " with a time channel (nuScenes; CenterPoint uses 10).")] = 1,
         holdout_last: Annotated[int, typer.Option("--holdout-last", min=1, help="Keyframes held out per scene"
-                                                  " (nuScenes).")] = 10,
+                                                  " (nuScenes without --split).")] = 10,
         init: Annotated[str | None, typer.Option("--init", help="Start from these weights (fine-tuning); the"
                                                  " learning-rate schedule starts afresh.")] = None,
         epochs: Annotated[int, typer.Option("--epochs", min=1, max=1000)] = 10,
-        batch_size: Annotated[int, typer.Option("--batch-size", min=1, max=256)] = 4,
+        batch_size: Annotated[int, typer.Option("--batch-size", min=1, max=256, help="Per process and"
+                                                " micro-batch.")] = 4,
+        accumulate: Annotated[int, typer.Option("--accumulate", min=1, max=256, help="Micro-batches per optimiser"
+                                                " step (gradient accumulation).")] = 1,
         lr: Annotated[float, typer.Option("--lr", min=1e-7, max=1.0)] = 2e-3,
         seed: Annotated[int, typer.Option("--seed", min=0)] = 0,
         threads: Annotated[int | None, typer.Option("--threads", min=1, max=1024)] = None,
         workers: Annotated[int, typer.Option("--workers", min=0, max=64, help="Data-loader processes.")] = 0,
+        amp: Annotated[bool, typer.Option("--amp/--no-amp", help="Mixed precision (CUDA only).")] = True,
+        sync_bn: Annotated[bool, typer.Option("--sync-bn/--no-sync-bn", help="Synchronise BatchNorm across"
+                                              " GPUs (CUDA, several processes).")] = True,
+        checkpoint_every: Annotated[int, typer.Option("--checkpoint-every", min=0, help="Also checkpoint every N"
+                                                      " steps within an epoch (0: per epoch).")] = 0,
+        max_steps: Annotated[int | None, typer.Option("--max-steps-per-epoch", min=1, help="Cut epochs short"
+                                                      " (quick runs, tests).")] = None,
         resume: Annotated[bool, typer.Option("--resume", help="Continue from OUT/checkpoint.pt.")] = False,
         fit_recalibration: Annotated[bool, typer.Option("--fit-recalibration/--no-fit-recalibration",
                                                         help="Fit per-axis variance scales on the validation split"
                                                         " and store them in weights.pt.")] = False,
         progress: ProgressOpt = None,
     ) -> None:
-        """Train the detector on synthetic scans, or fine-tune it on a nuScenes dataroot (``--nuscenes``)."""
+        """Train the detector on synthetic scans or a nuScenes dataroot; runs unchanged under ``torchrun``."""
         progress = progress_on(progress)
         if preset not in PRESETS:
             fail(f"--preset: expected one of {', '.join(PRESETS)}, got {preset!r}")
+        _effects(effects)
         if init is not None and not os.path.isfile(init):
             fail(f"--init: file not found: {init}")
         if nuscenes is not None and not os.path.isdir(nuscenes):
             fail(f"--nuscenes: not a directory: {nuscenes}")
+        if (split or val_split or sweeps > 1) and nuscenes is None:
+            fail("--split/--val-split/--sweeps: need --nuscenes")
+        if val_split and not split:
+            fail("--val-split: needs --split")
         scen = _scenarios(scenarios)
         tr_seeds, va_seeds = parse_seeds(train_seeds, "--train-seeds"), parse_seeds(val_seeds, "--val-seeds")
         if set(tr_seeds) & set(va_seeds) and nuscenes is None:
@@ -159,15 +229,16 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         retain_heap()
         import torch
 
-        from .augment import random_augment
+        from .augment import TrainAugment
         from .evaluate import evaluation_report
         from .evaluate import fit_recalibration as fit_scales  # not `fit_recalibration`: that is the flag
         from .inference import WeightsError, load_weights, save_weights
         from .network import CenterPointNet
-        from .train import TrainConfig, predict, train
+        from .train import TrainConfig, init_distributed, predict, train
 
         if threads:
             torch.set_num_threads(threads)
+        dc = init_distributed()
         root = Path(out)
         root.mkdir(parents=True, exist_ok=True)
         if init is not None:
@@ -178,34 +249,60 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             if vanilla == model.config.uncertainty:
                 fail("--init: weights are " + ("uncertainty-aware" if model.config.uncertainty else "vanilla")
                      + "; drop or add --vanilla to match")
+            if (sweeps > 1) != (model.config.num_point_features == 5):
+                fail(f"--init: weights take {model.config.num_point_features} point fields; --sweeps {sweeps} gives"
+                     f" {5 if sweeps > 1 else 4}")
         else:
             torch.manual_seed(seed)
-            model = CenterPointNet(PRESETS[preset].model_copy(update={"uncertainty": not vanilla}))
+            model = CenterPointNet(PRESETS[preset].model_copy(update={"uncertainty": not vanilla,
+                                                                       "num_point_features": 5 if sweeps > 1 else 4}))
         pcr = model.config.point_cloud_range
         if nuscenes is not None:
             from ..replay.frames import SourceError
-            from .data import nuscenes_samples, split_holdout
+            from .data import NuScenesKeyframes, official_split, split_holdout
 
             try:
-                train_s, val_s = split_holdout(nuscenes_samples(nuscenes), last_n=holdout_last)
+                if split:
+                    train_s: Any = NuScenesKeyframes(nuscenes, nuscenes_version, _present(nuscenes, nuscenes_version,
+                                                     official_split(split)), sweeps=sweeps)
+                    val_s: Any = NuScenesKeyframes(nuscenes, nuscenes_version, _present(
+                        nuscenes, nuscenes_version, official_split(val_split)), sweeps=sweeps) if val_split else []
+                else:
+                    train_s, val_s = split_holdout(NuScenesKeyframes(nuscenes, nuscenes_version, sweeps=sweeps),
+                                                   last_n=holdout_last)
             except SourceError as exc:
                 fail(f"--nuscenes: {exc}")
-            source: dict[str, Any] = {"nuscenes": os.path.abspath(nuscenes), "holdout_last": holdout_last}
+            source: dict[str, Any] = {"nuscenes": os.path.abspath(nuscenes), "version": nuscenes_version,
+                                      "split": split, "val_split": val_split, "sweeps": sweeps,
+                                      "holdout_last": None if split else holdout_last}
         else:
-            train_s = synthetic_cache(root, scen, tr_seeds, frames, progress)
-            val_s = synthetic_cache(root, scen, va_seeds, frames, progress)
+            if dc.main:  # one process casts the caches, the others wait for them
+                synthetic_cache(root, scen, tr_seeds, frames, progress, effects)
+                synthetic_cache(root, scen, va_seeds, frames, progress, effects)
+            dc.barrier()
+            train_s = synthetic_cache(root, scen, tr_seeds, frames, False, effects)
+            val_s = synthetic_cache(root, scen, va_seeds, frames, False, effects)
             source = {"scenarios": scen, "train_seeds": train_seeds, "val_seeds": val_seeds,
-                      "frames_per_scenario": frames}
+                      "frames_per_scenario": frames, "effects": ",".join(_effects(effects)) or "none"}
         train_v, val_v = _Prepared(train_s, pcr), _Prepared(val_s, pcr)
-        tcfg = TrainConfig(epochs=epochs, batch_size=batch_size, lr=lr, seed=seed, num_workers=workers)
+        tcfg = TrainConfig(epochs=epochs, batch_size=batch_size, lr=lr, seed=seed, num_workers=workers,
+                           accumulate=accumulate, amp=amp, sync_bn=sync_bn, checkpoint_every=checkpoint_every,
+                           max_steps_per_epoch=max_steps)
 
         def evaluate(dets: Any, samples: Any) -> dict[str, Any]:
             return evaluation_report(dets, samples)["summary"]
 
         meta = {"source": source, "init": init, "command": " ".join(["jitterguard", *sys.argv[1:]])}
-        state = train(model, train_v, val_v, tcfg, root, augment=random_augment, evaluate=evaluate,
-                      resume=resume, progress=progress, meta=meta)
-        val_list = [val_v[i] for i in range(len(val_v))]
+        if dc.distributed:
+            meta["launcher"] = f"torchrun, {dc.world} processes"
+        augment = TrainAugment(rotation, tilt_aug)
+        meta["augment"] = {"rotation_deg": rotation, "tilt_deg": tilt_aug}
+        state = train(model, train_v, val_v, tcfg, root, augment=augment, evaluate=evaluate,
+                      resume=resume, progress=progress, meta=meta, dist_ctx=dc)
+        if not dc.main:
+            return
+        model.cpu()
+        val_list = [val_v[i] for i in range(min(len(val_v), tcfg.max_eval_samples * 5))]
         dets = predict(model, val_list)
         rec = None
         if fit_recalibration and model.config.uncertainty:
@@ -216,9 +313,143 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         if rec is not None:
             save_weights(root / "weights.pt", model, recalibration=rec,
                          meta={**meta, "epochs": state.epoch, "recalibration_fit_on": "validation split"})
-        summary = write_report(root / "report", "validation", dets, val_list)["summary"]
+        summary = write_report(root / "report", "validation", dets, val_list)["summary"] if val_list else None
         typer.echo(json.dumps({"weights": str(root / "weights.pt"), "epochs": state.epoch,
                                "recalibration": rec, "validation": summary}))
+
+    @app.command("adapt")
+    def adapt_cmd(
+        weights: Annotated[str, typer.Option("--weights", help="Weights to adapt (e.g. the shipped synthetic ones).")],
+        out: Annotated[str, typer.Option("--out", help="Run folder: rounds, weights.pt, adapt.json.")],
+        scans: Annotated[list[str], typer.Option("--scans", help="Unlabelled real recordings (repeatable): a nuScenes"
+                                                 " dataroot, KITTI .bin folder or file, PCD, bag. Labels are never"
+                                                 " read.")],
+        rounds: Annotated[int, typer.Option("--rounds", min=0, max=20, help="Self-training rounds (0: only"
+                                            " normalisation statistics and recalibration).")] = 2,
+        epochs: Annotated[int, typer.Option("--epochs", min=1, max=100, help="Epochs per round.")] = 2,
+        batch_size: Annotated[int, typer.Option("--batch-size", min=1, max=64)] = 2,
+        lr: Annotated[float, typer.Option("--lr", min=1e-7, max=1.0)] = 5e-4,
+        scenarios: Annotated[str, typer.Option("--scenarios", help="Synthetic scenarios mixed in.")] = DEFAULT_SCENARIOS,
+        synthetic_seeds: Annotated[str, typer.Option("--synthetic-seeds", help="Labelled synthetic scans mixed into"
+                                                     " self-training (seeds).")] = "0-9",
+        frames: Annotated[int, typer.Option("--frames-per-scenario", min=1, max=600)] = 5,
+        effects: Annotated[str, typer.Option("--effects")] = "random",
+        real_repeat: Annotated[int, typer.Option("--real-repeat", min=1, max=100, help="Times each real scan is"
+                                                 " seen per epoch.")] = 2,
+        threshold: Annotated[list[str] | None, typer.Option("--threshold", help="CLASS=SCORE minimum score of a"
+                                                            " pseudo-label (repeatable).")] = None,
+        max_scans: Annotated[int | None, typer.Option("--max-scans", min=1)] = None,
+        recalibrate: Annotated[bool, typer.Option("--recalibrate/--no-recalibrate", help="Fit per-axis variance"
+                                                  " scales from tracked residuals (recordings with poses).")] = True,
+        seed: Annotated[int, typer.Option("--seed", min=0)] = 0,
+        threads: Annotated[int | None, typer.Option("--threads", min=1, max=1024)] = None,
+        progress: ProgressOpt = None,
+    ) -> None:
+        """Adapt weights to unlabelled real scans: normalisation statistics, self-training, recalibration."""
+        progress = progress_on(progress)
+        from .adapt import DEFAULT_PSEUDO_THRESHOLDS
+        from .config import CLASS_NAMES
+
+        if not os.path.isfile(weights):
+            fail(f"--weights: file not found: {weights}")
+        _effects(effects)
+        thr = list(DEFAULT_PSEUDO_THRESHOLDS)
+        for item in threshold or []:
+            name, sep, val = item.partition("=")
+            try:
+                score = float(val)
+            except ValueError:
+                score = -1.0
+            if not sep or name not in CLASS_NAMES or not 0.0 < score < 1.0:
+                fail(f"--threshold: expected CLASS=SCORE with CLASS one of {', '.join(CLASS_NAMES)} and 0 < SCORE < 1,"
+                     f" got {item!r}")
+            thr[CLASS_NAMES.index(name)] = score
+        scen = _scenarios(scenarios)
+        syn_seeds = parse_seeds(synthetic_seeds, "--synthetic-seeds")
+        logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+        from .cli import passive_openmp, retain_heap
+
+        passive_openmp()  # before torch is imported
+        retain_heap()
+        import hashlib
+
+        import torch
+
+        from ..replay.frames import SourceError
+        from .adapt import AdaptConfig, adapt, describe, read_unlabelled
+        from .augment import TrainAugment
+        from .inference import WeightsError, load_weights, save_weights
+
+        if threads:
+            torch.set_num_threads(threads)
+        try:
+            model, source_rec, source_meta = load_weights(weights)
+        except WeightsError as exc:
+            fail(f"--weights: {exc}")
+        try:
+            real = read_unlabelled(scans, max_scans=max_scans)
+        except SourceError as exc:
+            fail(f"--scans: {exc}")
+        root = Path(out)
+        root.mkdir(parents=True, exist_ok=True)
+        synthetic = _Prepared(synthetic_cache(root, scen, syn_seeds, frames, progress, effects),
+                              model.config.point_cloud_range) if rounds else []
+        cfg = AdaptConfig(rounds=rounds, epochs=epochs, batch_size=batch_size, lr=lr, seed=seed, thresholds=tuple(thr),
+                          real_repeat=real_repeat, recalibrate=recalibrate)
+        aug = TrainAugment(**(source_meta.get("augment") or {}))  # as the source weights were trained
+        report = adapt(model, real, synthetic, cfg, root, augment=aug, progress=progress)
+        rec = report["recalibration"]
+        scales = tuple(rec["scales"]) if rec else source_rec
+        sha = hashlib.sha256(Path(weights).read_bytes()).hexdigest()[:16]
+        meta = {"command": " ".join(["jitterguard", *sys.argv[1:]]), "adapted_from": {"path": os.path.abspath(weights),
+                "sha256_16": sha, "source": source_meta.get("source")}, "unlabelled_scans": describe(real),
+                "labels_read": False, "adapt": {**dataclasses_asdict(cfg), "synthetic_seeds": synthetic_seeds,
+                                                "scenarios": scen, "effects": effects},
+                "report": report,
+                "recalibration_fit_on": rec["fit_on"] if rec else "unchanged from the source weights"}
+        save_weights(root / "weights.pt", model, recalibration=scales, meta=meta)
+        (root / "adapt.json").write_text(json.dumps(meta, indent=1))
+        typer.echo(json.dumps({"weights": str(root / "weights.pt"), "scans": len(real), "report": report}))
+
+    @app.command("domain-gap")
+    def domain_gap_cmd(
+        out: Annotated[str, typer.Option("--out", help="Folder for domain_gap.json and domain_gap.png.")],
+        nuscenes: Annotated[str, typer.Option("--nuscenes", help="Real nuScenes dataroot (its boxes give the"
+                                              " per-car figures).")],
+        effects: Annotated[list[str] | None, typer.Option("--effects", help="Synthetic scans to compare, one set per"
+                                                          " flag (see train --effects).")] = None,
+        scenarios: Annotated[str, typer.Option("--scenarios")] = DEFAULT_SCENARIOS,
+        seeds: Annotated[str, typer.Option("--seeds")] = "1000-1001",
+        frames: Annotated[int, typer.Option("--frames-per-scenario", min=1, max=600)] = 5,
+    ) -> None:
+        """Measure how real scans differ from synthetic ones (returns by range, on cars, road height)."""
+        if not os.path.isdir(nuscenes):
+            fail(f"--nuscenes: not a directory: {nuscenes}")
+        specs = effects or ["none", "random"]
+        for e in specs:
+            _effects(e)
+        scen = _scenarios(scenarios)
+        sd = parse_seeds(seeds, "--seeds")
+        from ..replay.frames import SourceError
+        from .data import nuscenes_samples, synthetic_samples
+        from .domain_gap import comparison_plot, scan_statistics
+
+        try:
+            real = nuscenes_samples(nuscenes)
+        except SourceError as exc:
+            fail(f"--nuscenes: {exc}")
+        stats = {f"real ({Path(nuscenes).name})": scan_statistics(real)}
+        for e in specs:
+            stats[f"synthetic, effects {e}"] = scan_statistics(
+                list(synthetic_samples(scen, sd, frames_per_scenario=frames, effects=e)))
+        root = Path(out)
+        root.mkdir(parents=True, exist_ok=True)
+        (root / "domain_gap.json").write_text(json.dumps(stats, indent=1))
+        comparison_plot(stats, str(root / "domain_gap.png"))
+        typer.echo(json.dumps({name: {"valid_returns_per_scan": round(st["valid_returns_per_scan"]),
+                                      "car_intensity_p10_50_90": st["car_intensity_p10_50_90"],
+                                      "returns_per_car_10_20m": st["bands"][2]["returns_per_car_median"]}
+                               for name, st in stats.items()}))
 
     @app.command("eval-detector")
     def eval_detector_cmd(
@@ -228,9 +459,13 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         scenarios: Annotated[str, typer.Option("--scenarios")] = DEFAULT_SCENARIOS,
         seeds: Annotated[str, typer.Option("--seeds", help="Hold-out seeds (never used in training).")] = "1000-1004",
         frames: Annotated[int, typer.Option("--frames-per-scenario", min=1, max=600)] = 10,
-        nuscenes: Annotated[str | None, typer.Option("--nuscenes", help="Evaluate on this dataroot's held-out"
-                                                      " keyframes instead.")] = None,
-        holdout_last: Annotated[int, typer.Option("--holdout-last", min=1)] = 10,
+        nuscenes: Annotated[str | None, typer.Option("--nuscenes", help="Evaluate on this nuScenes dataroot's key"
+                                                      " frames instead (all of them, unless the weights were"
+                                                      " trained on it: then its held-out ones).")] = None,
+        holdout_last: Annotated[int | None, typer.Option("--holdout-last", min=1, help="Score only each scene's"
+                                                         " last N key frames.")] = None,
+        bootstrap: Annotated[int, typer.Option("--bootstrap", min=0, max=10000, help="Resamples over frames for"
+                                               " 90 %% intervals of AP and coverage (0: none).")] = 1000,
         recalibrate: Annotated[bool, typer.Option("--recalibrate/--no-recalibrate",
                                                   help="Apply the weights' fitted variance scales.")] = True,
         threads: Annotated[int | None, typer.Option("--threads", min=1, max=1024)] = None,
@@ -254,10 +489,33 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             det = Detector.load(weights, preset, threads=threads, recalibrate=recalibrate)
         except WeightsError as exc:
             fail(f"--weights: {exc}")
+        scored_on: dict[str, Any] = {}
         if nuscenes is not None:
+            from ..replay.frames import SourceError
             from .data import nuscenes_samples, split_holdout
 
-            samples: Any = split_holdout(nuscenes_samples(nuscenes), last_n=holdout_last)[1]
+            if not os.path.isdir(nuscenes):
+                fail(f"--nuscenes: not a directory: {nuscenes}")
+            trained = (det.meta.get("source") or {}) if isinstance(det.meta.get("source"), dict) else {}
+            seen = trained.get("nuscenes") == os.path.abspath(nuscenes)
+            last = holdout_last or (int(trained.get("holdout_last") or 10) if seen else None)
+            try:
+                every = nuscenes_samples(nuscenes)
+            except SourceError as exc:
+                fail(f"--nuscenes: {exc}")
+            samples: Any = split_holdout(every, last_n=last)[1] if last else every
+            from .adapt import adapted_on
+
+            transductive = adapted_on(det.meta, nuscenes)
+            scored_on = {"nuscenes": os.path.abspath(nuscenes), "key_frames": len(samples),
+                         "holdout_last": last, "weights_trained_on_it": seen,
+                         "weights_adapted_on_its_scans": transductive}
+            if transductive:
+                log.warning("these weights were adapted on %s's unlabelled scans: this scores test-time adaptation,"
+                            " not a scene the weights have never seen", nuscenes)
+            if seen and not holdout_last:
+                log.warning("these weights were trained on %s: scoring only its held-out last %d key frames",
+                            nuscenes, last)
         else:
             samples = synthetic_cache(Path(out), scen, sd, frames, progress)
         view = _Prepared(samples, det.config.point_cloud_range)
@@ -270,5 +528,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             dets.append(det.detect(s.points))
             bar.update(1)
         bar.close()
-        summary = write_report(Path(out), name, dets, items)["summary"]
+        summary = write_report(Path(out), name, dets, items, bootstrap=bootstrap, extra={"scored_on": scored_on,
+                               "weights": os.path.abspath(weights) if weights else "shipped " + preset,
+                               "recalibrated": det.recalibration is not None})["summary"]
         typer.echo(json.dumps({"samples": len(items), **summary}))

@@ -1,0 +1,384 @@
+"""Adapting synthetic-trained weights to a real sensor without labels (``jitterguard adapt``).
+
+A user points the detector at their own unlabelled recordings; three label-free steps fit it to them:
+
+1. **Normalisation statistics** (AdaBN): every BatchNorm layer's running mean and variance are recomputed on
+   the real scans (cumulative average over all of them, the network in train mode, no gradients). Real scans
+   differ from synthetic ones in density, height and intensity statistics, and a BatchNorm fitted to the
+   synthetic statistics shifts every feature the head reads.
+2. **Self-training** on pseudo-labels: the adapted model's confident detections on the real scans become
+   boxes of pseudo-labelled samples (:attr:`~.config.Sample.pseudo`), trained together with labelled synthetic
+   scans for a few epochs, for ``rounds`` rounds (pseudo-labels redrawn with the improved model each round).
+   Pseudo-labels train the heatmap only — where objects are and where they are not — never the regression and
+   variance heads (trained on a model's own boxes the variances would collapse); the synthetic scans keep
+   those honest. The BatchNorm statistics are recomputed on the real scans after every round.
+3. **Recalibration from tracked residuals** (:func:`fit_recalibration_tracked`): where the recordings carry
+   ego poses, confident detections are associated over time in the world frame; the residuals of each track
+   about a constant-position (or constant-velocity) fit, rotated back into the sensor axes and divided by the
+   predicted σ, give per-axis variance scales. This measures the frame-to-frame scatter the classifier's
+   z-test relies on; an error that stays the same over a whole track (a box consistently too far back) is not
+   seen, so coverage against labels may stay below nominal (docs/detector.md reports it).
+
+Nothing here reads a label: recordings are opened with the replay's readers (nuScenes: scenes, samples,
+sample_data, poses and calibration only — never ``sample_annotation``). The scans used are named in the
+adapted weights' metadata. The data: :class:`UnlabelledScan` (points in the sensor frame, the sensor's world
+pose, where it came from).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from numpy.typing import NDArray
+from torch import nn
+
+from .augment import points_in_boxes
+from .config import CLASS_NAMES, Detections3D, Sample
+from .network import CenterPointNet
+
+log = logging.getLogger(__name__)
+
+F32 = NDArray[np.float32]
+F64 = NDArray[np.float64]
+
+DEFAULT_PSEUDO_THRESHOLDS: tuple[float, ...] = (0.5, 0.5, 0.5, 0.4, 0.4)
+"""Minimum score of a pseudo-label per class (car, truck, bus, bicycle, pedestrian)."""
+
+
+@dataclass(frozen=True)
+class UnlabelledScan:
+    """One real scan: ``points`` (P, 4) x, y, z, intensity (0–255) in the sensor frame, the sensor's ``pose`` in
+    the world (4×4, identity when the recording has none), the recording it came from and its file."""
+
+    points: F32
+    pose: F64
+    source: str
+    name: str
+    has_pose: bool
+
+
+def read_unlabelled(specs: Sequence[str], *, max_scans: int | None = None,
+                    intensity_scale: dict[str, float] | None = None) -> list[UnlabelledScan]:
+    """Every scan of each recording in ``specs`` (any SOURCE the replay reads: a nuScenes dataroot — every scene
+    —, a folder of KITTI ``.bin`` scans or one file, PCD, bags), points picked by field name as the detector
+    service picks them. KITTI-style reflectance in 0…1 is scaled to 0…255 (a scan whose intensities all lie
+    in [0, 1]). Raises :class:`~..replay.frames.SourceError` naming the recording."""
+    # the replay's readers (and through them rosbags, PCD) load only when scans are read, not when the CLI starts
+    from ..replay.frames import IDENTITY, ScanFrame, SourceError
+    from ..replay.sources import SourceOptions, open_source
+    from ..replay.sources.nuscenes import _load_table, find_version, is_nuscenes_root
+    from .adapter import points_from_fields
+
+    out: list[UnlabelledScan] = []
+    for spec in specs:
+        path = Path(spec)
+        # the absolute path names the recording in the metadata, so eval-detector can tell adapted-on scans
+        name = str(path.resolve()) if path.exists() else spec
+        scenes: list[str | None] = [None]
+        if path.exists() and is_nuscenes_root(path):
+            scenes = [s["name"] for s in _load_table(path / find_version(path, None), "scene")]
+        for scene in scenes:
+            src = open_source(spec, SourceOptions(scene=scene))
+            n_before = len(out)
+            for item in src.frames():
+                if not isinstance(item, ScanFrame):
+                    raise SourceError(f"{spec}: {item}")
+                pts, _ = points_from_fields(np.asarray(item.points), item.fields)
+                if len(pts) and float(np.nanmax(pts[:, 3])) <= 1.0:
+                    pts = pts.copy()
+                    pts[:, 3] *= 255.0
+                out.append(UnlabelledScan(pts, item.pose.matrix(), name if scene is None else f"{name}#{scene}",
+                                          Path(item.origin).name, item.pose != IDENTITY))
+                if max_scans is not None and len(out) >= max_scans:
+                    return out
+            if len(out) == n_before:
+                raise SourceError(f"{spec}: no scans read")
+    return out
+
+
+def adapted_on(meta: dict[str, Any], recording: str | Path) -> bool:
+    """Whether weights with metadata ``meta`` were adapted on scans of ``recording`` (a folder or file; for a
+    nuScenes dataroot any of its scenes): scoring them there is test-time adaptation, not a cross-scene test."""
+    target = str(Path(recording).resolve())
+    for rec in meta.get("unlabelled_scans") or []:
+        src = str(rec.get("recording", "")) if isinstance(rec, dict) else ""
+        if src.split("#", 1)[0] == target:
+            return True
+    return False
+
+
+def describe(scans: Sequence[UnlabelledScan]) -> list[dict[str, Any]]:
+    """What the weights' metadata records about the scans used: per recording its count and a digest of the
+    file names (the names themselves when few)."""
+    groups: dict[str, list[str]] = {}
+    for s in scans:
+        groups.setdefault(s.source, []).append(s.name)
+    out = []
+    for src, names in groups.items():
+        rec: dict[str, Any] = {"recording": src, "scans": len(names),
+                               "names_sha1": hashlib.sha1("\n".join(names).encode()).hexdigest()[:12]}
+        if len(names) <= 50:
+            rec["names"] = names
+        out.append(rec)
+    return out
+
+
+# --------------------------------------------------------------------------------------------------------
+# 1. normalisation statistics
+
+
+@torch.no_grad()
+def recompute_norm_stats(model: CenterPointNet, scans: Sequence[F32], batch_size: int = 2,
+                         progress: Callable[[int], None] | None = None) -> int:
+    """AdaBN: reset every BatchNorm's running statistics and re-estimate them as the cumulative average over
+    ``scans`` (sensor-frame points) with the network in train mode; returns the number of batches used. The
+    model is left in eval mode."""
+    bns = [m for m in model.modules() if isinstance(m, nn.modules.batchnorm._BatchNorm)]
+    saved = [m.momentum for m in bns]
+    for m in bns:
+        m.reset_running_stats()
+        m.momentum = None  # cumulative moving average
+    model.train()
+    nf = model.config.num_point_features
+    n = 0
+    try:
+        for i in range(0, len(scans), batch_size):
+            chunk = scans[i:i + batch_size]
+            model([torch.from_numpy(np.ascontiguousarray(p[:, :nf], np.float32)) for p in chunk])
+            n += 1
+            if progress:
+                progress(len(chunk))
+    finally:
+        for m, mom in zip(bns, saved):
+            m.momentum = mom
+        model.eval()
+    return n
+
+
+# --------------------------------------------------------------------------------------------------------
+# 2. pseudo-labels
+
+
+def pseudo_samples(scans: Sequence[UnlabelledScan], detections: Sequence[Detections3D],
+                   thresholds: Sequence[float] = DEFAULT_PSEUDO_THRESHOLDS, min_points: int = 3) -> list[Sample]:
+    """Pseudo-labelled samples: each scan with its detections scoring at least ``thresholds[class]`` and
+    holding at least ``min_points`` returns as boxes (``pseudo=True``: heatmap targets only)."""
+    out = []
+    thr = np.asarray(thresholds, np.float64)
+    for k, (scan, det) in enumerate(zip(scans, detections, strict=True)):
+        keep = det.scores >= thr[det.labels] if len(det) else np.zeros(0, bool)
+        boxes = det.boxes[keep].astype(np.float32)
+        counts = points_in_boxes(scan.points, boxes).sum(axis=0) if len(boxes) else np.zeros(0, np.int64)
+        ok = counts >= min_points
+        out.append(Sample(points=scan.points, boxes=boxes[ok], labels=det.labels[keep][ok].astype(np.int64),
+                          num_points=counts[ok].astype(np.int64), token=f"pseudo/{scan.source}/{k}", pseudo=True))
+    return out
+
+
+class Mixed(Sequence[Sample]):
+    """Pseudo-labelled real samples repeated ``repeat`` times, then labelled synthetic ones: one epoch of
+    self-training sees both (the loader shuffles)."""
+
+    def __init__(self, real: Sequence[Sample], synthetic: Sequence[Sample], repeat: int) -> None:
+        self.real, self.synthetic, self.repeat = real, synthetic, max(1, repeat)
+
+    def __len__(self) -> int:
+        return len(self.real) * self.repeat + len(self.synthetic)
+
+    def __getitem__(self, i: Any) -> Any:
+        if isinstance(i, slice):
+            return [self[j] for j in range(*i.indices(len(self)))]
+        n_real = len(self.real) * self.repeat
+        return self.real[i % len(self.real)] if i < n_real else self.synthetic[i - n_real]
+
+
+# --------------------------------------------------------------------------------------------------------
+# 3. recalibration from tracked residuals
+
+
+@dataclass(frozen=True)
+class TrackedResiduals:
+    """Residuals of tracked detections about their track's fit, in each detection's sensor axes: ``z2`` (N, 2)
+    squared residuals over predicted variances, ``dof`` the degrees of freedom they carry (Σ n − p over
+    tracks), and how many tracks and detections went in."""
+
+    z2_sum: F64
+    dof: float
+    num_tracks: int
+    num_detections: int
+
+    @property
+    def scales(self) -> tuple[float, float]:
+        s = self.z2_sum / max(self.dof, 1e-9)
+        return float(s[0]), float(s[1])
+
+
+def tracked_residuals(frames: Sequence[tuple[Detections3D, F64]], *, min_score: float = 0.4, gate_m: float = 1.5,
+                      min_hits: int = 4, static_speed: float = 1.0) -> TrackedResiduals:
+    """Associate confident detections over a sequence of (detections, sensor pose 4×4) in the world frame
+    (greedy nearest neighbour per class within ``gate_m`` of each track's predicted position), then fit every
+    track of ≥ ``min_hits`` detections: a constant position if its fitted speed is below ``static_speed`` m/s
+    (p = 1 parameter per axis), else a constant velocity (p = 2; frames are taken as equally spaced). Each
+    residual is rotated into its own frame's sensor axes and divided by its predicted σ²."""
+    tracks: list[dict[str, Any]] = []
+    for k, (det, pose) in enumerate(frames):
+        if det.log_variances is None:
+            raise ValueError("tracked recalibration needs predicted variances")
+        sel = np.flatnonzero(det.scores >= min_score)
+        xyz = det.boxes[sel, :3].astype(np.float64) @ pose[:3, :3].T + pose[:3, 3]
+        live = [t for t in tracks if t["last"] == k - 1 or t["last"] == k - 2]
+        taken: set[int] = set()
+        pairs = []
+        for ti, t in enumerate(live):
+            pred = _predict(t["frames"], t["xy"], k)
+            for j, d in enumerate(sel):
+                if det.labels[d] != t["label"]:
+                    continue
+                dist = float(np.hypot(*(xyz[j, :2] - pred)))
+                if dist < gate_m:
+                    pairs.append((dist, ti, j))
+        used_t: set[int] = set()
+        for dist, ti, j in sorted(pairs):
+            if ti in used_t or j in taken:
+                continue
+            used_t.add(ti)
+            taken.add(j)
+            t = live[ti]
+            t["xy"].append(xyz[j, :2])
+            t["frames"].append(k)
+            t["rows"].append(int(sel[j]))
+            t["last"] = k
+        for j, d in enumerate(sel):
+            if j not in taken:
+                tracks.append({"label": int(det.labels[d]), "xy": [xyz[j, :2]], "frames": [k], "rows": [int(d)],
+                               "last": k})
+    z2 = np.zeros(2)
+    dof = 0.0
+    n_tracks = n_det = 0
+    for t in tracks:
+        n = len(t["frames"])
+        if n < min_hits:
+            continue
+        f = np.asarray(t["frames"], np.float64)
+        xy = np.asarray(t["xy"])
+        a = np.column_stack([np.ones(n), f - f.mean()])
+        coef, *_ = np.linalg.lstsq(a, xy, rcond=None)
+        dt = 0.5  # nuScenes key frames: speed only decides static vs moving, so the exact rate matters little
+        p = 2 if float(np.hypot(*coef[1])) / dt >= static_speed else 1
+        fit = a[:, :p] @ np.linalg.lstsq(a[:, :p], xy, rcond=None)[0]
+        res_w = xy - fit
+        for r_w, k, row in zip(res_w, t["frames"], t["rows"]):
+            det, pose = frames[k]
+            rot = pose[:2, :2]
+            r_s = rot.T @ r_w  # world → this frame's sensor axes (the sensor is upright to within degrees)
+            z2 += r_s ** 2 / np.exp(det.log_variances[row, :2].astype(np.float64))
+        dof += n - p
+        n_tracks += 1
+        n_det += n
+    return TrackedResiduals(z2, dof, n_tracks, n_det)
+
+
+def _predict(frames: list[int], xy: list[F64], k: int) -> F64:
+    """Where a track should be at frame ``k``: its last position while short, else its least-squares constant
+    velocity line over all its detections (one noisy step must not throw the prediction off)."""
+    if len(frames) < 3:
+        return xy[-1]
+    f = np.asarray(frames, np.float64)
+    a = np.column_stack([np.ones(len(f)), f - f.mean()])
+    coef, *_ = np.linalg.lstsq(a, np.asarray(xy), rcond=None)
+    return coef[0] + coef[1] * (k - f.mean())
+
+
+# --------------------------------------------------------------------------------------------------------
+# the whole adaptation
+
+
+@dataclass
+class AdaptConfig:
+    """Settings of :func:`adapt` (``jitterguard adapt`` flags)."""
+
+    rounds: int = 2
+    epochs: int = 2
+    batch_size: int = 2
+    lr: float = 5e-4
+    seed: int = 0
+    thresholds: tuple[float, ...] = DEFAULT_PSEUDO_THRESHOLDS
+    real_repeat: int = 2
+    recalibrate: bool = True
+    min_tracks: int = 5
+
+
+def adapt(model: CenterPointNet, scans: Sequence[UnlabelledScan], synthetic: Sequence[Sample], cfg: AdaptConfig,
+          out_dir: Path, *, augment: Any = None, progress: bool = True) -> dict[str, Any]:
+    """Run the three steps on ``model`` in place (see the module doc); returns a report: per round the number
+    of pseudo-labels per class, and the recalibration fitted (or why none was)."""
+    from .decode import decode
+    from .train import TrainConfig, train
+
+    pcr = model.config.point_cloud_range
+    pts = [_in_range(s.points, pcr) for s in scans]
+    scans = [replace(s, points=p) for s, p in zip(scans, pts)]
+    report: dict[str, Any] = {"rounds": []}
+    recompute_norm_stats(model, pts)
+    for r in range(cfg.rounds):
+        dets = _detect_all(model, pts, decode)
+        pseudo = pseudo_samples(scans, dets, cfg.thresholds)
+        counts = np.bincount(np.concatenate([p.labels for p in pseudo]) if pseudo else np.zeros(0, np.int64),
+                             minlength=len(CLASS_NAMES))
+        log.info("round %d: pseudo-labels %s", r + 1, dict(zip(CLASS_NAMES, counts.tolist())))
+        data = Mixed(pseudo, synthetic, cfg.real_repeat)
+        tcfg = TrainConfig(epochs=cfg.epochs, batch_size=cfg.batch_size, lr=cfg.lr, seed=cfg.seed + r,
+                           pct_start=0.3)
+        train(model, data, [], tcfg, out_dir / f"round{r + 1}", augment=augment, progress=progress)
+        model.cpu()
+        recompute_norm_stats(model, pts)
+        report["rounds"].append({"pseudo_labels": dict(zip(CLASS_NAMES, counts.tolist())),
+                                 "samples": len(data)})
+    report["recalibration"] = None
+    if cfg.recalibrate and model.config.uncertainty:
+        dets = _detect_all(model, pts, decode)
+        by_source: dict[str, list[tuple[Detections3D, F64]]] = {}
+        for s, d in zip(scans, dets):
+            if s.has_pose:
+                by_source.setdefault(s.source, []).append((d, s.pose))
+        pooled = np.zeros(2)
+        dof, nt, nd = 0.0, 0, 0
+        for seq in by_source.values():
+            tr = tracked_residuals(seq)
+            pooled += tr.z2_sum
+            dof += tr.dof
+            nt += tr.num_tracks
+            nd += tr.num_detections
+        if nt >= cfg.min_tracks:
+            s2 = pooled / dof
+            report["recalibration"] = {"scales": [float(s2[0]), float(s2[1])], "tracks": nt, "detections": nd,
+                                       "dof": dof, "fit_on": "tracked residuals (no labels)"}
+        else:
+            report["recalibration_skipped"] = (f"{nt} tracks of >= 4 detections in recordings with poses; need"
+                                               f" {cfg.min_tracks}")
+    return report
+
+
+def _in_range(points: F32, pcr: Sequence[float]) -> F32:
+    p = points
+    keep = ((p[:, 0] >= pcr[0]) & (p[:, 0] < pcr[3]) & (p[:, 1] >= pcr[1]) & (p[:, 1] < pcr[4])
+            & (p[:, 2] >= pcr[2]) & (p[:, 2] < pcr[5]))
+    return np.ascontiguousarray(p[keep], np.float32)
+
+
+@torch.no_grad()
+def _detect_all(model: CenterPointNet, pts: Sequence[F32], decode: Any) -> list[Detections3D]:
+    model.eval()
+    nf = model.config.num_point_features
+    out: list[Detections3D] = []
+    for p in pts:
+        out.extend(decode(model([torch.from_numpy(np.ascontiguousarray(p[:, :nf], np.float32))]), model.config))
+    return out
+

@@ -1,0 +1,281 @@
+"""What a real spinning LiDAR on a real street adds to an ideal ray-cast scan, drawn per scan for training.
+
+Why this module exists: a detector trained on ideal scans (flat ground exactly ``mount_height`` below the
+sensor, every ray that meets a car returning, intensity proportional to paint colour) fires on real scans
+wherever the road rises or falls and misses real cars, whose glass returns nothing and whose dark paint returns
+weakly. Measured on nuScenes scene-0523 (``docs/detector.md``, "The sim-to-real gap"): the road surface 30–50 m
+away lies 0.6–1.5 m above or below the plane under the car, real cars at 8–25 m carry 37 returns (median)
+where ideal ones carry 91, hardly any from the upper 40 % of the box (glass), and real intensities are an order
+of magnitude lower (car paint median 4 of 255, asphalt ≈ 10).
+
+:class:`ScanEffects` holds one scan's effects; :func:`draw_effects` draws them at random (domain
+randomisation: every scan a different slope, noise, dropout, intensity gain). The ray caster
+(:func:`jitterguard.sim.lidar.cast_frame`) applies them; without effects it casts the ideal scan as before.
+
+The ground is a smooth height field in the *sensor* frame: the vehicle stands on the road, so the surface is
+near ``-mount_height`` below the sensor close by and drifts away from that plane with the tilt of the vehicle
+relative to the road ahead, the change of grade (curvature) and gentle undulations. Road users and scenery
+stand on it (each primitive is lifted by the surface height under its object's centre, so objects stay upright
+and whole).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .layout import rectangles_overlap
+from .primitives import PrimitiveList, Primitives, Tag
+
+F64 = NDArray[np.float64]
+
+EFFECTS_VERSION = 3
+"""Bumped whenever :func:`draw_effects` or the way effects are applied changes: caches of scans cast with
+effects name it in their recipe, so a stale cache is rebuilt rather than silently reused."""
+
+INTENSITY_MODELS = ("legacy", "measured", "none")
+"""``legacy``: 255 · reflectivity falling off with range (the ideal model); ``measured``: per-surface log-normal
+distributions fitted to nuScenes' HDL-32E (see :data:`MEASURED_INTENSITY`); ``none``: every intensity 0."""
+
+MEASURED_INTENSITY: dict[str, tuple[float, float]] = {
+    "ground": (9.0, 0.9),
+    "object": (4.0, 1.3),
+    "glass": (2.0, 1.0),
+    "building": (14.0, 1.0),
+    "vegetation": (11.0, 0.8),
+    "pole": (25.0, 1.0),
+    "sign": (120.0, 0.6),
+}
+"""Median (0…255) and log-space SD of the intensity per surface kind, read off nuScenes scene-0523's LIDAR_TOP
+(ground: lowest returns off the boxes; objects: returns inside annotated car boxes, median 4, p90 ≈ 45)."""
+
+BRIGHT_SPOT_FRACTION = 0.03
+"""Fraction of returns on road users that hit a retro-reflector (plate, lamp, reflective strip): 80…255."""
+
+
+@dataclass(frozen=True)
+class ScanEffects:
+    """The effects of one scan. All defaults leave the ideal scan unchanged.
+
+    Ground (sensor frame, metres): height above the nominal ``-mount_height`` plane is
+    ``mount_offset + tilt·(x, y) + ½ (c_xx x² + c_yy y²) + c_xy x y + Σ a sin(k·(x, y) + φ)``.
+    """
+
+    mount_offset_m: float = 0.0
+    """The ground this much higher than nominal (a sensor mounted lower, a loaded vehicle)."""
+    tilt: tuple[float, float] = (0.0, 0.0)
+    """dz/dx and dz/dy of the road relative to the vehicle (pitch and roll of the body, road camber)."""
+    curvature: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """c_xx, c_yy, c_xy in 1/m: a change of grade (a crest or a dip ahead, a road falling away to the side)."""
+    undulation: tuple[tuple[float, float, float, float], ...] = ()
+    """(amplitude m, k_x, k_y rad/m, phase): uneven ground."""
+    glass_pass: float = 0.0
+    """Probability that a ray passes through a vehicle's glass (cabin) without a return."""
+    object_dropout: float = 0.0
+    """Extra probability that a return from a road user is lost (dark, specular paint)."""
+    range_sigma_m: float | None = None
+    """Range noise instead of the sensor's own (None: the sensor's)."""
+    intensity: str = "legacy"
+    """One of :data:`INTENSITY_MODELS`."""
+    intensity_gain: float = 1.0
+    """Multiplies measured intensities (sensor-to-sensor and unit-to-unit calibration differs)."""
+    ego_body: bool = False
+    """The vehicle's roof around the sensor blocks its steepest beams (nuScenes: most of rings 0–7 within
+    ~1 m), as a box below and around the sensor."""
+    mixed_pixels: float = 0.0
+    """Fraction of returns at depth edges that land between the edge and what lies behind it."""
+    clutter_density: float = 0.0
+    """Extra street clutter per scan (kerbs, low walls, fences, bushes, bollards, barriers, bins), in pieces per
+    100 m² of the 60 m × 60 m around the sensor; placed off the road users (see :func:`street_clutter`)."""
+    clutter_seed: int = 0
+    motion: bool = False
+    """Motion within the sweep: the scan takes one turn (1 / spin rate); each azimuth sector is measured when
+    the sensor and the road users were where they were at that moment, and reported in the sensor frame at the
+    end of the turn without de-skewing (nuScenes' LIDAR_TOP sweeps are not motion-compensated), so a static
+    world is smeared by up to the ego's speed × 50 ms along the heading and moving objects by their own motion."""
+    sweep_start: float = 0.0
+    """Azimuth (rad) at which the turn starts (where the seam between the oldest and newest returns lies)."""
+    building_drop: float = 0.0
+    """Probability that each building block of the scenery is left out of this scan: open squares, lots and
+    roundabouts instead of street canyons (real scans see the ground rings to 40 m in many directions)."""
+
+    def __post_init__(self) -> None:
+        if self.intensity not in INTENSITY_MODELS:
+            raise ValueError(f"intensity must be one of {INTENSITY_MODELS}, got {self.intensity!r}")
+        for name in ("glass_pass", "object_dropout", "mixed_pixels", "building_drop"):
+            v = getattr(self, name)
+            if not 0.0 <= v <= 1.0:
+                raise ValueError(f"{name} must be in [0, 1], got {v}")
+
+    @property
+    def flat(self) -> bool:
+        """The ground is the nominal plane (no terrain to march rays against)."""
+        return (self.mount_offset_m == 0.0 and self.tilt == (0.0, 0.0) and self.curvature == (0.0, 0.0, 0.0)
+                and not self.undulation)
+
+    def ground_offset(self, x: F64, y: F64) -> F64:
+        """Height of the ground above the nominal plane at sensor-frame (x, y), metres."""
+        x = np.asarray(x, np.float64)
+        y = np.asarray(y, np.float64)
+        cxx, cyy, cxy = self.curvature
+        h = self.mount_offset_m + self.tilt[0] * x + self.tilt[1] * y + 0.5 * (cxx * x * x + cyy * y * y) + cxy * x * y
+        for a, kx, ky, ph in self.undulation:
+            h = h + a * np.sin(kx * x + ky * y + ph)
+        return h
+
+
+COMPONENTS: tuple[str, ...] = ("ground", "glass", "dropout", "noise", "roof", "mixed", "clutter", "open", "intensity",
+                                "motion")
+"""What :func:`draw_effects` can switch on, one at a time (``parse_components``): uneven ground, glass, lost
+returns on road users, range noise, the ego's roof, mixed pixels, street clutter, open scenery (buildings
+left out) and measured intensities (without it: the ideal intensity model; ``no-intensity``: all zeros)."""
+
+
+def parse_components(spec: str) -> tuple[str, ...]:
+    """``"random"`` (every component), ``"none"`` (the ideal scan) or a comma list of :data:`COMPONENTS`, plus
+    ``no-intensity`` (intensities all 0; ``random-no-intensity`` is every component with it). Returns the
+    canonical sorted tuple (``()`` for none); ValueError names an unknown token."""
+    tokens = [t.strip() for t in spec.split(",") if t.strip()]
+    out: set[str] = set()
+    for t in tokens:
+        if t == "none":
+            continue
+        if t == "random":
+            out |= set(COMPONENTS)
+        elif t == "random-no-intensity":
+            out |= (set(COMPONENTS) - {"intensity"}) | {"no-intensity"}
+        elif t in COMPONENTS or t == "no-intensity":
+            out.add(t)
+        else:
+            raise ValueError(f"unknown effect {t!r}; expected random, none, no-intensity or any of {', '.join(COMPONENTS)}")
+    if "no-intensity" in out:
+        out.discard("intensity")
+    return tuple(sorted(out))
+
+
+def draw_effects(rng: np.random.Generator, components: Sequence[str] = COMPONENTS, *, strength: float = 1.0
+                 ) -> ScanEffects:
+    """One scan's effects drawn at random (domain randomisation); only ``components`` (see
+    :data:`COMPONENTS`) are switched on, the rest stay ideal — every number is drawn either way, so a scan's
+    other effects do not change when one is switched off. ``strength`` scales the ground (0: flat, 1: the spread
+    measured on real scans).
+
+    Ranges: mount offset SD 6 cm; body tilt SD 1.2° per axis; grade change SD 3·10⁻⁴ /m per term (≈ 0.25 m
+    off the plane at 40 m); three undulations of up to 12 cm over 15–80 m; glass passes 50–95 % of rays;
+    20–55 % of returns from road users lost; range noise 1.5–4 cm; intensity gain ×0.6…1.7; the ego's roof in
+    80 % of scans; 0–30 % mixed pixels at depth edges; 0.05–0.4 clutter pieces per 100 m²; 0–90 % of the
+    buildings left out."""
+    on = set(components)
+    s = float(strength) if "ground" in on else 0.0
+    und = []
+    for _ in range(3):
+        lam = rng.uniform(15.0, 80.0)
+        th = rng.uniform(0.0, 2 * math.pi)
+        k = 2 * math.pi / lam
+        und.append((float(rng.uniform(0.0, 0.12) * s), k * math.cos(th), k * math.sin(th),
+                    float(rng.uniform(0.0, 2 * math.pi))))
+    tilt = rng.normal(0.0, math.tan(math.radians(1.2)), 2) * s
+    curv = rng.normal(0.0, 3e-4, 3) * s
+    mount = float(rng.normal(0.0, 0.06) * s)
+    glass, dropout = float(rng.uniform(0.5, 0.95)), float(rng.uniform(0.2, 0.55))
+    sigma = float(rng.uniform(0.015, 0.04))
+    gain = float(math.exp(rng.uniform(math.log(0.6), math.log(1.7))))
+    roof = bool(rng.random() < 0.8)
+    mixed = float(rng.uniform(0.0, 0.3))
+    clutter, clutter_seed = float(rng.uniform(0.05, 0.4)), int(rng.integers(2**31))
+    drop = float(rng.uniform(0.0, 0.9))
+    start = float(rng.uniform(-math.pi, math.pi))
+    return ScanEffects(
+        mount_offset_m=mount if s else 0.0,
+        tilt=(float(tilt[0]), float(tilt[1])) if s else (0.0, 0.0),
+        curvature=(float(curv[0]), float(curv[1]), float(curv[2])) if s else (0.0, 0.0, 0.0),
+        undulation=tuple(und) if s else (),
+        glass_pass=glass if "glass" in on else 0.0,
+        object_dropout=dropout if "dropout" in on else 0.0,
+        range_sigma_m=sigma if "noise" in on else None,
+        intensity="measured" if "intensity" in on else ("none" if "no-intensity" in on else "legacy"),
+        intensity_gain=gain,
+        ego_body=roof and "roof" in on,
+        mixed_pixels=mixed if "mixed" in on else 0.0,
+        clutter_density=clutter if "clutter" in on else 0.0,
+        clutter_seed=clutter_seed,
+        building_drop=drop if "open" in on else 0.0,
+        motion="motion" in on,
+        sweep_start=start,
+    )
+
+
+def street_clutter(effects: ScanEffects, keep_out: F64, mount_height_m: float) -> Primitives:
+    """Random street furniture in the sensor frame (x forward), none of it overlapping ``keep_out`` footprints
+    (K, 5: x, y, half_length, half_width, yaw, grown by 0.5 m): the low, long and small things that real scans
+    are full of and that a detector must learn are not road users.
+
+    Kinds (per piece): a kerb (0.10–0.25 m high, 4–40 m long, mostly parallel to the road, sometimes along an
+    arc), a low wall or planter (0.3–1.2 m, 1–15 m), a fence (porous, 0.8–2 m), a bush (porous, 0.4–1.6 m), a
+    bollard or post (0.05–0.15 m radius, 0.5–1.2 m), a jersey barrier (0.6 × 2–4 m, 0.8–1.1 m), a bin or
+    box (0.5–1.5 m). Heights are above the ground; :func:`~jitterguard.sim.lidar.cast_frame` lifts them onto
+    the effects' terrain."""
+    rng = np.random.default_rng(effects.clutter_seed)
+    n = rng.poisson(effects.clutter_density * 36.0)
+    pl = PrimitiveList()
+    g = -mount_height_m
+    ko = np.asarray(keep_out, np.float64).reshape(-1, 5)
+    for _ in range(int(n)):
+        x, y = rng.uniform(-30.0, 30.0, 2)
+        if abs(y) < 2.5 and abs(x) < 6.0:
+            continue  # the ego's own spot
+        kind = rng.choice(7, p=[0.3, 0.15, 0.1, 0.15, 0.12, 0.08, 0.1])
+        yaw = rng.normal(0.0, 0.15) if rng.random() < 0.7 else rng.uniform(-np.pi, np.pi)
+        pieces: list[tuple[float, float, float, float, float, float, float, Tag]] = []  # x, y, l, w, z1, yaw, refl, tag
+        if kind == 0:  # kerb, straight or along an arc
+            length, h = rng.uniform(4.0, 40.0), rng.uniform(0.1, 0.25)
+            if rng.random() < 0.3:
+                radius, ang0 = rng.uniform(8.0, 30.0), rng.uniform(-np.pi, np.pi)
+                cx, cy = x - radius * np.cos(ang0), y - radius * np.sin(ang0)
+                nseg = max(2, int(length / 2.0))
+                for k in range(nseg):
+                    a = ang0 + k * 2.0 / radius
+                    pieces.append((cx + radius * np.cos(a), cy + radius * np.sin(a), 2.05, 0.2, h, a + np.pi / 2,
+                                   0.3, Tag.WALL))
+            else:
+                pieces.append((x, y, length, rng.uniform(0.15, 0.3), h, yaw, 0.3, Tag.WALL))
+        elif kind == 1:
+            pieces.append((x, y, rng.uniform(1.0, 15.0), rng.uniform(0.2, 0.8), rng.uniform(0.3, 1.2), yaw, 0.3,
+                           Tag.WALL))
+        elif kind == 2:
+            pieces.append((x, y, rng.uniform(3.0, 25.0), 0.08, rng.uniform(0.8, 2.0), yaw, 0.2, Tag.FENCE))
+        elif kind == 3:
+            r = rng.uniform(0.3, 1.2)
+            pieces.append((x, y, 2 * r, 2 * r * rng.uniform(0.6, 2.5), rng.uniform(0.4, 1.6), yaw, 0.15, Tag.HEDGE))
+        elif kind == 4:
+            for k in range(int(rng.integers(1, 6))):
+                pieces.append((x + 1.5 * k * np.cos(yaw), y + 1.5 * k * np.sin(yaw), -rng.uniform(0.05, 0.15), 0.0,
+                               rng.uniform(0.5, 1.2), 0.0, 0.4, Tag.POLE))
+        elif kind == 5:
+            for k in range(int(rng.integers(1, 5))):
+                ln = rng.uniform(2.0, 4.0)
+                pieces.append((x + ln * k * np.cos(yaw), y + ln * k * np.sin(yaw), ln, 0.6, rng.uniform(0.8, 1.1),
+                               yaw, 0.4, Tag.WALL))
+        else:
+            pieces.append((x, y, rng.uniform(0.5, 1.5), rng.uniform(0.5, 1.2), rng.uniform(0.5, 1.5), yaw, 0.3,
+                           Tag.WALL))
+        for px, py, ln, wd, h, pyaw, refl, tag in pieces:
+            if len(ko) and _overlaps_any(px, py, abs(ln) / 2, max(wd, abs(ln) if ln < 0 else wd) / 2, pyaw, ko):
+                continue
+            if ln < 0:  # a cylinder of radius −ln
+                pl.cylinder(px, py, -ln, g, g + h, reflectivity=refl, tag=tag)
+            else:
+                pl.box(px, py, ln, wd, g, g + h, yaw=pyaw, reflectivity=refl, tag=tag)
+    return pl.build()
+
+
+def _overlaps_any(x: float, y: float, hl: float, hw: float, yaw: float, others: F64) -> bool:
+    """An oriented rectangle against K footprints (x, y, half_l, half_w, yaw), all grown by 0.5 m."""
+    me = np.array([x, y, hl + 0.5, hw + 0.5, yaw])
+    reach = np.hypot(others[:, 2] + 0.5, others[:, 3] + 0.5) + np.hypot(me[2], me[3])
+    near = others[np.hypot(others[:, 0] - x, others[:, 1] - y) < reach]
+    return any(rectangles_overlap(me, o + np.array([0, 0, 0.5, 0.5, 0])) for o in near)

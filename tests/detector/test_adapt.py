@@ -1,0 +1,152 @@
+"""`jitterguard adapt`: label-free normalisation statistics, pseudo-labels, tracked-residual recalibration, and a
+tiny real run end to end (labels never read, the scans used named in the weights)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from jitterguard.services.detector.adapt import (
+    UnlabelledScan,
+    adapted_on,
+    pseudo_samples,
+    read_unlabelled,
+    recompute_norm_stats,
+    tracked_residuals,
+)
+from jitterguard.services.detector.config import LITE, Detections3D
+from jitterguard.services.detector.inference import load_weights
+from jitterguard.services.detector.network import CenterPointNet
+from jitterguard.services.detector.pillars import voxelize
+from jitterguard.services.detector.targets import build_targets
+from jitterguard.sim.export import export_scenario
+from jitterguard.sim.world import make_scenario
+
+TINY = LITE.model_copy(update=dict(
+    name="tiny", point_cloud_range=(-12.8, -12.8, -3.0, 12.8, 12.8, 3.0), voxel_size=(0.2, 0.2, 6.0),
+    pfn_channels=8, backbone_layers=(1, 1, 1), backbone_channels=(8, 16, 16), neck_channels=(8, 8, 8),
+    head_channels=8, max_pillars=4000,
+))
+
+
+@pytest.fixture(autouse=True)
+def _one_thread() -> None:
+    torch.set_num_threads(1)
+
+
+def _scan(seed: int, n: int = 3000, shift: float = 0.0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return np.column_stack([rng.uniform(-12, 12, (n, 2)), rng.normal(-1.0 + shift, 0.5, n),
+                            rng.uniform(0, 60, n)]).astype(np.float32)
+
+
+def test_norm_stats_are_the_real_scans_statistics() -> None:
+    torch.manual_seed(0)
+    model = CenterPointNet(TINY)
+    scans = [_scan(i, shift=2.0) for i in range(3)]
+    recompute_norm_stats(model, scans, batch_size=3)  # one batch: running stats = that batch's statistics
+    assert not model.training
+    pfn = model.pfn
+    with torch.no_grad():
+        feats = pfn.linear(pfn.point_features(voxelize([torch.from_numpy(s) for s in scans], TINY)))
+    torch.testing.assert_close(pfn.norm.running_mean, feats.mean(0), rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(pfn.norm.running_var, feats.var(0, unbiased=True), rtol=1e-3, atol=1e-5)
+    assert pfn.norm.momentum == 0.1  # restored
+
+
+def test_pseudo_labels_keep_confident_boxes_with_points_and_train_no_regression() -> None:
+    pts = _scan(1)
+    box = np.array([[3.0, 2.0, -1.0, 4.0, 2.0, 2.0, 0.0, 0.0, 0.0]], np.float32)
+    inside = np.column_stack([np.random.default_rng(2).uniform([1.5, 1.2, -1.8], [4.5, 2.8, -0.2], (50, 3)),
+                              np.full(50, 10.0)]).astype(np.float32)
+    pts = np.concatenate([pts, inside])
+    boxes = np.concatenate([box, box + [[0, -8, 0, 0, 0, 0, 0, 0, 0]], box + [[-30, 0, 0, 0, 0, 0, 0, 0, 0]]])
+    det = Detections3D(boxes.astype(np.float32), np.array([0.9, 0.3, 0.95], np.float32), np.array([0, 0, 0]),
+                       np.zeros((3, 5), np.float32))
+    scan = UnlabelledScan(pts, np.eye(4), "rec", "0.bin", False)
+    (s,) = pseudo_samples([scan], [det], thresholds=(0.5, 0.5, 0.5, 0.4, 0.4), min_points=3)
+    assert s.pseudo and len(s.boxes) == 1 and s.num_points[0] >= 50  # low score and empty box dropped
+    t = build_targets(s, TINY)
+    assert t.heatmap.max() == 1.0 and not t.mask.any()  # where, not how precisely
+    t2 = build_targets(dataclasses.replace(s, pseudo=False), TINY)
+    assert t2.mask.sum() == 1
+
+
+def _pose(x: float, y: float, yaw: float) -> np.ndarray:
+    m = np.eye(4)
+    c, s = math.cos(yaw), math.sin(yaw)
+    m[:2, :2] = [[c, -s], [s, c]]
+    m[:2, 3] = (x, y)
+    return m
+
+
+def test_tracked_residuals_recover_the_per_axis_miscalibration() -> None:
+    """Static objects seen from a moving, turning sensor with sensor-axis noise 2σ in x and 1σ in y (σ the
+    predicted SD): the fitted variance scales are ≈ 4 and ≈ 1."""
+    rng = np.random.default_rng(0)
+    objects = rng.uniform(-30, 30, (25, 2))
+    sigma = 0.2
+    frames = []
+    for k in range(12):
+        pose = _pose(1.5 * k, 0.3 * k, 0.05 * k)
+        rot, t = pose[:2, :2], pose[:2, 3]
+        local = (objects - t) @ rot  # world → sensor
+        noisy = local + rng.normal(0, 1, local.shape) * [2 * sigma, sigma]
+        boxes = np.zeros((len(objects), 9), np.float32)
+        boxes[:, :2] = noisy
+        lv = np.full((len(objects), 5), math.log(sigma ** 2), np.float32)
+        frames.append((Detections3D(boxes, np.full(len(objects), 0.9, np.float32), np.zeros(len(objects), np.int64),
+                                    lv), pose))
+    tr = tracked_residuals(frames, gate_m=2.0)
+    assert tr.num_tracks == 25 and tr.num_detections == 300
+    sx, sy = tr.scales
+    assert sx == pytest.approx(4.0, rel=0.2) and sy == pytest.approx(1.0, rel=0.2)
+
+
+def _dataroot(tmp_path: Path) -> Path:
+    root = tmp_path / "root"
+    export_scenario(make_scenario("parking-street", 3, duration_s=0.4, rate_hz=10.0), str(root))
+    (next(root.glob("v1.0-*")) / "sample_annotation.json").unlink()  # no labels at all: adapt must not need them
+    return root
+
+
+def test_unlabelled_scans_read_without_any_annotation_table(tmp_path: Path) -> None:
+    root = _dataroot(tmp_path)
+    scans = read_unlabelled([str(root)])
+    assert len(scans) == 4 and all(s.has_pose and s.points.shape[1] == 4 for s in scans)
+    assert scans[0].source.endswith("#parking-street-3") or "#" in scans[0].source
+    assert not np.allclose(scans[0].pose, scans[-1].pose)  # the ego moved
+    assert all(s.source.split("#")[0] == str(root.resolve()) for s in scans)  # absolute: metadata survives a cd
+
+
+@pytest.mark.slow
+def test_adapt_cli_writes_weights_that_name_their_scans(tmp_path: Path) -> None:
+    root = _dataroot(tmp_path)
+    out = tmp_path / "adapted"
+    res = subprocess.run([sys.executable, "-m", "jitterguard.cli", "adapt", "--weights",
+                          str(Path(__file__).resolve().parents[2] / "jitterguard/services/detector/weights/lite.pt"),
+                          "--out", str(out), "--scans", str(root), "--rounds", "1", "--epochs", "1",
+                          "--scenarios", "parking-street", "--synthetic-seeds", "0", "--frames-per-scenario", "1",
+                          "--threads", "1", "--no-progress"], capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr[-3000:]
+    report = json.loads(res.stdout.strip().splitlines()[-1])
+    assert report["scans"] == 4 and len(report["report"]["rounds"]) == 1
+    model, rec, meta = load_weights(out / "weights.pt")
+    assert meta["labels_read"] is False and meta["unlabelled_scans"][0]["scans"] == 4
+    assert meta["unlabelled_scans"][0]["recording"].startswith(str(root.resolve()))
+    # eval-detector can tell that scoring these weights on this dataroot is test-time adaptation
+    assert adapted_on(meta, root) and not adapted_on(meta, tmp_path) and not adapted_on({}, root)
+    assert "adapt" in meta["command"] and meta["adapted_from"]["sha256_16"]
+    assert rec is not None and json.loads((out / "adapt.json").read_text())["labels_read"] is False
+    bad = subprocess.run([sys.executable, "-m", "jitterguard.cli", "adapt", "--weights", str(out / "weights.pt"),
+                          "--out", str(out), "--scans", str(root), "--threshold", "car=2"], capture_output=True,
+                         text=True, timeout=120)
+    assert bad.returncode == 2 and "--threshold" in bad.stderr

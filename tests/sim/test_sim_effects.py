@@ -1,0 +1,147 @@
+"""Scan effects (sim-to-real): uneven ground, objects standing on it, glass, dropout, intensity, clutter."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from jitterguard.schemas import Label
+from jitterguard.sim import GroundTruthFrame, make_scenario
+from jitterguard.sim.effects import MEASURED_INTENSITY, ScanEffects, draw_effects, street_clutter
+from jitterguard.sim.lidar import cast_frame, terrain_rho
+from jitterguard.sim.sensors import hdl32e
+from jitterguard.sim.world import BASE_STAMP_NS
+
+
+def cars_frame(xy: list[tuple[float, float]]) -> GroundTruthFrame:
+    n = len(xy)
+    return GroundTruthFrame(
+        seq=0, stamp_ns=BASE_STAMP_NS, ego_x=0.0, ego_y=0.0, ego_yaw=0.0,
+        instance_ids=np.arange(1, n + 1, dtype=np.int64), labels=np.full(n, int(Label.CAR)),
+        centers=np.array([(x, y, 0.85) for x, y in xy]).reshape(-1, 3), sizes=np.tile([4.6, 1.9, 1.7], (n, 1)),
+        yaws=np.zeros(n), velocities=np.zeros((n, 2)), moving=np.zeros(n, bool),
+        attributes=("vehicle.parked",) * n, visibility=np.ones(n), num_points=np.zeros(n, np.int64))
+
+
+def test_defaults_leave_the_ideal_scan_unchanged() -> None:
+    f = make_scenario("parking-street", 2, duration_s=1.0).frame(4)
+    a, _ = cast_frame(f, seed=1)
+    b, _ = cast_frame(f, seed=1, effects=ScanEffects())
+    np.testing.assert_array_equal(a.points, b.points)
+    assert a.object_lift is None and b.object_lift is not None and not b.object_lift.any()
+
+
+def test_rays_meet_a_tilted_ground_where_the_plane_says() -> None:
+    spec = hdl32e()
+    fx = ScanEffects(mount_offset_m=0.1, tilt=(0.03, -0.02))
+    rho = terrain_rho(spec, fx).reshape(spec.azimuth_steps, spec.num_beams)
+    az = -math.pi + (np.arange(spec.azimuth_steps) + 0.5) * 2 * math.pi / spec.azimuth_steps
+    tan_el = np.tan(spec.elevations)
+    # ray height rho·tan(el) = -H + 0.1 + 0.03·x + (-0.02)·y with x = rho cos az, y = rho sin az
+    slope = 0.03 * np.cos(az)[:, None] - 0.02 * np.sin(az)[:, None]
+    exact = (-spec.mount_height_m + 0.1) / (tan_el[None, :] - slope)
+    ok = np.isfinite(rho)
+    assert ok[:, :15].all()  # the steep beams all reach the ground
+    np.testing.assert_allclose(rho[ok], exact[ok], rtol=1e-6)
+    assert not ok[:, -5:].any()  # upward beams never do
+
+
+def test_uneven_ground_moves_the_returns_and_lifts_the_objects() -> None:
+    f = cars_frame([(20.0, 0.0), (-15.0, 8.0)])
+    fx = ScanEffects(curvature=(2e-3, 0.0, 0.0))  # the road rises ahead and behind: +0.4 m at 20 m
+    res, _ = cast_frame(f, hdl32e(), seed=0, effects=fx)
+    np.testing.assert_allclose(res.object_lift, [0.4, 0.225], rtol=1e-9)
+    ground = res.points[res.owner == -2]
+    far = ground[np.abs(ground[:, 0]) > 15]
+    x = far[:, 0].astype(np.float64)
+    np.testing.assert_allclose(far[:, 2], -1.84 + 1e-3 * x ** 2, atol=0.1)  # range noise only
+    car = res.points[res.owner == 0]
+    assert car[:, 2].min() > -1.84 + 0.4 - 0.15  # the car stands on the raised road
+
+
+def test_glass_dropout_and_the_roof_thin_the_returns() -> None:
+    f = cars_frame([(10.0, 4.0)])
+    ideal, _ = cast_frame(f, seed=3, effects=ScanEffects())
+    glass, _ = cast_frame(f, seed=3, effects=ScanEffects(glass_pass=1.0))
+    dark, _ = cast_frame(f, seed=3, effects=ScanEffects(object_dropout=0.5))
+    n0, ng, nd = (int(r.num_points[0]) for r in (ideal, glass, dark))
+    assert ng < 0.85 * n0 and nd == pytest.approx(0.5 * n0, rel=0.15)
+    z_top = ideal.points[ideal.owner == 0][:, 2].max()
+    assert glass.points[glass.owner == 0][:, 2].max() < z_top - 0.3  # no returns from the cabin
+    roof, _ = cast_frame(f, seed=3, effects=ScanEffects(ego_body=True))
+    near = lambda r: int((np.hypot(r.points[:, 0], r.points[:, 1]) < 3.5).sum())  # noqa: E731
+    assert near(roof) < 0.8 * near(ideal)
+
+
+def test_measured_intensities_follow_the_surface_medians() -> None:
+    f = cars_frame([(8.0, 3.0), (-9.0, -4.0)])
+    res, _ = cast_frame(f, seed=5, effects=ScanEffects(intensity="measured"))
+    ground = res.points[res.owner == -2, 3]
+    car = res.points[res.owner >= 0, 3]
+    assert np.median(ground) == pytest.approx(MEASURED_INTENSITY["ground"][0], rel=0.15)
+    assert np.median(car) < 8 and np.percentile(car, 99) > 80  # dark paint, a few reflectors
+    none, _ = cast_frame(f, seed=5, effects=ScanEffects(intensity="none"))
+    assert not none.points[:, 3].any()
+
+
+def test_street_clutter_keeps_off_the_road_users_and_the_ego() -> None:
+    keep_out = np.array([[10.0, 5.0, 2.3, 1.0, 0.3], [-12.0, -6.0, 2.3, 1.0, -0.2]])
+    for seed in range(5):
+        prims = street_clutter(ScanEffects(clutter_density=2.0, clutter_seed=seed), keep_out, 1.84)
+        assert len(prims) > 20
+        assert np.all(prims.z[:, 0] == pytest.approx(-1.84))
+        for x, y, hl, hw, _ in keep_out:
+            d = np.hypot(prims.center[:, 0] - x, prims.center[:, 1] - y)
+            assert np.all(d > min(hl, hw))  # nothing inside a car's footprint
+
+
+def test_drawn_effects_are_seeded_and_within_their_ranges() -> None:
+    a = draw_effects(np.random.default_rng(9))
+    assert a == draw_effects(np.random.default_rng(9)) and a != draw_effects(np.random.default_rng(10))
+    for s in range(30):
+        fx = draw_effects(np.random.default_rng(s))
+        assert 0.5 <= fx.glass_pass <= 0.95 and 0.2 <= fx.object_dropout <= 0.55
+        assert abs(fx.ground_offset(np.array([0.0]), np.array([0.0]))[0]) < 0.6
+    with pytest.raises(ValueError, match="intensity"):
+        ScanEffects(intensity="bright")
+
+
+def test_components_switch_effects_on_one_at_a_time_with_the_same_draws() -> None:
+    from jitterguard.sim.effects import COMPONENTS, parse_components
+
+    assert parse_components("random") == tuple(sorted(COMPONENTS)) and parse_components("none") == ()
+    assert parse_components("glass, ground") == ("glass", "ground")
+    assert "intensity" not in parse_components("random,no-intensity")
+    with pytest.raises(ValueError, match="moon"):
+        parse_components("ground,moon")
+    full = draw_effects(np.random.default_rng(4))
+    glass = draw_effects(np.random.default_rng(4), ("glass",))
+    assert glass.glass_pass == full.glass_pass and glass.flat and glass.object_dropout == 0.0
+    assert glass.intensity == "legacy" and glass.clutter_density == 0.0 and not glass.ego_body
+    ground = draw_effects(np.random.default_rng(4), ("ground",))
+    assert ground.tilt == full.tilt and ground.glass_pass == 0.0
+    assert draw_effects(np.random.default_rng(4), ("no-intensity",)).intensity == "none"
+
+
+def test_motion_within_the_sweep_smears_the_static_world_by_when_it_was_swept() -> None:
+    """A wall 10 m ahead, the ego at 10 m/s: swept at the start of the 50 ms turn it shows up ≈ 0.48 m too far
+    ahead (the sensor was that far behind, and nothing de-skews), swept at the end ≈ 0.02 m."""
+    from dataclasses import replace
+
+    from jitterguard.sim.primitives import PrimitiveList
+
+    wall = PrimitiveList()
+    wall.box(10.0, 0.0, 0.2, 6.0, -1.8, 1.0, reflectivity=0.9)
+    f = replace(cars_frame([]), ego_speed=10.0, clutter=wall.build())
+    spec = replace(hdl32e(), range_sigma_m=0.0)
+    x_face = 9.9
+    early, _ = cast_frame(f, spec, seed=0, effects=ScanEffects(motion=True, sweep_start=-0.3))
+    late, _ = cast_frame(f, spec, seed=0, effects=ScanEffects(motion=True, sweep_start=0.3))
+    still, _ = cast_frame(f, spec, seed=0, effects=ScanEffects())
+    on = lambda r: r.points[r.owner == -1]  # noqa: E731
+    assert np.median(on(still)[:, 0]) == pytest.approx(x_face, abs=0.01)
+    assert np.median(on(early)[:, 0]) - x_face == pytest.approx(10.0 * 0.05 * (1 - 0.5 / 12), abs=0.03)
+    assert np.median(on(late)[:, 0]) - x_face == pytest.approx(10.0 * 0.05 * 0.5 / 12, abs=0.03)
+    assert len(on(early)) == pytest.approx(len(on(still)), rel=0.05)
