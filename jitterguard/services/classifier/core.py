@@ -356,12 +356,16 @@ class MotionClassifierCore:
         cfg = self._config
         t = self._table
         count = t.count[rows]
-        masks = split_halves(t.head[rows], count, t.window)
         if cfg.calibration == "off" and cfg.effective_n != "measured" and cfg.min_speed_mps == 0:
+            masks = split_halves(t.head[rows], count, t.window)
             stats = window_statistics(t.win[rows], masks, variance_floor=cfg.variance_floor,
                                       independent=cfg.effective_n == "independent")
         else:
-            stats = calibrated_statistics(t.win[rows], masks, group_of_labels(t.label[rows]), self.noise_model(),
+            # oldest first (the newest in the last slot): windows of tracks seen in the same frames then share
+            # their time pattern whatever their age, and the correlation kernels are computed once for them
+            masks = split_halves(np.zeros(rows.shape[0], dtype=np.int64), count, t.window)
+            stats = calibrated_statistics(t.ordered(rows, t.window), masks, group_of_labels(t.label[rows]),
+                                          self.noise_model(),
                                           variance_floor=cfg.variance_floor, effective_n=cfg.effective_n,
                                           track_scale_prior=cfg.calibration != "off", min_speed=cfg.min_speed_mps)
         if (count < 2).any():  # one observation: no older half, nothing to compare (z is not defined)

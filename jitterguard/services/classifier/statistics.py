@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from .calibration import SCALE_BOUNDS, NoiseModel, line_of_sight, project_covariance
+from .calibration import SCALE_BOUNDS, NoiseModel
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -173,12 +173,21 @@ def _calibrated_statistics(windows: F64, masks: HalfMasks, groups: I64, model: N
                            min_speed: float) -> WindowStats:
     k_old, k_new = masks.n_old, masks.n_new
     valid = masks.old | masks.new
-    pos = windows[..., 0:2]
-    cov = windows[..., 2:5]
+    pos_x, pos_y = windows[..., 0], windows[..., 1]
     t = windows[..., 5]
-    sensor = windows[..., 6:8]
-    u, v, rng = line_of_sight(pos, sensor)
-    vu, vv, cuv = project_covariance(u, v, cov)
+    # the line of sight u (sensor → object) and v (u turned +90°) per observation, component-wise
+    ux, uy = pos_x - windows[..., 6], pos_y - windows[..., 7]
+    rng = np.hypot(ux, uy)
+    far = rng > 1e-6
+    inv_r = np.divide(1.0, rng, out=np.zeros_like(rng), where=far)
+    ux *= inv_r
+    uy *= inv_r
+    ux[~far] = 1.0  # an object on the sensor: any direction, x by convention (as calibration.line_of_sight)
+    vx, vy = -uy, ux
+    cxx0, cxy0, cyy0 = windows[..., 2], windows[..., 3], windows[..., 4]
+    vu = ux * ux * cxx0 + 2.0 * ux * uy * cxy0 + uy * uy * cyy0  # uᵀΣu, vᵀΣv, uᵀΣv
+    vv = uy * uy * cxx0 - 2.0 * ux * uy * cxy0 + ux * ux * cyy0
+    cuv = ux * uy * (cyy0 - cxx0) + (ux * ux - uy * uy) * cxy0
     band = model.bands(rng)  # (K, W)
     g = groups[:, None]
     age = (windows[..., 8] < windows.shape[1]).astype(np.int64)  # young: among the track's first W
@@ -186,45 +195,63 @@ def _calibrated_statistics(windows: F64, masks: HalfMasks, groups: I64, model: N
     kv = model.scale[g, 1, band, age]
     auu, avv = ku * np.maximum(vu, 0.0), kv * np.maximum(vv, 0.0)
     auv = np.sqrt(ku * kv) * cuv
-    ux, uy, vx, vy = u[..., 0], u[..., 1], v[..., 0], v[..., 1]
-    cxx = auu * ux * ux + avv * vx * vx + 2 * auv * ux * vx
-    cyy = auu * uy * uy + avv * vy * vy + 2 * auv * uy * vy
-    cxy = auu * ux * uy + avv * vx * vy + auv * (ux * vy + vx * uy)
-    cxx, cyy = _floor_min_eigen(cxx, cxy, cyy, variance_floor)
 
     w_old = masks.old / np.maximum(k_old, 1.0)[:, None]
     w_new = masks.new / np.maximum(k_new, 1.0)[:, None]
-    dx = ((w_new - w_old) * pos[..., 0]).sum(1)
-    dy = ((w_new - w_old) * pos[..., 1]).sum(1)
+    w = w_new - w_old  # the half-mean contrast, 0 outside the window
+    dx = (w * pos_x).sum(1)
+    dy = (w * pos_y).sum(1)
     if min_speed > 0:  # H0 is |v| ≤ min_speed: shrink the displacement by what that speed explains
-        gap = np.maximum(((w_new - w_old) * t).sum(1), 0.0)  # t̄_new − t̄_old
+        gap = np.maximum((w * t).sum(1), 0.0)  # t̄_new − t̄_old
         d = np.hypot(dx, dy)
         keep = np.maximum(0.0, 1.0 - min_speed * gap / np.maximum(d, 1e-300))
         dx, dy = dx * keep, dy * keep
-    if effective_n == "measured":
+    # σ of the calibrated covariance along and across the line of sight (floored), and the Cholesky factor
+    sig_u = np.sqrt(np.maximum(auu, variance_floor))
+    sig_v = np.sqrt(np.maximum(avv, variance_floor))
+    measured = effective_n == "measured"
+    need_kernels = measured or track_scale_prior
+    if need_kernels:
+        phi, phi_sq = correlation_kernels(t, valid, groups, model)
+        m_axis = model.correlation[groups]  # (K, 2)
+        # per axis k: Φ_k applied to the columns [w h_x, w h_y, U₁, U₂, V₁, V₂] (see track_scale), rows of X
+        vm = valid.astype(np.float64)
+        n = vm.sum(1)
+        tc, stt, b1, b2 = _line_basis(t, vm, n)
+        cols = np.empty((2, len(n), 6, windows.shape[1]))
+        sig = (sig_u, sig_v)
+        for k in range(2):
+            np.divide(b1, sig[k], out=cols[k, :, 2])
+            np.divide(b2, sig[k], out=cols[k, :, 3])
+            np.multiply(b1, sig[k], out=cols[k, :, 4])
+            np.multiply(b2, sig[k], out=cols[k, :, 5])
+    if measured:
         # Var(w·e) with e_j = H_j (√(1−m)·white_j + √m·correlated_j) per Cholesky component k of the calibrated
-        # covariance (component 0 along the line of sight, 1 the rest): Cov(e_i, e_j) = Σ_k K^k_ij h_ik h_jkᵀ,
-        # K^k = (1 − m_k) I + m_k Φ^k. Positive semi-definite by construction, and Cov(e_j, e_j) = Σ'_j.
-        w = np.where(valid, w_new - w_old, 0.0)  # (K, W)
-        luu = np.maximum(auu, variance_floor)
-        lvv = np.maximum(avv, variance_floor)
-        l11 = np.sqrt(luu)
-        l21 = auv / l11
-        l22 = np.sqrt(np.maximum(lvv - l21 * l21, variance_floor * 1e-6))
-        h = ((l11 * ux + l21 * vx, l11 * uy + l21 * vy), (l22 * vx, l22 * vy))  # world columns per component
+        # covariance (component 0 along the line of sight, 1 the rest): Cov(e_i, e_j) = Σ_k R^k_ij h_ik h_jkᵀ,
+        # R^k = (1 − m_k) I + m_k Φ^k. Positive semi-definite by construction, and Cov(e_j, e_j) = Σ'_j.
+        l21 = auv / sig_u
+        l22 = np.sqrt(np.maximum(sig_v * sig_v - l21 * l21, variance_floor * 1e-6))
+        h = ((sig_u * ux + l21 * vx, sig_u * uy + l21 * vy), (l22 * vx, l22 * vy))  # world columns per component
+        for k, (hx, hy) in enumerate(h):
+            np.multiply(w, hx, out=cols[k, :, 0])
+            np.multiply(w, hy, out=cols[k, :, 1])
+    if need_kernels:
+        cols[:, :, 0:2] *= measured  # zeros when only the track scale is wanted
+        phi_cols = [phi.times(k, cols[k]) for k in range(2)]  # X Φ (Φ symmetric): (K, 6, W) per axis
+    if measured:
         a = np.zeros(len(w))
         b = np.zeros(len(w))
         c = np.zeros(len(w))
-        corr = correlation_matrices(t, groups, model)
-        for k, (hx, hy) in enumerate(h):
-            K = corr[k]  # (K, W, W)
-            px, py = w * hx, w * hy
-            Kx, Ky = (K @ px[..., None])[..., 0], (K @ py[..., None])[..., 0]
-            a = a + (px * Kx).sum(1)
-            b = b + (px * Ky).sum(1)
-            c = c + (py * Ky).sum(1)
+        for k in range(2):
+            x, y, m = cols[k], phi_cols[k], m_axis[:, k]
+            a += (1.0 - m) * _dot(x[:, 0], x[:, 0]) + m * _dot(x[:, 0], y[:, 0])
+            b += (1.0 - m) * _dot(x[:, 0], x[:, 1]) + m * _dot(x[:, 0], y[:, 1])
+            c += (1.0 - m) * _dot(x[:, 1], x[:, 1]) + m * _dot(x[:, 1], y[:, 1])
     else:
-        corr = None
+        cxx = auu * ux * ux + avv * vx * vx + 2 * auv * ux * vx
+        cyy = auu * uy * uy + avv * vy * vy + 2 * auv * uy * vy
+        cxy = auu * ux * uy + avv * vx * vy + auv * (ux * vy + vx * uy)
+        cxx, cyy = _floor_min_eigen(cxx, cxy, cyy, variance_floor)
         if effective_n == "independent":
             n_old, n_new = np.maximum(k_old, 1.0), np.maximum(k_new, 1.0)
         else:
@@ -241,17 +268,17 @@ def _calibrated_statistics(windows: F64, masks: HalfMasks, groups: I64, model: N
     chi2 = (c * dx * dx - 2.0 * b * dx * dy + a * dy * dy) / det
     if track_scale_prior:
         assert model.track_dof is not None
-        lam, nu = track_scale(windows, valid, groups, model, ku, kv, vu, vv, u, v, model.track_dof[groups],
-                              variance_floor, corr)
-        z_x = t_to_z(z_x / np.sqrt(lam), nu)
-        z_y = t_to_z(z_y / np.sqrt(lam), nu)
+        lam, nu = track_scale(pos_x, pos_y, vm, n, (tc, stt, b1, b2), ((ux, uy), (vx, vy)), (sig_u, sig_v), cols, phi_cols,
+                              phi_sq, m_axis, model.track_dof[groups])
+        z = t_to_z(np.concatenate([z_x, z_y]) / np.sqrt(np.concatenate([lam, lam])), np.concatenate([nu, nu]))
+        z_x, z_y = z[: len(lam)], z[len(lam):]
         chi2 = chi2 / lam
     return WindowStats(
         z_x=z_x,
         z_y=z_y,
         chi2=chi2,
-        mean_x=((masks.old | masks.new) * pos[..., 0]).sum(1) / n_all,
-        mean_y=((masks.old | masks.new) * pos[..., 1]).sum(1) / n_all,
+        mean_x=(valid * pos_x).sum(1) / n_all,
+        mean_y=(valid * pos_y).sum(1) / n_all,
     )
 
 
@@ -263,59 +290,137 @@ def t_to_z(t: F64, dof: F64) -> F64:
     return np.where(p_half > 0, -ndtri(np.maximum(p_half, 1e-300)), np.abs(t))
 
 
-def correlation_matrices(t: F64, groups: I64, model: NoiseModel) -> tuple[F64, F64]:
-    """Per line-of-sight axis, the (K, W, W) correlation of each window's errors under ``model``:
-    (1 − m) I + m exp(−|t_i − t_j| / τ) with the (m, τ) of the window's class group.
+def _dot(a: F64, b: F64) -> F64:
+    """Row-wise inner products of two (K, W) arrays (einsum: a third of the time of ``(a * b).sum(1)``)."""
+    return np.einsum("kw,kw->k", a, b)
 
-    Computed once per distinct (time pattern, class group): in a steady stream most windows hold the same
-    frame spacing, and the exponentials are most of the cost."""
-    rel = t - t[:, :1]
-    key = np.concatenate([rel, groups[:, None].astype(np.float64)], axis=1)
-    _, first, inv = np.unique(key, axis=0, return_index=True, return_inverse=True)
+
+def _line_basis(t: F64, vm: F64, n: F64) -> tuple[F64, F64, F64, F64]:
+    """(t_c, S_tt, b₁, b₂) of the least-squares line in time over each window's slots ``vm``: centred times,
+    their sum of squares, and the orthonormal basis b₁ = 1/√n, b₂ = t_c/√S_tt of the fitted lines (zero
+    outside the window). Times are taken relative to the window's first one, so an epoch stamp (1.7e9 s) does
+    not cost the centring its precision."""
+    t0 = np.where(vm > 0, t, np.inf).min(1)
+    rel = np.where(vm > 0, t - np.where(np.isfinite(t0), t0, 0.0)[:, None], 0.0)
+    tbar = _dot(vm, rel) / np.maximum(n, 1.0)
+    tc = (rel - tbar[:, None]) * vm
+    stt = _dot(tc, tc)
+    b1 = vm / np.sqrt(np.maximum(n, 1.0))[:, None]
+    b2 = tc / np.sqrt(np.where(stt > 0, stt, 1.0))[:, None]
+    return tc, stt, b1, b2
+
+
+_HASH = np.random.default_rng(20251125).normal(size=1024)
+"""Fixed weights that hash a window's time pattern to one number (a constant: the same on every run)."""
+
+
+def correlation_kernels(t: F64, valid: NDArray[np.bool_], groups: I64, model: NoiseModel) -> tuple[
+        "_Kernels", tuple[F64, F64]]:
+    """Per line-of-sight axis, the (K, W, W) kernel Φ_ij = exp(−|t_i − t_j| / τ) of each window under the τ of
+    its class group, zero where slot i or j is outside the window, and Σ_ij Φ_ij² per window. The correlation
+    of the normalised errors is R = (1 − m) I + m Φ.
+
+    Computed once per distinct (time pattern relative to the window's first observation, slots, τ of both
+    axes): in a steady stream the windows of the tracks seen in the same frames share one pattern when they are
+    given oldest first (as the core does), and the exponentials are most of the cost. Patterns are told apart
+    by a hash of the key, checked exactly."""
+    t0 = np.where(valid, t, np.inf).min(1)
+    rel = np.where(valid, t - np.where(np.isfinite(t0), t0, 0.0)[:, None], -1.0)  # −1: not in the window
+    tau = model.tau_s[groups]  # (K, 2): groups with the same τ share their kernels
+    key = np.concatenate([rel, tau], axis=1)
+    weights = _HASH[: key.shape[1]] if key.shape[1] <= len(_HASH) else np.resize(_HASH, key.shape[1])
+    _, first, inv = np.unique(key @ weights, return_index=True, return_inverse=True)
     inv = inv.reshape(-1)
-    tu, gu = rel[first], groups[first]
+    if not np.array_equal(key[first][inv], key):  # a hash collision (or NaN stamps): the exact, slower way
+        _, first, inv = np.unique(key, axis=0, return_index=True, return_inverse=True)
+        inv = inv.reshape(-1)
+    tu, vu, tau_u = rel[first], valid[first], tau[first]
     dt = np.abs(tu[:, :, None] - tu[:, None, :])
-    eye = np.eye(t.shape[1])[None]
-    out = []
+    pair = vu[:, :, None] & vu[:, None, :]
+    phi, phi_sq = [], []
     for ai in range(2):
-        m = model.correlation[gu, ai][:, None, None]
-        tau = model.tau_s[gu, ai][:, None, None]
-        out.append(((1.0 - m) * eye + m * np.exp(-dt / tau))[inv])
-    return out[0], out[1]
+        ph = np.exp(-dt / tau_u[:, ai, None, None]) * pair
+        phi_sq.append(np.einsum("kij,kij->k", ph, ph)[inv])
+        phi.append(ph)
+    return _Kernels(phi[0], phi[1], inv), (phi_sq[0], phi_sq[1])
 
 
-def track_scale(windows: F64, valid: NDArray[np.bool_], groups: I64, model: NoiseModel, ku: F64, kv: F64,
-                vu: F64, vv: F64, u: F64, v: F64, prior_dof: F64, variance_floor: float,
-                corr: tuple[F64, F64] | None = None) -> tuple[F64, F64]:
+@dataclass(frozen=True)
+class _Kernels:
+    """The distinct kernels of :func:`correlation_kernels` per axis, (P, W, W), and each window's index."""
+
+    along: F64
+    across: F64
+    index: I64
+
+    def times(self, axis: int, rows: F64) -> F64:
+        """``rows`` (K, C, W) times each window's kernel of ``axis``: one matrix product when every window
+        shares one pattern, else one per window."""
+        phi = self.along if axis == 0 else self.across
+        k, c, w = rows.shape
+        if phi.shape[0] == 1:
+            return (rows.reshape(k * c, w) @ phi[0]).reshape(k, c, w)
+        return rows @ phi[self.index]
+
+
+def track_scale(pos_x: F64, pos_y: F64, vm: F64, n: F64, basis: tuple[F64, F64, F64, F64],
+                axes: tuple[tuple[F64, F64], tuple[F64, F64]], sig: tuple[F64, F64], cols: F64, phi_cols: list[F64],
+                phi_sq: tuple[F64, F64], m_axis: F64, prior_dof: F64) -> tuple[F64, F64]:
     """Per window: (λ, ν) — the track's own variance scale relative to its class calibration, from the
     residuals of its window about a constant-velocity fit, shrunk to 1 with ``prior_dof`` pseudo degrees of
     freedom (an inverse-gamma prior), and the degrees of freedom of the resulting Student-t statistic.
-    ``corr``: :func:`correlation_matrices` of these windows when the caller has them already."""
-    t = windows[..., 5]
-    pos = windows[..., 0:2]
-    vm = valid.astype(np.float64)
-    n = vm.sum(1)
-    tbar = (vm * t).sum(1) / np.maximum(n, 1.0)
-    tc = (t - tbar[:, None]) * vm
-    stt = (tc * tc).sum(1)
+
+    Per line-of-sight axis a (unit vectors ``axes[a]`` per observation, calibrated σ ``sig[a]``, correlated
+    share ``m_axis[:, a]``, Φ the kernel of :func:`correlation_kernels`): the residuals ε = M x about the
+    least-squares line, M = P − B Bᵀ the projection (P the window's slots, B = [b₁ b₂] of :func:`_line_basis`),
+    normalised r = ε·a / σ; S = Σ r², and under the model E[S] = tr Q, Var[S] ∝ ‖Q‖², with Q = G R Gᵀ,
+    G = D⁻¹ M D = P − U Vᵀ, U = D⁻¹ B, V = D B, R = (1 − m) P + m Φ. Written out with A = R V, C = Vᵀ A,
+    L = U C − A:  tr Q = n − 2 tr(Uᵀ A) + ⟨C, UᵀU⟩  and
+    ‖Q‖² = ‖R‖² + 2[tr(UᵀRU C) − 2 tr(UᵀR²V)] + ⟨UᵀU, LᵀL⟩ − 2⟨UᵀA, LᵀU⟩ + ⟨AᵀA, UᵀU⟩ — Φ applied to four
+    columns (rows 2–5 of ``cols``, Φ times them in ``phi_cols``) and 2 × 2 matrices per window instead of
+    W × W products (the dense form is kept in ``tests/classifier/reference_statistics.py`` and checked against
+    this one)."""
+    tc, stt, b1, b2 = basis
     ok = (n >= 3) & (stt > 0)
-    Wn = t.shape[1]
-    M = (vm[:, :, None] * np.eye(Wn)[None] - vm[:, :, None] * vm[:, None, :] / np.maximum(n, 1.0)[:, None, None]
-         - tc[:, :, None] * tc[:, None, :] / np.where(stt > 0, stt, 1.0)[:, None, None])
-    E = M @ pos
-    if corr is None:
-        corr = correlation_matrices(t, groups, model)
+    # residuals about the fitted line, world frame: ε = P x − B (Bᵀ x)
+    ex = vm * pos_x - b1 * _dot(b1, pos_x)[:, None] - b2 * _dot(b2, pos_x)[:, None]
+    ey = vm * pos_y - b1 * _dot(b1, pos_y)[:, None] - b2 * _dot(b2, pos_y)[:, None]
+    bb = (_dot(b1, b1), _dot(b1, b2), _dot(b2, b2))  # BᵀB (the identity up to rounding and empty windows)
     S = np.zeros(len(n))
     T = np.zeros(len(n))
     T2 = np.zeros(len(n))
-    for ai, (kk, var, ax) in enumerate(((ku, vu, u), (kv, vv, v))):
-        sig = np.sqrt(np.maximum(kk * np.maximum(var, 0.0), variance_floor))  # calibrated σ
-        r = (E * ax).sum(-1) / sig * vm
-        G = M * sig[:, None, :] / sig[:, :, None]
-        Q = G @ corr[ai] @ np.swapaxes(G, -1, -2)
-        S += (r * r).sum(1)
-        T += np.einsum("kii->k", Q)
-        T2 += (Q * Q).sum((1, 2))
+    for ai in range(2):
+        ax, s, m = axes[ai], sig[ai], m_axis[:, ai]
+        om = 1.0 - m
+        r = (ex * ax[0] + ey * ax[1]) / s
+        S += _dot(r, r)
+        x, y = cols[ai], phi_cols[ai]  # rows 2, 3: U; 4, 5: V
+        U1, U2, V1, V2 = x[:, 2], x[:, 3], x[:, 4], x[:, 5]
+        PU1, PU2, PV1, PV2 = y[:, 2], y[:, 3], y[:, 4], y[:, 5]  # Φ U, Φ V
+        # 2 × 2 matrices as row-major 4-tuples of (K,) arrays; UᵀV = BᵀB (σ cancels)
+        uu = _sym(_dot(U1, U1), _dot(U1, U2), _dot(U2, U2))
+        vv = _sym(_dot(V1, V1), _dot(V1, V2), _dot(V2, V2))
+        uv = _sym(*bb)
+        f_uv = (_dot(U1, PV1), _dot(U1, PV2), _dot(U2, PV1), _dot(U2, PV2))  # Uᵀ Φ V
+        f_vv = _sym(_dot(V1, PV1), _dot(V1, PV2), _dot(V2, PV2))
+        f_uu = _sym(_dot(U1, PU1), _dot(U1, PU2), _dot(U2, PU2))
+        g_vv = _sym(_dot(PV1, PV1), _dot(PV1, PV2), _dot(PV2, PV2))  # Vᵀ Φ² V
+        g_uv_tr = _dot(PU1, PV1) + _dot(PU2, PV2)  # tr(Uᵀ Φ² V)
+        mix = lambda white, phi: tuple(om * p + m * q for p, q in zip(white, phi))  # noqa: E731 - Uᵀ R V etc.
+        ua = mix(uv, f_uv)  # Uᵀ A
+        c = mix(vv, f_vv)  # C = Vᵀ R V
+        uru = mix(uu, f_uu)  # Uᵀ R U
+        aa = tuple(om * om * p + 2.0 * m * om * q + m * m * r for p, q, r in zip(vv, f_vv, g_vv))  # Vᵀ R² V
+        rr_tr = om * om * (uv[0] + uv[3]) + 2.0 * m * om * (f_uv[0] + f_uv[3]) + m * m * g_uv_tr  # tr(Uᵀ R² V)
+        T += n - 2.0 * (ua[0] + ua[3]) + _inner(c, uu)
+        # Lᵀ U = C UᵀU − Aᵀ U;  Lᵀ L = C UᵀU C − C UᵀA − AᵀU C + AᵀA
+        cu = _mm(c, uu)
+        cua = _mm(c, ua)
+        lu = _sub(cu, _tr(ua))
+        ll = _add(_sub(_sub(_mm(cu, c), cua), _tr(cua)), aa)
+        x_sq = _inner(uu, ll) - 2.0 * _inner(ua, lu) + _inner(aa, uu)  # ‖U Lᵀ − A Uᵀ‖²
+        rp2 = n + m * m * (phi_sq[ai] - n)  # ‖R‖² over the window: the diagonal is 1, the rest m Φ
+        T2 += rp2 + 2.0 * (_inner(uru, c) - 2.0 * rr_tr) + x_sq
     nu_own = np.where(ok & (T2 > 0), T * T / np.where(T2 > 0, T2, 1.0), 0.0)
     ratio = np.where(ok & (T > 0), S / np.where(T > 0, T, 1.0), 1.0)
     lam = (prior_dof + nu_own * ratio) / (prior_dof + nu_own)
@@ -323,6 +428,31 @@ def track_scale(windows: F64, valid: NDArray[np.bool_], groups: I64, model: Nois
     # dwarf its σ a thousandfold is not "a noisier track" whose test should shrink to nothing
     lam = np.clip(np.nan_to_num(lam, nan=1.0, posinf=SCALE_BOUNDS[1]), *SCALE_BOUNDS)
     return lam, prior_dof + nu_own
+
+
+def _sym(p, q, r):  # noqa: ANN001, ANN202 - 2 × 2 helpers of track_scale on row-major 4-tuples of (K,) arrays
+    return (p, q, q, r)
+
+
+def _mm(a, b):  # noqa: ANN001, ANN202
+    """2 × 2 product of row-major 4-tuples of (K,) arrays."""
+    return (a[0] * b[0] + a[1] * b[2], a[0] * b[1] + a[1] * b[3], a[2] * b[0] + a[3] * b[2], a[2] * b[1] + a[3] * b[3])
+
+
+def _tr(a):  # noqa: ANN001, ANN202
+    return (a[0], a[2], a[1], a[3])
+
+
+def _add(a, b):  # noqa: ANN001, ANN202
+    return tuple(x + y for x, y in zip(a, b))
+
+
+def _sub(a, b):  # noqa: ANN001, ANN202
+    return tuple(x - y for x, y in zip(a, b))
+
+
+def _inner(a, b):  # noqa: ANN001, ANN202
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2] + a[3] * b[3]
 
 
 _MAX = float(np.finfo(np.float64).max)

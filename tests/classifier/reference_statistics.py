@@ -1,0 +1,183 @@
+"""The calibrated statistic as first written (issue 15): dense W × W projection and correlation matrices per
+window, batched matrix products. Kept as the straightforward reference that the vectorised closed forms in
+``jitterguard/services/classifier/statistics.py`` are checked against (``test_classifier_statistics_reference``).
+Not used by the service."""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from jitterguard.services.classifier.calibration import SCALE_BOUNDS, NoiseModel, line_of_sight, project_covariance
+from jitterguard.services.classifier.statistics import HalfMasks, WindowStats, _floor_min_eigen, _saturate
+
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+
+
+def reference_calibrated_statistics(windows: F64, masks: HalfMasks, groups: I64, model: NoiseModel, *,
+                                    variance_floor: float, effective_n: str, track_scale_prior: bool = True,
+                                    min_speed: float = 0.0) -> WindowStats:
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        st = _calibrated_statistics(windows, masks, groups, model, variance_floor=variance_floor,
+                                    effective_n=effective_n, track_scale_prior=track_scale_prior, min_speed=min_speed)
+    return WindowStats(z_x=_saturate(st.z_x), z_y=_saturate(st.z_y), chi2=_saturate(st.chi2),
+                       mean_x=st.mean_x, mean_y=st.mean_y)
+
+
+def _calibrated_statistics(windows: F64, masks: HalfMasks, groups: I64, model: NoiseModel, *,
+                           variance_floor: float, effective_n: str, track_scale_prior: bool,
+                           min_speed: float) -> WindowStats:
+    k_old, k_new = masks.n_old, masks.n_new
+    valid = masks.old | masks.new
+    pos = windows[..., 0:2]
+    cov = windows[..., 2:5]
+    t = windows[..., 5]
+    sensor = windows[..., 6:8]
+    u, v, rng = line_of_sight(pos, sensor)
+    vu, vv, cuv = project_covariance(u, v, cov)
+    band = model.bands(rng)  # (K, W)
+    g = groups[:, None]
+    age = (windows[..., 8] < windows.shape[1]).astype(np.int64)  # young: among the track's first W
+    ku = model.scale[g, 0, band, age]
+    kv = model.scale[g, 1, band, age]
+    auu, avv = ku * np.maximum(vu, 0.0), kv * np.maximum(vv, 0.0)
+    auv = np.sqrt(ku * kv) * cuv
+    ux, uy, vx, vy = u[..., 0], u[..., 1], v[..., 0], v[..., 1]
+    cxx = auu * ux * ux + avv * vx * vx + 2 * auv * ux * vx
+    cyy = auu * uy * uy + avv * vy * vy + 2 * auv * uy * vy
+    cxy = auu * ux * uy + avv * vx * vy + auv * (ux * vy + vx * uy)
+    cxx, cyy = _floor_min_eigen(cxx, cxy, cyy, variance_floor)
+
+    w_old = masks.old / np.maximum(k_old, 1.0)[:, None]
+    w_new = masks.new / np.maximum(k_new, 1.0)[:, None]
+    dx = ((w_new - w_old) * pos[..., 0]).sum(1)
+    dy = ((w_new - w_old) * pos[..., 1]).sum(1)
+    if min_speed > 0:  # H0 is |v| ≤ min_speed: shrink the displacement by what that speed explains
+        gap = np.maximum(((w_new - w_old) * t).sum(1), 0.0)  # t̄_new − t̄_old
+        d = np.hypot(dx, dy)
+        keep = np.maximum(0.0, 1.0 - min_speed * gap / np.maximum(d, 1e-300))
+        dx, dy = dx * keep, dy * keep
+    if effective_n == "measured":
+        # Var(w·e) with e_j = H_j (√(1−m)·white_j + √m·correlated_j) per Cholesky component k of the calibrated
+        # covariance (component 0 along the line of sight, 1 the rest): Cov(e_i, e_j) = Σ_k K^k_ij h_ik h_jkᵀ,
+        # K^k = (1 − m_k) I + m_k Φ^k. Positive semi-definite by construction, and Cov(e_j, e_j) = Σ'_j.
+        w = np.where(valid, w_new - w_old, 0.0)  # (K, W)
+        luu = np.maximum(auu, variance_floor)
+        lvv = np.maximum(avv, variance_floor)
+        l11 = np.sqrt(luu)
+        l21 = auv / l11
+        l22 = np.sqrt(np.maximum(lvv - l21 * l21, variance_floor * 1e-6))
+        h = ((l11 * ux + l21 * vx, l11 * uy + l21 * vy), (l22 * vx, l22 * vy))  # world columns per component
+        a = np.zeros(len(w))
+        b = np.zeros(len(w))
+        c = np.zeros(len(w))
+        corr = correlation_matrices(t, groups, model)
+        for k, (hx, hy) in enumerate(h):
+            K = corr[k]  # (K, W, W)
+            px, py = w * hx, w * hy
+            Kx, Ky = (K @ px[..., None])[..., 0], (K @ py[..., None])[..., 0]
+            a = a + (px * Kx).sum(1)
+            b = b + (px * Ky).sum(1)
+            c = c + (py * Ky).sum(1)
+    else:
+        corr = None
+        if effective_n == "independent":
+            n_old, n_new = np.maximum(k_old, 1.0), np.maximum(k_new, 1.0)
+        else:
+            n_old = n_new = np.ones_like(k_old)
+        mean = lambda x, wt: (wt * x).sum(1)  # noqa: E731
+        a = mean(cxx, w_old) / n_old + mean(cxx, w_new) / n_new
+        b = mean(cxy, w_old) / n_old + mean(cxy, w_new) / n_new
+        c = mean(cyy, w_old) / n_old + mean(cyy, w_new) / n_new
+    a = np.maximum(a, 1e-300)
+    c = np.maximum(c, 1e-300)
+    det = np.maximum(a * c - b * b, 1e-300)
+    n_all = np.maximum(k_old + k_new, 1.0)
+    z_x, z_y = np.abs(dx) / np.sqrt(a), np.abs(dy) / np.sqrt(c)
+    chi2 = (c * dx * dx - 2.0 * b * dx * dy + a * dy * dy) / det
+    if track_scale_prior:
+        assert model.track_dof is not None
+        lam, nu = track_scale(windows, valid, groups, model, ku, kv, vu, vv, u, v, model.track_dof[groups],
+                              variance_floor, corr)
+        z_x = t_to_z(z_x / np.sqrt(lam), nu)
+        z_y = t_to_z(z_y / np.sqrt(lam), nu)
+        chi2 = chi2 / lam
+    return WindowStats(
+        z_x=z_x,
+        z_y=z_y,
+        chi2=chi2,
+        mean_x=((masks.old | masks.new) * pos[..., 0]).sum(1) / n_all,
+        mean_y=((masks.old | masks.new) * pos[..., 1]).sum(1) / n_all,
+    )
+
+
+def t_to_z(t: F64, dof: F64) -> F64:
+    """The standard-normal score with the same two-sided p-value as |t| under Student's t with ``dof``."""
+    from scipy.special import ndtri, stdtr  # type: ignore[import-untyped]
+
+    p_half = stdtr(dof, -np.abs(t))  # one tail
+    return np.where(p_half > 0, -ndtri(np.maximum(p_half, 1e-300)), np.abs(t))
+
+
+def correlation_matrices(t: F64, groups: I64, model: NoiseModel) -> tuple[F64, F64]:
+    """Per line-of-sight axis, the (K, W, W) correlation of each window's errors under ``model``:
+    (1 − m) I + m exp(−|t_i − t_j| / τ) with the (m, τ) of the window's class group.
+
+    Computed once per distinct (time pattern, class group): in a steady stream most windows hold the same
+    frame spacing, and the exponentials are most of the cost."""
+    rel = t - t[:, :1]
+    key = np.concatenate([rel, groups[:, None].astype(np.float64)], axis=1)
+    _, first, inv = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    inv = inv.reshape(-1)
+    tu, gu = rel[first], groups[first]
+    dt = np.abs(tu[:, :, None] - tu[:, None, :])
+    eye = np.eye(t.shape[1])[None]
+    out = []
+    for ai in range(2):
+        m = model.correlation[gu, ai][:, None, None]
+        tau = model.tau_s[gu, ai][:, None, None]
+        out.append(((1.0 - m) * eye + m * np.exp(-dt / tau))[inv])
+    return out[0], out[1]
+
+
+def track_scale(windows: F64, valid: NDArray[np.bool_], groups: I64, model: NoiseModel, ku: F64, kv: F64,
+                vu: F64, vv: F64, u: F64, v: F64, prior_dof: F64, variance_floor: float,
+                corr: tuple[F64, F64] | None = None) -> tuple[F64, F64]:
+    """Per window: (λ, ν) — the track's own variance scale relative to its class calibration, from the
+    residuals of its window about a constant-velocity fit, shrunk to 1 with ``prior_dof`` pseudo degrees of
+    freedom (an inverse-gamma prior), and the degrees of freedom of the resulting Student-t statistic.
+    ``corr``: :func:`correlation_matrices` of these windows when the caller has them already."""
+    t = windows[..., 5]
+    t = t - np.where(valid, t, np.inf).min(1, keepdims=True)  # relative: epoch stamps would cost precision
+    pos = windows[..., 0:2]
+    vm = valid.astype(np.float64)
+    n = vm.sum(1)
+    tbar = (vm * t).sum(1) / np.maximum(n, 1.0)
+    tc = (t - tbar[:, None]) * vm
+    stt = (tc * tc).sum(1)
+    ok = (n >= 3) & (stt > 0)
+    Wn = t.shape[1]
+    M = (vm[:, :, None] * np.eye(Wn)[None] - vm[:, :, None] * vm[:, None, :] / np.maximum(n, 1.0)[:, None, None]
+         - tc[:, :, None] * tc[:, None, :] / np.where(stt > 0, stt, 1.0)[:, None, None])
+    E = M @ pos
+    if corr is None:
+        corr = correlation_matrices(t, groups, model)
+    S = np.zeros(len(n))
+    T = np.zeros(len(n))
+    T2 = np.zeros(len(n))
+    for ai, (kk, var, ax) in enumerate(((ku, vu, u), (kv, vv, v))):
+        sig = np.sqrt(np.maximum(kk * np.maximum(var, 0.0), variance_floor))  # calibrated σ
+        r = (E * ax).sum(-1) / sig * vm
+        G = M * sig[:, None, :] / sig[:, :, None]
+        Q = G @ corr[ai] @ np.swapaxes(G, -1, -2)
+        S += (r * r).sum(1)
+        T += np.einsum("kii->k", Q)
+        T2 += (Q * Q).sum((1, 2))
+    nu_own = np.where(ok & (T2 > 0), T * T / np.where(T2 > 0, T2, 1.0), 0.0)
+    ratio = np.where(ok & (T > 0), S / np.where(T > 0, T, 1.0), 1.0)
+    lam = (prior_dof + nu_own * ratio) / (prior_dof + nu_own)
+    # bounded like a class scale: a window whose residuals overflow (a jump to 1e300 from a broken upstream) or
+    # dwarf its σ a thousandfold is not "a noisier track" whose test should shrink to nothing
+    lam = np.clip(np.nan_to_num(lam, nan=1.0, posinf=SCALE_BOUNDS[1]), *SCALE_BOUNDS)
+    return lam, prior_dof + nu_own
