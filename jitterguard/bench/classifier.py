@@ -22,6 +22,7 @@ from ..runtime.gc_policy import GC_GEN0_THRESHOLD
 from ..schemas import keys, peek_header
 from ..schemas.models import ClassifierConfig, Header
 from ..services.classifier.adapter import ClassifierAdapter
+from ..services.classifier.calibration import NoiseModel
 from ..services.classifier.core import MotionClassifierCore, Observations
 from ..services.classifier.service import ClassifierService
 from ..services.classifier.synthetic_tracks import FrameRecords, TrackScenario, generate
@@ -64,14 +65,17 @@ PAPER_STATISTIC = ClassifierConfig(calibration="off", effective_n="cluster", min
 
 
 def bench_core(sizes: tuple[int, ...] = (10, 100, 1000), window: int = 10, frames: int = 300, seed: int = 0) -> dict:
-    """Time of one ``update`` per track count, for the default configuration and the paper's statistic on the
-    same frames, alternating frame by frame (back to back, so both see the same machine load): median, mean
-    and p99 [ms] after a warm-up of 3 windows. The mean includes the frames on which windows turn over and the
-    online calibration pools them."""
+    """Time of one ``update`` per track count on the same frames, alternating frame by frame (back to back, so
+    all see the same machine load): the default configuration (online calibration: the statistic plus pooling
+    the windows that turned over, ~1/W of the tracks per frame), ``file_*`` (the same statistic with fixed
+    scales, as with ``calibration: file``: no learning) and ``paper_*`` (:data:`PAPER_STATISTIC`). Median, mean
+    and p99 [ms] after a warm-up of 3 windows."""
     out: dict[str, dict[str, float]] = {}
     for n in sizes:
         scene = _Scene(n, seed)
+        from_file = ClassifierConfig(window_size=window, calibration="file", calibration_file="bench.yaml")
         cores = {"default": MotionClassifierCore(ClassifierConfig(window_size=window), capacity=n),
+                 "file": MotionClassifierCore(from_file, capacity=n, calibration_model=NoiseModel.prior()),
                  "paper": MotionClassifierCore(PAPER_STATISTIC.model_copy(update={"window_size": window}), capacity=n)}
         batches = [scene.frame(k) for k in range(frames + 3 * window)]
         times: dict[str, list[float]] = {name: [] for name in cores}
