@@ -406,3 +406,28 @@ def test_static_decisions_use_the_calibrated_scales() -> None:
     assert (dp.state == DYNAMIC).mean() > 0.3
     assert (dc.state == DYNAMIC).mean() < 0.15
     assert (dc.state == STATIC).mean() > 0.85
+
+
+def test_skipping_fast_blocks_pools_exactly_what_the_full_moments_pool() -> None:
+    """``skip_fast`` leaves out only work whose result the pooling multiplies by zero: slow, fast and broken
+    (positions near the float limit) blocks give the same sums, counters and model either way."""
+    rng = np.random.default_rng(21)
+    t, pos, cov, sensor = (np.concatenate(parts) for parts in zip(
+        blocks(rng, 40, 2.0, 0.4, 0.5), blocks(rng, 40, 2.0, 0.4, 0.5, speed=6.0),
+        blocks(rng, 10, 2.0, 0.4, 0.5, speed=0.6)))
+    pos[:3, 5:] += 1e300  # a broken upstream: counted invalid, whatever its speed
+    groups = rng.integers(0, len(GROUPS), len(t))
+    young = rng.random(len(t)) < 0.3
+    cals = []
+    for skip in (False, True):
+        cal = OnlineCalibration()
+        cal.advance(100.0)
+        mom = block_moments(t, pos, cov, sensor, skip_fast=skip)
+        cal.add(groups, mom, young)
+        cals.append((cal, mom))
+    (full, m_full), (skipped, m_skip) = cals
+    assert (m_skip.Et == 0).all(axis=(1, 2, 3, 4)).sum() >= 37  # the fast blocks' expectations were not built
+    assert full.counts == skipped.counts and full.counts["blocks_fast"] >= 40 and full.counts["blocks_invalid"] == 3
+    for name in ("_Y", "_Ew", "_Et", "_n", "_het"):
+        np.testing.assert_array_equal(getattr(full, name), getattr(skipped, name), err_msg=name)
+    np.testing.assert_array_equal(full.refit().scale, skipped.refit().scale)

@@ -291,7 +291,8 @@ def project_covariance(u: F64, v: F64, cov: F64) -> tuple[F64, F64, F64]:
     return uu, vv, uv
 
 
-def block_moments(t: F64, pos: F64, cov: F64, sensor: F64, *, variance_floor: float = 1e-4) -> BlockMoments:
+def block_moments(t: F64, pos: F64, cov: F64, sensor: F64, *, variance_floor: float = 1e-4,
+                  skip_fast: bool = False) -> BlockMoments:
     """Outer products of the normalised constant-velocity residuals of N blocks of n observations each, and
     their expectations under unit white and unit exponentially correlated noise.
 
@@ -299,12 +300,18 @@ def block_moments(t: F64, pos: F64, cov: F64, sensor: F64, *, variance_floor: fl
     it), ``pos`` (N, n, 2) world positions, ``cov`` (N, n, 3) reported world covariances (xx, xy, yy),
     ``sensor`` (N, n, 2) the sensor's position at each observation. The line-of-sight axes are taken per
     observation; the residuals are those of the world-frame line fit projected on them.
+
+    ``skip_fast``: blocks whose fitted line is faster than :data:`MAX_BLOCK_SPEED` (which
+    :meth:`OnlineCalibration.add` counts but does not pool) get zero expectations ``Ew``, ``Et`` instead of
+    computed ones — most of the cost — when every input is finite and moderate (so their finiteness, which
+    decides whether the pooling counts them invalid, is not in question). What the pooling learns is the same.
     """
     with np.errstate(over="ignore", invalid="ignore"):  # non-finite blocks are dropped by the pooling
-        return _block_moments(t, pos, cov, sensor, variance_floor)
+        return _block_moments(t, pos, cov, sensor, variance_floor, skip_fast)
 
 
-def _block_moments(t: F64, pos: F64, cov: F64, sensor: F64, variance_floor: float) -> BlockMoments:
+def _block_moments(t: F64, pos: F64, cov: F64, sensor: F64, variance_floor: float,
+                   skip_fast: bool = False) -> BlockMoments:
     t = np.asarray(t, dtype=np.float64)
     n = t.shape[1]
     tc = t - t.mean(axis=1, keepdims=True)
@@ -316,14 +323,23 @@ def _block_moments(t: F64, pos: F64, cov: F64, sensor: F64, variance_floor: floa
     sig = np.sqrt(np.maximum(np.stack([var_u, var_v], axis=1), variance_floor))  # (N, 2, n)
     r = np.stack([(E * u).sum(-1), (E * v).sum(-1)], axis=1) / sig  # (N, 2, n)
     # ε̃ = G ε with G = D⁻¹ M D per axis: G[i, j] = M[i, j] σ_j / σ_i;  E[ε̃ ε̃ᵀ] = k G R Gᵀ
-    G = M[:, None] * sig[:, :, None, :] / sig[:, :, :, None]  # (N, 2, n, n)
-    phi = np.exp(-np.abs(t[:, None, :, None] - t[:, None, None, :]) / TAU_GRID_S[None, :, None, None])  # (N,T,n,n)
     Y = r[:, :, :, None] * r[:, :, None, :]
-    Ew = G @ np.swapaxes(G, -1, -2)
-    Et = (G[:, :, None] @ phi[:, None]) @ np.swapaxes(G, -1, -2)[:, :, None]
     vel = (tc[:, :, None] * pos).sum(axis=1) / stt[:, None]
-    return BlockMoments(Y, Ew, Et, rng.mean(axis=1), (t[:, -1] - t[:, 0]) / max(n - 1, 1),
-                        np.hypot(vel[:, 0], vel[:, 1]))
+    speed = np.hypot(vel[:, 0], vel[:, 1])
+    keep = np.ones(len(t), dtype=bool)
+    if skip_fast:
+        spread = sig.max(axis=(1, 2)) / sig.min(axis=(1, 2))
+        keep = ~((speed > MAX_BLOCK_SPEED) & np.isfinite(speed) & np.isfinite(Y).all(axis=(1, 2, 3))
+                 & np.isfinite(t).all(axis=1) & (spread < 1e100))
+    Ew = np.zeros((len(t), 2, n, n))
+    Et = np.zeros((len(t), 2, len(TAU_GRID_S), n, n))
+    if keep.any():
+        tk, sk, Mk = t[keep], sig[keep], M[keep]
+        G = Mk[:, None] * sk[:, :, None, :] / sk[:, :, :, None]  # (N, 2, n, n)
+        phi = np.exp(-np.abs(tk[:, None, :, None] - tk[:, None, None, :]) / TAU_GRID_S[None, :, None, None])
+        Ew[keep] = G @ np.swapaxes(G, -1, -2)
+        Et[keep] = (G[:, :, None] @ phi[:, None]) @ np.swapaxes(G, -1, -2)[:, :, None]
+    return BlockMoments(Y, Ew, Et, rng.mean(axis=1), (t[:, -1] - t[:, 0]) / max(n - 1, 1), speed)
 
 
 @lru_cache(maxsize=16)

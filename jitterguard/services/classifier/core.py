@@ -268,7 +268,7 @@ class MotionClassifierCore:
                 continue
             blk = blk[spread]
             mom = block_moments(times[spread], blk[..., 0:2], blk[..., 2:5], blk[..., 6:8],
-                                variance_floor=self._config.variance_floor)
+                                variance_floor=self._config.variance_floor, skip_fast=True)
             young = blk[:, 0, 8] < t.window  # the block starts among the track's first W observations
             self._online.add(group_of_labels(t.label[sel[spread]]), mom, young)
         t.since[rows] = 0
