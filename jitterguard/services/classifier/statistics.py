@@ -268,8 +268,8 @@ def _calibrated_statistics(windows: F64, masks: HalfMasks, groups: I64, model: N
     chi2 = (c * dx * dx - 2.0 * b * dx * dy + a * dy * dy) / det
     if track_scale_prior:
         assert model.track_dof is not None
-        lam, nu = track_scale(pos_x, pos_y, vm, n, (tc, stt, b1, b2), ((ux, uy), (vx, vy)), (sig_u, sig_v), cols, phi_cols,
-                              phi_sq, m_axis, model.track_dof[groups])
+        lam, nu = track_scale(pos_x, pos_y, vm, n, (tc, stt, b1, b2), ((ux, uy), (vx, vy)), (sig_u, sig_v), cols,
+                              phi_cols, phi_sq, m_axis, model.track_dof[groups])
         z = t_to_z(np.concatenate([z_x, z_y]) / np.sqrt(np.concatenate([lam, lam])), np.concatenate([nu, nu]))
         z_x, z_y = z[: len(lam)], z[len(lam):]
         chi2 = chi2 / lam
@@ -311,6 +311,7 @@ def _line_basis(t: F64, vm: F64, n: F64) -> tuple[F64, F64, F64, F64]:
 
 
 _HASH = np.random.default_rng(20251125).normal(size=1024)
+_HASH.flags.writeable = False
 """Fixed weights that hash a window's time pattern to one number (a constant: the same on every run)."""
 
 
