@@ -395,12 +395,17 @@ def fit_shape(S: F64, A: F64, B: F64) -> tuple[F64, F64, F64]:
     return np.clip(k, *SCALE_BOUNDS), m, TAU_GRID_S[t]
 
 
-def expected_moments(A: F64, B: F64, k: F64, m: F64, tau_s: F64) -> F64:
-    """k[(1 − m) A + m B(τ)] with τ interpolated on the grid in log τ (broadcast over leading axes)."""
+def _tau_interpolation(tau_s: F64) -> tuple[NDArray[np.int64], F64]:
+    """Grid index i and weight w of τ between TAU_GRID_S[i] and [i + 1], linear in log τ."""
     lt = np.log(TAU_GRID_S)
     x = np.clip(np.log(np.asarray(tau_s, dtype=np.float64)), lt[0], lt[-1])
     i = np.clip(np.searchsorted(lt, x) - 1, 0, len(lt) - 2)
-    w = (x - lt[i]) / (lt[i + 1] - lt[i])
+    return i, (x - lt[i]) / (lt[i + 1] - lt[i])
+
+
+def expected_moments(A: F64, B: F64, k: F64, m: F64, tau_s: F64) -> F64:
+    """k[(1 − m) A + m B(τ)] with τ interpolated on the grid in log τ (broadcast over leading axes)."""
+    i, w = _tau_interpolation(tau_s)
     Bi = np.take_along_axis(B, i[..., None, None].repeat(B.shape[-2], -2), -1)[..., 0]
     Bj = np.take_along_axis(B, (i + 1)[..., None, None].repeat(B.shape[-2], -2), -1)[..., 0]
     Bt = (1 - w)[..., None] * Bi + w[..., None] * Bj
@@ -514,17 +519,21 @@ class OnlineCalibration:
         # pooled per (group, band, age) cell: blocks sorted by cell, each run of one cell summed at once
         # (np.add.at over thousands of entries per block costs ten times as much; a one-hot matrix product
         # would hand the sum to a multi-threaded BLAS that thrashes on a busy machine)
+        # Blocks of weight 0 (too fast) are left out: adding 0 to a sum changes nothing.
         _, _, nbands, nages = self._n.shape
         cell = (g * nbands + band) * nages + age
-        order = np.argsort(cell, kind="stable")
-        starts = np.flatnonzero(np.r_[True, np.diff(cell[order]) != 0])
-        present = cell[order][starts]
-        gi, rest = np.divmod(present, nbands * nages)
-        bi, yi = np.divmod(rest, nages)
+        order = np.flatnonzero(slow)
+        order = order[np.argsort(cell[order], kind="stable")]
+        if order.size:
+            starts = np.flatnonzero(np.r_[True, np.diff(cell[order]) != 0])
+            present = cell[order][starts]
+            gi, rest = np.divmod(present, nbands * nages)
+            bi, yi = np.divmod(rest, nages)
         T = len(TAU_GRID_S)
-        for ai in range(2):
-            data = np.concatenate([Y[:, ai], Ew[:, ai], Et[:, ai].reshape(nb, nn * T), np.ones((nb, 1))], axis=1)
-            sums = np.add.reduceat((w[:, ai, None] * data)[order], starts, axis=0)
+        for ai in range(2 if order.size else 0):
+            data = np.concatenate([Y[order, ai], Ew[order, ai], Et[order, ai].reshape(len(order), nn * T),
+                                   np.ones((len(order), 1))], axis=1)
+            sums = np.add.reduceat(w[order, ai, None] * data, starts, axis=0)
             self._Y[gi, ai, bi, yi] += sums[:, :nn]
             self._Ew[gi, ai, bi, yi] += sums[:, nn:2 * nn]
             self._Et[gi, ai, bi, yi] += sums[:, 2 * nn:2 * nn + nn * T].reshape(-1, nn, T)
@@ -546,12 +555,16 @@ class OnlineCalibration:
             return
         from scipy.special import digamma, polygamma  # type: ignore[import-untyped]
 
-        nb, nn = int(sel.sum()), self.window ** 2
-        Ew = mom.Ew[sel].reshape(nb, 2, nn)
-        Et = np.swapaxes(mom.Et[sel].reshape(nb, 2, len(TAU_GRID_S), nn), -1, -2)
-        Q = expected_moments(Ew, Et, k, model.correlation[g], model.tau_s[g])  # (nb, 2, n²) per block and axis
-        trace = np.einsum("naii->n", Q.reshape(nb, 2, self.window, self.window))
-        trace2 = (Q * Q).sum((1, 2))
+        nb = int(sel.sum())
+        # Q = k[(1 − m) Ew + m Et(τ)] per block and axis, Et interpolated between the two grid τ around the
+        # group's (as expected_moments, on just those two slices)
+        i, wt_tau = _tau_interpolation(model.tau_s[g])  # (nb, 2)
+        Et, rows, axes = mom.Et[sel], np.arange(nb)[:, None], np.arange(2)[None]
+        Bt = (1 - wt_tau)[..., None, None] * Et[rows, axes, i] + wt_tau[..., None, None] * Et[rows, axes, i + 1]
+        m = model.correlation[g][..., None, None]
+        Q = k[..., None, None] * ((1 - m) * mom.Ew[sel] + m * Bt)  # (nb, 2, n, n)
+        trace = np.einsum("naii->n", Q)
+        trace2 = (Q * Q).sum((1, 2, 3))
         S0 = np.einsum("naii->n", mom.Y[sel])
         ok = (trace > 0) & (trace2 > 0) & (S0 > 0)
         if not ok.any():
