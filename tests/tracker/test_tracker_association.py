@@ -183,26 +183,27 @@ def test_a_second_box_off_a_cars_centre_is_one_object_by_iou() -> None:
     pos = np.array([[0.0, 0.0], [2.0, 0.0], [0.0, 2.5]])
     label = np.array([CAR, CAR, CAR])
     width, length = np.full(3, 1.9), np.full(3, 4.5)
-    hits, existence = np.array([30, 4, 4]), np.array([0.6, 0.3, 0.3])
+    hits = np.array([30, 4, 4])
     assert not overlapping(pos, label, width, hits, TABLES.can_assign, 0.75).any()  # the centre rule alone
     drop = overlapping(pos, label, width, hits, TABLES.can_assign, 0.75, yaw=np.zeros(3), length=length,
-                       existence=existence, min_iou=0.1, min_iou_unknown=0.001)
+                       min_iou=0.1, min_iou_unknown=0.001)
     assert drop.tolist() == [False, True, False]
 
 
-def test_iou_rule_spares_the_better_scored_track_and_drops_unknown_first() -> None:
+def test_iou_rule_crosses_labels_drops_unknown_first_and_can_be_switched_off() -> None:
     pos = np.array([[0.0, 0.0], [2.0, 0.0]])
     width, length, yaw = np.full(2, 1.9), np.full(2, 4.5), np.zeros(2)
     kw = dict(yaw=yaw, length=length, min_iou=0.1, min_iou_unknown=0.001)
-    # an old low-scored ghost must not delete the new, better-scored track of the real car beside it
-    drop = overlapping(pos, np.array([CAR, CAR]), width, np.array([30, 2]), TABLES.can_assign, 0.75,
-                       existence=np.array([0.3, 0.7]), **kw)
-    assert not drop.any()
-    # across labels the IoU rule still applies (one footprint, two classes); an UNKNOWN box always goes
-    drop = overlapping(pos, np.array([UNKNOWN, TRUCK]), width, np.array([30, 2]), TABLES.can_assign, 0.75,
-                       existence=np.array([0.9, 0.3]), **kw)
+    # one footprint, two classes the can-assign matrix keeps apart: the IoU rule still applies (fewer hits go)
+    drop = overlapping(pos, np.array([CAR, PED]), width, np.array([30, 2]), TABLES.can_assign, 0.75, **kw)
+    assert drop.tolist() == [False, True]
+    # an UNKNOWN box goes whatever its hits, and at the UNKNOWN bound (IoU 0.001): 4.4 m apart the boxes touch
+    far = np.array([[0.0, 0.0], [4.4, 0.0]])
+    drop = overlapping(far, np.array([UNKNOWN, TRUCK]), width, np.array([30, 2]), TABLES.can_assign, 0.75, **kw)
     assert drop.tolist() == [True, False]
+    drop = overlapping(far, np.array([CAR, TRUCK]), width, np.array([30, 2]), TABLES.can_assign, 0.75, **kw)
+    assert not drop.any()  # IoU 0.01 < 0.1 between two classified boxes
     # min_iou 0 switches the rule off
     drop = overlapping(pos, np.array([CAR, CAR]), width, np.array([30, 2]), TABLES.can_assign, 0.75,
-                       existence=np.array([0.6, 0.3]), yaw=yaw, length=length, min_iou=0.0, min_iou_unknown=0.0)
+                       yaw=yaw, length=length, min_iou=0.0, min_iou_unknown=0.0)
     assert not drop.any()

@@ -246,7 +246,6 @@ def overlapping(
     *,
     yaw: F64 | None = None,
     length: F64 | None = None,
-    existence: F64 | None = None,
     min_iou: float = 0.0,
     min_iou_unknown: float = 0.0,
 ) -> NDArray[np.bool_]:
@@ -260,14 +259,12 @@ def overlapping(
     starts a twin that then steals every other detection, and both live on, alternating, as duplicate confirmed
     tracks; without (b) a second box the detector puts on one long or partly seen vehicle, a metre or two off
     its centre, becomes a confirmed track of its own that hops between such boxes — a ghost that appears to
-    move. One exception to (b): a track is never deleted for an older one whose smoothed detection score
-    (``existence``) is lower — the two then both stay and the lifecycle decides — because a persistent
-    low-scored ghost beside a real object would otherwise delete every new track of that object at birth.
+    move. The price of (b): where such a second box was tracked first, it is the real box's newborn track that
+    goes, and the object is published through the overlapping, off-centre track until that one dies.
     """
     n = pos.shape[0]
     drop = np.zeros(n, dtype=bool)
-    use_iou = (yaw is not None and length is not None and existence is not None
-               and (min_iou > 0.0 or min_iou_unknown > 0.0))
+    use_iou = yaw is not None and length is not None and (min_iou > 0.0 or min_iou_unknown > 0.0)
     if n < 2 or (factor <= 0.0 and not use_iou):
         return drop
     r = factor * float(width.max())
@@ -293,17 +290,12 @@ def overlapping(
                        (pos[j[test], 0], pos[j[test], 1], length[j[test]], width[j[test]], yaw[j[test]]))
         by_iou[test] = iou > thr[test]
     pair = close | by_iou
-    i, j, by_iou = i[pair], j[pair], by_iou[pair]
+    i, j = i[pair], j[pair]
     unknown_i, unknown_j = unknown_i[pair], unknown_j[pair]
     if i.size == 0:
         return drop
     # rows are in birth order, so j (> i) is the younger: it goes unless it has strictly more hits
     loser = np.where(hits[j] > hits[i], i, j)
-    if use_iou:
-        assert existence is not None
-        winner = i + j - loser
-        spare = by_iou & (existence[loser] > existence[winner])
-        loser = np.where(spare, -1, loser)
     loser = np.where(unknown_i & ~unknown_j, i, np.where(unknown_j & ~unknown_i, j, loser))
-    drop[loser[loser >= 0]] = True
+    drop[loser] = True
     return drop

@@ -187,9 +187,8 @@ class TrackerConfig(_Strict):
         0.1,
         description="two tracks whose bird's-eye boxes overlap with an IoU above this describe one object,"
         " whatever their labels: the one with fewer hits is deleted (Autoware's removeOverlappedTracker, 0.1;"
-        " 0 disables), unless its smoothed detection score is the higher of the two (then both stay). Catches"
-        " the second box a detector puts on one vehicle a metre or two off its centre, which the"
-        " centre-distance rule (overlap_factor) misses and which would live on as a ghost track",
+        " 0 disables). Catches the second box a detector puts on one vehicle a metre or two off its centre,"
+        " which the centre-distance rule (overlap_factor) misses and which would live on as a ghost track",
     )
     overlap_min_iou_unknown: Annotated[float, Field(ge=0.0, le=1.0)] = Field(
         0.001,
