@@ -25,8 +25,9 @@ DEFAULT_MIN_POINTS = 5  # keep in step with survival.DEFAULT_MIN_POINTS (checked
 
 
 def detector_frames_for(scenario: str, seed: int, duration_s: float, rate_hz: float, threads: int | None,
-                        progress: bool) -> Iterator[tuple[GroundTruthFrame, DetectedObjects]]:
-    """The shipped detector on ray-cast scans of ``scenario``, converted as the detector service publishes them."""
+                        progress: bool) -> Iterator[tuple[GroundTruthFrame, bytes]]:
+    """The shipped detector on ray-cast scans of ``scenario``, as the ``DetectedObjects`` payloads the detector
+    service publishes."""
     from ..services.detector.inference import Detector
     from ..sim.world import make_scenario
     from ..eval.detector_input import detector_frames, synthetic_scans

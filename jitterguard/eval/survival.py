@@ -122,11 +122,12 @@ def score(runs: list[SurvivalRun], seed: int = 0) -> dict[str, Any]:
     }
 
 
-def survival_run(frames: Iterable[tuple[GroundTruthFrame, DetectedObjects]], tracker: TrackerConfig | None = None, *,
+def survival_run(frames: Iterable[tuple[GroundTruthFrame, DetectedObjects | bytes]], tracker: TrackerConfig | None = None, *,
                  horizon_s: float = 1.0, min_points: int = DEFAULT_MIN_POINTS,
                  match_distance_m: float = MATCH_DISTANCE_M) -> SurvivalRun:
     """Run the tracker core over (ground truth, detections) pairs and collect the survival trials (module
-    docstring). The detections go through the wire and the tracker service's own read and conversion
+    docstring). The detections (a ``DetectedObjects`` model, or its wire payload as the detector service
+    publishes it) go through the wire and the tracker service's own read and conversion
     (:func:`~jitterguard.schemas.read_detected_objects`, ``detection_frame``); track IDs are deterministic so a
     run repeats."""
     counter = iter(range(1, 1 << 62))
@@ -135,7 +136,7 @@ def survival_run(frames: Iterable[tuple[GroundTruthFrame, DetectedObjects]], tra
     c = dict.fromkeys(("frames", "born", "confirmed", "tentative_published", "seen", "covered", "any", "any_alive",
                        "ghosts"), 0)
     for gt, msg in frames:
-        frame = detection_frame(read_detected_objects(encode(msg)))
+        frame = detection_frame(read_detected_objects(msg if isinstance(msg, bytes) else encode(msg)))
         try:
             res = core.step(frame)
         except FrameRejected:
@@ -177,7 +178,7 @@ def survival_run(frames: Iterable[tuple[GroundTruthFrame, DetectedObjects]], tra
     return run
 
 
-def survival(frames: Iterable[tuple[GroundTruthFrame, DetectedObjects]], tracker: TrackerConfig | None = None, *,
+def survival(frames: Iterable[tuple[GroundTruthFrame, DetectedObjects | bytes]], tracker: TrackerConfig | None = None, *,
              horizon_s: float = 1.0, min_points: int = DEFAULT_MIN_POINTS,
              match_distance_m: float = MATCH_DISTANCE_M) -> dict[str, Any]:
     """:func:`score` of one :func:`survival_run`."""

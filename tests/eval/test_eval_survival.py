@@ -6,6 +6,7 @@ import numpy as np
 
 from jitterguard.bench import survival as survival_cli
 from jitterguard.eval.survival import DEFAULT_MIN_POINTS, in_view, survival
+from jitterguard.schemas import encode
 from jitterguard.schemas.models import (
     DetectedObject,
     DetectedObjectKinematics,
@@ -97,3 +98,12 @@ def test_score_pools_runs_and_resamples_whole_tracks() -> None:
     lo, hi = r["survival_ci95"]
     assert lo < 0.75 < hi and hi - lo > 0.3  # three tracks: wide, as it must be
     assert score([a, b]) == r  # seeded
+
+
+def test_wire_payloads_score_like_the_models_they_encode() -> None:
+    """The bench feeds the detector service's wire payloads (bytes), the unit tests models: the same frames
+    either way give the same trials and survival."""
+    frames = [(gt_frame(k), detections(k, not 20 <= k < 35)) for k in range(60)]
+    as_models = survival(frames, default_config(), horizon_s=1.0, min_points=10)
+    as_bytes = survival([(g, encode(d)) for g, d in frames], default_config(), horizon_s=1.0, min_points=10)
+    assert as_bytes == as_models and as_bytes["trials"] == 41

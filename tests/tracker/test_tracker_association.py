@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+import math
 
 import numpy as np
 import pytest
@@ -10,6 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
+from jitterguard.geometry import rect_iou
 from jitterguard.services.tracker.association import Candidates, assign, gate, near_pairs, overlapping
 from jitterguard.services.tracker.config import default_config
 
@@ -126,4 +128,82 @@ def test_overlapping_tracks_keep_the_one_with_more_hits() -> None:
 def test_overlap_needs_compatible_labels() -> None:
     pos = np.array([[0.0, 0.0], [0.2, 0.0]])
     drop = overlapping(pos, np.array([CAR, PED]), np.array([1.9, 0.6]), np.array([5, 1]), TABLES.can_assign, 0.75)
+    assert not drop.any()
+
+
+# ---- bird's-eye IoU and Autoware's IoU rule for overlapped tracks
+
+
+def _grid_iou(a, b, step: float = 0.02) -> float:
+    """An independent IoU: count grid points inside each oriented rectangle (the area to about 1 %)."""
+    def inside(px, py, r):
+        cx, cy, ln, wd, yaw = r
+        dx, dy = px - cx, py - cy
+        lx = math.cos(yaw) * dx + math.sin(yaw) * dy
+        ly = -math.sin(yaw) * dx + math.cos(yaw) * dy
+        return (np.abs(lx) <= ln / 2) & (np.abs(ly) <= wd / 2)
+    ext = max(a[2], a[3], b[2], b[3])
+    lo_x, hi_x = min(a[0], b[0]) - ext, max(a[0], b[0]) + ext
+    lo_y, hi_y = min(a[1], b[1]) - ext, max(a[1], b[1]) + ext
+    px, py = np.meshgrid(np.arange(lo_x, hi_x, step), np.arange(lo_y, hi_y, step))
+    ia, ib = inside(px, py, a), inside(px, py, b)
+    union = (ia | ib).sum()
+    return float((ia & ib).sum() / union) if union else 0.0
+
+
+def _iou1(a, b) -> float:
+    return float(rect_iou(tuple(np.array([v]) for v in a), tuple(np.array([v]) for v in b))[0])
+
+
+def test_rect_iou_exact_cases() -> None:
+    car = (0.0, 0.0, 4.5, 1.9, 0.3)
+    assert _iou1(car, car) == pytest.approx(1.0)
+    assert _iou1(car, (10.0, 0.0, 4.5, 1.9, 0.3)) == 0.0
+    # the same footprint shifted half a length along its axis: overlap 2.25 x 1.9 of a union of 3 halves
+    half = (math.cos(0.3) * 2.25, math.sin(0.3) * 2.25, 4.5, 1.9, 0.3)
+    assert _iou1(car, half) == pytest.approx(1.0 / 3.0)
+    # a unit square and the same square turned 45°: they share an octagon of area 2(√2 - 1) = 0.828
+    inter = 2.0 * (math.sqrt(2.0) - 1.0)
+    assert _iou1((0, 0, 1, 1, 0), (0, 0, 1, 1, math.pi / 4)) == pytest.approx(inter / (2.0 - inter))
+    # a box flipped by 180° is the same footprint
+    assert _iou1(car, (0.0, 0.0, 4.5, 1.9, 0.3 + math.pi)) == pytest.approx(1.0)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.floats(-3, 3), min_size=2, max_size=2), st.floats(0.3, 6), st.floats(0.3, 3), st.floats(-4, 4),
+       st.floats(0.3, 6), st.floats(0.3, 3), st.floats(-4, 4))
+def test_rect_iou_matches_a_grid_count(c, la, wa, ya, lb, wb, yb) -> None:
+    a, b = (0.0, 0.0, la, wa, ya), (c[0], c[1], lb, wb, yb)
+    assert _iou1(a, b) == pytest.approx(_grid_iou(a, b), abs=0.02)
+
+
+def test_a_second_box_off_a_cars_centre_is_one_object_by_iou() -> None:
+    """Two car tracks 2 m apart along their axis: the centre rule (0.75 x width = 1.4 m) misses them, their
+    footprints overlap with IoU 0.38 > 0.1, so the one with fewer hits goes; 2.5 m sideways they do not touch."""
+    pos = np.array([[0.0, 0.0], [2.0, 0.0], [0.0, 2.5]])
+    label = np.array([CAR, CAR, CAR])
+    width, length = np.full(3, 1.9), np.full(3, 4.5)
+    hits = np.array([30, 4, 4])
+    assert not overlapping(pos, label, width, hits, TABLES.can_assign, 0.75).any()  # the centre rule alone
+    drop = overlapping(pos, label, width, hits, TABLES.can_assign, 0.75, yaw=np.zeros(3), length=length,
+                       min_iou=0.1, min_iou_unknown=0.001)
+    assert drop.tolist() == [False, True, False]
+
+
+def test_iou_rule_crosses_labels_drops_unknown_first_and_can_be_switched_off() -> None:
+    pos = np.array([[0.0, 0.0], [2.0, 0.0]])
+    width, length, yaw = np.full(2, 1.9), np.full(2, 4.5), np.zeros(2)
+    kw = dict(yaw=yaw, length=length, min_iou=0.1, min_iou_unknown=0.001)
+    # one footprint, two classes the can-assign matrix keeps apart: the IoU rule still applies (fewer hits go)
+    drop = overlapping(pos, np.array([CAR, PED]), width, np.array([30, 2]), TABLES.can_assign, 0.75, **kw)
+    assert drop.tolist() == [False, True]
+    # an UNKNOWN box goes whatever its hits, and at the UNKNOWN bound (IoU 0.001): 4.4 m apart the boxes touch
+    far = np.array([[0.0, 0.0], [4.4, 0.0]])
+    drop = overlapping(far, np.array([UNKNOWN, TRUCK]), width, np.array([30, 2]), TABLES.can_assign, 0.75, **kw)
+    assert drop.tolist() == [True, False]
+    drop = overlapping(far, np.array([CAR, TRUCK]), width, np.array([30, 2]), TABLES.can_assign, 0.75, **kw)
+    assert not drop.any()  # IoU 0.01 < 0.1 between two classified boxes
+    # min_iou 0 switches the rule off
+    drop = overlapping(pos, np.array([CAR, CAR]), width, np.array([30, 2]), TABLES.can_assign, 0.75,
+                       yaw=yaw, length=length, min_iou=0.0, min_iou_unknown=0.0)
     assert not drop.any()

@@ -277,3 +277,19 @@ def test_observations_pair_each_confirmed_track_with_its_own_detection() -> None
             assert d < 2.0
             assert res.tracks.last_update_ns[i] == f.stamp_ns
     assert res.obs_track.size > 10
+
+
+@pytest.mark.parametrize("min_iou, twins", [(0.1, False), (0.0, True)])
+def test_a_second_box_on_a_parked_car_never_becomes_a_track_of_its_own(min_iou: float, twins: bool) -> None:
+    """The detector boxes a parked car twice every scan: once on its centre (score 0.7) and once 2.2 m along it
+    (score 0.4), too far for the car's association gate (2 m). Autoware's IoU rule (footprints overlap, IoU
+    0.34) deletes the second box's track at birth; without it the second box becomes a confirmed twin."""
+    core = TrackerCore(default_config(overlap_min_iou=min_iou))
+    confirmed: set[str] = set()
+    for k in range(30):
+        res = core.step(frame(k, [[20.0, 0.0], [22.2, 0.0]], [CAR, CAR], existence=np.array([0.7, 0.4])))
+        confirmed.update(res.tracks.ids)
+    assert len(res.tracks) == (2 if twins else 1)
+    assert len(confirmed) == len(res.tracks)  # and the car's own track never changed its ID
+    car = int(np.argmin(np.hypot(res.tracks.x - 20.0, res.tracks.y)))
+    assert abs(res.tracks.x[car] - 20.0) < 0.2

@@ -25,11 +25,14 @@ from scipy.optimize import linear_sum_assignment
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from ...geometry import rect_iou
 from .config import ConfigTables
 from .kalman import wrap_half_pi
 
 F64 = NDArray[np.float64]
 IntArr = NDArray[np.intp]
+UNKNOWN = 0
+"""Autoware's label 0: a box of no known class loses to a classified one it overlaps."""
 
 
 @dataclass(frozen=True)
@@ -240,19 +243,34 @@ def overlapping(
     can_assign: NDArray[np.bool_],
     factor: float,
     max_per_row: int | None = None,
+    *,
+    yaw: F64 | None = None,
+    length: F64 | None = None,
+    min_iou: float = 0.0,
+    min_iou_unknown: float = 0.0,
 ) -> NDArray[np.bool_]:
     """Rows to delete because another track describes the same object (Autoware's overlapped-tracker removal).
 
-    Two tracks overlap when their labels may share a detection and their centres are closer than ``factor``
-    times the narrower box's width; of such a pair the one with fewer hits goes (the younger on a tie).
-    Without this a detection that once missed its track's gate starts a twin that then steals every other
-    detection, and both live on, alternating, as duplicate confirmed tracks.
+    Two tracks overlap when (a) their labels may share a detection and their centres are closer than
+    ``factor`` times the narrower box's width, or (b) their bird's-eye boxes (``yaw``, ``length``, ``width``)
+    overlap with an IoU above ``min_iou`` — ``min_iou_unknown`` where either is UNKNOWN — whatever their labels,
+    as Autoware's ``removeOverlappedTracker`` tests it. Of such a pair the UNKNOWN one goes if only one is, else
+    the one with fewer hits (the younger on a tie). Without (a) a detection that once missed its track's gate
+    starts a twin that then steals every other detection, and both live on, alternating, as duplicate confirmed
+    tracks; without (b) a second box the detector puts on one long or partly seen vehicle, a metre or two off
+    its centre, becomes a confirmed track of its own that hops between such boxes — a ghost that appears to
+    move. The price of (b): where such a second box was tracked first, it is the real box's newborn track that
+    goes, and the object is published through the overlapping, off-centre track until that one dies.
     """
     n = pos.shape[0]
     drop = np.zeros(n, dtype=bool)
-    if n < 2 or factor <= 0.0:
+    use_iou = yaw is not None and length is not None and (min_iou > 0.0 or min_iou_unknown > 0.0)
+    if n < 2 or (factor <= 0.0 and not use_iou):
         return drop
     r = factor * float(width.max())
+    if use_iou:
+        assert length is not None
+        r = max(r, float(np.hypot(length, width).max()))  # boxes whose centres are farther apart cannot touch
     i, j = near_pairs(pos, pos, r, max_per_row)
     up = i < j
     i, j = i[up], j[up]
@@ -260,10 +278,24 @@ def overlapping(
     lim = factor * np.minimum(width[i], width[j])
     tl = label.astype(np.intp)
     close = (d2 < lim * lim) & can_assign[tl[i], tl[j]]
-    i, j = i[close], j[close]
+    unknown_i, unknown_j = tl[i] == UNKNOWN, tl[j] == UNKNOWN
+    by_iou = np.zeros_like(close)
+    if use_iou:
+        assert yaw is not None and length is not None
+        thr = np.where(unknown_i | unknown_j, min_iou_unknown, min_iou)
+        half_diag = 0.5 * np.hypot(length, width)
+        reach = half_diag[i] + half_diag[j]
+        test = np.flatnonzero((thr > 0.0) & ~close & (d2 < reach * reach))  # only pairs that can touch
+        iou = rect_iou((pos[i[test], 0], pos[i[test], 1], length[i[test]], width[i[test]], yaw[i[test]]),
+                       (pos[j[test], 0], pos[j[test], 1], length[j[test]], width[j[test]], yaw[j[test]]))
+        by_iou[test] = iou > thr[test]
+    pair = close | by_iou
+    i, j = i[pair], j[pair]
+    unknown_i, unknown_j = unknown_i[pair], unknown_j[pair]
     if i.size == 0:
         return drop
     # rows are in birth order, so j (> i) is the younger: it goes unless it has strictly more hits
     loser = np.where(hits[j] > hits[i], i, j)
+    loser = np.where(unknown_i & ~unknown_j, i, np.where(unknown_j & ~unknown_i, j, loser))
     drop[loser] = True
     return drop

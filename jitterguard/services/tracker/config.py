@@ -183,6 +183,18 @@ class TrackerConfig(_Strict):
         " times the narrower box's width describe one object: the one with fewer hits is deleted, as"
         " Autoware's removal of overlapped trackers does (0 disables)",
     )
+    overlap_min_iou: Annotated[float, Field(ge=0.0, le=1.0)] = Field(
+        0.1,
+        description="two tracks whose bird's-eye boxes overlap with an IoU above this describe one object,"
+        " whatever their labels: the one with fewer hits is deleted (Autoware's removeOverlappedTracker, 0.1;"
+        " 0 disables). Catches the second box a detector puts on one vehicle a metre or two off its centre,"
+        " which the centre-distance rule (overlap_factor) misses and which would live on as a ghost track",
+    )
+    overlap_min_iou_unknown: Annotated[float, Field(ge=0.0, le=1.0)] = Field(
+        0.001,
+        description="the same IoU bound where either track is UNKNOWN (Autoware's 0.001: an unclassified box"
+        " touching a classified one is the same object, and the UNKNOWN one is deleted; 0 disables)",
+    )
 
     # ---- measurement model
     measurement_covariance: MeasurementCovariance = Field(

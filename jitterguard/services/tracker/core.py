@@ -134,7 +134,8 @@ class TrackerCore:
         if n:
             keep = ~tr.expired(stamp, cfg.tentative_max_gap_s, cfg.max_coast_s, cfg.max_position_stddev)
             keep &= ~overlapping(tr.x[:, :2], tr.label, tr.dims[:, 1], tr.hits, tb.can_assign,
-                                 cfg.overlap_factor, cfg.max_candidates)
+                                 cfg.overlap_factor, cfg.max_candidates, yaw=tr.x[:, 2], length=tr.dims[:, 0],
+                                 min_iou=cfg.overlap_min_iou, min_iou_unknown=cfg.overlap_min_iou_unknown)
             keep_rows = np.flatnonzero(keep)
             if keep_rows.size < n:
                 remap = np.full(n, -1, dtype=np.intp)
