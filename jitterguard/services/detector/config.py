@@ -7,8 +7,9 @@ Kept free of torch so that data, evaluation and the service adapter import it ch
 
 from __future__ import annotations
 
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
-from typing import Annotated, Literal
+from typing import Annotated, Literal, overload
 
 import numpy as np
 from numpy.typing import NDArray
@@ -144,6 +145,31 @@ class Sample:
     num_points: I64
     token: str = ""
     pseudo: bool = False
+
+
+class LazySamples(Sequence[Sample]):
+    """A sequence of samples built one at a time on access (from disk or a dataroot), so a training set never has
+    to fit in memory; subclasses say how long they are and how to build sample ``i``."""
+
+    def _sample(self, i: int) -> Sample:
+        raise NotImplementedError
+
+    @overload
+    def __getitem__(self, i: int) -> Sample: ...
+
+    @overload
+    def __getitem__(self, i: slice) -> list[Sample]: ...
+
+    def __getitem__(self, i: int | slice) -> Sample | list[Sample]:
+        if isinstance(i, slice):
+            return [self._sample(j) for j in range(*i.indices(len(self)))]
+        if not -len(self) <= i < len(self):
+            raise IndexError(i)
+        return self._sample(i % len(self))
+
+    def __iter__(self) -> Iterator[Sample]:
+        for i in range(len(self)):
+            yield self._sample(i)
 
 
 @dataclass(frozen=True)

@@ -20,7 +20,6 @@ import os
 import sys
 from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
-from typing import overload
 
 import numpy as np
 from numpy.typing import NDArray
@@ -42,7 +41,7 @@ from .augment import (  # noqa: F401  (re-exported: one import site for the trai
     build_gt_database,
     gt_sample,
 )
-from .config import AUTOWARE_TO_CLASS, BOX_DIM, Sample
+from .config import AUTOWARE_TO_CLASS, BOX_DIM, LazySamples, Sample
 from .data_nuscenes import (  # noqa: F401  (re-exported)
     NUSCENES_TO_CLASS,
     NuScenesKeyframes,
@@ -197,7 +196,7 @@ def build_cache(out_dir: str | os.PathLike[str], samples: Iterable[Sample], *, t
     return len(entries)
 
 
-class CachedSamples(Sequence[Sample]):
+class CachedSamples(LazySamples):
     """A cache written by :func:`build_cache`, as a lazy random-access sequence of :class:`Sample` (each item is
     read from disk when asked for; nothing is kept in memory but the index). Torch-free, so a DataLoader's
     workers can each hold one."""
@@ -220,20 +219,8 @@ class CachedSamples(Sequence[Sample]):
     def tokens(self) -> list[str]:
         return [str(e["token"]) for e in self._entries]
 
-    @overload
-    def __getitem__(self, i: int) -> Sample: ...
-
-    @overload
-    def __getitem__(self, i: slice) -> list[Sample]: ...
-
-    def __getitem__(self, i: int | slice) -> Sample | list[Sample]:
-        if isinstance(i, slice):
-            return [self[j] for j in range(*i.indices(len(self)))]
+    def _sample(self, i: int) -> Sample:
         e = self._entries[i]
         with np.load(self.root / str(e["file"])) as z:
             return Sample(points=z["points"], boxes=z["boxes"], labels=z["labels"], num_points=z["num_points"],
                           token=str(e["token"]))
-
-    def __iter__(self) -> Iterator[Sample]:
-        for i in range(len(self)):
-            yield self[i]

@@ -22,7 +22,7 @@ from __future__ import annotations
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, overload
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 from ..replay.frames import SourceError
 from ..replay.sources.kitti import read_bin
 from ..replay.sources.nuscenes import _load_table, find_version
-from .config import BOX_DIM, CLASS_NAMES, Sample
+from .config import BOX_DIM, CLASS_NAMES, LazySamples, Sample
 
 F64 = NDArray[np.float64]
 
@@ -153,7 +153,7 @@ def _pose_matrix(rec: dict[str, Any]) -> tuple[F64, F64]:
     return _rotations_wxyz(np.asarray(rec["rotation"]))[0], np.asarray(rec["translation"], np.float64)
 
 
-class NuScenesKeyframes(Sequence[Sample]):
+class NuScenesKeyframes(LazySamples):
     """The LIDAR_TOP key frames of a nuScenes-format dataroot as a lazy random-access sequence of
     :class:`~.config.Sample`: the tables are read once (boxes in the sensor frame, the sweep chain of every key
     frame), the point files only when a sample is asked for, so a DataLoader over full nuScenes
@@ -287,21 +287,9 @@ class NuScenesKeyframes(Sequence[Sample]):
             parts.append(np.column_stack([xyz, p[:, 3], np.full(len(p), sw.time_lag_s)]).astype(np.float32))
         return np.concatenate(parts)
 
-    @overload
-    def __getitem__(self, i: int) -> Sample: ...
-
-    @overload
-    def __getitem__(self, i: slice) -> list[Sample]: ...
-
-    def __getitem__(self, i: int | slice) -> Sample | list[Sample]:
-        if isinstance(i, slice):
-            return [self[j] for j in range(*i.indices(len(self)))]
+    def _sample(self, i: int) -> Sample:
         f = self._frames[i]
         return Sample(points=self.points(i), boxes=f.boxes, labels=f.labels, num_points=f.num_points, token=f.token)
-
-    def __iter__(self) -> Iterator[Sample]:
-        for i in range(len(self)):
-            yield self[i]
 
 
 def iter_nuscenes_samples(dataroot: str | Path, version: str | None = None,
