@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import os
 import sys
+from pathlib import Path
 from typing import Annotated
 
 import typer
@@ -205,12 +206,20 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                                                                   "new track IDs a frame (default 0).")] = 0,
         split: Annotated[bool, typer.Option("--split", help="Also time detections -> tracked (to_tracked_ms); "
                                                               "the extra subscriber adds load.")] = False,
+        classifier_config: Annotated[str | None, typer.Option(
+            "--classifier-config", help="Classifier parameter file (as `jitterguard classifier --config`).")] = None,
+        tracker_config: Annotated[str | None, typer.Option(
+            "--tracker-config", help="Tracker parameter file (as `jitterguard tracker --config`).")] = None,
         as_json: Annotated[bool, typer.Option("--json", help="JSON on stdout (the only output format).")] = True,
     ) -> None:
         """Detections -> tracker -> classifier -> objects through real processes: latency, losses, RSS growth."""
         from .pipeline import bench_pipeline
 
-        res = bench_pipeline(objects, rate, duration, seed, split=split, churn=churn)
+        for flag, path in (("--classifier-config", classifier_config), ("--tracker-config", tracker_config)):
+            if path is not None and not Path(path).is_file():
+                fail(f"{flag}: no such file: {path}")
+        res = bench_pipeline(objects, rate, duration, seed, split=split, churn=churn,
+                             classifier_config=classifier_config, tracker_config=tracker_config)
         print(json.dumps(res, indent=None if as_json else 2))
 
     @bench_app.command("tracker-mot")

@@ -156,10 +156,12 @@ def stop_processes(procs: Iterable[subprocess.Popen], timeout_s: float = 15.0) -
 
 def bench_pipeline(objects: int = 200, rate_hz: float = 20.0, duration_s: float = 60.0, seed: int = 0,
                    log_dir: Path | None = None, startup_timeout_s: float = 60.0,
-                   split: bool = False, churn: int = 0) -> dict[str, Any]:
+                   split: bool = False, churn: int = 0, classifier_config: str | None = None,
+                   tracker_config: str | None = None) -> dict[str, Any]:
     """Run the pipeline bench; ``split`` also subscribes ``tracked`` to report ``to_tracked_ms`` (the tracker's
     leg). Off by default: that extra subscriber makes the tracker send each 330 kB ``tracked`` twice and costs
-    this process CPU while the classifier works, so it adds to what it measures."""
+    this process CPU while the classifier works, so it adds to what it measures. ``classifier_config`` and
+    ``tracker_config`` are parameter files handed to those services' ``--config`` (their defaults otherwise)."""
     ns = f"bench{os.getpid()}"
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
     log_dir = Path(log_dir or tempfile.mkdtemp(prefix="jg-bench-pipeline-"))
@@ -167,8 +169,11 @@ def bench_pipeline(objects: int = 200, rate_hz: float = 20.0, duration_s: float 
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     procs: dict[str, subprocess.Popen] = {}
     common = ("--ns", ns, "--connect", endpoint)
-    specs = {"router": ("router", "--listen", endpoint), "classifier": ("classifier", *common),
-             "tracker": ("tracker", *common)}
+    specs = {"router": ("router", "--listen", endpoint),
+             "classifier": ("classifier", *common, *(("--config", str(Path(classifier_config).resolve()))
+                                                   if classifier_config else ())),
+             "tracker": ("tracker", *common, *(("--config", str(Path(tracker_config).resolve()))
+                                              if tracker_config else ()))}
     gen = SceneGenerator(objects, rate_hz, seed, churn=churn)
     born: dict[str, int] = {}  # the tracker's latest tracks_born counter, from its heartbeat
     sent: dict[int, float] = {}

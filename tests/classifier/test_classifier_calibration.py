@@ -320,7 +320,10 @@ def test_core_learns_online_and_keeps_what_it_learnt_across_reset() -> None:
         if f >= 100:
             fired_on += int((d_on.state == DYNAMIC).sum())
             fired_off += int((d_off.state == DYNAMIC).sum())
+    before = core.calibration_state()["counts"]["blocks"]
+    core.learn()  # what the service does once a frame's objects are out (ClassifierAdapter.settle)
     state = core.calibration_state()
+    assert state["counts"]["blocks"] == before + 60  # the last frame's 60 filled windows, pooled only now
     assert state["mode"] == "online" and state["counts"]["blocks"] >= 60 * 14
     scale = state["groups"]["vehicle"]["along"]["scale"]["20-40"]
     assert scale == pytest.approx(9.0, rel=0.25)
@@ -330,6 +333,29 @@ def test_core_learns_online_and_keeps_what_it_learnt_across_reset() -> None:
     gauges = calibration_gauges(core.calibration_state())
     assert gauges["calibration.vehicle.along.scale.20-40"] == pytest.approx(scale)
     assert "calibration.vehicle.across.variance_factor" in gauges
+
+
+def test_a_decision_is_not_delayed_by_learning_and_learning_misses_nothing() -> None:
+    """update() decides with the model as the previous frames left it and only queues the windows that
+    filled; learn() pools them. Driving the core with learn() after every frame (the service) or never (a
+    caller that only updates: update() learns first) pools the same blocks and ends with the same model."""
+    rng = np.random.default_rng(3)
+    ids = [f"{i + 1:032x}" for i in range(40)]
+    base = rng.uniform(-40, 40, (40, 2))
+    frames = [_obs(ids, *(base + rng.normal(0, 0.3, (40, 2))).T, f * 0.1) for f in range(60)]
+    settled, lazy = MotionClassifierCore(ClassifierConfig()), MotionClassifierCore(ClassifierConfig())
+    for o in frames:
+        model_before = settled.noise_model()
+        blocks_before = settled.online_calibration.counts["blocks"]
+        a, b = settled.update(o), lazy.update(o)
+        assert settled.noise_model() is model_before  # no pooling or fitting on the decision's path
+        assert settled.online_calibration.counts["blocks"] == blocks_before
+        np.testing.assert_allclose(a.z_x, b.z_x, rtol=1e-12)  # the same test, to rounding
+        settled.learn()
+    lazy.learn()
+    assert settled.online_calibration.counts == lazy.online_calibration.counts
+    assert settled.online_calibration.counts["blocks"] > 0
+    np.testing.assert_allclose(settled.noise_model().scale, lazy.noise_model().scale, rtol=1e-12)
 
 
 def test_file_mode_needs_scales_and_uses_them() -> None:

@@ -176,10 +176,11 @@ class ClassifierAdapter:
                            missing=frame.missing)
 
     def settle(self, out: FrameOutput) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
-        """The bookkeeping that can wait until ``objects`` is out (call before the next frame): evict the
-        windows of tracks ``out`` no longer reports; returns how many, and each reported object's label, last
-        update stamp and seq (for the state queryable)."""
-        evicted = self.core.retain(out.reported)
+        """The work that can wait until ``objects`` is out (call before the next frame): learn the online
+        calibration from the windows that filled and evict the windows of tracks ``out`` no longer reports;
+        returns how many, and each reported object's label, last update stamp and seq (for the state
+        queryable)."""
+        evicted = self.core.retain(out.reported)  # learns first
         return (evicted, *self.core.last_meta(out.reported))
 
     def motion_payloads(self, out: FrameOutput) -> Iterator[tuple[str, bytes]]:

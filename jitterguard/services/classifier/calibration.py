@@ -594,6 +594,11 @@ class OnlineCalibration:
         fallback = PRIOR_TRACK_DOF if math.isnan(overall) else overall
         return np.array([fallback if math.isnan(v := solve(h)) else v for h in self._het])
 
+    @property
+    def current(self) -> NoiseModel:
+        """The model as last fitted (no fitting here: what a decision uses)."""
+        return self._model
+
     def model(self) -> NoiseModel:
         """The current :class:`NoiseModel`: refitted when blocks arrived or sums decayed, at most once per
         ``refit_period_s`` of data time (a fit costs about a millisecond; the scales move slowly)."""

@@ -179,6 +179,7 @@ class MotionClassifierCore:
         self._file_model = calibration_model
         self.check_config(self._config)
         self._state_cache: tuple[tuple, dict] | None = None
+        self._to_learn: list[NDArray[np.int64]] = []  # rows whose windows filled, for :meth:`learn`
 
     # ------------------------------------------------------------------ configuration
 
@@ -191,6 +192,7 @@ class MotionClassifierCore:
         calibration keeps what it learnt unless its range bands change; ``calibration_model`` replaces the
         scales used with ``calibration: file`` (the last one given stays otherwise)."""
         self.check_config(config, calibration_model)
+        self.learn()  # what filled under the old window length is learnt with it
         if calibration_model is not None:
             self._file_model = calibration_model
         if config.window_size != self._table.window:
@@ -234,7 +236,7 @@ class MotionClassifierCore:
         """The scales and serial correlation the test uses now (the prior when calibration is off)."""
         mode = self._config.calibration
         if mode == "online":
-            return self._online.model()
+            return self._online.current
         if mode == "file" and self._file_model is not None:
             return self._file_model
         return NoiseModel.prior(tuple(self._config.calibration_range_bands_m))
@@ -252,6 +254,19 @@ class MotionClassifierCore:
                      "effective_blocks": round(self._online.effective_blocks, 3)}
             self._state_cache = (key, state)
         return self._state_cache[1]
+
+    def learn(self) -> None:
+        """Pool the windows that filled since the last call into the online calibration, and refit it when
+        due. Kept off the decision: the service calls it (through the adapter's ``settle``) once ``objects`` is
+        out, so a frame is decided with what the frames before it taught — one frame later than the data
+        allowed, which moves nothing a refit every ``refit_period_s`` would show, and keeps pooling and fitting
+        (several ms at 200 tracks) out of the frame's latency. :meth:`update` calls it first if nobody did."""
+        pending, self._to_learn = self._to_learn, []
+        if self._config.calibration != "online":
+            return
+        for rows in pending:
+            self._harvest(rows, np.full(rows.shape[0], self._table.window))
+        self._online.model()  # refits when due
 
     def _harvest(self, rows: NDArray[np.int64], lengths: NDArray[np.int64]) -> None:
         """Give the newest ``lengths[i]`` observations of ``rows[i]`` to the online calibration as one block
@@ -305,6 +320,7 @@ class MotionClassifierCore:
 
     def retain(self, alive_ids: IDS) -> int:
         """Evict the windows of every track not in ``alive_ids`` (the tracker no longer reports it)."""
+        self.learn()  # a filled window is pooled before its row is freed
         keep = np.isin(self._ids, np.asarray(alive_ids, dtype="S32"))
         gone = self._id_rows[~keep]
         if gone.size and self._config.calibration == "online":
@@ -322,7 +338,9 @@ class MotionClassifierCore:
     # ------------------------------------------------------------------ the per-frame path
 
     def update(self, obs: Observations) -> Decisions:
-        """Append one observation per track to its window and decide every observed track."""
+        """Append one observation per track to its window and decide every observed track (with the
+        calibration as :meth:`learn` left it)."""
+        self.learn()  # a no-op when the adapter's settle has run since the last frame
         ids = obs.track_ids
         rows, found = self._lookup(ids)
         if not found.all():
@@ -349,7 +367,7 @@ class MotionClassifierCore:
             self._online.advance(stamp_s)
             full = rows[(t.since[rows] >= w) & (t.count[rows] >= w)]
             if full.size:
-                self._harvest(full, np.full(full.shape[0], w))
+                self._to_learn.append(full)
         return self._decide(rows, ids, obs.speed, obs.stamp_ns, obs.seq)
 
     def _decide(self, rows: NDArray[np.int64], ids: IDS, speed: F64, stamp_ns: int, seq: int) -> Decisions:
