@@ -4,6 +4,7 @@
 #
 #   bash scripts/ab_bench.sh BASE_REV ROUNDS -- jitterguard-args…
 #   bash scripts/ab_bench.sh 3cead15 2 -- bench pipeline --json --duration 60
+#   THIS_REV=5280b9d bash scripts/ab_bench.sh 5280b9d^1 2 -- bench classifier --json   # two commits
 #
 # Prints one JSON line per run ({"side", "round", "load1", "result"}) so the pairs can be compared; the base may
 # need packages the project no longer lists (3cead15 needs msgspec: `.venv/bin/pip install msgspec`).
@@ -13,10 +14,15 @@ cd "$(dirname "$0")/.."
 base_rev=$1 rounds=$2
 shift 3
 base_dir=$(mktemp -d)
-trap 'rm -rf "$base_dir"' EXIT
+this_dir=$(mktemp -d)
+trap 'rm -rf "$base_dir" "$this_dir"' EXIT
 git archive "$base_rev" | tar -x -C "$base_dir"
 py=$PWD/.venv/bin/python
 here=$PWD
+if [ -n "${THIS_REV:-}" ]; then  # a commit instead of the working tree
+  git archive "$THIS_REV" | tar -x -C "$this_dir"
+  here=$this_dir
+fi
 for ((r = 1; r <= rounds; r++)); do
   for side in base this; do
     src=$here
