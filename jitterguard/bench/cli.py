@@ -215,9 +215,21 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         """Detections -> tracker -> classifier -> objects through real processes: latency, losses, RSS growth."""
         from .pipeline import bench_pipeline
 
-        for flag, path in (("--classifier-config", classifier_config), ("--tracker-config", tracker_config)):
-            if path is not None and not Path(path).is_file():
+        from ..config import ConfigError, load
+        from ..services.classifier.config import ClassifierParams
+        from ..services.tracker.config import TrackerConfig
+
+        # checked with each service's own loader before anything starts (a bad file is a one-line error, exit 2)
+        for flag, path, model in (("--classifier-config", classifier_config, ClassifierParams),
+                                  ("--tracker-config", tracker_config, TrackerConfig)):
+            if path is None:
+                continue
+            if not Path(path).is_file():
                 fail(f"{flag}: no such file: {path}")
+            try:
+                load(model, path)
+            except ConfigError as exc:
+                fail(f"{flag}: {exc}")
         res = bench_pipeline(objects, rate, duration, seed, split=split, churn=churn,
                              classifier_config=classifier_config, tracker_config=tracker_config)
         print(json.dumps(res, indent=None if as_json else 2))

@@ -96,6 +96,8 @@ class ClassifierService(Service):
         if calibration_model is None and config.calibration == "file" and config.calibration_file:
             calibration_model = read_calibration(config.calibration_file)
         self.log.info("%s", self.config_writes.describe())
+        self.log.info("deciding by %s, calibration %s, effective_n %s, H0 |v| <= %g m/s, window %d", config.mode,
+                      config.calibration, config.effective_n, config.min_speed_mps, config.window_size)
         self._manage_gc = manage_gc
         self._idle_gc = IdleCollector()
         if manage_gc:
