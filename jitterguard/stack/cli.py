@@ -330,6 +330,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             raise SystemExit(_wait_started(sup, rd, label, names, _addresses(spec, progs), progs, wall0))
 
         proc = subprocess.Popen(cmd)
+        _wake(sup, proc)
         stop = threading.Event()
         signal.signal(signal.SIGINT, lambda *_: stop.set())
         signal.signal(signal.SIGTERM, lambda *_: stop.set())
@@ -338,6 +339,16 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         code = _foreground(proc, sup, rd, stop, watch, duration, t0, wall0, _addresses(spec, progs), progs)
         watch.close()
         raise SystemExit(code)
+
+    def _wake(sup: Supervisor, proc: subprocess.Popen, timeout_s: float = 2.0) -> None:
+        """Ask supervisord for its state as soon as it answers. Its main loop starts the programs only after
+        its first poll returns, which without a request is a full second after it started; a request returns
+        that poll at once (time to the first objects, issue 19)."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline and proc.poll() is None:
+            if sup.running():
+                return
+            time.sleep(0.02)
 
     def _wait_started(sup: Supervisor, rd: Path, label: str, names: str, addresses: list[str],
                       progs: list[Any], wall0: float) -> int:

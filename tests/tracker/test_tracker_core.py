@@ -293,3 +293,29 @@ def test_a_second_box_on_a_parked_car_never_becomes_a_track_of_its_own(min_iou: 
     assert len(confirmed) == len(res.tracks)  # and the car's own track never changed its ID
     car = int(np.argmin(np.hypot(res.tracks.x - 20.0, res.tracks.y)))
     assert abs(res.tracks.x[car] - 20.0) < 0.2
+
+
+def test_never_more_confirmed_tracks_reported_than_max_objects_observed_ones_first() -> None:
+    """A churning scene confirms more tracks than the downstream readers take (``limits.max_objects``): the
+    frame still goes out, with every observed track and the most recently seen coasting ones, and says how
+    many it withheld — instead of a ``tracked`` the classifier would refuse, frame after frame."""
+    cfg = default_config()
+    cfg = cfg.model_copy(update={"limits": cfg.limits.model_copy(update={"max_objects": 6})})
+    core = TrackerCore(cfg)
+    # four cars seen for 3 frames each (confirmed), then gone and coasting; every 3 frames four new ones
+    seq, last_seen = 0, {}
+    for wave in range(4):
+        xy = [[10.0 + 20 * wave, 8.0 * i] for i in range(4)]
+        for _ in range(3):
+            res = core.step(frame(seq, xy, [CAR] * 4))
+            seq += 1
+            for tid in res.observed_ids:
+                last_seen[tid] = seq
+            assert len(res.tracks) <= 6
+            assert set(res.observed_ids) <= set(res.tracks.ids)
+        confirmed_alive = [t for t in core.tracks.ids if t in last_seen]
+        assert res.withheld == max(0, len(confirmed_alive) - 6)
+    assert res.withheld > 0 and len(res.tracks) == 6
+    coasting = [t for t in res.tracks.ids if t not in res.observed_ids]
+    withheld = [t for t in last_seen if t in core.tracks.ids and t not in res.tracks.ids]
+    assert min(last_seen[t] for t in coasting) >= max(last_seen[t] for t in withheld)  # the longest unseen go

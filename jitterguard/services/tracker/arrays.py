@@ -144,6 +144,9 @@ class FrameResult:
     """The source's seq began again while time went on (a restarted driver): tracks carried on."""
     jumped: bool = False
     """The source jumped ahead (a long gap, confirmed by the frames after it): tracks carried on and aged by it."""
+    withheld: int = 0
+    """Confirmed tracks left out of ``tracks`` because more than ``limits.max_objects`` were confirmed: coasting
+    ones, the longest unseen first (downstream readers refuse a longer list; every observed track is kept)."""
 
     @property
     def observed_ids(self) -> list[str]:

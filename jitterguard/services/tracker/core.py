@@ -156,7 +156,7 @@ class TrackerCore:
             rows = np.concatenate([rows, np.arange(start, start + new.size)])
             cols = np.concatenate([cols, new])
 
-        snapshot, obs_track, obs_det = self._snapshot(rows, cols)
+        snapshot, obs_track, obs_det, withheld = self._snapshot(rows, cols)
         return FrameResult(
             seq=frame.seq,
             stamp_ns=stamp,
@@ -169,6 +169,7 @@ class TrackerCore:
             reset=verdict is Verdict.REWOUND,
             source_restarted=verdict is Verdict.RESTARTED,
             jumped=verdict is Verdict.JUMPED,
+            withheld=withheld,
         )
 
     def apply_static_hints(self, track_ids: Sequence[str], mean_x: Sequence[float],
@@ -241,10 +242,20 @@ class TrackerCore:
                                   self.id_factory)
 
     def _snapshot(self, rows: NDArray[np.intp], cols: NDArray[np.intp]
-                  ) -> tuple[TrackSnapshot, NDArray[np.intp], NDArray[np.intp]]:
-        """Copy out the confirmed tracks, and map this frame's (track row, detection) pairs onto them."""
+                  ) -> tuple[TrackSnapshot, NDArray[np.intp], NDArray[np.intp], int]:
+        """Copy out the confirmed tracks — at most ``limits.max_objects``, so that no reader downstream refuses
+        the frame (the classifier reads ``tracked`` under the same limit): beyond it the coasting tracks unseen
+        the longest are withheld — and map this frame's (track row, detection) pairs onto them."""
         tr = self.tracks
         conf = np.flatnonzero(tr.confirmed)
+        withheld = conf.size - self.config.limits.max_objects
+        if withheld > 0:
+            seen_now = np.zeros(len(tr), dtype=bool)
+            seen_now[rows] = True
+            # observed first (never more than the detections, which the same limit bounds), then the most
+            # recently updated; stable, so equal stamps keep their order
+            rank = np.lexsort((-tr.last_update_ns[conf], ~seen_now[conf]))
+            conf = np.sort(conf[rank[: self.config.limits.max_objects]])
         pos_in_conf = np.full(len(tr), -1, dtype=np.intp)
         pos_in_conf[conf] = np.arange(conf.size)
         obs = pos_in_conf[rows]
@@ -279,4 +290,4 @@ class TrackerCore:
             last_update_ns=tr.last_update_ns[conf].copy(),
             born_ns=tr.born_ns[conf].copy(),
         )
-        return snapshot, obs_track, obs_det
+        return snapshot, obs_track, obs_det, max(withheld, 0)

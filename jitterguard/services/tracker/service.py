@@ -159,6 +159,8 @@ class TrackerService(Service):
         self.counters.inc("frames")
         self.counters.inc("tracks_born", len(result.born))
         self.counters.inc("tracks_deleted", len(result.deleted))
+        if result.withheld:
+            self.counters.inc("tracks_withheld", result.withheld)
         self.last_seq = frame.seq
 
     def _publish(self, observations: list[tuple[str, bytes]]) -> None:
