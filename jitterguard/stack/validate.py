@@ -51,9 +51,12 @@ def supervisor_escape(value: str) -> str:
 
 
 def port_in_use(host: str, port: int) -> bool:
-    """Whether binding ``host:port`` fails because something already listens there."""
+    """Whether binding ``host:port`` fails because something already listens there. With SO_REUSEADDR, as the
+    router and the sidecar bind: connections of a stack just stopped, left in TIME_WAIT, do not count (without
+    it, `up` right after `down` or a finished run was refused)."""
     family = socket.AF_INET6 if ":" in host else socket.AF_INET
     with socket.socket(family, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             s.bind((host, port))
         except OSError as exc:

@@ -99,3 +99,24 @@ def test_replay_options_give_only_the_flags_that_differ_and_the_replay_cli_takes
                                           sweeps=True, poses="p", calib="c", times="t", bin_fields="x,y,z",
                                           topic="/t", pose_topic="/p").argv() if a.startswith("--")]:
         assert flag in res.output, flag
+
+
+def test_a_port_left_in_time_wait_by_a_stopped_stack_is_free_and_a_listener_is_not():
+    """`up` right after a run: the router's old connections sit in TIME_WAIT on its port; binding there works
+    for the next router (it sets SO_REUSEADDR), so the check must not refuse it. A live listener still counts."""
+    import socket
+
+    from jitterguard.stack.validate import port_in_use
+
+    server = socket.socket()
+    server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    server.bind(("127.0.0.1", 0))
+    server.listen()
+    port = server.getsockname()[1]
+    assert port_in_use("127.0.0.1", port)
+    client = socket.create_connection(("127.0.0.1", port))
+    conn, _ = server.accept()
+    conn.close()  # the server side closes first: its end (on `port`) goes to TIME_WAIT
+    client.close()
+    server.close()
+    assert not port_in_use("127.0.0.1", port)
