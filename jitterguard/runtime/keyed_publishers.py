@@ -6,7 +6,7 @@ about 3 KB behind in the router and about 1.5 KB in the publishing process, per 
 reused, and a detector produces tens of new tracks per frame on real scans, so that was hundreds of MB a day
 in the router and the tracker. A plain ``session.put`` leaves nothing behind (router RSS flat over 60 000
 distinct keys) and, in client mode through the router, costs the same as a declared publisher within this
-machine's noise (``tests/test_keyed_publishers.py`` holds the memory test; the cost is in the pipeline bench).
+machine's noise (``tests/runtime/test_runtime_keyed_publishers.py`` holds the memory test; the cost is in the pipeline bench).
 """
 
 from __future__ import annotations
