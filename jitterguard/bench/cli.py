@@ -9,7 +9,6 @@ from __future__ import annotations
 import json
 import os
 import sys
-from pathlib import Path
 from typing import Annotated
 
 import typer
@@ -224,10 +223,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                                   ("--tracker-config", tracker_config, TrackerConfig)):
             if path is None:
                 continue
-            if not Path(path).is_file():
-                fail(f"{flag}: no such file: {path}")
             try:
-                load(model, path)
+                load(model, path)  # a missing file is its ConfigError too
             except ConfigError as exc:
                 fail(f"{flag}: {exc}")
         res = bench_pipeline(objects, rate, duration, seed, split=split, churn=churn,

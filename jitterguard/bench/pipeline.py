@@ -169,11 +169,12 @@ def bench_pipeline(objects: int = 200, rate_hz: float = 20.0, duration_s: float 
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     procs: dict[str, subprocess.Popen] = {}
     common = ("--ns", ns, "--connect", endpoint)
+    def config_flag(path: str | None) -> tuple[str, ...]:
+        return ("--config", str(Path(path).resolve())) if path else ()
+
     specs = {"router": ("router", "--listen", endpoint),
-             "classifier": ("classifier", *common, *(("--config", str(Path(classifier_config).resolve()))
-                                                   if classifier_config else ())),
-             "tracker": ("tracker", *common, *(("--config", str(Path(tracker_config).resolve()))
-                                              if tracker_config else ()))}
+             "classifier": ("classifier", *common, *config_flag(classifier_config)),
+             "tracker": ("tracker", *common, *config_flag(tracker_config))}
     gen = SceneGenerator(objects, rate_hz, seed, churn=churn)
     born: dict[str, int] = {}  # the tracker's latest tracks_born counter, from its heartbeat
     sent: dict[int, float] = {}

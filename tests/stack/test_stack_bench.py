@@ -40,7 +40,7 @@ def test_scene_generator_frames_validate():
 def test_bench_pipeline_refuses_a_bad_parameter_file_before_starting_anything(tmp_path, flag, text, field):
     bad = tmp_path / "bad.yaml"
     bad.write_text(text)
-    for path, reason in ((bad, field), (tmp_path / "missing.yaml", "no such file")):
+    for path, reason in ((bad, field), (tmp_path / "missing.yaml", "not found")):
         res = subprocess.run([sys.executable, "-m", "jitterguard.cli", "bench", "pipeline", "--duration", "2", flag,
                               str(path)], capture_output=True, text=True, timeout=60)
         assert res.returncode == 2 and res.stdout == ""

@@ -179,7 +179,7 @@ class MotionClassifierCore:
         self._file_model = calibration_model
         self.check_config(self._config)
         self._state_cache: tuple[tuple, dict] | None = None
-        self._to_learn: list[NDArray[np.int64]] = []  # rows whose windows filled, for :meth:`learn`
+        self._to_learn: NDArray[np.int64] | None = None  # rows whose windows filled this frame, for :meth:`learn`
 
     # ------------------------------------------------------------------ configuration
 
@@ -261,10 +261,10 @@ class MotionClassifierCore:
         out, so a frame is decided with what the frames before it taught — one frame later than the data
         allowed, which moves nothing a refit every ``refit_period_s`` would show, and keeps pooling and fitting
         (several ms at 200 tracks) out of the frame's latency. :meth:`update` calls it first if nobody did."""
-        pending, self._to_learn = self._to_learn, []
+        rows, self._to_learn = self._to_learn, None
         if self._config.calibration != "online":
             return
-        for rows in pending:
+        if rows is not None:
             self._harvest(rows, np.full(rows.shape[0], self._table.window))
         self._online.model()  # refits when due
 
@@ -367,7 +367,7 @@ class MotionClassifierCore:
             self._online.advance(stamp_s)
             full = rows[(t.since[rows] >= w) & (t.count[rows] >= w)]
             if full.size:
-                self._to_learn.append(full)
+                self._to_learn = full  # update() learnt what the frame before left, so nothing is overwritten
         return self._decide(rows, ids, obs.speed, obs.stamp_ns, obs.seq)
 
     def _decide(self, rows: NDArray[np.int64], ids: IDS, speed: F64, stamp_ns: int, seq: int) -> Decisions:
