@@ -40,7 +40,8 @@ from numpy.typing import NDArray
 from torch import nn
 
 from .augment import points_in_boxes
-from .config import CLASS_NAMES, Detections3D, Sample
+from .config import CLASS_NAMES, SELF_CROP_M, Detections3D, Sample
+from .inference import crop_box
 from .network import CenterPointNet
 
 log = logging.getLogger(__name__)
@@ -323,7 +324,9 @@ def adapt(model: CenterPointNet, scans: Sequence[UnlabelledScan], synthetic: Seq
     from .train import TrainConfig, train
 
     pcr = model.config.point_cloud_range
-    pts = [_in_range(s.points, pcr) for s in scans]
+    # the scans as the detector would see them: in range, and without the vehicle's own body (a roof return
+    # pseudo-labelled "car" in every scan would teach the ghost the service's self-crop exists to prevent)
+    pts = [_in_range(crop_box(s.points, SELF_CROP_M), pcr) for s in scans]
     scans = [replace(s, points=p) for s, p in zip(scans, pts)]
     report: dict[str, Any] = {"rounds": []}
     recompute_norm_stats(model, pts)

@@ -125,10 +125,10 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                 from .onnx_backend import open_onnx_detector
 
                 det = open_onnx_detector(params.onnx, params.weights, params.preset, threads=params.threads,
-                                         score_threshold=params.score_threshold)
+                                         score_threshold=params.score_threshold, self_crop=params.self_crop)
             else:
                 det = Detector.load(params.weights, params.preset, threads=params.threads,
-                                    score_threshold=params.score_threshold)
+                                    score_threshold=params.score_threshold, self_crop=params.self_crop)
         except WeightsError as exc:
             fail(f"{'--onnx' if params.onnx else '--weights'}: {_one_line(exc)}")
         try:

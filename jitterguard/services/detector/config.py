@@ -13,7 +13,7 @@ from typing import Annotated, Literal, overload
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field, PositiveInt
+from pydantic import BaseModel, ConfigDict, Field, PositiveInt, field_validator
 
 from ...config import load, param_file, presets
 from ...schemas.models import Label
@@ -115,10 +115,22 @@ two CPU cores (nuScenes' ±51.2 m, 0.4 m pillars, 256×256, a thinner and shallo
 PAPER, LITE = PRESETS["paper"], PRESETS["lite"]
 
 
+SELF_CROP_M: tuple[float, float, float, float] = (-2.0, -2.0, 2.0, 2.0)
+"""The default box (x_min, y_min, x_max, y_max, sensor frame, metres) whose returns are the vehicle's own body and
+are dropped before the network sees the scan. A roof-mounted spinning LiDAR sees its own car: on nuScenes'
+LIDAR_TOP a third of every scan's returns lie within 0.5 m of the sensor and a few thousand more on the roof,
+bonnet and boot out to 1.2 m to one side and 1.6 m to the other (x ±0.63 m, y −1.18…+1.59 m in its frame), and
+the shipped weights, shown them, report a car at the sensor in every scan — a ghost that drives with the ego
+and reads as moving. Cropping only nuScenes' ``remove_close(1.0)`` square leaves the bonnet and boot returns, and
+the ghost with them. This default is a passenger car (≈ 4.5 × 1.8 m) around a roof-centre sensor whichever axis
+is forward: ±2 m. It crops what lies within about 1.1 m of the car's sides too — set your vehicle's box (as
+Autoware's self-cropping ``crop_box_filter`` takes its dimensions), or null to keep every return."""
+
+
 class DetectorParams(BaseModel):
     """``jitterguard detector --config FILE``: how the service runs (the architecture comes with the weights)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     preset: str = Field("lite", description="architecture preset whose shipped weights load when weights is null")
     weights: str | None = Field(None, description="weights file (torch.save dict, loaded weights_only)")
@@ -126,9 +138,19 @@ class DetectorParams(BaseModel):
     score_threshold: Annotated[float, Field(ge=0.0, le=1.0)] | None = Field(
         None, description="keep detections scoring above this (null: the weights' config)")
     twist: bool = Field(True, description="publish the network's velocity as the twist")
+    self_crop: tuple[float, float, float, float] | None = Field(
+        SELF_CROP_M, description="drop returns inside this box (x_min, y_min, x_max, y_max; sensor frame, m): the"
+        " vehicle's own body (default: a passenger car around a roof-centre sensor; null: keep every return)")
     backend: Literal["torch", "onnxruntime"] = Field("torch", description="what runs the network")
     onnx: str | None = Field(None, description="onnxruntime backend: a folder written by `jitterguard export-onnx`"
                              " (null: export weights / preset at start-up into a temporary folder)")
+
+    @field_validator("self_crop")
+    @classmethod
+    def _box_has_extent(cls, box: tuple[float, float, float, float] | None) -> tuple[float, ...] | None:
+        if box is not None and not (box[0] < box[2] and box[1] < box[3]):
+            raise ValueError(f"needs x_min < x_max and y_min < y_max, got {list(box)}")
+        return box
 
 
 @dataclass(frozen=True)

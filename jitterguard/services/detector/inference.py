@@ -10,8 +10,10 @@ loudly.
 from __future__ import annotations
 
 import logging
+import math
 import os
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -19,7 +21,7 @@ import numpy as np
 import torch
 from pydantic import ValidationError
 
-from .config import PRESETS, DetectorConfig, Detections3D
+from .config import PRESETS, SELF_CROP_M, DetectorConfig, Detections3D
 from .decode import decode
 from .evaluate import apply_recalibration
 from .network import CenterPointNet
@@ -87,12 +89,30 @@ def load_weights(path: str | Path) -> tuple[CenterPointNet, tuple[float, float] 
     return model, (float(rec[0]), float(rec[1])) if rec else None, dict(payload.get("meta") or {})
 
 
+def crop_box(points: np.ndarray, box: Sequence[float] | None) -> np.ndarray:
+    """``points`` without the rows whose x, y lie strictly inside ``box`` (x_min, y_min, x_max, y_max); all of
+    them when ``box`` is None."""
+    if box is None or len(points) == 0:
+        return points
+    x, y = points[:, 0], points[:, 1]
+    inside = (x > box[0]) & (x < box[2]) & (y > box[1]) & (y < box[3])
+    return points if not inside.any() else points[~inside]
+
+
 class Detector:
     """A detector ready for inference on single scans (sensor frame in, sensor frame out)."""
 
     def __init__(self, model: CenterPointNet, *, recalibration: tuple[float, float] | None = None,
                  score_threshold: float | None = None, threads: int | None = None,
-                 meta: dict[str, Any] | None = None) -> None:
+                 meta: dict[str, Any] | None = None, self_crop: Sequence[float] | None = SELF_CROP_M) -> None:
+        """``self_crop``: returns inside this (x_min, y_min, x_max, y_max) box of the sensor frame are the
+        vehicle's own body and never reach the network (:data:`~.config.SELF_CROP_M`; None keeps them)."""
+        if self_crop is not None:
+            box = tuple(float(v) for v in self_crop)
+            if len(box) != 4 or not all(math.isfinite(v) for v in box) or box[0] >= box[2] or box[1] >= box[3]:
+                raise ValueError(f"self_crop must be (x_min, y_min, x_max, y_max) with min < max, got {self_crop}")
+            self_crop = box
+        self.self_crop: tuple[float, ...] | None = self_crop
         self.model = model.eval()
         self.config = model.config
         self.recalibration = recalibration
@@ -103,22 +123,23 @@ class Detector:
 
     @classmethod
     def load(cls, weights: str | Path | None = None, preset: str | None = "lite", *, threads: int | None = None,
-             score_threshold: float | None = None, recalibrate: bool = True) -> "Detector":
+             score_threshold: float | None = None, recalibrate: bool = True,
+             self_crop: Sequence[float] | None = SELF_CROP_M) -> "Detector":
         """``weights`` if given; else the shipped weights of ``preset``; else a randomly initialised ``preset``
         (logged as a warning — its detections are meaningless). ``recalibrate`` applies the file's fitted
-        per-axis variance scales when it has them."""
+        per-axis variance scales when it has them; ``self_crop`` as in the constructor."""
         if weights is None and preset is not None and shipped_weights(preset).is_file():
             weights = shipped_weights(preset)
         if weights is not None:
             model, rec, meta = load_weights(weights)
             return cls(model, recalibration=rec if recalibrate else None, score_threshold=score_threshold,
-                       threads=threads, meta=meta)
+                       threads=threads, meta=meta, self_crop=self_crop)
         if preset not in PRESETS:
             raise WeightsError(f"unknown preset {preset!r}; expected one of {', '.join(PRESETS)}")
         log.warning("no weights for preset %r: using a randomly initialised network", preset)
         torch.manual_seed(0)
         return cls(CenterPointNet(PRESETS[preset]), score_threshold=score_threshold, threads=threads,
-                   meta={"random_init": True})
+                   meta={"random_init": True}, self_crop=self_crop)
 
     @torch.inference_mode()
     def detect(self, points: np.ndarray) -> Detections3D:
@@ -126,6 +147,7 @@ class Detector:
         the time lag in seconds as a fifth column for a model trained on stacked sweeps)."""
         t0 = time.perf_counter()
         nf = self.config.num_point_features
+        points = crop_box(points, self.self_crop)
         pillars = voxelize([torch.from_numpy(np.ascontiguousarray(points[:, :nf], dtype=np.float32))], self.config)
         t1 = time.perf_counter()
         out = self.model.forward_pillars(pillars)

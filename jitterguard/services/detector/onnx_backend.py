@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -20,7 +21,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .config import DetectorConfig
+from .config import SELF_CROP_M, DetectorConfig
 from .inference import Detector, WeightsError, config_from_dict
 from .onnx_export import FORMAT, FORMAT_VERSION, MANIFEST, bev_scatter, output_names, padded_point_features
 from .pillars import PillarFeatureNet, Pillars
@@ -111,21 +112,22 @@ class OnnxNetwork:
 
 
 def load_onnx_detector(model_dir: str | Path, *, threads: int | None = None, score_threshold: float | None = None,
-                       recalibrate: bool = True) -> Detector:
+                       recalibrate: bool = True, self_crop: Sequence[float] | None = SELF_CROP_M) -> Detector:
     """A :class:`~.inference.Detector` whose network runs under ONNX Runtime (recalibration from the manifest)."""
     net = OnnxNetwork(model_dir, threads=threads)
     return Detector(net, recalibration=net.recalibration if recalibrate else None,  # type: ignore[arg-type]
-                    score_threshold=score_threshold, threads=threads,
+                    score_threshold=score_threshold, threads=threads, self_crop=self_crop,
                     meta={**dict(net.manifest.get("meta") or {}), "backend": "onnxruntime", "layout": net.layout})
 
 
 def open_onnx_detector(model_dir: str | Path | None, weights: str | Path | None, preset: str | None, *,
-                       threads: int | None = None, score_threshold: float | None = None) -> Detector:
+                       threads: int | None = None, score_threshold: float | None = None,
+                       self_crop: Sequence[float] | None = SELF_CROP_M) -> Detector:
     """The onnxruntime-backed detector the service runs: from an export folder, or — without one — the torch
     weights (``weights`` / ``preset``, as :meth:`Detector.load` picks them) exported into a temporary folder first
     (needs onnx + onnxscript; the folder is removed at exit)."""
     if model_dir is not None:
-        return load_onnx_detector(model_dir, threads=threads, score_threshold=score_threshold)
+        return load_onnx_detector(model_dir, threads=threads, score_threshold=score_threshold, self_crop=self_crop)
     import atexit
     import logging
     import shutil
@@ -141,4 +143,4 @@ def open_onnx_detector(model_dir: str | Path | None, weights: str | Path | None,
         export_onnx(src.model, tmp, recalibration=src.recalibration, meta=src.meta)
     except ExportError as exc:
         raise WeightsError(str(exc)) from None
-    return load_onnx_detector(tmp, threads=threads, score_threshold=score_threshold)
+    return load_onnx_detector(tmp, threads=threads, score_threshold=score_threshold, self_crop=self_crop)

@@ -468,6 +468,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                                                " 90 %% intervals of AP and coverage (0: none).")] = 1000,
         recalibrate: Annotated[bool, typer.Option("--recalibrate/--no-recalibrate",
                                                   help="Apply the weights' fitted variance scales.")] = True,
+        self_crop: Annotated[bool, typer.Option("--self-crop/--no-self-crop", help="Drop the returns of the"
+                                                " vehicle's own body first (the service's default self_crop).")
+                             ] = True,
         threads: Annotated[int | None, typer.Option("--threads", min=1, max=1024)] = None,
         name: Annotated[str, typer.Option("--name", help="File stem of the outputs.")] = "holdout",
         progress: ProgressOpt = None,
@@ -483,10 +486,12 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         from .cli import passive_openmp
 
         passive_openmp()  # before torch is imported
+        from .config import SELF_CROP_M
         from .inference import Detector, WeightsError
 
         try:
-            det = Detector.load(weights, preset, threads=threads, recalibrate=recalibrate)
+            det = Detector.load(weights, preset, threads=threads, recalibrate=recalibrate,
+                                self_crop=SELF_CROP_M if self_crop else None)
         except WeightsError as exc:
             fail(f"--weights: {exc}")
         scored_on: dict[str, Any] = {}
@@ -530,5 +535,6 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         bar.close()
         summary = write_report(Path(out), name, dets, items, bootstrap=bootstrap, extra={"scored_on": scored_on,
                                "weights": os.path.abspath(weights) if weights else "shipped " + preset,
-                               "recalibrated": det.recalibration is not None})["summary"]
+                               "recalibrated": det.recalibration is not None,
+                               "self_crop": list(det.self_crop) if det.self_crop is not None else None})["summary"]
         typer.echo(json.dumps({"samples": len(items), **summary}))
