@@ -12,12 +12,13 @@ Pure apart from :func:`supervisor_events` (reads the log) and :func:`load` / :fu
 from __future__ import annotations
 
 import json
-import os
 import re
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
 from typing import Any
+
+from ..files import write_atomically
 
 SUMMARY_FILE = "summary.json"
 GAUGE_PREFIXES = ("now.",)
@@ -207,10 +208,8 @@ def render(summary: dict[str, Any]) -> str:
 
 def save(run_dir: Path, data: dict[str, Any]) -> None:
     """Write ``summary.json`` atomically (a reader never sees half a file)."""
-    path = run_dir / SUMMARY_FILE
-    tmp = path.with_suffix(f".tmp{os.getpid()}")
-    tmp.write_text(json.dumps(data, indent=2, sort_keys=True) + "\n")
-    os.replace(tmp, path)
+    write_atomically(run_dir / SUMMARY_FILE, (json.dumps(data, indent=2, sort_keys=True) + "\n").encode(),
+                     durable=False)
 
 
 def load(run_dir: Path) -> dict[str, Any] | None:

@@ -263,3 +263,16 @@ def test_config_write_survives_a_classifier_sigkill(stack):
         assert "config restored from" in (run_dir / "logs" / "classifier.log").read_text()
     finally:
         _config_query(watcher, encode(ClassifierConfig()))
+
+
+def test_calibration_survives_a_classifier_sigkill(stack):
+    """The classifier stores its online calibration in the run directory while it runs (every 10 s once new
+    blocks were pooled); supervisord's restart after a SIGKILL — no chance to write anything at exit — goes on
+    from the last one stored instead of starting cold."""
+    run_dir, watcher, times = stack
+    path = run_dir / "classifier-calibration.npz"
+    assert wait_until(path.is_file, timeout=60), "the classifier never stored its calibration"
+    kill_and_wait(run_dir, watcher, "classifier")
+    log = (run_dir / "logs" / "classifier.log").read_text()
+    assert re.search(r"calibration restored from .*classifier-calibration\.npz \(\d+ effective blocks\)", log), \
+        log[-2000:]

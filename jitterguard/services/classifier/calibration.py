@@ -599,6 +599,69 @@ class OnlineCalibration:
         """The model as last fitted (no fitting here: what a decision uses)."""
         return self._model
 
+    _STATE = ("_Y", "_Ew", "_Et", "_n", "_interval", "_het")
+
+    def state(self) -> dict[str, np.ndarray]:
+        """What the estimator has pooled, as plain arrays (copies): enough for :meth:`restore` to go on from
+        here in another process. The grids it is pooled on (groups, ages, correlation times, range bands,
+        window) travel with it, so a restore can tell a state it cannot use."""
+        out = {name.lstrip("_"): getattr(self, name).copy() for name in self._STATE}
+        out.update(band_edges_m=np.asarray(self.band_edges_m, np.float64), window=np.asarray(self.window),
+                   groups=np.asarray(GROUPS), ages=np.asarray(AGES), tau_grid_s=TAU_GRID_S.copy(),
+                   counts_keys=np.asarray(list(self.counts)), counts=np.asarray(list(self.counts.values())))
+        return out
+
+    def restore(self, state: Mapping[str, np.ndarray], *, max_blocks: float | None = None) -> float:
+        """Go on from a :meth:`state` (of another process, e.g. before a restart): its pooled sums replace
+        this estimator's and the model is refitted. ``max_blocks`` caps the evidence taken over: sums whose
+        effective blocks exceed it are scaled down to it, so that what a restart inherits is a prior that the
+        new data overrides within about that many blocks (a detector swapped between the two runs is not
+        trusted for long). Returns the effective blocks restored. Raises ``ValueError`` (naming the mismatch)
+        for a state pooled on other grids or range bands, or with arrays of the wrong shape or non-finite."""
+        def grid(name: str) -> np.ndarray:
+            if name not in state:
+                raise ValueError(f"missing {name!r}")
+            return np.asarray(state[name])
+
+        if tuple(grid("groups").tolist()) != GROUPS or tuple(grid("ages").tolist()) != AGES:
+            raise ValueError("pooled for other class groups or ages")
+        if not np.array_equal(grid("tau_grid_s"), TAU_GRID_S):
+            raise ValueError("pooled on another grid of correlation times")
+        edges = tuple(float(e) for e in grid("band_edges_m").tolist())
+        if edges != self.band_edges_m:
+            raise ValueError(f"pooled for range bands {list(edges)} m, the config has {list(self.band_edges_m)}")
+        window = int(grid("window"))
+        if not 1 <= window <= 1000:
+            raise ValueError(f"window {window} out of range")
+        g, b, y, T = len(GROUPS), len(edges) + 1, len(AGES), len(TAU_GRID_S)
+        shapes = {"Y": (g, 2, b, y, window ** 2), "Ew": (g, 2, b, y, window ** 2), "Et": (g, 2, b, y, window ** 2, T),
+                  "n": (g, 2, b, y), "interval": (2,), "het": (g, 4)}
+        arrays = {}
+        for name, shape in shapes.items():
+            a = np.asarray(grid(name), dtype=np.float64)
+            if a.shape != shape or not np.isfinite(a).all():
+                raise ValueError(f"{name!r} has shape {a.shape} (expected {shape}) or non-finite values")
+            arrays[name] = a.copy()
+        if (arrays["n"] < 0).any():
+            raise ValueError("negative block counts")
+        blocks = float(arrays["n"].sum() / 2)
+        if max_blocks is not None and blocks > max_blocks:
+            f = max_blocks / blocks
+            for name in arrays:
+                arrays[name] *= f
+            blocks = max_blocks
+        here = self.window
+        self.window = window
+        for name, a in arrays.items():
+            setattr(self, "_" + name, a)
+        if here > window:
+            self._grow(here)
+        keys, values = grid("counts_keys").tolist(), grid("counts").tolist()
+        self.counts = {**{k: 0 for k in self.counts}, **{str(k): int(v) for k, v in zip(keys, values)}}
+        self._stamp_s = None  # the next stamp restarts the data clock (no forgetting across the gap)
+        self.refit()
+        return blocks
+
     def model(self) -> NoiseModel:
         """The current :class:`NoiseModel`: refitted when blocks arrived or sums decayed, at most once per
         ``refit_period_s`` of data time (a fit costs about a millisecond; the scales move slowly)."""

@@ -44,6 +44,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         config_store: Annotated[str | None, typer.Option(
             "--config-store", envvar="JG_CONFIG_STORE",
             help="JSON file keeping config writes across restarts (restored while the flags stay the same).")] = None,
+        calibration_store: Annotated[str | None, typer.Option(
+            "--calibration-store", envvar="JG_CALIBRATION_STORE",
+            help="File (.npz) keeping the online calibration across restarts.")] = None,
         open_config_writes: Annotated[bool, typer.Option(
             "--open-config-writes", help="Accept config writes over Zenoh without a token (when JG_API_TOKEN is "
                                          "unset). Only where the router listens on loopback alone.")] = False,
@@ -52,6 +55,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         """Run the motion classifier service: tracks/* + tracked in, motion/{id} + objects out."""
         from ...runtime import setup_logging
         from .calibration_file import CalibrationFileError, read_calibration
+        from .calibration_store import CalibrationStore
         from .config_store import ConfigStore
         from .config_writes import ConfigWritePolicy
         from .service import ClassifierService
@@ -62,7 +66,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         params = _load_config(config, preset, {"alpha_default": alpha, "window_size": window_size,
                                                "min_window": min_window, "mode": mode, "effective_n": effective_n,
                                                "calibration": calibration, "calibration_file": calibration_file,
-                                               "config_store": config_store,
+                                               "config_store": config_store, "calibration_store": calibration_store,
                                                "open_config_writes": open_config_writes or None})
         model = None
         if params.calibration == "file":
@@ -70,15 +74,22 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                 model = read_calibration(params.calibration_file or "")
             except CalibrationFileError as exc:
                 fail(f"{'--calibration-file' if calibration_file else 'calibration_file'}: {exc}")
-        store = None
-        if params.config_store:
-            path = Path(params.config_store).absolute()
+        def writable_file(value: str | None, flag: str, key: str, given: str | None) -> Path | None:
+            if not value:
+                return None
+            path = Path(value).absolute()
             if path.is_dir() or not path.parent.is_dir() or not os.access(path.parent, os.W_OK):
-                fail(f"{'--config-store' if config_store else 'config_store'}: {params.config_store} must be a file in a writable directory")
-            store = ConfigStore(path)
+                fail(f"{flag if given else key}: {value} must be a file in a writable directory")
+            return path
+
+        store_path = writable_file(params.config_store, "--config-store", "config_store", config_store)
+        cal_path = writable_file(params.calibration_store, "--calibration-store", "calibration_store",
+                                 calibration_store)
+        store = ConfigStore(store_path) if store_path else None
         setup_logging(log_level)
         ClassifierService(opts, params.wire(), straggler_timeout_s=params.straggler_timeout_s, limits=params.limits,
                           stream=params.stream, manage_gc=True, config_store=store, calibration_model=model,
+                          calibration_store=CalibrationStore(cal_path) if cal_path else None,
                           config_writes=ConfigWritePolicy.from_env(open_writes=params.open_config_writes)
                           ).run_forever()
 

@@ -32,6 +32,10 @@ class ClassifierParams(ClassifierConfig):
         None, min_length=1, description="JSON file keeping config writes across restarts (restored while the"
         " start-up config stays the same); none: writes last until the classifier stops (flag --config-store,"
         " env JG_CONFIG_STORE)")
+    calibration_store: str | None = Field(
+        None, min_length=1, description="file (.npz) keeping the online calibration across restarts, so a"
+        " restarted classifier goes on calibrated (capped at 200 blocks of evidence); none: every start is cold"
+        " (flag --calibration-store, env JG_CALIBRATION_STORE)")
     open_config_writes: bool = Field(
         False, description="accept config writes over Zenoh without a token when JG_API_TOKEN is unset; only where"
         " the router listens on loopback alone")

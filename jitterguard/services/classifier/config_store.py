@@ -13,11 +13,11 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 from pathlib import Path
 
 from pydantic import ValidationError
 
+from ...files import write_atomically
 from ...schemas.models import ClassifierConfig
 
 FORMAT = "jitterguard.classifier-config/1"
@@ -50,23 +50,4 @@ class ConfigStore:
         """Write atomically (temp file, fsync, rename, fsync the directory); raises ``OSError``."""
         doc = {"format": FORMAT, "started_with": started_with.model_dump(mode="json"),
                "config": config.model_dump(mode="json")}
-        data = json.dumps(doc, indent=2, sort_keys=True).encode() + b"\n"
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".tmp", dir=self.path.parent)
-        try:
-            with os.fdopen(fd, "wb") as f:
-                f.write(data)
-                f.flush()
-                os.fsync(f.fileno())
-            os.replace(tmp, self.path)
-        except BaseException:
-            try:
-                os.unlink(tmp)
-            except OSError:
-                pass
-            raise
-        dir_fd = os.open(self.path.parent, os.O_RDONLY)
-        try:
-            os.fsync(dir_fd)
-        finally:
-            os.close(dir_fd)
+        write_atomically(self.path, json.dumps(doc, indent=2, sort_keys=True).encode() + b"\n")

@@ -175,7 +175,7 @@ class MotionClassifierCore:
         self._free: list[int] = list(range(self._table.capacity - 1, -1, -1))
         self._alpha_table = self._make_alpha_table(self._config)
         self._speed_table, self._sustain_table = self._make_speed_tables(self._config)
-        self._online = online if online is not None else self._make_online(self._config)
+        self._online = online if online is not None else self.make_online(self._config)
         self._file_model = calibration_model
         self.check_config(self._config)
         self._state_cache: tuple[tuple, dict] | None = None
@@ -203,7 +203,7 @@ class MotionClassifierCore:
         self._speed_table, self._sustain_table = self._make_speed_tables(config)
         if (config.calibration_range_bands_m != old.calibration_range_bands_m
                 or config.calibration_prior_blocks != old.calibration_prior_blocks):
-            self._online = self._make_online(config)
+            self._online = self.make_online(config)
         self._online.half_life_s = config.calibration_half_life_s
 
     def check_config(self, config: ClassifierConfig, calibration_model: NoiseModel | None = None) -> None:
@@ -212,7 +212,8 @@ class MotionClassifierCore:
             raise ValueError("calibration 'file' needs the file's scales (load calibration_file first)")
 
     @staticmethod
-    def _make_online(config: ClassifierConfig) -> OnlineCalibration:
+    def make_online(config: ClassifierConfig) -> OnlineCalibration:
+        """A fresh online calibration for ``config`` (its range bands, prior, half-life and window)."""
         return OnlineCalibration(tuple(config.calibration_range_bands_m), config.calibration_prior_blocks,
                                  config.calibration_half_life_s, config.window_size)
 

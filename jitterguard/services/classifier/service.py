@@ -42,6 +42,7 @@ from .adapter import ClassifierAdapter, FrameOutput, Poses
 from .assembly import FrameAssembler
 from .calibration import NoiseModel
 from .calibration_file import CalibrationFileError, read_calibration
+from .calibration_store import SAVE_PERIOD_S, CalibrationStore
 from .config_store import ConfigStore
 from .config_writes import ConfigWritePolicy
 from .core import STATE_NAMES, Decisions, MotionClassifierCore, calibration_gauges
@@ -78,12 +79,15 @@ class ClassifierService(Service):
     def __init__(self, opts: ZenohOptions, config: ClassifierConfig | None = None, *,
                  straggler_timeout_s: float = 0.05, limits: Limits = LIMITS, stream: StreamLimits | None = None,
                  manage_gc: bool = False, config_writes: ConfigWritePolicy | None = None,
-                 config_store: ConfigStore | None = None, calibration_model: NoiseModel | None = None) -> None:
+                 config_store: ConfigStore | None = None, calibration_model: NoiseModel | None = None,
+                 calibration_store: CalibrationStore | None = None) -> None:
         """``manage_gc``: call :func:`manage_gc_for_latency` and collect garbage between frames (process-wide;
         for the process that runs the classifier, not for tests that embed it). ``config_writes``: who may
         write the config over Zenoh (default: ``JG_API_TOKEN`` holders, nobody without one). ``config_store``:
         where writes are kept so that a restart restores them (:mod:`.config_store`). ``calibration_model``: the
-        scales for ``calibration: file`` (read from the config's ``calibration_file`` when not given)."""
+        scales for ``calibration: file`` (read from the config's ``calibration_file`` when not given).
+        ``calibration_store``: where the online calibration is kept so that a restart goes on from it
+        (:mod:`.calibration_store`)."""
         super().__init__(opts)
         self.config_writes = config_writes or ConfigWritePolicy.from_env()
         self._started_with = config or ClassifierConfig()
@@ -102,8 +106,18 @@ class ClassifierService(Service):
         self._idle_gc = IdleCollector()
         if manage_gc:
             manage_gc_for_latency()
+        online = None
+        self._cal_store = calibration_store
+        if calibration_store is not None:
+            online = MotionClassifierCore.make_online(config)
+            self.log.info("%s", calibration_store.load_into(online))
         self.pipeline = ClassifierAdapter(config, straggler_timeout_s=straggler_timeout_s, limits=limits, stream=stream,
-                                          calibration_model=calibration_model)
+                                          calibration_model=calibration_model, calibration=online)
+        self._cal_slot = threading.Lock()  # guards _cal_next (held for an assignment: never blocks the worker)
+        self._cal_write = threading.Lock()  # one write at a time, never an older state over a newer one
+        self._cal_next: tuple[int, dict[str, np.ndarray]] | None = None  # the latest state for the writer
+        self._cal_seq = self._cal_written = 0
+        self._cal_mark = (self.core.online_calibration.counts["blocks"], time.monotonic())
         self._calibration = self.core.calibration_state()  # what the latest frame used (state queryable)
         self._gauges = calibration_gauges(self._calibration)  # ... flattened for the heartbeat
         self.latencies_ms: deque[float] = deque(maxlen=LATENCY_WINDOW)
@@ -123,6 +137,8 @@ class ClassifierService(Service):
         self.queryable(keys.classifier_config(self.ns), self._on_config_query)
         self.queryable(keys.classifier_state(self.ns), self._on_state_query)
         self.spawn(self._worker, "worker")
+        if calibration_store is not None:
+            self.spawn(self._calibration_writer, "calibration-store")
 
     @property
     def core(self) -> MotionClassifierCore:
@@ -155,6 +171,50 @@ class ClassifierService(Service):
                 self._reject_log.warn(f"classifier worker failed: {type(exc).__name__}: {exc}")
                 self.log.debug("classifier worker failed", exc_info=True)
                 self.stop_event.wait(IDLE_POLL_S)  # a failure that repeats must not spin the CPU
+        self._store_calibration(final=True)
+
+    # ---------------------------------------------------------------- the calibration store
+
+    def _store_calibration(self, *, final: bool = False) -> None:
+        """On the worker, between frames: hand the online calibration's state to the writer when new blocks
+        were pooled and :data:`SAVE_PERIOD_S` has passed since the last hand-over; ``final`` (the worker is
+        stopping) writes it here and now, whatever the period."""
+        if self._cal_store is None or self.core.config.calibration != "online":
+            return
+        online = self.core.online_calibration
+        blocks, now = online.counts["blocks"], time.monotonic()
+        if blocks == self._cal_mark[0] or (not final and now - self._cal_mark[1] < SAVE_PERIOD_S):
+            return
+        self._cal_mark = (blocks, now)
+        self._cal_seq += 1
+        item = (self._cal_seq, online.state())
+        if final:
+            self._write_calibration(*item)
+            return
+        with self._cal_slot:
+            self._cal_next = item
+
+    def _calibration_writer(self) -> None:
+        """Writes the states the worker hands over, off the frame path (a write is ~0.5 MB and an fsync)."""
+        while not self.stop_event.wait(0.2):
+            with self._cal_slot:
+                item, self._cal_next = self._cal_next, None
+            if item is not None:
+                self._write_calibration(*item)
+
+    def _write_calibration(self, seq: int, state: dict[str, np.ndarray]) -> None:
+        assert self._cal_store is not None
+        with self._cal_write:
+            if seq <= self._cal_written:
+                return
+            try:
+                self._cal_store.save(state)
+            except OSError as exc:
+                self.counters.inc("calibration_store_errors")
+                self._reject_log.warn(f"cannot store the calibration in {self._cal_store.path}: {exc}")
+                return
+            self._cal_written = seq
+            self.counters.inc("calibration_saves")
 
     def _work_once(self, collect_when_idle: bool) -> bool:
         """One pass of the worker: closes, control calls, observations, ready frames; idles when there is
@@ -265,6 +325,7 @@ class ClassifierService(Service):
         cal = self.core.calibration_state()
         if cal is not self._calibration:
             self._calibration, self._gauges = cal, calibration_gauges(cal)
+        self._store_calibration()
         with self._latest_lock:
             header = {"stamp": out.header.stamp, "frame_id": out.header.frame_id, "seq": out.header.seq}
             self._latest = _Latest(header, out.objects, out.decisions, labels, stamps, seqs, out.config)
