@@ -64,6 +64,16 @@ def test_an_unwritable_config_store_names_where_it_came_from(tmp_path):
     assert res.returncode == 2 and "config_store" in res.stderr and "--config-store" not in res.stderr
 
 
+def test_an_unwritable_calibration_store_names_where_it_came_from(tmp_path):
+    bad = tmp_path / "no-such-dir" / "cal.npz"
+    res = run(["classifier", "--calibration-store", str(bad)])
+    assert res.returncode == 2 and res.stderr.count("\n") == 1 and "--calibration-store" in res.stderr
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(f"calibration_store: {tmp_path}\n")  # a directory, not a file
+    res = run(["classifier", "--config", str(cfg)])
+    assert res.returncode == 2 and "calibration_store" in res.stderr and "--calibration-store" not in res.stderr
+
+
 def test_help_shows_no_value_type_after_plain_flags():
     """`--detach` takes no value: the help must not print `<bool>` after it (nor after any other flag)."""
     for cmd in (["up", "--help"], ["replay", "--help"], ["status", "--help"]):
