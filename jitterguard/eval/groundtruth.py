@@ -79,9 +79,10 @@ class NuScenesError(ValueError):
 
 
 def load_nuscenes_frames(dataroot: Path, scene: str | None = None) -> tuple[str, list[GroundTruthFrame]]:
-    """Every key frame of one scene as a GroundTruthFrame (world frame, ego pose = LIDAR_TOP pose).
+    """Every key frame of one scene as a GroundTruthFrame (world frame, ego pose = the pose the replay
+    publishes with the scan: the LIDAR_TOP position in the vehicle's axes).
 
-    Poses come from the replay's nuScenes source (same ego_pose ∘ calibrated_sensor chain as live replay);
+    Poses come from the replay's nuScenes source (the same ego_pose ∘ mount chain as live replay);
     boxes from ``sample_annotation`` with category / attribute / visibility tables. nuScenes sizes are
     (width, length, height); GroundTruthFrame wants (length, width, height). Velocities are central
     differences of each instance's centre over neighbouring annotations (the devkit's box_velocity rule),
@@ -136,7 +137,7 @@ def load_nuscenes_frames(dataroot: Path, scene: str | None = None) -> tuple[str,
                 (last["translation"][1] - first["translation"][1]) / dt)
 
     frames: list[GroundTruthFrame] = []
-    for seq, (sample, (stamp_ns, pose, _fn)) in enumerate(zip(chain, src.records)):
+    for seq, (sample, (stamp_ns, pose, _fn, _rot)) in enumerate(zip(chain, src.records)):
         rows = []
         for a in sorted(by_sample.get(sample["token"], []), key=lambda r: r["instance_token"]):
             label = nuscenes_label(inst_cat[a["instance_token"]])

@@ -52,8 +52,8 @@ def test_category_mapping() -> None:
 
 
 def _devkit_sensor_velocity(nusc, sd_token: str, ann_token: str) -> np.ndarray:
-    """devkit's box_velocity moved into the sensor frame by devkit's own Box transforms (get_sample_data's boxes
-    carry no velocity)."""
+    """devkit's box_velocity moved into the loader's frame — the sensor's, turned into the vehicle's axes — by
+    devkit's own Box transforms (get_sample_data's boxes carry no velocity)."""
     from nuscenes.utils.data_classes import Box
     from pyquaternion import Quaternion
 
@@ -64,7 +64,6 @@ def _devkit_sensor_velocity(nusc, sd_token: str, ann_token: str) -> np.ndarray:
     box.translate(-np.array(ego["translation"]))
     box.rotate(Quaternion(ego["rotation"]).inverse)
     box.translate(-np.array(cs["translation"]))
-    box.rotate(Quaternion(cs["rotation"]).inverse)
     return box.velocity[:2]
 
 
@@ -77,11 +76,17 @@ def test_boxes_equal_devkit(real: list[Sample], devkit) -> None:
         tokens.append(tok)
         tok = devkit.get("sample", tok)["next"]
     assert [s.token for s in real] == [f"nuscenes/{scene['name']}/{t}" for t in tokens]
+    from pyquaternion import Quaternion
+
     compared = nan_seen = 0
     for s, tok in zip(real, tokens):
         lidar = devkit.get("sample", tok)["data"]["LIDAR_TOP"]
         _, boxes, _ = devkit.get_sample_data(lidar)
         ref = [b for b in boxes if nuscenes_class(b.name) >= 0]
+        mount = Quaternion(devkit.get("calibrated_sensor", devkit.get("sample_data", lidar)["calibrated_sensor_token"])
+                           ["rotation"])
+        for b in ref:  # devkit's sensor-frame box, turned into the vehicle's axes (the loader's frame)
+            b.rotate(mount)
         assert len(ref) == len(s.boxes)
         for b, row, lab, n in zip(ref, s.boxes, s.labels, s.num_points):
             assert lab == nuscenes_class(b.name)

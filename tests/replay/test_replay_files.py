@@ -255,12 +255,18 @@ def test_nuscenes_walks_the_scene_and_composes_the_lidar_world_pose(tmp_path: Pa
     root = make_nuscenes_root(tmp_path / "nusc")
     src = NuScenesSource(root)
     frames = list(src.frames())
-    assert [f.points[0, 0] for f in frames] == [0, 1, 2]
+    # each scan's points are (i, i, i, i, i) in the LiDAR's axes, published in the vehicle's: turned by the mount's -90°
+    assert [tuple(f.points[0]) for f in frames] == [(i, -i, i, i, i) for i in range(3)]
     assert [f.stamp_ns for f in frames] == [1_500_000_000_000_000_000 + i * 500_000_000 for i in range(3)]
     f1 = frames[1]
-    # ego at (11, 20) facing +y; the LiDAR sits 1 m ahead (-> +y in the world), 1.8 m up, rotated -90°.
+    # ego at (11, 20) facing +y; the LiDAR sits 1 m ahead (-> +y in the world), 1.8 m up; the published pose has
+    # the LiDAR's position and the vehicle's axes (heading +y)
     assert (f1.pose.x, f1.pose.y, f1.pose.z) == pytest.approx((11.0, 21.0, 1.8))
-    assert f1.pose.yaw == pytest.approx(0.0, abs=1e-9)
+    assert f1.pose.yaw == pytest.approx(math.pi / 2, abs=1e-9)
+    # pose ∘ published point is the world point of devkit's chain ego_pose ∘ calibrated_sensor ∘ raw point
+    chain = compose(EgoPose.from_yaw(11.0, 20.0, math.pi / 2), EgoPose.from_yaw(1.0, 0.0, -math.pi / 2, 1.8))
+    np.testing.assert_allclose(f1.pose.matrix() @ np.r_[f1.points[0, :3], 1.0], chain.matrix() @ [1.0, 1.0, 1.0, 1.0],
+                               atol=1e-6)
     assert f1.fields == ("x", "y", "z", "intensity", "ring") and f1.frame_id == "LIDAR_TOP"
 
 

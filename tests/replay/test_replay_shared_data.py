@@ -51,18 +51,23 @@ def test_nuscenes_reader_agrees_with_devkit() -> None:
         sd = nusc.get("sample_data", sample["data"]["LIDAR_TOP"])
         ego = nusc.get("ego_pose", sd["ego_pose_token"])
         cs = nusc.get("calibrated_sensor", sd["calibrated_sensor_token"])
-        q = Quaternion(ego["rotation"]) * Quaternion(cs["rotation"])
+        q = Quaternion(ego["rotation"]) * Quaternion(cs["rotation"])  # devkit's sensor → world
         t = np.array(ego["translation"]) + Quaternion(ego["rotation"]).rotate(np.array(cs["translation"]))
-        want.append((sd["filename"], sd["timestamp"] * 1000, t, q))
+        want.append((sd["filename"], sd["timestamp"] * 1000, t, q, Quaternion(ego["rotation"])))
         token = sample["next"]
     frames = list(open_source(str(NUSC)).frames())
     assert len(frames) == len(want)
-    for f, (fname, stamp, t, q) in zip(frames, want):
+    for f, (fname, stamp, t, q, q_ego) in zip(frames, want):
         assert f.origin.endswith(fname) and f.stamp_ns == stamp
         np.testing.assert_allclose([f.pose.x, f.pose.y, f.pose.z], t, atol=1e-9)
-        np.testing.assert_allclose(f.pose.matrix()[:3, :3], q.rotation_matrix, atol=1e-9)
+        # published in the vehicle's axes at the LiDAR: the pose turns like the ego, and pose ∘ point is devkit's
+        # world point of the raw return (ego_pose ∘ calibrated_sensor ∘ p)
+        np.testing.assert_allclose(f.pose.matrix()[:3, :3], q_ego.rotation_matrix, atol=1e-9)
         pts = np.fromfile(NUSC / fname, dtype=np.float32).reshape(-1, 5)
-        np.testing.assert_array_equal(f.points, pts[np.isfinite(pts[:, :3]).all(axis=1)])
+        raw = pts[np.isfinite(pts[:, :3]).all(axis=1)]
+        np.testing.assert_array_equal(f.points[:, 3:], raw[:, 3:])
+        world = f.points[:, :3].astype(np.float64) @ f.pose.matrix()[:3, :3].T + t
+        np.testing.assert_allclose(world, raw[:, :3].astype(np.float64) @ q.rotation_matrix.T + t, atol=2e-5)
 
 
 @needs_kitti

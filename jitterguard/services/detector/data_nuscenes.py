@@ -3,8 +3,11 @@ detector :class:`~jitterguard.services.detector.config.Sample`s, read straight f
 
 For every LIDAR_TOP key frame: the sweep's points (``.pcd.bin``, 5 float32 per point; x, y, z, intensity kept,
 the ring dropped) and the sample's annotations moved global → ego (``ego_pose``) → sensor
-(``calibrated_sensor``) exactly as nuscenes-devkit's ``get_sample_data`` does, so boxes match devkit's (the
-tests compare them). nuScenes stores sizes as (width, length, height) and quaternions as (w, x, y, z).
+(``calibrated_sensor``) exactly as nuscenes-devkit's ``get_sample_data`` does, then both turned into the
+vehicle's axes at the sensor (the sensor's mounting rotation applied: level and x forward, the frame the
+replay publishes, :func:`~jitterguard.services.replay.sources.nuscenes.vehicle_axes`), so boxes are devkit's
+turned by that rotation (the tests compare them). nuScenes stores sizes as (width, length, height) and
+quaternions as (w, x, y, z).
 
 Velocities: nuScenes has none; like devkit's ``box_velocity`` they are the centre difference of the previous
 and next annotation of the instance over their sample timestamps (one-sided at a track's ends; none when the
@@ -29,7 +32,7 @@ from numpy.typing import NDArray
 
 from ..replay.frames import SourceError
 from ..replay.sources.kitti import read_bin
-from ..replay.sources.nuscenes import _load_table, find_version
+from ..replay.sources.nuscenes import _load_table, find_version, vehicle_axes
 from .config import BOX_DIM, CLASS_NAMES, LazySamples, Sample
 
 F64 = NDArray[np.float64]
@@ -147,10 +150,16 @@ class _Keyframe:
     labels: NDArray[np.int64]
     num_points: NDArray[np.int64]
     sweeps: tuple[SweepRef, ...]
+    mount_rotation: F64  # sensor axes → vehicle axes (its points are turned by it when read)
 
 
 def _pose_matrix(rec: dict[str, Any]) -> tuple[F64, F64]:
     return _rotations_wxyz(np.asarray(rec["rotation"]))[0], np.asarray(rec["translation"], np.float64)
+
+
+def _levelled(calib: dict[str, Any]) -> dict[str, Any]:
+    """A ``calibrated_sensor`` record without its rotation: the sensor frame in the vehicle's axes."""
+    return {**calib, "rotation": [1.0, 0.0, 0.0, 0.0]}
 
 
 class NuScenesKeyframes(LazySamples):
@@ -221,23 +230,27 @@ class NuScenesKeyframes(LazySamples):
                 rows = by_sample.get(smp["token"], [])
                 vel = np.array([box_velocity(a, anns, sample_ts, max_time_diff) for a in rows],
                                np.float64).reshape(-1, 3)
-                boxes = annotations_to_sensor(rows, vel, ego[sd["ego_pose_token"]], calib[sd["calibrated_sensor_token"]])
+                mount_rot, _ = vehicle_axes(calib[sd["calibrated_sensor_token"]])
+                boxes = annotations_to_sensor(rows, vel, ego[sd["ego_pose_token"]],
+                                              _levelled(calib[sd["calibrated_sensor_token"]]))
                 boxes[:, 7:9] = np.where(np.isnan(boxes[:, 7:9]), nan_velocity, boxes[:, 7:9])
                 frames.append(_Keyframe(
                     token=f"nuscenes/{sc['name']}/{smp['token']}", path=root / sd["filename"],
                     boxes=boxes.astype(np.float32),
                     labels=np.array([inst_class[a["instance_token"]] for a in rows], np.int64),
                     num_points=np.array([int(a.get("num_lidar_pts", 0)) for a in rows], np.int64),
-                    sweeps=self._sweep_chain(sd, lidar, ego, calib, max_sweep_lag_s)))
+                    sweeps=self._sweep_chain(sd, lidar, ego, calib, max_sweep_lag_s), mount_rotation=mount_rot))
         self._frames = frames
 
     def _sweep_chain(self, sd: dict[str, Any], lidar: dict[str, dict[str, Any]], ego: dict[str, Any],
                      calib: dict[str, Any], max_lag: float) -> tuple[SweepRef, ...]:
         """Earlier sweeps of key frame ``sd`` (newest first) as :class:`SweepRef`: sensor_j → ego_j → global →
-        ego_key → sensor_key, as CenterPoint's and mmdet3d's nuScenes converters chain them."""
+        ego_key → sensor_key, as CenterPoint's and mmdet3d's nuScenes converters chain them, the key frame's
+        sensor frame in the vehicle's axes (its mounting rotation left out: the key frame's own points are
+        turned into those axes when read)."""
         if self.sweeps <= 1:
             return ()
-        r_ck, t_ck = _pose_matrix(calib[sd["calibrated_sensor_token"]])
+        r_ck, t_ck = _pose_matrix(_levelled(calib[sd["calibrated_sensor_token"]]))
         r_ek, t_ek = _pose_matrix(ego[sd["ego_pose_token"]])
         out: list[SweepRef] = []
         ts0 = int(sd["timestamp"])
@@ -274,9 +287,11 @@ class NuScenesKeyframes(LazySamples):
         return pts[np.isfinite(pts).all(axis=1)]
 
     def points(self, i: int) -> NDArray[np.float32]:
-        """The (stacked) points of key frame ``i``: (P, 4), or (P, 5) with the time lag when ``sweeps`` > 1."""
+        """The (stacked) points of key frame ``i`` in the vehicle's axes at the sensor: (P, 4), or (P, 5) with the
+        time lag when ``sweeps`` > 1."""
         f = self._frames[i]
         key = self._read(f.path)
+        key[:, :3] = (key[:, :3].astype(np.float64) @ f.mount_rotation.T).astype(np.float32)
         if self.sweeps <= 1:
             return key
         parts = [np.column_stack([key, np.zeros(len(key), np.float32)])]

@@ -5,9 +5,14 @@ for each sample the ``sample_data`` record of the channel (default ``LIDAR_TOP``
 devkit's ``sample['data'][channel]``. With ``sweeps=True`` it follows that record's ``sample_data.next``
 chain instead, which in a full dataroot adds the 20 Hz non-key sweeps between key frames.
 
-The published pose is the LiDAR's pose in the world: ``ego_pose ∘ calibrated_sensor`` of that sample_data,
-the same chain devkit's tutorials compose (nuScenes quaternions are stored w, x, y, z). The tests check
-tokens, files, stamps and poses against devkit itself when it is installed.
+Frame. The points are published in the *vehicle's axes at the sensor*: the LiDAR's returns turned by the
+sensor's mounting rotation (``calibrated_sensor.rotation``), the origin left at the sensor. nuScenes' LIDAR_TOP
+frame has x to the right and y forward, and is tilted against the vehicle (2.7° on scene-0523, the ground 1–2 m
+higher on one side of the scan than the other at 30–40 m); the detector was trained in a level, x-forward
+sensor frame, as Autoware runs CenterPoint in the vehicle's ``base_link`` axes. The published pose is then
+``ego_pose ∘ (calibrated_sensor.translation, no rotation)``, so pose ∘ point is the same world point as devkit's
+``ego_pose ∘ calibrated_sensor ∘ raw point`` (nuScenes quaternions are stored w, x, y, z). The tests check
+tokens, files, stamps, poses and world points against devkit itself when it is installed.
 """
 
 from __future__ import annotations
@@ -19,7 +24,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
+from ....geometry import rotation_from_quaternion
 from ..frames import EgoPose, FrameError, Item, ScanFrame, SourceError, SourceInfo, compose, finite_rows
 from .base import Source
 from .kitti import NUSCENES_FIELDS, read_bin
@@ -69,6 +76,15 @@ def pose_from_record(rec: dict[str, Any]) -> EgoPose:
     t = rec["translation"]
     w, x, y, z = rec["rotation"]
     return EgoPose(float(t[0]), float(t[1]), float(t[2]), float(x), float(y), float(z), float(w))
+
+
+def vehicle_axes(calib: dict[str, Any]) -> tuple[NDArray[np.float64], EgoPose]:
+    """For a ``calibrated_sensor`` record: the rotation R that turns the sensor's axes into the vehicle's
+    (p_vehicle-axes = R p_sensor) and the sensor's mount with that rotation taken out (its translation only) —
+    the frame every nuScenes reader here hands on (module doc)."""
+    m = pose_from_record(calib)
+    r = rotation_from_quaternion(m.qx, m.qy, m.qz, m.qw)
+    return r, EgoPose(m.x, m.y, m.z)
 
 
 class NuScenesSource(Source):
@@ -147,14 +163,11 @@ class NuScenesSource(Source):
                 full.append(sd)
                 sd = sd_by_token.get(sd.get("next", ""))
             chain = full
-        self.records = [
-            (
-                int(sd["timestamp"]) * 1000,
-                compose(pose_from_record(ego[sd["ego_pose_token"]]), pose_from_record(calib[sd["calibrated_sensor_token"]])),
-                sd["filename"],
-            )
-            for sd in chain
-        ]
+        self.records = []
+        for sd in chain:
+            rot, mount = vehicle_axes(calib[sd["calibrated_sensor_token"]])
+            self.records.append((int(sd["timestamp"]) * 1000, compose(pose_from_record(ego[sd["ego_pose_token"]]), mount),
+                                 sd["filename"], rot))
 
     def truth(self) -> dict[int, Any]:
         """The scene's annotations per key-frame stamp (for ``jg/{ns}/groundtruth``); empty when the tables cannot
@@ -173,7 +186,7 @@ class NuScenesSource(Source):
 
     def frames(self, start: int = 0) -> Iterator[Item]:
         truth = self.truth() if self.channel == "LIDAR_TOP" else {}
-        for stamp_ns, pose, filename in self.records[start:]:
+        for stamp_ns, pose, filename, rot in self.records[start:]:
             path = self.dataroot / filename
             try:
                 pts = read_bin(path, len(NUSCENES_FIELDS))
@@ -184,4 +197,6 @@ class NuScenesSource(Source):
                 yield FrameError(str(path), str(exc) if isinstance(exc, ValueError) else f"cannot read: {exc}")
                 continue
             pts, _ = finite_rows(np.asarray(pts))
+            pts = np.column_stack([(pts[:, :3].astype(np.float64) @ rot.T).astype(pts.dtype), pts[:, 3:]])  # into
+            # the vehicle's axes
             yield ScanFrame(stamp_ns, pose, pts, NUSCENES_FIELDS, str(path), self.channel, truth=truth.get(stamp_ns))
