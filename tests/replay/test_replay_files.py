@@ -267,7 +267,7 @@ def test_nuscenes_walks_the_scene_and_composes_the_lidar_world_pose(tmp_path: Pa
     chain = compose(EgoPose.from_yaw(11.0, 20.0, math.pi / 2), EgoPose.from_yaw(1.0, 0.0, -math.pi / 2, 1.8))
     np.testing.assert_allclose(f1.pose.matrix() @ np.r_[f1.points[0, :3], 1.0], chain.matrix() @ [1.0, 1.0, 1.0, 1.0],
                                atol=1e-6)
-    assert f1.fields == ("x", "y", "z", "intensity", "ring") and f1.frame_id == "LIDAR_TOP"
+    assert f1.fields == ("x", "y", "z", "intensity", "ring") and f1.frame_id == "LIDAR_TOP_vehicle_axes"
 
 
 def test_nuscenes_missing_scan_file_is_a_frame_error_naming_it(tmp_path: Path) -> None:

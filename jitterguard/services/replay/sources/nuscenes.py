@@ -34,6 +34,9 @@ from .kitti import NUSCENES_FIELDS, read_bin
 log = logging.getLogger("jitterguard.replay")
 
 TABLES = ("scene", "sample", "sample_data", "ego_pose", "calibrated_sensor", "sensor")
+FRAME_SUFFIX = "_vehicle_axes"
+"""Appended to the channel in the scans' ``frame_id``: their axes are the vehicle's, not the LiDAR's own (module
+doc), so a consumer holding nuScenes' own calibration cannot mistake them for ``LIDAR_TOP``."""
 
 
 def find_version(dataroot: Path, version: str | None) -> str:
@@ -111,6 +114,7 @@ class NuScenesSource(Source):
         except (KeyError, TypeError, ValueError, IndexError) as exc:
             raise SourceError(f"{folder}: inconsistent nuScenes tables ({type(exc).__name__}: {exc})") from None
         self.channel = channel
+        self.frame_id = f"{channel}{FRAME_SUFFIX}"
         self._truth: dict[int, Any] | None = None  # key-frame stamp → GroundTruthObjects, built on the first pass
         self.info = SourceInfo(
             name=f"{dataroot} ({self.scene_name}, {channel})",
@@ -199,4 +203,4 @@ class NuScenesSource(Source):
             pts, _ = finite_rows(np.asarray(pts))
             pts = np.column_stack([(pts[:, :3].astype(np.float64) @ rot.T).astype(pts.dtype), pts[:, 3:]])  # into
             # the vehicle's axes
-            yield ScanFrame(stamp_ns, pose, pts, NUSCENES_FIELDS, str(path), self.channel, truth=truth.get(stamp_ns))
+            yield ScanFrame(stamp_ns, pose, pts, NUSCENES_FIELDS, str(path), self.frame_id, truth=truth.get(stamp_ns))
