@@ -62,3 +62,30 @@ def test_tiny_training_run_writes_weights_history_and_report(tmp_path: Path) -> 
     rep = json.loads(ev.stdout.strip().splitlines()[-1])
     assert rep["samples"] == 1 and 0.0 <= (rep["car_ap"] or 0.0) <= 1.0
     assert (tmp_path / "ev" / "holdout.json").is_file()
+
+
+def test_joined_samples_index_through_their_parts() -> None:
+    from jitterguard.services.detector.train_cli import _Joined
+
+    j = _Joined([["a", "b"], [], ["c"], ["d", "e"]])
+    assert len(j) == 5 and [j[i] for i in range(5)] == list("abcde")
+    with pytest.raises(IndexError):
+        j[5]
+
+
+@pytest.mark.slow
+def test_mixed_effect_sets_train_on_both_and_say_so(tmp_path: Path) -> None:
+    """``--effects none+random`` casts the training seeds once per set and trains on both; validation is the first
+    set's; the weights name the recipe."""
+    out = tmp_path / "run"
+    res = _jg("train", "--out", str(out), "--scenarios", "parking-street", "--train-seeds", "0",
+              "--val-seeds", "1", "--frames-per-scenario", "1", "--epochs", "1", "--batch-size", "2",
+              "--effects", "none+random", "--threads", "1", "--no-progress")
+    assert res.returncode == 0, res.stderr[-2000:]
+    caches = [json.loads((p / "index.json").read_text()) for p in out.glob("cache-*")]
+    recipes = sorted(c.get("meta", {}).get("recipe", {}).get("effects", "none") for c in caches)
+    assert len(caches) == 3 and recipes.count("none") == 2 and len(recipes) == 3  # train ×2 sets, val ×1 (none)
+    _, _, meta = load_weights(out / "weights.pt")
+    assert meta["source"]["effects"].startswith("none+") and "glass" in meta["source"]["effects"]
+    res = _jg("train", "--out", str(tmp_path / "bad"), "--effects", "none+moon")
+    assert res.returncode == 2 and "--effects" in res.stderr

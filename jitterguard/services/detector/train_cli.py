@@ -9,6 +9,7 @@ Commands import their implementation when they run (start-up time: see :mod:`jit
 
 from __future__ import annotations
 
+import itertools
 import json
 import logging
 import os
@@ -93,6 +94,23 @@ def _effects(spec: str) -> tuple[str, ...]:
         fail(f"--effects: {exc}")
 
 
+class _Joined:
+    """Several sample sequences as one, in order (the scans of each ``--effects`` set of a mixed recipe)."""
+
+    def __init__(self, parts: list[Any]) -> None:
+        self.parts = parts
+        self.ends = list(itertools.accumulate(len(p) for p in parts))
+
+    def __len__(self) -> int:
+        return self.ends[-1] if self.ends else 0
+
+    def __getitem__(self, i: int) -> Any:
+        if not 0 <= i < len(self):
+            raise IndexError(i)
+        k = next(j for j, end in enumerate(self.ends) if i < end)
+        return self.parts[k][i - (self.ends[k - 1] if k else 0)]
+
+
 def _present(dataroot: str, version: str | None, names: list[str]) -> list[str]:
     """The scenes of an official split that this dataroot holds (a partial download trains on what is there)."""
     from ..replay.sources.nuscenes import _load_table, find_version
@@ -164,7 +182,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         effects: Annotated[str, typer.Option("--effects", help="Sim-to-real effects of the synthetic scans, drawn"
                                              " per scan: 'random' (all), 'none' (ideal scans), or a comma list of"
                                              " ground, glass, dropout, noise, roof, mixed, clutter, open, intensity,"
-                                             " no-intensity.")] = "random",
+                                             " no-intensity; several sets joined by '+' (e.g. none+random) train on"
+                                             " the seeds cast once per set, validate on the first set.")] = "random",
         rotation: Annotated[float, typer.Option("--rotation", min=0.0, max=180.0, help="Global rotation"
                                                 " augmentation: uniform in ± this many degrees.")] = 45.0,
         tilt_aug: Annotated[float, typer.Option("--tilt-aug", min=0.0, max=10.0, help="Pitch/roll augmentation SD"
@@ -209,7 +228,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         progress = progress_on(progress)
         if preset not in PRESETS:
             fail(f"--preset: expected one of {', '.join(PRESETS)}, got {preset!r}")
-        _effects(effects)
+        effect_sets = effects.split("+")
+        for e in effect_sets:
+            _effects(e)
         if init is not None and not os.path.isfile(init):
             fail(f"--init: file not found: {init}")
         if nuscenes is not None and not os.path.isdir(nuscenes):
@@ -277,13 +298,16 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                                       "holdout_last": None if split else holdout_last}
         else:
             if dc.main:  # one process casts the caches, the others wait for them
-                synthetic_cache(root, scen, tr_seeds, frames, progress, effects)
-                synthetic_cache(root, scen, va_seeds, frames, progress, effects)
+                for e in effect_sets:
+                    synthetic_cache(root, scen, tr_seeds, frames, progress, e)
+                synthetic_cache(root, scen, va_seeds, frames, progress, effect_sets[0])
             dc.barrier()
-            train_s = synthetic_cache(root, scen, tr_seeds, frames, False, effects)
-            val_s = synthetic_cache(root, scen, va_seeds, frames, False, effects)
+            parts = [synthetic_cache(root, scen, tr_seeds, frames, False, e) for e in effect_sets]
+            train_s = parts[0] if len(parts) == 1 else _Joined(parts)
+            val_s = synthetic_cache(root, scen, va_seeds, frames, False, effect_sets[0])
             source = {"scenarios": scen, "train_seeds": train_seeds, "val_seeds": val_seeds,
-                      "frames_per_scenario": frames, "effects": ",".join(_effects(effects)) or "none"}
+                      "frames_per_scenario": frames,
+                      "effects": "+".join(",".join(_effects(e)) or "none" for e in effect_sets)}
         train_v, val_v = _Prepared(train_s, pcr), _Prepared(val_s, pcr)
         tcfg = TrainConfig(epochs=epochs, batch_size=batch_size, lr=lr, seed=seed, num_workers=workers,
                            accumulate=accumulate, amp=amp, sync_bn=sync_bn, checkpoint_every=checkpoint_every,
