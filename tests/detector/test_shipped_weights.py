@@ -24,7 +24,12 @@ def test_shipped_lite_weights_are_in_the_package_and_say_how_they_were_made() ->
     assert path.is_file(), "the lite weights ship in the package (README: how to reproduce them)"
     model, recal, meta = load_weights(path)  # weights_only=True inside
     assert model.config.name == "lite" and model.config.uncertainty
-    assert "jitterguard train" in meta["command"] and "--train-seeds 0-49" in meta["command"]
+    assert "jitterguard train" in meta["command"]
+    # the recipe, step by step: synthetic scans only — ideal first, then ideal and sim-to-real effect scans
+    recipe = meta["recipe"]
+    assert recipe[-1] == meta["command"] and "--train-seeds 0-49" in recipe[0] and "--effects" not in recipe[0]
+    assert all("--effects none+random" in step and "--init" in step for step in recipe[1:])
+    assert not any("nuscenes" in step or "kitti" in step for step in recipe)
     assert recal is not None  # fitted on the validation seeds (--fit-recalibration)
     assert path.stat().st_size < 8 * 2**20  # "a few MB"
 
