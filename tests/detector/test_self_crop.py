@@ -74,15 +74,19 @@ def test_roof_returns_never_reach_the_network() -> None:
 
 
 @pytest.mark.skipif(not SHARED_NUSC.is_dir(), reason="../shared/data/nuscenes-scene-0523 absent")
-def test_no_car_at_the_sensor_on_a_real_scan() -> None:
-    """The first key frame of scene-0523: without the crop the shipped weights report a car within 2 m of the
-    sensor (the ego's roof); with the default box, nothing there — and with nuScenes' 1 m square, still a car
-    (the bonnet and boot returns are left)."""
+def test_no_car_at_the_sensor_on_real_scans() -> None:
+    """The 40 key frames of scene-0523: without the crop the shipped weights report something (score > 0.3)
+    within 2 m of the sensor — the ego's roof — in nearly every frame; with nuScenes' 1 m square still in nearly
+    every frame (the bonnet and boot returns are left); with the default box in at most one."""
     from jitterguard.services.detector.data import nuscenes_samples
 
-    points = nuscenes_samples(SHARED_NUSC)[0].points
-    near = lambda d: d.scores[np.hypot(d.boxes[:, 0], d.boxes[:, 1]) < 2.0]  # noqa: E731
-    assert near(Detector.load(None, "lite", threads=2, self_crop=None).detect(points)).max(initial=0.0) > 0.3
-    assert len(near(Detector.load(None, "lite", threads=2).detect(points))) == 0
-    one_metre = Detector.load(None, "lite", threads=2, self_crop=(-1.0, -1.0, 1.0, 1.0))
-    assert near(one_metre.detect(points)).max(initial=0.0) > 0.3
+    scans = [s.points for s in nuscenes_samples(SHARED_NUSC)]
+
+    def frames_with_a_car_at_the_sensor(box) -> int:  # noqa: ANN001
+        det = Detector.load(None, "lite", threads=2, self_crop=box)
+        near = [d.scores[np.hypot(d.boxes[:, 0], d.boxes[:, 1]) < 2.0] for d in map(det.detect, scans)]
+        return sum(bool((s > 0.3).any()) for s in near)
+
+    assert frames_with_a_car_at_the_sensor(None) >= 38
+    assert frames_with_a_car_at_the_sensor((-1.0, -1.0, 1.0, 1.0)) >= 35
+    assert frames_with_a_car_at_the_sensor(SELF_CROP_M) <= 1
