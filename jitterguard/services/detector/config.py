@@ -7,6 +7,7 @@ Kept free of torch so that data, evaluation and the service adapter import it ch
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import Annotated, Literal, overload
@@ -127,6 +128,19 @@ is forward: ±2 m. It crops what lies within about 1.1 m of the car's sides too 
 Autoware's self-cropping ``crop_box_filter`` takes its dimensions), or null to keep every return."""
 
 
+def check_crop_box(box: Sequence[float] | None) -> tuple[float, float, float, float] | None:
+    """``box`` as four floats (x_min, y_min, x_max, y_max) if it is one — finite, each min below its max — else
+    ``ValueError``; None stays None (no crop). The one check of a self-crop box, for the parameter file and for
+    a :class:`~.inference.Detector` built in code alike."""
+    if box is None:
+        return None
+    b = tuple(float(v) for v in box)
+    if len(b) != 4 or not all(math.isfinite(v) for v in b) or b[0] >= b[2] or b[1] >= b[3]:
+        raise ValueError(f"self_crop must be (x_min, y_min, x_max, y_max), finite, with x_min < x_max and"
+                         f" y_min < y_max, got {list(box)}")
+    return b  # type: ignore[return-value]
+
+
 class DetectorParams(BaseModel):
     """``jitterguard detector --config FILE``: how the service runs (the architecture comes with the weights)."""
 
@@ -148,9 +162,7 @@ class DetectorParams(BaseModel):
     @field_validator("self_crop")
     @classmethod
     def _box_has_extent(cls, box: tuple[float, float, float, float] | None) -> tuple[float, ...] | None:
-        if box is not None and not (box[0] < box[2] and box[1] < box[3]):
-            raise ValueError(f"needs x_min < x_max and y_min < y_max, got {list(box)}")
-        return box
+        return check_crop_box(box)
 
 
 @dataclass(frozen=True)

@@ -32,7 +32,7 @@ from numpy.typing import NDArray
 
 from ..replay.frames import SourceError
 from ..replay.sources.kitti import read_bin
-from ..replay.sources.nuscenes import _load_table, find_version, vehicle_axes
+from ..replay.sources.nuscenes import _load_table, find_version, turn_points, vehicle_axes
 from .config import BOX_DIM, CLASS_NAMES, LazySamples, Sample
 
 F64 = NDArray[np.float64]
@@ -291,7 +291,7 @@ class NuScenesKeyframes(LazySamples):
         time lag when ``sweeps`` > 1."""
         f = self._frames[i]
         key = self._read(f.path)
-        key[:, :3] = (key[:, :3].astype(np.float64) @ f.mount_rotation.T).astype(np.float32)
+        key = turn_points(key, f.mount_rotation)
         if self.sweeps <= 1:
             return key
         parts = [np.column_stack([key, np.zeros(len(key), np.float32)])]

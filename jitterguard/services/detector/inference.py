@@ -10,7 +10,6 @@ loudly.
 from __future__ import annotations
 
 import logging
-import math
 import os
 import time
 from collections.abc import Sequence
@@ -21,7 +20,7 @@ import numpy as np
 import torch
 from pydantic import ValidationError
 
-from .config import PRESETS, SELF_CROP_M, DetectorConfig, Detections3D
+from .config import PRESETS, SELF_CROP_M, DetectorConfig, Detections3D, check_crop_box
 from .decode import decode
 from .evaluate import apply_recalibration
 from .network import CenterPointNet
@@ -107,12 +106,7 @@ class Detector:
                  meta: dict[str, Any] | None = None, self_crop: Sequence[float] | None = SELF_CROP_M) -> None:
         """``self_crop``: returns inside this (x_min, y_min, x_max, y_max) box of the sensor frame are the
         vehicle's own body and never reach the network (:data:`~.config.SELF_CROP_M`; None keeps them)."""
-        if self_crop is not None:
-            box = tuple(float(v) for v in self_crop)
-            if len(box) != 4 or not all(math.isfinite(v) for v in box) or box[0] >= box[2] or box[1] >= box[3]:
-                raise ValueError(f"self_crop must be (x_min, y_min, x_max, y_max) with min < max, got {self_crop}")
-            self_crop = box
-        self.self_crop: tuple[float, ...] | None = self_crop
+        self.self_crop = check_crop_box(self_crop)
         self.model = model.eval()
         self.config = model.config
         self.recalibration = recalibration

@@ -81,6 +81,13 @@ def pose_from_record(rec: dict[str, Any]) -> EgoPose:
     return EgoPose(float(t[0]), float(t[1]), float(t[2]), float(x), float(y), float(z), float(w))
 
 
+def turn_points(points: NDArray[np.float32], rotation: NDArray[np.float64]) -> NDArray[np.float32]:
+    """``points`` (P, ≥3) with x, y, z turned by ``rotation`` (p' = R p, in float64), the other columns as they
+    are: a new array (the input may be a read-only view of a file)."""
+    xyz = (points[:, :3].astype(np.float64) @ rotation.T).astype(points.dtype)
+    return np.column_stack([xyz, points[:, 3:]])
+
+
 def vehicle_axes(calib: dict[str, Any]) -> tuple[NDArray[np.float64], EgoPose]:
     """For a ``calibrated_sensor`` record: the rotation R that turns the sensor's axes into the vehicle's
     (p_vehicle-axes = R p_sensor) and the sensor's mount with that rotation taken out (its translation only) —
@@ -201,6 +208,5 @@ class NuScenesSource(Source):
                 yield FrameError(str(path), str(exc) if isinstance(exc, ValueError) else f"cannot read: {exc}")
                 continue
             pts, _ = finite_rows(np.asarray(pts))
-            pts = np.column_stack([(pts[:, :3].astype(np.float64) @ rot.T).astype(pts.dtype), pts[:, 3:]])  # into
-            # the vehicle's axes
+            pts = turn_points(pts, rot)  # into the vehicle's axes
             yield ScanFrame(stamp_ns, pose, pts, NUSCENES_FIELDS, str(path), self.frame_id, truth=truth.get(stamp_ns))
