@@ -363,7 +363,9 @@ def test_state_and_metrics_show_the_variance_calibration(stack: Stack) -> None:
     view = StateView.model_validate(body)
     assert view.calibration is not None and view.calibration.effective_n == "measured"
     vehicle = view.calibration.groups["vehicle"]
-    assert set(vehicle.along.scale) == {"0-20", "20-40", "40-inf"} and 0 < vehicle.along.correlation <= 1
+    # m may be learned as 0 (a noiseless creeper's along-track residuals are not serially correlated)
+    assert set(vehicle.along.scale) == {"0-20", "20-40", "40-inf"} and 0 <= vehicle.along.correlation <= 1
+    assert vehicle.along.correlation_time_s > 0
     with stack.http(auth=False) as c:
         text = c.get("/metrics").text
     scale = _metric(text, "jitterguard_classifier_variance_scale",
