@@ -293,6 +293,33 @@ def test_a_track_noisier_than_its_class_learns_its_own_scale() -> None:
     assert fd(own) < fd(like_class) / 2
 
 
+def test_a_cold_start_tests_with_the_uncertainty_of_its_prior() -> None:
+    """Before any block the calibration knows only its prior k = 1: parked cars whose variances are reported
+    4× too small (the shipped detector on real scans) fire far less often than if k = 1 were taken as known,
+    and as blocks arrive the class scale's degrees of freedom grow until the test is the known-scale one."""
+    from dataclasses import replace
+
+    from jitterguard.services.classifier.calibration import BLOCK_DOF, PRIOR_SCALE_DOF
+
+    rng = np.random.default_rng(21)
+    cal = OnlineCalibration(window=10)
+    cold = cal.current
+    assert cold.scale_dof == PRIOR_SCALE_DOF and np.allclose(cold.scale, 1.0)
+    known = replace(cold, scale_dof=math.inf)  # the same scales, taken as given (a calibration file)
+    g = np.zeros(3, dtype=np.int64)
+    assert np.allclose(known.test_dof(g), cold.track_dof[g])
+    assert np.allclose(cold.test_dof(g), 1.0 / (1.0 / cold.track_dof[g] + 1.0 / PRIOR_SCALE_DOF))
+    win = _windows(rng, 3000, None, 4.0, 0.0, 0.5, n=2)  # two observations: no residuals of its own yet
+    fd = lambda model: (np.maximum(_stats(win, model).z_x, _stats(win, model).z_y) > 2.58).mean()  # noqa: E731
+    assert fd(known) > 0.3
+    assert fd(cold) < fd(known) / 2
+    feed(cal, blocks(rng, 40, 1.0, 0.0, 0.5))  # k = 1: no block is down-weighted as an outlier
+    warm = cal.refit()
+    assert warm.scale_dof == pytest.approx(PRIOR_SCALE_DOF + BLOCK_DOF * 40, rel=0.03)
+    feed(cal, blocks(rng, 2000, 1.0, 0.0, 0.5))
+    assert np.allclose(cal.refit().test_dof(g), cal.current.track_dof[g], rtol=0.1)
+
+
 # ------------------------------------------------------------------------------------------- the core
 
 

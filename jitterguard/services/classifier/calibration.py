@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import lru_cache
 from typing import Any
 
@@ -83,6 +83,13 @@ HUBER_C = 5.0
 """A block with more than this many times the predicted lag-0 sum is down-weighted (Huber)."""
 MIN_BLOCK = 5
 """Fewest observations in a block (3 residual degrees of freedom after the line fit)."""
+PRIOR_SCALE_DOF = 2.0
+"""How well the test trusts k = 1 before any block: ν = 2, Var(log k) ≈ 2/ν = 1, a reported variance right to
+within a factor e at 1σ. Real detectors are off by that much: the shipped one's variances are 4× too small on
+real scans (docs/calibration.md). A cold start therefore tests with heavy tails and calls less dynamic until
+the first blocks arrive (within MIN_BLOCK frames of the first tracks)."""
+BLOCK_DOF = 8.0
+"""Degrees of freedom one block of evidence gives a scale (a full 10-observation window less its line fit)."""
 REFIT_PERIOD_S = 0.5
 """Data time between two fits of the online model."""
 CANONICAL_DT_S = 0.1
@@ -127,6 +134,11 @@ class NoiseModel:
     track_dof: F64 | None = None
     """(G,) ν₀: how far one track's noise may stray from its class's (the prior degrees of freedom of a track's
     own scale, :func:`~.statistics.track_scale`); None: :data:`PRIOR_TRACK_DOF` for every group."""
+    scale_dof: float = math.inf
+    """Degrees of freedom of the scales themselves: how well the calibration knows them. ∞ for scales taken as
+    given (a calibration file); the online fit sets :data:`PRIOR_SCALE_DOF` plus :data:`BLOCK_DOF` per block
+    of evidence behind the all-classes level, so that a cold start, which has nothing but the prior k = 1,
+    tests with heavier tails (:meth:`test_dof`) until the data has spoken."""
 
     def __post_init__(self) -> None:
         if self.track_dof is None:
@@ -138,6 +150,13 @@ class NoiseModel:
         g, b, y = len(GROUPS), len(band_edges_m) + 1, len(AGES)
         return NoiseModel(tuple(float(e) for e in band_edges_m), np.ones((g, 2, b, y)),
                           np.full((g, 2), PRIOR_CORRELATION), np.full((g, 2), PRIOR_TAU_S), np.zeros((g, 2, b, y)))
+
+    def test_dof(self, groups: NDArray[np.int64]) -> F64:
+        """Prior degrees of freedom of a track's own scale in the test (per window of class group ``groups``):
+        the spread of tracks about their class (ν₀) and the class scale's own uncertainty add up in the log
+        domain (Var log χ²_ν/ν ≈ 2/ν), so 1/ν = 1/ν₀ + 1/``scale_dof``."""
+        assert self.track_dof is not None
+        return 1.0 / (1.0 / self.track_dof[groups] + 1.0 / self.scale_dof)
 
     def variance_factor(self, window: int) -> F64:
         """(G, 2): Var(μ̄₂ − μ̄₁) of a full, evenly spaced window under the serial correlation, divided by its
@@ -447,7 +466,7 @@ class OnlineCalibration:
         self._n = np.zeros((g, 2, b, y))
         self._interval = np.zeros(2)
         self._het = np.zeros((g, 4))
-        self._model = NoiseModel.prior(self.band_edges_m)
+        self._model = replace(NoiseModel.prior(self.band_edges_m), scale_dof=PRIOR_SCALE_DOF)  # and how little it knows
         self.counts = {"blocks": 0, "blocks_fast": 0, "blocks_downweighted": 0, "blocks_invalid": 0}
 
     @property
@@ -713,7 +732,8 @@ class OnlineCalibration:
         E = expected_moments(Wp, Tp, np.ones_like(kb), mb, tb)  # per unit scale
         k2 = np.clip((Yp * E).sum(-1) / np.maximum((E * E).sum(-1), 1e-300), *SCALE_BOUNDS)
         dt = self._interval[0] / self._interval[1] if self._interval[1] > 0 else CANONICAL_DT_S
-        return NoiseModel(self.band_edges_m, k2, m1, t1, n.copy(), float(dt), self._track_dof())
+        scale_dof = PRIOR_SCALE_DOF + BLOCK_DOF * float(n.sum((0, 2, 3)).min())  # all classes, the poorer axis
+        return NoiseModel(self.band_edges_m, k2, m1, t1, n.copy(), float(dt), self._track_dof(), scale_dof)
 
     def snapshot(self, window: int | None = None) -> dict[str, Any]:
         """The current model as :meth:`NoiseModel.to_mapping` plus the block counters."""

@@ -267,9 +267,8 @@ def _calibrated_statistics(windows: F64, masks: HalfMasks, groups: I64, model: N
     z_x, z_y = np.abs(dx) / np.sqrt(a), np.abs(dy) / np.sqrt(c)
     chi2 = (c * dx * dx - 2.0 * b * dx * dy + a * dy * dy) / det
     if track_scale_prior:
-        assert model.track_dof is not None
         lam, nu = track_scale(pos_x, pos_y, vm, n, (tc, stt, b1, b2), ((ux, uy), (vx, vy)), (sig_u, sig_v), cols,
-                              phi_cols, phi_sq, m_axis, model.track_dof[groups])
+                              phi_cols, phi_sq, m_axis, model.test_dof(groups))
         z = t_to_z(np.concatenate([z_x, z_y]) / np.sqrt(np.concatenate([lam, lam])), np.concatenate([nu, nu]))
         z_x, z_y = z[: len(lam)], z[len(lam):]
         chi2 = chi2 / lam
