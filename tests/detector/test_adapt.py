@@ -22,7 +22,7 @@ from jitterguard.services.detector.adapt import (
     recompute_norm_stats,
     tracked_residuals,
 )
-from jitterguard.services.detector.config import LITE, Detections3D
+from jitterguard.services.detector.config import LITE, SELF_CROP_M, Detections3D
 from jitterguard.services.detector.inference import load_weights
 from jitterguard.services.detector.network import CenterPointNet
 from jitterguard.services.detector.pillars import voxelize
@@ -145,6 +145,7 @@ def test_adapt_cli_writes_weights_that_name_their_scans(tmp_path: Path) -> None:
     # eval-detector can tell that scoring these weights on this dataroot is test-time adaptation
     assert adapted_on(meta, root) and not adapted_on(meta, tmp_path) and not adapted_on({}, root)
     assert "adapt" in meta["command"] and meta["adapted_from"]["sha256_16"]
+    assert meta["adapt"]["self_crop"] == list(SELF_CROP_M)  # the real scans were cropped as the service crops
     assert rec is not None and json.loads((out / "adapt.json").read_text())["labels_read"] is False
     bad = subprocess.run([sys.executable, "-m", "jitterguard.cli", "adapt", "--weights", str(out / "weights.pt"),
                           "--out", str(out), "--scans", str(root), "--threshold", "car=2"], capture_output=True,

@@ -314,6 +314,8 @@ class AdaptConfig:
     real_repeat: int = 2
     recalibrate: bool = True
     min_tracks: int = 5
+    self_crop: tuple[float, float, float, float] | None = SELF_CROP_M
+    """The vehicle's own body, dropped from every real scan first (None keeps it), as the service drops it."""
 
 
 def adapt(model: CenterPointNet, scans: Sequence[UnlabelledScan], synthetic: Sequence[Sample], cfg: AdaptConfig,
@@ -326,7 +328,7 @@ def adapt(model: CenterPointNet, scans: Sequence[UnlabelledScan], synthetic: Seq
     pcr = model.config.point_cloud_range
     # the scans as the detector would see them: in range, and without the vehicle's own body (a roof return
     # pseudo-labelled "car" in every scan would teach the ghost the service's self-crop exists to prevent)
-    pts = [_in_range(crop_box(s.points, SELF_CROP_M), pcr) for s in scans]
+    pts = [_in_range(crop_box(s.points, cfg.self_crop), pcr) for s in scans]
     scans = [replace(s, points=p) for s, p in zip(scans, pts)]
     report: dict[str, Any] = {"rounds": []}
     recompute_norm_stats(model, pts)

@@ -365,6 +365,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         max_scans: Annotated[int | None, typer.Option("--max-scans", min=1)] = None,
         recalibrate: Annotated[bool, typer.Option("--recalibrate/--no-recalibrate", help="Fit per-axis variance"
                                                   " scales from tracked residuals (recordings with poses).")] = True,
+        self_crop: Annotated[bool, typer.Option("--self-crop/--no-self-crop", help="Drop the returns of the"
+                                                " vehicle's own body from the real scans first (the service's"
+                                                " default self_crop).")] = True,
         seed: Annotated[int, typer.Option("--seed", min=0)] = 0,
         threads: Annotated[int | None, typer.Option("--threads", min=1, max=1024)] = None,
         progress: ProgressOpt = None,
@@ -372,7 +375,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         """Adapt weights to unlabelled real scans: normalisation statistics, self-training, recalibration."""
         progress = progress_on(progress)
         from .adapt import DEFAULT_PSEUDO_THRESHOLDS
-        from .config import CLASS_NAMES
+        from .config import CLASS_NAMES, SELF_CROP_M
 
         if not os.path.isfile(weights):
             fail(f"--weights: file not found: {weights}")
@@ -419,7 +422,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         synthetic = _Prepared(synthetic_cache(root, scen, syn_seeds, frames, progress, effects),
                               model.config.point_cloud_range) if rounds else []
         cfg = AdaptConfig(rounds=rounds, epochs=epochs, batch_size=batch_size, lr=lr, seed=seed, thresholds=tuple(thr),
-                          real_repeat=real_repeat, recalibrate=recalibrate)
+                          real_repeat=real_repeat, recalibrate=recalibrate,
+                          self_crop=SELF_CROP_M if self_crop else None)
         aug = TrainAugment(**(source_meta.get("augment") or {}))  # as the source weights were trained
         report = adapt(model, real, synthetic, cfg, root, augment=aug, progress=progress)
         rec = report["recalibration"]
