@@ -522,6 +522,9 @@ class CalibrationState(_Strict):
     counts: dict[str, int] = Field(default_factory=dict, description="blocks pooled, too fast to pool, "
                                    "down-weighted as outliers")
     effective_blocks: Annotated[float, Field(ge=0.0)] = 0.0
+    scale_dof: Annotated[float, Field(gt=0.0)] | None = Field(
+        None, description="degrees of freedom of the scales themselves: 2 at a cold start, 8 more per block of "
+        "evidence; the test's tails are heavier while it is small. null: scales taken as given (a file, or off)")
 
 
 class ClassifierStateSnapshot(Message):

@@ -393,6 +393,11 @@ def test_file_mode_needs_scales_and_uses_them() -> None:
                                 calibration_model=model)
     assert core.noise_model() is model
     assert core.calibration_state()["groups"]["vehicle"]["along"]["scale"]["0-20"] == 9.0
+    assert core.calibration_state()["scale_dof"] is None  # a file's scales are taken as given
+    assert "calibration.scale_dof" not in calibration_gauges(core.calibration_state())
+    cold = MotionClassifierCore(ClassifierConfig())  # online, nothing learnt: the operator sees how little it knows
+    assert cold.calibration_state()["scale_dof"] == 2.0
+    assert calibration_gauges(cold.calibration_state())["calibration.scale_dof"] == 2.0
 
 
 def test_calibration_config_validates() -> None:

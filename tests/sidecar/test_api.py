@@ -366,9 +366,12 @@ def test_state_and_metrics_show_the_variance_calibration(stack: Stack) -> None:
     # m may be learned as 0 (a noiseless creeper's along-track residuals are not serially correlated)
     assert set(vehicle.along.scale) == {"0-20", "20-40", "40-inf"} and 0 <= vehicle.along.correlation <= 1
     assert vehicle.along.correlation_time_s > 0
+    # how well the scales are known: at least the cold start's 2 degrees of freedom, more with every block
+    assert view.calibration.scale_dof is not None and view.calibration.scale_dof >= 2.0
     with stack.http(auth=False) as c:
         text = c.get("/metrics").text
     scale = _metric(text, "jitterguard_classifier_variance_scale",
                     '{age="established",axis="along",band="0-20",group="vehicle"}')
     assert scale is not None and scale > 0
     assert _metric(text, "jitterguard_classifier_variance_factor", '{axis="across",group="pedestrian"}') > 0
+    assert _metric(text, "jitterguard_classifier_calibration_scale_dof", "") >= 2.0

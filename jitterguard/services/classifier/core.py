@@ -9,6 +9,7 @@ rows through a sorted ID array and ``np.searchsorted``, so the per-frame path ha
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -252,7 +253,8 @@ class MotionClassifierCore:
         if self._state_cache is None or self._state_cache[0] != key:
             state = {"mode": self._config.calibration, "effective_n": self._config.effective_n,
                      **model.to_mapping(self._config.window_size), "counts": dict(self._online.counts),
-                     "effective_blocks": round(self._online.effective_blocks, 3)}
+                     "effective_blocks": round(self._online.effective_blocks, 3),
+                     "scale_dof": round(model.scale_dof, 3) if math.isfinite(model.scale_dof) else None}
             self._state_cache = (key, state)
         return self._state_cache[1]
 
@@ -456,8 +458,11 @@ class MotionClassifierCore:
 def calibration_gauges(state: dict) -> dict[str, float]:
     """A ``calibration_state`` as flat heartbeat gauges: ``calibration.{group}.{axis}.{scale|scale_young}.{band}``,
     ``calibration.{group}.{axis}.{correlation|correlation_time_s|variance_factor}``,
-    ``calibration.{group}.track_dof`` and ``calibration.effective_blocks``."""
+    ``calibration.{group}.track_dof``, ``calibration.effective_blocks`` and ``calibration.scale_dof`` (absent
+    for scales taken as given)."""
     out: dict[str, float] = {"calibration.effective_blocks": float(state.get("effective_blocks", 0.0))}
+    if state.get("scale_dof") is not None:
+        out["calibration.scale_dof"] = float(state["scale_dof"])
     for g, entry in state.get("groups", {}).items():
         out[f"calibration.{g}.track_dof"] = float(entry["track_dof"])
         for axis in ("along", "across"):

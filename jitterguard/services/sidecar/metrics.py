@@ -144,6 +144,10 @@ def calibration_families(cal: dict | None) -> Iterator:
             tau.add_metric([g, axis], float(a["correlation_time_s"]))
             factor.add_metric([g, axis], float(a["variance_factor"]))
     yield from (scale, corr, tau, factor)
+    if cal.get("scale_dof") is not None:
+        yield GaugeMetricFamily("jitterguard_classifier_calibration_scale_dof",
+                                "Degrees of freedom of the calibration's scales (2 at a cold start, 8 more per "
+                                "block of evidence)", value=float(cal["scale_dof"]))
 
 
 def _le(bound: float) -> str:
