@@ -84,6 +84,7 @@ MAX_RAD = [  # rows: track label; columns: measurement label (UNKNOWN, CAR, TRUC
 MotionModel = Literal["cv", "ctrv"]
 MeasurementCovariance = Literal["detector", "class"]
 MahalanobisCovariance = Literal["innovation", "track"]
+MeasurementScaleMode = Literal["online", "off"]
 
 PosFloat = Annotated[float, Field(gt=0.0, allow_inf_nan=False)]
 NonNegFloat = Annotated[float, Field(ge=0.0, allow_inf_nan=False)]
@@ -203,6 +204,14 @@ class TrackerConfig(_Strict):
         " has them, class defaults where it has not; class: always the class defaults",
     )
     min_position_variance: PosFloat = Field(1e-3, description="floor on a detector's position variance (m^2)")
+    measurement_scale: MeasurementScaleMode = Field(
+        "online",
+        description="online: learn from the tracks themselves, without labels, how far the detector's position"
+        " variances are off (per class group, along and across the line of sight, per range band; the"
+        " classifier's estimator) and scale them before the gate and the update; off: take them as reported",
+    )
+    measurement_scale_window: Annotated[int, Field(ge=5, le=100)] = Field(
+        10, description="consecutive detections of one track per block the measurement scale learns from")
     classes: dict[str, ClassParams] = Field(default_factory=_default_classes)
 
     # ---- lifecycle

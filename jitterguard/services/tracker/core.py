@@ -28,6 +28,7 @@ from .config import ConfigTables, TrackerConfig, default_config
 from .arrays import DetectionFrame, FrameResult, TrackSnapshot, WorldDetections
 from .kalman import CTRV, STATE_DIM, wrap_pi
 from .lifecycle import Confirmation, Seen, TrackTable, new_track_id
+from .measurement_scale import MeasurementScale
 
 F64 = NDArray[np.float64]
 
@@ -58,7 +59,10 @@ class TrackerCore:
         self.tables: ConfigTables = self.config.tables()
         self.confirmation = Confirmation(self.tables.confirm_hits, self.config.confirm_min_existence)
         self.id_factory = id_factory
-        self.tracks = TrackTable()
+        online = self.config.measurement_scale == "online" and self.config.measurement_covariance == "detector"
+        self.scale = MeasurementScale(self.config.measurement_scale_window) if online else None
+        self._obs_window = self.scale.window if self.scale is not None else 0
+        self.tracks = TrackTable(self._obs_window)
         self.guard = StreamGuard(self.config.stream)
 
     # ----------------------------------------------------------------------------------------------- API
@@ -66,7 +70,7 @@ class TrackerCore:
     def reset(self) -> list[str]:
         """Forget every track (a source restart); returns the IDs dropped."""
         dropped = list(self.tracks.ids)
-        self.tracks = TrackTable()
+        self.tracks = TrackTable(self._obs_window)  # the measurement scale stays: it describes the detector
         self.guard.reset()
         return dropped
 
@@ -129,6 +133,7 @@ class TrackerCore:
             tr.x[rows] = xr
             tr.P[rows] = Pr
             tr.record_hits(rows, stamp, _seen(frame, det, cols), self.confirmation, cfg.shape_smoothing)
+            self._keep_observations(frame, det, rows, cols)
 
         # ---- delete what the lifecycle rules expire (before births: a newborn never expires at once)
         if n:
@@ -137,6 +142,8 @@ class TrackerCore:
                                  cfg.overlap_factor, cfg.max_candidates, yaw=tr.x[:, 2], length=tr.dims[:, 0],
                                  min_iou=cfg.overlap_min_iou, min_iou_unknown=cfg.overlap_min_iou_unknown)
             keep_rows = np.flatnonzero(keep)
+            if keep_rows.size < n and self.scale is not None:
+                self.scale.evict(tr, np.flatnonzero(~keep))
             if keep_rows.size < n:
                 remap = np.full(n, -1, dtype=np.intp)
                 remap[keep_rows] = np.arange(keep_rows.size)
@@ -153,8 +160,11 @@ class TrackerCore:
         if new.size:
             start = len(tr)
             born = self._birth(frame, det, new)
+            self._keep_observations(frame, det, np.arange(start, start + new.size), new)
             rows = np.concatenate([rows, np.arange(start, start + new.size)])
             cols = np.concatenate([cols, new])
+        if self.scale is not None:
+            self.scale.learn(tr, stamp * 1e-9)  # what this frame taught serves the next one
 
         snapshot, obs_track, obs_det, withheld = self._snapshot(rows, cols)
         return FrameResult(
@@ -214,13 +224,32 @@ class TrackerCore:
             use = f.has_cov & ((f.cov_xx > 0.0) | (f.cov_yy > 0.0))
             if use.any():
                 floor = cfg.min_position_variance
-                R[use, 0, 0] = np.maximum(cxx[use], floor)
-                R[use, 1, 1] = np.maximum(cyy[use], floor)
+                rxx, rxy, ryy = cxx, cxy, cyy
+                if self.scale is not None:  # what the detector's variances are off by, as learnt so far
+                    rxx, rxy, ryy = rotate_cov2(*self.scale.rescale(f.x, f.y, f.cov_xx, f.cov_xy, f.cov_yy, f.label),
+                                                f.ego_yaw)
+                R[use, 0, 0] = np.maximum(rxx[use], floor)
+                R[use, 1, 1] = np.maximum(ryy[use], floor)
                 lim = 0.999 * np.sqrt(R[use, 0, 0] * R[use, 1, 1])  # keep it positive definite
-                R[use, 0, 1] = R[use, 1, 0] = np.clip(cxy[use], -lim, lim)
+                R[use, 0, 1] = R[use, 1, 0] = np.clip(rxy[use], -lim, lim)
                 yaw_var = np.where(use & (f.var_yaw > 0.0), f.var_yaw, yaw_var)
         R[:, 2, 2] = np.where(no_yaw, UNMEASURED_YAW_VAR, yaw_var)
         return WorldDetections(x=x, y=y, z=f.z + f.ego_z, yaw=yaw, cov_xx=cxx, cov_xy=cxy, cov_yy=cyy, R=R)
+
+    def _keep_observations(self, f: DetectionFrame, det: WorldDetections, rows: NDArray[np.intp],
+                           cols: NDArray[np.intp]) -> None:
+        """Keep each track's detection with its reported covariance (world frame) for the measurement scale;
+        one without a covariance of its own breaks the track's run (nothing to learn the detector's from)."""
+        if self.scale is None or rows.size == 0:
+            return
+        own = f.has_cov[cols] & (f.cov_xx[cols] > 0.0) & (f.cov_yy[cols] > 0.0)
+        self.tracks.obs_since[rows[~own]] = 0
+        self.tracks.obs_seen[rows[~own]] = 0
+        rows, cols = rows[own], cols[own]
+        k = rows.size
+        values = np.stack([det.x[cols], det.y[cols], det.cov_xx[cols], det.cov_xy[cols], det.cov_yy[cols],
+                           np.full(k, f.stamp_ns * 1e-9), np.full(k, f.ego_x), np.full(k, f.ego_y)], axis=1)
+        self.tracks.record_observations(rows, values)
 
     def _birth(self, f: DetectionFrame, det: WorldDetections, idx: NDArray[np.intp]) -> list[str]:
         """Start a tentative track from each detection in ``idx`` (zero velocity, the class's spread)."""

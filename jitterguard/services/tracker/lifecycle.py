@@ -68,10 +68,20 @@ class Seen:
     orientation: NDArray[np.int8]
 
 
-class TrackTable:
-    """Every track's state and bookkeeping, one row per track."""
+OBS_CHANNELS = 8
+"""Per kept detection: world x, y; its reported world covariance xx, xy, yy; stamp [s]; the sensor's x, y."""
 
-    def __init__(self) -> None:
+
+class TrackTable:
+    """Every track's state and bookkeeping, one row per track. ``obs_window``: how many of each track's latest
+    detections are kept (``obs``, a ring; ``obs_seen`` counts them all, ``obs_since`` those not yet learnt
+    from) for the measurement scale (:mod:`.measurement_scale`); 0 keeps none."""
+
+    def __init__(self, obs_window: int = 0) -> None:
+        self.obs_window = obs_window
+        self.obs = np.zeros((0, obs_window, OBS_CHANNELS))
+        self.obs_seen = np.zeros(0, dtype=np.int64)
+        self.obs_since = np.zeros(0, dtype=np.int64)
         self.ids: list[str] = []
         self.x = np.zeros((0, STATE_DIM))
         self.P = np.zeros((0, STATE_DIM, STATE_DIM))
@@ -123,7 +133,24 @@ class TrackTable:
         self.confirmed = np.concatenate([self.confirmed, confirm.reached(np.ones(k, dtype=np.int64), seen.label, seen.existence)])
         self.born_ns = np.concatenate([self.born_ns, np.full(k, stamp_ns, dtype=np.int64)])
         self.last_update_ns = np.concatenate([self.last_update_ns, np.full(k, stamp_ns, dtype=np.int64)])
+        self.obs = np.concatenate([self.obs, np.zeros((k, self.obs_window, OBS_CHANNELS))])
+        self.obs_seen = np.concatenate([self.obs_seen, np.zeros(k, dtype=np.int64)])
+        self.obs_since = np.concatenate([self.obs_since, np.zeros(k, dtype=np.int64)])
         return ids
+
+    def record_observations(self, rows: NDArray[np.intp], values: F64) -> None:
+        """Keep one detection per row (``values``: (k, :data:`OBS_CHANNELS`)) in its ring."""
+        if self.obs_window == 0 or rows.size == 0:
+            return
+        self.obs[rows, self.obs_seen[rows] % self.obs_window] = values
+        self.obs_seen[rows] += 1
+        self.obs_since[rows] += 1
+
+    def latest_observations(self, rows: NDArray[np.intp], n: int) -> F64:
+        """(k, n, :data:`OBS_CHANNELS`): each row's newest ``n`` kept detections, oldest first (n ≤ what it
+        has and ≤ ``obs_window``)."""
+        slots = (self.obs_seen[rows, None] - n + np.arange(n)[None, :]) % self.obs_window
+        return self.obs[rows[:, None], slots]
 
     def record_hits(
         self,
@@ -163,7 +190,7 @@ class TrackTable:
         dropped = [i for i, k in zip(self.ids, mask) if not k]
         self.ids = [i for i, k in zip(self.ids, mask) if k]
         for name in ("x", "P", "t_ns", "model", "votes", "label", "existence", "z", "dims", "orientation",
-                     "hits", "confirmed", "born_ns", "last_update_ns"):
+                     "hits", "confirmed", "born_ns", "last_update_ns", "obs", "obs_seen", "obs_since"):
             setattr(self, name, getattr(self, name)[mask])
         return dropped
 
