@@ -64,6 +64,9 @@ def eval_command(
                                                     "(default 0.1).")] = None,
     speed_sustain: Annotated[bool, typer.Option("--speed-sustain/--no-speed-sustain", help="The baseline holds "
                                                 "Autoware's sustain times (2 s vehicles, 1 s others).")] = False,
+    tracker_config: Annotated[Path | None, typer.Option("--tracker-config", help="Tracker parameter file (as "
+                                                        "`jitterguard tracker --config`; default: the shipped "
+                                                        "one).")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Also print metrics.json to stdout.")] = False,
 ) -> None:
     """Evaluate (detector →) tracker → motion classifier offline against ground truth."""
@@ -120,6 +123,13 @@ def eval_command(
         err = exc.errors()[0] if hasattr(exc, "errors") else None
         where = ".".join(str(x) for x in err["loc"]) if err and err.get("loc") else "classifier config"
         fail(f"{where}: {err['msg'] if err else str(exc).splitlines()[0]}")
+    from ..config import ConfigError
+    from ..services.tracker.config import load_config
+
+    try:
+        tracker = load_config(tracker_config)
+    except ConfigError as exc:
+        fail(f"--tracker-config: {exc}")
     model = None
     if cfg.calibration == "file":
         from ..services.classifier.calibration_file import CalibrationFileError, read_calibration
@@ -134,7 +144,7 @@ def eval_command(
                        duration=duration, rate=rate, classifier=cfg,
                        extra_seeds=tuple(range(seed + 1, seed + runs)), detector=detector,
                        weights_desc=weights_desc, variance_scale=variance_scale, calibration_model=model,
-                       variance_scale_at=variance_scale_at)
+                       variance_scale_at=variance_scale_at, tracker=tracker)
     if as_json:
         sys.stdout.write(json.dumps(metrics, indent=2, sort_keys=True) + "\n")
     else:
@@ -180,7 +190,8 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
              scene: str | None, duration: float, rate: float, classifier: Any,
              extra_seeds: tuple[int, ...] = (), detector: "Detector | None" = None,
              weights_desc: str | None = None, variance_scale: float = 1.0,
-             calibration_model: Any = None, variance_scale_at: str = "detector") -> dict[str, Any]:
+             calibration_model: Any = None, variance_scale_at: str = "detector",
+             tracker: Any = None) -> dict[str, Any]:
     """Load the frames, run the pipeline, score, write the outputs; returns metrics.json's content.
 
     ``extra_seeds`` pools more runs (a fresh scenario and noise draw per seed; for nuScenes only the noise
@@ -236,7 +247,7 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
     def one(fr: Any, s: int) -> Records:
         carry = calibration_for_run()
         if detector is None:
-            return run_pipeline(fr, NOISE_PRESETS[noise or "jittery"](), s, classifier,
+            return run_pipeline(fr, NOISE_PRESETS[noise or "jittery"](), s, classifier, tracker,
                                 progress=lambda it: bar(it, s), calibration=carry, variance_scale=variance_scale,
                                 calibration_model=calibration_model, variance_scale_at=variance_scale_at)
         from .detector_input import detector_frames, nuscenes_scans, run_detector_pipeline, synthetic_scans
@@ -250,7 +261,7 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
             scans = synthetic_scans(fr, s)
         det_frames = detector_frames(bar(scans, s), detector.detect, class_names=detector.config.class_names,
                                      uncertainty=detector.config.uncertainty)
-        rec_s, preds, smp = run_detector_pipeline(det_frames, classifier, calibration=carry,
+        rec_s, preds, smp = run_detector_pipeline(det_frames, classifier, tracker, calibration=carry,
                                                   variance_scale=variance_scale,
                                                   calibration_model=calibration_model,
                                                   variance_scale_at=variance_scale_at)
@@ -280,7 +291,8 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
                 "min_window": classifier.min_window, "window_size": classifier.window_size,
                 "calibration": classifier.calibration, "effective_n": classifier.effective_n,
                 "min_speed_mps": classifier.min_speed_mps, "variance_scale": variance_scale,
-                "variance_scale_at": variance_scale_at},
+                "variance_scale_at": variance_scale_at,
+                "tracker_measurement_scale": (tracker.measurement_scale if tracker is not None else "off")},
         "motion": compute_metrics(rec),
         **planner_metrics(rec),
         "calibration": drive.snapshot(classifier.window_size) if classifier.calibration == "online" else None,

@@ -79,6 +79,23 @@ def test_cli_writes_report_metrics_and_figures(tmp_path: Path, capsys) -> None:
         assert ci[key] is None or ci[key][0] <= on_disk["motion"]["vehicle"][key] <= ci[key][1], key
     assert on_disk["by_attribute"]["vehicle.parked"]["missed_dynamic_z"] is None
     assert on_disk["run"]["calibration"] == "online" and on_disk["run"]["effective_n"] == "measured"
+    assert on_disk["run"]["tracker_measurement_scale"] == "off"
+
+
+def test_cli_takes_a_tracker_parameter_file(tmp_path: Path, capsys) -> None:
+    """`--tracker-config` runs the tracker as that file says (here its measurement scale switched on): the run
+    says so, and the tracks, hence the speed rule's rows, are not those of the shipped file."""
+    cfg = tmp_path / "tracker.yaml"
+    cfg.write_text("measurement_scale: online\n")
+    runs = {}
+    for name, extra in (("shipped", []), ("online", ["--tracker-config", str(cfg)])):
+        with pytest.raises(SystemExit) as exc:
+            main(["eval", "--scenario", "mixed", "--seed", "5", "--duration", "8", "--out", str(tmp_path / name),
+                  "--json", *extra])
+        assert exc.value.code == 0
+        runs[name] = json.loads(capsys.readouterr().out)
+    assert runs["online"]["run"]["tracker_measurement_scale"] == "online"
+    assert runs["online"]["motion"]["vehicle"] != runs["shipped"]["motion"]["vehicle"]
 
 
 @pytest.mark.parametrize("argv", [
@@ -91,6 +108,7 @@ def test_cli_writes_report_metrics_and_figures(tmp_path: Path, capsys) -> None:
     ["--calibration", "sometimes"],
     ["--calibration-file", "/nonexistent/cal.yaml"],
     ["--effective-n", "many"],
+    ["--tracker-config", "/nonexistent/tracker.yaml"],
 ])
 def test_cli_bad_input_is_one_line_exit_2(tmp_path: Path, capsys, argv: list[str]) -> None:
     with pytest.raises(SystemExit) as exc:

@@ -205,10 +205,11 @@ class TrackerConfig(_Strict):
     )
     min_position_variance: PosFloat = Field(1e-3, description="floor on a detector's position variance (m^2)")
     measurement_scale: MeasurementScaleMode = Field(
-        "online",
+        "off",
         description="online: learn from the tracks themselves, without labels, how far the detector's position"
         " variances are off (per class group, along and across the line of sight, per range band; the"
-        " classifier's estimator) and scale them before the gate and the update; off: take them as reported",
+        " classifier's estimator) and scale them before the gate and the update; off: take them as reported"
+        " (the default: on the one real scene measured, online made both motion rules worse; docs/tracker.md)",
     )
     measurement_scale_window: Annotated[int, Field(ge=5, le=100)] = Field(
         10, description="consecutive detections of one track per block the measurement scale learns from")
