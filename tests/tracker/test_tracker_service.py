@@ -194,3 +194,32 @@ def test_static_hints_zero_the_velocity_of_the_hinted_track(harness_factory) -> 
     assert (p.x, p.y) == pytest.approx((pos.x, pos.y), abs=1e-6)  # zero velocity: the prediction stays put
     assert h.service.counters.get("static_hints_applied") == 1
     assert h.service.counters.get("static_hints_unknown") == 1
+
+
+def test_the_measurement_scale_it_learns_is_in_the_heartbeat(harness_factory) -> None:
+    """With ``measurement_scale: online`` the heartbeat carries what the tracker has learnt of the detector's
+    variances (and the shipped default, off, carries none)."""
+    from jitterguard.schemas.models import Heartbeat
+
+    h = harness_factory("trk_scale", config=default_config().model_copy(update={"measurement_scale": "online"}))
+    off = harness_factory("trk_scale_off")
+    assert off.service.gauges() == {}
+    seq = make_sequence(9, n_frames=40)
+    base = h.next_seq + 10
+    for k, sf in enumerate(seq.frames):
+        h.send(_shifted(to_message(sf), base + k, h.stamp0 + 10**9 + k * 100_000_000))
+    h.wait_seq(base + len(seq.frames) - 1)
+    gauges = h.service.gauges()
+    assert gauges["measurement_scale.effective_blocks"] > 0  # 40 frames: tracks' detections turned over
+    assert gauges["measurement_scale.vehicle.along.0-20"] > 0
+
+    def beat() -> Heartbeat | None:
+        with h.lock:
+            for key, data in reversed(h.samples):
+                if key == keys.heartbeat(h.ns, "tracker"):
+                    hb = decode(Heartbeat, data)
+                    if hb.gauges.get("measurement_scale.effective_blocks", 0) > 0:
+                        return hb
+        return None
+
+    assert wait_for(lambda: beat() is not None, 5.0)

@@ -23,9 +23,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..classifier.calibration import (
+    AXES,
+    GROUPS,
     MIN_BLOCK,
     NoiseModel,
     OnlineCalibration,
+    band_names,
     block_moments,
     group_of_labels,
     line_of_sight,
@@ -34,6 +37,17 @@ from ..classifier.calibration import (
 from .lifecycle import TrackTable
 
 F64 = NDArray[np.float64]
+
+
+def measurement_scale_gauges(model: NoiseModel) -> dict[str, float]:
+    """Flat heartbeat gauges of the scales applied (established tracks): ``measurement_scale.{group}.{axis}.{band}``
+    and the evidence behind them, ``measurement_scale.effective_blocks``."""
+    out = {"measurement_scale.effective_blocks": round(float(model.blocks.sum() / 2), 3)}
+    for gi, g in enumerate(GROUPS):
+        for ai, axis in enumerate(AXES):
+            for bi, band in enumerate(band_names(model.band_edges_m)):
+                out[f"measurement_scale.{g}.{axis}.{band}"] = float(model.scale[gi, ai, bi, 0])
+    return out
 
 
 class MeasurementScale:

@@ -35,6 +35,7 @@ from .adapter import detection_frame, observation_payloads, tracked_payload
 from .config import TrackerConfig, default_config
 from .core import FrameRejected, TrackerCore
 from .lifecycle import new_track_id
+from .measurement_scale import measurement_scale_gauges
 
 FRAME_CHANNEL = 64
 IDLE_WAIT_S = 0.05
@@ -64,6 +65,8 @@ class TrackerService(Service):
         self._hints_lock = threading.Lock()
         self._manage_gc = manage_gc
         self._idle_gc = IdleCollector()
+        self._gauges: dict[str, float] = {}
+        self._gauges_of: int | None = None  # id of the measurement-scale model the gauges show
         if manage_gc:
             manage_gc_for_latency()
         super().__init__(opts)
@@ -162,6 +165,15 @@ class TrackerService(Service):
         if result.withheld:
             self.counters.inc("tracks_withheld", result.withheld)
         self.last_seq = frame.seq
+        if self.core.scale is not None and id(self.core.scale.model) != self._gauges_of:
+            self._gauges_of = id(self.core.scale.model)
+            self._gauges = measurement_scale_gauges(self.core.scale.model)
+
+    def gauges(self) -> dict[str, float]:
+        """The heartbeat's gauges: with ``measurement_scale: online``, what the tracker has learnt of the detector's
+        variances (``measurement_scale.{group}.{along|across}.{band}``, established tracks) and the blocks behind
+        it (``measurement_scale.effective_blocks``); none otherwise."""
+        return self._gauges
 
     def _publish(self, observations: list[tuple[str, bytes]]) -> None:
         """Put each ``tracks/{id}`` (``tracked`` follows)."""
