@@ -131,7 +131,9 @@ def test_parked_stays_static_moving_is_dynamic_and_a_car_pulling_out_flips_withi
     # the car pulling out: static while parked, dynamic within one window of starting to move
     pull = states[tid[2]]
     start = int(round(START_MOVING_S / DT))
-    assert pull[start - 1] == "static"
+    # the last frame decided before it moved (a frame a loaded machine decided without this track's late
+    # observation has no state for it: that is the straggler timeout doing its job, not a wrong decision)
+    assert pull[max(f for f in pull if f < start)] == "static"
     flips = [f for f in sorted(pull) if f >= start and pull[f] == "dynamic"]
     assert flips, pull
     assert flips[0] - start <= WINDOW, f"flipped {flips[0] - start} frames after it started moving"
