@@ -118,6 +118,25 @@ def rotate_cov2(cxx: ArrayLike, cxy: ArrayLike, cyy: ArrayLike, yaw: ArrayLike) 
     return rxx, rxy, ryy
 
 
+def scale_beam_covariance(x: ArrayLike, y: ArrayLike, cxx: ArrayLike, cxy: ArrayLike, cyy: ArrayLike,
+                          k_along: ArrayLike, k_across: ArrayLike) -> tuple[F64, F64, F64]:
+    """Sensor-frame 2x2 covariances of points at sensor-frame (x, y) with the variance along the beam to the point
+    multiplied by ``k_along`` and across it by ``k_across`` (the covariance by √(k_along·k_across)): Σ' = D Σ D in
+    the beam frame, D = diag(√k_along, √k_across). Scalars or one factor per row."""
+    cxx, cxy, cyy = (np.asarray(a, dtype=np.float64) for a in (cxx, cxy, cyy))
+    phi = np.arctan2(y, x)
+    c, s = np.cos(phi), np.sin(phi)
+    # into the beam frame: Σ_b = Rᵀ Σ R
+    bll = c * c * cxx + 2 * c * s * cxy + s * s * cyy
+    btt = s * s * cxx - 2 * c * s * cxy + c * c * cyy
+    blt = -c * s * cxx + (c * c - s * s) * cxy + c * s * cyy
+    k_along, k_across = np.asarray(k_along, dtype=np.float64), np.asarray(k_across, dtype=np.float64)
+    bll, btt, blt = bll * k_along, btt * k_across, blt * np.sqrt(k_along * k_across)
+    return (c * c * bll - 2 * c * s * blt + s * s * btt,
+            c * s * (bll - btt) + (c * c - s * s) * blt,
+            s * s * bll + 2 * c * s * blt + c * c * btt)
+
+
 def rotate_cov6(cov: F64, yaw: float) -> F64:
     """6x6 covariances ``(M, 36)`` (Autoware's layout) with x and y turned by ``yaw`` about +z: the x/y block by
     :func:`rotate_cov2` and the x/y rows and columns against z, roll, pitch, yaw with it (R Σ Rᵀ, R = Rz ⊕ I4)."""

@@ -206,6 +206,7 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
     from .metrics import REPORT_GROUPS, alpha_from_labels, compute_metrics, planner_metrics
     from .pipeline import MATCH_DISTANCE_M, NOISE_PRESETS, Records, concat_records, run_pipeline
     from .report import write_outputs
+    from ..services.tracker.config import default_config as default_tracker_config
 
     if nuscenes is not None:
         try:
@@ -292,7 +293,7 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
                 "calibration": classifier.calibration, "effective_n": classifier.effective_n,
                 "min_speed_mps": classifier.min_speed_mps, "variance_scale": variance_scale,
                 "variance_scale_at": variance_scale_at,
-                "tracker_measurement_scale": (tracker.measurement_scale if tracker is not None else "off")},
+                "tracker_measurement_scale": (tracker or default_tracker_config()).measurement_scale},
         "motion": compute_metrics(rec),
         **planner_metrics(rec),
         "calibration": drive.snapshot(classifier.window_size) if classifier.calibration == "online" else None,

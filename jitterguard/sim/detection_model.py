@@ -41,7 +41,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ..geometry import quaternion_from_yaw
+from ..geometry import quaternion_from_yaw, scale_beam_covariance
 from ..schemas.models import (
     X_X, X_Y, Y_X, Y_Y, YAW_YAW, Z_Z,
     DetectedObject, DetectedObjectKinematics, DetectedObjects, Header, Label, ObjectClassification, Point, Pose,
@@ -185,23 +185,6 @@ def beam_covariance(x: ArrayLike, y: ArrayLike, var_long: ArrayLike, var_lat: Ar
     return c * c * var_long + s * s * var_lat, c * s * (var_long - var_lat), s * s * var_long + c * c * var_lat
 
 
-def miscalibrate(x: F64, y: F64, cxx: F64, cxy: F64, cyy: F64, k_long: ArrayLike, k_lat: ArrayLike
-                 ) -> tuple[F64, F64, F64]:
-    """Scale a sensor-frame covariance's along-beam variance by ``k_long`` and across-beam by ``k_lat``
-    (scalars or one per row)."""
-    phi = np.arctan2(y, x)
-    c, s = np.cos(phi), np.sin(phi)
-    # into the beam frame: Σ_b = Rᵀ Σ R
-    bll = c * c * cxx + 2 * c * s * cxy + s * s * cyy
-    btt = s * s * cxx - 2 * c * s * cxy + c * c * cyy
-    blt = -c * s * cxx + (c * c - s * s) * cxy + c * s * cyy
-    k_long, k_lat = np.asarray(k_long, dtype=np.float64), np.asarray(k_lat, dtype=np.float64)
-    bll, btt, blt = bll * k_long, btt * k_lat, blt * np.sqrt(k_long * k_lat)
-    return (c * c * bll - 2 * c * s * blt + s * s * btt,
-            c * s * (bll - btt) + (c * c - s * s) * blt,
-            s * s * bll + 2 * c * s * blt + c * c * btt)
-
-
 class DetectionModel:
     """Turns :class:`GroundTruthFrame` s into detections. Stateful (per-object jitter offsets): feed the frames of
     one scenario in order. Deterministic given ``seed`` and the sequence of frames."""
@@ -285,7 +268,7 @@ class DetectionModel:
             k_lat = cfg.variance_scale_lateral * np.exp(2.0 * eta[:, 1])
         else:
             k_long, k_lat = np.full(len(idx), cfg.variance_scale_longitudinal), np.full(len(idx), cfg.variance_scale_lateral)
-        rxx, rxy, ryy = miscalibrate(sx[idx], sy[idx], cxx, cxy, cyy, k_long, k_lat)
+        rxx, rxy, ryy = scale_beam_covariance(sx[idx], sy[idx], cxx, cxy, cyy, k_long, k_lat)
         sig_yaw = (cfg.sigma_yaw_0 + cfg.sigma_yaw_per_m * rng_m[idx]) * occ
         yaw_det = yaw_rel[idx] + rng.standard_normal(len(idx)) * sig_yaw
         flip = rng.random(len(idx)) < cfg.p_heading_flip

@@ -15,7 +15,8 @@ from jitterguard.geometry import rotate_cov2, sensor_to_world_xy, yaw_from_quate
 from jitterguard.schemas import DetectedObjects, Label, decode, encode
 from jitterguard.schemas.models import X_X, X_Y, Y_X, Y_Y, YAW_YAW
 from jitterguard.sim import DetectionModel, GroundTruthFrame, NoiseConfig, Scenario, make_scenario
-from jitterguard.sim.detection_model import beam_covariance, miscalibrate
+from jitterguard.geometry import scale_beam_covariance
+from jitterguard.sim.detection_model import beam_covariance
 from jitterguard.sim.world import BASE_STAMP_NS, SENSOR_HEIGHT_M
 
 
@@ -279,9 +280,9 @@ def test_beam_frame_covariance_algebra(x: float, y: float, vl: float, vt: float,
     cxx, cxy, cyy = beam_covariance(x, y, vl, vt)
     rxx, rxy, ryy = rotate_cov2(vl, 0.0, vt, math.atan2(y, x))  # the shared geometry helper agrees
     assert np.allclose([cxx, cxy, cyy], [rxx, rxy, ryy], rtol=1e-9, atol=1e-12)
-    same = miscalibrate(x, y, cxx, cxy, cyy, 1.0, 1.0)
+    same = scale_beam_covariance(x, y, cxx, cxy, cyy, 1.0, 1.0)
     assert np.allclose(same, [cxx, cxy, cyy], rtol=1e-9, atol=1e-12)
-    sk = miscalibrate(x, y, cxx, cxy, cyy, kl, kt)
+    sk = scale_beam_covariance(x, y, cxx, cxy, cyy, kl, kt)
     assert sk[0] * sk[2] - sk[1] ** 2 > 0  # still positive definite
-    back = miscalibrate(x, y, *sk, 1.0 / kl, 1.0 / kt)
+    back = scale_beam_covariance(x, y, *sk, 1.0 / kl, 1.0 / kt)
     assert np.allclose(back, [cxx, cxy, cyy], rtol=1e-7, atol=1e-10)

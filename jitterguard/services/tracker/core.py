@@ -142,9 +142,9 @@ class TrackerCore:
                                  cfg.overlap_factor, cfg.max_candidates, yaw=tr.x[:, 2], length=tr.dims[:, 0],
                                  min_iou=cfg.overlap_min_iou, min_iou_unknown=cfg.overlap_min_iou_unknown)
             keep_rows = np.flatnonzero(keep)
-            if keep_rows.size < n and self.scale is not None:
-                self.scale.evict(tr, np.flatnonzero(~keep))
             if keep_rows.size < n:
+                if self.scale is not None:  # what the deleted tracks have not given yet, before their rows go
+                    self.scale.evict(tr, np.flatnonzero(~keep))
                 remap = np.full(n, -1, dtype=np.intp)
                 remap[keep_rows] = np.arange(keep_rows.size)
                 deleted += tr.keep(keep)

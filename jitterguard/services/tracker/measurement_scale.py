@@ -22,6 +22,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from ...geometry import scale_beam_covariance
 from ..classifier.calibration import (
     AXES,
     GROUPS,
@@ -31,23 +32,10 @@ from ..classifier.calibration import (
     band_names,
     block_moments,
     group_of_labels,
-    line_of_sight,
-    project_covariance,
 )
 from .lifecycle import TrackTable
 
 F64 = NDArray[np.float64]
-
-
-def measurement_scale_gauges(model: NoiseModel) -> dict[str, float]:
-    """Flat heartbeat gauges of the scales applied (established tracks): ``measurement_scale.{group}.{axis}.{band}``
-    and the evidence behind them, ``measurement_scale.effective_blocks``."""
-    out = {"measurement_scale.effective_blocks": round(float(model.blocks.sum() / 2), 3)}
-    for gi, g in enumerate(GROUPS):
-        for ai, axis in enumerate(AXES):
-            for bi, band in enumerate(band_names(model.band_edges_m)):
-                out[f"measurement_scale.{g}.{axis}.{band}"] = float(model.scale[gi, ai, bi, 0])
-    return out
 
 
 class MeasurementScale:
@@ -62,23 +50,27 @@ class MeasurementScale:
     def model(self) -> NoiseModel:
         return self.online.current
 
+    def gauges(self) -> dict[str, float]:
+        """Flat heartbeat gauges of the scales applied (established tracks),
+        ``measurement_scale.{group}.{axis}.{band}``, and the evidence behind them,
+        ``measurement_scale.effective_blocks``."""
+        model = self.model
+        out = {"measurement_scale.effective_blocks": round(self.online.effective_blocks, 3)}
+        for gi, g in enumerate(GROUPS):
+            for ai, axis in enumerate(AXES):
+                for bi, band in enumerate(band_names(model.band_edges_m)):
+                    out[f"measurement_scale.{g}.{axis}.{band}"] = float(model.scale[gi, ai, bi, 0])
+        return out
+
     def rescale(self, x: F64, y: F64, cxx: F64, cxy: F64, cyy: F64, labels: NDArray[np.integer]
                 ) -> tuple[F64, F64, F64]:
-        """Sensor-frame covariances of detections at sensor-frame (x, y), scaled along the line of sight by
-        √k_u and across it by √k_v (Σ' = D Σ D in that frame), k the established scales of their class group
-        and range band."""
-        pos = np.stack([x, y], axis=1)
-        u, v, rng = line_of_sight(pos, np.zeros_like(pos))
-        var_u, var_v, cuv = project_covariance(u, v, np.stack([cxx, cxy, cyy], axis=-1))
+        """Sensor-frame covariances of detections at sensor-frame (x, y), scaled along the line of sight by the
+        established scale k_u of their class group and range band and across it by k_v
+        (:func:`~jitterguard.geometry.scale_beam_covariance`)."""
         model = self.model
         g = group_of_labels(labels)
-        band = model.bands(rng)
-        ku, kv = model.scale[g, 0, band, 0], model.scale[g, 1, band, 0]
-        auu, avv, auv = ku * var_u, kv * var_v, np.sqrt(ku * kv) * cuv
-        ux, uy, vx, vy = u[:, 0], u[:, 1], v[:, 0], v[:, 1]
-        return (auu * ux * ux + avv * vx * vx + 2.0 * auv * ux * vx,
-                auu * ux * uy + avv * vx * vy + auv * (ux * vy + vx * uy),
-                auu * uy * uy + avv * vy * vy + 2.0 * auv * uy * vy)
+        band = model.bands(np.hypot(x, y))
+        return scale_beam_covariance(x, y, cxx, cxy, cyy, model.scale[g, 0, band, 0], model.scale[g, 1, band, 0])
 
     def learn(self, tracks: TrackTable, stamp_s: float) -> None:
         """Pool every track whose kept detections have turned over since it was last pooled; refit when due."""
@@ -89,7 +81,7 @@ class MeasurementScale:
 
     def evict(self, tracks: TrackTable, gone: NDArray[np.intp]) -> None:
         """Pool what tracks about to be deleted have not given yet (blocks of at least MIN_BLOCK)."""
-        n = np.minimum(tracks.obs_since[gone], np.minimum(tracks.obs_seen[gone], self.window))
+        n = np.minimum(tracks.obs_since[gone], self.window)  # never more than it has: since ≤ seen
         for k in np.unique(n[n >= MIN_BLOCK]).tolist():
             self._pool(tracks, gone[n == k], int(k))
 

@@ -35,7 +35,6 @@ from .adapter import detection_frame, observation_payloads, tracked_payload
 from .config import TrackerConfig, default_config
 from .core import FrameRejected, TrackerCore
 from .lifecycle import new_track_id
-from .measurement_scale import measurement_scale_gauges
 
 FRAME_CHANNEL = 64
 IDLE_WAIT_S = 0.05
@@ -167,7 +166,7 @@ class TrackerService(Service):
         self.last_seq = frame.seq
         if self.core.scale is not None and id(self.core.scale.model) != self._gauges_of:
             self._gauges_of = id(self.core.scale.model)
-            self._gauges = measurement_scale_gauges(self.core.scale.model)
+            self._gauges = self.core.scale.gauges()
 
     def gauges(self) -> dict[str, float]:
         """The heartbeat's gauges: with ``measurement_scale: online``, what the tracker has learnt of the detector's
