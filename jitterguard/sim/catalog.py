@@ -59,6 +59,11 @@ CLASSES: dict[str, ObjectClass] = {
         ObjectClass("car", Label.CAR, "vehicle.car", (4.63, 1.96, 1.73), (0.35, 0.10, 0.15)),
         ObjectClass("van", Label.CAR, "vehicle.car", (5.3, 2.05, 2.2), (0.3, 0.08, 0.15)),
         ObjectClass("truck", Label.TRUCK, "vehicle.truck", (7.0, 2.5, 3.0), (1.0, 0.12, 0.3)),
+        # the rest of a real truck fleet (nuScenes files pick-ups and tractor-semitrailers under vehicle.truck);
+        # only the loading-street scenario parks them, so the other scenarios' worlds are unchanged
+        ObjectClass("pickup", Label.TRUCK, "vehicle.truck", (5.5, 2.0, 1.9), (0.3, 0.08, 0.08)),
+        ObjectClass("semi", Label.TRUCK, "vehicle.truck", (15.0, 2.55, 3.9), (1.2, 0.05, 0.12)),
+        ObjectClass("long_trailer", Label.TRAILER, "vehicle.trailer", (12.5, 2.55, 3.9), (1.2, 0.05, 0.12)),
         ObjectClass("bus", Label.BUS, "vehicle.bus.rigid", (11.5, 2.95, 3.45), (0.6, 0.05, 0.12)),
         ObjectClass("trailer", Label.TRAILER, "vehicle.trailer", (9.0, 2.5, 3.6), (1.5, 0.1, 0.2)),
         ObjectClass("motorcycle", Label.MOTORCYCLE, "vehicle.motorcycle", (2.1, 0.78, 1.47), (0.15, 0.06, 0.08)),

@@ -20,7 +20,7 @@ from ..cli_common import ProgressOpt, fail, progress_on
 sim_app = typer.Typer(help="Synthetic world: scenarios with ground truth, ray-cast LiDAR, nuScenes export.",
                       no_args_is_help=True)
 
-ScenarioArg = Annotated[str, typer.Argument(help="parking-street, diagonal-lot, intersection or mixed.")]
+ScenarioArg = Annotated[str, typer.Argument(help="parking-street, diagonal-lot, intersection, mixed or loading-street.")]
 SeedOpt = Annotated[int, typer.Option("--seed", help="Seed: the same seed gives the same world.")]
 DurationOpt = Annotated[float, typer.Option("--duration", help="Seconds (10–60 is the intended range).")]
 LidarOpt = Annotated[str, typer.Option("--lidar", help="hdl32e, vlp16 or os1-64.")]

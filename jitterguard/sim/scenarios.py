@@ -68,8 +68,12 @@ def _fill_lane(b: LayoutBuilder, lane: int, s_from: float, s_to: float, gap: tup
         s -= rng.uniform(*gap)
 
 
+_KERBSIDE_MIX = {"car": 0.82, "van": 0.1, "truck": 0.05, "motorcycle": 0.03}
+
+
 def _parallel_parking(b: LayoutBuilder, x0: float, x1: float, y: float, heading: float,
-                      keep_clear: Sequence[tuple[float, float]] = (), p_gap: float = 0.12, along_x: bool = True) -> None:
+                      keep_clear: Sequence[tuple[float, float]] = (), p_gap: float = 0.12, along_x: bool = True,
+                      mix: dict[str, float] | None = None) -> None:
     """Parallel-parked vehicles along y = ``y`` between x0 and x1, bumper gaps 0.6–2.5 m, some empty spots
     (``along_x=False``: along the line x = ``y`` between y = x0 and x1)."""
     rng = b.rng
@@ -78,13 +82,14 @@ def _parallel_parking(b: LayoutBuilder, x0: float, x1: float, y: float, heading:
         if rng.random() < p_gap:
             x += rng.uniform(5.0, 14.0)
             continue
-        key = _pick(rng, {"car": 0.82, "van": 0.1, "truck": 0.05, "motorcycle": 0.03})
+        key = _pick(rng, mix or _KERBSIDE_MIX)
         size = cat.CLASSES[key].sample_size(rng)
         cx = x + size[0] / 2
         if cx + size[0] / 2 > x1:
             break
         if not any(a - size[0] / 2 < cx < c + size[0] / 2 for a, c in keep_clear):
-            yy = y + float(np.clip(rng.normal(0, 0.1), -0.2, 0.2)) * (0.3 if key == "truck" else 1.0)
+            yy = y + float(np.clip(rng.normal(0, 0.1), -0.2, 0.2)) * (0.3 if cat.CLASSES[key].label == cat.Label.TRUCK
+                                                                     else 1.0)
             px, py = (cx, yy) if along_x else (yy, cx)
             b.add_static(key, px, py, heading + float(rng.normal(0, 0.02)), cat.VEHICLE_PARKED if key != "motorcycle"
                          else cat.CYCLE_WITHOUT_RIDER, size=size)
@@ -506,9 +511,72 @@ def mixed(rng: np.random.Generator, duration_s: float) -> Layout:
     return _intersection(rng, duration_s, mixed=True)
 
 
+_FLEET_MIX = {"car": 0.5, "van": 0.1, "pickup": 0.14, "truck": 0.14, "semi": 0.06, "long_trailer": 0.03,
+              "bus": 0.03}
+"""Kerbside parking of a commercial street: a real fleet's spread of sizes (pick-ups, rigid trucks, buses,
+tractor-semitrailers and trailers 11–18 m long), not the residential mix of the other scenarios."""
+_YARD_MIX = {"semi": 0.3, "long_trailer": 0.2, "truck": 0.2, "bus": 0.1, "van": 0.1, "pickup": 0.1}
+
+
+def loading_street(rng: np.random.Generator, duration_s: float) -> Layout:
+    """A commercial street beside a loading yard: large vehicles parked side by side nose to the street, often
+    behind a low wall or fence (few returns, each hiding the next), kerbside parking of a mixed fleet, trucks and
+    buses in traffic. Training data for a detector that meets real trucks; the evaluation scenarios do not use it."""
+    b = LayoutBuilder(rng, duration_s)
+    v_ego = rng.uniform(4.0, 10.0)
+    x0, x1 = -90.0, v_ego * duration_s + 120.0
+    far = 2000.0
+    curb = 7.0
+    ego_lane = b.add_lane(straight((-far, -1.75), (far, -1.75)))
+    b.add_agent(ego_lane, "car", far, v_ego, is_ego=True, size=(4.7, 1.9, 1.8))
+    heavy = {"car": 0.55, "van": 0.1, "pickup": 0.1, "truck": 0.12, "bus": 0.06, "semi": 0.07}
+    _fill_lane(b, ego_lane, far + 60.0, far + 60.0 + v_ego * duration_s, (35.0, 90.0), (v_ego + 1.0, v_ego + 3.0),
+               heavy)
+    opp = b.add_lane(straight((far, 1.75), (-far, 1.75)))
+    _fill_lane(b, opp, far - x1 - 12.0 * duration_s, far - x0 + 20.0, (20.0, 70.0), (7.0, 12.0), heavy,
+               stops_every=(80.0, 200.0), p_stopper=0.15)
+    # south: a kerb of mixed parking, furniture, shops, people
+    _parallel_parking(b, x0, x1, -5.95, 0.0, mix=_FLEET_MIX)
+    _curb_furniture(b, x0, x1, -(curb + CURB_STRIP))
+    _buildings(b, x0 - 30, x1 + 30, -(curb + SIDEWALK_WIDTH), -1)
+    _sidewalk_people(b, x0, x1, curb, -1, density=rng.uniform(0.4, 1.0))
+    # north: the yard's edge (a low wall, a fence or open), vehicles nose-in side by side, a warehouse behind
+    yard = curb + 1.5
+    x = x0
+    while x < x1:
+        length = rng.uniform(20.0, 60.0)
+        edge = rng.choice(3, p=[0.4, 0.3, 0.3])
+        if edge == 0:
+            b.clutter.box(x + length / 2, yard - 0.4, length, 0.3, 0.0, rng.uniform(0.8, 1.6), reflectivity=0.25,
+                          tag=Tag.WALL)
+        elif edge == 1:
+            b.clutter.box(x + length / 2, yard - 0.4, length, 0.1, 0.0, rng.uniform(1.5, 2.2), reflectivity=0.15,
+                          tag=Tag.FENCE)
+        x += length + rng.uniform(6.0, 12.0)  # a gate
+    x = x0 + rng.uniform(0, 4)
+    while x < x1:
+        if rng.random() < 0.2:
+            x += rng.uniform(3.5, 9.0)
+            continue
+        key = _pick(rng, _YARD_MIX)
+        size = cat.CLASSES[key].sample_size(rng)
+        heading = math.pi / 2 if rng.random() < 0.5 else -math.pi / 2
+        b.add_static(key, x + size[1] / 2, yard + 0.5 + size[0] / 2 + rng.uniform(0.0, 1.5),
+                     heading + float(rng.normal(0, 0.02)), cat.VEHICLE_PARKED, size=size)
+        x += size[1] + rng.uniform(0.8, 2.5)
+    depth = rng.uniform(15.0, 30.0)
+    b.clutter.box((x0 + x1) / 2, yard + 20.0 + depth / 2, x1 - x0 + 60.0, depth, 0.0, rng.uniform(8.0, 14.0),
+                  reflectivity=0.3, tag=Tag.BUILDING)
+    for _ in range(rng.poisson((x1 - x0) / 40.0)):  # yard workers
+        b.add_static("pedestrian", rng.uniform(x0, x1), yard + rng.uniform(0.5, 1.5), rng.uniform(-3, 3),
+                     cat.PED_STANDING)
+    return b.build()
+
+
 SCENARIOS: dict[str, Callable[[np.random.Generator, float], Layout]] = {
     "parking-street": parking_street,
     "diagonal-lot": diagonal_lot,
     "intersection": intersection,
     "mixed": mixed,
+    "loading-street": loading_street,
 }

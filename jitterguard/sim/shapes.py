@@ -46,6 +46,31 @@ TEMPLATES: dict[str, F64] = {
         (_B, -0.30, 0.40, 0.00, 0.14, 0.10, 0.10, 0.15),
         (_B, -0.30, -0.40, 0.00, 0.14, 0.10, 0.10, 0.15),
     ]),
+    "pickup": np.array([
+        (_B, 0.17, 0.00, 0.20, 0.62, 0.33, 0.50, 1.0),    # hood and lower cab
+        (_B, 0.08, 0.00, 0.62, 1.00, 0.12, 0.44, 0.35),   # cab glass
+        (_B, -0.33, 0.00, 0.20, 0.34, 0.17, 0.50, 0.8),   # bed floor
+        (_B, -0.33, 0.46, 0.34, 0.62, 0.17, 0.04, 0.9),   # bed sides and tailgate: the bed is open above
+        (_B, -0.33, -0.46, 0.34, 0.62, 0.17, 0.04, 0.9),
+        (_B, -0.48, 0.00, 0.34, 0.62, 0.02, 0.50, 0.9),
+        (_B, 0.33, 0.40, 0.00, 0.20, 0.07, 0.10, 0.15),
+        (_B, 0.33, -0.40, 0.00, 0.20, 0.07, 0.10, 0.15),
+        (_B, -0.31, 0.40, 0.00, 0.20, 0.07, 0.10, 0.15),
+        (_B, -0.31, -0.40, 0.00, 0.20, 0.07, 0.10, 0.15),
+    ]),
+    "semi": np.array([
+        (_B, 0.41, 0.00, 0.14, 0.80, 0.09, 0.48, 1.0),    # tractor cab
+        (_B, -0.09, 0.00, 0.32, 1.00, 0.41, 0.50, 0.8),   # semitrailer box, open underneath
+        (_B, 0.22, 0.00, 0.12, 0.30, 0.10, 0.30, 0.3),    # tractor chassis under the trailer's front
+        (_B, 0.43, 0.40, 0.00, 0.14, 0.035, 0.10, 0.15),  # steer axle
+        (_B, 0.43, -0.40, 0.00, 0.14, 0.035, 0.10, 0.15),
+        (_B, 0.24, 0.40, 0.00, 0.14, 0.06, 0.10, 0.15),   # drive axles
+        (_B, 0.24, -0.40, 0.00, 0.14, 0.06, 0.10, 0.15),
+        (_B, -0.41, 0.40, 0.00, 0.14, 0.06, 0.10, 0.15),  # trailer tandem
+        (_B, -0.41, -0.40, 0.00, 0.14, 0.06, 0.10, 0.15),
+        (_C, 0.12, 0.35, 0.00, 0.32, 0.04, 0.04, 0.4),    # landing gear
+        (_C, 0.12, -0.35, 0.00, 0.32, 0.04, 0.04, 0.4),
+    ]),
     "bus": np.array([
         (_B, 0.00, 0.00, 0.10, 1.00, 0.50, 0.50, 0.9),
         (_B, 0.30, 0.42, 0.00, 0.10, 0.05, 0.08, 0.15),
@@ -103,7 +128,7 @@ TEMPLATES: dict[str, F64] = {
 }
 
 
-GLASS_PARTS: dict[str, tuple[int, ...]] = {"car": (1,), "van": (1,)}
+GLASS_PARTS: dict[str, tuple[int, ...]] = {"car": (1,), "van": (1,), "pickup": (1,)}
 """Template rows that are mostly glass (a car's cabin): tagged :attr:`Tag.GLASS` so that the LiDAR's effects
 can let rays through them (real cabins return little: nuScenes cars carry 22 % of their returns in the upper
 40 % of the box, ideal ray-cast ones 47 %)."""
@@ -113,8 +138,8 @@ def template_key(label: int, attribute: str, size: F64) -> str:
     """Which part layout an object gets."""
     if label == Label.CAR:
         return "van" if size[2] > 2.0 else "car"
-    if label == Label.TRUCK:
-        return "truck"
+    if label == Label.TRUCK:  # the size tells a pick-up and a tractor-semitrailer from a rigid truck
+        return "semi" if size[0] > 11.0 else "pickup" if size[2] < 2.2 else "truck"
     if label == Label.BUS:
         return "bus"
     if label == Label.TRAILER:

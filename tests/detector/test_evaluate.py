@@ -10,6 +10,7 @@ import pytest
 
 from jitterguard.services.detector.config import CLASS_NAMES, Detections3D, Sample
 from jitterguard.services.detector.evaluate import (
+    Recalibration,
     apply_recalibration,
     calibration,
     calibration_from_residuals,
@@ -218,7 +219,9 @@ def test_misscaled_residuals_show_large_ece_and_recalibration_fixes_it() -> None
     # observed SD = 2 σ_pred → ECE ≈ E[σ_pred] ≈ 0.14 m; 68 % of |r| ≤ σ becomes P(|N(0,4)| ≤ 1) = 38 %
     assert before["ece"] > 0.1
     assert before["coverage_1sigma"] == pytest.approx(0.383, abs=0.015)
-    sx, sy = fit_recalibration(val_d, val_g)
+    rec = fit_recalibration(val_d, val_g)
+    assert rec.score_edges == () and len(rec.scales) == 1
+    sx, sy = rec.scales[0]
     assert sx == pytest.approx(4.0, rel=0.05) and sy == pytest.approx(4.0, rel=0.05)
     after = calibration([apply_recalibration(d, (sx, sy)) for d in test_d], test_g)
     assert after["ece"] < 0.01 < before["ece"] / 10
@@ -291,3 +294,53 @@ def test_report_is_strict_json_and_plots_render(tmp_path) -> None:
     for name in ("calib.png", "pr.png"):
         data = (tmp_path / name).read_bytes()
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000
+
+
+def test_a_score_binned_recalibration_fixes_an_error_that_grows_as_the_score_falls() -> None:
+    """The shape the shipped weights show on real and on sim-to-real scans: confident boxes about right, weak
+    ones over-confident. One global scale cannot fix it; scales per score bin can."""
+    rng = np.random.default_rng(3)
+
+    def draw(n: int) -> tuple[list[Detections3D], list[Sample]]:
+        dets, gts = synthetic(rng, n)
+        out = []
+        for d, g in zip(dets, gts):
+            k = 1.0 + 2.0 * (1.0 - d.scores)  # true SD up to 2.6× the predicted at score 0.2, 1× at 1.0
+            xy = g.boxes[:, :2] + (d.boxes[:, :2] - g.boxes[:, :2]) * k[:, None]
+            out.append(det(xy, d.scores, [CAR] * len(xy), d.log_variances))
+        return out, gts
+
+    val_d, val_g = draw(60)
+    test_d, test_g = draw(60)
+    one = fit_recalibration(val_d, val_g)
+    five = fit_recalibration(val_d, val_g, bins=5)
+    assert len(five.scales) == 5 and len(five.score_edges) == 4
+    assert np.all(np.diff(np.asarray(five.scales)[:, 0]) < 0)  # the weakest bin gets the largest scale
+
+    def weak_coverage(rec: Recalibration) -> float:  # ±1σ coverage of the boxes scored below 0.4
+        d = [apply_recalibration(x, rec) for x in test_d]
+        m = matched_residuals(d, test_g)
+        score = np.concatenate([x.scores for x in d])[m.sample * 100 + m.row]
+        return float(np.mean(np.abs(m.residual[score < 0.4]) <= m.sigma[score < 0.4]))
+
+    assert weak_coverage(one) < 0.6 and weak_coverage(five) == pytest.approx(0.683, abs=0.03)
+    assert calibration([apply_recalibration(d, five) for d in test_d], test_g)["nll"] < \
+        calibration([apply_recalibration(d, one) for d in test_d], test_g)["nll"]
+    # a bin holds at least RECALIBRATION_MIN_PER_BIN matches: few matches, fewer bins
+    assert len(fit_recalibration(val_d[:1], val_g[:1], bins=5).scales) == 1  # 100 matches
+    with pytest.raises(ValueError, match="bins"):
+        fit_recalibration(val_d, val_g, bins=0)
+
+
+def test_a_recalibration_round_trips_its_payload_and_rejects_bad_ones() -> None:
+    rec = Recalibration(((2.0, 3.0), (1.0, 1.5)), (0.5,))
+    assert Recalibration.of(rec.to_payload()) == rec
+    assert Recalibration.of([2.0, 0.5]) == Recalibration(((2.0, 0.5),))
+    assert Recalibration(((2.0, 0.5),)).to_payload() == [2.0, 0.5]  # one bin: the format older readers know
+    assert Recalibration.of(None) is None
+    np.testing.assert_allclose(rec.factors(np.array([0.1, 0.5, 0.9])), [[2.0, 3.0], [1.0, 1.5], [1.0, 1.5]])
+    for bad in (((0.0, 1.0),), ((1.0, 1.0), (1.0, 1.0))):
+        with pytest.raises(ValueError):
+            Recalibration(bad)
+    with pytest.raises(ValueError):
+        Recalibration(((1.0, 1.0), (1.0, 1.0), (1.0, 1.0)), (0.6, 0.4))  # edges must increase

@@ -10,6 +10,7 @@ import torch
 
 from jitterguard.services.detector.config import LITE, PAPER, Sample
 from jitterguard.services.detector.decode import circle_nms, decode
+from jitterguard.services.detector.evaluate import Recalibration
 from jitterguard.services.detector.inference import Detector, WeightsError, load_weights, save_weights
 from jitterguard.services.detector.losses import centerpoint_loss, gaussian_focal_loss, gaussian_nll
 from jitterguard.services.detector.network import CenterPointNet
@@ -233,7 +234,10 @@ def test_weights_round_trip_and_reject_bad_files(tmp_path) -> None:
     path = tmp_path / "w.pt"
     save_weights(path, model, recalibration=(2.0, 0.5), meta={"note": "test"})
     loaded, rec, meta = load_weights(path)
-    assert rec == (2.0, 0.5) and meta["note"] == "test" and loaded.config == TINY
+    assert rec == Recalibration(((2.0, 0.5),)) and meta["note"] == "test" and loaded.config == TINY
+    binned = Recalibration(((3.0, 2.0), (1.0, 0.5)), (0.5,))
+    save_weights(tmp_path / "b.pt", model, recalibration=binned)
+    assert load_weights(tmp_path / "b.pt")[1] == binned  # score bins survive the weights-only round trip
     pts = _scene(4).points
     a = Detector(model).detect(pts)
     b = Detector(loaded).detect(pts)
@@ -246,4 +250,9 @@ def test_weights_round_trip_and_reject_bad_files(tmp_path) -> None:
     torch.save({"format": 1, "config": {"nope": 1}, "state_dict": {}}, str(tmp_path / "cfg.pt"))
     with pytest.raises(WeightsError, match="unknown fields"):
         load_weights(tmp_path / "cfg.pt")
+    bad = torch.load(str(path), weights_only=True)
+    bad["recalibration"] = {"scales": [[1.0, 1.0], [1.0, 1.0]], "score_edges": []}
+    torch.save(bad, str(tmp_path / "rec.pt"))
+    with pytest.raises(WeightsError, match="recalibration"):
+        load_weights(tmp_path / "rec.pt")
 

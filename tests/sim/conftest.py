@@ -4,14 +4,13 @@ from __future__ import annotations
 
 import pytest
 
-from jitterguard.sim import GroundTruthFrame, Scenario, make_scenario
+from jitterguard.sim import SCENARIO_NAMES, GroundTruthFrame, Scenario, make_scenario
 
 
 @pytest.fixture(scope="session")
 def scenarios() -> dict[str, Scenario]:
     """One 12 s scenario of every kind at 10 Hz."""
-    return {name: make_scenario(name, seed=7, duration_s=12.0) for name in
-            ("parking-street", "diagonal-lot", "intersection", "mixed")}
+    return {name: make_scenario(name, seed=7, duration_s=12.0) for name in SCENARIO_NAMES}
 
 
 @pytest.fixture(scope="session")

@@ -177,3 +177,29 @@ def test_objects_listed_only_within_the_radius() -> None:
         d = np.hypot(f.centers[:, 0] - f.ego_x, f.centers[:, 1] - f.ego_y)
         assert np.all(d <= 30.0)
         assert math.isfinite(f.stamp_ns / 1e9)
+
+
+def test_the_loading_street_parks_a_real_truck_fleet(scenarios: dict[str, Scenario]) -> None:
+    """Issue 16's "size distributions of real fleets": pick-ups, tractor-semitrailers and long trailers stand in
+    the loading street (nose-in, side by side), while the other scenarios keep their rigid trucks, so their
+    worlds — and every figure measured on them — are unchanged."""
+    from jitterguard.sim.catalog import CLASSES
+    from jitterguard.sim.shapes import template_key
+
+    f = scenarios["loading-street"].frame(0)
+    trucks = f.labels == Label.TRUCK
+    keys = {template_key(int(lab), a, sz) for lab, a, sz in zip(f.labels, f.attributes, f.sizes)}
+    assert {"semi", "pickup", "truck", "trailer"} <= keys
+    assert np.any(f.sizes[trucks, 0] > 12.0) and np.any(f.sizes[trucks, 0] < 6.5)
+    yard = (f.centers[:, 1] - f.ego_y > 8.0) & np.isin(f.labels, [Label.TRUCK, Label.TRAILER, Label.BUS])
+    assert yard.sum() >= 5
+    assert np.all(np.abs(np.abs(np.sin(f.yaws[yard])) - 1.0) < 0.01)  # nose to the street
+    # a rigid truck's size, clipped at 2 SD, never reaches the pick-up's or the semi's template
+    truck = CLASSES["truck"]
+    lo = np.asarray(truck.mean_size) - 2 * np.asarray(truck.std_size)
+    hi = np.asarray(truck.mean_size) + 2 * np.asarray(truck.std_size)
+    assert template_key(Label.TRUCK, "vehicle.parked", lo) == template_key(Label.TRUCK, "vehicle.parked", hi) == "truck"
+    for name in ("parking-street", "diagonal-lot", "intersection", "mixed"):
+        g = scenarios[name].frame(0)
+        assert {template_key(int(lab), a, sz) for lab, a, sz in zip(g.labels, g.attributes, g.sizes)
+                if lab == Label.TRUCK} <= {"truck"}

@@ -416,33 +416,92 @@ def calibration(predictions: Sequence[Detections3D], ground_truth: Sequence[Samp
     return out
 
 
-def fit_recalibration(predictions: Sequence[Detections3D], ground_truth: Sequence[Sample], *,
+RECALIBRATION_MIN_PER_BIN = 200
+"""Fewest true positives per score bin of a fitted recalibration: the mean of r²/σ² over n matches has a
+relative standard error of about sqrt(2/n) (10 % at 200); with fewer matches the fit uses fewer bins."""
+
+
+@dataclass(frozen=True)
+class Recalibration:
+    """Per-axis variance scales s²_a per detection-score bin: a box scored s gets σ²_a · s²_a[b(s)], with
+    b(s) the number of ``score_edges`` ≤ s. One bin (no edges) is the classic global per-axis scale.
+
+    Why by score: a detector's variance error is not one factor. On synthetic scans with sim-to-real effects the
+    shipped weights' variances are about right for their most confident boxes and 2× too small (in variance)
+    for the least confident ones — the same shape they show on real scans (docs/detector.md, "Shipped
+    weights") — so one global scale leaves the weak boxes over-confident and the strong ones under-confident."""
+
+    scales: tuple[tuple[float, float], ...]
+    score_edges: tuple[float, ...] = ()
+
+    def __post_init__(self) -> None:
+        s = np.asarray(self.scales, dtype=np.float64)
+        e = np.asarray(self.score_edges, dtype=np.float64)
+        if s.ndim != 2 or s.shape[1] != 2 or len(s) < 1 or not np.all(np.isfinite(s)) or np.any(s <= 0):
+            raise ValueError(f"scales must be rows of two positive finite numbers, got {self.scales!r}")
+        if len(e) != len(s) - 1 or not np.all(np.isfinite(e)) or np.any(np.diff(e) <= 0):
+            raise ValueError(f"score_edges must be {len(s) - 1} increasing finite numbers, got {self.score_edges!r}")
+
+    @classmethod
+    def of(cls, value: "Recalibration | Sequence[float] | dict[str, Any] | None") -> "Recalibration | None":
+        """From a weights file's or an ONNX manifest's entry: None, ``[s2_x, s2_y]`` (one bin, the format
+        before score bins) or ``{"scales": [[s2_x, s2_y], …], "score_edges": […]}``."""
+        if value is None or isinstance(value, Recalibration):
+            return value
+        if isinstance(value, dict):
+            return cls(tuple((float(a), float(b)) for a, b in value["scales"]),
+                       tuple(float(e) for e in value.get("score_edges") or ()))
+        a, b = value
+        return cls(((float(a), float(b)),))
+
+    def to_payload(self) -> list[float] | dict[str, Any]:
+        """The entry :meth:`of` reads back; one bin stays the plain ``[s2_x, s2_y]`` older readers know."""
+        if len(self.scales) == 1:
+            return [float(self.scales[0][0]), float(self.scales[0][1])]
+        return {"scales": [[float(a), float(b)] for a, b in self.scales], "score_edges": list(self.score_edges)}
+
+    def factors(self, scores: NDArray[np.floating]) -> F64:
+        """(N, 2) variance scales for detections with these scores."""
+        s = np.asarray(self.scales, dtype=np.float64)
+        return s[np.searchsorted(np.asarray(self.score_edges), np.asarray(scores, dtype=np.float64), side="right")]
+
+
+def fit_recalibration(predictions: Sequence[Detections3D], ground_truth: Sequence[Sample], *, bins: int = 1,
                       match_distance: float = COUNT_THRESHOLD_M, class_range: Sequence[float] = CLASS_RANGE_M,
-                      min_points: int = 1) -> tuple[float, float]:
-    """Per-axis variance scales (s²_x, s²_y) minimising the Gaussian NLL of the matched residuals when every
-    σ² is multiplied by s²: d/ds² Σ [½ log(s²σ²) + r²/(2 s²σ²)] = 0 ⇒ s² = mean(r² / σ²). Fit on a validation
-    split, never on the data it is judged on. Raises ValueError when nothing matches."""
+                      min_points: int = 1) -> Recalibration:
+    """Per-axis variance scales minimising the Gaussian NLL of the matched residuals when every σ² is multiplied
+    by s²: d/ds² Σ [½ log(s²σ²) + r²/(2 s²σ²)] = 0 ⇒ s² = mean(r² / σ²), per score bin. ``bins`` equal-count
+    bins of the true positives' scores (fewer when a bin would hold under :data:`RECALIBRATION_MIN_PER_BIN`
+    matches). Fit on a validation split, never on the data it is judged on. Raises ValueError when nothing
+    matches."""
+    if bins < 1:
+        raise ValueError(f"bins must be >= 1, got {bins}")
     m = matched_residuals(predictions, ground_truth, match_distance=match_distance, class_range=class_range,
                           min_points=min_points)
     if len(m) == 0:
         raise ValueError("no true positives to fit a recalibration on")
-    s2 = np.mean(m.residual ** 2 / np.exp(m.log_variance), axis=0)
+    flat = [d.scores for d in predictions]
+    score = np.concatenate(flat)[np.cumsum([0] + [len(f) for f in flat])[m.sample] + m.row].astype(np.float64)
+    k = int(max(1, min(bins, len(m) // RECALIBRATION_MIN_PER_BIN)))
+    edges = np.unique(np.quantile(score, np.linspace(0.0, 1.0, k + 1)[1:-1])) if k > 1 else np.zeros(0)
+    b = np.searchsorted(edges, score, side="right")
+    ratio = m.residual ** 2 / np.exp(m.log_variance)
     # a residual of exactly zero everywhere would give s² = 0 (log −inf): keep the scale usable
-    s2 = np.maximum(s2, np.finfo(np.float64).tiny)
-    return float(s2[0]), float(s2[1])
+    s2 = [np.maximum(ratio[b == i].mean(axis=0), np.finfo(np.float64).tiny) for i in range(len(edges) + 1)]
+    return Recalibration(tuple((float(a), float(c)) for a, c in s2), tuple(float(e) for e in edges))
 
 
-def apply_recalibration(dets: Detections3D, scales: tuple[float, float]) -> Detections3D:
-    """``dets`` with σ²_x, σ²_y multiplied by ``scales`` (log s² added to the log-variances; velocity and yaw
-    variances untouched). The result is not clamped to the model's log-variance floor: the floor is a
-    training device, the scaled value is the calibrated estimate."""
+def apply_recalibration(dets: Detections3D, recalibration: Recalibration | tuple[float, float]) -> Detections3D:
+    """``dets`` with σ²_x, σ²_y multiplied by the scales of their score bins (log s² added to the
+    log-variances; velocity and yaw variances untouched); a pair (s2_x, s2_y) is one global bin. The result is
+    not clamped to the model's log-variance floor: the floor is a training device, the scaled value is the
+    calibrated estimate."""
     if dets.log_variances is None:
         raise ValueError("these detections have no variances to recalibrate")
-    s = np.asarray(scales, dtype=np.float64)
-    if s.shape != (2,) or not np.all(np.isfinite(s)) or np.any(s <= 0):
-        raise ValueError(f"scales must be two positive finite numbers, got {scales!r}")
+    rec = Recalibration.of(recalibration)
+    assert rec is not None
     lv = np.array(dets.log_variances, dtype=np.float32, copy=True)
-    lv[:, :2] += np.log(s).astype(np.float32)
+    lv[:, :2] += np.log(rec.factors(dets.scores)).astype(np.float32)
     return replace(dets, log_variances=lv)
 
 

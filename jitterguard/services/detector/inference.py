@@ -1,7 +1,8 @@
 """Run a trained detector on one scan; load and save weight files.
 
 A weight file is a plain dict saved with ``torch.save``: ``{"format": 1, "config": {...}, "state_dict": {...},
-"recalibration": [s2_x, s2_y] | None, "meta": {...}}``. It holds only tensors and builtins so that it loads
+"recalibration": [s2_x, s2_y] | {"scales": [[s2_x, s2_y], …], "score_edges": […]} | None, "meta": {...}}``
+(the variance scales per detection-score bin, :class:`~.evaluate.Recalibration`). It holds only tensors and builtins so that it loads
 with ``torch.load(weights_only=True)`` — no pickled code runs when a file is opened. The package ships the
 ``lite`` weights (``weights/lite.pt``); presets without shipped weights start from random initialisation,
 loudly.
@@ -22,7 +23,7 @@ from pydantic import ValidationError
 
 from .config import PRESETS, SELF_CROP_M, DetectorConfig, Detections3D, check_crop_box
 from .decode import decode
-from .evaluate import apply_recalibration
+from .evaluate import Recalibration, apply_recalibration
 from .network import CenterPointNet
 from .pillars import voxelize
 
@@ -56,17 +57,19 @@ def config_from_dict(d: dict[str, Any]) -> DetectorConfig:
         raise WeightsError(f"weights config: {'.'.join(map(str, err['loc']))}: {err['msg']}") from None
 
 
-def save_weights(path: str | Path, model: CenterPointNet, *, recalibration: tuple[float, float] | None = None,
+def save_weights(path: str | Path, model: CenterPointNet, *,
+                 recalibration: Recalibration | tuple[float, float] | None = None,
                  meta: dict[str, Any] | None = None) -> None:
     """Write ``model`` as a weights-only file (fp32 state dict + config + optional variance recalibration)."""
     state = {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
+    rec = Recalibration.of(recalibration)
     payload = {"format": FORMAT, "config": config_to_dict(model.config), "state_dict": state,
-               "recalibration": list(recalibration) if recalibration else None, "meta": meta or {}}
+               "recalibration": rec.to_payload() if rec else None, "meta": meta or {}}
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     torch.save(payload, str(path))
 
 
-def load_weights(path: str | Path) -> tuple[CenterPointNet, tuple[float, float] | None, dict[str, Any]]:
+def load_weights(path: str | Path) -> tuple[CenterPointNet, Recalibration | None, dict[str, Any]]:
     """Load a weights file (``weights_only=True``) → (model in eval mode, recalibration, meta)."""
     p = Path(path)
     if not p.is_file():
@@ -84,8 +87,11 @@ def load_weights(path: str | Path) -> tuple[CenterPointNet, tuple[float, float] 
     except RuntimeError as exc:
         raise WeightsError(f"{p}: weights do not match their config: {exc}") from None
     model.eval()
-    rec = payload.get("recalibration")
-    return model, (float(rec[0]), float(rec[1])) if rec else None, dict(payload.get("meta") or {})
+    try:
+        rec = Recalibration.of(payload.get("recalibration") or None)
+    except (ValueError, TypeError, KeyError) as exc:
+        raise WeightsError(f"{p}: bad recalibration entry: {exc}") from None
+    return model, rec, dict(payload.get("meta") or {})
 
 
 def crop_box(points: np.ndarray, box: Sequence[float] | None) -> np.ndarray:
@@ -101,7 +107,7 @@ def crop_box(points: np.ndarray, box: Sequence[float] | None) -> np.ndarray:
 class Detector:
     """A detector ready for inference on single scans (sensor frame in, sensor frame out)."""
 
-    def __init__(self, model: CenterPointNet, *, recalibration: tuple[float, float] | None = None,
+    def __init__(self, model: CenterPointNet, *, recalibration: Recalibration | tuple[float, float] | None = None,
                  score_threshold: float | None = None, threads: int | None = None,
                  meta: dict[str, Any] | None = None, self_crop: Sequence[float] | None = SELF_CROP_M) -> None:
         """``self_crop``: returns inside this (x_min, y_min, x_max, y_max) box of the sensor frame are the
@@ -109,7 +115,7 @@ class Detector:
         self.self_crop = check_crop_box(self_crop)
         self.model = model.eval()
         self.config = model.config
-        self.recalibration = recalibration
+        self.recalibration = Recalibration.of(recalibration)
         self.score_threshold = score_threshold
         self.meta = meta or {}
         self.timings: dict[str, float] = {}

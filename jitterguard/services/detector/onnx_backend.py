@@ -22,6 +22,7 @@ import torch
 from torch import Tensor
 
 from .config import SELF_CROP_M, DetectorConfig
+from .evaluate import Recalibration
 from .inference import Detector, WeightsError, config_from_dict
 from .onnx_export import FORMAT, FORMAT_VERSION, MANIFEST, bev_scatter, output_names, padded_point_features
 from .pillars import PillarFeatureNet, Pillars
@@ -90,8 +91,10 @@ class OnnxNetwork:
             self._features = PillarFeatureNet(self.config)  # its weightless point_features only
         else:
             raise WeightsError(f"{self.dir / MANIFEST}: unknown layout {self.layout!r}")
-        rec = self.manifest.get("recalibration")
-        self.recalibration = (float(rec[0]), float(rec[1])) if rec else None
+        try:
+            self.recalibration = Recalibration.of(self.manifest.get("recalibration") or None)
+        except (ValueError, TypeError, KeyError) as exc:
+            raise WeightsError(f"{self.dir / MANIFEST}: bad recalibration entry: {exc}") from None
 
     def eval(self) -> "OnnxNetwork":
         return self

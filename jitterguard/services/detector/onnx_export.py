@@ -40,6 +40,7 @@ import torch
 from torch import Tensor, nn
 
 from .config import CLASS_LABELS, VAR_NAMES, DetectorConfig
+from .evaluate import Recalibration
 from .inference import config_to_dict
 from .network import HEAD_CHANNELS, CenterPointNet
 from .pillars import NUM_PILLAR_FEATURES, PillarFeatureNet, Pillars, voxelize
@@ -217,7 +218,7 @@ class ExportResult:
 
 
 def manifest_for(config: DetectorConfig, layout: str, opset: int, files: dict[str, Path],
-                 recalibration: tuple[float, float] | None, meta: dict[str, Any]) -> dict[str, Any]:
+                 recalibration: Recalibration | tuple[float, float] | None, meta: dict[str, Any]) -> dict[str, Any]:
     """The JSON beside the model: every constant a runtime needs to feed it and to decode its outputs."""
     nx, ny = config.grid_size
     fx, fy = config.feature_map_size
@@ -248,7 +249,7 @@ def manifest_for(config: DetectorConfig, layout: str, opset: int, files: dict[st
         "opset": opset,
         "graphs": graphs,
         "config": config_to_dict(config),
-        "recalibration": list(recalibration) if recalibration else None,
+        "recalibration": rec.to_payload() if (rec := Recalibration.of(recalibration)) else None,
         "preprocessing": {
             "frame": "sensor (x forward, y left, z up), metres",
             "point_cloud_range": list(config.point_cloud_range),
@@ -270,7 +271,9 @@ def manifest_for(config: DetectorConfig, layout: str, opset: int, files: dict[st
             "z": "height", "dims": f"exp(min(dim, {LOG_DIM_MAX})) as length, width, height",
             "yaw": "atan2(rot[0], rot[1])", "velocity": "vel (m/s, sensor frame)",
             "log_variances": f"max(logvar, logvar_min) in m^2, m^2, m^2/s^2, m^2/s^2, rad^2 for {', '.join(VAR_NAMES)};"
-                             " then + log(recalibration) on x and y when recalibration is set",
+                             " then + log(recalibration) on x and y when recalibration is set: [s2_x, s2_y], or"
+                             " {scales: [[s2_x, s2_y], ...], score_edges: [...]} where a box scored s takes the row"
+                             " numbered by the edges <= s",
             "score_threshold": config.score_threshold,
             "max_objects": config.max_objects,
             "nms": "per class, greedy circle NMS on squared BEV centre distance",
@@ -292,7 +295,8 @@ def _widths(config: DetectorConfig) -> dict[str, int]:
 
 
 def export_onnx(net: CenterPointNet, out_dir: str | Path, *, layout: str = "single", opset: int = DEFAULT_OPSET,
-                recalibration: tuple[float, float] | None = None, meta: dict[str, Any] | None = None) -> ExportResult:
+                recalibration: Recalibration | tuple[float, float] | None = None,
+                meta: dict[str, Any] | None = None) -> ExportResult:
     """Write ``net`` in ``layout`` plus ``detector.json`` into ``out_dir`` (created). Raises :class:`ExportError`."""
     if layout not in LAYOUTS:
         raise ExportError(f"layout must be one of {', '.join(LAYOUTS)}, got {layout!r}")

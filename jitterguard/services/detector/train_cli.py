@@ -25,6 +25,8 @@ from .config import PRESETS
 log = logging.getLogger(__name__)
 
 DEFAULT_SCENARIOS = "parking-street,diagonal-lot,intersection,mixed"
+RECALIBRATION_BINS = 5
+"""Score bins of a fitted variance recalibration (docs/detector.md, "The variance recalibration")."""
 
 
 def parse_seeds(text: str, flag: str) -> list[int]:
@@ -221,7 +223,11 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         resume: Annotated[bool, typer.Option("--resume", help="Continue from OUT/checkpoint.pt.")] = False,
         fit_recalibration: Annotated[bool, typer.Option("--fit-recalibration/--no-fit-recalibration",
                                                         help="Fit per-axis variance scales on the validation split"
-                                                        " and store them in weights.pt.")] = False,
+                                                        " (synthetic: its scans of every --effects set) and store"
+                                                        " them in weights.pt.")] = False,
+        recalibration_bins: Annotated[int, typer.Option("--recalibration-bins", min=1, max=20, help="Score bins"
+                                                        " of the fitted variance scales (1: one global scale"
+                                                        " per axis).")] = RECALIBRATION_BINS,
         progress: ProgressOpt = None,
     ) -> None:
         """Train the detector on synthetic scans or a nuScenes dataroot; runs unchanged under ``torchrun``."""
@@ -278,6 +284,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             model = CenterPointNet(PRESETS[preset].model_copy(update={"uncertainty": not vanilla,
                                                                        "num_point_features": 5 if sweeps > 1 else 4}))
         pcr = model.config.point_cloud_range
+        recal_extra: list[Any] = []  # validation scans of the other --effects sets, for the recalibration
         if nuscenes is not None:
             from ..replay.frames import SourceError
             from .data import NuScenesKeyframes, official_split, split_holdout
@@ -300,11 +307,14 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             if dc.main:  # one process casts the caches, the others wait for them
                 for e in effect_sets:
                     synthetic_cache(root, scen, tr_seeds, frames, progress, e)
-                synthetic_cache(root, scen, va_seeds, frames, progress, effect_sets[0])
+                for e in effect_sets[: len(effect_sets) if fit_recalibration else 1]:
+                    synthetic_cache(root, scen, va_seeds, frames, progress, e)
             dc.barrier()
             parts = [synthetic_cache(root, scen, tr_seeds, frames, False, e) for e in effect_sets]
             train_s = parts[0] if len(parts) == 1 else _Joined(parts)
             val_s = synthetic_cache(root, scen, va_seeds, frames, False, effect_sets[0])
+            if fit_recalibration:  # the scales are fitted on scans like the training mix, every effect set
+                recal_extra = [synthetic_cache(root, scen, va_seeds, frames, False, e) for e in effect_sets[1:]]
             source = {"scenarios": scen, "train_seeds": train_seeds, "val_seeds": val_seeds,
                       "frames_per_scenario": frames,
                       "effects": "+".join(",".join(_effects(e)) or "none" for e in effect_sets)}
@@ -330,16 +340,18 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         dets = predict(model, val_list)
         rec = None
         if fit_recalibration and model.config.uncertainty:
+            fit_list = val_list + [_Prepared(part, pcr)[i] for part in recal_extra for i in range(len(part))]
             try:
-                rec = fit_scales(dets, val_list)
+                rec = fit_scales(dets + predict(model, fit_list[len(val_list):]), fit_list, bins=recalibration_bins)
             except ValueError as exc:  # no true positives yet (a tiny run): keep the raw variances
                 log.warning("no recalibration fitted: %s", exc)
         if rec is not None:
             save_weights(root / "weights.pt", model, recalibration=rec,
-                         meta={**meta, "epochs": state.epoch, "recalibration_fit_on": "validation split"})
+                         meta={**meta, "epochs": state.epoch,
+                               "recalibration_fit_on": f"validation split ({len(fit_list)} scans)"})
         summary = write_report(root / "report", "validation", dets, val_list)["summary"] if val_list else None
         typer.echo(json.dumps({"weights": str(root / "weights.pt"), "epochs": state.epoch,
-                               "recalibration": rec, "validation": summary}))
+                               "recalibration": rec.to_payload() if rec else None, "validation": summary}))
 
     @app.command("adapt")
     def adapt_cmd(
@@ -566,3 +578,74 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                                "recalibrated": det.recalibration is not None,
                                "self_crop": list(det.self_crop) if det.self_crop is not None else None})["summary"]
         typer.echo(json.dumps({"samples": len(items), **summary}))
+
+    @app.command("recalibrate-detector")
+    def recalibrate_detector_cmd(
+        weights: Annotated[str, typer.Option("--weights", help="Weights file whose variance recalibration is"
+                                             " refitted (its network is copied unchanged).")],
+        out: Annotated[str, typer.Option("--out", help="Folder for weights.pt, recalibration.json, the scans'"
+                                         " cache and the calibration PNGs.")],
+        scenarios: Annotated[str, typer.Option("--scenarios")] = DEFAULT_SCENARIOS,
+        seeds: Annotated[str, typer.Option("--seeds", help="Synthetic seeds to fit on: neither the weights'"
+                                           " training seeds nor the hold-out seeds 1000+.")] = "20-39",
+        frames: Annotated[int, typer.Option("--frames-per-scenario", min=1, max=600)] = 10,
+        effects: Annotated[str, typer.Option("--effects", help="Scan recipes, '+'-joined (as train's --effects):"
+                                             " fit on scans like the training mix.")] = "none+random",
+        bins: Annotated[int, typer.Option("--bins", min=1, max=20, help="Score bins (1: one global scale per"
+                                          " axis).")] = RECALIBRATION_BINS,
+        threads: Annotated[int | None, typer.Option("--threads", min=1, max=1024)] = None,
+        progress: ProgressOpt = None,
+    ) -> None:
+        """Refit a weights file's per-axis variance scales, per detection-score bin, on labelled synthetic scans."""
+        progress = progress_on(progress)
+        if not os.path.isfile(weights):
+            fail(f"--weights: file not found: {weights}")
+        scen = _scenarios(scenarios)
+        sd = parse_seeds(seeds, "--seeds")
+        effect_sets = effects.split("+")
+        for e in effect_sets:
+            _effects(e)
+        from .cli import passive_openmp
+
+        passive_openmp()  # before torch is imported
+        from .config import SELF_CROP_M
+        from .evaluate import fit_recalibration
+        from .inference import Detector, WeightsError, save_weights
+
+        try:
+            det = Detector.load(weights, threads=threads, recalibrate=False, self_crop=SELF_CROP_M)
+        except WeightsError as exc:
+            fail(f"--weights: {exc}")
+        if not det.config.uncertainty:
+            fail("--weights: a vanilla model predicts no variances to recalibrate")
+        root = Path(out)
+        items: list[Any] = []
+        for e in effect_sets:
+            view = _Prepared(synthetic_cache(root, scen, sd, frames, progress, e), det.config.point_cloud_range)
+            items += [view[i] for i in range(len(view))]
+        from tqdm import tqdm
+
+        dets = [det.detect(s.points) for s in tqdm(items, unit="scan", file=sys.stderr, disable=not progress)]
+        try:
+            rec = fit_recalibration(dets, items, bins=bins)
+        except ValueError as exc:
+            fail(f"--seeds: {exc}")
+        import hashlib
+
+        from .evaluate import apply_recalibration
+
+        before = write_report(root, "before", dets, items)["summary"]
+        after = write_report(root, "after", [apply_recalibration(d, rec) for d in dets], items)["summary"]
+        fit_on = {"scenarios": scen, "seeds": seeds, "frames_per_scenario": frames,
+                  "effects": "+".join(",".join(_effects(e)) or "none" for e in effect_sets), "scans": len(items)}
+        meta = {**det.meta, "recalibration_fit_on": fit_on,
+                "recalibrated_from": {"path": os.path.abspath(weights),
+                                      "sha256_16": hashlib.sha256(Path(weights).read_bytes()).hexdigest()[:16],
+                                      "recalibration": det.meta.get("recalibration_fit_on")},
+                "recalibrate_command": " ".join(["jitterguard", *sys.argv[1:]])}
+        save_weights(root / "weights.pt", det.model, recalibration=rec, meta=meta)
+        report = {"weights": str(root / "weights.pt"), "recalibration": rec.to_payload(), "fit_on": fit_on,
+                  "before": {k: before[k] for k in ("positional_ece", "coverage_1sigma", "nll")},
+                  "after": {k: after[k] for k in ("positional_ece", "coverage_1sigma", "nll")}}
+        (root / "recalibration.json").write_text(json.dumps(report, indent=1))
+        typer.echo(json.dumps(report))

@@ -14,7 +14,7 @@ from ..frames import EgoPose, FrameError, Item, ScanFrame, SourceError, SourceIn
 from ..truth import truth_message
 from .base import Source
 
-SCENARIOS = ("parking-street", "diagonal-lot", "intersection", "mixed")
+SCENARIOS = ("parking-street", "diagonal-lot", "intersection", "mixed", "loading-street")
 MAX_DURATION_S = 600.0
 """The longest scenario the world generator makes."""
 SCAN_FIELDS = ("x", "y", "z", "intensity", "ring")
