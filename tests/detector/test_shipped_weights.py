@@ -27,10 +27,15 @@ def test_shipped_lite_weights_are_in_the_package_and_say_how_they_were_made() ->
     assert "jitterguard train" in meta["command"]
     # the recipe, step by step: synthetic scans only — ideal first, then ideal and sim-to-real effect scans
     recipe = meta["recipe"]
-    assert recipe[-1] == meta["command"] and "--train-seeds 0-49" in recipe[0] and "--effects" not in recipe[0]
-    assert all("--effects none+random" in step and "--init" in step for step in recipe[1:])
+    train = [step for step in recipe if step.startswith("jitterguard train ")]
+    assert train[-1] == meta["command"] and "--train-seeds 0-49" in train[0] and "--effects" not in train[0]
+    assert all("--effects none+random" in step and "--init" in step for step in train[1:])
     assert not any("nuscenes" in step or "kitti" in step for step in recipe)
-    assert recal is not None  # fitted on the validation seeds (--fit-recalibration)
+    # then the variances refitted per score bin on synthetic seeds neither trained on nor held out
+    assert recipe[-1].startswith("jitterguard recalibrate-detector") and "--seeds 20-39" in recipe[-1]
+    fit_on = meta["recalibration_fit_on"]
+    assert fit_on["seeds"] == "20-39" and fit_on["effects"].startswith("none+")
+    assert recal is not None and len(recal.scales) == 5 and len(recal.score_edges) == 4
     assert path.stat().st_size < 8 * 2**20  # "a few MB"
 
 
