@@ -85,8 +85,9 @@ MIN_BLOCK = 5
 """Fewest observations in a block (3 residual degrees of freedom after the line fit)."""
 PRIOR_SCALE_DOF = 2.0
 """How well the test trusts k = 1 before any block: ν = 2, Var(log k) ≈ 2/ν = 1, a reported variance right to
-within a factor e at 1σ. Real detectors are off by that much: the shipped one's variances are 4× too small on
-real scans (docs/calibration.md). A cold start therefore tests with heavy tails and calls less dynamic until
+within a factor e at 1σ. Real detectors are off by that much: the shipped one's variances were 4× too small on
+real scans before their score-binned recalibration (docs/calibration.md), and a recalibration fitted on one
+domain is off on the next. A cold start therefore tests with heavy tails and calls less dynamic until
 the first blocks arrive (within MIN_BLOCK frames of the first tracks)."""
 BLOCK_DOF = 8.0
 """Degrees of freedom one block of evidence gives a scale (a full 10-observation window less its line fit)."""

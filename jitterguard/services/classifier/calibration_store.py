@@ -1,8 +1,9 @@
 """The online calibration on disk, so that a restarted classifier does not decide its first seconds uncalibrated.
 
 Until a track's window has filled, the online calibration has nothing to learn from; a classifier that starts
-cold takes the detector's variances as they are, and on real scans those are about 2× too small in σ — the
-first seconds after every restart call parked cars moving (on nuScenes scene-0523, `clean`, 20 of the 33 false
+cold takes the detector's variances as they are, and on real scans those can be far off (the shipped
+detector's were 2× too small in σ before their score-binned recalibration) — the first seconds after every
+restart call parked cars moving (on nuScenes scene-0523, `clean`, 20 of the 33 false
 rows fall in the first 5 s). With ``calibration_store`` the service writes what the estimator has pooled
 (:meth:`~.calibration.OnlineCalibration.state`, an ``.npz`` of plain arrays, no pickle) at most every
 :data:`SAVE_PERIOD_S` and when it stops, and a new process goes on from it — capped at

@@ -2,8 +2,8 @@
 variances are off (docs/tracker.md, "The measurement scale").
 
 Why: the Kalman filter's gain and the association gate take each detection's position covariance as the
-truth. A detector that reports σ 2× too small (the shipped one on real scans; the honest noise model copies
-it) makes the filter follow every wobble of the boxes, and the velocities it publishes — what the speed
+truth. A detector that reports σ 2× too small (the shipped one on real scans before its score-binned
+recalibration; the honest noise model copies that) makes the filter follow every wobble of the boxes, and the velocities it publishes — what the speed
 threshold, and a planner, read — wobble with them. The classifier already learns that error from its windows
 without labels (:mod:`jitterguard.services.classifier.calibration`); the tracker learns it the same way, with
 the same estimator, from the detections each track received: blocks of ``window`` consecutive detections of
