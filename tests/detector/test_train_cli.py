@@ -31,9 +31,15 @@ def test_parse_seeds_ranges_and_lists() -> None:
     (["train", "--out", "OUT", "--init", "/nonexistent.pt"], "--init"),
     (["eval-detector", "--out", "OUT", "--weights", "/nonexistent.pt"], "--weights"),
     (["eval-detector", "--out", "OUT", "--seeds", "x"], "--seeds"),
+    (["recalibrate-detector", "--out", "OUT", "--weights", "/nonexistent.pt"], "--weights"),
+    (["recalibrate-detector", "--out", "OUT", "--weights", "SHIPPED", "--effects", "fog"], "--effects"),
+    (["recalibrate-detector", "--out", "OUT", "--weights", "SHIPPED", "--seeds", "5-1"], "--seeds"),
 ])
 def test_bad_input_is_one_line_and_exit_2(tmp_path: Path, args: list[str], flag: str) -> None:
-    res = _jg(*[str(tmp_path / "o") if a == "OUT" else a for a in args], timeout=120)
+    from jitterguard.services.detector.inference import shipped_weights
+
+    subst = {"OUT": str(tmp_path / "o"), "SHIPPED": str(shipped_weights("lite"))}
+    res = _jg(*[subst.get(a, a) for a in args], timeout=120)
     assert res.returncode == 2
     lines = res.stderr.strip().splitlines()
     assert len(lines) == 1 and flag in lines[0]
@@ -89,3 +95,28 @@ def test_mixed_effect_sets_train_on_both_and_say_so(tmp_path: Path) -> None:
     assert meta["source"]["effects"].startswith("none+") and "glass" in meta["source"]["effects"]
     res = _jg("train", "--out", str(tmp_path / "bad"), "--effects", "none+moon")
     assert res.returncode == 2 and "--effects" in res.stderr
+
+
+@pytest.mark.slow
+def test_recalibrate_detector_refits_only_the_variance_scales(tmp_path: Path) -> None:
+    """The network is copied bit for bit; the new file carries score-binned scales, what they were fitted on and
+    where it came from; the report shows the calibration before and after on the fitting scans."""
+    from jitterguard.services.detector.inference import shipped_weights
+
+    src = shipped_weights("lite")
+    out = tmp_path / "rc"
+    res = _jg("recalibrate-detector", "--weights", str(src), "--out", str(out), "--scenarios", "parking-street",
+              "--seeds", "40-41", "--frames-per-scenario", "4", "--effects", "none+random", "--bins", "2",
+              "--threads", "1", "--no-progress")
+    assert res.returncode == 0, res.stderr[-2000:]
+    report = json.loads(res.stdout.strip().splitlines()[-1])
+    before, after = load_weights(src), load_weights(out / "weights.pt")
+    for (name, a), b in zip(before[0].state_dict().items(), after[0].state_dict().values()):
+        assert (a == b).all(), name
+    rec = after[1]
+    assert rec is not None and rec.to_payload() == report["recalibration"]
+    assert after[2]["recalibration_fit_on"]["scans"] == 16 and after[2]["recalibration_fit_on"]["seeds"] == "40-41"
+    assert after[2]["recalibrated_from"]["path"] == str(src)
+    # fitted on these scans, the NLL there cannot get worse than with the raw variances
+    assert report["after"]["nll"] <= report["before"]["nll"]
+    assert (out / "recalibration.json").is_file() and (out / "after_calibration.png").is_file()
