@@ -171,6 +171,39 @@ def write_report(out: Path, name: str, dets: Any, samples: Any, *, bootstrap: in
     return slim
 
 
+RECALIBRATION_MODES = ("synthetic", "tracked", "keep")
+"""Where ``adapt`` takes the adapted weights' variance scales from: refitted per score bin on labelled synthetic
+scans (the default: the recalibration that holds on real scans, docs/detector.md), fitted from tracked
+residuals of the real scans (label-free, one scale per axis), or kept from the source weights."""
+
+
+def fit_synthetic_recalibration(det: Any, root: Path, scenarios: list[str], seeds_text: str, frames: int,
+                                effect_sets: list[str], bins: int, progress: bool) -> tuple[Any, dict[str, Any]]:
+    """Score-binned variance scales for ``det`` (a :class:`~.inference.Detector` without recalibration) fitted
+    on labelled synthetic scans cast once into ``root`` (one cache per ``effect_sets`` recipe); also writes
+    ``root/before*`` and ``root/after*`` (calibration JSON + PNGs on those scans). Returns the
+    :class:`~.evaluate.Recalibration` and a report: what it was fitted on, ECE / coverage / NLL before and
+    after. Raises ValueError when nothing matches."""
+    from tqdm import tqdm
+
+    from .evaluate import apply_recalibration, fit_recalibration
+
+    seeds = parse_seeds(seeds_text, "--seeds")
+    items: list[Any] = []
+    for e in effect_sets:
+        view = _Prepared(synthetic_cache(root, scenarios, seeds, frames, progress, e), det.config.point_cloud_range)
+        items += [view[i] for i in range(len(view))]
+    dets = [det.detect(s.points) for s in tqdm(items, unit="scan", file=sys.stderr, disable=not progress)]
+    rec = fit_recalibration(dets, items, bins=bins)
+    before = write_report(root, "before", dets, items)["summary"]
+    after = write_report(root, "after", [apply_recalibration(d, rec) for d in dets], items)["summary"]
+    keys = ("positional_ece", "coverage_1sigma", "nll")
+    fit_on = {"scenarios": scenarios, "seeds": seeds_text, "frames_per_scenario": frames,
+              "effects": "+".join(",".join(_effects(e)) or "none" for e in effect_sets), "scans": len(items),
+              "bins": len(rec.scales)}
+    return rec, {"fit_on": fit_on, "before": {k: before[k] for k in keys}, "after": {k: after[k] for k in keys}}
+
+
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 - no benchmark here
     @app.command("train")
     def train_cmd(
@@ -375,8 +408,14 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         threshold: Annotated[list[str] | None, typer.Option("--threshold", help="CLASS=SCORE minimum score of a"
                                                             " pseudo-label (repeatable).")] = None,
         max_scans: Annotated[int | None, typer.Option("--max-scans", min=1)] = None,
-        recalibrate: Annotated[bool, typer.Option("--recalibrate/--no-recalibrate", help="Fit per-axis variance"
-                                                  " scales from tracked residuals (recordings with poses).")] = True,
+        recalibration: Annotated[str, typer.Option("--recalibration", help="The adapted weights' variance scales:"
+                                                   " synthetic (refitted per score bin on labelled synthetic scans"
+                                                   " after adaptation), tracked (from tracked residuals of the real"
+                                                   " scans, recordings with poses) or keep (the source"
+                                                   " weights').")] = "synthetic",
+        recalibration_seeds: Annotated[str, typer.Option("--recalibration-seeds", help="Synthetic seeds of"
+                                                         " --recalibration synthetic (ideal and effect scans).")
+                                       ] = "20-39",
         self_crop: Annotated[bool, typer.Option("--self-crop/--no-self-crop", help="Drop the returns of the"
                                                 " vehicle's own body from the real scans first (the service's"
                                                 " default self_crop).")] = True,
@@ -392,6 +431,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         if not os.path.isfile(weights):
             fail(f"--weights: file not found: {weights}")
         _effects(effects)
+        if recalibration not in RECALIBRATION_MODES:
+            fail(f"--recalibration: expected one of {', '.join(RECALIBRATION_MODES)}, got {recalibration!r}")
+        parse_seeds(recalibration_seeds, "--recalibration-seeds")
         thr = list(DEFAULT_PSEUDO_THRESHOLDS)
         for item in threshold or []:
             name, sep, val = item.partition("=")
@@ -434,19 +476,31 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         synthetic = _Prepared(synthetic_cache(root, scen, syn_seeds, frames, progress, effects),
                               model.config.point_cloud_range) if rounds else []
         cfg = AdaptConfig(rounds=rounds, epochs=epochs, batch_size=batch_size, lr=lr, seed=seed, thresholds=tuple(thr),
-                          real_repeat=real_repeat, recalibrate=recalibrate,
+                          real_repeat=real_repeat, recalibrate=recalibration == "tracked",
                           self_crop=SELF_CROP_M if self_crop else None)
         aug = TrainAugment(**(source_meta.get("augment") or {}))  # as the source weights were trained
         report = adapt(model, real, synthetic, cfg, root, augment=aug, progress=progress)
         rec = report["recalibration"]
         scales = tuple(rec["scales"]) if rec else source_rec
+        fit_on: Any = rec["fit_on"] if rec else "unchanged from the source weights"
+        if recalibration == "synthetic" and model.config.uncertainty:  # fitted where it will be used: after adapting
+            from .inference import Detector
+
+            det = Detector(model, threads=threads, self_crop=SELF_CROP_M)
+            try:
+                scales, fitted = fit_synthetic_recalibration(det, root / "recalibration", scen, recalibration_seeds,
+                                                             frames, ["none", "random"], RECALIBRATION_BINS, progress)
+            except ValueError as exc:
+                fail(f"--recalibration-seeds: {exc}")
+            report["recalibration"] = {"scales": scales.to_payload(), **fitted}
+            fit_on = fitted["fit_on"]
         sha = hashlib.sha256(Path(weights).read_bytes()).hexdigest()[:16]
         meta = {"command": " ".join(["jitterguard", *sys.argv[1:]]), "adapted_from": {"path": os.path.abspath(weights),
                 "sha256_16": sha, "source": source_meta.get("source")}, "unlabelled_scans": describe(real),
                 "labels_read": False, "adapt": {**dataclasses_asdict(cfg), "synthetic_seeds": synthetic_seeds,
                                                 "scenarios": scen, "effects": effects},
                 "report": report,
-                "recalibration_fit_on": rec["fit_on"] if rec else "unchanged from the source weights"}
+                "recalibration_fit_on": fit_on}
         save_weights(root / "weights.pt", model, recalibration=scales, meta=meta)
         (root / "adapt.json").write_text(json.dumps(meta, indent=1))
         typer.echo(json.dumps({"weights": str(root / "weights.pt"), "scans": len(real), "report": report}))
@@ -601,7 +655,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         if not os.path.isfile(weights):
             fail(f"--weights: file not found: {weights}")
         scen = _scenarios(scenarios)
-        sd = parse_seeds(seeds, "--seeds")
+        parse_seeds(seeds, "--seeds")
         effect_sets = effects.split("+")
         for e in effect_sets:
             _effects(e)
@@ -609,7 +663,6 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
 
         passive_openmp()  # before torch is imported
         from .config import SELF_CROP_M
-        from .evaluate import fit_recalibration
         from .inference import Detector, WeightsError, save_weights
 
         try:
@@ -618,34 +671,20 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             fail(f"--weights: {exc}")
         if not det.config.uncertainty:
             fail("--weights: a vanilla model predicts no variances to recalibrate")
-        root = Path(out)
-        items: list[Any] = []
-        for e in effect_sets:
-            view = _Prepared(synthetic_cache(root, scen, sd, frames, progress, e), det.config.point_cloud_range)
-            items += [view[i] for i in range(len(view))]
-        from tqdm import tqdm
-
-        dets = [det.detect(s.points) for s in tqdm(items, unit="scan", file=sys.stderr, disable=not progress)]
         try:
-            rec = fit_recalibration(dets, items, bins=bins)
+            rec, fitted = fit_synthetic_recalibration(det, Path(out), scen, seeds, frames, effect_sets, bins, progress)
         except ValueError as exc:
             fail(f"--seeds: {exc}")
         import hashlib
 
-        from .evaluate import apply_recalibration
-
-        before = write_report(root, "before", dets, items)["summary"]
-        after = write_report(root, "after", [apply_recalibration(d, rec) for d in dets], items)["summary"]
-        fit_on = {"scenarios": scen, "seeds": seeds, "frames_per_scenario": frames,
-                  "effects": "+".join(",".join(_effects(e)) or "none" for e in effect_sets), "scans": len(items)}
+        root = Path(out)
+        fit_on = fitted["fit_on"]
         meta = {**det.meta, "recalibration_fit_on": fit_on,
                 "recalibrated_from": {"path": os.path.abspath(weights),
                                       "sha256_16": hashlib.sha256(Path(weights).read_bytes()).hexdigest()[:16],
                                       "recalibration": det.meta.get("recalibration_fit_on")},
                 "recalibrate_command": " ".join(["jitterguard", *sys.argv[1:]])}
         save_weights(root / "weights.pt", det.model, recalibration=rec, meta=meta)
-        report = {"weights": str(root / "weights.pt"), "recalibration": rec.to_payload(), "fit_on": fit_on,
-                  "before": {k: before[k] for k in ("positional_ece", "coverage_1sigma", "nll")},
-                  "after": {k: after[k] for k in ("positional_ece", "coverage_1sigma", "nll")}}
+        report = {"weights": str(root / "weights.pt"), "recalibration": rec.to_payload(), **fitted}
         (root / "recalibration.json").write_text(json.dumps(report, indent=1))
         typer.echo(json.dumps(report))
