@@ -315,6 +315,11 @@ def test_a_score_binned_recalibration_fixes_an_error_that_grows_as_the_score_fal
     one = fit_recalibration(val_d, val_g)
     five = fit_recalibration(val_d, val_g, bins=5)
     assert len(five.scales) == 5 and len(five.score_edges) == 4
+    cal = calibration(val_d, val_g)  # the report shows the shape the scales undo
+    by_score = cal["by_score"]
+    assert len(by_score) == 5 and sum(b["n"] for b in by_score) == cal["num_matched"] > 5900
+    ratios = [b["variance_ratio_x"] for b in by_score]
+    assert ratios[0] > 3.0 > 1.5 > ratios[-1] and all(a > b for a, b in zip(ratios, ratios[1:]))
     assert np.all(np.diff(np.asarray(five.scales)[:, 0]) < 0)  # the weakest bin gets the largest scale
 
     def weak_coverage(rec: Recalibration) -> float:  # ±1σ coverage of the boxes scored below 0.4

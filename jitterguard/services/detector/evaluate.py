@@ -407,12 +407,36 @@ def calibration(predictions: Sequence[Detections3D], ground_truth: Sequence[Samp
                 binning: Literal["quantile", "uniform"] = "quantile",
                 class_range: Sequence[float] = CLASS_RANGE_M, min_points: int = 1) -> dict[str, Any]:
     """Positional calibration of the detector's x/y variances over its true positives (module doc for the
-    ECE formula); see :func:`calibration_from_residuals` for the keys. Raises ValueError for detections
-    without variances."""
+    ECE formula); see :func:`calibration_from_residuals` for the keys, plus ``by_score``
+    (:func:`calibration_by_score`). Raises ValueError for detections without variances."""
     m = matched_residuals(predictions, ground_truth, match_distance=match_distance, class_range=class_range,
                           min_points=min_points)
     out = calibration_from_residuals(m.residual, m.log_variance, num_bins=num_bins, binning=binning)
     out["match_distance_m"] = float(match_distance)
+    out["by_score"] = calibration_by_score(matched_scores(predictions, m), m)
+    return out
+
+
+def matched_scores(predictions: Sequence[Detections3D], m: MatchedResiduals) -> F64:
+    """The detection scores of the true positives ``m`` (in its order)."""
+    flat = [np.asarray(d.scores, np.float64) for d in predictions]
+    offset = np.cumsum([0] + [len(f) for f in flat])
+    return np.concatenate(flat)[offset[m.sample] + m.row] if len(m) else np.zeros(0)
+
+
+def calibration_by_score(score: F64, m: MatchedResiduals, num_bins: int = 5) -> list[dict[str, float]]:
+    """Per equal-count bin of the true positives' scores: the score range, matches, variance ratio
+    mean(r²/σ²) per axis (1 when calibrated) and the ±1σ coverage of both axes (0.683). A detector whose
+    variances are off by a score-dependent factor shows it here, where the σ-binned ECE averages it away."""
+    if len(m) < num_bins:
+        return []
+    z2 = m.residual ** 2 / np.exp(m.log_variance)
+    order = np.argsort(score, kind="stable")
+    out = []
+    for part in np.array_split(order, num_bins):
+        out.append({"score_min": float(score[part].min()), "score_max": float(score[part].max()),
+                    "n": int(len(part)), "variance_ratio_x": float(z2[part, 0].mean()),
+                    "variance_ratio_y": float(z2[part, 1].mean()), "coverage_1sigma": float(np.mean(z2[part] <= 1.0))})
     return out
 
 
@@ -480,8 +504,7 @@ def fit_recalibration(predictions: Sequence[Detections3D], ground_truth: Sequenc
                           min_points=min_points)
     if len(m) == 0:
         raise ValueError("no true positives to fit a recalibration on")
-    flat = [d.scores for d in predictions]
-    score = np.concatenate(flat)[np.cumsum([0] + [len(f) for f in flat])[m.sample] + m.row].astype(np.float64)
+    score = matched_scores(predictions, m)
     k = int(max(1, min(bins, len(m) // RECALIBRATION_MIN_PER_BIN)))
     edges = np.unique(np.quantile(score, np.linspace(0.0, 1.0, k + 1)[1:-1])) if k > 1 else np.zeros(0)
     b = np.searchsorted(edges, score, side="right")
