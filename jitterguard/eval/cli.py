@@ -67,6 +67,9 @@ def eval_command(
     tracker_config: Annotated[Path | None, typer.Option("--tracker-config", help="Tracker parameter file (as "
                                                         "`jitterguard tracker --config`; default: the shipped "
                                                         "one).")] = None,
+    mcap: Annotated[bool, typer.Option("--mcap/--no-mcap", help="Also record every evaluated frame to "
+                                       "OUT/run-SEED.mcap for Foxglove (detections, tracks by the z-test's "
+                                       "decision, motion states, ground truth).")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Also print metrics.json to stdout.")] = False,
 ) -> None:
     """Evaluate (detector →) tracker → motion classifier offline against ground truth."""
@@ -144,7 +147,7 @@ def eval_command(
                        duration=duration, rate=rate, classifier=cfg,
                        extra_seeds=tuple(range(seed + 1, seed + runs)), detector=detector,
                        weights_desc=weights_desc, variance_scale=variance_scale, calibration_model=model,
-                       variance_scale_at=variance_scale_at, tracker=tracker)
+                       variance_scale_at=variance_scale_at, tracker=tracker, mcap=mcap)
     if as_json:
         sys.stdout.write(json.dumps(metrics, indent=2, sort_keys=True) + "\n")
     else:
@@ -191,14 +194,16 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
              extra_seeds: tuple[int, ...] = (), detector: "Detector | None" = None,
              weights_desc: str | None = None, variance_scale: float = 1.0,
              calibration_model: Any = None, variance_scale_at: str = "detector",
-             tracker: Any = None) -> dict[str, Any]:
+             tracker: Any = None, mcap: bool = False) -> dict[str, Any]:
     """Load the frames, run the pipeline, score, write the outputs; returns metrics.json's content.
 
     ``extra_seeds`` pools more runs (a fresh scenario and noise draw per seed; for nuScenes only the noise
     changes) into one scored table, because one 15 s scene holds few moving objects and single-seed rates
     swing by tens of points. The pooled runs are one drive: the online variance calibration carries from each
     run to the next (only the first starts cold). With ``detector`` the detections come from it (``noise`` is
-    unused) and its AP / calibration over all pooled scans go into ``detection``."""
+    unused) and its AP / calibration over all pooled scans go into ``detection``. ``mcap`` records each run's
+    frames to ``out/run-SEED.mcap`` through the Foxglove bridge's own sink (one file per run: each run's clock
+    starts again)."""
     from tqdm import tqdm  # type: ignore[import-untyped]
 
     from .groundtruth import NuScenesError, load_nuscenes_frames
@@ -246,11 +251,33 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
                     disable=not progress_on(None))  # a bar on a terminal only: no carriage returns in a log
 
     def one(fr: Any, s: int) -> Records:
+        if not mcap:
+            return one_run(fr, s, None)
+        from ..services.foxglove.service import FoxgloveSink
+
+        out.mkdir(parents=True, exist_ok=True)
+        sink = FoxgloveSink(port=None, mcap_path=out / f"run-{s}.mcap", overwrite=True)
+        last: dict[str, Any] = {}
+
+        def write(frame: Any) -> None:  # as the live joiner: a track not decided this frame shows its last decision
+            nonlocal last
+            ids = [o.object_id for o in frame.objects.objects]
+            frame.last_motion = {i: last[i] for i in ids if i not in frame.motion and i in last}
+            last = {i: frame.motion.get(i) or last[i] for i in ids if i in frame.motion or i in last}
+            sink.write(frame)
+
+        try:
+            return one_run(fr, s, write)
+        finally:
+            sink.close()
+
+    def one_run(fr: Any, s: int, on_frame: Any) -> Records:
         carry = calibration_for_run()
         if detector is None:
             return run_pipeline(fr, NOISE_PRESETS[noise or "jittery"](), s, classifier, tracker,
                                 progress=lambda it: bar(it, s), calibration=carry, variance_scale=variance_scale,
-                                calibration_model=calibration_model, variance_scale_at=variance_scale_at)
+                                calibration_model=calibration_model, variance_scale_at=variance_scale_at,
+                                on_frame=on_frame)
         from .detector_input import detector_frames, nuscenes_scans, run_detector_pipeline, synthetic_scans
 
         if nuscenes is not None:
@@ -265,7 +292,7 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
         rec_s, preds, smp = run_detector_pipeline(det_frames, classifier, tracker, calibration=carry,
                                                   variance_scale=variance_scale,
                                                   calibration_model=calibration_model,
-                                                  variance_scale_at=variance_scale_at)
+                                                  variance_scale_at=variance_scale_at, on_frame=on_frame)
         predictions.extend(preds)
         samples.extend(smp)
         return rec_s

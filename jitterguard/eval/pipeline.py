@@ -25,8 +25,10 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment  # type: ignore[import-untyped]
 
-from ..schemas import DetectedColumns, encode, read_detected_objects, wire
-from ..schemas.models import ClassifierConfig
+from ..schemas import DetectedColumns, decode, encode, read_detected_objects, wire
+from ..schemas.models import ClassifierConfig, DetectedObjects, MotionState, TrackedObjects
+from ..services.bridge.joiner import JoinedFrame
+from ..services.replay.truth import truth_message
 from ..services.classifier.adapter import ClassifierAdapter, FrameOutput
 from ..services.classifier.calibration import NoiseModel, OnlineCalibration
 from ..services.tracker.adapter import detection_frame, observation_payloads, tracked_payload
@@ -133,7 +135,8 @@ def run_pipeline(frames: Iterable[GroundTruthFrame], noise: NoiseConfig, seed: i
                  match_distance_m: float = MATCH_DISTANCE_M,
                  progress: Callable[[Iterable[GroundTruthFrame]], Iterable[GroundTruthFrame]] | None = None,
                  calibration: OnlineCalibration | None = None, variance_scale: float = 1.0,
-                 calibration_model: NoiseModel | None = None, variance_scale_at: str = "detector") -> Records:
+                 calibration_model: NoiseModel | None = None, variance_scale_at: str = "detector",
+                 on_frame: Callable[[JoinedFrame], None] | None = None) -> Records:
     """Run GT → DetectionModel → TrackerCore → MotionClassifierCore (z_test and velocity_threshold).
 
     ``classifier`` supplies alpha / window / velocity threshold; its ``mode`` is overridden per core.
@@ -144,7 +147,8 @@ def run_pipeline(frames: Iterable[GroundTruthFrame], noise: NoiseConfig, seed: i
     it = progress(frames) if progress is not None else frames
     return track_and_classify(((gt, encode(det_model.detect(gt).detections)) for gt in it), classifier, tracker,
                               match_distance_m, calibration=calibration, variance_scale=variance_scale,
-                              calibration_model=calibration_model, variance_scale_at=variance_scale_at)
+                              calibration_model=calibration_model, variance_scale_at=variance_scale_at,
+                              on_frame=on_frame)
 
 
 def scale_variances(det: DetectedColumns, factor: float) -> DetectedColumns:
@@ -167,7 +171,8 @@ def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame, bytes]],
                        classifier: ClassifierConfig | None = None, tracker: TrackerConfig | None = None,
                        match_distance_m: float = MATCH_DISTANCE_M, *, calibration: OnlineCalibration | None = None,
                        variance_scale: float = 1.0, calibration_model: NoiseModel | None = None,
-                       variance_scale_at: str = "detector") -> Records:
+                       variance_scale_at: str = "detector",
+                       on_frame: Callable[[JoinedFrame], None] | None = None) -> Records:
     """TrackerCore → MotionClassifierCore (z_test and velocity_threshold) over (ground truth, detections) pairs.
 
     The detections are the ``DetectedObjects`` payloads that feed the live tracker — the noise model's output as
@@ -178,7 +183,9 @@ def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame, bytes]],
     updated in place); ``variance_scale`` multiplies every reported variance — at the detector's output, so
     the tracker sees it too (``variance_scale_at="detector"``, :func:`scale_variances`), or only in the
     ``tracks/{id}`` payloads the classifier receives (``"classifier"``: the classifier's own invariance, with
-    identical tracks); ``calibration_model``: the scales for ``calibration: file``.
+    identical tracks); ``calibration_model``: the scales for ``calibration: file``; ``on_frame`` receives every
+    decided frame as the bridges see it (:func:`joined_frame`: detections, tracks, the z-test's objects and
+    motion states, ground truth), e.g. to record it to MCAP.
     """
     if variance_scale_at not in VARIANCE_SCALE_AT:
         raise ValueError(f"variance_scale_at must be one of {VARIANCE_SCALE_AT}, got {variance_scale_at!r}")
@@ -209,6 +216,8 @@ def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame, bytes]],
         oz, ov = (_classify(a, observations, closing) for a in (adapter_z, adapter_v))
         if oz.decided is None or ov.decided is None:
             continue
+        if on_frame is not None:
+            on_frame(joined_frame(gt, payload, closing, oz, adapter_z))
         obs, dz, dv = oz.observed, oz.decided, ov.decided
         where = {t.encode(): k for k, t in enumerate(result.tracks.ids)}
         rows = np.array([where[t] for t in obs.track_ids.tolist()], dtype=np.intp)
@@ -251,6 +260,19 @@ def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame, bytes]],
         speed_threshold=cat("speed_threshold", np.float64), track_group=cat("track_group", "U12"),
         window_size=int(base.window_size),
     )
+
+
+def joined_frame(gt: GroundTruthFrame, detections: bytes, tracked: bytes, out: FrameOutput,
+                 adapter: ClassifierAdapter) -> JoinedFrame:
+    """One evaluated frame as the live bridges (Foxglove, MCAP) see it: the very payloads the services would
+    publish — the detections as published (before any ``--variance-scale``), the tracker's ``tracked``, the
+    z-test's ``objects`` and ``motion/{id}`` — decoded by the wire's own models, plus the frame's ground truth."""
+    objects = decode(TrackedObjects, out.payload)
+    truth = truth_message(gt).model_copy(update={"header": objects.header.model_copy(update={"frame_id": "map"})})
+    motion = {tid: decode(MotionState, p) for tid, p in adapter.motion_payloads(out)}
+    return JoinedFrame(seq=objects.header.seq, stamp_ns=objects.header.stamp, objects=objects,
+                       detections=decode(DetectedObjects, detections), groundtruth=truth,
+                       tracked=decode(TrackedObjects, tracked), motion=motion)
 
 
 def _classify(adapter: ClassifierAdapter, observations: list[bytes], closing: bytes) -> FrameOutput:
