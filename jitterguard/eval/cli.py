@@ -257,17 +257,8 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
 
         out.mkdir(parents=True, exist_ok=True)
         sink = FoxgloveSink(port=None, mcap_path=out / f"run-{s}.mcap", overwrite=True)
-        last: dict[str, Any] = {}
-
-        def write(frame: Any) -> None:  # as the live joiner: a track not decided this frame shows its last decision
-            nonlocal last
-            ids = [o.object_id for o in frame.objects.objects]
-            frame.last_motion = {i: last[i] for i in ids if i not in frame.motion and i in last}
-            last = {i: frame.motion.get(i) or last[i] for i in ids if i in frame.motion or i in last}
-            sink.write(frame)
-
         try:
-            return one_run(fr, s, write)
+            return one_run(fr, s, sink.write)
         finally:
             sink.close()
 

@@ -27,7 +27,7 @@ from scipy.optimize import linear_sum_assignment  # type: ignore[import-untyped]
 
 from ..schemas import DetectedColumns, decode, encode, read_detected_objects, wire
 from ..schemas.models import ClassifierConfig, DetectedObjects, MotionState, TrackedObjects
-from ..services.bridge.joiner import JoinedFrame
+from ..services.bridge.joiner import FrameJoiner, JoinedFrame
 from ..services.replay.truth import truth_message
 from ..services.classifier.adapter import ClassifierAdapter, FrameOutput
 from ..services.classifier.calibration import NoiseModel, OnlineCalibration
@@ -184,7 +184,7 @@ def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame, bytes]],
     the tracker sees it too (``variance_scale_at="detector"``, :func:`scale_variances`), or only in the
     ``tracks/{id}`` payloads the classifier receives (``"classifier"``: the classifier's own invariance, with
     identical tracks); ``calibration_model``: the scales for ``calibration: file``; ``on_frame`` receives every
-    decided frame as the bridges see it (:func:`joined_frame`: detections, tracks, the z-test's objects and
+    decided frame as the bridges see it (:func:`join_frame`: detections, tracks, the z-test's objects and
     motion states, ground truth), e.g. to record it to MCAP.
     """
     if variance_scale_at not in VARIANCE_SCALE_AT:
@@ -199,6 +199,7 @@ def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame, bytes]],
     # the baseline reads only speeds: it needs no calibration
     adapter_v = ClassifierAdapter(base.model_copy(update={"mode": "velocity_threshold", "calibration": "off"}),
                                   limits=limits)
+    joiner = FrameJoiner() if on_frame is not None else None
     cols: dict[str, list] = {k: [] for k in ("t_s", "seq", "track_id", "label", "z", "speed", "window", "state_z",
                                              "state_v", "gt_instance", "gt_dynamic", "group", "alpha",
                                              "gt_attribute", "gt_speed", "speed_threshold", "track_group")}
@@ -216,8 +217,9 @@ def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame, bytes]],
         oz, ov = (_classify(a, observations, closing) for a in (adapter_z, adapter_v))
         if oz.decided is None or ov.decided is None:
             continue
-        if on_frame is not None:
-            on_frame(joined_frame(gt, payload, closing, oz, adapter_z))
+        if joiner is not None and on_frame is not None:
+            for joined in join_frame(joiner, gt, payload, closing, oz, adapter_z):
+                on_frame(joined)
         obs, dz, dv = oz.observed, oz.decided, ov.decided
         where = {t.encode(): k for k, t in enumerate(result.tracks.ids)}
         rows = np.array([where[t] for t in obs.track_ids.tolist()], dtype=np.intp)
@@ -247,6 +249,10 @@ def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame, bytes]],
         cols["speed_threshold"].append(dv.threshold.astype(np.float64))
         cols["track_group"].append(np.array([group_of(int(lb)) or "" for lb in obs.labels.tolist()], dtype="U12"))
 
+    if joiner is not None and on_frame is not None:
+        for joined in joiner.flush():
+            on_frame(joined)
+
     def cat(k: str, dtype: Any) -> np.ndarray:
         return np.concatenate(cols[k]).astype(dtype) if cols[k] else np.empty(0, dtype=dtype)
 
@@ -262,17 +268,21 @@ def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame, bytes]],
     )
 
 
-def joined_frame(gt: GroundTruthFrame, detections: bytes, tracked: bytes, out: FrameOutput,
-                 adapter: ClassifierAdapter) -> JoinedFrame:
-    """One evaluated frame as the live bridges (Foxglove, MCAP) see it: the very payloads the services would
-    publish — the detections as published (before any ``--variance-scale``), the tracker's ``tracked``, the
-    z-test's ``objects`` and ``motion/{id}`` — decoded by the wire's own models, plus the frame's ground truth."""
+def join_frame(joiner: FrameJoiner, gt: GroundTruthFrame, detections: bytes, tracked: bytes, out: FrameOutput,
+               adapter: ClassifierAdapter) -> list[JoinedFrame]:
+    """Hand one evaluated frame to the live bridges' own joiner — the very payloads the services would publish:
+    the detections as published (before any ``--variance-scale``), the tracker's ``tracked``, the z-test's
+    ``objects`` and ``motion/{id}``, decoded by the wire's own models, plus the frame's ground truth — and return
+    the frames it releases (a track not decided this frame carries its last decision, as in Foxglove live)."""
     objects = decode(TrackedObjects, out.payload)
-    truth = truth_message(gt).model_copy(update={"header": objects.header.model_copy(update={"frame_id": "map"})})
-    motion = {tid: decode(MotionState, p) for tid, p in adapter.motion_payloads(out)}
-    return JoinedFrame(seq=objects.header.seq, stamp_ns=objects.header.stamp, objects=objects,
-                       detections=decode(DetectedObjects, detections), groundtruth=truth,
-                       tracked=decode(TrackedObjects, tracked), motion=motion)
+    joiner.add_detections(decode(DetectedObjects, detections))
+    joiner.add_tracked(decode(TrackedObjects, tracked))
+    joiner.add_groundtruth(truth_message(gt).model_copy(
+        update={"header": objects.header.model_copy(update={"frame_id": "map"})}))
+    for _, payload in adapter.motion_payloads(out):
+        joiner.add_motion(decode(MotionState, payload))
+    joiner.add_objects(objects, 0.0)
+    return joiner.poll(0.0)
 
 
 def _classify(adapter: ClassifierAdapter, observations: list[bytes], closing: bytes) -> FrameOutput:
