@@ -3,7 +3,6 @@ never-reused track IDs leaves nothing behind in a real router (``jitterguard rou
 
 from __future__ import annotations
 
-import os
 import subprocess
 import sys
 import threading
@@ -14,6 +13,8 @@ import zenoh
 from helpers import wait_until
 from jitterguard.runtime import ZenohOptions, build_config, free_tcp_port, loopback_options
 from jitterguard.runtime.keyed_publishers import KeyedPublishers
+
+PUBLISHER = Path(__file__).with_name("churn_publisher.py")
 
 
 def test_puts_reach_the_subscriber_on_each_key(zenoh_port: int) -> None:
@@ -56,37 +57,49 @@ def _rss_kb(pid: int) -> int:
 def test_router_memory_stays_flat_under_track_id_churn(tmp_path: Path) -> None:
     """20 000 distinct ``tracks/{id}`` keys through a client session and the router: a publisher declared per
     key (what this class used to do) left ~3 KB per key in the router, i.e. ~60 MB here, and ~1-1.5 KB per key in
-    the publishing process (the tracker's RSS growth); now nothing."""
+    the publishing process (the tracker's RSS growth); now nothing. Router and publisher each run in a process of
+    their own (``churn_publisher.py``), so each RSS figure is theirs alone."""
     port = free_tcp_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     log = open(tmp_path / "router.log", "wb")
     router = subprocess.Popen([sys.executable, "-m", "jitterguard.cli", "router", "--listen", endpoint],
                               stdout=log, stderr=subprocess.STDOUT)
     log.close()
+    publisher = subprocess.Popen([sys.executable, str(PUBLISHER), endpoint, "churn"], text=True,
+                                 stdin=subprocess.PIPE, stdout=subprocess.PIPE)
     received = [0]
+
+    def ask(command: str) -> str:
+        assert publisher.stdin is not None and publisher.stdout is not None
+        publisher.stdin.write(command + "\n")
+        publisher.stdin.flush()
+        answer = publisher.stdout.readline().strip()
+        assert answer and not answer.startswith("error"), (command, answer)
+        return answer
+
     try:
         opts = ZenohOptions(ns="churn", connect=(endpoint,), mode="client", extra={"connect/timeout_ms": 30000})
-        with zenoh.open(build_config(opts)) as sub_side, zenoh.open(build_config(opts)) as pub_side:
+        with zenoh.open(build_config(opts)) as sub_side:
             sub = sub_side.declare_subscriber("jg/churn/tracks/*",
                                               lambda s: received.__setitem__(0, received[0] + 1))
-            pubs = KeyedPublishers(pub_side, lambda ident: f"jg/churn/tracks/{ident}")
-            payload = b"x" * 200
-
-            def churn(start: int, n: int) -> None:
-                for i in range(start, start + n):
-                    pubs.put(f"{i:032x}", payload)
-
-            assert wait_until(lambda: (churn(0, 10), received[0] > 0)[1], timeout=20)
-            churn(100, 2000)  # warm the router's buffers and allocator
+            assert wait_until(lambda: (ask("churn 0 10"), received[0] > 0)[1], timeout=20)
+            ask("churn 100 2000")  # warm the router's buffers and both allocators
             assert wait_until(lambda: received[0] >= 2000, timeout=30)
-            before, before_self = _rss_kb(router.pid), _rss_kb(os.getpid())
-            churn(10_000, 20_000)
+            before, before_pub = _rss_kb(router.pid), int(ask("rss"))
+            ask("churn 10000 20000")
             assert wait_until(lambda: received[0] >= 22_000, timeout=60), received[0]
             growth_kb = _rss_kb(router.pid) - before
-            growth_self_kb = _rss_kb(os.getpid()) - before_self  # the publishing process: the tracker's case
+            growth_pub_kb = int(ask("rss")) - before_pub  # the publishing process: the tracker's case
             sub.undeclare()
         assert growth_kb < 8_000, f"router RSS grew {growth_kb} KB over 20 000 distinct keys"
-        assert growth_self_kb < 8_000, f"publisher RSS grew {growth_self_kb} KB over 20 000 distinct keys"
+        assert growth_pub_kb < 8_000, f"publisher RSS grew {growth_pub_kb} KB over 20 000 distinct keys"
+        assert publisher.stdin is not None
+        publisher.stdin.write("quit\n")
+        publisher.stdin.close()
+        assert publisher.wait(timeout=15) == 0
     finally:
+        if publisher.poll() is None:
+            publisher.kill()
+            publisher.wait(timeout=15)
         router.terminate()
         router.wait(timeout=15)
