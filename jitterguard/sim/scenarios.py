@@ -33,8 +33,12 @@ def _pick(rng: np.random.Generator, table: dict[str, float]) -> str:
     return keys[int(rng.choice(len(keys), p=p / p.sum()))]
 
 
+HEAVY_KEYS = ("truck", "bus", "trailer", "semi", "long_trailer")
+"""Catalogue keys that drive like heavy vehicles: slower starts, longer headways, 0.8 × the lane's speed."""
+
+
 def _idm_for(cls_key: str) -> dict[str, float]:
-    if cls_key in ("truck", "bus", "trailer"):
+    if cls_key in HEAVY_KEYS:
         return dict(_HEAVY_IDM)
     if cls_key in ("bicycle",):
         return dict(_CYCLE_IDM)
@@ -55,7 +59,7 @@ def _fill_lane(b: LayoutBuilder, lane: int, s_from: float, s_to: float, gap: tup
     s = s_to - rng.uniform(0, gap[1])
     while s > s_from:
         key = _pick(rng, mix)
-        v = rng.uniform(*speed) * (0.8 if key in ("truck", "bus") else 1.0)
+        v = rng.uniform(*speed) * (0.8 if key in HEAVY_KEYS else 1.0)
         stops: list[ScriptedStop] = []
         if stops_every and rng.random() < p_stopper:
             pos = s + rng.uniform(*stops_every) * 0.5

@@ -203,3 +203,22 @@ def test_the_loading_street_parks_a_real_truck_fleet(scenarios: dict[str, Scenar
         g = scenarios[name].frame(0)
         assert {template_key(int(lab), a, sz) for lab, a, sz in zip(g.labels, g.attributes, g.sizes)
                 if lab == Label.TRUCK} <= {"truck"}
+
+
+def test_tractor_semitrailers_in_traffic_drive_like_heavy_vehicles() -> None:
+    """A 15 m semi in a lane takes the heavy vehicles' IDM (slow starts, long headways) and 0.8 × the lane's
+    speed, as rigid trucks do; a car in the same lane keeps the defaults."""
+    from jitterguard.sim.layout import LayoutBuilder
+    from jitterguard.sim.paths import straight
+    from jitterguard.sim.scenarios import _HEAVY_IDM, _fill_lane
+
+    b = LayoutBuilder(np.random.default_rng(0), 10.0)
+    lane = b.add_lane(straight((0.0, 0.0), (2000.0, 0.0)))
+    _fill_lane(b, lane, 0.0, 1500.0, (30.0, 40.0), (10.0, 10.0), {"semi": 0.5, "car": 0.5})
+    members = b._lanes[lane].members
+    semis = [m.agent for m in members if m.cls.key == "semi"]
+    cars = [m.agent for m in members if m.cls.key == "car"]
+    assert len(semis) >= 5 and len(cars) >= 5
+    assert all(a.headway_s == _HEAVY_IDM["headway_s"] and a.a_max == _HEAVY_IDM["a_max"] for a in semis)
+    assert all(a.v_desired == 8.0 for a in semis) and all(a.v_desired == 10.0 for a in cars)
+    assert all(a.headway_s != _HEAVY_IDM["headway_s"] for a in cars)
