@@ -66,6 +66,25 @@ def test_voxelize_groups_points_by_cell_and_caps_each_pillar() -> None:
     assert float(p.points[0, 3]) == pytest.approx(1.0)  # intensity scaled to [0, 1]
 
 
+def test_a_model_without_intensity_sees_zero_from_every_sensor() -> None:
+    """``use_intensity: false`` feeds 0 in the intensity slot whatever the scan carries, so the network's output
+    cannot depend on it; the caller's points are not written."""
+    rng = np.random.default_rng(3)
+    pts = torch.from_numpy(np.concatenate([rng.uniform(-20, 20, (400, 2)), rng.uniform(-1, 1, (400, 1)),
+                                           rng.uniform(0, 255, (400, 1))], axis=1).astype(np.float32))
+    before = pts.clone()
+    blind = TINY.model_copy(update={"use_intensity": False})
+    assert float(voxelize([pts], blind).points[:, 3].abs().max()) == 0.0
+    assert float(voxelize([pts], TINY).points[:, 3].max()) > 0.5  # the default still feeds it
+    assert torch.equal(pts, before)
+    torch.manual_seed(0)
+    net, bright = CenterPointNet(blind).eval(), pts.clone()
+    bright[:, 3] = 255.0 - bright[:, 3]
+    with torch.inference_mode():
+        a, b = net([pts]), net([bright])
+    assert all(torch.equal(a[k], b[k]) for k in a)
+
+
 def test_voxelize_keeps_the_most_populated_pillars_when_over_budget() -> None:
     cfg = TINY.model_copy(update={"max_pillars": 2})
     pts = torch.tensor([[0.05, 0.05, 0, 0]] * 3 + [[1.05, 0.05, 0, 0]] + [[2.05, 0.05, 0, 0]] * 2, dtype=torch.float32)

@@ -18,13 +18,14 @@ pytest.importorskip("onnxscript")
 onnx = pytest.importorskip("onnx")
 
 from jitterguard.bench.detector import bench_scans  # noqa: E402
-from jitterguard.services.detector.inference import Detector, WeightsError  # noqa: E402
+from jitterguard.services.detector.inference import Detector, WeightsError, config_from_dict  # noqa: E402
 from jitterguard.services.detector.onnx_backend import OnnxNetwork, load_onnx_detector, read_manifest  # noqa: E402
 from jitterguard.services.detector.onnx_cli import MAP_TOLERANCE, check_export, compare_detections  # noqa: E402
 from jitterguard.services.detector.onnx_export import (  # noqa: E402
     VoxelEncoderGraph,
     bev_scatter,
     export_onnx,
+    manifest_for,
     padded_point_features,
     sample_pillars,
 )
@@ -109,7 +110,20 @@ def test_the_graph_has_dynamic_points_and_pillars_and_a_recent_opset(single_dir)
     doc = read_manifest(single_dir)
     assert doc["layout"] == "single" and doc["opset"] >= 17 and doc["graphs"]["detector"]["opset"] == doc["opset"]
     assert doc["preprocessing"]["intensity_scale"] == pytest.approx(1 / 255)
+    assert doc["config"]["use_intensity"] is True and "intensity/255" in doc["preprocessing"]["point_features"]
     assert doc["postprocessing"]["class_names"] == ["car", "truck", "bus", "bicycle", "pedestrian"]
+
+
+def test_a_model_without_intensity_tells_its_consumer_to_feed_zero(torch_det, tmp_path: Path) -> None:
+    """The manifest is what a C++ consumer (Autoware's split layout) builds its point features from: for a model
+    trained with ``--no-intensity`` it scales intensity by 0, and the config read back says so."""
+    blind = torch_det.config.model_copy(update={"use_intensity": False})
+    graph = tmp_path / "detector.onnx"
+    graph.write_bytes(b"a graph")
+    doc = manifest_for(blind, "single", 17, {"detector": graph}, None, {})
+    assert doc["preprocessing"]["intensity_scale"] == 0.0
+    assert "intensity/255" not in doc["preprocessing"]["point_features"]
+    assert config_from_dict(doc["config"]).use_intensity is False
 
 
 def test_one_export_runs_scans_of_very_different_sizes(torch_det, single_dir) -> None:

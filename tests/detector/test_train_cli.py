@@ -98,6 +98,32 @@ def test_mixed_effect_sets_train_on_both_and_say_so(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
+def test_no_intensity_fine_tunes_a_network_that_ignores_intensity(tmp_path: Path) -> None:
+    """``train --init W --no-intensity`` keeps W's layers, stores ``use_intensity: false`` in the weights, and the
+    detector built from them gives the same boxes whatever intensities a scan carries (the shipped one does not)."""
+    import numpy as np
+
+    from jitterguard.bench.detector import bench_scans
+    from jitterguard.services.detector.inference import Detector, shipped_weights
+
+    out = tmp_path / "run"
+    res = _jg("train", "--out", str(out), "--init", str(shipped_weights("lite")), "--no-intensity",
+              "--scenarios", "parking-street", "--train-seeds", "0", "--val-seeds", "1", "--frames-per-scenario", "1",
+              "--epochs", "1", "--batch-size", "1", "--max-steps-per-epoch", "1", "--threads", "1", "--no-progress")
+    assert res.returncode == 0, res.stderr[-2000:]
+    model, _, meta = load_weights(out / "weights.pt")
+    assert model.config.use_intensity is False and "--no-intensity" in meta["command"]
+    scan = bench_scans(1, seed=5)[0]
+    dark = scan.copy()
+    dark[:, 3] = np.where(scan[:, 3] > 20, 0.0, 200.0)
+    for weights, same in ((out / "weights.pt", True), (shipped_weights("lite"), False)):
+        det = Detector.load(str(weights), "lite", threads=1)
+        a, b = det.detect(scan), det.detect(dark)
+        equal = a.boxes.shape == b.boxes.shape and bool(np.array_equal(a.boxes, b.boxes))
+        assert equal is same, weights
+
+
+@pytest.mark.slow
 def test_recalibrate_detector_refits_only_the_variance_scales(tmp_path: Path) -> None:
     """The network is copied bit for bit; the new file carries score-binned scales, what they were fitted on and
     where it came from; the report shows the calibration before and after on the fitting scans."""

@@ -88,6 +88,9 @@ class DetectorConfig(BaseModel):
         300, description="detections kept per scan after NMS (a diagonal lot holds 100+ cars in range)")
     num_point_features: PositiveInt = Field(
         4, description="point fields fed in: x, y, z, intensity (intensity scaled to [0, 1] by dividing by 255)")
+    use_intensity: bool = Field(
+        True, description="feed the intensity field (false: it is fed as 0 in training and inference alike, for"
+        " sensors whose intensities differ from what the model was trained on; `train --no-intensity`)")
     logvar_min: float = -10.0
     class_names: tuple[str, ...] = CLASS_NAMES
 

@@ -227,7 +227,8 @@ def manifest_for(config: DetectorConfig, layout: str, opset: int, files: dict[st
     if layout == "single":
         graphs = {"detector": {
             "file": files["detector"].name, "sha256": _sha256(files["detector"]),
-            "inputs": {"points": ["N", 4, "float32", "x, y, z, intensity/255 of the kept points, grouped by pillar"],
+            "inputs": {"points": ["N", 4, "float32", "x, y, z, intensity * intensity_scale of the kept points,"
+                                  " grouped by pillar"],
                        "pillar": ["N", "int64", "pillar index of each point"],
                        "num_points": ["V", "int64", "points per pillar (<= max_points_per_pillar)"],
                        "coords": ["V", 3, "int64", "(0, iy, ix) of each pillar"]},
@@ -259,8 +260,9 @@ def manifest_for(config: DetectorConfig, layout: str, opset: int, files: dict[st
             "max_pillars": config.max_pillars,
             "pillar_selection": "points in range sorted by cell (iy * nx + ix), stable; a pillar keeps its first "
                                 "max_points_per_pillar points; over max_pillars, the most populated pillars are kept",
-            "intensity_scale": 1.0 / 255.0,
-            "point_features": list(POINT_FEATURES),
+            "intensity_scale": 1.0 / 255.0 if config.use_intensity else 0.0,  # 0: a model without intensity
+            "point_features": list(POINT_FEATURES) if config.use_intensity else
+            [f if f != "intensity/255" else "0 (the model takes no intensity)" for f in POINT_FEATURES],
             "pillar_centre": "x = ix * vx + vx / 2 + x_min, y = iy * vy + vy / 2 + y_min",
         },
         "postprocessing": {

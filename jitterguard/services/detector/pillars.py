@@ -43,7 +43,8 @@ def voxelize(batch: list[Tensor], config: DetectorConfig) -> Pillars:
 
     A pillar keeps its first ``max_points_per_pillar`` points in input order; a scan keeps at most
     ``max_pillars`` pillars (the most populated ones, so sparse far-away cells go first when over budget).
-    Intensity is divided by 255 so that nuScenes and synthetic scans (both 0–255) feed the same scale. The
+    Intensity is divided by 255 so that nuScenes and synthetic scans (both 0–255) feed the same scale, or set
+    to 0 for a model without intensity (``config.use_intensity`` false). The
     first ``config.num_point_features`` columns are kept (a fifth is the time lag of stacked sweeps).
     Tensors stay on the points' device.
     """
@@ -78,8 +79,11 @@ def voxelize(batch: list[Tensor], config: DetectorConfig) -> Pillars:
             pillar = remap[pillar]
             cells, counts = cells[chosen], counts[chosen]
         ok = (slot < m) & (pillar >= 0)
-        kept = pts[order[ok]]
-        kept[:, 3] /= 255.0
+        kept = pts[order[ok]]  # a copy: the caller's points are never written
+        if config.use_intensity:
+            kept[:, 3] /= 255.0
+        else:  # a model trained without intensity sees 0 from every sensor
+            kept[:, 3] = 0.0
         all_pts.append(kept)
         all_pillar.append(pillar[ok] + offset)
         all_cnt.append(counts.clamp(max=m))

@@ -221,6 +221,10 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                                              " the seeds cast once per set, validate on the first set.")] = "random",
         rotation: Annotated[float, typer.Option("--rotation", min=0.0, max=180.0, help="Global rotation"
                                                 " augmentation: uniform in ± this many degrees.")] = 45.0,
+        intensity: Annotated[bool | None, typer.Option("--intensity/--no-intensity", help="Feed the points'"
+                                                       " intensity to the network (--no-intensity: 0 in training"
+                                                       " and inference, stored in the weights); default: as"
+                                                       " --init's weights, else fed.")] = None,
         tilt_aug: Annotated[float, typer.Option("--tilt-aug", min=0.0, max=10.0, help="Pitch/roll augmentation SD"
                                                 " in degrees (and 0.05 m per degree of height).")] = 0.0,
         nuscenes: Annotated[str | None, typer.Option("--nuscenes", help="Train on this nuScenes dataroot instead of"
@@ -316,6 +320,10 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             torch.manual_seed(seed)
             model = CenterPointNet(PRESETS[preset].model_copy(update={"uncertainty": not vanilla,
                                                                        "num_point_features": 5 if sweeps > 1 else 4}))
+        if intensity is not None and intensity != model.config.use_intensity:  # same layers, what is fed changes
+            state = model.state_dict()
+            model = CenterPointNet(model.config.model_copy(update={"use_intensity": intensity}))
+            model.load_state_dict(state)
         pcr = model.config.point_cloud_range
         recal_extra: list[Any] = []  # validation scans of the other --effects sets, for the recalibration
         if nuscenes is not None:
