@@ -26,7 +26,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from .effects import BRIGHT_SPOT_FRACTION, MEASURED_INTENSITY, ScanEffects, street_clutter
+from .effects import BRIGHT_SPOT_FRACTION, MEASURED_INTENSITY, ScanEffects, street_clutter, vegetation_masses
 from .primitives import BOX, PrimitiveList, Primitives, Tag
 from .sensors import LidarSpec, azimuths, hdl32e
 from .shapes import object_primitives
@@ -396,12 +396,16 @@ def cast_frame(frame: GroundTruthFrame, sensor: LidarSpec | None = None, seed: i
             drop = (prims.tag == int(Tag.BUILDING)) & (
                 np.random.default_rng([effects.clutter_seed, 1]).random(len(prims)) < effects.building_drop)
             prims, owner = prims.subset(~drop), owner[~drop]
-        if effects.clutter_density > 0:
+        if effects.clutter_density > 0 or effects.vegetation_density > 0:
             c, s = math.cos(frame.ego_yaw), math.sin(frame.ego_yaw)
             dx, dy = frame.centers[:, 0] - frame.ego_x, frame.centers[:, 1] - frame.ego_y
             keep_out = np.column_stack([c * dx + s * dy, -s * dx + c * dy, frame.sizes[:, 0] / 2,
                                         frame.sizes[:, 1] / 2, frame.yaws - frame.ego_yaw])
-            extra = street_clutter(effects, keep_out, spec.mount_height_m)
+            extra = Primitives.concat([
+                street_clutter(effects, keep_out, spec.mount_height_m) if effects.clutter_density > 0 else
+                Primitives.empty(),
+                vegetation_masses(effects, keep_out, spec.mount_height_m) if effects.vegetation_density > 0 else
+                Primitives.empty()])
             prims = Primitives.concat([prims, extra])
             owner = np.concatenate([owner, np.full(len(extra), _CLUTTER_OWNER, np.int64)])
         if not effects.flat:

@@ -97,6 +97,34 @@ def test_street_clutter_keeps_off_the_road_users_and_the_ego() -> None:
             assert np.all(d > min(hl, hw))  # nothing inside a car's footprint
 
 
+def test_vegetation_is_opt_in_keeps_the_other_draws_and_returns_from_several_depths() -> None:
+    """``random`` leaves vegetation out (the scans of earlier recipes are cast as they were); switched on it
+    changes no other draw; its masses keep off the road users and return from inside the mass, not one face."""
+    from jitterguard.sim.effects import parse_components, vegetation_masses
+
+    assert "vegetation" not in parse_components("random") and "vegetation" in parse_components("random,vegetation")
+    plain = draw_effects(np.random.default_rng(4), parse_components("random"))
+    green = draw_effects(np.random.default_rng(4), parse_components("random,vegetation"))
+    assert plain.vegetation_density == 0.0 and 0.1 <= green.vegetation_density <= 0.5
+    assert green == ScanEffects(**{**plain.__dict__, "vegetation_density": green.vegetation_density})
+    keep_out = np.array([[10.0, 5.0, 2.3, 1.0, 0.3], [-12.0, -6.0, 2.3, 1.0, -0.2]])
+    for seed in range(5):
+        prims = vegetation_masses(ScanEffects(vegetation_density=1.0, clutter_seed=seed), keep_out, 1.84)
+        assert len(prims) > 40 and np.all(prims.z[:, 1] - prims.z[:, 0] >= 0.4)
+        for x, y, hl, hw, _ in keep_out:
+            assert np.all(np.hypot(prims.center[:, 0] - x, prims.center[:, 1] - y) > min(hl, hw))
+    # one mass in front of the sensor: its returns spread in range over more than a blob's size
+    f = cars_frame([(-20.0, -10.0)])
+    fx = ScanEffects(vegetation_density=1.0, clutter_seed=3)
+    res, _ = cast_frame(f, seed=0, effects=fx)
+    off_ground = res.points[(res.owner < 0) & (res.points[:, 2] > -1.84 + 0.3)]
+    assert len(off_ground) > 200  # the ideal scan of this frame has no scenery at all
+    rng_ = np.hypot(off_ground[:, 0], off_ground[:, 1])
+    az = np.round(np.degrees(np.arctan2(off_ground[:, 1], off_ground[:, 0])))
+    spreads = [np.ptp(rng_[az == a]) for a in np.unique(az) if (az == a).sum() >= 5]
+    assert np.median(spreads) > 0.5
+
+
 def test_drawn_effects_are_seeded_and_within_their_ranges() -> None:
     a = draw_effects(np.random.default_rng(9))
     assert a == draw_effects(np.random.default_rng(9)) and a != draw_effects(np.random.default_rng(10))

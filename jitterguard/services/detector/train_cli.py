@@ -216,8 +216,10 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         frames: Annotated[int, typer.Option("--frames-per-scenario", min=1, max=600)] = 10,
         effects: Annotated[str, typer.Option("--effects", help="Sim-to-real effects of the synthetic scans, drawn"
                                              " per scan: 'random' (all), 'none' (ideal scans), or a comma list of"
-                                             " ground, glass, dropout, noise, roof, mixed, clutter, open, intensity,"
-                                             " no-intensity; several sets joined by '+' (e.g. none+random) train on"
+                                             " ground, glass, dropout, noise, roof, mixed, clutter, open, motion,"
+                                             " intensity, and the opt-in no-intensity and vegetation (not in"
+                                             " 'random': random,vegetation); several sets joined by '+' (e.g."
+                                             " none+random) train on"
                                              " the seeds cast once per set, validate on the first set.")] = "random",
         rotation: Annotated[float, typer.Option("--rotation", min=0.0, max=180.0, help="Global rotation"
                                                 " augmentation: uniform in ± this many degrees.")] = 45.0,
