@@ -32,9 +32,14 @@ def test_shipped_lite_weights_are_in_the_package_and_say_how_they_were_made() ->
     assert all("--effects none+random" in step and "--init" in step for step in train[1:])
     assert not any("nuscenes" in step or "kitti" in step for step in recipe)
     # then the variances refitted per score bin on synthetic seeds neither trained on nor held out
-    assert recipe[-1].startswith("jitterguard recalibrate-detector") and "--seeds 20-39" in recipe[-1]
+    assert recipe[-1].startswith("jitterguard recalibrate-detector") and "--seeds 60-79" in recipe[-1]
     fit_on = meta["recalibration_fit_on"]
-    assert fit_on["seeds"] == "20-39" and fit_on["effects"].startswith("none+")
+    assert fit_on["seeds"] == "60-79" and fit_on["effects"].startswith("none+") and "vegetation" in fit_on["effects"]
+    trained = set()
+    for step in train:
+        lo, _, hi = step.split("--train-seeds ")[1].split()[0].partition("-")
+        trained |= set(range(int(lo), int(hi or lo) + 1))
+    assert not trained & set(range(60, 80)) and not trained & set(HOLDOUT_SEEDS)
     assert recal is not None and len(recal.scales) == 5 and len(recal.score_edges) == 4
     assert path.stat().st_size < 8 * 2**20  # "a few MB"
 
