@@ -13,7 +13,6 @@ into those within 2 m of a labelled car, within 3 m of a truck or bus, and 4 m o
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 
 import numpy as np
@@ -77,12 +76,7 @@ def main() -> None:
                               "share_near_road_p10_50_90": np.round(np.nanpercentile(arr[:, 1], [10, 50, 90]), 2).tolist()}
 
     def car_ap(drop: str | None) -> float:
-        kept = []
-        for d, ks in zip(dets, kinds):
-            keep = np.array([k != drop for k in ks], dtype=bool) if drop else np.ones(len(ks), bool)
-            kept.append(dataclasses.replace(d, **{f.name: getattr(d, f.name)[keep] for f in dataclasses.fields(d)
-                                                  if isinstance(getattr(d, f.name), np.ndarray)
-                                                  and len(getattr(d, f.name)) == len(ks)}))
+        kept = [d.subset(np.array([k != drop for k in ks], dtype=bool)) for d, ks in zip(dets, kinds)]
         return round(float(detection_ap(kept, samples)["classes"]["car"]["mean_ap"]), 3)
 
     out["car_ap"] = {"as_is": car_ap(None), "without_background": car_ap("background"),

@@ -22,7 +22,7 @@ and whole).
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -220,6 +220,20 @@ def draw_effects(rng: np.random.Generator, components: Sequence[str] = COMPONENT
     )
 
 
+SCATTER_HALF_SIDE_M = 30.0
+"""Street clutter and vegetation are scattered over the square of ± this around the sensor (60 m × 60 m)."""
+
+
+def _scattered(rng: np.random.Generator, density: float) -> Iterator[tuple[float, float]]:
+    """Sensor-frame (x, y) of a Poisson number of pieces, ``density`` per 100 m² of the scatter square, drawn one
+    at a time: the caller's own draws for a piece follow its position in the same stream (the order every cached
+    scan was cast in)."""
+    side = 2.0 * SCATTER_HALF_SIDE_M
+    for _ in range(int(rng.poisson(density * side * side / 100.0))):
+        x, y = rng.uniform(-SCATTER_HALF_SIDE_M, SCATTER_HALF_SIDE_M, 2)
+        yield x, y
+
+
 def street_clutter(effects: ScanEffects, keep_out: F64, mount_height_m: float) -> Primitives:
     """Random street furniture in the sensor frame (x forward), none of it overlapping ``keep_out`` footprints
     (K, 5: x, y, half_length, half_width, yaw, grown by 0.5 m): the low, long and small things that real scans
@@ -231,12 +245,10 @@ def street_clutter(effects: ScanEffects, keep_out: F64, mount_height_m: float) -
     box (0.5–1.5 m). Heights are above the ground; :func:`~jitterguard.sim.lidar.cast_frame` lifts them onto
     the effects' terrain."""
     rng = np.random.default_rng(effects.clutter_seed)
-    n = rng.poisson(effects.clutter_density * 36.0)
     pl = PrimitiveList()
     g = -mount_height_m
     ko = np.asarray(keep_out, np.float64).reshape(-1, 5)
-    for _ in range(int(n)):
-        x, y = rng.uniform(-30.0, 30.0, 2)
+    for x, y in _scattered(rng, effects.clutter_density):
         if abs(y) < 2.5 and abs(x) < 6.0:
             continue  # the ego's own spot
         kind = rng.choice(7, p=[0.3, 0.15, 0.1, 0.15, 0.12, 0.08, 0.1])
@@ -295,12 +307,10 @@ def vegetation_masses(effects: ScanEffects, keep_out: F64, mount_height_m: float
     1.2 m above it, 0.4–2.5 m tall; rays pass a blob with the tree crowns' probability, so returns come from
     several depths inside the mass, not from one surface."""
     rng = np.random.default_rng([effects.clutter_seed, 7])
-    n = rng.poisson(effects.vegetation_density * 36.0)
     pl = PrimitiveList()
     g = -mount_height_m
     ko = np.asarray(keep_out, np.float64).reshape(-1, 5)
-    for _ in range(int(n)):
-        x, y = rng.uniform(-30.0, 30.0, 2)
+    for x, y in _scattered(rng, effects.vegetation_density):
         length, width = rng.uniform(2.0, 10.0), rng.uniform(1.0, 4.0)
         yaw = rng.normal(0.0, 0.2) if rng.random() < 0.6 else rng.uniform(-np.pi, np.pi)
         blobs = int(np.clip(rng.poisson(length * width * 0.8), 4, 40))

@@ -401,11 +401,9 @@ def cast_frame(frame: GroundTruthFrame, sensor: LidarSpec | None = None, seed: i
             dx, dy = frame.centers[:, 0] - frame.ego_x, frame.centers[:, 1] - frame.ego_y
             keep_out = np.column_stack([c * dx + s * dy, -s * dx + c * dy, frame.sizes[:, 0] / 2,
                                         frame.sizes[:, 1] / 2, frame.yaws - frame.ego_yaw])
-            extra = Primitives.concat([
-                street_clutter(effects, keep_out, spec.mount_height_m) if effects.clutter_density > 0 else
-                Primitives.empty(),
-                vegetation_masses(effects, keep_out, spec.mount_height_m) if effects.vegetation_density > 0 else
-                Primitives.empty()])
+            # a density of 0 draws no piece: each function then returns nothing
+            extra = Primitives.concat([street_clutter(effects, keep_out, spec.mount_height_m),
+                                       vegetation_masses(effects, keep_out, spec.mount_height_m)])
             prims = Primitives.concat([prims, extra])
             owner = np.concatenate([owner, np.full(len(extra), _CLUTTER_OWNER, np.int64)])
         if not effects.flat:

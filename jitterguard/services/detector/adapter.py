@@ -96,8 +96,7 @@ def finite_detections(det: Detections3D) -> tuple[Detections3D, int]:
     dropped = int(ok.size - np.count_nonzero(ok))
     if not dropped:
         return det, 0
-    lv = det.log_variances[ok] if det.log_variances is not None else None
-    return Detections3D(det.boxes[ok], det.scores[ok], det.labels[ok], lv), dropped
+    return det.subset(ok), dropped
 
 
 def detections_payload(

@@ -222,6 +222,11 @@ class Detections3D:
     def __len__(self) -> int:
         return len(self.scores)
 
+    def subset(self, keep: NDArray[np.bool_]) -> "Detections3D":
+        """The detections where ``keep`` is true, in order."""
+        lv = self.log_variances[keep] if self.log_variances is not None else None
+        return Detections3D(self.boxes[keep], self.scores[keep], self.labels[keep], lv)
+
     @staticmethod
     def empty(uncertainty: bool = True) -> "Detections3D":
         return Detections3D(np.zeros((0, BOX_DIM), np.float32), np.zeros(0, np.float32), np.zeros(0, np.int64),
