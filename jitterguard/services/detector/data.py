@@ -124,6 +124,7 @@ def synthetic_samples(
     scan_seed: int = 0,
     rate_hz: float = 10.0,
     effects: str = "none",
+    workers: int = 0,
 ) -> Iterator[Sample]:
     """Labelled synthetic scans: for every (scenario, seed), ``frames_per_scenario`` frames spread evenly over a
     ``duration_s`` scenario, ray-cast with ``sensor`` (HDL-32E, nuScenes' LIDAR_TOP, by default).
@@ -134,22 +135,48 @@ def synthetic_samples(
     — the domain randomisation the shipped weights train with; a comma list picks components
     (:func:`~jitterguard.sim.effects.parse_components`, e.g. ``"ground,glass"`` or ``"random,no-intensity"``).
 
+    ``workers`` > 0 ray-casts the (scenario, seed) pairs in that many processes: a scan with effects costs
+    ≈ 0.1 s of one core, so a GPU machine's cores cast a large training set in a minute instead of a quarter
+    of an hour. The samples and their order are the same for any ``workers`` (each pair is seeded on its own).
+
     Deterministic: the same arguments give the same samples (the scan's noise and effects are seeded by
     ``scan_seed``, the scenario, its seed and the frame). Tokens are ``synthetic/{scenario}/{seed}/{seq}``.
     Yields ``len(scenarios) * len(seeds) * frames_per_scenario`` samples (fewer if a scenario has fewer
     frames), scenario-major."""
     components = parse_components(effects)
     spec = sensor or hdl32e()
-    for name in scenarios:
-        for seed in seeds:
-            sc = make_scenario(name, int(seed), duration_s, rate_hz)
-            for i in spread_indices(len(sc), frames_per_scenario):
-                fx = None
-                if components:
-                    key = int.from_bytes(name.encode(), "little") % (2**31)
-                    fx = draw_effects(np.random.default_rng([scan_seed, key, int(seed), i]), components)
-                scan, frame = cast_frame(sc.frame(i), spec, scan_seed, effects=fx)
-                yield sample_from_scan(frame, scan, spec.mount_height_m, f"synthetic/{name}/{seed}/{frame.seq}")
+    jobs = [(name, int(seed), frames_per_scenario, duration_s, spec, scan_seed, rate_hz, components)
+            for name in scenarios for seed in seeds]
+    if workers <= 0 or len(jobs) <= 1:
+        for job in jobs:
+            yield from _cast_scenario(job)
+        return
+    import multiprocessing
+
+    # spawn, not fork: the caller may hold torch threads or a CUDA context, which a forked child must not inherit
+    with multiprocessing.get_context("spawn").Pool(min(workers, len(jobs))) as pool:
+        for batch in pool.imap(_cast_scenario_list, jobs):
+            yield from batch
+
+
+_CastJob = tuple[str, int, int, float, LidarSpec, int, float, tuple[str, ...]]
+
+
+def _cast_scenario(job: _CastJob) -> Iterator[Sample]:
+    """The labelled scans of one (scenario, seed): the unit of work of :func:`synthetic_samples`."""
+    name, seed, frames_per_scenario, duration_s, spec, scan_seed, rate_hz, components = job
+    sc = make_scenario(name, seed, duration_s, rate_hz)
+    for i in spread_indices(len(sc), frames_per_scenario):
+        fx = None
+        if components:
+            key = int.from_bytes(name.encode(), "little") % (2**31)
+            fx = draw_effects(np.random.default_rng([scan_seed, key, seed, i]), components)
+        scan, frame = cast_frame(sc.frame(i), spec, scan_seed, effects=fx)
+        yield sample_from_scan(frame, scan, spec.mount_height_m, f"synthetic/{name}/{seed}/{frame.seq}")
+
+
+def _cast_scenario_list(job: _CastJob) -> list[Sample]:
+    return list(_cast_scenario(job))
 
 
 def _wrap(a: NDArray[np.float64]) -> NDArray[np.float64]:

@@ -60,8 +60,9 @@ def _scenarios(text: str) -> list[str]:
 
 
 def synthetic_cache(root: Path, scenarios: list[str], seeds: list[int], frames: int, progress: bool,
-                    effects: str = "none") -> Any:
-    """The cached synthetic samples for this recipe, ray-casting them first if the cache is missing or stale."""
+                    effects: str = "none", workers: int = 0) -> Any:
+    """The cached synthetic samples for this recipe, ray-casting them first (in ``workers`` processes when > 0)
+    if the cache is missing or stale."""
     from .data import CachedSamples, build_cache, synthetic_samples
 
     from ...sim.effects import EFFECTS_VERSION, parse_components
@@ -82,7 +83,8 @@ def synthetic_cache(root: Path, scenarios: list[str], seeds: list[int], frames: 
     except Exception:  # noqa: BLE001 - missing or interrupted cache: rebuild
         pass
     total = len(scenarios) * len(seeds) * frames
-    build_cache(path, synthetic_samples(scenarios, seeds, frames_per_scenario=frames, effects=effects), total=total,
+    build_cache(path, synthetic_samples(scenarios, seeds, frames_per_scenario=frames, effects=effects,
+                                       workers=workers), total=total,
                 progress=progress, meta={"recipe": recipe})
     return CachedSamples(path)
 
@@ -251,7 +253,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         lr: Annotated[float, typer.Option("--lr", min=1e-7, max=1.0)] = 2e-3,
         seed: Annotated[int, typer.Option("--seed", min=0)] = 0,
         threads: Annotated[int | None, typer.Option("--threads", min=1, max=1024)] = None,
-        workers: Annotated[int, typer.Option("--workers", min=0, max=64, help="Data-loader processes.")] = 0,
+        workers: Annotated[int, typer.Option("--workers", min=0, max=64, help="Data-loader processes; they also ray-cast the synthetic caches.")] = 0,
         amp: Annotated[bool, typer.Option("--amp/--no-amp", help="Mixed precision (CUDA only).")] = True,
         sync_bn: Annotated[bool, typer.Option("--sync-bn/--no-sync-bn", help="Synchronise BatchNorm across"
                                               " GPUs (CUDA, several processes).")] = True,
@@ -349,9 +351,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         else:
             if dc.main:  # one process casts the caches, the others wait for them
                 for e in effect_sets:
-                    synthetic_cache(root, scen, tr_seeds, frames, progress, e)
+                    synthetic_cache(root, scen, tr_seeds, frames, progress, e, workers)
                 for e in effect_sets[: len(effect_sets) if fit_recalibration else 1]:
-                    synthetic_cache(root, scen, va_seeds, frames, progress, e)
+                    synthetic_cache(root, scen, va_seeds, frames, progress, e, workers)
             dc.barrier()
             parts = [synthetic_cache(root, scen, tr_seeds, frames, False, e) for e in effect_sets]
             train_s = parts[0] if len(parts) == 1 else _Joined(parts)
