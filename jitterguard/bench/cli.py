@@ -109,6 +109,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             typer.Option("--backends", help="torch or torch,onnxruntime (timed side by side in this process, scan"
                          " by scan). Default: both when onnxruntime is installed."),
         ] = None,
+        device: Annotated[str, typer.Option("--device", help="cpu, or cuda / cuda:N: torch's voxelisation and"
+                                            " network on that GPU.")] = "cpu",
     ) -> None:
         """Time the detector end to end per HDL-32E scan (voxelisation, network, decode, NMS)."""
         progress = progress_on(progress)
@@ -121,6 +123,16 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         if "onnxruntime" in chosen and "onnxruntime" not in available_backends():
             fail("--backends: onnxruntime needs the onnxruntime, onnx and onnxscript packages (pip install 'jitterguard[onnx]')")
         names = _parse_presets(presets)
+        if device != "cpu":
+            import torch
+
+            try:
+                if torch.device(device).type != "cuda":
+                    raise ValueError
+            except (RuntimeError, ValueError):
+                fail(f"--device: expected cpu, cuda or cuda:N, got {device!r}")
+            if not torch.cuda.is_available():
+                fail(f"--device: {device} asked for, but torch sees no CUDA device on this machine")
         if scenario not in SCENARIOS:
             fail(f"--scenario: expected one of {', '.join(SCENARIOS)}, got {scenario!r}")
         files: dict[str, str] = {}
@@ -136,7 +148,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
 
         try:
             result = run(names, scans=scans, warmup=warmup, threads=threads, weights=files, scenario=scenario,
-                         seed=seed, progress=progress, backends=chosen)
+                         seed=seed, progress=progress, backends=chosen, device=device)
         except WeightsError as exc:
             fail(f"--weights: {_one_line(exc)}")
         if json_out:

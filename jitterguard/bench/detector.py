@@ -115,13 +115,15 @@ def available_backends() -> tuple[str, ...]:
 
 def run(presets: Sequence[str], *, scans: int = 40, warmup: int = 3, threads: int | None = None,
         weights: Mapping[str, str] | None = None, scenario: str = "mixed", seed: int = 0,
-        progress: bool = True, backends: Sequence[str] = ("torch",)) -> dict[str, dict[str, Any]]:
+        progress: bool = True, backends: Sequence[str] = ("torch",), device: str = "cpu") -> dict[str, dict[str, Any]]:
     """``{preset: {"points", "p50_ms", "p99_ms", "mean_ms", "cpu_p50_ms", "stages_ms", "detections", "scans",
     "threads", "weights", "omp_wait_policy"}}`` — the same scans for every preset — for the torch backend.
 
     With ``"onnxruntime"`` in ``backends`` the preset's network is exported to ONNX (in a temporary folder) and
     timed in the same process on the same scans, interleaved with torch scan by scan (:func:`time_backends`); its
-    row goes under ``"onnxruntime"`` in the preset's row, with ``"onnxruntime_over_torch_p50"`` (< 1: faster)."""
+    row goes under ``"onnxruntime"`` in the preset's row, with ``"onnxruntime_over_torch_p50"`` (< 1: faster).
+    ``device`` ``cuda`` runs torch's voxelisation and network on the GPU (onnxruntime stays on the CPU); each
+    row names its device."""
     import tempfile  # only with --backends onnxruntime
 
     import torch  # the optional "torch" extra, after passive_openmp() has set OpenMP's policy
@@ -139,7 +141,7 @@ def run(presets: Sequence[str], *, scans: int = 40, warmup: int = 3, threads: in
     data = bench_scans(warmup + scans, scenario, seed, progress)
     out: dict[str, dict[str, Any]] = {}
     for name in presets:
-        det = Detector.load(weights.get(name), name, threads=n_threads)
+        det = Detector.load(weights.get(name), name, threads=n_threads, device=device)
         torch.set_num_threads(n_threads)  # the same for every preset, whatever a previous load did
         if name in weights:
             which = weights[name]
@@ -147,7 +149,8 @@ def run(presets: Sequence[str], *, scans: int = 40, warmup: int = 3, threads: in
             which = "shipped"
         else:
             which = "random-init"
-        common = {"threads": n_threads, "weights": which, "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", "default")}
+        common = {"threads": n_threads, "weights": which, "device": _device_name(device),
+                  "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", "default")}
         if "onnxruntime" not in backends:
             row = time_preset(det, data, warmup, f"timing {name}", progress)
             row.update(common)
@@ -163,7 +166,7 @@ def run(presets: Sequence[str], *, scans: int = 40, warmup: int = 3, threads: in
             rows = time_backends({"torch": det, "onnxruntime": ort_det}, data, warmup,
                                  f"timing {name} (torch, onnxruntime)", progress)
         row = {**rows["torch"], **common, "backend": "torch"}
-        row["onnxruntime"] = {**rows["onnxruntime"], **common, "backend": "onnxruntime", "layout": "single",
+        row["onnxruntime"] = {**rows["onnxruntime"], **common, "device": "cpu", "backend": "onnxruntime", "layout": "single",
                               "onnxruntime_version": _ort_version()}
         row["onnxruntime_over_torch_p50"] = round(rows["onnxruntime"]["p50_ms"] / rows["torch"]["p50_ms"], 3)
         out[name] = row
@@ -174,3 +177,11 @@ def _ort_version() -> str:
     import onnxruntime
 
     return str(onnxruntime.__version__)
+
+
+def _device_name(device: str) -> str:
+    """``cpu``, or ``cuda (NVIDIA H200)``: a GPU timing is only comparable on the same card."""
+    import torch
+
+    dev = torch.device(device)
+    return f"cuda ({torch.cuda.get_device_name(dev)})" if dev.type == "cuda" else "cpu"

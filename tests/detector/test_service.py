@@ -230,7 +230,7 @@ def test_bench_detector_json_has_the_documented_shape() -> None:
     assert row["points"] > 10_000  # a real HDL-32E scan, not a toy cloud
     assert 0 < row["p50_ms"] <= row["p99_ms"] and row["scans"] == 2 and row["threads"] == 1
     assert set(row["stages_ms"]) == {"voxelize", "network", "decode"}
-    assert row["weights"] in ("shipped", "random-init")
+    assert row["weights"] in ("shipped", "random-init") and row["device"] == "cpu"
 
 
 @pytest.mark.parametrize(
@@ -243,6 +243,7 @@ def test_bench_detector_json_has_the_documented_shape() -> None:
         (["bench", "detector", "--presets", "lite,huge"], "--presets"),
         (["bench", "detector", "--scenario", "moon"], "--scenario"),
         (["bench", "detector", "--weights", "lite"], "--weights"),
+        (["bench", "detector", "--device", "gpu"], "--device"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(args: list[str], needle: str) -> None:

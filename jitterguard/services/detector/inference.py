@@ -109,11 +109,15 @@ class Detector:
 
     def __init__(self, model: CenterPointNet, *, recalibration: Recalibration | tuple[float, float] | None = None,
                  score_threshold: float | None = None, threads: int | None = None,
-                 meta: dict[str, Any] | None = None, self_crop: Sequence[float] | None = SELF_CROP_M) -> None:
+                 meta: dict[str, Any] | None = None, self_crop: Sequence[float] | None = SELF_CROP_M,
+                 device: str | torch.device = "cpu") -> None:
         """``self_crop``: returns inside this (x_min, y_min, x_max, y_max) box of the sensor frame are the
-        vehicle's own body and never reach the network (:data:`~.config.SELF_CROP_M`; None keeps them)."""
+        vehicle's own body and never reach the network (:data:`~.config.SELF_CROP_M`; None keeps them).
+        ``device``: where voxelisation and the network run (``cuda`` on a GPU machine; decoding and NMS stay on
+        the CPU, where the boxes are needed)."""
         self.self_crop = check_crop_box(self_crop)
-        self.model = model.eval()
+        self.device = torch.device(device)
+        self.model = model.to(self.device).eval()
         self.config = model.config
         self.recalibration = Recalibration.of(recalibration)
         self.score_threshold = score_threshold
@@ -124,7 +128,7 @@ class Detector:
     @classmethod
     def load(cls, weights: str | Path | None = None, preset: str | None = "lite", *, threads: int | None = None,
              score_threshold: float | None = None, recalibrate: bool = True,
-             self_crop: Sequence[float] | None = SELF_CROP_M) -> "Detector":
+             self_crop: Sequence[float] | None = SELF_CROP_M, device: str | torch.device = "cpu") -> "Detector":
         """``weights`` if given; else the shipped weights of ``preset``; else a randomly initialised ``preset``
         (logged as a warning — its detections are meaningless). ``recalibrate`` applies the file's fitted
         per-axis variance scales when it has them; ``self_crop`` as in the constructor."""
@@ -133,13 +137,13 @@ class Detector:
         if weights is not None:
             model, rec, meta = load_weights(weights)
             return cls(model, recalibration=rec if recalibrate else None, score_threshold=score_threshold,
-                       threads=threads, meta=meta, self_crop=self_crop)
+                       threads=threads, meta=meta, self_crop=self_crop, device=device)
         if preset not in PRESETS:
             raise WeightsError(f"unknown preset {preset!r}; expected one of {', '.join(PRESETS)}")
         log.warning("no weights for preset %r: using a randomly initialised network", preset)
         torch.manual_seed(0)
         return cls(CenterPointNet(PRESETS[preset]), score_threshold=score_threshold, threads=threads,
-                   meta={"random_init": True}, self_crop=self_crop)
+                   meta={"random_init": True}, self_crop=self_crop, device=device)
 
     @torch.inference_mode()
     def detect(self, points: np.ndarray) -> Detections3D:
@@ -148,9 +152,12 @@ class Detector:
         t0 = time.perf_counter()
         nf = self.config.num_point_features
         points = crop_box(points, self.self_crop)
-        pillars = voxelize([torch.from_numpy(np.ascontiguousarray(points[:, :nf], dtype=np.float32))], self.config)
+        pts = torch.from_numpy(np.ascontiguousarray(points[:, :nf], dtype=np.float32)).to(self.device)
+        pillars = voxelize([pts], self.config)
+        self._sync()
         t1 = time.perf_counter()
         out = self.model.forward_pillars(pillars)
+        self._sync()
         t2 = time.perf_counter()
         det = decode(out, self.config, self.score_threshold)[0]
         if self.recalibration is not None and det.log_variances is not None:
@@ -158,3 +165,8 @@ class Detector:
         t3 = time.perf_counter()
         self.timings = {"voxelize": (t1 - t0) * 1e3, "network": (t2 - t1) * 1e3, "decode": (t3 - t2) * 1e3}
         return det
+
+    def _sync(self) -> None:
+        """Wait for the GPU, so that the stage timings are the stages' and not the kernel launches'."""
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
