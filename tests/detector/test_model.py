@@ -92,6 +92,33 @@ def test_voxelize_keeps_the_most_populated_pillars_when_over_budget() -> None:
     assert sorted(p.num_points.tolist()) == [2, 3]
 
 
+def test_a_batch_voxelizes_as_its_scans_one_by_one() -> None:
+    """The batch is grouped in one pass; that must equal voxelising each scan alone and concatenating (scans in
+    order, pillar indices offset, the pillar budget applied per scan), with an empty scan, out-of-range and
+    non-finite points and a budget that cuts some scans and not others."""
+    rng = np.random.default_rng(11)
+
+    def scan(n: int, spread: float) -> torch.Tensor:
+        xyz = rng.normal(0.0, spread, (n, 3)) * np.array([1.0, 1.0, 0.3])
+        pts = np.concatenate([xyz, rng.uniform(0, 255, (n, 1))], axis=1).astype(np.float32)
+        pts[::97, 2] = np.nan
+        return torch.from_numpy(pts)
+
+    scans = [scan(3000, 8.0), torch.zeros((0, 4)), scan(200, 3.0), scan(5000, 20.0)]
+    cfg = TINY.model_copy(update={"max_pillars": 600})
+    whole = voxelize(scans, cfg)
+    parts = [voxelize([s], cfg) for s in scans]
+    assert [len(p.num_points) for p in parts][:3] == [600, 0, len(parts[2].num_points)] and len(parts[2].num_points) < 600
+    offsets = np.cumsum([0] + [len(p.num_points) for p in parts[:-1]])
+    assert torch.equal(whole.points, torch.cat([p.points for p in parts]))
+    assert torch.equal(whole.pillar, torch.cat([p.pillar + int(o) for p, o in zip(parts, offsets)]))
+    assert torch.equal(whole.num_points, torch.cat([p.num_points for p in parts]))
+    coords = [p.coords.clone() for p in parts]
+    for b, c in enumerate(coords):
+        c[:, 0] = b
+    assert torch.equal(whole.coords, torch.cat(coords)) and whole.batch_size == 4
+
+
 def test_pillar_features_are_the_nine_of_pointpillars() -> None:
     net = CenterPointNet(TINY)
     pts = torch.tensor([[0.1, 0.1, 0.0, 0.0], [0.15, 0.05, 0.2, 0.0]])

@@ -117,7 +117,9 @@ class Detector:
         the CPU, where the boxes are needed)."""
         self.self_crop = check_crop_box(self_crop)
         self.device = torch.device(device)
-        self.model = model.to(self.device).eval()
+        if self.device.type != "cpu":  # (the ONNX Runtime stand-in for the network is CPU-only and has no .to)
+            model = model.to(self.device)
+        self.model = model.eval()
         self.config = model.config
         self.recalibration = Recalibration.of(recalibration)
         self.score_threshold = score_threshold

@@ -47,49 +47,60 @@ def voxelize(batch: list[Tensor], config: DetectorConfig) -> Pillars:
     to 0 for a model without intensity (``config.use_intensity`` false). The
     first ``config.num_point_features`` columns are kept (a fifth is the time lag of stacked sweeps).
     Tensors stay on the points' device.
+
+    The whole batch is grouped at once — one sort of (scan, cell) keys, points out of range or not finite keyed
+    past every cell and cut off after the sort — rather than scan by scan: the result equals voxelising each
+    scan alone and concatenating (scans in order, pillar indices offset), but a GPU runs a fixed handful of
+    kernels and two synchronisations per batch instead of per scan (on an H200 the per-scan loop cost 2.5 ms a
+    scan, about half of a 16-scan training step).
     """
     r = config.point_cloud_range
     vx, vy, _ = config.voxel_size
     nx, ny = config.grid_size
     m = config.max_points_per_pillar
-    all_pts, all_pillar, all_cnt, all_coords = [], [], [], []
-    offset = 0
     nf = config.num_point_features
-    for b, pts in enumerate(batch):
+    for pts in batch:
         if pts.shape[1] < nf:
             raise ValueError(f"points have {pts.shape[1]} fields, the model needs {nf}")
-        pts = pts[:, :nf].float()
-        dev = pts.device
-        keep = ((pts[:, 0] >= r[0]) & (pts[:, 0] < r[3]) & (pts[:, 1] >= r[1]) & (pts[:, 1] < r[4])
-                & (pts[:, 2] >= r[2]) & (pts[:, 2] < r[5]) & torch.isfinite(pts).all(dim=1))
-        pts = pts[keep]
-        ix = ((pts[:, 0] - r[0]) / vx).long().clamp_(0, nx - 1)
-        iy = ((pts[:, 1] - r[1]) / vy).long().clamp_(0, ny - 1)
-        lin = iy * nx + ix
-        lin_sorted, order = torch.sort(lin, stable=True)
-        cells, counts = torch.unique_consecutive(lin_sorted, return_counts=True)
-        starts = torch.cumsum(counts, 0) - counts
-        slot = torch.arange(len(lin_sorted), device=dev) - torch.repeat_interleave(starts, counts)
-        pillar = torch.repeat_interleave(torch.arange(len(cells), device=dev), counts)
-        if len(cells) > config.max_pillars:
-            chosen = torch.argsort(counts, descending=True, stable=True)[: config.max_pillars]
-            chosen, _ = torch.sort(chosen)
-            remap = torch.full((len(cells),), -1, dtype=torch.long, device=dev)
-            remap[chosen] = torch.arange(len(chosen), device=dev)
-            pillar = remap[pillar]
-            cells, counts = cells[chosen], counts[chosen]
-        ok = (slot < m) & (pillar >= 0)
-        kept = pts[order[ok]]  # a copy: the caller's points are never written
-        if config.use_intensity:
-            kept[:, 3] /= 255.0
-        else:  # a model trained without intensity sees 0 from every sensor
-            kept[:, 3] = 0.0
-        all_pts.append(kept)
-        all_pillar.append(pillar[ok] + offset)
-        all_cnt.append(counts.clamp(max=m))
-        all_coords.append(torch.stack([torch.full_like(cells, b), cells // nx, cells % nx], dim=1))
-        offset += len(cells)
-    return Pillars(torch.cat(all_pts), torch.cat(all_pillar), torch.cat(all_cnt), torch.cat(all_coords), len(batch))
+    dev = batch[0].device if batch else torch.device("cpu")
+    pts = torch.cat([p[:, :nf].float() for p in batch]) if batch else torch.zeros(0, nf)
+    scan = torch.cat([torch.full((len(p),), b, dtype=torch.long, device=dev) for b, p in enumerate(batch)]
+                     ) if batch else torch.zeros(0, dtype=torch.long)
+    valid = ((pts[:, 0] >= r[0]) & (pts[:, 0] < r[3]) & (pts[:, 1] >= r[1]) & (pts[:, 1] < r[4])
+             & (pts[:, 2] >= r[2]) & (pts[:, 2] < r[5]) & torch.isfinite(pts).all(dim=1))
+    ix = ((pts[:, 0] - r[0]) / vx).nan_to_num_(0.0).long().clamp_(0, nx - 1)
+    iy = ((pts[:, 1] - r[1]) / vy).nan_to_num_(0.0).long().clamp_(0, ny - 1)
+    past = len(batch) * nx * ny  # the key of a dropped point: after every scan's cells
+    key = torch.where(valid, scan * (nx * ny) + iy * nx + ix, past)
+    key_sorted, order = torch.sort(key, stable=True)
+    n = int(valid.sum())
+    key_sorted, order = key_sorted[:n], order[:n]
+    cells, counts = torch.unique_consecutive(key_sorted, return_counts=True)
+    starts = torch.cumsum(counts, 0) - counts
+    slot = torch.arange(n, device=dev) - torch.repeat_interleave(starts, counts)
+    pillar = torch.repeat_interleave(torch.arange(len(cells), device=dev), counts)
+    cell_scan = cells // (nx * ny)
+    if len(cells) > config.max_pillars and int(torch.bincount(cell_scan).max()) > config.max_pillars:
+        # the pillar budget, per scan: rank each scan's cells by point count (descending, ties by cell order)
+        by_count = torch.argsort(counts, descending=True, stable=True)
+        ranked = by_count[torch.argsort(cell_scan[by_count], stable=True)]  # scan, count desc, cell order
+        first = torch.searchsorted(cell_scan[ranked], cell_scan[ranked], right=False)
+        rank = torch.empty_like(ranked)
+        rank[ranked] = torch.arange(len(ranked), device=dev) - first
+        chosen = rank < config.max_pillars
+        remap = torch.cumsum(chosen.long(), 0) - 1
+        remap[~chosen] = -1
+        pillar = remap[pillar]
+        cells, counts, cell_scan = cells[chosen], counts[chosen], cell_scan[chosen]
+    ok = (slot < m) & (pillar >= 0)
+    kept = pts[order[ok]]  # a copy: the caller's points are never written
+    if config.use_intensity:
+        kept[:, 3] /= 255.0
+    else:  # a model trained without intensity sees 0 from every sensor
+        kept[:, 3] = 0.0
+    lin = cells % (nx * ny)
+    coords = torch.stack([cell_scan, lin // nx, lin % nx], dim=1)
+    return Pillars(kept, pillar[ok], counts.clamp(max=m), coords, len(batch))
 
 
 class PillarFeatureNet(nn.Module):
