@@ -2,8 +2,10 @@
 # The second GPU lease of 28 Nov (after scripts/gpu_lease_train.sh): run B of the first lease (lite from scratch
 # with every sim-to-real effect) scored best on the real scene, so this lease continues it on 100 fresh seeds
 # (200-299), side by side with the same plus pitch/roll augmentation, and trains the `paper` preset from scratch
-# on the same scans. The lite epochs fill BUDGET_S (≈ 50 s an epoch side by side on an H200 machine, measured in
-# the first lease); the paper run gets PAPER_EPOCHS and keeps its last checkpoint if the budget ends first.
+# on the same scans. The lite epochs fill BUDGET_S at EPOCH_S seconds an epoch: 80 for three runs side by side on
+# an H200 machine with 16 cores (the lease of 28 Nov assumed 52, from two runs, and ran out in the 5th of 5
+# epochs: 76 s measured); the paper run gets PAPER_EPOCHS and keeps its last checkpoint if the budget ends first.
+# A paper checkpoint is 58 MB, over the 16 MB a lease returns per file: copy its weights, not its checkpoint.
 #
 #   OUT=dir INIT=B.pt [BUDGET_S=470] [PY=python3] [SMOKE=1] bash scripts/gpu_lease_continue.sh
 #
@@ -26,7 +28,7 @@ if [ "$SMOKE" = 1 ]; then
   DATA="--scenarios mixed --train-seeds 200-201 --val-seeds 900 --frames-per-scenario 2"; BATCH=2; EPOCH_S=100
   PAPER_EPOCHS=1
 else
-  DATA="--train-seeds 200-299 --val-seeds 900-901 --frames-per-scenario 10"; BATCH=16; EPOCH_S=52
+  DATA="--train-seeds 200-299 --val-seeds 900-901 --frames-per-scenario 10"; BATCH=16; EPOCH_S=${EPOCH_S:-80}
 fi
 DATA="$DATA --effects none+random,vegetation --rotation 45 --batch-size $BATCH --no-progress --fit-recalibration"
 echo "== $(date -u) cores $NCPU budget ${BUDGET_S}s"

@@ -133,7 +133,7 @@ def test_recalibrate_detector_refits_only_the_variance_scales(tmp_path: Path) ->
     out = tmp_path / "rc"
     res = _jg("recalibrate-detector", "--weights", str(src), "--out", str(out), "--scenarios", "parking-street",
               "--seeds", "40-41", "--frames-per-scenario", "4", "--effects", "none+random", "--bins", "2",
-              "--threads", "1", "--no-progress")
+              "--threads", "1", "--workers", "2", "--no-progress")  # the scans ray-cast in two processes
     assert res.returncode == 0, res.stderr[-2000:]
     report = json.loads(res.stdout.strip().splitlines()[-1])
     before, after = load_weights(src), load_weights(out / "weights.pt")

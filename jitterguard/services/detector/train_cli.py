@@ -180,9 +180,11 @@ residuals of the real scans (label-free, one scale per axis), or kept from the s
 
 
 def fit_synthetic_recalibration(det: Any, root: Path, scenarios: list[str], seeds_text: str, frames: int,
-                                effect_sets: list[str], bins: int, progress: bool) -> tuple[Any, dict[str, Any]]:
+                                effect_sets: list[str], bins: int, progress: bool,
+                                workers: int = 0) -> tuple[Any, dict[str, Any]]:
     """Score-binned variance scales for ``det`` (a :class:`~.inference.Detector` without recalibration) fitted
-    on labelled synthetic scans cast once into ``root`` (one cache per ``effect_sets`` recipe); also writes
+    on labelled synthetic scans cast once into ``root`` (one cache per ``effect_sets`` recipe, in ``workers``
+    processes when > 0); also writes
     ``root/before*`` and ``root/after*`` (calibration JSON + PNGs on those scans). Returns the
     :class:`~.evaluate.Recalibration` and a report: what it was fitted on, ECE / coverage / NLL before and
     after. Raises ValueError when nothing matches."""
@@ -193,7 +195,8 @@ def fit_synthetic_recalibration(det: Any, root: Path, scenarios: list[str], seed
     seeds = parse_seeds(seeds_text, "--seeds")
     items: list[Any] = []
     for e in effect_sets:
-        view = _Prepared(synthetic_cache(root, scenarios, seeds, frames, progress, e), det.config.point_cloud_range)
+        view = _Prepared(synthetic_cache(root, scenarios, seeds, frames, progress, e, workers),
+                         det.config.point_cloud_range)
         items += [view[i] for i in range(len(view))]
     dets = [det.detect(s.points) for s in tqdm(items, unit="scan", file=sys.stderr, disable=not progress)]
     rec = fit_recalibration(dets, items, bins=bins)
@@ -660,6 +663,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         bins: Annotated[int, typer.Option("--bins", min=1, max=20, help="Score bins (1: one global scale per"
                                           " axis).")] = RECALIBRATION_BINS,
         threads: Annotated[int | None, typer.Option("--threads", min=1, max=1024)] = None,
+        workers: Annotated[int, typer.Option("--workers", min=0, max=64, help="Processes that ray-cast the"
+                                             " scans (0: this one).")] = 0,
         progress: ProgressOpt = None,
     ) -> None:
         """Refit a weights file's per-axis variance scales, per detection-score bin, on labelled synthetic scans."""
@@ -684,7 +689,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         if not det.config.uncertainty:
             fail("--weights: a vanilla model predicts no variances to recalibrate")
         try:
-            rec, fitted = fit_synthetic_recalibration(det, Path(out), scen, seeds, frames, effect_sets, bins, progress)
+            rec, fitted = fit_synthetic_recalibration(det, Path(out), scen, seeds, frames, effect_sets, bins, progress,
+                                                      workers)
         except ValueError as exc:
             fail(f"--seeds: {exc}")
         import hashlib
