@@ -349,3 +349,20 @@ def test_a_recalibration_round_trips_its_payload_and_rejects_bad_ones() -> None:
             Recalibration(bad)
     with pytest.raises(ValueError):
         Recalibration(((1.0, 1.0), (1.0, 1.0), (1.0, 1.0)), (0.6, 0.4))  # edges must increase
+
+
+def test_recall_by_returns_counts_a_box_found_only_by_a_prediction_above_the_working_score() -> None:
+    """Three cars of 3, 30 and 300 returns: the sparse one is found (0.9, plus a duplicate that takes nothing),
+    the middle one only by a box below the working score 0.3, the dense one by nothing at all. Empty bins say
+    None, not 0."""
+    sample = gt([(10.0, 0.0), (20.0, 0.0), (30.0, 0.0)], [CAR] * 3, num_points=[3, 30, 300])
+    pred = det([(10.2, 0.0), (10.4, 0.1), (20.1, 0.0)], [0.9, 0.5, 0.2], [CAR] * 3)
+    rows = detection_ap([pred], [sample])["classes"]["car"]["recall_by_returns"]
+    assert [(r["returns"], r["num_gt"], r["recall"]) for r in rows] == [
+        ("1-4", 1, 1.0), ("5-19", 0, None), ("20-49", 1, 0.0), ("50-199", 0, None), ("200+", 1, 0.0)]
+    # the same boxes scored above the working point: the middle car is found too
+    pred_hi = det([(10.2, 0.0), (10.4, 0.1), (20.1, 0.0)], [0.9, 0.5, 0.4], [CAR] * 3)
+    rows = detection_ap([pred_hi], [sample])["classes"]["car"]["recall_by_returns"]
+    assert [r["recall"] for r in rows] == [1.0, None, 1.0, None, 0.0]
+    assert json.loads(json.dumps(evaluation_report([pred], [sample])))["detection"]["classes"]["car"][
+        "recall_by_returns"][1]["recall"] is None
