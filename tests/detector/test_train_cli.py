@@ -31,6 +31,8 @@ def test_parse_seeds_ranges_and_lists() -> None:
     (["train", "--out", "OUT", "--init", "/nonexistent.pt"], "--init"),
     (["eval-detector", "--out", "OUT", "--weights", "/nonexistent.pt"], "--weights"),
     (["eval-detector", "--out", "OUT", "--seeds", "x"], "--seeds"),
+    (["eval-detector", "--out", "OUT", "--effects", "fog"], "--effects"),
+    (["eval-detector", "--out", "OUT", "--effects", "none+random"], "--effects"),
     (["recalibrate-detector", "--out", "OUT", "--weights", "/nonexistent.pt"], "--weights"),
     (["recalibrate-detector", "--out", "OUT", "--weights", "SHIPPED", "--effects", "fog"], "--effects"),
     (["recalibrate-detector", "--out", "OUT", "--weights", "SHIPPED", "--seeds", "5-1"], "--seeds"),
@@ -67,7 +69,16 @@ def test_tiny_training_run_writes_weights_history_and_report(tmp_path: Path) -> 
     assert ev.returncode == 0, ev.stderr[-2000:]
     rep = json.loads(ev.stdout.strip().splitlines()[-1])
     assert rep["samples"] == 1 and 0.0 <= (rep["car_ap"] or 0.0) <= 1.0
-    assert (tmp_path / "ev" / "holdout.json").is_file()
+    ideal = json.loads((tmp_path / "ev" / "holdout.json").read_text())
+    assert ideal["scored_on"]["synthetic"]["effects"] == "none"
+    # the same seed cast with sim-to-real effects: its own cache, and the report says what it was scored on
+    fx = _jg("eval-detector", "--out", str(tmp_path / "ev"), "--weights", str(out / "weights.pt"),
+             "--scenarios", "parking-street", "--seeds", "7", "--frames-per-scenario", "1", "--threads", "1",
+             "--effects", "random,vegetation", "--name", "fx", "--no-progress")
+    assert fx.returncode == 0, fx.stderr[-2000:]
+    with_fx = json.loads((tmp_path / "ev" / "fx.json").read_text())
+    assert "vegetation" in with_fx["scored_on"]["synthetic"]["effects"]
+    assert len(list((tmp_path / "ev").glob("cache-*"))) == 2
 
 
 def test_joined_samples_index_through_their_parts() -> None:

@@ -568,6 +568,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         scenarios: Annotated[str, typer.Option("--scenarios")] = DEFAULT_SCENARIOS,
         seeds: Annotated[str, typer.Option("--seeds", help="Hold-out seeds (never used in training).")] = "1000-1004",
         frames: Annotated[int, typer.Option("--frames-per-scenario", min=1, max=600)] = 10,
+        effects: Annotated[str, typer.Option("--effects", help="Sim-to-real effects of the synthetic hold-out scans"
+                                             " (as train's --effects, one set): 'none' (ideal, the quality bar's)"
+                                             " or e.g. 'random,vegetation'.")] = "none",
         nuscenes: Annotated[str | None, typer.Option("--nuscenes", help="Evaluate on this nuScenes dataroot's key"
                                                       " frames instead (all of them, unless the weights were"
                                                       " trained on it: then its held-out ones).")] = None,
@@ -592,6 +595,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             fail(f"--weights: file not found: {weights}")
         scen = _scenarios(scenarios)
         sd = parse_seeds(seeds, "--seeds")
+        if "+" in effects:
+            fail(f"--effects: one set of effects to score on, got {effects!r}")
+        _effects(effects)
         from .cli import passive_openmp
 
         passive_openmp()  # before torch is imported
@@ -631,7 +637,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                 log.warning("these weights were trained on %s: scoring only its held-out last %d key frames",
                             nuscenes, last)
         else:
-            samples = synthetic_cache(Path(out), scen, sd, frames, progress)
+            samples = synthetic_cache(Path(out), scen, sd, frames, progress, effects)
+            scored_on = {"synthetic": {"scenarios": scen, "seeds": seeds, "frames_per_scenario": frames,
+                                       "effects": ",".join(_effects(effects)) or "none"}}
         view = _Prepared(samples, det.config.point_cloud_range)
         items = [view[i] for i in range(len(view))]
         from tqdm import tqdm
