@@ -40,7 +40,7 @@ def detector_frames_for(scenario: str, seed: int, duration_s: float, rate_hz: fl
 
         scans = tqdm(scans, total=len(sc), desc=f"{scenario} seed {seed}", unit="scan", file=sys.stderr, leave=False)
     for f in detector_frames(scans, detector.detect, class_names=detector.config.class_names,
-                             uncertainty=detector.config.uncertainty):
+                             uncertainty=detector.config.uncertainty, sweeps=detector.sweeps):
         yield f.gt, f.detections
 
 

@@ -74,8 +74,10 @@ def recording_detections(source: Any, detector: Any, start: int, limit: int | No
     from ..services.detector.adapter import detections_payload
     from ..services.replay.adapter import detections_message, point_cloud_message
     from ..services.replay.frames import FrameError, ScanFrame
+    from ..services.detector.sweeps import SweepStacker
     from .detector_input import detect_scan
 
+    stacker = SweepStacker(detector.sweeps) if detector.sweeps > 1 else None
     for i, item in enumerate(source.frames(start)):
         if limit is not None and i >= limit:
             return
@@ -84,7 +86,7 @@ def recording_detections(source: Any, detector: Any, start: int, limit: int | No
             continue
         if isinstance(item, ScanFrame):
             scan = point_cloud_message(item, i, item.stamp_ns)
-            det = detect_scan(detector.detect, scan, uncertainty=detector.config.uncertainty)
+            det = detect_scan(detector.detect, scan, uncertainty=detector.config.uncertainty, stacker=stacker)
             yield detections_payload(det, scan.header, scan.ego_pose, detector.config.class_names)
         else:
             yield encode(detections_message(item, i, item.stamp_ns))

@@ -279,7 +279,7 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
         else:
             scans = synthetic_scans(fr, s)
         det_frames = detector_frames(bar(scans, s), detector.detect, class_names=detector.config.class_names,
-                                     uncertainty=detector.config.uncertainty)
+                                     uncertainty=detector.config.uncertainty, sweeps=detector.sweeps)
         rec_s, preds, smp = run_detector_pipeline(det_frames, classifier, tracker, calibration=carry,
                                                   variance_scale=variance_scale,
                                                   calibration_model=calibration_model,

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -113,6 +113,27 @@ class ScanEffects:
             v = getattr(self, name)
             if not 0.0 <= v <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {v}")
+
+    def seen_from(self, x: float, y: float, yaw: float) -> "ScanEffects":
+        """These effects for a sensor standing at (``x``, ``y``) of this scan's sensor frame, turned by ``yaw``: the
+        same ground in the world, expressed in the other sensor's frame (``ground_offset`` of the result at a point
+        of that frame equals this one's at the same place), so the sweeps of a stack (:mod:`.lidar`'s
+        ``cast_frame(anchor=…)``) see one road, not one that moves with the car. Both sensors stay at the same
+        height above the nominal plane. The rest (materials, noise, clutter seeds) is unchanged."""
+        c, s = math.cos(yaw), math.sin(yaw)
+        rot = np.array([[c, -s], [s, c]])  # the other frame's axes in this one's
+        p = np.array([x, y], np.float64)
+        cxx, cyy, cxy = self.curvature
+        cm = np.array([[cxx, cxy], [cxy, cyy]])
+        tilt = np.asarray(self.tilt, np.float64)
+        # h(q) with q = R u + p:  ½ uᵀ Rᵀ C R u + (Rᵀ (t + C p))·u + (h0 + t·p + ½ pᵀ C p)
+        c2 = rot.T @ cm @ rot
+        t2 = rot.T @ (tilt + cm @ p)
+        h0 = self.mount_offset_m + float(tilt @ p) + 0.5 * float(p @ cm @ p)
+        und = tuple((a, *(rot.T @ np.array([kx, ky])).tolist(), ph + kx * x + ky * y)
+                    for a, kx, ky, ph in self.undulation)
+        return replace(self, mount_offset_m=h0, tilt=(float(t2[0]), float(t2[1])),
+                       curvature=(float(c2[0, 0]), float(c2[1, 1]), float(c2[0, 1])), undulation=und)
 
     @property
     def flat(self) -> bool:

@@ -378,7 +378,8 @@ def ego_body(effects: ScanEffects, spec: LidarSpec, rng: np.random.Generator) ->
 
 
 def cast_frame(frame: GroundTruthFrame, sensor: LidarSpec | None = None, seed: int = 0,
-               effects: ScanEffects | None = None) -> tuple[ScanResult, GroundTruthFrame]:
+               effects: ScanEffects | None = None, anchor: tuple[float, float, float] | None = None
+               ) -> tuple[ScanResult, GroundTruthFrame]:
     """Scan ``frame`` and return the scan plus the frame with ``num_points`` and ray-cast ``visibility`` filled in.
 
     Visibility = rays whose first hit is the object / rays that would hit it alone (porous crowns and fences
@@ -386,36 +387,56 @@ def cast_frame(frame: GroundTruthFrame, sensor: LidarSpec | None = None, seed: i
     Randomness is seeded by (``seed``, frame seq), so a frame always scans the same. With ``effects`` every
     object and piece of scenery is lifted onto the effects' ground (by the height under its object's centre);
     the lift of each object is in ``ScanResult.object_lift``.
+
+    ``anchor``: the world (x, y, yaw) of the sensor whose frame ``effects`` are drawn in, when that is not this
+    frame's — the sweeps of one stack (:func:`~jitterguard.services.detector.data.synthetic_samples` with
+    ``sweeps``): every sweep then sees the same ground, street clutter, vegetation and left-out buildings in the
+    world, not copies that move with the car. Without it (the default) the effects hang on this frame's sensor,
+    as every single-sweep scan has always been cast.
     """
     spec = sensor or hdl32e()
     prims, owner = scene_primitives(frame, spec)
     rng = np.random.default_rng([seed, frame.seq])
     lift = np.zeros(frame.num_objects)
     if effects is not None:
+        # where this sensor stands in the frame the effects are drawn in (identity without an anchor)
+        ax, ay, ayaw = anchor if anchor is not None else (frame.ego_x, frame.ego_y, frame.ego_yaw)
+        ca, sa = math.cos(ayaw), math.sin(ayaw)
+        px = ca * (frame.ego_x - ax) + sa * (frame.ego_y - ay)
+        py = -sa * (frame.ego_x - ax) + ca * (frame.ego_y - ay)
+        turn = frame.ego_yaw - ayaw
+        here = effects if anchor is None else effects.seen_from(px, py, turn)
         if effects.building_drop > 0:
-            drop = (prims.tag == int(Tag.BUILDING)) & (
-                np.random.default_rng([effects.clutter_seed, 1]).random(len(prims)) < effects.building_drop)
+            if anchor is None:
+                u = np.random.default_rng([effects.clutter_seed, 1]).random(len(prims))
+            else:  # keyed on where each piece stands in the anchor's frame, so that every sweep drops the same
+                back = to_sensor_frame(prims, -(math.cos(turn) * px + math.sin(turn) * py),
+                                       -(-math.sin(turn) * px + math.cos(turn) * py), -turn, 0.0)
+                u = _position_hash(back.center, effects.clutter_seed)
+            drop = (prims.tag == int(Tag.BUILDING)) & (u < effects.building_drop)
             prims, owner = prims.subset(~drop), owner[~drop]
         if effects.clutter_density > 0 or effects.vegetation_density > 0:
-            c, s = math.cos(frame.ego_yaw), math.sin(frame.ego_yaw)
-            dx, dy = frame.centers[:, 0] - frame.ego_x, frame.centers[:, 1] - frame.ego_y
-            keep_out = np.column_stack([c * dx + s * dy, -s * dx + c * dy, frame.sizes[:, 0] / 2,
-                                        frame.sizes[:, 1] / 2, frame.yaws - frame.ego_yaw])
+            dx, dy = frame.centers[:, 0] - ax, frame.centers[:, 1] - ay
+            keep_out = np.column_stack([ca * dx + sa * dy, -sa * dx + ca * dy, frame.sizes[:, 0] / 2,
+                                        frame.sizes[:, 1] / 2, frame.yaws - ayaw])
             # a density of 0 draws no piece: each function then returns nothing
             extra = Primitives.concat([street_clutter(effects, keep_out, spec.mount_height_m),
                                        vegetation_masses(effects, keep_out, spec.mount_height_m)])
+            if anchor is not None:
+                extra = to_sensor_frame(extra, px, py, turn, 0.0)
             prims = Primitives.concat([prims, extra])
             owner = np.concatenate([owner, np.full(len(extra), _CLUTTER_OWNER, np.int64)])
-        if not effects.flat:
+        if not here.flat:
             c, s = math.cos(frame.ego_yaw), math.sin(frame.ego_yaw)
             dx, dy = frame.centers[:, 0] - frame.ego_x, frame.centers[:, 1] - frame.ego_y
-            lift = effects.ground_offset(c * dx + s * dy, -s * dx + c * dy)
+            lift = here.ground_offset(c * dx + s * dy, -s * dx + c * dy)
             own_lift = np.where(owner >= 0, lift[np.maximum(owner, 0)] if len(lift) else 0.0,
-                                effects.ground_offset(prims.center[:, 0], prims.center[:, 1]))
+                                here.ground_offset(prims.center[:, 0], prims.center[:, 1]))
             prims = replace(prims, z=prims.z + own_lift[:, None])
-        body = ego_body(effects, spec, rng)
+        body = ego_body(here, spec, rng)
         prims = Primitives.concat([prims, body])
         owner = np.concatenate([owner, np.full(len(body), _EGO_OWNER, np.int64)])
+        effects = here
     if effects is not None and effects.motion:
         res = _cast_moving(frame, prims, owner, spec, rng, effects)
     else:
@@ -426,6 +447,16 @@ def cast_frame(frame: GroundTruthFrame, sensor: LidarSpec | None = None, seed: i
     reached = res.num_rays_alone > 0
     vis[reached] = np.clip(res.num_rays_visible[reached] / res.num_rays_alone[reached], 0.0, 1.0)
     return res, replace(frame, num_points=res.num_points.copy(), visibility=vis)
+
+
+def _position_hash(xy: F64, seed: int) -> F64:
+    """A uniform number in [0, 1) per footprint centre, the same wherever it is computed from (centres on a
+    0.25 m grid): the left-out buildings of the sweeps of one stack agree."""
+    cell = np.round(np.asarray(xy, np.float64) / 0.25).astype(np.int64)
+    h = (cell[:, 0] * 73856093) ^ (cell[:, 1] * 19349663) ^ (int(seed) * 83492791)
+    h = (h ^ (h >> 13)) * 1274126177
+    h = h ^ (h >> 16)
+    return (h & 0xFFFFFF).astype(np.float64) / float(0x1000000)
 
 
 MOTION_SECTORS = 12

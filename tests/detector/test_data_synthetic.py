@@ -145,3 +145,36 @@ def test_parallel_casting_gives_the_same_samples_in_the_same_order() -> None:
         np.testing.assert_array_equal(a.points, b.points)
         np.testing.assert_array_equal(a.boxes, b.boxes)
         np.testing.assert_array_equal(a.labels, b.labels)
+
+
+def test_stacked_synthetic_samples_carry_earlier_sweeps_with_their_lags() -> None:
+    """``sweeps``: five point fields; the newest sweep at lag 0, the others a whole number of 50 ms spins back,
+    evenly spaced and within 0.5 s; a static world lands where the newest sweep sees it; deterministic."""
+    from scipy.spatial import cKDTree
+
+    kw = dict(frames_per_scenario=4, duration_s=10.0, effects="ground,clutter,noise")
+    two = list(synthetic_samples(["mixed"], [3], sweeps=2, **kw))
+    again = list(synthetic_samples(["mixed"], [3], sweeps=2, **kw))
+    assert [s.token for s in two] == [s.token for s in again]
+    for a, b in zip(two, again):
+        np.testing.assert_array_equal(a.points, b.points)
+    steps = set()
+    for s in two:
+        assert s.points.shape[1] == 5
+        lags = np.unique(np.round(s.points[:, 4].astype(np.float64), 4))
+        assert lags[0] == 0.0 and len(lags) <= 2
+        if len(lags) == 2:
+            k = lags[1] / 0.05
+            assert abs(k - round(k)) < 1e-3 and 1 <= round(k) <= 10
+            steps.add(round(k))
+            key, earlier = s.points[s.points[:, 4] == 0, :3], s.points[s.points[:, 4] > 0, :3]
+            # most returns of the earlier sweep (ground, buildings, clutter, parked cars) meet the newest's
+            assert np.median(cKDTree(key).query(earlier)[0]) < 0.3
+    assert len(steps) >= 2  # the spacing is drawn per sample
+    ten = list(synthetic_samples(["mixed"], [3], sweeps=10, **kw))
+    full = [np.unique(np.round(s.points[:, 4].astype(np.float64), 4)) for s in ten]
+    assert any(len(lags) == 10 for lags in full)
+    for lags in full:
+        np.testing.assert_allclose(lags, 0.05 * np.arange(len(lags)), atol=1e-4)  # 20 Hz, one spin apart
+    with pytest.raises(ValueError, match="sweeps"):
+        next(synthetic_samples(["mixed"], [3], sweeps=0, **kw))

@@ -208,6 +208,62 @@ def test_a_scan_without_finite_points_still_closes_its_frame(harness) -> None:
     assert c["empty_scans"] == 1 and c["nonfinite_points"] == 5
 
 
+class RecordingGatedDetector(GatedDetector):
+    """The gated detector that also keeps what the worker handed the network."""
+
+    inputs: list[np.ndarray]
+
+    def detect(self, points: np.ndarray):  # type: ignore[override]
+        self.inputs.append(points.copy())
+        return super().detect(points)
+
+
+def test_a_sweep_model_gets_every_arrived_scan_stacked_even_those_the_worker_skipped(
+        zenoh_port: int, client_session: zenoh.Session, scans) -> None:
+    """A model trained on stacked sweeps (five point fields): the service holds every scan that arrives and stacks
+    the one the worker takes with the earlier ones — the scans it skipped while the network was busy included —
+    exactly as the offline evaluator's stacker does with the same scans."""
+    from jitterguard.services.detector.adapter import scan_pose
+    from jitterguard.services.detector.config import PRESETS
+    from jitterguard.services.detector.network import CenterPointNet
+    from jitterguard.services.detector.sweeps import SweepStacker
+
+    torch.manual_seed(0)
+    net = CenterPointNet(PRESETS["lite"].model_copy(update={"num_point_features": 5}))
+    det = RecordingGatedDetector(net, meta={"source": {"sweeps": 4}}, threads=1, score_threshold=0.05)
+    det.gate, det.entered, det.inputs = threading.Event(), threading.Event(), []
+    det.gate.clear()
+    svc = DetectorService(loopback_options(NS, zenoh_port, listen_self=True), det)
+    try:
+        client = Client(client_session)
+        assert wait_until(lambda: client.pub.matching_status.matching, TIMEOUT)
+        sent = [client.send(*scans[0], seq=0)]
+        assert det.entered.wait(TIMEOUT)  # the worker holds scan 0 inside the network
+        sent += [client.send(*scans[seq % 2], seq=seq) for seq in range(1, 5)]
+        assert wait_until(lambda: svc.counters.get("received") == 5, TIMEOUT)
+        det.gate.set()
+        assert wait_until(lambda: client.seqs() == [0, 4], TIMEOUT)
+        assert wait_until(lambda: svc.counters.get("scans") == 2, TIMEOUT)
+        c = svc.counters.snapshot()
+        assert c["skipped_scans"] == 3 and c["stacked_sweeps_last"] == 4
+    finally:
+        det.gate.set()
+        svc.close()
+    # offline: the same five scans through one stacker; the network saw scan 0 alone, then scan 4 with 3, 2, 1
+    offline = SweepStacker(4)
+    want = []
+    for msg in sent:
+        pts = np.frombuffer(msg.data, "<f4").reshape(msg.num_points, 5)[:, :4].copy()
+        r, t = scan_pose(msg)
+        offline.add(msg.header.stamp, r, t, pts)
+        want.append(offline.stack(msg.header.stamp, r, t, pts))
+    assert len(det.inputs) == 2
+    for got, exp in zip(det.inputs, (want[0], want[4])):
+        np.testing.assert_array_equal(got, exp)
+    lags = np.unique(det.inputs[1][:, 4])
+    np.testing.assert_allclose(lags, [0.0, 0.05, 0.1, 0.15], atol=1e-6)
+
+
 def client_cloud(pts: np.ndarray) -> PointCloud:
     return PointCloud(header=Header(stamp=STAMP0, frame_id="lidar", seq=0), fields=["x", "y", "z", "intensity", "ring"],
                       num_points=len(pts), data=pts.astype("<f4").tobytes())

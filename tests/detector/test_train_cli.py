@@ -157,3 +157,58 @@ def test_recalibrate_detector_refits_only_the_variance_scales(tmp_path: Path) ->
     # fitted on these scans, the NLL there cannot get worse than with the raw variances
     assert report["after"]["nll"] <= report["before"]["nll"]
     assert (out / "recalibration.json").is_file() and (out / "after_calibration.png").is_file()
+
+
+@pytest.mark.slow
+def test_sweeps_fine_tunes_single_sweep_weights_into_a_stacked_sweep_model(tmp_path: Path) -> None:
+    """``train --init W --sweeps 2`` on synthetic scans: the weights come out five-field with the stack recorded
+    (so the live service and the evaluators stack as trained), and ``eval-detector`` scores them on stacked scans;
+    ``--sweeps 1`` cannot take five-field weights."""
+    from jitterguard.services.detector.inference import Detector, shipped_weights
+
+    out = tmp_path / "run"
+    res = _jg("train", "--out", str(out), "--init", str(shipped_weights("lite")), "--sweeps", "2",
+              "--scenarios", "parking-street", "--train-seeds", "0", "--val-seeds", "1", "--frames-per-scenario", "2",
+              "--epochs", "1", "--batch-size", "1", "--max-steps-per-epoch", "1", "--threads", "1", "--no-progress")
+    assert res.returncode == 0, res.stderr[-2000:]
+    model, _, meta = load_weights(out / "weights.pt")
+    assert model.config.num_point_features == 5 and meta["source"]["sweeps"] == 2
+    assert Detector.load(str(out / "weights.pt"), "lite", threads=1).sweeps == 2
+    ev = _jg("eval-detector", "--out", str(tmp_path / "ev"), "--weights", str(out / "weights.pt"),
+             "--scenarios", "parking-street", "--seeds", "7", "--frames-per-scenario", "1", "--threads", "1",
+             "--no-progress")
+    assert ev.returncode == 0, ev.stderr[-2000:]
+    assert json.loads(ev.stdout.strip().splitlines()[-1])["samples"] == 1
+    assert json.loads((tmp_path / "ev" / "holdout.json").read_text())["scored_on"]["synthetic"]["sweeps"] == 2
+    back = _jg("train", "--out", str(tmp_path / "back"), "--init", str(out / "weights.pt"), "--threads", "1",
+               "--no-progress")
+    assert back.returncode == 2 and "--init" in back.stderr and "5 point fields" in back.stderr
+
+
+def test_with_time_lag_computes_what_the_single_sweep_model_computes() -> None:
+    """The widened network reads a zero-weighted lag: on stacked points its heads equal the four-field network's
+    on the same points (the lags dropped), until training moves the new weights."""
+    import numpy as np
+    import torch
+
+    from jitterguard.bench.detector import bench_scans
+    from jitterguard.services.detector.network import with_time_lag
+
+    model, _, _ = load_weights(shipped_weights_path())
+    wide = with_time_lag(model).eval()
+    pts = bench_scans(1, seed=3)[0][:, :4]
+    lagged = np.column_stack([pts, np.random.default_rng(0).uniform(0, 0.5, len(pts))]).astype(np.float32)
+    with torch.no_grad():
+        a = model([torch.from_numpy(pts)])
+        b = wide([torch.from_numpy(lagged)])
+    for k in a:
+        torch.testing.assert_close(a[k], b[k], rtol=1e-5, atol=1e-5)
+    assert wide.config.num_point_features == 5
+    with pytest.raises(ValueError):
+        with_time_lag(wide)
+
+
+def shipped_weights_path() -> Path:
+    from jitterguard.services.detector.inference import shipped_weights
+
+    return Path(shipped_weights("lite"))

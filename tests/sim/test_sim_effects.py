@@ -173,3 +173,50 @@ def test_motion_within_the_sweep_smears_the_static_world_by_when_it_was_swept() 
     assert np.median(on(early)[:, 0]) - x_face == pytest.approx(10.0 * 0.05 * (1 - 0.5 / 12), abs=0.03)
     assert np.median(on(late)[:, 0]) - x_face == pytest.approx(10.0 * 0.05 * 0.5 / 12, abs=0.03)
     assert len(on(early)) == pytest.approx(len(on(still)), rel=0.05)
+
+
+# ------------------------------------------------------------------------- sweeps of one stack: one world
+
+
+def test_effects_seen_from_another_sensor_describe_the_same_ground() -> None:
+    fx = ScanEffects(mount_offset_m=0.05, tilt=(0.01, -0.02), curvature=(0.001, -0.002, 0.0005),
+                     undulation=((0.1, 0.3, 0.2, 1.0), (0.05, -0.1, 0.4, 0.3)))
+    x, y, yaw = 3.0, -1.5, 0.4
+    moved = fx.seen_from(x, y, yaw)
+    u = np.random.default_rng(0).uniform(-30, 30, (200, 2))
+    c, s = math.cos(yaw), math.sin(yaw)
+    q = u @ np.array([[c, -s], [s, c]]).T + [x, y]  # the same places in the first sensor's frame
+    np.testing.assert_allclose(moved.ground_offset(u[:, 0], u[:, 1]), fx.ground_offset(q[:, 0], q[:, 1]), atol=1e-12)
+    assert fx.seen_from(0.0, 0.0, 0.0) == fx
+
+
+def test_anchored_sweeps_see_one_ground_and_one_street_furniture() -> None:
+    """Two frames 0.5 s apart of a driving ego, cast with the same effects: anchored on the newer sensor, the
+    older sweep's ground and clutter land where the newer one has them once moved into its frame; hung on each
+    sensor (no anchor), they move with the car."""
+    from scipy.spatial import cKDTree
+
+    from jitterguard.services.detector.data import _sensor_pose
+    from jitterguard.services.detector.sweeps import relative_transform
+    from jitterguard.sim.sensors import hdl32e
+    from jitterguard.sim.world import make_scenario
+
+    spec = hdl32e()
+    sc = make_scenario("mixed", 3, 20.0, 20.0)
+    new, old = sc.frame(110), sc.frame(100)
+    assert math.hypot(new.ego_x - old.ego_x, new.ego_y - old.ego_y) > 1.0  # the ego moved
+    fx = ScanEffects(tilt=(0.03, -0.02), curvature=(0.002, 0.0, 0.0), clutter_density=0.4, clutter_seed=11,
+                     building_drop=0.5)
+    anchor = (new.ego_x, new.ego_y, new.ego_yaw)
+    newest, _ = cast_frame(new, spec, 0, effects=fx, anchor=anchor)
+    rot, trans = relative_transform(*_sensor_pose(new, spec), *_sensor_pose(old, spec))
+    furniture = cKDTree(newest.points[newest.owner == -1, :3])
+    out = {}
+    for name, a in (("anchored", anchor), ("hung", None)):
+        scan, _ = cast_frame(old, spec, 0, effects=fx, anchor=a)
+        xyz = scan.points[:, :3].astype(np.float64) @ rot.T + trans
+        g = scan.owner == -2
+        dz = np.abs(xyz[g, 2] - (fx.ground_offset(xyz[g, 0], xyz[g, 1]) - spec.mount_height_m))
+        out[name] = (np.percentile(dz, 90), np.percentile(furniture.query(xyz[scan.owner == -1])[0], 90))
+    assert out["anchored"][0] < 0.02 < 0.04 < out["hung"][0]
+    assert out["anchored"][1] < 1.0 < 2.0 < out["hung"][1]

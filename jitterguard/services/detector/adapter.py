@@ -43,6 +43,7 @@ from ...schemas.models import (
 )
 from ...schemas.wire import DetectedColumns, write_detected_objects
 from .config import CLASS_NAMES, VAR_NAMES, Detections3D
+from .sweeps import pose_matrices
 
 F32 = NDArray[np.float32]
 
@@ -59,6 +60,13 @@ def scan_points(msg: PointCloud) -> tuple[F32, int]:
     ncol = len(msg.fields)
     raw = np.frombuffer(msg.data, dtype="<f4").reshape(msg.num_points, ncol)
     return points_from_fields(raw, tuple(msg.fields))
+
+
+def scan_pose(msg: PointCloud) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The sensor's pose in the world at the scan's stamp as (3×3 rotation, translation): what moves earlier
+    sweeps into this scan's frame (:mod:`.sweeps`)."""
+    p, q = msg.ego_pose.position, msg.ego_pose.orientation
+    return pose_matrices((p.x, p.y, p.z), (q.x, q.y, q.z, q.w))
 
 
 def points_from_fields(raw: NDArray[np.floating], fields: Sequence[str]) -> tuple[F32, int]:

@@ -132,7 +132,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         except WeightsError as exc:
             fail(f"{'--onnx' if params.onnx else '--weights'}: {_one_line(exc)}")
         try:
-            service = DetectorService(opts, det, has_twist=params.twist)
+            service = DetectorService(opts, det, has_twist=params.twist, sweeps=params.sweeps,
+                                      max_sweep_lag_s=params.max_sweep_lag_s)
         except ValueError as exc:  # build_config names the bad endpoint / setting
             fail(str(exc))
         service.run_forever()

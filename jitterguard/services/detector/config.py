@@ -158,6 +158,13 @@ class DetectorParams(BaseModel):
     self_crop: tuple[float, float, float, float] | None = Field(
         SELF_CROP_M, description="drop returns inside this box (x_min, y_min, x_max, y_max; sensor frame, m): the"
         " vehicle's own body (default: a passenger car around a roof-centre sensor; null: keep every return)")
+    sweeps: Annotated[int, Field(ge=1, le=20)] | None = Field(
+        None, description="scans stacked per network input for a model trained on stacked sweeps (five point"
+        " fields: x, y, z, intensity, time lag): the newest and the earlier ones of the last max_sweep_lag_s, moved"
+        " into its frame through the scans' poses (null: what the weights were trained with; 1 for a four-field"
+        " model)")
+    max_sweep_lag_s: Annotated[float, Field(gt=0.0, le=5.0)] = Field(
+        0.55, description="earlier scans older than this are not stacked, s (CenterPoint: 0.5 s)")
     backend: Literal["torch", "onnxruntime"] = Field("torch", description="what runs the network")
     onnx: str | None = Field(None, description="onnxruntime backend: a folder written by `jitterguard export-onnx`"
                              " (null: export weights / preset at start-up into a temporary folder)")

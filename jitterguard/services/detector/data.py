@@ -42,6 +42,7 @@ from .augment import (  # noqa: F401  (re-exported: one import site for the trai
     gt_sample,
 )
 from .config import AUTOWARE_TO_CLASS, BOX_DIM, LazySamples, Sample
+from .sweeps import EarlierSweep, relative_transform, stack_sweeps
 from .data_nuscenes import (  # noqa: F401  (re-exported)
     NUSCENES_TO_CLASS,
     NuScenesKeyframes,
@@ -104,6 +105,10 @@ def sample_from_scan(frame: GroundTruthFrame, scan: ScanResult, mount_height_m: 
     )
 
 
+MAX_STACK_SPAN_S = 0.5
+"""The oldest sweep of a synthetic stack is at most this much older than the newest (CenterPoint: 0.5 s)."""
+
+
 def spread_indices(num_frames: int, k: int) -> list[int]:
     """``k`` frame indices evenly spread over ``[0, num_frames)`` (all of them if ``k >= num_frames``), so that
     consecutive samples of a scenario are not near-duplicates of each other."""
@@ -125,6 +130,7 @@ def synthetic_samples(
     rate_hz: float = 10.0,
     effects: str = "none",
     workers: int = 0,
+    sweeps: int = 1,
 ) -> Iterator[Sample]:
     """Labelled synthetic scans: for every (scenario, seed), ``frames_per_scenario`` frames spread evenly over a
     ``duration_s`` scenario, ray-cast with ``sensor`` (HDL-32E, nuScenes' LIDAR_TOP, by default).
@@ -139,13 +145,23 @@ def synthetic_samples(
     ≈ 0.1 s of one core, so a GPU machine's cores cast a large training set in a minute instead of a quarter
     of an hour. The samples and their order are the same for any ``workers`` (each pair is seeded on its own).
 
+    ``sweeps`` > 1 stacks each scan with ``sweeps − 1`` earlier sweeps, as CenterPoint's nuScenes input and the
+    live detector service do (:mod:`.sweeps`: points (P, 5) with the time lag in seconds, earlier sweeps moved into
+    the newest's sensor frame). The scenario then runs at the sensor's spin rate (HDL-32E: 20 Hz) and each sample
+    draws how many spins lie between its sweeps (1 up to what keeps the stack within 0.5 s), so one model learns
+    the 20 Hz stacks of a live sensor and the 2 Hz key-frame stacks of a keyframes-only recording alike; the
+    sweeps of a sample share its effects, anchored in the world (``cast_frame(anchor=…)``), and a stack near the
+    scenario's start holds the sweeps there are. Boxes are the newest sweep's.
+
     Deterministic: the same arguments give the same samples (the scan's noise and effects are seeded by
     ``scan_seed``, the scenario, its seed and the frame). Tokens are ``synthetic/{scenario}/{seed}/{seq}``.
     Yields ``len(scenarios) * len(seeds) * frames_per_scenario`` samples (fewer if a scenario has fewer
     frames), scenario-major."""
     components = parse_components(effects)
     spec = sensor or hdl32e()
-    jobs = [(name, int(seed), frames_per_scenario, duration_s, spec, scan_seed, rate_hz, components)
+    if sweeps < 1:
+        raise ValueError("sweeps must be >= 1")
+    jobs = [(name, int(seed), frames_per_scenario, duration_s, spec, scan_seed, rate_hz, components, int(sweeps))
             for name in scenarios for seed in seeds]
     if workers <= 0 or len(jobs) <= 1:
         for job in jobs:
@@ -159,20 +175,56 @@ def synthetic_samples(
             yield from batch
 
 
-_CastJob = tuple[str, int, int, float, LidarSpec, int, float, tuple[str, ...]]
+_CastJob = tuple[str, int, int, float, LidarSpec, int, float, tuple[str, ...], int]
 
 
 def _cast_scenario(job: _CastJob) -> Iterator[Sample]:
     """The labelled scans of one (scenario, seed): the unit of work of :func:`synthetic_samples`."""
-    name, seed, frames_per_scenario, duration_s, spec, scan_seed, rate_hz, components = job
-    sc = make_scenario(name, seed, duration_s, rate_hz)
+    name, seed, frames_per_scenario, duration_s, spec, scan_seed, rate_hz, components, sweeps = job
+    sc = make_scenario(name, seed, duration_s, spec.rate_hz if sweeps > 1 else rate_hz)
     for i in spread_indices(len(sc), frames_per_scenario):
         fx = None
         if components:
             key = int.from_bytes(name.encode(), "little") % (2**31)
             fx = draw_effects(np.random.default_rng([scan_seed, key, seed, i]), components)
+        if sweeps > 1:
+            yield _stacked_sample(sc, i, spec, scan_seed, fx, sweeps,
+                                  np.random.default_rng([scan_seed, seed, i, sweeps]), f"synthetic/{name}/{seed}")
+            continue
         scan, frame = cast_frame(sc.frame(i), spec, scan_seed, effects=fx)
         yield sample_from_scan(frame, scan, spec.mount_height_m, f"synthetic/{name}/{seed}/{frame.seq}")
+
+
+def _stacked_sample(sc, i: int, spec: LidarSpec, scan_seed: int, fx, sweeps: int,  # noqa: ANN001
+                    rng: np.random.Generator, token: str) -> Sample:
+    """Frame ``i`` of ``sc`` (at the spin rate) stacked with ``sweeps − 1`` earlier frames, a drawn number of
+    spins apart (see :func:`synthetic_samples`)."""
+    period = 1.0 / spec.rate_hz
+    widest = max(1, int(math.floor((MAX_STACK_SPAN_S + 1e-9) / (period * (sweeps - 1)))))
+    step = int(rng.integers(1, widest + 1))
+    key = sc.frame(i)
+    anchor = (float(key.ego_x), float(key.ego_y), float(key.ego_yaw))
+    scan, frame = cast_frame(key, spec, scan_seed, effects=fx, anchor=anchor)
+    sample = sample_from_scan(frame, scan, spec.mount_height_m, f"{token}/{frame.seq}")
+    r_key, t_key = _sensor_pose(key, spec)
+    earlier = []
+    for k in range(1, sweeps):
+        j = i - k * step
+        if j < 0:
+            break
+        fj = sc.frame(j)
+        sj, _ = cast_frame(fj, spec, scan_seed, effects=fx, anchor=anchor)
+        r, t = relative_transform(r_key, t_key, *_sensor_pose(fj, spec))
+        earlier.append(EarlierSweep(np.ascontiguousarray(sj.points, np.float32), r, t, (key.stamp_ns - fj.stamp_ns) * 1e-9))
+    return Sample(points=stack_sweeps(sample.points, earlier), boxes=sample.boxes, labels=sample.labels,
+                  num_points=sample.num_points, token=sample.token)
+
+
+def _sensor_pose(frame: GroundTruthFrame, spec: LidarSpec) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The sensor's world pose of a synthetic frame (mount height above the nominal ground; level)."""
+    c, s = math.cos(frame.ego_yaw), math.sin(frame.ego_yaw)
+    return (np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]),
+            np.array([frame.ego_x, frame.ego_y, spec.mount_height_m], np.float64))
 
 
 def _cast_scenario_list(job: _CastJob) -> list[Sample]:

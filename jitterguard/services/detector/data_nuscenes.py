@@ -34,6 +34,7 @@ from ..replay.frames import SourceError
 from ..replay.sources.kitti import read_bin
 from ..replay.sources.nuscenes import _load_table, find_version, turn_points, vehicle_axes
 from .config import BOX_DIM, CLASS_NAMES, LazySamples, Sample
+from .sweeps import EarlierSweep, relative_transform, stack_sweeps
 
 F64 = NDArray[np.float64]
 
@@ -262,9 +263,8 @@ class NuScenesKeyframes(LazySamples):
                 break
             r_c, t_c = _pose_matrix(calib[rec["calibrated_sensor_token"]])
             r_e, t_e = _pose_matrix(ego[rec["ego_pose_token"]])
-            # p_key = R_ck^T (R_ek^T (R_e (R_c p + t_c) + t_e − t_ek) − t_ck)
-            rot = r_ck.T @ r_ek.T @ r_e @ r_c
-            trans = r_ck.T @ (r_ek.T @ (r_e @ t_c + t_e - t_ek) - t_ck)
+            # each sensor's pose in the world is ego ∘ calibrated sensor: (R_e R_c, R_e t_c + t_e)
+            rot, trans = relative_transform(r_ek @ r_ck, r_ek @ t_ck + t_ek, r_e @ r_c, r_e @ t_c + t_e)
             out.append(SweepRef(self.root / rec["filename"], rot, trans, lag))
             prev = rec.get("prev")
         return tuple(out)
@@ -294,13 +294,8 @@ class NuScenesKeyframes(LazySamples):
         key = turn_points(key, f.mount_rotation)
         if self.sweeps <= 1:
             return key
-        parts = [np.column_stack([key, np.zeros(len(key), np.float32)])]
-        for sw in f.sweeps:
-            p = self._read(sw.path)
-            p = p[np.hypot(p[:, 0], p[:, 1]) >= self.min_sweep_range_m]
-            xyz = p[:, :3].astype(np.float64) @ sw.rotation.T + sw.translation
-            parts.append(np.column_stack([xyz, p[:, 3], np.full(len(p), sw.time_lag_s)]).astype(np.float32))
-        return np.concatenate(parts)
+        earlier = [EarlierSweep(self._read(sw.path), sw.rotation, sw.translation, sw.time_lag_s) for sw in f.sweeps]
+        return stack_sweeps(key, earlier, self.min_sweep_range_m)
 
     def _sample(self, i: int) -> Sample:
         f = self._frames[i]
@@ -309,24 +304,25 @@ class NuScenesKeyframes(LazySamples):
 
 def iter_nuscenes_samples(dataroot: str | Path, version: str | None = None,
                           scene_names: Sequence[str] | None = None, *, max_time_diff: float = 1.5,
-                          nan_velocity: float = 0.0) -> Iterator[Sample]:
+                          nan_velocity: float = 0.0, sweeps: int = 1) -> Iterator[Sample]:
     """Like :func:`nuscenes_samples`, one key frame at a time.
 
     ``nan_velocity``: the value given to velocities devkit cannot estimate (0.0, see the module docstring; pass
-    ``float('nan')`` to keep devkit's NaN)."""
+    ``float('nan')`` to keep devkit's NaN); ``sweeps`` as :class:`NuScenesKeyframes` (a model's
+    :attr:`~.inference.Detector.sweeps`)."""
     yield from NuScenesKeyframes(dataroot, version, scene_names, max_time_diff=max_time_diff,
-                                 nan_velocity=nan_velocity)
+                                 nan_velocity=nan_velocity, sweeps=sweeps)
 
 
 def nuscenes_samples(dataroot: str | Path, version: str | None = None, scene_names: Sequence[str] | None = None,
-                     *, max_time_diff: float = 1.5, nan_velocity: float = 0.0) -> list[Sample]:
+                     *, max_time_diff: float = 1.5, nan_velocity: float = 0.0, sweeps: int = 1) -> list[Sample]:
     """Every LIDAR_TOP key frame of ``scene_names`` (default: all scenes, table order) of a nuScenes dataroot,
     in scene order, as sensor-frame Samples. Tokens are ``nuscenes/{scene name}/{sample token}``.
 
     Raises :class:`~jitterguard.services.replay.frames.SourceError` (one-line message) for a folder that is not
     a dataroot, an unknown scene or a missing sweep."""
     return list(iter_nuscenes_samples(dataroot, version, scene_names, max_time_diff=max_time_diff,
-                                      nan_velocity=nan_velocity))
+                                      nan_velocity=nan_velocity, sweeps=sweeps))
 
 
 def official_split(name: str) -> list[str]:

@@ -26,6 +26,7 @@ from .decode import decode
 from .evaluate import Recalibration, apply_recalibration
 from .network import CenterPointNet
 from .pillars import voxelize
+from .sweeps import stack_sweeps, sweeps_of
 
 log = logging.getLogger(__name__)
 
@@ -124,6 +125,9 @@ class Detector:
         self.recalibration = Recalibration.of(recalibration)
         self.score_threshold = score_threshold
         self.meta = meta or {}
+        self.sweeps = sweeps_of(self.config.num_point_features, self.meta)
+        """Sweeps the network was trained on (1 for a four-field model): what a caller stacks
+        (:class:`~.sweeps.SweepStacker`) before :meth:`detect`."""
         self.timings: dict[str, float] = {}
         torch.set_num_threads(threads or os.cpu_count() or 1)
 
@@ -150,9 +154,12 @@ class Detector:
     @torch.inference_mode()
     def detect(self, points: np.ndarray) -> Detections3D:
         """Detections of one scan: ``points`` (P, ≥4) float32 x, y, z, intensity (0–255) in the sensor frame (and
-        the time lag in seconds as a fifth column for a model trained on stacked sweeps)."""
+        the time lag in seconds as a fifth column for a model trained on stacked sweeps: :mod:`.sweeps`; a scan
+        without it is the newest sweep alone, lag 0)."""
         t0 = time.perf_counter()
         nf = self.config.num_point_features
+        if nf == 5 and points.shape[1] == 4:
+            points = stack_sweeps(points, ())
         points = crop_box(points, self.self_crop)
         pts = torch.from_numpy(np.ascontiguousarray(points[:, :nf], dtype=np.float32)).to(self.device)
         pillars = voxelize([pts], self.config)

@@ -115,3 +115,18 @@ class CenterPointNet(nn.Module):
 
     def forward(self, points: list[Tensor]) -> dict[str, Tensor]:
         return self.forward_pillars(voxelize(points, self.config))
+
+
+def with_time_lag(model: CenterPointNet) -> CenterPointNet:
+    """A five-field copy of a four-field ``model`` (x, y, z, intensity → plus the time lag of stacked sweeps), for
+    fine-tuning single-sweep weights on stacked sweeps (``jitterguard train --init W --sweeps N``): every weight
+    carried over and the PFN's new input column zero, so the copy starts out reading the lag as nothing — it
+    computes what ``model`` computes on the same points with their lags — and training teaches it the rest."""
+    if model.config.num_point_features != 4:
+        raise ValueError(f"expected a four-field model, got {model.config.num_point_features} fields")
+    wide = CenterPointNet(model.config.model_copy(update={"num_point_features": 5}))
+    state = dict(model.state_dict())
+    w = state["pfn.linear.weight"]  # (C, 4 + 5): the point's own fields, then the offsets
+    state["pfn.linear.weight"] = torch.cat([w[:, :4], w.new_zeros(w.shape[0], 1), w[:, 4:]], dim=1)
+    wide.load_state_dict(state)
+    return wide.train(model.training)

@@ -16,7 +16,8 @@ network's sensor-frame variances in the covariance fields; the tracker rotates t
 Counters (in the heartbeat): ``scans`` (processed), ``skipped_scans``, ``detections`` (objects published),
 ``empty_scans`` (no finite point: published with no objects so the tracker still sees the frame),
 ``nonfinite_points``, ``nonfinite_detections``, ``detect_errors``, ``detect_ms_last`` (end-to-end time of the
-latest scan, rounded) and the runtime's ``received`` / ``rejected`` / ``published``.
+latest scan, rounded), ``stacked_sweeps_last`` (scans in the latest network input, for a model trained on
+stacked sweeps: :mod:`.sweeps`) and the runtime's ``received`` / ``rejected`` / ``published``.
 """
 
 from __future__ import annotations
@@ -30,7 +31,8 @@ from ...runtime.service import _BurstLogger
 from ...schemas import keys
 from ...schemas.models import PointCloud
 from .config import Detections3D
-from .adapter import class_labels, detections_payload, finite_detections, scan_points
+from .adapter import class_labels, detections_payload, finite_detections, scan_points, scan_pose
+from .sweeps import MAX_LAG_S, SweepStacker
 from .inference import Detector
 
 WAIT_S = 0.2
@@ -124,12 +126,20 @@ class DetectorService(Service):
 
     name = "detector"
 
-    def __init__(self, opts: ZenohOptions, detector: Detector, *, has_twist: bool = True) -> None:
+    def __init__(self, opts: ZenohOptions, detector: Detector, *, has_twist: bool = True, sweeps: int | None = None,
+                 max_sweep_lag_s: float = MAX_LAG_S) -> None:
+        """``sweeps``: scans stacked per network input (None: the weights' :attr:`Detector.sweeps`); only a model
+        with five point fields reads the stack's time lag, so a four-field model is never given more than one."""
         # check the model's classes before the session opens: a bad config must fail before anything is on the network
         class_labels(detector.config.class_names)
         self.detector = detector
         self.has_twist = has_twist
         self._slot = _Slot()
+        n = (sweeps or detector.sweeps) if detector.config.num_point_features >= 5 else 1
+        # every arriving scan is held (the callback), the worker stacks the one it takes: a slow network skips
+        # scans, never sweeps
+        self._sweeps = SweepStacker(n, max_sweep_lag_s) if n > 1 else None
+        self._sweeps_lock = threading.Lock()
         super().__init__(opts)
         self._behind = BehindReport()
         self._error_log = _BurstLogger(self.log)
@@ -141,6 +151,15 @@ class DetectorService(Service):
     def _on_scan(self, msg: PointCloud, _key: str) -> None:
         """Zenoh callback (the scan is already validated): newest scan into the slot, count what it replaced."""
         self.progress.input(time.monotonic())
+        if self._sweeps is not None:
+            try:
+                rotation, translation = scan_pose(msg)
+            except ValueError:  # a zero quaternion: nothing to stack it by (its own detection fails and is counted)
+                self.counters.inc("unposed_scans")
+            else:
+                points, _ = scan_points(msg)
+                with self._sweeps_lock:
+                    self._sweeps.add(msg.header.stamp, rotation, translation, points)
         if self._slot.put(msg):
             self.counters.inc("skipped_scans")
 
@@ -179,6 +198,12 @@ class DetectorService(Service):
             det = Detections3D.empty(self.detector.config.uncertainty)
             self.counters.inc("empty_scans")
         else:
+            if self._sweeps is not None:
+                rotation, translation = scan_pose(scan)
+                with self._sweeps_lock:
+                    points = self._sweeps.stack(scan.header.stamp, rotation, translation, points)
+                    stacked = self._sweeps.last_stacked
+                self.counters.set("stacked_sweeps_last", stacked)
             det = self.detector.detect(points)
         det, dropped = finite_detections(det)
         if dropped:

@@ -60,9 +60,10 @@ def _scenarios(text: str) -> list[str]:
 
 
 def synthetic_cache(root: Path, scenarios: list[str], seeds: list[int], frames: int, progress: bool,
-                    effects: str = "none", workers: int = 0) -> Any:
+                    effects: str = "none", workers: int = 0, sweeps: int = 1) -> Any:
     """The cached synthetic samples for this recipe, ray-casting them first (in ``workers`` processes when > 0)
-    if the cache is missing or stale."""
+    if the cache is missing or stale; ``sweeps`` > 1 stacks each with earlier sweeps (a five-field model's
+    input, :func:`~.data.synthetic_samples`)."""
     from .data import CachedSamples, build_cache, synthetic_samples
 
     from ...sim.effects import EFFECTS_VERSION, parse_components
@@ -72,6 +73,8 @@ def synthetic_cache(root: Path, scenarios: list[str], seeds: list[int], frames: 
     if components:  # (keeps the name of caches written before effects existed)
         recipe["effects"] = ",".join(components)
         recipe["effects_version"] = EFFECTS_VERSION
+    if sweeps > 1:  # (keeps the name of single-sweep caches)
+        recipe["sweeps"] = sweeps
     import hashlib
 
     name = "cache-" + hashlib.sha1(json.dumps(recipe, sort_keys=True).encode()).hexdigest()[:10]
@@ -84,7 +87,7 @@ def synthetic_cache(root: Path, scenarios: list[str], seeds: list[int], frames: 
         pass
     total = len(scenarios) * len(seeds) * frames
     build_cache(path, synthetic_samples(scenarios, seeds, frames_per_scenario=frames, effects=effects,
-                                       workers=workers), total=total,
+                                       workers=workers, sweeps=sweeps), total=total,
                 progress=progress, meta={"recipe": recipe})
     return CachedSamples(path)
 
@@ -195,7 +198,7 @@ def fit_synthetic_recalibration(det: Any, root: Path, scenarios: list[str], seed
     seeds = parse_seeds(seeds_text, "--seeds")
     items: list[Any] = []
     for e in effect_sets:
-        view = _Prepared(synthetic_cache(root, scenarios, seeds, frames, progress, e, workers),
+        view = _Prepared(synthetic_cache(root, scenarios, seeds, frames, progress, e, workers, det.sweeps),
                          det.config.point_cloud_range)
         items += [view[i] for i in range(len(view))]
     dets = [det.detect(s.points) for s in tqdm(items, unit="scan", file=sys.stderr, disable=not progress)]
@@ -242,8 +245,10 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                                                   " mini_train, ...); default: every scene minus --holdout-last.")] = None,
         val_split: Annotated[str | None, typer.Option("--val-split", help="Official split to validate on (val,"
                                                       " mini_val); with --split.")] = None,
-        sweeps: Annotated[int, typer.Option("--sweeps", min=1, max=20, help="LIDAR_TOP sweeps stacked per key frame"
-                                            " with a time channel (nuScenes; CenterPoint uses 10).")] = 1,
+        sweeps: Annotated[int, typer.Option("--sweeps", min=1, max=20, help="Sweeps stacked per sample with a time"
+                                            " channel (CenterPoint uses 10): nuScenes' LIDAR_TOP sweeps, or synthetic"
+                                            " sweeps 1–10 spins apart; with a single-sweep --init its weights are"
+                                            " widened by a zero time-lag input.")] = 1,
         holdout_last: Annotated[int, typer.Option("--holdout-last", min=1, help="Keyframes held out per scene"
                                                   " (nuScenes without --split).")] = 10,
         init: Annotated[str | None, typer.Option("--init", help="Start from these weights (fine-tuning); the"
@@ -285,8 +290,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             fail(f"--init: file not found: {init}")
         if nuscenes is not None and not os.path.isdir(nuscenes):
             fail(f"--nuscenes: not a directory: {nuscenes}")
-        if (split or val_split or sweeps > 1) and nuscenes is None:
-            fail("--split/--val-split/--sweeps: need --nuscenes")
+        if (split or val_split) and nuscenes is None:
+            fail("--split/--val-split: need --nuscenes")
         if val_split and not split:
             fail("--val-split: needs --split")
         scen = _scenarios(scenarios)
@@ -320,9 +325,12 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             if vanilla == model.config.uncertainty:
                 fail("--init: weights are " + ("uncertainty-aware" if model.config.uncertainty else "vanilla")
                      + "; drop or add --vanilla to match")
-            if (sweeps > 1) != (model.config.num_point_features == 5):
-                fail(f"--init: weights take {model.config.num_point_features} point fields; --sweeps {sweeps} gives"
-                     f" {5 if sweeps > 1 else 4}")
+            if sweeps == 1 and model.config.num_point_features == 5:
+                fail(f"--init: weights take 5 point fields (stacked sweeps); --sweeps {sweeps} gives 4")
+            if sweeps > 1 and model.config.num_point_features == 4:  # fine-tune single-sweep weights on stacks
+                from .network import with_time_lag
+
+                model = with_time_lag(model)
         else:
             torch.manual_seed(seed)
             model = CenterPointNet(PRESETS[preset].model_copy(update={"uncertainty": not vanilla,
@@ -354,18 +362,21 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         else:
             if dc.main:  # one process casts the caches, the others wait for them
                 for e in effect_sets:
-                    synthetic_cache(root, scen, tr_seeds, frames, progress, e, workers)
+                    synthetic_cache(root, scen, tr_seeds, frames, progress, e, workers, sweeps)
                 for e in effect_sets[: len(effect_sets) if fit_recalibration else 1]:
-                    synthetic_cache(root, scen, va_seeds, frames, progress, e, workers)
+                    synthetic_cache(root, scen, va_seeds, frames, progress, e, workers, sweeps)
             dc.barrier()
-            parts = [synthetic_cache(root, scen, tr_seeds, frames, False, e) for e in effect_sets]
+            parts = [synthetic_cache(root, scen, tr_seeds, frames, False, e, sweeps=sweeps) for e in effect_sets]
             train_s = parts[0] if len(parts) == 1 else _Joined(parts)
-            val_s = synthetic_cache(root, scen, va_seeds, frames, False, effect_sets[0])
+            val_s = synthetic_cache(root, scen, va_seeds, frames, False, effect_sets[0], sweeps=sweeps)
             if fit_recalibration:  # the scales are fitted on scans like the training mix, every effect set
-                recal_extra = [synthetic_cache(root, scen, va_seeds, frames, False, e) for e in effect_sets[1:]]
+                recal_extra = [synthetic_cache(root, scen, va_seeds, frames, False, e, sweeps=sweeps)
+                               for e in effect_sets[1:]]
             source = {"scenarios": scen, "train_seeds": train_seeds, "val_seeds": val_seeds,
                       "frames_per_scenario": frames,
                       "effects": "+".join(",".join(_effects(e)) or "none" for e in effect_sets)}
+            if sweeps > 1:
+                source["sweeps"] = sweeps
         train_v, val_v = _Prepared(train_s, pcr), _Prepared(val_s, pcr)
         tcfg = TrainConfig(epochs=epochs, batch_size=batch_size, lr=lr, seed=seed, num_workers=workers,
                            accumulate=accumulate, amp=amp, sync_bn=sync_bn, checkpoint_every=checkpoint_every,
@@ -620,14 +631,14 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             seen = trained.get("nuscenes") == os.path.abspath(nuscenes)
             last = holdout_last or (int(trained.get("holdout_last") or 10) if seen else None)
             try:
-                every = nuscenes_samples(nuscenes)
+                every = nuscenes_samples(nuscenes, sweeps=det.sweeps)
             except SourceError as exc:
                 fail(f"--nuscenes: {exc}")
             samples: Any = split_holdout(every, last_n=last)[1] if last else every
             from .adapt import adapted_on
 
             transductive = adapted_on(det.meta, nuscenes)
-            scored_on = {"nuscenes": os.path.abspath(nuscenes), "key_frames": len(samples),
+            scored_on = {"nuscenes": os.path.abspath(nuscenes), "key_frames": len(samples), "sweeps": det.sweeps,
                          "holdout_last": last, "weights_trained_on_it": seen,
                          "weights_adapted_on_its_scans": transductive}
             if transductive:
@@ -637,9 +648,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                 log.warning("these weights were trained on %s: scoring only its held-out last %d key frames",
                             nuscenes, last)
         else:
-            samples = synthetic_cache(Path(out), scen, sd, frames, progress, effects)
+            samples = synthetic_cache(Path(out), scen, sd, frames, progress, effects, sweeps=det.sweeps)
             scored_on = {"synthetic": {"scenarios": scen, "seeds": seeds, "frames_per_scenario": frames,
-                                       "effects": ",".join(_effects(effects)) or "none"}}
+                                       "effects": ",".join(_effects(effects)) or "none", "sweeps": det.sweeps}}
         view = _Prepared(samples, det.config.point_cloud_range)
         items = [view[i] for i in range(len(view))]
         from tqdm import tqdm
