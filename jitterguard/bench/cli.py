@@ -111,6 +111,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         ] = None,
         device: Annotated[str, typer.Option("--device", help="cpu, or cuda / cuda:N: torch's voxelisation and"
                                             " network on that GPU.")] = "cpu",
+        sweeps: Annotated[int, typer.Option("--sweeps", min=1, max=20, help="Time stacks of this many sweeps (20 Hz,"
+                                            " one spin apart) on five-field networks (single-sweep weights widened"
+                                            " by a zero time-lag input: the same cost).")] = 1,
     ) -> None:
         """Time the detector end to end per HDL-32E scan (voxelisation, network, decode, NMS)."""
         progress = progress_on(progress)
@@ -148,7 +151,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
 
         try:
             result = run(names, scans=scans, warmup=warmup, threads=threads, weights=files, scenario=scenario,
-                         seed=seed, progress=progress, backends=chosen, device=device)
+                         seed=seed, progress=progress, backends=chosen, device=device, sweeps=sweeps)
         except WeightsError as exc:
             fail(f"--weights: {_one_line(exc)}")
         if json_out:

@@ -44,12 +44,14 @@ def _bar(it: Iterable[T], total: int, desc: str, enabled: bool) -> Iterable[T]:
     return tqdm(it, total=total, desc=desc, unit="scan", file=sys.stderr, leave=False)
 
 
-def bench_scans(n: int, scenario: str = "mixed", seed: int = 0, progress: bool = False) -> list[np.ndarray]:
-    """``n`` HDL-32E scans (P, 4) spread over a scenario long enough that they are not near-duplicates."""
+def bench_scans(n: int, scenario: str = "mixed", seed: int = 0, progress: bool = False,
+                sweeps: int = 1) -> list[np.ndarray]:
+    """``n`` HDL-32E scans (P, 4) spread over a scenario long enough that they are not near-duplicates; with
+    ``sweeps`` > 1, (P, 5) stacks of that many sweeps (:func:`~jitterguard.services.detector.data.synthetic_samples`)."""
     from ..services.detector.data import synthetic_samples  # torch: the optional "torch" extra
 
     duration = max(4.0, n / 2.0)  # 10 Hz: every 5th frame at most
-    samples = synthetic_samples([scenario], [seed], frames_per_scenario=n, duration_s=duration)
+    samples = synthetic_samples([scenario], [seed], frames_per_scenario=n, duration_s=duration, sweeps=sweeps)
     return [s.points for s in _bar(samples, n, "ray-casting scans", progress)]
 
 
@@ -115,13 +117,17 @@ def available_backends() -> tuple[str, ...]:
 
 def run(presets: Sequence[str], *, scans: int = 40, warmup: int = 3, threads: int | None = None,
         weights: Mapping[str, str] | None = None, scenario: str = "mixed", seed: int = 0,
-        progress: bool = True, backends: Sequence[str] = ("torch",), device: str = "cpu") -> dict[str, dict[str, Any]]:
+        progress: bool = True, backends: Sequence[str] = ("torch",), device: str = "cpu",
+        sweeps: int = 1) -> dict[str, dict[str, Any]]:
     """``{preset: {"points", "p50_ms", "p99_ms", "mean_ms", "cpu_p50_ms", "stages_ms", "detections", "scans",
     "threads", "weights", "omp_wait_policy"}}`` — the same scans for every preset — for the torch backend.
 
     With ``"onnxruntime"`` in ``backends`` the preset's network is exported to ONNX (in a temporary folder) and
     timed in the same process on the same scans, interleaved with torch scan by scan (:func:`time_backends`); its
     row goes under ``"onnxruntime"`` in the preset's row, with ``"onnxruntime_over_torch_p50"`` (< 1: faster).
+    ``sweeps`` > 1 times stacks of that many sweeps (20 Hz, one spin apart at most) on five-field networks: weights
+    trained on stacks as they are, single-sweep ones widened by a zero time-lag input (``network.with_time_lag``:
+    the cost of a stacked model whatever it learnt); each row names its sweeps.
     ``device`` ``cuda`` runs torch's voxelisation and network on the GPU (onnxruntime stays on the CPU); each
     row names its device."""
     import tempfile  # only with --backends onnxruntime
@@ -138,10 +144,16 @@ def run(presets: Sequence[str], *, scans: int = 40, warmup: int = 3, threads: in
         raise ValueError(f"backends must include torch and be some of torch, onnxruntime; got {list(backends)}")
     weights = dict(weights or {})
     n_threads = threads or os.cpu_count() or 1
-    data = bench_scans(warmup + scans, scenario, seed, progress)
+    data = bench_scans(warmup + scans, scenario, seed, progress, sweeps)
     out: dict[str, dict[str, Any]] = {}
     for name in presets:
         det = Detector.load(weights.get(name), name, threads=n_threads, device=device)
+        widened = sweeps > 1 and det.config.num_point_features == 4
+        if widened:
+            from ..services.detector.network import with_time_lag
+
+            det = Detector(with_time_lag(det.model.cpu()), recalibration=det.recalibration, threads=n_threads,
+                           meta={"source": {"sweeps": sweeps}}, self_crop=det.self_crop, device=device)
         torch.set_num_threads(n_threads)  # the same for every preset, whatever a previous load did
         if name in weights:
             which = weights[name]
@@ -149,7 +161,9 @@ def run(presets: Sequence[str], *, scans: int = 40, warmup: int = 3, threads: in
             which = "shipped"
         else:
             which = "random-init"
-        common = {"threads": n_threads, "weights": which, "device": _device_name(device),
+        if widened:
+            which += " (+ zero time-lag input)"
+        common = {"threads": n_threads, "weights": which, "device": _device_name(device), "sweeps": sweeps,
                   "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", "default")}
         if "onnxruntime" not in backends:
             row = time_preset(det, data, warmup, f"timing {name}", progress)

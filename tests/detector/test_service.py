@@ -286,7 +286,14 @@ def test_bench_detector_json_has_the_documented_shape() -> None:
     assert row["points"] > 10_000  # a real HDL-32E scan, not a toy cloud
     assert 0 < row["p50_ms"] <= row["p99_ms"] and row["scans"] == 2 and row["threads"] == 1
     assert set(row["stages_ms"]) == {"voxelize", "network", "decode"}
-    assert row["weights"] in ("shipped", "random-init") and row["device"] == "cpu"
+    assert row["weights"] in ("shipped", "random-init") and row["device"] == "cpu" and row["sweeps"] == 1
+    # stacks of three sweeps: about three scans' points through a widened (five-field) network
+    res = CliRunner().invoke(app, ["bench", "detector", "--json", "--presets", "lite", "--scans", "2", "--warmup",
+                                   "1", "--threads", "1", "--no-progress", "--backends", "torch", "--sweeps", "3"])
+    assert res.exit_code == 0, res.output
+    stacked = json.loads(res.stdout.strip().splitlines()[-1])["lite"]
+    assert stacked["sweeps"] == 3 and stacked["weights"].endswith("(+ zero time-lag input)")
+    assert stacked["points"] > 2 * row["points"]
 
 
 @pytest.mark.parametrize(

@@ -33,6 +33,7 @@ def test_parse_seeds_ranges_and_lists() -> None:
     (["eval-detector", "--out", "OUT", "--seeds", "x"], "--seeds"),
     (["eval-detector", "--out", "OUT", "--effects", "fog"], "--effects"),
     (["eval-detector", "--out", "OUT", "--effects", "none+random"], "--effects"),
+    (["eval-detector", "--out", "OUT", "--sweeps", "3"], "--sweeps"),
     (["recalibrate-detector", "--out", "OUT", "--weights", "/nonexistent.pt"], "--weights"),
     (["recalibrate-detector", "--out", "OUT", "--weights", "SHIPPED", "--effects", "fog"], "--effects"),
     (["recalibrate-detector", "--out", "OUT", "--weights", "SHIPPED", "--seeds", "5-1"], "--seeds"),

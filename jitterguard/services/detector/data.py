@@ -24,10 +24,10 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from ...sim.effects import draw_effects, parse_components
+from ...sim.effects import ScanEffects, draw_effects, parse_components
 from ...sim.lidar import ScanResult, cast_frame
 from ...sim.sensors import LidarSpec, hdl32e
-from ...sim.world import GroundTruthFrame, make_scenario
+from ...sim.world import GroundTruthFrame, Scenario, make_scenario
 from .augment import (  # noqa: F401  (re-exported: one import site for the training code)
     flip_x,
     flip_y,
@@ -195,7 +195,7 @@ def _cast_scenario(job: _CastJob) -> Iterator[Sample]:
         yield sample_from_scan(frame, scan, spec.mount_height_m, f"synthetic/{name}/{seed}/{frame.seq}")
 
 
-def _stacked_sample(sc, i: int, spec: LidarSpec, scan_seed: int, fx, sweeps: int,  # noqa: ANN001
+def _stacked_sample(sc: Scenario, i: int, spec: LidarSpec, scan_seed: int, fx: ScanEffects | None, sweeps: int,
                     rng: np.random.Generator, token: str) -> Sample:
     """Frame ``i`` of ``sc`` (at the spin rate) stacked with ``sweeps − 1`` earlier frames, a drawn number of
     spins apart (see :func:`synthetic_samples`)."""

@@ -596,6 +596,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                              ] = True,
         threads: Annotated[int | None, typer.Option("--threads", min=1, max=1024)] = None,
         name: Annotated[str, typer.Option("--name", help="File stem of the outputs.")] = "holdout",
+        sweeps: Annotated[int | None, typer.Option("--sweeps", min=1, max=20, help="Sweeps stacked per scan for"
+                                                   " weights trained on stacks (default: as trained; 1: the newest"
+                                                   " alone).")] = None,
         progress: ProgressOpt = None,
     ) -> None:
         """Score weights on a hold-out set: nuScenes-style AP, positional ECE; JSON + PNGs."""
@@ -620,6 +623,10 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                                 self_crop=SELF_CROP_M if self_crop else None)
         except WeightsError as exc:
             fail(f"--weights: {exc}")
+        if sweeps is not None:
+            if sweeps > 1 and det.config.num_point_features < 5:
+                fail(f"--sweeps: these weights take one sweep (4 point fields), got {sweeps}")
+            det.sweeps = sweeps
         scored_on: dict[str, Any] = {}
         if nuscenes is not None:
             from ..replay.frames import SourceError
