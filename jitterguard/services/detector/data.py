@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from ...geometry import quaternion_from_yaw
 from ...sim.effects import ScanEffects, draw_effects, parse_components
 from ...sim.lidar import ScanResult, cast_frame
 from ...sim.sensors import LidarSpec, hdl32e
@@ -42,7 +43,7 @@ from .augment import (  # noqa: F401  (re-exported: one import site for the trai
     gt_sample,
 )
 from .config import AUTOWARE_TO_CLASS, BOX_DIM, LazySamples, Sample
-from .sweeps import EarlierSweep, relative_transform, stack_sweeps
+from .sweeps import EarlierSweep, pose_matrices, relative_transform, stack_sweeps
 from .data_nuscenes import (  # noqa: F401  (re-exported)
     NUSCENES_TO_CLASS,
     NuScenesKeyframes,
@@ -222,9 +223,7 @@ def _stacked_sample(sc: Scenario, i: int, spec: LidarSpec, scan_seed: int, fx: S
 
 def _sensor_pose(frame: GroundTruthFrame, spec: LidarSpec) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """The sensor's world pose of a synthetic frame (mount height above the nominal ground; level)."""
-    c, s = math.cos(frame.ego_yaw), math.sin(frame.ego_yaw)
-    return (np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]),
-            np.array([frame.ego_x, frame.ego_y, spec.mount_height_m], np.float64))
+    return pose_matrices((frame.ego_x, frame.ego_y, spec.mount_height_m), quaternion_from_yaw(float(frame.ego_yaw)))
 
 
 def _cast_scenario_list(job: _CastJob) -> list[Sample]:
