@@ -18,7 +18,6 @@ import multiprocessing as mp
 import os
 import platform
 import re
-import signal
 import threading
 import time
 from dataclasses import asdict, dataclass
@@ -37,6 +36,7 @@ from ..services.classifier.adapter import observation_rows, observations_from_ro
 from ..services.classifier.core import STATE_NAMES, STATIC, MotionClassifierCore
 from ..services.classifier.service import ClassifierService
 from ..services.classifier.synthetic_tracks import FrameRecords, TrackScenario, generate
+from ..runtime.signals import stop_on_signals
 
 NS = "bench-sidecar"
 
@@ -59,8 +59,7 @@ class BenchParams:
 
 def _stop_on_sigterm() -> threading.Event:
     stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    stop_on_signals(stop.set)
     return stop
 
 

@@ -9,11 +9,11 @@ from __future__ import annotations
 import json
 import logging
 import os
-import signal
 import threading
 
 import zenoh
 
+from .signals import stop_on_signals
 from .zenoh_config import DEFAULT_ROUTER, ENV_CONFIG, ZenohOptions, build_config, open_session
 
 log = logging.getLogger("jitterguard.router")
@@ -47,9 +47,7 @@ def router_config(listen: list[str], config_file: str | None = None) -> zenoh.Co
 def run_router(listen: list[str], config_file: str | None = None, stop: threading.Event | None = None) -> None:
     """Serve until SIGINT/SIGTERM (or ``stop`` is set)."""
     stop = stop or threading.Event()
-    if threading.current_thread() is threading.main_thread():
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, lambda *_: stop.set())
+    stop_on_signals(stop.set)
     cfg = router_config(listen, config_file)
     session = open_session(cfg, stop=stop, log=log)  # a port still held by a router that just died: retry
     log.info("zenoh router %s listening on %s", session.zid(), cfg.get_json("listen/endpoints"))

@@ -21,7 +21,6 @@ import faulthandler
 import logging
 import os
 import queue
-import signal
 import threading
 import time
 from collections.abc import Callable
@@ -33,6 +32,7 @@ from pydantic import BaseModel
 from ..schemas import DecodeError, LimitExceeded, decode, encode, keys
 from ..schemas.models import Heartbeat
 from . import memtrace
+from .signals import stop_on_signals
 from .keyed_publishers import KeyedPublishers
 from .progress import Health, ProgressMonitor, ProgressPolicy
 from .zenoh_config import ZenohOptions, build_config, open_session
@@ -312,9 +312,7 @@ class Service:
     def run_forever(self) -> None:
         """Block until SIGINT/SIGTERM (main thread) or :meth:`stop`, then close everything. With the watchdog on
         (``JG_WATCHDOG_S``, default 10 s), a service that stopped making progress exits with status 70."""
-        if threading.current_thread() is threading.main_thread():
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                signal.signal(sig, lambda *_: self.stop())
+        stop_on_signals(self.stop)
         try:
             self._watchdog_s = watchdog_period()
         except ValueError as exc:

@@ -34,6 +34,7 @@ from ..services.replay import cli as R  # the replay's own option declarations, 
 from ..services.replay.options import absolute_source
 from ..services.replay.sources import SourceError, probe_source
 from ..services.sidecar.core import bind_refusal
+from ..runtime.signals import stop_on_signals
 from . import summary
 from .control import StackUnavailable, Supervisor, orphans, stop_orphans, tail
 from .status import collect, load_spec, render_table, save_spec
@@ -332,8 +333,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         proc = subprocess.Popen(cmd)
         _wake(sup, proc)
         stop = threading.Event()
-        signal.signal(signal.SIGINT, lambda *_: stop.set())
-        signal.signal(signal.SIGTERM, lambda *_: stop.set())
+        stop_on_signals(stop.set)
         print(f"jitterguard: starting {names} (stack {label}, logs in {rd / 'logs'})", flush=True)
         watch = _ObjectsWatch(ns, spec.endpoint, t0)
         code = _foreground(proc, sup, rd, stop, watch, duration, t0, wall0, _addresses(spec, progs), progs)

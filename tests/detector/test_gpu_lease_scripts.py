@@ -1,10 +1,11 @@
-"""The GPU lease scripts (``scripts/gpu_lease_train.sh``, ``scripts/gpu_lease_continue.sh``) are the recorded
-recipes of the 28 Nov GPU runs and what a user with a GPU machine would run again; their ``SMOKE=1`` mode runs
+"""The GPU lease scripts (``scripts/gpu_lease_train.sh``, ``scripts/gpu_lease_continue.sh``,
+``scripts/gpu_lease_paper.sh``) are the recorded recipes of the 28 Nov GPU runs and what a user with a GPU machine would run again; their ``SMOKE=1`` mode runs
 every step on a few scans on the CPU (torchrun with gloo, parallel ray-casting, the probe, the side-by-side runs,
 the copying of results), so the scripts cannot rot unnoticed between leases."""
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import subprocess
@@ -51,3 +52,18 @@ def test_the_second_lease_script_continues_a_run_beside_a_tilted_twin_and_the_pa
     assert metas["P"][0].config.name == "paper" and metas["B2"][0].config.name == "lite"
     assert "--tilt-aug 2" in metas["B2t"][2]["command"] and "--tilt-aug" not in metas["B2"][2]["command"]
     assert all("--train-seeds 200-201" in m[2]["command"] for m in metas.values())
+
+
+@pytest.mark.slow
+def test_the_third_lease_script_returns_the_paper_weights_in_parts_that_join_to_the_trained_file(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    res = _run("gpu_lease_paper.sh", out, tmp_path / "work")
+    assert res.returncode == 0, (res.stdout + res.stderr)[-3000:]
+    parts = sorted(out.glob("P.pt.part*"))
+    assert len(parts) >= 2 and all(p.stat().st_size <= 15 * 2**20 for p in parts)  # a paper file is ~20 MB
+    joined = tmp_path / "P.pt"
+    joined.write_bytes(b"".join(p.read_bytes() for p in parts))
+    model, _, meta = load_weights(joined)
+    assert model.config.name == "paper" and "--train-seeds 300-301" in meta["command"]
+    assert hashlib.sha256(joined.read_bytes()).hexdigest() in (out / "run.log").read_text()
+    assert [r["epoch"] for r in json.loads((out / "P_hist.json").read_text())] == [1]

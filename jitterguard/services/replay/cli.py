@@ -10,9 +10,7 @@ Commands import their implementation when they run (start-up time: see :mod:`jit
 from __future__ import annotations
 
 import logging
-import signal
 import sys
-import threading
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -21,6 +19,7 @@ import typer
 from ...cli_common import (ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ProgressOpt, ZenohConfigOpt, fail, progress_on,
                            zenoh_options)
 from ...runtime import setup_logging
+from ...runtime.signals import stop_on_signals
 from .frames import Frame, FrameError, SourceError
 from .options import ReplayOptions
 from .runner import ReplayPlan
@@ -154,9 +153,7 @@ def replay_command(
 
 
 def _run(svc: Any, src: Any, plan: ReplayPlan, wait_s: float, progress: bool | None) -> int:
-    if threading.current_thread() is threading.main_thread():
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, lambda *_: svc.stop())
+    stop_on_signals(svc.stop)
     try:
         if wait_s > 0 and not svc.wait_for_subscribers(wait_s):
             log.info("no subscriber on %s after %.1f s; replaying anyway", svc.key, wait_s)
