@@ -183,3 +183,21 @@ def test_train_augment_rotates_within_its_range_and_tilts_points_with_boxes(samp
     assert np.ptp(yaws) > 4.0  # full turns, not ±45°
     same = TrainAugment(0.0, 0.0)(s, np.random.default_rng(1))
     assert same.points.shape == s.points.shape
+
+
+def test_train_augment_with_a_database_pastes_objects_before_the_global_transform(samples: list[Sample]) -> None:
+    import pickle
+
+    from jitterguard.services.detector.augment import TrainAugment
+
+    db = build_gt_database(samples[1:], min_points=5)
+    plain, pasting = TrainAugment(rotation_deg=0.0), TrainAugment(rotation_deg=0.0, gt_db=db)
+    s = samples[0]
+    a, b = plain(s, np.random.default_rng(3)), pasting(s, np.random.default_rng(3))
+    added = len(b.boxes) - len(a.boxes)
+    assert added > 0 and len(a.boxes) == len(s.boxes)
+    # the pasted boxes went through the same flips and scale as the scene's: their points are still inside
+    np.testing.assert_array_equal(points_in_boxes(b.points, b.boxes[-added:]).sum(0), b.num_points[-added:])
+    # a DataLoader worker gets a copy that pastes the same objects
+    again = pickle.loads(pickle.dumps(pasting))(s, np.random.default_rng(3))
+    np.testing.assert_array_equal(again.boxes, b.boxes)

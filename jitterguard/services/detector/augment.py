@@ -24,6 +24,9 @@ F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 B = NDArray[np.bool_]
 
+CENTERPOINT_SAMPLE_COUNTS: tuple[int, ...] = (2, 3, 4, 6, 2)
+"""Objects pasted per class (car, truck, bus, bicycle, pedestrian): CenterPoint's nuScenes ``sample_groups``."""
+
 
 def _wrap(a: NDArray[np.floating]) -> NDArray[np.floating]:
     """Angles into [−π, π)."""
@@ -138,10 +141,16 @@ class TrainAugment:
 
     rotation_deg: float = 45.0
     tilt_deg: float = 0.0
+    gt_db: GTDatabase | None = None
+    """With a database: CenterPoint's ground-truth sampling first (:func:`gt_sample`, ``gt_counts`` per class) —
+    objects pasted where their own scans had them, whatever stands there in this one, so the network must find an
+    object from its returns rather than from where a scene's layout puts objects."""
+    gt_counts: tuple[int, ...] = CENTERPOINT_SAMPLE_COUNTS
 
     def __call__(self, sample: Sample, rng: np.random.Generator) -> Sample:
         r = math.radians(self.rotation_deg)
-        out = random_augment(sample, rng, rotation=(-r, r))
+        out = sample if self.gt_db is None else gt_sample(sample, self.gt_db, rng, self.gt_counts)
+        out = random_augment(out, rng, rotation=(-r, r))
         if self.tilt_deg > 0:
             t = math.radians(self.tilt_deg)
             out = global_tilt(out, float(rng.normal(0, t)), float(rng.normal(0, t)),
@@ -256,10 +265,6 @@ def build_gt_database(samples: Iterable[Sample], min_points: int = 5) -> GTDatab
         points=np.concatenate(chunks).astype(np.float32) if chunks else np.zeros((0, 4), np.float32),
         offsets=offsets,
     )
-
-
-CENTERPOINT_SAMPLE_COUNTS: tuple[int, ...] = (2, 3, 4, 6, 2)
-"""Objects pasted per class (car, truck, bus, bicycle, pedestrian): CenterPoint's nuScenes ``sample_groups``."""
 
 
 def gt_sample(sample: Sample, db: GTDatabase, rng: np.random.Generator,

@@ -237,6 +237,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                                                        " --init's weights, else fed.")] = None,
         tilt_aug: Annotated[float, typer.Option("--tilt-aug", min=0.0, max=10.0, help="Pitch/roll augmentation SD"
                                                 " in degrees (and 0.05 m per degree of height).")] = 0.0,
+        gt_sample: Annotated[bool, typer.Option("--gt-sample/--no-gt-sample", help="CenterPoint's ground-truth"
+                                                " sampling: paste objects (≥ 5 returns) cut from other training"
+                                                " scans where those scans had them.")] = False,
         nuscenes: Annotated[str | None, typer.Option("--nuscenes", help="Train on this nuScenes dataroot instead of"
                                                       " synthetic scans (with --init: fine-tune).")] = None,
         nuscenes_version: Annotated[str | None, typer.Option("--nuscenes-version", help="Table folder, e.g."
@@ -388,7 +391,14 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         meta = {"source": source, "init": init, "command": " ".join(["jitterguard", *sys.argv[1:]])}
         if dc.distributed:
             meta["launcher"] = f"torchrun, {dc.world} processes"
-        augment = TrainAugment(rotation, tilt_aug)
+        gt_db = None
+        if gt_sample:
+            from .augment import build_gt_database
+
+            gt_db = build_gt_database(train_v[i] for i in range(len(train_v)))
+            meta["gt_sample"] = {"objects": len(gt_db), "per_scan": list(TrainAugment().gt_counts)}
+            log.info("ground-truth sampling from %d objects", len(gt_db))
+        augment = TrainAugment(rotation, tilt_aug, gt_db)
         meta["augment"] = {"rotation_deg": rotation, "tilt_deg": tilt_aug}
         state = train(model, train_v, val_v, tcfg, root, augment=augment, evaluate=evaluate,
                       resume=resume, progress=progress, meta=meta, dist_ctx=dc)
