@@ -160,3 +160,20 @@ def test_adapt_cli_writes_weights_that_name_their_scans(tmp_path: Path) -> None:
                           "--out", str(out), "--scans", str(root), "--recalibration", "labels"], capture_output=True,
                          text=True, timeout=120)
     assert bad.returncode == 2 and "--recalibration" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
+
+
+def test_adapt_refuses_stacked_sweep_weights_in_one_line(tmp_path: Path) -> None:
+    """adapt reads single scans; a five-field (stacked-sweep) model would crash on them mid-run, so it is refused
+    up front with exit 2 and a line that says what to do instead."""
+    from jitterguard.services.detector.inference import save_weights, shipped_weights
+    from jitterguard.services.detector.network import with_time_lag
+
+    model, rec, meta = load_weights(shipped_weights("lite"))
+    five = tmp_path / "five.pt"
+    save_weights(five, with_time_lag(model), recalibration=rec, meta=meta)
+    res = subprocess.run([sys.executable, "-m", "jitterguard.cli", "adapt", "--weights", str(five), "--out",
+                          str(tmp_path / "o"), "--scans", str(_dataroot(tmp_path))], capture_output=True, text=True,
+                         timeout=120)
+    assert res.returncode == 2 and len(res.stderr.strip().splitlines()) == 1, res.stderr[-2000:]
+    assert "--weights" in res.stderr and "stacked sweeps" in res.stderr and "--sweeps" in res.stderr
+    assert not (tmp_path / "o" / "weights.pt").exists()
