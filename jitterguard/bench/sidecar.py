@@ -29,6 +29,7 @@ import zenoh
 
 from ..geometry import yaw_from_quaternion
 from ..runtime import free_tcp_port, loopback_options, setup_logging
+from ..runtime.signals import stop_on_signals
 from ..runtime.zenoh_config import build_config
 from ..schemas import encode, keys, read_track_observations
 from ..schemas.models import ClassifierConfig, ClassifierStateSnapshot, Header, Heartbeat, TrackStateEntry
@@ -36,7 +37,6 @@ from ..services.classifier.adapter import observation_rows, observations_from_ro
 from ..services.classifier.core import STATE_NAMES, STATIC, MotionClassifierCore
 from ..services.classifier.service import ClassifierService
 from ..services.classifier.synthetic_tracks import FrameRecords, TrackScenario, generate
-from ..runtime.signals import stop_on_signals
 
 NS = "bench-sidecar"
 

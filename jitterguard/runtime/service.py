@@ -32,9 +32,9 @@ from pydantic import BaseModel
 from ..schemas import DecodeError, LimitExceeded, decode, encode, keys
 from ..schemas.models import Heartbeat
 from . import memtrace
-from .signals import stop_on_signals
 from .keyed_publishers import KeyedPublishers
 from .progress import Health, ProgressMonitor, ProgressPolicy
+from .signals import stop_on_signals
 from .zenoh_config import ZenohOptions, build_config, open_session
 
 M = TypeVar("M", bound=BaseModel)

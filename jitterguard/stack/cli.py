@@ -29,12 +29,12 @@ import typer
 
 from ..cli_common import NsOpt, fail
 from ..runtime import ZenohOptions, build_config, open_session
+from ..runtime.signals import stop_on_signals
 from ..schemas import keys
 from ..services.replay import cli as R  # the replay's own option declarations, shared with `up`
 from ..services.replay.options import absolute_source
 from ..services.replay.sources import SourceError, probe_source
 from ..services.sidecar.core import bind_refusal
-from ..runtime.signals import stop_on_signals
 from . import summary
 from .control import StackUnavailable, Supervisor, orphans, stop_orphans, tail
 from .status import collect, load_spec, render_table, save_spec

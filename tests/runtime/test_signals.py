@@ -13,8 +13,6 @@ import sys
 import textwrap
 import threading
 
-import pytest
-
 from jitterguard.runtime.signals import stop_on_signals
 
 CHILD = textwrap.dedent("""
@@ -56,4 +54,3 @@ def test_off_the_main_thread_nothing_is_installed() -> None:
     t.start()
     t.join()
     assert got == [False]
-

@@ -396,9 +396,10 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             from .augment import build_gt_database
 
             gt_db = build_gt_database(train_v[i] for i in range(len(train_v)))
-            meta["gt_sample"] = {"objects": len(gt_db), "per_scan": list(TrainAugment().gt_counts)}
             log.info("ground-truth sampling from %d objects", len(gt_db))
         augment = TrainAugment(rotation, tilt_aug, gt_db)
+        if gt_db is not None:
+            meta["gt_sample"] = {"objects": len(gt_db), "per_scan": list(augment.gt_counts)}
         meta["augment"] = {"rotation_deg": rotation, "tilt_deg": tilt_aug}
         state = train(model, train_v, val_v, tcfg, root, augment=augment, evaluate=evaluate,
                       resume=resume, progress=progress, meta=meta, dist_ctx=dc)
