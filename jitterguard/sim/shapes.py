@@ -118,6 +118,16 @@ TEMPLATES: dict[str, F64] = {
         (_B, 0.00, 0.00, 0.47, 0.84, 0.24, 0.46, 0.6),    # torso and arms
         (_C, 0.00, 0.00, 0.86, 1.00, 0.15, 0.15, 0.5),    # head
     ]),
+    "walker": np.array([
+        (_C, 0.00, 0.14, 0.00, 0.26, 0.10, 0.10, 0.4),    # shins (legs in two parts: a stride tilts them)
+        (_C, 0.00, -0.14, 0.00, 0.26, 0.10, 0.10, 0.4),
+        (_C, 0.00, 0.14, 0.26, 0.48, 0.13, 0.13, 0.4),    # thighs
+        (_C, 0.00, -0.14, 0.26, 0.48, 0.13, 0.13, 0.4),
+        (_B, 0.00, 0.00, 0.48, 0.83, 0.20, 0.28, 0.6),    # torso, arms free beside it
+        (_C, 0.00, 0.38, 0.50, 0.82, 0.08, 0.08, 0.5),    # arms
+        (_C, 0.00, -0.38, 0.50, 0.82, 0.08, 0.08, 0.5),
+        (_C, 0.00, 0.00, 0.86, 1.00, 0.15, 0.15, 0.5),    # head
+    ]),
     "sitting": np.array([
         (_B, 0.15, 0.00, 0.28, 0.42, 0.35, 0.40, 0.5),    # thighs
         (_B, 0.40, 0.00, 0.00, 0.30, 0.08, 0.35, 0.4),    # shins
@@ -128,14 +138,35 @@ TEMPLATES: dict[str, F64] = {
 }
 
 
+GAIT: dict[str, F64] = {"walker": np.array([0.30, -0.30, 0.15, -0.15, 0.0, -0.20, 0.20, 0.0])}
+"""Per template row, how far (a fraction of the object's length) the part moves forward at the peak of a
+stride: feet furthest, knees half as far, each arm against the leg on its side; see :func:`gait_stride`."""
+
+GAIT_CYCLE_HZ = 0.9
+"""Strides per second of a walker (a cadence of ≈ 1.8 steps/s, as adults walk at 1.2–1.5 m/s)."""
+
+GAIT_FULL_STRIDE_MPS = 1.3
+"""Speed at and above which a walker's stride is full (slower walkers take proportionally shorter steps)."""
+
+
+def gait_stride(stamp_s: float, velocities: F64, instance_ids: NDArray[np.int64]) -> F64:
+    """The signed stride of each object at ``stamp_s``, in [−1, 1]: 0 for one standing still, a full swing for one
+    walking at :data:`GAIT_FULL_STRIDE_MPS` or faster. Each instance has its own phase (a hash of its id), so a
+    crowd does not march in step, and the phase advances with time, so consecutive scans catch other poses."""
+    speed = np.hypot(velocities[:, 0], velocities[:, 1]) if len(velocities) else np.zeros(0)
+    phase = (np.asarray(instance_ids, np.int64) * 2654435761 % 1000) / 1000.0
+    return np.clip(speed / GAIT_FULL_STRIDE_MPS, 0.0, 1.0) * np.sin(2 * np.pi * (GAIT_CYCLE_HZ * stamp_s + phase))
+
+
 GLASS_PARTS: dict[str, tuple[int, ...]] = {"car": (1,), "van": (1,), "pickup": (1,)}
 """Template rows that are mostly glass (a car's cabin): tagged :attr:`Tag.GLASS` so that the LiDAR's effects
 can let rays through them (real cabins return little: nuScenes cars carry 22 % of their returns in the upper
 40 % of the box, ideal ray-cast ones 47 %)."""
 
 
-def template_key(label: int, attribute: str, size: F64) -> str:
-    """Which part layout an object gets."""
+def template_key(label: int, attribute: str, size: F64, limbs: bool = False) -> str:
+    """Which part layout an object gets (``limbs``: a standing or walking pedestrian gets the articulated
+    ``walker``, else the one-piece torso of the scans cast before it existed)."""
     if label == Label.CAR:
         return "van" if size[2] > 2.0 else "car"
     if label == Label.TRUCK:  # the size tells a pick-up and a tractor-semitrailer from a rigid truck
@@ -149,7 +180,9 @@ def template_key(label: int, attribute: str, size: F64) -> str:
     if label == Label.BICYCLE:
         return "bicycle" if attribute == "cycle.without_rider" else "bicycle_rider"
     if label == Label.PEDESTRIAN:
-        return "sitting" if attribute == "pedestrian.sitting_lying_down" else "pedestrian"
+        if attribute == "pedestrian.sitting_lying_down":
+            return "sitting"
+        return "walker" if limbs else "pedestrian"
     return "box"
 
 
@@ -160,9 +193,13 @@ def _part_tags(key: str, m: int) -> NDArray[np.int16]:
 
 
 def object_primitives(centers: F64, sizes: F64, yaws: F64, labels: NDArray[np.int64], attributes: tuple[str, ...],
-                      instance_ids: NDArray[np.int64]) -> tuple[Primitives, NDArray[np.int64]]:
-    """All parts of N objects in the world frame, and the object row each part belongs to."""
-    keys = [template_key(int(lab), attr, sz) for lab, attr, sz in zip(labels, attributes, sizes)]
+                      instance_ids: NDArray[np.int64], stride: F64 | None = None
+                      ) -> tuple[Primitives, NDArray[np.int64]]:
+    """All parts of N objects in the world frame, and the object row each part belongs to.
+
+    ``stride`` (N,), from :func:`gait_stride`: pedestrians get limbs, swung by it along their heading (see
+    :data:`GAIT`); None keeps every template as scans were cast before limbs existed."""
+    keys = [template_key(int(lab), attr, sz, stride is not None) for lab, attr, sz in zip(labels, attributes, sizes)]
     parts: list[Primitives] = []
     owners: list[NDArray[np.int64]] = []
     for key in dict.fromkeys(keys):
@@ -172,6 +209,8 @@ def object_primitives(centers: F64, sizes: F64, yaws: F64, labels: NDArray[np.in
         L, W, H = (sizes[rows, i][:, None] for i in range(3))
         kind = np.broadcast_to(t[:, 0].astype(np.int8), (n, m))
         lx, ly = t[:, 1] * L, t[:, 2] * W
+        if key in GAIT and stride is not None:
+            lx = lx + GAIT[key][None, :] * stride[rows][:, None] * L
         c, s = np.cos(yaws[rows])[:, None], np.sin(yaws[rows])[:, None]
         cx = centers[rows, 0][:, None] + c * lx - s * ly
         cy = centers[rows, 1][:, None] + s * lx + c * ly

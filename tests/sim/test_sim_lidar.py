@@ -157,3 +157,59 @@ def test_only_the_faces_turned_to_the_sensor_are_hit() -> None:
     # nothing from the far faces' interiors (points there would be off both near faces)
     assert not np.any((np.abs(p[:, 0] - 12.0) < 0.05) & (p[:, 1] > 5.1))
     assert not np.any((np.abs(p[:, 1] - 7.0) < 0.05) & (p[:, 0] > 8.1))
+
+
+def _walker_frame(stamp_s: float, speed: float) -> GroundTruthFrame:
+    """One pedestrian 6 m to the left front of the sensor, heading +y (across the line of sight) at ``speed``."""
+    return GroundTruthFrame(
+        seq=0, stamp_ns=BASE_STAMP_NS + int(round(stamp_s * 1e9)), ego_x=0.0, ego_y=0.0, ego_yaw=0.0,
+        instance_ids=np.array([7]), labels=np.array([int(Label.PEDESTRIAN)]), centers=np.array([[6.0, 0.5, 0.875]]),
+        sizes=np.array([[0.73, 0.67, 1.75]]), yaws=np.array([np.pi / 2]), velocities=np.array([[0.0, speed]]),
+        moving=np.array([speed > 0]), attributes=("pedestrian.moving" if speed else "pedestrian.standing",),
+        visibility=np.ones(1), num_points=np.zeros(1, np.int64))
+
+
+def test_walker_limbs_stay_inside_the_box_at_any_stride() -> None:
+    from jitterguard.sim.shapes import GAIT
+
+    for key, coef in GAIT.items():
+        assert len(coef) == len(TEMPLATES[key])
+    for size in ([0.73, 0.67, 1.75], [0.5, 0.5, 1.2], [0.55, 0.8, 1.9]):  # adult, child, a wide one
+        for stride in (-1.0, -0.4, 0.0, 1.0):
+            prims, _ = object_primitives(np.array([[3.0, -2.0, 0.9]]), np.array([size]), np.array([0.7]),
+                                         np.array([int(Label.PEDESTRIAN)]), ("pedestrian.moving",), np.array([1]),
+                                         np.array([stride]))
+            assert len(prims) == len(TEMPLATES["walker"])
+            c, s = np.cos(0.7), np.sin(0.7)
+            rel = prims.center - [3.0, -2.0]
+            lx, ly = rel[:, 0] * c + rel[:, 1] * s, -rel[:, 0] * s + rel[:, 1] * c
+            reach = prims.half[:, 0]  # boxes here are torso-aligned: half-length along x; cylinders: radius
+            assert np.all(np.abs(lx) + reach <= size[0] / 2 + 1e-9)
+            across = np.where(prims.kind == 0, prims.half[:, 1], prims.half[:, 0])
+            assert np.all(np.abs(ly) + across <= size[1] / 2 + 1e-9)
+
+
+def test_limbs_are_opt_in_and_a_walker_strides_while_a_standing_one_does_not() -> None:
+    """Without ``limbs`` a pedestrian is cast as before, the same at every moment; with it a walker's feet spread
+    and close along its heading as the stride goes on, and one standing still keeps its pose."""
+    from jitterguard.sim.effects import ScanEffects, draw_effects, parse_components
+
+    assert "limbs" not in parse_components("random") and "limbs" in parse_components("random,limbs")
+    plain = draw_effects(np.random.default_rng(4), parse_components("random"))
+    limbs = draw_effects(np.random.default_rng(4), parse_components("random,limbs"))
+    assert limbs == ScanEffects(**{**plain.__dict__, "limbs": True}) and not plain.limbs
+
+    def feet_spread(stamp_s: float, speed: float, on: bool) -> float:
+        res, _ = cast_frame(_walker_frame(stamp_s, speed), seed=0, effects=ScanEffects(limbs=on))
+        p = res.points[res.owner == 0]
+        low = p[p[:, 2] < -1.84 + 0.45]  # returns from the lower legs
+        assert len(low) >= 2
+        return float(np.ptp(low[:, 1]))  # along the walker's heading (+y)
+
+    stamps = np.arange(0.0, 1.2, 0.1)
+    before = [cast_frame(_walker_frame(t, 1.4), seed=0)[0].points for t in stamps[:2]]
+    np.testing.assert_array_equal(before[0], before[1])  # no limbs: no pose changes with time
+    walking = [feet_spread(t, 1.4, True) for t in stamps]
+    standing = [feet_spread(t, 0.0, True) for t in stamps]
+    assert np.ptp(standing) < 1e-9
+    assert max(walking) > max(standing) + 0.25 and min(walking) < max(walking) - 0.15
