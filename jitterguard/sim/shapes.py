@@ -149,12 +149,18 @@ GAIT_FULL_STRIDE_MPS = 1.3
 """Speed at and above which a walker's stride is full (slower walkers take proportionally shorter steps)."""
 
 
+def instance_fraction(instance_ids: NDArray[np.int64]) -> F64:
+    """A number in [0, 1) per instance id, stable over time and spread over ids (a multiplicative hash): what an
+    instance keeps from scan to scan — its paint, its gait's phase."""
+    return (np.asarray(instance_ids, np.int64) * 2654435761 % 1000) / 1000.0
+
+
 def gait_stride(stamp_s: float, velocities: F64, instance_ids: NDArray[np.int64]) -> F64:
     """The signed stride of each object at ``stamp_s``, in [−1, 1]: 0 for one standing still, a full swing for one
     walking at :data:`GAIT_FULL_STRIDE_MPS` or faster. Each instance has its own phase (a hash of its id), so a
     crowd does not march in step, and the phase advances with time, so consecutive scans catch other poses."""
     speed = np.hypot(velocities[:, 0], velocities[:, 1]) if len(velocities) else np.zeros(0)
-    phase = (np.asarray(instance_ids, np.int64) * 2654435761 % 1000) / 1000.0
+    phase = instance_fraction(instance_ids)
     return np.clip(speed / GAIT_FULL_STRIDE_MPS, 0.0, 1.0) * np.sin(2 * np.pi * (GAIT_CYCLE_HZ * stamp_s + phase))
 
 
@@ -219,7 +225,7 @@ def object_primitives(centers: F64, sizes: F64, yaws: F64, labels: NDArray[np.in
         hl = np.where(is_cyl, t[:, 5] * W, t[:, 5] * L)
         hw = t[:, 6] * W
         # a per-instance paint colour: reflectivity 0.2 … 0.8, stable over time
-        paint = 0.2 + 0.6 * ((instance_ids[rows] * 2654435761) % 1000 / 1000.0)
+        paint = 0.2 + 0.6 * instance_fraction(instance_ids[rows])
         refl = np.clip(paint[:, None] * t[:, 7], 0.02, 1.0)
         parts.append(Primitives(
             kind.reshape(-1).copy(), np.stack([cx, cy], axis=-1).reshape(-1, 2),
