@@ -105,6 +105,9 @@ class ScanEffects:
     limbs: bool = False
     """Pedestrians with legs and arms that swing in a walking stride (:func:`~jitterguard.sim.shapes.gait_stride`)
     instead of a one-piece torso; opt-in component ``limbs``."""
+    pedal: bool = False
+    """Bicycle riders with two-part legs that go round with the pedals while they ride
+    (:func:`~jitterguard.sim.shapes.crank_angle`); opt-in component ``pedal``."""
     building_drop: float = 0.0
     """Probability that each building block of the scenery is left out of this scan: open squares, lots and
     roundabouts instead of street canyons (real scans see the ground rings to 40 m in many directions)."""
@@ -160,11 +163,12 @@ COMPONENTS: tuple[str, ...] = ("ground", "glass", "dropout", "noise", "roof", "m
 """What :func:`draw_effects` can switch on, one at a time (``parse_components``): uneven ground, glass, lost
 returns on road users, range noise, the ego's roof, mixed pixels, street clutter, open scenery (buildings
 left out) and measured intensities (without it: the ideal intensity model; ``no-intensity``: all zeros).
-``vegetation`` (irregular vegetation masses) and ``limbs`` (pedestrians with swinging legs and arms) are opt-in:
+``vegetation`` (irregular vegetation masses), ``limbs`` (pedestrians with swinging legs and arms) and ``pedal``
+(cyclists whose legs go round with the pedals) are opt-in:
 ``random`` leaves them out, so the scans of every recipe written before they existed are cast as they were."""
 
-OPT_IN_COMPONENTS: tuple[str, ...] = ("no-intensity", "vegetation", "limbs")
-"""Components that ``random`` does not switch on; named in a comma list (``random,vegetation,limbs``)."""
+OPT_IN_COMPONENTS: tuple[str, ...] = ("no-intensity", "vegetation", "limbs", "pedal")
+"""Components that ``random`` does not switch on; named in a comma list (``random,vegetation,limbs,pedal``)."""
 
 
 def parse_components(spec: str) -> tuple[str, ...]:
@@ -239,6 +243,7 @@ def draw_effects(rng: np.random.Generator, components: Sequence[str] = COMPONENT
         clutter_seed=clutter_seed,
         vegetation_density=vegetation if "vegetation" in on else 0.0,
         limbs="limbs" in on,
+        pedal="pedal" in on,
         building_drop=drop if "open" in on else 0.0,
         motion="motion" in on,
         sweep_start=start,

@@ -29,7 +29,7 @@ from numpy.typing import NDArray
 from .effects import BRIGHT_SPOT_FRACTION, MEASURED_INTENSITY, ScanEffects, street_clutter, vegetation_masses
 from .primitives import BOX, PrimitiveList, Primitives, Tag
 from .sensors import LidarSpec, azimuths, hdl32e
-from .shapes import gait_stride, object_primitives
+from .shapes import crank_angle, gait_stride, object_primitives
 from .world import GroundTruthFrame
 
 F64 = NDArray[np.float64]
@@ -349,13 +349,16 @@ def _measured_intensity(tags: NDArray[np.int16], owner: NDArray[np.int64], gain:
     return out
 
 
-def scene_primitives(frame: GroundTruthFrame, spec: LidarSpec, limbs: bool = False
+def scene_primitives(frame: GroundTruthFrame, spec: LidarSpec, limbs: bool = False, pedal: bool = False
                      ) -> tuple[Primitives, NDArray[np.int64]]:
     """Objects' parts and nearby clutter of ``frame`` in the sensor frame, with their owners (−1 = clutter);
-    ``limbs``: pedestrians with legs and arms in the stride of the frame's moment."""
-    stride = gait_stride(frame.stamp_ns * 1e-9, frame.velocities, frame.instance_ids) if limbs else None
+    ``limbs``: pedestrians with legs and arms in the stride of the frame's moment; ``pedal``: cyclists' legs at
+    the crank angle of that moment."""
+    stamp_s = frame.stamp_ns * 1e-9
+    stride = gait_stride(stamp_s, frame.velocities, frame.instance_ids) if limbs else None
+    crank = crank_angle(stamp_s, frame.velocities, frame.instance_ids) if pedal else None
     objs, owner = object_primitives(frame.centers, frame.sizes, frame.yaws, frame.labels, frame.attributes,
-                                    frame.instance_ids, stride)
+                                    frame.instance_ids, stride, crank)
     parts = [objs]
     owners = [owner]
     if frame.clutter is not None and len(frame.clutter):
@@ -398,7 +401,8 @@ def cast_frame(frame: GroundTruthFrame, sensor: LidarSpec | None = None, seed: i
     as every single-sweep scan has always been cast.
     """
     spec = sensor or hdl32e()
-    prims, owner = scene_primitives(frame, spec, limbs=effects is not None and effects.limbs)
+    prims, owner = scene_primitives(frame, spec, limbs=effects is not None and effects.limbs,
+                                    pedal=effects is not None and effects.pedal)
     rng = np.random.default_rng([seed, frame.seq])
     lift = np.zeros(frame.num_objects)
     if effects is not None:

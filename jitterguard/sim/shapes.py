@@ -106,6 +106,18 @@ TEMPLATES: dict[str, F64] = {
         (_C, -0.05, 0.00, 0.52, 0.86, 0.32, 0.32, 0.5),   # torso
         (_C, 0.00, 0.00, 0.86, 1.00, 0.19, 0.19, 0.6),    # head
     ]),
+    "pedaller": np.array([
+        (_B, 0.30, 0.00, 0.00, 0.40, 0.18, 0.06, 0.3),    # wheels, frame and handlebar as "bicycle_rider"
+        (_B, -0.30, 0.00, 0.00, 0.40, 0.18, 0.06, 0.3),
+        (_B, 0.00, 0.00, 0.26, 0.50, 0.25, 0.08, 0.5),
+        (_B, 0.22, 0.00, 0.52, 0.60, 0.04, 0.45, 0.5),
+        (_C, 0.05, 0.15, 0.08, 0.32, 0.11, 0.11, 0.4),    # shins (legs in two parts: the cranks move them)
+        (_C, 0.05, -0.15, 0.08, 0.32, 0.11, 0.11, 0.4),
+        (_C, 0.00, 0.15, 0.32, 0.52, 0.13, 0.13, 0.4),    # thighs
+        (_C, 0.00, -0.15, 0.32, 0.52, 0.13, 0.13, 0.4),
+        (_C, -0.05, 0.00, 0.52, 0.86, 0.32, 0.32, 0.5),   # torso
+        (_C, 0.00, 0.00, 0.86, 1.00, 0.19, 0.19, 0.6),    # head
+    ]),
     "bicycle": np.array([
         (_B, 0.30, 0.00, 0.00, 0.62, 0.18, 0.08, 0.3),
         (_B, -0.30, 0.00, 0.00, 0.62, 0.18, 0.08, 0.3),
@@ -149,6 +161,23 @@ GAIT_FULL_STRIDE_MPS = 1.3
 """Speed at and above which a walker's stride is full (slower walkers take proportionally shorter steps)."""
 
 
+PEDAL: dict[str, F64] = {"pedaller": np.array([
+    (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0),
+    (0.10, 0.07, 0.0), (0.10, 0.07, np.pi),    # shins: round with the pedals, the two feet half a turn apart
+    (0.03, 0.05, 0.0), (0.03, 0.05, np.pi),    # thighs: the knees rise and fall
+    (0.0, 0.0, 0.0), (0.0, 0.0, 0.0),
+])}
+"""Per template row of a cyclist: how far the part moves along the heading (a fraction of the object's length)
+and up (of its height) as the cranks turn, and its phase on the crank: a part at crank angle θ sits
+``(ax · L · cos(θ + φ), az · H · sin(θ + φ))`` from its rest place (see :func:`crank_angle`)."""
+
+PEDAL_HZ = 1.3
+"""Crank turns per second of a riding cyclist (≈ 80 rpm, an easy cadence; gears keep it near constant)."""
+
+PEDAL_MIN_MPS = 0.5
+"""Speed below which a cyclist is taken to coast or stand: the cranks stay at the angle the instance was given."""
+
+
 def instance_fraction(instance_ids: NDArray[np.int64]) -> F64:
     """A number in [0, 1) per instance id, stable over time and spread over ids (a multiplicative hash): what an
     instance keeps from scan to scan — its paint, its gait's phase."""
@@ -164,15 +193,25 @@ def gait_stride(stamp_s: float, velocities: F64, instance_ids: NDArray[np.int64]
     return np.clip(speed / GAIT_FULL_STRIDE_MPS, 0.0, 1.0) * np.sin(2 * np.pi * (GAIT_CYCLE_HZ * stamp_s + phase))
 
 
+def crank_angle(stamp_s: float, velocities: F64, instance_ids: NDArray[np.int64]) -> F64:
+    """The crank angle [rad] of each object at ``stamp_s``: turning at :data:`PEDAL_HZ` while it rides at
+    :data:`PEDAL_MIN_MPS` or faster, still otherwise; each instance starts at its own angle (the hash of
+    :func:`instance_fraction`), so a group of riders does not pedal in step."""
+    speed = np.hypot(velocities[:, 0], velocities[:, 1]) if len(velocities) else np.zeros(0)
+    turns = instance_fraction(instance_ids) + np.where(speed >= PEDAL_MIN_MPS, PEDAL_HZ * stamp_s, 0.0)
+    return 2 * np.pi * turns
+
+
 GLASS_PARTS: dict[str, tuple[int, ...]] = {"car": (1,), "van": (1,), "pickup": (1,)}
 """Template rows that are mostly glass (a car's cabin): tagged :attr:`Tag.GLASS` so that the LiDAR's effects
 can let rays through them (real cabins return little: nuScenes cars carry 22 % of their returns in the upper
 40 % of the box, ideal ray-cast ones 47 %)."""
 
 
-def template_key(label: int, attribute: str, size: F64, limbs: bool = False) -> str:
+def template_key(label: int, attribute: str, size: F64, limbs: bool = False, pedal: bool = False) -> str:
     """Which part layout an object gets (``limbs``: a standing or walking pedestrian gets the articulated
-    ``walker``, else the one-piece torso of the scans cast before it existed)."""
+    ``walker``, else the one-piece torso of the scans cast before it existed; ``pedal``: a bicycle's rider gets
+    two-part legs on the pedals, ``pedaller``)."""
     if label == Label.CAR:
         return "van" if size[2] > 2.0 else "car"
     if label == Label.TRUCK:  # the size tells a pick-up and a tractor-semitrailer from a rigid truck
@@ -184,7 +223,9 @@ def template_key(label: int, attribute: str, size: F64, limbs: bool = False) -> 
     if label == Label.MOTORCYCLE:
         return "motorcycle" if attribute == "cycle.without_rider" else "motorcycle_rider"
     if label == Label.BICYCLE:
-        return "bicycle" if attribute == "cycle.without_rider" else "bicycle_rider"
+        if attribute == "cycle.without_rider":
+            return "bicycle"
+        return "pedaller" if pedal else "bicycle_rider"
     if label == Label.PEDESTRIAN:
         if attribute == "pedestrian.sitting_lying_down":
             return "sitting"
@@ -199,13 +240,16 @@ def _part_tags(key: str, m: int) -> NDArray[np.int16]:
 
 
 def object_primitives(centers: F64, sizes: F64, yaws: F64, labels: NDArray[np.int64], attributes: tuple[str, ...],
-                      instance_ids: NDArray[np.int64], stride: F64 | None = None
+                      instance_ids: NDArray[np.int64], stride: F64 | None = None, crank: F64 | None = None
                       ) -> tuple[Primitives, NDArray[np.int64]]:
     """All parts of N objects in the world frame, and the object row each part belongs to.
 
     ``stride`` (N,), from :func:`gait_stride`: pedestrians get limbs, swung by it along their heading (see
-    :data:`GAIT`); None keeps every template as scans were cast before limbs existed."""
-    keys = [template_key(int(lab), attr, sz, stride is not None) for lab, attr, sz in zip(labels, attributes, sizes)]
+    :data:`GAIT`); None keeps every template as scans were cast before limbs existed. ``crank`` (N,), from
+    :func:`crank_angle`: bicycle riders' legs go round with the pedals (see :data:`PEDAL`); None keeps them as
+    scans were cast before."""
+    keys = [template_key(int(lab), attr, sz, stride is not None, crank is not None)
+            for lab, attr, sz in zip(labels, attributes, sizes)]
     parts: list[Primitives] = []
     owners: list[NDArray[np.int64]] = []
     for key in dict.fromkeys(keys):
@@ -215,12 +259,18 @@ def object_primitives(centers: F64, sizes: F64, yaws: F64, labels: NDArray[np.in
         L, W, H = (sizes[rows, i][:, None] for i in range(3))
         kind = np.broadcast_to(t[:, 0].astype(np.int8), (n, m))
         lx, ly = t[:, 1] * L, t[:, 2] * W
+        z0, z1 = t[:, 3] * H, t[:, 4] * H
         if key in GAIT and stride is not None:
             lx = lx + GAIT[key][None, :] * stride[rows][:, None] * L
+        if key in PEDAL and crank is not None:
+            ax, az, offset = PEDAL[key].T
+            angle = crank[rows][:, None] + offset[None, :]
+            lx = lx + ax[None, :] * np.cos(angle) * L
+            lift = az[None, :] * np.sin(angle) * H
+            z0, z1 = z0 + lift, z1 + lift
         c, s = np.cos(yaws[rows])[:, None], np.sin(yaws[rows])[:, None]
         cx = centers[rows, 0][:, None] + c * lx - s * ly
         cy = centers[rows, 1][:, None] + s * lx + c * ly
-        z0, z1 = t[:, 3] * H, t[:, 4] * H
         is_cyl = t[:, 0] == CYLINDER
         hl = np.where(is_cyl, t[:, 5] * W, t[:, 5] * L)
         hw = t[:, 6] * W

@@ -213,3 +213,69 @@ def test_limbs_are_opt_in_and_a_walker_strides_while_a_standing_one_does_not() -
     standing = [feet_spread(t, 0.0, True) for t in stamps]
     assert np.ptp(standing) < 1e-9
     assert max(walking) > max(standing) + 0.25 and min(walking) < max(walking) - 0.15
+
+
+def _cyclist_frame(stamp_s: float, speed: float) -> GroundTruthFrame:
+    """One bicycle with its rider 6 m to the left front of the sensor, heading +y at ``speed``."""
+    return GroundTruthFrame(
+        seq=0, stamp_ns=BASE_STAMP_NS + int(round(stamp_s * 1e9)), ego_x=0.0, ego_y=0.0, ego_yaw=0.0,
+        instance_ids=np.array([7]), labels=np.array([int(Label.BICYCLE)]), centers=np.array([[6.0, 0.5, 0.85]]),
+        sizes=np.array([[1.7, 0.6, 1.7]]), yaws=np.array([np.pi / 2]), velocities=np.array([[0.0, speed]]),
+        moving=np.array([speed > 0]), attributes=("cycle.with_rider",), visibility=np.ones(1),
+        num_points=np.zeros(1, np.int64))
+
+
+def test_pedaller_stays_inside_the_box_and_its_feet_go_round_half_a_turn_apart() -> None:
+    from jitterguard.sim.shapes import PEDAL
+
+    for key, coef in PEDAL.items():
+        assert coef.shape == (len(TEMPLATES[key]), 3)
+    shins = []
+    for size in ([1.7, 0.6, 1.7], [1.5, 0.5, 1.4], [2.0, 0.8, 1.9]):  # a usual bicycle, a small one, a large one
+        for angle in np.linspace(0.0, 2 * np.pi, 13):
+            prims, _ = object_primitives(np.array([[3.0, -2.0, 0.9]]), np.array([size]), np.array([0.7]),
+                                         np.array([int(Label.BICYCLE)]), ("cycle.with_rider",), np.array([1]),
+                                         crank=np.array([angle]))
+            assert len(prims) == len(TEMPLATES["pedaller"])
+            c, s = np.cos(0.7), np.sin(0.7)
+            rel = prims.center - [3.0, -2.0]
+            lx, ly = rel[:, 0] * c + rel[:, 1] * s, -rel[:, 0] * s + rel[:, 1] * c
+            reach = prims.half[:, 0]
+            assert np.all(np.abs(lx) + reach <= size[0] / 2 + 1e-9)
+            across = np.where(prims.kind == 0, prims.half[:, 1], prims.half[:, 0])
+            assert np.all(np.abs(ly) + across <= size[1] / 2 + 1e-9)
+            assert np.all(prims.z[:, 0] >= -1e-9) and np.all(prims.z[:, 1] <= size[2] + 1e-9)
+            if size[0] == 1.7:
+                shins.append((lx[4:6].copy(), prims.z[4:6, 0].copy()))
+    x = np.array([a for a, _ in shins])
+    z = np.array([b for _, b in shins])
+    np.testing.assert_allclose(x.sum(axis=1), 2 * 0.05 * 1.7, atol=1e-9)  # the feet mirror each other
+    np.testing.assert_allclose(z.sum(axis=1), 2 * 0.08 * 1.7, atol=1e-9)
+    assert np.ptp(x[:, 0]) == pytest.approx(2 * 0.10 * 1.7) and np.ptp(z[:, 0]) == pytest.approx(2 * 0.07 * 1.7)
+
+
+def test_pedal_is_opt_in_and_a_riding_cyclist_pedals_while_a_stopped_one_does_not() -> None:
+    """Without ``pedal`` a cyclist is cast as before, the same at every moment; with it the returns of a riding
+    cyclist change from scan to scan as the legs go round, and a stopped one keeps its pose."""
+    from jitterguard.sim.effects import ScanEffects, draw_effects, parse_components
+
+    assert "pedal" not in parse_components("random") and "pedal" in parse_components("random,pedal")
+    plain = draw_effects(np.random.default_rng(4), parse_components("random,limbs"))
+    pedal = draw_effects(np.random.default_rng(4), parse_components("random,limbs,pedal"))
+    assert pedal == ScanEffects(**{**plain.__dict__, "pedal": True}) and not plain.pedal
+
+    def returns(stamp_s: float, speed: float, on: bool) -> np.ndarray:
+        res, _ = cast_frame(_cyclist_frame(stamp_s, speed), seed=0, effects=ScanEffects(pedal=on))
+        return res.points[res.owner == 0]
+
+    stamps = (0.0, 0.2, 0.4)
+    for speed, on in ((4.0, False), (0.0, False), (0.0, True)):
+        first = returns(stamps[0], speed, on)
+        for t in stamps[1:]:
+            np.testing.assert_array_equal(returns(t, speed, on), first)
+    riding = [returns(t, 4.0, True) for t in stamps]
+    assert all(len(a) != len(b) or not np.array_equal(a, b) for a, b in zip(riding, riding[1:]))
+    # a pedestrian in the same place is cast the same with and without pedal
+    walker = [cast_frame(_walker_frame(0.3, 1.4), seed=0, effects=ScanEffects(limbs=True, pedal=on))[0].points
+              for on in (False, True)]
+    np.testing.assert_array_equal(walker[0], walker[1])
