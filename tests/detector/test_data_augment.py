@@ -157,6 +157,11 @@ def test_gt_sampling_pastes_without_overlap(samples: list[Sample]) -> None:
     own = build_gt_database([s])
     same = gt_sample(s, own, np.random.default_rng(0), counts=(50,) * 5)
     assert len(same.boxes) == len(s.boxes)
+    # a class counted 0 is never pasted, whatever the draw; the others still are
+    for seed in range(5):
+        no_ped = gt_sample(s, db, np.random.default_rng(seed), counts=(4, 2, 2, 4, 0))
+        pasted = no_ped.labels[len(s.labels):]
+        assert len(pasted) > 0 and not (pasted == 4).any()
 
 
 def test_train_augment_rotates_within_its_range_and_tilts_points_with_boxes(samples: list[Sample]) -> None:

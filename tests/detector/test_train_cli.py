@@ -34,6 +34,9 @@ def test_parse_seeds_ranges_and_lists() -> None:
     (["eval-detector", "--out", "OUT", "--effects", "fog"], "--effects"),
     (["eval-detector", "--out", "OUT", "--effects", "none+random"], "--effects"),
     (["eval-detector", "--out", "OUT", "--sweeps", "3"], "--sweeps"),
+    (["train", "--out", "OUT", "--gt-sample", "--gt-sample-count", "moped=2"], "--gt-sample-count"),
+    (["train", "--out", "OUT", "--gt-sample", "--gt-sample-count", "car=-1"], "--gt-sample-count"),
+    (["train", "--out", "OUT", "--gt-sample-count", "bicycle=0"], "--gt-sample-count"),
     (["recalibrate-detector", "--out", "OUT", "--weights", "/nonexistent.pt"], "--weights"),
     (["recalibrate-detector", "--out", "OUT", "--weights", "SHIPPED", "--effects", "fog"], "--effects"),
     (["recalibrate-detector", "--out", "OUT", "--weights", "SHIPPED", "--seeds", "5-1"], "--seeds"),
@@ -94,18 +97,21 @@ def test_joined_samples_index_through_their_parts() -> None:
 @pytest.mark.slow
 def test_mixed_effect_sets_train_on_both_and_say_so(tmp_path: Path) -> None:
     """``--effects none+random`` casts the training seeds once per set and trains on both; validation is the first
-    set's; the weights name the recipe (and, with ``--gt-sample``, the database the run pasted from)."""
+    set's; the weights name the recipe (and, with ``--gt-sample``, the database the run pasted from and how many
+    objects of each class a scan got)."""
     out = tmp_path / "run"
     res = _jg("train", "--out", str(out), "--scenarios", "parking-street", "--train-seeds", "0",
               "--val-seeds", "1", "--frames-per-scenario", "1", "--epochs", "1", "--batch-size", "2",
-              "--effects", "none+random", "--threads", "1", "--no-progress", "--gt-sample")
+              "--effects", "none+random", "--threads", "1", "--no-progress", "--gt-sample",
+              "--gt-sample-count", "bicycle=0", "--gt-sample-count", "car=3")
     assert res.returncode == 0, res.stderr[-2000:]
     caches = [json.loads((p / "index.json").read_text()) for p in out.glob("cache-*")]
     recipes = sorted(c.get("meta", {}).get("recipe", {}).get("effects", "none") for c in caches)
     assert len(caches) == 3 and recipes.count("none") == 2 and len(recipes) == 3  # train ×2 sets, val ×1 (none)
     _, _, meta = load_weights(out / "weights.pt")
     assert meta["source"]["effects"].startswith("none+") and "glass" in meta["source"]["effects"]
-    assert meta["gt_sample"]["objects"] > 0 and meta["gt_sample"]["per_scan"] == [2, 3, 4, 6, 2]  # --gt-sample
+    assert meta["gt_sample"]["objects"] > 0 and meta["gt_sample"]["per_scan"] == [3, 3, 4, 0, 2]  # CenterPoint's
+    # (2, 3, 4, 6, 2) with the two --gt-sample-count items over it
     res = _jg("train", "--out", str(tmp_path / "bad"), "--effects", "none+moon")
     assert res.returncode == 2 and "--effects" in res.stderr
 

@@ -20,7 +20,8 @@ from typing import Annotated, Any
 import typer
 
 from ...cli_common import ProgressOpt, fail, progress_on
-from .config import PRESETS
+from .augment import CENTERPOINT_SAMPLE_COUNTS
+from .config import CLASS_NAMES, PRESETS
 
 log = logging.getLogger(__name__)
 
@@ -47,6 +48,23 @@ def parse_seeds(text: str, flag: str) -> list[int]:
     if not seeds or min(seeds) < 0:
         fail(f"{flag}: expected seeds like 0-49 or 1,2,3 (non-negative), got {text!r}")
     return sorted(seeds)
+
+
+def _class_values(items: list[str] | None, option: str, defaults: Any, convert: Any, ok: Any, what: str,
+                  condition: str) -> list:
+    """``CLASS=VALUE`` items (a repeatable option) over per-class ``defaults``; a malformed item, an unknown class
+    or a value ``ok`` refuses is a one-line error naming ``option``."""
+    out = list(defaults)
+    for item in items or []:
+        name, sep, val = item.partition("=")
+        try:
+            value = convert(val)
+        except ValueError:
+            value = None
+        if not sep or name not in CLASS_NAMES or value is None or not ok(value):
+            fail(f"{option}: expected CLASS={what} with CLASS one of {', '.join(CLASS_NAMES)}{condition}, got {item!r}")
+        out[CLASS_NAMES.index(name)] = value
+    return out
 
 
 def _scenarios(text: str) -> list[str]:
@@ -240,6 +258,10 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         gt_sample: Annotated[bool, typer.Option("--gt-sample/--no-gt-sample", help="CenterPoint's ground-truth"
                                                 " sampling: paste objects (≥ 5 returns) cut from other training"
                                                 " scans where those scans had them.")] = False,
+        gt_sample_count: Annotated[list[str] | None, typer.Option("--gt-sample-count", help="CLASS=N objects of a"
+                                                                  " class pasted per scan with --gt-sample"
+                                                                  " (repeatable; default CenterPoint's car=2,"
+                                                                  " truck=3, bus=4, bicycle=6, pedestrian=2).")] = None,
         nuscenes: Annotated[str | None, typer.Option("--nuscenes", help="Train on this nuScenes dataroot instead of"
                                                       " synthetic scans (with --init: fine-tune).")] = None,
         nuscenes_version: Annotated[str | None, typer.Option("--nuscenes-version", help="Table folder, e.g."
@@ -301,6 +323,10 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         tr_seeds, va_seeds = parse_seeds(train_seeds, "--train-seeds"), parse_seeds(val_seeds, "--val-seeds")
         if set(tr_seeds) & set(va_seeds) and nuscenes is None:
             fail("--val-seeds: must not overlap --train-seeds")
+        if gt_sample_count and not gt_sample:
+            fail("--gt-sample-count: only with --gt-sample")
+        gt_counts = _class_values(gt_sample_count, "--gt-sample-count", CENTERPOINT_SAMPLE_COUNTS, int,
+                                  lambda v: 0 <= v <= 100, "N", " and 0 ≤ N ≤ 100")
         logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
         from .cli import passive_openmp, retain_heap
 
@@ -397,7 +423,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
 
             gt_db = build_gt_database(train_v[i] for i in range(len(train_v)))
             log.info("ground-truth sampling from %d objects", len(gt_db))
-        augment = TrainAugment(rotation, tilt_aug, gt_db)
+        augment = TrainAugment(rotation, tilt_aug, gt_db, tuple(gt_counts))
         if gt_db is not None:
             meta["gt_sample"] = {"objects": len(gt_db), "per_scan": list(augment.gt_counts)}
         meta["augment"] = {"rotation_deg": rotation, "tilt_deg": tilt_aug}
@@ -463,7 +489,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         """Adapt weights to unlabelled real scans: normalisation statistics, self-training, recalibration."""
         progress = progress_on(progress)
         from .adapt import DEFAULT_PSEUDO_THRESHOLDS
-        from .config import CLASS_NAMES, SELF_CROP_M
+        from .config import SELF_CROP_M
 
         if not os.path.isfile(weights):
             fail(f"--weights: file not found: {weights}")
@@ -471,17 +497,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         if recalibration not in RECALIBRATION_MODES:
             fail(f"--recalibration: expected one of {', '.join(RECALIBRATION_MODES)}, got {recalibration!r}")
         parse_seeds(recalibration_seeds, "--recalibration-seeds")
-        thr = list(DEFAULT_PSEUDO_THRESHOLDS)
-        for item in threshold or []:
-            name, sep, val = item.partition("=")
-            try:
-                score = float(val)
-            except ValueError:
-                score = -1.0
-            if not sep or name not in CLASS_NAMES or not 0.0 < score < 1.0:
-                fail(f"--threshold: expected CLASS=SCORE with CLASS one of {', '.join(CLASS_NAMES)} and 0 < SCORE < 1,"
-                     f" got {item!r}")
-            thr[CLASS_NAMES.index(name)] = score
+        thr = _class_values(threshold, "--threshold", DEFAULT_PSEUDO_THRESHOLDS, float, lambda v: 0.0 < v < 1.0,
+                            "SCORE", " and 0 < SCORE < 1")
         scen = _scenarios(scenarios)
         syn_seeds = parse_seeds(synthetic_seeds, "--synthetic-seeds")
         logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
