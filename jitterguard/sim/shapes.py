@@ -106,18 +106,6 @@ TEMPLATES: dict[str, F64] = {
         (_C, -0.05, 0.00, 0.52, 0.86, 0.32, 0.32, 0.5),   # torso
         (_C, 0.00, 0.00, 0.86, 1.00, 0.19, 0.19, 0.6),    # head
     ]),
-    "pedaller": np.array([
-        (_B, 0.30, 0.00, 0.00, 0.40, 0.18, 0.06, 0.3),    # wheels, frame and handlebar as "bicycle_rider"
-        (_B, -0.30, 0.00, 0.00, 0.40, 0.18, 0.06, 0.3),
-        (_B, 0.00, 0.00, 0.26, 0.50, 0.25, 0.08, 0.5),
-        (_B, 0.22, 0.00, 0.52, 0.60, 0.04, 0.45, 0.5),
-        (_C, 0.05, 0.15, 0.08, 0.32, 0.11, 0.11, 0.4),    # shins (legs in two parts: the cranks move them)
-        (_C, 0.05, -0.15, 0.08, 0.32, 0.11, 0.11, 0.4),
-        (_C, 0.00, 0.15, 0.32, 0.52, 0.13, 0.13, 0.4),    # thighs
-        (_C, 0.00, -0.15, 0.32, 0.52, 0.13, 0.13, 0.4),
-        (_C, -0.05, 0.00, 0.52, 0.86, 0.32, 0.32, 0.5),   # torso
-        (_C, 0.00, 0.00, 0.86, 1.00, 0.19, 0.19, 0.6),    # head
-    ]),
     "bicycle": np.array([
         (_B, 0.30, 0.00, 0.00, 0.62, 0.18, 0.08, 0.3),
         (_B, -0.30, 0.00, 0.00, 0.62, 0.18, 0.08, 0.3),
@@ -148,6 +136,18 @@ TEMPLATES: dict[str, F64] = {
     ]),
     "box": np.array([(_B, 0.0, 0.0, 0.0, 1.0, 0.5, 0.5, 1.0)]),
 }
+
+
+TEMPLATES["pedaller"] = np.concatenate([
+    TEMPLATES["bicycle_rider"][:4],                       # wheels, frame and handlebar as "bicycle_rider"
+    np.array([
+        (_C, 0.05, 0.15, 0.08, 0.32, 0.11, 0.11, 0.4),    # shins (legs in two parts: the cranks move them)
+        (_C, 0.05, -0.15, 0.08, 0.32, 0.11, 0.11, 0.4),
+        (_C, 0.00, 0.15, 0.32, 0.52, 0.13, 0.13, 0.4),    # thighs
+        (_C, 0.00, -0.15, 0.32, 0.52, 0.13, 0.13, 0.4),
+    ]),
+    TEMPLATES["bicycle_rider"][6:],                       # torso and head as "bicycle_rider"
+])
 
 
 GAIT: dict[str, F64] = {"walker": np.array([0.30, -0.30, 0.15, -0.15, 0.0, -0.20, 0.20, 0.0])}
@@ -184,11 +184,16 @@ def instance_fraction(instance_ids: NDArray[np.int64]) -> F64:
     return (np.asarray(instance_ids, np.int64) * 2654435761 % 1000) / 1000.0
 
 
+def _ground_speed(velocities: F64) -> F64:
+    """|v| of each (vx, vy) row (empty for no objects)."""
+    return np.hypot(velocities[:, 0], velocities[:, 1]) if len(velocities) else np.zeros(0)
+
+
 def gait_stride(stamp_s: float, velocities: F64, instance_ids: NDArray[np.int64]) -> F64:
     """The signed stride of each object at ``stamp_s``, in [−1, 1]: 0 for one standing still, a full swing for one
     walking at :data:`GAIT_FULL_STRIDE_MPS` or faster. Each instance has its own phase (a hash of its id), so a
     crowd does not march in step, and the phase advances with time, so consecutive scans catch other poses."""
-    speed = np.hypot(velocities[:, 0], velocities[:, 1]) if len(velocities) else np.zeros(0)
+    speed = _ground_speed(velocities)
     phase = instance_fraction(instance_ids)
     return np.clip(speed / GAIT_FULL_STRIDE_MPS, 0.0, 1.0) * np.sin(2 * np.pi * (GAIT_CYCLE_HZ * stamp_s + phase))
 
@@ -197,7 +202,7 @@ def crank_angle(stamp_s: float, velocities: F64, instance_ids: NDArray[np.int64]
     """The crank angle [rad] of each object at ``stamp_s``: turning at :data:`PEDAL_HZ` while it rides at
     :data:`PEDAL_MIN_MPS` or faster, still otherwise; each instance starts at its own angle (the hash of
     :func:`instance_fraction`), so a group of riders does not pedal in step."""
-    speed = np.hypot(velocities[:, 0], velocities[:, 1]) if len(velocities) else np.zeros(0)
+    speed = _ground_speed(velocities)
     turns = instance_fraction(instance_ids) + np.where(speed >= PEDAL_MIN_MPS, PEDAL_HZ * stamp_s, 0.0)
     return 2 * np.pi * turns
 
