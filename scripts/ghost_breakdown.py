@@ -46,7 +46,7 @@ def _seeds(text: str) -> list[int]:
     return list(range(int(lo), int(hi or lo) + 1))
 
 
-def _pairs(args: argparse.Namespace, seed: int) -> list[tuple[Any, bytes]]:
+def detection_pairs(args: argparse.Namespace, seed: int) -> list[tuple[Any, bytes]]:
     """(ground truth, DetectedObjects payload) of every frame of one run, from the cache if it holds them."""
     tag = "nuscenes" if args.nuscenes else f"{args.scenario}-{seed}"
     path = Path(args.cache) / f"{tag}-{args.input}.pkl" if args.cache else None
@@ -122,7 +122,7 @@ def main() -> None:
     seeds = [0] if args.nuscenes else _seeds(args.seeds)
     parts, frames, born, confirmed = [], 0, 0, 0
     for s in seeds:
-        pairs = _pairs(args, s)
+        pairs = detection_pairs(args, s)
         parts.append(track_and_classify(iter(pairs), clf, cfg, calibration=drive))
         f, b, c = _births(pairs, cfg)
         frames, born, confirmed = frames + f, born + b, confirmed + c

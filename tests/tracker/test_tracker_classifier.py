@@ -226,3 +226,75 @@ def _nearest_id(msg: TrackedObjects, xy) -> str:
 
 def _parked_xy(frame) -> tuple[float, float]:
     return tuple(frame.gt_xy[list(frame.gt_ids).index(0)])
+
+
+def test_with_observe_tentative_windows_start_at_birth_and_only_published_tracks_get_motion() -> None:
+    """The tracker with ``observe_tentative`` over real Zenoh: tentative tracks' observations go out on
+    ``tracks/{id}`` (never in ``tracked``'s objects), the classifier decides a track's first published frame with
+    every detection since birth, and publishes motion states only for tracks in ``objects``."""
+    from jitterguard.schemas.models import TrackObservation
+    from jitterguard.services.tracker.config import default_config
+
+    port = free_tcp_port()
+    cfg = default_config().model_copy(update={"observe_tentative": True})
+    tracker = TrackerService(loopback_options(NS, port, listen_self=True), cfg)
+    classifier = ClassifierService(loopback_options(NS, port), ClassifierConfig(window_size=WINDOW),
+                                   straggler_timeout_s=0.5)
+    client = zenoh.open(build_config(loopback_options(NS, port)))
+    got: dict[str, list] = {"motion": [], "objects": [], "tracked": [], "tracks": []}
+    lock = threading.Lock()
+
+    def keep(kind, model):
+        def cb(s: zenoh.Sample) -> None:
+            with lock:
+                got[kind].append(decode(model, s.payload.to_bytes()))
+        return cb
+
+    client.declare_subscriber(keys.motion_all(NS), keep("motion", MotionState))
+    client.declare_subscriber(keys.objects(NS), keep("objects", TrackedObjects))
+    client.declare_subscriber(keys.tracked(NS), keep("tracked", TrackedObjects))
+    client.declare_subscriber(keys.tracks_all(NS), keep("tracks", TrackObservation))
+    try:
+        stamp0 = 1_700_000_000_000_000_000
+        k = 0
+
+        def answered() -> bool:
+            nonlocal k
+            client.put(keys.detections(NS), encode(DetectedObjects(header=Header(stamp=stamp0 + k, seq=k))),
+                       congestion_control=zenoh.CongestionControl.BLOCK)
+            k += 1
+            return wait_for(lambda: len(got["objects"]) > 0, 0.3)
+
+        assert wait_for(answered, 20.0), "pipeline never answered"
+        seq = make_sequence(3, n_frames=12, objects=[Obj(gid=0, label=CAR, x0=15.0, y0=6.0, yaw0=0.3)],
+                            ego_speed=0.0, ego_yaw_rate=0.0, miss_rate=0.0, fp_rate=0.0, flip_rate=0.0,
+                            class_flicker=0.0, noise_base=0.08)
+        base = k + 10
+        for n, sf in enumerate(seq.frames):
+            msg = to_message(sf).model_copy(
+                update={"header": Header(stamp=stamp0 + 10**9 + n * 100_000_000, frame_id="lidar", seq=base + n)})
+            client.put(keys.detections(NS), encode(msg), congestion_control=zenoh.CongestionControl.BLOCK)
+            wait_for(lambda: any(o.header.seq == base + n for o in got["objects"]), 5.0)
+        last = base + len(seq.frames) - 1
+        assert wait_for(lambda: any(m.header.seq == last for m in got["motion"]), 20.0)
+        with lock:
+            tracked = {t.header.seq: t for t in got["tracked"] if t.header.seq >= base}
+            tracks = [t for t in got["tracks"] if t.header.seq >= base]
+            motion = [m for m in got["motion"] if m.header.seq >= base]
+        published = {o.object_id for t in tracked.values() for o in t.objects}
+        (tid,) = published
+        # the first two frames: observed (tracks/{id}, observed_track_ids) but tentative: no object, no motion
+        for n in range(cfg.confirm_hits - 1):
+            t = tracked[base + n]
+            assert t.objects == [] and t.observed_track_ids == [tid]
+            assert any(o.header.seq == base + n and o.track.object_id == tid and o.track.hits == n + 1
+                       for o in tracks)
+        assert all(m.track_id == tid for m in motion)
+        first = min(motion, key=lambda m: m.header.seq)
+        assert first.header.seq == base + cfg.confirm_hits - 1
+        assert first.window_length == cfg.confirm_hits  # every detection since birth
+        assert tracker.counters.get("rejected") == 0 and classifier.counters.get("rejected") == 0
+    finally:
+        client.close()
+        classifier.close()
+        tracker.close()

@@ -3,7 +3,8 @@ jitterguard (the Foxglove server and MCAP recorder, the ROS 2 bag recorder).
 
 A frame is the set of messages that share a ``header.seq``: the replay's ``points`` (or ``detections`` at detection
 level) and optional ``groundtruth``, the detector's ``detections``, the tracker's ``tracked`` (whose
-``observed_track_ids`` say which ``motion/{id}`` messages the frame will have), the classifier's ``objects`` and
+``observed_track_ids`` that are also among the classifier's ``objects`` say which ``motion/{id}`` messages the frame
+will have: tentative tracks may be observed but get none), the classifier's ``objects`` and
 its ``motion/{id}``. Nothing orders messages across keys (DESIGN.md), and the classifier publishes ``objects`` before
 the frame's ``motion/{id}``, so:
 
@@ -36,6 +37,16 @@ from ...schemas.models import (
 )
 
 T = TypeVar("T")
+
+
+def motion_expected(tracked: TrackedObjects, objects: TrackedObjects) -> list[str]:
+    """The IDs that get a ``motion/{id}`` in a frame: observed (``tracked``) and published (the classifier's
+    ``objects``); a tracker with ``observe_tentative`` lists its tentative tracks as observed too (the
+    classifier's windows start with them), but they have no motion state."""
+    published = {o.object_id for o in objects.objects}
+    return [t for t in tracked.observed_track_ids if t in published]
+
+
 DEFAULT_MOTION_WAIT_S = 0.25
 DEFAULT_MAX_PENDING = 32
 
@@ -178,12 +189,12 @@ class FrameJoiner:
 
     # ---------------------------------------------------------------------------------------- output
 
-    def _complete(self, seq: int) -> bool:
+    def _complete(self, seq: int, objects: TrackedObjects) -> bool:
         tracked = self._tracked.items.get(seq)
         if tracked is None:
             return False
         got = self._motion.items.get(seq, {})
-        return all(t in got for t in tracked.observed_track_ids)
+        return all(t in got for t in motion_expected(tracked, objects))
 
     def poll(self, now: float) -> list[JoinedFrame]:
         """Frames ready to go out, in seq order: complete, timed out, or overtaken by a later ``objects``."""
@@ -191,7 +202,7 @@ class FrameJoiner:
         for seq in sorted(self._open):
             objects, t_open = self._open[seq]
             later = any(s > seq for s in self._open)
-            if not (later or self._complete(seq) or now - t_open >= self.motion_wait_s):
+            if not (later or self._complete(seq, objects) or now - t_open >= self.motion_wait_s):
                 break  # frames go out in order: a waiting frame holds the later ones back
             del self._open[seq]
             out.append(self._take(seq, objects))
@@ -205,7 +216,7 @@ class FrameJoiner:
         tracked = self._tracked.pop(seq)
         motion = self._motion.pop(seq) or {}
         if tracked is not None:
-            self._count("motion_missing", sum(1 for t in tracked.observed_track_ids if t not in motion))
+            self._count("motion_missing", sum(1 for t in motion_expected(tracked, objects) if t not in motion))
         ids = [o.object_id for o in objects.objects]
         last = {t: self._latest[t] for t in ids if t not in motion and t in self._latest}
         self._latest = {t: m for t in ids if (m := motion.get(t) or self._latest.get(t)) is not None}

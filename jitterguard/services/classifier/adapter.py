@@ -51,16 +51,19 @@ def observation_rows(cols: ObservationColumns) -> list[tuple[int, str, Observati
 
 
 def observations_from_rows(rows: Sequence[ObservationRow], seq: int, stamp_ns: int,
-                           sensor_xy: tuple[float, float] = (0.0, 0.0)) -> Observations:
+                           sensor_xy: tuple[float, float] = (0.0, 0.0),
+                           published: np.ndarray | None = None) -> Observations:
     """One frame's observation rows as the core's arrays (``sensor_xy``: the frame's ``ego_pose`` position, the
-    origin of the line of sight along and across which the variances are calibrated)."""
+    origin of the line of sight along and across which the variances are calibrated; ``published``: the IDs
+    (S32) of the frame's ``tracked`` objects — the other observed tracks are tentative)."""
     sx, sy = sensor_xy
     if not rows:
         return Observations.from_lists([], [], [], [], [], [], [], [], stamp_ns=stamp_ns, seq=seq, sensor_x=sx,
                                        sensor_y=sy)
     ids, labels, x, y, cxx, cxy, cyy, speed = zip(*rows)
+    pub = None if published is None else np.isin(np.asarray(ids, dtype="S32"), published)
     return Observations.from_lists(list(ids), labels, x, y, cxx, cxy, cyy, speed, stamp_ns=stamp_ns, seq=seq,
-                                   sensor_x=sx, sensor_y=sy)
+                                   sensor_x=sx, sensor_y=sy, published=pub)
 
 
 def decided_objects(objects: np.ndarray, dec: Decisions) -> np.ndarray:
@@ -103,8 +106,9 @@ class FrameOutput:
     payload: bytes  # ``objects``, ready to put
     reported: np.ndarray  # the IDs of ``objects`` (S32)
     decisions: Decisions  # one per object in ``objects``
-    observed: Observations  # this frame's observations (the tracks that get a ``motion/{id}``)
+    observed: Observations  # this frame's observations of published tracks (the tracks that get a ``motion/{id}``)
     decided: Decisions | None  # the core's decisions for ``observed``; None when nothing was observed
+    windows: np.ndarray  # the IDs (S32) whose windows live on: published or observed (tentative ones too)
     config: ClassifierConfig  # in force for this frame
     received_at: float
     missing: int
@@ -165,22 +169,27 @@ class ClassifierAdapter:
         tracked = frame.tracked
         h = tracked.header
         pos = tracked.ego_pose.position
-        obs = observations_from_rows(frame.observations, h.seq, h.stamp, (float(pos.x), float(pos.y)))
-        decided = self.core.update(obs) if len(obs) else None
         reported = np.asarray(tracked.objects[wire.ID], dtype="S32")
+        every = observations_from_rows(frame.observations, h.seq, h.stamp, (float(pos.x), float(pos.y)), reported)
+        decided = self.core.update(every) if len(every) else None
+        obs = every
+        if decided is not None and every.published is not None and not every.published.all():
+            # a tentative track's window fills, but it has no decision to publish until ``tracked`` lists it
+            obs, decided = every.subset(every.published), decided.subset(every.published)
+            decided = decided if len(obs) else None
         dec = self.core.last_decisions(reported)
         objects = decided_objects(tracked.objects, dec)
         payload = write_tracked_objects(TrackedColumns(h, tracked.ego_pose, objects, []))
         return FrameOutput(seq=h.seq, header=h, objects=objects, payload=payload, reported=reported, decisions=dec,
-                           observed=obs, decided=decided, config=self.core.config, received_at=frame.received_at,
-                           missing=frame.missing)
+                           observed=obs, decided=decided, windows=np.union1d(reported, every.track_ids),
+                           config=self.core.config, received_at=frame.received_at, missing=frame.missing)
 
     def settle(self, out: FrameOutput) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
         """The work that can wait until ``objects`` is out (call before the next frame): learn the online
-        calibration from the windows that filled and evict the windows of tracks ``out`` no longer reports;
-        returns how many, and each reported object's label, last update stamp and seq (for the state
-        queryable)."""
-        evicted = self.core.retain(out.reported)  # learns first
+        calibration from the windows that filled and evict the windows of tracks ``out`` neither reports nor
+        observed (a tentative track keeps its window while the tracker observes it); returns how many, and each
+        reported object's label, last update stamp and seq (for the state queryable)."""
+        evicted = self.core.retain(out.windows)  # learns first
         return (evicted, *self.core.last_meta(out.reported))
 
     def motion_payloads(self, out: FrameOutput) -> Iterator[tuple[str, bytes]]:

@@ -34,7 +34,9 @@ class Observations:
     ``cxx, cxy, cyy`` are the detection's 2x2 position covariance already rotated into the world frame;
     ``speed`` is the tracker's speed estimate (used by the velocity-threshold baseline only);
     ``sensor_x, sensor_y`` the sensor's world position at ``stamp_ns`` (the frame's ``ego_pose``: the origin
-    of the line of sight along which the calibration splits its scales).
+    of the line of sight along which the calibration splits its scales); ``published``: whether each track is
+    in the frame's ``tracked`` objects (None: all are) — a tentative track's window fills like any other, but only
+    tracks that were ever published teach the calibration (a clutter return the tracker never confirms must not).
     """
 
     track_ids: IDS
@@ -49,10 +51,12 @@ class Observations:
     seq: int = 0
     sensor_x: float = 0.0
     sensor_y: float = 0.0
+    published: NDArray[np.bool_] | None = None
 
     @staticmethod
     def from_lists(track_ids: list[str], labels, x, y, cxx, cxy, cyy, speed=None, stamp_ns: int = 0, seq: int = 0,
-                   sensor_x: float = 0.0, sensor_y: float = 0.0) -> "Observations":
+                   sensor_x: float = 0.0, sensor_y: float = 0.0,
+                   published: NDArray[np.bool_] | None = None) -> "Observations":
         n = len(track_ids)
         f = lambda v: np.asarray(v, dtype=np.float64).reshape(n)  # noqa: E731
         return Observations(
@@ -61,7 +65,15 @@ class Observations:
             x=f(x), y=f(y), cxx=f(cxx), cxy=f(cxy), cyy=f(cyy),
             speed=f(np.zeros(n) if speed is None else speed),
             stamp_ns=stamp_ns, seq=seq, sensor_x=float(sensor_x), sensor_y=float(sensor_y),
+            published=None if published is None else np.asarray(published, dtype=bool).reshape(n),
         )
+
+    def subset(self, mask: NDArray[np.bool_]) -> "Observations":
+        """The rows where ``mask`` holds."""
+        pick = lambda a: None if a is None else a[mask]  # noqa: E731
+        return replace(self, track_ids=self.track_ids[mask], labels=self.labels[mask], x=self.x[mask],
+                       y=self.y[mask], cxx=self.cxx[mask], cxy=self.cxy[mask], cyy=self.cyy[mask],
+                       speed=self.speed[mask], published=pick(self.published))
 
     def __len__(self) -> int:
         return int(self.track_ids.shape[0])
@@ -86,6 +98,10 @@ class Decisions:
     def state_names(self) -> list[str]:
         return [STATE_NAMES[s] for s in self.state.tolist()]
 
+    def subset(self, mask: NDArray[np.bool_]) -> "Decisions":
+        """The rows where ``mask`` holds."""
+        return Decisions(**{k: v[mask] for k, v in self.__dict__.items()})
+
 
 @dataclass
 class _Table:
@@ -99,6 +115,7 @@ class _Table:
     label: NDArray[np.int64] = field(init=False)
     since: NDArray[np.int64] = field(init=False)  # observations not yet given to the calibration
     seen: NDArray[np.int64] = field(init=False)  # observations of the track so far
+    published: NDArray[np.bool_] = field(init=False)  # the track has been in ``tracked`` (it may teach the calibration)
     fast_since: F64 = field(init=False)  # baseline: stamp [s] since which the speed is above threshold (NaN: not)
     last: dict[str, np.ndarray] = field(init=False)
 
@@ -115,6 +132,7 @@ class _Table:
         self.label = np.zeros(self.capacity, dtype=np.int64)
         self.since = np.zeros(self.capacity, dtype=np.int64)
         self.seen = np.zeros(self.capacity, dtype=np.int64)
+        self.published = np.zeros(self.capacity, dtype=bool)
         self.fast_since = np.full(self.capacity, np.nan)
         self.last = {k: np.zeros(self.capacity, dtype=t) for k, t in self._LAST.items()}
 
@@ -126,6 +144,7 @@ class _Table:
         self.label = np.concatenate([self.label, np.zeros(extra, dtype=np.int64)])
         self.since = np.concatenate([self.since, np.zeros(extra, dtype=np.int64)])
         self.seen = np.concatenate([self.seen, np.zeros(extra, dtype=np.int64)])
+        self.published = np.concatenate([self.published, np.zeros(extra, dtype=bool)])
         self.fast_since = np.concatenate([self.fast_since, np.full(extra, np.nan)])
         self.last = {k: np.concatenate([v, np.zeros(extra, dtype=v.dtype)]) for k, v in self.last.items()}
         self.capacity = capacity
@@ -135,6 +154,7 @@ class _Table:
         self.count[rows] = 0
         self.since[rows] = 0
         self.seen[rows] = 0
+        self.published[rows] = False
         self.fast_since[rows] = np.nan
         for v in self.last.values():
             v[rows] = 0
@@ -275,7 +295,8 @@ class MotionClassifierCore:
         """Give the newest ``lengths[i]`` observations of ``rows[i]`` to the online calibration as one block
         each (only rows with at least MIN_BLOCK observations spread in time); marks them used."""
         t = self._table
-        ok = lengths >= MIN_BLOCK
+        t.since[rows] = 0
+        ok = (lengths >= MIN_BLOCK) & t.published[rows]
         rows, lengths = rows[ok], lengths[ok]
         for n in np.unique(lengths).tolist():
             sel = rows[lengths == n]
@@ -289,7 +310,6 @@ class MotionClassifierCore:
                                 variance_floor=self._config.variance_floor, skip_fast=True)
             young = blk[:, 0, 8] < t.window  # the block starts among the track's first W observations
             self._online.add(group_of_labels(t.label[sel[spread]]), mom, young)
-        t.since[rows] = 0
 
     # ------------------------------------------------------------------ ID -> row mapping
 
@@ -366,6 +386,7 @@ class MotionClassifierCore:
         t.since[rows] += 1
         t.seen[rows] += 1
         t.label[rows] = np.clip(obs.labels, 0, _NUM_LABELS - 1)
+        t.published[rows] |= True if obs.published is None else obs.published
         if self._config.calibration == "online":
             self._online.advance(stamp_s)
             full = rows[(t.since[rows] >= w) & (t.count[rows] >= w)]

@@ -62,8 +62,9 @@ def detection_frame(cols: DetectedColumns) -> DetectionFrame:
 
 
 def world_detections(cols: DetectedColumns, frame: DetectionFrame, result: FrameResult) -> np.ndarray:
-    """The observed detections (``result.obs_det``) as records moved into the world frame (copies)."""
-    rows = result.obs_det
+    """The observed detections (``result.obs_det``, then ``result.tentative_det``) as records moved into the world
+    frame (copies)."""
+    rows = np.concatenate([result.obs_det, result.tentative_det])
     out = wire.DETECTED.select(cols.objects, rows)
     if not len(out):
         return out
@@ -107,12 +108,15 @@ def tracked_records(result: FrameResult) -> np.ndarray:
 
 
 def track_state_records(result: FrameResult) -> np.ndarray:
-    """The observed tracks' compact ``TrackState`` records (in ``result.obs_track`` order)."""
-    t, i = result.tracks, result.obs_track
-    return wire.TRACK_STATE.pack(len(i), {
-        "object_id": [t.ids[k] for k in i.tolist()], "label": t.label[i], "existence_probability": t.existence[i],
-        "x": t.x[i], "y": t.y[i], "yaw": t.yaw[i], "vx": t.vel[i, 0], "vy": t.vel[i, 1], "hits": t.hits[i],
-        "age_s": np.maximum(0.0, (result.stamp_ns - t.born_ns[i]) * 1e-9),
+    """The observed tracks' compact ``TrackState`` records (``result.observed_ids`` order: the confirmed ones in
+    ``result.obs_track`` order, then the tentative ones)."""
+    c, i, t = result.tracks, result.obs_track, result.tentative
+    cat = lambda name: np.concatenate([getattr(c, name)[i], getattr(t, name)])  # noqa: E731
+    vel = np.concatenate([c.vel[i], t.vel])
+    return wire.TRACK_STATE.pack(len(i) + len(t), {
+        "object_id": result.observed_ids, "label": cat("label"), "existence_probability": cat("existence"),
+        "x": cat("x"), "y": cat("y"), "yaw": cat("yaw"), "vx": vel[:, 0], "vy": vel[:, 1], "hits": cat("hits"),
+        "age_s": np.maximum(0.0, (result.stamp_ns - cat("born_ns")) * 1e-9),
     })
 
 

@@ -124,6 +124,15 @@ class TrackSnapshot:
     def __len__(self) -> int:
         return len(self.ids)
 
+    @staticmethod
+    def empty() -> "TrackSnapshot":
+        z = np.zeros(0)
+        return TrackSnapshot(ids=[], label=np.zeros(0, np.int8), label_prob=z, existence=z, x=z, y=z, z=z, yaw=z,
+                             pose_cov=np.zeros((0, 3, 3)), vel=np.zeros((0, 2)), vel_cov=np.zeros((0, 2, 2)),
+                             yaw_rate=z, yaw_rate_var=z, dims=np.zeros((0, 3)), orientation=np.zeros(0, np.int8),
+                             hits=np.zeros(0, np.int64), last_update_ns=np.zeros(0, np.int64),
+                             born_ns=np.zeros(0, np.int64))
+
 
 @dataclass
 class FrameResult:
@@ -147,7 +156,12 @@ class FrameResult:
     withheld: int = 0
     """Confirmed tracks left out of ``tracks`` because more than ``limits.max_objects`` were confirmed: coasting
     ones, the longest unseen first (downstream readers refuse a longer list; every observed track is kept)."""
+    tentative: TrackSnapshot = field(default_factory=TrackSnapshot.empty)
+    """The tentative tracks observed this frame (``observe_tentative``): on ``tracks/{id}``, never in ``tracked``."""
+    tentative_det: NDArray[np.intp] = field(default_factory=lambda: np.zeros(0, dtype=np.intp))
+    """The detection each of ``tentative`` received."""
 
     @property
     def observed_ids(self) -> list[str]:
-        return [self.tracks.ids[i] for i in self.obs_track]
+        """Every track with a ``tracks/{id}`` this frame: the confirmed ones observed, then the tentative ones."""
+        return [self.tracks.ids[i] for i in self.obs_track] + self.tentative.ids

@@ -10,7 +10,9 @@ Per frame (all steps batched over every track / detection):
 3. predict every track to the frame's stamp (CV or CTRV Kalman filters);
 4. gate and score every (track, detection) pair as Autoware does, then assign optimally;
 5. update the associated tracks, start tentative tracks from the unclaimed detections, confirm, delete;
-6. report the confirmed tracks and which detection each of them received.
+6. report the confirmed tracks and which detection each of them received, and (``observe_tentative``) the
+   tentative tracks observed in the frame with theirs: their detections go out on ``tracks/{id}`` so that the
+   classifier's window of a track starts with its first detection, as the tracker's own velocity does.
 """
 
 from __future__ import annotations
@@ -166,7 +168,7 @@ class TrackerCore:
         if self.scale is not None:
             self.scale.learn(tr, stamp * 1e-9)  # what this frame taught serves the next one
 
-        snapshot, obs_track, obs_det, withheld = self._snapshot(rows, cols)
+        snapshot, obs_track, obs_det, withheld, tentative, tentative_det = self._snapshot(rows, cols)
         return FrameResult(
             seq=frame.seq,
             stamp_ns=stamp,
@@ -180,6 +182,8 @@ class TrackerCore:
             source_restarted=verdict is Verdict.RESTARTED,
             jumped=verdict is Verdict.JUMPED,
             withheld=withheld,
+            tentative=tentative,
+            tentative_det=tentative_det,
         )
 
     def apply_static_hints(self, track_ids: Sequence[str], mean_x: Sequence[float],
@@ -271,10 +275,11 @@ class TrackerCore:
                                   self.id_factory)
 
     def _snapshot(self, rows: NDArray[np.intp], cols: NDArray[np.intp]
-                  ) -> tuple[TrackSnapshot, NDArray[np.intp], NDArray[np.intp], int]:
+                  ) -> tuple[TrackSnapshot, NDArray[np.intp], NDArray[np.intp], int, TrackSnapshot, NDArray[np.intp]]:
         """Copy out the confirmed tracks — at most ``limits.max_objects``, so that no reader downstream refuses
         the frame (the classifier reads ``tracked`` under the same limit): beyond it the coasting tracks unseen
-        the longest are withheld — and map this frame's (track row, detection) pairs onto them."""
+        the longest are withheld — and map this frame's (track row, detection) pairs onto them; with
+        ``observe_tentative`` also the tentative tracks observed this frame and their detections."""
         tr = self.tracks
         conf = np.flatnonzero(tr.confirmed)
         withheld = conf.size - self.config.limits.max_objects
@@ -292,31 +297,37 @@ class TrackerCore:
         order = np.argsort(obs[ok], kind="stable")
         obs_track = obs[ok][order]
         obs_det = cols[ok][order]
+        tent = ~tr.confirmed[rows] if self.config.observe_tentative else np.zeros(rows.size, dtype=bool)
+        t_order = np.argsort(rows[tent], kind="stable")  # birth order, as the confirmed ones
+        return (self._copy_out(conf), obs_track, obs_det, max(withheld, 0),
+                self._copy_out(rows[tent][t_order]), cols[tent][t_order])
 
-        x = tr.x[conf]
-        P = tr.P[conf]
-        vel, vel_cov, w, wvar = kalman.world_velocity(x, P, tr.model[conf])
-        lbl = tr.label[conf]
-        votes = tr.votes[conf]
+    def _copy_out(self, idx: NDArray[np.intp]) -> TrackSnapshot:
+        """The tracks of rows ``idx`` as a :class:`TrackSnapshot` (copies, world frame)."""
+        tr = self.tracks
+        x = tr.x[idx]
+        P = tr.P[idx]
+        vel, vel_cov, w, wvar = kalman.world_velocity(x, P, tr.model[idx])
+        lbl = tr.label[idx]
+        votes = tr.votes[idx]
         total = np.maximum(votes.sum(axis=1), 1e-12)
-        snapshot = TrackSnapshot(
-            ids=[tr.ids[i] for i in conf],
+        return TrackSnapshot(
+            ids=[tr.ids[i] for i in idx],
             label=lbl.copy(),
-            label_prob=np.clip(votes[np.arange(conf.size), lbl.astype(np.intp)] / total, 0.0, 1.0),
-            existence=np.clip(tr.existence[conf], 0.0, 1.0),
+            label_prob=np.clip(votes[np.arange(idx.size), lbl.astype(np.intp)] / total, 0.0, 1.0),
+            existence=np.clip(tr.existence[idx], 0.0, 1.0),
             x=x[:, 0].copy(),
             y=x[:, 1].copy(),
-            z=tr.z[conf].copy(),
+            z=tr.z[idx].copy(),
             yaw=x[:, 2].copy(),
             pose_cov=P[:, :3, :3].copy(),
             vel=vel,
             vel_cov=vel_cov,
             yaw_rate=w,
             yaw_rate_var=wvar,
-            dims=tr.dims[conf].copy(),
-            orientation=tr.orientation[conf].copy(),
-            hits=tr.hits[conf].copy(),
-            last_update_ns=tr.last_update_ns[conf].copy(),
-            born_ns=tr.born_ns[conf].copy(),
+            dims=tr.dims[idx].copy(),
+            orientation=tr.orientation[idx].copy(),
+            hits=tr.hits[idx].copy(),
+            last_update_ns=tr.last_update_ns[idx].copy(),
+            born_ns=tr.born_ns[idx].copy(),
         )
-        return snapshot, obs_track, obs_det, max(withheld, 0)
