@@ -231,8 +231,8 @@ class TrackerConfig(_Strict):
         description="publish the detections of tentative tracks on tracks/{id} too (listed in tracked's"
         " observed_track_ids, never in its objects): the classifier's window of a track then starts with the"
         " track's first detection, as the tracker's own velocity does, instead of at its confirmation. Off by"
-        " default: it catches 2.5-4 points more young moving vehicles and costs 2-5 points more ghost vehicle"
-        " rows called moving (docs/tracker.md, 'Tentative observations')",
+        " default: on validation seeds it catches 0.3-1.4 points more moving vehicles and 0.6-3 more walkers,"
+        " and calls 1.4-3.1 points more ghost vehicle rows moving (docs/tracker.md, 'Tentative observations')",
     )
     tentative_max_gap_s: PosFloat = Field(0.25, description="a tentative track missing longer is deleted")
     max_coast_s: PosFloat = Field(1.0, description="a confirmed track without a detection longer is deleted")
