@@ -52,18 +52,17 @@ def observation_rows(cols: ObservationColumns) -> list[tuple[int, str, Observati
 
 def observations_from_rows(rows: Sequence[ObservationRow], seq: int, stamp_ns: int,
                            sensor_xy: tuple[float, float] = (0.0, 0.0),
-                           published: np.ndarray | None = None) -> Observations:
+                           published_ids: np.ndarray | None = None) -> Observations:
     """One frame's observation rows as the core's arrays (``sensor_xy``: the frame's ``ego_pose`` position, the
-    origin of the line of sight along and across which the variances are calibrated; ``published``: the IDs
-    (S32) of the frame's ``tracked`` objects — the other observed tracks are tentative)."""
+    origin of the line of sight along and across which the variances are calibrated; ``published_ids``: the IDs
+    (S32) of the frame's ``tracked`` objects — other observed tracks are tentative)."""
     sx, sy = sensor_xy
     if not rows:
         return Observations.from_lists([], [], [], [], [], [], [], [], stamp_ns=stamp_ns, seq=seq, sensor_x=sx,
                                        sensor_y=sy)
     ids, labels, x, y, cxx, cxy, cyy, speed = zip(*rows)
-    pub = None if published is None else np.isin(np.asarray(ids, dtype="S32"), published)
     return Observations.from_lists(list(ids), labels, x, y, cxx, cxy, cyy, speed, stamp_ns=stamp_ns, seq=seq,
-                                   sensor_x=sx, sensor_y=sy, published=pub)
+                                   sensor_x=sx, sensor_y=sy, published_ids=published_ids)
 
 
 def decided_objects(objects: np.ndarray, dec: Decisions) -> np.ndarray:
@@ -108,7 +107,7 @@ class FrameOutput:
     decisions: Decisions  # one per object in ``objects``
     observed: Observations  # this frame's observations of published tracks (the tracks that get a ``motion/{id}``)
     decided: Decisions | None  # the core's decisions for ``observed``; None when nothing was observed
-    windows: np.ndarray  # the IDs (S32) whose windows live on: published or observed (tentative ones too)
+    windows: np.ndarray  # the IDs (S32) whose windows live on: published or observed (tentative ones too; repeats)
     config: ClassifierConfig  # in force for this frame
     received_at: float
     missing: int
@@ -172,16 +171,17 @@ class ClassifierAdapter:
         reported = np.asarray(tracked.objects[wire.ID], dtype="S32")
         every = observations_from_rows(frame.observations, h.seq, h.stamp, (float(pos.x), float(pos.y)), reported)
         decided = self.core.update(every) if len(every) else None
-        obs = every
-        if decided is not None and every.published is not None and not every.published.all():
+        obs, windows = every, reported
+        if decided is not None and not decided.published.all():
             # a tentative track's window fills, but it has no decision to publish until ``tracked`` lists it
-            obs, decided = every.subset(every.published), decided.subset(every.published)
+            obs, decided = every.subset(decided.published), decided.subset(decided.published)
             decided = decided if len(obs) else None
+            windows = np.concatenate([reported, every.track_ids])
         dec = self.core.last_decisions(reported)
         objects = decided_objects(tracked.objects, dec)
         payload = write_tracked_objects(TrackedColumns(h, tracked.ego_pose, objects, []))
         return FrameOutput(seq=h.seq, header=h, objects=objects, payload=payload, reported=reported, decisions=dec,
-                           observed=obs, decided=decided, windows=np.union1d(reported, every.track_ids),
+                           observed=obs, decided=decided, windows=windows,
                            config=self.core.config, received_at=frame.received_at, missing=frame.missing)
 
     def settle(self, out: FrameOutput) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:

@@ -34,9 +34,10 @@ class Observations:
     ``cxx, cxy, cyy`` are the detection's 2x2 position covariance already rotated into the world frame;
     ``speed`` is the tracker's speed estimate (used by the velocity-threshold baseline only);
     ``sensor_x, sensor_y`` the sensor's world position at ``stamp_ns`` (the frame's ``ego_pose``: the origin
-    of the line of sight along which the calibration splits its scales); ``published``: whether each track is
-    in the frame's ``tracked`` objects (None: all are) — a tentative track's window fills like any other, but only
-    tracks that were ever published teach the calibration (a clutter return the tracker never confirms must not).
+    of the line of sight along which the calibration splits its scales); ``published_ids``: the IDs of the
+    frame's ``tracked`` objects (None: every observed track is published) — a tracker with ``observe_tentative``
+    also observes tentative tracks, whose windows fill like any other, but only tracks that were ever published
+    get a decision out and teach the calibration (a clutter return the tracker never confirms must not).
     """
 
     track_ids: IDS
@@ -51,12 +52,12 @@ class Observations:
     seq: int = 0
     sensor_x: float = 0.0
     sensor_y: float = 0.0
-    published: NDArray[np.bool_] | None = None
+    published_ids: IDS | None = None
 
     @staticmethod
     def from_lists(track_ids: list[str], labels, x, y, cxx, cxy, cyy, speed=None, stamp_ns: int = 0, seq: int = 0,
                    sensor_x: float = 0.0, sensor_y: float = 0.0,
-                   published: NDArray[np.bool_] | None = None) -> "Observations":
+                   published_ids: IDS | None = None) -> "Observations":
         n = len(track_ids)
         f = lambda v: np.asarray(v, dtype=np.float64).reshape(n)  # noqa: E731
         return Observations(
@@ -65,15 +66,14 @@ class Observations:
             x=f(x), y=f(y), cxx=f(cxx), cxy=f(cxy), cyy=f(cyy),
             speed=f(np.zeros(n) if speed is None else speed),
             stamp_ns=stamp_ns, seq=seq, sensor_x=float(sensor_x), sensor_y=float(sensor_y),
-            published=None if published is None else np.asarray(published, dtype=bool).reshape(n),
+            published_ids=None if published_ids is None else np.asarray(published_ids, dtype="S32"),
         )
 
     def subset(self, mask: NDArray[np.bool_]) -> "Observations":
         """The rows where ``mask`` holds."""
-        pick = lambda a: None if a is None else a[mask]  # noqa: E731
         return replace(self, track_ids=self.track_ids[mask], labels=self.labels[mask], x=self.x[mask],
                        y=self.y[mask], cxx=self.cxx[mask], cxy=self.cxy[mask], cyy=self.cyy[mask],
-                       speed=self.speed[mask], published=pick(self.published))
+                       speed=self.speed[mask])
 
     def __len__(self) -> int:
         return int(self.track_ids.shape[0])
@@ -94,6 +94,7 @@ class Decisions:
     mean_x: F64
     mean_y: F64
     speed: F64
+    published: NDArray[np.bool_]  # the track has been in ``tracked`` (a tentative one has not: no decision goes out)
 
     def state_names(self) -> list[str]:
         return [STATE_NAMES[s] for s in self.state.tolist()]
@@ -344,7 +345,11 @@ class MotionClassifierCore:
     def retain(self, alive_ids: IDS) -> int:
         """Evict the windows of every track not in ``alive_ids`` (the tracker no longer reports it)."""
         self.learn()  # a filled window is pooled before its row is freed
-        keep = np.isin(self._ids, np.asarray(alive_ids, dtype="S32"))
+        keep = np.zeros(self._ids.shape[0], dtype=bool)
+        alive = np.asarray(alive_ids, dtype="S32")
+        if self._ids.shape[0] and alive.shape[0]:  # a binary search per alive ID: no sort of strings
+            pos = np.minimum(np.searchsorted(self._ids, alive), self._ids.shape[0] - 1)
+            keep[pos[self._ids[pos] == alive]] = True
         gone = self._id_rows[~keep]
         if gone.size and self._config.calibration == "online":
             self._harvest(gone, np.minimum(self._table.since[gone], self._table.count[gone]))
@@ -386,7 +391,11 @@ class MotionClassifierCore:
         t.since[rows] += 1
         t.seen[rows] += 1
         t.label[rows] = np.clip(obs.labels, 0, _NUM_LABELS - 1)
-        t.published[rows] |= True if obs.published is None else obs.published
+        if obs.published_ids is None:
+            t.published[rows] = True
+        else:  # confirmation is final, so "was ever published" is "is published" for an observed track
+            pub, found = self._lookup(obs.published_ids)
+            t.published[pub[found]] = True
         if self._config.calibration == "online":
             self._online.advance(stamp_s)
             full = rows[(t.since[rows] >= w) & (t.count[rows] >= w)]
@@ -445,7 +454,7 @@ class MotionClassifierCore:
         return Decisions(
             track_ids=ids, state=state, z_x=stats.z_x, z_y=stats.z_y, chi2=stats.chi2, alpha=alpha,
             threshold=np.asarray(threshold, dtype=np.float64), window_length=count,
-            mean_x=stats.mean_x, mean_y=stats.mean_y, speed=speed,
+            mean_x=stats.mean_x, mean_y=stats.mean_y, speed=speed, published=t.published[rows].copy(),
         )
 
     # ------------------------------------------------------------------ state queries
@@ -464,7 +473,7 @@ class MotionClassifierCore:
             track_ids=ids, state=pick("state"), z_x=pick("z_x"), z_y=pick("z_y"), chi2=pick("chi2"),
             alpha=pick("alpha"), threshold=pick("threshold"),
             window_length=np.where(found, self._table.count[r], 0), mean_x=pick("mean_x"),
-            mean_y=pick("mean_y"), speed=pick("speed"),
+            mean_y=pick("mean_y"), speed=pick("speed"), published=found & self._table.published[r],
         )
 
     def last_meta(self, ids: IDS) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
