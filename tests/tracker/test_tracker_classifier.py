@@ -16,8 +16,16 @@ import zenoh
 
 from jitterguard.runtime import build_config, free_tcp_port, loopback_options
 from jitterguard.schemas import decode, encode, keys
-from jitterguard.schemas.models import ClassifierConfig, DetectedObjects, Header, MotionState, TrackedObjects
+from jitterguard.schemas.models import (
+    ClassifierConfig,
+    DetectedObjects,
+    Header,
+    MotionState,
+    TrackedObjects,
+    TrackObservation,
+)
 from jitterguard.services.classifier.service import ClassifierService
+from jitterguard.services.tracker.config import default_config
 from jitterguard.services.tracker.service import TrackerService
 from helpers import to_message
 from jitterguard.bench.tracker_sequences import CAR, Obj, make_sequence
@@ -38,14 +46,33 @@ def wait_for(pred, timeout: float = 10.0) -> bool:
     return pred()
 
 
+def connect(client: zenoh.Session, got: dict[str, list], stamp0: int) -> int:
+    """Empty frames until the classifier answers one (tracker and classifier both up and routed); returns how many
+    were sent (their seqs are 0 … k − 1)."""
+    k = 0
+
+    def answered() -> bool:
+        nonlocal k
+        client.put(keys.detections(NS), encode(DetectedObjects(header=Header(stamp=stamp0 + k, seq=k))),
+                   congestion_control=zenoh.CongestionControl.BLOCK)
+        k += 1
+        return wait_for(lambda: len(got["objects"]) > 0, 0.3)
+
+    assert wait_for(answered, 20.0), "pipeline never answered"
+    return k
+
+
 @pytest.fixture
-def pipeline():
+def pipeline(request):
+    """Tracker, classifier and client sessions on one loopback mesh; ``request.param`` (indirect
+    parametrisation): tracker config fields to change."""
     port = free_tcp_port()
-    tracker = TrackerService(loopback_options(NS, port, listen_self=True))
+    cfg = default_config().model_copy(update=getattr(request, "param", {}))
+    tracker = TrackerService(loopback_options(NS, port, listen_self=True), cfg)
     classifier = ClassifierService(loopback_options(NS, port), ClassifierConfig(window_size=WINDOW),
                                    straggler_timeout_s=0.5)
     client = zenoh.open(build_config(loopback_options(NS, port)))
-    got: dict[str, list] = {"motion": [], "objects": [], "tracked": []}
+    got: dict[str, list] = {"motion": [], "objects": [], "tracked": [], "tracks": []}
     lock = threading.Lock()
 
     def keep(kind, model):
@@ -57,6 +84,7 @@ def pipeline():
     client.declare_subscriber(keys.motion_all(NS), keep("motion", MotionState))
     client.declare_subscriber(keys.objects(NS), keep("objects", TrackedObjects))
     client.declare_subscriber(keys.tracked(NS), keep("tracked", TrackedObjects))
+    client.declare_subscriber(keys.tracks_all(NS), keep("tracks", TrackObservation))
     yield tracker, classifier, client, got, lock
     client.close()
     classifier.close()
@@ -66,17 +94,7 @@ def pipeline():
 def test_parked_stays_static_moving_is_dynamic_and_a_car_pulling_out_flips_within_the_window(pipeline) -> None:
     tracker, classifier, client, got, lock = pipeline
     stamp0 = 1_700_000_000_000_000_000
-    # connectivity: empty frames until the classifier answers one (tracker and classifier both up and routed)
-    k = 0
-
-    def answered() -> bool:
-        nonlocal k
-        client.put(keys.detections(NS), encode(DetectedObjects(header=Header(stamp=stamp0 + k, seq=k))),
-                   congestion_control=zenoh.CongestionControl.BLOCK)
-        k += 1
-        return wait_for(lambda: len(got["objects"]) > 0, 0.3)
-
-    assert wait_for(answered, 20.0), "pipeline never answered"
+    k = connect(client, got, stamp0)
 
     objects = [
         Obj(gid=0, label=CAR, x0=15.0, y0=6.0, yaw0=0.3),  # parked
@@ -164,16 +182,7 @@ def test_a_restarted_source_is_followed_by_tracker_and_classifier_once_confirmed
     """
     tracker, classifier, client, got, lock = pipeline
     stamp0 = 1_700_000_000_000_000_000
-    k = 0
-
-    def answered() -> bool:
-        nonlocal k
-        client.put(keys.detections(NS), encode(DetectedObjects(header=Header(stamp=stamp0 + k, seq=k))),
-                   congestion_control=zenoh.CongestionControl.BLOCK)
-        k += 1
-        return wait_for(lambda: len(got["objects"]) > 0, 0.3)
-
-    assert wait_for(answered, 20.0), "pipeline never answered"
+    k = connect(client, got, stamp0)
     objects = [Obj(gid=0, label=CAR, x0=15.0, y0=6.0, yaw0=0.3), Obj(gid=1, label=CAR, x0=-20.0, y0=-2.0, yaw0=0.0,
                                                                      speed=8.0)]
     scene = make_sequence(5, n_frames=20, objects=objects, ego_speed=0.0, ego_yaw_rate=0.0, miss_rate=0.0,
@@ -228,73 +237,39 @@ def _parked_xy(frame) -> tuple[float, float]:
     return tuple(frame.gt_xy[list(frame.gt_ids).index(0)])
 
 
-def test_with_observe_tentative_windows_start_at_birth_and_only_published_tracks_get_motion() -> None:
+@pytest.mark.parametrize("pipeline", [{"observe_tentative": True}], indirect=True)
+def test_with_observe_tentative_windows_start_at_birth_and_only_published_tracks_get_motion(pipeline) -> None:
     """The tracker with ``observe_tentative`` over real Zenoh: tentative tracks' observations go out on
     ``tracks/{id}`` (never in ``tracked``'s objects), the classifier decides a track's first published frame with
     every detection since birth, and publishes motion states only for tracks in ``objects``."""
-    from jitterguard.schemas.models import TrackObservation
-    from jitterguard.services.tracker.config import default_config
-
-    port = free_tcp_port()
-    cfg = default_config().model_copy(update={"observe_tentative": True})
-    tracker = TrackerService(loopback_options(NS, port, listen_self=True), cfg)
-    classifier = ClassifierService(loopback_options(NS, port), ClassifierConfig(window_size=WINDOW),
-                                   straggler_timeout_s=0.5)
-    client = zenoh.open(build_config(loopback_options(NS, port)))
-    got: dict[str, list] = {"motion": [], "objects": [], "tracked": [], "tracks": []}
-    lock = threading.Lock()
-
-    def keep(kind, model):
-        def cb(s: zenoh.Sample) -> None:
-            with lock:
-                got[kind].append(decode(model, s.payload.to_bytes()))
-        return cb
-
-    client.declare_subscriber(keys.motion_all(NS), keep("motion", MotionState))
-    client.declare_subscriber(keys.objects(NS), keep("objects", TrackedObjects))
-    client.declare_subscriber(keys.tracked(NS), keep("tracked", TrackedObjects))
-    client.declare_subscriber(keys.tracks_all(NS), keep("tracks", TrackObservation))
-    try:
-        stamp0 = 1_700_000_000_000_000_000
-        k = 0
-
-        def answered() -> bool:
-            nonlocal k
-            client.put(keys.detections(NS), encode(DetectedObjects(header=Header(stamp=stamp0 + k, seq=k))),
-                       congestion_control=zenoh.CongestionControl.BLOCK)
-            k += 1
-            return wait_for(lambda: len(got["objects"]) > 0, 0.3)
-
-        assert wait_for(answered, 20.0), "pipeline never answered"
-        seq = make_sequence(3, n_frames=12, objects=[Obj(gid=0, label=CAR, x0=15.0, y0=6.0, yaw0=0.3)],
-                            ego_speed=0.0, ego_yaw_rate=0.0, miss_rate=0.0, fp_rate=0.0, flip_rate=0.0,
-                            class_flicker=0.0, noise_base=0.08)
-        base = k + 10
-        for n, sf in enumerate(seq.frames):
-            msg = to_message(sf).model_copy(
-                update={"header": Header(stamp=stamp0 + 10**9 + n * 100_000_000, frame_id="lidar", seq=base + n)})
-            client.put(keys.detections(NS), encode(msg), congestion_control=zenoh.CongestionControl.BLOCK)
-            wait_for(lambda: any(o.header.seq == base + n for o in got["objects"]), 5.0)
-        last = base + len(seq.frames) - 1
-        assert wait_for(lambda: any(m.header.seq == last for m in got["motion"]), 20.0)
-        with lock:
-            tracked = {t.header.seq: t for t in got["tracked"] if t.header.seq >= base}
-            tracks = [t for t in got["tracks"] if t.header.seq >= base]
-            motion = [m for m in got["motion"] if m.header.seq >= base]
-        published = {o.object_id for t in tracked.values() for o in t.objects}
-        (tid,) = published
-        # the first two frames: observed (tracks/{id}, observed_track_ids) but tentative: no object, no motion
-        for n in range(cfg.confirm_hits - 1):
-            t = tracked[base + n]
-            assert t.objects == [] and t.observed_track_ids == [tid]
-            assert any(o.header.seq == base + n and o.track.object_id == tid and o.track.hits == n + 1
-                       for o in tracks)
-        assert all(m.track_id == tid for m in motion)
-        first = min(motion, key=lambda m: m.header.seq)
-        assert first.header.seq == base + cfg.confirm_hits - 1
-        assert first.window_length == cfg.confirm_hits  # every detection since birth
-        assert tracker.counters.get("rejected") == 0 and classifier.counters.get("rejected") == 0
-    finally:
-        client.close()
-        classifier.close()
-        tracker.close()
+    tracker, classifier, client, got, lock = pipeline
+    hits = tracker.core.config.confirm_hits
+    stamp0 = 1_700_000_000_000_000_000
+    k = connect(client, got, stamp0)
+    seq = make_sequence(3, n_frames=12, objects=[Obj(gid=0, label=CAR, x0=15.0, y0=6.0, yaw0=0.3)],
+                        ego_speed=0.0, ego_yaw_rate=0.0, miss_rate=0.0, fp_rate=0.0, flip_rate=0.0,
+                        class_flicker=0.0, noise_base=0.08)
+    base = k + 10
+    for n, sf in enumerate(seq.frames):
+        msg = to_message(sf).model_copy(
+            update={"header": Header(stamp=stamp0 + 10**9 + n * 100_000_000, frame_id="lidar", seq=base + n)})
+        client.put(keys.detections(NS), encode(msg), congestion_control=zenoh.CongestionControl.BLOCK)
+        wait_for(lambda: any(o.header.seq == base + n for o in got["objects"]), 5.0)
+    last = base + len(seq.frames) - 1
+    assert wait_for(lambda: any(m.header.seq == last for m in got["motion"]), 20.0)
+    with lock:
+        tracked = {t.header.seq: t for t in got["tracked"] if t.header.seq >= base}
+        tracks = [t for t in got["tracks"] if t.header.seq >= base]
+        motion = [m for m in got["motion"] if m.header.seq >= base]
+    published = {o.object_id for t in tracked.values() for o in t.objects}
+    (tid,) = published
+    # the first frames: observed (tracks/{id}, observed_track_ids) but tentative: no object, no motion
+    for n in range(hits - 1):
+        t = tracked[base + n]
+        assert t.objects == [] and t.observed_track_ids == [tid]
+        assert any(o.header.seq == base + n and o.track.object_id == tid and o.track.hits == n + 1 for o in tracks)
+    assert all(m.track_id == tid for m in motion)
+    first = min(motion, key=lambda m: m.header.seq)
+    assert first.header.seq == base + hits - 1
+    assert first.window_length == hits  # every detection since birth
+    assert tracker.counters.get("rejected") == 0 and classifier.counters.get("rejected") == 0
