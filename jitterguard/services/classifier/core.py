@@ -317,13 +317,17 @@ class MotionClassifierCore:
     def track_ids(self) -> list[str]:
         return [i.decode() for i in self._ids.tolist()]
 
+    def _positions(self, ids: IDS) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
+        """Where each of ``ids`` sits in the sorted ID array (a binary search each: no sort of strings), and
+        whether it is there; call only with known IDs present (``self._ids`` not empty)."""
+        pos = np.minimum(np.searchsorted(self._ids, ids), self._ids.shape[0] - 1)
+        return pos, self._ids[pos] == ids
+
     def _lookup(self, ids: IDS) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
         if self._ids.shape[0] == 0:
             return np.full(ids.shape[0], -1, dtype=np.int64), np.zeros(ids.shape[0], dtype=bool)
-        pos = np.searchsorted(self._ids, ids)
-        pos_c = np.minimum(pos, self._ids.shape[0] - 1)
-        found = self._ids[pos_c] == ids
-        return np.where(found, self._id_rows[pos_c], -1), found
+        pos, found = self._positions(ids)
+        return np.where(found, self._id_rows[pos], -1), found
 
     def _allocate(self, new_ids: IDS) -> NDArray[np.int64]:
         n = new_ids.shape[0]
@@ -346,10 +350,9 @@ class MotionClassifierCore:
         """Evict the windows of every track not in ``alive_ids`` (the tracker no longer reports it)."""
         self.learn()  # a filled window is pooled before its row is freed
         keep = np.zeros(self._ids.shape[0], dtype=bool)
-        alive = np.asarray(alive_ids, dtype="S32")
-        if self._ids.shape[0] and alive.shape[0]:  # a binary search per alive ID: no sort of strings
-            pos = np.minimum(np.searchsorted(self._ids, alive), self._ids.shape[0] - 1)
-            keep[pos[self._ids[pos] == alive]] = True
+        if self._ids.shape[0]:
+            pos, found = self._positions(np.asarray(alive_ids, dtype="S32"))
+            keep[pos[found]] = True
         gone = self._id_rows[~keep]
         if gone.size and self._config.calibration == "online":
             self._harvest(gone, np.minimum(self._table.since[gone], self._table.count[gone]))
