@@ -185,6 +185,10 @@ def group_metrics(rec: Records, group: str, boot: TrackBootstrap | None = None, 
     sub = rec.subset(rec.group == group)
     ttz = time_to_first_correct(sub, sub.state_z)
     ttv = time_to_first_correct(sub, sub.state_v)
+    # the latency a planner feels: from a track's first row on a moving object to its first dynamic decision
+    moving = rec.subset((rec.group == group) & rec.gt_dynamic)
+    tdz = time_to_first_correct(moving, moving.state_z)
+    tdv = time_to_first_correct(moving, moving.state_v)
 
     def med(a: NDArray[np.float64]) -> float:
         a = a[np.isfinite(a)]
@@ -207,6 +211,10 @@ def group_metrics(rec: Records, group: str, boot: TrackBootstrap | None = None, 
             "time_to_first_correct_s_median_speed": med(ttv),
             "never_correct_fraction_z": float(np.mean(~np.isfinite(ttz))) if len(ttz) else math.nan,
             "never_correct_fraction_speed": float(np.mean(~np.isfinite(ttv))) if len(ttv) else math.nan,
+            "time_to_dynamic_s_median_z": med(tdz),
+            "time_to_dynamic_s_median_speed": med(tdv),
+            "never_dynamic_fraction_z": float(np.mean(~np.isfinite(tdz))) if len(tdz) else math.nan,
+            "never_dynamic_fraction_speed": float(np.mean(~np.isfinite(tdv))) if len(tdv) else math.nan,
         })
     out = _clean(out)
     if boot is not None:

@@ -110,6 +110,26 @@ def test_time_to_first_correct() -> None:
     assert math.isnan(time_to_first_correct(rec, rec.state_v)[0])  # never dynamic
 
 
+def test_time_to_dynamic_counts_from_the_first_moving_row() -> None:
+    # one track: its object stands for three rows, then moves; the z-test says dynamic one row after it
+    # starts, the threshold three rows after; a second track on a moving object is never called dynamic by the
+    # threshold. Static rows called dynamic early must not count as catching the motion.
+    moving = [False, False, False, True, True, True, True, True, True]
+    rec = _records(z=[0.0] * 9, track_id=["a"] * 7 + ["b"] * 2, gt_instance=[0] * 7 + [1] * 2,
+                   gt_dynamic=moving,
+                   state_z=np.array([DYNAMIC, STATIC, STATIC, STATIC, DYNAMIC, DYNAMIC, DYNAMIC, DYNAMIC, DYNAMIC],
+                                    np.int8),
+                   state_v=np.array([STATIC] * 6 + [DYNAMIC] + [STATIC] * 2, np.int8))
+    m = compute_metrics(rec, intervals=False)["vehicle"]
+    # track a: first moving row at t 0.3, z dynamic at 0.4 (0.1 s), speed at 0.6 (0.3 s); track b: z at once
+    assert m["time_to_dynamic_s_median_z"] == pytest.approx(0.05)
+    assert m["time_to_dynamic_s_median_speed"] == pytest.approx(0.3)
+    assert m["never_dynamic_fraction_z"] == 0.0
+    assert m["never_dynamic_fraction_speed"] == 0.5
+    # the older figure counts static rows too: track a is first correct when called static at 0.1 s
+    assert m["time_to_first_correct_s_median_z"] == pytest.approx(0.05)
+
+
 def test_group_metrics_and_sweep() -> None:
     dyn = np.array([False, False, True, True])
     rec = _records(z=[0.5, 3.0, 5.0, 1.0], speed=[0.2, 1.5, 4.0, 2.0], gt_dynamic=dyn,
