@@ -49,7 +49,9 @@ def _seeds(text: str) -> list[int]:
 def detection_pairs(args: argparse.Namespace, seed: int) -> list[tuple[Any, bytes]]:
     """(ground truth, DetectedObjects payload) of every frame of one run, from the cache if it holds them."""
     tag = "nuscenes" if args.nuscenes else f"{args.scenario}-{seed}"
-    path = Path(args.cache) / f"{tag}-{args.input}.pkl" if args.cache else None
+    noise = getattr(args, "noise", "jittery")  # the noise model's preset, for --input gt-noise
+    kind = args.input if args.input == "detector" or noise == "jittery" else f"{args.input}-{noise}"
+    path = Path(args.cache) / f"{tag}-{kind}.pkl" if args.cache else None
     if path is not None and path.exists():
         with path.open("rb") as fh:
             return pickle.load(fh)
@@ -62,7 +64,7 @@ def detection_pairs(args: argparse.Namespace, seed: int) -> list[tuple[Any, byte
 
         frames = make_scenario(args.scenario, seed, 15.0, 10.0)
     if args.input == "gt-noise":
-        model = DetectionModel(NOISE_PRESETS["jittery"](), seed)
+        model = DetectionModel(NOISE_PRESETS[noise](), seed)
         pairs = [(gt, encode(model.detect(gt).detections)) for gt in frames]
     else:
         from jitterguard.eval.cli import load_detector

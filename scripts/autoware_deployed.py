@@ -1,0 +1,122 @@
+"""The z-test against Autoware as deployed: the speed threshold held for its sustain time, and the two together
+(docs/results.md, "Against Autoware as deployed").
+
+    .venv/bin/python scripts/autoware_deployed.py --scenario mixed --seeds 2000-2009 [--input detector] [--cache DIR]
+    .venv/bin/python scripts/autoware_deployed.py --nuscenes ../shared/data/nuscenes-scene-0523 --input detector
+    .venv/bin/python scripts/autoware_deployed.py --nuscenes ../shared/data/nuscenes-scene-0523 --input gt-noise --noise clean
+
+Autoware's static-obstacle avoidance calls an object moving once its speed has stayed above the class threshold
+for ``th_moving_time`` (2 s vehicles, 1 s others). jitterguard's classifier in front of it zeroes the velocity
+of the objects it calls static and passes the others through, so Autoware's timer then runs only while the z-test
+says dynamic *and* the speed is above the threshold. Four rules over the same rows of one run of the evaluator's
+pipeline (``jitterguard eval --runs``, the baseline with ``--speed-sustain``):
+
+* ``threshold``: the speed above the class threshold, at once (metrics.json's ``*_speed`` without ``--speed-sustain``);
+* ``sustained``: the same held for the sustain time (metrics.json's ``*_speed`` with ``--speed-sustain``);
+* ``z-test``: the classifier's decision (metrics.json's ``*_z``);
+* ``z-test → Autoware``: the sustained threshold on the speed the classifier passes on (zero while it says
+  static or undecided);
+* ``… th_moving_time 0``: the same with Autoware's sustain set to 0 — the z-test's dynamic calls whose speed is
+  above the class threshold.
+
+Per group: static rows called dynamic, moving rows missed, ghost rows called dynamic (metrics.json's scored
+rows), and the median time from a track's first row on a moving object to its first dynamic call, with the
+share of such tracks never called dynamic. The timers run over the rows a track is observed in, as the
+classifier sees them (a frame whose detection the tracker coasts through holds the timer, it does not reset it).
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ghost_breakdown import _seeds, detection_pairs
+from jitterguard.eval.metrics import ghost_rows, scored_rows, time_to_first_correct
+from jitterguard.eval.pipeline import Records, concat_records, track_and_classify
+from jitterguard.schemas.models import ClassifierConfig
+from jitterguard.services.classifier.config import PRESETS
+from jitterguard.services.classifier.core import DYNAMIC, STATIC, MotionClassifierCore
+from jitterguard.services.tracker.config import default_config
+
+
+def held(rec: Records, fast: NDArray[np.bool_], sustain_s: NDArray[np.float64]) -> NDArray[np.int8]:
+    """Per row, DYNAMIC where ``fast`` has held on every row of its track for at least ``sustain_s`` (the
+    track's rows in time order; the timer restarts at the first fast row after a slow one), else STATIC."""
+    out = np.full(len(rec), STATIC, dtype=np.int8)
+    order = np.lexsort((rec.t_s, rec.track_id))
+    since = np.nan
+    prev = None
+    for i in order.tolist():
+        tid = rec.track_id[i]
+        if tid != prev:
+            since, prev = np.nan, tid
+        if fast[i]:
+            since = rec.t_s[i] if np.isnan(since) else since
+            if rec.t_s[i] - since >= sustain_s[i] - 1e-9:
+                out[i] = DYNAMIC
+        else:
+            since = np.nan
+    return out
+
+
+def _rules(rec: Records, sustain_of_label: NDArray[np.float64]) -> dict[str, NDArray[np.int8]]:
+    fast = rec.speed > rec.speed_threshold
+    sustain = sustain_of_label[rec.label]
+    return {
+        "threshold": np.where(fast, DYNAMIC, STATIC).astype(np.int8),
+        "sustained": held(rec, fast, sustain),
+        "z-test": rec.state_z,
+        "z-test → Autoware": held(rec, fast & (rec.state_z == DYNAMIC), sustain),
+        "… th_moving_time 0": np.where(fast & (rec.state_z == DYNAMIC), DYNAMIC, STATIC).astype(np.int8),
+    }
+
+
+def _rate(state: NDArray[np.int8], mask: NDArray[np.bool_], want: int) -> str:
+    return f"{np.mean(state[mask] == want):.3f}" if mask.any() else "—"
+
+
+def report(rec: Records, sustain_of_label: NDArray[np.float64]) -> None:
+    """Print the four rules' rates and latencies per group."""
+    rules = _rules(rec, sustain_of_label)
+    if not np.array_equal(rules["sustained"], rec.state_v):  # the classifier's own baseline, recomputed
+        raise SystemExit(f"the sustained rule differs from the classifier's on "
+                         f"{int(np.sum(rules['sustained'] != rec.state_v))} rows")
+    for group in ("vehicle", "pedestrian"):
+        m = scored_rows(rec, group)
+        static, moving, ghost = m & ~rec.gt_dynamic, m & rec.gt_dynamic, ghost_rows(rec, group)
+        on_moving = rec.subset((rec.group == group) & rec.gt_dynamic)
+        print(f"{group}: static rows {static.sum()}, moving rows {moving.sum()}, ghost rows {ghost.sum()}, "
+              f"moving tracks {len(np.unique(on_moving.track_id))}")
+        for name, state in rules.items():
+            lat = time_to_first_correct(on_moving, state[(rec.group == group) & rec.gt_dynamic])
+            done = lat[np.isfinite(lat)]
+            med = f"{np.median(done):.2f} s" if done.size else "—"
+            never = f"{np.mean(~np.isfinite(lat)):.2f}" if lat.size else "—"
+            print(f"  {name:19s} static called dynamic {_rate(state, static, DYNAMIC)} | moving missed "
+                  f"{_rate(state, moving, STATIC)} | ghosts called dynamic {_rate(state, ghost, DYNAMIC)} | "
+                  f"moving → dynamic median {med}, never {never}")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenario", default="mixed")
+    ap.add_argument("--seeds", default="0-3")
+    ap.add_argument("--nuscenes", default=None, help="nuScenes dataroot instead of a scenario (one run)")
+    ap.add_argument("--input", default="detector", choices=("detector", "gt-noise"))
+    ap.add_argument("--noise", default="jittery", help="noise preset of --input gt-noise")
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--cache", default=None, help="folder for the per-seed detector payloads")
+    args = ap.parse_args()
+    clf = ClassifierConfig.model_validate({**ClassifierConfig().model_dump(), **PRESETS["autoware-sustain"]})
+    drive = MotionClassifierCore.make_online(clf)
+    seeds = [0] if args.nuscenes else _seeds(args.seeds)
+    rec = concat_records([track_and_classify(iter(detection_pairs(args, s)), clf, default_config(), calibration=drive)
+                          for s in seeds], [str(s) for s in seeds])
+    sustain = np.array([clf.sustain_for(label) for label in range(int(rec.label.max(initial=0)) + 1)])
+    report(rec, sustain)
+
+
+if __name__ == "__main__":
+    main()
