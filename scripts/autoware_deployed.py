@@ -15,9 +15,9 @@ pipeline (``jitterguard eval --runs``, the baseline with ``--speed-sustain``):
 * ``sustained``: the same held for the sustain time (metrics.json's ``*_speed`` with ``--speed-sustain``);
 * ``z-test``: the classifier's decision (metrics.json's ``*_z``);
 * ``z-test → Autoware``: the sustained threshold on the speed the classifier passes on (zero while it says
-  static or undecided);
-* ``… th_moving_time 0``: the same with Autoware's sustain set to 0 — the z-test's dynamic calls whose speed is
-  above the class threshold.
+  static; a dynamic or not yet decided track keeps the tracker's velocity);
+* ``… th_moving_time 0``: the same with Autoware's sustain set to 0 — the speed over the class threshold on
+  tracks the z-test does not call static.
 
 Per group: static rows called dynamic, moving rows missed, ghost rows called dynamic (metrics.json's scored
 rows), and the median time from a track's first row on a moving object to its first dynamic call, with the
@@ -64,12 +64,13 @@ def held(rec: Records, fast: NDArray[np.bool_], sustain_s: NDArray[np.float64]) 
 def _rules(rec: Records, sustain_of_label: NDArray[np.float64]) -> dict[str, NDArray[np.int8]]:
     fast = rec.speed > rec.speed_threshold
     sustain = sustain_of_label[rec.label]
+    passed = rec.state_z != STATIC  # the classifier zeroes only the velocity of what it calls static
     return {
         "threshold": np.where(fast, DYNAMIC, STATIC).astype(np.int8),
         "sustained": held(rec, fast, sustain),
         "z-test": rec.state_z,
-        "z-test → Autoware": held(rec, fast & (rec.state_z == DYNAMIC), sustain),
-        "… th_moving_time 0": np.where(fast & (rec.state_z == DYNAMIC), DYNAMIC, STATIC).astype(np.int8),
+        "z-test → Autoware": held(rec, fast & passed, sustain),
+        "… th_moving_time 0": np.where(fast & passed, DYNAMIC, STATIC).astype(np.int8),
     }
 
 
