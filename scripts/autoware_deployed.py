@@ -4,6 +4,7 @@
     .venv/bin/python scripts/autoware_deployed.py --scenario mixed --seeds 2000-2009 [--input detector] [--cache DIR]
     .venv/bin/python scripts/autoware_deployed.py --nuscenes ../shared/data/nuscenes-scene-0523 --input detector
     .venv/bin/python scripts/autoware_deployed.py --nuscenes ../shared/data/nuscenes-scene-0523 --input gt-noise --noise clean
+    ... [--preset hold]   (the z-test held 0.3 s before it says dynamic: the classifier's `hold` preset)
 
 Autoware's static-obstacle avoidance calls an object moving once its speed has stayed above the class threshold
 for ``th_moving_time`` (2 s vehicles, 1 s others). jitterguard's classifier in front of it zeroes the velocity
@@ -109,8 +110,11 @@ def main() -> None:
     ap.add_argument("--noise", default="jittery", help="noise preset of --input gt-noise")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--cache", default=None, help="folder for the per-seed detector payloads")
+    ap.add_argument("--preset", default=None, choices=sorted(PRESETS),
+                    help="classifier preset for the z-test, e.g. hold (its decisions held 0.3 s)")
     args = ap.parse_args()
-    clf = ClassifierConfig.model_validate({**ClassifierConfig().model_dump(), **PRESETS["autoware-sustain"]})
+    clf = ClassifierConfig.model_validate({**ClassifierConfig().model_dump(), **PRESETS["autoware-sustain"],
+                                           **(PRESETS[args.preset] if args.preset else {})})
     drive = MotionClassifierCore.make_online(clf)
     seeds = [0] if args.nuscenes else _seeds(args.seeds)
     rec = concat_records([track_and_classify(iter(detection_pairs(args, s)), clf, default_config(), calibration=drive)

@@ -420,8 +420,13 @@ class ClassifierConfig(Message):
         default_factory=_default_sustain,
         description="per-class time the speed must stay above the threshold before the baseline says dynamic, s "
         "(Autoware's th_moving_time: the `autoware-sustain` preset)")
+    dynamic_hold_s_per_class: dict[str, Annotated[float, Field(ge=0.0, le=60.0)]] = Field(
+        default_factory=_default_sustain,
+        description="per-class time the test must keep rejecting H0 before the classifier says dynamic, s (none: at "
+        "once, as the paper; a short hold in place of Autoware's th_moving_time: the `hold` preset)")
 
-    @field_validator("alpha_per_class", "velocity_threshold_per_class", "velocity_sustain_s_per_class")
+    @field_validator("alpha_per_class", "velocity_threshold_per_class", "velocity_sustain_s_per_class",
+                     "dynamic_hold_s_per_class")
     @classmethod
     def _known_classes(cls, v: dict[str, float]) -> dict[str, float]:
         return _check_class_names(v)
@@ -450,6 +455,10 @@ class ClassifierConfig(Message):
     def sustain_for(self, label: int) -> float:
         """How long the baseline's speed must exceed the threshold before it says dynamic, s (0: at once)."""
         return self.velocity_sustain_s_per_class.get(LABEL_NAMES.get(label, "unknown"), 0.0)
+
+    def hold_for(self, label: int) -> float:
+        """How long the test must keep rejecting H0 before the classifier says dynamic, s (0: at once)."""
+        return self.dynamic_hold_s_per_class.get(LABEL_NAMES.get(label, "unknown"), 0.0)
 
 
 

@@ -140,6 +140,47 @@ def test_baseline_sustain_times_hold_the_speed_before_dynamic():
 
 
 
+def _states(config: ClassifierConfig, xs: np.ndarray, labels: list[int]) -> np.ndarray:
+    """States of tracks A and B (one per label) fed the same x positions at 10 Hz, frame by frame."""
+    core = MotionClassifierCore(config)
+    out = []
+    for k, x in enumerate(xs):
+        dec = core.update(Observations.from_lists([A, B], labels, [x, x], [0.0, 0.0], [0.01] * 2, [0.0] * 2,
+                                                  [0.01] * 2, [0.0, 0.0], stamp_ns=k * 100_000_000))
+        out.append(dec.state.copy())
+    return np.array(out)
+
+
+def test_dynamic_hold_delays_every_run_of_rejections_by_its_length():
+    """With a hold of 0.3 s at 10 Hz a track is dynamic exactly where the test has rejected H0 on this decision
+    and the three before it; runs of rejections shorter than that never make it dynamic, and a run that ends
+    restarts the clock. Only the classes given a hold wait (pedestrian here), the car's decisions are as without."""
+    rng = np.random.default_rng(7)
+    # walks off, stops, moves in bursts, then stands with jitter larger than it reports: runs of rejections of
+    # many lengths
+    steps = np.concatenate([np.zeros(10), np.full(12, 0.15), np.zeros(14), np.tile([0.4, 0.4] + [0.0] * 6, 4),
+                            np.zeros(60)])
+    noise = np.r_[np.full(68, 0.03), np.full(60, 0.25)]
+    xs = np.cumsum(steps) + rng.normal(0.0, 1.0, steps.size) * noise
+    labels = [int(Label.CAR), int(Label.PEDESTRIAN)]
+    at_once = _states(ClassifierConfig(), xs, labels)
+    held = _states(ClassifierConfig(dynamic_hold_s_per_class={"pedestrian": 0.3}), xs, labels)
+    assert np.array_equal(held[:, 0], at_once[:, 0])  # the car: no hold
+    rej = at_once[:, 1] == DYNAMIC
+    want = np.array([k >= 3 and rej[k - 3:k + 1].all() for k in range(len(rej))])
+    assert np.array_equal(held[:, 1] == DYNAMIC, want)
+    runs = np.diff(np.flatnonzero(np.diff(np.r_[0, rej.astype(int), 0])))[::2]  # lengths of the runs of rejections
+    assert want.any() and (runs < 4).any() and (runs >= 4).any()  # the trajectory exercises both kinds of run
+    assert (held[:, 1] == UNDECIDED).sum() == (at_once[:, 1] == UNDECIDED).sum()  # the hold decides, as soon
+
+
+def test_hold_preset_holds_every_class():
+    cfg = ClassifierConfig.model_validate({**ClassifierConfig().model_dump(), **PRESETS["hold"]})
+    assert {cfg.hold_for(int(lb)) for lb in Label} == {0.3}
+    assert ClassifierConfig().hold_for(int(Label.CAR)) == 0.0  # off by default: the paper decides at once
+    with pytest.raises(ValueError, match="unknown class name"):
+        ClassifierConfig(dynamic_hold_s_per_class={"lorry": 1.0})
+
 def test_world_frame_rotation_of_covariance_matters():
     """A car parked along the world x-axis seen by a sensor rotated 90°: the detector is precise along
     its beam (sensor x) and loose across it. Rotated correctly, the loose axis is world x and the jitter

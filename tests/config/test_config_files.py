@@ -34,7 +34,7 @@ def test_each_default_file_is_its_model_defaults_and_validates_against_its_schem
 
 
 def test_shipped_presets_load_and_differ_where_they_should() -> None:
-    assert presets("classifier") == ["authors", "autoware-sustain", "paper"]
+    assert presets("classifier") == ["authors", "autoware-sustain", "hold", "paper"]
     assert presets("detector") == ["lite", "paper"]
     authors = load(ClassifierParams, service="classifier", preset="authors")
     assert authors.alpha_per_class["pedestrian"] == 1.28 and authors.window_size == 10
@@ -43,10 +43,12 @@ def test_shipped_presets_load_and_differ_where_they_should() -> None:
                                                                                                   "off", 0.0)
     sustain = load(ClassifierParams, service="classifier", preset="autoware-sustain")
     assert sustain.sustain_for(1) == 2.0 and sustain.sustain_for(7) == 1.0  # car, pedestrian
+    hold = load(ClassifierParams, service="classifier", preset="hold")
+    assert hold.hold_for(1) == 0.3 and hold.hold_for(7) == 0.3 and hold.sustain_for(1) == 0.0
     assert DETECTOR_PRESETS["paper"].grid_size == (512, 512) and DETECTOR_PRESETS["lite"].grid_size == (256, 256)
     for name in ("lite", "paper"):
         assert DetectorConfig.model_validate(read_params(param_file("detector", name))) == DETECTOR_PRESETS[name]
-    with pytest.raises(ConfigError, match="unknown classifier preset 'fast'; expected one of authors, autoware-sustain, paper"):
+    with pytest.raises(ConfigError, match="unknown classifier preset 'fast'; expected one of authors, autoware-sustain, hold, paper"):
         load(ClassifierParams, service="classifier", preset="fast")
 
 

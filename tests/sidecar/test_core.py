@@ -50,7 +50,10 @@ def test_http_config_model_carries_the_wire_constraints() -> None:
     for name in CONFIG_FIELDS:
         for bound in ("minimum", "maximum", "exclusiveMinimum", "enum", "default"):
             assert api[name].get(bound) == wire[name].get(bound), (name, bound)
-    for per_class in ("alpha_per_class", "velocity_threshold_per_class", "velocity_sustain_s_per_class"):
+    per_class_fields = ("alpha_per_class", "velocity_threshold_per_class", "velocity_sustain_s_per_class",
+                        "dynamic_hold_s_per_class")
+    assert {n for n in wire if n.endswith("_per_class")} == set(per_class_fields)
+    for per_class in per_class_fields:
         assert api[per_class]["propertyNames"]["enum"] == list(CLASS_NAMES), per_class  # keys an enum
     assert ConfigModel().model_dump() == config_to_api(ClassifierConfig())
 
@@ -80,6 +83,9 @@ def test_merge_patch_semantics() -> None:
     assert out.velocity_threshold_per_class == {"bicycle": 0.28, "motorcycle": 0.28, "unknown": 0.28, "car": 2.0}
     out = merge_patch(out, {"velocity_sustain_s_per_class": {"car": 2.0}})
     assert out.velocity_sustain_s_per_class == {"car": 2.0} and out.velocity_threshold_per_class["car"] == 2.0
+    out = merge_patch(out, {"dynamic_hold_s_per_class": {"pedestrian": 0.3}})
+    out = merge_patch(out, {"dynamic_hold_s_per_class": {"car": 0.5}})
+    assert out.dynamic_hold_s_per_class == {"pedestrian": 0.3, "car": 0.5} and out.hold_for(1) == 0.5
 
 
 @pytest.mark.parametrize(("patch", "field"), [

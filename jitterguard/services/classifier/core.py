@@ -10,6 +10,7 @@ rows through a sorted ID array and ``np.searchsorted``, so the per-frame path ha
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -118,6 +119,7 @@ class _Table:
     seen: NDArray[np.int64] = field(init=False)  # observations of the track so far
     published: NDArray[np.bool_] = field(init=False)  # the track has been in ``tracked`` (it may teach the calibration)
     fast_since: F64 = field(init=False)  # baseline: stamp [s] since which the speed is above threshold (NaN: not)
+    reject_since: F64 = field(init=False)  # the test: stamp [s] since which it rejects H0 (NaN: it does not)
     last: dict[str, np.ndarray] = field(init=False)
 
     _LAST = {
@@ -135,6 +137,7 @@ class _Table:
         self.seen = np.zeros(self.capacity, dtype=np.int64)
         self.published = np.zeros(self.capacity, dtype=bool)
         self.fast_since = np.full(self.capacity, np.nan)
+        self.reject_since = np.full(self.capacity, np.nan)
         self.last = {k: np.zeros(self.capacity, dtype=t) for k, t in self._LAST.items()}
 
     def grow(self, capacity: int) -> None:
@@ -147,6 +150,7 @@ class _Table:
         self.seen = np.concatenate([self.seen, np.zeros(extra, dtype=np.int64)])
         self.published = np.concatenate([self.published, np.zeros(extra, dtype=bool)])
         self.fast_since = np.concatenate([self.fast_since, np.full(extra, np.nan)])
+        self.reject_since = np.concatenate([self.reject_since, np.full(extra, np.nan)])
         self.last = {k: np.concatenate([v, np.zeros(extra, dtype=v.dtype)]) for k, v in self.last.items()}
         self.capacity = capacity
 
@@ -157,6 +161,7 @@ class _Table:
         self.seen[rows] = 0
         self.published[rows] = False
         self.fast_since[rows] = np.nan
+        self.reject_since[rows] = np.nan
         for v in self.last.values():
             v[rows] = 0
 
@@ -195,8 +200,7 @@ class MotionClassifierCore:
         self._ids: IDS = np.empty(0, dtype="S32")  # sorted
         self._id_rows: NDArray[np.int64] = np.empty(0, dtype=np.int64)
         self._free: list[int] = list(range(self._table.capacity - 1, -1, -1))
-        self._alpha_table = self._make_alpha_table(self._config)
-        self._speed_table, self._sustain_table = self._make_speed_tables(self._config)
+        self._set_tables(self._config)
         self._online = online if online is not None else self.make_online(self._config)
         self._file_model = calibration_model
         self.check_config(self._config)
@@ -221,8 +225,7 @@ class MotionClassifierCore:
             self._table.rewindow(config.window_size)
         old = self._config
         self._config = config
-        self._alpha_table = self._make_alpha_table(config)
-        self._speed_table, self._sustain_table = self._make_speed_tables(config)
+        self._set_tables(config)
         if (config.calibration_range_bands_m != old.calibration_range_bands_m
                 or config.calibration_prior_blocks != old.calibration_prior_blocks):
             self._online = self.make_online(config)
@@ -239,14 +242,15 @@ class MotionClassifierCore:
         return OnlineCalibration(tuple(config.calibration_range_bands_m), config.calibration_prior_blocks,
                                  config.calibration_half_life_s, config.window_size)
 
-    @staticmethod
-    def _make_alpha_table(config: ClassifierConfig) -> F64:
-        return np.array([config.alpha_for(label) for label in range(_NUM_LABELS)], dtype=np.float64)
+    def _set_tables(self, config: ClassifierConfig) -> None:
+        """The per-class settings as arrays indexed by label, so a frame looks them up for all tracks at once."""
+        def per_label(value_for: Callable[[int], float]) -> F64:
+            return np.array([value_for(label) for label in range(_NUM_LABELS)], dtype=np.float64)
 
-    @staticmethod
-    def _make_speed_tables(config: ClassifierConfig) -> tuple[F64, F64]:
-        return (np.array([config.speed_threshold_for(label) for label in range(_NUM_LABELS)], dtype=np.float64),
-                np.array([config.sustain_for(label) for label in range(_NUM_LABELS)], dtype=np.float64))
+        self._alpha_table = per_label(config.alpha_for)
+        self._speed_table = per_label(config.speed_threshold_for)
+        self._sustain_table = per_label(config.sustain_for)
+        self._hold_table = per_label(config.hold_for)
 
     # ------------------------------------------------------------------ calibration
 
@@ -433,12 +437,19 @@ class MotionClassifierCore:
         fast = speed > threshold_v
         now_s = stamp_ns * 1e-9
         t.fast_since[rows] = np.where(fast, np.where(np.isnan(t.fast_since[rows]), now_s, t.fast_since[rows]), np.nan)
-        if cfg.mode == "z_test":
-            threshold = alpha
-            dynamic = np.maximum(stats.z_x, stats.z_y) > alpha
-        elif cfg.mode == "chi2":
-            threshold = chi2_2_threshold(alpha)
-            dynamic = stats.chi2 > threshold
+        if cfg.mode in ("z_test", "chi2"):
+            if cfg.mode == "z_test":
+                threshold = alpha
+                reject = np.maximum(stats.z_x, stats.z_y) > alpha
+            else:
+                threshold = chi2_2_threshold(alpha)
+                reject = stats.chi2 > threshold
+            # dynamic once the test has rejected H0 on every decision for the class's hold (none: at once); the
+            # microsecond spares a hold of whole frames the rounding of stamps in seconds
+            reject &= decided
+            since = np.where(reject, np.where(np.isnan(t.reject_since[rows]), now_s, t.reject_since[rows]), np.nan)
+            t.reject_since[rows] = since
+            dynamic = reject & (now_s - since >= self._hold_table[t.label[rows]] - 1e-6)
         else:  # velocity_threshold: Autoware's per-class speed cut-off, held for its sustain time
             threshold = threshold_v
             sustain = self._sustain_table[t.label[rows]]

@@ -169,9 +169,9 @@ def _strict_json(tp: Any, metadata: list[Any]) -> Any:
     return Annotated[(tp, *metadata)] if metadata else tp  # type: ignore[misc]  # Literal: exact strings only
 
 
-PER_CLASS_FIELDS = ("alpha_per_class", "velocity_threshold_per_class", "velocity_sustain_s_per_class")
-"""Config maps keyed by lowercase class name: the keys are an enum in the OpenAPI schema, and a merge patch
-merges them key by key."""
+PER_CLASS_FIELDS: tuple[str, ...] = tuple(n for n in CONFIG_FIELDS if n.endswith("_per_class"))
+"""Config maps keyed by lowercase class name (every ``*_per_class`` field): the keys are an enum in the OpenAPI
+schema, and a merge patch merges them key by key."""
 
 
 def _alpha_type(info: FieldInfo) -> Any:
