@@ -307,6 +307,7 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
                 "velocity_threshold": classifier.velocity_threshold,
                 "velocity_threshold_per_class": dict(classifier.velocity_threshold_per_class),
                 "velocity_sustain_s_per_class": dict(classifier.velocity_sustain_s_per_class),
+                "dynamic_hold_s_per_class": dict(classifier.dynamic_hold_s_per_class),
                 "min_window": classifier.min_window, "window_size": classifier.window_size,
                 "calibration": classifier.calibration, "effective_n": classifier.effective_n,
                 "min_speed_mps": classifier.min_speed_mps, "variance_scale": variance_scale,

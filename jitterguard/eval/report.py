@@ -281,7 +281,9 @@ def write_outputs(out: Path, rec: Records, metrics: dict[str, Any],
         f"{run['rows']} (frame, track) rows, {run['matched_rows']} matched to ground truth "
         f"(≤ {run['match_distance_m']} m). Operating points: z-test alpha {run['alpha']} "
         f"(effective_n `{run.get('effective_n')}`, calibration `{run.get('calibration')}`, H0 speed ≤ "
-        f"{run.get('min_speed_mps')} m/s), speed threshold {run['velocity_threshold']} m/s, per class "
+        f"{run.get('min_speed_mps')} m/s"
+        + (f", held {run['dynamic_hold_s_per_class']} s" if run.get("dynamic_hold_s_per_class") else "")
+        + f"), speed threshold {run['velocity_threshold']} m/s, per class "
         f"{run.get('velocity_threshold_per_class')}"
         + (f", sustain {run['velocity_sustain_s_per_class']} s" if run.get("velocity_sustain_s_per_class") else "")
         + (f"; every reported variance ×{run['variance_scale']:g}" if run.get("variance_scale", 1.0) != 1.0 else "")

@@ -98,6 +98,28 @@ def test_cli_takes_a_tracker_parameter_file(tmp_path: Path, capsys) -> None:
     assert runs["online"]["motion"]["vehicle"] != runs["shipped"]["motion"]["vehicle"]
 
 
+def test_cli_hold_preset_holds_the_z_test_only(tmp_path: Path, capsys) -> None:
+    """`--preset hold` holds the z-test's dynamic calls 0.3 s: the run says so, the z-test calls no more static
+    rows dynamic and catches moving objects no sooner than at once, and the speed rule's figures are untouched."""
+    runs = {}
+    for name, extra in (("at-once", []), ("hold", ["--preset", "hold"])):
+        with pytest.raises(SystemExit) as exc:
+            main(["eval", "--scenario", "mixed", "--seed", "5", "--duration", "8", "--out", str(tmp_path / name),
+                  "--json", *extra])
+        assert exc.value.code == 0
+        runs[name] = json.loads(capsys.readouterr().out)
+    now, held = runs["at-once"], runs["hold"]
+    assert held["run"]["dynamic_hold_s_per_class"]["car"] == 0.3 and now["run"]["dynamic_hold_s_per_class"] == {}
+    assert "held {" in (tmp_path / "hold" / "report.md").read_text()
+    for g in ("vehicle", "pedestrian"):
+        a, b = now["motion"][g], held["motion"][g]
+        for k in ("false_dynamic_speed", "missed_dynamic_speed", "time_to_dynamic_s_median_speed"):
+            assert a[k] == b[k], (g, k)
+        assert b["false_dynamic_z"] <= a["false_dynamic_z"] and b["missed_dynamic_z"] >= a["missed_dynamic_z"]
+        assert b["time_to_dynamic_s_median_z"] >= a["time_to_dynamic_s_median_z"]
+    assert held["motion"]["vehicle"] != now["motion"]["vehicle"]  # the hold changed something
+
+
 @pytest.mark.parametrize("argv", [
     ["--input", "detector", "--noise", "clean"],
     ["--input", "lidar"],
