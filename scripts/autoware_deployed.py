@@ -33,7 +33,7 @@ import argparse
 import numpy as np
 from numpy.typing import NDArray
 
-from ghost_breakdown import _seeds, detection_pairs
+from ghost_breakdown import _seeds, detection_pairs, input_arguments
 from jitterguard.eval.metrics import ghost_rows, scored_rows, time_to_first_correct
 from jitterguard.eval.pipeline import Records, concat_records, track_and_classify
 from jitterguard.schemas.models import ClassifierConfig
@@ -103,13 +103,7 @@ def report(rec: Records, sustain_of_label: NDArray[np.float64]) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scenario", default="mixed")
-    ap.add_argument("--seeds", default="0-3")
-    ap.add_argument("--nuscenes", default=None, help="nuScenes dataroot instead of a scenario (one run)")
-    ap.add_argument("--input", default="detector", choices=("detector", "gt-noise"))
-    ap.add_argument("--noise", default="jittery", help="noise preset of --input gt-noise")
-    ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--cache", default=None, help="folder for the per-seed detector payloads")
+    input_arguments(ap)
     ap.add_argument("--preset", default=None, choices=sorted(PRESETS),
                     help="classifier preset for the z-test, e.g. hold (its decisions held 0.3 s)")
     args = ap.parse_args()

@@ -46,10 +46,22 @@ def _seeds(text: str) -> list[int]:
     return list(range(int(lo), int(hi or lo) + 1))
 
 
+def input_arguments(ap: argparse.ArgumentParser, default_input: str = "detector") -> None:
+    """The options :func:`detection_pairs` reads: what to run (a scenario's seeds or a nuScenes scene), on which
+    input (the detector or the noise model and its preset), with how many threads, cached where."""
+    ap.add_argument("--scenario", default="mixed")
+    ap.add_argument("--seeds", default="0-3")
+    ap.add_argument("--nuscenes", default=None, help="nuScenes dataroot instead of a scenario (one run)")
+    ap.add_argument("--input", default=default_input, choices=("detector", "gt-noise"))
+    ap.add_argument("--noise", default="jittery", help="noise preset of --input gt-noise")
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--cache", default=None, help="folder for the per-seed detector payloads")
+
+
 def detection_pairs(args: argparse.Namespace, seed: int) -> list[tuple[Any, bytes]]:
     """(ground truth, DetectedObjects payload) of every frame of one run, from the cache if it holds them."""
     tag = "nuscenes" if args.nuscenes else f"{args.scenario}-{seed}"
-    noise = getattr(args, "noise", "jittery")  # the noise model's preset, for --input gt-noise
+    noise = args.noise  # the noise model's preset, for --input gt-noise
     kind = args.input if args.input == "detector" or noise == "jittery" else f"{args.input}-{noise}"
     path = Path(args.cache) / f"{tag}-{kind}.pkl" if args.cache else None
     if path is not None and path.exists():
@@ -109,13 +121,8 @@ def _fmt(rec: Records, mask: np.ndarray, boot: TrackBootstrap) -> str:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scenario", default="mixed")
-    ap.add_argument("--seeds", default="0-3")
-    ap.add_argument("--nuscenes", default=None, help="nuScenes dataroot instead of a scenario (one run)")
-    ap.add_argument("--input", default="detector", choices=("detector", "gt-noise"))
-    ap.add_argument("--threads", type=int, default=1)
+    input_arguments(ap)
     ap.add_argument("--tracker-config", default=None, help="tracker YAML (as `jitterguard tracker --config`)")
-    ap.add_argument("--cache", default=None, help="folder for the per-seed detector payloads")
     args = ap.parse_args()
     cfg = load_config(args.tracker_config)
     clf = ClassifierConfig()

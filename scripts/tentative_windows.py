@@ -25,7 +25,7 @@ import argparse
 
 import numpy as np
 
-from ghost_breakdown import _seeds, detection_pairs
+from ghost_breakdown import _seeds, detection_pairs, input_arguments
 from jitterguard.eval.metrics import compute_metrics, planner_metrics
 from jitterguard.eval.pipeline import Records, concat_records, track_and_classify
 from jitterguard.schemas.models import ClassifierConfig
@@ -91,12 +91,7 @@ def _as_scored(label: str, rec: Records) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scenario", default="mixed")
-    ap.add_argument("--seeds", default="0-3")
-    ap.add_argument("--nuscenes", default=None, help="nuScenes dataroot instead of a scenario (one run)")
-    ap.add_argument("--input", default="gt-noise", choices=("detector", "gt-noise"))
-    ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--cache", default=None, help="folder for the per-seed detector payloads")
+    input_arguments(ap, default_input="gt-noise")
     args = ap.parse_args()
     pairs = {s: detection_pairs(args, s) for s in ([0] if args.nuscenes else _seeds(args.seeds))}
     off = _run(pairs, False, 2)
