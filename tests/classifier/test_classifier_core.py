@@ -174,6 +174,24 @@ def test_dynamic_hold_delays_every_run_of_rejections_by_its_length():
     assert (held[:, 1] == UNDECIDED).sum() == (at_once[:, 1] == UNDECIDED).sum()  # the hold decides, as soon
 
 
+def test_a_mode_switch_restarts_the_hold():
+    """A track held 0.3 s whose test rejected before a switch to the speed rule and back is not dynamic at once:
+    the clock restarts with the test that now decides."""
+    cfg = ClassifierConfig(dynamic_hold_s_per_class={"car": 0.3})
+    core = MotionClassifierCore(cfg)
+    stamps = iter(range(0, 10**10, 100_000_000))
+
+    def step(x: float) -> int:
+        return int(core.update(obs([A], [x], speed=[5.0], stamp_ns=next(stamps))).state[0])
+
+    states = [step(0.5 * k) for k in range(6)]  # moving 5 m/s: rejects from the 2nd observation
+    assert states[-1] == DYNAMIC
+    core.configure(cfg.model_copy(update={"mode": "velocity_threshold"}))
+    assert step(3.0) == DYNAMIC  # the speed rule
+    core.configure(cfg)
+    after = [step(3.0 + 0.5 * k) for k in range(1, 5)]
+    assert after[:3] == [STATIC] * 3 and after[3] == DYNAMIC  # held 0.3 s again
+
 def test_hold_preset_holds_every_class():
     cfg = ClassifierConfig.model_validate({**ClassifierConfig().model_dump(), **PRESETS["hold"]})
     assert {cfg.hold_for(int(lb)) for lb in Label} == {0.3}

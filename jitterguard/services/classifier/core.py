@@ -226,6 +226,8 @@ class MotionClassifierCore:
         old = self._config
         self._config = config
         self._set_tables(config)
+        if config.mode != old.mode:  # a hold runs on one test's rejections: another test starts its clock afresh
+            self._table.reject_since[:] = np.nan
         if (config.calibration_range_bands_m != old.calibration_range_bands_m
                 or config.calibration_prior_blocks != old.calibration_prior_blocks):
             self._online = self.make_online(config)
