@@ -449,6 +449,16 @@ def test_missing_file_is_one_line(tmp_path: Path) -> None:
     assert "\n" not in str(exc.value) and "nope.yaml" in str(exc.value)
 
 
+@pytest.mark.parametrize("path", ["cal\x00.yaml", "cal\udbf1.yaml"])
+def test_a_path_no_file_system_holds_is_refused_and_the_message_encodes(path: str) -> None:
+    """A NUL byte or a lone surrogate (a config write can carry either) is a clean refusal whose message the
+    classifier can put on the wire (UTF-8, printable), not an internal error."""
+    with pytest.raises(CalibrationFileError) as exc:
+        read_calibration(path)
+    msg = str(exc.value)
+    assert msg.encode("utf-8") and msg.isprintable() and "cannot read" in msg
+
+
 def test_static_decisions_use_the_calibrated_scales() -> None:
     """The same jittering window is dynamic with the detector's variances and static with the file's ×9."""
     rng = np.random.default_rng(16)

@@ -204,12 +204,15 @@ def test_writes_need_the_token(stack: Stack, method: str, path: str, auth: str |
     ("PATCH", {"calibration": "file"}, "calibration_file"),  # none given
     # a file only the classifier can look for (on its host): its refusal comes back as a 422 on the field
     ("PATCH", {"calibration": "file", "calibration_file": "/nonexistent/calibration.yaml"}, "calibration_file"),
+    # a path no file system can hold (schemathesis found it: a NUL byte, a lone surrogate): the same 422
+    ("PATCH", {"calibration": "file", "calibration_file": "cal\u0000\udbf1.yaml"}, "calibration_file"),
     ("PUT", {"window_size": 4, "min_window": 5}, "min_window"),
     ("PUT", {"variance_floor": 0}, "variance_floor"),
 ])
 def test_invalid_values_get_422_naming_the_field(stack: Stack, method: str, body: dict, field: str) -> None:
     with stack.http() as c:
-        r = c.request(method, "/v1/config", json=body)
+        # ASCII-escaped JSON, as a client that sends a lone surrogate must write it
+        r = c.request(method, "/v1/config", content=json.dumps(body), headers={"Content-Type": "application/json"})
         assert r.status_code == 422, r.text
         locs = [e["loc"] for e in r.json()["detail"]]
         assert any(loc[:2] == ["body", field] for loc in locs), locs

@@ -76,6 +76,7 @@ def read_calibration(path: str | Path) -> NoiseModel:
         text = p.read_text(encoding="utf-8")
     except CalibrationFileError:
         raise
-    except (OSError, UnicodeDecodeError) as exc:
-        raise CalibrationFileError(f"{p}: cannot read: {exc.__class__.__name__}: {exc}") from None
+    except (OSError, ValueError) as exc:  # ValueError: a path no file system holds (a NUL byte, a lone surrogate)
+        shown = str(p) if str(p).isprintable() else ascii(str(p))  # the reply must encode: no NUL, no surrogate
+        raise CalibrationFileError(f"{shown}: cannot read: {exc.__class__.__name__}: {exc}") from None
     return parse_calibration(text, str(p))

@@ -222,7 +222,7 @@ class ConfigError(ValueError):
     """A config that the classifier would refuse; ``errors`` is FastAPI's 422 ``detail`` list."""
 
     def __init__(self, errors: list[dict[str, Any]]) -> None:
-        self.errors = errors
+        self.errors = jsonable_errors(errors)  # echoed in a strict-JSON, UTF-8 response
         super().__init__("; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in errors))
 
 
@@ -262,18 +262,30 @@ def validate_config(data: Mapping[str, Any], touched: Iterable[str] | None = Non
         raise ConfigError(errors) from None
 
 
+def _utf8(text: str) -> str:
+    """``text`` as UTF-8 can carry it: a lone surrogate (valid in escaped JSON input, not encodable in a UTF-8
+    response) is echoed as its ``\\udXXX`` escape."""
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        return text.encode("utf-8", "backslashreplace").decode("utf-8")
+    return text
+
+
 def _jsonable(value: Any, depth: int = 0) -> Any:
     """An offending input made safe to echo in strict JSON: non-finite numbers and unknown objects become
     their ``repr``, containers are walked (bounded depth). A 422 must never turn into a 500 because the bad
     value itself cannot be serialised (``NaN`` is valid Python JSON input but not valid JSON output)."""
-    if value is None or isinstance(value, (bool, int, str)):
+    if isinstance(value, str):
+        return _utf8(value)
+    if value is None or isinstance(value, (bool, int)):
         return value
     if isinstance(value, float):
         return value if math.isfinite(value) else repr(value)
     if depth > 20:
         return "..."
     if isinstance(value, Mapping):
-        return {str(k): _jsonable(v, depth + 1) for k, v in value.items()}
+        return {_utf8(str(k)): _jsonable(v, depth + 1) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
         return [_jsonable(v, depth + 1) for v in value]
     return repr(value)
@@ -284,7 +296,7 @@ def jsonable_errors(errors: Iterable[Mapping[str, Any]]) -> list[dict[str, Any]]
     out = []
     for e in errors:
         item: dict[str, Any] = {"type": str(e.get("type", "value_error")), "loc": [
-            p if isinstance(p, (int, str)) else str(p) for p in e.get("loc", ())], "msg": str(e.get("msg", ""))}
+            p if isinstance(p, int) else _utf8(str(p)) for p in e.get("loc", ())], "msg": _utf8(str(e.get("msg", "")))}
         if "input" in e:
             item["input"] = _jsonable(e["input"])
         if e.get("ctx"):
