@@ -421,7 +421,7 @@ class ClassifierConfig(Message):
         description="per-class time the speed must stay above the threshold before the baseline says dynamic, s "
         "(Autoware's th_moving_time: the `autoware-sustain` preset)")
     dynamic_hold_s_per_class: dict[str, Annotated[float, Field(ge=0.0, le=60.0)]] = Field(
-        default_factory=_default_sustain,
+        default_factory=dict,
         description="per-class time the test must keep rejecting H0 before the classifier says dynamic, s (none: at "
         "once, as the paper; a short hold in place of Autoware's th_moving_time: the `hold` preset)")
 

@@ -188,6 +188,12 @@ class _Table:
         return self.win[rows[:, None], slots]
 
 
+def _running_since(since: F64, on: NDArray[np.bool_], now_s: float) -> F64:
+    """The clock of a condition that must hold for a while (the baseline's sustain, the test's hold): where it
+    holds, the stamp since which it has held without a break (``now_s`` where it starts); NaN where it does not."""
+    return np.where(on, np.where(np.isnan(since), now_s, since), np.nan)
+
+
 class MotionClassifierCore:
     """Sliding windows per track ID and the static/dynamic decision of DESIGN.md "The motion classifier"."""
 
@@ -438,7 +444,7 @@ class MotionClassifierCore:
         threshold_v = self._speed_table[t.label[rows]]
         fast = speed > threshold_v
         now_s = stamp_ns * 1e-9
-        t.fast_since[rows] = np.where(fast, np.where(np.isnan(t.fast_since[rows]), now_s, t.fast_since[rows]), np.nan)
+        t.fast_since[rows] = _running_since(t.fast_since[rows], fast, now_s)
         if cfg.mode in ("z_test", "chi2"):
             if cfg.mode == "z_test":
                 threshold = alpha
@@ -449,8 +455,7 @@ class MotionClassifierCore:
             # dynamic once the test has rejected H0 on every decision for the class's hold (none: at once); the
             # microsecond spares a hold of whole frames the rounding of stamps in seconds
             reject &= decided
-            since = np.where(reject, np.where(np.isnan(t.reject_since[rows]), now_s, t.reject_since[rows]), np.nan)
-            t.reject_since[rows] = since
+            since = t.reject_since[rows] = _running_since(t.reject_since[rows], reject, now_s)
             dynamic = reject & (now_s - since >= self._hold_table[t.label[rows]] - 1e-6)
         else:  # velocity_threshold: Autoware's per-class speed cut-off, held for its sustain time
             threshold = threshold_v

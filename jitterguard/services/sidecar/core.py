@@ -222,8 +222,8 @@ class ConfigError(ValueError):
     """A config that the classifier would refuse; ``errors`` is FastAPI's 422 ``detail`` list."""
 
     def __init__(self, errors: list[dict[str, Any]]) -> None:
-        self.errors = jsonable_errors(errors)  # echoed in a strict-JSON, UTF-8 response
-        super().__init__("; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in errors))
+        self.errors = jsonable_errors(errors)  # the one place inputs are made safe for a strict-JSON, UTF-8 422
+        super().__init__("; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in self.errors))
 
 
 def config_to_api(cfg: ClassifierConfig) -> dict[str, Any]:
@@ -258,7 +258,7 @@ def validate_config(data: Mapping[str, Any], touched: Iterable[str] | None = Non
                         else _window_field(touched if touched is not None else data))
                 loc, value = (name,), data.get(name)
             errors.append({"type": err.get("type", "value_error"), "loc": ["body", *loc], "msg": err.get("msg", ""),
-                           "input": _jsonable(value)})
+                           "input": value})
         raise ConfigError(errors) from None
 
 
@@ -315,7 +315,7 @@ def merge_patch(current: ClassifierConfig, patch: Mapping[str, Any]) -> Classifi
     unknown = sorted(set(patch) - set(CONFIG_FIELDS))
     if unknown:
         raise ConfigError([{"type": "extra_forbidden", "loc": ["body", unknown[0]],
-                            "msg": "Extra inputs are not permitted", "input": _jsonable(patch[unknown[0]])}])
+                            "msg": "Extra inputs are not permitted", "input": patch[unknown[0]]}])
     merged = config_to_api(current)
     defaults = config_to_api(ClassifierConfig())
     for name, value in patch.items():
