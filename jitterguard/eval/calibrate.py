@@ -20,9 +20,9 @@ from typing import TYPE_CHECKING, Annotated, Any
 import typer
 
 from ..cli_common import fail, progress_on
+from ..schemas.models import ClassifierConfig
 
 if TYPE_CHECKING:
-    from ..schemas.models import ClassifierConfig
     from ..services.classifier.calibration import OnlineCalibration
 
 
@@ -101,7 +101,7 @@ def calibrate_command(
     threads: Annotated[int | None, typer.Option("--threads", min=1, max=1024, help="torch CPU threads of the "
                                                 "detector.")] = None,
     window_size: Annotated[int, typer.Option("--window-size", min=5, max=64, help="The classifier's window "
-                                             "(blocks are windows).")] = 10,
+                                             "(blocks are windows; default: the classifier's).")] = ClassifierConfig.model_fields["window_size"].default,
     range_bands: Annotated[str, typer.Option("--range-bands", help="Range band edges in metres, comma-separated."
                                              )] = "20,40",
     start: Annotated[int, typer.Option("--start", min=0, help="First frame (0-based).")] = 0,
@@ -120,7 +120,6 @@ def calibrate_command(
                                                   "stderr is a terminal).")] = None,
 ) -> None:
     """Fit the classifier's variance calibration from a recording (no labels); write it for calibration: file."""
-    from ..schemas.models import ClassifierConfig
     from ..services.classifier.calibration_file import write_calibration
     from ..services.replay.frames import SourceError
     from ..services.replay.sources import SourceOptions, open_source

@@ -62,6 +62,8 @@ def eval_command(
                                                     "independent.")] = None,
     min_speed: Annotated[float | None, typer.Option("--min-speed", help="The test's H0 speed bound, m/s "
                                                     "(default 0.1).")] = None,
+    window_size: Annotated[int | None, typer.Option("--window-size", help="Observations per track window "
+                                                    "(default 20; the paper's 10: --window-size 10).")] = None,
     speed_sustain: Annotated[bool, typer.Option("--speed-sustain/--no-speed-sustain", help="The baseline holds "
                                                 "Autoware's sustain times (2 s vehicles, 1 s others).")] = False,
     tracker_config: Annotated[Path | None, typer.Option("--tracker-config", help="Tracker parameter file (as "
@@ -115,6 +117,7 @@ def eval_command(
     if calibration_file is not None and calibration is None:
         calibration = "file"
     for key, value in (("calibration", calibration), ("effective_n", effective_n), ("min_speed_mps", min_speed),
+                       ("window_size", window_size),
                        ("calibration_file", None if calibration_file is None else str(calibration_file))):
         if value is not None:
             upd[key] = value

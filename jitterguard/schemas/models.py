@@ -373,7 +373,7 @@ def _check_class_names(v: dict[str, float]) -> dict[str, float]:
 
 
 MAX_WINDOW = 64
-"""Largest ``window_size`` (6.4 s at 10 Hz; the paper uses 10)."""
+"""Largest ``window_size`` (6.4 s at 10 Hz; the paper uses 10, the default is 20)."""
 
 
 class ClassifierConfig(Message):
@@ -387,8 +387,9 @@ class ClassifierConfig(Message):
         "the authors' deployed values (vehicles 2.58, pedestrian 1.28, ...)",
     )
     window_size: Annotated[int, Field(ge=2, le=MAX_WINDOW, description=(
-        "observations per track window (the calibrated test and the online calibration hold W × W matrices per "
-        "window: bounded so that a config write cannot exhaust memory)"))] = 10
+        "observations per track window: 20 (2 s at 10 Hz; the paper's 10 with preset paper — docs/classifier.md "
+        "'The window'); the calibrated test and the online calibration hold W × W matrices per window: bounded "
+        "so that a config write cannot exhaust memory"))] = 20
     min_window: Annotated[int, Field(ge=2, le=MAX_WINDOW)] = 2
     variance_floor: Annotated[float, Field(gt=0.0, le=1e6)] = 1e-4
     effective_n: EffectiveN = Field(

@@ -336,9 +336,9 @@ def test_core_learns_online_and_keeps_what_it_learnt_across_reset() -> None:
     rng = np.random.default_rng(14)
     ids = [f"{i + 1:032x}" for i in range(60)]
     base = rng.uniform(-40, 40, (60, 2))
-    cfg = ClassifierConfig()
+    cfg = ClassifierConfig(window_size=10)  # windows turn over every 10 frames: the last one fills at frame 150
     core = MotionClassifierCore(cfg)
-    off = MotionClassifierCore(ClassifierConfig(calibration="off"))
+    off = MotionClassifierCore(ClassifierConfig(calibration="off", window_size=10))
     fired_on = fired_off = 0
     for f in range(150):
         p = base + rng.normal(0, 0.3, (60, 2))  # true σ 0.3, reported 0.1

@@ -24,7 +24,7 @@ from helpers import wait_until
 def _learnt(frames: int = 60, tracks: int = 40, seed: int = 3) -> MotionClassifierCore:
     """A core that has learnt from parked objects whose error is 3× what they report (σ 0.3 m vs 0.1 m)."""
     rng = np.random.default_rng(seed)
-    core = MotionClassifierCore(ClassifierConfig())
+    core = MotionClassifierCore(ClassifierConfig(window_size=10))  # a block every 10 frames per track
     xy = rng.uniform(-35.0, 35.0, (tracks, 2))
     ids = [f"{i:032x}" for i in range(tracks)]
     for f in range(frames):

@@ -163,8 +163,9 @@ def test_dynamic_hold_delays_every_run_of_rejections_by_its_length():
     noise = np.r_[np.full(68, 0.03), np.full(60, 0.25)]
     xs = np.cumsum(steps) + rng.normal(0.0, 1.0, steps.size) * noise
     labels = [int(Label.CAR), int(Label.PEDESTRIAN)]
-    at_once = _states(ClassifierConfig(), xs, labels)
-    held = _states(ClassifierConfig(dynamic_hold_s_per_class={"pedestrian": 0.3}), xs, labels)
+    # the paper's window of 10: this trajectory's runs of rejections then come in both kinds (checked below)
+    at_once = _states(ClassifierConfig(window_size=10), xs, labels)
+    held = _states(ClassifierConfig(window_size=10, dynamic_hold_s_per_class={"pedestrian": 0.3}), xs, labels)
     assert np.array_equal(held[:, 0], at_once[:, 0])  # the car: no hold
     rej = at_once[:, 1] == DYNAMIC
     want = np.array([k >= 3 and rej[k - 3:k + 1].all() for k in range(len(rej))])

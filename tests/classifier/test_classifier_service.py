@@ -81,7 +81,7 @@ def test_static_and_moving_objects_get_the_right_states(service, client_session)
     assert wait_until(lambda: len(got["motion"]) == len(truth) and all(m.header.seq == 14 for m in got["motion"].values()))
     for tid, m in got["motion"].items():
         assert m.state == ("dynamic" if truth[tid] else "static"), (tid, m)
-        assert m.window_length == 10
+        assert m.window_length == min(len(frames), ClassifierConfig().window_size)
     last = got["objects"][-1]
     assert last.header.seq == 14 and last.observed_track_ids == []
     for obj in last.objects:
@@ -135,7 +135,8 @@ def test_alpha_change_through_queryable_flips_a_borderline_object(service, clien
     plain = decode(ConfigReply, _query(client_session, keys.classifier_config(NS)).ok.payload.to_bytes())
     assert plain.config.alpha_default == pytest.approx(z + 5.0)
     snap = decode(ClassifierStateSnapshot, _query(client_session, keys.classifier_state(NS)).ok.payload.to_bytes())
-    assert [t.state for t in snap.tracks] == ["static"] and snap.tracks[0].window_length == 10
+    assert [t.state for t in snap.tracks] == ["static"]
+    assert snap.tracks[0].window_length == min(11, ClassifierConfig().window_size)  # frames 0-10
 
 
 def test_invalid_config_write_is_refused_and_nothing_changes(service, client_session):

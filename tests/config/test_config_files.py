@@ -37,10 +37,11 @@ def test_shipped_presets_load_and_differ_where_they_should() -> None:
     assert presets("classifier") == ["authors", "autoware-sustain", "hold", "paper"]
     assert presets("detector") == ["lite", "paper"]
     authors = load(ClassifierParams, service="classifier", preset="authors")
-    assert authors.alpha_per_class["pedestrian"] == 1.28 and authors.window_size == 10
+    assert authors.alpha_per_class["pedestrian"] == 1.28
     paper = load(ClassifierParams, service="classifier", preset="paper")  # the paper's statistic, whole
     assert (paper.alpha_per_class, paper.effective_n, paper.calibration, paper.min_speed_mps) == ({}, "cluster",
                                                                                                   "off", 0.0)
+    assert paper.window_size == 10 and authors.window_size == ClassifierParams().window_size == 20  # ten cycles
     sustain = load(ClassifierParams, service="classifier", preset="autoware-sustain")
     assert sustain.sustain_for(1) == 2.0 and sustain.sustain_for(7) == 1.0  # car, pedestrian
     hold = load(ClassifierParams, service="classifier", preset="hold")

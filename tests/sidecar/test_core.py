@@ -74,7 +74,7 @@ def test_merge_patch_semantics() -> None:
     out = merge_patch(cur, {"alpha_default": 1.0})
     assert out.alpha_default == 1.0 and out.window_size == 12 and out.alpha_per_class == cur.alpha_per_class
     out = merge_patch(cur, {"alpha_default": None, "window_size": None})  # null resets to the default
-    assert out.alpha_default == ClassifierConfig().alpha_default and out.window_size == 10
+    assert out.alpha_default == ClassifierConfig().alpha_default and out.window_size == 20
     out = merge_patch(cur, {"alpha_per_class": {"car": None, "pedestrian": 1.28}})  # per-key merge
     assert out.alpha_per_class == {"bus": 3.0, "pedestrian": 1.28}
     assert merge_patch(cur, {"alpha_per_class": None}).alpha_per_class == ClassifierConfig().alpha_per_class
@@ -94,7 +94,7 @@ def test_merge_patch_semantics() -> None:
     ({"alpha_default": "high"}, "alpha_default"),
     ({"window_size": 1}, "window_size"),
     ({"window_size": 5000}, "window_size"),
-    ({"min_window": 11}, "min_window"),       # > window_size 10: the cross-field rule names min_window
+    ({"min_window": 21}, "min_window"),       # > window_size 20: the cross-field rule names min_window
     ({"window_size": 3, "min_window": None}, "window_size"),  # ok: min_window resets to 2
     ({"variance_floor": -1.0}, "variance_floor"),
     ({"velocity_threshold": -0.1}, "velocity_threshold"),
