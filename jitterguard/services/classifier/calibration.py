@@ -90,7 +90,9 @@ real scans before their score-binned recalibration (docs/calibration.md), and a 
 domain is off on the next. A cold start therefore tests with heavy tails and calls less dynamic until
 the first blocks arrive (within MIN_BLOCK frames of the first tracks)."""
 BLOCK_DOF = 8.0
-"""Degrees of freedom one block of evidence gives a scale (a full 10-observation window less its line fit)."""
+"""Degrees of freedom one block of evidence gives a scale (a full 10-observation window less its line fit; a
+block of the default 20-observation window holds more, so the count is conservative: the window was chosen
+and validated with it as it is)."""
 REFIT_PERIOD_S = 0.5
 """Data time between two fits of the online model."""
 CANONICAL_DT_S = 0.1
