@@ -9,10 +9,9 @@ from __future__ import annotations
 
 import json
 import math
-import types
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
-from typing import Annotated, Any, Literal, Union, get_args, get_origin
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, Strict, ValidationError, create_model
 from pydantic.fields import FieldInfo
@@ -160,15 +159,8 @@ def _strict_json(tp: Any, metadata: list[Any]) -> Any:
     """``tp`` with its constraints, accepting exactly the JSON values its JSON Schema type admits.
 
     pydantic's lax mode would take ``false`` or ``"1.5"`` for a number (a client bug silently applied);
-    its strict mode would refuse ``213.0`` for an integer, which JSON Schema calls an integer. An optional
-    field (``X | None``) is its strict ``X`` or null.
+    its strict mode would refuse ``213.0`` for an integer, which JSON Schema calls an integer.
     """
-    if get_origin(tp) in (Union, types.UnionType) and type(None) in get_args(tp):
-        (inner,) = [a for a in get_args(tp) if a is not type(None)]
-        if get_origin(inner) is Annotated:  # Annotated[float, Field(gt=…)]: its constraints travel along
-            inner, *more = get_args(inner)
-            return _strict_json(inner, [*more, *metadata]) | None
-        return _strict_json(inner, metadata) | None
     if tp is float:
         return Annotated[(float, Strict(), *metadata)]  # type: ignore[misc]
     if tp is int:
