@@ -374,8 +374,6 @@ def _check_class_names(v: dict[str, float]) -> dict[str, float]:
 
 MAX_WINDOW = 64
 """Largest ``window_size`` (6.4 s at 10 Hz; the paper uses 10, the default is 20)."""
-PAPER_WINDOW = 10
-"""The paper's ten cycles: the fewest observations a window limited by ``window_span_s`` still tests."""
 
 
 class ClassifierConfig(Message):
@@ -392,11 +390,6 @@ class ClassifierConfig(Message):
         "observations per track window: 20 (2 s at 10 Hz; the paper's 10 with preset paper — docs/classifier.md "
         "'The window'); the calibrated test and the online calibration hold W × W matrices per window: bounded "
         "so that a config write cannot exhaust memory"))] = 20
-    window_span_s: Annotated[float, Field(gt=0.0, le=3600.0)] | None = Field(
-        4.0, description="how far back in time the test reaches: it uses a window's newest observations within "
-        "this many seconds of the newest, never fewer than the paper's 10 (or all the track has); none: the whole "
-        "window. Keeps a slow stream (nuScenes' 2 Hz key frames) from testing over 10 s; at 10 Hz the 20 "
-        "observations span 2 s and are all used")
     min_window: Annotated[int, Field(ge=2, le=MAX_WINDOW)] = 2
     variance_floor: Annotated[float, Field(gt=0.0, le=1e6)] = 1e-4
     effective_n: EffectiveN = Field(

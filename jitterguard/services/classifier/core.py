@@ -16,7 +16,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from ...schemas.models import PAPER_WINDOW, ClassifierConfig
+from ...schemas.models import ClassifierConfig
 from .calibration import MIN_BLOCK, NoiseModel, OnlineCalibration, block_moments, group_of_labels
 from .statistics import CHANNELS, calibrated_statistics, chi2_2_threshold, split_halves, window_statistics
 
@@ -422,15 +422,14 @@ class MotionClassifierCore:
         cfg = self._config
         t = self._table
         count = t.count[rows]
-        tested = self._tested_length(rows, count)
         if cfg.calibration == "off" and cfg.effective_n != "measured" and cfg.min_speed_mps == 0:
-            masks = split_halves(t.head[rows], tested, t.window)
+            masks = split_halves(t.head[rows], count, t.window)
             stats = window_statistics(t.win[rows], masks, variance_floor=cfg.variance_floor,
                                       independent=cfg.effective_n == "independent")
         else:
             # oldest first (the newest in the last slot): windows of tracks seen in the same frames then share
             # their time pattern whatever their age, and the correlation kernels are computed once for them
-            masks = split_halves(np.zeros(rows.shape[0], dtype=np.int64), tested, t.window)
+            masks = split_halves(np.zeros(rows.shape[0], dtype=np.int64), count, t.window)
             stats = calibrated_statistics(t.ordered(rows, t.window), masks, group_of_labels(t.label[rows]),
                                           self.noise_model(),
                                           variance_floor=cfg.variance_floor, effective_n=cfg.effective_n,
@@ -478,21 +477,6 @@ class MotionClassifierCore:
             threshold=np.asarray(threshold, dtype=np.float64), window_length=count,
             mean_x=stats.mean_x, mean_y=stats.mean_y, speed=speed, published=t.published[rows].copy(),
         )
-
-    def _tested_length(self, rows: NDArray[np.int64], count: NDArray[np.int64]) -> NDArray[np.int64]:
-        """How many of each window's newest observations the test uses: those within ``window_span_s`` of the
-        newest, never fewer than the paper's 10 (or all the track has). The window counts observations, so
-        without this a slow stream would test over a long time (20 of nuScenes' 2 Hz key frames are 10 s)."""
-        span = self._config.window_span_s
-        t = self._table
-        if span is None or t.window <= PAPER_WINDOW:
-            return count
-        stamp = CHANNELS.index("t")
-        rank = (t.head[rows, None] - 1 - np.arange(t.window)[None, :]) % t.window  # 0: the newest
-        times = t.win[rows, :, stamp]
-        newest = t.win[rows, (t.head[rows] - 1) % t.window, stamp]
-        inside = (rank < count[:, None]) & (times >= (newest - span - 1e-6)[:, None])
-        return np.minimum(count, np.maximum(PAPER_WINDOW, inside.sum(1)))
 
     # ------------------------------------------------------------------ state queries
 
