@@ -23,7 +23,7 @@ import threading
 import time
 from dataclasses import replace
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, NoReturn
 
 import typer
 
@@ -116,6 +116,17 @@ class _ObjectsWatch:
                 self._session.close()
             except Exception:
                 pass
+
+
+def _exit_without_finalizing(code: int) -> NoReturn:
+    """End a foreground ``up`` once its stack is stopped and its summary printed, skipping interpreter
+    finalization: Zenoh's native threads may still call into Python there (dropping the watch's callback), and a
+    native thread that meets a finalizing interpreter is ended by ``pthread_exit``, whose unwind through Rust
+    aborts the process (SIGABRT, "FATAL: exception not rethrown": pyo3 on Python before 3.14). Seen once in CI,
+    after the crash-loop report was out: the exit status 1 became −6."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
 
 
 DEFERRED_START_S = 10.0
@@ -338,7 +349,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         watch = _ObjectsWatch(ns, spec.endpoint, t0)
         code = _foreground(proc, sup, rd, stop, watch, duration, t0, wall0, _addresses(spec, progs), progs)
         watch.close()
-        raise SystemExit(code)
+        _exit_without_finalizing(code)
 
     def _wake(sup: Supervisor, proc: subprocess.Popen, timeout_s: float = 2.0) -> None:
         """Ask supervisord for its state as soon as it answers. Its main loop starts the programs only after
