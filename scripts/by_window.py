@@ -17,8 +17,7 @@ import numpy as np
 
 from jitterguard.eval.pipeline import NOISE_PRESETS, concat_records, run_pipeline
 from jitterguard.schemas.models import ClassifierConfig
-from jitterguard.services.classifier.calibration import OnlineCalibration
-from jitterguard.services.classifier.core import DYNAMIC
+from jitterguard.services.classifier.core import DYNAMIC, MotionClassifierCore
 from jitterguard.sim.world import make_scenario
 
 WINDOW_BINS = ((2, 4), (4, 7), (7, 10), (10, 65))
@@ -42,8 +41,7 @@ def main() -> None:
     ap.add_argument("--config", default="{}", help="ClassifierConfig fields as JSON")
     args = ap.parse_args()
     cfg = ClassifierConfig(**json.loads(args.config))
-    drive = OnlineCalibration(tuple(cfg.calibration_range_bands_m), cfg.calibration_prior_blocks,
-                              cfg.calibration_half_life_s, cfg.window_size)
+    drive = MotionClassifierCore.make_online(cfg)
     seeds = _seeds(args.seeds)
     parts = [run_pipeline(make_scenario(args.scenario, s, 15.0, 10.0), NOISE_PRESETS[args.noise](), s, cfg,
                           calibration=drive) for s in seeds]

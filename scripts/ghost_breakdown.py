@@ -33,8 +33,7 @@ from jitterguard.eval.metrics import TrackBootstrap, ghost_rows, planner_metrics
 from jitterguard.eval.pipeline import NOISE_PRESETS, Records, concat_records, track_and_classify
 from jitterguard.schemas import encode, read_detected_objects
 from jitterguard.schemas.models import ClassifierConfig
-from jitterguard.services.classifier.calibration import OnlineCalibration
-from jitterguard.services.classifier.core import DYNAMIC
+from jitterguard.services.classifier.core import DYNAMIC, MotionClassifierCore
 from jitterguard.services.tracker.adapter import detection_frame
 from jitterguard.services.tracker.config import TrackerConfig, load_config
 from jitterguard.services.tracker.core import FrameRejected, TrackerCore
@@ -126,8 +125,7 @@ def main() -> None:
     args = ap.parse_args()
     cfg = load_config(args.tracker_config)
     clf = ClassifierConfig()
-    drive = OnlineCalibration(tuple(clf.calibration_range_bands_m), clf.calibration_prior_blocks,
-                              clf.calibration_half_life_s, clf.window_size)
+    drive = MotionClassifierCore.make_online(clf)
     seeds = [0] if args.nuscenes else _seeds(args.seeds)
     parts, frames, born, confirmed = [], 0, 0, 0
     for s in seeds:

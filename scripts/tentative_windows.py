@@ -29,15 +29,13 @@ from ghost_breakdown import _seeds, detection_pairs, input_arguments
 from jitterguard.eval.metrics import compute_metrics, planner_metrics
 from jitterguard.eval.pipeline import Records, concat_records, track_and_classify
 from jitterguard.schemas.models import ClassifierConfig
-from jitterguard.services.classifier.calibration import OnlineCalibration
-from jitterguard.services.classifier.core import DYNAMIC
+from jitterguard.services.classifier.core import DYNAMIC, MotionClassifierCore
 from jitterguard.services.tracker.config import default_config
 
 
 def _run(pairs: dict[int, list], on: bool, min_window: int) -> Records:
     clf = ClassifierConfig(min_window=min_window)
-    drive = OnlineCalibration(tuple(clf.calibration_range_bands_m), clf.calibration_prior_blocks,
-                              clf.calibration_half_life_s, clf.window_size)
+    drive = MotionClassifierCore.make_online(clf)
     trk = default_config().model_copy(update={"observe_tentative": on})
     parts = [track_and_classify(iter(p), clf, trk, calibration=drive) for p in pairs.values()]
     return concat_records(parts, [str(s) for s in pairs])

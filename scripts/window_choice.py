@@ -21,7 +21,7 @@ from ghost_breakdown import _seeds, detection_pairs
 from jitterguard.eval.metrics import compute_metrics, planner_metrics
 from jitterguard.eval.pipeline import concat_records, track_and_classify
 from jitterguard.schemas.models import ClassifierConfig
-from jitterguard.services.classifier.calibration import OnlineCalibration
+from jitterguard.services.classifier.core import MotionClassifierCore
 
 RUNS = (("mixed", "detector"), ("diagonal-lot", "detector"), ("mixed", "gt-noise"), ("diagonal-lot", "gt-noise"))
 
@@ -29,8 +29,7 @@ RUNS = (("mixed", "detector"), ("diagonal-lot", "detector"), ("mixed", "gt-noise
 def _figures(pairs: dict[int, list[tuple[Any, bytes]]], window: int) -> dict[str, Any]:
     """metrics.json's motion, ghost and by-attribute blocks for one window over the pooled seeds."""
     cfg = ClassifierConfig(window_size=window)
-    drive = OnlineCalibration(tuple(cfg.calibration_range_bands_m), cfg.calibration_prior_blocks,
-                              cfg.calibration_half_life_s, cfg.window_size)
+    drive = MotionClassifierCore.make_online(cfg)
     rec = concat_records([track_and_classify(p, cfg, calibration=drive) for p in pairs.values()],
                          [str(s) for s in pairs])
     return {**compute_metrics(rec, intervals=False), **planner_metrics(rec, intervals=False)}

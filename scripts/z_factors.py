@@ -24,7 +24,7 @@ import numpy as np
 from jitterguard.eval.pipeline import NOISE_PRESETS, run_pipeline
 from jitterguard.schemas.models import ClassifierConfig
 from jitterguard.services.classifier import core as core_module
-from jitterguard.services.classifier.calibration import OnlineCalibration, group_of_labels
+from jitterguard.services.classifier.calibration import group_of_labels
 from jitterguard.services.classifier.statistics import calibrated_statistics, split_halves
 from jitterguard.sim.world import make_scenario
 
@@ -91,8 +91,7 @@ def main() -> None:
     ap.add_argument("--noise", default="jittery")
     args = ap.parse_args()
     cfg = ClassifierConfig()
-    drive = OnlineCalibration(tuple(cfg.calibration_range_bands_m), cfg.calibration_prior_blocks,
-                              cfg.calibration_half_life_s, cfg.window_size)
+    drive = core_module.MotionClassifierCore.make_online(cfg)
     rec = _Recorder()
     table: dict[str, list] = {k: [] for k in ("group", "dyn", "alpha", *VARIANTS, "d", "sd", "n")}
     for part, seed in enumerate(_seeds(args.seeds)):

@@ -211,6 +211,7 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
 
     from .groundtruth import NuScenesError, load_nuscenes_frames
     from ..services.classifier.calibration import OnlineCalibration
+    from ..services.classifier.core import MotionClassifierCore
     from .metrics import REPORT_GROUPS, alpha_from_labels, compute_metrics, planner_metrics
     from .pipeline import MATCH_DISTANCE_M, NOISE_PRESETS, Records, concat_records, run_pipeline
     from .report import write_outputs
@@ -236,16 +237,13 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
 
     predictions: list[Any] = []
     samples: list[Any] = []
-    drive = OnlineCalibration(tuple(classifier.calibration_range_bands_m), classifier.calibration_prior_blocks,
-                              classifier.calibration_half_life_s, classifier.window_size)
+    drive = MotionClassifierCore.make_online(classifier)
     # synthetic seeds are different streets of one drive; repeated noise draws of one nuScenes scene are not,
     # and carrying over would learn that scene's own boxes: each of them starts cold
     def calibration_for_run() -> OnlineCalibration:
         nonlocal drive
         if nuscenes is not None:
-            drive = OnlineCalibration(tuple(classifier.calibration_range_bands_m),
-                                      classifier.calibration_prior_blocks, classifier.calibration_half_life_s,
-                                      classifier.window_size)
+            drive = MotionClassifierCore.make_online(classifier)
         return drive
 
     def bar(it: Any, s: int) -> Any:

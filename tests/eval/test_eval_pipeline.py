@@ -82,18 +82,24 @@ def test_cli_writes_report_metrics_and_figures(tmp_path: Path, capsys) -> None:
     assert on_disk["run"]["tracker_measurement_scale"] == "off"
 
 
-def test_cli_takes_a_tracker_parameter_file(tmp_path: Path, capsys) -> None:
-    """`--tracker-config` runs the tracker as that file says (here its measurement scale switched on): the run
-    says so, and the tracks, hence the speed rule's rows, are not those of the shipped file."""
-    cfg = tmp_path / "tracker.yaml"
-    cfg.write_text("measurement_scale: online\n")
+def _short_mixed_runs(tmp_path: Path, capsys, **variants: list[str]) -> dict[str, dict]:
+    """metrics.json of one short `mixed` run per variant (name → extra eval flags), each in tmp_path/name."""
     runs = {}
-    for name, extra in (("shipped", []), ("online", ["--tracker-config", str(cfg)])):
+    for name, extra in variants.items():
         with pytest.raises(SystemExit) as exc:
             main(["eval", "--scenario", "mixed", "--seed", "5", "--duration", "8", "--out", str(tmp_path / name),
                   "--json", *extra])
         assert exc.value.code == 0
         runs[name] = json.loads(capsys.readouterr().out)
+    return runs
+
+
+def test_cli_takes_a_tracker_parameter_file(tmp_path: Path, capsys) -> None:
+    """`--tracker-config` runs the tracker as that file says (here its measurement scale switched on): the run
+    says so, and the tracks, hence the speed rule's rows, are not those of the shipped file."""
+    cfg = tmp_path / "tracker.yaml"
+    cfg.write_text("measurement_scale: online\n")
+    runs = _short_mixed_runs(tmp_path, capsys, shipped=[], online=["--tracker-config", str(cfg)])
     assert runs["online"]["run"]["tracker_measurement_scale"] == "online"
     assert runs["online"]["motion"]["vehicle"] != runs["shipped"]["motion"]["vehicle"]
 
@@ -101,13 +107,7 @@ def test_cli_takes_a_tracker_parameter_file(tmp_path: Path, capsys) -> None:
 def test_cli_hold_preset_holds_the_z_test_only(tmp_path: Path, capsys) -> None:
     """`--preset hold` holds the z-test's dynamic calls 0.3 s: the run says so, the z-test calls no more static
     rows dynamic and catches moving objects no sooner than at once, and the speed rule's figures are untouched."""
-    runs = {}
-    for name, extra in (("at-once", []), ("hold", ["--preset", "hold"])):
-        with pytest.raises(SystemExit) as exc:
-            main(["eval", "--scenario", "mixed", "--seed", "5", "--duration", "8", "--out", str(tmp_path / name),
-                  "--json", *extra])
-        assert exc.value.code == 0
-        runs[name] = json.loads(capsys.readouterr().out)
+    runs = _short_mixed_runs(tmp_path, capsys, **{"at-once": [], "hold": ["--preset", "hold"]})
     now, held = runs["at-once"], runs["hold"]
     assert held["run"]["dynamic_hold_s_per_class"]["car"] == 0.3 and now["run"]["dynamic_hold_s_per_class"] == {}
     assert "held {" in (tmp_path / "hold" / "report.md").read_text()
@@ -123,13 +123,7 @@ def test_cli_hold_preset_holds_the_z_test_only(tmp_path: Path, capsys) -> None:
 def test_cli_window_size_sets_the_window_and_the_default_is_20(tmp_path: Path, capsys) -> None:
     """`--window-size 10` runs the paper's window: the run says so, full windows are those of 10 observations,
     and the z-test's figures differ from the default window of 20 on the same tracks (the speed rule's do not)."""
-    runs = {}
-    for name, extra in (("default", []), ("ten", ["--window-size", "10"])):
-        with pytest.raises(SystemExit) as exc:
-            main(["eval", "--scenario", "mixed", "--seed", "5", "--duration", "8", "--out", str(tmp_path / name),
-                  "--json", *extra])
-        assert exc.value.code == 0
-        runs[name] = json.loads(capsys.readouterr().out)
+    runs = _short_mixed_runs(tmp_path, capsys, default=[], ten=["--window-size", "10"])
     assert runs["default"]["run"]["window_size"] == 20 and runs["ten"]["run"]["window_size"] == 10
     a, b = runs["default"]["motion"]["vehicle"], runs["ten"]["motion"]["vehicle"]
     assert a["false_dynamic_speed"] == b["false_dynamic_speed"] and a["missed_dynamic_speed"] == b["missed_dynamic_speed"]
