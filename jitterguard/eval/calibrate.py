@@ -68,8 +68,8 @@ def calibrate_detections(payloads: Iterable[bytes], config: "ClassifierConfig",
 def recording_detections(source: Any, detector: Any, start: int, limit: int | None,
                          errors: list[str]) -> Iterator[bytes]:
     """The ``DetectedObjects`` payload of every frame of a replay source: scans through the detector service's
-    steps, detection-level frames as the replay publishes them. Unreadable frames are skipped (appended to
-    ``errors``)."""
+    steps (``detector``: None for a source of detections), detection-level frames as the replay publishes them.
+    Unreadable frames are skipped (appended to ``errors``)."""
     from ..schemas import encode
     from ..services.detector.adapter import detections_payload
     from ..services.replay.adapter import detections_message, point_cloud_message
@@ -77,7 +77,7 @@ def recording_detections(source: Any, detector: Any, start: int, limit: int | No
     from ..services.detector.sweeps import SweepStacker
     from .detector_input import detect_scan
 
-    stacker = SweepStacker(detector.sweeps) if detector.sweeps > 1 else None
+    stacker = SweepStacker(detector.sweeps) if detector is not None and detector.sweeps > 1 else None
     for i, item in enumerate(source.frames(start)):
         if limit is not None and i >= limit:
             return
@@ -101,7 +101,9 @@ def calibrate_command(
     threads: Annotated[int | None, typer.Option("--threads", min=1, max=1024, help="torch CPU threads of the "
                                                 "detector.")] = None,
     window_size: Annotated[int, typer.Option("--window-size", min=5, max=64, help="The classifier's window "
-                                             "(blocks are windows; default: the classifier's).")] = ClassifierConfig.model_fields["window_size"].default,
+                                             "(blocks are windows; default: the classifier's; a recording slower "
+                                             "than 10 Hz gets proportionally shorter ones, at least 10, as the "
+                                             "classifier's windows).")] = ClassifierConfig.model_fields["window_size"].default,
     range_bands: Annotated[str, typer.Option("--range-bands", help="Range band edges in metres, comma-separated."
                                              )] = "20,40",
     start: Annotated[int, typer.Option("--start", min=0, help="First frame (0-based).")] = 0,
@@ -163,7 +165,7 @@ def calibrate_command(
              f"{seen['observations']} observations); use a longer recording")
     source = {"recording": recording, "frames": seen["frames"], "observations": seen["observations"],
               "blocks": seen["blocks"], "blocks_fast": seen["blocks_fast"], "unreadable_frames": len(errors)}
-    write_calibration(out, cal.model(), window=window_size, source=source)
+    write_calibration(out, cal.model(), window=cal.window, source=source)  # a slow recording's shorter window
     print(f"wrote {out}: {seen['blocks']} blocks from {seen['frames']} frames"
           + (f" ({len(errors)} unreadable frames skipped)" if errors else ""))
 

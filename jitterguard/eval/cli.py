@@ -63,7 +63,11 @@ def eval_command(
     min_speed: Annotated[float | None, typer.Option("--min-speed", help="The test's H0 speed bound, m/s "
                                                     "(default 0.1).")] = None,
     window_size: Annotated[int | None, typer.Option("--window-size", help="Observations per track window "
-                                                    "(default 20; the paper's 10: --window-size 10).")] = None,
+                                                    "(default 20 at 10 Hz; a slower stream gets the same span, "
+                                                    "at least 10; the paper's 10: --window-size 10).")] = None,
+    fixed_window: Annotated[bool, typer.Option("--fixed-window/--no-fixed-window", help="The window holds "
+                                               "window_size observations at any frame rate "
+                                               "(window_reference_hz: null).")] = False,
     speed_sustain: Annotated[bool, typer.Option("--speed-sustain/--no-speed-sustain", help="The baseline holds "
                                                 "Autoware's sustain times (2 s vehicles, 1 s others).")] = False,
     tracker_config: Annotated[Path | None, typer.Option("--tracker-config", help="Tracker parameter file (as "
@@ -121,6 +125,8 @@ def eval_command(
                        ("calibration_file", None if calibration_file is None else str(calibration_file))):
         if value is not None:
             upd[key] = value
+    if fixed_window:
+        upd["window_reference_hz"] = None
     if speed_sustain:
         upd.update(PRESETS["autoware-sustain"])
     try:
@@ -309,14 +315,15 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
                 "velocity_threshold_per_class": dict(classifier.velocity_threshold_per_class),
                 "velocity_sustain_s_per_class": dict(classifier.velocity_sustain_s_per_class),
                 "dynamic_hold_s_per_class": dict(classifier.dynamic_hold_s_per_class),
-                "min_window": classifier.min_window, "window_size": classifier.window_size,
+                "min_window": classifier.min_window, "window_size": rec.window_size,
+                "window_reference_hz": classifier.window_reference_hz,
                 "calibration": classifier.calibration, "effective_n": classifier.effective_n,
                 "min_speed_mps": classifier.min_speed_mps, "variance_scale": variance_scale,
                 "variance_scale_at": variance_scale_at,
                 "tracker_measurement_scale": (tracker or default_tracker_config()).measurement_scale},
         "motion": compute_metrics(rec),
         **planner_metrics(rec),
-        "calibration": drive.snapshot(classifier.window_size) if classifier.calibration == "online" else None,
+        "calibration": drive.snapshot(rec.window_size) if classifier.calibration == "online" else None,
         "alpha_from_labels": {g: alpha_from_labels(rec, g) for g in REPORT_GROUPS},
     }
     metrics["alpha_from_labels_preset"] = labels_preset(metrics["alpha_from_labels"])

@@ -264,7 +264,7 @@ def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame, bytes]],
         alpha=cat("alpha", np.float64), velocity_threshold=float(base.velocity_threshold),
         min_window=int(base.min_window), gt_attribute=cat("gt_attribute", "U32"), gt_speed=cat("gt_speed", np.float64),
         speed_threshold=cat("speed_threshold", np.float64), track_group=cat("track_group", "U12"),
-        window_size=int(base.window_size),
+        window_size=adapter_z.core.window,
     )
 
 

@@ -390,6 +390,11 @@ class ClassifierConfig(Message):
         "observations per track window: 20 (2 s at 10 Hz; the paper's 10 with preset paper — docs/classifier.md "
         "'The window'); the calibrated test and the online calibration hold W × W matrices per window: bounded "
         "so that a config write cannot exhaust memory"))] = 20
+    window_reference_hz: Annotated[float, Field(ge=0.1, le=1000.0)] | None = Field(
+        10.0, description="the frame rate window_size is meant for, Hz: a slower stream (its rate measured from "
+        "the frames' stamps) gets proportionally fewer observations, the same span in time, but never fewer than "
+        "min(10, window_size) (the paper's window; 2 Hz key frames: 10, not 20 observations = 10 s); a faster one "
+        "keeps window_size; null: window_size observations at any rate (docs/classifier.md 'The window')")
     min_window: Annotated[int, Field(ge=2, le=MAX_WINDOW)] = 2
     variance_floor: Annotated[float, Field(gt=0.0, le=1e6)] = 1e-4
     effective_n: EffectiveN = Field(

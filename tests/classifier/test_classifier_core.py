@@ -6,13 +6,16 @@ z values are the paper's equations; the calibrated statistic has its own tests (
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
 from jitterguard.geometry import rotate_cov2
 from jitterguard.schemas.models import ClassifierConfig, Label
 from jitterguard.services.classifier.config import PRESETS
-from jitterguard.services.classifier.core import DYNAMIC, STATIC, UNDECIDED, MotionClassifierCore, Observations
+from jitterguard.services.classifier.core import (
+    DYNAMIC, STATIC, UNDECIDED, MotionClassifierCore, Observations, window_for_interval)
 
 AUTHORS_ALPHA = {"car": 2.58, "truck": 2.58, "bus": 2.58, "trailer": 1.64, "motorcycle": 1.96, "bicycle": 1.64,
                  "pedestrian": 1.28, "unknown": 1.96}
@@ -90,6 +93,89 @@ def test_resizing_the_window_keeps_newest_in_order():
     dec = core.update(obs([A], [3.0], var=1.0))  # [1,1,1,1,3] -> older [1,1], newer [1,1,3]
     assert dec.window_length[0] == 5
     assert dec.z_x[0] == pytest.approx((5 / 3 - 1) / np.sqrt(1 / 2 + 1 / 3))
+
+
+def _frames(core: MotionClassifierCore, n: int, interval_s: float, start: int = 0, ids=(A,)) -> None:
+    """``n`` frames of static tracks ``ids``, ``interval_s`` apart, seq counting frames."""
+    for k in range(start, start + n):
+        core.update(obs(list(ids), np.zeros(len(ids)), seq=k, stamp_ns=int(round(k * interval_s * 1e9))))
+
+
+@pytest.mark.parametrize(("hz", "window"), [(20.0, 20), (10.0, 20), (5.0, 10), (8.0, 16), (2.0, 10), (0.5, 10)])
+def test_a_slower_stream_gets_the_same_span_in_fewer_observations(hz, window):
+    core = MotionClassifierCore(ClassifierConfig())  # window_size 20 at the reference 10 Hz
+    _frames(core, 30, 1.0 / hz)
+    assert core.window == window
+    assert core.last_decisions().window_length[0] == window  # the track's window holds that many, and no more
+    assert core.calibration_state()["window"] == window
+
+
+def test_the_window_follows_the_configured_size_and_floor():
+    for cfg, window in ((ClassifierConfig(window_size=10), 10), (ClassifierConfig(window_size=6), 6),
+                        (ClassifierConfig(window_size=40), 10), (ClassifierConfig(window_reference_hz=None), 20),
+                        (ClassifierConfig(window_size=30, min_window=14), 14),
+                        (ClassifierConfig(window_size=40, window_reference_hz=2.0), 40)):
+        core = MotionClassifierCore(cfg)
+        _frames(core, 12, 0.5)  # 2 Hz
+        assert core.window == window, cfg
+
+
+def test_the_rate_is_per_frame_of_seq_and_robust_to_gaps_and_restarts():
+    core = MotionClassifierCore(ClassifierConfig())
+    for k in (0, 3, 6, 9, 12):  # a 10 Hz stream whose tracks are seen every third frame only
+        core.update(obs([A], [0.0], seq=k, stamp_ns=k * 100_000_000))
+    assert core.frame_interval_s == pytest.approx(0.1)
+    assert core.window == 20
+    _frames(core, 20, 0.1, start=13)
+    core.update(obs([A], [0.0], seq=40, stamp_ns=60 * 10**9))  # one long pause does not move the median
+    assert core.window == 20
+    core.update(obs([A], [0.0], seq=0, stamp_ns=0))  # the recording starts over: its rate is measured afresh
+    assert core.frame_interval_s is None
+    _frames(core, 5, 0.5, start=1)
+    assert core.window == 10
+
+
+@pytest.mark.parametrize(("interval_s", "window"), [(1e-300, 20), (5e-324, 20), (1e300, 10), (math.inf, 10),
+                                                     (math.nan, 20), (-1.0, 20)])
+def test_extreme_intervals_give_a_window_in_bounds(interval_s, window):
+    for ref in (0.1, 10.0, 1000.0):
+        assert window_for_interval(ClassifierConfig(window_reference_hz=ref), interval_s) == window
+
+
+def test_equal_stamps_keep_the_configured_window():
+    core = MotionClassifierCore(ClassifierConfig())
+    _frames(core, 25, 0.0)
+    assert core.frame_interval_s is None and core.window == 20
+    assert core.last_decisions().window_length[0] == 20
+
+
+def test_a_config_write_resizes_at_the_measured_rate():
+    core = MotionClassifierCore(ClassifierConfig())
+    _frames(core, 12, 0.5)
+    assert core.window == 10
+    core.configure(ClassifierConfig(window_reference_hz=None))
+    assert core.window == 20 and core.last_decisions().window_length[0] == 10  # kept, fills up to 20
+    core.configure(ClassifierConfig(window_size=40))
+    assert core.window == 10
+
+
+def test_a_slow_streams_calibration_learns_blocks_of_its_window():
+    """The online calibration of a 2 Hz stream is the one a fixed window of 10 gives: same blocks, same prior."""
+    rng = np.random.default_rng(7)
+    ids = [f"{i:032x}" for i in range(30)]
+    xs = rng.normal(0.0, 0.3, (60, 30))
+    cores = [MotionClassifierCore(ClassifierConfig()),
+             MotionClassifierCore(ClassifierConfig(window_size=10, window_reference_hz=None))]
+    for core in cores:
+        for k in range(60):
+            core.update(obs(ids, xs[k], seq=k, stamp_ns=k * 500_000_000, var=0.01))
+            core.learn()
+    a, b = (c.online_calibration for c in cores)
+    assert a.window == b.window == 10
+    assert a.counts["blocks"] == b.counts["blocks"] > 0
+    np.testing.assert_allclose(a.current.scale, b.current.scale, rtol=1e-12)
+    last = [c.last_decisions(np.array(ids, dtype="S32")) for c in cores]
+    np.testing.assert_allclose(last[0].z_x, last[1].z_x, rtol=1e-12)
 
 
 def test_per_class_alpha_and_authors_preset():

@@ -131,6 +131,19 @@ def test_cli_window_size_sets_the_window_and_the_default_is_20(tmp_path: Path, c
     assert runs["ten"]["full_window"]["vehicle"]["n_static"] > runs["default"]["full_window"]["vehicle"]["n_static"]
 
 
+def test_cli_a_slow_stream_gets_the_window_of_its_span(tmp_path: Path, capsys) -> None:
+    """At 2 Hz the default window (20 observations at 10 Hz) holds 10 — the run says so and its every figure is
+    the fixed window of 10's — and `--fixed-window` keeps 20 observations (10 s) whatever the rate."""
+    slow = ["--rate", "2", "--duration", "25"]
+    runs = _short_mixed_runs(tmp_path, capsys, default=slow, ten=[*slow, "--window-size", "10", "--fixed-window"],
+                             fixed=[*slow, "--fixed-window"])
+    assert runs["default"]["run"]["window_size"] == 10 and runs["default"]["run"]["window_reference_hz"] == 10.0
+    assert runs["fixed"]["run"]["window_size"] == 20 and runs["fixed"]["run"]["window_reference_hz"] is None
+    assert runs["default"]["motion"] == runs["ten"]["motion"]
+    assert runs["default"]["calibration"] == runs["ten"]["calibration"]
+    assert runs["default"]["motion"]["vehicle"] != runs["fixed"]["motion"]["vehicle"]
+
+
 @pytest.mark.parametrize("argv", [
     ["--window-size", "1"],
     ["--window-size", "65"],

@@ -109,6 +109,7 @@ class FrameOutput:
     decided: Decisions | None  # the core's decisions for ``observed``; None when nothing was observed
     windows: np.ndarray  # the IDs (S32) whose windows live on: published or observed (tentative ones too; repeats)
     config: ClassifierConfig  # in force for this frame
+    window: int  # observations a window held for this frame (``window_size``, or fewer for a slow stream)
     received_at: float
     missing: int
 
@@ -182,7 +183,8 @@ class ClassifierAdapter:
         payload = write_tracked_objects(TrackedColumns(h, tracked.ego_pose, objects, []))
         return FrameOutput(seq=h.seq, header=h, objects=objects, payload=payload, reported=reported, decisions=dec,
                            observed=obs, decided=decided, windows=windows,
-                           config=self.core.config, received_at=frame.received_at, missing=frame.missing)
+                           config=self.core.config, window=self.core.window, received_at=frame.received_at,
+                           missing=frame.missing)
 
     def settle(self, out: FrameOutput) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
         """The work that can wait until ``objects`` is out (call before the next frame): learn the online

@@ -505,6 +505,19 @@ class OnlineCalibration:
         self._Y, self._Ew, self._Et = pad(self._Y, ()), pad(self._Ew, ()), pad(self._Et, (T,))
         self.window = n
 
+    def set_window(self, n: int) -> None:
+        """Blocks will be ``n`` observations long (the classifier sized its window to the stream's rate): an
+        estimator that has pooled nothing starts over at that size, so its prior's pseudo-blocks are blocks of
+        ``n``; one that has pooled blocks keeps them (grown if ``n`` is longer; shorter blocks pool into the
+        larger sums as they are)."""
+        if self._n.sum() == 0 and self._het[:, 3].sum() == 0 and n != self.window:
+            counts = self.counts
+            self.window = n
+            self.__post_init__()
+            self.counts = counts
+        elif n > self.window:
+            self._grow(n)
+
     def add(self, groups: NDArray[np.int64], mom: BlockMoments, young: NDArray[np.bool_] | None = None) -> None:
         """Pool N blocks (``groups`` their class-group index, ``young`` whether each is a track's first) with
         Huber weights against the current model."""

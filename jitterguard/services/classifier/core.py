@@ -10,6 +10,7 @@ rows through a sorted ID array and ``np.searchsorted``, so the per-frame path ha
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
@@ -26,6 +27,27 @@ IDS = NDArray[np.bytes_]
 UNDECIDED, STATIC, DYNAMIC = 0, 1, 2
 STATE_NAMES = ("undecided", "static", "dynamic")
 _NUM_LABELS = 8
+RATE_WINDOW_FLOOR = 10
+"""Fewest observations a slow stream's window is shortened to (the paper's window): at 2 Hz the default's two
+seconds are four frames, too few to split into halves worth testing; ten is what the paper tested."""
+RATE_INTERVALS = 9
+"""Frame intervals the stream's rate is the median of (a dropped or late frame does not move it)."""
+
+
+def window_for_interval(config: ClassifierConfig, interval_s: float | None) -> int:
+    """The window a stream whose frames are ``interval_s`` apart gets: ``window_size`` observations at
+    ``window_reference_hz`` or faster; on a slower stream proportionally fewer — the same span in time — but at
+    least min(:data:`RATE_WINDOW_FLOOR`, ``window_size``) and ``min_window``; ``window_size`` when the reference
+    is off or the interval not yet known. The default window was chosen as 2 s at 10 Hz, and a fixed count
+    would stretch that span on a slow stream (20 frames of nuScenes' 2 Hz key frames are 10 s); a faster stream
+    keeps the count (more observations in a shorter span), since the window's cost grows as its square."""
+    w = config.window_size
+    if config.window_reference_hz is None or interval_s is None or not interval_s > 0:
+        return w
+    low = max(config.min_window, min(RATE_WINDOW_FLOOR, w))
+    frames = interval_s * config.window_reference_hz  # reference frames per frame of this stream
+    span = w / frames if frames > 0 else math.inf  # observations of the reference span at this rate
+    return int(min(w, max(low, round(span)))) if math.isfinite(span) else w
 
 
 @dataclass(frozen=True)
@@ -202,7 +224,9 @@ class MotionClassifierCore:
         """``calibration_model``: the scales for ``calibration: file`` (the adapter reads the file);
         ``online``: an online calibration to continue (e.g. from the previous recording of one drive)."""
         self._config = config or ClassifierConfig()
-        self._table = _Table(window=self._config.window_size, capacity=max(8, capacity))
+        self._table = _Table(window=window_for_interval(self._config, None), capacity=max(8, capacity))
+        self._clock: tuple[int, int] | None = None  # (stamp ns, seq) of the last frame
+        self._intervals: deque[float] = deque(maxlen=RATE_INTERVALS)  # seconds per frame, the latest
         self._ids: IDS = np.empty(0, dtype="S32")  # sorted
         self._id_rows: NDArray[np.int64] = np.empty(0, dtype=np.int64)
         self._free: list[int] = list(range(self._table.capacity - 1, -1, -1))
@@ -227,8 +251,6 @@ class MotionClassifierCore:
         self.learn()  # what filled under the old window length is learnt with it
         if calibration_model is not None:
             self._file_model = calibration_model
-        if config.window_size != self._table.window:
-            self._table.rewindow(config.window_size)
         old = self._config
         self._config = config
         self._set_tables(config)
@@ -238,6 +260,7 @@ class MotionClassifierCore:
                 or config.calibration_prior_blocks != old.calibration_prior_blocks):
             self._online = self.make_online(config)
         self._online.half_life_s = config.calibration_half_life_s
+        self._resize(window_for_interval(config, self.frame_interval_s))
 
     def check_config(self, config: ClassifierConfig, calibration_model: NoiseModel | None = None) -> None:
         """Raise ``ValueError`` if :meth:`configure` would refuse ``config`` (changes nothing)."""
@@ -260,6 +283,40 @@ class MotionClassifierCore:
         self._sustain_table = per_label(config.sustain_for)
         self._hold_table = per_label(config.hold_for)
 
+    # ------------------------------------------------------------------ the window and the stream's rate
+
+    @property
+    def window(self) -> int:
+        """Observations a window holds now: ``window_size``, or fewer for a slow stream
+        (:func:`window_for_interval`)."""
+        return self._table.window
+
+    @property
+    def frame_interval_s(self) -> float | None:
+        """The stream's time between frames: the median of the latest intervals between frames' stamps, per
+        frame of ``seq`` (frames with no observations skipped between two updates count); None before two
+        frames with different stamps."""
+        return float(np.median(self._intervals)) if self._intervals else None
+
+    def _observe_clock(self, stamp_ns: int, seq: int) -> None:
+        last, self._clock = self._clock, (stamp_ns, seq)
+        if last is None or stamp_ns == last[0]:
+            return
+        if stamp_ns < last[0]:  # a recording that started over: its rate is measured afresh
+            self._intervals.clear()
+            return
+        frames = seq - last[1]
+        self._intervals.append((stamp_ns - last[0]) * 1e-9 / (frames if frames >= 1 else 1))
+
+    def _resize(self, window: int) -> None:
+        """Give every window ``window`` slots (each keeps its newest observations); the online calibration's
+        blocks follow."""
+        if window == self._table.window:
+            return
+        self.learn()  # what filled under the old length is learnt with it
+        self._table.rewindow(window)
+        self._online.set_window(window)
+
     # ------------------------------------------------------------------ calibration
 
     @property
@@ -281,11 +338,11 @@ class MotionClassifierCore:
         window size, the mode, and the online estimator's counters (blocks pooled, too fast to pool,
         down-weighted as outliers). Rebuilt only when the model or the config changed."""
         model = self.noise_model()
-        key = (id(model), self._config.calibration, self._config.effective_n, self._config.window_size,
+        key = (id(model), self._config.calibration, self._config.effective_n, self.window,
                self._online.counts["blocks"])
         if self._state_cache is None or self._state_cache[0] != key:
             state = {"mode": self._config.calibration, "effective_n": self._config.effective_n,
-                     **model.to_mapping(self._config.window_size), "counts": dict(self._online.counts),
+                     **model.to_mapping(self.window), "counts": dict(self._online.counts),
                      "effective_blocks": round(self._online.effective_blocks, 3),
                      "scale_dof": round(model.scale_dof, 3) if math.isfinite(model.scale_dof) else None}
             self._state_cache = (key, state)
@@ -384,6 +441,10 @@ class MotionClassifierCore:
         """Append one observation per track to its window and decide every observed track (with the
         calibration as :meth:`learn` left it)."""
         self.learn()  # a no-op when the adapter's settle has run since the last frame
+        self._observe_clock(obs.stamp_ns, obs.seq)
+        target = window_for_interval(self._config, self.frame_interval_s)
+        if abs(target - self._table.window) >= 2:  # a rate at a rounding edge does not flip the window
+            self._resize(target)
         ids = obs.track_ids
         rows, found = self._lookup(ids)
         if not found.all():

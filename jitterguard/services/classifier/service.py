@@ -70,6 +70,7 @@ class _Latest:
     stamps: np.ndarray
     seqs: np.ndarray
     config: ClassifierConfig
+    window: int  # the window the frame was decided with (window_size, or fewer for a slow stream)
     encoded: bytes | None = None
 
 
@@ -100,8 +101,10 @@ class ClassifierService(Service):
         if calibration_model is None and config.calibration == "file" and config.calibration_file:
             calibration_model = read_calibration(config.calibration_file)
         self.log.info("%s", self.config_writes.describe())
-        self.log.info("deciding by %s, calibration %s, effective_n %s, H0 |v| <= %g m/s, window %d", config.mode,
-                      config.calibration, config.effective_n, config.min_speed_mps, config.window_size)
+        self.log.info("deciding by %s, calibration %s, effective_n %s, H0 |v| <= %g m/s, window %d observations%s",
+                      config.mode, config.calibration, config.effective_n, config.min_speed_mps, config.window_size,
+                      "" if config.window_reference_hz is None
+                      else f" at {config.window_reference_hz:g} Hz (proportionally fewer on a slower stream)")
         self._manage_gc = manage_gc
         self._idle_gc = IdleCollector()
         if manage_gc:
@@ -328,7 +331,7 @@ class ClassifierService(Service):
         self._store_calibration()
         with self._latest_lock:
             header = {"stamp": out.header.stamp, "frame_id": out.header.frame_id, "seq": out.header.seq}
-            self._latest = _Latest(header, out.objects, out.decisions, labels, stamps, seqs, out.config)
+            self._latest = _Latest(header, out.objects, out.decisions, labels, stamps, seqs, out.config, out.window)
 
     def _count_states(self, state: np.ndarray) -> None:
         """Object-frames per decision (``objects.static`` …, running) and the last frame's (``now.static`` …):
@@ -421,7 +424,7 @@ class ClassifierService(Service):
                ("z_x", "z_y", "chi2", "alpha", "threshold", "window_length", "speed")}
         states, labels = dec.state.tolist(), latest.labels.tolist()
         stamps, seqs = latest.stamps.tolist(), latest.seqs.tolist()
-        window_size = latest.config.window_size
+        window_size = latest.window
         poses = Poses.of(latest.objects)  # static objects already carry their window mean
         ids = [i.decode() for i in latest.objects["object_id"].tolist()]
         px, py, yaw = poses.x.tolist(), poses.y.tolist(), poses.yaw.tolist()

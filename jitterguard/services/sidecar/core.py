@@ -135,7 +135,8 @@ _CONFIG_DOCS: dict[str, str] = {
     "mode": "test: `z_test` (the paper), `chi2` (joint x/y), or `velocity_threshold` (Autoware's baseline)",
     "alpha_default": "z threshold for classes without an override (1.96 ≈ 95 %)",
     "alpha_per_class": "per-class alpha overrides keyed by lowercase class name",
-    "window_size": "observations kept per track (sliding window)",
+    "window_size": "observations kept per track (sliding window) at window_reference_hz; a slower stream keeps "
+                   "proportionally fewer (at least 10)",
     "min_window": "observations needed before a track is tested (must not exceed window_size)",
     "variance_floor": "lower bound on each half's mean predicted variance, m²",
     "effective_n": "`measured` (default): the variance of the half-mean difference under the calibrated serial "

@@ -1,0 +1,44 @@
+"""`jitterguard calibrate`: a recording through the live path to a calibration file the classifier loads, and its
+blocks as long as the classifier's windows on that recording's stream."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import yaml
+
+from jitterguard.cli import main
+from jitterguard.services.classifier.calibration_file import read_calibration
+
+
+def _calibrate(tmp_path: Path, name: str, *extra: str) -> dict:
+    out = tmp_path / f"{name}.yaml"
+    with pytest.raises(SystemExit) as exc:
+        main(["calibrate", "synthetic:mixed", "--level", "detections", "--seed", "3", "--out", str(out), *extra])
+    assert exc.value.code == 0
+    read_calibration(str(out))  # the classifier's own reader takes it
+    return yaml.safe_load(out.read_text())
+
+
+def test_calibrate_writes_scales_from_windows_of_the_streams_span(tmp_path: Path, capsys) -> None:
+    """At 10 Hz the blocks are the classifier's windows of 20; a 2 Hz recording's are 10 long, as the classifier's
+    windows on it; both learnt from the recording's tracks (blocks pooled, scales off the prior of 1)."""
+    fast = _calibrate(tmp_path, "fast", "--duration", "12")
+    slow = _calibrate(tmp_path, "slow", "--duration", "40", "--hz", "2")
+    assert fast["window"] == 20 and slow["window"] == 10
+    # the mean time between a block's observations (a track missed in a frame spans two frames)
+    assert 0.1 <= fast["frame_interval_s"] < 0.15 and 0.5 <= slow["frame_interval_s"] < 0.75
+    for data in (fast, slow):
+        assert data["source"]["blocks"] > 0
+        along = data["groups"]["vehicle"]["along"]
+        assert sum(along["blocks"].values()) > 0 and any(abs(v - 1.0) > 0.05 for v in along["scale"].values())
+    assert "wrote" in capsys.readouterr().out
+
+
+def test_calibrate_bad_window_is_one_line_exit_2(tmp_path: Path, capsys) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main(["calibrate", "synthetic:mixed", "--level", "detections", "--out", str(tmp_path / "c.yaml"),
+              "--window-size", "3"])
+    assert exc.value.code == 2
+    assert "--window-size" in capsys.readouterr().err
