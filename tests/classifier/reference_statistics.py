@@ -181,3 +181,26 @@ def track_scale(windows: F64, valid: NDArray[np.bool_], groups: I64, model: Nois
     # dwarf its σ a thousandfold is not "a noisier track" whose test should shrink to nothing
     lam = np.clip(np.nan_to_num(lam, nan=1.0, posinf=SCALE_BOUNDS[1]), *SCALE_BOUNDS)
     return lam, prior_dof + nu_own
+
+
+def reference_block_moments(t: F64, pos: F64, cov: F64, sensor: F64, variance_floor: float = 1e-4) -> tuple[
+        F64, F64, F64]:
+    """(Y, Ew, Et) of blocks as first written: the dense projection M about each block's line in time,
+    G = D⁻¹ M D per axis, Φ_τ = exp(−|Δt|/τ) entry by entry and the batched products G Gᵀ and G Φ Gᵀ — the
+    reference for the factored :class:`~jitterguard.services.classifier.calibration.BlockMoments`."""
+    from jitterguard.services.classifier.calibration import TAU_GRID_S
+
+    n = t.shape[1]
+    tc = t - t.mean(axis=1, keepdims=True)
+    stt = np.maximum((tc * tc).sum(axis=1), 1e-12)
+    M = np.eye(n)[None] - 1.0 / n - tc[:, :, None] * tc[:, None, :] / stt[:, None, None]
+    E = M @ pos
+    u, v, _ = line_of_sight(pos, sensor)
+    var_u, var_v, _ = project_covariance(u, v, cov)
+    sig = np.sqrt(np.maximum(np.stack([var_u, var_v], axis=1), variance_floor))
+    r = np.stack([(E * u).sum(-1), (E * v).sum(-1)], axis=1) / sig
+    G = M[:, None] * sig[:, :, None, :] / sig[:, :, :, None]
+    phi = np.exp(-np.abs(t[:, None, :, None] - t[:, None, None, :]) / TAU_GRID_S[None, :, None, None])
+    Ew = G @ np.swapaxes(G, -1, -2)
+    Et = (G[:, :, None] @ phi[:, None]) @ np.swapaxes(G, -1, -2)[:, :, None]
+    return r[:, :, :, None] * r[:, :, None, :], Ew, Et

@@ -14,13 +14,16 @@ import pytest
 import yaml
 
 from jitterguard.schemas.models import ClassifierConfig, Label
+from classifier.reference_statistics import reference_block_moments
 from jitterguard.services.classifier.calibration import (
     GROUPS,
+    HUBER_C,
     MAX_BLOCK_SPEED,
     SCALE_BOUNDS,
     NoiseModel,
     OnlineCalibration,
     block_moments,
+    expected_moments,
     group_of_labels,
 )
 from jitterguard.services.classifier.calibration_file import (
@@ -474,6 +477,49 @@ def test_static_decisions_use_the_calibrated_scales() -> None:
     assert (dp.state == DYNAMIC).mean() > 0.3
     assert (dc.state == DYNAMIC).mean() < 0.15
     assert (dc.state == STATIC).mean() > 0.85
+
+
+def test_factored_moments_and_their_pooling_match_the_dense_products() -> None:
+    """The factored block moments (n × 4 factors, separable exponentials) are the dense G Gᵀ and G Φ Gᵀ of the
+    first implementation to rounding — for evenly spaced, gappy, unsorted and long-spanning blocks — and pooling
+    them (one matrix product per cell) gives the Huber-weighted dense sums per (group, band, age) cell, shorter
+    blocks in the leading rows and columns."""
+    rng = np.random.default_rng(33)
+    t, pos, cov, sensor = blocks(rng, 60, 2.0, 0.4, 0.5, n=20)
+    t = t + np.where(rng.random(t.shape) < 0.1, 0.1, 0.0).cumsum(axis=1)  # missed frames: gaps
+    t[:5] = t[:5] * 40.0  # blocks spanning minutes: the direct exponentials
+    t[5:8] = t[5:8, ::-1]  # stamps out of order
+    pos[:, :, 0] += rng.uniform(-60.0, 60.0, (60, 1))  # every range band
+    ref = reference_block_moments(t, pos, cov, sensor)
+    mom = block_moments(t, pos, cov, sensor)
+    for got, want, name in zip((mom.Y, mom.Ew, mom.Et), ref, ("Y", "Ew", "Et")):
+        np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12 * np.abs(want).max(), err_msg=name)
+    t2, pos2, cov2, sensor2 = blocks(rng, 15, 2.0, 0.4, 0.5, n=7)
+    groups, young = rng.integers(0, len(GROUPS), 60), rng.random(60) < 0.4
+    groups2, young2 = rng.integers(0, len(GROUPS), 15), rng.random(15) < 0.4
+    cal = OnlineCalibration(window=20)
+    cal.advance(100.0)
+    want = {name: np.zeros_like(getattr(cal, name)) for name in ("_Y", "_Ew", "_Et", "_n")}
+    for (tt, pp, cc, ss), g, y in (((t, pos, cov, sensor), groups, young), ((t2, pos2, cov2, sensor2), groups2, young2)):
+        model = cal.model()
+        Yd, Ewd, Etd = reference_block_moments(tt, pp, cc, ss)
+        m = block_moments(tt, pp, cc, ss)
+        band = model.bands(m.range_m)
+        k = model.scale[g, :, band, y.astype(np.int64)]
+        pred = expected_moments(np.einsum("naii->na", Ewd)[..., None], np.einsum("natii->nat", Etd)[..., None, :],
+                                k, model.correlation[g], model.tau_s[g])[..., 0]
+        w = np.minimum(1.0, HUBER_C / (np.einsum("naii->na", Yd) / pred)) * (m.speed <= MAX_BLOCK_SPEED)[:, None]
+        n = tt.shape[1]
+        for b in range(len(tt)):
+            for a in range(2):
+                cell = (g[b], a, band[b], int(y[b]))
+                for name, dense in (("_Y", Yd), ("_Ew", Ewd)):
+                    want[name][cell].reshape(20, 20)[:n, :n] += w[b, a] * dense[b, a]
+                want["_Et"][cell].reshape(20, 20, -1)[:n, :n] += w[b, a] * np.moveaxis(Etd[b, a], 0, -1)
+                want["_n"][cell] += w[b, a]
+        cal.add(g, m, y)
+    for name, value in want.items():
+        np.testing.assert_allclose(getattr(cal, name), value, rtol=1e-9, atol=1e-9, err_msg=name)
 
 
 def test_skipping_fast_blocks_pools_exactly_what_the_full_moments_pool() -> None:

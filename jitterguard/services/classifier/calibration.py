@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from functools import lru_cache
 from typing import Any
 
@@ -265,32 +265,72 @@ def _checked(v: Any, where: str, lo: float, hi: float) -> float:
 @dataclass(frozen=True)
 class BlockMoments:
     """Per block and axis: the outer product of the normalised residuals and its expectations per unit model
-    (see the module docstring). Blocks shorter than ``n`` fill the leading rows and columns (zeros beyond):
-    every entry's expectation is still linear in the model, so blocks of any length pool into one sum."""
+    (see the module docstring), in factored form — what a block's matrices are made of, n-vectors and n × 4
+    factors, not the n × n matrices (T of them per axis), so that pooling sums them as matrix products instead of
+    materialising every block's.
 
-    Y: F64  # (N, 2, n, n) observed ε̃ ε̃ᵀ
-    Ew: F64  # (N, 2, n, n) expectation for white noise of unit variance: G Gᵀ
-    Et: F64  # (N, 2, T, n, n) expectation for unit-variance exp(−|Δt|/τ) noise, τ = TAU_GRID_S[t]: G Φ Gᵀ
+    With B = [1/√n, t_c/√S_tt] the basis of the fitted lines and D = diag(σ) on one axis, G = D⁻¹ M D = I − U Vᵀ
+    (U = D⁻¹ B, V = D B), and
+
+    * ``Y``  = r rᵀ                                   (observed)
+    * ``Ew`` = G Gᵀ = I − L Rᵀ,      L = [U, V − U VᵀV],       R = [V, U]
+    * ``Et`` = G Φ Gᵀ = Φ − Lt Rtᵀ,  Lt = [U, A − U VᵀA],      Rt = [A, U],   A = Φ V
+
+    ``built`` is False for blocks whose expectations were skipped (too fast to pool: every factor zero, so their
+    ``Ew`` and ``Et`` are 0). The dense matrices are properties (tests, pseudo-blocks): pooling never forms them."""
+
+    r: F64  # (N, 2, n) normalised residuals
+    L: F64  # (N, 2, n, 4)
+    R: F64  # (N, 2, n, 4)
+    phi: F64  # (N, T, n, n) exp(−|Δt|/τ), TAU_GRID_S[t] (zeros where not built)
+    Lt: F64  # (N, 2, T, n, 4)
+    Rt: F64  # (N, 2, T, n, 4)
+    built: NDArray[np.bool_]  # (N,)
     range_m: F64  # (N,) mean distance from the sensor
     interval_s: F64  # (N,) mean time between two observations
     speed: F64  # (N,) speed of the fitted line
 
     def __len__(self) -> int:
-        return int(self.Y.shape[0])
+        return int(self.r.shape[0])
 
     @property
     def size(self) -> int:
-        return int(self.Y.shape[-1])
+        return int(self.r.shape[-1])
 
-    def padded(self, n: int) -> "BlockMoments":
-        """The same moments embedded in n × n (n ≥ the current size)."""
-        k = self.size
-        if n == k:
-            return self
-        pad = [(0, 0)] * (self.Y.ndim - 2) + [(0, n - k), (0, n - k)]
-        padt = [(0, 0)] * (self.Et.ndim - 2) + [(0, n - k), (0, n - k)]
-        return BlockMoments(np.pad(self.Y, pad), np.pad(self.Ew, pad), np.pad(self.Et, padt), self.range_m,
-                            self.interval_s, self.speed)
+    @property
+    def Y(self) -> F64:  # noqa: N802 - the module's notation
+        """(N, 2, n, n) observed ε̃ ε̃ᵀ."""
+        return self.r[..., :, None] * self.r[..., None, :]
+
+    @property
+    def Ew(self) -> F64:  # noqa: N802
+        """(N, 2, n, n) expectation for white noise of unit variance: G Gᵀ."""
+        eye = np.eye(self.size) * self.built[:, None, None, None]
+        return eye - self.L @ np.swapaxes(self.R, -1, -2)
+
+    @property
+    def Et(self) -> F64:  # noqa: N802
+        """(N, 2, T, n, n) expectation for unit-variance exp(−|Δt|/τ) noise, τ = TAU_GRID_S[t]: G Φ Gᵀ."""
+        return self.phi[:, None] - self.Lt @ np.swapaxes(self.Rt, -1, -2)
+
+    def subset(self, keep: NDArray[np.int64]) -> "BlockMoments":
+        """The blocks ``keep`` (indices)."""
+        return BlockMoments(*(getattr(self, f.name)[keep] for f in fields(self)))
+
+    def traces(self) -> tuple[F64, F64, F64]:
+        """(tr Y, tr Ew, tr Et): (N, 2), (N, 2), (N, 2, T) — from the factors (Φ's diagonal is 1)."""
+        n = self.size * self.built[:, None]
+        return ((self.r * self.r).sum(-1), n - (self.L * self.R).sum((-1, -2)),
+                n[..., None] - (self.Lt * self.Rt).sum((-1, -2)))
+
+    def finite(self) -> NDArray[np.bool_]:
+        """Blocks whose moments are finite numbers: every factor, and their products bounded (a factor of 1e200
+        against one of 1e200 would give an infinite matrix entry where the factors are finite)."""
+        ok = np.isfinite(self.range_m) & np.isfinite(self.speed)
+        for a in (self.r, self.L, self.R, self.Lt, self.Rt, self.phi):
+            if a.size:
+                ok &= np.abs(a).max(axis=tuple(range(1, a.ndim))) < 1e150  # NaN compares False: not finite
+        return ok
 
 
 def line_of_sight(pos: F64, sensor: F64) -> tuple[F64, F64, F64]:
@@ -316,7 +356,8 @@ def project_covariance(u: F64, v: F64, cov: F64) -> tuple[F64, F64, F64]:
 def block_moments(t: F64, pos: F64, cov: F64, sensor: F64, *, variance_floor: float = 1e-4,
                   skip_fast: bool = False) -> BlockMoments:
     """Outer products of the normalised constant-velocity residuals of N blocks of n observations each, and
-    their expectations under unit white and unit exponentially correlated noise.
+    their expectations under unit white and unit exponentially correlated noise, as the factors of
+    :class:`BlockMoments`.
 
     ``t`` (N, n) seconds (spread: a block whose times are all equal has no line to fit — the caller drops
     it), ``pos`` (N, n, 2) world positions, ``cov`` (N, n, 3) reported world covariances (xx, xy, yy),
@@ -324,8 +365,8 @@ def block_moments(t: F64, pos: F64, cov: F64, sensor: F64, *, variance_floor: fl
     observation; the residuals are those of the world-frame line fit projected on them.
 
     ``skip_fast``: blocks whose fitted line is faster than :data:`MAX_BLOCK_SPEED` (which
-    :meth:`OnlineCalibration.add` counts but does not pool) get zero expectations ``Ew``, ``Et`` instead of
-    computed ones — most of the cost — when every input is finite and moderate (so their finiteness, which
+    :meth:`OnlineCalibration.add` counts but does not pool) get zero expectations ``Ew``, ``Et`` (zero factors,
+    ``built`` False) instead of computed ones — most of the cost — when every input is finite and moderate (so their finiteness, which
     decides whether the pooling counts them invalid, is not in question). What the pooling learns is the same.
     """
     with np.errstate(over="ignore", invalid="ignore"):  # non-finite blocks are dropped by the pooling
@@ -335,33 +376,61 @@ def block_moments(t: F64, pos: F64, cov: F64, sensor: F64, *, variance_floor: fl
 def _block_moments(t: F64, pos: F64, cov: F64, sensor: F64, variance_floor: float,
                    skip_fast: bool = False) -> BlockMoments:
     t = np.asarray(t, dtype=np.float64)
-    n = t.shape[1]
+    N, n = t.shape
+    T = len(TAU_GRID_S)
     tc = t - t.mean(axis=1, keepdims=True)
     stt = np.maximum((tc * tc).sum(axis=1), 1e-12)
-    M = np.eye(n)[None] - 1.0 / n - tc[:, :, None] * tc[:, None, :] / stt[:, None, None]  # (N, n, n)
-    E = M @ pos  # residuals about the fitted line, (N, n, 2)
+    vel = (tc[:, :, None] * pos).sum(axis=1) / stt[:, None]
+    E = pos - pos.mean(axis=1, keepdims=True) - tc[:, :, None] * vel[:, None, :]  # residuals about the line
     u, v, rng = line_of_sight(pos, sensor)
     var_u, var_v, _ = project_covariance(u, v, cov)
     sig = np.sqrt(np.maximum(np.stack([var_u, var_v], axis=1), variance_floor))  # (N, 2, n)
     r = np.stack([(E * u).sum(-1), (E * v).sum(-1)], axis=1) / sig  # (N, 2, n)
-    # ε̃ = G ε with G = D⁻¹ M D per axis: G[i, j] = M[i, j] σ_j / σ_i;  E[ε̃ ε̃ᵀ] = k G R Gᵀ
-    Y = r[:, :, :, None] * r[:, :, None, :]
-    vel = (tc[:, :, None] * pos).sum(axis=1) / stt[:, None]
     speed = np.hypot(vel[:, 0], vel[:, 1])
-    keep = np.ones(len(t), dtype=bool)
+    built = np.ones(N, dtype=bool)
     if skip_fast:
         spread = sig.max(axis=(1, 2)) / sig.min(axis=(1, 2))
-        keep = ~((speed > MAX_BLOCK_SPEED) & np.isfinite(speed) & np.isfinite(Y).all(axis=(1, 2, 3))
-                 & np.isfinite(t).all(axis=1) & (spread < 1e100))
-    Ew = np.zeros((len(t), 2, n, n))
-    Et = np.zeros((len(t), 2, len(TAU_GRID_S), n, n))
-    if keep.any():
-        tk, sk, Mk = t[keep], sig[keep], M[keep]
-        G = Mk[:, None] * sk[:, :, None, :] / sk[:, :, :, None]  # (N, 2, n, n)
-        phi = np.exp(-np.abs(tk[:, None, :, None] - tk[:, None, None, :]) / TAU_GRID_S[None, :, None, None])
-        Ew[keep] = G @ np.swapaxes(G, -1, -2)
-        Et[keep] = (G[:, :, None] @ phi[:, None]) @ np.swapaxes(G, -1, -2)[:, :, None]
-    return BlockMoments(Y, Ew, Et, rng.mean(axis=1), (t[:, -1] - t[:, 0]) / max(n - 1, 1), speed)
+        built = ~((speed > MAX_BLOCK_SPEED) & np.isfinite(speed) & np.isfinite(r).all(axis=(1, 2))
+                  & np.isfinite(t).all(axis=1) & (spread < 1e100))
+    L = np.zeros((N, 2, n, 4))
+    R = np.zeros((N, 2, n, 4))
+    phi = np.zeros((N, T, n, n))
+    Lt = np.zeros((N, 2, T, n, 4))
+    Rt = np.zeros((N, 2, T, n, 4))
+    if built.any():
+        sk = sig[built]
+        B = np.stack([np.full(tc[built].shape, 1.0 / math.sqrt(n)), tc[built] / np.sqrt(stt[built])[:, None]],
+                     axis=-1)[:, None]  # (K, 1, n, 2)
+        U, V = B / sk[..., None], B * sk[..., None]  # (K, 2, n, 2)
+        Vt = np.swapaxes(V, -1, -2)
+        L[built] = np.concatenate([U, V - U @ (Vt @ V)], axis=-1)
+        R[built] = np.concatenate([V, U], axis=-1)
+        ph = correlation_matrices(t[built])  # (K, T, n, n)
+        A = ph[:, None] @ V[:, :, None]  # (K, 2, T, n, 2)
+        Uk = np.broadcast_to(U[:, :, None], A.shape)
+        Lt[built] = np.concatenate([Uk, A - Uk @ (Vt[:, :, None] @ A)], axis=-1)
+        Rt[built] = np.concatenate([A, Uk], axis=-1)
+        phi[built] = ph
+    return BlockMoments(r, L, R, phi, Lt, Rt, built, rng.mean(axis=1), (t[:, -1] - t[:, 0]) / max(n - 1, 1),
+                        speed)
+
+
+def correlation_matrices(t: F64) -> F64:
+    """(K, T, n, n) exp(−|t_i − t_j| / τ) for τ in :data:`TAU_GRID_S`, of K blocks' times (K, n). Separably, as
+    exp(−(t_i − c)/τ)·exp((t_j − c)/τ) for t_i ≥ t_j (c the block's mid-time): n exponentials per block and τ
+    instead of n², the same numbers to rounding; directly where a block spans so long that those factors would
+    overflow."""
+    c = 0.5 * (t.max(axis=1, keepdims=True) + t.min(axis=1, keepdims=True))
+    x = (t - c)[:, None, :] / TAU_GRID_S[None, :, None]  # (K, T, n)
+    later = t[:, None, :, None] >= t[:, None, None, :]  # i at or after j
+    with np.errstate(over="ignore", invalid="ignore"):
+        down, up = np.exp(-x), np.exp(x)
+        out = np.where(later, down[..., :, None] * up[..., None, :], up[..., :, None] * down[..., None, :])
+    wide = ~(np.abs(x) < 300.0).all(axis=(1, 2))
+    if wide.any():
+        dt = np.abs(t[wide][:, :, None] - t[wide][:, None, :])
+        out[wide] = np.exp(-dt[:, None] / TAU_GRID_S[None, :, None, None])
+    return out
 
 
 @lru_cache(maxsize=16)
@@ -521,64 +590,69 @@ class OnlineCalibration:
     def add(self, groups: NDArray[np.int64], mom: BlockMoments, young: NDArray[np.bool_] | None = None) -> None:
         """Pool N blocks (``groups`` their class-group index, ``young`` whether each is a track's first) with
         Huber weights against the current model."""
-        finite = (np.isfinite(mom.Y).all(axis=(1, 2, 3)) & np.isfinite(mom.Ew).all(axis=(1, 2, 3))
-                  & np.isfinite(mom.Et).all(axis=(1, 2, 3, 4)) & np.isfinite(mom.range_m) & np.isfinite(mom.speed))
+        finite = mom.finite()
         if not finite.all():  # positions far beyond any sensor (a broken upstream): nothing to learn from them
             self.counts["blocks_invalid"] += int((~finite).sum())
             keep = np.flatnonzero(finite)
-            mom = BlockMoments(mom.Y[keep], mom.Ew[keep], mom.Et[keep], mom.range_m[keep], mom.interval_s[keep],
-                               mom.speed[keep])
+            mom = mom.subset(keep)
             groups = np.asarray(groups)[keep]
             young = None if young is None else np.asarray(young)[keep]
         if len(mom) == 0:
             return
         if mom.size > self.window:
             self._grow(mom.size)
-        mom = mom.padded(self.window)
         model = self.model()
         band = model.bands(mom.range_m)
         g = np.asarray(groups, dtype=np.int64)
         age = np.zeros(len(g), np.int64) if young is None else np.asarray(young, dtype=np.int64)
         k = model.scale[g, :, band, age]  # (N, 2)
-        trw = np.einsum("naii->na", mom.Ew)[..., None]
-        trt = np.einsum("natii->nat", mom.Et)[..., None, :]
-        pred = expected_moments(trw, trt, k, model.correlation[g], model.tau_s[g])[..., 0]
-        ratio = np.einsum("naii->na", mom.Y) / np.maximum(pred, 1e-300)
-        w = np.minimum(1.0, HUBER_C / np.maximum(ratio, 1e-300))  # (N, 2)
+        tr_y, tr_w, tr_t = mom.traces()
+        pred = expected_moments(tr_w[..., None], tr_t[..., None, :], k, model.correlation[g], model.tau_s[g])[..., 0]
+        w = np.minimum(1.0, HUBER_C / np.maximum(tr_y / np.maximum(pred, 1e-300), 1e-300))  # (N, 2)
         slow = mom.speed <= MAX_BLOCK_SPEED
         w = w * slow[:, None]
-        nb, nn = len(mom), self.window ** 2
-        Y = mom.Y.reshape(nb, 2, nn)
-        Ew = mom.Ew.reshape(nb, 2, nn)
-        Et = np.swapaxes(mom.Et.reshape(nb, 2, len(TAU_GRID_S), nn), -1, -2)
-        # pooled per (group, band, age) cell: blocks sorted by cell, each run of one cell summed at once
-        # (np.add.at over thousands of entries per block costs ten times as much; a one-hot matrix product
-        # would hand the sum to a multi-threaded BLAS that thrashes on a busy machine)
-        # Blocks of weight 0 (too fast) are left out: adding 0 to a sum changes nothing.
-        _, _, nbands, nages = self._n.shape
-        cell = (g * nbands + band) * nages + age
-        order = np.flatnonzero(slow)
-        order = order[np.argsort(cell[order], kind="stable")]
-        if order.size:
-            starts = np.flatnonzero(np.r_[True, np.diff(cell[order]) != 0])
-            present = cell[order][starts]
-            gi, rest = np.divmod(present, nbands * nages)
-            bi, yi = np.divmod(rest, nages)
-        T = len(TAU_GRID_S)
-        for ai in range(2 if order.size else 0):
-            data = np.concatenate([Y[order, ai], Ew[order, ai], Et[order, ai].reshape(len(order), nn * T),
-                                   np.ones((len(order), 1))], axis=1)
-            sums = np.add.reduceat(w[order, ai, None] * data, starts, axis=0)
-            self._Y[gi, ai, bi, yi] += sums[:, :nn]
-            self._Ew[gi, ai, bi, yi] += sums[:, nn:2 * nn]
-            self._Et[gi, ai, bi, yi] += sums[:, 2 * nn:2 * nn + nn * T].reshape(-1, nn, T)
-            self._n[gi, ai, bi, yi] += sums[:, -1]
+        self._pool(np.flatnonzero(slow), (g * self._n.shape[2] + band) * self._n.shape[3] + age, w, mom)
         self._interval += (float(mom.interval_s[slow].sum()), float(slow.sum()))
         self._add_heterogeneity(g[slow], mom, model, k[slow], band[slow], age[slow], slow, w[slow])
         self.counts["blocks"] += int(slow.sum())
         self.counts["blocks_fast"] += int((~slow).sum())
         self.counts["blocks_downweighted"] += int(((w < 1.0) & slow[:, None]).any(axis=1).sum())
         self._dirty = True
+
+    def _pool(self, rows: NDArray[np.int64], cell: NDArray[np.int64], w: F64, mom: BlockMoments) -> None:
+        """Add the weighted moments of blocks ``rows`` to their (group, band, age) cells: per cell, the sums of
+        r rᵀ, L Rᵀ and Lt Rtᵀ over its blocks are each one matrix product of the blocks' factors side by side,
+        and Σ w Φ one weighted sum, written into the leading n × n of the pooled W × W sums. (Blocks of weight 0
+        — too fast — are left out: adding 0 changes nothing.)"""
+        if rows.size == 0:
+            return
+        _, _, nbands, nages = self._n.shape
+        n, W, T = mom.size, self.window, len(TAU_GRID_S)
+        order = rows[np.argsort(cell[rows], kind="stable")]
+        cuts = np.flatnonzero(np.diff(cell[order])) + 1
+        Y = self._Y.reshape(*self._Y.shape[:-1], W, W)
+        Ew = self._Ew.reshape(*self._Ew.shape[:-1], W, W)
+        Et = self._Et.reshape(*self._Et.shape[:-2], W, W, T)
+        for run in np.split(order, cuts):
+            c = int(cell[run[0]])
+            gi, rest = divmod(c, nbands * nages)
+            bi, yi = divmod(rest, nages)
+            wr = w[run].T  # (2, B)
+            r = mom.r[run].transpose(1, 2, 0)  # (2, n, B)
+            y_sum = (r * wr[:, None, :]) @ np.swapaxes(r, -1, -2)  # (2, n, n)
+            L = (mom.L[run] * w[run][:, :, None, None]).transpose(1, 2, 0, 3).reshape(2, n, -1)
+            R = mom.R[run].transpose(1, 2, 0, 3).reshape(2, n, -1)
+            built_w = (wr * mom.built[run]).sum(1)  # (2,) the weight of the identity's blocks
+            ew_sum = built_w[:, None, None] * np.eye(n) - L @ np.swapaxes(R, -1, -2)
+            Lt = (mom.Lt[run] * w[run][:, :, None, None, None]).transpose(1, 2, 3, 0, 4).reshape(2, T, n, -1)
+            Rt = mom.Rt[run].transpose(1, 2, 3, 0, 4).reshape(2, T, n, -1)
+            phi_sum = np.tensordot(wr, mom.phi[run], axes=(1, 0))  # (2, T, n, n)
+            et_sum = phi_sum - Lt @ np.swapaxes(Rt, -1, -2)
+            for ai in range(2):
+                Y[gi, ai, bi, yi, :n, :n] += y_sum[ai]
+                Ew[gi, ai, bi, yi, :n, :n] += ew_sum[ai]
+                Et[gi, ai, bi, yi, :n, :n] += np.moveaxis(et_sum[ai], 0, -1)
+                self._n[gi, ai, bi, yi] += wr[ai].sum()
 
     def _add_heterogeneity(self, g: NDArray[np.int64], mom: BlockMoments, model: NoiseModel, k: F64,
                            band: NDArray[np.int64], age: NDArray[np.int64], sel: NDArray[np.bool_], w: F64) -> None:
@@ -590,17 +664,22 @@ class OnlineCalibration:
             return
         from scipy.special import digamma, polygamma  # type: ignore[import-untyped]
 
-        nb = int(sel.sum())
         # Q = k[(1 − m) Ew + m Et(τ)] per block and axis, Et interpolated between the two grid τ around the
-        # group's (as expected_moments, on just those two slices)
+        # group's (as expected_moments, on just those two slices), formed from the factors of those slices only
         i, wt_tau = _tau_interpolation(model.tau_s[g])  # (nb, 2)
-        Et, rows, axes = mom.Et[sel], np.arange(nb)[:, None], np.arange(2)[None]
-        Bt = (1 - wt_tau)[..., None, None] * Et[rows, axes, i] + wt_tau[..., None, None] * Et[rows, axes, i + 1]
+        rows, axes = np.flatnonzero(sel)[:, None], np.arange(2)[None]
+        eye = np.eye(mom.size) * mom.built[rows][..., None, None]
+
+        def et(j: NDArray[np.int64]) -> F64:  # (nb, 2, n, n) Et at grid index j per block and axis
+            return mom.phi[rows, j] - mom.Lt[rows, axes, j] @ np.swapaxes(mom.Rt[rows, axes, j], -1, -2)
+
+        Bt = (1 - wt_tau)[..., None, None] * et(i) + wt_tau[..., None, None] * et(i + 1)
+        ew = eye - mom.L[rows[:, 0]] @ np.swapaxes(mom.R[rows[:, 0]], -1, -2)
         m = model.correlation[g][..., None, None]
-        Q = k[..., None, None] * ((1 - m) * mom.Ew[sel] + m * Bt)  # (nb, 2, n, n)
+        Q = k[..., None, None] * ((1 - m) * ew + m * Bt)  # (nb, 2, n, n)
         trace = np.einsum("naii->n", Q)
         trace2 = (Q * Q).sum((1, 2, 3))
-        S0 = np.einsum("naii->n", mom.Y[sel])
+        S0 = (mom.r[rows[:, 0]] ** 2).sum((1, 2))
         ok = (trace > 0) & (trace2 > 0) & (S0 > 0)
         if not ok.any():
             return
