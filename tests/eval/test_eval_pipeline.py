@@ -144,6 +144,25 @@ def test_cli_a_slow_stream_gets_the_window_of_its_span(tmp_path: Path, capsys) -
     assert runs["default"]["motion"]["vehicle"] != runs["fixed"]["motion"]["vehicle"]
 
 
+NUSC = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "nuscenes-scene-0523"
+
+
+@pytest.mark.skipif(not NUSC.is_dir(), reason="../shared/data/nuscenes-scene-0523 absent")
+def test_cli_real_key_frames_get_the_window_of_their_span(tmp_path: Path, capsys) -> None:
+    """nuScenes' 2 Hz key frames: the default window holds 10 observations there (the span of 20 at 10 Hz, floored
+    at the paper's 10) and scores exactly as a fixed window of 10 — rates, calibration and all."""
+    runs = {}
+    for name, extra in (("default", []), ("ten", ["--window-size", "10", "--fixed-window"])):
+        with pytest.raises(SystemExit) as exc:
+            main(["eval", "--nuscenes", str(NUSC), "--input", "gt-noise", "--noise", "clean", "--json",
+                  "--out", str(tmp_path / name), *extra])
+        assert exc.value.code == 0
+        runs[name] = json.loads(capsys.readouterr().out)
+    assert runs["default"]["run"]["window_size"] == 10
+    for block in ("motion", "full_window", "ghost", "by_attribute", "calibration"):
+        assert runs["default"][block] == runs["ten"][block], block
+
+
 @pytest.mark.parametrize("argv", [
     ["--window-size", "1"],
     ["--window-size", "65"],
