@@ -159,6 +159,9 @@ def test_cli_real_key_frames_get_the_window_of_their_span(tmp_path: Path, capsys
         assert exc.value.code == 0
         runs[name] = json.loads(capsys.readouterr().out)
     assert runs["default"]["run"]["window_size"] == 10
+    assert "window 10 observations (window_size at 10 Hz" in (tmp_path / "default" / "report.md").read_text()
+    fixed = (tmp_path / "ten" / "report.md").read_text()
+    assert "window 10 observations" in fixed and "window_size at" not in fixed
     for block in ("motion", "full_window", "ghost", "by_attribute", "calibration"):
         assert runs["default"][block] == runs["ten"][block], block
 
