@@ -480,14 +480,14 @@ def test_static_decisions_use_the_calibrated_scales() -> None:
 
 
 def test_factored_moments_and_their_pooling_match_the_dense_products() -> None:
-    """The factored block moments (n × 4 factors, separable exponentials) are the dense G Gᵀ and G Φ Gᵀ of the
-    first implementation to rounding — for evenly spaced, gappy, unsorted and long-spanning blocks — and pooling
+    """The factored block moments (n × 4 factors) are the dense G Gᵀ and G Φ Gᵀ of the first implementation to
+    rounding — for evenly spaced, gappy, unsorted and long-spanning blocks — and pooling
     them (one matrix product per cell) gives the Huber-weighted dense sums per (group, band, age) cell, shorter
     blocks in the leading rows and columns."""
     rng = np.random.default_rng(33)
     t, pos, cov, sensor = blocks(rng, 60, 2.0, 0.4, 0.5, n=20)
     t = t + np.where(rng.random(t.shape) < 0.1, 0.1, 0.0).cumsum(axis=1)  # missed frames: gaps
-    t[:5] = t[:5] * 40.0  # blocks spanning minutes: the direct exponentials
+    t[:5] = t[:5] * 40.0  # blocks spanning minutes
     t[5:8] = t[5:8, ::-1]  # stamps out of order
     pos[:, :, 0] += rng.uniform(-60.0, 60.0, (60, 1))  # every range band
     ref = reference_block_moments(t, pos, cov, sensor)

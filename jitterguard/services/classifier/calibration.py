@@ -405,7 +405,8 @@ def _block_moments(t: F64, pos: F64, cov: F64, sensor: F64, variance_floor: floa
         Vt = np.swapaxes(V, -1, -2)
         L[built] = np.concatenate([U, V - U @ (Vt @ V)], axis=-1)
         R[built] = np.concatenate([V, U], axis=-1)
-        ph = correlation_matrices(t[built])  # (K, T, n, n)
+        tb = t[built]
+        ph = np.exp(-np.abs(tb[:, None, :, None] - tb[:, None, None, :]) / TAU_GRID_S[None, :, None, None])
         A = ph[:, None] @ V[:, :, None]  # (K, 2, T, n, 2)
         Uk = np.broadcast_to(U[:, :, None], A.shape)
         Lt[built] = np.concatenate([Uk, A - Uk @ (Vt[:, :, None] @ A)], axis=-1)
@@ -413,24 +414,6 @@ def _block_moments(t: F64, pos: F64, cov: F64, sensor: F64, variance_floor: floa
         phi[built] = ph
     return BlockMoments(r, L, R, phi, Lt, Rt, built, rng.mean(axis=1), (t[:, -1] - t[:, 0]) / max(n - 1, 1),
                         speed)
-
-
-def correlation_matrices(t: F64) -> F64:
-    """(K, T, n, n) exp(−|t_i − t_j| / τ) for τ in :data:`TAU_GRID_S`, of K blocks' times (K, n). Separably, as
-    exp(−(t_i − c)/τ)·exp((t_j − c)/τ) for t_i ≥ t_j (c the block's mid-time): n exponentials per block and τ
-    instead of n², the same numbers to rounding; directly where a block spans so long that those factors would
-    overflow."""
-    c = 0.5 * (t.max(axis=1, keepdims=True) + t.min(axis=1, keepdims=True))
-    x = (t - c)[:, None, :] / TAU_GRID_S[None, :, None]  # (K, T, n)
-    later = t[:, None, :, None] >= t[:, None, None, :]  # i at or after j
-    with np.errstate(over="ignore", invalid="ignore"):
-        down, up = np.exp(-x), np.exp(x)
-        out = np.where(later, down[..., :, None] * up[..., None, :], up[..., :, None] * down[..., None, :])
-    wide = ~(np.abs(x) < 300.0).all(axis=(1, 2))
-    if wide.any():
-        dt = np.abs(t[wide][:, :, None] - t[wide][:, None, :])
-        out[wide] = np.exp(-dt[:, None] / TAU_GRID_S[None, :, None, None])
-    return out
 
 
 @lru_cache(maxsize=16)
