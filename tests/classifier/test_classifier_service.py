@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 
@@ -111,9 +112,11 @@ def test_car_that_starts_moving_flips_within_the_window(service, client_session)
     assert 12 <= first_dynamic <= 12 + 10
 
 
-def test_a_2_hz_stream_gets_windows_of_its_span(service, client_session):
+def test_a_2_hz_stream_gets_windows_of_its_span(service, client_session, caplog):
     """Key frames at 2 Hz through the live service: the windows hold 10 observations (the default's 2 s at
-    10 Hz, floored at the paper's 10), not 20 (10 s) — in ``motion/{id}``, the state and the calibration."""
+    10 Hz, floored at the paper's 10), not 20 (10 s) — in ``motion/{id}``, the state and the calibration — and the
+    log says when the window changed and why."""
+    caplog.set_level(logging.INFO, logger="jitterguard.classifier")
     got = _collect(client_session)
     _wait_connected(client_session)
     frames = list(generate(TrackScenario(n_static=3, n_moving=2, n_starting=0, rate_hz=2.0, seed=4), 14))
@@ -123,6 +126,7 @@ def test_a_2_hz_stream_gets_windows_of_its_span(service, client_session):
     snap = decode(ClassifierStateSnapshot, _query(client_session, keys.classifier_state(NS)).ok.payload.to_bytes())
     assert {(t.window_length, t.window_size) for t in snap.tracks} == {(10, 10)}
     assert snap.calibration is not None and snap.calibration.window == 10
+    assert any("window now 10 observations (was 20): frames 0.5 s apart" in r.getMessage() for r in caplog.records)
 
 
 def test_alpha_change_through_queryable_flips_a_borderline_object(service, client_session):

@@ -128,6 +128,7 @@ class ClassifierService(Service):
         self._closes: deque[tuple[bytes, zenoh.KeyExpr, float]] = deque(maxlen=CLOSE_QUEUE)
         self._wake = threading.Event()
         self._latest: _Latest | None = None
+        self._window = self.core.window  # the window the last frame was decided with (a change is logged)
         self._latest_lock = threading.Lock()
         self._obs_key = keys.tracks_all(self.ns)
         self._tracked_key = keys.tracked(self.ns)
@@ -322,6 +323,12 @@ class ClassifierService(Service):
                 self.counters.inc("motion_frames_shed")
             else:
                 self._publish_motion(out)
+        if out.window != self._window:
+            interval = self.core.frame_interval_s
+            self.log.info("window now %d observations (was %d): frames %s s apart, window_size %d at %s Hz",
+                          out.window, self._window, "?" if interval is None else f"{interval:.3g}",
+                          out.config.window_size, out.config.window_reference_hz)
+            self._window = out.window
         evicted, labels, stamps, seqs = self.pipeline.settle(out)
         if evicted:
             self.counters.inc("windows_evicted", evicted)
