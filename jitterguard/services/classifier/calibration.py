@@ -305,13 +305,24 @@ class BlockMoments:
     @property
     def Ew(self) -> F64:  # noqa: N802
         """(N, 2, n, n) expectation for white noise of unit variance: G Gᵀ."""
-        eye = np.eye(self.size) * self.built[:, None, None, None]
-        return eye - self.L @ np.swapaxes(self.R, -1, -2)
+        return self.white(np.arange(len(self)))
 
     @property
     def Et(self) -> F64:  # noqa: N802
         """(N, 2, T, n, n) expectation for unit-variance exp(−|Δt|/τ) noise, τ = TAU_GRID_S[t]: G Φ Gᵀ."""
         return self.phi[:, None] - self.Lt @ np.swapaxes(self.Rt, -1, -2)
+
+    def white(self, rows: NDArray[np.int64]) -> F64:
+        """G Gᵀ of blocks ``rows``: (K, 2, n, n)."""
+        eye = np.eye(self.size) * self.built[rows][:, None, None, None]
+        return eye - self.L[rows] @ np.swapaxes(self.R[rows], -1, -2)
+
+    def correlated(self, rows: NDArray[np.int64], tau_index: NDArray[np.int64]) -> F64:
+        """G Φ_τ Gᵀ of blocks ``rows`` (K,) at the grid index ``tau_index`` (K, 2) of each block and axis:
+        (K, 2, n, n) — one τ per block and axis, not the whole grid."""
+        r, a = rows[:, None], np.arange(2)[None]
+        return (self.phi[r, tau_index]
+                - self.Lt[r, a, tau_index] @ np.swapaxes(self.Rt[r, a, tau_index], -1, -2))
 
     def subset(self, keep: NDArray[np.int64]) -> "BlockMoments":
         """The blocks ``keep`` (indices)."""
@@ -631,11 +642,10 @@ class OnlineCalibration:
             Rt = mom.Rt[run].transpose(1, 2, 3, 0, 4).reshape(2, T, n, -1)
             phi_sum = np.tensordot(wr, mom.phi[run], axes=(1, 0))  # (2, T, n, n)
             et_sum = phi_sum - Lt @ np.swapaxes(Rt, -1, -2)
-            for ai in range(2):
-                Y[gi, ai, bi, yi, :n, :n] += y_sum[ai]
-                Ew[gi, ai, bi, yi, :n, :n] += ew_sum[ai]
-                Et[gi, ai, bi, yi, :n, :n] += np.moveaxis(et_sum[ai], 0, -1)
-                self._n[gi, ai, bi, yi] += wr[ai].sum()
+            Y[gi, :, bi, yi, :n, :n] += y_sum  # both axes of the cell at once
+            Ew[gi, :, bi, yi, :n, :n] += ew_sum
+            Et[gi, :, bi, yi, :n, :n] += np.moveaxis(et_sum, 1, -1)
+            self._n[gi, :, bi, yi] += wr.sum(1)
 
     def _add_heterogeneity(self, g: NDArray[np.int64], mom: BlockMoments, model: NoiseModel, k: F64,
                            band: NDArray[np.int64], age: NDArray[np.int64], sel: NDArray[np.bool_], w: F64) -> None:
@@ -650,19 +660,14 @@ class OnlineCalibration:
         # Q = k[(1 − m) Ew + m Et(τ)] per block and axis, Et interpolated between the two grid τ around the
         # group's (as expected_moments, on just those two slices), formed from the factors of those slices only
         i, wt_tau = _tau_interpolation(model.tau_s[g])  # (nb, 2)
-        rows, axes = np.flatnonzero(sel)[:, None], np.arange(2)[None]
-        eye = np.eye(mom.size) * mom.built[rows][..., None, None]
-
-        def et(j: NDArray[np.int64]) -> F64:  # (nb, 2, n, n) Et at grid index j per block and axis
-            return mom.phi[rows, j] - mom.Lt[rows, axes, j] @ np.swapaxes(mom.Rt[rows, axes, j], -1, -2)
-
-        Bt = (1 - wt_tau)[..., None, None] * et(i) + wt_tau[..., None, None] * et(i + 1)
-        ew = eye - mom.L[rows[:, 0]] @ np.swapaxes(mom.R[rows[:, 0]], -1, -2)
+        rows = np.flatnonzero(sel)
+        Bt = ((1 - wt_tau)[..., None, None] * mom.correlated(rows, i)
+              + wt_tau[..., None, None] * mom.correlated(rows, i + 1))
         m = model.correlation[g][..., None, None]
-        Q = k[..., None, None] * ((1 - m) * ew + m * Bt)  # (nb, 2, n, n)
+        Q = k[..., None, None] * ((1 - m) * mom.white(rows) + m * Bt)  # (nb, 2, n, n)
         trace = np.einsum("naii->n", Q)
         trace2 = (Q * Q).sum((1, 2, 3))
-        S0 = (mom.r[rows[:, 0]] ** 2).sum((1, 2))
+        S0 = (mom.r[rows] ** 2).sum((1, 2))
         ok = (trace > 0) & (trace2 > 0) & (S0 > 0)
         if not ok.any():
             return
