@@ -82,16 +82,21 @@ def test_cli_writes_report_metrics_and_figures(tmp_path: Path, capsys) -> None:
     assert on_disk["run"]["tracker_measurement_scale"] == "off"
 
 
-def _short_mixed_runs(tmp_path: Path, capsys, **variants: list[str]) -> dict[str, dict]:
-    """metrics.json of one short `mixed` run per variant (name → extra eval flags), each in tmp_path/name."""
+def _eval_runs(tmp_path: Path, capsys, source: list[str], **variants: list[str]) -> dict[str, dict]:
+    """metrics.json of one `eval` of ``source`` (its flags) per variant (name → extra flags), each in
+    tmp_path/name."""
     runs = {}
     for name, extra in variants.items():
         with pytest.raises(SystemExit) as exc:
-            main(["eval", "--scenario", "mixed", "--seed", "5", "--duration", "8", "--out", str(tmp_path / name),
-                  "--json", *extra])
+            main(["eval", *source, "--out", str(tmp_path / name), "--json", *extra])
         assert exc.value.code == 0
         runs[name] = json.loads(capsys.readouterr().out)
     return runs
+
+
+def _short_mixed_runs(tmp_path: Path, capsys, **variants: list[str]) -> dict[str, dict]:
+    """metrics.json of one short `mixed` run per variant (name → extra eval flags), each in tmp_path/name."""
+    return _eval_runs(tmp_path, capsys, ["--scenario", "mixed", "--seed", "5", "--duration", "8"], **variants)
 
 
 def test_cli_takes_a_tracker_parameter_file(tmp_path: Path, capsys) -> None:
@@ -144,20 +149,12 @@ def test_cli_a_slow_stream_gets_the_window_of_its_span(tmp_path: Path, capsys) -
     assert runs["default"]["motion"]["vehicle"] != runs["fixed"]["motion"]["vehicle"]
 
 
-NUSC = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "nuscenes-scene-0523"
-
-
 @pytest.mark.skipif(not NUSC.is_dir(), reason="../shared/data/nuscenes-scene-0523 absent")
 def test_cli_real_key_frames_get_the_window_of_their_span(tmp_path: Path, capsys) -> None:
     """nuScenes' 2 Hz key frames: the default window holds 10 observations there (the span of 20 at 10 Hz, floored
     at the paper's 10) and scores exactly as a fixed window of 10 — rates, calibration and all."""
-    runs = {}
-    for name, extra in (("default", []), ("ten", ["--window-size", "10", "--fixed-window"])):
-        with pytest.raises(SystemExit) as exc:
-            main(["eval", "--nuscenes", str(NUSC), "--input", "gt-noise", "--noise", "clean", "--json",
-                  "--out", str(tmp_path / name), *extra])
-        assert exc.value.code == 0
-        runs[name] = json.loads(capsys.readouterr().out)
+    runs = _eval_runs(tmp_path, capsys, ["--nuscenes", str(NUSC), "--input", "gt-noise", "--noise", "clean"],
+                      default=[], ten=["--window-size", "10", "--fixed-window"])
     assert runs["default"]["run"]["window_size"] == 10
     assert "window 10 observations (window_size at 10 Hz" in (tmp_path / "default" / "report.md").read_text()
     fixed = (tmp_path / "ten" / "report.md").read_text()
