@@ -64,9 +64,10 @@ def eval_command(
                                                     "(default 0.1).")] = None,
     window_size: Annotated[int | None, typer.Option("--window-size", help="Observations per track window "
                                                     "(default 20 at 10 Hz; a slower stream gets the same span, "
-                                                    "at least 10; the paper's 10: --window-size 10).")] = None,
+                                                    "at least 10, a faster one every k-th frame; the paper's 10: "
+                                                    "--window-size 10).")] = None,
     fixed_window: Annotated[bool, typer.Option("--fixed-window/--no-fixed-window", help="The window holds "
-                                               "window_size observations at any frame rate "
+                                               "window_size observations of every frame at any frame rate "
                                                "(window_reference_hz: null).")] = False,
     speed_sustain: Annotated[bool, typer.Option("--speed-sustain/--no-speed-sustain", help="The baseline holds "
                                                 "Autoware's sustain times (2 s vehicles, 1 s others).")] = False,
@@ -316,7 +317,7 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
                 "velocity_sustain_s_per_class": dict(classifier.velocity_sustain_s_per_class),
                 "dynamic_hold_s_per_class": dict(classifier.dynamic_hold_s_per_class),
                 "min_window": classifier.min_window, "window_size": rec.window_size,
-                "window_reference_hz": classifier.window_reference_hz,
+                "window_stride": rec.window_stride, "window_reference_hz": classifier.window_reference_hz,
                 "calibration": classifier.calibration, "effective_n": classifier.effective_n,
                 "min_speed_mps": classifier.min_speed_mps, "variance_scale": variance_scale,
                 "variance_scale_at": variance_scale_at,

@@ -101,6 +101,7 @@ class Records:
     speed_threshold: NDArray[np.float64] = field(default_factory=lambda: np.empty(0))
     track_group: NDArray[np.str_] = field(default_factory=lambda: np.empty(0, dtype="U12"))
     window_size: int = 10
+    window_stride: int = 1  # the window took every k-th frame (a stream faster than window_reference_hz)
 
     def __post_init__(self) -> None:
         """Tables built without the planner-view columns get neutral ones: no attribute, unknown speed, the
@@ -264,7 +265,7 @@ def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame, bytes]],
         alpha=cat("alpha", np.float64), velocity_threshold=float(base.velocity_threshold),
         min_window=int(base.min_window), gt_attribute=cat("gt_attribute", "U32"), gt_speed=cat("gt_speed", np.float64),
         speed_threshold=cat("speed_threshold", np.float64), track_group=cat("track_group", "U12"),
-        window_size=adapter_z.core.window,
+        window_size=adapter_z.core.window, window_stride=adapter_z.core.stride,
     )
 
 
@@ -301,7 +302,7 @@ def concat_records(parts: list[Records], tags: list[str]) -> Records:
     deterministic IDs restart in every run, and two runs' tracks must never merge."""
     if not parts:
         raise ValueError("nothing to pool")
-    if len({(p.velocity_threshold, p.min_window, p.window_size) for p in parts}) != 1:
+    if len({(p.velocity_threshold, p.min_window, p.window_size, p.window_stride) for p in parts}) != 1:
         raise ValueError("pooled runs must share the classifier operating point")
     kw: dict[str, Any] = {}
     for k, v in parts[0].__dict__.items():

@@ -283,8 +283,9 @@ def write_outputs(out: Path, rec: Records, metrics: dict[str, Any],
         f"(effective_n `{run.get('effective_n')}`, calibration `{run.get('calibration')}`, H0 speed ≤ "
         f"{run.get('min_speed_mps')} m/s"
         + (f", window {run['window_size']} observations" if run.get("window_size") else "")
-        + (f" (window_size at {run['window_reference_hz']:g} Hz, fewer on a slower stream)"
-           if run.get("window_size") and run.get("window_reference_hz") else "")
+        + (f", one every {run['window_stride']} frames" if (run.get("window_stride") or 1) > 1 else "")
+        + (f" (window_size at {run['window_reference_hz']:g} Hz, fewer on a slower stream, every k-th frame of a "
+           "faster one)" if run.get("window_size") and run.get("window_reference_hz") else "")
         + (f", held {run['dynamic_hold_s_per_class']} s" if run.get("dynamic_hold_s_per_class") else "")
         + f"), speed threshold {run['velocity_threshold']} m/s, per class "
         f"{run.get('velocity_threshold_per_class')}"

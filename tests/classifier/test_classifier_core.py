@@ -15,7 +15,7 @@ from jitterguard.geometry import rotate_cov2
 from jitterguard.schemas.models import ClassifierConfig, Label
 from jitterguard.services.classifier.config import PRESETS
 from jitterguard.services.classifier.core import (
-    DYNAMIC, STATIC, UNDECIDED, MotionClassifierCore, Observations, window_for_interval)
+    DYNAMIC, STATIC, UNDECIDED, MotionClassifierCore, Observations, stride_for_interval, window_for_interval)
 
 AUTHORS_ALPHA = {"car": 2.58, "truck": 2.58, "bus": 2.58, "trailer": 1.64, "motorcycle": 1.96, "bicycle": 1.64,
                  "pedestrian": 1.28, "unknown": 1.96}
@@ -104,10 +104,63 @@ def _frames(core: MotionClassifierCore, n: int, interval_s: float, start: int = 
 @pytest.mark.parametrize(("hz", "window"), [(20.0, 20), (10.0, 20), (5.0, 10), (8.0, 16), (2.0, 10), (0.5, 10)])
 def test_a_slower_stream_gets_the_same_span_in_fewer_observations(hz, window):
     core = MotionClassifierCore(ClassifierConfig())  # window_size 20 at the reference 10 Hz
-    _frames(core, 30, 1.0 / hz)
+    _frames(core, 60, 1.0 / hz)
     assert core.window == window
     assert core.last_decisions().window_length[0] == window  # the track's window holds that many, and no more
     assert core.calibration_state()["window"] == window
+
+
+@pytest.mark.parametrize(("hz", "stride", "window"), [(10.0, 1, 20), (12.0, 1, 20), (15.0, 1, 20), (17.0, 2, 17),
+                                                       (20.0, 2, 20), (30.0, 3, 20), (40.0, 4, 20), (100.0, 10, 20)])
+def test_a_faster_stream_keeps_the_span_by_taking_every_kth_frame(hz, stride, window):
+    core = MotionClassifierCore(ClassifierConfig())  # window_size 20 at the reference 10 Hz: 2 s
+    _frames(core, 40 * stride + 5, 1.0 / hz)
+    assert (core.stride, core.window) == (stride, window)
+    assert core.last_decisions().window_length[0] == window
+    newest_first = core._table.ordered(np.array([core._id_rows[0]]), window)[0, :, 5]  # the window's stamps
+    np.testing.assert_allclose(np.diff(newest_first), stride / hz, rtol=1e-6)  # evenly every k-th frame
+
+
+def test_the_stride_holds_at_a_rounding_edge_and_is_off_without_a_reference():
+    cfg = ClassifierConfig()
+    assert stride_for_interval(cfg, 1 / 14.0) == 1 and stride_for_interval(cfg, 1 / 16.5) == 2
+    assert stride_for_interval(cfg, 1 / 15.5, current=1) == 1  # within 0.6 of the stride in force: kept
+    assert stride_for_interval(cfg, 1 / 14.5, current=2) == 2
+    assert stride_for_interval(cfg, 1 / 13.0, current=2) == 1
+    for interval in (None, 0.0, -1.0, math.nan, 5e-324):
+        assert stride_for_interval(cfg, interval) in (1, 100)
+    assert stride_for_interval(cfg, 5e-324) == 100  # a nonsense rate is bounded
+    assert stride_for_interval(ClassifierConfig(window_reference_hz=None), 0.01) == 1
+    core = MotionClassifierCore(ClassifierConfig(window_reference_hz=None))
+    _frames(core, 30, 0.05)
+    assert core.stride == 1 and core.last_decisions().window_length[0] == 20  # every frame, as before
+
+
+def test_a_fast_stream_is_tested_as_the_reference_rate_stream_of_its_kth_frames():
+    """At 20 Hz the statistic on a frame that took its observation equals, to rounding, the one a 10 Hz stream
+    of the same observations gives; a frame in between repeats it, while the hold runs on every frame."""
+    rng = np.random.default_rng(11)
+    ids = [f"{i:032x}" for i in range(12)]
+    xs = rng.normal(0.0, 0.3, (81, 12)) + np.linspace(0.0, 4.0, 81)[:, None] * (np.arange(12) % 3 == 0)
+    cfg = ClassifierConfig(calibration="off", dynamic_hold_s_per_class={"car": 0.15})
+    fast, slow = MotionClassifierCore(cfg), MotionClassifierCore(cfg)
+    called_on_odd = 0  # movers called dynamic on a frame whose window took nothing (the hold's clock ran on)
+    for k in range(81):
+        d_fast = fast.update(obs(ids, xs[k], seq=k, stamp_ns=k * 50_000_000, var=0.01))
+        if k % 2:
+            called_on_odd += int(((d_fast.state == DYNAMIC) & (before.state != DYNAMIC)).sum())
+        if k % 2 == 0:
+            d_slow = slow.update(obs(ids, xs[k], seq=k // 2, stamp_ns=k * 50_000_000, var=0.01))
+            np.testing.assert_allclose(d_fast.z_x, d_slow.z_x, rtol=1e-12, atol=1e-12)
+            np.testing.assert_array_equal(d_fast.window_length, d_slow.window_length)
+            before = d_fast
+        else:
+            np.testing.assert_array_equal(d_fast.z_x, before.z_x)  # the window took nothing: same statistic
+            np.testing.assert_array_equal(d_fast.window_length, before.window_length)
+    assert fast.stride == 2 and slow.stride == 1 and fast.window == slow.window == 20
+    assert (d_fast.state == DYNAMIC).sum() >= 3  # the movers are caught
+    assert called_on_odd >= 3  # 0.15 s after the first rejection: an odd frame of the fast stream
+    assert (fast.last_decisions().state == slow.last_decisions().state).all()
 
 
 def test_the_window_follows_the_configured_size_and_floor():

@@ -126,7 +126,23 @@ def test_a_2_hz_stream_gets_windows_of_its_span(service, client_session, caplog)
     snap = decode(ClassifierStateSnapshot, _query(client_session, keys.classifier_state(NS)).ok.payload.to_bytes())
     assert {(t.window_length, t.window_size) for t in snap.tracks} == {(10, 10)}
     assert snap.calibration is not None and snap.calibration.window == 10
-    assert any("window now 10 observations (was 20): frames 0.5 s apart" in r.getMessage() for r in caplog.records)
+    assert any("window now 10 observations (was 20 observations): frames 0.5 s apart" in r.getMessage() for r in caplog.records)
+
+
+def test_a_20_hz_stream_fills_its_windows_every_second_frame(service, client_session, caplog):
+    """At 20 Hz the live service takes every second frame into the windows (the default's 2 s in 20
+    observations): 30 frames leave 15 in each window, every frame still gets its decision, and the log says so."""
+    caplog.set_level(logging.INFO, logger="jitterguard.classifier")
+    got = _collect(client_session)
+    _wait_connected(client_session)
+    frames = list(generate(TrackScenario(n_static=3, n_moving=2, n_starting=0, rate_hz=20.0, seed=4), 30))
+    _send_paced(client_session, frames, got)
+    assert wait_until(lambda: len(got["motion"]) == 5 and all(m.header.seq == 29 for m in got["motion"].values()))
+    assert {m.window_length for m in got["motion"].values()} == {15}
+    snap = decode(ClassifierStateSnapshot, _query(client_session, keys.classifier_state(NS)).ok.payload.to_bytes())
+    assert {(t.window_length, t.window_size) for t in snap.tracks} == {(15, 20)}
+    assert any("window now 20 observations of every 2nd frame (was 20 observations): frames 0.05 s apart"
+               in r.getMessage() for r in caplog.records)
 
 
 def test_alpha_change_through_queryable_flips_a_borderline_object(service, client_session):

@@ -143,10 +143,24 @@ def test_cli_a_slow_stream_gets_the_window_of_its_span(tmp_path: Path, capsys) -
     runs = _short_mixed_runs(tmp_path, capsys, default=slow, ten=[*slow, "--window-size", "10", "--fixed-window"],
                              fixed=[*slow, "--fixed-window"])
     assert runs["default"]["run"]["window_size"] == 10 and runs["default"]["run"]["window_reference_hz"] == 10.0
+    assert runs["default"]["run"]["window_stride"] == 1
     assert runs["fixed"]["run"]["window_size"] == 20 and runs["fixed"]["run"]["window_reference_hz"] is None
     assert runs["default"]["motion"] == runs["ten"]["motion"]
     assert runs["default"]["calibration"] == runs["ten"]["calibration"]
     assert runs["default"]["motion"]["vehicle"] != runs["fixed"]["motion"]["vehicle"]
+
+
+def test_cli_a_fast_stream_takes_every_kth_frame(tmp_path: Path, capsys) -> None:
+    """At 20 Hz the default window takes every second frame (the 2 s of 20 observations at 10 Hz): the run and its
+    report say so; `--fixed-window` takes every frame (1 s), and the z-test's figures are not the same."""
+    fast = ["--rate", "20"]
+    runs = _short_mixed_runs(tmp_path, capsys, default=fast, fixed=[*fast, "--fixed-window"])
+    assert (runs["default"]["run"]["window_size"], runs["default"]["run"]["window_stride"]) == (20, 2)
+    assert (runs["fixed"]["run"]["window_size"], runs["fixed"]["run"]["window_stride"]) == (20, 1)
+    assert "window 20 observations, one every 2 frames" in (tmp_path / "default" / "report.md").read_text()
+    assert "one every" not in (tmp_path / "fixed" / "report.md").read_text()
+    a, b = runs["default"]["motion"]["vehicle"], runs["fixed"]["motion"]["vehicle"]
+    assert (a["false_dynamic_z"], a["missed_dynamic_z"]) != (b["false_dynamic_z"], b["missed_dynamic_z"])
 
 
 @pytest.mark.skipif(not NUSC.is_dir(), reason="../shared/data/nuscenes-scene-0523 absent")

@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 
 from ...schemas.models import ClassifierConfig
 from .calibration import MIN_BLOCK, NoiseModel, OnlineCalibration, block_moments, group_of_labels
-from .statistics import CHANNELS, calibrated_statistics, chi2_2_threshold, split_halves, window_statistics
+from .statistics import CHANNELS, WindowStats, calibrated_statistics, chi2_2_threshold, split_halves, window_statistics
 
 F64 = NDArray[np.float64]
 IDS = NDArray[np.bytes_]
@@ -32,20 +32,38 @@ RATE_WINDOW_FLOOR = 10
 seconds are four frames, too few to split into halves worth testing; ten is what the paper tested."""
 RATE_INTERVALS = 9
 """Frame intervals the stream's rate is the median of (a dropped or late frame does not move it)."""
+MAX_STRIDE = 100
+"""Largest stride (a 1 kHz stream at the 10 Hz reference): bounds the ratio of a nonsense stamp pair."""
+
+
+def stride_for_interval(config: ClassifierConfig, interval_s: float | None, current: int = 1) -> int:
+    """Every how many frames a track's window takes an observation on a stream whose frames are
+    ``interval_s`` apart: 1 up to 1.5 × ``window_reference_hz`` (15 Hz at 10 Hz); on a faster stream the nearest whole
+    ratio of its rate to the reference (20 Hz at 10 Hz: every second frame), so the window keeps the span it was
+    chosen with (the default's 2 s) at the cost per second of the reference rate — successive detections of a
+    fast sensor err alike, so the frames skipped add little. ``current`` (the stride in force) is kept while the
+    ratio is within 0.6 of it: a rate at a rounding edge does not flip it."""
+    if config.window_reference_hz is None or interval_s is None or not interval_s > 0:
+        return 1
+    frames = interval_s * config.window_reference_hz  # reference frames per frame (a denormal: 1/frames is inf)
+    ratio = min(1.0 / frames, float(MAX_STRIDE)) if frames > 0 else float(MAX_STRIDE)
+    if abs(ratio - current) < 0.6:
+        return current
+    return max(1, int(math.floor(ratio + 0.5)))
 
 
 def window_for_interval(config: ClassifierConfig, interval_s: float | None) -> int:
-    """The window a stream whose frames are ``interval_s`` apart gets: ``window_size`` observations at
-    ``window_reference_hz`` or faster; on a slower stream proportionally fewer — the same span in time — but at
-    least min(:data:`RATE_WINDOW_FLOOR`, ``window_size``) and ``min_window``; ``window_size`` when the reference
-    is off or the interval not yet known. The default window was chosen as 2 s at 10 Hz, and a fixed count
-    would stretch that span on a slow stream (20 frames of nuScenes' 2 Hz key frames are 10 s); a faster stream
-    keeps the count (more observations in a shorter span), since the window's cost grows as its square."""
+    """The window a stream whose window observations are ``interval_s`` apart gets (the frame interval times
+    the :func:`stride_for_interval`): ``window_size`` observations at ``window_reference_hz`` or faster; on a
+    slower stream proportionally fewer — the same span in time — but at least min(:data:`RATE_WINDOW_FLOOR`,
+    ``window_size``) and ``min_window``; ``window_size`` when the reference is off or the interval not yet
+    known. The default window was chosen as 2 s at 10 Hz, and a fixed count would stretch that span on a slow
+    stream (20 frames of nuScenes' 2 Hz key frames are 10 s)."""
     w = config.window_size
     if config.window_reference_hz is None or interval_s is None or not interval_s > 0:
         return w
     low = max(config.min_window, min(RATE_WINDOW_FLOOR, w))
-    frames = interval_s * config.window_reference_hz  # reference frames per frame of this stream
+    frames = interval_s * config.window_reference_hz  # reference frames per window observation
     span = w / frames if frames > 0 else math.inf  # observations of the reference span at this rate
     return int(min(w, max(low, round(span)))) if math.isfinite(span) else w
 
@@ -227,6 +245,7 @@ class MotionClassifierCore:
         self._table = _Table(window=window_for_interval(self._config, None), capacity=max(8, capacity))
         self._clock: tuple[int, int] | None = None  # (stamp ns, seq) of the last frame
         self._intervals: deque[float] = deque(maxlen=RATE_INTERVALS)  # seconds per frame, the latest
+        self._stride = 1  # every how many frames a window takes an observation (:func:`stride_for_interval`)
         self._ids: IDS = np.empty(0, dtype="S32")  # sorted
         self._id_rows: NDArray[np.int64] = np.empty(0, dtype=np.int64)
         self._free: list[int] = list(range(self._table.capacity - 1, -1, -1))
@@ -260,7 +279,7 @@ class MotionClassifierCore:
                 or config.calibration_prior_blocks != old.calibration_prior_blocks):
             self._online = self.make_online(config)
         self._online.half_life_s = config.calibration_half_life_s
-        self._resize(window_for_interval(config, self.frame_interval_s))
+        self._follow_rate(exact=True)
 
     def check_config(self, config: ClassifierConfig, calibration_model: NoiseModel | None = None) -> None:
         """Raise ``ValueError`` if :meth:`configure` would refuse ``config`` (changes nothing)."""
@@ -292,6 +311,12 @@ class MotionClassifierCore:
         return self._table.window
 
     @property
+    def stride(self) -> int:
+        """Every how many frames a window takes an observation: 1, or more on a stream faster than the
+        reference (:func:`stride_for_interval`)."""
+        return self._stride
+
+    @property
     def frame_interval_s(self) -> float | None:
         """The stream's time between frames: the median of the latest intervals between frames' stamps, per
         frame of ``seq`` (frames with no observations skipped between two updates count); None before two
@@ -307,6 +332,28 @@ class MotionClassifierCore:
             return
         frames = seq - last[1]
         self._intervals.append((stamp_ns - last[0]) * 1e-9 / (frames if frames >= 1 else 1))
+
+    def _follow_rate(self, exact: bool = False) -> None:
+        """Set the stride and the window for the stream's measured rate; the window is resized for a change of
+        two observations or more (a rate at a rounding edge does not flip it), of any size when ``exact`` (a new
+        config)."""
+        interval = self.frame_interval_s
+        self._stride = stride_for_interval(self._config, interval, self._stride)
+        target = window_for_interval(self._config, None if interval is None else interval * self._stride)
+        if exact or abs(target - self._table.window) >= 2:
+            self._resize(target)
+
+    def _takes(self, rows: NDArray[np.int64], stamp_s: float) -> NDArray[np.bool_] | None:
+        """Which of ``rows`` take this frame's observation into their windows (None: all, stride 1): a track
+        seen for the first time, or whose newest window observation is at least stride − ½ frames old (a
+        dropped frame does not shift the phase for long; a stamp that went back restarts it)."""
+        interval = self.frame_interval_s
+        if self._stride == 1 or interval is None:
+            return None
+        t = self._table
+        newest = t.win[rows, (t.head[rows] - 1) % t.window, 5]
+        age = stamp_s - newest
+        return (t.count[rows] == 0) | (age < 0) | (age >= (self._stride - 0.5) * interval)
 
     def _resize(self, window: int) -> None:
         """Give every window ``window`` slots (each keeps its newest observations); the online calibration's
@@ -442,9 +489,7 @@ class MotionClassifierCore:
         calibration as :meth:`learn` left it)."""
         self.learn()  # a no-op when the adapter's settle has run since the last frame
         self._observe_clock(obs.stamp_ns, obs.seq)
-        target = window_for_interval(self._config, self.frame_interval_s)
-        if abs(target - self._table.window) >= 2:  # a rate at a rounding edge does not flip the window
-            self._resize(target)
+        self._follow_rate()
         ids = obs.track_ids
         rows, found = self._lookup(ids)
         if not found.all():
@@ -456,16 +501,18 @@ class MotionClassifierCore:
         if rows.shape[0] and np.bincount(rows, minlength=1).max() > 1:
             raise ValueError("track_ids must be unique within a frame")
         w = t.window
-        slot = t.head[rows]
-        n = rows.shape[0]
         stamp_s = obs.stamp_ns * 1e-9
-        t.win[rows, slot] = np.stack([obs.x, obs.y, obs.cxx, obs.cxy, obs.cyy, np.full(n, stamp_s),
-                                      np.full(n, obs.sensor_x), np.full(n, obs.sensor_y),
-                                      t.seen[rows].astype(np.float64)], axis=1)
-        t.head[rows] = (slot + 1) % w
-        t.count[rows] = np.minimum(t.count[rows] + 1, w)
-        t.since[rows] += 1
-        t.seen[rows] += 1
+        fresh = self._takes(rows, stamp_s)
+        taken, o = (rows, obs) if fresh is None else (rows[fresh], obs.subset(fresh))
+        slot = t.head[taken]
+        n = taken.shape[0]
+        t.win[taken, slot] = np.stack([o.x, o.y, o.cxx, o.cxy, o.cyy, np.full(n, stamp_s),
+                                       np.full(n, obs.sensor_x), np.full(n, obs.sensor_y),
+                                       t.seen[taken].astype(np.float64)], axis=1)
+        t.head[taken] = (slot + 1) % w
+        t.count[taken] = np.minimum(t.count[taken] + 1, w)
+        t.since[taken] += 1
+        t.seen[taken] += 1
         t.label[rows] = np.clip(obs.labels, 0, _NUM_LABELS - 1)
         if obs.published_ids is None:
             t.published[rows] = True
@@ -474,12 +521,13 @@ class MotionClassifierCore:
             t.published[pub[found]] = True
         if self._config.calibration == "online":
             self._online.advance(stamp_s)
-            full = rows[(t.since[rows] >= w) & (t.count[rows] >= w)]
+            full = taken[(t.since[taken] >= w) & (t.count[taken] >= w)]
             if full.size:
                 self._to_learn = full  # update() learnt what the frame before left, so nothing is overwritten
-        return self._decide(rows, ids, obs.speed, obs.stamp_ns, obs.seq)
+        return self._decide(rows, ids, obs.speed, obs.stamp_ns, obs.seq, fresh)
 
-    def _decide(self, rows: NDArray[np.int64], ids: IDS, speed: F64, stamp_ns: int, seq: int) -> Decisions:
+    def _statistics(self, rows: NDArray[np.int64]) -> WindowStats:
+        """The test statistic of the windows of ``rows`` as they stand."""
         cfg = self._config
         t = self._table
         count = t.count[rows]
@@ -499,6 +547,26 @@ class MotionClassifierCore:
             one = count < 2
             stats = replace(stats, z_x=np.where(one, 0.0, stats.z_x), z_y=np.where(one, 0.0, stats.z_y),
                             chi2=np.where(one, 0.0, stats.chi2))
+        return stats
+
+    def _decide(self, rows: NDArray[np.int64], ids: IDS, speed: F64, stamp_ns: int, seq: int,
+                fresh: NDArray[np.bool_] | None = None) -> Decisions:
+        """Decide every row; the statistic only for the ``fresh`` ones (None: all) — a window that took no
+        observation this frame keeps its last statistic, while the hold and the baseline run on this frame's
+        clock and speed."""
+        cfg = self._config
+        t = self._table
+        count = t.count[rows]
+        if fresh is None:
+            stats = self._statistics(rows)
+        else:
+            new = self._statistics(rows[fresh])
+            kept = {}
+            for name in ("z_x", "z_y", "chi2", "mean_x", "mean_y"):
+                col = t.last[name][rows].copy()
+                col[fresh] = getattr(new, name)
+                kept[name] = col
+            stats = WindowStats(**kept)
         alpha = self._alpha_table[t.label[rows]]
         decided = count >= cfg.min_window
         # the baseline's state is kept whatever the mode, so switching to it is immediate

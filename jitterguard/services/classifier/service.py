@@ -74,6 +74,14 @@ class _Latest:
     encoded: bytes | None = None
 
 
+def _window_words(window: int, stride: int) -> str:
+    """'20 observations', or '20 observations of every 2nd frame' on a fast stream (the log's wording)."""
+    if stride == 1:
+        return f"{window} observations"
+    nth = {2: "2nd", 3: "3rd"}.get(stride, f"{stride}th")
+    return f"{window} observations of every {nth} frame"
+
+
 class ClassifierService(Service):
     name = "classifier"
 
@@ -104,7 +112,8 @@ class ClassifierService(Service):
         self.log.info("deciding by %s, calibration %s, effective_n %s, H0 |v| <= %g m/s, window %d observations%s",
                       config.mode, config.calibration, config.effective_n, config.min_speed_mps, config.window_size,
                       "" if config.window_reference_hz is None
-                      else f" at {config.window_reference_hz:g} Hz (proportionally fewer on a slower stream)")
+                      else f" at {config.window_reference_hz:g} Hz (proportionally fewer on a slower stream, "
+                           "every k-th frame on a faster one)")
         self._manage_gc = manage_gc
         self._idle_gc = IdleCollector()
         if manage_gc:
@@ -128,7 +137,7 @@ class ClassifierService(Service):
         self._closes: deque[tuple[bytes, zenoh.KeyExpr, float]] = deque(maxlen=CLOSE_QUEUE)
         self._wake = threading.Event()
         self._latest: _Latest | None = None
-        self._window = self.core.window  # the window the last frame was decided with (a change is logged)
+        self._window = (self.core.window, self.core.stride)  # the last frame's window, stride (a change is logged)
         self._latest_lock = threading.Lock()
         self._obs_key = keys.tracks_all(self.ns)
         self._tracked_key = keys.tracked(self.ns)
@@ -323,12 +332,13 @@ class ClassifierService(Service):
                 self.counters.inc("motion_frames_shed")
             else:
                 self._publish_motion(out)
-        if out.window != self._window:
+        if (out.window, self.core.stride) != self._window:
             interval = self.core.frame_interval_s
-            self.log.info("window now %d observations (was %d): frames %s s apart, window_size %d at %s Hz",
-                          out.window, self._window, "?" if interval is None else f"{interval:.3g}",
-                          out.config.window_size, out.config.window_reference_hz)
-            self._window = out.window
+            self.log.info("window now %s (was %s): frames %s s apart, window_size %d at %s Hz",
+                          _window_words(out.window, self.core.stride), _window_words(*self._window),
+                          "?" if interval is None else f"{interval:.3g}", out.config.window_size,
+                          out.config.window_reference_hz)
+            self._window = (out.window, self.core.stride)
         evicted, labels, stamps, seqs = self.pipeline.settle(out)
         if evicted:
             self.counters.inc("windows_evicted", evicted)

@@ -136,7 +136,7 @@ _CONFIG_DOCS: dict[str, str] = {
     "alpha_default": "z threshold for classes without an override (1.96 ≈ 95 %)",
     "alpha_per_class": "per-class alpha overrides keyed by lowercase class name",
     "window_size": "observations kept per track (sliding window) at window_reference_hz; a slower stream keeps "
-                   "proportionally fewer (at least 10)",
+                   "proportionally fewer (at least 10), a faster one takes every k-th frame",
     "min_window": "observations needed before a track is tested (must not exceed window_size)",
     "variance_floor": "lower bound on each half's mean predicted variance, m²",
     "effective_n": "`measured` (default): the variance of the half-mean difference under the calibrated serial "
