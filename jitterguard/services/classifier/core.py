@@ -37,9 +37,9 @@ MAX_STRIDE = 100
 
 
 def stride_for_interval(config: ClassifierConfig, interval_s: float | None, current: int = 1) -> int:
-    """Every how many frames a track's window takes an observation on a stream whose frames are
-    ``interval_s`` apart: 1 up to 1.5 × ``window_reference_hz`` (15 Hz at 10 Hz); on a faster stream the nearest whole
-    ratio of its rate to the reference (20 Hz at 10 Hz: every second frame), so the window keeps the span it was
+    """Every how many frames a track's window takes an observation on a stream whose frames are ``interval_s``
+    apart: 1 up to 1.5 × ``window_reference_hz`` (15 Hz at 10 Hz); on a faster stream the nearest whole ratio of
+    its rate to the reference (20 Hz at 10 Hz: every second frame), so the window keeps the span it was
     chosen with (the default's 2 s) at the cost per second of the reference rate — successive detections of a
     fast sensor err alike, so the frames skipped add little. ``current`` (the stride in force) is kept while the
     ratio is within 0.6 of it: a rate at a rounding edge does not flip it."""
@@ -345,8 +345,8 @@ class MotionClassifierCore:
 
     def _takes(self, rows: NDArray[np.int64], stamp_s: float) -> NDArray[np.bool_] | None:
         """Which of ``rows`` take this frame's observation into their windows (None: all, stride 1): a track
-        seen for the first time, or whose newest window observation is at least stride − ½ frames old (a
-        dropped frame does not shift the phase for long; a stamp that went back restarts it)."""
+        seen for the first time, or whose newest window observation is at least stride − ½ frames old (after a
+        dropped frame the next one is taken: no hole, the phase moves; a stamp that went back restarts it)."""
         interval = self.frame_interval_s
         if self._stride == 1 or interval is None:
             return None
