@@ -112,37 +112,28 @@ def test_car_that_starts_moving_flips_within_the_window(service, client_session)
     assert 12 <= first_dynamic <= 12 + 10
 
 
-def test_a_2_hz_stream_gets_windows_of_its_span(service, client_session, caplog):
-    """Key frames at 2 Hz through the live service: the windows hold 10 observations (the default's 2 s at
-    10 Hz, floored at the paper's 10), not 20 (10 s) — in ``motion/{id}``, the state and the calibration — and the
-    log says when the window changed and why."""
+@pytest.mark.parametrize(("rate_hz", "frames", "length", "size", "logged"), [
+    (2.0, 14, 10, 10, "window now 10 observations (was 20 observations): frames 0.5 s apart"),
+    (20.0, 30, 15, 20, "window now 20 observations of every 2nd frame (was 20 observations): frames 0.05 s apart"),
+])
+def test_a_stream_gets_windows_of_the_reference_span(service, client_session, caplog, rate_hz, frames, length, size,
+                                                     logged):
+    """Through the live service, windows keep the default's 2 s at 10 Hz: key frames at 2 Hz hold 10 observations
+    (floored at the paper's 10), not 20 (10 s); at 20 Hz every second frame is taken (30 frames leave 15 of 20),
+    while every frame still gets its decision — in ``motion/{id}``, the state and the calibration — and the log
+    says when the window changed and why."""
     caplog.set_level(logging.INFO, logger="jitterguard.classifier")
     got = _collect(client_session)
     _wait_connected(client_session)
-    frames = list(generate(TrackScenario(n_static=3, n_moving=2, n_starting=0, rate_hz=2.0, seed=4), 14))
-    _send_paced(client_session, frames, got)
-    assert wait_until(lambda: len(got["motion"]) == 5 and all(m.header.seq == 13 for m in got["motion"].values()))
-    assert {m.window_length for m in got["motion"].values()} == {10}
+    sent = list(generate(TrackScenario(n_static=3, n_moving=2, n_starting=0, rate_hz=rate_hz, seed=4), frames))
+    _send_paced(client_session, sent, got)
+    last = frames - 1
+    assert wait_until(lambda: len(got["motion"]) == 5 and all(m.header.seq == last for m in got["motion"].values()))
+    assert {m.window_length for m in got["motion"].values()} == {length}
     snap = decode(ClassifierStateSnapshot, _query(client_session, keys.classifier_state(NS)).ok.payload.to_bytes())
-    assert {(t.window_length, t.window_size) for t in snap.tracks} == {(10, 10)}
-    assert snap.calibration is not None and snap.calibration.window == 10
-    assert any("window now 10 observations (was 20 observations): frames 0.5 s apart" in r.getMessage() for r in caplog.records)
-
-
-def test_a_20_hz_stream_fills_its_windows_every_second_frame(service, client_session, caplog):
-    """At 20 Hz the live service takes every second frame into the windows (the default's 2 s in 20
-    observations): 30 frames leave 15 in each window, every frame still gets its decision, and the log says so."""
-    caplog.set_level(logging.INFO, logger="jitterguard.classifier")
-    got = _collect(client_session)
-    _wait_connected(client_session)
-    frames = list(generate(TrackScenario(n_static=3, n_moving=2, n_starting=0, rate_hz=20.0, seed=4), 30))
-    _send_paced(client_session, frames, got)
-    assert wait_until(lambda: len(got["motion"]) == 5 and all(m.header.seq == 29 for m in got["motion"].values()))
-    assert {m.window_length for m in got["motion"].values()} == {15}
-    snap = decode(ClassifierStateSnapshot, _query(client_session, keys.classifier_state(NS)).ok.payload.to_bytes())
-    assert {(t.window_length, t.window_size) for t in snap.tracks} == {(15, 20)}
-    assert any("window now 20 observations of every 2nd frame (was 20 observations): frames 0.05 s apart"
-               in r.getMessage() for r in caplog.records)
+    assert {(t.window_length, t.window_size) for t in snap.tracks} == {(length, size)}
+    assert snap.calibration is not None and snap.calibration.window == size
+    assert any(logged in r.getMessage() for r in caplog.records)
 
 
 def test_alpha_change_through_queryable_flips_a_borderline_object(service, client_session):
