@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterable, Iterator
+from pathlib import Path
 
 from jitterguard.bench.tracker_sequences import SimFrame
 from jitterguard.geometry import quaternion_from_yaw
@@ -13,6 +14,11 @@ from jitterguard.schemas.models import (X_X, X_Y, Y_X, Y_Y, YAW_YAW, DetectedObj
 from jitterguard.sim.lidar import LidarSpec, ScanResult, cast_frame, hdl32e
 from jitterguard.sim.world import GroundTruthFrame
 
+
+SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+"""``../shared/data`` beside the repository: the real recordings (tests that need them skip where it is absent)."""
+NUSC = SHARED_DATA / "nuscenes-scene-0523"
+"""The one labelled real scene (nuScenes, 2 Hz key frames)."""
 
 def wait_until(pred: Callable[[], bool], timeout: float = 10.0, period: float = 0.02) -> bool:
     """Poll ``pred`` until it holds or ``timeout`` passes (no fixed sleeps in tests)."""

@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import os
 import sys
+from pathlib import Path
 from typing import Annotated
 
 import typer
@@ -224,6 +225,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             "--classifier-config", help="Classifier parameter file (as `jitterguard classifier --config`).")] = None,
         tracker_config: Annotated[str | None, typer.Option(
             "--tracker-config", help="Tracker parameter file (as `jitterguard tracker --config`).")] = None,
+        log_dir: Annotated[Path | None, typer.Option(
+            "--log-dir", help="Where the services' logs go (default: a new temporary folder; the JSON's `logs`).")] = None,
         as_json: Annotated[bool, typer.Option("--json", help="JSON on stdout (the only output format).")] = True,
     ) -> None:
         """Detections -> tracker -> classifier -> objects through real processes: latency, losses, RSS growth."""
@@ -242,7 +245,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                 load(model, path)  # a missing file is its ConfigError too
             except ConfigError as exc:
                 fail(f"{flag}: {exc}")
-        res = bench_pipeline(objects, rate, duration, seed, split=split, churn=churn,
+        res = bench_pipeline(objects, rate, duration, seed, log_dir=log_dir, split=split, churn=churn,
                              classifier_config=classifier_config, tracker_config=tracker_config)
         print(json.dumps(res, indent=None if as_json else 2))
 

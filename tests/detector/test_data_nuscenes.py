@@ -22,8 +22,8 @@ from jitterguard.services.detector.data_nuscenes import (
 from jitterguard.services.replay.frames import SourceError
 from jitterguard.sim.export import export_scenario
 from jitterguard.sim.world import make_scenario
+from helpers import NUSC
 
-NUSC = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "nuscenes-scene-0523"
 needs_scene = pytest.mark.skipif(not (NUSC / "v1.0-mini" / "scene.json").is_file(),
                                  reason="shared nuScenes scene-0523 not present")
 

@@ -30,9 +30,9 @@ from jitterguard.services.detector.onnx_export import (  # noqa: E402
     sample_pillars,
 )
 from jitterguard.services.detector.pillars import scatter_to_bev  # noqa: E402
+from helpers import NUSC
 
 TOL = 1e-4
-SHARED_NUSC = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "nuscenes-scene-0523"
 
 
 @pytest.fixture(scope="module")
@@ -82,12 +82,12 @@ def test_onnxruntime_equals_torch_on_20_synthetic_scans(torch_det, single_dir, s
                                                    "yaw_rot_norm": check["yaw_worst_rot_norm"]}))
 
 
-@pytest.mark.skipif(not SHARED_NUSC.is_dir(), reason="../shared/data/nuscenes-scene-0523 absent")
+@pytest.mark.skipif(not NUSC.is_dir(), reason="../shared/data/nuscenes-scene-0523 absent")
 def test_onnxruntime_equals_torch_on_5_real_nuscenes_scans(torch_det, single_dir) -> None:
     from jitterguard.services.replay.frames import ScanFrame
     from jitterguard.services.replay.sources import open_source
 
-    with open_source(str(SHARED_NUSC)) as src:
+    with open_source(str(NUSC)) as src:
         frames = [f for f in src.frames() if isinstance(f, ScanFrame)][:5]
     assert len(frames) == 5
     scans = [np.ascontiguousarray(f.points[:, :4]) for f in frames]

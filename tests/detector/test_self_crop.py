@@ -18,8 +18,8 @@ from pydantic import ValidationError
 from jitterguard.services.detector.config import SELF_CROP_M, DetectorParams
 from jitterguard.services.detector.data import synthetic_samples
 from jitterguard.services.detector.inference import Detector, crop_box
+from helpers import NUSC
 
-SHARED_NUSC = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "nuscenes-scene-0523"
 
 
 def test_crop_box_drops_exactly_the_points_strictly_inside() -> None:
@@ -73,14 +73,14 @@ def test_roof_returns_never_reach_the_network() -> None:
     assert len(seen) != len(clean) or not np.array_equal(seen.scores, clean.scores)
 
 
-@pytest.mark.skipif(not SHARED_NUSC.is_dir(), reason="../shared/data/nuscenes-scene-0523 absent")
+@pytest.mark.skipif(not NUSC.is_dir(), reason="../shared/data/nuscenes-scene-0523 absent")
 def test_no_car_at_the_sensor_on_real_scans() -> None:
     """The 40 key frames of scene-0523: without the crop the shipped weights report something (score > 0.3)
     within 2 m of the sensor — the ego's roof — in nearly every frame; with nuScenes' 1 m square still in nearly
     every frame (the bonnet and boot returns are left); with the default box in at most one."""
     from jitterguard.services.detector.data import nuscenes_samples
 
-    scans = [s.points for s in nuscenes_samples(SHARED_NUSC)]
+    scans = [s.points for s in nuscenes_samples(NUSC)]
 
     def frames_with_a_car_at_the_sensor(box) -> int:  # noqa: ANN001
         det = Detector.load(None, "lite", threads=2, self_crop=box)

@@ -34,8 +34,8 @@ from jitterguard.services.detector.config import CLASS_NAMES, LITE, Detections3D
 from jitterguard.services.detector.inference import save_weights
 from jitterguard.services.detector.network import CenterPointNet
 from jitterguard.sim.world import make_scenario
+from helpers import NUSC
 
-NUSC = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "nuscenes-scene-0523"
 TINY = LITE.model_copy(update=dict(
     name="tiny", point_cloud_range=(-12.8, -12.8, -3.0, 12.8, 12.8, 3.0), voxel_size=(0.2, 0.2, 6.0),
     pfn_channels=8, backbone_layers=(1, 1, 1), backbone_channels=(8, 16, 16), neck_channels=(8, 8, 8),

@@ -13,8 +13,8 @@ from jitterguard.eval.pipeline import NOISE_PRESETS, run_pipeline
 from jitterguard.schemas.models import ClassifierConfig
 from jitterguard.services.classifier.core import DYNAMIC, STATIC, UNDECIDED
 from jitterguard.sim.world import make_scenario
+from helpers import NUSC
 
-NUSC = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "nuscenes-scene-0523"
 GROUP_KEYS = ("ap_z", "ap_speed", "false_dynamic_z", "false_dynamic_speed", "missed_dynamic_z",
               "missed_dynamic_speed", "n_static", "n_dynamic")
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import math
 import threading
-from pathlib import Path
 
 import pytest
 import zenoh
@@ -17,9 +16,8 @@ from jitterguard.services.replay.service import ReplayService
 from jitterguard.services.replay.runner import ReplayPlan
 from jitterguard.services.replay.sources import SourceOptions, open_source
 
-from helpers import collector, wait_until
+from helpers import NUSC, collector, wait_until
 
-NUSC = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "nuscenes-scene-0523"
 
 
 @pytest.mark.integration

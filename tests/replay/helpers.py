@@ -12,7 +12,6 @@ from jitterguard.services.replay.sources.base import MemorySource, Source
 
 FIELDS4 = ("x", "y", "z", "intensity")
 MS = 1_000_000
-SHARED_DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
 
 
 def scan(i: int, n: int = 16, stamp_ns: int | None = None, seed: int | None = None) -> ScanFrame:

@@ -14,9 +14,8 @@ import pytest
 from jitterguard.services.replay.frames import ScanFrame
 from jitterguard.services.replay.sources import open_source
 
-from .helpers import SHARED_DATA
+from helpers import NUSC, SHARED_DATA
 
-NUSC = SHARED_DATA / "nuscenes-scene-0523"
 KITTI = SHARED_DATA / "kitti-velodyne-6"
 SINGLE = SHARED_DATA / "single-frames"
 

@@ -13,10 +13,14 @@ pytestmark = pytest.mark.integration
 
 
 def test_bench_pipeline_smoke(tmp_path):
+    logs = tmp_path / "logs"
     res = subprocess.run([sys.executable, "-m", "jitterguard.cli", "bench", "pipeline", "--json", "--objects", "20",
-                          "--rate", "10", "--duration", "3"], capture_output=True, text=True, timeout=120)
+                          "--rate", "10", "--duration", "3", "--log-dir", str(logs)],
+                         capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr[-3000:]
     out = json.loads(res.stdout)
+    assert out["logs"] == str(logs)  # the services' logs where asked, not a stray temporary folder
+    assert {p.name for p in logs.iterdir()} == {"router.log", "tracker.log", "classifier.log"}
     for key in ("objects", "rate_hz", "duration_s", "frames_in", "frames_out", "p50_ms", "p99_ms", "rss_growth_pct"):
         assert key in out
     assert out["objects"] == 20 and out["frames_in"] == 30
@@ -53,7 +57,7 @@ def test_bench_pipeline_runs_the_classifier_with_the_given_parameter_file(tmp_pa
     from jitterguard.config import param_file
 
     res = subprocess.run([sys.executable, "-m", "jitterguard.cli", "bench", "pipeline", "--json", "--objects", "20",
-                          "--rate", "10", "--duration", "2", "--classifier-config",
+                          "--rate", "10", "--duration", "2", "--log-dir", str(tmp_path / "logs"), "--classifier-config",
                           str(param_file("classifier", "paper"))], capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr[-3000:]
     out = json.loads(res.stdout)
