@@ -23,13 +23,16 @@ def _calibrate(tmp_path: Path, name: str, *extra: str) -> dict:
 
 def test_calibrate_writes_scales_from_windows_of_the_streams_span(tmp_path: Path, capsys) -> None:
     """At 10 Hz the blocks are the classifier's windows of 20; a 2 Hz recording's are 10 long, as the classifier's
-    windows on it; both learnt from the recording's tracks (blocks pooled, scales off the prior of 1)."""
+    windows on it, and a 20 Hz recording's 20 observations of every second frame (2 s, as at 10 Hz); all learnt
+    from the recording's tracks (blocks pooled, scales off the prior of 1)."""
     fast = _calibrate(tmp_path, "fast", "--duration", "12")
     slow = _calibrate(tmp_path, "slow", "--duration", "40", "--hz", "2")
-    assert fast["window"] == 20 and slow["window"] == 10
+    faster = _calibrate(tmp_path, "faster", "--duration", "12", "--hz", "20")
+    assert fast["window"] == 20 and slow["window"] == 10 and faster["window"] == 20
     # the mean time between a block's observations (a track missed in a frame spans two frames)
     assert 0.1 <= fast["frame_interval_s"] < 0.15 and 0.5 <= slow["frame_interval_s"] < 0.75
-    for data in (fast, slow):
+    assert 0.1 <= faster["frame_interval_s"] < 0.15  # every second frame of 20 Hz, not 0.05 s
+    for data in (fast, slow, faster):
         assert data["source"]["blocks"] > 0
         along = data["groups"]["vehicle"]["along"]
         assert sum(along["blocks"].values()) > 0 and any(abs(v - 1.0) > 0.05 for v in along["scale"].values())
