@@ -127,13 +127,26 @@ def test_the_stride_holds_at_a_rounding_edge_and_is_off_without_a_reference():
     assert stride_for_interval(cfg, 1 / 15.5, current=1) == 1  # within 0.6 of the stride in force: kept
     assert stride_for_interval(cfg, 1 / 14.5, current=2) == 2
     assert stride_for_interval(cfg, 1 / 13.0, current=2) == 1
-    for interval in (None, 0.0, -1.0, math.nan, 5e-324):
-        assert stride_for_interval(cfg, interval) in (1, 100)
+    for interval in (None, 0.0, -1.0, math.nan):
+        assert stride_for_interval(cfg, interval) == 1 and stride_for_interval(cfg, interval, current=3) == 3
     assert stride_for_interval(cfg, 5e-324) == 100  # a nonsense rate is bounded
     assert stride_for_interval(ClassifierConfig(window_reference_hz=None), 0.01) == 1
     core = MotionClassifierCore(ClassifierConfig(window_reference_hz=None))
     _frames(core, 30, 0.05)
     assert core.stride == 1 and core.last_decisions().window_length[0] == 20  # every frame, as before
+
+
+def test_a_restarted_fast_stream_keeps_its_stride():
+    """A 20 Hz recording that starts over (stamps go back) is measured afresh, but keeps taking every second frame
+    meanwhile: its windows do not take the first frames of the new start at twice the rate."""
+    core = MotionClassifierCore(ClassifierConfig())
+    _frames(core, 10, 0.05)
+    assert core.stride == 2
+    core.update(obs([A], [0.0], seq=0, stamp_ns=0))  # the recording starts over
+    assert core.frame_interval_s is None and core.stride == 2
+    taken = core.last_decisions().window_length[0]
+    _frames(core, 4, 0.05, start=1)  # stamps 0.05 … 0.2 s: every second frame taken
+    assert core.stride == 2 and core.last_decisions().window_length[0] == taken + 2
 
 
 def test_a_fast_stream_is_tested_as_the_reference_rate_stream_of_its_kth_frames():

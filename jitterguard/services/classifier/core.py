@@ -42,9 +42,12 @@ def stride_for_interval(config: ClassifierConfig, interval_s: float | None, curr
     its rate to the reference (20 Hz at 10 Hz: every second frame), so the window keeps the span it was
     chosen with (the default's 2 s) at the cost per second of the reference rate — successive detections of a
     fast sensor err alike, so the frames skipped add little. ``current`` (the stride in force) is kept while the
-    ratio is within 0.6 of it: a rate at a rounding edge does not flip it."""
-    if config.window_reference_hz is None or interval_s is None or not interval_s > 0:
+    ratio is within 0.6 of it — a rate at a rounding edge does not flip it — and while the rate is not known (a
+    recording that started over is measured afresh: its first frame does not fall back to every frame)."""
+    if config.window_reference_hz is None:
         return 1
+    if interval_s is None or not interval_s > 0:
+        return current
     frames = interval_s * config.window_reference_hz  # reference frames per frame (a denormal: 1/frames is inf)
     ratio = min(1.0 / frames, float(MAX_STRIDE)) if frames > 0 else float(MAX_STRIDE)
     if abs(ratio - current) < 0.6:
