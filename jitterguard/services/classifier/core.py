@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -336,27 +336,29 @@ class MotionClassifierCore:
         frames = seq - last[1]
         self._intervals.append((stamp_ns - last[0]) * 1e-9 / (frames if frames >= 1 else 1))
 
-    def _follow_rate(self, exact: bool = False) -> None:
+    def _follow_rate(self, exact: bool = False) -> float | None:
         """Set the stride and the window for the stream's measured rate; the window is resized for a change of
         two observations or more (a rate at a rounding edge does not flip it), of any size when ``exact`` (a new
-        config)."""
+        config). Returns the frame interval it used."""
         interval = self.frame_interval_s
         self._stride = stride_for_interval(self._config, interval, self._stride)
         target = window_for_interval(self._config, None if interval is None else interval * self._stride)
         if exact or abs(target - self._table.window) >= 2:
             self._resize(target)
+        return interval
 
-    def _takes(self, rows: NDArray[np.int64], stamp_s: float) -> NDArray[np.bool_] | None:
-        """Which of ``rows`` take this frame's observation into their windows (None: all, stride 1): a track
-        seen for the first time, or whose newest window observation is at least stride − ½ frames old (after a
-        dropped frame the next one is taken: no hole, the phase moves; a stamp that went back restarts it)."""
-        interval = self.frame_interval_s
+    def _takes(self, rows: NDArray[np.int64], stamp_s: float, interval: float | None) -> NDArray[np.bool_] | None:
+        """Which of ``rows`` take this frame's observation into their windows (None: all — stride 1, or every
+        row's turn): a track seen for the first time, or whose newest window observation is at least stride − ½
+        frames of ``interval`` old (after a dropped frame the next one is taken: no hole, the phase moves; a
+        stamp that went back restarts it)."""
         if self._stride == 1 or interval is None:
             return None
         t = self._table
         newest = t.win[rows, (t.head[rows] - 1) % t.window, 5]
         age = stamp_s - newest
-        return (t.count[rows] == 0) | (age < 0) | (age >= (self._stride - 0.5) * interval)
+        take = (t.count[rows] == 0) | (age < 0) | (age >= (self._stride - 0.5) * interval)
+        return None if take.all() else take
 
     def _resize(self, window: int) -> None:
         """Give every window ``window`` slots (each keeps its newest observations); the online calibration's
@@ -492,7 +494,7 @@ class MotionClassifierCore:
         calibration as :meth:`learn` left it)."""
         self.learn()  # a no-op when the adapter's settle has run since the last frame
         self._observe_clock(obs.stamp_ns, obs.seq)
-        self._follow_rate()
+        interval = self._follow_rate()
         ids = obs.track_ids
         rows, found = self._lookup(ids)
         if not found.all():
@@ -505,7 +507,7 @@ class MotionClassifierCore:
             raise ValueError("track_ids must be unique within a frame")
         w = t.window
         stamp_s = obs.stamp_ns * 1e-9
-        fresh = self._takes(rows, stamp_s)
+        fresh = self._takes(rows, stamp_s, interval)
         taken, o = (rows, obs) if fresh is None else (rows[fresh], obs.subset(fresh))
         slot = t.head[taken]
         n = taken.shape[0]
@@ -565,10 +567,10 @@ class MotionClassifierCore:
         else:
             new = self._statistics(rows[fresh])
             kept = {}
-            for name in ("z_x", "z_y", "chi2", "mean_x", "mean_y"):
-                col = t.last[name][rows].copy()
-                col[fresh] = getattr(new, name)
-                kept[name] = col
+            for f in fields(WindowStats):  # each is also kept per row in ``last``
+                col = t.last[f.name][rows].copy()
+                col[fresh] = getattr(new, f.name)
+                kept[f.name] = col
             stats = WindowStats(**kept)
         alpha = self._alpha_table[t.label[rows]]
         decided = count >= cfg.min_window
