@@ -4,7 +4,8 @@
     .venv/bin/python scripts/autoware_deployed.py --scenario mixed --seeds 2000-2009 [--input detector] [--cache DIR]
     .venv/bin/python scripts/autoware_deployed.py --nuscenes ../shared/data/nuscenes-scene-0523 --input detector
     .venv/bin/python scripts/autoware_deployed.py --nuscenes ../shared/data/nuscenes-scene-0523 --input gt-noise --noise clean
-    ... [--preset hold]   (the z-test held 0.3 s before it says dynamic: the classifier's `hold` preset)
+    ... [--preset hold]   (the z-test held before it says dynamic: the classifier's `hold` preset)
+    ... [--hold S]        (every class held S seconds: how the preset's hold was chosen)
 
 Autoware's static-obstacle avoidance calls an object moving once its speed has stayed above the class threshold
 for ``th_moving_time`` (2 s vehicles, 1 s others). jitterguard's classifier in front of it zeroes the velocity
@@ -106,9 +107,13 @@ def main() -> None:
     input_arguments(ap)
     ap.add_argument("--preset", default=None, choices=sorted(PRESETS),
                     help="classifier preset for the z-test, e.g. hold (its decisions held 0.3 s)")
+    ap.add_argument("--hold", type=float, default=None,
+                    help="hold every class's z-test decision this many seconds (dynamic_hold_s_per_class), after --preset")
     args = ap.parse_args()
+    classes = PRESETS["hold"]["dynamic_hold_s_per_class"]  # every class the preset names
+    hold = {} if args.hold is None else {"dynamic_hold_s_per_class": {c: args.hold for c in classes}}
     clf = ClassifierConfig.model_validate({**ClassifierConfig().model_dump(), **PRESETS["autoware-sustain"],
-                                           **(PRESETS[args.preset] if args.preset else {})})
+                                           **(PRESETS[args.preset] if args.preset else {}), **hold})
     drive = MotionClassifierCore.make_online(clf)
     seeds = [0] if args.nuscenes else _seeds(args.seeds)
     rec = concat_records([track_and_classify(iter(detection_pairs(args, s)), clf, default_config(), calibration=drive)

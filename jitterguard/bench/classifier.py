@@ -35,7 +35,9 @@ class _Scene:
     """Tracks as the classifier sees them from a tracker at 10 Hz: 5–60 m around the sensor, a third moving
     (vehicles 5 m/s, vulnerable road users 1.4 m/s), 0.1 m jitter, 5 % of observations missed, tracks born at
     staggered frames (so ring buffers are at every rotation) and mixed classes (so the calibration's groups
-    differ). The windows then hold the time patterns a live stream gives, not one shared pattern."""
+    differ). The windows then hold the time patterns a live stream gives, not one shared pattern — though
+    fewer distinct ones than a tracker's stream, where each missed detection gives a window gaps of its own
+    (docs/performance.md, "The correlation kernel by recursion")."""
 
     def __init__(self, n: int, seed: int) -> None:
         self.rng = np.random.default_rng(seed)

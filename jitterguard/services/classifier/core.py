@@ -541,8 +541,8 @@ class MotionClassifierCore:
             stats = window_statistics(t.win[rows], masks, variance_floor=cfg.variance_floor,
                                       independent=cfg.effective_n == "independent")
         else:
-            # oldest first (the newest in the last slot): windows of tracks seen in the same frames then share
-            # their time pattern whatever their age, and the correlation kernels are computed once for them
+            # oldest first (the newest in the last slot): the correlation kernel's passes run along the slots
+            # in time order without a permutation
             masks = split_halves(np.zeros(rows.shape[0], dtype=np.int64), count, t.window)
             stats = calibrated_statistics(t.ordered(rows, t.window), masks, group_of_labels(t.label[rows]),
                                           self.noise_model(),

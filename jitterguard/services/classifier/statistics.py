@@ -212,7 +212,6 @@ def _calibrated_statistics(windows: F64, masks: HalfMasks, groups: I64, model: N
     measured = effective_n == "measured"
     need_kernels = measured or track_scale_prior
     if need_kernels:
-        phi, phi_sq = correlation_kernels(t, valid, groups, model)
         m_axis = model.correlation[groups]  # (K, 2)
         # per axis k: Φ_k applied to the columns [w h_x, w h_y, U₁, U₂, V₁, V₂] (see track_scale), rows of X
         vm = valid.astype(np.float64)
@@ -237,7 +236,7 @@ def _calibrated_statistics(windows: F64, masks: HalfMasks, groups: I64, model: N
             np.multiply(w, hy, out=cols[k, :, 1])
     if need_kernels:
         cols[:, :, 0:2] *= measured  # zeros when only the track scale is wanted
-        phi_cols = [phi.times(k, cols[k]) for k in range(2)]  # X Φ (Φ symmetric): (K, 6, W) per axis
+        phi_cols, phi_sq = exponential_kernel_products(t, valid, model.tau_s[groups], cols)  # X Φ (Φ symmetric)
     if measured:
         a = np.zeros(len(w))
         b = np.zeros(len(w))
@@ -309,69 +308,69 @@ def _line_basis(t: F64, vm: F64, n: F64) -> tuple[F64, F64, F64, F64]:
     return tc, stt, b1, b2
 
 
-_HASH = np.random.default_rng(20251125).normal(size=1024)
-_HASH.flags.writeable = False
-"""Fixed weights that hash a window's time pattern to one number (a constant: the same on every run)."""
+def exponential_kernel_products(t: F64, valid: NDArray[np.bool_], tau: F64, rows: F64) -> tuple[F64, F64]:
+    """Per line-of-sight axis a: ``rows`` (2, K, C, W) times each window's kernel Φ_ij = exp(−|t_i − t_j| / τ_a)
+    (τ per window and axis in ``tau``, (K, 2); zero where slot i or j is outside the window), and Σ_ij Φ_ij² per
+    window, (2, K). The correlation of the normalised errors is R = (1 − m) I + m Φ.
 
-
-def correlation_kernels(t: F64, valid: NDArray[np.bool_], groups: I64, model: NoiseModel) -> tuple[
-        "_Kernels", tuple[F64, F64]]:
-    """Per line-of-sight axis, the (K, W, W) kernel Φ_ij = exp(−|t_i − t_j| / τ) of each window under the τ of
-    its class group, zero where slot i or j is outside the window, and Σ_ij Φ_ij² per window. The correlation
-    of the normalised errors is R = (1 − m) I + m Φ.
-
-    Computed once per distinct (time pattern relative to the window's first observation, slots, τ of both
-    axes): in a steady stream the windows of the tracks seen in the same frames share one pattern when they are
-    given oldest first (as the core does), and the exponentials are most of the cost. Patterns are told apart
-    by a hash of the key, checked exactly."""
-    t0 = np.where(valid, t, np.inf).min(1)
-    rel = np.where(valid, t - np.where(np.isfinite(t0), t0, 0.0)[:, None], -1.0)  # −1: not in the window
-    tau = model.tau_s[groups]  # (K, 2): groups with the same τ share their kernels
-    key = np.concatenate([rel, tau], axis=1)
-    weights = _HASH[: key.shape[1]] if key.shape[1] <= len(_HASH) else np.resize(_HASH, key.shape[1])
-    _, first, inv = np.unique(key @ weights, return_index=True, return_inverse=True)
-    inv = inv.reshape(-1)
-    if not np.array_equal(key[first][inv], key):  # a hash collision (or NaN stamps): the exact, slower way
-        _, first, inv = np.unique(key, axis=0, return_index=True, return_inverse=True)
-        inv = inv.reshape(-1)
-    tu, vu, tau_u = rel[first], valid[first], tau[first]
-    dt = np.abs(tu[:, :, None] - tu[:, None, :])
-    pair = vu[:, :, None] & vu[:, None, :]
-    phi, phi_sq = [], []
-    for ai in range(2):
-        ph = np.exp(-dt / tau_u[:, ai, None, None]) * pair
-        phi_sq.append(np.einsum("kij,kij->k", ph, ph)[inv])
-        phi.append(ph)
-    return _Kernels(phi[0], phi[1], inv), (phi_sq[0], phi_sq[1])
-
-
-@dataclass(frozen=True)
-class _Kernels:
-    """The distinct kernels of :func:`correlation_kernels` per axis, (P, W, W), and each window's index."""
-
-    along: F64
-    across: F64
-    index: I64
-
-    def times(self, axis: int, rows: F64) -> F64:
-        """``rows`` (K, C, W) times each window's kernel of ``axis``: one matrix product when every window
-        shares one pattern, else one per window."""
-        phi = self.along if axis == 0 else self.across
-        k, c, w = rows.shape
-        if phi.shape[0] == 1:
-            return (rows.reshape(k * c, w) @ phi[0]).reshape(k, c, w)
-        return rows @ phi[self.index]
+    Φ is the covariance of an Ornstein–Uhlenbeck process sampled at the window's stamps, so Φ x needs no W × W
+    matrix: with the slots in time order, f_i = x_i + e^{−(t_i − t_{i−1})/τ} f_{i−1} sums the older
+    observations, a backward pass the newer ones, and Φ x = f + b − x — W exponentials and 4 W multiply-adds
+    per window instead of W² of each, whatever the windows' time patterns (a recording where every track misses
+    different frames costs the same as a steady one). Σ Φ² = 1ᵀ Φ' 1 with Φ' the kernel at τ / 2. The slots
+    may come in any order (a ring buffer); ties and repeated stamps are exact."""
+    k_n, w = t.shape
+    key = np.where(valid, t, -np.inf)  # outside the window first
+    order = np.argsort(key, axis=1, kind="stable")
+    if (order == np.arange(w)).all():  # oldest first already (the core's windows): no permutation
+        order = None
+    else:
+        t, valid = np.take_along_axis(t, order, axis=1), np.take_along_axis(valid, order, axis=1)
+        rows = np.take_along_axis(rows, order[None, :, None, :], axis=3)
+    step = valid[:, 1:] & valid[:, :-1]  # both ends in the window: a pass carries its sum over the step
+    with np.errstate(invalid="ignore", over="ignore"):
+        gap = np.where(step, t[:, 1:] - t[:, :-1], 0.0)
+    decay = np.exp(-gap.T[:, None, :] / tau.T[None])  # (W − 1, 2, K): time-major like the passes
+    decay *= step.T[:, None, :]
+    vm = valid.T.astype(np.float64)  # (W, K)
+    # (W, 2, C, K): each step of a pass works on one contiguous (2, C, K) slice, the decay broadcast over C
+    x = rows.transpose(3, 0, 2, 1) * vm[:, None, None, :]
+    acc = np.empty_like(x)  # the forward sums f, then b − x added slot by slot: Φ x = f + b − x
+    acc[0] = x[0]
+    for i in range(1, w):  # older observations, decayed to slot i
+        np.multiply(acc[i - 1], decay[i - 1, :, None, :], out=acc[i])
+        acc[i] += x[i]
+    back = x[w - 1].copy()
+    for i in range(w - 2, -1, -1):  # newer ones
+        back *= decay[i, :, None, :]
+        acc[i] += back
+        back += x[i]
+    acc *= vm[:, None, None, :]
+    # Σ Φ² = 1ᵀ Φ' 1 with Φ' at τ / 2: s_i = Σ_{j<i} Φ'_ij by the same forward pass, Σ Φ² = n + 2 Σ_i s_i
+    decay *= decay
+    s = np.zeros((2, k_n))
+    total = np.zeros((2, k_n))
+    for i in range(1, w):
+        s += vm[i - 1]
+        s *= decay[i - 1]
+        total += s * vm[i]
+    phi_sq = vm.sum(0) + 2.0 * total
+    out = acc.transpose(1, 3, 2, 0)
+    if order is not None:
+        back_order = np.argsort(order, axis=1)
+        out = np.take_along_axis(out, back_order[None, :, None, :], axis=3)
+    return np.ascontiguousarray(out), phi_sq
 
 
 def track_scale(pos_x: F64, pos_y: F64, vm: F64, n: F64, basis: tuple[F64, F64, F64, F64],
-                axes: tuple[tuple[F64, F64], tuple[F64, F64]], sig: tuple[F64, F64], cols: F64, phi_cols: list[F64],
-                phi_sq: tuple[F64, F64], m_axis: F64, prior_dof: F64) -> tuple[F64, F64]:
+                axes: tuple[tuple[F64, F64], tuple[F64, F64]], sig: tuple[F64, F64], cols: F64, phi_cols: F64,
+                phi_sq: F64, m_axis: F64, prior_dof: F64) -> tuple[F64, F64]:
     """Per window: (λ, ν) — the track's own variance scale relative to its class calibration, from the
     residuals of its window about a constant-velocity fit, shrunk to 1 with ``prior_dof`` pseudo degrees of
     freedom (an inverse-gamma prior), and the degrees of freedom of the resulting Student-t statistic.
 
     Per line-of-sight axis a (unit vectors ``axes[a]`` per observation, calibrated σ ``sig[a]``, correlated
-    share ``m_axis[:, a]``, Φ the kernel of :func:`correlation_kernels`): the residuals ε = M x about the
+    share ``m_axis[:, a]``, Φ the kernel of :func:`exponential_kernel_products`): the residuals ε = M x about the
     least-squares line, M = P − B Bᵀ the projection (P the window's slots, B = [b₁ b₂] of :func:`_line_basis`),
     normalised r = ε·a / σ; S = Σ r², and under the model E[S] = tr Q, Var[S] ∝ ‖Q‖², with Q = G R Gᵀ,
     G = D⁻¹ M D = P − U Vᵀ, U = D⁻¹ B, V = D B, R = (1 − m) P + m Φ. Written out with A = R V, C = Vᵀ A,
