@@ -109,11 +109,13 @@ def main() -> None:
                     help="classifier preset for the z-test, e.g. hold (its decisions held 0.3 s)")
     ap.add_argument("--hold", type=float, default=None,
                     help="hold every class's z-test decision this many seconds (dynamic_hold_s_per_class), after --preset")
+    ap.add_argument("--window", type=int, default=None, help="window_size, after --preset")
     args = ap.parse_args()
     classes = PRESETS["hold"]["dynamic_hold_s_per_class"]  # every class the preset names
     hold = {} if args.hold is None else {"dynamic_hold_s_per_class": {c: args.hold for c in classes}}
     clf = ClassifierConfig.model_validate({**ClassifierConfig().model_dump(), **PRESETS["autoware-sustain"],
-                                           **(PRESETS[args.preset] if args.preset else {}), **hold})
+                                           **(PRESETS[args.preset] if args.preset else {}), **hold,
+                                           **({} if args.window is None else {"window_size": args.window})})
     drive = MotionClassifierCore.make_online(clf)
     seeds = [0] if args.nuscenes else _seeds(args.seeds)
     rec = concat_records([track_and_classify(iter(detection_pairs(args, s)), clf, default_config(), calibration=drive)

@@ -348,6 +348,7 @@ def test_a_mode_switch_restarts_the_hold():
 def test_hold_preset_holds_every_class():
     cfg = ClassifierConfig.model_validate({**ClassifierConfig().model_dump(), **PRESETS["hold"]})
     assert {cfg.hold_for(int(lb)) for lb in Label} == {0.3}
+    assert cfg.window_size == 10
     assert ClassifierConfig().hold_for(int(Label.CAR)) == 0.0  # off by default: the paper decides at once
     with pytest.raises(ValueError, match="unknown class name"):
         ClassifierConfig(dynamic_hold_s_per_class={"lorry": 1.0})

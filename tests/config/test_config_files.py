@@ -46,6 +46,7 @@ def test_shipped_presets_load_and_differ_where_they_should() -> None:
     assert sustain.sustain_for(1) == 2.0 and sustain.sustain_for(7) == 1.0  # car, pedestrian
     hold = load(ClassifierParams, service="classifier", preset="hold")
     assert hold.hold_for(1) == 0.3 and hold.hold_for(7) == 0.3 and hold.sustain_for(1) == 0.0
+    assert hold.window_size == 10  # the window the hold was chosen and validated with
     assert DETECTOR_PRESETS["paper"].grid_size == (512, 512) and DETECTOR_PRESETS["lite"].grid_size == (256, 256)
     for name in ("lite", "paper"):
         assert DetectorConfig.model_validate(read_params(param_file("detector", name))) == DETECTOR_PRESETS[name]

@@ -110,11 +110,13 @@ def test_cli_takes_a_tracker_parameter_file(tmp_path: Path, capsys) -> None:
 
 
 def test_cli_hold_preset_holds_the_z_test_only(tmp_path: Path, capsys) -> None:
-    """`--preset hold` holds the z-test's dynamic calls 0.3 s: the run says so, the z-test calls no more static
-    rows dynamic and catches moving objects no sooner than at once, and the speed rule's figures are untouched."""
-    runs = _short_mixed_runs(tmp_path, capsys, **{"at-once": [], "hold": ["--preset", "hold"]})
+    """`--preset hold` holds the z-test's dynamic calls 0.3 s over the window of 10 it was chosen with: the run
+    says so, the z-test calls no more static rows dynamic and catches moving objects no sooner than the same
+    window at once, and the speed rule's figures are untouched."""
+    runs = _short_mixed_runs(tmp_path, capsys, **{"at-once": ["--window-size", "10"], "hold": ["--preset", "hold"]})
     now, held = runs["at-once"], runs["hold"]
     assert held["run"]["dynamic_hold_s_per_class"]["car"] == 0.3 and now["run"]["dynamic_hold_s_per_class"] == {}
+    assert held["run"]["window_size"] == now["run"]["window_size"] == 10
     assert "held {" in (tmp_path / "hold" / "report.md").read_text()
     for g in ("vehicle", "pedestrian"):
         a, b = now["motion"][g], held["motion"][g]
