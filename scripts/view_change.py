@@ -1,0 +1,131 @@
+"""Experiment (docs/results.md, "What the detector's static false alarms are made of"; tuning seeds only): do the
+z-test's false alarms on static vehicles follow the change of the sensor's view of the object, and what would a
+view-change term in the test buy?
+
+    .venv/bin/python scripts/view_change.py --scenario diagonal-lot --seeds 0-3 --input detector --diagnose
+    .venv/bin/python scripts/view_change.py --scenario diagonal-lot --seeds 0-3 --input detector --s 0,0.5,1,2
+
+``--diagnose``: for static vehicle rows (matched, window ≥ 10) the half-mean contrast d of the positions and Δū,
+the same contrast of the unit line-of-sight vectors; medians of |d|, |Δū| and cos(d, Δū) for the rows the
+z-test calls dynamic and for the rest. ``--s``: the test with s² Δū Δūᵀ added to the contrast's covariance for
+vehicles (a box centre that shifts by about s metres per unit change of the view direction), spliced into a copy
+of ``statistics._calibrated_statistics``'s source; vehicle and pedestrian false / missed / ghost rates per s on
+the same tracks. A record of an experiment, not a feature (not shipped)."""
+from __future__ import annotations
+
+import argparse
+import inspect
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from ghost_breakdown import _seeds, detection_pairs, input_arguments  # noqa: E402
+from jitterguard.eval.metrics import ghost_rows, scored_rows  # noqa: E402
+from jitterguard.eval.pipeline import concat_records, track_and_classify  # noqa: E402
+from jitterguard.schemas.models import ClassifierConfig  # noqa: E402
+from jitterguard.services.classifier import core as core_mod  # noqa: E402
+from jitterguard.services.classifier import statistics  # noqa: E402
+from jitterguard.services.classifier.calibration import GROUPS  # noqa: E402
+from jitterguard.services.classifier.core import DYNAMIC, MotionClassifierCore  # noqa: E402
+from jitterguard.services.classifier.statistics import split_halves  # noqa: E402
+from jitterguard.services.tracker.config import default_config  # noqa: E402
+
+VIEW: dict[str, float] = {"s": 0.0}
+_ANCHOR = "    a = np.maximum(a, 1e-300)\n"
+_VIEW_TERM = f'''    if VIEW["s"] > 0:  # vehicles: s² Δū Δūᵀ, Δū the half-mean contrast of the line-of-sight unit vectors
+        _veh = (groups == {GROUPS.index("vehicle")}).astype(np.float64)
+        _dux, _duy = (w * ux).sum(1) * _veh, (w * uy).sum(1) * _veh
+        _s2 = VIEW["s"] ** 2
+        a, b, c = a + _s2 * _dux * _dux, b + _s2 * _dux * _duy, c + _s2 * _duy * _duy
+'''
+
+
+def _install_view_term() -> None:
+    src = textwrap.dedent(inspect.getsource(statistics._calibrated_statistics))
+    if _ANCHOR not in src:
+        raise SystemExit("statistics._calibrated_statistics changed: this experiment no longer applies")
+    statistics.__dict__["VIEW"] = VIEW
+    exec(compile(src.replace(_ANCHOR, _VIEW_TERM + _ANCHOR), "view_change", "exec"), statistics.__dict__)  # noqa: S102
+
+
+def _run(pairs: dict, log: list | None = None) -> list:
+    clf = ClassifierConfig()
+    drive = MotionClassifierCore.make_online(clf)
+    return [track_and_classify(iter(pairs[s]), clf, default_config(), calibration=drive) for s in pairs]
+
+
+def _contrasts(pairs: dict) -> None:
+    """Record each decided window's contrasts of position and of the line of sight, join them to the scored rows."""
+    log: dict[tuple[int, int, str], tuple[float, float, float, float]] = {}
+    run = {"i": 0}
+    statistic = core_mod.MotionClassifierCore._statistics
+
+    def hooked(self, rows):  # noqa: ANN001, ANN202
+        if self._config.mode == "z_test":
+            t = self._table
+            win = t.ordered(rows, t.window)
+            m = split_halves(np.zeros(len(rows), dtype=np.int64), t.count[rows], t.window)
+            w = m.new / np.maximum(m.n_new, 1)[:, None] - m.old / np.maximum(m.n_old, 1)[:, None]
+            ux, uy = win[..., 0] - win[..., 6], win[..., 1] - win[..., 7]
+            r = np.maximum(np.hypot(ux, uy), 1e-6)
+            cols = [(w * win[..., 0]).sum(1), (w * win[..., 1]).sum(1), (w * ux / r).sum(1), (w * uy / r).sum(1)]
+            ids = dict(zip(self._id_rows.tolist(), self._ids.tolist()))
+            for j, row in enumerate(rows.tolist()):
+                log[(run["i"], int(self._clock[1]), ids[row].decode())] = tuple(float(c[j]) for c in cols)
+        return statistic(self, rows)
+
+    core_mod.MotionClassifierCore._statistics = hooked
+    recs = []
+    for i, s in enumerate(pairs):
+        run["i"] = i
+        recs.append(_run({s: pairs[s]})[0])
+    core_mod.MotionClassifierCore._statistics = statistic
+    d, du, fired = [], [], []
+    for i, rec in enumerate(recs):
+        static = scored_rows(rec, "vehicle") & ~rec.gt_dynamic & (rec.window >= 10)
+        for k in np.flatnonzero(static).tolist():
+            v = log.get((i, int(rec.seq[k]), str(rec.track_id[k])))
+            if v is not None:
+                d.append(v[:2])
+                du.append(v[2:])
+                fired.append(rec.state_z[k] == DYNAMIC)
+    d, du, fired = np.array(d), np.array(du), np.array(fired)
+    nd, ndu = np.hypot(*d.T), np.hypot(*du.T)
+    cos = np.sum(d * du, 1) / np.maximum(nd * ndu, 1e-12)
+    for name, m in (("called dynamic", fired), ("called static", ~fired)):
+        print(f"static vehicle rows {name}: {m.sum()}, |d| median {np.median(nd[m]):.3f} m, |Δū| median "
+              f"{np.median(ndu[m]):.3f}, cos(d, Δū) median {np.median(cos[m]):.2f}")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    input_arguments(ap)
+    ap.add_argument("--diagnose", action="store_true")
+    ap.add_argument("--s", default="0,0.5,1,2")
+    args = ap.parse_args()
+    pairs = {s: detection_pairs(args, s) for s in _seeds(args.seeds)}
+    if args.diagnose:
+        _contrasts(pairs)
+        return
+    _install_view_term()
+    for text in args.s.split(","):
+        VIEW["s"] = float(text)
+        rec = concat_records(_run(pairs), [str(s) for s in pairs])
+        out = [f"s {text:>4}"]
+        for group in ("vehicle", "pedestrian"):
+            m = scored_rows(rec, group)
+            static, moving, ghost = m & ~rec.gt_dynamic, m & rec.gt_dynamic, ghost_rows(rec, group)
+
+            def rate(mask: np.ndarray, dynamic: bool) -> str:
+                return f"{np.mean((rec.state_z[mask] == DYNAMIC) == dynamic):.4f}" if mask.any() else "-"
+
+            out.append(f"{group[0].upper()} false {rate(static, True)} missed {rate(moving, False)} "
+                       f"ghost {rate(ghost, True)}")
+        print(" | ".join(out), flush=True)
+
+
+if __name__ == "__main__":
+    main()
