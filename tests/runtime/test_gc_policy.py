@@ -1,4 +1,5 @@
-"""The idle collector hands freed heap memory back to the OS (glibc): RSS falls back after a burst."""
+"""The idle collector hands freed heap memory back to the OS (glibc): RSS falls back after a burst; training's
+``retain_heap`` keeps it instead."""
 
 from __future__ import annotations
 
@@ -42,3 +43,40 @@ def test_the_idle_collector_trims_on_its_full_collections() -> None:
     c.collect()  # the third: full, and a trim
     assert held - _rss_kb() > 25_000 or not release_freed_memory()
     assert len(keep) == 20
+
+
+_LARGE_ARRAYS = """
+import sys
+from pathlib import Path
+import numpy as np
+if sys.argv[1] == "retain":
+    from jitterguard.services.detector.cli import retain_heap
+    retain_heap()
+def rss_kb():
+    return next(int(l.split()[1]) for l in Path("/proc/self/status").read_text().splitlines() if l.startswith("VmRSS:"))
+before = rss_kb()
+for _ in range(3):  # a frame's temporaries: allocated, written, freed
+    a = np.ones(8_000_000)  # 64 MB
+    del a
+print(rss_kb() - before)
+"""
+
+
+@pytest.mark.parametrize("mode", ["default", "retain"])
+def test_retained_heap_keeps_a_steps_large_temporaries_mapped(mode: str) -> None:
+    """With glibc's defaults a 64 MB array is mmapped and unmapped each time (the next one faults in fresh
+    pages); after the training commands' ``retain_heap`` the freed pages stay in the process for the next
+    step's arrays. Each mode in its own process (the setting is process-wide)."""
+    import subprocess
+    import sys
+
+    from jitterguard.runtime.gc_policy import _TRIM
+
+    if _TRIM is None:
+        pytest.skip("not glibc")
+    grown = int(subprocess.run([sys.executable, "-c", _LARGE_ARRAYS, mode], capture_output=True, text=True,
+                               check=True, timeout=120).stdout.strip())
+    if mode == "retain":
+        assert grown > 50_000, f"freed pages went back to the kernel ({grown} kB resident)"
+    else:
+        assert grown < 20_000, f"freed pages stayed resident ({grown} kB)"
