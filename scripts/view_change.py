@@ -51,7 +51,8 @@ def _install_view_term() -> None:
     exec(compile(src.replace(_ANCHOR, _VIEW_TERM + _ANCHOR), "view_change", "exec"), statistics.__dict__)  # noqa: S102
 
 
-def _run(pairs: dict, log: list | None = None) -> list:
+def _run(pairs: dict) -> list:
+    """The evaluator's tracker and classifier over each seed's cached detections, one online calibration."""
     clf = ClassifierConfig()
     drive = MotionClassifierCore.make_online(clf)
     return [track_and_classify(iter(pairs[s]), clf, default_config(), calibration=drive) for s in pairs]
