@@ -29,7 +29,6 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from jitterguard.bench.classifier import _Scene  # noqa: E402
 from jitterguard.schemas.models import ClassifierConfig  # noqa: E402
-from jitterguard.services.classifier import core as core_mod  # noqa: E402
 from jitterguard.services.classifier import statistics as stats_mod  # noqa: E402
 from jitterguard.services.classifier.calibration import NoiseModel  # noqa: E402
 from jitterguard.services.classifier.core import MotionClassifierCore, Observations  # noqa: E402
@@ -69,21 +68,6 @@ class _Switch:
 
         stats_mod._calibrated_statistics = calibrated
         stats_mod.exponential_kernel_products = products
-
-
-class _Dropout(_Scene):
-    def __init__(self, n: int, seed: int, missed: float) -> None:
-        super().__init__(n, seed)
-        self.missed = missed
-
-    def frame(self, k: int) -> Observations:
-        seen = (self.born <= k) & (self.rng.random(len(self.ids)) > self.missed)
-        m, t = int(seen.sum()), k * 0.1
-        pos = self.start[seen] + self.vel[seen] * t + self.rng.normal(0.0, 0.1, (m, 2))
-        return Observations(track_ids=self.ids[seen], labels=self.labels[seen], x=pos[:, 0], y=pos[:, 1],
-                            cxx=np.full(m, 0.01), cxy=np.zeros(m), cyy=np.full(m, 0.02),
-                            speed=np.hypot(self.vel[seen, 0], self.vel[seen, 1]),
-                            stamp_ns=1_700_000_000_000_000_000 + k * 100_000_000, seq=k)
 
 
 def _eval_stream() -> list[Observations]:
@@ -169,17 +153,21 @@ def main() -> None:
     ap.add_argument("--base", type=Path, default=Path("/tmp/base"))
     ap.add_argument("--sizes", default="10,100,1000")
     ap.add_argument("--frames", type=int, default=200)
+    ap.add_argument("--streams", default="bench,dropout,eval")
     args = ap.parse_args()
     switch = _Switch(_base_kernels(args.base))
     window = ClassifierConfig().window_size
-    recorded = _eval_stream()
+    recorded = _eval_stream() if "eval" in args.streams else []
     switch.install()
     result = {}
     for n in (int(s) for s in args.sizes.split(",")):
-        streams = {"bench": [_Scene(n, 0).frame(k) for k in range(args.frames + 3 * window)],
-                   "dropout": [(lambda s: [s.frame(k) for k in range(args.frames + 3 * window)])(_Dropout(n, 0, 0.3))][0],
-                   "eval": _widen(recorded, n, 0)}
-        for name, frames in streams.items():
+        def frames_of(scene: _Scene) -> list[Observations]:  # one scene: its misses are drawn frame by frame
+            return [scene.frame(k) for k in range(args.frames + 3 * window)]
+
+        streams = {"bench": lambda: frames_of(_Scene(n, 0)), "dropout": lambda: frames_of(_Scene(n, 0, missed=0.3)),
+                   "eval": lambda: _widen(recorded, n, 0)}
+        for name in args.streams.split(","):
+            frames = streams[name]()
             row = {"tracks_per_frame": round(float(np.mean([len(o.track_ids) for o in frames])), 1),
                    "distinct_pattern_share": round(_distinct_patterns(frames, window), 2)}
             row.update(_time(frames, switch, window))

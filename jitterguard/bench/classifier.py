@@ -33,14 +33,15 @@ _BENCH_LABELS = np.array([1] * 6 + [2] + [7] * 2 + [6])  # cars, a truck, pedest
 
 class _Scene:
     """Tracks as the classifier sees them from a tracker at 10 Hz: 5–60 m around the sensor, a third moving
-    (vehicles 5 m/s, vulnerable road users 1.4 m/s), 0.1 m jitter, 5 % of observations missed, tracks born at
+    (vehicles 5 m/s, vulnerable road users 1.4 m/s), 0.1 m jitter, ``missed`` of observations missed, tracks born at
     staggered frames (so ring buffers are at every rotation) and mixed classes (so the calibration's groups
     differ). The windows then hold the time patterns a live stream gives, not one shared pattern — though
     fewer distinct ones than a tracker's stream, where each missed detection gives a window gaps of its own
     (docs/performance.md, "The correlation kernel by recursion")."""
 
-    def __init__(self, n: int, seed: int) -> None:
+    def __init__(self, n: int, seed: int, missed: float = 0.05) -> None:
         self.rng = np.random.default_rng(seed)
+        self.missed = missed
         self.ids = np.array([f"{i:032x}" for i in range(n)], dtype="S32")
         self.labels = _BENCH_LABELS[np.arange(n) % len(_BENCH_LABELS)]
         r, a = self.rng.uniform(5.0, 60.0, n), self.rng.uniform(0.0, 2 * np.pi, n)
@@ -51,7 +52,7 @@ class _Scene:
         self.born = np.arange(n) % 10
 
     def frame(self, k: int) -> Observations:
-        seen = (self.born <= k) & (self.rng.random(len(self.ids)) > 0.05)
+        seen = (self.born <= k) & (self.rng.random(len(self.ids)) > self.missed)
         n = int(seen.sum())
         t = k * 0.1
         pos = self.start[seen] + self.vel[seen] * t + self.rng.normal(0.0, 0.1, (n, 2))

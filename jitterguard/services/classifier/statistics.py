@@ -321,10 +321,9 @@ def exponential_kernel_products(t: F64, valid: NDArray[np.bool_], tau: F64, rows
     may come in any order (a ring buffer); ties and repeated stamps are exact."""
     k_n, w = t.shape
     key = np.where(valid, t, -np.inf)  # outside the window first
-    order = np.argsort(key, axis=1, kind="stable")
-    if (order == np.arange(w)).all():  # oldest first already (the core's windows): no permutation
-        order = None
-    else:
+    order = None
+    if not (key[:, 1:] >= key[:, :-1]).all():  # the core's windows come oldest first: no sort, no permutation
+        order = np.argsort(key, axis=1, kind="stable")
         t, valid = np.take_along_axis(t, order, axis=1), np.take_along_axis(valid, order, axis=1)
         rows = np.take_along_axis(rows, order[None, :, None, :], axis=3)
     step = valid[:, 1:] & valid[:, :-1]  # both ends in the window: a pass carries its sum over the step
@@ -345,7 +344,7 @@ def exponential_kernel_products(t: F64, valid: NDArray[np.bool_], tau: F64, rows
         back *= decay[i, :, None, :]
         acc[i] += back
         back += x[i]
-    acc *= vm[:, None, None, :]
+    # slots outside the window come first, hold x = 0 and a zero decay into the window: both passes leave them 0
     # Σ Φ² = 1ᵀ Φ' 1 with Φ' at τ / 2: s_i = Σ_{j<i} Φ'_ij by the same forward pass, Σ Φ² = n + 2 Σ_i s_i
     decay *= decay
     s = np.zeros((2, k_n))
@@ -353,7 +352,7 @@ def exponential_kernel_products(t: F64, valid: NDArray[np.bool_], tau: F64, rows
     for i in range(1, w):
         s += vm[i - 1]
         s *= decay[i - 1]
-        total += s * vm[i]
+        total += s  # 0 until the window starts
     phi_sq = vm.sum(0) + 2.0 * total
     out = acc.transpose(1, 3, 2, 0)
     if order is not None:
