@@ -41,7 +41,8 @@ def eval_command(
                                             " own body before the detector (the service's default self_crop"
                                             " box), as the live detector does.")] = True,
     nuscenes: Annotated[Path | None, typer.Option("--nuscenes", help="nuScenes dataroot instead of a scenario.")] = None,
-    scene: Annotated[str | None, typer.Option("--scene", help="Scene name in the nuScenes dataroot.")] = None,
+    scene: Annotated[str | None, typer.Option("--scene", help="nuScenes scene name or token; several "
+                                              "comma-separated, or 'all', are pooled as one drive.")] = None,
     duration: Annotated[float, typer.Option("--duration", help="Synthetic scenario length [s].")] = 15.0,
     rate: Annotated[float, typer.Option("--rate", help="Synthetic frame rate [Hz].")] = 10.0,
     preset: Annotated[str | None, typer.Option("--preset", help="Classifier alpha preset: paper or authors.")] = None,
@@ -76,7 +77,8 @@ def eval_command(
                                                         "one).")] = None,
     mcap: Annotated[bool, typer.Option("--mcap/--no-mcap", help="Also record every evaluated frame to "
                                        "OUT/run-SEED.mcap for Foxglove (detections, tracks by the z-test's "
-                                       "decision, motion states, ground truth).")] = False,
+                                       "decision, motion states, ground truth); pooled nuScenes scenes: "
+                                       "OUT/run-SCENE.mcap.")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Also print metrics.json to stdout.")] = False,
 ) -> None:
     """Evaluate (detector →) tracker → motion classifier offline against ground truth."""
@@ -210,13 +212,16 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
     ``extra_seeds`` pools more runs (a fresh scenario and noise draw per seed; for nuScenes only the noise
     changes) into one scored table, because one 15 s scene holds few moving objects and single-seed rates
     swing by tens of points. The pooled runs are one drive: the online variance calibration carries from each
-    run to the next (only the first starts cold). With ``detector`` the detections come from it (``noise`` is
+    run to the next (only the first starts cold). ``scene`` may name several nuScenes scenes (comma-separated,
+    or ``all``): they are pooled the same way, as one drive of the same sensor and detector, the calibration
+    carried from scene to scene (repeated noise draws of one scene each start cold instead: carrying over
+    would learn that scene's own boxes). With ``detector`` the detections come from it (``noise`` is
     unused) and its AP / calibration over all pooled scans go into ``detection``. ``mcap`` records each run's
-    frames to ``out/run-SEED.mcap`` through the Foxglove bridge's own sink (one file per run: each run's clock
-    starts again)."""
+    frames to ``out/run-SEED.mcap`` (pooled scenes: ``run-SCENE.mcap``) through the Foxglove bridge's own sink
+    (one file per run: each run's clock starts again)."""
     from tqdm import tqdm  # type: ignore[import-untyped]
 
-    from .groundtruth import NuScenesError, load_nuscenes_frames
+    from .groundtruth import NuScenesError, load_nuscenes_frames, nuscenes_scene_names
     from ..services.classifier.calibration import OnlineCalibration
     from ..services.classifier.core import MotionClassifierCore
     from .metrics import REPORT_GROUPS, alpha_from_labels, compute_metrics, planner_metrics
@@ -224,13 +229,17 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
     from .report import write_outputs
     from ..services.tracker.config import default_config as default_tracker_config
 
+    scenes: list[tuple[str, Any]] = []  # (name, frames) of each nuScenes scene, pooled in this order
     if nuscenes is not None:
         try:
-            name, frames = load_nuscenes_frames(nuscenes, scene)
+            scenes = [load_nuscenes_frames(nuscenes, n) for n in nuscenes_scene_names(nuscenes, scene)]
         except NuScenesError as exc:
             fail(f"--nuscenes: {exc}")
-        source = f"nuScenes {name} ({nuscenes})"
-        total = len(frames)
+        if len(scenes) > 1 and extra_seeds:
+            fail("--runs pools noise draws of one scene; give one --scene with it, or several scenes without it")
+        source = f"nuScenes {', '.join(n for n, _ in scenes)} ({nuscenes})"
+        frames = scenes[0][1]
+        total = sum(len(f) for _, f in scenes)
     else:
         from ..sim.world import SCENARIO_NAMES, make_scenario
 
@@ -245,48 +254,51 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
     predictions: list[Any] = []
     samples: list[Any] = []
     drive = MotionClassifierCore.make_online(classifier)
-    # synthetic seeds are different streets of one drive; repeated noise draws of one nuScenes scene are not,
-    # and carrying over would learn that scene's own boxes: each of them starts cold
-    def calibration_for_run() -> OnlineCalibration:
+
+    def calibration_for_run(cold: bool) -> OnlineCalibration:
         nonlocal drive
-        if nuscenes is not None:
+        if cold:
             drive = MotionClassifierCore.make_online(classifier)
         return drive
 
-    def bar(it: Any, s: int) -> Any:
-        desc = f"eval seed {s}" + (" (detector)" if detector is not None else "")
-        return tqdm(it, total=total, desc=desc, unit="frame", file=sys.stderr, leave=False,
+    def bar(it: Any, tag: str, n: int) -> Any:
+        desc = f"eval {tag}" + (" (detector)" if detector is not None else "")
+        return tqdm(it, total=n, desc=desc, unit="frame", file=sys.stderr, leave=False,
                     disable=not progress_on(None))  # a bar on a terminal only: no carriage returns in a log
 
-    def one(fr: Any, s: int) -> Records:
+    def one(fr: Any, s: int, scene_name: str | None = None, cold: bool = False) -> Records:
+        """One run: seed ``s``'s noise draw (or detections) over ``fr``; ``cold`` starts the calibration anew."""
+        tag = f"seed {s}" if scene_name is None else f"{scene_name} seed {s}"
         if not mcap:
-            return one_run(fr, s, None)
+            return one_run(fr, s, scene_name, cold, tag, None)
         from ..services.foxglove.service import FoxgloveSink
 
         out.mkdir(parents=True, exist_ok=True)
-        sink = FoxgloveSink(port=None, mcap_path=out / f"run-{s}.mcap", overwrite=True)
+        stem = f"run-{s}" if scene_name is None or len(scenes) == 1 else f"run-{scene_name}"
+        sink = FoxgloveSink(port=None, mcap_path=out / f"{stem}.mcap", overwrite=True)
         try:
-            return one_run(fr, s, sink.write)
+            return one_run(fr, s, scene_name, cold, tag, sink.write)
         finally:
             sink.close()
 
-    def one_run(fr: Any, s: int, on_frame: Any) -> Records:
-        carry = calibration_for_run()
+    def one_run(fr: Any, s: int, scene_name: str | None, cold: bool, tag: str, on_frame: Any) -> Records:
+        carry = calibration_for_run(cold)
         if detector is None:
             return run_pipeline(fr, NOISE_PRESETS[noise or "jittery"](), s, classifier, tracker,
-                                progress=lambda it: bar(it, s), calibration=carry, variance_scale=variance_scale,
-                                calibration_model=calibration_model, variance_scale_at=variance_scale_at,
-                                on_frame=on_frame)
+                                progress=lambda it: bar(it, tag, len(fr)), calibration=carry,
+                                variance_scale=variance_scale, calibration_model=calibration_model,
+                                variance_scale_at=variance_scale_at, on_frame=on_frame)
         from .detector_input import detector_frames, nuscenes_scans, run_detector_pipeline, synthetic_scans
 
         if nuscenes is not None:
             try:
-                scans: Any = nuscenes_scans(nuscenes, scene, fr)
+                scans: Any = nuscenes_scans(nuscenes, scene_name, fr)
             except NuScenesError as exc:
                 fail(f"--nuscenes: {exc}")
         else:
             scans = synthetic_scans(fr, s)
-        det_frames = detector_frames(bar(scans, s), detector.detect, class_names=detector.config.class_names,
+        det_frames = detector_frames(bar(scans, tag, len(fr)), detector.detect,
+                                     class_names=detector.config.class_names,
                                      uncertainty=detector.config.uncertainty, sweeps=detector.sweeps)
         rec_s, preds, smp = run_detector_pipeline(det_frames, classifier, tracker, calibration=carry,
                                                   variance_scale=variance_scale,
@@ -296,19 +308,27 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
         samples.extend(smp)
         return rec_s
 
-    rec = one(frames, seed)
-    if extra_seeds:
-        parts = [rec]
-        for s in extra_seeds:
-            fr = frames if nuscenes is not None else make_scenario(scenario or "", s, duration, rate)
-            parts.append(one(fr, s))
-        rec = concat_records(parts, [str(s) for s in (seed, *extra_seeds)])
-        source += f" + seeds {', '.join(map(str, extra_seeds))} pooled"
-        total *= 1 + len(extra_seeds)
+    if len(scenes) > 1:  # several real scenes: one drive, the calibration carried from scene to scene
+        rec = concat_records([one(fr, seed, name) for name, fr in scenes], [name for name, _ in scenes])
+        source += " pooled"
+    else:
+        # synthetic seeds are different streets of one drive; repeated noise draws of one nuScenes scene are
+        # not, and carrying over would learn that scene's own boxes: each of them starts cold
+        scene_name = scenes[0][0] if scenes else None
+        rec = one(frames, seed, scene_name)
+        if extra_seeds:
+            parts = [rec]
+            for s in extra_seeds:
+                fr = frames if nuscenes is not None else make_scenario(scenario or "", s, duration, rate)
+                parts.append(one(fr, s, scene_name, cold=nuscenes is not None))
+            rec = concat_records(parts, [str(s) for s in (seed, *extra_seeds)])
+            source += f" + seeds {', '.join(map(str, extra_seeds))} pooled"
+            total *= 1 + len(extra_seeds)
     alpha_desc = classifier.alpha_default if not classifier.alpha_per_class else dict(
         classifier.alpha_per_class, default=classifier.alpha_default)
     metrics: dict[str, Any] = {
         "run": {"source": source, "input": "gt-noise" if detector is None else "detector",
+                "scenes": [name for name, _ in scenes] or None,
                 "noise": noise if detector is None else None, "seed": seed, "frames": total,
                 "rows": len(rec), "matched_rows": int((rec.gt_instance >= 0).sum()),
                 "match_distance_m": MATCH_DISTANCE_M, "alpha": alpha_desc,

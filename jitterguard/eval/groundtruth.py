@@ -78,6 +78,35 @@ class NuScenesError(ValueError):
     """A nuScenes dataroot or scene the evaluator cannot use (message is one line)."""
 
 
+def nuscenes_scene_names(dataroot: Path, scene: str | None) -> list[str]:
+    """The scenes ``--scene`` names in a nuScenes dataroot, in the table's order: ``None`` the only one (an error
+    when there are several), ``all`` every scene, else comma-separated names or tokens (duplicates dropped)."""
+    from ..services.replay.frames import SourceError
+    from ..services.replay.sources.nuscenes import _load_table, find_version
+
+    if not Path(dataroot).is_dir():
+        raise NuScenesError(f"{dataroot}: no such folder")
+    try:
+        scenes = _load_table(Path(dataroot) / find_version(Path(dataroot), None), "scene")
+    except SourceError as exc:
+        raise NuScenesError(str(exc).replace("\n", " ")) from None
+    names = [s["name"] for s in scenes]
+    if scene is None:
+        if len(names) != 1:
+            raise NuScenesError(f"{dataroot}: {len(names)} scenes, pick with --scene NAME[,NAME…] or --scene all "
+                                f"({', '.join(sorted(names))})")
+        return names
+    if scene.strip() == "all":
+        return names
+    by_key = {**{s["token"]: s["name"] for s in scenes}, **{n: n for n in names}}
+    wanted = [w.strip() for w in scene.split(",") if w.strip()]
+    unknown = [w for w in wanted if w not in by_key]
+    if unknown or not wanted:
+        raise NuScenesError(f"{dataroot}: no scene {', '.join(map(repr, unknown)) or repr(scene)} "
+                            f"(have: {', '.join(sorted(names))})")
+    return list(dict.fromkeys(by_key[w] for w in wanted))
+
+
 def load_nuscenes_frames(dataroot: Path, scene: str | None = None) -> tuple[str, list[GroundTruthFrame]]:
     """Every key frame of one scene as a GroundTruthFrame (world frame, ego pose = the pose the replay
     publishes with the scan: the LIDAR_TOP position in the vehicle's axes).

@@ -1,0 +1,126 @@
+"""`jitterguard eval --nuscenes` over a dataroot of several scenes (as nuScenes' own v1.0-mini and trainval are):
+one scene picked by name or token, several pooled as one drive, and a clear exit 2 for what cannot be run."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+from jitterguard.cli import main
+from jitterguard.sim.export import export_scenario
+from jitterguard.sim.world import make_scenario
+
+SCENES = ("sim-parking-street-1", "sim-parking-street-2")
+
+
+@pytest.fixture(scope="module")
+def two_scenes(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """One nuScenes dataroot holding two exported synthetic scenes (tables merged by token, scans side by side)."""
+    base = tmp_path_factory.mktemp("nusc")
+    root = base / "both"
+    tables: dict[str, dict[str, dict]] = {}
+    for seed in (1, 2):
+        one = base / f"s{seed}"
+        export_scenario(make_scenario("parking-street", seed, duration_s=3.0, rate_hz=10.0), str(one))
+        for table in (one / "v1.0-mini").glob("*.json"):
+            rows = tables.setdefault(table.name, {})
+            for row in json.loads(table.read_text()):
+                rows.setdefault(row["token"], row)  # shared tables (category, sensor, …) once
+        shutil.copytree(one / "samples", root / "samples", dirs_exist_ok=True)
+    (root / "v1.0-mini").mkdir(parents=True)
+    for name, rows in tables.items():
+        (root / "v1.0-mini" / name).write_text(json.dumps(list(rows.values())))
+    return root
+
+
+def _eval(root: Path, out: Path, *argv: str) -> dict:
+    with pytest.raises(SystemExit) as exc:
+        main(["eval", "--nuscenes", str(root), "--input", "gt-noise", "--noise", "jittery", "--out", str(out),
+              *argv])
+    assert exc.value.code == 0
+    return json.loads((out / "metrics.json").read_text())
+
+
+@pytest.fixture(scope="module")
+def pooled(two_scenes: Path, tmp_path_factory: pytest.TempPathFactory) -> dict:
+    """metrics.json of ``--scene all`` on the two-scene dataroot."""
+    return _eval(two_scenes, tmp_path_factory.mktemp("all") / "out", "--scene", "all")
+
+
+def test_scene_names_resolve_in_the_order_given(two_scenes: Path) -> None:
+    from jitterguard.eval.groundtruth import NuScenesError, nuscenes_scene_names
+
+    token = next(s["token"] for s in json.loads((two_scenes / "v1.0-mini" / "scene.json").read_text())
+                 if s["name"] == SCENES[1])
+    assert nuscenes_scene_names(two_scenes, "all") == list(SCENES)
+    assert nuscenes_scene_names(two_scenes, f"{token}, {SCENES[0]},{SCENES[1]}") == [SCENES[1], SCENES[0]]
+    assert nuscenes_scene_names(two_scenes, SCENES[0]) == [SCENES[0]]
+    with pytest.raises(NuScenesError, match="2 scenes"):
+        nuscenes_scene_names(two_scenes, None)
+
+
+def test_several_scenes_pool_as_one_drive(two_scenes: Path, pooled: dict, tmp_path: Path) -> None:
+    alone = [_eval(two_scenes, tmp_path / name, "--scene", name) for name in SCENES]
+    assert [m["run"]["scenes"] for m in alone] == [[SCENES[0]], [SCENES[1]]]
+    assert pooled["run"]["scenes"] == list(SCENES)
+    assert all(name in pooled["run"]["source"] for name in SCENES)
+    assert pooled["run"]["frames"] == sum(m["run"]["frames"] for m in alone) == 60
+    for group in ("vehicle", "pedestrian"):
+        for key in ("n_static", "n_dynamic"):  # every row of both scenes scored once, none merged
+            assert pooled["motion"][group][key] == sum(m["motion"][group][key] for m in alone) > 0, (group, key)
+    # one drive: the second scene starts with what the first taught the calibration
+    blocks = [m["calibration"]["counts"]["blocks"] for m in alone]
+    assert pooled["calibration"]["counts"]["blocks"] == sum(blocks) and min(blocks) > 0
+
+
+@pytest.mark.parametrize(("argv", "says"), [
+    ([], "2 scenes, pick with --scene"),
+    (["--scene", "scene-0523"], "no scene 'scene-0523'"),
+    (["--scene", ","], "no scene"),
+    (["--scene", "all", "--runs", "2"], "--runs pools noise draws of one scene"),
+])
+def test_what_cannot_be_run_is_one_line_exit_2(two_scenes: Path, tmp_path: Path, capsys: pytest.CaptureFixture,
+                                               argv: list[str], says: str) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main(["eval", "--nuscenes", str(two_scenes), "--input", "gt-noise", "--out", str(tmp_path / "x"), *argv])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and says in err, err
+    if not argv:
+        assert all(name in err for name in SCENES)  # the message lists what there is to pick
+
+
+def test_non_key_sweeps_and_other_channels_change_nothing(two_scenes: Path, pooled: dict, tmp_path: Path) -> None:
+    """A full download's ``sample_data`` also lists the sweeps between key frames and the cameras; the evaluator
+    scores the key frames of LIDAR_TOP exactly as in a key-frame-only extract."""
+    full = tmp_path / "full"
+    shutil.copytree(two_scenes, full)
+    tables = full / "v1.0-mini"
+    data = json.loads((tables / "sample_data.json").read_text())
+    poses = json.loads((tables / "ego_pose.json").read_text())
+    sensors = json.loads((tables / "sensor.json").read_text())
+    calibs = json.loads((tables / "calibrated_sensor.json").read_text())
+    sensors.append({"token": "cam-sensor", "channel": "CAM_FRONT", "modality": "camera"})
+    calibs.append({**calibs[0], "token": "cam-calib", "sensor_token": "cam-sensor"})
+    extra = []
+    for i, row in enumerate(data):  # after every key frame a sweep (a copy of its scan, 50 ms later) and a camera
+        pose = next(p for p in poses if p["token"] == row["ego_pose_token"])
+        for kind, calib, key, name in (("sweep", row["calibrated_sensor_token"], False,
+                                        f"sweeps/LIDAR_TOP/{i}.pcd.bin"),
+                                       ("cam", "cam-calib", True, f"samples/CAM_FRONT/{i}.jpg")):
+            poses.append({**pose, "token": f"{kind}-pose-{i}", "timestamp": pose["timestamp"] + 50_000})
+            extra.append({**row, "token": f"{kind}-{i}", "ego_pose_token": f"{kind}-pose-{i}", "is_key_frame": key,
+                          "calibrated_sensor_token": calib, "timestamp": row["timestamp"] + 50_000, "filename": name,
+                          "fileformat": "jpg" if kind == "cam" else "pcd", "prev": "", "next": ""})
+        (full / "sweeps" / "LIDAR_TOP").mkdir(parents=True, exist_ok=True)
+        shutil.copy(full / row["filename"], full / f"sweeps/LIDAR_TOP/{i}.pcd.bin")
+    for name, table in (("sample_data", extra[::-1] + data), ("ego_pose", poses), ("sensor", sensors),
+                        ("calibrated_sensor", calibs)):
+        (tables / f"{name}.json").write_text(json.dumps(table))
+    assert len(extra) == 2 * len(data)
+    with_sweeps = _eval(full, tmp_path / "with-sweeps", "--scene", "all")
+    assert with_sweeps["run"]["frames"] == pooled["run"]["frames"]
+    assert with_sweeps["motion"] == pooled["motion"] and with_sweeps["ghost"] == pooled["ghost"]
