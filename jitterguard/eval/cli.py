@@ -43,6 +43,10 @@ def eval_command(
     nuscenes: Annotated[Path | None, typer.Option("--nuscenes", help="nuScenes dataroot instead of a scenario.")] = None,
     scene: Annotated[str | None, typer.Option("--scene", help="nuScenes scene name or token; several "
                                               "comma-separated, or 'all', are pooled as one drive.")] = None,
+    sweeps: Annotated[bool, typer.Option("--sweeps/--no-sweeps", help="nuScenes with --input detector: run the "
+                                         "detector, tracker and classifier on every LiDAR sweep (20 Hz, as "
+                                         "`jitterguard replay --sweeps` feeds the live stack) and score the "
+                                         "labelled key frames among them.")] = False,
     duration: Annotated[float, typer.Option("--duration", help="Synthetic scenario length [s].")] = 15.0,
     rate: Annotated[float, typer.Option("--rate", help="Synthetic frame rate [Hz].")] = 10.0,
     preset: Annotated[str | None, typer.Option("--preset", help="Classifier alpha preset: paper or authors.")] = None,
@@ -104,6 +108,9 @@ def eval_command(
         fail("give --scenario or --nuscenes, not both")
     if scene is not None and nuscenes is None:
         fail("--scene needs --nuscenes")
+    if sweeps and (nuscenes is None or input_ != "detector"):
+        fail("--sweeps needs --nuscenes and --input detector (nuScenes labels only its key frames, so the noise "
+             "model has no boxes to draw from between them)")
     if preset is not None and preset not in PRESETS:
         fail(f"--preset: unknown preset {preset!r}; expected one of {', '.join(PRESETS)}")
     if not 0 < duration <= 600 or not 0 < rate <= 100:
@@ -156,7 +163,7 @@ def eval_command(
     detector, weights_desc = load_detector(weights, threads, self_crop) if input_ == "detector" else (None, None)
 
     metrics = evaluate(out, scenario=scenario, seed=seed, noise=noise, nuscenes=nuscenes, scene=scene,
-                       duration=duration, rate=rate, classifier=cfg,
+                       sweeps=sweeps, duration=duration, rate=rate, classifier=cfg,
                        extra_seeds=tuple(range(seed + 1, seed + runs)), detector=detector,
                        weights_desc=weights_desc, variance_scale=variance_scale, calibration_model=model,
                        variance_scale_at=variance_scale_at, tracker=tracker, mcap=mcap)
@@ -206,7 +213,7 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
              extra_seeds: tuple[int, ...] = (), detector: "Detector | None" = None,
              weights_desc: str | None = None, variance_scale: float = 1.0,
              calibration_model: Any = None, variance_scale_at: str = "detector",
-             tracker: Any = None, mcap: bool = False) -> dict[str, Any]:
+             tracker: Any = None, mcap: bool = False, sweeps: bool = False) -> dict[str, Any]:
     """Load the frames, run the pipeline, score, write the outputs; returns metrics.json's content.
 
     ``extra_seeds`` pools more runs (a fresh scenario and noise draw per seed; for nuScenes only the noise
@@ -216,7 +223,8 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
     or ``all``): they are pooled the same way, as one drive of the same sensor and detector, the calibration
     carried from scene to scene (repeated noise draws of one scene each start cold instead: carrying over
     would learn that scene's own boxes). With ``detector`` the detections come from it (``noise`` is
-    unused) and its AP / calibration over all pooled scans go into ``detection``. ``mcap`` records each run's
+    unused) and its AP / calibration over all pooled scans go into ``detection``; ``sweeps`` feeds it every
+    nuScenes LiDAR sweep and scores the labelled key frames among them. ``mcap`` records each run's
     frames to ``out/run-SEED.mcap`` (pooled scenes: ``run-SCENE.mcap``) through the Foxglove bridge's own sink
     (one file per run: each run's clock starts again)."""
     from tqdm import tqdm  # type: ignore[import-untyped]
@@ -253,6 +261,7 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
 
     predictions: list[Any] = []
     samples: list[Any] = []
+    scans_fed = 0  # frames the tracker and classifier ran on (more than the scored ones with sweeps)
     drive = MotionClassifierCore.make_online(classifier)
 
     def calibration_for_run(cold: bool) -> OnlineCalibration:
@@ -282,8 +291,10 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
             sink.close()
 
     def one_run(fr: Any, s: int, scene_name: str | None, cold: bool, tag: str, on_frame: Any) -> Records:
+        nonlocal scans_fed
         carry = calibration_for_run(cold)
         if detector is None:
+            scans_fed += len(fr)
             return run_pipeline(fr, NOISE_PRESETS[noise or "jittery"](), s, classifier, tracker,
                                 progress=lambda it: bar(it, tag, len(fr)), calibration=carry,
                                 variance_scale=variance_scale, calibration_model=calibration_model,
@@ -292,12 +303,14 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
 
         if nuscenes is not None:
             try:
-                scans: Any = nuscenes_scans(nuscenes, scene_name, fr)
+                scans: Any = nuscenes_scans(nuscenes, scene_name, fr, sweeps=sweeps)
             except NuScenesError as exc:
                 fail(f"--nuscenes: {exc}")
         else:
             scans = synthetic_scans(fr, s)
-        det_frames = detector_frames(bar(scans, tag, len(fr)), detector.detect,
+        n_scans = len(scans) if isinstance(scans, list) else len(fr)
+        scans_fed += n_scans
+        det_frames = detector_frames(bar(scans, tag, n_scans), detector.detect,
                                      class_names=detector.config.class_names,
                                      uncertainty=detector.config.uncertainty, sweeps=detector.sweeps)
         rec_s, preds, smp = run_detector_pipeline(det_frames, classifier, tracker, calibration=carry,
@@ -328,7 +341,7 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
         classifier.alpha_per_class, default=classifier.alpha_default)
     metrics: dict[str, Any] = {
         "run": {"source": source, "input": "gt-noise" if detector is None else "detector",
-                "scenes": [name for name, _ in scenes] or None,
+                "scenes": [name for name, _ in scenes] or None, "sweeps": sweeps, "scans": scans_fed,
                 "noise": noise if detector is None else None, "seed": seed, "frames": total,
                 "rows": len(rec), "matched_rows": int((rec.gt_instance >= 0).sum()),
                 "match_distance_m": MATCH_DISTANCE_M, "alpha": alpha_desc,

@@ -45,13 +45,14 @@ from .pipeline import MATCH_DISTANCE_M, Records, track_and_classify
 
 @dataclass(frozen=True)
 class LabelledScan:
-    """One scan as the replay publishes it, with its ground truth in both frames the evaluation needs."""
+    """One scan as the replay publishes it, with its ground truth in both frames the evaluation needs (``None``
+    for a sweep between labelled key frames: it feeds the tracker and the classifier and is not scored)."""
 
-    gt: GroundTruthFrame
+    gt: GroundTruthFrame | None
     """World frame: labels the tracks (motion attributes, instance IDs)."""
     scan: PointCloud
     """The ``points`` message (sensor frame, the sensor's world pose as ``ego_pose``)."""
-    sample: Sample
+    sample: Sample | None
     """Sensor-frame boxes of the detector's classes, with LiDAR point counts: scores the detections."""
 
 
@@ -59,10 +60,10 @@ class LabelledScan:
 class DetectorFrame:
     """One scan after the detector: what the tracker receives, and the raw arrays the detection metrics read."""
 
-    gt: GroundTruthFrame
+    gt: GroundTruthFrame | None
     detections: bytes  # the ``DetectedObjects`` payload, as the detector service puts it
     predictions: Detections3D
-    sample: Sample
+    sample: Sample | None
 
 
 def synthetic_scans(scenario: Scenario, seed: int, sensor: LidarSpec | None = None) -> Iterator[LabelledScan]:
@@ -87,9 +88,12 @@ def synthetic_scans(scenario: Scenario, seed: int, sensor: LidarSpec | None = No
                                             f"synthetic/{scenario.name}/{seed}/{gt.seq}"))
 
 
-def nuscenes_scans(dataroot: Path, scene: str | None, gt_frames: Sequence[GroundTruthFrame]) -> list[LabelledScan]:
+def nuscenes_scans(dataroot: Path, scene: str | None, gt_frames: Sequence[GroundTruthFrame], *,
+                   sweeps: bool = False) -> list[LabelledScan]:
     """The LIDAR_TOP key frames of one nuScenes scene, aligned with ``gt_frames`` (from
-    :func:`.groundtruth.load_nuscenes_frames`, same scene).
+    :func:`.groundtruth.load_nuscenes_frames`, same scene); with ``sweeps`` every LiDAR sweep from the first
+    key frame to the last, as ``jitterguard replay DATAROOT --sweeps`` publishes them, the sweeps between key
+    frames unlabelled (nuScenes labels key frames only).
 
     Scans come from the replay's :class:`NuScenesSource` (what ``jitterguard replay DATAROOT`` publishes),
     sensor-frame ground truth from the detector's loader (:func:`~.data_nuscenes.nuscenes_samples`). All
@@ -102,7 +106,7 @@ def nuscenes_scans(dataroot: Path, scene: str | None, gt_frames: Sequence[Ground
     from ..services.replay.sources.nuscenes import NuScenesSource
 
     try:
-        src = NuScenesSource(Path(dataroot), scene=scene)
+        src = NuScenesSource(Path(dataroot), scene=scene, sweeps=sweeps)
         samples = nuscenes_samples(dataroot, scene_names=[src.scene_name])
         items = list(src.frames())
     except SourceError as exc:
@@ -110,15 +114,23 @@ def nuscenes_scans(dataroot: Path, scene: str | None, gt_frames: Sequence[Ground
     bad = [it for it in items if isinstance(it, FrameError)]
     if bad:
         raise NuScenesError(f"{len(bad)} LIDAR_TOP scan(s) unreadable, first: {bad[0]}")
-    if not len(items) == len(samples) == len(gt_frames):
+    if not len(samples) == len(gt_frames) or not (sweeps or len(items) == len(gt_frames)):
         raise NuScenesError(f"{dataroot}: {len(items)} scans, {len(samples)} labelled samples and "
                             f"{len(gt_frames)} ground-truth frames do not line up")
+    labelled = {int(gt.stamp_ns): (gt, sample) for gt, sample in zip(gt_frames, samples)}
     out = []
-    for sf, sample, gt in zip(items, samples, gt_frames):
+    for seq, sf in enumerate(items):
         assert isinstance(sf, ScanFrame)
-        if sf.stamp_ns != gt.stamp_ns:
-            raise NuScenesError(f"{dataroot}: scan stamp {sf.stamp_ns} ≠ ground-truth stamp {gt.stamp_ns}")
-        out.append(LabelledScan(gt, point_cloud_message(sf, int(gt.seq), int(sf.stamp_ns)), sample))
+        gt, sample = labelled.get(int(sf.stamp_ns), (None, None))
+        if gt is None and not sweeps:
+            raise NuScenesError(f"{dataroot}: scan stamp {sf.stamp_ns} is no ground-truth frame's")
+        # the stream's own count, as the replay numbers what it publishes (a key frame's seq counts key frames)
+        out.append(LabelledScan(gt, point_cloud_message(sf, seq if sweeps else int(gt.seq), int(sf.stamp_ns)),
+                                sample))
+    found = sum(ls.gt is not None for ls in out)
+    if found != len(gt_frames):
+        raise NuScenesError(f"{dataroot}: {len(gt_frames) - found} of {len(gt_frames)} key frames missing from "
+                            "the scans' stamps")
     return out
 
 
@@ -163,10 +175,11 @@ def run_detector_pipeline(frames: Iterable[DetectorFrame], classifier: Classifie
     preds: list[Detections3D] = []
     samples: list[Sample] = []
 
-    def pairs() -> Iterator[tuple[GroundTruthFrame, bytes]]:
+    def pairs() -> Iterator[tuple[GroundTruthFrame | None, bytes]]:
         for f in frames:
-            preds.append(f.predictions)
-            samples.append(f.sample)
+            if f.sample is not None:  # an unlabelled sweep is tracked and classified, not scored
+                preds.append(f.predictions)
+                samples.append(f.sample)
             yield f.gt, f.detections
 
     rec = track_and_classify(pairs(), classifier, tracker, match_distance_m, **kwargs)

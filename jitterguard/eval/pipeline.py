@@ -168,7 +168,7 @@ def scale_variances(det: DetectedColumns, factor: float) -> DetectedColumns:
     return replace(det, objects=objects)
 
 
-def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame, bytes]],
+def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame | None, bytes]],
                        classifier: ClassifierConfig | None = None, tracker: TrackerConfig | None = None,
                        match_distance_m: float = MATCH_DISTANCE_M, *, calibration: OnlineCalibration | None = None,
                        variance_scale: float = 1.0, calibration_model: NoiseModel | None = None,
@@ -178,7 +178,9 @@ def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame, bytes]],
 
     The detections are the ``DetectedObjects`` payloads that feed the live tracker — the noise model's output as
     the replay publishes it, or the detector service's — so both ``--input`` modes share everything from here on;
-    the ground truth (world frame) only labels the tracks. ``classifier``'s ``mode`` is overridden per core.
+    the ground truth (world frame) only labels the tracks; a frame without one (``None``: a sweep between
+    labelled key frames) is tracked and classified like any other, and not scored. ``classifier``'s ``mode`` is
+    overridden per core.
 
     ``calibration``: the online calibration to continue (pooled recordings of one drive share it; it is
     updated in place); ``variance_scale`` multiplies every reported variance — at the detector's output, so
@@ -206,8 +208,9 @@ def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame, bytes]],
                                              "gt_attribute", "gt_speed", "speed_threshold", "track_group")}
     t0: int | None = None
     for gt, payload in inputs:
-        t0 = gt.stamp_ns if t0 is None else t0
         det = scale_variances(read_detected_objects(payload, limits), at_detector)
+        if t0 is None:  # the run's clock starts at its first frame, labelled or not
+            t0 = gt.stamp_ns if gt is not None else int(det.header.stamp)
         frame = detection_frame(det)
         try:
             result = trk.step(frame)
@@ -216,7 +219,7 @@ def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame, bytes]],
         observations = [p for _, p in observation_payloads(scale_variances(det, at_classifier), frame, result)]
         closing = tracked_payload(det, frame, result)
         oz, ov = (_classify(a, observations, closing) for a in (adapter_z, adapter_v))
-        if oz.decided is None or ov.decided is None:
+        if oz.decided is None or ov.decided is None or gt is None:
             continue
         if joiner is not None and on_frame is not None:
             for joined in join_frame(joiner, gt, payload, closing, oz, adapter_z):

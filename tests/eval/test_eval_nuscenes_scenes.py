@@ -37,9 +37,10 @@ def two_scenes(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def _eval(root: Path, out: Path, *argv: str) -> dict:
+    """metrics.json of ``jitterguard eval`` on ``root`` (the noise model unless ``argv`` names an input)."""
+    given = ["--input", "gt-noise", "--noise", "jittery"] if "--input" not in argv else []
     with pytest.raises(SystemExit) as exc:
-        main(["eval", "--nuscenes", str(root), "--input", "gt-noise", "--noise", "jittery", "--out", str(out),
-              *argv])
+        main(["eval", "--nuscenes", str(root), *given, "--out", str(out), *argv])
     assert exc.value.code == 0
     return json.loads((out / "metrics.json").read_text())
 
@@ -81,6 +82,7 @@ def test_several_scenes_pool_as_one_drive(two_scenes: Path, pooled: dict, tmp_pa
     (["--scene", "scene-0523"], "no scene 'scene-0523'"),
     (["--scene", ","], "no scene"),
     (["--scene", "all", "--runs", "2"], "--runs pools noise draws of one scene"),
+    (["--scene", "all", "--sweeps"], "--sweeps needs --nuscenes and --input detector"),
 ])
 def test_what_cannot_be_run_is_one_line_exit_2(two_scenes: Path, tmp_path: Path, capsys: pytest.CaptureFixture,
                                                argv: list[str], says: str) -> None:
@@ -93,10 +95,11 @@ def test_what_cannot_be_run_is_one_line_exit_2(two_scenes: Path, tmp_path: Path,
         assert all(name in err for name in SCENES)  # the message lists what there is to pick
 
 
-def test_non_key_sweeps_and_other_channels_change_nothing(two_scenes: Path, pooled: dict, tmp_path: Path) -> None:
-    """A full download's ``sample_data`` also lists the sweeps between key frames and the cameras; the evaluator
-    scores the key frames of LIDAR_TOP exactly as in a key-frame-only extract."""
-    full = tmp_path / "full"
+@pytest.fixture(scope="module")
+def full_download(two_scenes: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The two-scene dataroot as a full download lists it: after every LIDAR_TOP key frame a non-key sweep (a copy
+    of its scan and pose, 50 ms later, in the sample_data chain between the key frames) and a camera image."""
+    full = tmp_path_factory.mktemp("full") / "root"
     shutil.copytree(two_scenes, full)
     tables = full / "v1.0-mini"
     data = json.loads((tables / "sample_data.json").read_text())
@@ -105,8 +108,10 @@ def test_non_key_sweeps_and_other_channels_change_nothing(two_scenes: Path, pool
     calibs = json.loads((tables / "calibrated_sensor.json").read_text())
     sensors.append({"token": "cam-sensor", "channel": "CAM_FRONT", "modality": "camera"})
     calibs.append({**calibs[0], "token": "cam-calib", "sensor_token": "cam-sensor"})
+    (full / "sweeps" / "LIDAR_TOP").mkdir(parents=True)
     extra = []
-    for i, row in enumerate(data):  # after every key frame a sweep (a copy of its scan, 50 ms later) and a camera
+    by_token = {row["token"]: row for row in data}
+    for i, row in enumerate(list(data)):
         pose = next(p for p in poses if p["token"] == row["ego_pose_token"])
         for kind, calib, key, name in (("sweep", row["calibrated_sensor_token"], False,
                                         f"sweeps/LIDAR_TOP/{i}.pcd.bin"),
@@ -115,12 +120,37 @@ def test_non_key_sweeps_and_other_channels_change_nothing(two_scenes: Path, pool
             extra.append({**row, "token": f"{kind}-{i}", "ego_pose_token": f"{kind}-pose-{i}", "is_key_frame": key,
                           "calibrated_sensor_token": calib, "timestamp": row["timestamp"] + 50_000, "filename": name,
                           "fileformat": "jpg" if kind == "cam" else "pcd", "prev": "", "next": ""})
-        (full / "sweeps" / "LIDAR_TOP").mkdir(parents=True, exist_ok=True)
-        shutil.copy(full / row["filename"], full / f"sweeps/LIDAR_TOP/{i}.pcd.bin")
+        sweep = extra[-2]  # key frame → its sweep → the next key frame
+        sweep["next"], sweep["prev"] = row["next"], row["token"]
+        if row["next"]:
+            by_token[row["next"]]["prev"] = sweep["token"]
+        row["next"] = sweep["token"]
+        shutil.copy(full / row["filename"], full / sweep["filename"])
     for name, table in (("sample_data", extra[::-1] + data), ("ego_pose", poses), ("sensor", sensors),
                         ("calibrated_sensor", calibs)):
         (tables / f"{name}.json").write_text(json.dumps(table))
-    assert len(extra) == 2 * len(data)
-    with_sweeps = _eval(full, tmp_path / "with-sweeps", "--scene", "all")
-    assert with_sweeps["run"]["frames"] == pooled["run"]["frames"]
+    return full
+
+
+def test_non_key_sweeps_and_other_channels_change_nothing(full_download: Path, pooled: dict, tmp_path: Path) -> None:
+    """A full download's ``sample_data`` also lists the sweeps between key frames and the cameras; the evaluator
+    scores the key frames of LIDAR_TOP exactly as in a key-frame-only extract."""
+    with_sweeps = _eval(full_download, tmp_path / "with-sweeps", "--scene", "all")
+    assert with_sweeps["run"]["frames"] == pooled["run"]["frames"] == with_sweeps["run"]["scans"]
     assert with_sweeps["motion"] == pooled["motion"] and with_sweeps["ghost"] == pooled["ghost"]
+
+
+@pytest.mark.slow
+def test_sweeps_feed_every_scan_and_score_the_key_frames(full_download: Path, tmp_path: Path) -> None:
+    """``--sweeps``: the detector, tracker and classifier see every sweep, as the live stack fed by ``replay
+    --sweeps`` does; only the labelled key frames are scored (the detection figures are the key frames' own)."""
+    argv = ("--scene", SCENES[0], "--input", "detector", "--threads", "1")
+    keys = _eval(full_download, tmp_path / "keys", *argv)
+    every = _eval(full_download, tmp_path / "every", *argv, "--sweeps")
+    assert keys["run"]["sweeps"] is False and every["run"]["sweeps"] is True
+    assert every["run"]["frames"] == keys["run"]["frames"] == keys["run"]["scans"] == 30
+    assert every["run"]["scans"] == 59  # 30 key frames and the 29 sweeps between them (none after the last)
+    assert every["detection"] == keys["detection"]  # scored on the same 30 labelled scans
+    assert every["motion"]["vehicle"]["n_static"] > 0
+    # the tracker ran at twice the rate: its tracks are not the key-frame run's, yet every row is a key frame's
+    assert every["motion"] != keys["motion"]
