@@ -25,10 +25,12 @@ exec > >(tee -a "$OUT/run.log") 2>&1
 NCPU=$(nproc)
 JG="$PY -m jitterguard.cli"
 if [ "$SMOKE" = 1 ]; then
-  DATA="--scenarios mixed --train-seeds 200-201 --val-seeds 900 --frames-per-scenario 2"; BATCH=2; EPOCH_S=100
-  PAPER_EPOCHS=1
+  # one epoch each and one step of the paper network: what the CPU test can afford
+  DATA="--scenarios mixed --train-seeds 200-201 --val-seeds 900 --frames-per-scenario 2"; BATCH=2; EPOCH_S=1000
+  PAPER_EPOCHS=1; P_STEPS="--max-steps-per-epoch 1"
 else
   DATA="--train-seeds 200-299 --val-seeds 900-901 --frames-per-scenario 10"; BATCH=16; EPOCH_S=${EPOCH_S:-80}
+  P_STEPS=""
 fi
 DATA="$DATA --effects none+random,vegetation --rotation 45 --batch-size $BATCH --no-progress --fit-recalibration"
 echo "== $(date -u) cores $NCPU budget ${BUDGET_S}s"
@@ -50,7 +52,7 @@ timeout "$LEFT" $LAUNCH train --out "$W/B2t" $DATA --init "$INIT" --lr 2e-3 --ep
   --workers $NW > "$W/B2t.log" 2>&1 &
 P2=$!
 timeout "$LEFT" $LAUNCH train --out "$W/P" $DATA --preset paper --lr 3e-3 --epochs "$PAPER_EPOCHS" --seed 8 \
-  --workers $NW > "$W/P.log" 2>&1 &
+  --workers $NW $P_STEPS > "$W/P.log" 2>&1 &
 P3=$!
 wait $P1; echo "B2 exit $? at $(el)s"; wait $P2; echo "B2t exit $? at $(el)s"; wait $P3; echo "P exit $? at $(el)s"
 for r in B2 B2t P; do

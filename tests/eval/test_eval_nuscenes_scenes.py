@@ -144,7 +144,7 @@ def test_non_key_sweeps_and_other_channels_change_nothing(full_download: Path, p
 def test_sweeps_feed_every_scan_and_score_the_key_frames(full_download: Path, tmp_path: Path) -> None:
     """``--sweeps``: the detector, tracker and classifier see every sweep, as the live stack fed by ``replay
     --sweeps`` does; only the labelled key frames are scored (the detection figures are the key frames' own)."""
-    argv = ("--scene", SCENES[0], "--input", "detector", "--threads", "1")
+    argv = ("--scene", SCENES[0], "--input", "detector", "--threads", "2")
     keys = _eval(full_download, tmp_path / "keys", *argv)
     every = _eval(full_download, tmp_path / "every", *argv, "--sweeps")
     assert keys["run"]["sweeps"] is False and every["run"]["sweeps"] is True
