@@ -232,7 +232,7 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
     from .groundtruth import NuScenesError, load_nuscenes_frames, nuscenes_scene_names
     from ..services.classifier.calibration import OnlineCalibration
     from ..services.classifier.core import MotionClassifierCore
-    from .metrics import REPORT_GROUPS, alpha_from_labels, compute_metrics, planner_metrics
+    from .metrics import REPORT_GROUPS, alpha_from_labels, compute_metrics, planner_metrics, run_metrics
     from .pipeline import MATCH_DISTANCE_M, NOISE_PRESETS, Records, concat_records, run_pipeline
     from .report import write_outputs
     from ..services.tracker.config import default_config as default_tracker_config
@@ -321,8 +321,10 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
         samples.extend(smp)
         return rec_s
 
+    run_tags: list[str] = []  # the pooled runs, as their rows' track-ID prefixes
     if len(scenes) > 1:  # several real scenes: one drive, the calibration carried from scene to scene
-        rec = concat_records([one(fr, seed, name) for name, fr in scenes], [name for name, _ in scenes])
+        run_tags = [name for name, _ in scenes]
+        rec = concat_records([one(fr, seed, name) for name, fr in scenes], run_tags)
         source += " pooled"
     else:
         # synthetic seeds are different streets of one drive; repeated noise draws of one nuScenes scene are
@@ -334,7 +336,8 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
             for s in extra_seeds:
                 fr = frames if nuscenes is not None else make_scenario(scenario or "", s, duration, rate)
                 parts.append(one(fr, s, scene_name, cold=nuscenes is not None))
-            rec = concat_records(parts, [str(s) for s in (seed, *extra_seeds)])
+            run_tags = [str(s) for s in (seed, *extra_seeds)]
+            rec = concat_records(parts, run_tags)
             source += f" + seeds {', '.join(map(str, extra_seeds))} pooled"
             total *= 1 + len(extra_seeds)
     alpha_desc = classifier.alpha_default if not classifier.alpha_per_class else dict(
@@ -357,6 +360,7 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
                 "tracker_measurement_scale": (tracker or default_tracker_config()).measurement_scale},
         "motion": compute_metrics(rec),
         **planner_metrics(rec),
+        "by_run": run_metrics(rec, run_tags) if run_tags else None,
         "calibration": drive.snapshot(rec.window_size) if classifier.calibration == "online" else None,
         "alpha_from_labels": {g: alpha_from_labels(rec, g) for g in REPORT_GROUPS},
     }

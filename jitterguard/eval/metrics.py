@@ -320,6 +320,29 @@ def planner_metrics(rec: Records, *, intervals: bool = True) -> dict[str, Any]:
     }
 
 
+RUN_KEYS = ("n_static", "n_dynamic", "false_dynamic_z", "false_dynamic_speed", "missed_dynamic_z",
+            "missed_dynamic_speed")
+
+
+def run_metrics(rec: Records, tags: list[str]) -> dict[str, Any]:
+    """``by_run.{tag}``: each pooled run's (seed's or scene's) vehicle and pedestrian rates and counts and its
+    ghost rates, without intervals (one run is a handful of tracks: the pooled figures carry the intervals).
+    Rows belong to the run whose ``tag/`` prefixes their track ID (:func:`~.pipeline.concat_records`); what one
+    place does to a pooled rate shows here."""
+    out: dict[str, Any] = {}
+    for tag in tags:
+        sub = rec.subset(np.char.startswith(rec.track_id.astype(str), f"{tag}/"))
+        entry: dict[str, Any] = {}
+        for g in ("vehicle", "pedestrian"):
+            m = group_metrics(sub, g)
+            entry[g] = {k: m.get(k) for k in RUN_KEYS}
+            gh = ghost_metrics(sub, g)
+            entry[g].update({"ghost_n": gh["n"], "ghost_false_dynamic_z": gh.get("false_dynamic_z"),
+                             "ghost_false_dynamic_speed": gh.get("false_dynamic_speed")})
+        out[tag] = entry
+    return out
+
+
 def alpha_sweep(rec: Records, group: str, alphas: ArrayLike) -> dict[str, list[float]]:
     """False-/missed-dynamic rate of ``z > alpha`` for one alpha applied to every class (scored rows)."""
     m = scored_rows(rec, group)

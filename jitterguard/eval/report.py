@@ -252,6 +252,17 @@ def planner_lines(metrics: dict[str, Any]) -> list[str]:
     for attr, m in metrics.get("by_attribute", {}).items():
         lines.append(f"| {attr} | {m['n']} | {m['n_tracks']} | {_ci(m, 'false_dynamic_z')} | "
                      f"{_ci(m, 'false_dynamic_speed')} | {_ci(m, 'missed_dynamic_z')} | {_ci(m, 'missed_dynamic_speed')} |")
+    if metrics.get("by_run"):
+        lines += ["", "## Each pooled run (seed or scene; no intervals: a run is a handful of tracks)", "",
+                  "| run | group | n static | n dynamic | false dyn z | false dyn speed | missed dyn z "
+                  "| missed dyn speed | ghost rows | ghost false dyn z | ghost false dyn speed |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|"]
+        for tag, entry in metrics["by_run"].items():
+            for g, m in entry.items():
+                lines.append(f"| {tag} | {g} | {m['n_static']} | {m['n_dynamic']} | {_fmt(m['false_dynamic_z'])} | "
+                             f"{_fmt(m['false_dynamic_speed'])} | {_fmt(m['missed_dynamic_z'])} | "
+                             f"{_fmt(m['missed_dynamic_speed'])} | {m['ghost_n']} | "
+                             f"{_fmt(m['ghost_false_dynamic_z'])} | {_fmt(m['ghost_false_dynamic_speed'])} |")
     lines += ["", "## Rows whose window has filled", "",
               "| group | n static | n dynamic | false dyn z | false dyn speed | missed dyn z | missed dyn speed |",
               "|---|---|---|---|---|---|---|"]

@@ -46,9 +46,16 @@ def _eval(root: Path, out: Path, *argv: str) -> dict:
 
 
 @pytest.fixture(scope="module")
-def pooled(two_scenes: Path, tmp_path_factory: pytest.TempPathFactory) -> dict:
-    """metrics.json of ``--scene all`` on the two-scene dataroot."""
-    return _eval(two_scenes, tmp_path_factory.mktemp("all") / "out", "--scene", "all")
+def pooled_out(two_scenes: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The outputs of ``--scene all`` on the two-scene dataroot."""
+    out = tmp_path_factory.mktemp("all") / "out"
+    _eval(two_scenes, out, "--scene", "all")
+    return out
+
+
+@pytest.fixture(scope="module")
+def pooled(pooled_out: Path) -> dict:
+    return json.loads((pooled_out / "metrics.json").read_text())
 
 
 def test_scene_names_resolve_in_the_order_given(two_scenes: Path) -> None:
@@ -63,7 +70,7 @@ def test_scene_names_resolve_in_the_order_given(two_scenes: Path) -> None:
         nuscenes_scene_names(two_scenes, None)
 
 
-def test_several_scenes_pool_as_one_drive(two_scenes: Path, pooled: dict, tmp_path: Path) -> None:
+def test_several_scenes_pool_as_one_drive(two_scenes: Path, pooled: dict, pooled_out: Path, tmp_path: Path) -> None:
     alone = [_eval(two_scenes, tmp_path / name, "--scene", name) for name in SCENES]
     assert [m["run"]["scenes"] for m in alone] == [[SCENES[0]], [SCENES[1]]]
     assert pooled["run"]["scenes"] == list(SCENES)
@@ -75,6 +82,18 @@ def test_several_scenes_pool_as_one_drive(two_scenes: Path, pooled: dict, tmp_pa
     # one drive: the second scene starts with what the first taught the calibration
     blocks = [m["calibration"]["counts"]["blocks"] for m in alone]
     assert pooled["calibration"]["counts"]["blocks"] == sum(blocks) and min(blocks) > 0
+    # each scene's own figures: the first ran exactly as alone (both start cold), the second on its own rows
+    assert list(pooled["by_run"]) == list(SCENES) and alone[0]["by_run"] is None
+    for group in ("vehicle", "pedestrian"):
+        first, own = pooled["by_run"][SCENES[0]][group], alone[0]["motion"][group]
+        assert {k: first[k] for k in own if k in first} == {k: own[k] for k in own if k in first}
+        assert first["ghost_n"] == alone[0]["ghost"][group]["n"]
+        assert first["ghost_false_dynamic_speed"] == alone[0]["ghost"][group]["false_dynamic_speed"]
+        second = pooled["by_run"][SCENES[1]][group]
+        assert second["n_static"] == alone[1]["motion"][group]["n_static"]
+        assert second["false_dynamic_speed"] == alone[1]["motion"][group]["false_dynamic_speed"]  # no calibration
+    assert f"| {SCENES[1]} | vehicle | {pooled['by_run'][SCENES[1]]['vehicle']['n_static']} |" in \
+        (pooled_out / "report.md").read_text()
 
 
 @pytest.mark.parametrize(("argv", "says"), [
