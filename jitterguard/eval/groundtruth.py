@@ -79,32 +79,19 @@ class NuScenesError(ValueError):
 
 
 def nuscenes_scene_names(dataroot: Path, scene: str | None) -> list[str]:
-    """The scenes ``--scene`` names in a nuScenes dataroot, in the table's order: ``None`` the only one (an error
-    when there are several), ``all`` every scene, else comma-separated names or tokens (duplicates dropped)."""
+    """The scenes ``--scene`` names in a nuScenes dataroot (the replay source's rule with several allowed,
+    :func:`~..services.replay.sources.nuscenes.select_scenes`): ``None`` the only one, ``all`` every scene in
+    the table's order, else comma-separated names or tokens in the order given."""
     from ..services.replay.frames import SourceError
-    from ..services.replay.sources.nuscenes import _load_table, find_version
+    from ..services.replay.sources.nuscenes import _load_table, find_version, select_scenes
 
     if not Path(dataroot).is_dir():
         raise NuScenesError(f"{dataroot}: no such folder")
     try:
-        scenes = _load_table(Path(dataroot) / find_version(Path(dataroot), None), "scene")
+        table = _load_table(Path(dataroot) / find_version(Path(dataroot), None), "scene")
+        return [s["name"] for s in select_scenes(table, scene, dataroot, several=True)]
     except SourceError as exc:
         raise NuScenesError(str(exc).replace("\n", " ")) from None
-    names = [s["name"] for s in scenes]
-    if scene is None:
-        if len(names) != 1:
-            raise NuScenesError(f"{dataroot}: {len(names)} scenes, pick with --scene NAME[,NAME…] or --scene all "
-                                f"({', '.join(sorted(names))})")
-        return names
-    if scene.strip() == "all":
-        return names
-    by_key = {**{s["token"]: s["name"] for s in scenes}, **{n: n for n in names}}
-    wanted = [w.strip() for w in scene.split(",") if w.strip()]
-    unknown = [w for w in wanted if w not in by_key]
-    if unknown or not wanted:
-        raise NuScenesError(f"{dataroot}: no scene {', '.join(map(repr, unknown)) or repr(scene)} "
-                            f"(have: {', '.join(sorted(names))})")
-    return list(dict.fromkeys(by_key[w] for w in wanted))
 
 
 def load_nuscenes_frames(dataroot: Path, scene: str | None = None) -> tuple[str, list[GroundTruthFrame]]:

@@ -53,6 +53,29 @@ def find_version(dataroot: Path, version: str | None) -> str:
     return found[0]
 
 
+def select_scenes(scenes: list[dict[str, Any]], scene: str | None, where: object, *,
+                  several: bool = False) -> list[dict[str, Any]]:
+    """The rows of the ``scene`` table that ``--scene`` names: ``None`` the only scene (an error when there are
+    several), else a name or token; with ``several`` also comma-separated names or tokens, in the order given
+    (duplicates dropped), or ``all`` (the table's order). Raises :class:`SourceError` naming the scenes there are."""
+    names = ", ".join(sorted(s["name"] for s in scenes))
+    if scene is None:
+        if len(scenes) != 1:
+            pick = "pick with --scene NAME[,NAME…] or --scene all" if several else "pick one with --scene"
+            raise SourceError(f"{where}: {len(scenes)} scenes, {pick} ({names})")
+        return list(scenes)
+    if several and scene.strip() == "all":
+        return list(scenes)
+    wanted = [w.strip() for w in scene.split(",") if w.strip()] if several else [scene]
+    by_key: dict[str, dict[str, Any]] = {}
+    for s in reversed(scenes):  # the first row in the table's order wins a key, as a linear search would
+        by_key[s["token"]] = by_key[s["name"]] = s
+    unknown = [w for w in wanted if w not in by_key]
+    if unknown or not wanted:
+        raise SourceError(f"{where}: no scene {', '.join(map(repr, unknown)) or repr(scene)} (have: {names})")
+    return list({by_key[w]["token"]: by_key[w] for w in wanted}.values())
+
+
 def is_nuscenes_root(path: Path) -> bool:
     try:
         return path.is_dir() and any((p / "scene.json").is_file() for p in path.iterdir() if p.is_dir())
@@ -131,18 +154,7 @@ class NuScenesSource(Source):
         )
 
     def _index(self, t: dict[str, list[dict[str, Any]]], scene: str | None, channel: str, sweeps: bool) -> None:
-        scenes = t["scene"]
-        if scene is None:
-            if len(scenes) != 1:
-                names = ", ".join(sorted(s["name"] for s in scenes))
-                raise SourceError(f"{self.dataroot}: {len(scenes)} scenes, pick one with --scene ({names})")
-            sc = scenes[0]
-        else:
-            matches = [s for s in scenes if scene in (s["name"], s["token"])]
-            if not matches:
-                names = ", ".join(sorted(s["name"] for s in scenes))
-                raise SourceError(f"{self.dataroot}: no scene {scene!r} (have: {names})")
-            sc = matches[0]
+        sc = select_scenes(t["scene"], scene, self.dataroot)[0]
         self.scene_name: str = sc["name"]
         samples = {s["token"]: s for s in t["sample"]}
         ego = {e["token"]: e for e in t["ego_pose"]}
