@@ -1,7 +1,7 @@
 """Where a detector's real car AP goes: its car boxes by what they lie on, what AP would be without each kind of
 false positive, and what the returns under the background boxes look like (docs/detector.md, "Vegetation masses").
 
-    .venv/bin/python scripts/car_fp_breakdown.py [--weights W] [--nuscenes ../shared/data/nuscenes-scene-0523]
+    .venv/bin/python scripts/car_fp_breakdown.py [--weights W] [--flips] [--nuscenes ../shared/data/nuscenes-scene-0523]
 
 Runs the detector as ``jitterguard eval-detector`` does (the scans in the vehicle's axes, the self-crop, the
 recalibrated variances) and reads the scene's labels — for diagnosis only: what it prints may guide what the
@@ -54,13 +54,15 @@ def main() -> None:
     ap.add_argument("--nuscenes", default="../shared/data/nuscenes-scene-0523")
     ap.add_argument("--min-score", type=float, default=0.4)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--flips", action="store_true", help="the detector with test-time flips")
     a = ap.parse_args()
-    det = Detector.load(a.weights, "lite", threads=a.threads, recalibrate=True, self_crop=SELF_CROP_M)
+    det = Detector.load(a.weights, "lite", threads=a.threads, recalibrate=True, self_crop=SELF_CROP_M, flips=a.flips)
     samples = [filter_range(s, det.config.point_cloud_range) for s in nuscenes_samples(a.nuscenes)]
     dets = [det.detect(s.points) for s in samples]
     kinds: list[list[str]] = [[_kind(s, b) if lab == CAR else "" for b, lab in zip(d.boxes, d.labels)]
                               for s, d in zip(samples, dets)]
-    out: dict = {"weights": a.weights or "shipped lite", "scans": len(samples), "min_score": a.min_score}
+    out: dict = {"weights": a.weights or "shipped lite", "flips": a.flips, "scans": len(samples),
+                 "min_score": a.min_score}
     counts: dict[str, int] = {}
     columns: dict[str, list[tuple[float, float]]] = {"car": [], "background": []}
     for s, d, ks in zip(samples, dets, kinds):

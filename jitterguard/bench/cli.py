@@ -115,6 +115,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         sweeps: Annotated[int, typer.Option("--sweeps", min=1, max=20, help="Time stacks of this many sweeps (20 Hz,"
                                             " one spin apart) on five-field networks (single-sweep weights widened"
                                             " by a zero time-lag input: the same cost).")] = 1,
+        flips: Annotated[bool, typer.Option("--flips/--no-flips", help="Time the detector with test-time flips"
+                                            " (the scan and its three mirror images).")] = False,
     ) -> None:
         """Time the detector end to end per HDL-32E scan (voxelisation, network, decode, NMS)."""
         progress = progress_on(progress)
@@ -152,7 +154,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
 
         try:
             result = run(names, scans=scans, warmup=warmup, threads=threads, weights=files, scenario=scenario,
-                         seed=seed, progress=progress, backends=chosen, device=device, sweeps=sweeps)
+                         seed=seed, progress=progress, backends=chosen, device=device, sweeps=sweeps, flips=flips)
         except WeightsError as exc:
             fail(f"--weights: {_one_line(exc)}")
         if json_out:

@@ -118,7 +118,7 @@ def available_backends() -> tuple[str, ...]:
 def run(presets: Sequence[str], *, scans: int = 40, warmup: int = 3, threads: int | None = None,
         weights: Mapping[str, str] | None = None, scenario: str = "mixed", seed: int = 0,
         progress: bool = True, backends: Sequence[str] = ("torch",), device: str = "cpu",
-        sweeps: int = 1) -> dict[str, dict[str, Any]]:
+        sweeps: int = 1, flips: bool = False) -> dict[str, dict[str, Any]]:
     """``{preset: {"points", "p50_ms", "p99_ms", "mean_ms", "cpu_p50_ms", "stages_ms", "detections", "scans",
     "threads", "weights", "omp_wait_policy"}}`` — the same scans for every preset — for the torch backend.
 
@@ -129,7 +129,8 @@ def run(presets: Sequence[str], *, scans: int = 40, warmup: int = 3, threads: in
     trained on stacks as they are, single-sweep ones widened by a zero time-lag input (``network.with_time_lag``:
     the cost of a stacked model whatever it learnt); each row names its sweeps.
     ``device`` ``cuda`` runs torch's voxelisation and network on the GPU (onnxruntime stays on the CPU); each
-    row names its device."""
+    row names its device. ``flips`` times the detector with test-time flips (four passes of the network per scan,
+    on either backend); each row says whether it ran them."""
     import tempfile  # only with --backends onnxruntime
 
     import torch  # the optional "torch" extra, after passive_openmp() has set OpenMP's policy
@@ -147,13 +148,13 @@ def run(presets: Sequence[str], *, scans: int = 40, warmup: int = 3, threads: in
     data = bench_scans(warmup + scans, scenario, seed, progress, sweeps)
     out: dict[str, dict[str, Any]] = {}
     for name in presets:
-        det = Detector.load(weights.get(name), name, threads=n_threads, device=device)
+        det = Detector.load(weights.get(name), name, threads=n_threads, device=device, flips=flips)
         widened = sweeps > 1 and det.config.num_point_features == 4
         if widened:
             from ..services.detector.network import with_time_lag
 
             det = Detector(with_time_lag(det.model.cpu()), recalibration=det.recalibration, threads=n_threads,
-                           meta={"source": {"sweeps": sweeps}}, self_crop=det.self_crop, device=device)
+                           meta={"source": {"sweeps": sweeps}}, self_crop=det.self_crop, device=device, flips=flips)
         torch.set_num_threads(n_threads)  # the same for every preset, whatever a previous load did
         if name in weights:
             which = weights[name]
@@ -163,7 +164,7 @@ def run(presets: Sequence[str], *, scans: int = 40, warmup: int = 3, threads: in
             which = "random-init"
         if widened:
             which += " (+ zero time-lag input)"
-        common = {"threads": n_threads, "weights": which, "device": _device_name(device), "sweeps": sweeps,
+        common = {"threads": n_threads, "weights": which, "device": _device_name(device), "sweeps": sweeps, "flips": flips,
                   "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", "default")}
         if "onnxruntime" not in backends:
             row = time_preset(det, data, warmup, f"timing {name}", progress)
@@ -175,7 +176,7 @@ def run(presets: Sequence[str], *, scans: int = 40, warmup: int = 3, threads: in
 
         with tempfile.TemporaryDirectory(prefix="jitterguard-bench-onnx-") as tmp:
             export_onnx(det.model, tmp, recalibration=det.recalibration)
-            ort_det = load_onnx_detector(tmp, threads=n_threads)
+            ort_det = load_onnx_detector(tmp, threads=n_threads, flips=flips)
             torch.set_num_threads(n_threads)
             rows = time_backends({"torch": det, "onnxruntime": ort_det}, data, warmup,
                                  f"timing {name} (torch, onnxruntime)", progress)

@@ -40,6 +40,9 @@ def eval_command(
     self_crop: Annotated[bool, typer.Option("--self-crop/--no-self-crop", help="Drop the returns of the vehicle's"
                                             " own body before the detector (the service's default self_crop"
                                             " box), as the live detector does.")] = True,
+    detector_flips: Annotated[bool, typer.Option("--detector-flips/--no-detector-flips", help="The detector averages"
+                                                 " the scan and its three mirror images (its flips setting).")
+                              ] = False,
     nuscenes: Annotated[Path | None, typer.Option("--nuscenes", help="nuScenes dataroot instead of a scenario.")] = None,
     scene: Annotated[str | None, typer.Option("--scene", help="nuScenes scene name or token; several "
                                               "comma-separated, or 'all', are pooled as one drive.")] = None,
@@ -99,8 +102,8 @@ def eval_command(
             fail("--runs pools noise draws or synthetic seeds; with --input detector a nuScenes scene gives the "
                  "same run every time")
     else:
-        if weights is not None or threads is not None or not self_crop:
-            fail("--weights, --threads and --no-self-crop need --input detector")
+        if weights is not None or threads is not None or not self_crop or detector_flips:
+            fail("--weights, --threads, --no-self-crop and --detector-flips need --input detector")
         noise = noise or "jittery"
     if noise is not None and noise not in NOISE_PRESETS:
         fail(f"--noise: unknown preset {noise!r}; expected one of {', '.join(NOISE_PRESETS)}")
@@ -160,7 +163,8 @@ def eval_command(
             model = read_calibration(cfg.calibration_file or "")
         except CalibrationFileError as exc:
             fail(f"--calibration-file: {exc}")
-    detector, weights_desc = load_detector(weights, threads, self_crop) if input_ == "detector" else (None, None)
+    detector, weights_desc = (load_detector(weights, threads, self_crop, detector_flips) if input_ == "detector"
+                              else (None, None))
 
     metrics = evaluate(out, scenario=scenario, seed=seed, noise=noise, nuscenes=nuscenes, scene=scene,
                        sweeps=sweeps, duration=duration, rate=rate, classifier=cfg,
@@ -174,10 +178,11 @@ def eval_command(
         print(f"wrote {out / 'report.md'}, metrics.json and {n_fig} figures")
 
 
-def load_detector(weights: Path | None, threads: int | None, self_crop: bool = True) -> tuple["Detector", str | None]:
+def load_detector(weights: Path | None, threads: int | None, self_crop: bool = True,
+                  flips: bool = False) -> tuple["Detector", str | None]:
     """The detector the live service would load for the same flags (``--weights``, else the shipped lite
     weights, else a random network, which ``Detector.load`` warns about; the service's default self-crop box
-    unless ``self_crop`` is false) and a description of the file
+    unless ``self_crop`` is false; test-time ``flips`` as the service's setting) and a description of the file
     (name and the first 12 hex digits of its SHA-256, so a metrics.json names the exact weights; None for
     random initialisation). A missing or unusable file fails with one line."""
     import hashlib
@@ -189,7 +194,8 @@ def load_detector(weights: Path | None, threads: int | None, self_crop: bool = T
         fail(f"--weights: file not found: {weights}")
     path = weights if weights is not None else shipped_weights("lite")
     try:
-        det = Detector.load(weights, "lite", threads=threads, self_crop=SELF_CROP_M if self_crop else None)
+        det = Detector.load(weights, "lite", threads=threads, self_crop=SELF_CROP_M if self_crop else None,
+                            flips=flips)
     except WeightsError as exc:
         fail(f"--weights: {' '.join(str(exc).split())[:240]}")
     if det.meta.get("random_init"):
@@ -204,7 +210,7 @@ def detector_run_info(detector: "Detector", weights_desc: str | None) -> dict[st
     return {"weights": weights_desc, "preset": detector.config.name, "random_init": weights_desc is None,
             "uncertainty": detector.config.uncertainty,
             "self_crop": list(detector.self_crop) if detector.self_crop is not None else None,
-            "score_threshold": detector.score_threshold if detector.score_threshold is not None
+            "flips": detector.flips, "score_threshold": detector.score_threshold if detector.score_threshold is not None
             else detector.config.score_threshold, "meta": meta}
 
 

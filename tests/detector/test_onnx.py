@@ -97,6 +97,21 @@ def test_onnxruntime_equals_torch_on_5_real_nuscenes_scans(torch_det, single_dir
                                               "yaw_rot_norm": check["yaw_worst_rot_norm"]}))
 
 
+def test_test_time_flips_run_the_same_on_onnxruntime(single_dir, synthetic_scans) -> None:
+    """An export takes one scan per call: the detector runs the four mirror images one by one on either backend."""
+    torch_flips = Detector.load(None, "lite", threads=2, flips=True)
+    onnx_flips = load_onnx_detector(single_dir, threads=2, flips=True)
+    for points in synthetic_scans[:3]:
+        a, b = torch_flips.detect(points), onnx_flips.detect(points)
+        assert len(a) == len(b) > 5
+        # the same detections; near-equal scores may swap places in the score order between backends
+        ia, ib = (np.lexsort((d.boxes[:, 1].round(2), d.boxes[:, 0].round(2), d.labels)) for d in (a, b))
+        assert (a.labels[ia] == b.labels[ib]).all()
+        np.testing.assert_allclose(a.scores[ia], b.scores[ib], atol=TOL)
+        np.testing.assert_allclose(a.boxes[ia, :6], b.boxes[ib, :6], atol=TOL)
+        np.testing.assert_allclose(a.log_variances[ia], b.log_variances[ib], atol=TOL)
+
+
 def test_the_graph_has_dynamic_points_and_pillars_and_a_recent_opset(single_dir) -> None:
     model = onnx.load(str(single_dir / "detector.onnx"))
     onnx.checker.check_model(model)

@@ -94,13 +94,16 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         ] = None,
         backend: BackendOpt = None,
         onnx_dir: OnnxDirOpt = None,
+        flips: Annotated[bool | None, typer.Option("--flips/--no-flips", help="Average the network over the scan"
+                                                   " and its three mirror images (~4x the network's time).")
+                         ] = None,
         log_level: LogLevelOpt = "INFO",
     ) -> None:
         """Run the detector: points in; one DetectedObjects per scan (sensor frame, with variances) out."""
         try:
             params = load(DetectorParams, config, overrides={
                 "weights": weights, "preset": preset, "threads": threads, "score_threshold": score_threshold,
-                "twist": twist, "backend": backend, "onnx": onnx_dir})
+                "twist": twist, "backend": backend, "onnx": onnx_dir, "flips": flips})
         except ConfigError as exc:
             fail(f"--config: {exc}" if config else str(exc))
         if params.preset not in PRESETS:
@@ -125,12 +128,16 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                 from .onnx_backend import open_onnx_detector
 
                 det = open_onnx_detector(params.onnx, params.weights, params.preset, threads=params.threads,
-                                         score_threshold=params.score_threshold, self_crop=params.self_crop)
+                                         score_threshold=params.score_threshold, self_crop=params.self_crop,
+                                         flips=params.flips)
             else:
                 det = Detector.load(params.weights, params.preset, threads=params.threads,
-                                    score_threshold=params.score_threshold, self_crop=params.self_crop)
+                                    score_threshold=params.score_threshold, self_crop=params.self_crop,
+                                    flips=params.flips)
         except WeightsError as exc:
             fail(f"{'--onnx' if params.onnx else '--weights'}: {_one_line(exc)}")
+        except ValueError as exc:  # flips on weights whose grid is not symmetric about the sensor
+            fail(f"--flips: {_one_line(exc)}")
         try:
             service = DetectorService(opts, det, has_twist=params.twist, sweeps=params.sweeps,
                                       max_sweep_lag_s=params.max_sweep_lag_s)

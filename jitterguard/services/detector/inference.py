@@ -24,6 +24,7 @@ from pydantic import ValidationError
 from .config import PRESETS, SELF_CROP_M, DetectorConfig, Detections3D, check_crop_box
 from .decode import decode
 from .evaluate import Recalibration, apply_recalibration
+from .flips import check_symmetric, merge_mirrored, mirrored_views
 from .network import CenterPointNet
 from .pillars import voxelize
 from .sweeps import stack_sweeps, sweeps_of
@@ -111,17 +112,21 @@ class Detector:
     def __init__(self, model: CenterPointNet, *, recalibration: Recalibration | tuple[float, float] | None = None,
                  score_threshold: float | None = None, threads: int | None = None,
                  meta: dict[str, Any] | None = None, self_crop: Sequence[float] | None = SELF_CROP_M,
-                 device: str | torch.device = "cpu") -> None:
+                 device: str | torch.device = "cpu", flips: bool = False) -> None:
         """``self_crop``: returns inside this (x_min, y_min, x_max, y_max) box of the sensor frame are the
         vehicle's own body and never reach the network (:data:`~.config.SELF_CROP_M`; None keeps them).
         ``device``: where voxelisation and the network run (``cuda`` on a GPU machine; decoding and NMS stay on
-        the CPU, where the boxes are needed)."""
+        the CPU, where the boxes are needed). ``flips``: average the network over the scan and its three mirror
+        images (:mod:`.flips`; about four times the network's time)."""
         self.self_crop = check_crop_box(self_crop)
         self.device = torch.device(device)
         if self.device.type != "cpu":  # (the ONNX Runtime stand-in for the network is CPU-only and has no .to)
             model = model.to(self.device)
         self.model = model.eval()
         self.config = model.config
+        if flips:
+            check_symmetric(self.config)
+        self.flips = flips
         self.recalibration = Recalibration.of(recalibration)
         self.score_threshold = score_threshold
         self.meta = meta or {}
@@ -134,22 +139,23 @@ class Detector:
     @classmethod
     def load(cls, weights: str | Path | None = None, preset: str | None = "lite", *, threads: int | None = None,
              score_threshold: float | None = None, recalibrate: bool = True,
-             self_crop: Sequence[float] | None = SELF_CROP_M, device: str | torch.device = "cpu") -> "Detector":
+             self_crop: Sequence[float] | None = SELF_CROP_M, device: str | torch.device = "cpu",
+             flips: bool = False) -> "Detector":
         """``weights`` if given; else the shipped weights of ``preset``; else a randomly initialised ``preset``
         (logged as a warning — its detections are meaningless). ``recalibrate`` applies the file's fitted
-        per-axis variance scales when it has them; ``self_crop`` as in the constructor."""
+        per-axis variance scales when it has them; ``self_crop`` and ``flips`` as in the constructor."""
         if weights is None and preset is not None and shipped_weights(preset).is_file():
             weights = shipped_weights(preset)
         if weights is not None:
             model, rec, meta = load_weights(weights)
             return cls(model, recalibration=rec if recalibrate else None, score_threshold=score_threshold,
-                       threads=threads, meta=meta, self_crop=self_crop, device=device)
+                       threads=threads, meta=meta, self_crop=self_crop, device=device, flips=flips)
         if preset not in PRESETS:
             raise WeightsError(f"unknown preset {preset!r}; expected one of {', '.join(PRESETS)}")
         log.warning("no weights for preset %r: using a randomly initialised network", preset)
         torch.manual_seed(0)
         return cls(CenterPointNet(PRESETS[preset]), score_threshold=score_threshold, threads=threads,
-                   meta={"random_init": True}, self_crop=self_crop, device=device)
+                   meta={"random_init": True}, self_crop=self_crop, device=device, flips=flips)
 
     @torch.inference_mode()
     def detect(self, points: np.ndarray) -> Detections3D:
@@ -162,10 +168,12 @@ class Detector:
             points = stack_sweeps(points, ())
         points = crop_box(points, self.self_crop)
         pts = torch.from_numpy(np.ascontiguousarray(points[:, :nf], dtype=np.float32)).to(self.device)
-        pillars = voxelize([pts], self.config)
+        views = mirrored_views(pts) if self.flips else [pts]
+        pillars = [voxelize([v], self.config) for v in views]  # one scan per call: an ONNX export takes batch 1
         self._sync()
         t1 = time.perf_counter()
-        out = self.model.forward_pillars(pillars)
+        outs = [self.model.forward_pillars(p) for p in pillars]
+        out = merge_mirrored({k: torch.cat([o[k] for o in outs]) for k in outs[0]}) if self.flips else outs[0]
         self._sync()
         t2 = time.perf_counter()
         det = decode(out, self.config, self.score_threshold)[0]

@@ -115,22 +115,25 @@ class OnnxNetwork:
 
 
 def load_onnx_detector(model_dir: str | Path, *, threads: int | None = None, score_threshold: float | None = None,
-                       recalibrate: bool = True, self_crop: Sequence[float] | None = SELF_CROP_M) -> Detector:
-    """A :class:`~.inference.Detector` whose network runs under ONNX Runtime (recalibration from the manifest)."""
+                       recalibrate: bool = True, self_crop: Sequence[float] | None = SELF_CROP_M,
+                       flips: bool = False) -> Detector:
+    """A :class:`~.inference.Detector` whose network runs under ONNX Runtime (recalibration from the manifest;
+    ``flips`` as in :class:`~.inference.Detector`)."""
     net = OnnxNetwork(model_dir, threads=threads)
     return Detector(net, recalibration=net.recalibration if recalibrate else None,  # type: ignore[arg-type]
-                    score_threshold=score_threshold, threads=threads, self_crop=self_crop,
+                    score_threshold=score_threshold, threads=threads, self_crop=self_crop, flips=flips,
                     meta={**dict(net.manifest.get("meta") or {}), "backend": "onnxruntime", "layout": net.layout})
 
 
 def open_onnx_detector(model_dir: str | Path | None, weights: str | Path | None, preset: str | None, *,
                        threads: int | None = None, score_threshold: float | None = None,
-                       self_crop: Sequence[float] | None = SELF_CROP_M) -> Detector:
+                       self_crop: Sequence[float] | None = SELF_CROP_M, flips: bool = False) -> Detector:
     """The onnxruntime-backed detector the service runs: from an export folder, or — without one — the torch
     weights (``weights`` / ``preset``, as :meth:`Detector.load` picks them) exported into a temporary folder first
     (needs onnx + onnxscript; the folder is removed at exit)."""
     if model_dir is not None:
-        return load_onnx_detector(model_dir, threads=threads, score_threshold=score_threshold, self_crop=self_crop)
+        return load_onnx_detector(model_dir, threads=threads, score_threshold=score_threshold, self_crop=self_crop,
+                                  flips=flips)
     import atexit
     import logging
     import shutil
@@ -146,4 +149,4 @@ def open_onnx_detector(model_dir: str | Path | None, weights: str | Path | None,
         export_onnx(src.model, tmp, recalibration=src.recalibration, meta=src.meta)
     except ExportError as exc:
         raise WeightsError(str(exc)) from None
-    return load_onnx_detector(tmp, threads=threads, score_threshold=score_threshold, self_crop=self_crop)
+    return load_onnx_detector(tmp, threads=threads, score_threshold=score_threshold, self_crop=self_crop, flips=flips)

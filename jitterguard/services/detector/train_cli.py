@@ -630,6 +630,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         sweeps: Annotated[int | None, typer.Option("--sweeps", min=1, max=20, help="Sweeps stacked per scan for"
                                                    " weights trained on stacks (default: as trained; 1: the newest"
                                                    " alone).")] = None,
+        flips: Annotated[bool, typer.Option("--flips/--no-flips", help="Average the network over the scan and its"
+                                            " three mirror images (test-time flips; ~4x the network's time).")
+                         ] = False,
         progress: ProgressOpt = None,
     ) -> None:
         """Score weights on a hold-out set: nuScenes-style AP, positional ECE; JSON + PNGs."""
@@ -651,9 +654,11 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
 
         try:
             det = Detector.load(weights, preset, threads=threads, recalibrate=recalibrate,
-                                self_crop=SELF_CROP_M if self_crop else None)
+                                self_crop=SELF_CROP_M if self_crop else None, flips=flips)
         except WeightsError as exc:
             fail(f"--weights: {exc}")
+        except ValueError as exc:  # flips on a grid that is not symmetric about the sensor
+            fail(f"--flips: {exc}")
         if sweeps is not None:
             if sweeps > 1 and det.config.num_point_features < 5:
                 fail(f"--sweeps: these weights take one sweep (4 point fields), got {sweeps}")
@@ -701,7 +706,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         bar.close()
         summary = write_report(Path(out), name, dets, items, bootstrap=bootstrap, extra={"scored_on": scored_on,
                                "weights": os.path.abspath(weights) if weights else "shipped " + preset,
-                               "recalibrated": det.recalibration is not None,
+                               "recalibrated": det.recalibration is not None, "flips": det.flips,
                                "self_crop": list(det.self_crop) if det.self_crop is not None else None})["summary"]
         typer.echo(json.dumps({"samples": len(items), **summary}))
 
