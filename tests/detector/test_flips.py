@@ -8,9 +8,6 @@ import math
 import numpy as np
 import pytest
 import torch
-from typer.testing import CliRunner
-
-from jitterguard.cli import app
 from jitterguard.services.detector.config import PRESETS
 from jitterguard.services.detector.data import synthetic_samples
 from jitterguard.services.detector.decode import decode
@@ -120,10 +117,3 @@ def test_the_averaged_detector_answers_a_mirrored_scan_with_the_mirrored_detecti
     s_a, s_b = cars(single.detect(scan)), cars(single.detect(mirror))
     if s_a.shape == s_b.shape:  # a single pass sees a mirrored scan as another scan
         assert not np.allclose(sorted_rows(mirrored(s_a)), sorted_rows(s_b), atol=2e-3)
-
-
-def test_eval_detector_and_eval_take_flips_only_where_they_apply(tmp_path) -> None:  # noqa: ANN001
-    runner = CliRunner()
-    res = runner.invoke(app, ["eval", "--scenario", "mixed", "--input", "gt-noise", "--detector-flips",
-                              "--out", str(tmp_path / "e")])
-    assert res.exit_code == 2 and "--detector-flips need --input detector" in res.output

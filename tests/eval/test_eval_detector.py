@@ -232,9 +232,10 @@ def test_cli_vanilla_model_has_no_calibration(tmp_path: Path, capsys: pytest.Cap
     (["--input", "detector", "--weights", "/nonexistent/w.pt"], "--weights: file not found"),
     (["--input", "detector", "--weights", "GARBAGE"], "--weights:"),
     (["--input", "detector", "--noise", "clean"], "--noise applies to --input gt-noise"),
-    (["--input", "gt-noise", "--weights", "x.pt"], "--weights, --threads and --no-self-crop need --input detector"),
-    (["--input", "gt-noise", "--threads", "2"], "--weights, --threads and --no-self-crop need --input detector"),
-    (["--input", "gt-noise", "--no-self-crop"], "--weights, --threads and --no-self-crop need --input detector"),
+    (["--input", "gt-noise", "--weights", "x.pt"], "--weights, --threads, --no-self-crop and --detector-flips need --input detector"),
+    (["--input", "gt-noise", "--threads", "2"], "--weights, --threads, --no-self-crop and --detector-flips need --input detector"),
+    (["--input", "gt-noise", "--no-self-crop"], "--weights, --threads, --no-self-crop and --detector-flips need --input detector"),
+    (["--input", "gt-noise", "--detector-flips"], "--weights, --threads, --no-self-crop and --detector-flips need --input detector"),
     (["--input", "detector", "--nuscenes", "/nonexistent", "--runs", "2"], "--runs"),
 ])
 def test_cli_bad_detector_input_is_one_line_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str],
