@@ -167,8 +167,9 @@ class DetectorParams(BaseModel):
         0.55, description="earlier scans older than this are not stacked, s (CenterPoint: 0.5 s)")
     flips: bool = Field(False, description="average the network over the scan and its three mirror images"
                         " (CenterPoint's test-time flips: on the real nuScenes scene-0523 car AP 0.184 -> 0.212,"
-                        " pedestrian 0.089 -> 0.119; about 4x the network's time, over 100 ms a scan on 2 CPU"
-                        " cores: for a GPU or a larger CPU; docs/detector.md)")
+                        " pedestrian 0.089 -> 0.119; in the synthetic loop more ghost vehicles called moving in"
+                        " 'mixed'; about 4x the network's time, over 100 ms a scan on 2 CPU cores: for a GPU or a"
+                        " larger CPU; docs/detector.md)")
     backend: Literal["torch", "onnxruntime"] = Field("torch", description="what runs the network")
     onnx: str | None = Field(None, description="onnxruntime backend: a folder written by `jitterguard export-onnx`"
                              " (null: export weights / preset at start-up into a temporary folder)")
