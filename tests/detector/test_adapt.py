@@ -177,3 +177,29 @@ def test_adapt_refuses_stacked_sweep_weights_in_one_line(tmp_path: Path) -> None
     assert res.returncode == 2 and len(res.stderr.strip().splitlines()) == 1, res.stderr[-2000:]
     assert "--weights" in res.stderr and "stacked sweeps" in res.stderr and "--sweeps" in res.stderr
     assert not (tmp_path / "o" / "weights.pt").exists()
+
+
+def test_flipped_pseudo_labelling_is_mirror_equivariant() -> None:
+    """``adapt --flips`` labels with the network averaged over each scan's mirror images: a mirrored scan then gets
+    exactly the mirrored labels (a single pass of an untrained network does not)."""
+    from jitterguard.services.detector.adapt import _detect_all
+    from jitterguard.services.detector.decode import decode
+
+    torch.manual_seed(0)
+    model = CenterPointNet(TINY).eval()
+    with torch.no_grad():
+        model.head.heads["heatmap"][-1].bias.fill_(0.0)  # an untrained net that still fires: many peaks to compare
+    scan = _scan(5)
+    mirror = scan.copy()
+    mirror[:, 1] = -mirror[:, 1]
+
+    def rows(d: Detections3D, flip_y: bool) -> np.ndarray:
+        b = d.boxes
+        r = np.column_stack([b[:, 0], -b[:, 1] if flip_y else b[:, 1], d.scores, d.labels])
+        return r[np.lexsort((r[:, 3], r[:, 1].round(3), r[:, 0].round(3)))]
+
+    (a,), (b,) = _detect_all(model, [scan], decode, flips=True), _detect_all(model, [mirror], decode, flips=True)
+    assert len(a) > 10 and len(a) == len(b)
+    np.testing.assert_allclose(rows(a, False), rows(b, True), atol=1e-4)
+    (c,), (d,) = _detect_all(model, [scan], decode), _detect_all(model, [mirror], decode)
+    assert len(c) != len(d) or not np.allclose(rows(c, False), rows(d, True), atol=1e-4)

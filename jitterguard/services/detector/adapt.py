@@ -45,6 +45,7 @@ from torch import nn
 
 from .augment import points_in_boxes
 from .config import CLASS_NAMES, SELF_CROP_M, Detections3D, Sample
+from .flips import check_symmetric, merge_mirrored, mirrored_views
 from .inference import crop_box
 from .network import CenterPointNet
 
@@ -320,6 +321,9 @@ class AdaptConfig:
     min_tracks: int = 5
     self_crop: tuple[float, float, float, float] | None = SELF_CROP_M
     """The vehicle's own body, dropped from every real scan first (None keeps it), as the service drops it."""
+    flips: bool = False
+    """Pseudo-label (and fit the tracked recalibration) with the network averaged over each scan's mirror images
+    (:mod:`.flips`): clutter that one view mistakes for a car is diluted before it becomes a label."""
 
 
 def adapt(model: CenterPointNet, scans: Sequence[UnlabelledScan], synthetic: Sequence[Sample], cfg: AdaptConfig,
@@ -337,7 +341,7 @@ def adapt(model: CenterPointNet, scans: Sequence[UnlabelledScan], synthetic: Seq
     report: dict[str, Any] = {"rounds": []}
     recompute_norm_stats(model, pts)
     for r in range(cfg.rounds):
-        dets = _detect_all(model, pts, decode)
+        dets = _detect_all(model, pts, decode, flips=cfg.flips)
         pseudo = pseudo_samples(scans, dets, cfg.thresholds)
         counts = np.bincount(np.concatenate([p.labels for p in pseudo]) if pseudo else np.zeros(0, np.int64),
                              minlength=len(CLASS_NAMES))
@@ -352,7 +356,7 @@ def adapt(model: CenterPointNet, scans: Sequence[UnlabelledScan], synthetic: Seq
                                  "samples": len(data)})
     report["recalibration"] = None
     if cfg.recalibrate and model.config.uncertainty:
-        dets = _detect_all(model, pts, decode)
+        dets = _detect_all(model, pts, decode, flips=cfg.flips)
         by_source: dict[str, list[tuple[Detections3D, F64]]] = {}
         for s, d in zip(scans, dets):
             if s.has_pose:
@@ -383,11 +387,18 @@ def _in_range(points: F32, pcr: Sequence[float]) -> F32:
 
 
 @torch.no_grad()
-def _detect_all(model: CenterPointNet, pts: Sequence[F32], decode: Any) -> list[Detections3D]:
+def _detect_all(model: CenterPointNet, pts: Sequence[F32], decode: Any, *, flips: bool = False
+                ) -> list[Detections3D]:
+    """The raw network's detections of each scan (no recalibration: adapt refits it); with ``flips`` averaged over
+    the scan's mirror images, as the detector's ``flips`` setting does."""
     model.eval()
+    if flips:
+        check_symmetric(model.config)
     nf = model.config.num_point_features
     out: list[Detections3D] = []
     for p in pts:
-        out.extend(decode(model([torch.from_numpy(np.ascontiguousarray(p[:, :nf], np.float32))]), model.config))
+        x = torch.from_numpy(np.ascontiguousarray(p[:, :nf], np.float32))
+        raw = merge_mirrored(model(mirrored_views(x))) if flips else model([x])
+        out.extend(decode(raw, model.config))
     return out
 

@@ -482,6 +482,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         self_crop: Annotated[bool, typer.Option("--self-crop/--no-self-crop", help="Drop the returns of the"
                                                 " vehicle's own body from the real scans first (the service's"
                                                 " default self_crop).")] = True,
+        flips: Annotated[bool, typer.Option("--flips/--no-flips", help="Pseudo-label with the network averaged"
+                                            " over each scan's three mirror images (test-time flips).")] = False,
         seed: Annotated[int, typer.Option("--seed", min=0)] = 0,
         threads: Annotated[int | None, typer.Option("--threads", min=1, max=1024)] = None,
         progress: ProgressOpt = None,
@@ -534,7 +536,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                               model.config.point_cloud_range) if rounds else []
         cfg = AdaptConfig(rounds=rounds, epochs=epochs, batch_size=batch_size, lr=lr, seed=seed, thresholds=tuple(thr),
                           real_repeat=real_repeat, recalibrate=recalibration == "tracked",
-                          self_crop=SELF_CROP_M if self_crop else None)
+                          self_crop=SELF_CROP_M if self_crop else None, flips=flips)
         aug = TrainAugment(**(source_meta.get("augment") or {}))  # as the source weights were trained
         report = adapt(model, real, synthetic, cfg, root, augment=aug, progress=progress)
         rec = report["recalibration"]
