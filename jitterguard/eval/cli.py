@@ -198,6 +198,8 @@ def load_detector(weights: Path | None, threads: int | None, self_crop: bool = T
                             flips=flips)
     except WeightsError as exc:
         fail(f"--weights: {' '.join(str(exc).split())[:240]}")
+    except ValueError as exc:  # flips on weights whose grid is not symmetric about the sensor
+        fail(f"--detector-flips: {exc}")
     if det.meta.get("random_init"):
         return det, None
     digest = hashlib.sha256(path.read_bytes()).hexdigest()[:12]

@@ -523,6 +523,13 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             model, source_rec, source_meta = load_weights(weights)
         except WeightsError as exc:
             fail(f"--weights: {exc}")
+        if flips:
+            from .flips import check_symmetric
+
+            try:
+                check_symmetric(model.config)
+            except ValueError as exc:
+                fail(f"--flips: {exc}")
         if model.config.num_point_features != 4:  # its real scans would have to be stacked too: not built
             fail(f"--weights: the model takes stacked sweeps ({model.config.num_point_features} point fields); adapt"
                  " works on single-sweep weights: adapt those, then widen them with `train --init W --sweeps N`")
