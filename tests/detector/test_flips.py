@@ -117,3 +117,25 @@ def test_the_averaged_detector_answers_a_mirrored_scan_with_the_mirrored_detecti
     s_a, s_b = cars(single.detect(scan)), cars(single.detect(mirror))
     if s_a.shape == s_b.shape:  # a single pass sees a mirrored scan as another scan
         assert not np.allclose(sorted_rows(mirrored(s_a)), sorted_rows(s_b), atol=2e-3)
+
+
+@pytest.mark.parametrize("argv", [
+    ["eval-detector", "--out", "{out}", "--weights", "{w}", "--flips", "--nuscenes", "{out}"],
+    ["eval", "--scenario", "mixed", "--input", "detector", "--weights", "{w}", "--detector-flips", "--out", "{out}"],
+    ["adapt", "--weights", "{w}", "--out", "{out}", "--scans", "{out}", "--flips"],
+])
+def test_flips_on_weights_with_an_off_centre_grid_are_one_line_and_exit_2(tmp_path, argv: list[str]) -> None:  # noqa: ANN001
+    import subprocess
+    import sys
+
+    from jitterguard.services.detector.inference import save_weights
+    from jitterguard.services.detector.network import CenterPointNet
+
+    shifted = LITE.model_copy(update={"point_cloud_range": (-40.0, -51.2, -3.0, 62.4, 51.2, 3.0)})
+    w = tmp_path / "shifted.pt"
+    save_weights(w, CenterPointNet(shifted))
+    args = [a.format(out=tmp_path, w=w) for a in argv]
+    res = subprocess.run([sys.executable, "-m", "jitterguard.cli", *args], capture_output=True, text=True, timeout=300)
+    assert res.returncode == 2, res.stderr[-2000:]
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and "flips" in lines[0] and "symmetric" in lines[0], lines
