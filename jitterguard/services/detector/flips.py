@@ -1,11 +1,12 @@
 """Test-time flips: run the network on a scan and on its mirror images, and average what it says.
 
-CenterPoint's "double flip" test-time augmentation: the scan as it is, mirrored across the sensor's y axis
-(x → −x), across its x axis (y → −y) and both — four views, run as one batch or one after the other (an ONNX
-export takes one scan per call); each output map is flipped back onto the original grid, with the signs of
-the quantities a mirror changes put right, and the four are averaged before decoding. A peak the network sees in one view only (a clump of clutter that happens to look like a car's corner
-from one side) is diluted; an object seen in every view keeps its score. The averaged heat is a probability,
-so it is averaged after the sigmoid and handed to :func:`~.decode.decode` as a logit again.
+CenterPoint's "double flip" test-time augmentation: the scan as it is, mirrored across the sensor's y axis (x →
+−x), across its x axis (y → −y) and both — four views, run as one batch or one after the other (an ONNX export
+takes one scan per call); each output map is flipped back onto the original grid, with the signs of the quantities
+a mirror changes put right, and the four are averaged before decoding. A peak the network sees in one view only (a
+clump of clutter that happens to look like a car's corner from one side) is diluted; an object seen in every view
+keeps its score. The averaged heat is a probability, so it is averaged after the sigmoid and handed to
+:func:`~.decode.decode` as a logit again.
 
 What a mirror changes (the heads of :data:`~.network.HEAD_CHANNELS`, decoded as in :mod:`.decode`): the cell
 offset along the mirrored axis (x = (i + reg) · cell + x_min on a grid symmetric about the sensor, so the
