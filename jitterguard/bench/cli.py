@@ -157,6 +157,10 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                          seed=seed, progress=progress, backends=chosen, device=device, sweeps=sweeps, flips=flips)
         except WeightsError as exc:
             fail(f"--weights: {_one_line(exc)}")
+        except ValueError as exc:  # flips on weights whose grid is not symmetric about the sensor
+            if not flips:
+                raise
+            fail(f"--flips: {_one_line(exc)}")
         if json_out:
             typer.echo(json.dumps(result))
             return

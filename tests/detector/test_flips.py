@@ -123,6 +123,8 @@ def test_the_averaged_detector_answers_a_mirrored_scan_with_the_mirrored_detecti
     ["eval-detector", "--out", "{out}", "--weights", "{w}", "--flips", "--nuscenes", "{out}"],
     ["eval", "--scenario", "mixed", "--input", "detector", "--weights", "{w}", "--detector-flips", "--out", "{out}"],
     ["adapt", "--weights", "{w}", "--out", "{out}", "--scans", "{out}", "--flips"],
+    ["bench", "detector", "--json", "--presets", "lite", "--backends", "torch", "--weights", "lite={w}", "--scans",
+     "1", "--warmup", "0", "--flips", "--no-progress"],
 ])
 def test_flips_on_weights_with_an_off_centre_grid_are_one_line_and_exit_2(tmp_path, argv: list[str]) -> None:  # noqa: ANN001
     import subprocess
