@@ -123,6 +123,7 @@ def test_the_averaged_detector_answers_a_mirrored_scan_with_the_mirrored_detecti
     ["eval-detector", "--out", "{out}", "--weights", "{w}", "--flips", "--nuscenes", "{out}"],
     ["eval", "--scenario", "mixed", "--input", "detector", "--weights", "{w}", "--detector-flips", "--out", "{out}"],
     ["adapt", "--weights", "{w}", "--out", "{out}", "--scans", "{out}", "--flips"],
+    ["detector", "--weights", "{w}", "--flips"],  # the service: refused before it opens a session
     ["bench", "detector", "--json", "--presets", "lite", "--backends", "torch", "--weights", "lite={w}", "--scans",
      "1", "--warmup", "0", "--flips", "--no-progress"],
 ])
