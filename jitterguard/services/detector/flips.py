@@ -62,7 +62,7 @@ def merge_mirrored(out: dict[str, Tensor]) -> dict[str, Tensor]:
                 m = torch.sigmoid(m)
             dims = ([-1] if mx else []) + ([-2] if my else [])  # maps are (B, C, y, x)
             if dims:
-                m = m.flip(dims).clone()
+                m = m.flip(dims)  # a new tensor (torch copies on flip): the in-place fixes below touch only it
             if mx:
                 _undo_mirror(name, m, axis=0)
             if my:
