@@ -8,15 +8,12 @@ view-change term in the test buy?
 ``--diagnose``: for static vehicle rows (matched, window ≥ 10) the half-mean contrast d of the positions and Δū,
 the same contrast of the unit line-of-sight vectors; medians of |d|, |Δū| and cos(d, Δū) for the rows the
 z-test calls dynamic and for the rest. ``--s``: the test with s² Δū Δūᵀ added to the contrast's covariance for
-vehicles (a box centre that shifts by about s metres per unit change of the view direction), spliced into a copy
-of ``statistics._calibrated_statistics``'s source; vehicle and pedestrian false / missed / ghost rates per s on
-the same tracks. A record of an experiment, not a feature (not shipped)."""
+vehicles (a box centre that shifts by about s metres per unit change of the view direction: the classifier's
+``view_slide_m_per_class``); vehicle and pedestrian false / missed / ghost rates per s on the same tracks."""
 from __future__ import annotations
 
 import argparse
-import inspect
 import sys
-import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -27,33 +24,15 @@ from jitterguard.eval.metrics import ghost_rows, scored_rows  # noqa: E402
 from jitterguard.eval.pipeline import concat_records, track_and_classify  # noqa: E402
 from jitterguard.schemas.models import ClassifierConfig  # noqa: E402
 from jitterguard.services.classifier import core as core_mod  # noqa: E402
-from jitterguard.services.classifier import statistics  # noqa: E402
-from jitterguard.services.classifier.calibration import GROUPS  # noqa: E402
+from jitterguard.services.classifier.calibration import vehicle_class_names  # noqa: E402
 from jitterguard.services.classifier.core import DYNAMIC, MotionClassifierCore  # noqa: E402
 from jitterguard.services.classifier.statistics import split_halves  # noqa: E402
 from jitterguard.services.tracker.config import default_config  # noqa: E402
 
-VIEW: dict[str, float] = {"s": 0.0}
-_ANCHOR = "    a = np.maximum(a, 1e-300)\n"
-_VIEW_TERM = f'''    if VIEW["s"] > 0:  # vehicles: s² Δū Δūᵀ, Δū the half-mean contrast of the line-of-sight unit vectors
-        _veh = (groups == {GROUPS.index("vehicle")}).astype(np.float64)
-        _dux, _duy = (w * ux).sum(1) * _veh, (w * uy).sum(1) * _veh
-        _s2 = VIEW["s"] ** 2
-        a, b, c = a + _s2 * _dux * _dux, b + _s2 * _dux * _duy, c + _s2 * _duy * _duy
-'''
-
-
-def _install_view_term() -> None:
-    src = textwrap.dedent(inspect.getsource(statistics._calibrated_statistics))
-    if _ANCHOR not in src:
-        raise SystemExit("statistics._calibrated_statistics changed: this experiment no longer applies")
-    statistics.__dict__["VIEW"] = VIEW
-    exec(compile(src.replace(_ANCHOR, _VIEW_TERM + _ANCHOR), "view_change", "exec"), statistics.__dict__)  # noqa: S102
-
-
-def _run(pairs: dict) -> list:
-    """The evaluator's tracker and classifier over each seed's cached detections, one online calibration."""
-    clf = ClassifierConfig()
+def _run(pairs: dict, slide: float = 0.0) -> list:
+    """The evaluator's tracker and classifier over each seed's cached detections, one online calibration; the
+    classifier's view term for vehicles at ``slide`` m (0: none)."""
+    clf = ClassifierConfig(view_slide_m_per_class=dict.fromkeys(vehicle_class_names(), slide) if slide else {})
     drive = MotionClassifierCore.make_online(clf)
     return [track_and_classify(iter(pairs[s]), clf, default_config(), calibration=drive) for s in pairs]
 
@@ -111,10 +90,8 @@ def main() -> None:
     if args.diagnose:
         _contrasts(pairs)
         return
-    _install_view_term()
     for text in args.s.split(","):
-        VIEW["s"] = float(text)
-        rec = concat_records(_run(pairs), [str(s) for s in pairs])
+        rec = concat_records(_run(pairs, float(text)), [str(s) for s in pairs])
         out = [f"s {text:>4}"]
         for group in ("vehicle", "pedestrian"):
             m = scored_rows(rec, group)

@@ -74,6 +74,10 @@ def eval_command(
                                                     "(default 20 at 10 Hz; a slower stream gets the same span, "
                                                     "at least 10, a faster one every k-th frame; the paper's 10: "
                                                     "--window-size 10).")] = None,
+    view_slide: Annotated[float | None, typer.Option("--view-slide", help="The view term for vehicles (car, "
+                                                     "truck, bus, trailer): how far a box centre slides per unit "
+                                                     "turn of the line of sight, m (0: none; "
+                                                     "view_slide_m_per_class).")] = None,
     fixed_window: Annotated[bool, typer.Option("--fixed-window/--no-fixed-window", help="The window holds "
                                                "window_size observations of every frame at any frame rate "
                                                "(window_reference_hz: null).")] = False,
@@ -138,6 +142,11 @@ def eval_command(
                        ("calibration_file", None if calibration_file is None else str(calibration_file))):
         if value is not None:
             upd[key] = value
+    if view_slide is not None:
+        if not 0 <= view_slide <= 100:
+            fail("--view-slide must be in [0, 100] m")
+        from ..services.classifier.calibration import vehicle_class_names
+        upd["view_slide_m_per_class"] = {} if view_slide == 0 else dict.fromkeys(vehicle_class_names(), view_slide)
     if fixed_window:
         upd["window_reference_hz"] = None
     if speed_sustain:
@@ -360,6 +369,7 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
                 "velocity_threshold_per_class": dict(classifier.velocity_threshold_per_class),
                 "velocity_sustain_s_per_class": dict(classifier.velocity_sustain_s_per_class),
                 "dynamic_hold_s_per_class": dict(classifier.dynamic_hold_s_per_class),
+                "view_slide_m_per_class": dict(classifier.view_slide_m_per_class),
                 "min_window": classifier.min_window, "window_size": rec.window_size,
                 "window_stride": rec.window_stride, "window_reference_hz": classifier.window_reference_hz,
                 "calibration": classifier.calibration, "effective_n": classifier.effective_n,

@@ -298,6 +298,7 @@ def write_outputs(out: Path, rec: Records, metrics: dict[str, Any],
         + (f" (window_size at {run['window_reference_hz']:g} Hz, fewer on a slower stream, every k-th frame of a "
            "faster one)" if run.get("window_size") and run.get("window_reference_hz") else "")
         + (f", held {run['dynamic_hold_s_per_class']} s" if run.get("dynamic_hold_s_per_class") else "")
+        + (f", view term {run['view_slide_m_per_class']} m" if run.get("view_slide_m_per_class") else "")
         + f"), speed threshold {run['velocity_threshold']} m/s, per class "
         f"{run.get('velocity_threshold_per_class')}"
         + (f", sustain {run['velocity_sustain_s_per_class']} s" if run.get("velocity_sustain_s_per_class") else "")

@@ -361,6 +361,16 @@ def _default_sustain() -> dict[str, float]:
     return {}
 
 
+VEHICLE_VIEW_SLIDE_M = 1.0
+"""The view term's slide for vehicles (car, truck, bus, trailer), m per unit turn of the line of sight: chosen on
+tuning seeds 0–3 by a rule written first and checked on validation seeds 3000–3009 (docs/classifier.md 'The view
+term')."""
+
+
+def _default_view_slide() -> dict[str, float]:
+    return dict.fromkeys(("car", "truck", "bus", "trailer"), VEHICLE_VIEW_SLIDE_M)
+
+
 def _default_bands() -> list[float]:
     return [20.0, 40.0]
 
@@ -433,8 +443,16 @@ class ClassifierConfig(Message):
         description="per-class time the test must keep rejecting H0 before the classifier says dynamic, s (none: at "
         "once, as the paper; a short hold in place of Autoware's th_moving_time: the `hold` preset)")
 
+    view_slide_m_per_class: dict[str, Annotated[float, Field(ge=0.0, le=100.0)]] = Field(
+        default_factory=_default_view_slide,
+        description="per-class slide of a detected box centre with the sensor's view of the object, m per unit "
+        "turn of the line of sight: s² Δū Δūᵀ is added to the covariance of the half-mean contrast, Δū the same "
+        "contrast of the unit vectors from the sensor to the object, so that a parked car whose centre follows "
+        "the faces the sensor sees as it drives past is not called moving (calibrated statistic only; none: "
+        "no term — docs/classifier.md 'The view term')")
+
     @field_validator("alpha_per_class", "velocity_threshold_per_class", "velocity_sustain_s_per_class",
-                     "dynamic_hold_s_per_class")
+                     "dynamic_hold_s_per_class", "view_slide_m_per_class")
     @classmethod
     def _known_classes(cls, v: dict[str, float]) -> dict[str, float]:
         return _check_class_names(v)
@@ -467,6 +485,10 @@ class ClassifierConfig(Message):
     def hold_for(self, label: int) -> float:
         """How long the test must keep rejecting H0 before the classifier says dynamic, s (0: at once)."""
         return self.dynamic_hold_s_per_class.get(LABEL_NAMES.get(label, "unknown"), 0.0)
+
+    def view_slide_for(self, label: int) -> float:
+        """How far a box centre of this class slides per unit turn of the view direction, m (0: no view term)."""
+        return self.view_slide_m_per_class.get(LABEL_NAMES.get(label, "unknown"), 0.0)
 
 
 

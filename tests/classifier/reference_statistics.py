@@ -17,17 +17,18 @@ I64 = NDArray[np.int64]
 
 def reference_calibrated_statistics(windows: F64, masks: HalfMasks, groups: I64, model: NoiseModel, *,
                                     variance_floor: float, effective_n: str, track_scale_prior: bool = True,
-                                    min_speed: float = 0.0) -> WindowStats:
+                                    min_speed: float = 0.0, view_slide: F64 | None = None) -> WindowStats:
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
         st = _calibrated_statistics(windows, masks, groups, model, variance_floor=variance_floor,
-                                    effective_n=effective_n, track_scale_prior=track_scale_prior, min_speed=min_speed)
+                                    effective_n=effective_n, track_scale_prior=track_scale_prior, min_speed=min_speed,
+                                    view_slide=view_slide)
     return WindowStats(z_x=_saturate(st.z_x), z_y=_saturate(st.z_y), chi2=_saturate(st.chi2),
                        mean_x=st.mean_x, mean_y=st.mean_y)
 
 
 def _calibrated_statistics(windows: F64, masks: HalfMasks, groups: I64, model: NoiseModel, *,
                            variance_floor: float, effective_n: str, track_scale_prior: bool,
-                           min_speed: float) -> WindowStats:
+                           min_speed: float, view_slide: F64 | None) -> WindowStats:
     k_old, k_new = masks.n_old, masks.n_new
     valid = masks.old | masks.new
     pos = windows[..., 0:2]
@@ -90,6 +91,10 @@ def _calibrated_statistics(windows: F64, masks: HalfMasks, groups: I64, model: N
         a = mean(cxx, w_old) / n_old + mean(cxx, w_new) / n_new
         b = mean(cxy, w_old) / n_old + mean(cxy, w_new) / n_new
         c = mean(cyy, w_old) / n_old + mean(cyy, w_new) / n_new
+    if view_slide is not None:  # the view term: s² times the outer product of the line of sight's contrast
+        contrast = ((w_new - w_old)[..., None] * u).sum(1)  # (K, 2)
+        view = view_slide[:, None, None] ** 2 * contrast[:, :, None] * contrast[:, None, :]
+        a, b, c = a + view[:, 0, 0], b + view[:, 0, 1], c + view[:, 1, 1]
     a = np.maximum(a, 1e-300)
     c = np.maximum(c, 1e-300)
     det = np.maximum(a * c - b * b, 1e-300)

@@ -278,7 +278,8 @@ def _reference_objects(frames, config=None):
             pwc = o.detection.kinematics.pose_with_covariance
             rows.append((o.track.object_id, o.track.label, pwc.pose.position.x, pwc.pose.position.y,
                          pwc.covariance[0], pwc.covariance[1], pwc.covariance[7], math.hypot(o.track.vx, o.track.vy)))
-        core.update(observations_from_rows(rows, tracked.header.seq, tracked.header.stamp))
+        ego = tracked.ego_pose.position  # the origin of the line of sight (calibration axes, the view term)
+        core.update(observations_from_rows(rows, tracked.header.seq, tracked.header.stamp, (ego.x, ego.y)))
         ids = np.asarray([o.object_id for o in tracked.objects], dtype="S32")
         dec = core.last_decisions(ids)
         core.retain(ids)

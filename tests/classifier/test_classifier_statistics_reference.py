@@ -58,8 +58,10 @@ def test_vectorised_statistic_matches_the_dense_reference(seed: int, effective_n
     masks = split_halves(head, count, w)
     groups = rng.integers(0, len(GROUPS), 400)
     model = _random_model(rng)
-    for min_speed in (0.0, 0.1):
-        kw = dict(variance_floor=1e-4, effective_n=effective_n, track_scale_prior=prior, min_speed=min_speed)
+    slides = rng.uniform(0.0, 3.0, 400) * (rng.random(400) < 0.7)  # the view term on most windows, not all
+    for min_speed, view_slide in ((0.0, None), (0.1, None), (0.1, slides)):
+        kw = dict(variance_floor=1e-4, effective_n=effective_n, track_scale_prior=prior, min_speed=min_speed,
+                  view_slide=view_slide)
         got = calibrated_statistics(win, masks, groups, model, **kw)
         ref = reference_calibrated_statistics(win, masks, groups, model, **kw)
         for name in ("z_x", "z_y", "chi2", "mean_x", "mean_y"):

@@ -192,6 +192,7 @@ def test_cli_real_key_frames_get_the_window_of_their_span(tmp_path: Path, capsys
     ["--calibration-file", "/nonexistent/cal.yaml"],
     ["--effective-n", "many"],
     ["--tracker-config", "/nonexistent/tracker.yaml"],
+    ["--view-slide", "-1"],
 ])
 def test_cli_bad_input_is_one_line_exit_2(tmp_path: Path, capsys, argv: list[str]) -> None:
     with pytest.raises(SystemExit) as exc:

@@ -51,7 +51,7 @@ def test_http_config_model_carries_the_wire_constraints() -> None:
         for bound in ("minimum", "maximum", "exclusiveMinimum", "enum", "default"):
             assert api[name].get(bound) == wire[name].get(bound), (name, bound)
     per_class_fields = ("alpha_per_class", "velocity_threshold_per_class", "velocity_sustain_s_per_class",
-                        "dynamic_hold_s_per_class")
+                        "dynamic_hold_s_per_class", "view_slide_m_per_class")
     assert {n for n in wire if n.endswith("_per_class")} == set(per_class_fields)
     for per_class in per_class_fields:
         assert api[per_class]["propertyNames"]["enum"] == list(CLASS_NAMES), per_class  # keys an enum
@@ -86,6 +86,10 @@ def test_merge_patch_semantics() -> None:
     out = merge_patch(out, {"dynamic_hold_s_per_class": {"pedestrian": 0.3}})
     out = merge_patch(out, {"dynamic_hold_s_per_class": {"car": 0.5}})
     assert out.dynamic_hold_s_per_class == {"pedestrian": 0.3, "car": 0.5} and out.hold_for(1) == 0.5
+    out = merge_patch(out, {"view_slide_m_per_class": {"car": 1.5, "bus": 2.0}})
+    out = merge_patch(out, {"view_slide_m_per_class": {"bus": None}})
+    assert out.view_slide_m_per_class == {"car": 1.5, "truck": 1.0, "trailer": 1.0}  # bus dropped, car changed
+    assert out.view_slide_for(1) == 1.5 and out.view_slide_for(3) == 0
 
 
 @pytest.mark.parametrize(("patch", "field"), [

@@ -43,6 +43,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from ...schemas.models import LABEL_NAMES
+
 F64 = NDArray[np.float64]
 
 GROUPS: tuple[str, ...] = ("vehicle", "pedestrian", "cycle", "unknown")
@@ -104,6 +106,12 @@ def group_of_labels(labels: NDArray[np.integer]) -> NDArray[np.int64]:
     lab = np.asarray(labels, dtype=np.int64)
     return np.where((lab >= 0) & (lab < len(LABEL_GROUP)), LABEL_GROUP[np.clip(lab, 0, len(LABEL_GROUP) - 1)],
                     GROUPS.index("unknown"))
+
+
+def vehicle_class_names() -> list[str]:
+    """The lowercase class names of the ``vehicle`` group (car, truck, bus, trailer): the classes whose boxes
+    slide with the view (docs/classifier.md 'The view term')."""
+    return [LABEL_NAMES[label] for label in range(len(LABEL_GROUP)) if LABEL_GROUP[label] == GROUPS.index("vehicle")]
 
 
 def band_names(edges_m: Sequence[float]) -> list[str]:

@@ -304,6 +304,7 @@ class MotionClassifierCore:
         self._speed_table = per_label(config.speed_threshold_for)
         self._sustain_table = per_label(config.sustain_for)
         self._hold_table = per_label(config.hold_for)
+        self._view_table = per_label(config.view_slide_for)
 
     # ------------------------------------------------------------------ the window and the stream's rate
 
@@ -547,7 +548,8 @@ class MotionClassifierCore:
             stats = calibrated_statistics(t.ordered(rows, t.window), masks, group_of_labels(t.label[rows]),
                                           self.noise_model(),
                                           variance_floor=cfg.variance_floor, effective_n=cfg.effective_n,
-                                          track_scale_prior=cfg.calibration != "off", min_speed=cfg.min_speed_mps)
+                                          track_scale_prior=cfg.calibration != "off", min_speed=cfg.min_speed_mps,
+                                          view_slide=self._view_table[t.label[rows]])
         if (count < 2).any():  # one observation: no older half, nothing to compare (z is not defined)
             one = count < 2
             stats = replace(stats, z_x=np.where(one, 0.0, stats.z_x), z_y=np.where(one, 0.0, stats.z_y),

@@ -143,7 +143,7 @@ def _window_statistics(windows: F64, masks: HalfMasks, *, variance_floor: float,
 
 def calibrated_statistics(windows: F64, masks: HalfMasks, groups: I64, model: NoiseModel, *,
                           variance_floor: float, effective_n: str, track_scale_prior: bool = True,
-                          min_speed: float = 0.0) -> WindowStats:
+                          min_speed: float = 0.0, view_slide: F64 | None = None) -> WindowStats:
     """z_x, z_y and χ² with the reported covariances corrected by ``model`` (docs/calibration.md).
 
     Per observation j: the line of sight u_j from the sensor, v_j across it; the reported covariance Σ_j is
@@ -159,18 +159,24 @@ def calibrated_statistics(windows: F64, masks: HalfMasks, groups: I64, model: No
       Cov(e_i, e_j) = Σ_k [(1 − m_k)·[i = j] + m_k exp(−|t_i − t_j| / τ_k)] h_ik h_jkᵀ, which is positive
       semi-definite by construction and gives Cov(e_j, e_j) = Σ'_j.
 
+    ``view_slide`` (per window, m; None or 0: none) adds the view term s² Δū Δūᵀ to that denominator, Δū the
+    half-mean contrast of the unit line-of-sight vectors: a box centre placed from the faces the sensor sees
+    slides with the view as the sensor drives past a parked car, a displacement the reported covariances do not
+    describe (docs/classifier.md 'The view term').
+
     A statistic that overflows saturates (:func:`_saturate`), as in :func:`window_statistics`.
     """
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
         st = _calibrated_statistics(windows, masks, groups, model, variance_floor=variance_floor,
-                                    effective_n=effective_n, track_scale_prior=track_scale_prior, min_speed=min_speed)
+                                    effective_n=effective_n, track_scale_prior=track_scale_prior, min_speed=min_speed,
+                                    view_slide=view_slide)
     return WindowStats(z_x=_saturate(st.z_x), z_y=_saturate(st.z_y), chi2=_saturate(st.chi2),
                        mean_x=st.mean_x, mean_y=st.mean_y)
 
 
 def _calibrated_statistics(windows: F64, masks: HalfMasks, groups: I64, model: NoiseModel, *,
                            variance_floor: float, effective_n: str, track_scale_prior: bool,
-                           min_speed: float) -> WindowStats:
+                           min_speed: float, view_slide: F64 | None = None) -> WindowStats:
     k_old, k_new = masks.n_old, masks.n_new
     valid = masks.old | masks.new
     pos_x, pos_y = windows[..., 0], windows[..., 1]
@@ -259,6 +265,10 @@ def _calibrated_statistics(windows: F64, masks: HalfMasks, groups: I64, model: N
         a = mean(cxx, w_old) / n_old + mean(cxx, w_new) / n_new
         b = mean(cxy, w_old) / n_old + mean(cxy, w_new) / n_new
         c = mean(cyy, w_old) / n_old + mean(cyy, w_new) / n_new
+    if view_slide is not None and view_slide.any():  # s² Δū Δūᵀ: the centre's slide with the view
+        s2 = view_slide * view_slide
+        dux, duy = (w * ux).sum(1), (w * uy).sum(1)
+        a, b, c = a + s2 * dux * dux, b + s2 * dux * duy, c + s2 * duy * duy
     a = np.maximum(a, 1e-300)
     c = np.maximum(c, 1e-300)
     det = np.maximum(a * c - b * b, 1e-300)
