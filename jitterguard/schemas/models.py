@@ -361,7 +361,7 @@ def _default_sustain() -> dict[str, float]:
     return {}
 
 
-VEHICLE_VIEW_SLIDE_M = 1.0
+VEHICLE_VIEW_SLIDE_M = 1.5
 """The view term's slide for vehicles (car, truck, bus, trailer), m per unit turn of the line of sight: chosen on
 tuning seeds 0–3 by a rule written first and checked on validation seeds 3000–3009 (docs/classifier.md 'The view
 term')."""

@@ -91,6 +91,12 @@ def _calibrated_statistics(windows: F64, masks: HalfMasks, groups: I64, model: N
         a = mean(cxx, w_old) / n_old + mean(cxx, w_new) / n_new
         b = mean(cxy, w_old) / n_old + mean(cxy, w_new) / n_new
         c = mean(cyy, w_old) / n_old + mean(cyy, w_new) / n_new
+    lam = nu = None
+    if track_scale_prior:  # the window's own noise scale multiplies the noise's covariance, not the view term
+        assert model.track_dof is not None
+        lam, nu = track_scale(windows, valid, groups, model, ku, kv, vu, vv, u, v, model.track_dof[groups],
+                              variance_floor, corr)
+        a, b, c = a * lam, b * lam, c * lam
     if view_slide is not None:  # the view term: s² times the outer product of the line of sight's contrast
         contrast = ((w_new - w_old)[..., None] * u).sum(1)  # (K, 2)
         view = view_slide[:, None, None] ** 2 * contrast[:, :, None] * contrast[:, None, :]
@@ -101,13 +107,9 @@ def _calibrated_statistics(windows: F64, masks: HalfMasks, groups: I64, model: N
     n_all = np.maximum(k_old + k_new, 1.0)
     z_x, z_y = np.abs(dx) / np.sqrt(a), np.abs(dy) / np.sqrt(c)
     chi2 = (c * dx * dx - 2.0 * b * dx * dy + a * dy * dy) / det
-    if track_scale_prior:
-        assert model.track_dof is not None
-        lam, nu = track_scale(windows, valid, groups, model, ku, kv, vu, vv, u, v, model.track_dof[groups],
-                              variance_floor, corr)
-        z_x = t_to_z(z_x / np.sqrt(lam), nu)
-        z_y = t_to_z(z_y / np.sqrt(lam), nu)
-        chi2 = chi2 / lam
+    if lam is not None:  # Student-t with the window's degrees of freedom, reported as a z
+        z_x = t_to_z(z_x, nu)
+        z_y = t_to_z(z_y, nu)
     return WindowStats(
         z_x=z_x,
         z_y=z_y,

@@ -159,10 +159,13 @@ def calibrated_statistics(windows: F64, masks: HalfMasks, groups: I64, model: No
       Cov(e_i, e_j) = Σ_k [(1 − m_k)·[i = j] + m_k exp(−|t_i − t_j| / τ_k)] h_ik h_jkᵀ, which is positive
       semi-definite by construction and gives Cov(e_j, e_j) = Σ'_j.
 
-    ``view_slide`` (per window, m; None or 0: none) adds the view term s² Δū Δūᵀ to that denominator, Δū the
-    half-mean contrast of the unit line-of-sight vectors: a box centre placed from the faces the sensor sees
-    slides with the view as the sensor drives past a parked car, a displacement the reported covariances do not
-    describe (docs/classifier.md 'The view term').
+    With the track-scale prior the denominator is the window's own scale λ times that (a Student-t statistic with
+    ν degrees of freedom, reported as a z: :func:`track_scale`). ``view_slide`` (per window, m; None or 0: none)
+    then adds the view term: λ V + s² Δū Δūᵀ, Δū the half-mean contrast of the unit line-of-sight vectors — a box
+    centre placed from the faces the sensor sees slides with the view as the sensor drives past a parked car, a
+    displacement the reported covariances do not describe. It is geometry, not noise, so λ does not scale it (a
+    mover on a curve, whose λ is large, would otherwise lose its displacement to it; docs/classifier.md 'The view
+    term').
 
     A statistic that overflows saturates (:func:`_saturate`), as in :func:`window_statistics`.
     """
@@ -265,8 +268,13 @@ def _calibrated_statistics(windows: F64, masks: HalfMasks, groups: I64, model: N
         a = mean(cxx, w_old) / n_old + mean(cxx, w_new) / n_new
         b = mean(cxy, w_old) / n_old + mean(cxy, w_new) / n_new
         c = mean(cyy, w_old) / n_old + mean(cyy, w_new) / n_new
-    if view_slide is not None and view_slide.any():  # s² Δū Δūᵀ: the centre's slide with the view
-        s2 = view_slide * view_slide
+    lam = nu = None
+    if track_scale_prior:  # the window's own scale of its noise: λ V
+        lam, nu = track_scale(pos_x, pos_y, vm, n, (tc, stt, b1, b2), ((ux, uy), (vx, vy)), (sig_u, sig_v), cols,
+                              phi_cols, phi_sq, m_axis, model.test_dof(groups))
+        a, b, c = a * lam, b * lam, c * lam
+    if view_slide is not None and view_slide.any():  # s² Δū Δūᵀ: the centre's slide with the view (geometry, not
+        s2 = view_slide * view_slide  # noise: not scaled by the window's λ)
         dux, duy = (w * ux).sum(1), (w * uy).sum(1)
         a, b, c = a + s2 * dux * dux, b + s2 * dux * duy, c + s2 * duy * duy
     a = np.maximum(a, 1e-300)
@@ -275,12 +283,9 @@ def _calibrated_statistics(windows: F64, masks: HalfMasks, groups: I64, model: N
     n_all = np.maximum(k_old + k_new, 1.0)
     z_x, z_y = np.abs(dx) / np.sqrt(a), np.abs(dy) / np.sqrt(c)
     chi2 = (c * dx * dx - 2.0 * b * dx * dy + a * dy * dy) / det
-    if track_scale_prior:
-        lam, nu = track_scale(pos_x, pos_y, vm, n, (tc, stt, b1, b2), ((ux, uy), (vx, vy)), (sig_u, sig_v), cols,
-                              phi_cols, phi_sq, m_axis, model.test_dof(groups))
-        z = t_to_z(np.concatenate([z_x, z_y]) / np.sqrt(np.concatenate([lam, lam])), np.concatenate([nu, nu]))
+    if lam is not None:
+        z = t_to_z(np.concatenate([z_x, z_y]), np.concatenate([nu, nu]))
         z_x, z_y = z[: len(lam)], z[len(lam):]
-        chi2 = chi2 / lam
     return WindowStats(
         z_x=z_x,
         z_y=z_y,
