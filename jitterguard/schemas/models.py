@@ -361,7 +361,7 @@ def _default_sustain() -> dict[str, float]:
     return {}
 
 
-VEHICLE_VIEW_SLIDE_M = 1.5
+VEHICLE_VIEW_SLIDE_M = 2.0
 """The view term's slide for vehicles (car, truck, bus, trailer), m per unit turn of the line of sight: chosen on
 tuning seeds 0–3 by a rule written first and checked on validation seeds 3000–3009 (docs/classifier.md 'The view
 term')."""
@@ -447,7 +447,8 @@ class ClassifierConfig(Message):
         default_factory=_default_view_slide,
         description="per-class slide of a detected box centre with the sensor's view of the object, m per unit "
         "turn of the line of sight: s² Δū Δūᵀ is added to the covariance of the half-mean contrast, Δū the same "
-        "contrast of the unit vectors from the sensor to the object, so that a parked car whose centre follows "
+        "contrast of the unit vectors from the sensor to the window's mean position (the turn the sensor's own "
+        "motion makes), so that a parked car whose centre follows "
         "the faces the sensor sees as it drives past is not called moving (calibrated statistic only; none: "
         "no term — docs/classifier.md 'The view term')")
 

@@ -97,8 +97,10 @@ def _calibrated_statistics(windows: F64, masks: HalfMasks, groups: I64, model: N
         lam, nu = track_scale(windows, valid, groups, model, ku, kv, vu, vv, u, v, model.track_dof[groups],
                               variance_floor, corr)
         a, b, c = a * lam, b * lam, c * lam
-    if view_slide is not None:  # the view term: s² times the outer product of the line of sight's contrast
-        contrast = ((w_new - w_old)[..., None] * u).sum(1)  # (K, 2)
+    if view_slide is not None:  # the view term: s² times the outer product of the view's contrast under H0
+        centre = (valid[..., None] * pos).sum(1) / np.maximum(valid.sum(1), 1)[:, None]  # (K, 2): the window mean
+        u_h0, _, _ = line_of_sight(np.broadcast_to(centre[:, None, :], pos.shape), sensor)
+        contrast = ((w_new - w_old)[..., None] * u_h0).sum(1)  # (K, 2)
         view = view_slide[:, None, None] ** 2 * contrast[:, :, None] * contrast[:, None, :]
         a, b, c = a + view[:, 0, 0], b + view[:, 0, 1], c + view[:, 1, 1]
     a = np.maximum(a, 1e-300)

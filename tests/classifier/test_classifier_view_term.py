@@ -108,7 +108,7 @@ def test_bad_view_slides_are_refused_naming_the_field(bad: dict, field: str) -> 
 def test_the_default_term_is_for_vehicles_only() -> None:
     cfg = ClassifierConfig()
     assert set(cfg.view_slide_m_per_class) == set(vehicle_class_names()) == {"car", "truck", "bus", "trailer"}
-    assert cfg.view_slide_for(int(Label.CAR)) == 1.5
+    assert cfg.view_slide_for(int(Label.CAR)) == 2.0
     assert cfg.view_slide_for(int(Label.PEDESTRIAN)) == 0.0
     assert cfg.view_slide_for(int(Label.BICYCLE)) == 0.0
     assert cfg.view_slide_for(int(Label.UNKNOWN)) == 0.0
@@ -131,3 +131,15 @@ def test_a_turning_truck_passing_the_sensor_stays_dynamic() -> None:
             stamp_ns=int(t[j] * 1e9), seq=j, sensor_x=-15.0 + 7.0 * t[j], sensor_y=0.0))
     assert dec.state[0] == DYNAMIC
     assert max(dec.z_x[0], dec.z_y[0]) > 2 * ClassifierConfig().alpha_for(int(Label.TRUCK))
+
+
+def test_a_slow_car_passing_a_stopped_sensor_close_by_stays_dynamic() -> None:
+    """The term allows for the turn of the view that the *sensor's* motion makes (the object held at its window
+    mean, as under H0), not the turn a mover makes itself: a car creeping past a stopped ego 2 m away sweeps the
+    line of sight through ~140°, and a term built on that observed turn would hide its 3 m of motion."""
+    frames = 21
+    t = np.arange(frames) / HZ
+    creeping = np.stack([-3.0 + 3.0 * t, np.full(frames, 2.0)], axis=1)
+    states = _drive(MotionClassifierCore(_config(1.5)), np.zeros(frames), {CAR_ID: (Label.CAR, creeping)},
+                    np.random.default_rng(5))
+    assert states[CAR_ID] == DYNAMIC

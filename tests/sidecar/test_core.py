@@ -88,7 +88,7 @@ def test_merge_patch_semantics() -> None:
     assert out.dynamic_hold_s_per_class == {"pedestrian": 0.3, "car": 0.5} and out.hold_for(1) == 0.5
     out = merge_patch(out, {"view_slide_m_per_class": {"car": 2.5, "bus": 2.0}})
     out = merge_patch(out, {"view_slide_m_per_class": {"bus": None}})
-    assert out.view_slide_m_per_class == {"car": 2.5, "truck": 1.5, "trailer": 1.5}  # bus dropped, car changed
+    assert out.view_slide_m_per_class == {"car": 2.5, "truck": 2.0, "trailer": 2.0}  # bus dropped, car changed
     assert out.view_slide_for(1) == 2.5 and out.view_slide_for(3) == 0
 
 

@@ -161,9 +161,9 @@ def calibrated_statistics(windows: F64, masks: HalfMasks, groups: I64, model: No
 
     With the track-scale prior the denominator is the window's own scale λ times that (a Student-t statistic with
     ν degrees of freedom, reported as a z: :func:`track_scale`). ``view_slide`` (per window, m; None or 0: none)
-    then adds the view term: λ V + s² Δū Δūᵀ, Δū the half-mean contrast of the unit line-of-sight vectors — a box
-    centre placed from the faces the sensor sees slides with the view as the sensor drives past a parked car, a
-    displacement the reported covariances do not describe. It is geometry, not noise, so λ does not scale it (a
+    then adds the view term: λ V + s² Δū Δūᵀ, Δū the half-mean contrast of the unit vectors from the sensor to the
+    window's mean position (:func:`view_turn`) — a box centre placed from the faces the sensor sees slides with the
+    view as the sensor drives past a parked car, a displacement the reported covariances do not describe. It is geometry, not noise, so λ does not scale it (a
     mover on a curve, whose λ is large, would otherwise lose its displacement to it; docs/classifier.md 'The view
     term').
 
@@ -275,7 +275,7 @@ def _calibrated_statistics(windows: F64, masks: HalfMasks, groups: I64, model: N
         a, b, c = a * lam, b * lam, c * lam
     if view_slide is not None and view_slide.any():  # s² Δū Δūᵀ: the centre's slide with the view (geometry, not
         s2 = view_slide * view_slide  # noise: not scaled by the window's λ)
-        dux, duy = (w * ux).sum(1), (w * uy).sum(1)
+        dux, duy = view_turn(pos_x, pos_y, windows[..., 6], windows[..., 7], valid, w)
         a, b, c = a + s2 * dux * dux, b + s2 * dux * duy, c + s2 * duy * duy
     a = np.maximum(a, 1e-300)
     c = np.maximum(c, 1e-300)
@@ -293,6 +293,21 @@ def _calibrated_statistics(windows: F64, masks: HalfMasks, groups: I64, model: N
         mean_x=(valid * pos_x).sum(1) / n_all,
         mean_y=(valid * pos_y).sum(1) / n_all,
     )
+
+
+def view_turn(pos_x: F64, pos_y: F64, sensor_x: F64, sensor_y: F64, valid: NDArray[np.bool_], w: F64) -> tuple[F64, F64]:
+    """Δū of the view term: the contrast ``w`` of the unit vectors from the sensor to the window's mean position —
+    how far the sensor's own motion turned its view of the object between the halves, as it would under H0 (the
+    object stands where its window says). Not the observed line of sight: a car passing a stopped sensor turns
+    that by its own motion, and the slide the term allows for would hide the motion it is tested for."""
+    n = np.maximum(valid.sum(1), 1)
+    mx, my = (valid * pos_x).sum(1) / n, (valid * pos_y).sum(1) / n
+    ex, ey = mx[:, None] - sensor_x, my[:, None] - sensor_y
+    r = np.hypot(ex, ey)
+    far = r > 1e-6
+    inv = np.divide(1.0, r, out=np.zeros_like(r), where=far)
+    ex, ey = np.where(far, ex * inv, 1.0), ey * inv  # on the sensor: x by convention, as the line of sight
+    return (w * ex).sum(1), (w * ey).sum(1)
 
 
 def t_to_z(t: F64, dof: F64) -> F64:
