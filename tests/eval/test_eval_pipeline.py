@@ -268,3 +268,25 @@ def test_variance_scale_quarter_or_four_moves_vehicle_rates_by_at_most_one_point
 
         rates.append(planner_metrics(rec, intervals=False)["full_window"]["vehicle"]["false_dynamic_z"])
     assert rates[0] - rates[1] > 0.05
+
+
+def test_cli_view_slide_only_ever_lowers_the_vehicle_statistic(tmp_path: Path, capsys) -> None:
+    """`--view-slide 0` switches the view term off: the run says which, the speed rule's figures are untouched, and
+    the term (a positive semi-definite addition to the denominator) calls no more vehicle rows dynamic than none —
+    fewer static ones wrongly, no fewer moving ones missed; pedestrians are not touched. The lot: an ego driving past
+rows of parked cars, where the term acts."""
+    runs = _eval_runs(tmp_path, capsys, ["--scenario", "diagonal-lot", "--seed", "5", "--duration", "8"],
+                      default=[], off=["--view-slide", "0"], wide=["--view-slide", "6"])
+    on, off, wide = runs["default"], runs["off"], runs["wide"]
+    assert on["run"]["view_slide_m_per_class"] == {"car": 2.0, "truck": 2.0, "bus": 2.0, "trailer": 2.0}
+    assert off["run"]["view_slide_m_per_class"] == {} and wide["run"]["view_slide_m_per_class"]["bus"] == 6.0
+    assert "view term {" in (tmp_path / "default" / "report.md").read_text()
+    for a, b in ((off, on), (on, wide)):
+        v, w = a["motion"]["vehicle"], b["motion"]["vehicle"]
+        for k in ("false_dynamic_speed", "missed_dynamic_speed"):
+            assert v[k] == w[k], k
+        assert w["false_dynamic_z"] <= v["false_dynamic_z"]
+        assert (v["missed_dynamic_z"] is None) == (w["missed_dynamic_z"] is None)  # no movers: null on both sides
+        assert v["missed_dynamic_z"] is None or w["missed_dynamic_z"] >= v["missed_dynamic_z"]
+        assert a["motion"]["pedestrian"] == b["motion"]["pedestrian"]
+    assert wide["motion"]["vehicle"]["false_dynamic_z"] < off["motion"]["vehicle"]["false_dynamic_z"]  # it acts
