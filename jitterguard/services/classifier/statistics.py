@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from .calibration import SCALE_BOUNDS, NoiseModel
+from .calibration import SCALE_BOUNDS, NoiseModel, line_of_sight
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -268,6 +268,8 @@ def _calibrated_statistics(windows: F64, masks: HalfMasks, groups: I64, model: N
         a = mean(cxx, w_old) / n_old + mean(cxx, w_new) / n_new
         b = mean(cxy, w_old) / n_old + mean(cxy, w_new) / n_new
         c = mean(cyy, w_old) / n_old + mean(cyy, w_new) / n_new
+    n_all = np.maximum(k_old + k_new, 1.0)
+    mean_x, mean_y = (valid * pos_x).sum(1) / n_all, (valid * pos_y).sum(1) / n_all  # the window mean
     lam = nu = None
     if track_scale_prior:  # the window's own scale of its noise: λ V
         lam, nu = track_scale(pos_x, pos_y, vm, n, (tc, stt, b1, b2), ((ux, uy), (vx, vy)), (sig_u, sig_v), cols,
@@ -275,12 +277,11 @@ def _calibrated_statistics(windows: F64, masks: HalfMasks, groups: I64, model: N
         a, b, c = a * lam, b * lam, c * lam
     if view_slide is not None and view_slide.any():  # s² Δū Δūᵀ: the centre's slide with the view (geometry, not
         s2 = view_slide * view_slide  # noise: not scaled by the window's λ)
-        dux, duy = view_turn(pos_x, pos_y, windows[..., 6], windows[..., 7], valid, w)
+        dux, duy = view_turn(mean_x, mean_y, windows[..., 6:8], w)
         a, b, c = a + s2 * dux * dux, b + s2 * dux * duy, c + s2 * duy * duy
     a = np.maximum(a, 1e-300)
     c = np.maximum(c, 1e-300)
     det = np.maximum(a * c - b * b, 1e-300)
-    n_all = np.maximum(k_old + k_new, 1.0)
     z_x, z_y = np.abs(dx) / np.sqrt(a), np.abs(dy) / np.sqrt(c)
     chi2 = (c * dx * dx - 2.0 * b * dx * dy + a * dy * dy) / det
     if lam is not None:
@@ -290,24 +291,19 @@ def _calibrated_statistics(windows: F64, masks: HalfMasks, groups: I64, model: N
         z_x=z_x,
         z_y=z_y,
         chi2=chi2,
-        mean_x=(valid * pos_x).sum(1) / n_all,
-        mean_y=(valid * pos_y).sum(1) / n_all,
+        mean_x=mean_x,
+        mean_y=mean_y,
     )
 
 
-def view_turn(pos_x: F64, pos_y: F64, sensor_x: F64, sensor_y: F64, valid: NDArray[np.bool_], w: F64) -> tuple[F64, F64]:
-    """Δū of the view term: the contrast ``w`` of the unit vectors from the sensor to the window's mean position —
-    how far the sensor's own motion turned its view of the object between the halves, as it would under H0 (the
-    object stands where its window says). Not the observed line of sight: a car passing a stopped sensor turns
-    that by its own motion, and the slide the term allows for would hide the motion it is tested for."""
-    n = np.maximum(valid.sum(1), 1)
-    mx, my = (valid * pos_x).sum(1) / n, (valid * pos_y).sum(1) / n
-    ex, ey = mx[:, None] - sensor_x, my[:, None] - sensor_y
-    r = np.hypot(ex, ey)
-    far = r > 1e-6
-    inv = np.divide(1.0, r, out=np.zeros_like(r), where=far)
-    ex, ey = np.where(far, ex * inv, 1.0), ey * inv  # on the sensor: x by convention, as the line of sight
-    return (w * ex).sum(1), (w * ey).sum(1)
+def view_turn(mean_x: F64, mean_y: F64, sensor: F64, w: F64) -> tuple[F64, F64]:
+    """Δū of the view term: the contrast ``w`` of the unit vectors from the sensor (``sensor``, (K, W, 2)) to the
+    window's mean position — how far the sensor's own motion turned its view of the object between the halves, as
+    it would under H0 (the object stands where its window says). Not the observed line of sight: a car passing a
+    stopped sensor turns that by its own motion, and the slide the term allows for would hide the motion it is
+    tested for."""
+    u, _, _ = line_of_sight(np.stack([mean_x, mean_y], axis=-1)[:, None, :], sensor)
+    return (w * u[..., 0]).sum(1), (w * u[..., 1]).sum(1)
 
 
 def t_to_z(t: F64, dof: F64) -> F64:
