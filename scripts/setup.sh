@@ -52,5 +52,8 @@ if [ "${JG_SKIP_SYSTEM_DEPS:-0}" != "1" ] && ! command -v chromium >/dev/null 2>
   (quiet apt-get update -qq && DEBIAN_FRONTEND=noninteractive quiet apt-get install -y -qq chromium) \
     || echo "setup: chromium not installed; its page test will skip" >&2
 fi
+# Compile the classifier's calibrated statistic once now (numba caches it next to the module), so the first
+# service start does not pay the seconds it takes.
+quiet python -c "from jitterguard.services.classifier.statistics import warm_up; warm_up()"
 rm -f .venv/.jitterguard-setup-*
 touch "$stamp"

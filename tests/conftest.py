@@ -16,6 +16,16 @@ settings.register_profile("seeded", derandomize=True, database=None)
 settings.load_profile("seeded")
 
 
+@pytest.fixture(scope="session", autouse=True)
+def compiled_statistic() -> None:
+    """Compile (or load from numba's cache) the classifier's calibrated statistic once, in this process, before
+    any test: the services the tests start then load it from the cache instead of each compiling it (seconds)
+    inside a test's own timeouts — after a change to the statistic's source the setup's compilation is stale."""
+    from jitterguard.services.classifier.statistics import warm_up
+
+    warm_up()
+
+
 @pytest.fixture
 def zenoh_port() -> int:
     return free_tcp_port()

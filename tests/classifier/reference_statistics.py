@@ -52,10 +52,13 @@ def _calibrated_statistics(windows: F64, masks: HalfMasks, groups: I64, model: N
 
     w_old = masks.old / np.maximum(k_old, 1.0)[:, None]
     w_new = masks.new / np.maximum(k_new, 1.0)[:, None]
-    dx = ((w_new - w_old) * pos[..., 0]).sum(1)
-    dy = ((w_new - w_old) * pos[..., 1]).sum(1)
+    half_empty = (k_old == 0) | (k_new == 0)  # one observation: no contrast, nothing to test
+    dx = np.where(half_empty, 0.0, ((w_new - w_old) * pos[..., 0]).sum(1))
+    dy = np.where(half_empty, 0.0, ((w_new - w_old) * pos[..., 1]).sum(1))
     if min_speed > 0:  # H0 is |v| ≤ min_speed: shrink the displacement by what that speed explains
-        gap = np.maximum(((w_new - w_old) * t).sum(1), 0.0)  # t̄_new − t̄_old
+        t0 = np.where(valid, t, np.inf).min(1)  # times relative to the window's first: an epoch keeps its precision
+        t_rel = np.where(valid, t - np.where(np.isfinite(t0), t0, 0.0)[:, None], 0.0)
+        gap = np.maximum(((w_new - w_old) * t_rel).sum(1), 0.0)  # t̄_new − t̄_old
         d = np.hypot(dx, dy)
         keep = np.maximum(0.0, 1.0 - min_speed * gap / np.maximum(d, 1e-300))
         dx, dy = dx * keep, dy * keep

@@ -144,7 +144,7 @@ class NoiseModel:
     """Typical time between two observations of a track (reported, and used by :meth:`variance_factor`)."""
     track_dof: F64 | None = None
     """(G,) ν₀: how far one track's noise may stray from its class's (the prior degrees of freedom of a track's
-    own scale, :func:`~.statistics.track_scale`); None: :data:`PRIOR_TRACK_DOF` for every group."""
+    own scale, :func:`~.window_kernel.calibrated_windows`); None: :data:`PRIOR_TRACK_DOF` for every group."""
     scale_dof: float = math.inf
     """Degrees of freedom of the scales themselves: how well the calibration knows them. ∞ for scales taken as
     given (a calibration file); the online fit sets :data:`PRIOR_SCALE_DOF` plus :data:`BLOCK_DOF` per block
