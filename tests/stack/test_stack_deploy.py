@@ -44,6 +44,12 @@ def test_systemd_units_are_consistent():
         assert f"jitterguard-{svc}.service" in wants
         if svc != "router":
             assert "jitterguard-router.service" in cp["Unit"]["After"]
+        if svc == "classifier":  # its compiled statistic's cache must be somewhere the unit may write
+            env = dict(line.split("=", 1) for line in (DEPLOY / "systemd" / "jitterguard.env").read_text().splitlines()
+                       if line and not line.startswith("#"))
+            writable = cp["Service"]["ReadWritePaths"].split()
+            assert cp["Service"]["ProtectSystem"] == "strict"
+            assert any(Path(env["NUMBA_CACHE_DIR"]).is_relative_to(w) for w in writable), (env, writable)
 
 
 def _openssl(*args: str, cwd: Path) -> None:

@@ -46,6 +46,7 @@ from .calibration_store import SAVE_PERIOD_S, CalibrationStore
 from .config_store import ConfigStore
 from .config_writes import ConfigWritePolicy
 from .core import STATE_NAMES, Decisions, MotionClassifierCore, calibration_gauges
+from . import window_kernel
 from .statistics import warm_up
 
 CONFIG_APPLY_TIMEOUT_S = 2.0
@@ -128,7 +129,8 @@ class ClassifierService(Service):
                                           calibration_model=calibration_model, calibration=online)
         started = time.monotonic()
         warm_up()  # the compiled statistic: compiled (first run after an install) or loaded now, not on frame 1
-        self.log.info("calibrated statistic ready in %.1f s", time.monotonic() - started)
+        self.log.info("calibrated statistic ready in %.1f s%s", time.monotonic() - started,
+                      "" if window_kernel.CACHED else " (compiled: no writable numba cache; set NUMBA_CACHE_DIR)")
         self._cal_slot = threading.Lock()  # guards _cal_next (held for an assignment: never blocks the worker)
         self._cal_write = threading.Lock()  # one write at a time, never an older state over a newer one
         self._cal_next: tuple[int, dict[str, np.ndarray]] | None = None  # the latest state for the writer

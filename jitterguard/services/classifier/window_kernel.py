@@ -9,8 +9,9 @@ The math is :func:`~.statistics.calibrated_statistics`'s; ``tests/classifier/ref
 again with dense W × W matrices and the tests hold the two together.
 
 Compiled on first use and cached next to this file (``cache=True``; numba falls back to a per-user cache where the
-package directory is read-only), so only the first process after an install pays the compilation (seconds);
-:func:`~.statistics.warm_up` lets a service pay it before its first frame. ``error_model="numpy"``: a division by
+package directory is read-only, and ``NUMBA_CACHE_DIR`` names one), so only the first process after an install pays
+the compilation (seconds); :func:`~.statistics.warm_up` lets a service pay it before its first frame. Where no
+cache can be written at all each process compiles once (:data:`CACHED` False) rather than failing. ``error_model="numpy"``: a division by
 zero gives inf or NaN as numpy does — the statistic saturates such values (``statistics._saturate``) rather than
 raising.
 """
@@ -18,6 +19,8 @@ raising.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from typing import Any
 
 import numba
 import numpy as np
@@ -25,14 +28,34 @@ import numpy as np
 CLUSTER, INDEPENDENT, MEASURED = 0, 1, 2
 """``mode`` of :func:`calibrated_windows`: the ``effective_n`` of the configuration."""
 
+CACHED = True
+"""Whether the compiled code is cached on disk (False: no writable cache location, each process compiles)."""
 
-@numba.njit(cache=True, error_model="numpy", inline="always")
+
+def _compiled(**options: object) -> Callable[[Callable[..., Any]], Any]:
+    """``numba.njit`` with IEEE division and the on-disk cache — or, where numba finds no writable place for a
+    cache (a read-only install whose user has no writable home, as under systemd's ``ProtectSystem=strict`` and
+    ``ProtectHome=true`` without ``NUMBA_CACHE_DIR``), without it: the process then compiles on its first call
+    instead of failing at import (numba raises ``RuntimeError`` there when asked to cache)."""
+
+    def wrap(fn: Callable[..., Any]) -> Any:
+        global CACHED
+        try:
+            return numba.njit(cache=True, error_model="numpy", **options)(fn)
+        except RuntimeError:
+            CACHED = False
+            return numba.njit(error_model="numpy", **options)(fn)
+
+    return wrap
+
+
+@_compiled(inline="always")
 def _mm(a0, a1, a2, a3, b0, b1, b2, b3):  # noqa: ANN001, ANN202
     """2 × 2 product of row-major 4-tuples."""
     return (a0 * b0 + a1 * b2, a0 * b1 + a1 * b3, a2 * b0 + a3 * b2, a2 * b1 + a3 * b3)
 
 
-@numba.njit(cache=True, error_model="numpy")
+@_compiled()
 def ou_kernel_apply(x, decay, n, out):  # noqa: ANN001, ANN201
     """``out[:n]`` = Φ x for slots in time order, Φ_ij = exp(−|t_i − t_j| / τ), ``decay[i]`` = exp(−(t_i − t_{i−1})
     / τ) (``decay[0]`` unused). Φ is the covariance of an Ornstein–Uhlenbeck process sampled at the stamps, so
@@ -50,7 +73,7 @@ def ou_kernel_apply(x, decay, n, out):  # noqa: ANN001, ANN201
         b += x[i]
 
 
-@numba.njit(cache=True, error_model="numpy")
+@_compiled()
 def calibrated_windows(windows, old, new, n_old_a, n_new_a, groups, scale, edges, corr, tau, dof, view,  # noqa: ANN001, ANN201, C901, PLR0912, PLR0913, PLR0915
                        floor, mode, prior, min_speed, lam_lo, lam_hi, out):
     """Per window k of ``windows`` (K, W, channels of ``statistics.CHANNELS``; slots in any order, ``old``/``new``
