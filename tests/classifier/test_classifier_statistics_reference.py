@@ -137,3 +137,23 @@ def test_the_statistic_works_where_numba_can_write_no_cache() -> None:
     exec(code.replace("print(window_kernel.CACHED, repr(float(st.z_x[0])))\n", "z = float(st.z_x[0])\n"),  # noqa: S102
          exec_globals)
     assert float(z) == exec_globals["z"] and exec_globals["z"] > 3.0  # 1.5 m in 0.5 s against σ 0.1 m: moving
+
+
+def test_inputs_the_compiled_loop_cannot_index_are_refused() -> None:
+    """The compiled loop does not check its indices (numba), so the wrapper refuses what numpy would have: a class
+    group outside the model, windows without every channel, masks of another shape."""
+    rng = np.random.default_rng(3)
+    win, head, count = _random_windows(rng, 8, 6)
+    masks = split_halves(head, count, 6)
+    model = _random_model(rng)
+    kw = dict(variance_floor=1e-4, effective_n="measured")
+    ok = np.zeros(8, dtype=np.int64)
+    calibrated_statistics(win, masks, ok, model, **kw)
+    with pytest.raises(ValueError, match="groups"):
+        calibrated_statistics(win, masks, ok + len(GROUPS), model, **kw)
+    with pytest.raises(ValueError, match="windows"):
+        calibrated_statistics(win[..., :6], masks, ok, model, **kw)
+    with pytest.raises(ValueError, match="masks"):
+        calibrated_statistics(win, split_halves(head[:4], count[:4], 6), ok, model, **kw)
+    with pytest.raises(ValueError, match="view_slide"):
+        calibrated_statistics(win, masks, ok, model, view_slide=np.ones(3), **kw)

@@ -177,6 +177,18 @@ def calibrated_statistics(windows: F64, masks: HalfMasks, groups: I64, model: No
     :func:`window_statistics`.
     """
     k = len(groups)
+    # the compiled loop does not check its indices: what numpy would refuse with an IndexError is refused here
+    if windows.ndim != 3 or windows.shape[0] != k or windows.shape[2] < len(CHANNELS):
+        raise ValueError(f"windows: expected ({k}, W, ≥{len(CHANNELS)}), got {windows.shape}")
+    if masks.old.shape != windows.shape[:2] or masks.new.shape != windows.shape[:2] or masks.n_old.shape != (k,) \
+            or masks.n_new.shape != (k,):
+        raise ValueError(f"masks: expected ({k}, {windows.shape[1]}) and ({k},)")
+    if k and (int(groups.min()) < 0 or int(groups.max()) >= model.scale.shape[0]):
+        raise ValueError(f"groups: expected indices in [0, {model.scale.shape[0]})")
+    if view_slide is not None and np.shape(view_slide) != (k,):
+        raise ValueError(f"view_slide: expected ({k},), got {np.shape(view_slide)}")
+    if model.scale.shape[2] != len(model.band_edges_m) + 1 or model.scale.shape[3] < 2:
+        raise ValueError(f"model.scale: expected (G, 2, {len(model.band_edges_m) + 1}, 2), got {model.scale.shape}")
     out = np.zeros((6, k))
     dof = model.test_dof(np.arange(model.scale.shape[0])) if track_scale_prior else np.ones(model.scale.shape[0])
     view = np.zeros(k) if view_slide is None else np.ascontiguousarray(view_slide, dtype=np.float64)
