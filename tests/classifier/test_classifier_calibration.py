@@ -36,6 +36,7 @@ from jitterguard.services.classifier.calibration_file import (
 from jitterguard.services.classifier.core import (
     DYNAMIC,
     STATIC,
+    LEARN_BLOCKS_PER_FRAME,
     MotionClassifierCore,
     Observations,
     calibration_gauges,
@@ -353,7 +354,8 @@ def test_core_learns_online_and_keeps_what_it_learnt_across_reset() -> None:
     before = core.calibration_state()["counts"]["blocks"]
     core.learn()  # what the service does once a frame's objects are out (ClassifierAdapter.settle)
     state = core.calibration_state()
-    assert state["counts"]["blocks"] == before + 60  # the last frame's 60 filled windows, pooled only now
+    # windows that filled in the last frame, pooled only now (a frame's budget at most: LEARN_BLOCKS_PER_FRAME)
+    assert before < state["counts"]["blocks"] <= before + LEARN_BLOCKS_PER_FRAME
     assert state["mode"] == "online" and state["counts"]["blocks"] >= 60 * 14
     scale = state["groups"]["vehicle"]["along"]["scale"]["20-40"]
     assert scale == pytest.approx(9.0, rel=0.25)

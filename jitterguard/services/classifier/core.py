@@ -34,6 +34,12 @@ RATE_INTERVALS = 9
 """Frame intervals the stream's rate is the median of (a dropped or late frame does not move it)."""
 MAX_STRIDE = 100
 """Largest stride (a 1 kHz stream at the 10 Hz reference): bounds the ratio of a nonsense stamp pair."""
+LEARN_BLOCKS_PER_FRAME = 32
+"""Filled windows pooled into the online calibration per frame at most (more when a backlog builds: 1/W of it),
+the rest kept for the next frames. Every track of a scene born in one frame — a stack start, a replay — fills its
+window in the same later frame, and again every W frames after; pooling 1000 windows at once took 0.1–0.7 s
+(~0.1 ms each), a stall every 2 s that the frames after it queued behind. Spread, a frame pools at most ~3 ms;
+at a steady 1000 tracks (50 windows a frame at W = 20) the backlog stays under W × 50 rows."""
 
 
 def stride_for_interval(config: ClassifierConfig, interval_s: float | None, current: int = 1) -> int:
@@ -257,7 +263,8 @@ class MotionClassifierCore:
         self._file_model = calibration_model
         self.check_config(self._config)
         self._state_cache: tuple[tuple, dict] | None = None
-        self._to_learn: NDArray[np.int64] | None = None  # rows whose windows filled this frame, for :meth:`learn`
+        self._pending: NDArray[np.int64] = np.empty(0, dtype=np.int64)  # rows whose filled windows wait for learn
+        self._learn_due = False  # a frame has come since :meth:`learn` last pooled
 
     # ------------------------------------------------------------------ configuration
 
@@ -270,7 +277,7 @@ class MotionClassifierCore:
         calibration keeps what it learnt unless its range bands change; ``calibration_model`` replaces the
         scales used with ``calibration: file`` (the last one given stays otherwise)."""
         self.check_config(config, calibration_model)
-        self.learn()  # what filled under the old window length is learnt with it
+        self.learn(everything=True)  # what filled under the old window length is learnt with it
         if calibration_model is not None:
             self._file_model = calibration_model
         old = self._config
@@ -401,17 +408,25 @@ class MotionClassifierCore:
             self._state_cache = (key, state)
         return self._state_cache[1]
 
-    def learn(self) -> None:
-        """Pool the windows that filled since the last call into the online calibration, and refit it when
-        due. Kept off the decision: the service calls it (through the adapter's ``settle``) once ``objects`` is
-        out, so a frame is decided with what the frames before it taught — one frame later than the data
+    def learn(self, *, everything: bool = False) -> None:
+        """Pool windows that filled into the online calibration — at most :data:`LEARN_BLOCKS_PER_FRAME` (or 1/W
+        of the backlog) once per frame, oldest first; ``everything``: all of them now — and refit it when due.
+        Kept off the decision: the service calls it (through the adapter's ``settle``) once ``objects`` is out,
+        so a frame is decided with what the frames before it taught — a frame or a few later than the data
         allowed, which moves nothing a refit every ``refit_period_s`` would show, and keeps pooling and fitting
         (several ms at 200 tracks) out of the frame's latency. :meth:`update` calls it first if nobody did."""
-        rows, self._to_learn = self._to_learn, None
         if self._config.calibration != "online":
+            self._pending, self._learn_due = self._pending[:0], False
             return
-        if rows is not None:
-            self._harvest(rows, np.full(rows.shape[0], self._table.window))
+        if self._learn_due or everything:
+            self._learn_due = False
+            rows = self._pending
+            budget = rows.shape[0] if everything else max(LEARN_BLOCKS_PER_FRAME, -(-rows.shape[0] // self._table.window))
+            rows, self._pending = rows[:budget], rows[budget:]
+            t = self._table
+            rows = rows[(t.count[rows] >= t.window) & (t.since[rows] >= t.window)]  # still full (not evicted)
+            if rows.size:
+                self._harvest(rows, np.full(rows.shape[0], t.window))
         self._online.model()  # refits when due
 
     def _harvest(self, rows: NDArray[np.int64], lengths: NDArray[np.int64]) -> None:
@@ -469,13 +484,16 @@ class MotionClassifierCore:
         return rows
 
     def retain(self, alive_ids: IDS) -> int:
-        """Evict the windows of every track not in ``alive_ids`` (the tracker no longer reports it)."""
-        self.learn()  # a filled window is pooled before its row is freed
+        """Evict the windows of every track not in ``alive_ids`` (the tracker no longer reports it); what their
+        windows hold that the calibration has not had is pooled first."""
+        self.learn()
         keep = np.zeros(self._ids.shape[0], dtype=bool)
         if self._ids.shape[0]:
             pos, found = self._positions(np.asarray(alive_ids, dtype="S32"))
             keep[pos[found]] = True
         gone = self._id_rows[~keep]
+        if gone.size:
+            self._pending = self._pending[~np.isin(self._pending, gone)]  # pooled below, whole
         if gone.size and self._config.calibration == "online":
             self._harvest(gone, np.minimum(self._table.since[gone], self._table.count[gone]))
         self._free.extend(gone.tolist())
@@ -528,8 +546,9 @@ class MotionClassifierCore:
         if self._config.calibration == "online":
             self._online.advance(stamp_s)
             full = taken[(t.since[taken] >= w) & (t.count[taken] >= w)]
-            if full.size:
-                self._to_learn = full  # update() learnt what the frame before left, so nothing is overwritten
+            if full.size:  # a row stays full until pooled: queue it once
+                self._pending = np.concatenate([self._pending, full[~np.isin(full, self._pending)]])
+            self._learn_due = self._pending.size > 0
         return self._decide(rows, ids, obs.speed, obs.stamp_ns, obs.seq, fresh)
 
     def _statistics(self, rows: NDArray[np.int64]) -> WindowStats:
