@@ -222,6 +222,7 @@ def bench_service(tracks: int = 200, rate_hz: float = 20.0, duration_s: float = 
         "p50_ms": float(np.percentile(lat, 50)) if lat.size else None,
         "p99_ms": float(np.percentile(lat, 99)) if lat.size else None,
         "max_ms": float(lat.max()) if lat.size else None,
+        "frames_over_60_ms": int((lat > 60.0).sum()),  # stalls, and the frames queued behind them
         "e2e_p50_ms": float(np.percentile(e2e, 50)) if e2e.size else None,
         "e2e_p99_ms": float(np.percentile(e2e, 99)) if e2e.size else None,
         "frames_sent": n_frames,
