@@ -55,6 +55,16 @@ def _mm(a0, a1, a2, a3, b0, b1, b2, b3):  # noqa: ANN001, ANN202
     return (a0 * b0 + a1 * b2, a0 * b1 + a1 * b3, a2 * b0 + a3 * b2, a2 * b1 + a3 * b3)
 
 
+@_compiled(inline="always")
+def _unit(dx, dy):  # noqa: ANN001, ANN202
+    """The unit vector along (dx, dy) and its length; on the sensor (length ≤ 1 µm) any direction, x by
+    convention (as :func:`~.calibration.line_of_sight`)."""
+    length = math.hypot(dx, dy)
+    if length > 1e-6:
+        return dx / length, dy / length, length
+    return 1.0, 0.0, length
+
+
 @_compiled()
 def ou_kernel_apply(x, decay, n, out):  # noqa: ANN001, ANN201
     """``out[:n]`` = Φ x for slots in time order, Φ_ij = exp(−|t_i − t_j| / τ), ``decay[i]`` = exp(−(t_i − t_{i−1})
@@ -142,11 +152,7 @@ def calibrated_windows(windows, old, new, n_old_a, n_new_a, groups, scale, edges
             sen_x[n] = windows[k, j, 6]
             sen_y[n] = windows[k, j, 7]
             lx, ly = px[n] - sen_x[n], py[n] - sen_y[n]
-            rng = math.hypot(lx, ly)
-            if rng > 1e-6:
-                u0, u1 = lx / rng, ly / rng
-            else:  # an object on the sensor: any direction, x by convention (as calibration.line_of_sight)
-                u0, u1 = 1.0, 0.0
+            u0, u1, rng = _unit(lx, ly)
             ux[n] = u0
             uy[n] = u1
             cxx, cxy, cyy = windows[k, j, 2], windows[k, j, 3], windows[k, j, 4]
@@ -344,13 +350,9 @@ def calibrated_windows(windows, old, new, n_old_a, n_new_a, groups, scale, edges
         if slide != 0.0:  # s² Δū Δūᵀ: the centre's slide with the view (geometry, not noise: not scaled by λ)
             du0 = du1 = 0.0
             for i in range(n):
-                qx, qy = mean_x - sen_x[i], mean_y - sen_y[i]
-                dist = math.hypot(qx, qy)
-                if dist > 1e-6:
-                    du0 += wv[i] * qx / dist
-                    du1 += wv[i] * qy / dist
-                else:
-                    du0 += wv[i]
+                e0, e1, _ = _unit(mean_x - sen_x[i], mean_y - sen_y[i])
+                du0 += wv[i] * e0
+                du1 += wv[i] * e1
             s2 = slide * slide
             va += s2 * du0 * du0
             vb += s2 * du0 * du1
