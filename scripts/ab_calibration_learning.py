@@ -1,20 +1,22 @@
 """Back to back in one process: the online calibration's learning (block_moments + OnlineCalibration.add + the
 refit when due) of a base checkout and of this tree, on the same blocks harvested from the classifier bench's
-stream (docs/performance.md, "Pooling the calibration from factors").
+stream (docs/performance.md, "Pooling the calibration from factors" and "The calibration's learning compiled").
 
     git worktree add /tmp/base <rev>
     OMP_NUM_THREADS=1 .venv/bin/python scripts/ab_calibration_learning.py [TRACKS [prof]] [--base /tmp/base]
 
 Prints per implementation three rounds of (median, mean, p99) ms per harvest, alternating, and how far the fitted
 scales of the two differ (rounding only)."""
-import importlib.util, sys, time, json, numpy as np
+import importlib.util, inspect, sys, time, json, numpy as np
 from pathlib import Path
 BASE = sys.argv[sys.argv.index("--base") + 1] if "--base" in sys.argv else "/tmp/base"
 sys.argv = [a for i, a in enumerate(sys.argv) if a != "--base" and (i == 0 or sys.argv[i - 1] != "--base")]
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import jitterguard.services.classifier.calibration as new_cal
-spec = importlib.util.spec_from_file_location("base_cal", f"{BASE}/jitterguard/services/classifier/calibration.py")
-base_cal = importlib.util.module_from_spec(spec); sys.modules["base_cal"] = base_cal; spec.loader.exec_module(base_cal)
+# the base's module as a sibling of this tree's (its relative imports resolve to this tree's package)
+name = "jitterguard.services.classifier._base_calibration"
+spec = importlib.util.spec_from_file_location(name, f"{BASE}/jitterguard/services/classifier/calibration.py")
+base_cal = importlib.util.module_from_spec(spec); sys.modules[name] = base_cal; spec.loader.exec_module(base_cal)
 from jitterguard.bench.classifier import _Scene
 from jitterguard.services.classifier.core import MotionClassifierCore
 from jitterguard.schemas.models import ClassifierConfig
@@ -45,7 +47,8 @@ def run(mod):
     for i, ((t, pos, cov, sensor, kw), g, y) in enumerate((c[1], c[2], c[3]) for c in calls):
         cal.advance(float(t.max()))
         t0 = time.perf_counter()
-        mom = mod.block_moments(t, pos, cov, sensor, **kw)
+        extra = {"skip_fast": True} if "skip_fast" in inspect.signature(mod.block_moments).parameters else {}
+        mom = mod.block_moments(t, pos, cov, sensor, **kw, **extra)  # a base before 3 Dec skipped fast blocks so
         cal.add(g, mom, y)
         cal.model()
         ts.append(time.perf_counter() - t0)

@@ -13,6 +13,8 @@ import numpy as np
 import pytest
 import yaml
 
+from scipy.special import digamma, polygamma
+
 from jitterguard.schemas.models import ClassifierConfig, Label
 from classifier.reference_statistics import reference_block_moments
 from jitterguard.services.classifier.calibration import (
@@ -20,6 +22,7 @@ from jitterguard.services.classifier.calibration import (
     HUBER_C,
     MAX_BLOCK_SPEED,
     SCALE_BOUNDS,
+    TAU_GRID_S,
     NoiseModel,
     OnlineCalibration,
     block_moments,
@@ -482,10 +485,10 @@ def test_static_decisions_use_the_calibrated_scales() -> None:
 
 
 def test_factored_moments_and_their_pooling_match_the_dense_products() -> None:
-    """The factored block moments (n × 4 factors) are the dense G Gᵀ and G Φ Gᵀ of the first implementation to
-    rounding — for evenly spaced, gappy, unsorted and long-spanning blocks — and pooling
-    them (one matrix product per cell) gives the Huber-weighted dense sums per (group, band, age) cell, shorter
-    blocks in the leading rows and columns."""
+    """The compiled pooling's block moments are the dense r rᵀ, G Gᵀ and G Φ Gᵀ of the first implementation to
+    rounding — for evenly spaced, gappy, unsorted and long-spanning blocks — and pooling them gives the
+    Huber-weighted dense sums per (group, band, age) cell, shorter blocks in the leading rows and columns, and the
+    track-heterogeneity sums from each block's dense covariance at its group's τ."""
     rng = np.random.default_rng(33)
     t, pos, cov, sensor = blocks(rng, 60, 2.0, 0.4, 0.5, n=20)
     t = t + np.where(rng.random(t.shape) < 0.1, 0.1, 0.0).cumsum(axis=1)  # missed frames: gaps
@@ -501,7 +504,7 @@ def test_factored_moments_and_their_pooling_match_the_dense_products() -> None:
     groups2, young2 = rng.integers(0, len(GROUPS), 15), rng.random(15) < 0.4
     cal = OnlineCalibration(window=20)
     cal.advance(100.0)
-    want = {name: np.zeros_like(getattr(cal, name)) for name in ("_Y", "_Ew", "_Et", "_n")}
+    want = {name: np.zeros_like(getattr(cal, name)) for name in ("_Y", "_Ew", "_Et", "_n", "_het")}
     for (tt, pp, cc, ss), g, y in (((t, pos, cov, sensor), groups, young), ((t2, pos2, cov2, sensor2), groups2, young2)):
         model = cal.model()
         Yd, Ewd, Etd = reference_block_moments(tt, pp, cc, ss)
@@ -519,14 +522,32 @@ def test_factored_moments_and_their_pooling_match_the_dense_products() -> None:
                     want[name][cell].reshape(20, 20)[:n, :n] += w[b, a] * dense[b, a]
                 want["_Et"][cell].reshape(20, 20, -1)[:n, :n] += w[b, a] * np.moveaxis(Etd[b, a], 0, -1)
                 want["_n"][cell] += w[b, a]
+        # the track heterogeneity: each slow block's Satterthwaite dof from its dense covariance Q at the group's τ
+        slow = m.speed <= MAX_BLOCK_SPEED
+        lt = np.log(TAU_GRID_S)  # the group's τ between two grid points, linear in log τ
+        x = np.clip(np.log(model.tau_s[g]), lt[0], lt[-1])
+        i = np.clip(np.searchsorted(lt, x) - 1, 0, len(lt) - 2)
+        f = ((x - lt[i]) / (lt[i + 1] - lt[i]))[..., None, None]
+        nb = np.arange(len(tt))[:, None]
+        Bt = (1 - f) * Etd[nb, np.arange(2), i] + f * Etd[nb, np.arange(2), i + 1]
+        mm = model.correlation[g][..., None, None]
+        Q = k[..., None, None] * ((1 - mm) * Ewd + mm * Bt)
+        trace, trace2 = np.einsum("naii->n", Q), (Q * Q).sum((1, 2, 3))
+        S0 = np.einsum("naii->n", Yd)
+        nu = trace ** 2 / trace2
+        y_b = np.log(S0 / trace) - (digamma(nu / 2) - np.log(nu / 2))
+        wt = w.min(axis=1)
+        for col, val in enumerate((wt * y_b, wt * y_b ** 2, wt * polygamma(1, nu / 2), wt)):
+            want["_het"][:, col] += np.bincount(g[slow], weights=val[slow], minlength=len(GROUPS))
         cal.add(g, m, y)
     for name, value in want.items():
         np.testing.assert_allclose(getattr(cal, name), value, rtol=1e-9, atol=1e-9, err_msg=name)
 
 
-def test_skipping_fast_blocks_pools_exactly_what_the_full_moments_pool() -> None:
-    """``skip_fast`` leaves out only work whose result the pooling multiplies by zero: slow, fast and broken
-    (positions near the float limit) blocks give the same sums, counters and model either way."""
+def test_fast_and_broken_blocks_are_counted_not_pooled() -> None:
+    """Blocks faster than MAX_BLOCK_SPEED are counted and add nothing (the compiled pooling skips their work) and
+    broken ones (positions near the float limit) are counted invalid: a mix pools exactly — bit for bit, sums,
+    heterogeneity and model — what its slow, sound blocks pool alone."""
     rng = np.random.default_rng(21)
     t, pos, cov, sensor = (np.concatenate(parts) for parts in zip(
         blocks(rng, 40, 2.0, 0.4, 0.5), blocks(rng, 40, 2.0, 0.4, 0.5, speed=6.0),
@@ -534,16 +555,19 @@ def test_skipping_fast_blocks_pools_exactly_what_the_full_moments_pool() -> None
     pos[:3, 5:] += 1e300  # a broken upstream: counted invalid, whatever its speed
     groups = rng.integers(0, len(GROUPS), len(t))
     young = rng.random(len(t)) < 0.3
-    cals = []
-    for skip in (False, True):
-        cal = OnlineCalibration()
-        cal.advance(100.0)
-        mom = block_moments(t, pos, cov, sensor, skip_fast=skip)
-        cal.add(groups, mom, young)
-        cals.append((cal, mom))
-    (full, m_full), (skipped, m_skip) = cals
-    assert (m_skip.Et == 0).all(axis=(1, 2, 3, 4)).sum() >= 37  # the fast blocks' expectations were not built
-    assert full.counts == skipped.counts and full.counts["blocks_fast"] >= 40 and full.counts["blocks_invalid"] == 3
+    mixed = OnlineCalibration()
+    mixed.advance(100.0)
+    mom = block_moments(t, pos, cov, sensor)
+    mixed.add(groups, mom, young)
+    sel = np.flatnonzero(mom.finite() & (mom.speed <= MAX_BLOCK_SPEED))
+    assert 40 <= sel.size < 50  # the slow blocks but the broken ones (the 0.6 m/s ones pool too)
+    alone = OnlineCalibration()
+    alone.advance(100.0)
+    alone.add(groups[sel], block_moments(t[sel], pos[sel], cov[sel], sensor[sel]), young[sel])
+    assert mixed.counts["blocks_fast"] >= 40 and mixed.counts["blocks_invalid"] == 3
+    assert mixed.counts["blocks"] == alone.counts["blocks"] == sel.size
+    assert alone.counts["blocks_fast"] == alone.counts["blocks_invalid"] == 0
     for name in ("_Y", "_Ew", "_Et", "_n", "_het"):
-        np.testing.assert_array_equal(getattr(full, name), getattr(skipped, name), err_msg=name)
-    np.testing.assert_array_equal(full.refit().scale, skipped.refit().scale)
+        np.testing.assert_array_equal(getattr(mixed, name), getattr(alone, name), err_msg=name)
+    assert np.abs(mixed._Et).sum() > 0  # something was pooled
+    np.testing.assert_array_equal(mixed.refit().scale, alone.refit().scale)

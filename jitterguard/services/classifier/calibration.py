@@ -44,6 +44,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ...schemas.models import LABEL_NAMES
+from .block_kernel import pool_blocks
 
 F64 = NDArray[np.float64]
 
@@ -272,28 +273,15 @@ def _checked(v: Any, where: str, lo: float, hi: float) -> float:
 
 @dataclass(frozen=True)
 class BlockMoments:
-    """Per block and axis: the outer product of the normalised residuals and its expectations per unit model
-    (see the module docstring), in factored form — what a block's matrices are made of, n-vectors and n × 4
-    factors, not the n × n matrices (T of them per axis), so that pooling sums them as matrix products instead of
-    materialising every block's.
+    """Per block: what its moments are made of — the stamps, the reported σ and the normalised residuals on each
+    line-of-sight axis. The matrices of the module docstring, the observed ε̃ ε̃ᵀ = r rᵀ and its expectations per
+    unit model G Gᵀ and G Φ_τ Gᵀ (G = D⁻¹ M D, D = diag σ), are formed from these by the compiled pooling
+    (:func:`~.block_kernel.pool_blocks`) straight into the cells' sums, never stored per block; the dense
+    matrices are properties (tests, pseudo-blocks)."""
 
-    With B = [1/√n, t_c/√S_tt] the basis of the fitted lines and D = diag(σ) on one axis, G = D⁻¹ M D = I − U Vᵀ
-    (U = D⁻¹ B, V = D B), and
-
-    * ``Y``  = r rᵀ                                   (observed)
-    * ``Ew`` = G Gᵀ = I − L Rᵀ,      L = [U, V − U VᵀV],       R = [V, U]
-    * ``Et`` = G Φ Gᵀ = Φ − Lt Rtᵀ,  Lt = [U, A − U VᵀA],      Rt = [A, U],   A = Φ V
-
-    ``built`` is False for blocks whose expectations were skipped (too fast to pool: every factor zero, so their
-    ``Ew`` and ``Et`` are 0). The dense matrices are properties (tests, pseudo-blocks): pooling never forms them."""
-
-    r: F64  # (N, 2, n) normalised residuals
-    L: F64  # (N, 2, n, 4)
-    R: F64  # (N, 2, n, 4)
-    phi: F64  # (N, T, n, n) exp(−|Δt|/τ), TAU_GRID_S[t] (zeros where not built)
-    Lt: F64  # (N, 2, T, n, 4)
-    Rt: F64  # (N, 2, T, n, 4)
-    built: NDArray[np.bool_]  # (N,)
+    t: F64  # (N, n) stamps [s]
+    sig: F64  # (N, 2, n) reported σ along / across the line of sight (after the variance floor)
+    r: F64  # (N, 2, n) normalised residuals about the block's constant-velocity line
     range_m: F64  # (N,) mean distance from the sensor
     interval_s: F64  # (N,) mean time between two observations
     speed: F64  # (N,) speed of the fitted line
@@ -313,42 +301,34 @@ class BlockMoments:
     @property
     def Ew(self) -> F64:  # noqa: N802
         """(N, 2, n, n) expectation for white noise of unit variance: G Gᵀ."""
-        return self.white(np.arange(len(self)))
+        return self._dense()[0]
 
     @property
     def Et(self) -> F64:  # noqa: N802
         """(N, 2, T, n, n) expectation for unit-variance exp(−|Δt|/τ) noise, τ = TAU_GRID_S[t]: G Φ Gᵀ."""
-        return self.phi[:, None] - self.Lt @ np.swapaxes(self.Rt, -1, -2)
+        return self._dense()[1]
 
-    def white(self, rows: NDArray[np.int64]) -> F64:
-        """G Gᵀ of blocks ``rows``: (K, 2, n, n)."""
-        eye = np.eye(self.size) * self.built[rows][:, None, None, None]
-        return eye - self.L[rows] @ np.swapaxes(self.R[rows], -1, -2)
-
-    def correlated(self, rows: NDArray[np.int64], tau_index: NDArray[np.int64]) -> F64:
-        """G Φ_τ Gᵀ of blocks ``rows`` (K,) at the grid index ``tau_index`` (K, 2) of each block and axis:
-        (K, 2, n, n) — one τ per block and axis, not the whole grid."""
-        r, a = rows[:, None], np.arange(2)[None]
-        return (self.phi[r, tau_index]
-                - self.Lt[r, a, tau_index] @ np.swapaxes(self.Rt[r, a, tau_index], -1, -2))
+    def _dense(self) -> tuple[F64, F64]:
+        """(G Gᵀ, G Φ Gᵀ) per block: each block pooled alone, with weight 1, into a cell of its own."""
+        N, n, T = len(self), self.size, len(TAU_GRID_S)
+        Ew, Et = np.zeros((N, 2, 1, 1, n * n)), np.zeros((N, 2, 1, 1, n * n, T))
+        cell, zeros, ones = np.arange(N, dtype=np.int64), np.zeros(N, np.int64), np.ones((N, 2))
+        pool_blocks(self.t, self.sig, self.r, np.ones(N, dtype=np.bool_), cell, zeros, zeros, ones, ones * 0.5,
+                    np.zeros((N, 2), np.int64), np.zeros((N, 2)), TAU_GRID_S, math.inf, np.zeros_like(Ew), Ew, Et,
+                    np.zeros((N, 2, 1, 1)), n, np.empty((N, 2)), np.empty((N, 2)))
+        return Ew[:, :, 0, 0].reshape(N, 2, n, n), np.moveaxis(Et[:, :, 0, 0].reshape(N, 2, n, n, T), -1, 2)
 
     def subset(self, keep: NDArray[np.int64]) -> "BlockMoments":
         """The blocks ``keep`` (indices)."""
         return BlockMoments(*(getattr(self, f.name)[keep] for f in fields(self)))
 
-    def traces(self) -> tuple[F64, F64, F64]:
-        """(tr Y, tr Ew, tr Et): (N, 2), (N, 2), (N, 2, T) — from the factors (Φ's diagonal is 1)."""
-        n = self.size * self.built[:, None]
-        return ((self.r * self.r).sum(-1), n - (self.L * self.R).sum((-1, -2)),
-                n[..., None] - (self.Lt * self.Rt).sum((-1, -2)))
-
     def finite(self) -> NDArray[np.bool_]:
-        """Blocks whose moments are finite numbers: every factor, and their products bounded (a factor of 1e200
-        against one of 1e200 would give an infinite matrix entry where the factors are finite)."""
+        """Blocks whose moments are finite numbers: stamps, residuals and σ finite, and bounded so that their
+        products are (σ enters the expectations as σ_i / σ_j, a residual of 1e200 squares to inf)."""
         ok = np.isfinite(self.range_m) & np.isfinite(self.speed)
-        for a in (self.r, self.L, self.R, self.Lt, self.Rt, self.phi):
-            if a.size:
-                ok &= np.abs(a).max(axis=tuple(range(1, a.ndim))) < 1e150  # NaN compares False: not finite
+        if self.size:  # NaN compares False: not finite
+            ok &= (np.abs(self.t).max(axis=1) < 1e150) & (np.abs(self.r).max(axis=(1, 2)) < 1e150)
+            ok &= (self.sig.max(axis=(1, 2)) < 1e50) & (self.sig.min(axis=(1, 2)) > 0)
         return ok
 
 
@@ -372,67 +352,27 @@ def project_covariance(u: F64, v: F64, cov: F64) -> tuple[F64, F64, F64]:
     return uu, vv, uv
 
 
-def block_moments(t: F64, pos: F64, cov: F64, sensor: F64, *, variance_floor: float = 1e-4,
-                  skip_fast: bool = False) -> BlockMoments:
-    """Outer products of the normalised constant-velocity residuals of N blocks of n observations each, and
-    their expectations under unit white and unit exponentially correlated noise, as the factors of
-    :class:`BlockMoments`.
+def block_moments(t: F64, pos: F64, cov: F64, sensor: F64, *, variance_floor: float = 1e-4) -> BlockMoments:
+    """The normalised constant-velocity residuals of N blocks of n observations each, with what
+    :meth:`OnlineCalibration.add` needs to pool their moments (:class:`BlockMoments`).
 
     ``t`` (N, n) seconds (spread: a block whose times are all equal has no line to fit — the caller drops
     it), ``pos`` (N, n, 2) world positions, ``cov`` (N, n, 3) reported world covariances (xx, xy, yy),
     ``sensor`` (N, n, 2) the sensor's position at each observation. The line-of-sight axes are taken per
-    observation; the residuals are those of the world-frame line fit projected on them.
-
-    ``skip_fast``: blocks whose fitted line is faster than :data:`MAX_BLOCK_SPEED` (which
-    :meth:`OnlineCalibration.add` counts but does not pool) get zero expectations ``Ew``, ``Et`` (zero factors,
-    ``built`` False) instead of computed ones — most of the cost — when every input is finite and moderate (so their finiteness, which
-    decides whether the pooling counts them invalid, is not in question). What the pooling learns is the same.
-    """
+    observation; the residuals are those of the world-frame line fit projected on them."""
     with np.errstate(over="ignore", invalid="ignore"):  # non-finite blocks are dropped by the pooling
-        return _block_moments(t, pos, cov, sensor, variance_floor, skip_fast)
-
-
-def _block_moments(t: F64, pos: F64, cov: F64, sensor: F64, variance_floor: float,
-                   skip_fast: bool = False) -> BlockMoments:
-    t = np.asarray(t, dtype=np.float64)
-    N, n = t.shape
-    T = len(TAU_GRID_S)
-    tc = t - t.mean(axis=1, keepdims=True)
-    stt = np.maximum((tc * tc).sum(axis=1), 1e-12)
-    vel = (tc[:, :, None] * pos).sum(axis=1) / stt[:, None]
-    E = pos - pos.mean(axis=1, keepdims=True) - tc[:, :, None] * vel[:, None, :]  # residuals about the line
-    u, v, rng = line_of_sight(pos, sensor)
-    var_u, var_v, _ = project_covariance(u, v, cov)
-    sig = np.sqrt(np.maximum(np.stack([var_u, var_v], axis=1), variance_floor))  # (N, 2, n)
-    r = np.stack([(E * u).sum(-1), (E * v).sum(-1)], axis=1) / sig  # (N, 2, n)
-    speed = np.hypot(vel[:, 0], vel[:, 1])
-    built = np.ones(N, dtype=bool)
-    if skip_fast:
-        spread = sig.max(axis=(1, 2)) / sig.min(axis=(1, 2))
-        built = ~((speed > MAX_BLOCK_SPEED) & np.isfinite(speed) & np.isfinite(r).all(axis=(1, 2))
-                  & np.isfinite(t).all(axis=1) & (spread < 1e100))
-    L = np.zeros((N, 2, n, 4))
-    R = np.zeros((N, 2, n, 4))
-    phi = np.zeros((N, T, n, n))
-    Lt = np.zeros((N, 2, T, n, 4))
-    Rt = np.zeros((N, 2, T, n, 4))
-    if built.any():
-        sk = sig[built]
-        B = np.stack([np.full(tc[built].shape, 1.0 / math.sqrt(n)), tc[built] / np.sqrt(stt[built])[:, None]],
-                     axis=-1)[:, None]  # (K, 1, n, 2)
-        U, V = B / sk[..., None], B * sk[..., None]  # (K, 2, n, 2)
-        Vt = np.swapaxes(V, -1, -2)
-        L[built] = np.concatenate([U, V - U @ (Vt @ V)], axis=-1)
-        R[built] = np.concatenate([V, U], axis=-1)
-        tb = t[built]
-        ph = np.exp(-np.abs(tb[:, None, :, None] - tb[:, None, None, :]) / TAU_GRID_S[None, :, None, None])
-        A = ph[:, None] @ V[:, :, None]  # (K, 2, T, n, 2)
-        Uk = np.broadcast_to(U[:, :, None], A.shape)
-        Lt[built] = np.concatenate([Uk, A - Uk @ (Vt[:, :, None] @ A)], axis=-1)
-        Rt[built] = np.concatenate([A, Uk], axis=-1)
-        phi[built] = ph
-    return BlockMoments(r, L, R, phi, Lt, Rt, built, rng.mean(axis=1), (t[:, -1] - t[:, 0]) / max(n - 1, 1),
-                        speed)
+        t = np.ascontiguousarray(t, dtype=np.float64)
+        n = t.shape[1]
+        tc = t - t.mean(axis=1, keepdims=True)
+        stt = np.maximum((tc * tc).sum(axis=1), 1e-12)
+        vel = (tc[:, :, None] * pos).sum(axis=1) / stt[:, None]
+        E = pos - pos.mean(axis=1, keepdims=True) - tc[:, :, None] * vel[:, None, :]  # residuals about the line
+        u, v, rng = line_of_sight(pos, sensor)
+        var_u, var_v, _ = project_covariance(u, v, cov)
+        sig = np.sqrt(np.maximum(np.stack([var_u, var_v], axis=1), variance_floor))  # (N, 2, n)
+        r = np.stack([(E * u).sum(-1), (E * v).sum(-1)], axis=1) / sig  # (N, 2, n)
+        return BlockMoments(t, sig, r, rng.mean(axis=1), (t[:, -1] - t[:, 0]) / max(n - 1, 1),
+                            np.hypot(vel[:, 0], vel[:, 1]))
 
 
 @lru_cache(maxsize=16)
@@ -445,6 +385,15 @@ def canonical_moments(n: int, dt_s: float = CANONICAL_DT_S) -> tuple[F64, F64]:
     cov = np.tile(np.array([1.0, 0.0, 1.0]), (1, n, 1))
     m = block_moments(t, pos, cov, np.zeros((1, n, 2)))
     return m.Ew[0, 0], m.Et[0, 0]
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's cache) the compiled pooling now — a service that learns (the classifier, the
+    tracker's measurement scale) calls it at start, so its first pooled window does not pay the compilation."""
+    t = np.arange(MIN_BLOCK, dtype=np.float64)[None] * 0.1
+    pos = np.full((1, MIN_BLOCK, 2), 10.0)
+    cov = np.tile(np.array([0.01, 0.0, 0.01]), (1, MIN_BLOCK, 1))
+    OnlineCalibration(window=MIN_BLOCK).add(np.zeros(1, dtype=np.int64), block_moments(t, pos, cov, pos * 0.0))
 
 
 # ---------------------------------------------------------------------------------------------- the fit
@@ -503,6 +452,16 @@ def expected_moments(A: F64, B: F64, k: F64, m: F64, tau_s: F64) -> F64:
     Bj = np.take_along_axis(B, (i + 1)[..., None, None].repeat(B.shape[-2], -2), -1)[..., 0]
     Bt = (1 - w)[..., None] * Bi + w[..., None] * Bj
     return np.asarray(k)[..., None] * ((1 - np.asarray(m))[..., None] * A + np.asarray(m)[..., None] * Bt)
+
+
+@lru_cache(maxsize=1)
+def _track_dof_grid() -> tuple[F64, F64]:
+    """The ν₀ a fit can choose (400 points over :data:`TRACK_DOF_BOUNDS`) and ψ'(ν₀/2) on them, which decreases in
+    ν₀ (computed once: a fit looks it up five times). Cached, so the arrays are shared: do not modify them."""
+    from scipy.special import polygamma  # type: ignore[import-untyped]
+
+    grid = np.geomspace(*TRACK_DOF_BOUNDS, 400)
+    return grid, polygamma(1, grid / 2)
 
 
 # ---------------------------------------------------------------------------------------------- online
@@ -591,7 +550,8 @@ class OnlineCalibration:
 
     def add(self, groups: NDArray[np.int64], mom: BlockMoments, young: NDArray[np.bool_] | None = None) -> None:
         """Pool N blocks (``groups`` their class-group index, ``young`` whether each is a track's first) with
-        Huber weights against the current model."""
+        Huber weights against the current model. Blocks faster than :data:`MAX_BLOCK_SPEED` are counted, not
+        pooled."""
         finite = mom.finite()
         if not finite.all():  # positions far beyond any sensor (a broken upstream): nothing to learn from them
             self.counts["blocks_invalid"] += int((~finite).sum())
@@ -604,81 +564,36 @@ class OnlineCalibration:
         if mom.size > self.window:
             self._grow(mom.size)
         model = self.model()
-        band = model.bands(mom.range_m)
+        band = model.bands(mom.range_m).astype(np.int64)
         g = np.asarray(groups, dtype=np.int64)
         age = np.zeros(len(g), np.int64) if young is None else np.asarray(young, dtype=np.int64)
-        k = model.scale[g, :, band, age]  # (N, 2)
-        tr_y, tr_w, tr_t = mom.traces()
-        pred = expected_moments(tr_w[..., None], tr_t[..., None, :], k, model.correlation[g], model.tau_s[g])[..., 0]
-        w = np.minimum(1.0, HUBER_C / np.maximum(tr_y / np.maximum(pred, 1e-300), 1e-300))  # (N, 2)
+        k = np.ascontiguousarray(model.scale[g, :, band, age])  # (N, 2)
+        tau_i, tau_w = _tau_interpolation(model.tau_s[g])  # (N, 2): the group's τ between two grid points
         slow = mom.speed <= MAX_BLOCK_SPEED
-        w = w * slow[:, None]
-        self._pool(np.flatnonzero(slow), (g * self._n.shape[2] + band) * self._n.shape[3] + age, w, mom)
+        w, het = np.empty((len(g), 2)), np.empty((len(g), 2))
+        pool_blocks(mom.t, mom.sig, mom.r, slow, g, band, age, k, np.ascontiguousarray(model.correlation[g]),
+                    tau_i.astype(np.int64), tau_w, TAU_GRID_S, HUBER_C, self._Y, self._Ew, self._Et, self._n,
+                    self.window, w, het)
         self._interval += (float(mom.interval_s[slow].sum()), float(slow.sum()))
-        self._add_heterogeneity(g[slow], mom, model, k[slow], band[slow], age[slow], slow, w[slow])
+        self._add_heterogeneity(g[slow], het[slow], (mom.r[slow] ** 2).sum((1, 2)), w[slow])
         self.counts["blocks"] += int(slow.sum())
         self.counts["blocks_fast"] += int((~slow).sum())
         self.counts["blocks_downweighted"] += int(((w < 1.0) & slow[:, None]).any(axis=1).sum())
         self._dirty = True
 
-    def _pool(self, rows: NDArray[np.int64], cell: NDArray[np.int64], w: F64, mom: BlockMoments) -> None:
-        """Add the weighted moments of blocks ``rows`` to their (group, band, age) cells: per cell, the sums of
-        r rᵀ, L Rᵀ and Lt Rtᵀ over its blocks are each one matrix product of the blocks' factors side by side,
-        and Σ w Φ one weighted sum, written into the leading n × n of the pooled W × W sums. (Blocks of weight 0
-        — too fast — are left out: adding 0 changes nothing.)"""
-        if rows.size == 0:
-            return
-        _, _, nbands, nages = self._n.shape
-        n, W, T = mom.size, self.window, len(TAU_GRID_S)
-        order = rows[np.argsort(cell[rows], kind="stable")]
-        cuts = np.flatnonzero(np.diff(cell[order])) + 1
-        Y = self._Y.reshape(*self._Y.shape[:-1], W, W)
-        Ew = self._Ew.reshape(*self._Ew.shape[:-1], W, W)
-        Et = self._Et.reshape(*self._Et.shape[:-2], W, W, T)
-        for run in np.split(order, cuts):
-            c = int(cell[run[0]])
-            gi, rest = divmod(c, nbands * nages)
-            bi, yi = divmod(rest, nages)
-            wr = w[run].T  # (2, B)
-            r = mom.r[run].transpose(1, 2, 0)  # (2, n, B)
-            y_sum = (r * wr[:, None, :]) @ np.swapaxes(r, -1, -2)  # (2, n, n)
-            L = (mom.L[run] * w[run][:, :, None, None]).transpose(1, 2, 0, 3).reshape(2, n, -1)
-            R = mom.R[run].transpose(1, 2, 0, 3).reshape(2, n, -1)
-            built_w = (wr * mom.built[run]).sum(1)  # (2,) the weight of the identity's blocks
-            ew_sum = built_w[:, None, None] * np.eye(n) - L @ np.swapaxes(R, -1, -2)
-            Lt = (mom.Lt[run] * w[run][:, :, None, None, None]).transpose(1, 2, 3, 0, 4).reshape(2, T, n, -1)
-            Rt = mom.Rt[run].transpose(1, 2, 3, 0, 4).reshape(2, T, n, -1)
-            phi_sum = np.tensordot(wr, mom.phi[run], axes=(1, 0))  # (2, T, n, n)
-            et_sum = phi_sum - Lt @ np.swapaxes(Rt, -1, -2)
-            Y[gi, :, bi, yi, :n, :n] += y_sum  # both axes of the cell at once
-            Ew[gi, :, bi, yi, :n, :n] += ew_sum
-            Et[gi, :, bi, yi, :n, :n] += np.moveaxis(et_sum, 1, -1)
-            self._n[gi, :, bi, yi] += wr.sum(1)
-
-    def _add_heterogeneity(self, g: NDArray[np.int64], mom: BlockMoments, model: NoiseModel, k: F64,
-                           band: NDArray[np.int64], age: NDArray[np.int64], sel: NDArray[np.bool_], w: F64) -> None:
+    def _add_heterogeneity(self, g: NDArray[np.int64], het: F64, S0: F64, w: F64) -> None:
         """Pool, per group, the spread of the blocks' own scales around the model's: y_b = log(q_b) minus the
         mean of log(χ²_ν/ν), q_b = S_b / E[S_b] (both axes together), ν_b the block's Satterthwaite degrees
-        of freedom. Var(y) − mean ψ'(ν_b/2) estimates Var(log λ) of the tracks' own scales (the rest is the
-        χ² spread of a block) — an empirical-Bayes estimate of the per-track prior ν₀."""
-        if not sel.any():
-            return
-        from scipy.special import digamma, polygamma  # type: ignore[import-untyped]
-
-        # Q = k[(1 − m) Ew + m Et(τ)] per block and axis, Et interpolated between the two grid τ around the
-        # group's (as expected_moments, on just those two slices), formed from the factors of those slices only
-        i, wt_tau = _tau_interpolation(model.tau_s[g])  # (nb, 2)
-        rows = np.flatnonzero(sel)
-        Bt = ((1 - wt_tau)[..., None, None] * mom.correlated(rows, i)
-              + wt_tau[..., None, None] * mom.correlated(rows, i + 1))
-        m = model.correlation[g][..., None, None]
-        Q = k[..., None, None] * ((1 - m) * mom.white(rows) + m * Bt)  # (nb, 2, n, n)
-        trace = np.einsum("naii->n", Q)
-        trace2 = (Q * Q).sum((1, 2, 3))
-        S0 = (mom.r[rows] ** 2).sum((1, 2))
+        of freedom (tr Q)² / ‖Q‖²_F from ``het`` = (tr Q, ‖Q‖²_F), Q the model's covariance of the block's
+        residuals (:func:`~.block_kernel.pool_blocks`); ``S0`` = the block's Σ r². Var(y) − mean ψ'(ν_b/2)
+        estimates Var(log λ) of the tracks' own scales (the rest is the χ² spread of a block) — an
+        empirical-Bayes estimate of the per-track prior ν₀."""
+        trace, trace2 = het[:, 0], het[:, 1]
         ok = (trace > 0) & (trace2 > 0) & (S0 > 0)
         if not ok.any():
             return
+        from scipy.special import digamma, polygamma  # type: ignore[import-untyped]
+
         nu = trace[ok] ** 2 / trace2[ok]
         y = np.log(S0[ok] / trace[ok]) - (digamma(nu / 2) - np.log(nu / 2))
         wt = w[ok].min(axis=1)  # a down-weighted block counts less here too
@@ -688,7 +603,7 @@ class OnlineCalibration:
 
     def _track_dof(self) -> F64:
         """ν₀ per group from the pooled heterogeneity (group, else all groups, else the prior), bounded."""
-        from scipy.special import polygamma  # type: ignore[import-untyped]
+        grid, trigamma = _track_dof_grid()
 
         def solve(h: F64) -> float:
             if h[3] < MIN_HETEROGENEITY_BLOCKS:
@@ -697,8 +612,7 @@ class OnlineCalibration:
             var_log_lambda = h[1] / h[3] - mean * mean - h[2] / h[3]
             if var_log_lambda <= 0:
                 return TRACK_DOF_BOUNDS[1]
-            grid = np.geomspace(*TRACK_DOF_BOUNDS, 400)  # ψ'(ν/2) decreases in ν
-            return float(grid[np.argmin(np.abs(polygamma(1, grid / 2) - var_log_lambda))])
+            return float(grid[np.argmin(np.abs(trigamma - var_log_lambda))])
 
         overall = solve(self._het.sum(axis=0))
         fallback = PRIOR_TRACK_DOF if math.isnan(overall) else overall
@@ -805,22 +719,37 @@ class OnlineCalibration:
 
     def _fit(self) -> NoiseModel:
         Y, Ew, Et, n = self._Y, self._Ew, self._Et, self._n
+        Y1, Ew1, Et1, n1 = Y.sum((2, 3)), Ew.sum((2, 3)), Et.sum((2, 3)), n.sum((2, 3))  # per group and axis
         # level 0: all groups, bands and ages, per axis; a weak prior at k = 1 and the prior shape (detectors are
         # often off by a factor: the data should win quickly here)
         ones = np.ones(2)
-        k0, m0, t0 = fit_shape(*self._pseudo(Y.sum((0, 2, 3)), Ew.sum((0, 2, 3)), Et.sum((0, 2, 3)),
-                                             n.sum((0, 2, 3)), ones, ones * PRIOR_CORRELATION,
-                                             ones * PRIOR_TAU_S, TOP_PRIOR_BLOCKS))
+        k0, m0, t0 = fit_shape(*self._pseudo(Y1.sum(0), Ew1.sum(0), Et1.sum(0), n1.sum(0), ones,
+                                             ones * PRIOR_CORRELATION, ones * PRIOR_TAU_S, TOP_PRIOR_BLOCKS))
         # level 1: per group and axis, shrunk to level 0
         g = len(GROUPS)
-        k1, m1, t1 = fit_shape(*self._pseudo(Y.sum((2, 3)), Ew.sum((2, 3)), Et.sum((2, 3)), n.sum((2, 3)),
-                                             np.broadcast_to(k0, (g, 2)), np.broadcast_to(m0, (g, 2)),
-                                             np.broadcast_to(t0, (g, 2))))
-        # level 2: the scale per band and age, with the group's shape, shrunk to the group's scale
-        cells = Y.shape[2:4]
-        kb, mb, tb = (np.broadcast_to(x[:, :, None, None], (*x.shape, *cells)) for x in (k1, m1, t1))
-        Yp, Wp, Tp = self._pseudo(Y, Ew, Et, n, kb, mb, tb)
-        E = expected_moments(Wp, Tp, np.ones_like(kb), mb, tb)  # per unit scale
+        k1, m1, t1 = fit_shape(*self._pseudo(Y1, Ew1, Et1, n1, np.broadcast_to(k0, (g, 2)),
+                                             np.broadcast_to(m0, (g, 2)), np.broadcast_to(t0, (g, 2))))
+        # level 2: the scale per band and age, with the group's shape, shrunk to the group's scale — what
+        # _pseudo and expected_moments do at levels 0 and 1, written out for one τ per group: everything here is
+        # linear in the correlated sums, so they are interpolated at the group's τ first (in log τ, as
+        # expected_moments does) and the rest works on one n² slice per cell rather than the whole grid
+        i, w = _tau_interpolation(t1)  # (G, 2)
+        cw, ct = canonical_moments(self.window)
+        cw, ct = cw.reshape(-1), ct.reshape(len(TAU_GRID_S), -1)
+        lead = (slice(None), slice(None), None, None)  # (G, 2) → (G, 2, B, Y)
+
+        def at_tau(a: F64) -> F64:  # (G, 2, B, Y, n², T) → (G, 2, B, Y, n²)
+            pick = lambda j: np.take_along_axis(a, j[(*lead, None, None)], axis=-1)[..., 0]  # noqa: E731
+            return (1 - w)[(*lead, None)] * pick(i) + w[(*lead, None)] * pick(i + 1)
+
+        ct_tau = ((1 - w)[..., None] * ct[i] + w[..., None] * ct[i + 1])[lead]  # (G, 2, 1, 1, n²)
+        have = n[..., None] > 1e-9
+        safe_n = np.where(have, n[..., None], 1.0)
+        Et_tau = at_tau(Et)
+        Wbar, Tbar = np.where(have, Ew / safe_n, cw), np.where(have, Et_tau / safe_n, ct_tau)
+        kb, mb, n0 = k1[(*lead, None)], m1[(*lead, None)], self.prior_blocks
+        Yp = Y + n0 * kb * ((1 - mb) * Wbar + mb * Tbar)
+        E = (1 - mb) * (Ew + n0 * Wbar) + mb * (Et_tau + n0 * Tbar)  # per unit scale
         k2 = np.clip((Yp * E).sum(-1) / np.maximum((E * E).sum(-1), 1e-300), *SCALE_BOUNDS)
         dt = self._interval[0] / self._interval[1] if self._interval[1] > 0 else CANONICAL_DT_S
         scale_dof = PRIOR_SCALE_DOF + BLOCK_DOF * float(n.sum((0, 2, 3)).min())  # all classes, the poorer axis

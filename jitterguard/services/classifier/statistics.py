@@ -23,6 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .calibration import SCALE_BOUNDS, NoiseModel
+from .calibration import warm_up as calibration_warm_up
 from .window_kernel import CLUSTER, INDEPENDENT, MEASURED, calibrated_windows
 
 F64 = NDArray[np.float64]
@@ -213,14 +214,15 @@ _MODES = {"cluster": CLUSTER, "independent": INDEPENDENT, "measured": MEASURED}
 
 
 def warm_up() -> None:
-    """Compile (or load from numba's cache) the calibrated statistic now, so a service pays it at start rather
-    than on its first frame."""
+    """Compile (or load from numba's cache) the calibrated statistic and the online calibration's pooling now, so
+    a service pays it at start rather than on its first frames."""
     masks = split_halves(np.zeros(1, dtype=np.int64), np.array([4]), 4)
     win = np.zeros((1, 4, len(CHANNELS)))
     win[0, :, 2] = win[0, :, 4] = 0.01
     win[0, :, 5] = np.arange(4) * 0.1
     calibrated_statistics(win, masks, np.zeros(1, dtype=np.int64), NoiseModel.prior(), variance_floor=1e-4,
                           effective_n="measured", track_scale_prior=False)
+    calibration_warm_up()
 
 
 def t_to_z(t: F64, dof: F64) -> F64:

@@ -95,6 +95,6 @@ class MeasurementScale:
         if not ok.any():
             return
         blk = blk[ok]
-        mom = block_moments(t[ok], blk[..., 0:2], blk[..., 2:5], blk[..., 6:8], skip_fast=True)
+        mom = block_moments(t[ok], blk[..., 0:2], blk[..., 2:5], blk[..., 6:8])
         young = (tracks.obs_seen[rows[ok]] - n) < self.window  # the block starts among the track's first
         self.online.add(group_of_labels(tracks.label[rows[ok]]), mom, young)

@@ -31,6 +31,7 @@ from ...runtime.gc_policy import IdleCollector, manage_gc_for_latency
 from ...schemas import DecodeError, DetectedColumns, keys, peek_header, read_detected_objects
 from ...schemas.models import MotionState
 from ...stream_order import Verdict
+from ..classifier.calibration import warm_up as calibration_warm_up
 from .adapter import detection_frame, observation_payloads, tracked_payload
 from .config import TrackerConfig, default_config
 from .core import FrameRejected, TrackerCore
@@ -59,6 +60,8 @@ class TrackerService(Service):
         :mod:`jitterguard.runtime.gc_policy`; for the ``jitterguard tracker`` process, not for embedders)."""
         # build the core before the session opens: a bad config must fail before anything is on the network
         self.core = TrackerCore(config or default_config(), id_factory)
+        if self.core.scale is not None:  # the measurement scale's compiled pooling, loaded now, not mid-stream
+            calibration_warm_up()
         self.static_hints = static_hints
         self._hints: list[MotionState] = []
         self._hints_lock = threading.Lock()
