@@ -544,6 +544,51 @@ def test_factored_moments_and_their_pooling_match_the_dense_products() -> None:
         np.testing.assert_allclose(getattr(cal, name), value, rtol=1e-9, atol=1e-9, err_msg=name)
 
 
+def test_garbage_blocks_neither_raise_nor_poison_the_sums() -> None:
+    """Whatever a broken upstream sends — NaN or infinite stamps, positions and covariances, stamps far beyond any
+    clock, zero, negative or absurd covariances, repeated stamps, stamps out of order — the pooling raises
+    nothing, every block is counted once (pooled, fast or invalid), the sums stay finite and the fitted scales
+    stay in their bounds; the sound blocks of the batch are still learnt."""
+    rng = np.random.default_rng(5)
+    for trial in range(20):
+        t, pos, cov, sensor = blocks(rng, 30, 2.0, 0.4, 0.5)
+        n_bad = 20
+        rows = rng.choice(30, n_bad, replace=False)
+        for r in rows:
+            j = rng.integers(0, t.shape[1])
+            kind = rng.integers(0, 9)
+            if kind == 0:
+                t[r, j] = np.nan
+            elif kind == 1:
+                pos[r, j, rng.integers(0, 2)] = rng.choice([np.nan, np.inf, -np.inf])
+            elif kind == 2:
+                cov[r, j, rng.integers(0, 3)] = rng.choice([np.nan, np.inf])
+            elif kind == 3:
+                t[r] = rng.choice([1e200, -1e160, 1e20])
+            elif kind == 4:
+                cov[r] = rng.choice([0.0, -1.0, 1e120, 1e-300])
+            elif kind == 5:
+                t[r] = t[r, 0]  # one stamp repeated: no line in time
+            elif kind == 6:
+                t[r] = rng.permutation(t[r])  # out of order
+            elif kind == 7:
+                pos[r] += 1e160
+            else:
+                sensor[r, j] = np.nan
+        groups, young = rng.integers(0, len(GROUPS), 30), rng.random(30) < 0.3
+        cal = OnlineCalibration()
+        cal.advance(100.0 + trial)
+        cal.add(groups, block_moments(t, pos, cov, sensor), young)
+        c = cal.counts
+        assert c["blocks"] + c["blocks_fast"] + c["blocks_invalid"] == 30, (trial, c)
+        assert c["blocks"] >= 10  # the 10 untouched blocks at least (still, so slow) are pooled
+        for name in ("_Y", "_Ew", "_Et", "_n", "_het"):
+            assert np.isfinite(getattr(cal, name)).all(), (trial, name)
+        model = cal.refit()
+        assert np.isfinite(model.scale).all() and (model.scale >= SCALE_BOUNDS[0]).all()
+        assert (model.scale <= SCALE_BOUNDS[1]).all() and np.isfinite(model.track_dof).all()
+
+
 def test_fast_and_broken_blocks_are_counted_not_pooled() -> None:
     """Blocks faster than MAX_BLOCK_SPEED are counted and add nothing (the compiled pooling skips their work) and
     broken ones (positions near the float limit) are counted invalid: a mix pools exactly — bit for bit, sums,
