@@ -66,6 +66,9 @@ def eval_command(
     calibration: Annotated[str | None, typer.Option("--calibration", help="online (default), off or file.")] = None,
     calibration_file: Annotated[Path | None, typer.Option("--calibration-file", help="YAML from `jitterguard "
                                                           "calibrate`; implies --calibration file.")] = None,
+    mode: Annotated[str | None, typer.Option("--mode", help="The test scored against the speed threshold: z_test "
+                                             "(default; the paper's max over two axes) or chi2 (the 2-D statistic "
+                                             "at the same nominal rate as one axis).")] = None,
     effective_n: Annotated[str | None, typer.Option("--effective-n", help="measured (default), cluster or "
                                                     "independent.")] = None,
     min_speed: Annotated[float | None, typer.Option("--min-speed", help="The test's H0 speed bound, m/s "
@@ -130,7 +133,11 @@ def eval_command(
         fail("--variance-scale must be in [0.001, 1000]")
     if variance_scale_at not in ("detector", "classifier"):
         fail(f"--variance-scale-at: expected detector or classifier, got {variance_scale_at!r}")
+    if mode is not None and mode not in ("z_test", "chi2"):
+        fail(f"--mode: expected z_test or chi2, got {mode!r} (the speed threshold is always scored beside it)")
     upd: dict[str, Any] = dict(PRESETS[preset]) if preset else {}
+    if mode is not None:
+        upd["mode"] = mode
     if alpha is not None:
         upd.update(alpha_default=alpha, alpha_per_class={})
     if velocity_threshold is not None:
@@ -370,6 +377,7 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
                 "view_slide_m_per_class": dict(classifier.view_slide_m_per_class),
                 "min_window": classifier.min_window, "window_size": rec.window_size,
                 "window_stride": rec.window_stride, "window_reference_hz": classifier.window_reference_hz,
+                "mode": "chi2" if classifier.mode == "chi2" else "z_test",
                 "calibration": classifier.calibration, "effective_n": classifier.effective_n,
                 "min_speed_mps": classifier.min_speed_mps, "variance_scale": variance_scale,
                 "variance_scale_at": variance_scale_at,

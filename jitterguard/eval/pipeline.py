@@ -74,7 +74,7 @@ def match_tracks(track_xy: NDArray[np.float64], gt_xy: NDArray[np.float64],
 class Records:
     """One row per (frame, observed track): the tracker/classifier outputs and the matched ground truth.
 
-    ``z`` is max(z_x, z_y) of the z-test core; ``speed`` the tracker's speed (what the velocity-threshold rule
+    ``z`` is max(z_x, z_y) of the z-test core (with ``mode: chi2``, the normal score of its χ², :func:`chi2_as_z`); ``speed`` the tracker's speed (what the velocity-threshold rule
     reads, against its per-class ``speed_threshold``); ``state_z`` / ``state_v`` the two cores' decisions
     (0 undecided, 1 static, 2 dynamic). ``group`` is the matched object's evaluation group, '' for tracks
     matched to no ground truth (ghosts: scored as static truth in ``ghost.*`` by ``track_group``, the group
@@ -138,7 +138,8 @@ def run_pipeline(frames: Iterable[GroundTruthFrame], noise: NoiseConfig, seed: i
                  calibration: OnlineCalibration | None = None, variance_scale: float = 1.0,
                  calibration_model: NoiseModel | None = None, variance_scale_at: str = "detector",
                  on_frame: Callable[[JoinedFrame], None] | None = None) -> Records:
-    """Run GT → DetectionModel → TrackerCore → MotionClassifierCore (z_test and velocity_threshold).
+    """Run GT → DetectionModel → TrackerCore → MotionClassifierCore (the test — z_test, or chi2 where ``classifier``
+    says so — and velocity_threshold).
 
     ``classifier`` supplies alpha / window / velocity threshold; its ``mode`` is overridden per core.
     ``progress`` wraps the frame iterable (e.g. tqdm) — the caller's choice, so this stays I/O-free. The other
@@ -174,7 +175,8 @@ def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame | None, bytes]],
                        variance_scale: float = 1.0, calibration_model: NoiseModel | None = None,
                        variance_scale_at: str = "detector",
                        on_frame: Callable[[JoinedFrame], None] | None = None) -> Records:
-    """TrackerCore → MotionClassifierCore (z_test and velocity_threshold) over (ground truth, detections) pairs.
+    """TrackerCore → MotionClassifierCore (the test — z_test, or chi2 where ``classifier`` says so — and
+    velocity_threshold) over (ground truth, detections) pairs.
 
     The detections are the ``DetectedObjects`` payloads that feed the live tracker — the noise model's output as
     the replay publishes it, or the detector service's — so both ``--input`` modes share everything from here on;
@@ -197,7 +199,8 @@ def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame | None, bytes]],
     base = classifier or ClassifierConfig()
     trk = TrackerCore(tracker or default_config(), _id_factory())
     limits = trk.config.limits
-    adapter_z = ClassifierAdapter(base.model_copy(update={"mode": "z_test"}), limits=limits,
+    test_mode = "chi2" if base.mode == "chi2" else "z_test"  # the test scored against the threshold
+    adapter_z = ClassifierAdapter(base.model_copy(update={"mode": test_mode}), limits=limits,
                                   calibration_model=calibration_model, calibration=calibration)
     # the baseline reads only speeds: it needs no calibration
     adapter_v = ClassifierAdapter(base.model_copy(update={"mode": "velocity_threshold", "calibration": "off"}),
@@ -234,7 +237,7 @@ def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame | None, bytes]],
         cols["seq"].append(np.full(n, gt.seq))
         cols["track_id"].append(obs.track_ids.astype("U32"))
         cols["label"].append(obs.labels.astype(np.int64))
-        cols["z"].append(np.maximum(dz.z_x, dz.z_y))
+        cols["z"].append(np.maximum(dz.z_x, dz.z_y) if test_mode == "z_test" else chi2_as_z(dz.chi2))
         cols["speed"].append(np.asarray(obs.speed, dtype=np.float64))
         cols["window"].append(dz.window_length.astype(np.int64))
         cols["state_z"].append(dz.state.astype(np.int8))
@@ -270,6 +273,17 @@ def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame | None, bytes]],
         speed_threshold=cat("speed_threshold", np.float64), track_group=cat("track_group", "U12"),
         window_size=adapter_z.core.window, window_stride=adapter_z.core.stride,
     )
+
+
+def chi2_as_z(chi2: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The two-sided normal score with the χ²₂ value's tail probability, p = exp(−χ²/2): the ``chi2`` mode fires
+    exactly where this exceeds α (its threshold is the χ²₂ quantile of P(|Z| > α)), so the records' ``z`` means
+    one thing in either mode and the α sweep and PR curves score the test that decided (p floored at 1e-300:
+    a χ² beyond ~1380 reads as z ≈ 37)."""
+    from scipy.special import ndtri  # type: ignore[import-untyped]
+
+    p = np.clip(np.exp(-0.5 * np.asarray(chi2, dtype=np.float64)), 1e-300, 1.0)
+    return -ndtri(p / 2)
 
 
 def join_frame(joiner: FrameJoiner, gt: GroundTruthFrame, detections: bytes, tracked: bytes, out: FrameOutput,

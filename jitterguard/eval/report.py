@@ -285,12 +285,13 @@ def write_outputs(out: Path, rec: Records, metrics: dict[str, Any],
     metrics = finite_json(metrics)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2, sort_keys=True, allow_nan=False) + "\n")
     run = metrics["run"]
+    test = "χ² test (mode chi2: the `_z` columns are its decisions)" if run.get("mode") == "chi2" else "z-test"
     lines = [
         f"# jitterguard eval — {run['source']}",
         "",
         f"Input `{run['input']}`, {_input_desc(run)}, seed {run['seed']}, {run['frames']} frames, "
         f"{run['rows']} (frame, track) rows, {run['matched_rows']} matched to ground truth "
-        f"(≤ {run['match_distance_m']} m). Operating points: z-test alpha {run['alpha']} "
+        f"(≤ {run['match_distance_m']} m). Operating points: {test} alpha {run['alpha']} "
         f"(effective_n `{run.get('effective_n')}`, calibration `{run.get('calibration')}`, H0 speed ≤ "
         f"{run.get('min_speed_mps')} m/s"
         + (f", window {run['window_size']} observations" if run.get("window_size") else "")

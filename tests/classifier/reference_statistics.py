@@ -112,9 +112,10 @@ def _calibrated_statistics(windows: F64, masks: HalfMasks, groups: I64, model: N
     n_all = np.maximum(k_old + k_new, 1.0)
     z_x, z_y = np.abs(dx) / np.sqrt(a), np.abs(dy) / np.sqrt(c)
     chi2 = (c * dx * dx - 2.0 * b * dx * dy + a * dy * dy) / det
-    if lam is not None:  # Student-t with the window's degrees of freedom, reported as a z
+    if lam is not None:  # Student-t with the window's degrees of freedom, reported as a z; T² as a χ²₂
         z_x = t_to_z(z_x, nu)
         z_y = t_to_z(z_y, nu)
+        chi2 = nu * np.log(1.0 + chi2 / nu)  # −2 ln of F(2, ν)'s survival at T²/2
     return WindowStats(
         z_x=z_x,
         z_y=z_y,

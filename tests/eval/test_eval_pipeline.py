@@ -53,6 +53,33 @@ def test_both_rules_decide_identical_rows(records) -> None:
     assert records.gt_dynamic[veh].any() and (~records.gt_dynamic[veh]).any()
 
 
+def test_chi2_mode_is_scored_as_the_test_that_decides(records) -> None:
+    """``mode: chi2`` puts the χ² test in the z-test's place: its records' ``z`` (the normal score of χ²) exceeds α
+    exactly where it called a window dynamic, so rates, α sweeps and PR curves score the χ² decisions; on the same
+    tracks it decides differently from max(z_x, z_y) somewhere, and the speed threshold's rows are untouched."""
+    chi = run_pipeline(make_scenario("parking-street", 3, duration_s=5.0, rate_hz=10.0),
+                       NOISE_PRESETS["jittery"](), 3, ClassifierConfig(mode="chi2"))
+    decided = chi.window >= chi.min_window
+    np.testing.assert_array_equal((chi.state_z == DYNAMIC)[decided], chi.z[decided] > chi.alpha[decided])
+    np.testing.assert_array_equal(chi.state_v, records.state_v)
+    np.testing.assert_array_equal(chi.window, records.window)
+    assert (chi.state_z != records.state_z).any()
+
+
+def test_eval_cli_mode_chi2_and_a_bad_mode(tmp_path: Path, capsys) -> None:
+    out = tmp_path / "ev"
+    with pytest.raises(SystemExit) as exc:
+        main(["eval", "--scenario", "parking-street", "--seed", "1", "--duration", "5", "--mode", "chi2",
+              "--out", str(out)])
+    assert exc.value.code == 0
+    assert json.loads((out / "metrics.json").read_text())["run"]["mode"] == "chi2"
+    assert "χ² test" in (out / "report.md").read_text()
+    with pytest.raises(SystemExit) as exc:
+        main(["eval", "--scenario", "parking-street", "--mode", "velocity_threshold", "--out", str(out)])
+    assert exc.value.code == 2
+    assert "--mode" in capsys.readouterr().err
+
+
 def test_cli_writes_report_metrics_and_figures(tmp_path: Path, capsys) -> None:
     out = tmp_path / "ev"
     with pytest.raises(SystemExit) as exc:
