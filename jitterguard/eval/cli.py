@@ -255,7 +255,7 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
     from ..services.classifier.calibration import OnlineCalibration
     from ..services.classifier.core import MotionClassifierCore
     from .metrics import REPORT_GROUPS, alpha_from_labels, compute_metrics, planner_metrics, run_metrics
-    from .pipeline import MATCH_DISTANCE_M, NOISE_PRESETS, Records, concat_records, run_pipeline
+    from .pipeline import MATCH_DISTANCE_M, NOISE_PRESETS, Records, concat_records, run_pipeline, scored_test
     from .report import write_outputs
     from ..services.tracker.config import default_config as default_tracker_config
 
@@ -377,7 +377,7 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
                 "view_slide_m_per_class": dict(classifier.view_slide_m_per_class),
                 "min_window": classifier.min_window, "window_size": rec.window_size,
                 "window_stride": rec.window_stride, "window_reference_hz": classifier.window_reference_hz,
-                "mode": "chi2" if classifier.mode == "chi2" else "z_test",
+                "mode": scored_test(classifier),
                 "calibration": classifier.calibration, "effective_n": classifier.effective_n,
                 "min_speed_mps": classifier.min_speed_mps, "variance_scale": variance_scale,
                 "variance_scale_at": variance_scale_at,

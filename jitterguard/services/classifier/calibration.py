@@ -445,13 +445,17 @@ def _tau_interpolation(tau_s: F64) -> tuple[NDArray[np.int64], F64]:
     return i, (x - lt[i]) / (lt[i + 1] - lt[i])
 
 
+def at_tau(B: F64, tau_s: F64) -> F64:
+    """B (…, L, T), given on the grid of correlation times, at τ = ``tau_s`` (its leading axes broadcast against
+    B's): interpolated between the two grid points around it, linearly in log τ."""
+    i, w = _tau_interpolation(tau_s)
+    pick = lambda j: np.take_along_axis(B, j[..., None, None], axis=-1)[..., 0]  # noqa: E731
+    return (1 - w)[..., None] * pick(i) + w[..., None] * pick(i + 1)
+
+
 def expected_moments(A: F64, B: F64, k: F64, m: F64, tau_s: F64) -> F64:
     """k[(1 − m) A + m B(τ)] with τ interpolated on the grid in log τ (broadcast over leading axes)."""
-    i, w = _tau_interpolation(tau_s)
-    Bi = np.take_along_axis(B, i[..., None, None].repeat(B.shape[-2], -2), -1)[..., 0]
-    Bj = np.take_along_axis(B, (i + 1)[..., None, None].repeat(B.shape[-2], -2), -1)[..., 0]
-    Bt = (1 - w)[..., None] * Bi + w[..., None] * Bj
-    return np.asarray(k)[..., None] * ((1 - np.asarray(m))[..., None] * A + np.asarray(m)[..., None] * Bt)
+    return np.asarray(k)[..., None] * ((1 - np.asarray(m))[..., None] * A + np.asarray(m)[..., None] * at_tau(B, tau_s))
 
 
 @lru_cache(maxsize=1)
@@ -731,21 +735,16 @@ class OnlineCalibration:
                                              np.broadcast_to(m0, (g, 2)), np.broadcast_to(t0, (g, 2))))
         # level 2: the scale per band and age, with the group's shape, shrunk to the group's scale — what
         # _pseudo and expected_moments do at levels 0 and 1, written out for one τ per group: everything here is
-        # linear in the correlated sums, so they are interpolated at the group's τ first (in log τ, as
-        # expected_moments does) and the rest works on one n² slice per cell rather than the whole grid
-        i, w = _tau_interpolation(t1)  # (G, 2)
-        cw, ct = canonical_moments(self.window)
-        cw, ct = cw.reshape(-1), ct.reshape(len(TAU_GRID_S), -1)
+        # linear in the correlated sums, so they are taken at the group's τ first (at_tau) and the rest works on
+        # one n² slice per cell rather than the whole grid
         lead = (slice(None), slice(None), None, None)  # (G, 2) → (G, 2, B, Y)
-
-        def at_tau(a: F64) -> F64:  # (G, 2, B, Y, n², T) → (G, 2, B, Y, n²)
-            pick = lambda j: np.take_along_axis(a, j[(*lead, None, None)], axis=-1)[..., 0]  # noqa: E731
-            return (1 - w)[(*lead, None)] * pick(i) + w[(*lead, None)] * pick(i + 1)
-
-        ct_tau = ((1 - w)[..., None] * ct[i] + w[..., None] * ct[i + 1])[lead]  # (G, 2, 1, 1, n²)
+        tau = t1[lead]
+        cw, ct = canonical_moments(self.window)
+        cw, ct = cw.reshape(-1), np.swapaxes(ct.reshape(len(TAU_GRID_S), -1), 0, 1)  # (n²,), (n², T)
+        ct_tau = at_tau(np.broadcast_to(ct, (*tau.shape, *ct.shape)), tau)  # (G, 2, 1, 1, n²)
+        Et_tau = at_tau(Et, tau)  # (G, 2, B, Y, n²)
         have = n[..., None] > 1e-9
         safe_n = np.where(have, n[..., None], 1.0)
-        Et_tau = at_tau(Et)
         Wbar, Tbar = np.where(have, Ew / safe_n, cw), np.where(have, Et_tau / safe_n, ct_tau)
         kb, mb, n0 = k1[(*lead, None)], m1[(*lead, None)], self.prior_blocks
         Yp = Y + n0 * kb * ((1 - mb) * Wbar + mb * Tbar)
