@@ -17,18 +17,19 @@ I64 = NDArray[np.int64]
 
 def reference_calibrated_statistics(windows: F64, masks: HalfMasks, groups: I64, model: NoiseModel, *,
                                     variance_floor: float, effective_n: str, track_scale_prior: bool = True,
-                                    min_speed: float = 0.0, view_slide: F64 | None = None) -> WindowStats:
+                                    min_speed: float = 0.0, view_slide: F64 | None = None,
+                                    contrast: F64 | None = None) -> WindowStats:
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
         st = _calibrated_statistics(windows, masks, groups, model, variance_floor=variance_floor,
                                     effective_n=effective_n, track_scale_prior=track_scale_prior, min_speed=min_speed,
-                                    view_slide=view_slide)
+                                    view_slide=view_slide, contrast=contrast)
     return WindowStats(z_x=_saturate(st.z_x), z_y=_saturate(st.z_y), chi2=_saturate(st.chi2),
                        mean_x=st.mean_x, mean_y=st.mean_y)
 
 
 def _calibrated_statistics(windows: F64, masks: HalfMasks, groups: I64, model: NoiseModel, *,
                            variance_floor: float, effective_n: str, track_scale_prior: bool,
-                           min_speed: float, view_slide: F64 | None) -> WindowStats:
+                           min_speed: float, view_slide: F64 | None, contrast: F64 | None = None) -> WindowStats:
     k_old, k_new = masks.n_old, masks.n_new
     valid = masks.old | masks.new
     pos = windows[..., 0:2]
@@ -55,6 +56,7 @@ def _calibrated_statistics(windows: F64, masks: HalfMasks, groups: I64, model: N
     half_empty = (k_old == 0) | (k_new == 0)  # one observation: no contrast, nothing to test
     dx = np.where(half_empty, 0.0, ((w_new - w_old) * pos[..., 0]).sum(1))
     dy = np.where(half_empty, 0.0, ((w_new - w_old) * pos[..., 1]).sum(1))
+    raw = (dx, dy)
     if min_speed > 0:  # H0 is |v| ≤ min_speed: shrink the displacement by what that speed explains
         t0 = np.where(valid, t, np.inf).min(1)  # times relative to the window's first: an epoch keeps its precision
         t_rel = np.where(valid, t - np.where(np.isfinite(t0), t0, 0.0)[:, None], 0.0)
@@ -100,11 +102,13 @@ def _calibrated_statistics(windows: F64, masks: HalfMasks, groups: I64, model: N
         lam, nu = track_scale(windows, valid, groups, model, ku, kv, vu, vv, u, v, model.track_dof[groups],
                               variance_floor, corr)
         a, b, c = a * lam, b * lam, c * lam
+    centre = (valid[..., None] * pos).sum(1) / np.maximum(valid.sum(1), 1)[:, None]  # (K, 2): the window mean
+    u_h0, _, _ = line_of_sight(np.broadcast_to(centre[:, None, :], pos.shape), sensor)
+    du = ((w_new - w_old)[..., None] * u_h0).sum(1)  # (K, 2): the view's contrast under H0
+    if contrast is not None:
+        contrast[:] = np.stack([raw[0], raw[1], a, b, c, du[:, 0], du[:, 1]])
     if view_slide is not None:  # the view term: s² times the outer product of the view's contrast under H0
-        centre = (valid[..., None] * pos).sum(1) / np.maximum(valid.sum(1), 1)[:, None]  # (K, 2): the window mean
-        u_h0, _, _ = line_of_sight(np.broadcast_to(centre[:, None, :], pos.shape), sensor)
-        contrast = ((w_new - w_old)[..., None] * u_h0).sum(1)  # (K, 2)
-        view = view_slide[:, None, None] ** 2 * contrast[:, :, None] * contrast[:, None, :]
+        view = view_slide[:, None, None] ** 2 * du[:, :, None] * du[:, None, :]
         a, b, c = a + view[:, 0, 0], b + view[:, 0, 1], c + view[:, 1, 1]
     a = np.maximum(a, 1e-300)
     c = np.maximum(c, 1e-300)

@@ -62,10 +62,18 @@ def test_compiled_statistic_matches_the_dense_reference(seed: int, effective_n: 
     for min_speed, view_slide in ((0.0, None), (0.1, None), (0.1, slides)):
         kw = dict(variance_floor=1e-4, effective_n=effective_n, track_scale_prior=prior, min_speed=min_speed,
                   view_slide=view_slide)
-        got = calibrated_statistics(win, masks, groups, model, **kw)
-        ref = reference_calibrated_statistics(win, masks, groups, model, **kw)
+        got_c, ref_c = np.full((7, 400), np.nan), np.full((7, 400), np.nan)
+        got = calibrated_statistics(win, masks, groups, model, contrast=got_c, **kw)
+        ref = reference_calibrated_statistics(win, masks, groups, model, contrast=ref_c, **kw)
         for name in ("z_x", "z_y", "chi2", "mean_x", "mean_y"):
             np.testing.assert_allclose(getattr(got, name), getattr(ref, name), rtol=1e-9, atol=1e-9, err_msg=name)
+        # what the view term's learning experiment weighs: the raw contrast, λ V before the term, Δū
+        np.testing.assert_allclose(got_c, ref_c, rtol=1e-9, atol=1e-12)
+        assert np.ptp(got_c[0]) > 1.0 and np.ptp(got_c[5]) > 0.0
+        if view_slide is None and min_speed == 0:
+            unshrunk = got_c[:2].copy()
+        else:  # the contrast is the one before H0's speed shrinks it
+            np.testing.assert_array_equal(got_c[:2], unshrunk)
         assert np.ptp(got.z_x) > 1.0  # the windows differ: a constant output would compare trivially
 
 

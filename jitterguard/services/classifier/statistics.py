@@ -146,7 +146,8 @@ def _window_statistics(windows: F64, masks: HalfMasks, *, variance_floor: float,
 
 def calibrated_statistics(windows: F64, masks: HalfMasks, groups: I64, model: NoiseModel, *,
                           variance_floor: float, effective_n: str, track_scale_prior: bool = True,
-                          min_speed: float = 0.0, view_slide: F64 | None = None) -> WindowStats:
+                          min_speed: float = 0.0, view_slide: F64 | None = None,
+                          contrast: F64 | None = None) -> WindowStats:
     """z_x, z_y and χ² with the reported covariances corrected by ``model`` (docs/calibration.md).
 
     Per observation j: the line of sight u_j from the sensor, v_j across it; the reported covariance Σ_j is
@@ -176,6 +177,10 @@ def calibrated_statistics(windows: F64, masks: HalfMasks, groups: I64, model: No
     The arithmetic runs compiled, one loop per window (:func:`~.window_kernel.calibrated_windows`, where the
     track scale's closed form is written out). A statistic that overflows saturates (:func:`_saturate`), as in
     :func:`window_statistics`.
+
+    ``contrast`` (optional, a (7, K) array) receives what the view term's learning weighs (:mod:`.view_slide`):
+    the displacement d (x, y; before H0's speed shrinks it), its covariance before the view term (λ V: xx, xy, yy) and
+    Δū (x, y).
     """
     k = len(groups)
     # the compiled loop does not check its indices: what numpy would refuse with an IndexError is refused here
@@ -190,7 +195,9 @@ def calibrated_statistics(windows: F64, masks: HalfMasks, groups: I64, model: No
         raise ValueError(f"view_slide: expected ({k},), got {np.shape(view_slide)}")
     if model.scale.shape[2] != len(model.band_edges_m) + 1 or model.scale.shape[3] < 2:
         raise ValueError(f"model.scale: expected (G, 2, {len(model.band_edges_m) + 1}, 2), got {model.scale.shape}")
-    out = np.zeros((6, k))
+    if contrast is not None and contrast.shape != (7, k):
+        raise ValueError(f"contrast: expected (7, {k}), got {contrast.shape}")
+    out = np.zeros((6 if contrast is None else 13, k))
     dof = model.test_dof(np.arange(model.scale.shape[0])) if track_scale_prior else np.ones(model.scale.shape[0])
     view = np.zeros(k) if view_slide is None else np.ascontiguousarray(view_slide, dtype=np.float64)
     calibrated_windows(np.ascontiguousarray(windows, dtype=np.float64), np.ascontiguousarray(masks.old),
@@ -202,7 +209,9 @@ def calibrated_statistics(windows: F64, masks: HalfMasks, groups: I64, model: No
                        np.ascontiguousarray(model.tau_s, dtype=np.float64), np.ascontiguousarray(dof, dtype=np.float64),
                        view, float(variance_floor), _MODES[effective_n], bool(track_scale_prior), float(min_speed),
                        float(SCALE_BOUNDS[0]), float(SCALE_BOUNDS[1]), out)
-    z_x, z_y, chi2, mean_x, mean_y, nu = out
+    if contrast is not None:
+        contrast[:] = out[6:]
+    z_x, z_y, chi2, mean_x, mean_y, nu = out[:6]
     if track_scale_prior:
         with np.errstate(invalid="ignore"):
             z = t_to_z(np.concatenate([z_x, z_y]), np.concatenate([nu, nu]))

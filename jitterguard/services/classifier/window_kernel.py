@@ -102,7 +102,10 @@ def calibrated_windows(windows, old, new, n_old_a, n_new_a, groups, scale, edges
     2 tr(UᵀR²V)] + ⟨UᵀU, LᵀL⟩ − 2⟨UᵀA, LᵀU⟩ + ⟨AᵀA, UᵀU⟩; ν_own = (tr Q)² / ‖Q‖², λ = (ν₀ + ν_own S / tr Q) /
     (ν₀ + ν_own) bounded to [``lam_lo``, ``lam_hi``], ν₀ = ``dof[group]``. Then the view term s² Δū Δūᵀ
     (s = ``view[k]``, Δū the contrast of the unit vectors from the sensor to the window mean), unscaled by λ.
-    H0 |v| ≤ ``min_speed`` shrinks the displacement by what that speed explains over the halves' time gap."""
+    H0 |v| ≤ ``min_speed`` shrinks the displacement by what that speed explains over the halves' time gap.
+    An ``out`` of 13 rows also receives, in rows 6–12, the displacement before that shrinking (x, y), the
+    contrast's covariance before the view term (xx, xy, yy) and Δū (x, y): ``statistics.calibrated_statistics``'s
+    ``contrast``."""
     k_n, w_n = windows.shape[0], windows.shape[1]
     n_edges = edges.shape[0]
     key = np.empty(w_n)
@@ -181,6 +184,7 @@ def calibrated_windows(windows, old, new, n_old_a, n_new_a, groups, scale, edges
             dx = dy = 0.0
         n_all = max(n_old + n_new, 1.0)
         mean_x, mean_y = sum_x / n_all, sum_y / n_all
+        raw_dx, raw_dy = dx, dy
         t0 = tt[0] if n > 0 else 0.0  # times relative to the window's first: an epoch stamp keeps its precision
         if min_speed > 0:  # H0 is |v| ≤ min_speed: shrink the displacement by what that speed explains
             gap = 0.0
@@ -347,12 +351,21 @@ def calibrated_windows(windows, old, new, n_old_a, n_new_a, groups, scale, edges
             vc *= lam
             out[5, k] = dof[g] + nu_own
         slide = view[k]
-        if slide != 0.0:  # s² Δū Δūᵀ: the centre's slide with the view (geometry, not noise: not scaled by λ)
-            du0 = du1 = 0.0
+        du0 = du1 = 0.0
+        if slide != 0.0 or out.shape[0] > 6:  # Δū: the contrast of the unit vectors to the window mean
             for i in range(n):
                 e0, e1, _ = _unit(mean_x - sen_x[i], mean_y - sen_y[i])
                 du0 += wv[i] * e0
                 du1 += wv[i] * e1
+        if out.shape[0] > 6:  # what the view term's learning weighs: the contrast (before H0's speed), its covariance before the term, Δū
+            out[6, k] = raw_dx
+            out[7, k] = raw_dy
+            out[8, k] = va
+            out[9, k] = vb
+            out[10, k] = vc
+            out[11, k] = du0
+            out[12, k] = du1
+        if slide != 0.0:  # s² Δū Δūᵀ: the centre's slide with the view (geometry, not noise: not scaled by λ)
             s2 = slide * slide
             va += s2 * du0 * du0
             vb += s2 * du0 * du1
