@@ -163,11 +163,12 @@ COMPONENTS: tuple[str, ...] = ("ground", "glass", "dropout", "noise", "roof", "m
 """What :func:`draw_effects` can switch on, one at a time (``parse_components``): uneven ground, glass, lost
 returns on road users, range noise, the ego's roof, mixed pixels, street clutter, open scenery (buildings
 left out) and measured intensities (without it: the ideal intensity model; ``no-intensity``: all zeros).
-``vegetation`` (irregular vegetation masses), ``limbs`` (pedestrians with swinging legs and arms) and ``pedal``
-(cyclists whose legs go round with the pedals) are opt-in:
+``vegetation`` (irregular vegetation masses), ``limbs`` (pedestrians with swinging legs and arms), ``pedal``
+(cyclists whose legs go round with the pedals) and ``clear-glass`` (glass passes 85–100 % of rays instead of
+``glass``'s 50–95 %: a vehicle's glass is nearly transparent at the LiDAR's 905 nm) are opt-in:
 ``random`` leaves them out, so the scans of every recipe written before they existed are cast as they were."""
 
-OPT_IN_COMPONENTS: tuple[str, ...] = ("no-intensity", "vegetation", "limbs", "pedal")
+OPT_IN_COMPONENTS: tuple[str, ...] = ("no-intensity", "vegetation", "limbs", "pedal", "clear-glass")
 """Components that ``random`` does not switch on; named in a comma list (``random,vegetation,limbs,pedal``)."""
 
 
@@ -226,13 +227,14 @@ def draw_effects(rng: np.random.Generator, components: Sequence[str] = COMPONENT
     clutter, clutter_seed = float(rng.uniform(0.05, 0.4)), int(rng.integers(2**31))
     drop = float(rng.uniform(0.0, 0.9))
     start = float(rng.uniform(-math.pi, math.pi))
-    vegetation = float(rng.uniform(0.1, 0.5))  # drawn last: the draws above stay those of earlier recipes
+    vegetation = float(rng.uniform(0.1, 0.5))  # drawn after the rest: the draws above stay those of earlier recipes
+    clear = float(rng.uniform(0.85, 1.0))  # and this after it, for the same reason
     return ScanEffects(
         mount_offset_m=mount if s else 0.0,
         tilt=(float(tilt[0]), float(tilt[1])) if s else (0.0, 0.0),
         curvature=(float(curv[0]), float(curv[1]), float(curv[2])) if s else (0.0, 0.0, 0.0),
         undulation=tuple(und) if s else (),
-        glass_pass=glass if "glass" in on else 0.0,
+        glass_pass=clear if "clear-glass" in on else glass if "glass" in on else 0.0,
         object_dropout=dropout if "dropout" in on else 0.0,
         range_sigma_m=sigma if "noise" in on else None,
         intensity="measured" if "intensity" in on else ("none" if "no-intensity" in on else "legacy"),

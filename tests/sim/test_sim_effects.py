@@ -125,6 +125,20 @@ def test_vegetation_is_opt_in_keeps_the_other_draws_and_returns_from_several_dep
     assert np.median(spreads) > 0.5
 
 
+def test_clear_glass_is_opt_in_and_keeps_the_other_draws() -> None:
+    """``clear-glass`` draws the glass's pass-through from 85–100 % (``glass``: 50–95 %) and changes no other draw,
+    so the scans of earlier recipes are cast as they were (what glass that passes every ray does to a car's
+    returns: ``test_glass_dropout_and_the_roof_thin_the_returns`` above)."""
+    from jitterguard.sim.effects import parse_components
+
+    assert "clear-glass" not in parse_components("random")
+    for seed in range(20):
+        plain = draw_effects(np.random.default_rng(seed), parse_components("random"))
+        clear = draw_effects(np.random.default_rng(seed), parse_components("random,clear-glass"))
+        assert 0.85 <= clear.glass_pass <= 1.0 and 0.5 <= plain.glass_pass <= 0.95
+        assert clear == ScanEffects(**{**plain.__dict__, "glass_pass": clear.glass_pass})
+
+
 def test_drawn_effects_are_seeded_and_within_their_ranges() -> None:
     a = draw_effects(np.random.default_rng(9))
     assert a == draw_effects(np.random.default_rng(9)) and a != draw_effects(np.random.default_rng(10))

@@ -243,8 +243,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         effects: Annotated[str, typer.Option("--effects", help="Sim-to-real effects of the synthetic scans, drawn"
                                              " per scan: 'random' (all), 'none' (ideal scans), or a comma list of"
                                              " ground, glass, dropout, noise, roof, mixed, clutter, open, motion,"
-                                             " intensity, and the opt-in no-intensity, vegetation, limbs and pedal (not in"
-                                             " 'random': random,vegetation,limbs,pedal); several sets joined by '+' (e.g."
+                                             " intensity, and the opt-in no-intensity, vegetation, limbs, pedal and clear-glass"
+                                             " (not in 'random': random,vegetation,limbs,pedal); several sets joined by '+' (e.g."
                                              " none+random) train on"
                                              " the seeds cast once per set, validate on the first set.")] = "random",
         rotation: Annotated[float, typer.Option("--rotation", min=0.0, max=180.0, help="Global rotation"
