@@ -36,10 +36,11 @@ GRID = np.linspace(0.0, 6.0, 121)  # s [m] searched
 STATIC, MOVING, GHOST = 0, 1, 2
 
 
-def collect(pairs: dict, slide: float, group: str) -> np.ndarray:
+def collect(pairs: dict, slide: float, group: str, effective_n: str | None = None) -> np.ndarray:
     """(N, 8): the kernel's 7 contrast rows of every full window of ``group`` the evaluator scores or counts as a
     ghost, and its kind (static, moving, ghost). The classifier runs as ``jitterguard eval`` runs it, with the
-    vehicles' view term at ``slide``."""
+    vehicles' view term at ``slide``; ``effective_n`` (None: the classifier's) computes the contrast's covariance
+    under another mode on the same windows, the decisions unchanged."""
     log: dict = {}
     run = {"i": 0}
     original, statistic = core_mod.calibrated_statistics, MotionClassifierCore._statistics
@@ -47,7 +48,11 @@ def collect(pairs: dict, slide: float, group: str) -> np.ndarray:
 
     def hooked(windows, masks, groups, model, **kw):  # noqa: ANN001, ANN202, ANN003
         c = np.zeros((7, len(groups)))
-        out = original(windows, masks, groups, model, contrast=c, **kw)
+        if effective_n is None:
+            out = original(windows, masks, groups, model, contrast=c, **kw)
+        else:
+            out = original(windows, masks, groups, model, **kw)
+            original(windows, masks, groups, model, contrast=c, **{**kw, "effective_n": effective_n})
         last["c"], last["n"] = c, masks.n_old + masks.n_new
         return out
 
@@ -135,9 +140,11 @@ def main() -> None:
     input_arguments(ap)
     ap.add_argument("--slide", type=float, default=0.0, help="the vehicles' view term while the windows are collected")
     ap.add_argument("--group", default="vehicle", choices=("vehicle", "pedestrian"))
+    ap.add_argument("--effective-n", default=None, choices=("measured", "independent", "cluster"),
+                    help="the covariance C under this mode (the decisions keep the classifier's)")
     args = ap.parse_args()
     pairs = {s: detection_pairs(args, s) for s in _seeds(args.seeds)}
-    a = collect(pairs, args.slide, args.group)
+    a = collect(pairs, args.slide, args.group, args.effective_n)
     print("full windows", {k: int((a[:, 7] == v).sum()) for k, v in (("static", STATIC), ("moving", MOVING),
                                                                       ("ghost", GHOST))})
     diagnose(a)
