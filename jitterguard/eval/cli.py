@@ -81,6 +81,9 @@ def eval_command(
                                                      "truck, bus, trailer): how far a box centre slides per unit "
                                                      "turn of the line of sight, m (0: none; "
                                                      "view_slide_m_per_class).")] = None,
+    jump_veto: Annotated[bool, typer.Option("--jump-veto/--no-jump-veto", help="A window that one jump of the "
+                                            "box explains better than a constant velocity is not called dynamic "
+                                            "(jump_veto).")] = False,
     fixed_window: Annotated[bool, typer.Option("--fixed-window/--no-fixed-window", help="The window holds "
                                                "window_size observations of every frame at any frame rate "
                                                "(window_reference_hz: null).")] = False,
@@ -154,6 +157,8 @@ def eval_command(
         upd["view_slide_m_per_class"] = {} if view_slide == 0 else dict.fromkeys(vehicle_class_names(), view_slide)
     if fixed_window:
         upd["window_reference_hz"] = None
+    if jump_veto:
+        upd["jump_veto"] = True
     if speed_sustain:
         upd.update(PRESETS["autoware-sustain"])
     try:
@@ -375,6 +380,7 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
                 "velocity_sustain_s_per_class": dict(classifier.velocity_sustain_s_per_class),
                 "dynamic_hold_s_per_class": dict(classifier.dynamic_hold_s_per_class),
                 "view_slide_m_per_class": dict(classifier.view_slide_m_per_class),
+                "jump_veto": classifier.jump_veto,
                 "min_window": classifier.min_window, "window_size": rec.window_size,
                 "window_stride": rec.window_stride, "window_reference_hz": classifier.window_reference_hz,
                 "mode": scored_test(classifier),

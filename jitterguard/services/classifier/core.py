@@ -19,7 +19,8 @@ from numpy.typing import NDArray
 
 from ...schemas.models import ClassifierConfig
 from .calibration import MIN_BLOCK, NoiseModel, OnlineCalibration, block_moments, group_of_labels
-from .statistics import CHANNELS, WindowStats, calibrated_statistics, chi2_2_threshold, split_halves, window_statistics
+from .statistics import (CHANNELS, WindowStats, calibrated_statistics, chi2_2_threshold, jump_ratio, split_halves,
+                         window_statistics)
 
 F64 = NDArray[np.float64]
 IDS = NDArray[np.bytes_]
@@ -609,6 +610,8 @@ class MotionClassifierCore:
             else:
                 threshold = chi2_2_threshold(alpha)
                 reject = stats.chi2 > threshold
+            if cfg.jump_veto:  # a full window one jump explains better than steady motion is a re-placed box
+                reject &= ~(jump_ratio(t.ordered(rows, t.window), count, min_count=t.window) < 1.0)
             # dynamic once the test has rejected H0 on every decision for the class's hold (none: at once); the
             # microsecond spares a hold of whole frames the rounding of stamps in seconds
             reject &= decided

@@ -235,6 +235,46 @@ def warm_up() -> None:
     calibration_warm_up()
 
 
+def jump_ratio(windows: F64, count: I64, *, min_count: int = 6) -> F64:
+    """Per window, the residual sum of squares of its positions about the best single step (each side of one split
+    its own mean, the split shared by both axes, at least two observations a side) over that about the
+    least-squares constant-velocity line: below 1 a jump explains the window better than steady motion does.
+
+    Why: the half-mean contrast the z-test weighs is the same for a box the detector re-placed once (an occlusion
+    change, a box slid along the car) and for an object that moved as far; the shape of the window tells them
+    apart — a mover traces a ramp, a re-placed box a step. ``windows`` is ``(K, W, ≥6)`` over :data:`CHANNELS`
+    oldest first with each row's ``count`` newest observations in its last slots (``_Table.ordered``); rows with
+    fewer than ``min_count`` observations (at least 4: two a side; the classifier asks a full window, where a
+    short one's shape says little), a line that fits exactly, one instant for every stamp, or non-finite input
+    give inf (no evidence of a jump)."""
+    min_count = max(int(min_count), 4)
+    k, w = windows.shape[0], windows.shape[1]
+    out = np.full(k, np.inf)
+    ok = np.asarray(count) >= min_count
+    if not ok.any():
+        return out
+    n = np.asarray(count)[ok].astype(np.float64)
+    valid = np.arange(w)[None, :] >= (w - np.asarray(count)[ok])[:, None]
+    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+        xy = np.where(valid[..., None], windows[ok][..., :2], 0.0)
+        t = np.where(valid, windows[ok][..., 5], 0.0)
+        xy = np.where(valid[..., None], xy - (xy.sum(1) / n[:, None])[:, None, :], 0.0)  # centred: stamps and
+        t = np.where(valid, t - (t.sum(1) / n)[:, None], 0.0)  # positions far from 0 keep their precision
+        stt = (t * t).sum(1)
+        slope = (t[..., None] * xy).sum(1) / np.maximum(stt, 1e-300)[:, None]
+        sse_line = ((xy - t[..., None] * slope[:, None, :]) ** 2 * valid[..., None]).sum((1, 2))
+        csum, csq = np.cumsum(xy, 1), np.cumsum((xy * xy).sum(2), 1)
+        left_n = np.cumsum(valid, 1).astype(np.float64)
+        right_n = n[:, None] - left_n
+        left = csq - (csum * csum).sum(2) / np.maximum(left_n, 1.0)
+        rest = csum[:, -1:, :] - csum
+        right = (csq[:, -1:] - csq) - (rest * rest).sum(2) / np.maximum(right_n, 1.0)
+        sse_step = np.where((left_n >= 2) & (right_n >= 2), left + right, np.inf).min(1)
+        ratio = np.where((sse_line > 1e-12) & (stt > 0), sse_step / sse_line, np.inf)  # no line: no evidence
+    out[ok] = np.where(np.isfinite(ratio) | (ratio == np.inf), ratio, np.inf)
+    return out
+
+
 def t_to_z(t: F64, dof: F64) -> F64:
     """The standard-normal score with the same two-sided p-value as |t| under Student's t with ``dof``."""
     from scipy.special import ndtri, stdtr  # type: ignore[import-untyped]
