@@ -159,11 +159,12 @@ def _json_integer(value: Any) -> Any:
 def _strict_json(tp: Any, metadata: list[Any]) -> Any:
     """``tp`` with its constraints, accepting exactly the JSON values its JSON Schema type admits.
 
-    pydantic's lax mode would take ``false`` or ``"1.5"`` for a number (a client bug silently applied);
+    pydantic's lax mode would take ``false`` or ``"1.5"`` for a number, or ``0`` for a bool (a client bug silently
+    applied);
     its strict mode would refuse ``213.0`` for an integer, which JSON Schema calls an integer.
     """
-    if tp is float:
-        return Annotated[(float, Strict(), *metadata)]  # type: ignore[misc]
+    if tp in (float, bool):  # a bool is exactly true or false, never 0 or "yes"
+        return Annotated[(tp, Strict(), *metadata)]  # type: ignore[misc]
     if tp is int:
         # bounds before the validator, so the JSON Schema keeps them as minimum/maximum
         return Annotated[(int, *metadata, BeforeValidator(_json_integer))]  # type: ignore[misc]
