@@ -1,6 +1,6 @@
 """The jump veto measured (docs/classifier.md 'The jump veto'): the evaluator's tracker and classifier over each
 seed's cached detections, with and without ``jump_veto``, one online calibration per variant; vehicle and
-pedestrian false / missed / ghost rates (all scored rows, as ``jitterguard eval`` reports them).
+pedestrian false / missed / ghost rates (all scored rows, as ``jitterguard eval`` reports them; rows in brackets).
 
     .venv/bin/python scripts/jump_veto.py --scenario mixed --seeds 0-3 --input detector --cache DIR
 """
@@ -37,7 +37,10 @@ def main() -> None:
             static, moving, ghost = m & ~rec.gt_dynamic, m & rec.gt_dynamic, ghost_rows(rec, group)
 
             def rate(mask: np.ndarray, dynamic: bool) -> str:
-                return f"{np.mean((rec.state_z[mask] == DYNAMIC) == dynamic):.4f}" if mask.any() else "-"
+                if not mask.any():
+                    return "-"
+                hit = (rec.state_z[mask] == DYNAMIC) == dynamic
+                return f"{hit.mean():.4f} ({int(hit.sum())}/{int(mask.sum())})"
 
             out.append(f"{group[0].upper()} false {rate(static, True)} missed {rate(moving, False)} "
                        f"ghost {rate(ghost, True)}")

@@ -81,9 +81,9 @@ def eval_command(
                                                      "truck, bus, trailer): how far a box centre slides per unit "
                                                      "turn of the line of sight, m (0: none; "
                                                      "view_slide_m_per_class).")] = None,
-    jump_veto: Annotated[bool, typer.Option("--jump-veto/--no-jump-veto", help="A window that one jump of the "
-                                            "box explains better than a constant velocity is not called dynamic "
-                                            "(jump_veto).")] = False,
+    jump_veto: Annotated[bool, typer.Option("--jump-veto/--no-jump-veto", help="A full window that one jump of "
+                                            "the box explains better than steady motion is not called dynamic "
+                                            "(jump_veto; --no-jump-veto: the paper's test alone).")] = True,
     fixed_window: Annotated[bool, typer.Option("--fixed-window/--no-fixed-window", help="The window holds "
                                                "window_size observations of every frame at any frame rate "
                                                "(window_reference_hz: null).")] = False,
@@ -157,8 +157,8 @@ def eval_command(
         upd["view_slide_m_per_class"] = {} if view_slide == 0 else dict.fromkeys(vehicle_class_names(), view_slide)
     if fixed_window:
         upd["window_reference_hz"] = None
-    if jump_veto:
-        upd["jump_veto"] = True
+    if not jump_veto:
+        upd["jump_veto"] = False
     if speed_sustain:
         upd.update(PRESETS["autoware-sustain"])
     try:

@@ -74,7 +74,10 @@ def match_tracks(track_xy: NDArray[np.float64], gt_xy: NDArray[np.float64],
 class Records:
     """One row per (frame, observed track): the tracker/classifier outputs and the matched ground truth.
 
-    ``z`` is max(z_x, z_y) of the z-test core (with ``mode: chi2``, the normal score of its χ², :func:`chi2_as_z`); ``speed`` the tracker's speed (what the velocity-threshold rule
+    ``z`` is max(z_x, z_y) of the z-test core (with ``mode: chi2``, the normal score of its χ², :func:`chi2_as_z`),
+    0 where the jump veto called a rejecting window static (``vetoed``): the veto does not depend on α, so a vetoed
+    row is static at every α, and AP, α sweeps and ``matched`` score the decisions the classifier makes (below the
+    deployed α they count a window the veto never examined as unvetoed); ``speed`` the tracker's speed (what the velocity-threshold rule
     reads, against its per-class ``speed_threshold``); ``state_z`` / ``state_v`` the two cores' decisions
     (0 undecided, 1 static, 2 dynamic). ``group`` is the matched object's evaluation group, '' for tracks
     matched to no ground truth (ghosts: scored as static truth in ``ghost.*`` by ``track_group``, the group
@@ -102,6 +105,7 @@ class Records:
     track_group: NDArray[np.str_] = field(default_factory=lambda: np.empty(0, dtype="U12"))
     window_size: int = 10
     window_stride: int = 1  # the window took every k-th frame (a stream faster than window_reference_hz)
+    vetoed: NDArray[np.bool_] = field(default_factory=lambda: np.empty(0, dtype=bool))
 
     def __post_init__(self) -> None:
         """Tables built without the planner-view columns get neutral ones: no attribute, unknown speed, the
@@ -115,6 +119,8 @@ class Records:
             self.speed_threshold = np.full(n, float(self.velocity_threshold))
         if len(self.track_group) != n:
             self.track_group = np.asarray(self.group, dtype="U12").copy()
+        if len(self.vetoed) != n:
+            self.vetoed = np.zeros(n, dtype=bool)
 
     def __len__(self) -> int:
         return int(self.t_s.shape[0])
@@ -208,7 +214,7 @@ def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame | None, bytes]],
     joiner = FrameJoiner() if on_frame is not None else None
     cols: dict[str, list] = {k: [] for k in ("t_s", "seq", "track_id", "label", "z", "speed", "window", "state_z",
                                              "state_v", "gt_instance", "gt_dynamic", "group", "alpha",
-                                             "gt_attribute", "gt_speed", "speed_threshold", "track_group")}
+                                             "gt_attribute", "gt_speed", "speed_threshold", "track_group", "vetoed")}
     t0: int | None = None
     for gt, payload in inputs:
         det = scale_variances(read_detected_objects(payload, limits), at_detector)
@@ -237,7 +243,9 @@ def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame | None, bytes]],
         cols["seq"].append(np.full(n, gt.seq))
         cols["track_id"].append(obs.track_ids.astype("U32"))
         cols["label"].append(obs.labels.astype(np.int64))
-        cols["z"].append(np.maximum(dz.z_x, dz.z_y) if test_mode == "z_test" else chi2_as_z(dz.chi2))
+        score = np.maximum(dz.z_x, dz.z_y) if test_mode == "z_test" else chi2_as_z(dz.chi2)
+        cols["z"].append(np.where(dz.vetoed, 0.0, score))  # a vetoed window is static at every α
+        cols["vetoed"].append(dz.vetoed.astype(bool))
         cols["speed"].append(np.asarray(obs.speed, dtype=np.float64))
         cols["window"].append(dz.window_length.astype(np.int64))
         cols["state_z"].append(dz.state.astype(np.int8))
@@ -271,7 +279,7 @@ def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame | None, bytes]],
         alpha=cat("alpha", np.float64), velocity_threshold=float(base.velocity_threshold),
         min_window=int(base.min_window), gt_attribute=cat("gt_attribute", "U32"), gt_speed=cat("gt_speed", np.float64),
         speed_threshold=cat("speed_threshold", np.float64), track_group=cat("track_group", "U12"),
-        window_size=adapter_z.core.window, window_stride=adapter_z.core.stride,
+        window_size=adapter_z.core.window, window_stride=adapter_z.core.stride, vetoed=cat("vetoed", bool),
     )
 
 

@@ -453,10 +453,11 @@ class ClassifierConfig(Message):
         "no term — docs/classifier.md 'The view term')")
 
     jump_veto: bool = Field(
-        False, description="a full window that one jump of the box explains better than a constant velocity "
-        "(residuals about the best single step below those about the line) is not called "
-        "dynamic, whatever its test statistic: a detector that re-places a box once is not a moving object "
-        "(z_test and chi2 modes; docs/classifier.md 'The jump veto')")
+        True, description="a full window that one jump of the box explains better than steady motion "
+        "(residuals about the best single step below those about the constant-velocity line and about a stand "
+        "that starts or ends at one observation) is not called dynamic, whatever its test statistic: a detector "
+        "that re-places a box once is not a moving object (z_test and chi2 modes; false: the paper's test alone; "
+        "docs/classifier.md 'The jump veto')")
 
     @field_validator("alpha_per_class", "velocity_threshold_per_class", "velocity_sustain_s_per_class",
                      "dynamic_hold_s_per_class", "view_slide_m_per_class")

@@ -146,6 +146,7 @@ class Decisions:
     mean_y: F64
     speed: F64
     published: NDArray[np.bool_]  # the track has been in ``tracked`` (a tentative one has not: no decision goes out)
+    vetoed: NDArray[np.bool_]  # the test rejected H0 but the jump veto called the window static (not on the wire)
 
     def state_names(self) -> list[str]:
         return [STATE_NAMES[s] for s in self.state.tolist()]
@@ -175,7 +176,7 @@ class _Table:
     _LAST = {
         "state": np.int8, "z_x": np.float64, "z_y": np.float64, "chi2": np.float64, "alpha": np.float64,
         "threshold": np.float64, "mean_x": np.float64, "mean_y": np.float64, "speed": np.float64,
-        "stamp_ns": np.int64, "seq": np.int64,
+        "stamp_ns": np.int64, "seq": np.int64, "vetoed": np.bool_,
     }
 
     def __post_init__(self) -> None:
@@ -603,6 +604,7 @@ class MotionClassifierCore:
         fast = speed > threshold_v
         now_s = stamp_ns * 1e-9
         t.fast_since[rows] = _running_since(t.fast_since[rows], fast, now_s)
+        vetoed = np.zeros(rows.shape[0], dtype=bool)
         if cfg.mode in ("z_test", "chi2"):
             if cfg.mode == "z_test":
                 threshold = alpha
@@ -611,7 +613,10 @@ class MotionClassifierCore:
                 threshold = chi2_2_threshold(alpha)
                 reject = stats.chi2 > threshold
             if cfg.jump_veto:  # a full window one jump explains better than steady motion is a re-placed box
-                reject &= ~(jump_ratio(t.ordered(rows, t.window), count, min_count=t.window) < 1.0)
+                ask = np.flatnonzero(reject & (count >= t.window))  # only a full window the test rejects can be vetoed
+                if ask.size:
+                    vetoed[ask] = jump_ratio(t.ordered(rows[ask], t.window), count[ask], min_count=t.window) < 1.0
+                    reject &= ~vetoed
             # dynamic once the test has rejected H0 on every decision for the class's hold (none: at once); the
             # microsecond spares a hold of whole frames the rounding of stamps in seconds
             reject &= decided
@@ -628,6 +633,7 @@ class MotionClassifierCore:
         for name, value in (
             ("state", state), ("z_x", stats.z_x), ("z_y", stats.z_y), ("chi2", stats.chi2), ("alpha", alpha),
             ("threshold", threshold), ("mean_x", stats.mean_x), ("mean_y", stats.mean_y), ("speed", speed),
+            ("vetoed", vetoed),
         ):
             last[name][rows] = value
         last["stamp_ns"][rows] = stamp_ns
@@ -635,7 +641,7 @@ class MotionClassifierCore:
         return Decisions(
             track_ids=ids, state=state, z_x=stats.z_x, z_y=stats.z_y, chi2=stats.chi2, alpha=alpha,
             threshold=np.asarray(threshold, dtype=np.float64), window_length=count,
-            mean_x=stats.mean_x, mean_y=stats.mean_y, speed=speed, published=t.published[rows].copy(),
+            mean_x=stats.mean_x, mean_y=stats.mean_y, speed=speed, published=t.published[rows].copy(), vetoed=vetoed,
         )
 
     # ------------------------------------------------------------------ state queries
@@ -655,6 +661,7 @@ class MotionClassifierCore:
             alpha=pick("alpha"), threshold=pick("threshold"),
             window_length=np.where(found, self._table.count[r], 0), mean_x=pick("mean_x"),
             mean_y=pick("mean_y"), speed=pick("speed"), published=found & self._table.published[r],
+            vetoed=pick("vetoed"),
         )
 
     def last_meta(self, ids: IDS) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:

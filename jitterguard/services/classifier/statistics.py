@@ -235,18 +235,43 @@ def warm_up() -> None:
     calibration_warm_up()
 
 
+def _one_sided_hinge_sse(xy: F64, t: F64, valid: NDArray[np.bool_]) -> F64:
+    """Per window, the residual sum of squares about the best one-sided hinge: a stand that turns into steady motion
+    at one observation's stamp (``a + v·max(0, t − t_j)``) or steady motion that comes to a stand there
+    (``a + v·min(0, t − t_j)``), each axis its own ``a`` and ``v``, the knot shared, two observations or more on
+    each side. ``xy`` and ``t`` are centred and zero outside ``valid``; inf where no knot qualifies."""
+    n = valid.sum(1)
+    knots = valid[:, :, None] & valid[:, None, :]  # (window, knot j, observation i)
+    spp = (xy * xy).sum((1, 2))
+    best = np.full(xy.shape[0], np.inf)
+    lag = t[:, None, :] - t[:, :, None]  # t_i − t_j
+    for h, still in ((np.maximum(lag, 0.0), lag <= 0.0), (np.minimum(lag, 0.0), lag >= 0.0)):
+        h = np.where(knots, h, 0.0)
+        h = np.where(knots, h - (h.sum(2) / np.maximum(n, 1)[:, None])[..., None], 0.0)
+        shh = (h * h).sum(2)
+        shp = np.einsum("kji,kia->kja", h, xy)
+        sse = spp[:, None] - (shp * shp).sum(2) / np.maximum(shh, 1e-300)
+        n_still = (knots & still).sum(2)
+        ok = valid & (n_still >= 2) & (n[:, None] - n_still >= 2) & (shh > 1e-12)
+        best = np.minimum(best, np.where(ok, np.maximum(sse, 0.0), np.inf).min(1))  # ≥ 0 whatever the rounding
+    return best
+
+
 def jump_ratio(windows: F64, count: I64, *, min_count: int = 6) -> F64:
     """Per window, the residual sum of squares of its positions about the best single step (each side of one split
-    its own mean, the split shared by both axes, at least two observations a side) over that about the
-    least-squares constant-velocity line: below 1 a jump explains the window better than steady motion does.
+    its own mean, the split shared by both axes, at least two observations a side) over that about the best
+    motion — the least-squares constant-velocity line, or a one-sided hinge (:func:`_one_sided_hinge_sse`: an object
+    that starts or stops inside the window): below 1 a jump explains the window better than any of them.
 
     Why: the half-mean contrast the z-test weighs is the same for a box the detector re-placed once (an occlusion
     change, a box slid along the car) and for an object that moved as far; the shape of the window tells them
-    apart — a mover traces a ramp, a re-placed box a step. ``windows`` is ``(K, W, ≥6)`` over :data:`CHANNELS`
-    oldest first with each row's ``count`` newest observations in its last slots (``_Table.ordered``); rows with
-    fewer than ``min_count`` observations (at least 4: two a side; the classifier asks a full window, where a
-    short one's shape says little), a line that fits exactly, one instant for every stamp, or non-finite input
-    give inf (no evidence of a jump)."""
+    apart — a mover traces a ramp, a re-placed box a step. A car that starts (or stops) in the window traces a
+    ramp on one side of a stand, which a step can fit better than one straight line; the hinges, with as many
+    free values as the step, keep it a mover. ``windows`` is ``(K, W, ≥6)`` over :data:`CHANNELS` oldest first
+    with each row's ``count`` newest observations in its last slots (``_Table.ordered``); rows with fewer than
+    ``min_count`` observations (at least 4: two a side; the classifier asks a full window, where a short one's
+    shape says little), a line that fits exactly, one instant for every stamp, or non-finite input give inf (no
+    evidence of a jump)."""
     min_count = max(int(min_count), 4)
     k, w = windows.shape[0], windows.shape[1]
     out = np.full(k, np.inf)
@@ -270,7 +295,8 @@ def jump_ratio(windows: F64, count: I64, *, min_count: int = 6) -> F64:
         rest = csum[:, -1:, :] - csum
         right = (csq[:, -1:] - csq) - (rest * rest).sum(2) / np.maximum(right_n, 1.0)
         sse_step = np.where((left_n >= 2) & (right_n >= 2), left + right, np.inf).min(1)
-        ratio = np.where((sse_line > 1e-12) & (stt > 0), sse_step / sse_line, np.inf)  # no line: no evidence
+        sse_motion = np.minimum(sse_line, _one_sided_hinge_sse(xy, t, valid))
+        ratio = np.where((sse_line > 1e-12) & (stt > 0), sse_step / sse_motion, np.inf)  # no line: no evidence
     out[ok] = np.where(np.isfinite(ratio) | (ratio == np.inf), ratio, np.inf)
     return out
 
