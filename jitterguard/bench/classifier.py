@@ -63,8 +63,8 @@ class _Scene:
             seq=k)
 
 
-PAPER_STATISTIC = ClassifierConfig(calibration="off", effective_n="cluster", min_speed_mps=0.0)
-"""The paper's statistic: reported variances as they are, each half one sample, H0 v = 0."""
+PAPER_STATISTIC = ClassifierConfig(calibration="off", effective_n="cluster", min_speed_mps=0.0, jump_veto=False)
+"""The paper's statistic and decision: reported variances as they are, each half one sample, H0 v = 0, no veto."""
 
 
 def bench_core(sizes: tuple[int, ...] = (10, 100, 1000), window: int | None = None, frames: int = 300,

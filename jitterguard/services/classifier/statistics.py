@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 
 from .calibration import SCALE_BOUNDS, NoiseModel
 from .calibration import warm_up as calibration_warm_up
+from .jump_kernel import jump_ratios
 from .window_kernel import CLUSTER, INDEPENDENT, MEASURED, calibrated_windows
 
 F64 = NDArray[np.float64]
@@ -224,44 +225,26 @@ _MODES = {"cluster": CLUSTER, "independent": INDEPENDENT, "measured": MEASURED}
 
 
 def warm_up() -> None:
-    """Compile (or load from numba's cache) the calibrated statistic and the online calibration's pooling now, so
-    a service pays it at start rather than on its first frames."""
+    """Compile (or load from numba's cache) the calibrated statistic, the jump veto's shape test and the online
+    calibration's pooling now, so a service pays it at start rather than on its first frames."""
     masks = split_halves(np.zeros(1, dtype=np.int64), np.array([4]), 4)
     win = np.zeros((1, 4, len(CHANNELS)))
     win[0, :, 2] = win[0, :, 4] = 0.01
     win[0, :, 5] = np.arange(4) * 0.1
     calibrated_statistics(win, masks, np.zeros(1, dtype=np.int64), NoiseModel.prior(), variance_floor=1e-4,
                           effective_n="measured", track_scale_prior=False)
+    jump_ratio(win, np.array([4]), min_count=4)
     calibration_warm_up()
-
-
-def _one_sided_hinge_sse(xy: F64, t: F64, valid: NDArray[np.bool_]) -> F64:
-    """Per window, the residual sum of squares about the best one-sided hinge: a stand that turns into steady motion
-    at one observation's stamp (``a + v·max(0, t − t_j)``) or steady motion that comes to a stand there
-    (``a + v·min(0, t − t_j)``), each axis its own ``a`` and ``v``, the knot shared, two observations or more on
-    each side. ``xy`` and ``t`` are centred and zero outside ``valid``; inf where no knot qualifies."""
-    n = valid.sum(1)
-    knots = valid[:, :, None] & valid[:, None, :]  # (window, knot j, observation i)
-    spp = (xy * xy).sum((1, 2))
-    best = np.full(xy.shape[0], np.inf)
-    lag = t[:, None, :] - t[:, :, None]  # t_i − t_j
-    for h, still in ((np.maximum(lag, 0.0), lag <= 0.0), (np.minimum(lag, 0.0), lag >= 0.0)):
-        h = np.where(knots, h, 0.0)
-        h = np.where(knots, h - (h.sum(2) / np.maximum(n, 1)[:, None])[..., None], 0.0)
-        shh = (h * h).sum(2)
-        shp = np.einsum("kji,kia->kja", h, xy)
-        sse = spp[:, None] - (shp * shp).sum(2) / np.maximum(shh, 1e-300)
-        n_still = (knots & still).sum(2)
-        ok = valid & (n_still >= 2) & (n[:, None] - n_still >= 2) & (shh > 1e-12)
-        best = np.minimum(best, np.where(ok, np.maximum(sse, 0.0), np.inf).min(1))  # ≥ 0 whatever the rounding
-    return best
 
 
 def jump_ratio(windows: F64, count: I64, *, min_count: int = 6) -> F64:
     """Per window, the residual sum of squares of its positions about the best single step (each side of one split
     its own mean, the split shared by both axes, at least two observations a side) over that about the best
-    motion — the least-squares constant-velocity line, or a one-sided hinge (:func:`_one_sided_hinge_sse`: an object
-    that starts or stops inside the window): below 1 a jump explains the window better than any of them.
+    motion — the least-squares constant-velocity line, or a one-sided hinge (a stand that turns into steady motion at
+    one observation's stamp, or steady motion that comes to a stand there, each axis its own offset and speed, the
+    knot shared, two observations or more a side: an object that starts or stops inside the window): below 1 a jump explains the window better than any of them. The
+    hinges are fitted only where the step beats the line (elsewhere the ratio is the step's over the line's, at
+    least 1 either way), so a mover's ramp costs no more than the line and the step.
 
     Why: the half-mean contrast the z-test weighs is the same for a box the detector re-placed once (an occlusion
     change, a box slid along the car) and for an object that moved as far; the shape of the window tells them
@@ -271,33 +254,10 @@ def jump_ratio(windows: F64, count: I64, *, min_count: int = 6) -> F64:
     with each row's ``count`` newest observations in its last slots (``_Table.ordered``); rows with fewer than
     ``min_count`` observations (at least 4: two a side; the classifier asks a full window, where a short one's
     shape says little), a line that fits exactly, one instant for every stamp, or non-finite input give inf (no
-    evidence of a jump)."""
-    min_count = max(int(min_count), 4)
-    k, w = windows.shape[0], windows.shape[1]
-    out = np.full(k, np.inf)
-    ok = np.asarray(count) >= min_count
-    if not ok.any():
-        return out
-    n = np.asarray(count)[ok].astype(np.float64)
-    valid = np.arange(w)[None, :] >= (w - np.asarray(count)[ok])[:, None]
-    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
-        xy = np.where(valid[..., None], windows[ok][..., :2], 0.0)
-        t = np.where(valid, windows[ok][..., 5], 0.0)
-        xy = np.where(valid[..., None], xy - (xy.sum(1) / n[:, None])[:, None, :], 0.0)  # centred: stamps and
-        t = np.where(valid, t - (t.sum(1) / n)[:, None], 0.0)  # positions far from 0 keep their precision
-        stt = (t * t).sum(1)
-        slope = (t[..., None] * xy).sum(1) / np.maximum(stt, 1e-300)[:, None]
-        sse_line = ((xy - t[..., None] * slope[:, None, :]) ** 2 * valid[..., None]).sum((1, 2))
-        csum, csq = np.cumsum(xy, 1), np.cumsum((xy * xy).sum(2), 1)
-        left_n = np.cumsum(valid, 1).astype(np.float64)
-        right_n = n[:, None] - left_n
-        left = csq - (csum * csum).sum(2) / np.maximum(left_n, 1.0)
-        rest = csum[:, -1:, :] - csum
-        right = (csq[:, -1:] - csq) - (rest * rest).sum(2) / np.maximum(right_n, 1.0)
-        sse_step = np.where((left_n >= 2) & (right_n >= 2), left + right, np.inf).min(1)
-        sse_motion = np.minimum(sse_line, _one_sided_hinge_sse(xy, t, valid))
-        ratio = np.where((sse_line > 1e-12) & (stt > 0), sse_step / sse_motion, np.inf)  # no line: no evidence
-    out[ok] = np.where(np.isfinite(ratio) | (ratio == np.inf), ratio, np.inf)
+    evidence of a jump). Computed by :func:`~.jump_kernel.jump_ratios`, one compiled loop per window."""
+    out = np.full(windows.shape[0], np.inf)
+    jump_ratios(np.ascontiguousarray(windows, dtype=np.float64), np.ascontiguousarray(count, dtype=np.int64),
+                max(int(min_count), 4), out)
     return out
 
 
