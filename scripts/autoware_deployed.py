@@ -34,13 +34,12 @@ import argparse
 import numpy as np
 from numpy.typing import NDArray
 
-from ghost_breakdown import _seeds, detection_pairs, input_arguments
+from ghost_breakdown import _seeds, classify_seeds, detection_pairs, input_arguments
 from jitterguard.eval.metrics import ghost_rows, scored_rows, time_to_first_correct
-from jitterguard.eval.pipeline import Records, concat_records, track_and_classify
+from jitterguard.eval.pipeline import Records, concat_records
 from jitterguard.schemas.models import ClassifierConfig
 from jitterguard.services.classifier.config import PRESETS
-from jitterguard.services.classifier.core import DYNAMIC, STATIC, MotionClassifierCore
-from jitterguard.services.tracker.config import default_config
+from jitterguard.services.classifier.core import DYNAMIC, STATIC
 
 
 def held(rec: Records, fast: NDArray[np.bool_], sustain_s: NDArray[np.float64]) -> NDArray[np.int8]:
@@ -115,11 +114,10 @@ def main() -> None:
     hold = {} if args.hold is None else {"dynamic_hold_s_per_class": {c: args.hold for c in classes}}
     clf = ClassifierConfig.model_validate({**ClassifierConfig().model_dump(), **PRESETS["autoware-sustain"],
                                            **(PRESETS[args.preset] if args.preset else {}), **hold,
-                                           **({} if args.window is None else {"window_size": args.window})})
-    drive = MotionClassifierCore.make_online(clf)
+                                           **({} if args.window is None else {"window_size": args.window}),
+                                           **({"jump_veto": False} if args.no_jump_veto else {})})
     seeds = [0] if args.nuscenes else _seeds(args.seeds)
-    rec = concat_records([track_and_classify(iter(detection_pairs(args, s)), clf, default_config(), calibration=drive)
-                          for s in seeds], [str(s) for s in seeds])
+    rec = concat_records(classify_seeds({s: detection_pairs(args, s) for s in seeds}, clf), [str(s) for s in seeds])
     sustain = np.array([clf.sustain_for(label) for label in range(int(rec.label.max(initial=0)) + 1)])
     report(rec, sustain)
 

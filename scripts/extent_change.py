@@ -19,13 +19,10 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from ghost_breakdown import _seeds, detection_pairs, input_arguments  # noqa: E402
+from ghost_breakdown import _seeds, classifier_config, classify_seeds, detection_pairs, input_arguments  # noqa: E402
 from jitterguard.eval.metrics import scored_rows  # noqa: E402
-from jitterguard.eval.pipeline import track_and_classify  # noqa: E402
-from jitterguard.schemas.models import ClassifierConfig  # noqa: E402
-from jitterguard.services.classifier.core import DYNAMIC, MotionClassifierCore  # noqa: E402
+from jitterguard.services.classifier.core import DYNAMIC  # noqa: E402
 from jitterguard.services.tracker import core as tracker_core  # noqa: E402
-from jitterguard.services.tracker.config import default_config  # noqa: E402
 
 
 def main() -> None:
@@ -48,13 +45,8 @@ def main() -> None:
         return result
 
     tracker_core.TrackerCore.step = hooked
-    clf = ClassifierConfig()
-    drive = MotionClassifierCore.make_online(clf)
-    recs = []
     try:
-        for i, s in enumerate(pairs):
-            run["i"] = i
-            recs.append(track_and_classify(iter(pairs[s]), clf, default_config(), calibration=drive))
+        recs = classify_seeds(pairs, classifier_config(args), on_run=lambda i: run.update(i=i))
     finally:
         tracker_core.TrackerCore.step = step
     out: dict[bool, list] = {True: [], False: []}

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import pickle
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -35,7 +36,7 @@ from jitterguard.schemas import encode, read_detected_objects
 from jitterguard.schemas.models import ClassifierConfig
 from jitterguard.services.classifier.core import DYNAMIC, MotionClassifierCore
 from jitterguard.services.tracker.adapter import detection_frame
-from jitterguard.services.tracker.config import TrackerConfig, load_config
+from jitterguard.services.tracker.config import TrackerConfig, default_config, load_config
 from jitterguard.services.tracker.core import FrameRejected, TrackerCore
 from jitterguard.sim.detection_model import DetectionModel
 
@@ -55,6 +56,28 @@ def input_arguments(ap: argparse.ArgumentParser, default_input: str = "detector"
     ap.add_argument("--noise", default="jittery", help="noise preset of --input gt-noise")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--cache", default=None, help="folder for the per-seed detector payloads")
+    ap.add_argument("--no-jump-veto", action="store_true",
+                    help="the classifier without its jump veto (every figure measured before 3 Dec 2026)")
+
+
+def classifier_config(args: argparse.Namespace, **updates: Any) -> ClassifierConfig:
+    """The shipped classifier config with ``updates``, and without the jump veto where ``--no-jump-veto`` asks."""
+    return ClassifierConfig(**({"jump_veto": False} if args.no_jump_veto else {}), **updates)
+
+
+def classify_seeds(pairs: dict[int, list[tuple[Any, bytes]]], clf: ClassifierConfig,
+                   tracker: TrackerConfig | None = None,
+                   on_run: Callable[[int], None] | None = None) -> list[Records]:
+    """The evaluator's tracker and classifier over each seed's detections (:func:`detection_pairs`) as one drive —
+    one online calibration carried from seed to seed, as ``jitterguard eval --runs`` does; ``on_run(i)`` is called
+    before the i-th seed (for a diagnosis that hooks the cores and keys what it logs by run)."""
+    drive = MotionClassifierCore.make_online(clf)
+    out = []
+    for i, s in enumerate(pairs):
+        if on_run is not None:
+            on_run(i)
+        out.append(track_and_classify(iter(pairs[s]), clf, tracker or default_config(), calibration=drive))
+    return out
 
 
 def detection_pairs(args: argparse.Namespace, seed: int) -> list[tuple[Any, bytes]]:
@@ -124,16 +147,13 @@ def main() -> None:
     ap.add_argument("--tracker-config", default=None, help="tracker YAML (as `jitterguard tracker --config`)")
     args = ap.parse_args()
     cfg = load_config(args.tracker_config)
-    clf = ClassifierConfig()
-    drive = MotionClassifierCore.make_online(clf)
     seeds = [0] if args.nuscenes else _seeds(args.seeds)
-    parts, frames, born, confirmed = [], 0, 0, 0
+    pairs = {s: detection_pairs(args, s) for s in seeds}
+    rec = concat_records(classify_seeds(pairs, classifier_config(args), cfg), [str(s) for s in seeds])
+    frames = born = confirmed = 0
     for s in seeds:
-        pairs = detection_pairs(args, s)
-        parts.append(track_and_classify(iter(pairs), clf, cfg, calibration=drive))
-        f, b, c = _births(pairs, cfg)
+        f, b, c = _births(pairs[s], cfg)
         frames, born, confirmed = frames + f, born + b, confirmed + c
-    rec = concat_records(parts, [str(s) for s in seeds])
     boot = TrackBootstrap(rec.track_id)
     ghost = planner_metrics(rec, intervals=False)["ghost"]
     print(f"births per frame {born / frames:.2f}, confirmed tracks per frame {confirmed / frames:.2f} ({frames} frames)")

@@ -13,12 +13,11 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from ghost_breakdown import _seeds, detection_pairs, input_arguments  # noqa: E402
+from ghost_breakdown import _seeds, classify_seeds, detection_pairs, input_arguments  # noqa: E402
 from jitterguard.eval.metrics import ghost_rows, scored_rows  # noqa: E402
-from jitterguard.eval.pipeline import concat_records, track_and_classify  # noqa: E402
+from jitterguard.eval.pipeline import concat_records  # noqa: E402
 from jitterguard.schemas.models import ClassifierConfig  # noqa: E402
-from jitterguard.services.classifier.core import DYNAMIC, MotionClassifierCore  # noqa: E402
-from jitterguard.services.tracker.config import default_config  # noqa: E402
+from jitterguard.services.classifier.core import DYNAMIC  # noqa: E402
 
 
 def main() -> None:
@@ -27,10 +26,7 @@ def main() -> None:
     args = ap.parse_args()
     pairs = {s: detection_pairs(args, s) for s in _seeds(args.seeds)}
     for veto in (False, True):
-        clf = ClassifierConfig(jump_veto=veto)
-        drive = MotionClassifierCore.make_online(clf)
-        rec = concat_records([track_and_classify(iter(pairs[s]), clf, default_config(), calibration=drive)
-                              for s in pairs], [str(s) for s in pairs])
+        rec = concat_records(classify_seeds(pairs, ClassifierConfig(jump_veto=veto)), [str(s) for s in pairs])
         out = [f"jump_veto {str(veto):5s}"]
         for group in ("vehicle", "pedestrian"):
             m = scored_rows(rec, group)

@@ -18,13 +18,10 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from ghost_breakdown import _seeds, detection_pairs, input_arguments  # noqa: E402
+from ghost_breakdown import _seeds, classifier_config, classify_seeds, detection_pairs, input_arguments  # noqa: E402
 from jitterguard.eval.metrics import ghost_rows, scored_rows  # noqa: E402
-from jitterguard.eval.pipeline import track_and_classify  # noqa: E402
-from jitterguard.schemas.models import ClassifierConfig  # noqa: E402
 from jitterguard.services.classifier import core as core_mod  # noqa: E402
 from jitterguard.services.classifier.core import DYNAMIC, MotionClassifierCore  # noqa: E402
-from jitterguard.services.tracker.config import default_config  # noqa: E402
 
 
 def step_line_ratio(t: np.ndarray, xy: np.ndarray) -> float:
@@ -66,13 +63,8 @@ def main() -> None:
         return statistic(self, rows)
 
     core_mod.MotionClassifierCore._statistics = hooked
-    clf = ClassifierConfig()
-    drive = MotionClassifierCore.make_online(clf)
-    recs = []
     try:
-        for i, s in enumerate(pairs):
-            run["i"] = i
-            recs.append(track_and_classify(iter(pairs[s]), clf, default_config(), calibration=drive))
+        recs = classify_seeds(pairs, classifier_config(args), on_run=lambda i: run.update(i=i))
     finally:
         core_mod.MotionClassifierCore._statistics = statistic
     kinds: dict[str, list[float]] = {k: [] for k in ("static called moving", "static called static",

@@ -25,20 +25,17 @@ import argparse
 
 import numpy as np
 
-from ghost_breakdown import _seeds, detection_pairs, input_arguments
+from ghost_breakdown import _seeds, classifier_config, classify_seeds, detection_pairs, input_arguments
 from jitterguard.eval.metrics import compute_metrics, planner_metrics
-from jitterguard.eval.pipeline import Records, concat_records, track_and_classify
-from jitterguard.schemas.models import ClassifierConfig
-from jitterguard.services.classifier.core import DYNAMIC, MotionClassifierCore
+from jitterguard.eval.pipeline import Records, concat_records
+from jitterguard.services.classifier.core import DYNAMIC
 from jitterguard.services.tracker.config import default_config
 
 
-def _run(pairs: dict[int, list], on: bool, min_window: int) -> Records:
-    clf = ClassifierConfig(min_window=min_window)
-    drive = MotionClassifierCore.make_online(clf)
+def _run(args: argparse.Namespace, pairs: dict[int, list], on: bool, min_window: int) -> Records:
     trk = default_config().model_copy(update={"observe_tentative": on})
-    parts = [track_and_classify(iter(p), clf, trk, calibration=drive) for p in pairs.values()]
-    return concat_records(parts, [str(s) for s in pairs])
+    return concat_records(classify_seeds(pairs, classifier_config(args, min_window=min_window), trk),
+                          [str(s) for s in pairs])
 
 
 def _rate(flags: np.ndarray) -> str:
@@ -92,12 +89,12 @@ def main() -> None:
     input_arguments(ap, default_input="gt-noise")
     args = ap.parse_args()
     pairs = {s: detection_pairs(args, s) for s in ([0] if args.nuscenes else _seeds(args.seeds))}
-    off = _run(pairs, False, 2)
-    _same_rows(off, _run(pairs, True, 2))
+    off = _run(args, pairs, False, 2)
+    _same_rows(off, _run(args, pairs, True, 2))
     print("as scored (metrics.json; z-test / speed threshold):")
     _as_scored("off, min_window 2", off)
-    _as_scored("on,  min_window 2", _run(pairs, True, 2))
-    _as_scored("on,  min_window 4", _run(pairs, True, 4))
+    _as_scored("on,  min_window 2", _run(args, pairs, True, 2))
+    _as_scored("on,  min_window 4", _run(args, pairs, True, 4))
 
 
 if __name__ == "__main__":

@@ -14,30 +14,28 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from ghost_breakdown import _seeds, detection_pairs, input_arguments  # noqa: E402
+from ghost_breakdown import _seeds, classifier_config, classify_seeds, detection_pairs, input_arguments  # noqa: E402
 from jitterguard.eval.metrics import ghost_rows, scored_rows  # noqa: E402
-from jitterguard.eval.pipeline import concat_records, track_and_classify  # noqa: E402
-from jitterguard.schemas.models import ClassifierConfig  # noqa: E402
+from jitterguard.eval.pipeline import concat_records  # noqa: E402
 from jitterguard.services.classifier import core as core_mod  # noqa: E402
 from jitterguard.services.classifier.calibration import vehicle_class_names  # noqa: E402
-from jitterguard.services.classifier.core import DYNAMIC, MotionClassifierCore  # noqa: E402
+from jitterguard.services.classifier.core import DYNAMIC  # noqa: E402
 from jitterguard.services.classifier.statistics import split_halves  # noqa: E402
-from jitterguard.services.tracker.config import default_config  # noqa: E402
 
-def _run(pairs: dict, slide: float = 0.0) -> list:
-    """The evaluator's tracker and classifier over each seed's cached detections, one online calibration; the
-    classifier's view term for vehicles at ``slide`` m (0: none)."""
-    clf = ClassifierConfig(view_slide_m_per_class=dict.fromkeys(vehicle_class_names(), slide) if slide else {})
-    drive = MotionClassifierCore.make_online(clf)
-    return [track_and_classify(iter(pairs[s]), clf, default_config(), calibration=drive) for s in pairs]
+def _run(args: argparse.Namespace, pairs: dict, slide: float = 0.0, on_run: Callable[[int], None] | None = None) -> list:
+    """The evaluator's tracker and classifier over each seed's cached detections as one drive; the classifier's
+    view term for vehicles at ``slide`` m (0: none)."""
+    slides = dict.fromkeys(vehicle_class_names(), slide) if slide else {}
+    return classify_seeds(pairs, classifier_config(args, view_slide_m_per_class=slides), on_run=on_run)
 
 
-def _contrasts(pairs: dict) -> None:
+def _contrasts(args: argparse.Namespace, pairs: dict) -> None:
     """Record each decided window's contrasts of position and of the line of sight, join them to the scored rows."""
     log: dict[tuple[int, int, str], tuple[float, float, float, float]] = {}
     run = {"i": 0}
@@ -58,11 +56,10 @@ def _contrasts(pairs: dict) -> None:
         return statistic(self, rows)
 
     core_mod.MotionClassifierCore._statistics = hooked
-    recs = []
-    for i, s in enumerate(pairs):
-        run["i"] = i
-        recs.append(_run({s: pairs[s]})[0])
-    core_mod.MotionClassifierCore._statistics = statistic
+    try:
+        recs = _run(args, pairs, on_run=lambda i: run.update(i=i))
+    finally:
+        core_mod.MotionClassifierCore._statistics = statistic
     d, du, fired = [], [], []
     for i, rec in enumerate(recs):
         static = scored_rows(rec, "vehicle") & ~rec.gt_dynamic & (rec.window >= 10)
@@ -88,10 +85,10 @@ def main() -> None:
     args = ap.parse_args()
     pairs = {s: detection_pairs(args, s) for s in _seeds(args.seeds)}
     if args.diagnose:
-        _contrasts(pairs)
+        _contrasts(args, pairs)
         return
     for text in args.s.split(","):
-        rec = concat_records(_run(pairs, float(text)), [str(s) for s in pairs])
+        rec = concat_records(_run(args, pairs, float(text)), [str(s) for s in pairs])
         out = [f"s {text:>4}"]
         for group in ("vehicle", "pedestrian"):
             m = scored_rows(rec, group)

@@ -23,14 +23,12 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from ghost_breakdown import _seeds, detection_pairs, input_arguments  # noqa: E402
+from ghost_breakdown import _seeds, classify_seeds, detection_pairs, input_arguments  # noqa: E402
 from jitterguard.eval.metrics import ghost_rows, scored_rows  # noqa: E402
-from jitterguard.eval.pipeline import track_and_classify  # noqa: E402
 from jitterguard.schemas.models import ClassifierConfig  # noqa: E402
 from jitterguard.services.classifier import core as core_mod  # noqa: E402
 from jitterguard.services.classifier.calibration import vehicle_class_names  # noqa: E402
 from jitterguard.services.classifier.core import MotionClassifierCore  # noqa: E402
-from jitterguard.services.tracker.config import default_config  # noqa: E402
 
 GRID = np.linspace(0.0, 6.0, 121)  # s [m] searched
 STATIC, MOVING, GHOST = 0, 1, 2
@@ -67,12 +65,8 @@ def collect(pairs: dict, slide: float, group: str, effective_n: str | None = Non
 
     core_mod.calibrated_statistics, MotionClassifierCore._statistics = hooked, stats
     clf = ClassifierConfig(view_slide_m_per_class=dict.fromkeys(vehicle_class_names(), slide) if slide else {})
-    drive = MotionClassifierCore.make_online(clf)
-    try:
-        recs = []
-        for i, s in enumerate(pairs):
-            run["i"] = i
-            recs.append(track_and_classify(iter(pairs[s]), clf, default_config(), calibration=drive))
+    try:  # the windows' contrasts do not depend on the decisions (nor on the jump veto)
+        recs = classify_seeds(pairs, clf, on_run=lambda i: run.update(i=i))
     finally:
         core_mod.calibrated_statistics, MotionClassifierCore._statistics = original, statistic
     rows = []

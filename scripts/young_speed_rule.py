@@ -18,12 +18,10 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from ghost_breakdown import _seeds, detection_pairs, input_arguments  # noqa: E402
+from ghost_breakdown import _seeds, classifier_config, classify_seeds, detection_pairs, input_arguments  # noqa: E402
 from jitterguard.eval.metrics import ghost_rows, scored_rows  # noqa: E402
-from jitterguard.eval.pipeline import concat_records, track_and_classify  # noqa: E402
-from jitterguard.schemas.models import ClassifierConfig  # noqa: E402
-from jitterguard.services.classifier.core import DYNAMIC, MotionClassifierCore  # noqa: E402
-from jitterguard.services.tracker.config import default_config  # noqa: E402
+from jitterguard.eval.pipeline import concat_records  # noqa: E402
+from jitterguard.services.classifier.core import DYNAMIC  # noqa: E402
 
 
 def main() -> None:
@@ -32,10 +30,7 @@ def main() -> None:
     ap.add_argument("--below", default="4,7,10", help="window lengths below which the threshold decides")
     args = ap.parse_args()
     pairs = {s: detection_pairs(args, s) for s in _seeds(args.seeds)}
-    clf = ClassifierConfig()
-    drive = MotionClassifierCore.make_online(clf)
-    rec = concat_records([track_and_classify(iter(pairs[s]), clf, default_config(), calibration=drive) for s in pairs],
-                         [str(s) for s in pairs])
+    rec = concat_records(classify_seeds(pairs, classifier_config(args)), [str(s) for s in pairs])
     z_dyn, v_dyn = rec.state_z == DYNAMIC, rec.state_v == DYNAMIC
     rules = [("z-test", z_dyn), ("threshold", v_dyn)]
     rules += [(f"z, threshold below {n}", np.where(rec.window < n, v_dyn, z_dyn)) for n in map(int, args.below.split(","))]

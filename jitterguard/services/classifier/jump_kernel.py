@@ -4,8 +4,9 @@ Why compiled: the veto looks at every full window the test rejects, and on a str
 of 1000 tracks in the classifier benchmark. As numpy expressions over (windows × slots) the line, the step's prefix
 sums and the hinges' (windows × knots × slots) arrays cost 2–10 ms per frame there, more than the calibrated
 statistic itself; one loop per window does the same arithmetic on a few scalars and three scratch rows (the hinges
-only where the step beats the line, which a mover's ramp never lets it). ``tests/classifier/test_classifier_jump_veto.py``
-holds it to a brute-force loop of least-squares fits. Compiled and cached as :mod:`~.window_kernel`'s loop is.
+only where the step beats the line, which a mover's ramp never lets it). The tests
+(``tests/classifier/test_classifier_jump_veto.py``) hold it to a brute-force loop of least-squares fits. Compiled
+and cached as :mod:`~.window_kernel`'s loop is.
 """
 
 from __future__ import annotations
@@ -20,8 +21,8 @@ from .window_kernel import _compiled
 @_compiled()
 def _hinge_sse(xs, ys, ts, n, spp):  # noqa: ANN001, ANN202
     """The residual sum of squares about the best one-sided hinge of centred positions ``xs``, ``ys`` at centred
-    stamps ``ts`` (first ``n`` slots): ``a + v·max(0, t − t_j)`` (a stand, then motion) or ``a + v·min(0, t − t_j)``
-    (motion, then a stand), each axis its own ``a`` and ``v``, the knot at one observation's stamp, two observations
+    stamps ``ts`` (first ``n`` slots): ``a + v·max(0, t − t_j)`` (a stand, then motion) or
+    ``a + v·min(0, t − t_j)`` (motion, then a stand), each axis its own ``a`` and ``v``, the knot at one observation's stamp, two observations
     or more a side; inf where no knot qualifies."""
     best = math.inf
     for j in range(n):
@@ -108,7 +109,7 @@ def jump_ratios(win, count, min_count, out):  # noqa: ANN001, ANN201
             if s < 2 or n - s < 2:
                 continue
             left = lsq - (lx * lx + ly * ly) / s
-            right = (spp - lsq) - (lx * lx + ly * ly) / (n - s)  # the right sums are −left's: the positions are centred
+            right = (spp - lsq) - (lx * lx + ly * ly) / (n - s)  # the right sums are −left's (centred positions)
             step = min(step, left + right)
         motion = line
         if step < line:
