@@ -157,7 +157,7 @@ def build(ledger: Ledger, events: dict[str, ProgramEvents], *, meta: dict[str, A
                    "tracked": _pick(trk, "frames"), "classified": _pick(cls, "frames_processed")},
         "tracks": {"born": _pick(trk, "tracks_born"), "ended": _pick(trk, "tracks_deleted")},
         "objects": {"static": _pick(cls, "objects.static"), "dynamic": _pick(cls, "objects.dynamic"),
-                    "undecided": _pick(cls, "objects.undecided"),
+                    "undecided": _pick(cls, "objects.undecided"), "vetoed": _pick(cls, "objects.vetoed"),
                     "static_now": _pick(cls, "now.static"), "dynamic_now": _pick(cls, "now.dynamic")},
         "rejected": rejected,
         "rejected_total": sum(rejected.values()),
@@ -192,8 +192,8 @@ def render(summary: dict[str, Any]) -> str:
         f"  frames    replayed {n(fr['replayed'])}, detected {n(fr['detected'])}, tracked {n(fr['tracked'])},"
         f" classified {n(fr['classified'])}",
         f"  tracks    born {n(tr['born'])}, ended {n(tr['ended'])}",
-        f"  objects   static {n(ob['static'])}, dynamic {n(ob['dynamic'])}, undecided {n(ob['undecided'])}"
-        " (object-frames)" + (f"; last frame: {n(ob['static_now'])} static, {n(ob['dynamic_now'])} dynamic"
+        f"  objects   static {n(ob['static'])} (jump veto {n(ob.get('vetoed'))}), dynamic {n(ob['dynamic'])},"
+        f" undecided {n(ob['undecided'])} (object-frames)" + (f"; last frame: {n(ob['static_now'])} static, {n(ob['dynamic_now'])} dynamic"
                               if ob.get("static_now") is not None else ""),
         f"  rejected  {kv(summary['rejected'])}",
         f"  dropped   {kv(summary['dropped'])}",

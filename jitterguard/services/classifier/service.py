@@ -331,7 +331,7 @@ class ClassifierService(Service):
         self._record_latency((time.perf_counter() - out.received_at) * 1e3)
         self.counters.inc("published")
         self.counters.inc("frames_processed")
-        self._count_states(out.decisions.state)
+        self._count_states(out.decisions.state, out.decisions.vetoed)
         self.last_seq = out.seq
         if out.decided is not None:
             if behind or self._closes or self.pipeline.pending:  # the next frame is already here
@@ -356,13 +356,15 @@ class ClassifierService(Service):
             header = {"stamp": out.header.stamp, "frame_id": out.header.frame_id, "seq": out.header.seq}
             self._latest = _Latest(header, out.objects, out.decisions, labels, stamps, seqs, out.config, out.window)
 
-    def _count_states(self, state: np.ndarray) -> None:
-        """Object-frames per decision (``objects.static`` …, running) and the last frame's (``now.static`` …):
-        what the run summary reports."""
+    def _count_states(self, state: np.ndarray, vetoed: np.ndarray) -> None:
+        """Object-frames per decision (``objects.static`` …, running), those of them the jump veto called static
+        although the test rejected (``objects.vetoed``: how often the veto overrules the test is for an operator to
+        see) and the last frame's (``now.static`` …): what the run summary reports."""
         per = np.bincount(state.astype(np.intp), minlength=len(STATE_NAMES)) if state.size else np.zeros(3, int)
         for i, name in enumerate(STATE_NAMES):
             self.counters.inc(f"objects.{name}", int(per[i]))
             self.counters.set(f"now.{name}", int(per[i]))
+        self.counters.inc("objects.vetoed", int(np.count_nonzero(vetoed)))
 
     def _record_latency(self, ms: float) -> None:
         self.latencies_ms.append(ms)

@@ -44,7 +44,9 @@ class TrackFrame:
 
 @dataclass(frozen=True)
 class TrackScenario:
-    """Objects on straight lines; ``start_frame`` > 0 makes a parked object start moving then."""
+    """Objects on straight lines; ``start_frame`` > 0 makes a parked object start moving then; ``replaced_frame``
+    ≥ 0 makes the detector re-place the first parked object's box ``replaced_m`` along its heading from that frame
+    on (an occlusion change: the object stays parked, its detections jump once)."""
 
     n_static: int = 6
     n_moving: int = 4
@@ -57,6 +59,8 @@ class TrackScenario:
     ego_speed_mps: float = 3.0
     ego_yaw_rate: float = 0.05
     seed: int = 0
+    replaced_frame: int = -1
+    replaced_m: float = 0.8
 
 
 def _cov36(cxx: float, cxy: float, cyy: float, cyaw: float = 0.01) -> tuple[float, ...]:
@@ -105,6 +109,9 @@ def generate(sc: TrackScenario, num_frames: int) -> Iterator[TrackFrame]:
         dx = e_long * np.cos(bearing) - e_lat * np.sin(bearing)
         dy = e_long * np.sin(bearing) + e_lat * np.cos(bearing)
         wx, wy = sensor_to_world_xy(sx + dx, sy + dy, ego[0], ego[1], ego[2])
+        if 0 <= sc.replaced_frame <= f and sc.n_static:  # no draw: the other objects' frames stay as they were
+            wx[0] += sc.replaced_m * math.cos(heading[0])
+            wy[0] += sc.replaced_m * math.sin(heading[0])
         cxx, cxy, cyy = rotate_cov2(c_s_xx, c_s_xy, c_s_yy, ego[2])  # sensor -> world
         header = Header(stamp=stamp, frame_id="map", seq=f)
         observations, tracked = [], []
