@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from jitterguard.schemas.models import ClassifierConfig, Label
-from jitterguard.services.classifier.core import DYNAMIC, STATIC, MotionClassifierCore, Observations
+from jitterguard.services.classifier.core import (DYNAMIC, JUMP_VETO_MIN_VEHICLE, STATIC, MotionClassifierCore,
+                                                  Observations)
 from jitterguard.services.classifier.statistics import CHANNELS, jump_ratio
 
 SIGMA = 0.05
@@ -76,13 +77,14 @@ def test_jump_ratio_gives_no_evidence_of_a_jump_on_broken_windows() -> None:
     assert np.all(jump_ratio(win, np.array([10, 10, 10])) == np.inf)
 
 
-def _drive(core: MotionClassifierCore, centres: np.ndarray, rng: np.random.Generator) -> list[int]:
+def _drive(core: MotionClassifierCore, centres: np.ndarray, rng: np.random.Generator,
+           label: Label = Label.CAR) -> list[int]:
     """One frame per row of ``centres`` (the detected centre before jitter), a stopped sensor; the states."""
     states = []
     for j, p in enumerate(centres):
         seen = p + rng.normal(0.0, SIGMA, 2)
         dec = core.update(Observations.from_lists(
-            [CAR_ID], [int(Label.CAR)], [seen[0]], [seen[1]], np.full(1, SIGMA**2), np.zeros(1), np.full(1, SIGMA**2),
+            [CAR_ID], [int(label)], [seen[0]], [seen[1]], np.full(1, SIGMA**2), np.zeros(1), np.full(1, SIGMA**2),
             stamp_ns=int(j / HZ * 1e9), seq=j, sensor_x=0.0, sensor_y=-10.0))
         states.append(int(dec.state[0]))
     return states
@@ -125,3 +127,19 @@ def test_a_car_that_starts_or_stops_in_the_window_stays_dynamic_with_the_veto(st
     moving = slice(25, 30) if starts else slice(17, 25)  # full windows that hold both the stand and the motion
     assert all(s == DYNAMIC for s in without[moving])
     assert states[moving] == without[moving]
+
+
+def test_a_young_vehicle_window_is_vetoed_a_young_pedestrian_window_is_not() -> None:
+    """The box re-placed at the track's fifth frame: from JUMP_VETO_MIN_VEHICLE observations on, a car's window is
+    examined (a detector re-places a car's box most often as it comes out of occlusion, when the track is young);
+    a pedestrian's only once its window is full — until then the test alone decides."""
+    frames = 12  # windows of up to 12 observations: never full (20)
+    centres = np.zeros((frames, 2))
+    centres[4:, 0] = 0.8
+    car = _drive(MotionClassifierCore(_config(True)), centres, np.random.default_rng(5), Label.CAR)
+    walker = _drive(MotionClassifierCore(_config(True)), centres, np.random.default_rng(5), Label.PEDESTRIAN)
+    bare = _drive(MotionClassifierCore(_config(False)), centres, np.random.default_rng(5), Label.CAR)
+    bare_walker = _drive(MotionClassifierCore(_config(False)), centres, np.random.default_rng(5), Label.PEDESTRIAN)
+    assert JUMP_VETO_MIN_VEHICLE <= 6 and DYNAMIC in bare[6:]  # the test alone calls the jump moving
+    assert all(s == STATIC for s in car[6:])
+    assert DYNAMIC in bare_walker[6:] and walker == bare_walker  # the same draws: no veto before a full window

@@ -11,7 +11,7 @@ import pytest
 from jitterguard.cli import main
 from jitterguard.eval.pipeline import NOISE_PRESETS, run_pipeline
 from jitterguard.schemas.models import ClassifierConfig
-from jitterguard.services.classifier.core import DYNAMIC, STATIC, UNDECIDED
+from jitterguard.services.classifier.core import DYNAMIC, JUMP_VETO_MIN_VEHICLE, STATIC, UNDECIDED
 from jitterguard.sim.world import make_scenario
 from helpers import NUSC
 
@@ -42,9 +42,11 @@ def test_both_rules_decide_identical_rows(records) -> None:
     decided = records.window >= records.min_window
     z_dyn = records.state_z == DYNAMIC
     # the test decides where its score exceeds α; a window the jump veto called static scores 0 (static at every α),
-    # and only a full window the test rejected is ever vetoed
+    # and only a window the test rejected is ever vetoed: a vehicle's from JUMP_VETO_MIN_VEHICLE observations
     np.testing.assert_array_equal(z_dyn[decided], records.z[decided] > records.alpha[decided])
-    assert records.vetoed.any() and (records.window[records.vetoed] == records.window_size).all()
+    vehicle_veto = records.vetoed & (records.track_group == "vehicle")
+    assert records.vetoed.any() and (records.window[vehicle_veto] >= JUMP_VETO_MIN_VEHICLE).all()
+    assert (records.window[records.vetoed & ~vehicle_veto] == records.window_size).all()
     assert (records.z[records.vetoed] == 0).all() and (records.state_z[records.vetoed] == STATIC).all()
     assert (records.state_z[~decided] == UNDECIDED).all()
     np.testing.assert_array_equal(records.state_v == DYNAMIC, records.speed > records.speed_threshold)
