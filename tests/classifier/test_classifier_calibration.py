@@ -475,12 +475,14 @@ def test_a_path_no_file_system_holds_is_refused_and_the_message_encodes(path: st
 
 
 def test_static_decisions_use_the_calibrated_scales() -> None:
-    """The same jittering window is dynamic with the detector's variances and static with the file's ×9."""
+    """The same jittering window is dynamic with the detector's variances and static with the file's ×9 (the test's
+    statistic alone: the jump veto, which looks at a window's shape, would keep most of these static either way)."""
     rng = np.random.default_rng(16)
     ids = [f"{i + 1:032x}" for i in range(200)]
     base = rng.uniform(10, 30, (200, 2))
-    plain = MotionClassifierCore(ClassifierConfig(calibration="off", alpha_per_class={}))
-    cal = MotionClassifierCore(ClassifierConfig(calibration="file", calibration_file="f", alpha_per_class={}),
+    plain = MotionClassifierCore(ClassifierConfig(calibration="off", alpha_per_class={}, jump_veto=False))
+    cal = MotionClassifierCore(ClassifierConfig(calibration="file", calibration_file="f", alpha_per_class={},
+                                                jump_veto=False),
                                calibration_model=_model(9.0, 0.0, 0.5, track_dof=1000.0))
     for f in range(10):
         p = base + rng.normal(0, 0.3, (200, 2))
