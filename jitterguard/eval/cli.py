@@ -259,7 +259,8 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
     from .groundtruth import NuScenesError, load_nuscenes_frames, nuscenes_scene_names
     from ..services.classifier.calibration import OnlineCalibration
     from ..services.classifier.core import MotionClassifierCore
-    from .metrics import REPORT_GROUPS, alpha_from_labels, compute_metrics, planner_metrics, run_metrics
+    from .metrics import (REPORT_GROUPS, alpha_from_labels, compute_metrics, planner_metrics, run_metrics,
+                          vetoed_rows)
     from .pipeline import MATCH_DISTANCE_M, NOISE_PRESETS, Records, concat_records, run_pipeline, scored_test
     from .report import write_outputs
     from ..services.tracker.config import default_config as default_tracker_config
@@ -380,7 +381,7 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
                 "velocity_sustain_s_per_class": dict(classifier.velocity_sustain_s_per_class),
                 "dynamic_hold_s_per_class": dict(classifier.dynamic_hold_s_per_class),
                 "view_slide_m_per_class": dict(classifier.view_slide_m_per_class),
-                "jump_veto": classifier.jump_veto,
+                "jump_veto": classifier.jump_veto, "vetoed_rows": vetoed_rows(rec),
                 "min_window": classifier.min_window, "window_size": rec.window_size,
                 "window_stride": rec.window_stride, "window_reference_hz": classifier.window_reference_hz,
                 "mode": scored_test(classifier),

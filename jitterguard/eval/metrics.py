@@ -90,6 +90,15 @@ def ghost_rows(rec: Records, group: str) -> NDArray[np.bool_]:
     return (rec.gt_instance < 0) & (rec.track_group == group) & (rec.window >= rec.min_window)
 
 
+def vetoed_rows(rec: Records) -> dict[str, dict[str, int]]:
+    """Per report group, the scored rows the jump veto called static although the test rejected — on static objects
+    (false alarms it took back), on moving ones (misses it caused) and on ghost tracks: what the veto did to this
+    run's rates (``false_dynamic_z`` without it = (false rows + ``static``) / ``n_static``)."""
+    return {g: {"static": int(np.count_nonzero(rec.vetoed & scored_rows(rec, g) & ~rec.gt_dynamic)),
+                "moving": int(np.count_nonzero(rec.vetoed & scored_rows(rec, g) & rec.gt_dynamic)),
+                "ghost": int(np.count_nonzero(rec.vetoed & ghost_rows(rec, g)))} for g in REPORT_GROUPS}
+
+
 def _nan_to_none(x: float) -> float | None:
     return None if (isinstance(x, float) and math.isnan(x)) else round(float(x), 6)
 

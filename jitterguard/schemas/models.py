@@ -453,7 +453,8 @@ class ClassifierConfig(Message):
         "no term — docs/classifier.md 'The view term')")
 
     jump_veto: bool = Field(
-        True, description="a full window that one jump of the box explains better than steady motion "
+        True, description="a window the test rejects (a vehicle's from 6 observations, another class's once full) "
+        "that one jump of the box explains better than steady motion "
         "(residuals about the best single step below those about the constant-velocity line and about a stand "
         "that starts or ends at one observation) is not called dynamic, whatever its test statistic: a detector "
         "that re-places a box once is not a moving object (z_test and chi2 modes; false: the paper's test alone; "

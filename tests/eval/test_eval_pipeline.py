@@ -304,6 +304,27 @@ def test_variance_scale_quarter_or_four_moves_vehicle_rates_by_at_most_one_point
     assert rates[0] - rates[1] > 0.03
 
 
+def test_cli_jump_veto_counts_the_rows_it_turned_and_nothing_else_moves(tmp_path: Path, capsys) -> None:
+    """metrics.json's ``run.vetoed_rows`` says what the jump veto did: it only turns rows the test rejected to
+    static, so without it (``--no-jump-veto``) each group's z-test false-dynamic rate is the veto's static rows
+    higher and its missed rate the veto's moving rows lower, to the row; the speed rule is untouched."""
+    runs = _short_mixed_runs(tmp_path, capsys, on=[], off=["--no-jump-veto"])
+    on, off = runs["on"], runs["off"]
+    assert on["run"]["jump_veto"] is True and off["run"]["jump_veto"] is False
+    assert all(v == 0 for g in off["run"]["vetoed_rows"].values() for v in g.values())
+    veto = on["run"]["vetoed_rows"]
+    assert veto["vehicle"]["static"] > 0  # parked cars' re-placed boxes
+    for g in ("vehicle", "pedestrian"):
+        a, b = on["motion"][g], off["motion"][g]
+        assert a["false_dynamic_speed"] == b["false_dynamic_speed"] and a["n_static"] == b["n_static"]
+        if a["n_static"]:
+            assert a["false_dynamic_z"] * a["n_static"] == pytest.approx(
+                b["false_dynamic_z"] * b["n_static"] - veto[g]["static"], abs=1e-5 * a["n_static"] + 1e-9)
+        if a["n_dynamic"]:
+            assert a["missed_dynamic_z"] * a["n_dynamic"] == pytest.approx(
+                b["missed_dynamic_z"] * b["n_dynamic"] + veto[g]["moving"], abs=1e-5 * a["n_dynamic"] + 1e-9)
+
+
 def test_cli_view_slide_only_ever_lowers_the_vehicle_statistic(tmp_path: Path, capsys) -> None:
     """`--view-slide 0` switches the view term off: the run says which, the speed rule's figures are untouched, and
     the term (a positive semi-definite addition to the denominator) calls no more vehicle rows dynamic than none —
