@@ -217,6 +217,13 @@ def detection_lines(det: dict[str, Any], figures: list[str]) -> list[str]:
     return lines
 
 
+def _vetoed_desc(vetoed: dict[str, dict[str, int]]) -> str:
+    """``run.vetoed_rows`` in words: the scored rows the jump veto turned static, per group."""
+    parts = [f"{g} {c['static']} static / {c['moving']} moving / {c['ghost']} ghost" for g, c in vetoed.items()
+             if any(c.values())]
+    return "rows it turned static: " + ("; ".join(parts) if parts else "none")
+
+
 def _input_desc(run: dict[str, Any]) -> str:
     det = run.get("detector")
     if det is None:
@@ -300,6 +307,7 @@ def write_outputs(out: Path, rec: Records, metrics: dict[str, Any],
            "faster one)" if run.get("window_size") and run.get("window_reference_hz") else "")
         + (f", held {run['dynamic_hold_s_per_class']} s" if run.get("dynamic_hold_s_per_class") else "")
         + (f", view term {run['view_slide_m_per_class']} m" if run.get("view_slide_m_per_class") else "")
+        + (f", jump veto ({_vetoed_desc(run.get('vetoed_rows') or {})})" if run.get("jump_veto") else "")
         + f"), speed threshold {run['velocity_threshold']} m/s, per class "
         f"{run.get('velocity_threshold_per_class')}"
         + (f", sustain {run['velocity_sustain_s_per_class']} s" if run.get("velocity_sustain_s_per_class") else "")

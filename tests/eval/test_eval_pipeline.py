@@ -314,6 +314,9 @@ def test_cli_jump_veto_counts_the_rows_it_turned_and_nothing_else_moves(tmp_path
     assert all(v == 0 for g in off["run"]["vetoed_rows"].values() for v in g.values())
     veto = on["run"]["vetoed_rows"]
     assert veto["vehicle"]["static"] > 0  # parked cars' re-placed boxes
+    report = (tmp_path / "on" / "report.md").read_text()
+    assert f"jump veto (rows it turned static: vehicle {veto['vehicle']['static']} static" in report
+    assert "jump veto" not in (tmp_path / "off" / "report.md").read_text()
     for g in ("vehicle", "pedestrian"):
         a, b = on["motion"][g], off["motion"][g]
         assert a["false_dynamic_speed"] == b["false_dynamic_speed"] and a["n_static"] == b["n_static"]
