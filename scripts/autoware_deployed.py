@@ -34,7 +34,7 @@ import argparse
 import numpy as np
 from numpy.typing import NDArray
 
-from ghost_breakdown import _seeds, classify_seeds, detection_pairs, input_arguments
+from ghost_breakdown import classify_seeds, input_arguments, seed_pairs
 from jitterguard.eval.metrics import ghost_rows, scored_rows, time_to_first_correct
 from jitterguard.eval.pipeline import Records, concat_records
 from jitterguard.schemas.models import ClassifierConfig
@@ -116,8 +116,8 @@ def main() -> None:
                                            **(PRESETS[args.preset] if args.preset else {}), **hold,
                                            **({} if args.window is None else {"window_size": args.window}),
                                            **({"jump_veto": False} if args.no_jump_veto else {})})
-    seeds = [0] if args.nuscenes else _seeds(args.seeds)
-    rec = concat_records(classify_seeds({s: detection_pairs(args, s) for s in seeds}, clf), [str(s) for s in seeds])
+    pairs = seed_pairs(args)
+    rec = concat_records(classify_seeds(pairs, clf), [str(s) for s in pairs])
     sustain = np.array([clf.sustain_for(label) for label in range(int(rec.label.max(initial=0)) + 1)])
     report(rec, sustain)
 

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from ghost_breakdown import _seeds, detection_pairs, input_arguments  # noqa: E402
+from ghost_breakdown import input_arguments, seed_pairs  # noqa: E402
 from jitterguard.eval.metrics import ghost_rows, scored_rows  # noqa: E402
 from jitterguard.eval.pipeline import concat_records, track_and_classify  # noqa: E402
 from jitterguard.geometry import sensor_to_world_xy, world_to_sensor_xy, yaw_from_quaternion, yaws_from_quaternions  # noqa: E402
@@ -175,7 +175,7 @@ def main() -> None:
     ap.add_argument("--anchors", action="store_true")
     ap.add_argument("--table-on", default=None, help="seeds whose labels fit the bias table, e.g. 0,1")
     args = ap.parse_args()
-    pairs = {s: detection_pairs(args, s) for s in _seeds(args.seeds)}
+    pairs = seed_pairs(args)
     if args.anchors:
         anchors(pairs)
     if args.table_on:

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from ghost_breakdown import _seeds, classifier_config, classify_seeds, detection_pairs, input_arguments  # noqa: E402
+from ghost_breakdown import classifier_config, classify_seeds, input_arguments, seed_pairs  # noqa: E402
 from jitterguard.eval.metrics import scored_rows  # noqa: E402
 from jitterguard.services.classifier.core import DYNAMIC  # noqa: E402
 from jitterguard.services.tracker import core as tracker_core  # noqa: E402
@@ -29,7 +29,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     input_arguments(ap)
     args = ap.parse_args()
-    pairs = {s: detection_pairs(args, s) for s in _seeds(args.seeds)}
+    pairs = seed_pairs(args)
     history: dict = defaultdict(list)  # (run, track id) -> [(seq, length, width, x, y, yaw)]
     run = {"i": 0}
     step = tracker_core.TrackerCore.step

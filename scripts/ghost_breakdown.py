@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from jitterguard.eval.metrics import TrackBootstrap, ghost_rows, planner_metrics
+from jitterguard.eval.metrics import TrackBootstrap, ghost_rows, planner_metrics, scored_rows
 from jitterguard.eval.pipeline import NOISE_PRESETS, Records, concat_records, track_and_classify
 from jitterguard.schemas import encode, read_detected_objects
 from jitterguard.schemas.models import ClassifierConfig
@@ -58,6 +58,30 @@ def input_arguments(ap: argparse.ArgumentParser, default_input: str = "detector"
     ap.add_argument("--cache", default=None, help="folder for the per-seed detector payloads")
     ap.add_argument("--no-jump-veto", action="store_true",
                     help="the classifier without its jump veto (every figure measured before 3 Dec 2026)")
+
+
+def seed_pairs(args: argparse.Namespace) -> dict[int, list[tuple[Any, bytes]]]:
+    """:func:`detection_pairs` of every run the options name: each of ``--seeds``, or the one ``--nuscenes`` scene."""
+    return {s: detection_pairs(args, s) for s in ([0] if args.nuscenes else _seeds(args.seeds))}
+
+
+def rates_line(rec: Records) -> str:
+    """Vehicle and pedestrian z-test rates of scored rows, as ``jitterguard eval`` reports them: static called moving,
+    moving missed, ghosts called moving (rows in brackets)."""
+    out = []
+    for group in ("vehicle", "pedestrian"):
+        m = scored_rows(rec, group)
+        static, moving, ghost = m & ~rec.gt_dynamic, m & rec.gt_dynamic, ghost_rows(rec, group)
+
+        def rate(mask: np.ndarray, dynamic: bool) -> str:
+            if not mask.any():
+                return "-"
+            hit = (rec.state_z[mask] == DYNAMIC) == dynamic
+            return f"{hit.mean():.4f} ({int(hit.sum())}/{int(mask.sum())})"
+
+        out.append(f"{group[0].upper()} false {rate(static, True)} missed {rate(moving, False)} "
+                   f"ghost {rate(ghost, True)}")
+    return " | ".join(out)
 
 
 def classifier_config(args: argparse.Namespace, **updates: Any) -> ClassifierConfig:
@@ -147,8 +171,8 @@ def main() -> None:
     ap.add_argument("--tracker-config", default=None, help="tracker YAML (as `jitterguard tracker --config`)")
     args = ap.parse_args()
     cfg = load_config(args.tracker_config)
-    seeds = [0] if args.nuscenes else _seeds(args.seeds)
-    pairs = {s: detection_pairs(args, s) for s in seeds}
+    pairs = seed_pairs(args)
+    seeds = list(pairs)
     rec = concat_records(classify_seeds(pairs, classifier_config(args), cfg), [str(s) for s in seeds])
     frames = born = confirmed = 0
     for s in seeds:

@@ -10,37 +10,20 @@ import argparse
 import sys
 from pathlib import Path
 
-import numpy as np
-
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from ghost_breakdown import _seeds, classify_seeds, detection_pairs, input_arguments  # noqa: E402
-from jitterguard.eval.metrics import ghost_rows, scored_rows  # noqa: E402
+from ghost_breakdown import classify_seeds, input_arguments, rates_line, seed_pairs  # noqa: E402
 from jitterguard.eval.pipeline import concat_records  # noqa: E402
 from jitterguard.schemas.models import ClassifierConfig  # noqa: E402
-from jitterguard.services.classifier.core import DYNAMIC  # noqa: E402
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     input_arguments(ap)
     args = ap.parse_args()
-    pairs = {s: detection_pairs(args, s) for s in _seeds(args.seeds)}
+    pairs = seed_pairs(args)
     for veto in (False, True):
         rec = concat_records(classify_seeds(pairs, ClassifierConfig(jump_veto=veto)), [str(s) for s in pairs])
-        out = [f"jump_veto {str(veto):5s}"]
-        for group in ("vehicle", "pedestrian"):
-            m = scored_rows(rec, group)
-            static, moving, ghost = m & ~rec.gt_dynamic, m & rec.gt_dynamic, ghost_rows(rec, group)
-
-            def rate(mask: np.ndarray, dynamic: bool) -> str:
-                if not mask.any():
-                    return "-"
-                hit = (rec.state_z[mask] == DYNAMIC) == dynamic
-                return f"{hit.mean():.4f} ({int(hit.sum())}/{int(mask.sum())})"
-
-            out.append(f"{group[0].upper()} false {rate(static, True)} missed {rate(moving, False)} "
-                       f"ghost {rate(ghost, True)}")
-        print(" | ".join(out), flush=True)
+        print(f"jump_veto {str(veto):5s} | {rates_line(rec)}", flush=True)
 
 
 if __name__ == "__main__":

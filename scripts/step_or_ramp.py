@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from ghost_breakdown import _seeds, classifier_config, classify_seeds, detection_pairs, input_arguments  # noqa: E402
+from ghost_breakdown import classifier_config, classify_seeds, input_arguments, seed_pairs  # noqa: E402
 from jitterguard.eval.metrics import ghost_rows, scored_rows  # noqa: E402
 from jitterguard.services.classifier import core as core_mod  # noqa: E402
 from jitterguard.services.classifier.core import DYNAMIC, MotionClassifierCore  # noqa: E402
@@ -45,7 +45,7 @@ def main() -> None:
     input_arguments(ap)
     ap.add_argument("--group", default="vehicle", choices=("vehicle", "pedestrian"))
     args = ap.parse_args()
-    pairs = {s: detection_pairs(args, s) for s in _seeds(args.seeds)}
+    pairs = seed_pairs(args)
     log: dict = {}
     run = {"i": 0}
     statistic = MotionClassifierCore._statistics

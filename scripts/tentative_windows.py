@@ -25,7 +25,7 @@ import argparse
 
 import numpy as np
 
-from ghost_breakdown import _seeds, classifier_config, classify_seeds, detection_pairs, input_arguments
+from ghost_breakdown import classifier_config, classify_seeds, input_arguments, seed_pairs
 from jitterguard.eval.metrics import compute_metrics, planner_metrics
 from jitterguard.eval.pipeline import Records, concat_records
 from jitterguard.services.classifier.core import DYNAMIC
@@ -88,7 +88,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     input_arguments(ap, default_input="gt-noise")
     args = ap.parse_args()
-    pairs = {s: detection_pairs(args, s) for s in ([0] if args.nuscenes else _seeds(args.seeds))}
+    pairs = seed_pairs(args)
     off = _run(args, pairs, False, 2)
     _same_rows(off, _run(args, pairs, True, 2))
     print("as scored (metrics.json; z-test / speed threshold):")

@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from ghost_breakdown import _seeds, classifier_config, classify_seeds, detection_pairs, input_arguments  # noqa: E402
-from jitterguard.eval.metrics import ghost_rows, scored_rows  # noqa: E402
+from ghost_breakdown import classifier_config, classify_seeds, input_arguments, rates_line, seed_pairs  # noqa: E402
+from jitterguard.eval.metrics import scored_rows  # noqa: E402
 from jitterguard.eval.pipeline import concat_records  # noqa: E402
 from jitterguard.services.classifier import core as core_mod  # noqa: E402
 from jitterguard.services.classifier.calibration import vehicle_class_names  # noqa: E402
@@ -83,23 +83,13 @@ def main() -> None:
     ap.add_argument("--diagnose", action="store_true")
     ap.add_argument("--s", default="0,0.5,1,2")
     args = ap.parse_args()
-    pairs = {s: detection_pairs(args, s) for s in _seeds(args.seeds)}
+    pairs = seed_pairs(args)
     if args.diagnose:
         _contrasts(args, pairs)
         return
     for text in args.s.split(","):
         rec = concat_records(_run(args, pairs, float(text)), [str(s) for s in pairs])
-        out = [f"s {text:>4}"]
-        for group in ("vehicle", "pedestrian"):
-            m = scored_rows(rec, group)
-            static, moving, ghost = m & ~rec.gt_dynamic, m & rec.gt_dynamic, ghost_rows(rec, group)
-
-            def rate(mask: np.ndarray, dynamic: bool) -> str:
-                return f"{np.mean((rec.state_z[mask] == DYNAMIC) == dynamic):.4f}" if mask.any() else "-"
-
-            out.append(f"{group[0].upper()} false {rate(static, True)} missed {rate(moving, False)} "
-                       f"ghost {rate(ghost, True)}")
-        print(" | ".join(out), flush=True)
+        print(f"s {text:>4} | {rates_line(rec)}", flush=True)
 
 
 if __name__ == "__main__":

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from ghost_breakdown import _seeds, classify_seeds, detection_pairs, input_arguments  # noqa: E402
+from ghost_breakdown import classify_seeds, input_arguments, seed_pairs  # noqa: E402
 from jitterguard.eval.metrics import ghost_rows, scored_rows  # noqa: E402
 from jitterguard.schemas.models import ClassifierConfig  # noqa: E402
 from jitterguard.services.classifier import core as core_mod  # noqa: E402
@@ -137,7 +137,7 @@ def main() -> None:
     ap.add_argument("--effective-n", default=None, choices=("measured", "independent", "cluster"),
                     help="the covariance C under this mode (the decisions keep the classifier's)")
     args = ap.parse_args()
-    pairs = {s: detection_pairs(args, s) for s in _seeds(args.seeds)}
+    pairs = seed_pairs(args)
     a = collect(pairs, args.slide, args.group, args.effective_n)
     print("full windows", {k: int((a[:, 7] == v).sum()) for k, v in (("static", STATIC), ("moving", MOVING),
                                                                       ("ghost", GHOST))})

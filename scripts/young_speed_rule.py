@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from ghost_breakdown import _seeds, classifier_config, classify_seeds, detection_pairs, input_arguments  # noqa: E402
+from ghost_breakdown import classifier_config, classify_seeds, input_arguments, seed_pairs  # noqa: E402
 from jitterguard.eval.metrics import ghost_rows, scored_rows  # noqa: E402
 from jitterguard.eval.pipeline import concat_records  # noqa: E402
 from jitterguard.services.classifier.core import DYNAMIC  # noqa: E402
@@ -29,7 +29,7 @@ def main() -> None:
     input_arguments(ap)
     ap.add_argument("--below", default="4,7,10", help="window lengths below which the threshold decides")
     args = ap.parse_args()
-    pairs = {s: detection_pairs(args, s) for s in _seeds(args.seeds)}
+    pairs = seed_pairs(args)
     rec = concat_records(classify_seeds(pairs, classifier_config(args)), [str(s) for s in pairs])
     z_dyn, v_dyn = rec.state_z == DYNAMIC, rec.state_v == DYNAMIC
     rules = [("z-test", z_dyn), ("threshold", v_dyn)]

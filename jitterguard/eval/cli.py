@@ -81,9 +81,10 @@ def eval_command(
                                                      "truck, bus, trailer): how far a box centre slides per unit "
                                                      "turn of the line of sight, m (0: none; "
                                                      "view_slide_m_per_class).")] = None,
-    jump_veto: Annotated[bool, typer.Option("--jump-veto/--no-jump-veto", help="A full window that one jump of "
-                                            "the box explains better than steady motion is not called dynamic "
-                                            "(jump_veto; --no-jump-veto: the paper's test alone).")] = True,
+    jump_veto: Annotated[bool, typer.Option("--jump-veto/--no-jump-veto", help="A window the test rejects (a "
+                                            "vehicle's from 6 observations, another class's once full) that one "
+                                            "jump of the box explains better than steady motion is not called "
+                                            "dynamic (jump_veto; --no-jump-veto: the paper's test alone).")] = True,
     fixed_window: Annotated[bool, typer.Option("--fixed-window/--no-fixed-window", help="The window holds "
                                                "window_size observations of every frame at any frame rate "
                                                "(window_reference_hz: null).")] = False,

@@ -94,9 +94,13 @@ def vetoed_rows(rec: Records) -> dict[str, dict[str, int]]:
     """Per report group, the scored rows the jump veto called static although the test rejected — on static objects
     (false alarms it took back), on moving ones (misses it caused) and on ghost tracks: what the veto did to this
     run's rates (``false_dynamic_z`` without it = (false rows + ``static``) / ``n_static``)."""
-    return {g: {"static": int(np.count_nonzero(rec.vetoed & scored_rows(rec, g) & ~rec.gt_dynamic)),
-                "moving": int(np.count_nonzero(rec.vetoed & scored_rows(rec, g) & rec.gt_dynamic)),
-                "ghost": int(np.count_nonzero(rec.vetoed & ghost_rows(rec, g)))} for g in REPORT_GROUPS}
+    out = {}
+    for g in REPORT_GROUPS:
+        scored = rec.vetoed & scored_rows(rec, g)
+        out[g] = {"static": int(np.count_nonzero(scored & ~rec.gt_dynamic)),
+                  "moving": int(np.count_nonzero(scored & rec.gt_dynamic)),
+                  "ghost": int(np.count_nonzero(rec.vetoed & ghost_rows(rec, g)))}
+    return out
 
 
 def _nan_to_none(x: float) -> float | None:

@@ -193,8 +193,9 @@ def render(summary: dict[str, Any]) -> str:
         f" classified {n(fr['classified'])}",
         f"  tracks    born {n(tr['born'])}, ended {n(tr['ended'])}",
         f"  objects   static {n(ob['static'])} (jump veto {n(ob.get('vetoed'))}), dynamic {n(ob['dynamic'])},"
-        f" undecided {n(ob['undecided'])} (object-frames)" + (f"; last frame: {n(ob['static_now'])} static, {n(ob['dynamic_now'])} dynamic"
-                              if ob.get("static_now") is not None else ""),
+        f" undecided {n(ob['undecided'])} (object-frames)"
+        + (f"; last frame: {n(ob['static_now'])} static, {n(ob['dynamic_now'])} dynamic"
+           if ob.get("static_now") is not None else ""),
         f"  rejected  {kv(summary['rejected'])}",
         f"  dropped   {kv(summary['dropped'])}",
         f"  restarts  {kv(rs['programs'])}" + (f"; unexpected exits: {kv(rs['unexpected_exits'])}"

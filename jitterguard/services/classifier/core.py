@@ -620,15 +620,14 @@ class MotionClassifierCore:
             else:
                 threshold = chi2_2_threshold(alpha)
                 reject = stats.chi2 > threshold
-            if cfg.jump_veto:  # a full window one jump explains better than steady motion is a re-placed box
+            if cfg.jump_veto:  # a window one jump explains better than steady motion is a re-placed box
                 # only a window the test rejects can be vetoed: a vehicle's from JUMP_VETO_MIN_VEHICLE observations,
                 # any other class's once full
-                vehicle = group_of_labels(t.label[rows]) == _VEHICLE
-                need = np.where(vehicle, min(JUMP_VETO_MIN_VEHICLE, t.window), t.window)
+                youngest = min(JUMP_VETO_MIN_VEHICLE, t.window)
+                need = np.where(group_of_labels(t.label[rows]) == _VEHICLE, youngest, t.window)
                 ask = np.flatnonzero(reject & (count >= need))
                 if ask.size:
-                    vetoed[ask] = jump_ratio(t.ordered(rows[ask], t.window), count[ask],
-                                             min_count=min(JUMP_VETO_MIN_VEHICLE, t.window)) < 1.0
+                    vetoed[ask] = jump_ratio(t.ordered(rows[ask], t.window), count[ask], min_count=youngest) < 1.0
                     reject &= ~vetoed
             # dynamic once the test has rejected H0 on every decision for the class's hold (none: at once); the
             # microsecond spares a hold of whole frames the rounding of stamps in seconds

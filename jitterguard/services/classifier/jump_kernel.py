@@ -1,7 +1,7 @@
 """The jump veto's shape test as one compiled loop per window (numba): :func:`~.statistics.jump_ratio`'s arithmetic.
 
-Why compiled: the veto looks at every full window the test rejects, and on a street most of those are movers — half
-of 1000 tracks in the classifier benchmark. As numpy expressions over (windows × slots) the line, the step's prefix
+Why compiled: the veto looks at the windows the test rejects, and on a street most of those are movers — half of
+1000 tracks in the classifier benchmark. As numpy expressions over (windows × slots) the line, the step's prefix
 sums and the hinges' (windows × knots × slots) arrays cost 2–10 ms per frame there, more than the calibrated
 statistic itself; one loop per window does the same arithmetic on a few scalars and three scratch rows (the hinges
 only where the step beats the line, which a mover's ramp never lets it). The tests
@@ -22,8 +22,8 @@ from .window_kernel import _compiled
 def _hinge_sse(xs, ys, ts, n, spp):  # noqa: ANN001, ANN202
     """The residual sum of squares about the best one-sided hinge of centred positions ``xs``, ``ys`` at centred
     stamps ``ts`` (first ``n`` slots): ``a + v·max(0, t − t_j)`` (a stand, then motion) or
-    ``a + v·min(0, t − t_j)`` (motion, then a stand), each axis its own ``a`` and ``v``, the knot at one observation's stamp, two observations
-    or more a side; inf where no knot qualifies."""
+    ``a + v·min(0, t − t_j)`` (motion, then a stand), each axis its own ``a`` and ``v``, the knot at one
+    observation's stamp, two observations or more a side; inf where no knot qualifies."""
     best = math.inf
     for j in range(n):
         tj = ts[j]

@@ -242,9 +242,10 @@ def jump_ratio(windows: F64, count: I64, *, min_count: int = 6) -> F64:
     its own mean, the split shared by both axes, at least two observations a side) over that about the best
     motion — the least-squares constant-velocity line, or a one-sided hinge (a stand that turns into steady motion at
     one observation's stamp, or steady motion that comes to a stand there, each axis its own offset and speed, the
-    knot shared, two observations or more a side: an object that starts or stops inside the window): below 1 a jump explains the window better than any of them. The
-    hinges are fitted only where the step beats the line (elsewhere the ratio is the step's over the line's, at
-    least 1 either way), so a mover's ramp costs no more than the line and the step.
+    knot shared, two observations or more a side: an object that starts or stops inside the window): below 1 a jump
+    explains the window better than any of them. The hinges are fitted only where the step beats the line
+    (elsewhere the ratio is the step's over the line's, at least 1 either way), so a mover's ramp costs no more
+    than the line and the step.
 
     Why: the half-mean contrast the z-test weighs is the same for a box the detector re-placed once (an occlusion
     change, a box slid along the car) and for an object that moved as far; the shape of the window tells them
@@ -252,8 +253,8 @@ def jump_ratio(windows: F64, count: I64, *, min_count: int = 6) -> F64:
     ramp on one side of a stand, which a step can fit better than one straight line; the hinges, with as many
     free values as the step, keep it a mover. ``windows`` is ``(K, W, ≥6)`` over :data:`CHANNELS` oldest first
     with each row's ``count`` newest observations in its last slots (``_Table.ordered``); rows with fewer than
-    ``min_count`` observations (at least 4: two a side; the classifier asks a full window, where a short one's
-    shape says little), a line that fits exactly, one instant for every stamp, or non-finite input give inf (no
+    ``min_count`` observations (at least 4: two a side; the classifier asks 6 of a vehicle's window and a full
+    window of other classes, whose short windows' shape says little), a line that fits exactly, one instant for every stamp, or non-finite input give inf (no
     evidence of a jump). Computed by :func:`~.jump_kernel.jump_ratios`, one compiled loop per window."""
     out = np.full(windows.shape[0], np.inf)
     jump_ratios(np.ascontiguousarray(windows, dtype=np.float64), np.ascontiguousarray(count, dtype=np.int64),
