@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import sys
+from pathlib import Path
 from typing import Annotated, NoReturn
 
 import typer
@@ -25,7 +26,17 @@ ConnectOpt = Annotated[
 ListenOpt = Annotated[
     list[str] | None, typer.Option("--listen", help="Zenoh endpoint to listen on (repeatable).")
 ]
-LogLevelOpt = Annotated[str, typer.Option("--log-level", help="DEBUG, INFO, WARNING or ERROR.")]
+LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR")
+
+
+def _log_level(value: str) -> str:
+    """``--log-level`` checked where it is parsed, for every command that takes it (one line, exit 2)."""
+    if value.upper() not in LOG_LEVELS:
+        fail(f"--log-level: {value!r} is not one of {', '.join(LOG_LEVELS)}")
+    return value
+
+
+LogLevelOpt = Annotated[str, typer.Option("--log-level", help="DEBUG, INFO, WARNING or ERROR.", callback=_log_level)]
 ParamFileOpt = Annotated[str | None, typer.Option(
     "--config", help="Parameter file (flat, or Autoware's ros__parameters form) overriding the service's defaults"
     " in jitterguard/config/<service>.param.yaml; the flags below override it.")]
@@ -57,6 +68,47 @@ def parse_float(flag: str, text: str, lo: float, hi: float) -> float:
     return value
 
 
+def check_seed(flag: str, value: int) -> int:
+    """A seed of the synthetic world (numpy's SeedSequence takes no negative one), or one line and exit 2."""
+    if value < 0:
+        fail(f"{flag}: {value} is negative; seeds are integers >= 0")
+    return value
+
+
+def out_dir(flag: str, path: str | os.PathLike[str]) -> Path:
+    """``path`` created as a folder (parents too) before any work is done, or one line naming ``flag`` (exit 2):
+    a run must not compute for minutes and then fail to write its result."""
+    p = Path(path)
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        fail(f"{flag}: cannot create the folder {p}: {exc.strerror or exc}")
+    if not os.access(p, os.W_OK | os.X_OK):
+        fail(f"{flag}: cannot write into {p}")
+    return p
+
+
+def out_file(flag: str, path: str | os.PathLike[str]) -> Path:
+    """``path``'s folder created and ``path`` not a folder, before any work (one line and exit 2 otherwise)."""
+    p = Path(path)
+    if p.is_dir():
+        fail(f"{flag}: {p} is a folder; give a file name")
+    out_dir(flag, p.parent if str(p.parent) else ".")
+    return p
+
+
+def check_endpoints(endpoints: list[str]) -> None:
+    """Each Zenoh endpoint shaped PROTO/HOST:PORT with a port in 0-65535, or one line and exit 2: Zenoh refuses a
+    bad one only when the session opens, and a service retries that for ever (it waits for a router)."""
+    for ep in endpoints:
+        if "/" not in ep:
+            fail(f"endpoint {ep!r} must look like tcp/HOST:PORT")
+        proto, _, address = ep.partition("/")
+        port = address.split("#", 1)[0].split("?", 1)[0].rpartition(":")[2]
+        if proto in ("tcp", "udp", "tls", "quic", "ws") and not (port.isdigit() and int(port) <= 65535):
+            fail(f"endpoint {ep!r}: port {port!r} is not a number in 0-65535")
+
+
 def zenoh_options(ns: str, zenoh_config: str | None, connect: list[str] | None, listen: list[str] | None) -> ZenohOptions:
     """Validate the shared flags into :class:`ZenohOptions`, failing with one line on bad input."""
     try:
@@ -65,9 +117,7 @@ def zenoh_options(ns: str, zenoh_config: str | None, connect: list[str] | None, 
         fail(f"--ns: {exc}")
     if zenoh_config and not os.path.isfile(zenoh_config):
         fail(f"--zenoh-config: file not found: {zenoh_config}")
-    for ep in (*opts.connect, *opts.listen):
-        if "/" not in ep:
-            fail(f"endpoint {ep!r} must look like tcp/HOST:PORT")
+    check_endpoints([*opts.connect, *opts.listen])
     try:  # the whole config, now: a bad file or an exposed listener is a one-line error before anything starts
         build_config(opts)
     except ValueError as exc:

@@ -143,7 +143,8 @@ def rotate_cov6(cov: F64, yaw: float) -> F64:
     cov = np.asarray(cov, dtype=np.float64)
     out = cov.copy()
     xx, xy, yy = rotate_cov2(cov[:, X_X], cov[:, X_Y], cov[:, Y_Y], yaw)
-    out[:, X_X], out[:, X_Y], out[:, Y_X], out[:, Y_Y] = xx, xy, xy, yy
+    # a singular block (cxy² = cxx·cyy) can rotate to a variance of −1e-18: no variance is negative
+    out[:, X_X], out[:, X_Y], out[:, Y_X], out[:, Y_Y] = np.maximum(xx, 0.0), xy, xy, np.maximum(yy, 0.0)
     c, s = math.cos(yaw), math.sin(yaw)
     for k in range(2, 6):
         a, b = cov[:, k], cov[:, 6 + k]  # rows x and y at column k

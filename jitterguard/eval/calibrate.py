@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
-from ..cli_common import fail, progress_on
+from ..cli_common import fail, out_file, progress_on
 from ..schemas.models import ClassifierConfig
 
 if TYPE_CHECKING:
@@ -123,6 +123,7 @@ def calibrate_command(
                                                   "stderr is a terminal).")] = None,
 ) -> None:
     """Fit the classifier's variance calibration from a recording (no labels); write it for calibration: file."""
+    out_file("--out", out)  # before the pass over the recording, not after it
     from ..services.classifier.calibration_file import write_calibration
     from ..services.replay.frames import SourceError
     from ..services.replay.sources import SourceOptions, open_source

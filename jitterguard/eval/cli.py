@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
-from ..cli_common import fail, progress_on
+from ..cli_common import check_seed, fail, out_dir, progress_on
 
 if TYPE_CHECKING:
     from ..services.detector.inference import Detector
@@ -44,6 +44,8 @@ def eval_command(
                                                  " the scan and its three mirror images (its flips setting).")
                               ] = False,
     nuscenes: Annotated[Path | None, typer.Option("--nuscenes", help="nuScenes dataroot instead of a scenario.")] = None,
+    nuscenes_version: Annotated[str | None, typer.Option(
+        "--nuscenes-version", help="nuScenes: table folder, e.g. v1.0-trainval (default: the only one).")] = None,
     scene: Annotated[str | None, typer.Option("--scene", help="nuScenes scene name or token; several "
                                               "comma-separated, or 'all', are pooled as one drive.")] = None,
     sweeps: Annotated[bool, typer.Option("--sweeps/--no-sweeps", help="nuScenes with --input detector: run the "
@@ -104,6 +106,7 @@ def eval_command(
     from ..services.classifier.config import PRESETS
     from .pipeline import NOISE_PRESETS
 
+    check_seed("--seed", seed)
     if input_ not in INPUTS:
         fail(f"--input: unknown input {input_!r}; expected one of {', '.join(INPUTS)}")
     if input_ == "detector":
@@ -122,6 +125,8 @@ def eval_command(
         fail("give --scenario or --nuscenes, not both")
     if scene is not None and nuscenes is None:
         fail("--scene needs --nuscenes")
+    if nuscenes_version is not None and nuscenes is None:
+        fail("--nuscenes-version needs --nuscenes")
     if sweeps and (nuscenes is None or input_ != "detector"):
         fail("--sweeps needs --nuscenes and --input detector (nuScenes labels only its key frames, so the noise "
              "model has no boxes to draw from between them)")
@@ -129,8 +134,6 @@ def eval_command(
         fail(f"--preset: unknown preset {preset!r}; expected one of {', '.join(PRESETS)}")
     if not 0 < duration <= 600 or not 0 < rate <= 100:
         fail("--duration must be in (0, 600] and --rate in (0, 100]")
-    if out.exists() and not out.is_dir():
-        fail(f"--out: {out} exists and is not a folder")
     if not 1 <= runs <= 50:
         fail("--runs must be in [1, 50]")
     if not 1e-3 <= variance_scale <= 1e3:
@@ -186,7 +189,9 @@ def eval_command(
     detector, weights_desc = (load_detector(weights, threads, self_crop, detector_flips) if input_ == "detector"
                               else (None, None))
 
+    out_dir("--out", out)  # before the run: it must not compute for minutes and then fail to write
     metrics = evaluate(out, scenario=scenario, seed=seed, noise=noise, nuscenes=nuscenes, scene=scene,
+                       nuscenes_version=nuscenes_version,
                        sweeps=sweeps, duration=duration, rate=rate, classifier=cfg,
                        extra_seeds=tuple(range(seed + 1, seed + runs)), detector=detector,
                        weights_desc=weights_desc, variance_scale=variance_scale, calibration_model=model,
@@ -241,7 +246,8 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
              extra_seeds: tuple[int, ...] = (), detector: "Detector | None" = None,
              weights_desc: str | None = None, variance_scale: float = 1.0,
              calibration_model: Any = None, variance_scale_at: str = "detector",
-             tracker: Any = None, mcap: bool = False, sweeps: bool = False) -> dict[str, Any]:
+             tracker: Any = None, mcap: bool = False, sweeps: bool = False,
+             nuscenes_version: str | None = None) -> dict[str, Any]:
     """Load the frames, run the pipeline, score, write the outputs; returns metrics.json's content.
 
     ``extra_seeds`` pools more runs (a fresh scenario and noise draw per seed; for nuScenes only the noise
@@ -269,7 +275,8 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
     scenes: list[tuple[str, Any]] = []  # (name, frames) of each nuScenes scene, pooled in this order
     if nuscenes is not None:
         try:
-            scenes = [load_nuscenes_frames(nuscenes, n) for n in nuscenes_scene_names(nuscenes, scene)]
+            scenes = [load_nuscenes_frames(nuscenes, n, nuscenes_version)
+                      for n in nuscenes_scene_names(nuscenes, scene, nuscenes_version)]
         except NuScenesError as exc:
             fail(f"--nuscenes: {exc}")
         if len(scenes) > 1 and extra_seeds:
@@ -332,7 +339,7 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
 
         if nuscenes is not None:
             try:
-                scans: Any = nuscenes_scans(nuscenes, scene_name, fr, sweeps=sweeps)
+                scans: Any = nuscenes_scans(nuscenes, scene_name, fr, sweeps=sweeps, version=nuscenes_version)
             except NuScenesError as exc:
                 fail(f"--nuscenes: {exc}")
         else:
@@ -421,14 +428,15 @@ def study_command(
 
     if not 0 < duration <= 600:
         fail("--duration must be in (0, 600]")
-    if out.exists() and not out.is_dir():
-        fail(f"--out: {out} exists and is not a folder")
     try:
         seed_list = tuple(dict.fromkeys(int(x) for x in seeds.split(",") if x.strip()))
     except ValueError:
         fail(f"--seeds: expected comma-separated integers, got {seeds!r}")
     if not seed_list:
         fail("--seeds: give at least one seed")
+    for s in seed_list:
+        check_seed("--seeds", s)
+    out_dir("--out", out)
     seed = seed_list[0]
     results = {}
     for scenario, noise in STUDY_RUNS:

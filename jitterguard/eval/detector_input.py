@@ -89,7 +89,7 @@ def synthetic_scans(scenario: Scenario, seed: int, sensor: LidarSpec | None = No
 
 
 def nuscenes_scans(dataroot: Path, scene: str | None, gt_frames: Sequence[GroundTruthFrame], *,
-                   sweeps: bool = False) -> list[LabelledScan]:
+                   sweeps: bool = False, version: str | None = None) -> list[LabelledScan]:
     """The LIDAR_TOP key frames of one nuScenes scene, aligned with ``gt_frames`` (from
     :func:`.groundtruth.load_nuscenes_frames`, same scene); with ``sweeps`` every LiDAR sweep from the first
     key frame to the last, as ``jitterguard replay DATAROOT --sweeps`` publishes them, the sweeps between key
@@ -106,8 +106,8 @@ def nuscenes_scans(dataroot: Path, scene: str | None, gt_frames: Sequence[Ground
     from ..services.replay.sources.nuscenes import NuScenesSource
 
     try:
-        src = NuScenesSource(Path(dataroot), scene=scene, sweeps=sweeps)
-        samples = nuscenes_samples(dataroot, scene_names=[src.scene_name])
+        src = NuScenesSource(Path(dataroot), scene=scene, sweeps=sweeps, version=version)
+        samples = nuscenes_samples(dataroot, src.version, scene_names=[src.scene_name])
         items = list(src.frames())
     except SourceError as exc:
         raise NuScenesError(" ".join(str(exc).split())) from None

@@ -44,8 +44,9 @@ NUSCENES_LABELS: dict[str, int] = {
 }
 """nuScenes category → Autoware label; ``human.pedestrian.*`` → PEDESTRIAN; anything else is not evaluated."""
 
-VISIBILITY_FRACTION = {"1": 0.2, "2": 0.5, "3": 0.7, "4": 0.9}
-"""Mid-points of nuScenes' visibility bins (0–40 %, 40–60 %, 60–80 %, 80–100 %), for the noise model."""
+VISIBILITY_FRACTION = {"v0-40": 0.2, "v40-60": 0.5, "v60-80": 0.7, "v80-100": 0.9}
+"""Mid-points of nuScenes' visibility bins, by the visibility table's ``level``, for the noise model (a box whose
+token or level is unknown counts as well visible)."""
 
 
 def is_dynamic(attribute: str, moving: bool) -> bool:
@@ -78,7 +79,7 @@ class NuScenesError(ValueError):
     """A nuScenes dataroot or scene the evaluator cannot use (message is one line)."""
 
 
-def nuscenes_scene_names(dataroot: Path, scene: str | None) -> list[str]:
+def nuscenes_scene_names(dataroot: Path, scene: str | None, version: str | None = None) -> list[str]:
     """The scenes ``--scene`` names in a nuScenes dataroot (the replay source's rule with several allowed,
     :func:`~..services.replay.sources.nuscenes.select_scenes`): ``None`` the only one, ``all`` every scene in
     the table's order, else comma-separated names or tokens in the order given."""
@@ -88,13 +89,14 @@ def nuscenes_scene_names(dataroot: Path, scene: str | None) -> list[str]:
     if not Path(dataroot).is_dir():
         raise NuScenesError(f"{dataroot}: no such folder")
     try:
-        table = _load_table(Path(dataroot) / find_version(Path(dataroot), None), "scene")
+        table = _load_table(Path(dataroot) / find_version(Path(dataroot), version), "scene")
         return [s["name"] for s in select_scenes(table, scene, dataroot, several=True)]
     except SourceError as exc:
         raise NuScenesError(str(exc).replace("\n", " ")) from None
 
 
-def load_nuscenes_frames(dataroot: Path, scene: str | None = None) -> tuple[str, list[GroundTruthFrame]]:
+def load_nuscenes_frames(dataroot: Path, scene: str | None = None,
+                         version: str | None = None) -> tuple[str, list[GroundTruthFrame]]:
     """Every key frame of one scene as a GroundTruthFrame (world frame, ego pose = the pose the replay
     publishes with the scan: the LIDAR_TOP position in the vehicle's axes).
 
@@ -109,7 +111,7 @@ def load_nuscenes_frames(dataroot: Path, scene: str | None = None) -> tuple[str,
     from ..services.replay.sources.nuscenes import NuScenesSource, _load_table
 
     try:
-        src = NuScenesSource(Path(dataroot), scene=scene)
+        src = NuScenesSource(Path(dataroot), scene=scene, version=version)
     except SourceError as exc:
         raise NuScenesError(str(exc).replace("\n", " ")) from None
     folder = Path(dataroot) / src.version
@@ -118,11 +120,21 @@ def load_nuscenes_frames(dataroot: Path, scene: str | None = None) -> tuple[str,
                                                  "attribute", "visibility")}
     except SourceError as exc:
         raise NuScenesError(str(exc).replace("\n", " ")) from None
-    sc = next(s for s in t["scene"] if s["name"] == src.scene_name)
+    try:
+        return _frames(dataroot, src, t)
+    except KeyError as exc:  # a token one table names and another does not hold
+        raise NuScenesError(f"{dataroot}: the tables refer to a token they do not hold: {exc}") from None
+
+
+def _frames(dataroot: Path, src: Any, t: dict[str, list[dict[str, Any]]]) -> tuple[str, list[GroundTruthFrame]]:
+    sc = next(s for s in t["scene"] if s["token"] == src.scene_token)
     samples = {s["token"]: s for s in t["sample"]}
     chain: list[dict[str, Any]] = []
-    token = sc["first_sample_token"]
+    token, seen = sc["first_sample_token"], set()
     while token:
+        if token in seen:
+            raise NuScenesError(f"{dataroot}: the sample chain of {src.scene_name} loops back to sample {token}")
+        seen.add(token)
         chain.append(samples[token])
         if token == sc["last_sample_token"]:
             break
@@ -165,8 +177,8 @@ def load_nuscenes_frames(dataroot: Path, scene: str | None = None) -> tuple[str,
             attrs = [attr_name[k] for k in a.get("attribute_tokens", [])]
             iid = inst_index.setdefault(a["instance_token"], len(inst_index))
             rows.append((iid, label, a["translation"], (ln, w, h), yaw_from_quaternion(qx, qy, qz, qw), (vx, vy),
-                         attrs[0] if attrs else "", VISIBILITY_FRACTION.get(str(vis_level.get(
-                             a.get("visibility_token", ""), "4")), 0.9)))
+                         attrs[0] if attrs else "",
+                         VISIBILITY_FRACTION.get(vis_level.get(a.get("visibility_token", ""), ""), 0.9)))
         n = len(rows)
         vel = np.array([r[5] for r in rows], dtype=np.float64).reshape(n, 2)
         speed = np.hypot(vel[:, 0], vel[:, 1])

@@ -26,14 +26,20 @@ class DecodeError(ValueError):
         super().__init__(f"{model}.{field}: {reason}" if field else f"{model}: {reason}")
 
 
+class LimitExceeded(DecodeError):
+    """A payload beyond a bound on the work one message may cause (:class:`~.wire.Limits`): rejected before (or
+    instead of) being read in full."""
+
+
 def encode(model: BaseModel | dict) -> bytes:
     """Serialise a model (all fields, defaults included) — or a map from :func:`decode_with_raw` — to msgpack."""
     return msgpack.packb(model if isinstance(model, dict) else model.model_dump(mode="python"), use_bin_type=True)
 
 
-def decode(cls: type[M], data: bytes | bytearray | memoryview) -> M:
-    """Parse msgpack ``data`` and validate it as ``cls``; any failure raises :class:`DecodeError`."""
-    return validate(cls, unpack_map(cls, data))
+def decode(cls: type[M], data: bytes | bytearray | memoryview, *, max_array_len: int | None = None) -> M:
+    """Parse msgpack ``data`` and validate it as ``cls``; any failure raises :class:`DecodeError`.
+    ``max_array_len`` bounds every list before it is built (:func:`unpack_map`)."""
+    return validate(cls, unpack_map(cls, data, max_array_len=max_array_len))
 
 
 def decode_with_raw(cls: type[M], data: bytes | bytearray | memoryview) -> tuple[M, dict]:
@@ -55,12 +61,34 @@ def validate(cls: type[M], raw: dict) -> M:
         raise DecodeError(cls.__name__, "", f"{type(exc).__name__}: {exc}") from None
 
 
-def unpack_map(cls: type[BaseModel], data: bytes | bytearray | memoryview) -> dict:
-    """Unpack msgpack ``data`` into a map, *not yet validated* as ``cls`` (errors are named after ``cls``)."""
+def unpack_map(cls: type[BaseModel], data: bytes | bytearray | memoryview, *,
+               max_array_len: int | None = None) -> dict:
+    """Unpack msgpack ``data`` into a map, *not yet validated* as ``cls`` (errors are named after ``cls``).
+
+    A top-level key given twice is refused: msgpack keeps the last, while a reader that looks at the first (the
+    services judge a frame's order by :func:`~.wire.peek_header` before reading it) would see another message.
+    ``max_array_len`` refuses any longer list before it is built (the hot messages' readers pass their bounds,
+    so a payload of millions of one-byte maps costs no more than its size says)."""
+    data = bytes(data)
+    bound = {} if max_array_len is None else {"max_array_len": max_array_len}
     try:
-        raw = msgpack.unpackb(bytes(data), raw=False, strict_map_key=True, use_list=True)
+        raw = msgpack.unpackb(data, raw=False, strict_map_key=True, use_list=True, **bound)
+    except ValueError as exc:
+        if max_array_len is not None and "max_array_len" in str(exc):
+            raise LimitExceeded(cls.__name__, "", f"a list holds more than {max_array_len} items") from None
+        raise DecodeError(cls.__name__, "", f"not valid msgpack ({type(exc).__name__}: {exc})") from None
     except Exception as exc:  # msgpack raises several unrelated types (ExtraData, ValueError, ...)
         raise DecodeError(cls.__name__, "", f"not valid msgpack ({type(exc).__name__}: {exc})") from None
     if not isinstance(raw, dict):
         raise DecodeError(cls.__name__, "", f"expected a msgpack map, got {type(raw).__name__}")
+    if len(raw) != _map_length(data):
+        raise DecodeError(cls.__name__, "", "a top-level key is given more than once")
     return raw
+
+
+def _map_length(data: bytes) -> int:
+    """The entry count of the msgpack map ``data`` starts with (fixmap, map 16 or map 32)."""
+    head = data[0]
+    if head & 0xF0 == 0x80:
+        return head & 0x0F
+    return int.from_bytes(data[1:3] if head == 0xDE else data[1:5], "big")

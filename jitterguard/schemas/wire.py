@@ -25,10 +25,12 @@ import msgpack
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from .codec import M, DecodeError, decode, unpack_map, validate
+from .codec import M, DecodeError, LimitExceeded, decode, unpack_map, validate
 from .models import (
-    DIAGONAL,
     SCHEMA_VERSION,
+    X_X,
+    X_Y,
+    Y_Y,
     DetectedObject,
     DetectedObjects,
     Header,
@@ -69,16 +71,18 @@ class Limits(BaseModel):
 
     max_payload_bytes: int = Field(8 << 20, ge=1024, description="larger payloads are refused unread")
     max_objects: int = Field(1000, ge=1, description="objects per message, read from the list's header")
+    max_list_items: int = Field(1024, ge=36, description="items of any other list (footprint points, "
+                                "classifications), refused before the list is built")
     max_abs_coordinate_m: float = Field(1e7, gt=0, description="|x|, |y|, |z| of every position (UTM fits)")
     max_abs_speed_mps: float = Field(1e3, gt=0, description="|vx|, |vy|, |vz| of every twist")
-    max_variance: float = Field(1e6, gt=0, description="every variance of a pose or twist covariance")
+    max_variance: float = Field(1e6, gt=0, description="|every entry| of a pose or twist covariance")
+    max_correlation: float = Field(1.0 + 1e-6, gt=0, description="|cxy| / sqrt(cxx·cyy) of a covariance's x-y "
+                                   "block: past 1 it is no covariance (a negative variance once rotated)")
+    max_quaternion_error: float = Field(1e-2, gt=0, description="|‖q‖ − 1| of every orientation: headings are "
+                                        "read off it as off a rotation")
 
 
 LIMITS = Limits()
-
-
-class LimitExceeded(DecodeError):
-    """A payload beyond a :class:`Limits` bound: rejected before (or instead of) being read in full."""
 
 
 # -------------------------------------------------------------------------------------------- columns
@@ -174,7 +178,7 @@ def read_track_observations(payloads: Sequence[bytes], limits: Limits = LIMITS) 
         try:
             if len(payloads[i]) > limits.max_payload_bytes:
                 raise LimitExceeded(TrackObservation.__name__, "", f"{len(payloads[i])} bytes exceed {limits.max_payload_bytes}")
-            msg = decode(TrackObservation, payloads[i])
+            msg = decode(TrackObservation, payloads[i], max_array_len=limits.max_list_items)
         except DecodeError as exc:
             errors.append((i, exc))
             continue
@@ -301,9 +305,11 @@ def _read_listed(model: type[M], data: bytes, layout: RecordLayout, limits: Limi
     got = _view_listed(model, data, layout, limits)
     if got is not None:
         return got[0], got[1], None
-    raw = unpack_map(model, data)  # another form: the model decides, its object count checked first
-    if isinstance(raw.get("objects"), list) and len(raw["objects"]) > limits.max_objects:
-        raise LimitExceeded(name, "objects", f"{len(raw['objects'])} objects exceed max_objects {limits.max_objects}")
+    n = _object_count(data, limits.max_objects)  # another form: the model decides, once its object count is known to be in bounds
+    if n > limits.max_objects:
+        raise LimitExceeded(name, "objects", f"{n} objects exceed max_objects {limits.max_objects}")
+    raw = unpack_map(model, data, max_array_len=max(limits.max_objects, limits.max_list_items))
+    _check_lists(name, raw.get("objects"), limits.max_list_items)
     msg = validate(model, raw)
     return msg, records_of(layout, msg.objects), msg.objects
 
@@ -344,6 +350,45 @@ def _view_listed(model: type[M], data: bytes, layout: RecordLayout, limits: Limi
     except Exception:  # malformed msgpack, or an envelope the model refuses: the model says what is wrong
         return None
     return None
+
+
+def _check_lists(name: str, objects: Any, bound: int) -> None:
+    """Each object's lists (classifications, footprint points) within ``bound`` — before the model validates them
+    (the unpacker bounded every list only by the larger of this and the object count)."""
+    if not isinstance(objects, list):
+        return
+    for i, o in enumerate(objects):
+        if not isinstance(o, dict):
+            continue
+        shape = o.get("shape")
+        for field, items in (("classification", o.get("classification")),
+                             ("shape.footprint", shape.get("footprint") if isinstance(shape, dict) else None)):
+            if isinstance(items, list) and len(items) > bound:
+                raise LimitExceeded(name, f"objects.{i}.{field}",
+                                    f"a list holds more than {bound} items ({len(items)})")
+
+
+def _object_count(data: bytes, limit: int) -> int:
+    """The object count a top-level ``objects`` list of the map ``data`` declares in its msgpack header — the first
+    beyond ``limit``, else the largest — found by skipping every other value unread (0 if there is none or ``data``
+    is not such a map: the model's reading then says what is wrong)."""
+    up = msgpack.Unpacker(raw=False, max_buffer_size=max(len(data), 1), max_array_len=max(limit, 1 << 16))
+    most = 0
+    try:
+        up.feed(data)
+        for _ in range(up.read_map_header()):
+            if up.unpack() != "objects":
+                up.skip()
+                continue
+            n = up.read_array_header()
+            if n > limit:
+                return n
+            most = max(most, n)
+            for _ in range(n):
+                up.skip()
+    except Exception:  # malformed msgpack: not for this check to name
+        pass
+    return most
 
 
 def _write_listed(head: dict[str, BaseModel], records: np.ndarray, tail: dict[str, Any]) -> bytes:
@@ -407,16 +452,33 @@ def _beyond(records: np.ndarray, limits: Limits, prefix: str = "", *, state: boo
         pos, vel, cov = (X, Y, Z), (VX, VY, VZ), (POSE_COV, TWIST_COV)
     out = [(~(np.abs(records[c]) <= limits.max_abs_coordinate_m), prefix + c) for c in pos]
     out += [(~(np.abs(records[c]) <= limits.max_abs_speed_mps), prefix + c) for c in vel]
-    out += [(~(records[c]["v"][:, DIAGONAL] <= limits.max_variance).all(axis=1), prefix + c) for c in cov]
+    out += [(~(np.abs(records[c]["v"]) <= limits.max_variance).all(axis=1), prefix + c) for c in cov]
+    if math.isfinite(limits.max_correlation):
+        for c in cov:
+            v = records[c]["v"]
+            spread = np.sqrt(np.maximum(v[:, X_X], 0.0)) * np.sqrt(np.maximum(v[:, Y_Y], 0.0))
+            out.append((~(np.abs(v[:, X_Y]) <= limits.max_correlation * spread), prefix + c))
+    if not state:
+        out.append((~(np.abs(_lengths(records) - 1.0) <= limits.max_quaternion_error),
+                    f"{prefix}{_POSE}.pose.orientation"))
     return out
 
 
+def _lengths(records: np.ndarray) -> np.ndarray:
+    """The length of each record's orientation quaternion (inf where its squares overflow)."""
+    with np.errstate(over="ignore"):
+        return np.sqrt(sum(records[c].astype(np.float64) ** 2 for c in (QX, QY, QZ, QW)))
+
+
 def _check_objects(name: str, objects: np.ndarray, limits: Limits, ego_pose: Pose) -> None:
-    p = ego_pose.position
+    p, q = ego_pose.position, ego_pose.orientation
     if max(abs(p.x), abs(p.y), abs(p.z)) > limits.max_abs_coordinate_m:
         raise LimitExceeded(name, "ego_pose.position", f"beyond max_abs_coordinate_m {limits.max_abs_coordinate_m}")
+    length = math.hypot(q.x, q.y, q.z, q.w)
+    if not abs(length - 1.0) <= limits.max_quaternion_error:
+        raise LimitExceeded(name, "ego_pose.orientation", f"not a unit quaternion (length {length:.6g}; "
+                            f"max_quaternion_error {limits.max_quaternion_error})")
     for bad, field in _beyond(objects, limits):
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
             raise LimitExceeded(name, f"objects.{i}.{field}", "beyond the configured limit (see Limits)")
-

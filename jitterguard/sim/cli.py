@@ -15,7 +15,7 @@ from typing import Annotated, Any
 
 import typer
 
-from ..cli_common import ProgressOpt, fail, progress_on
+from ..cli_common import ProgressOpt, check_seed, fail, progress_on
 
 sim_app = typer.Typer(help="Synthetic world: scenarios with ground truth, ray-cast LiDAR, nuScenes export.",
                       no_args_is_help=True)
@@ -26,10 +26,11 @@ DurationOpt = Annotated[float, typer.Option("--duration", help="Seconds (10–60
 LidarOpt = Annotated[str, typer.Option("--lidar", help="hdl32e, vlp16 or os1-64.")]
 
 
-def _check(scenario: str, duration: float, rate: float, lidar: str | None = None) -> None:
+def _check(scenario: str, duration: float, rate: float, lidar: str | None = None, seed: int = 0) -> None:
     from .sensors import SENSORS
     from .world import SCENARIO_NAMES
 
+    check_seed("--seed", seed)
     if scenario not in SCENARIO_NAMES:
         fail(f"unknown scenario {scenario!r} (have: {', '.join(SCENARIO_NAMES)})")
     if not 0 < duration <= 600:
@@ -74,7 +75,7 @@ def generate_command(
     progress: ProgressOpt = None,
 ) -> None:
     """Generate a scenario; print a JSON summary, optionally write its ground truth."""
-    _check(scenario, duration, rate, lidar)
+    _check(scenario, duration, rate, lidar, seed)
     from .lidar import cast_frame
     from .sensors import SENSORS
     from .world import make_scenario
@@ -126,7 +127,7 @@ def export_command(
     progress: ProgressOpt = None,
 ) -> None:
     """Export a scenario as a nuScenes-format dataroot (loads with nuscenes-devkit, version v1.0-mini)."""
-    _check(scenario, duration, rate, lidar)
+    _check(scenario, duration, rate, lidar, seed)
     if min_points < 0:
         fail("--min-points must be >= 0")
     root = Path(dataroot)
@@ -160,7 +161,7 @@ def bev_command(
     extent: Annotated[float, typer.Option("--extent", help="Half-width of the view in metres.")] = 40.0,
 ) -> None:
     """Render one ray-cast scan with its ground-truth boxes (colour = motion state) as a bird's-eye PNG."""
-    _check(scenario, duration, rate, lidar)
+    _check(scenario, duration, rate, lidar, seed)
     if not 5.0 <= extent <= 200.0:
         fail("--extent must be in [5, 200] metres")
     if not out.lower().endswith(".png"):

@@ -27,7 +27,7 @@ from typing import Annotated, Any, NoReturn
 
 import typer
 
-from ..cli_common import NsOpt, fail
+from ..cli_common import NsOpt, check_seed, fail
 from ..runtime import ZenohOptions, build_config, open_session
 from ..runtime.signals import stop_on_signals
 from ..schemas import keys
@@ -256,6 +256,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         t0 = time.monotonic()
         if input_level not in ("auto", "points", "detections", "tracks"):
             fail(f"--input: expected auto, points, detections or tracks, got {input_level!r}")
+        check_seed("--seed", seed)
         ropts = R.ReplayOptions(rate=rate, start=start, limit=limit, on_error=on_error, seed=seed, lidar=lidar,
                                 hz=hz, scene=scene, nuscenes_version=nuscenes_version, sweeps=sweeps, poses=poses,
                                 calib=calib, times=times, bin_fields=bin_fields, topic=topic, pose_topic=pose_topic)
@@ -314,6 +315,10 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             wanted.append((port, host, "--port"))
         if foxglove:
             wanted.append((foxglove_port, "127.0.0.1", "--foxglove-port"))
+        for i, (p, _h, flag) in enumerate(wanted):
+            for q, _, other in wanted[:i]:
+                if p == q:
+                    fail(f"{flag} {p} is also the {other}; give each its own port")
         for p, h, flag in wanted:
             if port_in_use(h, p):
                 owner = _port_owner(p, rd)
@@ -324,7 +329,10 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             conf_text = render_config(spec, rd, progs, nodaemon=not detach)
         except ValueError as exc:
             fail(str(exc))
-        (rd / "logs").mkdir(parents=True, exist_ok=True)
+        try:
+            (rd / "logs").mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            fail(f"--run-dir: cannot create {rd / 'logs'}: {exc.strerror or exc}")
         for stale in (summary.SUMMARY_FILE, "supervisord.pid"):
             (rd / stale).unlink(missing_ok=True)
         conf = rd / "supervisord.conf"

@@ -7,6 +7,7 @@ correlation, plain numpy formulas), and every random draw is seeded.
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
 
 import numpy as np
@@ -462,6 +463,30 @@ def test_missing_file_is_one_line(tmp_path: Path) -> None:
     with pytest.raises(CalibrationFileError) as exc:
         read_calibration(tmp_path / "nope.yaml")
     assert "\n" not in str(exc.value) and "nope.yaml" in str(exc.value)
+
+
+def test_a_file_that_is_no_calibration_is_refused_without_quoting_it(tmp_path: Path) -> None:
+    """A config write may name any path on the classifier's host: the refusal says where the file stopped being a
+    calibration file, never what it holds."""
+    secret = tmp_path / "my.cnf"
+    secret.write_text("[client]\npassword\t= s3cr3tPW\n")
+    other = tmp_path / "other.yaml"
+    other.write_text("format: s3cr3tPW\n")
+    for path in (secret, other):
+        with pytest.raises(CalibrationFileError) as exc:
+            read_calibration(path)
+        assert "s3cr3tPW" not in str(exc.value) and str(path) in str(exc.value)
+    with pytest.raises(CalibrationFileError, match="line 2, column"):
+        read_calibration(secret)
+
+
+def test_a_fifo_or_device_is_refused_without_being_read(tmp_path: Path) -> None:
+    """A FIFO nobody writes to would block the config queryable on open; /dev/zero would be read without end."""
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    for path in (fifo, Path("/dev/zero")):
+        with pytest.raises(CalibrationFileError, match="not a regular file"):
+            read_calibration(path)
 
 
 @pytest.mark.parametrize("path", ["cal\x00.yaml", "cal\udbf1.yaml"])

@@ -268,6 +268,8 @@ def test_calibration_is_in_the_state_and_the_heartbeat_and_a_file_can_be_put_in_
     err = decode(ConfigReply, reply.err.payload.to_bytes())
     assert not err.ok and "calibration_file" in err.error and "groups.vehicle.along.scale.0-20" in err.error
     assert service.core.config.calibration_file == str(good)
+    # the refusal is counted in the total as well as under its key, as every other rejection is
+    assert service.counters.get("rejected.classifier/config") == 1 and service.counters.get("rejected") == 1
 
 
 def test_state_map_validates_as_the_snapshot_model(service, client_session):

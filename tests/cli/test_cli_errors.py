@@ -7,8 +7,27 @@ import sys
 
 import pytest
 
+BLOCKED = f"{__file__}/sub"  # under a regular file: no folder can be made there
+"""An ``--out`` that cannot be created must be refused before the work, not after it."""
+
 CASES = [
     ["classifier", "--bogus"],
+    ["classifier", "--log-level", "LOUD"],
+    ["tracker", "--connect", "tcp/127.0.0.1:abc"],
+    ["router", "--listen", "tcp/127.0.0.1:99999"],  # Zenoh would refuse it only on opening, retried for ever
+    ["sim", "generate", "mixed", "--seed", "-1"],
+    ["eval", "--out", BLOCKED, "--seed", "-1"],
+    ["eval-study", "--out", BLOCKED, "--seeds", "1,-2"],
+    ["eval", "--out", BLOCKED, "--duration", "2"],
+    ["eval-study", "--out", BLOCKED],
+    ["train", "--out", BLOCKED],
+    ["eval-detector", "--out", BLOCKED],
+    ["export-onnx", "--out", BLOCKED],
+    ["calibrate", "synthetic:mixed", "--duration", "5", "--out", f"{BLOCKED}/cal.yaml"],
+    ["record", "--ros2", BLOCKED],
+    ["render-mcap", __file__, "--out", "x.png"],  # not an MCAP file
+    ["up", "--seed", "-1"],
+    ["up", "--router-port", "17448", "--port", "17448"],
     ["classifier", "--alpha", "-1"],
     ["classifier", "--mode", "zz"],
     ["classifier", "--ns", "a/b"],

@@ -252,6 +252,79 @@ def test_nuscenes_scene_loads_and_scores(tmp_path: Path) -> None:
     assert m["vehicle"]["ap_z"] is not None and m["vehicle"]["ap_z"] > 0.8
 
 
+@pytest.mark.skipif(not NUSC.is_dir(), reason="../shared/data/nuscenes-scene-0523 absent")
+def test_each_nuscenes_box_carries_its_own_visibility() -> None:
+    """The noise model scales a box's error by its visibility: each box gets its annotation's bin (read with an
+    independent reader: the tables as plain JSON), not one value for all (until 3 Dec every box read 0.9)."""
+    import json
+    from collections import Counter
+
+    from jitterguard.eval.groundtruth import VISIBILITY_FRACTION, load_nuscenes_frames
+
+    _, frames = load_nuscenes_frames(NUSC)
+    table = NUSC / "v1.0-mini"
+    level = {v["token"]: v["level"] for v in json.loads((table / "visibility.json").read_text())}
+    first = sorted(json.loads((table / "scene.json").read_text()), key=lambda s: s["name"])[0]["first_sample_token"]
+    anns = [a for a in json.loads((table / "sample_annotation.json").read_text()) if a["sample_token"] == first]
+    got = Counter(np.round(frames[0].visibility, 3).tolist())
+    want = Counter(VISIBILITY_FRACTION[level[a["visibility_token"]]] for a in anns)
+    assert len(got) > 1  # the scene's first frame holds boxes of several bins
+    assert sum(got.values()) <= sum(want.values()) and all(got[v] <= want[v] for v in got)
+
+
+def _scene_copy(root: Path) -> Path:
+    """scene-0523's tables copied under ``root`` (to be broken by a test), its scans linked."""
+    import shutil
+
+    shutil.copytree(NUSC / "v1.0-mini", root / "v1.0-mini")
+    (root / "samples").symlink_to(NUSC / "samples")
+    return root
+
+
+@pytest.mark.skipif(not NUSC.is_dir(), reason="../shared/data/nuscenes-scene-0523 absent")
+@pytest.mark.parametrize("damage", ["loop", "dangling attribute", "cut neighbour"])
+def test_broken_nuscenes_tables_are_one_line_errors_or_read_as_far_as_they_go(tmp_path: Path, damage: str) -> None:
+    """A sample chain that loops back would have grown without end; a token no table holds was a KeyError
+    traceback; a box whose neighbour was cut out of the table (a scene extracted from a larger set) has no
+    velocity there, as at a track's ends."""
+    import json
+
+    from jitterguard.eval.detector_input import nuscenes_scans
+    from jitterguard.eval.groundtruth import NuScenesError, load_nuscenes_frames
+
+    root = _scene_copy(tmp_path / "nusc")
+    tables = root / "v1.0-mini"
+
+    def edit(name: str, change) -> None:
+        rows = json.loads((tables / f"{name}.json").read_text())
+        change(rows)
+        (tables / f"{name}.json").write_text(json.dumps(rows))
+
+    if damage == "loop":
+        def loop(scenes):
+            scenes[0]["last_sample_token"] = "nowhere"  # the chain's end is never met ...
+        edit("scene", loop)
+        first = json.loads((tables / "scene.json").read_text())[0]["first_sample_token"]
+        edit("sample", lambda rows: [r.update(next=first) for r in rows if not r["next"]])  # ... and it loops
+        with pytest.raises(NuScenesError, match="loops back"):
+            load_nuscenes_frames(root)
+    elif damage == "dangling attribute":
+        edit("sample_annotation", lambda rows: [r.update(attribute_tokens=["deadbeef"]) for r in rows])
+        with pytest.raises(NuScenesError, match="deadbeef"):
+            load_nuscenes_frames(root)
+    else:
+        cut: list[str] = []
+
+        def drop_one(rows):
+            victim = next(r for r in rows if r["prev"] and r["next"])
+            cut.append(victim["token"])
+            rows.remove(victim)
+        edit("sample_annotation", drop_one)
+        _, frames = load_nuscenes_frames(root)
+        scans = nuscenes_scans(root, None, frames)  # the detector's loader: was a KeyError on the cut token
+        assert len(scans) == len(frames) and cut
+
+
 def test_pooled_runs_keep_tracks_apart(records) -> None:
     from jitterguard.eval.pipeline import concat_records
 

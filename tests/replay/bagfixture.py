@@ -54,11 +54,13 @@ def _cloud(ts: Any, t_ns: int, pts: np.ndarray, frame_id: str = "lidar_top") -> 
     )
 
 
-def _odom(ts: Any, t_ns: int, x: float, y: float, yaw: float) -> Any:
+def _odom(ts: Any, t_ns: int, x: float, y: float, yaw: float | None) -> Any:
+    """``yaw`` None: no heading (an all-zero quaternion, as a GNSS fix without one)."""
     g = ts.types
+    qz, qw = (0.0, 0.0) if yaw is None else (math.sin(yaw / 2), math.cos(yaw / 2))
     pose = g["geometry_msgs/msg/Pose"](
         position=g["geometry_msgs/msg/Point"](x=x, y=y, z=0.0),
-        orientation=g["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2)),
+        orientation=g["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=qz, w=qw),
     )
     zero3 = g["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)
     return g["nav_msgs/msg/Odometry"](
@@ -120,6 +122,7 @@ def write_bag(
     second_cloud_topic: bool = False,
     with_tf: bool = False,
     cloud_frame: str = "lidar_top",
+    headless_odom: tuple[int, ...] = (),
 ) -> BagContents:
     """Write the bag at ``path`` (a folder that must not exist) and return what it holds."""
     from rosbags.rosbag2 import StoragePlugin, Writer
@@ -142,7 +145,8 @@ def write_bag(
             t = T0 - 50_000_000 + k * 50_000_000
             x, y, yaw = 1.0 * k, 0.5 * k, 0.05 * k
             out.odom.append((t, x, y, yaw))
-            w.write(c_odom, t, ts.serialize_cdr(_odom(ts, t, x, y, yaw), "nav_msgs/msg/Odometry"))
+            w.write(c_odom, t, ts.serialize_cdr(_odom(ts, t, x, y, None if k in headless_odom else yaw),
+                                                "nav_msgs/msg/Odometry"))
             if with_tf:
                 w.write(c_tf, t, ts.serialize_cdr(_tf(ts, [(t, "map", "base_link", x, y, 0.0, yaw)]), TF))
         for i in range(n):

@@ -51,6 +51,22 @@ def test_bag_pose_topic_interpolates_odometry_to_each_scan(tmp_path: Path) -> No
     src.close()
 
 
+def test_bag_pose_messages_without_a_heading_are_skipped_and_said(tmp_path: Path) -> None:
+    """An odometry message whose quaternion is all zeros (no heading) has no orientation to interpolate: it is
+    skipped and counted, the scans take the poses around it; a topic with no usable pose is a one-line error
+    (it aborted the replay with a division by zero and a validation traceback)."""
+    bag = write_bag(tmp_path / "bag", headless_odom=(3,))
+    src = open_source(str(bag.path), SourceOptions(pose_topic=ODOM_TOPIC))
+    frames = list(src.frames())
+    assert len(frames) == 4 and any("1 skipped" in n for n in src.info.notes)
+    assert (frames[1].pose.x, frames[1].pose.y) == pytest.approx((3.0, 1.5))  # between odometry 2 and 4
+    assert frames[1].pose.yaw == pytest.approx(0.15)
+    src.close()
+    none = write_bag(tmp_path / "none", headless_odom=tuple(range(9)))
+    with pytest.raises(SourceError, match="no message with a usable pose"):
+        open_source(str(none.path), SourceOptions(pose_topic=ODOM_TOPIC))
+
+
 def test_bag_detected_objects_topic_gives_detection_frames(tmp_path: Path) -> None:
     bag = write_bag(tmp_path / "bag")
     src = open_source(str(bag.path), SourceOptions(topic=DET_TOPIC))

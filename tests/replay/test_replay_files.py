@@ -345,3 +345,38 @@ def test_nuscenes_sweeps_adds_the_non_key_frames_between_key_frames(tmp_path: Pa
     everything = [f.points[0, 0] for f in NuScenesSource(root, sweeps=True).frames()]
     assert keyframes == [0, 1, 2]
     assert everything == [0, 9, 1, 2]
+
+
+def test_nuscenes_sweeps_resume_at_the_next_key_frame_after_a_missing_row(tmp_path: Path) -> None:
+    """A sweep whose ``next`` names a row the table lacks ends that stretch, not the scene: the next key frame
+    starts the next one, and the source warns."""
+    root = make_nuscenes_root(tmp_path / "nusc", n=4)
+    path = root / "v1.0-mini" / "sample_data.json"
+    by = {sd["token"]: sd for sd in json.loads(path.read_text())}
+    by["sd0"]["next"] = "gone"  # the row after key frame 0 is missing
+    path.write_text(json.dumps(list(by.values())))
+    src = NuScenesSource(root, sweeps=True)
+    assert [f.points[0, 0] for f in src.frames()] == [0, 1, 2, 3]  # until 3 Dec: [0] alone, silently
+    assert any("sweep chain breaks" in w for w in src.info.warnings)
+
+
+def test_a_folder_plays_in_numeric_order_skips_hidden_files_and_reads_each_layout(tmp_path: Path) -> None:
+    """``2.bin`` before ``10.bin``; macOS' ``._*`` companions are not scans; a nuScenes ``.pcd.bin`` beside KITTI
+    ``.bin`` scans (as ../shared/data/single-frames holds) is read in its own five columns and frame."""
+    for k in (1, 2, 10):
+        write_bin(tmp_path / f"{k}.bin", np.full((3, 4), k, dtype=np.float32))
+    (tmp_path / "._2.bin").write_bytes(b"\x00" * 4096)  # AppleDouble metadata: 256 "points" of zeros
+    write_bin(tmp_path / "z.pcd.bin", np.full((2, 5), 7, dtype=np.float32))
+    src = BinScanSource(tmp_path)
+    frames = list(src.frames())
+    assert [f.points[0, 0] for f in frames] == [1, 2, 10, 7]
+    assert [f.stamp_ns for f in frames[:3]] == [0, 100 * MS, 200 * MS]
+    assert frames[3].points.shape == (2, 5) and frames[3].fields[-1] == "ring" and frames[3].frame_id == "LIDAR_TOP"
+    assert frames[0].frame_id == "velodyne" and any("mixes nuScenes" in w for w in src.info.warnings)
+    pcd = tmp_path / "pcd"
+    pcd.mkdir()
+    for k in (3, 20):
+        (pcd / f"scan_{k}.pcd").write_text(f"VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 1\n"
+                                           f"HEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS 1\nDATA ascii\n{k} 0 0\n")
+    (pcd / "._scan_3.pcd").write_bytes(b"\x00\x05\x16\x07")
+    assert [f.points[0, 0] for f in PcdSource(pcd).frames()] == [3, 20]

@@ -246,7 +246,7 @@ def _got_objects(records) -> list[dict]:
 
 
 _NO_LIMITS = wire.Limits(max_abs_coordinate_m=sys.float_info.max, max_abs_speed_mps=sys.float_info.max,
-                         max_variance=sys.float_info.max)
+                         max_variance=sys.float_info.max, max_correlation=math.inf, max_quaternion_error=math.inf)
 """The limits are tested on their own below; here the read functions must agree with the model exactly (every
 finite value is within these; hypothesis once drew 1.7000000000000001e+308, just past a rounder bound)."""
 
@@ -408,6 +408,81 @@ def test_coordinates_variances_and_speeds_beyond_the_limits_are_refused(path, va
     decode(TrackedObjects, payload)  # valid for the model...
     with pytest.raises(wire.LimitExceeded, match=field):  # ...but beyond what any real sensor reports
         wire.read_tracked_objects(payload)
+
+
+def test_a_top_level_key_given_twice_is_refused_whatever_reads_it():
+    """msgpack keeps a repeated key's last value, while the services judge a frame's order by its first
+    ``header`` (peek_header): a payload with two headers would be ordered as one frame and applied as another."""
+    good = _rich_tracked(odd=False)
+    first, second = msgpack.packb("header") + msgpack.packb({"stamp": 7, "seq": 6}), msgpack.packb("header")
+    second += msgpack.packb({"stamp": 2**63 - 1, "seq": 2**62})
+    rest = b"".join(msgpack.packb(k) + msgpack.packb(v) for k, v in good.model_dump(mode="python").items()
+                    if k != "header")
+    forged = bytes([0x80 | (len(good.model_dump()) + 1)]) + first + second + rest
+    assert wire.peek_header(forged) == (6, 7)
+    for read in (wire.read_tracked_objects, lambda b: decode(TrackedObjects, b)):
+        with pytest.raises(DecodeError, match="given more than once"):
+            read(forged)
+    obs = _rich_observation().model_dump(mode="python")
+    twice = b"\x85" + msgpack.packb("header") + msgpack.packb({"stamp": 1, "seq": 1}) + b"".join(
+        msgpack.packb(k) + msgpack.packb(v) for k, v in obs.items())
+    cols = wire.read_track_observations([twice])
+    assert len(cols.index) == 0 and "given more than once" in str(cols.errors[0][1])
+
+
+def test_lists_beyond_their_bound_are_refused_before_they_are_built():
+    """A list of millions of one-byte maps (classifications, footprint points) is refused from its header, and an
+    object count beyond ``max_objects`` is read from the header in the model's form too."""
+    limits = wire.Limits(max_list_items=100)
+    det = _rich_detections(odd=False).model_dump(mode="python")
+    det["objects"][0]["shape"]["footprint"] = [{}] * 101
+    with pytest.raises(wire.LimitExceeded, match="holds more than 100 items"):
+        wire.read_detected_objects(msgpack.packb(det), limits)
+    det["objects"][0]["shape"]["footprint"] = [{}] * 100  # at the bound: read (by the model) and normalised
+    assert wire.read_detected_objects(msgpack.packb(det), limits).normalised
+    obs = _rich_observation().model_dump(mode="python")
+    obs["detection"]["classification"] = [{}] * 101
+    cols = wire.read_track_observations([msgpack.packb(obs)], limits)
+    assert len(cols.index) == 0 and isinstance(cols.errors[0][1], wire.LimitExceeded)
+    body = b"".join(msgpack.packb(k) + msgpack.packb(v) for k, v in det.items() if k != "objects")
+    many = bytes([0x80 | len(det)]) + body + msgpack.packb("objects") + b"\xdd" + (5000).to_bytes(4, "big")
+    with pytest.raises(wire.LimitExceeded, match="5000 objects exceed max_objects 1000"):  # unread: 4 bytes say it
+        wire.read_detected_objects(many + b"\x80" * 5000)
+    with pytest.raises(wire.LimitExceeded, match="5000 objects exceed"):  # also behind a repeated key
+        wire.read_detected_objects(bytes([0x80 | (len(det) + 1)]) + msgpack.packb("header") + msgpack.packb(
+            det["header"]) + many[1:] + b"\x80" * 5000)
+
+
+@pytest.mark.parametrize(("path", "value", "field"), [
+    (["objects", 1, "kinematics", "pose_with_covariance", "covariance"],
+     [0.04, 0.05] + [0.0] * 4 + [0.05, 0.04] + [0.0] * 28, "pose_with_covariance.covariance"),  # |ρ| = 1.25
+    (["objects", 0, "kinematics", "pose_with_covariance", "pose", "orientation"],
+     {"x": 1e200, "y": 1e200, "z": 1e200, "w": -1e200}, "pose.orientation"),
+    (["objects", 0, "kinematics", "pose_with_covariance", "pose", "orientation"],
+     {"x": 0.0, "y": 0.0, "z": 1.0, "w": 1.0}, "pose.orientation"),  # length √2: a heading read off it is 117°
+    (["ego_pose", "orientation"], {"x": 0.0, "y": 0.0, "z": 0.0, "w": 0.0}, "ego_pose.orientation"),
+])
+def test_covariances_that_are_none_and_orientations_that_are_no_rotation_are_refused(path, value, field):
+    """A covariance whose x-y block has |cxy| > sqrt(cxx·cyy) turns into a negative variance once rotated (and made
+    the classifier call a moving car static); a quaternion far from unit length gives a wrong heading, or NaN."""
+    payload = _mutate(_rich_tracked(odd=False), path, value)
+    decode(TrackedObjects, payload)  # valid for the model...
+    with pytest.raises(wire.LimitExceeded, match=field):  # ...but no covariance, no rotation
+        wire.read_tracked_objects(payload)
+    rounded = _mutate(_rich_tracked(odd=False), ["ego_pose", "orientation"], {"z": 0.38, "w": 0.92})
+    assert wire.read_tracked_objects(rounded).ego_pose.orientation.z == 0.38  # within max_quaternion_error
+
+
+def test_a_singular_covariance_rotates_to_no_negative_variance():
+    """cxy² = cxx·cyy (a box known only along one diagonal) is a covariance; rotated by any yaw its variances stay
+    ≥ 0, so the tracker never republishes what the classifier's reader refuses."""
+    from jitterguard.geometry import rotate_cov6
+
+    cov = np.zeros((1, 36))
+    cov[0, [0, 7]], cov[0, [1, 6]] = 0.04, -0.04 * (1 + 5e-7)
+    rotated = np.concatenate([rotate_cov6(cov, yaw) for yaw in np.linspace(0.0, 2 * np.pi, 4001)])
+    assert (rotated[:, [0, 7]] >= 0.0).all()
+    assert rotated[:, [0, 7]].min() == 0.0  # the clamp acted: without it the smallest is about -1e-8
 
 
 def test_a_stamp_beyond_int64_is_refused_on_receipt():

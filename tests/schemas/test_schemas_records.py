@@ -36,12 +36,14 @@ def _write(header: dict, records: np.ndarray, observed: list[str] = ()) -> bytes
 
 def _records(n: int, seed: int = 0) -> np.ndarray:
     rng = np.random.default_rng(seed)
-    cov = rng.normal(0, 0.1, (n, 36))
-    cov[:, [0, 7, 14, 21, 28, 35]] = rng.uniform(0, 1, (n, 6))  # the diagonal is non-negative
+    a = rng.normal(0, 0.3, (n, 6, 6))
+    cov = (a @ a.transpose(0, 2, 1)).reshape(n, 36)  # a covariance: symmetric, positive semi-definite
+    half_yaw = rng.uniform(-np.pi / 2, np.pi / 2, n)  # a unit quaternion about +z
     return tl.TRACKED.pack(n, {
         tl.ID: [f"{int(v):032x}" for v in rng.integers(0, 2**62, n)], tl.EXISTENCE: rng.uniform(0, 1, n),
         tl.LABEL: rng.integers(0, 8, n), tl.LABEL_PROB: rng.uniform(0, 1, n), tl.X: rng.normal(0, 50, n),
-        tl.Y: rng.normal(0, 50, n), tl.QZ: rng.uniform(-1, 1, n), tl.POSE_COV: cov, tl.VX: rng.normal(0, 5, n),
+        tl.Y: rng.normal(0, 50, n), tl.QZ: np.sin(half_yaw), tl.QW: np.cos(half_yaw), tl.POSE_COV: cov,
+        tl.VX: rng.normal(0, 5, n),
         tl.STATIONARY: rng.random(n) < 0.5, tl.ORIENTATION: rng.integers(0, 3, n), tl.LENGTH: rng.uniform(0.5, 6, n),
     })
 
@@ -63,7 +65,8 @@ def test_packed_records_decode_with_the_model_to_the_columns() -> None:
         assert kin.is_stationary == (rec[tl.STATIONARY][k] == 0xC3)
         assert o.classification == [ObjectClassification(label=int(rec[tl.LABEL][k]),
                                                          probability=float(rec[tl.LABEL_PROB][k]))]
-        assert kin.pose_with_covariance.pose.orientation.w == 1.0  # not given: the example's value
+        assert kin.pose_with_covariance.pose.orientation.w == rec[tl.QW][k]
+        assert kin.pose_with_covariance.pose.orientation.x == 0.0  # not given: the example's value
     # and they are byte for byte what encoding the model gives: the layout is msgpack's own form of these maps
     assert encode(msg) == data
 

@@ -100,8 +100,22 @@ def test_state_filters(stack: Stack) -> None:
         dyn = c.get("/v1/state", params={"state": "dynamic"}).json()
         peds = c.get("/v1/state", params={"class": "pedestrian"}).json()
         assert c.get("/v1/state", params={"state": "moving"}).status_code == 422
+        whole = c.get("/v1/state").json()
     assert dyn["tracks"] and all(t["state"] == "dynamic" for t in dyn["tracks"])
     assert [t["class"] for t in peds["tracks"]] == ["pedestrian"]
+    assert set(dyn) == set(peds) == set(whole)  # a filter narrows the tracks, not the rest of the state
+    assert dyn["calibration"] == whole["calibration"]
+
+
+def test_a_method_a_path_does_not_serve_is_a_405_naming_those_it_does(stack: Stack) -> None:
+    """``Allow`` lists every method of the path (FastAPI has one route per method, in included routers)."""
+    with stack.http(auth=False) as c:
+        for method, path, allow in (("DELETE", "/v1/config", "GET, PATCH, PUT"),
+                                    ("GET", "/v1/config/preset/paper", "POST"),
+                                    ("POST", "/healthz", "GET"),
+                                    ("DELETE", f"/v1/state/{stack.tracks[0].track_id}", "GET")):
+            r = c.request(method, path)
+            assert r.status_code == 405 and r.headers["allow"] == allow, (method, path, r.headers.get("allow"))
 
 
 def test_one_track_and_404(stack: Stack) -> None:

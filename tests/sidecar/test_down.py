@@ -74,3 +74,49 @@ def test_503_when_the_classifier_is_gone_and_recovery() -> None:
             assert r.status_code == 200 and stack.classifier.core.config.alpha_default == 0.5
     finally:
         stack.close()
+
+
+def test_a_write_the_classifier_does_not_confirm_in_time_is_a_503_not_a_refusal() -> None:
+    """Zenoh answers a get that times out with an error reply of its own ("Timeout", from no replier). That is not
+    the classifier refusing: the write may still be applied, so the sidecar must say it did not confirm (503) and
+    point at GET, not report a refusal (502) of a config that then comes into force."""
+    import threading
+    import time
+
+    import zenoh
+
+    from jitterguard.runtime import free_tcp_port
+    from jitterguard.runtime.zenoh_config import build_config
+    from jitterguard.schemas import encode, keys
+    from jitterguard.schemas.models import ConfigReply
+    from jitterguard.services.sidecar.client import ClassifierClient, ClassifierRejected, ClassifierUnavailable
+
+    ns, port = "sc-slow", free_tcp_port()
+    slow = zenoh.open(build_config(loopback_options(ns, port, listen_self=True)))
+    applied = threading.Event()
+
+    def late(query: zenoh.Query) -> None:  # a classifier whose worker is busy: it applies the write after 1 s
+        time.sleep(1.0)
+        applied.set()
+        query.reply(query.key_expr, encode(ConfigReply(ok=True, config=ClassifierConfig())))
+
+    def refuse(query: zenoh.Query) -> None:
+        query.reply_err(encode(ConfigReply(ok=False, config=ClassifierConfig(), error="no")))
+
+    token = slow.liveliness().declare_token(keys.alive(ns, "classifier"))
+    queryable = slow.declare_queryable(keys.classifier_config(ns), late)
+    client = ClassifierClient(loopback_options(ns, port), query_timeout_s=0.3)
+    try:
+        wait_for(lambda: client.is_alive(), "the classifier's liveliness token")
+        with pytest.raises(ClassifierUnavailable, match="did not confirm the write"):
+            client.put_config(ClassifierConfig(alpha_default=3.3))
+        assert applied.wait(5)  # ...and it was applied after all: a 502 "refused" would have been false
+        queryable.undeclare()
+        queryable = slow.declare_queryable(keys.classifier_config(ns), refuse)
+        with pytest.raises(ClassifierRejected, match="refused"):  # a real refusal is still one
+            client.put_config(ClassifierConfig(alpha_default=3.3))
+    finally:
+        client.close()
+        queryable.undeclare()
+        token.undeclare()
+        slow.close()

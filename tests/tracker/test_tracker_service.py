@@ -194,6 +194,15 @@ def test_static_hints_zero_the_velocity_of_the_hinted_track(harness_factory) -> 
     assert (p.x, p.y) == pytest.approx((pos.x, pos.y), abs=1e-6)  # zero velocity: the prediction stays put
     assert h.service.counters.get("static_hints_applied") == 1
     assert h.service.counters.get("static_hints_unknown") == 1
+    # a hint whose mean lies beyond the limits is refused and counted; the track keeps where it is
+    far = hint.model_copy(update={"mean_x": 1e300})
+    h.client.put(keys.motion(h.ns, tid), encode(far))
+    assert wait_for(lambda: h.service.counters.get("rejected.motion/*") == 1)
+    assert h.service.counters.get("over_limit.motion/*") == 1 and h.service.counters.get("static_hints_received") == 2
+    h.send(h.empty_frame(nxt + 1, h.stamp0 + 10**9 + (len(seq.frames) + 1) * 100_000_000))
+    kept = next(o for o in h.wait_seq(nxt + 1).objects if o.object_id == tid)
+    p = kept.kinematics.pose_with_covariance.pose.position
+    assert (p.x, p.y) == pytest.approx((pos.x, pos.y), abs=1e-6)
 
 
 def test_the_measurement_scale_it_learns_is_in_the_heartbeat(harness_factory) -> None:

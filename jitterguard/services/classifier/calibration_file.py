@@ -21,6 +21,8 @@ and names the first bad entry. The only I/O of the calibration; the core never r
 
 from __future__ import annotations
 
+import os
+import stat
 from pathlib import Path
 from typing import Any
 
@@ -53,14 +55,18 @@ def write_calibration(path: Path, model: NoiseModel, *, window: int, source: dic
 
 def parse_calibration(text: str, where: str = "calibration") -> NoiseModel:
     """A :class:`NoiseModel` from the text of a calibration file; :class:`CalibrationFileError` otherwise."""
+    # Until the file says it is a calibration file, no error quotes it: a config write may name any path on the
+    # classifier's host, and its reply must not become a way to read other files' lines.
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
-        raise CalibrationFileError(f"{where}: not YAML: {' '.join(str(exc).split())[:200]}") from None
+        mark = getattr(exc, "problem_mark", None)
+        at = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        raise CalibrationFileError(f"{where}: not YAML ({getattr(exc, 'problem', None) or 'unreadable'}{at})") from None
     if not isinstance(data, dict):
         raise CalibrationFileError(f"{where}: expected a mapping with format {FORMAT!r}")
     if data.get("format") != FORMAT:
-        raise CalibrationFileError(f"{where}: format must be {FORMAT!r}, got {data.get('format')!r}")
+        raise CalibrationFileError(f"{where}: format must be {FORMAT!r}, not a calibration file")
     try:
         return NoiseModel.from_mapping(data)
     except ValueError as exc:
@@ -71,9 +77,16 @@ def read_calibration(path: str | Path) -> NoiseModel:
     """Read and validate a calibration file; :class:`CalibrationFileError` (one line) when it cannot be used."""
     p = Path(path)
     try:
-        if p.stat().st_size > MAX_BYTES:
+        # opened without blocking and read only if a regular file, at most MAX_BYTES of it: a FIFO, a device or a
+        # /proc file (size 0 to stat) must not stall the config queryable or fill memory
+        fd = os.open(p, os.O_RDONLY | os.O_NONBLOCK)
+        with os.fdopen(fd, "rb") as fh:
+            if not stat.S_ISREG(os.fstat(fh.fileno()).st_mode):
+                raise CalibrationFileError(f"{p}: not a regular file, not a calibration file")
+            raw = fh.read(MAX_BYTES + 1)
+        if len(raw) > MAX_BYTES:
             raise CalibrationFileError(f"{p}: larger than {MAX_BYTES} bytes, not a calibration file")
-        text = p.read_text(encoding="utf-8")
+        text = raw.decode("utf-8")
     except CalibrationFileError:
         raise
     except (OSError, ValueError) as exc:  # ValueError: a path no file system holds (a NUL byte, a lone surrogate)

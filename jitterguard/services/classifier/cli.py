@@ -9,7 +9,17 @@ from typing import Annotated
 
 import typer
 
-from ...cli_common import ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ParamFileOpt, ZenohConfigOpt, fail, zenoh_options
+from ...cli_common import (
+    ConnectOpt,
+    ListenOpt,
+    LogLevelOpt,
+    NsOpt,
+    ParamFileOpt,
+    ZenohConfigOpt,
+    check_endpoints,
+    fail,
+    zenoh_options,
+)
 from ...config import ConfigError, load
 from .config import PRESETS, ClassifierParams
 
@@ -125,6 +135,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         from ...runtime import setup_logging
         from ...runtime.router import router_config, run_router
 
+        check_endpoints(list(listen or ()))
         try:
             router_config(list(listen or ()), zenoh_config)
         except ValueError as exc:

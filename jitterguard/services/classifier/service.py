@@ -413,6 +413,7 @@ class ClassifierService(Service):
             try:  # read here, off the worker: a slow disk must not stall frames
                 model = read_calibration(cfg.calibration_file)
             except CalibrationFileError as exc:
+                self.counters.inc("rejected")
                 self.counters.inc("rejected.classifier/config")
                 query.reply_err(encode(ConfigReply(ok=False, config=self.core.config,
                                                    error=f"calibration_file: {exc}")))
@@ -422,6 +423,7 @@ class ClassifierService(Service):
         try:
             in_force = fut.result(timeout=CONFIG_APPLY_TIMEOUT_S)
         except ValueError as exc:  # refused by the core (check_config): nothing applied
+            self.counters.inc("rejected")
             self.counters.inc("rejected.classifier/config")
             query.reply_err(encode(ConfigReply(ok=False, config=self.core.config, error=str(exc))))
             return

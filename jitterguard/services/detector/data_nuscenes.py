@@ -79,12 +79,14 @@ def _rotations_wxyz(q: F64) -> F64:
 
 def box_velocity(ann: dict[str, Any], anns: dict[str, dict[str, Any]], sample_ts: dict[str, int],
                  max_time_diff: float = 1.5) -> F64:
-    """devkit's ``NuScenes.box_velocity`` on plain tables: global (vx, vy, vz) in m/s, NaN when unknown."""
-    has_prev, has_next = bool(ann["prev"]), bool(ann["next"])
+    """devkit's ``NuScenes.box_velocity`` on plain tables: global (vx, vy, vz) in m/s, NaN when unknown. A
+    neighbour the table does not hold (a scene cut out of a larger set) counts as none, where devkit raises."""
+    prev, nxt = anns.get(ann["prev"]) if ann["prev"] else None, anns.get(ann["next"]) if ann["next"] else None
+    has_prev, has_next = prev is not None, nxt is not None
     if not has_prev and not has_next:
         return np.full(3, np.nan)
-    first = anns[ann["prev"]] if has_prev else ann
-    last = anns[ann["next"]] if has_next else ann
+    first = prev if prev is not None else ann
+    last = nxt if nxt is not None else ann
     dt = 1e-6 * (sample_ts[last["sample_token"]] - sample_ts[first["sample_token"]])
     limit = max_time_diff * (2.0 if has_prev and has_next else 1.0)
     if dt > limit or dt <= 0:

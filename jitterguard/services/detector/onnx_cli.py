@@ -18,7 +18,7 @@ from typing import Annotated, Any
 
 import typer
 
-from ...cli_common import fail
+from ...cli_common import fail, out_dir
 from .cli import PresetOpt, ThreadsOpt, WeightsOpt, _one_line, passive_openmp
 from .config import PRESETS
 
@@ -169,8 +169,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             fail(f"--opset: must be >= {MIN_OPSET}, got {opset}")
         if weights is not None and not os.path.isfile(weights):
             fail(f"--weights: file not found: {weights}")
-        if Path(out).exists() and not Path(out).is_dir():
-            fail(f"--out: {out} exists and is not a folder")
+        out_dir("--out", out)
         passive_openmp()
         from .inference import Detector, WeightsError, shipped_weights
         from .onnx_backend import load_onnx_detector

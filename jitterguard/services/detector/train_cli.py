@@ -19,7 +19,7 @@ from typing import Annotated, Any
 
 import typer
 
-from ...cli_common import ProgressOpt, fail, progress_on
+from ...cli_common import ProgressOpt, fail, out_dir, progress_on
 from .augment import CENTERPOINT_SAMPLE_COUNTS
 from .config import CLASS_NAMES, PRESETS
 
@@ -305,6 +305,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         progress: ProgressOpt = None,
     ) -> None:
         """Train the detector on synthetic scans or a nuScenes dataroot; runs unchanged under ``torchrun``."""
+        out_dir("--out", out)  # before any work: a run must not fail to write its result at the end
         progress = progress_on(progress)
         if preset not in PRESETS:
             fail(f"--preset: expected one of {', '.join(PRESETS)}, got {preset!r}")
@@ -489,6 +490,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         progress: ProgressOpt = None,
     ) -> None:
         """Adapt weights to unlabelled real scans: normalisation statistics, self-training, recalibration."""
+        out_dir("--out", out)  # before any work: a run must not fail to write its result at the end
         progress = progress_on(progress)
         from .adapt import DEFAULT_PSEUDO_THRESHOLDS
         from .config import SELF_CROP_M
@@ -645,6 +647,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         progress: ProgressOpt = None,
     ) -> None:
         """Score weights on a hold-out set: nuScenes-style AP, positional ECE; JSON + PNGs."""
+        out_dir("--out", out)  # before any work: a run must not fail to write its result at the end
         progress = progress_on(progress)
         if preset not in PRESETS:
             fail(f"--preset: expected one of {', '.join(PRESETS)}, got {preset!r}")
@@ -739,6 +742,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         progress: ProgressOpt = None,
     ) -> None:
         """Refit a weights file's per-axis variance scales, per detection-score bin, on labelled synthetic scans."""
+        out_dir("--out", out)  # before any work: a run must not fail to write its result at the end
         progress = progress_on(progress)
         if not os.path.isfile(weights):
             fail(f"--weights: file not found: {weights}")

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import math
+import struct
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -63,8 +64,8 @@ def read_frames(path: str | Path) -> list[RecordedFrame]:
                         classes[schema.id] = _protobuf_class(schema.name, schema.data)
                     body = MessageToDict(classes[schema.id].FromString(msg.data), preserving_proto_field_name=True)
                 frames.setdefault(msg.log_time, RecordedFrame(msg.log_time)).messages[channel.topic] = body
-    except (OSError, McapError) as exc:
-        raise RenderError(f"{path}: not a readable MCAP file ({exc})") from None
+    except (OSError, McapError, struct.error, ValueError) as exc:  # struct.error: too short to hold a record
+        raise RenderError(f"{path}: not a readable MCAP file ({type(exc).__name__}: {exc})") from None
     out = [frames[t] for t in sorted(frames) if TRACKS in frames[t].messages]
     if not out:
         raise RenderError(f"{path}: no {TRACKS} messages (not a `jitterguard foxglove --record` file?)")

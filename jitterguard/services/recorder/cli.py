@@ -40,7 +40,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             if not number_if_exists:
                 fail(f"--ros2: {ros2} exists (rosbag2 writes a new folder)")
             path = next_free_path(path)
-        if not path.parent.exists() or not os.access(path.parent, os.W_OK):
+        if not path.parent.is_dir() or not os.access(path.parent, os.W_OK):
             fail(f"--ros2: cannot write into {path.parent}")
         opts = zenoh_options(ns, zenoh_config, connect, listen)
 

@@ -122,16 +122,18 @@ def create_app(settings: SidecarSettings) -> FastAPI:
 # ------------------------------------------------------------------------------------------------ error bodies
 
 
+HTTP_METHODS = ("GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS")
+
+
 async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
     # Starlette's 405 lists only the first matching route's methods; FastAPI has one route per method,
     # so ``Allow`` would omit PUT/PATCH on /v1/config. List every method the path really serves.
+    # Asked per method (a full match), not read off ``route.methods``: routes of an included router sit behind
+    # one entry that has no ``methods`` of its own.
     headers = dict(exc.headers or {})
     if exc.status_code == 405:
-        allowed: set[str] = set()
-        for route in request.app.router.routes:
-            match, _ = route.matches(request.scope)
-            if match != Match.NONE:
-                allowed |= set(getattr(route, "methods", None) or ())
+        allowed = {m for m in HTTP_METHODS if any(route.matches({**request.scope, "method": m})[0] == Match.FULL
+                                                  for route in request.app.router.routes)}
         headers["Allow"] = ", ".join(sorted(allowed))
     return JSONResponse({"detail": exc.detail}, status_code=exc.status_code, headers=headers)
 

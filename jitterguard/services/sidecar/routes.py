@@ -150,7 +150,7 @@ async def get_state(c: Client, state: StateFilter = None, cls: ClassFilter = Non
     tracks = [t for t in st.tracks.values()
               if (state is None or t["state"] == state) and (cls is None or t["class"] == cls)]
     view = {"seq": st.seq, "stamp_ns": st.stamp_ns, "frame_id": st.frame_id, "mode": st.config.mode,
-            "polled_at_ns": st.polled_at_ns, "counts": st.counts, "tracks": tracks}
+            "polled_at_ns": st.polled_at_ns, "counts": st.counts, "tracks": tracks, "calibration": st.calibration}
     return Response(dumps(view), media_type="application/json", headers=headers)
 
 

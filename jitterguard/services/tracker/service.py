@@ -28,7 +28,7 @@ from collections.abc import Callable
 
 from ...runtime import Service, ZenohOptions
 from ...runtime.gc_policy import IdleCollector, manage_gc_for_latency
-from ...schemas import DecodeError, DetectedColumns, keys, peek_header, read_detected_objects
+from ...schemas import DecodeError, DetectedColumns, LimitExceeded, keys, peek_header, read_detected_objects
 from ...schemas.models import MotionState
 from ...stream_order import Verdict
 from ..classifier.calibration import warm_up as calibration_warm_up
@@ -81,8 +81,14 @@ class TrackerService(Service):
             self.subscribe(keys.motion_all(self.ns), MotionState, self._on_motion)
         self.spawn(self._worker, "worker")
 
-    def _on_motion(self, msg: MotionState, _key: str) -> None:
-        """Zenoh callback: keep the static decisions for the worker (applied before the next frame)."""
+    def _on_motion(self, msg: MotionState, key: str) -> None:
+        """Zenoh callback: keep the static decisions for the worker (applied before the next frame); a hint whose
+        mean lies beyond ``limits.max_abs_coordinate_m`` is refused and counted, as a detection there would be."""
+        bound = self.core.config.limits.max_abs_coordinate_m
+        if not (abs(msg.mean_x) <= bound and abs(msg.mean_y) <= bound):
+            self.reject(LimitExceeded(MotionState.__name__, "mean_x" if not abs(msg.mean_x) <= bound else "mean_y",
+                                      f"beyond max_abs_coordinate_m {bound}"), keys.motion_all(self.ns), key)
+            return
         if msg.state == "static":
             self.counters.inc("static_hints_received")
             with self._hints_lock:

@@ -105,12 +105,12 @@ def open_source(spec: str, opts: SourceOptions | None = None) -> Source:
     if is_nuscenes_root(path):
         _only_for(opts, "nuScenes", {"--scene", "--nuscenes-version", "--sweeps"})
         if opts.level == "detections":
-            if opts.sweeps or opts.nuscenes_version is not None:
-                raise SourceError("--level detections replays a scene's annotated key frames: --sweeps and"
-                                  " --nuscenes-version do not apply")
+            if opts.sweeps:
+                raise SourceError("--level detections replays a scene's annotated key frames: --sweeps does not"
+                                  " apply")
             from .groundtruth import NuScenesBoxes
 
-            return NuScenesBoxes(path, scene=opts.scene, seed=opts.seed)
+            return NuScenesBoxes(path, scene=opts.scene, seed=opts.seed, version=opts.nuscenes_version)
         return NuScenesSource(path, scene=opts.scene, version=opts.nuscenes_version, channel=opts.channel, sweeps=opts.sweeps)
     if is_bag(path):
         _only_for(opts, "bag", {"--topic", "--pose-topic"})

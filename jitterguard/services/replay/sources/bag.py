@@ -21,6 +21,7 @@ rosbags is an optional dependency: it is imported when a bag is opened, and its 
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -144,7 +145,9 @@ class BagSource(Source):
                 notes.append(f"poses from the TF tree ({pose_topic}{' + ' + ', '.join(statics) if statics else ''})")
             elif ptype in POSE_TYPES:
                 self._read_pose_topic(pose_topic, by_topic[pose_topic])
-                notes.append(f"poses from {pose_topic} ({len(self.poses)} samples)")
+                skipped = (f"; {self.poses_skipped} skipped: orientation not a unit quaternion"
+                           if self.poses_skipped else "")
+                notes.append(f"poses from {pose_topic} ({len(self.poses)} samples{skipped})")
             else:
                 raise SourceError(
                     f"{self.path}: pose topic {pose_topic} is {ptype}, not {TF_MESSAGE} or one of {', '.join(POSE_TYPES)}"
@@ -172,12 +175,19 @@ class BagSource(Source):
 
     def _read_pose_topic(self, topic: str, conns: list[Any]) -> None:
         samples: list[tuple[int, EgoPose]] = []
+        no_heading = 0
         for t_bag, msg in self._messages(conns, "pose topic"):
-            samples.append((stamp_ns(msg.header) or t_bag, pose_of(msg)))
+            pose = pose_of(msg)
+            if not abs(math.hypot(pose.qx, pose.qy, pose.qz, pose.qw) - 1.0) <= 0.01:
+                no_heading += 1  # e.g. a GNSS fix without heading (all-zero quaternion): no orientation to use
+                continue
+            samples.append((stamp_ns(msg.header) or t_bag, pose))
             if self.base_frame is None:
                 self.base_frame = getattr(msg, "child_frame_id", "") or None
+        self.poses_skipped = no_heading
         if not samples:
-            raise SourceError(f"{self.path}: pose topic {topic} holds no message")
+            raise SourceError(f"{self.path}: pose topic {topic} holds no message with a usable pose"
+                              + (f" ({no_heading} without a unit quaternion)" if no_heading else ""))
         samples.sort(key=lambda s: s[0])
         self.pose_times = [s[0] for s in samples]
         self.poses = [s[1] for s in samples]

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import re
 from abc import ABC, abstractmethod
 from collections.abc import Iterator
+from pathlib import Path
 
 from ..frames import Item, SourceInfo
 
@@ -42,3 +44,9 @@ class MemorySource(Source):
 
     def frames(self, start: int = 0) -> Iterator[Item]:
         yield from self.items[start:]
+
+
+def natural_key(path: Path) -> list[int | str]:
+    """Sort key that orders numbered files by number (``2.bin`` before ``10.bin``, ``frame_9`` before
+    ``frame_10``); zero-padded names (KITTI's ``000010.bin``) sort as they do by name."""
+    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", path.name)]

@@ -44,11 +44,11 @@ def noisy_detections(frame_at: Callable[[int], Any], num_frames: int, seed: int,
 class NuScenesBoxes(Source):
     """A nuScenes scene's annotated boxes (every key frame) as noisy detections at the LIDAR_TOP pose."""
 
-    def __init__(self, dataroot: Path, *, scene: str | None = None, seed: int = 0) -> None:
+    def __init__(self, dataroot: Path, *, scene: str | None = None, seed: int = 0, version: str | None = None) -> None:
         from ....eval.groundtruth import NuScenesError, load_nuscenes_frames  # evaluation: an optional area
 
         try:
-            self.scene_name, self.gt = load_nuscenes_frames(Path(dataroot), scene)
+            self.scene_name, self.gt = load_nuscenes_frames(Path(dataroot), scene, version)
         except NuScenesError as exc:
             raise SourceError(str(exc)) from None
         self.seed = seed

@@ -20,7 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..frames import DEFAULT_PERIOD_NS, IDENTITY, EgoPose, FrameError, Item, ScanFrame, SourceError, SourceInfo, finite_rows
-from .base import Source
+from .base import Source, natural_key
 
 log = logging.getLogger("jitterguard.replay")
 
@@ -141,7 +141,8 @@ _NUM = re.compile(r"^(\d+)")
 
 
 class BinScanSource(Source):
-    """A folder of ``.bin`` / ``.pcd.bin`` scans (sorted by name) or one such file."""
+    """A folder of ``.bin`` / ``.pcd.bin`` scans (in numeric order of their names, hidden ones such as macOS'
+    ``._*`` skipped) or one such file."""
 
     def __init__(
         self,
@@ -156,7 +157,9 @@ class BinScanSource(Source):
     ) -> None:
         path = Path(path)
         if path.is_dir():
-            files = sorted(p for p in path.iterdir() if p.name.endswith(".bin") and p.is_file())
+            files = sorted((p for p in path.iterdir()
+                            if p.name.endswith(".bin") and not p.name.startswith(".") and p.is_file()),
+                           key=natural_key)
             if not files:
                 raise SourceError(f"{path}: no .bin scans in this folder")
         elif path.is_file():
@@ -165,12 +168,17 @@ class BinScanSource(Source):
             raise SourceError(f"{path}: no such file or folder")
         self.path = path
         self.files = files
-        self.fields = tuple(fields) if fields else fields_for(files[0])
+        # each file in its own layout (a folder may mix nuScenes' 5-column and KITTI's 4-column scans, as
+        # ../shared/data/single-frames does), unless --bin-fields names one for all
+        self.file_fields = [tuple(fields) if fields else fields_for(f) for f in files]
+        self.fields = self.file_fields[0]
         if len(self.fields) < 3 or self.fields[:3] != ("x", "y", "z"):
             raise SourceError(f"--bin-fields must start with x,y,z, got {','.join(self.fields)}")
         self.period_ns = period_ns
-        is_nusc = files[0].name.endswith(".pcd.bin")
-        self.frame_id = frame_id or ("LIDAR_TOP" if is_nusc else "velodyne")
+        nusc = [f.name.endswith(".pcd.bin") for f in files]
+        is_nusc = nusc[0]
+        self.file_frame_ids = [frame_id or ("LIDAR_TOP" if n else "velodyne") for n in nusc]
+        self.frame_id = self.file_frame_ids[0]
         folder = path if path.is_dir() else path.parent
         notes: list[str] = []
 
@@ -200,8 +208,11 @@ class BinScanSource(Source):
         # KITTI numbers scans 000000.bin, 000001.bin...: the poses/times row is the file number when every
         # name is a number, so a folder holding a slice of a sequence still finds its own poses.
         nums = [_NUM.match(p.name) for p in files]
-        self.rows = [int(m.group(1)) for m in nums] if all(nums) and not is_nusc else list(range(len(files)))
+        self.rows = [int(m.group(1)) for m in nums] if all(nums) and not any(nusc) else list(range(len(files)))
         warnings = []
+        if len(set(nusc)) > 1 and fields is None:
+            warnings.append(f"{path}: mixes nuScenes .pcd.bin and KITTI .bin scans: each is read in its own "
+                            "layout, but as one stream their stamps and poses mean nothing")
         if self.poses is None and len(files) > 1:
             warnings.append(f"{path}: {len(files)} scans and no --poses: every scan is published at the identity"
                             " pose, so if the sensor moved, static objects will look dynamic")
@@ -225,7 +236,7 @@ class BinScanSource(Source):
         for i in range(start, len(self.files)):
             f = self.files[i]
             try:
-                pts = read_bin(f, len(self.fields))
+                pts = read_bin(f, len(self.file_fields[i]))
             except (OSError, ValueError) as exc:
                 yield FrameError(str(f), str(exc) if isinstance(exc, ValueError) else f"cannot read: {exc.strerror or exc}")
                 continue
@@ -234,4 +245,4 @@ class BinScanSource(Source):
                 yield FrameError(str(f), pose)
                 continue
             pts, _ = finite_rows(pts)
-            yield ScanFrame(self._stamp(i), pose, pts, self.fields, str(f), self.frame_id)
+            yield ScanFrame(self._stamp(i), pose, pts, self.file_fields[i], str(f), self.file_frame_ids[i])

@@ -151,11 +151,15 @@ class NuScenesSource(Source):
             kind="points",
             num_frames=len(self.records),
             notes=[f"nuScenes {self.version} scene {self.scene_name}: {len(self.records)} {channel} scans"],
+            warnings=[f"{dataroot}: the sweep chain breaks after {self.sweep_gaps} key frame(s) (a sample_data row "
+                      "it names is missing): those stretches hold only the sweeps before the break"]
+            if self.sweep_gaps else [],
         )
 
     def _index(self, t: dict[str, list[dict[str, Any]]], scene: str | None, channel: str, sweeps: bool) -> None:
         sc = select_scenes(t["scene"], scene, self.dataroot)[0]
         self.scene_name: str = sc["name"]
+        self.scene_token: str = sc["token"]
         samples = {s["token"]: s for s in t["sample"]}
         ego = {e["token"]: e for e in t["ego_pose"]}
         calib = {c["token"]: c for c in t["calibrated_sensor"]}
@@ -178,13 +182,19 @@ class NuScenesSource(Source):
             token = sample["next"]
         if not chain:
             raise SourceError(f"{self.dataroot}: scene {self.scene_name} has no {channel} key frames")
-        if sweeps:
-            end_ts = chain[-1]["timestamp"]
+        self.sweep_gaps = 0
+        if sweeps:  # from each key frame the sweeps up to the next: a missing row costs its stretch, not the rest
             full: list[dict[str, Any]] = []
-            sd = chain[0]
-            while sd is not None and sd["timestamp"] <= end_ts:
-                full.append(sd)
-                sd = sd_by_token.get(sd.get("next", ""))
+            taken: set[str] = set()
+            for k, kf in enumerate(chain):
+                stop = chain[k + 1]["timestamp"] if k + 1 < len(chain) else kf["timestamp"]
+                sd = kf
+                while sd is not None and sd["token"] not in taken and (sd is kf or sd["timestamp"] < stop):
+                    full.append(sd)
+                    taken.add(sd["token"])
+                    sd = sd_by_token.get(sd.get("next", ""))
+                if sd is None and k + 1 < len(chain):
+                    self.sweep_gaps += 1
             chain = full
         self.records = []
         for sd in chain:
@@ -200,7 +210,7 @@ class NuScenesSource(Source):
             from ..truth import truth_message
 
             try:
-                _, gts = load_nuscenes_frames(self.dataroot, scene=self.scene_name)
+                _, gts = load_nuscenes_frames(self.dataroot, scene=self.scene_token, version=self.version)
                 self._truth = {int(g.stamp_ns): truth_message(g) for g in gts}
             except (NuScenesError, OSError, KeyError, ValueError) as exc:
                 log.info("%s: no ground truth published: %s", self.dataroot, exc)

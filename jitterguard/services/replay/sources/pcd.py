@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..frames import DEFAULT_PERIOD_NS, EgoPose, FrameError, Item, ScanFrame, SourceError, SourceInfo, finite_rows
-from .base import Source
+from .base import Source, natural_key
 
 _TYPES = {("F", 4): "<f4", ("F", 8): "<f8", ("I", 1): "i1", ("I", 2): "<i2", ("I", 4): "<i4", ("I", 8): "<i8",
           ("U", 1): "u1", ("U", 2): "<u2", ("U", 4): "<u4", ("U", 8): "<u8"}
@@ -193,12 +193,15 @@ def read_pcd(path: Path) -> tuple[NDArray[np.float32], tuple[str, ...], EgoPose]
 
 
 class PcdSource(Source):
-    """A folder of ``.pcd`` files (sorted by name, 10 Hz stamps unless ``period_ns`` says otherwise) or one file."""
+    """A folder of ``.pcd`` files (in numeric order of their names, hidden ones skipped; 10 Hz stamps unless
+    ``period_ns`` says otherwise) or one file."""
 
     def __init__(self, path: Path, *, period_ns: int = DEFAULT_PERIOD_NS, frame_id: str = "lidar") -> None:
         path = Path(path)
         if path.is_dir():
-            files = sorted(p for p in path.iterdir() if p.suffix.lower() == ".pcd" and p.is_file())
+            files = sorted((p for p in path.iterdir()
+                            if p.suffix.lower() == ".pcd" and not p.name.startswith(".") and p.is_file()),
+                           key=natural_key)
             if not files:
                 raise SourceError(f"{path}: no .pcd files in this folder")
         elif path.is_file():
