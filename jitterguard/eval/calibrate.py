@@ -86,7 +86,8 @@ def recording_detections(source: Any, detector: Any, start: int, limit: int | No
             continue
         if isinstance(item, ScanFrame):
             scan = point_cloud_message(item, i, item.stamp_ns)
-            det = detect_scan(detector.detect, scan, uncertainty=detector.config.uncertainty, stacker=stacker)
+            det = detect_scan(detector.detect, scan, uncertainty=detector.config.uncertainty, stacker=stacker,
+                              self_crop=detector.self_crop)
             yield detections_payload(det, scan.header, scan.ego_pose, detector.config.class_names)
         else:
             yield encode(detections_message(item, i, item.stamp_ns))

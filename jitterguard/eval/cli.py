@@ -348,7 +348,8 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
         scans_fed += n_scans
         det_frames = detector_frames(bar(scans, tag, n_scans), detector.detect,
                                      class_names=detector.config.class_names,
-                                     uncertainty=detector.config.uncertainty, sweeps=detector.sweeps)
+                                     uncertainty=detector.config.uncertainty, sweeps=detector.sweeps,
+                                     self_crop=detector.self_crop)
         rec_s, preds, smp = run_detector_pipeline(det_frames, classifier, tracker, calibration=carry,
                                                   variance_scale=variance_scale,
                                                   calibration_model=calibration_model,

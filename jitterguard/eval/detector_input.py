@@ -29,7 +29,9 @@ import numpy as np
 
 from ..schemas.models import ClassifierConfig, PointCloud
 from ..services.detector.config import CLASS_NAMES, Detections3D, Sample
-from ..services.detector.adapter import detections_payload, finite_detections, scan_points, scan_pose
+from ..services.detector.adapter import (detections_payload, detections_within_limits, finite_detections,
+                                        scan_points, scan_pose)
+from ..services.detector.inference import crop_box
 from ..services.detector.sweeps import SweepStacker
 from ..services.detector.data import sample_from_scan
 from ..services.replay.frames import EgoPose, ScanFrame, finite_rows
@@ -135,25 +137,28 @@ def nuscenes_scans(dataroot: Path, scene: str | None, gt_frames: Sequence[Ground
 
 
 def detect_scan(detect: Callable[[np.ndarray], Detections3D], scan: PointCloud, *,
-                uncertainty: bool = True, stacker: SweepStacker | None = None) -> Detections3D:
-    """The detector service's per-scan steps without Zenoh (``DetectorService.process``): the network's
-    columns picked by name, non-finite points dropped, the scan held by ``stacker`` and stacked with the earlier
-    sweeps it holds (a model trained on stacked sweeps; :mod:`~jitterguard.services.detector.sweeps`), an empty
-    scan gives no detections (the network is not run on nothing), and detections holding a non-finite number are
-    dropped before publishing."""
+                uncertainty: bool = True, stacker: SweepStacker | None = None,
+                self_crop: Sequence[float] | None = None) -> Detections3D:
+    """The detector service's per-scan steps without Zenoh (``DetectorService._on_scan`` and ``process``): the
+    network's columns picked by name, non-finite points dropped, the scan — its ego's body (``self_crop``, the
+    detector's box) cropped in its own frame — held by ``stacker`` and stacked with the earlier sweeps it holds (a
+    model trained on stacked sweeps; :mod:`~jitterguard.services.detector.sweeps`), an empty scan gives no
+    detections (the network is not run on nothing), and detections holding a non-finite number or lying beyond
+    the wire's limits are dropped before publishing."""
     points, _ = scan_points(scan)
     if stacker is not None:
         rotation, translation = scan_pose(scan)
-        stacker.add(scan.header.stamp, rotation, translation, points)
+        stacker.add(scan.header.stamp, rotation, translation, crop_box(points, self_crop))
         if len(points):
             points = stacker.stack(scan.header.stamp, rotation, translation, points)
     det = detect(points) if len(points) else Detections3D.empty(uncertainty)
-    return finite_detections(det)[0]
+    return detections_within_limits(finite_detections(det)[0])[0]
 
 
 def detector_frames(scans: Iterable[LabelledScan], detect: Callable[[np.ndarray], Detections3D], *,
                     class_names: Sequence[str] = CLASS_NAMES, uncertainty: bool = True,
-                    has_twist: bool = True, sweeps: int = 1) -> Iterator[DetectorFrame]:
+                    has_twist: bool = True, sweeps: int = 1,
+                    self_crop: Sequence[float] | None = None) -> Iterator[DetectorFrame]:
     """Run ``detect`` (e.g. ``Detector.detect``) on every scan and convert as the live service does:
     the scan's header and ego pose carried over, sensor-frame boxes and variances, written as the
     ``DetectedObjects`` payload the service puts on the wire. ``sweeps`` > 1 (a model's
@@ -161,7 +166,7 @@ def detector_frames(scans: Iterable[LabelledScan], detect: Callable[[np.ndarray]
     the stream, as the live service does."""
     stacker = SweepStacker(sweeps) if sweeps > 1 else None
     for ls in scans:
-        det = detect_scan(detect, ls.scan, uncertainty=uncertainty, stacker=stacker)
+        det = detect_scan(detect, ls.scan, uncertainty=uncertainty, stacker=stacker, self_crop=self_crop)
         payload = detections_payload(det, ls.scan.header, ls.scan.ego_pose, class_names, has_twist=has_twist)
         yield DetectorFrame(ls.gt, payload, det, ls.sample)
 

@@ -125,10 +125,14 @@ class Service:
 
     # ------------------------------------------------------------------ wiring helpers for subclasses
 
-    def accept(self, model: type[M], data: bytes, sub_key: str, sample_key: str | None = None) -> M | None:
-        """Decode and validate one payload; a bad one is counted (``rejected`` and ``rejected.<sub_key>``
-        without the ``jg/{ns}/`` prefix), logged once per burst, and ``None`` comes back."""
+    def accept(self, model: type[M], data: bytes, sub_key: str, sample_key: str | None = None,
+               max_bytes: int | None = None) -> M | None:
+        """Decode and validate one payload; a bad one — or one over ``max_bytes``, refused unread — is counted
+        (``rejected`` and ``rejected.<sub_key>`` without the ``jg/{ns}/`` prefix), logged once per burst, and
+        ``None`` comes back."""
         try:
+            if max_bytes is not None and len(data) > max_bytes:
+                raise LimitExceeded(model.__name__, "", f"{len(data)} bytes exceed {max_bytes}")
             return decode(model, data)
         except DecodeError as exc:
             self.reject(exc, sub_key, sample_key)
@@ -145,12 +149,14 @@ class Service:
             self.counters.inc(f"over_limit.{key}")
         self._reject_log.warn(f"rejected payload on {sample_key or sub_key}: {exc}")
 
-    def subscribe(self, key: str, model: type[M], handler: Callable[[M, str], None]) -> None:
-        """Subscribe ``key``; ``handler(message, key)`` gets only payloads that validate as ``model``."""
+    def subscribe(self, key: str, model: type[M], handler: Callable[[M, str], None], *,
+                  max_bytes: int | None = None) -> None:
+        """Subscribe ``key``; ``handler(message, key)`` gets only payloads that validate as ``model`` (and, with
+        ``max_bytes``, are no larger)."""
 
         def on_sample(sample: zenoh.Sample) -> None:
             self.counters.inc("received")
-            msg = self.accept(model, sample.payload.to_bytes(), key, str(sample.key_expr))
+            msg = self.accept(model, sample.payload.to_bytes(), key, str(sample.key_expr), max_bytes)
             if msg is None:
                 return
             try:

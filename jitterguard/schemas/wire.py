@@ -470,14 +470,20 @@ def _lengths(records: np.ndarray) -> np.ndarray:
         return np.sqrt(sum(records[c].astype(np.float64) ** 2 for c in (QX, QY, QZ, QW)))
 
 
-def _check_objects(name: str, objects: np.ndarray, limits: Limits, ego_pose: Pose) -> None:
-    p, q = ego_pose.position, ego_pose.orientation
+def check_pose(name: str, field: str, pose: Pose, limits: Limits = LIMITS) -> None:
+    """:class:`LimitExceeded` naming ``field`` when ``pose`` lies beyond ``max_abs_coordinate_m`` or its orientation
+    is not a unit quaternion (to ``max_quaternion_error``): what every reader asks of a message's ego pose."""
+    p, q = pose.position, pose.orientation
     if max(abs(p.x), abs(p.y), abs(p.z)) > limits.max_abs_coordinate_m:
-        raise LimitExceeded(name, "ego_pose.position", f"beyond max_abs_coordinate_m {limits.max_abs_coordinate_m}")
+        raise LimitExceeded(name, f"{field}.position", f"beyond max_abs_coordinate_m {limits.max_abs_coordinate_m}")
     length = math.hypot(q.x, q.y, q.z, q.w)
     if not abs(length - 1.0) <= limits.max_quaternion_error:
-        raise LimitExceeded(name, "ego_pose.orientation", f"not a unit quaternion (length {length:.6g}; "
+        raise LimitExceeded(name, f"{field}.orientation", f"not a unit quaternion (length {length:.6g}; "
                             f"max_quaternion_error {limits.max_quaternion_error})")
+
+
+def _check_objects(name: str, objects: np.ndarray, limits: Limits, ego_pose: Pose) -> None:
+    check_pose(name, "ego_pose", ego_pose, limits)
     for bad, field in _beyond(objects, limits):
         if bad.any():
             i = int(np.flatnonzero(bad)[0])

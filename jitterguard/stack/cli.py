@@ -257,6 +257,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         if input_level not in ("auto", "points", "detections", "tracks"):
             fail(f"--input: expected auto, points, detections or tracks, got {input_level!r}")
         check_seed("--seed", seed)
+        if detach and duration is not None:
+            fail("--duration stops a foreground stack; a detached one (-d) runs until `jitterguard down`")
         ropts = R.ReplayOptions(rate=rate, start=start, limit=limit, on_error=on_error, seed=seed, lidar=lidar,
                                 hz=hz, scene=scene, nuscenes_version=nuscenes_version, sweeps=sweeps, poses=poses,
                                 calib=calib, times=times, bin_fields=bin_fields, topic=topic, pose_topic=pose_topic)

@@ -13,6 +13,7 @@ BLOCKED = f"{__file__}/sub"  # under a regular file: no folder can be made there
 CASES = [
     ["classifier", "--bogus"],
     ["classifier", "--log-level", "LOUD"],
+    ["classifier", "--calibration", "off", "--calibration-file", "/nonexistent.yaml"],  # one would be ignored
     ["tracker", "--connect", "tcp/127.0.0.1:abc"],
     ["router", "--listen", "tcp/127.0.0.1:99999"],  # Zenoh would refuse it only on opening, retried for ever
     ["sim", "generate", "mixed", "--seed", "-1"],
@@ -27,6 +28,7 @@ CASES = [
     ["record", "--ros2", BLOCKED],
     ["render-mcap", __file__, "--out", "x.png"],  # not an MCAP file
     ["up", "--seed", "-1"],
+    ["up", "-d", "--duration", "2"],  # a detached stack would ignore it
     ["up", "--router-port", "17448", "--port", "17448"],
     ["classifier", "--alpha", "-1"],
     ["classifier", "--mode", "zz"],

@@ -318,3 +318,15 @@ def test_the_detector_service_on_onnxruntime_publishes_what_torch_would(torch_de
     for o, b, lv in zip(msg.objects, want.boxes, want.log_variances):
         assert o.kinematics.pose_with_covariance.pose.position.x == pytest.approx(float(b[0]), abs=TOL)
         assert o.kinematics.pose_with_covariance.covariance[X_X] == pytest.approx(math.exp(float(lv[0])), rel=TOL)
+
+
+def test_weights_on_stacked_sweeps_are_refused_in_one_line(tmp_path: Path) -> None:
+    """A five-feature (stacked sweeps) model cannot be traced with four-column sample points: a clear ExportError,
+    not a ValueError the CLI reported as a --flips problem and `export-onnx` as a traceback."""
+    from jitterguard.services.detector.config import PRESETS
+    from jitterguard.services.detector.network import CenterPointNet
+    from jitterguard.services.detector.onnx_export import ExportError, export_onnx
+
+    net = CenterPointNet(PRESETS["lite"].model_copy(update={"num_point_features": 5}))
+    with pytest.raises(ExportError, match="stacked sweeps"):
+        export_onnx(net, tmp_path / "o")

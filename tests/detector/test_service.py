@@ -26,7 +26,7 @@ import zenoh
 
 from jitterguard.geometry import quaternion_from_yaw
 from jitterguard.runtime import loopback_options
-from jitterguard.schemas import decode, encode, keys
+from jitterguard.schemas import DecodeError, decode, encode, keys
 from jitterguard.schemas.models import X_X, Y_Y, YAW_YAW, DetectedObjects, Header, Point, PointCloud, Pose, Quaternion
 from jitterguard.services.detector.inference import Detector
 from jitterguard.services.detector.service import BehindReport, DetectorService
@@ -198,6 +198,64 @@ def test_malformed_payloads_are_rejected_and_the_next_scan_still_runs(harness, s
     assert c["rejected.points"] == 2 and c["scans"] == 1 and c.get("detect_errors", 0) == 0
 
 
+def test_a_scan_whose_ego_pose_is_no_pose_is_refused_and_counted(harness, scans) -> None:
+    """The readers downstream refuse a frame whose ego orientation is no unit quaternion or whose position lies
+    beyond the limits: the detector refuses such a scan itself (counted per key), before the network or the sweeps
+    see it, rather than publishing a frame the tracker would refuse."""
+    svc, client = harness
+    pts, pose = scans[0]
+    client.send(pts, pose.model_copy(update={"orientation": Quaternion(w=2.0)}), seq=1)
+    client.send(pts, pose.model_copy(update={"orientation": Quaternion(w=0.0)}), seq=2)
+    client.send(pts, pose.model_copy(update={"position": Point(x=2e7)}), seq=3)
+    client.send(*scans[1], seq=4)
+    assert wait_until(lambda: client.seqs() == [4], TIMEOUT)
+    c = svc.counters.snapshot()
+    assert c["rejected.points"] == 3 and c["over_limit.points"] == 3 and c["scans"] == 1
+    assert c.get("detect_errors", 0) == 0
+
+
+def test_a_scan_over_max_scan_bytes_is_refused_unread(zenoh_port: int, client_session: zenoh.Session,
+                                                     detector: Detector, scans) -> None:
+    """Every other hot reader refuses a payload over its bound before reading it; the detector's ``points`` too
+    (a 61 MiB scan was decoded and run, 1 GB of memory, with up to ten such held for stacked sweeps)."""
+    detector.gate.set()
+    svc = DetectorService(loopback_options(NS, zenoh_port, listen_self=True), detector, max_scan_bytes=1 << 20)
+    try:
+        client = Client(client_session)
+        assert wait_until(lambda: client.pub.matching_status.matching, TIMEOUT)
+        big = np.tile(scans[0][0], (3, 1))  # about 1.3 MB of points
+        assert len(big) * 5 * 4 > 1 << 20
+        client.send(big, scans[0][1], seq=1)
+        client.send(*scans[1], seq=2)
+        assert wait_until(lambda: client.seqs() == [2], TIMEOUT)
+        c = svc.counters.snapshot()
+        assert c["rejected.points"] == 1 and c["over_limit.points"] == 1 and c["scans"] == 1
+    finally:
+        svc.close()
+
+
+def test_detections_the_trackers_reader_would_refuse_are_dropped_not_published() -> None:
+    """One detection beyond the wire's limits would make the tracker refuse the whole frame: it is dropped."""
+    from jitterguard.schemas import read_detected_objects
+    from jitterguard.services.detector.adapter import detections_payload, detections_within_limits
+    from jitterguard.services.detector.config import Detections3D
+
+    boxes = np.zeros((4, 9), np.float32)
+    boxes[:, 3:6] = (4.0, 1.8, 1.5)
+    boxes[1, 0] = 2e7  # beyond max_abs_coordinate_m
+    boxes[2, 7] = 5e3  # beyond max_abs_speed_mps
+    log_var = np.zeros((4, 5), np.float32)
+    log_var[3, 0] = 20.0  # a variance of e^20 > max_variance
+    det = Detections3D(boxes=boxes, scores=np.full(4, 0.9, np.float32), labels=np.zeros(4, np.int64),
+                       log_variances=log_var)
+    kept, dropped = detections_within_limits(det)
+    assert dropped == 3 and len(kept) == 1
+    header = Header(stamp=STAMP0, frame_id="lidar", seq=0)
+    with pytest.raises(DecodeError):  # what the tracker did with the frame before
+        read_detected_objects(detections_payload(det, header, Pose()))
+    assert len(read_detected_objects(detections_payload(kept, header, Pose())).objects) == 1
+
+
 def test_a_scan_without_finite_points_still_closes_its_frame(harness) -> None:
     svc, client = harness
     pts = np.full((5, 5), np.nan, np.float32)
@@ -225,6 +283,7 @@ def test_a_sweep_model_gets_every_arrived_scan_stacked_even_those_the_worker_ski
     exactly as the offline evaluator's stacker does with the same scans."""
     from jitterguard.services.detector.adapter import scan_pose
     from jitterguard.services.detector.config import PRESETS
+    from jitterguard.services.detector.inference import crop_box
     from jitterguard.services.detector.network import CenterPointNet
     from jitterguard.services.detector.sweeps import SweepStacker
 
@@ -255,7 +314,7 @@ def test_a_sweep_model_gets_every_arrived_scan_stacked_even_those_the_worker_ski
     for msg in sent:
         pts = np.frombuffer(msg.data, "<f4").reshape(msg.num_points, 5)[:, :4].copy()
         r, t = scan_pose(msg)
-        offline.add(msg.header.stamp, r, t, pts)
+        offline.add(msg.header.stamp, r, t, crop_box(pts, det.self_crop))  # each sweep's body cropped in its frame
         want.append(offline.stack(msg.header.stamp, r, t, pts))
     assert len(det.inputs) == 2
     for got, exp in zip(det.inputs, (want[0], want[4])):

@@ -107,6 +107,30 @@ def test_stragglers_are_dropped_and_an_upstream_restart_starts_over() -> None:
     assert [f.seq for f in j.poll(now=1.0)] == [0] and j.counters["seq_restarts"] == 1
 
 
+def test_a_replay_that_starts_over_soon_is_followed_not_dropped() -> None:
+    """A short ``--loop`` pass or an early supervisord restart sends seq 0 again a few frames in: under a new stamp
+    (wall-clock loops) it is a restart at once; under its old stamp it is one once it lies more than RESTART_GAP
+    frames back. Until 3 Dec anything within ``max_pending`` (32) frames was dropped as late, every frame of a
+    20-frame loop's later passes with it."""
+    from jitterguard.services.bridge.joiner import RESTART_GAP
+
+    j = FrameJoiner(motion_wait_s=0.0)
+    for s in range(5):
+        j.add_objects(objects(s), now=0.0)
+    assert [f.seq for f in j.poll(now=0.0)] == list(range(5))
+    j.add_motion(motion(3, A))  # a straggler: the stamp frame 3 went out with
+    assert j.counters["late_messages"] == 1 and "seq_restarts" not in j.counters
+    again = objects(0).model_copy(update={"header": Header(stamp=9_000, seq=0, frame_id="map")})
+    j.add_objects(again, now=1.0)  # seq 0 under a new stamp: the stream started over
+    assert [(f.seq, f.stamp_ns) for f in j.poll(now=1.0)] == [(0, 9_000)] and j.counters["seq_restarts"] == 1
+    k = FrameJoiner(motion_wait_s=0.0)
+    for s in range(RESTART_GAP + 2):
+        k.add_objects(objects(s), now=0.0)
+    k.poll(now=0.0)
+    k.add_objects(objects(0), now=1.0)  # a pass on recorded stamps: the same stamp, but too far back for a straggler
+    assert [f.seq for f in k.poll(now=1.0)] == [0] and k.counters["seq_restarts"] == 1
+
+
 def test_inputs_of_frames_that_never_close_are_bounded() -> None:
     j = FrameJoiner(max_pending=3)
     for s in range(10):
@@ -212,6 +236,21 @@ def test_tracks_scene_colours_by_state_and_gives_static_objects_no_arrow() -> No
     stats = motion_statistics(f)
     assert stats["counts"] == {"static": 1, "dynamic": 1, "undecided": 0, "unknown": 1}
     assert stats["max_z"] == 6.0 and [r["value"] for r in stats["z_by_track"]] == [0.4, 6.0]
+
+
+def test_each_track_has_its_own_series_in_the_z_plot_even_with_counter_ids() -> None:
+    """The evaluator's track IDs are counters zero-padded in front: labels from their first digits were all
+    "car 000000", and the shipped layout's Plot drew one series for every car."""
+    from jitterguard.services.foxglove.scene import motion_statistics
+
+    ids = [f"{k:032x}" for k in (1, 2, 3)]
+    j = FrameJoiner(motion_wait_s=0.0)
+    for t in ids:
+        j.add_motion(motion(1, t, "dynamic", z=3.0))
+    j.add_objects(objects(1, ids=tuple(ids)), now=0.0)
+    (f,) = j.poll(now=0.0)
+    labels = [r["label"] for r in motion_statistics(f)["z_by_track"]]
+    assert len(labels) == 3 and len(set(labels)) == 3
 
 
 def test_the_shipped_layout_is_the_generated_one_and_names_only_real_topics() -> None:

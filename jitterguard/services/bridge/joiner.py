@@ -15,8 +15,10 @@ the frame's ``motion/{id}``, so:
 - inputs (points, detections, ground truth, tracked, motion) wait in per-seq buffers holding at most
   ``max_pending`` frames; the oldest go first (counted) — a frame that never gets its ``objects`` (the classifier
   was down) must not pin memory;
-- a seq lower than the last emitted one means the upstream restarted (a replay restarted by supervisord starts
-  again at seq 0): the buffers are cleared and counted ``seq_restarts``.
+- a seq lower than the last emitted one is a straggler of a frame already out (dropped, ``late_messages``) while it
+  is at most ``RESTART_GAP`` frames back and carries the stamp that frame went out with; further back, or under
+  another stamp (a replay looping on wall-clock stamps), the upstream restarted (a replay restarted by supervisord
+  starts again at seq 0): the buffers are cleared and counted ``seq_restarts``.
 
 No I/O, no clock: callers pass ``now`` (monotonic seconds).
 """
@@ -49,6 +51,11 @@ def motion_expected(tracked: TrackedObjects, objects: TrackedObjects) -> list[st
 
 DEFAULT_MOTION_WAIT_S = 0.25
 DEFAULT_MAX_PENDING = 32
+RESTART_GAP = 8
+"""A message this many frames behind the last one out is no straggler (a frame goes out once its motion states are
+in, ``motion_wait_s`` after its objects, or when a later frame's objects arrive: what is late is a frame or two
+late) but a restarted upstream. Until 3 Dec it was ``max_pending`` (32): a replay that started over within 3.2 s
+(a short ``--loop`` pass, an early supervisord restart) had every later frame dropped as late."""
 
 
 @dataclass
@@ -131,22 +138,26 @@ class FrameJoiner:
         self._motion: _BySeq[dict[str, MotionState]] = _BySeq(max_pending)
         self._open: OrderedDict[int, tuple[TrackedObjects, float]] = OrderedDict()  # seq → (objects, arrived at)
         self._last_emitted = -1
+        self._emitted: OrderedDict[int, int] = OrderedDict()  # seq → stamp of the last frames out
         self._latest: dict[str, MotionState] = {}  # track ID → its latest MotionState, for tracks still reported
 
     def _count(self, name: str, n: int = 1) -> None:
         if n:
             self.counters[name] = self.counters.get(name, 0) + n
 
-    def _restart_check(self, seq: int) -> bool:
-        """False if ``seq`` belongs to a frame already emitted (a straggler); clears everything when the seqs went
-        back further than a straggler could (an upstream restart)."""
+    def _restart_check(self, seq: int, stamp: int) -> bool:
+        """False if (``seq``, ``stamp``) belongs to a frame already emitted (a straggler); clears everything when
+        the seqs went back further than a straggler could, or an emitted seq comes back under another stamp (an
+        upstream restart)."""
         if seq > self._last_emitted:
             return True
-        if self._last_emitted - seq > self._points.cap:
+        out_as = self._emitted.get(seq)
+        if self._last_emitted - seq > RESTART_GAP or (out_as is not None and out_as != stamp):
             for b in (self._points, self._detections, self._truth, self._tracked, self._motion):
                 b.clear()
             self._open.clear()
             self._latest.clear()
+            self._emitted.clear()
             self._last_emitted = -1
             self._count("seq_restarts")
             return True
@@ -156,7 +167,7 @@ class FrameJoiner:
     # ---------------------------------------------------------------------------------------- inputs
 
     def _keep(self, buffer: _BySeq[Any], msg: Any) -> None:
-        if self._restart_check(msg.header.seq):
+        if self._restart_check(msg.header.seq, msg.header.stamp):
             self._count("dropped_pending", buffer.put(msg.header.seq, msg))
 
     def add_points(self, msg: PointCloud) -> None:
@@ -173,7 +184,7 @@ class FrameJoiner:
 
     def add_motion(self, msg: MotionState) -> None:
         seq = msg.header.seq
-        if not self._restart_check(seq):
+        if not self._restart_check(seq, msg.header.stamp):
             return
         per = self._motion.items.get(seq)
         if per is None:
@@ -183,7 +194,7 @@ class FrameJoiner:
 
     def add_objects(self, msg: TrackedObjects, now: float) -> None:
         seq = msg.header.seq
-        if self._restart_check(seq):
+        if self._restart_check(seq, msg.header.stamp):
             self._open[seq] = (msg, now)
             self._open.move_to_end(seq)
 
@@ -226,5 +237,8 @@ class FrameJoiner:
         for b in (self._points, self._detections, self._truth, self._tracked, self._motion):
             b.drop_through(seq)  # older frames never got their objects: they will not be emitted
         self._last_emitted = max(self._last_emitted, seq)
+        self._emitted[seq] = objects.header.stamp
+        while len(self._emitted) > self._points.cap:
+            self._emitted.popitem(last=False)
         self._count("frames")
         return frame

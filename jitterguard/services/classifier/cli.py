@@ -73,6 +73,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         opts = zenoh_options(ns, zenoh_config, connect, listen)
         if calibration_file is not None and calibration is None:
             calibration = "file"
+        elif calibration_file is not None and calibration != "file":
+            fail(f"--calibration-file is read with --calibration file, not --calibration {calibration}")
         params = _load_config(config, preset, {"alpha_default": alpha, "window_size": window_size,
                                                "min_window": min_window, "mode": mode, "effective_n": effective_n,
                                                "calibration": calibration, "calibration_file": calibration_file,

@@ -107,6 +107,21 @@ def finite_detections(det: Detections3D) -> tuple[Detections3D, int]:
     return det.subset(ok), dropped
 
 
+def detections_within_limits(det: Detections3D, limits: wire.Limits = wire.LIMITS) -> tuple[Detections3D, int]:
+    """``det`` (finite: :func:`finite_detections`) without rows the tracker's reader would refuse the whole frame
+    for — a centre beyond ``max_abs_coordinate_m``, a velocity beyond ``max_abs_speed_mps``, a variance beyond
+    ``max_variance`` (a stray return of absurd intensity can drive a head there) — and how many went."""
+    b = det.boxes.astype(np.float64)
+    ok = (np.abs(b[:, :3]) <= limits.max_abs_coordinate_m).all(axis=1)
+    if b.shape[1] > 8:
+        ok &= (np.abs(b[:, 7:9]) <= limits.max_abs_speed_mps).all(axis=1)
+    if det.log_variances is not None:
+        with np.errstate(over="ignore"):
+            ok &= (np.exp(det.log_variances.astype(np.float64)) <= limits.max_variance).all(axis=1)
+    dropped = int(ok.size - np.count_nonzero(ok))
+    return (det, 0) if not dropped else (det.subset(ok), dropped)
+
+
 def detections_payload(
     det: Detections3D,
     header: Header,

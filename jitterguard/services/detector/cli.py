@@ -140,7 +140,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             fail(f"--flips: {_one_line(exc)}")
         try:
             service = DetectorService(opts, det, has_twist=params.twist, sweeps=params.sweeps,
-                                      max_sweep_lag_s=params.max_sweep_lag_s)
+                                      max_sweep_lag_s=params.max_sweep_lag_s, max_scan_bytes=params.max_scan_bytes)
         except ValueError as exc:  # build_config names the bad endpoint / setting
             fail(str(exc))
         service.run_forever()

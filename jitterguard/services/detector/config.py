@@ -170,6 +170,9 @@ class DetectorParams(BaseModel):
                         " pedestrian 0.089 -> 0.119; in the synthetic loop more ghost vehicles called moving in"
                         " 'mixed'; about 4x the network's time, over 100 ms a scan on 2 CPU cores: for a GPU or a"
                         " larger CPU; docs/detector.md)")
+    max_scan_bytes: Annotated[int, Field(ge=1 << 20)] = Field(
+        64 << 20, description="larger points payloads are refused unread (counted rejected.points, over_limit.points):"
+        " 64 MiB is 4 million points of four float32 fields, ten times a 128-beam sensor's scan")
     backend: Literal["torch", "onnxruntime"] = Field("torch", description="what runs the network")
     onnx: str | None = Field(None, description="onnxruntime backend: a folder written by `jitterguard export-onnx`"
                              " (null: export weights / preset at start-up into a temporary folder)")

@@ -304,6 +304,9 @@ def export_onnx(net: CenterPointNet, out_dir: str | Path, *, layout: str = "sing
         raise ExportError(f"layout must be one of {', '.join(LAYOUTS)}, got {layout!r}")
     if opset < MIN_OPSET:
         raise ExportError(f"opset must be >= {MIN_OPSET}, got {opset}")
+    if net.config.num_point_features != 4:
+        raise ExportError(f"weights trained on stacked sweeps ({net.config.num_point_features} point features) are "
+                          "not exported to ONNX yet: export the single-sweep model (x, y, z, intensity)")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     net = net.eval()

@@ -15,9 +15,11 @@ network's sensor-frame variances in the covariance fields; the tracker rotates t
 
 Counters (in the heartbeat): ``scans`` (processed), ``skipped_scans``, ``detections`` (objects published),
 ``empty_scans`` (no finite point: published with no objects so the tracker still sees the frame),
-``nonfinite_points``, ``nonfinite_detections``, ``detect_errors``, ``detect_ms_last`` (end-to-end time of the
-latest scan, rounded), ``stacked_sweeps_last`` (scans in the latest network input, for a model trained on
-stacked sweeps: :mod:`.sweeps`) and the runtime's ``received`` / ``rejected`` / ``published``.
+``nonfinite_points``, ``nonfinite_detections``, ``out_of_limit_detections`` (dropped: the tracker's reader would
+refuse the frame for them), ``detect_errors``, ``detect_ms_last`` (end-to-end time of the latest scan, rounded),
+``stacked_sweeps_last`` (scans in the latest network input, for a model trained on stacked sweeps: :mod:`.sweeps`)
+and the runtime's ``received`` / ``rejected`` (with ``rejected.points`` / ``over_limit.points``: a scan too large
+or whose ego pose is no pose) / ``published``.
 """
 
 from __future__ import annotations
@@ -28,12 +30,14 @@ import time
 from ...runtime import Service, ZenohOptions
 from ...runtime.progress import ProgressPolicy
 from ...runtime.service import _BurstLogger
-from ...schemas import keys
+from ...schemas import LimitExceeded, keys
 from ...schemas.models import PointCloud
-from .config import Detections3D
-from .adapter import class_labels, detections_payload, finite_detections, scan_points, scan_pose
+from ...schemas.wire import check_pose
+from .config import DetectorParams, Detections3D
+from .adapter import (class_labels, detections_payload, detections_within_limits, finite_detections, scan_points,
+                      scan_pose)
 from .sweeps import MAX_LAG_S, SweepStacker
-from .inference import Detector
+from .inference import Detector, crop_box
 
 WAIT_S = 0.2
 STALL_S = 30.0
@@ -121,13 +125,17 @@ class _Slot:
             self.cond.notify_all()
 
 
+MAX_SCAN_BYTES = DetectorParams.model_fields["max_scan_bytes"].default
+"""A ``points`` payload larger than this is refused unread (``max_scan_bytes`` of the service's parameters)."""
+
+
 class DetectorService(Service):
     """The ``jitterguard detector`` process."""
 
     name = "detector"
 
     def __init__(self, opts: ZenohOptions, detector: Detector, *, has_twist: bool = True, sweeps: int | None = None,
-                 max_sweep_lag_s: float = MAX_LAG_S) -> None:
+                 max_sweep_lag_s: float = MAX_LAG_S, max_scan_bytes: int = MAX_SCAN_BYTES) -> None:
         """``sweeps``: scans stacked per network input (None: the weights' :attr:`Detector.sweeps`); only a model
         with five point fields reads the stack's time lag, so a four-field model is never given more than one."""
         # check the model's classes before the session opens: a bad config must fail before anything is on the network
@@ -146,20 +154,26 @@ class DetectorService(Service):
         self._pub = self.publisher(keys.detections(self.ns))
         self.monitor_progress(ProgressPolicy(stall_s=STALL_S))  # points in -> detections out (runtime.progress)
         self.spawn(self._worker, "worker")
-        self.subscribe(keys.points(self.ns), PointCloud, self._on_scan)
+        self.subscribe(keys.points(self.ns), PointCloud, self._on_scan, max_bytes=max_scan_bytes)
 
-    def _on_scan(self, msg: PointCloud, _key: str) -> None:
-        """Zenoh callback (the scan is already validated): newest scan into the slot, count what it replaced."""
+    def _on_scan(self, msg: PointCloud, key: str) -> None:
+        """Zenoh callback (the scan is already validated): newest scan into the slot, count what it replaced. A
+        scan whose ego pose the readers downstream would refuse (no unit quaternion, beyond the limits) is
+        refused here, counted per key, before it reaches the sweeps or the network."""
+        try:
+            check_pose(PointCloud.__name__, "ego_pose", msg.ego_pose)
+        except LimitExceeded as exc:
+            self.reject(exc, keys.points(self.ns), key)
+            return
         self.progress.input(time.monotonic())
         if self._sweeps is not None:
-            try:
-                rotation, translation = scan_pose(msg)
-            except ValueError:  # a zero quaternion: nothing to stack it by (its own detection fails and is counted)
-                self.counters.inc("unposed_scans")
-            else:
-                points, _ = scan_points(msg)
-                with self._sweeps_lock:
-                    self._sweeps.add(msg.header.stamp, rotation, translation, points)
+            rotation, translation = scan_pose(msg)
+            points, _ = scan_points(msg)
+            # the ego's body cropped in this scan's own frame: moved into a later one, it would lie behind the
+            # vehicle, outside the newest scan's crop box
+            points = crop_box(points, self.detector.self_crop)
+            with self._sweeps_lock:
+                self._sweeps.add(msg.header.stamp, rotation, translation, points)
         if self._slot.put(msg):
             self.counters.inc("skipped_scans")
 
@@ -210,6 +224,11 @@ class DetectorService(Service):
             self.counters.inc("nonfinite_detections", dropped)
             self._error_log.warn(f"scan seq {scan.header.seq}: dropped {dropped} detection(s) holding a"
                                  " non-finite number")
+        det, beyond = detections_within_limits(det)
+        if beyond:  # published, the tracker would refuse the whole frame for one of them
+            self.counters.inc("out_of_limit_detections", beyond)
+            self._error_log.warn(f"scan seq {scan.header.seq}: dropped {beyond} detection(s) beyond the wire's"
+                                 " limits (position, speed or variance)")
         self._pub.put(detections_payload(det, scan.header, scan.ego_pose, self.detector.config.class_names,
                                          has_twist=self.has_twist))
         self.counters.inc("published")

@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import math
 import struct
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -45,31 +46,61 @@ def _protobuf_class(name: str, data: bytes) -> Any:
 
 
 def read_frames(path: str | Path) -> list[RecordedFrame]:
-    """The recording's frames in time order (a frame: the messages sharing one log time)."""
+    """The recording's frames in time order (a frame: the messages sharing one log time). A recording whose writer
+    was killed has no summary to seek by: it is read from the start as far as its records are whole."""
     from google.protobuf.json_format import MessageToDict
     from mcap.exceptions import McapError
     from mcap.reader import make_reader
 
     frames: dict[int, RecordedFrame] = {}
     classes: dict[int, Any] = {}
+
+    def take(messages: Any) -> None:
+        for schema, channel, msg in messages:
+            if schema is None or channel.topic not in TOPICS:
+                continue
+            if schema.encoding == "jsonschema":
+                body = json.loads(msg.data)
+            else:
+                if schema.id not in classes:
+                    classes[schema.id] = _protobuf_class(schema.name, schema.data)
+                body = MessageToDict(classes[schema.id].FromString(msg.data), preserving_proto_field_name=True)
+            frames.setdefault(msg.log_time, RecordedFrame(msg.log_time)).messages[channel.topic] = body
+
+    bad = (OSError, McapError, struct.error, ValueError)  # struct.error: too short to hold a record
     try:
         with open(path, "rb") as f:
-            for schema, channel, msg in make_reader(f).iter_messages(topics=list(TOPICS), log_time_order=True):
-                if schema is None:
-                    continue
-                if schema.encoding == "jsonschema":
-                    body = json.loads(msg.data)
-                else:
-                    if schema.id not in classes:
-                        classes[schema.id] = _protobuf_class(schema.name, schema.data)
-                    body = MessageToDict(classes[schema.id].FromString(msg.data), preserving_proto_field_name=True)
-                frames.setdefault(msg.log_time, RecordedFrame(msg.log_time)).messages[channel.topic] = body
-    except (OSError, McapError, struct.error, ValueError) as exc:  # struct.error: too short to hold a record
-        raise RenderError(f"{path}: not a readable MCAP file ({type(exc).__name__}: {exc})") from None
+            take(make_reader(f).iter_messages(topics=list(TOPICS), log_time_order=True))
+    except bad as exc:
+        frames.clear()
+        try:  # no summary (the writer was killed): stream it, keeping what reads before the first broken record
+            with open(path, "rb") as f:
+                take(_streamed_messages(f))
+        except bad:
+            pass
+        if not frames:
+            raise RenderError(f"{path}: not a readable MCAP file ({type(exc).__name__}: {exc})") from None
     out = [frames[t] for t in sorted(frames) if TRACKS in frames[t].messages]
     if not out:
         raise RenderError(f"{path}: no {TRACKS} messages (not a `jitterguard foxglove --record` file?)")
     return out
+
+
+def _streamed_messages(f: Any) -> Iterator[tuple[Any, Any, Any]]:
+    """(schema, channel, message) of every whole record of an MCAP stream, in file order (a summary not needed)."""
+    from mcap.records import Channel, Message, Schema
+    from mcap.stream_reader import StreamReader
+
+    schemas: dict[int, Any] = {}
+    channels: dict[int, Any] = {}
+    for rec in StreamReader(f, skip_magic=False, emit_chunks=False).records:
+        if isinstance(rec, Schema):
+            schemas[rec.id] = rec
+        elif isinstance(rec, Channel):
+            channels[rec.id] = rec
+        elif isinstance(rec, Message) and rec.channel_id in channels:
+            ch = channels[rec.channel_id]
+            yield schemas.get(ch.schema_id), ch, rec
 
 
 # ---------------------------------------------------------------------------------------------------- geometry

@@ -300,7 +300,8 @@ def motion_statistics(frame: JoinedFrame) -> dict[str, Any]:
         "max_z": max((r["z"] for r in decided), default=0.0),
         "alpha_min": min(alphas, default=0.0),
         "alpha_max": max(alphas, default=0.0),
-        "z_by_track": [{"label": f"{r['class']} {r['id'][:6]}", "value": r["z"]} for r in decided],
+        "z_by_track": [{"label": f"{r['class']} {r['id'][-6:]}", "value": r["z"]} for r in decided],  # the
+        # ID's end: the evaluator's IDs are counters, zero-padded in front (its start is "000000" for every track)
         "tracks": rows,
     }
 
