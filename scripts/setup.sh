@@ -32,7 +32,9 @@ if [ -f "$stamp" ] && python -c "import importlib.util as u, sys; sys.exit(not (
   exit 0
 fi
 quiet python -m pip install --upgrade pip
-# The CPU build of torch first (a bare `torch` requirement would pull a multi-GB CUDA build).
+# torch before the project (whose bare requirement would pull the index's default build, on PyPI a multi-GB CUDA
+# one): the pinned 2.13.0 the machine's pip offers (the project's machines: the CPU build on disk), else the CPU
+# index. A torch already in the venv is kept.
 if ! python -c "import torch" >/dev/null 2>&1; then
   quiet python -m pip install "torch==2.13.0" \
     || quiet python -m pip install --index-url https://download.pytorch.org/whl/cpu "torch>=2.2,<2.14"

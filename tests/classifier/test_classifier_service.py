@@ -449,3 +449,35 @@ def test_a_track_at_1e300_keeps_every_output_valid(zenoh_port, client_session):
         assert svc.counters.get("rejected") == 0
     finally:
         svc.close()
+
+
+def test_heartbeats_go_out_while_the_statistic_warms_up(zenoh_port, client_session, monkeypatch) -> None:
+    """The heartbeat starts with the session, before the compiled statistic has warmed up (seconds on a first run):
+    it read gauges set only after the warm-up, and every heartbeat of that time failed (AttributeError)."""
+    import threading
+
+    from jitterguard.schemas.models import Heartbeat
+    from jitterguard.services.classifier import service as service_module
+
+    release, warming = threading.Event(), threading.Event()
+
+    def slow_warm_up() -> None:
+        warming.set()
+        assert release.wait(30)
+
+    monkeypatch.setattr(service_module, "warm_up", slow_warm_up)
+    beats: list[Heartbeat] = []
+    client_session.declare_subscriber(keys.heartbeat(NS, "classifier"),
+                                      lambda s: beats.append(decode(Heartbeat, s.payload.to_bytes())))
+    built: list[ClassifierService] = []
+    maker = threading.Thread(target=lambda: built.append(ClassifierService(
+        loopback_options(NS, zenoh_port, listen_self=True))), daemon=True)
+    maker.start()
+    try:
+        assert warming.wait(30)
+        assert wait_until(lambda: len(beats) >= 2, timeout=10)  # a heartbeat a second, during the warm-up
+    finally:
+        release.set()
+        maker.join(30)
+        for svc in built:
+            svc.close()

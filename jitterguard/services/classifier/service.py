@@ -99,6 +99,7 @@ class ClassifierService(Service):
         scales for ``calibration: file`` (read from the config's ``calibration_file`` when not given).
         ``calibration_store``: where the online calibration is kept so that a restart goes on from it
         (:mod:`.calibration_store`)."""
+        self._gauges: dict[str, float] = {}  # the heartbeat starts with the session, before the statistic warms up
         super().__init__(opts)
         self.config_writes = config_writes or ConfigWritePolicy.from_env()
         self._started_with = config or ClassifierConfig()
