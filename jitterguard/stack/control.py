@@ -92,10 +92,10 @@ class Supervisor:
 
     def _unavailable(self) -> StackUnavailable:
         pid = read_pid(self.run_dir)
-        if pid is not None and pid_alive(pid):
+        if pid is not None and pid_alive(pid) and _is_supervisord(pid):
             return StackUnavailable("starting", f"the stack {self.label} is starting or stopping (supervisord pid"
                                     f" {pid} does not answer yet)")
-        if pid is not None:
+        if pid is not None:  # dead, or its pid recycled by another program since (a reboot, a SIGKILL)
             return StackUnavailable("stale", f"the stack {self.label} is not running: its supervisord (pid {pid})"
                                     " died without cleaning up; `jitterguard down` stops what it left running")
         if (self.run_dir / CONFIG).is_file():
@@ -149,6 +149,15 @@ def tail(path: Path | str, lines: int) -> list[str]:
     except OSError:
         return []
     return data.decode(errors="replace").splitlines()[-lines:]
+
+
+def _is_supervisord(pid: int) -> bool:
+    """Whether ``pid`` runs supervisord (after a reboot or a SIGKILL, supervisord.pid may name a recycled pid)."""
+    try:
+        cmdline = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+    except OSError:
+        return True  # cannot tell (no /proc): trust the pid file, as before
+    return "supervisord" in cmdline
 
 
 def orphans(run_dir: Path) -> dict[str, int]:

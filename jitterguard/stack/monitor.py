@@ -67,7 +67,9 @@ class StackMonitor(Service):
     def snapshot(self) -> dict[str, Any]:
         spec = load_spec(self.run_dir)
         now = time.time()
-        events = summary.supervisor_events(self.run_dir / "logs" / "supervisord.log", since=self.run_started_at - 5)
+        # the run's own events: stack.json is written before supervisord starts (the log keeps milliseconds; a
+        # look-back of seconds counted the previous run's last crashes in a run dir used again at once)
+        events = summary.supervisor_events(self.run_dir / "logs" / "supervisord.log", since=self.run_started_at - 0.01)
         meta = {"stack": spec.name if spec else self.run_dir.name, "ns": self.ns,
                 "source": (spec.source if spec else None), "started_at": _iso(self.run_started_at),
                 "updated_at": _iso(now), "duration_s": round(now - self.run_started_at, 1)}

@@ -61,14 +61,26 @@ class ServiceStatus:
     health_reason: str = ""
     counters: dict[str, int] = dataclasses.field(default_factory=dict)
     detail: str = ""
+    heartbeat_expected: bool = False  # `status` listened long enough to hear one (not the router, which sends none)
 
     def as_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
 
     @property
+    def heard(self) -> bool:
+        """A heartbeat was heard while listening — or none was to be expected (Zenoh not probed, a listen shorter
+        than the heartbeat period, the router). A service alive on the bus but silent is frozen (a stopped process
+        keeps its token for a while)."""
+        return self.heartbeat_pid is not None or not self.heartbeat_expected
+
+    @property
     def up(self) -> bool:
-        """RUNNING, on the bus, and not reporting itself unhealthy."""
-        return self.state == "RUNNING" and self.alive is not False and self.health in (None, "ok")
+        """RUNNING, on the bus, heard from, and not reporting itself unhealthy."""
+        return self.state == "RUNNING" and self.alive is not False and self.heard and self.health in (None, "ok")
+
+
+SERVICE_NAMES = {"replay": ("replay", "feed-tracks")}
+"""The service names a supervisord program may announce itself under on Zenoh (its token, its heartbeat)."""
 
 
 def rows_from_processes(procs: list[ProcessInfo]) -> list[ServiceStatus]:
@@ -118,14 +130,18 @@ def collect(procs: list[ProcessInfo], spec: StackSpec | None, listen_s: float = 
     rows = rows_from_processes(procs)
     if spec is None:
         return rows
+    from ..runtime.service import HEARTBEAT_PERIOD_S
+
     alive, beats = probe_zenoh(spec.ns, spec.endpoint, listen_s)
     for row in rows:
         if row.name == "router":
             # The router has no token of its own: it is up on Zenoh if anything answered through it.
             row.alive = bool(alive or beats)
             continue
-        row.alive = row.name in alive
-        hb = beats.get(row.name)
+        row.heartbeat_expected = listen_s >= 1.2 * HEARTBEAT_PERIOD_S
+        names = SERVICE_NAMES.get(row.name, (row.name,))  # the program `replay` runs feed-tracks at --input tracks
+        row.alive = any(n in alive for n in names)
+        hb = next((beats[n] for n in names if n in beats), None)
         if hb is not None:
             row.last_seq = hb.last_seq
             row.heartbeat_uptime_s = round(hb.uptime_s, 1)
@@ -158,8 +174,8 @@ def render_table(rows: list[ServiceStatus], spec: StackSpec | None, run_dir: Pat
         color = "green" if r.state == "RUNNING" else ("yellow" if r.state in ("STARTING", "BACKOFF") else "red")
         alive = "-" if r.alive is None else ("[green]yes[/]" if r.alive else "[red]no[/]")
         seq = "-" if r.last_seq is None else ("none yet" if r.last_seq < 0 else str(r.last_seq))
-        progress = "-" if r.health is None else ("[green]ok[/]" if r.health == "ok" else
-                                                 f"[red]{r.health}[/]: {r.health_reason}")
+        progress = (("-" if r.heard else "[red]no heartbeat heard[/]") if r.health is None else
+                    ("[green]ok[/]" if r.health == "ok" else f"[red]{r.health}[/]: {r.health_reason}"))
         table.add_row(r.name, f"[{color}]{r.state}[/]", str(r.pid or "-"), _fmt_uptime(r.uptime_s), alive, seq,
                       progress)
     console.print(table)

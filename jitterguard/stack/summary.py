@@ -145,7 +145,8 @@ def _pick(totals: dict[str, int] | None, name: str) -> int | None:
 def build(ledger: Ledger, events: dict[str, ProgramEvents], *, meta: dict[str, Any]) -> dict[str, Any]:
     """The summary as a JSON-able dict (``meta``: stack name, ns, source, start and end times…)."""
     t = {svc: ledger.totals(svc) for svc in ledger.procs}
-    replay, det, trk, cls = (t.get(s) for s in ("replay", "detector", "tracker", "classifier"))
+    replay = t.get("replay") or t.get("feed-tracks")  # the source: the replay, or feed-tracks at --input tracks
+    det, trk, cls = (t.get(s) for s in ("detector", "tracker", "classifier"))
     rejected = {svc: c["rejected"] for svc, c in sorted(t.items()) if c.get("rejected")}
     dropped = {f"{svc}.{k}": v for svc, c in sorted(t.items()) for k, v in sorted(c.items()) if v and is_drop(k)}
     errors = {f"{svc}.{k}": v for svc, c in sorted(t.items()) for k, v in sorted(c.items()) if v and is_error(k)}

@@ -75,6 +75,25 @@ def test_readiness_reports_a_service_of_the_pipeline_that_makes_no_progress(stac
         assert body["reason"] == "ok" and body["services"]["tracker"]["health"] == "ok"
 
 
+def test_readiness_reports_a_service_frozen_on_the_bus(stack: Stack) -> None:
+    """A service whose liveliness token is present but whose heartbeats stopped (a SIGSTOPped process: the
+    watchdog inside it cannot run) made no difference to /readyz, which stayed 200 while nothing moved; a service
+    that leaves the bus (a replay at the end of its recording) still does not count against readiness."""
+    with zenoh.open(build_config(loopback_options(stack.ns, stack.zport))) as s, stack.http(auth=False) as c:
+        token = s.liveliness().declare_token(keys.alive(stack.ns, "detector"))
+        s.put(keys.heartbeat(stack.ns, "detector"), encode(Heartbeat(service="detector", pid=1, stamp=time.time_ns(),
+                                                                     last_seq=7, health="ok")))
+        try:
+            def frozen() -> dict | None:
+                r = c.get("/readyz")
+                return r.json() if r.status_code == 503 else None
+            body = wait_for(frozen, "readyz to report the silent detector", timeout=20)
+            assert "detector: no heartbeat for" in body["reason"] and "frozen" in body["reason"]
+        finally:
+            token.undeclare()
+        wait_for(lambda: c.get("/readyz").status_code == 200, "readyz once the detector has left the bus")
+
+
 def test_state_appears_with_every_track(stack: Stack) -> None:
     with stack.http(auth=False) as c:
         r = c.get("/v1/state")

@@ -35,9 +35,13 @@ def test_process_info_from_supervisor_rpc():
 
 def test_a_service_is_up_only_when_running_on_the_bus_and_making_progress():
     def row(**kw):
-        return ServiceStatus(**{"name": "tracker", "state": "RUNNING", "alive": True, **kw})
+        return ServiceStatus(**{"name": "tracker", "state": "RUNNING", "alive": True, "heartbeat_pid": 7,
+                                "heartbeat_expected": True, **kw})
 
     assert row().up and row(health="ok").up  # a heartbeat without a verdict yet does not count against it
+    # on the bus but silent while `status` listened: frozen (a SIGSTOPped process keeps its token ~10 s)
+    assert not row(heartbeat_pid=None).up and not row(heartbeat_pid=None).heard
+    assert row(heartbeat_expected=False, heartbeat_pid=None).up  # the router, or a listen shorter than a period
     assert not row(health="stalled", health_reason="no output for 5.0 s").up
     assert not row(health="failing").up
     assert not row(alive=False).up and not row(state="BACKOFF").up
@@ -63,3 +67,29 @@ def test_a_killed_supervisord_not_yet_reaped_counts_as_dead():
     finally:
         child.wait()
     assert pid_alive(os.getpid()) and not pid_alive(child.pid)
+
+
+def test_a_recycled_supervisord_pid_is_a_stale_stack_not_one_starting(tmp_path):
+    """After a reboot or a SIGKILL the pid in supervisord.pid may belong to another program: the stack is stale
+    (`down` cleans up after it), not "starting or stopping" for ever with `down` doing nothing."""
+    from jitterguard.stack.control import CONFIG, PIDFILE, StackUnavailable, Supervisor
+
+    (tmp_path / CONFIG).write_text("[supervisord]\n")
+    (tmp_path / PIDFILE).write_text(str(os.getpid()))  # alive, but pytest, not supervisord
+    try:
+        Supervisor(tmp_path, "t").call("getState")
+        raise AssertionError("no stack answers here")
+    except StackUnavailable as exc:
+        assert exc.state == "stale"
+
+
+def test_the_summary_counts_what_feed_tracks_published_as_replayed():
+    """At `--input tracks` the program `replay` runs feed-tracks, whose heartbeat says so: its frames are the
+    stack's source frames (the summary said "replayed -")."""
+    from jitterguard.stack import summary
+
+    ledger = summary.Ledger()
+    ledger.observe("feed-tracks", 11, {"published": 3252}, 1)
+    ledger.observe("classifier", 12, {"frames_processed": 3000}, 1)
+    built = summary.build(ledger, {}, meta={})
+    assert built["frames"]["replayed"] == 3252 and built["frames"]["classified"] == 3000

@@ -74,6 +74,9 @@ class ClassifierClient(Service):
         self._alive_key = keys.alive(self.ns, CLASSIFIER)
         self._declared.append(self.session.liveliness().declare_subscriber(
             self._alive_key, self._on_liveliness, history=True))
+        self._on_bus: set[str] = set()  # every service whose liveliness token is present
+        self._declared.append(self.session.liveliness().declare_subscriber(
+            keys.alive_all(self.ns), self._on_any_liveliness, history=True))
         self.subscribe(keys.heartbeat_all(self.ns), Heartbeat, self._on_heartbeat)
         self.metrics.attach(self)
         self.spawn(self._poll_loop, "poll")
@@ -86,6 +89,11 @@ class ClassifierClient(Service):
             self._alive = alive
             if not alive:
                 self._hb_at = None  # a new instance must prove itself with a fresh heartbeat
+
+    def _on_any_liveliness(self, sample: zenoh.Sample) -> None:
+        name = keys.last_chunk(str(sample.key_expr))
+        with self._lock:
+            (self._on_bus.add if sample.kind == zenoh.SampleKind.PUT else self._on_bus.discard)(name)
 
     def _on_heartbeat(self, hb: Heartbeat, key: str) -> None:
         name, now = keys.last_chunk(key), time.monotonic()
@@ -104,8 +112,9 @@ class ClassifierClient(Service):
             services = {name: {"health": b.health, "reason": b.health_reason,
                                "heartbeat_age_s": round(now - at, 3), "last_seq": b.last_seq}
                         for name, (b, at) in self._beats.items()}
+            on_bus = set(self._on_bus)
         age = now - hb_at if hb_at is not None else None
-        problems = pipeline_problems(services, self.stale_after_s)
+        problems = pipeline_problems(services, self.stale_after_s, on_bus)
         if not alive:
             reason = f"no classifier: liveliness token {self._alive_key} is absent"
         elif age is None:

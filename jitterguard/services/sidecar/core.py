@@ -110,7 +110,8 @@ class ServiceHealthView(BaseModel):
 
 class ReadyView(BaseModel):
     """Readiness: the classifier's liveliness token is present and its heartbeat is recent, and no service of the
-    pipeline reports (in a recent heartbeat) that its frames fail or its output stalled."""
+    pipeline reports (in a recent heartbeat) that its frames fail or its output stalled, or is silent while its
+    liveliness token is present (frozen)."""
 
     ready: bool
     reason: str = Field(description="why not ready, or 'ok'")
@@ -122,11 +123,22 @@ class ReadyView(BaseModel):
         default_factory=dict, description="every service heard from in the namespace, by name")
 
 
-def pipeline_problems(services: Mapping[str, Mapping[str, Any]], stale_after_s: float) -> list[str]:
-    """``"tracker failing: ..."`` for each service whose heartbeat, still recent, reports no progress (a stale
-    heartbeat is a service gone or restarting: liveliness says that, not its last words)."""
-    return [f"{name} {v['health']}: {v['reason']}" for name, v in sorted(services.items())
-            if v["health"] != "ok" and v["heartbeat_age_s"] <= stale_after_s]
+def pipeline_problems(services: Mapping[str, Mapping[str, Any]], stale_after_s: float,
+                      on_bus: set[str] | frozenset[str] = frozenset()) -> list[str]:
+    """``"tracker failing: ..."`` for each service whose heartbeat, still recent, reports no progress, and
+    ``"tracker: no heartbeat for 8.2 s ..."`` for each whose heartbeat is stale while its liveliness token is still
+    present (``on_bus``): a process frozen (stopped, hung without the GIL), which no watchdog inside it can catch.
+    A stale heartbeat without a token is a service gone or restarting (a finished replay, a crash supervisord
+    restarts): not held against the pipeline."""
+    out = []
+    for name, v in sorted(services.items()):
+        if v["heartbeat_age_s"] <= stale_after_s:
+            if v["health"] != "ok":
+                out.append(f"{name} {v['health']}: {v['reason']}")
+        elif name in on_bus:
+            out.append(f"{name}: no heartbeat for {v['heartbeat_age_s']:.1f} s while its liveliness token is "
+                       "present (frozen?)")
+    return out
 
 
 # ----------------------------------------------------------------------------------------- config models
