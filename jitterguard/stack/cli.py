@@ -460,6 +460,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             print(_crash_report(rd, crashed, events), file=sys.stderr)
         if not _print_summary(rd):
             print(f"jitterguard: no summary was written (see {rd / 'logs' / 'monitor.log'})", file=sys.stderr)
+        if crashed is None and watch.first is None:  # exit 1 says why: no classified object ever came
+            print("jitterguard: error: no classified objects came before the stack stopped; see `jitterguard logs "
+                  "NAME` for the programs' logs", file=sys.stderr)
         if crashed is not None or watch.first is None:
             return 1
         return 0
@@ -508,8 +511,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             procs = sup.processes()
         except StackUnavailable as exc:
             if as_json:
-                print(json.dumps({"stack": name or ns, "run_dir": str(rd), "state": exc.state, "message": str(exc),
-                                  "services": []}, indent=2))
+                print(json.dumps({"stack": spec.name if spec else name or ns, "run_dir": str(rd), "state": exc.state,
+                                  "message": str(exc), "services": []}, indent=2))
             else:
                 print(f"jitterguard: {exc}")
             raise SystemExit(3) from None
@@ -537,7 +540,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         if not _print_summary(rd, as_json=as_json):
             running = Supervisor(rd, label).running()
             print(f"jitterguard: no summary for the stack {label} "
-                  + ("yet (its monitor writes one every second)" if running else f"(nothing in {rd})"),
+                  + ("yet (its monitor writes one every second)" if running
+                     else f"(no {summary.SUMMARY_FILE} in {rd}: its monitor never wrote one; `jitterguard logs monitor`)"
+                     if rd.is_dir() else f"({rd} does not exist)"),
                   file=sys.stderr)
             raise SystemExit(1)
 
