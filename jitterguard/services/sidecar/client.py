@@ -44,6 +44,10 @@ class ClassifierRejected(RuntimeError):
     """The classifier answered with an error reply (HTTP 502: the sidecar validated, the classifier refused)."""
 
 
+ZENOH_TIMEOUT = b"Timeout"
+"""The payload of the error reply Zenoh makes up when a get times out."""
+
+
 class ClassifierClient(Service):
     """Owns the sidecar's Zenoh session and everything it knows about the classifier."""
 
@@ -233,9 +237,12 @@ class ClassifierClient(Service):
         for reply in replies:
             if reply.ok is not None:
                 return "ok", reply.ok.payload.to_bytes()
-            if reply.err is not None and reply.replier_id is not None:
-                return "err", reply.err.payload.to_bytes()
-            # an error from no replier is Zenoh's own "Timeout": not a refusal — the write may still be applied
+            if reply.err is not None:
+                data = reply.err.payload.to_bytes()
+                # Zenoh's own "Timeout" (from no replier, or from a node on the way) is not a refusal: the write may
+                # still be applied. The classifier's refusals are ConfigReply maps, never these bare bytes.
+                if reply.replier_id is not None and data != ZENOH_TIMEOUT:
+                    return "err", data
         raise ClassifierUnavailable(f"no reply on {key} within {timeout:g} s")
 
     def _require_alive(self, action: str) -> None:
