@@ -36,7 +36,8 @@ def _log_level(value: str) -> str:
     return value
 
 
-LogLevelOpt = Annotated[str, typer.Option("--log-level", help="DEBUG, INFO, WARNING or ERROR.", callback=_log_level)]
+LogLevelOpt = Annotated[str, typer.Option("--log-level", help="DEBUG, INFO, WARNING or ERROR.",
+                                           callback=_log_level)]
 ParamFileOpt = Annotated[str | None, typer.Option(
     "--config", help="Parameter file (flat, or Autoware's ros__parameters form) overriding the service's defaults"
     " in jitterguard/config/<service>.param.yaml; the flags below override it.")]
@@ -93,7 +94,7 @@ def out_file(flag: str, path: str | os.PathLike[str]) -> Path:
     p = Path(path)
     if p.is_dir():
         fail(f"{flag}: {p} is a folder; give a file name")
-    out_dir(flag, p.parent if str(p.parent) else ".")
+    out_dir(flag, p.parent)
     return p
 
 

@@ -3,7 +3,7 @@
 Why through the wire messages: what is scored offline must be what the live detector publishes. Each scan is
 built as the replay publishes it (:func:`~jitterguard.services.replay.adapter.point_cloud_message` of the
 replay's own ``ScanFrame``: x, y, z, intensity, ring and the sensor's world pose), goes through the detector
-service's steps (:func:`detect_scan`: ``scan_points`` → ``Detector.detect`` → ``finite_detections``) and is
+service's steps (:func:`detect_scan`: ``scan_points`` → ``Detector.detect`` → ``publishable_detections``) and is
 converted with the service's :func:`~jitterguard.services.detector.adapter.detections_payload` into the
 sensor-frame ``DetectedObjects`` the tracker receives. The tracker and classifier cores then run exactly as
 for the noise model (:func:`.pipeline.track_and_classify`).
@@ -29,8 +29,7 @@ import numpy as np
 
 from ..schemas.models import ClassifierConfig, PointCloud
 from ..services.detector.config import CLASS_NAMES, Detections3D, Sample
-from ..services.detector.adapter import (detections_payload, detections_within_limits, finite_detections,
-                                        scan_points, scan_pose)
+from ..services.detector.adapter import detections_payload, publishable_detections, scan_points, scan_pose
 from ..services.detector.inference import crop_box
 from ..services.detector.sweeps import SweepStacker
 from ..services.detector.data import sample_from_scan
@@ -152,7 +151,7 @@ def detect_scan(detect: Callable[[np.ndarray], Detections3D], scan: PointCloud, 
         if len(points):
             points = stacker.stack(scan.header.stamp, rotation, translation, points)
     det = detect(points) if len(points) else Detections3D.empty(uncertainty)
-    return detections_within_limits(finite_detections(det)[0])[0]
+    return publishable_detections(det)[0]
 
 
 def detector_frames(scans: Iterable[LabelledScan], detect: Callable[[np.ndarray], Detections3D], *,

@@ -131,9 +131,7 @@ class Service:
         (``rejected`` and ``rejected.<sub_key>`` without the ``jg/{ns}/`` prefix), logged once per burst, and
         ``None`` comes back."""
         try:
-            if max_bytes is not None and len(data) > max_bytes:
-                raise LimitExceeded(model.__name__, "", f"{len(data)} bytes exceed {max_bytes}")
-            return decode(model, data)
+            return decode(model, data, max_bytes=max_bytes)
         except DecodeError as exc:
             self.reject(exc, sub_key, sample_key)
             return None

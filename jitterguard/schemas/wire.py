@@ -176,9 +176,8 @@ def read_track_observations(payloads: Sequence[bytes], limits: Limits = LIMITS) 
     normalised = 0
     for i in general:
         try:
-            if len(payloads[i]) > limits.max_payload_bytes:
-                raise LimitExceeded(TrackObservation.__name__, "", f"{len(payloads[i])} bytes exceed {limits.max_payload_bytes}")
-            msg = decode(TrackObservation, payloads[i], max_array_len=limits.max_list_items)
+            msg = decode(TrackObservation, payloads[i], max_bytes=limits.max_payload_bytes,
+                         max_array_len=limits.max_list_items)
         except DecodeError as exc:
             errors.append((i, exc))
             continue
@@ -305,7 +304,7 @@ def _read_listed(model: type[M], data: bytes, layout: RecordLayout, limits: Limi
     got = _view_listed(model, data, layout, limits)
     if got is not None:
         return got[0], got[1], None
-    n = _object_count(data, limits.max_objects)  # another form: the model decides, once its object count is known to be in bounds
+    n = _object_count(data, limits.max_objects)  # another form: the model decides, its object count in bounds first
     if n > limits.max_objects:
         raise LimitExceeded(name, "objects", f"{n} objects exceed max_objects {limits.max_objects}")
     raw = unpack_map(model, data, max_array_len=max(limits.max_objects, limits.max_list_items))

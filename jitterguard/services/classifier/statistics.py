@@ -254,8 +254,8 @@ def jump_ratio(windows: F64, count: I64, *, min_count: int = 6) -> F64:
     free values as the step, keep it a mover. ``windows`` is ``(K, W, ≥6)`` over :data:`CHANNELS` oldest first
     with each row's ``count`` newest observations in its last slots (``_Table.ordered``); rows with fewer than
     ``min_count`` observations (at least 4: two a side; the classifier asks 6 of a vehicle's window and a full
-    window of other classes, whose short windows' shape says little), a line that fits exactly, one instant for every stamp, or non-finite input give inf (no
-    evidence of a jump). Computed by :func:`~.jump_kernel.jump_ratios`, one compiled loop per window."""
+    window of other classes, whose short windows' shape says little), a line that fits exactly, one instant for
+    every stamp, or non-finite input give inf (no evidence of a jump). Computed by :func:`~.jump_kernel.jump_ratios`, one compiled loop per window."""
     out = np.full(windows.shape[0], np.inf)
     jump_ratios(np.ascontiguousarray(windows, dtype=np.float64), np.ascontiguousarray(count, dtype=np.int64),
                 max(int(min_count), 4), out)

@@ -122,6 +122,15 @@ def detections_within_limits(det: Detections3D, limits: wire.Limits = wire.LIMIT
     return (det, 0) if not dropped else (det.subset(ok), dropped)
 
 
+def publishable_detections(det: Detections3D) -> tuple[Detections3D, int, int]:
+    """``det`` as the service publishes it — without rows holding a non-finite number (:func:`finite_detections`) or
+    lying beyond the wire's limits (:func:`detections_within_limits`) — and how many of each went. The one filter
+    of the live service and the offline evaluator (``eval.detector_input.detect_scan``)."""
+    det, nonfinite = finite_detections(det)
+    det, beyond = detections_within_limits(det)
+    return det, nonfinite, beyond
+
+
 def detections_payload(
     det: Detections3D,
     header: Header,

@@ -34,8 +34,7 @@ from ...schemas import LimitExceeded, keys
 from ...schemas.models import PointCloud
 from ...schemas.wire import check_pose
 from .config import DetectorParams, Detections3D
-from .adapter import (class_labels, detections_payload, detections_within_limits, finite_detections, scan_points,
-                      scan_pose)
+from .adapter import class_labels, detections_payload, publishable_detections, scan_points, scan_pose
 from .sweeps import MAX_LAG_S, SweepStacker
 from .inference import Detector, crop_box
 
@@ -219,12 +218,11 @@ class DetectorService(Service):
                     stacked = self._sweeps.last_stacked
                 self.counters.set("stacked_sweeps_last", stacked)
             det = self.detector.detect(points)
-        det, dropped = finite_detections(det)
+        det, dropped, beyond = publishable_detections(det)
         if dropped:
             self.counters.inc("nonfinite_detections", dropped)
             self._error_log.warn(f"scan seq {scan.header.seq}: dropped {dropped} detection(s) holding a"
                                  " non-finite number")
-        det, beyond = detections_within_limits(det)
         if beyond:  # published, the tracker would refuse the whole frame for one of them
             self.counters.inc("out_of_limit_detections", beyond)
             self._error_log.warn(f"scan seq {scan.header.seq}: dropped {beyond} detection(s) beyond the wire's"

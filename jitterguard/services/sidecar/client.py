@@ -67,7 +67,7 @@ class ClassifierClient(Service):
         self.metrics = metrics or SidecarMetrics()
         self._lock = threading.Lock()
         self._write_lock = threading.Lock()
-        self._alive = False
+        self._on_bus: set[str] = set()  # every service whose liveliness token is present (the classifier's: alive)
         self._hb: Heartbeat | None = None
         self._hb_at: float | None = None  # monotonic receive time of the last classifier heartbeat
         self._beats: dict[str, tuple[Heartbeat, float]] = {}  # every service's latest heartbeat, receive time
@@ -77,10 +77,7 @@ class ClassifierClient(Service):
         self._last_config_event: dict[str, Any] | None = None
         self._alive_key = keys.alive(self.ns, CLASSIFIER)
         self._declared.append(self.session.liveliness().declare_subscriber(
-            self._alive_key, self._on_liveliness, history=True))
-        self._on_bus: set[str] = set()  # every service whose liveliness token is present
-        self._declared.append(self.session.liveliness().declare_subscriber(
-            keys.alive_all(self.ns), self._on_any_liveliness, history=True))
+            keys.alive_all(self.ns), self._on_liveliness, history=True))
         self.subscribe(keys.heartbeat_all(self.ns), Heartbeat, self._on_heartbeat)
         self.metrics.attach(self)
         self.spawn(self._poll_loop, "poll")
@@ -88,16 +85,11 @@ class ClassifierClient(Service):
     # ------------------------------------------------------------------ liveliness, heartbeat, readiness
 
     def _on_liveliness(self, sample: zenoh.Sample) -> None:
-        alive = sample.kind == zenoh.SampleKind.PUT
+        name, alive = keys.last_chunk(str(sample.key_expr)), sample.kind == zenoh.SampleKind.PUT
         with self._lock:
-            self._alive = alive
-            if not alive:
+            (self._on_bus.add if alive else self._on_bus.discard)(name)
+            if name == CLASSIFIER and not alive:
                 self._hb_at = None  # a new instance must prove itself with a fresh heartbeat
-
-    def _on_any_liveliness(self, sample: zenoh.Sample) -> None:
-        name = keys.last_chunk(str(sample.key_expr))
-        with self._lock:
-            (self._on_bus.add if sample.kind == zenoh.SampleKind.PUT else self._on_bus.discard)(name)
 
     def _on_heartbeat(self, hb: Heartbeat, key: str) -> None:
         name, now = keys.last_chunk(key), time.monotonic()
@@ -112,7 +104,7 @@ class ClassifierClient(Service):
         """Whether the classifier is usable now and the pipeline makes progress, and why not (``/readyz``)."""
         now = time.monotonic()
         with self._lock:
-            alive, hb, hb_at = self._alive, self._hb, self._hb_at
+            alive, hb, hb_at = CLASSIFIER in self._on_bus, self._hb, self._hb_at
             services = {name: {"health": b.health, "reason": b.health_reason,
                                "heartbeat_age_s": round(now - at, 3), "last_seq": b.last_seq}
                         for name, (b, at) in self._beats.items()}
@@ -140,7 +132,7 @@ class ClassifierClient(Service):
 
     def is_alive(self) -> bool:
         with self._lock:
-            return self._alive
+            return CLASSIFIER in self._on_bus
 
     # ------------------------------------------------------------------ state cache
 

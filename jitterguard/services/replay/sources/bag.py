@@ -28,6 +28,8 @@ from typing import Any
 
 from pydantic import ValidationError
 
+from ....schemas.wire import LIMITS
+
 from ..frames import (
     IDENTITY,
     DetectionFrame,
@@ -178,7 +180,7 @@ class BagSource(Source):
         no_heading = 0
         for t_bag, msg in self._messages(conns, "pose topic"):
             pose = pose_of(msg)
-            if not abs(math.hypot(pose.qx, pose.qy, pose.qz, pose.qw) - 1.0) <= 0.01:
+            if not abs(math.hypot(pose.qx, pose.qy, pose.qz, pose.qw) - 1.0) <= LIMITS.max_quaternion_error:
                 no_heading += 1  # e.g. a GNSS fix without heading (all-zero quaternion): no orientation to use
                 continue
             samples.append((stamp_ns(msg.header) or t_bag, pose))

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import re
 from abc import ABC, abstractmethod
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from ..frames import Item, SourceInfo
@@ -50,3 +50,10 @@ def natural_key(path: Path) -> list[int | str]:
     """Sort key that orders numbered files by number (``2.bin`` before ``10.bin``, ``frame_9`` before
     ``frame_10``); zero-padded names (KITTI's ``000010.bin``) sort as they do by name."""
     return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", path.name)]
+
+
+def listed_scans(folder: Path, is_scan: Callable[[str], bool]) -> list[Path]:
+    """The files of ``folder`` whose name ``is_scan``, in numeric order of their names (:func:`natural_key`), hidden
+    ones (macOS' ``._*`` companions) left out."""
+    return sorted((p for p in folder.iterdir() if is_scan(p.name) and not p.name.startswith(".") and p.is_file()),
+                  key=natural_key)

@@ -20,7 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..frames import DEFAULT_PERIOD_NS, IDENTITY, EgoPose, FrameError, Item, ScanFrame, SourceError, SourceInfo, finite_rows
-from .base import Source, natural_key
+from .base import Source, listed_scans
 
 log = logging.getLogger("jitterguard.replay")
 
@@ -157,9 +157,7 @@ class BinScanSource(Source):
     ) -> None:
         path = Path(path)
         if path.is_dir():
-            files = sorted((p for p in path.iterdir()
-                            if p.name.endswith(".bin") and not p.name.startswith(".") and p.is_file()),
-                           key=natural_key)
+            files = listed_scans(path, lambda name: name.endswith(".bin"))
             if not files:
                 raise SourceError(f"{path}: no .bin scans in this folder")
         elif path.is_file():
@@ -171,14 +169,11 @@ class BinScanSource(Source):
         # each file in its own layout (a folder may mix nuScenes' 5-column and KITTI's 4-column scans, as
         # ../shared/data/single-frames does), unless --bin-fields names one for all
         self.file_fields = [tuple(fields) if fields else fields_for(f) for f in files]
-        self.fields = self.file_fields[0]
-        if len(self.fields) < 3 or self.fields[:3] != ("x", "y", "z"):
-            raise SourceError(f"--bin-fields must start with x,y,z, got {','.join(self.fields)}")
+        if fields and tuple(fields[:3]) != ("x", "y", "z"):  # the file-name layouts all start x, y, z
+            raise SourceError(f"--bin-fields must start with x,y,z, got {','.join(fields)}")
         self.period_ns = period_ns
         nusc = [f.name.endswith(".pcd.bin") for f in files]
-        is_nusc = nusc[0]
         self.file_frame_ids = [frame_id or ("LIDAR_TOP" if n else "velodyne") for n in nusc]
-        self.frame_id = self.file_frame_ids[0]
         folder = path if path.is_dir() else path.parent
         notes: list[str] = []
 

@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..frames import DEFAULT_PERIOD_NS, EgoPose, FrameError, Item, ScanFrame, SourceError, SourceInfo, finite_rows
-from .base import Source, natural_key
+from .base import Source, listed_scans
 
 _TYPES = {("F", 4): "<f4", ("F", 8): "<f8", ("I", 1): "i1", ("I", 2): "<i2", ("I", 4): "<i4", ("I", 8): "<i8",
           ("U", 1): "u1", ("U", 2): "<u2", ("U", 4): "<u4", ("U", 8): "<u8"}
@@ -199,9 +199,7 @@ class PcdSource(Source):
     def __init__(self, path: Path, *, period_ns: int = DEFAULT_PERIOD_NS, frame_id: str = "lidar") -> None:
         path = Path(path)
         if path.is_dir():
-            files = sorted((p for p in path.iterdir()
-                            if p.suffix.lower() == ".pcd" and not p.name.startswith(".") and p.is_file()),
-                           key=natural_key)
+            files = listed_scans(path, lambda name: name.lower().endswith(".pcd"))
             if not files:
                 raise SourceError(f"{path}: no .pcd files in this folder")
         elif path.is_file():
