@@ -148,12 +148,27 @@ def _cloud(cols: dict[str, np.ndarray]) -> PointCloud:
 
 def test_scan_points_picks_columns_by_name_and_drops_non_finite_rows() -> None:
     rng = np.random.default_rng(1)
-    x, y, z, i, ring = (rng.normal(size=8) for _ in range(5))
+    x, y, z, ring = (rng.normal(size=8) for _ in range(4))
+    i = rng.uniform(2.0, 250.0, size=8)  # on the network's 0–255 scale already: passed as is
     x[3] = np.nan
     pts, bad = scan_points(_cloud({"x": x, "y": y, "z": z, "ring": ring, "intensity": i}))
     assert bad == 1 and pts.dtype == np.float32 and pts.shape == (7, 4)
     keep = np.arange(8) != 3
     np.testing.assert_allclose(pts, np.column_stack([x, y, z, i])[keep].astype(np.float32))
+
+
+def test_intensity_reaches_the_network_on_its_0_to_255_scale() -> None:
+    """A KITTI scan's 0–1 reflectance is scaled to 0–255 (it was fed as is live, and scaled only in ``adapt``);
+    a 16-bit sensor's or a stray return's intensity is clipped into 0–255."""
+    xyz = {"x": np.arange(4.0), "y": np.zeros(4), "z": np.zeros(4)}
+    kitti, _ = scan_points(_cloud({**xyz, "intensity": np.array([0.0, 0.25, 0.5, 1.0])}))
+    np.testing.assert_allclose(kitti[:, 3], [0.0, 63.75, 127.5, 255.0])
+    wild, _ = scan_points(_cloud({**xyz, "intensity": np.array([-3.0, 7.0, 300.0, 1e5])}))
+    np.testing.assert_allclose(wild[:, 3], [0.0, 7.0, 255.0, 255.0])
+    nus, _ = scan_points(_cloud({**xyz, "intensity": np.array([0.0, 1.0, 2.0, 255.0])}))
+    np.testing.assert_allclose(nus[:, 3], [0.0, 1.0, 2.0, 255.0])
+    dark, _ = scan_points(_cloud({**xyz, "intensity": np.array([0.0, 1.0, 1.0, 0.0])}))  # whole numbers: 0–255
+    np.testing.assert_allclose(dark[:, 3], [0.0, 1.0, 1.0, 0.0])
 
 
 def test_scan_without_intensity_reads_zero_intensity() -> None:

@@ -70,12 +70,11 @@ class UnlabelledScan:
     has_pose: bool
 
 
-def read_unlabelled(specs: Sequence[str], *, max_scans: int | None = None,
-                    intensity_scale: dict[str, float] | None = None) -> list[UnlabelledScan]:
+def read_unlabelled(specs: Sequence[str], *, max_scans: int | None = None) -> list[UnlabelledScan]:
     """Every scan of each recording in ``specs`` (any SOURCE the replay reads: a nuScenes dataroot — every scene
-    —, a folder of KITTI ``.bin`` scans or one file, PCD, bags), points picked by field name as the detector
-    service picks them. KITTI-style reflectance in 0…1 is scaled to 0…255 (a scan whose intensities all lie
-    in [0, 1]). Raises :class:`~..replay.frames.SourceError` naming the recording."""
+    —, a folder of KITTI ``.bin`` scans or one file, PCD, bags), points picked and intensities scaled as the
+    detector service does (:func:`~.adapter.points_from_fields`: KITTI-style reflectance in 0…1 becomes 0…255).
+    Raises :class:`~..replay.frames.SourceError` naming the recording."""
     # the replay's readers (and through them rosbags, PCD) load only when scans are read, not when the CLI starts
     from ..replay.frames import IDENTITY, ScanFrame, SourceError
     from ..replay.sources import SourceOptions, open_source
@@ -97,9 +96,6 @@ def read_unlabelled(specs: Sequence[str], *, max_scans: int | None = None,
                 if not isinstance(item, ScanFrame):
                     raise SourceError(f"{spec}: {item}")
                 pts, _ = points_from_fields(np.asarray(item.points), item.fields)
-                if len(pts) and float(np.nanmax(pts[:, 3])) <= 1.0:
-                    pts = pts.copy()
-                    pts[:, 3] *= 255.0
                 out.append(UnlabelledScan(pts, item.pose.matrix(), name if scene is None else f"{name}#{scene}",
                                           Path(item.origin).name, item.pose != IDENTITY))
                 if max_scans is not None and len(out) >= max_scans:

@@ -50,6 +50,9 @@ F32 = NDArray[np.float32]
 POINT_COLUMNS = ("x", "y", "z", "intensity")
 """What the network reads, in this order (intensity 0–255; a cloud without an intensity field gets zeros)."""
 
+INTENSITY_MAX = 255.0
+"""The intensity scale the network was trained on (nuScenes' and the synthetic sensor's 0–255)."""
+
 
 def scan_points(msg: PointCloud) -> tuple[F32, int]:
     """The scan as the network's (P, 4) float32 x, y, z, intensity, and how many non-finite rows were dropped.
@@ -71,7 +74,12 @@ def scan_pose(msg: PointCloud) -> tuple[NDArray[np.float64], NDArray[np.float64]
 
 def points_from_fields(raw: NDArray[np.floating], fields: Sequence[str]) -> tuple[F32, int]:
     """(P, F) columns named ``fields`` → the network's (P, 4) float32 x, y, z, intensity (zeros where there is
-    no intensity field), non-finite rows dropped; returns the points and how many rows were dropped."""
+    no intensity field), non-finite rows dropped; returns the points and how many rows were dropped.
+
+    Intensity is brought to the network's 0–255 (:func:`intensity_to_network_scale`) here, the one reader of
+    the live service, the offline evaluator and ``adapt``: a KITTI scan's 0–1 reflectance had been fed as is
+    live (every return nearly black to the network) but scaled in ``adapt``, and one stray return of intensity
+    10⁵ could drive a head's variance beyond the wire's limit."""
     cols = [list(fields).index(c) if c in fields else -1 for c in POINT_COLUMNS]
     pts = np.zeros((len(raw), len(POINT_COLUMNS)), dtype=np.float32)
     for j, c in enumerate(cols):
@@ -81,7 +89,23 @@ def points_from_fields(raw: NDArray[np.floating], fields: Sequence[str]) -> tupl
     dropped = int(finite.size - np.count_nonzero(finite))
     if dropped:
         pts = pts[finite]
-    return pts, dropped
+    return intensity_to_network_scale(pts), dropped
+
+
+def intensity_to_network_scale(pts: F32) -> F32:
+    """``pts`` (P, 4, owned by the caller) with column 3 on the network's 0–255 scale, in place: a scan whose
+    every intensity lies in [0, 1], some of them fractional, is a reflectance (KITTI's HDL-64E) and is
+    multiplied by 255 (a scan of whole-number intensities 0 and 1 is a dark 0–255 scan and stays); values
+    outside 0–255 (16-bit sensors, stray returns) are clipped to it. A sensor whose intensities mean something
+    else is the case for a model trained without intensity (``train --no-intensity``)."""
+    if not len(pts):
+        return pts
+    col = pts[:, 3]
+    if float(col.max()) <= 1.0 and float(col.min()) >= 0.0 and bool(np.any(col != np.round(col))):
+        col *= INTENSITY_MAX
+    else:
+        np.clip(col, 0.0, INTENSITY_MAX, out=col)
+    return pts
 
 
 def class_labels(class_names: Sequence[str] = CLASS_NAMES) -> tuple[int, ...]:
