@@ -46,6 +46,8 @@ NameOpt = Annotated[str | None, typer.Option("--name", envvar="JG_STACK", help="
 
 FIRST_OBJECTS_WARN_S = 60.0
 DETACH_WAIT_S = 30.0
+DETACH_SETTLE_S = 3.0
+"""How long every program must have run without a crash before ``up -d`` calls the stack started."""
 STOP_WAIT_S = 90.0
 CRASH_TAIL_LINES = 12
 
@@ -222,7 +224,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         source: Annotated[str | None, typer.Argument(help="Replay source, as `jitterguard replay` takes it (default: the built-in synthetic scenario, 60 s of synthetic:mixed).")] = None,
         name: NameOpt = None,
         ns: NsOpt = "default",
-        detach: Annotated[bool, typer.Option("-d", "--detach", help="Start in the background and return once every program runs.")] = False,
+        detach: Annotated[bool, typer.Option("-d", "--detach", help="Start in the background and return once every program has run 3 s without a crash.")] = False,
         input_level: Annotated[str, typer.Option("--input", help="auto, points, detections or tracks. 'detections' runs sources with ground-truth boxes (synthetic, nuScenes) through the detection-level noise model.")] = "auto",
         router_port: Annotated[int, typer.Option("--router-port", min=1, max=65535)] = 7447,
         host: Annotated[str, typer.Option("--host", help="Sidecar bind address.")] = "127.0.0.1",
@@ -373,9 +375,13 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
 
     def _wait_started(sup: Supervisor, rd: Path, label: str, names: str, addresses: list[str],
                       progs: list[Any], wall0: float) -> int:
-        """``up -d``: wait until every program runs (0), or one keeps crashing (stop the stack, 1)."""
+        """``up -d``: wait until every program has run for ``DETACH_SETTLE_S`` without a crash (0), or one keeps
+        crashing (stop the stack, 1). Every program RUNNING is not enough: supervisord calls a program RUNNING
+        once it has lived ``startsecs``, and one that died a second later, again and again, had let ``up -d``
+        return 0 before its crashes added up to a loop."""
         deadline = time.monotonic() + DETACH_WAIT_S
         states: dict[str, str] = {}
+        steady_since: float | None = None
         deferred = {p.name for p in progs if p.deferred}
         started_deferred = False
         while time.monotonic() < deadline:
@@ -394,12 +400,21 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                 _start_deferred(sup, progs)
                 started_deferred = True
                 continue
-            if started_deferred and states and all(s == "RUNNING" for s in states.values()):
+            if not (started_deferred and states and all(s == "RUNNING" for s in states.values())):
+                steady_since = None
+                continue
+            last_crash = max((t for ev in events.values() for t, _ in ev.crashes), default=0.0)
+            if steady_since is None or last_crash > steady_since:
+                steady_since = time.time()
+                continue
+            if time.time() - steady_since >= DETACH_SETTLE_S:
                 print(f"jitterguard: started {names} (stack {label}, run dir {rd})")
                 for line in addresses:
                     print(line)
                 return 0
-        waiting = ", ".join(f"{n} {s}" for n, s in sorted(states.items()) if s != "RUNNING") or "supervisord"
+        crashed = sorted(n for n, ev in events.items() if ev.crashes)
+        waiting = (", ".join(f"{n} {s}" for n, s in sorted(states.items()) if s != "RUNNING")
+                   or (f"{', '.join(crashed)} crashed and restarted" if crashed else "supervisord"))
         print(f"jitterguard: error: not every program runs after {DETACH_WAIT_S:.0f} s ({waiting}); the stack is"
               " left running: see `jitterguard status` and `jitterguard logs NAME`", file=sys.stderr)
         return 1

@@ -284,6 +284,41 @@ def test_a_foreground_stack_whose_replay_crash_loops_stops_with_its_last_log_lin
     assert not Supervisor(tmp_path / "xdg" / "jitterguard" / "fg").running()
 
 
+def test_a_detached_stack_whose_tracker_dies_after_starting_is_not_called_started(tmp_path):
+    """A program that dies a second after supervisord calls it RUNNING, again and again: `up -d` had returned 0
+    as soon as every program ran once; now it waits for every program to run crash-free for a while, sees the
+    loop and stops the stack."""
+    write_bag(tmp_path / "bag", n=20)
+    env = {**os.environ, "XDG_RUNTIME_DIR": str(tmp_path / "xdg")}
+    rd = tmp_path / "xdg" / "jitterguard" / "slow"
+    proc = subprocess.Popen([sys.executable, "-m", "jitterguard.cli", "up", "bag", "-d", "--name", "slow", "--ns",
+                             f"slow{os.getpid()}", "--router-port", str(free_tcp_port()), "--no-sidecar",
+                             "--topic", DET_TOPIC], cwd=tmp_path, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    killed: set[int] = set()
+    try:
+        deadline = time.monotonic() + 60
+        while proc.poll() is None and time.monotonic() < deadline and len(killed) < 4:
+            try:
+                tracker = next((p for p in Supervisor(rd).processes() if p.name == "tracker"), None)
+            except Exception:  # supervisord not answering yet
+                tracker = None
+            if tracker is not None and tracker.state == "RUNNING" and tracker.pid not in killed:
+                time.sleep(1.0)  # alive past its startsecs: RUNNING long enough for every program to be seen so
+                os.kill(tracker.pid, signal.SIGKILL)
+                killed.add(tracker.pid)
+            time.sleep(0.05)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        jg("down", "--name", "slow", env=env, cwd=tmp_path)
+    assert proc.returncode == 1, out + err
+    assert "tracker keeps failing" in err and "unexpected exits" in err
+    assert "started" not in out
+    assert not Supervisor(rd).running()
+
+
 def test_a_stack_whose_supervisord_died_is_reported_and_down_stops_what_it_left(tmp_path):
     write_bag(tmp_path / "bag", n=20)
     env = {**os.environ, "XDG_RUNTIME_DIR": str(tmp_path / "xdg")}
