@@ -18,7 +18,7 @@ from jitterguard.services.classifier.config import PRESETS
 AUTHORS_ALPHA = PRESETS["authors"]["alpha_per_class"]
 from jitterguard.services.sidecar.core import StateView, TrackView
 
-from .stack import PAPER_STATISTIC, Stack, wait_for
+from .stack import PAPER_STATISTIC, Stack, start_stack, wait_for
 
 pytestmark = pytest.mark.integration
 
@@ -75,23 +75,39 @@ def test_readiness_reports_a_service_of_the_pipeline_that_makes_no_progress(stac
         assert body["reason"] == "ok" and body["services"]["tracker"]["health"] == "ok"
 
 
-def test_readiness_reports_a_service_frozen_on_the_bus(stack: Stack) -> None:
+def test_readiness_reports_a_service_frozen_on_the_bus_or_a_stage_that_left_it() -> None:
     """A service whose liveliness token is present but whose heartbeats stopped (a SIGSTOPped process: the
-    watchdog inside it cannot run) made no difference to /readyz, which stayed 200 while nothing moved; a service
-    that leaves the bus (a replay at the end of its recording) still does not count against readiness."""
-    with zenoh.open(build_config(loopback_options(stack.ns, stack.zport))) as s, stack.http(auth=False) as c:
-        token = s.liveliness().declare_token(keys.alive(stack.ns, "detector"))
-        s.put(keys.heartbeat(stack.ns, "detector"), encode(Heartbeat(service="detector", pid=1, stamp=time.time_ns(),
-                                                                     last_seq=7, health="ok")))
-        try:
-            def frozen() -> dict | None:
+    watchdog inside it cannot run) made no difference to /readyz, which stayed 200 while nothing moved. Once its
+    Zenoh lease expires the token goes: a pipeline stage that left the bus stays a problem until it is back
+    (/readyz had turned 200 again ~10 s into the freeze); a replay that leaves (the end of its recording) is not."""
+    def beat(name: str) -> bytes:
+        return encode(Heartbeat(service=name, pid=1, stamp=time.time_ns(), last_seq=7, health="ok"))
+
+    stack = start_stack("sc-left", window_ready=False)  # its own: a stage that left stays left for the stack
+    try:
+        with zenoh.open(build_config(loopback_options(stack.ns, stack.zport))) as s, stack.http(auth=False) as c:
+            def not_ready(why: str) -> dict | None:
                 r = c.get("/readyz")
-                return r.json() if r.status_code == 503 else None
-            body = wait_for(frozen, "readyz to report the silent detector", timeout=20)
+                return r.json() if r.status_code == 503 and why in r.json()["reason"] else None
+
+            replay = s.liveliness().declare_token(keys.alive(stack.ns, "replay"))
+            s.put(keys.heartbeat(stack.ns, "replay"), beat("replay"))
+            token = s.liveliness().declare_token(keys.alive(stack.ns, "detector"))
+            s.put(keys.heartbeat(stack.ns, "detector"), beat("detector"))
+            body = wait_for(lambda: not_ready("detector"), "readyz to report the silent detector", timeout=20)
             assert "detector: no heartbeat for" in body["reason"] and "frozen" in body["reason"]
-        finally:
+            replay.undeclare()
             token.undeclare()
-        wait_for(lambda: c.get("/readyz").status_code == 200, "readyz once the detector has left the bus")
+            body = wait_for(lambda: not_ready("left the bus"), "readyz to report the detector gone", timeout=20)
+            assert "detector: left the bus" in body["reason"] and "replay" not in body["reason"]
+            time.sleep(1.0)
+            assert c.get("/readyz").status_code == 503  # it stays a problem: no frame reaches the classifier
+            token = s.liveliness().declare_token(keys.alive(stack.ns, "detector"))  # restarted
+            s.put(keys.heartbeat(stack.ns, "detector"), beat("detector"))
+            wait_for(lambda: c.get("/readyz").status_code == 200, "readyz once the detector is back")
+            token.undeclare()
+    finally:
+        stack.close()
 
 
 def test_state_appears_with_every_track(stack: Stack) -> None:

@@ -27,7 +27,7 @@ import zenoh
 from ...runtime import Service, ZenohOptions
 from ...schemas import DecodeError, decode, decode_with_raw, encode, keys
 from ...schemas.models import ClassifierConfig, ClassifierStateSnapshot, ConfigReply, Heartbeat
-from .core import ConfigError, RenderedState, config_to_api, diff_states, pipeline_problems, render_state
+from .core import PIPELINE_STAGES, ConfigError, RenderedState, config_to_api, diff_states, pipeline_problems, render_state
 from .metrics import SidecarMetrics
 
 CLASSIFIER = "classifier"
@@ -68,6 +68,7 @@ class ClassifierClient(Service):
         self._lock = threading.Lock()
         self._write_lock = threading.Lock()
         self._on_bus: set[str] = set()  # every service whose liveliness token is present (the classifier's: alive)
+        self._left: set[str] = set()  # pipeline stages whose token was withdrawn and has not come back
         self._hb: Heartbeat | None = None
         self._hb_at: float | None = None  # monotonic receive time of the last classifier heartbeat
         self._beats: dict[str, tuple[Heartbeat, float]] = {}  # every service's latest heartbeat, receive time
@@ -88,6 +89,8 @@ class ClassifierClient(Service):
         name, alive = keys.last_chunk(str(sample.key_expr)), sample.kind == zenoh.SampleKind.PUT
         with self._lock:
             (self._on_bus.add if alive else self._on_bus.discard)(name)
+            if name in PIPELINE_STAGES:  # the only names a withdrawal counts for: the set stays bounded
+                (self._left.discard if alive else self._left.add)(name)
             if name == CLASSIFIER and not alive:
                 self._hb_at = None  # a new instance must prove itself with a fresh heartbeat
 
@@ -108,9 +111,9 @@ class ClassifierClient(Service):
             services = {name: {"health": b.health, "reason": b.health_reason,
                                "heartbeat_age_s": round(now - at, 3), "last_seq": b.last_seq}
                         for name, (b, at) in self._beats.items()}
-            on_bus = set(self._on_bus)
+            on_bus, left = set(self._on_bus), set(self._left)
         age = now - hb_at if hb_at is not None else None
-        problems = pipeline_problems(services, self.stale_after_s, on_bus)
+        problems = pipeline_problems(services, self.stale_after_s, on_bus, left)
         if not alive:
             reason = f"no classifier: liveliness token {self._alive_key} is absent"
         elif age is None:

@@ -123,13 +123,21 @@ class ReadyView(BaseModel):
         default_factory=dict, description="every service heard from in the namespace, by name")
 
 
+PIPELINE_STAGES: frozenset[str] = frozenset({"detector", "tracker"})
+"""The services between the source and the classifier: while one of them is away, no frame reaches the classifier.
+A source (``replay``, ``feed-tracks``) leaves when its recording ends; bridges and recorders are not in the path."""
+
+
 def pipeline_problems(services: Mapping[str, Mapping[str, Any]], stale_after_s: float,
-                      on_bus: set[str] | frozenset[str] = frozenset()) -> list[str]:
-    """``"tracker failing: ..."`` for each service whose heartbeat, still recent, reports no progress, and
+                      on_bus: set[str] | frozenset[str] = frozenset(),
+                      left: set[str] | frozenset[str] = frozenset()) -> list[str]:
+    """``"tracker failing: ..."`` for each service whose heartbeat, still recent, reports no progress;
     ``"tracker: no heartbeat for 8.2 s ..."`` for each whose heartbeat is stale while its liveliness token is still
-    present (``on_bus``): a process frozen (stopped, hung without the GIL), which no watchdog inside it can catch.
-    A stale heartbeat without a token is a service gone or restarting (a finished replay, a crash supervisord
-    restarts): not held against the pipeline."""
+    present (``on_bus``): a process frozen (stopped, hung without the GIL), which no watchdog inside it can catch;
+    and ``"tracker: left the bus ..."`` for a pipeline stage (:data:`PIPELINE_STAGES`) whose heartbeat is stale and
+    whose token was withdrawn (``left``): crashed and not restarted, or frozen past its Zenoh lease (~10 s), when a
+    frozen process's token expires and it had looked like one that left. Any other service's stale heartbeat
+    without a token (a replay at the end of its recording) is not held against the pipeline."""
     out = []
     for name, v in sorted(services.items()):
         if v["heartbeat_age_s"] <= stale_after_s:
@@ -138,6 +146,9 @@ def pipeline_problems(services: Mapping[str, Mapping[str, Any]], stale_after_s: 
         elif name in on_bus:
             out.append(f"{name}: no heartbeat for {v['heartbeat_age_s']:.1f} s while its liveliness token is "
                        "present (frozen?)")
+        elif name in left and name in PIPELINE_STAGES:
+            out.append(f"{name}: left the bus (no heartbeat for {v['heartbeat_age_s']:.1f} s, liveliness token "
+                       "withdrawn): crashed, or frozen past its Zenoh lease")
     return out
 
 
