@@ -36,7 +36,7 @@ from ..services.replay.options import absolute_source
 from ..services.replay.sources import SourceError, probe_source
 from ..services.sidecar.core import bind_refusal
 from . import summary
-from .control import StackUnavailable, Supervisor, orphans, stop_orphans, tail
+from .control import StackUnavailable, Supervisor, orphans, stop_lost, stop_orphans, tail
 from .status import collect, load_spec, render_table, save_spec
 from .supervisor import DEFAULT_SCENARIO_S, DEFAULT_SOURCE, StackSpec, input_mode, programs, render_config
 from .validate import ArgumentError, check_name, check_run_dir, check_text, port_in_use
@@ -490,6 +490,15 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         try:
             sup.shutdown()
         except StackUnavailable as exc:
+            if exc.state == "lost":  # its run dir deleted under it: no socket to ask, so signal it
+                stopped = stop_lost(rd, STOP_WAIT_S)
+                if stopped is None:
+                    print(f"jitterguard: error: the stack {label} is still stopping after {STOP_WAIT_S:.0f} s",
+                          file=sys.stderr)
+                    raise SystemExit(1)
+                print(f"jitterguard: the stack {label} stopped (supervisord pid {stopped}; its run directory had"
+                      " been deleted, so there is no summary)")
+                return
             if exc.state == "stale":  # supervisord died; its programs may still run without it
                 stopped = stop_orphans(rd)
                 print(f"jitterguard: {exc}" + (f"; stopped its programs left running: {', '.join(stopped)}"

@@ -100,6 +100,10 @@ class Supervisor:
                                     " died without cleaning up; `jitterguard down` stops what it left running")
         if (self.run_dir / CONFIG).is_file():
             return StackUnavailable("stopped", f"the stack {self.label} is not running")
+        lost = supervisord_of(self.run_dir)
+        if lost is not None:
+            return StackUnavailable("lost", f"the stack {self.label} runs (supervisord pid {lost}) but its run"
+                                    f" directory {self.run_dir} was deleted; `jitterguard down` stops it")
         return StackUnavailable("absent", f"no stack {self.label} (start one with `jitterguard up`)")
 
     def call(self, method: str, *args: Any) -> Any:
@@ -160,6 +164,25 @@ def _is_supervisord(pid: int) -> bool:
     return "supervisord" in cmdline
 
 
+def supervisord_of(run_dir: Path) -> int | None:
+    """The pid of a live supervisord started on ``run_dir``'s config, found by its command line — for a run
+    directory deleted under a running stack (``$XDG_RUNTIME_DIR`` is removed at logout), whose pid file and
+    socket went with it; None if there is none or no ``/proc`` to look in."""
+    conf = str(run_dir / CONFIG).encode()
+    try:
+        entries = [e for e in os.listdir("/proc") if e.isdigit()]
+    except OSError:
+        return None
+    for entry in entries:
+        try:
+            args = Path(f"/proc/{entry}/cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if any(b"supervisord" in a for a in args[:3]) and conf in args and pid_alive(int(entry)):
+            return int(entry)
+    return None
+
+
 def orphans(run_dir: Path) -> dict[str, int]:
     """Programs of this run directory still alive after their supervisord died: the last pid supervisord's log
     says it spawned for each program, if that process is alive and is a jitterguard command of this stack (its
@@ -185,6 +208,24 @@ def orphans(run_dir: Path) -> dict[str, int]:
         if "jitterguard" in cmdline and any(mark in cmdline for mark in marks):
             out[name] = pid
     return out
+
+
+def stop_lost(run_dir: Path, timeout: float) -> int | None:
+    """SIGTERM the supervisord of a deleted ``run_dir`` (:func:`supervisord_of`; it stops its programs as on
+    ``shutdown``) and wait for it to exit; its pid, or None if it is still running after ``timeout``."""
+    pid = supervisord_of(run_dir)
+    if pid is None:
+        return 0
+    try:
+        os.kill(pid, signal.SIGTERM)
+    except ProcessLookupError:
+        return pid
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if not pid_alive(pid):
+            return pid
+        time.sleep(0.1)
+    return None
 
 
 def stop_orphans(run_dir: Path, timeout: float = 15.0) -> list[str]:

@@ -319,6 +319,34 @@ def test_a_detached_stack_whose_tracker_dies_after_starting_is_not_called_starte
     assert not Supervisor(rd).running()
 
 
+def test_a_stack_whose_run_dir_was_deleted_is_found_by_status_and_stopped_by_down(tmp_path):
+    """$XDG_RUNTIME_DIR is removed at logout; the stack keeps running without its pid file and socket, and
+    `status`/`down` had said there was no stack while its programs ran on."""
+    write_bag(tmp_path / "bag", n=20)
+    env = {**os.environ, "XDG_RUNTIME_DIR": str(tmp_path / "xdg")}
+    rd = tmp_path / "xdg" / "jitterguard" / "gone"
+    res = jg("up", "bag", "-d", "--name", "gone", "--ns", f"gone{os.getpid()}", "--router-port",
+             str(free_tcp_port()), "--no-sidecar", "--topic", DET_TOPIC, cwd=tmp_path, env=env)
+    assert res.returncode == 0, res.stdout + res.stderr
+    from jitterguard.stack.control import pid_alive, read_pid
+
+    sup_pid = read_pid(rd)
+    programs = [p.pid for p in Supervisor(rd).processes() if p.pid]
+    shutil.rmtree(rd)
+    try:
+        res = jg("status", "--name", "gone", env=env, cwd=tmp_path)
+        assert res.returncode == 3 and f"supervisord pid {sup_pid}" in one_line(res) and "was deleted" in res.stdout
+        res = jg("down", "--name", "gone", env=env, cwd=tmp_path)
+        assert res.returncode == 0 and "stopped" in one_line(res), res.stdout + res.stderr
+        assert wait_until(lambda: not pid_alive(sup_pid) and not any(pid_alive(p) for p in programs), timeout=30)
+        res = jg("status", "--name", "gone", env=env, cwd=tmp_path)
+        assert res.returncode == 3 and "no stack" in one_line(res)
+    finally:
+        for pid in [sup_pid, *programs]:
+            if pid_alive(pid):
+                os.kill(pid, signal.SIGKILL)
+
+
 def test_a_stack_whose_supervisord_died_is_reported_and_down_stops_what_it_left(tmp_path):
     write_bag(tmp_path / "bag", n=20)
     env = {**os.environ, "XDG_RUNTIME_DIR": str(tmp_path / "xdg")}
