@@ -58,6 +58,7 @@ def detection_frame(cols: DetectedColumns) -> DetectionFrame:
         label_prob=np.maximum(f64(wire.LABEL_PROB), 1e-3), existence=f64(wire.EXISTENCE),
         label=r[wire.LABEL].astype(np.int8), has_cov=r[wire.HAS_POSITION_COV] == 0xC3,
         orientation=r[wire.ORIENTATION].astype(np.int8), area=cols.area,
+        vx=f64(wire.VX), vy=f64(wire.VY), has_twist=r["kinematics.has_twist"].astype(bool),
     )
 
 

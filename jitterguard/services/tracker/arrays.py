@@ -47,6 +47,9 @@ class DetectionFrame:
     existence: F64 | None = None
     orientation: NDArray[np.int8] | None = None
     area: F64 | None = None  # footprint area for the area gate; length * width when not given
+    vx: F64 | None = None  # the detector's velocity (world motion in the sensor's axes), where ``has_twist``
+    vy: F64 | None = None
+    has_twist: NDArray[np.bool_] | None = None
 
     def __post_init__(self) -> None:
         """Fill the optional columns so the core never branches on ``None`` (and check lengths once)."""
@@ -74,8 +77,11 @@ class DetectionFrame:
         self.existence = fill(self.existence, 1.0)
         self.orientation = fill(self.orientation, 2, np.int8)
         self.area = self.length * self.width if self.area is None else np.asarray(self.area, dtype=np.float64)
+        self.vx = fill(self.vx, 0.0)
+        self.vy = fill(self.vy, 0.0)
+        self.has_twist = fill(self.has_twist, False, np.bool_)
         for name in ("y", "yaw", "label", "z", "length", "width", "height", "cov_xx", "cov_xy", "cov_yy",
-                     "var_yaw", "has_cov", "label_prob", "existence", "orientation", "area"):
+                     "var_yaw", "has_cov", "label_prob", "existence", "orientation", "area", "vx", "vy", "has_twist"):
             if getattr(self, name).shape != (m,):
                 raise ValueError(f"DetectionFrame.{name} has shape {getattr(self, name).shape}, expected ({m},)")
 
@@ -96,6 +102,8 @@ class WorldDetections:
     cov_xy: F64
     cov_yy: F64
     R: F64
+    vx: F64  # the detector's velocity in the world frame (0 where the frame has no twist)
+    vy: F64
 
 
 @dataclass

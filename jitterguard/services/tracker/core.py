@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 from ...geometry import rotate_cov2, sensor_to_world_xy
 from ...stream_order import StreamGuard, Verdict
 from . import kalman
-from .association import assign, gate, overlapping
+from .association import assign, gate, gate_newborn, near_pairs, overlapping
 from .config import ConfigTables, TrackerConfig, default_config
 from .arrays import DetectionFrame, FrameResult, TrackSnapshot, WorldDetections
 from .kalman import CTRV, STATE_DIM, wrap_pi
@@ -124,6 +124,7 @@ class TrackerCore:
             cfg.gate_min_variance, cfg.max_candidates,
         )
         rows, cols = assign(n, m, cand)
+        rows, cols = self._second_detections(frame, det, stamp, rows, cols)
         claimed = cols.copy()  # a detection whose track is deleted below must not start a twin of it
 
         # ---- update the associated tracks
@@ -238,7 +239,9 @@ class TrackerCore:
                 R[use, 0, 1] = R[use, 1, 0] = np.clip(rxy[use], -lim, lim)
                 yaw_var = np.where(use & (f.var_yaw > 0.0), f.var_yaw, yaw_var)
         R[:, 2, 2] = np.where(no_yaw, UNMEASURED_YAW_VAR, yaw_var)
-        return WorldDetections(x=x, y=y, z=f.z + f.ego_z, yaw=yaw, cov_xx=cxx, cov_xy=cxy, cov_yy=cyy, R=R)
+        c, s = np.cos(f.ego_yaw), np.sin(f.ego_yaw)
+        return WorldDetections(x=x, y=y, z=f.z + f.ego_z, yaw=yaw, cov_xx=cxx, cov_xy=cxy, cov_yy=cyy, R=R,
+                               vx=c * f.vx - s * f.vy, vy=s * f.vx + c * f.vy)
 
     def _keep_observations(self, f: DetectionFrame, det: WorldDetections, rows: NDArray[np.intp],
                            cols: NDArray[np.intp]) -> None:
@@ -254,6 +257,41 @@ class TrackerCore:
         values = np.stack([det.x[cols], det.y[cols], det.cov_xx[cols], det.cov_xy[cols], det.cov_yy[cols],
                            np.full(k, f.stamp_ns * 1e-9), np.full(k, f.ego_x), np.full(k, f.ego_y)], axis=1)
         self.tracks.record_observations(rows, values)
+
+    def _second_detections(self, f: DetectionFrame, det: WorldDetections, stamp: int, rows: NDArray[np.intp],
+                           cols: NDArray[np.intp]) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+        """``rows``/``cols`` with each track born on the previous detection (one hit, no velocity yet) that the
+        main gate left without one paired, where it can, with a detection no track took, within the reach of its
+        class's top speed (:func:`~.association.gate_newborn`): a fast object's second detection."""
+        tr = self.tracks
+        taken = np.zeros(len(tr), dtype=bool)
+        taken[rows] = True
+        newborn = np.flatnonzero((tr.hits == 1) & ~taken)
+        if newborn.size == 0:
+            return rows, cols
+        free_mask = np.ones(len(f), dtype=bool)
+        free_mask[cols] = False
+        # neither a detection nor a newborn within the main gate of an older track: that is the older track's
+        # object seen off its prediction (a jumpy box, a twin), not a fast newcomer
+        older = np.flatnonzero(tr.hits > 1)
+        if older.size:
+            reach = float(self.tables.max_dist.max())
+            dpos = np.stack([det.x, det.y], axis=1)
+            near_i, near_j = near_pairs(tr.x[older, :2], dpos, reach)
+            free_mask[near_j] = False
+            nb_i, _ = near_pairs(tr.x[newborn, :2], tr.x[older, :2], reach)
+            newborn = np.delete(newborn, np.unique(nb_i))
+            if newborn.size == 0:
+                return rows, cols
+        since_birth = np.maximum((stamp - tr.born_ns) * 1e-9, 0.0)
+        cand = gate_newborn(tr.x[:, :2], tr.label, tr.x[:, 2], (tr.model == CTRV) & (tr.orientation > 0), newborn,
+                            since_birth, np.stack([det.x, det.y], axis=1), np.stack([det.vx, det.vy], axis=1),
+                            f.label, f.area, np.flatnonzero(free_mask & f.has_twist), self.tables,
+                            self.config.max_candidates)
+        r2, c2 = assign(len(tr), len(f), cand)
+        if r2.size == 0:
+            return rows, cols
+        return np.concatenate([rows, r2]), np.concatenate([cols, c2])
 
     def _birth(self, f: DetectionFrame, det: WorldDetections, idx: NDArray[np.intp]) -> list[str]:
         """Start a tentative track from each detection in ``idx`` (zero velocity, the class's spread)."""
