@@ -52,11 +52,15 @@ def eval_command(
                                          "detector, tracker and classifier on every LiDAR sweep (20 Hz, as "
                                          "`jitterguard replay --sweeps` feeds the live stack) and score the "
                                          "labelled key frames among them.")] = False,
-    duration: Annotated[float, typer.Option("--duration", help="Synthetic scenario length [s].")] = 15.0,
-    rate: Annotated[float, typer.Option("--rate", help="Synthetic frame rate [Hz].")] = 10.0,
+    duration: Annotated[float | None, typer.Option("--duration", help="Synthetic scenario length [s] (default 15;"
+                                                   " not with --nuscenes).")] = None,
+    rate: Annotated[float | None, typer.Option("--rate", help="Synthetic frame rate [Hz] (default 10; not with"
+                                               " --nuscenes).")] = None,
     preset: Annotated[str | None, typer.Option("--preset", help="Classifier alpha preset: paper or authors.")] = None,
     alpha: Annotated[float | None, typer.Option("--alpha", help="alpha_default of the z-test (no per-class overrides).")] = None,
-    velocity_threshold: Annotated[float | None, typer.Option("--velocity-threshold", help="Speed cut-off [m/s].")] = None,
+    velocity_threshold: Annotated[float | None, typer.Option("--velocity-threshold", help="The baseline's speed"
+                                                             " cut-off for every class [m/s] (default: Autoware's"
+                                                             " per class, 1.0 vehicles, 0.28 others).")] = None,
     runs: Annotated[int, typer.Option("--runs", help="Pool seeds seed … seed+runs-1 into one scored table (one "
                                       "drive: the online calibration carries over).")] = 1,
     variance_scale: Annotated[float, typer.Option("--variance-scale", help="Multiply every reported position "
@@ -132,6 +136,10 @@ def eval_command(
              "model has no boxes to draw from between them)")
     if preset is not None and preset not in PRESETS:
         fail(f"--preset: unknown preset {preset!r}; expected one of {', '.join(PRESETS)}")
+    if nuscenes is not None and (duration is not None or rate is not None):
+        fail("--duration and --rate set a synthetic scenario; a --nuscenes scene is scored whole, at its own rate")
+    duration = 15.0 if duration is None else duration
+    rate = 10.0 if rate is None else rate
     if not 0 < duration <= 600 or not 0 < rate <= 100:
         fail("--duration must be in (0, 600] and --rate in (0, 100]")
     if not 1 <= runs <= 50:
@@ -147,10 +155,12 @@ def eval_command(
         upd["mode"] = mode
     if alpha is not None:
         upd.update(alpha_default=alpha, alpha_per_class={})
-    if velocity_threshold is not None:
-        upd["velocity_threshold"] = velocity_threshold
+    if velocity_threshold is not None:  # every class, as --alpha: it had left the 0.28 m/s of the others in force
+        upd.update(velocity_threshold=velocity_threshold, velocity_threshold_per_class={})
     if calibration_file is not None and calibration is None:
         calibration = "file"
+    if calibration_file is not None and calibration != "file":
+        fail(f"--calibration-file is read with --calibration file, not {calibration}")
     for key, value in (("calibration", calibration), ("effective_n", effective_n), ("min_speed_mps", min_speed),
                        ("window_size", window_size),
                        ("calibration_file", None if calibration_file is None else str(calibration_file))):
@@ -199,8 +209,7 @@ def eval_command(
     if as_json:
         sys.stdout.write(json.dumps(metrics, indent=2, sort_keys=True) + "\n")
     else:
-        n_fig = 3 + (len(metrics["run"]["detector"]["figures"]) if detector is not None else 0)
-        print(f"wrote {out / 'report.md'}, metrics.json and {n_fig} figures")
+        print(f"wrote {out / 'report.md'}, metrics.json and {len(list(out.glob('*.png')))} figures")
 
 
 def load_detector(weights: Path | None, threads: int | None, self_crop: bool = True,
@@ -455,8 +464,8 @@ def study_command(
         sys.stdout.write(study_markdown(summary["runs"]))
 
 
-LABEL_CLASSES = {"vehicle": ("car", "truck", "bus", "trailer", "motorcycle"), "pedestrian": ("pedestrian",),
-                 "bicycle": ("bicycle",)}
+LABEL_CLASSES = {"vehicle": ("car", "truck", "bus", "trailer"), "pedestrian": ("pedestrian",),
+                 "bicycle": ("bicycle", "motorcycle")}
 
 
 def labels_preset(alphas: dict[str, float | None]) -> dict[str, Any]:

@@ -25,11 +25,14 @@ STATIC_ATTRIBUTES = frozenset({
 })
 
 GROUPS: dict[str, frozenset[int]] = {
-    "vehicle": frozenset({Label.CAR, Label.TRUCK, Label.BUS, Label.TRAILER, Label.MOTORCYCLE}),
+    "vehicle": frozenset({Label.CAR, Label.TRUCK, Label.BUS, Label.TRAILER}),
     "pedestrian": frozenset({Label.PEDESTRIAN}),
-    "bicycle": frozenset({Label.BICYCLE}),
+    "bicycle": frozenset({Label.BICYCLE, Label.MOTORCYCLE}),
 }
-"""Evaluation groups by Autoware label: the paper's Table II reports vehicles and pedestrians; bicycles apart."""
+"""Evaluation groups by Autoware label: the paper's Table II reports vehicles and pedestrians; cycles apart.
+Vehicles are the classes Autoware's speed threshold holds to 1.0 m/s (car, truck, bus, trailer); a motorcycle
+is held to 0.28 m/s like a bicycle, so it is scored with the cycles (it had been a vehicle: parked motorcycles,
+all called moving by their 0.28 m/s threshold, raised the vehicles' threshold false-alarm rate)."""
 
 NUSCENES_LABELS: dict[str, int] = {
     "vehicle.car": Label.CAR,
@@ -39,6 +42,7 @@ NUSCENES_LABELS: dict[str, int] = {
     "vehicle.bus.rigid": Label.BUS,
     "vehicle.bus.bendy": Label.BUS,
     "vehicle.trailer": Label.TRAILER,
+    "vehicle.construction": Label.TRUCK,
     "vehicle.motorcycle": Label.MOTORCYCLE,
     "vehicle.bicycle": Label.BICYCLE,
 }

@@ -59,22 +59,21 @@ def rate(decisions: ArrayLike, mask: ArrayLike, state: int) -> float:
 
 
 def time_to_first_correct(rec: Records, state: NDArray[np.int8]) -> NDArray[np.float64]:
-    """Per (track, matched object) pair, seconds from the track's first row to its first correct decision
-    (undecided is not correct); NaN if never correct. The paper wants a quick first decision (min_window 2)."""
+    """Per (track, matched object) pair, seconds from the pair's first row to its first correct decision
+    (undecided is not correct); NaN if never correct. The paper wants a quick first decision (min_window 2).
+    Timed from the pair's first row, not the track's: after an ID switch the new object's latency had included
+    the time the track spent on the old one."""
     out: list[float] = []
     if len(rec) == 0:
         return np.empty(0)
-    first_seen: dict[str, float] = {}
-    for tid, t in zip(rec.track_id.tolist(), rec.t_s.tolist()):
-        first_seen.setdefault(tid, t)
     want = np.where(rec.gt_dynamic, DYNAMIC, STATIC)
     keys = np.char.add(np.char.add(rec.track_id, ":"), rec.gt_instance.astype(str))
-    matched = rec.gt_instance >= 0
-    for key in np.unique(keys[matched]):
-        rows = np.flatnonzero(keys == key)
+    idx = np.flatnonzero(rec.gt_instance >= 0)
+    idx = idx[np.argsort(keys[idx], kind="stable")]  # each pair's rows together, in table order (one pass)
+    bounds = np.flatnonzero(keys[idx][1:] != keys[idx][:-1]) + 1
+    for rows in np.split(idx, bounds) if idx.size else []:
         ok = rows[state[rows] == want[rows]]
-        tid = str(rec.track_id[rows[0]])
-        out.append(float(rec.t_s[ok[0]] - first_seen[tid]) if len(ok) else math.nan)
+        out.append(float(rec.t_s[ok[0]] - rec.t_s[rows[0]]) if len(ok) else math.nan)
     return np.asarray(out, dtype=np.float64)
 
 
@@ -163,7 +162,9 @@ def _interval(values: NDArray[np.float64]) -> list[float] | None:
 
 
 def weighted_average_precision(scores: ArrayLike, positive: ArrayLike, weights: ArrayLike) -> float:
-    """:func:`average_precision` with row weights (a bootstrap resample); NaN without weighted positives."""
+    """:func:`average_precision` with row weights (a bootstrap resample); NaN without weighted positives or
+    without weighted negatives (a resample of dynamic rows only has no AP, as the point estimate has none: it
+    had counted as 1.0 and lifted intervals' upper ends to 1)."""
     s = np.asarray(scores, dtype=np.float64)
     p = np.asarray(positive, dtype=bool)
     w = np.asarray(weights, dtype=np.float64)
@@ -172,7 +173,7 @@ def weighted_average_precision(scores: ArrayLike, positive: ArrayLike, weights: 
     tp = np.cumsum(w * p)
     fp = np.cumsum(w * ~p)
     n_pos = tp[-1] if len(tp) else 0.0
-    if n_pos <= 0:
+    if n_pos <= 0 or (fp[-1] if len(fp) else 0.0) <= 0:
         return math.nan
     last = np.r_[np.flatnonzero(np.diff(s) != 0), len(s) - 1]
     tp, fp = tp[last], fp[last]
@@ -375,5 +376,8 @@ def alpha_from_labels(rec: Records, group: str, max_missed: float = 0.05) -> flo
         return None
     zd = np.sort(z[dyn])
     k = int(math.floor(max_missed * len(zd)))
-    # missed = fraction of dynamic z ≤ alpha; the largest alpha with ≤ k misses sits just below zd[k]
-    return float(np.nextafter(zd[k], -np.inf)) if k < len(zd) else float(zd[-1])
+    # missed = fraction of dynamic z ≤ alpha; the largest alpha with ≤ k misses sits just below zd[k]; none if
+    # that is not above 0 (more than k moving rows at z 0, e.g. vetoed): no alpha > 0 keeps the misses that low
+    if k >= len(zd):
+        return float(zd[-1])
+    return float(np.nextafter(zd[k], -np.inf)) if zd[k] > 0 else None

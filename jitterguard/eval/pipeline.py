@@ -48,6 +48,7 @@ NOISE_PRESETS: dict[str, Callable[[], NoiseConfig]] = {
     "clean": NoiseConfig.clean,
     "jittery": NoiseConfig.jittery,
     "paper": NoiseConfig.paper_like,
+    "oracle": NoiseConfig.oracle,  # exact variances: for ablations, never behind a headline figure
 }
 
 

@@ -115,7 +115,9 @@ def plot_alpha_sweep(rec: Records, path: Path) -> dict[str, Any]:
         sw = sweeps[g]
         ax.plot(sw["alpha"], sw["false_dynamic"], label="false dynamic (static GT)")
         ax.plot(sw["alpha"], sw["missed_dynamic"], label="missed dynamic (moving GT)")
-        ax.axvline(1.96, ls="--", c="grey", lw=1)
+        m = scored_rows(rec, g)
+        deployed = float(np.median(rec.alpha[m])) if m.any() else 1.96  # the run's alpha, not always 1.96
+        ax.axvline(deployed, ls="--", c="grey", lw=1, label=f"alpha in force {deployed:g}")
         ax.set_xlabel("alpha")
         ax.set_ylabel("rate")
         ax.set_ylim(0, 1.01)

@@ -21,6 +21,8 @@ CASES = [
     ["eval-study", "--out", BLOCKED, "--seeds", "1,-2"],
     ["eval", "--out", BLOCKED, "--duration", "2"],
     ["eval-study", "--out", BLOCKED],
+    ["eval", "--out", "x", "--calibration", "online", "--calibration-file", "/nonexistent.yaml"],  # one ignored
+    ["eval", "--out", "x", "--nuscenes", "/nonexistent", "--duration", "1"],  # a scene is scored whole
     ["train", "--out", BLOCKED],
     ["eval-detector", "--out", BLOCKED],
     ["export-onnx", "--out", BLOCKED],

@@ -11,6 +11,7 @@ from jitterguard.eval.groundtruth import group_of, is_dynamic, nuscenes_label
 from jitterguard.eval.metrics import (
     TrackBootstrap,
     alpha_from_labels,
+    group_metrics,
     alpha_sweep,
     attribute_metrics,
     average_precision,
@@ -85,9 +86,11 @@ def test_attribute_mapping(attr: str, moving: bool, want: bool) -> None:
 
 
 def test_groups_and_nuscenes_labels() -> None:
+    # vehicles are the classes Autoware's threshold holds to 1.0 m/s; a motorcycle (5) is held to 0.28 m/s
     assert [group_of(x) for x in (1, 2, 3, 4, 5, 6, 7, 0)] == [
-        "vehicle"] * 5 + ["bicycle", "pedestrian", None]
+        "vehicle"] * 4 + ["bicycle", "bicycle", "pedestrian", None]
     assert nuscenes_label("human.pedestrian.child") == 7
+    assert nuscenes_label("vehicle.construction") == 2  # a truck: it had been dropped, a track on it a ghost
     assert nuscenes_label("vehicle.bus.bendy") == 3
     assert nuscenes_label("movable_object.barrier") is None
 
@@ -231,3 +234,35 @@ def test_weighted_ap_matches_repeated_rows() -> None:
     w = rng.integers(0, 4, 50)
     rep_s, rep_y = np.repeat(s, w), np.repeat(y, w)
     assert weighted_average_precision(s, y, w) == pytest.approx(average_precision(rep_s, rep_y), abs=1e-12)
+
+
+def test_a_bootstrap_resample_without_a_static_row_has_no_ap() -> None:
+    """One static track (z 5) and one moving (z 1): AP 0.5, and a resample holding only the moving track has no
+    AP — it had counted as 1.0 and lifted the interval's upper end to 1."""
+    from jitterguard.eval.metrics import weighted_average_precision
+
+    z = np.array([5.0] * 5 + [1.0] * 5)
+    dyn = np.array([False] * 5 + [True] * 5)
+    assert weighted_average_precision(z, dyn, np.ones(10)) == pytest.approx(0.5)
+    assert math.isnan(weighted_average_precision(z, dyn, np.r_[np.zeros(5), np.ones(5)]))
+    m = group_metrics(_records(z=z, gt_dynamic=dyn, track_id=np.array(["s"] * 5 + ["d"] * 5)), "vehicle",
+                      TrackBootstrap(np.array(["s"] * 5 + ["d"] * 5)))
+    assert m["ap_z"] == pytest.approx(0.5) and m["ci90"]["ap_z"] == [0.5, 0.5]
+
+
+def test_latency_is_timed_from_the_pairs_first_row_after_an_id_switch() -> None:
+    """Track t follows moving object 1 for 1 s, never called dynamic, then switches to moving object 2 and is
+    called dynamic at once: the pair (t, 2) took 0 s, not the track's 1 s."""
+    n = 20
+    state = np.full(n, STATIC, np.int8)
+    state[10:] = DYNAMIC
+    rec = _records(z=np.zeros(n), gt_dynamic=np.ones(n, bool), gt_instance=np.r_[np.ones(10), np.full(10, 2)]
+                   .astype(np.int64), state_z=state)
+    got = time_to_first_correct(rec, rec.state_z)
+    assert math.isnan(got[0]) and got[1] == 0.0
+
+
+def test_alpha_from_labels_is_none_where_no_positive_alpha_keeps_the_misses_down() -> None:
+    """Three of 20 moving rows at z 0 (vetoed): no alpha > 0 misses at most 5 % — it had returned -5e-324."""
+    z = np.r_[np.zeros(3), np.linspace(1, 10, 17)]
+    assert alpha_from_labels(_records(z=z, gt_dynamic=np.ones(20, bool)), "vehicle") is None
