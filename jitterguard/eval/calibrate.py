@@ -59,7 +59,7 @@ def calibrate_detections(payloads: Iterable[bytes], config: "ClassifierConfig",
         frames += 1
         obs = [p for _, p in observation_payloads(det, frame, result)]
         observations += len(obs)
-        _classify(adapter, obs, tracked_payload(det, frame, result))
+        _classify(adapter, obs, tracked_payload(det, frame, result), frame.stamp_ns * 1e-9)
     adapter.core.reset()
     cal.refit()
     return cal, {"frames": frames, "observations": observations, **cal.counts}

@@ -228,8 +228,9 @@ def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame | None, bytes]],
             continue
         observations = [p for _, p in observation_payloads(scale_variances(det, at_classifier), frame, result)]
         closing = tracked_payload(det, frame, result)
-        oz, ov = (_classify(a, observations, closing) for a in (adapter_z, adapter_v))
-        if oz.decided is None or ov.decided is None or gt is None:
+        now_s = frame.stamp_ns * 1e-9
+        oz, ov = (_classify(a, observations, closing, now_s) for a in (adapter_z, adapter_v))
+        if oz is None or ov is None or oz.decided is None or ov.decided is None or gt is None:
             continue
         if joiner is not None and on_frame is not None:
             for joined in join_frame(joiner, gt, payload, closing, oz, adapter_z):
@@ -318,12 +319,19 @@ def join_frame(joiner: FrameJoiner, gt: GroundTruthFrame, detections: bytes, tra
     return joiner.poll(0.0)
 
 
-def _classify(adapter: ClassifierAdapter, observations: list[bytes], closing: bytes) -> FrameOutput:
+def _classify(adapter: ClassifierAdapter, observations: list[bytes], closing: bytes, now_s: float
+              ) -> FrameOutput | None:
     """One frame through a classifier adapter as the service runs it: the observations, then the close; every
-    observation is in, so the frame is complete at once."""
+    observation is in, so the frame is complete at once. ``now_s``: the receiver's clock, here the stream's own
+    (the frame's stamp): a discontinuity the tracker has followed (a gap over ``max_stamp_step_s``, a rewind) is
+    held by the classifier's stream guard until a run of frames confirms it, as live; such a frame gives None
+    (with a constant clock the run never confirmed, and ``calibrate``/``eval`` died on a recording's pause)."""
     adapter.observations(observations)
-    adapter.close(closing, 0.0)
-    (frame,) = adapter.ready(0.0)
+    adapter.close(closing, now_s)
+    ready = adapter.ready(now_s)
+    if not ready:
+        return None
+    (frame,) = ready
     out = adapter.finish(frame)
     adapter.settle(out)
     return out

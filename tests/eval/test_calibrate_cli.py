@@ -45,3 +45,27 @@ def test_calibrate_bad_window_is_one_line_exit_2(tmp_path: Path, capsys) -> None
               "--window-size", "3"])
     assert exc.value.code == 2
     assert "--window-size" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("gap_s", [30.0, -30.0])
+def test_a_recording_that_pauses_or_rewinds_is_calibrated_across_it(gap_s: float) -> None:
+    """A bag with a 30 s pause, or two recordings joined with time going back: the tracker follows once a run of
+    frames confirms it, and so does the classifier — `calibrate` (and `eval`) had died with a ValueError
+    because the classifier's stream guard, given a constant clock, never confirmed the run."""
+    from jitterguard.eval.calibrate import calibrate_detections, recording_detections
+    from jitterguard.schemas import decode, encode
+    from jitterguard.schemas.models import ClassifierConfig, DetectedObjects
+    from jitterguard.services.replay.sources import SourceOptions, open_source
+
+    opts = SourceOptions(level="detections", seed=0, duration_s=12.0, rate_hz=10.0, period_ns=100_000_000)
+    with open_source("synthetic:mixed", opts) as src:
+        msgs = list(recording_detections(src, None, 0, None, []))
+    moved = []
+    for i, p in enumerate(msgs):
+        if i >= len(msgs) // 2:
+            d = decode(DetectedObjects, p)
+            p = encode(d.model_copy(update={"header": d.header.model_copy(
+                update={"stamp": d.header.stamp + int(gap_s * 1e9)})}))
+        moved.append(p)
+    _, seen = calibrate_detections(moved, ClassifierConfig())
+    assert len(msgs) - 4 <= seen["frames"] < len(msgs) and seen["blocks"] > 50
