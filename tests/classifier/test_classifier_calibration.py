@@ -453,6 +453,11 @@ def test_calibration_file_round_trip_read_back_independently(tmp_path: Path) -> 
     (f"format: {FORMAT}\ngroups: {{vehicle: {{along: {{scale: {{0-20: -1}}}}}}}}\n", "groups.vehicle.along.scale.0-20"),
     (f"format: {FORMAT}\ngroups: {{lorry: {{}}}}\n", "groups.lorry"),
     (f"format: {FORMAT}\ngroups: {{vehicle: {{along: {{correlation: .nan}}}}}}\n", "correlation"),
+    # a misspelt key had left its scales at the prior of 1 without a word; blocks that are no mapping had raised
+    # an AttributeError past the config write's handler
+    (f"format: {FORMAT}\ngroups: {{vehicle: {{along: {{scales: {{0-20: 2}}}}}}}}\n", "groups.vehicle.along.scales"),
+    (f"format: {FORMAT}\nrange_band_m: [10]\n", "range_band_m"),
+    (f"format: {FORMAT}\ngroups: {{vehicle: {{along: {{blocks: 12}}}}}}\n", "groups.vehicle.along.blocks"),
 ])
 def test_bad_calibration_files_name_the_entry(text: str, needle: str) -> None:
     with pytest.raises(CalibrationFileError, match=needle.replace(".", r"\.")):

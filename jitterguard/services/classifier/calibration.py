@@ -213,6 +213,7 @@ class NoiseModel:
         keep the prior; every value must be finite and in range."""
         if not isinstance(data, Mapping):
             raise ValueError("calibration: expected a mapping")
+        _known_keys(data, TOP_KEYS, "")  # a misspelt key had left its scales at the prior of 1, silently
         edges = data.get("range_bands_m", [20.0, 40.0])
         if (not isinstance(edges, list) or not all(isinstance(e, (int, float)) and math.isfinite(e) and e > 0
                                                    for e in edges) or list(edges) != sorted(set(edges))):
@@ -237,6 +238,7 @@ class NoiseModel:
                     continue
                 if a not in AXES or not isinstance(entry, Mapping):
                     raise ValueError(f"{where}: expected one of {list(AXES)} with a mapping")
+                _known_keys(entry, AXIS_KEYS, f"{where}.")
                 ai = AXES.index(a)
                 for yi, y in enumerate(AGES):
                     key = _key("scale", y)
@@ -246,7 +248,10 @@ class NoiseModel:
                     for bn, v in sc.items():
                         scale[gi, ai, names.index(bn), yi] = _checked(v, f"{where}.{key}.{bn}", *SCALE_BOUNDS)
                     bkey = _key("blocks", y)
-                    for bn, v in (entry.get(bkey) or {}).items():
+                    bl = entry.get(bkey) or {}
+                    if not isinstance(bl, Mapping):
+                        raise ValueError(f"{where}.{bkey}: expected a mapping over bands {names}")
+                    for bn, v in bl.items():
                         if bn in names:
                             blocks[gi, ai, names.index(bn), yi] = _checked(v, f"{where}.{bkey}.{bn}", 0.0, 1e12)
                 if "correlation" in entry:
@@ -260,6 +265,19 @@ class NoiseModel:
 def _key(name: str, age: str) -> str:
     """Mapping key of a per-age entry: ``scale`` (established tracks) and ``scale_young``."""
     return name if age == AGES[0] else f"{name}_{age}"
+
+
+TOP_KEYS = frozenset({"format", "range_bands_m", "frame_interval_s", "window", "groups", "source", "counts"})
+"""What a calibration file's top level may hold (what :meth:`NoiseModel.to_mapping` and the file writer write)."""
+AXIS_KEYS = frozenset({_key(n, y) for n in ("scale", "blocks") for y in AGES}
+                      | {"correlation", "correlation_time_s", "variance_factor"})
+"""What one group's axis may hold (``variance_factor`` is written for people and derived on reading)."""
+
+
+def _known_keys(data: Mapping[str, Any], allowed: frozenset[str], where: str) -> None:
+    unknown = sorted(str(k) for k in data if k not in allowed)
+    if unknown:
+        raise ValueError(f"{where}{unknown[0]}: unknown key; expected some of {sorted(allowed)}")
 
 
 def _checked(v: Any, where: str, lo: float, hi: float) -> float:
