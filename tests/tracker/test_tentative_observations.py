@@ -48,7 +48,7 @@ def step(core: TrackerCore, adapter: ClassifierAdapter | None, seq: int, xy, exi
     res = core.step(df)
     payloads = observation_payloads(cols, df, res)
     closing = tracked_payload(cols, df, res)
-    out = _classify(adapter, [p for _, p in payloads], closing) if adapter is not None else None
+    out = _classify(adapter, [p for _, p in payloads], closing, df.stamp_ns * 1e-9) if adapter is not None else None
     return res, payloads, closing, out
 
 

@@ -366,3 +366,15 @@ def test_a_newborn_near_an_older_track_is_that_track_s_twin_not_a_fast_newcomer(
     assert res.tracks.ids == [car]
     twin = [i for i in range(len(core.tracks)) if core.tracks.ids[i] != car]
     assert all(core.tracks.hits[i] == 1 for i in twin)
+
+
+def test_a_track_past_its_lifetime_is_not_revived_by_a_detection_near_its_prediction() -> None:
+    """Car A drives at 10 m/s, then nothing is seen for 3 s (over max_coast_s); the next frame holds only a parked
+    car B where A's prediction lands. A is deleted and B born tentative under a new ID — B had been published at
+    once under A's ID, with A's velocity and window, because expiry ran after the update."""
+    core = TrackerCore()
+    for k in range(20):
+        core.step(frame(k, [[k * 1.0, 3.0]], [CAR]))
+    (a,) = core.step(frame(20, [[20.0, 3.0]], [CAR])).tracks.ids
+    res = core.step(frame(21, [[50.0, 3.0]], [CAR], t=5.0))
+    assert a in res.deleted and len(res.born) == 1 and res.tracks.ids == []

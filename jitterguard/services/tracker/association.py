@@ -45,6 +45,10 @@ class Candidates:
     dist: F64
     mahalanobis: F64
 
+    def subset(self, keep: NDArray[np.bool_]) -> "Candidates":
+        """The pairs where ``keep`` is true."""
+        return Candidates(self.rows[keep], self.cols[keep], self.score[keep], self.dist[keep], self.mahalanobis[keep])
+
 
 MAX_PAIRS = 100_000
 """Candidate pairs expanded at once (or ``max_per_row`` per row, if more) before :func:`near_pairs` bounds each row."""

@@ -66,6 +66,7 @@ class TrackerCore:
         self._obs_window = self.scale.window if self.scale is not None else 0
         self.tracks = TrackTable(self._obs_window)
         self.guard = StreamGuard(self.config.stream)
+        self._period_s: float | None = None  # the stream's last frame interval (between the two frames before)
 
     # ----------------------------------------------------------------------------------------------- API
 
@@ -74,6 +75,7 @@ class TrackerCore:
         dropped = list(self.tracks.ids)
         self.tracks = TrackTable(self._obs_window)  # the measurement scale stays: it describes the detector
         self.guard.reset()
+        self._period_s = None
         return dropped
 
     @property
@@ -95,6 +97,8 @@ class TrackerCore:
         if verdict is None:
             verdict = self.check_order(frame.seq, frame.stamp_ns)
         deleted: list[str] = self.reset() if verdict is Verdict.REWOUND else []
+        last = self.guard.last_stamp_ns
+        period_s = (frame.stamp_ns - last) * 1e-9 if last is not None and verdict is Verdict.NEXT else None
         self.guard.accept(frame.seq, frame.stamp_ns)
 
         cfg, tb, tr = self.config, self.tables, self.tracks
@@ -123,8 +127,12 @@ class TrackerCore:
             tb, cfg.mahalanobis_gate, cfg.mahalanobis_covariance == "innovation", cfg.score_threshold,
             cfg.gate_min_variance, cfg.max_candidates,
         )
+        stale = self._stale(stamp, self._period_s)  # the interval before this frame: a pause is this one's
+        self._period_s = period_s
+        if stale.any():
+            cand = cand.subset(~stale[cand.rows])
         rows, cols = assign(n, m, cand)
-        rows, cols = self._second_detections(frame, det, stamp, rows, cols)
+        rows, cols = self._second_detections(frame, det, stamp, rows, cols, stale)
         claimed = cols.copy()  # a detection whose track is deleted below must not start a twin of it
 
         # ---- update the associated tracks
@@ -258,15 +266,27 @@ class TrackerCore:
                            np.full(k, f.stamp_ns * 1e-9), np.full(k, f.ego_x), np.full(k, f.ego_y)], axis=1)
         self.tracks.record_observations(rows, values)
 
+    def _stale(self, stamp: int, period_s: float | None) -> NDArray[np.bool_]:
+        """Tracks already past their lifetime (``tentative_max_gap_s`` / ``max_coast_s`` unseen) by more than the
+        stream's frame interval: ones a frame would have deleted had the stream not paused. They take no detection
+        — after a 3 s pause of the stream a coasting car's ID had gone to whatever stood near its prediction, with
+        its velocity — and are deleted with the frame's expiry. Within one interval the rule is the frame's
+        expiry alone (at 2 Hz every tentative track is 0.5 s unseen when its next detection comes)."""
+        tr, cfg = self.tracks, self.config
+        if not len(tr) or period_s is None:
+            return np.zeros(len(tr), dtype=bool)
+        return tr.expired(stamp - int(period_s * 1e9), cfg.tentative_max_gap_s, cfg.max_coast_s, np.inf)
+
     def _second_detections(self, f: DetectionFrame, det: WorldDetections, stamp: int, rows: NDArray[np.intp],
-                           cols: NDArray[np.intp]) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+                           cols: NDArray[np.intp], stale: NDArray[np.bool_]
+                           ) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
         """``rows``/``cols`` with each track born on the previous detection (one hit, no velocity yet) that the
         main gate left without one paired, where it can, with a detection no track took, within the reach of its
         class's top speed (:func:`~.association.gate_newborn`): a fast object's second detection."""
         tr = self.tracks
         taken = np.zeros(len(tr), dtype=bool)
         taken[rows] = True
-        newborn = np.flatnonzero((tr.hits == 1) & ~taken)
+        newborn = np.flatnonzero((tr.hits == 1) & ~taken & ~stale)
         if newborn.size == 0:
             return rows, cols
         free_mask = np.ones(len(f), dtype=bool)
