@@ -37,6 +37,11 @@ WORLD_FRAME = "map"
 # Variances of what the planar tracker does not estimate (z, roll, pitch): conservative constants, not zeros,
 # so a consumer never reads "known exactly" into them.
 Z_VAR, ROLL_PITCH_VAR = 0.1, 0.01
+# Likewise for the twist: a stopped CTRV car's velocity covariance is rank one (J Σ Jᵀ with v = 0 carries no
+# lateral term) and a constant-velocity track has no yaw rate at all; published as zeros they read "known exactly"
+# and a consumer's Mahalanobis test on the velocity divided by zero.
+VEL_VAR_FLOOR = 0.01  # (0.1 m/s)² on each velocity axis
+UNMODELLED_YAW_RATE_VAR = 1.0  # (1 rad/s)²: a CV track's yaw rate is not estimated
 X_YAW, Y_YAW, YAW_X, YAW_Y = 5, 11, 30, 31
 
 
@@ -96,7 +101,9 @@ def tracked_records(result: FrameResult) -> np.ndarray:
     pcov[:, Z_Z], pcov[:, ROLL_ROLL], pcov[:, PITCH_PITCH] = Z_VAR, ROLL_PITCH_VAR, ROLL_PITCH_VAR
     tcov = np.zeros((n, COVARIANCE_SIZE))
     tcov[:, X_X], tcov[:, X_Y], tcov[:, Y_X], tcov[:, Y_Y] = V[:, 0, 0], V[:, 0, 1], V[:, 0, 1], V[:, 1, 1]
-    tcov[:, YAW_YAW] = t.yaw_rate_var
+    tcov[:, X_X] += VEL_VAR_FLOOR  # added, not a maximum: the sum stays positive definite with the cross term
+    tcov[:, Y_Y] += VEL_VAR_FLOOR
+    tcov[:, YAW_YAW] = np.where(t.yaw_rate_var > 0.0, t.yaw_rate_var, UNMODELLED_YAW_RATE_VAR)
     half = 0.5 * np.asarray(t.yaw, dtype=np.float64)
     return wire.TRACKED.pack(n, {
         wire.ID: t.ids, wire.EXISTENCE: t.existence, wire.LABEL: t.label, wire.LABEL_PROB: t.label_prob,
