@@ -7,7 +7,9 @@ an intruder sends. A frame *follows* the newest one taken when its seq is higher
 stamp is not older and newer by at most ``max_stamp_step_s``. Then it is:
 
 * ``NEXT``: it follows; take it.
-* ``DUPLICATE``: the same seq, not newer; drop it.
+* ``DUPLICATE``: the same seq, not newer, or the same stamp as the newest taken under any seq (a scan of the same
+  instant: sent twice, or a driver whose clock stands still — taken, such frames had left every tentative track
+  unexpired, and the tracker's table grew without bound); drop it.
 * anything else is a *discontinuity*, held back: ``LATE`` (behind the stream: a re-send, a replay) or ``JUMP``
   (ahead beyond the steps, or seq back with time going on) — dropped and counted, unless it confirms a run.
 
@@ -73,7 +75,7 @@ class StreamGuard:
 
     def follows(self, seq: int, stamp_ns: int, after_seq: int, after_stamp_ns: int) -> bool:
         step_ns = self.limits.max_stamp_step_s * 1e9
-        return after_seq < seq <= after_seq + self.limits.max_seq_step and 0 <= stamp_ns - after_stamp_ns <= step_ns
+        return after_seq < seq <= after_seq + self.limits.max_seq_step and 0 < stamp_ns - after_stamp_ns <= step_ns
 
     def admit(self, seq: int, stamp_ns: int, now_s: float | None = None) -> Verdict:
         """Judge one header; a held frame extends (or starts) the run. ``now_s`` None: no time condition."""
@@ -81,7 +83,7 @@ class StreamGuard:
             return Verdict.NEXT
         if self.follows(seq, stamp_ns, self.last_seq, self.last_stamp_ns):
             return Verdict.NEXT
-        if seq == self.last_seq and stamp_ns <= self.last_stamp_ns:
+        if (seq == self.last_seq and stamp_ns <= self.last_stamp_ns) or stamp_ns == self.last_stamp_ns:
             return Verdict.DUPLICATE
         if self._run is not None and self.follows(seq, stamp_ns, *self._run):
             self._run_len += 1

@@ -696,3 +696,15 @@ def test_chi2_mode_fires_at_the_rate_of_the_z_test_even_at_a_cold_start() -> Non
             p = float(two_sided_p(alpha))
             rate = float((st.chi2 > chi2_2_threshold(alpha)).mean())
             assert p / 3 < rate < p + 4 * np.sqrt(p * (1 - p) / K), (model.scale_dof, alpha, rate)
+
+
+@pytest.mark.parametrize("window", [2, 3, 4])
+def test_windows_too_short_to_pool_keep_the_prior(window: int) -> None:
+    """Blocks shorter than five observations are never pooled; with a window of 2–4 the fit had drawn its own
+    prior's rank-deficient pseudo-blocks and came out at k 0.57–1.57: the scales stay the prior's 1."""
+    cal = OnlineCalibration(window=window)
+    cal.advance(0.0)
+    cal.advance(1.0)
+    model = cal.refit()
+    np.testing.assert_allclose(model.scale, 1.0)
+    np.testing.assert_allclose(model.correlation, NoiseModel.prior().correlation)

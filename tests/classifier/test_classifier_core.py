@@ -201,6 +201,23 @@ def test_the_rate_is_per_frame_of_seq_and_robust_to_gaps_and_restarts():
     assert core.window == 10
 
 
+@pytest.mark.parametrize("pattern", ["jitter", "alternating", "pairs"])
+def test_a_jittered_stream_keeps_its_window(pattern):
+    """A 10 Hz driver whose stamps jitter by ±30 ms, alternate 50 / 150 ms or come in pairs 2 ms apart: the window
+    stays at 20 observations. The median of successive intervals had swung it between 10 and 20 frame to frame,
+    and every shrink dropped each track's oldest observations."""
+    rng = np.random.default_rng(3)
+    core = MotionClassifierCore(ClassifierConfig())
+    windows = set()
+    for k in range(300):
+        t = {"jitter": k * 0.1 + rng.uniform(-0.03, 0.03), "alternating": k * 0.1 + (0.05 if k % 2 else 0.0),
+             "pairs": (k // 2) * 0.2 + (k % 2) * 0.002}[pattern]
+        d = core.update(obs([A], [0.0], seq=k, stamp_ns=int(round(t * 1e9))))
+        if k >= 30:
+            windows.add((core.window, core.stride, int(d.window_length[0])))
+    assert windows == {(20, 1, 20)}
+
+
 @pytest.mark.parametrize(("interval_s", "window"), [(1e-300, 20), (5e-324, 20), (1e300, 10), (math.inf, 10),
                                                      (math.nan, 20), (-1.0, 20)])
 def test_extreme_intervals_give_a_window_in_bounds(interval_s, window):

@@ -68,7 +68,7 @@ def run_assembler(headers: list[tuple[int, int]]) -> tuple[list[bool], FrameAsse
 
 @pytest.mark.parametrize(("seq", "stamp", "want"), [
     (11, T0 + PERIOD, Verdict.NEXT),
-    (11, T0, Verdict.NEXT),  # an equal stamp under a higher seq
+    (11, T0, Verdict.DUPLICATE),  # an equal stamp under a higher seq: the same instant, or a clock standing still
     (1010, T0 + 9 * 10**9, Verdict.NEXT),  # within both steps: a sensor back after a short gap
     (10, T0, Verdict.DUPLICATE),
     (10, T0 - PERIOD, Verdict.DUPLICATE),
@@ -198,3 +198,21 @@ def test_a_long_gap_within_the_stamp_step_is_just_the_next_frame() -> None:
     core = TrackerCore(default_config(stream=StreamLimits(max_stamp_step_s=30.0)))
     got, core = run_tracker(stream(5) + stream(3, seq0=5, t0=T0 + 25 * 10**9), core)
     assert got == ["next"] * 8
+
+
+def test_frames_of_a_clock_that_stands_still_are_duplicates_and_the_table_stays_bounded() -> None:
+    """A driver that stamps every scan alike (0, or a lost time sync) under new seqs: taken, such frames aged no
+    track (dt 0), so clutter's tentative tracks never expired — 3,600 tracks after 300 frames of 20 returns."""
+    rng = np.random.default_rng(0)
+    core = TrackerCore()
+    dropped = 0
+    for k in range(300):
+        xy = rng.uniform(0, 100, size=(20, 2))
+        f = DetectionFrame(seq=k, stamp_ns=T0, ego_x=0.0, ego_y=0.0, ego_yaw=0.0, x=xy[:, 0], y=xy[:, 1],
+                           yaw=np.zeros(20), label=np.zeros(20, np.int8), length=np.ones(20), width=np.ones(20))
+        try:
+            core.step(f)
+        except FrameRejected as exc:
+            assert exc.reason == "duplicate"
+            dropped += 1
+    assert dropped == 299 and len(core.tracks) <= 20

@@ -740,6 +740,9 @@ class OnlineCalibration:
         return (Y + n0 * expected_moments(Wbar, Tbar, k, m, tau), Ew + n0 * Wbar, Et + n0 * Tbar)
 
     def _fit(self) -> NoiseModel:
+        if self.window < MIN_BLOCK:  # no block is ever pooled, and a prior of 2–4-observation blocks fits nothing:
+            # its pseudo-blocks are rank-deficient after the line fit (k came out 0.57–1.57, not the prior's 1)
+            return replace(NoiseModel.prior(self.band_edges_m), scale_dof=PRIOR_SCALE_DOF)
         Y, Ew, Et, n = self._Y, self._Ew, self._Et, self._n
         Y1, Ew1, Et1, n1 = Y.sum((2, 3)), Ew.sum((2, 3)), Et.sum((2, 3)), n.sum((2, 3))  # per group and axis
         # level 0: all groups, bands and ages, per axis; a weak prior at k = 1 and the prior shape (detectors are
