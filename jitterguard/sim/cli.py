@@ -7,11 +7,13 @@ Commands import their implementation when they run (start-up time: see :mod:`jit
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
 import sys
 from collections import Counter
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, TextIO
 
 import typer
 
@@ -37,6 +39,11 @@ def _check(scenario: str, duration: float, rate: float, lidar: str | None = None
         fail("--duration must be in (0, 600] seconds")
     if not 0 < rate <= 100:
         fail("--rate must be in (0, 100] Hz")
+    from .world import frame_count
+
+    # counted as the world counts (whole frames): a shorter scenario made an empty file or a scene the replay refuses
+    if frame_count(duration, rate) < 1:
+        fail(f"--duration {duration:g} s at --rate {rate:g} Hz holds no whole frame; make duration × rate at least 1")
     if lidar is not None and lidar not in SENSORS:
         fail(f"--lidar {lidar!r}: unknown sensor (have: {', '.join(SENSORS)})")
 
@@ -47,6 +54,27 @@ def _bar(iterable: Any, total: int, desc: str, enabled: bool) -> Any:
     from tqdm import tqdm
 
     return tqdm(iterable, total=total, desc=desc, unit="frame", file=sys.stderr, leave=False)
+
+
+def _open_out(out: str) -> tuple[TextIO, str | None]:
+    """``--out`` opened for writing, or one line and exit 2; with the temporary file's path when there is one.
+
+    Why a temporary file: ground truth is written frame by frame while the scenario is generated, and a write
+    that fails halfway (a full disk) must not leave a truncated file where a complete one is expected — so a
+    regular file (or a new one) is written beside itself as ``.NAME.PID.part`` and renamed over ``out`` only
+    once complete. Anything else (``/dev/stdout``, a pipe, a symlink) is written in place; so is a file whose
+    folder takes no new file."""
+    target = Path(out)
+    if not target.is_symlink() and (not target.exists() or target.is_file()):
+        part = str(target.with_name(f".{target.name}.{os.getpid()}.part"))
+        try:
+            return open(part, "x", encoding="utf-8"), part
+        except OSError:
+            pass  # the folder takes no new file (or does not exist): opening out itself says which
+    try:
+        return open(out, "w", encoding="utf-8"), None
+    except OSError as exc:
+        fail(f"--out: cannot write {out}: {exc.strerror or exc}")
 
 
 def _frame_json(frame: Any, categories: dict[int, str]) -> dict[str, Any]:
@@ -84,12 +112,7 @@ def generate_command(
     spec = SENSORS[lidar]() if lidar else None
     attrs: Counter[str] = Counter()
     ids: set[int] = set()
-    fh = None
-    if out:
-        try:
-            fh = open(out, "w", encoding="utf-8")
-        except OSError as exc:
-            fail(f"--out: cannot write {out}: {exc.strerror}")
+    fh, part = _open_out(out) if out else (None, None)
     try:
         frames = _bar(iter(sc), sc.num_frames, scenario, progress_on(progress))
         first = last = None
@@ -101,10 +124,26 @@ def generate_command(
             first = first or frame
             last = frame
             if fh is not None:
-                fh.write(json.dumps(_frame_json(frame, sc.categories)) + "\n")
-    finally:
+                line = json.dumps(_frame_json(frame, sc.categories)) + "\n"
+                try:
+                    fh.write(line)
+                except OSError as exc:
+                    fail(f"--out: cannot write {out}: {exc.strerror or exc}")
         if fh is not None:
-            fh.close()
+            try:
+                fh.close()  # a full disk may only show here, when the buffer is flushed
+                if part is not None:
+                    os.replace(part, out)
+            except OSError as exc:
+                fail(f"--out: cannot write {out}: {exc.strerror or exc}")
+            part = None
+    finally:
+        if fh is not None and not fh.closed:
+            with contextlib.suppress(OSError):  # already failing: the first error is the one reported
+                fh.close()
+        if part is not None:
+            with contextlib.suppress(OSError):
+                os.unlink(part)
     summary = {
         "scenario": scenario, "seed": seed, "frames": sc.num_frames, "rate_hz": rate,
         "instances_seen": len(ids), "annotations": sum(attrs.values()), "attributes": dict(sorted(attrs.items())),

@@ -33,9 +33,10 @@ from .primitives import PrimitiveList, Primitives, Tag
 
 F64 = NDArray[np.float64]
 
-EFFECTS_VERSION = 3
+EFFECTS_VERSION = 4
 """Bumped whenever :func:`draw_effects` or the way effects are applied changes: caches of scans cast with
-effects name it in their recipe, so a stale cache is rebuilt rather than silently reused."""
+effects name it in their recipe, so a stale cache is rebuilt rather than silently reused. (4: street clutter and
+vegetation tested piece by piece against the ego car, :data:`EGO_FOOTPRINT`.)"""
 
 INTENSITY_MODELS = ("legacy", "measured", "none")
 """``legacy``: 255 · reflectivity falling off with range (the ideal model); ``measured``: per-surface log-normal
@@ -256,6 +257,13 @@ SCATTER_HALF_SIDE_M = 30.0
 """Street clutter and vegetation are scattered over the square of ± this around the sensor (60 m × 60 m)."""
 
 
+EGO_FOOTPRINT = np.array([[0.0, 0.0, 2.35, 0.95, 0.0]])
+"""The ego car in the sensor frame as a keep-out footprint (x, y, half_length, half_width, yaw): 4.7 × 1.9 m, as
+every scenario builds it, centred under the sensor. Each piece of clutter and each vegetation blob is tested
+against it whole (:func:`_overlaps_any`, 0.5 m grown on both sides): testing only where a piece was anchored let a
+long wall or a turned hedge run straight through the car in training scans."""
+
+
 def _scattered(rng: np.random.Generator, density: float) -> Iterator[tuple[float, float]]:
     """Sensor-frame (x, y) of a Poisson number of pieces, ``density`` per 100 m² of the scatter square, drawn one
     at a time: the caller's own draws for a piece follow its position in the same stream (the order every cached
@@ -279,10 +287,10 @@ def street_clutter(effects: ScanEffects, keep_out: F64, mount_height_m: float) -
     rng = np.random.default_rng(effects.clutter_seed)
     pl = PrimitiveList()
     g = -mount_height_m
-    ko = np.asarray(keep_out, np.float64).reshape(-1, 5)
+    ko = np.concatenate([np.asarray(keep_out, np.float64).reshape(-1, 5), EGO_FOOTPRINT])
     for x, y in _scattered(rng, effects.clutter_density):
         if abs(y) < 2.5 and abs(x) < 6.0:
-            continue  # the ego's own spot
+            continue  # no piece anchored on the ego's own spot (a piece reaching into it is dropped below)
         kind = rng.choice(7, p=[0.3, 0.15, 0.1, 0.15, 0.12, 0.08, 0.1])
         yaw = rng.normal(0.0, 0.15) if rng.random() < 0.7 else rng.uniform(-np.pi, np.pi)
         pieces: list[tuple[float, float, float, float, float, float, float, Tag]] = []  # x, y, l, w, z1, yaw, refl, tag
@@ -319,8 +327,8 @@ def street_clutter(effects: ScanEffects, keep_out: F64, mount_height_m: float) -
             pieces.append((x, y, rng.uniform(0.5, 1.5), rng.uniform(0.5, 1.2), rng.uniform(0.5, 1.5), yaw, 0.3,
                            Tag.WALL))
         for px, py, ln, wd, h, pyaw, refl, tag in pieces:
-            if len(ko) and _overlaps_any(px, py, abs(ln) / 2, max(wd, abs(ln) if ln < 0 else wd) / 2, pyaw, ko):
-                continue
+            if _overlaps_any(px, py, abs(ln) / 2, max(wd, abs(ln) if ln < 0 else wd) / 2, pyaw, ko):
+                continue  # on a road user or across the ego (each piece whole, not only where it was anchored)
             if ln < 0:  # a cylinder of radius −ln
                 pl.cylinder(px, py, -ln, g, g + h, reflectivity=refl, tag=tag)
             else:
@@ -348,7 +356,7 @@ def vegetation_masses(effects: ScanEffects, keep_out: F64, mount_height_m: float
         blobs = int(np.clip(rng.poisson(length * width * 0.8), 4, 40))
         if (abs(y) < 2.5 + width and abs(x) < 6.0 + length) or (
                 len(ko) and _overlaps_any(x, y, length / 2, width / 2, yaw, ko)):
-            continue  # the ego's spot, a road user
+            continue  # near the ego's spot (an axis-aligned margin: a turned mass can still reach it), a road user
         c, s = math.cos(yaw), math.sin(yaw)
         for _ in range(blobs):
             u, v = rng.uniform(-0.5, 0.5) * length, rng.uniform(-0.5, 0.5) * width
@@ -356,10 +364,13 @@ def vegetation_masses(effects: ScanEffects, keep_out: F64, mount_height_m: float
             z0 = 0.0 if rng.random() < 0.5 else rng.uniform(0.0, 1.2)
             z1 = z0 + rng.uniform(0.4, 2.5)
             if rng.random() < 0.6:
-                pl.cylinder(bx, by, rng.uniform(0.25, 0.9), g + z0, g + z1, reflectivity=0.15, tag=Tag.TREE_CROWN)
+                r = rng.uniform(0.25, 0.9)
+                if not _overlaps_any(bx, by, r, r, 0.0, EGO_FOOTPRINT):  # drawn either way: later masses keep theirs
+                    pl.cylinder(bx, by, r, g + z0, g + z1, reflectivity=0.15, tag=Tag.TREE_CROWN)
             else:
-                pl.box(bx, by, rng.uniform(0.4, 1.8), rng.uniform(0.4, 1.8), g + z0, g + z1,
-                       yaw=rng.uniform(-np.pi, np.pi), reflectivity=0.15, tag=Tag.TREE_CROWN)
+                bl, bw, byaw = rng.uniform(0.4, 1.8), rng.uniform(0.4, 1.8), rng.uniform(-np.pi, np.pi)
+                if not _overlaps_any(bx, by, bl / 2, bw / 2, byaw, EGO_FOOTPRINT):
+                    pl.box(bx, by, bl, bw, g + z0, g + z1, yaw=byaw, reflectivity=0.15, tag=Tag.TREE_CROWN)
     return pl.build()
 
 

@@ -6,10 +6,11 @@ in ``shared/data/nuscenes-scene-0523`` has the same layout — synthetic and rea
 
 Layout: every scenario frame is a keyframe (``sample``) with one LIDAR_TOP sweep of 5 float32 per point
 (x, y, z, intensity 0…255, ring). The ego frame is the sensor's ground footprint (ego_pose z = 0), the LiDAR is
-mounted ``SENSOR_HEIGHT_M`` above it without rotation (x forward, y left). Annotation sizes are nuScenes'
-(width, length, height); quaternions are (w, x, y, z); timestamps are microseconds. Tokens are derived from the
-scenario's name and seed, so a re-export is byte-identical. Attribute, visibility and category tokens are
-nuScenes' published constants where nuScenes has them.
+mounted the exported sensor's ``mount_height_m`` above it (the height its scans were cast from, so ego_pose ∘
+calibrated_sensor puts their ground at world z = 0) without rotation (x forward, y left). Annotation sizes are
+nuScenes' (width, length, height); quaternions are (w, x, y, z); timestamps are microseconds. Tokens are derived
+from the scenario's name and seed, so a re-export is byte-identical. Attribute, visibility and category tokens
+are nuScenes' published constants where nuScenes has them.
 
 :func:`nuscenes_tables` is pure (frames and scans in, tables out); :func:`write_dataroot` does the I/O.
 """
@@ -29,7 +30,7 @@ from numpy.typing import NDArray
 
 from .lidar import ScanResult, cast_frame
 from .sensors import LidarSpec, hdl32e
-from .world import SENSOR_HEIGHT_M, GroundTruthFrame, Scenario
+from .world import GroundTruthFrame, Scenario
 
 VERSION = "v1.0-mini"
 CHANNEL = "LIDAR_TOP"
@@ -95,17 +96,21 @@ class SweepFile:
 
 
 def nuscenes_tables(scenario_name: str, seed: int, frames: Iterable[tuple[GroundTruthFrame, ScanResult]],
-                    categories: dict[int, str], *, description: str = "", min_points: int = 0
-                    ) -> tuple[dict[str, list[dict[str, object]]], list[SweepFile]]:
+                    categories: dict[int, str], *, description: str = "", min_points: int = 0,
+                    sensor: LidarSpec | None = None) -> tuple[dict[str, list[dict[str, object]]], list[SweepFile]]:
     """All nuScenes tables for a scenario's (frame, scan) pairs, and the sweep files to write.
 
-    ``categories`` maps instance id → nuScenes category name. Objects with fewer than ``min_points`` LiDAR
-    points in a frame are not annotated in it (nuScenes' own annotations include zero-point boxes)."""
+    ``categories`` maps instance id → nuScenes category name. ``sensor`` is the LiDAR the scans were cast with
+    (default the HDL-32E): its ``mount_height_m`` is the calibrated sensor's height, since the scans' ground lies
+    that far below the sensor — a constant height put a replayed scan's ground above or below world z = 0. Objects
+    with fewer than ``min_points`` LiDAR points in a frame are not annotated in it (nuScenes' own annotations
+    include zero-point boxes)."""
     key = f"jitterguard-sim/{scenario_name}/{seed}"
     log_name = f"jg-sim-{scenario_name}-{seed}"
     scene_token, log_token = token(key, "scene"), token(key, "log")
     calib_token = token(key, "calibrated_sensor")
     cat_tokens = {name: tok or token("category", name) for name, (tok, _) in CATEGORIES.items()}
+    mount_height_m = float((sensor or hdl32e()).mount_height_m)
 
     samples: list[dict[str, object]] = []
     sample_data: list[dict[str, object]] = []
@@ -162,7 +167,7 @@ def nuscenes_tables(scenario_name: str, seed: int, frames: Iterable[tuple[Ground
         "attribute": [{"token": t, "name": n, "description": ATTRIBUTE_DESCRIPTIONS[n]}
                       for n, t in ATTRIBUTE_TOKENS.items()],
         "calibrated_sensor": [{"token": calib_token, "sensor_token": SENSOR_TOKEN,
-                               "translation": [0.0, 0.0, SENSOR_HEIGHT_M], "rotation": [1.0, 0.0, 0.0, 0.0],
+                               "translation": [0.0, 0.0, mount_height_m], "rotation": [1.0, 0.0, 0.0, 0.0],
                                "camera_intrinsic": []}],
         "category": [{"token": cat_tokens[n], "name": n, "description": f"{n} (synthetic)", "index": idx}
                      for n, (_, idx) in CATEGORIES.items()],
@@ -210,6 +215,7 @@ def export_scenario(scenario: Scenario, dataroot: str, sensor: LidarSpec | None 
     for f in frames:
         res, g = cast_frame(f, spec, seed)
         pairs.append((g, res))
-    tables, sweeps = nuscenes_tables(scenario.name, scenario.seed, pairs, scenario.categories, min_points=min_points)
+    tables, sweeps = nuscenes_tables(scenario.name, scenario.seed, pairs, scenario.categories, min_points=min_points,
+                                     sensor=spec)
     write_dataroot(dataroot, tables, sweeps)
     return {name: len(rows) for name, rows in tables.items()}

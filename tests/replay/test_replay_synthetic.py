@@ -104,3 +104,27 @@ def test_synthetic_scans_repeat_exactly_across_passes_and_differ_across_seeds() 
 def test_unknown_lidar_is_a_source_error_listing_the_sensors() -> None:
     with pytest.raises(SourceError, match="hdl32e"):
         open_source("synthetic:mixed", SourceOptions(lidar="hdl64"))
+
+
+@needs_world
+@pytest.mark.parametrize("duration_s, frames", [(0.96, 9), (0.3, 3), (0.1, 1)])
+def test_the_probe_announces_the_frames_the_source_yields(duration_s: float, frames: int) -> None:
+    """The probe counts whole frames as the world does (it rounded: 0.96 s at 10 Hz announced 10 of 9)."""
+    from jitterguard.services.replay.sources import probe_source
+
+    opts = SourceOptions(level="detections", duration_s=duration_s, rate_hz=10.0)
+    src = open_source("synthetic:mixed", opts)
+    assert probe_source("synthetic:mixed", opts).num_frames == src.info.num_frames == frames
+    assert len(list(src.frames())) == frames
+
+
+@needs_world
+def test_a_scenario_shorter_than_one_frame_is_a_source_error() -> None:
+    """0.07 s at 10 Hz holds no frame: the probe said 1 and the stack came up on a source that published nothing."""
+    from jitterguard.services.replay.sources import probe_source
+
+    opts = SourceOptions(level="detections", duration_s=0.07, rate_hz=10.0)
+    with pytest.raises(SourceError, match="no whole frame"):
+        probe_source("synthetic:mixed", opts)
+    with pytest.raises(SourceError, match="no whole frame"):
+        open_source("synthetic:mixed", opts)

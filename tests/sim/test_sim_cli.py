@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import errno
 import json
+import os
 
 import pytest
 from typer.testing import CliRunner
@@ -57,6 +59,9 @@ def test_export_and_bev_write_files(tmp_path) -> None:
     (("sim", "bev", "mixed", "--out", "x.jpg"), ".png"),
     (("sim", "bev", "mixed", "--out", "x.png", "--frame", "99999"), "--frame"),
     (("sim", "export", "mixed", "/tmp/x", "--lidar", "hdl64"), "--lidar"),
+    (("sim", "export", "mixed", "/tmp/x", "--duration", "0.4", "--rate", "2"), "no whole frame"),
+    (("sim", "generate", "mixed", "--duration", "1", "--rate", "0.5"), "no whole frame"),
+    (("sim", "bev", "mixed", "--out", "x.png", "--duration", "0.05"), "no whole frame"),
     (("bench", "sim", "--scans", "0"), "--scans"),
 ])
 def test_bad_input_is_one_line_and_exit_2(args, message) -> None:
@@ -74,3 +79,51 @@ def test_bench_prints_json() -> None:
     assert rc["sensor"] == "hdl32e" and rc["rays"] == 34720 and rc["objects"] == 10
     assert rc["scans_per_s"] > 0
     assert rp["points_per_scan"] == 35_000 and rp["dropped"] == 0 and rp["scans_per_s"] > 0
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full")
+def test_generate_to_a_full_device_is_one_line_and_exit_2() -> None:
+    """A write that fails (here at the flush on close) is one line and exit 2, not an OSError traceback."""
+    r = run("sim", "generate", "parking-street", "--duration", "2", "--out", "/dev/full", "--no-progress")
+    assert r.exit_code == 2, r.output
+    lines = [ln for ln in r.output.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("jitterguard: error: --out: cannot write /dev/full")
+
+
+def test_a_write_failing_halfway_leaves_the_old_file_and_no_partial_one(tmp_path, monkeypatch) -> None:
+    """Ground truth goes to a temporary file renamed over --out only when complete: a disk that fills on the
+    third frame leaves the previous file as it was and no truncated one (nor the temporary file) behind."""
+    from jitterguard.sim import cli as sim_cli
+
+    path = tmp_path / "gt.jsonl"
+    path.write_text("previous run\n")
+
+    class FillsUp:
+        """A file whose third write finds the disk full."""
+
+        def __init__(self, fh):
+            self.fh, self.writes = fh, 0
+
+        def write(self, text):
+            self.writes += 1
+            if self.writes == 3:
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+            return self.fh.write(text)
+
+        def __getattr__(self, name):
+            return getattr(self.fh, name)
+
+    monkeypatch.setattr(sim_cli, "open", lambda *a, **k: FillsUp(open(*a, **k)), raising=False)
+    r = run("sim", "generate", "mixed", "--seed", "1", "--duration", "1", "--rate", "5", "--out", str(path),
+            "--no-progress")
+    assert r.exit_code == 2, r.output
+    lines = [ln for ln in r.output.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "cannot write" in lines[0] and "No space left" in lines[0]
+    assert path.read_text() == "previous run\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["gt.jsonl"]
+    monkeypatch.delattr(sim_cli, "open")
+    r = run("sim", "generate", "mixed", "--seed", "1", "--duration", "1", "--rate", "5", "--out", str(path),
+            "--no-progress")
+    assert r.exit_code == 0, r.output
+    assert len(path.read_text().splitlines()) == 5
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["gt.jsonl"]

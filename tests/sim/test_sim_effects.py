@@ -9,7 +9,9 @@ import pytest
 
 from jitterguard.schemas import Label
 from jitterguard.sim import GroundTruthFrame, make_scenario
-from jitterguard.sim.effects import MEASURED_INTENSITY, ScanEffects, draw_effects, street_clutter
+from jitterguard.sim.effects import (COMPONENTS, MEASURED_INTENSITY, ScanEffects, draw_effects, street_clutter,
+                                     vegetation_masses)
+from jitterguard.sim.layout import rectangles_overlap
 from jitterguard.sim.lidar import cast_frame, terrain_rho
 from jitterguard.sim.sensors import hdl32e
 from jitterguard.sim.world import BASE_STAMP_NS
@@ -95,6 +97,27 @@ def test_street_clutter_keeps_off_the_road_users_and_the_ego() -> None:
         for x, y, hl, hw, _ in keep_out:
             d = np.hypot(prims.center[:, 0] - x, prims.center[:, 1] - y)
             assert np.all(d > min(hl, hw))  # nothing inside a car's footprint
+
+
+def _crossing_the_ego(prims) -> list[int]:
+    """Primitives whose footprint overlaps the ego car (4.7 × 1.9 m under the sensor)."""
+    ego = np.array([0.0, 0.0, 2.35, 0.95, 0.0])
+    return [i for i in range(len(prims))
+            if rectangles_overlap(np.array([*prims.center[i], *prims.half[i], prims.yaw[i]]), ego)]
+
+
+def test_street_clutter_and_vegetation_never_cross_the_ego_car() -> None:
+    """Each piece is tested whole against the ego: seed 46 anchored a 13 m wall off the ego's spot that ran
+    through the car, and a turned vegetation mass passed the axis-aligned margin onto it (clutter seed 191)."""
+    fx = draw_effects(np.random.default_rng(46))
+    clutter = street_clutter(fx, np.zeros((0, 5)), 1.84)
+    assert len(clutter) > 20 and not _crossing_the_ego(clutter)
+    veg = vegetation_masses(ScanEffects(vegetation_density=0.5, clutter_seed=191), np.zeros((0, 5)), 1.84)
+    assert len(veg) > 100 and not _crossing_the_ego(veg)
+    for seed in range(40):
+        fx = draw_effects(np.random.default_rng(seed), (*COMPONENTS, "vegetation"))
+        assert not _crossing_the_ego(street_clutter(fx, np.zeros((0, 5)), 1.84))
+        assert not _crossing_the_ego(vegetation_masses(fx, np.zeros((0, 5)), 1.84))
 
 
 def test_vegetation_is_opt_in_keeps_the_other_draws_and_returns_from_several_depths() -> None:

@@ -99,3 +99,35 @@ def test_nuscenes_devkit_loads_the_export(exported) -> None:
         assert math.hypot(v[0] - gt[0], v[1] - gt[1]) < 0.15 * math.hypot(*gt) + 0.3
         checked += 1
     assert checked > 0
+
+
+@pytest.mark.parametrize("duration_s, rate_hz, frames", [(0.96, 10.0, 9), (0.07, 10.0, 0), (0.3, 10.0, 3),
+                                                         (0.4, 2.0, 0), (1.0, 0.5, 0), (2.9, 10.0, 29), (0.7, 20.0, 14)])
+def test_frame_count_is_whole_frames(duration_s: float, rate_hz: float, frames: int) -> None:
+    """One count for the world, the sim CLI's check and the synthetic source's probe: whole frames only (0.96 s at
+    10 Hz is 9, not a rounded 10; 0.3 s at 10 Hz is 3 although 0.3 · 10 lands just under 3)."""
+    from jitterguard.sim.world import frame_count
+
+    assert frame_count(duration_s, rate_hz) == frames
+    if frames:
+        assert make_scenario("mixed", 0, duration_s=duration_s, rate_hz=rate_hz).num_frames == frames
+
+
+def test_export_mounts_the_sensor_at_its_own_height(tmp_path) -> None:
+    """The calibrated sensor sits at the exported LiDAR's mount height, not the HDL-32E's 1.84 m: replayed through
+    the nuScenes source, the scans' ground lands at world z = 0 (it was 0.66 m below it at a 2.5 m mount)."""
+    import dataclasses
+
+    from jitterguard.services.replay.sources.nuscenes import NuScenesSource
+    from jitterguard.sim.sensors import hdl32e
+
+    sc = make_scenario("parking-street", 4, duration_s=1.0, rate_hz=2.0)
+    export_scenario(sc, str(tmp_path), dataclasses.replace(hdl32e(), mount_height_m=2.5), seed=4)
+    calib = json.load(open(tmp_path / "v1.0-mini" / "calibrated_sensor.json"))
+    assert calib[0]["translation"] == [0.0, 0.0, 2.5]
+    frames = list(NuScenesSource(tmp_path).frames())
+    assert len(frames) == 2
+    for f in frames:
+        assert f.pose.z == pytest.approx(2.5)
+        world_z = f.points[:, 2] + f.pose.z  # a level sensor: roll and pitch are zero
+        assert np.percentile(world_z, 5) == pytest.approx(0.0, abs=0.1)  # the ground, the lowest returns

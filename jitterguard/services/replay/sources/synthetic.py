@@ -40,7 +40,8 @@ def _lidar() -> Any:
 def check_synthetic(name: str, *, duration_s: float = 20.0, rate_hz: float = 10.0, level: str = "points",
                     lidar: str = "hdl32e") -> SourceInfo:
     """What :class:`SyntheticSource` would say about these parameters, without generating the scenario; raises
-    :class:`SourceError` for the ones it would refuse."""
+    :class:`SourceError` for the ones it would refuse — among them a scenario shorter than one frame, which
+    would publish nothing while the stack that checked it came up as if it were replaying."""
     if name not in SCENARIOS:
         raise SourceError(f"synthetic:{name}: unknown scenario (have: {', '.join(SCENARIOS)})")
     if not (0 < duration_s <= MAX_DURATION_S) or not (rate_hz > 0):
@@ -53,7 +54,13 @@ def check_synthetic(name: str, *, duration_s: float = 20.0, rate_hz: float = 10.
 
         if lidar not in SENSORS:
             raise SourceError(f"--lidar {lidar!r}: unknown sensor (have: {', '.join(sorted(SENSORS))})")
-    n = int(round(duration_s * rate_hz))
+    from ....sim.world import frame_count
+
+    # the world's own count (whole frames only): a rounded count announced frames the source never yielded
+    n = frame_count(duration_s, rate_hz)
+    if n < 1:
+        raise SourceError(f"synthetic:{name}: {duration_s:g} s at {rate_hz:g} Hz holds no whole frame; make"
+                          " --duration × the frame rate at least 1")
     return SourceInfo(name=f"synthetic:{name}", kind=level, num_frames=n,
                       notes=[f"{n} frames at {rate_hz:g} Hz" + (f", {lidar}" if level == "points" else "")])
 
