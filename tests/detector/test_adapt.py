@@ -203,3 +203,56 @@ def test_flipped_pseudo_labelling_is_mirror_equivariant() -> None:
     np.testing.assert_allclose(rows(a, False), rows(b, True), atol=1e-4)
     (c,), (d,) = _detect_all(model, [scan], decode), _detect_all(model, [mirror], decode)
     assert len(c) != len(d) or not np.allclose(rows(c, False), rows(d, True), atol=1e-4)
+
+
+def test_adapt_draws_a_bar_for_each_pass_over_the_real_scans(tmp_path: Path, capsys: pytest.CaptureFixture[str]
+                                                             ) -> None:
+    """Reading scans, recomputing the BatchNorm statistics and pseudo-labelling take minutes on a real recording:
+    each has a bar when progress is on (as train's steps do), and none when it is off."""
+    from jitterguard.services.detector.adapt import AdaptConfig, UnlabelledScan, adapt
+
+    ticks: list[int] = []
+    assert len(read_unlabelled([str(_dataroot(tmp_path))], progress=ticks.append)) == len(ticks) == 4
+    scans = [UnlabelledScan(_scan(i), np.eye(4), "rec", str(i), True) for i in range(3)]
+    cfg = AdaptConfig(rounds=1, epochs=1, batch_size=2, self_crop=None)
+    torch.manual_seed(0)
+    adapt(CenterPointNet(TINY), scans, [], cfg, tmp_path / "a", progress=False)
+    assert capsys.readouterr().err == ""
+    torch.manual_seed(0)
+    adapt(CenterPointNet(TINY), scans, [], cfg, tmp_path / "b", progress=True)
+    err = capsys.readouterr().err
+    for desc in ("BatchNorm statistics", "round 1: pseudo-labels", "round 1: BatchNorm statistics",
+                 "tracked recalibration"):
+        assert f"{desc}: 100%" in err, desc
+
+
+@pytest.mark.slow
+def test_adapted_weights_keep_what_the_source_was_trained_on(tmp_path: Path) -> None:
+    """eval-detector holds out the frames that weights were trained on, also after adapting them, and also when
+    the dataroot is named through a symlink."""
+    from jitterguard.services.detector.inference import save_weights, shipped_weights
+
+    root = tmp_path / "root"
+    export_scenario(make_scenario("parking-street", 3, duration_s=0.4, rate_hz=10.0), str(root))  # with labels
+    model, rec, meta = load_weights(shipped_weights("lite"))
+    source = {"nuscenes": str(root.resolve()), "holdout_last": 2, "sweeps": 1}
+    save_weights(tmp_path / "src.pt", model, recalibration=rec,
+                 meta={**meta, "source": source, "train_config": {"epochs": 3}, "world_size": 1})
+    out = tmp_path / "adapted"
+    cli = [sys.executable, "-m", "jitterguard.cli"]
+    res = subprocess.run([*cli, "adapt", "--weights", str(tmp_path / "src.pt"), "--out", str(out), "--scans",
+                          str(root), "--rounds", "0", "--recalibration", "keep", "--threads", "1", "--no-progress"],
+                         capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr[-3000:]
+    _, _, adapted = load_weights(out / "weights.pt")
+    assert adapted["source"] == source and adapted["augment"] == meta["augment"]
+    assert adapted["train_config"] == {"epochs": 3} and adapted["adapted_from"]["source"] == source
+    link = tmp_path / "link"
+    link.symlink_to(root)
+    ev = subprocess.run([*cli, "eval-detector", "--out", str(tmp_path / "ev"), "--weights", str(out / "weights.pt"),
+                         "--nuscenes", str(link), "--bootstrap", "0", "--threads", "1", "--no-progress"],
+                        capture_output=True, text=True, timeout=600)
+    assert ev.returncode == 0, ev.stderr[-3000:]
+    scored = json.loads((tmp_path / "ev" / "holdout.json").read_text())["scored_on"]
+    assert scored["weights_trained_on_it"] is True and scored["holdout_last"] == 2 and scored["key_frames"] == 2
+    assert scored["weights_adapted_on_its_scans"] is True and scored["nuscenes"] == str(root.resolve())

@@ -330,3 +330,48 @@ def test_weights_on_stacked_sweeps_are_refused_in_one_line(tmp_path: Path) -> No
     net = CenterPointNet(PRESETS["lite"].model_copy(update={"num_point_features": 5}))
     with pytest.raises(ExportError, match="stacked sweeps"):
         export_onnx(net, tmp_path / "o")
+
+
+def _stacked_and_lite(tmp_path: Path) -> tuple[Path, Path]:
+    from jitterguard.services.detector.inference import load_weights, save_weights, shipped_weights
+    from jitterguard.services.detector.network import with_time_lag
+
+    model, rec, meta = load_weights(shipped_weights("lite"))
+    five = tmp_path / "five.pt"
+    save_weights(five, with_time_lag(model), recalibration=rec, meta=meta)
+    return five, shipped_weights("lite")
+
+
+def test_export_cli_refuses_stacked_sweep_weights_as_bad_input(tmp_path: Path, capsys) -> None:
+    """Stacked-sweep weights are bad input (exit 2, naming --weights), not a failed export (exit 1)."""
+    from jitterguard.cli import main
+
+    five, _ = _stacked_and_lite(tmp_path)
+    with pytest.raises(SystemExit) as exc:
+        main(["export-onnx", "--out", str(tmp_path / "o"), "--weights", str(five), "--check-scans", "0"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--weights" in err[0] and "stacked sweeps" in err[0], err
+    assert not (tmp_path / "o" / "detector.onnx").exists()
+
+
+@pytest.mark.parametrize("command", ["export-onnx", "eval-detector"])
+def test_a_preset_that_contradicts_the_weights_is_refused(command: str, tmp_path: Path, capsys) -> None:
+    """--preset paper --weights lite.pt: the weights fix the network, so the preset would be silently ignored."""
+    from jitterguard.cli import main
+
+    _, lite = _stacked_and_lite(tmp_path)
+    with pytest.raises(SystemExit) as exc:
+        main([command, "--out", str(tmp_path / "o"), "--preset", "paper", "--weights", str(lite), "--threads", "1"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--preset" in err[0] and "'lite'" in err[0], err
+
+
+def test_tolerance_help_says_what_it_bounds() -> None:
+    from typer.main import get_command
+
+    from jitterguard.cli import app
+
+    opt = next(p for p in get_command(app).commands["export-onnx"].params if p.name == "tolerance")
+    assert "decoded" in opt.help and f"{MAP_TOLERANCE:g}" in opt.help  # the head maps: the fixed MAP_TOLERANCE

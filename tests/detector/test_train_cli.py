@@ -40,6 +40,9 @@ def test_parse_seeds_ranges_and_lists() -> None:
     (["recalibrate-detector", "--out", "OUT", "--weights", "/nonexistent.pt"], "--weights"),
     (["recalibrate-detector", "--out", "OUT", "--weights", "SHIPPED", "--effects", "fog"], "--effects"),
     (["recalibrate-detector", "--out", "OUT", "--weights", "SHIPPED", "--seeds", "5-1"], "--seeds"),
+    # one scan cannot fill the two micro-batches of a step: refused before any scan is cast, not a traceback
+    (["train", "--out", "OUT", "--scenarios", "parking-street", "--train-seeds", "0", "--frames-per-scenario", "1",
+      "--accumulate", "2"], "--train-seeds"),
 ])
 def test_bad_input_is_one_line_and_exit_2(tmp_path: Path, args: list[str], flag: str) -> None:
     from jitterguard.services.detector.inference import shipped_weights
@@ -220,3 +223,68 @@ def shipped_weights_path() -> Path:
     from jitterguard.services.detector.inference import shipped_weights
 
     return Path(shipped_weights("lite"))
+
+
+TINY_RUN = ["--scenarios", "parking-street", "--train-seeds", "0-1", "--val-seeds", "900", "--frames-per-scenario",
+            "2", "--batch-size", "1", "--effects", "none", "--threads", "1", "--no-progress"]
+
+
+@pytest.mark.slow
+def test_resume_refuses_other_settings_in_one_line_and_says_when_it_starts_afresh(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    fresh = _jg("train", "--out", str(out), *TINY_RUN, "--epochs", "1", "--resume")
+    assert fresh.returncode == 0, fresh.stderr[-2000:]
+    assert "no checkpoint" in fresh.stderr  # --resume with nothing to resume from is said, not silent
+    ck = (out / "checkpoint.pt").read_bytes()
+    for extra, field in ((["--epochs", "2"], "epochs"), (["--epochs", "1", "--rotation", "10"], "rotation_deg"),
+                         (["--epochs", "1", "--preset", "paper"], "config.")):
+        res = _jg("train", "--out", str(out), *TINY_RUN, *extra, "--resume")
+        lines = res.stderr.strip().splitlines()
+        assert res.returncode == 2 and len(lines) == 1 and "--resume" in lines[0] and field in lines[0], res.stderr
+    assert (out / "checkpoint.pt").read_bytes() == ck
+    (out / "checkpoint.pt").write_bytes(ck[:500])  # damaged
+    res = _jg("train", "--out", str(out), *TINY_RUN, "--epochs", "1", "--resume")
+    assert res.returncode == 2 and len(res.stderr.strip().splitlines()) == 1 and "checkpoint" in res.stderr
+
+
+@pytest.mark.slow
+def test_fit_recalibration_weights_keep_the_training_metadata(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    res = _jg("train", "--out", str(out), *TINY_RUN, "--epochs", "1", "--fit-recalibration")
+    assert res.returncode == 0, res.stderr[-2000:]
+    _, rec, meta = load_weights(out / "weights.pt")
+    assert rec is not None  # the weights.pt written after the fit (it used to drop what train() recorded)
+    assert meta["train_config"]["batch_size"] == 1 and meta["world_size"] == 1 and meta["epochs"] == 1
+    assert meta["augment"]["rotation_deg"] == 45.0 and meta["source"]["train_seeds"] == "0-1"
+
+
+def test_too_few_nuscenes_training_frames_are_one_line_and_exit_2(tmp_path: Path) -> None:
+    from jitterguard.sim.export import export_scenario
+    from jitterguard.sim.world import make_scenario
+
+    root = tmp_path / "root"
+    export_scenario(make_scenario("parking-street", 3, duration_s=0.4, rate_hz=10.0), str(root))
+    res = _jg("train", "--out", str(tmp_path / "o"), "--nuscenes", str(root), "--holdout-last", "50",
+              "--threads", "1", "--no-progress", timeout=300)
+    lines = res.stderr.strip().splitlines()
+    assert res.returncode == 2 and "--holdout-last" in lines[-1] and "0 training samples" in lines[-1], res.stderr
+    assert not any(line.startswith("Traceback") for line in lines)
+
+
+def test_bootstrap_intervals_report_their_progress(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    """eval-detector's bootstrap runs after the detection bar: it has its own bar (one tick per resample)."""
+    import numpy as np
+
+    from jitterguard.services.detector.config import Detections3D, Sample
+    from jitterguard.services.detector.evaluate import bootstrap_intervals
+    from jitterguard.services.detector.train_cli import write_report
+
+    box = np.array([[5.0, 0, -1, 4, 2, 1.5, 0, 0, 0]], np.float32)
+    gt = [Sample(np.zeros((1, 4), np.float32), box, np.array([0]), np.array([50])) for _ in range(3)]
+    dets = [Detections3D(box, np.array([0.9], np.float32), np.array([0]), np.full((1, 5), -2.0, np.float32))
+            for _ in range(3)]
+    ticks: list[int] = []
+    bootstrap_intervals(dets, gt, resamples=7, progress=ticks.append)
+    assert ticks == [1] * 7
+    write_report(tmp_path, "x", dets, gt, bootstrap=7, progress=True)
+    assert "bootstrap intervals" in capsys.readouterr().err

@@ -38,5 +38,5 @@ def test_summary_and_markdown() -> None:
 def test_labels_preset_is_a_valid_config() -> None:
     p = labels_preset({"vehicle": 2.345, "pedestrian": 1.1, "bicycle": None})
     cfg = ClassifierConfig.model_validate({**ClassifierConfig().model_dump(), **p})
-    assert cfg.alpha_for(1) == 2.35 and cfg.alpha_for(5) == 2.35 and cfg.alpha_for(7) == 1.1
-    assert cfg.alpha_for(6) == 1.96  # no labels for bicycles: default
+    assert cfg.alpha_for(1) == 2.35 and cfg.alpha_for(4) == 2.35 and cfg.alpha_for(7) == 1.1
+    assert cfg.alpha_for(6) == cfg.alpha_for(5) == 1.96  # no labels for cycles (motorcycles among them): default

@@ -70,11 +70,13 @@ class UnlabelledScan:
     has_pose: bool
 
 
-def read_unlabelled(specs: Sequence[str], *, max_scans: int | None = None) -> list[UnlabelledScan]:
+def read_unlabelled(specs: Sequence[str], *, max_scans: int | None = None,
+                    progress: Callable[[int], None] | None = None) -> list[UnlabelledScan]:
     """Every scan of each recording in ``specs`` (any SOURCE the replay reads: a nuScenes dataroot — every scene
     —, a folder of KITTI ``.bin`` scans or one file, PCD, bags), points picked and intensities scaled as the
     detector service does (:func:`~.adapter.points_from_fields`: KITTI-style reflectance in 0…1 becomes 0…255).
-    Raises :class:`~..replay.frames.SourceError` naming the recording."""
+    Raises :class:`~..replay.frames.SourceError` naming the recording. ``progress`` is called with 1 per scan read
+    (a real recording's scans take minutes to read: a caller's progress bar)."""
     # the replay's readers (and through them rosbags, PCD) load only when scans are read, not when the CLI starts
     from ..replay.frames import IDENTITY, ScanFrame, SourceError
     from ..replay.sources import SourceOptions, open_source
@@ -98,6 +100,8 @@ def read_unlabelled(specs: Sequence[str], *, max_scans: int | None = None) -> li
                 pts, _ = points_from_fields(np.asarray(item.points), item.fields)
                 out.append(UnlabelledScan(pts, item.pose.matrix(), name if scene is None else f"{name}#{scene}",
                                           Path(item.origin).name, item.pose != IDENTITY))
+                if progress is not None:
+                    progress(1)
                 if max_scans is not None and len(out) >= max_scans:
                     return out
             if len(out) == n_before:
@@ -327,7 +331,23 @@ def adapt(model: CenterPointNet, scans: Sequence[UnlabelledScan], synthetic: Seq
     """Run the three steps on ``model`` in place (see the module doc); returns a report: per round the number
     of pseudo-labels per class, and the recalibration fitted (or why none was)."""
     from .decode import decode
-    from .train import TrainConfig, train
+    from .train import TrainConfig, progress_bar, train
+
+    def bar(desc: str) -> Any:  # a bar per step over the real scans, as train draws its own (None: no bar)
+        return progress_bar(progress, len(scans), unit="scan", desc=desc)
+
+    def norm_stats(desc: str) -> None:
+        b = bar(desc)
+        recompute_norm_stats(model, pts, progress=b.update if b is not None else None)
+        if b is not None:
+            b.close()
+
+    def detect_all(desc: str) -> list[Detections3D]:
+        b = bar(desc)
+        out = _detect_all(model, pts, decode, flips=cfg.flips, progress=b.update if b is not None else None)
+        if b is not None:
+            b.close()
+        return out
 
     pcr = model.config.point_cloud_range
     # the scans as the detector would see them: in range, and without the vehicle's own body (a roof return
@@ -335,9 +355,9 @@ def adapt(model: CenterPointNet, scans: Sequence[UnlabelledScan], synthetic: Seq
     pts = [_in_range(crop_box(s.points, cfg.self_crop), pcr) for s in scans]
     scans = [replace(s, points=p) for s, p in zip(scans, pts)]
     report: dict[str, Any] = {"rounds": []}
-    recompute_norm_stats(model, pts)
+    norm_stats("BatchNorm statistics")
     for r in range(cfg.rounds):
-        dets = _detect_all(model, pts, decode, flips=cfg.flips)
+        dets = detect_all(f"round {r + 1}: pseudo-labels")
         pseudo = pseudo_samples(scans, dets, cfg.thresholds)
         counts = np.bincount(np.concatenate([p.labels for p in pseudo]) if pseudo else np.zeros(0, np.int64),
                              minlength=len(CLASS_NAMES))
@@ -347,12 +367,12 @@ def adapt(model: CenterPointNet, scans: Sequence[UnlabelledScan], synthetic: Seq
                            pct_start=0.3)
         train(model, data, [], tcfg, out_dir / f"round{r + 1}", augment=augment, progress=progress)
         model.cpu()
-        recompute_norm_stats(model, pts)
+        norm_stats(f"round {r + 1}: BatchNorm statistics")
         report["rounds"].append({"pseudo_labels": dict(zip(CLASS_NAMES, counts.tolist())),
                                  "samples": len(data)})
     report["recalibration"] = None
     if cfg.recalibrate and model.config.uncertainty:
-        dets = _detect_all(model, pts, decode, flips=cfg.flips)
+        dets = detect_all("tracked recalibration")
         by_source: dict[str, list[tuple[Detections3D, F64]]] = {}
         for s, d in zip(scans, dets):
             if s.has_pose:
@@ -383,10 +403,10 @@ def _in_range(points: F32, pcr: Sequence[float]) -> F32:
 
 
 @torch.no_grad()
-def _detect_all(model: CenterPointNet, pts: Sequence[F32], decode: Any, *, flips: bool = False
-                ) -> list[Detections3D]:
+def _detect_all(model: CenterPointNet, pts: Sequence[F32], decode: Any, *, flips: bool = False,
+                progress: Callable[[int], None] | None = None) -> list[Detections3D]:
     """The raw network's detections of each scan (no recalibration: adapt refits it); with ``flips`` averaged over
-    the scan's mirror images, as the detector's ``flips`` setting does."""
+    the scan's mirror images, as the detector's ``flips`` setting does. ``progress`` is called with 1 per scan."""
     model.eval()
     if flips:
         check_symmetric(model.config)
@@ -396,5 +416,7 @@ def _detect_all(model: CenterPointNet, pts: Sequence[F32], decode: Any, *, flips
         x = torch.from_numpy(np.ascontiguousarray(p[:, :nf], np.float32))
         raw = merge_mirrored(model(mirrored_views(x))) if flips else model([x])
         out.extend(decode(raw, model.config))
+        if progress is not None:
+            progress(1)
     return out
 

@@ -45,7 +45,7 @@ not a wrongly shaped one (the paper's x over / y under is per-axis, so it is in 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from typing import Any, Literal
 
@@ -606,11 +606,12 @@ def evaluation_report(predictions: Sequence[Detections3D], ground_truth: Sequenc
 
 def bootstrap_intervals(predictions: Sequence[Detections3D], ground_truth: Sequence[Sample], *, resamples: int = 1000,
                         level: float = 0.9, seed: int = 0, class_range: Sequence[float] = CLASS_RANGE_M,
-                        min_points: int = 1) -> dict[str, Any]:
+                        min_points: int = 1, progress: Callable[[int], None] | None = None) -> dict[str, Any]:
     """Percentile intervals of each class's mean AP and of the ±1σ coverage over ``resamples`` bootstrap
     resamples of the *frames* (frames, not boxes, are the independent units: boxes of one frame share its
     scan). ``{"level", "resamples", "<class>_ap": [lo, hi] | None, "coverage_1sigma": [lo, hi] | None}``;
-    None where the statistic is undefined in too many resamples (a class with no ground truth)."""
+    None where the statistic is undefined in too many resamples (a class with no ground truth). ``progress`` is
+    called with 1 after each resample (the resamples can take minutes: a caller's progress bar)."""
     _check_pairs(predictions, ground_truth)
     n = len(ground_truth)
     out: dict[str, Any] = {"level": level, "resamples": resamples}
@@ -631,6 +632,8 @@ def bootstrap_intervals(predictions: Sequence[Detections3D], ground_truth: Seque
             m = matched_residuals(p, g, class_range=class_range, min_points=min_points)
             if len(m):
                 cov.append(float(np.mean(m.residual ** 2 / np.exp(m.log_variance) <= 1.0)))
+        if progress is not None:
+            progress(1)
     lo, hi = (1 - level) / 2 * 100, (1 + level) / 2 * 100
 
     def interval(vals: list[float]) -> list[float] | None:

@@ -10,6 +10,7 @@ loudly.
 
 from __future__ import annotations
 
+import io
 import logging
 import os
 import time
@@ -21,6 +22,7 @@ import numpy as np
 import torch
 from pydantic import ValidationError
 
+from ...files import write_atomically
 from .config import PRESETS, SELF_CROP_M, DetectorConfig, Detections3D, check_crop_box
 from .decode import decode
 from .evaluate import Recalibration, apply_recalibration
@@ -67,8 +69,16 @@ def save_weights(path: str | Path, model: CenterPointNet, *,
     rec = Recalibration.of(recalibration)
     payload = {"format": FORMAT, "config": config_to_dict(model.config), "state_dict": state,
                "recalibration": rec.to_payload() if rec else None, "meta": meta or {}}
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    torch.save(payload, str(path))
+    atomic_save(payload, path)
+
+
+def atomic_save(obj: Any, path: str | Path) -> None:
+    """``torch.save`` of ``obj`` to ``path`` through :func:`~jitterguard.files.write_atomically`: a save that fails
+    or is interrupted (disk full, a killed job) leaves the previous file whole instead of a truncated one (weights
+    and training checkpoints are the result of hours of work)."""
+    buf = io.BytesIO()
+    torch.save(obj, buf)
+    write_atomically(path, buf.getvalue())
 
 
 def load_weights(path: str | Path) -> tuple[CenterPointNet, Recalibration | None, dict[str, Any]]:

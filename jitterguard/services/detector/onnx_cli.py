@@ -2,8 +2,10 @@
 
 After writing, the export is checked: ONNX Runtime runs it on real HDL-32E scans of the synthetic world and the
 raw head maps and the decoded boxes, scores and log-variances are compared with torch's; the maximum absolute
-differences are printed (and the command fails, exit 1, if they exceed ``--tolerance`` — ``--yaw-tolerance`` for
-the yaw angle — or the detections differ in number or class). Randomly initialised weights (a preset without
+differences are printed (and the command fails, exit 1, if the decoded detections differ beyond ``--tolerance`` —
+``--yaw-tolerance`` for the yaw angle —, the raw maps beyond :data:`MAP_TOLERANCE`, or the detections differ in
+number or class). Bad input (a stacked-sweep model, a ``--preset`` other than the ``--weights``' architecture)
+is exit 2 before any export. Randomly initialised weights (a preset without
 shipped weights) are checked on the raw head maps only: they score every cell about alike, and which of hundreds
 of near-ties make the top-K is float32 noise.
 """
@@ -19,7 +21,7 @@ from typing import Annotated, Any
 import typer
 
 from ...cli_common import fail, out_dir
-from .cli import PresetOpt, ThreadsOpt, WeightsOpt, _one_line, passive_openmp
+from .cli import ThreadsOpt, WeightsOpt, _one_line, passive_openmp
 from .config import PRESETS
 
 LayoutOpt = Annotated[str, typer.Option("--layout", help="single (one file) or autoware (voxel encoder + backbone/neck/head, as lidar_centerpoint).")]
@@ -149,20 +151,24 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
     @app.command("export-onnx")
     def export_onnx_cmd(
         out: Annotated[str, typer.Option("--out", help="Folder to write the ONNX file(s) and detector.json into.")],
-        preset: PresetOpt = "lite",
+        preset: Annotated[str | None, typer.Option("--preset", help=f"Architecture preset: {', '.join(PRESETS)}"
+                                                   " (default lite): its shipped weights; with --weights only the"
+                                                   " weights' own architecture.")] = None,
         weights: WeightsOpt = None,
         layout: LayoutOpt = "single",
         opset: Annotated[int, typer.Option("--opset", help="ONNX opset (>= 17).")] = 18,
         check_scans: Annotated[int, typer.Option("--check-scans", min=0, max=100, help="Synthetic scans to compare ONNX Runtime with torch on (0: skip).")] = 3,
-        tolerance: Annotated[float, typer.Option("--tolerance", min=0.0, help="Largest accepted |onnxruntime - torch| on the head maps and on boxes (but yaw), scores and log-variances.")] = 1e-4,
+        tolerance: Annotated[float, typer.Option("--tolerance", min=0.0, help="Largest accepted |onnxruntime - torch| on the decoded boxes (but yaw), scores and log-variances (the raw head maps are held to a fixed"
+                                                 f" {MAP_TOLERANCE:g}).")] = 1e-4,
         yaw_tolerance: Annotated[float, typer.Option("--yaw-tolerance", min=0.0, help="Largest accepted yaw difference, rad (atan2 of the rot head amplifies float32 noise where |(sin, cos)| is small).")] = 1e-3,
         threads: ThreadsOpt = None,
     ) -> None:
         """Export the detector with its variance heads to ONNX (dynamic number of pillars) plus detector.json."""
         from .onnx_export import LAYOUTS, MIN_OPSET
 
-        if preset not in PRESETS:
+        if preset is not None and preset not in PRESETS:
             fail(f"--preset: expected one of {', '.join(PRESETS)}, got {preset!r}")
+        from .train_cli import check_preset
         if layout not in LAYOUTS:
             fail(f"--layout: expected one of {', '.join(LAYOUTS)}, got {layout!r}")
         if opset < MIN_OPSET:
@@ -175,10 +181,15 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         from .onnx_backend import load_onnx_detector
         from .onnx_export import ExportError, export_onnx
 
+        preset_given, preset = preset, preset or "lite"
         try:
             det = Detector.load(weights, preset, threads=threads)
         except WeightsError as exc:
             fail(f"--weights: {_one_line(exc)}")
+        check_preset(preset_given, weights, det.config.name)
+        if det.config.num_point_features != 4:  # bad input, not a failed export: name the flag, exit 2
+            fail(f"--weights: the model takes stacked sweeps ({det.config.num_point_features} point fields), which"
+                 " is not exported to ONNX yet: export the single-sweep weights (x, y, z, intensity)")
         source = weights or (str(shipped_weights(preset)) if shipped_weights(preset).is_file() else "random-init")
         meta = {**det.meta, "preset": det.config.name, "weights": Path(source).name if source != "random-init" else source}
         try:

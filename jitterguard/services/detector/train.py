@@ -44,7 +44,7 @@ from torch.utils.data import DataLoader, Dataset
 
 from .config import DetectorConfig, Detections3D, Sample
 from .decode import decode
-from .inference import save_weights
+from .inference import atomic_save, config_to_dict, save_weights
 from .losses import centerpoint_loss, loss_normalisers
 from .network import CenterPointNet
 from .targets import build_targets
@@ -54,7 +54,22 @@ log = logging.getLogger(__name__)
 Augment = Callable[[Sample, np.random.Generator], Sample]
 Evaluate = Callable[[Sequence[Detections3D], Sequence[Sample]], dict[str, Any]]
 
-CHECKPOINT_FORMAT = 2
+CHECKPOINT_FORMAT = 3
+"""3 added the number of processes, the run's metadata and the running loss sums of a mid-epoch checkpoint."""
+
+SCHEDULE_FIELDS = ("epochs", "batch_size", "accumulate", "max_steps_per_epoch", "lr", "weight_decay", "grad_clip",
+                   "pct_start", "seed")
+"""The :class:`TrainConfig` fields that define a run's learning-rate schedule, batches and augmentations: a resumed
+run must have them exactly as the checkpoint's (the one-cycle schedule's length is fixed when it is built, so even a
+longer ``epochs`` would not continue the same run). The other fields (workers, evaluation, checkpointing, ``amp``,
+``sync_bn``) may change between the parts of a run — e.g. a checkpoint written on a GPU finished on a CPU."""
+
+UNCHECKED_META = ("command", "launcher")
+"""Keys of the caller's ``meta`` that may differ on resume (how the run was started, not what it trains on)."""
+
+
+class CheckpointError(ValueError):
+    """A checkpoint that cannot be resumed: unreadable, or written by a run with other settings."""
 
 
 @dataclass
@@ -188,6 +203,11 @@ class TrainState:
     step: int = 0
     """Optimiser steps done within ``epoch`` (a mid-epoch checkpoint); 0 at an epoch boundary."""
     history: list[dict[str, Any]] = field(default_factory=list)
+    sums: dict[str, float] = field(default_factory=dict)
+    """Loss terms summed over the ``step`` steps done in ``epoch`` (saved in a mid-epoch checkpoint, so that a
+    resumed run's epoch record averages every step of the epoch, as the uninterrupted run's does)."""
+    meta: dict[str, Any] | None = None
+    """What ``weights.pt`` holds (or would hold) as its metadata, once the schedule is complete."""
 
 
 def _bn_buffers(model: nn.Module) -> list[torch.Tensor]:
@@ -196,16 +216,67 @@ def _bn_buffers(model: nn.Module) -> list[torch.Tensor]:
 
 
 def _checkpoint(path: Path, model: nn.Module, opt: torch.optim.Optimizer, sched: Any, scaler: Any,
-                state: TrainState, tcfg: TrainConfig, config: DetectorConfig) -> None:
-    from .inference import config_to_dict
+                state: TrainState, tcfg: TrainConfig, config: DetectorConfig, world: int, meta: dict[str, Any]) -> None:
+    atomic_save({"format": CHECKPOINT_FORMAT, "config": config_to_dict(config), "model": model.state_dict(),
+                 "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
+                 "scaler": scaler.state_dict() if scaler is not None else None, "epoch": state.epoch,
+                 "step": state.step, "history": json.dumps(state.history, default=_json_default),
+                 "sums": json.dumps(state.sums), "train_config": asdict(tcfg), "world_size": world,
+                 "meta": json.dumps(_run_meta(meta), default=_json_default)}, path)
 
-    tmp = path.with_suffix(".tmp")
-    torch.save({"format": CHECKPOINT_FORMAT, "config": config_to_dict(config), "model": model.state_dict(),
-                "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
-                "scaler": scaler.state_dict() if scaler is not None else None, "epoch": state.epoch,
-                "step": state.step, "history": json.dumps(state.history, default=_json_default),
-                "train_config": asdict(tcfg)}, str(tmp))
-    tmp.replace(path)
+
+def _run_meta(meta: dict[str, Any] | None) -> dict[str, Any]:
+    """The part of the caller's metadata that defines the run (data, augmentation), as JSON would store it."""
+    kept = {k: v for k, v in (meta or {}).items() if k not in UNCHECKED_META}
+    return json.loads(json.dumps(kept, default=_json_default))
+
+
+def _differences(name: str, saved: Any, now: Any) -> list[str]:
+    """``name.key: checkpoint A, this run B`` for every leaf where two (nested) dicts differ."""
+    if isinstance(saved, dict) and isinstance(now, dict):
+        return [d for k in sorted(set(saved) | set(now), key=str)
+                for d in _differences(f"{name}.{k}", saved.get(k), now.get(k))]
+    return [] if saved == now else [f"{name}: checkpoint {saved!r}, this run {now!r}"]
+
+
+def _load_checkpoint(path: Path, model: nn.Module, opt: torch.optim.Optimizer, sched: Any, scaler: Any,
+                     tcfg: TrainConfig, world: int, meta: dict[str, Any] | None, device: torch.device) -> TrainState:
+    """Restore a checkpoint into ``model``/``opt``/``sched``/``scaler`` after checking that it belongs to this run:
+    the same model config, :data:`SCHEDULE_FIELDS`, number of processes and data/augmentation metadata.
+    Raises :class:`CheckpointError` (one line) before anything is loaded otherwise: a different schedule crashes
+    steps later (OneCycleLR's fixed length) or silently trains, and records, something neither run asked for."""
+    try:
+        c = torch.load(str(path), map_location=device, weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - torch raises many types for a damaged file
+        raise CheckpointError(f"{path}: not a loadable checkpoint ({type(exc).__name__}: "
+                              f"{' '.join(str(exc).split())[:200]})") from None
+    if not isinstance(c, dict) or c.get("format") not in (2, CHECKPOINT_FORMAT):
+        raise CheckpointError(f"{path}: not a jitterguard training checkpoint (format {CHECKPOINT_FORMAT})")
+    diffs = _differences("config", c.get("config"), config_to_dict(model.config))  # type: ignore[arg-type]
+    saved_tc = c.get("train_config") or {}
+    diffs += [d for f in SCHEDULE_FIELDS for d in _differences(f"train_config.{f}", saved_tc.get(f), getattr(tcfg, f))]
+    if c["format"] >= 3:
+        diffs += _differences("processes", c.get("world_size"), world)
+        diffs += _differences("meta", json.loads(c.get("meta") or "{}"), _run_meta(meta))
+    else:
+        log.warning("%s: an older checkpoint (format 2): its number of processes and data were not recorded and"
+                    " are not checked", path)
+    if diffs:
+        shown = "; ".join(diffs[:4]) + (f"; and {len(diffs) - 4} more" if len(diffs) > 4 else "")
+        raise CheckpointError(f"{path} was written by a run with other settings ({shown}); --resume"
+                              " continues only the same run (same model, data, schedule and number of processes):"
+                              " rerun with the checkpoint's settings, or train into a new --out")
+    try:
+        model.load_state_dict(c["model"])
+        opt.load_state_dict(c["optimizer"])
+        sched.load_state_dict(c["scheduler"])
+        if scaler is not None and c.get("scaler"):
+            scaler.load_state_dict(c["scaler"])
+        return TrainState(int(c["epoch"]), int(c.get("step", 0)), json.loads(c["history"]),
+                          json.loads(c.get("sums") or "{}") if int(c.get("step", 0)) else {})
+    except (KeyError, RuntimeError, ValueError, TypeError) as exc:
+        raise CheckpointError(f"{path}: damaged checkpoint ({type(exc).__name__}: "
+                              f"{' '.join(str(exc).split())[:200]})") from None
 
 
 def _autocast(device: torch.device, amp: bool) -> tuple[Any, Any]:
@@ -220,10 +291,14 @@ def _autocast(device: torch.device, amp: bool) -> tuple[Any, Any]:
 def train(model: CenterPointNet, train_samples: Sequence[Sample], val_samples: Sequence[Sample], tcfg: TrainConfig,
           out_dir: str | Path, *, augment: Augment | None = None, evaluate: Evaluate | None = None,
           resume: bool = False, progress: bool = True, meta: dict[str, Any] | None = None,
-          stop_after: int | None = None, dist_ctx: Dist | None = None) -> TrainState:
-    """Train ``model`` in place; write ``checkpoint.pt`` each epoch, ``history.json`` and finally ``weights.pt``.
+          stop_after: int | None = None, dist_ctx: Dist | None = None, write_weights: bool = True) -> TrainState:
+    """Train ``model`` in place; write ``checkpoint.pt`` each epoch, ``history.json`` and finally ``weights.pt``
+    (unless ``write_weights`` is False: a caller that adds to the weights, e.g. a fitted recalibration, then writes
+    the file once itself, with the metadata the returned state's ``meta`` holds).
 
-    ``resume`` continues from ``out_dir/checkpoint.pt`` (same data and settings expected). ``evaluate`` gets
+    ``resume`` continues from ``out_dir/checkpoint.pt``; a checkpoint of another run (model config, schedule,
+    number of processes or ``meta`` other than its ``command``/``launcher``) or a damaged one raises
+    :class:`CheckpointError`, and a missing one is logged as a warning (the run starts afresh). ``evaluate`` gets
     the validation detections and samples each ``eval_every`` epochs; its dict lands in the history.
     ``stop_after`` ends this run after that many epochs (a time-boxed job); ``weights.pt`` is then not
     written, and a later ``resume`` finishes the schedule exactly as one uninterrupted run would have.
@@ -254,15 +329,11 @@ def train(model: CenterPointNet, train_samples: Sequence[Sample], val_samples: S
     state = TrainState()
     ckpt = out / "checkpoint.pt"
     if resume and ckpt.is_file():
-        c = torch.load(str(ckpt), map_location=dc.device, weights_only=True)
-        model.load_state_dict(c["model"])
-        opt.load_state_dict(c["optimizer"])
-        sched.load_state_dict(c["scheduler"])
-        if scaler is not None and c.get("scaler"):
-            scaler.load_state_dict(c["scaler"])
-        state = TrainState(int(c["epoch"]), int(c.get("step", 0)), json.loads(c["history"]))
+        state = _load_checkpoint(ckpt, model, opt, sched, scaler, tcfg, dc.world, meta, dc.device)
         log.info("resumed from %s at epoch %d step %d", ckpt, state.epoch, state.step)
-    bar = _bar(progress and dc.main, tcfg.epochs * steps, state.epoch * steps + state.step)
+    elif resume and dc.main:
+        log.warning("--resume: no checkpoint at %s; training from the start", ckpt)
+    bar = progress_bar(progress and dc.main, tcfg.epochs * steps, state.epoch * steps + state.step)
     last = tcfg.epochs if stop_after is None else min(tcfg.epochs, state.epoch + stop_after)
     buffers = _bn_buffers(model)
     for epoch in range(state.epoch, last):
@@ -273,9 +344,10 @@ def train(model: CenterPointNet, train_samples: Sequence[Sample], val_samples: S
         loader = DataLoader(ds, batch_sampler=[mb for step in mine[first:] for mb in step],
                             num_workers=tcfg.num_workers, collate_fn=collate, persistent_workers=False)
         model.train()
-        sums: dict[str, float] = {}
+        sums = state.sums if first else {}  # a mid-epoch checkpoint's sums over its first `first` steps
+        state.sums = sums
         t0 = time.perf_counter()
-        n = 0
+        n = first
         micro = iter(loader)
         for step in range(first, len(mine)):
             terms = _train_step(net, model, micro, tcfg, dc, buffers, autocast, scaler, epoch, step)
@@ -298,7 +370,7 @@ def train(model: CenterPointNet, train_samples: Sequence[Sample], val_samples: S
                 bar.set_postfix(epoch=epoch + 1, loss=f"{sums['loss'] / n:.3f}")
             if tcfg.checkpoint_every and state.step % tcfg.checkpoint_every == 0 and state.step < len(mine):
                 if dc.main:
-                    _checkpoint(ckpt, model, opt, sched, scaler, state, tcfg, model.config)
+                    _checkpoint(ckpt, model, opt, sched, scaler, state, tcfg, model.config, dc.world, meta or {})
                 dc.barrier()
         record: dict[str, Any] = {"epoch": epoch + 1, "seconds": round(time.perf_counter() - t0, 1),
                                   "lr": sched.get_last_lr()[0], **{k: v / max(n, 1) for k, v in sums.items()}}
@@ -306,10 +378,10 @@ def train(model: CenterPointNet, train_samples: Sequence[Sample], val_samples: S
                 and ((epoch + 1) % tcfg.eval_every == 0 or epoch + 1 == tcfg.epochs)):
             vs = val_samples[: tcfg.max_eval_samples]
             record["eval"] = evaluate(predict(model, vs), vs)
-        state.epoch, state.step = epoch + 1, 0
+        state.epoch, state.step, state.sums = epoch + 1, 0, {}
         state.history.append(record)
         if dc.main:
-            _checkpoint(ckpt, model, opt, sched, scaler, state, tcfg, model.config)
+            _checkpoint(ckpt, model, opt, sched, scaler, state, tcfg, model.config, dc.world, meta or {})
             (out / "history.json").write_text(json.dumps(state.history, indent=1, default=_json_default))
         dc.barrier()
         log.info("epoch %d: %s", epoch + 1, _summary(record))
@@ -319,9 +391,9 @@ def train(model: CenterPointNet, train_samples: Sequence[Sample], val_samples: S
         bar.close()
     if state.epoch < tcfg.epochs:
         return state
-    if dc.main:
-        save_weights(out / "weights.pt", model, meta={**(meta or {}), "epochs": state.epoch,
-                                                      "train_config": asdict(tcfg), "world_size": dc.world})
+    state.meta = {**(meta or {}), "epochs": state.epoch, "train_config": asdict(tcfg), "world_size": dc.world}
+    if dc.main and write_weights:
+        save_weights(out / "weights.pt", model, meta=state.meta)
     dc.barrier()
     return state
 
@@ -399,9 +471,10 @@ def _json_default(o: Any) -> Any:
     raise TypeError(type(o).__name__)
 
 
-def _bar(enabled: bool, total: int, initial: int) -> Any:
+def progress_bar(enabled: bool, total: int | None, initial: int = 0, unit: str = "step", desc: str | None = None) -> Any:
+    """A tqdm bar on stderr, or None when not ``enabled`` (the caller's ``--progress`` / terminal decision)."""
     if not enabled:
         return None
     from tqdm import tqdm  # only when a bar is asked for
 
-    return tqdm(total=total, initial=initial, unit="step", file=sys.stderr, dynamic_ncols=True)
+    return tqdm(total=total, initial=initial, unit=unit, desc=desc, file=sys.stderr, dynamic_ncols=True)

@@ -147,6 +147,24 @@ def _present(dataroot: str, version: str | None, names: list[str]) -> list[str]:
     return kept
 
 
+def check_preset(preset: str | None, weights: str | None, architecture: str) -> None:
+    """``--preset`` together with ``--weights`` must name the weights' own architecture, or one line and exit 2:
+    a weights file fixes its network, so a different preset would otherwise be silently ignored and the report
+    would not score what the user asked for."""
+    if preset is not None and weights is not None and preset != architecture:
+        fail(f"--preset: {preset!r} contradicts --weights {weights}, a {architecture!r} network; drop --preset"
+             " (the weights file fixes the architecture) or drop --weights (the shipped weights of --preset)")
+
+
+def _check_fill(n: int, micro: int, flag: str, world: int) -> None:
+    """Enough training samples for one optimiser step's ``micro`` micro-batches (processes × --accumulate), or one
+    line naming ``flag`` (exit 2) before any training: :func:`~.train.step_schedule` would fail only then."""
+    if n < micro:
+        fail(f"{flag}: {n} training sample{'s' if n != 1 else ''} cannot fill one optimiser step of {micro}"
+             f" micro-batch{'es' if micro != 1 else ''} ({world} process{'es' if world != 1 else ''} x --accumulate"
+             f" {micro // world})")
+
+
 def dataclasses_asdict(obj: Any) -> dict[str, Any]:
     import dataclasses
 
@@ -171,15 +189,21 @@ class _Prepared:
 
 
 def write_report(out: Path, name: str, dets: Any, samples: Any, *, bootstrap: int = 0,
-                 extra: dict[str, Any] | None = None) -> dict[str, Any]:
+                 extra: dict[str, Any] | None = None, progress: bool = False) -> dict[str, Any]:
     """Evaluation JSON plus the PR and calibration PNGs under ``out``; ``bootstrap`` resamples of the frames
-    give 90 % intervals of the per-class AP and the ±1σ coverage (``summary["intervals"]``)."""
+    give 90 % intervals of the per-class AP and the ±1σ coverage (``summary["intervals"]``), with a bar when
+    ``progress`` (a thousand resamples of a real scene take minutes after the detection bar has finished)."""
     from .evaluate import bootstrap_intervals, evaluation_report
     from .plots import calibration_plot, pr_plot
+    from .train import progress_bar
 
     rep = evaluation_report(dets, samples, include_curves=True)
     if bootstrap:
-        rep["summary"]["intervals"] = bootstrap_intervals(dets, samples, resamples=bootstrap)
+        bar = progress_bar(progress, bootstrap, unit="resample", desc="bootstrap intervals")
+        rep["summary"]["intervals"] = bootstrap_intervals(dets, samples, resamples=bootstrap,
+                                                          progress=bar.update if bar is not None else None)
+        if bar is not None:
+            bar.close()
     if extra:
         rep.update(extra)
     out.mkdir(parents=True, exist_ok=True)
@@ -193,6 +217,10 @@ def write_report(out: Path, name: str, dets: Any, samples: Any, *, bootstrap: in
     (out / f"{name}.json").write_text(json.dumps(slim, indent=1))
     return slim
 
+
+TRAINING_META = ("source", "augment", "init", "epochs", "recipe", "recipe_note", "train_config", "world_size",
+                 "gt_sample", "launcher")
+"""Metadata of how a network was trained that ``adapt`` carries from the source weights into the adapted ones."""
 
 RECALIBRATION_MODES = ("synthetic", "tracked", "keep")
 """Where ``adapt`` takes the adapted weights' variance scales from: refitted per score bin on labelled synthetic
@@ -294,7 +322,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                                                       " steps within an epoch (0: per epoch).")] = 0,
         max_steps: Annotated[int | None, typer.Option("--max-steps-per-epoch", min=1, help="Cut epochs short"
                                                       " (quick runs, tests).")] = None,
-        resume: Annotated[bool, typer.Option("--resume", help="Continue from OUT/checkpoint.pt.")] = False,
+        resume: Annotated[bool, typer.Option("--resume", help="Continue from OUT/checkpoint.pt: the same command"
+                                             " (a checkpoint of another model, data, schedule or number of processes"
+                                             " is refused).")] = False,
         fit_recalibration: Annotated[bool, typer.Option("--fit-recalibration/--no-fit-recalibration",
                                                         help="Fit per-axis variance scales on the validation split"
                                                         " (synthetic: its scans of every --effects set) and store"
@@ -340,7 +370,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         from .evaluate import fit_recalibration as fit_scales  # not `fit_recalibration`: that is the flag
         from .inference import WeightsError, load_weights, save_weights
         from .network import CenterPointNet
-        from .train import TrainConfig, init_distributed, predict, train
+        from .train import CheckpointError, TrainConfig, init_distributed, predict, train
 
         if threads:
             torch.set_num_threads(threads)
@@ -386,10 +416,13 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                                                    last_n=holdout_last)
             except SourceError as exc:
                 fail(f"--nuscenes: {exc}")
-            source: dict[str, Any] = {"nuscenes": os.path.abspath(nuscenes), "version": nuscenes_version,
+            # resolved: eval-detector recognises the dataroot however it is named later (a symlink, a relative path)
+            source: dict[str, Any] = {"nuscenes": str(Path(nuscenes).resolve()), "version": nuscenes_version,
                                       "split": split, "val_split": val_split, "sweeps": sweeps,
                                       "holdout_last": None if split else holdout_last}
         else:
+            _check_fill(len(scen) * len(tr_seeds) * frames * len(effect_sets), dc.world * accumulate,
+                        "--train-seeds", dc.world)
             if dc.main:  # one process casts the caches, the others wait for them
                 for e in effect_sets:
                     synthetic_cache(root, scen, tr_seeds, frames, progress, e, workers, sweeps)
@@ -407,6 +440,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                       "effects": "+".join(",".join(_effects(e)) or "none" for e in effect_sets)}
             if sweeps > 1:
                 source["sweeps"] = sweeps
+        if nuscenes is not None:
+            _check_fill(len(train_s), dc.world * accumulate, "--split" if split else "--holdout-last", dc.world)
         train_v, val_v = _Prepared(train_s, pcr), _Prepared(val_s, pcr)
         tcfg = TrainConfig(epochs=epochs, batch_size=batch_size, lr=lr, seed=seed, num_workers=workers,
                            accumulate=accumulate, amp=amp, sync_bn=sync_bn, checkpoint_every=checkpoint_every,
@@ -428,8 +463,11 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         if gt_db is not None:
             meta["gt_sample"] = {"objects": len(gt_db), "per_scan": list(augment.gt_counts)}
         meta["augment"] = {"rotation_deg": rotation, "tilt_deg": tilt_aug}
-        state = train(model, train_v, val_v, tcfg, root, augment=augment, evaluate=evaluate,
-                      resume=resume, progress=progress, meta=meta, dist_ctx=dc)
+        try:  # with --fit-recalibration weights.pt is written once, below, with the fitted scales
+            state = train(model, train_v, val_v, tcfg, root, augment=augment, evaluate=evaluate, resume=resume,
+                          progress=progress, meta=meta, dist_ctx=dc, write_weights=not fit_recalibration)
+        except CheckpointError as exc:
+            fail(f"--resume: {exc}")
         if not dc.main:
             return
         model.cpu()
@@ -442,10 +480,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                 rec = fit_scales(dets + predict(model, fit_list[len(val_list):]), fit_list, bins=recalibration_bins)
             except ValueError as exc:  # no true positives yet (a tiny run): keep the raw variances
                 log.warning("no recalibration fitted: %s", exc)
-        if rec is not None:
-            save_weights(root / "weights.pt", model, recalibration=rec,
-                         meta={**meta, "epochs": state.epoch,
-                               "recalibration_fit_on": f"validation split ({len(fit_list)} scans)"})
+        if fit_recalibration:  # train() left weights.pt to us: its metadata (train_config, world_size) plus the fit
+            extra = {"recalibration_fit_on": f"validation split ({len(fit_list)} scans)"} if rec is not None else {}
+            save_weights(root / "weights.pt", model, recalibration=rec, meta={**(state.meta or meta), **extra})
         summary = write_report(root / "report", "validation", dets, val_list)["summary"] if val_list else None
         typer.echo(json.dumps({"weights": str(root / "weights.pt"), "epochs": state.epoch,
                                "recalibration": rec.to_payload() if rec else None, "validation": summary}))
@@ -535,10 +572,17 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         if model.config.num_point_features != 4:  # its real scans would have to be stacked too: not built
             fail(f"--weights: the model takes stacked sweeps ({model.config.num_point_features} point fields); adapt"
                  " works on single-sweep weights: adapt those, then widen them with `train --init W --sweeps N`")
+        from .train import progress_bar
+
+        bar = progress_bar(progress, max_scans, unit="scan", desc="reading scans")
         try:
-            real = read_unlabelled(scans, max_scans=max_scans)
+            real = read_unlabelled(scans, max_scans=max_scans, progress=bar.update if bar is not None else None)
         except SourceError as exc:
+            if bar is not None:
+                bar.close()  # before the error line, which must stand on its own
             fail(f"--scans: {exc}")
+        if bar is not None:
+            bar.close()
         root = Path(out)
         root.mkdir(parents=True, exist_ok=True)
         synthetic = _Prepared(synthetic_cache(root, scen, syn_seeds, frames, progress, effects),
@@ -563,8 +607,13 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             report["recalibration"] = {"scales": scales.to_payload(), **fitted}
             fit_on = fitted["fit_on"]
         sha = hashlib.sha256(Path(weights).read_bytes()).hexdigest()[:16]
-        meta = {"command": " ".join(["jitterguard", *sys.argv[1:]]), "adapted_from": {"path": os.path.abspath(weights),
-                "sha256_16": sha, "source": source_meta.get("source")}, "unlabelled_scans": describe(real),
+        # what the network was trained on stays true of the adapted one: eval-detector reads "source" to hold out
+        # the frames it trained on, and a second adapt its "augment"
+        trained = {k: source_meta[k] for k in TRAINING_META if k in source_meta}
+        meta = {**trained, "command": " ".join(["jitterguard", *sys.argv[1:]]),
+                "adapted_from": {"path": os.path.abspath(weights), "sha256_16": sha, "source": source_meta.get("source")},
+                # adapting adapted weights: they have seen the earlier adaptation's scans too
+                "unlabelled_scans": [*(source_meta.get("unlabelled_scans") or []), *describe(real)],
                 "labels_read": False, "adapt": {**dataclasses_asdict(cfg), "synthetic_seeds": synthetic_seeds,
                                                 "scenarios": scen, "effects": effects},
                 "report": report,
@@ -616,8 +665,10 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
     @app.command("eval-detector")
     def eval_detector_cmd(
         out: Annotated[str, typer.Option("--out", help="Folder for the JSON report and the PR/calibration PNGs.")],
-        weights: Annotated[str | None, typer.Option("--weights", help="Weights file (default: shipped lite).")] = None,
-        preset: Annotated[str, typer.Option("--preset")] = "lite",
+        weights: Annotated[str | None, typer.Option("--weights", help="Weights file (default: the shipped weights"
+                                                     " of --preset).")] = None,
+        preset: Annotated[str | None, typer.Option("--preset", help="Shipped weights to score (default lite); with"
+                                                   " --weights only the weights' own architecture.")] = None,
         scenarios: Annotated[str, typer.Option("--scenarios")] = DEFAULT_SCENARIOS,
         seeds: Annotated[str, typer.Option("--seeds", help="Hold-out seeds (never used in training).")] = "1000-1004",
         frames: Annotated[int, typer.Option("--frames-per-scenario", min=1, max=600)] = 10,
@@ -649,7 +700,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         """Score weights on a hold-out set: nuScenes-style AP, positional ECE; JSON + PNGs."""
         out_dir("--out", out)  # before any work: a run must not fail to write its result at the end
         progress = progress_on(progress)
-        if preset not in PRESETS:
+        if preset is not None and preset not in PRESETS:
             fail(f"--preset: expected one of {', '.join(PRESETS)}, got {preset!r}")
         if weights is not None and not os.path.isfile(weights):
             fail(f"--weights: file not found: {weights}")
@@ -665,12 +716,13 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         from .inference import Detector, WeightsError
 
         try:
-            det = Detector.load(weights, preset, threads=threads, recalibrate=recalibrate,
+            det = Detector.load(weights, preset or "lite", threads=threads, recalibrate=recalibrate,
                                 self_crop=SELF_CROP_M if self_crop else None, flips=flips)
         except WeightsError as exc:
             fail(f"--weights: {exc}")
         except ValueError as exc:  # flips on a grid that is not symmetric about the sensor
             fail(f"--flips: {exc}")
+        check_preset(preset, weights, det.config.name)
         if sweeps is not None:
             if sweeps > 1 and det.config.num_point_features < 5:
                 fail(f"--sweeps: these weights take one sweep (4 point fields), got {sweeps}")
@@ -683,7 +735,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             if not os.path.isdir(nuscenes):
                 fail(f"--nuscenes: not a directory: {nuscenes}")
             trained = (det.meta.get("source") or {}) if isinstance(det.meta.get("source"), dict) else {}
-            seen = trained.get("nuscenes") == os.path.abspath(nuscenes)
+            # resolved on both sides (train stores the resolved path; older weights an absolute one): a symlink or
+            # another spelling of the dataroot is still the dataroot the weights were trained on
+            seen = bool(trained.get("nuscenes")) and Path(str(trained["nuscenes"])).resolve() == Path(nuscenes).resolve()
             last = holdout_last or (int(trained.get("holdout_last") or 10) if seen else None)
             try:
                 every = nuscenes_samples(nuscenes, sweeps=det.sweeps)
@@ -693,7 +747,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             from .adapt import adapted_on
 
             transductive = adapted_on(det.meta, nuscenes)
-            scored_on = {"nuscenes": os.path.abspath(nuscenes), "key_frames": len(samples), "sweeps": det.sweeps,
+            scored_on = {"nuscenes": str(Path(nuscenes).resolve()), "key_frames": len(samples), "sweeps": det.sweeps,
                          "holdout_last": last, "weights_trained_on_it": seen,
                          "weights_adapted_on_its_scans": transductive}
             if transductive:
@@ -716,8 +770,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             dets.append(det.detect(s.points))
             bar.update(1)
         bar.close()
-        summary = write_report(Path(out), name, dets, items, bootstrap=bootstrap, extra={"scored_on": scored_on,
-                               "weights": os.path.abspath(weights) if weights else "shipped " + preset,
+        summary = write_report(Path(out), name, dets, items, bootstrap=bootstrap, progress=progress, extra={
+                               "scored_on": scored_on,
+                               "weights": os.path.abspath(weights) if weights else "shipped " + (preset or "lite"),
                                "recalibrated": det.recalibration is not None, "flips": det.flips,
                                "self_crop": list(det.self_crop) if det.self_crop is not None else None})["summary"]
         typer.echo(json.dumps({"samples": len(items), **summary}))
