@@ -92,6 +92,26 @@ def test_the_store_round_trips_and_explains_what_it_ignores(tmp_path: Path) -> N
     assert "does not fit" in store.load_into(banded) and banded.effective_blocks == 0
 
 
+@pytest.mark.parametrize("damage", ["truncated", "flipped byte", "an .npy file"])
+def test_a_damaged_store_starts_cold_instead_of_crashing(tmp_path: Path, damage: str) -> None:
+    """A torn copy (BadZipFile), a flipped byte (a CRC error on reading an array) or an .npy under the store's
+    name (np.load returns an array, no context manager) had raised from the classifier's constructor, so
+    supervisord restarted it into the same crash and no object was ever published."""
+    store = CalibrationStore(tmp_path / "cal.npz")
+    store.save(_learnt(frames=25, tracks=10).online_calibration.state())
+    data = bytearray(store.path.read_bytes())
+    if damage == "truncated":
+        store.path.write_bytes(bytes(data[: len(data) // 2]))
+    elif damage == "flipped byte":
+        data[len(data) // 3] ^= 0xFF
+        store.path.write_bytes(bytes(data))
+    else:
+        np.save(store.path.open("wb"), np.zeros(3))
+    fresh = OnlineCalibration()
+    why = store.load_into(fresh)
+    assert "starting cold" in why and fresh.effective_blocks == 0
+
+
 @pytest.mark.integration
 def test_a_restarted_classifier_goes_on_calibrated(tmp_path: Path, zenoh_port, client_session) -> None:
     """A real service learns from 30 frames, writes its calibration as it stops; the next one starts with the

@@ -75,3 +75,31 @@ def test_a_write_survives_the_classifiers_restart_and_an_unstorable_write_is_ref
         refused = decode(ConfigReply, err.payload.to_bytes())
         assert not refused.ok and "not applied" in refused.error and "cannot store" in refused.error
         assert svc.core.config == FLAGS and svc.counters.get("config_store_errors") == 1
+
+
+@pytest.mark.integration
+def test_a_restored_config_uses_its_own_calibration_file_and_survives_losing_it(tmp_path, zenoh_port) -> None:
+    """Started with --calibration-file A, a write switched to file B and was stored. After a restart with the same
+    flags the config said B while the scales were A's (the CLI reads the flags' file, the service only read one
+    when none was given); and once B was gone, every start raised from the constructor."""
+    from jitterguard.services.classifier.calibration import NoiseModel
+    from jitterguard.services.classifier.calibration_file import read_calibration, write_calibration
+
+    def file_with_scale(name: str, k: float) -> Path:
+        prior = NoiseModel.prior()
+        model = NoiseModel(prior.band_edges_m, prior.scale * k, prior.correlation, prior.tau_s, prior.blocks,
+                           prior.frame_interval_s, prior.track_dof)
+        write_calibration(tmp_path / name, model, window=20)
+        return tmp_path / name
+
+    a, b = file_with_scale("a.yaml", 2.0), file_with_scale("b.yaml", 5.0)
+    flags = ClassifierConfig(calibration="file", calibration_file=str(a))
+    store = ConfigStore(tmp_path / "run" / "classifier-config.json")
+    store.save(flags, flags.model_copy(update={"calibration_file": str(b)}))
+    opts = loopback_options("cs2", zenoh_port, listen_self=True)
+    with ClassifierService(opts, flags, config_store=store, calibration_model=read_calibration(a)) as svc:
+        assert svc.core.config.calibration_file == str(b)
+        assert svc.core.noise_model().scale.max() == pytest.approx(5.0)
+    b.unlink()
+    with ClassifierService(opts, flags, config_store=store, calibration_model=read_calibration(a)) as svc:
+        assert svc.core.config == flags and svc.core.noise_model().scale.max() == pytest.approx(2.0)

@@ -43,13 +43,14 @@ class CalibrationStore:
                 state = {k: z[k] for k in z.files}
         except FileNotFoundError:
             return f"no stored calibration at {self.path}; starting cold"
-        except (OSError, ValueError, EOFError) as exc:
-            return f"stored calibration {self.path} is unreadable ({exc}); starting cold"
+        except Exception as exc:  # noqa: BLE001 - any damage (a truncated zip, a CRC error, an .npy) starts cold:
+            # it had raised BadZipFile or TypeError from the constructor, and supervisord restarted into the crash
+            return f"stored calibration {self.path} is unreadable ({type(exc).__name__}: {exc}); starting cold"
         if str(state.get("format", "")) != FORMAT:
             return f"stored calibration {self.path} is not a {FORMAT} file; starting cold"
         try:
             blocks = online.restore(state, max_blocks=RESTORE_MAX_BLOCKS)
-        except ValueError as exc:
+        except (ValueError, KeyError, TypeError, IndexError) as exc:
             return f"stored calibration {self.path} does not fit this classifier ({exc}); starting cold"
         return f"calibration restored from {self.path} ({blocks:.0f} effective blocks)"
 

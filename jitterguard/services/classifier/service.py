@@ -104,11 +104,19 @@ class ClassifierService(Service):
         self.config_writes = config_writes or ConfigWritePolicy.from_env()
         self._started_with = config or ClassifierConfig()
         self._store = config_store
+        restored = None
         if config_store is not None:
             restored, why = config_store.load(self._started_with)
             self.log.info("%s", why)
-            config = restored or config
-        config = config or ClassifierConfig()
+        config = restored or config or ClassifierConfig()
+        if restored is not None and config.calibration == "file" and config.calibration_file:
+            # the restored config names its own file: the model read from the flags' file (if any) is not it
+            try:
+                calibration_model = read_calibration(config.calibration_file)
+            except CalibrationFileError as exc:  # gone or damaged since the write: the flags' config, not a crash
+                self.log.warning("the stored config's calibration file is unusable (%s); using the config the"
+                                 " classifier was started with", exc)
+                config = self._started_with
         if calibration_model is None and config.calibration == "file" and config.calibration_file:
             calibration_model = read_calibration(config.calibration_file)
         self.log.info("%s", self.config_writes.describe())
