@@ -97,3 +97,39 @@ def test_no_giving_up_while_the_caller_is_still_behind():
     fa.add_observation(ob(0, IDS[2]))
     (frame,) = fa.pop_ready(10.0, give_up=False)
     assert frame.missing == 0 and "missing_observations" not in fa.counts
+
+
+def test_a_restarted_seq_with_time_going_on_keeps_the_windows_and_the_confirming_frames_observations():
+    """A restarted LiDAR driver or detector under a tracker that keeps its tracks: the tracker copies the scans'
+    seq, so `tracked` starts again at seq 0 while its stamps go on. Confirmed, it had reset the core (every window
+    back to 1, every object undecided) and, with the old seq near the new, dropped the confirming frame's
+    observations as late."""
+    from jitterguard.schemas.models import Header
+    from jitterguard.services.classifier.adapter import ClassifierAdapter
+    from jitterguard.services.classifier.synthetic_tracks import FrameRecords, TrackScenario, generate
+
+    frames = list(generate(TrackScenario(n_static=3, n_moving=1, n_starting=0, seed=1), 24))
+    pipe = ClassifierAdapter()
+    decided = []
+
+    def send(f, seq: int, t: float) -> None:
+        obs, tracked = FrameRecords.of(f).payloads(Header(stamp=f.stamp_ns, frame_id="map", seq=seq))
+        pipe.observations([p for _, p in obs])
+        pipe.close(tracked, received_at=t)
+        for fr in pipe.ready(t + 1.0):
+            out = pipe.finish(fr)
+            pipe.settle(out)
+            decided.append((out.seq, out.decisions.window_length.tolist(), out.missing))
+
+    t = 0.0
+    for i in range(15):
+        send(frames[i], 10 + i, t)
+        t += 0.1
+    before = decided[-1][1]
+    for k, i in enumerate(range(15, 24)):
+        send(frames[i], k, t)  # seq 0, 1, … : within the old stream's restart gap, stamps going on
+        t += 0.1
+    assert pipe.assembler.counts["source_restarts"] == 1 and "upstream_restarts" not in pipe.assembler.counts
+    first = decided[15]  # the frame that confirmed the restart
+    assert first[2] == 0  # none of its observations dropped as late
+    assert min(first[1]) > min(before)  # the windows went on growing (a reset had set them all to 1)

@@ -132,14 +132,16 @@ class ClassifierAdapter:
         """Read ``tracks/{id}`` payloads and keep each one's row (a straggler of a frame already decided is
         counted ``late_observations`` and dropped). The refused ones come back in ``errors``."""
         cols = read_track_observations(payloads, self.limits)
-        for seq, tid, row in observation_rows(cols):
-            self.assembler.add_observation_item(seq, tid, row)
+        for (seq, tid, row), stamp in zip(observation_rows(cols), cols.stamp.tolist()):
+            self.assembler.add_observation_item(seq, tid, row, int(stamp))
         return cols
 
     def close(self, data: bytes, received_at: float) -> TrackedColumns | None:
         """Read one ``tracked`` payload and register it as the close of its frame; None when it was dropped (a
         duplicate, a late frame or a jump not yet confirmed: judged from its header, before it is read). A
-        confirmed restart of the tracker (its seq starting again, or its time going back) resets the core.
+        confirmed rewind (time going back: the tracker reset its tracks) resets the core; a confirmed restart of the
+        seq with time going on keeps it (the tracker copies the scans' seq and keeps its tracks over a restarted
+        driver: resetting had wiped every window).
 
         Raises :class:`~jitterguard.schemas.DecodeError` for a payload that fails validation.
         """
@@ -151,7 +153,7 @@ class ClassifierAdapter:
         h = cols.header
         restarts = self.assembler.counts.get("upstream_restarts", 0)
         ok = self.assembler.add_close_item(h.seq, cols.observed_track_ids, cols, received_at, h.stamp, verdict)
-        if self.assembler.counts.get("upstream_restarts", 0) != restarts:
+        if self.assembler.counts.get("upstream_restarts", 0) != restarts:  # time went back: the tracks are gone
             self.core.reset()
         return cols if ok else None
 

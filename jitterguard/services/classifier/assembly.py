@@ -40,26 +40,32 @@ class FrameAssembler(Generic[O, C]):
     straggler_timeout_s: float = 0.05
     max_pending_frames: int = 64
     last_done: int = -1
+    last_done_stamp: int | None = None
     counts: dict[str, int] = field(default_factory=dict)
     _obs: dict[int, dict[str, O]] = field(default_factory=dict)
-    _closes: dict[int, tuple[C, float, frozenset[str]]] = field(default_factory=dict)
+    _closes: dict[int, tuple[C, float, frozenset[str], int]] = field(default_factory=dict)
     _waiting: dict[int, set[str]] = field(default_factory=dict)  # per closed seq: expected IDs not yet in
     guard: StreamGuard = field(default_factory=StreamGuard)  # over the closes: which frames to take
 
-    def is_late(self, seq: int) -> bool:
+    def is_late(self, seq: int, stamp_ns: int | None = None) -> bool:
         """An observation for a frame already processed: it would be dropped, so it need not be validated.
 
         Lets a service that fell behind skip validating stragglers it cannot use (a seq far below the last
-        one is an upstream restart, not late).
+        one is an upstream restart, not late; so is one stamped after the last frame decided — a source whose seq
+        began again while time went on, whose observations had been dropped as late until the restart was
+        confirmed).
         """
+        if stamp_ns is not None and self.last_done_stamp is not None and stamp_ns > self.last_done_stamp:
+            return False
         return seq <= self.last_done and self.last_done - seq <= RESTART_GAP
 
     def count(self, name: str, n: int = 1) -> None:
         self.counts[name] = self.counts.get(name, 0) + n
 
-    def add_observation_item(self, seq: int, track_id: str, item: O) -> None:
-        """Register what the caller keeps of the observation of ``track_id`` in frame ``seq``."""
-        if self.is_late(seq):
+    def add_observation_item(self, seq: int, track_id: str, item: O, stamp_ns: int | None = None) -> None:
+        """Register what the caller keeps of the observation of ``track_id`` in frame ``seq`` (stamped
+        ``stamp_ns``)."""
+        if self.is_late(seq, stamp_ns):
             self.count("late_observations")
             return
         bucket = self._obs.setdefault(seq, {})
@@ -86,15 +92,17 @@ class FrameAssembler(Generic[O, C]):
     def add_close_item(self, seq: int, expected_ids: Iterable[str], item: C, now: float, stamp_ns: int,
                        verdict: Verdict | None = None) -> bool:
         """Register a frame-closing message; returns False (and counts) when it is dropped. ``verdict``: what
-        :meth:`admit` already said of its header. A confirmed restart or rewind of the upstream resets the frames
-        in flight and the caller learns it through ``counts['upstream_restarts']``; a confirmed jump ahead is
-        counted ``jumps`` and followed."""
+        :meth:`admit` already said of its header. A confirmed rewind of the upstream (time going back) resets the
+        frames in flight and the caller learns it through ``counts['upstream_restarts']`` (its windows go too); a
+        confirmed restart (seq back, time going on: a restarted driver or detector under a tracker that keeps its
+        tracks) resets the frames in flight only, counted ``source_restarts``; a confirmed jump ahead is counted
+        ``jumps`` and followed."""
         if verdict is None:
             verdict = self.admit(seq, stamp_ns, now)
         if not verdict.accepted:
             return False
         if verdict in (Verdict.RESTARTED, Verdict.REWOUND):
-            self.count("upstream_restarts")
+            self.count("upstream_restarts" if verdict is Verdict.REWOUND else "source_restarts")
             self.last_done = -1
             self._obs = {s: b for s, b in self._obs.items() if s <= seq + RESTART_GAP}
             self._closes.clear()
@@ -103,7 +111,7 @@ class FrameAssembler(Generic[O, C]):
             self.count("jumps")
         self.guard.accept(seq, stamp_ns)
         expected = frozenset(expected_ids)
-        self._closes[seq] = (item, now, expected)
+        self._closes[seq] = (item, now, expected, stamp_ns)
         got = self._obs.get(seq, {})
         self._waiting[seq] = {i for i in expected if i not in got}
         return True
@@ -116,7 +124,7 @@ class FrameAssembler(Generic[O, C]):
         """
         out: list[CompleteFrame[O, C]] = []
         for seq in sorted(self._closes):
-            item, t0, wanted = self._closes[seq]
+            item, t0, wanted, stamp = self._closes[seq]
             missing = len(self._waiting[seq])
             if missing and (not give_up or now - t0 < self.straggler_timeout_s):
                 break  # keep order: later frames wait behind this one
@@ -130,7 +138,7 @@ class FrameAssembler(Generic[O, C]):
                 self.count("orphaned_observations", len(self._obs.pop(stale)))
             if missing:
                 self.count("missing_observations", missing)
-            self.last_done = seq
+            self.last_done, self.last_done_stamp = seq, stamp
             out.append(CompleteFrame(seq, item, observations, t0, missing))
         return out
 
