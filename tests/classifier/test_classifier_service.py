@@ -198,6 +198,26 @@ def test_invalid_config_write_is_refused_and_nothing_changes(service, client_ses
     assert service.core.config == ClassifierConfig()
 
 
+def test_a_write_the_busy_worker_did_not_take_in_time_is_withdrawn(service, client_session):
+    """The worker is busy for 3 s (a long frame, a stall): the write times out after 2 s and its writer is told
+    "not applied" — it had then been applied (and stored) a second later all the same."""
+    import threading
+
+    _wait_connected(client_session)
+    busy = threading.Thread(target=service.run_on_worker, args=(lambda: time.sleep(3.0), 5.0))
+    busy.start()
+    time.sleep(0.2)
+    reply = _query(client_session, keys.classifier_config(NS),
+                   encode(ClassifierConfig().model_copy(update={"alpha_default": 3.3})))
+    assert reply.err is not None
+    err = decode(ConfigReply, reply.err.payload.to_bytes())
+    assert "not applied" in err.error and "did not take it" in err.error
+    busy.join()
+    time.sleep(0.5)  # the worker is free again: the withdrawn write must stay withdrawn
+    assert service.core.config.alpha_default == ClassifierConfig().alpha_default
+    assert service.counters.get("config_changes") == 0
+
+
 def test_malformed_payloads_on_every_key_are_counted_and_service_keeps_running(service, client_session):
     got = _collect(client_session)
     _wait_connected(client_session)
@@ -481,3 +501,16 @@ def test_heartbeats_go_out_while_the_statistic_warms_up(zenoh_port, client_sessi
         maker.join(30)
         for svc in built:
             svc.close()
+
+
+def test_frames_whose_observations_never_come_are_failing_not_ok(service, client_session):
+    """`tracked` arrives, every `tracks/{id}` is left out (an ACL or a router that does not pass tracks/**): the
+    objects go out undecided frame after frame. Health had said ok; now the frames count as failures."""
+    got = _collect(client_session)
+    _wait_connected(client_session)
+    for f in generate(TrackScenario(n_static=3, n_moving=1, n_starting=0, seed=2), 8):
+        n = len(got["objects"])
+        client_session.put(keys.tracked(NS), encode(f.tracked))  # the close alone
+        assert wait_until(lambda: len(got["objects"]) == n + 1, timeout=30)
+    health = service.progress.assess(time.monotonic())
+    assert health.state == "failing" and "no tracks/* observation" in health.reason

@@ -175,9 +175,11 @@ class ClassifierAdapter:
         every = observations_from_rows(frame.observations, h.seq, h.stamp, (float(pos.x), float(pos.y)), reported)
         decided = self.core.update(every) if len(every) else None
         obs, windows = every, reported
-        if decided is not None and not decided.published.all():
-            # a tentative track's window fills, but it has no decision to publish until ``tracked`` lists it
-            obs, decided = every.subset(decided.published), decided.subset(decided.published)
+        in_frame = np.isin(every.track_ids, reported) if decided is not None else None
+        if decided is not None and in_frame is not None and not in_frame.all():
+            # a tentative track's window fills, but it has no decision to publish until ``tracked`` lists it; nor
+            # has a track this frame's ``tracked`` leaves out (a foreign tracker's): ``published`` means "ever"
+            obs, decided = every.subset(in_frame), decided.subset(in_frame)
             decided = decided if len(obs) else None
             windows = np.concatenate([reported, every.track_ids])
         dec = self.core.last_decisions(reported)

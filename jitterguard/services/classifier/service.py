@@ -261,7 +261,7 @@ class ClassifierService(Service):
         for i, frame in enumerate(frames):
             self._publish(self.pipeline.finish(frame), behind=i + 1 < len(frames))
             collect_when_idle = self._manage_gc
-        if busy:
+        if busy or frames:  # a frame given up on in an idle pass counts too (the last heartbeat had lagged)
             for k, v in self.pipeline.assembler.counts.items():
                 self.counters.set(f"frames.{k}", v)
         elif collect_when_idle and not self.pipeline.pending:
@@ -310,6 +310,8 @@ class ClassifierService(Service):
 
     def _run_control(self, item: tuple[str, tuple, None]) -> None:
         kind, (arg, fut), model = item
+        if not fut.set_running_or_notify_cancel():  # the caller gave up waiting and was told "not applied"
+            return
         if kind == "config":
             try:
                 self.core.check_config(arg, model)  # before it is stored: a refused write is not restored
@@ -336,7 +338,11 @@ class ClassifierService(Service):
         """Put ``objects`` (the frame latency ends here), then, unless a later frame is already waiting
         (``behind``, or a close queued or pending), the frame's ``motion/{id}`` messages."""
         self._objects_pub.put(out.payload)
-        self.progress.output(time.monotonic())
+        if out.missing and out.decided is None:  # the close listed observed tracks and not one observation came
+            # (an ACL or a router that leaves out tracks/**): objects go out undecided, which is no progress
+            self.progress.failure(time.monotonic(), f"no tracks/* observation of the {out.missing} the frame listed")
+        else:
+            self.progress.output(time.monotonic())
         self._record_latency((time.perf_counter() - out.received_at) * 1e3)
         self.counters.inc("published")
         self.counters.inc("frames_processed")
@@ -436,8 +442,19 @@ class ClassifierService(Service):
             self.counters.inc("rejected.classifier/config")
             query.reply_err(encode(ConfigReply(ok=False, config=self.core.config, error=str(exc))))
             return
-        except Exception as exc:  # worker stuck or stopping: say so, the write may not be in force
-            query.reply_err(encode(ConfigReply(ok=False, config=self.core.config, error=f"not applied: {exc}")))
+        except Exception as exc:  # worker stuck or stopping: withdraw the write, so that "not applied" stays true
+            if fut.cancel():
+                why = f"the classifier's worker did not take it within {CONFIG_APPLY_TIMEOUT_S:g} s"
+            else:  # taken meanwhile: what came of it
+                try:
+                    in_force = fut.result(timeout=CONFIG_APPLY_TIMEOUT_S)
+                except Exception as late:  # noqa: BLE001
+                    why = f"{type(late).__name__}: {late}"
+                else:
+                    self.log.info("config applied: %s", in_force.model_dump(exclude={"schema_version"}))
+                    query.reply(query.key_expr, encode(ConfigReply(ok=True, config=in_force)))
+                    return
+            query.reply_err(encode(ConfigReply(ok=False, config=self.core.config, error=f"not applied: {why}")))
             return
         self.log.info("config applied: %s", in_force.model_dump(exclude={"schema_version"}))
         query.reply(query.key_expr, encode(ConfigReply(ok=True, config=in_force)))
