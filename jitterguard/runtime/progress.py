@@ -67,9 +67,12 @@ class ProgressMonitor:
             self._failures = 0
 
     def failure(self, now: float, error: str) -> None:
+        """A message dealt with by raising: counted towards ``failing``; it is no input waiting either (one failed
+        frame, then silence, had read as a stall and the watchdog restarted the service)."""
         with self._lock:
             self._failures += 1
             self._last_error = error
+            self._waiting_since = None
 
     def assess(self, now: float) -> Health:
         """The health now; also starts or clears the unhealthy clock (call it periodically)."""

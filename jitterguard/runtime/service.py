@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import faulthandler
 import logging
+import math
 import os
 import queue
 import threading
@@ -50,6 +51,8 @@ HANG_GRACE_S = 5.0
 """The heartbeat thread silent this much longer than the watchdog period: a hard hang (faulthandler exits)."""
 SHUTDOWN_LIMIT_S = 20.0
 """A watched service's shutdown taking longer than this is hung: faulthandler dumps the stacks and exits."""
+MAX_WATCHDOG_S = 1e9
+"""The longest watchdog period: ``faulthandler``'s timer overflows a platform time_t beyond ~1e10 s."""
 
 
 class Counters:
@@ -379,7 +382,9 @@ class Service:
 
 
 def watchdog_period() -> float | None:
-    """``JG_WATCHDOG_S`` (default 10 s; 0 or negative: no watchdog). A malformed value is a startup error."""
+    """``JG_WATCHDOG_S`` (default 10 s; 0 or negative: no watchdog). A malformed value is a startup error, and so
+    is one no timer can wait (inf, NaN, above ~10⁹ s: ``faulthandler`` had raised OverflowError on arming it, in
+    the main and the heartbeat thread, and the process hung past SIGTERM)."""
     raw = os.environ.get(ENV_WATCHDOG, "").strip()
     if not raw:
         return DEFAULT_WATCHDOG_S
@@ -387,6 +392,8 @@ def watchdog_period() -> float | None:
         value = float(raw)
     except ValueError:
         raise ValueError(f"{ENV_WATCHDOG}={raw!r} is not a number of seconds") from None
+    if not math.isfinite(value) or value + HANG_GRACE_S > MAX_WATCHDOG_S:
+        raise ValueError(f"{ENV_WATCHDOG}={raw!r}: expected at most {MAX_WATCHDOG_S:.0f} s (0 turns the watchdog off)")
     return value if value > 0 else None
 
 

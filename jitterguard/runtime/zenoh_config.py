@@ -93,7 +93,11 @@ def build_config(opts: ZenohOptions) -> zenoh.Config:
         raise ValueError(f"zenoh mode must be client, peer or router, got {mode!r}")
     try:
         cfg.insert_json5("mode", json.dumps(mode))
-        if opts.connect or opts.listen or (mode == "client" and not from_file):
+        file_says = from_file and _get(cfg, "scouting/multicast/enabled") is not None
+        if (opts.connect or opts.listen or mode == "client") and not file_says:
+            # explicit endpoints or a client: multicast scouting off unless a file says otherwise (a client file
+            # silent on it had left Zenoh's default on, binding 224.0.0.224:7446; a file that turned it on had been
+            # overridden by --connect)
             cfg.insert_json5("scouting/multicast/enabled", "false")
         if opts.connect:
             cfg.insert_json5("connect/endpoints", json.dumps(list(opts.connect)))
@@ -115,11 +119,13 @@ def build_config(opts: ZenohOptions) -> zenoh.Config:
 
 def listen_endpoints(cfg: zenoh.Config, mode: str | None = None) -> list[str]:
     """The endpoints a session opened with ``cfg`` listens on, Zenoh's defaults included (a peer with none
-    listens on ``tcp/[::]:0``, a router on ``tcp/[::]:7447``; a client listens on nothing)."""
+    listens on ``tcp/[::]:0``, a router on ``tcp/[::]:7447``; a client on nothing by default — but on whatever
+    ``listen/endpoints`` names: Zenoh 1.x clients do listen, and a client file naming ``tcp/0.0.0.0:…`` had
+    opened a plain listener on every interface unchecked)."""
     mode = mode or _get(cfg, "mode") or "peer"
-    if mode == "client":
-        return []
     eps = _for_mode(_get(cfg, "listen/endpoints"), mode)
+    if mode == "client":
+        return [str(e) for e in eps] if eps else []  # type: ignore[union-attr]
     if eps:
         return [str(e) for e in eps]  # type: ignore[union-attr]
     return ["tcp/[::]:7447"] if mode == "router" else ["tcp/[::]:0"]

@@ -141,14 +141,24 @@ def test_plan_rejects_bad_values(kwargs: dict, match: str) -> None:
         ReplayPlan(**kwargs)
 
 
-def test_a_wall_stamped_loop_restarts_seq_every_pass_while_time_goes_on() -> None:
-    """The loop boundary is a restarted source (seq from 0, stamps forward), not a jump inside one stream."""
+def test_a_wall_stamped_loop_keeps_counting_and_every_frame_is_taken_downstream() -> None:
+    """A pass of 3 frames, looped: seq and stamps go on, so the consumers' stream guard takes every frame. Each pass
+    had begun seq again as a restarted source, which a pass shorter than a restart's confirmation (3 frames, 0.3 s)
+    never got: the tracker and the classifier dropped every frame after the first pass."""
+    from jitterguard.stream_order import StreamGuard
+
     sink = Sink()
-    run_replay(memory(3), ReplayPlan(rate=None, loop=True, passes=3, stamps="wall"), sink, clock=FakeClock(),
+    run_replay(memory(3), ReplayPlan(rate=None, loop=True, passes=5, stamps="wall"), sink, clock=FakeClock(),
                wall_ns=lambda: 1_700_000_000 * 10**9)
-    assert [s for _, s, _ in sink.out] == [0, 1, 2] * 3
+    assert [s for _, s, _ in sink.out] == list(range(15))
     stamps = [t for _, _, t in sink.out]
     assert all(b > a for a, b in zip(stamps, stamps[1:]))
+    guard, taken = StreamGuard(), 0
+    for k, (_, s, t) in enumerate(sink.out):
+        if guard.admit(s, t, now_s=k * 0.1).accepted:
+            guard.accept(s, t)
+            taken += 1
+    assert taken == 15
 
 
 def test_a_wall_stamped_loop_of_one_frame_keeps_counting() -> None:
@@ -156,3 +166,43 @@ def test_a_wall_stamped_loop_of_one_frame_keeps_counting() -> None:
     run_replay(memory(1), ReplayPlan(rate=None, loop=True, passes=4, stamps="wall"), sink, clock=FakeClock(),
                wall_ns=lambda: 1_700_000_000 * 10**9)
     assert [s for _, s, _ in sink.out] == [0, 1, 2, 3]
+
+
+def test_wall_stamps_follow_the_wall_clock_again_after_a_stall() -> None:
+    """A 2 s stall at the third frame (a slow consumer, a paused process): the pacer gives up on catching up, and
+    the stamps now catch up with the wall clock too — they had lagged it by every stall so far, so that a later
+    restart jumped ahead by the sum (past 10 s, a jump rather than a restarted source downstream)."""
+    clock = FakeClock()
+    wall0 = 1_700_000_000 * 10**9
+    wall = lambda: wall0 + int(round((clock.now() - 1000.0) * 1e9))  # noqa: E731
+
+    class Stalling(Sink):
+        def __call__(self, frame: Frame, seq: int, stamp: int) -> None:
+            super().__call__(frame, seq, stamp)
+            if seq == 2:
+                clock.advance(2.0)
+
+    sink = Stalling()
+    run_replay(memory(8), ReplayPlan(rate=1.0, stamps="wall"), sink, clock=clock, wall_ns=wall)
+    stamps = [t for _, _, t in sink.out]
+    assert all(b > a for a, b in zip(stamps, stamps[1:]))
+    # every frame after the stall is stamped within one frame period of the wall clock at its publication
+    assert abs(stamps[-1] - wall()) < 150 * MS
+    assert stamps[3] - stamps[2] > 1900 * MS  # the stall shows in the stamps as it did on the wall
+
+
+def test_a_stall_is_reported_as_it_happens() -> None:
+    """The replay service counted `late` only once the replay returned; a looping replay (the stack's) never
+    returns, so its heartbeats never showed a stall."""
+    clock = FakeClock()
+    seen_at: list[int] = []
+
+    class Stalling(Sink):
+        def __call__(self, frame: Frame, seq: int, stamp: int) -> None:
+            super().__call__(frame, seq, stamp)
+            if seq == 2:
+                clock.advance(2.0)
+
+    sink = Stalling()
+    run_replay(memory(6), ReplayPlan(rate=1.0), sink, clock=clock, on_late=lambda: seen_at.append(len(sink.out)))
+    assert seen_at == [3]  # during the run, at the frame after the stall

@@ -41,3 +41,16 @@ def test_failures_in_a_row_are_failing_until_one_frame_goes_through() -> None:
     m.failure(5.0, "x")
     m.failure(6.0, "x")
     assert m.assess(6.0).state == OK  # the count restarted at the output
+
+
+def test_one_failed_frame_then_silence_is_no_stall() -> None:
+    """The frame was dealt with (it raised); nothing waits after it. It had read as `stalled` 5 s later, and under
+    the watchdog the service exited 70 for one bad frame."""
+    m = ProgressMonitor()
+    m.input(0.0)
+    m.failure(0.01, "ValueError: bad frame")
+    assert m.assess(16.0).state == "ok"
+    for k in range(5):  # five in a row is still failing
+        m.input(20.0 + k)
+        m.failure(20.0 + k, "ValueError: bad frame")
+    assert m.assess(30.0).state == "failing"

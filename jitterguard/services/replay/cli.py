@@ -88,7 +88,7 @@ class _Progress:
 def replay_command(
     source: SourceArg,
     rate: RateOpt = "1",
-    loop: Annotated[bool, typer.Option("--loop", help="Start over at the end, forever. With --stamps recorded, seq and stamps keep increasing across passes; with --stamps wall every pass is a restarted source (seq from 0 again, time going on), which the tracker and classifier take as a restart.")] = False,
+    loop: Annotated[bool, typer.Option("--loop", help="Start over at the end, forever. With --stamps recorded, seq and stamps keep increasing across passes; with --stamps wall too (stamps on the wall clock, going on): every frame follows the last, and the jump back to the recording's start is absorbed by the tracker's gates.")] = False,
     start: StartOpt = 0,
     limit: LimitOpt = None,
     on_error: OnErrorOpt = "skip",

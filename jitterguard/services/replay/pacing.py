@@ -55,7 +55,8 @@ class RealClock:
     def sleep(self, seconds: float) -> bool:
         if seconds <= 0:
             return not self._stop.is_set()
-        return not self._stop.wait(seconds)
+        # a rate of 1e-12 asks for longer than any timer can wait (it had raised OverflowError after one frame)
+        return not self._stop.wait(min(seconds, threading.TIMEOUT_MAX))
 
 
 class Pacer:
@@ -77,6 +78,10 @@ class Pacer:
         wall0, stamp0 = self._anchor
         assert self.rate is not None
         return wall0 + (stamp_ns - stamp0) / 1e9 / self.rate
+
+    def anchor(self, stamp_ns: int) -> None:
+        """Pace from now on as if ``stamp_ns`` were due now (the stamps were moved: :meth:`Restamper.catch_up`)."""
+        self._anchor = (self.clock.now(), stamp_ns)
 
     def wait(self, stamp_ns: int) -> bool:
         """Sleep until ``stamp_ns`` is due. Returns False if the sleep was interrupted by a stop."""
@@ -138,3 +143,12 @@ class Restamper:
         self._last_in = stamp_ns
         self._last_out = out
         return out
+
+    def catch_up(self, lag_ns: int) -> int:
+        """Move the timeline ``lag_ns`` forward (``--stamps wall`` after a stall the pacer gave up on: the stamps
+        follow the wall clock again instead of lagging it by every stall so far) and return the last stamp so
+        moved."""
+        if lag_ns > 0 and self._last_out is not None:
+            self._offset += lag_ns
+            self._last_out += lag_ns
+        return self._last_out if self._last_out is not None else 0

@@ -40,11 +40,13 @@ class ReplayPlan:
     """``recorded``: the recording's stamps (shifted forward across loop passes); ``wall``: the first frame is
     stamped with the wall clock and the rest keep the recorded spacing after it (see :class:`Restamper`).
 
-    Looping on ``wall`` stamps, every pass after the first is a restarted source: seq begins again at
-    ``seq_start`` while time goes on, as when supervisord restarts the replay. The jump back to the start of the
-    recording is a discontinuity of the world (objects and ego teleport); a consumer must take it as a restart
-    (:mod:`jitterguard.stream_order`: the classifier starts its windows afresh) and not as motion. A recording of
-    one frame has no such jump and keeps counting."""
+    Looping, seq keeps counting and stamps keep going on across passes, on either kind of stamps: every frame
+    follows the one before (:mod:`jitterguard.stream_order`). The jump back to the start of the recording is a
+    discontinuity of the world (objects and ego teleport) that the tracker's gates absorb: a parked object stands
+    where it stood and keeps its track and window, a mover far from where it started gets a new track. (Until 3
+    Dec 2026 a wall-stamped pass began seq again as a restarted source; a pass shorter than the confirmation of
+    a restart — 3 frames and 0.3 s at the consumer — was then dropped by the tracker and the classifier, pass after
+    pass, forever.)"""
 
     def __post_init__(self) -> None:
         if self.start < 0:
@@ -116,10 +118,13 @@ def run_replay(
     on_error: Callable[[FrameError], None] | None = None,
     on_published: Callable[[Frame, int], None] | None = None,
     wall_ns: Callable[[], int] = time.time_ns,
+    on_late: Callable[[], None] | None = None,
 ) -> ReplayStats:
     """Replay ``source`` through ``emit`` according to ``plan`` and return what happened.
 
-    ``wall_ns`` is the wall clock that ``plan.stamps == 'wall'`` starts the timeline at (injectable for tests).
+    ``wall_ns`` is the wall clock that ``plan.stamps == 'wall'`` starts the timeline at (injectable for tests);
+    ``on_late`` is called at each stall the pacer gave up catching up on (as it happens: a looping replay never
+    returns its stats).
     Raises :class:`SourceError` if ``--start`` lies past the end of the recording (nothing to replay).
     """
     stop = stop or threading.Event()
@@ -132,8 +137,6 @@ def run_replay(
     while not stop.is_set():
         if stats.passes:
             restamp.begin_pass()
-            if plan.stamps == "wall" and good > 1:
-                seq = plan.seq_start
         positions = good = 0
         for item in _window(source, plan.start, plan.limit):
             positions += 1
@@ -153,9 +156,16 @@ def run_replay(
                     return stats
                 continue
             stamp = restamp(item.stamp_ns)
+            late_before = pacer.late
             if not pacer.wait(stamp):
                 stats.interrupted = True
                 break
+            if pacer.late != late_before:
+                if on_late is not None:
+                    on_late()
+                if plan.stamps == "wall":  # a stall: the stamps go back to the wall clock
+                    stamp = restamp.catch_up(wall_ns() - stamp)
+                    pacer.anchor(stamp)
             emit(item, seq, stamp)
             good += 1
             stats.published += 1
