@@ -125,7 +125,9 @@ def test_summary_adds_up_the_run(stacks):
     assert data["frames"]["replayed"] > 20
     assert data["restarts"]["source_restarts"] == 0 and data["restarts"]["tracker_resets"] == 0
     assert data["restarts"]["classifier_upstream_restarts"] == 0
-    assert data["frames"]["tracked"] >= data["frames"]["replayed"] - 3  # what is still in flight at the summary
+    assert not {k for k in data["dropped"] if k.startswith("tracker.dropped")}, data["dropped"]  # none held or late
+    # heartbeats come each second: the tracker's count may trail the replay's by that much (10 Hz), and no more
+    assert data["frames"]["tracked"] >= data["frames"]["replayed"] - 15
     text = jg("summary", "--name", "a", env=stacks["env"]).stdout
     assert "run summary of stack 'a'" in text and "tracks    born" in text
 
