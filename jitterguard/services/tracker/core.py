@@ -291,23 +291,25 @@ class TrackerCore:
             return rows, cols
         free_mask = np.ones(len(f), dtype=bool)
         free_mask[cols] = False
+        free = np.flatnonzero(free_mask & f.has_twist)  # few: what no track took (the rest of the frame is skipped)
+        if free.size == 0:
+            return rows, cols
+        dpos = np.stack([det.x, det.y], axis=1)
         # neither a detection nor a newborn within the main gate of an older track: that is the older track's
         # object seen off its prediction (a jumpy box, a twin), not a fast newcomer
         older = np.flatnonzero(tr.hits > 1)
         if older.size:
             reach = float(self.tables.max_dist.max())
-            dpos = np.stack([det.x, det.y], axis=1)
-            near_i, near_j = near_pairs(tr.x[older, :2], dpos, reach)
-            free_mask[near_j] = False
+            _, near = near_pairs(tr.x[older, :2], dpos[free], reach)
+            free = np.delete(free, np.unique(near))
             nb_i, _ = near_pairs(tr.x[newborn, :2], tr.x[older, :2], reach)
             newborn = np.delete(newborn, np.unique(nb_i))
-            if newborn.size == 0:
+            if newborn.size == 0 or free.size == 0:
                 return rows, cols
         since_birth = np.maximum((stamp - tr.born_ns) * 1e-9, 0.0)
         cand = gate_newborn(tr.x[:, :2], tr.label, tr.x[:, 2], (tr.model == CTRV) & (tr.orientation > 0), newborn,
-                            since_birth, np.stack([det.x, det.y], axis=1), np.stack([det.vx, det.vy], axis=1),
-                            f.label, f.area, np.flatnonzero(free_mask & f.has_twist), self.tables,
-                            self.config.max_candidates)
+                            since_birth, dpos, np.stack([det.vx, det.vy], axis=1), f.label, f.area, free,
+                            self.tables, self.config.max_candidates)
         r2, c2 = assign(len(tr), len(f), cand)
         if r2.size == 0:
             return rows, cols
