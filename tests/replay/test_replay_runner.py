@@ -168,6 +168,19 @@ def test_a_wall_stamped_loop_of_one_frame_keeps_counting() -> None:
     assert [s for _, s, _ in sink.out] == [0, 1, 2, 3]
 
 
+class StallingSink(Sink):
+    """A sink that stalls the clock for ``seconds`` once it has taken frame ``at_seq`` (a slow consumer)."""
+
+    def __init__(self, clock: FakeClock, at_seq: int = 2, seconds: float = 2.0) -> None:
+        super().__init__()
+        self.clock, self.at_seq, self.seconds = clock, at_seq, seconds
+
+    def __call__(self, frame: Frame, seq: int, stamp: int) -> None:
+        super().__call__(frame, seq, stamp)
+        if seq == self.at_seq:
+            self.clock.advance(self.seconds)
+
+
 def test_wall_stamps_follow_the_wall_clock_again_after_a_stall() -> None:
     """A 2 s stall at the third frame (a slow consumer, a paused process): the pacer gives up on catching up, and
     the stamps now catch up with the wall clock too — they had lagged it by every stall so far, so that a later
@@ -176,13 +189,7 @@ def test_wall_stamps_follow_the_wall_clock_again_after_a_stall() -> None:
     wall0 = 1_700_000_000 * 10**9
     wall = lambda: wall0 + int(round((clock.now() - 1000.0) * 1e9))  # noqa: E731
 
-    class Stalling(Sink):
-        def __call__(self, frame: Frame, seq: int, stamp: int) -> None:
-            super().__call__(frame, seq, stamp)
-            if seq == 2:
-                clock.advance(2.0)
-
-    sink = Stalling()
+    sink = StallingSink(clock)
     run_replay(memory(8), ReplayPlan(rate=1.0, stamps="wall"), sink, clock=clock, wall_ns=wall)
     stamps = [t for _, _, t in sink.out]
     assert all(b > a for a, b in zip(stamps, stamps[1:]))
@@ -197,12 +204,6 @@ def test_a_stall_is_reported_as_it_happens() -> None:
     clock = FakeClock()
     seen_at: list[int] = []
 
-    class Stalling(Sink):
-        def __call__(self, frame: Frame, seq: int, stamp: int) -> None:
-            super().__call__(frame, seq, stamp)
-            if seq == 2:
-                clock.advance(2.0)
-
-    sink = Stalling()
+    sink = StallingSink(clock)
     run_replay(memory(6), ReplayPlan(rate=1.0), sink, clock=clock, on_late=lambda: seen_at.append(len(sink.out)))
     assert seen_at == [3]  # during the run, at the frame after the stall
