@@ -442,7 +442,7 @@ class ClassifierService(Service):
             self.counters.inc("rejected.classifier/config")
             query.reply_err(encode(ConfigReply(ok=False, config=self.core.config, error=str(exc))))
             return
-        except Exception as exc:  # worker stuck or stopping: withdraw the write, so that "not applied" stays true
+        except Exception:  # worker stuck or stopping: withdraw the write, so that "not applied" stays true
             if fut.cancel():
                 why = f"the classifier's worker did not take it within {CONFIG_APPLY_TIMEOUT_S:g} s"
             else:  # taken meanwhile: what came of it
