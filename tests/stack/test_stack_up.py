@@ -324,15 +324,20 @@ def test_a_detached_stack_whose_tracker_dies_after_starting_is_not_called_starte
     assert not Supervisor(rd).running()
 
 
+def _detached_bag_stack(tmp_path: Path, name: str) -> tuple[dict[str, str], Path]:
+    """``up -d`` of a 20-frame bag at detection level under a private $XDG_RUNTIME_DIR: (env, run dir)."""
+    write_bag(tmp_path / "bag", n=20)
+    env = {**os.environ, "XDG_RUNTIME_DIR": str(tmp_path / "xdg")}
+    res = jg("up", "bag", "-d", "--name", name, "--ns", f"{name}{os.getpid()}", "--router-port",
+             str(free_tcp_port()), "--no-sidecar", "--topic", DET_TOPIC, cwd=tmp_path, env=env)
+    assert res.returncode == 0, res.stdout + res.stderr
+    return env, tmp_path / "xdg" / "jitterguard" / name
+
+
 def test_a_stack_whose_run_dir_was_deleted_is_found_by_status_and_stopped_by_down(tmp_path):
     """$XDG_RUNTIME_DIR is removed at logout; the stack keeps running without its pid file and socket, and
     `status`/`down` had said there was no stack while its programs ran on."""
-    write_bag(tmp_path / "bag", n=20)
-    env = {**os.environ, "XDG_RUNTIME_DIR": str(tmp_path / "xdg")}
-    rd = tmp_path / "xdg" / "jitterguard" / "gone"
-    res = jg("up", "bag", "-d", "--name", "gone", "--ns", f"gone{os.getpid()}", "--router-port",
-             str(free_tcp_port()), "--no-sidecar", "--topic", DET_TOPIC, cwd=tmp_path, env=env)
-    assert res.returncode == 0, res.stdout + res.stderr
+    env, rd = _detached_bag_stack(tmp_path, "gone")
     from jitterguard.stack.control import pid_alive, read_pid
 
     sup_pid = read_pid(rd)
@@ -353,12 +358,7 @@ def test_a_stack_whose_run_dir_was_deleted_is_found_by_status_and_stopped_by_dow
 
 
 def test_a_stack_whose_supervisord_died_is_reported_and_down_stops_what_it_left(tmp_path):
-    write_bag(tmp_path / "bag", n=20)
-    env = {**os.environ, "XDG_RUNTIME_DIR": str(tmp_path / "xdg")}
-    rd = tmp_path / "xdg" / "jitterguard" / "orph"
-    res = jg("up", "bag", "-d", "--name", "orph", "--ns", f"orph{os.getpid()}", "--router-port",
-             str(free_tcp_port()), "--no-sidecar", "--topic", DET_TOPIC, cwd=tmp_path, env=env)
-    assert res.returncode == 0, res.stdout + res.stderr
+    env, rd = _detached_bag_stack(tmp_path, "orph")
     from jitterguard.stack.control import orphans, pid_alive, read_pid
 
     sup_pid = read_pid(rd)
