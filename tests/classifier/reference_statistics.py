@@ -45,6 +45,7 @@ def _calibrated_statistics(windows: F64, masks: HalfMasks, groups: I64, model: N
     kv = model.scale[g, 1, band, age]
     auu, avv = ku * np.maximum(vu, 0.0), kv * np.maximum(vv, 0.0)
     auv = np.sqrt(ku * kv) * cuv
+    luu, lvv = _floor_min_eigen(auu, auv, avv, variance_floor)  # the calibrated (u, v) covariance, floored
     ux, uy, vx, vy = u[..., 0], u[..., 1], v[..., 0], v[..., 1]
     cxx = auu * ux * ux + avv * vx * vx + 2 * auv * ux * vx
     cyy = auu * uy * uy + avv * vy * vy + 2 * auv * uy * vy
@@ -69,8 +70,6 @@ def _calibrated_statistics(windows: F64, masks: HalfMasks, groups: I64, model: N
         # covariance (component 0 along the line of sight, 1 the rest): Cov(e_i, e_j) = Σ_k K^k_ij h_ik h_jkᵀ,
         # K^k = (1 − m_k) I + m_k Φ^k. Positive semi-definite by construction, and Cov(e_j, e_j) = Σ'_j.
         w = np.where(valid, w_new - w_old, 0.0)  # (K, W)
-        luu = np.maximum(auu, variance_floor)
-        lvv = np.maximum(avv, variance_floor)
         l11 = np.sqrt(luu)
         l21 = auv / l11
         l22 = np.sqrt(np.maximum(lvv - l21 * l21, variance_floor * 1e-6))
@@ -99,8 +98,8 @@ def _calibrated_statistics(windows: F64, masks: HalfMasks, groups: I64, model: N
     lam = nu = None
     if track_scale_prior:  # the window's own noise scale multiplies the noise's covariance, not the view term
         assert model.track_dof is not None
-        lam, nu = track_scale(windows, valid, groups, model, ku, kv, vu, vv, u, v, model.track_dof[groups],
-                              variance_floor, corr)
+        lam, nu = track_scale(windows, valid, groups, model, np.sqrt(luu), np.sqrt(lvv), u, v,
+                              model.track_dof[groups], corr)
         a, b, c = a * lam, b * lam, c * lam
     centre = (valid[..., None] * pos).sum(1) / np.maximum(valid.sum(1), 1)[:, None]  # (K, 2): the window mean
     u_h0, _, _ = line_of_sight(np.broadcast_to(centre[:, None, :], pos.shape), sensor)
@@ -158,9 +157,8 @@ def correlation_matrices(t: F64, groups: I64, model: NoiseModel) -> tuple[F64, F
     return out[0], out[1]
 
 
-def track_scale(windows: F64, valid: NDArray[np.bool_], groups: I64, model: NoiseModel, ku: F64, kv: F64,
-                vu: F64, vv: F64, u: F64, v: F64, prior_dof: F64, variance_floor: float,
-                corr: tuple[F64, F64] | None = None) -> tuple[F64, F64]:
+def track_scale(windows: F64, valid: NDArray[np.bool_], groups: I64, model: NoiseModel, sig_u: F64, sig_v: F64,
+                u: F64, v: F64, prior_dof: F64, corr: tuple[F64, F64] | None = None) -> tuple[F64, F64]:
     """Per window: (λ, ν) — the track's own variance scale relative to its class calibration, from the
     residuals of its window about a constant-velocity fit, shrunk to 1 with ``prior_dof`` pseudo degrees of
     freedom (an inverse-gamma prior), and the degrees of freedom of the resulting Student-t statistic.
@@ -183,8 +181,7 @@ def track_scale(windows: F64, valid: NDArray[np.bool_], groups: I64, model: Nois
     S = np.zeros(len(n))
     T = np.zeros(len(n))
     T2 = np.zeros(len(n))
-    for ai, (kk, var, ax) in enumerate(((ku, vu, u), (kv, vv, v))):
-        sig = np.sqrt(np.maximum(kk * np.maximum(var, 0.0), variance_floor))  # calibrated σ
+    for ai, (sig, ax) in enumerate(((sig_u, u), (sig_v, v))):  # calibrated σ along and across the line of sight
         r = (E * ax).sum(-1) / sig * vm
         G = M * sig[:, None, :] / sig[:, :, None]
         Q = G @ corr[ai] @ np.swapaxes(G, -1, -2)

@@ -165,3 +165,30 @@ def test_inputs_the_compiled_loop_cannot_index_are_refused() -> None:
         calibrated_statistics(win, split_halves(head[:4], count[:4], 6), ok, model, **kw)
     with pytest.raises(ValueError, match="view_slide"):
         calibrated_statistics(win, masks, ok, model, view_slide=np.ones(3), **kw)
+
+
+@pytest.mark.parametrize("effective_n", ["measured", "cluster", "independent"])
+def test_a_thin_ellipse_is_floored_whatever_its_bearing(effective_n: str) -> None:
+    """A detector reporting 1e-8 m² across a box's long axis: that axis's variance is raised to the floor
+    whether the ellipse points along the line of sight or obliquely to it (flooring the along/across-sight
+    variances left an oblique thin ellipse near-singular: a 2 cm shift read as χ² ≈ 7·10⁴ at 20–45°, 7 at 0°)."""
+    w = 10
+    masks = split_halves(np.zeros(1, dtype=np.int64), np.array([w]), w)
+    model = NoiseModel.prior()
+    chi2 = []
+    for bearing in np.radians([0.0, 20.0, 45.0, 90.0]):
+        long_axis = np.array([np.cos(bearing), np.sin(bearing)])  # the object stands at (20, 0): sight along x
+        short_axis = np.array([-long_axis[1], long_axis[0]])
+        cov = 0.04 * np.outer(long_axis, long_axis) + 1e-8 * np.outer(short_axis, short_axis)
+        win = np.zeros((1, w, 9))
+        win[0, :, 0:2] = np.array([20.0, 0.0]) + 0.02 * (np.arange(w) >= w // 2)[:, None] * short_axis
+        win[0, :, 2:5] = (cov[0, 0], cov[0, 1], cov[1, 1])
+        win[0, :, 5] = np.arange(w) * 0.1
+        win[0, :, 8] = np.arange(w) + w  # established observations
+        kw = dict(variance_floor=1e-4, effective_n=effective_n, track_scale_prior=False)
+        st = calibrated_statistics(win, masks, np.zeros(1, dtype=np.int64), model, **kw)
+        ref = reference_calibrated_statistics(win, masks, np.zeros(1, dtype=np.int64), model, **kw)
+        assert st.chi2[0] == pytest.approx(ref.chi2[0], rel=1e-9)
+        chi2.append(float(st.chi2[0]))
+    assert chi2 == pytest.approx([chi2[0]] * 4, rel=1e-6)
+    assert 0.5 < chi2[0] < 20.0  # 2 cm against a 1 cm floor on each half: a handful, not thousands

@@ -170,8 +170,12 @@ def calibrated_windows(windows, old, new, n_old_a, n_new_a, groups, scale, edges
             auu[n] = ku * max(var_u, 0.0)
             avv[n] = kv * max(var_v, 0.0)
             auv[n] = math.sqrt(ku * kv) * cov_uv
-            sig[0, n] = math.sqrt(max(auu[n], floor))
-            sig[1, n] = math.sqrt(max(avv[n], floor))
+            # the smaller eigenvalue raised to the floor (not each axis: an oblique, thin ellipse would keep a
+            # near-zero variance across its long axis, and the test would fire by the ellipse's bearing)
+            low = 0.5 * (auu[n] + avv[n]) - math.sqrt(0.25 * (auu[n] - avv[n]) ** 2 + auv[n] * auv[n])
+            lift = max(0.0, floor - low)
+            sig[0, n] = math.sqrt(auu[n] + lift)
+            sig[1, n] = math.sqrt(avv[n] + lift)
             n += 1
         nf = float(n)
         dx = dy = sum_x = sum_y = 0.0

@@ -161,7 +161,7 @@ _CONFIG_DOCS: dict[str, str] = {
     "window_size": "observations kept per track (sliding window) at window_reference_hz; a slower stream keeps "
                    "proportionally fewer (at least 10), a faster one takes every k-th frame",
     "min_window": "observations needed before a track is tested (must not exceed window_size)",
-    "variance_floor": "lower bound on each half's mean predicted variance, m²",
+    "variance_floor": "lower bound on the smaller eigenvalue of each predicted covariance, m²",
     "effective_n": "`measured` (default): the variance of the half-mean difference under the calibrated serial "
                    "correlation; `cluster`: each half counts as one sample (the paper); `independent`: real counts",
     "velocity_threshold": "speed above which the baseline calls a track dynamic, m/s (classes not in "
