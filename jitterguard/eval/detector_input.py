@@ -3,7 +3,7 @@
 Why through the wire messages: what is scored offline must be what the live detector publishes. Each scan is
 built as the replay publishes it (:func:`~jitterguard.services.replay.adapter.point_cloud_message` of the
 replay's own ``ScanFrame``: x, y, z, intensity, ring and the sensor's world pose), goes through the detector
-service's steps (:func:`detect_scan`: ``scan_points`` → ``Detector.detect`` → ``publishable_detections``) and is
+service's steps (:func:`detect_scan`: ``scan_points`` → ``publishable_detections`` (``Detector.detect`` and the filter of what is published)) and is
 converted with the service's :func:`~jitterguard.services.detector.adapter.detections_payload` into the
 sensor-frame ``DetectedObjects`` the tracker receives. The tracker and classifier cores then run exactly as
 for the noise model (:func:`.pipeline.track_and_classify`).
@@ -150,8 +150,7 @@ def detect_scan(detect: Callable[[np.ndarray], Detections3D], scan: PointCloud, 
         stacker.add(scan.header.stamp, rotation, translation, crop_box(points, self_crop))
         if len(points):
             points = stacker.stack(scan.header.stamp, rotation, translation, points)
-    det = detect(points) if len(points) else Detections3D.empty(uncertainty)
-    return publishable_detections(det)[0]
+    return publishable_detections(detect, points, uncertainty=uncertainty)[0]
 
 
 def detector_frames(scans: Iterable[LabelledScan], detect: Callable[[np.ndarray], Detections3D], *,

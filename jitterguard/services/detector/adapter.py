@@ -23,7 +23,7 @@ non-finite number is dropped (and counted by the caller) first, so the payload a
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -146,10 +146,14 @@ def detections_within_limits(det: Detections3D, limits: wire.Limits = wire.LIMIT
     return (det, 0) if not dropped else (det.subset(ok), dropped)
 
 
-def publishable_detections(det: Detections3D) -> tuple[Detections3D, int, int]:
-    """``det`` as the service publishes it — without rows holding a non-finite number (:func:`finite_detections`) or
-    lying beyond the wire's limits (:func:`detections_within_limits`) — and how many of each went. The one filter
-    of the live service and the offline evaluator (``eval.detector_input.detect_scan``)."""
+def publishable_detections(detect: Callable[[np.ndarray], Detections3D], points: np.ndarray, *,
+                           uncertainty: bool) -> tuple[Detections3D, int, int]:
+    """``detect`` (e.g. ``Detector.detect``) run on the network's input ``points`` — an empty scan gives no
+    detections: the network is not run on nothing — and its detections as the service publishes them: without rows
+    holding a non-finite number (:func:`finite_detections`) or lying beyond the wire's limits
+    (:func:`detections_within_limits`), with how many of each went. The one step of the live service and the
+    offline evaluator (``eval.detector_input.detect_scan``)."""
+    det = detect(points) if len(points) else Detections3D.empty(uncertainty)
     det, nonfinite = finite_detections(det)
     det, beyond = detections_within_limits(det)
     return det, nonfinite, beyond

@@ -33,7 +33,7 @@ from ...runtime.service import _BurstLogger
 from ...schemas import LimitExceeded, keys
 from ...schemas.models import PointCloud
 from ...schemas.wire import check_pose
-from .config import DetectorParams, Detections3D
+from .config import DetectorParams
 from .adapter import class_labels, detections_payload, publishable_detections, scan_points, scan_pose
 from .sweeps import MAX_LAG_S, SweepStacker
 from .inference import Detector, crop_box
@@ -208,17 +208,15 @@ class DetectorService(Service):
         if bad:
             self.counters.inc("nonfinite_points", bad)
         if len(points) == 0:
-            det = Detections3D.empty(self.detector.config.uncertainty)
             self.counters.inc("empty_scans")
-        else:
-            if self._sweeps is not None:
-                rotation, translation = scan_pose(scan)
-                with self._sweeps_lock:
-                    points = self._sweeps.stack(scan.header.stamp, rotation, translation, points)
-                    stacked = self._sweeps.last_stacked
-                self.counters.set("stacked_sweeps_last", stacked)
-            det = self.detector.detect(points)
-        det, dropped, beyond = publishable_detections(det)
+        elif self._sweeps is not None:
+            rotation, translation = scan_pose(scan)
+            with self._sweeps_lock:
+                points = self._sweeps.stack(scan.header.stamp, rotation, translation, points)
+                stacked = self._sweeps.last_stacked
+            self.counters.set("stacked_sweeps_last", stacked)
+        det, dropped, beyond = publishable_detections(self.detector.detect, points,
+                                                      uncertainty=self.detector.config.uncertainty)
         if dropped:
             self.counters.inc("nonfinite_detections", dropped)
             self._error_log.warn(f"scan seq {scan.header.seq}: dropped {dropped} detection(s) holding a"
