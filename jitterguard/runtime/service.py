@@ -106,12 +106,15 @@ class Service:
 
     name = "service"
 
-    def __init__(self, opts: ZenohOptions) -> None:
+    def __init__(self, opts: ZenohOptions, *, stop_event: threading.Event | None = None) -> None:
+        """Opens the session, waiting for the router while it is not up; ``stop_event`` (default: a new one)
+        ends that wait — set by whoever handles the process's signals before the service runs (the sidecar's
+        server) — and then the service's life."""
         self.opts = opts
         self.ns = opts.ns
         self.log = logging.getLogger(f"jitterguard.{self.name}")
         self.counters = Counters()
-        self.stop_event = threading.Event()
+        self.stop_event = stop_event or threading.Event()
         self.started_at = time.monotonic()
         self.last_seq = -1
         self.progress: ProgressMonitor | None = None

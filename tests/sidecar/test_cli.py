@@ -100,6 +100,34 @@ def test_real_process_serves_and_stops_on_sigterm() -> None:
 
 
 @pytest.mark.integration
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
+def test_a_sidecar_waiting_for_its_router_stops_on_a_signal(sig: signal.Signals) -> None:
+    """The session's open waits for the router inside the server's startup, where uvicorn only notes a signal:
+    the sidecar had ignored SIGTERM and Ctrl-C there, for as long as no router came (until SIGKILL)."""
+    port, nobody = free_tcp_port(), free_tcp_port()  # nothing listens on the second
+    env = {k: v for k, v in os.environ.items() if k != "JG_API_TOKEN"}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "jitterguard.cli", "sidecar", "--ns", "sc-wait", "--port", str(port),
+         "--connect", f"tcp/127.0.0.1:{nobody}", "--log-level", "INFO"],
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        assert proc.stdout is not None
+        lines: list[str] = []
+        for line in proc.stdout:  # until it says it waits for the router
+            lines.append(line)
+            if "cannot open the Zenoh session" in line:
+                break
+        assert proc.poll() is None, "".join(lines)
+        proc.send_signal(sig)
+        assert proc.wait(timeout=20) == 0, "".join(lines)
+        assert "stopped while waiting for the router" in "".join(lines) + proc.stdout.read()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+@pytest.mark.integration
 @pytest.mark.slow
 def test_bench_prints_json() -> None:
     """A tiny real run of ``jitterguard bench sidecar --json`` (separate processes): the JSON has the

@@ -8,7 +8,9 @@ every error into ``{"detail": ...}``.
 
 from __future__ import annotations
 
+import logging
 import os
+import threading
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from dataclasses import dataclass, field
@@ -65,18 +67,29 @@ def _page() -> str:
     return resources.files(__package__).joinpath("static/index.html").read_text(encoding="utf-8")
 
 
-def create_app(settings: SidecarSettings) -> FastAPI:
-    """Build the sidecar app; its Zenoh session opens at startup and closes at shutdown (lifespan)."""
+def create_app(settings: SidecarSettings, *, stopping: threading.Event | None = None) -> FastAPI:
+    """Build the sidecar app; its Zenoh session opens at startup and closes at shutdown (lifespan).
+
+    ``stopping``: set by the server on SIGINT/SIGTERM. The session's open waits for the router as long as it is
+    not up, inside the server's startup, where the server only notes a signal; this event ends that wait, and
+    the app then starts without a session so the server can carry out the stop it was asked for."""
     metrics = SidecarMetrics()
     ctx = SidecarContext(api_token=settings.api_token, metrics=metrics, page=_page(),
                          broker=EventBroker(on_drop=metrics.sse_dropped.inc, on_count=metrics.sse_clients.set))
 
     @asynccontextmanager
     async def lifespan(_app: FastAPI) -> AsyncIterator[None]:
-        ctx.client = ClassifierClient(settings.zenoh, poll_period_s=settings.poll_period_s,
-                                      query_timeout_s=settings.query_timeout_s,
-                                      stale_after_s=settings.stale_after_s, metrics=metrics,
-                                      api_token=settings.api_token)
+        try:
+            ctx.client = ClassifierClient(settings.zenoh, poll_period_s=settings.poll_period_s,
+                                          query_timeout_s=settings.query_timeout_s,
+                                          stale_after_s=settings.stale_after_s, metrics=metrics,
+                                          api_token=settings.api_token, stop_event=stopping)
+        except Exception:
+            if stopping is None or not stopping.is_set():
+                raise
+            logging.getLogger("jitterguard.sidecar").info("stopped while waiting for the router")
+            yield  # nothing opened: the server goes on to the stop it was asked for
+            return
         ctx.client.add_listener(ctx.broker.publish)
         try:
             yield

@@ -117,10 +117,11 @@ def serve(settings: SidecarSettings, host: str, port: int, log_level: str = "INF
 
     sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
 
-    config = uvicorn.Config(create_app(settings), host=host, port=port, log_level=log_level.lower(),
-                            access_log=log_level.upper() == "DEBUG", timeout_graceful_shutdown=2,
-                            lifespan="on")
-    _clean_exit_server_class()(config).run()
+    stopping = threading.Event()  # a signal during startup ends the wait for the router (create_app)
+    config = uvicorn.Config(create_app(settings, stopping=stopping), host=host, port=port,
+                            log_level=log_level.lower(), access_log=log_level.upper() == "DEBUG",
+                            timeout_graceful_shutdown=2, lifespan="on")
+    _clean_exit_server_class()(config, stopping).run()
 
 
 def _clean_exit_server_class() -> type:
@@ -133,6 +134,14 @@ def _clean_exit_server_class() -> type:
         Stock uvicorn re-raises the signal once it has shut down, so the process dies "terminated by SIGTERM"
         and supervisord logs every ordinary stop as a warning; the shutdown itself was clean.
         """
+
+        def __init__(self, config: uvicorn.Config, stopping: threading.Event) -> None:
+            super().__init__(config)
+            self.stopping = stopping
+
+        def handle_exit(self, sig: int, frame: object) -> None:
+            self.stopping.set()
+            super().handle_exit(sig, frame)  # type: ignore[arg-type]
 
         @contextlib.contextmanager
         def capture_signals(self) -> Iterator[None]:

@@ -55,10 +55,11 @@ class ClassifierClient(Service):
 
     def __init__(self, opts: ZenohOptions, *, poll_period_s: float = 0.05, query_timeout_s: float = 3.0,
                  state_timeout_s: float = 1.0, stale_after_s: float = 3.0,
-                 metrics: SidecarMetrics | None = None, api_token: str | None = None) -> None:
+                 metrics: SidecarMetrics | None = None, api_token: str | None = None,
+                 stop_event: threading.Event | None = None) -> None:
         """``api_token``: sent with every config write (the query's attachment); the classifier checks it
-        against its own ``JG_API_TOKEN``."""
-        super().__init__(opts)
+        against its own ``JG_API_TOKEN``. ``stop_event``: ends the wait for the router (:class:`Service`)."""
+        super().__init__(opts, stop_event=stop_event)
         self._api_token = api_token
         self.poll_period_s = poll_period_s
         self.query_timeout_s = query_timeout_s
