@@ -191,7 +191,7 @@ def _check_source(source: str | None, input_level: str, ropts: "R.ReplayOptions"
     ropts = ropts.absolute()
     try:
         src_opts = ropts.check()
-        info = probe_source(src or DEFAULT_SOURCE, src_opts)
+        info = probe_source(src or DEFAULT_SOURCE, src_opts, start=ropts.start)
         if info.kind == "detections":  # a bag of DetectedObjects: its own level
             if input_level == "points":
                 fail(f"{source}: holds detections ({info.name}); --input points needs scans")
@@ -200,7 +200,7 @@ def _check_source(source: str | None, input_level: str, ropts: "R.ReplayOptions"
             mode = input_mode(StackSpec(input=input_level))
         if mode == "detections" and info.kind == "points":
             ropts = replace(ropts, level="detections")
-            info = probe_source(src or DEFAULT_SOURCE, ropts.check())
+            info = probe_source(src or DEFAULT_SOURCE, ropts.check(), start=ropts.start)
     except (ValueError, SourceError) as exc:
         fail(" ".join(str(exc).split()))
     return src, mode, ropts, list(info.warnings)

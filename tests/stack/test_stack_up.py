@@ -208,6 +208,9 @@ def test_sources_that_cannot_be_replayed_are_refused_before_anything_starts(tmp_
         (("scans", "--topic", "/x"), "--topic does not apply"),
         (("synthetic:nope",), "unknown scenario"),
         (("bag", "--input", "points", "--topic", DET_TOPIC), "--input points needs scans"),
+        # --start past the end: the replay would refuse it three times and the stack would be stopped
+        (("bag", "--start", "3"), "--start 3 is past the end of"),
+        (("synthetic:mixed", "--scenario-duration", "1", "--start", "10"), "--start 10 is past the end of synthetic:mixed"),
     ]
     times = {}
     for args, reason in cases:

@@ -13,9 +13,9 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Literal
 
-from .frames import Frame, FrameError, Item, SourceError
+from .frames import Frame, FrameError, Item
 from .pacing import Clock, Pacer, RealClock, Restamper
-from .sources.base import Source
+from .sources.base import Source, past_end
 
 OnError = Literal["skip", "stop"]
 Stamps = Literal["recorded", "wall"]
@@ -180,9 +180,7 @@ def run_replay(
         if stats.interrupted:
             break
         if positions == 0 and stats.passes == 1:
-            n = source.info.num_frames
-            where = f" ({n} frames)" if n is not None else ""
-            raise SourceError(f"--start {plan.start} is past the end of {source.info.name}{where}")
+            raise past_end(plan.start, source.info)
         if not plan.loop or good == 0:  # a loop over a recording with no readable frame would spin forever
             break
         if plan.passes is not None and stats.passes >= plan.passes:

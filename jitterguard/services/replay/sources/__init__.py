@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..frames import DEFAULT_PERIOD_NS, FrameError, SourceError, SourceInfo
-from .base import MemorySource, Source
+from .base import MemorySource, Source, past_end
 
 __all__ = ["Source", "MemorySource", "SourceOptions", "SourceError", "open_source", "probe_source",
            "SYNTHETIC_PREFIX"]
@@ -144,13 +144,14 @@ def open_source(spec: str, opts: SourceOptions | None = None) -> Source:
     raise SourceError(f"{path}: unknown recording type (expected .bin, .pcd, .mcap, .db3, .bag or a folder)")
 
 
-def probe_source(spec: str, opts: SourceOptions | None = None) -> SourceInfo:
+def probe_source(spec: str, opts: SourceOptions | None = None, *, start: int = 0) -> SourceInfo:
     """Check SOURCE without replaying it: what ``jitterguard up`` does before it starts anything.
 
     A synthetic scenario is checked by name and parameters only (generating it takes seconds, and the replay
     process does that). Anything else is opened with its reader, which checks the kind, tables, topics and
-    poses, and read until its first frame reads (at most :data:`PROBE_FRAMES`). Raises :class:`SourceError`
-    with the reader's own one-line message.
+    poses, and read from frame ``start`` (the replay's ``--start``) until a frame reads (at most
+    :data:`PROBE_FRAMES`). Raises :class:`SourceError` with the reader's own one-line message, or the replay's
+    when ``start`` lies past the end.
     """
     opts = opts or SourceOptions()
     if spec.startswith(SYNTHETIC_PREFIX):
@@ -159,8 +160,11 @@ def probe_source(spec: str, opts: SourceOptions | None = None) -> SourceInfo:
         _only_for(opts, "synthetic", {"--lidar"})
         from .synthetic import check_synthetic
 
-        return check_synthetic(spec[len(SYNTHETIC_PREFIX) :], duration_s=opts.duration_s, rate_hz=opts.rate_hz,
+        info = check_synthetic(spec[len(SYNTHETIC_PREFIX) :], duration_s=opts.duration_s, rate_hz=opts.rate_hz,
                                level=opts.level, lidar=opts.lidar)
+        if info.num_frames is not None and start >= info.num_frames:
+            raise past_end(start, info)
+        return info
     try:
         src = open_source(spec, opts)
     except SourceError:
@@ -170,7 +174,7 @@ def probe_source(spec: str, opts: SourceOptions | None = None) -> SourceInfo:
     with src:
         errors: list[str] = []
         try:
-            for item in src.frames(0):
+            for item in src.frames(start):
                 if not isinstance(item, FrameError):
                     return src.info
                 errors.append(str(item))
@@ -182,4 +186,6 @@ def probe_source(spec: str, opts: SourceOptions | None = None) -> SourceInfo:
             raise SourceError(f"{spec}: reading failed: {type(exc).__name__}: {exc}") from None
     if errors:
         raise SourceError(f"none of the first {len(errors)} frame(s) reads; first: {errors[0]}")
+    if start:
+        raise past_end(start, src.info)
     raise SourceError(f"{spec}: holds no frame")

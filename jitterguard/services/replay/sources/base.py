@@ -7,7 +7,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
-from ..frames import Item, SourceInfo
+from ..frames import Item, SourceError, SourceInfo
 
 
 class Source(ABC):
@@ -57,3 +57,10 @@ def listed_scans(folder: Path, is_scan: Callable[[str], bool]) -> list[Path]:
     ones (macOS' ``._*`` companions) left out."""
     return sorted((p for p in folder.iterdir() if is_scan(p.name) and not p.name.startswith(".") and p.is_file()),
                   key=natural_key)
+
+
+def past_end(start: int, info: SourceInfo) -> SourceError:
+    """The error of a ``--start`` at or past the last frame of a source: nothing to replay (the replay's and
+    ``jitterguard up``'s probe's one message)."""
+    where = f" ({info.num_frames} frames)" if info.num_frames is not None else ""
+    return SourceError(f"--start {start} is past the end of {info.name}{where}")
