@@ -177,6 +177,10 @@ def _print_summary(rd: Path, *, as_json: bool = False) -> bool:
     return True
 
 
+SCENARIO_DURATION = "--scenario-duration"
+"""``up``'s name for the replay's ``--duration`` (its own ``--duration`` stops a foreground stack)."""
+
+
 def _check_source(source: str | None, input_level: str, ropts: "R.ReplayOptions"
                   ) -> tuple[str | None, str, "R.ReplayOptions", list[str]]:
     """Resolve and probe SOURCE: (absolute source, input mode, replay options, warnings); bad ones exit 2.
@@ -191,7 +195,7 @@ def _check_source(source: str | None, input_level: str, ropts: "R.ReplayOptions"
     ropts = ropts.absolute()
     try:
         src_opts = ropts.check()
-        info = probe_source(src or DEFAULT_SOURCE, src_opts, start=ropts.start)
+        info = probe_source(src or DEFAULT_SOURCE, src_opts, start=ropts.start, duration_flag=SCENARIO_DURATION)
         if info.kind == "detections":  # a bag of DetectedObjects: its own level
             if input_level == "points":
                 fail(f"{source}: holds detections ({info.name}); --input points needs scans")
@@ -200,7 +204,8 @@ def _check_source(source: str | None, input_level: str, ropts: "R.ReplayOptions"
             mode = input_mode(StackSpec(input=input_level))
         if mode == "detections" and info.kind == "points":
             ropts = replace(ropts, level="detections")
-            info = probe_source(src or DEFAULT_SOURCE, ropts.check(), start=ropts.start)
+            info = probe_source(src or DEFAULT_SOURCE, ropts.check(), start=ropts.start,
+                                duration_flag=SCENARIO_DURATION)
     except (ValueError, SourceError) as exc:
         fail(" ".join(str(exc).split()))
     return src, mode, ropts, list(info.warnings)
@@ -241,7 +246,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         limit: R.LimitOpt = None,
         on_error: R.OnErrorOpt = "skip",
         seed: R.SeedOpt = 0,
-        scenario_duration: Annotated[float | None, typer.Option("--scenario-duration", help="Synthetic sources: scenario length in seconds (the replay's --duration; default 60 for the built-in scenario, 20 otherwise).")] = None,
+        scenario_duration: Annotated[float | None, typer.Option(SCENARIO_DURATION, help="Synthetic sources: scenario length in seconds (the replay's --duration; default 60 for the built-in scenario, 20 otherwise).")] = None,
         lidar: R.LidarOpt = "hdl32e",
         hz: R.HzOpt = 10.0,
         scene: R.SceneOpt = None,

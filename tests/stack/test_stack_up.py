@@ -211,6 +211,7 @@ def test_sources_that_cannot_be_replayed_are_refused_before_anything_starts(tmp_
         # --start past the end: the replay would refuse it three times and the stack would be stopped
         (("bag", "--start", "3"), "--start 3 is past the end of"),
         (("synthetic:mixed", "--scenario-duration", "1", "--start", "10"), "--start 10 is past the end of synthetic:mixed"),
+        (("--scenario-duration", "-5"), "--scenario-duration must be in (0, 600]"),  # not up's own --duration
     ]
     times = {}
     for args, reason in cases:

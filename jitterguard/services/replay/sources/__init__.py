@@ -144,14 +144,15 @@ def open_source(spec: str, opts: SourceOptions | None = None) -> Source:
     raise SourceError(f"{path}: unknown recording type (expected .bin, .pcd, .mcap, .db3, .bag or a folder)")
 
 
-def probe_source(spec: str, opts: SourceOptions | None = None, *, start: int = 0) -> SourceInfo:
+def probe_source(spec: str, opts: SourceOptions | None = None, *, start: int = 0,
+                 duration_flag: str = "--duration") -> SourceInfo:
     """Check SOURCE without replaying it: what ``jitterguard up`` does before it starts anything.
 
     A synthetic scenario is checked by name and parameters only (generating it takes seconds, and the replay
     process does that). Anything else is opened with its reader, which checks the kind, tables, topics and
     poses, and read from frame ``start`` (the replay's ``--start``) until a frame reads (at most
     :data:`PROBE_FRAMES`). Raises :class:`SourceError` with the reader's own one-line message, or the replay's
-    when ``start`` lies past the end.
+    when ``start`` lies past the end; ``duration_flag`` names the option that set a scenario's length.
     """
     opts = opts or SourceOptions()
     if spec.startswith(SYNTHETIC_PREFIX):
@@ -161,7 +162,7 @@ def probe_source(spec: str, opts: SourceOptions | None = None, *, start: int = 0
         from .synthetic import check_synthetic
 
         info = check_synthetic(spec[len(SYNTHETIC_PREFIX) :], duration_s=opts.duration_s, rate_hz=opts.rate_hz,
-                               level=opts.level, lidar=opts.lidar)
+                               level=opts.level, lidar=opts.lidar, duration_flag=duration_flag)
         if info.num_frames is not None and start >= info.num_frames:
             raise past_end(start, info)
         return info

@@ -38,14 +38,15 @@ def _lidar() -> Any:
 
 
 def check_synthetic(name: str, *, duration_s: float = 20.0, rate_hz: float = 10.0, level: str = "points",
-                    lidar: str = "hdl32e") -> SourceInfo:
+                    lidar: str = "hdl32e", duration_flag: str = "--duration") -> SourceInfo:
     """What :class:`SyntheticSource` would say about these parameters, without generating the scenario; raises
     :class:`SourceError` for the ones it would refuse — among them a scenario shorter than one frame, which
-    would publish nothing while the stack that checked it came up as if it were replaying."""
+    would publish nothing while the stack that checked it came up as if it were replaying. ``duration_flag``:
+    the option the caller's user set ``duration_s`` with (``jitterguard up``'s ``--scenario-duration``)."""
     if name not in SCENARIOS:
         raise SourceError(f"synthetic:{name}: unknown scenario (have: {', '.join(SCENARIOS)})")
     if not (0 < duration_s <= MAX_DURATION_S) or not (rate_hz > 0):
-        raise SourceError(f"synthetic:{name}: --duration must be in (0, {MAX_DURATION_S:g}] s and the frame rate"
+        raise SourceError(f"synthetic:{name}: {duration_flag} must be in (0, {MAX_DURATION_S:g}] s and the frame rate"
                           " positive")
     _world()
     if level == "points":
@@ -60,7 +61,7 @@ def check_synthetic(name: str, *, duration_s: float = 20.0, rate_hz: float = 10.
     n = frame_count(duration_s, rate_hz)
     if n < 1:
         raise SourceError(f"synthetic:{name}: {duration_s:g} s at {rate_hz:g} Hz holds no whole frame; make"
-                          " --duration × the frame rate at least 1")
+                          f" {duration_flag} × the frame rate at least 1")
     return SourceInfo(name=f"synthetic:{name}", kind=level, num_frames=n,
                       notes=[f"{n} frames at {rate_hz:g} Hz" + (f", {lidar}" if level == "points" else "")])
 
