@@ -494,6 +494,26 @@ def test_a_fifo_or_device_is_refused_without_being_read(tmp_path: Path) -> None:
             read_calibration(path)
 
 
+@pytest.mark.parametrize("path", ["/proc/self/status", "/proc/version", "/proc/self/cmdline",
+                                  "/sys/kernel/mm/transparent_hugepage/enabled"])
+def test_a_kernel_file_is_refused_the_same_way_whatever_it_holds(path: str, tmp_path: Path) -> None:
+    """/proc and /sys files stat as regular: they were read, and the refusal told their YAML's line and column —
+    a description of the file to whoever may write the config. Reached through a link too."""
+    link = tmp_path / "cal.yaml"
+    link.symlink_to(path)
+    for p in (Path(path), link):
+        with pytest.raises(CalibrationFileError) as exc:
+            read_calibration(p)
+        assert str(exc.value) == f"{p}: a kernel file, not a calibration file"
+
+
+def test_an_empty_file_is_refused_unread(tmp_path: Path) -> None:
+    empty = tmp_path / "empty.yaml"
+    empty.touch()
+    with pytest.raises(CalibrationFileError, match="empty, not a calibration file"):
+        read_calibration(empty)
+
+
 @pytest.mark.parametrize("path", ["cal\x00.yaml", "cal\udbf1.yaml"])
 def test_a_path_no_file_system_holds_is_refused_and_the_message_encodes(path: str) -> None:
     """A NUL byte or a lone surrogate (a config write can carry either) is a clean refusal whose message the

@@ -73,16 +73,27 @@ def parse_calibration(text: str, where: str = "calibration") -> NoiseModel:
         raise CalibrationFileError(f"{where}: {exc}") from None
 
 
+KERNEL_FILES = ("/proc/", "/sys/")
+"""Where the kernel's own files live (Linux): never read as a calibration."""
+
+
 def read_calibration(path: str | Path) -> NoiseModel:
     """Read and validate a calibration file; :class:`CalibrationFileError` (one line) when it cannot be used."""
     p = Path(path)
     try:
-        # opened without blocking and read only if a regular file, at most MAX_BYTES of it: a FIFO, a device or a
-        # /proc file (size 0 to stat) must not stall the config queryable or fill memory
+        # opened without blocking and read only if a regular file with something in it, at most MAX_BYTES of it: a
+        # FIFO or a device must not stall the config queryable or fill memory, and the kernel's files (under /proc
+        # and /sys: "regular", of size 0 or 4096 to stat, whatever they hold) are no calibration — read, their
+        # YAML errors would describe their contents to whoever may write the config
+        if os.path.realpath(p).startswith(KERNEL_FILES):
+            raise CalibrationFileError(f"{p}: a kernel file, not a calibration file")
         fd = os.open(p, os.O_RDONLY | os.O_NONBLOCK)
         with os.fdopen(fd, "rb") as fh:
-            if not stat.S_ISREG(os.fstat(fh.fileno()).st_mode):
+            st = os.fstat(fh.fileno())
+            if not stat.S_ISREG(st.st_mode):
                 raise CalibrationFileError(f"{p}: not a regular file, not a calibration file")
+            if st.st_size == 0:
+                raise CalibrationFileError(f"{p}: empty, not a calibration file")
             raw = fh.read(MAX_BYTES + 1)
         if len(raw) > MAX_BYTES:
             raise CalibrationFileError(f"{p}: larger than {MAX_BYTES} bytes, not a calibration file")
