@@ -36,7 +36,7 @@ from ..services.replay.options import absolute_source
 from ..services.replay.sources import SourceError, probe_source
 from ..services.sidecar.core import bind_refusal
 from . import summary
-from .control import StackUnavailable, Supervisor, orphans, stop_lost, stop_orphans, tail
+from .control import StackUnavailable, Supervisor, orphans, running_run_dirs, stop_lost, stop_orphans, tail
 from .status import collect, load_spec, render_table, save_spec
 from .supervisor import DEFAULT_SCENARIO_S, DEFAULT_SOURCE, StackSpec, input_mode, programs, render_config
 from .validate import ArgumentError, check_name, check_run_dir, check_text, port_in_use
@@ -72,16 +72,23 @@ def resolve(run_dir: str | None, name: str | None, ns: str) -> tuple[Path, str]:
     return rd, (f"{stack!r}" if not run_dir else f"in {rd}")
 
 
-def _port_owner(port: int, run_dir: Path) -> str | None:
-    """The name of another running stack (under :func:`base_dir`) that uses ``port``, if any."""
+def _port_owner(port: int, run_dir: Path) -> tuple[str, str] | None:
+    """(who, how to stop it) of another running stack that uses ``port`` — under :func:`base_dir` or in a run
+    directory of its own (``--run-dir``) — if any."""
     try:
-        others = [p for p in base_dir().iterdir() if p.is_dir() and p.resolve() != run_dir.resolve()]
+        named = [p for p in base_dir().iterdir() if p.is_dir()]
     except OSError:
-        return None
-    for other in others:
+        named = []
+    seen: set[Path] = set()
+    for other in named + running_run_dirs():
+        if other.resolve() in seen or other.resolve() == run_dir.resolve():
+            continue
+        seen.add(other.resolve())
         spec = load_spec(other)
         if spec and port in (spec.router_port, spec.sidecar_port, spec.foxglove_port) and Supervisor(other).running():
-            return spec.name
+            if other.parent.resolve() == base_dir().resolve():
+                return f"the stack {spec.name!r}", f"jitterguard down --name {spec.name}"
+            return f"the stack in {other}", f"jitterguard down --run-dir {other}"
     return None
 
 
@@ -331,9 +338,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         for p, h, flag in wanted:
             if port_in_use(h, p):
                 owner = _port_owner(p, rd)
-                who = f"the stack {owner!r}" if owner else "another program"
-                fail(f"port {p} on {h} is in use by {who}; give this stack another {flag}"
-                     + (f" (or `jitterguard down --name {owner}`)" if owner else ""))
+                fail(f"port {p} on {h} is in use by {owner[0] if owner else 'another program'}; give this stack"
+                     f" another {flag}" + (f" (or `{owner[1]}`)" if owner else ""))
         try:
             conf_text = render_config(spec, rd, progs, nodaemon=not detach)
         except ValueError as exc:

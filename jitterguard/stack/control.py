@@ -164,23 +164,39 @@ def _is_supervisord(pid: int) -> bool:
     return "supervisord" in cmdline
 
 
-def supervisord_of(run_dir: Path) -> int | None:
-    """The pid of a live supervisord started on ``run_dir``'s config, found by its command line — for a run
-    directory deleted under a running stack (``$XDG_RUNTIME_DIR`` is removed at logout), whose pid file and
-    socket went with it; None if there is none or no ``/proc`` to look in."""
-    conf = str(run_dir / CONFIG).encode()
+def live_supervisords() -> dict[int, list[bytes]]:
+    """Every live supervisord process of this host (what ``/proc`` shows), pid → command line; empty where there
+    is no ``/proc`` to look in."""
     try:
         entries = [e for e in os.listdir("/proc") if e.isdigit()]
     except OSError:
-        return None
+        return {}
+    found = {}
     for entry in entries:
         try:
             args = Path(f"/proc/{entry}/cmdline").read_bytes().split(b"\0")
         except OSError:
             continue
-        if any(b"supervisord" in a for a in args[:3]) and conf in args and pid_alive(int(entry)):
-            return int(entry)
-    return None
+        if any(b"supervisord" in a for a in args[:3]) and pid_alive(int(entry)):
+            found[int(entry)] = args
+    return found
+
+
+def supervisord_of(run_dir: Path) -> int | None:
+    """The pid of a live supervisord started on ``run_dir``'s config, found by its command line — for a run
+    directory deleted under a running stack (``$XDG_RUNTIME_DIR`` is removed at logout), whose pid file and
+    socket went with it; None if there is none or no ``/proc`` to look in."""
+    conf = str(run_dir / CONFIG).encode()
+    return next((pid for pid, args in live_supervisords().items() if conf in args), None)
+
+
+def running_run_dirs() -> list[Path]:
+    """The run directories of every stack whose supervisord runs on this host, wherever they are (a stack started
+    with ``--run-dir`` is not under :func:`base_dir`)."""
+    suffix = ("/" + CONFIG).encode()
+    dirs = {Path(os.fsdecode(a[: -len(suffix)])) for args in live_supervisords().values() for a in args
+            if a.endswith(suffix)}
+    return sorted(dirs)
 
 
 def orphans(run_dir: Path) -> dict[str, int]:

@@ -328,14 +328,32 @@ def test_a_detached_stack_whose_tracker_dies_after_starting_is_not_called_starte
     assert not Supervisor(rd).running()
 
 
-def _detached_bag_stack(tmp_path: Path, name: str) -> tuple[dict[str, str], Path]:
-    """``up -d`` of a 20-frame bag at detection level under a private $XDG_RUNTIME_DIR: (env, run dir)."""
+def _detached_bag_stack(tmp_path: Path, name: str, *, router_port: int | None = None,
+                        run_dir: Path | None = None) -> tuple[dict[str, str], Path]:
+    """``up -d`` of a 20-frame bag at detection level under a private $XDG_RUNTIME_DIR (or in ``run_dir``):
+    (env, run dir)."""
     write_bag(tmp_path / "bag", n=20)
     env = {**os.environ, "XDG_RUNTIME_DIR": str(tmp_path / "xdg")}
-    res = jg("up", "bag", "-d", "--name", name, "--ns", f"{name}{os.getpid()}", "--router-port",
-             str(free_tcp_port()), "--no-sidecar", "--topic", DET_TOPIC, cwd=tmp_path, env=env)
+    where = ["--run-dir", str(run_dir)] if run_dir else ["--name", name]
+    res = jg("up", "bag", "-d", *where, "--ns", f"{name}{os.getpid()}", "--router-port",
+             str(router_port or free_tcp_port()), "--no-sidecar", "--topic", DET_TOPIC, cwd=tmp_path, env=env)
     assert res.returncode == 0, res.stdout + res.stderr
-    return env, tmp_path / "xdg" / "jitterguard" / name
+    return env, run_dir or tmp_path / "xdg" / "jitterguard" / name
+
+
+def test_a_port_held_by_a_stack_in_its_own_run_dir_names_that_stack(tmp_path):
+    """A stack started with --run-dir is not under the stacks' folder: a clash with it had said 'another
+    program'."""
+    port = free_tcp_port()
+    env, rd = _detached_bag_stack(tmp_path, "own", router_port=port, run_dir=tmp_path / "own-run")
+    try:
+        res = jg("up", "bag", "--run-dir", str(tmp_path / "other-run"), "--router-port", str(port), "--no-sidecar",
+                 "--topic", DET_TOPIC, cwd=tmp_path, env=env)
+        assert res.returncode == 2  # after the bag's warning about its poses, one line
+        assert res.stderr.splitlines()[-1] == (f"jitterguard: error: port {port} on 127.0.0.1 is in use by the stack in {rd}; give"
+                                 f" this stack another --router-port (or `jitterguard down --run-dir {rd}`)")
+    finally:
+        assert jg("down", "--run-dir", str(rd), cwd=tmp_path, env=env).returncode == 0
 
 
 def test_a_stack_whose_run_dir_was_deleted_is_found_by_status_and_stopped_by_down(tmp_path):
