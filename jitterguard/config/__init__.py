@@ -46,7 +46,7 @@ def read_params(path: str | Path) -> dict[str, Any]:
     """A parameter file's mapping: flat, or unwrapped from Autoware's ``<node or /**>: ros__parameters:``."""
     p = Path(path)
     if not p.is_file():
-        raise ConfigError(f"config file not found: {path}")
+        raise ConfigError(f"config file not found: {path}" if not p.exists() else f"{path}: not a file")
     try:
         doc = yaml.safe_load(p.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError) as exc:
@@ -80,7 +80,7 @@ def load(model: type[M], path: str | Path | None = None, *, service: str | None 
     ``overrides`` that are not None (command-line flags: ``flags`` names each key's flag, ``--key-name`` if not);
     ConfigError names the flag, or the file and the field, that fails."""
     values: dict[str, Any] = dict(base or {})
-    origin = f"{model.__name__}"
+    origin = ""  # defaults and flags only: a rule across fields is told as it is
     if preset is not None:
         _merge(values, preset_values(service or "", preset))
         origin = f"preset {preset}"
@@ -94,11 +94,12 @@ def load(model: type[M], path: str | Path | None = None, *, service: str | None 
     except ValidationError as exc:
         err = exc.errors(include_url=False)[0]
         loc = err.get("loc", ())
+        msg = str(err.get("msg", "invalid")).removeprefix("Value error, ")  # pydantic's prefix to a rule's own words
         if loc and loc[0] in given:  # a flag's value: name the flag
             flag = (flags or {}).get(str(loc[0]), "--" + str(loc[0]).replace("_", "-"))
-            raise ConfigError(f"{flag}: {err.get('msg', 'invalid')}") from None
-        field = ".".join(str(p) for p in loc) or "(top level)"
-        raise ConfigError(f"{origin}: {field}: {err.get('msg', 'invalid')}") from None
+            raise ConfigError(f"{flag}: {msg}") from None
+        where = [w for w in (origin, ".".join(str(p) for p in loc)) if w]  # a rule across fields has no loc
+        raise ConfigError(": ".join([*where, msg])) from None
 
 
 def _merge(into: dict[str, Any], new: dict[str, Any]) -> None:

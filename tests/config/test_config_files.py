@@ -77,6 +77,21 @@ def test_a_bad_file_names_the_file_and_the_key(tmp_path) -> None:
         load(DetectorParams, p)
     with pytest.raises(ConfigError, match="not found"):
         load(DetectorParams, tmp_path / "nope.yaml")
+    with pytest.raises(ConfigError, match=f"^{tmp_path}: not a file$"):  # a folder is there, not missing
+        load(DetectorParams, tmp_path)
+
+
+def test_a_rule_across_fields_is_told_in_its_own_words(tmp_path) -> None:
+    """Broken by flags, the rule alone (it had read 'ClassifierParams: (top level): Value error, …'); broken by a
+    file, the file first."""
+    with pytest.raises(ConfigError) as exc:
+        load(ClassifierParams, overrides={"min_window": 30})
+    assert str(exc.value) == "min_window (30) must not exceed window_size (20)"
+    p = tmp_path / "c.yaml"
+    p.write_text("min_window: 30\n")
+    with pytest.raises(ConfigError) as exc:
+        load(ClassifierParams, p)
+    assert str(exc.value) == f"{p}: min_window (30) must not exceed window_size (20)"
 
 
 def test_the_classifiers_process_fields_come_from_its_file_but_never_travel(tmp_path) -> None:
