@@ -56,7 +56,7 @@ def eval_command(
                                                    " not with --nuscenes).")] = None,
     rate: Annotated[float | None, typer.Option("--rate", help="Synthetic frame rate [Hz] (default 10; not with"
                                                " --nuscenes).")] = None,
-    preset: Annotated[str | None, typer.Option("--preset", help="Classifier alpha preset: paper or authors.")] = None,
+    preset: Annotated[str | None, typer.Option("--preset", help="Classifier preset: authors, autoware-sustain, hold, paper (jitterguard/config/classifier.<name>.param.yaml).")] = None,
     alpha: Annotated[float | None, typer.Option("--alpha", help="alpha_default of the z-test (no per-class overrides).")] = None,
     velocity_threshold: Annotated[float | None, typer.Option("--velocity-threshold", help="The baseline's speed"
                                                              " cut-off for every class [m/s] (default: Autoware's"

@@ -119,7 +119,12 @@ class Service:
         self.last_seq = -1
         self.progress: ProgressMonitor | None = None
         self.exit_code = 0
-        self._watchdog_s: float | None = None  # set by run_forever
+        self._watchdog_s: float | None = None  # armed by run_forever
+        try:  # read before the session opens: a bad value must not wait for a router to be refused
+            self._watchdog_env = watchdog_period()
+        except ValueError as exc:
+            self.log.error("%s", exc)
+            raise SystemExit(2) from None
         self._reject_log = _BurstLogger(self.log)
         self._declared: list[Any] = []
         self._threads: list[threading.Thread] = []
@@ -323,12 +328,7 @@ class Service:
         """Block until SIGINT/SIGTERM (main thread) or :meth:`stop`, then close everything. With the watchdog on
         (``JG_WATCHDOG_S``, default 10 s), a service that stopped making progress exits with status 70."""
         stop_on_signals(self.stop)
-        try:
-            self._watchdog_s = watchdog_period()
-        except ValueError as exc:
-            self.log.error("%s", exc)
-            self.close()
-            raise SystemExit(2) from None
+        self._watchdog_s = self._watchdog_env
         if self._watchdog_s is not None:  # armed now: a worker may hang before the first heartbeat
             faulthandler.dump_traceback_later(self._watchdog_s + HANG_GRACE_S, exit=True)
         self.log.info("%s up (ns=%s, pid=%d)", self.name, self.ns, os.getpid())

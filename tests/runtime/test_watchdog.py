@@ -85,3 +85,15 @@ def test_a_watchdog_period_no_timer_can_wait_is_a_startup_error(monkeypatch, raw
         watchdog_period()
     monkeypatch.setenv("JG_WATCHDOG_S", "0")
     assert watchdog_period() is None
+
+
+def test_a_bad_watchdog_period_is_refused_before_the_service_waits_for_its_router():
+    """It had been read once the session was open: with no router up, the service waited on, and a typo in the
+    environment showed only when the router came."""
+    nobody = free_tcp_port()  # nothing listens there
+    res = subprocess.run([sys.executable, "-m", "jitterguard.cli", "classifier", "--connect",
+                          f"tcp/127.0.0.1:{nobody}"], env={**os.environ, "JG_WATCHDOG_S": "ten"},
+                         capture_output=True, text=True, timeout=60)
+    assert res.returncode == 2, res.stderr
+    assert "JG_WATCHDOG_S='ten' is not a number of seconds" in res.stderr
+    assert "cannot open the Zenoh session" not in res.stderr
