@@ -133,3 +133,19 @@ def test_a_restarted_seq_with_time_going_on_keeps_the_windows_and_the_confirming
     first = decided[15]  # the frame that confirmed the restart
     assert first[2] == 0  # none of its observations dropped as late
     assert min(first[1]) > min(before)  # the windows went on growing (a reset had set them all to 1)
+
+
+def test_observations_come_out_in_the_closes_order_whatever_order_they_arrived_in():
+    """Zenoh delivers a frame's tracks/{id} in any order; handed on in that order, new tracks took their rows and
+    full windows their turn in the calibration's learning differently from run to run (and from the offline
+    evaluator, which hands them on in the tracker's order)."""
+    ids = [f"{i:032x}" for i in range(1, 9)]
+    fa = _Assembler(straggler_timeout_s=1.0)
+    for i in reversed(ids[:5]):
+        fa.add_observation(ob(0, i))
+    fa.add_close(close(0, ids), now=0.0)
+    for i in (ids[7], ids[5], ids[6]):
+        fa.add_observation(ob(0, i))
+    (frame,) = fa.pop_ready(0.0)
+    assert [o.track.object_id for o in frame.observations] == ids
+

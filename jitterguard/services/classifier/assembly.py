@@ -30,7 +30,7 @@ C = TypeVar("C")  # what is stored per close
 class CompleteFrame(Generic[O, C]):
     seq: int
     tracked: C
-    observations: list[O]
+    observations: list[O]  # in the order of the close's list (the tracker's), whatever order they arrived in
     received_at: float  # when the closing message arrived (for latency)
     missing: int  # expected observations that never came
 
@@ -43,7 +43,7 @@ class FrameAssembler(Generic[O, C]):
     last_done_stamp: int | None = None
     counts: dict[str, int] = field(default_factory=dict)
     _obs: dict[int, dict[str, O]] = field(default_factory=dict)
-    _closes: dict[int, tuple[C, float, frozenset[str], int]] = field(default_factory=dict)
+    _closes: dict[int, tuple[C, float, tuple[str, ...], int]] = field(default_factory=dict)  # IDs in the close's order
     _waiting: dict[int, set[str]] = field(default_factory=dict)  # per closed seq: expected IDs not yet in
     guard: StreamGuard = field(default_factory=StreamGuard)  # over the closes: which frames to take
 
@@ -110,7 +110,7 @@ class FrameAssembler(Generic[O, C]):
         elif verdict is Verdict.JUMPED:
             self.count("jumps")
         self.guard.accept(seq, stamp_ns)
-        expected = frozenset(expected_ids)
+        expected = tuple(dict.fromkeys(expected_ids))  # the close's order, each ID once
         self._closes[seq] = (item, now, expected, stamp_ns)
         got = self._obs.get(seq, {})
         self._waiting[seq] = {i for i in expected if i not in got}
@@ -131,7 +131,9 @@ class FrameAssembler(Generic[O, C]):
             del self._closes[seq]
             del self._waiting[seq]
             bucket = self._obs.pop(seq, {})
-            observations = [o for i, o in bucket.items() if i in wanted]
+            # in the tracker's order, not the order Zenoh delivered them: new tracks get their rows, and filled
+            # windows their turn in the calibration's learning, as in any other run of the same frames (offline too)
+            observations = [bucket[i] for i in wanted if i in bucket]
             if len(observations) != len(bucket):
                 self.count("unexpected_observations", len(bucket) - len(observations))
             for stale in [s for s in self._obs if s < seq]:
