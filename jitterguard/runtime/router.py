@@ -14,7 +14,7 @@ import threading
 import zenoh
 
 from .signals import stop_on_signals
-from .zenoh_config import DEFAULT_ROUTER, ENV_CONFIG, ZenohOptions, build_config, open_session
+from .zenoh_config import DEFAULT_ROUTER, ENV_CONFIG, UnusableConfig, ZenohOptions, build_config, open_session
 
 log = logging.getLogger("jitterguard.router")
 
@@ -49,7 +49,11 @@ def run_router(listen: list[str], config_file: str | None = None, stop: threadin
     stop = stop or threading.Event()
     stop_on_signals(stop.set)
     cfg = router_config(listen, config_file)
-    session = open_session(cfg, stop=stop, log=log)  # a port still held by a router that just died: retry
+    try:
+        session = open_session(cfg, stop=stop, log=log)  # a port still held by a router that just died: retry
+    except UnusableConfig as exc:  # a missing TLS file: one line and exit 2, not a retry for ever
+        log.error("%s", exc)
+        raise SystemExit(2) from None
     log.info("zenoh router %s listening on %s", session.zid(), cfg.get_json("listen/endpoints"))
     try:
         while not stop.wait(0.5):

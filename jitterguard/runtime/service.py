@@ -36,7 +36,7 @@ from . import memtrace
 from .keyed_publishers import KeyedPublishers
 from .progress import Health, ProgressMonitor, ProgressPolicy
 from .signals import stop_on_signals
-from .zenoh_config import ZenohOptions, build_config, open_session
+from .zenoh_config import UnusableConfig, ZenohOptions, build_config, open_session
 
 M = TypeVar("M", bound=BaseModel)
 log = logging.getLogger("jitterguard")
@@ -128,7 +128,11 @@ class Service:
         self._reject_log = _BurstLogger(self.log)
         self._declared: list[Any] = []
         self._threads: list[threading.Thread] = []
-        self.session: zenoh.Session = open_session(build_config(opts), stop=self.stop_event, log=self.log)
+        try:
+            self.session: zenoh.Session = open_session(build_config(opts), stop=self.stop_event, log=self.log)
+        except UnusableConfig as exc:  # a missing TLS file: one line and exit 2, not a wait for ever
+            self.log.error("%s", exc)
+            raise SystemExit(2) from None
         self._declared.append(self.session.liveliness().declare_token(keys.alive(self.ns, self.name)))
         self._hb_pub = self.session.declare_publisher(keys.heartbeat(self.ns, self.name))
         self.spawn(self._heartbeat_loop, "heartbeat")

@@ -22,6 +22,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
 import socket
 import threading
 import time
@@ -131,11 +132,20 @@ def listen_endpoints(cfg: zenoh.Config, mode: str | None = None) -> list[str]:
     return ["tcp/[::]:7447"] if mode == "router" else ["tcp/[::]:0"]
 
 
+class UnusableConfig(ValueError):
+    """The session cannot open whatever the wait: its config names a file that is not there or not usable (a TLS
+    key or certificate). Waiting for a router would hide it for ever."""
+
+
+UNUSABLE_MARKERS = ("No such file or directory", "Permission denied", "Invalid TLS")
+"""Words of zenoh's open error that no wait will cure (the router's TLS files are missing or unreadable)."""
+
+
 def open_session(cfg: zenoh.Config, *, stop: threading.Event | None = None, timeout_s: float | None = None,
                  log: logging.Logger | None = None) -> zenoh.Session:
     """``zenoh.open(cfg)``, retried every 0.25 s while it fails (a client whose router is not up yet), until
     ``stop`` is set or ``timeout_s`` passes (then the last error is raised). Says so in ``log`` at the first
-    failure and every 30 s after."""
+    failure and every 30 s after. An error no wait will cure raises :class:`UnusableConfig` at once, in one line."""
     stop = stop or threading.Event()
     deadline = None if timeout_s is None else time.monotonic() + timeout_s
     last_log = None
@@ -143,6 +153,11 @@ def open_session(cfg: zenoh.Config, *, stop: threading.Event | None = None, time
         try:
             return zenoh.open(cfg)
         except Exception as exc:  # zenoh.ZError: e.g. "Unable to connect to any of [tcp/127.0.0.1:7447]"
+            text = str(exc)
+            if any(m in text for m in UNUSABLE_MARKERS):
+                # zenoh appends the Rust source location of each cause: not the user's business
+                line = re.sub(r" at \S+\.rs:\d+\.?", "", text.splitlines()[0] if text else "").strip()
+                raise UnusableConfig(f"cannot open the Zenoh session: {line}") from None
             now = time.monotonic()
             if stop.is_set() or (deadline is not None and now >= deadline):
                 raise

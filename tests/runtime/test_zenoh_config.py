@@ -39,3 +39,26 @@ def test_multicast_scouting_is_off_for_a_client_unless_its_file_turns_it_on(tmp_
     assert json.loads(on.get_json("scouting/multicast/enabled")) is True  # the file says so: --connect kept it
     assert json.loads(build_config(ZenohOptions(connect=("tcp/127.0.0.1:7447",)))
                       .get_json("scouting/multicast/enabled")) is False
+
+
+def test_a_router_whose_tls_files_are_missing_says_so_in_one_line_and_exits_2(tmp_path: Path) -> None:
+    """A missing TLS key had been retried every 0.25 s for ever, as if a router were not up yet (and SIGTERM then
+    ended it with a traceback): no wait cures it."""
+    import os
+    import subprocess
+    import sys
+
+    from jitterguard.runtime import free_tcp_port
+
+    missing = tmp_path / "no-such-dir"
+    cfg = tmp_path / "router.json5"
+    cfg.write_text(json.dumps({"mode": "router", "transport": {"link": {"tls": {
+        "root_ca_certificate": str(missing / "ca.pem"), "listen_certificate": str(missing / "router.pem"),
+        "listen_private_key": str(missing / "router-key.pem"), "enable_mtls": True}}}}))
+    res = subprocess.run([sys.executable, "-m", "jitterguard.cli", "router", "--zenoh-config", str(cfg), "--listen",
+                          f"tls/127.0.0.1:{free_tcp_port()}"], capture_output=True, text=True, timeout=60,
+                         env={k: v for k, v in os.environ.items() if k != "JG_ZENOH_CONFIG"})
+    assert res.returncode == 2, res.stderr
+    lines = [line for line in res.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and "cannot open the Zenoh session" in lines[0] and "No such file" in lines[0], res.stderr
+    assert ".rs:" not in lines[0] and "retrying" not in res.stderr
