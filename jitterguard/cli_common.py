@@ -90,11 +90,21 @@ def out_dir(flag: str, path: str | os.PathLike[str]) -> Path:
 
 
 def out_file(flag: str, path: str | os.PathLike[str]) -> Path:
-    """``path``'s folder created and ``path`` not a folder, before any work (one line and exit 2 otherwise)."""
+    """``path``'s folder created, ``path`` not a folder and a file there writable — tried by opening it, since a
+    folder root may "write" into can still refuse a file (``/proc``) — before any work (one line and exit 2
+    otherwise). A file the trial created is removed again."""
     p = Path(path)
     if p.is_dir():
         fail(f"{flag}: {p} is a folder; give a file name")
     out_dir(flag, p.parent)
+    existed = p.exists()
+    try:
+        with open(p, "ab"):
+            pass
+    except OSError as exc:
+        fail(f"{flag}: cannot write {p}: {exc.strerror or exc}")
+    if not existed:
+        p.unlink(missing_ok=True)
     return p
 
 

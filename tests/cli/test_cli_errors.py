@@ -118,3 +118,16 @@ def test_each_service_command_is_registered_by_the_one_area_it_loads():
         alone = typer.main.get_command(build_app((area,))[0]).commands
         assert name in alone, (name, area)
         assert [p.name for p in alone[name].params] == [p.name for p in full[name].params]
+
+
+@pytest.mark.parametrize(("args", "needle"), [
+    (["render-mcap", __file__, "--out", "r.txt"], "--out must name a .png file"),  # had been a traceback
+    (["render-mcap", __file__, "--out", "/proc/r.png"], "--out: cannot write /proc/r.png"),
+    # /proc passes a folder test for root: calibrate had run the whole recording, then died writing
+    (["calibrate", "synthetic:mixed", "--level", "detections", "--duration", "2", "--out", "/proc/x.yaml"],
+     "--out: cannot write /proc/x.yaml"),
+])
+def test_an_output_that_cannot_be_written_is_refused_before_any_work(args, needle):
+    res = run(args)
+    reason = ": No such file or directory" if "cannot write" in needle else ""
+    assert res.returncode == 2 and res.stderr.strip() == f"jitterguard: error: {needle}{reason}", res.stderr

@@ -28,6 +28,7 @@ from typing import Any
 
 import yaml
 
+from ...files import write_atomically
 from .calibration import NoiseModel
 
 FORMAT = "jitterguard-calibration/1"
@@ -48,9 +49,8 @@ def dump_calibration(model: NoiseModel, *, window: int, source: dict[str, Any] |
 
 
 def write_calibration(path: Path, model: NoiseModel, *, window: int, source: dict[str, Any] | None = None) -> None:
-    """Write ``model`` to ``path`` (parents created)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(dump_calibration(model, window=window, source=source), encoding="utf-8")
+    """Write ``model`` to ``path`` (parents created), atomically: a classifier reading it meanwhile never sees half."""
+    write_atomically(path, dump_calibration(model, window=window, source=source).encode("utf-8"))
 
 
 def parse_calibration(text: str, where: str = "calibration") -> NoiseModel:

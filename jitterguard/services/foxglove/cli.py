@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from ...cli_common import ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ZenohConfigOpt, fail, zenoh_options
+from ...cli_common import ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ZenohConfigOpt, fail, out_file, zenoh_options
 
 EXAMPLES = """
 Examples:\n
@@ -95,6 +95,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         velocity arrows) to a PNG."""
         if not Path(mcap).is_file():
             fail(f"{mcap}: no such file")
+        if not out.lower().endswith(".png"):  # matplotlib would pick the format by the suffix, or add one
+            fail("--out must name a .png file")
+        out_file("--out", out)
         from .render import RenderError, pick_frame, read_frames, render
 
         try:
