@@ -147,6 +147,8 @@ def calibrate_command(
     except Exception as exc:  # a reader that failed in a way it did not foresee: still one line
         fail(f"{recording}: cannot open: {type(exc).__name__}: {exc}")
     detector = None
+    for warning in src.info.warnings:  # e.g. a bag without --pose-topic: its scans all at the identity pose
+        print(f"jitterguard: warning: {warning}", file=sys.stderr)
     with src:
         if src.info.kind == "points":
             from .cli import load_detector

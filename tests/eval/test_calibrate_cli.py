@@ -69,3 +69,15 @@ def test_a_recording_that_pauses_or_rewinds_is_calibrated_across_it(gap_s: float
         moved.append(p)
     _, seen = calibrate_detections(moved, ClassifierConfig())
     assert len(msgs) - 4 <= seen["frames"] < len(msgs) and seen["blocks"] > 50
+
+
+def test_a_bag_without_poses_is_warned_about_as_the_replay_does(tmp_path: Path, capsys) -> None:
+    """Calibrated on the identity pose, a moving sensor's static objects look like motion and the scales come
+    out wrong: `replay` said so, `calibrate` had run silently."""
+    from replay.bagfixture import DET_TOPIC, write_bag
+
+    bag = write_bag(tmp_path / "bag", n=3)
+    with pytest.raises(SystemExit):
+        main(["calibrate", str(bag.path), "--topic", DET_TOPIC, "--out", str(tmp_path / "c.yaml")])
+    err = capsys.readouterr().err
+    assert f"jitterguard: warning: {bag.path}: no --pose-topic" in err, err

@@ -123,8 +123,10 @@ def write_bag(
     with_tf: bool = False,
     cloud_frame: str = "lidar_top",
     headless_odom: tuple[int, ...] = (),
+    empty_cloud_topic: bool = False,
 ) -> BagContents:
-    """Write the bag at ``path`` (a folder that must not exist) and return what it holds."""
+    """Write the bag at ``path`` (a folder that must not exist) and return what it holds. ``empty_cloud_topic``:
+    the cloud topic is declared but holds no message (a stack fed detections records one so)."""
     from rosbags.rosbag2 import StoragePlugin, Writer
 
     ts = typestore()
@@ -155,7 +157,8 @@ def write_bag(
             out.clouds.append(pts)
             out.stamps.append(t)
             raw = b"\x00\x01\x02 not cdr" if i == garbage_at else ts.serialize_cdr(_cloud(ts, t, pts, cloud_frame), POINTCLOUD2)
-            w.write(c_cloud, t + 1_000_000, raw)  # received 1 ms after the sensor stamp
+            if not empty_cloud_topic:
+                w.write(c_cloud, t + 1_000_000, raw)  # received 1 ms after the sensor stamp
             positions = [(10.0 + i, 2.0), (-5.0, 3.0 - i)]
             out.det_positions.append(positions)
             label = 9 if i == bad_label_at else 1

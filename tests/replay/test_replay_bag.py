@@ -118,6 +118,14 @@ def test_bag_bad_topic_choices_are_one_line_source_errors(tmp_path: Path, opts: 
         open_source(str(bag.path), opts)
 
 
+def test_an_empty_cloud_topic_is_passed_over_for_the_detections(tmp_path: Path) -> None:
+    """`up --input detections --record-ros2` writes a bag whose PointCloud2 topic holds nothing: replaying it by
+    default had said `--start 0 is past the end`, calibrating it `no track stood still`."""
+    bag = write_bag(tmp_path / "bag", n=3, empty_cloud_topic=True)
+    with open_source(str(bag.path)) as src:
+        assert src.topic == DET_TOPIC and len([i for i in src.frames() if not isinstance(i, FrameError)]) == 3
+
+
 def test_several_cloud_topics_need_topic(tmp_path: Path) -> None:
     bag = write_bag(tmp_path / "bag", n=1, second_cloud_topic=True)
     with pytest.raises(SourceError, match="several .* pick one with --topic"):

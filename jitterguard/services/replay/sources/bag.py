@@ -111,16 +111,19 @@ class BagSource(Source):
             msgtype = by_topic[topic][0].msgtype
             if msgtype not in (POINTCLOUD2, DETECTED_OBJECTS):
                 raise SourceError(f"{self.path}: topic {topic} is {msgtype}, not {POINTCLOUD2} or {DETECTED_OBJECTS}")
-        else:
+        else:  # the scans, else the detections — of the topics that hold messages (a recording of a stack fed
+            # detections has an empty scan topic beside them)
             for wanted in (POINTCLOUD2, DETECTED_OBJECTS):
-                cands = sorted(t for t, cs in by_topic.items() if cs[0].msgtype == wanted)
+                cands = sorted(t for t, cs in by_topic.items()
+                               if cs[0].msgtype == wanted and sum(c.msgcount for c in cs) > 0)
                 if len(cands) > 1:
                     raise SourceError(f"{self.path}: several {wanted} topics ({', '.join(cands)}); pick one with --topic")
                 if cands:
                     topic = cands[0]
                     break
             else:
-                raise SourceError(f"{self.path}: no {POINTCLOUD2} or {DETECTED_OBJECTS} topic (topics: {listing})")
+                raise SourceError(f"{self.path}: no {POINTCLOUD2} or {DETECTED_OBJECTS} topic with messages (topics:"
+                                  f" {listing})")
         assert topic is not None
         self.topic = topic
         self.msgtype = by_topic[topic][0].msgtype
