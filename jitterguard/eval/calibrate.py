@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
+from pydantic import ValidationError
 
 from ..cli_common import fail, out_file, progress_on
 from ..schemas.models import ClassifierConfig
@@ -131,9 +132,14 @@ def calibrate_command(
 
     try:
         bands = [float(x) for x in range_bands.split(",") if x.strip()]
+    except ValueError:
+        fail(f"--range-bands: {range_bands!r} is not a comma-separated list of distances in metres")
+    try:
         cfg = ClassifierConfig(window_size=window_size, calibration_range_bands_m=bands)
-    except ValueError as exc:
-        fail(f"--range-bands: {' '.join(str(exc).split())[:200]}")
+    except ValidationError as exc:  # the first error, named by its flag (not pydantic's dump, cut mid-URL)
+        err = exc.errors(include_url=False)[0]
+        flag = "--range-bands" if err["loc"] and err["loc"][0] == "calibration_range_bands_m" else "--window-size"
+        fail(f"{flag}: {err['msg']}")
     if not 0 < hz < 1e6 or not 0 < duration <= 3600:
         fail("--hz must be positive and --duration in (0, 3600]")
     if out.exists() and out.is_dir():

@@ -131,3 +131,14 @@ def test_an_output_that_cannot_be_written_is_refused_before_any_work(args, needl
     res = run(args)
     reason = ": No such file or directory" if "cannot write" in needle else ""
     assert res.returncode == 2 and res.stderr.strip() == f"jitterguard: error: {needle}{reason}", res.stderr
+
+
+@pytest.mark.parametrize(("bands", "needle"), [("-5", "Input should be greater than 0"),
+                                               ("nan", "Input should be a finite number"),
+                                               ("a,b", "'a,b' is not a comma-separated list of distances in metres")])
+def test_bad_range_bands_name_their_flag_in_one_line(bands, needle, tmp_path):
+    """They had printed pydantic's whole dump, cut off in the middle of its URL."""
+    res = run(["calibrate", "synthetic:mixed", "--level", "detections", "--out", str(tmp_path / "c.yaml"),
+               f"--range-bands={bands}"])
+    assert res.returncode == 2 and res.stderr.strip() == f"jitterguard: error: --range-bands: {needle}", res.stderr
+
