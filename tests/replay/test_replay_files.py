@@ -333,6 +333,8 @@ def test_open_source_refuses_bad_input_with_one_line(tmp_path: Path, spec: str, 
 
 def test_nuscenes_sweeps_adds_the_non_key_frames_between_key_frames(tmp_path: Path) -> None:
     root = make_nuscenes_root(tmp_path / "nusc")
+    # a keyframes-only dataroot (as ../shared/data's): --sweeps replays the key frames, and says so
+    assert any("holds no sweeps between its key frames" in w for w in NuScenesSource(root, sweeps=True).info.warnings)
     path = root / "v1.0-mini" / "sample_data.json"
     sds = json.loads(path.read_text())
     by = {sd["token"]: sd for sd in sds}
@@ -345,6 +347,7 @@ def test_nuscenes_sweeps_adds_the_non_key_frames_between_key_frames(tmp_path: Pa
     everything = [f.points[0, 0] for f in NuScenesSource(root, sweeps=True).frames()]
     assert keyframes == [0, 1, 2]
     assert everything == [0, 9, 1, 2]
+    assert not NuScenesSource(root, sweeps=True).info.warnings
 
 
 def test_nuscenes_sweeps_resume_at_the_next_key_frame_after_a_missing_row(tmp_path: Path) -> None:

@@ -151,9 +151,12 @@ class NuScenesSource(Source):
             kind="points",
             num_frames=len(self.records),
             notes=[f"nuScenes {self.version} scene {self.scene_name}: {len(self.records)} {channel} scans"],
-            warnings=[f"{dataroot}: the sweep chain breaks after {self.sweep_gaps} key frame(s) (a sample_data row "
-                      "it names is missing): those stretches hold only the sweeps before the break"]
-            if self.sweep_gaps else [],
+            warnings=([f"{dataroot}: the sweep chain breaks after {self.sweep_gaps} key frame(s) (a sample_data row "
+                       "it names is missing): those stretches hold only the sweeps before the break"]
+                      if self.sweep_gaps else [])
+            + ([f"{dataroot}: --sweeps, but the scene holds no sweeps between its key frames (a keyframes-only "
+                f"dataroot): replaying its {self.key_frames} key frames"]
+               if sweeps and len(self.records) == self.key_frames else []),
         )
 
     def _index(self, t: dict[str, list[dict[str, Any]]], scene: str | None, channel: str, sweeps: bool) -> None:
@@ -183,6 +186,7 @@ class NuScenesSource(Source):
         if not chain:
             raise SourceError(f"{self.dataroot}: scene {self.scene_name} has no {channel} key frames")
         self.sweep_gaps = 0
+        self.key_frames = len(chain)
         if sweeps:  # from each key frame the sweeps up to the next: a missing row costs its stretch, not the rest
             full: list[dict[str, Any]] = []
             taken: set[str] = set()
