@@ -150,6 +150,7 @@ def test_cli_on_error_stop_exits_1_naming_the_file(ns: str, tmp_path: Path) -> N
     assert proc.returncode == 1
     assert "Traceback" not in proc.stderr
     assert any("stopped at unreadable frame" in ln and "000001.bin" in ln for ln in proc.stderr.splitlines())
+    assert "skipped" not in proc.stderr  # the frame's own line had said "skipped" before the replay stopped on it
 
 
 def test_cli_sigint_stops_a_looping_replay_cleanly(ns: str, tmp_path: Path) -> None:

@@ -59,8 +59,10 @@ PoseTopicOpt = Annotated[str | None, typer.Option("--pose-topic", help="Bags: /t
 class _Progress:
     """tqdm on stderr when it is a terminal (or forced); error lines go through it so the bar stays intact."""
 
-    def __init__(self, enabled: bool, total: int | None, desc: str) -> None:
+    def __init__(self, enabled: bool, total: int | None, desc: str, *, stops: bool = False) -> None:
+        """``stops``: ``--on-error stop`` — an unreadable frame ends the replay, and its line says so."""
         self.bar: Any = None
+        self.verb = "stops the replay" if stops else "skipped"
         if enabled:
             from tqdm import tqdm
 
@@ -73,7 +75,7 @@ class _Progress:
 
     def error(self, err: FrameError) -> None:
         self.errors += 1
-        line = f"jitterguard: unreadable frame skipped: {err}"
+        line = f"jitterguard: unreadable frame {self.verb}: {err}"
         if self.bar is not None:
             self.bar.set_postfix(errors=self.errors, refresh=False)
             self.bar.write(line, file=sys.stderr)
@@ -165,7 +167,7 @@ def _run(svc: Any, src: Any, plan: ReplayPlan, wait_s: float, progress: bool | N
             if plan.limit is not None:
                 total = min(total, plan.limit)
         short = Path(src.info.name.split(" ")[0].rstrip(":")).name or src.info.name
-        bar = _Progress(progress_on(progress), total, short)
+        bar = _Progress(progress_on(progress), total, short, stops=plan.on_error == "stop")
         try:
             stats = svc.replay(src, plan, on_error=bar.error, on_published=bar.published)
         except SourceError as exc:
