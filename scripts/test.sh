@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # The test suite (unit, property and integration tests; data-dependent tests skip without ../shared).
 #
-# With no arguments the suite runs as two pytest processes side by side: the tests that start services, stacks,
-# servers and scripts (they mostly wait on other processes) beside the rest (mostly one busy core: training, ray
+# With no arguments the suite runs as two pytest processes side by side: the tests that start services, stacks
+# and servers (they mostly wait on other processes) beside the rest (mostly one busy core: training, ray
 # casting, evaluation), so a 2-core machine keeps both cores busy. Every test runs exactly once; the run fails
 # if either half fails, and the service half's report is printed after the other's. With arguments, one plain
 # pytest run of what they name.
@@ -13,8 +13,7 @@ PYTEST=(.venv/bin/python -m pytest -q -p no:cacheprovider)
 if [ "$#" -gt 0 ]; then
   exec "${PYTEST[@]}" --durations=25 "$@"
 fi
-SERVICES=(tests/stack tests/sidecar tests/integrations tests/runtime tests/cli tests/replay
-  tests/detector/test_gpu_lease_scripts.py)  # the lease scripts: subprocesses too, and this keeps the halves even
+SERVICES=(tests/stack tests/sidecar tests/integrations tests/runtime tests/cli tests/replay)
 IGNORE=()
 for d in "${SERVICES[@]}"; do IGNORE+=("--ignore=$d"); done
 log=$(mktemp)
