@@ -142,8 +142,6 @@ def calibrate_command(
         fail(f"{flag}: {err['msg']}")
     if not 0 < hz < 1e6 or not 0 < duration <= 3600:
         fail("--hz must be positive and --duration in (0, 3600]")
-    if out.exists() and out.is_dir():
-        fail(f"--out: {out} is a folder")
     opts = SourceOptions(level=level, seed=seed, duration_s=duration, rate_hz=hz, scene=scene, topic=topic,
                          pose_topic=pose_topic, period_ns=int(round(1e9 / hz)))
     try:

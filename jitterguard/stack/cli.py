@@ -79,9 +79,9 @@ def _port_owner(port: int, run_dir: Path) -> tuple[str, str] | None:
         named = [p for p in base_dir().iterdir() if p.is_dir()]
     except OSError:
         named = []
-    seen: set[Path] = set()
+    seen = {run_dir.resolve()}  # this stack's own, and each other one once
     for other in named + running_run_dirs():
-        if other.resolve() in seen or other.resolve() == run_dir.resolve():
+        if other.resolve() in seen:
             continue
         seen.add(other.resolve())
         spec = load_spec(other)
