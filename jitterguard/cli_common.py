@@ -14,7 +14,7 @@ from typing import Annotated, NoReturn
 import typer
 
 from .runtime import ZenohOptions, build_config
-from .runtime.zenoh_config import ENV_CONFIG, ENV_NS
+from .runtime.zenoh_config import ENV_CONFIG, ENV_NS, tls_file_refusal
 
 NsOpt = Annotated[str, typer.Option("--ns", envvar=ENV_NS, help="Namespace: keys live under jg/{ns}/...")]
 ZenohConfigOpt = Annotated[
@@ -129,8 +129,11 @@ def zenoh_options(ns: str, zenoh_config: str | None, connect: list[str] | None, 
     if zenoh_config and not os.path.isfile(zenoh_config):
         fail(f"--zenoh-config: file not found: {zenoh_config}")
     check_endpoints([*opts.connect, *opts.listen])
-    try:  # the whole config, now: a bad file or an exposed listener is a one-line error before anything starts
-        build_config(opts)
+    try:  # the whole config, now: a bad file, an exposed listener or a missing TLS file is a one-line error
+        cfg = build_config(opts)  # before anything starts (the sidecar's open runs inside uvicorn's startup)
     except ValueError as exc:
         fail(str(exc))
+    reason = tls_file_refusal(cfg)
+    if reason:
+        fail(f"cannot open the Zenoh session: {reason}")
     return opts

@@ -141,11 +141,45 @@ UNUSABLE_MARKERS = ("No such file or directory", "Permission denied", "Invalid T
 """Words of zenoh's open error that no wait will cure (the router's TLS files are missing or unreadable)."""
 
 
+TLS_FILE_KEYS = ("root_ca_certificate", "listen_certificate", "listen_private_key", "connect_certificate",
+                 "connect_private_key")
+"""The TLS settings of a Zenoh config that name files (the ``*_base64`` twins carry the bytes themselves)."""
+
+
+def tls_file_refusal(cfg: zenoh.Config) -> str | None:
+    """Why the TLS files ``cfg`` names cannot be used (one line naming the setting and the file), or ``None``.
+
+    Checked before the open because a *client* never reports them: with ``connect/timeout_ms: -1`` (the service
+    hosts' template) its open retries the TLS link for ever without a word, so a service with a missing key
+    waited silently. Only a config with a ``tls/`` or ``quic/`` endpoint is checked (the others never read them)."""
+    mode = str(_get(cfg, "mode") or "peer")
+    endpoints = [str(e) for e in (_for_mode(_get(cfg, "connect/endpoints"), mode) or [])]  # type: ignore[union-attr]
+    endpoints += listen_endpoints(cfg, mode)
+    if not any(e.startswith(("tls/", "quic/")) for e in endpoints):
+        return None
+    for key in TLS_FILE_KEYS:
+        path = _get(cfg, f"transport/link/tls/{key}")
+        if not isinstance(path, str) or not path:
+            continue
+        try:
+            with open(path, "rb"):
+                pass
+        except OSError as exc:
+            return f"transport/link/tls/{key} {path}: {exc.strerror or exc}"
+        if not Path(path).is_file():
+            return f"transport/link/tls/{key} {path}: not a file"
+    return None
+
+
 def open_session(cfg: zenoh.Config, *, stop: threading.Event | None = None, timeout_s: float | None = None,
                  log: logging.Logger | None = None) -> zenoh.Session:
     """``zenoh.open(cfg)``, retried every 0.25 s while it fails (a client whose router is not up yet), until
     ``stop`` is set or ``timeout_s`` passes (then the last error is raised). Says so in ``log`` at the first
-    failure and every 30 s after. An error no wait will cure raises :class:`UnusableConfig` at once, in one line."""
+    failure and every 30 s after. An error no wait will cure raises :class:`UnusableConfig` at once, in one line:
+    a TLS file the config names that cannot be read (:func:`tls_file_refusal`), or an open error that says so."""
+    reason = tls_file_refusal(cfg)
+    if reason:
+        raise UnusableConfig(f"cannot open the Zenoh session: {reason}")
     stop = stop or threading.Event()
     deadline = None if timeout_s is None else time.monotonic() + timeout_s
     last_log = None

@@ -62,3 +62,55 @@ def test_a_router_whose_tls_files_are_missing_says_so_in_one_line_and_exits_2(tm
     lines = [line for line in res.stderr.splitlines() if line.strip()]
     assert len(lines) == 1 and "cannot open the Zenoh session" in lines[0] and "No such file" in lines[0], res.stderr
     assert ".rs:" not in lines[0] and "retrying" not in res.stderr
+
+
+def _client_tls_file(tmp_path: Path, tls_dir: Path, endpoint: str = "tls/127.0.0.1:1") -> str:
+    """A client config like deploy/zenoh/service-host.json5 (which retries the connect for ever) naming
+    ``tls_dir``'s files."""
+    return _file(tmp_path, json.dumps({
+        "mode": "client", "connect": {"endpoints": [endpoint], "timeout_ms": -1},
+        "transport": {"link": {"tls": {"root_ca_certificate": str(tls_dir / "ca.pem"),
+                                        "connect_certificate": str(tls_dir / "host.pem"),
+                                        "connect_private_key": str(tls_dir / "host-key.pem"),
+                                        "enable_mtls": True}}}}))
+
+
+def test_a_client_whose_tls_files_are_missing_is_refused_before_the_open_naming_the_setting(tmp_path: Path) -> None:
+    """A client's open never reports a missing TLS file: with connect/timeout_ms -1 (the service hosts' template)
+    it retried the TLS link for ever without a word, so a service with a missing key waited silently."""
+    import time
+
+    from jitterguard.runtime.zenoh_config import UnusableConfig, open_session, tls_file_refusal
+
+    tls = tmp_path / "tls"
+    tls.mkdir()
+    cfg = build_config(ZenohOptions(config_file=_client_tls_file(tmp_path, tls)))
+    t0 = time.monotonic()
+    with pytest.raises(UnusableConfig, match=r"transport/link/tls/root_ca_certificate .*ca\.pem: No such file"):
+        open_session(cfg, timeout_s=30)
+    assert time.monotonic() - t0 < 5  # refused, not retried until the timeout
+    for name in ("ca.pem", "host.pem"):
+        (tls / name).write_text("-----BEGIN CERTIFICATE-----\n")
+    assert tls_file_refusal(cfg) == f"transport/link/tls/connect_private_key {tls / 'host-key.pem'}: " \
+                                    "No such file or directory"  # the first unusable one, by its setting
+    (tls / "host-key.pem").mkdir()
+    assert tls_file_refusal(cfg).endswith("Is a directory")  # type: ignore[union-attr]
+    (tls / "host-key.pem").rmdir()
+    (tls / "host-key.pem").write_text("key")
+    assert tls_file_refusal(cfg) is None  # all there: zenoh judges their contents
+    plain = build_config(ZenohOptions(config_file=_client_tls_file(tmp_path, tmp_path / "nowhere", "tcp/127.0.0.1:1")))
+    assert tls_file_refusal(plain) is None  # no tls/ or quic/ endpoint: the files are never read
+
+
+def test_a_service_given_missing_tls_files_exits_2_with_one_line(tmp_path: Path) -> None:
+    """The sidecar opens its session inside uvicorn's startup: a refusal there was a traceback and exit 3."""
+    import os
+    import subprocess
+    import sys
+
+    cfg = _client_tls_file(tmp_path, tmp_path / "nowhere")
+    res = subprocess.run([sys.executable, "-m", "jitterguard.cli", "sidecar", "--port", "0"], capture_output=True,
+                         text=True, timeout=60, env={**os.environ, "JG_ZENOH_CONFIG": cfg})
+    assert res.returncode == 2, res.stderr
+    assert res.stderr.strip() == (f"jitterguard: error: cannot open the Zenoh session: transport/link/tls/"
+                                  f"root_ca_certificate {tmp_path / 'nowhere' / 'ca.pem'}: No such file or directory")
