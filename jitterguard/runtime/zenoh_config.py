@@ -188,9 +188,9 @@ def open_session(cfg: zenoh.Config, *, stop: threading.Event | None = None, time
             return zenoh.open(cfg)
         except Exception as exc:  # zenoh.ZError: e.g. "Unable to connect to any of [tcp/127.0.0.1:7447]"
             text = str(exc)
+            # zenoh appends the Rust source location of each cause: not the user's business
+            line = re.sub(r" at \S+\.rs:\d+\.?", "", text.splitlines()[0] if text else "").strip()
             if any(m in text for m in UNUSABLE_MARKERS):
-                # zenoh appends the Rust source location of each cause: not the user's business
-                line = re.sub(r" at \S+\.rs:\d+\.?", "", text.splitlines()[0] if text else "").strip()
                 raise UnusableConfig(f"cannot open the Zenoh session: {line}") from None
             now = time.monotonic()
             if stop.is_set() or (deadline is not None and now >= deadline):
@@ -198,7 +198,7 @@ def open_session(cfg: zenoh.Config, *, stop: threading.Event | None = None, time
             if log is not None and (last_log is None or now - last_log >= OPEN_LOG_EVERY_S):
                 endpoints = _get(cfg, "connect/endpoints")
                 log.warning("cannot open the Zenoh session (%s); retrying until the router at %s is up",
-                            str(exc).splitlines()[0] if str(exc) else type(exc).__name__, endpoints)
+                            line or type(exc).__name__, endpoints)
                 last_log = now
             stop.wait(OPEN_RETRY_S if deadline is None else max(0.0, min(OPEN_RETRY_S, deadline - now)))
 

@@ -65,8 +65,8 @@ def test_a_router_whose_tls_files_are_missing_says_so_in_one_line_and_exits_2(tm
 
 
 def _client_tls_file(tmp_path: Path, tls_dir: Path, endpoint: str = "tls/127.0.0.1:1") -> str:
-    """A client config like deploy/zenoh/service-host.json5 (which retries the connect for ever) naming
-    ``tls_dir``'s files."""
+    """A client config like deploy/zenoh/service-host.json5 once was (``connect/timeout_ms: -1``: Zenoh retries
+    the connect for ever inside the open) naming ``tls_dir``'s files."""
     return _file(tmp_path, json.dumps({
         "mode": "client", "connect": {"endpoints": [endpoint], "timeout_ms": -1},
         "transport": {"link": {"tls": {"root_ca_certificate": str(tls_dir / "ca.pem"),
@@ -114,3 +114,34 @@ def test_a_service_given_missing_tls_files_exits_2_with_one_line(tmp_path: Path)
     assert res.returncode == 2, res.stderr
     assert res.stderr.strip() == (f"jitterguard: error: cannot open the Zenoh session: transport/link/tls/"
                                   f"root_ca_certificate {tmp_path / 'nowhere' / 'ca.pem'}: No such file or directory")
+
+
+def test_a_service_on_the_service_host_template_says_it_waits_for_the_router(tmp_path: Path) -> None:
+    """deploy/zenoh/service-host.json5 had set connect/timeout_ms -1: Zenoh then retried inside the open without a
+    word, so a service host whose router was down (or refused its certificate) logged nothing at all."""
+    import os
+    import subprocess
+    import sys
+
+    from jitterguard.runtime import free_tcp_port
+
+    root = Path(__file__).resolve().parents[2]
+    for name in ("ca.pem", "host.pem", "host-key.pem"):
+        (tmp_path / name).write_text("not checked before the connect\n")
+    endpoint = f"tls/127.0.0.1:{free_tcp_port()}"  # no router there
+    text = (root / "deploy" / "zenoh" / "service-host.json5").read_text()
+    cfg = tmp_path / "service-host.json5"
+    cfg.write_text(text.replace("/etc/jitterguard/tls", str(tmp_path))
+                   .replace("tls/router.jitterguard.internal:7447", endpoint))
+    proc = subprocess.Popen([sys.executable, "-m", "jitterguard.cli", "tracker", "--zenoh-config", str(cfg)],
+                            stderr=subprocess.PIPE, text=True, env={**os.environ, "JG_ZENOH_CONFIG": ""})
+    try:
+        import select
+
+        ready, _, _ = select.select([proc.stderr], [], [], 30)  # the first warning comes at the first failure
+        line = proc.stderr.readline() if ready else "(nothing in 30 s)"  # type: ignore[union-attr]
+    finally:
+        proc.terminate()
+        proc.wait(timeout=30)
+    assert "cannot open the Zenoh session (Unable to connect" in line and endpoint in line, line
+    assert ".rs:" not in line  # zenoh's Rust source location is dropped

@@ -95,12 +95,13 @@ def test_router_host_and_service_host_over_mtls(two_hosts, tmp_path):
 
     observer = textwrap.dedent(f"""
         import sys, threading, zenoh
+        from jitterguard.runtime import open_session
         got = threading.Event(); n = [0]
         def cb(s):
             n[0] += 1
             if n[0] >= 5: got.set()
         cfg = zenoh.Config.from_file({str(obs_cfg)!r})
-        with zenoh.open(cfg) as s:
+        with open_session(cfg, timeout_s=60) as s:  # retried until the router is up, as every service does
             s.declare_subscriber("jg/mh/objects", cb)
             ok = got.wait(60)
         print("objects received:", n[0]); sys.exit(0 if ok else 1)
