@@ -463,6 +463,14 @@ def _beyond(records: np.ndarray, limits: Limits, prefix: str = "", *, state: boo
     return out
 
 
+def within_limits(records: np.ndarray, limits: Limits = LIMITS) -> np.ndarray:
+    """Which ``DETECTED`` records keep every bound a reader holds them to (:func:`read_detected_objects` refuses a
+    whole frame for one that does not): the writer's side of the same rule, e.g. the detector dropping a box a
+    stray return drove beyond ``max_variance`` rather than losing the frame."""
+    beyond = _beyond(records, limits)
+    return ~np.logical_or.reduce([bad for bad, _ in beyond]) if beyond else np.ones(len(records), dtype=bool)
+
+
 def _lengths(records: np.ndarray) -> np.ndarray:
     """The length of each record's orientation quaternion (inf where its squares overflow)."""
     with np.errstate(over="ignore"):

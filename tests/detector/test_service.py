@@ -238,6 +238,7 @@ def test_detections_the_trackers_reader_would_refuse_are_dropped_not_published()
     """One detection beyond the wire's limits would make the tracker refuse the whole frame: it is dropped."""
     from jitterguard.schemas import read_detected_objects
     from jitterguard.services.detector.adapter import detections_payload, detections_within_limits
+    from jitterguard.schemas.wire import Limits
     from jitterguard.services.detector.config import Detections3D
 
     boxes = np.zeros((4, 9), np.float32)
@@ -254,6 +255,21 @@ def test_detections_the_trackers_reader_would_refuse_are_dropped_not_published()
     with pytest.raises(DecodeError):  # what the tracker did with the frame before
         read_detected_objects(detections_payload(det, header, Pose()))
     assert len(read_detected_objects(detections_payload(kept, header, Pose())).objects) == 1
+    # judged by the readers' own rule, whatever the limits: each row alone is refused by a reader iff it is dropped
+    tight = Limits(max_abs_coordinate_m=100.0, max_abs_speed_mps=10.0, max_variance=2.0)
+    boxes[1, 0], boxes[2, 7], log_var[3, 0] = 150.0, 12.0, 1.0  # each beyond tight only
+    det = Detections3D(boxes=boxes, scores=np.full(4, 0.9, np.float32), labels=np.zeros(4, np.int64),
+                       log_variances=log_var)
+    assert detections_within_limits(det)[1] == 0
+    for row in range(4):
+        one = det.subset(np.arange(4) == row)
+        dropped_alone = detections_within_limits(one, tight)[1] == 1
+        try:
+            read_detected_objects(detections_payload(one, header, Pose()), tight)
+            refused = False
+        except DecodeError:
+            refused = True
+        assert dropped_alone == refused == (row > 0), row  # e^1 > max_variance 2 in row 3
 
 
 def test_a_scan_without_finite_points_still_closes_its_frame(harness) -> None:

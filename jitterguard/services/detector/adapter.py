@@ -134,14 +134,9 @@ def finite_detections(det: Detections3D) -> tuple[Detections3D, int]:
 def detections_within_limits(det: Detections3D, limits: wire.Limits = wire.LIMITS) -> tuple[Detections3D, int]:
     """``det`` (finite: :func:`finite_detections`) without rows the tracker's reader would refuse the whole frame
     for — a centre beyond ``max_abs_coordinate_m``, a velocity beyond ``max_abs_speed_mps``, a variance beyond
-    ``max_variance`` (a stray return of absurd intensity can drive a head there) — and how many went."""
-    b = det.boxes.astype(np.float64)
-    ok = (np.abs(b[:, :3]) <= limits.max_abs_coordinate_m).all(axis=1)
-    if b.shape[1] > 8:
-        ok &= (np.abs(b[:, 7:9]) <= limits.max_abs_speed_mps).all(axis=1)
-    if det.log_variances is not None:
-        with np.errstate(over="ignore"):
-            ok &= (np.exp(det.log_variances.astype(np.float64)) <= limits.max_variance).all(axis=1)
+    ``max_variance`` (a stray return of absurd intensity can drive a head there) — and how many went. The rows
+    are judged as written (:func:`detected_records`) by the readers' own rule (:func:`wire.within_limits`)."""
+    ok = wire.within_limits(detected_records(det), limits)
     dropped = int(ok.size - np.count_nonzero(ok))
     return (det, 0) if not dropped else (det.subset(ok), dropped)
 
@@ -176,6 +171,13 @@ def detections_payload(
     construction (finite rows, scores clipped to [0, 1], variances = exp(·) ≥ 0); every receiver reads it with
     :func:`~jitterguard.schemas.read_detected_objects`, and the tests validate it with the model.
     """
+    objects = detected_records(det, class_names, has_twist=has_twist)
+    return write_detected_objects(DetectedColumns(header, ego_pose, objects, np.zeros(len(det))))
+
+
+def detected_records(det: Detections3D, class_names: Sequence[str] = CLASS_NAMES, *,
+                     has_twist: bool = True) -> np.ndarray:
+    """``det`` as the ``DetectedObject`` records :func:`detections_payload` writes (see there)."""
     labels = np.asarray(class_labels(class_names), dtype=np.int64)
     n = len(det)
     b = det.boxes.astype(np.float64)
@@ -187,7 +189,7 @@ def detections_payload(
     pose_cov[:, X_X], pose_cov[:, Y_Y], pose_cov[:, YAW_YAW] = var[:, 0], var[:, 1], var[:, 4]
     if has_twist:
         twist_cov[:, X_X], twist_cov[:, Y_Y] = var[:, 2], var[:, 3]
-    objects = wire.DETECTED.pack(n, {
+    return wire.DETECTED.pack(n, {
         wire.EXISTENCE: scores, wire.LABEL: labels[det.labels.astype(np.int64)], wire.LABEL_PROB: scores,
         wire.X: b[:, 0], wire.Y: b[:, 1], wire.Z: b[:, 2], wire.QZ: np.sin(half), wire.QW: np.cos(half),
         wire.POSE_COV: pose_cov, wire.HAS_POSITION_COV: np.full(n, lv is not None),
@@ -196,4 +198,3 @@ def detections_payload(
         "kinematics.has_twist": np.full(n, has_twist), "kinematics.has_twist_covariance": np.full(n, lv is not None and has_twist),
         wire.SHAPE_TYPE: Shape.BOUNDING_BOX, wire.LENGTH: b[:, 3], wire.WIDTH: b[:, 4], wire.HEIGHT: b[:, 5],
     })
-    return write_detected_objects(DetectedColumns(header, ego_pose, objects, np.zeros(n)))
