@@ -143,9 +143,13 @@ def read_tracked_objects(data: bytes, limits: Limits = LIMITS) -> TrackedColumns
     return TrackedColumns(env.header, env.ego_pose, objects, list(env.observed_track_ids), models is not None)
 
 
-def read_track_observations(payloads: Sequence[bytes], limits: Limits = LIMITS) -> ObservationColumns:
+def read_track_observations(payloads: Sequence[bytes], limits: Limits = LIMITS,
+                            key_ids: Sequence[str] | None = None) -> ObservationColumns:
     """Many ``TrackObservation`` payloads at once (the classifier reads thousands a second): those in the
-    record shape viewed together, the rest read one by one by the model. Never raises for a bad payload."""
+    record shape viewed together, the rest read one by one by the model. Never raises for a bad payload.
+
+    ``key_ids``: the track ID each payload's key names (``tracks/{id}``); a payload about another track is
+    refused (``track.object_id``): a publisher allowed one key must not feed another track's window."""
     n = len(payloads)
     ok = np.zeros(n, dtype=bool)
     seq, stamp = np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.int64)
@@ -186,11 +190,16 @@ def read_track_observations(payloads: Sequence[bytes], limits: Limits = LIMITS) 
         track_bytes[i] = records_of(TRACK_STATE, [msg.track]).view(np.uint8)
         ok[i], normalised = True, normalised + 1
     beyond = _beyond(dets, limits, "detection.") + _beyond(tracks, limits, "track.", state=True)
+    if key_ids is not None:
+        other = [k.encode() != t for k, t in zip(key_ids, tracks["object_id"].tolist(), strict=True)]
+        beyond.append((ok & np.array(other, dtype=bool), "track.object_id"))
     if np.logical_or.reduce([bad for bad, _ in beyond]).any():
         for bad, why in beyond:
             for i in np.flatnonzero(bad & ok).tolist():
                 ok[i] = False
-                errors.append((i, LimitExceeded(TrackObservation.__name__, why, "beyond the configured limit")))
+                errors.append((i, DecodeError(TrackObservation.__name__, why, f"not the track its key names "
+                                              f"({key_ids[i]!r})") if why == "track.object_id" and key_ids else
+                               LimitExceeded(TrackObservation.__name__, why, "beyond the configured limit")))
     if ok.all():
         return ObservationColumns(np.arange(n), seq, stamp, dets, tracks, [], normalised)
     keep = np.flatnonzero(ok)

@@ -514,3 +514,30 @@ def test_frames_whose_observations_never_come_are_failing_not_ok(service, client
         assert wait_until(lambda: len(got["objects"]) == n + 1, timeout=30)
     health = service.progress.assess(time.monotonic())
     assert health.state == "failing" and "no tracks/* observation" in health.reason
+
+
+def test_an_observation_on_another_tracks_key_is_refused_and_the_window_keeps_the_real_one(service, client_session):
+    """A copy of parked car A's observation moved 3 m and put on track B's key (a publisher the ACL allows only
+    tracks/B) had been taken as A's: counted a duplicate, it replaced A's real observation and A was called
+    dynamic. Now the key's ID must be the payload's, and a frame's first observation of a track stands."""
+    import msgpack as mp
+
+    got = _collect(client_session)
+    _wait_connected(client_session)
+    frames = list(generate(TrackScenario(n_static=2, n_moving=0, n_starting=0, seed=5), 20))
+    a, b = sorted(frames[0].moving)
+    for f in frames:
+        n = len(got["objects"])
+        for o in f.observations:
+            client_session.put(keys.track(NS, o.track.object_id), encode(o))
+        obs = next(o for o in f.observations if o.track.object_id == a)
+        forged = mp.unpackb(encode(obs))
+        forged["detection"]["kinematics"]["pose_with_covariance"]["pose"]["position"]["x"] += 3.0 * (f.tracked.header.seq % 2)
+        client_session.put(keys.track(NS, b), mp.packb(forged))  # A's ID, B's key
+        client_session.put(keys.track(NS, a), mp.packb(forged))  # a second one of A in the frame: dropped
+        client_session.put(keys.tracked(NS), encode(f.tracked))
+        assert wait_until(lambda: len(got["objects"]) == n + 1, timeout=30)
+    assert wait_until(lambda: service.counters.get("rejected") == len(frames))
+    assert service.counters.get("rejected.tracks/*") == len(frames)
+    assert service.assembler.counts.get("duplicate_observations") == len(frames)
+    assert got["motion"][a].state == "static" and got["motion"][b].state == "static", got["motion"]

@@ -128,10 +128,11 @@ class ClassifierAdapter:
             straggler_timeout_s=straggler_timeout_s, guard=StreamGuard(stream or StreamLimits()))
         self.limits = limits
 
-    def observations(self, payloads: Sequence[bytes]) -> ObservationColumns:
+    def observations(self, payloads: Sequence[bytes], key_ids: Sequence[str] | None = None) -> ObservationColumns:
         """Read ``tracks/{id}`` payloads and keep each one's row (a straggler of a frame already decided is
-        counted ``late_observations`` and dropped). The refused ones come back in ``errors``."""
-        cols = read_track_observations(payloads, self.limits)
+        counted ``late_observations`` and dropped). The refused ones come back in ``errors``; ``key_ids``: the
+        track IDs their keys name (a payload about another track is refused)."""
+        cols = read_track_observations(payloads, self.limits, key_ids)
         for (seq, tid, row), stamp in zip(observation_rows(cols), cols.stamp.tolist()):
             self.assembler.add_observation_item(seq, tid, row, int(stamp))
         return cols

@@ -69,8 +69,9 @@ class FrameAssembler(Generic[O, C]):
             self.count("late_observations")
             return
         bucket = self._obs.setdefault(seq, {})
-        if track_id in bucket:
-            self.count("duplicate_observations")
+        if track_id in bucket:  # a frame has one observation per track: the first stands (a re-sent copy or a
+            self.count("duplicate_observations")  # forgery after it must not rewrite the window)
+            return
         bucket[track_id] = item
         waiting = self._waiting.get(seq)
         if waiting is not None:

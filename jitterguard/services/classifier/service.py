@@ -301,7 +301,8 @@ class ClassifierService(Service):
         if not samples:
             return 0
         self.counters.inc("received", len(samples))
-        cols = self.pipeline.observations([s.payload.to_bytes() for s in samples])
+        cols = self.pipeline.observations([s.payload.to_bytes() for s in samples],
+                                          [str(s.key_expr).rpartition("/")[2] for s in samples])
         for i, exc in cols.errors:
             self.reject(exc, self._obs_key, str(samples[i].key_expr))
         if cols.normalised:
