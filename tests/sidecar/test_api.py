@@ -300,6 +300,12 @@ def test_metrics(stack: Stack) -> None:
         assert _metric(text, "jitterguard_classifier_tracks_by_state", f'{{class="{cls}",state="{st}"}}') == n
     assert _metric(text, "jitterguard_classifier_alpha", '{class="car"}') == 1.96
     assert _metric(text, "jitterguard_sidecar_state_poll_seconds_count") > 0
+    # the last frame's counts go down as well as up: gauges, not counters (rate() would read resets)
+    statics = sum(1 for t in state["tracks"] if t["state"] == "static")
+    assert _metric(text, "jitterguard_classifier_current", '{name="now.static"}') == statics
+    assert "# TYPE jitterguard_classifier_current gauge" in text
+    assert 'jitterguard_classifier_counter_total{name="now.' not in text
+    assert _metric(text, "jitterguard_classifier_counter_total", '{name="objects.static"}') >= statics
     before = _metric(text, "jitterguard_classifier_rejected_messages_total")
     # A malformed payload on the tracker's key: the classifier drops and counts it; /metrics shows it.
     stack.feeder.session.put(keys.track(stack.ns, "f" * 32), b"\x93not-msgpack-of-a-TrackObservation")

@@ -17,6 +17,7 @@ from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, HistogramMetricFamily
 from prometheus_client.registry import Collector
 
+from ...stack.summary import is_gauge
 from .core import CLASS_NAMES, STATES, latency_histogram
 
 if TYPE_CHECKING:
@@ -102,10 +103,15 @@ class ClassifierCollector(Collector):
                 rej_key.add_metric([name[len(REJECTED_COUNTER) + 1:]], float(value))
         yield rej_key
         raw = CounterMetricFamily("jitterguard_classifier_counter",
-                                  "Every counter the classifier reports, by name", labels=["name"])
+                                  "Every running count the classifier reports, by name", labels=["name"])
+        now = GaugeMetricFamily("jitterguard_classifier_current",
+                                "The classifier's counters that hold a current value (now.*, *_last), by name",
+                                labels=["name"])
         for name, value in sorted(counters.items()):
-            raw.add_metric([name], float(value))
+            # a value that goes down exported as a counter reads as a reset to rate() and increase()
+            (now if is_gauge(name) else raw).add_metric([name], float(value))
         yield raw
+        yield now
         cfg = st.config  # type: ignore[attr-defined]
         alpha = GaugeMetricFamily("jitterguard_classifier_alpha", "Alpha in force per class", labels=["class"])
         for label, cls in enumerate(CLASS_NAMES):
