@@ -13,6 +13,8 @@ from typing import TypeVar
 import msgpack
 from pydantic import BaseModel, ValidationError
 
+from .models import SCHEMA_VERSION, Message
+
 M = TypeVar("M", bound=BaseModel)
 
 
@@ -51,6 +53,11 @@ def decode_with_raw(cls: type[M], data: bytes | bytearray | memoryview) -> tuple
 
 def validate(cls: type[M], raw: dict) -> M:
     """An unpacked msgpack map validated as ``cls`` (:class:`DecodeError` naming the field if it is not)."""
+    if issubclass(cls, Message):  # a payload says which contract it was written to: never assumed, never True
+        version = raw.get("schema_version")
+        if type(version) is not int or version != SCHEMA_VERSION:
+            got = "missing" if "schema_version" not in raw else f"got {version!r}"
+            raise DecodeError(cls.__name__, "schema_version", f"must be {SCHEMA_VERSION} ({got})")
     try:
         return cls.model_validate(raw)
     except ValidationError as exc:

@@ -67,7 +67,8 @@ class Message(_Strict):
     schema_version: Literal[1] = SCHEMA_VERSION
 
 
-Int64 = Annotated[int, Field(ge=0, le=2**63 - 1)]
+INT64_MAX = 2**63 - 1
+Int64 = Annotated[int, Field(ge=0, le=INT64_MAX)]
 """A non-negative int that fits the wire's int64 (and numpy's): a stamp 2^64 - 1 is refused on receipt, not later."""
 
 

@@ -27,6 +27,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from .codec import M, DecodeError, LimitExceeded, decode, unpack_map, validate
 from .models import (
+    INT64_MAX,
     SCHEMA_VERSION,
     X_X,
     X_Y,
@@ -211,7 +212,9 @@ def peek_header(data: bytes) -> tuple[int, int] | None:
     """``(header.seq, header.stamp)`` of an encoded message, read without validating the rest (None if not found).
 
     For decisions that must come before the expensive part (a duplicate or a replay is dropped unread) and for
-    timing; whatever is kept still goes through the read functions.
+    timing; whatever is kept still goes through the read functions. A seq or stamp the header model refuses
+    (negative, beyond int64) is not found either: the read then refuses the payload, counted ``rejected`` —
+    judged by its order instead, it had been dropped as a jump or a late frame.
     """
     up = msgpack.Unpacker(raw=False)
     try:
@@ -220,7 +223,7 @@ def peek_header(data: bytes) -> tuple[int, int] | None:
             if up.unpack() == "header":
                 h = up.unpack()
                 seq, stamp = h.get("seq", 0), h.get("stamp")
-                if all(isinstance(v, int) and not isinstance(v, bool) for v in (seq, stamp)):
+                if all(type(v) is int and 0 <= v <= INT64_MAX for v in (seq, stamp)):
                     return seq, stamp
                 return None
             up.skip()

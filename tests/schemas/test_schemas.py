@@ -497,3 +497,24 @@ def test_peek_header_reads_seq_and_stamp_without_validating():
     assert wire.peek_header(b"\x00garbage") is None
     assert wire.peek_header(msgpack.packb({"header": {"seq": "x", "stamp": 1}})) is None
     assert wire.peek_header(msgpack.packb([1, 2])) is None
+    # values the header model refuses are not a frame's order: the read refuses the payload (counted rejected),
+    # where judged by them it had been dropped as a jump or a late frame
+    for seq, stamp in ((2**64 - 1, 1), (-5, 1), (1, -1), (1, 2**64 - 1), (True, 1)):
+        assert wire.peek_header(msgpack.packb({"header": {"seq": seq, "stamp": stamp}})) is None, (seq, stamp)
+    assert wire.peek_header(msgpack.packb({"header": {"seq": 2**63 - 1, "stamp": 0}})) == (2**63 - 1, 0)
+
+
+@pytest.mark.parametrize("version", ["missing", True, 2, 1.0])
+def test_a_payload_must_say_it_was_written_to_this_schema_version(version) -> None:
+    """A payload without schema_version (or True, which equals 1) had been read as version 1."""
+    raw = msgpack.unpackb(encode(_rich_tracked()))
+    if version == "missing":
+        del raw["schema_version"]
+    else:
+        raw["schema_version"] = version
+    data = msgpack.packb(raw)
+    for read in (lambda d: decode(TrackedObjects, d), wire.read_tracked_objects):
+        with pytest.raises(DecodeError, match=r"TrackedObjects\.schema_version: must be 1"):
+            read(data)
+    raw["schema_version"] = 1
+    assert decode(TrackedObjects, msgpack.packb(raw)) == _rich_tracked()
