@@ -255,8 +255,10 @@ def test_static_hint_resets_velocity_and_position_of_that_track_only() -> None:
                               yaw=np.array([0.0, math.pi / 2])))
     creeper, mover = res.tracks.ids
     assert abs(res.tracks.vel[0, 0]) > 0.1
-    applied = core.apply_static_hints([creeper, "f" * 32], [10.2], [0.0])
-    assert applied == 1  # unknown IDs are ignored
+    # a mean 500 m off is no window of this track: one message must not move it across the map
+    assert core.apply_static_hints([mover], [500.0], [500.0]) == (0, 1)
+    applied = core.apply_static_hints([creeper, "f" * 32], [10.2, 0.0], [0.0, 0.0])
+    assert applied == (1, 0)  # unknown IDs are ignored
     res = core.step(frame(10, [[10.2, 0.0], [0.0, 20.0]], [CAR, CAR], yaw=np.array([0.0, math.pi / 2])))
     i = res.tracks.ids.index(creeper)
     assert math.hypot(*res.tracks.vel[i]) < 0.05

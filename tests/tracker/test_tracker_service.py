@@ -203,6 +203,15 @@ def test_static_hints_zero_the_velocity_of_the_hinted_track(harness_factory) -> 
     kept = next(o for o in h.wait_seq(nxt + 1).objects if o.object_id == tid)
     p = kept.kinematics.pose_with_covariance.pose.position
     assert (p.x, p.y) == pytest.approx((pos.x, pos.y), abs=1e-6)
+    # a hint 500 m off, and one about this track on another track's key: neither moves it
+    h.client.put(keys.motion(h.ns, tid), encode(hint.model_copy(update={"mean_x": pos.x + 500.0})))
+    h.client.put(keys.motion(h.ns, "e" * 32), encode(hint.model_copy(update={"mean_x": pos.x + 3.0})))
+    assert wait_for(lambda: h.service.counters.get("rejected.motion/*") == 2)
+    h.send(h.empty_frame(nxt + 2, h.stamp0 + 10**9 + (len(seq.frames) + 2) * 100_000_000))
+    kept = next(o for o in h.wait_seq(nxt + 2).objects if o.object_id == tid)
+    p = kept.kinematics.pose_with_covariance.pose.position
+    assert (p.x, p.y) == pytest.approx((pos.x, pos.y), abs=1e-6)
+    assert h.service.counters.get("static_hints_implausible") == 1
 
 
 def test_the_measurement_scale_it_learns_is_in_the_heartbeat(harness_factory) -> None:

@@ -196,19 +196,25 @@ class TrackerCore:
         )
 
     def apply_static_hints(self, track_ids: Sequence[str], mean_x: Sequence[float],
-                           mean_y: Sequence[float]) -> int:
+                           mean_y: Sequence[float]) -> tuple[int, int]:
         """Autoware's setStaticState for each known ID: zero velocity, position = the classifier's mean.
 
-        Returns how many IDs were known (hints for tracks already deleted are ignored).
+        Returns how many were applied and how many were refused as implausible: a mean farther from the track
+        than the tracker would associate a detection of its class (``max_dist_matrix``) is not the window of
+        this track — one message must not move a confirmed track across the map. Hints for tracks already
+        deleted are neither.
         """
         where = self.tracks.row_of()
-        picked = [(where[t], x, y) for t, x, y in zip(track_ids, mean_x, mean_y) if t in where]
-        if not picked:
-            return 0
-        rows = np.array([p[0] for p in picked], dtype=np.intp)
-        kalman.set_static(self.tracks.x, self.tracks.P, rows,
-                          np.array([p[1] for p in picked]), np.array([p[2] for p in picked]))
-        return len(picked)
+        known = [(where[t], x, y) for t, x, y in zip(track_ids, mean_x, mean_y) if t in where]
+        if not known:
+            return 0, 0
+        rows = np.array([p[0] for p in known], dtype=np.intp)
+        hx, hy = np.array([p[1] for p in known]), np.array([p[2] for p in known])
+        lbl = self.tracks.label[rows].astype(np.intp)
+        near = np.hypot(hx - self.tracks.x[rows, 0], hy - self.tracks.x[rows, 1]) <= self.tables.max_dist[lbl, lbl]
+        if near.any():
+            kalman.set_static(self.tracks.x, self.tracks.P, rows[near], hx[near], hy[near])
+        return int(near.sum()), int((~near).sum())
 
     # ------------------------------------------------------------------------------------------ helpers
 

@@ -15,7 +15,7 @@ Counters (in the heartbeat): ``frames``, ``dropped_duplicate``, ``dropped_out_of
 judged from the header before the payload is read), ``tracks_born``, ``tracks_deleted``, ``resets`` (the source went
 back in time, confirmed: tracks dropped), ``source_restarts`` (its seq began again while time went on, confirmed:
 tracks kept), ``jumps`` (it jumped ahead, confirmed), ``normalised.detections``, ``dropped_queue.detections``,
-``static_hints_received`` / ``_applied`` / ``_unknown`` and the runtime's ``received`` / ``rejected`` (and
+``static_hints_received`` / ``_applied`` / ``_implausible`` / ``_unknown`` and the runtime's ``received`` / ``rejected`` (and
 ``over_limit``) / ``published``. How a frame is told apart from a late one is :mod:`jitterguard.stream_order`.
 """
 
@@ -84,6 +84,10 @@ class TrackerService(Service):
     def _on_motion(self, msg: MotionState, key: str) -> None:
         """Zenoh callback: keep the static decisions for the worker (applied before the next frame); a hint whose
         mean lies beyond ``limits.max_abs_coordinate_m`` is refused and counted, as a detection there would be."""
+        if msg.track_id != key.rpartition("/")[2]:  # a publisher allowed one track's key cannot steer another
+            self.reject(DecodeError(MotionState.__name__, "track_id", "not the track its key names"),
+                        keys.motion_all(self.ns), key)
+            return
         bound = self.core.config.limits.max_abs_coordinate_m
         if not (abs(msg.mean_x) <= bound and abs(msg.mean_y) <= bound):
             self.reject(LimitExceeded(MotionState.__name__, "mean_x" if not abs(msg.mean_x) <= bound else "mean_y",
@@ -140,12 +144,18 @@ class TrackerService(Service):
             hints, self._hints = self._hints, []
         if not hints:
             return
-        latest = {h.track_id: h for h in hints}  # several frames' hints for one track: the newest wins
+        latest: dict[str, MotionState] = {}
+        for h in hints:  # several frames' hints for one track: the newest frame's wins, whatever the arrival order
+            if h.track_id not in latest or h.header.seq >= latest[h.track_id].header.seq:
+                latest[h.track_id] = h
         ids = list(latest)
-        applied = self.core.apply_static_hints(ids, [latest[t].mean_x for t in ids], [latest[t].mean_y for t in ids])
+        applied, implausible = self.core.apply_static_hints(ids, [latest[t].mean_x for t in ids],
+                                                            [latest[t].mean_y for t in ids])
         self.counters.inc("static_hints_applied", applied)
-        if applied < len(ids):
-            self.counters.inc("static_hints_unknown", len(ids) - applied)
+        if implausible:
+            self.counters.inc("static_hints_implausible", implausible)
+        if applied + implausible < len(ids):
+            self.counters.inc("static_hints_unknown", len(ids) - applied - implausible)
 
     def process(self, cols: DetectedColumns, verdict: Verdict | None = None) -> None:
         """Track one frame (as :func:`~jitterguard.schemas.read_detected_objects` gives it; ``verdict``: what
