@@ -81,6 +81,10 @@ class Limits(BaseModel):
                                    "block: past 1 it is no covariance (a negative variance once rotated)")
     max_quaternion_error: float = Field(1e-2, gt=0, description="|‖q‖ − 1| of every orientation: headings are "
                                         "read off it as off a rotation")
+    max_abs_yaw_rad: float = Field(4 * math.pi, gt=0, description="|yaw| of a track's state: a heading wrapped or "
+                                   "not (1e300 only overflows the trigonometry downstream)")
+    max_dimension_m: float = Field(1e3, gt=0, description="|length|, |width|, |height| of every box: "
+                                   "footprints and IoUs are computed from them")
 
 
 LIMITS = Limits()
@@ -141,6 +145,13 @@ def read_tracked_objects(data: bytes, limits: Limits = LIMITS) -> TrackedColumns
     """``data`` as :class:`TrackedColumns`; :class:`~.codec.DecodeError` (or :class:`LimitExceeded`) if not valid."""
     env, objects, models = _read_listed(TrackedObjects, data, TRACKED, limits)
     _check_objects(TrackedObjects.__name__, objects, limits, env.ego_pose)
+    ids = objects[ID]
+    if len(ids) > 1:  # one object per track: a repeat would be classified and published twice
+        order = np.argsort(ids, kind="stable")
+        twice = np.flatnonzero(ids[order][1:] == ids[order][:-1])
+        if twice.size:
+            first, again = sorted(order[[twice[0], twice[0] + 1]].tolist())
+            raise DecodeError(TrackedObjects.__name__, f"objects.{again}.object_id", f"repeats objects.{first}")
     return TrackedColumns(env.header, env.ego_pose, objects, list(env.observed_track_ids), models is not None)
 
 
@@ -355,7 +366,7 @@ def _view_listed(model: type[M], data: bytes, layout: RecordLayout, limits: Limi
                 env[key] = rest.unpack()
             if rest.tell() != len(data) - end:
                 return None
-            return model.model_validate({**env, "objects": []}), records
+            return validate(model, {**env, "objects": []}), records
     except LimitExceeded:
         raise
     except Exception:  # malformed msgpack, or an envelope the model refuses: the model says what is wrong
@@ -457,11 +468,14 @@ def _beyond(records: np.ndarray, limits: Limits, prefix: str = "", *, state: boo
     """Per bounded column, which records break its limit, and the field to name."""
     if not len(records):
         return []
-    if state:  # a TrackState: planar position and velocity only
-        pos, vel, cov = ("x", "y"), ("vx", "vy"), ()
+    if state:  # a TrackState: planar position, velocity and heading only
+        pos, vel, cov, dims = ("x", "y"), ("vx", "vy"), (), ()
     else:
-        pos, vel, cov = (X, Y, Z), (VX, VY, VZ), (POSE_COV, TWIST_COV)
+        pos, vel, cov, dims = (X, Y, Z), (VX, VY, VZ), (POSE_COV, TWIST_COV), (LENGTH, WIDTH, HEIGHT)
     out = [(~(np.abs(records[c]) <= limits.max_abs_coordinate_m), prefix + c) for c in pos]
+    out += [(~(np.abs(records[c]) <= limits.max_dimension_m), prefix + c) for c in dims]
+    if state:
+        out.append((~(np.abs(records["yaw"]) <= limits.max_abs_yaw_rad), prefix + "yaw"))
     out += [(~(np.abs(records[c]) <= limits.max_abs_speed_mps), prefix + c) for c in vel]
     out += [(~(np.abs(records[c]["v"]) <= limits.max_variance).all(axis=1), prefix + c) for c in cov]
     if math.isfinite(limits.max_correlation):

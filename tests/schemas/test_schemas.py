@@ -246,7 +246,8 @@ def _got_objects(records) -> list[dict]:
 
 
 _NO_LIMITS = wire.Limits(max_abs_coordinate_m=sys.float_info.max, max_abs_speed_mps=sys.float_info.max,
-                         max_variance=sys.float_info.max, max_correlation=math.inf, max_quaternion_error=math.inf)
+                         max_variance=sys.float_info.max, max_correlation=math.inf, max_quaternion_error=math.inf,
+                         max_dimension_m=sys.float_info.max, max_abs_yaw_rad=sys.float_info.max)
 """The limits are tested on their own below; here the read functions must agree with the model exactly (every
 finite value is within these; hypothesis once drew 1.7000000000000001e+308, just past a rounder bound)."""
 
@@ -402,12 +403,27 @@ def test_oversized_payloads_are_refused_from_their_headers():
     (["objects", 1, "kinematics", "pose_with_covariance", "covariance"], [0.0] * 7 + [1e9] + [0.0] * 28, "covariance"),
     (["objects", 0, "kinematics", "twist_with_covariance", "twist", "linear", "y"], -5e3, "linear.y"),
     (["ego_pose", "position", "y"], 2e7, "ego_pose.position"),
+    (["objects", 1, "shape", "dimensions", "x"], 1e300, "shape.dimensions.x"),  # had overflowed areas and IoUs
+    (["objects", 0, "shape", "dimensions", "z"], -2e3, "shape.dimensions.z"),
 ])
 def test_coordinates_variances_and_speeds_beyond_the_limits_are_refused(path, value, field):
     payload = _mutate(_rich_tracked(odd=False), path, value)
     decode(TrackedObjects, payload)  # valid for the model...
     with pytest.raises(wire.LimitExceeded, match=field):  # ...but beyond what any real sensor reports
         wire.read_tracked_objects(payload)
+
+
+def test_a_track_state_heading_beyond_the_limit_and_a_repeated_track_are_refused():
+    obs = msgpack.unpackb(encode(_rich_observation()))
+    obs["track"]["yaw"] = 1e300
+    (err,) = wire.read_track_observations([msgpack.packb(obs)]).errors
+    assert isinstance(err[1], wire.LimitExceeded) and "track.yaw" in str(err[1])
+    obs["track"]["yaw"] = -3 * math.pi  # unwrapped, but a heading
+    assert not wire.read_track_observations([msgpack.packb(obs)]).errors
+    tracked = _rich_tracked(odd=False)
+    twice = tracked.model_copy(update={"objects": [tracked.objects[0], tracked.objects[1], tracked.objects[0]]})
+    with pytest.raises(DecodeError, match=r"objects\.2\.object_id: repeats objects\.0"):  # published twice before
+        wire.read_tracked_objects(encode(twice))
 
 
 def test_a_top_level_key_given_twice_is_refused_whatever_reads_it():
