@@ -207,6 +207,7 @@ def test_tracked_object_carries_filter_state_and_world_twist() -> None:
         # track's yaw rate had been published as 0)
         assert tc[Y_Y] == pytest.approx(res.tracks.vel_cov[i, 1, 1] + VEL_VAR_FLOOR)
         assert tc[X_X] >= VEL_VAR_FLOOR and tc[35] > 0.0
+        assert all(tc[d] > 0.0 and cov[d] > 0.0 for d in (14, 21, 28))  # vz / z, roll, pitch: had been 0 in the twist
         assert not k.is_stationary
         assert o.classification[0].label == int(res.tracks.label[i])
         q = k.pose_with_covariance.pose.orientation

@@ -42,6 +42,7 @@ Z_VAR, ROLL_PITCH_VAR = 0.1, 0.01
 # and a consumer's Mahalanobis test on the velocity divided by zero.
 VEL_VAR_FLOOR = 0.01  # (0.1 m/s)² on each velocity axis
 UNMODELLED_YAW_RATE_VAR = 1.0  # (1 rad/s)²: a CV track's yaw rate is not estimated
+VZ_VAR, ROLL_PITCH_RATE_VAR = 0.01, 0.01  # (0.1 m/s)², (0.1 rad/s)²: no track here climbs or rolls, none is known to
 X_YAW, Y_YAW, YAW_X, YAW_Y = 5, 11, 30, 31
 
 
@@ -104,6 +105,7 @@ def tracked_records(result: FrameResult) -> np.ndarray:
     tcov[:, X_X] += VEL_VAR_FLOOR  # added, not a maximum: the sum stays positive definite with the cross term
     tcov[:, Y_Y] += VEL_VAR_FLOOR
     tcov[:, YAW_YAW] = np.where(t.yaw_rate_var > 0.0, t.yaw_rate_var, UNMODELLED_YAW_RATE_VAR)
+    tcov[:, Z_Z], tcov[:, ROLL_ROLL], tcov[:, PITCH_PITCH] = VZ_VAR, ROLL_PITCH_RATE_VAR, ROLL_PITCH_RATE_VAR
     half = 0.5 * np.asarray(t.yaw, dtype=np.float64)
     return wire.TRACKED.pack(n, {
         wire.ID: t.ids, wire.EXISTENCE: t.existence, wire.LABEL: t.label, wire.LABEL_PROB: t.label_prob,
