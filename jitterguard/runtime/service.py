@@ -404,9 +404,14 @@ def watchdog_period() -> float | None:
     return value if value > 0 else None
 
 
+QUIET_LIBRARIES = ("onnxscript", "onnx_ir", "torch.onnx")
+"""Libraries that log their own progress at INFO (the ONNX export behind ``detector --backend onnxruntime``: ~65
+lines of passes): a service's INFO log is for its operator, so they speak from WARNING up unless DEBUG is asked."""
+
+
 def setup_logging(level: str = "INFO") -> None:
     """One log line format for every service (supervisord captures stderr)."""
-    logging.basicConfig(
-        level=getattr(logging, level.upper(), logging.INFO),
-        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-    )
+    numeric = getattr(logging, level.upper(), logging.INFO)
+    logging.basicConfig(level=numeric, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    for name in QUIET_LIBRARIES:
+        logging.getLogger(name).setLevel(max(numeric, logging.WARNING) if numeric > logging.DEBUG else numeric)
