@@ -26,7 +26,8 @@ def _new_app() -> tuple[typer.Typer, typer.Typer]:
         pretty_exceptions_enable=False,
         add_completion=False,
     )
-    bench = typer.Typer(help="Benchmarks; each prints JSON.", no_args_is_help=True)
+    bench = typer.Typer(help="Benchmarks; each prints JSON on stdout (tracker, detector and sidecar only with --json:"
+                             " a table or one line otherwise).", no_args_is_help=True)
     root.add_typer(bench, name="bench")
     return root, bench
 

@@ -76,9 +76,35 @@ def check_seed(flag: str, value: int) -> int:
     return value
 
 
+def parse_seeds(text: str, flag: str) -> list[int]:
+    """``"0-49"``, ``"3,5,9"`` or a mix (``"0-9,100"``) → sorted unique ints; exit 2 naming ``flag`` otherwise
+    (numpy's SeedSequence takes no negative seed, and an empty list would score nothing)."""
+    seeds: set[int] = set()
+    try:
+        for part in (p.strip() for p in text.split(",") if p.strip()):
+            lo, sep, hi = part.partition("-")
+            if sep:
+                a, b = int(lo), int(hi)
+                if b < a or b - a > 100_000:
+                    raise ValueError
+                seeds.update(range(a, b + 1))
+            else:
+                seeds.add(int(part))
+    except ValueError:
+        fail(f"{flag}: expected seeds like 0-49 or 1,2,3 (non-negative), got {text!r}")
+    if not seeds:
+        fail(f"{flag}: give at least one seed")
+    if min(seeds) < 0:
+        fail(f"{flag}: expected seeds like 0-49 or 1,2,3 (non-negative), got {text!r}")
+    return sorted(seeds)
+
+
 def out_dir(flag: str, path: str | os.PathLike[str]) -> Path:
     """``path`` created as a folder (parents too) before any work is done, or one line naming ``flag`` (exit 2):
-    a run must not compute for minutes and then fail to write its result."""
+    a run must not compute for minutes and then fail to write its result. An empty ``path`` is refused: it would
+    quietly mean the current folder."""
+    if not os.fspath(path).strip():
+        fail(f"{flag}: empty path; give a folder")
     p = Path(path)
     try:
         p.mkdir(parents=True, exist_ok=True)
@@ -105,6 +131,21 @@ def out_file(flag: str, path: str | os.PathLike[str]) -> Path:
         fail(f"{flag}: cannot write {p}: {exc.strerror or exc}")
     if not existed:
         p.unlink(missing_ok=True)
+    return p
+
+
+def new_dir(flag: str, path: str | os.PathLike[str]) -> Path:
+    """``path`` checked as a new folder that can be made there — tried by making it and removing it again, since a
+    folder root may "write" into can still refuse one (``/proc``) — before anything starts (one line naming
+    ``flag`` and exit 2 otherwise). For writers that make their own folder and refuse one that exists (rosbag2)."""
+    p = Path(path)
+    if p.exists():
+        fail(f"{flag}: {p} exists (a new folder is written)")
+    try:
+        p.mkdir()
+    except OSError as exc:
+        fail(f"{flag}: cannot create the folder {p}: {exc.strerror or exc}")
+    p.rmdir()
     return p
 
 

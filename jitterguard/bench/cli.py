@@ -1,4 +1,5 @@
-"""``jitterguard bench …``: every benchmark behind one command group. Each prints JSON (a table where asked).
+"""``jitterguard bench …``: every benchmark behind one command group. Each prints JSON on stdout
+(tracker, detector and sidecar only with ``--json``: a table or one line otherwise).
 
 The benchmark modules themselves import what they time (the services, torch for the detector) only when their
 command runs: ``jitterguard --help`` must not pay for torch or a Zenoh session.
@@ -14,7 +15,7 @@ from typing import Annotated
 
 import typer
 
-from ..cli_common import ProgressOpt, fail, parse_float, progress_on
+from ..cli_common import ProgressOpt, check_seed, fail, out_dir, parse_float, parse_seeds, progress_on
 from ..services.detector.cli import ThreadsOpt, _one_line, passive_openmp
 from ..services.detector.config import PRESETS
 from ..services.replay.frames import SourceError
@@ -76,6 +77,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         """Time one frame's tracker update (core only, after warm-up) at several object counts."""
         from .tracker import run
 
+        check_seed("--seed", seed)
         result = run(_parse_sizes(sizes), frames=frames, warmup=warmup, seed=seed, pin=pin)
         if json_out:
             typer.echo(json.dumps(result))
@@ -108,7 +110,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         backends: Annotated[
             str | None,
             typer.Option("--backends", help="torch or torch,onnxruntime (timed side by side in this process, scan"
-                         " by scan). Default: both when onnxruntime is installed."),
+                         " by scan). Default: both when onnxruntime is installed (torch alone with"
+                         " --sweeps > 1: stacked-sweep networks are not exported to ONNX)."),
         ] = None,
         device: Annotated[str, typer.Option("--device", help="cpu, or cuda / cuda:N: torch's voxelisation and"
                                             " network on that GPU.")] = "cpu",
@@ -122,12 +125,20 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         progress = progress_on(progress)
         from .detector import SCENARIOS, available_backends, run
 
+        check_seed("--seed", seed)
         chosen = available_backends() if backends is None else tuple(dict.fromkeys(
             b.strip() for b in backends.split(",") if b.strip()))
         if "torch" not in chosen or any(b not in ("torch", "onnxruntime") for b in chosen):
             fail(f"--backends: expected torch or torch,onnxruntime, got {backends!r}")
         if "onnxruntime" in chosen and "onnxruntime" not in available_backends():
             fail("--backends: onnxruntime needs the onnxruntime, onnx and onnxscript packages (pip install 'jitterguard[onnx]')")
+        if sweeps > 1 and "onnxruntime" in chosen:  # stacked-sweep networks are not exported to ONNX (ExportError)
+            if backends is not None:  # asked for both: refuse before the scans are ray-cast
+                fail(f"--backends: onnxruntime cannot time --sweeps {sweeps} (stacked-sweep networks are not"
+                     " exported to ONNX yet); give --backends torch")
+            chosen = ("torch",)  # the default only: time what can be timed, and say so
+            print(f"jitterguard: note: --sweeps {sweeps}: timing torch only (stacked-sweep networks are not"
+                  " exported to ONNX yet)", file=sys.stderr)
         names = _parse_presets(presets)
         if device != "cpu":
             import torch
@@ -238,6 +249,10 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         """Detections -> tracker -> classifier -> objects through real processes: latency, losses, RSS growth."""
         from .pipeline import bench_pipeline
 
+        check_seed("--seed", seed)
+        if log_dir is not None:
+            out_dir("--log-dir", log_dir)  # before the services start: its mkdir had been a traceback
+
         from ..config import ConfigError, load
         from ..services.classifier.config import ClassifierParams
         from ..services.tracker.config import TrackerConfig
@@ -264,14 +279,11 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
     ) -> None:
         """Tracking quality of the tracker core on the seeded synthetic sequences (MOTA, IDF1, ID switches);
         the sequences and harness the tracker's tests assert on (MOTA >= 0.9, IDF1 >= 0.9)."""
-        from .tracker_mot import mot_summary
-
         if measurement_covariance not in ("detector", "class"):
             fail(f"--measurement-covariance: expected detector or class, got {measurement_covariance!r}")
-        try:
-            seed_list = [int(s) for s in seeds.split(",") if s.strip()]
-        except ValueError:
-            fail(f"--seeds: expected comma-separated integers, got {seeds!r}")
+        seed_list = parse_seeds(seeds, "--seeds")  # as track-survival's: none had divided by zero
+        from .tracker_mot import mot_summary  # motmetrics and pandas: seconds, after the flags are checked
+
         print(json.dumps(mot_summary(seed_list, frames, measurement_covariance), indent=2))
 
     bench_app.command("replay")(bench_replay_cmd)

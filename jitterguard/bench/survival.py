@@ -15,7 +15,8 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
-from ..cli_common import fail, progress_on
+from ..cli_common import fail, parse_seeds, progress_on
+from ..sim.cli import _check
 
 if TYPE_CHECKING:
     from ..schemas.models import DetectedObjects
@@ -47,7 +48,7 @@ def detector_frames_for(scenario: str, seed: int, duration_s: float, rate_hz: fl
 def survival_command(
     scenario: Annotated[str, typer.Option("--scenario", help="Synthetic scenario.")] = "mixed",
     seeds: Annotated[str, typer.Option("--seeds", help="Comma-separated seeds; each is one scenario run.")] = "0,1,2,3,4",
-    duration: Annotated[float, typer.Option("--duration", help="Scenario length [s].")] = 30.0,
+    duration: Annotated[float, typer.Option("--duration", help="Scenario length \\[s].")] = 30.0,
     rate: Annotated[float, typer.Option("--rate", help="Frame rate [Hz] (the stack's replay runs 10 Hz).")] = 10.0,
     horizon: Annotated[float, typer.Option("--horizon", help="Seconds a track ID must survive.")] = 1.0,
     min_points: Annotated[int, typer.Option("--min-points", help="LiDAR returns for an object to be in view.")] = DEFAULT_MIN_POINTS,
@@ -55,18 +56,14 @@ def survival_command(
     threads: Annotated[int | None, typer.Option("--threads", min=1, max=1024, help="torch CPU threads of the detector.")] = None,
 ) -> None:
     """Track-ID survival with the shipped detector on a synthetic scenario, as JSON (pooled and per seed)."""
+    seed_list = parse_seeds(seeds, "--seeds")
+    if not 0 < duration <= 600 or not 0 < rate <= 100 or not horizon > 0 or min_points < 0:
+        fail("--duration must be in (0, 600], --rate in (0, 100], --horizon > 0 and --min-points >= 0")
+    _check(scenario, duration, rate)  # an unknown scenario had been a ValueError from make_scenario
     from ..config import ConfigError
     from ..eval.survival import score, survival_run
     from ..services.tracker.config import default_config, load_config
 
-    try:
-        seed_list = [int(s) for s in seeds.split(",") if s.strip()]
-    except ValueError:
-        fail(f"--seeds: expected comma-separated integers, got {seeds!r}")
-    if not seed_list:
-        fail("--seeds: give at least one seed")
-    if not 0 < duration <= 600 or not 0 < rate <= 100 or not horizon > 0 or min_points < 0:
-        fail("--duration must be in (0, 600], --rate in (0, 100], --horizon > 0 and --min-points >= 0")
     try:
         cfg = load_config(tracker_config) if tracker_config else default_config()
     except ConfigError as exc:

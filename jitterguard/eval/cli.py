@@ -52,7 +52,7 @@ def eval_command(
                                          "detector, tracker and classifier on every LiDAR sweep (20 Hz, as "
                                          "`jitterguard replay --sweeps` feeds the live stack) and score the "
                                          "labelled key frames among them.")] = False,
-    duration: Annotated[float | None, typer.Option("--duration", help="Synthetic scenario length [s] (default 15;"
+    duration: Annotated[float | None, typer.Option("--duration", help="Synthetic scenario length \\[s] (default 15;"
                                                    " not with --nuscenes).")] = None,
     rate: Annotated[float | None, typer.Option("--rate", help="Synthetic frame rate [Hz] (default 10; not with"
                                                " --nuscenes).")] = None,
@@ -429,7 +429,7 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
 def study_command(
     out: Annotated[Path, typer.Option("--out", help="Folder for study.md, study.json and one folder per run.")],
     seeds: Annotated[str, typer.Option("--seeds", help="Comma-separated seeds, pooled per run.")] = "0,1,2",
-    duration: Annotated[float, typer.Option("--duration", help="Scenario length [s].")] = 15.0,
+    duration: Annotated[float, typer.Option("--duration", help="Scenario length \\[s].")] = 15.0,
     as_json: Annotated[bool, typer.Option("--json", help="Also print study.json to stdout.")] = False,
 ) -> None:
     """The jitter-band study: parking-street and diagonal-lot under clean, jittery and paper-like noise."""

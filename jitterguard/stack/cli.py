@@ -27,7 +27,7 @@ from typing import Annotated, Any, NoReturn
 
 import typer
 
-from ..cli_common import NsOpt, check_seed, fail
+from ..cli_common import NsOpt, check_seed, fail, new_dir, out_file
 from ..runtime import ZenohOptions, build_config, open_session
 from ..runtime.signals import stop_on_signals
 from ..schemas import keys
@@ -218,8 +218,10 @@ def _check_source(source: str | None, input_level: str, ropts: "R.ReplayOptions"
     return src, mode, ropts, list(info.warnings)
 
 
-def _recording_path(value: str | None, flag: str) -> str | None:
-    """An absolute path for a recording (supervisord runs programs in the run dir) that does not exist yet."""
+def _recording_path(value: str | None, flag: str, folder: bool) -> str | None:
+    """An absolute path for a recording (supervisord runs programs in the run dir) that does not exist yet and can
+    be made — a ``folder`` (rosbag2) or a file (MCAP), tried and removed again: a folder test passes ``/proc``,
+    where the recorder then crash-looped in a stack already started."""
     if value is None:
         return None
     p = Path(value).expanduser().resolve()
@@ -227,6 +229,7 @@ def _recording_path(value: str | None, flag: str) -> str | None:
         fail(f"{flag}: {value} exists")
     if not p.parent.is_dir():
         fail(f"{flag}: no folder {p.parent}")
+    (new_dir if folder else out_file)(flag, p)
     return str(p)
 
 
@@ -311,7 +314,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         if sup.running():
             fail(f"the stack {label} is already running (run dir {rd}); `jitterguard down"
                  f"{' --name ' + stack if not run_dir else ' --run-dir ' + str(rd)}` stops it")
-        mcap_path, bag_path = _recording_path(record_mcap, "--record-mcap"), _recording_path(record_ros2, "--record-ros2")
+        mcap_path, bag_path = (_recording_path(record_mcap, "--record-mcap", folder=False),
+                              _recording_path(record_ros2, "--record-ros2", folder=True))
         try:
             for what, value in (("--record-mcap", mcap_path), ("--record-ros2", bag_path)):
                 if value is not None:

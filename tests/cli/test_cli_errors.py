@@ -106,6 +106,18 @@ def test_help_shows_no_value_type_after_plain_flags():
         assert "<bool>" not in res.stdout, res.stdout
 
 
+@pytest.mark.parametrize(("command", "text"), [
+    ("bench track-survival", "Scenario length [s]"),  # Rich had taken "[s]" for markup and printed "length ."
+    ("eval-study", "Scenario length [s]"),
+    ("eval", "Synthetic scenario length [s]"),
+    ("eval-detector", "90 % intervals"),  # had printed "90 %%"
+])
+def test_help_shows_units_and_percent_signs_as_written(command, text):
+    res = subprocess.run([sys.executable, "-m", "jitterguard.cli", *command.split(), "--help"], capture_output=True,
+                         text=True, timeout=60, env={**__import__("os").environ, "COLUMNS": "250"})
+    assert res.returncode == 0 and text in res.stdout, res.stdout
+
+
 def test_each_service_command_is_registered_by_the_one_area_it_loads():
     """`jitterguard tracker` under supervisord imports only the tracker's area: the table must name the area
     that really registers the command, with the same options as in the full app."""
@@ -131,6 +143,34 @@ def test_an_output_that_cannot_be_written_is_refused_before_any_work(args, needl
     res = run(args)
     reason = ": No such file or directory" if "cannot write" in needle else ""
     assert res.returncode == 2 and res.stderr.strip() == f"jitterguard: error: {needle}{reason}", res.stderr
+
+
+@pytest.mark.parametrize(("args", "needle"), [
+    # negative seeds had been numpy tracebacks (SeedSequence), an empty list a ZeroDivisionError
+    (["bench", "detector", "--seed", "-1"], "--seed: -1 is negative"),
+    (["bench", "tracker", "--seed", "-1"], "--seed: -1 is negative"),
+    (["bench", "pipeline", "--seed", "-1", "--duration", "1"], "--seed: -1 is negative"),
+    (["bench", "track-survival", "--seeds", "-1", "--duration", "1"], "--seeds: expected seeds like"),
+    (["bench", "tracker-mot", "--seeds", "-1", "--frames", "10"], "--seeds: expected seeds like"),
+    (["bench", "tracker-mot", "--seeds", ",", "--frames", "10"], "--seeds: give at least one seed"),
+    (["bench", "track-survival", "--scenario", "nosuch", "--duration", "1"], "unknown scenario 'nosuch' (have: "),
+    # folders and files made only when the work was done (or by a program of a stack already started)
+    (["bench", "pipeline", "--log-dir", "/proc/x", "--duration", "1"], "--log-dir: cannot create the folder /proc/x"),
+    (["bench", "pipeline", "--log-dir", __file__, "--duration", "1"], "--log-dir: cannot create the folder"),
+    (["domain-gap", "--out", "/proc/x", "--nuscenes", "/nonexistent"], "--out: cannot create the folder /proc/x"),
+    (["record", "--ros2", "/proc/x", "--connect", "tcp/127.0.0.1:9"], "--ros2: cannot create the folder /proc/x"),
+    (["up", "--record-ros2", "/proc/x", "--run-dir", "{tmp}", "--duration", "1"],
+     "--record-ros2: cannot create the folder /proc/x"),
+    (["up", "--record-mcap", "/proc/x.mcap", "--run-dir", "{tmp}", "--duration", "1"],
+     "--record-mcap: cannot write /proc/x.mcap"),
+    (["eval-detector", "--out", "{tmp}/ev", "--name", "a/b"], "--name: expected a file-name stem"),
+    (["eval-detector", "--out", "{tmp}/ev", "--name", ""], "--name: expected a file-name stem"),
+    (["eval-detector", "--out", ""], "--out: empty path"),  # had written into the current folder
+])
+def test_bad_input_is_refused_in_one_line_before_any_work(args, needle, tmp_path):
+    res = run([a.replace("{tmp}", str(tmp_path)) for a in args])
+    assert res.returncode == 2 and res.stderr.count("\n") == 1 and needle in res.stderr, res.stderr
+    assert not (tmp_path / "ev").exists() and not (tmp_path / "supervisord.conf").exists()
 
 
 @pytest.mark.parametrize(("bands", "needle"), [("-5", "Input should be greater than 0"),

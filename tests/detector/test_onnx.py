@@ -232,11 +232,16 @@ def _cli(args: list[str]):
     [
         (["export-onnx", "--out", "/tmp/x", "--layout", "tensorrt"], "--layout"),
         (["export-onnx", "--out", "/tmp/x", "--opset", "13"], "--opset"),
+        # beyond the installed onnx's newest: a traceback, then opset 18 written and exit 0
+        (["export-onnx", "--out", "/tmp/x", "--opset", "99", "--check-scans", "0"], "--opset: must be >= 17 and <= "),
         (["export-onnx", "--out", "/tmp/x", "--preset", "huge"], "--preset"),
         (["detector", "--backend", "tensorrt"], "--backend"),
         (["detector", "--backend", "onnxruntime", "--onnx", "/nonexistent/dir"], "--onnx"),
         (["detector", "--onnx", "/tmp"], "--onnx"),
         (["bench", "detector", "--backends", "onnxruntime"], "--backends"),
+        # stacked-sweep networks are not exported to ONNX: asked for both, refused before the scans are cast
+        (["bench", "detector", "--backends", "torch,onnxruntime", "--sweeps", "2"], "--backends: onnxruntime cannot"
+                                                                                     " time --sweeps 2"),
     ],
 )
 def test_bad_cli_input_is_one_line_and_exit_2(args: list[str], needle: str, capsys) -> None:
@@ -247,6 +252,22 @@ def test_bad_cli_input_is_one_line_and_exit_2(args: list[str], needle: str, caps
     assert exc.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and needle in err[0], err
+
+
+def test_bench_detector_with_sweeps_leaves_the_default_onnxruntime_out(capsys) -> None:
+    """--sweeps 2 without --backends had died in an ExportError after ray-casting the scans: the default (both
+    backends) times torch alone and says so in one line."""
+    from jitterguard.cli import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(["bench", "detector", "--json", "--presets", "lite", "--scans", "1", "--warmup", "0", "--threads", "1",
+              "--no-progress", "--sweeps", "2"])
+    out, err = capsys.readouterr()
+    assert exc.value.code == 0, err
+    assert err.strip() == ("jitterguard: note: --sweeps 2: timing torch only (stacked-sweep networks are not exported"
+                           " to ONNX yet)")
+    row = json.loads(out.strip().splitlines()[-1])["lite"]
+    assert row["sweeps"] == 2 and "onnxruntime" not in row
 
 
 def test_export_onnx_cli_writes_the_files_and_reports_its_check(tmp_path) -> None:

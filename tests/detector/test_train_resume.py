@@ -112,6 +112,10 @@ def test_damaged_checkpoint_is_one_line_error(tmp_path: Path, run: Path) -> None
     with pytest.raises(CheckpointError, match="not a loadable checkpoint") as err:
         train(_model(), SAMPLES, [], CFG, out, resume=True, progress=False, meta=META)
     assert "\n" not in str(err.value)
+    (out / "checkpoint.pt").write_text("not a checkpoint at all\n")  # torch advises weights_only=False: unsafe
+    with pytest.raises(CheckpointError, match="not a loadable checkpoint") as err:
+        train(_model(), SAMPLES, [], CFG, out, resume=True, progress=False, meta=META)
+    assert "weights_only" not in str(err.value) and "\n" not in str(err.value)
     c = torch.load(str(run / "checkpoint.pt"), weights_only=True)
     del c["optimizer"]
     torch.save(c, str(out / "checkpoint.pt"))

@@ -13,6 +13,7 @@ from __future__ import annotations
 import io
 import logging
 import os
+import pickle
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -81,6 +82,15 @@ def atomic_save(obj: Any, path: str | Path) -> None:
     write_atomically(path, buf.getvalue())
 
 
+def load_refusal(exc: Exception) -> str:
+    """Why ``torch.load(weights_only=True)`` refused a file, in a few words. torch's own message runs to
+    paragraphs and, for any file that is not plain tensors (a text file, a raw scan, a pickled object), advises
+    loading it with ``weights_only=False`` — running whatever code the file holds: advice not to pass on."""
+    if isinstance(exc, pickle.UnpicklingError) or "weights_only" in str(exc):
+        return "torch.load finds no plain tensors in it"
+    return f"{type(exc).__name__}: {' '.join(str(exc).split()).split('. ')[0][:160]}"
+
+
 def load_weights(path: str | Path) -> tuple[CenterPointNet, Recalibration | None, dict[str, Any]]:
     """Load a weights file (``weights_only=True``) → (model in eval mode, recalibration, meta)."""
     p = Path(path)
@@ -89,7 +99,7 @@ def load_weights(path: str | Path) -> tuple[CenterPointNet, Recalibration | None
     try:
         payload = torch.load(str(p), map_location="cpu", weights_only=True)
     except Exception as exc:  # noqa: BLE001 - torch raises many types for a bad file
-        raise WeightsError(f"{p}: not a loadable weights file ({type(exc).__name__}: {exc})") from None
+        raise WeightsError(f"{p}: not a jitterguard detector weights file ({load_refusal(exc)})") from None
     if not isinstance(payload, dict) or payload.get("format") != FORMAT or "state_dict" not in payload:
         raise WeightsError(f"{p}: not a jitterguard detector weights file (format {FORMAT})")
     config = config_from_dict(payload["config"])

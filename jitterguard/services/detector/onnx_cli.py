@@ -156,7 +156,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                                                    " weights' own architecture.")] = None,
         weights: WeightsOpt = None,
         layout: LayoutOpt = "single",
-        opset: Annotated[int, typer.Option("--opset", help="ONNX opset (>= 17).")] = 18,
+        opset: Annotated[int, typer.Option("--opset", help="ONNX opset: 17 up to the newest the installed onnx"
+                                           " package defines (onnx.defs.onnx_opset_version()).")] = 18,
         check_scans: Annotated[int, typer.Option("--check-scans", min=0, max=100, help="Synthetic scans to compare ONNX Runtime with torch on (0: skip).")] = 3,
         tolerance: Annotated[float, typer.Option("--tolerance", min=0.0, help="Largest accepted |onnxruntime - torch| on the decoded boxes (but yaw), scores and log-variances (the raw head maps are held to a fixed"
                                                  f" {MAP_TOLERANCE:g}).")] = 1e-4,
@@ -164,15 +165,17 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         threads: ThreadsOpt = None,
     ) -> None:
         """Export the detector with its variance heads to ONNX (dynamic number of pillars) plus detector.json."""
-        from .onnx_export import LAYOUTS, MIN_OPSET
+        from .onnx_export import LAYOUTS, MIN_OPSET, max_opset
 
         if preset is not None and preset not in PRESETS:
             fail(f"--preset: expected one of {', '.join(PRESETS)}, got {preset!r}")
         from .train_cli import check_preset
         if layout not in LAYOUTS:
             fail(f"--layout: expected one of {', '.join(LAYOUTS)}, got {layout!r}")
-        if opset < MIN_OPSET:
-            fail(f"--opset: must be >= {MIN_OPSET}, got {opset}")
+        hi = max_opset()  # None without onnx: the export names the missing packages
+        if opset < MIN_OPSET or (hi is not None and opset > hi):
+            upto = f" and <= {hi} (the installed onnx's newest)" if hi is not None else ""
+            fail(f"--opset: must be >= {MIN_OPSET}{upto}, got {opset}")
         if weights is not None and not os.path.isfile(weights):
             fail(f"--weights: file not found: {weights}")
         out_dir("--out", out)

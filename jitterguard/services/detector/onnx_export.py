@@ -62,6 +62,17 @@ LOG_DIM_MAX = 5.0
 """The decoder clamps the log dimensions at this value before ``exp`` (:func:`~.decode.decode`)."""
 
 
+def max_opset() -> int | None:
+    """The newest opset the installed ``onnx`` package defines (None without it; the export then says what is
+    missing). Asked at run time, since it grows with onnx: a higher opset had made the exporter's version converter
+    print a traceback and the export silently write opset 18."""
+    try:
+        import onnx.defs
+    except ImportError:
+        return None
+    return int(onnx.defs.onnx_opset_version())
+
+
 class ExportError(RuntimeError):
     """An export that could not be written or did not reproduce the torch model (the message says which)."""
 
@@ -302,8 +313,10 @@ def export_onnx(net: CenterPointNet, out_dir: str | Path, *, layout: str = "sing
     """Write ``net`` in ``layout`` plus ``detector.json`` into ``out_dir`` (created). Raises :class:`ExportError`."""
     if layout not in LAYOUTS:
         raise ExportError(f"layout must be one of {', '.join(LAYOUTS)}, got {layout!r}")
-    if opset < MIN_OPSET:
-        raise ExportError(f"opset must be >= {MIN_OPSET}, got {opset}")
+    hi = max_opset()
+    if opset < MIN_OPSET or (hi is not None and opset > hi):
+        upto = f" and <= {hi} (the installed onnx's newest)" if hi is not None else ""
+        raise ExportError(f"opset must be >= {MIN_OPSET}{upto}, got {opset}")
     if net.config.num_point_features != 4:
         raise ExportError(f"weights trained on stacked sweeps ({net.config.num_point_features} point features) are "
                           "not exported to ONNX yet: export the single-sweep model (x, y, z, intensity)")

@@ -44,7 +44,7 @@ from torch.utils.data import DataLoader, Dataset
 
 from .config import DetectorConfig, Detections3D, Sample
 from .decode import decode
-from .inference import atomic_save, config_to_dict, save_weights
+from .inference import atomic_save, config_to_dict, load_refusal, save_weights
 from .losses import centerpoint_loss, loss_normalisers
 from .network import CenterPointNet
 from .targets import build_targets
@@ -248,8 +248,7 @@ def _load_checkpoint(path: Path, model: nn.Module, opt: torch.optim.Optimizer, s
     try:
         c = torch.load(str(path), map_location=device, weights_only=True)
     except Exception as exc:  # noqa: BLE001 - torch raises many types for a damaged file
-        raise CheckpointError(f"{path}: not a loadable checkpoint ({type(exc).__name__}: "
-                              f"{' '.join(str(exc).split())[:200]})") from None
+        raise CheckpointError(f"{path}: not a loadable checkpoint ({load_refusal(exc)})") from None
     if not isinstance(c, dict) or c.get("format") not in (2, CHECKPOINT_FORMAT):
         raise CheckpointError(f"{path}: not a jitterguard training checkpoint (format {CHECKPOINT_FORMAT})")
     diffs = _differences("config", c.get("config"), config_to_dict(model.config))  # type: ignore[arg-type]

@@ -19,7 +19,7 @@ from typing import Annotated, Any
 
 import typer
 
-from ...cli_common import ProgressOpt, fail, out_dir, progress_on
+from ...cli_common import ProgressOpt, fail, out_dir, parse_seeds, progress_on
 from .augment import CENTERPOINT_SAMPLE_COUNTS
 from .config import CLASS_NAMES, PRESETS
 
@@ -28,26 +28,6 @@ log = logging.getLogger(__name__)
 DEFAULT_SCENARIOS = "parking-street,diagonal-lot,intersection,mixed"
 RECALIBRATION_BINS = 5
 """Score bins of a fitted variance recalibration (docs/detector.md, "The variance recalibration")."""
-
-
-def parse_seeds(text: str, flag: str) -> list[int]:
-    """``"0-49"``, ``"3,5,9"`` or a mix (``"0-9,100"``) → sorted unique ints; exit 2 naming ``flag`` otherwise."""
-    seeds: set[int] = set()
-    try:
-        for part in (p.strip() for p in text.split(",") if p.strip()):
-            lo, sep, hi = part.partition("-")
-            if sep:
-                a, b = int(lo), int(hi)
-                if b < a or b - a > 100_000:
-                    raise ValueError
-                seeds.update(range(a, b + 1))
-            else:
-                seeds.add(int(part))
-    except ValueError:
-        fail(f"{flag}: expected seeds like 0-49 or 1,2,3 (non-negative), got {text!r}")
-    if not seeds or min(seeds) < 0:
-        fail(f"{flag}: expected seeds like 0-49 or 1,2,3 (non-negative), got {text!r}")
-    return sorted(seeds)
 
 
 def _class_values(items: list[str] | None, option: str, defaults: Any, convert: Any, ok: Any, what: str,
@@ -634,6 +614,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         frames: Annotated[int, typer.Option("--frames-per-scenario", min=1, max=600)] = 5,
     ) -> None:
         """Measure how real scans differ from synthetic ones (returns by range, on cars, road height)."""
+        out_dir("--out", out)  # before any work: a run must not fail to write its result at the end
         if not os.path.isdir(nuscenes):
             fail(f"--nuscenes: not a directory: {nuscenes}")
         specs = effects or ["none", "random"]
@@ -654,7 +635,6 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             stats[f"synthetic, effects {e}"] = scan_statistics(
                 list(synthetic_samples(scen, sd, frames_per_scenario=frames, effects=e)))
         root = Path(out)
-        root.mkdir(parents=True, exist_ok=True)
         (root / "domain_gap.json").write_text(json.dumps(stats, indent=1))
         comparison_plot(stats, str(root / "domain_gap.png"))
         typer.echo(json.dumps({name: {"valid_returns_per_scan": round(st["valid_returns_per_scan"]),
@@ -681,7 +661,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         holdout_last: Annotated[int | None, typer.Option("--holdout-last", min=1, help="Score only each scene's"
                                                          " last N key frames.")] = None,
         bootstrap: Annotated[int, typer.Option("--bootstrap", min=0, max=10000, help="Resamples over frames for"
-                                               " 90 %% intervals of AP and coverage (0: none).")] = 1000,
+                                               " 90 % intervals of AP and coverage (0: none).")] = 1000,
         recalibrate: Annotated[bool, typer.Option("--recalibrate/--no-recalibrate",
                                                   help="Apply the weights' fitted variance scales.")] = True,
         self_crop: Annotated[bool, typer.Option("--self-crop/--no-self-crop", help="Drop the returns of the"
@@ -698,6 +678,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         progress: ProgressOpt = None,
     ) -> None:
         """Score weights on a hold-out set: nuScenes-style AP, positional ECE; JSON + PNGs."""
+        # a stem with a folder in it (or none at all) failed, or wrote hidden files, only after the whole scoring
+        if not name.strip() or name != Path(name).name or name in (".", ".."):
+            fail(f"--name: expected a file-name stem (no folder, not empty), got {name!r}")
         out_dir("--out", out)  # before any work: a run must not fail to write its result at the end
         progress = progress_on(progress)
         if preset is not None and preset not in PRESETS:

@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
-from ...cli_common import ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ZenohConfigOpt, fail, zenoh_options
+from ...cli_common import ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ZenohConfigOpt, fail, new_dir, zenoh_options
 
 EXAMPLES = """
 Examples:\n
@@ -40,8 +39,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             if not number_if_exists:
                 fail(f"--ros2: {ros2} exists (rosbag2 writes a new folder)")
             path = next_free_path(path)
-        if not path.parent.is_dir() or not os.access(path.parent, os.W_OK):
-            fail(f"--ros2: cannot write into {path.parent}")
+        new_dir("--ros2", path)  # made and removed: a folder test passes /proc, where rosbags' mkdir then failed
         opts = zenoh_options(ns, zenoh_config, connect, listen)
 
         from ...runtime import setup_logging
