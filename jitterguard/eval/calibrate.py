@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 import typer
 from pydantic import ValidationError
 
-from ..cli_common import fail, out_file, progress_on
+from ..cli_common import check_seed, fail, out_file, progress_on
 from ..schemas.models import ClassifierConfig
 
 if TYPE_CHECKING:
@@ -142,6 +142,7 @@ def calibrate_command(
         fail(f"{flag}: {err['msg']}")
     if not 0 < hz < 1e6 or not 0 < duration <= 3600:
         fail("--hz must be positive and --duration in (0, 3600]")
+    check_seed("--seed", seed)
     opts = SourceOptions(level=level, seed=seed, duration_s=duration, rate_hz=hz, scene=scene, topic=topic,
                          pose_topic=pose_topic, period_ns=int(round(1e9 / hz)))
     try:

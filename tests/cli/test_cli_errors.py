@@ -153,6 +153,9 @@ def test_an_output_that_cannot_be_written_is_refused_before_any_work(args, needl
     (["bench", "track-survival", "--seeds", "-1", "--duration", "1"], "--seeds: expected seeds like"),
     (["bench", "tracker-mot", "--seeds", "-1", "--frames", "10"], "--seeds: expected seeds like"),
     (["bench", "tracker-mot", "--seeds", ",", "--frames", "10"], "--seeds: give at least one seed"),
+    (["feed-tracks", "--seed", "-1", "--connect", "tcp/127.0.0.1:9"], "--seed: -1 is negative"),  # ran on, idle
+    (["replay", "synthetic:mixed", "--seed", "-1"], "--seed: -1 is negative"),
+    (["calibrate", "synthetic:mixed", "--seed", "-1", "--out", "{tmp}/c.yaml"], "--seed: -1 is negative"),
     (["bench", "track-survival", "--scenario", "nosuch", "--duration", "1"], "unknown scenario 'nosuch' (have: "),
     # folders and files made only when the work was done (or by a program of a stack already started)
     (["bench", "pipeline", "--log-dir", "/proc/x", "--duration", "1"], "--log-dir: cannot create the folder /proc/x"),

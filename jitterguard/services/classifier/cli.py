@@ -11,6 +11,7 @@ import typer
 
 from ...cli_common import (
     ConnectOpt,
+    check_seed,
     ListenOpt,
     LogLevelOpt,
     NsOpt,
@@ -121,6 +122,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         from ...runtime import setup_logging
         from .feeder import TrackFeeder
 
+        check_seed("--seed", seed)  # numpy refuses a negative one in the feeder's thread, which then ran on idle
         opts = zenoh_options(ns, zenoh_config, connect, listen)
         setup_logging(log_level)
         TrackFeeder(opts, frames=frames, rate_hz=rate, loop=loop, seed=seed).run_forever()

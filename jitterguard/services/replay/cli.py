@@ -16,8 +16,8 @@ from typing import Annotated, Any
 
 import typer
 
-from ...cli_common import (ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ProgressOpt, ZenohConfigOpt, fail, progress_on,
-                           zenoh_options)
+from ...cli_common import (ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ProgressOpt, ZenohConfigOpt, check_seed, fail,
+                           progress_on, zenoh_options)
 from ...runtime import setup_logging
 from ...runtime.signals import stop_on_signals
 from .frames import Frame, FrameError, SourceError
@@ -118,6 +118,7 @@ def replay_command(
     log_level: LogLevelOpt = "INFO",
 ) -> None:
     """Replay a recording onto jg/{ns}/points (scans with ego pose) or jg/{ns}/detections."""
+    check_seed("--seed", seed)
     setup_logging(log_level)
     opts = ReplayOptions(rate=rate, start=start, limit=limit, on_error=on_error, level=level, seed=seed,
                          duration=duration, lidar=lidar, hz=hz, scene=scene, nuscenes_version=nuscenes_version,
