@@ -164,6 +164,7 @@ def test_an_output_that_cannot_be_written_is_refused_before_any_work(args, needl
     (["record", "--ros2", "/proc/x", "--connect", "tcp/127.0.0.1:9"], "--ros2: cannot create the folder /proc/x"),
     (["up", "--record-ros2", "/proc/x", "--run-dir", "{tmp}", "--duration", "1"],
      "--record-ros2: cannot create the folder /proc/x"),
+    (["foxglove", "--record", "/proc/x.mcap", "--connect", "tcp/127.0.0.1:9"], "--record: cannot write /proc/x.mcap"),
     (["up", "--record-mcap", "/proc/x.mcap", "--run-dir", "{tmp}", "--duration", "1"],
      "--record-mcap: cannot write /proc/x.mcap"),
     (["eval-detector", "--out", "{tmp}/ev", "--name", "a/b"], "--name: expected a file-name stem"),
