@@ -406,6 +406,18 @@ def test_a_file_that_is_not_weights_is_refused_in_one_line(command: list[str], t
     assert "weights_only" not in res.stderr, res.stderr
 
 
+def test_a_preset_that_contradicts_the_weights_is_refused_in_one_line() -> None:
+    """The weights file fixes the network: ``--preset paper`` beside lite weights had been ignored without a word
+    (eval-detector and export-onnx refused it)."""
+    from jitterguard.services.detector.inference import shipped_weights
+
+    res = subprocess.run([sys.executable, "-m", "jitterguard.cli", "detector", "--weights", str(shipped_weights("lite")),
+                          "--preset", "paper", "--connect", "tcp/127.0.0.1:9"], capture_output=True, text=True,
+                         timeout=60)
+    assert res.returncode == 2 and res.stderr.strip().startswith(
+        "jitterguard: error: --preset: 'paper' contradicts --weights"), res.stderr
+
+
 def test_detector_process_detects_and_stops_cleanly_on_sigterm(scans, client_session, zenoh_port) -> None:
     """``jitterguard detector`` as its own process: one scan in, one DetectedObjects out, SIGTERM exits 0."""
     proc = subprocess.Popen(

@@ -138,6 +138,10 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             fail(f"{'--onnx' if params.onnx else '--weights'}: {_one_line(exc)}")
         except ValueError as exc:  # flips on weights whose grid is not symmetric about the sensor
             fail(f"--flips: {_one_line(exc)}")
+        if params.weights or params.onnx:  # the file fixes the network: a --preset naming another one was ignored
+            from .train_cli import check_preset
+
+            check_preset(preset, params.weights or params.onnx, det.config.name)
         try:
             service = DetectorService(opts, det, has_twist=params.twist, sweeps=params.sweeps,
                                       max_sweep_lag_s=params.max_sweep_lag_s, max_scan_bytes=params.max_scan_bytes)
