@@ -29,8 +29,7 @@ from typing import Any, TypeVar
 import numpy as np
 
 from ..services.detector.config import PRESETS
-
-SCENARIOS = ("parking-street", "diagonal-lot", "intersection", "mixed")
+from ..sim.world import SCENARIO_NAMES as SCENARIOS  # the world's own list (loading-street had been missing)
 STAGES = ("voxelize", "network", "decode")
 T = TypeVar("T")
 

@@ -11,10 +11,11 @@ from typing import Any
 import numpy as np
 
 from ..frames import EgoPose, FrameError, Item, ScanFrame, SourceError, SourceInfo, finite_rows
+from ....sim.world import SCENARIO_NAMES
 from ..truth import truth_message
 from .base import Source
 
-SCENARIOS = ("parking-street", "diagonal-lot", "intersection", "mixed", "loading-street")
+SCENARIOS = SCENARIO_NAMES  # the world's own list: one place names the scenarios
 MAX_DURATION_S = 600.0
 """The longest scenario the world generator makes."""
 SCAN_FIELDS = ("x", "y", "z", "intensity", "ring")
