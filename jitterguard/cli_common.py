@@ -69,6 +69,18 @@ def parse_float(flag: str, text: str, lo: float, hi: float) -> float:
     return value
 
 
+def parse_int(flag: str, text: str, lo: int, hi: int) -> int:
+    """``text`` as an integer in [lo, hi] (not ``1.5``, which ``int(float(…))`` had quietly made 1), or a one-line
+    error naming ``flag`` (exit 2). For options kept as text so that their errors are jitterguard's one line."""
+    try:
+        value = int(text)
+    except ValueError:
+        fail(f"{flag}: {text!r} is not an integer")
+    if not lo <= value <= hi:
+        fail(f"{flag}: {value} is outside {lo}-{hi}")
+    return value
+
+
 def check_seed(flag: str, value: int) -> int:
     """A seed of the synthetic world (numpy's SeedSequence takes no negative one), or one line and exit 2."""
     if value < 0:

@@ -15,7 +15,7 @@ from typing import Annotated
 
 import typer
 
-from ..cli_common import ProgressOpt, check_seed, fail, out_dir, parse_float, parse_seeds, progress_on
+from ..cli_common import ProgressOpt, check_seed, fail, out_dir, parse_float, parse_int, parse_seeds, progress_on
 from ..services.detector.cli import ThreadsOpt, _one_line, passive_openmp
 from ..services.detector.config import PRESETS
 from ..services.replay.frames import SourceError
@@ -194,13 +194,13 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
     @bench_app.command("sidecar")
     def bench_sidecar(
         as_json: Annotated[bool, typer.Option("--json", help="Print the result as JSON only.")] = False,
-        tracks: Annotated[int, typer.Option("--tracks", min=1, max=20_000, help="Live tracks in every frame.")] = 500,
+        tracks: Annotated[str, typer.Option("--tracks", help="Live tracks in every frame.")] = "500",
         rate: Annotated[str, typer.Option("--rate", help="Pipeline frame rate, Hz.")] = "20",
         duration: Annotated[str, typer.Option("--duration", help="Measured seconds.")] = "15",
         warmup: Annotated[str, typer.Option("--warmup", help="Seconds of load before measuring.")] = "3",
         request_rate: Annotated[str, typer.Option(
             "--request-rate", help="GET /v1/state per second from the load client (0: back to back).")] = "50",
-        seed: Annotated[int, typer.Option("--seed", help="Scenario seed.")] = 0,
+        seed: Annotated[str, typer.Option("--seed", help="Scenario seed.")] = "0",
         state_source: Annotated[str, typer.Option(
             "--state-source", help="pipeline: the real classifier fed by a track feeder; synthetic: a stand-in "
                                    "serving the classifier's state queryable at --rate (isolates the sidecar).")
@@ -212,11 +212,11 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         if state_source not in ("pipeline", "synthetic"):
             fail(f"--state-source: {state_source!r} is not one of pipeline, synthetic")
         params = BenchParams(
-            tracks=tracks, rate_hz=parse_float("--rate", rate, 0.5, 100.0),
+            tracks=parse_int("--tracks", tracks, 1, 20_000), rate_hz=parse_float("--rate", rate, 0.5, 100.0),
             duration_s=parse_float("--duration", duration, 1.0, 3600.0),
             warmup_s=parse_float("--warmup", warmup, 0.0, 600.0),
             request_rate_hz=parse_float("--request-rate", request_rate, 0.0, 10_000.0),
-            seed=check_seed("--seed", seed), state_source=state_source)
+            seed=check_seed("--seed", parse_int("--seed", seed, -(2**31), 2**31 - 1)), state_source=state_source)
         result = run_bench(params)
         if as_json:
             print(json.dumps(result, indent=2))

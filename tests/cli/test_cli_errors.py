@@ -153,7 +153,7 @@ def test_an_output_that_cannot_be_written_is_refused_before_any_work(args, needl
     (["bench", "track-survival", "--seeds", "-1", "--duration", "1"], "--seeds: expected seeds like"),
     (["bench", "tracker-mot", "--seeds", "-1", "--frames", "10"], "--seeds: expected seeds like"),
     (["bench", "tracker-mot", "--seeds", ",", "--frames", "10"], "--seeds: give at least one seed"),
-    (["bench", "sidecar", "--seed", "1.5"], "Invalid value for '--seed'"),  # had been taken as 1
+    (["bench", "sidecar", "--seed", "1.5"], "--seed: '1.5' is not an integer"),  # had been taken as 1
     (["bench", "sidecar", "--seed", "-1"], "--seed: -1 is negative"),
     (["feed-tracks", "--seed", "-1", "--connect", "tcp/127.0.0.1:9"], "--seed: -1 is negative"),  # ran on, idle
     (["replay", "synthetic:mixed", "--seed", "-1"], "--seed: -1 is negative"),

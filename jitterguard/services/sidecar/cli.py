@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from ...cli_common import ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ZenohConfigOpt, fail, parse_float, zenoh_options
+from ...cli_common import ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ZenohConfigOpt, fail, parse_float, parse_int, zenoh_options
 from ...schemas import keys
 
 if TYPE_CHECKING:
@@ -35,13 +35,7 @@ PollOpt = Annotated[str, typer.Option("--poll-ms", help="How often to refresh th
 
 
 def _parse_port(text: str) -> int:
-    try:
-        port = int(text)
-    except ValueError:
-        fail(f"--port: {text!r} is not an integer")
-    if not 1 <= port <= 65535:
-        fail(f"--port: {port} is outside 1-65535")
-    return port
+    return parse_int("--port", text, 1, 65535)
 
 
 def _check_bindable(host: str, port: int) -> None:
