@@ -18,6 +18,7 @@ from typing import Annotated, ClassVar, Literal
 
 from pydantic import (
     BaseModel,
+    BeforeValidator,
     ConfigDict,
     Field,
     NonNegativeInt,
@@ -56,9 +57,11 @@ TrackId = Annotated[str, StringConstraints(pattern=r"^[0-9a-f]{32}$")]
 
 
 class _Strict(BaseModel):
-    """Base of every model: unknown fields and non-finite floats are errors, not silently kept."""
+    """Base of every model: unknown fields, non-finite floats and values of another type are errors, not silently
+    kept or coerced (strict: a string "12" is no seq, True and 1.0 are no label, "yes" is no bool; an int is a
+    float, and msgpack's arrays are the covariance tuples)."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, validate_default=False)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, validate_default=False, strict=True)
 
 
 class Message(_Strict):
@@ -114,8 +117,9 @@ def _zero_cov() -> tuple[float, ...]:
 
 
 _Variance = Annotated[float, Field(ge=0.0)]
-Covariance = tuple[  # type: ignore[valid-type]
-    tuple(_Variance if i in DIAGONAL else float for i in range(COVARIANCE_SIZE))
+Covariance = Annotated[
+    tuple[tuple(_Variance if i in DIAGONAL else float for i in range(COVARIANCE_SIZE))],  # type: ignore[misc]
+    BeforeValidator(lambda v: tuple(v) if type(v) is list else v),  # msgpack's arrays: validation is strict
 ]
 """36 floats, row-major 6x6 over (x, y, z, roll, pitch, yaw); the diagonal (variances) must be >= 0.
 

@@ -205,7 +205,7 @@ def _emit(schema: dict, value: Any, name: str, out: bytearray, slots: list[Slot]
         return _emit(schema["schema"], value, name, out, slots, spans, defs)
     if kind == "definition-ref":
         return _emit(defs[schema["schema_ref"]], value, name, out, slots, spans, defs)
-    if kind == "default":
+    if kind in ("default", "function-before"):  # a before-validator that keeps the shape (an array as a tuple)
         return _emit(schema["schema"], value, name, out, slots, spans, defs)
     if kind == "model":
         start = len(out)

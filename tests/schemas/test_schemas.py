@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import math
+import re
 import sys
 
 import msgpack
@@ -518,6 +519,24 @@ def test_peek_header_reads_seq_and_stamp_without_validating():
     for seq, stamp in ((2**64 - 1, 1), (-5, 1), (1, -1), (1, 2**64 - 1), (True, 1)):
         assert wire.peek_header(msgpack.packb({"header": {"seq": seq, "stamp": stamp}})) is None, (seq, stamp)
     assert wire.peek_header(msgpack.packb({"header": {"seq": 2**63 - 1, "stamp": 0}})) == (2**63 - 1, 0)
+
+
+@pytest.mark.parametrize(("path", "value", "field"), [
+    (["header", "seq"], "12", "header.seq"),
+    (["header", "stamp"], 1.0, "header.stamp"),
+    (["objects", 0, "kinematics", "pose_with_covariance", "pose", "position", "x"], "10.5", "position.x"),
+    (["objects", 0, "kinematics", "has_position_covariance"], "yes", "has_position_covariance"),
+    (["objects", 0, "classification", 0, "label"], True, "label"),
+    (["objects", 0, "classification", 0, "label"], 1.0, "label"),
+    (["objects", 0, "kinematics", "pose_with_covariance", "covariance"], ["0.1"] + [0.0] * 35, "covariance.0"),
+])
+def test_a_value_of_the_wrong_type_is_refused_not_coerced(path, value, field):
+    """The wire is strict: a string "12" had been read as seq 12, "yes" as True, True and 1.0 as label 1."""
+    payload = _mutate(_rich_tracked(odd=False), path, value)
+    for read in (lambda d: decode(TrackedObjects, d), wire.read_tracked_objects):
+        with pytest.raises(DecodeError, match=re.escape(field)):
+            read(payload)
+    assert decode(TrackedObjects, _mutate(_rich_tracked(odd=False), ["header", "seq"], 12)).header.seq == 12
 
 
 @pytest.mark.parametrize("version", ["missing", True, 2, 1.0])
