@@ -13,7 +13,8 @@ PYTEST=(.venv/bin/python -m pytest -q -p no:cacheprovider)
 if [ "$#" -gt 0 ]; then
   exec "${PYTEST[@]}" --durations=25 "$@"
 fi
-SERVICES=(tests/stack tests/sidecar tests/integrations tests/runtime tests/cli tests/replay)
+SERVICES=(tests/stack tests/sidecar tests/integrations tests/runtime tests/cli tests/replay
+          tests/classifier/test_classifier_service.py tests/tracker/test_tracker_service.py)
 IGNORE=()
 for d in "${SERVICES[@]}"; do IGNORE+=("--ignore=$d"); done
 log=$(mktemp)
