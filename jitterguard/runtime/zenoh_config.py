@@ -149,9 +149,9 @@ TLS_FILE_KEYS = ("root_ca_certificate", "listen_certificate", "listen_private_ke
 def tls_file_refusal(cfg: zenoh.Config) -> str | None:
     """Why the TLS files ``cfg`` names cannot be used (one line naming the setting and the file), or ``None``.
 
-    Checked before the open because a *client* never reports them: with ``connect/timeout_ms: -1`` (the service
-    hosts' template) its open retries the TLS link for ever without a word, so a service with a missing key
-    waited silently. Only a config with a ``tls/`` or ``quic/`` endpoint is checked (the others never read them)."""
+    Checked before the open because a *client* need not report them: with ``connect/timeout_ms: -1`` (as the
+    service hosts' template once set) its open retries the TLS link for ever without a word, and otherwise its
+    failure reads as a router that is not up yet. Only a config with a ``tls/`` or ``quic/`` endpoint is checked (the others never read them)."""
     mode = str(_get(cfg, "mode") or "peer")
     endpoints = [str(e) for e in (_for_mode(_get(cfg, "connect/endpoints"), mode) or [])]  # type: ignore[union-attr]
     endpoints += listen_endpoints(cfg, mode)

@@ -202,16 +202,17 @@ def read_track_observations(payloads: Sequence[bytes], limits: Limits = LIMITS,
         track_bytes[i] = records_of(TRACK_STATE, [msg.track]).view(np.uint8)
         ok[i], normalised = True, normalised + 1
     beyond = _beyond(dets, limits, "detection.") + _beyond(tracks, limits, "track.", state=True)
-    if key_ids is not None:
-        other = [k.encode() != t for k, t in zip(key_ids, tracks["object_id"].tolist(), strict=True)]
-        beyond.append((ok & np.array(other, dtype=bool), "track.object_id"))
     if np.logical_or.reduce([bad for bad, _ in beyond]).any():
         for bad, why in beyond:
             for i in np.flatnonzero(bad & ok).tolist():
                 ok[i] = False
-                errors.append((i, DecodeError(TrackObservation.__name__, why, f"not the track its key names "
-                                              f"({key_ids[i]!r})") if why == "track.object_id" and key_ids else
-                               LimitExceeded(TrackObservation.__name__, why, "beyond the configured limit")))
+                errors.append((i, LimitExceeded(TrackObservation.__name__, why, "beyond the configured limit")))
+    if key_ids is not None:
+        for i, (key, tid) in enumerate(zip(key_ids, tracks["object_id"].tolist(), strict=True)):
+            if ok[i] and key.encode() != tid:
+                ok[i] = False
+                errors.append((i, DecodeError(TrackObservation.__name__, "track.object_id",
+                                              f"not the track its key names ({key!r})")))
     if ok.all():
         return ObservationColumns(np.arange(n), seq, stamp, dets, tracks, [], normalised)
     keep = np.flatnonzero(ok)

@@ -302,7 +302,7 @@ class ClassifierService(Service):
             return 0
         self.counters.inc("received", len(samples))
         cols = self.pipeline.observations([s.payload.to_bytes() for s in samples],
-                                          [str(s.key_expr).rpartition("/")[2] for s in samples])
+                                          [keys.last_chunk(str(s.key_expr)) for s in samples])
         for i, exc in cols.errors:
             self.reject(exc, self._obs_key, str(samples[i].key_expr))
         if cols.normalised:

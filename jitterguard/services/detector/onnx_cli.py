@@ -165,17 +165,16 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         threads: ThreadsOpt = None,
     ) -> None:
         """Export the detector with its variance heads to ONNX (dynamic number of pillars) plus detector.json."""
-        from .onnx_export import LAYOUTS, MIN_OPSET, max_opset
+        from .onnx_export import LAYOUTS, opset_refusal
 
         if preset is not None and preset not in PRESETS:
             fail(f"--preset: expected one of {', '.join(PRESETS)}, got {preset!r}")
         from .train_cli import check_preset
         if layout not in LAYOUTS:
             fail(f"--layout: expected one of {', '.join(LAYOUTS)}, got {layout!r}")
-        hi = max_opset()  # None without onnx: the export names the missing packages
-        if opset < MIN_OPSET or (hi is not None and opset > hi):
-            upto = f" and <= {hi} (the installed onnx's newest)" if hi is not None else ""
-            fail(f"--opset: must be >= {MIN_OPSET}{upto}, got {opset}")
+        refused = opset_refusal(opset)  # without onnx only the minimum: the export names the missing packages
+        if refused:
+            fail(f"--opset: {refused}")
         if weights is not None and not os.path.isfile(weights):
             fail(f"--weights: file not found: {weights}")
         out_dir("--out", out)

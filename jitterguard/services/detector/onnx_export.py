@@ -73,6 +73,16 @@ def max_opset() -> int | None:
     return int(onnx.defs.onnx_opset_version())
 
 
+def opset_refusal(opset: int) -> str | None:
+    """Why ``opset`` cannot be exported (``must be >= 17 … , got N``), or None: the one rule of the CLI and the
+    exporter."""
+    hi = max_opset()
+    if opset < MIN_OPSET or (hi is not None and opset > hi):
+        upto = f" and <= {hi} (the installed onnx's newest)" if hi is not None else ""
+        return f"must be >= {MIN_OPSET}{upto}, got {opset}"
+    return None
+
+
 class ExportError(RuntimeError):
     """An export that could not be written or did not reproduce the torch model (the message says which)."""
 
@@ -313,10 +323,9 @@ def export_onnx(net: CenterPointNet, out_dir: str | Path, *, layout: str = "sing
     """Write ``net`` in ``layout`` plus ``detector.json`` into ``out_dir`` (created). Raises :class:`ExportError`."""
     if layout not in LAYOUTS:
         raise ExportError(f"layout must be one of {', '.join(LAYOUTS)}, got {layout!r}")
-    hi = max_opset()
-    if opset < MIN_OPSET or (hi is not None and opset > hi):
-        upto = f" and <= {hi} (the installed onnx's newest)" if hi is not None else ""
-        raise ExportError(f"opset must be >= {MIN_OPSET}{upto}, got {opset}")
+    refused = opset_refusal(opset)
+    if refused:
+        raise ExportError(f"opset {refused}")
     if net.config.num_point_features != 4:
         raise ExportError(f"weights trained on stacked sweeps ({net.config.num_point_features} point features) are "
                           "not exported to ONNX yet: export the single-sweep model (x, y, z, intensity)")

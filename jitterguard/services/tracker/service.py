@@ -84,7 +84,7 @@ class TrackerService(Service):
     def _on_motion(self, msg: MotionState, key: str) -> None:
         """Zenoh callback: keep the static decisions for the worker (applied before the next frame); a hint whose
         mean lies beyond ``limits.max_abs_coordinate_m`` is refused and counted, as a detection there would be."""
-        if msg.track_id != key.rpartition("/")[2]:  # a publisher allowed one track's key cannot steer another
+        if msg.track_id != keys.last_chunk(key):  # a publisher allowed one track's key cannot steer another
             self.reject(DecodeError(MotionState.__name__, "track_id", "not the track its key names"),
                         keys.motion_all(self.ns), key)
             return
