@@ -81,6 +81,31 @@ def test_missing_motion_times_out_and_a_later_frame_overtakes_a_waiting_one() ->
     assert [f.seq for f in j.poll(now=2.0)] == [3]
 
 
+def test_a_frame_waits_for_the_inputs_the_previous_frame_had() -> None:
+    """Nothing orders the detector's detections N before the classifier's objects N at a bridge: a frame whose
+    detections are late waits for them (up to ``motion_wait_s``) when the frame before had detections."""
+    j = FrameJoiner(motion_wait_s=0.25)
+    for seq in (1, 2):
+        if seq == 1:
+            j.add_detections(DetectedObjects(header=hdr(seq, "lidar")))
+        j.add_tracked(tracked(seq, observed=()))
+    j.add_objects(objects(1), now=0.0)
+    (f1,) = j.poll(now=0.0)  # nothing was expected before the first frame
+    assert f1.detections is not None
+    j.add_objects(objects(2), now=1.0)
+    assert j.poll(now=1.1) == []  # frame 1 had detections: frame 2 waits for its own
+    j.add_detections(DetectedObjects(header=hdr(2, "lidar")))
+    (f2,) = j.poll(now=1.1)
+    assert f2.detections is not None and f2.detections.header.seq == 2
+    j.add_tracked(tracked(3, observed=()))
+    j.add_objects(objects(3), now=2.0)
+    (f3,) = j.poll(now=2.3)  # the detector went away: the frame goes out without them after motion_wait_s
+    assert f3.detections is None
+    j.add_tracked(tracked(4, observed=()))
+    j.add_objects(objects(4), now=3.0)
+    assert [f.seq for f in j.poll(now=3.0)] == [4]  # and the next frame no longer waits for them
+
+
 def test_a_track_without_a_decision_this_frame_keeps_its_latest_one() -> None:
     j = FrameJoiner(motion_wait_s=0.0)
     j.add_motion(motion(1, A, "dynamic", z=5.0))

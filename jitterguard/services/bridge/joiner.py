@@ -9,7 +9,9 @@ its ``motion/{id}``. Nothing orders messages across keys (DESIGN.md), and the cl
 the frame's ``motion/{id}``, so:
 
 - ``objects`` of seq N opens the frame for output; it is emitted once every ``motion/{id}`` of the IDs ``tracked`` N
-  listed has arrived, or ``motion_wait_s`` after ``objects`` N arrived (what arrived by then goes out; the rest is
+  listed has arrived and so has every input stream (points, detections, ground truth) the previous frame out had
+  (nothing orders the detector's ``detections`` N before the classifier's ``objects`` N at a bridge: on a loaded
+  machine a bag had lost one frame's detections that way), or ``motion_wait_s`` after ``objects`` N arrived (what arrived by then goes out; the rest is
   counted ``motion_missing``), or as soon as a later frame's ``objects`` arrives (the classifier sheds the motion
   messages of a frame when it is behind; a viewer must not fall behind waiting for them);
 - inputs (points, detections, ground truth, tracked, motion) wait in per-seq buffers holding at most
@@ -140,6 +142,7 @@ class FrameJoiner:
         self._last_emitted = -1
         self._emitted: OrderedDict[int, int] = OrderedDict()  # seq → stamp of the last frames out
         self._latest: dict[str, MotionState] = {}  # track ID → its latest MotionState, for tracks still reported
+        self._expected: list[_BySeq[Any]] = []  # the input streams the last frame out had: the next one waits for them
 
     def _count(self, name: str, n: int = 1) -> None:
         if n:
@@ -157,6 +160,7 @@ class FrameJoiner:
                 b.clear()
             self._open.clear()
             self._latest.clear()
+            self._expected = []
             self._emitted.clear()
             self._last_emitted = -1
             self._count("seq_restarts")
@@ -204,6 +208,8 @@ class FrameJoiner:
         tracked = self._tracked.items.get(seq)
         if tracked is None:
             return False
+        if any(seq not in buffer.items for buffer in self._expected):
+            return False
         got = self._motion.items.get(seq, {})
         return all(t in got for t in motion_expected(tracked, objects))
 
@@ -236,6 +242,8 @@ class FrameJoiner:
                             tracked=tracked, motion=motion, last_motion=last)
         for b in (self._points, self._detections, self._truth, self._tracked, self._motion):
             b.drop_through(seq)  # older frames never got their objects: they will not be emitted
+        self._expected = [b for b, v in ((self._points, frame.points), (self._detections, frame.detections),
+                                          (self._truth, frame.groundtruth)) if v is not None]
         self._last_emitted = max(self._last_emitted, seq)
         self._emitted[seq] = objects.header.stamp
         while len(self._emitted) > self._points.cap:
