@@ -19,7 +19,7 @@ from ..cli_common import ProgressOpt, check_seed, fail, out_dir, parse_float, pa
 from ..services.detector.cli import ThreadsOpt, _one_line, passive_openmp
 from ..services.detector.config import PRESETS
 from ..services.replay.frames import SourceError
-from ..sim.cli import LidarOpt, _check
+from ..sim.cli import LidarOpt, check_scenario_options
 from .survival import survival_command
 
 
@@ -324,7 +324,7 @@ def bench_sim_cmd(
     """Ray-casting throughput (full scans/s on one core) and replay at --rate max of 35k-point scans, as JSON:
     ``{"raycast": {"sensor", "rays", "objects", "scans_per_s", ...}, "replay": {"points_per_scan",
     "scans_per_s", "dropped", ...}}``."""
-    _check(scenario, 10.0, 10.0, lidar)
+    check_scenario_options(scenario, 10.0, 10.0, lidar)
     if scans < 1 or objects < 0 or repeat < 1 or replay_scans < 0:
         fail("--scans and --repeat must be >= 1, --objects and --replay-scans >= 0")
     from .sim import bench_raycast

@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 import typer
 
 from ..cli_common import fail, parse_seeds, progress_on
-from ..sim.cli import _check
+from ..sim.cli import check_scenario_options
 
 if TYPE_CHECKING:
     from ..schemas.models import DetectedObjects
@@ -59,7 +59,7 @@ def survival_command(
     seed_list = parse_seeds(seeds, "--seeds")
     if not 0 < duration <= 600 or not 0 < rate <= 100 or not horizon > 0 or min_points < 0:
         fail("--duration must be in (0, 600], --rate in (0, 100], --horizon > 0 and --min-points >= 0")
-    _check(scenario, duration, rate)  # an unknown scenario had been a ValueError from make_scenario
+    check_scenario_options(scenario, duration, rate)  # an unknown scenario had been a ValueError from make_scenario
     from ..config import ConfigError
     from ..eval.survival import score, survival_run
     from ..services.tracker.config import default_config, load_config

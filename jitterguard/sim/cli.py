@@ -28,7 +28,7 @@ DurationOpt = Annotated[float, typer.Option("--duration", help="Seconds (10–60
 LidarOpt = Annotated[str, typer.Option("--lidar", help="hdl32e, vlp16 or os1-64.")]
 
 
-def _check(scenario: str, duration: float, rate: float, lidar: str | None = None, seed: int = 0) -> None:
+def check_scenario_options(scenario: str, duration: float, rate: float, lidar: str | None = None, seed: int = 0) -> None:
     from .sensors import SENSORS
     from .world import SCENARIO_NAMES
 
@@ -103,7 +103,7 @@ def generate_command(
     progress: ProgressOpt = None,
 ) -> None:
     """Generate a scenario; print a JSON summary, optionally write its ground truth."""
-    _check(scenario, duration, rate, lidar, seed)
+    check_scenario_options(scenario, duration, rate, lidar, seed)
     from .lidar import cast_frame
     from .sensors import SENSORS
     from .world import make_scenario
@@ -166,7 +166,7 @@ def export_command(
     progress: ProgressOpt = None,
 ) -> None:
     """Export a scenario as a nuScenes-format dataroot (loads with nuscenes-devkit, version v1.0-mini)."""
-    _check(scenario, duration, rate, lidar, seed)
+    check_scenario_options(scenario, duration, rate, lidar, seed)
     if min_points < 0:
         fail("--min-points must be >= 0")
     root = Path(dataroot)
@@ -200,7 +200,7 @@ def bev_command(
     extent: Annotated[float, typer.Option("--extent", help="Half-width of the view in metres.")] = 40.0,
 ) -> None:
     """Render one ray-cast scan with its ground-truth boxes (colour = motion state) as a bird's-eye PNG."""
-    _check(scenario, duration, rate, lidar, seed)
+    check_scenario_options(scenario, duration, rate, lidar, seed)
     if not 5.0 <= extent <= 200.0:
         fail("--extent must be in [5, 200] metres")
     if not out.lower().endswith(".png"):

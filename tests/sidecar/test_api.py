@@ -45,6 +45,9 @@ def _reset_config(stack: Stack):
 def test_health_and_readiness(stack: Stack) -> None:
     with stack.http(auth=False) as c:
         assert c.get("/healthz").json() == {"status": "ok"}
+        for path in ("/healthz", "/readyz"):  # probes that ask with HEAD (HAProxy's default) get the status alone
+            head = c.head(path)
+            assert head.status_code == 200 and head.content == b"", (path, head.status_code)
         r = c.get("/readyz")
         assert r.status_code == 200
         body = r.json()
@@ -147,7 +150,7 @@ def test_a_method_a_path_does_not_serve_is_a_405_naming_those_it_does(stack: Sta
     with stack.http(auth=False) as c:
         for method, path, allow in (("DELETE", "/v1/config", "GET, PATCH, PUT"),
                                     ("GET", "/v1/config/preset/paper", "POST"),
-                                    ("POST", "/healthz", "GET"),
+                                    ("POST", "/healthz", "GET, HEAD"),
                                     ("DELETE", f"/v1/state/{stack.tracks[0].track_id}", "GET")):
             r = c.request(method, path)
             assert r.status_code == 405 and r.headers["allow"] == allow, (method, path, r.headers.get("allow"))

@@ -58,6 +58,7 @@ def test_503_when_the_classifier_is_gone_and_recovery() -> None:
             assert r.status_code == 503 and "not ready" in r.json()["detail"]
             assert c.get(f"/v1/state/{stack.tracks[0].track_id}").status_code == 503
             assert c.get("/healthz").status_code == 200  # the sidecar itself is fine
+            assert c.head("/healthz").status_code == 200 and c.head("/readyz").status_code == 503
             metrics = c.get("/metrics").text
             assert "jitterguard_classifier_up 0.0" in metrics
             assert 'jitterguard_sidecar_config_writes_total{result="unavailable"} 3.0' in metrics
