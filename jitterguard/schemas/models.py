@@ -116,10 +116,13 @@ def _zero_cov() -> tuple[float, ...]:
     return (0.0,) * COVARIANCE_SIZE
 
 
+LIST_AS_TUPLE = BeforeValidator(lambda v: tuple(v) if type(v) is list else v)
+"""For a tuple field of a strict model: msgpack's arrays and YAML's sequences arrive as lists."""
+
 _Variance = Annotated[float, Field(ge=0.0)]
 Covariance = Annotated[
     tuple[tuple(_Variance if i in DIAGONAL else float for i in range(COVARIANCE_SIZE))],  # type: ignore[misc]
-    BeforeValidator(lambda v: tuple(v) if type(v) is list else v),  # msgpack's arrays: validation is strict
+    LIST_AS_TUPLE,
 ]
 """36 floats, row-major 6x6 over (x, y, z, roll, pitch, yaw); the diagonal (variances) must be >= 0.
 

@@ -44,6 +44,10 @@ def test_params_default_to_the_box_and_refuse_a_box_without_extent() -> None:
         DetectorParams(self_crop=(-1.0, -1.0, 1.0, float("nan")))
     with pytest.raises(ValueError, match="self_crop"):
         Detector.load(None, "lite", threads=1, self_crop=(0.0, 0.0, 0.0, 1.0))
+    assert DetectorParams.model_validate({"self_crop": [-1, -1, 1, 1]}).self_crop == (-1.0, -1.0, 1.0, 1.0)  # YAML
+    for field, value in (("score_threshold", True), ("threads", "4"), ("twist", "yes")):  # strict: no coercion
+        with pytest.raises(ValidationError, match=field):
+            DetectorParams.model_validate({field: value})
 
 
 def test_a_bad_box_in_the_services_file_is_one_line_and_exit_2(tmp_path: Path) -> None:

@@ -64,6 +64,9 @@ def test_partial_class_override_keeps_other_fields(tmp_path: Path) -> None:
         ("min_area_matrix: [" + ", ".join(["20000"] * 64) + "]\n", "min_area_matrix exceeds"),
         ("[1, 2\n", "not valid YAML"),
         ("- 1\n- 2\n", "mapping"),
+        ("observe_tentative: 1\n", "observe_tentative"),  # strict types: no 1 for true, no "3" for 3
+        ("confirm_hits: '3'\n", "confirm_hits"),
+        ("classes:\n  car: {q_acc: yes}\n", "q_acc"),
     ],
 )
 def test_bad_config_is_one_clear_error(tmp_path: Path, text: str, needle: str) -> None:

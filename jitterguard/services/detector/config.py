@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, PositiveInt, field_validator
 
 from ...config import load, param_file, presets
-from ...schemas.models import Label
+from ...schemas.models import LIST_AS_TUPLE, Label
 
 F32 = NDArray[np.float32]
 I64 = NDArray[np.int64]
@@ -147,7 +147,9 @@ def check_crop_box(box: Sequence[float] | None) -> tuple[float, float, float, fl
 class DetectorParams(BaseModel):
     """``jitterguard detector --config FILE``: how the service runs (the architecture comes with the weights)."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    # strict about types, as the wire is: a YAML ``score_threshold: yes`` had been read as 1.0 (every detection
+    # dropped), ``threads: "4"`` as 4
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, strict=True)
 
     preset: str = Field("lite", description="architecture preset whose shipped weights load when weights is null")
     weights: str | None = Field(None, description="weights file (torch.save dict, loaded weights_only)")
@@ -155,7 +157,7 @@ class DetectorParams(BaseModel):
     score_threshold: Annotated[float, Field(ge=0.0, le=1.0)] | None = Field(
         None, description="keep detections scoring above this (null: the weights' config)")
     twist: bool = Field(True, description="publish the network's velocity as the twist")
-    self_crop: tuple[float, float, float, float] | None = Field(
+    self_crop: Annotated[tuple[float, float, float, float] | None, LIST_AS_TUPLE] = Field(
         SELF_CROP_M, description="drop returns inside this box (x_min, y_min, x_max, y_max; sensor frame, m): the"
         " vehicle's own body (default: a passenger car around a roof-centre sensor; null: keep every return)")
     sweeps: Annotated[int, Field(ge=1, le=20)] | None = Field(

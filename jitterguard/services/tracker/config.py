@@ -91,7 +91,10 @@ NonNegFloat = Annotated[float, Field(ge=0.0, allow_inf_nan=False)]
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    """Unknown keys, non-finite floats and values of another type are errors: a YAML ``observe_tentative: 1`` or
+    ``confirm_hits: "3"`` is refused, naming the field, instead of read as true or 3 (an int is a float)."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, strict=True)
 
 
 class ClassParams(_Strict):
