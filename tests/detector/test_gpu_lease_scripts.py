@@ -67,3 +67,25 @@ def test_the_third_lease_script_returns_the_paper_weights_in_parts_that_join_to_
     assert model.config.name == "paper" and "--train-seeds 300-301" in meta["command"]
     assert hashlib.sha256(joined.read_bytes()).hexdigest() in (out / "run.log").read_text()
     assert [r["epoch"] for r in json.loads((out / "P_hist.json").read_text())] == [1]
+
+
+@pytest.mark.slow
+def test_the_voxeliser_ab_times_both_paths_to_the_same_pillars(tmp_path: Path) -> None:
+    """``scripts/gpu_voxelize_ab.py`` (the fourth lease's A/B) loads the old voxeliser from a file beside the new
+    one and refuses to time two voxelisers that disagree; here the "old" one is a copy that moves every pillar one
+    cell, which must be caught (exit 1), and the shipped one against itself must time both paths."""
+    new = ROOT / "jitterguard/services/detector/pillars.py"
+    same = subprocess.run([sys.executable, "scripts/gpu_voxelize_ab.py", "--old", str(new), "--smoke"], cwd=ROOT,
+                          capture_output=True, text=True, timeout=300, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert same.returncode == 0, same.stderr
+    out = json.loads(same.stdout.strip().splitlines()[-1])
+    assert out["same_pillars"] is True and out["batch"] == 2
+    assert all(out["step_ms_p50"][k] > 0 and out["voxelize_batch_ms_p50"][k] > 0 for k in ("batched", "per_scan"))
+    text = new.read_text()
+    anchor = "    return Pillars("
+    assert text.count(anchor) == 1
+    off = tmp_path / "pillars_off.py"
+    off.write_text(text.replace(anchor, "    coords = coords + 1\n" + anchor))
+    bad = subprocess.run([sys.executable, "scripts/gpu_voxelize_ab.py", "--old", str(off), "--smoke"], cwd=ROOT,
+                         capture_output=True, text=True, timeout=300, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert bad.returncode == 1 and json.loads(bad.stdout.strip().splitlines()[-1])["same_pillars"] is False
