@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -152,6 +153,33 @@ def _start_deferred(sup: Supervisor, progs: list[Any]) -> None:
                 pass
 
 
+SIDECAR_LISTEN_WAIT_S = 30.0
+"""How long a foreground ``up`` holds back the sidecar's address after the first objects while the sidecar does
+not accept connections yet (it then prints it anyway, saying so)."""
+
+
+def _sidecar_address(spec: StackSpec, progs: list[Any]) -> tuple[str, int] | None:
+    """Where to connect to the stack's sidecar (a wildcard bind is reached on loopback), if it has one."""
+    if not any(p.name == "sidecar" for p in progs):
+        return None
+    host = {"0.0.0.0": "127.0.0.1", "::": "::1", "": "127.0.0.1"}.get(spec.sidecar_host, spec.sidecar_host)
+    return host, spec.sidecar_port
+
+
+def _answers(address: tuple[str, int] | None) -> bool:
+    """Whether the sidecar accepts connections (True when there is none). uvicorn listens only once the app's
+    startup is done, so a connection accepted means requests are served. The sidecar starts deferred, seconds
+    after the rest, and takes seconds more to import and open its session: its address printed before it listens
+    had been answered "connection refused"."""
+    if address is None:
+        return True
+    try:
+        with socket.create_connection(address, timeout=0.5):
+            return True
+    except OSError:
+        return False
+
+
 def _addresses(spec: StackSpec, progs: list[Any]) -> list[str]:
     """Where to look at the stack: the sidecar's page, the Foxglove WebSocket (one line each)."""
     names = {p.name for p in progs}
@@ -233,6 +261,61 @@ def _recording_path(value: str | None, flag: str, folder: bool) -> str | None:
     return str(p)
 
 
+PATH_KEYS = {"classifier": ("calibration_file", "config_store", "calibration_store"), "tracker": (),
+             "detector": ("weights", "onnx")}
+"""Keys of a service's param.yaml that name files: under ``up`` they must be absolute (the programs run in the
+stack's run directory, where a relative path would point somewhere else than where the user wrote it from)."""
+
+
+def _service_configs(given: dict[str, str | None], progs: list[Any]) -> dict[str, str]:
+    """Each given ``--<service>-config`` file, checked with the service's own loader before anything starts (a
+    bad file had only shown as that program's crash loop), as an absolute path."""
+    from ..config import ConfigError, load
+
+    running = {p.name for p in progs}
+    out: dict[str, str] = {}
+    for service, value in given.items():
+        if value is None:
+            continue
+        flag = f"--{service}-config"
+        if service not in running:
+            fail(f"{flag}: this stack runs no {service} (its input level leaves it out)")
+        path = Path(value).expanduser().resolve()
+        try:
+            params = load(_param_model(service), str(path), service=service)
+        except ConfigError as exc:
+            fail(f"{flag}: {exc}")
+        for key in PATH_KEYS[service]:
+            named = getattr(params, key, None)
+            if named and not Path(named).expanduser().is_absolute():
+                fail(f"{flag}: {key}: {named} is relative; under `up` the {service} runs in the stack's run"
+                     " directory, so give an absolute path")
+        if service == "classifier" and getattr(params, "calibration", None) == "file":
+            from ..services.classifier.calibration_file import CalibrationFileError, read_calibration
+
+            try:
+                read_calibration(Path(params.calibration_file).expanduser())
+            except CalibrationFileError as exc:
+                fail(f"{flag}: calibration_file: {exc}")
+        out[service] = str(path)
+    return out
+
+
+def _param_model(service: str) -> type[Any]:
+    """The model a service reads its ``--config`` file into (imported only when a file is given)."""
+    if service == "classifier":
+        from ..services.classifier.config import ClassifierParams
+
+        return ClassifierParams
+    if service == "tracker":
+        from ..services.tracker.config import TrackerConfig
+
+        return TrackerConfig
+    from ..services.detector.config import DetectorParams
+
+    return DetectorParams
+
+
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:
     @app.command("up")
     def up_cmd(
@@ -268,6 +351,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         bin_fields: R.BinFieldsOpt = None,
         topic: R.TopicOpt = None,
         pose_topic: R.PoseTopicOpt = None,
+        classifier_config: Annotated[str | None, typer.Option("--classifier-config", help="The classifier's param.yaml (as `jitterguard classifier --config`; paths in it absolute).")] = None,
+        tracker_config: Annotated[str | None, typer.Option("--tracker-config", help="The tracker's param.yaml (as `jitterguard tracker --config`).")] = None,
+        detector_config: Annotated[str | None, typer.Option("--detector-config", help="The detector's param.yaml (as `jitterguard detector --config`; paths in it absolute).")] = None,
     ) -> None:
         """Start router, replay, (detector,) tracker, classifier, sidecar and monitor under supervisord."""
         t0 = time.monotonic()
@@ -326,6 +412,14 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                          source=src, input=mode, sidecar=not no_sidecar, replay_args=tuple(ropts.argv()),
                          run_dir=str(rd), foxglove=foxglove, foxglove_port=foxglove_port, record_mcap=mcap_path,
                          record_ros2=bag_path)
+        configs = _service_configs({"classifier": classifier_config, "tracker": tracker_config,
+                                    "detector": detector_config}, programs(spec))
+        try:
+            for service, path in configs.items():
+                check_text(path, f"--{service}-config")
+        except ArgumentError as exc:
+            fail(str(exc))
+        spec = replace(spec, service_configs=configs)
         progs = programs(spec)
         wanted = [(router_port, "127.0.0.1", "--router-port")]
         if any(p.name == "sidecar" for p in progs):
@@ -366,7 +460,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                 print(f"jitterguard: error: supervisord did not start: {(res.stderr or res.stdout).strip()}",
                       file=sys.stderr)
                 raise SystemExit(1)
-            raise SystemExit(_wait_started(sup, rd, label, names, _addresses(spec, progs), progs, wall0))
+            raise SystemExit(_wait_started(sup, rd, label, names, spec, progs, wall0))
 
         proc = subprocess.Popen(cmd)
         _wake(sup, proc)
@@ -374,7 +468,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         stop_on_signals(stop.set)
         print(f"jitterguard: starting {names} (stack {label}, logs in {rd / 'logs'})", flush=True)
         watch = _ObjectsWatch(ns, spec.endpoint, t0)
-        code = _foreground(proc, sup, rd, stop, watch, duration, t0, wall0, _addresses(spec, progs), progs)
+        code = _foreground(proc, sup, rd, stop, watch, duration, t0, wall0, spec, progs)
         watch.close()
         _exit_without_finalizing(code)
 
@@ -388,13 +482,14 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                 return
             time.sleep(0.02)
 
-    def _wait_started(sup: Supervisor, rd: Path, label: str, names: str, addresses: list[str],
+    def _wait_started(sup: Supervisor, rd: Path, label: str, names: str, spec: StackSpec,
                       progs: list[Any], wall0: float) -> int:
-        """``up -d``: wait until every program has run for ``DETACH_SETTLE_S`` without a crash (0), or one keeps
-        crashing (stop the stack, 1). Every program RUNNING is not enough: supervisord calls a program RUNNING
+        """``up -d``: wait until every program has run for ``DETACH_SETTLE_S`` without a crash and the sidecar
+        answers (0), or one keeps crashing (stop the stack, 1). Every program RUNNING is not enough: supervisord calls a program RUNNING
         once it has lived ``startsecs``, and one that died a second later, again and again, had let ``up -d``
         return 0 before its crashes added up to a loop."""
         deadline = time.monotonic() + DETACH_WAIT_S
+        sidecar = _sidecar_address(spec, progs)
         states: dict[str, str] = {}
         steady_since: float | None = None
         deferred = {p.name for p in progs if p.deferred}
@@ -423,13 +518,17 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                 steady_since = time.time()
                 continue
             if time.time() - steady_since >= DETACH_SETTLE_S:
+                if not _answers(sidecar):  # RUNNING is not listening: the address printed below must answer
+                    continue
                 print(f"jitterguard: started {names} (stack {label}, run dir {rd})")
-                for line in addresses:
+                for line in _addresses(spec, progs):
                     print(line)
                 return 0
         crashed = sorted(n for n, ev in events.items() if ev.crashes)
         waiting = (", ".join(f"{n} {s}" for n, s in sorted(states.items()) if s != "RUNNING")
-                   or (f"{', '.join(crashed)} crashed and restarted" if crashed else "supervisord"))
+                   or (f"{', '.join(crashed)} crashed and restarted" if crashed else "")
+                   or (f"the sidecar does not answer on {sidecar[0]}:{sidecar[1]}"
+                       if states and sidecar is not None and not _answers(sidecar) else "supervisord"))
         print(f"jitterguard: error: not every program runs after {DETACH_WAIT_S:.0f} s ({waiting}); the stack is"
               " left running: see `jitterguard status` and `jitterguard logs NAME`", file=sys.stderr)
         return 1
@@ -442,9 +541,15 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         sup.wait_gone(STOP_WAIT_S)
 
     def _foreground(proc: subprocess.Popen, sup: Supervisor, rd: Path, stop: threading.Event, watch: _ObjectsWatch,
-                    duration: float | None, t0: float, wall0: float, addresses: list[str], progs: list[Any]) -> int:
-        """Watch a foreground stack until Ctrl-C, ``--duration`` or a crash loop; stop it; print the summary."""
-        announced = warned = deferred_started = False
+                    duration: float | None, t0: float, wall0: float, spec: StackSpec, progs: list[Any]) -> int:
+        """Watch a foreground stack until Ctrl-C, ``--duration`` or a crash loop; stop it; print the summary.
+
+        The addresses (the sidecar's page) are printed once the sidecar accepts connections, not when it is
+        started (at the first objects), when it cannot answer yet."""
+        addresses = _addresses(spec, progs)
+        sidecar = _sidecar_address(spec, progs)
+        announced = addressed = warned = deferred_started = False
+        announced_at = 0.0
         crashed: str | None = None
         events: dict[str, summary.ProgramEvents] = {}
         next_check = 0.0
@@ -456,11 +561,16 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                 deferred_started = True
                 _start_deferred(sup, progs)
             if watch.first is not None and not announced:
-                announced = True
+                announced, announced_at = True, now
                 print(f"jitterguard: first classified objects after {watch.first:.1f} s", flush=True)
-                for line in addresses:
-                    print(line, flush=True)
-                print("jitterguard: Ctrl-C stops the stack", flush=True)
+            if announced and not addressed:
+                late = now - announced_at > SIDECAR_LISTEN_WAIT_S
+                if late or _answers(sidecar):
+                    addressed = True
+                    for line in addresses:
+                        print(line + ("  (not answering yet: `jitterguard logs sidecar`)"
+                                      if late and line.startswith("sidecar:") else ""), flush=True)
+                    print("jitterguard: Ctrl-C stops the stack", flush=True)
             if watch.first is None and not warned and now - t0 > FIRST_OBJECTS_WARN_S:
                 warned = True
                 try:

@@ -61,7 +61,9 @@ class StackMonitor(Service):
             return
         self.counters.inc("received")
         extra = {"last_seq": hb.last_seq, "uptime_s": round(hb.uptime_s, 1)}
-        self.ledger.observe(hb.service, hb.pid, hb.counters, hb.stamp, extra)
+        if not self.ledger.observe(hb.service, hb.pid, hb.counters, hb.stamp, extra):
+            self.counters.inc("heartbeats_dropped")  # a service beyond the ledger's bound (summary.MAX_SERVICES)
+            return
         self.dirty = True
 
     def snapshot(self) -> dict[str, Any]:

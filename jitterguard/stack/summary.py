@@ -41,20 +41,50 @@ def is_error(name: str) -> bool:
     return name.endswith("errors")
 
 
+MAX_SERVICES = 64
+"""Services a ledger keeps (a stack has about ten): heartbeats of further names are refused, so that a flood of
+made-up names (anyone on the host may publish) cannot grow the monitor or ``summary.json`` without bound."""
+MAX_PROCESSES = 32
+"""Processes kept one by one per service; the counters of older ones are folded into one record (:data:`RETIRED`),
+so a service restarted a thousand times still adds up exactly, in bounded memory."""
+RETIRED = -1
+"""The pseudo-pid under which a service's retired processes' running counters are summed (no real pid is < 0)."""
+
+
 @dataclass
 class Ledger:
-    """Per service and process: the last heartbeat counters seen (and when)."""
+    """Per service and process: the last heartbeat counters seen (and when); bounded (:data:`MAX_SERVICES`,
+    :data:`MAX_PROCESSES`)."""
 
     procs: dict[str, dict[int, dict[str, Any]]] = field(default_factory=dict)
 
     def observe(self, service: str, pid: int, counters: dict[str, int], stamp_ns: int,
-                extra: dict[str, Any] | None = None) -> None:
-        """Record one heartbeat; an older one than the last seen for that process is ignored."""
-        slot = self.procs.setdefault(service, {})
+                extra: dict[str, Any] | None = None) -> bool:
+        """Record one heartbeat; an older one than the last seen for that process is ignored. False when it is
+        refused: a new service beyond :data:`MAX_SERVICES`."""
+        slot = self.procs.get(service)
+        if slot is None:
+            if len(self.procs) >= MAX_SERVICES:
+                return False
+            slot = self.procs[service] = {}
         last = slot.get(pid)
         if last is not None and last["stamp_ns"] > stamp_ns:
-            return
+            return True
+        if last is None and sum(1 for p in slot if p != RETIRED) >= MAX_PROCESSES:
+            self._retire_oldest(slot)
         slot[pid] = {"stamp_ns": int(stamp_ns), "counters": dict(counters), **(extra or {})}
+        return True
+
+    @staticmethod
+    def _retire_oldest(slot: dict[int, dict[str, Any]]) -> None:
+        """Fold the process heard from longest ago (a restarted one) into the service's :data:`RETIRED` record."""
+        oldest = min((p for p in slot if p != RETIRED), key=lambda p: slot[p]["stamp_ns"])
+        rec = slot.pop(oldest)
+        ret = slot.setdefault(RETIRED, {"stamp_ns": 0, "counters": {}, "processes": 0})
+        for k, v in rec["counters"].items():
+            if not is_gauge(k):
+                ret["counters"][k] = ret["counters"].get(k, 0) + int(v)
+        ret["processes"] = int(ret.get("processes", 0)) + int(rec.get("processes", 1))
 
     def totals(self, service: str) -> dict[str, int]:
         """Running counters summed over the service's processes; gauges from its newest process."""
@@ -70,7 +100,7 @@ class Ledger:
         return out
 
     def processes(self, service: str) -> int:
-        return len(self.procs.get(service, {}))
+        return sum(int(r.get("processes", 1)) for r in self.procs.get(service, {}).values())
 
     def as_json(self) -> dict[str, Any]:
         return {svc: {str(pid): rec for pid, rec in slot.items()} for svc, slot in self.procs.items()}

@@ -55,6 +55,7 @@ class StackSpec:
     foxglove_port: int = 8765
     record_mcap: str | None = None  # absolute path: the Foxglove channels recorded to MCAP
     record_ros2: str | None = None  # absolute path: a rosbag2 for Autoware
+    service_configs: dict[str, str] = field(default_factory=dict)  # service → its param.yaml (absolute path)
 
     @property
     def endpoint(self) -> str:
@@ -95,22 +96,31 @@ def input_mode(spec: StackSpec, source_kind: str | None = None) -> str:
     return "detections" if (have_tracker and have_replay) else "tracks"
 
 
+CONFIGURABLE = ("classifier", "tracker", "detector")
+"""The services whose ``param.yaml`` ``up`` passes on (``--classifier-config`` …, each service's ``--config``)."""
+
+
 def programs(spec: StackSpec) -> list[Program]:
     """The programs of the stack, router first, consumers before producers."""
     common = ("--ns", spec.ns, "--connect", spec.endpoint)
+
+    def own(service: str) -> tuple[str, ...]:
+        path = spec.service_configs.get(service)
+        return ("--config", path) if path else ()
+
     progs = [
         Program("router", _cmd("router", "--listen", spec.endpoint), priority=10),
         # with no JG_API_TOKEN, writes over Zenoh are as open as the tokenless loopback sidecar (deployment.md)
-        Program("classifier", _cmd("classifier", *common, *(() if os.environ.get("JG_API_TOKEN") else
-                                                             ("--open-config-writes",))), priority=20),
+        Program("classifier", _cmd("classifier", *common, *own("classifier"), *(
+            () if os.environ.get("JG_API_TOKEN") else ("--open-config-writes",))), priority=20),
     ]
     have_tracker = has_area("jitterguard.services.tracker.service")
     have_detector = has_area("jitterguard.services.detector.service")
     mode = input_mode(spec)
     if mode in ("points", "detections") and have_tracker:
-        progs.append(Program("tracker", _cmd("tracker", *common), priority=30))
+        progs.append(Program("tracker", _cmd("tracker", *common, *own("tracker")), priority=30))
     if mode == "points" and have_detector:
-        progs.append(Program("detector", _cmd("detector", *common), priority=35))
+        progs.append(Program("detector", _cmd("detector", *common, *own("detector")), priority=35))
     if spec.sidecar and has_area("jitterguard.services.sidecar.cli"):
         progs.append(Program("sidecar", _cmd("sidecar", *common, "--host", spec.sidecar_host,
                                              "--port", str(spec.sidecar_port)), priority=40, deferred=True))

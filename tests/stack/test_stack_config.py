@@ -120,3 +120,43 @@ def test_a_port_left_in_time_wait_by_a_stopped_stack_is_free_and_a_listener_is_n
     client.close()
     server.close()
     assert not port_in_use("127.0.0.1", port)
+
+
+def test_each_services_param_file_reaches_that_service_alone(tmp_path):
+    """``up --classifier-config/--tracker-config/--detector-config``: each file goes to its own program's
+    ``--config``, with a space and a '%' in its path kept as given."""
+    files = {s: str(tmp_path / f"my 50% {s}.param.yaml") for s in ("classifier", "tracker", "detector")}
+    spec = StackSpec(ns="x", name="x", input="points", run_dir=str(tmp_path / "run"), service_configs=files)
+    argv = parse(write(tmp_path, spec))
+    for service, path in files.items():
+        assert argv[service][argv[service].index("--config") + 1] == path
+    assert all("--config" not in a for n, a in argv.items() if n not in files)
+    plain = parse(write(tmp_path, StackSpec(ns="x", name="x", input="points", run_dir=str(tmp_path / "run"))))
+    assert all("--config" not in a for a in plain.values())
+
+
+@pytest.mark.parametrize(("flag", "text", "extra", "needle"), [
+    ("--classifier-config", "window_size: 7\nwindw: 1\n", (), "--classifier-config: .*windw: Extra inputs"),
+    ("--tracker-config", "confirm_hits: '3'\n", (), "--tracker-config: .*confirm_hits"),
+    ("--detector-config", "weights: runs/w.pt\n", (), "--detector-config: weights: runs/w.pt is relative"),
+    ("--classifier-config", "calibration: file\ncalibration_file: /nonexistent/c.yaml\n", (),
+     "--classifier-config: calibration_file: "),
+    ("--detector-config", "threads: 2\n", ("--input", "detections"), "--detector-config: this stack runs no detector"),
+])
+def test_a_bad_service_file_stops_up_before_anything_starts(tmp_path, flag, text, extra, needle):
+    import os
+    import re
+    import subprocess
+    import sys
+
+    from jitterguard.runtime import free_tcp_port
+
+    f = tmp_path / "p.yaml"
+    f.write_text(text)
+    res = subprocess.run([sys.executable, "-m", "jitterguard.cli", "up", "--run-dir", str(tmp_path / "run"),
+                          "--router-port", str(free_tcp_port()), "--port", str(free_tcp_port()), *extra, flag, str(f)],
+                         capture_output=True, text=True, timeout=120,
+                         env={**os.environ, "XDG_RUNTIME_DIR": str(tmp_path / "xdg")})
+    lines = res.stderr.strip().splitlines()
+    assert res.returncode == 2 and len(lines) == 1 and re.search(needle, lines[0]), res.stderr
+    assert not (tmp_path / "run" / "supervisord.conf").exists()  # nothing was written, nothing started

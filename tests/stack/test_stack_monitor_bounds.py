@@ -1,0 +1,83 @@
+"""The stack's monitor stays bounded under a flood of heartbeats, and still adds up a much-restarted service.
+
+A real router and a real `stack-monitor` process; heartbeats are published by a Zenoh client of the router, as
+any process on the host may. Heartbeats of 200 made-up services (each a new pid) had each got a ledger entry,
+written into ``summary.json`` every second and listed on the summary's ``dropped`` line: 20,000 of them made a
+3.3 MB file and a summary line thousands of characters long, growing without bound.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+
+import pytest
+
+from jitterguard.runtime import ZenohOptions, build_config, free_tcp_port, open_session
+from jitterguard.schemas import encode, keys
+from jitterguard.schemas.models import Heartbeat
+from jitterguard.stack import summary
+
+from helpers import wait_until
+
+pytestmark = pytest.mark.integration
+
+
+def _cli(*args: str) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "jitterguard.cli", *args], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+
+
+def test_the_monitor_is_bounded_and_folds_restarted_processes_exactly(tmp_path):
+    ns, port = f"mon{os.getpid()}", free_tcp_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    procs = [_cli("router", "--listen", endpoint)]
+    procs.append(_cli("stack-monitor", "--ns", ns, "--connect", endpoint, "--run-dir", str(tmp_path)))
+    session = None
+    try:
+        session = open_session(build_config(ZenohOptions(ns=ns, connect=(endpoint,))))  # retried until the router is up
+        heard: list[str] = []
+        session.declare_subscriber(keys.heartbeat(ns, "monitor"), lambda s: heard.append("monitor"))
+        assert wait_until(lambda: bool(heard), timeout=60, period=0.2), "the monitor never sent a heartbeat"
+
+        restarts = 40  # more processes of one service than the ledger keeps one by one (32)
+        t0 = time.time_ns()
+        tracker = session.declare_publisher(keys.heartbeat(ns, "tracker"))
+        for i in range(restarts):
+            tracker.put(encode(Heartbeat(service="tracker", pid=1000 + i, stamp=t0 + i,
+                                         counters={"frames": 1, "tracks_born": 2})))
+            time.sleep(0.01)
+        ghost = session.declare_publisher(keys.heartbeat(ns, "ghost"))
+        for i in range(200):
+            ghost.put(encode(Heartbeat(service=f"ghost{i}", pid=50000 + i, stamp=t0 + i, counters={"x_dropped": 1})))
+            time.sleep(0.005)
+
+        def settled() -> dict | None:
+            data = summary.load(tmp_path)
+            if data is None:
+                return None
+            mon = data["services"].get("monitor", {}).get("counters", {})
+            done = data["frames"]["tracked"] == restarts and mon.get("heartbeats_dropped", 0) > 0
+            return data if done else None
+
+        assert wait_until(settled, timeout=30, period=0.5), summary.load(tmp_path)
+        data = settled()
+        assert data is not None
+        assert len(data["services"]) <= 64  # a stack has about ten
+        assert data["tracks"]["born"] == 2 * restarts  # every process counted once, the retired ones folded
+        assert data["services"]["tracker"]["processes"] == restarts
+        assert len(data["ledger"]["tracker"]) <= 33
+        assert len(json.dumps(data["dropped"])) < 4000
+    finally:
+        if session is not None:
+            session.close()
+        for p in reversed(procs):
+            p.terminate()
+            try:
+                p.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
