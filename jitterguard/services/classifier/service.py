@@ -356,9 +356,10 @@ class ClassifierService(Service):
                 self._publish_motion(out)
         if (out.window, self.core.stride) != self._window:
             interval = self.core.frame_interval_s
-            self.log.info("window now %s (was %s): frames %s s apart, window_size %d at %s Hz",
+            self.log.info("window now %s (was %s): %s, window_size %d at %s Hz",
                           _window_words(out.window, self.core.stride), _window_words(*self._window),
-                          "?" if interval is None else f"{interval:.3g}", out.config.window_size,
+                          "frame interval not measured yet (a stream restarted or just begun)" if interval is None
+                          else f"frames {interval:.3g} s apart", out.config.window_size,
                           out.config.window_reference_hz)
             self._window = (out.window, self.core.stride)
         evicted, labels, stamps, seqs = self.pipeline.settle(out)
