@@ -94,6 +94,24 @@ def recording_detections(source: Any, detector: Any, start: int, limit: int | No
             yield encode(detections_message(item, i, item.stamp_ns))
 
 
+CALIBRATION_FORMAT_LINE = b"format: jitterguard-calibration/"
+
+
+def refuse_foreign_file(out: Path) -> None:
+    """One line and exit 2 when ``out`` exists and holds something else than a calibration file: re-running
+    ``calibrate`` replaces its earlier output, but a typo'd ``--out`` must not overwrite a user's config or notes
+    (an empty file holds nothing to lose)."""
+    try:
+        if not out.is_file() or out.stat().st_size == 0:
+            return
+        with open(out, "rb") as f:
+            head = f.read(4096)
+    except OSError:
+        return  # out_file has checked that it can be written; what cannot be read is not ours to judge
+    if not any(line.strip().startswith(CALIBRATION_FORMAT_LINE) for line in head.splitlines()):
+        fail(f"--out: {out} exists and is not a calibration file; give a new name or remove it first")
+
+
 def calibrate_command(
     recording: Annotated[str, typer.Argument(help="Any replay source: synthetic:SCENARIO, a nuScenes dataroot, a "
                                              "bag, a folder of .bin or .pcd scans.")],
@@ -126,6 +144,7 @@ def calibrate_command(
 ) -> None:
     """Fit the classifier's variance calibration from a recording (no labels); write it for calibration: file."""
     out_file("--out", out)  # before the pass over the recording, not after it
+    refuse_foreign_file(out)
     from ..services.classifier.calibration_file import write_calibration
     from ..services.replay.frames import SourceError
     from ..services.replay.sources import SourceOptions, open_source
@@ -170,6 +189,13 @@ def calibrate_command(
             msgs = tqdm(msgs, total=None if total is None else max(0, min(total - start, limit or total)),
                         desc="calibrate", unit="frame", file=sys.stderr)
         cal, seen = calibrate_detections(msgs, cfg)
+    if seen["frames"] == 0 and errors:
+        fail(f"{recording}: none of its {len(errors)} frame(s) read; first: {errors[0]}")
+    n_frames = src.info.num_frames
+    if seen["frames"] == 0 and start and n_frames is not None and start >= n_frames:
+        from ..services.replay.sources.base import past_end
+
+        fail(str(past_end(start, src.info)))
     if seen["blocks"] == 0:
         fail(f"{recording}: no track stood still long enough to calibrate on ({seen['frames']} frames, "
              f"{seen['observations']} observations); use a longer recording")

@@ -209,7 +209,11 @@ def eval_command(
     if as_json:
         sys.stdout.write(json.dumps(metrics, indent=2, sort_keys=True) + "\n")
     else:
-        print(f"wrote {out / 'report.md'}, metrics.json and {len(list(out.glob('*.png')))} figures")
+        from .report import FIGURES
+
+        figures = sum((out / name).is_file() for name in FIGURES)  # this run's, not any PNG the folder holds
+        print(f"wrote {out / 'report.md'}, metrics.json and {figures} figures"
+              + (" and the frames as MCAP (run-*.mcap)" if mcap else ""))
 
 
 def load_detector(weights: Path | None, threads: int | None, self_crop: bool = True,

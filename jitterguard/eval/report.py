@@ -185,6 +185,8 @@ def _fmt(v: Any) -> str:
 
 
 DETECTION_FIGURES = ("detection_calibration.png", "detection_pr.png")
+FIGURES = ("speed_vs_z.png", "pr_curves.png", "alpha_sweep.png", "calibration.png", *DETECTION_FIGURES)
+"""Every figure ``write_outputs`` may draw into its folder."""
 
 
 def plot_detection(report: dict[str, Any], out: Path) -> list[str]:
@@ -291,6 +293,12 @@ def write_outputs(out: Path, rec: Records, metrics: dict[str, Any],
     metrics["alpha_sweep"] = plot_alpha_sweep(rec, out / "alpha_sweep.png")
     has_cal = plot_calibration(metrics.get("calibration"), out / "calibration.png")
     det_figures = plot_detection(detection_report, out) if detection_report is not None else []
+    # a figure this run did not draw, left in the folder by an earlier run (with calibration on, or the detector
+    # in the loop), would be taken for this run's: it goes
+    drawn = {"calibration.png": has_cal, **{name: name in det_figures for name in DETECTION_FIGURES}}
+    for name, ok in drawn.items():
+        if not ok:
+            (out / name).unlink(missing_ok=True)
     metrics = finite_json(metrics)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2, sort_keys=True, allow_nan=False) + "\n")
     run = metrics["run"]

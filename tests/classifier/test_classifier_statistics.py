@@ -219,3 +219,12 @@ def test_statistics_stay_finite_and_dynamic_at_the_float_limit() -> None:
             assert np.isfinite(arr).all(), arr
         assert (st.chi2 > 1e6).all() and (np.maximum(st.z_x, st.z_y) > 1e6).all()
         assert st.mean_x[0] == pytest.approx(big / 2) and st.mean_x[2] == pytest.approx(0.0, abs=1e300)
+
+
+def test_a_window_inside_the_speed_bound_has_z_zero_not_negative_zero() -> None:
+    """−ndtri(½) is −0.0: a window whose contrast lies inside H0's speed bound had gone on the wire as z = −0.0
+    (every viewer's label read "z=-0.00")."""
+    from jitterguard.services.classifier.statistics import _saturate, t_to_z
+
+    z = _saturate(t_to_z(np.array([0.0, -0.0, 1.5]), np.array([5.0, 5.0, 5.0])))
+    assert not np.signbit(z).any() and z[0] == 0.0 and z[2] > 0

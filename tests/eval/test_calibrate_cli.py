@@ -81,3 +81,42 @@ def test_a_bag_without_poses_is_warned_about_as_the_replay_does(tmp_path: Path, 
         main(["calibrate", str(bag.path), "--topic", DET_TOPIC, "--out", str(tmp_path / "c.yaml")])
     err = capsys.readouterr().err
     assert f"jitterguard: warning: {bag.path}: no --pose-topic" in err, err
+
+
+def _calibrate_fails(argv: list[str], capsys) -> str:
+    with pytest.raises(SystemExit) as exc:
+        main(["calibrate", *argv])
+    err = capsys.readouterr().err
+    assert exc.value.code == 2, err
+    lines = [ln for ln in err.splitlines() if ln.startswith("jitterguard: error:")]
+    assert len(lines) == 1 and "Traceback" not in err, err
+    return lines[0]
+
+
+def test_calibrate_does_not_overwrite_a_file_that_is_not_a_calibration(tmp_path: Path, capsys) -> None:
+    """`--out` naming a user's own file (a typo, a config) had been overwritten without a word; an earlier
+    calibration file is still replaced, as a re-run expects."""
+    mine = tmp_path / "classifier.param.yaml"
+    mine.write_text("alpha_default: 2.58\n")
+    line = _calibrate_fails(["synthetic:mixed", "--level", "detections", "--duration", "3", "--out", str(mine)],
+                            capsys)
+    assert "exists and is not a calibration file" in line
+    assert mine.read_text() == "alpha_default: 2.58\n"
+    first = _calibrate(tmp_path, "again", "--duration", "12")
+    second = _calibrate(tmp_path, "again", "--duration", "12", "--seed", "4")  # --seed again: the last one wins
+    assert first["source"]["blocks"] > 0 and second["source"]["blocks"] > 0
+
+
+def test_calibrate_says_why_it_got_no_frame(tmp_path: Path, capsys) -> None:
+    """A recording none of whose frames reads, or a --start past its end, had been told "no track stood still
+    long enough ... use a longer recording"."""
+    bad = tmp_path / "bad scans"
+    bad.mkdir()
+    (bad / "000000.bin").write_bytes(b"")
+    (bad / "000001.bin").write_bytes(b"\x00" * 7)
+    line = _calibrate_fails([str(bad), "--out", str(tmp_path / "c.yaml")], capsys)
+    assert "none of its 2 frame(s) read" in line and "000000.bin" in line, line
+    line = _calibrate_fails(["synthetic:mixed", "--level", "detections", "--duration", "3", "--start", "500",
+                             "--out", str(tmp_path / "c.yaml")], capsys)
+    assert "--start 500 is past the end" in line, line
+    assert not (tmp_path / "c.yaml").exists()

@@ -421,3 +421,22 @@ rows of parked cars, where the term acts."""
         assert v["missed_dynamic_z"] is None or w["missed_dynamic_z"] >= v["missed_dynamic_z"]
         assert a["motion"]["pedestrian"] == b["motion"]["pedestrian"]
     assert wide["motion"]["vehicle"]["false_dynamic_z"] < off["motion"]["vehicle"]["false_dynamic_z"]  # it acts
+
+
+def test_a_rerun_into_the_same_folder_leaves_no_figure_of_the_earlier_run(tmp_path: Path, capsys) -> None:
+    """`eval --out o` then `eval --out o --calibration off`: the first run's calibration.png stayed beside the
+    second run's report and metrics, and "wrote … 4 figures" counted it (the second drew 3)."""
+    out = tmp_path / "ev"
+    (tmp_path / "ev").mkdir()
+    (out / "notes.png").write_bytes(b"\x89PNG a user's own picture")  # not ours: neither counted nor touched
+    base = ["eval", "--scenario", "parking-street", "--seed", "1", "--duration", "3", "--noise", "clean",
+            "--out", str(out)]
+    for extra, figures in (([], 4), (["--calibration", "off"], 3)):
+        with pytest.raises(SystemExit) as exc:
+            main(base + extra)
+        assert exc.value.code == 0
+        assert f"metrics.json and {figures} figures" in capsys.readouterr().out
+    assert not (out / "calibration.png").exists()
+    assert "calibration.png" not in (out / "report.md").read_text()
+    assert json.loads((out / "metrics.json").read_text())["run"]["calibration"] == "off"
+    assert (out / "notes.png").read_bytes() == b"\x89PNG a user's own picture"

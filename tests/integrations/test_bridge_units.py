@@ -344,3 +344,24 @@ def test_a_bridge_counts_malformed_payloads_per_key_and_keeps_joining() -> None:
         client.close()
         svc.close()
     assert sink.closed
+
+
+def test_a_negative_zero_z_is_shown_as_zero() -> None:
+    """A static window inside the H0 speed bound comes from the classifier with z = -0.0: every such car's label
+    read "z=-0.00", its metadata "-0" and the motion JSON -0.0 (seen in a recorded `up` run)."""
+    from google.protobuf.json_format import MessageToDict
+
+    from jitterguard.services.foxglove.scene import frame_messages, motion_statistics
+
+    from .decoding import protobuf_class
+
+    f = JoinedFrame(seq=5, stamp_ns=1_005, objects=objects(5, ids=(A,), stationary=(A,)),
+                    motion={A: motion(5, A, "static", -0.0)})
+    upd = frame_messages(f)["/jitterguard/tracks"]
+    schema = upd.get_schema()
+    [ent] = MessageToDict(protobuf_class(schema.name, schema.data).FromString(upd.encode()))["entities"]
+    assert "z=0.00 " in ent["texts"][0]["text"], ent["texts"][0]["text"]
+    meta = {kv["key"]: kv["value"] for kv in ent["metadata"]}
+    assert meta["z_x"] == "0" and meta["z_y"] == "0", meta
+    [row] = motion_statistics(f)["tracks"]
+    assert all(math.copysign(1.0, row[k]) > 0 for k in ("z_x", "z_y", "z")), row

@@ -74,3 +74,21 @@ def test_render_mcap_reads_a_recording_whose_writer_was_killed(tmp_path: Path) -
     res = subprocess.run([sys.executable, "-m", "jitterguard.cli", "render-mcap", str(cut), "--out", str(png)],
                          capture_output=True, text=True, timeout=120)
     assert res.returncode == 0 and png.stat().st_size > 0, res.stderr
+
+
+def test_render_mcap_of_a_ros2_bag_is_one_line_not_a_traceback(tmp_path: Path) -> None:
+    """A ROS 2 bag's MCAP (what `jitterguard record --ros2` writes) has a /tf channel too, in ros2msg: render-mcap
+    parsed its schema as protobuf and died with a DecodeError traceback (exit 1)."""
+    import pytest
+
+    pytest.importorskip("rosbags")
+    from replay.bagfixture import write_bag
+
+    bag = write_bag(tmp_path / "run bag", storage="mcap", n=2, with_tf=True)
+    [mcap] = list(bag.path.glob("*.mcap"))
+    res = subprocess.run([sys.executable, "-m", "jitterguard.cli", "render-mcap", str(mcap), "--out",
+                          str(tmp_path / "x.png")], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 2, res.stderr[-2000:]
+    assert "Traceback" not in res.stderr and res.stderr.count("jitterguard: error:") == 1, res.stderr
+    assert f"no {TRACKS} messages" in res.stderr
+    assert not (tmp_path / "x.png").exists()

@@ -180,3 +180,83 @@ def test_bag_cloud_frame_missing_from_tf_is_a_frame_error_per_scan(tmp_path: Pat
     items = list(src.frames())
     assert len(items) == 2 and all(isinstance(i, FrameError) and "velodyne" in i.reason for i in items)
     src.close()
+
+
+def test_an_empty_topic_chosen_by_name_is_said_to_be_empty(tmp_path: Path) -> None:
+    """`--topic` naming a topic that holds no message (the scans of an `up --input detections` recording) said
+    `--start 0 is past the end of ... (0 frames)`; it names the topic and the ones that have messages."""
+    bag = write_bag(tmp_path / "bag", n=2, empty_cloud_topic=True)
+    with pytest.raises(SourceError, match=f"topic {CLOUD_TOPIC} holds no messages .*{DET_TOPIC}"):
+        open_source(str(bag.path), SourceOptions(topic=CLOUD_TOPIC))
+
+
+def test_a_ros1_style_leading_slash_is_not_part_of_the_frame_id(tmp_path: Path) -> None:
+    """A ROS 1 driver's "/lidar_top" is the frame "lidar_top": the TF lookup already read it so, but the scan went
+    out with the slash, into the bridges' /tf and the recorded bag (ROS 2's tf2 refuses such frame IDs)."""
+    bag = write_bag(tmp_path / "bag", with_tf=True, n=2, cloud_frame="/lidar_top")
+    with open_source(str(bag.path), SourceOptions(pose_topic="/tf")) as src:
+        frames = list(src.frames())
+    assert len(frames) == 2 and all(isinstance(f, ScanFrame) for f in frames)
+    assert [f.frame_id for f in frames] == ["lidar_top", "lidar_top"]
+    x, y, z, _ = _expected_lidar(1)
+    assert (frames[0].pose.x, frames[0].pose.y, frames[0].pose.z) == pytest.approx((x, y, z), abs=1e-9)
+
+
+def test_a_bag_folder_without_metadata_names_its_file(tmp_path: Path) -> None:
+    """A recorder killed with SIGKILL leaves the MCAP without metadata.yaml (docs/integrations.md): replaying the
+    folder said only "cannot tell what this folder is"; it names the file, which opens on its own."""
+    bag = write_bag(tmp_path / "my bag", storage="mcap", n=2)
+    (bag.path / "metadata.yaml").unlink()
+    [mcap] = list(bag.path.glob("*.mcap"))
+    with pytest.raises(SourceError, match=f"no metadata.yaml, but it holds {mcap.name}: give that file as SOURCE"):
+        open_source(str(bag.path))
+    with open_source(str(mcap)) as src:
+        assert len([f for f in src.frames() if isinstance(f, ScanFrame)]) == 2
+
+
+def test_an_mcap_cut_short_says_how_to_recover_it(tmp_path: Path) -> None:
+    """What a SIGKILLed recorder leaves (no footer, no metadata.yaml) failed with rosbags' bare "File end magic is
+    invalid."; the line now says what happened and what rewrites the file whole."""
+    bag = write_bag(tmp_path / "bag", storage="mcap", n=3)
+    [mcap] = list(bag.path.glob("*.mcap"))
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(mcap.read_bytes()[: mcap.stat().st_size * 2 // 3])
+    with pytest.raises(SourceError, match="cut short.*mcap recover"):
+        open_source(str(cut))
+
+
+def test_a_tf_rotation_that_is_no_unit_quaternion_is_skipped_not_composed(tmp_path: Path) -> None:
+    """A /tf_static mount with an all-zero rotation (a hand-written static transform) was composed into every scan's
+    pose: the scans went out with orientation (0, 0, 0, 0) — an ego pose each consumer refuses — and the replay said
+    "0 unreadable". tf2 ignores such a transform; so does the bag source now, and each scan says why it has none."""
+    import math
+
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    from jitterguard.services.replay.sources.ros_types import POINTCLOUD2, typestore
+
+    from .bagfixture import TF, T0, _cloud, _header, _tf
+
+    ts = typestore()
+    g = ts.types
+    path = tmp_path / "bag"
+    with Writer(path, version=8, storage_plugin=StoragePlugin.MCAP) as w:
+        c_static = w.add_connection("/tf_static", TF, typestore=ts)
+        zero = g["geometry_msgs/msg/Transform"](translation=g["geometry_msgs/msg/Vector3"](x=1.0, y=0.0, z=2.0),
+                                                 rotation=g["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=0.0))
+        w.write(c_static, T0, ts.serialize_cdr(g[TF](transforms=[g["geometry_msgs/msg/TransformStamped"](
+            header=_header(ts, T0, "base_link"), child_frame_id="lidar_top", transform=zero)]), TF))
+        c_tf = w.add_connection("/tf", TF, typestore=ts)
+        c_cloud = w.add_connection(CLOUD_TOPIC, POINTCLOUD2, typestore=ts)
+        for i in range(2):
+            t = T0 + i * 100_000_000
+            w.write(c_tf, t, ts.serialize_cdr(_tf(ts, [(t, "map", "base_link", float(i), 0.0, 0.0, 0.1)]), TF))
+            w.write(c_cloud, t, ts.serialize_cdr(_cloud(ts, t, np.zeros((3, 4), np.float32)), POINTCLOUD2))
+    with open_source(str(path), SourceOptions(pose_topic="/tf")) as src:
+        items = list(src.frames())
+        assert any("not a unit quaternion" in w and "'lidar_top'" in w for w in src.info.warnings), src.info.warnings
+    assert len(items) == 2 and all(isinstance(i, FrameError) for i in items), items
+    assert all("lidar_top" in i.reason and "not a unit quaternion" in i.reason for i in items)
+    for f in items:  # never a pose that is no rotation
+        assert not isinstance(f, ScanFrame) or math.isclose(
+            math.hypot(f.pose.qx, f.pose.qy, f.pose.qz, f.pose.qw), 1.0, abs_tol=1e-6)

@@ -62,3 +62,43 @@ def test_bad_input_is_one_line_and_exit_2(app: typer.Typer, kitti: Path, argv: l
     assert len(lines) == 1 and message in lines[0], err
     assert "Traceback" not in err
     assert result.exception is None or isinstance(result.exception, SystemExit)
+
+
+def test_a_recording_none_of_whose_frames_reads_is_an_error(app: typer.Typer, tmp_path: Path) -> None:
+    """A folder of scans every one of which is unreadable replayed nothing: that is no success (it exited 0 with
+    "replayed 0 frame(s)"). Each bad file still gets its own line, then one error line and exit 2."""
+    folder = tmp_path / "bad scans"
+    folder.mkdir()
+    (folder / "000000.bin").write_bytes(b"")
+    (folder / "000001.bin").write_bytes(b"\x00" * 7)
+    argv = ["replay", str(folder), "--listen", "tcp/127.0.0.1:0", "--wait-subscriber", "0", "--no-progress"]
+    result = CliRunner().invoke(app, argv)
+    err = result.stderr if hasattr(result, "stderr") and result.stderr else result.output
+    assert result.exit_code == 2, err
+    assert sum("unreadable frame skipped" in ln for ln in err.splitlines()) == 2, err
+    lines = [ln for ln in err.splitlines() if ln.startswith("jitterguard: error:")]
+    assert len(lines) == 1 and "no frame of" in lines[0] and "2 unreadable" in lines[0], err
+    assert "Traceback" not in err
+
+
+def test_one_unreadable_frame_among_good_ones_is_no_error(app: typer.Typer, tmp_path: Path) -> None:
+    folder = tmp_path / "scans"
+    write_bin(folder / "000000.bin", np.zeros((2, 4)))
+    (folder / "000001.bin").write_bytes(b"\x00" * 7)
+    argv = ["replay", str(folder), "--listen", "tcp/127.0.0.1:0", "--wait-subscriber", "0", "--no-progress"]
+    result = CliRunner().invoke(app, argv)
+    err = result.stderr if hasattr(result, "stderr") and result.stderr else result.output
+    assert result.exit_code == 0, err
+    assert "replayed 1 frame(s)" in err and "1 unreadable" in err, err
+
+
+@pytest.mark.parametrize("name,short", [
+    ("/data/day 2/velodyne", "velodyne"),  # was "day": the name cut at its first space
+    ("/data/nu sc (scene-0523, LIDAR_TOP)", "nu sc"),
+    ("synthetic:parking-street (seed 0)", "synthetic:parking-street"),
+    ("/data/run bag:/velodyne_points", "velodyne_points"),
+])
+def test_the_progress_label_is_the_sources_last_path_part(name: str, short: str) -> None:
+    from jitterguard.services.replay.cli import short_name
+
+    assert short_name(name) == short

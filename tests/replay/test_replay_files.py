@@ -383,3 +383,33 @@ def test_a_folder_plays_in_numeric_order_skips_hidden_files_and_reads_each_layou
                                            f"HEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS 1\nDATA ascii\n{k} 0 0\n")
     (pcd / "._scan_3.pcd").write_bytes(b"\x00\x05\x16\x07")
     assert [f.points[0, 0] for f in PcdSource(pcd).frames()] == [3, 20]
+
+
+def test_a_dataroots_scan_folder_replayed_alone_is_warned_about(tmp_path: Path) -> None:
+    """`replay DATAROOT/samples/LIDAR_TOP` (the scans, not the dataroot) published them in LIDAR_TOP's own frame —
+    x to the right — at the identity pose without a word about the frame: the detector, which works x-forward,
+    got every scan turned by 90°. The warning names the dataroot that replays them right."""
+    root = make_nuscenes_root(tmp_path / "nu root")
+    src = open_source(str(root / "samples" / "LIDAR_TOP"))
+    [warning] = [w for w in src.info.warnings if "LIDAR_TOP's own frame" in w]
+    assert f"replay the dataroot {root} instead" in warning
+    assert [f.frame_id for f in src.frames()] == ["LIDAR_TOP"] * 3
+    loose = tmp_path / "loose"
+    write_bin(loose / "a.pcd.bin", np.zeros((2, 5), dtype=np.float32))
+    [warning] = [w for w in open_source(str(loose / "a.pcd.bin")).info.warnings if "LIDAR_TOP's own frame" in w]
+    assert "replay the dataroot" not in warning
+    write_bin(tmp_path / "kitti" / "000000.bin", np.zeros((2, 4), dtype=np.float32))
+    assert not open_source(str(tmp_path / "kitti")).info.warnings
+
+
+def test_kitti_scans_past_the_end_of_times_txt_are_skipped_not_stamped_back_in_time(tmp_path: Path) -> None:
+    """times.txt with 3 lines beside 5 scans: scans 3 and 4 took row × 0.1 s (0.3 s, 0.4 s) after the file's 2 s — time
+    going back, which the replay then published 1 ns apart. They are frame errors now, as a missing pose is."""
+    for k in range(5):
+        write_bin(tmp_path / "velodyne" / f"{k:06d}.bin", np.full((3, 4), k, dtype=np.float32))
+    (tmp_path / "times.txt").write_text("0.0\n1.0\n2.0\n")
+    src = BinScanSource(tmp_path / "velodyne")
+    assert any("3 times for scan rows up to 4" in w for w in src.info.warnings), src.info.warnings
+    items = list(src.frames())
+    assert [f.stamp_ns for f in items[:3]] == [0, 10**9, 2 * 10**9]
+    assert all(isinstance(i, FrameError) and "no time for scan row" in i.reason for i in items[3:]) and len(items) == 5

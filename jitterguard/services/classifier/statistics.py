@@ -286,5 +286,7 @@ _MAX = float(np.finfo(np.float64).max)
 def _saturate(stat: F64) -> F64:
     """A statistic that overflowed (positions ~1e300 apart square to inf; inf - inf is NaN) is beyond any
     threshold: the largest finite float, so the decision is "dynamic" and every message carrying it stays valid
-    (the wire contract, and the classifier's own readers, reject non-finite numbers)."""
-    return np.clip(np.nan_to_num(stat, nan=_MAX, posinf=_MAX, neginf=0.0), 0.0, _MAX)
+    (the wire contract, and the classifier's own readers, reject non-finite numbers). A negative zero (−ndtri(½)
+    of a window inside the H0 speed bound) becomes 0.0: it had gone on the wire as −0.0 and read "z=-0.00" in
+    every viewer."""
+    return np.clip(np.nan_to_num(stat, nan=_MAX, posinf=_MAX, neginf=0.0), 0.0, _MAX) + 0.0

@@ -61,13 +61,18 @@ def read_frames(path: str | Path) -> list[RecordedFrame]:
                 continue
             if schema.encoding == "jsonschema":
                 body = json.loads(msg.data)
+            elif schema.encoding != "protobuf":  # e.g. a ROS 2 bag's /tf (ros2msg): not the bridge's channel
+                continue
             else:
                 if schema.id not in classes:
                     classes[schema.id] = _protobuf_class(schema.name, schema.data)
                 body = MessageToDict(classes[schema.id].FromString(msg.data), preserving_proto_field_name=True)
             frames.setdefault(msg.log_time, RecordedFrame(msg.log_time)).messages[channel.topic] = body
 
-    bad = (OSError, McapError, struct.error, ValueError)  # struct.error: too short to hold a record
+    from google.protobuf.message import DecodeError
+
+    # struct.error: too short to hold a record; DecodeError: a schema or message the protobuf runtime cannot parse
+    bad = (OSError, McapError, struct.error, ValueError, DecodeError)
     try:
         with open(path, "rb") as f:
             take(make_reader(f).iter_messages(topics=list(TOPICS), log_time_order=True))

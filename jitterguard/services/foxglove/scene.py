@@ -236,7 +236,7 @@ def _track_entity(frame: JoinedFrame, obj: TrackedObject, stamp: fm.Timestamp) -
                                         shaft_length=max(speed * ARROW_SECONDS - head, 0.0), shaft_diameter=0.12,
                                         head_length=head, head_diameter=0.35, color=_color(STATE_COLORS[state][:3] + (1.0,))))
     if m is not None:
-        text = f"{cls} {state} z={max(m.z_x, m.z_y):.2f} α={m.alpha:.2f}" + ("" if current else f" (seq {m.header.seq})")
+        text = f"{cls} {state} z={_unsigned_zero(max(m.z_x, m.z_y)):.2f} α={m.alpha:.2f}" + ("" if current else f" (seq {m.header.seq})")
     else:
         text = f"{cls} {state}"
     texts = [fm.TextPrimitive(pose=_pose(p.position.x, p.position.y, top + 0.6, yaw), billboard=True, font_size=14.0,
@@ -246,10 +246,16 @@ def _track_entity(frame: JoinedFrame, obj: TrackedObject, stamp: fm.Timestamp) -
     meta: dict[str, Any] = {"class": cls, "state": state, "vx": float(v.x), "vy": float(v.y),
                             "is_stationary": str(k.is_stationary).lower()}
     if m is not None:
-        meta.update(z_x=float(m.z_x), z_y=float(m.z_y), alpha=float(m.alpha), window_length=m.window_length,
+        meta.update(z_x=_unsigned_zero(m.z_x), z_y=_unsigned_zero(m.z_y), alpha=float(m.alpha), window_length=m.window_length,
                     decided_seq=m.header.seq)
     return fm.SceneEntity(timestamp=stamp, frame_id=frame.world_frame, id=obj.object_id, cubes=cubes, arrows=arrows,
                           texts=texts, metadata=_kv(**meta))
+
+
+def _unsigned_zero(v: float) -> float:
+    """``v`` with a negative zero made 0.0: the classifier's z of a window inside its H0 speed bound can come as -0.0,
+    which every static car's label showed as "z=-0.00" (and the Table and Plot as -0)."""
+    return float(v) + 0.0
 
 
 def tracks_scene(frame: JoinedFrame) -> fm.SceneUpdate:
@@ -288,7 +294,8 @@ def motion_statistics(frame: JoinedFrame) -> dict[str, Any]:
         row: dict[str, Any] = {"id": obj.object_id, "class": _class_name(obj.classification), "state": state,
                                "x": p.x, "y": p.y, "vx": v.x, "vy": v.y, "is_stationary": obj.kinematics.is_stationary}
         if m is not None:
-            row.update(z_x=m.z_x, z_y=m.z_y, z=max(m.z_x, m.z_y), alpha=m.alpha, threshold=m.threshold,
+            row.update(z_x=_unsigned_zero(m.z_x), z_y=_unsigned_zero(m.z_y), z=_unsigned_zero(max(m.z_x, m.z_y)),
+                       alpha=m.alpha, threshold=m.threshold,
                        window_length=m.window_length, speed=m.speed, decided_seq=m.header.seq)
         rows.append(row)
     decided = [r for r in rows if "z" in r]

@@ -2,7 +2,8 @@
 
 Bad input (unknown source, bad ``--rate``, missing file) is one line on stderr and exit 2. A frame that
 cannot be read is one line naming the file; with ``--on-error skip`` (default) replay goes on and the final
-summary counts it, with ``--on-error stop`` replay ends there with exit 1.
+summary counts it, with ``--on-error stop`` replay ends there with exit 1. A recording none of whose frames reads
+replays nothing: one line and exit 2.
 
 Commands import their implementation when they run (start-up time: see :mod:`jitterguard.cli`).
 """
@@ -155,6 +156,12 @@ def replay_command(
     raise typer.Exit(code)
 
 
+def short_name(source_name: str) -> str:
+    """The progress bar's label for a source's name: its last path part, without the " (scene…, seed…)" the
+    readers add (a folder name may hold spaces: "runs/day 2/velodyne" is "velodyne", not "runs/day")."""
+    return Path(source_name.split(" (")[0].rstrip(":")).name or source_name
+
+
 def _run(svc: Any, src: Any, plan: ReplayPlan, wait_s: float, progress: bool | None) -> int:
     stop_on_signals(svc.stop)
     try:
@@ -167,7 +174,7 @@ def _run(svc: Any, src: Any, plan: ReplayPlan, wait_s: float, progress: bool | N
             total = max(0, src.info.num_frames - plan.start)
             if plan.limit is not None:
                 total = min(total, plan.limit)
-        short = Path(src.info.name.split(" ")[0].rstrip(":")).name or src.info.name
+        short = short_name(src.info.name)
         bar = _Progress(progress_on(progress), total, short, stops=plan.on_error == "stop")
         try:
             stats = svc.replay(src, plan, on_error=bar.error, on_published=bar.published)
@@ -191,6 +198,12 @@ def _run(svc: Any, src: Any, plan: ReplayPlan, wait_s: float, progress: bool | N
     if stats.stopped_by is not None:
         print(f"jitterguard: error: stopped at unreadable frame {stats.stopped_by}", file=sys.stderr)
         return 1
+    if stats.published == 0 and stats.errors and not stats.interrupted:
+        # every frame unreadable: nothing was replayed, which is no success (`jitterguard up` refuses such a
+        # recording before it starts, with the same exit status)
+        print(f"jitterguard: error: no frame of {src.info.name} could be read ({stats.errors} unreadable)",
+              file=sys.stderr)
+        return 2
     return 0
 
 

@@ -28,6 +28,7 @@ PROBE_FRAMES = 10
 replay, a recording none of whose first frames reads is refused."""
 
 SYNTHETIC_PREFIX = "synthetic:"
+BAG_FILE_SUFFIXES = (".mcap", ".db3", ".bag")
 
 
 @dataclass(frozen=True)
@@ -132,6 +133,11 @@ def open_source(spec: str, opts: SourceOptions | None = None) -> Source:
             return BinScanSource(
                 path, poses=opts.poses, calib=opts.calib, times=opts.times, fields=opts.bin_fields, period_ns=opts.period_ns
             )
+        bag_files = sorted(n for n in names if n.lower().endswith(BAG_FILE_SUFFIXES))
+        if bag_files:  # a rosbag2 folder whose recorder died before it wrote metadata.yaml (SIGKILL)
+            raise SourceError(f"{path}: no metadata.yaml, but it holds {', '.join(bag_files[:3])}"
+                              f"{' …' if len(bag_files) > 3 else ''}: give that file as SOURCE (an MCAP cut short has"
+                              " no footer either: `mcap recover` rewrites it whole)")
         raise SourceError(
             f"{path}: cannot tell what this folder is (no nuScenes tables, bag metadata.yaml, .bin or .pcd files)"
         )

@@ -69,6 +69,13 @@ def is_bag(path: Path) -> bool:
     return path.suffix.lower() in BAG_SUFFIXES
 
 
+def _holds_mcap(path: Path) -> bool:
+    """``path`` is an MCAP file, or a bag folder holding one."""
+    if path.is_dir():
+        return any(p.suffix.lower() == ".mcap" for p in path.iterdir())
+    return path.suffix.lower() == ".mcap"
+
+
 def _open_reader(path: Path) -> Any:
     try:
         from rosbags.highlevel import AnyReader
@@ -80,7 +87,9 @@ def _open_reader(path: Path) -> Any:
     except FileNotFoundError:
         raise SourceError(f"{path}: no such bag") from None
     except Exception as exc:  # rosbags raises several error types (AnyReaderError, ReaderError, sqlite errors)
-        raise SourceError(f"{path}: cannot open bag: {exc}") from None
+        cut = " (an MCAP cut short, e.g. by SIGKILL, has no footer: `mcap recover` rewrites it whole)" \
+            if "magic" in str(exc).lower() and _holds_mcap(path) else ""
+        raise SourceError(f"{path}: cannot open bag: {exc}{cut}") from None
     return reader
 
 
@@ -111,6 +120,12 @@ class BagSource(Source):
             msgtype = by_topic[topic][0].msgtype
             if msgtype not in (POINTCLOUD2, DETECTED_OBJECTS):
                 raise SourceError(f"{self.path}: topic {topic} is {msgtype}, not {POINTCLOUD2} or {DETECTED_OBJECTS}")
+            if sum(c.msgcount for c in by_topic[topic]) == 0:  # said as it is, not as "--start 0 is past the end"
+                with_msgs = ", ".join(t for t, cs in sorted(by_topic.items())
+                                      if cs[0].msgtype in (POINTCLOUD2, DETECTED_OBJECTS)
+                                      and sum(c.msgcount for c in cs) > 0) or "none"
+                raise SourceError(f"{self.path}: topic {topic} holds no messages (topics of scans or detections"
+                                  f" with messages: {with_msgs})")
         else:  # the scans, else the detections — of the topics that hold messages (a recording of a stack fed
             # detections has an empty scan topic beside them)
             for wanted in (POINTCLOUD2, DETECTED_OBJECTS):
@@ -134,6 +149,7 @@ class BagSource(Source):
         self.pose_times: list[int] = []
         self.poses: list[EgoPose] = []
         self.tf = TfTree()
+        self.tf_skipped: dict[str, int] = {}  # child frame → transforms skipped: rotation not a unit quaternion
         self.use_tf = False
         self.base_frame: str | None = None
         notes = [f"topic {topic} ({self.msgtype}), {count} messages"]
@@ -158,6 +174,9 @@ class BagSource(Source):
                     f"{self.path}: pose topic {pose_topic} is {ptype}, not {TF_MESSAGE} or one of {', '.join(POSE_TYPES)}"
                 )
         warnings = []
+        if self.tf_skipped:
+            warnings.append(f"{self.path}: TF transforms whose rotation is not a unit quaternion skipped (as tf2 does): "
+                            + ", ".join(f"{n} to {f!r}" for f, n in sorted(self.tf_skipped.items())))
         if pose_topic is None and count > 1:
             warnings.append(f"{self.path}: no --pose-topic: every {topic} message is published at the identity"
                             " pose, so if the sensor moved, static objects will look dynamic")
@@ -176,6 +195,13 @@ class BagSource(Source):
             for tr in msg.transforms:
                 r, q = tr.transform.translation, tr.transform.rotation
                 pose = EgoPose(float(r.x), float(r.y), float(r.z), float(q.x), float(q.y), float(q.z), float(q.w))
+                if not abs(math.hypot(pose.qx, pose.qy, pose.qz, pose.qw) - 1.0) <= LIMITS.max_quaternion_error:
+                    # e.g. an all-zero rotation from a hand-written static transform: composed into the scan's
+                    # pose it went out as an ego pose every consumer refuses (and as "0 unreadable"); tf2 too
+                    # ignores such a transform
+                    child = tr.child_frame_id.lstrip("/")
+                    self.tf_skipped[child] = self.tf_skipped.get(child, 0) + 1
+                    continue
                 self.tf.add(tr.header.frame_id, tr.child_frame_id, stamp_ns(tr.header) or t_bag, pose, static=static)
 
     def _read_pose_topic(self, topic: str, conns: list[Any]) -> None:
@@ -203,7 +229,9 @@ class BagSource(Source):
             try:
                 return self.tf.lookup(frame_id, t)
             except KeyError as exc:
-                return f"no TF for the scan: {exc.args[0]}"
+                skipped = "".join(f"; {n} transform(s) to {f!r} skipped: rotation not a unit quaternion"
+                                  for f, n in sorted(self.tf_skipped.items()))
+                return f"no TF for the scan: {exc.args[0]}{skipped}"
         if not self.poses:
             return IDENTITY
         base = interpolate_pose(self.pose_times, self.poses, t)
@@ -231,7 +259,9 @@ class BagSource(Source):
                 yield FrameError(origin, f"undecodable {conn.msgtype} message: {exc}")
                 continue
             stamp = stamp_ns(msg.header) or int(t_bag)
-            frame_id = msg.header.frame_id or "lidar"
+            # ROS 1 habit "/velodyne": the frame is "velodyne" (as the TF lookup reads it); a leading slash would go on
+            # into every message downstream, and ROS 2's tf2 refuses frame IDs that start with one
+            frame_id = msg.header.frame_id.lstrip("/") or "lidar"
             pose = self._pose(frame_id, stamp)
             if isinstance(pose, str):
                 yield FrameError(origin, pose)

@@ -140,6 +140,16 @@ def _first_existing(*candidates: Path | None) -> Path | None:
 _NUM = re.compile(r"^(\d+)")
 
 
+def _nuscenes_root_above(folder: Path) -> Path | None:
+    """The nuScenes dataroot that ``folder`` lies in (``samples/LIDAR_TOP`` or ``sweeps/LIDAR_TOP`` of it), if any."""
+    from .nuscenes import is_nuscenes_root
+
+    for up in list(folder.parents)[:3]:
+        if is_nuscenes_root(up):
+            return up
+    return None
+
+
 class BinScanSource(Source):
     """A folder of ``.bin`` / ``.pcd.bin`` scans (in numeric order of their names, hidden ones such as macOS'
     ``._*`` skipped) or one such file."""
@@ -208,6 +218,15 @@ class BinScanSource(Source):
         if len(set(nusc)) > 1 and fields is None:
             warnings.append(f"{path}: mixes nuScenes .pcd.bin and KITTI .bin scans: each is read in its own "
                             "layout, but as one stream their stamps and poses mean nothing")
+        if any(nusc):  # what a file name says it is, whatever columns --bin-fields reads from it
+            root = _nuscenes_root_above(folder)
+            how = (f"; replay the dataroot {root} instead, which turns them into the vehicle's axes and gives each its"
+                   " ego pose" if root is not None else "")
+            warnings.append(f"{path}: nuScenes .pcd.bin scans are in LIDAR_TOP's own frame (x to the right, not level),"
+                            f" not the level x-forward frame the detector works in{how}")
+        if self.times is not None and max(self.rows) >= len(self.times):
+            warnings.append(f"{times_path}: {len(self.times)} times for scan rows up to {max(self.rows)}: the scans past"
+                            " its end have no stamp and are skipped")
         if self.poses is None and len(files) > 1:
             warnings.append(f"{path}: {len(files)} scans and no --poses: every scan is published at the identity"
                             " pose, so if the sensor moved, static objects will look dynamic")
@@ -221,11 +240,15 @@ class BinScanSource(Source):
             return f"no pose for scan row {row} (poses file has {len(self.poses)} lines)"
         return self.poses[row]
 
-    def _stamp(self, i: int) -> int:
+    def _stamp(self, i: int) -> int | str:
+        """The scan's stamp, or why it has none: a scan past the end of times.txt had taken ``row × period`` after
+        the file's last time — back in time, which the replay then stamped 1 ns apart."""
         row = self.rows[i]
-        if self.times is not None and row < len(self.times):
-            return self.times[row]
-        return row * self.period_ns
+        if self.times is None:
+            return row * self.period_ns
+        if row >= len(self.times):
+            return f"no time for scan row {row} (times file has {len(self.times)} lines)"
+        return self.times[row]
 
     def frames(self, start: int = 0) -> Iterator[Item]:
         for i in range(start, len(self.files)):
@@ -239,5 +262,9 @@ class BinScanSource(Source):
             if isinstance(pose, str):
                 yield FrameError(str(f), pose)
                 continue
+            stamp = self._stamp(i)
+            if isinstance(stamp, str):
+                yield FrameError(str(f), stamp)
+                continue
             pts, _ = finite_rows(pts)
-            yield ScanFrame(self._stamp(i), pose, pts, self.file_fields[i], str(f), self.file_frame_ids[i])
+            yield ScanFrame(stamp, pose, pts, self.file_fields[i], str(f), self.file_frame_ids[i])
