@@ -101,8 +101,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         threads: ThreadsOpt = None,
         weights: Annotated[
             list[str] | None,
-            typer.Option("--weights", help="PRESET=FILE: time these weights for PRESET (repeatable); default the"
-                         " shipped weights, else random init (same cost)."),
+            typer.Option("--weights", help="PRESET=FILE: time these weights for PRESET (repeatable; PRESET among"
+                         " --presets, FILE a network of that preset); default the shipped weights, else random"
+                         " init (same cost)."),
         ] = None,
         scenario: Annotated[str, typer.Option("--scenario", help="Synthetic scenario the scans come from.")] = "mixed",
         seed: Annotated[int, typer.Option("--seed")] = 0,
@@ -160,9 +161,20 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             if not os.path.isfile(path):
                 fail(f"--weights: file not found: {path}")
             files[name] = path
+        extra = [n for n in files if n not in names]
+        if extra:  # it had been ignored without a word
+            fail(f"--weights: {', '.join(extra)} is not among --presets {','.join(names)}; add it there or drop"
+                 " its --weights")
         passive_openmp()
-        from ..services.detector.inference import WeightsError
+        from ..services.detector.inference import WeightsError, load_weights
 
+        for name, path in files.items():  # a weights file fixes its network: its row must time the preset it names
+            try:
+                arch = load_weights(path)[0].config.name
+            except WeightsError as exc:
+                fail(f"--weights: {_one_line(exc)}")
+            if arch != name:
+                fail(f"--weights: {path} is a {arch!r} network, not {name!r}; give it as {arch}={path}")
         try:
             result = run(names, scans=scans, warmup=warmup, threads=threads, weights=files, scenario=scenario,
                          seed=seed, progress=progress, backends=chosen, device=device, sweeps=sweeps, flips=flips)
@@ -229,8 +241,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
 
     @bench_app.command("pipeline")
     def pipeline_cmd(
-        objects: Annotated[int, typer.Option("--objects", min=1, help="Detections per frame.")] = 200,
-        rate: Annotated[float, typer.Option("--rate", min=0.1, help="Frames per second.")] = 20.0,
+        objects: Annotated[int, typer.Option("--objects", min=1, help="Detections per frame (at most the services'"
+                                             " limits.max_objects, 1000 by default).")] = 200,
+        rate: Annotated[float, typer.Option("--rate", min=0.1, max=1000.0, help="Frames per second.")] = 20.0,
         duration: Annotated[float, typer.Option("--duration", min=1.0, help="Seconds of load.")] = 60.0,
         seed: Annotated[int, typer.Option("--seed")] = 0,
         churn: Annotated[int, typer.Option("--churn", min=0, help="Objects moved to a new place each frame, so N "
@@ -259,12 +272,14 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         # checked with each service's own loader before anything starts (a bad file is a one-line error, exit 2)
         for flag, path, model in (("--classifier-config", classifier_config, ClassifierParams),
                                   ("--tracker-config", tracker_config, TrackerConfig)):
-            if path is None:
-                continue
             try:
-                load(model, path)  # a missing file is its ConfigError too
+                params = load(model, path)  # a missing file is its ConfigError too
             except ConfigError as exc:
                 fail(f"{flag}: {exc}")
+            cap = params.limits.max_objects
+            if objects > cap:  # every frame had been dropped unread, and the run reported 0 frames out, exit 0
+                fail(f"--objects {objects} exceeds the {flag[2:-7]}'s limits.max_objects {cap}: every frame would be"
+                     f" refused; raise it in a {flag} file")
         res = bench_pipeline(objects, rate, duration, seed, log_dir=log_dir, split=split, churn=churn,
                              classifier_config=classifier_config, tracker_config=tracker_config)
         print(json.dumps(res, indent=None if as_json else 2))

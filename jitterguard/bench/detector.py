@@ -134,7 +134,7 @@ def run(presets: Sequence[str], *, scans: int = 40, warmup: int = 3, threads: in
 
     import torch  # the optional "torch" extra, after passive_openmp() has set OpenMP's policy
 
-    from ..services.detector.inference import Detector, shipped_weights  # torch, as above
+    from ..services.detector.inference import Detector, WeightsError, shipped_weights  # torch, as above
 
     unknown = [p for p in presets if p not in PRESETS]
     if unknown:
@@ -148,6 +148,8 @@ def run(presets: Sequence[str], *, scans: int = 40, warmup: int = 3, threads: in
     out: dict[str, dict[str, Any]] = {}
     for name in presets:
         det = Detector.load(weights.get(name), name, threads=n_threads, device=device, flips=flips)
+        if det.config.name != name:  # a weights file fixes its network: never time one under another's name
+            raise WeightsError(f"{weights.get(name)} is a {det.config.name!r} network, not {name!r}")
         widened = sweeps > 1 and det.config.num_point_features == 4
         if widened:
             from ..services.detector.network import with_time_lag

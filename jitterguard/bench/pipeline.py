@@ -192,6 +192,14 @@ def bench_pipeline(objects: int = 200, rate_hz: float = 20.0, duration_s: float 
                     lock.notify_all()
         return on_sample
 
+    # The children run in sessions of their own (a Ctrl-C on the terminal must not stop them mid-measurement), so a
+    # SIGTERM to this process reaches none of them: it had ended this process at once, and left the router, the
+    # tracker and the classifier running for ever. Raised as SystemExit here, it runs the ``finally`` below.
+    def on_term(signum: int, _frame: Any) -> None:
+        raise SystemExit(128 + signum)
+
+    in_main = threading.current_thread() is threading.main_thread()
+    old_term = signal.signal(signal.SIGTERM, on_term) if in_main else None
     try:
         for name, args in specs.items():
             out = open(log_dir / f"{name}.log", "wb")
@@ -275,6 +283,8 @@ def bench_pipeline(objects: int = 200, rate_hz: float = 20.0, duration_s: float 
             pub.undeclare()
     finally:
         stop_processes(procs.values())
+        if in_main:
+            signal.signal(signal.SIGTERM, old_term)
     with lock:
         lat = [(recv[s] - sent[s]) * 1e3 for s in sent if s in recv]
         to_tracked = [(tracked_at[s] - sent[s]) * 1e3 for s in sent if s in tracked_at]

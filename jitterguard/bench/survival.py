@@ -50,7 +50,7 @@ def survival_command(
     seeds: Annotated[str, typer.Option("--seeds", help="Comma-separated seeds; each is one scenario run.")] = "0,1,2,3,4",
     duration: Annotated[float, typer.Option("--duration", help="Scenario length \\[s].")] = 30.0,
     rate: Annotated[float, typer.Option("--rate", help="Frame rate [Hz] (the stack's replay runs 10 Hz).")] = 10.0,
-    horizon: Annotated[float, typer.Option("--horizon", help="Seconds a track ID must survive.")] = 1.0,
+    horizon: Annotated[float, typer.Option("--horizon", help="Seconds a track ID must survive (shorter than --duration).")] = 1.0,
     min_points: Annotated[int, typer.Option("--min-points", help="LiDAR returns for an object to be in view.")] = DEFAULT_MIN_POINTS,
     tracker_config: Annotated[str | None, typer.Option("--tracker-config", help="Tracker YAML (as `jitterguard tracker --config`).")] = None,
     threads: Annotated[int | None, typer.Option("--threads", min=1, max=1024, help="torch CPU threads of the detector.")] = None,
@@ -60,6 +60,8 @@ def survival_command(
     if not 0 < duration <= 600 or not 0 < rate <= 100 or not horizon > 0 or min_points < 0:
         fail("--duration must be in (0, 600], --rate in (0, 100], --horizon > 0 and --min-points >= 0")
     check_scenario_options(scenario, duration, rate)  # an unknown scenario had been a ValueError from make_scenario
+    if horizon >= duration:  # no track could be followed that long: every figure had come out null, exit 0
+        fail(f"--horizon {horizon:g} s must be shorter than --duration {duration:g} s")
     from ..config import ConfigError
     from ..eval.survival import score, survival_run
     from ..services.tracker.config import default_config, load_config
@@ -67,7 +69,7 @@ def survival_command(
     try:
         cfg = load_config(tracker_config) if tracker_config else default_config()
     except ConfigError as exc:
-        fail(str(exc))
+        fail(f"--tracker-config: {exc}")
     runs = []
     per_seed: dict[str, Any] = {}
     for s in seed_list:

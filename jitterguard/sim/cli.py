@@ -174,6 +174,15 @@ def export_command(
         fail(f"{dataroot}: exists and is not a folder")
     if (root / "v1.0-mini").exists():
         fail(f"{dataroot}: already holds a v1.0-mini dataroot; choose an empty folder")
+    # the folder made and tried before the scans are cast (a minute for 60 s): it had failed only after them
+    created = not root.exists()
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+        probe = root / f".jitterguard-write-test.{os.getpid()}"
+        probe.touch()
+        probe.unlink()
+    except OSError as exc:
+        fail(f"{dataroot}: cannot write: {exc.strerror or exc}")
     from .export import export_scenario
     from .sensors import SENSORS
     from .world import make_scenario
@@ -183,8 +192,12 @@ def export_command(
     try:
         sizes = export_scenario(sc, str(root), SENSORS[lidar](), seed, min_points=min_points,
                                 progress=lambda it: _bar(it, sc.num_frames, f"export {scenario}", show))
-    except OSError as exc:
-        fail(f"{dataroot}: cannot write: {exc.strerror or exc}")
+    except OSError as exc:  # export_scenario removed what it wrote: no half-written dataroot is left
+        if created:
+            with contextlib.suppress(OSError):
+                root.rmdir()
+        where = f" {exc.filename}" if exc.filename and os.fspath(exc.filename) != str(root) else ""
+        fail(f"{dataroot}: cannot write{where}: {exc.strerror or exc}")
     print(json.dumps({"dataroot": str(root), "version": "v1.0-mini", "scenario": scenario, "seed": seed,
                       "tables": sizes}))
 

@@ -192,15 +192,56 @@ def nuscenes_tables(scenario_name: str, seed: int, frames: Iterable[tuple[Ground
 
 
 def write_dataroot(dataroot: str, tables: dict[str, list[dict[str, object]]], sweeps: Iterable[SweepFile]) -> None:
-    """Write the tables to ``dataroot/v1.0-mini/*.json`` and the sweeps below ``dataroot``."""
-    os.makedirs(os.path.join(dataroot, VERSION), exist_ok=True)
-    for name, rows in tables.items():
-        with open(os.path.join(dataroot, VERSION, f"{name}.json"), "w", encoding="utf-8") as fh:
-            json.dump(rows, fh, indent=0)
-    for sw in sweeps:
-        path = os.path.join(dataroot, sw.filename)
-        os.makedirs(os.path.dirname(path), exist_ok=True)
-        sw.data.astype("<f4").tofile(path)
+    """Write the sweeps below ``dataroot``, then the tables to ``dataroot/v1.0-mini/*.json``.
+
+    All or nothing: the tables — what makes a folder a dataroot to every reader — are written last, into a
+    temporary folder renamed into place, and a write that fails (a full disk, a path that is not a folder) removes
+    every file and folder this call made before the error is raised. A failed export had left a half-written
+    dataroot behind, tables first, which ``jitterguard sim export`` then refused to overwrite."""
+    made: list[str] = []  # files and folders this call created, in order
+
+    def makedirs(path: str) -> None:
+        missing = []
+        while path and not os.path.isdir(path):
+            missing.append(path)
+            path = os.path.dirname(path)
+        for d in reversed(missing):
+            os.mkdir(d)
+            made.append(d)
+
+    final = os.path.join(dataroot, VERSION)
+    part = os.path.join(dataroot, f".{VERSION}.{os.getpid()}.part")
+    try:
+        for sw in sweeps:
+            path = os.path.join(dataroot, sw.filename)
+            makedirs(os.path.dirname(path))
+            existed = os.path.exists(path)
+            if not existed:
+                made.append(path)
+            sw.data.astype("<f4").tofile(path)
+        makedirs(part)
+        for name, rows in tables.items():
+            with open(os.path.join(part, f"{name}.json"), "w", encoding="utf-8") as fh:
+                json.dump(rows, fh, indent=0)
+        if os.path.isdir(final):  # a re-export over an existing dataroot: its tables replaced one by one
+            for name in tables:
+                os.replace(os.path.join(part, f"{name}.json"), os.path.join(final, f"{name}.json"))
+            os.rmdir(part)
+        else:
+            os.rename(part, final)
+    except BaseException:
+        import shutil
+
+        shutil.rmtree(part, ignore_errors=True)
+        for path in reversed(made):
+            try:
+                if os.path.isdir(path):
+                    os.rmdir(path)
+                else:
+                    os.unlink(path)
+            except OSError:
+                pass
+        raise
 
 
 def export_scenario(scenario: Scenario, dataroot: str, sensor: LidarSpec | None = None, seed: int = 0, *,

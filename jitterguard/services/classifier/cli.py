@@ -76,6 +76,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             calibration = "file"
         elif calibration_file is not None and calibration != "file":
             fail(f"--calibration-file is read with --calibration file, not --calibration {calibration}")
+        elif calibration == "file" and calibration_file is None and config is None:  # had named no flag
+            fail("--calibration file: needs --calibration-file FILE (a YAML from `jitterguard calibrate`)")
         params = _load_config(config, preset, {"alpha_default": alpha, "window_size": window_size,
                                                "min_window": min_window, "mode": mode, "effective_n": effective_n,
                                                "calibration": calibration, "calibration_file": calibration_file,
@@ -93,6 +95,14 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             path = Path(value).absolute()
             if path.is_dir() or not path.parent.is_dir() or not os.access(path.parent, os.W_OK):
                 fail(f"{flag if given else key}: {value} must be a file in a writable directory")
+            existed = path.exists()
+            try:  # tried by opening it: a folder root may "write" into can still refuse a file (/proc), and the
+                with open(path, "ab"):  # store had then failed only at the first config write, long after start
+                    pass
+            except OSError as exc:
+                fail(f"{flag if given else key}: cannot write {value}: {exc.strerror or exc}")
+            if not existed:
+                path.unlink(missing_ok=True)
             return path
 
         store_path = writable_file(params.config_store, "--config-store", "config_store", config_store)

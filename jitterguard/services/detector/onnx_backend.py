@@ -130,7 +130,8 @@ def open_onnx_detector(model_dir: str | Path | None, weights: str | Path | None,
                        self_crop: Sequence[float] | None = SELF_CROP_M, flips: bool = False) -> Detector:
     """The onnxruntime-backed detector the service runs: from an export folder, or — without one — the torch
     weights (``weights`` / ``preset``, as :meth:`Detector.load` picks them) exported into a temporary folder first
-    (needs onnx + onnxscript; the folder is removed at exit)."""
+    (needs onnx + onnxscript; the folder is removed as soon as ONNX Runtime has loaded it: a service stopped by a
+    signal before its handlers are installed — while it waits for the router — had left it in the temp folder)."""
     if model_dir is not None:
         return load_onnx_detector(model_dir, threads=threads, score_threshold=score_threshold, self_crop=self_crop,
                                   flips=flips)
@@ -146,7 +147,12 @@ def open_onnx_detector(model_dir: str | Path | None, weights: str | Path | None,
     atexit.register(shutil.rmtree, tmp, ignore_errors=True)
     logging.getLogger(__name__).info("exporting %s to ONNX in %s for the onnxruntime backend", src.config.name, tmp)
     try:
-        export_onnx(src.model, tmp, recalibration=src.recalibration, meta=src.meta)
-    except ExportError as exc:
-        raise WeightsError(str(exc)) from None
-    return load_onnx_detector(tmp, threads=threads, score_threshold=score_threshold, self_crop=self_crop, flips=flips)
+        try:
+            export_onnx(src.model, tmp, recalibration=src.recalibration, meta=src.meta)
+        except ExportError as exc:
+            raise WeightsError(str(exc)) from None
+        # ONNX Runtime holds the graphs in memory once the sessions are made: the files are not read again
+        return load_onnx_detector(tmp, threads=threads, score_threshold=score_threshold, self_crop=self_crop,
+                                  flips=flips)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)

@@ -150,7 +150,8 @@ def export_ok(check: dict[str, Any], tolerance: float, yaw_tolerance: float) -> 
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:
     @app.command("export-onnx")
     def export_onnx_cmd(
-        out: Annotated[str, typer.Option("--out", help="Folder to write the ONNX file(s) and detector.json into.")],
+        out: Annotated[str, typer.Option("--out", help="Folder to write the ONNX file(s) and detector.json into (an earlier"
+                                         " export there is replaced, the other layout's graphs removed).")],
         preset: Annotated[str | None, typer.Option("--preset", help=f"Architecture preset: {', '.join(PRESETS)}"
                                                    " (default lite): its shipped weights; with --weights only the"
                                                    " weights' own architecture.")] = None,
@@ -177,7 +178,6 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             fail(f"--opset: {refused}")
         if weights is not None and not os.path.isfile(weights):
             fail(f"--weights: file not found: {weights}")
-        out_dir("--out", out)
         passive_openmp()
         from .inference import Detector, WeightsError, shipped_weights
         from .onnx_backend import load_onnx_detector
@@ -192,6 +192,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         if det.config.num_point_features != 4:  # bad input, not a failed export: name the flag, exit 2
             fail(f"--weights: the model takes stacked sweeps ({det.config.num_point_features} point fields), which"
                  " is not exported to ONNX yet: export the single-sweep weights (x, y, z, intensity)")
+        out_dir("--out", out)  # after the flags and weights are checked, before the export
         source = weights or (str(shipped_weights(preset)) if shipped_weights(preset).is_file() else "random-init")
         meta = {**det.meta, "preset": det.config.name, "weights": Path(source).name if source != "random-init" else source}
         try:

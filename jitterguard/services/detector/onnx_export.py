@@ -360,4 +360,8 @@ def export_onnx(net: CenterPointNet, out_dir: str | Path, *, layout: str = "sing
         manifest["graphs"][name]["opset"] = v
     path = out / MANIFEST
     path.write_text(json.dumps(manifest, indent=2) + "\n")
+    # an earlier export of the other layout into this folder: its graphs no longer belong to detector.json (they had
+    # stayed beside it, stale, for whoever deploys the folder to pick up)
+    for stale in {SINGLE_FILE, ENCODER_FILE, HEAD_FILE} - {p.name for p in files.values()}:
+        (out / stale).unlink(missing_ok=True)
     return ExportResult(out, tuple(files.values()), path, manifest)

@@ -116,15 +116,27 @@ class _Joined:
         return self.parts[k][i - (self.ends[k - 1] if k else 0)]
 
 
-def _present(dataroot: str, version: str | None, names: list[str]) -> list[str]:
-    """The scenes of an official split that this dataroot holds (a partial download trains on what is there)."""
+def _present(dataroot: str, version: str | None, names: list[str], flag: str = "--split") -> list[str]:
+    """The scenes of an official split that this dataroot holds (a partial download trains on what is there);
+    none is a one-line error naming ``flag`` (the option that named the split)."""
     from ..replay.sources.nuscenes import _load_table, find_version
 
     have = {s["name"] for s in _load_table(Path(dataroot) / find_version(Path(dataroot), version), "scene")}
     kept = [n for n in names if n in have]
     if not kept:
-        fail(f"--split: none of the split's {len(names)} scenes is in {dataroot}")
+        fail(f"{flag}: none of the split's {len(names)} scenes is in {dataroot}")
     return kept
+
+
+def _split_scenes(name: str, flag: str) -> list[str]:
+    """The scene names of official split ``name``, or one line naming ``flag`` (an unknown split, no devkit)."""
+    from ..replay.frames import SourceError
+    from .data import official_split
+
+    try:
+        return official_split(name)
+    except SourceError as exc:
+        fail(f"{flag}: {exc}")
 
 
 def check_preset(preset: str | None, weights: str | None, architecture: str) -> None:
@@ -134,6 +146,17 @@ def check_preset(preset: str | None, weights: str | None, architecture: str) -> 
     if preset is not None and weights is not None and preset != architecture:
         fail(f"--preset: {preset!r} contradicts --weights {weights}, a {architecture!r} network; drop --preset"
              " (the weights file fixes the architecture) or drop --weights (the shipped weights of --preset)")
+
+
+def check_not_overwritten(flag: str, source: str | None, out: str) -> None:
+    """``source`` (the weights a command reads) must not be ``OUT/weights.pt`` (what it writes), or one line naming
+    ``flag`` and exit 2: the run had replaced its own input, losing it, and the new file's provenance
+    (``init``, ``recalibrated_from``, ``adapted_from``) named a file that no longer held it."""
+    target = Path(out) / "weights.pt"
+    if source is None or not target.is_file() or not os.path.isfile(source):
+        return
+    if os.path.samefile(source, target):
+        fail(f"{flag}: {source} is the {target} this run writes; write into another --out (it would be replaced)")
 
 
 def _check_fill(n: int, micro: int, flag: str, world: int) -> None:
@@ -315,7 +338,6 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         progress: ProgressOpt = None,
     ) -> None:
         """Train the detector on synthetic scans or a nuScenes dataroot; runs unchanged under ``torchrun``."""
-        out_dir("--out", out)  # before any work: a run must not fail to write its result at the end
         progress = progress_on(progress)
         if preset not in PRESETS:
             fail(f"--preset: expected one of {', '.join(PRESETS)}, got {preset!r}")
@@ -330,6 +352,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             fail("--split/--val-split: need --nuscenes")
         if val_split and not split:
             fail("--val-split: needs --split")
+        split_scenes = _split_scenes(split, "--split") if split else None
+        val_scenes = _split_scenes(val_split, "--val-split") if val_split else None
         scen = _scenarios(scenarios)
         tr_seeds, va_seeds = parse_seeds(train_seeds, "--train-seeds"), parse_seeds(val_seeds, "--val-seeds")
         if set(tr_seeds) & set(va_seeds) and nuscenes is None:
@@ -338,6 +362,11 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             fail("--gt-sample-count: only with --gt-sample")
         gt_counts = _class_values(gt_sample_count, "--gt-sample-count", CENTERPOINT_SAMPLE_COUNTS, int,
                                   lambda v: 0 <= v <= 100, "N", " and 0 ≤ N ≤ 100")
+        if not resume:  # a resumed run reads its checkpoint, not --init, and writes the same weights.pt again
+            check_not_overwritten("--init", init, out)
+        # after the flags are checked (bad input must not leave an empty run folder behind), before any work (a
+        # run must not fail to write its result at the end)
+        out_dir("--out", out)
         logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
         from .cli import passive_openmp, retain_heap
 
@@ -383,14 +412,14 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         recal_extra: list[Any] = []  # validation scans of the other --effects sets, for the recalibration
         if nuscenes is not None:
             from ..replay.frames import SourceError
-            from .data import NuScenesKeyframes, official_split, split_holdout
+            from .data import NuScenesKeyframes, split_holdout
 
             try:
-                if split:
+                if split_scenes is not None:
                     train_s: Any = NuScenesKeyframes(nuscenes, nuscenes_version, _present(nuscenes, nuscenes_version,
-                                                     official_split(split)), sweeps=sweeps)
+                                                     split_scenes), sweeps=sweeps)
                     val_s: Any = NuScenesKeyframes(nuscenes, nuscenes_version, _present(
-                        nuscenes, nuscenes_version, official_split(val_split)), sweeps=sweeps) if val_split else []
+                        nuscenes, nuscenes_version, val_scenes, "--val-split"), sweeps=sweeps) if val_scenes else []
                 else:
                     train_s, val_s = split_holdout(NuScenesKeyframes(nuscenes, nuscenes_version, sweeps=sweeps),
                                                    last_n=holdout_last)
@@ -507,7 +536,6 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         progress: ProgressOpt = None,
     ) -> None:
         """Adapt weights to unlabelled real scans: normalisation statistics, self-training, recalibration."""
-        out_dir("--out", out)  # before any work: a run must not fail to write its result at the end
         progress = progress_on(progress)
         from .adapt import DEFAULT_PSEUDO_THRESHOLDS
         from .config import SELF_CROP_M
@@ -522,6 +550,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                             "SCORE", " and 0 < SCORE < 1")
         scen = _scenarios(scenarios)
         syn_seeds = parse_seeds(synthetic_seeds, "--synthetic-seeds")
+        check_not_overwritten("--weights", weights, out)
         logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
         from .cli import passive_openmp, retain_heap
 
@@ -552,6 +581,10 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         if model.config.num_point_features != 4:  # its real scans would have to be stacked too: not built
             fail(f"--weights: the model takes stacked sweeps ({model.config.num_point_features} point fields); adapt"
                  " works on single-sweep weights: adapt those, then widen them with `train --init W --sweeps N`")
+        for recording in scans:  # what a path holds is read later; one that names nothing is refused now
+            if not os.path.exists(recording):
+                fail(f"--scans: {recording}: no such file or folder")
+        out_dir("--out", out)  # after the flags and weights are checked, before the scans are read
         from .train import progress_bar
 
         bar = progress_bar(progress, max_scans, unit="scan", desc="reading scans")
@@ -658,8 +691,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         nuscenes: Annotated[str | None, typer.Option("--nuscenes", help="Evaluate on this nuScenes dataroot's key"
                                                       " frames instead (all of them, unless the weights were"
                                                       " trained on it: then its held-out ones).")] = None,
-        holdout_last: Annotated[int | None, typer.Option("--holdout-last", min=1, help="Score only each scene's"
-                                                         " last N key frames.")] = None,
+        holdout_last: Annotated[int | None, typer.Option("--holdout-last", min=1, help="With --nuscenes: score only"
+                                                         " each scene's last N key frames.")] = None,
         bootstrap: Annotated[int, typer.Option("--bootstrap", min=0, max=10000, help="Resamples over frames for"
                                                " 90 % intervals of AP and coverage (0: none).")] = 1000,
         recalibrate: Annotated[bool, typer.Option("--recalibrate/--no-recalibrate",
@@ -681,7 +714,6 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         # a stem with a folder in it (or none at all) failed, or wrote hidden files, only after the whole scoring
         if not name.strip() or name != Path(name).name or name in (".", ".."):
             fail(f"--name: expected a file-name stem (no folder, not empty), got {name!r}")
-        out_dir("--out", out)  # before any work: a run must not fail to write its result at the end
         progress = progress_on(progress)
         if preset is not None and preset not in PRESETS:
             fail(f"--preset: expected one of {', '.join(PRESETS)}, got {preset!r}")
@@ -692,6 +724,10 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         if "+" in effects:
             fail(f"--effects: one set of effects to score on, got {effects!r}")
         _effects(effects)
+        if nuscenes is not None and not os.path.isdir(nuscenes):
+            fail(f"--nuscenes: not a directory: {nuscenes}")
+        if holdout_last is not None and nuscenes is None:  # it had been ignored without a word
+            fail("--holdout-last: only with --nuscenes (synthetic hold-out seeds are scored whole)")
         from .cli import passive_openmp
 
         passive_openmp()  # before torch is imported
@@ -710,6 +746,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             if sweeps > 1 and det.config.num_point_features < 5:
                 fail(f"--sweeps: these weights take one sweep (4 point fields), got {sweeps}")
             det.sweeps = sweeps
+        # after the flags and weights are checked (bad input must not leave an empty folder behind), before any
+        # work (a run must not fail to write its result at the end)
+        out_dir("--out", out)
         scored_on: dict[str, Any] = {}
         if nuscenes is not None:
             from ..replay.frames import SourceError
@@ -780,7 +819,6 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         progress: ProgressOpt = None,
     ) -> None:
         """Refit a weights file's per-axis variance scales, per detection-score bin, on labelled synthetic scans."""
-        out_dir("--out", out)  # before any work: a run must not fail to write its result at the end
         progress = progress_on(progress)
         if not os.path.isfile(weights):
             fail(f"--weights: file not found: {weights}")
@@ -789,6 +827,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         effect_sets = effects.split("+")
         for e in effect_sets:
             _effects(e)
+        check_not_overwritten("--weights", weights, out)
         from .cli import passive_openmp
 
         passive_openmp()  # before torch is imported
@@ -801,6 +840,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             fail(f"--weights: {exc}")
         if not det.config.uncertainty:
             fail("--weights: a vanilla model predicts no variances to recalibrate")
+        out_dir("--out", out)  # after the flags and weights are checked, before any work
         try:
             rec, fitted = fit_synthetic_recalibration(det, Path(out), scen, seeds, frames, effect_sets, bins, progress,
                                                       workers)
