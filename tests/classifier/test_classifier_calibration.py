@@ -492,6 +492,8 @@ def test_a_fifo_or_device_is_refused_without_being_read(tmp_path: Path) -> None:
     for path in (fifo, Path("/dev/zero")):
         with pytest.raises(CalibrationFileError, match="not a regular file"):
             read_calibration(path)
+    with pytest.raises(CalibrationFileError, match=f"^{tmp_path}: a folder, not a calibration file$"):
+        read_calibration(tmp_path)  # had been "Is a directory: 3", the descriptor's number
 
 
 @pytest.mark.parametrize("path", ["/proc/self/status", "/proc/version", "/proc/self/cmdline",

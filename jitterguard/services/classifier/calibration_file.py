@@ -88,10 +88,12 @@ def read_calibration(path: str | Path) -> NoiseModel:
         if os.path.realpath(p).startswith(KERNEL_FILES):
             raise CalibrationFileError(f"{p}: a kernel file, not a calibration file")
         fd = os.open(p, os.O_RDONLY | os.O_NONBLOCK)
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):  # judged before fdopen, which refuses a folder as "Is a directory: 3"
+            os.close(fd)
+            raise CalibrationFileError(f"{p}: {'a folder' if stat.S_ISDIR(st.st_mode) else 'not a regular file'},"
+                                       " not a calibration file")
         with os.fdopen(fd, "rb") as fh:
-            st = os.fstat(fh.fileno())
-            if not stat.S_ISREG(st.st_mode):
-                raise CalibrationFileError(f"{p}: not a regular file, not a calibration file")
             if st.st_size == 0:
                 raise CalibrationFileError(f"{p}: empty, not a calibration file")
             raw = fh.read(MAX_BYTES + 1)
