@@ -412,7 +412,7 @@ class ClassifierConfig(Message):
         10.0, description="the frame rate window_size is meant for, Hz: a slower stream (its rate measured from "
         "the frames' stamps) gets proportionally fewer observations, the same span in time, but never fewer than "
         "min(10, window_size) (the paper's window; 2 Hz key frames: 10, not 20 observations = 10 s); a faster one "
-        "(above 1.5 times this rate) takes every k-th frame into the window, k = round(rate / this), the same span "
+        "(from 1.6 times this rate) takes every k-th frame into the window, k = round(rate / this), the same span "
         "at this rate's cost (20 Hz: every second frame); null: window_size observations of every frame at any rate "
         "(docs/classifier.md 'The window')")
     min_window: Annotated[int, Field(ge=2, le=MAX_WINDOW)] = 2

@@ -212,6 +212,19 @@ def test_static_hints_zero_the_velocity_of_the_hinted_track(harness_factory) -> 
     p = kept.kinematics.pose_with_covariance.pose.position
     assert (p.x, p.y) == pytest.approx((pos.x, pos.y), abs=1e-6)
     assert h.service.counters.get("static_hints_implausible") == 1
+    # a newer dynamic decision cancels an older static one that has not been applied yet (a tracker behind by a
+    # frame had applied the stale static hint); here the dynamic one arrives first, the older static one after
+    newer = t.header.seq + 20
+    h.client.put(keys.motion(h.ns, tid), encode(hint.model_copy(update={
+        "state": "dynamic", "header": Header(stamp=2, seq=newer), "mean_x": pos.x + 0.5})))
+    h.client.put(keys.motion(h.ns, tid), encode(hint.model_copy(update={
+        "header": Header(stamp=1, seq=newer - 1), "mean_x": pos.x + 0.5})))
+    assert wait_for(lambda: h.service.counters.get("static_hints_received") == 3)
+    h.send(h.empty_frame(nxt + 3, h.stamp0 + 10**9 + (len(seq.frames) + 3) * 100_000_000))
+    kept = next(o for o in h.wait_seq(nxt + 3).objects if o.object_id == tid)
+    p = kept.kinematics.pose_with_covariance.pose.position
+    assert (p.x, p.y) == pytest.approx((pos.x, pos.y), abs=1e-6)  # not moved to the stale static mean
+    assert h.service.counters.get("static_hints_applied") == 1
 
 
 def test_the_measurement_scale_it_learns_is_in_the_heartbeat(harness_factory) -> None:

@@ -57,7 +57,8 @@ at a steady 1000 tracks (50 windows a frame at W = 20) the backlog stays under W
 
 def stride_for_interval(config: ClassifierConfig, interval_s: float | None, current: int = 1) -> int:
     """Every how many frames a track's window takes an observation on a stream whose frames are ``interval_s``
-    apart: 1 up to 1.5 × ``window_reference_hz`` (15 Hz at 10 Hz); on a faster stream the nearest whole ratio of
+    apart: 1 below 1.6 × ``window_reference_hz`` for a stream taking every frame (16 Hz at 10 Hz: the ratio must
+    move 0.6 from the stride in force, below); on a faster stream the nearest whole ratio of
     its rate to the reference (20 Hz at 10 Hz: every second frame), so the window keeps the span it was
     chosen with (the default's 2 s) at the cost per second of the reference rate — successive detections of a
     fast sensor err alike, so the frames skipped add little. ``current`` (the stride in force) is kept while the

@@ -63,7 +63,7 @@ class TrackerService(Service):
         if self.core.scale is not None:  # the measurement scale's compiled pooling, loaded now, not mid-stream
             calibration_warm_up()
         self.static_hints = static_hints
-        self._hints: list[MotionState] = []
+        self._hints: dict[str, MotionState] = {}  # track ID → its newest decision since the last frame
         self._hints_lock = threading.Lock()
         self._manage_gc = manage_gc
         self._idle_gc = IdleCollector()
@@ -82,8 +82,10 @@ class TrackerService(Service):
         self.spawn(self._worker, "worker")
 
     def _on_motion(self, msg: MotionState, key: str) -> None:
-        """Zenoh callback: keep the static decisions for the worker (applied before the next frame); a hint whose
-        mean lies beyond ``limits.max_abs_coordinate_m`` is refused and counted, as a detection there would be."""
+        """Zenoh callback: keep each track's newest decision for the worker (applied before the next frame if it is
+        static: a dynamic decision newer than a static one cancels it — a tracker behind by a frame had applied the
+        older static one, zeroing a car's velocity the classifier had since called moving); a hint whose mean lies
+        beyond ``limits.max_abs_coordinate_m`` is refused and counted, as a detection there would be."""
         if msg.track_id != keys.last_chunk(key):  # a publisher allowed one track's key cannot steer another
             self.reject(DecodeError(MotionState.__name__, "track_id", "not the track its key names"),
                         keys.motion_all(self.ns), key)
@@ -95,8 +97,11 @@ class TrackerService(Service):
             return
         if msg.state == "static":
             self.counters.inc("static_hints_received")
-            with self._hints_lock:
-                self._hints.append(msg)
+        with self._hints_lock:  # several frames' decisions for one track: the newest frame's wins, whatever the
+            # arrival order
+            held = self._hints.get(msg.track_id)
+            if held is None or msg.header.seq >= held.header.seq:
+                self._hints[msg.track_id] = msg
 
     # ------------------------------------------------------------------ the worker (owns the core)
 
@@ -141,13 +146,10 @@ class TrackerService(Service):
 
     def _apply_hints(self) -> None:
         with self._hints_lock:
-            hints, self._hints = self._hints, []
-        if not hints:
+            newest, self._hints = self._hints, {}
+        latest = {t: m for t, m in newest.items() if m.state == "static"}
+        if not latest:
             return
-        latest: dict[str, MotionState] = {}
-        for h in hints:  # several frames' hints for one track: the newest frame's wins, whatever the arrival order
-            if h.track_id not in latest or h.header.seq >= latest[h.track_id].header.seq:
-                latest[h.track_id] = h
         ids = list(latest)
         applied, implausible = self.core.apply_static_hints(ids, [latest[t].mean_x for t in ids],
                                                             [latest[t].mean_y for t in ids])
