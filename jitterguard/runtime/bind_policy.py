@@ -41,14 +41,25 @@ def endpoint_host(endpoint: str) -> tuple[str, str]:
     return proto, address.rsplit(":", 1)[0] if ":" in address else address
 
 
+def endpoint_settings(endpoint: str) -> dict[str, str]:
+    """The per-endpoint settings after ``#`` (``tls/0.0.0.0:7447#enable_mtls=false;…``), which Zenoh applies
+    over the config's ``transport/link/tls`` ones."""
+    _, _, tail = endpoint.partition("#")
+    pairs = (item.partition("=") for item in tail.split(";") if item.strip())
+    return {k.strip(): v.strip() for k, _, v in pairs}
+
+
 def listen_refusal(endpoints: list[str], *, mtls: bool) -> str | None:
     """Why listening on ``endpoints`` would expose this process (None if it would not): every endpoint must be
-    on loopback or a local link, or use TLS/QUIC with ``mtls`` (client certificates required)."""
+    on loopback or a local link, or use TLS/QUIC with mutual TLS — ``mtls`` (the config's
+    ``transport/link/tls/enable_mtls``) unless the endpoint's own ``#enable_mtls=…`` says otherwise (Zenoh lets
+    that win: ``tls/0.0.0.0:7447#enable_mtls=false`` had opened a listener any certificate-less client reached)."""
     for ep in endpoints:
         proto, host = endpoint_host(ep)
         if proto in LOCAL_PROTOCOLS or is_loopback(host):
             continue
-        if proto in SECURE_PROTOCOLS and mtls:
+        own = endpoint_settings(ep).get("enable_mtls")
+        if proto in SECURE_PROTOCOLS and (mtls if own is None else own.lower() == "true"):
             continue
         if proto in SECURE_PROTOCOLS:
             return (f"refusing to listen on {ep}: a non-loopback listener needs mutual TLS "

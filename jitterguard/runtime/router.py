@@ -14,7 +14,8 @@ import threading
 import zenoh
 
 from .signals import stop_on_signals
-from .zenoh_config import DEFAULT_ROUTER, ENV_CONFIG, UnusableConfig, ZenohOptions, build_config, open_session
+from .zenoh_config import (DEFAULT_ROUTER, ENV_CONFIG, UnusableConfig, ZenohOptions, build_config, listen_endpoints,
+                           open_session)
 
 log = logging.getLogger("jitterguard.router")
 
@@ -34,6 +35,13 @@ def _file_listen(config_file: str | None) -> tuple[str, ...]:
     return tuple(str(e) for e in eps or ())
 
 
+def _may_wait(error: str) -> bool:
+    """Whether a failed router open is worth retrying: its listen port is still held (e.g. by the router that
+    supervisord or systemd is replacing), or the address it listens on is not up yet (early at boot)."""
+    return any(m in error for m in ("Address already in use", "os error 98", "Cannot assign requested address",
+                                    "os error 99"))
+
+
 def router_config(listen: list[str], config_file: str | None = None) -> zenoh.Config:
     """Router mode, listening on ``listen``; with none, on the config file's endpoints, else on
     ``tcp/127.0.0.1:7447``. Multicast scouting off (services connect explicitly). Raises ``ValueError`` for
@@ -50,10 +58,19 @@ def run_router(listen: list[str], config_file: str | None = None, stop: threadin
     stop_on_signals(stop.set)
     cfg = router_config(listen, config_file)
     try:
-        session = open_session(cfg, stop=stop, log=log)  # a port still held by a router that just died: retry
-    except UnusableConfig as exc:  # a missing TLS file: one line and exit 2, not a retry for ever
+        # only a port still held (by a router that just died) is worth a wait; anything else — a missing or
+        # unreadable TLS file, a certificate that is not PEM, an access-control policy Zenoh rejects — had been
+        # retried for ever as "retrying until the router at [] is up", and SIGTERM then ended it in a traceback
+        session = open_session(cfg, stop=stop, log=log, retry_if=_may_wait,
+                               waiting_for=f"it can listen on {', '.join(listen_endpoints(cfg, 'router'))}")
+    except UnusableConfig as exc:  # one line and exit 2, not a retry for ever
         log.error("%s", exc)
         raise SystemExit(2) from None
+    except Exception:
+        if stop.is_set():  # stopped while waiting for the port: a clean stop, not a traceback
+            log.info("router stopped before it could listen")
+            return
+        raise
     log.info("zenoh router %s listening on %s", session.zid(), cfg.get_json("listen/endpoints"))
     try:
         while not stop.wait(0.5):

@@ -26,6 +26,7 @@ import re
 import socket
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -172,11 +173,15 @@ def tls_file_refusal(cfg: zenoh.Config) -> str | None:
 
 
 def open_session(cfg: zenoh.Config, *, stop: threading.Event | None = None, timeout_s: float | None = None,
-                 log: logging.Logger | None = None) -> zenoh.Session:
+                 log: logging.Logger | None = None, retry_if: Callable[[str], bool] | None = None,
+                 waiting_for: str | None = None) -> zenoh.Session:
     """``zenoh.open(cfg)``, retried every 0.25 s while it fails (a client whose router is not up yet), until
     ``stop`` is set or ``timeout_s`` passes (then the last error is raised). Says so in ``log`` at the first
     failure and every 30 s after. An error no wait will cure raises :class:`UnusableConfig` at once, in one line:
-    a TLS file the config names that cannot be read (:func:`tls_file_refusal`), or an open error that says so."""
+    a TLS file the config names that cannot be read (:func:`tls_file_refusal`), or an open error that says so;
+    with ``retry_if``, also every open error whose text it does not accept (the router waits only for its port,
+    see :mod:`.router`). ``waiting_for`` is what the log says it waits for (default: the router at the
+    ``connect/endpoints``)."""
     reason = tls_file_refusal(cfg)
     if reason:
         raise UnusableConfig(f"cannot open the Zenoh session: {reason}")
@@ -190,15 +195,14 @@ def open_session(cfg: zenoh.Config, *, stop: threading.Event | None = None, time
             text = str(exc)
             # zenoh appends the Rust source location of each cause: not the user's business
             line = re.sub(r" at \S+\.rs:\d+\.?", "", text.splitlines()[0] if text else "").strip()
-            if any(m in text for m in UNUSABLE_MARKERS):
+            if any(m in text for m in UNUSABLE_MARKERS) or (retry_if is not None and not retry_if(text)):
                 raise UnusableConfig(f"cannot open the Zenoh session: {line}") from None
             now = time.monotonic()
             if stop.is_set() or (deadline is not None and now >= deadline):
                 raise
             if log is not None and (last_log is None or now - last_log >= OPEN_LOG_EVERY_S):
-                endpoints = _get(cfg, "connect/endpoints")
-                log.warning("cannot open the Zenoh session (%s); retrying until the router at %s is up",
-                            line or type(exc).__name__, endpoints)
+                what = waiting_for or f"the router at {_get(cfg, 'connect/endpoints')} is up"
+                log.warning("cannot open the Zenoh session (%s); retrying until %s", line or type(exc).__name__, what)
                 last_log = now
             stop.wait(OPEN_RETRY_S if deadline is None else max(0.0, min(OPEN_RETRY_S, deadline - now)))
 

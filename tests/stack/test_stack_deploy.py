@@ -191,3 +191,46 @@ def test_access_control_example_lets_only_the_ops_host_write_the_config(tmp_path
             reply = decode(ConfigReply, _ok_replies(ops, keys.classifier_config(ns),
                                                     encode(ClassifierConfig(alpha_default=2.5)))[0])
             assert reply.ok and classifier.core.config.alpha_default == 2.5
+
+
+@pytest.mark.integration
+@pytest.mark.skipif(shutil.which("openssl") is None, reason="needs the openssl CLI to make a test PKI")
+def test_an_endpoint_that_turns_mtls_off_is_refused_off_loopback(tmp_path):
+    """Zenoh lets an endpoint's own ``#enable_mtls=false`` win over router-host.json5's ``enable_mtls: true``: a
+    client with no certificate then connects (shown on loopback with Zenoh alone). `jitterguard router --listen
+    'tls/0.0.0.0:7447#enable_mtls=false'` had listened so, on every interface; it must refuse, exit 2."""
+    import os
+    import sys
+
+    from jitterguard.runtime.router import router_config
+
+    _make_pki(tmp_path)
+    port = free_tcp_port()
+    rcfg = zenoh.Config.from_file(str(DEPLOY / "zenoh" / "router-host.json5"))
+    rcfg.insert_json5("listen/endpoints", json.dumps([f"tls/127.0.0.1:{port}#enable_mtls=false"]))
+    rcfg.insert_json5("access_control/enabled", "false")
+    for key, val in (("root_ca_certificate", "ca.pem"), ("listen_certificate", "router.pem"),
+                     ("listen_private_key", "router-key.pem")):
+        rcfg.insert_json5(f"transport/link/tls/{key}", json.dumps(str(tmp_path / val)))
+    anon = zenoh.Config.from_file(str(DEPLOY / "zenoh" / "service-host.json5"))
+    anon.insert_json5("connect/endpoints", json.dumps([f"tls/localhost:{port}"]))
+    anon.insert_json5("connect/timeout_ms", "3000")
+    anon.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(str(tmp_path / "ca.pem")))
+    anon.insert_json5("transport/link/tls/connect_certificate", "null")
+    anon.insert_json5("transport/link/tls/connect_private_key", "null")
+    anon.insert_json5("transport/link/tls/enable_mtls", "false")
+    with zenoh.open(rcfg):
+        zenoh.open(anon).close()  # no certificate, and in
+
+    cfg = tmp_path / "router-host.json5"
+    cfg.write_text((DEPLOY / "zenoh" / "router-host.json5").read_text().replace("/etc/jitterguard/tls", str(tmp_path)))
+    bad = f"tls/0.0.0.0:{free_tcp_port()}#enable_mtls=false"
+    with pytest.raises(ValueError, match="needs mutual TLS"):
+        router_config([bad], str(cfg))
+    res = subprocess.run([sys.executable, "-m", "jitterguard.cli", "router", "--zenoh-config", str(cfg), "--listen",
+                          bad], capture_output=True, text=True, timeout=30,
+                         env={k: v for k, v in os.environ.items() if k != "JG_ZENOH_CONFIG"})
+    assert res.returncode == 2 and res.stderr.strip() == (
+        f"jitterguard: error: refusing to listen on {bad}: a non-loopback listener needs mutual TLS "
+        "(transport/link/tls/enable_mtls: true in the Zenoh config)"), res.stderr
+    assert router_config([f"tls/0.0.0.0:{port}#enable_mtls=true"], str(cfg)) is not None  # said on the endpoint
