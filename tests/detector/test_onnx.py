@@ -165,10 +165,35 @@ def test_autoware_layout_splits_the_network_where_lidar_centerpoint_does(torch_d
     assert sorted(p.name for p in res.files) == ["pts_backbone_neck_head.onnx", "pts_voxel_encoder.onnx"]
     enc = onnx.load(str(tmp_path / "pts_voxel_encoder.onnx"))
     shape = [d.dim_param or d.dim_value for d in enc.graph.input[0].type.tensor_type.shape.dim]
-    assert enc.graph.input[0].name == "input_features" and isinstance(shape[0], str) and shape[1:] == [16, 9]
+    assert enc.graph.input[0].name == "input_features" and isinstance(shape[0], str) and shape[2] == 9
+    assert isinstance(shape[1], str)  # any number of slots per pillar: lidar_centerpoint binds 32
     assert [o.name for o in enc.graph.output] == ["pillar_features"]
     onnx_det = load_onnx_detector(tmp_path, threads=2)
     _assert_equal_within_tol(torch_det, onnx_det, synthetic_scans[:4])
+
+
+def test_autoware_encoder_takes_lidar_centerpoints_32_point_slots(torch_det, tmp_path) -> None:
+    """lidar_centerpoint binds the encoder as (max_voxel_size, 32, 9) — 32 is a constant of its kernels — while
+    lite keeps 16 points per pillar: the graph must accept 32 slots and read the first 16 of them, as trained."""
+    import onnxruntime as ort
+
+    export_onnx(torch_det.model, tmp_path, layout="autoware")
+    sess = ort.InferenceSession(str(tmp_path / "pts_voxel_encoder.onnx"), providers=["CPUExecutionProvider"])
+    net, cfg = torch_det.model, torch_det.config
+    p = sample_pillars(cfg, n_points=5000, seed=3)
+    slots16 = padded_point_features(p, net.pfn, cfg.max_points_per_pillar).numpy()
+    slots32 = padded_point_features(p, net.pfn, 32).numpy()
+    (ref,) = sess.run(None, {"input_features": slots16})
+    (got,) = sess.run(None, {"input_features": slots32})
+    with torch.inference_mode():
+        expected = net.pfn(p).numpy()
+    assert got.shape == (slots32.shape[0], cfg.pfn_channels)
+    assert float(np.abs(got - expected).max()) < 1e-5 and np.array_equal(got, ref)
+    crowded = slots32.copy()  # points past the trained cap (a pillar lidar_centerpoint filled to 32) are not read
+    m = cfg.max_points_per_pillar
+    crowded[:, m:] = np.random.default_rng(0).normal(size=crowded[:, m:].shape)
+    (got_crowded,) = sess.run(None, {"input_features": crowded.astype(np.float32)})
+    assert np.array_equal(got_crowded, ref)
 
 
 def test_padded_encoder_and_export_scatter_reproduce_the_point_major_torch_path(torch_det) -> None:

@@ -8,7 +8,8 @@ Two layouts:
   int64 (0, iy, ix) — with N and V dynamic. The pillar encoder, the scatter onto the BEV canvas, SECOND, the FPN
   and every head run inside the graph.
 - ``autoware`` (two files, the split of Autoware's ``lidar_centerpoint``): ``pts_voxel_encoder.onnx`` maps
-  padded per-pillar point features ``input_features`` (V, M, 9) to ``pillar_features`` (V, C), V dynamic;
+  padded per-pillar point features ``input_features`` (V, M, 9) to ``pillar_features`` (V, C), V and M dynamic
+  (it reads the first ``max_points_per_pillar`` of the M slots; lidar_centerpoint binds M = 32);
   the host scatters them onto the canvas; ``pts_backbone_neck_head.onnx`` maps ``spatial_features``
   (1, C, ny, nx) to the head maps. The nine features are PointPillars' (x, y, z, intensity/255, offsets to the
   pillar's point mean, offsets to the pillar centre); padded rows are all zero and the encoder ignores them.
@@ -58,6 +59,10 @@ SINGLE_INPUTS = ("points", "pillar", "num_points", "coords")
 POINT_FEATURES = ("x", "y", "z", "intensity/255", "x - x_mean", "y - y_mean", "z - z_mean", "x - x_centre",
                   "y - y_centre")
 """The nine per-point features of the pillar encoder, in order (the ``autoware`` layout's ``input_features``)."""
+AUTOWARE_POINTS_PER_PILLAR = 32
+"""Point slots per pillar that lidar_centerpoint binds to the encoder (``MAX_POINT_IN_VOXEL_SIZE`` in its kernels,
+``max_point_in_voxel_size_`` in its config; not a parameter). The ``autoware`` encoder takes any M and reads the
+first ``max_points_per_pillar`` slots."""
 LOG_DIM_MAX = 5.0
 """The decoder clamps the log dimensions at this value before ``exp`` (:func:`~.decode.decode`)."""
 
@@ -132,13 +137,20 @@ class VoxelEncoderGraph(nn.Module):
     The same Linear + BatchNorm + ReLU + max as :class:`~.pillars.PillarFeatureNet`; a padded row (all nine
     features zero) is masked out, which reproduces the point-major encoder exactly: there the maximum starts
     from zero and every activation is ≥ 0, so a masked row (0) can never win.
+
+    With ``max_points`` the graph reads only the first ``max_points`` slots of each pillar (the most the model was
+    trained on) and M may be any size: lidar_centerpoint binds 32 slots per pillar (its
+    ``MAX_POINT_IN_VOXEL_SIZE``, fixed in its kernels), our presets train on 16 or 20.
     """
 
-    def __init__(self, pfn: PillarFeatureNet) -> None:
+    def __init__(self, pfn: PillarFeatureNet, max_points: int | None = None) -> None:
         super().__init__()
         self.linear, self.norm = pfn.linear, pfn.norm
+        self.max_points = max_points
 
     def forward(self, input_features: Tensor) -> Tensor:
+        if self.max_points is not None:
+            input_features = input_features[:, : self.max_points]
         v, m, f = input_features.shape
         mask = (input_features != 0).any(dim=2, keepdim=True).to(input_features.dtype)
         x = torch.relu(self.norm(self.linear(input_features.reshape(v * m, f)))).reshape(v, m, -1)
@@ -258,7 +270,10 @@ def manifest_for(config: DetectorConfig, layout: str, opset: int, files: dict[st
     else:
         graphs = {
             "voxel_encoder": {"file": files["voxel_encoder"].name, "sha256": _sha256(files["voxel_encoder"]),
-                              "inputs": {"input_features": ["V", config.max_points_per_pillar, NUM_PILLAR_FEATURES, "float32"]},
+                              "inputs": {"input_features": [
+                                  "V", "M", NUM_PILLAR_FEATURES, "float32",
+                                  f"M slots per pillar, any number (lidar_centerpoint binds {AUTOWARE_POINTS_PER_PILLAR});"
+                                  f" the graph reads the first {config.max_points_per_pillar}; zero rows are padding"]},
                               "outputs": {"pillar_features": ["V", c, "float32"]}},
             "backbone_neck_head": {"file": files["backbone_neck_head"].name, "sha256": _sha256(files["backbone_neck_head"]),
                                    "inputs": {"spatial_features": [1, c, ny, nx, "float32"]},
@@ -346,9 +361,12 @@ def export_onnx(net: CenterPointNet, out_dir: str | Path, *, layout: str = "sing
         else:
             files["voxel_encoder"] = out / ENCODER_FILE
             files["backbone_neck_head"] = out / HEAD_FILE
-            feats = padded_point_features(sample, net.pfn, config.max_points_per_pillar)
-            _export(VoxelEncoderGraph(net.pfn), (feats,), files["voxel_encoder"], ("input_features",),
-                    ("pillar_features",), ({0: v_dim},), opset)
+            # traced with lidar_centerpoint's 32 slots per pillar (more than any preset keeps), M left dynamic
+            slots = max(AUTOWARE_POINTS_PER_PILLAR, config.max_points_per_pillar)
+            feats = padded_point_features(sample, net.pfn, slots)
+            m_dim = torch.export.Dim("M", min=2)
+            _export(VoxelEncoderGraph(net.pfn, config.max_points_per_pillar), (feats,), files["voxel_encoder"],
+                    ("input_features",), ("pillar_features",), ({0: v_dim, 1: m_dim},), opset)
             nx, ny = config.grid_size
             canvas = torch.zeros(1, config.pfn_channels, ny, nx)
             _export(BackboneNeckHeadGraph(net), (canvas,), files["backbone_neck_head"], ("spatial_features",), names,
