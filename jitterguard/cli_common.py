@@ -135,6 +135,13 @@ def out_file(flag: str, path: str | os.PathLike[str]) -> Path:
     if p.is_dir():
         fail(f"{flag}: {p} is a folder; give a file name")
     out_dir(flag, p.parent)
+    try_write(flag, p)
+    return p
+
+
+def try_write(flag: str, p: Path) -> None:
+    """``p`` opened for appending and closed again (one line naming ``flag`` and exit 2 if that fails); a file the
+    trial created is removed. A folder root may "write" into can still refuse a file (``/proc``)."""
     existed = p.exists()
     try:
         with open(p, "ab"):
@@ -143,7 +150,6 @@ def out_file(flag: str, path: str | os.PathLike[str]) -> Path:
         fail(f"{flag}: cannot write {p}: {exc.strerror or exc}")
     if not existed:
         p.unlink(missing_ok=True)
-    return p
 
 
 def new_dir(flag: str, path: str | os.PathLike[str]) -> Path:

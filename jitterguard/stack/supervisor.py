@@ -96,10 +96,6 @@ def input_mode(spec: StackSpec, source_kind: str | None = None) -> str:
     return "detections" if (have_tracker and have_replay) else "tracks"
 
 
-CONFIGURABLE = ("classifier", "tracker", "detector")
-"""The services whose ``param.yaml`` ``up`` passes on (``--classifier-config`` …, each service's ``--config``)."""
-
-
 def programs(spec: StackSpec) -> list[Program]:
     """The programs of the stack, router first, consumers before producers."""
     common = ("--ns", spec.ns, "--connect", spec.endpoint)

@@ -19,6 +19,7 @@ from ...cli_common import (
     ZenohConfigOpt,
     check_endpoints,
     fail,
+    try_write,
     zenoh_options,
 )
 from ...config import ConfigError, load
@@ -95,14 +96,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             path = Path(value).absolute()
             if path.is_dir() or not path.parent.is_dir() or not os.access(path.parent, os.W_OK):
                 fail(f"{flag if given else key}: {value} must be a file in a writable directory")
-            existed = path.exists()
-            try:  # tried by opening it: a folder root may "write" into can still refuse a file (/proc), and the
-                with open(path, "ab"):  # store had then failed only at the first config write, long after start
-                    pass
-            except OSError as exc:
-                fail(f"{flag if given else key}: cannot write {value}: {exc.strerror or exc}")
-            if not existed:
-                path.unlink(missing_ok=True)
+            # tried by opening it: the store had otherwise failed only at the first config write, long after start
+            try_write(flag if given else key, Path(value))
             return path
 
         store_path = writable_file(params.config_store, "--config-store", "config_store", config_store)
