@@ -40,6 +40,14 @@ def test_parse_seeds_ranges_and_lists() -> None:
     (["recalibrate-detector", "--out", "OUT", "--weights", "/nonexistent.pt"], "--weights"),
     (["recalibrate-detector", "--out", "OUT", "--weights", "SHIPPED", "--effects", "fog"], "--effects"),
     (["recalibrate-detector", "--out", "OUT", "--weights", "SHIPPED", "--seeds", "5-1"], "--seeds"),
+    # the detector's hold-out seeds (1000+) never fit weights nor their recalibration
+    (["recalibrate-detector", "--out", "OUT", "--weights", "SHIPPED", "--seeds", "990-1000"], "--seeds"),
+    (["train", "--out", "OUT", "--train-seeds", "1000-1004"], "--train-seeds"),
+    (["train", "--out", "OUT", "--val-seeds", "1003"], "--val-seeds"),
+    (["adapt", "--out", "OUT", "--weights", "SHIPPED", "--scans", "SHIPPED", "--synthetic-seeds", "1000"],
+     "--synthetic-seeds"),
+    (["adapt", "--out", "OUT", "--weights", "SHIPPED", "--scans", "SHIPPED", "--recalibration-seeds", "0-1001"],
+     "--recalibration-seeds"),
     # one scan cannot fill the two micro-batches of a step: refused before any scan is cast, not a traceback
     (["train", "--out", "OUT", "--scenarios", "parking-street", "--train-seeds", "0", "--frames-per-scenario", "1",
       "--accumulate", "2"], "--train-seeds"),

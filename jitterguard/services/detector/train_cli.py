@@ -27,6 +27,9 @@ log = logging.getLogger(__name__)
 
 DEFAULT_SCENARIOS = "parking-street,diagonal-lot,intersection,mixed"
 RECALIBRATION_BINS = 5
+HOLDOUT_SEEDS_FROM = 1000
+"""Synthetic seeds from here on are the detector's hold-out (``eval-detector``'s default 1000-1004): nothing that
+fits weights or their recalibration may draw scans from them, or the hold-out figures would score seen scans."""
 """Score bins of a fitted variance recalibration (docs/detector.md, "The variance recalibration")."""
 
 
@@ -231,6 +234,16 @@ scans (the default: the recalibration that holds on real scans, docs/detector.md
 residuals of the real scans (label-free, one scale per axis), or kept from the source weights."""
 
 
+def fit_seeds(text: str, flag: str) -> list[int]:
+    """:func:`parse_seeds` for seeds whose labels fit something (network, recalibration): one line naming ``flag``
+    and exit 2 when any is a hold-out seed (≥ :data:`HOLDOUT_SEEDS_FROM`)."""
+    seeds = parse_seeds(text, flag)
+    if seeds[-1] >= HOLDOUT_SEEDS_FROM:
+        fail(f"{flag}: seeds {HOLDOUT_SEEDS_FROM}+ are the detector's hold-out (eval-detector scores them);"
+             f" fit on lower seeds, got {text!r}")
+    return seeds
+
+
 def fit_synthetic_recalibration(det: Any, root: Path, scenarios: list[str], seeds_text: str, frames: int,
                                 effect_sets: list[str], bins: int, progress: bool,
                                 workers: int = 0) -> tuple[Any, dict[str, Any]]:
@@ -355,7 +368,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         split_scenes = _split_scenes(split, "--split") if split else None
         val_scenes = _split_scenes(val_split, "--val-split") if val_split else None
         scen = _scenarios(scenarios)
-        tr_seeds, va_seeds = parse_seeds(train_seeds, "--train-seeds"), parse_seeds(val_seeds, "--val-seeds")
+        tr_seeds, va_seeds = fit_seeds(train_seeds, "--train-seeds"), fit_seeds(val_seeds, "--val-seeds")
         if set(tr_seeds) & set(va_seeds) and nuscenes is None:
             fail("--val-seeds: must not overlap --train-seeds")
         if gt_sample_count and not gt_sample:
@@ -545,11 +558,11 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         _effects(effects)
         if recalibration not in RECALIBRATION_MODES:
             fail(f"--recalibration: expected one of {', '.join(RECALIBRATION_MODES)}, got {recalibration!r}")
-        parse_seeds(recalibration_seeds, "--recalibration-seeds")
+        fit_seeds(recalibration_seeds, "--recalibration-seeds")
         thr = _class_values(threshold, "--threshold", DEFAULT_PSEUDO_THRESHOLDS, float, lambda v: 0.0 < v < 1.0,
                             "SCORE", " and 0 < SCORE < 1")
         scen = _scenarios(scenarios)
-        syn_seeds = parse_seeds(synthetic_seeds, "--synthetic-seeds")
+        syn_seeds = fit_seeds(synthetic_seeds, "--synthetic-seeds")
         check_not_overwritten("--weights", weights, out)
         logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
         from .cli import passive_openmp, retain_heap
@@ -823,7 +836,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         if not os.path.isfile(weights):
             fail(f"--weights: file not found: {weights}")
         scen = _scenarios(scenarios)
-        parse_seeds(seeds, "--seeds")
+        fit_seeds(seeds, "--seeds")
         effect_sets = effects.split("+")
         for e in effect_sets:
             _effects(e)
