@@ -299,6 +299,20 @@ def test_compose_matches_matrix_product() -> None:
 # ----------------------------------------------------------------------------------------- dispatch
 
 
+def test_upper_case_bin_names_are_scans_too(tmp_path: Path) -> None:
+    """Windows tools and some loggers write ``000000.BIN`` / ``.PCD.BIN``: the suffix is not case-sensitive."""
+    want = _scans(tmp_path / "kitti", 2, suffix=".BIN")
+    frames = list(open_source(str(tmp_path / "kitti")).frames())
+    assert len(frames) == 2 and frames[1].fields == ("x", "y", "z", "intensity")
+    np.testing.assert_array_equal(frames[1].points, want[1])
+    [one] = list(open_source(str(tmp_path / "kitti" / "000001.BIN")).frames())
+    np.testing.assert_array_equal(one.points, want[1])
+    nusc = _scans(tmp_path / "nusc", 1, cols=5, suffix=".PCD.BIN")
+    [f] = list(open_source(str(tmp_path / "nusc")).frames())
+    assert f.fields == ("x", "y", "z", "intensity", "ring")
+    np.testing.assert_array_equal(f.points, nusc[0])
+
+
 def test_open_source_picks_the_reader_from_the_path(tmp_path: Path) -> None:
     _scans(tmp_path / "kitti", 1)
     (tmp_path / "pcds").mkdir()

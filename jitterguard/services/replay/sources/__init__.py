@@ -121,7 +121,7 @@ def open_source(spec: str, opts: SourceOptions | None = None) -> Source:
             names = [p.name for p in path.iterdir() if p.is_file()]
         except OSError as exc:
             raise SourceError(f"{path}: cannot list folder: {exc}") from None
-        has_bin = any(n.endswith(".bin") for n in names)
+        has_bin = any(n.lower().endswith(".bin") for n in names)
         has_pcd = any(n.lower().endswith(".pcd") for n in names)
         if has_bin and has_pcd:
             raise SourceError(f"{path}: holds both .bin and .pcd files; point SOURCE at one kind")
@@ -141,7 +141,7 @@ def open_source(spec: str, opts: SourceOptions | None = None) -> Source:
         raise SourceError(
             f"{path}: cannot tell what this folder is (no nuScenes tables, bag metadata.yaml, .bin or .pcd files)"
         )
-    if path.name.endswith(".bin"):
+    if path.name.lower().endswith(".bin"):  # cameras and Windows tools write .BIN as well
         _only_for(opts, "KITTI .bin", {"--poses", "--calib", "--times", "--bin-fields"})
         return BinScanSource(path, poses=opts.poses, calib=opts.calib, times=opts.times, fields=opts.bin_fields, period_ns=opts.period_ns)
     if path.suffix.lower() == ".pcd":

@@ -35,7 +35,7 @@ NOMINAL_TR = np.array(
 
 def fields_for(path: Path) -> tuple[str, ...]:
     """Column names implied by the file name: ``*.pcd.bin`` is nuScenes (5 columns), ``*.bin`` is KITTI (4)."""
-    return NUSCENES_FIELDS if path.name.endswith(".pcd.bin") else KITTI_FIELDS
+    return NUSCENES_FIELDS if path.name.lower().endswith(".pcd.bin") else KITTI_FIELDS
 
 
 def read_bin(path: Path, num_fields: int) -> NDArray[np.float32]:
@@ -167,7 +167,7 @@ class BinScanSource(Source):
     ) -> None:
         path = Path(path)
         if path.is_dir():
-            files = listed_scans(path, lambda name: name.endswith(".bin"))
+            files = listed_scans(path, lambda name: name.lower().endswith(".bin"))
             if not files:
                 raise SourceError(f"{path}: no .bin scans in this folder")
         elif path.is_file():
@@ -182,7 +182,7 @@ class BinScanSource(Source):
         if fields and tuple(fields[:3]) != ("x", "y", "z"):  # the file-name layouts all start x, y, z
             raise SourceError(f"--bin-fields must start with x,y,z, got {','.join(fields)}")
         self.period_ns = period_ns
-        nusc = [f.name.endswith(".pcd.bin") for f in files]
+        nusc = [f.name.lower().endswith(".pcd.bin") for f in files]
         self.file_frame_ids = [frame_id or ("LIDAR_TOP" if n else "velodyne") for n in nusc]
         folder = path if path.is_dir() else path.parent
         notes: list[str] = []
