@@ -90,7 +90,8 @@ def test_a_frame_waits_for_the_inputs_the_previous_frame_had() -> None:
             j.add_detections(DetectedObjects(header=hdr(seq, "lidar")))
         j.add_tracked(tracked(seq, observed=()))
     j.add_objects(objects(1), now=0.0)
-    (f1,) = j.poll(now=0.0)  # nothing was expected before the first frame
+    assert j.poll(now=0.0) == []  # the first frame has no frame before it: it waits for every input stream...
+    (f1,) = j.poll(now=0.25)  # ...for motion_wait_s at most (this run has no points nor ground truth)
     assert f1.detections is not None
     j.add_objects(objects(2), now=1.0)
     assert j.poll(now=1.1) == []  # frame 1 had detections: frame 2 waits for its own
@@ -104,6 +105,27 @@ def test_a_frame_waits_for_the_inputs_the_previous_frame_had() -> None:
     j.add_tracked(tracked(4, observed=()))
     j.add_objects(objects(4), now=3.0)
     assert [f.seq for f in j.poll(now=3.0)] == [4]  # and the next frame no longer waits for them
+
+
+def test_the_first_frame_waits_for_late_detections_too() -> None:
+    """The first frame of a run (and the first after an upstream restart) has no frame before it to say which inputs
+    exist: it waits for all of them, so late detections still make it (a trial saw the first frame go out without
+    them)."""
+    for restart in (False, True):
+        j = FrameJoiner(motion_wait_s=0.25)
+        if restart:  # a run, then the replay starts over (seq 1 is more than RESTART_GAP back: no straggler)
+            for seq in (100, 101):
+                j.add_points(PointCloud(header=hdr(seq, "lidar"), num_points=0, data=b""))
+                j.add_tracked(tracked(seq, observed=()))
+                j.add_objects(objects(seq), now=0.0)
+            assert [f.seq for f in j.poll(now=1.0)] == [100, 101]
+        j.add_points(PointCloud(header=hdr(1, "lidar"), num_points=0, data=b""))
+        j.add_tracked(tracked(1, observed=()))
+        j.add_objects(objects(1), now=2.0)
+        assert j.poll(now=2.0) == []
+        j.add_detections(DetectedObjects(header=hdr(1, "lidar")))  # after the objects
+        (f1,) = j.poll(now=2.25)  # no ground truth in this run: out once motion_wait_s is over
+        assert f1.points is not None and f1.detections is not None
 
 
 def test_a_track_without_a_decision_this_frame_keeps_its_latest_one() -> None:

@@ -11,7 +11,8 @@ the frame's ``motion/{id}``, so:
 - ``objects`` of seq N opens the frame for output; it is emitted once every ``motion/{id}`` of the IDs ``tracked`` N
   listed has arrived and so has every input stream (points, detections, ground truth) the previous frame out had
   (nothing orders the detector's ``detections`` N before the classifier's ``objects`` N at a bridge: on a loaded
-  machine a bag had lost one frame's detections that way), or ``motion_wait_s`` after ``objects`` N arrived (what arrived by then goes out; the rest is
+  machine a bag had lost one frame's detections that way; the first frame of a run, with no frame before it, waits
+  for all three), or ``motion_wait_s`` after ``objects`` N arrived (what arrived by then goes out; the rest is
   counted ``motion_missing``), or as soon as a later frame's ``objects`` arrives (the classifier sheds the motion
   messages of a frame when it is behind; a viewer must not fall behind waiting for them);
 - inputs (points, detections, ground truth, tracked, motion) wait in per-seq buffers holding at most
@@ -142,7 +143,9 @@ class FrameJoiner:
         self._last_emitted = -1
         self._emitted: OrderedDict[int, int] = OrderedDict()  # seq → stamp of the last frames out
         self._latest: dict[str, MotionState] = {}  # track ID → its latest MotionState, for tracks still reported
-        self._expected: list[_BySeq[Any]] = []  # the input streams the last frame out had: the next one waits for them
+        # the input streams the last frame out had: the next one waits for them; None before the first frame out
+        # (or after a restart): it waits for every one, at most motion_wait_s (its detections may be late too)
+        self._expected: list[_BySeq[Any]] | None = None
 
     def _count(self, name: str, n: int = 1) -> None:
         if n:
@@ -160,7 +163,7 @@ class FrameJoiner:
                 b.clear()
             self._open.clear()
             self._latest.clear()
-            self._expected = []
+            self._expected = None
             self._emitted.clear()
             self._last_emitted = -1
             self._count("seq_restarts")
@@ -208,7 +211,8 @@ class FrameJoiner:
         tracked = self._tracked.items.get(seq)
         if tracked is None:
             return False
-        if any(seq not in buffer.items for buffer in self._expected):
+        expected = self._expected if self._expected is not None else (self._points, self._detections, self._truth)
+        if any(seq not in buffer.items for buffer in expected):
             return False
         got = self._motion.items.get(seq, {})
         return all(t in got for t in motion_expected(tracked, objects))
