@@ -122,8 +122,8 @@ def calibrate_command(
                                                 "detector.")] = None,
     window_size: Annotated[int, typer.Option("--window-size", min=5, max=64, help="The classifier's window "
                                              "(blocks are windows; default: the classifier's; a recording slower "
-                                             "than 10 Hz gets proportionally shorter ones, at least 10, one faster "
-                                             "than 15 Hz windows of every k-th frame, as the classifier's "
+                                             "than 10 Hz gets proportionally shorter ones, at least 10, one at 16 Hz "
+                                             "or faster windows of every k-th frame, as the classifier's "
                                              "windows).")] = ClassifierConfig.model_fields["window_size"].default,
     range_bands: Annotated[str, typer.Option("--range-bands", help="Range band edges in metres, comma-separated."
                                              )] = "20,40",
