@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import sys
 from pathlib import Path
+from collections.abc import Sequence
 from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
@@ -244,14 +245,46 @@ def load_detector(weights: Path | None, threads: int | None, self_crop: bool = T
     return det, f"{path if weights is not None else 'shipped ' + path.name} (sha256 {digest})"
 
 
-def detector_run_info(detector: "Detector", weights_desc: str | None) -> dict[str, Any]:
-    """metrics.json's ``run.detector``: which network produced the detections (scalar training meta only)."""
+def detector_run_info(detector: "Detector", weights_desc: str | None,
+                      seen: dict[str, Any] | None = None) -> dict[str, Any]:
+    """metrics.json's ``run.detector``: which network produced the detections (scalar training meta) and what the
+    weights have seen of the scored data (``seen``: :func:`weights_saw_scored_data`)."""
     meta = {k: v for k, v in detector.meta.items() if isinstance(v, (str, int, float, bool)) and k != "random_init"}
     return {"weights": weights_desc, "preset": detector.config.name, "random_init": weights_desc is None,
             "uncertainty": detector.config.uncertainty,
             "self_crop": list(detector.self_crop) if detector.self_crop is not None else None,
             "flips": detector.flips, "score_threshold": detector.score_threshold if detector.score_threshold is not None
-            else detector.config.score_threshold, "meta": meta}
+            else detector.config.score_threshold, "meta": meta, **(seen or weights_saw_scored_data(detector.meta, None))}
+
+
+def weights_saw_scored_data(meta: dict[str, Any], nuscenes: Path | None,
+                            scenes: Sequence[str] = ()) -> dict[str, Any]:
+    """What the weights' metadata (their lineage: :mod:`~jitterguard.services.detector.provenance`, as
+    ``eval-detector`` reads it) says of the nuScenes ``scenes`` this run scores: the training source as recorded
+    (``trained_on``); ``weights_trained_on_this_dataroot``: their labels trained the weights on a scored scene;
+    ``weights_adapted_on_its_scans``: adapted on its unlabelled scans (test-time adaptation). Both None for a
+    synthetic run. (The scalar ``run.detector.meta`` drops these records, so a run scored on a scene the weights had
+    seen had not said so.)"""
+    source = meta.get("source") if isinstance(meta.get("source"), dict) else None
+    out: dict[str, Any] = {"trained_on": json.loads(json.dumps(source, default=str)) if source else None,
+                           "weights_trained_on_this_dataroot": None, "weights_adapted_on_its_scans": None}
+    if nuscenes is None:
+        return out
+    from ..services.detector.provenance import adapted_on_scans, seen_scenes
+
+    out["weights_trained_on_this_dataroot"] = bool(seen_scenes(meta, nuscenes, scenes))
+    out["weights_adapted_on_its_scans"] = adapted_on_scans(meta, nuscenes)
+    return out
+
+
+def warn_seen(seen: dict[str, Any], nuscenes: Path | None) -> None:
+    """One stderr line per way the weights have seen the scored data (metrics.json records it too)."""
+    if seen.get("weights_trained_on_this_dataroot"):
+        print(f"warning: the detector's weights were trained on {nuscenes} (their metadata's source): this run scores"
+              " a scene whose labels trained them, not an unseen scene", file=sys.stderr)
+    if seen.get("weights_adapted_on_its_scans"):
+        print(f"warning: the detector's weights were adapted on {nuscenes}'s unlabelled scans: this run scores"
+              " test-time adaptation, not an unseen scene", file=sys.stderr)
 
 
 def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, nuscenes: Path | None,
@@ -308,6 +341,9 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
         source = f"scenario {scenario} seed {seed} ({duration:g} s @ {rate:g} Hz)"
         total = len(sc)
 
+    seen = weights_saw_scored_data(detector.meta, nuscenes, [n for n, _ in scenes]) if detector is not None else None
+    if seen is not None:  # before the run: said where it is seen, not only in metrics.json
+        warn_seen(seen, nuscenes)
     predictions: list[Any] = []
     samples: list[Any] = []
     scans_fed = 0  # frames the tracker and classifier ran on (more than the scored ones with sweeps)
@@ -424,7 +460,7 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
     from .report import DETECTION_FIGURES
 
     metrics["detection"], det_report = detection_metrics(predictions, samples, detector.config.class_names)
-    metrics["run"]["detector"] = detector_run_info(detector, weights_desc)
+    metrics["run"]["detector"] = detector_run_info(detector, weights_desc, seen)
     metrics["run"]["detector"]["figures"] = [f for f in DETECTION_FIGURES
                                              if f != DETECTION_FIGURES[0] or det_report["calibration"] is not None]
     return write_outputs(out, rec, metrics, det_report)

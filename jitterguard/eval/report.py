@@ -233,7 +233,11 @@ def _input_desc(run: dict[str, Any]) -> str:
     if det is None:
         return f"noise `{run['noise']}`"
     w = "random initialisation (meaningless detections)" if det.get("random_init") else f"`{det['weights']}`"
-    return f"detector weights {w}, preset `{det['preset']}`"
+    seen = [why for key, why in (("weights_trained_on_this_dataroot", "**trained on this dataroot's labels**"),
+                                 ("weights_adapted_on_its_scans", "**adapted on its unlabelled scans**"))
+            if det.get(key)]
+    return f"detector weights {w}, preset `{det['preset']}`" + (
+        f" ({' and '.join(seen)}: not an unseen scene)" if seen else "")
 
 
 def _ci(m: dict[str, Any], key: str) -> str:

@@ -16,7 +16,6 @@ import torch
 
 from jitterguard.services.detector.adapt import (
     UnlabelledScan,
-    adapted_on,
     pseudo_samples,
     read_unlabelled,
     recompute_norm_stats,
@@ -26,6 +25,7 @@ from jitterguard.services.detector.config import LITE, SELF_CROP_M, Detections3D
 from jitterguard.services.detector.inference import load_weights
 from jitterguard.services.detector.network import CenterPointNet
 from jitterguard.services.detector.pillars import voxelize
+from jitterguard.services.detector.provenance import adapted_on_scans
 from jitterguard.services.detector.targets import build_targets
 from jitterguard.sim.export import export_scenario
 from jitterguard.sim.world import make_scenario
@@ -144,7 +144,7 @@ def test_adapt_cli_writes_weights_that_name_their_scans(tmp_path: Path) -> None:
     assert meta["labels_read"] is False and meta["unlabelled_scans"][0]["scans"] == 4
     assert meta["unlabelled_scans"][0]["recording"].startswith(str(root.resolve()))
     # eval-detector can tell that scoring these weights on this dataroot is test-time adaptation
-    assert adapted_on(meta, root) and not adapted_on(meta, tmp_path) and not adapted_on({}, root)
+    assert adapted_on_scans(meta, root) and not adapted_on_scans(meta, tmp_path) and not adapted_on_scans({}, root)
     assert "adapt" in meta["command"] and meta["adapted_from"]["sha256_16"]
     assert meta["adapt"]["self_crop"] == list(SELF_CROP_M)  # the real scans were cropped as the service crops
     assert rec is not None and json.loads((out / "adapt.json").read_text())["labels_read"] is False
@@ -228,8 +228,9 @@ def test_adapt_draws_a_bar_for_each_pass_over_the_real_scans(tmp_path: Path, cap
 
 @pytest.mark.slow
 def test_adapted_weights_keep_what_the_source_was_trained_on(tmp_path: Path) -> None:
-    """eval-detector holds out the frames that weights were trained on, also after adapting them, and also when
-    the dataroot is named through a symlink."""
+    """eval-detector knows the scenes that weights were trained on, also after adapting them, and also when the
+    dataroot is named through a symlink: it scores none of their frames unless asked (--holdout-last), and then
+    says so."""
     from jitterguard.services.detector.inference import save_weights, shipped_weights
 
     root = tmp_path / "root"
@@ -249,10 +250,14 @@ def test_adapted_weights_keep_what_the_source_was_trained_on(tmp_path: Path) -> 
     assert adapted["train_config"] == {"epochs": 3} and adapted["adapted_from"]["source"] == source
     link = tmp_path / "link"
     link.symlink_to(root)
-    ev = subprocess.run([*cli, "eval-detector", "--out", str(tmp_path / "ev"), "--weights", str(out / "weights.pt"),
-                         "--nuscenes", str(link), "--bootstrap", "0", "--threads", "1", "--no-progress"],
-                        capture_output=True, text=True, timeout=600)
+    ev_cmd = [*cli, "eval-detector", "--out", str(tmp_path / "ev"), "--weights", str(out / "weights.pt"),
+              "--nuscenes", str(link), "--bootstrap", "0", "--threads", "1", "--no-progress"]
+    # its only scene trained the network (a held-out tail is still the scene): no cross-scene figure to give
+    ev = subprocess.run(ev_cmd, capture_output=True, text=True, timeout=600)
+    assert ev.returncode == 2 and "--nuscenes: the weights were trained on the labels of every scene" in ev.stderr
+    ev = subprocess.run([*ev_cmd, "--holdout-last", "2"], capture_output=True, text=True, timeout=600)
     assert ev.returncode == 0, ev.stderr[-3000:]
     scored = json.loads((tmp_path / "ev" / "holdout.json").read_text())["scored_on"]
     assert scored["weights_trained_on_it"] is True and scored["holdout_last"] == 2 and scored["key_frames"] == 2
+    assert scored["scored_scenes_trained_on"] == scored["scenes"] != [] and "within-scene" in ev.stderr
     assert scored["weights_adapted_on_its_scans"] is True and scored["nuscenes"] == str(root.resolve())

@@ -143,6 +143,8 @@ def test_no_intensity_fine_tunes_a_network_that_ignores_intensity(tmp_path: Path
     assert res.returncode == 0, res.stderr[-2000:]
     model, _, meta = load_weights(out / "weights.pt")
     assert model.config.use_intensity is False and "--no-intensity" in meta["command"]
+    # what the init network had seen stays on record (it had been dropped: eval-detector could not tell)
+    assert meta["init_provenance"]["source"] == load_weights(shipped_weights("lite"))[2]["source"]
     scan = bench_scans(1, seed=5)[0]
     dark = scan.copy()
     dark[:, 3] = np.where(scan[:, 3] > 20, 0.0, 200.0)

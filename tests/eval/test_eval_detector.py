@@ -262,3 +262,80 @@ def test_cli_detector_on_the_nuscenes_scene(tmp_path: Path, tiny_weights: Path,
     _check_detection_block(m["detection"], has_variances=True)
     assert m["detection"]["car"]["num_gt"] > 100 and m["detection"]["pedestrian"]["num_gt"] > 0
     assert (tmp_path / "nu" / "detection_calibration.png").stat().st_size > 0
+
+
+# ------------------------------------------------------------------------- what the weights have seen
+
+
+def _stub_detector(meta: dict) -> object:
+    from types import SimpleNamespace
+
+    return SimpleNamespace(meta=meta, config=SimpleNamespace(name="tiny", uncertainty=True, score_threshold=0.1),
+                           self_crop=None, flips=False, score_threshold=None)
+
+
+def test_run_info_says_when_the_weights_saw_the_scored_dataroot(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    """Weights trained on a nuScenes dataroot (``source.nuscenes``) or adapted on its scans (``unlabelled_scans``)
+    and scored there by ``eval --input detector``: metrics.json's ``run.detector`` and report.md say so, and a
+    warning goes to stderr. The scalar-only meta had dropped both records, so such a run looked like an unseen
+    scene (eval-detector checked; eval did not)."""
+    from jitterguard.eval.cli import detector_run_info, warn_seen, weights_saw_scored_data
+    from jitterguard.eval.report import _input_desc
+    from jitterguard.services.detector import data_nuscenes
+
+    root = tmp_path / "nuscenes"
+    root.mkdir()
+    (tmp_path / "link").symlink_to(root)
+    other = tmp_path / "other"
+    other.mkdir()
+    trained = {"source": {"nuscenes": str(root.resolve()), "split": None, "holdout_last": 10}, "epochs": 3}
+    adapted = {"source": {"scenarios": ["mixed"], "train_seeds": "0-9"},
+               "unlabelled_scans": [{"recording": f"{root.resolve()}#scene-0523", "scans": 40}]}
+
+    seen = weights_saw_scored_data(trained, tmp_path / "link", ["scene-0523"])  # the held-out tail is the scene
+    info = detector_run_info(_stub_detector(trained), "w.pt (sha256 0)", seen)
+    assert info["weights_trained_on_this_dataroot"] is True and info["weights_adapted_on_its_scans"] is False
+    assert info["trained_on"] == trained["source"] and info["meta"] == {"epochs": 3}
+    assert "trained on this dataroot" in _input_desc({"detector": info})
+    warn_seen(info, root)
+    assert "trained on" in capsys.readouterr().err
+
+    info = detector_run_info(_stub_detector(adapted), "w.pt (sha256 0)", weights_saw_scored_data(adapted, root, ["scene-0523"]))
+    assert info["weights_trained_on_this_dataroot"] is False and info["weights_adapted_on_its_scans"] is True
+    assert "adapted on its unlabelled scans" in _input_desc({"detector": info})
+    warn_seen(info, root)
+    assert "adapted on" in capsys.readouterr().err
+
+    for meta in (trained, adapted):  # another dataroot: neither
+        s = weights_saw_scored_data(meta, other, ["scene-0523"])
+        assert not s["weights_trained_on_this_dataroot"] and not s["weights_adapted_on_its_scans"]
+        warn_seen(s, other)
+    assert capsys.readouterr().err == ""
+    synthetic = detector_run_info(_stub_detector(trained), "w.pt (sha256 0)")  # a synthetic run: not defined
+    assert synthetic["weights_trained_on_this_dataroot"] is None and synthetic["weights_adapted_on_its_scans"] is None
+    assert "trained on this dataroot" not in _input_desc({"detector": synthetic})
+
+    # trained with an official split: the scored scene counts as seen when the split or the validation split holds it
+    splits = {"train": ["scene-0001", "scene-0523"], "val": ["scene-0002"]}
+    monkeypatch.setattr(data_nuscenes, "official_split", lambda name: splits[name])
+    by_split = {"source": {"nuscenes": str(root.resolve()), "split": "train", "val_split": "val", "holdout_last": None}}
+    assert weights_saw_scored_data(by_split, root, ["scene-0523"])["weights_trained_on_this_dataroot"] is True
+    assert weights_saw_scored_data(by_split, root, ["scene-0002"])["weights_trained_on_this_dataroot"] is True
+    assert weights_saw_scored_data(by_split, root, ["scene-0003"])["weights_trained_on_this_dataroot"] is False
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not NUSC.is_dir(), reason="../shared/data/nuscenes-scene-0523 absent")
+def test_cli_flags_weights_trained_on_the_scored_scene(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The whole command: weights whose metadata says they trained on the scene's dataroot."""
+    torch.manual_seed(0)
+    w = tmp_path / "seen.pt"
+    save_weights(w, CenterPointNet(TINY), meta={"source": {"nuscenes": str(NUSC.resolve()), "holdout_last": 10}})
+    code, stdout, err = _run_cli(["eval", "--nuscenes", str(NUSC), "--input", "detector", "--threads", "1",
+                                  "--weights", str(w), "--out", str(tmp_path / "nu"), "--json"], capsys)
+    assert code == 0, err
+    assert "trained on" in err
+    det = json.loads(stdout)["run"]["detector"]
+    assert det["weights_trained_on_this_dataroot"] is True and det["weights_adapted_on_its_scans"] is False
+    assert "trained on this dataroot" in (tmp_path / "nu" / "report.md").read_text()

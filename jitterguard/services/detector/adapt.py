@@ -109,17 +109,6 @@ def read_unlabelled(specs: Sequence[str], *, max_scans: int | None = None,
     return out
 
 
-def adapted_on(meta: dict[str, Any], recording: str | Path) -> bool:
-    """Whether weights with metadata ``meta`` were adapted on scans of ``recording`` (a folder or file; for a
-    nuScenes dataroot any of its scenes): scoring them there is test-time adaptation, not a cross-scene test."""
-    target = str(Path(recording).resolve())
-    for rec in meta.get("unlabelled_scans") or []:
-        src = str(rec.get("recording", "")) if isinstance(rec, dict) else ""
-        if src.split("#", 1)[0] == target:
-            return True
-    return False
-
-
 def describe(scans: Sequence[UnlabelledScan]) -> list[dict[str, Any]]:
     """What the weights' metadata records about the scans used: per recording its count and a digest of the
     file names (the names themselves when few)."""

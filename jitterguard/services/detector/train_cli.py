@@ -22,6 +22,7 @@ import typer
 from ...cli_common import ProgressOpt, fail, out_dir, parse_seeds, progress_on
 from .augment import CENTERPOINT_SAMPLE_COUNTS
 from .config import CLASS_NAMES, PRESETS
+from .provenance import init_provenance
 
 log = logging.getLogger(__name__)
 
@@ -225,7 +226,7 @@ def write_report(out: Path, name: str, dets: Any, samples: Any, *, bootstrap: in
 
 
 TRAINING_META = ("source", "augment", "init", "epochs", "recipe", "recipe_note", "train_config", "world_size",
-                 "gt_sample", "launcher")
+                 "gt_sample", "launcher", "init_provenance")
 """Metadata of how a network was trained that ``adapt`` carries from the source weights into the adapted ones."""
 
 RECALIBRATION_MODES = ("synthetic", "tracked", "keep")
@@ -473,6 +474,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             return evaluation_report(dets, samples)["summary"]
 
         meta = {"source": source, "init": init, "command": " ".join(["jitterguard", *sys.argv[1:]])}
+        if init is not None and (carried := init_provenance(init_meta)) is not None:
+            meta["init_provenance"] = carried  # what the init network saw stays on record (eval-detector reads it)
         if dc.distributed:
             meta["launcher"] = f"torchrun, {dc.world} processes"
         gt_db = None
@@ -702,10 +705,11 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                                              " (as train's --effects, one set): 'none' (ideal, the quality bar's)"
                                              " or e.g. 'random,vegetation'.")] = "none",
         nuscenes: Annotated[str | None, typer.Option("--nuscenes", help="Evaluate on this nuScenes dataroot's key"
-                                                      " frames instead (all of them, unless the weights were"
-                                                      " trained on it: then its held-out ones).")] = None,
-        holdout_last: Annotated[int | None, typer.Option("--holdout-last", min=1, help="With --nuscenes: score only"
-                                                         " each scene's last N key frames.")] = None,
+                                                      " frames instead: those of the scenes whose labels never"
+                                                      " trained the weights (refused when there are none).")] = None,
+        holdout_last: Annotated[int | None, typer.Option("--holdout-last", min=1, help="With --nuscenes: score"
+                                                         " each scene's last N key frames instead, seen scenes"
+                                                         " too (reported: not a cross-scene figure).")] = None,
         bootstrap: Annotated[int, typer.Option("--bootstrap", min=0, max=10000, help="Resamples over frames for"
                                                " 90 % intervals of AP and coverage (0: none).")] = 1000,
         recalibrate: Annotated[bool, typer.Option("--recalibrate/--no-recalibrate",
@@ -765,32 +769,43 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         scored_on: dict[str, Any] = {}
         if nuscenes is not None:
             from ..replay.frames import SourceError
-            from .data import nuscenes_samples, split_holdout
+            from .data import nuscenes_samples, scene_of, split_holdout
+            from .provenance import adapted_on_scans, seen_scenes
 
             if not os.path.isdir(nuscenes):
                 fail(f"--nuscenes: not a directory: {nuscenes}")
-            trained = (det.meta.get("source") or {}) if isinstance(det.meta.get("source"), dict) else {}
-            # resolved on both sides (train stores the resolved path; older weights an absolute one): a symlink or
-            # another spelling of the dataroot is still the dataroot the weights were trained on
-            seen = bool(trained.get("nuscenes")) and Path(str(trained["nuscenes"])).resolve() == Path(nuscenes).resolve()
-            last = holdout_last or (int(trained.get("holdout_last") or 10) if seen else None)
             try:
                 every = nuscenes_samples(nuscenes, sweeps=det.sweeps)
             except SourceError as exc:
                 fail(f"--nuscenes: {exc}")
-            samples: Any = split_holdout(every, last_n=last)[1] if last else every
-            from .adapt import adapted_on
-
-            transductive = adapted_on(det.meta, nuscenes)
+            scenes = list(dict.fromkeys(scene_of(s.token) for s in every))
+            # the weights' lineage, resolved paths on both sides (a symlink or another spelling is the same dataroot)
+            seen = seen_scenes(det.meta, nuscenes, scenes)
+            if holdout_last:  # asked for: the tail of every scene, seen ones too (said in scored_on and the log)
+                samples: Any = split_holdout(every, last_n=holdout_last)[1]
+            else:
+                samples = [s for s in every if scene_of(s.token) not in seen]
+                if not samples:
+                    fail(f"--nuscenes: the weights were trained on the labels of every scene of {nuscenes}"
+                         f" ({', '.join(seen[:5])}{' …' if len(seen) > 5 else ''}; their metadata's source): score"
+                         " a dataroot they never saw, or give --holdout-last N to score each scene's last N key"
+                         " frames (frames of scenes that trained them: not a cross-scene figure)")
+            scored = list(dict.fromkeys(scene_of(s.token) for s in samples))
+            transductive = adapted_on_scans(det.meta, nuscenes)
             scored_on = {"nuscenes": str(Path(nuscenes).resolve()), "key_frames": len(samples), "sweeps": det.sweeps,
-                         "holdout_last": last, "weights_trained_on_it": seen,
+                         "holdout_last": holdout_last, "scenes": scored, "weights_trained_on_it": bool(seen),
+                         "scored_scenes_trained_on": [s for s in scored if s in seen],
                          "weights_adapted_on_its_scans": transductive}
             if transductive:
                 log.warning("these weights were adapted on %s's unlabelled scans: this scores test-time adaptation,"
                             " not a scene the weights have never seen", nuscenes)
-            if seen and not holdout_last:
-                log.warning("these weights were trained on %s: scoring only its held-out last %d key frames",
-                            nuscenes, last)
+            if scored_on["scored_scenes_trained_on"]:
+                log.warning("these weights were trained on the labels of %d of the scored scenes: their last %d key"
+                            " frames are scored, a within-scene figure, not a cross-scene one",
+                            len(scored_on["scored_scenes_trained_on"]), holdout_last)
+            elif seen:
+                log.warning("these weights were trained on %d scenes of %s: scoring only the %d they never saw",
+                            len(seen), nuscenes, len(scored))
         else:
             samples = synthetic_cache(Path(out), scen, sd, frames, progress, effects, sweeps=det.sweeps)
             scored_on = {"synthetic": {"scenarios": scen, "seeds": seeds, "frames_per_scenario": frames,
