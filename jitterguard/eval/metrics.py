@@ -116,7 +116,8 @@ BOOTSTRAP_RESAMPLES = 400
 
 class TrackBootstrap:
     """90 % percentile intervals over tracks: resampling whole tracks (with replacement) keeps the rows of one
-    track together, since they are strongly dependent (one parked car gives hundreds of near-identical rows).
+    track together, since they are strongly dependent (one parked car gives hundreds of near-identical rows). A
+    rate of exactly 0 or 1, which every resample repeats, gets the exact binomial interval over its tracks instead.
 
     ``weights[b, i]`` is how often row i's track is drawn in resample b; a rate is Σ w·num / Σ w·den, an AP is
     the weighted AP (:func:`weighted_average_precision`)."""
@@ -137,6 +138,13 @@ class TrackBootstrap:
         """Interval of mean(hit[mask]); None where the mask is empty."""
         if not mask.any():
             return None
+        h = hit[mask]
+        if not h.any() or h.all():
+            # every resample gives the same 0 (or 1): the bootstrap says nothing of how far the rate may be from it
+            # (0 of 55 rows had read [0, 0]); the exact Clopper–Pearson 90 % interval does, with the tracks as the
+            # trials (conservative: the rows of one track move together)
+            edge = round(0.05 ** (1.0 / len(np.unique(self.inverse[mask]))), 6)
+            return [0.0, round(1.0 - edge, 6)] if not h.any() else [edge, 1.0]
         w = self.rows(mask)
         den = w.sum(axis=1)
         num = (w * hit[mask]).sum(axis=1)

@@ -228,6 +228,18 @@ def test_bootstrap_intervals_resample_whole_tracks() -> None:
     assert one.rate(np.ones(5, bool), np.array([True, False, True, False, True])) == [0.6, 0.6]
 
 
+def test_a_rate_of_zero_or_one_gets_the_exact_interval_over_its_tracks() -> None:
+    """0 of 55 rows on 13 tracks: every resample is 0, and [0, 0] had said the rate is surely 0; the exact
+    (Clopper–Pearson) 90 % interval counting tracks bounds it below 1 − 0.05^(1/13) ≈ 0.206 instead."""
+    ids = np.array([f"t{i % 13}" for i in range(55)])
+    boot = TrackBootstrap(ids, resamples=400, seed=1)
+    mask = np.ones(55, bool)
+    assert boot.rate(mask, np.zeros(55, bool)) == [0.0, round(1 - 0.05 ** (1 / 13), 6)]
+    assert boot.rate(mask, np.ones(55, bool)) == [round(0.05 ** (1 / 13), 6), 1.0]
+    part = ids == "t0"  # a group of one track: the widest interval, 90 % of the way
+    assert boot.rate(part, np.zeros(55, bool)) == [0.0, 0.95]
+
+
 def test_weighted_ap_matches_repeated_rows() -> None:
     rng = np.random.default_rng(2)
     s, y = rng.random(50), rng.random(50) < 0.4
