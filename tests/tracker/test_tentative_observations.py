@@ -130,12 +130,16 @@ def test_the_joiner_waits_only_for_published_tracks_motion() -> None:
     a, b = "a" * 32, "b" * 32
     hdr = Header(stamp=1_003, seq=3, frame_id="map")
     j = FrameJoiner(motion_wait_s=10.0)
+    # a frame before, without inputs: the first frame of a run waits for every input stream; the next ones only
+    # for those the frame before them had (none here), so frame 3 waits for its motion states alone
+    j.add_objects(TrackedObjects(header=Header(stamp=1_002, seq=2, frame_id="map")), 0.0)
+    assert [f.seq for f in j.poll(10.0)] == [2]
     j.add_tracked(TrackedObjects(header=hdr, observed_track_ids=[a, b]))  # b is tentative: not in objects
-    j.add_objects(TrackedObjects.model_validate({"header": hdr.model_dump(), "objects": [{"object_id": a}]}), 0.0)
-    assert j.poll(0.1) == []
+    j.add_objects(TrackedObjects.model_validate({"header": hdr.model_dump(), "objects": [{"object_id": a}]}), 10.0)
+    assert j.poll(10.1) == []
     j.add_motion(MotionState(header=hdr, track_id=a, state="static", mode="z_test", window_length=4,
                             threshold=2.58, alpha=2.58))
-    (f,) = j.poll(0.1)
+    (f,) = j.poll(10.1)
     assert set(f.motion) == {a} and j.counters.get("motion_missing", 0) == 0
 
 
