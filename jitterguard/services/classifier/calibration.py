@@ -754,6 +754,10 @@ class OnlineCalibration:
         g = len(GROUPS)
         k1, m1, t1 = fit_shape(*self._pseudo(Y1, Ew1, Et1, n1, np.broadcast_to(k0, (g, 2)),
                                              np.broadcast_to(m0, (g, 2)), np.broadcast_to(t0, (g, 2))))
+        if self.prior_blocks <= 0:  # no prior and no block: nothing to fit, the level above stands (the fit of
+            # nothing had come out k = 0, clipped to the lower bound: σ taken 10× too large where nobody measured)
+            none1 = n1 <= 0
+            k1, m1, t1 = (np.where(none1, np.broadcast_to(a, (g, 2)), b) for a, b in ((k0, k1), (m0, m1), (t0, t1)))
         # level 2: the scale per band and age, with the group's shape, shrunk to the group's scale — what
         # _pseudo and expected_moments do at levels 0 and 1, written out for one τ per group: everything here is
         # linear in the correlated sums, so they are taken at the group's τ first (at_tau) and the rest works on
@@ -771,6 +775,8 @@ class OnlineCalibration:
         Yp = Y + n0 * kb * ((1 - mb) * Wbar + mb * Tbar)
         E = (1 - mb) * (Ew + n0 * Wbar) + mb * (Et_tau + n0 * Tbar)  # per unit scale
         k2 = np.clip((Yp * E).sum(-1) / np.maximum((E * E).sum(-1), 1e-300), *SCALE_BOUNDS)
+        if n0 <= 0:  # as above: a cell without blocks or prior takes its group's scale
+            k2 = np.where(n <= 0, np.broadcast_to(k1[lead], k2.shape), k2)
         dt = self._interval[0] / self._interval[1] if self._interval[1] > 0 else CANONICAL_DT_S
         scale_dof = PRIOR_SCALE_DOF + BLOCK_DOF * float(n.sum((0, 2, 3)).min())  # all classes, the poorer axis
         return NoiseModel(self.band_edges_m, k2, m1, t1, n.copy(), float(dt), self._track_dof(), scale_dof)

@@ -256,8 +256,32 @@ class _Table:
 
 def _running_since(since: F64, on: NDArray[np.bool_], now_s: float) -> F64:
     """The clock of a condition that must hold for a while (the baseline's sustain, the test's hold): where it
-    holds, the stamp since which it has held without a break (``now_s`` where it starts); NaN where it does not."""
-    return np.where(on, np.where(np.isnan(since), now_s, since), np.nan)
+    holds, the stamp since which it has held without a break (``now_s`` where it starts); NaN where it does not.
+    A clock that started after ``now_s`` (the stamps went back) starts again at ``now_s``: kept, it had held every
+    rejection back until the stamps caught up with it — a car moving all along was called static (zero twist) for
+    as long as time had gone back, even with no hold at all."""
+    return np.where(on, np.where(np.isnan(since) | (since > now_s), now_s, since), np.nan)
+
+
+MAX_VARIANCE = 1e100
+"""Largest reported variance a window takes [m²]: the statistic's products of variances overflow beyond it (a
+variance of 1e300 had saturated z and called the track dynamic). The wire's bound is far below (1e6)."""
+MAX_CORRELATION = 1.0 + 1e-6
+"""Largest |cxy| / sqrt(cxx·cyy) a window takes: the wire's bound (a covariance that is not positive
+semi-definite has a negative variance along some axis; pooled, it had taught the calibration a scale of 25)."""
+
+
+def _valid_observations(obs: "Observations") -> NDArray[np.bool_]:
+    """Which rows of ``obs`` a window may take: a finite position and a positive semi-definite covariance whose
+    variances are at most :data:`MAX_VARIANCE` — what the wire contract lets through. Another one (a broken
+    upstream; a caller of the core need not be the wire) is left out of the window as if the track had not been
+    observed this frame: taken, a NaN position had gone out as the static position of the window's mean for a
+    whole window, and a NaN, negative or overflowing variance had made the statistic — and the decision —
+    whatever its saturation said."""
+    with np.errstate(invalid="ignore", over="ignore"):  # NaN compares False
+        spread = np.sqrt(obs.cxx) * np.sqrt(obs.cyy)  # as the wire computes it
+        return (np.isfinite(obs.x) & np.isfinite(obs.y) & (obs.cxx >= 0.0) & (obs.cxx <= MAX_VARIANCE)
+                & (obs.cyy >= 0.0) & (obs.cyy <= MAX_VARIANCE) & (np.abs(obs.cxy) <= MAX_CORRELATION * spread))
 
 
 class MotionClassifierCore:
@@ -550,6 +574,9 @@ class MotionClassifierCore:
         w = t.window
         stamp_s = obs.stamp_ns * 1e-9
         fresh = self._takes(rows, stamp_s, interval)
+        valid = _valid_observations(obs)
+        if not valid.all():
+            fresh = valid if fresh is None else fresh & valid
         taken, o = (rows, obs) if fresh is None else (rows[fresh], obs.subset(fresh))
         slot = t.head[taken]
         n = taken.shape[0]
@@ -560,7 +587,9 @@ class MotionClassifierCore:
         t.count[taken] = np.minimum(t.count[taken] + 1, w)
         t.since[taken] += 1
         t.seen[taken] += 1
-        t.label[rows] = np.clip(obs.labels, 0, _NUM_LABELS - 1)
+        # a class the classifier does not know is UNKNOWN (as the calibration's groups read it): clipped, a label
+        # past the last had been decided as a pedestrian's, with the most sensitive alpha
+        t.label[rows] = np.where((obs.labels >= 0) & (obs.labels < _NUM_LABELS), obs.labels, 0)
         if obs.published_ids is None:
             t.published[rows] = True
         else:  # confirmation is final, so "was ever published" is "is published" for an observed track

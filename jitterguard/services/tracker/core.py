@@ -18,6 +18,7 @@ Per frame (all steps batched over every track / detection):
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -26,7 +27,7 @@ from ...geometry import rotate_cov2, sensor_to_world_xy
 from ...stream_order import StreamGuard, Verdict
 from . import kalman
 from .association import assign, gate, gate_newborn, near_pairs, overlapping
-from .config import ConfigTables, TrackerConfig, default_config
+from .config import NUM_LABELS, ConfigTables, TrackerConfig, default_config
 from .arrays import DetectionFrame, FrameResult, TrackSnapshot, WorldDetections
 from .kalman import CTRV, STATE_DIM, wrap_pi
 from .lifecycle import Confirmation, Seen, TrackTable, new_track_id
@@ -36,6 +37,73 @@ F64 = NDArray[np.float64]
 
 UNMEASURED_YAW_VAR = 1e6
 """Heading variance given to a detection without a usable heading: the update then leaves the heading alone."""
+
+
+MIN_LABEL_PROB = 1e-3
+"""Floor on a detection's class probability (as the adapter reads it): a zero vote left a new track's votes all zero,
+and their argmax, UNKNOWN, then replaced the detected class."""
+
+
+def _screened(f: DetectionFrame, max_abs_coordinate_m: float, max_dimension_m: float
+              ) -> tuple[DetectionFrame, NDArray[np.bool_]]:
+    """The frame with what a broken detector or pose source can put in it made harmless, and which of its
+    detections the tracker may use at all (association and births).
+
+    Unusable: a non-finite ego pose, centre, height, size or area, a world position beyond
+    ``max_abs_coordinate_m`` or a length, width or height beyond ``max_dimension_m`` (what every reader of
+    ``tracked`` refuses; a box 1e30 m wide also made every pair of tracks a candidate overlap), or an exact
+    repeat of an earlier detection of the frame (same centre and class). Taken, such a detection had started a
+    NaN track, and NaN in the sweep of :func:`~.association.near_pairs` left every other detection of the frame
+    without its track (each object got a new tentative one every frame); a NaN height or size stayed in its
+    track's running estimate for good; more than ``max_candidates`` copies of one box kept that many confirmed
+    tracks of one object, and a thousand new IDs a frame. Repaired, the detection still counts: a class the
+    tracker does not know (label outside 0–7) is UNKNOWN (it had raised IndexError, and −1 had read as a
+    pedestrian); a non-finite heading is unavailable (orientation 0); a position covariance with a non-finite
+    entry or a negative variance is not used (the class default is, as for a detection without one), nor a
+    non-finite or negative heading variance; a non-finite twist is no twist; a non-finite existence counts as 0
+    and a class probability below :data:`MIN_LABEL_PROB` (or non-finite) as that floor. On well-formed input
+    this changes nothing.
+    """
+    lbl = f.label.astype(np.int64)
+    label = np.where((lbl >= 0) & (lbl < NUM_LABELS), lbl, 0).astype(np.int8)
+    yaw_ok = np.isfinite(f.yaw)
+    cov_ok = (np.isfinite(f.cov_xx) & np.isfinite(f.cov_xy) & np.isfinite(f.cov_yy)
+              & (f.cov_xx >= 0.0) & (f.cov_yy >= 0.0))
+    twist_ok = np.isfinite(f.vx) & np.isfinite(f.vy)
+    yaw_var_ok = np.isfinite(f.var_yaw) & (f.var_yaw >= 0.0)
+    prob = np.where(np.isfinite(f.label_prob), f.label_prob, 0.0)
+    existence = np.where(np.isfinite(f.existence), f.existence, 0.0)
+    clean = (label == f.label).all() and yaw_ok.all() and cov_ok.all() and twist_ok.all() and yaw_var_ok.all() \
+        and (prob >= MIN_LABEL_PROB).all() and (prob <= 1.0).all() and (existence >= 0.0).all() \
+        and (existence <= 1.0).all()
+    if not clean:
+        f = replace(
+            f, label=label, yaw=np.where(yaw_ok, f.yaw, 0.0),
+            orientation=np.where(yaw_ok, f.orientation, 0).astype(np.int8),
+            cov_xx=np.where(cov_ok, f.cov_xx, 0.0), cov_xy=np.where(cov_ok, f.cov_xy, 0.0),
+            cov_yy=np.where(cov_ok, f.cov_yy, 0.0), has_cov=f.has_cov & cov_ok,
+            var_yaw=np.where(yaw_var_ok, f.var_yaw, 0.0), vx=np.where(twist_ok, f.vx, 0.0),
+            vy=np.where(twist_ok, f.vy, 0.0), has_twist=f.has_twist & twist_ok,
+            label_prob=np.clip(prob, MIN_LABEL_PROB, 1.0), existence=np.clip(existence, 0.0, 1.0),
+        )
+    pose_ok = all(np.isfinite(v) for v in (f.ego_x, f.ego_y, f.ego_z, f.ego_yaw))
+    usable = (np.isfinite(f.x) & np.isfinite(f.y) & np.isfinite(f.z) & np.isfinite(f.area)
+              & (np.abs(f.length) <= max_dimension_m) & (np.abs(f.width) <= max_dimension_m)
+              & (np.abs(f.height) <= max_dimension_m))  # NaN compares False
+    if not pose_ok:  # nothing can be placed in the world (and math.cos(inf) raises): the tracks coast
+        usable[:] = False
+        f = replace(f, ego_x=0.0, ego_y=0.0, ego_z=0.0, ego_yaw=0.0)
+    elif usable.any():
+        with np.errstate(invalid="ignore", over="ignore"):
+            wx, wy = sensor_to_world_xy(f.x, f.y, f.ego_x, f.ego_y, f.ego_yaw)
+        usable &= (np.abs(wx) <= max_abs_coordinate_m) & (np.abs(wy) <= max_abs_coordinate_m)
+    idx = np.flatnonzero(usable)
+    if idx.size > 1:  # exact repeats: the first of each (x, y, label) stays (idx breaks ties: the sort is stable)
+        order = idx[np.lexsort((idx, f.label[idx], f.y[idx], f.x[idx]))]
+        a, b = order[:-1], order[1:]
+        same = (f.x[b] == f.x[a]) & (f.y[b] == f.y[a]) & (f.label[b] == f.label[a])
+        usable[b[same]] = False
+    return f, usable
 
 
 def _seen(f: DetectionFrame, det: WorldDetections, idx: NDArray[np.intp]) -> Seen:
@@ -103,8 +171,11 @@ class TrackerCore:
 
         cfg, tb, tr = self.config, self.tables, self.tracks
         stamp = frame.stamp_ns
-        det = self._to_world(frame)
+        frame, usable = _screened(frame, cfg.limits.max_abs_coordinate_m, cfg.limits.max_dimension_m)
+        with np.errstate(invalid="ignore", over="ignore"):  # unusable rows may hold inf; none of them is read
+            det = self._to_world(frame)
         m = len(frame)
+        use = None if usable.all() else np.flatnonzero(usable)  # the detections association and births may take
 
         # ---- predict every track to this frame's stamp
         n = len(tr)
@@ -121,18 +192,21 @@ class TrackerCore:
         det_pos = np.stack([det.x, det.y], axis=1)
         det_pos_cov = det.R[:, :2, :2]
         yaw_valid = frame.orientation > 0
+        sel = slice(None) if use is None else use
         cand = gate(
             tr.x[:, :2], tr.label, tr.x[:, 2], tr.P[:, :2, :2],
-            det_pos, frame.label, frame.area, det.yaw, yaw_valid, det_pos_cov,
+            det_pos[sel], frame.label[sel], frame.area[sel], det.yaw[sel], yaw_valid[sel], det_pos_cov[sel],
             tb, cfg.mahalanobis_gate, cfg.mahalanobis_covariance == "innovation", cfg.score_threshold,
             cfg.gate_min_variance, cfg.max_candidates,
         )
+        if use is not None:
+            cand = replace(cand, cols=use[cand.cols])
         stale = self._stale(stamp, self._period_s)  # the interval before this frame: a pause is this one's
         self._period_s = period_s
         if stale.any():
             cand = cand.subset(~stale[cand.rows])
         rows, cols = assign(n, m, cand)
-        rows, cols = self._second_detections(frame, det, stamp, rows, cols, stale)
+        rows, cols = self._second_detections(frame, det, stamp, rows, cols, stale, usable)
         claimed = cols.copy()  # a detection whose track is deleted below must not start a twin of it
 
         # ---- update the associated tracks
@@ -149,9 +223,12 @@ class TrackerCore:
         # ---- delete what the lifecycle rules expire (before births: a newborn never expires at once)
         if n:
             keep = ~tr.expired(stamp, cfg.tentative_max_gap_s, cfg.max_coast_s, cfg.max_position_stddev)
-            keep &= ~overlapping(tr.x[:, :2], tr.label, tr.dims[:, 1], tr.hits, tb.can_assign,
-                                 cfg.overlap_factor, cfg.max_candidates, yaw=tr.x[:, 2], length=tr.dims[:, 0],
-                                 min_iou=cfg.overlap_min_iou, min_iou_unknown=cfg.overlap_min_iou_unknown)
+            # a filter gone non-finite (deleted above) must not enter the sweep: NaN there hid every overlap
+            sane = np.isfinite(tr.x[:, :3]).all(axis=1) & np.isfinite(tr.dims[:, :2]).all(axis=1)
+            o = slice(None) if sane.all() else np.flatnonzero(sane)
+            keep[o] &= ~overlapping(tr.x[o, :2], tr.label[o], tr.dims[o, 1], tr.hits[o], tb.can_assign,
+                                    cfg.overlap_factor, cfg.max_candidates, yaw=tr.x[o, 2], length=tr.dims[o, 0],
+                                    min_iou=cfg.overlap_min_iou, min_iou_unknown=cfg.overlap_min_iou_unknown)
             keep_rows = np.flatnonzero(keep)
             if keep_rows.size < n:
                 if self.scale is not None:  # what the deleted tracks have not given yet, before their rows go
@@ -164,7 +241,7 @@ class TrackerCore:
                 rows, cols = new_rows[alive], cols[alive]
 
         # ---- births from the detections nobody claimed (a newborn's detection is its first observation)
-        free = np.ones(m, dtype=bool)
+        free = usable.copy()
         free[claimed] = False
         new = np.flatnonzero(free)
         born: list[str] = []
@@ -247,11 +324,15 @@ class TrackerCore:
                 if self.scale is not None:  # what the detector's variances are off by, as learnt so far
                     rxx, rxy, ryy = rotate_cov2(*self.scale.rescale(f.x, f.y, f.cov_xx, f.cov_xy, f.cov_yy, f.label),
                                                 f.ego_yaw)
-                R[use, 0, 0] = np.maximum(rxx[use], floor)
-                R[use, 1, 1] = np.maximum(ryy[use], floor)
+                # at most the variance past which a track is deleted: a detection reporting more (the wire allows
+                # 1e6 m²) had started a track that the next frame deleted, having taken its detection — the object
+                # was never tracked, and got a new ID every other frame
+                cap = max(cfg.max_position_stddev ** 2, floor)
+                R[use, 0, 0] = np.clip(rxx[use], floor, cap)
+                R[use, 1, 1] = np.clip(ryy[use], floor, cap)
                 lim = 0.999 * np.sqrt(R[use, 0, 0] * R[use, 1, 1])  # keep it positive definite
                 R[use, 0, 1] = R[use, 1, 0] = np.clip(rxy[use], -lim, lim)
-                yaw_var = np.where(use & (f.var_yaw > 0.0), f.var_yaw, yaw_var)
+                yaw_var = np.where(use & (f.var_yaw > 0.0), np.minimum(f.var_yaw, UNMEASURED_YAW_VAR), yaw_var)
         R[:, 2, 2] = np.where(no_yaw, UNMEASURED_YAW_VAR, yaw_var)
         c, s = np.cos(f.ego_yaw), np.sin(f.ego_yaw)
         return WorldDetections(x=x, y=y, z=f.z + f.ego_z, yaw=yaw, cov_xx=cxx, cov_xy=cxy, cov_yy=cyy, R=R,
@@ -284,7 +365,7 @@ class TrackerCore:
         return tr.expired(stamp - int(period_s * 1e9), cfg.tentative_max_gap_s, cfg.max_coast_s, np.inf)
 
     def _second_detections(self, f: DetectionFrame, det: WorldDetections, stamp: int, rows: NDArray[np.intp],
-                           cols: NDArray[np.intp], stale: NDArray[np.bool_]
+                           cols: NDArray[np.intp], stale: NDArray[np.bool_], usable: NDArray[np.bool_]
                            ) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
         """``rows``/``cols`` with each track born on the previous detection (one hit, no velocity yet) that the
         main gate left without one paired, where it can, with a detection no track took, within the reach of its
@@ -295,7 +376,7 @@ class TrackerCore:
         newborn = np.flatnonzero((tr.hits == 1) & ~taken & ~stale)
         if newborn.size == 0:
             return rows, cols
-        free_mask = np.ones(len(f), dtype=bool)
+        free_mask = usable.copy()
         free_mask[cols] = False
         free = np.flatnonzero(free_mask & f.has_twist)  # few: what no track took (the rest of the frame is skipped)
         if free.size == 0:

@@ -177,11 +177,13 @@ class TrackTable:
 
     def expired(self, stamp_ns: int, tentative_max_gap_s: float, max_coast_s: float,
                 max_position_stddev: float) -> NDArray[np.bool_]:
-        """Which rows the lifecycle rules delete at ``stamp_ns``."""
+        """Which rows the lifecycle rules delete at ``stamp_ns``; also any whose state or covariance is no longer
+        finite (nothing brings such a filter back, and a NaN position poisons every gate it enters)."""
         gap = (stamp_ns - self.last_update_ns) * 1e-9
         too_old = np.where(self.confirmed, gap > max_coast_s, gap > tentative_max_gap_s)
         pos_var = np.maximum(self.P[:, 0, 0], self.P[:, 1, 1])
-        return too_old | (pos_var > max_position_stddev * max_position_stddev)
+        broken = ~(np.isfinite(self.x).all(axis=1) & np.isfinite(self.P).all(axis=(1, 2)))
+        return too_old | (pos_var > max_position_stddev * max_position_stddev) | broken
 
     def keep(self, mask: NDArray[np.bool_]) -> list[str]:
         """Drop the rows where ``mask`` is false; returns the IDs dropped."""
