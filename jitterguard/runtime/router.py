@@ -13,6 +13,7 @@ import threading
 
 import zenoh
 
+from .sd_notify import Notifier
 from .signals import stop_on_signals
 from .zenoh_config import (DEFAULT_ROUTER, ENV_CONFIG, UnusableConfig, ZenohOptions, build_config, listen_endpoints,
                            open_session)
@@ -57,12 +58,14 @@ def run_router(listen: list[str], config_file: str | None = None, stop: threadin
     stop = stop or threading.Event()
     stop_on_signals(stop.set)
     cfg = router_config(listen, config_file)
+    notifier = Notifier()  # systemd's watchdog (WatchdogSec=): a stopped or hung router stops pinging
     try:
         # only a port still held (by a router that just died) is worth a wait; anything else — a missing or
         # unreadable TLS file, a certificate that is not PEM, an access-control policy Zenoh rejects — had been
         # retried for ever as "retrying until the router at [] is up", and SIGTERM then ended it in a traceback
         session = open_session(cfg, stop=stop, log=log, retry_if=_may_wait,
-                               waiting_for=f"it can listen on {', '.join(listen_endpoints(cfg, 'router'))}")
+                               waiting_for=f"it can listen on {', '.join(listen_endpoints(cfg, 'router'))}",
+                               on_retry=lambda: notifier.send("WATCHDOG=1"))
     except UnusableConfig as exc:  # one line and exit 2, not a retry for ever
         log.error("%s", exc)
         raise SystemExit(2) from None
@@ -74,7 +77,8 @@ def run_router(listen: list[str], config_file: str | None = None, stop: threadin
     log.info("zenoh router %s listening on %s", session.zid(), cfg.get_json("listen/endpoints"))
     try:
         while not stop.wait(0.5):
-            pass
+            notifier.send("WATCHDOG=1")
     finally:
+        notifier.close()
         session.close()
         log.info("router stopped")

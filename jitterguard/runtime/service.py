@@ -35,6 +35,7 @@ from ..schemas.models import Heartbeat
 from . import memtrace
 from .keyed_publishers import KeyedPublishers
 from .progress import Health, ProgressMonitor, ProgressPolicy
+from .sd_notify import Notifier
 from .signals import stop_on_signals
 from .zenoh_config import UnusableConfig, ZenohOptions, build_config, open_session
 
@@ -128,8 +129,11 @@ class Service:
         self._reject_log = _BurstLogger(self.log)
         self._declared: list[Any] = []
         self._threads: list[threading.Thread] = []
+        # systemd's watchdog (WatchdogSec= in the units): pinged while the router is awaited, then by the heartbeat
+        self._notifier = Notifier()
         try:
-            self.session: zenoh.Session = open_session(build_config(opts), stop=self.stop_event, log=self.log)
+            self.session: zenoh.Session = open_session(build_config(opts), stop=self.stop_event, log=self.log,
+                                                       on_retry=self._ping)
         except UnusableConfig as exc:  # a missing TLS file: one line and exit 2, not a wait for ever
             self.log.error("%s", exc)
             raise SystemExit(2) from None
@@ -141,12 +145,14 @@ class Service:
     # ------------------------------------------------------------------ wiring helpers for subclasses
 
     def accept(self, model: type[M], data: bytes, sub_key: str, sample_key: str | None = None,
-               max_bytes: int | None = None) -> M | None:
-        """Decode and validate one payload; a bad one — or one over ``max_bytes``, refused unread — is counted
-        (``rejected`` and ``rejected.<sub_key>`` without the ``jg/{ns}/`` prefix), logged once per burst, and
+               max_bytes: int | None = None, max_array_len: int | None = None,
+               max_map_len: int | None = None) -> M | None:
+        """Decode and validate one payload; a bad one — or one over ``max_bytes``, or with a list or map beyond
+        ``max_array_len`` / ``max_map_len``, refused before it is built — is counted (``rejected`` and
+        ``rejected.<sub_key>`` without the ``jg/{ns}/`` prefix, and ``over_limit.<key>``), logged once per burst, and
         ``None`` comes back."""
         try:
-            return decode(model, data, max_bytes=max_bytes)
+            return decode(model, data, max_bytes=max_bytes, max_array_len=max_array_len, max_map_len=max_map_len)
         except DecodeError as exc:
             self.reject(exc, sub_key, sample_key)
             return None
@@ -163,13 +169,15 @@ class Service:
         self._reject_log.warn(f"rejected payload on {sample_key or sub_key}: {exc}")
 
     def subscribe(self, key: str, model: type[M], handler: Callable[[M, str], None], *,
-                  max_bytes: int | None = None) -> None:
+                  max_bytes: int | None = None, max_array_len: int | None = None,
+                  max_map_len: int | None = None) -> None:
         """Subscribe ``key``; ``handler(message, key)`` gets only payloads that validate as ``model`` (and, with
-        ``max_bytes``, are no larger)."""
+        the bounds, are no larger and hold no longer list or map: :meth:`accept`)."""
 
         def on_sample(sample: zenoh.Sample) -> None:
             self.counters.inc("received")
-            msg = self.accept(model, sample.payload.to_bytes(), key, str(sample.key_expr), max_bytes)
+            msg = self.accept(model, sample.payload.to_bytes(), key, str(sample.key_expr), max_bytes, max_array_len,
+                              max_map_len)
             if msg is None:
                 return
             try:
@@ -190,8 +198,8 @@ class Service:
         """The progress verdict now (``ok`` for a service with no input → output relation)."""
         return self.progress.assess(time.monotonic()) if self.progress is not None else Health("ok")
 
-    def subscribe_inbox(self, key: str, capacity: int = 64, *,
-                        progress: bool = False) -> queue.Queue[tuple[bytes, str, float]]:
+    def subscribe_inbox(self, key: str, capacity: int = 64, *, progress: bool = False,
+                        max_bytes: int | None = None) -> queue.Queue[tuple[bytes, str, float]]:
         """Subscribe ``key`` into a bounded queue of ``(payload, key, arrival time)`` that a worker blocks on with
         ``get(timeout=...)``.
 
@@ -200,12 +208,19 @@ class Service:
         its oldest item (counted ``dropped_queue.<key>``): a worker that fell behind catches up on the newest
         frames, and a flood costs a bounded amount of memory, never Zenoh's receive path. ``progress``: each
         arrival is an input of :attr:`progress` (a worker stuck on one message then shows as stalled while more
-        arrive).
+        arrive). ``max_bytes``: a larger payload is refused here, from its size, before it is copied or queued
+        (counted as :meth:`reject` does, and ``received``): the queue holds ``capacity`` payloads of whatever size
+        Zenoh carries (up to 1 GiB), and a flood of 50 MB ones had been copied and queued for the worker to refuse.
         """
         inbox: queue.Queue[tuple[bytes, str, float]] = queue.Queue(maxsize=capacity)
         counter = f"dropped_queue.{key.split('/', 2)[-1]}"
 
         def on_sample(sample: zenoh.Sample) -> None:
+            if max_bytes is not None and len(sample.payload) > max_bytes:
+                self.counters.inc("received")
+                self.reject(LimitExceeded("payload", "", f"{len(sample.payload)} bytes exceed {max_bytes}"), key,
+                            str(sample.key_expr))
+                return
             now = time.monotonic()
             if progress and self.progress is not None:
                 self.progress.input(now)
@@ -304,8 +319,15 @@ class Service:
         a service returns what its worker last stored)."""
         return {}
 
+    def _ping(self) -> None:
+        """Tell systemd's watchdog that this process still runs Python code (nothing without ``NOTIFY_SOCKET``).
+        Sent whatever the health: a service that is alive but failing is the progress watchdog's to end
+        (:meth:`_watch`); systemd's is for one stopped or hung so hard that neither runs (:mod:`.sd_notify`)."""
+        self._notifier.send("WATCHDOG=1")
+
     def _heartbeat_loop(self) -> None:
         while not self.stop_event.wait(HEARTBEAT_PERIOD_S):
+            self._ping()
             health = self.health()
             try:
                 self._hb_pub.put(encode(self.heartbeat(health)))
@@ -376,6 +398,7 @@ class Service:
             self.session.close()
         except Exception:
             pass
+        self._notifier.close()
         self.log.info("%s stopped: %s", self.name, self.counters.snapshot())
 
     def on_close(self) -> None:

@@ -174,14 +174,14 @@ def tls_file_refusal(cfg: zenoh.Config) -> str | None:
 
 def open_session(cfg: zenoh.Config, *, stop: threading.Event | None = None, timeout_s: float | None = None,
                  log: logging.Logger | None = None, retry_if: Callable[[str], bool] | None = None,
-                 waiting_for: str | None = None) -> zenoh.Session:
+                 waiting_for: str | None = None, on_retry: Callable[[], None] | None = None) -> zenoh.Session:
     """``zenoh.open(cfg)``, retried every 0.25 s while it fails (a client whose router is not up yet), until
     ``stop`` is set or ``timeout_s`` passes (then the last error is raised). Says so in ``log`` at the first
     failure and every 30 s after. An error no wait will cure raises :class:`UnusableConfig` at once, in one line:
     a TLS file the config names that cannot be read (:func:`tls_file_refusal`), or an open error that says so;
     with ``retry_if``, also every open error whose text it does not accept (the router waits only for its port,
     see :mod:`.router`). ``waiting_for`` is what the log says it waits for (default: the router at the
-    ``connect/endpoints``)."""
+    ``connect/endpoints``). ``on_retry`` is called before each wait (a watchdog ping: waiting is not hanging)."""
     reason = tls_file_refusal(cfg)
     if reason:
         raise UnusableConfig(f"cannot open the Zenoh session: {reason}")
@@ -204,6 +204,8 @@ def open_session(cfg: zenoh.Config, *, stop: threading.Event | None = None, time
                 what = waiting_for or f"the router at {_get(cfg, 'connect/endpoints')} is up"
                 log.warning("cannot open the Zenoh session (%s); retrying until %s", line or type(exc).__name__, what)
                 last_log = now
+            if on_retry is not None:
+                on_retry()
             stop.wait(OPEN_RETRY_S if deadline is None else max(0.0, min(OPEN_RETRY_S, deadline - now)))
 
 

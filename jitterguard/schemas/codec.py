@@ -39,10 +39,11 @@ def encode(model: BaseModel | dict) -> bytes:
 
 
 def decode(cls: type[M], data: bytes | bytearray | memoryview, *, max_bytes: int | None = None,
-           max_array_len: int | None = None) -> M:
+           max_array_len: int | None = None, max_map_len: int | None = None) -> M:
     """Parse msgpack ``data`` and validate it as ``cls``; any failure raises :class:`DecodeError`.
-    ``max_bytes`` and ``max_array_len`` bound the work before it is done (:func:`unpack_map`)."""
-    return validate(cls, unpack_map(cls, data, max_bytes=max_bytes, max_array_len=max_array_len))
+    ``max_bytes``, ``max_array_len`` and ``max_map_len`` bound the work before it is done (:func:`unpack_map`)."""
+    return validate(cls, unpack_map(cls, data, max_bytes=max_bytes, max_array_len=max_array_len,
+                                    max_map_len=max_map_len))
 
 
 def decode_with_raw(cls: type[M], data: bytes | bytearray | memoryview) -> tuple[M, dict]:
@@ -70,23 +71,27 @@ def validate(cls: type[M], raw: dict) -> M:
 
 
 def unpack_map(cls: type[BaseModel], data: bytes | bytearray | memoryview, *, max_bytes: int | None = None,
-               max_array_len: int | None = None) -> dict:
+               max_array_len: int | None = None, max_map_len: int | None = None) -> dict:
     """Unpack msgpack ``data`` into a map, *not yet validated* as ``cls`` (errors are named after ``cls``).
 
     A top-level key given twice is refused: msgpack keeps the last, while a reader that looks at the first (the
     services judge a frame's order by :func:`~.wire.peek_header` before reading it) would see another message.
     A payload over ``max_bytes`` is refused unread, and ``max_array_len`` refuses any longer list before it is
     built (the hot messages' readers pass their bounds, so a payload of millions of one-byte maps costs no more
-    than its size says): both :class:`LimitExceeded`."""
+    than its size says); ``max_map_len`` refuses any larger map, the top-level one included, before it is built
+    (a model with a fixed set of fields takes no map of thousands of keys, and pydantic lists every unknown key of
+    one as an error of its own: 4 MB of one map had cost 2 s): all :class:`LimitExceeded`."""
     if max_bytes is not None and len(data) > max_bytes:
         raise LimitExceeded(cls.__name__, "", f"{len(data)} bytes exceed {max_bytes}")
     data = bytes(data)
-    bound = {} if max_array_len is None else {"max_array_len": max_array_len}
+    bound = {k: v for k, v in (("max_array_len", max_array_len), ("max_map_len", max_map_len)) if v is not None}
     try:
         raw = msgpack.unpackb(data, raw=False, strict_map_key=True, use_list=True, **bound)
     except Exception as exc:  # msgpack raises several unrelated types (ExtraData, ValueError, ...)
         if max_array_len is not None and "max_array_len" in str(exc):
             raise LimitExceeded(cls.__name__, "", f"a list holds more than {max_array_len} items") from None
+        if max_map_len is not None and "max_map_len" in str(exc):
+            raise LimitExceeded(cls.__name__, "", f"a map holds more than {max_map_len} entries") from None
         raise DecodeError(cls.__name__, "", f"not valid msgpack ({type(exc).__name__}: {exc})") from None
     if not isinstance(raw, dict):
         raise DecodeError(cls.__name__, "", f"expected a msgpack map, got {type(raw).__name__}")

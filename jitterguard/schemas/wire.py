@@ -89,6 +89,12 @@ class Limits(BaseModel):
 
 LIMITS = Limits()
 
+MAX_MAP_ENTRIES = 64
+"""Entries of any map of a hot message: their models have fixed fields (15 at most, ``MotionState``), so a larger map is
+invalid whatever it holds. Refused before it is built (:class:`LimitExceeded`): a ``detections`` or ``tracks/{id}``
+payload of one 500 000-key map within ``max_payload_bytes`` had cost the tracker's and the classifier's one worker
+2 s each, listing every unknown key as an error."""
+
 
 # -------------------------------------------------------------------------------------------- columns
 
@@ -193,7 +199,7 @@ def read_track_observations(payloads: Sequence[bytes], limits: Limits = LIMITS,
     for i in general:
         try:
             msg = decode(TrackObservation, payloads[i], max_bytes=limits.max_payload_bytes,
-                         max_array_len=limits.max_list_items)
+                         max_array_len=limits.max_list_items, max_map_len=MAX_MAP_ENTRIES)
         except DecodeError as exc:
             errors.append((i, exc))
             continue
@@ -228,10 +234,13 @@ def peek_header(data: bytes) -> tuple[int, int] | None:
     (negative, beyond int64) is not found either: the read then refuses the payload, counted ``rejected`` —
     judged by its order instead, it had been dropped as a jump or a late frame.
     """
-    up = msgpack.Unpacker(raw=False)
+    up = msgpack.Unpacker(raw=False, max_map_len=MAX_MAP_ENTRIES, max_array_len=MAX_MAP_ENTRIES)
     try:
         up.feed(data)
-        for _ in range(up.read_map_header()):
+        entries = up.read_map_header()
+        if entries > MAX_MAP_ENTRIES:  # no such message (a loop over millions of entries, before any was judged)
+            return None
+        for _ in range(entries):
             if up.unpack() == "header":
                 h = up.unpack()
                 seq, stamp = h.get("seq", 0), h.get("stamp")
@@ -331,7 +340,8 @@ def _read_listed(model: type[M], data: bytes, layout: RecordLayout, limits: Limi
     n = _object_count(data, limits.max_objects)  # another form: the model decides, its object count in bounds first
     if n > limits.max_objects:
         raise LimitExceeded(name, "objects", f"{n} objects exceed max_objects {limits.max_objects}")
-    raw = unpack_map(model, data, max_array_len=max(limits.max_objects, limits.max_list_items))
+    raw = unpack_map(model, data, max_array_len=max(limits.max_objects, limits.max_list_items),
+                     max_map_len=MAX_MAP_ENTRIES)
     _check_lists(name, raw.get("objects"), limits.max_list_items)
     msg = validate(model, raw)
     return msg, records_of(layout, msg.objects), msg.objects
@@ -339,11 +349,14 @@ def _read_listed(model: type[M], data: bytes, layout: RecordLayout, limits: Limi
 
 def _view_listed(model: type[M], data: bytes, layout: RecordLayout, limits: Limits) -> tuple[M, np.ndarray] | None:
     """The envelope and a view of the objects when the payload is a map in the record shape; None otherwise."""
-    up = msgpack.Unpacker(raw=False, strict_map_key=True, max_buffer_size=max(len(data), 1))
+    up = msgpack.Unpacker(raw=False, strict_map_key=True, max_buffer_size=max(len(data), 1),
+                          max_map_len=MAX_MAP_ENTRIES)
     env: dict[str, Any] = {}
     try:
         up.feed(data)
         keys = up.read_map_header()
+        if keys > MAX_MAP_ENTRIES:  # the model's reading refuses it before building it
+            return None
         for k in range(keys):
             key = up.unpack()
             if key in env or not isinstance(key, str):
@@ -358,7 +371,8 @@ def _view_listed(model: type[M], data: bytes, layout: RecordLayout, limits: Limi
             records = layout.view(memoryview(data)[start:end], n)
             if records is None:
                 return None
-            rest = msgpack.Unpacker(raw=False, strict_map_key=True, max_buffer_size=max(len(data), 1))
+            rest = msgpack.Unpacker(raw=False, strict_map_key=True, max_buffer_size=max(len(data), 1),
+                                    max_map_len=MAX_MAP_ENTRIES)
             rest.feed(memoryview(data)[end:])
             for _ in range(keys - k - 1):
                 key = rest.unpack()
@@ -399,7 +413,10 @@ def _object_count(data: bytes, limit: int) -> int:
     most = 0
     try:
         up.feed(data)
-        for _ in range(up.read_map_header()):
+        entries = up.read_map_header()
+        if entries > MAX_MAP_ENTRIES:  # no such message: the model's reading refuses it unread
+            return 0
+        for _ in range(entries):
             if up.unpack() != "objects":
                 up.skip()
                 continue

@@ -37,7 +37,8 @@ from ..services.replay.options import absolute_source
 from ..services.replay.sources import SourceError, probe_source
 from ..services.sidecar.core import bind_refusal
 from . import summary
-from .control import StackUnavailable, Supervisor, orphans, running_run_dirs, stop_lost, stop_orphans, tail
+from .control import (StackUnavailable, Supervisor, orphans, read_pid, running_run_dirs, stop_lost, stop_orphans,
+                      tail)
 from .status import collect, load_spec, render_table, save_spec
 from .supervisor import DEFAULT_SCENARIO_S, DEFAULT_SOURCE, StackSpec, input_mode, programs, render_config
 from .validate import ArgumentError, check_name, check_run_dir, check_text, port_in_use
@@ -180,10 +181,11 @@ def _answers(address: tuple[str, int] | None) -> bool:
         return False
 
 
-def _addresses(spec: StackSpec, progs: list[Any]) -> list[str]:
-    """Where to look at the stack: the sidecar's page, the Foxglove WebSocket (one line each)."""
+def _addresses(spec: StackSpec, progs: list[Any], picked: bool = False) -> list[str]:
+    """Where to look at the stack: the sidecar's page, the Foxglove WebSocket (one line each); the router's
+    endpoint too when ``up`` picked its port (``--router-port 0``), since nothing else would say it."""
     names = {p.name for p in progs}
-    out = []
+    out = [f"router: {spec.endpoint}"] if picked else []
     if "sidecar" in names:
         out.append(f"sidecar: http://{spec.sidecar_host}:{spec.sidecar_port}/")
     if spec.foxglove:
@@ -210,6 +212,94 @@ def _print_summary(rd: Path, *, as_json: bool = False) -> bool:
     else:
         print(summary.render(data), flush=True)
     return True
+
+
+def _refuse_if_running(sup: Supervisor, rd: Path, label: str, down_hint: str) -> None:
+    """Exit 2 unless no stack runs in ``rd``: one that answers, one whose supervisord runs but does not answer
+    (starting, shutting down, frozen: a second supervisord would then fight it over the socket and the run
+    directory), or one that died leaving its programs running."""
+    try:
+        sup.call("getState")
+    except StackUnavailable as exc:
+        if exc.state in ("starting", "shutting_down", "frozen", "lost", "error"):
+            fail(f"{exc}; not starting another stack over it")
+        left = orphans(rd)
+        if left:
+            fail(f"the stack {label} died but its programs still run ({', '.join(sorted(left))}); {down_hint}"
+                 " stops them")
+        return
+    fail(f"the stack {label} is already running (run dir {rd}); {down_hint} stops it")
+
+
+UP_LOCK = "up.lock"
+_held_locks: list[Any] = []
+"""The open lock files of this process (kept open, so locked, until it exits)."""
+
+
+def _lock_run_dir(rd: Path, label: str) -> None:
+    """Take the run directory's ``up`` lock for the rest of this process's life, or exit 2 if another ``up`` holds
+    it. Two ``up`` started together on one run directory both found it free, both wrote supervisord.conf and
+    stack.json, and one's supervisord ran the other's file: the first said "supervisord did not start" about the
+    stack that ran, the second waited 30 s for a sidecar on a port nobody listened on."""
+    import fcntl
+
+    try:
+        fh = open(rd / UP_LOCK, "a")
+    except OSError as exc:
+        fail(f"--run-dir: cannot write into {rd}: {exc.strerror or exc}")
+    try:
+        fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        fh.close()
+        fail(f"another `jitterguard up` is starting the stack {label} right now (run dir {rd})")
+    _held_locks.append(fh)
+
+
+LOW_SPACE_BYTES = 64 * 2**20
+"""Below this much free space in the run directory ``up`` warns: each program's log may grow to 40 MB (10 MB and 3
+backups), and summary.json and the classifier's stores are rewritten while it runs."""
+
+
+def _warn_low_space(rd: Path) -> None:
+    import shutil
+
+    try:
+        free = shutil.disk_usage(rd).free
+    except OSError:
+        return
+    if free < LOW_SPACE_BYTES:
+        print(f"jitterguard: warning: only {free / 2**20:.1f} MiB free in {rd}: logs, summary.json and the"
+              " classifier's stored config and calibration may not be written", file=sys.stderr)
+
+
+def _pick_ports(wanted: list[tuple[int, str, bool]]) -> list[int]:
+    """Each (port, host, used) as given, or for a used port 0 one free on its host now, none the same as another
+    one here. ``up`` writes the picked port into supervisord.conf and stack.json, so a restarted program keeps it
+    (a program given port 0 itself would bind a new one at each restart, and nothing could tell where), and
+    ``status``, ``down``, a second ``up`` and the printed addresses know it. A host that cannot be bound is one
+    line and exit 2."""
+    taken = {p for p, _, _ in wanted if p > 0}
+    out = []
+    for port, host, used in wanted:
+        if port == 0 and used:
+            for _ in range(100):
+                try:
+                    port = _free_port(host or "0.0.0.0")
+                except OSError as exc:
+                    fail(f"--host {host}: cannot bind a port there: {exc.strerror or exc}")
+                if port not in taken:
+                    break
+            taken.add(port)
+        out.append(port)
+    return out
+
+
+def _free_port(host: str) -> int:
+    """A TCP port free on ``host`` a moment ago (IPv4 or IPv6 literal, or a name)."""
+    family, _, _, _, addr = socket.getaddrinfo(host, 0, type=socket.SOCK_STREAM)[0]
+    with socket.socket(family, socket.SOCK_STREAM) as s:
+        s.bind(addr)
+        return int(s.getsockname()[1])
 
 
 SCENARIO_DURATION = "--scenario-duration"
@@ -324,14 +414,14 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         ns: NsOpt = "default",
         detach: Annotated[bool, typer.Option("-d", "--detach", help="Start in the background and return once every program has run 3 s without a crash.")] = False,
         input_level: Annotated[str, typer.Option("--input", help="auto, points, detections or tracks. 'detections' runs sources with ground-truth boxes (synthetic, nuScenes) through the detection-level noise model.")] = "auto",
-        router_port: Annotated[int, typer.Option("--router-port", min=1, max=65535)] = 7447,
+        router_port: Annotated[int, typer.Option("--router-port", min=0, max=65535, help="The router's port on loopback (0: a free one, printed).")] = 7447,
         host: Annotated[str, typer.Option("--host", help="Sidecar bind address.")] = "127.0.0.1",
-        port: Annotated[int, typer.Option("--port", min=1, max=65535, help="Sidecar port.")] = 8000,
+        port: Annotated[int, typer.Option("--port", min=0, max=65535, help="Sidecar port (0: a free one, printed).")] = 8000,
         run_dir: RunDirOpt = None,
         no_sidecar: Annotated[bool, typer.Option("--no-sidecar", help="Leave the HTTP sidecar out.")] = False,
         duration: Annotated[float | None, typer.Option("--duration", min=1.0, help="Stop after this many seconds (foreground).")] = None,
         foxglove: Annotated[bool, typer.Option("--foxglove", help="Serve the pipeline to Foxglove (ws://127.0.0.1:PORT).")] = False,
-        foxglove_port: Annotated[int, typer.Option("--foxglove-port", min=1, max=65535)] = 8765,
+        foxglove_port: Annotated[int, typer.Option("--foxglove-port", min=0, max=65535, help="The Foxglove WebSocket port (0: a free one, printed).")] = 8765,
         record_mcap: Annotated[str | None, typer.Option("--record-mcap", help="Record the Foxglove channels to this MCAP file.")] = None,
         record_ros2: Annotated[str | None, typer.Option("--record-ros2", help="Record a ROS 2 bag for Autoware into this new folder.")] = None,
         rate: R.RateOpt = "1",
@@ -393,13 +483,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             print(f"jitterguard: warning: {w}", file=sys.stderr)
 
         sup = Supervisor(rd, label)
-        left = orphans(rd) if not sup.running() else {}
-        if left:
-            fail(f"the stack {label} died but its programs still run ({', '.join(sorted(left))}); `jitterguard down"
-                 f"{' --name ' + stack if not run_dir else ' --run-dir ' + str(rd)}` stops them")
-        if sup.running():
-            fail(f"the stack {label} is already running (run dir {rd}); `jitterguard down"
-                 f"{' --name ' + stack if not run_dir else ' --run-dir ' + str(rd)}` stops it")
+        down_hint = f"`jitterguard down{' --name ' + stack if not run_dir else ' --run-dir ' + str(rd)}`"
+        _refuse_if_running(sup, rd, label, down_hint)
         mcap_path, bag_path = (_recording_path(record_mcap, "--record-mcap", folder=False),
                               _recording_path(record_ros2, "--record-ros2", folder=True))
         try:
@@ -408,6 +493,11 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                     check_text(value, what)
         except ArgumentError as exc:
             fail(str(exc))
+        router_picked = router_port == 0
+        # 0: a free port, picked now (the sidecar's on its --host, the Foxglove one only where it is served)
+        router_port, port, foxglove_port = _pick_ports([(router_port, "127.0.0.1", True),
+                                                        (port, host, not no_sidecar),
+                                                        (foxglove_port, "127.0.0.1", foxglove)])
         spec = StackSpec(ns=ns, name=stack, router_port=router_port, sidecar_host=host, sidecar_port=port,
                          source=src, input=mode, sidecar=not no_sidecar, replay_args=tuple(ropts.argv()),
                          run_dir=str(rd), foxglove=foxglove, foxglove_port=foxglove_port, record_mcap=mcap_path,
@@ -446,11 +536,17 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             (rd / "logs").mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             fail(f"--run-dir: cannot create {rd / 'logs'}: {exc.strerror or exc}")
-        for stale in (summary.SUMMARY_FILE, "supervisord.pid"):
-            (rd / stale).unlink(missing_ok=True)
+        _lock_run_dir(rd, label)
+        _refuse_if_running(sup, rd, label, down_hint)  # again, under the lock: another `up` may just have started it
+        _warn_low_space(rd)
         conf = rd / "supervisord.conf"
-        conf.write_text(conf_text)
-        save_spec(rd, spec)
+        try:
+            for stale in (summary.SUMMARY_FILE, "supervisord.pid"):
+                (rd / stale).unlink(missing_ok=True)
+            conf.write_text(conf_text)
+            save_spec(rd, spec)
+        except OSError as exc:
+            fail(f"--run-dir: cannot write into {rd}: {exc.strerror or exc}")
         cmd = [sys.executable, "-m", "supervisor.supervisord", "-c", str(conf)]
         names = ", ".join(p.name for p in progs)
         wall0 = time.time()
@@ -460,7 +556,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                 print(f"jitterguard: error: supervisord did not start: {(res.stderr or res.stdout).strip()}",
                       file=sys.stderr)
                 raise SystemExit(1)
-            raise SystemExit(_wait_started(sup, rd, label, names, spec, progs, wall0))
+            raise SystemExit(_wait_started(sup, rd, label, names, spec, progs, wall0,
+                                           _addresses(spec, progs, router_picked)))
 
         proc = subprocess.Popen(cmd)
         _wake(sup, proc)
@@ -468,7 +565,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         stop_on_signals(stop.set)
         print(f"jitterguard: starting {names} (stack {label}, logs in {rd / 'logs'})", flush=True)
         watch = _ObjectsWatch(ns, spec.endpoint, t0)
-        code = _foreground(proc, sup, rd, stop, watch, duration, t0, wall0, spec, progs)
+        code = _foreground(proc, sup, rd, stop, watch, duration, t0, wall0, spec, progs,
+                           _addresses(spec, progs, router_picked))
         watch.close()
         _exit_without_finalizing(code)
 
@@ -483,7 +581,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             time.sleep(0.02)
 
     def _wait_started(sup: Supervisor, rd: Path, label: str, names: str, spec: StackSpec,
-                      progs: list[Any], wall0: float) -> int:
+                      progs: list[Any], wall0: float, addresses: list[str]) -> int:
         """``up -d``: wait until every program has run for ``DETACH_SETTLE_S`` without a crash and the sidecar
         answers (0), or one keeps crashing (stop the stack, 1). Every program RUNNING is not enough: supervisord calls a program RUNNING
         once it has lived ``startsecs``, and one that died a second later, again and again, had let ``up -d``
@@ -521,7 +619,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                 if not _answers(sidecar):  # RUNNING is not listening: the address printed below must answer
                     continue
                 print(f"jitterguard: started {names} (stack {label}, run dir {rd})")
-                for line in _addresses(spec, progs):
+                for line in addresses:
                     print(line)
                 return 0
         crashed = sorted(n for n, ev in events.items() if ev.crashes)
@@ -533,6 +631,19 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
               " left running: see `jitterguard status` and `jitterguard logs NAME`", file=sys.stderr)
         return 1
 
+    def _shutdown_when_it_answers(sup: Supervisor, wait_s: float = 30.0) -> None:
+        """``shutdown``, asked again while supervisord runs but does not answer yet (it has just been started, or
+        is busy): `down` right after `up` had said "starting or stopping" and done nothing, with exit 0."""
+        deadline = time.monotonic() + wait_s
+        while True:
+            try:
+                sup.shutdown()
+                return
+            except StackUnavailable as exc:
+                if exc.state != "starting" or time.monotonic() >= deadline:
+                    raise
+            time.sleep(0.5)
+
     def _shutdown(sup: Supervisor) -> None:
         try:
             sup.shutdown()
@@ -541,12 +652,12 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         sup.wait_gone(STOP_WAIT_S)
 
     def _foreground(proc: subprocess.Popen, sup: Supervisor, rd: Path, stop: threading.Event, watch: _ObjectsWatch,
-                    duration: float | None, t0: float, wall0: float, spec: StackSpec, progs: list[Any]) -> int:
+                    duration: float | None, t0: float, wall0: float, spec: StackSpec, progs: list[Any],
+                    addresses: list[str]) -> int:
         """Watch a foreground stack until Ctrl-C, ``--duration`` or a crash loop; stop it; print the summary.
 
         The addresses (the sidecar's page) are printed once the sidecar accepts connections, not when it is
         started (at the first objects), when it cannot answer yet."""
-        addresses = _addresses(spec, progs)
         sidecar = _sidecar_address(spec, progs)
         announced = addressed = warned = deferred_started = False
         announced_at = 0.0
@@ -613,8 +724,23 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         rd, label = resolve(run_dir, name, ns)
         sup = Supervisor(rd, label)
         try:
-            sup.shutdown()
+            _shutdown_when_it_answers(sup)
         except StackUnavailable as exc:
+            if exc.state == "frozen":  # stopped by a signal: resume it with the stop already waiting for it
+                pid = read_pid(rd)
+                if pid is not None:
+                    try:
+                        os.kill(pid, signal.SIGTERM)
+                        os.kill(pid, signal.SIGCONT)
+                    except ProcessLookupError:
+                        pass
+                    print(f"jitterguard: the stack {label}'s supervisord (pid {pid}) was stopped (SIGSTOP?); resumed"
+                          " it to stop the stack", flush=True)
+                exc = StackUnavailable("shutting_down", str(exc))
+            if exc.state == "starting":  # it runs and never answered: a stop still has to reach it
+                print(f"jitterguard: error: {exc}; try again, or stop it with `kill {read_pid(rd)}`",
+                      file=sys.stderr)
+                raise SystemExit(1)
             if exc.state == "lost":  # its run dir deleted under it: no socket to ask, so signal it
                 stopped = stop_lost(rd, STOP_WAIT_S)
                 if stopped is None:
@@ -638,7 +764,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                   file=sys.stderr)
             raise SystemExit(1)
         print(f"jitterguard: the stack {label} stopped")
-        _print_summary(rd)
+        if not _print_summary(rd):  # said, not silently left out: the monitor could not write it (a full disk)
+            print(f"jitterguard: no summary was written (see {rd / 'logs' / 'monitor.log'})", file=sys.stderr)
 
     @app.command("status")
     def status_cmd(

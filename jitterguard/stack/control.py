@@ -21,11 +21,17 @@ PIDFILE = "supervisord.pid"
 CONFIG = "supervisord.conf"
 MAX_SOCKET_PATH = 100
 """A unix socket path longer than this does not fit ``sockaddr_un`` (108 bytes on Linux, 104 on macOS)."""
+RPC_TIMEOUT_S = 15.0
+"""How long one XML-RPC call waits for supervisord. It answers in milliseconds even on a loaded machine (its calls
+never block: a program's stop goes on in its event loop); one that does not answer within this is frozen
+(SIGSTOP, a debugger) or hung, and ``status``, ``down`` and ``up`` had waited on it for ever."""
 
 
 class StackUnavailable(Exception):
     """No supervisord answers for this run directory; ``state`` says why: ``absent`` (nothing was ever started
-    there), ``stopped`` (it ran and has exited), ``stale`` (it died without cleaning up), ``shutting_down``."""
+    there), ``stopped`` (it ran and has exited), ``stale`` (it died without cleaning up), ``shutting_down``,
+    ``starting`` (it runs but does not answer yet), ``frozen`` (it runs but is stopped by a signal or a tracer:
+    it will not answer until resumed), ``lost`` (it runs, its run directory was deleted), ``error`` (a fault)."""
 
     def __init__(self, state: str, message: str) -> None:
         self.state = state
@@ -68,6 +74,14 @@ def pid_alive(pid: int) -> bool:
         return True  # no /proc (not Linux) or it went away meanwhile: what kill said
 
 
+def process_stopped(pid: int) -> bool:
+    """Whether ``pid`` is stopped by a signal or a tracer (``T`` / ``t`` in ``/proc/PID/stat``)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] in ("T", "t")
+    except (OSError, IndexError):
+        return False
+
+
 def read_pid(run_dir: Path) -> int | None:
     try:
         return int((run_dir / PIDFILE).read_text().strip())
@@ -85,14 +99,32 @@ class Supervisor:
 
     def _proxy(self) -> Any:
         # supervisor comes with the `deploy` extra: the rest of the CLI must work without it
-        from supervisor.xmlrpc import SupervisorTransport
+        from supervisor.xmlrpc import SupervisorTransport, UnixStreamHTTPConnection
+
+        class _Connection(UnixStreamHTTPConnection):
+            """supervisor's own unix-socket connection ignores ``timeout``: a frozen supervisord (it accepts the
+            connection in the kernel's backlog, then never reads) left every caller blocked in ``recv``."""
+
+            def connect(self) -> None:
+                self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+                self.sock.settimeout(RPC_TIMEOUT_S)
+                self.sock.connect(self.socketfile)
+
+        def connection() -> Any:
+            conn = _Connection("localhost", timeout=RPC_TIMEOUT_S)
+            conn.socketfile = str(self.sock)
+            return conn
 
         transport = SupervisorTransport(None, None, f"unix://{self.sock}")
+        transport._get_connection = connection
         return xmlrpc.client.ServerProxy("http://127.0.0.1", transport=transport)
 
     def _unavailable(self) -> StackUnavailable:
         pid = read_pid(self.run_dir)
         if pid is not None and pid_alive(pid) and _is_supervisord(pid):
+            if process_stopped(pid):
+                return StackUnavailable("frozen", f"the stack {self.label} does not answer: its supervisord (pid"
+                                        f" {pid}) is stopped (SIGSTOP, a debugger); `kill -CONT {pid}` resumes it")
             return StackUnavailable("starting", f"the stack {self.label} is starting or stopping (supervisord pid"
                                     f" {pid} does not answer yet)")
         if pid is not None:  # dead, or its pid recycled by another program since (a reboot, a SIGKILL)
@@ -109,6 +141,9 @@ class Supervisor:
     def call(self, method: str, *args: Any) -> Any:
         """One XML-RPC call (``supervisor.<method>``); raises :class:`StackUnavailable` with one line."""
         if not self.sock.exists():
+            raise self._unavailable()
+        pid = read_pid(self.run_dir)
+        if pid is not None and process_stopped(pid):  # say so now, not after RPC_TIMEOUT_S without an answer
             raise self._unavailable()
         try:
             return getattr(self._proxy().supervisor, method)(*args)
@@ -203,11 +238,8 @@ def orphans(run_dir: Path) -> dict[str, int]:
     """Programs of this run directory still alive after their supervisord died: the last pid supervisord's log
     says it spawned for each program, if that process is alive and is a jitterguard command of this stack (its
     command line holds the run's router endpoint or run directory, so a recycled pid is never taken)."""
-    from .status import load_spec  # status imports this module
     from .summary import SPAWNED
 
-    spec = load_spec(run_dir)
-    marks = [m for m in ((spec.endpoint if spec else ""), str(run_dir)) if m]
     last: dict[str, int] = {}
     try:
         text = (run_dir / "logs" / "supervisord.log").read_text(errors="replace")
@@ -215,15 +247,40 @@ def orphans(run_dir: Path) -> dict[str, int]:
         return {}
     for m in SPAWNED.finditer(text):
         last[m.group(1)] = int(m.group(2))
-    out = {}
-    for name, pid in last.items():
-        try:
-            cmdline = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
-        except OSError:
-            continue
-        if "jitterguard" in cmdline and any(mark in cmdline for mark in marks):
-            out[name] = pid
-    return out
+    return {name: pid for name, pid in last.items() if _is_program_of(run_dir, pid)}
+
+
+def _is_program_of(run_dir: Path, pid: int) -> bool:
+    """Whether ``pid`` runs a jitterguard command of this stack: its command line holds the run's router endpoint
+    or run directory (so a recycled pid is never taken for one)."""
+    from .status import load_spec  # status imports this module
+
+    spec = load_spec(run_dir)
+    marks = [m for m in ((spec.endpoint if spec else ""), str(run_dir)) if m]
+    try:
+        cmdline = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+    except OSError:
+        return False
+    return "jitterguard" in cmdline and any(mark in cmdline for mark in marks)
+
+
+def _signal_program(pid: int, sig: int) -> None:
+    try:  # supervisord makes every program a process-group leader; only then take the group
+        if os.getpgid(pid) == pid:
+            os.killpg(pid, sig)
+        else:
+            os.kill(pid, sig)
+    except (ProcessLookupError, PermissionError):
+        pass
+
+
+def kill_program(run_dir: Path, pid: int) -> bool:
+    """SIGKILL a program of this stack (its process group), once :func:`_is_program_of` says it is one; whether
+    it was signalled. For a program no gentler signal reaches: a stopped process holds SIGTERM until resumed."""
+    if not _is_program_of(run_dir, pid):
+        return False
+    _signal_program(pid, signal.SIGKILL)
+    return True
 
 
 def stop_lost(run_dir: Path, timeout: float) -> int | None:
@@ -247,15 +304,7 @@ def stop_lost(run_dir: Path, timeout: float) -> int | None:
 def stop_orphans(run_dir: Path, timeout: float = 15.0) -> list[str]:
     """SIGTERM each orphan's process group (SIGKILL after ``timeout``); returns the programs stopped."""
     found = orphans(run_dir)
-    def kill(pid: int, sig: int) -> None:
-        try:  # supervisord makes every program a process-group leader; only then take the group
-            if os.getpgid(pid) == pid:
-                os.killpg(pid, sig)
-            else:
-                os.kill(pid, sig)
-        except (ProcessLookupError, PermissionError):
-            pass
-
+    kill = _signal_program
     for pid in found.values():
         kill(pid, signal.SIGTERM)
     deadline = time.monotonic() + timeout

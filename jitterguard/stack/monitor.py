@@ -10,6 +10,8 @@ closes, so the file ends with the final counts. If the monitor itself is restart
 
 from __future__ import annotations
 
+import os
+import threading
 import time
 from datetime import datetime, timezone
 from pathlib import Path
@@ -20,12 +22,19 @@ import zenoh
 
 from ..cli_common import ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ZenohConfigOpt, fail, zenoh_options
 from ..runtime import Service, ZenohOptions, setup_logging
+from ..runtime.progress import FAILING, Health
+from ..runtime.service import HANG_GRACE_S, HEARTBEAT_PERIOD_S
 from ..schemas import DecodeError, decode, keys
 from ..schemas.models import Heartbeat
 from . import summary
 from .status import SPEC_FILE, load_spec
 
 WRITE_PERIOD_S = 1.0
+FREEZE_CHECK_S = 2.0
+FREEZE_MARGIN_S = 5.0
+"""A program silent this much longer than its own last resort (``JG_WATCHDOG_S`` + the hang grace, when
+faulthandler ends a process hung with its heartbeat thread) is one that no watchdog inside it can end."""
+MAX_BEAT_PIDS = 256
 
 
 def _iso(t: float) -> str:
@@ -49,9 +58,15 @@ class StackMonitor(Service):
         self.ledger = summary.Ledger.from_json(prev.get("ledger", {}))
         self.run_started_at = float(prev.get("started_at_s") or _spec_written_at(run_dir) or time.time())
         self.dirty = True
+        self.write_error: str | None = None  # why summary.json could not be written, until it is again
+        self._beat_at: dict[int, tuple[str, float]] = {}  # pid -> (service, monotonic time of its last heartbeat)
+        self._beat_lock = threading.Lock()
+        self._stopped_since: dict[int, float] = {}  # a router pid seen stopped (SIGSTOP), since when (monotonic)
         super().__init__(opts)
         self._declared.append(self.session.declare_subscriber(keys.heartbeat_all(self.ns), self._on_beat))
         self.spawn(self._writer, "writer")
+        if self._watchdog_env is not None:  # JG_WATCHDOG_S=0 turns every watchdog off, this one too
+            self.spawn(self._freeze_watch, "freeze-watch")
 
     def _on_beat(self, sample: zenoh.Sample) -> None:
         try:
@@ -60,6 +75,10 @@ class StackMonitor(Service):
             self.reject(exc, keys.heartbeat_all(self.ns), str(sample.key_expr))
             return
         self.counters.inc("received")
+        with self._beat_lock:
+            self._beat_at[hb.pid] = (hb.service, time.monotonic())
+            if len(self._beat_at) > MAX_BEAT_PIDS:  # bounded: made-up pids (anyone may publish) push out the oldest
+                self._beat_at.pop(min(self._beat_at, key=lambda p: self._beat_at[p][1]))
         extra = {"last_seq": hb.last_seq, "uptime_s": round(hb.uptime_s, 1)}
         if not self.ledger.observe(hb.service, hb.pid, hb.counters, hb.stamp, extra):
             self.counters.inc("heartbeats_dropped")  # a service beyond the ledger's bound (summary.MAX_SERVICES)
@@ -79,23 +98,116 @@ class StackMonitor(Service):
                 "ledger": self.ledger.as_json()}
 
     def write(self) -> None:
-        summary.save(self.run_dir, self.snapshot())
+        """Write summary.json; a failure (a full disk, a run directory gone read-only) is logged once, counted,
+        and reported in the heartbeat until a write succeeds again."""
+        path = self.run_dir / summary.SUMMARY_FILE
+        try:
+            summary.save(self.run_dir, self.snapshot())
+        except OSError as exc:
+            self.counters.inc("summary_write_errors")
+            error = f"cannot write {path}: {exc.strerror or exc}"
+            if error != self.write_error:
+                self.log.error("%s; the summary stays as last written until a write succeeds", error)
+            self.write_error = error
+            return
+        if self.write_error is not None:
+            self.log.info("%s written again", path)
+        self.write_error = None
         self.dirty = False
+
+    def health(self) -> Health:
+        """``failing`` while summary.json cannot be written: the monitor's one job. It had logged a traceback a
+        second (into the same full disk) while ``status`` said ok and ``summary`` "its monitor writes one every
+        second". Not a case for the watchdog (``unhealthy_for_s`` stays 0): a restart frees no disk, and the
+        ledger in memory is all that keeps the counts of processes that end meanwhile."""
+        error = self.write_error
+        return Health(FAILING, error) if error is not None else super().health()
+
+    def _freeze_watch(self) -> None:
+        """Restart a program that supervisord says is RUNNING but that has sent no heartbeat for
+        ``JG_WATCHDOG_S`` + :data:`HANG_GRACE_S` + :data:`FREEZE_MARGIN_S` (20 s by default).
+
+        A stopped process (SIGSTOP, a cgroup freezer, a debugger that left it stopped) runs no thread at all: its
+        own watchdog and faulthandler's timer wait with it, supervisord sees a live pid, and the stack had stood
+        still for good with every program RUNNING. Only a process heard from before (with its current pid) is
+        judged, only while other services are heard (a router down or restarting silences everyone: not a
+        freeze), and never after the monitor itself stood still (it would then judge its own pause). It is ended
+        with SIGKILL, which a stopped process cannot hold off, for supervisord to start it again. The router, which
+        sends no heartbeat, is judged by whether the kernel says it is stopped (:meth:`_end_stopped_router`)."""
+        assert self._watchdog_env is not None
+        limit = self._watchdog_env + HANG_GRACE_S + FREEZE_MARGIN_S
+        last_tick = time.monotonic()
+        while not self.stop_event.wait(FREEZE_CHECK_S):
+            now = time.monotonic()
+            if now - last_tick > 3 * FREEZE_CHECK_S:  # the monitor itself was paused: start every clock again
+                with self._beat_lock:
+                    self._beat_at = {pid: (svc, now) for pid, (svc, _) in self._beat_at.items()}
+                self._stopped_since = {pid: now for pid in self._stopped_since}
+            last_tick = now
+            try:
+                self._end_frozen(now, limit)
+            except Exception:  # never let the watch die; say why
+                self.log.exception("freeze watch failed")
+
+    def _end_frozen(self, now: float, limit: float) -> None:
+        from .control import StackUnavailable, Supervisor, kill_program
+        from .status import SERVICE_NAMES
+
+        try:
+            procs = Supervisor(self.run_dir).processes()
+        except StackUnavailable:
+            return
+        self._end_stopped_router(procs, now, limit)
+        with self._beat_lock:
+            beats = dict(self._beat_at)
+        own = os.getpid()
+        recent = {svc for pid, (svc, t) in beats.items() if now - t <= 3 * HEARTBEAT_PERIOD_S and pid != own}
+        if len(recent) < 2:  # the bus is not carrying heartbeats now (the router is away): judge nothing
+            return
+        for proc in procs:
+            if proc.state != "RUNNING" or proc.pid is None or proc.pid == own:
+                continue
+            seen = beats.get(proc.pid)
+            if seen is None or seen[0] not in SERVICE_NAMES.get(proc.name, (proc.name,)) or now - seen[1] < limit:
+                continue
+            self.log.error("%s (pid %d) has sent no heartbeat for %.0f s while supervisord says RUNNING and the "
+                           "other services are heard: frozen (stopped, or hung where no watchdog inside it runs);"
+                           " killing it for supervisord to restart it", proc.name, proc.pid, now - seen[1])
+            if kill_program(self.run_dir, proc.pid):
+                self.counters.inc(f"frozen_restarts.{proc.name}")
+            with self._beat_lock:
+                self._beat_at.pop(proc.pid, None)
+
+    def _end_stopped_router(self, procs: list[Any], now: float, limit: float) -> None:
+        """The router sends no heartbeat, and while it stands still nobody is heard: judged by the kernel instead
+        (``/proc``: stopped by a signal) for as long as the others are by their silence. A router stopped had left
+        the whole stack silent for good, every program RUNNING."""
+        from .control import kill_program, process_stopped
+
+        seen = set()
+        for proc in procs:
+            if proc.name != "router" or proc.state != "RUNNING" or proc.pid is None:
+                continue
+            if not process_stopped(proc.pid):
+                continue
+            seen.add(proc.pid)
+            since = self._stopped_since.setdefault(proc.pid, now)
+            if now - since >= limit:
+                self.log.error("router (pid %d) has been stopped for %.0f s (SIGSTOP?): no service can be heard "
+                               "through it; killing it for supervisord to restart it", proc.pid, now - since)
+                if kill_program(self.run_dir, proc.pid):
+                    self.counters.inc("frozen_restarts.router")
+                seen.discard(proc.pid)
+        self._stopped_since = {pid: t for pid, t in self._stopped_since.items() if pid in seen}
 
     def _writer(self) -> None:
         while not self.stop_event.wait(WRITE_PERIOD_S):
-            if self.dirty:
-                try:
-                    self.write()
-                except OSError:
-                    self.log.exception("cannot write %s", self.run_dir / summary.SUMMARY_FILE)
+            if self.dirty or self.write_error is not None:
+                self.write()
 
     def on_close(self) -> None:
         time.sleep(0.3)  # the final heartbeats of the services stopped just before us may still be on the way
-        try:
-            self.write()
-        except OSError:
-            self.log.exception("cannot write %s", self.run_dir / summary.SUMMARY_FILE)
+        self.write()
 
 
 def monitor_command(

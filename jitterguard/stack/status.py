@@ -62,6 +62,7 @@ class ServiceStatus:
     counters: dict[str, int] = dataclasses.field(default_factory=dict)
     detail: str = ""
     heartbeat_expected: bool = False  # `status` listened long enough to hear one (not the router, which sends none)
+    problem: str = ""  # why a program is not up, in words: not running (and its log's last line), unreachable
 
     def as_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -88,8 +89,9 @@ def rows_from_processes(procs: list[ProcessInfo]) -> list[ServiceStatus]:
             for p in procs]
 
 
-def probe_zenoh(ns: str, endpoint: str, listen_s: float = 1.5) -> tuple[set[str], dict[str, Any]]:
-    """Liveliness tokens present and the latest heartbeat per service, listening ``listen_s`` seconds."""
+def probe_zenoh(ns: str, endpoint: str, listen_s: float = 1.5) -> tuple[set[str], dict[str, Any], str | None]:
+    """Liveliness tokens present and the latest heartbeat per service, listening ``listen_s`` seconds, and why no
+    session could be opened through the router (None when one was)."""
     import zenoh  # start-up time: `jitterguard status` renders its table without a session where it can
 
     from ..runtime import ZenohOptions, build_config
@@ -110,8 +112,8 @@ def probe_zenoh(ns: str, endpoint: str, listen_s: float = 1.5) -> tuple[set[str]
     cfg.insert_json5("mode", json.dumps("client"))
     try:
         session = zenoh.open(cfg)
-    except Exception:  # no router reachable: nothing seen on Zenoh
-        return alive, beats
+    except Exception as exc:  # no router reachable: nothing seen on Zenoh
+        return alive, beats, (str(exc).splitlines() or [type(exc).__name__])[0].split(" at ")[0]
     try:
         sub = session.declare_subscriber(keys.heartbeat_all(ns), on_beat)
         for reply in session.liveliness().get(keys.alive_all(ns), timeout=min(listen_s, 1.0)):
@@ -123,22 +125,54 @@ def probe_zenoh(ns: str, endpoint: str, listen_s: float = 1.5) -> tuple[set[str]
         sub.undeclare()
     finally:
         session.close()
-    return alive, beats
+    return alive, beats, None
+
+
+SOURCE_PROGRAMS = frozenset({"replay"})
+"""Programs that feed the pipeline: while one is not running, no frame enters it. A sensor that is off is no fault
+of the services, which stay healthy and ready, so the source's own row says it (and the sidecar's ``/readyz``,
+under ``warnings``)."""
+
+
+def _not_running(proc: ProcessInfo) -> str:
+    """Why a program that is not RUNNING is not, in one line: supervisord's state and word for it, the last line of
+    its log, and for the source that nothing enters the pipeline. Its progress column had said "no heartbeat
+    heard", as of a frozen process, for a replay supervisord had given up on."""
+    from .control import tail
+
+    what = {"FATAL": "supervisord gave up restarting it", "BACKOFF": "restarting after it exited too quickly",
+            "STARTING": "starting", "STOPPED": "stopped", "STOPPING": "stopping",
+            "EXITED": "exited"}.get(proc.state, proc.state.lower())
+    if proc.state == "EXITED" and proc.exitstatus is not None:
+        what += f" (status {proc.exitstatus})"
+    last = next((ln.strip() for ln in reversed(tail(proc.logfile, 5)) if ln.strip()), "") if proc.logfile else ""
+    if last:
+        what += f"; its log ends: {last[:200]}"
+    if proc.name in SOURCE_PROGRAMS and proc.state not in ("STARTING",):
+        what += "; no frames enter the pipeline"
+    return what
 
 
 def collect(procs: list[ProcessInfo], spec: StackSpec | None, listen_s: float = 1.5) -> list[ServiceStatus]:
     rows = rows_from_processes(procs)
+    for row, proc in zip(rows, procs):
+        if proc.state != "RUNNING":
+            row.problem = _not_running(proc)
     if spec is None:
         return rows
     from ..runtime.service import HEARTBEAT_PERIOD_S
 
-    alive, beats = probe_zenoh(spec.ns, spec.endpoint, listen_s)
+    alive, beats, unreachable = probe_zenoh(spec.ns, spec.endpoint, listen_s)
     for row in rows:
         if row.name == "router":
             # The router has no token of its own: it is up on Zenoh if anything answered through it.
             row.alive = bool(alive or beats)
+            if unreachable is not None and not row.problem:
+                row.problem = f"not answering on {spec.endpoint}: no Zenoh session through it ({unreachable})"
             continue
-        row.heartbeat_expected = listen_s >= 1.2 * HEARTBEAT_PERIOD_S
+        # a service cannot be heard through a router that cannot be reached: that says nothing of the service
+        # itself (every one had read "no heartbeat heard", as if frozen, while the router was the one stopped)
+        row.heartbeat_expected = unreachable is None and listen_s >= 1.2 * HEARTBEAT_PERIOD_S
         names = SERVICE_NAMES.get(row.name, (row.name,))  # the program `replay` runs feed-tracks at --input tracks
         row.alive = any(n in alive for n in names)
         hb = next((beats[n] for n in names if n in beats), None)
@@ -160,11 +194,14 @@ def _fmt_uptime(s: float | None) -> str:
 
 def render_table(rows: list[ServiceStatus], spec: StackSpec | None, run_dir: Path) -> None:
     from rich.console import Console
+    from rich.markup import escape
     from rich.table import Table
 
     title = (f"jitterguard stack {spec.name!r} (ns {spec.ns}) via {spec.endpoint}" if spec
              else f"jitterguard stack in {run_dir}")
     console = Console()
+    if not console.is_terminal:  # one line per service however long its reason: `grep`/`awk` read the pipe
+        console = Console(width=4096)
     # A terminal gets a boxed table; a pipe gets plain aligned columns, one service per line starting with its
     # name (as `supervisorctl status` prints), so `grep`/`awk` keep working.
     table = Table(title=title) if console.is_terminal else Table(title=title, box=None, pad_edge=False)
@@ -174,8 +211,11 @@ def render_table(rows: list[ServiceStatus], spec: StackSpec | None, run_dir: Pat
         color = "green" if r.state == "RUNNING" else ("yellow" if r.state in ("STARTING", "BACKOFF") else "red")
         alive = "-" if r.alive is None else ("[green]yes[/]" if r.alive else "[red]no[/]")
         seq = "-" if r.last_seq is None else ("none yet" if r.last_seq < 0 else str(r.last_seq))
-        progress = (("-" if r.heard else "[red]no heartbeat heard[/]") if r.health is None else
-                    ("[green]ok[/]" if r.health == "ok" else f"[red]{r.health}[/]: {r.health_reason}"))
+        progress = (f"[red]{escape(r.problem)}[/]" if r.problem and r.state != "RUNNING" else
+                    ("-" if r.heard else "[red]no heartbeat heard[/]") if r.health is None else
+                    ("[green]ok[/]" if r.health == "ok" else f"[red]{r.health}[/]: {escape(r.health_reason)}"))
+        if r.problem and r.state == "RUNNING" and r.health is None:  # the router, unreachable
+            progress = f"[red]{escape(r.problem)}[/]"
         table.add_row(r.name, f"[{color}]{r.state}[/]", str(r.pid or "-"), _fmt_uptime(r.uptime_s), alive, seq,
                       progress)
     console.print(table)

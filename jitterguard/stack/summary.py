@@ -149,7 +149,9 @@ def supervisor_events(log_path: Path, since: float = 0.0) -> dict[str, ProgramEv
             if t < since:
                 continue
             if (s := SPAWNED.search(line)) is not None:
-                out.setdefault(s.group(1), ProgramEvents()).spawns.append(t)
+                ev = out.setdefault(s.group(1), ProgramEvents())
+                ev.spawns.append(t)
+                ev.fatal = False  # started again since supervisord gave up on it (`supervisorctl start`)
             elif (e := _EXITED.search(line)) is not None:
                 out.setdefault(e.group(1), ProgramEvents()).crashes.append((t, e.group(2)))
             elif (f := _FATAL.search(line)) is not None:
@@ -198,6 +200,9 @@ def build(ledger: Ledger, events: dict[str, ProgramEvents], *, meta: dict[str, A
         "restarts": {
             "programs": programs,
             "unexpected_exits": crashes,
+            # programs supervisord gave up on and that have not been started since: dead for the rest of the run
+            # (the counts above had said "replay 21" for a source that had stopped for good)
+            "gave_up": sorted(name for name, ev in events.items() if ev.fatal),
             "source_restarts": _pick(trk, "source_restarts"),
             "tracker_resets": _pick(trk, "resets"),
             "classifier_upstream_restarts": _pick(cls, "frames.upstream_restarts"),
@@ -231,6 +236,7 @@ def render(summary: dict[str, Any]) -> str:
         f"  dropped   {kv(summary['dropped'])}",
         f"  restarts  {kv(rs['programs'])}" + (f"; unexpected exits: {kv(rs['unexpected_exits'])}"
                                                if rs["unexpected_exits"] else "")
+        + (f"; supervisord gave up on: {', '.join(rs['gave_up'])}" if rs.get("gave_up") else "")
         + f"; source restarts {n(rs['source_restarts'])}, tracker resets {n(rs['tracker_resets'])}",
     ]
     if summary["errors"]:

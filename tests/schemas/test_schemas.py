@@ -470,6 +470,36 @@ def test_lists_beyond_their_bound_are_refused_before_they_are_built():
             det["header"]) + many[1:] + b"\x80" * 5000)
 
 
+def test_maps_beyond_any_models_fields_are_refused_before_they_are_built():
+    """A hot message's maps have fixed fields; one of 100 000 keys (in an object, in the header, or at the top level)
+    had been built and handed to pydantic, which lists every unknown key as an error: a 4 MB payload of one such map
+    cost a service's worker 2 s. It is refused from the map's header now (LimitExceeded, counted ``over_limit``),
+    whatever the read function; a map at the bound is read by the model as before."""
+    keys_ = {f"k{i}": 0 for i in range(100_000)}
+    det = _rich_detections(odd=False).model_dump(mode="python")
+    obs = _rich_observation().model_dump(mode="python")
+    tracked = _rich_tracked(odd=False).model_dump(mode="python")
+    in_object = copy.deepcopy(det)
+    in_object["objects"][0]["kinematics"] = {**in_object["objects"][0]["kinematics"], **keys_}
+    in_header = {**tracked, "header": {**tracked["header"], **keys_}}
+    for read, payload in ((wire.read_detected_objects, in_object), (wire.read_detected_objects, keys_),
+                          (wire.read_tracked_objects, in_header), (wire.read_tracked_objects, keys_)):
+        with pytest.raises(wire.LimitExceeded, match=f"map holds more than {wire.MAX_MAP_ENTRIES} entries"):
+            read(msgpack.packb(payload))
+    for payload in ({**obs, "track": {**obs["track"], **keys_}}, keys_):
+        cols = wire.read_track_observations([msgpack.packb(payload)])
+        assert len(cols.index) == 0 and isinstance(cols.errors[0][1], wire.LimitExceeded)
+    with pytest.raises(wire.LimitExceeded):
+        decode(TrackedObjects, msgpack.packb(in_header), max_map_len=wire.MAX_MAP_ENTRIES)
+    assert wire.peek_header(msgpack.packb(in_header)) is None
+    few = {f"k{i}": 0 for i in range(wire.MAX_MAP_ENTRIES - len(det["objects"][0]["kinematics"]))}
+    at_bound = copy.deepcopy(det)
+    at_bound["objects"][0]["kinematics"].update(few)
+    with pytest.raises(DecodeError, match="Extra inputs") as exc:  # the model names the first unknown key
+        wire.read_detected_objects(msgpack.packb(at_bound))
+    assert not isinstance(exc.value, wire.LimitExceeded)
+
+
 @pytest.mark.parametrize(("path", "value", "field"), [
     (["objects", 1, "kinematics", "pose_with_covariance", "covariance"],
      [0.04, 0.05] + [0.0] * 4 + [0.05, 0.04] + [0.0] * 28, "pose_with_covariance.covariance"),  # |ρ| = 1.25

@@ -78,6 +78,24 @@ def test_readiness_reports_a_service_of_the_pipeline_that_makes_no_progress(stac
         assert body["reason"] == "ok" and body["services"]["tracker"]["health"] == "ok"
 
 
+def test_a_service_outside_the_pipeline_that_fails_is_a_warning_not_a_readiness_fault(stack: Stack) -> None:
+    """The monitor on a full disk (its summary cannot be written) or a failing Foxglove bridge do not make the
+    classifier's objects wrong: /readyz stays 200 and names them under ``warnings`` (a monitor that could not write
+    had made the classifier "not ready")."""
+    beat = encode(Heartbeat(service="monitor", pid=2, stamp=time.time_ns(), last_seq=-1, health="failing",
+                            health_reason="cannot write /run/x/summary.json: No space left on device"))
+    with zenoh.open(build_config(loopback_options(stack.ns, stack.zport))) as s, stack.http(auth=False) as c:
+        def warned() -> dict | None:
+            s.put(keys.heartbeat(stack.ns, "monitor"), beat)
+            r = c.get("/readyz")
+            body = r.json()
+            return body if r.status_code == 200 and any(w.startswith("monitor") for w in body["warnings"]) else None
+
+        body = wait_for(warned, "readyz to warn of the failing monitor")
+        assert body["ready"] is True and body["reason"] == "ok"
+        assert "monitor failing: cannot write /run/x/summary.json: No space left on device" in body["warnings"]
+
+
 def test_readiness_reports_a_service_frozen_on_the_bus_or_a_stage_that_left_it() -> None:
     """A service whose liveliness token is present but whose heartbeats stopped (a SIGSTOPped process: the
     watchdog inside it cannot run) made no difference to /readyz, which stayed 200 while nothing moved. Once its
@@ -280,6 +298,42 @@ def test_malformed_json_is_422(stack: Stack) -> None:
         r = c.patch("/v1/config", content=b'{"alpha_default": 0.7}',
                     headers={"Content-Type": "application/merge-patch+json"})
         assert r.status_code == 200 and r.json()["alpha_default"] == 0.7
+
+
+@pytest.mark.parametrize(("body", "loc"), [
+    (b'{"window_size": ' + b"9" * 5000 + b"}", ["body", "window_size"]),  # Python reads no int of > 4300 digits
+    (b'{"alpha_default": -' + b"9" * 400 + b"}", ["body", "alpha_default"]),  # beyond any float
+    (b'{"alpha_per_class": {"car": ' + b"1" * 5000 + b"}}", ["body", "alpha_per_class", "car"]),
+    (b'{"calibration_range_bands_m": [20, ' + b"4" * 5000 + b"]}", ["body", "calibration_range_bands_m", 1]),
+    (b'{"window_size": 12, "window_size": 40}', ["body", "window_size"]),  # which one counts is anyone's guess
+    (b'{"alpha_per_class": {"car": 1.0, "car": 50.0}}', ["body", "alpha_per_class", "car"]),
+], ids=["int-5000-digits", "int-beyond-float", "int-in-map", "int-in-list", "repeated-key", "repeated-key-in-map"])
+def test_numbers_and_keys_json_leaves_ambiguous_get_422_naming_the_field(stack: Stack, body: bytes,
+                                                                          loc: list) -> None:
+    """A 5000-digit integer in a config field was a 400 "There was an error parsing the body" naming nothing
+    (Python's JSON parser raises past 4300 digits); a key given twice was silently the last one. Both are a 422
+    naming the field now, for PUT and PATCH, and nothing is applied."""
+    with stack.http() as c:
+        for method in ("PATCH", "PUT"):
+            r = c.request(method, "/v1/config", content=body, headers={"Content-Type": "application/json"})
+            assert r.status_code == 422, (method, r.status_code, r.text)
+            assert [e["loc"] for e in r.json()["detail"]] == [loc], r.text
+        assert c.get("/v1/config").json() == DEFAULTS  # nothing applied
+        big = c.patch("/v1/config", content=b'{"calibration_half_life_s": 1' + b"0" * 6 + b"}",
+                      headers={"Content-Type": "application/json"})
+        assert big.status_code == 200 and big.json()["calibration_half_life_s"] == 1e6  # long enough is still read
+
+
+def test_bodies_that_are_no_readable_json_text_get_a_400_saying_why(stack: Stack) -> None:
+    """Text that is not UTF-8 and JSON nested past what the parser recurses into were a 400 "There was an error
+    parsing the body"; the 400 now says which (the body is under the 64 KB cap either way)."""
+    with stack.http() as c:
+        r = c.patch("/v1/config", content=b'{"calibration_file": "\xe9t\xe9"}',
+                    headers={"Content-Type": "application/json"})
+        assert r.status_code == 400 and "not UTF-8" in r.json()["detail"], r.text
+        r = c.patch("/v1/config", content=b"[" * 30000 + b"]" * 30000, headers={"Content-Type": "application/json"})
+        assert r.status_code == 400 and "nested too deeply" in r.json()["detail"], r.text
+        assert c.get("/v1/config").json() == DEFAULTS
 
 
 def _metric(text: str, name: str, labels: str = "") -> float:

@@ -16,6 +16,7 @@ from jitterguard.runtime import ZenohOptions, free_tcp_port
 from jitterguard.schemas import decode, encode, keys
 from jitterguard.schemas.models import ClassifierConfig, ConfigReply
 from jitterguard.services.classifier.config_writes import ConfigWritePolicy
+from jitterguard.runtime.service import DEFAULT_WATCHDOG_S, HANG_GRACE_S
 from jitterguard.services.classifier.service import ClassifierService
 
 from helpers import wait_until
@@ -40,6 +41,8 @@ def test_systemd_units_are_consistent():
         exec_start = cp["Service"]["ExecStart"].split()
         assert exec_start[:2] == ["/opt/jitterguard/venv/bin/jitterguard", svc]
         assert cp["Service"]["Restart"] == "always"
+        # a frozen process pings no more (jitterguard.runtime.sd_notify); after its own watchdog's last resort
+        assert int(cp["Service"]["WatchdogSec"]) > DEFAULT_WATCHDOG_S + HANG_GRACE_S
         assert cp["Unit"]["PartOf"] == "jitterguard.target" and cp["Install"]["WantedBy"] == "jitterguard.target"
         assert f"jitterguard-{svc}.service" in wants
         if svc != "router":

@@ -21,6 +21,7 @@ from typing import Any, Protocol
 from ...runtime import Service, ZenohOptions
 from ...runtime.service import _BurstLogger
 from ...schemas import keys
+from ...schemas.wire import LIMITS, MAX_MAP_ENTRIES
 from ...schemas.models import (
     DetectedObjects,
     GroundTruthObjects,
@@ -31,6 +32,12 @@ from ...schemas.models import (
 from .joiner import DEFAULT_MOTION_WAIT_S, FrameJoiner, JoinedFrame
 
 INBOX_CAPACITY = 8192
+MAX_SCAN_BYTES = 64 << 20
+"""A ``points`` payload larger than this is refused unread (the detector's default ``max_scan_bytes``)."""
+BOUNDS = {"max_array_len": max(LIMITS.max_objects, LIMITS.max_list_items), "max_map_len": MAX_MAP_ENTRIES}
+"""What any message a bridge reads may hold, checked before it is built (the pipeline's own readers hold theirs to
+the same :class:`~jitterguard.schemas.wire.Limits`): the bridge reads every message with its pydantic model, and a
+1 MB ``detections`` of a million empty objects had cost minutes of its callback thread and gigabytes."""
 POLL_S = 0.02
 FEED_BATCH = 64
 """Messages joined between two looks for ready frames."""
@@ -69,7 +76,8 @@ class BridgeService(Service):
         if points:
             subs.append((keys.points(ns), PointCloud, "points"))
         for key, model, kind in subs:
-            self.subscribe(key, model, self._enqueue(kind))
+            self.subscribe(key, model, self._enqueue(kind), **BOUNDS,
+                           max_bytes=MAX_SCAN_BYTES if kind == "points" else LIMITS.max_payload_bytes)
 
     def _enqueue(self, kind: str) -> Any:
         def handler(msg: Any, _key: str) -> None:

@@ -125,7 +125,8 @@ class ClassifierAdapter:
         self.core = MotionClassifierCore(config or ClassifierConfig(), calibration_model=calibration_model,
                                          online=calibration)
         self.assembler: FrameAssembler[ObservationRow, TrackedColumns] = FrameAssembler(
-            straggler_timeout_s=straggler_timeout_s, guard=StreamGuard(stream or StreamLimits()))
+            straggler_timeout_s=straggler_timeout_s, max_frame_observations=limits.max_objects,
+            guard=StreamGuard(stream or StreamLimits()))
         self.limits = limits
 
     def observations(self, payloads: Sequence[bytes], key_ids: Sequence[str] | None = None) -> ObservationColumns:

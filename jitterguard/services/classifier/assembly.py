@@ -39,6 +39,11 @@ class CompleteFrame(Generic[O, C]):
 class FrameAssembler(Generic[O, C]):
     straggler_timeout_s: float = 0.05
     max_pending_frames: int = 64
+    max_frame_observations: int = 1000
+    """Observations kept per frame (the adapter passes ``limits.max_objects``: no frame has more objects, so no more
+    observed tracks). Beyond it a new track ID is dropped, counted ``excess_observations``: the frames were bounded
+    in number only, and a flood of made-up track IDs under a few seqs no close ever comes for grew without end
+    (~0.5 kB each)."""
     last_done: int = -1
     last_done_stamp: int | None = None
     counts: dict[str, int] = field(default_factory=dict)
@@ -71,6 +76,9 @@ class FrameAssembler(Generic[O, C]):
         bucket = self._obs.setdefault(seq, {})
         if track_id in bucket:  # a frame has one observation per track: the first stands (a re-sent copy or a
             self.count("duplicate_observations")  # forgery after it must not rewrite the window)
+            return
+        if len(bucket) >= self.max_frame_observations:
+            self.count("excess_observations")
             return
         bucket[track_id] = item
         waiting = self._waiting.get(seq)

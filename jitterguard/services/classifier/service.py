@@ -34,9 +34,9 @@ import zenoh
 
 from ...runtime import Service, ZenohOptions
 from ...runtime.gc_policy import IdleCollector, manage_gc_for_latency
-from ...schemas import SCHEMA_VERSION, DecodeError, decode, encode, keys
+from ...schemas import SCHEMA_VERSION, DecodeError, LimitExceeded, decode, encode, keys
 from ...schemas.models import ClassifierConfig, ConfigReply
-from ...schemas.wire import LIMITS, Limits
+from ...schemas.wire import LIMITS, MAX_MAP_ENTRIES, Limits
 from ...stream_order import StreamLimits
 from .adapter import ClassifierAdapter, FrameOutput, Poses
 from .assembly import FrameAssembler
@@ -50,6 +50,9 @@ from . import window_kernel
 from .statistics import warm_up
 
 CONFIG_APPLY_TIMEOUT_S = 2.0
+CONFIG_MAX_BYTES = 64 * 1024
+"""A config write larger than this is refused unread (the sidecar's HTTP bodies are capped at 64 KB too): a write of
+one 8 MB per-class map had been built and validated key by key, on the query's thread."""
 LATENCY_WINDOW = 4096
 LATENCY_BUCKETS_MS = (0.5, 1, 2, 5, 10, 20, 50, 100, 200, 500, 1000)
 """Frame-latency histogram buckets; exported as counters so the sidecar's /metrics can rebuild it."""
@@ -180,7 +183,15 @@ class ClassifierService(Service):
 
     def _on_tracked(self, sample: zenoh.Sample) -> None:
         """Zenoh's callback thread: stamp the arrival, hand the bytes to the worker, wake it. Nothing else. The
-        queue is bounded: a worker that fell behind loses the oldest close (counted ``dropped_queue.tracked``)."""
+        queue is bounded: a worker that fell behind loses the oldest close (counted ``dropped_queue.tracked``). A
+        payload over ``limits.max_payload_bytes`` is refused here from its size, neither copied nor queued (the
+        queue had held up to 64 of whatever size Zenoh carries, up to 1 GiB each, for the worker to refuse)."""
+        limit = self.pipeline.limits.max_payload_bytes
+        if len(sample.payload) > limit:
+            self.counters.inc("received")
+            self.reject(LimitExceeded("TrackedObjects", "", f"{len(sample.payload)} bytes exceed max_payload_bytes "
+                                      f"{limit}"), self._tracked_key, str(sample.key_expr))
+            return
         t0 = time.perf_counter()
         self.progress.input(time.monotonic())
         if len(self._closes) == CLOSE_QUEUE:
@@ -300,14 +311,24 @@ class ClassifierService(Service):
             samples.append(sample)
         if not samples:
             return 0
-        self.counters.inc("received", len(samples))
+        taken = len(samples)
+        self.counters.inc("received", taken)
+        limit = self.pipeline.limits.max_payload_bytes
+        if any(len(s.payload) > limit for s in samples):  # refused from the size, not copied first
+            for s in samples:
+                if len(s.payload) > limit:
+                    self.reject(LimitExceeded("TrackObservation", "", f"{len(s.payload)} bytes exceed "
+                                              f"max_payload_bytes {limit}"), self._obs_key, str(s.key_expr))
+            samples = [s for s in samples if len(s.payload) <= limit]
+            if not samples:
+                return taken
         cols = self.pipeline.observations([s.payload.to_bytes() for s in samples],
                                           [keys.last_chunk(str(s.key_expr)) for s in samples])
         for i, exc in cols.errors:
             self.reject(exc, self._obs_key, str(samples[i].key_expr))
         if cols.normalised:
             self.counters.inc("normalised.tracks", cols.normalised)
-        return len(samples)
+        return taken
 
     def _run_control(self, item: tuple[str, tuple, None]) -> None:
         kind, (arg, fut), model = item
@@ -418,8 +439,9 @@ class ClassifierService(Service):
             self._reject_log.warn(f"config write on {query.key_expr} refused: {refused}")
             query.reply_err(encode(ConfigReply(ok=False, config=self.core.config, error=refused)))
             return
-        try:
-            cfg = decode(ClassifierConfig, payload)
+        try:  # bounded before it is built: a config is a few hundred bytes, its maps and lists a handful of entries
+            cfg = decode(ClassifierConfig, payload, max_bytes=CONFIG_MAX_BYTES, max_array_len=MAX_MAP_ENTRIES,
+                         max_map_len=MAX_MAP_ENTRIES)
         except DecodeError as exc:
             self.counters.inc("rejected")
             self.counters.inc("rejected.classifier/config")

@@ -26,7 +26,7 @@ from starlette.routing import Match
 from ...runtime import ZenohOptions
 from .client import ClassifierClient, ClassifierRejected, ClassifierUnavailable
 from .core import ConfigError, jsonable_errors
-from .events import EventBroker
+from .events import MAX_STREAMS, EventBroker
 from .guard import MAX_BODY_BYTES, HostPolicy, RequestGuard
 from .metrics import SidecarMetrics
 from .routes import ROUTERS, SidecarContext
@@ -47,6 +47,7 @@ class SidecarSettings:
     bind_host: str = "127.0.0.1"
     allowed_hosts: tuple[str, ...] = ()
     max_body_bytes: int = MAX_BODY_BYTES
+    max_event_streams: int = MAX_STREAMS
 
     @staticmethod
     def token_from_env() -> str | None:
@@ -75,7 +76,8 @@ def create_app(settings: SidecarSettings, *, stopping: threading.Event | None = 
     the app then starts without a session so the server can carry out the stop it was asked for."""
     metrics = SidecarMetrics()
     ctx = SidecarContext(api_token=settings.api_token, metrics=metrics, page=_page(),
-                         broker=EventBroker(on_drop=metrics.sse_dropped.inc, on_count=metrics.sse_clients.set))
+                         broker=EventBroker(on_drop=metrics.sse_dropped.inc, on_count=metrics.sse_clients.set,
+                                            max_streams=settings.max_event_streams))
 
     @asynccontextmanager
     async def lifespan(_app: FastAPI) -> AsyncIterator[None]:

@@ -27,12 +27,22 @@ import zenoh
 from ...runtime import Service, ZenohOptions
 from ...schemas import DecodeError, decode, decode_with_raw, encode, keys
 from ...schemas.models import ClassifierConfig, ClassifierStateSnapshot, ConfigReply, Heartbeat
-from .core import PIPELINE_STAGES, ConfigError, RenderedState, config_to_api, diff_states, pipeline_problems, render_state
+from .core import (PIPELINE_STAGES, ConfigError, RenderedState, config_to_api, diff_states, is_pipeline, render_state,
+                   service_problems)
 from .metrics import SidecarMetrics
 
 CLASSIFIER = "classifier"
+SOURCES: frozenset[str] = frozenset({"replay", "feed-tracks"})
+"""The services that feed the pipeline. One that leaves the bus is no readiness fault (a sensor may be off, a
+recording may end), but it is what an operator looking at a ready sidecar with no objects needs to know:
+``/readyz`` names it under ``warnings``."""
+NO_INPUT_S = 10.0
+"""The classifier's frame count standing still this long, while it is alive, is named under ``warnings``."""
 MAX_SERVICES = 64
 """Heartbeats kept by service name (the namespace's services; a flood of made-up names cannot grow this)."""
+MAX_HEARTBEAT_BYTES = 256 * 1024
+"""A heartbeat larger than this is refused unread (counted ``rejected.heartbeat/*``). A real one is a few KB (the
+classifier's, with its calibration gauges, ~5 KB); unbounded, 64 names' worth of 100 MB counter maps were kept."""
 Listener = Callable[[str, dict[str, Any]], None]
 
 
@@ -70,6 +80,8 @@ class ClassifierClient(Service):
         self._write_lock = threading.Lock()
         self._on_bus: set[str] = set()  # every service whose liveliness token is present (the classifier's: alive)
         self._left: set[str] = set()  # pipeline stages whose token was withdrawn and has not come back
+        self._sources_left: dict[str, float] = {}  # a source whose token was withdrawn: since when (monotonic)
+        self._frames_at: tuple[int, float] | None = None  # the classifier's last_seq and when it was first seen
         self._hb: Heartbeat | None = None
         self._hb_at: float | None = None  # monotonic receive time of the last classifier heartbeat
         self._beats: dict[str, tuple[Heartbeat, float]] = {}  # every service's latest heartbeat, receive time
@@ -80,7 +92,7 @@ class ClassifierClient(Service):
         self._alive_key = keys.alive(self.ns, CLASSIFIER)
         self._declared.append(self.session.liveliness().declare_subscriber(
             keys.alive_all(self.ns), self._on_liveliness, history=True))
-        self.subscribe(keys.heartbeat_all(self.ns), Heartbeat, self._on_heartbeat)
+        self.subscribe(keys.heartbeat_all(self.ns), Heartbeat, self._on_heartbeat, max_bytes=MAX_HEARTBEAT_BYTES)
         self.metrics.attach(self)
         self.spawn(self._poll_loop, "poll")
 
@@ -92,6 +104,11 @@ class ClassifierClient(Service):
             (self._on_bus.add if alive else self._on_bus.discard)(name)
             if name in PIPELINE_STAGES:  # the only names a withdrawal counts for: the set stays bounded
                 (self._left.discard if alive else self._left.add)(name)
+            if name in SOURCES:
+                if alive:
+                    self._sources_left.pop(name, None)
+                else:
+                    self._sources_left.setdefault(name, time.monotonic())
             if name == CLASSIFIER and not alive:
                 self._hb_at = None  # a new instance must prove itself with a fresh heartbeat
 
@@ -99,10 +116,39 @@ class ClassifierClient(Service):
         name, now = keys.last_chunk(key), time.monotonic()
         with self._lock:
             if name not in self._beats and len(self._beats) >= MAX_SERVICES:
-                self._beats.pop(min(self._beats, key=lambda n: self._beats[n][1]))
+                victim = self._evictable(name)
+                if victim is None:  # every slot holds a service on the bus: the newcomer waits for a free one
+                    self.counters.inc("heartbeats_dropped")
+                    return
+                del self._beats[victim]
             self._beats[name] = (hb, now)
             if name == CLASSIFIER:
                 self._hb, self._hb_at = hb, now
+                if self._frames_at is None or self._frames_at[0] != hb.last_seq:
+                    self._frames_at = (hb.last_seq, now)
+
+    def _evictable(self, newcomer: str) -> str | None:
+        """Which heartbeat makes room for ``newcomer``'s once :data:`MAX_SERVICES` are kept (under ``_lock``): the
+        oldest of a service whose liveliness token is gone; else, for the classifier or a pipeline stage, the oldest
+        of any service but those; else none.
+
+        It had been the oldest of all: a flood of made-up service names then pushed out a frozen tracker's last
+        heartbeat (token still present), and ``/readyz`` went from 503 "tracker: no heartbeat ... (frozen?)" to 200.
+        A name on the bus keeps its slot; a made-up one (no token) only ever displaces another."""
+        def oldest(names: list[str]) -> str | None:
+            return min(names, key=lambda n: self._beats[n][1]) if names else None
+
+        gone = oldest([n for n in self._beats if n not in self._on_bus])
+        if gone is not None or newcomer not in PIPELINE_STAGES | {CLASSIFIER}:
+            return gone
+        return oldest([n for n in self._beats if n not in PIPELINE_STAGES | {CLASSIFIER}])
+
+    def reject(self, exc: DecodeError, sub_key: str, sample_key: str | None = None) -> None:
+        """As every service counts a payload it refuses (its heartbeat's ``rejected.<key>``), and in ``/metrics``
+        too (``jitterguard_sidecar_rejected_messages{key}``): a malformed heartbeat had been counted only in the
+        sidecar's own heartbeat, and ``/metrics`` showed no rejected message at all."""
+        super().reject(exc, sub_key, sample_key)
+        self.metrics.rejected.labels(sub_key.split("/", 2)[-1]).inc()
 
     def readiness(self) -> dict[str, Any]:
         """Whether the classifier is usable now and the pipeline makes progress, and why not (``/readyz``)."""
@@ -113,8 +159,10 @@ class ClassifierClient(Service):
                                "heartbeat_age_s": round(now - at, 3), "last_seq": b.last_seq}
                         for name, (b, at) in self._beats.items()}
             on_bus, left = set(self._on_bus), set(self._left)
+            sources_left, frames_at = dict(self._sources_left), self._frames_at
         age = now - hb_at if hb_at is not None else None
-        problems = pipeline_problems(services, self.stale_after_s, on_bus, left)
+        found = service_problems(services, self.stale_after_s, on_bus, left)
+        problems = [msg for name, msg in found if is_pipeline(name)]
         if not alive:
             reason = f"no classifier: liveliness token {self._alive_key} is absent"
         elif age is None:
@@ -129,7 +177,28 @@ class ClassifierClient(Service):
         return {"ready": reason == "ok", "reason": reason, "liveliness": alive,
                 "heartbeat_age_s": round(age, 3) if age is not None else None,
                 "last_seq": hb.last_seq if hb is not None and hb_at is not None else None,
-                "state_seq": st.seq if st is not None else None, "services": services}
+                "state_seq": st.seq if st is not None else None, "services": services,
+                "warnings": [msg for name, msg in found if not is_pipeline(name)] + self._input_warnings(
+                    now, services, sources_left, frames_at, alive and age is not None and age <= self.stale_after_s)}
+
+    def _input_warnings(self, now: float, services: dict[str, dict[str, Any]], sources_left: dict[str, float],
+                        frames_at: tuple[int, float] | None, classifier_up: bool) -> list[str]:
+        """What keeps objects from coming without being a readiness fault (DESIGN: no input at all is not a fault,
+        a sensor may be off): a source that left the bus, and the classifier's frames standing still. Readiness
+        stays as it was; these only say why a ready sidecar serves no new objects. A looping replay that
+        supervisord had given up on (FATAL) had left ``/readyz`` at 200 "ok" with nothing to say it."""
+        out = []
+        for name, since in sorted(sources_left.items()):
+            beat = services.get(name)
+            if beat is not None and beat["heartbeat_age_s"] <= self.stale_after_s:
+                continue  # its token went, its heartbeats did not: a new process of it is taking over
+            out.append(f"{name} left the bus {now - since:.0f} s ago (liveliness token withdrawn, no heartbeat since):"
+                       " no frames enter the pipeline; its recording ended, or it failed and was not restarted")
+        if classifier_up and frames_at is not None and now - frames_at[1] >= NO_INPUT_S:
+            seq, since = frames_at
+            out.append(f"no input: the classifier has processed no frame for {now - since:.0f} s"
+                       + (f" (last seq {seq})" if seq >= 0 else ""))
+        return out
 
     def readiness_flag(self) -> bool:
         return bool(self.readiness()["ready"])

@@ -121,6 +121,10 @@ class ReadyView(BaseModel):
     state_seq: int | None = Field(description="seq of the state snapshot the sidecar serves, if any")
     services: dict[str, ServiceHealthView] = Field(
         default_factory=dict, description="every service heard from in the namespace, by name")
+    warnings: list[str] = Field(
+        default_factory=list, description="why a ready pipeline may serve no new objects, without being a fault"
+        " (no input is none: a sensor may be off): a source that left the bus, the classifier's frames standing"
+        " still")
 
 
 PIPELINE_STAGES: frozenset[str] = frozenset({"detector", "tracker"})
@@ -128,28 +132,38 @@ PIPELINE_STAGES: frozenset[str] = frozenset({"detector", "tracker"})
 A source (``replay``, ``feed-tracks``) leaves when its recording ends; bridges and recorders are not in the path."""
 
 
-def pipeline_problems(services: Mapping[str, Mapping[str, Any]], stale_after_s: float,
-                      on_bus: set[str] | frozenset[str] = frozenset(),
-                      left: set[str] | frozenset[str] = frozenset()) -> list[str]:
-    """``"tracker failing: ..."`` for each service whose heartbeat, still recent, reports no progress;
+def service_problems(services: Mapping[str, Mapping[str, Any]], stale_after_s: float,
+                     on_bus: set[str] | frozenset[str] = frozenset(),
+                     left: set[str] | frozenset[str] = frozenset()) -> list[tuple[str, str]]:
+    """``(name, "tracker failing: ...")`` for each service whose heartbeat, still recent, reports no progress;
     ``"tracker: no heartbeat for 8.2 s ..."`` for each whose heartbeat is stale while its liveliness token is still
     present (``on_bus``): a process frozen (stopped, hung without the GIL), which no watchdog inside it can catch;
     and ``"tracker: left the bus ..."`` for a pipeline stage (:data:`PIPELINE_STAGES`) whose heartbeat is stale and
     whose token was withdrawn (``left``): crashed and not restarted, or frozen past its Zenoh lease (~10 s), when a
     frozen process's token expires and it had looked like one that left. Any other service's stale heartbeat
-    without a token (a replay at the end of its recording) is not held against the pipeline."""
+    without a token (a replay at the end of its recording) is not held against the pipeline.
+
+    Only the pipeline's own (:func:`is_pipeline`) make ``/readyz`` fail; the rest are its ``warnings``: a monitor
+    that cannot write its summary, a frozen Foxglove bridge or a failing source do not stop the classifier's
+    objects from being right (a monitor on a full disk had made the classifier "not ready")."""
     out = []
     for name, v in sorted(services.items()):
         if v["heartbeat_age_s"] <= stale_after_s:
             if v["health"] != "ok":
-                out.append(f"{name} {v['health']}: {v['reason']}")
+                out.append((name, f"{name} {v['health']}: {v['reason']}"))
         elif name in on_bus:
-            out.append(f"{name}: no heartbeat for {v['heartbeat_age_s']:.1f} s while its liveliness token is "
-                       "present (frozen?)")
+            out.append((name, f"{name}: no heartbeat for {v['heartbeat_age_s']:.1f} s while its liveliness token is "
+                              "present (frozen?)"))
         elif name in left and name in PIPELINE_STAGES:
-            out.append(f"{name}: left the bus (no heartbeat for {v['heartbeat_age_s']:.1f} s, liveliness token "
-                       "withdrawn): crashed, or frozen past its Zenoh lease")
+            out.append((name, f"{name}: left the bus (no heartbeat for {v['heartbeat_age_s']:.1f} s, liveliness "
+                              "token withdrawn): crashed, or frozen past its Zenoh lease"))
     return out
+
+
+def is_pipeline(name: str) -> bool:
+    """The services between the sensor's frames and the classifier's objects, the classifier included: a fault of
+    one of them is a readiness fault."""
+    return name in PIPELINE_STAGES or name == "classifier"
 
 
 # ----------------------------------------------------------------------------------------- config models
@@ -328,6 +342,90 @@ def jsonable_errors(errors: Iterable[Mapping[str, Any]]) -> list[dict[str, Any]]
             item["ctx"] = _jsonable(dict(e["ctx"]))
         out.append(item)
     return out
+
+
+# ----------------------------------------------------------------------------------------- JSON bodies
+
+MAX_JSON_INT_DIGITS = 309
+"""Digits an integer literal of a request body may have: as many as the largest float (1.8e308) has. A longer one
+is no value any field takes, and Python refuses to turn one of over 4300 digits into an int at all (the body had
+come back as a 400 naming nothing)."""
+
+
+class BodyError(ValueError):
+    """A request body that cannot be read as the JSON it claims to be: ``status`` and the ``detail`` to answer with
+    (a 422's list of errors naming the field, or a 400's sentence)."""
+
+    def __init__(self, status: int, detail: Any) -> None:
+        self.status, self.detail = status, detail
+        super().__init__(str(detail))
+
+
+class _LongInt:
+    """Stands in for an integer literal of more than :data:`MAX_JSON_INT_DIGITS` digits until its field is named."""
+
+    __slots__ = ("digits",)
+
+    def __init__(self, digits: str) -> None:
+        self.digits = digits
+
+
+class _Repeated:
+    """Stands in for the value of a key an object gives more than once until its field is named."""
+
+    __slots__ = ()
+
+
+_REPEATED = _Repeated()
+
+
+def _parse_int(text: str) -> Any:
+    return int(text) if len(text) - text.startswith("-") <= MAX_JSON_INT_DIGITS else _LongInt(text)
+
+
+def _object(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in pairs:
+        out[key] = _REPEATED if key in out else value
+    return out
+
+
+def parse_json_body(body: bytes) -> Any:
+    """A request body as JSON, read the way the API's 4xx rules need (``json.JSONDecodeError`` for bad syntax,
+    which FastAPI answers with its own 422; :class:`BodyError` for the rest):
+
+    - an integer literal longer than :data:`MAX_JSON_INT_DIGITS` digits is a 422 naming its field (Python's own
+      parser raises for over 4300 digits, which FastAPI answered with a 400 naming nothing);
+    - a key given twice in one object is a 422 naming it: JSON leaves open which one counts (Python keeps the
+      last, a proxy or a log reader may see the first), as the wire codec refuses a repeated msgpack key;
+    - text that is not UTF-8 (nor UTF-16/32, which JSON allows) and nesting beyond what the parser can recurse
+      into are a 400 saying so (they had been "There was an error parsing the body").
+    """
+    try:
+        data = json.loads(body, parse_int=_parse_int, object_pairs_hook=_object)
+    except UnicodeDecodeError as exc:
+        raise BodyError(400, f"the body is not UTF-8 text ({exc.reason} at byte {exc.start})") from None
+    except RecursionError:
+        raise BodyError(400, "the JSON body is nested too deeply to read") from None
+    errors = []
+    stack: list[tuple[tuple[Any, ...], Any]] = [((), data)]
+    while stack:  # iterative: a body as deep as the parser allows must not exhaust the stack here
+        loc, value = stack.pop()
+        if isinstance(value, _LongInt):
+            n = len(value.digits) - value.digits.startswith("-")
+            errors.append({"type": "int_too_long", "loc": ["body", *loc],
+                           "msg": f"Integer of {n} digits: beyond any number this API takes (at most "
+                                  f"{MAX_JSON_INT_DIGITS} digits)", "input": value.digits[:20] + "…"})
+        elif value is _REPEATED:
+            errors.append({"type": "duplicate_key", "loc": ["body", *loc],
+                           "msg": "Key given more than once in one JSON object", "input": None})
+        elif isinstance(value, dict):
+            stack.extend(((*loc, k), v) for k, v in reversed(value.items()))
+        elif isinstance(value, list):
+            stack.extend(((*loc, i), v) for i, v in reversed(list(enumerate(value))))
+    if errors:
+        raise BodyError(422, jsonable_errors(errors))
+    return data
 
 
 def merge_patch(current: ClassifierConfig, patch: Mapping[str, Any]) -> ClassifierConfig:

@@ -17,6 +17,7 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request
 from fastapi.responses import HTMLResponse, JSONResponse, Response, StreamingResponse
+from fastapi.routing import APIRoute
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
@@ -25,6 +26,7 @@ from ..classifier.config import PRESETS
 from .client import ClassifierClient, ClassifierRejected, ClassifierUnavailable
 from .core import (
     CLASS_NAMES,
+    BodyError,
     ConfigError,
     ConfigModel,
     ConfigPatchModel,
@@ -39,6 +41,7 @@ from .core import (
     config_to_api,
     dumps,
     merge_patch,
+    parse_json_body,
     validate_config,
 )
 from .events import EventBroker
@@ -185,9 +188,13 @@ async def get_track(c: Client, track_id: Annotated[str, Path(pattern="^[0-9a-fA-
                                 "{seq, changes: [{id, class, from, to, statistic, threshold, x, y}]} when "
                                 "tracks appear (from null), vanish (to null) or change state; `config` "
                                 "(the config now in force); `ready` {ready, reason}; `resync` if this "
-                                "client fell behind and lost events.")}},
+                                "client fell behind and lost events.")},
+                      503: {"model": ErrorBody, "description": "As many event streams are open as the sidecar "
+                                                               "serves (64)"}},
            summary="Server-sent events of state changes")
 async def events(request: Request, ctx: Ctx, c: Client) -> StreamingResponse:
+    if ctx.broker.full():
+        raise HTTPException(503, "too many open event streams; try again later", headers={"Retry-After": "5"})
     st = c.rendered_state()
     ready = c.readiness()
     hello = {"ready": ready["ready"], "reason": ready["reason"], "seq": st.seq if st else None,
@@ -198,7 +205,34 @@ async def events(request: Request, ctx: Ctx, c: Client) -> StreamingResponse:
 
 # ---------------------------------------------------------------------------------------------- config
 
-config_routes = APIRouter(tags=["config"])
+class _JSONBodyRequest(Request):
+    """A request whose JSON body is read by :func:`~.core.parse_json_body`: a 5000-digit integer or a key given
+    twice is a 422 naming the field, undecodable text or nesting too deep a 400 saying so (FastAPI's own reading
+    answered all of these with a 400 "There was an error parsing the body"). FastAPI passes an ``HTTPException``
+    raised here through unchanged; a syntax error stays its own 422."""
+
+    async def json(self) -> Any:
+        if not hasattr(self, "_json"):
+            try:
+                self._json = parse_json_body(await self.body())
+            except BodyError as exc:
+                raise HTTPException(exc.status, exc.detail) from None
+        return self._json
+
+
+class JSONBodyRoute(APIRoute):
+    """A route whose handler sees a :class:`_JSONBodyRequest` (the routes with a JSON body)."""
+
+    def get_route_handler(self) -> Callable[[Request], Any]:
+        handler = super().get_route_handler()
+
+        async def with_json_body(request: Request) -> Response:
+            return await handler(_JSONBodyRequest(request.scope, request.receive))
+
+        return with_json_body
+
+
+config_routes = APIRouter(tags=["config"], route_class=JSONBodyRoute)
 Writer = [Depends(require_writer)]
 
 

@@ -15,7 +15,8 @@ Counters (in the heartbeat): ``frames``, ``dropped_duplicate``, ``dropped_out_of
 judged from the header before the payload is read), ``tracks_born``, ``tracks_deleted``, ``resets`` (the source went
 back in time, confirmed: tracks dropped), ``source_restarts`` (its seq began again while time went on, confirmed:
 tracks kept), ``jumps`` (it jumped ahead, confirmed), ``normalised.detections``, ``dropped_queue.detections``,
-``static_hints_received`` / ``_applied`` / ``_implausible`` / ``_unknown`` and the runtime's ``received`` / ``rejected`` (and
+``static_hints_received`` / ``_applied`` / ``_implausible`` / ``_unknown`` / ``_dropped`` (beyond twice
+``limits.max_objects`` tracks waiting for the next frame) and the runtime's ``received`` / ``rejected`` (and
 ``over_limit``) / ``published``. How a frame is told apart from a late one is :mod:`jitterguard.stream_order`.
 """
 
@@ -38,6 +39,8 @@ from .core import FrameRejected, TrackerCore
 from .lifecycle import new_track_id
 
 FRAME_CHANNEL = 64
+MOTION_MAX_BYTES = 64 * 1024
+"""A ``motion/{id}`` payload larger than this is refused unread (a real ``MotionState`` is ~0.4 kB)."""
 IDLE_WAIT_S = 0.05
 """How long the idle worker blocks for a frame before it looks at the stop flag (a frame wakes it at once)."""
 
@@ -65,6 +68,7 @@ class TrackerService(Service):
         self.static_hints = static_hints
         self._hints: dict[str, MotionState] = {}  # track ID → its newest decision since the last frame
         self._hints_lock = threading.Lock()
+        self._max_hints = 2 * self.core.config.limits.max_objects  # track IDs waiting for the next frame
         self._manage_gc = manage_gc
         self._idle_gc = IdleCollector()
         self._gauges: dict[str, float] = {}
@@ -75,10 +79,11 @@ class TrackerService(Service):
         self._det_key = keys.detections(self.ns)
         self._tracked_pub = self.publisher(keys.tracked(self.ns))
         self.monitor_progress()  # detections in -> tracked out (runtime.progress)
-        self._det_inbox = self.subscribe_inbox(self._det_key, capacity=FRAME_CHANNEL, progress=True)
+        self._det_inbox = self.subscribe_inbox(self._det_key, capacity=FRAME_CHANNEL, progress=True,
+                                               max_bytes=self.core.config.limits.max_payload_bytes)
         self._track_pubs = self.keyed_publishers(lambda tid: keys.track(self.ns, tid))
         if static_hints:
-            self.subscribe(keys.motion_all(self.ns), MotionState, self._on_motion)
+            self.subscribe(keys.motion_all(self.ns), MotionState, self._on_motion, max_bytes=MOTION_MAX_BYTES)
         self.spawn(self._worker, "worker")
 
     def _on_motion(self, msg: MotionState, key: str) -> None:
@@ -100,6 +105,11 @@ class TrackerService(Service):
         with self._hints_lock:  # several frames' decisions for one track: the newest frame's wins, whatever the
             # arrival order
             held = self._hints.get(msg.track_id)
+            if held is None and len(self._hints) >= self._max_hints:
+                # bounded: the classifier decides at most max_objects tracks a frame, and the worker takes every
+                # hint at each frame; between frames (or with none coming) made-up track IDs had grown it for ever
+                self.counters.inc("static_hints_dropped")
+                return
             if held is None or msg.header.seq >= held.header.seq:
                 self._hints[msg.track_id] = msg
 

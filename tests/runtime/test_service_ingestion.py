@@ -1,0 +1,265 @@
+"""What the classifier, the tracker, the detector and a bridge do with hostile input on the keys they subscribe to:
+real in-process services on real Zenoh (peer mode, loopback, multicast scouting off, free ports) and a second
+session that publishes what a broken or malicious node would. The work and memory one message or a flood may cause
+stay bounded (what is refused is counted per key), and the service goes on with its real input afterwards."""
+
+from __future__ import annotations
+
+import random
+
+import msgpack
+import pytest
+import zenoh
+
+from helpers import wait_until
+from jitterguard.runtime import loopback_options
+from jitterguard.schemas import decode, encode, keys
+from jitterguard.schemas.models import (
+    ClassifierConfig,
+    ConfigReply,
+    DetectedObject,
+    DetectedObjects,
+    Header,
+    MotionState,
+    ObjectClassification,
+    TrackObservation,
+    TrackState,
+)
+from jitterguard.schemas.wire import Limits
+from jitterguard.services.bridge.service import BridgeService
+from jitterguard.services.classifier.config_writes import ConfigWritePolicy
+from jitterguard.services.classifier.service import CONFIG_MAX_BYTES, ClassifierService
+from jitterguard.services.classifier.synthetic_tracks import TrackScenario, generate
+from jitterguard.services.detector.inference import Detector
+from jitterguard.services.detector.service import DetectorService
+from jitterguard.services.tracker.config import default_config
+from jitterguard.services.tracker.service import MOTION_MAX_BYTES, TrackerService
+
+pytestmark = pytest.mark.integration
+NS = "ingest"
+BLOCK = zenoh.CongestionControl.BLOCK
+
+
+def _ids(n: int, seed: int) -> list[str]:
+    rng = random.Random(seed)
+    return ["%032x" % rng.getrandbits(128) for _ in range(n)]
+
+
+def test_made_up_track_ids_under_a_far_seq_do_not_grow_the_classifier(zenoh_port, client_session) -> None:
+    """Observations wait per frame until the frame's ``tracked`` closes it; frames were bounded in number (64) but
+    not in size, so ``tracks/{id}`` observations with ever new IDs under a seq no close comes for grew the
+    classifier's memory without end (~0.5 kB each: 60 000 of them took 20 MB on a live stack). A frame now keeps at
+    most ``limits.max_objects`` observations; the rest are counted ``frames.excess_observations``, and the
+    classifier decides its real frames as before."""
+    svc = ClassifierService(loopback_options(NS, zenoh_port, listen_self=True), straggler_timeout_s=0.5,
+                            limits=Limits(max_objects=20), config_writes=ConfigWritePolicy.open())
+    try:
+        objects: list[bytes] = []
+        client_session.declare_subscriber(keys.objects(NS), lambda s: objects.append(s.payload.to_bytes()))
+        assert wait_until(lambda: any(True for _ in client_session.liveliness().get(
+            keys.alive(NS, "classifier"), timeout=0.5)), 10)
+        det = DetectedObject(classification=[ObjectClassification()])
+        far = 10**12
+        for tid in _ids(100, seed=3):
+            obs = TrackObservation(header=Header(stamp=far, seq=far), detection=det,
+                                   track=TrackState(object_id=tid, x=1.0, y=2.0))
+            client_session.put(keys.track(NS, tid), encode(obs), congestion_control=BLOCK)
+        assert wait_until(lambda: svc.counters.get("frames.excess_observations") == 80, timeout=20), \
+            svc.counters.snapshot()
+        assert svc.counters.get("rejected") == 0  # valid payloads: bounded, not refused
+        for frame in generate(TrackScenario(n_static=3, n_moving=2, n_starting=0, seed=1), 3):
+            n = len(objects)
+            for o in frame.observations:
+                client_session.put(keys.track(NS, o.track.object_id), encode(o), congestion_control=BLOCK)
+            client_session.put(keys.tracked(NS), encode(frame.tracked), congestion_control=BLOCK)
+            assert wait_until(lambda: len(objects) == n + 1, timeout=30)
+        assert svc.counters.get("frames.missing_observations") == 0
+    finally:
+        svc.close()
+
+
+def _hint(tid: str, seq: int = 1, frame_id: str = "map") -> bytes:
+    return encode(MotionState(header=Header(stamp=1, seq=seq, frame_id=frame_id), track_id=tid, state="static",
+                              mode="z_test", threshold=1.96, alpha=1.96, window_length=10))
+
+
+def test_static_hints_for_made_up_tracks_stay_bounded_and_oversized_ones_are_refused(zenoh_port,
+                                                                                     client_session) -> None:
+    """With ``--static-hints`` the tracker keeps each track's newest ``motion/{id}`` decision until its next frame;
+    with no frame coming, made-up track IDs grew that map for ever. It now holds at most twice ``max_objects``
+    tracks (the rest counted ``static_hints_dropped``), and a ``motion/{id}`` payload over MOTION_MAX_BYTES is
+    refused unread (a frame id of 70 kB had been decoded and kept). The next frame takes what was kept."""
+    svc = TrackerService(loopback_options(NS, zenoh_port, listen_self=True), static_hints=True,
+                         config=default_config(limits=Limits(max_objects=10)))
+    try:
+        tracked: list[bytes] = []
+        client_session.declare_subscriber(keys.tracked(NS), lambda s: tracked.append(s.payload.to_bytes()))
+        stamp0 = 1_700_000_000_000_000_000
+
+        def frame(seq: int) -> bytes:
+            return encode(DetectedObjects(header=Header(stamp=stamp0 + seq * 100_000_000, frame_id="lidar", seq=seq)))
+
+        def answered() -> bool:  # the routes both ways are up
+            client_session.put(keys.detections(NS), frame(len(tracked)), congestion_control=BLOCK)
+            return wait_until(lambda: len(tracked) > 0, timeout=0.3)
+        assert wait_until(answered, timeout=15)
+        ids = _ids(50, seed=5)
+        for tid in ids:
+            client_session.put(keys.motion(NS, tid), _hint(tid), congestion_control=BLOCK)
+        big = _hint(ids[0], seq=2, frame_id="x" * (MOTION_MAX_BYTES + 1))
+        client_session.put(keys.motion(NS, ids[0]), big, congestion_control=BLOCK)
+        assert wait_until(lambda: svc.counters.get("static_hints_received") == 50 and svc.counters.get(
+            "static_hints_dropped") == 30 and svc.counters.get("rejected.motion/*") == 1, timeout=20), \
+            svc.counters.snapshot()
+        assert svc.counters.get("static_hints_dropped") == 30
+        assert svc.counters.get("over_limit.motion/*") == 1
+        n = len(tracked)
+        client_session.put(keys.detections(NS), frame(n + 5), congestion_control=BLOCK)
+        assert wait_until(lambda: len(tracked) > n, timeout=20)
+        assert svc.counters.get("static_hints_unknown") == 20  # the kept ones, taken by the frame (no such tracks)
+        for tid in ids[:5]:  # room again after the frame
+            client_session.put(keys.motion(NS, tid), _hint(tid, seq=3), congestion_control=BLOCK)
+        assert wait_until(lambda: svc.counters.get("static_hints_received") == 55, timeout=20)
+        assert svc.counters.get("static_hints_dropped") == 30
+    finally:
+        svc.close()
+
+
+class _Sink:
+    def __init__(self) -> None:
+        self.frames: list = []
+
+    def write(self, frame) -> None:
+        self.frames.append(frame)
+
+    def close(self) -> None:
+        pass
+
+
+def test_a_bridge_refuses_lists_and_maps_no_message_has_before_building_them(zenoh_port, client_session) -> None:
+    """A bridge (Foxglove, recorders) reads every message with its pydantic model, and nothing bounded that reading
+    but the payload's size: a 1 MB ``detections`` of a million empty objects took minutes of its callback thread
+    and gigabytes. Lists beyond the wire limits and maps beyond any model's fields are refused from their headers
+    now (counted ``over_limit.<key>``); the same key's real messages still go through."""
+    sink = _Sink()
+    svc = BridgeService(loopback_options(NS, zenoh_port, listen_self=True), sink, points=False)
+    try:
+        header = {"stamp": 1_700_000_000_000_000_000, "frame_id": "lidar", "seq": 1}
+        many_objects = msgpack.packb({"schema_version": 1, "header": header, "objects": [{}] * 5000})
+        wide_object = msgpack.packb({"schema_version": 1, "header": header,
+                                     "objects": [{f"k{i}": 0 for i in range(5000)}]})
+
+        def settled() -> bool:  # the routes are up once a valid message comes through
+            client_session.put(keys.detections(NS), encode(DetectedObjects(header=Header(**header))),
+                               congestion_control=BLOCK)
+            return wait_until(lambda: svc.counters.get("received") > 0, timeout=0.3)
+        assert wait_until(settled, timeout=15)
+        for payload in (many_objects, wide_object):
+            client_session.put(keys.detections(NS), payload, congestion_control=BLOCK)
+        assert wait_until(lambda: svc.counters.get("over_limit.detections") == 2, timeout=20), svc.counters.snapshot()
+        assert svc.counters.get("rejected.detections") == 2
+    finally:
+        svc.close()
+
+
+def _padded(header: dict, pad: int) -> bytes:
+    """A payload with ``header`` and a ``pad`` bytes long field: beyond any limit, whatever the header says."""
+    return msgpack.packb({"schema_version": 1, "header": header, "pad": b"\0" * pad})
+
+
+def test_the_tracker_refuses_a_payload_over_its_limit_before_queueing_it(zenoh_port, client_session) -> None:
+    """``detections`` payloads were copied into the tracker's inbox (64 of them, of any size Zenoh carries: up to
+    1 GiB) and only the worker looked at their size — after their header: an oversized one that claimed the last
+    frame's header was dropped as a duplicate, never counted as over the limit. It is refused from its size on
+    arrival now (``over_limit.detections``), before it is copied or queued."""
+    svc = TrackerService(loopback_options(NS, zenoh_port, listen_self=True),
+                         config=default_config(limits=Limits(max_payload_bytes=64 * 1024)))
+    try:
+        tracked: list[bytes] = []
+        client_session.declare_subscriber(keys.tracked(NS), lambda s: tracked.append(s.payload.to_bytes()))
+        header = {"stamp": 1_700_000_000_000_000_000, "frame_id": "lidar", "seq": 0}
+
+        def answered() -> bool:  # the routes both ways are up
+            header["seq"] += 1
+            header["stamp"] += 100_000_000
+            client_session.put(keys.detections(NS), encode(DetectedObjects(header=Header(**header))),
+                               congestion_control=BLOCK)
+            return wait_until(lambda: len(tracked) > 0, timeout=0.3)
+        assert wait_until(answered, timeout=15)
+        assert wait_until(lambda: svc.last_seq == header["seq"], timeout=10)
+        client_session.put(keys.detections(NS), _padded(header, 200_000), congestion_control=BLOCK)
+        assert wait_until(lambda: svc.counters.get("over_limit.detections") == 1, timeout=20), svc.counters.snapshot()
+        assert svc.counters.get("dropped_duplicate") == 0 and svc.counters.get("rejected.detections") == 1
+    finally:
+        svc.close()
+
+
+def test_the_classifier_refuses_a_close_over_its_limit_before_queueing_it(zenoh_port, client_session) -> None:
+    """The same for the classifier's ``tracked``: its queue of closes held 64 payloads of any size, judged by their
+    header before their size (an oversized repeat of the last frame's header was counted a duplicate frame)."""
+    svc = ClassifierService(loopback_options(NS, zenoh_port, listen_self=True), straggler_timeout_s=0.5,
+                            limits=Limits(max_payload_bytes=64 * 1024), config_writes=ConfigWritePolicy.open())
+    try:
+        objects: list[bytes] = []
+        client_session.declare_subscriber(keys.objects(NS), lambda s: objects.append(s.payload.to_bytes()))
+        assert wait_until(lambda: any(True for _ in client_session.liveliness().get(
+            keys.alive(NS, "classifier"), timeout=0.5)), 10)
+        (frame,) = generate(TrackScenario(n_static=2, n_moving=1, n_starting=0, seed=2), 1)
+        for o in frame.observations:
+            client_session.put(keys.track(NS, o.track.object_id), encode(o), congestion_control=BLOCK)
+        client_session.put(keys.tracked(NS), encode(frame.tracked), congestion_control=BLOCK)
+        assert wait_until(lambda: len(objects) == 1, timeout=30)
+        h = frame.tracked.header
+        client_session.put(keys.tracked(NS), _padded({"stamp": h.stamp, "frame_id": h.frame_id, "seq": h.seq},
+                                                     200_000), congestion_control=BLOCK)
+        assert wait_until(lambda: svc.counters.get("over_limit.tracked") == 1, timeout=20), svc.counters.snapshot()
+        assert svc.counters.get("frames.duplicate_or_late_frames") == 0
+    finally:
+        svc.close()
+
+
+def test_the_detector_refuses_a_scan_whose_lists_no_scan_has_before_building_them(zenoh_port,
+                                                                                 client_session) -> None:
+    """A ``points`` payload was bounded only by ``max_scan_bytes`` (64 MB): a 2 MB scan whose ``fields`` held two
+    million one-byte items cost the detector's callback 7 s and 1.9 GB (pydantic builds the list, then one error per
+    item). A list beyond ``max_list_items`` or a map beyond any model's fields is refused from its header now,
+    counted ``over_limit.points``."""
+    svc = DetectorService(loopback_options(NS, zenoh_port, listen_self=True), Detector.load(None, "lite", threads=1))
+    try:
+        pub = client_session.declare_publisher(keys.points(NS), congestion_control=BLOCK)
+        assert wait_until(lambda: pub.matching_status.matching, 15)
+        header = {"stamp": 1_700_000_000_000_000_000, "frame_id": "lidar", "seq": 1}
+        long_list = {"schema_version": 1, "header": header, "fields": [0] * 100_000, "num_points": 0, "data": b""}
+        wide_map = {"schema_version": 1, "header": header, "ego_pose": {f"k{i}": 0 for i in range(100_000)},
+                    "num_points": 0, "data": b""}
+        for payload in (long_list, wide_map):
+            pub.put(msgpack.packb(payload))
+        assert wait_until(lambda: svc.counters.get("rejected.points") == 2, timeout=20), svc.counters.snapshot()
+        assert svc.counters.get("over_limit.points") == 2
+    finally:
+        svc.close()
+
+
+def test_a_config_write_is_bounded_before_it_is_built(zenoh_port, client_session) -> None:
+    """A config write over Zenoh (with the token, or under ``--open-config-writes``) was decoded whole: one 8 MB
+    per-class map was built and validated key by key on the query's thread. A write over CONFIG_MAX_BYTES, or with
+    a map or list longer than any config has, is refused from its size or its header now; nothing is applied and
+    the refusal is counted per key."""
+    svc = ClassifierService(loopback_options(NS, zenoh_port, listen_self=True), config_writes=ConfigWritePolicy.open())
+    try:
+        assert wait_until(lambda: any(True for _ in client_session.liveliness().get(
+            keys.alive(NS, "classifier"), timeout=0.5)), 10)
+        before = svc.core.config
+        wide = {"schema_version": 1, "alpha_per_class": {f"k{i}": 1.0 for i in range(100)}}
+        big = {"schema_version": 1, "calibration_file": "x" * (CONFIG_MAX_BYTES + 1)}
+        for payload, why in ((wide, "map holds more than"), (big, "bytes exceed")):
+            (reply,) = list(client_session.get(keys.classifier_config(NS), payload=msgpack.packb(payload), timeout=5))
+            assert reply.err is not None
+            answer = decode(ConfigReply, reply.err.payload.to_bytes())
+            assert not answer.ok and why in answer.error, answer.error
+        assert svc.core.config == before and svc.counters.get("rejected.classifier/config") == 2
+        (ok,) = list(client_session.get(keys.classifier_config(NS), timeout=5,
+                                        payload=encode(ClassifierConfig(alpha_default=2.5))))
+        assert ok.ok is not None and svc.core.config.alpha_default == 2.5  # a real write still goes through
+    finally:
+        svc.close()
