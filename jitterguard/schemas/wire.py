@@ -89,6 +89,11 @@ class Limits(BaseModel):
 
 LIMITS = Limits()
 
+MAX_HEARTBEAT_BYTES = 256 * 1024
+"""A heartbeat larger than this is refused unread by every reader (the sidecar, the stack's monitor, ``status``). A
+real one is a few KB (the classifier's, with its calibration gauges, ~5 KB); unbounded, a flood of 100 MB counter
+maps under made-up names had been read in full and kept."""
+
 MAX_MAP_ENTRIES = 64
 """Entries of any map of a hot message: their models have fixed fields (15 at most, ``MotionState``), so a larger map is
 invalid whatever it holds. Refused before it is built (:class:`LimitExceeded`): a ``detections`` or ``tracks/{id}``

@@ -26,6 +26,7 @@ from ..runtime.progress import FAILING, Health
 from ..runtime.service import HANG_GRACE_S, HEARTBEAT_PERIOD_S
 from ..schemas import DecodeError, decode, keys
 from ..schemas.models import Heartbeat
+from ..schemas.wire import MAX_HEARTBEAT_BYTES
 from . import summary
 from .status import SPEC_FILE, load_spec
 
@@ -70,7 +71,7 @@ class StackMonitor(Service):
 
     def _on_beat(self, sample: zenoh.Sample) -> None:
         try:
-            hb = decode(Heartbeat, sample.payload.to_bytes())
+            hb = decode(Heartbeat, sample.payload.to_bytes(), max_bytes=MAX_HEARTBEAT_BYTES)
         except DecodeError as exc:
             self.reject(exc, keys.heartbeat_all(self.ns), str(sample.key_expr))
             return

@@ -17,7 +17,8 @@ from jitterguard.runtime import build_config, loopback_options
 from jitterguard.schemas import encode, keys
 from jitterguard.schemas.models import Heartbeat
 from jitterguard.services.sidecar.app import SidecarSettings, create_app
-from jitterguard.services.sidecar.client import MAX_HEARTBEAT_BYTES, MAX_SERVICES
+from jitterguard.schemas.wire import MAX_HEARTBEAT_BYTES
+from jitterguard.services.sidecar.client import MAX_SERVICES
 
 from .stack import Stack, Uvicorn, start_stack, wait_for
 

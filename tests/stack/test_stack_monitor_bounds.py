@@ -19,6 +19,7 @@ import pytest
 from jitterguard.runtime import ZenohOptions, build_config, free_tcp_port, open_session
 from jitterguard.schemas import encode, keys
 from jitterguard.schemas.models import Heartbeat
+from jitterguard.schemas.wire import MAX_HEARTBEAT_BYTES
 from jitterguard.stack import summary
 
 from helpers import wait_until
@@ -50,6 +51,9 @@ def test_the_monitor_is_bounded_and_folds_restarted_processes_exactly(tmp_path):
             tracker.put(encode(Heartbeat(service="tracker", pid=1000 + i, stamp=t0 + i,
                                          counters={"frames": 1, "tracks_born": 2})))
             time.sleep(0.01)
+        # one heartbeat past MAX_HEARTBEAT_BYTES: refused from its size, never read into the ledger
+        bloat = {f"c{i:06d}": i for i in range(MAX_HEARTBEAT_BYTES // 8)}
+        session.put(keys.heartbeat(ns, "bloat"), encode(Heartbeat(service="bloat", pid=7, stamp=t0, counters=bloat)))
         ghost = session.declare_publisher(keys.heartbeat(ns, "ghost"))
         for i in range(200):
             ghost.put(encode(Heartbeat(service=f"ghost{i}", pid=50000 + i, stamp=t0 + i, counters={"x_dropped": 1})))
@@ -60,13 +64,15 @@ def test_the_monitor_is_bounded_and_folds_restarted_processes_exactly(tmp_path):
             if data is None:
                 return None
             mon = data["services"].get("monitor", {}).get("counters", {})
-            done = data["frames"]["tracked"] == restarts and mon.get("heartbeats_dropped", 0) > 0
+            rejected = sum(v for k, v in mon.items() if k.startswith("rejected"))
+            done = data["frames"]["tracked"] == restarts and mon.get("heartbeats_dropped", 0) > 0 and rejected > 0
             return data if done else None
 
         assert wait_until(settled, timeout=30, period=0.5), summary.load(tmp_path)
         data = settled()
         assert data is not None
         assert len(data["services"]) <= 64  # a stack has about ten
+        assert "bloat" not in data["services"]
         assert data["tracks"]["born"] == 2 * restarts  # every process counted once, the retired ones folded
         assert data["services"]["tracker"]["processes"] == restarts
         assert len(data["ledger"]["tracker"]) <= 33

@@ -27,6 +27,7 @@ import zenoh
 from ...runtime import Service, ZenohOptions
 from ...schemas import DecodeError, decode, decode_with_raw, encode, keys
 from ...schemas.models import ClassifierConfig, ClassifierStateSnapshot, ConfigReply, Heartbeat
+from ...schemas.wire import MAX_HEARTBEAT_BYTES
 from .core import (PIPELINE_STAGES, ConfigError, RenderedState, config_to_api, diff_states, is_pipeline, render_state,
                    service_problems)
 from .metrics import SidecarMetrics
@@ -40,9 +41,6 @@ NO_INPUT_S = 10.0
 """The classifier's frame count standing still this long, while it is alive, is named under ``warnings``."""
 MAX_SERVICES = 64
 """Heartbeats kept by service name (the namespace's services; a flood of made-up names cannot grow this)."""
-MAX_HEARTBEAT_BYTES = 256 * 1024
-"""A heartbeat larger than this is refused unread (counted ``rejected.heartbeat/*``). A real one is a few KB (the
-classifier's, with its calibration gauges, ~5 KB); unbounded, 64 names' worth of 100 MB counter maps were kept."""
 Listener = Callable[[str, dict[str, Any]], None]
 
 
