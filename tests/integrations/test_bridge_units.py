@@ -20,7 +20,7 @@ from jitterguard.schemas.models import (
     Vector3,
 )
 from jitterguard.services.bridge.frames import ground_split
-from jitterguard.services.bridge.joiner import FrameJoiner, JoinedFrame
+from jitterguard.services.bridge.joiner import MAX_MOTION_PER_FRAME, FrameJoiner, JoinedFrame
 from jitterguard.services.bridge.paths import next_free_path
 
 A, B, C = "a" * 32, "b" * 32, "c" * 32
@@ -126,6 +126,17 @@ def test_the_first_frame_waits_for_late_detections_too() -> None:
         j.add_detections(DetectedObjects(header=hdr(1, "lidar")))  # after the objects
         (f1,) = j.poll(now=2.25)  # no ground truth in this run: out once motion_wait_s is over
         assert f1.points is not None and f1.detections is not None
+
+
+def test_made_up_motion_ids_cannot_grow_a_frames_buffer() -> None:
+    """Anyone on the bus may put ``motion/{id}``: a frame keeps at most MAX_MOTION_PER_FRAME of them (a frame has at
+    most that many objects), the rest counted; a real one already held is still replaced."""
+    j = FrameJoiner(motion_wait_s=0.0)
+    for i in range(MAX_MOTION_PER_FRAME + 500):
+        j.add_motion(motion(5, f"{i:032x}"))
+    j.add_motion(motion(5, f"{0:032x}", state="dynamic"))
+    assert len(j._motion.items[5]) == MAX_MOTION_PER_FRAME and j.counters["motion_dropped"] == 500
+    assert j._motion.items[5][f"{0:032x}"].state == "dynamic"
 
 
 def test_a_track_without_a_decision_this_frame_keeps_its_latest_one() -> None:

@@ -40,6 +40,7 @@ from ...schemas.models import (
     Pose,
     TrackedObjects,
 )
+from ...schemas.wire import LIMITS
 
 T = TypeVar("T")
 
@@ -54,6 +55,10 @@ def motion_expected(tracked: TrackedObjects, objects: TrackedObjects) -> list[st
 
 DEFAULT_MOTION_WAIT_S = 0.25
 DEFAULT_MAX_PENDING = 32
+MAX_MOTION_PER_FRAME = LIMITS.max_objects
+"""``motion/{id}`` messages kept per frame: a frame has at most ``max_objects`` objects, so more are made-up track IDs
+(anyone on the bus may put one); beyond it they are dropped and counted ``motion_dropped`` — the per-frame buffer had
+grown with every ID put."""
 RESTART_GAP = 8
 """A message this many frames behind the last one out is no straggler (a frame goes out once its motion states are
 in, ``motion_wait_s`` after its objects, or when a later frame's objects arrive: what is late is a frame or two
@@ -197,6 +202,9 @@ class FrameJoiner:
         if per is None:
             per = {}
             self._count("dropped_pending", self._motion.put(seq, per))
+        if len(per) >= MAX_MOTION_PER_FRAME and msg.track_id not in per:
+            self._count("motion_dropped")
+            return
         per[msg.track_id] = msg
 
     def add_objects(self, msg: TrackedObjects, now: float) -> None:
