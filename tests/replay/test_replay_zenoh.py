@@ -112,6 +112,20 @@ def test_a_scan_cannot_go_on_the_detections_key(ns: str) -> None:
             svc.emit(scan(0), 0, 0)
 
 
+def test_a_replay_whose_frames_keep_failing_to_read_says_so_in_its_health(ns: str) -> None:
+    """Frames skipped one after another (a recording gone bad under a looping replay) had left the replay's health
+    ``ok`` while nothing entered the pipeline: from the fifth in a row it is ``failing`` naming the last error, and
+    the next frame that reads makes it ``ok`` again."""
+    with ReplayService(loopback_options(ns, free_tcp_port(), listen_self=True)) as svc:
+        assert svc.health().ok
+        svc.replay(memory(8, errors=(1, 2, 3, 4, 5, 6, 7)), ReplayPlan(rate=None))
+        health = svc.health()
+        assert health.state == "failing" and "the last 7 frames failed to read" in health.reason
+        assert "bad7.bin" in health.reason
+        svc.replay(memory(8, errors=(0, 1, 2, 3)), ReplayPlan(rate=None))  # four in a row, then frames read
+        assert svc.health().ok
+
+
 # -------------------------------------------------------------------------------------- the command
 
 

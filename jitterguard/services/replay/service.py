@@ -11,6 +11,7 @@ import time
 from collections.abc import Callable
 
 from ...runtime import Service, ZenohOptions
+from ...runtime.progress import FAILING, Health, ProgressPolicy
 from ...schemas import encode, keys
 from .adapter import message_for, truth_for
 from .frames import Frame, FrameError, ScanFrame
@@ -32,6 +33,8 @@ class ReplayService(Service):
         self.key = keys.points(self.ns) if kind == "points" else keys.detections(self.ns)
         self.pub = self.publisher(self.key, block=True)
         self._truth_pub: object | None = None  # declared with the first frame that has labels
+        self._failed_in_row = 0  # frames that failed to read since the last one published
+        self._last_error = ""
 
     def wait_for_subscribers(self, timeout_s: float) -> bool:
         """Wait until some subscriber matches our key (a replay into the void loses its first frames)."""
@@ -56,6 +59,16 @@ class ReplayService(Service):
         self.pub.put(encode(message_for(frame, seq, stamp_ns)))
         self.counters.inc("published")
         self.last_seq = seq
+        self._failed_in_row = 0
+
+    def health(self) -> Health:
+        """``failing`` while the last frames (``ProgressPolicy.failing_frames`` or more in a row) failed to read:
+        a replay skipping every frame of a recording gone bad had reported ``ok`` while nothing entered the
+        pipeline. (The replay has no input, so no watchdog restarts it for this: a restart reads the same files.)"""
+        n = self._failed_in_row
+        if n >= ProgressPolicy.failing_frames:
+            return Health(FAILING, f"the last {n} frames failed to read (last: {self._last_error})")
+        return super().health()
 
     def replay(
         self,
@@ -70,6 +83,8 @@ class ReplayService(Service):
 
         def count_error(err: FrameError) -> None:
             self.counters.inc("frame_errors")
+            self._failed_in_row += 1
+            self._last_error = str(err)
             if on_error:
                 on_error(err)
 
