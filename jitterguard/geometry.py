@@ -19,16 +19,30 @@ Quat = tuple[float, float, float, float]
 X_X, X_Y, Y_X, Y_Y = 0, 1, 6, 7  # Autoware's 6x6 covariance indices (row-major over x, y, z, roll, pitch, yaw)
 
 
+UNIT_QUATERNION_TOL = 1e-9
+"""|‖q‖² − 1| up to which a quaternion's heading is read with the unit-quaternion shortcut 1 − 2(y² + z²) (error
+≤ ~1e-9 rad, and every well-formed heading stays bit for bit what it was); beyond it, from the rotation's own
+entries w² + x² − y² − z²: the wire accepts quaternions 1 % off unit (``max_quaternion_error``), and the shortcut
+had turned such a 90° heading into 91.1° — 1 m sideways at 50 m."""
+
+
 def yaw_from_quaternion(x: float, y: float, z: float, w: float) -> float:
-    """Heading (rotation about +z) of a quaternion, in radians."""
-    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+    """Heading (rotation about +z) of a quaternion, in radians; a quaternion need not be of unit length (the
+    rotation it stands for is that of q / ‖q‖, and atan2 does not see the common factor)."""
+    yy_zz = y * y + z * z
+    n2 = w * w + x * x + yy_zz
+    den = 1.0 - 2.0 * yy_zz if abs(n2 - 1.0) <= UNIT_QUATERNION_TOL else w * w + x * x - yy_zz
+    return math.atan2(2.0 * (w * z + x * y), den)
 
 
 def yaws_from_quaternions(x: ArrayLike, y: ArrayLike, z: ArrayLike, w: ArrayLike) -> F64:
     """:func:`yaw_from_quaternion` over arrays, bit for bit (``math.atan2`` per element: numpy's ``arctan2``
     can differ in the last bit, and the same detection must give the same heading whatever form it came in)."""
     x, y, z, w = (np.asarray(a, dtype=np.float64) for a in (x, y, z, w))
-    num, den = 2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z)
+    yy_zz = y * y + z * z
+    n2 = w * w + x * x + yy_zz
+    num = 2.0 * (w * z + x * y)
+    den = np.where(np.abs(n2 - 1.0) <= UNIT_QUATERNION_TOL, 1.0 - 2.0 * yy_zz, w * w + x * x - yy_zz)
     return np.fromiter(map(math.atan2, num.tolist(), den.tolist()), dtype=np.float64, count=num.size)
 
 

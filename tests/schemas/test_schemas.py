@@ -583,3 +583,22 @@ def test_a_payload_must_say_it_was_written_to_this_schema_version(version) -> No
             read(data)
     raw["schema_version"] = 1
     assert decode(TrackedObjects, msgpack.packb(raw)) == _rich_tracked()
+
+
+def test_a_heading_is_read_right_off_a_quaternion_the_wire_accepts_as_near_unit() -> None:
+    """The wire takes quaternions 1 % off unit length; the unit-quaternion shortcut 1 − 2(y² + z²) had read such a
+    90° heading as 91.1°. Unit ones keep their headings bit for bit (the shortcut still serves them), and the array
+    form equals the scalar one element by element."""
+    import math
+
+    from jitterguard.geometry import yaw_from_quaternion, yaws_from_quaternions
+
+    for yaw in (0.3, math.pi / 2, 2.5, -1.2):
+        x, y, z, w = 0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2)
+        assert yaw_from_quaternion(x, y, z, w) == math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+        for scale in (0.99, 1.01):
+            assert yaw_from_quaternion(x * scale, y * scale, z * scale, w * scale) == pytest.approx(yaw, abs=1e-12)
+    qs = np.array([[0.0, 0.0, math.sin(0.7), math.cos(0.7)], [0.0, 0.0, 0.7141, 0.7141], [0.01, 0.02, 0.3, 0.95]])
+    arr = yaws_from_quaternions(*qs.T)
+    assert arr.tolist() == [yaw_from_quaternion(*q) for q in qs.tolist()]
+    assert arr[1] == pytest.approx(math.pi / 2, abs=1e-12)  # 1.0099 × a unit 90° quaternion
