@@ -177,7 +177,9 @@ def _pick(totals: dict[str, int] | None, name: str) -> int | None:
 def build(ledger: Ledger, events: dict[str, ProgramEvents], *, meta: dict[str, Any]) -> dict[str, Any]:
     """The summary as a JSON-able dict (``meta``: stack name, ns, source, start and end times…)."""
     t = {svc: ledger.totals(svc) for svc in ledger.procs}
-    replay = t.get("replay") or t.get("feed-tracks")  # the source: the replay, or feed-tracks at --input tracks
+    # the source's frames: the replay's puts (one per frame), or feed-tracks' frames at --input tracks (its puts
+    # are a frame's every tracks/{id} and its tracked: 1,824 "replayed" for ~150 frames)
+    replayed = _pick(t["replay"], "published") if "replay" in t else _pick(t.get("feed-tracks"), "frames")
     det, trk, cls = (t.get(s) for s in ("detector", "tracker", "classifier"))
     rejected = {svc: c["rejected"] for svc, c in sorted(t.items()) if c.get("rejected")}
     dropped = {f"{svc}.{k}": v for svc, c in sorted(t.items()) for k, v in sorted(c.items()) if v and is_drop(k)}
@@ -186,7 +188,7 @@ def build(ledger: Ledger, events: dict[str, ProgramEvents], *, meta: dict[str, A
     crashes = {name: len(ev.crashes) for name, ev in sorted(events.items()) if ev.crashes}
     return {
         **meta,
-        "frames": {"replayed": _pick(replay, "published"), "detected": _pick(det, "scans"),
+        "frames": {"replayed": replayed, "detected": _pick(det, "scans"),
                    "tracked": _pick(trk, "frames"), "classified": _pick(cls, "frames_processed")},
         "tracks": {"born": _pick(trk, "tracks_born"), "ended": _pick(trk, "tracks_deleted")},
         "objects": {"static": _pick(cls, "objects.static"), "dynamic": _pick(cls, "objects.dynamic"),
