@@ -10,7 +10,6 @@ from __future__ import annotations
 import json
 import os
 import sys
-from pathlib import Path
 from typing import Annotated
 
 import typer
@@ -254,7 +253,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             "--classifier-config", help="Classifier parameter file (as `jitterguard classifier --config`).")] = None,
         tracker_config: Annotated[str | None, typer.Option(
             "--tracker-config", help="Tracker parameter file (as `jitterguard tracker --config`).")] = None,
-        log_dir: Annotated[Path | None, typer.Option(
+        log_dir: Annotated[str | None, typer.Option(
             "--log-dir", help="Where the services' logs go (default: a new temporary folder; the JSON's `logs`).")] = None,
         as_json: Annotated[bool, typer.Option("--json", help="JSON on stdout (the only output format).")] = True,
     ) -> None:
@@ -262,8 +261,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         from .pipeline import bench_pipeline
 
         check_seed("--seed", seed)
-        if log_dir is not None:
-            out_dir("--log-dir", log_dir)  # before the services start: its mkdir had been a traceback
+        if churn > objects:  # had run and reported the churn asked for, though at most --objects can move
+            fail(f"--churn {churn} exceeds --objects {objects}: at most every object can move each frame")
 
         from ..config import ConfigError, load
         from ..services.classifier.config import ClassifierParams
@@ -280,7 +279,10 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             if objects > cap:  # every frame had been dropped unread, and the run reported 0 frames out, exit 0
                 fail(f"--objects {objects} exceeds the {flag[2:-7]}'s limits.max_objects {cap}: every frame would be"
                      f" refused; raise it in a {flag} file")
-        res = bench_pipeline(objects, rate, duration, seed, log_dir=log_dir, split=split, churn=churn,
+        # before the services start (its mkdir had been a traceback), after the flags (a refused run had left it
+        # behind); a str, not a Path: Path("") is "." and the logs went into the current folder
+        log_path = out_dir("--log-dir", log_dir) if log_dir is not None else None
+        res = bench_pipeline(objects, rate, duration, seed, log_dir=log_path, split=split, churn=churn,
                              classifier_config=classifier_config, tracker_config=tracker_config)
         print(json.dumps(res, indent=None if as_json else 2))
 

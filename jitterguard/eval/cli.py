@@ -27,7 +27,7 @@ INPUTS = ("gt-noise", "detector")
 
 
 def eval_command(
-    out: Annotated[Path, typer.Option("--out", help="Folder for report.md, metrics.json and the PNGs.")],
+    out: Annotated[str, typer.Option("--out", help="Folder for report.md, metrics.json and the PNGs.")],
     scenario: Annotated[str | None, typer.Option("--scenario", help="Synthetic scenario (default parking-street).")] = None,
     seed: Annotated[int, typer.Option("--seed", help="Seeds the scenario and the noise model.")] = 0,
     input_: Annotated[str, typer.Option("--input", help="gt-noise (ground truth through the noise model) or detector.")] = "gt-noise",
@@ -200,7 +200,20 @@ def eval_command(
     detector, weights_desc = (load_detector(weights, threads, self_crop, detector_flips) if input_ == "detector"
                               else (None, None))
 
-    out_dir("--out", out)  # before the run: it must not compute for minutes and then fail to write
+    if nuscenes is None:  # checked before --out is made: a refused run had left an empty folder behind
+        from ..sim.world import SCENARIO_NAMES
+
+        if scenario is not None and scenario not in SCENARIO_NAMES:
+            fail(f"--scenario: unknown scenario {scenario!r}; expected one of {', '.join(SCENARIO_NAMES)}")
+    else:
+        from .groundtruth import NuScenesError, nuscenes_scene_names
+
+        try:
+            nuscenes_scene_names(nuscenes, scene, nuscenes_version)
+        except NuScenesError as exc:
+            fail(f"--nuscenes: {exc}")
+    # before the run: it must not compute for minutes and then fail to write (a str, not a Path: Path("") is ".")
+    out = out_dir("--out", out)
     metrics = evaluate(out, scenario=scenario, seed=seed, noise=noise, nuscenes=nuscenes, scene=scene,
                        nuscenes_version=nuscenes_version,
                        sweeps=sweeps, duration=duration, rate=rate, classifier=cfg,
@@ -467,7 +480,7 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
 
 
 def study_command(
-    out: Annotated[Path, typer.Option("--out", help="Folder for study.md, study.json and one folder per run.")],
+    out: Annotated[str, typer.Option("--out", help="Folder for study.md, study.json and one folder per run.")],
     seeds: Annotated[str, typer.Option("--seeds", help="Comma-separated seeds, pooled per run.")] = "0,1,2",
     duration: Annotated[float, typer.Option("--duration", help="Scenario length \\[s].")] = 15.0,
     as_json: Annotated[bool, typer.Option("--json", help="Also print study.json to stdout.")] = False,
@@ -486,7 +499,7 @@ def study_command(
         fail("--seeds: give at least one seed")
     for s in seed_list:
         check_seed("--seeds", s)
-    out_dir("--out", out)
+    out = out_dir("--out", out)  # a str, not a Path: Path("") is "." and the study went into the current folder
     seed = seed_list[0]
     results = {}
     for scenario, noise in STUDY_RUNS:

@@ -17,7 +17,7 @@ from typing import Annotated, Any, TextIO
 
 import typer
 
-from ..cli_common import ProgressOpt, check_seed, fail, progress_on
+from ..cli_common import ProgressOpt, check_seed, fail, out_file, progress_on
 
 sim_app = typer.Typer(help="Synthetic world: scenarios with ground truth, ray-cast LiDAR, nuScenes export.",
                       no_args_is_help=True)
@@ -104,6 +104,8 @@ def generate_command(
 ) -> None:
     """Generate a scenario; print a JSON summary, optionally write its ground truth."""
     check_scenario_options(scenario, duration, rate, lidar, seed)
+    if out is not None and not out.strip():  # had been taken as no --out: nothing written, exit 0
+        fail("--out: empty path; give a file")
     from .lidar import cast_frame
     from .sensors import SENSORS
     from .world import make_scenario
@@ -169,6 +171,8 @@ def export_command(
     check_scenario_options(scenario, duration, rate, lidar, seed)
     if min_points < 0:
         fail("--min-points must be >= 0")
+    if not dataroot.strip():  # it had exported into the current folder
+        fail("DATAROOT: empty path; give a folder")
     root = Path(dataroot)
     if root.exists() and not root.is_dir():
         fail(f"{dataroot}: exists and is not a folder")
@@ -218,6 +222,7 @@ def bev_command(
         fail("--extent must be in [5, 200] metres")
     if not out.lower().endswith(".png"):
         fail("--out must name a .png file")
+    out_file("--out", out)  # before the ray-cast: it had failed only when the PNG was saved
     from .bev import render_bev
     from .lidar import cast_frame
     from .sensors import SENSORS

@@ -452,6 +452,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         check_seed("--seed", seed)
         if detach and duration is not None:
             fail("--duration stops a foreground stack; a detached one (-d) runs until `jitterguard down`")
+        if not foxglove and foxglove_port != 8765:  # it had been ignored without a word
+            fail("--foxglove-port: only with --foxglove (nothing serves Foxglove without it)")
         ropts = R.ReplayOptions(rate=rate, start=start, limit=limit, on_error=on_error, seed=seed, lidar=lidar,
                                 hz=hz, scene=scene, nuscenes_version=nuscenes_version, sweeps=sweeps, poses=poses,
                                 calib=calib, times=times, bin_fields=bin_fields, topic=topic, pose_topic=pose_topic)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -48,8 +49,9 @@ CASES = [
 ]
 
 
-def run(args: list[str]) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "jitterguard.cli", *args], capture_output=True, text=True, timeout=60)
+def run(args: list[str], cwd: Path | None = None) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "jitterguard.cli", *args], capture_output=True, text=True, timeout=60,
+                          cwd=cwd)
 
 
 @pytest.mark.parametrize("args", CASES, ids=[" ".join(c) for c in CASES])
@@ -162,7 +164,7 @@ def test_an_output_that_cannot_be_written_is_refused_before_any_work(args, needl
     # folders and files made only when the work was done (or by a program of a stack already started)
     (["bench", "pipeline", "--log-dir", "/proc/x", "--duration", "1"], "--log-dir: cannot create the folder /proc/x"),
     (["bench", "pipeline", "--log-dir", __file__, "--duration", "1"], "--log-dir: cannot create the folder"),
-    (["domain-gap", "--out", "/proc/x", "--nuscenes", "/nonexistent"], "--out: cannot create the folder /proc/x"),
+    (["domain-gap", "--out", "/proc/x", "--nuscenes", "{tmp}"], "--out: cannot create the folder /proc/x"),
     (["record", "--ros2", "/proc/x", "--connect", "tcp/127.0.0.1:9"], "--ros2: cannot create the folder /proc/x"),
     (["up", "--record-ros2", "/proc/x", "--run-dir", "{tmp}", "--duration", "1"],
      "--record-ros2: cannot create the folder /proc/x"),
@@ -172,11 +174,41 @@ def test_an_output_that_cannot_be_written_is_refused_before_any_work(args, needl
     (["eval-detector", "--out", "{tmp}/ev", "--name", "a/b"], "--name: expected a file-name stem"),
     (["eval-detector", "--out", "{tmp}/ev", "--name", ""], "--name: expected a file-name stem"),
     (["eval-detector", "--out", ""], "--out: empty path"),  # had written into the current folder
+    # typer's Path had made "" the current folder, and the run wrote into it (exit 0)
+    (["eval", "--out", "", "--duration", "1"], "--out: empty path"),
+    (["eval-study", "--out", "", "--duration", "1"], "--out: empty path"),
+    (["bench", "pipeline", "--log-dir", "", "--duration", "1"], "--log-dir: empty path"),
+    (["sim", "generate", "mixed", "--out", "", "--duration", "1"], "--out: empty path"),  # taken as no --out
+    (["sim", "export", "mixed", "", "--duration", "1"], "DATAROOT: empty path"),  # exported into the current folder
+    # refused only after --out had been made: the empty folder was left behind
+    (["eval", "--out", "{tmp}/ev", "--scenario", "nosuch"], "--scenario: unknown scenario 'nosuch'"),
+    (["eval", "--out", "{tmp}/ev", "--nuscenes", "{tmp}"], "--nuscenes: "),
+    (["domain-gap", "--out", "{tmp}/ev", "--nuscenes", "/nonexistent"], "--nuscenes: not a directory"),
+    (["domain-gap", "--out", "{tmp}/ev", "--nuscenes", "{tmp}", "--seeds", "x"], "--seeds: expected seeds like"),
+    (["bench", "pipeline", "--log-dir", "{tmp}/ev", "--objects", "10", "--churn", "20", "--duration", "1"],
+     "--churn 20 exceeds --objects 10"),  # had run, reporting a churn no frame had
+    # the PNG had been tried only after the scenario was made and the scan cast
+    (["sim", "bev", "mixed", "--out", "/proc/x.png", "--frame", "999"], "--out: cannot write /proc/x.png"),
+    # refused before the Zenoh session (retried for ever without a router), not after it
+    (["replay", "synthetic:mixed", "--start", "100000", "--connect", "tcp/127.0.0.1:9"],
+     "--start 100000 is past the end of synthetic:mixed"),
+    (["replay", "synthetic:mixed", "--wait-subscriber", "nan", "--connect", "tcp/127.0.0.1:9"],
+     "--wait-subscriber must be a number of seconds >= 0"),  # had waited for ever
+    # flags that had been ignored without a word
+    (["foxglove", "--overwrite", "--connect", "tcp/127.0.0.1:9"], "--overwrite: only with --record"),
+    (["foxglove", "--number-if-exists", "--connect", "tcp/127.0.0.1:9"], "--number-if-exists: only with --record"),
+    (["foxglove", "--record", "{tmp}/ev.mcap", "--overwrite", "--number-if-exists", "--connect", "tcp/127.0.0.1:9"],
+     "give one of them"),
+    (["up", "--foxglove-port", "9001", "--run-dir", "{tmp}", "--router-port", "0", "--duration", "1"],
+     "--foxglove-port: only with --foxglove"),
 ])
 def test_bad_input_is_refused_in_one_line_before_any_work(args, needle, tmp_path):
-    res = run([a.replace("{tmp}", str(tmp_path)) for a in args])
+    cwd = tmp_path / "cwd"  # an empty --out that regressed to "the current folder" writes here, not into the repo
+    cwd.mkdir()
+    res = run([a.replace("{tmp}", str(tmp_path)) for a in args], cwd=cwd)
     assert res.returncode == 2 and res.stderr.count("\n") == 1 and needle in res.stderr, res.stderr
     assert not (tmp_path / "ev").exists() and not (tmp_path / "supervisord.conf").exists()
+    assert not any(cwd.iterdir())
 
 
 @pytest.mark.parametrize(("bands", "needle"), [("-5", "Input should be greater than 0"),

@@ -663,14 +663,16 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         frames: Annotated[int, typer.Option("--frames-per-scenario", min=1, max=600)] = 5,
     ) -> None:
         """Measure how real scans differ from synthetic ones (returns by range, on cars, road height)."""
-        out_dir("--out", out)  # before any work: a run must not fail to write its result at the end
-        if not os.path.isdir(nuscenes):
-            fail(f"--nuscenes: not a directory: {nuscenes}")
         specs = effects or ["none", "random"]
         for e in specs:
             _effects(e)
         scen = _scenarios(scenarios)
         sd = parse_seeds(seeds, "--seeds")
+        if not os.path.isdir(nuscenes):
+            fail(f"--nuscenes: not a directory: {nuscenes}")
+        # before any work (a run must not fail to write its result at the end), after the flags (a refused run
+        # had left the folder behind)
+        out_dir("--out", out)
         from ..replay.frames import SourceError
         from .data import nuscenes_samples, synthetic_samples
         from .domain_gap import comparison_plot, scan_statistics

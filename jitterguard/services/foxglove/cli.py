@@ -41,6 +41,10 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
 
         if not server and record is None:
             fail("--no-server without --record: nothing to do")
+        if record is None and (overwrite or number_if_exists):  # had been ignored without a word
+            fail(f"{'--overwrite' if overwrite else '--number-if-exists'}: only with --record")
+        if overwrite and number_if_exists:  # --overwrite had won without a word
+            fail("--overwrite replaces the --record file, --number-if-exists keeps it: give one of them")
         if server and not is_loopback(host):
             fail(f"--host: {host!r} is not a loopback address; the Foxglove protocol has no authentication"
                  " (view remotely through an SSH tunnel)")

@@ -125,8 +125,8 @@ def replay_command(
                          duration=duration, lidar=lidar, hz=hz, scene=scene, nuscenes_version=nuscenes_version,
                          sweeps=sweeps, poses=poses, calib=calib, times=times, bin_fields=bin_fields, topic=topic,
                          pose_topic=pose_topic)
-    if wait_subscriber < 0:
-        fail(f"--wait-subscriber must be >= 0, got {wait_subscriber}")
+    if not wait_subscriber >= 0:  # nan had passed (every comparison with it is false) and waited for ever
+        fail(f"--wait-subscriber must be a number of seconds >= 0, got {wait_subscriber}")
     try:
         src_opts = opts.check()
         plan = opts.plan(loop=loop, stamps=stamps)
@@ -142,6 +142,12 @@ def replay_command(
     except Exception as exc:  # a reader that failed in a way it did not foresee: still one line
         fail(f"{source}: cannot open: {type(exc).__name__}: {exc}")
     with src:
+        if src.info.num_frames is not None and plan.start >= src.info.num_frames:
+            # refused before the Zenoh session: it had been refused only after the router came up (retried for
+            # ever without one) and the wait for a subscriber
+            from .sources.base import past_end
+
+            fail(str(past_end(plan.start, src.info)))
         for note in src.info.notes:
             log.info("%s", note)
         for warning in src.info.warnings:
