@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+import signal
+import subprocess
 import time
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
@@ -19,6 +22,20 @@ SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 """``../shared/data`` beside the repository: the real recordings (tests that need them skip where it is absent)."""
 NUSC = SHARED_DATA / "nuscenes-scene-0523"
 """The one labelled real scene (nuScenes, 2 Hz key frames)."""
+
+def stop_process(proc: subprocess.Popen, timeout: float = 20.0) -> None:
+    """End a process a test started: resumed first (a test may have stopped it: SIGTERM would wait for that),
+    SIGTERM, and SIGKILL if it has not ended within ``timeout``."""
+    if proc.poll() is not None:
+        return
+    os.kill(proc.pid, signal.SIGCONT)
+    proc.terminate()
+    try:
+        proc.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
 
 def wait_until(pred: Callable[[], bool], timeout: float = 10.0, period: float = 0.02) -> bool:
     """Poll ``pred`` until it holds or ``timeout`` passes (no fixed sleeps in tests)."""

@@ -148,6 +148,7 @@ def calibrate_command(
     from ..services.classifier.calibration_file import write_calibration
     from ..services.replay.frames import SourceError
     from ..services.replay.sources import SourceOptions, open_source
+    from ..services.replay.sources.base import check_start
 
     try:
         bands = [float(x) for x in range_bands.split(",") if x.strip()]
@@ -170,6 +171,11 @@ def calibrate_command(
         fail(str(exc))
     except Exception as exc:  # a reader that failed in a way it did not foresee: still one line
         fail(f"{recording}: cannot open: {type(exc).__name__}: {exc}")
+    if start:  # past the end: refused before a detector is loaded or a frame read
+        try:
+            check_start(start, src.info)
+        except SourceError as exc:
+            fail(str(exc))
     detector = None
     for warning in src.info.warnings:  # e.g. a bag without --pose-topic: its scans all at the identity pose
         print(f"jitterguard: warning: {warning}", file=sys.stderr)
@@ -191,11 +197,6 @@ def calibrate_command(
         cal, seen = calibrate_detections(msgs, cfg)
     if seen["frames"] == 0 and errors:
         fail(f"{recording}: none of its {len(errors)} frame(s) read; first: {errors[0]}")
-    n_frames = src.info.num_frames
-    if seen["frames"] == 0 and start and n_frames is not None and start >= n_frames:
-        from ..services.replay.sources.base import past_end
-
-        fail(str(past_end(start, src.info)))
     if seen["blocks"] == 0:
         fail(f"{recording}: no track stood still long enough to calibrate on ({seen['frames']} frames, "
              f"{seen['observations']} observations); use a longer recording")

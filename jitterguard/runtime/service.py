@@ -168,6 +168,18 @@ class Service:
             self.counters.inc(f"over_limit.{key}")
         self._reject_log.warn(f"rejected payload on {sample_key or sub_key}: {exc}")
 
+    def oversized(self, sample: zenoh.Sample, max_bytes: int | None, what: str, sub_key: str,
+                  limit_name: str = "") -> bool:
+        """Whether ``sample`` is over ``max_bytes``; if so it is refused from its size, as :meth:`reject` counts a
+        :class:`LimitExceeded` (``what``: the message, or ``payload``; ``limit_name``: the limit's name for the
+        log), before its bytes are copied or queued."""
+        n = len(sample.payload)
+        if max_bytes is None or n <= max_bytes:
+            return False
+        limit = f"{limit_name} {max_bytes}" if limit_name else str(max_bytes)
+        self.reject(LimitExceeded(what, "", f"{n} bytes exceed {limit}"), sub_key, str(sample.key_expr))
+        return True
+
     def subscribe(self, key: str, model: type[M], handler: Callable[[M, str], None], *,
                   max_bytes: int | None = None, max_array_len: int | None = None,
                   max_map_len: int | None = None) -> None:
@@ -216,10 +228,8 @@ class Service:
         counter = f"dropped_queue.{key.split('/', 2)[-1]}"
 
         def on_sample(sample: zenoh.Sample) -> None:
-            if max_bytes is not None and len(sample.payload) > max_bytes:
+            if self.oversized(sample, max_bytes, "payload", key):
                 self.counters.inc("received")
-                self.reject(LimitExceeded("payload", "", f"{len(sample.payload)} bytes exceed {max_bytes}"), key,
-                            str(sample.key_expr))
                 return
             now = time.monotonic()
             if progress and self.progress is not None:

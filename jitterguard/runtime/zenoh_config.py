@@ -210,9 +210,11 @@ def open_session(cfg: zenoh.Config, *, stop: threading.Event | None = None, time
 
 
 def free_tcp_port(host: str = "127.0.0.1") -> int:
-    """A TCP port that was free a moment ago (for tests and local stacks)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind((host, 0))
+    """A TCP port that was free on ``host`` (an IPv4 or IPv6 literal, or a name) a moment ago (for tests and local
+    stacks: ``up --port 0``)."""
+    family, _, _, _, addr = socket.getaddrinfo(host, 0, type=socket.SOCK_STREAM)[0]
+    with socket.socket(family, socket.SOCK_STREAM) as s:
+        s.bind(addr)
         return int(s.getsockname()[1])
 
 

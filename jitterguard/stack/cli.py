@@ -29,7 +29,7 @@ from typing import Annotated, Any, NoReturn
 import typer
 
 from ..cli_common import NsOpt, check_seed, fail, new_dir, out_file
-from ..runtime import ZenohOptions, build_config, open_session
+from ..runtime import ZenohOptions, build_config, free_tcp_port, open_session
 from ..runtime.signals import stop_on_signals
 from ..schemas import keys
 from ..services.replay import cli as R  # the replay's own option declarations, shared with `up`
@@ -284,7 +284,7 @@ def _pick_ports(wanted: list[tuple[int, str, bool]]) -> list[int]:
         if port == 0 and used:
             for _ in range(100):
                 try:
-                    port = _free_port(host or "0.0.0.0")
+                    port = free_tcp_port(host or "0.0.0.0")
                 except OSError as exc:
                     fail(f"--host {host}: cannot bind a port there: {exc.strerror or exc}")
                 if port not in taken:
@@ -292,14 +292,6 @@ def _pick_ports(wanted: list[tuple[int, str, bool]]) -> list[int]:
             taken.add(port)
         out.append(port)
     return out
-
-
-def _free_port(host: str) -> int:
-    """A TCP port free on ``host`` a moment ago (IPv4 or IPv6 literal, or a name)."""
-    family, _, _, _, addr = socket.getaddrinfo(host, 0, type=socket.SOCK_STREAM)[0]
-    with socket.socket(family, socket.SOCK_STREAM) as s:
-        s.bind(addr)
-        return int(s.getsockname()[1])
 
 
 SCENARIO_DURATION = "--scenario-duration"

@@ -304,14 +304,13 @@ def stop_lost(run_dir: Path, timeout: float) -> int | None:
 def stop_orphans(run_dir: Path, timeout: float = 15.0) -> list[str]:
     """SIGTERM each orphan's process group (SIGKILL after ``timeout``); returns the programs stopped."""
     found = orphans(run_dir)
-    kill = _signal_program
     for pid in found.values():
-        kill(pid, signal.SIGTERM)
+        _signal_program(pid, signal.SIGTERM)
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline and any(pid_alive(p) for p in found.values()):
         time.sleep(0.1)
     for pid in found.values():
         if pid_alive(pid):
-            kill(pid, signal.SIGKILL)
+            _signal_program(pid, signal.SIGKILL)
     (run_dir / PIDFILE).unlink(missing_ok=True)
     return sorted(found)

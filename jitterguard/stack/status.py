@@ -149,7 +149,7 @@ def _not_running(proc: ProcessInfo) -> str:
     last = next((ln.strip() for ln in reversed(tail(proc.logfile, 5)) if ln.strip()), "") if proc.logfile else ""
     if last:
         what += f"; its log ends: {last[:200]}"
-    if proc.name in SOURCE_PROGRAMS and proc.state not in ("STARTING",):
+    if proc.name in SOURCE_PROGRAMS and proc.state != "STARTING":
         what += "; no frames enter the pipeline"
     return what
 
@@ -212,11 +212,10 @@ def render_table(rows: list[ServiceStatus], spec: StackSpec | None, run_dir: Pat
         color = "green" if r.state == "RUNNING" else ("yellow" if r.state in ("STARTING", "BACKOFF") else "red")
         alive = "-" if r.alive is None else ("[green]yes[/]" if r.alive else "[red]no[/]")
         seq = "-" if r.last_seq is None else ("none yet" if r.last_seq < 0 else str(r.last_seq))
-        progress = (f"[red]{escape(r.problem)}[/]" if r.problem and r.state != "RUNNING" else
+        # a problem: a program not running, or (running, no health of its own) the router not answering
+        progress = (f"[red]{escape(r.problem)}[/]" if r.problem and (r.state != "RUNNING" or r.health is None) else
                     ("-" if r.heard else "[red]no heartbeat heard[/]") if r.health is None else
                     ("[green]ok[/]" if r.health == "ok" else f"[red]{r.health}[/]: {escape(r.health_reason)}"))
-        if r.problem and r.state == "RUNNING" and r.health is None:  # the router, unreachable
-            progress = f"[red]{escape(r.problem)}[/]"
         table.add_row(r.name, f"[{color}]{r.state}[/]", str(r.pid or "-"), _fmt_uptime(r.uptime_s), alive, seq,
                       progress)
     console.print(table)

@@ -22,6 +22,8 @@ import pytest
 from jitterguard.runtime import free_tcp_port
 from jitterguard.runtime.sd_notify import Notifier
 
+from helpers import stop_process
+
 pytestmark = pytest.mark.integration
 
 
@@ -62,17 +64,6 @@ def _start(args: list[str], notify: Path, tmp_path: Path) -> subprocess.Popen:
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
 
-def _stop(proc: subprocess.Popen) -> None:
-    if proc.poll() is None:
-        os.kill(proc.pid, signal.SIGCONT)
-        proc.terminate()
-        try:
-            proc.wait(timeout=60)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-
-
 def test_a_service_pings_while_it_waits_for_the_router_and_from_its_heartbeat(tmp_path):
     port = free_tcp_port()
     endpoint = f"tcp/127.0.0.1:{port}"
@@ -100,9 +91,9 @@ def test_a_service_pings_while_it_waits_for_the_router_and_from_its_heartbeat(tm
         os.kill(service.pid, signal.SIGCONT)
         assert svc_sock.wait_for(b"WATCHDOG=1", timeout=30)
     finally:
-        _stop(service)
+        stop_process(service, timeout=60)
         if router is not None:
-            _stop(router)
+            stop_process(router, timeout=60)
         svc_sock.close()
         router_sock.close()
 

@@ -22,7 +22,7 @@ from jitterguard.schemas.models import Heartbeat
 from jitterguard.schemas.wire import MAX_HEARTBEAT_BYTES
 from jitterguard.stack import summary
 
-from helpers import wait_until
+from helpers import stop_process, wait_until
 
 pytestmark = pytest.mark.integration
 
@@ -81,9 +81,4 @@ def test_the_monitor_is_bounded_and_folds_restarted_processes_exactly(tmp_path):
         if session is not None:
             session.close()
         for p in reversed(procs):
-            p.terminate()
-            try:
-                p.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait()
+            stop_process(p)

@@ -21,7 +21,6 @@ from typing import Any, Protocol
 from ...runtime import Service, ZenohOptions
 from ...runtime.service import _BurstLogger
 from ...schemas import keys
-from ...schemas.wire import LIMITS, MAX_MAP_ENTRIES
 from ...schemas.models import (
     DetectedObjects,
     GroundTruthObjects,
@@ -29,10 +28,12 @@ from ...schemas.models import (
     PointCloud,
     TrackedObjects,
 )
+from ...schemas.wire import LIMITS, MAX_MAP_ENTRIES
+from ..detector.config import DetectorParams
 from .joiner import DEFAULT_MOTION_WAIT_S, FrameJoiner, JoinedFrame
 
 INBOX_CAPACITY = 8192
-MAX_SCAN_BYTES = 64 << 20
+MAX_SCAN_BYTES = DetectorParams.model_fields["max_scan_bytes"].default
 """A ``points`` payload larger than this is refused unread (the detector's default ``max_scan_bytes``)."""
 BOUNDS = {"max_array_len": max(LIMITS.max_objects, LIMITS.max_list_items), "max_map_len": MAX_MAP_ENTRIES}
 """What any message a bridge reads may hold, checked before it is built (the pipeline's own readers hold theirs to

@@ -34,7 +34,7 @@ import zenoh
 
 from ...runtime import Service, ZenohOptions
 from ...runtime.gc_policy import IdleCollector, manage_gc_for_latency
-from ...schemas import SCHEMA_VERSION, DecodeError, LimitExceeded, decode, encode, keys
+from ...schemas import SCHEMA_VERSION, DecodeError, decode, encode, keys
 from ...schemas.models import ClassifierConfig, ConfigReply
 from ...schemas.wire import LIMITS, MAX_MAP_ENTRIES, Limits
 from ...stream_order import StreamLimits
@@ -186,11 +186,9 @@ class ClassifierService(Service):
         queue is bounded: a worker that fell behind loses the oldest close (counted ``dropped_queue.tracked``). A
         payload over ``limits.max_payload_bytes`` is refused here from its size, neither copied nor queued (the
         queue had held up to 64 of whatever size Zenoh carries, up to 1 GiB each, for the worker to refuse)."""
-        limit = self.pipeline.limits.max_payload_bytes
-        if len(sample.payload) > limit:
+        if self.oversized(sample, self.pipeline.limits.max_payload_bytes, "TrackedObjects", self._tracked_key,
+                          "max_payload_bytes"):
             self.counters.inc("received")
-            self.reject(LimitExceeded("TrackedObjects", "", f"{len(sample.payload)} bytes exceed max_payload_bytes "
-                                      f"{limit}"), self._tracked_key, str(sample.key_expr))
             return
         t0 = time.perf_counter()
         self.progress.input(time.monotonic())
@@ -313,15 +311,11 @@ class ClassifierService(Service):
             return 0
         taken = len(samples)
         self.counters.inc("received", taken)
-        limit = self.pipeline.limits.max_payload_bytes
-        if any(len(s.payload) > limit for s in samples):  # refused from the size, not copied first
-            for s in samples:
-                if len(s.payload) > limit:
-                    self.reject(LimitExceeded("TrackObservation", "", f"{len(s.payload)} bytes exceed "
-                                              f"max_payload_bytes {limit}"), self._obs_key, str(s.key_expr))
-            samples = [s for s in samples if len(s.payload) <= limit]
-            if not samples:
-                return taken
+        limit = self.pipeline.limits.max_payload_bytes  # refused from the size, not copied first
+        samples = [s for s in samples
+                   if not self.oversized(s, limit, "TrackObservation", self._obs_key, "max_payload_bytes")]
+        if not samples:
+            return taken
         cols = self.pipeline.observations([s.payload.to_bytes() for s in samples],
                                           [keys.last_chunk(str(s.key_expr)) for s in samples])
         for i, exc in cols.errors:

@@ -133,6 +133,7 @@ def replay_command(
     except ValueError as exc:
         fail(str(exc))
     from .sources import open_source
+    from .sources.base import check_start
 
     zopts = zenoh_options(ns, zenoh_config, connect, listen)
     try:
@@ -142,12 +143,11 @@ def replay_command(
     except Exception as exc:  # a reader that failed in a way it did not foresee: still one line
         fail(f"{source}: cannot open: {type(exc).__name__}: {exc}")
     with src:
-        if src.info.num_frames is not None and plan.start >= src.info.num_frames:
-            # refused before the Zenoh session: it had been refused only after the router came up (retried for
-            # ever without one) and the wait for a subscriber
-            from .sources.base import past_end
-
-            fail(str(past_end(plan.start, src.info)))
+        try:  # before the Zenoh session: it had been refused only after the router came up (retried for ever
+            # without one) and the wait for a subscriber
+            check_start(plan.start, src.info)
+        except SourceError as exc:
+            fail(str(exc))
         for note in src.info.notes:
             log.info("%s", note)
         for warning in src.info.warnings:

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..frames import DEFAULT_PERIOD_NS, FrameError, SourceError, SourceInfo
-from .base import MemorySource, Source, past_end
+from .base import MemorySource, Source, check_start, past_end
 
 __all__ = ["Source", "MemorySource", "SourceOptions", "SourceError", "open_source", "probe_source",
            "SYNTHETIC_PREFIX"]
@@ -169,8 +169,7 @@ def probe_source(spec: str, opts: SourceOptions | None = None, *, start: int = 0
 
         info = check_synthetic(spec[len(SYNTHETIC_PREFIX) :], duration_s=opts.duration_s, rate_hz=opts.rate_hz,
                                level=opts.level, lidar=opts.lidar, duration_flag=duration_flag)
-        if info.num_frames is not None and start >= info.num_frames:
-            raise past_end(start, info)
+        check_start(start, info)
         return info
     try:
         src = open_source(spec, opts)

@@ -59,6 +59,13 @@ def listed_scans(folder: Path, is_scan: Callable[[str], bool]) -> list[Path]:
                   key=natural_key)
 
 
+def check_start(start: int, info: SourceInfo) -> None:
+    """Raise :func:`past_end`'s error when the source says how many frames it holds and ``start`` is not before the
+    last: refused up front, before a session is opened or a detector loaded."""
+    if info.num_frames is not None and start >= info.num_frames:
+        raise past_end(start, info)
+
+
 def past_end(start: int, info: SourceInfo) -> SourceError:
     """The error of a ``--start`` at or past the last frame of a source: nothing to replay (the replay's and
     ``jitterguard up``'s probe's one message)."""
