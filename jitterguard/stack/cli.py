@@ -413,7 +413,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         no_sidecar: Annotated[bool, typer.Option("--no-sidecar", help="Leave the HTTP sidecar out.")] = False,
         duration: Annotated[float | None, typer.Option("--duration", min=1.0, help="Stop after this many seconds (foreground).")] = None,
         foxglove: Annotated[bool, typer.Option("--foxglove", help="Serve the pipeline to Foxglove (ws://127.0.0.1:PORT).")] = False,
-        foxglove_port: Annotated[int, typer.Option("--foxglove-port", min=0, max=65535, help="The Foxglove WebSocket port (0: a free one, printed).")] = 8765,
+        foxglove_port: Annotated[int, typer.Option("--foxglove-port", min=0, max=65535, help="The Foxglove WebSocket port (0: a free one, printed).")] = StackSpec.foxglove_port,
         record_mcap: Annotated[str | None, typer.Option("--record-mcap", help="Record the Foxglove channels to this MCAP file.")] = None,
         record_ros2: Annotated[str | None, typer.Option("--record-ros2", help="Record a ROS 2 bag for Autoware into this new folder.")] = None,
         rate: R.RateOpt = "1",
@@ -444,7 +444,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         check_seed("--seed", seed)
         if detach and duration is not None:
             fail("--duration stops a foreground stack; a detached one (-d) runs until `jitterguard down`")
-        if not foxglove and foxglove_port != 8765:  # it had been ignored without a word
+        if not foxglove and foxglove_port != StackSpec.foxglove_port:  # it had been ignored without a word
             fail("--foxglove-port: only with --foxglove (nothing serves Foxglove without it)")
         ropts = R.ReplayOptions(rate=rate, start=start, limit=limit, on_error=on_error, seed=seed, lidar=lidar,
                                 hz=hz, scene=scene, nuscenes_version=nuscenes_version, sweeps=sweeps, poses=poses,
