@@ -46,6 +46,26 @@ ProgressOpt = Annotated[
 ]
 
 
+SensorHeightOpt = Annotated[
+    str | None,
+    typer.Option("--sensor-height", help="Height of the scans' frame above the road in metres (1.84 nuScenes'"
+                 " LIDAR_TOP, 0 a base_link cloud), or 'auto': measured from each scan's ground returns (the"
+                 " default)."),
+]
+
+
+def sensor_height_option(text: str | None) -> float | str | None:
+    """``--sensor-height``'s value for a config override (None: not given), or a one-line refusal (exit 2)."""
+    if text is None:
+        return None
+    from .services.detector.config import parse_sensor_height
+
+    try:
+        return parse_sensor_height(text)
+    except ValueError as exc:
+        fail(f"--sensor-height: {exc}")
+
+
 def progress_on(flag: bool | None) -> bool:
     """Whether to draw a progress bar: as asked, else only on a terminal (a redirected log gets no carriage
     returns)."""

@@ -137,6 +137,8 @@ def test_scan_in_detections_out_with_header_pose_and_variances(harness, scans, d
     c = svc.counters.snapshot()
     assert c["scans"] == 1 and c["detections"] == len(want) and c.get("skipped_scans", 0) == 0
     assert svc.last_seq == 7
+    # the height the scan's frame was taken to have, measured from its ground (the synthetic sensor: 1.84 m)
+    assert c["sensor_height_cm_last"] == round(detector.height_last * 100) and 174 <= c["sensor_height_cm_last"] <= 194
 
 
 def test_flooded_detector_skips_to_the_newest_scan_and_says_so(harness, scans, detector, caplog) -> None:
@@ -378,6 +380,9 @@ def test_bench_detector_json_has_the_documented_shape() -> None:
         (["detector", "--weights", "/nonexistent/lite.pt"], "not found"),
         (["detector", "--ns", "bad/ns"], "--ns"),
         (["detector", "--connect", "nonsense"], "endpoint"),
+        (["detector", "--sensor-height", "tall"], "--sensor-height"),
+        (["detector", "--sensor-height", "184"], "--sensor-height"),
+        (["detector", "--sensor-height", "nan"], "--sensor-height"),
         (["bench", "detector", "--presets", "lite,huge"], "--presets"),
         (["bench", "detector", "--scenario", "moon"], "--scenario"),
         (["bench", "detector", "--weights", "lite"], "--weights"),

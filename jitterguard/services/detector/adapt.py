@@ -46,6 +46,7 @@ from torch import nn
 from .augment import points_in_boxes
 from .config import CLASS_NAMES, SELF_CROP_M, Detections3D, Sample
 from .flips import check_symmetric, merge_mirrored, mirrored_views
+from .ground import height_shift, shift_z
 from .inference import crop_box
 from .network import CenterPointNet
 
@@ -313,6 +314,9 @@ class AdaptConfig:
     flips: bool = False
     """Pseudo-label (and fit the tracked recalibration) with the network averaged over each scan's mirror images
     (:mod:`.flips`): clutter that one view mistakes for a car is diluted before it becomes a label."""
+    sensor_height_m: float | None = None
+    """Height of the real scans' frame above the road (None: measured in each scan, :mod:`.ground`): the scans are
+    moved to the height the network was trained at before anything else, as the service moves them."""
 
 
 def adapt(model: CenterPointNet, scans: Sequence[UnlabelledScan], synthetic: Sequence[Sample], cfg: AdaptConfig,
@@ -341,7 +345,7 @@ def adapt(model: CenterPointNet, scans: Sequence[UnlabelledScan], synthetic: Seq
     pcr = model.config.point_cloud_range
     # the scans as the detector would see them: in range, and without the vehicle's own body (a roof return
     # pseudo-labelled "car" in every scan would teach the ghost the service's self-crop exists to prevent)
-    pts = [_in_range(crop_box(s.points, cfg.self_crop), pcr) for s in scans]
+    pts = [_in_range(at_trained_height(crop_box(s.points, cfg.self_crop), cfg.sensor_height_m), pcr) for s in scans]
     scans = [replace(s, points=p) for s, p in zip(scans, pts)]
     report: dict[str, Any] = {"rounds": []}
     norm_stats("BatchNorm statistics")
@@ -382,6 +386,11 @@ def adapt(model: CenterPointNet, scans: Sequence[UnlabelledScan], synthetic: Seq
             report["recalibration_skipped"] = (f"{nt} tracks of >= 4 detections in recordings with poses; need"
                                                f" {cfg.min_tracks}")
     return report
+
+
+def at_trained_height(points: F32, sensor_height_m: float | None) -> F32:
+    """A real scan moved to the height the network was trained at, as :meth:`~.inference.Detector.detect` moves it."""
+    return shift_z(points, height_shift(points, sensor_height_m)[0])
 
 
 def _in_range(points: F32, pcr: Sequence[float]) -> F32:

@@ -10,9 +10,10 @@ from typing import Annotated
 
 import typer
 
-from ...cli_common import ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ParamFileOpt, ZenohConfigOpt, fail, zenoh_options
+from ...cli_common import (ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ParamFileOpt, SensorHeightOpt, ZenohConfigOpt, fail,
+                           sensor_height_option, zenoh_options)
 from ...config import ConfigError, load
-from .config import PRESETS, DetectorParams
+from .config import PRESETS, DetectorParams, declared_height
 
 WeightsOpt = Annotated[
     str | None,
@@ -97,13 +98,15 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         flips: Annotated[bool | None, typer.Option("--flips/--no-flips", help="Average the network over the scan"
                                                    " and its three mirror images (~4x the network's time).")
                          ] = None,
+        sensor_height: SensorHeightOpt = None,
         log_level: LogLevelOpt = "INFO",
     ) -> None:
         """Run the detector: points in; one DetectedObjects per scan (sensor frame, with variances) out."""
         try:
             params = load(DetectorParams, config, overrides={
                 "weights": weights, "preset": preset, "threads": threads, "score_threshold": score_threshold,
-                "twist": twist, "backend": backend, "onnx": onnx_dir, "flips": flips})
+                "twist": twist, "backend": backend, "onnx": onnx_dir, "flips": flips,
+                "sensor_height_m": sensor_height_option(sensor_height)})
         except ConfigError as exc:
             fail(f"--config: {exc}" if config else str(exc))
         if params.preset not in PRESETS:
@@ -129,11 +132,11 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
 
                 det = open_onnx_detector(params.onnx, params.weights, params.preset, threads=params.threads,
                                          score_threshold=params.score_threshold, self_crop=params.self_crop,
-                                         flips=params.flips)
+                                         flips=params.flips, sensor_height_m=declared_height(params.sensor_height_m))
             else:
                 det = Detector.load(params.weights, params.preset, threads=params.threads,
                                     score_threshold=params.score_threshold, self_crop=params.self_crop,
-                                    flips=params.flips)
+                                    flips=params.flips, sensor_height_m=declared_height(params.sensor_height_m))
         except WeightsError as exc:
             fail(f"{'--onnx' if params.onnx else '--weights'}: {_one_line(exc)}")
         except ValueError as exc:  # flips on weights whose grid is not symmetric about the sensor

@@ -119,6 +119,30 @@ two CPU cores (nuScenes' ±51.2 m, 0.4 m pillars, 256×256, a thinner and shallo
 PAPER, LITE = PRESETS["paper"], PRESETS["lite"]
 
 
+SENSOR_HEIGHT_RANGE_M = (-2.0, 6.0)
+"""Heights of a scan's frame above the road a deployment may declare (``sensor_height_m``): a base_link cloud is
+0, a truck's roof LiDAR 4–5 m; what lies outside is a typo (a height in centimetres, a sign)."""
+
+
+def parse_sensor_height(text: str) -> float | Literal["auto"]:
+    """A ``--sensor-height`` value: ``auto`` or metres within :data:`SENSOR_HEIGHT_RANGE_M`; ValueError otherwise."""
+    if text.strip().lower() == "auto":
+        return "auto"
+    try:
+        value = float(text)
+    except ValueError:
+        raise ValueError(f"expected 'auto' or a height in metres, got {text!r}") from None
+    lo, hi = SENSOR_HEIGHT_RANGE_M
+    if not lo <= value <= hi:  # (NaN fails too)
+        raise ValueError(f"expected 'auto' or a height in metres within [{lo:g}, {hi:g}], got {text!r}")
+    return value
+
+
+def declared_height(value: float | str) -> float | None:
+    """The :class:`~.inference.Detector`'s ``sensor_height_m`` for a config value: None (measure) for ``auto``."""
+    return None if value == "auto" else float(value)
+
+
 SELF_CROP_M: tuple[float, float, float, float] = (-2.0, -2.0, 2.0, 2.0)
 """The default box (x_min, y_min, x_max, y_max, sensor frame, metres) whose returns are the vehicle's own body and
 are dropped before the network sees the scan. A roof-mounted spinning LiDAR sees its own car: on nuScenes'
@@ -175,6 +199,11 @@ class DetectorParams(BaseModel):
     max_scan_bytes: Annotated[int, Field(ge=1 << 20)] = Field(
         64 << 20, description="larger points payloads are refused unread (counted rejected.points, over_limit.points):"
         " 64 MiB is 4 million points of four float32 fields, ten times a 128-beam sensor's scan")
+    sensor_height_m: Annotated[float, Field(ge=SENSOR_HEIGHT_RANGE_M[0], le=SENSOR_HEIGHT_RANGE_M[1])] | Literal[
+        "auto"] = Field("auto", description="height of the scans' frame above the road, m: 1.84 for nuScenes'"
+                        " LIDAR_TOP, your LiDAR's mounting height for its own frame, 0 for a cloud in base_link"
+                        " (Autoware's concatenated cloud); scans are moved to the 1.84 m the network was trained at"
+                        " and the boxes back ('auto': measured from each scan's ground returns; docs/detector.md)")
     backend: Literal["torch", "onnxruntime"] = Field("torch", description="what runs the network")
     onnx: str | None = Field(None, description="onnxruntime backend: a folder written by `jitterguard export-onnx`"
                              " (null: export weights / preset at start-up into a temporary folder)")

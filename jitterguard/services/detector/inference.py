@@ -16,6 +16,7 @@ import os
 import pickle
 import time
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +29,7 @@ from .config import PRESETS, SELF_CROP_M, DetectorConfig, Detections3D, check_cr
 from .decode import decode
 from .evaluate import Recalibration, apply_recalibration
 from .flips import check_symmetric, merge_mirrored, mirrored_views
+from .ground import TRAINED_SENSOR_HEIGHT_M, height_shift, shift_z
 from .network import CenterPointNet
 from .pillars import voxelize
 from .sweeps import stack_sweeps, sweeps_of
@@ -132,12 +134,15 @@ class Detector:
     def __init__(self, model: CenterPointNet, *, recalibration: Recalibration | tuple[float, float] | None = None,
                  score_threshold: float | None = None, threads: int | None = None,
                  meta: dict[str, Any] | None = None, self_crop: Sequence[float] | None = SELF_CROP_M,
-                 device: str | torch.device = "cpu", flips: bool = False) -> None:
+                 device: str | torch.device = "cpu", flips: bool = False,
+                 sensor_height_m: float | None = None) -> None:
         """``self_crop``: returns inside this (x_min, y_min, x_max, y_max) box of the sensor frame are the
         vehicle's own body and never reach the network (:data:`~.config.SELF_CROP_M`; None keeps them).
         ``device``: where voxelisation and the network run (``cuda`` on a GPU machine; decoding and NMS stay on
         the CPU, where the boxes are needed). ``flips``: average the network over the scan and its three mirror
-        images (:mod:`.flips`; about four times the network's time)."""
+        images (:mod:`.flips`; about four times the network's time). ``sensor_height_m``: the scans' frame's
+        height above the road (None: measured in every scan, :mod:`.ground`); scans are moved to the height the
+        network was trained at and the boxes back."""
         self.self_crop = check_crop_box(self_crop)
         self.device = torch.device(device)
         if self.device.type != "cpu":  # (the ONNX Runtime stand-in for the network is CPU-only and has no .to)
@@ -153,6 +158,10 @@ class Detector:
         self.sweeps = sweeps_of(self.config.num_point_features, self.meta)
         """Sweeps the network was trained on (1 for a four-field model): what a caller stacks
         (:class:`~.sweeps.SweepStacker`) before :meth:`detect`."""
+        self.sensor_height_m = sensor_height_m
+        self.height_last = TRAINED_SENSOR_HEIGHT_M
+        """The height the latest scan was taken to have (the declared one, or the latest estimate: a scan too bare
+        to measure keeps the one before)."""
         self.timings: dict[str, float] = {}
         torch.set_num_threads(threads or os.cpu_count() or 1)
 
@@ -160,33 +169,39 @@ class Detector:
     def load(cls, weights: str | Path | None = None, preset: str | None = "lite", *, threads: int | None = None,
              score_threshold: float | None = None, recalibrate: bool = True,
              self_crop: Sequence[float] | None = SELF_CROP_M, device: str | torch.device = "cpu",
-             flips: bool = False) -> "Detector":
+             flips: bool = False, sensor_height_m: float | None = None) -> "Detector":
         """``weights`` if given; else the shipped weights of ``preset``; else a randomly initialised ``preset``
         (logged as a warning — its detections are meaningless). ``recalibrate`` applies the file's fitted
-        per-axis variance scales when it has them; ``self_crop`` and ``flips`` as in the constructor."""
+        per-axis variance scales when it has them; ``self_crop``, ``flips`` and ``sensor_height_m`` as in the
+        constructor."""
         if weights is None and preset is not None and shipped_weights(preset).is_file():
             weights = shipped_weights(preset)
         if weights is not None:
             model, rec, meta = load_weights(weights)
             return cls(model, recalibration=rec if recalibrate else None, score_threshold=score_threshold,
-                       threads=threads, meta=meta, self_crop=self_crop, device=device, flips=flips)
+                       threads=threads, meta=meta, self_crop=self_crop, device=device, flips=flips,
+                       sensor_height_m=sensor_height_m)
         if preset not in PRESETS:
             raise WeightsError(f"unknown preset {preset!r}; expected one of {', '.join(PRESETS)}")
         log.warning("no weights for preset %r: using a randomly initialised network", preset)
         torch.manual_seed(0)
         return cls(CenterPointNet(PRESETS[preset]), score_threshold=score_threshold, threads=threads,
-                   meta={"random_init": True}, self_crop=self_crop, device=device, flips=flips)
+                   meta={"random_init": True}, self_crop=self_crop, device=device, flips=flips,
+                   sensor_height_m=sensor_height_m)
 
     @torch.inference_mode()
     def detect(self, points: np.ndarray) -> Detections3D:
         """Detections of one scan: ``points`` (P, ≥4) float32 x, y, z, intensity (0–255) in the sensor frame (and
         the time lag in seconds as a fifth column for a model trained on stacked sweeps: :mod:`.sweeps`; a scan
-        without it is the newest sweep alone, lag 0)."""
+        without it is the newest sweep alone, lag 0), whose origin is :attr:`sensor_height_m` above the road
+        (None: measured); the boxes come back in the same frame."""
         t0 = time.perf_counter()
         nf = self.config.num_point_features
         if nf == 5 and points.shape[1] == 4:
             points = stack_sweeps(points, ())
         points = crop_box(points, self.self_crop)
+        dz, self.height_last = height_shift(points, self.sensor_height_m, self.height_last)
+        points = shift_z(points, dz)
         pts = torch.from_numpy(np.ascontiguousarray(points[:, :nf], dtype=np.float32)).to(self.device)
         views = mirrored_views(pts) if self.flips else [pts]
         pillars = [voxelize([v], self.config) for v in views]  # one scan per call: an ONNX export takes batch 1
@@ -199,6 +214,10 @@ class Detector:
         det = decode(out, self.config, self.score_threshold)[0]
         if self.recalibration is not None and det.log_variances is not None:
             det = apply_recalibration(det, self.recalibration)
+        if dz != 0.0 and len(det):
+            boxes = det.boxes.copy()
+            boxes[:, 2] -= dz
+            det = replace(det, boxes=boxes)
         t3 = time.perf_counter()
         self.timings = {"voxelize": (t1 - t0) * 1e3, "network": (t2 - t1) * 1e3, "decode": (t3 - t2) * 1e3}
         return det

@@ -17,7 +17,9 @@ Counters (in the heartbeat): ``scans`` (processed), ``skipped_scans``, ``detecti
 ``empty_scans`` (no finite point: published with no objects so the tracker still sees the frame),
 ``nonfinite_points``, ``nonfinite_detections``, ``out_of_limit_detections`` (dropped: the tracker's reader would
 refuse the frame for them), ``detect_errors``, ``detect_ms_last`` (end-to-end time of the latest scan, rounded),
-``stacked_sweeps_last`` (scans in the latest network input, for a model trained on stacked sweeps: :mod:`.sweeps`)
+``stacked_sweeps_last`` (scans in the latest network input, for a model trained on stacked sweeps: :mod:`.sweeps`),
+``sensor_height_cm_last`` (the height above the road the latest scan's frame was taken to have, cm: the declared
+``sensor_height_m`` or the scan's own estimate, :mod:`.ground` — an operator sees a wrong frame or mount at once)
 and the runtime's ``received`` / ``rejected`` (with ``rejected.points`` / ``over_limit.points``: a scan too large
 or whose ego pose is no pose) / ``published``.
 """
@@ -234,4 +236,5 @@ class DetectorService(Service):
         self.counters.inc("scans")
         self.counters.inc("detections", len(det))
         self.counters.set("detect_ms_last", round((time.perf_counter() - t0) * 1e3))
+        self.counters.set("sensor_height_cm_last", round(self.detector.height_last * 100))
         self.last_seq = scan.header.seq

@@ -19,7 +19,7 @@ from typing import Annotated, Any
 
 import typer
 
-from ...cli_common import ProgressOpt, fail, out_dir, parse_seeds, progress_on
+from ...cli_common import ProgressOpt, SensorHeightOpt, fail, out_dir, parse_seeds, progress_on, sensor_height_option
 from .augment import CENTERPOINT_SAMPLE_COUNTS
 from .config import CLASS_NAMES, PRESETS
 from .provenance import init_provenance
@@ -547,14 +547,16 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                                                 " default self_crop).")] = True,
         flips: Annotated[bool, typer.Option("--flips/--no-flips", help="Pseudo-label with the network averaged"
                                             " over each scan's three mirror images (test-time flips).")] = False,
+        sensor_height: SensorHeightOpt = None,
         seed: Annotated[int, typer.Option("--seed", min=0)] = 0,
         threads: Annotated[int | None, typer.Option("--threads", min=1, max=1024)] = None,
         progress: ProgressOpt = None,
     ) -> None:
         """Adapt weights to unlabelled real scans: normalisation statistics, self-training, recalibration."""
         progress = progress_on(progress)
+        height = sensor_height_option(sensor_height)
         from .adapt import DEFAULT_PSEUDO_THRESHOLDS
-        from .config import SELF_CROP_M
+        from .config import SELF_CROP_M, DetectorParams, declared_height
 
         if not os.path.isfile(weights):
             fail(f"--weights: file not found: {weights}")
@@ -618,7 +620,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                               model.config.point_cloud_range) if rounds else []
         cfg = AdaptConfig(rounds=rounds, epochs=epochs, batch_size=batch_size, lr=lr, seed=seed, thresholds=tuple(thr),
                           real_repeat=real_repeat, recalibrate=recalibration == "tracked",
-                          self_crop=SELF_CROP_M if self_crop else None, flips=flips)
+                          self_crop=SELF_CROP_M if self_crop else None, flips=flips,
+                          sensor_height_m=declared_height(DetectorParams().sensor_height_m if height is None else height))
         aug = TrainAugment(**(source_meta.get("augment") or {}))  # as the source weights were trained
         report = adapt(model, real, synthetic, cfg, root, augment=aug, progress=progress)
         rec = report["recalibration"]
@@ -727,6 +730,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         flips: Annotated[bool, typer.Option("--flips/--no-flips", help="Average the network over the scan and its"
                                             " three mirror images (test-time flips; ~4x the network's time).")
                          ] = False,
+        sensor_height: SensorHeightOpt = None,
         progress: ProgressOpt = None,
     ) -> None:
         """Score weights on a hold-out set: nuScenes-style AP, positional ECE; JSON + PNGs."""
@@ -747,15 +751,18 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             fail(f"--nuscenes: not a directory: {nuscenes}")
         if holdout_last is not None and nuscenes is None:  # it had been ignored without a word
             fail("--holdout-last: only with --nuscenes (synthetic hold-out seeds are scored whole)")
+        height = sensor_height_option(sensor_height)
         from .cli import passive_openmp
 
         passive_openmp()  # before torch is imported
-        from .config import SELF_CROP_M
+        from .config import SELF_CROP_M, DetectorParams, declared_height
         from .inference import Detector, WeightsError
 
         try:
             det = Detector.load(weights, preset or "lite", threads=threads, recalibrate=recalibrate,
-                                self_crop=SELF_CROP_M if self_crop else None, flips=flips)
+                                self_crop=SELF_CROP_M if self_crop else None, flips=flips,
+                                sensor_height_m=declared_height(DetectorParams().sensor_height_m if height is None
+                                                                else height))
         except WeightsError as exc:
             fail(f"--weights: {exc}")
         except ValueError as exc:  # flips on a grid that is not symmetric about the sensor
@@ -826,6 +833,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                                "scored_on": scored_on,
                                "weights": os.path.abspath(weights) if weights else "shipped " + (preset or "lite"),
                                "recalibrated": det.recalibration is not None, "flips": det.flips,
+                               "sensor_height_m": "auto" if det.sensor_height_m is None else det.sensor_height_m,
                                "self_crop": list(det.self_crop) if det.self_crop is not None else None})["summary"]
         typer.echo(json.dumps({"samples": len(items), **summary}))
 
