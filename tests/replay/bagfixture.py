@@ -2,7 +2,9 @@
 
 ``write_bag`` makes a bag with a ``sensor_msgs/PointCloud2`` topic (with a padding byte per point, like
 real drivers), a ``nav_msgs/Odometry`` topic and an Autoware ``DetectedObjects`` topic, optionally with one
-garbage message, and returns what a reader should get back.
+garbage message, and returns what a reader should get back. With ``with_tf`` it has ``/tf`` (``map → base_link``)
+and ``/tf_static`` (``base_link → lidar_top``, :data:`LIDAR_MOUNT` or a tilted mount given as roll, pitch, yaw);
+with ``ground`` the clouds are points of the flat, level ground under the vehicle, seen from the LiDAR.
 """
 
 from __future__ import annotations
@@ -30,6 +32,16 @@ class BagContents:
     stamps: list[int] = field(default_factory=list)
     odom: list[tuple[int, float, float, float]] = field(default_factory=list)  # t, x, y, yaw
     det_positions: list[list[tuple[float, float]]] = field(default_factory=list)
+    mount_q: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0)  # base_link -> lidar_top rotation (x, y, z, w)
+
+
+def quaternion_rpy(roll: float, pitch: float, yaw: float) -> tuple[float, float, float, float]:
+    """(x, y, z, w) of R = Rz(yaw) Ry(pitch) Rx(roll), as tf2's ``setRPY``."""
+    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
+    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
+    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
+    return (sr * cp * cy - cr * sp * sy, cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy,
+            cr * cp * cy + sr * sp * sy)
 
 
 def _header(ts: Any, t_ns: int, frame_id: str) -> Any:
@@ -73,13 +85,15 @@ def _odom(ts: Any, t_ns: int, x: float, y: float, yaw: float | None) -> Any:
 TF = "tf2_msgs/msg/TFMessage"
 
 
-def _tf(ts: Any, edges: list[tuple[int, str, str, float, float, float, float]]) -> Any:
+def _tf(ts: Any, edges: list[tuple[int, str, str, float, float, float, Any]]) -> Any:
+    """Each edge's last item is a yaw or an (x, y, z, w) quaternion."""
     g = ts.types
     out = []
     for t, parent, child, x, y, z, yaw in edges:
+        qx, qy, qz, qw = yaw if isinstance(yaw, tuple) else (0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2))
         tr = g["geometry_msgs/msg/Transform"](
             translation=g["geometry_msgs/msg/Vector3"](x=x, y=y, z=z),
-            rotation=g["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2)),
+            rotation=g["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw),
         )
         out.append(g["geometry_msgs/msg/TransformStamped"](header=_header(ts, t, parent), child_frame_id=child, transform=tr))
     return g[TF](transforms=out)
@@ -124,15 +138,25 @@ def write_bag(
     cloud_frame: str = "lidar_top",
     headless_odom: tuple[int, ...] = (),
     empty_cloud_topic: bool = False,
+    mount_rpy: tuple[float, float, float] | None = None,
+    ground: bool = False,
 ) -> BagContents:
     """Write the bag at ``path`` (a folder that must not exist) and return what it holds. ``empty_cloud_topic``:
-    the cloud topic is declared but holds no message (a stack fed detections records one so)."""
+    the cloud topic is declared but holds no message (a stack fed detections records one so). ``mount_rpy``: the
+    LiDAR's rotation in base_link (roll, pitch, yaw) instead of :data:`LIDAR_MOUNT`'s yaw, at its translation.
+    ``ground``: each cloud is ``points`` returns of the ground z = 0 around the (level) vehicle, in the LiDAR's
+    frame; else random points."""
     from rosbags.rosbag2 import StoragePlugin, Writer
 
     ts = typestore()
     plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
     out = BagContents(path)
     rng = np.random.default_rng(7)
+    mx, my, mz, myaw = LIDAR_MOUNT
+    out.mount_q = quaternion_rpy(*mount_rpy) if mount_rpy is not None else quaternion_rpy(0.0, 0.0, myaw)
+    from jitterguard.geometry import rotation_from_quaternion
+
+    mount_r = rotation_from_quaternion(*out.mount_q)
     with Writer(path, version=9, storage_plugin=plugin) as w:
         c_cloud = w.add_connection(CLOUD_TOPIC, POINTCLOUD2, typestore=ts)
         c_odom = w.add_connection(ODOM_TOPIC, "nav_msgs/msg/Odometry", typestore=ts)
@@ -141,8 +165,8 @@ def write_bag(
         if with_tf:
             c_tf = w.add_connection("/tf", TF, typestore=ts)
             c_static = w.add_connection("/tf_static", TF, typestore=ts)
-            mx, my, mz, myaw = LIDAR_MOUNT
-            w.write(c_static, T0 - 10**9, ts.serialize_cdr(_tf(ts, [(T0, "base_link", "lidar_top", mx, my, mz, myaw)]), TF))
+            mount = out.mount_q if mount_rpy is not None else myaw
+            w.write(c_static, T0 - 10**9, ts.serialize_cdr(_tf(ts, [(T0, "base_link", "lidar_top", mx, my, mz, mount)]), TF))
         for k in range(2 * n + 1):  # odometry at 20 Hz, starting 50 ms before the first cloud
             t = T0 - 50_000_000 + k * 50_000_000
             x, y, yaw = 1.0 * k, 0.5 * k, 0.05 * k
@@ -154,6 +178,9 @@ def write_bag(
         for i in range(n):
             t = T0 + i * 100_000_000
             pts = rng.normal(size=(points, 4)).astype(np.float32)
+            if ground:  # p_lidar = Rᵀ (p_base_link - t): the ground as the tilted LiDAR sees it
+                flat = np.column_stack([rng.uniform(-20.0, 20.0, size=(points, 2)), np.zeros(points)])
+                pts[:, :3] = (flat - np.array([mx, my, mz])) @ mount_r
             out.clouds.append(pts)
             out.stamps.append(t)
             raw = b"\x00\x01\x02 not cdr" if i == garbage_at else ts.serialize_cdr(_cloud(ts, t, pts, cloud_frame), POINTCLOUD2)

@@ -11,7 +11,9 @@ rosbags = pytest.importorskip("rosbags", reason="bag tests need rosbags")
 
 from jitterguard.services.replay.frames import DetectionFrame, EgoPose, FrameError, ScanFrame, SourceError  # noqa: E402
 
+from jitterguard.services.replay.frames import compose  # noqa: E402
 from jitterguard.services.replay.sources import SourceOptions, open_source  # noqa: E402
+from jitterguard.services.replay.sources.nuscenes import FRAME_SUFFIX  # noqa: E402
 
 from .bagfixture import CLOUD_TOPIC, DET_TOPIC, LIDAR_MOUNT, ODOM_TOPIC, write_bag  # noqa: E402
 
@@ -153,6 +155,8 @@ def _expected_lidar(k: float) -> tuple[float, float, float, float]:
 
 @pytest.mark.parametrize("pose_topic", ["/tf", ODOM_TOPIC])
 def test_bag_sensor_pose_composes_tf_static_mount_with_the_vehicle_pose(tmp_path: Path, pose_topic: str) -> None:
+    """The LiDAR's position is base_link's pose composed with the /tf_static mount; the mount's yaw (0.5 rad) is
+    turned into the points, so the scans go out with base_link's heading (in base_link's axes at the sensor)."""
     bag = write_bag(tmp_path / "bag", with_tf=True)
     src = open_source(str(bag.path), SourceOptions(pose_topic=pose_topic))
     frames = list(src.frames())
@@ -160,7 +164,8 @@ def test_bag_sensor_pose_composes_tf_static_mount_with_the_vehicle_pose(tmp_path
     for i, f in enumerate(frames):
         x, y, z, yaw = _expected_lidar(2 * i + 1)
         assert (f.pose.x, f.pose.y, f.pose.z) == pytest.approx((x, y, z), abs=1e-9)
-        assert f.pose.yaw == pytest.approx(yaw)
+        assert f.pose.yaw == pytest.approx(yaw - LIDAR_MOUNT[3])
+        assert f.frame_id == "lidar_top" + FRAME_SUFFIX
     src.close()
 
 
@@ -197,7 +202,7 @@ def test_a_ros1_style_leading_slash_is_not_part_of_the_frame_id(tmp_path: Path) 
     with open_source(str(bag.path), SourceOptions(pose_topic="/tf")) as src:
         frames = list(src.frames())
     assert len(frames) == 2 and all(isinstance(f, ScanFrame) for f in frames)
-    assert [f.frame_id for f in frames] == ["lidar_top", "lidar_top"]
+    assert [f.frame_id for f in frames] == ["lidar_top" + FRAME_SUFFIX] * 2  # the mount's yaw turned out (no slash)
     x, y, z, _ = _expected_lidar(1)
     assert (frames[0].pose.x, frames[0].pose.y, frames[0].pose.z) == pytest.approx((x, y, z), abs=1e-9)
 
@@ -260,3 +265,109 @@ def test_a_tf_rotation_that_is_no_unit_quaternion_is_skipped_not_composed(tmp_pa
     for f in items:  # never a pose that is no rotation
         assert not isinstance(f, ScanFrame) or math.isclose(
             math.hypot(f.pose.qx, f.pose.qy, f.pose.qz, f.pose.qw), 1.0, abs_tol=1e-6)
+
+
+def _world(pose: EgoPose, pts: np.ndarray) -> np.ndarray:
+    """pose ∘ point for each row's x, y, z (float64)."""
+    m = pose.matrix()
+    return pts[:, :3].astype(np.float64) @ m[:3, :3].T + m[:3, 3]
+
+
+TILT = (np.radians(3.0), np.radians(-2.0), np.radians(90.0))  # roll, pitch, yaw of lidar_top in base_link
+
+
+@pytest.mark.parametrize("pose_topic", ["/tf", ODOM_TOPIC])
+def test_a_tilted_lidar_is_published_level_in_base_link_axes(tmp_path: Path, pose_topic: str) -> None:
+    """A LiDAR mounted rolled 3°, pitched −2° and turned 90° under base_link reached the detector tilted: the
+    flat ground sloped across the scan. Its points are turned into base_link's axes at the sensor, as the nuScenes
+    reader does, with the frame named so, and the pose turned back so every world point stays where it was."""
+    bag = write_bag(tmp_path / "bag", with_tf=True, mount_rpy=TILT, ground=True, points=400)
+    with open_source(str(bag.path), SourceOptions(pose_topic=pose_topic)) as src:
+        frames = list(src.frames())
+        notes = src.info.notes
+    assert any("turned into base_link's axes at the sensor" in n and "lidar_top" + FRAME_SUFFIX in n
+               and "tilt 3.6°" in n for n in notes), notes
+    assert len(frames) == 4
+    raw_mount = EgoPose(LIDAR_MOUNT[0], LIDAR_MOUNT[1], LIDAR_MOUNT[2], *bag.mount_q)
+    for i, (f, raw) in enumerate(zip(frames, bag.clouds)):
+        assert isinstance(f, ScanFrame) and f.frame_id == "lidar_top" + FRAME_SUFFIX
+        assert f.points.dtype == np.float32 and f.fields == ("x", "y", "z", "intensity")
+        # level: the ground is a plane z = −mount height in the published frame
+        z = f.points[:, 2].astype(np.float64)
+        assert np.ptp(z) < 0.01 and np.mean(z) == pytest.approx(-LIDAR_MOUNT[2], abs=0.01)
+        centred = f.points[:, :3].astype(np.float64) - f.points[:, :3].mean(axis=0)
+        normal = np.linalg.svd(centred)[2][-1]
+        assert np.degrees(np.arccos(abs(normal[2]))) < 0.1
+        np.testing.assert_array_equal(f.points[:, 3], raw[:, 3])  # intensity untouched
+        # the world points of the raw cloud at the raw sensor pose (base_link ∘ the tilted mount)
+        bx, by, byaw = 1.0 * (2 * i + 1), 0.5 * (2 * i + 1), 0.05 * (2 * i + 1)
+        raw_pose = compose(EgoPose.from_yaw(bx, by, byaw), raw_mount)
+        np.testing.assert_allclose(_world(f.pose, f.points), _world(raw_pose, raw), atol=1e-5)
+        # the published pose: the sensor's position, base_link's orientation
+        assert (f.pose.x, f.pose.y, f.pose.z) == pytest.approx((raw_pose.x, raw_pose.y, raw_pose.z), abs=1e-9)
+        np.testing.assert_allclose(f.pose.matrix()[:3, :3], EgoPose.from_yaw(0, 0, byaw).matrix()[:3, :3],
+                                   atol=1e-9)
+
+
+@pytest.mark.parametrize("pose_topic", ["/tf", ODOM_TOPIC, None])
+def test_a_level_x_forward_mount_changes_nothing(tmp_path: Path, pose_topic: str | None) -> None:
+    """A translation-only chain base_link -> lidar_top: the scans go out exactly as before (own frame, the same
+    bytes, the pose of the cloud's frame) and no note speaks of a turn."""
+    bag = write_bag(tmp_path / "bag", with_tf=True, mount_rpy=(0.0, 0.0, 0.0), ground=True)
+    with open_source(str(bag.path), SourceOptions(pose_topic=pose_topic)) as src:
+        frames = list(src.frames())
+        assert not any("turned" in n for n in src.info.notes), src.info.notes
+    assert len(frames) == 4
+    for i, (f, raw) in enumerate(zip(frames, bag.clouds)):
+        assert isinstance(f, ScanFrame) and f.frame_id == "lidar_top"
+        assert f.points.dtype == raw.dtype and f.points.tobytes() == raw.tobytes()
+        if pose_topic is None:
+            assert f.pose == EgoPose()
+            continue
+        k = 2 * i + 1
+        want = compose(EgoPose.from_yaw(1.0 * k, 0.5 * k, 0.05 * k), EgoPose(*LIDAR_MOUNT[:3]))
+        assert (f.pose.x, f.pose.y, f.pose.z, f.pose.yaw) == pytest.approx((want.x, want.y, want.z, want.yaw),
+                                                                           abs=1e-9)
+
+
+def test_a_tilted_mount_without_pose_topic_or_in_detections_is_left_as_it_is(tmp_path: Path) -> None:
+    """Without --pose-topic there is no vehicle frame to turn into, and DetectedObjects are never turned."""
+    bag = write_bag(tmp_path / "bag", with_tf=True, mount_rpy=TILT, ground=True, n=2)
+    with open_source(str(bag.path)) as src:
+        frames = list(src.frames())
+    assert [f.frame_id for f in frames] == ["lidar_top"] * 2
+    np.testing.assert_array_equal(frames[0].points, bag.clouds[0])
+    with open_source(str(bag.path), SourceOptions(pose_topic="/tf", topic=DET_TOPIC)) as src:
+        dets = list(src.frames())
+        assert not any("turned" in n for n in src.info.notes)
+    assert [f.frame_id for f in dets] == ["base_link"] * 2
+
+
+def test_a_dynamic_link_under_base_link_leaves_the_clouds_in_their_own_axes(tmp_path: Path) -> None:
+    """Only a static chain from base_link is levelled (module doc): a mount published on /tf keeps the cloud in
+    its own frame, with the pose of that frame, and a note says why."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    from jitterguard.services.replay.sources.ros_types import POINTCLOUD2, typestore
+
+    from .bagfixture import TF, T0, _cloud, _tf, quaternion_rpy
+
+    ts = typestore()
+    path = tmp_path / "bag"
+    q = quaternion_rpy(*TILT)
+    pts = np.random.default_rng(1).normal(size=(20, 4)).astype(np.float32)
+    with Writer(path, version=8, storage_plugin=StoragePlugin.SQLITE3) as w:
+        c_tf = w.add_connection("/tf", TF, typestore=ts)
+        c_cloud = w.add_connection(CLOUD_TOPIC, POINTCLOUD2, typestore=ts)
+        for i in range(2):
+            t = T0 + i * 100_000_000
+            w.write(c_tf, t, ts.serialize_cdr(_tf(ts, [(t, "map", "base_link", float(i), 0.0, 0.0, 0.1),
+                                                       (t, "base_link", "lidar_top", 1.0, 0.0, 2.0, q)]), TF))
+            w.write(c_cloud, t, ts.serialize_cdr(_cloud(ts, t, pts), POINTCLOUD2))
+    with open_source(str(path), SourceOptions(pose_topic="/tf")) as src:
+        frames = list(src.frames())
+        assert any("kept in lidar_top's own axes" in n and "not static" in n for n in src.info.notes), src.info.notes
+    assert [f.frame_id for f in frames] == ["lidar_top"] * 2
+    np.testing.assert_array_equal(frames[1].points, pts)
+    want = compose(EgoPose.from_yaw(1.0, 0.0, 0.1), EgoPose(1.0, 0.0, 2.0, *q))
+    np.testing.assert_allclose(frames[1].pose.matrix(), want.matrix(), atol=1e-9)

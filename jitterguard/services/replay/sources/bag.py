@@ -15,6 +15,21 @@ comes from ``--pose-topic``:
 
 Without ``--pose-topic`` the pose is the identity.
 
+Frame. With a pose topic, a PointCloud2 scan whose frame hangs under the vehicle's base frame by a static chain
+is published in the *base frame's axes at the sensor*, as the nuScenes reader publishes LIDAR_TOP (see
+:mod:`.nuscenes`): the detector was trained in a level, x-forward frame, as Autoware runs CenterPoint in
+``base_link``'s axes, and a tilted LiDAR (or one with x to the right) would reach it tilted or turned. The base
+frame is the odometry's ``child_frame_id`` (poses from a pose topic) or ``base_link`` when it is above the cloud's
+frame (poses from TF, REP-105). With R the rotation of the cloud's frame in the base frame (the static chain's),
+the points' x, y, z become R·p (other fields as they are), the ``frame_id`` the cloud's frame + ``FRAME_SUFFIX``
+and the pose ``pose ∘ (no translation, Rᵀ)`` — the sensor's position with the base frame's orientation — so
+pose ∘ point is the same world point. A note names the turn (the mount's tilt and yaw). Only a static chain is
+used: a dynamic link between the two (as in the bags ``jitterguard record --ros2`` writes, whose per-frame
+``base_link → sensor`` is the vehicle's roll and pitch, not a mount) keeps the clouds in their own frame, and a
+note says so. A chain whose R is the identity within 1e-9 (a level, x-forward mount) changes nothing: the scans
+go out in the cloud's own frame as they are. DetectedObjects, a pose topic without ``child_frame_id``
+(PoseStamped) and bags replayed without ``--pose-topic`` are published in the message's own frame, as before.
+
 rosbags is an optional dependency: it is imported when a bag is opened, and its absence is a one-line error.
 """
 
@@ -26,7 +41,11 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+from numpy.typing import NDArray
 from pydantic import ValidationError
+
+from ....geometry import rotation_from_quaternion
 
 from ....schemas.wire import LIMITS
 
@@ -43,6 +62,7 @@ from ..frames import (
     finite_rows,
 )
 from .base import Source
+from .nuscenes import FRAME_SUFFIX, turn_points
 from .ros_types import (
     DETECTED_OBJECTS,
     TF_MESSAGE,
@@ -60,6 +80,10 @@ from .tf import TfTree
 log = logging.getLogger("jitterguard.replay")
 
 BAG_SUFFIXES = (".mcap", ".db3", ".bag")
+LEVEL_TOLERANCE = 1e-9
+"""A mount whose rotation matrix is the identity within this (each entry) is level and x-forward: not turned."""
+TF_BASE_FRAME = "base_link"
+"""The vehicle's frame in a TF tree (REP-105): clouds under it are turned into its axes (module doc)."""
 
 
 def is_bag(path: Path) -> bool:
@@ -182,6 +206,66 @@ class BagSource(Source):
                             " pose, so if the sensor moved, static objects will look dynamic")
         self.info = SourceInfo(name=f"{self.path}:{topic}", kind=kind, num_frames=count, notes=notes,
                                warnings=warnings)
+        self._levels: dict[str, tuple[NDArray[np.float64], EgoPose] | None] = {}
+        if self.msgtype == POINTCLOUD2 and pose_topic is not None:
+            first = self._first_frame_id()
+            if first is not None:
+                self._levelling(first)  # its note, before the replay starts
+
+    def _first_frame_id(self) -> str | None:
+        """The first scan's frame (as :meth:`frames` reads it), or None when it does not decode."""
+        messages = self.reader.messages(connections=self.connections)
+        try:
+            for conn, _, raw in messages:
+                try:
+                    msg = self.reader.deserialize(raw, conn.msgtype)
+                except Exception:
+                    return None
+                return str(msg.header.frame_id).lstrip("/") or "lidar"
+        finally:
+            messages.close()
+        return None
+
+    def _base_of(self) -> str | None:
+        """The vehicle's frame the scans are turned into, when the poses name one (module doc)."""
+        if self.msgtype != POINTCLOUD2:
+            return None
+        if self.use_tf:
+            return TF_BASE_FRAME
+        if self.poses and self.base_frame:
+            return self.base_frame.lstrip("/")
+        return None
+
+    def _levelling(self, frame_id: str) -> tuple[NDArray[np.float64], EgoPose] | None:
+        """For a scan in ``frame_id``: R, the frame's rotation in the base frame by the static chain (p' = R p),
+        and the turn (no translation, Rᵀ) to compose onto its pose — or None when the scan goes out as it is (no
+        base frame, no static chain from it, or a level x-forward mount). Cached; adds its note once."""
+        if frame_id in self._levels:
+            return self._levels[frame_id]
+        found: tuple[NDArray[np.float64], EgoPose] | None = None
+        note = None
+        base = self._base_of()
+        if base is not None:
+            try:
+                mount = self.tf.static_lookup(frame_id, base)
+            except KeyError:
+                pass  # no chain from the base frame: the pose is what it was (for a pose topic, the vehicle's)
+            except ValueError as exc:
+                note = (f"clouds kept in {frame_id}'s own axes: {exc} (only a static mount is turned into "
+                        f"{base}'s axes)")
+            else:
+                rot = rotation_from_quaternion(mount.qx, mount.qy, mount.qz, mount.qw)
+                if np.abs(rot - np.eye(3)).max() > LEVEL_TOLERANCE:
+                    n = math.hypot(mount.qx, mount.qy, mount.qz, mount.qw)  # R's own (unit) quaternion, inverted
+                    found = rot, EgoPose(qx=-mount.qx / n, qy=-mount.qy / n, qz=-mount.qz / n, qw=mount.qw / n)
+                    tilt = math.degrees(math.acos(min(1.0, max(-1.0, float(rot[2, 2])))))
+                    yaw = math.degrees(math.atan2(rot[1, 0], rot[0, 0]))
+                    note = (f"clouds turned into {base}'s axes at the sensor, frame {frame_id}{FRAME_SUFFIX} "
+                            f"(mount tilt {tilt:.1f}°, yaw {yaw:.1f}°)")
+        self._levels[frame_id] = found
+        if note is not None:
+            self.info.notes.append(note)
+        return found
 
     def _messages(self, conns: list[Any], what: str) -> Iterator[tuple[int, Any]]:
         for conn, t_bag, raw in self.reader.messages(connections=conns):
@@ -273,6 +357,10 @@ class BagSource(Source):
                     yield FrameError(origin, f"bad PointCloud2: {exc}")
                     continue
                 pts, _ = finite_rows(pts)
+                level = self._levelling(frame_id)
+                if level is not None:  # into the base frame's axes at the sensor (module doc)
+                    rot, turn = level
+                    pts, pose, frame_id = turn_points(pts, rot), compose(pose, turn), frame_id + FRAME_SUFFIX
                 yield ScanFrame(stamp, pose, pts, names, origin, frame_id)
             else:
                 try:

@@ -91,3 +91,24 @@ class TfTree:
         for child in reversed(chain):
             pose = compose(pose, self.edge(child, stamp_ns))
         return pose
+
+    def static_lookup(self, frame: str, ancestor: str) -> EgoPose:
+        """Pose of ``frame`` in ``ancestor`` composed of static links alone (a sensor's mount).
+
+        Raises ``KeyError`` when ``ancestor`` is not above ``frame`` (or is ``frame`` itself), ``ValueError``
+        naming the first link between them that is dynamic."""
+        frame, target = self._norm(frame), self._norm(ancestor)
+        chain: list[str] = []
+        cur = frame
+        while cur != target and cur in self.parent and len(chain) <= 1000:
+            chain.append(cur)
+            cur = self.parent[cur]
+        if cur != target or not chain:
+            raise KeyError(f"frame {target!r} is not above {frame!r} in the TF tree")
+        dynamic = [c for c in chain if c not in self.static]
+        if dynamic:
+            raise ValueError(f"the link {self.parent[dynamic[0]]!r} -> {dynamic[0]!r} is not static")
+        pose = IDENTITY
+        for child in reversed(chain):
+            pose = compose(pose, self.static[child])
+        return pose
