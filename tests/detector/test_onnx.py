@@ -125,6 +125,7 @@ def test_the_graph_has_dynamic_points_and_pillars_and_a_recent_opset(single_dir)
     doc = read_manifest(single_dir)
     assert doc["layout"] == "single" and doc["opset"] >= 17 and doc["graphs"]["detector"]["opset"] == doc["opset"]
     assert doc["preprocessing"]["intensity_scale"] == pytest.approx(1 / 255)
+    assert doc["preprocessing"]["trained_sensor_height_m"] == pytest.approx(1.84)  # the height a runtime moves scans to
     assert doc["config"]["use_intensity"] is True and "intensity/255" in doc["preprocessing"]["point_features"]
     assert doc["postprocessing"]["class_names"] == ["car", "truck", "bus", "bicycle", "pedestrian"]
 

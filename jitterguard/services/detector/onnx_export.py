@@ -42,6 +42,7 @@ from torch import Tensor, nn
 
 from .config import CLASS_LABELS, VAR_NAMES, DetectorConfig
 from .evaluate import Recalibration
+from .ground import TRAINED_SENSOR_HEIGHT_M
 from .inference import config_to_dict
 from .network import HEAD_CHANNELS, CenterPointNet
 from .pillars import NUM_PILLAR_FEATURES, PillarFeatureNet, Pillars, voxelize
@@ -288,7 +289,11 @@ def manifest_for(config: DetectorConfig, layout: str, opset: int, files: dict[st
         "config": config_to_dict(config),
         "recalibration": rec.to_payload() if (rec := Recalibration.of(recalibration)) else None,
         "preprocessing": {
-            "frame": "sensor (x forward, y left, z up), metres",
+            "frame": "sensor (x forward, y left, z up, level), metres, the road trained_sensor_height_m below the"
+                     " origin: a cloud from another mount (height h above the road) or in base_link (h = 0) is"
+                     " moved by z + h - trained_sensor_height_m first and the boxes' z back by as much after (the"
+                     " jitterguard detector measures h in every scan, sensor_height_m: auto)",
+            "trained_sensor_height_m": TRAINED_SENSOR_HEIGHT_M,
             "point_cloud_range": list(config.point_cloud_range),
             "voxel_size": list(config.voxel_size),
             "grid_size_xy": [nx, ny],
