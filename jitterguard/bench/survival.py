@@ -47,7 +47,7 @@ def detector_frames_for(scenario: str, seed: int, duration_s: float, rate_hz: fl
 
 def survival_command(
     scenario: Annotated[str, typer.Option("--scenario", help="Synthetic scenario.")] = "mixed",
-    seeds: Annotated[str, typer.Option("--seeds", help="Comma-separated seeds; each is one scenario run.")] = "0,1,2,3,4",
+    seeds: Annotated[str, typer.Option("--seeds", help="Seeds, each one scenario run: a range (0-4), a list (0,2,5) or both.")] = "0,1,2,3,4",
     duration: Annotated[float, typer.Option("--duration", help="Scenario length \\[s].")] = 30.0,
     rate: Annotated[float, typer.Option("--rate", help="Frame rate [Hz] (the stack's replay runs 10 Hz).")] = 10.0,
     horizon: Annotated[float, typer.Option("--horizon", help="Seconds a track ID must survive (shorter than --duration).")] = 1.0,

@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
-from ..cli_common import SensorHeightOpt, check_seed, fail, out_dir, progress_on, sensor_height_option
+from ..cli_common import SensorHeightOpt, check_seed, fail, out_dir, parse_seeds, progress_on, sensor_height_option
 
 if TYPE_CHECKING:
     from ..services.detector.inference import Detector
@@ -153,24 +153,32 @@ def eval_command(
     if mode is not None and mode not in ("z_test", "chi2"):
         fail(f"--mode: expected z_test or chi2, got {mode!r} (the speed threshold is always scored beside it)")
     upd: dict[str, Any] = dict(PRESETS[preset]) if preset else {}
+    flag_of: dict[str, str] = {}  # config key → the flag that set it: a refusal names what the user typed
     if mode is not None:
         upd["mode"] = mode
+        flag_of["mode"] = "--mode"
     if alpha is not None:
         upd.update(alpha_default=alpha, alpha_per_class={})
+        flag_of.update(alpha_default="--alpha", alpha_per_class="--alpha")
     if velocity_threshold is not None:  # every class, as --alpha: it had left the 0.28 m/s of the others in force
         upd.update(velocity_threshold=velocity_threshold, velocity_threshold_per_class={})
+        flag_of.update(velocity_threshold="--velocity-threshold", velocity_threshold_per_class="--velocity-threshold")
     if calibration_file is not None and calibration is None:
         calibration = "file"
     if calibration_file is not None and calibration != "file":
         fail(f"--calibration-file is read with --calibration file, not {calibration}")
-    for key, value in (("calibration", calibration), ("effective_n", effective_n), ("min_speed_mps", min_speed),
-                       ("window_size", window_size),
-                       ("calibration_file", None if calibration_file is None else str(calibration_file))):
+    for key, flag, value in (("calibration", "--calibration", calibration),
+                             ("effective_n", "--effective-n", effective_n),
+                             ("min_speed_mps", "--min-speed", min_speed), ("window_size", "--window-size", window_size),
+                             ("calibration_file", "--calibration-file",
+                              None if calibration_file is None else str(calibration_file))):
         if value is not None:
             upd[key] = value
+            flag_of[key] = flag
     if view_slide is not None:  # its bounds are the config's: a bad value fails its validation below, by name
         from ..services.classifier.calibration import vehicle_class_names
         upd["view_slide_m_per_class"] = {} if view_slide == 0 else dict.fromkeys(vehicle_class_names(), view_slide)
+        flag_of["view_slide_m_per_class"] = "--view-slide"
     if fixed_window:
         upd["window_reference_hz"] = None
     if not jump_veto:
@@ -181,7 +189,10 @@ def eval_command(
         cfg = ClassifierConfig.model_validate({**ClassifierConfig().model_dump(), **upd})
     except ValueError as exc:
         err = exc.errors()[0] if hasattr(exc, "errors") else None
-        where = ".".join(str(x) for x in err["loc"]) if err and err.get("loc") else "classifier config"
+        loc = tuple(err["loc"]) if err and err.get("loc") else ()
+        where = ".".join(str(x) for x in loc) if loc else "classifier config"
+        if loc and str(loc[0]) in flag_of:  # the flag the user typed, the key beside it (as the docs name both)
+            where = f"{flag_of[str(loc[0])]} ({where})"
         fail(f"{where}: {err['msg'] if err else str(exc).splitlines()[0]}")
     from ..config import ConfigError
     from ..services.tracker.config import load_config
@@ -328,7 +339,7 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
     (one file per run: each run's clock starts again)."""
     from tqdm import tqdm  # type: ignore[import-untyped]
 
-    from .groundtruth import NuScenesError, load_nuscenes_frames, nuscenes_scene_names
+    from .groundtruth import NuScenesError, nuscenes_scenes
     from ..services.classifier.calibration import OnlineCalibration
     from ..services.classifier.core import MotionClassifierCore
     from .metrics import (REPORT_GROUPS, alpha_from_labels, compute_metrics, planner_metrics, run_metrics,
@@ -340,8 +351,7 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
     scenes: list[tuple[str, Any]] = []  # (name, frames) of each nuScenes scene, pooled in this order
     if nuscenes is not None:
         try:
-            scenes = [load_nuscenes_frames(nuscenes, n, nuscenes_version)
-                      for n in nuscenes_scene_names(nuscenes, scene, nuscenes_version)]
+            scenes = nuscenes_scenes(nuscenes, scene, nuscenes_version)  # each table read once for all of them
         except NuScenesError as exc:
             fail(f"--nuscenes: {exc}")
         if len(scenes) > 1 and extra_seeds:
@@ -487,7 +497,8 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
 
 def study_command(
     out: Annotated[str, typer.Option("--out", help="Folder for study.md, study.json and one folder per run.")],
-    seeds: Annotated[str, typer.Option("--seeds", help="Comma-separated seeds, pooled per run.")] = "0,1,2",
+    seeds: Annotated[str, typer.Option("--seeds", help="Seeds pooled per run: a range (2000-2009), a list (1,2,5)"
+                                       " or both (1,2,5-7).")] = "0,1,2",
     duration: Annotated[float, typer.Option("--duration", help="Scenario length \\[s].")] = 15.0,
     as_json: Annotated[bool, typer.Option("--json", help="Also print study.json to stdout.")] = False,
 ) -> None:
@@ -497,14 +508,7 @@ def study_command(
 
     if not 0 < duration <= 600:
         fail("--duration must be in (0, 600]")
-    try:
-        seed_list = tuple(dict.fromkeys(int(x) for x in seeds.split(",") if x.strip()))
-    except ValueError:
-        fail(f"--seeds: expected comma-separated integers, got {seeds!r}")
-    if not seed_list:
-        fail("--seeds: give at least one seed")
-    for s in seed_list:
-        check_seed("--seeds", s)
+    seed_list = tuple(parse_seeds(seeds, "--seeds"))  # as every other command's --seeds: 2000-2009, 1,2,5-7
     out = out_dir("--out", out)  # a str, not a Path: Path("") is "." and the study went into the current folder
     seed = seed_list[0]
     results = {}

@@ -83,24 +83,51 @@ class NuScenesError(ValueError):
     """A nuScenes dataroot or scene the evaluator cannot use (message is one line)."""
 
 
-def nuscenes_scene_names(dataroot: Path, scene: str | None, version: str | None = None) -> list[str]:
+TableCache = dict[Path, list[dict[str, Any]]]
+"""nuScenes JSON tables already read, by file: one caller's reads of one dataroot share it (see
+:func:`nuscenes_scenes`) so that no table is parsed twice."""
+
+
+def _table(folder: Path, name: str, tables: TableCache | None) -> list[dict[str, Any]]:
+    """The replay source's ``_load_table``, once per file for a shared ``tables`` (None: read every time)."""
+    from ..services.replay.sources.nuscenes import _load_table
+
+    if tables is None:
+        return _load_table(folder, name)
+    path = folder / f"{name}.json"
+    if path not in tables:
+        tables[path] = _load_table(folder, name)
+    return tables[path]
+
+
+def nuscenes_scene_names(dataroot: Path, scene: str | None, version: str | None = None,
+                         tables: TableCache | None = None) -> list[str]:
     """The scenes ``--scene`` names in a nuScenes dataroot (the replay source's rule with several allowed,
     :func:`~..services.replay.sources.nuscenes.select_scenes`): ``None`` the only one, ``all`` every scene in
-    the table's order, else comma-separated names or tokens in the order given."""
+    the table's order, else comma-separated names or tokens in the order given. ``tables``: see :data:`TableCache`."""
     from ..services.replay.frames import SourceError
-    from ..services.replay.sources.nuscenes import _load_table, find_version, select_scenes
+    from ..services.replay.sources.nuscenes import find_version, select_scenes
 
     if not Path(dataroot).is_dir():
         raise NuScenesError(f"{dataroot}: no such folder")
     try:
-        table = _load_table(Path(dataroot) / find_version(Path(dataroot), version), "scene")
+        table = _table(Path(dataroot) / find_version(Path(dataroot), version), "scene", tables)
         return [s["name"] for s in select_scenes(table, scene, dataroot, several=True)]
     except SourceError as exc:
         raise NuScenesError(str(exc).replace("\n", " ")) from None
 
 
-def load_nuscenes_frames(dataroot: Path, scene: str | None = None,
-                         version: str | None = None) -> tuple[str, list[GroundTruthFrame]]:
+def nuscenes_scenes(dataroot: Path, scene: str | None,
+                    version: str | None = None) -> list[tuple[str, list[GroundTruthFrame]]]:
+    """(name, key frames) of each scene ``--scene`` names (:func:`nuscenes_scene_names`' rule), in that order; the
+    scene table and the annotation tables are read once for all of them (each scene had read them anew)."""
+    tables: TableCache = {}
+    return [load_nuscenes_frames(dataroot, name, version, tables)
+            for name in nuscenes_scene_names(dataroot, scene, version, tables)]
+
+
+def load_nuscenes_frames(dataroot: Path, scene: str | None = None, version: str | None = None,
+                         tables: TableCache | None = None) -> tuple[str, list[GroundTruthFrame]]:
     """Every key frame of one scene as a GroundTruthFrame (world frame, ego pose = the pose the replay
     publishes with the scan: the LIDAR_TOP position in the vehicle's axes).
 
@@ -108,11 +135,11 @@ def load_nuscenes_frames(dataroot: Path, scene: str | None = None,
     boxes from ``sample_annotation`` with category / attribute / visibility tables. nuScenes sizes are
     (width, length, height); GroundTruthFrame wants (length, width, height). Velocities are central
     differences of each instance's centre over neighbouring annotations (the devkit's box_velocity rule),
-    used only where an attribute is silent (cycles).
+    used only where an attribute is silent (cycles). ``tables``: see :data:`TableCache`.
     """
     # only for nuScenes ground truth: its table readers are part of the replay's optional nuScenes support
     from ..services.replay.frames import SourceError
-    from ..services.replay.sources.nuscenes import NuScenesSource, _load_table
+    from ..services.replay.sources.nuscenes import NuScenesSource
 
     try:
         src = NuScenesSource(Path(dataroot), scene=scene, version=version)
@@ -120,8 +147,8 @@ def load_nuscenes_frames(dataroot: Path, scene: str | None = None,
         raise NuScenesError(str(exc).replace("\n", " ")) from None
     folder = Path(dataroot) / src.version
     try:
-        t = {n: _load_table(folder, n) for n in ("scene", "sample", "sample_annotation", "instance", "category",
-                                                 "attribute", "visibility")}
+        t = {n: _table(folder, n, tables) for n in ("scene", "sample", "sample_annotation", "instance", "category",
+                                                    "attribute", "visibility")}
     except SourceError as exc:
         raise NuScenesError(str(exc).replace("\n", " ")) from None
     try:

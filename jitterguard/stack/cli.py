@@ -408,7 +408,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         input_level: Annotated[str, typer.Option("--input", help="auto, points, detections or tracks. 'detections' runs sources with ground-truth boxes (synthetic, nuScenes) through the detection-level noise model.")] = "auto",
         router_port: Annotated[int, typer.Option("--router-port", min=0, max=65535, help="The router's port on loopback (0: a free one, printed).")] = 7447,
         host: Annotated[str, typer.Option("--host", help="Sidecar bind address.")] = "127.0.0.1",
-        port: Annotated[int, typer.Option("--port", min=0, max=65535, help="Sidecar port (0: a free one, printed).")] = 8000,
+        port: Annotated[int | None, typer.Option("--port", min=0, max=65535, help=f"Sidecar port (default {StackSpec.sidecar_port}; 0: a free one, printed; not with --no-sidecar).")] = None,
         run_dir: RunDirOpt = None,
         no_sidecar: Annotated[bool, typer.Option("--no-sidecar", help="Leave the HTTP sidecar out.")] = False,
         duration: Annotated[float | None, typer.Option("--duration", min=1.0, help="Stop after this many seconds (foreground).")] = None,
@@ -446,6 +446,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             fail("--duration stops a foreground stack; a detached one (-d) runs until `jitterguard down`")
         if not foxglove and foxglove_port != StackSpec.foxglove_port:  # it had been ignored without a word
             fail("--foxglove-port: only with --foxglove (nothing serves Foxglove without it)")
+        if no_sidecar and port is not None:  # the sidecar's port: it too had been ignored without a word
+            fail("--port is the sidecar's port; give it or --no-sidecar, not both")
+        port = StackSpec.sidecar_port if port is None else port
         ropts = R.ReplayOptions(rate=rate, start=start, limit=limit, on_error=on_error, seed=seed, lidar=lidar,
                                 hz=hz, scene=scene, nuscenes_version=nuscenes_version, sweeps=sweeps, poses=poses,
                                 calib=calib, times=times, bin_fields=bin_fields, topic=topic, pose_topic=pose_topic)

@@ -183,6 +183,15 @@ def test_an_output_that_cannot_be_written_is_refused_before_any_work(args, needl
     # refused only after --out had been made: the empty folder was left behind
     (["eval", "--out", "{tmp}/ev", "--scenario", "nosuch"], "--scenario: unknown scenario 'nosuch'"),
     (["eval", "--out", "{tmp}/ev", "--nuscenes", "{tmp}"], "--nuscenes: "),
+    # a bad value of a flag that sets a classifier key had been named by the key (alpha_default: …), not the flag
+    (["eval", "--out", "{tmp}/ev", "--alpha", "-1"], "--alpha (alpha_default): Input should be greater than 0"),
+    (["eval", "--out", "{tmp}/ev", "--velocity-threshold", "-1"], "--velocity-threshold (velocity_threshold): "),
+    (["eval", "--out", "{tmp}/ev", "--min-speed", "-1"], "--min-speed (min_speed_mps): "),
+    (["eval", "--out", "{tmp}/ev", "--window-size", "1"], "--window-size (window_size): "),
+    (["eval", "--out", "{tmp}/ev", "--view-slide", "-1"], "--view-slide (view_slide_m_per_class."),
+    (["eval", "--out", "{tmp}/ev", "--effective-n", "most"], "--effective-n (effective_n): "),
+    (["eval", "--out", "{tmp}/ev", "--calibration", "often"], "--calibration (calibration): "),
+    (["eval-study", "--out", "{tmp}/ev", "--seeds", "9-2"], "--seeds: expected seeds like 0-49"),
     (["domain-gap", "--out", "{tmp}/ev", "--nuscenes", "/nonexistent"], "--nuscenes: not a directory"),
     (["domain-gap", "--out", "{tmp}/ev", "--nuscenes", "{tmp}", "--seeds", "x"], "--seeds: expected seeds like"),
     (["bench", "pipeline", "--log-dir", "{tmp}/ev", "--objects", "10", "--churn", "20", "--duration", "1"],

@@ -201,6 +201,7 @@ def test_cli_detector_run_writes_detection_metrics_and_is_deterministic(
     assert m["run"]["input"] == "detector" and m["run"]["noise"] is None and m["run"]["frames"] == 10
     assert m["run"]["detector"]["preset"] == "tiny" and not m["run"]["detector"]["random_init"]
     assert "sha256" in m["run"]["detector"]["weights"]
+    assert m["run"]["detector"]["sensor_height_m"] == "auto"
     _check_detection_block(m["detection"], has_variances=True)
     assert m["detection"]["car"]["num_gt"] > 0 and m["detection"]["car"]["num_pred"] > 0
     for g in ("vehicle", "pedestrian"):
@@ -228,14 +229,19 @@ def test_cli_vanilla_model_has_no_calibration(tmp_path: Path, capsys: pytest.Cap
     assert not (tmp_path / "o" / "detection_calibration.png").exists()
 
 
+NEED_DETECTOR = "--weights, --threads, --no-self-crop, --detector-flips and --sensor-height need --input detector"
+
+
 @pytest.mark.parametrize("argv, needle", [
     (["--input", "detector", "--weights", "/nonexistent/w.pt"], "--weights: file not found"),
     (["--input", "detector", "--weights", "GARBAGE"], "--weights:"),
     (["--input", "detector", "--noise", "clean"], "--noise applies to --input gt-noise"),
-    (["--input", "gt-noise", "--weights", "x.pt"], "--weights, --threads, --no-self-crop and --detector-flips need --input detector"),
-    (["--input", "gt-noise", "--threads", "2"], "--weights, --threads, --no-self-crop and --detector-flips need --input detector"),
-    (["--input", "gt-noise", "--no-self-crop"], "--weights, --threads, --no-self-crop and --detector-flips need --input detector"),
-    (["--input", "gt-noise", "--detector-flips"], "--weights, --threads, --no-self-crop and --detector-flips need --input detector"),
+    (["--input", "gt-noise", "--weights", "x.pt"], NEED_DETECTOR),
+    (["--input", "gt-noise", "--threads", "2"], NEED_DETECTOR),
+    (["--input", "gt-noise", "--no-self-crop"], NEED_DETECTOR),
+    (["--input", "gt-noise", "--detector-flips"], NEED_DETECTOR),
+    (["--input", "gt-noise", "--sensor-height", "0"], NEED_DETECTOR),
+    (["--input", "detector", "--sensor-height", "184"], "--sensor-height: expected 'auto' or a height in metres"),
     (["--input", "detector", "--nuscenes", "/nonexistent", "--runs", "2"], "--runs"),
 ])
 def test_cli_bad_detector_input_is_one_line_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str],
@@ -271,7 +277,7 @@ def _stub_detector(meta: dict) -> object:
     from types import SimpleNamespace
 
     return SimpleNamespace(meta=meta, config=SimpleNamespace(name="tiny", uncertainty=True, score_threshold=0.1),
-                           self_crop=None, flips=False, score_threshold=None)
+                           self_crop=None, flips=False, score_threshold=None, sensor_height_m=None)
 
 
 def test_run_info_says_when_the_weights_saw_the_scored_dataroot(tmp_path: Path, capsys: pytest.CaptureFixture[str],
@@ -297,6 +303,7 @@ def test_run_info_says_when_the_weights_saw_the_scored_dataroot(tmp_path: Path, 
     info = detector_run_info(_stub_detector(trained), "w.pt (sha256 0)", seen)
     assert info["weights_trained_on_this_dataroot"] is True and info["weights_adapted_on_its_scans"] is False
     assert info["trained_on"] == trained["source"] and info["meta"] == {"epochs": 3}
+    assert info["sensor_height_m"] == "auto"  # measured in every scan (the detector's default)
     assert "trained on this dataroot" in _input_desc({"detector": info})
     warn_seen(info, root)
     assert "trained on" in capsys.readouterr().err

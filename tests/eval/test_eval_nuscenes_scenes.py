@@ -70,6 +70,32 @@ def test_scene_names_resolve_in_the_order_given(two_scenes: Path) -> None:
         nuscenes_scene_names(two_scenes, None)
 
 
+def test_pooled_scenes_read_each_table_once(two_scenes: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The scenes `eval --scene all` loads are each scene's own (as loaded alone), and the tables only ground truth
+    reads are parsed once for all of them (each scene, and listing the scenes, had read them again)."""
+    import numpy as np
+
+    from jitterguard.eval.groundtruth import load_nuscenes_frames, nuscenes_scenes
+    from jitterguard.services.replay.sources import nuscenes as source
+
+    alone = [load_nuscenes_frames(two_scenes, name) for name in SCENES]
+    reads: list[str] = []
+    real = source._load_table
+
+    def counted(folder: Path, name: str) -> list[dict]:
+        reads.append(name)
+        return real(folder, name)
+
+    monkeypatch.setattr(source, "_load_table", counted)
+    pooled = nuscenes_scenes(two_scenes, "all")
+    assert [name for name, _ in pooled] == list(SCENES)
+    for (_, frames), (_, own) in zip(pooled, alone):
+        assert [f.stamp_ns for f in frames] == [f.stamp_ns for f in own]
+        assert all(np.array_equal(f.centers, g.centers) and f.attributes == g.attributes for f, g in zip(frames, own))
+    assert reads.count("sample_annotation") == reads.count("instance") == 1, reads
+    assert reads.count("scene") == 1 + len(SCENES), reads  # the listing's, then each scene's replay source's own
+
+
 def test_several_scenes_pool_as_one_drive(two_scenes: Path, pooled: dict, pooled_out: Path, tmp_path: Path) -> None:
     alone = [_eval(two_scenes, tmp_path / name, "--scene", name) for name in SCENES]
     assert [m["run"]["scenes"] for m in alone] == [[SCENES[0]], [SCENES[1]]]

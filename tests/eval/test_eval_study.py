@@ -1,7 +1,13 @@
-"""The jitter-band study's criteria and the alpha-from-labels preset (pure functions, no runs)."""
+"""The jitter-band study's criteria, its --seeds and the alpha-from-labels preset (no runs)."""
 
 from __future__ import annotations
 
+import json
+
+import pytest
+
+from jitterguard.cli import main
+from jitterguard.eval import cli as eval_cli
 from jitterguard.eval.cli import labels_preset
 from jitterguard.eval.study import check_jitter_band, check_parity, study_markdown, summarize
 from jitterguard.schemas.models import ClassifierConfig
@@ -40,3 +46,22 @@ def test_labels_preset_is_a_valid_config() -> None:
     cfg = ClassifierConfig.model_validate({**ClassifierConfig().model_dump(), **p})
     assert cfg.alpha_for(1) == 2.35 and cfg.alpha_for(4) == 2.35 and cfg.alpha_for(7) == 1.1
     assert cfg.alpha_for(6) == cfg.alpha_for(5) == 1.96  # no labels for cycles (motorcycles among them): default
+
+
+def test_study_seeds_take_ranges_as_every_other_command(monkeypatch, tmp_path) -> None:
+    """``eval-study --seeds`` reads ``2000-2009`` and ``1,2,5-7`` as every other ``--seeds`` does (it had taken a
+    comma list only, and refused a range); each run pools the same seeds."""
+    veh = {"ap_z": 0.99, "ap_speed": 0.98, "false_dynamic_z": 0.0, "false_dynamic_speed": 0.1,
+           "missed_dynamic_z": 0.0, "missed_dynamic_speed": 0.0, "n_static": 5, "n_dynamic": 3}
+    pooled: list[tuple[int, tuple[int, ...]]] = []
+
+    def fake_evaluate(out, *, seed, noise, extra_seeds, **_):  # the study's bookkeeping, not its minutes of runs
+        pooled.append((seed, tuple(extra_seeds)))
+        return {"run": {"noise": noise}, "motion": {"vehicle": veh, "pedestrian": veh}}
+
+    monkeypatch.setattr(eval_cli, "evaluate", fake_evaluate)
+    with pytest.raises(SystemExit) as exc:
+        main(["eval-study", "--out", str(tmp_path / "st"), "--seeds", "2000-2002,2005", "--json"])
+    assert exc.value.code in (0, None)
+    assert pooled and set(pooled) == {(2000, (2001, 2002, 2005))}
+    assert json.loads((tmp_path / "st" / "study.json").read_text())["seeds"] == [2000, 2001, 2002, 2005]

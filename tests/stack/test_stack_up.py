@@ -55,16 +55,15 @@ def stacks(tmp_path_factory):
     weird = home / "50% data" / "nu scenes"
     weird.parent.mkdir()
     export_scenario(make_scenario("parking-street", 1, duration_s=3.0, rate_hz=2.0), str(weird), seed=1)
-    ports = {s: (free_tcp_port(), free_tcp_port()) for s in ("a", "b")}
+    ports = {s: free_tcp_port() for s in ("a", "b")}  # the routers' (no sidecar: `--port` is refused with it)
     info = {"home": home, "env": env, "ports": ports, "bag_a": data / "bag_a", "bag_b": weird,
             "run": {s: home / "xdg" / "jitterguard" / s for s in ("a", "b")}}
     started = []
     try:
         for name, src, cwd, extra in (("a", "bag_a", data, ("--topic", DET_TOPIC, "--pose-topic", ODOM_TOPIC)),
                                       ("b", str(weird), None, ("--input", "detections", "--seed", "2"))):
-            r, h = ports[name]
-            res = jg("up", src, "-d", "--name", name, "--ns", f"up{name}{os.getpid()}", "--router-port", str(r),
-                     "--port", str(h), "--no-sidecar", *extra, cwd=cwd, env=env)
+            res = jg("up", src, "-d", "--name", name, "--ns", f"up{name}{os.getpid()}", "--router-port",
+                     str(ports[name]), "--no-sidecar", *extra, cwd=cwd, env=env)
             info[f"up_{name}"] = res
             assert res.returncode == 0, res.stdout + res.stderr
             started.append(name)
@@ -105,9 +104,8 @@ def test_nuscenes_boxes_run_live_from_a_path_with_a_percent_and_a_space(stacks):
 
 
 def test_a_second_stack_on_a_port_in_use_or_under_a_running_name_is_refused(stacks):
-    r_b, _ = stacks["ports"]["b"]
-    res = jg("up", "-d", "--name", "c", "--ns", "upc", "--router-port", str(r_b), "--port", str(free_tcp_port()),
-             "--no-sidecar", "--input", "detections", env=stacks["env"])
+    res = jg("up", "-d", "--name", "c", "--ns", "upc", "--router-port", str(stacks["ports"]["b"]), "--no-sidecar",
+             "--input", "detections", env=stacks["env"])
     assert res.returncode == 2 and "in use by the stack 'b'" in one_line(res)
     assert not (stacks["run"]["a"].parent / "c").exists()  # nothing written
     res = jg("up", "-d", "--name", "a", "--router-port", str(free_tcp_port()), "--no-sidecar", "--input",
@@ -243,6 +241,14 @@ def test_a_sidecar_off_loopback_without_a_token_is_refused_before_anything_start
              str(free_tcp_port()), env=env, cwd=tmp_path, timeout=60)
     assert res.returncode == 2 and "--host: refusing to bind 0.0.0.0 without JG_API_TOKEN" in one_line(res)
     assert not (tmp_path / "xdg").exists()
+
+
+@pytest.mark.parametrize("port", ["8000", "0", "9123"])  # the default and "a free one" given too: any --port
+def test_a_sidecar_port_without_a_sidecar_is_refused_before_anything_starts(tmp_path, port):
+    """`--no-sidecar --port N` had started the stack and ignored N without a word."""
+    res, _ = _refused(tmp_path, "--input", "detections", "--port", port)
+    assert "--port is the sidecar's port; give it or --no-sidecar, not both" in one_line(res)
+    assert [p.name for p in tmp_path.iterdir()] == []  # no run directory, no supervisord.conf anywhere here
 
 
 def test_a_moving_sensor_without_poses_is_warned_about(tmp_path):
