@@ -10,6 +10,7 @@ config and its refusals.
 from __future__ import annotations
 
 import dataclasses
+import warnings
 
 import numpy as np
 import pytest
@@ -58,6 +59,12 @@ def test_no_estimate_without_ground_and_the_fallback_is_used() -> None:
                             np.zeros(5000)]).astype(np.float32)
     assert ground_height(wall) is None
     assert ground_height(np.zeros((0, 4), np.float32)) is None
+    rng = np.random.default_rng(3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a stray return of 1e30 (or NaN) neither raises nor warns: it is out of range
+        broken = np.concatenate([_plane_scan(1.84), rng.normal(0, 1e30, (500, 4)).astype(np.float32),
+                                 np.full((500, 4), np.nan, np.float32)])
+        assert ground_height(broken) == pytest.approx(1.84, abs=0.03)
     assert height_shift(wall, None, fallback_m=2.0) == pytest.approx((2.0 - TRAINED_SENSOR_HEIGHT_M, 2.0))
     assert height_shift(wall, 0.0) == pytest.approx((-TRAINED_SENSOR_HEIGHT_M, 0.0))  # declared: not measured
 
