@@ -6,10 +6,16 @@ counters start again at zero when supervisord restarts it. The monitor keeps the
 (:class:`~.summary.Ledger`), so ``jitterguard summary`` — or the end of a foreground ``up`` — adds up the whole
 run, restarts included. It is started first and stopped last, and every service sends a final heartbeat as it
 closes, so the file ends with the final counts. If the monitor itself is restarted it reads the file back.
+
+It also polls supervisord (XML-RPC, every :data:`FREEZE_CHECK_S`) for what supervisord cannot see or does not do by
+itself: a program frozen while RUNNING (:meth:`StackMonitor._end_frozen`) and a program that crashes again and
+again after it was called RUNNING, which supervisord restarts at once for ever: it is held back, stopped, and
+started again after a doubling back-off (:mod:`.backoff`, ``JG_CRASH_LOOP_*``).
 """
 
 from __future__ import annotations
 
+import logging
 import os
 import threading
 import time
@@ -28,10 +34,13 @@ from ..schemas import DecodeError, decode, keys
 from ..schemas.models import Heartbeat
 from ..schemas.wire import MAX_HEARTBEAT_BYTES
 from . import summary
+from .backoff import Action, CrashLoopGuard, CrashLoopPolicy
+from .control import StackUnavailable, Supervisor
 from .status import SPEC_FILE, load_spec
 
 WRITE_PERIOD_S = 1.0
 FREEZE_CHECK_S = 2.0
+"""How often the monitor asks supervisord about its programs (frozen ones, crash loops)."""
 FREEZE_MARGIN_S = 5.0
 """A program silent this much longer than its own last resort (``JG_WATCHDOG_S`` + the hang grace, when
 faulthandler ends a process hung with its heartbeat thread) is one that no watchdog inside it can end."""
@@ -63,11 +72,23 @@ class StackMonitor(Service):
         self._beat_at: dict[int, tuple[str, float]] = {}  # pid -> (service, monotonic time of its last heartbeat)
         self._beat_lock = threading.Lock()
         self._stopped_since: dict[int, float] = {}  # a router pid seen stopped (SIGSTOP), since when (monotonic)
+        self.supervisor = Supervisor(run_dir)
+        try:  # read before the session opens, as JG_WATCHDOG_S is: a bad value is a one-line startup error
+            policy = CrashLoopPolicy.from_env()
+        except ValueError as exc:
+            logging.getLogger(f"jitterguard.{self.name}").error("%s", exc)
+            raise SystemExit(2) from None
+        # crashes before the run (or before this monitor, when it was restarted) are not counted again
+        self.guard = CrashLoopGuard(policy, since=self.run_started_at - 0.01)
+        if prev.get("crash_loop_guard"):
+            self.guard.restore(prev["crash_loop_guard"], time.time())
+        self._guard_lock = threading.Lock()
         super().__init__(opts)
         self._declared.append(self.session.declare_subscriber(keys.heartbeat_all(self.ns), self._on_beat))
         self.spawn(self._writer, "writer")
-        if self._watchdog_env is not None:  # JG_WATCHDOG_S=0 turns every watchdog off, this one too
-            self.spawn(self._freeze_watch, "freeze-watch")
+        # JG_WATCHDOG_S=0 turns every watchdog off, the freeze watch too; JG_CRASH_LOOP_EXITS=0 the crash-loop guard
+        if self._watchdog_env is not None or policy.enabled:
+            self.spawn(self._supervisord_watch, "supervisord-watch")
 
     def _on_beat(self, sample: zenoh.Sample) -> None:
         try:
@@ -95,8 +116,10 @@ class StackMonitor(Service):
         meta = {"stack": spec.name if spec else self.run_dir.name, "ns": self.ns,
                 "source": (spec.source if spec else None), "started_at": _iso(self.run_started_at),
                 "updated_at": _iso(now), "duration_s": round(now - self.run_started_at, 1)}
-        return {**summary.build(self.ledger, events, meta=meta), "started_at_s": self.run_started_at,
-                "ledger": self.ledger.as_json()}
+        with self._guard_lock:
+            guard = self.guard.as_json()
+        return {**summary.build(self.ledger, events, meta=meta, backoff=guard), "started_at_s": self.run_started_at,
+                "ledger": self.ledger.as_json(), "crash_loop_guard": guard}
 
     def write(self) -> None:
         """Write summary.json; a failure (a full disk, a run directory gone read-only) is logged once, counted,
@@ -124,19 +147,11 @@ class StackMonitor(Service):
         error = self.write_error
         return Health(FAILING, error) if error is not None else super().health()
 
-    def _freeze_watch(self) -> None:
-        """Restart a program that supervisord says is RUNNING but that has sent no heartbeat for
-        ``JG_WATCHDOG_S`` + :data:`HANG_GRACE_S` + :data:`FREEZE_MARGIN_S` (20 s by default).
-
-        A stopped process (SIGSTOP, a cgroup freezer, a debugger that left it stopped) runs no thread at all: its
-        own watchdog and faulthandler's timer wait with it, supervisord sees a live pid, and the stack had stood
-        still for good with every program RUNNING. Only a process heard from before (with its current pid) is
-        judged, only while other services are heard (a router down or restarting silences everyone: not a
-        freeze), and never after the monitor itself stood still (it would then judge its own pause). It is ended
-        with SIGKILL, which a stopped process cannot hold off, for supervisord to start it again. The router, which
-        sends no heartbeat, is judged by whether the kernel says it is stopped (:meth:`_end_stopped_router`)."""
-        assert self._watchdog_env is not None
-        limit = self._watchdog_env + HANG_GRACE_S + FREEZE_MARGIN_S
+    def _supervisord_watch(self) -> None:
+        """Every :data:`FREEZE_CHECK_S`: ask supervisord for its programs, once, then end the frozen ones
+        (:meth:`_end_frozen`, unless ``JG_WATCHDOG_S=0``) and hold back those in a crash loop
+        (:meth:`_hold_crash_loops`, unless ``JG_CRASH_LOOP_EXITS=0``)."""
+        limit = None if self._watchdog_env is None else self._watchdog_env + HANG_GRACE_S + FREEZE_MARGIN_S
         last_tick = time.monotonic()
         while not self.stop_event.wait(FREEZE_CHECK_S):
             now = time.monotonic()
@@ -146,18 +161,37 @@ class StackMonitor(Service):
                 self._stopped_since = {pid: now for pid in self._stopped_since}
             last_tick = now
             try:
-                self._end_frozen(now, limit)
+                procs = self.supervisor.processes()
+            except StackUnavailable:
+                continue
             except Exception:  # never let the watch die; say why
-                self.log.exception("freeze watch failed")
+                self.log.exception("cannot ask supervisord about its programs")
+                continue
+            if limit is not None:
+                try:
+                    self._end_frozen(procs, now, limit)
+                except Exception:
+                    self.log.exception("freeze watch failed")
+            if self.guard.policy.enabled:
+                try:
+                    self._hold_crash_loops(procs)
+                except Exception:
+                    self.log.exception("crash-loop guard failed")
 
-    def _end_frozen(self, now: float, limit: float) -> None:
-        from .control import StackUnavailable, Supervisor, kill_program
+    def _end_frozen(self, procs: list[Any], now: float, limit: float) -> None:
+        """End a program that supervisord says is RUNNING but that has sent no heartbeat for
+        ``JG_WATCHDOG_S`` + :data:`HANG_GRACE_S` + :data:`FREEZE_MARGIN_S` (20 s by default).
+
+        A stopped process (SIGSTOP, a cgroup freezer, a debugger that left it stopped) runs no thread at all: its
+        own watchdog and faulthandler's timer wait with it, supervisord sees a live pid, and the stack had stood
+        still for good with every program RUNNING. Only a process heard from before (with its current pid) is
+        judged, only while other services are heard (a router down or restarting silences everyone: not a
+        freeze), and never after the monitor itself stood still (it would then judge its own pause). It is ended
+        with SIGKILL, which a stopped process cannot hold off, for supervisord to start it again. The router, which
+        sends no heartbeat, is judged by whether the kernel says it is stopped (:meth:`_end_stopped_router`)."""
+        from .control import kill_program
         from .status import SERVICE_NAMES
 
-        try:
-            procs = Supervisor(self.run_dir).processes()
-        except StackUnavailable:
-            return
         self._end_stopped_router(procs, now, limit)
         with self._beat_lock:
             beats = dict(self._beat_at)
@@ -200,6 +234,42 @@ class StackMonitor(Service):
                     self.counters.inc("frozen_restarts.router")
                 seen.discard(proc.pid)
         self._stopped_since = {pid: t for pid, t in self._stopped_since.items() if pid in seen}
+
+    def _hold_crash_loops(self, procs: list[Any]) -> None:
+        """Hold back a program that keeps dying after supervisord called it RUNNING (:class:`.backoff.CrashLoopGuard`
+        decides, from supervisord's log; here only its answers are carried out): stopped through supervisord, one
+        warning, started again when its back-off has passed. A stop or start that supervisord refuses (a program
+        EXITED between two looks cannot be stopped) is asked for again on the next look."""
+        events = summary.supervisor_events(self.run_dir / "logs" / "supervisord.log", since=self.run_started_at - 0.01)
+        now = time.time()
+        actions: list[Action] = []
+        with self._guard_lock:
+            for proc in procs:
+                ev = events.get(proc.name)
+                action = self.guard.step(proc.name, proc.state, ev.running_crashes if ev else (), now)
+                if action is not None:
+                    actions.append(action)
+            held = len(self.guard.held_back())
+        self.counters.set("now.held_back", held)
+        for action in actions:
+            self.dirty = True
+            if action.kind == "stop":
+                if action.warn:
+                    self.counters.inc(f"backed_off.{action.name}")
+                    self.log.warning("%s crashed %d times within %.0f s after it had started (crash loop %d in a "
+                                     "row): holding it back; next start in %.0f s (at %s)", action.name,
+                                     action.crashes, self.guard.policy.window_s, action.loop, action.hold_s,
+                                     _iso(action.until))
+                method = "stopProcess"
+            else:
+                method = "startProcess"
+            try:
+                self.supervisor.call(method, action.name, False)
+            except StackUnavailable as exc:  # asked again on the next look
+                self.log.debug("%s %s: %s", method, action.name, exc)
+                continue
+            if action.kind == "start":
+                self.log.info("starting %s again after its crash-loop back-off", action.name)
 
     def _writer(self) -> None:
         while not self.stop_event.wait(WRITE_PERIOD_S):

@@ -63,6 +63,7 @@ class ServiceStatus:
     detail: str = ""
     heartbeat_expected: bool = False  # `status` listened long enough to hear one (not the router, which sends none)
     problem: str = ""  # why a program is not up, in words: not running (and its log's last line), unreachable
+    held_back_s: float | None = None  # held back by the monitor after a crash loop: seconds to its next start
 
     def as_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -154,10 +155,49 @@ def _not_running(proc: ProcessInfo) -> str:
     return what
 
 
+HELD_OVERDUE_S = 10.0
+"""A held-back program whose next start is this far past was not started by the monitor: it is likely not running."""
+
+
+def held_back(run_dir: Path | str | None, now: float | None = None) -> dict[str, float]:
+    """Program → seconds to its next start (negative: overdue), for each program the monitor holds back after a
+    crash loop, as its ``summary.json`` says ({} without one)."""
+    if not run_dir:
+        return {}
+    from .summary import load
+
+    data = load(Path(run_dir)) or {}
+    until = (data.get("restarts") or {}).get("held_back_until_s") or {}
+    now = time.time() if now is None else now
+    try:
+        return {str(name): float(t) - now for name, t in until.items()}
+    except (TypeError, ValueError):
+        return {}
+
+
+def _held_back(proc: ProcessInfo, in_s: float) -> str:
+    """A program the monitor stopped after a crash loop, in one line: when it starts again, and why it crashed."""
+    from .control import tail
+
+    what = (f"backoff (crash loop: held back by the monitor, next start in {in_s:.0f} s)" if in_s >= 0 else
+            f"backoff (crash loop: held back by the monitor, its start {-in_s:.0f} s overdue)" if in_s > -HELD_OVERDUE_S
+            else f"backoff (crash loop: held back, its start {-in_s:.0f} s overdue: is the monitor running?)")
+    last = next((ln.strip() for ln in reversed(tail(proc.logfile, 5)) if ln.strip()), "") if proc.logfile else ""
+    if last:
+        what += f"; its log ends: {last[:200]}"
+    if proc.name in SOURCE_PROGRAMS:
+        what += "; no frames enter the pipeline"
+    return what
+
+
 def collect(procs: list[ProcessInfo], spec: StackSpec | None, listen_s: float = 1.5) -> list[ServiceStatus]:
     rows = rows_from_processes(procs)
+    held = held_back(spec.run_dir if spec else None)
     for row, proc in zip(rows, procs):
-        if proc.state != "RUNNING":
+        if proc.state in ("STOPPED", "STOPPING") and proc.name in held:
+            row.held_back_s = round(held[proc.name], 1)
+            row.problem = _held_back(proc, held[proc.name])
+        elif proc.state != "RUNNING":
             row.problem = _not_running(proc)
     if spec is None:
         return rows
@@ -209,7 +249,8 @@ def render_table(rows: list[ServiceStatus], spec: StackSpec | None, run_dir: Pat
     for col in ("service", "state", "pid", "uptime", "zenoh alive", "last seq", "progress"):
         table.add_column(col, justify="right" if col in ("pid", "uptime", "last seq") else "left")
     for r in rows:
-        color = "green" if r.state == "RUNNING" else ("yellow" if r.state in ("STARTING", "BACKOFF") else "red")
+        color = ("green" if r.state == "RUNNING" else
+                 "yellow" if r.state in ("STARTING", "BACKOFF") or r.held_back_s is not None else "red")
         alive = "-" if r.alive is None else ("[green]yes[/]" if r.alive else "[red]no[/]")
         seq = "-" if r.last_seq is None else ("none yet" if r.last_seq < 0 else str(r.last_seq))
         # a problem: a program not running, or (running, no health of its own) the router not answering

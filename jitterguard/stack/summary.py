@@ -117,6 +117,7 @@ _LOG_TIME = re.compile(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d),(\d{3}) ")
 SPAWNED = re.compile(r"spawned: '([^']+)' with pid (\d+)")
 _EXITED = re.compile(r"exited: (\S+) \((.*); not expected\)")
 _FATAL = re.compile(r"gave up: (\S+) entered FATAL state")
+_RUNNING = re.compile(r"success: (\S+) entered RUNNING state")
 
 
 @dataclass
@@ -126,6 +127,11 @@ class ProgramEvents:
     spawns: list[float] = field(default_factory=list)
     crashes: list[tuple[float, str]] = field(default_factory=list)  # (time, "exit status 1") of unexpected exits
     fatal: bool = False
+    running_crashes: list[float] = field(default_factory=list)
+    """The times of the unexpected exits of a process that had reached RUNNING (lived ``startsecs``): those that
+    supervisord's own back-off does not cover (it restarts such a program at once, for ever); the stack's monitor
+    holds a program back when they come too often (:mod:`.backoff`)."""
+    running: bool = False  # its current process has reached RUNNING (what the log said last)
 
     @property
     def restarts(self) -> int:
@@ -152,8 +158,15 @@ def supervisor_events(log_path: Path, since: float = 0.0) -> dict[str, ProgramEv
                 ev = out.setdefault(s.group(1), ProgramEvents())
                 ev.spawns.append(t)
                 ev.fatal = False  # started again since supervisord gave up on it (`supervisorctl start`)
+                ev.running = False
+            elif (r := _RUNNING.search(line)) is not None:
+                out.setdefault(r.group(1), ProgramEvents()).running = True
             elif (e := _EXITED.search(line)) is not None:
-                out.setdefault(e.group(1), ProgramEvents()).crashes.append((t, e.group(2)))
+                ev = out.setdefault(e.group(1), ProgramEvents())
+                ev.crashes.append((t, e.group(2)))
+                if ev.running:
+                    ev.running_crashes.append(t)
+                ev.running = False
             elif (f := _FATAL.search(line)) is not None:
                 out.setdefault(f.group(1), ProgramEvents()).fatal = True
     return out
@@ -174,8 +187,12 @@ def _pick(totals: dict[str, int] | None, name: str) -> int | None:
     return None if totals is None else int(totals.get(name, 0))
 
 
-def build(ledger: Ledger, events: dict[str, ProgramEvents], *, meta: dict[str, Any]) -> dict[str, Any]:
-    """The summary as a JSON-able dict (``meta``: stack name, ns, source, start and end times…)."""
+def build(ledger: Ledger, events: dict[str, ProgramEvents], *, meta: dict[str, Any],
+          backoff: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The summary as a JSON-able dict (``meta``: stack name, ns, source, start and end times…; ``backoff``: the
+    monitor's crash-loop guard, :meth:`.backoff.CrashLoopGuard.as_json`)."""
+    backoff = backoff or {}
+    held = dict(backoff.get("held_back_until_s") or {})
     t = {svc: ledger.totals(svc) for svc in ledger.procs}
     # the source's frames: the replay's puts (one per frame), or feed-tracks' frames at --input tracks (its puts
     # are a frame's every tracks/{id} and its tracked: 1,824 "replayed" for ~150 frames)
@@ -205,6 +222,11 @@ def build(ledger: Ledger, events: dict[str, ProgramEvents], *, meta: dict[str, A
             # programs supervisord gave up on and that have not been started since: dead for the rest of the run
             # (the counts above had said "replay 21" for a source that had stopped for good)
             "gave_up": sorted(name for name, ev in events.items() if ev.fatal),
+            # the monitor's crash-loop guard: how often each program was held back after crashing again and again
+            # once RUNNING, which are held back now and when each is started again (epoch s)
+            "backed_off": dict(backoff.get("backed_off") or {}),
+            "held_back": sorted(held),
+            "held_back_until_s": held,
             "source_restarts": _pick(trk, "source_restarts"),
             "tracker_resets": _pick(trk, "resets"),
             "classifier_upstream_restarts": _pick(cls, "frames.upstream_restarts"),
@@ -239,6 +261,8 @@ def render(summary: dict[str, Any]) -> str:
         f"  restarts  {kv(rs['programs'])}" + (f"; unexpected exits: {kv(rs['unexpected_exits'])}"
                                                if rs["unexpected_exits"] else "")
         + (f"; supervisord gave up on: {', '.join(rs['gave_up'])}" if rs.get("gave_up") else "")
+        + (f"; held back after crash loops: {kv(rs['backed_off'])}" if rs.get("backed_off") else "")
+        + (f" (now: {', '.join(rs['held_back'])})" if rs.get("held_back") else "")
         + f"; source restarts {n(rs['source_restarts'])}, tracker resets {n(rs['tracker_resets'])}",
     ]
     if summary["errors"]:
