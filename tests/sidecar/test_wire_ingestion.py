@@ -36,6 +36,11 @@ def stack() -> Iterator[Stack]:
 @pytest.fixture()
 def bus(stack: Stack) -> Iterator[zenoh.Session]:
     with zenoh.open(build_config(loopback_options(stack.ns, stack.zport))) as s:
+        # a fresh session's first put could go before it had heard of the sidecar's heartbeat subscriber, and be
+        # lost (a test putting one heartbeat then waited for ever, 1 run in 3): wait until the route is known
+        probe = s.declare_publisher(keys.heartbeat(stack.ns, "probe"))
+        wait_for(lambda: probe.matching_status.matching, "the sidecar's heartbeat subscriber seen from the bus")
+        probe.undeclare()
         yield s
 
 
