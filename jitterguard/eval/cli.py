@@ -253,16 +253,15 @@ def load_detector(weights: Path | None, threads: int | None, self_crop: bool = T
     random initialisation). A missing or unusable file fails with one line."""
     import hashlib
 
-    from ..services.detector.config import SELF_CROP_M, DetectorParams, declared_height
+    from ..services.detector.config import SELF_CROP_M, declared_height
     from ..services.detector.inference import Detector, WeightsError, shipped_weights
 
     if weights is not None and not weights.is_file():
         fail(f"--weights: file not found: {weights}")
     path = weights if weights is not None else shipped_weights("lite")
     try:
-        height = DetectorParams().sensor_height_m if sensor_height is None else sensor_height
         det = Detector.load(weights, "lite", threads=threads, self_crop=SELF_CROP_M if self_crop else None,
-                            flips=flips, sensor_height_m=declared_height(height))
+                            flips=flips, sensor_height_m=declared_height(sensor_height))
     except WeightsError as exc:
         fail(f"--weights: {' '.join(str(exc).split())[:240]}")
     except ValueError as exc:  # flips on weights whose grid is not symmetric about the sensor

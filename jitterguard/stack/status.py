@@ -136,17 +136,24 @@ of the services, which stay healthy and ready, so the source's own row says it (
 under ``warnings``)."""
 
 
-def _not_running(proc: ProcessInfo) -> str:
-    """Why a program that is not RUNNING is not, in one line: supervisord's state and word for it, the last line of
-    its log, and for the source that nothing enters the pipeline. Its progress column had said "no heartbeat
-    heard", as of a frozen process, for a replay supervisord had given up on."""
+def _not_running(proc: ProcessInfo, held_in_s: float | None = None) -> str:
+    """Why a program that is not RUNNING is not, in one line: supervisord's state and word for it — or, for one the
+    monitor holds back after a crash loop, when it starts again (``held_in_s``: seconds to its next start, negative
+    when overdue) —, the last line of its log, and for the source that nothing enters the pipeline. Its progress
+    column had said "no heartbeat heard", as of a frozen process, for a replay supervisord had given up on."""
     from .control import tail
 
-    what = {"FATAL": "supervisord gave up restarting it", "BACKOFF": "restarting after it exited too quickly",
-            "STARTING": "starting", "STOPPED": "stopped", "STOPPING": "stopping",
-            "EXITED": "exited"}.get(proc.state, proc.state.lower())
-    if proc.state == "EXITED" and proc.exitstatus is not None:
-        what += f" (status {proc.exitstatus})"
+    if held_in_s is not None:
+        what = (f"backoff (crash loop: held back by the monitor, next start in {held_in_s:.0f} s)" if held_in_s >= 0
+                else f"backoff (crash loop: held back by the monitor, its start {-held_in_s:.0f} s overdue)"
+                if held_in_s > -HELD_OVERDUE_S else
+                f"backoff (crash loop: held back, its start {-held_in_s:.0f} s overdue: is the monitor running?)")
+    else:
+        what = {"FATAL": "supervisord gave up restarting it", "BACKOFF": "restarting after it exited too quickly",
+                "STARTING": "starting", "STOPPED": "stopped", "STOPPING": "stopping",
+                "EXITED": "exited"}.get(proc.state, proc.state.lower())
+        if proc.state == "EXITED" and proc.exitstatus is not None:
+            what += f" (status {proc.exitstatus})"
     last = next((ln.strip() for ln in reversed(tail(proc.logfile, 5)) if ln.strip()), "") if proc.logfile else ""
     if last:
         what += f"; its log ends: {last[:200]}"
@@ -175,28 +182,13 @@ def held_back(run_dir: Path | str | None, now: float | None = None) -> dict[str,
         return {}
 
 
-def _held_back(proc: ProcessInfo, in_s: float) -> str:
-    """A program the monitor stopped after a crash loop, in one line: when it starts again, and why it crashed."""
-    from .control import tail
-
-    what = (f"backoff (crash loop: held back by the monitor, next start in {in_s:.0f} s)" if in_s >= 0 else
-            f"backoff (crash loop: held back by the monitor, its start {-in_s:.0f} s overdue)" if in_s > -HELD_OVERDUE_S
-            else f"backoff (crash loop: held back, its start {-in_s:.0f} s overdue: is the monitor running?)")
-    last = next((ln.strip() for ln in reversed(tail(proc.logfile, 5)) if ln.strip()), "") if proc.logfile else ""
-    if last:
-        what += f"; its log ends: {last[:200]}"
-    if proc.name in SOURCE_PROGRAMS:
-        what += "; no frames enter the pipeline"
-    return what
-
-
 def collect(procs: list[ProcessInfo], spec: StackSpec | None, listen_s: float = 1.5) -> list[ServiceStatus]:
     rows = rows_from_processes(procs)
     held = held_back(spec.run_dir if spec else None)
     for row, proc in zip(rows, procs):
         if proc.state in ("STOPPED", "STOPPING") and proc.name in held:
             row.held_back_s = round(held[proc.name], 1)
-            row.problem = _held_back(proc, held[proc.name])
+            row.problem = _not_running(proc, held[proc.name])
         elif proc.state != "RUNNING":
             row.problem = _not_running(proc)
     if spec is None:

@@ -123,6 +123,7 @@ def test_the_real_scenes_scans_sit_at_their_calibrated_mount() -> None:
 
 def test_config_and_flag_values() -> None:
     assert DetectorParams().sensor_height_m == "auto" and declared_height("auto") is None
+    assert declared_height(None) is None  # not given: the service's default, auto
     assert DetectorParams.model_validate({"sensor_height_m": 0}).sensor_height_m == 0.0  # YAML's 0: base_link
     assert declared_height(DetectorParams(sensor_height_m=1.95).sensor_height_m) == 1.95
     for bad in (184, -3.0, "tall", float("nan"), True):

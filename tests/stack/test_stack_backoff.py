@@ -11,7 +11,7 @@ import pytest
 from jitterguard.stack import summary
 from jitterguard.stack.backoff import CrashLoopGuard, CrashLoopPolicy
 from jitterguard.stack.control import ProcessInfo
-from jitterguard.stack.status import _held_back, held_back
+from jitterguard.stack.status import _not_running, held_back
 
 POLICY = CrashLoopPolicy(exits=5, window_s=60.0, backoff_s=10.0, backoff_max_s=300.0)
 
@@ -213,6 +213,6 @@ def test_the_summary_and_status_name_a_held_back_program(tmp_path):
     log = tmp_path / "detector.log"
     log.write_text("RuntimeError: weights file truncated\n")
     proc = ProcessInfo("detector", "STOPPED", None, None, 0, "", str(log))
-    assert _held_back(proc, 17.0) == ("backoff (crash loop: held back by the monitor, next start in 17 s); its log"
+    assert _not_running(proc, 17.0) == ("backoff (crash loop: held back by the monitor, next start in 17 s); its log"
                                       " ends: RuntimeError: weights file truncated")
-    assert "overdue: is the monitor running?" in _held_back(proc, -60.0)
+    assert "overdue: is the monitor running?" in _not_running(proc, -60.0)

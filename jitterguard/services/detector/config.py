@@ -138,8 +138,11 @@ def parse_sensor_height(text: str) -> float | Literal["auto"]:
     return value
 
 
-def declared_height(value: float | str) -> float | None:
-    """The :class:`~.inference.Detector`'s ``sensor_height_m`` for a config value: None (measure) for ``auto``."""
+def declared_height(value: float | str | None) -> float | None:
+    """The :class:`~.inference.Detector`'s ``sensor_height_m`` for a config or ``--sensor-height`` value: None
+    (measure) for ``auto``; a value not given (None) is the service's default (:class:`DetectorParams`')."""
+    if value is None:
+        value = DetectorParams.model_fields["sensor_height_m"].default
     return None if value == "auto" else float(value)
 
 

@@ -556,7 +556,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         progress = progress_on(progress)
         height = sensor_height_option(sensor_height)
         from .adapt import DEFAULT_PSEUDO_THRESHOLDS
-        from .config import SELF_CROP_M, DetectorParams, declared_height
+        from .config import SELF_CROP_M, declared_height
 
         if not os.path.isfile(weights):
             fail(f"--weights: file not found: {weights}")
@@ -621,7 +621,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         cfg = AdaptConfig(rounds=rounds, epochs=epochs, batch_size=batch_size, lr=lr, seed=seed, thresholds=tuple(thr),
                           real_repeat=real_repeat, recalibrate=recalibration == "tracked",
                           self_crop=SELF_CROP_M if self_crop else None, flips=flips,
-                          sensor_height_m=declared_height(DetectorParams().sensor_height_m if height is None else height))
+                          sensor_height_m=declared_height(height))
         aug = TrainAugment(**(source_meta.get("augment") or {}))  # as the source weights were trained
         report = adapt(model, real, synthetic, cfg, root, augment=aug, progress=progress)
         rec = report["recalibration"]
@@ -755,14 +755,13 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         from .cli import passive_openmp
 
         passive_openmp()  # before torch is imported
-        from .config import SELF_CROP_M, DetectorParams, declared_height
+        from .config import SELF_CROP_M, declared_height
         from .inference import Detector, WeightsError
 
         try:
             det = Detector.load(weights, preset or "lite", threads=threads, recalibrate=recalibrate,
                                 self_crop=SELF_CROP_M if self_crop else None, flips=flips,
-                                sensor_height_m=declared_height(DetectorParams().sensor_height_m if height is None
-                                                                else height))
+                                sensor_height_m=declared_height(height))
         except WeightsError as exc:
             fail(f"--weights: {exc}")
         except ValueError as exc:  # flips on a grid that is not symmetric about the sensor

@@ -70,14 +70,9 @@ class TfTree:
             self._sort()
         return interpolate_pose(self._times[child], self._poses[child], stamp_ns)
 
-    def lookup(self, frame: str, stamp_ns: int, ancestor: str | None = None) -> EgoPose:
-        """Pose of ``frame`` in ``ancestor`` (default: the root of its tree) at ``stamp_ns``.
-
-        Raises ``KeyError`` naming the frames when ``frame`` is unknown or ``ancestor`` is not above it."""
-        frame = self._norm(frame)
-        target = self._norm(ancestor) if ancestor else None
-        if frame not in self:
-            raise KeyError(f"frame {frame!r} is not in the TF tree")
+    def _chain(self, frame: str, target: str | None) -> list[str]:
+        """The frames from ``frame`` up to ``target`` (excluded; None: the root), ``frame`` first. Raises
+        ``KeyError`` when ``target`` is not above ``frame`` or the links above it form a cycle."""
         chain: list[str] = []
         cur = frame
         while cur != target and cur in self.parent:
@@ -87,10 +82,22 @@ class TfTree:
                 raise KeyError(f"TF cycle above {frame!r}")
         if target is not None and cur != target:
             raise KeyError(f"frame {target!r} is not above {frame!r} in the TF tree")
+        return chain
+
+    def _compose(self, chain: list[str], stamp_ns: int) -> EgoPose:
         pose = IDENTITY
         for child in reversed(chain):
             pose = compose(pose, self.edge(child, stamp_ns))
         return pose
+
+    def lookup(self, frame: str, stamp_ns: int, ancestor: str | None = None) -> EgoPose:
+        """Pose of ``frame`` in ``ancestor`` (default: the root of its tree) at ``stamp_ns``.
+
+        Raises ``KeyError`` naming the frames when ``frame`` is unknown or ``ancestor`` is not above it."""
+        frame = self._norm(frame)
+        if frame not in self:
+            raise KeyError(f"frame {frame!r} is not in the TF tree")
+        return self._compose(self._chain(frame, self._norm(ancestor) if ancestor else None), stamp_ns)
 
     def static_lookup(self, frame: str, ancestor: str) -> EgoPose:
         """Pose of ``frame`` in ``ancestor`` composed of static links alone (a sensor's mount).
@@ -98,17 +105,10 @@ class TfTree:
         Raises ``KeyError`` when ``ancestor`` is not above ``frame`` (or is ``frame`` itself), ``ValueError``
         naming the first link between them that is dynamic."""
         frame, target = self._norm(frame), self._norm(ancestor)
-        chain: list[str] = []
-        cur = frame
-        while cur != target and cur in self.parent and len(chain) <= 1000:
-            chain.append(cur)
-            cur = self.parent[cur]
-        if cur != target or not chain:
+        chain = self._chain(frame, target)
+        if not chain:
             raise KeyError(f"frame {target!r} is not above {frame!r} in the TF tree")
         dynamic = [c for c in chain if c not in self.static]
         if dynamic:
             raise ValueError(f"the link {self.parent[dynamic[0]]!r} -> {dynamic[0]!r} is not static")
-        pose = IDENTITY
-        for child in reversed(chain):
-            pose = compose(pose, self.static[child])
-        return pose
+        return self._compose(chain, 0)  # every link static: the stamp is not read
