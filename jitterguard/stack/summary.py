@@ -207,7 +207,11 @@ def build(ledger: Ledger, events: dict[str, ProgramEvents], *, meta: dict[str, A
         **meta,
         "frames": {"replayed": replayed, "detected": _pick(det, "scans"),
                    "tracked": _pick(trk, "frames"), "classified": _pick(cls, "frames_processed")},
-        "tracks": {"born": _pick(trk, "tracks_born"), "ended": _pick(trk, "tracks_deleted")},
+        # born/ended count tentative tracks too — a detector's low-score clutter starts dozens a frame that never
+        # reach the output — so the confirmed ones are said beside them (an operator read "born 11,944" in a
+        # 37 s run of ~70 objects as a tracker losing its objects)
+        "tracks": {"born": _pick(trk, "tracks_born"), "ended": _pick(trk, "tracks_deleted"),
+                   "confirmed": _pick(trk, "tracks_confirmed"), "confirmed_ended": _pick(trk, "confirmed_tracks_deleted")},
         "objects": {"static": _pick(cls, "objects.static"), "dynamic": _pick(cls, "objects.dynamic"),
                     "undecided": _pick(cls, "objects.undecided"), "vetoed": _pick(cls, "objects.vetoed"),
                     "static_now": _pick(cls, "now.static"), "dynamic_now": _pick(cls, "now.dynamic")},
@@ -251,7 +255,8 @@ def render(summary: dict[str, Any]) -> str:
         head,
         f"  frames    replayed {n(fr['replayed'])}, detected {n(fr['detected'])}, tracked {n(fr['tracked'])},"
         f" classified {n(fr['classified'])}",
-        f"  tracks    born {n(tr['born'])}, ended {n(tr['ended'])}",
+        f"  tracks    born {n(tr['born'])} ({n(tr.get('confirmed'))} confirmed), ended {n(tr['ended'])}"
+        f" ({n(tr.get('confirmed_ended'))} confirmed)",
         f"  objects   static {n(ob['static'])} (jump veto {n(ob.get('vetoed'))}), dynamic {n(ob['dynamic'])},"
         f" undecided {n(ob['undecided'])} (object-frames)"
         + (f"; last frame: {n(ob['static_now'])} static, {n(ob['dynamic_now'])} dynamic"

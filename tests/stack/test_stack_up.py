@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -117,6 +118,8 @@ def test_summary_adds_up_the_run(stacks):
     assert wait_until(lambda: jg("summary", "--name", "a", "--json", env=stacks["env"]).returncode == 0, timeout=30)
     data = json.loads(jg("summary", "--name", "a", "--json", env=stacks["env"]).stdout)
     assert data["stack"] == "a" and data["frames"]["replayed"] > 0 and data["tracks"]["born"] > 0
+    assert 0 < data["tracks"]["confirmed"] <= data["tracks"]["born"]  # the tentative births are told apart
+    assert 0 <= data["tracks"]["confirmed_ended"] <= min(data["tracks"]["ended"], data["tracks"]["confirmed"])
     assert data["rejected_total"] == 0 and "ledger" not in data
     # the 2 s bag (20 frames) has looped: seq and stamps go on across passes, so every frame is taken downstream
     # with no restart anywhere (each pass had begun seq again as a restarted source)
@@ -128,6 +131,7 @@ def test_summary_adds_up_the_run(stacks):
     assert data["frames"]["tracked"] >= data["frames"]["replayed"] - 15
     text = jg("summary", "--name", "a", env=stacks["env"]).stdout
     assert "run summary of stack 'a'" in text and "tracks    born" in text
+    assert re.search(r"born [\d,]+ \([\d,]+ confirmed\), ended [\d,]+ \([\d,]+ confirmed\)", text), text
 
 
 def test_a_replay_in_backoff_makes_status_exit_3(stacks):

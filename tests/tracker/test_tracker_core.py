@@ -132,6 +132,25 @@ def test_isolated_false_positives_never_become_tracks() -> None:
     assert len(core.tracks) <= 9  # tentative ones expire after tentative_max_gap_s
 
 
+def test_each_frame_counts_the_tracks_it_confirmed_and_the_confirmed_ones_it_deleted() -> None:
+    """Births count clutter's tentative tracks too; the summary tells an operator how many reached the output
+    (a run's "born 11,944" for ~70 objects read as a tracker losing them)."""
+    rng = np.random.default_rng(7)
+    core = TrackerCore()
+    cfg = core.config
+    born = confirmed = deleted = confirmed_deleted = 0
+    for k in range(60):
+        clutter = rng.uniform(-50, 50, size=(3, 2)) + np.array([0.0, 60.0])  # isolated, never within a gate
+        car = [[10.0, 0.0]] if k < 30 else np.zeros((0, 2))  # a car seen for 3 s, then gone for good
+        res = core.step(frame(k, np.vstack([car, clutter]) if k < 30 else clutter, [CAR] * (len(car) + 3)))
+        born, confirmed = born + len(res.born), confirmed + res.confirmed
+        deleted, confirmed_deleted = deleted + len(res.deleted), confirmed_deleted + res.confirmed_deleted
+        if k == cfg.confirm_hits - 1:
+            assert res.confirmed == 1 and res.tracks.ids  # the car's track reached the output in this frame
+    assert confirmed == 1 and born >= 3 * 60  # every clutter box started a tentative track
+    assert confirmed_deleted == 1 and deleted > confirmed_deleted  # the car's track coasted out; clutter expired
+
+
 def test_track_ids_are_fresh_uuid4_hex_and_never_repeat_across_restarts() -> None:
     ids: list[str] = []
     for _restart in range(3):  # three "processes": a fresh core each time, same input
@@ -179,6 +198,7 @@ def test_a_source_that_rewinds_far_resets_the_tracker_once_confirmed() -> None:
     assert list(core.tracks.ids) == old_ids
     res = core.step(frame(2, [[10.0, 0.0]], [CAR], t=2 * DT))
     assert res.reset and set(old_ids) <= set(res.deleted)
+    assert res.confirmed_deleted == len(old_ids) == 1  # the confirmed ones a reset drops are counted as such
     assert len(core.tracks) == 1 and core.tracks.ids[0] not in old_ids
 
 

@@ -155,6 +155,11 @@ class FrameResult:
     obs_det: NDArray[np.intp]
     born: list[str] = field(default_factory=list)
     deleted: list[str] = field(default_factory=list)
+    confirmed: int = 0
+    """Tracks that became confirmed this frame (born ones included where one detection confirms them): of
+    ``born``'s tentative tracks, most from clutter, these are the ones that reached the output."""
+    confirmed_deleted: int = 0
+    """Of ``deleted``, the confirmed tracks (the rest were tentative)."""
     reset: bool = False
     """The source went back in time (a recording started over): every earlier track was dropped first."""
     source_restarted: bool = False

@@ -164,6 +164,7 @@ class TrackerCore:
         ``verdict``: what :meth:`check_order` already said of this frame's header."""
         if verdict is None:
             verdict = self.check_order(frame.seq, frame.stamp_ns)
+        confirmed_deleted = int(np.count_nonzero(self.tracks.confirmed)) if verdict is Verdict.REWOUND else 0
         deleted: list[str] = self.reset() if verdict is Verdict.REWOUND else []
         last = self.guard.last_stamp_ns
         period_s = (frame.stamp_ns - last) * 1e-9 if last is not None and verdict is Verdict.NEXT else None
@@ -210,6 +211,7 @@ class TrackerCore:
         claimed = cols.copy()  # a detection whose track is deleted below must not start a twin of it
 
         # ---- update the associated tracks
+        confirmed = 0  # tracks that reach the output with this frame
         if rows.size:
             z = np.stack([det.x[cols], det.y[cols], det.yaw[cols]], axis=1)
             xr, Pr = kalman.update(tr.x[rows], tr.P[rows], z, det.R[cols])
@@ -217,7 +219,7 @@ class TrackerCore:
             kalman.clamp(xr, tr.model[rows], tb.max_speed[lbl], tb.max_yaw_rate[lbl])
             tr.x[rows] = xr
             tr.P[rows] = Pr
-            tr.record_hits(rows, stamp, _seen(frame, det, cols), self.confirmation, cfg.shape_smoothing)
+            confirmed = tr.record_hits(rows, stamp, _seen(frame, det, cols), self.confirmation, cfg.shape_smoothing)
             self._keep_observations(frame, det, rows, cols)
 
         # ---- delete what the lifecycle rules expire (before births: a newborn never expires at once)
@@ -235,6 +237,7 @@ class TrackerCore:
                     self.scale.evict(tr, np.flatnonzero(~keep))
                 remap = np.full(n, -1, dtype=np.intp)
                 remap[keep_rows] = np.arange(keep_rows.size)
+                confirmed_deleted += int(np.count_nonzero(tr.confirmed & ~keep))
                 deleted += tr.keep(keep)
                 new_rows = remap[rows]
                 alive = new_rows >= 0
@@ -248,6 +251,7 @@ class TrackerCore:
         if new.size:
             start = len(tr)
             born = self._birth(frame, det, new)
+            confirmed += int(np.count_nonzero(tr.confirmed[start:]))
             self._keep_observations(frame, det, np.arange(start, start + new.size), new)
             rows = np.concatenate([rows, np.arange(start, start + new.size)])
             cols = np.concatenate([cols, new])
@@ -264,6 +268,8 @@ class TrackerCore:
             obs_det=obs_det,
             born=born,
             deleted=deleted,
+            confirmed=confirmed,
+            confirmed_deleted=confirmed_deleted,
             reset=verdict is Verdict.REWOUND,
             source_restarted=verdict is Verdict.RESTARTED,
             jumped=verdict is Verdict.JUMPED,

@@ -159,10 +159,11 @@ class TrackTable:
         seen: Seen,
         confirm: Confirmation,
         smoothing: float,
-    ) -> None:
-        """Bookkeeping for tracks that received a detection: hit count, class vote, shape, confirmation."""
+    ) -> int:
+        """Bookkeeping for tracks that received a detection: hit count, class vote, shape, confirmation. Returns
+        how many of them became confirmed with it."""
         if rows.size == 0:
-            return
+            return 0
         self.hits[rows] += 1
         self.last_update_ns[rows] = stamp_ns
         self.votes[rows] *= LABEL_DECAY
@@ -173,7 +174,10 @@ class TrackTable:
         self.z[rows] = (1.0 - a) * self.z[rows] + a * seen.z
         self.dims[rows] = (1.0 - a) * self.dims[rows] + a * seen.dims
         self.orientation[rows] = seen.orientation
-        self.confirmed[rows] |= confirm.reached(self.hits[rows], self.label[rows], self.existence[rows])
+        was = self.confirmed[rows]
+        now = was | confirm.reached(self.hits[rows], self.label[rows], self.existence[rows])
+        self.confirmed[rows] = now
+        return int(np.count_nonzero(now & ~was))
 
     def expired(self, stamp_ns: int, tentative_max_gap_s: float, max_coast_s: float,
                 max_position_stddev: float) -> NDArray[np.bool_]:

@@ -12,7 +12,9 @@ observation would silently shorten a classifier window. The inbox is bounded: wh
 oldest frame goes (counted ``dropped_queue.detections``).
 
 Counters (in the heartbeat): ``frames``, ``dropped_duplicate``, ``dropped_out_of_order``, ``dropped_jump`` (held,
-judged from the header before the payload is read), ``tracks_born``, ``tracks_deleted``, ``resets`` (the source went
+judged from the header before the payload is read), ``tracks_born`` (tentative tracks started, clutter's
+included), ``tracks_confirmed`` (of those, the ones that reached the output), ``tracks_deleted`` and
+``confirmed_tracks_deleted``, ``resets`` (the source went
 back in time, confirmed: tracks dropped), ``source_restarts`` (its seq began again while time went on, confirmed:
 tracks kept), ``jumps`` (it jumped ahead, confirmed), ``normalised.detections``, ``dropped_queue.detections``,
 ``static_hints_received`` / ``_applied`` / ``_implausible`` / ``_unknown`` / ``_dropped`` (beyond twice
@@ -192,6 +194,8 @@ class TrackerService(Service):
         self.counters.inc("frames")
         self.counters.inc("tracks_born", len(result.born))
         self.counters.inc("tracks_deleted", len(result.deleted))
+        self.counters.inc("tracks_confirmed", result.confirmed)
+        self.counters.inc("confirmed_tracks_deleted", result.confirmed_deleted)
         if result.withheld:
             self.counters.inc("tracks_withheld", result.withheld)
         self.last_seq = frame.seq
