@@ -54,6 +54,23 @@ SensorHeightOpt = Annotated[
 ]
 
 
+SensorTiltOpt = Annotated[
+    str | None,
+    typer.Option("--sensor-tilt", help="'auto': the road plane's slope measured in each scan and taken out (a"
+                 " sensor pitched or rolled against the road; the default), or 'level': the scans' frame is level."),
+]
+
+
+def sensor_tilt_option(text: str | None) -> str | None:
+    """``--sensor-tilt``'s value for a config override (None: not given), or a one-line refusal (exit 2)."""
+    if text is None:
+        return None
+    value = text.strip().lower()
+    if value not in ("auto", "level"):
+        fail(f"--sensor-tilt: expected 'auto' or 'level', got {text!r}")
+    return value
+
+
 def sensor_height_option(text: str | None) -> float | str | None:
     """``--sensor-height``'s value for a config override (None: not given), or a one-line refusal (exit 2)."""
     if text is None:

@@ -18,7 +18,8 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
-from ..cli_common import SensorHeightOpt, check_seed, fail, out_dir, parse_seeds, progress_on, sensor_height_option
+from ..cli_common import (SensorHeightOpt, SensorTiltOpt, check_seed, fail, out_dir, parse_seeds, progress_on,
+                          sensor_height_option, sensor_tilt_option)
 
 if TYPE_CHECKING:
     from ..services.detector.inference import Detector
@@ -45,6 +46,7 @@ def eval_command(
                                                  " the scan and its three mirror images (its flips setting).")
                               ] = False,
     sensor_height: SensorHeightOpt = None,
+    sensor_tilt: SensorTiltOpt = None,
     nuscenes: Annotated[Path | None, typer.Option("--nuscenes", help="nuScenes dataroot instead of a scenario.")] = None,
     nuscenes_version: Annotated[str | None, typer.Option(
         "--nuscenes-version", help="nuScenes: table folder, e.g. v1.0-trainval (default: the only one).")] = None,
@@ -122,8 +124,10 @@ def eval_command(
             fail("--runs pools noise draws or synthetic seeds; with --input detector a nuScenes scene gives the "
                  "same run every time")
     else:
-        if weights is not None or threads is not None or not self_crop or detector_flips or sensor_height is not None:
-            fail("--weights, --threads, --no-self-crop, --detector-flips and --sensor-height need --input detector")
+        if (weights is not None or threads is not None or not self_crop or detector_flips or sensor_height is not None
+                or sensor_tilt is not None):
+            fail("--weights, --threads, --no-self-crop, --detector-flips, --sensor-height and --sensor-tilt need"
+                 " --input detector")
         noise = noise or "jittery"
     if noise is not None and noise not in NOISE_PRESETS:
         fail(f"--noise: unknown preset {noise!r}; expected one of {', '.join(NOISE_PRESETS)}")
@@ -209,8 +213,8 @@ def eval_command(
             model = read_calibration(cfg.calibration_file or "")
         except CalibrationFileError as exc:
             fail(f"--calibration-file: {exc}")
-    height = sensor_height_option(sensor_height)
-    detector, weights_desc = (load_detector(weights, threads, self_crop, detector_flips, height)
+    height, tilt = sensor_height_option(sensor_height), sensor_tilt_option(sensor_tilt)
+    detector, weights_desc = (load_detector(weights, threads, self_crop, detector_flips, height, tilt)
                               if input_ == "detector" else (None, None))
 
     if nuscenes is None:  # checked before --out is made: a refused run had left an empty folder behind
@@ -244,16 +248,17 @@ def eval_command(
 
 
 def load_detector(weights: Path | None, threads: int | None, self_crop: bool = True,
-                  flips: bool = False, sensor_height: float | str | None = None) -> tuple["Detector", str | None]:
+                  flips: bool = False, sensor_height: float | str | None = None,
+                  sensor_tilt: str | None = None) -> tuple["Detector", str | None]:
     """The detector the live service would load for the same flags (``--weights``, else the shipped lite
     weights, else a random network, which ``Detector.load`` warns about; the service's default self-crop box
-    unless ``self_crop`` is false; test-time ``flips`` and ``sensor_height`` — metres, ``auto`` or None for the
-    service's default — as the service's settings) and a description of the file
+    unless ``self_crop`` is false; test-time ``flips``, ``sensor_height`` — metres, ``auto`` or None for the
+    service's default — and ``sensor_tilt`` — ``auto``, ``level`` or None — as the service's settings) and a description of the file
     (name and the first 12 hex digits of its SHA-256, so a metrics.json names the exact weights; None for
     random initialisation). A missing or unusable file fails with one line."""
     import hashlib
 
-    from ..services.detector.config import SELF_CROP_M, declared_height
+    from ..services.detector.config import SELF_CROP_M, declared_height, measures_tilt
     from ..services.detector.inference import Detector, WeightsError, shipped_weights
 
     if weights is not None and not weights.is_file():
@@ -261,7 +266,8 @@ def load_detector(weights: Path | None, threads: int | None, self_crop: bool = T
     path = weights if weights is not None else shipped_weights("lite")
     try:
         det = Detector.load(weights, "lite", threads=threads, self_crop=SELF_CROP_M if self_crop else None,
-                            flips=flips, sensor_height_m=declared_height(sensor_height))
+                            flips=flips, sensor_height_m=declared_height(sensor_height),
+                            sensor_tilt=measures_tilt(sensor_tilt))
     except WeightsError as exc:
         fail(f"--weights: {' '.join(str(exc).split())[:240]}")
     except ValueError as exc:  # flips on weights whose grid is not symmetric about the sensor
@@ -282,6 +288,7 @@ def detector_run_info(detector: "Detector", weights_desc: str | None,
             "self_crop": list(detector.self_crop) if detector.self_crop is not None else None,
             "flips": detector.flips,
             "sensor_height_m": "auto" if detector.sensor_height_m is None else detector.sensor_height_m,
+            "sensor_tilt": "auto" if detector.sensor_tilt else "level",
             "score_threshold": detector.score_threshold if detector.score_threshold is not None
             else detector.config.score_threshold, "meta": meta, **(seen or weights_saw_scored_data(detector.meta, None))}
 

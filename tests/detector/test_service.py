@@ -138,7 +138,9 @@ def test_scan_in_detections_out_with_header_pose_and_variances(harness, scans, d
     assert c["scans"] == 1 and c["detections"] == len(want) and c.get("skipped_scans", 0) == 0
     assert svc.last_seq == 7
     # the height the scan's frame was taken to have, measured from its ground (the synthetic sensor: 1.84 m)
-    assert c["sensor_height_cm_last"] == round(detector.height_last * 100) and 174 <= c["sensor_height_cm_last"] <= 194
+    assert c["sensor_height_cm_last"] == round(detector.ground_last.height * 100) and 174 <= c["sensor_height_cm_last"] <= 194
+    assert c["ground_slope_x_cdeg_last"] == round(detector.ground_last.slope_deg[0] * 100)
+    assert abs(c["ground_slope_y_cdeg_last"]) < 300  # a synthetic street: within a few degrees of level
 
 
 def test_flooded_detector_skips_to_the_newest_scan_and_says_so(harness, scans, detector, caplog) -> None:

@@ -229,7 +229,8 @@ def test_cli_vanilla_model_has_no_calibration(tmp_path: Path, capsys: pytest.Cap
     assert not (tmp_path / "o" / "detection_calibration.png").exists()
 
 
-NEED_DETECTOR = "--weights, --threads, --no-self-crop, --detector-flips and --sensor-height need --input detector"
+NEED_DETECTOR = ("--weights, --threads, --no-self-crop, --detector-flips, --sensor-height and --sensor-tilt need"
+                 " --input detector")
 
 
 @pytest.mark.parametrize("argv, needle", [
@@ -242,6 +243,8 @@ NEED_DETECTOR = "--weights, --threads, --no-self-crop, --detector-flips and --se
     (["--input", "gt-noise", "--detector-flips"], NEED_DETECTOR),
     (["--input", "gt-noise", "--sensor-height", "0"], NEED_DETECTOR),
     (["--input", "detector", "--sensor-height", "184"], "--sensor-height: expected 'auto' or a height in metres"),
+    (["--input", "gt-noise", "--sensor-tilt", "level"], NEED_DETECTOR),
+    (["--input", "detector", "--sensor-tilt", "pitched"], "--sensor-tilt: expected 'auto' or 'level', got 'pitched'"),
     (["--input", "detector", "--nuscenes", "/nonexistent", "--runs", "2"], "--runs"),
 ])
 def test_cli_bad_detector_input_is_one_line_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str],

@@ -46,7 +46,7 @@ from torch import nn
 from .augment import points_in_boxes
 from .config import CLASS_NAMES, SELF_CROP_M, Detections3D, Sample
 from .flips import check_symmetric, merge_mirrored, mirrored_views
-from .ground import height_shift, shift_z
+from .ground import scan_ground, to_trained_frame
 from .inference import crop_box
 from .network import CenterPointNet
 
@@ -317,6 +317,8 @@ class AdaptConfig:
     sensor_height_m: float | None = None
     """Height of the real scans' frame above the road (None: measured in each scan, :mod:`.ground`): the scans are
     moved to the height the network was trained at before anything else, as the service moves them."""
+    sensor_tilt: bool = True
+    """Take each real scan's road slope out as well (measured, :mod:`.ground`), as the service does."""
 
 
 def adapt(model: CenterPointNet, scans: Sequence[UnlabelledScan], synthetic: Sequence[Sample], cfg: AdaptConfig,
@@ -345,7 +347,7 @@ def adapt(model: CenterPointNet, scans: Sequence[UnlabelledScan], synthetic: Seq
     pcr = model.config.point_cloud_range
     # the scans as the detector would see them: in range, and without the vehicle's own body (a roof return
     # pseudo-labelled "car" in every scan would teach the ghost the service's self-crop exists to prevent)
-    pts = [_in_range(at_trained_height(crop_box(s.points, cfg.self_crop), cfg.sensor_height_m), pcr) for s in scans]
+    pts = [_in_range(at_trained_height(crop_box(s.points, cfg.self_crop), cfg.sensor_height_m, cfg.sensor_tilt), pcr) for s in scans]
     scans = [replace(s, points=p) for s, p in zip(scans, pts)]
     report: dict[str, Any] = {"rounds": []}
     norm_stats("BatchNorm statistics")
@@ -388,9 +390,10 @@ def adapt(model: CenterPointNet, scans: Sequence[UnlabelledScan], synthetic: Seq
     return report
 
 
-def at_trained_height(points: F32, sensor_height_m: float | None) -> F32:
-    """A real scan moved to the height the network was trained at, as :meth:`~.inference.Detector.detect` moves it."""
-    return shift_z(points, height_shift(points, sensor_height_m)[0])
+def at_trained_height(points: F32, sensor_height_m: float | None, sensor_tilt: bool = True) -> F32:
+    """A real scan moved to the level frame and height the network was trained at, as
+    :meth:`~.inference.Detector.detect` moves it."""
+    return to_trained_frame(points, scan_ground(points, sensor_height_m, sensor_tilt))
 
 
 def _in_range(points: F32, pcr: Sequence[float]) -> F32:

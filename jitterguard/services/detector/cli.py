@@ -11,9 +11,9 @@ from typing import Annotated
 import typer
 
 from ...cli_common import (ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ParamFileOpt, SensorHeightOpt, ZenohConfigOpt, fail,
-                           sensor_height_option, zenoh_options)
+                           SensorTiltOpt, sensor_height_option, sensor_tilt_option, zenoh_options)
 from ...config import ConfigError, load
-from .config import PRESETS, DetectorParams, declared_height
+from .config import PRESETS, DetectorParams, declared_height, measures_tilt
 
 WeightsOpt = Annotated[
     str | None,
@@ -99,6 +99,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                                                    " and its three mirror images (~4x the network's time).")
                          ] = None,
         sensor_height: SensorHeightOpt = None,
+        sensor_tilt: SensorTiltOpt = None,
         log_level: LogLevelOpt = "INFO",
     ) -> None:
         """Run the detector: points in; one DetectedObjects per scan (sensor frame, with variances) out."""
@@ -106,7 +107,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             params = load(DetectorParams, config, overrides={
                 "weights": weights, "preset": preset, "threads": threads, "score_threshold": score_threshold,
                 "twist": twist, "backend": backend, "onnx": onnx_dir, "flips": flips,
-                "sensor_height_m": sensor_height_option(sensor_height)})
+                "sensor_height_m": sensor_height_option(sensor_height), "sensor_tilt": sensor_tilt_option(sensor_tilt)})
         except ConfigError as exc:
             fail(f"--config: {exc}" if config else str(exc))
         if params.preset not in PRESETS:
@@ -132,11 +133,13 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
 
                 det = open_onnx_detector(params.onnx, params.weights, params.preset, threads=params.threads,
                                          score_threshold=params.score_threshold, self_crop=params.self_crop,
-                                         flips=params.flips, sensor_height_m=declared_height(params.sensor_height_m))
+                                         flips=params.flips, sensor_height_m=declared_height(params.sensor_height_m),
+                                         sensor_tilt=measures_tilt(params.sensor_tilt))
             else:
                 det = Detector.load(params.weights, params.preset, threads=params.threads,
                                     score_threshold=params.score_threshold, self_crop=params.self_crop,
-                                    flips=params.flips, sensor_height_m=declared_height(params.sensor_height_m))
+                                    flips=params.flips, sensor_height_m=declared_height(params.sensor_height_m),
+                                    sensor_tilt=measures_tilt(params.sensor_tilt))
         except WeightsError as exc:
             fail(f"{'--onnx' if params.onnx else '--weights'}: {_one_line(exc)}")
         except ValueError as exc:  # flips on weights whose grid is not symmetric about the sensor

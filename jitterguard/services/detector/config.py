@@ -146,6 +146,14 @@ def declared_height(value: float | str | None) -> float | None:
     return None if value == "auto" else float(value)
 
 
+def measures_tilt(value: str | None) -> bool:
+    """The :class:`~.inference.Detector`'s ``sensor_tilt`` for a config or ``--sensor-tilt`` value (None: the
+    service's default, :class:`DetectorParams`')."""
+    if value is None:
+        value = DetectorParams.model_fields["sensor_tilt"].default
+    return value == "auto"
+
+
 SELF_CROP_M: tuple[float, float, float, float] = (-2.0, -2.0, 2.0, 2.0)
 """The default box (x_min, y_min, x_max, y_max, sensor frame, metres) whose returns are the vehicle's own body and
 are dropped before the network sees the scan. A roof-mounted spinning LiDAR sees its own car: on nuScenes'
@@ -207,6 +215,11 @@ class DetectorParams(BaseModel):
                         " LIDAR_TOP, your LiDAR's mounting height for its own frame, 0 for a cloud in base_link"
                         " (Autoware's concatenated cloud); scans are moved to the 1.84 m the network was trained at"
                         " and the boxes back ('auto': measured from each scan's ground returns; docs/detector.md)")
+    sensor_tilt: Literal["auto", "level"] = Field(
+        "auto", description="'auto': the road plane's slope under each scan is measured and taken out (every"
+        " return's z made its height above the plane), so a sensor pitched or rolled against the road, a braking"
+        " vehicle or a crest hands the network the level road it learnt on; 'level': the scans' frame is taken as"
+        " level (docs/detector.md 'The sensor's tilt')")
     backend: Literal["torch", "onnxruntime"] = Field("torch", description="what runs the network")
     onnx: str | None = Field(None, description="onnxruntime backend: a folder written by `jitterguard export-onnx`"
                              " (null: export weights / preset at start-up into a temporary folder)")

@@ -15,11 +15,21 @@ ground returns (:func:`ground_height`): no calibration to get wrong, and a vehic
 changes between recordings is followed scan by scan. The estimate fits a plane to the lowest return of each
 1 m cell within 30 m and reads its height under the sensor; the plane (rather than a level mode of the
 heights) keeps a sloped street from biasing it — on synthetic scans with uneven, sloped ground, clutter and
-vegetation its error is −0.24…+0.16 m (5–95 %), half that of a level fit. Roll and pitch are not corrected:
-the training scans' sensor is level over sloped ground, as a vehicle's base_link axes are.
+vegetation its error is −0.24…+0.16 m (5–95 %), half that of a level fit.
+
+The same plane's slope is taken out too (``sensor_tilt: auto``, the default): every return's z becomes its height
+above the road plane under it (a shear, z − sₓx − s_y y; x and y, and with them every box's footprint, stay as
+they are), so a sensor pitched or rolled against the road — a mount that is not level, a vehicle braking, a
+crest — hands the network the level road it learnt on. The network reads absolute heights: on the real
+scene-0523 a scan frame pitched by 1° cost the shipped weights a third of their car AP and all their pedestrians,
+2° seven tenths of the car AP (docs/detector.md, "The sensor's tilt"). ``sensor_tilt: level`` takes the frame as
+level (the detector before 5 Dec 2026).
 """
 
 from __future__ import annotations
+
+import math
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -46,6 +56,26 @@ BAND_M = 0.2
 """Cells within this distance of the plane are its ground (kerbs are 0.1–0.15 m; a car's underbody 0.2–0.3 m)."""
 MIN_CELLS = 20
 """Fewer ground cells than this (a scan of the sky, a wall in front of the sensor): no estimate."""
+MAX_TILT_DEG = 10.0
+"""A plane steeper than this is not the road under the vehicle (steep streets climb 6°–9°, a mount's tilt is a
+degree or two): no estimate."""
+
+
+@dataclass(frozen=True)
+class GroundPlane:
+    """The road under a scan, in the scan's frame: z = slope_x·x + slope_y·y − height."""
+
+    height: float
+    """Height of the frame's origin above the road under it, m."""
+    slope_x: float = 0.0
+    """dz/dx of the road (rises ahead when positive: the sensor pitched down against it, or a climb)."""
+    slope_y: float = 0.0
+    """dz/dy of the road."""
+
+    @property
+    def slope_deg(self) -> tuple[float, float]:
+        """The slopes as angles, degrees (x, y)."""
+        return math.degrees(math.atan(self.slope_x)), math.degrees(math.atan(self.slope_y))
 
 
 def ground_cells(points: NDArray[np.floating]) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
@@ -66,13 +96,13 @@ def ground_cells(points: NDArray[np.floating]) -> tuple[NDArray[np.float64], NDA
     return (seen // side - half + 0.5) * CELL_M, (seen % side - half + 0.5) * CELL_M, lowest[seen]
 
 
-def ground_height(points: NDArray[np.floating]) -> float | None:
-    """Height of the scan frame's origin above the road under it, m (1.84 for nuScenes' LIDAR_TOP, ≈ 0 for a
-    base_link cloud), from the scan's own returns; None when too few ground cells are seen (:data:`MIN_CELLS`).
+def ground_plane(points: NDArray[np.floating]) -> GroundPlane | None:
+    """The road plane under the scan from its own returns (height 1.84 m for nuScenes' LIDAR_TOP, ≈ 0 for a
+    base_link cloud); None when too few ground cells are seen (:data:`MIN_CELLS`) or the plane is steeper than
+    :data:`MAX_TILT_DEG`.
 
     The most common lowest-return height of the cells within :data:`NEAR_M` starts a plane, fitted by least
-    squares to the cells within :data:`BAND_M` of it, three times; the answer is minus the plane's height at
-    x = y = 0."""
+    squares to the cells within :data:`BAND_M` of it, three times."""
     if len(points) == 0:
         return None
     x, y, z = ground_cells(points)
@@ -92,27 +122,52 @@ def ground_height(points: NDArray[np.floating]) -> float | None:
             break
         coef = np.linalg.lstsq(design[keep], z[keep], rcond=None)[0]
         keep = np.abs(design @ coef - z) < BAND_M
-    return -float(coef[2])
+    if math.hypot(coef[0], coef[1]) > math.tan(math.radians(MAX_TILT_DEG)):
+        return None
+    return GroundPlane(height=-float(coef[2]), slope_x=float(coef[0]), slope_y=float(coef[1]))
 
 
-def height_shift(points: NDArray[np.floating], sensor_height_m: float | None,
-                 fallback_m: float = TRAINED_SENSOR_HEIGHT_M) -> tuple[float, float]:
-    """(shift, height): the z to add to ``points`` to bring them to :data:`TRAINED_SENSOR_HEIGHT_M`
-    (``height − 1.84``; boxes found in the shifted scan move back by −shift) and the height used —
-    ``sensor_height_m`` when given, else :func:`ground_height` of the scan, else ``fallback_m`` (the caller's last
-    estimate, or the trained height)."""
-    height = sensor_height_m
-    if height is None:
-        height = ground_height(points)
-        if height is None:
-            height = fallback_m
-    return float(height) - TRAINED_SENSOR_HEIGHT_M, float(height)
+def ground_height(points: NDArray[np.floating]) -> float | None:
+    """:func:`ground_plane`'s height alone (None where it has none)."""
+    plane = ground_plane(points)
+    return None if plane is None else plane.height
 
 
-def shift_z(points: NDArray[np.float32], dz: float) -> NDArray[np.float32]:
-    """``points`` with ``dz`` added to their z (a copy; the same array when ``dz`` is 0)."""
-    if dz == 0.0 or len(points) == 0:
+def scan_ground(points: NDArray[np.floating], sensor_height_m: float | None, tilt: bool,
+                last: GroundPlane | None = None) -> GroundPlane:
+    """The ground a scan is moved by: its height declared (``sensor_height_m``) or measured, its slope measured
+    (``tilt``) or none (a level frame). What a scan too bare to measure cannot give is ``last``'s (the caller's
+    previous answer; the trained height and a level road before the first)."""
+    if last is None:
+        last = GroundPlane(TRAINED_SENSOR_HEIGHT_M)
+    plane = ground_plane(points) if sensor_height_m is None or tilt else None
+    height = sensor_height_m if sensor_height_m is not None else plane.height if plane is not None else last.height
+    if not tilt:
+        return GroundPlane(float(height))
+    src = plane if plane is not None else last
+    return GroundPlane(float(height), src.slope_x, src.slope_y)
+
+
+def to_trained_frame(points: NDArray[np.float32], ground: GroundPlane) -> NDArray[np.float32]:
+    """``points`` as the network was trained to see them: each z made its height above ``ground``'s plane, less
+    :data:`TRAINED_SENSOR_HEIGHT_M` (a copy; the same array where there is nothing to move)."""
+    dz = ground.height - TRAINED_SENSOR_HEIGHT_M
+    if (dz == 0.0 and ground.slope_x == 0.0 and ground.slope_y == 0.0) or len(points) == 0:
         return points
     out = np.array(points, dtype=np.float32, copy=True)
-    out[:, 2] += np.float32(dz)
+    z = out[:, 2].astype(np.float64) + dz
+    if ground.slope_x or ground.slope_y:
+        z -= ground.slope_x * out[:, 0] + ground.slope_y * out[:, 1]
+    out[:, 2] = z
+    return out
+
+
+def boxes_to_scan_frame(boxes: NDArray[np.floating], ground: GroundPlane) -> NDArray[np.floating]:
+    """Boxes found in :func:`to_trained_frame`'s points (x, y, z first) back in the scan's frame (a copy; the same
+    array where nothing was moved)."""
+    dz = ground.height - TRAINED_SENSOR_HEIGHT_M
+    if (dz == 0.0 and ground.slope_x == 0.0 and ground.slope_y == 0.0) or len(boxes) == 0:
+        return boxes
+    out = boxes.copy()
+    out[:, 2] += ground.slope_x * out[:, 0] + ground.slope_y * out[:, 1] - dz
     return out

@@ -29,7 +29,7 @@ from .config import PRESETS, SELF_CROP_M, DetectorConfig, Detections3D, check_cr
 from .decode import decode
 from .evaluate import Recalibration, apply_recalibration
 from .flips import check_symmetric, merge_mirrored, mirrored_views
-from .ground import TRAINED_SENSOR_HEIGHT_M, height_shift, shift_z
+from .ground import TRAINED_SENSOR_HEIGHT_M, GroundPlane, boxes_to_scan_frame, scan_ground, to_trained_frame
 from .network import CenterPointNet
 from .pillars import voxelize
 from .sweeps import stack_sweeps, sweeps_of
@@ -135,14 +135,15 @@ class Detector:
                  score_threshold: float | None = None, threads: int | None = None,
                  meta: dict[str, Any] | None = None, self_crop: Sequence[float] | None = SELF_CROP_M,
                  device: str | torch.device = "cpu", flips: bool = False,
-                 sensor_height_m: float | None = None) -> None:
+                 sensor_height_m: float | None = None, sensor_tilt: bool = True) -> None:
         """``self_crop``: returns inside this (x_min, y_min, x_max, y_max) box of the sensor frame are the
         vehicle's own body and never reach the network (:data:`~.config.SELF_CROP_M`; None keeps them).
         ``device``: where voxelisation and the network run (``cuda`` on a GPU machine; decoding and NMS stay on
         the CPU, where the boxes are needed). ``flips``: average the network over the scan and its three mirror
         images (:mod:`.flips`; about four times the network's time). ``sensor_height_m``: the scans' frame's
-        height above the road (None: measured in every scan, :mod:`.ground`); scans are moved to the height the
-        network was trained at and the boxes back."""
+        height above the road (None: measured in every scan, :mod:`.ground`); ``sensor_tilt``: take the road
+        plane's slope out of every scan (measured; false: the frame is level). Scans are moved to the level frame
+        and height the network was trained at and the boxes back."""
         self.self_crop = check_crop_box(self_crop)
         self.device = torch.device(device)
         if self.device.type != "cpu":  # (the ONNX Runtime stand-in for the network is CPU-only and has no .to)
@@ -159,9 +160,10 @@ class Detector:
         """Sweeps the network was trained on (1 for a four-field model): what a caller stacks
         (:class:`~.sweeps.SweepStacker`) before :meth:`detect`."""
         self.sensor_height_m = sensor_height_m
-        self.height_last = TRAINED_SENSOR_HEIGHT_M
-        """The height the latest scan was taken to have (the declared one, or the latest estimate: a scan too bare
-        to measure keeps the one before)."""
+        self.sensor_tilt = sensor_tilt
+        self.ground_last = GroundPlane(TRAINED_SENSOR_HEIGHT_M if sensor_height_m is None else sensor_height_m)
+        """The road plane the latest scan was taken to have (the declared height or the latest estimate, its slope
+        measured or none: a scan too bare to measure keeps the one before)."""
         self.timings: dict[str, float] = {}
         torch.set_num_threads(threads or os.cpu_count() or 1)
 
@@ -169,25 +171,25 @@ class Detector:
     def load(cls, weights: str | Path | None = None, preset: str | None = "lite", *, threads: int | None = None,
              score_threshold: float | None = None, recalibrate: bool = True,
              self_crop: Sequence[float] | None = SELF_CROP_M, device: str | torch.device = "cpu",
-             flips: bool = False, sensor_height_m: float | None = None) -> "Detector":
+             flips: bool = False, sensor_height_m: float | None = None, sensor_tilt: bool = True) -> "Detector":
         """``weights`` if given; else the shipped weights of ``preset``; else a randomly initialised ``preset``
         (logged as a warning — its detections are meaningless). ``recalibrate`` applies the file's fitted
-        per-axis variance scales when it has them; ``self_crop``, ``flips`` and ``sensor_height_m`` as in the
-        constructor."""
+        per-axis variance scales when it has them; ``self_crop``, ``flips``, ``sensor_height_m`` and ``sensor_tilt``
+        as in the constructor."""
         if weights is None and preset is not None and shipped_weights(preset).is_file():
             weights = shipped_weights(preset)
         if weights is not None:
             model, rec, meta = load_weights(weights)
             return cls(model, recalibration=rec if recalibrate else None, score_threshold=score_threshold,
                        threads=threads, meta=meta, self_crop=self_crop, device=device, flips=flips,
-                       sensor_height_m=sensor_height_m)
+                       sensor_height_m=sensor_height_m, sensor_tilt=sensor_tilt)
         if preset not in PRESETS:
             raise WeightsError(f"unknown preset {preset!r}; expected one of {', '.join(PRESETS)}")
         log.warning("no weights for preset %r: using a randomly initialised network", preset)
         torch.manual_seed(0)
         return cls(CenterPointNet(PRESETS[preset]), score_threshold=score_threshold, threads=threads,
                    meta={"random_init": True}, self_crop=self_crop, device=device, flips=flips,
-                   sensor_height_m=sensor_height_m)
+                   sensor_height_m=sensor_height_m, sensor_tilt=sensor_tilt)
 
     @torch.inference_mode()
     def detect(self, points: np.ndarray) -> Detections3D:
@@ -200,8 +202,8 @@ class Detector:
         if nf == 5 and points.shape[1] == 4:
             points = stack_sweeps(points, ())
         points = crop_box(points, self.self_crop)
-        dz, self.height_last = height_shift(points, self.sensor_height_m, self.height_last)
-        points = shift_z(points, dz)
+        ground = self.ground_last = scan_ground(points, self.sensor_height_m, self.sensor_tilt, self.ground_last)
+        points = to_trained_frame(points, ground)
         pts = torch.from_numpy(np.ascontiguousarray(points[:, :nf], dtype=np.float32)).to(self.device)
         views = mirrored_views(pts) if self.flips else [pts]
         pillars = [voxelize([v], self.config) for v in views]  # one scan per call: an ONNX export takes batch 1
@@ -214,10 +216,8 @@ class Detector:
         det = decode(out, self.config, self.score_threshold)[0]
         if self.recalibration is not None and det.log_variances is not None:
             det = apply_recalibration(det, self.recalibration)
-        if dz != 0.0 and len(det):
-            boxes = det.boxes.copy()
-            boxes[:, 2] -= dz
-            det = replace(det, boxes=boxes)
+        if len(det):
+            det = replace(det, boxes=boxes_to_scan_frame(det.boxes, ground))
         t3 = time.perf_counter()
         self.timings = {"voxelize": (t1 - t0) * 1e3, "network": (t2 - t1) * 1e3, "decode": (t3 - t2) * 1e3}
         return det

@@ -116,26 +116,27 @@ class OnnxNetwork:
 
 def load_onnx_detector(model_dir: str | Path, *, threads: int | None = None, score_threshold: float | None = None,
                        recalibrate: bool = True, self_crop: Sequence[float] | None = SELF_CROP_M,
-                       flips: bool = False, sensor_height_m: float | None = None) -> Detector:
+                       flips: bool = False, sensor_height_m: float | None = None, sensor_tilt: bool = True
+                       ) -> Detector:
     """A :class:`~.inference.Detector` whose network runs under ONNX Runtime (recalibration from the manifest;
-    ``flips`` and ``sensor_height_m`` as in :class:`~.inference.Detector`)."""
+    ``flips``, ``sensor_height_m`` and ``sensor_tilt`` as in :class:`~.inference.Detector`)."""
     net = OnnxNetwork(model_dir, threads=threads)
     return Detector(net, recalibration=net.recalibration if recalibrate else None,  # type: ignore[arg-type]
                     score_threshold=score_threshold, threads=threads, self_crop=self_crop, flips=flips,
-                    sensor_height_m=sensor_height_m, meta={**dict(net.manifest.get("meta") or {}), "backend": "onnxruntime", "layout": net.layout})
+                    sensor_height_m=sensor_height_m, sensor_tilt=sensor_tilt, meta={**dict(net.manifest.get("meta") or {}), "backend": "onnxruntime", "layout": net.layout})
 
 
 def open_onnx_detector(model_dir: str | Path | None, weights: str | Path | None, preset: str | None, *,
                        threads: int | None = None, score_threshold: float | None = None,
                        self_crop: Sequence[float] | None = SELF_CROP_M, flips: bool = False,
-                       sensor_height_m: float | None = None) -> Detector:
+                       sensor_height_m: float | None = None, sensor_tilt: bool = True) -> Detector:
     """The onnxruntime-backed detector the service runs: from an export folder, or — without one — the torch
     weights (``weights`` / ``preset``, as :meth:`Detector.load` picks them) exported into a temporary folder first
     (needs onnx + onnxscript; the folder is removed as soon as ONNX Runtime has loaded it: a service stopped by a
     signal before its handlers are installed — while it waits for the router — had left it in the temp folder)."""
     if model_dir is not None:
         return load_onnx_detector(model_dir, threads=threads, score_threshold=score_threshold, self_crop=self_crop,
-                                  flips=flips, sensor_height_m=sensor_height_m)
+                                  flips=flips, sensor_height_m=sensor_height_m, sensor_tilt=sensor_tilt)
     import atexit
     import logging
     import shutil
@@ -154,6 +155,6 @@ def open_onnx_detector(model_dir: str | Path | None, weights: str | Path | None,
             raise WeightsError(str(exc)) from None
         # ONNX Runtime holds the graphs in memory once the sessions are made: the files are not read again
         return load_onnx_detector(tmp, threads=threads, score_threshold=score_threshold, self_crop=self_crop,
-                                  flips=flips, sensor_height_m=sensor_height_m)
+                                  flips=flips, sensor_height_m=sensor_height_m, sensor_tilt=sensor_tilt)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)

@@ -291,8 +291,11 @@ def manifest_for(config: DetectorConfig, layout: str, opset: int, files: dict[st
         "preprocessing": {
             "frame": "sensor (x forward, y left, z up, level), metres, the road trained_sensor_height_m below the"
                      " origin: a cloud from another mount (height h above the road) or in base_link (h = 0) is"
-                     " moved by z + h - trained_sensor_height_m first and the boxes' z back by as much after (the"
-                     " jitterguard detector measures h in every scan, sensor_height_m: auto)",
+                     " moved by z + h - trained_sensor_height_m first and the boxes' z back by as much after; a"
+                     " frame pitched or rolled against the road (road plane z = sx*x + sy*y - h) by"
+                     " z - sx*x - sy*y + h - trained_sensor_height_m, the boxes' z back by sx*x + sy*y - h +"
+                     " trained_sensor_height_m at their centres (the jitterguard detector measures h, sx and sy"
+                     " in every scan: sensor_height_m and sensor_tilt auto)",
             "trained_sensor_height_m": TRAINED_SENSOR_HEIGHT_M,
             "point_cloud_range": list(config.point_cloud_range),
             "voxel_size": list(config.voxel_size),

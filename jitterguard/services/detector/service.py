@@ -19,8 +19,10 @@ Counters (in the heartbeat): ``scans`` (processed), ``skipped_scans``, ``detecti
 refuse the frame for them), ``detect_errors``, ``detect_ms_last`` (end-to-end time of the latest scan, rounded),
 ``stacked_sweeps_last`` (scans in the latest network input, for a model trained on stacked sweeps: :mod:`.sweeps`),
 ``sensor_height_cm_last`` (the height above the road the latest scan's frame was taken to have, cm: the declared
-``sensor_height_m`` or the scan's own estimate, :mod:`.ground` — an operator sees a wrong frame or mount at once)
-and the runtime's ``received`` / ``rejected`` (with ``rejected.points`` / ``over_limit.points``: a scan too large
+``sensor_height_m`` or the scan's own estimate, :mod:`.ground` — an operator sees a wrong frame or mount at once),
+``ground_slope_x_cdeg_last`` / ``ground_slope_y_cdeg_last`` (the road plane's slope along the scan frame's x / y
+axis that was taken out, 1/100 degree: a sensor pitched or rolled against the road, or a climb; 0 with
+``sensor_tilt: level``) and the runtime's ``received`` / ``rejected`` (with ``rejected.points`` / ``over_limit.points``: a scan too large
 or whose ego pose is no pose) / ``published``.
 """
 
@@ -236,5 +238,8 @@ class DetectorService(Service):
         self.counters.inc("scans")
         self.counters.inc("detections", len(det))
         self.counters.set("detect_ms_last", round((time.perf_counter() - t0) * 1e3))
-        self.counters.set("sensor_height_cm_last", round(self.detector.height_last * 100))
+        ground = self.detector.ground_last
+        self.counters.set("sensor_height_cm_last", round(ground.height * 100))
+        self.counters.set("ground_slope_x_cdeg_last", round(ground.slope_deg[0] * 100))
+        self.counters.set("ground_slope_y_cdeg_last", round(ground.slope_deg[1] * 100))
         self.last_seq = scan.header.seq

@@ -19,7 +19,8 @@ from typing import Annotated, Any
 
 import typer
 
-from ...cli_common import ProgressOpt, SensorHeightOpt, fail, out_dir, parse_seeds, progress_on, sensor_height_option
+from ...cli_common import (ProgressOpt, SensorHeightOpt, SensorTiltOpt, fail, out_dir, parse_seeds, progress_on,
+                           sensor_height_option, sensor_tilt_option)
 from .augment import CENTERPOINT_SAMPLE_COUNTS
 from .config import CLASS_NAMES, PRESETS
 from .provenance import init_provenance
@@ -548,15 +549,16 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         flips: Annotated[bool, typer.Option("--flips/--no-flips", help="Pseudo-label with the network averaged"
                                             " over each scan's three mirror images (test-time flips).")] = False,
         sensor_height: SensorHeightOpt = None,
+        sensor_tilt: SensorTiltOpt = None,
         seed: Annotated[int, typer.Option("--seed", min=0)] = 0,
         threads: Annotated[int | None, typer.Option("--threads", min=1, max=1024)] = None,
         progress: ProgressOpt = None,
     ) -> None:
         """Adapt weights to unlabelled real scans: normalisation statistics, self-training, recalibration."""
         progress = progress_on(progress)
-        height = sensor_height_option(sensor_height)
+        height, tilt = sensor_height_option(sensor_height), sensor_tilt_option(sensor_tilt)
         from .adapt import DEFAULT_PSEUDO_THRESHOLDS
-        from .config import SELF_CROP_M, declared_height
+        from .config import SELF_CROP_M, declared_height, measures_tilt
 
         if not os.path.isfile(weights):
             fail(f"--weights: file not found: {weights}")
@@ -621,7 +623,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         cfg = AdaptConfig(rounds=rounds, epochs=epochs, batch_size=batch_size, lr=lr, seed=seed, thresholds=tuple(thr),
                           real_repeat=real_repeat, recalibrate=recalibration == "tracked",
                           self_crop=SELF_CROP_M if self_crop else None, flips=flips,
-                          sensor_height_m=declared_height(height))
+                          sensor_height_m=declared_height(height), sensor_tilt=measures_tilt(tilt))
         aug = TrainAugment(**(source_meta.get("augment") or {}))  # as the source weights were trained
         report = adapt(model, real, synthetic, cfg, root, augment=aug, progress=progress)
         rec = report["recalibration"]
@@ -731,6 +733,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                                             " three mirror images (test-time flips; ~4x the network's time).")
                          ] = False,
         sensor_height: SensorHeightOpt = None,
+        sensor_tilt: SensorTiltOpt = None,
         progress: ProgressOpt = None,
     ) -> None:
         """Score weights on a hold-out set: nuScenes-style AP, positional ECE; JSON + PNGs."""
@@ -751,17 +754,17 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             fail(f"--nuscenes: not a directory: {nuscenes}")
         if holdout_last is not None and nuscenes is None:  # it had been ignored without a word
             fail("--holdout-last: only with --nuscenes (synthetic hold-out seeds are scored whole)")
-        height = sensor_height_option(sensor_height)
+        height, tilt = sensor_height_option(sensor_height), sensor_tilt_option(sensor_tilt)
         from .cli import passive_openmp
 
         passive_openmp()  # before torch is imported
-        from .config import SELF_CROP_M, declared_height
+        from .config import SELF_CROP_M, declared_height, measures_tilt
         from .inference import Detector, WeightsError
 
         try:
             det = Detector.load(weights, preset or "lite", threads=threads, recalibrate=recalibrate,
                                 self_crop=SELF_CROP_M if self_crop else None, flips=flips,
-                                sensor_height_m=declared_height(height))
+                                sensor_height_m=declared_height(height), sensor_tilt=measures_tilt(tilt))
         except WeightsError as exc:
             fail(f"--weights: {exc}")
         except ValueError as exc:  # flips on a grid that is not symmetric about the sensor
@@ -833,6 +836,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                                "weights": os.path.abspath(weights) if weights else "shipped " + (preset or "lite"),
                                "recalibrated": det.recalibration is not None, "flips": det.flips,
                                "sensor_height_m": "auto" if det.sensor_height_m is None else det.sensor_height_m,
+                               "sensor_tilt": "auto" if det.sensor_tilt else "level",
                                "self_crop": list(det.self_crop) if det.self_crop is not None else None})["summary"]
         typer.echo(json.dumps({"samples": len(items), **summary}))
 
