@@ -73,6 +73,10 @@ class StackMonitor(Service):
         self._beat_lock = threading.Lock()
         self._stopped_since: dict[int, float] = {}  # a router pid seen stopped (SIGSTOP), since when (monotonic)
         self.supervisor = Supervisor(run_dir)
+        # the run's own events: stack.json is written before supervisord starts (the log keeps milliseconds; a
+        # look-back of seconds counted the previous run's last crashes in a run dir used again at once)
+        self.supervisord_log = summary.SupervisorLog(run_dir / "logs" / "supervisord.log",
+                                                     since=self.run_started_at - 0.01)
         try:  # read before the session opens, as JG_WATCHDOG_S is: a bad value is a one-line startup error
             policy = CrashLoopPolicy.from_env()
         except ValueError as exc:
@@ -110,9 +114,7 @@ class StackMonitor(Service):
     def snapshot(self) -> dict[str, Any]:
         spec = load_spec(self.run_dir)
         now = time.time()
-        # the run's own events: stack.json is written before supervisord starts (the log keeps milliseconds; a
-        # look-back of seconds counted the previous run's last crashes in a run dir used again at once)
-        events = summary.supervisor_events(self.run_dir / "logs" / "supervisord.log", since=self.run_started_at - 0.01)
+        events = self.supervisord_log.events()
         meta = {"stack": spec.name if spec else self.run_dir.name, "ns": self.ns,
                 "source": (spec.source if spec else None), "started_at": _iso(self.run_started_at),
                 "updated_at": _iso(now), "duration_s": round(now - self.run_started_at, 1)}
@@ -240,7 +242,7 @@ class StackMonitor(Service):
         decides, from supervisord's log; here only its answers are carried out): stopped through supervisord, one
         warning, started again when its back-off has passed. A stop or start that supervisord refuses (a program
         EXITED between two looks cannot be stopped) is asked for again on the next look."""
-        events = summary.supervisor_events(self.run_dir / "logs" / "supervisord.log", since=self.run_started_at - 0.01)
+        events = self.supervisord_log.events()
         now = time.time()
         actions: list[Action] = []
         with self._guard_lock:

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import re
+import threading
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
@@ -170,6 +171,39 @@ def supervisor_events(log_path: Path, since: float = 0.0) -> dict[str, ProgramEv
             elif (f := _FATAL.search(line)) is not None:
                 out.setdefault(f.group(1), ProgramEvents()).fatal = True
     return out
+
+
+class SupervisorLog:
+    """supervisord's log, parsed again only when it changed: the monitor asks for its events from two threads (the
+    summary writer every second, the crash-loop look every two), and a log unchanged since the last look — nearly
+    every look — costs four ``stat`` calls instead of a parse of up to four rotated files."""
+
+    def __init__(self, log_path: Path, since: float = 0.0) -> None:
+        self.log_path, self.since = log_path, since
+        self._paths = [log_path.with_name(f"{log_path.name}.{i}") for i in (3, 2, 1)] + [log_path]
+        self._lock = threading.Lock()
+        self._key: tuple[tuple[int, int] | None, ...] | None = None
+        self._events: dict[str, ProgramEvents] = {}
+
+    def _stat_key(self) -> tuple[tuple[int, int] | None, ...]:
+        out: list[tuple[int, int] | None] = []
+        for path in self._paths:
+            try:
+                st = path.stat()
+            except OSError:
+                out.append(None)
+            else:
+                out.append((st.st_size, st.st_mtime_ns))
+        return tuple(out)
+
+    def events(self) -> dict[str, ProgramEvents]:
+        """:func:`supervisor_events` of the log since ``since`` (the same dict while the files are unchanged: read it,
+        do not change it)."""
+        with self._lock:
+            key = self._stat_key()
+            if key != self._key:
+                self._events, self._key = supervisor_events(self.log_path, since=self.since), key
+            return self._events
 
 
 def crash_loop(events: dict[str, ProgramEvents], now: float, *, crashes: int = 3, window_s: float = 60.0

@@ -198,6 +198,32 @@ def test_only_exits_after_running_are_crash_loop_exits(tmp_path):
     assert ev.running_crashes[0] == ev.crashes[0][0]
 
 
+def test_the_monitor_parses_supervisords_log_again_only_when_it_changed(tmp_path):
+    """Two threads ask for the events every second or two; an unchanged log is not parsed again, a grown or rotated
+    one is, and what is read is what supervisor_events reads."""
+    import os
+
+    log = tmp_path / "supervisord.log"
+    lines = ["2026-12-04 17:50:10,000 INFO spawned: 'detector' with pid 100",
+             "2026-12-04 17:50:11,000 INFO success: detector entered RUNNING state, process has stayed up for > than 1"
+             " seconds (startsecs)"]
+    log.write_text("\n".join(lines) + "\n")
+    reader = summary.SupervisorLog(log)
+    first = reader.events()
+    assert first["detector"].running and reader.events() is first  # unchanged: the same parse
+    with log.open("a") as f:
+        f.write("2026-12-04 17:50:11,500 WARN exited: detector (exit status 1; not expected)\n")
+    grown = reader.events()
+    assert grown is not first and grown["detector"].running_crashes == [summary.supervisor_events(log)["detector"].running_crashes[0]]
+    os.replace(log, tmp_path / "supervisord.log.1")  # rotated: the old text moves, a new log starts
+    log.write_text("2026-12-04 17:50:12,000 INFO spawned: 'detector' with pid 101\n")
+    rotated = reader.events()
+    assert rotated is not grown and rotated["detector"].spawns[-1] > grown["detector"].spawns[-1]
+    assert len(rotated["detector"].crashes) == 1  # the rotated file is still read
+    late = summary.SupervisorLog(log, since=1e12)  # the run's own events only
+    assert late.events() == {}
+
+
 def test_the_summary_and_status_name_a_held_back_program(tmp_path):
     built = summary.build(summary.Ledger(), {}, meta={"stack": "s"},
                           backoff={"held_back_until_s": {"detector": 1117.0}, "backed_off": {"detector": 2}})
