@@ -201,7 +201,7 @@ def test_cli_detector_run_writes_detection_metrics_and_is_deterministic(
     assert m["run"]["input"] == "detector" and m["run"]["noise"] is None and m["run"]["frames"] == 10
     assert m["run"]["detector"]["preset"] == "tiny" and not m["run"]["detector"]["random_init"]
     assert "sha256" in m["run"]["detector"]["weights"]
-    assert m["run"]["detector"]["sensor_height_m"] == "auto"
+    assert m["run"]["detector"]["sensor_height_m"] == "auto" and m["run"]["detector"]["sensor_tilt"] == "auto"
     _check_detection_block(m["detection"], has_variances=True)
     assert m["detection"]["car"]["num_gt"] > 0 and m["detection"]["car"]["num_pred"] > 0
     for g in ("vehicle", "pedestrian"):
@@ -280,7 +280,7 @@ def _stub_detector(meta: dict) -> object:
     from types import SimpleNamespace
 
     return SimpleNamespace(meta=meta, config=SimpleNamespace(name="tiny", uncertainty=True, score_threshold=0.1),
-                           self_crop=None, flips=False, score_threshold=None, sensor_height_m=None)
+                           self_crop=None, flips=False, score_threshold=None, sensor_height_m=None, sensor_tilt=True)
 
 
 def test_run_info_says_when_the_weights_saw_the_scored_dataroot(tmp_path: Path, capsys: pytest.CaptureFixture[str],
@@ -306,7 +306,7 @@ def test_run_info_says_when_the_weights_saw_the_scored_dataroot(tmp_path: Path, 
     info = detector_run_info(_stub_detector(trained), "w.pt (sha256 0)", seen)
     assert info["weights_trained_on_this_dataroot"] is True and info["weights_adapted_on_its_scans"] is False
     assert info["trained_on"] == trained["source"] and info["meta"] == {"epochs": 3}
-    assert info["sensor_height_m"] == "auto"  # measured in every scan (the detector's default)
+    assert info["sensor_height_m"] == "auto" and info["sensor_tilt"] == "auto"  # measured in every scan (the defaults)
     assert "trained on this dataroot" in _input_desc({"detector": info})
     warn_seen(info, root)
     assert "trained on" in capsys.readouterr().err
