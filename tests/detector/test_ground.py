@@ -20,7 +20,8 @@ from pydantic import ValidationError
 from jitterguard.services.detector.config import DetectorParams, declared_height, measures_tilt, parse_sensor_height
 from jitterguard.services.detector.data import synthetic_samples
 from jitterguard.services.detector.ground import (TRAINED_SENSOR_HEIGHT_M, GroundPlane, boxes_to_scan_frame,
-                                                 ground_height, ground_plane, scan_ground, to_trained_frame)
+                                                 boxes_to_trained_frame, ground_height, ground_plane, scan_ground,
+                                                 to_trained_frame)
 from jitterguard.services.detector.inference import Detector
 from jitterguard.sim.sensors import hdl32e
 from helpers import NUSC
@@ -179,6 +180,36 @@ def test_a_pitched_or_rolled_scan_gives_the_level_scans_boxes(pitch: float, roll
     lost = np.hypot(*(found[:, None, :2] - kept[None, :, :2]).transpose(2, 0, 1)).min(axis=1) >= 0.3 if len(kept) \
         else np.ones(len(found), bool)
     assert lost.sum() >= 1  # (in this scan: the taken-as-level frame loses or moves some of them)
+
+
+def test_a_training_sample_is_levelled_labels_and_all() -> None:
+    """``train --level-scans``: a sample from a frame pitched 2° is moved as the detector moves scans at inference;
+    its road is level at the trained height and each box still stands on it (its centre as high above the road
+    as in the unturned sample), and the boxes move back to where they were."""
+    from jitterguard.services.detector.train_cli import _Prepared
+
+    sample = next(iter(synthetic_samples(["parking-street"], [1003], frames_per_scenario=1)))
+    turned, turn = _turn(sample.points, 2.0, 0.0)
+    boxes = sample.boxes.copy()
+    boxes[:, :3] = boxes[:, :3] @ turn.T
+    tilted = dataclasses.replace(sample, points=turned, boxes=boxes)
+    pcr = Detector.load(None, "lite", threads=1).config.point_cloud_range
+    flat = _Prepared([tilted], pcr, level=True)[0]
+    plane = ground_plane(flat.points)
+    assert plane is not None and abs(plane.slope_deg[0]) < 0.1 and plane.height == pytest.approx(1.84, abs=0.03)
+    plain = _Prepared([sample], pcr)[0]  # the unturned sample, as the synthetic world cast it
+    assert len(flat.boxes) == len(plain.boxes) > 3
+    np.testing.assert_allclose(flat.boxes[:, 2], plain.boxes[:, 2], atol=0.15)  # on the road as before
+    ground = scan_ground(turned, None, True)
+    np.testing.assert_allclose(boxes_to_scan_frame(boxes_to_trained_frame(boxes, ground), ground), boxes, atol=1e-5)
+    assert _Prepared([tilted], pcr)[0].points[:, 2].tolist() == turned[
+        _in_grid(turned, pcr), 2].tolist()  # without level the view moves nothing
+
+
+def _in_grid(points: np.ndarray, pcr) -> np.ndarray:
+    x0, y0, z0, x1, y1, z1 = pcr
+    p = points
+    return (p[:, 0] >= x0) & (p[:, 0] < x1) & (p[:, 1] >= y0) & (p[:, 1] < y1) & (p[:, 2] >= z0) & (p[:, 2] < z1)
 
 
 @pytest.mark.skipif(not NUSC.is_dir(), reason="../shared/data/nuscenes-scene-0523 absent")

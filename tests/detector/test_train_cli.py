@@ -37,6 +37,7 @@ def test_parse_seeds_ranges_and_lists() -> None:
     (["train", "--out", "OUT", "--gt-sample", "--gt-sample-count", "moped=2"], "--gt-sample-count"),
     (["train", "--out", "OUT", "--gt-sample", "--gt-sample-count", "car=-1"], "--gt-sample-count"),
     (["train", "--out", "OUT", "--gt-sample-count", "bicycle=0"], "--gt-sample-count"),
+    (["train", "--out", "OUT", "--level-scans", "--gt-sample"], "--level-scans: not with --gt-sample"),
     (["recalibrate-detector", "--out", "OUT", "--weights", "/nonexistent.pt"], "--weights"),
     (["recalibrate-detector", "--out", "OUT", "--weights", "SHIPPED", "--effects", "fog"], "--effects"),
     (["recalibrate-detector", "--out", "OUT", "--weights", "SHIPPED", "--seeds", "5-1"], "--seeds"),

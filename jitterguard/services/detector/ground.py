@@ -162,6 +162,17 @@ def to_trained_frame(points: NDArray[np.float32], ground: GroundPlane) -> NDArra
     return out
 
 
+def boxes_to_trained_frame(boxes: NDArray[np.floating], ground: GroundPlane) -> NDArray[np.floating]:
+    """Boxes of the scan's frame (x, y, z first) where :func:`to_trained_frame` puts their points: a training
+    sample's labels moved with its scan (a copy; the same array where nothing is moved)."""
+    dz = ground.height - TRAINED_SENSOR_HEIGHT_M
+    if (dz == 0.0 and ground.slope_x == 0.0 and ground.slope_y == 0.0) or len(boxes) == 0:
+        return boxes
+    out = boxes.copy()
+    out[:, 2] += dz - ground.slope_x * out[:, 0] - ground.slope_y * out[:, 1]
+    return out
+
+
 def boxes_to_scan_frame(boxes: NDArray[np.floating], ground: GroundPlane) -> NDArray[np.floating]:
     """Boxes found in :func:`to_trained_frame`'s points (x, y, z first) back in the scan's frame (a copy; the same
     array where nothing was moved)."""

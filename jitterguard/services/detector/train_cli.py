@@ -180,10 +180,13 @@ def dataclasses_asdict(obj: Any) -> dict[str, Any]:
 
 
 class _Prepared:
-    """Range-filtered view of a sample sequence (the network never sees points outside its grid)."""
+    """Range-filtered view of a sample sequence (the network never sees points outside its grid); with ``level``
+    each sample is first moved, labels and all, to the level frame and height the detector moves every scan to at
+    inference (:func:`~.ground.scan_ground`, ``train --level-scans``). Evaluation views leave that to the
+    detector."""
 
-    def __init__(self, samples: Any, pcr: tuple[float, ...]) -> None:
-        self.samples, self.pcr = samples, pcr
+    def __init__(self, samples: Any, pcr: tuple[float, ...], level: bool = False) -> None:
+        self.samples, self.pcr, self.level = samples, pcr, level
 
     def __len__(self) -> int:
         return len(self.samples)
@@ -193,7 +196,16 @@ class _Prepared:
 
         if isinstance(i, slice):
             return [self[j] for j in range(*i.indices(len(self)))]
-        return filter_range(self.samples[i], self.pcr)
+        sample = self.samples[i]
+        if self.level:
+            from dataclasses import replace
+
+            from .ground import boxes_to_trained_frame, scan_ground, to_trained_frame
+
+            ground = scan_ground(sample.points, None, True)
+            sample = replace(sample, points=to_trained_frame(sample.points, ground),
+                             boxes=boxes_to_trained_frame(sample.boxes, ground))
+        return filter_range(sample, self.pcr)
 
 
 def write_report(out: Path, name: str, dets: Any, samples: Any, *, bootstrap: int = 0,
@@ -301,6 +313,10 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                                                        " --init's weights, else fed.")] = None,
         tilt_aug: Annotated[float, typer.Option("--tilt-aug", min=0.0, max=10.0, help="Pitch/roll augmentation SD"
                                                 " in degrees (and 0.05 m per degree of height).")] = 0.0,
+        level_scans: Annotated[bool, typer.Option("--level-scans/--no-level-scans", help="Move every training and"
+                                                  " validation scan, labels and all, to the level frame and height"
+                                                  " the detector moves scans to at inference (its measured road"
+                                                  " plane: sensor_height_m and sensor_tilt auto).")] = False,
         gt_sample: Annotated[bool, typer.Option("--gt-sample/--no-gt-sample", help="CenterPoint's ground-truth"
                                                 " sampling: paste objects (≥ 5 returns) cut from other training"
                                                 " scans where those scans had them.")] = False,
@@ -375,6 +391,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             fail("--val-seeds: must not overlap --train-seeds")
         if gt_sample_count and not gt_sample:
             fail("--gt-sample-count: only with --gt-sample")
+        if level_scans and gt_sample:  # objects cut from one levelled scan would be pasted into another's plane
+            fail("--level-scans: not with --gt-sample")
         gt_counts = _class_values(gt_sample_count, "--gt-sample-count", CENTERPOINT_SAMPLE_COUNTS, int,
                                   lambda v: 0 <= v <= 100, "N", " and 0 ≤ N ≤ 100")
         if not resume:  # a resumed run reads its checkpoint, not --init, and writes the same weights.pt again
@@ -466,7 +484,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                 source["sweeps"] = sweeps
         if nuscenes is not None:
             _check_fill(len(train_s), dc.world * accumulate, "--split" if split else "--holdout-last", dc.world)
-        train_v, val_v = _Prepared(train_s, pcr), _Prepared(val_s, pcr)
+        train_v, val_v = _Prepared(train_s, pcr, level_scans), _Prepared(val_s, pcr, level_scans)
         tcfg = TrainConfig(epochs=epochs, batch_size=batch_size, lr=lr, seed=seed, num_workers=workers,
                            accumulate=accumulate, amp=amp, sync_bn=sync_bn, checkpoint_every=checkpoint_every,
                            max_steps_per_epoch=max_steps)
@@ -489,6 +507,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         if gt_db is not None:
             meta["gt_sample"] = {"objects": len(gt_db), "per_scan": list(augment.gt_counts)}
         meta["augment"] = {"rotation_deg": rotation, "tilt_deg": tilt_aug}
+        if level_scans:
+            meta["level_scans"] = True
         try:  # with --fit-recalibration weights.pt is written once, below, with the fitted scales
             state = train(model, train_v, val_v, tcfg, root, augment=augment, evaluate=evaluate, resume=resume,
                           progress=progress, meta=meta, dist_ctx=dc, write_weights=not fit_recalibration)
@@ -501,7 +521,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         dets = predict(model, val_list)
         rec = None
         if fit_recalibration and model.config.uncertainty:
-            fit_list = val_list + [_Prepared(part, pcr)[i] for part in recal_extra for i in range(len(part))]
+            fit_list = val_list + [_Prepared(part, pcr, level_scans)[i] for part in recal_extra for i in range(len(part))]
             try:
                 rec = fit_scales(dets + predict(model, fit_list[len(val_list):]), fit_list, bins=recalibration_bins)
             except ValueError as exc:  # no true positives yet (a tiny run): keep the raw variances
