@@ -253,9 +253,9 @@ def load_detector(weights: Path | None, threads: int | None, self_crop: bool = T
     """The detector the live service would load for the same flags (``--weights``, else the shipped lite
     weights, else a random network, which ``Detector.load`` warns about; the service's default self-crop box
     unless ``self_crop`` is false; test-time ``flips``, ``sensor_height`` — metres, ``auto`` or None for the
-    service's default — and ``sensor_tilt`` — ``auto``, ``level`` or None — as the service's settings) and a description of the file
-    (name and the first 12 hex digits of its SHA-256, so a metrics.json names the exact weights; None for
-    random initialisation). A missing or unusable file fails with one line."""
+    service's default — and ``sensor_tilt`` — ``auto``, ``level`` or None — as the service's settings) and a
+    description of the file (name and the first 12 hex digits of its SHA-256, so a metrics.json names the exact
+    weights; None for random initialisation). A missing or unusable file fails with one line."""
     import hashlib
 
     from ..services.detector.config import SELF_CROP_M, declared_height, measures_tilt
