@@ -19,7 +19,7 @@ from pydantic import ValidationError
 
 from jitterguard.services.detector.config import DetectorParams, declared_height, measures_tilt, parse_sensor_height
 from jitterguard.services.detector.data import synthetic_samples
-from jitterguard.services.detector.ground import (TRAINED_SENSOR_HEIGHT_M, GroundPlane, boxes_to_scan_frame,
+from jitterguard.services.detector.ground import (TRAINED_SENSOR_HEIGHT_M, GroundPlane, GroundWatch, boxes_to_scan_frame,
                                                  boxes_to_trained_frame, ground_height, ground_plane, scan_ground,
                                                  to_trained_frame)
 from jitterguard.services.detector.inference import Detector
@@ -102,6 +102,34 @@ def test_no_estimate_without_ground_and_the_fallback_is_used() -> None:
     declared = scan_ground(tilted, 0.0, True, last)  # declared height: not measured, the slope is
     assert declared.height == 0.0 and declared.slope_x == pytest.approx(0.03, abs=0.003)
     assert scan_ground(tilted, 0.0, False, last) == GroundPlane(0.0)  # declared and level: nothing measured
+
+
+def test_the_operator_is_told_once_a_spell_when_the_ground_says_the_frame_is_wrong() -> None:
+    """No plane for 20 scans in a row (a frame with z not up), or one tilted past 5° for 20 (a turned mount): one
+    warning each spell; a bare scan now and then, or the degree or two the detector levels, says nothing."""
+    watch = GroundWatch(scans=20, tilt_deg=5.0)
+    road, steep = GroundPlane(1.84, 0.02, -0.01), GroundPlane(1.84, np.tan(np.radians(7.0)), 0.0)
+    said = [watch.observe(None if k % 10 == 9 else road) for k in range(99)]  # a bare scan every tenth
+    assert said == [None] * 99
+    said = [watch.observe(None) for _ in range(60)]
+    assert [k for k, m in enumerate(said) if m] == [19] and "no road plane found under the last 20 scans" in said[19]
+    said = [watch.observe(steep) for _ in range(45)]  # a new spell: told once, after 20 scans of it
+    assert [k for k, m in enumerate(said) if m] == [19] and "tilted +7.0° along x" in said[19]
+    assert watch.observe(road) is None and [watch.observe(None) for _ in range(20)][-1] is not None  # afresh
+
+
+def test_the_detector_keeps_the_plane_it_measured_in_the_latest_scan() -> None:
+    auto = Detector.load(None, "lite", threads=1)
+    auto.detect(_plane_scan(1.6, slope=(0.03, 0.0)))
+    assert auto.measures_ground and auto.plane_measured is not None
+    assert auto.plane_measured.height == pytest.approx(1.6, abs=0.05)
+    wall = np.column_stack([np.full(5000, 6.0), np.linspace(-10, 10, 5000), np.linspace(-1, 3, 5000),
+                            np.zeros(5000)]).astype(np.float32)
+    auto.detect(wall)
+    assert auto.plane_measured is None and auto.ground_last.height == pytest.approx(1.6, abs=0.05)  # kept
+    declared = Detector.load(None, "lite", threads=1, sensor_height_m=1.84, sensor_tilt=False)
+    declared.detect(_plane_scan(1.6))
+    assert not declared.measures_ground and declared.plane_measured is None  # nothing measured, nothing to tell
 
 
 def test_the_trained_frame_moves_only_z_and_the_boxes_come_back() -> None:

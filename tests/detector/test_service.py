@@ -169,6 +169,23 @@ def test_flooded_detector_skips_to_the_newest_scan_and_says_so(harness, scans, d
     assert "skipped 6 scan(s) (seqs 1..6)" in behind[0] and "seq 7" in behind[0]
 
 
+def test_scans_without_a_road_plane_are_told_to_the_operator_once(harness, caplog) -> None:
+    """A frame whose z is not up (here: a wall in front of the sensor and nothing below it) gives no road plane;
+    after 20 such scans in a row one warning says what the frame must be, and the next ones say nothing more."""
+    svc, client = harness
+    n = 200
+    wall = np.column_stack([np.full(n, 6.0), np.linspace(-10, 10, n), np.linspace(-1, 3, n), np.zeros(n),
+                            np.zeros(n)]).astype(np.float32)
+    pose = Pose(position=Point(x=0.0, y=0.0, z=0.0), orientation=Quaternion(x=0.0, y=0.0, z=0.0, w=1.0))
+    with caplog.at_level(logging.WARNING, logger="jitterguard.detector"):
+        for k in range(25):  # one at a time: a scan the busy worker skipped would not be measured
+            client.send(wall, pose, seq=300 + k)
+            assert wait_until(lambda: 300 + k in client.seqs(), TIMEOUT)
+    told = [r.getMessage() for r in caplog.records if "no road plane found" in r.getMessage()]
+    assert len(told) == 1 and "x forward and z up" in told[0], told
+    assert svc.detector.plane_measured is None
+
+
 def test_steady_overload_is_summarised_and_a_new_burst_reported_at_once() -> None:
     rep = BehindReport(quiet_s=5.0, summary_s=30.0)
     assert rep.taken(0.0, seq=0, skipped=0, first=-1, last=-1, detect_ms=90) is None

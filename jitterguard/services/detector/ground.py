@@ -138,14 +138,64 @@ def scan_ground(points: NDArray[np.floating], sensor_height_m: float | None, til
     """The ground a scan is moved by: its height declared (``sensor_height_m``) or measured, its slope measured
     (``tilt``) or none (a level frame). What a scan too bare to measure cannot give is ``last``'s (the caller's
     previous answer; the trained height and a level road before the first)."""
+    plane = ground_plane(points) if sensor_height_m is None or tilt else None
+    return ground_of(plane, sensor_height_m, tilt, last)
+
+
+def ground_of(plane: GroundPlane | None, sensor_height_m: float | None, tilt: bool,
+              last: GroundPlane | None = None) -> GroundPlane:
+    """:func:`scan_ground` from the scan's measured ``plane`` (None: none found, or none measured)."""
     if last is None:
         last = GroundPlane(TRAINED_SENSOR_HEIGHT_M)
-    plane = ground_plane(points) if sensor_height_m is None or tilt else None
     height = sensor_height_m if sensor_height_m is not None else plane.height if plane is not None else last.height
     if not tilt:
         return GroundPlane(float(height))
     src = plane if plane is not None else last
     return GroundPlane(float(height), src.slope_x, src.slope_y)
+
+
+WATCH_SCANS = 20
+"""Scans in a row that must say the same before :class:`GroundWatch` tells the operator (a bare scan or a ramp now and
+then is no fault)."""
+WARN_TILT_DEG = 5.0
+"""A road plane tilted more than this, scan after scan, is a frame turned against the vehicle, not a road."""
+
+
+class GroundWatch:
+    """What the scans' ground says about their frame, told once a spell: no road plane in :data:`WATCH_SCANS` scans
+    in a row (axes other than x forward and z up, a sensor mounted at an angle, nothing but sky or walls: the
+    detector then keeps the last height, or the trained 1.84 m, and may see little), or a plane tilted more than
+    :data:`WARN_TILT_DEG` (the shear levels the degree or two of a mount or a braking vehicle; a turned frame must be
+    published turned back by the mounting rotation). Pure: the service logs what :meth:`observe` returns."""
+
+    def __init__(self, scans: int = WATCH_SCANS, tilt_deg: float = WARN_TILT_DEG) -> None:
+        self.scans, self.tilt_deg = scans, tilt_deg
+        self._missing = self._tilted = 0
+        self._told: str | None = None
+
+    def observe(self, plane: GroundPlane | None) -> str | None:
+        """This scan's measured plane (None: none found); a message when a spell has just lasted long enough."""
+        if plane is None:
+            self._missing, self._tilted = self._missing + 1, 0
+        else:
+            tilt = math.degrees(math.atan(math.hypot(plane.slope_x, plane.slope_y)))
+            self._missing, self._tilted = 0, (self._tilted + 1 if tilt > self.tilt_deg else 0)
+        if self._missing == 0 and self._tilted == 0:
+            self._told = None  # the ground is a road again: a later spell is told afresh
+            return None
+        kind = "missing" if self._missing >= self.scans else "tilted" if self._tilted >= self.scans else None
+        if kind is None or kind == self._told:
+            return None
+        self._told = kind
+        if kind == "missing":
+            return (f"no road plane found under the last {self.scans} scans: the points must be in a frame with x"
+                    " forward and z up at the sensor (or in base_link); until a plane is found the detector keeps"
+                    " the last height and slope (docs/deployment.md, 'Your sensor's frame')")
+        sx, sy = plane.slope_deg if plane is not None else (0.0, 0.0)
+        return (f"the road under the last {self.scans} scans is tilted {sx:+.1f}° along x and {sy:+.1f}° along y:"
+                f" more than {self.tilt_deg:g}° is a frame turned against the vehicle, which the detector's levelling"
+                " only approximates; publish the points turned by the LiDAR's mounting rotation (docs/deployment.md,"
+                " 'Your sensor's frame')")
 
 
 def to_trained_frame(points: NDArray[np.float32], ground: GroundPlane) -> NDArray[np.float32]:

@@ -29,7 +29,7 @@ from .config import PRESETS, SELF_CROP_M, DetectorConfig, Detections3D, check_cr
 from .decode import decode
 from .evaluate import Recalibration, apply_recalibration
 from .flips import check_symmetric, merge_mirrored, mirrored_views
-from .ground import TRAINED_SENSOR_HEIGHT_M, GroundPlane, boxes_to_scan_frame, scan_ground, to_trained_frame
+from .ground import TRAINED_SENSOR_HEIGHT_M, GroundPlane, boxes_to_scan_frame, ground_of, ground_plane, to_trained_frame
 from .network import CenterPointNet
 from .pillars import voxelize
 from .sweeps import stack_sweeps, sweeps_of
@@ -164,6 +164,9 @@ class Detector:
         self.ground_last = GroundPlane(TRAINED_SENSOR_HEIGHT_M if sensor_height_m is None else sensor_height_m)
         """The road plane the latest scan was taken to have (the declared height or the latest estimate, its slope
         measured or none: a scan too bare to measure keeps the one before)."""
+        self.plane_measured: GroundPlane | None = None
+        """The plane measured in the latest scan (None: none found there, or nothing to measure:
+        :attr:`measures_ground`)."""
         self.timings: dict[str, float] = {}
         torch.set_num_threads(threads or os.cpu_count() or 1)
 
@@ -191,6 +194,11 @@ class Detector:
                    meta={"random_init": True}, self_crop=self_crop, device=device, flips=flips,
                    sensor_height_m=sensor_height_m, sensor_tilt=sensor_tilt)
 
+    @property
+    def measures_ground(self) -> bool:
+        """Whether every scan's road plane is measured (an ``auto`` height or tilt)."""
+        return self.sensor_height_m is None or self.sensor_tilt
+
     @torch.inference_mode()
     def detect(self, points: np.ndarray) -> Detections3D:
         """Detections of one scan: ``points`` (P, ≥4) float32 x, y, z, intensity (0–255) in the sensor frame (and
@@ -202,7 +210,8 @@ class Detector:
         if nf == 5 and points.shape[1] == 4:
             points = stack_sweeps(points, ())
         points = crop_box(points, self.self_crop)
-        ground = self.ground_last = scan_ground(points, self.sensor_height_m, self.sensor_tilt, self.ground_last)
+        plane = self.plane_measured = ground_plane(points) if self.measures_ground else None
+        ground = self.ground_last = ground_of(plane, self.sensor_height_m, self.sensor_tilt, self.ground_last)
         points = to_trained_frame(points, ground)
         pts = torch.from_numpy(np.ascontiguousarray(points[:, :nf], dtype=np.float32)).to(self.device)
         views = mirrored_views(pts) if self.flips else [pts]

@@ -39,6 +39,7 @@ from ...schemas.models import PointCloud
 from ...schemas.wire import LIMITS, MAX_MAP_ENTRIES, check_pose
 from .config import DetectorParams
 from .adapter import class_labels, detections_payload, publishable_detections, scan_points, scan_pose
+from .ground import GroundWatch
 from .sweeps import MAX_LAG_S, SweepStacker
 from .inference import Detector, crop_box
 
@@ -154,6 +155,7 @@ class DetectorService(Service):
         super().__init__(opts)
         self._behind = BehindReport()
         self._error_log = _BurstLogger(self.log)
+        self._ground_watch = GroundWatch()
         self._pub = self.publisher(keys.detections(self.ns))
         self.monitor_progress(ProgressPolicy(stall_s=STALL_S))  # points in -> detections out (runtime.progress)
         self.spawn(self._worker, "worker")
@@ -242,4 +244,6 @@ class DetectorService(Service):
         self.counters.set("sensor_height_cm_last", round(ground.height * 100))
         self.counters.set("ground_slope_x_cdeg_last", round(ground.slope_deg[0] * 100))
         self.counters.set("ground_slope_y_cdeg_last", round(ground.slope_deg[1] * 100))
+        if self.detector.measures_ground and (told := self._ground_watch.observe(self.detector.plane_measured)):
+            self.log.warning("%s", told)
         self.last_seq = scan.header.seq
