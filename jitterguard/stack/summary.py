@@ -139,11 +139,15 @@ class ProgramEvents:
         return max(0, len(self.spawns) - 1)
 
 
+def log_files(log_path: Path) -> list[Path]:
+    """supervisord's log and the rotated copies it keeps (``.3`` oldest), oldest first."""
+    return [log_path.with_name(f"{log_path.name}.{i}") for i in (3, 2, 1)] + [log_path]
+
+
 def supervisor_events(log_path: Path, since: float = 0.0) -> dict[str, ProgramEvents]:
     """Parse supervisord's log (and its rotated ``.1``–``.3``) for events at or after ``since`` (epoch s)."""
     out: dict[str, ProgramEvents] = {}
-    paths = [log_path.with_name(f"{log_path.name}.{i}") for i in (3, 2, 1)] + [log_path]
-    for path in paths:
+    for path in log_files(log_path):
         try:
             text = path.read_text(errors="replace")
         except OSError:
@@ -180,7 +184,7 @@ class SupervisorLog:
 
     def __init__(self, log_path: Path, since: float = 0.0) -> None:
         self.log_path, self.since = log_path, since
-        self._paths = [log_path.with_name(f"{log_path.name}.{i}") for i in (3, 2, 1)] + [log_path]
+        self._paths = log_files(log_path)
         self._lock = threading.Lock()
         self._key: tuple[tuple[int, int] | None, ...] | None = None
         self._events: dict[str, ProgramEvents] = {}

@@ -198,16 +198,26 @@ class GroundWatch:
                 " 'Your sensor's frame')")
 
 
+def _unmoved(rows: NDArray[np.floating], ground: GroundPlane) -> bool:
+    """Nothing to move: ``ground`` is the trained frame's own road (level, 1.84 m down), or there are no rows."""
+    level = ground.slope_x == 0.0 and ground.slope_y == 0.0
+    return (level and ground.height == TRAINED_SENSOR_HEIGHT_M) or len(rows) == 0
+
+
+def _road_rise(rows: NDArray[np.floating], ground: GroundPlane) -> NDArray[np.floating]:
+    """How far ``ground``'s plane rises under each row's x, y above its height under the origin."""
+    return ground.slope_x * rows[:, 0] + ground.slope_y * rows[:, 1]
+
+
 def to_trained_frame(points: NDArray[np.float32], ground: GroundPlane) -> NDArray[np.float32]:
     """``points`` as the network was trained to see them: each z made its height above ``ground``'s plane, less
     :data:`TRAINED_SENSOR_HEIGHT_M` (a copy; the same array where there is nothing to move)."""
-    dz = ground.height - TRAINED_SENSOR_HEIGHT_M
-    if (dz == 0.0 and ground.slope_x == 0.0 and ground.slope_y == 0.0) or len(points) == 0:
+    if _unmoved(points, ground):
         return points
     out = np.array(points, dtype=np.float32, copy=True)
-    z = out[:, 2].astype(np.float64) + dz
-    if ground.slope_x or ground.slope_y:
-        z -= ground.slope_x * out[:, 0] + ground.slope_y * out[:, 1]
+    z = out[:, 2].astype(np.float64) + (ground.height - TRAINED_SENSOR_HEIGHT_M)
+    if ground.slope_x or ground.slope_y:  # (a level plane leaves even a stray infinite x's z alone)
+        z -= _road_rise(out, ground)
     out[:, 2] = z
     return out
 
@@ -215,20 +225,18 @@ def to_trained_frame(points: NDArray[np.float32], ground: GroundPlane) -> NDArra
 def boxes_to_trained_frame(boxes: NDArray[np.floating], ground: GroundPlane) -> NDArray[np.floating]:
     """Boxes of the scan's frame (x, y, z first) where :func:`to_trained_frame` puts their points: a training
     sample's labels moved with its scan (a copy; the same array where nothing is moved)."""
-    dz = ground.height - TRAINED_SENSOR_HEIGHT_M
-    if (dz == 0.0 and ground.slope_x == 0.0 and ground.slope_y == 0.0) or len(boxes) == 0:
+    if _unmoved(boxes, ground):
         return boxes
     out = boxes.copy()
-    out[:, 2] += dz - ground.slope_x * out[:, 0] - ground.slope_y * out[:, 1]
+    out[:, 2] += (ground.height - TRAINED_SENSOR_HEIGHT_M) - _road_rise(out, ground)
     return out
 
 
 def boxes_to_scan_frame(boxes: NDArray[np.floating], ground: GroundPlane) -> NDArray[np.floating]:
     """Boxes found in :func:`to_trained_frame`'s points (x, y, z first) back in the scan's frame (a copy; the same
     array where nothing was moved)."""
-    dz = ground.height - TRAINED_SENSOR_HEIGHT_M
-    if (dz == 0.0 and ground.slope_x == 0.0 and ground.slope_y == 0.0) or len(boxes) == 0:
+    if _unmoved(boxes, ground):
         return boxes
     out = boxes.copy()
-    out[:, 2] += ground.slope_x * out[:, 0] + ground.slope_y * out[:, 1] - dz
+    out[:, 2] += _road_rise(out, ground) - (ground.height - TRAINED_SENSOR_HEIGHT_M)
     return out
