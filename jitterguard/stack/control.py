@@ -21,6 +21,9 @@ PIDFILE = "supervisord.pid"
 CONFIG = "supervisord.conf"
 MAX_SOCKET_PATH = 100
 """A unix socket path longer than this does not fit ``sockaddr_un`` (108 bytes on Linux, 104 on macOS)."""
+SERVER_URL_ENV = "SUPERVISOR_SERVER_URL"
+"""supervisord puts its own XML-RPC address into every program's environment under this name: how a program (the
+monitor) finds the supervisord that started it, and how it tells that supervisord's programs from other processes."""
 RPC_TIMEOUT_S = 15.0
 """How long one XML-RPC call waits for supervisord. It answers in milliseconds even on a loaded machine (its calls
 never block: a program's stop goes on in its event loop); one that does not answer within this is frozen
@@ -89,13 +92,45 @@ def read_pid(run_dir: Path) -> int | None:
         return None
 
 
-class Supervisor:
-    """The supervisord of one run directory."""
+def socket_of(url: str) -> Path:
+    """The socket path of a supervisord XML-RPC address (``unix:///run/jitterguard/supervisor.sock``); a
+    ValueError naming what is wrong for any other (an ``http://`` server, which the stack never configures)."""
+    if not url.startswith("unix://") or len(url) == len("unix://"):
+        raise ValueError(f"{url!r} is not a unix socket address (unix:///path/to/supervisor.sock)")
+    return Path(url[len("unix://"):])
 
-    def __init__(self, run_dir: Path, label: str | None = None) -> None:
+
+class Supervisor:
+    """The supervisord of one run directory — or, with ``sock``, the one listening there (a supervisord an operator
+    runs on their own config, ``deploy/supervisord.conf``)."""
+
+    def __init__(self, run_dir: Path, label: str | None = None, sock: Path | None = None) -> None:
         self.run_dir = run_dir
         self.label = label or f"in {run_dir}"
-        self.sock = run_dir / SOCKET
+        self.sock = sock if sock is not None else run_dir / SOCKET
+
+    def started(self, pid: int) -> bool:
+        """Whether ``pid`` is a program this supervisord started: its environment names this supervisord's socket
+        (:data:`SERVER_URL_ENV`). A pid recycled by another process since supervisord reported it, or a process of
+        another stack, is never taken for one; a process whose environment cannot be read is not either."""
+        try:
+            env = Path(f"/proc/{pid}/environ").read_bytes().split(b"\0")
+        except OSError:
+            return False
+        prefix = f"{SERVER_URL_ENV}=".encode()
+        url = next((e[len(prefix):].decode(errors="replace") for e in env if e.startswith(prefix)), None)
+        try:
+            return url is not None and os.path.realpath(socket_of(url)) == os.path.realpath(self.sock)
+        except ValueError:
+            return False
+
+    def kill(self, pid: int) -> bool:
+        """SIGKILL a program of this supervisord (its process group), once :meth:`started` says it is one; whether
+        it was signalled. For a program no gentler signal reaches: a stopped process holds SIGTERM until resumed."""
+        if not self.started(pid):
+            return False
+        _signal_program(pid, signal.SIGKILL)
+        return True
 
     def _proxy(self) -> Any:
         # supervisor comes with the `deploy` extra: the rest of the CLI must work without it
@@ -272,15 +307,6 @@ def _signal_program(pid: int, sig: int) -> None:
             os.kill(pid, sig)
     except (ProcessLookupError, PermissionError):
         pass
-
-
-def kill_program(run_dir: Path, pid: int) -> bool:
-    """SIGKILL a program of this stack (its process group), once :func:`_is_program_of` says it is one; whether
-    it was signalled. For a program no gentler signal reaches: a stopped process holds SIGTERM until resumed."""
-    if not _is_program_of(run_dir, pid):
-        return False
-    _signal_program(pid, signal.SIGKILL)
-    return True
 
 
 def stop_lost(run_dir: Path, timeout: float) -> int | None:

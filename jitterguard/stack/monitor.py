@@ -35,7 +35,7 @@ from ..schemas.models import Heartbeat
 from ..schemas.wire import MAX_HEARTBEAT_BYTES
 from . import summary
 from .backoff import Action, CrashLoopGuard, CrashLoopPolicy
-from .control import StackUnavailable, Supervisor
+from .control import SERVER_URL_ENV, StackUnavailable, Supervisor, socket_of
 from .status import SPEC_FILE, load_spec
 
 WRITE_PERIOD_S = 1.0
@@ -62,7 +62,11 @@ def _spec_written_at(run_dir: Path) -> float | None:
 class StackMonitor(Service):
     name = "monitor"
 
-    def __init__(self, opts: ZenohOptions, run_dir: Path) -> None:
+    def __init__(self, opts: ZenohOptions, run_dir: Path, supervisor_sock: Path | None = None,
+                 supervisord_log: Path | None = None) -> None:
+        """``run_dir``: where summary.json goes (a stack's run directory). Under an operator's own supervisord
+        (``deploy/supervisord.conf``) its socket and log are elsewhere: ``supervisor_sock`` and
+        ``supervisord_log`` name them (by default the run directory's, as ``jitterguard up`` lays it out)."""
         self.run_dir = run_dir
         prev = summary.load(run_dir) or {}
         self.ledger = summary.Ledger.from_json(prev.get("ledger", {}))
@@ -72,10 +76,10 @@ class StackMonitor(Service):
         self._beat_at: dict[int, tuple[str, float]] = {}  # pid -> (service, monotonic time of its last heartbeat)
         self._beat_lock = threading.Lock()
         self._stopped_since: dict[int, float] = {}  # a router pid seen stopped (SIGSTOP), since when (monotonic)
-        self.supervisor = Supervisor(run_dir)
+        self.supervisor = Supervisor(run_dir, sock=supervisor_sock)
         # the run's own events: stack.json is written before supervisord starts (the log keeps milliseconds; a
         # look-back of seconds counted the previous run's last crashes in a run dir used again at once)
-        self.supervisord_log = summary.SupervisorLog(run_dir / "logs" / "supervisord.log",
+        self.supervisord_log = summary.SupervisorLog(supervisord_log or run_dir / "logs" / "supervisord.log",
                                                      since=self.run_started_at - 0.01)
         try:  # read before the session opens, as JG_WATCHDOG_S is: a bad value is a one-line startup error
             policy = CrashLoopPolicy.from_env()
@@ -191,7 +195,6 @@ class StackMonitor(Service):
         freeze), and never after the monitor itself stood still (it would then judge its own pause). It is ended
         with SIGKILL, which a stopped process cannot hold off, for supervisord to start it again. The router, which
         sends no heartbeat, is judged by whether the kernel says it is stopped (:meth:`_end_stopped_router`)."""
-        from .control import kill_program
         from .status import SERVICE_NAMES
 
         self._end_stopped_router(procs, now, limit)
@@ -210,7 +213,7 @@ class StackMonitor(Service):
             self.log.error("%s (pid %d) has sent no heartbeat for %.0f s while supervisord says RUNNING and the "
                            "other services are heard: frozen (stopped, or hung where no watchdog inside it runs);"
                            " killing it for supervisord to restart it", proc.name, proc.pid, now - seen[1])
-            if kill_program(self.run_dir, proc.pid):
+            if self.supervisor.kill(proc.pid):
                 self.counters.inc(f"frozen_restarts.{proc.name}")
             with self._beat_lock:
                 self._beat_at.pop(proc.pid, None)
@@ -219,7 +222,7 @@ class StackMonitor(Service):
         """The router sends no heartbeat, and while it stands still nobody is heard: judged by the kernel instead
         (``/proc``: stopped by a signal) for as long as the others are by their silence. A router stopped had left
         the whole stack silent for good, every program RUNNING."""
-        from .control import kill_program, process_stopped
+        from .control import process_stopped
 
         seen = set()
         for proc in procs:
@@ -232,7 +235,7 @@ class StackMonitor(Service):
             if now - since >= limit:
                 self.log.error("router (pid %d) has been stopped for %.0f s (SIGSTOP?): no service can be heard "
                                "through it; killing it for supervisord to restart it", proc.pid, now - since)
-                if kill_program(self.run_dir, proc.pid):
+                if self.supervisor.kill(proc.pid):
                     self.counters.inc("frozen_restarts.router")
                 seen.discard(proc.pid)
         self._stopped_since = {pid: t for pid, t in self._stopped_since.items() if pid in seen}
@@ -284,18 +287,33 @@ class StackMonitor(Service):
 
 
 def monitor_command(
-    run_dir: Annotated[Path, typer.Option("--run-dir", help="The stack's run directory (summary.json goes there).")],
+    run_dir: Annotated[Path, typer.Option("--run-dir", help="The stack's run directory (summary.json goes there); "
+                                          "under your own supervisord, a folder the monitor may write.")],
+    supervisor_url: Annotated[str | None, typer.Option(
+        "--supervisor-url", envvar=SERVER_URL_ENV, show_envvar=False,
+        help="supervisord's XML-RPC socket (unix:///…/supervisor.sock). supervisord gives every program its own in "
+             "SUPERVISOR_SERVER_URL, which is the default; without either, the run directory's.")] = None,
+    supervisord_log: Annotated[Path | None, typer.Option(
+        "--supervisord-log", help="supervisord's own log (crash loops are read from it); default: the run "
+                                  "directory's logs/supervisord.log.")] = None,
     log_level: LogLevelOpt = "INFO",
     ns: NsOpt = "default",
     zenoh_config: ZenohConfigOpt = None,
     connect: ConnectOpt = None,
     listen: ListenOpt = None,
 ) -> None:
-    """The stack's bookkeeping program (started by `jitterguard up`): heartbeats in, summary.json out."""
+    """The stack's bookkeeping and healing program (started by `jitterguard up`, or a program of your own
+    supervisord): heartbeats in, summary.json out; ends frozen programs and holds back crash loops."""
     if not run_dir.is_dir():  # bad input first: a one-line error before anything is set up
         fail(f"--run-dir: no such folder: {run_dir}")
+    try:
+        sock = socket_of(supervisor_url) if supervisor_url else None
+    except ValueError as exc:
+        fail(f"--supervisor-url: {exc}")
+    if supervisord_log is not None and not supervisord_log.parent.is_dir():
+        fail(f"--supervisord-log: no such folder: {supervisord_log.parent}")
     setup_logging(log_level)
-    StackMonitor(zenoh_options(ns, zenoh_config, connect, listen), run_dir).run_forever()
+    StackMonitor(zenoh_options(ns, zenoh_config, connect, listen), run_dir, sock, supervisord_log).run_forever()
 
 
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:
