@@ -33,6 +33,7 @@ from pydantic import BaseModel
 from ..schemas import DecodeError, LimitExceeded, decode, encode, keys
 from ..schemas.models import Heartbeat
 from . import memtrace
+from .envvars import env_number
 from .keyed_publishers import KeyedPublishers
 from .progress import Health, ProgressMonitor, ProgressPolicy
 from .sd_notify import Notifier
@@ -425,15 +426,8 @@ def watchdog_period() -> float | None:
     """``JG_WATCHDOG_S`` (default 10 s; 0 or negative: no watchdog). A malformed value is a startup error, and so
     is one no timer can wait (inf, NaN, above ~10⁹ s: ``faulthandler`` had raised OverflowError on arming it, in
     the main and the heartbeat thread, and the process hung past SIGTERM)."""
-    raw = os.environ.get(ENV_WATCHDOG, "").strip()
-    if not raw:
-        return DEFAULT_WATCHDOG_S
-    try:
-        value = float(raw)
-    except ValueError:
-        raise ValueError(f"{ENV_WATCHDOG}={raw!r} is not a number of seconds") from None
-    if not math.isfinite(value) or value + HANG_GRACE_S > MAX_WATCHDOG_S:
-        raise ValueError(f"{ENV_WATCHDOG}={raw!r}: expected at most {MAX_WATCHDOG_S:.0f} s (0 turns the watchdog off)")
+    value = env_number(ENV_WATCHDOG, DEFAULT_WATCHDOG_S, -math.inf, MAX_WATCHDOG_S - HANG_GRACE_S,
+                       unit="seconds", hint="0 turns the watchdog off")
     return value if value > 0 else None
 
 

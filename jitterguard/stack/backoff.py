@@ -16,11 +16,12 @@ by the caller.
 
 from __future__ import annotations
 
-import math
 import os
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
+
+from ..runtime.envvars import env_number
 
 CRASH_LOOP_EXITS = 5
 """Unexpected exits (of a process that had reached RUNNING) within :data:`CRASH_LOOP_WINDOW_S` that make a loop."""
@@ -60,16 +61,7 @@ class CrashLoopPolicy:
         guard off). A malformed value is a startup error, as ``JG_WATCHDOG_S``'s is."""
 
         def number(name: str, default: float, *, minimum: float) -> float:
-            raw = env.get(name, "").strip()
-            if not raw:
-                return default
-            try:
-                value = float(raw)
-            except ValueError:
-                raise ValueError(f"{name}={raw!r} is not a number") from None
-            if not math.isfinite(value) or value < minimum or value > 1e9:
-                raise ValueError(f"{name}={raw!r}: expected a number from {minimum:g} to 1e9")
-            return value
+            return env_number(name, default, minimum, 1e9, env=env)
 
         exits = number(ENV_EXITS, CRASH_LOOP_EXITS, minimum=0)
         if exits != int(exits):

@@ -177,6 +177,28 @@ def test_the_policy_reads_its_environment():
             CrashLoopPolicy.from_env(bad)
 
 
+
+def test_the_environment_numbers_say_one_line_each_what_is_wrong(monkeypatch):
+    """JG_CRASH_LOOP_* and JG_WATCHDOG_S go through one parser (runtime.envvars.env_number): the variable, its
+    value and the range it must be in."""
+    from jitterguard.runtime.service import watchdog_period
+
+    with pytest.raises(ValueError) as err:
+        CrashLoopPolicy.from_env({"JG_CRASH_LOOP_WINDOW_S": "0.5"})
+    assert str(err.value) == "JG_CRASH_LOOP_WINDOW_S='0.5': expected a number from 1 to 1e9"
+    with pytest.raises(ValueError) as err:
+        CrashLoopPolicy.from_env({"JG_CRASH_LOOP_BACKOFF_S": "soon"})
+    assert str(err.value) == "JG_CRASH_LOOP_BACKOFF_S='soon' is not a number"
+    monkeypatch.setenv("JG_WATCHDOG_S", "1e12")
+    with pytest.raises(ValueError) as err:
+        watchdog_period()
+    assert str(err.value) == "JG_WATCHDOG_S='1e12': expected at most 1e9 s (0 turns the watchdog off)"
+    monkeypatch.setenv("JG_WATCHDOG_S", " -1 ")
+    assert watchdog_period() is None
+    monkeypatch.setenv("JG_WATCHDOG_S", "")
+    assert watchdog_period() == 10.0
+
+
 def test_only_exits_after_running_are_crash_loop_exits(tmp_path):
     """supervisord backs off (and gives up on) a program that dies before its startsecs by itself: only the exits
     of a process that had reached RUNNING are the guard's."""
