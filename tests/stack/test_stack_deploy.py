@@ -22,7 +22,7 @@ from jitterguard.services.classifier.service import ClassifierService
 from helpers import wait_until
 
 DEPLOY = Path(__file__).resolve().parents[2] / "deploy"
-SERVICES = ("router", "classifier", "tracker", "replay", "sidecar")
+SERVICES = ("router", "classifier", "tracker", "detector", "replay", "sidecar")
 
 
 @pytest.mark.parametrize("name", ["router-host.json5", "service-host.json5", "single-host.json5"])
