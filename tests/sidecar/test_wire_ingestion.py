@@ -145,3 +145,39 @@ def test_event_streams_are_bounded(stack: Stack) -> None:
             wait_for(admitted, "room for a stream once the others closed")
     finally:
         server.close()
+
+
+def test_every_service_health_and_counters_are_in_metrics(stack: Stack, bus: zenoh.Session) -> None:
+    """/metrics had the classifier's figures only: a stalled tracker or a frozen detector was visible to whoever
+    asked /readyz, never to an alert rule. Each heard service now has up / healthy / heartbeat age / last seq and
+    its counters (running counts as counters, now.* as gauges) and gauges, labelled by service."""
+    token = bus.liveliness().declare_token(keys.alive(stack.ns, "tracker"))
+    try:
+        bus.put(keys.heartbeat(stack.ns, "tracker"),
+                _beat("tracker", health="stalled", health_reason="input waited 5 s with no output",
+                      counters={"frames": 41, "now.tracks": 7}, gauges={"period_s": 0.1}))
+        with stack.http(auth=False) as c:
+            def stalled() -> str | None:
+                text = c.get("/metrics").text
+                return text if _metric(text, "jitterguard_service_healthy", '{service="tracker"}') == 0.0 else None
+            text = wait_for(stalled, "the stalled tracker in /metrics")
+            assert _metric(text, "jitterguard_service_up", '{service="tracker"}') == 1.0
+            assert _metric(text, "jitterguard_service_last_seq", '{service="tracker"}') == 3.0
+            assert _metric(text, "jitterguard_service_counter_total", '{name="frames",service="tracker"}') == 41.0
+            assert _metric(text, "jitterguard_service_current", '{name="now.tracks",service="tracker"}') == 7.0
+            assert _metric(text, "jitterguard_service_counter_total", '{name="now.tracks",service="tracker"}') is None
+            assert _metric(text, "jitterguard_service_gauge", '{name="period_s",service="tracker"}') == 0.1
+            assert (_metric(text, "jitterguard_service_heartbeat_age_seconds", '{service="tracker"}') or 99.0) < 30.0
+            # the classifier of the stack beats too, and is healthy
+            assert _metric(text, "jitterguard_service_healthy", '{service="classifier"}') == 1.0
+            bus.put(keys.heartbeat(stack.ns, "tracker"), _beat("tracker", counters={"frames": 42}))
+            wait_for(lambda: _metric(c.get("/metrics").text, "jitterguard_service_healthy", '{service="tracker"}')
+                     == 1.0, "the tracker healthy again")
+        token.undeclare()
+        token = None
+        with stack.http(auth=False) as c:
+            wait_for(lambda: _metric(c.get("/metrics").text, "jitterguard_service_up", '{service="tracker"}') == 0.0,
+                     "the tracker's token gone")
+    finally:
+        if token is not None:
+            token.undeclare()

@@ -201,6 +201,13 @@ class ClassifierClient(Service):
     def readiness_flag(self) -> bool:
         return bool(self.readiness()["ready"])
 
+    def service_beats(self) -> list[tuple[str, Heartbeat, float, bool]]:
+        """Every service heard: (name, its latest heartbeat, seconds since it came, liveliness token present), by
+        name — what ``/metrics`` exports per service."""
+        now = time.monotonic()
+        with self._lock:
+            return [(name, hb, now - at, name in self._on_bus) for name, (hb, at) in sorted(self._beats.items())]
+
     def is_alive(self) -> bool:
         with self._lock:
             return CLASSIFIER in self._on_bus

@@ -53,8 +53,51 @@ class SidecarMetrics:
             registry=r)
 
     def attach(self, client: "ClassifierClient") -> None:
-        """Expose the classifier's figures through ``client``'s snapshot cache."""
+        """Expose the classifier's figures through ``client``'s snapshot cache, and every service's heartbeat."""
         self.registry.register(ClassifierCollector(client.rendered_state, client.readiness_flag))
+        self.registry.register(ServiceCollector(client.service_beats, client.stale_after_s))
+
+
+class ServiceCollector(Collector):
+    """Every pipeline service's health as its heartbeats tell it, at scrape time: what ``/readyz`` judges, in a
+    form an alert rule can read (``jitterguard_service_healthy == 0`` for a minute) — a frozen tracker or a detector
+    that stalls had been visible only to someone who asked ``/readyz`` or ``jitterguard status``."""
+
+    def __init__(self, beats: Callable[[], list], stale_after_s: float) -> None:
+        self._beats = beats
+        self._stale_after_s = stale_after_s
+
+    def describe(self) -> list:
+        return []
+
+    def collect(self) -> Iterator:
+        label = ["service"]
+        up = GaugeMetricFamily("jitterguard_service_up", "1 while the service's liveliness token is present", labels=label)
+        healthy = GaugeMetricFamily(
+            "jitterguard_service_healthy", "1 if its latest heartbeat is recent and says it turns its input into "
+            "output (health ok); 0 when it is failing, stalled or silent", labels=label)
+        age = GaugeMetricFamily("jitterguard_service_heartbeat_age_seconds", "Seconds since its latest heartbeat",
+                                labels=label)
+        seq = GaugeMetricFamily("jitterguard_service_last_seq", "Seq of the latest frame it handled", labels=label)
+        uptime = GaugeMetricFamily("jitterguard_service_uptime_seconds", "Its process's uptime, as it last said",
+                                   labels=label)
+        raw = CounterMetricFamily("jitterguard_service_counter", "Every running count a service reports, by name "
+                                  "(from 0 again when its process restarts)", labels=["service", "name"])
+        now = GaugeMetricFamily("jitterguard_service_current", "A service's counters that hold a current value "
+                                "(now.*, *_last), by name", labels=["service", "name"])
+        gauges = GaugeMetricFamily("jitterguard_service_gauge", "A service's gauges (values that are not counts), by "
+                                   "name", labels=["service", "name"])
+        for name, hb, since, on_bus in self._beats():
+            up.add_metric([name], 1.0 if on_bus else 0.0)
+            healthy.add_metric([name], 1.0 if hb.health == "ok" and since <= self._stale_after_s else 0.0)
+            age.add_metric([name], since)
+            seq.add_metric([name], float(hb.last_seq))
+            uptime.add_metric([name], hb.uptime_s)
+            for counter, value in sorted(hb.counters.items()):
+                (now if is_gauge(counter) else raw).add_metric([name, counter], float(value))
+            for gauge, value in sorted(hb.gauges.items()):
+                gauges.add_metric([name, gauge], float(value))
+        yield from (up, healthy, age, seq, uptime, raw, now, gauges)
 
 
 class ClassifierCollector(Collector):
