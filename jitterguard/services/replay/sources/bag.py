@@ -36,54 +36,28 @@ rosbags is an optional dependency: it is imported when a bag is opened, and its 
 from __future__ import annotations
 
 import logging
-import math
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-from numpy.typing import NDArray
 from pydantic import ValidationError
 
-from ....geometry import rotation_from_quaternion
-
-from ....schemas.wire import LIMITS
-
-from ..frames import (
-    IDENTITY,
-    DetectionFrame,
-    EgoPose,
-    FrameError,
-    Item,
-    ScanFrame,
-    SourceError,
-    SourceInfo,
-    compose,
-    finite_rows,
-)
+from ..frames import DetectionFrame, FrameError, Item, SourceError, SourceInfo
 from .base import Source
-from .nuscenes import FRAME_SUFFIX, turn_points
+from .poser import ScanPoser
 from .ros_types import (
     DETECTED_OBJECTS,
     TF_MESSAGE,
     POINTCLOUD2,
     POSE_TYPES,
     detected_object_from_ros,
-    interpolate_pose,
-    pointcloud2_to_array,
-    pose_of,
     stamp_ns,
     typestore,
 )
-from .tf import TfTree
 
 log = logging.getLogger("jitterguard.replay")
 
 BAG_SUFFIXES = (".mcap", ".db3", ".bag")
-LEVEL_TOLERANCE = 1e-9
-"""A mount whose rotation matrix is the identity within this (each entry) is level and x-forward: not turned."""
-TF_BASE_FRAME = "base_link"
-"""The vehicle's frame in a TF tree (REP-105): clouds under it are turned into its axes (module doc)."""
 
 
 def is_bag(path: Path) -> bool:
@@ -122,7 +96,6 @@ class BagSource(Source):
 
     def __init__(self, path: Path, *, topic: str | None = None, pose_topic: str | None = None) -> None:
         self.path = Path(path)
-        self._warned_extrinsic = False
         if not self.path.exists():
             raise SourceError(f"{self.path}: no such bag")
         self.reader = _open_reader(self.path)
@@ -170,12 +143,9 @@ class BagSource(Source):
         kind = "points" if self.msgtype == POINTCLOUD2 else "detections"
         count = sum(c.msgcount for c in self.connections)
 
-        self.pose_times: list[int] = []
-        self.poses: list[EgoPose] = []
-        self.tf = TfTree()
-        self.tf_skipped: dict[str, int] = {}  # child frame → transforms skipped: rotation not a unit quaternion
-        self.use_tf = False
-        self.base_frame: str | None = None
+        self.poser = ScanPoser(use_tf=pose_topic is not None and pose_topic in by_topic
+                               and by_topic[pose_topic][0].msgtype == TF_MESSAGE,
+                               turn_clouds=self.msgtype == POINTCLOUD2)
         notes = [f"topic {topic} ({self.msgtype}), {count} messages"]
         statics = [t for t, cs in by_topic.items() if cs[0].msgtype == TF_MESSAGE and t.rstrip("/").endswith("tf_static")]
         for t in statics:
@@ -186,31 +156,31 @@ class BagSource(Source):
             ptype = by_topic[pose_topic][0].msgtype
             if ptype == TF_MESSAGE:
                 self._read_tf(by_topic[pose_topic], static=pose_topic in statics)
-                self.use_tf = True
                 notes.append(f"poses from the TF tree ({pose_topic}{' + ' + ', '.join(statics) if statics else ''})")
             elif ptype in POSE_TYPES:
                 self._read_pose_topic(pose_topic, by_topic[pose_topic])
-                skipped = (f"; {self.poses_skipped} skipped: orientation not a unit quaternion"
-                           if self.poses_skipped else "")
-                notes.append(f"poses from {pose_topic} ({len(self.poses)} samples{skipped})")
+                skipped = (f"; {self.poser.poses_skipped} skipped: orientation not a unit quaternion"
+                           if self.poser.poses_skipped else "")
+                notes.append(f"poses from {pose_topic} ({len(self.poser.poses)} samples{skipped})")
             else:
                 raise SourceError(
                     f"{self.path}: pose topic {pose_topic} is {ptype}, not {TF_MESSAGE} or one of {', '.join(POSE_TYPES)}"
                 )
         warnings = []
-        if self.tf_skipped:
+        if self.poser.tf_skipped:
             warnings.append(f"{self.path}: TF transforms whose rotation is not a unit quaternion skipped (as tf2 does): "
-                            + ", ".join(f"{n} to {f!r}" for f, n in sorted(self.tf_skipped.items())))
+                            + ", ".join(f"{n} to {f!r}" for f, n in sorted(self.poser.tf_skipped.items())))
         if pose_topic is None and count > 1:
             warnings.append(f"{self.path}: no --pose-topic: every {topic} message is published at the identity"
                             " pose, so if the sensor moved, static objects will look dynamic")
         self.info = SourceInfo(name=f"{self.path}:{topic}", kind=kind, num_frames=count, notes=notes,
                                warnings=warnings)
-        self._levels: dict[str, tuple[NDArray[np.float64], EgoPose] | None] = {}
         if self.msgtype == POINTCLOUD2 and pose_topic is not None:
             first = self._first_frame_id()
             if first is not None:
-                self._levelling(first)  # its note, before the replay starts
+                self.poser.levelling(first)  # its note, before the replay starts
+                notes.extend(self.poser.notes)
+                self.poser.notes.clear()
 
     def _first_frame_id(self) -> str | None:
         """The first scan's frame (as :meth:`frames` reads it), or None when it does not decode."""
@@ -226,47 +196,6 @@ class BagSource(Source):
             messages.close()
         return None
 
-    def _base_of(self) -> str | None:
-        """The vehicle's frame the scans are turned into, when the poses name one (module doc)."""
-        if self.msgtype != POINTCLOUD2:
-            return None
-        if self.use_tf:
-            return TF_BASE_FRAME
-        if self.poses and self.base_frame:
-            return self.base_frame.lstrip("/")
-        return None
-
-    def _levelling(self, frame_id: str) -> tuple[NDArray[np.float64], EgoPose] | None:
-        """For a scan in ``frame_id``: R, the frame's rotation in the base frame by the static chain (p' = R p),
-        and the turn (no translation, Rᵀ) to compose onto its pose — or None when the scan goes out as it is (no
-        base frame, no static chain from it, or a level x-forward mount). Cached; adds its note once."""
-        if frame_id in self._levels:
-            return self._levels[frame_id]
-        found: tuple[NDArray[np.float64], EgoPose] | None = None
-        note = None
-        base = self._base_of()
-        if base is not None:
-            try:
-                mount = self.tf.static_lookup(frame_id, base)
-            except KeyError:
-                pass  # no chain from the base frame: the pose is what it was (for a pose topic, the vehicle's)
-            except ValueError as exc:
-                note = (f"clouds kept in {frame_id}'s own axes: {exc} (only a static mount is turned into "
-                        f"{base}'s axes)")
-            else:
-                rot = rotation_from_quaternion(mount.qx, mount.qy, mount.qz, mount.qw)
-                if np.abs(rot - np.eye(3)).max() > LEVEL_TOLERANCE:
-                    n = math.hypot(mount.qx, mount.qy, mount.qz, mount.qw)  # R's own (unit) quaternion, inverted
-                    found = rot, EgoPose(qx=-mount.qx / n, qy=-mount.qy / n, qz=-mount.qz / n, qw=mount.qw / n)
-                    tilt = math.degrees(math.acos(min(1.0, max(-1.0, float(rot[2, 2])))))
-                    yaw = math.degrees(math.atan2(rot[1, 0], rot[0, 0]))
-                    note = (f"clouds turned into {base}'s axes at the sensor, frame {frame_id}{FRAME_SUFFIX} "
-                            f"(mount tilt {tilt:.1f}°, yaw {yaw:.1f}°)")
-        self._levels[frame_id] = found
-        if note is not None:
-            self.info.notes.append(note)
-        return found
-
     def _messages(self, conns: list[Any], what: str) -> Iterator[tuple[int, Any]]:
         for conn, t_bag, raw in self.reader.messages(connections=conns):
             try:
@@ -276,59 +205,15 @@ class BagSource(Source):
 
     def _read_tf(self, conns: list[Any], *, static: bool) -> None:
         for t_bag, msg in self._messages(conns, "TF topic"):
-            for tr in msg.transforms:
-                r, q = tr.transform.translation, tr.transform.rotation
-                pose = EgoPose(float(r.x), float(r.y), float(r.z), float(q.x), float(q.y), float(q.z), float(q.w))
-                if not abs(math.hypot(pose.qx, pose.qy, pose.qz, pose.qw) - 1.0) <= LIMITS.max_quaternion_error:
-                    # e.g. an all-zero rotation from a hand-written static transform: composed into the scan's
-                    # pose it went out as an ego pose every consumer refuses (and as "0 unreadable"); tf2 too
-                    # ignores such a transform
-                    child = tr.child_frame_id.lstrip("/")
-                    self.tf_skipped[child] = self.tf_skipped.get(child, 0) + 1
-                    continue
-                self.tf.add(tr.header.frame_id, tr.child_frame_id, stamp_ns(tr.header) or t_bag, pose, static=static)
+            self.poser.add_tf(msg, t_bag, static=static)
 
     def _read_pose_topic(self, topic: str, conns: list[Any]) -> None:
-        samples: list[tuple[int, EgoPose]] = []
-        no_heading = 0
         for t_bag, msg in self._messages(conns, "pose topic"):
-            pose = pose_of(msg)
-            if not abs(math.hypot(pose.qx, pose.qy, pose.qz, pose.qw) - 1.0) <= LIMITS.max_quaternion_error:
-                no_heading += 1  # e.g. a GNSS fix without heading (all-zero quaternion): no orientation to use
-                continue
-            samples.append((stamp_ns(msg.header) or t_bag, pose))
-            if self.base_frame is None:
-                self.base_frame = getattr(msg, "child_frame_id", "") or None
-        self.poses_skipped = no_heading
-        if not samples:
+            self.poser.add_pose(msg, t_bag)
+        if not self.poser.poses:
+            no_heading = self.poser.poses_skipped
             raise SourceError(f"{self.path}: pose topic {topic} holds no message with a usable pose"
                               + (f" ({no_heading} without a unit quaternion)" if no_heading else ""))
-        samples.sort(key=lambda s: s[0])
-        self.pose_times = [s[0] for s in samples]
-        self.poses = [s[1] for s in samples]
-
-    def _pose(self, frame_id: str, t: int) -> EgoPose | str:
-        """The pose of ``frame_id`` in the world at ``t``, or why there is none."""
-        if self.use_tf:
-            try:
-                return self.tf.lookup(frame_id, t)
-            except KeyError as exc:
-                skipped = "".join(f"; {n} transform(s) to {f!r} skipped: rotation not a unit quaternion"
-                                  for f, n in sorted(self.tf_skipped.items()))
-                return f"no TF for the scan: {exc.args[0]}{skipped}"
-        if not self.poses:
-            return IDENTITY
-        base = interpolate_pose(self.pose_times, self.poses, t)
-        if self.base_frame and frame_id in self.tf and self.base_frame in self.tf:
-            try:
-                return compose(base, self.tf.lookup(frame_id, t, ancestor=self.base_frame))
-            except KeyError:
-                pass
-        if not self._warned_extrinsic:
-            self._warned_extrinsic = True
-            log.info("%s: no /tf_static path from %s to %s: the vehicle pose stands in for the sensor's",
-                     self.path, self.base_frame or "the pose topic's frame", frame_id)
-        return base
 
     def frames(self, start: int = 0) -> Iterator[Item]:
         index = -1
@@ -342,26 +227,15 @@ class BagSource(Source):
             except Exception as exc:
                 yield FrameError(origin, f"undecodable {conn.msgtype} message: {exc}")
                 continue
+            if self.msgtype == POINTCLOUD2:
+                yield self._said(self.poser.scan(msg, origin, int(t_bag)))
+                continue
             stamp = stamp_ns(msg.header) or int(t_bag)
-            # ROS 1 habit "/velodyne": the frame is "velodyne" (as the TF lookup reads it); a leading slash would go on
-            # into every message downstream, and ROS 2's tf2 refuses frame IDs that start with one
-            frame_id = msg.header.frame_id.lstrip("/") or "lidar"
-            pose = self._pose(frame_id, stamp)
+            frame_id = msg.header.frame_id.lstrip("/") or "lidar"  # as ScanPoser.scan reads a cloud's
+            pose = self._said(self.poser.pose(frame_id, stamp))
             if isinstance(pose, str):
                 yield FrameError(origin, pose)
                 continue
-            if self.msgtype == POINTCLOUD2:
-                try:
-                    pts, names = pointcloud2_to_array(msg)
-                except ValueError as exc:
-                    yield FrameError(origin, f"bad PointCloud2: {exc}")
-                    continue
-                pts, _ = finite_rows(pts)
-                level = self._levelling(frame_id)
-                if level is not None:  # into the base frame's axes at the sensor (module doc)
-                    rot, turn = level
-                    pts, pose, frame_id = turn_points(pts, rot), compose(pose, turn), frame_id + FRAME_SUFFIX
-                yield ScanFrame(stamp, pose, pts, names, origin, frame_id)
             else:
                 try:
                     objects = [detected_object_from_ros(o) for o in msg.objects]
@@ -374,6 +248,13 @@ class BagSource(Source):
                     yield FrameError(origin, f"unexpected DetectedObjects layout: {exc}")
                     continue
                 yield DetectionFrame(stamp, pose, objects, origin, frame_id)
+
+    def _said(self, item: Any) -> Any:
+        """``item``, after logging what the poser noted meanwhile (once each)."""
+        for note in self.poser.notes:
+            log.info("%s: %s", self.path, note)
+        self.poser.notes.clear()
+        return item
 
     def close(self) -> None:
         reader, self.reader = getattr(self, "reader", None), None

@@ -1,4 +1,4 @@
-"""A minimal TF tree for bags: enough to give a point cloud its sensor pose in the world.
+"""A minimal TF tree for bags and live TF: enough to give a point cloud its sensor pose in the world.
 
 Real ROS 2 recordings rarely carry the LiDAR's world pose directly: ``/tf`` holds ``map → base_link`` from
 localisation and ``/tf_static`` the chain ``base_link → … → lidar``. The replay contract wants the pose of
@@ -8,6 +8,8 @@ using static edges as they are. Pure: fed with (parent, child, stamp, pose) tupl
 """
 
 from __future__ import annotations
+
+import bisect
 
 from ..frames import IDENTITY, EgoPose, compose
 from .ros_types import interpolate_pose
@@ -41,6 +43,16 @@ class TfTree:
             self._times.setdefault(child, []).append(stamp_ns)
             self._poses.setdefault(child, []).append(pose)
             self._sorted = False
+
+    def forget_before(self, stamp_ns: int) -> None:
+        """Drop each dynamic link's samples older than ``stamp_ns`` but the last one before it: a live stream's tree
+        stays bounded, and a lookup at or after ``stamp_ns`` interpolates as before."""
+        if not self._sorted:
+            self._sort()
+        for child, times in self._times.items():
+            i = bisect.bisect_left(times, stamp_ns) - 1
+            if i > 0:
+                del times[:i], self._poses[child][:i]
 
     def _sort(self) -> None:
         for child, times in self._times.items():

@@ -1,0 +1,180 @@
+"""A ROS scan's pose in the world and its turn into the vehicle's axes, from TF or a pose topic.
+
+One piece shared by the two ways ROS 2 scans come in: a bag (:mod:`.bag`, every pose message read before the
+first scan) and a live topic bridged into Zenoh (:mod:`jitterguard.services.ros2in`, pose messages as they come,
+interleaved with the scans). The rules are :mod:`.bag`'s module doc: TF composes the chain from the tree's root
+down to the cloud's frame (dynamic links interpolated at the scan's stamp, clamped outside their span), a pose
+topic is interpolated and composed with the ``/tf_static`` chain to the cloud's frame; a cloud under the base frame
+by a static chain is turned into the base frame's axes at the sensor. Pure: rosbags' message objects in (attribute
+access only), frames out.
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ....geometry import rotation_from_quaternion
+from ....schemas.wire import LIMITS
+from ..frames import IDENTITY, EgoPose, FrameError, ScanFrame, compose, finite_rows
+from .nuscenes import FRAME_SUFFIX, turn_points
+from .ros_types import interpolate_pose, pointcloud2_to_array, pose_of, stamp_ns
+from .tf import TfTree
+
+LEVEL_TOLERANCE = 1e-9
+"""A mount whose rotation matrix is the identity within this (each entry) is level and x-forward: not turned."""
+TF_BASE_FRAME = "base_link"
+"""The vehicle's frame in a TF tree (REP-105): clouds under it are turned into its axes."""
+
+
+def _unit(pose: EgoPose) -> bool:
+    return abs(math.hypot(pose.qx, pose.qy, pose.qz, pose.qw) - 1.0) <= LIMITS.max_quaternion_error
+
+
+class ScanPoser:
+    """Poses from TF (``use_tf``) or from a pose topic's samples, or none (the identity)."""
+
+    def __init__(self, *, use_tf: bool = False, turn_clouds: bool = True) -> None:
+        self.use_tf = use_tf
+        self.turn_clouds = turn_clouds  # PointCloud2 scans are turned into the base frame's axes; boxes are not
+        self.tf = TfTree()
+        self.tf_skipped: dict[str, int] = {}  # child frame → transforms skipped: rotation not a unit quaternion
+        self.pose_times: list[int] = []
+        self.poses: list[EgoPose] = []
+        self.poses_skipped = 0  # pose messages without a unit quaternion (a GNSS fix without heading)
+        self.base_frame: str | None = None  # the pose topic's child_frame_id (e.g. base_link)
+        self.notes: list[str] = []  # said once each: the turn of a mount, why a cloud keeps its own axes
+        self._levels: dict[str, tuple[NDArray[np.float64], EgoPose] | None] = {}
+        self._warned_extrinsic = False
+
+    # ------------------------------------------------------------------------------------------ pose messages
+
+    def add_tf(self, msg: Any, fallback_ns: int, *, static: bool) -> None:
+        """Every transform of a ``tf2_msgs/TFMessage`` (stamped by its header, ``fallback_ns`` where that is 0). A
+        rotation that is not a unit quaternion (an all-zero one from a hand-written static transform) is skipped
+        and counted, as tf2 ignores it: composed into a scan's pose it went out as an ego pose every consumer
+        refuses."""
+        for tr in msg.transforms:
+            r, q = tr.transform.translation, tr.transform.rotation
+            pose = EgoPose(float(r.x), float(r.y), float(r.z), float(q.x), float(q.y), float(q.z), float(q.w))
+            if not _unit(pose):
+                child = tr.child_frame_id.lstrip("/")
+                self.tf_skipped[child] = self.tf_skipped.get(child, 0) + 1
+                continue
+            self.tf.add(tr.header.frame_id, tr.child_frame_id, stamp_ns(tr.header) or fallback_ns, pose, static=static)
+        if static:
+            self._levels.clear()  # a mount that arrives (or changes) after a scan was turned without it
+
+    def add_pose(self, msg: Any, fallback_ns: int) -> bool:
+        """One Odometry / PoseStamped / PoseWithCovarianceStamped sample (kept in stamp order); whether it was
+        usable (a unit quaternion)."""
+        pose = pose_of(msg)
+        if not _unit(pose):
+            self.poses_skipped += 1
+            return False
+        t = stamp_ns(msg.header) or fallback_ns
+        i = bisect.bisect_right(self.pose_times, t)
+        self.pose_times.insert(i, t)
+        self.poses.insert(i, pose)
+        if self.base_frame is None:
+            self.base_frame = getattr(msg, "child_frame_id", "") or None
+        return True
+
+    def forget_before(self, stamp: int) -> None:
+        """Drop pose samples older than ``stamp`` but the last one before it (a live stream's memory stays bounded;
+        a scan is never posed from before its own stamp's neighbours)."""
+        self.tf.forget_before(stamp)
+        i = bisect.bisect_left(self.pose_times, stamp) - 1
+        if i > 0:
+            del self.pose_times[:i], self.poses[:i]
+
+    # ------------------------------------------------------------------------------------------ a scan's pose
+
+    def base(self) -> str | None:
+        """The vehicle's frame clouds are turned into, when the poses name one."""
+        if not self.turn_clouds:
+            return None
+        if self.use_tf:
+            return TF_BASE_FRAME
+        if self.poses and self.base_frame:
+            return self.base_frame.lstrip("/")
+        return None
+
+    def levelling(self, frame_id: str) -> tuple[NDArray[np.float64], EgoPose] | None:
+        """For a scan in ``frame_id``: R, the frame's rotation in the base frame by the static chain (p' = R p),
+        and the turn (no translation, Rᵀ) to compose onto its pose — or None when the scan goes out as it is (no
+        base frame, no static chain from it, or a level x-forward mount). Cached; adds its note once."""
+        if frame_id in self._levels:
+            return self._levels[frame_id]
+        found: tuple[NDArray[np.float64], EgoPose] | None = None
+        note = None
+        base = self.base()
+        if base is not None:
+            try:
+                mount = self.tf.static_lookup(frame_id, base)
+            except KeyError:
+                pass  # no chain from the base frame: the pose is what it was (for a pose topic, the vehicle's)
+            except ValueError as exc:
+                note = (f"clouds kept in {frame_id}'s own axes: {exc} (only a static mount is turned into "
+                        f"{base}'s axes)")
+            else:
+                rot = rotation_from_quaternion(mount.qx, mount.qy, mount.qz, mount.qw)
+                if np.abs(rot - np.eye(3)).max() > LEVEL_TOLERANCE:
+                    n = math.hypot(mount.qx, mount.qy, mount.qz, mount.qw)  # R's own (unit) quaternion, inverted
+                    found = rot, EgoPose(qx=-mount.qx / n, qy=-mount.qy / n, qz=-mount.qz / n, qw=mount.qw / n)
+                    tilt = math.degrees(math.acos(min(1.0, max(-1.0, float(rot[2, 2])))))
+                    yaw = math.degrees(math.atan2(rot[1, 0], rot[0, 0]))
+                    note = (f"clouds turned into {base}'s axes at the sensor, frame {frame_id}{FRAME_SUFFIX} "
+                            f"(mount tilt {tilt:.1f}°, yaw {yaw:.1f}°)")
+        self._levels[frame_id] = found
+        if note is not None and note not in self.notes:
+            self.notes.append(note)
+        return found
+
+    def pose(self, frame_id: str, t: int) -> EgoPose | str:
+        """The pose of ``frame_id`` in the world at ``t``, or why there is none."""
+        if self.use_tf:
+            try:
+                return self.tf.lookup(frame_id, t)
+            except KeyError as exc:
+                skipped = "".join(f"; {n} transform(s) to {f!r} skipped: rotation not a unit quaternion"
+                                  for f, n in sorted(self.tf_skipped.items()))
+                return f"no TF for the scan: {exc.args[0]}{skipped}"
+        if not self.poses:
+            return IDENTITY
+        base = interpolate_pose(self.pose_times, self.poses, t)
+        if self.base_frame and frame_id in self.tf and self.base_frame in self.tf:
+            try:
+                return compose(base, self.tf.lookup(frame_id, t, ancestor=self.base_frame))
+            except KeyError:
+                pass
+        if not self._warned_extrinsic:
+            self._warned_extrinsic = True
+            self.notes.append(f"no /tf_static path from {self.base_frame or 'the pose topic frame'} to {frame_id}: "
+                              "the vehicle pose stands in for the sensor's")
+        return base
+
+    def scan(self, msg: Any, origin: str, fallback_ns: int) -> ScanFrame | FrameError:
+        """A ``sensor_msgs/PointCloud2`` as a posed scan (finite rows, turned into the base frame's axes where its
+        mount is static), or why it cannot be one."""
+        stamp = stamp_ns(msg.header) or fallback_ns
+        # ROS 1 habit "/velodyne": the frame is "velodyne" (as the TF lookup reads it); a leading slash would go on
+        # into every message downstream, and ROS 2's tf2 refuses frame IDs that start with one
+        frame_id = msg.header.frame_id.lstrip("/") or "lidar"
+        pose = self.pose(frame_id, stamp)
+        if isinstance(pose, str):
+            return FrameError(origin, pose)
+        try:
+            pts, names = pointcloud2_to_array(msg)
+        except ValueError as exc:
+            return FrameError(origin, f"bad PointCloud2: {exc}")
+        pts, _ = finite_rows(pts)
+        level = self.levelling(frame_id)
+        if level is not None:  # into the base frame's axes at the sensor
+            rot, turn = level
+            pts, pose, frame_id = turn_points(pts, rot), compose(pose, turn), frame_id + FRAME_SUFFIX
+        return ScanFrame(stamp, pose, pts, names, origin, frame_id)
