@@ -33,7 +33,7 @@ from .core import (PIPELINE_STAGES, ConfigError, RenderedState, config_to_api, d
 from .metrics import SidecarMetrics
 
 CLASSIFIER = "classifier"
-SOURCES: frozenset[str] = frozenset({"replay", "feed-tracks"})
+SOURCES: frozenset[str] = frozenset({"replay", "feed-tracks", "ros2-in"})
 """The services that feed the pipeline. One that leaves the bus is no readiness fault (a sensor may be off, a
 recording may end), but it is what an operator looking at a ready sidecar with no objects needs to know:
 ``/readyz`` names it under ``warnings``."""

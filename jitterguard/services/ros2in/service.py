@@ -1,0 +1,165 @@
+"""``jitterguard ros2-in``: a live ROS 2 LiDAR topic, bridged into Zenoh, published on ``jg/{ns}/points``.
+
+The Zenoh adapter around :class:`.core.LiveScans`: the scans' key goes through a bounded inbox (the newest scans
+kept; a worker that falls behind skips, counted ``dropped_queue.*``), the pose keys (``tf``, ``tf_static`` or the
+pose topic) are small and fed to the core in their callbacks. The worker decodes a scan, waits up to ``tf_wait_s``
+for the poses to reach its stamp (TF usually comes a few ms after the cloud it poses), poses it and puts it on
+``points`` with a seq of its own and the scan's sensor stamp. A payload that is not a CDR message of its topic's
+type is rejected, counted per key, and the service goes on; a scan that cannot be posed (no TF path to its frame)
+is a failure of progress (``failing`` after five in a row, with the reason). ``/tf_static`` is latched in ROS 2
+(transient local): besides the live messages, the bridge's publication cache is queried for it at start and every
+few seconds until one has come.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import zenoh
+
+from ...runtime import Service, ZenohOptions
+from ...runtime.progress import ProgressPolicy
+from ...schemas import DecodeError, LimitExceeded, encode, keys
+from ..replay.adapter import point_cloud_message
+from ..replay.frames import FrameError
+from ..replay.sources.ros_types import TF_MESSAGE
+from .core import LiveScans, UndecodableMessage, ros_key
+
+INBOX = 4
+"""Scans held for the worker: the newest ones (a LiDAR at 10–20 Hz; a worker behind skips, never lags)."""
+MAX_CLOUD_BYTES = 64 * 1024 * 1024
+"""A PointCloud2 larger than this is refused from its size (a 128-beam scan with 12 fields is ~20 MB)."""
+MAX_POSE_BYTES = 1024 * 1024
+STATIC_QUERY_S = 5.0
+PUB_CACHE_PREFIX = "@ros2_pub_cache/*"
+"""Where zenoh-bridge-ros2dds answers queries for its transient-local publications' history (each bridge under its
+own Zenoh id)."""
+
+
+class Ros2InService(Service):
+    """Publishes the scans of one ROS 2 PointCloud2 topic on ``points``, posed by TF or a pose topic."""
+
+    name = "ros2-in"
+
+    def __init__(self, opts: ZenohOptions, *, points_topic: str, pose_topic: str | None, pose_type: str | None,
+                 key_prefix: str = "", tf_wait_s: float = 0.1) -> None:
+        self.core = LiveScans(pose_type)  # a pose type it cannot use fails before the session opens
+        self._lock = threading.Lock()  # the core is fed from the pose callbacks and the worker
+        self.tf_wait_s = tf_wait_s
+        self.points_topic = points_topic
+        super().__init__(opts)
+        self._seq = 0
+        self._pub = self.publisher(keys.points(self.ns))
+        self.monitor_progress(ProgressPolicy(stall_s=5.0))  # scans in -> points out
+        self.cloud_key = ros_key(key_prefix, points_topic)
+        self._inbox = self.subscribe_inbox(self.cloud_key, INBOX, progress=True, max_bytes=MAX_CLOUD_BYTES)
+        self.static_key = ros_key(key_prefix, "/tf_static")
+        self._static_seen = threading.Event()
+        self._sub(self.static_key, self._on_static)
+        self.pose_key = None
+        if pose_type == TF_MESSAGE:
+            self.pose_key = ros_key(key_prefix, pose_topic or "/tf")
+            self._sub(self.pose_key, self._on_tf)
+        elif pose_type is not None:
+            self.pose_key = ros_key(key_prefix, pose_topic or "")
+            self._sub(self.pose_key, self._on_pose)
+        self.spawn(self._worker, "worker")
+        self.spawn(self._static_history, "tf-static")
+
+    def _sub(self, key: str, handler) -> None:  # type: ignore[no-untyped-def]
+        def on_sample(sample: zenoh.Sample) -> None:
+            if self.oversized(sample, MAX_POSE_BYTES, "payload", f"ros/-/{key}"):
+                return
+            self.counters.inc("received")
+            handler(sample.payload.to_bytes(), key)
+        self._declared.append(self.session.declare_subscriber(key, on_sample))
+
+    def _refuse(self, exc: Exception, key: str) -> None:
+        """Count (``rejected.<ROS key>``) and log a payload refused on a ROS topic's key."""
+        self.reject(exc if isinstance(exc, DecodeError) else DecodeError("CDR", "", str(exc)), f"ros/-/{key}", key)
+
+    def _feed(self, payload: bytes, key: str, what: str) -> bool:
+        """One pose message (``tf_static``, ``tf`` or ``poses``, the counter it goes to) into the core; False when
+        it is refused."""
+        now = time.time_ns()
+        try:
+            with self._lock:
+                if what == "poses":
+                    self.core.pose(payload, now)
+                else:
+                    self.core.tf(payload, now, static=what == "tf_static")
+        except UndecodableMessage as exc:
+            self._refuse(exc, key)
+            return False
+        self.counters.inc(what)
+        return True
+
+    def _on_static(self, payload: bytes, key: str) -> None:
+        if self._feed(payload, key, "tf_static"):
+            self._static_seen.set()
+
+    def _on_tf(self, payload: bytes, key: str) -> None:
+        self._feed(payload, key, "tf")
+
+    def _on_pose(self, payload: bytes, key: str) -> None:
+        self._feed(payload, key, "poses")
+
+    def _static_history(self) -> None:
+        """Ask for the latched ``/tf_static`` until one has come (a bridge started before us published it once)."""
+        while not self._static_seen.is_set() and not self.stop_event.is_set():
+            for selector in (f"{PUB_CACHE_PREFIX}/{self.static_key}", self.static_key):
+                try:
+                    for reply in self.session.get(selector, timeout=2.0):
+                        if reply.ok is not None:
+                            self._on_static(reply.ok.payload.to_bytes(), self.static_key)
+                except Exception as exc:  # a query that fails is asked again; the live messages still count
+                    self.log.debug("query %s: %s", selector, exc)
+            self.stop_event.wait(STATIC_QUERY_S)
+
+    def _worker(self) -> None:
+        while not self.stop_event.is_set():
+            try:
+                payload, key, _ = self._inbox.get(timeout=0.25)
+            except Exception:  # queue.Empty
+                continue
+            self._handle(payload, key)
+
+    def _handle(self, payload: bytes, key: str) -> None:
+        received = time.time_ns()
+        try:
+            msg, stamp = self.core.stamp_of(payload)
+        except UndecodableMessage as exc:
+            self._refuse(exc, key)
+            self.progress.failure(time.monotonic(), str(exc)[:200])
+            return
+        deadline = time.monotonic() + self.tf_wait_s
+        while stamp and time.monotonic() < deadline and not self.stop_event.is_set():
+            with self._lock:
+                if self.core.covered(stamp):
+                    break
+            time.sleep(0.005)
+        else:
+            if stamp and not self.core.covered(stamp):
+                self.counters.inc("pose_clamped")  # posed at the newest pose before it
+        self._seq += 1
+        with self._lock:
+            frame = self.core.scan(msg, f"{self.points_topic}#{self._seq}", received)
+            notes = self.core.notes()
+        for note in notes:
+            self.log.info("%s", note)
+        if isinstance(frame, FrameError):
+            self.counters.inc("unposed")
+            self.progress.failure(time.monotonic(), frame.reason[:200])
+            self.log.warning("%s: %s", frame.origin, frame.reason)
+            return
+        try:
+            data = encode(point_cloud_message(frame, self._seq, frame.stamp_ns))
+        except (LimitExceeded, ValueError) as exc:  # beyond the wire's limits: refused here, not downstream
+            self._refuse(exc, key)
+            self.progress.failure(time.monotonic(), str(exc)[:200])
+            return
+        self._pub.put(data)
+        self.counters.inc("published")
+        self.last_seq = self._seq
+        self.progress.output(time.monotonic())

@@ -1,0 +1,152 @@
+"""``jitterguard ros2-in``: a live ROS 2 LiDAR topic, as zenoh-bridge-ros2dds carries it into Zenoh (key = the topic
+without its leading '/', payload = the message's CDR bytes), posed by /tf and published on ``points``.
+
+A real router and a real ``ros2-in`` process; the ROS 2 side is a Zenoh client of the router putting CDR messages
+encoded by mcap-ros2-support — an implementation independent of the rosbags typestore the service decodes with.
+The sensor sits on a pitched mount (``/tf_static``, served only as the bridge serves a latched topic: from its
+publication cache, to a query) on a vehicle driving and turning (``/tf``). What must hold: every published scan's
+points, put into the world by its published pose, are the raw points put into the world by the TF chain; a scan
+whose TF comes a little after it is posed by that TF; a payload that is not a PointCloud2 is refused, counted, and
+the next scan goes out.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from jitterguard.runtime import ZenohOptions, build_config, free_tcp_port, open_session
+from jitterguard.schemas import decode, keys
+from jitterguard.schemas.models import Heartbeat, PointCloud
+from jitterguard.services.replay.sources.ros_types import typestore
+
+from helpers import stop_process, wait_until
+
+mcap_ros2_dynamic = pytest.importorskip("mcap_ros2._dynamic")
+pytestmark = pytest.mark.integration
+
+CLOUD_KEY = "sensing/lidar/top/pointcloud"
+MOUNT_XYZ = (0.9, 0.1, 1.8)
+MOUNT_PITCH = math.radians(3.0)  # a LiDAR tilted forward on its mount
+RAW = np.array([[10.0, 0.0, -1.5, 7.0], [12.0, 3.0, 0.2, 30.0], [-4.0, -6.0, 1.0, 2.0]], dtype="<f4")
+
+
+def _encoder(msgtype: str):  # type: ignore[no-untyped-def]
+    text, _ = typestore().generate_msgdef(msgtype, ros_version=2)
+    return mcap_ros2_dynamic.serialize_dynamic(msgtype, text)[msgtype]
+
+
+def _stamp(ns: int) -> dict:
+    return {"sec": ns // 1_000_000_000, "nanosec": ns % 1_000_000_000}
+
+
+def _transform(parent: str, child: str, t_ns: int, xyz, q) -> dict:  # type: ignore[no-untyped-def]
+    return {"header": {"stamp": _stamp(t_ns), "frame_id": parent}, "child_frame_id": child,
+            "transform": {"translation": dict(zip("xyz", xyz)), "rotation": dict(zip("xyzw", q))}}
+
+
+def _vehicle(t_ns: int, t0: int) -> tuple[tuple[float, float, float], tuple[float, float, float, float], float]:
+    """map → base_link: driving at 8 m/s while turning at 0.2 rad/s."""
+    s = (t_ns - t0) * 1e-9
+    yaw = 0.3 + 0.2 * s
+    return (100.0 + 8.0 * s, 50.0 + 2.0 * s, 0.0), (0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2)), yaw
+
+
+def _cloud(t_ns: int) -> dict:
+    return {"header": {"stamp": _stamp(t_ns), "frame_id": "velodyne"}, "height": 1, "width": len(RAW),
+            "fields": [{"name": n, "offset": 4 * i, "datatype": 7, "count": 1}
+                       for i, n in enumerate(("x", "y", "z", "intensity"))],
+            "is_bigendian": False, "point_step": 16, "row_step": 16 * len(RAW), "data": RAW.tobytes(), "is_dense": True}
+
+
+def _rot(q) -> np.ndarray:  # type: ignore[no-untyped-def]
+    x, y, z, w = q
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def _world_truth(t_ns: int, t0: int) -> np.ndarray:
+    """The raw points in the world by the TF chain map → base_link → velodyne, computed here from the definitions."""
+    xyz, q, _ = _vehicle(t_ns, t0)
+    mount_q = (0.0, math.sin(MOUNT_PITCH / 2), 0.0, math.cos(MOUNT_PITCH / 2))
+    in_base = RAW[:, :3].astype(float) @ _rot(mount_q).T + np.array(MOUNT_XYZ)
+    return in_base @ _rot(q).T + np.array(xyz)
+
+
+def _world_of(msg: PointCloud) -> np.ndarray:
+    pts = np.frombuffer(msg.data, dtype="<f4").reshape(msg.num_points, len(msg.fields))
+    p = msg.ego_pose
+    r = _rot((p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w))
+    return pts[:, :3].astype(float) @ r.T + np.array([p.position.x, p.position.y, p.position.z])
+
+
+def test_a_live_ros2_lidar_topic_is_posed_by_tf_and_published_on_points(tmp_path):
+    ns, endpoint = f"r2i{os.getpid()}", f"tcp/127.0.0.1:{free_tcp_port()}"
+    procs = [subprocess.Popen([sys.executable, "-m", "jitterguard.cli", "router", "--listen", endpoint],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    log = tmp_path / "ros2-in.log"
+    procs.append(subprocess.Popen([sys.executable, "-m", "jitterguard.cli", "ros2-in", "--ns", ns, "--connect", endpoint,
+                                   "--points-topic", "/" + CLOUD_KEY, "--pose-topic", "/tf", "--tf-wait-s", "0.5"],
+                                  stdout=log.open("wb"), stderr=subprocess.STDOUT))
+    session = None
+    try:
+        session = open_session(build_config(ZenohOptions(ns=ns, connect=(endpoint,))))
+        tf_enc, cloud_enc = _encoder("tf2_msgs/msg/TFMessage"), _encoder("sensor_msgs/msg/PointCloud2")
+        mount_q = (0.0, math.sin(MOUNT_PITCH / 2), 0.0, math.cos(MOUNT_PITCH / 2))
+        static = bytes(tf_enc({"transforms": [_transform("base_link", "velodyne", 0, MOUNT_XYZ, mount_q)]}))
+        # the latched /tf_static, served as the bridge serves its transient-local publications: to a query
+        session.declare_queryable("@ros2_pub_cache/0123abcd/tf_static", lambda q: q.reply(q.key_expr, static))
+        got: list[PointCloud] = []
+        session.declare_subscriber(keys.points(ns), lambda s: got.append(decode(PointCloud, s.payload.to_bytes())))
+        beats: list[Heartbeat] = []
+        session.declare_subscriber(keys.heartbeat(ns, "ros2-in"),
+                                   lambda s: beats.append(decode(Heartbeat, s.payload.to_bytes())))
+        assert wait_until(lambda: bool(beats), timeout=60, period=0.2), log.read_text()[-2000:]
+        assert wait_until(lambda: beats[-1].counters.get("tf_static", 0) >= 1, timeout=30, period=0.2), \
+            log.read_text()[-2000:]
+
+        t0 = 1_700_000_000_000_000_000
+        stamps = [t0 + k * 100_000_000 for k in range(1, 6)]
+        for k, t in enumerate(stamps):
+            tf = bytes(tf_enc({"transforms": [_transform("map", "base_link", t, *_vehicle(t, t0)[:2])]}))
+            if k == 2:  # this scan's TF comes after it: the service waits for it
+                session.put(CLOUD_KEY, bytes(cloud_enc(_cloud(t))))
+                time.sleep(0.05)
+                session.put("tf", tf)
+            else:
+                session.put("tf", tf)
+                time.sleep(0.02)
+                session.put(CLOUD_KEY, bytes(cloud_enc(_cloud(t))))
+            time.sleep(0.15)
+        assert wait_until(lambda: len(got) >= len(stamps), timeout=30, period=0.1), log.read_text()[-2000:]
+        for msg in got[: len(stamps)]:
+            assert msg.header.stamp in stamps
+            assert msg.header.frame_id == "velodyne_vehicle_axes"  # turned into base_link's axes at the sensor
+            assert msg.fields == ["x", "y", "z", "intensity"]
+            np.testing.assert_allclose(_world_of(msg), _world_truth(msg.header.stamp, t0), atol=2e-4)
+            pts = np.frombuffer(msg.data, dtype="<f4").reshape(-1, 4)
+            np.testing.assert_array_equal(pts[:, 3], RAW[:, 3])
+        assert [m.header.seq for m in got[: len(stamps)]] == sorted(m.header.seq for m in got[: len(stamps)])
+
+        # a payload that is not a PointCloud2: refused and counted per key; the next scan still goes out
+        session.put(CLOUD_KEY, b"\x00\x01\x00\x00garbage")
+        t = stamps[-1] + 100_000_000
+        session.put("tf", bytes(tf_enc({"transforms": [_transform("map", "base_link", t, *_vehicle(t, t0)[:2])]})))
+        time.sleep(0.05)
+        session.put(CLOUD_KEY, bytes(cloud_enc(_cloud(t))))
+        assert wait_until(lambda: any(m.header.stamp == t for m in got), timeout=30, period=0.1), log.read_text()[-2000:]
+        assert wait_until(lambda: beats[-1].counters.get(f"rejected.{CLOUD_KEY}", 0) == 1, timeout=30, period=0.2), \
+            beats[-1].counters
+        assert procs[1].poll() is None
+    finally:
+        if session is not None:
+            session.close()
+        for p in reversed(procs):
+            stop_process(p)

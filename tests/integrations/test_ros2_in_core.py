@@ -1,0 +1,81 @@
+"""The live ROS 2 input's pure core: keys as zenoh-bridge-ros2dds names them, topic names checked, an odometry topic
+posing scans with the static mount, and a scan not yet covered by the poses said so (CDR from mcap-ros2-support)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from jitterguard.services.replay.frames import FrameError, ScanFrame
+from jitterguard.services.replay.sources.ros_types import typestore
+from jitterguard.services.ros2in.core import LiveScans, UndecodableMessage, check_topic, ros_key
+
+mcap_ros2_dynamic = pytest.importorskip("mcap_ros2._dynamic")
+
+
+def _enc(msgtype: str, msg: dict) -> bytes:
+    text, _ = typestore().generate_msgdef(msgtype, ros_version=2)
+    return bytes(mcap_ros2_dynamic.serialize_dynamic(msgtype, text)[msgtype](msg))
+
+
+def _stamp(ns: int) -> dict:
+    return {"sec": ns // 1_000_000_000, "nanosec": ns % 1_000_000_000}
+
+
+def _odom(t: int, x: float) -> bytes:
+    pose = {"position": {"x": x, "y": 0.0, "z": 0.0}, "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}}
+    twist = {"linear": {"x": 0.0, "y": 0.0, "z": 0.0}, "angular": {"x": 0.0, "y": 0.0, "z": 0.0}}
+    return _enc("nav_msgs/msg/Odometry", {"header": {"stamp": _stamp(t), "frame_id": "map"}, "child_frame_id": "base_link",
+                                          "pose": {"pose": pose, "covariance": [0.0] * 36},
+                                          "twist": {"twist": twist, "covariance": [0.0] * 36}})
+
+
+def _cloud(t: int, frame: str = "lidar") -> bytes:
+    pts = np.array([[1.0, 2.0, 3.0]], dtype="<f4")
+    return _enc("sensor_msgs/msg/PointCloud2", {
+        "header": {"stamp": _stamp(t), "frame_id": frame}, "height": 1, "width": 1,
+        "fields": [{"name": n, "offset": 4 * i, "datatype": 7, "count": 1} for i, n in enumerate("xyz")],
+        "is_bigendian": False, "point_step": 12, "row_step": 12, "data": pts.tobytes(), "is_dense": True})
+
+
+def test_keys_and_topic_names():
+    assert ros_key("", "/sensing/lidar/top/pointcloud") == "sensing/lidar/top/pointcloud"
+    assert ros_key("/robot1/", "/tf") == "robot1/tf"
+    assert check_topic("--points-topic", " /points ") == "/points"
+    for bad in ("points", "/", "/a/*", "/a b"):
+        with pytest.raises(ValueError, match="--points-topic"):
+            check_topic("--points-topic", bad)
+
+
+def test_an_odometry_topic_poses_scans_with_the_static_mount_and_says_when_it_lags():
+    core = LiveScans("nav_msgs/msg/Odometry")
+    mount = {"header": {"stamp": _stamp(0), "frame_id": "base_link"}, "child_frame_id": "lidar",
+             "transform": {"translation": {"x": 1.0, "y": 0.0, "z": 2.0},
+                           "rotation": {"x": 0.0, "y": 0.0, "z": math.sin(math.pi / 4), "w": math.cos(math.pi / 4)}}}
+    core.tf(_enc("tf2_msgs/msg/TFMessage", {"transforms": [mount]}), 0, static=True)
+    t0 = 5_000_000_000
+    core.pose(_odom(t0, 10.0), 0)
+    core.pose(_odom(t0 + 200_000_000, 12.0), 0)
+    assert core.covered(t0 + 100_000_000) and not core.covered(t0 + 300_000_000)
+    msg, stamp = core.stamp_of(_cloud(t0 + 100_000_000))
+    frame = core.scan(msg, "test#1", 0)
+    assert isinstance(frame, ScanFrame) and stamp == t0 + 100_000_000
+    # the lidar's x points along base_link's y (yawed 90° on its mount): turned into base_link's axes at the sensor
+    assert frame.frame_id == "lidar_vehicle_axes"
+    np.testing.assert_allclose(frame.points[0, :3], [-2.0, 1.0, 3.0], atol=1e-6)
+    # the vehicle half-way between its two odometry samples (x 11), the sensor 1 m ahead and 2 m up
+    assert (frame.pose.x, frame.pose.y, frame.pose.z) == pytest.approx((12.0, 0.0, 2.0))
+    assert any("mount tilt 0.0°, yaw 90.0°" in n for n in core.notes()) and core.notes() == []
+
+
+def test_payloads_of_another_type_are_refused_and_a_frame_without_tf_is_an_error():
+    core = LiveScans("tf2_msgs/msg/TFMessage")
+    with pytest.raises(UndecodableMessage, match="not a CDR sensor_msgs/msg/PointCloud2"):
+        core.stamp_of(b"\x00\x01\x00\x00\xff")
+    msg, _ = core.stamp_of(_cloud(1))
+    out = core.scan(msg, "test#2", 0)
+    assert isinstance(out, FrameError) and "no TF for the scan" in out.reason
+    with pytest.raises(ValueError, match="cannot pose a scan"):
+        LiveScans("sensor_msgs/msg/Imu")
