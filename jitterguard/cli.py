@@ -43,7 +43,7 @@ _AREAS = (
     "jitterguard.services.sidecar.cli",
     "jitterguard.services.foxglove.cli",
     "jitterguard.services.recorder.cli",
-    "jitterguard.services.ros2in.cli",
+    "jitterguard.services.ros2live.cli",
     "jitterguard.sim.cli",
     "jitterguard.stack.cli",
     "jitterguard.stack.monitor",

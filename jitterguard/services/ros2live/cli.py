@@ -1,4 +1,5 @@
-"""``jitterguard ros2-in``: a live ROS 2 LiDAR topic into the pipeline, through zenoh-bridge-ros2dds."""
+"""``jitterguard ros2-in`` / ``ros2-out``: a live ROS 2 LiDAR topic into the pipeline, and its tracked objects back,
+through zenoh-bridge-ros2dds."""
 
 from __future__ import annotations
 
@@ -46,7 +47,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         log_level: LogLevelOpt = "INFO",
     ) -> None:
         from ..replay.sources.ros_types import POSE_TYPES
-        from .core import check_topic
+        from .scans_in import check_topic
 
         try:
             points_topic = check_topic("--points-topic", points_topic)
@@ -63,11 +64,44 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         opts = zenoh_options(ns, zenoh_config, connect, listen)
 
         from ...runtime import setup_logging
-        from .service import Ros2InService
+        from .in_service import Ros2InService
 
         setup_logging(log_level)
         service = Ros2InService(opts, points_topic=points_topic, pose_topic=None if no_pose else pose_topic,
                                 pose_type=kind, key_prefix=key_prefix, tf_wait_s=wait)
         service.log.info("publishing %s (Zenoh key %s) on %s, posed by %s", points_topic, service.cloud_key,
                          f"jg/{opts.ns}/points", service.pose_key or "nothing (identity)")
+        service.run_forever()
+
+    @app.command("ros2-out", help=(
+        "Put the classifier's objects on a live ROS 2 topic as autoware_perception_msgs/msg/TrackedObjects (the"
+        " conversion of `record --ros2`: is_stationary from the classifier, static objects with zero velocity and"
+        " their window-mean pose), as zenoh-bridge-ros2dds carries Zenoh keys into ROS 2 (key = the topic without"
+        " its leading '/', payload = CDR).\n\n"
+        "Examples:\n\n  jitterguard ros2-out                       # /perception/object_recognition/tracking/objects\n"))
+    def ros2_out_cmd(
+        topic: Annotated[str, typer.Option("--topic", help="The TrackedObjects topic (Autoware's prediction reads"
+                                           " this one).")] = "/perception/object_recognition/tracking/objects",
+        key_prefix: Annotated[str, typer.Option("--key-prefix", help="The bridge's namespace (its -n / "
+                                                "`namespace`), if it has one.")] = "",
+        ns: NsOpt = "default",
+        zenoh_config: ZenohConfigOpt = None,
+        connect: ConnectOpt = None,
+        listen: ListenOpt = None,
+        log_level: LogLevelOpt = "INFO",
+    ) -> None:
+        from .scans_in import check_topic
+
+        try:
+            topic = check_topic("--topic", topic)
+        except ValueError as exc:
+            fail(str(exc))
+        opts = zenoh_options(ns, zenoh_config, connect, listen)
+
+        from ...runtime import setup_logging
+        from .out_service import Ros2OutService
+
+        setup_logging(log_level)
+        service = Ros2OutService(opts, topic=topic, key_prefix=key_prefix)
+        service.log.info("putting jg/%s/objects on %s (Zenoh key %s)", opts.ns, topic, service.key)
         service.run_forever()

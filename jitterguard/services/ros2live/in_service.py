@@ -1,6 +1,6 @@
 """``jitterguard ros2-in``: a live ROS 2 LiDAR topic, bridged into Zenoh, published on ``jg/{ns}/points``.
 
-The Zenoh adapter around :class:`.core.LiveScans`: the scans' key goes through a bounded inbox (the newest scans
+The Zenoh adapter around :class:`.scans_in.LiveScans`: the scans' key goes through a bounded inbox (the newest scans
 kept; a worker that falls behind skips, counted ``dropped_queue.*``), the pose keys (``tf``, ``tf_static`` or the
 pose topic) are small and fed to the core in their callbacks. The worker decodes a scan, waits up to ``tf_wait_s``
 for the poses to reach its stamp (TF usually comes a few ms after the cloud it poses), poses it and puts it on
@@ -24,7 +24,7 @@ from ...schemas import DecodeError, LimitExceeded, encode, keys
 from ..replay.adapter import point_cloud_message
 from ..replay.frames import FrameError
 from ..replay.sources.ros_types import TF_MESSAGE
-from .core import LiveScans, UndecodableMessage, ros_key
+from .scans_in import LiveScans, UndecodableMessage, ros_key
 
 INBOX = 4
 """Scans held for the worker: the newest ones (a LiDAR at 10–20 Hz; a worker behind skips, never lags)."""
