@@ -10,7 +10,7 @@ import pytest
 
 from jitterguard.services.replay.frames import FrameError, ScanFrame
 from jitterguard.services.replay.sources.ros_types import typestore
-from jitterguard.services.ros2in.core import LiveScans, UndecodableMessage, check_topic, ros_key
+from jitterguard.services.ros2live.scans_in import LiveScans, UndecodableMessage, check_topic, ros_key
 
 mcap_ros2_dynamic = pytest.importorskip("mcap_ros2._dynamic")
 

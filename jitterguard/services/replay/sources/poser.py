@@ -1,7 +1,7 @@
 """A ROS scan's pose in the world and its turn into the vehicle's axes, from TF or a pose topic.
 
 One piece shared by the two ways ROS 2 scans come in: a bag (:mod:`.bag`, every pose message read before the
-first scan) and a live topic bridged into Zenoh (:mod:`jitterguard.services.ros2in`, pose messages as they come,
+first scan) and a live topic bridged into Zenoh (:mod:`jitterguard.services.ros2live`, pose messages as they come,
 interleaved with the scans). The rules are :mod:`.bag`'s module doc: TF composes the chain from the tree's root
 down to the cloud's frame (dynamic links interpolated at the scan's stamp, clamped outside their span), a pose
 topic is interpolated and composed with the ``/tf_static`` chain to the cloud's frame; a cloud under the base frame
