@@ -35,7 +35,7 @@ from ..schemas.models import Heartbeat
 from . import memtrace
 from .envvars import env_number
 from .keyed_publishers import KeyedPublishers
-from .progress import Health, ProgressMonitor, ProgressPolicy
+from .progress import STALLED, Health, ProgressMonitor, ProgressPolicy
 from .sd_notify import Notifier
 from .signals import stop_on_signals
 from .zenoh_config import UnusableConfig, ZenohOptions, build_config, open_session
@@ -120,6 +120,10 @@ class Service:
         self.started_at = time.monotonic()
         self.last_seq = -1
         self.progress: ProgressMonitor | None = None
+        self.starting: str | None = None
+        """What a service still sets up after its session opened (its heartbeat and token are already out): while
+        set, its health is ``stalled`` with the reason ``starting: …``, so ``/readyz`` does not call the pipeline
+        ready while this service would drop what reaches it."""
         self.exit_code = 0
         self._watchdog_s: float | None = None  # armed by run_forever
         try:  # read before the session opens: a bad value must not wait for a router to be refused
@@ -208,7 +212,10 @@ class Service:
         return self.progress
 
     def health(self) -> Health:
-        """The progress verdict now (``ok`` for a service with no input → output relation)."""
+        """The progress verdict now (``ok`` for a service with no input → output relation); ``stalled`` while
+        :attr:`starting` (never counted towards the watchdog: ``unhealthy_for_s`` stays 0)."""
+        if self.starting is not None:
+            return Health(STALLED, f"starting: {self.starting}")
         return self.progress.assess(time.monotonic()) if self.progress is not None else Health("ok")
 
     def subscribe_inbox(self, key: str, capacity: int = 64, *, progress: bool = False,

@@ -263,3 +263,35 @@ def test_a_config_write_is_bounded_before_it_is_built(zenoh_port, client_session
         assert ok.ok is not None and svc.core.config.alpha_default == 2.5  # a real write still goes through
     finally:
         svc.close()
+
+
+def test_a_classifier_still_warming_up_says_so_in_its_heartbeat(zenoh_port, client_session, monkeypatch) -> None:
+    """Its token and heartbeat go out when its session opens, but it subscribes only once its compiled statistic has
+    warmed up (seconds on a first start): /readyz had called the pipeline ready while every frame reaching it was
+    lost. Until it subscribes its health is ``stalled``, ``starting: …``; then ``ok``."""
+    import threading
+    import time
+
+    from jitterguard.schemas.models import Heartbeat
+    from jitterguard.services.classifier import service as classifier_service
+
+    monkeypatch.setattr(classifier_service, "warm_up", lambda: time.sleep(2.5))  # a first start's compile
+    beats: list[Heartbeat] = []
+    client_session.declare_subscriber(keys.heartbeat(NS, "classifier"),
+                                       lambda s: beats.append(decode(Heartbeat, s.payload.to_bytes())))
+    made: list[ClassifierService] = []
+    builder = threading.Thread(target=lambda: made.append(ClassifierService(
+        loopback_options(NS, zenoh_port, listen_self=True), config_writes=ConfigWritePolicy.open())))
+    builder.start()
+    try:
+        assert wait_until(lambda: len(beats) >= 1, timeout=20)
+        first = beats[0]
+        assert first.health == "stalled" and first.health_reason.startswith("starting: warming up"), first
+        builder.join(timeout=60)
+        n = len(beats)
+        assert wait_until(lambda: len(beats) > n, timeout=20)
+        assert beats[-1].health == "ok", beats[-1]
+    finally:
+        builder.join(timeout=60)
+        for svc in made:
+            svc.close()

@@ -22,7 +22,7 @@ from jitterguard.services.classifier.service import ClassifierService
 from helpers import wait_until
 
 DEPLOY = Path(__file__).resolve().parents[2] / "deploy"
-SERVICES = ("router", "classifier", "tracker", "detector", "replay", "sidecar")
+SERVICES = ("router", "classifier", "tracker", "detector", "replay", "sidecar", "ros2-in", "ros2-out")
 
 
 @pytest.mark.parametrize("name", ["router-host.json5", "service-host.json5", "single-host.json5"])
@@ -44,9 +44,12 @@ def test_systemd_units_are_consistent():
         # a frozen process pings no more (jitterguard.runtime.sd_notify); after its own watchdog's last resort
         assert int(cp["Service"]["WatchdogSec"]) > DEFAULT_WATCHDOG_S + HANG_GRACE_S
         assert cp["Unit"]["PartOf"] == "jitterguard.target" and cp["Install"]["WantedBy"] == "jitterguard.target"
-        assert f"jitterguard-{svc}.service" in wants
         if svc != "router":
             assert "jitterguard-router.service" in cp["Unit"]["After"]
+        if svc.startswith("ros2-"):  # on a vehicle, enabled in the replay's place: not wanted by default
+            assert f"jitterguard-{svc}.service" not in wants
+        else:
+            assert f"jitterguard-{svc}.service" in wants
         if svc == "classifier":  # its compiled statistic's cache must be somewhere the unit may write
             env = dict(line.split("=", 1) for line in (DEPLOY / "systemd" / "jitterguard.env").read_text().splitlines()
                        if line and not line.startswith("#"))

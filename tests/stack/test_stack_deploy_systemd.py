@@ -16,6 +16,7 @@ import re
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import httpx
@@ -68,56 +69,134 @@ def _readyz(url: str) -> dict | None:
         return None
 
 
-def test_the_units_run_scans_through_the_detector_to_classified_objects(tmp_path):
-    assert "jitterguard-detector.service" in wanted_units()
-    router, http = free_tcp_port(), free_tcp_port()
-    shipped = environment_file(SYSTEMD / "jitterguard.env")
-    env = {k: v.replace("tcp/127.0.0.1:7447", f"tcp/127.0.0.1:{router}").replace("/var/lib/jitterguard", str(tmp_path))
-           .replace("--port 8000", f"--port {http}") for k, v in shipped.items()}
-    env["JG_NS"] = f"systemd{os.getpid()}"
-    env["JG_REPLAY_ARGS"] += " --duration 30"  # the scenario ray-cast once, shorter than the default's 60 s
-    venv_bin = str(Path(sys.executable).parent)
-    base = {k: v for k, v in os.environ.items() if not k.startswith(("JG_", "SUPERVISOR_", "NOTIFY_SOCKET"))}
-    procs: dict[str, subprocess.Popen] = {}
-    logs = {}
-    try:
-        # the router first (every unit is After= it), then the rest in the target's order
-        for unit in sorted(wanted_units(), key=lambda u: u != "jitterguard-router.service"):
+class Units:
+    """The units started as systemd starts them from the shipped environment file, made local (module doc)."""
+
+    def __init__(self, tmp_path: Path, units: list[str]) -> None:
+        self.router, self.http = free_tcp_port(), free_tcp_port()
+        shipped = environment_file(SYSTEMD / "jitterguard.env")
+        self.env = {k: v.replace("tcp/127.0.0.1:7447", f"tcp/127.0.0.1:{self.router}")
+                    .replace("/var/lib/jitterguard", str(tmp_path)).replace("--port 8000", f"--port {self.http}")
+                    for k, v in shipped.items()}
+        self.env["JG_NS"] = f"systemd{os.getpid()}"
+        self.env["JG_REPLAY_ARGS"] += " --duration 30"  # the scenario ray-cast once, shorter than the default's 60 s
+        self.url = f"http://127.0.0.1:{self.http}"
+        venv_bin = str(Path(sys.executable).parent)
+        base = {k: v for k, v in os.environ.items() if not k.startswith(("JG_", "SUPERVISOR_", "NOTIFY_SOCKET"))}
+        self.procs: dict[str, subprocess.Popen] = {}
+        self.logs: dict[str, Path] = {}
+        # the router first (every unit is After= it), then the rest in the order given
+        for unit in sorted(units, key=lambda u: u != "jitterguard-router.service"):
             cp = configparser.ConfigParser(interpolation=None, strict=False)
             cp.read(SYSTEMD / unit)
             svc = cp["Service"]
             assert svc["EnvironmentFile"] == "/etc/jitterguard/jitterguard.env"
-            argv = expand(svc["ExecStart"], env)
+            argv = expand(svc["ExecStart"], self.env)
             assert argv[0] == "/opt/jitterguard/venv/bin/jitterguard"
             argv[0] = f"{venv_bin}/jitterguard"
             name = unit.removeprefix("jitterguard-").removesuffix(".service")
-            logs[name] = tmp_path / f"{name}.log"
-            procs[name] = subprocess.Popen(argv, env={**base, **env}, cwd=tmp_path, stdout=logs[name].open("wb"),
-                                           stderr=subprocess.STDOUT, start_new_session=True)
-        url = f"http://127.0.0.1:{http}"
+            self.logs[name] = tmp_path / f"{name}.log"
+            self.procs[name] = subprocess.Popen(argv, env={**base, **self.env}, cwd=tmp_path,
+                                                stdout=self.logs[name].open("wb"), stderr=subprocess.STDOUT,
+                                                start_new_session=True)
 
-        def flowing() -> bool:
-            body = _readyz(url)
-            if not body or not body.get("ready"):
-                return False
-            seen = body["services"]
-            return all((seen.get(s, {}).get("last_seq") or 0) > 10 for s in ("detector", "tracker", "classifier"))
+    def flowing(self, stages: tuple[str, ...] = ("detector", "tracker", "classifier")) -> bool:
+        body = _readyz(self.url)
+        if not body or not body.get("ready"):
+            return False
+        seen = body["services"]
+        return all((seen.get(s, {}).get("last_seq") or 0) > 10 for s in stages)
 
-        def tail() -> str:
-            return "\n".join(f"--- {n} (rc {p.poll()})\n" + logs[n].read_text(errors="replace")[-1500:]
-                             for n, p in procs.items())
+    def tail(self) -> str:
+        return "\n".join(f"--- {n} (rc {p.poll()})\n" + self.logs[n].read_text(errors="replace")[-1500:]
+                         for n, p in self.procs.items())
 
-        assert wait_until(flowing, timeout=TIMEOUT_S, period=1.0), tail()
-        state = httpx.get(f"{url}/v1/state", timeout=5.0).json()
-        assert state["tracks"] and sum(state["counts"].values()) > 0, state  # classified objects from detected scans
-        assert all(p.poll() is None for p in procs.values()), tail()
-    finally:
-        for p in procs.values():
+    def stop(self) -> None:
+        for p in self.procs.values():
             if p.poll() is None:
                 os.killpg(p.pid, signal.SIGTERM)
-        for p in procs.values():
+        for p in self.procs.values():
             try:
                 p.wait(timeout=15)
             except subprocess.TimeoutExpired:
                 os.killpg(p.pid, signal.SIGKILL)
                 p.wait(timeout=15)
+
+
+def test_the_units_run_scans_through_the_detector_to_classified_objects(tmp_path):
+    assert "jitterguard-detector.service" in wanted_units()
+    units = Units(tmp_path, wanted_units())
+    try:
+        assert wait_until(units.flowing, timeout=TIMEOUT_S, period=1.0), units.tail()
+        state = httpx.get(f"{units.url}/v1/state", timeout=5.0).json()
+        assert state["tracks"] and sum(state["counts"].values()) > 0, state  # classified objects from detected scans
+        assert all(p.poll() is None for p in units.procs.values()), units.tail()
+    finally:
+        units.stop()
+
+
+def test_on_a_vehicle_the_ros2_units_take_the_replays_place(tmp_path):
+    """``jitterguard-ros2-in`` and ``-ros2-out`` in place of the replay, as their units' header says: a ROS 2 side
+    (played here by a Zenoh client putting CDR encoded by mcap-ros2-support, as zenoh-bridge-ros2dds would) sends a
+    synthetic scenario's scans with /tf and /tf_static; Autoware's TrackedObjects come back on their topic's key,
+    decoded by mcap-ros2-support, with the objects the classifier decided."""
+    mcap_dynamic = pytest.importorskip("mcap_ros2._dynamic")
+    from jitterguard.eval.detector_input import synthetic_scans
+    from jitterguard.runtime import ZenohOptions, build_config, open_session
+    from jitterguard.services.replay.sources.ros_types import typestore
+    from jitterguard.sim.world import make_scenario
+
+    def codec(msgtype: str, make: bool):  # type: ignore[no-untyped-def]
+        text, _ = typestore().generate_msgdef(msgtype, ros_version=2)
+        return (mcap_dynamic.serialize_dynamic if make else mcap_dynamic.generate_dynamic)(msgtype, text)[msgtype]
+
+    env = environment_file(SYSTEMD / "jitterguard.env")
+    points_topic = env["JG_ROS2_IN_ARGS"].split("--points-topic")[1].split()[0]
+    out_topic = env["JG_ROS2_OUT_ARGS"].split("--topic")[1].split()[0]
+    wanted = [u for u in wanted_units() if u != "jitterguard-replay.service"]
+    units = Units(tmp_path, wanted + ["jitterguard-ros2-in.service", "jitterguard-ros2-out.service"])
+    session = None
+    try:
+        session = open_session(build_config(ZenohOptions(ns=units.env["JG_NS"],
+                                                         connect=(f"tcp/127.0.0.1:{units.router}",))))
+        tracked = codec("autoware_perception_msgs/msg/TrackedObjects", make=False)
+        got: list = []
+        session.declare_subscriber(out_topic.strip("/"), lambda s: got.append(tracked(s.payload.to_bytes())))
+        tf_enc, cloud_enc = codec("tf2_msgs/msg/TFMessage", make=True), codec("sensor_msgs/msg/PointCloud2", make=True)
+
+        def stamp(ns: int) -> dict:
+            return {"sec": ns // 1_000_000_000, "nanosec": ns % 1_000_000_000}
+
+        def transform(parent: str, child: str, t: int, p) -> dict:  # type: ignore[no-untyped-def]
+            return {"header": {"stamp": stamp(t), "frame_id": parent}, "child_frame_id": child,
+                    "transform": {"translation": {"x": p.position.x, "y": p.position.y, "z": p.position.z},
+                                  "rotation": {"x": p.orientation.x, "y": p.orientation.y, "z": p.orientation.z,
+                                               "w": p.orientation.w}}}
+
+        from jitterguard.schemas.models import Pose
+        static = bytes(tf_enc({"transforms": [transform("base_link", "lidar", 0, Pose())]}))
+        scans = list(synthetic_scans(make_scenario("parking-street", 0, 4.0, 10.0), 0))
+        assert wait_until(lambda: (_readyz(units.url) or {}).get("ready", False), timeout=TIMEOUT_S, period=1.0), \
+            units.tail()
+        # /readyz is ready: every frame from now on must go through (a classifier still warming up had been called
+        # ready while it dropped them). Two passes of the 4 s scenario, its stamps going on in time.
+        for k in range(2):
+            for ls in scans:
+                pc, t = ls.scan, ls.scan.header.stamp + k * 5_000_000_000
+                session.put("tf_static", static)
+                session.put("tf", bytes(tf_enc({"transforms": [transform("map", "base_link", t, pc.ego_pose)]})))
+                fields = [{"name": n, "offset": 4 * i, "datatype": 7, "count": 1} for i, n in enumerate(pc.fields)]
+                session.put(points_topic.strip("/"), bytes(cloud_enc({
+                    "header": {"stamp": stamp(t), "frame_id": "lidar"}, "height": 1, "width": pc.num_points,
+                    "fields": fields, "is_bigendian": False, "point_step": 4 * len(fields),
+                    "row_step": 4 * len(fields) * pc.num_points, "data": pc.data, "is_dense": True})))
+                time.sleep(0.1)
+        assert wait_until(lambda: any(m.objects for m in got), timeout=60, period=0.5), units.tail()
+        assert all(m.header.frame_id == "map" for m in got)
+        assert units.flowing(("ros2-in", "detector", "tracker", "classifier")) or \
+            wait_until(lambda: units.flowing(("ros2-in", "detector", "tracker", "classifier")), timeout=30), units.tail()
+        assert all(p.poll() is None for p in units.procs.values()), units.tail()
+    finally:
+        if session is not None:
+            session.close()
+        units.stop()

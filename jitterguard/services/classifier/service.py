@@ -104,6 +104,9 @@ class ClassifierService(Service):
         (:mod:`.calibration_store`)."""
         self._gauges: dict[str, float] = {}  # the heartbeat starts with the session, before the statistic warms up
         super().__init__(opts)
+        # its token and heartbeat are out, but frames reaching it now are lost until it subscribes (below): the
+        # statistic's first compile takes seconds, and /readyz had said ready through them
+        self.starting = "warming up the calibrated statistic"
         self.config_writes = config_writes or ConfigWritePolicy.from_env()
         self._started_with = config or ClassifierConfig()
         self._store = config_store
@@ -170,6 +173,7 @@ class ClassifierService(Service):
         self.spawn(self._worker, "worker")
         if calibration_store is not None:
             self.spawn(self._calibration_writer, "calibration-store")
+        self.starting = None
 
     @property
     def core(self) -> MotionClassifierCore:
