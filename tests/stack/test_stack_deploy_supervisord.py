@@ -99,6 +99,13 @@ def test_every_program_of_the_shipped_file_runs_and_the_monitor_keeps_the_summar
             return False
 
     assert wait_until(all_running, timeout=TIMEOUT_S, period=0.5), [(p.name, p.state) for p in sup.processes()]
+    # the live ROS 2 programs wait for an operator on a vehicle (autostart=false), and then start
+    assert {p.name: p.state for p in sup.processes() if p.name.startswith("ros2-")} == {"ros2-in": "STOPPED",
+                                                                                        "ros2-out": "STOPPED"}
+    for name in ("ros2-in", "ros2-out"):
+        sup.call("startProcess", name, True)
+    assert {p.name: p.state for p in sup.processes() if p.name.startswith("ros2-")} == {"ros2-in": "RUNNING",
+                                                                                        "ros2-out": "RUNNING"}
     assert wait_until(lambda: _ready(deployed["url"]), timeout=TIMEOUT_S, period=1.0), \
         httpx.get(f"{deployed['url']}/readyz", timeout=5.0).text
 
