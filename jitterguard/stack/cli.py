@@ -40,7 +40,7 @@ from . import summary
 from .control import (StackUnavailable, Supervisor, orphans, read_pid, running_run_dirs, stop_lost, stop_orphans,
                       tail)
 from .status import collect, load_spec, render_table, save_spec
-from .supervisor import DEFAULT_SCENARIO_S, DEFAULT_SOURCE, StackSpec, input_mode, programs, render_config
+from .supervisor import DEFAULT_SCENARIO_S, DEFAULT_SOURCE, StackSpec, has_area, input_mode, programs, render_config
 from .validate import ArgumentError, check_name, check_run_dir, check_text, port_in_use
 
 RunDirOpt = Annotated[str | None, typer.Option("--run-dir", envvar="JG_RUN_DIR", help="Where config, socket, logs and summary live (default: a folder named after the stack).")]
@@ -416,6 +416,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         foxglove_port: Annotated[int, typer.Option("--foxglove-port", min=0, max=65535, help="The Foxglove WebSocket port (0: a free one, printed).")] = StackSpec.foxglove_port,
         record_mcap: Annotated[str | None, typer.Option("--record-mcap", help="Record the Foxglove channels to this MCAP file.")] = None,
         record_ros2: Annotated[str | None, typer.Option("--record-ros2", help="Record a ROS 2 bag for Autoware into this new folder.")] = None,
+        ros2: Annotated[str | None, typer.Option("--ros2", help="Live ROS 2 in the replay's place: this PointCloud2 topic (posed by /tf) in, Autoware's TrackedObjects out, through zenoh-bridge-ros2dds as a client of the router (ros2-in, ros2-out).")] = None,
         rate: R.RateOpt = "1",
         start: R.StartOpt = 0,
         limit: R.LimitOpt = None,
@@ -468,9 +469,27 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             fail(f"--ns: {exc}")
         rd, label = resolve(run_dir, name, ns)
         stack = name or ns
-        if source is None and scenario_duration is None and input_level != "tracks":
-            ropts = replace(ropts, duration=DEFAULT_SCENARIO_S)
-        src, mode, ropts, warnings = _check_source(source, input_level, ropts)
+        if ros2 is not None:  # the scans come from the vehicle: no replay, nothing of it to set
+            from ..services.ros2live.scans_in import check_topic
+
+            try:
+                ros2 = check_topic("--ros2", ros2)
+            except ValueError as exc:
+                fail(str(exc))
+            if source is not None:
+                fail("SOURCE is the replay's; --ros2 takes the vehicle's scans in its place: give one of them")
+            if input_level not in ("auto", "points"):
+                fail(f"--input {input_level}: --ros2 brings scans (points) for the detector")
+            stray = ropts.changed() + ([(SCENARIO_DURATION, scenario_duration)] if scenario_duration else [])
+            if stray:
+                fail(f"{stray[0][0]} is the replay's; not with --ros2")
+            if not has_area("jitterguard.services.detector.service"):
+                fail("--ros2: this install has no detector (pip install 'jitterguard[detector]')")
+            src, mode, warnings = None, "points", []
+        else:
+            if source is None and scenario_duration is None and input_level != "tracks":
+                ropts = replace(ropts, duration=DEFAULT_SCENARIO_S)
+            src, mode, ropts, warnings = _check_source(source, input_level, ropts)
         try:  # the absolute paths add the current folder's name
             for flag, value in ropts.changed() + ([("SOURCE", src)] if src else []):
                 check_text(str(value), flag)
@@ -498,7 +517,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         spec = StackSpec(ns=ns, name=stack, router_port=router_port, sidecar_host=host, sidecar_port=port,
                          source=src, input=mode, sidecar=not no_sidecar, replay_args=tuple(ropts.argv()),
                          run_dir=str(rd), foxglove=foxglove, foxglove_port=foxglove_port, record_mcap=mcap_path,
-                         record_ros2=bag_path)
+                         record_ros2=bag_path, ros2_points=ros2)
         configs = _service_configs({"classifier": classifier_config, "tracker": tracker_config,
                                     "detector": detector_config}, programs(spec))
         try:

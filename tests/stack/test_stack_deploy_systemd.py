@@ -140,15 +140,11 @@ def test_on_a_vehicle_the_ros2_units_take_the_replays_place(tmp_path):
     (played here by a Zenoh client putting CDR encoded by mcap-ros2-support, as zenoh-bridge-ros2dds would) sends a
     synthetic scenario's scans with /tf and /tf_static; Autoware's TrackedObjects come back on their topic's key,
     decoded by mcap-ros2-support, with the objects the classifier decided."""
-    mcap_dynamic = pytest.importorskip("mcap_ros2._dynamic")
+    pytest.importorskip("mcap_ros2._dynamic")
     from jitterguard.eval.detector_input import synthetic_scans
     from jitterguard.runtime import ZenohOptions, build_config, open_session
-    from jitterguard.services.replay.sources.ros_types import typestore
     from jitterguard.sim.world import make_scenario
-
-    def codec(msgtype: str, make: bool):  # type: ignore[no-untyped-def]
-        text, _ = typestore().generate_msgdef(msgtype, ros_version=2)
-        return (mcap_dynamic.serialize_dynamic if make else mcap_dynamic.generate_dynamic)(msgtype, text)[msgtype]
+    from ros2_side import RosSide, codec
 
     env = environment_file(SYSTEMD / "jitterguard.env")
     points_topic = env["JG_ROS2_IN_ARGS"].split("--points-topic")[1].split()[0]
@@ -159,22 +155,10 @@ def test_on_a_vehicle_the_ros2_units_take_the_replays_place(tmp_path):
     try:
         session = open_session(build_config(ZenohOptions(ns=units.env["JG_NS"],
                                                          connect=(f"tcp/127.0.0.1:{units.router}",))))
-        tracked = codec("autoware_perception_msgs/msg/TrackedObjects", make=False)
+        tracked = codec("autoware_perception_msgs/msg/TrackedObjects", encode=False)
         got: list = []
         session.declare_subscriber(out_topic.strip("/"), lambda s: got.append(tracked(s.payload.to_bytes())))
-        tf_enc, cloud_enc = codec("tf2_msgs/msg/TFMessage", make=True), codec("sensor_msgs/msg/PointCloud2", make=True)
-
-        def stamp(ns: int) -> dict:
-            return {"sec": ns // 1_000_000_000, "nanosec": ns % 1_000_000_000}
-
-        def transform(parent: str, child: str, t: int, p) -> dict:  # type: ignore[no-untyped-def]
-            return {"header": {"stamp": stamp(t), "frame_id": parent}, "child_frame_id": child,
-                    "transform": {"translation": {"x": p.position.x, "y": p.position.y, "z": p.position.z},
-                                  "rotation": {"x": p.orientation.x, "y": p.orientation.y, "z": p.orientation.z,
-                                               "w": p.orientation.w}}}
-
-        from jitterguard.schemas.models import Pose
-        static = bytes(tf_enc({"transforms": [transform("base_link", "lidar", 0, Pose())]}))
+        ros = RosSide(session, points_topic)
         scans = list(synthetic_scans(make_scenario("parking-street", 0, 4.0, 10.0), 0))
         assert wait_until(lambda: (_readyz(units.url) or {}).get("ready", False), timeout=TIMEOUT_S, period=1.0), \
             units.tail()
@@ -182,14 +166,7 @@ def test_on_a_vehicle_the_ros2_units_take_the_replays_place(tmp_path):
         # ready while it dropped them). Two passes of the 4 s scenario, its stamps going on in time.
         for k in range(2):
             for ls in scans:
-                pc, t = ls.scan, ls.scan.header.stamp + k * 5_000_000_000
-                session.put("tf_static", static)
-                session.put("tf", bytes(tf_enc({"transforms": [transform("map", "base_link", t, pc.ego_pose)]})))
-                fields = [{"name": n, "offset": 4 * i, "datatype": 7, "count": 1} for i, n in enumerate(pc.fields)]
-                session.put(points_topic.strip("/"), bytes(cloud_enc({
-                    "header": {"stamp": stamp(t), "frame_id": "lidar"}, "height": 1, "width": pc.num_points,
-                    "fields": fields, "is_bigendian": False, "point_step": 4 * len(fields),
-                    "row_step": 4 * len(fields) * pc.num_points, "data": pc.data, "is_dense": True})))
+                ros.send(ls.scan, ls.scan.header.stamp + k * 5_000_000_000)
                 time.sleep(0.1)
         assert wait_until(lambda: any(m.objects for m in got), timeout=60, period=0.5), units.tail()
         assert all(m.header.frame_id == "map" for m in got)

@@ -1,0 +1,75 @@
+"""``jitterguard up --ros2 TOPIC``: the stack with a vehicle's ROS 2 side in the replay's place (real supervisord, real
+router and services; the ROS 2 side played as zenoh-bridge-ros2dds shows it, its CDR by mcap-ros2-support): scans in
+with /tf and /tf_static, Autoware's TrackedObjects out on their topic's key; replay flags with --ros2 are refused."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+
+import pytest
+
+from jitterguard.runtime import ZenohOptions, build_config, free_tcp_port, open_session
+from jitterguard.stack.control import Supervisor
+
+from helpers import wait_until
+
+pytestmark = pytest.mark.integration
+
+POINTS = "/sensing/lidar/top/pointcloud"
+TRACKING_KEY = "perception/object_recognition/tracking/objects"
+
+
+def jg(*args: str, timeout: float = 180) -> subprocess.CompletedProcess:
+    env = {k: v for k, v in os.environ.items() if k != "JG_API_TOKEN"}
+    return subprocess.run([sys.executable, "-m", "jitterguard.cli", *args], capture_output=True, text=True,
+                          timeout=timeout, env=env)
+
+
+def test_up_with_ros2_runs_the_vehicles_scans_through_to_autowares_tracked_objects(tmp_path):
+    pytest.importorskip("mcap_ros2._dynamic")
+    from jitterguard.eval.detector_input import synthetic_scans
+    from jitterguard.sim.world import make_scenario
+    from ros2_side import RosSide, codec
+
+    rd, router, ns = tmp_path / "run", free_tcp_port(), f"upros{os.getpid()}"
+    res = jg("up", "-d", "--ros2", POINTS, "--ns", ns, "--router-port", str(router), "--port", str(free_tcp_port()),
+             "--run-dir", str(rd))
+    assert res.returncode == 0, res.stdout + res.stderr
+    session = None
+    try:
+        names = {p.name: p.state for p in Supervisor(rd).processes()}
+        assert "replay" not in names and names.get("ros2-in") == "RUNNING" and names.get("ros2-out") == "RUNNING", names
+        session = open_session(build_config(ZenohOptions(ns=ns, connect=(f"tcp/127.0.0.1:{router}",))))
+        decode_tracked = codec("autoware_perception_msgs/msg/TrackedObjects", encode=False)
+        got: list = []
+        session.declare_subscriber(TRACKING_KEY, lambda s: got.append(decode_tracked(s.payload.to_bytes())))
+        ros = RosSide(session, POINTS)
+        scans = list(synthetic_scans(make_scenario("parking-street", 1, 4.0, 10.0), 1))
+        deadline = time.monotonic() + 120
+        k = 0
+        while not any(m.objects for m in got) and time.monotonic() < deadline:  # until the classifier has warmed up
+            for ls in scans:
+                ros.send(ls.scan, ls.scan.header.stamp + k * 5_000_000_000)
+                time.sleep(0.1)
+            k += 1
+        assert any(m.objects for m in got), (rd / "logs" / "ros2-in.log").read_text()[-1500:]
+        assert all(m.header.frame_id == "map" for m in got)
+        st = jg("status", "--run-dir", str(rd), "--json")
+        assert st.returncode == 0, st.stdout + st.stderr
+    finally:
+        if session is not None:
+            session.close()
+        jg("down", "--run-dir", str(rd))
+
+
+@pytest.mark.parametrize("args, message", [
+    (["synthetic:mixed"], "SOURCE is the replay's"),
+    (["--rate", "2"], "--rate is the replay's; not with --ros2"),
+    (["--input", "tracks"], "--input tracks: --ros2 brings scans"),
+])
+def test_replay_flags_with_ros2_are_one_line_errors(tmp_path, args, message):
+    res = jg("up", "--ros2", POINTS, "--run-dir", str(tmp_path / "run"), *args, timeout=60)
+    assert res.returncode == 2 and message in res.stderr and res.stderr.count("\n") == 1, res.stderr
