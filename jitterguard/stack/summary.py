@@ -234,7 +234,9 @@ def build(ledger: Ledger, events: dict[str, ProgramEvents], *, meta: dict[str, A
     t = {svc: ledger.totals(svc) for svc in ledger.procs}
     # the source's frames: the replay's puts (one per frame), or feed-tracks' frames at --input tracks (its puts
     # are a frame's every tracks/{id} and its tracked: 1,824 "replayed" for ~150 frames)
-    replayed = _pick(t["replay"], "published") if "replay" in t else _pick(t.get("feed-tracks"), "frames")
+    # (or, with live ROS 2 in the replay's place, the scans ros2-in published)
+    source = next((svc for svc in ("replay", "ros2-in", "feed-tracks") if svc in t), None)
+    replayed = _pick(t.get(source), "frames" if source == "feed-tracks" else "published")
     det, trk, cls = (t.get(s) for s in ("detector", "tracker", "classifier"))
     rejected = {svc: c["rejected"] for svc, c in sorted(t.items()) if c.get("rejected")}
     dropped = {f"{svc}.{k}": v for svc, c in sorted(t.items()) for k, v in sorted(c.items()) if v and is_drop(k)}
@@ -243,7 +245,7 @@ def build(ledger: Ledger, events: dict[str, ProgramEvents], *, meta: dict[str, A
     crashes = {name: len(ev.crashes) for name, ev in sorted(events.items()) if ev.crashes}
     return {
         **meta,
-        "frames": {"replayed": replayed, "detected": _pick(det, "scans"),
+        "frames": {"replayed": replayed, "source": source, "detected": _pick(det, "scans"),
                    "tracked": _pick(trk, "frames"), "classified": _pick(cls, "frames_processed")},
         # born/ended count tentative tracks too — a detector's low-score clutter starts dozens a frame that never
         # reach the output — so the confirmed ones are said beside them (an operator read "born 11,944" in a
@@ -291,7 +293,8 @@ def render(summary: dict[str, Any]) -> str:
     head = f"run summary of stack {summary.get('stack', '?')!r}" + (f" ({dur:.1f} s)" if dur is not None else "")
     lines = [
         head,
-        f"  frames    replayed {n(fr['replayed'])}, detected {n(fr['detected'])}, tracked {n(fr['tracked'])},"
+        f"  frames    {'from ROS 2' if fr.get('source') == 'ros2-in' else 'replayed'} {n(fr['replayed'])},"
+        f" detected {n(fr['detected'])}, tracked {n(fr['tracked'])},"
         f" classified {n(fr['classified'])}",
         f"  tracks    born {n(tr['born'])} ({n(tr.get('confirmed'))} confirmed), ended {n(tr['ended'])}"
         f" ({n(tr.get('confirmed_ended'))} confirmed)",

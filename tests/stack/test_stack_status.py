@@ -94,3 +94,9 @@ def test_the_summary_counts_what_feed_tracks_published_as_replayed():
     ledger.observe("classifier", 12, {"frames_processed": 3000}, 1)
     built = summary.build(ledger, {}, meta={})
     assert built["frames"]["replayed"] == 3000 and built["frames"]["classified"] == 3000
+    # with live ROS 2 in the replay's place the source frames are the scans ros2-in published, and said so
+    ros = summary.Ledger()
+    ros.observe("ros2-in", 13, {"published": 412, "received": 1236, "tf": 800}, 1)
+    built = summary.build(ros, {}, meta={"stack": "car"})
+    assert built["frames"]["replayed"] == 412 and built["frames"]["source"] == "ros2-in"
+    assert "frames    from ROS 2 412, detected" in summary.render(built)
