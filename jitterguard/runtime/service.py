@@ -166,7 +166,7 @@ class Service:
         """Count and log (once per burst) a payload that failed to decode, as :meth:`accept` does; for services
         that read on their own path (the read functions of :mod:`jitterguard.schemas.wire`). A payload beyond a
         limit is also counted ``over_limit.<key>``."""
-        key = sub_key.split('/', 2)[-1]
+        key = counter_key(sub_key)
         self.counters.inc("rejected")
         self.counters.inc(f"rejected.{key}")
         if isinstance(exc, LimitExceeded):
@@ -233,7 +233,7 @@ class Service:
         Zenoh carries (up to 1 GiB), and a flood of 50 MB ones had been copied and queued for the worker to refuse.
         """
         inbox: queue.Queue[tuple[bytes, str, float]] = queue.Queue(maxsize=capacity)
-        counter = f"dropped_queue.{key.split('/', 2)[-1]}"
+        counter = f"dropped_queue.{counter_key(key)}"
 
         def on_sample(sample: zenoh.Sample) -> None:
             if self.oversized(sample, max_bytes, "payload", key):
@@ -427,6 +427,12 @@ class Service:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def counter_key(key: str) -> str:
+    """The part of a key a per-key counter is named by: ``jg/{ns}/`` left out (``rejected.tracked``), a key outside
+    jitterguard's namespace whole (a ROS 2 topic's, ``rejected.sensing/lidar/top/pointcloud``)."""
+    return key.split("/", 2)[-1] if key.startswith("jg/") else key
 
 
 def watchdog_period() -> float | None:

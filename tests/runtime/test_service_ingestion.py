@@ -295,3 +295,14 @@ def test_a_classifier_still_warming_up_says_so_in_its_heartbeat(zenoh_port, clie
         builder.join(timeout=60)
         for svc in made:
             svc.close()
+
+
+def test_per_key_counters_name_jitterguard_keys_without_their_namespace_and_other_keys_whole() -> None:
+    """A ROS 2 topic's key (ros2-in) had been cut like a jg/{ns}/ key: an oversized scan counted under
+    ``rejected.top/pointcloud``, an undecodable one under another name."""
+    from jitterguard.runtime.service import counter_key
+
+    assert counter_key("jg/default/tracked") == "tracked"
+    assert counter_key("jg/run7/tracks/*") == "tracks/*"
+    assert counter_key("sensing/lidar/top/pointcloud") == "sensing/lidar/top/pointcloud"
+    assert counter_key("tf") == "tf"

@@ -69,7 +69,7 @@ class Ros2InService(Service):
 
     def _sub(self, key: str, handler) -> None:  # type: ignore[no-untyped-def]
         def on_sample(sample: zenoh.Sample) -> None:
-            if self.oversized(sample, MAX_POSE_BYTES, "payload", f"ros/-/{key}"):
+            if self.oversized(sample, MAX_POSE_BYTES, "payload", key):
                 return
             self.counters.inc("received")
             handler(sample.payload.to_bytes(), key)
@@ -77,7 +77,7 @@ class Ros2InService(Service):
 
     def _refuse(self, exc: Exception, key: str) -> None:
         """Count (``rejected.<ROS key>``) and log a payload refused on a ROS topic's key."""
-        self.reject(exc if isinstance(exc, DecodeError) else DecodeError("CDR", "", str(exc)), f"ros/-/{key}", key)
+        self.reject(exc if isinstance(exc, DecodeError) else DecodeError("CDR", "", str(exc)), key)
 
     def _feed(self, payload: bytes, key: str, what: str) -> bool:
         """One pose message (``tf_static``, ``tf`` or ``poses``, the counter it goes to) into the core; False when

@@ -25,6 +25,7 @@ from typing import Any
 import zenoh
 
 from ...runtime import Service, ZenohOptions
+from ...runtime.service import counter_key
 from ...schemas import DecodeError, decode, decode_with_raw, encode, keys
 from ...schemas.models import ClassifierConfig, ClassifierStateSnapshot, ConfigReply, Heartbeat
 from ...schemas.wire import MAX_HEARTBEAT_BYTES
@@ -146,7 +147,7 @@ class ClassifierClient(Service):
         too (``jitterguard_sidecar_rejected_messages{key}``): a malformed heartbeat had been counted only in the
         sidecar's own heartbeat, and ``/metrics`` showed no rejected message at all."""
         super().reject(exc, sub_key, sample_key)
-        self.metrics.rejected.labels(sub_key.split("/", 2)[-1]).inc()
+        self.metrics.rejected.labels(counter_key(sub_key)).inc()
 
     def readiness(self) -> dict[str, Any]:
         """Whether the classifier is usable now and the pipeline makes progress, and why not (``/readyz``)."""
