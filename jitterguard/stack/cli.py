@@ -470,12 +470,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         rd, label = resolve(run_dir, name, ns)
         stack = name or ns
         if ros2 is not None:  # the scans come from the vehicle: no replay, nothing of it to set
-            from ..services.ros2live.scans_in import check_topic
+            from ..services.ros2live.cli import topic_option
 
-            try:
-                ros2 = check_topic("--ros2", ros2)
-            except ValueError as exc:
-                fail(str(exc))
+            ros2 = topic_option("--ros2", ros2)
             if source is not None:
                 fail("SOURCE is the replay's; --ros2 takes the vehicle's scans in its place: give one of them")
             if input_level not in ("auto", "points"):

@@ -20,6 +20,16 @@ TF_TYPE = "tf2_msgs/msg/TFMessage"
 ODOMETRY_TYPE = "nav_msgs/msg/Odometry"
 
 
+def topic_option(flag: str, text: str) -> str:
+    """A ROS 2 topic name a flag gives, or a one-line refusal naming the flag (exit 2)."""
+    from .scans_in import check_topic
+
+    try:
+        return check_topic(flag, text)
+    except ValueError as exc:
+        fail(str(exc))
+
+
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:
     @app.command("ros2-in", help=(
         "Publish a live ROS 2 PointCloud2 topic on jitterguard's `points`, posed by /tf or an odometry topic, as"
@@ -47,13 +57,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         log_level: LogLevelOpt = "INFO",
     ) -> None:
         from ..replay.sources.ros_types import POSE_TYPES
-        from .scans_in import check_topic
 
-        try:
-            points_topic = check_topic("--points-topic", points_topic)
-            pose_topic = check_topic("--pose-topic", pose_topic)
-        except ValueError as exc:
-            fail(str(exc))
+        points_topic = topic_option("--points-topic", points_topic)
+        pose_topic = topic_option("--pose-topic", pose_topic)
         wait = parse_float("--tf-wait-s", tf_wait_s, 0.0, 1.0)
         if no_pose:
             kind = None
@@ -90,12 +96,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         listen: ListenOpt = None,
         log_level: LogLevelOpt = "INFO",
     ) -> None:
-        from .scans_in import check_topic
-
-        try:
-            topic = check_topic("--topic", topic)
-        except ValueError as exc:
-            fail(str(exc))
+        topic = topic_option("--topic", topic)
         opts = zenoh_options(ns, zenoh_config, connect, listen)
 
         from ...runtime import setup_logging

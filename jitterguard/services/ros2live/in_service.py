@@ -134,14 +134,14 @@ class Ros2InService(Service):
             self.progress.failure(time.monotonic(), str(exc)[:200])
             return
         deadline = time.monotonic() + self.tf_wait_s
-        while stamp and time.monotonic() < deadline and not self.stop_event.is_set():
+        while True:  # the poses usually come a few ms after the scan they pose
             with self._lock:
-                if self.core.covered(stamp):
-                    break
+                covered = self.core.covered(stamp)
+            if covered or not stamp or time.monotonic() >= deadline or self.stop_event.is_set():
+                break
             time.sleep(0.005)
-        else:
-            if stamp and not self.core.covered(stamp):
-                self.counters.inc("pose_clamped")  # posed at the newest pose before it
+        if stamp and not covered:
+            self.counters.inc("pose_clamped")  # posed at the newest pose before it
         self._seq += 1
         with self._lock:
             frame = self.core.scan(msg, f"{self.points_topic}#{self._seq}", received)

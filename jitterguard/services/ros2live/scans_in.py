@@ -17,7 +17,7 @@ from typing import Any
 
 from ..replay.frames import FrameError, ScanFrame
 from ..replay.sources.poser import ScanPoser
-from ..replay.sources.ros_types import POINTCLOUD2, POSE_TYPES, TF_MESSAGE, typestore
+from ..replay.sources.ros_types import POINTCLOUD2, POSE_TYPES, TF_MESSAGE, stamp_ns, typestore
 
 KEEP_POSES_NS = 10_000_000_000
 """Pose samples older than this behind the newest scan are forgotten: a live stream's memory stays bounded."""
@@ -65,7 +65,7 @@ class LiveScans:
         msg = self._decode(payload, TF_MESSAGE)
         self.poser.add_tf(msg, received_ns, static=static)
         if not static:
-            stamps = [t.header.stamp.sec * 1_000_000_000 + t.header.stamp.nanosec for t in msg.transforms]
+            stamps = [stamp_ns(t.header) for t in msg.transforms]
             if stamps:
                 self._saw_pose(max(stamps) or received_ns)
 
@@ -83,7 +83,7 @@ class LiveScans:
     def stamp_of(self, payload: bytes) -> tuple[Any, int]:
         """The decoded PointCloud2 and its header stamp (0 when the driver left it unset)."""
         msg = self._decode(payload, POINTCLOUD2)
-        return msg, msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        return msg, stamp_ns(msg.header)
 
     def covered(self, stamp: int) -> bool:
         """Whether the poses reach ``stamp`` (no pose source: always)."""
