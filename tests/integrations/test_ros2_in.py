@@ -3,11 +3,12 @@ without its leading '/', payload = the message's CDR bytes), posed by /tf and pu
 
 A real router and a real ``ros2-in`` process; the ROS 2 side is a Zenoh client of the router putting CDR messages
 encoded by mcap-ros2-support — an implementation independent of the rosbags typestore the service decodes with.
-The sensor sits on a pitched mount (``/tf_static``, served only as the bridge serves a latched topic: from its
-publication cache, to a query) on a vehicle driving and turning (``/tf``). What must hold: every published scan's
-points, put into the world by its published pose, are the raw points put into the world by the TF chain; a scan
-whose TF comes a little after it is posed by that TF; a payload that is not a PointCloud2 is refused, counted, and
-the next scan goes out.
+The sensor sits on a pitched mount (``/tf_static``, published once before ``ros2-in`` starts, as a bridge that came
+first serves a latched topic: from a zenoh-ext advanced publisher's cache, since bridge 1.1; from a publication cache
+answering queries, in 1.0 and 0.x) on a vehicle driving and turning (``/tf``). What must hold: every published
+scan's points, put into the world by its published pose, are the raw points put into the world by the TF chain; a
+scan whose TF comes a little after it is posed by that TF; a payload that is not a PointCloud2 is refused, counted,
+and the next scan goes out.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ import time
 
 import numpy as np
 import pytest
+import zenoh.ext
 
 from jitterguard.runtime import ZenohOptions, build_config, free_tcp_port, open_session
 from jitterguard.schemas import decode, keys
@@ -87,22 +89,44 @@ def _world_of(msg: PointCloud) -> np.ndarray:
     return pts[:, :3].astype(float) @ r.T + np.array([p.position.x, p.position.y, p.position.z])
 
 
+def _static_tf() -> bytes:
+    mount_q = (0.0, math.sin(MOUNT_PITCH / 2), 0.0, math.cos(MOUNT_PITCH / 2))
+    return bytes(_encoder("tf2_msgs/msg/TFMessage")(
+        {"transforms": [_transform("base_link", "velodyne", 0, MOUNT_XYZ, mount_q)]}))
+
+
+def _bridge_session(ns: str, endpoint: str):  # type: ignore[no-untyped-def]
+    """The ROS 2 side: a Zenoh client of the router, timestamping on as the bridge's advanced publishers need."""
+    config = build_config(ZenohOptions(ns=ns, connect=(endpoint,)))
+    config.insert_json5("timestamping/enabled", "true")
+    return open_session(config)
+
+
+def _router(endpoint: str) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "jitterguard.cli", "router", "--listen", endpoint],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+
+def _start_ros2_in(ns: str, endpoint: str, log) -> subprocess.Popen:  # type: ignore[no-untyped-def]
+    return subprocess.Popen([sys.executable, "-m", "jitterguard.cli", "ros2-in", "--ns", ns, "--connect", endpoint,
+                             "--points-topic", "/" + CLOUD_KEY, "--pose-topic", "/tf", "--tf-wait-s", "0.5"],
+                            stdout=log.open("wb"), stderr=subprocess.STDOUT)
+
+
 def test_a_live_ros2_lidar_topic_is_posed_by_tf_and_published_on_points(tmp_path):
     ns, endpoint = f"r2i{os.getpid()}", f"tcp/127.0.0.1:{free_tcp_port()}"
-    procs = [subprocess.Popen([sys.executable, "-m", "jitterguard.cli", "router", "--listen", endpoint],
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    procs = [_router(endpoint)]
     log = tmp_path / "ros2-in.log"
-    procs.append(subprocess.Popen([sys.executable, "-m", "jitterguard.cli", "ros2-in", "--ns", ns, "--connect", endpoint,
-                                   "--points-topic", "/" + CLOUD_KEY, "--pose-topic", "/tf", "--tf-wait-s", "0.5"],
-                                  stdout=log.open("wb"), stderr=subprocess.STDOUT))
     session = None
     try:
-        session = open_session(build_config(ZenohOptions(ns=ns, connect=(endpoint,))))
+        session = _bridge_session(ns, endpoint)
         tf_enc, cloud_enc = _encoder("tf2_msgs/msg/TFMessage"), _encoder("sensor_msgs/msg/PointCloud2")
-        mount_q = (0.0, math.sin(MOUNT_PITCH / 2), 0.0, math.cos(MOUNT_PITCH / 2))
-        static = bytes(tf_enc({"transforms": [_transform("base_link", "velodyne", 0, MOUNT_XYZ, mount_q)]}))
-        # the latched /tf_static, served as the bridge serves its transient-local publications: to a query
-        session.declare_queryable("@ros2_pub_cache/0123abcd/tf_static", lambda q: q.reply(q.key_expr, static))
+        # the latched /tf_static, published once before ros2-in starts, as a bridge since 1.1 keeps it: in an advanced
+        # publisher's cache, with publisher detection
+        latched = zenoh.ext.declare_advanced_publisher(session, "tf_static", cache=zenoh.ext.CacheConfig(max_samples=1),
+                                                       publisher_detection=True)
+        latched.put(_static_tf())
+        procs.append(_start_ros2_in(ns, endpoint, log))
         got: list[PointCloud] = []
         session.declare_subscriber(keys.points(ns), lambda s: got.append(decode(PointCloud, s.payload.to_bytes())))
         beats: list[Heartbeat] = []
@@ -145,6 +169,37 @@ def test_a_live_ros2_lidar_topic_is_posed_by_tf_and_published_on_points(tmp_path
         assert wait_until(lambda: beats[-1].counters.get(f"rejected.{CLOUD_KEY}", 0) == 1, timeout=30, period=0.2), \
             beats[-1].counters
         assert procs[1].poll() is None
+    finally:
+        if session is not None:
+            session.close()
+        for p in reversed(procs):
+            stop_process(p)
+
+
+@pytest.mark.parametrize("cache_key", ["@/0123abcd/@ros2_pub_cache/tf_static",  # zenoh-bridge-ros2dds 1.0
+                                       "@ros2_pub_cache/0123abcd/tf_static"])   # 0.x
+def test_the_latched_tf_static_of_an_older_bridge_is_fetched_from_its_publication_cache(tmp_path, cache_key):
+    """Bridges before 1.1 keep a latched topic's history in a publication cache that answers queries only; each
+    names it differently, and ros2-in asks both until the mount has come."""
+    ns, endpoint = f"r2q{os.getpid()}", f"tcp/127.0.0.1:{free_tcp_port()}"
+    procs, log, session = [_router(endpoint)], tmp_path / "ros2-in.log", None
+    try:
+        session = _bridge_session(ns, endpoint)
+        static = _static_tf()
+        asked: list[str] = []
+
+        def answer(query) -> None:  # type: ignore[no-untyped-def]
+            asked.append(str(query.selector))
+            query.reply(cache_key, static)
+        session.declare_queryable(cache_key, answer)
+        beats: list[Heartbeat] = []
+        session.declare_subscriber(keys.heartbeat(ns, "ros2-in"),
+                                   lambda s: beats.append(decode(Heartbeat, s.payload.to_bytes())))
+        procs.append(_start_ros2_in(ns, endpoint, log))
+        assert wait_until(lambda: bool(beats) and beats[-1].counters.get("tf_static", 0) >= 1, timeout=60,
+                          period=0.2), log.read_text()[-2000:]
+        assert asked, "the mount came some other way than the cache's queryable"
+        assert not beats[-1].counters.get("rejected.tf_static")
     finally:
         if session is not None:
             session.close()

@@ -6,9 +6,14 @@ pose topic) are small and fed to the core in their callbacks. The worker decodes
 for the poses to reach its stamp (TF usually comes a few ms after the cloud it poses), poses it and puts it on
 ``points`` with a seq of its own and the scan's sensor stamp. A payload that is not a CDR message of its topic's
 type is rejected, counted per key, and the service goes on; a scan that cannot be posed (no TF path to its frame)
-is a failure of progress (``failing`` after five in a row, with the reason). ``/tf_static`` is latched in ROS 2
-(transient local): besides the live messages, the bridge's publication cache is queried for it at start and every
-few seconds until one has come.
+is a failure of progress (``failing`` after five in a row, with the reason).
+
+``/tf_static`` is latched in ROS 2 (transient local), and a bridge started before us has published it once. Each
+generation of zenoh-bridge-ros2dds keeps that history differently (read in its source): since 1.1 in a zenoh-ext
+``AdvancedPublisher`` cache with publisher detection, which an ``AdvancedSubscriber`` with history fetches, from
+bridges that come later too; 1.0 in a publication cache answering queries on ``@/<zid>/@ros2_pub_cache/<key>``;
+0.x on ``@ros2_pub_cache/<id>/<key>``. The key is subscribed the first way, and the other two are queried at start
+and every few seconds until one has come.
 """
 
 from __future__ import annotations
@@ -17,6 +22,7 @@ import threading
 import time
 
 import zenoh
+import zenoh.ext
 
 from ...runtime import Service, ZenohOptions
 from ...runtime.progress import ProgressPolicy
@@ -32,9 +38,9 @@ MAX_CLOUD_BYTES = 64 * 1024 * 1024
 """A PointCloud2 larger than this is refused from its size (a 128-beam scan with 12 fields is ~20 MB)."""
 MAX_POSE_BYTES = 1024 * 1024
 STATIC_QUERY_S = 5.0
-PUB_CACHE_PREFIX = "@ros2_pub_cache/*"
-"""Where zenoh-bridge-ros2dds answers queries for its transient-local publications' history (each bridge under its
-own Zenoh id)."""
+PUB_CACHE_PREFIXES = ("@/*/@ros2_pub_cache", "@ros2_pub_cache/*")
+"""Where zenoh-bridge-ros2dds 1.0 and 0.x answer queries for their transient-local publications' history (each bridge
+under its own Zenoh id); 1.1 and later serve it to an advanced subscriber's history instead."""
 
 
 class Ros2InService(Service):
@@ -56,7 +62,7 @@ class Ros2InService(Service):
         self._inbox = self.subscribe_inbox(self.cloud_key, INBOX, progress=True, max_bytes=MAX_CLOUD_BYTES)
         self.static_key = ros_key(key_prefix, "/tf_static")
         self._static_seen = threading.Event()
-        self._sub(self.static_key, self._on_static)
+        self._sub(self.static_key, self._on_static, history=True)
         self.pose_key = None
         if pose_type == TF_MESSAGE:
             self.pose_key = ros_key(key_prefix, pose_topic or "/tf")
@@ -67,13 +73,19 @@ class Ros2InService(Service):
         self.spawn(self._worker, "worker")
         self.spawn(self._static_history, "tf-static")
 
-    def _sub(self, key: str, handler) -> None:  # type: ignore[no-untyped-def]
+    def _sub(self, key: str, handler, history: bool = False) -> None:  # type: ignore[no-untyped-def]
+        """Subscribe ``handler`` to a pose key; with ``history``, also to what publishers with a cache on it hold
+        (the bridge's latched topics), those that appear later included."""
         def on_sample(sample: zenoh.Sample) -> None:
             if self.oversized(sample, MAX_POSE_BYTES, "payload", key):
                 return
             self.counters.inc("received")
             handler(sample.payload.to_bytes(), key)
-        self._declared.append(self.session.declare_subscriber(key, on_sample))
+        if history:
+            self._declared.append(zenoh.ext.declare_advanced_subscriber(
+                self.session, key, on_sample, history=zenoh.ext.HistoryConfig(detect_late_publishers=True)))
+        else:
+            self._declared.append(self.session.declare_subscriber(key, on_sample))
 
     def _refuse(self, exc: Exception, key: str) -> None:
         """Count (``rejected.<ROS key>``) and log a payload refused on a ROS topic's key."""
@@ -106,9 +118,9 @@ class Ros2InService(Service):
         self._feed(payload, key, "poses")
 
     def _static_history(self) -> None:
-        """Ask for the latched ``/tf_static`` until one has come (a bridge started before us published it once)."""
+        """Ask the publication caches of bridges before 1.1 for the latched ``/tf_static`` until one has come."""
         while not self._static_seen.is_set() and not self.stop_event.is_set():
-            for selector in (f"{PUB_CACHE_PREFIX}/{self.static_key}", self.static_key):
+            for selector in (*(f"{prefix}/{self.static_key}" for prefix in PUB_CACHE_PREFIXES), self.static_key):
                 try:
                     for reply in self.session.get(selector, timeout=2.0):
                         if reply.ok is not None:
