@@ -219,7 +219,8 @@ class Service:
         return self.progress.assess(time.monotonic()) if self.progress is not None else Health("ok")
 
     def subscribe_inbox(self, key: str, capacity: int = 64, *, progress: bool = False,
-                        max_bytes: int | None = None) -> queue.Queue[tuple[bytes, str, float]]:
+                        max_bytes: int | None = None,
+                        session: zenoh.Session | None = None) -> queue.Queue[tuple[bytes, str, float]]:
         """Subscribe ``key`` into a bounded queue of ``(payload, key, arrival time)`` that a worker blocks on with
         ``get(timeout=...)``.
 
@@ -231,6 +232,7 @@ class Service:
         arrive). ``max_bytes``: a larger payload is refused here, from its size, before it is copied or queued
         (counted as :meth:`reject` does, and ``received``): the queue holds ``capacity`` payloads of whatever size
         Zenoh carries (up to 1 GiB), and a flood of 50 MB ones had been copied and queued for the worker to refuse.
+        ``session``: another session of the service's (a ROS 2 system's router) instead of its own.
         """
         inbox: queue.Queue[tuple[bytes, str, float]] = queue.Queue(maxsize=capacity)
         counter = f"dropped_queue.{counter_key(key)}"
@@ -254,7 +256,7 @@ class Service:
                     except queue.Empty:
                         pass
 
-        self._declared.append(self.session.declare_subscriber(key, on_sample))
+        self._declared.append((session or self.session).declare_subscriber(key, on_sample))
         return inbox
 
     def subscribe_channel(self, key: str, capacity: int = 16384) -> zenoh.Subscriber:
@@ -270,10 +272,11 @@ class Service:
         self._declared.append(sub)
         return sub
 
-    def publisher(self, key: str, *, block: bool = True) -> zenoh.Publisher:
-        """A declared publisher; BLOCK congestion control by default (losing a frame is wrong)."""
+    def publisher(self, key: str, *, block: bool = True, session: zenoh.Session | None = None) -> zenoh.Publisher:
+        """A declared publisher; BLOCK congestion control by default (losing a frame is wrong); on ``session``
+        (another session of the service's) if given."""
         cc = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
-        pub = self.session.declare_publisher(key, congestion_control=cc)
+        pub = (session or self.session).declare_publisher(key, congestion_control=cc)
         self._declared.append(pub)
         return pub
 
@@ -308,6 +311,18 @@ class Service:
                     query.reply_err(f"internal error: {type(exc).__name__}: {exc}".encode())
 
         self._declared.append(self.session.declare_queryable(key, on_query))
+
+    def another_session(self, opts: ZenohOptions) -> zenoh.Session:
+        """A second Zenoh session (the ROS 2 adapters': a ROS 2 system's own router), opened as the service's own is
+        — waiting for its router while systemd's watchdog is pinged, a bad TLS file one line and exit 2 — and closed
+        with the service, after everything declared on it (it is undeclared in reverse order)."""
+        try:
+            session = open_session(build_config(opts), stop=self.stop_event, log=self.log, on_retry=self._ping)
+        except UnusableConfig as exc:
+            self.log.error("%s", exc)
+            raise SystemExit(2) from None
+        self._declared.append(_ClosedWithService(session))
+        return session
 
     def spawn(self, target: Callable[[], None], name: str) -> threading.Thread:
         """Start a daemon worker thread that the service joins on shutdown."""
@@ -427,6 +442,16 @@ class Service:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+class _ClosedWithService:
+    """A session in the service's list of declared entities: "undeclaring" it closes it."""
+
+    def __init__(self, session: zenoh.Session) -> None:
+        self.session = session
+
+    def undeclare(self) -> None:
+        self.session.close()
 
 
 def counter_key(key: str) -> str:

@@ -205,3 +205,68 @@ def test_the_latched_tf_static_of_an_older_bridge_is_fetched_from_its_publicatio
             session.close()
         for p in reversed(procs):
             stop_process(p)
+
+
+def _rmw_key(topic: str, msgtype: str, domain: int) -> str:
+    """The key a ROS 2 node on rmw_zenoh publishes ``topic`` on (spelt out here, not by the service's naming)."""
+    package, _, name = msgtype.split("/")
+    return f"{domain}/{topic}/{package}::msg::dds_::{name}_/{typestore().hash_rihs01(msgtype)}"
+
+
+def test_ros2_nodes_on_rmw_zenoh_feed_ros2_in_through_their_own_router(tmp_path):
+    """ROS 2 nodes on rmw_zenoh publish on their router (rmw_zenohd; a second router here): keys with the domain, the
+    type and its hash, each sample with rmw_zenoh's attachment, the latched mount in an advanced publisher's cache
+    put before ros2-in starts. ros2-in reads them on a client session of that router (``--ros-connect``) and
+    publishes posed scans on jitterguard's router, where no ROS 2 key appears."""
+    ns, domain = f"r2z{os.getpid()}", 3
+    jg_endpoint, ros_endpoint = f"tcp/127.0.0.1:{free_tcp_port()}", f"tcp/127.0.0.1:{free_tcp_port()}"
+    procs, log, sessions = [_router(jg_endpoint), _router(ros_endpoint)], tmp_path / "ros2-in.log", []
+    try:
+        ros = _bridge_session(ns, ros_endpoint)
+        sessions.append(ros)
+        tf_enc, cloud_enc = _encoder("tf2_msgs/msg/TFMessage"), _encoder("sensor_msgs/msg/PointCloud2")
+        seq = iter(range(1, 1000))
+
+        def attachment() -> bytes:  # what rmw_zenoh's publishers attach (its subscriptions drop a sample without)
+            return zenoh.ext.z_serialize((zenoh.ext.Int64(next(seq)), zenoh.ext.Int64(time.time_ns()),
+                                          bytes(16))).to_bytes()
+        latched = zenoh.ext.declare_advanced_publisher(
+            ros, _rmw_key("tf_static", "tf2_msgs/msg/TFMessage", domain),
+            cache=zenoh.ext.CacheConfig(max_samples=1), publisher_detection=True)
+        latched.put(_static_tf(), attachment=attachment())
+        procs.append(subprocess.Popen(
+            [sys.executable, "-m", "jitterguard.cli", "ros2-in", "--ns", ns, "--connect", jg_endpoint,
+             "--middleware", "rmw_zenoh", "--domain-id", str(domain), "--ros-connect", ros_endpoint,
+             "--points-topic", "/" + CLOUD_KEY, "--tf-wait-s", "0.5"], stdout=log.open("wb"), stderr=subprocess.STDOUT))
+        jg = open_session(build_config(ZenohOptions(ns=ns, connect=(jg_endpoint,))))
+        sessions.append(jg)
+        got: list[PointCloud] = []
+        jg.declare_subscriber(keys.points(ns), lambda s: got.append(decode(PointCloud, s.payload.to_bytes())))
+        leaked: list[str] = []
+        jg.declare_subscriber(f"{domain}/**", lambda s: leaked.append(str(s.key_expr)))
+        beats: list[Heartbeat] = []
+        jg.declare_subscriber(keys.heartbeat(ns, "ros2-in"),
+                              lambda s: beats.append(decode(Heartbeat, s.payload.to_bytes())))
+        assert wait_until(lambda: bool(beats) and beats[-1].counters.get("tf_static", 0) >= 1, timeout=60,
+                          period=0.2), log.read_text()[-2000:]
+
+        t0 = 1_700_000_000_000_000_000
+        stamps = [t0 + k * 100_000_000 for k in range(1, 4)]
+        tf_key = _rmw_key("tf", "tf2_msgs/msg/TFMessage", domain)
+        cloud_key = _rmw_key(CLOUD_KEY, "sensor_msgs/msg/PointCloud2", domain)
+        for t in stamps:
+            ros.put(tf_key, bytes(tf_enc({"transforms": [_transform("map", "base_link", t, *_vehicle(t, t0)[:2])]})),
+                    attachment=attachment())
+            time.sleep(0.02)
+            ros.put(cloud_key, bytes(cloud_enc(_cloud(t))), attachment=attachment())
+            time.sleep(0.15)
+        assert wait_until(lambda: len(got) >= len(stamps), timeout=30, period=0.1), log.read_text()[-2000:]
+        for msg in got[: len(stamps)]:
+            np.testing.assert_allclose(_world_of(msg), _world_truth(msg.header.stamp, t0), atol=2e-4)
+        assert leaked == [], leaked[:3]
+        assert procs[-1].poll() is None
+    finally:
+        for s in sessions:
+            s.close()
+        for p in reversed(procs):
+            stop_process(p)

@@ -10,7 +10,8 @@ import pytest
 
 from jitterguard.services.replay.frames import FrameError, ScanFrame
 from jitterguard.services.replay.sources.ros_types import typestore
-from jitterguard.services.ros2live.scans_in import LiveScans, UndecodableMessage, check_topic, ros_key
+from jitterguard.services.ros2live.ros_keys import RosNaming, check_topic, dds_type_name, rmw_attachment, ros_key
+from jitterguard.services.ros2live.scans_in import LiveScans, UndecodableMessage
 
 mcap_ros2_dynamic = pytest.importorskip("mcap_ros2._dynamic")
 
@@ -44,9 +45,33 @@ def test_keys_and_topic_names():
     assert ros_key("", "/sensing/lidar/top/pointcloud") == "sensing/lidar/top/pointcloud"
     assert ros_key("/robot1/", "/tf") == "robot1/tf"
     assert check_topic("--points-topic", " /points ") == "/points"
-    for bad in ("points", "/", "/a/*", "/a b"):
+    for bad in ("points", "/", "/a/*", "/a b", "/@ros2_lv"):
         with pytest.raises(ValueError, match="--points-topic"):
             check_topic("--points-topic", bad)
+
+
+def test_rmw_zenoh_keys_and_attachments_are_the_middlewares_own():
+    """The key of a topic as rmw_zenoh names it, with the type hash rosbags computes (REP 2011) — for PointCloud2 the
+    hash ROS 2 Jazzy's nodes announce — and the attachment its subscriptions require, as zenoh-ext serialises the
+    same three values (an implementation independent of the struct layout the service writes)."""
+    zext = pytest.importorskip("zenoh.ext")
+    store = typestore()
+    naming = RosNaming("rmw_zenoh", domain_id=7)
+    assert dds_type_name("sensor_msgs/msg/PointCloud2") == "sensor_msgs::msg::dds_::PointCloud2_"
+    assert naming.publication("/sensing/lidar/top/pointcloud", "sensor_msgs/msg/PointCloud2",
+                              store.hash_rihs01("sensor_msgs/msg/PointCloud2")) == (
+        "7/sensing/lidar/top/pointcloud/sensor_msgs::msg::dds_::PointCloud2_/"
+        "RIHS01_9198cabf7da3796ae6fe19c4cb3bdd3525492988c70522628af5daa124bae2b5")
+    assert naming.subscription("/tf_static") == "7/tf_static/*/*"
+    assert naming.attaches and not RosNaming().attaches
+    assert RosNaming(prefix="/robot1/").publication("/tf", "x/msg/Y", "h") == "robot1/tf"  # the bridge: no type
+    gid = bytes(range(16))
+    expected = zext.z_serialize((zext.Int64(3), zext.Int64(1_700_000_000_123_456_789), gid)).to_bytes()
+    assert rmw_attachment(3, 1_700_000_000_123_456_789, gid) == expected and len(expected) == 33
+    with pytest.raises(ValueError, match="domain ID 233"):
+        RosNaming("rmw_zenoh", domain_id=233)
+    with pytest.raises(ValueError, match="16 bytes"):
+        rmw_attachment(1, 0, b"short")
 
 
 def test_an_odometry_topic_poses_scans_with_the_static_mount_and_says_when_it_lags():

@@ -8,6 +8,7 @@ import math
 import os
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -82,5 +83,56 @@ def test_objects_go_out_as_autowares_tracked_objects_on_the_ros2_topic_key():
     finally:
         if session is not None:
             session.close()
+        for p in reversed(procs):
+            stop_process(p)
+
+
+def test_objects_reach_ros2_nodes_on_rmw_zenoh_on_the_typed_key_with_their_attachment():
+    """rmw_zenoh's subscriptions listen on the exact key — domain, topic, type, the type's REP 2011 hash — and drop
+    a sample without the attachment its publishers send; ros2-out puts both, on a client session of the ROS 2 system's
+    own router (``--ros-connect``; a second router here plays rmw_zenohd). The attachment is read back with
+    zenoh-ext's deserializer: sequence numbers 1, 2, the time of publication, one GID."""
+    zext = pytest.importorskip("zenoh.ext")
+    ns, domain = f"r2z{os.getpid()}", 5
+    jg_endpoint, ros_endpoint = f"tcp/127.0.0.1:{free_tcp_port()}", f"tcp/127.0.0.1:{free_tcp_port()}"
+    quiet = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL}
+    procs = [subprocess.Popen([sys.executable, "-m", "jitterguard.cli", "router", "--listen", ep], **quiet)
+             for ep in (jg_endpoint, ros_endpoint)]
+    procs.append(subprocess.Popen([sys.executable, "-m", "jitterguard.cli", "ros2-out", "--ns", ns, "--connect",
+                                   jg_endpoint, "--middleware", "rmw_zenoh", "--domain-id", str(domain),
+                                   "--ros-connect", ros_endpoint], **quiet))
+    msgtype = "autoware_perception_msgs/msg/TrackedObjects"
+    text, _ = typestore().generate_msgdef(msgtype, ros_version=2)
+    decode_ros = mcap_ros2_dynamic.generate_dynamic(msgtype, text)[msgtype]
+    key = (f"{domain}/{TOPIC_KEY}/autoware_perception_msgs::msg::dds_::TrackedObjects_/"
+           f"{typestore().hash_rihs01(msgtype)}")
+    sessions = []
+    try:
+        ros = open_session(build_config(ZenohOptions(ns=ns, connect=(ros_endpoint,))))
+        jg = open_session(build_config(ZenohOptions(ns=ns, connect=(jg_endpoint,))))
+        sessions += [ros, jg]
+        got: list = []
+        ros.declare_subscriber(key, lambda s: got.append((decode_ros(s.payload.to_bytes()), s.attachment)))
+        beats: list[Heartbeat] = []
+        jg.declare_subscriber(keys.heartbeat(ns, "ros2-out"),
+                              lambda s: beats.append(decode(Heartbeat, s.payload.to_bytes())))
+        assert wait_until(lambda: bool(beats), timeout=60, period=0.2)
+        parked = _object("fedcba9876543210fedcba9876543210", -3.0, 2.0, 0.4, 0.0, 0.0, True, 7)
+        before = time.time_ns()
+        for seq in (1, 2):
+            jg.put(keys.objects(ns), encode(TrackedObjects(header=Header(stamp=1_700_000_000_000_000_000 + seq,
+                                                                         frame_id="map", seq=seq), objects=[parked])))
+            assert wait_until(lambda: len(got) >= seq, timeout=30, period=0.05), beats[-1].counters
+        after = time.time_ns()
+        attached = [zext.z_deserialize(tuple[zext.Int64, zext.Int64, bytes], a) for _, a in got]
+        assert [int(n) for n, _, _ in attached] == [1, 2]
+        assert all(before <= int(t) <= after for _, t, _ in attached)
+        assert attached[0][2] == attached[1][2] and len(attached[0][2]) == 16
+        assert [m.header.stamp.nanosec for m, _ in got] == [1, 2]
+        assert got[1][0].objects[0].kinematics.is_stationary is True
+        assert procs[-1].poll() is None
+    finally:
+        for s in sessions:
+            s.close()
         for p in reversed(procs):
             stop_process(p)

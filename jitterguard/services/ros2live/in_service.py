@@ -1,4 +1,5 @@
-"""``jitterguard ros2-in``: a live ROS 2 LiDAR topic, bridged into Zenoh, published on ``jg/{ns}/points``.
+"""``jitterguard ros2-in``: a live ROS 2 LiDAR topic, on Zenoh through zenoh-bridge-ros2dds or rmw_zenoh, published on
+``jg/{ns}/points``.
 
 The Zenoh adapter around :class:`.scans_in.LiveScans`: the scans' key goes through a bounded inbox (the newest scans
 kept; a worker that falls behind skips, counted ``dropped_queue.*``), the pose keys (``tf``, ``tf_static`` or the
@@ -8,12 +9,17 @@ for the poses to reach its stamp (TF usually comes a few ms after the cloud it p
 type is rejected, counted per key, and the service goes on; a scan that cannot be posed (no TF path to its frame)
 is a failure of progress (``failing`` after five in a row, with the reason).
 
-``/tf_static`` is latched in ROS 2 (transient local), and a bridge started before us has published it once. Each
-generation of zenoh-bridge-ros2dds keeps that history differently (read in its source): since 1.1 in a zenoh-ext
-``AdvancedPublisher`` cache with publisher detection, which an ``AdvancedSubscriber`` with history fetches, from
-bridges that come later too; 1.0 in a publication cache answering queries on ``@/<zid>/@ros2_pub_cache/<key>``;
-0.x on ``@ros2_pub_cache/<id>/<key>``. The key is subscribed the first way, and the other two are queried at start
-and every few seconds until one has come.
+``/tf_static`` is latched in ROS 2 (transient local), and a bridge or node started before us has published it once.
+Each keeps that history its own way (read in their sources): zenoh-bridge-ros2dds since 1.1 and rmw_zenoh in a
+zenoh-ext ``AdvancedPublisher`` cache with publisher detection, which an ``AdvancedSubscriber`` with history fetches,
+from publishers that come later too; the bridge's 1.0 in a publication cache answering queries on
+``@/<zid>/@ros2_pub_cache/<key>``, its 0.x on ``@ros2_pub_cache/<id>/<key>``, rmw_zenoh's first Zenoh 1.0 releases
+on ``<zid>/<key>``. The key is subscribed the first way, and the others are queried at start and every few seconds
+until one has come.
+
+The ROS 2 topics are on the service's own session (a bridge that is a client of jitterguard's router) or, with
+``ros_connect``, on a client session of the ROS 2 system's own router (``rmw_zenohd``, or a bridge's): then only the
+topics ``ros2-in`` reads cross between the two Zenoh networks.
 """
 
 from __future__ import annotations
@@ -30,7 +36,8 @@ from ...schemas import DecodeError, LimitExceeded, encode, keys
 from ..replay.adapter import point_cloud_message
 from ..replay.frames import FrameError
 from ..replay.sources.ros_types import TF_MESSAGE
-from .scans_in import LiveScans, UndecodableMessage, ros_key
+from .ros_keys import RosNaming
+from .scans_in import LiveScans, UndecodableMessage
 
 INBOX = 4
 """Scans held for the worker: the newest ones (a LiDAR at 10–20 Hz; a worker behind skips, never lags)."""
@@ -38,9 +45,10 @@ MAX_CLOUD_BYTES = 64 * 1024 * 1024
 """A PointCloud2 larger than this is refused from its size (a 128-beam scan with 12 fields is ~20 MB)."""
 MAX_POSE_BYTES = 1024 * 1024
 STATIC_QUERY_S = 5.0
-PUB_CACHE_PREFIXES = ("@/*/@ros2_pub_cache", "@ros2_pub_cache/*")
-"""Where zenoh-bridge-ros2dds 1.0 and 0.x answer queries for their transient-local publications' history (each bridge
-under its own Zenoh id); 1.1 and later serve it to an advanced subscriber's history instead."""
+PUB_CACHE_PREFIXES = {"bridge": ("@/*/@ros2_pub_cache", "@ros2_pub_cache/*"), "rmw_zenoh": ("*",)}
+"""Where zenoh-bridge-ros2dds 1.0 and 0.x, and rmw_zenoh's first Zenoh 1.0 releases, answer queries for their
+transient-local publications' history (each under its own Zenoh id); the bridge since 1.1 and rmw_zenoh since serve
+it to an advanced subscriber's history instead."""
 
 
 class Ros2InService(Service):
@@ -49,7 +57,8 @@ class Ros2InService(Service):
     name = "ros2-in"
 
     def __init__(self, opts: ZenohOptions, *, points_topic: str, pose_topic: str | None, pose_type: str | None,
-                 key_prefix: str = "", tf_wait_s: float = 0.1) -> None:
+                 naming: RosNaming = RosNaming(), ros_opts: ZenohOptions | None = None,
+                 tf_wait_s: float = 0.1) -> None:
         self.core = LiveScans(pose_type)  # a pose type it cannot use fails before the session opens
         self._lock = threading.Lock()  # the core is fed from the pose callbacks and the worker
         self.tf_wait_s = tf_wait_s
@@ -58,17 +67,20 @@ class Ros2InService(Service):
         self._seq = 0
         self._pub = self.publisher(keys.points(self.ns))
         self.monitor_progress(ProgressPolicy(stall_s=5.0))  # scans in -> points out
-        self.cloud_key = ros_key(key_prefix, points_topic)
-        self._inbox = self.subscribe_inbox(self.cloud_key, INBOX, progress=True, max_bytes=MAX_CLOUD_BYTES)
-        self.static_key = ros_key(key_prefix, "/tf_static")
+        self.naming = naming
+        self.ros = self.another_session(ros_opts) if ros_opts is not None else self.session
+        self.cloud_key = naming.subscription(points_topic)
+        self._inbox = self.subscribe_inbox(self.cloud_key, INBOX, progress=True, max_bytes=MAX_CLOUD_BYTES,
+                                           session=self.ros)
+        self.static_key = naming.subscription("/tf_static")
         self._static_seen = threading.Event()
         self._sub(self.static_key, self._on_static, history=True)
         self.pose_key = None
         if pose_type == TF_MESSAGE:
-            self.pose_key = ros_key(key_prefix, pose_topic or "/tf")
+            self.pose_key = naming.subscription(pose_topic or "/tf")
             self._sub(self.pose_key, self._on_tf)
         elif pose_type is not None:
-            self.pose_key = ros_key(key_prefix, pose_topic or "")
+            self.pose_key = naming.subscription(pose_topic or "")
             self._sub(self.pose_key, self._on_pose)
         self.spawn(self._worker, "worker")
         self.spawn(self._static_history, "tf-static")
@@ -83,9 +95,9 @@ class Ros2InService(Service):
             handler(sample.payload.to_bytes(), key)
         if history:
             self._declared.append(zenoh.ext.declare_advanced_subscriber(
-                self.session, key, on_sample, history=zenoh.ext.HistoryConfig(detect_late_publishers=True)))
+                self.ros, key, on_sample, history=zenoh.ext.HistoryConfig(detect_late_publishers=True)))
         else:
-            self._declared.append(self.session.declare_subscriber(key, on_sample))
+            self._declared.append(self.ros.declare_subscriber(key, on_sample))
 
     def _refuse(self, exc: Exception, key: str) -> None:
         """Count (``rejected.<ROS key>``) and log a payload refused on a ROS topic's key."""
@@ -118,11 +130,13 @@ class Ros2InService(Service):
         self._feed(payload, key, "poses")
 
     def _static_history(self) -> None:
-        """Ask the publication caches of bridges before 1.1 for the latched ``/tf_static`` until one has come."""
+        """Ask the publication caches of older bridges and rmw_zenoh releases for the latched ``/tf_static`` until one
+        has come."""
+        prefixes = PUB_CACHE_PREFIXES[self.naming.middleware]
         while not self._static_seen.is_set() and not self.stop_event.is_set():
-            for selector in (*(f"{prefix}/{self.static_key}" for prefix in PUB_CACHE_PREFIXES), self.static_key):
+            for selector in (*(f"{prefix}/{self.static_key}" for prefix in prefixes), self.static_key):
                 try:
-                    for reply in self.session.get(selector, timeout=2.0):
+                    for reply in self.ros.get(selector, timeout=2.0):
                         if reply.ok is not None:
                             self._on_static(reply.ok.payload.to_bytes(), self.static_key)
                 except Exception as exc:  # a query that fails is asked again; the live messages still count

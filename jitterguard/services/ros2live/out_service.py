@@ -3,9 +3,12 @@
 Each ``objects`` message becomes an ``autoware_perception_msgs/msg/TrackedObjects`` (the conversion of the ROS 2 bag
 recorder, :class:`~jitterguard.ros2.autoware.RosBuilder`: twists in the object's frame, ``is_stationary`` from the
 z-test, static objects with zero velocity and their window-mean pose), serialised as CDR and put on the Zenoh key of
-``/perception/object_recognition/tracking/objects`` — the topic ``map_based_prediction`` subscribes to — for
-zenoh-bridge-ros2dds to hand to ROS 2 (it writes a topic into ROS 2 once a ROS 2 node subscribes to it). One read and
-one write per message; a payload that does not validate is refused and counted per key, as every service does.
+``/perception/object_recognition/tracking/objects`` — the topic ``map_based_prediction`` subscribes to — as the
+ROS 2 system names it (:mod:`.ros_keys`): for zenoh-bridge-ros2dds to hand to ROS 2 (it writes a topic into ROS 2
+once a ROS 2 node subscribes to it), or for rmw_zenoh's subscribers directly, on the key with the message type's
+REP 2011 hash and with the attachment they require (a sequence number, the time of publication, this publisher's
+GID). One read and one write per message; a payload that does not validate is refused and counted per key, as every
+service does.
 """
 
 from __future__ import annotations
@@ -20,7 +23,7 @@ from ...schemas import keys
 from ...schemas.models import TrackedObjects
 from ...schemas.wire import LIMITS
 from ..bridge.service import BOUNDS
-from .scans_in import ros_key
+from .ros_keys import RosNaming, publisher_gid, rmw_attachment
 
 
 class Ros2OutService(Service):
@@ -28,12 +31,17 @@ class Ros2OutService(Service):
 
     name = "ros2-out"
 
-    def __init__(self, opts: ZenohOptions, *, topic: str, key_prefix: str = "") -> None:
+    def __init__(self, opts: ZenohOptions, *, topic: str, naming: RosNaming = RosNaming(),
+                 ros_opts: ZenohOptions | None = None) -> None:
         self.store = typestore()
         self.builder = RosBuilder(self.store)
         super().__init__(opts)
-        self.key = ros_key(key_prefix, topic)
-        self._pub = self.publisher(self.key)
+        self.naming = naming
+        self.key = naming.publication(topic, TRACKED_OBJECTS, self.store.hash_rihs01(TRACKED_OBJECTS))
+        ros = self.another_session(ros_opts) if ros_opts is not None else self.session
+        self._pub = self.publisher(self.key, session=ros)
+        self._gid = publisher_gid(str(ros.zid()), self.key)
+        self._sent = 0
         self.monitor_progress(ProgressPolicy(stall_s=5.0))  # objects in -> TrackedObjects out
         self.subscribe(keys.objects(self.ns), TrackedObjects, self._on_objects, max_bytes=LIMITS.max_payload_bytes,
                        **BOUNDS)
@@ -47,7 +55,11 @@ class Ros2OutService(Service):
             self.progress.failure(time.monotonic(), f"{type(exc).__name__}: {exc}"[:200])
             self.log.warning("objects seq %d not converted: %s: %s", msg.header.seq, type(exc).__name__, exc)
             return
-        self._pub.put(cdr)
+        self._sent += 1
+        if self.naming.attaches:
+            self._pub.put(cdr, attachment=rmw_attachment(self._sent, time.time_ns(), self._gid))
+        else:
+            self._pub.put(cdr)
         self.counters.inc("published")
         self.last_seq = msg.header.seq
         self.progress.output(time.monotonic())

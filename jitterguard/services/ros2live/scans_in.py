@@ -1,9 +1,8 @@
 """The live ROS 2 input's pure core: CDR messages of a LiDAR topic and its poses in, posed scans out.
 
-A vehicle's ROS 2 stack reaches Zenoh through ``zenoh-bridge-ros2dds`` (or ``zenoh-plugin-ros2dds`` in a Zenoh
-router): each ROS 2 topic ``/a/b`` becomes the Zenoh key ``a/b`` (behind the bridge's namespace, if it has one)
-and each message travels as its CDR bytes, encapsulation header included. This core decodes them (rosbags'
-typestore, the one the bag source reads with) and poses each scan by the bag source's rules
+A vehicle's ROS 2 stack reaches Zenoh through ``zenoh-bridge-ros2dds`` or runs on rmw_zenoh (the keys of either:
+:mod:`.ros_keys`); each message travels as its CDR bytes, encapsulation header included. This core decodes them
+(rosbags' typestore, the one the bag source reads with) and poses each scan by the bag source's rules
 (:class:`~jitterguard.services.replay.sources.poser.ScanPoser`): TF (``/tf`` + ``/tf_static``) or an odometry /
 pose topic, the cloud turned into ``base_link``'s axes where its mount is a static link. Live messages come in any
 order, so a scan whose stamp is newer than the newest pose is *not covered* yet: the service waits a little for
@@ -25,20 +24,6 @@ KEEP_POSES_NS = 10_000_000_000
 
 class UndecodableMessage(ValueError):
     """A payload that is not a CDR message of the topic's type."""
-
-
-def ros_key(prefix: str, topic: str) -> str:
-    """The Zenoh key of a ROS 2 topic as zenoh-bridge-ros2dds maps it: the topic without its leading ``/``, under
-    the bridge's namespace ``prefix`` (``''`` by default)."""
-    return prefix.strip("/") + "/" + topic.strip("/") if prefix.strip("/") else topic.strip("/")
-
-
-def check_topic(flag: str, topic: str) -> str:
-    """A ROS 2 topic name as a flag gives it (``/sensing/lidar/top/pointcloud``); ValueError naming ``flag``."""
-    name = topic.strip()
-    if not name.startswith("/") or len(name) < 2 or any(c in name for c in "*?#$ "):
-        raise ValueError(f"{flag}: {topic!r} is not a ROS 2 topic name (e.g. /sensing/lidar/top/pointcloud)")
-    return name
 
 
 class LiveScans:
