@@ -328,6 +328,19 @@ def _check_source(source: str | None, input_level: str, ropts: "R.ReplayOptions"
     return src, mode, ropts, list(info.warnings)
 
 
+def _ros2_args(middleware: str, connect: str | None, ns: str) -> tuple[str, ...]:
+    """``up --ros2``'s middleware flags as ros2-in / ros2-out take them (checked by their own rules: one line, exit 2);
+    under rmw_zenoh the domain ID from ``$ROS_DOMAIN_ID`` now, written into the programs' command lines."""
+    from ..services.ros2live.cli import ros_side
+
+    naming, _ = ros_side(middleware, os.environ.get("ROS_DOMAIN_ID", "0"), "", [connect] if connect else None, ns,
+                         names=("--ros2-middleware", "ROS_DOMAIN_ID"))
+    args: tuple[str, ...] = ()
+    if naming.middleware != "bridge":
+        args += ("--middleware", naming.middleware, "--domain-id", str(naming.domain_id))
+    return args + (("--ros-connect", connect) if connect else ())
+
+
 def _recording_path(value: str | None, flag: str, folder: bool) -> str | None:
     """An absolute path for a recording (supervisord runs programs in the run dir) that does not exist yet and can
     be made — a ``folder`` (rosbag2) or a file (MCAP), tried and removed again: a folder test passes ``/proc``,
@@ -417,6 +430,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         record_mcap: Annotated[str | None, typer.Option("--record-mcap", help="Record the Foxglove channels to this MCAP file.")] = None,
         record_ros2: Annotated[str | None, typer.Option("--record-ros2", help="Record a ROS 2 bag for Autoware into this new folder.")] = None,
         ros2: Annotated[str | None, typer.Option("--ros2", help="Live ROS 2 in the replay's place: this PointCloud2 topic (posed by /tf) in, Autoware's TrackedObjects out, through zenoh-bridge-ros2dds as a client of the router (ros2-in, ros2-out).")] = None,
+        ros2_middleware: Annotated[str, typer.Option("--ros2-middleware", help="With --ros2: 'bridge' (zenoh-bridge-ros2dds) or 'rmw_zenoh' (ROS 2 nodes on rmw_zenoh, domain $ROS_DOMAIN_ID), as ros2-in's --middleware.")] = "bridge",
+        ros2_connect: Annotated[str | None, typer.Option("--ros2-connect", help="With --ros2: the ROS 2 system's own router (rmw_zenohd, or a bridge's), as ros2-in's --ros-connect; then give --router-port another port than its.")] = None,
         rate: R.RateOpt = "1",
         start: R.StartOpt = 0,
         limit: R.LimitOpt = None,
@@ -483,7 +498,13 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             if not has_area("jitterguard.services.detector.service"):
                 fail("--ros2: this install has no detector (pip install 'jitterguard[detector]')")
             src, mode, warnings = None, "points", []
+            ros2_args = _ros2_args(ros2_middleware, ros2_connect, ns)
         else:
+            for flag, value, default in (("--ros2-middleware", ros2_middleware, "bridge"),
+                                         ("--ros2-connect", ros2_connect, None)):
+                if value != default:
+                    fail(f"{flag} is for live ROS 2: give --ros2 TOPIC with it")
+            ros2_args = ()
             if source is None and scenario_duration is None and input_level != "tracks":
                 ropts = replace(ropts, duration=DEFAULT_SCENARIO_S)
             src, mode, ropts, warnings = _check_source(source, input_level, ropts)
@@ -514,7 +535,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         spec = StackSpec(ns=ns, name=stack, router_port=router_port, sidecar_host=host, sidecar_port=port,
                          source=src, input=mode, sidecar=not no_sidecar, replay_args=tuple(ropts.argv()),
                          run_dir=str(rd), foxglove=foxglove, foxglove_port=foxglove_port, record_mcap=mcap_path,
-                         record_ros2=bag_path, ros2_points=ros2)
+                         record_ros2=bag_path, ros2_points=ros2, ros2_args=ros2_args)
         configs = _service_configs({"classifier": classifier_config, "tracker": tracker_config,
                                     "detector": detector_config}, programs(spec))
         try:

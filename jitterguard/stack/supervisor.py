@@ -57,6 +57,7 @@ class StackSpec:
     record_ros2: str | None = None  # absolute path: a rosbag2 for Autoware
     service_configs: dict[str, str] = field(default_factory=dict)  # service → its param.yaml (absolute path)
     ros2_points: str | None = None  # live ROS 2 in the replay's place: this PointCloud2 topic in, TrackedObjects out
+    ros2_args: tuple[str, ...] = ()  # the ROS 2 side's middleware flags, for both ros2-in and ros2-out
 
     @property
     def endpoint(self) -> str:
@@ -122,10 +123,10 @@ def programs(spec: StackSpec) -> list[Program]:
         progs.append(Program("sidecar", _cmd("sidecar", *common, "--host", spec.sidecar_host,
                                              "--port", str(spec.sidecar_port)), priority=40, deferred=True))
     progs += bridge_programs(spec, common)
-    if spec.ros2_points:  # a vehicle's ROS 2 side, through zenoh-bridge-ros2dds as a client of the router
-        progs.append(Program("ros2-out", _cmd("ros2-out", *common), priority=45))
-        progs.append(Program("ros2-in", _cmd("ros2-in", *common, "--points-topic", spec.ros2_points), priority=60,
-                             startsecs=2))
+    if spec.ros2_points:  # a vehicle's ROS 2 side: a bridge as a client of the router, or nodes on rmw_zenoh
+        progs.append(Program("ros2-out", _cmd("ros2-out", *common, *spec.ros2_args), priority=45))
+        progs.append(Program("ros2-in", _cmd("ros2-in", *common, *spec.ros2_args, "--points-topic", spec.ros2_points),
+                             priority=60, startsecs=2))
     elif mode == "tracks":
         progs.append(Program("replay", _cmd("feed-tracks", *common, "--loop"), priority=60, startsecs=2))
     else:

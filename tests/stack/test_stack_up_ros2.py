@@ -14,8 +14,6 @@ import pytest
 from jitterguard.runtime import ZenohOptions, build_config, free_tcp_port, open_session
 from jitterguard.stack.control import Supervisor
 
-from helpers import wait_until
-
 pytestmark = pytest.mark.integration
 
 POINTS = "/sensing/lidar/top/pointcloud"
@@ -72,4 +70,39 @@ def test_up_with_ros2_runs_the_vehicles_scans_through_to_autowares_tracked_objec
 ])
 def test_replay_flags_with_ros2_are_one_line_errors(tmp_path, args, message):
     res = jg("up", "--ros2", POINTS, "--run-dir", str(tmp_path / "run"), *args, timeout=60)
+    assert res.returncode == 2 and message in res.stderr and res.stderr.count("\n") == 1, res.stderr
+
+
+def test_up_passes_the_ros2_middleware_to_both_ros2_programs(tmp_path, monkeypatch):
+    """``--ros2-middleware rmw_zenoh --ros2-connect`` reach ros2-in and ros2-out alike, with the domain ID of
+    ``$ROS_DOMAIN_ID`` written into their command lines (what supervisord starts)."""
+    from jitterguard.stack.cli import _ros2_args
+    from jitterguard.stack.supervisor import StackSpec, programs
+
+    monkeypatch.setenv("ROS_DOMAIN_ID", "12")
+    args = _ros2_args("rmw_zenoh", "tcp/127.0.0.1:7447", "default")
+    assert args == ("--middleware", "rmw_zenoh", "--domain-id", "12", "--ros-connect", "tcp/127.0.0.1:7447")
+    assert _ros2_args("bridge", None, "default") == ()
+    progs = {p.name: p.args for p in programs(StackSpec(input="points", ros2_points=POINTS, ros2_args=args))}
+    for name in ("ros2-in", "ros2-out"):
+        tail = progs[name][progs[name].index("--middleware"):]
+        assert tail[:6] == args, progs[name]
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--ros2", POINTS, "--ros2-middleware", "dds"], "--ros2-middleware: 'dds' is not one of"),
+    (["--ros2", POINTS, "--ros2-connect", "7447"], "endpoint '7447' must look like tcp/HOST:PORT"),
+    (["--ros2-middleware", "rmw_zenoh"], "--ros2-middleware is for live ROS 2: give --ros2 TOPIC"),
+    (["--ros2-connect", "tcp/127.0.0.1:7447"], "--ros2-connect is for live ROS 2: give --ros2 TOPIC"),
+])
+def test_ros2_middleware_flags_are_checked_in_one_line(tmp_path, args, message):
+    res = jg("up", "--run-dir", str(tmp_path / "run"), *args, timeout=60)
+    assert res.returncode == 2 and message in res.stderr and res.stderr.count("\n") == 1, res.stderr
+
+
+def test_a_bad_ros_domain_id_is_named_as_up_reads_it(tmp_path):
+    env = {k: v for k, v in os.environ.items() if k != "JG_API_TOKEN"} | {"ROS_DOMAIN_ID": "300"}
+    res = subprocess.run([sys.executable, "-m", "jitterguard.cli", "up", "--run-dir", str(tmp_path / "run"), "--ros2",
+                          POINTS, "--ros2-middleware", "rmw_zenoh"], capture_output=True, text=True, timeout=60, env=env)
+    message = "ROS_DOMAIN_ID: 300 is outside 0-232"
     assert res.returncode == 2 and message in res.stderr and res.stderr.count("\n") == 1, res.stderr

@@ -38,15 +38,16 @@ RosConnectOpt = Annotated[list[str] | None, typer.Option(
     " the ROS 2 topics are read/put on a client session of it (repeatable), not on jitterguard's router.")]
 
 
-def ros_side(middleware: str, domain_id: str, key_prefix: str, ros_connect: list[str] | None,
-             ns: str) -> tuple[RosNaming, ZenohOptions | None]:
+def ros_side(middleware: str, domain_id: str, key_prefix: str, ros_connect: list[str] | None, ns: str, *,
+             names: tuple[str, str] = ("--middleware", "--domain-id")) -> tuple[RosNaming, ZenohOptions | None]:
     """The ROS 2 flags as the keys' naming and the ROS side's session options (None: the service's own session),
-    or a one-line refusal naming the flag (exit 2)."""
+    or a one-line refusal naming the flag (exit 2; ``names``: how the caller's user gave the middleware and the
+    domain ID)."""
     from .ros_keys import MAX_DOMAIN_ID, MIDDLEWARES, RosNaming
 
     if middleware not in MIDDLEWARES:
-        fail(f"--middleware: {middleware!r} is not one of {', '.join(MIDDLEWARES)}")
-    domain = parse_int("--domain-id", domain_id, 0, MAX_DOMAIN_ID)
+        fail(f"{names[0]}: {middleware!r} is not one of {', '.join(MIDDLEWARES)}")
+    domain = parse_int(names[1], domain_id, 0, MAX_DOMAIN_ID)
     if middleware == "rmw_zenoh" and key_prefix.strip("/"):
         fail("--key-prefix: a bridge's namespace; rmw_zenoh keys have none (they start with the domain ID)")
     naming = RosNaming(middleware, key_prefix, domain)  # type: ignore[arg-type]
