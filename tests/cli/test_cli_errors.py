@@ -210,6 +210,15 @@ def test_an_output_that_cannot_be_written_is_refused_before_any_work(args, needl
      "give one of them"),
     (["up", "--foxglove-port", "9001", "--run-dir", "{tmp}", "--router-port", "0", "--duration", "1"],
      "--foxglove-port: only with --foxglove"),
+    # the live ROS 2 side's flags, refused before a session would wait for a router
+    (["ros2-in", "--middleware", "dds", "--connect", "tcp/127.0.0.1:9"], "--middleware: 'dds' is not one of"),
+    (["ros2-in", "--middleware", "rmw_zenoh", "--domain-id", "233", "--connect", "tcp/127.0.0.1:9"],
+     "--domain-id: 233 is outside 0-232"),
+    (["ros2-in", "--middleware", "rmw_zenoh", "--key-prefix", "robot1", "--connect", "tcp/127.0.0.1:9"],
+     "--key-prefix: a bridge's namespace"),
+    (["ros2-out", "--ros-connect", "localhost", "--connect", "tcp/127.0.0.1:9"], "endpoint 'localhost' must look like"),
+    (["ros2-out", "--middleware", "rmw_zenoh", "--ros-distro", "Jazzy", "--connect", "tcp/127.0.0.1:9"],
+     "--ros-distro: 'Jazzy' is not a ROS 2 distribution's name"),
 ])
 def test_bad_input_is_refused_in_one_line_before_any_work(args, needle, tmp_path):
     cwd = tmp_path / "cwd"  # an empty --out that regressed to "the current folder" writes here, not into the repo

@@ -65,6 +65,9 @@ def test_rmw_zenoh_keys_and_attachments_are_the_middlewares_own():
     assert naming.subscription("/tf_static") == "7/tf_static/*/*"
     assert naming.attaches and not RosNaming().attaches
     assert RosNaming(prefix="/robot1/").publication("/tf", "x/msg/Y", "h") == "robot1/tf"  # the bridge: no type
+    humble = RosNaming("rmw_zenoh", type_hashes=False)  # Humble's rmw_zenoh: no type hashes
+    assert humble.publication("/tf", "tf2_msgs/msg/TFMessage", "RIHS01_x") == (
+        "0/tf/tf2_msgs::msg::dds_::TFMessage_/TypeHashNotSupported")
     gid = bytes(range(16))
     expected = zext.z_serialize((zext.Int64(3), zext.Int64(1_700_000_000_123_456_789), gid)).to_bytes()
     assert rmw_attachment(3, 1_700_000_000_123_456_789, gid) == expected and len(expected) == 33

@@ -100,7 +100,7 @@ def test_objects_reach_ros2_nodes_on_rmw_zenoh_on_the_typed_key_with_their_attac
              for ep in (jg_endpoint, ros_endpoint)]
     procs.append(subprocess.Popen([sys.executable, "-m", "jitterguard.cli", "ros2-out", "--ns", ns, "--connect",
                                    jg_endpoint, "--middleware", "rmw_zenoh", "--domain-id", str(domain),
-                                   "--ros-connect", ros_endpoint], **quiet))
+                                   "--ros-distro", "jazzy", "--ros-connect", ros_endpoint], **quiet))
     msgtype = "autoware_perception_msgs/msg/TrackedObjects"
     text, _ = typestore().generate_msgdef(msgtype, ros_version=2)
     decode_ros = mcap_ros2_dynamic.generate_dynamic(msgtype, text)[msgtype]

@@ -33,24 +33,31 @@ DomainIdOpt = Annotated[str, typer.Option("--domain-id", envvar="ROS_DOMAIN_ID",
                                           help="rmw_zenoh: the ROS domain ID (0-232; default $ROS_DOMAIN_ID, else 0).")]
 KeyPrefixOpt = Annotated[str, typer.Option("--key-prefix", help="bridge: the bridge's namespace (its -n /"
                                            " `namespace`), if it has one.")]
+RosDistroOpt = Annotated[str, typer.Option(
+    "--ros-distro", envvar="ROS_DISTRO", help="rmw_zenoh: the ROS 2 distribution of the nodes (default $ROS_DISTRO,"
+    " else jazzy); on humble, which has no type hashes, the key ends in TypeHashNotSupported.")]
 RosConnectOpt = Annotated[list[str] | None, typer.Option(
     "--ros-connect", help="The ROS 2 system's own Zenoh router (rmw_zenohd, or a bridge's), e.g. tcp/127.0.0.1:7447:"
     " the ROS 2 topics are read/put on a client session of it (repeatable), not on jitterguard's router.")]
 
 
 def ros_side(middleware: str, domain_id: str, key_prefix: str, ros_connect: list[str] | None, ns: str, *,
+             distro: str = "jazzy",
              names: tuple[str, str] = ("--middleware", "--domain-id")) -> tuple[RosNaming, ZenohOptions | None]:
     """The ROS 2 flags as the keys' naming and the ROS side's session options (None: the service's own session),
     or a one-line refusal naming the flag (exit 2; ``names``: how the caller's user gave the middleware and the
     domain ID)."""
-    from .ros_keys import MAX_DOMAIN_ID, MIDDLEWARES, RosNaming
+    from .ros_keys import DISTROS_WITHOUT_TYPE_HASHES, MAX_DOMAIN_ID, MIDDLEWARES, RosNaming
 
     if middleware not in MIDDLEWARES:
         fail(f"{names[0]}: {middleware!r} is not one of {', '.join(MIDDLEWARES)}")
     domain = parse_int(names[1], domain_id, 0, MAX_DOMAIN_ID)
     if middleware == "rmw_zenoh" and key_prefix.strip("/"):
         fail("--key-prefix: a bridge's namespace; rmw_zenoh keys have none (they start with the domain ID)")
-    naming = RosNaming(middleware, key_prefix, domain)  # type: ignore[arg-type]
+    if not distro.isalpha() or not distro.islower():
+        fail(f"--ros-distro: {distro!r} is not a ROS 2 distribution's name (humble, jazzy, kilted, rolling, ...)")
+    naming = RosNaming(middleware, key_prefix, domain,  # type: ignore[arg-type]
+                       type_hashes=distro not in DISTROS_WITHOUT_TYPE_HASHES)
     if not ros_connect:
         return naming, None
     check_endpoints(list(ros_connect))
@@ -134,6 +141,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         middleware: MiddlewareOpt = "bridge",
         domain_id: DomainIdOpt = "0",
         key_prefix: KeyPrefixOpt = "",
+        ros_distro: RosDistroOpt = "jazzy",
         ros_connect: RosConnectOpt = None,
         ns: NsOpt = "default",
         zenoh_config: ZenohConfigOpt = None,
@@ -143,7 +151,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
     ) -> None:
         topic = topic_option("--topic", topic)
         opts = zenoh_options(ns, zenoh_config, connect, listen)
-        naming, ros_opts = ros_side(middleware, domain_id, key_prefix, ros_connect, opts.ns)
+        naming, ros_opts = ros_side(middleware, domain_id, key_prefix, ros_connect, opts.ns, distro=ros_distro)
 
         from ...runtime import setup_logging
         from .out_service import Ros2OutService

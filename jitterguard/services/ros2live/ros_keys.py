@@ -5,7 +5,7 @@
 - ``rmw_zenoh``: ROS 2 nodes running on rmw_zenoh (ROS 2's own Zenoh middleware, with its router ``rmw_zenohd``)
   put topic ``/a/b`` of type ``pkg/msg/T`` in ROS domain ``d`` on ``d/a/b/pkg::msg::dds_::T_/RIHS01_<hash>``
   (``TopicInfo`` in rmw_zenoh_cpp's ``liveliness_utils.cpp``: slashes inside the name kept, the type hash of
-  REP 2011 last). Payloads are the same CDR bytes, encapsulation header included. Its subscriptions declare the
+  REP 2011 last; ROS 2 Humble, which has no type hashes, writes ``TypeHashNotSupported`` there). Payloads are the same CDR bytes, encapsulation header included. Its subscriptions declare the
   exact key and drop a sample without the attachment its publishers send (:func:`rmw_attachment`), so a
   publication must carry both; a subscription of ours takes any type and hash (``*/*``) and decodes by the type
   it expects, refusing what does not decode.
@@ -25,6 +25,9 @@ Middleware = Literal["bridge", "rmw_zenoh"]
 MIDDLEWARES: tuple[str, ...] = ("bridge", "rmw_zenoh")
 MAX_DOMAIN_ID = 232
 """ROS 2 domain IDs run 0–232 (DDS' port arithmetic; rmw_zenoh keeps the range)."""
+NO_TYPE_HASH = "TypeHashNotSupported"
+"""The hash chunk of rmw_zenoh's keys on ROS 2 distributions before type hashes (REP 2011 came with Iron)."""
+DISTROS_WITHOUT_TYPE_HASHES = ("foxy", "galactic", "humble")
 
 
 def ros_key(prefix: str, topic: str) -> str:
@@ -69,6 +72,7 @@ class RosNaming:
     middleware: Middleware = "bridge"
     prefix: str = ""
     domain_id: int = 0
+    type_hashes: bool = True  # False on ROS 2 Humble (rmw_zenoh then puts NO_TYPE_HASH in its keys)
 
     def __post_init__(self) -> None:
         if self.middleware not in MIDDLEWARES:
@@ -87,7 +91,8 @@ class RosNaming:
         ``RIHS01_…``) listens on."""
         if self.middleware == "bridge":
             return ros_key(self.prefix, topic)
-        return f"{self.domain_id}/{topic.strip('/')}/{dds_type_name(msgtype)}/{type_hash}"
+        chunk = type_hash if self.type_hashes else NO_TYPE_HASH
+        return f"{self.domain_id}/{topic.strip('/')}/{dds_type_name(msgtype)}/{chunk}"
 
     @property
     def attaches(self) -> bool:
