@@ -39,8 +39,9 @@ def load_spec(run_dir: Path) -> StackSpec | None:
         return None
     known = {f.name for f in dataclasses.fields(StackSpec)}
     values = {k: v for k, v in data.items() if k in known}
-    if isinstance(values.get("replay_args"), list):
-        values["replay_args"] = tuple(values["replay_args"])
+    for name in ("replay_args", "ros2_args"):  # JSON has lists where the spec holds tuples
+        if isinstance(values.get(name), list):
+            values[name] = tuple(values[name])
     try:
         return StackSpec(**values)
     except TypeError:

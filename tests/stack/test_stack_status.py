@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import subprocess
 import sys
@@ -19,6 +20,9 @@ def test_spec_round_trip(tmp_path):
                      replay_args=("--topic", "/x"), run_dir=str(tmp_path))
     save_spec(tmp_path, spec)
     assert load_spec(tmp_path) == spec
+    live = dataclasses.replace(spec, ros2_points="/points", ros2_args=("--middleware", "rmw_zenoh"))
+    save_spec(tmp_path, live)
+    assert load_spec(tmp_path) == live
     assert load_spec(tmp_path / "missing") is None
     (tmp_path / "stack.json").write_text("{not json")
     assert load_spec(tmp_path) is None
