@@ -26,7 +26,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from .effects import BRIGHT_SPOT_FRACTION, MEASURED_INTENSITY, ScanEffects, street_clutter, vegetation_masses
+from .catalog import VEHICLE_PARKED
+from .effects import (BRIGHT_SPOT_FRACTION, MEASURED_INTENSITY, ScanEffects, kerbside_trees, street_clutter,
+                      vegetation_masses)
 from .primitives import BOX, PrimitiveList, Primitives, Tag
 from .sensors import LidarSpec, azimuths, hdl32e
 from .shapes import crank_angle, gait_stride, object_primitives
@@ -422,13 +424,16 @@ def cast_frame(frame: GroundTruthFrame, sensor: LidarSpec | None = None, seed: i
                 u = _position_hash(back.center, effects.clutter_seed)
             drop = (prims.tag == int(Tag.BUILDING)) & (u < effects.building_drop)
             prims, owner = prims.subset(~drop), owner[~drop]
-        if effects.clutter_density > 0 or effects.vegetation_density > 0:
+        if effects.clutter_density > 0 or effects.vegetation_density > 0 or effects.kerb_trees > 0:
             dx, dy = frame.centers[:, 0] - ax, frame.centers[:, 1] - ay
             keep_out = np.column_stack([ca * dx + sa * dy, -sa * dx + ca * dy, frame.sizes[:, 0] / 2,
                                         frame.sizes[:, 1] / 2, frame.yaws - ayaw])
-            # a density of 0 draws no piece: each function then returns nothing
+            parked = keep_out[np.array([a == VEHICLE_PARKED for a in frame.attributes], dtype=bool)]
+            # a density or share of 0 draws no piece: each function then returns nothing
             extra = Primitives.concat([street_clutter(effects, keep_out, spec.mount_height_m),
-                                       vegetation_masses(effects, keep_out, spec.mount_height_m)])
+                                       vegetation_masses(effects, keep_out, spec.mount_height_m),
+                                       kerbside_trees(effects, keep_out, parked, frame.sizes[:, 2],
+                                                      spec.mount_height_m)])
             if anchor is not None:
                 extra = to_sensor_frame(extra, px, py, turn, 0.0)
             prims = Primitives.concat([prims, extra])

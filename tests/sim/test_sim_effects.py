@@ -257,3 +257,39 @@ def test_anchored_sweeps_see_one_ground_and_one_street_furniture() -> None:
         out[name] = (np.percentile(dz, 90), np.percentile(furniture.query(xyz[scan.owner == -1])[0], 90))
     assert out["anchored"][0] < 0.02 < 0.04 < out["hung"][0]
     assert out["anchored"][1] < 1.0 < 2.0 < out["hung"][1]
+
+
+def test_kerb_trees_are_opt_in_and_stand_beside_the_parked_cars_with_their_crowns_over_them() -> None:
+    """``kerb-trees`` changes no other draw; each tree stands on the kerb side of a parked car (away from the sensor),
+    off every road user and the ego, its porous crown from 2.3 m up over the car; in the cast scan the crowns return
+    above the car and the car keeps its returns (the crown passes over it)."""
+    from jitterguard.sim.effects import kerbside_trees, parse_components
+    from jitterguard.sim.primitives import Tag
+
+    assert "kerb-trees" not in parse_components("random")
+    for seed in range(10):
+        plain = draw_effects(np.random.default_rng(seed), parse_components("random"))
+        trees = draw_effects(np.random.default_rng(seed), parse_components("random,kerb-trees"))
+        assert plain.kerb_trees == 0.0 and 0.2 <= trees.kerb_trees <= 0.7
+        assert trees == ScanEffects(**{**plain.__dict__, "kerb_trees": trees.kerb_trees})
+    parked = np.array([[12.0, 6.0, 2.3, 0.95, 0.0], [-9.0, -6.0, 2.3, 0.95, 0.1], [4.0, -7.0, 2.3, 0.95, 1.5]])
+    fx = ScanEffects(kerb_trees=1.0, clutter_seed=5)
+    prims = kerbside_trees(fx, parked, parked, np.full(len(parked), 1.7), 1.84)
+    trunks = prims.tag == int(Tag.POLE)
+    crowns = prims.tag == int(Tag.TREE_CROWN)
+    assert trunks.sum() >= 2 and crowns.sum() >= 10
+    assert np.all(prims.z[crowns, 0] >= -1.84 + 2.3 - 1e-9)  # crowns start above a car's roof
+    for tx, ty in prims.center[trunks]:
+        d = np.hypot(parked[:, 0] - tx, parked[:, 1] - ty)
+        x, y, hl, hw, yaw = parked[int(np.argmin(d))]
+        lx = np.cos(yaw) * (tx - x) + np.sin(yaw) * (ty - y)
+        ly = -np.sin(yaw) * (tx - x) + np.cos(yaw) * (ty - y)
+        side_away = np.sign(-np.sin(yaw) * x + np.cos(yaw) * y)
+        assert abs(lx) <= hl + 1e-9 and hw < ly * side_away <= hw + 2.0 + 1e-9  # beside it, on the far side
+    assert not _crossing_the_ego(prims.subset(~crowns)) and not _crossing_the_ego(prims)
+    f = cars_frame([(12.0, 6.0)])
+    bare, _ = cast_frame(f, seed=0, effects=ScanEffects(clutter_seed=5))
+    treed, _ = cast_frame(f, seed=0, effects=fx)
+    canopy = treed.points[(treed.owner < 0) & (treed.points[:, 2] > -1.84 + 2.3)]
+    assert len(canopy) > 30 and np.median(np.hypot(canopy[:, 0] - 12.0, canopy[:, 1] - 6.0)) < 5.0
+    assert (treed.owner == 0).sum() >= 0.8 * (bare.owner == 0).sum()

@@ -301,10 +301,11 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         effects: Annotated[str, typer.Option("--effects", help="Sim-to-real effects of the synthetic scans, drawn"
                                              " per scan: 'random' (all), 'none' (ideal scans), or a comma list of"
                                              " ground, glass, dropout, noise, roof, mixed, clutter, open, motion,"
-                                             " intensity, and the opt-in no-intensity, vegetation, limbs, pedal and clear-glass"
-                                             " (not in 'random': random,vegetation,limbs,pedal); several sets joined by '+' (e.g."
-                                             " none+random) train on"
-                                             " the seeds cast once per set, validate on the first set.")] = "random",
+                                             " intensity, and the opt-in no-intensity, vegetation, limbs, pedal,"
+                                             " clear-glass and kerb-trees (not in 'random':"
+                                             " random,vegetation,limbs,pedal); several sets joined by '+' (e.g."
+                                             " none+random) train on the seeds cast once per set, validate on the"
+                                             " first set.")] = "random",
         rotation: Annotated[float, typer.Option("--rotation", min=0.0, max=180.0, help="Global rotation"
                                                 " augmentation: uniform in ± this many degrees.")] = 45.0,
         intensity: Annotated[bool | None, typer.Option("--intensity/--no-intensity", help="Feed the points'"
