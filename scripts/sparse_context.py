@@ -9,10 +9,12 @@ the scan with every return above the road within ``--radius`` m of the car taken
 (``cleared``); and on the road alone with the car's own returns (``alone``: every other object, shrub, wall and
 pole of the scan gone); and, to tell which surroundings, with only the other labelled objects' returns within the
 radius taken away (``cleared_objects``), or only the returns there that lie in no labelled box — vegetation, walls,
-poles, kerbside clutter (``cleared_background``). A car counts as found when a car box scoring ≥ 0.3 lies within 2 m of it. The same is done
-on synthetic hold-out scans with the sim-to-real effects, whose sparse cars the network finds far more often: if
-clearing the surroundings recovers the real sparse cars and not the synthetic ones, the surroundings are what the
-synthetic world lacks; if neither recovers them, the car's own returns are. Reads scene-0523's labels — a
+poles, kerbside clutter (``cleared_background``), and for the cars found only then, where those returns lie
+(nearer the sensor than the car, beyond it, within 3 m of its line of sight; their heights). A car counts as found
+when a car box scoring ≥ 0.3 lies within 2 m of it. The same is done on synthetic hold-out scans with the
+sim-to-real effects, whose sparse cars the network finds far more often: if clearing the surroundings recovers the
+real sparse cars and not the synthetic ones, the surroundings are what the synthetic world lacks; if neither
+recovers them, the car's own returns are. Reads scene-0523's labels — a
 diagnosis, never a number fitted to the scene. Prints JSON.
 """
 
@@ -42,7 +44,7 @@ def _found(det, xy: np.ndarray) -> bool:  # noqa: ANN001 - Detections3D
 
 
 def sparse_car_recall(det: Detector, samples, radius: float) -> dict:  # noqa: ANN001 - Samples
-    rows = []
+    rows, where = [], []
     for s in samples:
         boxes = s.boxes[s.labels == CAR] if len(s.boxes) else s.boxes
         if not len(boxes):
@@ -70,6 +72,13 @@ def sparse_car_recall(det: Detector, samples, radius: float) -> dict:  # noqa: A
             around = above & near & ~own
             variants = (p[~around], p[~above | own], p[~(around & in_any)], p[~(around & ~in_any)])
             rows.append((n, _found(full, b[:2]), *(_found(det.detect(v), b[:2]) for v in variants)))
+            if not rows[-1][1] and rows[-1][5]:  # found once the unlabelled returns around it are gone: where are they
+                q, hq = p[around & ~in_any], (p[:, 2] - (plane.slope_x * p[:, 0] + plane.slope_y * p[:, 1]
+                                                         - plane.height))[around & ~in_any]
+                rc, rq = np.hypot(*b[:2]), np.hypot(q[:, 0], q[:, 1])
+                off = np.abs((np.arctan2(q[:, 1], q[:, 0]) - np.arctan2(b[1], b[0]) + np.pi) % (2 * np.pi) - np.pi) * rc
+                where.append((len(q), np.mean(rq < rc - 1.0), np.mean(rq > rc + 1.0), np.mean(off < 3.0),
+                              *np.percentile(hq, [10, 50, 90])))
     a = np.array(rows, dtype=np.float64).reshape(-1, 6)
     out = {}
     for lo, hi in BANDS:
@@ -78,6 +87,11 @@ def sparse_car_recall(det: Detector, samples, radius: float) -> dict:  # noqa: A
             k: round(float(a[m, i].mean()), 3) if m.any() else None
             for i, k in enumerate(("found_as_is", "found_cleared", "found_alone", "found_cleared_objects",
                                    "found_cleared_background"), start=1)}}
+    w = np.array(where, dtype=np.float64).reshape(-1, 7)
+    out["found_once_unlabelled_cleared"] = {"cars": len(w), **({
+        k: round(float(np.median(w[:, i])), 2) for i, k in enumerate(
+            ("returns_cleared", "share_nearer_than_the_car", "share_beyond_it", "share_within_3m_of_its_line_of_sight",
+             "height_p10", "height_p50", "height_p90"))} if len(w) else {})}
     return out
 
 
