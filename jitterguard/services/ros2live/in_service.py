@@ -47,8 +47,8 @@ MAX_POSE_BYTES = 1024 * 1024
 STATIC_QUERY_S = 5.0
 PUB_CACHE_PREFIXES = {"bridge": ("@/*/@ros2_pub_cache", "@ros2_pub_cache/*"), "rmw_zenoh": ("*",)}
 """Where zenoh-bridge-ros2dds 1.0 and 0.x, and rmw_zenoh's first Zenoh 1.0 releases, answer queries for their
-transient-local publications' history (each under its own Zenoh id); the bridge since 1.1 and rmw_zenoh since serve
-it to an advanced subscriber's history instead."""
+transient-local publications' history (each under its own Zenoh id); the bridge since 1.1 and later rmw_zenoh
+releases serve it to an advanced subscriber's history instead."""
 
 
 class Ros2InService(Service):
