@@ -1,12 +1,17 @@
 """A vehicle's ROS 2 side as zenoh-bridge-ros2dds shows it to Zenoh — each topic's key (the topic without its leading
-'/') carrying the message's CDR bytes — played by a Zenoh session. CDR is encoded and decoded by mcap-ros2-support,
-an implementation independent of the rosbags typestore jitterguard's ROS 2 services use."""
+'/') carrying the message's CDR bytes — or as ROS 2 nodes on rmw_zenoh put it (:func:`rmw_key`, each sample with
+rmw_zenoh's attachment), played by a Zenoh session. CDR is encoded and decoded by mcap-ros2-support, an implementation
+independent of the rosbags typestore jitterguard's ROS 2 services use; keys and attachments are spelt out here, not
+taken from jitterguard's own naming."""
 
 from __future__ import annotations
 
+import itertools
+import time
 from typing import Any
 
 import zenoh
+import zenoh.ext
 
 from jitterguard.schemas.models import PointCloud, Pose
 from jitterguard.services.replay.sources.ros_types import typestore
@@ -18,6 +23,18 @@ def codec(msgtype: str, *, encode: bool) -> Any:
 
     text, _ = typestore().generate_msgdef(msgtype, ros_version=2)
     return (serialize_dynamic if encode else generate_dynamic)(msgtype, text)[msgtype]
+
+
+def rmw_key(topic: str, msgtype: str, domain: int = 0) -> str:
+    """The key a ROS 2 node on rmw_zenoh (Jazzy and later) publishes ``topic`` on: domain, topic, DDS type name,
+    REP 2011 type hash."""
+    package, _, name = msgtype.split("/")
+    return f"{domain}/{topic.strip('/')}/{package}::msg::dds_::{name}_/{typestore().hash_rihs01(msgtype)}"
+
+
+def rmw_attachment(seq: int) -> bytes:
+    """rmw_zenoh's attachment, written by zenoh-ext's serializer: sequence number, source timestamp, a 16-byte GID."""
+    return zenoh.ext.z_serialize((zenoh.ext.Int64(seq), zenoh.ext.Int64(time.time_ns()), bytes(16))).to_bytes()
 
 
 def stamp(ns: int) -> dict:
@@ -33,21 +50,29 @@ def transform(parent: str, child: str, t: int, p: Pose) -> dict:
 
 class RosSide:
     """Puts a LiDAR's scans with ``/tf`` (map → base_link, the scan's pose) and ``/tf_static`` (base_link → lidar,
-    level) on their topics' keys."""
+    level) on their topics' keys: a bridge's, or with ``rmw`` those of nodes on rmw_zenoh (domain 0)."""
 
-    def __init__(self, session: zenoh.Session, points_topic: str) -> None:
+    def __init__(self, session: zenoh.Session, points_topic: str, *, rmw: bool = False) -> None:
         self.session = session
-        self.points_key = points_topic.strip("/")
+        self.rmw = rmw
+        self.keys = {t: rmw_key(t, m) if rmw else t.strip("/") for t, m in (
+            (points_topic, "sensor_msgs/msg/PointCloud2"), ("/tf", "tf2_msgs/msg/TFMessage"),
+            ("/tf_static", "tf2_msgs/msg/TFMessage"))}
+        self.points_key = self.keys[points_topic]
+        self.seq = itertools.count(1)
         self.tf = codec("tf2_msgs/msg/TFMessage", encode=True)
         self.cloud = codec("sensor_msgs/msg/PointCloud2", encode=True)
         self.static = bytes(self.tf({"transforms": [transform("base_link", "lidar", 0, Pose())]}))
 
+    def _put(self, key: str, payload: bytes) -> None:
+        self.session.put(key, payload, attachment=rmw_attachment(next(self.seq)) if self.rmw else None)
+
     def send(self, pc: PointCloud, t: int) -> None:
         """One wire scan (sensor frame, its world pose) as the ROS 2 side would have it, stamped ``t``."""
-        self.session.put("tf_static", self.static)
-        self.session.put("tf", bytes(self.tf({"transforms": [transform("map", "base_link", t, pc.ego_pose)]})))
+        self._put(self.keys["/tf_static"], self.static)
+        self._put(self.keys["/tf"], bytes(self.tf({"transforms": [transform("map", "base_link", t, pc.ego_pose)]})))
         fields = [{"name": n, "offset": 4 * i, "datatype": 7, "count": 1} for i, n in enumerate(pc.fields)]
-        self.session.put(self.points_key, bytes(self.cloud({
+        self._put(self.points_key, bytes(self.cloud({
             "header": {"stamp": stamp(t), "frame_id": "lidar"}, "height": 1, "width": pc.num_points, "fields": fields,
             "is_bigendian": False, "point_step": 4 * len(fields), "row_step": 4 * len(fields) * pc.num_points,
             "data": pc.data, "is_dense": True})))

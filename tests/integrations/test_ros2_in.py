@@ -29,6 +29,7 @@ from jitterguard.schemas.models import Heartbeat, PointCloud
 from jitterguard.services.replay.sources.ros_types import typestore
 
 from helpers import stop_process, wait_until
+from ros2_side import rmw_attachment, rmw_key
 
 mcap_ros2_dynamic = pytest.importorskip("mcap_ros2._dynamic")
 pytestmark = pytest.mark.integration
@@ -207,12 +208,6 @@ def test_the_latched_tf_static_of_an_older_bridge_is_fetched_from_its_publicatio
             stop_process(p)
 
 
-def _rmw_key(topic: str, msgtype: str, domain: int) -> str:
-    """The key a ROS 2 node on rmw_zenoh publishes ``topic`` on (spelt out here, not by the service's naming)."""
-    package, _, name = msgtype.split("/")
-    return f"{domain}/{topic}/{package}::msg::dds_::{name}_/{typestore().hash_rihs01(msgtype)}"
-
-
 def test_ros2_nodes_on_rmw_zenoh_feed_ros2_in_through_their_own_router(tmp_path):
     """ROS 2 nodes on rmw_zenoh publish on their router (rmw_zenohd; a second router here): keys with the domain, the
     type and its hash, each sample with rmw_zenoh's attachment, the latched mount in an advanced publisher's cache
@@ -228,10 +223,9 @@ def test_ros2_nodes_on_rmw_zenoh_feed_ros2_in_through_their_own_router(tmp_path)
         seq = iter(range(1, 1000))
 
         def attachment() -> bytes:  # what rmw_zenoh's publishers attach (its subscriptions drop a sample without)
-            return zenoh.ext.z_serialize((zenoh.ext.Int64(next(seq)), zenoh.ext.Int64(time.time_ns()),
-                                          bytes(16))).to_bytes()
+            return rmw_attachment(next(seq))
         latched = zenoh.ext.declare_advanced_publisher(
-            ros, _rmw_key("tf_static", "tf2_msgs/msg/TFMessage", domain),
+            ros, rmw_key("tf_static", "tf2_msgs/msg/TFMessage", domain),
             cache=zenoh.ext.CacheConfig(max_samples=1), publisher_detection=True)
         latched.put(_static_tf(), attachment=attachment())
         procs.append(subprocess.Popen(
@@ -252,8 +246,8 @@ def test_ros2_nodes_on_rmw_zenoh_feed_ros2_in_through_their_own_router(tmp_path)
 
         t0 = 1_700_000_000_000_000_000
         stamps = [t0 + k * 100_000_000 for k in range(1, 4)]
-        tf_key = _rmw_key("tf", "tf2_msgs/msg/TFMessage", domain)
-        cloud_key = _rmw_key(CLOUD_KEY, "sensor_msgs/msg/PointCloud2", domain)
+        tf_key = rmw_key("tf", "tf2_msgs/msg/TFMessage", domain)
+        cloud_key = rmw_key(CLOUD_KEY, "sensor_msgs/msg/PointCloud2", domain)
         for t in stamps:
             ros.put(tf_key, bytes(tf_enc({"transforms": [_transform("map", "base_link", t, *_vehicle(t, t0)[:2])]})),
                     attachment=attachment())

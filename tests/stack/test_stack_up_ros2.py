@@ -21,30 +21,42 @@ TRACKING_KEY = "perception/object_recognition/tracking/objects"
 
 
 def jg(*args: str, timeout: float = 180) -> subprocess.CompletedProcess:
-    env = {k: v for k, v in os.environ.items() if k != "JG_API_TOKEN"}
+    env = {k: v for k, v in os.environ.items() if k not in ("JG_API_TOKEN", "ROS_DOMAIN_ID")} | {"ROS_DISTRO": "jazzy"}
     return subprocess.run([sys.executable, "-m", "jitterguard.cli", *args], capture_output=True, text=True,
                           timeout=timeout, env=env)
 
 
-def test_up_with_ros2_runs_the_vehicles_scans_through_to_autowares_tracked_objects(tmp_path):
+@pytest.mark.parametrize("middleware", ["bridge", "rmw_zenoh"])
+def test_up_with_ros2_runs_the_vehicles_scans_through_to_autowares_tracked_objects(tmp_path, middleware):
+    """The bridge as a client of jitterguard's router; or ROS 2 nodes on rmw_zenoh behind their own router (a second
+    router here plays rmw_zenohd; ``--ros2-connect``), typed keys and attachments both ways."""
     pytest.importorskip("mcap_ros2._dynamic")
     from jitterguard.eval.detector_input import synthetic_scans
     from jitterguard.sim.world import make_scenario
-    from ros2_side import RosSide, codec
+    from ros2_side import RosSide, codec, rmw_key
 
     rd, router, ns = tmp_path / "run", free_tcp_port(), f"upros{os.getpid()}"
+    rmw = middleware == "rmw_zenoh"
+    procs, extra = [], []
+    if rmw:
+        ros_endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+        procs.append(subprocess.Popen([sys.executable, "-m", "jitterguard.cli", "router", "--listen", ros_endpoint],
+                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        extra = ["--ros2-middleware", "rmw_zenoh", "--ros2-connect", ros_endpoint]
     res = jg("up", "-d", "--ros2", POINTS, "--ns", ns, "--router-port", str(router), "--port", str(free_tcp_port()),
-             "--run-dir", str(rd))
+             "--run-dir", str(rd), *extra)
     assert res.returncode == 0, res.stdout + res.stderr
     session = None
     try:
         names = {p.name: p.state for p in Supervisor(rd).processes()}
         assert "replay" not in names and names.get("ros2-in") == "RUNNING" and names.get("ros2-out") == "RUNNING", names
-        session = open_session(build_config(ZenohOptions(ns=ns, connect=(f"tcp/127.0.0.1:{router}",))))
+        session = open_session(build_config(ZenohOptions(ns=ns, connect=(ros_endpoint if rmw
+                                                                          else f"tcp/127.0.0.1:{router}",))))
         decode_tracked = codec("autoware_perception_msgs/msg/TrackedObjects", encode=False)
         got: list = []
-        session.declare_subscriber(TRACKING_KEY, lambda s: got.append(decode_tracked(s.payload.to_bytes())))
-        ros = RosSide(session, POINTS)
+        tracking = rmw_key(TRACKING_KEY, "autoware_perception_msgs/msg/TrackedObjects") if rmw else TRACKING_KEY
+        session.declare_subscriber(tracking, lambda s: got.append(decode_tracked(s.payload.to_bytes())))
+        ros = RosSide(session, POINTS, rmw=rmw)
         scans = list(synthetic_scans(make_scenario("parking-street", 1, 4.0, 10.0), 1))
         deadline = time.monotonic() + 120
         k = 0
@@ -61,6 +73,9 @@ def test_up_with_ros2_runs_the_vehicles_scans_through_to_autowares_tracked_objec
         if session is not None:
             session.close()
         jg("down", "--run-dir", str(rd))
+        for p in procs:
+            p.terminate()
+            p.wait(timeout=30)
 
 
 @pytest.mark.parametrize("args, message", [
