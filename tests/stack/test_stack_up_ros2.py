@@ -118,6 +118,7 @@ def test_ros2_middleware_flags_are_checked_in_one_line(tmp_path, args, message):
 def test_a_bad_ros_domain_id_is_named_as_up_reads_it(tmp_path):
     env = {k: v for k, v in os.environ.items() if k != "JG_API_TOKEN"} | {"ROS_DOMAIN_ID": "300"}
     res = subprocess.run([sys.executable, "-m", "jitterguard.cli", "up", "--run-dir", str(tmp_path / "run"), "--ros2",
-                          POINTS, "--ros2-middleware", "rmw_zenoh"], capture_output=True, text=True, timeout=60, env=env)
+                          POINTS, "--ros2-middleware", "rmw_zenoh"],
+                         capture_output=True, text=True, timeout=60, env=env)
     message = "ROS_DOMAIN_ID: 300 is outside 0-232"
     assert res.returncode == 2 and message in res.stderr and res.stderr.count("\n") == 1, res.stderr
