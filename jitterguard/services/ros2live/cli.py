@@ -79,8 +79,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         "Publish a live ROS 2 PointCloud2 topic on jitterguard's `points`, posed by /tf or an odometry topic, as"
         " zenoh-bridge-ros2dds carries ROS 2 topics into Zenoh (key = topic without its leading '/', payload = the"
         " message's CDR bytes) or ROS 2 nodes on rmw_zenoh put them (--middleware rmw_zenoh). Scans are turned into"
-        " base_link's axes where their mount is a static link, as a"
-        " bag's are.\n\n" + EXAMPLES))
+        " base_link's axes where their mount is a static link, as a bag's are.\n\n" + EXAMPLES))
     def ros2_in_cmd(
         points_topic: Annotated[str, typer.Option("--points-topic", help="The sensor_msgs/msg/PointCloud2 topic.")]
         = "/sensing/lidar/top/pointcloud",

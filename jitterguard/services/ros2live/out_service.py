@@ -56,10 +56,8 @@ class Ros2OutService(Service):
             self.log.warning("objects seq %d not converted: %s: %s", msg.header.seq, type(exc).__name__, exc)
             return
         self._sent += 1
-        if self.naming.attaches:
-            self._pub.put(cdr, attachment=rmw_attachment(self._sent, time.time_ns(), self._gid))
-        else:
-            self._pub.put(cdr)
+        self._pub.put(cdr, attachment=rmw_attachment(self._sent, time.time_ns(), self._gid)
+                      if self.naming.attaches else None)
         self.counters.inc("published")
         self.last_seq = msg.header.seq
         self.progress.output(time.monotonic())

@@ -5,10 +5,10 @@
 - ``rmw_zenoh``: ROS 2 nodes running on rmw_zenoh (ROS 2's own Zenoh middleware, with its router ``rmw_zenohd``)
   put topic ``/a/b`` of type ``pkg/msg/T`` in ROS domain ``d`` on ``d/a/b/pkg::msg::dds_::T_/RIHS01_<hash>``
   (``TopicInfo`` in rmw_zenoh_cpp's ``liveliness_utils.cpp``: slashes inside the name kept, the type hash of
-  REP 2011 last; ROS 2 Humble, which has no type hashes, writes ``TypeHashNotSupported`` there). Payloads are the same CDR bytes, encapsulation header included. Its subscriptions declare the
-  exact key and drop a sample without the attachment its publishers send (:func:`rmw_attachment`), so a
-  publication must carry both; a subscription of ours takes any type and hash (``*/*``) and decodes by the type
-  it expects, refusing what does not decode.
+  REP 2011 last; ROS 2 Humble, which has no type hashes, writes ``TypeHashNotSupported`` there). Payloads are the
+  same CDR bytes, encapsulation header included. Its subscriptions declare the exact key and drop a sample without
+  the attachment its publishers send (:func:`rmw_attachment`), so a publication must carry both; a subscription of
+  ours takes any type and hash (``*/*``) and decodes by the type it expects, refusing what does not decode.
 
 Both keep a latched (transient-local) topic's history in a zenoh-ext advanced publisher's cache (the bridge since
 1.1; older bridges in a publication cache, queried by the service): see ``in_service``.
