@@ -37,6 +37,42 @@ def rmw_attachment(seq: int) -> bytes:
     return zenoh.ext.z_serialize((zenoh.ext.Int64(seq), zenoh.ext.Int64(time.time_ns()), bytes(16))).to_bytes()
 
 
+GRAPH_ENTITIES = {"NN": "node", "MP": "publisher", "MS": "subscription", "SS": "service", "SC": "client"}
+QOS_DEFAULTS = {"reliability": 1, "durability": 2, "history": 1, "depth": 42}  # rmw_zenoh's qos.cpp
+
+
+def read_graph_token(key: str) -> dict[str, Any]:
+    """A liveliness token read as rmw_zenoh's graph cache reads it (``Entity::make(keyexpr)`` in
+    ``liveliness_utils.cpp``): at least 9 chunks, none empty, ``@ros2_lv`` first; a publisher's or subscription's 13,
+    its QoS six ``:``-separated fields whose empty values are rmw_zenoh's defaults; names with ``%`` for ``/``.
+    AssertionError where rmw_zenoh would log "invalid liveliness token" and leave the entity out of the graph."""
+    parts = str(key).split("/")
+    assert len(parts) >= 9 and all(parts) and parts[0] == "@ros2_lv", key
+    assert parts[5] in GRAPH_ENTITIES, key
+    out: dict[str, Any] = {"domain": int(parts[1]), "zid": parts[2], "nid": parts[3], "id": parts[4],
+                           "entity": GRAPH_ENTITIES[parts[5]], "enclave": parts[6].replace("%", "/"),
+                           "namespace": parts[7].replace("%", "/"), "node": parts[8].replace("%", "/")}
+    if parts[5] == "NN":
+        return out
+    assert len(parts) == 13, key
+    qos = parts[12].split(":")
+    assert len(qos) >= 6, key
+    history, deadline, lifespan, liveliness = (q.split(",") for q in qos[2:6])
+    assert len(history) >= 2 and len(deadline) >= 2 and len(lifespan) >= 2 and len(liveliness) >= 3, key
+    for value in (*qos[:2], *history, *deadline, *lifespan, *liveliness):
+        assert value == "" or value.isdigit(), key
+    given = {"reliability": qos[0], "durability": qos[1], "history": history[0], "depth": history[1]}
+    return out | {"topic": parts[9].replace("%", "/"), "type": parts[10].replace("%", "/"), "type_hash": parts[11],
+                  "qos": {k: int(v) if v else QOS_DEFAULTS[k] for k, v in given.items()}}
+
+
+def graph(session: zenoh.Session, domain: int) -> list[dict[str, Any]]:
+    """The ROS graph's entities of ``domain`` that answer a liveliness query now (what ``ros2 node list`` and
+    ``ros2 topic list`` are built from), each read by :func:`read_graph_token`, with its key as ``token``."""
+    return [read_graph_token(r.ok.key_expr) | {"token": str(r.ok.key_expr)}
+            for r in session.liveliness().get(f"@ros2_lv/{domain}/**", timeout=5.0) if r.ok is not None]
+
+
 def stamp(ns: int) -> dict:
     return {"sec": ns // 1_000_000_000, "nanosec": ns % 1_000_000_000}
 

@@ -330,14 +330,16 @@ def _check_source(source: str | None, input_level: str, ropts: "R.ReplayOptions"
 
 def _ros2_args(middleware: str, connect: str | None, ns: str) -> tuple[str, ...]:
     """``up --ros2``'s middleware flags as ros2-in / ros2-out take them (checked by their own rules: one line, exit 2);
-    under rmw_zenoh the domain ID from ``$ROS_DOMAIN_ID`` now, written into the programs' command lines."""
+    under rmw_zenoh the domain ID and the distribution from ``$ROS_DOMAIN_ID`` and ``$ROS_DISTRO`` now, written into
+    the programs' command lines."""
     from ..services.ros2live.cli import ros_side
 
+    distro = os.environ.get("ROS_DISTRO", "jazzy")
     naming, _ = ros_side(middleware, os.environ.get("ROS_DOMAIN_ID", "0"), "", [connect] if connect else None, ns,
-                         names=("--ros2-middleware", "ROS_DOMAIN_ID"))
+                         distro=distro, names=("--ros2-middleware", "ROS_DOMAIN_ID", "ROS_DISTRO"))
     args: tuple[str, ...] = ()
     if naming.middleware != "bridge":
-        args += ("--middleware", naming.middleware, "--domain-id", str(naming.domain_id))
+        args += ("--middleware", naming.middleware, "--domain-id", str(naming.domain_id), "--ros-distro", distro)
     return args + (("--ros-connect", connect) if connect else ())
 
 

@@ -29,7 +29,7 @@ from jitterguard.schemas.models import Heartbeat, PointCloud
 from jitterguard.services.replay.sources.ros_types import typestore
 
 from helpers import stop_process, wait_until
-from ros2_side import rmw_attachment, rmw_key
+from ros2_side import graph, rmw_attachment, rmw_key
 
 mcap_ros2_dynamic = pytest.importorskip("mcap_ros2._dynamic")
 pytestmark = pytest.mark.integration
@@ -258,6 +258,19 @@ def test_ros2_nodes_on_rmw_zenoh_feed_ros2_in_through_their_own_router(tmp_path)
         for msg in got[: len(stamps)]:
             np.testing.assert_allclose(_world_of(msg), _world_truth(msg.header.stamp, t0), atol=2e-4)
         assert leaked == [], leaked[:3]
+        # in the ROS graph: its node subscribing the scans (sensor-data QoS), /tf_static (latched) and /tf
+        entities = graph(ros, domain)
+        assert [e["node"] for e in entities] == ["ros2_in"] * 4, entities
+        assert {e["namespace"] for e in entities} == {f"/jitterguard/{ns}"}
+        subs = {e["topic"]: (e["type"], e["type_hash"], e["qos"]) for e in entities if e["entity"] == "subscription"}
+        hashes = {t: typestore().hash_rihs01(t) for t in ("sensor_msgs/msg/PointCloud2", "tf2_msgs/msg/TFMessage")}
+        assert subs == {
+            "/" + CLOUD_KEY: ("sensor_msgs::msg::dds_::PointCloud2_", hashes["sensor_msgs/msg/PointCloud2"],
+                              {"reliability": 2, "durability": 2, "history": 1, "depth": 5}),
+            "/tf_static": ("tf2_msgs::msg::dds_::TFMessage_", hashes["tf2_msgs/msg/TFMessage"],
+                           {"reliability": 1, "durability": 1, "history": 1, "depth": 100}),
+            "/tf": ("tf2_msgs::msg::dds_::TFMessage_", hashes["tf2_msgs/msg/TFMessage"],
+                    {"reliability": 1, "durability": 2, "history": 1, "depth": 100})}, entities
         assert procs[-1].poll() is None
     finally:
         for s in sessions:

@@ -7,10 +7,12 @@ import math
 
 import numpy as np
 import pytest
+import xxhash
 
 from jitterguard.services.replay.frames import FrameError, ScanFrame
 from jitterguard.services.replay.sources.ros_types import typestore
-from jitterguard.services.ros2live.ros_keys import RosNaming, check_topic, dds_type_name, rmw_attachment, ros_key
+from jitterguard.services.ros2live.ros_keys import (RosEndpoint, RosNaming, RosQos, check_topic, dds_type_name,
+                                                   entity_gid, rmw_attachment, ros_key, ros_node)
 from jitterguard.services.ros2live.scans_in import LiveScans, UndecodableMessage
 
 mcap_ros2_dynamic = pytest.importorskip("mcap_ros2._dynamic")
@@ -75,6 +77,38 @@ def test_rmw_zenoh_keys_and_attachments_are_the_middlewares_own():
         RosNaming("rmw_zenoh", domain_id=233)
     with pytest.raises(ValueError, match="16 bytes"):
         rmw_attachment(1, 0, b"short")
+
+
+def test_rmw_zenoh_graph_tokens_are_laid_out_as_its_graph_cache_reads_them():
+    """The liveliness tokens that put a node and its endpoints in rmw_zenoh's ROS graph, spelt out: node id 0, entity
+    ids from 1, the default enclave and the namespace with ``%`` for ``/``, the QoS with rmw_zenoh's defaults left
+    empty (depth 42, reliable, volatile); every token passes the test helper's reading of rmw_zenoh's parser."""
+    from ros2_side import read_graph_token
+
+    assert RosQos().chunk() == "::,:,:,:,,"
+    assert RosQos(depth=1).chunk() == "::,1:,:,:,,"
+    assert RosQos(reliable=False, depth=5).chunk() == "2::,5:,:,:,,"
+    assert RosQos(transient_local=True, depth=100).chunk() == ":1:,100:,:,:,,"
+    assert ros_node("ros2-out", "bay-2") == ("/jitterguard/bay_2", "ros2_out")
+    endpoints = [RosEndpoint("MP", "/perception/objects", "autoware_perception_msgs/msg/TrackedObjects", "RIHS01_ab",
+                             RosQos(depth=1)),
+                 RosEndpoint("MS", "/tf_static", "tf2_msgs/msg/TFMessage", "RIHS01_cd", RosQos(transient_local=True))]
+    tokens = RosNaming("rmw_zenoh", domain_id=4).graph_tokens("a1b2", "ros2_out", "/jitterguard/default", endpoints)
+    assert tokens == [
+        "@ros2_lv/4/a1b2/0/0/NN/%/%jitterguard%default/ros2_out",
+        "@ros2_lv/4/a1b2/0/1/MP/%/%jitterguard%default/ros2_out/%perception%objects/"
+        "autoware_perception_msgs::msg::dds_::TrackedObjects_/RIHS01_ab/::,1:,:,:,,",
+        "@ros2_lv/4/a1b2/0/2/MS/%/%jitterguard%default/ros2_out/%tf_static/tf2_msgs::msg::dds_::TFMessage_/"
+        "RIHS01_cd/:1:,:,:,:,,"]
+    read = [read_graph_token(t) for t in tokens]
+    assert [r["entity"] for r in read] == ["node", "publisher", "subscription"]
+    assert read[2]["qos"] == {"reliability": 1, "durability": 1, "history": 1, "depth": 42}
+    humble = RosNaming("rmw_zenoh", type_hashes=False).graph_tokens("a1b2", "n", "/", endpoints[:1])
+    assert humble[0] == "@ros2_lv/0/a1b2/0/0/NN/%/%/n" and "/TypeHashNotSupported/" in humble[1]
+    assert RosNaming("bridge").graph_tokens("a1b2", "n", "/", endpoints) == []  # a bridge announces DDS endpoints
+    # the GID: XXH3-128 of the token, its low 64 bits first, little-endian (xxhash's canonical digest is big-endian)
+    assert entity_gid(tokens[1]) == xxhash.xxh3_128_digest(tokens[1].encode())[::-1]
+    assert entity_gid(tokens[1]) != entity_gid(tokens[2])
 
 
 def test_an_odometry_topic_poses_scans_with_the_static_mount_and_says_when_it_lags():

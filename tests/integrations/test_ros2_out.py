@@ -12,6 +12,7 @@ import time
 
 import numpy as np
 import pytest
+import xxhash
 
 from jitterguard.runtime import ZenohOptions, build_config, free_tcp_port, open_session
 from jitterguard.schemas import decode, encode, keys
@@ -21,11 +22,13 @@ from jitterguard.schemas.models import (Header, Heartbeat, ObjectClassification,
 from jitterguard.services.replay.sources.ros_types import typestore
 
 from helpers import stop_process, wait_until
+from ros2_side import graph
 
 mcap_ros2_dynamic = pytest.importorskip("mcap_ros2._dynamic")
 pytestmark = pytest.mark.integration
 
-TOPIC_KEY = "perception/object_recognition/tracking/objects"
+TOPIC = "/perception/object_recognition/tracking/objects"
+TOPIC_KEY = TOPIC.lstrip("/")
 
 
 def _object(track_id: str, x: float, y: float, yaw: float, vx: float, vy: float, static: bool, label: int) -> TrackedObject:
@@ -130,7 +133,21 @@ def test_objects_reach_ros2_nodes_on_rmw_zenoh_on_the_typed_key_with_their_attac
         assert attached[0][2] == attached[1][2] and len(attached[0][2]) == 16
         assert [m.header.stamp.nanosec for m, _ in got] == [1, 2]
         assert got[1][0].objects[0].kinematics.is_stationary is True
+        # in the ROS graph: its node, and its publisher of the topic with the type, the hash and Autoware's QoS
+        entities = {e["entity"]: e for e in graph(ros, domain)}
+        assert set(entities) == {"node", "publisher"}, entities
+        node, pub = entities["node"], entities["publisher"]
+        assert (node["namespace"], node["node"], node["enclave"]) == (f"/jitterguard/{ns}", "ros2_out", "/")
+        assert (pub["namespace"], pub["node"], pub["nid"], pub["zid"]) == (node["namespace"], "ros2_out", node["nid"],
+                                                                          node["zid"])
+        assert (pub["topic"], pub["type"], pub["type_hash"]) == (
+            TOPIC, "autoware_perception_msgs::msg::dds_::TrackedObjects_", typestore().hash_rihs01(msgtype))
+        assert pub["qos"] == {"reliability": 1, "durability": 2, "history": 1, "depth": 1}
+        # its GID, as rmw_zenoh derives one: XXH3-128 of the token, low 64 bits first
+        assert attached[0][2] == xxhash.xxh3_128_intdigest(pub["token"].encode()).to_bytes(16, "little")
         assert procs[-1].poll() is None
+        stop_process(procs.pop())  # gone from the graph when it stops
+        assert wait_until(lambda: not graph(ros, domain), timeout=20, period=0.2)
     finally:
         for s in sessions:
             s.close()

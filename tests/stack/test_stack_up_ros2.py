@@ -90,18 +90,21 @@ def test_replay_flags_with_ros2_are_one_line_errors(tmp_path, args, message):
 
 def test_up_passes_the_ros2_middleware_to_both_ros2_programs(tmp_path, monkeypatch):
     """``--ros2-middleware rmw_zenoh --ros2-connect`` reach ros2-in and ros2-out alike, with the domain ID of
-    ``$ROS_DOMAIN_ID`` written into their command lines (what supervisord starts)."""
+    ``$ROS_DOMAIN_ID`` and the distribution of ``$ROS_DISTRO`` written into their command lines (what supervisord
+    starts)."""
     from jitterguard.stack.cli import _ros2_args
     from jitterguard.stack.supervisor import StackSpec, programs
 
     monkeypatch.setenv("ROS_DOMAIN_ID", "12")
+    monkeypatch.setenv("ROS_DISTRO", "humble")
     args = _ros2_args("rmw_zenoh", "tcp/127.0.0.1:7447", "default")
-    assert args == ("--middleware", "rmw_zenoh", "--domain-id", "12", "--ros-connect", "tcp/127.0.0.1:7447")
+    assert args == ("--middleware", "rmw_zenoh", "--domain-id", "12", "--ros-distro", "humble",
+                    "--ros-connect", "tcp/127.0.0.1:7447")
     assert _ros2_args("bridge", None, "default") == ()
     progs = {p.name: p.args for p in programs(StackSpec(input="points", ros2_points=POINTS, ros2_args=args))}
     for name in ("ros2-in", "ros2-out"):
         tail = progs[name][progs[name].index("--middleware"):]
-        assert tail[:6] == args, progs[name]
+        assert tail[:8] == args, progs[name]
 
 
 @pytest.mark.parametrize("args, message", [
@@ -115,10 +118,13 @@ def test_ros2_middleware_flags_are_checked_in_one_line(tmp_path, args, message):
     assert res.returncode == 2 and message in res.stderr and res.stderr.count("\n") == 1, res.stderr
 
 
-def test_a_bad_ros_domain_id_is_named_as_up_reads_it(tmp_path):
-    env = {k: v for k, v in os.environ.items() if k != "JG_API_TOKEN"} | {"ROS_DOMAIN_ID": "300"}
+@pytest.mark.parametrize("variable, value, message", [
+    ("ROS_DOMAIN_ID", "300", "ROS_DOMAIN_ID: 300 is outside 0-232"),
+    ("ROS_DISTRO", "Jazzy 2", "ROS_DISTRO: 'Jazzy 2' is not a ROS 2 distribution's name"),
+])
+def test_a_bad_ros_environment_is_named_as_up_reads_it(tmp_path, variable, value, message):
+    env = {k: v for k, v in os.environ.items() if k != "JG_API_TOKEN"} | {variable: value}
     res = subprocess.run([sys.executable, "-m", "jitterguard.cli", "up", "--run-dir", str(tmp_path / "run"), "--ros2",
                           POINTS, "--ros2-middleware", "rmw_zenoh"],
                          capture_output=True, text=True, timeout=60, env=env)
-    message = "ROS_DOMAIN_ID: 300 is outside 0-232"
     assert res.returncode == 2 and message in res.stderr and res.stderr.count("\n") == 1, res.stderr

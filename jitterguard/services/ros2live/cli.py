@@ -35,7 +35,7 @@ KeyPrefixOpt = Annotated[str, typer.Option("--key-prefix", help="bridge: the bri
                                            " `namespace`), if it has one.")]
 RosDistroOpt = Annotated[str, typer.Option(
     "--ros-distro", envvar="ROS_DISTRO", help="rmw_zenoh: the ROS 2 distribution of the nodes (default $ROS_DISTRO,"
-    " else jazzy); on humble, which has no type hashes, the key ends in TypeHashNotSupported.")]
+    " else jazzy); on humble, which has no type hashes, keys and graph tokens carry TypeHashNotSupported instead.")]
 RosConnectOpt = Annotated[list[str] | None, typer.Option(
     "--ros-connect", help="The ROS 2 system's own Zenoh router (rmw_zenohd, or a bridge's), e.g. tcp/127.0.0.1:7447:"
     " the ROS 2 topics are read/put on a client session of it (repeatable), not on jitterguard's router.")]
@@ -43,10 +43,11 @@ RosConnectOpt = Annotated[list[str] | None, typer.Option(
 
 def ros_side(middleware: str, domain_id: str, key_prefix: str, ros_connect: list[str] | None, ns: str, *,
              distro: str = "jazzy",
-             names: tuple[str, str] = ("--middleware", "--domain-id")) -> tuple[RosNaming, ZenohOptions | None]:
+             names: tuple[str, str, str] = ("--middleware", "--domain-id", "--ros-distro"),
+             ) -> tuple[RosNaming, ZenohOptions | None]:
     """The ROS 2 flags as the keys' naming and the ROS side's session options (None: the service's own session),
-    or a one-line refusal naming the flag (exit 2; ``names``: how the caller's user gave the middleware and the
-    domain ID)."""
+    or a one-line refusal naming the flag (exit 2; ``names``: how the caller's user gave the middleware, the
+    domain ID and the distribution)."""
     from .ros_keys import DISTROS_WITHOUT_TYPE_HASHES, MAX_DOMAIN_ID, MIDDLEWARES, RosNaming
 
     if middleware not in MIDDLEWARES:
@@ -55,7 +56,7 @@ def ros_side(middleware: str, domain_id: str, key_prefix: str, ros_connect: list
     if middleware == "rmw_zenoh" and key_prefix.strip("/"):
         fail("--key-prefix: a bridge's namespace; rmw_zenoh keys have none (they start with the domain ID)")
     if not distro.isalpha() or not distro.islower():
-        fail(f"--ros-distro: {distro!r} is not a ROS 2 distribution's name (humble, jazzy, kilted, rolling, ...)")
+        fail(f"{names[2]}: {distro!r} is not a ROS 2 distribution's name (humble, jazzy, kilted, rolling, ...)")
     naming = RosNaming(middleware, key_prefix, domain,  # type: ignore[arg-type]
                        type_hashes=distro not in DISTROS_WITHOUT_TYPE_HASHES)
     if not ros_connect:
@@ -93,6 +94,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         middleware: MiddlewareOpt = "bridge",
         domain_id: DomainIdOpt = "0",
         key_prefix: KeyPrefixOpt = "",
+        ros_distro: RosDistroOpt = "jazzy",
         ros_connect: RosConnectOpt = None,
         tf_wait_s: Annotated[str, typer.Option("--tf-wait-s", help="How long a scan waits for the poses to reach its"
                                                " stamp before it is posed at the newest one (0-1 s).")] = "0.1",
@@ -114,7 +116,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             if kind not in (TF_TYPE, *POSE_TYPES):
                 fail(f"--pose-type: {kind!r} cannot pose a scan (use {TF_TYPE} or one of {', '.join(POSE_TYPES)})")
         opts = zenoh_options(ns, zenoh_config, connect, listen)
-        naming, ros_opts = ros_side(middleware, domain_id, key_prefix, ros_connect, opts.ns)
+        naming, ros_opts = ros_side(middleware, domain_id, key_prefix, ros_connect, opts.ns, distro=ros_distro)
 
         from ...runtime import setup_logging
         from .in_service import Ros2InService

@@ -19,7 +19,8 @@ until one has come.
 
 The ROS 2 topics are on the service's own session (a bridge that is a client of jitterguard's router) or, with
 ``ros_connect``, on a client session of the ROS 2 system's own router (``rmw_zenohd``, or a bridge's): then only the
-topics ``ros2-in`` reads cross between the two Zenoh networks.
+topics ``ros2-in`` reads cross between the two Zenoh networks. Under rmw_zenoh the service is in the ROS graph as
+node ``/jitterguard/<ns>/ros2_in`` subscribing its topics (:mod:`.graph`).
 """
 
 from __future__ import annotations
@@ -30,13 +31,15 @@ import time
 import zenoh
 import zenoh.ext
 
-from ...runtime import Service, ZenohOptions
+from ...ros2.types import POINTCLOUD2, typestore
+from ...runtime import ZenohOptions
 from ...runtime.progress import ProgressPolicy
 from ...schemas import DecodeError, LimitExceeded, encode, keys
 from ..replay.adapter import point_cloud_message
 from ..replay.frames import FrameError
 from ..replay.sources.ros_types import TF_MESSAGE
-from .ros_keys import RosNaming
+from .graph import RosGraphService
+from .ros_keys import RosEndpoint, RosNaming, RosQos
 from .scans_in import LiveScans, UndecodableMessage
 
 INBOX = 4
@@ -49,9 +52,14 @@ PUB_CACHE_PREFIXES = {"bridge": ("@/*/@ros2_pub_cache", "@ros2_pub_cache/*"), "r
 """Where zenoh-bridge-ros2dds 1.0 and 0.x, and rmw_zenoh's first Zenoh 1.0 releases, answer queries for their
 transient-local publications' history (each under its own Zenoh id); the bridge since 1.1 and later rmw_zenoh
 releases serve it to an advanced subscriber's history instead."""
+SCAN_QOS = RosQos(reliable=False, depth=5)
+"""ROS 2's sensor-data QoS, what a LiDAR driver's subscribers use (best effort, keep the last 5)."""
+TF_QOS = RosQos(depth=100)
+STATIC_QOS = RosQos(transient_local=True, depth=100)
+"""tf2's listener: /tf reliable keeping 100, /tf_static transient local keeping 100."""
 
 
-class Ros2InService(Service):
+class Ros2InService(RosGraphService):
     """Publishes the scans of one ROS 2 PointCloud2 topic on ``points``, posed by TF or a pose topic."""
 
     name = "ros2-in"
@@ -82,6 +90,12 @@ class Ros2InService(Service):
         elif pose_type is not None:
             self.pose_key = naming.subscription(pose_topic or "")
             self._sub(self.pose_key, self._on_pose)
+        store = typestore()
+        endpoints = [RosEndpoint("MS", points_topic, POINTCLOUD2, store.hash_rihs01(POINTCLOUD2), SCAN_QOS),
+                     RosEndpoint("MS", "/tf_static", TF_MESSAGE, store.hash_rihs01(TF_MESSAGE), STATIC_QOS)]
+        if pose_type is not None:
+            endpoints.append(RosEndpoint("MS", pose_topic or "/tf", pose_type, store.hash_rihs01(pose_type), TF_QOS))
+        self.graph = self.declare_graph(self.ros, naming, endpoints)
         self.spawn(self._worker, "worker")
         self.spawn(self._static_history, "tf-static")
 

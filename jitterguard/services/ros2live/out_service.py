@@ -7,7 +7,8 @@ z-test, static objects with zero velocity and their window-mean pose), serialise
 ROS 2 system names it (:mod:`.ros_keys`): for zenoh-bridge-ros2dds to hand to ROS 2 (it writes a topic into ROS 2
 once a ROS 2 node subscribes to it), or for rmw_zenoh's subscribers directly, on the key with the message type's
 REP 2011 hash and with the attachment they require (a sequence number, the time of publication, this publisher's
-GID). One read and one write per message; a payload that does not validate is refused and counted per key, as every
+GID), and in rmw_zenoh's ROS graph as node ``/jitterguard/<ns>/ros2_out`` publishing the topic (:mod:`.graph`). One
+read and one write per message; a payload that does not validate is refused and counted per key, as every
 service does.
 """
 
@@ -17,16 +18,20 @@ import time
 
 from ...ros2.autoware import RosBuilder
 from ...ros2.types import TRACKED_OBJECTS, typestore
-from ...runtime import Service, ZenohOptions
+from ...runtime import ZenohOptions
 from ...runtime.progress import ProgressPolicy
 from ...schemas import keys
 from ...schemas.models import TrackedObjects
 from ...schemas.wire import LIMITS
 from ..bridge.service import BOUNDS
-from .ros_keys import RosNaming, publisher_gid, rmw_attachment
+from .graph import RosGraphService
+from .ros_keys import RosEndpoint, RosNaming, RosQos, entity_gid, rmw_attachment
+
+OBJECTS_QOS = RosQos(depth=1)
+"""Autoware's tracker publishes its objects reliable, volatile, keeping the last one (``rclcpp::QoS{1}``)."""
 
 
-class Ros2OutService(Service):
+class Ros2OutService(RosGraphService):
     """Puts the classifier's ``objects`` as CDR ``TrackedObjects`` on one ROS 2 topic's Zenoh key."""
 
     name = "ros2-out"
@@ -37,10 +42,13 @@ class Ros2OutService(Service):
         self.builder = RosBuilder(self.store)
         super().__init__(opts)
         self.naming = naming
-        self.key = naming.publication(topic, TRACKED_OBJECTS, self.store.hash_rihs01(TRACKED_OBJECTS))
+        type_hash = self.store.hash_rihs01(TRACKED_OBJECTS)
+        self.key = naming.publication(topic, TRACKED_OBJECTS, type_hash)
         ros = self.another_session(ros_opts) if ros_opts is not None else self.session
         self._pub = self.publisher(self.key, session=ros)
-        self._gid = publisher_gid(str(ros.zid()), self.key)
+        self.graph = self.declare_graph(ros, naming, [RosEndpoint("MP", topic, TRACKED_OBJECTS, type_hash,
+                                                                  OBJECTS_QOS)])
+        self._gid = entity_gid(self.graph[-1]) if self.graph else bytes(16)
         self._sent = 0
         self.monitor_progress(ProgressPolicy(stall_s=5.0))  # objects in -> TrackedObjects out
         self.subscribe(keys.objects(self.ns), TrackedObjects, self._on_objects, max_bytes=LIMITS.max_payload_bytes,

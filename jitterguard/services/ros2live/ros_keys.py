@@ -12,14 +12,22 @@
 
 Both keep a latched (transient-local) topic's history in a zenoh-ext advanced publisher's cache (the bridge since
 1.1; older bridges in a publication cache, queried by the service): see ``in_service``.
+
+rmw_zenoh's ROS graph (``ros2 topic list``, ``ros2 node list``, ``ros2 topic info -v``, rviz's topic lists) is made
+of Zenoh liveliness tokens, one per node and one per publisher or subscription (:func:`graph_tokens`, the key
+layout of ``Entity`` in ``liveliness_utils.cpp`` since rmw_zenoh moved to Zenoh 1.0: Jazzy's and Humble's binary
+releases). Data flows without them; they make jitterguard's endpoints visible to ROS 2's tools, which also need
+them to learn a topic's type. Behind a bridge the bridge announces DDS endpoints itself: no tokens.
 """
 
 from __future__ import annotations
 
-import hashlib
 import struct
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal
+
+import xxhash
 
 Middleware = Literal["bridge", "rmw_zenoh"]
 MIDDLEWARES: tuple[str, ...] = ("bridge", "rmw_zenoh")
@@ -59,9 +67,58 @@ def rmw_attachment(seq: int, stamp_ns: int, gid: bytes) -> bytes:
     return struct.pack("<qqB16s", seq, stamp_ns, 16, gid)
 
 
-def publisher_gid(*parts: str) -> bytes:
-    """A stable 16-byte GID for a publisher of ours, from what names it (rmw_zenoh hashes its liveliness key)."""
-    return hashlib.sha256("/".join(parts).encode()).digest()[:16]
+def entity_gid(token: str) -> bytes:
+    """An endpoint's 16-byte GID as rmw_zenoh derives it: XXH3-128 of its liveliness token, the low 64 bits first
+    (``Entity``'s constructor) — what ``ros2 topic info -v`` shows and what its attachments carry."""
+    return xxhash.xxh3_128_intdigest(token.encode()).to_bytes(16, "little")
+
+
+GRAPH_PREFIX = "@ros2_lv"
+"""Where rmw_zenoh's liveliness tokens live: ``@ros2_lv/<domain>/...``."""
+RMW_BEST_EFFORT = 2  # rmw_qos_reliability_policy_e (RELIABLE = 1, the default)
+RMW_TRANSIENT_LOCAL = 1  # rmw_qos_durability_policy_e (VOLATILE = 2, the default)
+RMW_ZENOH_DEFAULT_DEPTH = 42
+"""rmw_zenoh's default history depth (``qos.cpp``); a token leaves out every QoS field equal to its default."""
+
+
+@dataclass(frozen=True)
+class RosQos:
+    """The QoS an endpoint announces in its graph token (keep-last history; deadline, lifespan and liveliness at
+    rmw_zenoh's defaults, as every jitterguard endpoint has them)."""
+
+    reliable: bool = True
+    transient_local: bool = False
+    depth: int = RMW_ZENOH_DEFAULT_DEPTH
+
+    def chunk(self) -> str:
+        """``reliability:durability:history,depth:deadline s,ns:lifespan s,ns:liveliness,lease s,ns`` with the
+        defaults left empty (``qos_to_keyexpr``): e.g. ``::,1:,:,:,,`` for reliable, volatile, depth 1."""
+        rel = "" if self.reliable else str(RMW_BEST_EFFORT)
+        dur = str(RMW_TRANSIENT_LOCAL) if self.transient_local else ""
+        depth = "" if self.depth == RMW_ZENOH_DEFAULT_DEPTH else str(self.depth)
+        return f"{rel}:{dur}:,{depth}:,:,:,,"
+
+
+@dataclass(frozen=True)
+class RosEndpoint:
+    """One publisher (``MP``) or subscription (``MS``) of a node, as the ROS graph lists it."""
+
+    kind: Literal["MP", "MS"]
+    topic: str
+    msgtype: str  # pkg/msg/Name
+    type_hash: str  # RIHS01_…, or NO_TYPE_HASH where the distribution has none
+    qos: RosQos = RosQos()
+
+
+def ros_node(service: str, ns: str) -> tuple[str, str]:
+    """The ROS namespace and node name a jitterguard service appears under in the ROS graph: ``/jitterguard/<ns>``
+    and ``ros2_out`` for ``ros2-out`` of namespace ``ns`` (ROS names take no ``-``: it becomes ``_``)."""
+    return f"/jitterguard/{ns.replace('-', '_')}", service.replace("-", "_")
+
+
+def _mangle(name: str) -> str:
+    """A ROS name as one key chunk: ``/`` becomes ``%`` (``mangle_name``)."""
+    return name.replace("/", "%")
 
 
 @dataclass(frozen=True)
@@ -93,6 +150,23 @@ class RosNaming:
             return ros_key(self.prefix, topic)
         chunk = type_hash if self.type_hashes else NO_TYPE_HASH
         return f"{self.domain_id}/{topic.strip('/')}/{dds_type_name(msgtype)}/{chunk}"
+
+    def graph_tokens(self, zid: str, node: str, namespace: str,
+                     endpoints: Sequence[RosEndpoint]) -> list[str]:
+        """The liveliness tokens that put node ``namespace/node`` and its ``endpoints`` in rmw_zenoh's ROS graph,
+        node first (``@ros2_lv/<domain>/<session zid>/<node id>/<entity id>/<NN|MP|MS>/<enclave>/<namespace>/<node>
+        [/<topic>/<type>/<type hash>/<qos>]``, names with ``/`` as ``%``, the default enclave ``/``); none behind a
+        bridge."""
+        if self.middleware != "rmw_zenoh":
+            return []
+        head = f"{GRAPH_PREFIX}/{self.domain_id}/{zid}/0"
+        tail = f"{_mangle('/')}/{_mangle(namespace)}/{node}"
+        tokens = [f"{head}/0/NN/{tail}"]
+        for i, e in enumerate(endpoints, start=1):
+            chunk = e.type_hash if self.type_hashes else NO_TYPE_HASH
+            tokens.append(f"{head}/{i}/{e.kind}/{tail}/{_mangle(e.topic)}/{dds_type_name(e.msgtype)}/{chunk}/"
+                          f"{e.qos.chunk()}")
+        return tokens
 
     @property
     def attaches(self) -> bool:
