@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import itertools
 import time
+from pathlib import Path
 from typing import Any
 
 import zenoh
@@ -71,6 +72,30 @@ def graph(session: zenoh.Session, domain: int) -> list[dict[str, Any]]:
     ``ros2 topic list`` are built from), each read by :func:`read_graph_token`, with its key as ``token``."""
     return [read_graph_token(r.ok.key_expr) | {"token": str(r.ok.key_expr)}
             for r in session.liveliness().get(f"@ros2_lv/{domain}/**", timeout=5.0) if r.ok is not None]
+
+
+def sdk_messages(root: Path, msgtypes: tuple[str, ...]) -> Path:
+    """A message folder as zenoh-ros2-sdk reads one (``pkg/msg/Name.msg``) holding ``msgtypes`` and every type they
+    use: ROS 2's standard definitions as rosbags spells them, Autoware's from the ``.msg`` files jitterguard ships
+    (the SDK would otherwise clone them from GitHub). The SDK parses them and computes the type hashes itself."""
+    from jitterguard.ros2.types import shipped_definitions
+
+    store = typestore()
+    files: dict[str, str] = {}
+    for msgtype in msgtypes:
+        text, _ = store.generate_msgdef(msgtype, ros_version=2)
+        main, *deps = text.split("=" * 80 + "\n")
+        files[msgtype] = main
+        for dep in deps:
+            head, body = dep.split("\n", 1)
+            package, name = head.removeprefix("MSG: ").strip().split("/")
+            files[f"{package}/msg/{name}"] = body
+    files |= shipped_definitions()
+    for msgtype, text in files.items():
+        path = root / f"{msgtype}.msg"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text)
+    return root
 
 
 def stamp(ns: int) -> dict:
