@@ -431,7 +431,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         foxglove_port: Annotated[int, typer.Option("--foxglove-port", min=0, max=65535, help="The Foxglove WebSocket port (0: a free one, printed).")] = StackSpec.foxglove_port,
         record_mcap: Annotated[str | None, typer.Option("--record-mcap", help="Record the Foxglove channels to this MCAP file.")] = None,
         record_ros2: Annotated[str | None, typer.Option("--record-ros2", help="Record a ROS 2 bag for Autoware into this new folder.")] = None,
-        ros2: Annotated[str | None, typer.Option("--ros2", help="Live ROS 2 in the replay's place: this PointCloud2 topic (posed by /tf) in, Autoware's TrackedObjects out, through zenoh-bridge-ros2dds as a client of the router (ros2-in, ros2-out).")] = None,
+        ros2: Annotated[str | None, typer.Option("--ros2", help="Live ROS 2 in the replay's place: this PointCloud2 topic (posed by /tf) in — with --input detections this DetectedObjects topic of the vehicle's own detector, tracked without jitterguard's detector — Autoware's TrackedObjects out, through zenoh-bridge-ros2dds as a client of the router (ros2-in, ros2-out).")] = None,
         ros2_middleware: Annotated[str, typer.Option("--ros2-middleware", help="With --ros2: 'bridge' (zenoh-bridge-ros2dds) or 'rmw_zenoh' (ROS 2 nodes on rmw_zenoh, domain $ROS_DOMAIN_ID), as ros2-in's --middleware.")] = "bridge",
         ros2_connect: Annotated[str | None, typer.Option("--ros2-connect", help="With --ros2: the ROS 2 system's own router (rmw_zenohd, or a bridge's), as ros2-in's --ros-connect; then give --router-port another port than its.")] = None,
         rate: R.RateOpt = "1",
@@ -492,14 +492,17 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             ros2 = topic_option("--ros2", ros2)
             if source is not None:
                 fail("SOURCE is the replay's; --ros2 takes the vehicle's scans in its place: give one of them")
-            if input_level not in ("auto", "points"):
-                fail(f"--input {input_level}: --ros2 brings scans (points) for the detector")
+            if input_level not in ("auto", "points", "detections"):
+                fail(f"--input {input_level}: --ros2 brings scans (points) for the detector, or with --input"
+                     " detections the vehicle's own DetectedObjects for the tracker")
             stray = ropts.changed() + ([(SCENARIO_DURATION, scenario_duration)] if scenario_duration else [])
             if stray:
                 fail(f"{stray[0][0]} is the replay's; not with --ros2")
-            if not has_area("jitterguard.services.detector.service"):
-                fail("--ros2: this install has no detector (pip install 'jitterguard[detector]')")
-            src, mode, warnings = None, "points", []
+            mode = "detections" if input_level == "detections" else "points"
+            if mode == "points" and not has_area("jitterguard.services.detector.service"):
+                fail("--ros2: this install has no detector (pip install 'jitterguard[detector]'); a DetectedObjects"
+                     " topic needs none: --input detections")
+            src, warnings = None, []
             ros2_args = _ros2_args(ros2_middleware, ros2_connect, ns)
         else:
             for flag, value, default in (("--ros2-middleware", ros2_middleware, "bridge"),

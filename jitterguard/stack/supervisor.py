@@ -56,7 +56,9 @@ class StackSpec:
     record_mcap: str | None = None  # absolute path: the Foxglove channels recorded to MCAP
     record_ros2: str | None = None  # absolute path: a rosbag2 for Autoware
     service_configs: dict[str, str] = field(default_factory=dict)  # service → its param.yaml (absolute path)
-    ros2_points: str | None = None  # live ROS 2 in the replay's place: this PointCloud2 topic in, TrackedObjects out
+    # live ROS 2 in the replay's place: this topic in (PointCloud2; DetectedObjects with input "detections"),
+    # TrackedObjects out (the name is older than DetectedObjects' way in; saved specs keep it)
+    ros2_points: str | None = None
     ros2_args: tuple[str, ...] = ()  # the ROS 2 side's middleware flags, for both ros2-in and ros2-out
 
     @property
@@ -125,7 +127,8 @@ def programs(spec: StackSpec) -> list[Program]:
     progs += bridge_programs(spec, common)
     if spec.ros2_points:  # a vehicle's ROS 2 side: a bridge as a client of the router, or nodes on rmw_zenoh
         progs.append(Program("ros2-out", _cmd("ros2-out", *common, *spec.ros2_args), priority=45))
-        progs.append(Program("ros2-in", _cmd("ros2-in", *common, *spec.ros2_args, "--points-topic", spec.ros2_points),
+        topic_flag = "--objects-topic" if mode == "detections" else "--points-topic"
+        progs.append(Program("ros2-in", _cmd("ros2-in", *common, *spec.ros2_args, topic_flag, spec.ros2_points),
                              priority=60, startsecs=2))
     elif mode == "tracks":
         progs.append(Program("replay", _cmd("feed-tracks", *common, "--loop"), priority=60, startsecs=2))

@@ -217,6 +217,10 @@ def test_an_output_that_cannot_be_written_is_refused_before_any_work(args, needl
     (["ros2-in", "--middleware", "rmw_zenoh", "--key-prefix", "robot1", "--connect", "tcp/127.0.0.1:9"],
      "--key-prefix: a bridge's namespace"),
     (["ros2-out", "--ros-connect", "localhost", "--connect", "tcp/127.0.0.1:9"], "endpoint 'localhost' must look like"),
+    (["ros2-in", "--points-topic", "/points", "--objects-topic", "/objects", "--connect", "tcp/127.0.0.1:9"],
+     "--objects-topic takes the vehicle's detections in place of scans"),
+    (["ros2-in", "--objects-topic", "objects", "--connect", "tcp/127.0.0.1:9"],
+     "--objects-topic: 'objects' is not a ROS 2 topic name"),
     (["ros2-out", "--middleware", "rmw_zenoh", "--ros-distro", "Jazzy", "--connect", "tcp/127.0.0.1:9"],
      "--ros-distro: 'Jazzy' is not a ROS 2 distribution's name"),
 ])

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import xxhash
 
-from jitterguard.services.replay.frames import FrameError, ScanFrame
+from jitterguard.services.replay.frames import DetectionFrame, FrameError, ScanFrame
 from jitterguard.services.replay.sources.ros_types import typestore
 from jitterguard.services.ros2live.ros_keys import (RosEndpoint, RosNaming, RosQos, check_topic, dds_type_name,
                                                    entity_gid, rmw_attachment, ros_key, ros_node)
@@ -141,3 +141,48 @@ def test_payloads_of_another_type_are_refused_and_a_frame_without_tf_is_an_error
     assert isinstance(out, FrameError) and "no TF for the scan" in out.reason
     with pytest.raises(ValueError, match="cannot pose a scan"):
         LiveScans("sensor_msgs/msg/Imu")
+
+
+def _detected_objects(t: int, frame: str, x: float, yaw: float) -> bytes:
+    """One car as Autoware's detector reports it: in the vehicle's frame, no position covariance (lidar_centerpoint
+    leaves it out), moving along its own heading (Autoware's twist is in the object's frame)."""
+    pose = {"position": {"x": x, "y": 2.0, "z": 0.8},
+            "orientation": {"x": 0.0, "y": 0.0, "z": math.sin(yaw / 2), "w": math.cos(yaw / 2)}}
+    zero = {"x": 0.0, "y": 0.0, "z": 0.0}
+    car = {"existence_probability": 0.7, "classification": [{"label": 1, "probability": 0.9}],
+           "kinematics": {"pose_with_covariance": {"pose": pose, "covariance": [0.0] * 36},
+                          "has_position_covariance": False, "orientation_availability": 1,
+                          "twist_with_covariance": {"twist": {"linear": {"x": 5.0, "y": 0.0, "z": 0.0},
+                                                              "angular": zero}, "covariance": [0.0] * 36},
+                          "has_twist": True, "has_twist_covariance": False},
+           "shape": {"type": 0, "footprint": {"points": []}, "dimensions": {"x": 4.5, "y": 1.9, "z": 1.6}}}
+    return _enc("autoware_perception_msgs/msg/DetectedObjects",
+                {"header": {"stamp": _stamp(t), "frame_id": frame}, "objects": [car]})
+
+
+def test_the_vehicles_own_detected_objects_are_posed_as_a_bag_of_them_would_be():
+    """A DetectedObjects topic (the vehicle's own detector) in place of scans: each message a posed frame of its boxes,
+    left in their frame (the tracker moves them into the world by the pose), the twist turned onto the frame's axes;
+    a scan's payload on that topic is refused."""
+    core = LiveScans("tf2_msgs/msg/TFMessage", "autoware_perception_msgs/msg/DetectedObjects")
+    t0 = 5_000_000_000
+    pose = {"header": {"stamp": _stamp(t0), "frame_id": "map"}, "child_frame_id": "base_link",
+            "transform": {"translation": {"x": 100.0, "y": 50.0, "z": 0.0},
+                          "rotation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}}}
+    core.tf(_enc("tf2_msgs/msg/TFMessage", {"transforms": [pose]}), 0, static=False)
+    assert core.covered(t0) and not core.covered(t0 + 1)
+    msg, stamp = core.stamp_of(_detected_objects(t0, "base_link", 12.0, math.pi / 2))
+    frame = core.scan(msg, "objects#1", 0)
+    assert isinstance(frame, DetectionFrame) and stamp == t0 and frame.frame_id == "base_link"
+    assert (frame.pose.x, frame.pose.y, frame.pose.z) == pytest.approx((100.0, 50.0, 0.0))
+    (car,) = frame.objects
+    assert car.kinematics.pose_with_covariance.pose.position.x == pytest.approx(12.0)
+    assert car.kinematics.has_position_covariance is False
+    lin = car.kinematics.twist_with_covariance.twist.linear  # heading +y: 5 m/s along the frame's y
+    assert (lin.x, lin.y) == pytest.approx((0.0, 5.0), abs=1e-9)
+    with pytest.raises(UndecodableMessage, match="not a CDR autoware_perception_msgs/msg/DetectedObjects"):
+        core.stamp_of(_cloud(t0))
+    unposed = core.scan(core.stamp_of(_detected_objects(t0, "radar", 1.0, 0.0))[0], "objects#2", 0)
+    assert isinstance(unposed, FrameError) and "no TF for the scan" in unposed.reason
+    with pytest.raises(ValueError, match="carries sensor_msgs/msg/PointCloud2 or"):
+        LiveScans(None, "sensor_msgs/msg/Imu")

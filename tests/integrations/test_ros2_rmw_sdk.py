@@ -16,8 +16,8 @@ import pytest
 
 from jitterguard.runtime import ZenohOptions, build_config, free_tcp_port, open_session
 from jitterguard.schemas import decode, encode, keys
-from jitterguard.schemas.models import (Header, Heartbeat, ObjectClassification, Point, PointCloud, Pose,
-                                        PoseWithCovariance, Quaternion, TrackedObject, TrackedObjectKinematics,
+from jitterguard.schemas.models import (DetectedObjects, Header, Heartbeat, ObjectClassification, Point, PointCloud, Pose,
+                                        PoseWithCovariance, TrackedObject, TrackedObjectKinematics,
                                         TrackedObjects, Twist, TwistWithCovariance, Vector3)
 
 from helpers import stop_process, wait_until
@@ -178,6 +178,76 @@ def test_ros2_in_takes_scans_from_independent_rmw_zenoh_publishers(ros_side):
         ours = [s for s in info.subscribers if s.node_name == "ros2_in"]
         assert len(ours) == 1 and ours[0].node_namespace == f"/jitterguard/{ns}" and ours[0].qos == "2::,5:,:,:,,"
         assert ours[0].type_hash == scans.type_hash  # the SDK's hash of PointCloud2, computed its own way
+        assert procs[-1].poll() is None
+    finally:
+        jg.close()
+
+
+def test_ros2_in_tracks_the_vehicles_own_detected_objects_from_an_independent_publisher(ros_side):
+    """``ros2-in --objects-topic``: the SDK publishes the vehicle's detector's DetectedObjects (in base_link, no
+    position covariance, as Autoware's lidar_centerpoint) and the vehicle's pose on /tf; ros2-in puts them on
+    ``detections``, posed, for jitterguard's tracker, and the SDK's graph lists its subscription of that type."""
+    procs, jg_port, ros_port = ros_side
+    ns, domain = f"sdko{os.getpid()}", 9
+    topic = "/perception/object_recognition/detection/objects"
+    procs.append(_service("ros2-in", ns, jg_port, ros_port, domain, "--objects-topic", topic, "--tf-wait-s", "0.5"))
+    jg = open_session(build_config(ZenohOptions(ns=ns, connect=(f"tcp/127.0.0.1:{jg_port}",))))
+    try:
+        got: list[DetectedObjects] = []
+        jg.declare_subscriber(keys.detections(ns), lambda s: got.append(decode(DetectedObjects, s.payload.to_bytes())))
+        beats: list[Heartbeat] = []
+        jg.declare_subscriber(keys.heartbeat(ns, "ros2-in"),
+                              lambda s: beats.append(decode(Heartbeat, s.payload.to_bytes())))
+        assert wait_until(lambda: bool(beats), timeout=60, period=0.2)
+        c = {t.rsplit("/", 1)[1]: sdk.get_message_class(t) for t in (
+            "std_msgs/msg/Header", "builtin_interfaces/msg/Time", "geometry_msgs/msg/TransformStamped",
+            "geometry_msgs/msg/Transform", "geometry_msgs/msg/Vector3", "geometry_msgs/msg/Quaternion",
+            "geometry_msgs/msg/Point", "geometry_msgs/msg/Pose", "geometry_msgs/msg/PoseWithCovariance",
+            "geometry_msgs/msg/Twist", "geometry_msgs/msg/TwistWithCovariance", "geometry_msgs/msg/Polygon",
+            "autoware_perception_msgs/msg/DetectedObject", "autoware_perception_msgs/msg/DetectedObjectKinematics",
+            "autoware_perception_msgs/msg/ObjectClassification", "autoware_perception_msgs/msg/Shape")}
+
+        def header(t: int, frame: str):  # type: ignore[no-untyped-def]
+            return c["Header"](stamp=c["Time"](sec=t // 1_000_000_000, nanosec=t % 1_000_000_000), frame_id=frame)
+
+        zero = c["Vector3"](x=0.0, y=0.0, z=0.0)
+        car = c["DetectedObject"](
+            existence_probability=0.7, classification=[c["ObjectClassification"](label=1, probability=0.9)],
+            kinematics=c["DetectedObjectKinematics"](
+                pose_with_covariance=c["PoseWithCovariance"](
+                    pose=c["Pose"](position=c["Point"](x=12.0, y=2.0, z=0.8),
+                                   orientation=c["Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0)),
+                    covariance=np.zeros(36)),
+                has_position_covariance=False, orientation_availability=1,
+                twist_with_covariance=c["TwistWithCovariance"](twist=c["Twist"](linear=zero, angular=zero),
+                                                               covariance=np.zeros(36)),
+                has_twist=False, has_twist_covariance=False),
+            shape=c["Shape"](type=0, footprint=c["Polygon"](points=[]), dimensions=c["Vector3"](x=4.5, y=1.9, z=1.6)))
+        tf = sdk.ROS2Publisher("/tf", "tf2_msgs/msg/TFMessage", domain_id=domain, router_port=ros_port)
+        boxes = sdk.ROS2Publisher(topic, "autoware_perception_msgs/msg/DetectedObjects", domain_id=domain,
+                                  router_port=ros_port, qos="::,1:,:,:,,")
+        t0 = 1_700_000_000_000_000_000
+        stamps = [t0 + k * 100_000_000 for k in range(1, 6)]
+        for k, t in enumerate(stamps):
+            tf.publish(transforms=[c["TransformStamped"](
+                header=header(t, "map"), child_frame_id="base_link", transform=c["Transform"](
+                    translation=c["Vector3"](x=100.0 + 0.8 * k, y=50.0, z=0.0),
+                    rotation=c["Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0)))])
+            time.sleep(0.02)
+            boxes.publish(header=header(t, "base_link"), objects=[car])
+            time.sleep(0.2)
+        assert wait_until(lambda: len(got) >= 3, timeout=30, period=0.1), beats[-1].counters if beats else None
+        for msg in got:
+            k = stamps.index(msg.header.stamp)
+            assert msg.header.frame_id == "base_link"
+            assert (msg.ego_pose.position.x, msg.ego_pose.position.y) == pytest.approx((100.0 + 0.8 * k, 50.0))
+            (obj,) = msg.objects
+            assert obj.kinematics.pose_with_covariance.pose.position.x == pytest.approx(12.0)
+            assert obj.classification[0].label == 1 and obj.kinematics.has_position_covariance is False
+        info = sdk.get_topic_info(topic, domain_id=domain, router_port=ros_port, timeout=2.0, verbose=True)
+        assert info is not None and info.topic_types == ["autoware_perception_msgs/msg/DetectedObjects"]
+        ours = [s for s in info.subscribers if s.node_name == "ros2_in"]
+        assert len(ours) == 1 and ours[0].type_hash == boxes.type_hash and ours[0].qos == "::,1:,:,:,,"
         assert procs[-1].poll() is None
     finally:
         jg.close()

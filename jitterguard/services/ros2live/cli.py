@@ -20,9 +20,11 @@ Examples:\n
   jitterguard ros2-in --points-topic /sensing/lidar/top/pointcloud_raw_ex --pose-topic /tf\n
   jitterguard ros2-in --points-topic /points --pose-topic /localization/kinematic_state\n
   jitterguard ros2-in --points-topic /points --no-pose             # a sensor that does not move\n
-  jitterguard ros2-in --middleware rmw_zenoh --ros-connect tcp/127.0.0.1:7447   # nodes on rmw_zenoh, via rmw_zenohd
+  jitterguard ros2-in --middleware rmw_zenoh --ros-connect tcp/127.0.0.1:7447   # nodes on rmw_zenoh, via rmw_zenohd\n
+  jitterguard ros2-in --objects-topic /perception/object_recognition/detection/objects   # Autoware's own boxes
 """
 TF_TYPE = "tf2_msgs/msg/TFMessage"
+DEFAULT_POINTS_TOPIC = "/sensing/lidar/top/pointcloud"
 ODOMETRY_TYPE = "nav_msgs/msg/Odometry"
 
 
@@ -80,10 +82,16 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         "Publish a live ROS 2 PointCloud2 topic on jitterguard's `points`, posed by /tf or an odometry topic, as"
         " zenoh-bridge-ros2dds carries ROS 2 topics into Zenoh (key = topic without its leading '/', payload = the"
         " message's CDR bytes) or ROS 2 nodes on rmw_zenoh put them (--middleware rmw_zenoh). Scans are turned into"
-        " base_link's axes where their mount is a static link, as a bag's are.\n\n" + EXAMPLES))
+        " base_link's axes where their mount is a static link, as a bag's are. With --objects-topic, the vehicle's own"
+        " detector's DetectedObjects go on jitterguard's `detections` instead (for its tracker; no detector).\n\n"
+        + EXAMPLES))
     def ros2_in_cmd(
-        points_topic: Annotated[str, typer.Option("--points-topic", help="The sensor_msgs/msg/PointCloud2 topic.")]
-        = "/sensing/lidar/top/pointcloud",
+        points_topic: Annotated[str | None, typer.Option("--points-topic", help="The sensor_msgs/msg/PointCloud2"
+                                                         f" topic (default {DEFAULT_POINTS_TOPIC}).")] = None,
+        objects_topic: Annotated[str | None, typer.Option(
+            "--objects-topic", help="Instead of scans: an autoware_perception_msgs/msg/DetectedObjects topic (the"
+            " vehicle's own detector, e.g. /perception/object_recognition/detection/objects), published on"
+            " `detections`.")] = None,
         pose_topic: Annotated[str, typer.Option("--pose-topic", help="/tf (with /tf_static), or a nav_msgs/Odometry"
                                                 " or geometry_msgs Pose(WithCovariance)Stamped topic (with"
                                                 " /tf_static for the sensor's mount).")] = "/tf",
@@ -106,7 +114,10 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
     ) -> None:
         from ..replay.sources.ros_types import POSE_TYPES
 
-        points_topic = topic_option("--points-topic", points_topic)
+        if points_topic is not None and objects_topic is not None:
+            fail("--objects-topic takes the vehicle's detections in place of scans: give it or --points-topic")
+        topic = (topic_option("--objects-topic", objects_topic) if objects_topic is not None
+                 else topic_option("--points-topic", points_topic or DEFAULT_POINTS_TOPIC))
         pose_topic = topic_option("--pose-topic", pose_topic)
         wait = parse_float("--tf-wait-s", tf_wait_s, 0.0, 1.0)
         if no_pose:
@@ -122,10 +133,13 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         from .in_service import Ros2InService
 
         setup_logging(log_level)
-        service = Ros2InService(opts, points_topic=points_topic, pose_topic=None if no_pose else pose_topic,
-                                pose_type=kind, naming=naming, ros_opts=ros_opts, tf_wait_s=wait)
-        service.log.info("publishing %s (Zenoh key %s) on %s, posed by %s", points_topic, service.cloud_key,
-                         f"jg/{opts.ns}/points", service.pose_key or "nothing (identity)")
+        from ...ros2.types import DETECTED_OBJECTS, POINTCLOUD2
+
+        service = Ros2InService(opts, topic=topic, pose_topic=None if no_pose else pose_topic, pose_type=kind,
+                                msgtype=POINTCLOUD2 if objects_topic is None else DETECTED_OBJECTS, naming=naming,
+                                ros_opts=ros_opts, tf_wait_s=wait)
+        service.log.info("publishing %s (Zenoh key %s) on %s, posed by %s", topic, service.in_key, service.out_key,
+                         service.pose_key or "nothing (identity)")
         service.run_forever()
 
     @app.command("ros2-out", help=(

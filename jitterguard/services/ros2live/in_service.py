@@ -1,5 +1,6 @@
 """``jitterguard ros2-in``: a live ROS 2 LiDAR topic, on Zenoh through zenoh-bridge-ros2dds or rmw_zenoh, published on
-``jg/{ns}/points``.
+``jg/{ns}/points`` — or the vehicle's own detector's ``autoware_perception_msgs/DetectedObjects`` topic, published on
+``jg/{ns}/detections`` for jitterguard's tracker (``msgtype``).
 
 The Zenoh adapter around :class:`.scans_in.LiveScans`: the scans' key goes through a bounded inbox (the newest scans
 kept; a worker that falls behind skips, counted ``dropped_queue.*``), the pose keys (``tf``, ``tf_static`` or the
@@ -35,7 +36,7 @@ from ...ros2.types import POINTCLOUD2, typestore
 from ...runtime import ZenohOptions
 from ...runtime.progress import ProgressPolicy
 from ...schemas import DecodeError, LimitExceeded, encode, keys
-from ..replay.adapter import point_cloud_message
+from ..replay.adapter import message_for
 from ..replay.frames import FrameError
 from ..replay.sources.ros_types import TF_MESSAGE
 from .graph import RosGraphService
@@ -54,31 +55,35 @@ transient-local publications' history (each under its own Zenoh id); the bridge 
 releases serve it to an advanced subscriber's history instead."""
 SCAN_QOS = RosQos(reliable=False, depth=5)
 """ROS 2's sensor-data QoS, what a LiDAR driver's subscribers use (best effort, keep the last 5)."""
+OBJECTS_QOS = RosQos(depth=1)
+"""Autoware's detection and tracking outputs: reliable, keep the last one."""
 TF_QOS = RosQos(depth=100)
 STATIC_QOS = RosQos(transient_local=True, depth=100)
 """tf2's listener: /tf reliable keeping 100, /tf_static transient local keeping 100."""
 
 
 class Ros2InService(RosGraphService):
-    """Publishes the scans of one ROS 2 PointCloud2 topic on ``points``, posed by TF or a pose topic."""
+    """Publishes the scans of one ROS 2 PointCloud2 topic on ``points`` (or the boxes of one DetectedObjects topic on
+    ``detections``: ``msgtype``), posed by TF or a pose topic."""
 
     name = "ros2-in"
 
-    def __init__(self, opts: ZenohOptions, *, points_topic: str, pose_topic: str | None, pose_type: str | None,
-                 naming: RosNaming = RosNaming(), ros_opts: ZenohOptions | None = None,
+    def __init__(self, opts: ZenohOptions, *, topic: str, pose_topic: str | None, pose_type: str | None,
+                 msgtype: str = POINTCLOUD2, naming: RosNaming = RosNaming(), ros_opts: ZenohOptions | None = None,
                  tf_wait_s: float = 0.1) -> None:
-        self.core = LiveScans(pose_type)  # a pose type it cannot use fails before the session opens
+        self.core = LiveScans(pose_type, msgtype)  # a type it cannot use fails before the session opens
         self._lock = threading.Lock()  # the core is fed from the pose callbacks and the worker
         self.tf_wait_s = tf_wait_s
-        self.points_topic = points_topic
+        self.topic = topic
         super().__init__(opts)
         self._seq = 0
-        self._pub = self.publisher(keys.points(self.ns))
+        self.out_key = keys.points(self.ns) if msgtype == POINTCLOUD2 else keys.detections(self.ns)
+        self._pub = self.publisher(self.out_key)
         self.monitor_progress(ProgressPolicy(stall_s=5.0))  # scans in -> points out
         self.naming = naming
         self.ros = self.another_session(ros_opts) if ros_opts is not None else self.session
-        self.cloud_key = naming.subscription(points_topic)
-        self._inbox = self.subscribe_inbox(self.cloud_key, INBOX, progress=True, max_bytes=MAX_CLOUD_BYTES,
+        self.in_key = naming.subscription(topic)
+        self._inbox = self.subscribe_inbox(self.in_key, INBOX, progress=True, max_bytes=MAX_CLOUD_BYTES,
                                            session=self.ros)
         self.static_key = naming.subscription("/tf_static")
         self._static_seen = threading.Event()
@@ -91,7 +96,8 @@ class Ros2InService(RosGraphService):
             self.pose_key = naming.subscription(pose_topic or "")
             self._sub(self.pose_key, self._on_pose)
         store = typestore()
-        endpoints = [RosEndpoint("MS", points_topic, POINTCLOUD2, store.hash_rihs01(POINTCLOUD2), SCAN_QOS),
+        endpoints = [RosEndpoint("MS", topic, msgtype, store.hash_rihs01(msgtype),
+                                 SCAN_QOS if msgtype == POINTCLOUD2 else OBJECTS_QOS),
                      RosEndpoint("MS", "/tf_static", TF_MESSAGE, store.hash_rihs01(TF_MESSAGE), STATIC_QOS)]
         if pose_type is not None:
             endpoints.append(RosEndpoint("MS", pose_topic or "/tf", pose_type, store.hash_rihs01(pose_type), TF_QOS))
@@ -184,7 +190,7 @@ class Ros2InService(RosGraphService):
             self.counters.inc("pose_clamped")  # posed at the newest pose before it
         self._seq += 1
         with self._lock:
-            frame = self.core.scan(msg, f"{self.points_topic}#{self._seq}", received)
+            frame = self.core.scan(msg, f"{self.topic}#{self._seq}", received)
             notes = self.core.notes()
         for note in notes:
             self.log.info("%s", note)
@@ -194,7 +200,7 @@ class Ros2InService(RosGraphService):
             self.log.warning("%s: %s", frame.origin, frame.reason)
             return
         try:
-            data = encode(point_cloud_message(frame, self._seq, frame.stamp_ns))
+            data = encode(message_for(frame, self._seq, frame.stamp_ns))
         except (LimitExceeded, ValueError) as exc:  # beyond the wire's limits: refused here, not downstream
             self._refuse(exc, key)
             self.progress.failure(time.monotonic(), str(exc)[:200])

@@ -1,4 +1,5 @@
-"""The live ROS 2 input's pure core: CDR messages of a LiDAR topic and its poses in, posed scans out.
+"""The live ROS 2 input's pure core: CDR messages of a LiDAR topic (or of a detector's ``DetectedObjects`` topic) and
+its poses in, posed scans (or frames of detections) out.
 
 A vehicle's ROS 2 stack reaches Zenoh through ``zenoh-bridge-ros2dds`` or runs on rmw_zenoh (the keys of either:
 :mod:`.ros_keys`); each message travels as its CDR bytes, encapsulation header included. This core decodes them
@@ -14,9 +15,13 @@ from __future__ import annotations
 
 from typing import Any
 
-from ..replay.frames import FrameError, ScanFrame
+from ..replay.frames import DetectionFrame, FrameError, ScanFrame
 from ..replay.sources.poser import ScanPoser
-from ..replay.sources.ros_types import POINTCLOUD2, POSE_TYPES, TF_MESSAGE, stamp_ns, typestore
+from ..replay.sources.ros_types import DETECTED_OBJECTS, POINTCLOUD2, POSE_TYPES, TF_MESSAGE, stamp_ns, typestore
+
+INPUT_TYPES = (POINTCLOUD2, DETECTED_OBJECTS)
+"""What the input topic may carry: a LiDAR's scans (for jitterguard's detector), or the boxes of the vehicle's own
+detector (Autoware's ``DetectedObjects``, for jitterguard's tracker)."""
 
 KEEP_POSES_NS = 10_000_000_000
 """Pose samples older than this behind the newest scan are forgotten: a live stream's memory stays bounded."""
@@ -27,14 +32,18 @@ class UndecodableMessage(ValueError):
 
 
 class LiveScans:
-    """One LiDAR topic, posed by TF (``pose_type`` ``tf2_msgs/msg/TFMessage``), a pose topic (one of
-    :data:`POSE_TYPES`) or nothing (the identity pose: a sensor that does not move)."""
+    """One input topic of ``msgtype`` (:data:`INPUT_TYPES`: scans, or DetectedObjects), posed by TF (``pose_type``
+    ``tf2_msgs/msg/TFMessage``), a pose topic (one of :data:`POSE_TYPES`) or nothing (the identity pose: a sensor
+    that does not move)."""
 
-    def __init__(self, pose_type: str | None) -> None:
+    def __init__(self, pose_type: str | None, msgtype: str = POINTCLOUD2) -> None:
         if pose_type not in (None, TF_MESSAGE, *POSE_TYPES):
             raise ValueError(f"pose messages of type {pose_type} cannot pose a scan (use {TF_MESSAGE} or one of "
                              f"{', '.join(POSE_TYPES)})")
+        if msgtype not in INPUT_TYPES:
+            raise ValueError(f"an input topic carries {' or '.join(INPUT_TYPES)}, not {msgtype}")
         self.pose_type = pose_type
+        self.msgtype = msgtype
         self.store = typestore()
         self.poser = ScanPoser(use_tf=pose_type == TF_MESSAGE)
         self.newest_pose_ns: int | None = None  # the newest dynamic pose sample's stamp
@@ -66,19 +75,22 @@ class LiveScans:
             self.newest_pose_ns = stamp
 
     def stamp_of(self, payload: bytes) -> tuple[Any, int]:
-        """The decoded PointCloud2 and its header stamp (0 when the driver left it unset)."""
-        msg = self._decode(payload, POINTCLOUD2)
+        """The decoded input message and its header stamp (0 when the driver left it unset)."""
+        msg = self._decode(payload, self.msgtype)
         return msg, stamp_ns(msg.header)
 
     def covered(self, stamp: int) -> bool:
         """Whether the poses reach ``stamp`` (no pose source: always)."""
         return self.pose_type is None or (self.newest_pose_ns is not None and self.newest_pose_ns >= stamp)
 
-    def scan(self, msg: Any, origin: str, received_ns: int) -> ScanFrame | FrameError:
-        """The posed scan of a decoded PointCloud2 (:meth:`stamp_of`), or why there is none; forgets the poses
-        :data:`KEEP_POSES_NS` older than it."""
-        frame = self.poser.scan(msg, origin, received_ns)
-        if isinstance(frame, ScanFrame):
+    def scan(self, msg: Any, origin: str, received_ns: int) -> ScanFrame | DetectionFrame | FrameError:
+        """The posed scan of a decoded PointCloud2, or the posed frame of a decoded DetectedObjects (:meth:`stamp_of`),
+        or why there is none; forgets the poses :data:`KEEP_POSES_NS` older than it."""
+        if self.msgtype == POINTCLOUD2:
+            frame: ScanFrame | DetectionFrame | FrameError = self.poser.scan(msg, origin, received_ns)
+        else:
+            frame = self.poser.detections(msg, origin, received_ns)
+        if not isinstance(frame, FrameError):
             self.poser.forget_before(frame.stamp_ns - KEEP_POSES_NS)
         return frame
 

@@ -40,9 +40,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from pydantic import ValidationError
-
-from ..frames import DetectionFrame, FrameError, Item, SourceError, SourceInfo
+from ..frames import FrameError, Item, SourceError, SourceInfo
 from .base import Source
 from .poser import ScanPoser
 from .ros_types import (
@@ -50,8 +48,6 @@ from .ros_types import (
     TF_MESSAGE,
     POINTCLOUD2,
     POSE_TYPES,
-    detected_object_from_ros,
-    stamp_ns,
     typestore,
 )
 
@@ -229,25 +225,8 @@ class BagSource(Source):
                 continue
             if self.msgtype == POINTCLOUD2:
                 yield self._said(self.poser.scan(msg, origin, int(t_bag)))
-                continue
-            stamp = stamp_ns(msg.header) or int(t_bag)
-            frame_id = msg.header.frame_id.lstrip("/") or "lidar"  # as ScanPoser.scan reads a cloud's
-            pose = self._said(self.poser.pose(frame_id, stamp))
-            if isinstance(pose, str):
-                yield FrameError(origin, pose)
-                continue
             else:
-                try:
-                    objects = [detected_object_from_ros(o) for o in msg.objects]
-                except ValidationError as exc:
-                    err = exc.errors(include_url=False)[0]
-                    loc = ".".join(str(p) for p in err.get("loc", ()))
-                    yield FrameError(origin, f"invalid DetectedObject ({loc}: {err.get('msg')})")
-                    continue
-                except (AttributeError, TypeError, ValueError) as exc:
-                    yield FrameError(origin, f"unexpected DetectedObjects layout: {exc}")
-                    continue
-                yield DetectionFrame(stamp, pose, objects, origin, frame_id)
+                yield self._said(self.poser.detections(msg, origin, int(t_bag)))
 
     def _said(self, item: Any) -> Any:
         """``item``, after logging what the poser noted meanwhile (once each)."""

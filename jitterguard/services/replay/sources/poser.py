@@ -1,4 +1,5 @@
-"""A ROS scan's pose in the world and its turn into the vehicle's axes, from TF or a pose topic.
+"""A ROS scan's (or a detector's DetectedObjects') pose in the world and a scan's turn into the vehicle's axes, from
+TF or a pose topic.
 
 One piece shared by the two ways ROS 2 scans come in: a bag (:mod:`.bag`, every pose message read before the
 first scan) and a live topic bridged into Zenoh (:mod:`jitterguard.services.ros2live`, pose messages as they come,
@@ -20,9 +21,11 @@ from numpy.typing import NDArray
 
 from ....geometry import rotation_from_quaternion
 from ....schemas.wire import LIMITS
-from ..frames import IDENTITY, EgoPose, FrameError, ScanFrame, compose, finite_rows
+from pydantic import ValidationError
+
+from ..frames import IDENTITY, DetectionFrame, EgoPose, FrameError, ScanFrame, compose, finite_rows
 from .nuscenes import FRAME_SUFFIX, turn_points
-from .ros_types import interpolate_pose, pointcloud2_to_array, pose_of, stamp_ns
+from .ros_types import detected_object_from_ros, interpolate_pose, pointcloud2_to_array, pose_of, stamp_ns
 from .tf import TfTree
 
 LEVEL_TOLERANCE = 1e-9
@@ -178,3 +181,21 @@ class ScanPoser:
             rot, turn = level
             pts, pose, frame_id = turn_points(pts, rot), compose(pose, turn), frame_id + FRAME_SUFFIX
         return ScanFrame(stamp, pose, pts, names, origin, frame_id)
+
+    def detections(self, msg: Any, origin: str, fallback_ns: int) -> DetectionFrame | FrameError:
+        """An ``autoware_perception_msgs/DetectedObjects`` as a posed frame of detections (the boxes stay in their
+        frame: the tracker moves them into the world by the pose), or why it cannot be one."""
+        stamp = stamp_ns(msg.header) or fallback_ns
+        frame_id = msg.header.frame_id.lstrip("/") or "lidar"  # as scan() reads a cloud's
+        pose = self.pose(frame_id, stamp)
+        if isinstance(pose, str):
+            return FrameError(origin, pose)
+        try:
+            objects = [detected_object_from_ros(o) for o in msg.objects]
+        except ValidationError as exc:
+            err = exc.errors(include_url=False)[0]
+            loc = ".".join(str(p) for p in err.get("loc", ()))
+            return FrameError(origin, f"invalid DetectedObject ({loc}: {err.get('msg')})")
+        except (AttributeError, TypeError, ValueError) as exc:
+            return FrameError(origin, f"unexpected DetectedObjects layout: {exc}")
+        return DetectionFrame(stamp, pose, objects, origin, frame_id)
