@@ -16,8 +16,8 @@ import pytest
 
 from jitterguard.runtime import ZenohOptions, build_config, free_tcp_port, open_session
 from jitterguard.schemas import decode, encode, keys
-from jitterguard.schemas.models import (DetectedObjects, Header, Heartbeat, ObjectClassification, Point, PointCloud, Pose,
-                                        PoseWithCovariance, TrackedObject, TrackedObjectKinematics,
+from jitterguard.schemas.models import (DetectedObjects, Header, Heartbeat, ObjectClassification, Point, PointCloud,
+                                        Pose, PoseWithCovariance, TrackedObject, TrackedObjectKinematics,
                                         TrackedObjects, Twist, TwistWithCovariance, Vector3)
 
 from helpers import stop_process, wait_until
