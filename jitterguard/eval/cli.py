@@ -69,7 +69,8 @@ def eval_command(
                                       "drive: the online calibration carries over).")] = 1,
     variance_scale: Annotated[float, typer.Option("--variance-scale", help="Multiply every reported position "
                                                   "variance by this before the tracker (a detector off by a "
-                                                  "constant factor).")] = 1.0,
+                                                  "constant factor); 0: no covariance reported at all (as "
+                                                  "Autoware's lidar_centerpoint).")] = 1.0,
     variance_scale_at: Annotated[str, typer.Option("--variance-scale-at", help="detector (its output: the tracker "
                                                    "sees the scaled variances too) or classifier (only what "
                                                    "the classifier receives).")] = "detector",
@@ -150,8 +151,8 @@ def eval_command(
         fail("--duration must be in (0, 600] and --rate in (0, 100]")
     if not 1 <= runs <= 50:
         fail("--runs must be in [1, 50]")
-    if not 1e-3 <= variance_scale <= 1e3:
-        fail("--variance-scale must be in [0.001, 1000]")
+    if not (1e-3 <= variance_scale <= 1e3 or variance_scale == 0.0):
+        fail("--variance-scale must be in [0.001, 1000], or 0 (no covariance reported)")
     if variance_scale_at not in ("detector", "classifier"):
         fail(f"--variance-scale-at: expected detector or classifier, got {variance_scale_at!r}")
     if mode is not None and mode not in ("z_test", "chi2"):

@@ -163,10 +163,15 @@ def run_pipeline(frames: Iterable[GroundTruthFrame], noise: NoiseConfig, seed: i
 def scale_variances(det: DetectedColumns, factor: float) -> DetectedColumns:
     """``det`` with every detection's reported position covariance (the x/y block and its cross terms with
     z / roll / pitch / yaw, so the 6×6 stays consistent) multiplied by ``factor``: a detector off by a
-    constant factor (``jitterguard eval --variance-scale``)."""
+    constant factor (``jitterguard eval --variance-scale``). ``factor`` 0: no covariance reported at all —
+    ``has_position_covariance`` false and every entry 0, as Autoware's lidar_centerpoint publishes its boxes."""
     if factor == 1.0:
         return det
     objects = wire.DETECTED.copy(det.objects)
+    if factor == 0.0:
+        objects[wire.POSE_COV]["v"] = 0.0
+        objects[wire.HAS_POSITION_COV] = 0xC2  # msgpack false, as the record stores a bool
+        return replace(det, objects=objects)
     cov = objects[wire.POSE_COV]["v"]
     for i in range(6):
         for j in range(6):

@@ -325,7 +325,8 @@ def write_outputs(out: Path, rec: Records, metrics: dict[str, Any],
         + f"), speed threshold {run['velocity_threshold']} m/s, per class "
         f"{run.get('velocity_threshold_per_class')}"
         + (f", sustain {run['velocity_sustain_s_per_class']} s" if run.get("velocity_sustain_s_per_class") else "")
-        + (f"; every reported variance ×{run['variance_scale']:g}" if run.get("variance_scale", 1.0) != 1.0 else "")
+        + ("; no position covariance reported" if run.get("variance_scale", 1.0) == 0.0
+           else f"; every reported variance ×{run['variance_scale']:g}" if run.get("variance_scale", 1.0) != 1.0 else "")
         + f". Scored rows: matched, z-test window ≥ {run['min_window']}. Brackets: 90 % intervals over tracks.",
         "",
         "| group | n static | n dynamic | AP z | AP speed | false dyn z | false dyn speed | missed dyn z "

@@ -191,6 +191,51 @@ def test_observation_detection_is_in_the_world_frame_with_rotated_covariance() -
     assert decode(TrackedObjects, tracked_payload(cols, frame, res)).ego_pose == msg.ego_pose  # the contract's ego pose
 
 
+def test_a_detection_without_covariance_is_observed_with_the_filters_measurement_covariance() -> None:
+    """Autoware's lidar_centerpoint reports no position covariance. The observation the classifier receives then
+    carries the covariance the filter measured the detection with — the class's, along (r_long) and across (r_lat)
+    its heading in the world — and says it has one; a detection with its own covariance keeps it."""
+    ego_yaw, det_yaw = 0.5, 0.3
+    qx, qy, qz, qw = quaternion_from_yaw(ego_yaw)
+    dq = quaternion_from_yaw(det_yaw)
+
+    def car(x: float, cov: list[float] | None) -> DetectedObject:
+        return DetectedObject(
+            classification=[ObjectClassification(label=1, probability=0.9)],
+            kinematics=DetectedObjectKinematics(
+                pose_with_covariance=PoseWithCovariance(
+                    pose=Pose(position=Point(x=x, y=2.0, z=0.7),
+                              orientation=Quaternion(x=dq[0], y=dq[1], z=dq[2], w=dq[3])),
+                    covariance=cov or [0.0] * 36),
+                has_position_covariance=cov is not None, orientation_availability=1),
+            shape=Shape(type=0, dimensions=Vector3(x=4.5, y=1.9, z=1.5)))
+    own = [0.0] * 36
+    own[X_X], own[Y_Y] = 0.04, 0.09
+    config = default_config(confirm_hits=1)
+    core = TrackerCore(config)
+    msg = DetectedObjects(header=Header(stamp=10**9, frame_id="lidar", seq=1),
+                          ego_pose=Pose(position=Point(x=100.0, y=50.0, z=1.8),
+                                        orientation=Quaternion(x=qx, y=qy, z=qz, w=qw)),
+                          objects=[car(10.0, None), car(30.0, own)])
+    cols = read_detected_objects(encode(msg))
+    frame = detection_frame(cols)
+    res = core.step(frame)
+    dets = sorted((decode(TrackObservation, p).detection for _, p in observation_payloads(cols, frame, res)),
+                  key=lambda d: d.kinematics.pose_with_covariance.pose.position.x)
+    assert len(dets) == 2 and all(d.kinematics.has_position_covariance for d in dets)
+    car_params = config.classes["car"]
+    heading = det_yaw + ego_yaw
+    c, s = math.cos(heading), math.sin(heading)
+    rl, rt = car_params.r_long ** 2, car_params.r_lat ** 2
+    wc = dets[0].kinematics.pose_with_covariance.covariance
+    assert (wc[X_X], wc[X_Y], wc[Y_X], wc[Y_Y]) == pytest.approx(
+        (c * c * rl + s * s * rt, c * s * (rl - rt), c * s * (rl - rt), s * s * rl + c * c * rt))
+    assert sum(abs(v) for i, v in enumerate(wc) if i not in (X_X, X_Y, Y_X, Y_Y)) == 0.0
+    kept = dets[1].kinematics.pose_with_covariance.covariance
+    rxx, rxy, ryy = rotate_cov2(0.04, 0.0, 0.09, ego_yaw)
+    assert (kept[X_X], kept[X_Y], kept[Y_Y]) == pytest.approx((rxx, rxy, ryy))
+
+
 def test_tracked_object_carries_filter_state_and_world_twist() -> None:
     seq = make_sequence(6, n_frames=30)
     *_, (sf, msg, frame, res, (obs, closing)) = _run(seq.frames)

@@ -70,7 +70,10 @@ def detection_frame(cols: DetectedColumns) -> DetectionFrame:
 
 def world_detections(cols: DetectedColumns, frame: DetectionFrame, result: FrameResult) -> np.ndarray:
     """The observed detections (``result.obs_det``, then ``result.tentative_det``) as records moved into the world
-    frame (copies)."""
+    frame (copies). A detection that came without a position covariance of its own (Autoware's lidar_centerpoint
+    reports none) carries the one the filter measured it with — the class's, along and across its heading — and
+    says so (``has_position_covariance``): the classifier's test needs a variance to calibrate, and a zero one
+    floored at 1 cm had made it call most parked cars moving."""
     rows = np.concatenate([result.obs_det, result.tentative_det])
     out = wire.DETECTED.select(cols.objects, rows)
     if not len(out):
@@ -80,6 +83,14 @@ def world_detections(cols: DetectedColumns, frame: DetectionFrame, result: Frame
     q = np.column_stack([out[n] for n in (wire.QX, wire.QY, wire.QZ, wire.QW)]).astype(np.float64)
     out[wire.QX], out[wire.QY], out[wire.QZ], out[wire.QW] = quaternions_about_z(q, yaw).T
     out[wire.POSE_COV]["v"] = rotate_cov6(out[wire.POSE_COV]["v"], yaw)
+    pcov = out[wire.POSE_COV]["v"]
+    none = (out[wire.HAS_POSITION_COV] != 0xC3) | ((pcov[:, X_X] <= 0.0) & (pcov[:, Y_Y] <= 0.0))
+    if none.any():
+        R = det.R[rows[none]]
+        pcov[none] = 0.0
+        pcov[none, X_X], pcov[none, Y_Y] = R[:, 0, 0], R[:, 1, 1]
+        pcov[none, X_Y] = pcov[none, Y_X] = R[:, 0, 1]
+        out[wire.HAS_POSITION_COV][none] = 0xC3
     out[wire.VX], out[wire.VY] = rotate_xy(out[wire.VX], out[wire.VY], yaw)
     tcov = out[wire.TWIST_COV]["v"]
     moving = np.flatnonzero(tcov.any(axis=1))  # a zero covariance (no twist reported) rotates to itself
