@@ -10,6 +10,7 @@ import os
 import subprocess
 import sys
 import time
+from typing import Any
 
 import numpy as np
 import pytest
@@ -61,6 +62,39 @@ def _service(name: str, ns: str, jg_port: int, ros_port: int, domain: int, *extr
                              f"tcp/127.0.0.1:{jg_port}", "--middleware", "rmw_zenoh", "--domain-id", str(domain),
                              "--ros-distro", "jazzy", "--ros-connect", f"tcp/127.0.0.1:{ros_port}", *extra],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+
+def _listen(jg_port: int, ns: str, key: str, model: type) -> tuple[Any, list, list[Heartbeat]]:
+    """A session on jitterguard's router collecting what ``key`` carries (decoded as ``model``), once ros2-in's
+    heartbeat says it is up."""
+    jg = open_session(build_config(ZenohOptions(ns=ns, connect=(f"tcp/127.0.0.1:{jg_port}",))))
+    got: list = []
+    jg.declare_subscriber(key, lambda s: got.append(decode(model, s.payload.to_bytes())))
+    beats: list[Heartbeat] = []
+    jg.declare_subscriber(keys.heartbeat(ns, "ros2-in"), lambda s: beats.append(decode(Heartbeat, s.payload.to_bytes())))
+    assert wait_until(lambda: bool(beats), timeout=60, period=0.2)
+    return jg, got, beats
+
+
+class _Msgs:
+    """The SDK's message classes (rosbags' dataclasses of the definitions it loaded), by short name, and the pieces
+    a ROS 2 node would publish."""
+
+    def __init__(self, *msgtypes: str) -> None:
+        common = ("std_msgs/msg/Header", "builtin_interfaces/msg/Time", "geometry_msgs/msg/TransformStamped",
+                  "geometry_msgs/msg/Transform", "geometry_msgs/msg/Vector3", "geometry_msgs/msg/Quaternion")
+        self.c = {t.rsplit("/", 1)[1]: sdk.get_message_class(t) for t in (*common, *msgtypes)}
+
+    def header(self, t: int, frame: str) -> Any:
+        return self.c["Header"](stamp=self.c["Time"](sec=t // 1_000_000_000, nanosec=t % 1_000_000_000),
+                                frame_id=frame)
+
+    def transforms(self, parent: str, child: str, t: int, xyz: tuple[float, float, float]) -> list:
+        """One level transform ``parent`` → ``child`` at ``xyz`` (a TFMessage's ``transforms``)."""
+        return [self.c["TransformStamped"](
+            header=self.header(t, parent), child_frame_id=child, transform=self.c["Transform"](
+                translation=self.c["Vector3"](x=xyz[0], y=xyz[1], z=xyz[2]),
+                rotation=self.c["Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0)))]
 
 
 def _object(track_id: str, x: float, static: bool, label: int) -> TrackedObject:
@@ -124,44 +158,24 @@ def test_ros2_in_takes_scans_from_independent_rmw_zenoh_publishers(ros_side):
     ns, domain = f"sdki{os.getpid()}", 8
     procs.append(_service("ros2-in", ns, jg_port, ros_port, domain, "--points-topic", POINTS_TOPIC,
                           "--tf-wait-s", "0.5"))
-    jg = open_session(build_config(ZenohOptions(ns=ns, connect=(f"tcp/127.0.0.1:{jg_port}",))))
+    jg, got, beats = _listen(jg_port, ns, keys.points(ns), PointCloud)
     try:
-        got: list[PointCloud] = []
-        jg.declare_subscriber(keys.points(ns), lambda s: got.append(decode(PointCloud, s.payload.to_bytes())))
-        beats: list[Heartbeat] = []
-        jg.declare_subscriber(keys.heartbeat(ns, "ros2-in"),
-                              lambda s: beats.append(decode(Heartbeat, s.payload.to_bytes())))
-        assert wait_until(lambda: bool(beats), timeout=60, period=0.2)
-        cls = {t: sdk.get_message_class(t) for t in (
-            "std_msgs/msg/Header", "builtin_interfaces/msg/Time", "geometry_msgs/msg/TransformStamped",
-            "geometry_msgs/msg/Transform", "geometry_msgs/msg/Vector3", "geometry_msgs/msg/Quaternion",
-            "sensor_msgs/msg/PointField")}
-
-        def header(t: int, frame: str):  # type: ignore[no-untyped-def]
-            return cls["std_msgs/msg/Header"](stamp=cls["builtin_interfaces/msg/Time"](
-                sec=t // 1_000_000_000, nanosec=t % 1_000_000_000), frame_id=frame)
-
-        def transforms(parent: str, child: str, t: int, xyz) -> list:  # type: ignore[no-untyped-def]
-            return [cls["geometry_msgs/msg/TransformStamped"](
-                header=header(t, parent), child_frame_id=child, transform=cls["geometry_msgs/msg/Transform"](
-                    translation=cls["geometry_msgs/msg/Vector3"](x=xyz[0], y=xyz[1], z=xyz[2]),
-                    rotation=cls["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0)))]
-
+        m = _Msgs("sensor_msgs/msg/PointField")
         tf_static = sdk.ROS2Publisher("/tf_static", "tf2_msgs/msg/TFMessage", domain_id=domain, router_port=ros_port,
                                       qos=":1:,1:,:,:,,")  # latched: transient local, keep last 1
         tf = sdk.ROS2Publisher("/tf", "tf2_msgs/msg/TFMessage", domain_id=domain, router_port=ros_port)
         scans = sdk.ROS2Publisher(POINTS_TOPIC, "sensor_msgs/msg/PointCloud2", domain_id=domain, router_port=ros_port,
                                   qos="2::,5:,:,:,,")
-        fields = [cls["sensor_msgs/msg/PointField"](name=n, offset=4 * i, datatype=7, count=1)
+        fields = [m.c["PointField"](name=n, offset=4 * i, datatype=7, count=1)
                   for i, n in enumerate(("x", "y", "z", "intensity"))]
         t0 = 1_700_000_000_000_000_000
         stamps = [t0 + k * 100_000_000 for k in range(1, 6)]
         for k, t in enumerate(stamps):
             vehicle = (100.0 + 0.8 * k, 50.0, 0.0)
-            tf_static.publish(transforms=transforms("base_link", "velodyne", 0, MOUNT))
-            tf.publish(transforms=transforms("map", "base_link", t, vehicle))
+            tf_static.publish(transforms=m.transforms("base_link", "velodyne", 0, MOUNT))
+            tf.publish(transforms=m.transforms("map", "base_link", t, vehicle))
             time.sleep(0.02)
-            scans.publish(header=header(t, "velodyne"), height=1, width=len(RAW), fields=fields, is_bigendian=False,
+            scans.publish(header=m.header(t, "velodyne"), height=1, width=len(RAW), fields=fields, is_bigendian=False,
                           point_step=16, row_step=16 * len(RAW), data=np.frombuffer(RAW.tobytes(), np.uint8),
                           is_dense=True)
             time.sleep(0.3)
@@ -191,25 +205,14 @@ def test_ros2_in_tracks_the_vehicles_own_detected_objects_from_an_independent_pu
     ns, domain = f"sdko{os.getpid()}", 9
     topic = "/perception/object_recognition/detection/objects"
     procs.append(_service("ros2-in", ns, jg_port, ros_port, domain, "--objects-topic", topic, "--tf-wait-s", "0.5"))
-    jg = open_session(build_config(ZenohOptions(ns=ns, connect=(f"tcp/127.0.0.1:{jg_port}",))))
+    jg, got, beats = _listen(jg_port, ns, keys.detections(ns), DetectedObjects)
     try:
-        got: list[DetectedObjects] = []
-        jg.declare_subscriber(keys.detections(ns), lambda s: got.append(decode(DetectedObjects, s.payload.to_bytes())))
-        beats: list[Heartbeat] = []
-        jg.declare_subscriber(keys.heartbeat(ns, "ros2-in"),
-                              lambda s: beats.append(decode(Heartbeat, s.payload.to_bytes())))
-        assert wait_until(lambda: bool(beats), timeout=60, period=0.2)
-        c = {t.rsplit("/", 1)[1]: sdk.get_message_class(t) for t in (
-            "std_msgs/msg/Header", "builtin_interfaces/msg/Time", "geometry_msgs/msg/TransformStamped",
-            "geometry_msgs/msg/Transform", "geometry_msgs/msg/Vector3", "geometry_msgs/msg/Quaternion",
-            "geometry_msgs/msg/Point", "geometry_msgs/msg/Pose", "geometry_msgs/msg/PoseWithCovariance",
-            "geometry_msgs/msg/Twist", "geometry_msgs/msg/TwistWithCovariance", "geometry_msgs/msg/Polygon",
-            "autoware_perception_msgs/msg/DetectedObject", "autoware_perception_msgs/msg/DetectedObjectKinematics",
-            "autoware_perception_msgs/msg/ObjectClassification", "autoware_perception_msgs/msg/Shape")}
-
-        def header(t: int, frame: str):  # type: ignore[no-untyped-def]
-            return c["Header"](stamp=c["Time"](sec=t // 1_000_000_000, nanosec=t % 1_000_000_000), frame_id=frame)
-
+        m = _Msgs("geometry_msgs/msg/Point", "geometry_msgs/msg/Pose", "geometry_msgs/msg/PoseWithCovariance",
+                  "geometry_msgs/msg/Twist", "geometry_msgs/msg/TwistWithCovariance", "geometry_msgs/msg/Polygon",
+                  "autoware_perception_msgs/msg/DetectedObject",
+                  "autoware_perception_msgs/msg/DetectedObjectKinematics",
+                  "autoware_perception_msgs/msg/ObjectClassification", "autoware_perception_msgs/msg/Shape")
+        c = m.c
         zero = c["Vector3"](x=0.0, y=0.0, z=0.0)
         car = c["DetectedObject"](
             existence_probability=0.7, classification=[c["ObjectClassification"](label=1, probability=0.9)],
@@ -229,12 +232,9 @@ def test_ros2_in_tracks_the_vehicles_own_detected_objects_from_an_independent_pu
         t0 = 1_700_000_000_000_000_000
         stamps = [t0 + k * 100_000_000 for k in range(1, 6)]
         for k, t in enumerate(stamps):
-            tf.publish(transforms=[c["TransformStamped"](
-                header=header(t, "map"), child_frame_id="base_link", transform=c["Transform"](
-                    translation=c["Vector3"](x=100.0 + 0.8 * k, y=50.0, z=0.0),
-                    rotation=c["Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0)))])
+            tf.publish(transforms=m.transforms("map", "base_link", t, (100.0 + 0.8 * k, 50.0, 0.0)))
             time.sleep(0.02)
-            boxes.publish(header=header(t, "base_link"), objects=[car])
+            boxes.publish(header=m.header(t, "base_link"), objects=[car])
             time.sleep(0.2)
         assert wait_until(lambda: len(got) >= 3, timeout=30, period=0.1), beats[-1].counters if beats else None
         for msg in got:
