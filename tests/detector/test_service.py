@@ -215,6 +215,7 @@ def test_malformed_payloads_are_rejected_and_the_next_scan_still_runs(harness, s
     assert wait_until(lambda: svc.counters.get("rejected") == 2, TIMEOUT)
     client.send(*scans[1], seq=3)
     assert wait_until(lambda: client.seqs() == [3], TIMEOUT)
+    assert wait_until(lambda: svc.counters.get("scans") == 1, TIMEOUT)  # counted just after the put
     c = svc.counters.snapshot()
     assert c["rejected.points"] == 2 and c["scans"] == 1 and c.get("detect_errors", 0) == 0
 
@@ -230,6 +231,7 @@ def test_a_scan_whose_ego_pose_is_no_pose_is_refused_and_counted(harness, scans)
     client.send(pts, pose.model_copy(update={"position": Point(x=2e7)}), seq=3)
     client.send(*scans[1], seq=4)
     assert wait_until(lambda: client.seqs() == [4], TIMEOUT)
+    assert wait_until(lambda: svc.counters.get("scans") == 1, TIMEOUT)  # counted just after the put (a race)
     c = svc.counters.snapshot()
     assert c["rejected.points"] == 3 and c["over_limit.points"] == 3 and c["scans"] == 1
     assert c.get("detect_errors", 0) == 0
@@ -249,6 +251,7 @@ def test_a_scan_over_max_scan_bytes_is_refused_unread(zenoh_port: int, client_se
         client.send(big, scans[0][1], seq=1)
         client.send(*scans[1], seq=2)
         assert wait_until(lambda: client.seqs() == [2], TIMEOUT)
+        assert wait_until(lambda: svc.counters.get("scans") == 1, TIMEOUT)  # counted just after the put
         c = svc.counters.snapshot()
         assert c["rejected.points"] == 1 and c["over_limit.points"] == 1 and c["scans"] == 1
     finally:
