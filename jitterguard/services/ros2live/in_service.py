@@ -32,7 +32,7 @@ import time
 import zenoh
 import zenoh.ext
 
-from ...ros2.types import POINTCLOUD2, typestore
+from ...ros2.types import POINTCLOUD2
 from ...runtime import ZenohOptions
 from ...runtime.progress import ProgressPolicy
 from ...schemas import DecodeError, LimitExceeded, encode, keys
@@ -40,7 +40,7 @@ from ..replay.adapter import message_for
 from ..replay.frames import FrameError
 from ..replay.sources.ros_types import TF_MESSAGE
 from .graph import RosGraphService
-from .ros_keys import RosEndpoint, RosNaming, RosQos
+from .ros_keys import AUTOWARE_OBJECTS_QOS, RosEndpoint, RosNaming, RosQos
 from .scans_in import LiveScans, UndecodableMessage
 
 INBOX = 4
@@ -55,8 +55,6 @@ transient-local publications' history (each under its own Zenoh id); the bridge 
 releases serve it to an advanced subscriber's history instead."""
 SCAN_QOS = RosQos(reliable=False, depth=5)
 """ROS 2's sensor-data QoS, what a LiDAR driver's subscribers use (best effort, keep the last 5)."""
-OBJECTS_QOS = RosQos(depth=1)
-"""Autoware's detection and tracking outputs: reliable, keep the last one."""
 TF_QOS = RosQos(depth=100)
 STATIC_QOS = RosQos(transient_local=True, depth=100)
 """tf2's listener: /tf reliable keeping 100, /tf_static transient local keeping 100."""
@@ -95,9 +93,9 @@ class Ros2InService(RosGraphService):
         elif pose_type is not None:
             self.pose_key = naming.subscription(pose_topic or "")
             self._sub(self.pose_key, self._on_pose)
-        store = typestore()
+        store = self.core.store  # the type store the messages are decoded with
         endpoints = [RosEndpoint("MS", topic, msgtype, store.hash_rihs01(msgtype),
-                                 SCAN_QOS if msgtype == POINTCLOUD2 else OBJECTS_QOS),
+                                 SCAN_QOS if msgtype == POINTCLOUD2 else AUTOWARE_OBJECTS_QOS),
                      RosEndpoint("MS", "/tf_static", TF_MESSAGE, store.hash_rihs01(TF_MESSAGE), STATIC_QOS)]
         if pose_type is not None:
             endpoints.append(RosEndpoint("MS", pose_topic or "/tf", pose_type, store.hash_rihs01(pose_type), TF_QOS))

@@ -25,10 +25,7 @@ from ...schemas.models import TrackedObjects
 from ...schemas.wire import LIMITS
 from ..bridge.service import BOUNDS
 from .graph import RosGraphService
-from .ros_keys import RosEndpoint, RosNaming, RosQos, entity_gid, rmw_attachment
-
-OBJECTS_QOS = RosQos(depth=1)
-"""Autoware's tracker publishes its objects reliable, volatile, keeping the last one (``rclcpp::QoS{1}``)."""
+from .ros_keys import AUTOWARE_OBJECTS_QOS, RosEndpoint, RosNaming, entity_gid, rmw_attachment
 
 
 class Ros2OutService(RosGraphService):
@@ -47,7 +44,7 @@ class Ros2OutService(RosGraphService):
         ros = self.another_session(ros_opts) if ros_opts is not None else self.session
         self._pub = self.publisher(self.key, session=ros)
         self.graph = self.declare_graph(ros, naming, [RosEndpoint("MP", topic, TRACKED_OBJECTS, type_hash,
-                                                                  OBJECTS_QOS)])
+                                                                  AUTOWARE_OBJECTS_QOS)])
         self._gid = entity_gid(self.graph[-1]) if self.graph else bytes(16)
         self._sent = 0
         self.monitor_progress(ProgressPolicy(stall_s=5.0))  # objects in -> TrackedObjects out

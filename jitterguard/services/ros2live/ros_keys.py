@@ -99,6 +99,11 @@ class RosQos:
         return f"{rel}:{dur}:,{depth}:,:,:,,"
 
 
+AUTOWARE_OBJECTS_QOS = RosQos(depth=1)
+"""Autoware's detection and tracking outputs (and their subscribers): reliable, volatile, keeping the last one
+(``rclcpp::QoS{1}``)."""
+
+
 @dataclass(frozen=True)
 class RosEndpoint:
     """One publisher (``MP``) or subscription (``MS``) of a node, as the ROS graph lists it."""

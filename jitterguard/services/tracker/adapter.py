@@ -84,7 +84,7 @@ def world_detections(cols: DetectedColumns, frame: DetectionFrame, result: Frame
     out[wire.QX], out[wire.QY], out[wire.QZ], out[wire.QW] = quaternions_about_z(q, yaw).T
     out[wire.POSE_COV]["v"] = rotate_cov6(out[wire.POSE_COV]["v"], yaw)
     pcov = out[wire.POSE_COV]["v"]
-    none = (out[wire.HAS_POSITION_COV] != 0xC3) | ((pcov[:, X_X] <= 0.0) & (pcov[:, Y_Y] <= 0.0))
+    none = ~frame.own_covariance()[rows]
     if none.any():
         R = det.R[rows[none]]
         pcov[none] = 0.0

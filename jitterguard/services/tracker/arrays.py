@@ -88,6 +88,12 @@ class DetectionFrame:
     def __len__(self) -> int:
         return int(self.x.shape[0])
 
+    def own_covariance(self) -> NDArray[np.bool_]:
+        """Which detections report a position covariance of their own (``has_cov`` and a positive variance on an
+        axis): the filter measures the others with its class's, and hands that on to the classifier."""
+        assert self.has_cov is not None and self.cov_xx is not None and self.cov_yy is not None
+        return self.has_cov & ((self.cov_xx > 0.0) | (self.cov_yy > 0.0))
+
 
 @dataclass
 class WorldDetections:

@@ -323,7 +323,7 @@ class TrackerCore:
         R[:, 0, 1] = R[:, 1, 0] = ch * sh * (rl - rt)
         yaw_var = tb.r_yaw[lbl] ** 2
         if cfg.measurement_covariance == "detector":
-            use = f.has_cov & ((f.cov_xx > 0.0) | (f.cov_yy > 0.0))
+            use = f.own_covariance()
             if use.any():
                 floor = cfg.min_position_variance
                 rxx, rxy, ryy = cxx, cxy, cyy

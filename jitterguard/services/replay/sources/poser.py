@@ -18,11 +18,10 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from pydantic import ValidationError
 
 from ....geometry import rotation_from_quaternion
 from ....schemas.wire import LIMITS
-from pydantic import ValidationError
-
 from ..frames import IDENTITY, DetectionFrame, EgoPose, FrameError, ScanFrame, compose, finite_rows
 from .nuscenes import FRAME_SUFFIX, turn_points
 from .ros_types import detected_object_from_ros, interpolate_pose, pointcloud2_to_array, pose_of, stamp_ns
