@@ -15,6 +15,7 @@ import sys
 import time
 
 import pytest
+import zenoh
 
 from jitterguard.runtime import ZenohOptions, build_config, free_tcp_port, open_session
 from jitterguard.schemas import encode, keys
@@ -39,22 +40,27 @@ def test_the_monitor_is_bounded_and_folds_restarted_processes_exactly(tmp_path):
     procs.append(_cli("stack-monitor", "--ns", ns, "--connect", endpoint, "--run-dir", str(tmp_path)))
     session = None
     try:
-        session = open_session(build_config(ZenohOptions(ns=ns, connect=(endpoint,))))  # retried until the router is up
+        # retried until the router is up; a router that never comes up fails here, not at pytest's timeout
+        session = open_session(build_config(ZenohOptions(ns=ns, connect=(endpoint,))), timeout_s=60)
         heard: list[str] = []
         session.declare_subscriber(keys.heartbeat(ns, "monitor"), lambda s: heard.append("monitor"))
         assert wait_until(lambda: bool(heard), timeout=60, period=0.2), "the monitor never sent a heartbeat"
 
         restarts = 40  # more processes of one service than the ledger keeps one by one (32)
         t0 = time.time_ns()
-        tracker = session.declare_publisher(keys.heartbeat(ns, "tracker"))
+        # BLOCK, not Zenoh's default DROP: the test counts every tracker heartbeat and needs the oversized one to
+        # reach the monitor, and a router whose queue to a monitor busy under CI load fills may drop a DROP put
+        block = zenoh.CongestionControl.BLOCK
+        tracker = session.declare_publisher(keys.heartbeat(ns, "tracker"), congestion_control=block)
         for i in range(restarts):
             tracker.put(encode(Heartbeat(service="tracker", pid=1000 + i, stamp=t0 + i,
                                          counters={"frames": 1, "tracks_born": 2})))
             time.sleep(0.01)
         # one heartbeat past MAX_HEARTBEAT_BYTES: refused from its size, never read into the ledger
         bloat = {f"c{i:06d}": i for i in range(MAX_HEARTBEAT_BYTES // 8)}
-        session.put(keys.heartbeat(ns, "bloat"), encode(Heartbeat(service="bloat", pid=7, stamp=t0, counters=bloat)))
-        ghost = session.declare_publisher(keys.heartbeat(ns, "ghost"))
+        session.put(keys.heartbeat(ns, "bloat"), encode(Heartbeat(service="bloat", pid=7, stamp=t0, counters=bloat)),
+                    congestion_control=block)
+        ghost = session.declare_publisher(keys.heartbeat(ns, "ghost"), congestion_control=block)
         for i in range(200):
             ghost.put(encode(Heartbeat(service=f"ghost{i}", pid=50000 + i, stamp=t0 + i, counters={"x_dropped": 1})))
             time.sleep(0.005)
