@@ -4,7 +4,8 @@ supervisord, real router, services and uvicorn; no mocks).
 Only what a test host cannot have is changed: the system folders (/run, /var/log, /var/lib) become temporary ones,
 the venv path the one running this test, the ports free ones, ``user=`` / ``chown=`` go (no ``jitterguard`` user
 here), and ``JG_WATCHDOG_S`` is short so that the freeze watch acts within ~15 s. Every program starts, the
-sidecar comes ready, the monitor writes the run's summary into /var/lib/jitterguard's stand-in, and a service
+sidecar comes ready, the monitor writes the run's summary into /var/lib/jitterguard's stand-in (and the classifier
+its compiled statistic's cache, NUMBA_CACHE_DIR), and a service
 frozen with SIGSTOP is ended by the monitor and restarted by supervisord. Before, this file had no monitor: a
 frozen process stayed frozen for good under plain supervisord, every program RUNNING.
 
@@ -123,6 +124,12 @@ def test_every_program_of_the_shipped_file_runs_and_the_monitor_keeps_the_summar
                           "--json"], capture_output=True, text=True, timeout=60)
     assert res.returncode == 0, res.stdout + res.stderr
     assert json.loads(res.stdout)["stack"] == "lib"
+    # the classifier caches its compiled statistic where the file's NUMBA_CACHE_DIR says, the one folder its user may
+    # write (under user=jitterguard neither the root-owned venv nor root's HOME is writable: each start recompiled)
+    cache = root / "lib" / "numba-cache"
+    assert wait_until(lambda: any(cache.rglob("*.nbi")), timeout=TIMEOUT_S, period=1.0), \
+        (root / "log" / "classifier.log").read_text()[-2000:]
+    assert "no writable numba cache" not in (root / "log" / "classifier.log").read_text()
 
 
 def test_a_frozen_service_is_ended_and_restarted_under_plain_supervisord(deployed):
