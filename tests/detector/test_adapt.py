@@ -16,12 +16,14 @@ import torch
 
 from jitterguard.services.detector.adapt import (
     UnlabelledScan,
+    propagate_static,
     pseudo_samples,
     read_unlabelled,
     recompute_norm_stats,
     tracked_residuals,
 )
-from jitterguard.services.detector.config import LITE, SELF_CROP_M, Detections3D
+from jitterguard.services.detector.config import LITE, SELF_CROP_M, Detections3D, Sample
+from jitterguard.services.detector.ground import TRAINED_SENSOR_HEIGHT_M, GroundPlane
 from jitterguard.services.detector.inference import load_weights
 from jitterguard.services.detector.network import CenterPointNet
 from jitterguard.services.detector.pillars import voxelize
@@ -86,6 +88,75 @@ def _pose(x: float, y: float, yaw: float) -> np.ndarray:
     m[:2, :2] = [[c, -s], [s, c]]
     m[:2, 3] = (x, y)
     return m
+
+
+def test_static_pseudo_labels_are_carried_to_the_scans_that_missed_them() -> None:
+    """A parked car pseudo-labelled in 4 of 7 posed scans (the sensor driving past and turning) is carried into
+    the scan where the model missed it while it held 2 returns — at its place in that scan's frame, z through each
+    scan's road plane — and not into the one where it held none, nor where another pseudo-label already stands
+    there. A car that moves 3 m a scan, a bicycle labelled in only 2 scans and a scan without a pose get nothing."""
+    rng = np.random.default_rng(0)
+    ground = GroundPlane(2.0, slope_x=0.01)  # the scans' road: 2 m under the sensor, rising 1 cm per metre ahead
+    parked_w = np.array([34.0, 6.0, -1.2, 4.5, 1.9, 1.6, 0.4, 0.0, 0.0])  # beyond _scan's clutter (±12 m)
+    poses = [_pose(2.0 * k, 0.2 * k, 0.03 * k) for k in range(7)]
+
+    def trained(box_w: np.ndarray, pose: np.ndarray) -> np.ndarray:  # a world box in a scan's trained frame
+        b = box_w.copy()
+        b[:3] = (box_w[:3] - pose[:3, 3]) @ pose[:3, :3]
+        b[6] = box_w[6] - math.atan2(pose[1, 0], pose[0, 0])
+        b[2] += (ground.height - TRAINED_SENSOR_HEIGHT_M) - ground.slope_x * b[0]
+        return b
+
+    def returns(box: np.ndarray, n: int) -> np.ndarray:  # n returns inside a box of a scan's trained frame
+        c, s_ = math.cos(box[6]), math.sin(box[6])
+        local = rng.uniform(-0.4, 0.4, (n, 3)) * box[3:6]
+        xyz = np.column_stack([box[0] + c * local[:, 0] - s_ * local[:, 1], box[1] + s_ * local[:, 0] + c * local[:, 1],
+                               box[2] + local[:, 2]])
+        return np.column_stack([xyz, np.full(n, 20.0)]).astype(np.float32)
+
+    labelled = {0, 1, 2, 3}  # the model found the parked car in these scans
+    scans, pseudo = [], []
+    for k, pose in enumerate(poses):
+        parked = trained(parked_w, pose)
+        mover = trained(np.array([3.0 * k - 5.0, -4.0, -1.2, 4.5, 1.9, 1.6, 0.0, 0.0, 0.0]), pose)
+        bike = trained(np.array([10.0, -8.0, -1.4, 1.8, 0.6, 1.4, 0.0, 0.0, 0.0]), pose)
+        n_parked = {4: 2, 5: 0}.get(k, 30)
+        pts = np.concatenate([_scan(k), returns(parked, n_parked) if n_parked else np.zeros((0, 4), np.float32),
+                              returns(mover, 30), returns(bike, 20)])
+        boxes, labels = [mover], [0]
+        if k in labelled:
+            noisy = parked.copy()
+            noisy[:2] += rng.normal(0.0, 0.1, 2)
+            boxes.append(noisy)
+            labels.append(0)
+        if k < 2:
+            boxes.append(bike)
+            labels.append(3)
+        if k == 6:  # a truck pseudo-label already where the car is: nothing carried on top of it
+            boxes.append(parked + [0.3, 0, 0, 1, 0, 0, 0, 0, 0])
+            labels.append(1)
+        b = np.asarray(boxes, np.float32)
+        pseudo.append(Sample(pts, b, np.asarray(labels, np.int64), np.full(len(b), 10), f"p/{k}", pseudo=True))
+        scans.append(UnlabelledScan(pts, pose, "rec", f"{k}.bin", True))
+    # a scan of another recording without a pose, the parked car's returns where scan 4 has them: never touched
+    scans.append(UnlabelledScan(scans[4].points, np.eye(4), "other", "x.bin", False))
+    pseudo.append(Sample(scans[4].points, np.zeros((0, 9), np.float32), np.zeros(0, np.int64), np.zeros(0, np.int64),
+                         "p/x", pseudo=True))
+
+    out, added = propagate_static(pseudo, scans, [ground] * len(scans))
+    assert added == 1
+    for k, (before, after) in enumerate(zip(pseudo, out)):
+        if k != 4:
+            assert after is before, k
+    new = out[4]
+    assert len(new.boxes) == len(pseudo[4].boxes) + 1 and new.labels[-1] == 0 and new.num_points[-1] == 2
+    want = trained(parked_w, poses[4])
+    np.testing.assert_allclose(new.boxes[-1, :3], want[:3], atol=0.15)  # the median of 4 labels 0.1 m apart
+    assert abs((new.boxes[-1, 6] - want[6] + math.pi) % (2 * math.pi) - math.pi) < 1e-5
+    assert new.pseudo
+    # three scans are not enough to call a place static when only 2 saw it, and one more scan would be
+    _, added3 = propagate_static(pseudo, scans, [ground] * len(scans), min_scans=5)
+    assert added3 == 0
 
 
 def test_tracked_residuals_recover_the_per_axis_miscalibration() -> None:

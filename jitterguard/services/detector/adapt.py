@@ -11,7 +11,9 @@ A user points the detector at their own unlabelled recordings; three label-free 
    scans for a few epochs, for ``rounds`` rounds (pseudo-labels redrawn with the improved model each round).
    Pseudo-labels train the heatmap only — where objects are and where they are not — never the regression and
    variance heads (trained on a model's own boxes the variances would collapse); the synthetic scans keep
-   those honest. The BatchNorm statistics are recomputed on the real scans after every round.
+   those honest. The BatchNorm statistics are recomputed on the real scans after every round. Optionally
+   (``--propagate``, :func:`propagate_static`) the pseudo-labels of static objects are carried to the scans of
+   the same posed recording where the model missed them.
 3. **Recalibration.** By default (``adapt --recalibration synthetic``) the CLI refits the adapted network's
    variance scales per score bin on labelled synthetic scans after these steps
    (:func:`~.train_cli.fit_synthetic_recalibration`), which holds on real scans. Optionally
@@ -33,6 +35,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -46,7 +49,7 @@ from torch import nn
 from .augment import points_in_boxes
 from .config import CLASS_NAMES, SELF_CROP_M, Detections3D, Sample
 from .flips import check_symmetric, merge_mirrored, mirrored_views
-from .ground import scan_ground, to_trained_frame
+from .ground import GroundPlane, boxes_to_scan_frame, boxes_to_trained_frame, scan_ground, to_trained_frame
 from .inference import crop_box
 from .network import CenterPointNet
 
@@ -175,6 +178,91 @@ def pseudo_samples(scans: Sequence[UnlabelledScan], detections: Sequence[Detecti
         ok = counts >= min_points
         out.append(Sample(points=scan.points, boxes=boxes[ok], labels=det.labels[keep][ok].astype(np.int64),
                           num_points=counts[ok].astype(np.int64), token=f"pseudo/{scan.source}/{k}", pseudo=True))
+    return out
+
+
+def propagate_static(pseudo: Sequence[Sample], scans: Sequence[UnlabelledScan], grounds: Sequence[GroundPlane], *,
+                     gate_m: float = 1.0, min_scans: int = 3, min_points: int = 1) -> tuple[list[Sample], int]:
+    """Pseudo-labels carried over time to the scans where the model missed them: in each recording with ego poses,
+    every pseudo-label is placed in the world; a place where one class was pseudo-labelled in ``min_scans`` or more
+    scans, every time within ``gate_m`` of the place's running mean, is a static object, and its box (the
+    best-scored one's size and heading, the median centre) is put back into every other scan of the recording
+    that holds at least ``min_points`` returns inside it and no pseudo-label within ``gate_m`` — the frames where
+    the object was hidden, far or seen from a worse side, which are the examples the model lacks. Moving objects
+    never stay at one place, so they are not carried; a scan without a pose keeps its own labels only. The boxes
+    stay heatmap targets (``pseudo``), as every pseudo-label. Returns the samples and the number of boxes added.
+
+    ``scans`` hold the points in the trained frame that ``grounds`` describe (:func:`~.ground.to_trained_frame`, as
+    :meth:`~.inference.Detector.detect` moves a scan): x and y are the sensor's, z the height over the scan's road
+    less the trained sensor height."""
+    by_source: dict[str, list[int]] = {}
+    for k, scan in enumerate(scans):
+        if scan.has_pose:
+            by_source.setdefault(scan.source, []).append(k)
+    extra: dict[int, list[tuple[F64, int, int]]] = {}
+    for ks in by_source.values():
+        places: list[dict[str, Any]] = []  # class, member world boxes, their scans, the best one's score
+        for k in ks:
+            sample, pose = pseudo[k], scans[k].pose
+            if not len(sample.boxes):
+                continue
+            world = _boxes_to_world(boxes_to_scan_frame(sample.boxes.astype(np.float64), grounds[k]), pose)
+            for box, label in zip(world, sample.labels):
+                dist = [(math.dist(q["sum"] / len(q["xyz"]), box[:2]), i) for i, q in enumerate(places)
+                        if q["label"] == label and k not in q["scans"]]
+                d, i = min(dist, default=(math.inf, -1))
+                if d < gate_m:
+                    q = places[i]
+                    q["xyz"].append(box[:3])
+                    q["sum"] = q["sum"] + box[:2]
+                    q["scans"].add(k)
+                else:
+                    places.append({"label": int(label), "xyz": [box[:3]], "sum": box[:2].copy(), "scans": {k},
+                                   "box": box})
+        for q in places:
+            if len(q["scans"]) < min_scans:
+                continue
+            box = q["box"].copy()
+            box[:3] = np.median(np.asarray(q["xyz"]), axis=0)
+            box[7:9] = 0.0  # static: no velocity
+            for k in ks:
+                if k not in q["scans"]:
+                    extra.setdefault(k, []).append((box, q["label"], k))
+    out, added = [], 0
+    for k, sample in enumerate(pseudo):
+        if k not in extra:
+            out.append(sample)
+            continue
+        world = np.stack([b for b, _, _ in extra[k]])
+        boxes = boxes_to_trained_frame(_boxes_from_world(world, scans[k].pose), grounds[k]).astype(np.float32)
+        labels = np.asarray([lab for _, lab, _ in extra[k]], np.int64)
+        counts = points_in_boxes(scans[k].points, boxes).sum(axis=0)
+        taken = sample.boxes[:, :2].astype(np.float64) if len(sample.boxes) else np.zeros((0, 2))
+        free = np.array([not len(taken) or np.min(np.hypot(*(taken - b[:2]).T)) >= gate_m for b in boxes])
+        keep = (counts >= min_points) & free
+        if not keep.any():
+            out.append(sample)
+            continue
+        added += int(keep.sum())
+        out.append(replace(sample, boxes=np.concatenate([sample.boxes, boxes[keep]]),
+                           labels=np.concatenate([sample.labels, labels[keep]]),
+                           num_points=np.concatenate([sample.num_points, counts[keep].astype(np.int64)])))
+    return out, added
+
+
+def _boxes_to_world(boxes: F64, pose: F64) -> F64:
+    """Boxes of a scan's sensor frame in the world of its pose (centre rotated and moved, heading turned)."""
+    out = boxes.copy()
+    out[:, :3] = boxes[:, :3] @ pose[:3, :3].T + pose[:3, 3]
+    out[:, 6] = boxes[:, 6] + np.arctan2(pose[1, 0], pose[0, 0])
+    return out
+
+
+def _boxes_from_world(boxes: F64, pose: F64) -> F64:
+    """The inverse of :func:`_boxes_to_world`."""
+    out = boxes.copy()
+    out[:, :3] = (boxes[:, :3] - pose[:3, 3]) @ pose[:3, :3]
+    out[:, 6] = boxes[:, 6] - np.arctan2(pose[1, 0], pose[0, 0])
     return out
 
 
@@ -319,6 +407,11 @@ class AdaptConfig:
     moved to the height the network was trained at before anything else, as the service moves them."""
     sensor_tilt: bool = True
     """Take each real scan's road slope out as well (measured, :mod:`.ground`), as the service does."""
+    propagate: bool = False
+    """Carry pseudo-labels of static objects to the scans of the same recording where the model missed them
+    (recordings with ego poses; :func:`propagate_static`)."""
+    propagate_min_scans: int = 3
+    """Scans a place must be pseudo-labelled in before it counts as a static object and is carried."""
 
 
 def adapt(model: CenterPointNet, scans: Sequence[UnlabelledScan], synthetic: Sequence[Sample], cfg: AdaptConfig,
@@ -347,13 +440,20 @@ def adapt(model: CenterPointNet, scans: Sequence[UnlabelledScan], synthetic: Seq
     pcr = model.config.point_cloud_range
     # the scans as the detector would see them: in range, and without the vehicle's own body (a roof return
     # pseudo-labelled "car" in every scan would teach the ghost the service's self-crop exists to prevent)
-    pts = [_in_range(at_trained_height(crop_box(s.points, cfg.self_crop), cfg.sensor_height_m, cfg.sensor_tilt), pcr) for s in scans]
+    cropped = [crop_box(s.points, cfg.self_crop) for s in scans]
+    grounds = [scan_ground(p, cfg.sensor_height_m, cfg.sensor_tilt) for p in cropped]
+    pts = [_in_range(to_trained_frame(p, g), pcr) for p, g in zip(cropped, grounds)]
     scans = [replace(s, points=p) for s, p in zip(scans, pts)]
     report: dict[str, Any] = {"rounds": []}
     norm_stats("BatchNorm statistics")
     for r in range(cfg.rounds):
         dets = detect_all(f"round {r + 1}: pseudo-labels")
         pseudo = pseudo_samples(scans, dets, cfg.thresholds)
+        carried = None
+        if cfg.propagate:
+            pseudo, carried = propagate_static(pseudo, scans, grounds, min_scans=cfg.propagate_min_scans)
+            log.info("round %d: %d pseudo-labels carried to scans where the model missed a static object", r + 1,
+                     carried)
         counts = np.bincount(np.concatenate([p.labels for p in pseudo]) if pseudo else np.zeros(0, np.int64),
                              minlength=len(CLASS_NAMES))
         log.info("round %d: pseudo-labels %s", r + 1, dict(zip(CLASS_NAMES, counts.tolist())))
@@ -364,7 +464,7 @@ def adapt(model: CenterPointNet, scans: Sequence[UnlabelledScan], synthetic: Seq
         model.cpu()
         norm_stats(f"round {r + 1}: BatchNorm statistics")
         report["rounds"].append({"pseudo_labels": dict(zip(CLASS_NAMES, counts.tolist())),
-                                 "samples": len(data)})
+                                 "samples": len(data), **({"carried": carried} if carried is not None else {})})
     report["recalibration"] = None
     if cfg.recalibrate and model.config.uncertainty:
         dets = detect_all("tracked recalibration")
@@ -388,12 +488,6 @@ def adapt(model: CenterPointNet, scans: Sequence[UnlabelledScan], synthetic: Seq
             report["recalibration_skipped"] = (f"{nt} tracks of >= 4 detections in recordings with poses; need"
                                                f" {cfg.min_tracks}")
     return report
-
-
-def at_trained_height(points: F32, sensor_height_m: float | None, sensor_tilt: bool = True) -> F32:
-    """A real scan moved to the level frame and height the network was trained at, as
-    :meth:`~.inference.Detector.detect` moves it."""
-    return to_trained_frame(points, scan_ground(points, sensor_height_m, sensor_tilt))
 
 
 def _in_range(points: F32, pcr: Sequence[float]) -> F32:

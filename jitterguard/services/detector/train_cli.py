@@ -569,6 +569,10 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                                                 " default self_crop).")] = True,
         flips: Annotated[bool, typer.Option("--flips/--no-flips", help="Pseudo-label with the network averaged"
                                             " over each scan's three mirror images (test-time flips).")] = False,
+        propagate: Annotated[bool, typer.Option("--propagate/--no-propagate", help="Carry the pseudo-labels of"
+                                                " static objects (one place, one class, in 3 or more scans) to the"
+                                                " scans of the same recording where the model missed them"
+                                                " (recordings with ego poses).")] = False,
         sensor_height: SensorHeightOpt = None,
         sensor_tilt: SensorTiltOpt = None,
         seed: Annotated[int, typer.Option("--seed", min=0)] = 0,
@@ -643,7 +647,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                               model.config.point_cloud_range) if rounds else []
         cfg = AdaptConfig(rounds=rounds, epochs=epochs, batch_size=batch_size, lr=lr, seed=seed, thresholds=tuple(thr),
                           real_repeat=real_repeat, recalibrate=recalibration == "tracked",
-                          self_crop=SELF_CROP_M if self_crop else None, flips=flips,
+                          self_crop=SELF_CROP_M if self_crop else None, flips=flips, propagate=propagate,
                           sensor_height_m=declared_height(height), sensor_tilt=measures_tilt(tilt))
         aug = TrainAugment(**(source_meta.get("augment") or {}))  # as the source weights were trained
         report = adapt(model, real, synthetic, cfg, root, augment=aug, progress=progress)
