@@ -185,8 +185,8 @@ def propagate_static(pseudo: Sequence[Sample], scans: Sequence[UnlabelledScan], 
                      gate_m: float = 1.0, min_scans: int = 3, min_points: int = 1) -> tuple[list[Sample], int]:
     """Pseudo-labels carried over time to the scans where the model missed them: in each recording with ego poses,
     every pseudo-label is placed in the world; a place where one class was pseudo-labelled in ``min_scans`` or more
-    scans, every time within ``gate_m`` of the place's running mean, is a static object, and its box (the
-    best-scored one's size and heading, the median centre) is put back into every other scan of the recording
+    scans, every time within ``gate_m`` of the place's running mean, is a static object, and its box (the first
+    one's size and heading at the members' median centre) is put back into every other scan of the recording
     that holds at least ``min_points`` returns inside it and no pseudo-label within ``gate_m`` — the frames where
     the object was hidden, far or seen from a worse side, which are the examples the model lacks. Moving objects
     never stay at one place, so they are not carried; a scan without a pose keeps its own labels only. The boxes
@@ -201,24 +201,36 @@ def propagate_static(pseudo: Sequence[Sample], scans: Sequence[UnlabelledScan], 
             by_source.setdefault(scan.source, []).append(k)
     extra: dict[int, list[tuple[F64, int, int]]] = {}
     for ks in by_source.values():
-        places: list[dict[str, Any]] = []  # class, member world boxes, their scans, the best one's score
+        places: list[dict[str, Any]] = []  # class, member world centres, their sum, their scans, the first box
+        grid: dict[tuple[int, int, int], list[int]] = {}  # (class, cell of the place's mean): places, cells gate_m wide
+
+        def cell(label: int, xy: F64) -> tuple[int, int, int]:
+            return label, math.floor(xy[0] / gate_m), math.floor(xy[1] / gate_m)
+
         for k in ks:
             sample, pose = pseudo[k], scans[k].pose
             if not len(sample.boxes):
                 continue
             world = _boxes_to_world(boxes_to_scan_frame(sample.boxes.astype(np.float64), grounds[k]), pose)
-            for box, label in zip(world, sample.labels):
-                dist = [(math.dist(q["sum"] / len(q["xyz"]), box[:2]), i) for i, q in enumerate(places)
-                        if q["label"] == label and k not in q["scans"]]
-                d, i = min(dist, default=(math.inf, -1))
+            for box, label in zip(world, sample.labels.tolist()):
+                c = cell(label, box[:2])
+                near = [i for dx in (-1, 0, 1) for dy in (-1, 0, 1) for i in grid.get((label, c[1] + dx, c[2] + dy), ())
+                        if k not in places[i]["scans"]]
+                d, i = min(((math.dist(places[i]["sum"] / len(places[i]["xyz"]), box[:2]), i) for i in near),
+                           default=(math.inf, -1))
                 if d < gate_m:
                     q = places[i]
+                    before = cell(label, q["sum"] / len(q["xyz"]))
                     q["xyz"].append(box[:3])
                     q["sum"] = q["sum"] + box[:2]
                     q["scans"].add(k)
+                    after = cell(label, q["sum"] / len(q["xyz"]))
+                    if after != before:  # the mean crossed into another cell: file the place there
+                        grid[before].remove(i)
+                        grid.setdefault(after, []).append(i)
                 else:
-                    places.append({"label": int(label), "xyz": [box[:3]], "sum": box[:2].copy(), "scans": {k},
-                                   "box": box})
+                    grid.setdefault(c, []).append(len(places))
+                    places.append({"label": label, "xyz": [box[:3]], "sum": box[:2].copy(), "scans": {k}, "box": box})
         for q in places:
             if len(q["scans"]) < min_scans:
                 continue
