@@ -199,7 +199,7 @@ def propagate_static(pseudo: Sequence[Sample], scans: Sequence[UnlabelledScan], 
     for k, scan in enumerate(scans):
         if scan.has_pose:
             by_source.setdefault(scan.source, []).append(k)
-    extra: dict[int, list[tuple[F64, int, int]]] = {}
+    extra: dict[int, list[tuple[F64, int]]] = {}  # per scan: static boxes in the world to carry there, class
     for ks in by_source.values():
         places: list[dict[str, Any]] = []  # class, member world centres, their sum, their scans, the first box
         grid: dict[tuple[int, int, int], list[int]] = {}  # (class, cell of the place's mean): places, cells gate_m wide
@@ -239,15 +239,15 @@ def propagate_static(pseudo: Sequence[Sample], scans: Sequence[UnlabelledScan], 
             box[7:9] = 0.0  # static: no velocity
             for k in ks:
                 if k not in q["scans"]:
-                    extra.setdefault(k, []).append((box, q["label"], k))
+                    extra.setdefault(k, []).append((box, q["label"]))
     out, added = [], 0
     for k, sample in enumerate(pseudo):
         if k not in extra:
             out.append(sample)
             continue
-        world = np.stack([b for b, _, _ in extra[k]])
+        world = np.stack([b for b, _ in extra[k]])
         boxes = boxes_to_trained_frame(_boxes_from_world(world, scans[k].pose), grounds[k]).astype(np.float32)
-        labels = np.asarray([lab for _, lab, _ in extra[k]], np.int64)
+        labels = np.asarray([lab for _, lab in extra[k]], np.int64)
         counts = points_in_boxes(scans[k].points, boxes).sum(axis=0)
         taken = sample.boxes[:, :2].astype(np.float64) if len(sample.boxes) else np.zeros((0, 2))
         free = np.array([not len(taken) or np.min(np.hypot(*(taken - b[:2]).T)) >= gate_m for b in boxes])
