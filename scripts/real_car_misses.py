@@ -70,6 +70,10 @@ def _share(a: np.ndarray, m: np.ndarray) -> list:
     return [int(m.sum()), round(float(a[m, -1].mean()), 2) if m.any() else None]
 
 
+def found_by_returns(a: np.ndarray) -> dict:
+    return {f"{lo}-{hi - 1}": _share(a, (a[:, 0] >= lo) & (a[:, 0] < hi))[1] for lo, hi in RETURN_BANDS}
+
+
 def by_returns_and_span(a: np.ndarray) -> dict:
     out = {}
     for lo, hi in RETURN_BANDS:
@@ -108,12 +112,8 @@ def main() -> None:
     for name, samples in data.items():
         rows = car_rows(det, samples)
         out[name] = {"by_returns_and_span": by_returns_and_span(rows), "5-49 returns": found_against_missed(rows),
-                     "intensity": {"as is": {f"{lo}-{hi - 1}": _share(rows, (rows[:, 0] >= lo) & (rows[:, 0] < hi))[1]
-                                             for lo, hi in RETURN_BANDS}}}
-        for vname, fn in variants.items():
-            v = car_rows(det, samples, fn)
-            out[name]["intensity"][vname] = {f"{lo}-{hi - 1}": _share(v, (v[:, 0] >= lo) & (v[:, 0] < hi))[1]
-                                             for lo, hi in RETURN_BANDS}
+                     "intensity": {"as is": found_by_returns(rows), **{
+                         vname: found_by_returns(car_rows(det, samples, fn)) for vname, fn in variants.items()}}}
     print(json.dumps(out, indent=1))
 
 

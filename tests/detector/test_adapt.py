@@ -154,7 +154,7 @@ def test_static_pseudo_labels_are_carried_to_the_scans_that_missed_them() -> Non
     np.testing.assert_allclose(new.boxes[-1, :3], want[:3], atol=0.15)  # the median of 4 labels 0.1 m apart
     assert abs((new.boxes[-1, 6] - want[6] + math.pi) % (2 * math.pi) - math.pi) < 1e-5
     assert new.pseudo
-    # three scans are not enough to call a place static when only 2 saw it, and one more scan would be
+    # asked for 5 scans, the car pseudo-labelled in 4 is not a static place: nothing is carried
     _, added3 = propagate_static(pseudo, scans, [ground] * len(scans), min_scans=5)
     assert added3 == 0
 
