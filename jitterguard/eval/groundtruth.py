@@ -209,7 +209,8 @@ def _frames(dataroot: Path, src: Any, t: dict[str, list[dict[str, Any]]]) -> tup
             iid = inst_index.setdefault(a["instance_token"], len(inst_index))
             rows.append((iid, label, a["translation"], (ln, w, h), yaw_from_quaternion(qx, qy, qz, qw), (vx, vy),
                          attrs[0] if attrs else "",
-                         VISIBILITY_FRACTION.get(vis_level.get(a.get("visibility_token", ""), ""), 0.9)))
+                         VISIBILITY_FRACTION.get(vis_level.get(a.get("visibility_token", ""), ""), 0.9),
+                         a.get("num_lidar_pts")))
         n = len(rows)
         vel = np.array([r[5] for r in rows], dtype=np.float64).reshape(n, 2)
         speed = np.hypot(vel[:, 0], vel[:, 1])
@@ -225,6 +226,7 @@ def _frames(dataroot: Path, src: Any, t: dict[str, list[dict[str, Any]]]) -> tup
             moving=np.nan_to_num(speed) > 0.5,
             attributes=tuple(r[6] for r in rows),
             visibility=np.array([r[7] for r in rows], dtype=np.float64),
-            num_points=np.zeros(n, dtype=np.int64),
+            num_points=np.array([r[8] or 0 for r in rows], dtype=np.int64),
+            points_counted=all(r[8] is not None for r in rows),
         ))
     return src.scene_name, frames

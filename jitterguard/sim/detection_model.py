@@ -109,7 +109,10 @@ class NoiseConfig:
     max_range_m: float = 100.0
     min_points: int = 1
     """With ``use_point_counts``: objects with fewer LiDAR points inside are never detected."""
-    use_point_counts: bool = False
+    use_point_counts: bool = True
+    """Apply ``min_points`` where the frame counts the returns (``GroundTruthFrame.points_counted``: a cast scan,
+    nuScenes annotations): a LiDAR detector cannot see an object that returned nothing — nuScenes' own evaluation
+    drops such boxes — while annotators interpolate boxes through the frames the object is hidden in."""
     false_positives_per_frame: float = 0.0
     """Mean of a Poisson number of false positives per frame."""
     fp_range_m: float = 50.0
@@ -233,7 +236,7 @@ class DetectionModel:
         p_miss = cfg.p_miss + cfg.p_miss_per_m * rng_m + cfg.p_miss_occluded * (1.0 - vis)
         u = rng.random(n)
         detected = (u >= p_miss) & (vis >= cfg.min_visibility) & (rng_m <= cfg.max_range_m)
-        if cfg.use_point_counts:
+        if cfg.use_point_counts and frame.points_counted:
             detected &= frame.num_points >= cfg.min_points
         idx = np.flatnonzero(detected)
 

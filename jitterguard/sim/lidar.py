@@ -458,7 +458,7 @@ def cast_frame(frame: GroundTruthFrame, sensor: LidarSpec | None = None, seed: i
     vis = frame.visibility.copy()
     reached = res.num_rays_alone > 0
     vis[reached] = np.clip(res.num_rays_visible[reached] / res.num_rays_alone[reached], 0.0, 1.0)
-    return res, replace(frame, num_points=res.num_points.copy(), visibility=vis)
+    return res, replace(frame, num_points=res.num_points.copy(), visibility=vis, points_counted=True)
 
 
 def _position_hash(xy: F64, seed: int) -> F64:

@@ -38,9 +38,10 @@ SCENARIO_NAMES: tuple[str, ...] = tuple(SCENARIOS)
 class GroundTruthFrame:
     """Ground truth of one frame. Arrays are aligned: row n describes object ``instance_ids[n]``.
 
-    Positions and velocities are in the world frame; ``ego_*`` is the sensor pose. ``num_points`` is 0 unless a
-    LiDAR scan was cast for this frame (then it counts the scan's returns inside each box), and ``visibility``
-    is the ray-cast fraction in that case, an analytic estimate otherwise. ``clutter`` is the static scenery
+    Positions and velocities are in the world frame; ``ego_*`` is the sensor pose. ``num_points`` counts the
+    LiDAR returns inside each box where ``points_counted`` says so — a LiDAR scan was cast for this frame, or the
+    annotations count them (nuScenes' ``num_lidar_pts``) — and is 0 otherwise; ``visibility`` is the ray-cast
+    fraction where a scan was cast, an analytic estimate (or the annotation's visibility level) otherwise. ``clutter`` is the static scenery
     (trees, poles, walls, buildings) the LiDAR also sees; it carries no labels.
     """
 
@@ -61,6 +62,7 @@ class GroundTruthFrame:
     num_points: NDArray[np.int64]
     clutter: Primitives | None = field(default=None, repr=False)
     ego_speed: float = 0.0
+    points_counted: bool = False
 
     @property
     def num_objects(self) -> int:

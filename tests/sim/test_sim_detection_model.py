@@ -234,6 +234,19 @@ def test_occluded_and_far_objects_are_missed_more() -> None:
     assert seen[0] > seen[1] + 100 and seen[0] > seen[2] + 30
 
 
+def test_an_object_that_returned_nothing_is_detected_only_where_returns_are_not_counted() -> None:
+    """Where the frame counts each box's returns (a cast scan, nuScenes' ``num_lidar_pts``) a box with fewer than
+    ``min_points`` is never detected; a frame without counts (0 everywhere) is detected as before."""
+    frame = replace(parked_frame(0, [(10.0, 0.0), (12.0, 4.0), (15.0, -3.0)]), num_points=np.array([0, 5, 1]))
+    clean = NoiseConfig.clean()
+    assert sorted(DetectionModel(clean, 0).detect(replace(frame, points_counted=True)).gt_index.tolist()) == [1, 2]
+    assert sorted(DetectionModel(replace(clean, min_points=2), 0).detect(
+        replace(frame, points_counted=True)).gt_index.tolist()) == [1]
+    assert sorted(DetectionModel(clean, 0).detect(frame).gt_index.tolist()) == [0, 1, 2]
+    assert sorted(DetectionModel(replace(clean, use_point_counts=False), 0).detect(
+        replace(frame, points_counted=True)).gt_index.tolist()) == [0, 1, 2]
+
+
 def test_messages_carry_sensor_frame_detections_with_ego_pose_and_round_trip() -> None:
     sc: Scenario = make_scenario("parking-street", 4, duration_s=2.0)
     model = DetectionModel(NoiseConfig.clean(), 9)
