@@ -116,11 +116,15 @@ class ScanEffects:
     kerb_trees: float = 0.0
     """Share of the parked vehicles with a tree (and sometimes a hedge) beside them, its crown over them where it
     clears their roof (see :func:`kerbside_trees`); opt-in component ``kerb-trees``."""
+    incidence: float = 0.0
+    """Probability that a road user's return is lost where the ray meets its surface at grazing incidence (cos θ
+    below :data:`GRAZING_COS`, rising linearly to this at 90°): glossy paint sends a grazing beam on, so roofs,
+    bonnets and boots seen from a distance and sides seen edge-on return little; opt-in component ``incidence``."""
 
     def __post_init__(self) -> None:
         if self.intensity not in INTENSITY_MODELS:
             raise ValueError(f"intensity must be one of {INTENSITY_MODELS}, got {self.intensity!r}")
-        for name in ("glass_pass", "object_dropout", "mixed_pixels", "building_drop", "kerb_trees"):
+        for name in ("glass_pass", "object_dropout", "mixed_pixels", "building_drop", "kerb_trees", "incidence"):
             v = getattr(self, name)
             if not 0.0 <= v <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {v}")
@@ -171,10 +175,12 @@ left out) and measured intensities (without it: the ideal intensity model; ``no-
 ``vegetation`` (irregular vegetation masses), ``limbs`` (pedestrians with swinging legs and arms), ``pedal``
 (cyclists whose legs go round with the pedals), ``clear-glass`` (glass passes 85–100 % of rays instead of
 ``glass``'s 50–95 %: a vehicle's glass is nearly transparent at the LiDAR's 905 nm) and ``kerb-trees`` (trees and
-hedges beside parked vehicles, on either long side, crowns over them) are opt-in:
+hedges beside parked vehicles, on either long side, crowns over them) and ``incidence`` (road users' returns lost at
+grazing incidence) are opt-in:
 ``random`` leaves them out, so the scans of every recipe written before they existed are cast as they were."""
 
-OPT_IN_COMPONENTS: tuple[str, ...] = ("no-intensity", "vegetation", "limbs", "pedal", "clear-glass", "kerb-trees")
+OPT_IN_COMPONENTS: tuple[str, ...] = ("no-intensity", "vegetation", "limbs", "pedal", "clear-glass", "kerb-trees",
+                                      "incidence")
 """Components that ``random`` does not switch on; named in a comma list (``random,vegetation,limbs,pedal``)."""
 
 
@@ -212,7 +218,7 @@ def draw_effects(rng: np.random.Generator, components: Sequence[str] = COMPONENT
     off the plane at 40 m); three undulations of up to 12 cm over 15–80 m; glass passes 50–95 % of rays;
     20–55 % of returns from road users lost; range noise 1.5–4 cm; intensity gain ×0.6…1.7; the ego's roof in
     80 % of scans; 0–30 % mixed pixels at depth edges; 0.05–0.4 clutter pieces per 100 m²; 0–90 % of the
-    buildings left out."""
+    buildings left out; opt-in ``incidence``: 50–100 % of road users' returns at 90° incidence lost."""
     on = set(components)
     s = float(strength) if "ground" in on else 0.0
     und = []
@@ -235,7 +241,8 @@ def draw_effects(rng: np.random.Generator, components: Sequence[str] = COMPONENT
     start = float(rng.uniform(-math.pi, math.pi))
     vegetation = float(rng.uniform(0.1, 0.5))  # drawn after the rest: the draws above stay those of earlier recipes
     clear = float(rng.uniform(0.85, 1.0))  # and this after it, for the same reason
-    kerb = float(rng.uniform(0.2, 0.7))  # and this last
+    kerb = float(rng.uniform(0.2, 0.7))  # and this after it
+    grazing = float(rng.uniform(0.5, 1.0))  # and this last
     return ScanEffects(
         mount_offset_m=mount if s else 0.0,
         tilt=(float(tilt[0]), float(tilt[1])) if s else (0.0, 0.0),
@@ -255,9 +262,15 @@ def draw_effects(rng: np.random.Generator, components: Sequence[str] = COMPONENT
         pedal="pedal" in on,
         building_drop=drop if "open" in on else 0.0,
         kerb_trees=kerb if "kerb-trees" in on else 0.0,
+        incidence=grazing if "incidence" in on else 0.0,
         motion="motion" in on,
         sweep_start=start,
     )
+
+
+GRAZING_COS = 0.35
+"""Below this cosine of the angle of incidence (about 70° off the surface normal) a road user's return starts to be
+lost with the ``incidence`` effect."""
 
 
 SCATTER_HALF_SIDE_M = 30.0

@@ -27,7 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .catalog import VEHICLE_PARKED
-from .effects import (BRIGHT_SPOT_FRACTION, MEASURED_INTENSITY, ScanEffects, kerbside_trees, street_clutter,
+from .effects import (BRIGHT_SPOT_FRACTION, GRAZING_COS, MEASURED_INTENSITY, ScanEffects, kerbside_trees, street_clutter,
                       vegetation_masses)
 from .primitives import BOX, PrimitiveList, Primitives, Tag
 from .sensors import LidarSpec, azimuths, hdl32e
@@ -290,6 +290,11 @@ def cast(prims: Primitives, owner: NDArray[np.int64], spec: LidarSpec, rng: np.r
     u = rng.random(na * nb)
     if fx.object_dropout:
         p_lost = p_lost + fx.object_dropout * (first_owner >= 0)
+    if fx.incidence:
+        on_user = np.flatnonzero((first_owner >= 0) & np.isfinite(best_rho))
+        cos_in = _cos_incidence(prims, best_prim[on_user], best_rho[on_user], tb.el[beam_of_ray[on_user]],
+                                tb.cos_az[col_of_ray[on_user]], tb.sin_az[col_of_ray[on_user]])
+        p_lost[on_user] += fx.incidence * np.clip((GRAZING_COS - cos_in) / GRAZING_COS, 0.0, 1.0)
     valid &= (u >= p_lost) & (first_owner != _EGO_OWNER)
     if fx.mixed_pixels:
         rng3 = _mixed_pixels(rng3, valid, na, nb, fx.mixed_pixels, rng)
@@ -317,6 +322,28 @@ def cast(prims: Primitives, owner: NDArray[np.int64], spec: LidarSpec, rng: np.r
     visible = np.bincount(first_obj, minlength=num_objects) if num_objects else np.zeros(0, np.int64)
     return ScanResult(pts, bm.astype(np.int16), own.astype(np.int64), counts.astype(np.int64),
                       visible.astype(np.int64), alone)
+
+
+def _cos_incidence(prims: Primitives, prim: NDArray[np.int64], rho: F64, el: F64, ca: NDArray[np.float32],
+                   sa: NDArray[np.float32]) -> F64:
+    """|cos| of the angle between each ray and the normal of the face it meets first: ``prim`` the primitive hit,
+    ``rho`` the horizontal distance to the hit, ``el`` / ``ca``, ``sa`` the ray's elevation and azimuth. A hit at
+    the primitive's top or bottom height is on a horizontal face (cos = |sin el|); otherwise on a box's side or end
+    (the one the hit lies on) or a cylinder's mantle (its radial normal)."""
+    px, py, z = rho * ca, rho * sa, rho * np.tan(el)
+    horiz = np.abs(np.cos(el))
+    z0, z1 = prims.z[prim, 0], prims.z[prim, 1]
+    on_flat = (np.abs(z - z1) < 1e-3) | (np.abs(z - z0) < 1e-3)
+    dx, dy = px - prims.center[prim, 0], py - prims.center[prim, 1]
+    yaw = prims.yaw[prim]
+    cy, sy = np.cos(yaw), np.sin(yaw)
+    lx, ly = dx * cy + dy * sy, -dx * sy + dy * cy
+    end = np.abs(np.abs(lx) - prims.half[prim, 0]) < np.abs(np.abs(ly) - prims.half[prim, 1])
+    box_cos = np.where(end, np.abs(ca * cy + sa * sy), np.abs(-ca * sy + sa * cy))
+    radial = np.hypot(dx, dy)
+    cyl_cos = np.abs(ca * dx + sa * dy) / np.maximum(radial, 1e-9)
+    side = np.where(prims.kind[prim] == BOX, box_cos, cyl_cos) * horiz
+    return np.where(on_flat, np.abs(np.sin(el)), side)
 
 
 def _mixed_pixels(rng3: F64, valid: NDArray[np.bool_], na: int, nb: int, fraction: float,

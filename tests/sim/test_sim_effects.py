@@ -305,3 +305,28 @@ def test_kerb_trees_are_opt_in_and_stand_beside_the_parked_cars_with_their_crown
     canopy = treed.points[(treed.owner < 0) & (treed.points[:, 2] > -1.84 + 2.3)]
     assert len(canopy) > 30 and np.median(np.hypot(canopy[:, 0] - 12.0, canopy[:, 1] - 6.0)) < 5.0
     assert (treed.owner == 0).sum() >= 0.8 * (bare.owner == 0).sum()
+
+
+def test_incidence_loses_the_grazing_returns_of_road_users_only_and_is_opt_in() -> None:
+    """With ``incidence`` a road user's return is lost where the ray grazes its surface: a car seen from its end keeps
+    the returns of the end the sensor faces and loses those of its side along the line of sight (and of its roof),
+    a car beside the sensor keeps its side, the ground keeps every return; the draw is opt-in and the last one."""
+    from jitterguard.sim.effects import parse_components
+
+    f = cars_frame([(15.0, 2.0), (0.0, 8.0)])  # the first seen from behind, the second broadside
+    ideal, _ = cast_frame(f, seed=4, effects=ScanEffects())
+    graze, _ = cast_frame(f, seed=4, effects=ScanEffects(incidence=1.0))
+    end_on = lambda r: r.points[r.owner == 0]  # noqa: E731
+    rear = lambda p: int((p[:, 0] < 12.7 + 0.3).sum())  # noqa: E731
+    side = lambda p: int((p[:, 0] > 13.5).sum())  # noqa: E731  its flank and roof, met at 5–9°
+    assert side(end_on(ideal)) >= 15 and side(end_on(graze)) < 0.5 * side(end_on(ideal))
+    assert rear(end_on(graze)) >= 0.9 * rear(end_on(ideal))
+    assert int(graze.num_points[1]) >= 0.9 * int(ideal.num_points[1])
+    ground = lambda r: int((r.owner == -2).sum())  # noqa: E731
+    assert ground(graze) == ground(ideal)
+    assert "incidence" not in parse_components("random")
+    for seed in range(10):
+        plain = draw_effects(np.random.default_rng(seed), parse_components("random,vegetation"))
+        inc = draw_effects(np.random.default_rng(seed), parse_components("random,vegetation,incidence"))
+        assert 0.5 <= inc.incidence <= 1.0 and plain.incidence == 0.0
+        assert inc == ScanEffects(**{**plain.__dict__, "incidence": inc.incidence})
