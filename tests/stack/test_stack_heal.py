@@ -155,8 +155,14 @@ def test_a_monitor_that_cannot_write_the_summary_says_so(stack):
     second". Its heartbeat now says failing, with the reason; the first write that succeeds clears it."""
     rd, env = stack["run_dir"], stack["env"]
     path = rd / "summary.json"
-    path.unlink()
-    path.mkdir()
+    for _ in range(100):  # the monitor renames a fresh summary into place every second: it may win the gap once
+        path.unlink(missing_ok=True)
+        try:
+            path.mkdir()
+            break
+        except FileExistsError:
+            continue
+    assert path.is_dir()
     try:
         def failing() -> dict | None:
             row = rows_of(rd, env).get("monitor", {})
