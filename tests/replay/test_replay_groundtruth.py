@@ -33,6 +33,8 @@ def test_nuscenes_boxes_replay_as_the_evaluator_sees_them(dataroot):
         assert item.stamp_ns == frame.stamp_ns
         assert [encode(o) for o in item.objects] == [encode(o) for o in want.objects]
     assert sum(len(i.objects) for i in items) > 0
+    hidden = sum(int((f.num_points < 1).sum()) for f in gt)
+    assert all(f.points_counted for f in gt) and f"the {hidden} without a LiDAR return are never detected" in src.info.notes[0]
     # a second pass draws the same noise (a loop replays the recording, not a new one); --start skips frames
     assert [len(i.objects) for i in src.frames()] == [len(i.objects) for i in items]
     assert [i.stamp_ns for i in src.frames(2)] == [i.stamp_ns for i in items[2:]]

@@ -53,12 +53,14 @@ class NuScenesBoxes(Source):
             raise SourceError(str(exc)) from None
         self.seed = seed
         n_boxes = sum(int(f.num_objects) for f in self.gt)
+        seen = sum(int((f.num_points >= 1).sum()) if f.points_counted else int(f.num_objects) for f in self.gt)
         self.info = SourceInfo(
             name=f"{dataroot} ({self.scene_name}, annotations)",
             kind="detections",
             num_frames=len(self.gt),
             notes=[f"nuScenes scene {self.scene_name}: {len(self.gt)} key frames, {n_boxes} boxes through the"
-                   f" detection-level noise model (seed {seed})"],
+                   f" detection-level noise model (seed {seed}); the {n_boxes - seen} without a LiDAR return are"
+                   f" never detected"],
         )
 
     def frames(self, start: int = 0) -> Iterator[Item]:
