@@ -126,6 +126,13 @@ class NoiseConfig:
     variance_scatter: float = REAL_SCAN_SCATTER
     """Std of the log of the reported σ about its biased value, per detection and axis (0: none)."""
 
+    def without_returns(self, frame: GroundTruthFrame) -> NDArray[np.bool_]:
+        """Boxes of ``frame`` this model never detects for want of LiDAR returns: fewer than ``min_points`` where
+        the frame counts them (``use_point_counts``); none where it does not."""
+        if not (self.use_point_counts and frame.points_counted):
+            return np.zeros(frame.num_objects, dtype=bool)
+        return frame.num_points < self.min_points
+
     @staticmethod
     def clean() -> "NoiseConfig":
         """Small noise, no misses, no false positives, no jitter: for tests of downstream logic. Reported like
@@ -235,9 +242,8 @@ class DetectionModel:
         # --- misses
         p_miss = cfg.p_miss + cfg.p_miss_per_m * rng_m + cfg.p_miss_occluded * (1.0 - vis)
         u = rng.random(n)
-        detected = (u >= p_miss) & (vis >= cfg.min_visibility) & (rng_m <= cfg.max_range_m)
-        if cfg.use_point_counts and frame.points_counted:
-            detected &= frame.num_points >= cfg.min_points
+        detected = ((u >= p_miss) & (vis >= cfg.min_visibility) & (rng_m <= cfg.max_range_m)
+                    & ~cfg.without_returns(frame))
         idx = np.flatnonzero(detected)
 
         # --- white noise along / across the beam

@@ -27,8 +27,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .catalog import VEHICLE_PARKED
-from .effects import (BRIGHT_SPOT_FRACTION, GRAZING_COS, MEASURED_INTENSITY, ScanEffects, kerbside_trees, street_clutter,
-                      vegetation_masses)
+from .effects import (BRIGHT_SPOT_FRACTION, GRAZING_COS, MEASURED_INTENSITY, ScanEffects, kerbside_trees,
+                      street_clutter, vegetation_masses)
 from .primitives import BOX, PrimitiveList, Primitives, Tag
 from .sensors import LidarSpec, azimuths, hdl32e
 from .shapes import crank_angle, gait_stride, object_primitives

@@ -41,8 +41,8 @@ class GroundTruthFrame:
     Positions and velocities are in the world frame; ``ego_*`` is the sensor pose. ``num_points`` counts the
     LiDAR returns inside each box where ``points_counted`` says so — a LiDAR scan was cast for this frame, or the
     annotations count them (nuScenes' ``num_lidar_pts``) — and is 0 otherwise; ``visibility`` is the ray-cast
-    fraction where a scan was cast, an analytic estimate (or the annotation's visibility level) otherwise. ``clutter`` is the static scenery
-    (trees, poles, walls, buildings) the LiDAR also sees; it carries no labels.
+    fraction where a scan was cast, an analytic estimate (or the annotation's visibility level) otherwise.
+    ``clutter`` is the static scenery (trees, poles, walls, buildings) the LiDAR also sees; it carries no labels.
     """
 
     seq: int

@@ -328,7 +328,7 @@ def tracked_residuals(frames: Sequence[tuple[Detections3D, F64]], *, min_score: 
         if det.log_variances is None:
             raise ValueError("tracked recalibration needs predicted variances")
         sel = np.flatnonzero(det.scores >= min_score)
-        xyz = det.boxes[sel, :3].astype(np.float64) @ pose[:3, :3].T + pose[:3, 3]
+        xyz = _boxes_to_world(det.boxes[sel].astype(np.float64), pose)[:, :3]
         live = [t for t in tracks if t["last"] == k - 1 or t["last"] == k - 2]
         taken: set[int] = set()
         pairs = []

@@ -52,14 +52,16 @@ class NuScenesBoxes(Source):
         except NuScenesError as exc:
             raise SourceError(str(exc)) from None
         self.seed = seed
+        from ....sim.detection_model import NoiseConfig  # the simulator is an optional area
+
         n_boxes = sum(int(f.num_objects) for f in self.gt)
-        seen = sum(int((f.num_points >= 1).sum()) if f.points_counted else int(f.num_objects) for f in self.gt)
+        hidden = sum(int(NoiseConfig().without_returns(f).sum()) for f in self.gt)  # the model noisy_detections runs
         self.info = SourceInfo(
             name=f"{dataroot} ({self.scene_name}, annotations)",
             kind="detections",
             num_frames=len(self.gt),
             notes=[f"nuScenes scene {self.scene_name}: {len(self.gt)} key frames, {n_boxes} boxes through the"
-                   f" detection-level noise model (seed {seed}); the {n_boxes - seen} without a LiDAR return are"
+                   f" detection-level noise model (seed {seed}); the {hidden} without a LiDAR return are"
                    f" never detected"],
         )
 
