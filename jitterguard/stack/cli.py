@@ -221,7 +221,7 @@ def _refuse_if_running(sup: Supervisor, rd: Path, label: str, down_hint: str) ->
     try:
         sup.call("getState")
     except StackUnavailable as exc:
-        if exc.state in ("starting", "shutting_down", "frozen", "lost", "error"):
+        if exc.state in ("starting", "shutting_down", "frozen", "lost", "denied", "error"):
             fail(f"{exc}; not starting another stack over it")
         left = orphans(rd)
         if left:
@@ -776,6 +776,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                     print(f"jitterguard: the stack {label}'s supervisord (pid {pid}) was stopped (SIGSTOP?); resumed"
                           " it to stop the stack", flush=True)
                 exc = StackUnavailable("shutting_down", str(exc))
+            if exc.state == "denied":  # it runs and is not this user's to stop
+                print(f"jitterguard: error: {exc}", file=sys.stderr)
+                raise SystemExit(1)
             if exc.state == "starting":  # it runs and never answered: a stop still has to reach it
                 print(f"jitterguard: error: {exc}; try again, or stop it with `kill {read_pid(rd)}`",
                       file=sys.stderr)

@@ -34,7 +34,8 @@ class StackUnavailable(Exception):
     """No supervisord answers for this run directory; ``state`` says why: ``absent`` (nothing was ever started
     there), ``stopped`` (it ran and has exited), ``stale`` (it died without cleaning up), ``shutting_down``,
     ``starting`` (it runs but does not answer yet), ``frozen`` (it runs but is stopped by a signal or a tracer:
-    it will not answer until resumed), ``lost`` (it runs, its run directory was deleted), ``error`` (a fault)."""
+    it will not answer until resumed), ``lost`` (it runs, its run directory was deleted), ``denied`` (its socket
+    refuses this user: the ``chown=``/``chmod=`` of supervisord's ``[unix_http_server]``), ``error`` (a fault)."""
 
     def __init__(self, state: str, message: str) -> None:
         self.state = state
@@ -186,6 +187,10 @@ class Supervisor:
             if "SHUTDOWN_STATE" in exc.faultString:
                 raise StackUnavailable("shutting_down", f"the stack {self.label} is shutting down") from None
             raise StackUnavailable("error", f"supervisord {self.label}: {exc.faultString}") from None
+        except PermissionError:  # a live supervisord whose socket is not this user's: not "starting" for ever
+            raise StackUnavailable("denied", f"the stack {self.label}: this user (uid {os.geteuid()}) may not use "
+                                   f"supervisord's socket {self.sock}; its [unix_http_server] chown=/chmod= must "
+                                   "give this user (or its group) access") from None
         except (OSError, socket.error, xmlrpc.client.ProtocolError, ConnectionError):
             raise self._unavailable() from None
 

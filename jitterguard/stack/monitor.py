@@ -73,6 +73,7 @@ class StackMonitor(Service):
         self.run_started_at = float(prev.get("started_at_s") or _spec_written_at(run_dir) or time.time())
         self.dirty = True
         self.write_error: str | None = None  # why summary.json could not be written, until it is again
+        self.supervisor_error: str | None = None  # why supervisord cannot be asked (its socket refuses us, …)
         self._beat_at: dict[int, tuple[str, float]] = {}  # pid -> (service, monotonic time of its last heartbeat)
         self._beat_lock = threading.Lock()
         self._stopped_since: dict[int, float] = {}  # a router pid seen stopped (SIGSTOP), since when (monotonic)
@@ -150,7 +151,7 @@ class StackMonitor(Service):
         second (into the same full disk) while ``status`` said ok and ``summary`` "its monitor writes one every
         second". Not a case for the watchdog (``unhealthy_for_s`` stays 0): a restart frees no disk, and the
         ledger in memory is all that keeps the counts of processes that end meanwhile."""
-        error = self.write_error
+        error = self.write_error or self.supervisor_error
         return Health(FAILING, error) if error is not None else super().health()
 
     def _supervisord_watch(self) -> None:
@@ -168,11 +169,15 @@ class StackMonitor(Service):
             last_tick = now
             try:
                 procs = self.supervisor.processes()
-            except StackUnavailable:
+            except StackUnavailable as exc:
+                self._supervisor_unreachable(exc)
                 continue
             except Exception:  # never let the watch die; say why
                 self.log.exception("cannot ask supervisord about its programs")
                 continue
+            if self.supervisor_error is not None:
+                self.log.info("supervisord answers again: frozen programs and crash loops are watched again")
+                self.supervisor_error = None
             if limit is not None:
                 try:
                     self._end_frozen(procs, now, limit)
@@ -183,6 +188,19 @@ class StackMonitor(Service):
                     self._hold_crash_loops(procs)
                 except Exception:
                     self.log.exception("crash-loop guard failed")
+
+    def _supervisor_unreachable(self, exc: StackUnavailable) -> None:
+        """Say once, and in the heartbeat's health until supervisord answers again, why it cannot be asked when
+        that will not pass by itself: a socket that refuses this user (a deployment whose ``chown=`` leaves the
+        monitor's user out), a supervisord stopped by a signal, a fault. Without this the watch had skipped every
+        look in silence — ``monitor up`` the last line of its log — while a frozen service stayed frozen.
+        Starting and shutting down pass by themselves and stay quiet."""
+        if exc.state not in ("denied", "frozen", "error"):
+            return
+        error = f"cannot ask supervisord about its programs, so frozen programs and crash loops go unhandled: {exc}"
+        if error != self.supervisor_error:
+            self.log.error("%s", error)
+        self.supervisor_error = error
 
     def _end_frozen(self, procs: list[Any], now: float, limit: float) -> None:
         """End a program that supervisord says is RUNNING but that has sent no heartbeat for
