@@ -58,6 +58,30 @@ def _pid(sup: Supervisor, name: str) -> int | None:
         return None
 
 
+def _wait_all_running(sup: Supervisor) -> None:
+    def all_running() -> bool:
+        try:
+            return {p.name for p in sup.processes() if p.state == "RUNNING"} >= PROGRAMS
+        except StackUnavailable:
+            return False
+
+    assert wait_until(all_running, timeout=TIMEOUT_S, period=0.5), [(p.name, p.state) for p in sup.processes()]
+
+
+def _freeze_tracker_until_replaced(sup: Supervisor, root: Path) -> None:
+    """SIGSTOP the running tracker; the monitor must end it (its log says why) and supervisord start another."""
+    frozen = _pid(sup, "tracker")
+    os.kill(frozen, signal.SIGSTOP)
+    try:
+        assert wait_until(lambda: _pid(sup, "tracker") not in (None, frozen), timeout=TIMEOUT_S, period=0.5), \
+            (root / "log" / "monitor.log").read_text()[-2000:]
+    finally:
+        if pid_alive(frozen):
+            os.kill(frozen, signal.SIGCONT)
+    log = (root / "log" / "monitor.log").read_text()
+    assert re.search(rf"tracker \(pid {frozen}\) has sent no heartbeat for \d+ s .*frozen", log), log[-2000:]
+
+
 def _ready(url: str) -> bool:
     try:
         return httpx.get(f"{url}/readyz", timeout=5.0).status_code == 200
@@ -95,14 +119,7 @@ def deployed(tmp_path_factory):
 
 def test_every_program_of_the_shipped_file_runs_and_the_monitor_keeps_the_summary(deployed):
     sup, root = deployed["sup"], deployed["root"]
-
-    def all_running() -> bool:
-        try:
-            return {p.name for p in sup.processes() if p.state == "RUNNING"} >= PROGRAMS
-        except StackUnavailable:
-            return False
-
-    assert wait_until(all_running, timeout=TIMEOUT_S, period=0.5), [(p.name, p.state) for p in sup.processes()]
+    _wait_all_running(sup)
     # the live ROS 2 programs wait for an operator on a vehicle (autostart=false), and then start
     assert {p.name: p.state for p in sup.processes() if p.name.startswith("ros2-")} == {"ros2-in": "STOPPED",
                                                                                         "ros2-out": "STOPPED"}
@@ -142,16 +159,7 @@ def test_a_frozen_service_is_ended_and_restarted_under_plain_supervisord(deploye
     sup, root = deployed["sup"], deployed["root"]
     assert wait_until(lambda: _pid(sup, "tracker") is not None and _ready(deployed["url"]),
                       timeout=TIMEOUT_S, period=1.0)
-    frozen = _pid(sup, "tracker")
-    os.kill(frozen, signal.SIGSTOP)
-    try:
-        assert wait_until(lambda: _pid(sup, "tracker") not in (None, frozen), timeout=TIMEOUT_S, period=0.5), \
-            (root / "log" / "monitor.log").read_text()[-2000:]
-    finally:
-        if pid_alive(frozen):
-            os.kill(frozen, signal.SIGCONT)
-    log = (root / "log" / "monitor.log").read_text()
-    assert re.search(rf"tracker \(pid {frozen}\) has sent no heartbeat for \d+ s .*frozen", log), log[-2000:]
+    _freeze_tracker_until_replaced(sup, root)
     assert wait_until(lambda: _ready(deployed["url"]), timeout=TIMEOUT_S, period=1.0)
 
 
@@ -293,14 +301,7 @@ def test_the_shipped_file_runs_every_program_as_its_unprivileged_user(deployed_a
     frozen service for supervisord to restart."""
     d = deployed_as_user
     sup, root, uid = d["sup"], d["root"], d["uid"]
-
-    def all_running() -> bool:
-        try:
-            return {p.name for p in sup.processes() if p.state == "RUNNING"} >= PROGRAMS
-        except StackUnavailable:
-            return False
-
-    assert wait_until(all_running, timeout=TIMEOUT_S, period=0.5), [(p.name, p.state) for p in sup.processes()]
+    _wait_all_running(sup)
     pids = {p.name: p.pid for p in sup.processes() if p.name in PROGRAMS}
     assert {name: _uid_of(pid) for name, pid in pids.items()} == {name: uid for name in pids}
     sock = os.stat(root / "run" / "supervisor.sock")
@@ -324,15 +325,7 @@ def test_the_shipped_file_runs_every_program_as_its_unprivileged_user(deployed_a
         (root / "log" / "classifier.log").read_text()[-2000:]
     assert all(p.stat().st_uid == uid for p in cache.rglob("*.nbi"))
 
-    frozen = _pid(sup, "tracker")
-    os.kill(frozen, signal.SIGSTOP)
-    try:
-        assert wait_until(lambda: _pid(sup, "tracker") not in (None, frozen), timeout=TIMEOUT_S, period=0.5), \
-            (root / "log" / "monitor.log").read_text()[-2000:]
-    finally:
-        if pid_alive(frozen):
-            os.kill(frozen, signal.SIGCONT)
-    assert re.search(rf"tracker \(pid {frozen}\) has sent no heartbeat", (root / "log" / "monitor.log").read_text())
+    _freeze_tracker_until_replaced(sup, root)
     assert _uid_of(_pid(sup, "tracker")) == uid
 
 
