@@ -1,5 +1,5 @@
-"""Which real cars does the detector miss, and is it their intensity or how much of them is seen? (docs/detector.md,
-"What stands around a sparse car").
+"""Which real cars does the detector miss, and is it their intensity, how much of them is seen, or their
+neighbours? (docs/detector.md, "What stands around a sparse car" and "A row of nose-in cars").
 
     .venv/bin/python scripts/real_car_misses.py [--weights W] [--nuscenes ../shared/data/nuscenes-scene-0523] [--seeds 1000-1001] [--effects random,vegetation]
 
@@ -10,7 +10,8 @@ width its returns span (a partly hidden car shows a slice: is a slice what the n
 and missed cars with 5–49 returns side by side — range, the box's bottom and the lowest return over the road plane
 measured under the scan, the heading's angle to the line of sight, the highest return as a share of the box's
 height, the share of cars with a pedestrian detection (≥ 0.3, none within 1 m of a labelled pedestrian) within 3 m
-of the car's centre or inside its box (+0.3 m), the best car score within 2 m; (c) the scans'
+of the car's centre or inside its box (+0.3 m), whether it stands in a row (another vehicle's centre within
+3.5 m: side by side in a lot), the best car score within 2 m; (d) found by returns in a row and alone; (c) the scans'
 intensities zeroed, halved, doubled, shuffled among the points or all set to their median (does the network read
 intensity at all?). Reads the scene's labels — a diagnosis, never a number fitted to the scene. Prints JSON.
 """
@@ -35,7 +36,11 @@ RETURN_BANDS = ((1, 5), (5, 20), (20, 50), (50, 100_000))
 SPAN_BANDS = ((0.0, 0.3), (0.3, 0.5), (0.5, 0.7), (0.7, 9.0))
 PEDESTRIAN = CLASS_NAMES.index("pedestrian")
 FIELDS = ("returns", "span", "range_m", "bottom_over_road_m", "lowest_return_over_road_m", "aspect_deg",
-          "top_return_of_height", "pedestrian_within_3m", "pedestrian_in_box", "best_score", "found")
+          "top_return_of_height", "pedestrian_within_3m", "pedestrian_in_box", "in_a_row", "best_score", "found")
+ROW_M = 3.5
+"""A car "in a row": another labelled car, van, truck or trailer's centre within this distance (side by side in a
+lot, two stalls apart at most; bumper to bumper along a kerb is 5 m or more)."""
+VEHICLES = [CLASS_NAMES.index(n) for n in ("car", "truck", "bus", "trailer") if n in CLASS_NAMES]
 
 
 def car_rows(det: Detector, samples, intensity: Callable[[np.ndarray], np.ndarray] | None = None) -> np.ndarray:  # noqa: ANN001
@@ -57,6 +62,7 @@ def car_rows(det: Detector, samples, intensity: Callable[[np.ndarray], np.ndarra
         peds = d.boxes[(d.labels == PEDESTRIAN) & (d.scores >= 0.3)]
         if len(walkers) and len(peds):  # a labelled pedestrian's own detection is no confusion
             peds = peds[np.hypot(peds[:, None, 0] - walkers[None, :, 0], peds[:, None, 1] - walkers[None, :, 1]).min(1) > 1.0]
+        others = s.boxes[np.isin(s.labels, VEHICLES)]
         for j, b in enumerate(boxes):
             q = points[inside[:, j]]
             if not len(q):
@@ -71,9 +77,12 @@ def car_rows(det: Detector, samples, intensity: Callable[[np.ndarray], np.ndarra
             pr = peds[:, :2] - b[:2]
             along, across = pr[:, 0] * c + pr[:, 1] * s_, -pr[:, 0] * s_ + pr[:, 1] * c
             in_box = (np.abs(along) < b[3] / 2 + 0.3) & (np.abs(across) < b[4] / 2 + 0.3)
+            gap = np.hypot(others[:, 0] - b[0], others[:, 1] - b[1])
+            in_row = bool(((gap > 1e-3) & (gap < ROW_M)).any())
             rows.append((len(q), span, np.hypot(b[0], b[1]), b[2] - b[5] / 2 - road, q[:, 2].min() - road,
                          np.degrees(aspect), (q[:, 2].max() - (b[2] - b[5] / 2)) / b[5],
-                         bool((np.hypot(pr[:, 0], pr[:, 1]) < 3.0).any()), bool(in_box.any()), best, best >= 0.3))
+                         bool((np.hypot(pr[:, 0], pr[:, 1]) < 3.0).any()), bool(in_box.any()), in_row, best,
+                         best >= 0.3))
     return np.asarray(rows, dtype=np.float64).reshape(-1, len(FIELDS))
 
 
@@ -94,9 +103,16 @@ def by_returns_and_span(a: np.ndarray) -> dict:
     return out
 
 
+def in_a_row_by_returns(a: np.ndarray) -> dict:
+    """Found share by returns, for cars in a row (:data:`ROW_M`) and for the rest."""
+    row = a[:, FIELDS.index("in_a_row")] == 1
+    return {f"{lo}-{hi - 1} returns": {"in a row": _share(a, m & row), "alone": _share(a, m & ~row)}
+            for lo, hi in RETURN_BANDS for m in [(a[:, 0] >= lo) & (a[:, 0] < hi)]}
+
+
 def found_against_missed(a: np.ndarray) -> dict:
     m = (a[:, 0] >= 5) & (a[:, 0] < 50)
-    shares = ("pedestrian_within_3m", "pedestrian_in_box")
+    shares = ("pedestrian_within_3m", "pedestrian_in_box", "in_a_row")
     return {name: {"cars": int(k.sum()), **{f: (round(float(a[k, i].mean()), 2) if f in shares else
                                                 np.round(np.percentile(a[k, i], [10, 50, 90]), 2).tolist())
                                              for i, f in enumerate(FIELDS[2:-1], start=2)}}
@@ -126,6 +142,7 @@ def main() -> None:
     for name, samples in data.items():
         rows = car_rows(det, samples)
         out[name] = {"by_returns_and_span": by_returns_and_span(rows), "5-49 returns": found_against_missed(rows),
+                     "in_a_row": in_a_row_by_returns(rows),
                      "intensity": {"as is": found_by_returns(rows), **{
                          vname: found_by_returns(car_rows(det, samples, fn)) for vname, fn in variants.items()}}}
     print(json.dumps(out, indent=1))

@@ -22,7 +22,8 @@ def test_list_names_scenarios_and_sensors() -> None:
     r = run("sim", "list")
     assert r.exit_code == 0
     out = json.loads(r.stdout)
-    assert out["scenarios"] == ["parking-street", "diagonal-lot", "intersection", "mixed", "loading-street"]
+    assert out["scenarios"] == ["parking-street", "diagonal-lot", "intersection", "mixed", "loading-street",
+                                "perpendicular-lot"]
     assert out["sensors"]["hdl32e"]["beams"] == 32
 
 

@@ -205,6 +205,26 @@ def test_the_loading_street_parks_a_real_truck_fleet(scenarios: dict[str, Scenar
                 if lab == Label.TRUCK} <= {"truck"}
 
 
+def test_the_perpendicular_lot_parks_cars_side_by_side_at_right_angles(scenarios: dict[str, Scenario]) -> None:
+    """Real lots are mostly 90° stalls: each car shows the aisle its front or back between neighbours ~0.5 m away,
+    out to the far rows ~20 m off the ego's aisle. The diagonal lot keeps its 45° and 60° stalls (its seeds, and
+    every figure on them, keep their worlds)."""
+    def parked(name: str) -> tuple[np.ndarray, np.ndarray]:
+        f = scenarios[name].frame(0)
+        m = np.array([a == "vehicle.parked" for a in f.attributes]) & (f.labels == Label.CAR)
+        return f.centers[m, :2] - [f.ego_x, f.ego_y], f.yaws[m]
+
+    xy, yaw = parked("perpendicular-lot")
+    assert len(yaw) >= 20
+    assert np.all(np.abs(np.abs(np.sin(yaw)) - 1.0) < 0.01)  # the ego's aisle runs along x
+    gaps = np.sort(np.hypot(xy[:, None, 0] - xy[None, :, 0], xy[:, None, 1] - xy[None, :, 1]), axis=1)[:, 1]
+    assert np.median(gaps) < 3.5  # a neighbour one stall away
+    assert np.abs(xy[:, 1]).max() > 14.0  # the far rows
+    _, yaw = parked("diagonal-lot")
+    angles = np.degrees(np.abs(np.arcsin(np.abs(np.sin(yaw)))))
+    assert np.all((np.abs(angles - 45.0) < 3.0) | (np.abs(angles - 60.0) < 3.0))
+
+
 def test_tractor_semitrailers_in_traffic_drive_like_heavy_vehicles() -> None:
     """A 15 m semi in a lane takes the heavy vehicles' IDM (slow starts, long headways) and 0.8 × the lane's
     speed, as rigid trucks do; a car in the same lane keeps the defaults."""
