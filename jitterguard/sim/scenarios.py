@@ -315,15 +315,18 @@ def _pull_in_path(stall: tuple[float, float], heading: float, aisle_y: float, ai
 
 
 def diagonal_lot(rng: np.random.Generator, duration_s: float,
-                 angles_deg: tuple[float, ...] = (45.0, 60.0)) -> Layout:
+                 angles_deg: tuple[float, ...] = (45.0, 60.0),
+                 stall_width_m: tuple[float, float] | None = None) -> Layout:
     """A parking lot aisle lined with angled stalls (``angles_deg``: the stall angle to the aisle, one drawn per
-    lot); parked cars occlude each other as the ego passes."""
+    lot; ``stall_width_m``: the range a lot's stall width is drawn from, else 2.9 m); parked cars occlude each
+    other as the ego passes."""
     b = LayoutBuilder(rng, duration_s)
     v_ego = rng.uniform(3.5, 7.5)
     x0, x1 = -70.0, v_ego * duration_s + 100.0
     far = 2000.0
     angle = math.radians(float(rng.choice(list(angles_deg))))
-    pitch = 2.9 / math.sin(angle)
+    stall = 2.9 if stall_width_m is None else float(rng.uniform(*stall_width_m))
+    pitch = stall / math.sin(angle)
     aisle_half = 3.3
     depth = 5.6 * math.sin(angle) + 2.1 * math.cos(angle) + 0.5
     island = 1.2
@@ -526,10 +529,11 @@ _YARD_MIX = {"semi": 0.3, "long_trailer": 0.2, "truck": 0.2, "bus": 0.1, "van": 
 
 def perpendicular_lot(rng: np.random.Generator, duration_s: float) -> Layout:
     """The parking lot of :func:`diagonal_lot` with stalls at right angles to the aisles, the commonest layout of
-    real lots: each parked car shows the sensor its front or back between two neighbours ~0.5 m away, its flanks
-    hidden, and the far rows stand 14–20 m off the ego's aisle (why it exists: docs/detector.md, "A row of
-    nose-in cars"). A scenario of its own, so that the diagonal lot's seeds keep their worlds."""
-    return diagonal_lot(rng, duration_s, angles_deg=(90.0,))
+    real lots, 2.3–2.8 m wide (a real lot's 8–9 ft): each parked car shows the sensor its front or back between two
+    neighbours 0.3–1 m away, its flanks hidden — a near-continuous band of car fronts — and the far rows stand
+    14–15 m off the ego's aisle (why it exists: docs/detector.md, "A row of nose-in cars"). A scenario of its own,
+    so that the diagonal lot's seeds keep their worlds."""
+    return diagonal_lot(rng, duration_s, angles_deg=(90.0,), stall_width_m=(2.3, 2.8))
 
 
 def loading_street(rng: np.random.Generator, duration_s: float) -> Layout:
