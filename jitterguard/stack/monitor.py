@@ -150,7 +150,9 @@ class StackMonitor(Service):
         """``failing`` while summary.json cannot be written: the monitor's one job. It had logged a traceback a
         second (into the same full disk) while ``status`` said ok and ``summary`` "its monitor writes one every
         second". Not a case for the watchdog (``unhealthy_for_s`` stays 0): a restart frees no disk, and the
-        ledger in memory is all that keeps the counts of processes that end meanwhile."""
+        ledger in memory is all that keeps the counts of processes that end meanwhile. Also ``failing`` while
+        supervisord cannot be asked about its programs for a reason that will not pass by itself
+        (:meth:`_supervisor_unreachable`): the monitor's other job, healing, is then undone."""
         error = self.write_error or self.supervisor_error
         return Health(FAILING, error) if error is not None else super().health()
 
