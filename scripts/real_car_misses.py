@@ -11,9 +11,9 @@ and missed cars with 5–49 returns side by side — range, the box's bottom and
 measured under the scan, the heading's angle to the line of sight, the highest return as a share of the box's
 height, the share of cars with a pedestrian detection (≥ 0.3, none within 1 m of a labelled pedestrian) within 3 m
 of the car's centre or inside its box (+0.3 m), whether it stands in a row (another vehicle's centre within
-3.5 m: side by side in a lot), the best car score within 2 m; (d) found by returns in a row and alone; (c) the scans'
-intensities zeroed, halved, doubled, shuffled among the points or all set to their median (does the network read
-intensity at all?). Reads the scene's labels — a diagnosis, never a number fitted to the scene. Prints JSON.
+3.5 m: side by side in a lot), the best car score within 2 m; (c) found by returns in a row and alone; (d) the
+scans' intensities zeroed, halved, doubled, shuffled among the points or all set to their median (does the network
+read intensity at all?). Reads the scene's labels — a diagnosis, never a number fitted to the scene. Prints JSON.
 """
 
 from __future__ import annotations
@@ -38,9 +38,9 @@ PEDESTRIAN = CLASS_NAMES.index("pedestrian")
 FIELDS = ("returns", "span", "range_m", "bottom_over_road_m", "lowest_return_over_road_m", "aspect_deg",
           "top_return_of_height", "pedestrian_within_3m", "pedestrian_in_box", "in_a_row", "best_score", "found")
 ROW_M = 3.5
-"""A car "in a row": another labelled car, van, truck or trailer's centre within this distance (side by side in a
-lot, two stalls apart at most; bumper to bumper along a kerb is 5 m or more)."""
-VEHICLES = [CLASS_NAMES.index(n) for n in ("car", "truck", "bus", "trailer") if n in CLASS_NAMES]
+"""A car "in a row": another labelled car's, truck's or bus's centre within this distance (side by side in a lot,
+two stalls apart at most; bumper to bumper along a kerb is 5 m or more)."""
+VEHICLES = [CLASS_NAMES.index(n) for n in ("car", "truck", "bus")]
 
 
 def car_rows(det: Detector, samples, intensity: Callable[[np.ndarray], np.ndarray] | None = None) -> np.ndarray:  # noqa: ANN001

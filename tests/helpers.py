@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import time
@@ -16,6 +17,7 @@ from jitterguard.schemas.models import (X_X, X_Y, Y_X, Y_Y, YAW_YAW, DetectedObj
     DetectedObjects, Header, ObjectClassification, Point, Pose, PoseWithCovariance, Quaternion, Shape, Vector3)
 from jitterguard.sim.lidar import LidarSpec, ScanResult, cast_frame, hdl32e
 from jitterguard.sim.world import GroundTruthFrame
+from jitterguard.stack.control import pid_alive
 
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -45,6 +47,23 @@ def wait_until(pred: Callable[[], bool], timeout: float = 10.0, period: float = 
             return True
         time.sleep(period)
     return pred()
+
+
+def freeze_until_replaced(tracker_pid: Callable[[], int | None], monitor_log: Path, timeout: float) -> None:
+    """SIGSTOP the running tracker (``tracker_pid()``: its pid under the stack's supervisord, None while it has
+    none); the stack's monitor must end it, saying why in ``monitor_log``, and supervisord start another. The
+    process is resumed whatever happens, so a failed test leaves nothing stopped."""
+    frozen = tracker_pid()
+    assert frozen
+    os.kill(frozen, signal.SIGSTOP)
+    try:
+        assert wait_until(lambda: tracker_pid() not in (None, frozen), timeout=timeout, period=0.5), \
+            monitor_log.read_text()[-2000:]
+    finally:
+        if pid_alive(frozen):
+            os.kill(frozen, signal.SIGCONT)
+    log = monitor_log.read_text()
+    assert re.search(rf"tracker \(pid {frozen}\) has sent no heartbeat for \d+ s .*frozen", log), log[-2000:]
 
 
 def iter_scans(scenario: Iterable[GroundTruthFrame], sensor: LidarSpec | None = None, seed: int = 0

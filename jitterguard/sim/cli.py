@@ -22,7 +22,8 @@ from ..cli_common import ProgressOpt, check_seed, fail, out_file, progress_on
 sim_app = typer.Typer(help="Synthetic world: scenarios with ground truth, ray-cast LiDAR, nuScenes export.",
                       no_args_is_help=True)
 
-ScenarioArg = Annotated[str, typer.Argument(help="parking-street, diagonal-lot, intersection, mixed, loading-street or perpendicular-lot.")]
+ScenarioArg = Annotated[str, typer.Argument(
+    help="parking-street, diagonal-lot, intersection, mixed, loading-street or perpendicular-lot.")]
 SeedOpt = Annotated[int, typer.Option("--seed", help="Seed: the same seed gives the same world.")]
 DurationOpt = Annotated[float, typer.Option("--duration", help="Seconds (10–60 is the intended range).")]
 LidarOpt = Annotated[str, typer.Option("--lidar", help="hdl32e, vlp16 or os1-64.")]

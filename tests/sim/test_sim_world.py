@@ -206,8 +206,8 @@ def test_the_loading_street_parks_a_real_truck_fleet(scenarios: dict[str, Scenar
 
 
 def test_the_perpendicular_lot_parks_cars_side_by_side_at_right_angles(scenarios: dict[str, Scenario]) -> None:
-    """Real lots are mostly 90° stalls: each car shows the aisle its front or back between neighbours ~0.5 m away,
-    out to the far rows ~20 m off the ego's aisle. The diagonal lot keeps its 45° and 60° stalls (its seeds, and
+    """Real lots are mostly 90° stalls: each car shows the aisle its front or back between neighbours 0.3–1 m away,
+    out to the far rows 14–15 m off the ego's aisle. The diagonal lot keeps its 45° and 60° stalls (its seeds, and
     every figure on them, keep their worlds)."""
     def parked(name: str) -> tuple[np.ndarray, np.ndarray]:
         f = scenarios[name].frame(0)

@@ -3,7 +3,8 @@ supervisord, real router, services and uvicorn; no mocks).
 
 Only what a test host cannot have is changed: the system folders (/run, /var/log, /var/lib) become temporary ones,
 the venv path the one running this test, the ports free ones, ``user=`` / ``chown=`` go (no ``jitterguard`` user
-here; the tests at the end keep them, as root, in a mount namespace of their own), and ``JG_WATCHDOG_S`` is short so that the freeze watch acts within ~15 s. Every program starts, the
+here; the tests at the end keep them, as root, in a mount namespace of their own), and ``JG_WATCHDOG_S`` is short
+so that the freeze watch acts within ~15 s. Every program starts, the
 sidecar comes ready, the monitor writes the run's summary into /var/lib/jitterguard's stand-in (and the classifier
 its compiled statistic's cache, NUMBA_CACHE_DIR), and a service
 frozen with SIGSTOP is ended by the monitor and restarted by supervisord. Before, this file had no monitor: a
@@ -26,9 +27,9 @@ import httpx
 import pytest
 
 from jitterguard.runtime import free_tcp_port
-from jitterguard.stack.control import StackUnavailable, Supervisor, pid_alive
+from jitterguard.stack.control import StackUnavailable, Supervisor
 
-from helpers import stop_process, wait_until
+from helpers import freeze_until_replaced, stop_process, wait_until
 
 pytestmark = pytest.mark.integration
 
@@ -66,20 +67,6 @@ def _wait_all_running(sup: Supervisor) -> None:
             return False
 
     assert wait_until(all_running, timeout=TIMEOUT_S, period=0.5), [(p.name, p.state) for p in sup.processes()]
-
-
-def _freeze_tracker_until_replaced(sup: Supervisor, root: Path) -> None:
-    """SIGSTOP the running tracker; the monitor must end it (its log says why) and supervisord start another."""
-    frozen = _pid(sup, "tracker")
-    os.kill(frozen, signal.SIGSTOP)
-    try:
-        assert wait_until(lambda: _pid(sup, "tracker") not in (None, frozen), timeout=TIMEOUT_S, period=0.5), \
-            (root / "log" / "monitor.log").read_text()[-2000:]
-    finally:
-        if pid_alive(frozen):
-            os.kill(frozen, signal.SIGCONT)
-    log = (root / "log" / "monitor.log").read_text()
-    assert re.search(rf"tracker \(pid {frozen}\) has sent no heartbeat for \d+ s .*frozen", log), log[-2000:]
 
 
 def _ready(url: str) -> bool:
@@ -159,7 +146,7 @@ def test_a_frozen_service_is_ended_and_restarted_under_plain_supervisord(deploye
     sup, root = deployed["sup"], deployed["root"]
     assert wait_until(lambda: _pid(sup, "tracker") is not None and _ready(deployed["url"]),
                       timeout=TIMEOUT_S, period=1.0)
-    _freeze_tracker_until_replaced(sup, root)
+    freeze_until_replaced(lambda: _pid(sup, "tracker"), root / "log" / "monitor.log", TIMEOUT_S)
     assert wait_until(lambda: _ready(deployed["url"]), timeout=TIMEOUT_S, period=1.0)
 
 
@@ -325,7 +312,7 @@ def test_the_shipped_file_runs_every_program_as_its_unprivileged_user(deployed_a
         (root / "log" / "classifier.log").read_text()[-2000:]
     assert all(p.stat().st_uid == uid for p in cache.rglob("*.nbi"))
 
-    _freeze_tracker_until_replaced(sup, root)
+    freeze_until_replaced(lambda: _pid(sup, "tracker"), root / "log" / "monitor.log", TIMEOUT_S)
     assert _uid_of(_pid(sup, "tracker")) == uid
 
 

@@ -16,7 +16,6 @@ from __future__ import annotations
 import fcntl
 import json
 import os
-import re
 import signal
 import subprocess
 import sys
@@ -29,7 +28,7 @@ from jitterguard.runtime import free_tcp_port
 from jitterguard.stack.control import ProcessInfo, Supervisor, pid_alive, read_pid
 from jitterguard.stack.status import collect
 
-from helpers import wait_until
+from helpers import freeze_until_replaced, wait_until
 
 pytestmark = pytest.mark.integration
 
@@ -93,17 +92,7 @@ def test_a_frozen_service_is_ended_and_restarted(stack):
     says RUNNING for ever and no frame goes through. The monitor, hearing the others but not it, kills it for
     supervisord to restart it, and frames flow again."""
     rd = stack["run_dir"]
-    frozen = pid_of(rd, "tracker")
-    assert frozen
-    os.kill(frozen, signal.SIGSTOP)
-    try:
-        assert wait_until(lambda: pid_of(rd, "tracker") not in (None, frozen), timeout=HEAL_TIMEOUT_S, period=0.5), \
-            (rd / "logs" / "monitor.log").read_text()[-2000:]
-    finally:
-        if pid_alive(frozen):
-            os.kill(frozen, signal.SIGCONT)
-    log = (rd / "logs" / "monitor.log").read_text()
-    assert re.search(rf"tracker \(pid {frozen}\) has sent no heartbeat for \d+ s .*frozen", log), log[-2000:]
+    freeze_until_replaced(lambda: pid_of(rd, "tracker"), rd / "logs" / "monitor.log", HEAL_TIMEOUT_S)
     before = _classified(stack)
     assert wait_until(lambda: _classified(stack) > before + 10, timeout=HEAL_TIMEOUT_S, period=1.0)
 
