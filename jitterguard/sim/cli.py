@@ -23,7 +23,7 @@ sim_app = typer.Typer(help="Synthetic world: scenarios with ground truth, ray-ca
                       no_args_is_help=True)
 
 ScenarioArg = Annotated[str, typer.Argument(
-    help="parking-street, diagonal-lot, intersection, mixed, loading-street or perpendicular-lot.")]
+    help="parking-street, diagonal-lot, intersection, mixed, loading-street, perpendicular-lot or screened-lot.")]
 SeedOpt = Annotated[int, typer.Option("--seed", help="Seed: the same seed gives the same world.")]
 DurationOpt = Annotated[float, typer.Option("--duration", help="Seconds (10–60 is the intended range).")]
 LidarOpt = Annotated[str, typer.Option("--lidar", help="hdl32e, vlp16 or os1-64.")]

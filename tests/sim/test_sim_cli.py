@@ -23,7 +23,7 @@ def test_list_names_scenarios_and_sensors() -> None:
     assert r.exit_code == 0
     out = json.loads(r.stdout)
     assert out["scenarios"] == ["parking-street", "diagonal-lot", "intersection", "mixed", "loading-street",
-                                "perpendicular-lot"]
+                                "perpendicular-lot", "screened-lot"]
     assert out["sensors"]["hdl32e"]["beams"] == 32
 
 

@@ -225,6 +225,36 @@ def test_the_perpendicular_lot_parks_cars_side_by_side_at_right_angles(scenarios
     assert np.all((np.abs(angles - 45.0) < 3.0) | (np.abs(angles - 60.0) < 3.0))
 
 
+def test_the_screened_lot_hides_its_near_rows_behind_a_low_wall_or_hedge(scenarios: dict[str, Scenario]) -> None:
+    """A row of nose-in cars seen from a road across a verge with street trees and a low wall or hedge shows the
+    sensor little of them, and least below the screen's top: in a scan the near rows return under half as often as
+    in the open 90° lot, and a far smaller share of what they return lies under 0.8 m; those rows stand beyond a kerb
+    3.3–9 m off the ego's lane."""
+    from jitterguard.sim.lidar import cast_frame
+    from jitterguard.sim.primitives import Tag
+
+    def near_rows(name: str) -> tuple[float, int, float]:
+        f = scenarios[name].frame(0)
+        scan, _ = cast_frame(f)
+        rel = f.centers[:, 1] - f.ego_y
+        parked = np.array([a == "vehicle.parked" for a in f.attributes]) & (f.labels == Label.CAR)
+        nearest = np.abs(rel[parked]).min()
+        rows = np.flatnonzero(parked & (np.abs(rel) < nearest + 3.0) & (np.abs(f.centers[:, 0] - f.ego_x) < 30.0))
+        z = scan.points[np.isin(scan.owner, rows), 2] + 1.84  # over the road
+        return float(np.mean(z < 0.8)), len(z) / len(rows), float(nearest)
+
+    low_open, returns_open, near_open = near_rows("perpendicular-lot")
+    low_screened, returns_screened, near_screened = near_rows("screened-lot")
+    assert low_open > 0.25
+    assert low_screened < low_open / 2
+    assert returns_screened < returns_open / 2
+    assert near_screened > near_open + 1.5  # beyond the verge
+    cl = scenarios["screened-lot"].layout.clutter
+    screens = np.isin(cl.tag, [int(Tag.WALL), int(Tag.HEDGE)]) & (cl.z[:, 1] >= 0.7) & (cl.z[:, 1] <= 1.5)
+    assert screens.sum() >= 2
+    assert np.any(cl.tag == int(Tag.TREE_TRUNK))
+
+
 def test_tractor_semitrailers_in_traffic_drive_like_heavy_vehicles() -> None:
     """A 15 m semi in a lane takes the heavy vehicles' IDM (slow starts, long headways) and 0.8 × the lane's
     speed, as rigid trucks do; a car in the same lane keeps the defaults."""
