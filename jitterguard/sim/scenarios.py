@@ -124,16 +124,17 @@ def _diagonal_row(b: LayoutBuilder, x0: float, x1: float, y_edge: float, side: i
 
 def _screen(b: LayoutBuilder, x0: float, x1: float, y_kerb: float, y_front: float, side: int) -> None:
     """What stands between a road and the row of stalls beyond it: a raised verge from the kerb at ``y_kerb`` to
-    ``y_front`` (0.1–0.25 m high), street trees on it every 5–14 m, and along the stalls' fronts a low wall
-    (0.25 m thick) or a hedge (0.4–0.9 m deep), 0.7–1.5 m tall, in lengths with gaps — the sensor sees little of
-    the cars behind it but their roofs under the crowns (why: docs/detector.md, "A row of nose-in cars")."""
+    ``y_front`` (0.1–0.25 m high), street trees on it 0.5–0.9 m from the kerb every 5–14 m (the walk behind them
+    is the caller's), and along the stalls' fronts a low wall (0.25 m thick) or a hedge (0.4–0.9 m deep), 0.7–1.5 m
+    tall, in lengths with gaps — the sensor sees little of the cars behind it but their upper halves under the
+    crowns (why: docs/detector.md, "A row of nose-in cars")."""
     rng = b.rng
     width = abs(y_front - y_kerb)
     mid = (y_kerb + y_front) / 2
     b.clutter.box((x0 + x1) / 2, mid, x1 - x0, width, 0.0, rng.uniform(0.1, 0.25), reflectivity=0.3, tag=Tag.WALL)
     x = x0 + rng.uniform(0.0, 8.0)
     while x < x1:
-        _tree(b, x, mid + rng.uniform(-0.2, 0.2) * width)
+        _tree(b, x, y_kerb + side * rng.uniform(0.5, 0.9))
         x += rng.uniform(5.0, 14.0)
     hedge = rng.random() < 0.5
     tag, deep = (Tag.HEDGE, rng.uniform(0.4, 0.9)) if hedge else (Tag.WALL, 0.25)
@@ -344,8 +345,8 @@ def diagonal_lot(rng: np.random.Generator, duration_s: float,
     """A parking lot aisle lined with angled stalls (``angles_deg``: the stall angle to the aisle, one drawn per
     lot; ``stall_width_m``: the range a lot's stall width is drawn from, else 2.9 m); parked cars occlude each
     other as the ego passes. ``screened``: the ego drives a road (3.3–9 m to its kerb) and the rows nearest it
-    stand behind a raised verge 1.5–4 m wide with street trees and a low wall or hedge along the cars' fronts
-    (:func:`_screen`)."""
+    stand behind a raised verge 2.5–4.5 m wide with street trees, people walking and standing on it, and a low
+    wall or hedge along the cars' fronts (:func:`_screen`)."""
     b = LayoutBuilder(rng, duration_s)
     v_ego = rng.uniform(3.5, 7.5)
     x0, x1 = -70.0, v_ego * duration_s + 100.0
@@ -354,7 +355,7 @@ def diagonal_lot(rng: np.random.Generator, duration_s: float,
     stall = 2.9 if stall_width_m is None else float(rng.uniform(*stall_width_m))
     pitch = stall / math.sin(angle)
     aisle_half = 3.3
-    road_half, verge = (float(rng.uniform(3.3, 9.0)), float(rng.uniform(1.5, 4.0))) if screened else (aisle_half, 0.0)
+    road_half, verge = (float(rng.uniform(3.3, 9.0)), float(rng.uniform(2.5, 4.5))) if screened else (aisle_half, 0.0)
     shift = road_half + verge - aisle_half  # how far the rows stand beyond where an aisle would put them
     depth = 5.6 * math.sin(angle) + 2.1 * math.cos(angle) + 0.5
     island = 1.2
@@ -400,8 +401,8 @@ def diagonal_lot(rng: np.random.Generator, duration_s: float,
             s_lo = far + (x0 if d > 0 else -x1) - 5.0 * duration_s
             s_hi = far + (x1 if d > 0 else -x0)
             _fill_lane(b, outer, s_lo, s_hi, (40.0, 120.0), (2.5, 5.5), {"car": 0.9, "van": 0.1})
-        # walkers along the aisle edges and people standing on the island
-        yw = side * (road_half - 0.6)
+        # walkers along the aisle edges (the verge's walk when screened) and people standing on the island
+        yw = side * (road_half + 1.5 if screened else road_half - 0.6)
         walk = b.add_lane(straight((-far * side, yw), (far * side, yw)))
         s_lo = far + (x0 if side > 0 else -x1) - 1.6 * duration_s
         s_hi = far + (x1 if side > 0 else -x0)
@@ -409,6 +410,10 @@ def diagonal_lot(rng: np.random.Generator, duration_s: float,
         for _ in range(rng.poisson((x1 - x0) / 60.0)):
             b.add_static("pedestrian", rng.uniform(x0, x1), yi + rng.uniform(-0.2, 0.2), rng.uniform(-3, 3),
                          cat.PED_STANDING)
+        if screened:  # people standing on the verge, between the trees and the screen
+            for _ in range(rng.poisson((x1 - x0) / 40.0)):
+                b.add_static("pedestrian", rng.uniform(x0, x1), side * (road_half + rng.uniform(1.2, 1.8)),
+                             rng.uniform(-3, 3), cat.PED_STANDING)
         # boundary fence and buildings beyond the outer aisle
         yf = side * (aisle2 + aisle_half + 1.5)
         b.clutter.box((x0 + x1) / 2, yf, x1 - x0 + 60, 0.1, 0.0, 1.8, reflectivity=0.15, tag=Tag.FENCE)
