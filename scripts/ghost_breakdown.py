@@ -3,7 +3,7 @@ the frames where the detector's box sat more than 2 m off the object's centre (d
 
     .venv/bin/python scripts/ghost_breakdown.py --scenario mixed --seeds 0-3 [--input detector] [--threads 1]
     .venv/bin/python scripts/ghost_breakdown.py --nuscenes ../shared/data/nuscenes-scene-0523
-    ... [--tracker-config FILE] [--cache DIR]
+    ... [--tracker-config FILE] [--cache DIR] [--weights W]
 
 Runs the evaluator's pipeline (the live tracker and classifier cores; the detector service's steps with
 ``--input detector``) over the seeds as one drive, exactly like ``jitterguard eval --runs``, and splits
@@ -56,6 +56,7 @@ def input_arguments(ap: argparse.ArgumentParser, default_input: str = "detector"
     ap.add_argument("--noise", default="jittery", help="noise preset of --input gt-noise")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--cache", default=None, help="folder for the per-seed detector payloads")
+    ap.add_argument("--weights", default=None, help="detector weights of --input detector (default: the shipped)")
     ap.add_argument("--no-jump-veto", action="store_true",
                     help="the classifier without its jump veto (every figure measured before 3 Dec 2026)")
 
@@ -109,6 +110,8 @@ def detection_pairs(args: argparse.Namespace, seed: int) -> list[tuple[Any, byte
     tag = "nuscenes" if args.nuscenes else f"{args.scenario}-{seed}"
     noise = args.noise  # the noise model's preset, for --input gt-noise
     kind = args.input if args.input == "detector" or noise == "jittery" else f"{args.input}-{noise}"
+    if args.input == "detector" and args.weights:
+        kind += "-" + Path(args.weights).parent.name  # a cache per weights file
     path = Path(args.cache) / f"{tag}-{kind}.pkl" if args.cache else None
     if path is not None and path.exists():
         with path.open("rb") as fh:
@@ -128,7 +131,7 @@ def detection_pairs(args: argparse.Namespace, seed: int) -> list[tuple[Any, byte
         from jitterguard.eval.cli import load_detector
         from jitterguard.eval.detector_input import detector_frames, nuscenes_scans, synthetic_scans
 
-        det, _ = load_detector(None, args.threads)
+        det, _ = load_detector(Path(args.weights) if args.weights else None, args.threads)
         scans = nuscenes_scans(Path(args.nuscenes), None, frames) if args.nuscenes else synthetic_scans(frames, seed)
         pairs = [(f.gt, f.detections) for f in detector_frames(scans, det.detect, class_names=det.config.class_names,
                                                                  uncertainty=det.config.uncertainty)]
