@@ -127,7 +127,8 @@ def _screen(b: LayoutBuilder, x0: float, x1: float, y_kerb: float, y_front: floa
     ``y_front`` (0.1–0.25 m high), street trees on it 0.5–0.9 m from the kerb every 5–14 m (the walk behind them
     is the caller's), and along the stalls' fronts a low wall (0.25 m thick) or a hedge (0.4–0.9 m deep), 0.7–1.5 m
     tall, in lengths with gaps — the sensor sees little of the cars behind it but their upper halves under the
-    crowns (why: docs/detector.md, "A row of nose-in cars")."""
+    crowns (why: docs/detector.md, "A row of nose-in cars"). A simplification: road users stand on the road's
+    level, so the feet of people on the verge are inside its raised slab (their boxes 0.1–0.25 m too low there)."""
     rng = b.rng
     width = abs(y_front - y_kerb)
     mid = (y_kerb + y_front) / 2
