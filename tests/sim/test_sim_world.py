@@ -229,7 +229,7 @@ def test_the_screened_lot_hides_its_near_rows_behind_a_low_wall_or_hedge(scenari
     """A row of nose-in cars seen from a road across a verge with street trees and a low wall or hedge shows the
     sensor little of them, and least below the screen's top: in a scan the near rows return under half as often as
     in the open 90° lot, and a far smaller share of what they return lies under 0.8 m; those rows stand beyond a kerb
-    3.3–9 m off the ego's lane."""
+    3.3–9 m off the ego's lane and a verge with people standing on it."""
     from jitterguard.sim.lidar import cast_frame
     from jitterguard.sim.primitives import Tag
 
@@ -253,6 +253,10 @@ def test_the_screened_lot_hides_its_near_rows_behind_a_low_wall_or_hedge(scenari
     screens = np.isin(cl.tag, [int(Tag.WALL), int(Tag.HEDGE)]) & (cl.z[:, 1] >= 0.7) & (cl.z[:, 1] <= 1.5)
     assert screens.sum() >= 2
     assert np.any(cl.tag == int(Tag.TREE_TRUNK))
+    f = scenarios["screened-lot"].frame(0)  # people stand on the verge, between the kerb and the cars
+    standing = np.array([a == "pedestrian.standing" for a in f.attributes])
+    assert standing.sum() >= 3
+    assert np.all(np.abs(f.centers[standing, 1] - f.ego_y) < near_screened)
 
 
 def test_tractor_semitrailers_in_traffic_drive_like_heavy_vehicles() -> None:
