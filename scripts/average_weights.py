@@ -26,7 +26,7 @@ def main() -> None:
     args = ap.parse_args()
     if not 0.0 <= args.alpha <= 1.0:
         ap.error("--alpha must lie in [0, 1]")
-    ma, _, meta_a = load_weights(args.a)
+    ma, _, _ = load_weights(args.a)
     mb, _, meta_b = load_weights(args.b)
     if ma.config != mb.config:
         sys.exit(f"error: {args.a} and {args.b} are different networks")

@@ -56,7 +56,7 @@ def input_arguments(ap: argparse.ArgumentParser, default_input: str = "detector"
     ap.add_argument("--noise", default="jittery", help="noise preset of --input gt-noise")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--cache", default=None, help="folder for the per-seed detector payloads")
-    ap.add_argument("--weights", default=None, help="detector weights of --input detector (default: the shipped)")
+    ap.add_argument("--weights", type=Path, default=None, help="detector weights of --input detector (default: the shipped)")
     ap.add_argument("--no-jump-veto", action="store_true",
                     help="the classifier without its jump veto (every figure measured before 3 Dec 2026)")
 
@@ -111,7 +111,7 @@ def detection_pairs(args: argparse.Namespace, seed: int) -> list[tuple[Any, byte
     noise = args.noise  # the noise model's preset, for --input gt-noise
     kind = args.input if args.input == "detector" or noise == "jittery" else f"{args.input}-{noise}"
     if args.input == "detector" and args.weights:
-        kind += "-" + Path(args.weights).parent.name  # a cache per weights file
+        kind += "-" + args.weights.parent.name  # a cache per weights file
     path = Path(args.cache) / f"{tag}-{kind}.pkl" if args.cache else None
     if path is not None and path.exists():
         with path.open("rb") as fh:
@@ -131,7 +131,7 @@ def detection_pairs(args: argparse.Namespace, seed: int) -> list[tuple[Any, byte
         from jitterguard.eval.cli import load_detector
         from jitterguard.eval.detector_input import detector_frames, nuscenes_scans, synthetic_scans
 
-        det, _ = load_detector(Path(args.weights) if args.weights else None, args.threads)
+        det, _ = load_detector(args.weights, args.threads)
         scans = nuscenes_scans(Path(args.nuscenes), None, frames) if args.nuscenes else synthetic_scans(frames, seed)
         pairs = [(f.gt, f.detections) for f in detector_frames(scans, det.detect, class_names=det.config.class_names,
                                                                  uncertainty=det.config.uncertainty)]

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from jitterguard.schemas import Label
-from jitterguard.sim import SCENARIO_NAMES, GroundTruthFrame, Scenario, make_scenario
+from jitterguard.sim import SCENARIO_NAMES, SENSOR_HEIGHT_M, GroundTruthFrame, Scenario, make_scenario
 from jitterguard.sim.catalog import ATTRIBUTES, MOVING_SPEED_MPS
 from jitterguard.sim.layout import rectangles_overlap
 
@@ -233,14 +233,14 @@ def test_the_screened_lot_hides_its_near_rows_behind_a_low_wall_or_hedge(scenari
     from jitterguard.sim.lidar import cast_frame
     from jitterguard.sim.primitives import Tag
 
-    def near_rows(name: str) -> tuple[float, int, float]:
+    def near_rows(name: str) -> tuple[float, float, float]:
         f = scenarios[name].frame(0)
         scan, _ = cast_frame(f)
         rel = f.centers[:, 1] - f.ego_y
         parked = np.array([a == "vehicle.parked" for a in f.attributes]) & (f.labels == Label.CAR)
         nearest = np.abs(rel[parked]).min()
         rows = np.flatnonzero(parked & (np.abs(rel) < nearest + 3.0) & (np.abs(f.centers[:, 0] - f.ego_x) < 30.0))
-        z = scan.points[np.isin(scan.owner, rows), 2] + 1.84  # over the road
+        z = scan.points[np.isin(scan.owner, rows), 2] + SENSOR_HEIGHT_M  # over the road
         return float(np.mean(z < 0.8)), len(z) / len(rows), float(nearest)
 
     low_open, returns_open, near_open = near_rows("perpendicular-lot")
