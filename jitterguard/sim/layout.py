@@ -22,6 +22,10 @@ F64 = NDArray[np.float64]
 SIM_DT = 0.05
 """Time step of the traffic simulation (s); frames interpolate between its samples."""
 
+STEP_UP_M = 0.3
+"""The highest clutter a person stands on rather than is refused by (kerbs 0.1–0.25 m, a lot island's 0.15 m curb);
+a wall, a hedge or a planter above it is an obstacle."""
+
 # attribute families: how a dynamic object's nuScenes attribute follows from its speed
 FAMILY_VEHICLE = 0
 FAMILY_PEDESTRIAN = 1
@@ -134,19 +138,24 @@ class LayoutBuilder:
         """A road user that never moves in this scenario (parked car, standing/sitting pedestrian, parked bike).
 
         Returns its instance id, or -1 (and adds nothing) if its footprint, grown by ``clearance``, would overlap
-        an earlier static object or clutter: generators may scatter freely and rely on this to stay physical."""
+        an earlier static object or clutter: generators may scatter freely and rely on this to stay physical. A
+        person steps onto clutter up to :data:`STEP_UP_M` high (a kerb, a lot island's curb, a raised verge), so that
+        is no obstacle to one; they stand on the road's level all the same (their box's lowest 0.1–0.3 m inside the
+        kerb — a simplification every scenario shares, the world has no ground heights for objects)."""
         cls = CLASSES[cls_key]
         sz = cls.sample_size(self.rng) if size is None else np.asarray(size, dtype=np.float64)
         fp = np.array([x, y, sz[0] / 2 + clearance, sz[1] / 2 + clearance, yaw])
-        if self._overlaps(fp):
+        if self._overlaps(fp, STEP_UP_M if cls.category.startswith("human.") else 0.0):
             return -1
         iid = self._new_id()
         self._static.append((iid, cls, sz, float(x), float(y), float(yaw), attribute))
         self._footprints.append(fp)
         return iid
 
-    def _overlaps(self, fp: F64) -> bool:
-        clutter = self.clutter.footprints()
+    def _overlaps(self, fp: F64, step_up_m: float) -> bool:
+        """Whether ``fp`` overlaps an earlier static object or clutter more than ``step_up_m`` high."""
+        tops = self.clutter.footprint_tops()
+        clutter = [f for f, top in zip(self.clutter.footprints(), tops) if top > step_up_m]
         others = np.array(self._footprints + clutter).reshape(-1, 5)
         if len(others) == 0:
             return False

@@ -84,23 +84,31 @@ class PrimitiveList:
     def __init__(self) -> None:
         self._rows: list[tuple[int, float, float, float, float, float, float, float, float, int]] = []
         self._footprints: list[NDArray[np.float64]] = []
+        self._tops: list[float] = []
 
     def box(self, x: float, y: float, length: float, width: float, z0: float, z1: float, yaw: float = 0.0,
             reflectivity: float = 0.3, tag: Tag = Tag.OBJECT) -> None:
         self._rows.append((BOX, x, y, z0, z1, length / 2, width / 2, yaw, reflectivity, int(tag)))
         if z0 < 2.0:
             self._footprints.append(np.array([x, y, length / 2, width / 2, yaw]))
+            self._tops.append(z1)
 
     def cylinder(self, x: float, y: float, radius: float, z0: float, z1: float, reflectivity: float = 0.3,
                  tag: Tag = Tag.OBJECT) -> None:
         self._rows.append((CYLINDER, x, y, z0, z1, radius, radius, 0.0, reflectivity, int(tag)))
         if z0 < 2.0:
             self._footprints.append(np.array([x, y, radius, radius, 0.0]))
+            self._tops.append(z1)
 
     def footprints(self) -> list[NDArray[np.float64]]:
         """Ground footprints (x, y, half_length, half_width, yaw) of everything that reaches below 2 m
         (tree crowns and lamp arms do not block the ground)."""
         return self._footprints
+
+    def footprint_tops(self) -> list[float]:
+        """The top height of each of :meth:`footprints` (a kerb's 0.15 m, a wall's 1.2 m): what a person could step
+        onto."""
+        return self._tops
 
     def build(self) -> Primitives:
         if not self._rows:

@@ -379,7 +379,7 @@ def diagonal_lot(rng: np.random.Generator, duration_s: float,
             x += rng.uniform(15.0, 30.0)
         b.clutter.box((x0 + x1) / 2, yi, x1 - x0, 0.5, 0.0, 0.15, reflectivity=0.3, tag=Tag.WALL)  # curb
         # near rows face the ego aisle (which runs +x); outer aisles are one-way, opposite senses
-        if screened:  # people standing on the verge first: the verge's slab, once built, refuses anyone on it
+        if screened:  # people standing on the verge (a person steps onto its slab: LayoutBuilder.add_static)
             for _ in range(rng.poisson((x1 - x0) / 40.0)):
                 b.add_static("pedestrian", rng.uniform(x0, x1), side * (road_half + rng.uniform(1.2, 1.8)),
                              rng.uniform(-3, 3), cat.PED_STANDING)
@@ -411,8 +411,7 @@ def diagonal_lot(rng: np.random.Generator, duration_s: float,
         s_lo = far + (x0 if side > 0 else -x1) - 1.6 * duration_s
         s_hi = far + (x1 if side > 0 else -x0)
         _fill_lane(b, walk, s_lo, s_hi, (15.0, 60.0), (0.9, 1.5), {"pedestrian": 0.9, "child": 0.1})
-        # (a known defect, kept so that every lot seed keeps its world and its published figures: the island's curb,
-        # built above, refuses every one of these, so no lot has anyone standing on its island)
+        # (on the island's curb: until 6 Dec 2026 the curb refused every one of them, so no lot had anyone on it)
         for _ in range(rng.poisson((x1 - x0) / 60.0)):
             b.add_static("pedestrian", rng.uniform(x0, x1), yi + rng.uniform(-0.2, 0.2), rng.uniform(-3, 3),
                          cat.PED_STANDING)

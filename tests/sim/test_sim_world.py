@@ -253,10 +253,9 @@ def test_the_screened_lot_hides_its_near_rows_behind_a_low_wall_or_hedge(scenari
     screens = np.isin(cl.tag, [int(Tag.WALL), int(Tag.HEDGE)]) & (cl.z[:, 1] >= 0.7) & (cl.z[:, 1] <= 1.5)
     assert screens.sum() >= 2
     assert np.any(cl.tag == int(Tag.TREE_TRUNK))
-    f = scenarios["screened-lot"].frame(0)  # people stand on the verge, between the kerb and the cars
-    standing = np.array([a == "pedestrian.standing" for a in f.attributes])
-    assert standing.sum() >= 3
-    assert np.all(np.abs(f.centers[standing, 1] - f.ego_y) < near_screened)
+    f = scenarios["screened-lot"].frame(0)  # people stand on the verge, between the kerb and the cars (and on the
+    standing = np.array([a == "pedestrian.standing" for a in f.attributes])  # islands beyond the rows)
+    assert np.sum(standing & (np.abs(f.centers[:, 1] - f.ego_y) < near_screened)) >= 3
 
 
 def test_tractor_semitrailers_in_traffic_drive_like_heavy_vehicles() -> None:
@@ -276,3 +275,32 @@ def test_tractor_semitrailers_in_traffic_drive_like_heavy_vehicles() -> None:
     assert all(a.headway_s == _HEAVY_IDM["headway_s"] and a.a_max == _HEAVY_IDM["a_max"] for a in semis)
     assert all(a.v_desired == 8.0 for a in semis) and all(a.v_desired == 10.0 for a in cars)
     assert all(a.headway_s != _HEAVY_IDM["headway_s"] for a in cars)
+
+
+def test_people_step_onto_kerbs_but_walls_and_other_objects_refuse_them() -> None:
+    """``add_static`` refuses a footprint that overlaps clutter, except clutter a person steps onto (up to
+    ``STEP_UP_M``): a pedestrian stands on a 0.15 m kerb where a car may not park; a 1 m wall refuses both, and so
+    does a person or car already there."""
+    from jitterguard.sim.layout import STEP_UP_M, LayoutBuilder
+    from jitterguard.sim.primitives import Tag
+
+    b = LayoutBuilder(np.random.default_rng(0), 10.0)
+    b.clutter.box(0.0, 0.0, 20.0, 0.5, 0.0, 0.15, tag=Tag.WALL)  # a kerb
+    b.clutter.box(0.0, 10.0, 20.0, 0.3, 0.0, 1.0, tag=Tag.WALL)  # a garden wall
+    b.clutter.box(0.0, 20.0, 20.0, 0.5, 0.0, STEP_UP_M + 0.05, tag=Tag.WALL)  # a planter's edge
+    on_kerb = b.add_static("pedestrian", 2.0, 0.0, 0.0, "pedestrian.standing")
+    assert on_kerb > 0
+    assert b.add_static("car", -5.0, 0.0, 0.0, "vehicle.parked") == -1
+    assert b.add_static("pedestrian", 2.0, 10.0, 0.0, "pedestrian.standing") == -1
+    assert b.add_static("child", 2.0, 20.0, 0.0, "pedestrian.standing") == -1
+    assert b.add_static("sitting", 2.1, 0.0, 0.0, "pedestrian.sitting_lying_down") == -1  # someone stands there
+
+
+def test_people_stand_on_the_lots_islands(scenarios: dict[str, Scenario]) -> None:
+    """The diagonal lot puts standing people on the islands between its back-to-back rows (their curb is a kerb
+    they step onto): standing pedestrians are in every lot seed, beyond the near row, not on the ego's aisle."""
+    for seed in range(3):
+        layout = make_scenario("diagonal-lot", seed).layout
+        standing = np.array([a == "pedestrian.standing" for a in layout.static_attributes])
+        assert standing.sum() >= 2, seed
+        assert np.all(np.abs(layout.static_xy[standing, 1]) > 8.0), seed
