@@ -12,7 +12,8 @@ from jitterguard.services.detector.config import LITE, PAPER, Sample
 from jitterguard.services.detector.decode import circle_nms, decode
 from jitterguard.services.detector.evaluate import Recalibration
 from jitterguard.services.detector.inference import Detector, WeightsError, load_weights, save_weights
-from jitterguard.services.detector.losses import centerpoint_loss, gaussian_focal_loss, gaussian_nll
+from jitterguard.services.detector.losses import (centerpoint_loss, distillation_loss, gaussian_focal_loss,
+                                                   gaussian_nll)
 from jitterguard.services.detector.network import CenterPointNet
 from jitterguard.services.detector.pillars import NUM_PILLAR_FEATURES, voxelize
 from jitterguard.services.detector.targets import build_targets, gaussian_radius
@@ -254,6 +255,54 @@ def test_short_training_lowers_the_loss(tmp_path) -> None:
     losses = [h["loss"] for h in state.history]
     assert losses[-1] < 0.5 * losses[0]
     assert (tmp_path / "weights.pt").is_file() and (tmp_path / "checkpoint.pt").is_file()
+
+
+def test_distillation_loss_is_the_kl_of_the_named_channels_only() -> None:
+    """Zero where the student's heatmap equals the teacher's; the Bernoulli KL of the named channels, cell by cell,
+    over the object count otherwise; blind to every other channel."""
+    g = torch.Generator().manual_seed(0)
+    teacher = torch.randn(2, 5, 4, 4, generator=g)
+    assert float(distillation_loss(teacher.clone(), teacher, (4,), 3.0)) == pytest.approx(0.0, abs=1e-6)
+    student = teacher.clone()
+    student[:, 0] += 3.0  # a class not held: no cost
+    assert float(distillation_loss(student, teacher, (4,), 3.0)) == pytest.approx(0.0, abs=1e-6)
+    student[:, 4] -= 1.0
+    p, q = torch.sigmoid(student[:, 4]), torch.sigmoid(teacher[:, 4])
+    kl = (q * torch.log(q / p) + (1 - q) * torch.log((1 - q) / (1 - p))).sum() / 3.0
+    assert float(distillation_loss(student, teacher, (4,), 3.0)) == pytest.approx(float(kl), rel=1e-4)
+    assert float(distillation_loss(student, teacher, (0, 4), 3.0)) > float(kl)
+
+
+def test_a_distilled_fine_tune_keeps_the_teachers_heatmap_of_the_held_class(tmp_path) -> None:
+    """Fine-tuning on scenes without pedestrians teaches the network to call the pedestrian cell empty; held to
+    its teacher's pedestrian heatmap it stays nearer what the teacher says there than the same run without."""
+    torch.manual_seed(0)
+    teacher = CenterPointNet(TINY)
+    train(teacher, [_scene(i) for i in range(4)], [], TrainConfig(epochs=6, batch_size=2, lr=5e-3, seed=0),
+          tmp_path / "t", progress=False)
+    no_peds = []
+    for i in range(4, 8):
+        s = _scene(i)
+        no_peds.append(Sample(s.points, s.boxes[:2], s.labels[:2], s.num_points[:2], s.token))
+    ped = TINY.class_names.index("pedestrian")
+    probe = [_scene(i) for i in range(8, 10)]
+
+    def drift(channels: tuple[int, ...]) -> float:
+        student = CenterPointNet(TINY)
+        student.load_state_dict(teacher.state_dict())
+        cfg = TrainConfig(epochs=4, batch_size=2, lr=5e-3, seed=1, distill_channels=channels, distill_weight=5.0)
+        train(student, no_peds, [], cfg, tmp_path / f"s{channels}", progress=False, teacher=teacher,
+              write_weights=False)
+        student.eval(), teacher.eval()
+        with torch.no_grad():
+            pts = [torch.from_numpy(s.points) for s in probe]
+            return float(distillation_loss(student(pts)["heatmap"], teacher(pts)["heatmap"], (ped,)))
+
+    held, free = drift((ped,)), drift(())
+    assert held < 0.5 * free
+    with pytest.raises(ValueError, match="teacher"):
+        train(CenterPointNet(TINY), no_peds, [], TrainConfig(epochs=1, distill_channels=(ped,)), tmp_path / "x",
+              progress=False)
 
 
 def test_resume_reproduces_the_uninterrupted_run(tmp_path) -> None:

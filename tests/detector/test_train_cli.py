@@ -29,6 +29,8 @@ def test_parse_seeds_ranges_and_lists() -> None:
     (["train", "--out", "OUT", "--scenarios", "moon"], "--scenarios"),
     (["train", "--out", "OUT", "--preset", "huge"], "--preset"),
     (["train", "--out", "OUT", "--init", "/nonexistent.pt"], "--init"),
+    (["train", "--out", "OUT", "--distill-from", "/nonexistent.pt"], "--distill-from"),
+    (["train", "--out", "OUT", "--distill-from", "SHIPPED", "--distill-classes", "moped"], "--distill-classes"),
     (["eval-detector", "--out", "OUT", "--weights", "/nonexistent.pt"], "--weights"),
     (["eval-detector", "--out", "OUT", "--seeds", "x"], "--seeds"),
     (["eval-detector", "--out", "OUT", "--effects", "fog"], "--effects"),
@@ -267,6 +269,25 @@ def test_fit_recalibration_weights_keep_the_training_metadata(tmp_path: Path) ->
     assert rec is not None  # the weights.pt written after the fit (it used to drop what train() recorded)
     assert meta["train_config"]["batch_size"] == 1 and meta["world_size"] == 1 and meta["epochs"] == 1
     assert meta["augment"]["rotation_deg"] == 45.0 and meta["source"]["train_seeds"] == "0-1"
+
+
+@pytest.mark.slow
+def test_a_distilled_fine_tune_says_what_it_was_held_to(tmp_path: Path) -> None:
+    """``--distill-from`` trains with the KL term (its loss in the history) and names the teacher, its hash and the
+    classes in the weights' metadata."""
+    import hashlib
+
+    first, out = tmp_path / "first", tmp_path / "run"
+    assert _jg("train", "--out", str(first), *TINY_RUN, "--epochs", "1").returncode == 0
+    res = _jg("train", "--out", str(out), *TINY_RUN, "--epochs", "1", "--init", str(first / "weights.pt"),
+              "--distill-from", str(first / "weights.pt"), "--distill-classes", "pedestrian,bicycle")
+    assert res.returncode == 0, res.stderr[-2000:]
+    _, _, meta = load_weights(out / "weights.pt")
+    assert meta["distilled"]["classes"] == ["pedestrian", "bicycle"] and meta["distilled"]["weight"] == 1.0
+    assert meta["distilled"]["sha256_16"] == hashlib.sha256((first / "weights.pt").read_bytes()).hexdigest()[:16]
+    assert list(meta["train_config"]["distill_channels"]) == [4, 3]
+    history = json.loads((out / "history.json").read_text())
+    assert history[0]["distill"] >= 0.0 and history[0]["loss"] > history[0]["distill"]
 
 
 def test_too_few_nuscenes_training_frames_are_one_line_and_exit_2(tmp_path: Path) -> None:

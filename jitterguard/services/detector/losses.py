@@ -32,6 +32,22 @@ def gaussian_focal_loss(logits: Tensor, target: Tensor, num_pos: float | None = 
     return -(pos_loss.sum() + neg_loss.sum()) / denom
 
 
+def distillation_loss(student_logits: Tensor, teacher_logits: Tensor, channels: tuple[int, ...],
+                      num_pos: float | None = None) -> Tensor:
+    """Learning without forgetting on the heatmap: the Bernoulli KL divergence of the student's per-cell class
+    probabilities from a fixed teacher's, summed over the cells of ``channels`` and normalised like the focal loss
+    (by the object centres, ``num_pos``). Why: a fine-tune that teaches the network new scenes also moves what it
+    had learnt of the classes it is not meant to change (docs/detector.md 'Keeping what a fine-tune would
+    forget'); this term holds those classes' heatmaps to the teacher's, cell by cell, wherever the scan puts them."""
+    idx = list(channels)
+    s = student_logits[:, idx]
+    t = torch.sigmoid(teacher_logits[:, idx]).clamp(1e-4, 1 - 1e-4)
+    log_p, log_q = torch.nn.functional.logsigmoid(s), torch.nn.functional.logsigmoid(-s)
+    kl = t * (torch.log(t) - log_p) + (1 - t) * (torch.log(1 - t) - log_q)
+    denom = max(float(num_pos), 1.0) if num_pos is not None else 1.0
+    return kl.sum() / denom
+
+
 def loss_normalisers(batch: dict[str, Tensor]) -> Tensor:
     """(heatmap peaks, regression targets) in a batch of targets, float64: what :func:`centerpoint_loss`
     divides by. Summed over the micro-batches of a global batch (and all-reduced over processes) they make

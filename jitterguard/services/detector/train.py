@@ -45,7 +45,7 @@ from torch.utils.data import DataLoader, Dataset
 from .config import DetectorConfig, Detections3D, Sample
 from .decode import decode
 from .inference import atomic_save, config_to_dict, load_refusal, save_weights
-from .losses import centerpoint_loss, loss_normalisers
+from .losses import centerpoint_loss, distillation_loss, loss_normalisers
 from .network import CenterPointNet
 from .targets import build_targets
 
@@ -96,6 +96,11 @@ class TrainConfig:
     checkpoint_every: int = 0
     """Also checkpoint every this many optimiser steps within an epoch (0: at the end of each epoch only); a
     resumed run continues from the step after the checkpoint with the same batches."""
+    distill_channels: tuple[int, ...] = ()
+    """Heatmap channels (classes) held to a teacher's by :func:`~.losses.distillation_loss` (``train``'s
+    ``teacher``; none: no such term)."""
+    distill_weight: float = 1.0
+    """Weight of that term against the heatmap's focal loss."""
 
 
 @dataclass(frozen=True)
@@ -290,7 +295,8 @@ def _autocast(device: torch.device, amp: bool) -> tuple[Any, Any]:
 def train(model: CenterPointNet, train_samples: Sequence[Sample], val_samples: Sequence[Sample], tcfg: TrainConfig,
           out_dir: str | Path, *, augment: Augment | None = None, evaluate: Evaluate | None = None,
           resume: bool = False, progress: bool = True, meta: dict[str, Any] | None = None,
-          stop_after: int | None = None, dist_ctx: Dist | None = None, write_weights: bool = True) -> TrainState:
+          stop_after: int | None = None, dist_ctx: Dist | None = None, write_weights: bool = True,
+          teacher: CenterPointNet | None = None) -> TrainState:
     """Train ``model`` in place; write ``checkpoint.pt`` each epoch, ``history.json`` and finally ``weights.pt``
     (unless ``write_weights`` is False: a caller that adds to the weights, e.g. a fitted recalibration, then writes
     the file once itself, with the metadata the returned state's ``meta`` holds).
@@ -302,8 +308,11 @@ def train(model: CenterPointNet, train_samples: Sequence[Sample], val_samples: S
     ``stop_after`` ends this run after that many epochs (a time-boxed job); ``weights.pt`` is then not
     written, and a later ``resume`` finishes the schedule exactly as one uninterrupted run would have.
     ``dist_ctx`` (from :func:`init_distributed`) places the run on its device and process group; only rank 0
-    writes files and evaluates.
+    writes files and evaluates. ``teacher`` (a fixed network, in inference mode) is what ``tcfg.distill_channels``
+    are held to.
     """
+    if tcfg.distill_channels and teacher is None:
+        raise ValueError("distill_channels need a teacher")
     dc = dist_ctx or Dist()
     out = Path(out_dir)
     if dc.main:
@@ -335,6 +344,10 @@ def train(model: CenterPointNet, train_samples: Sequence[Sample], val_samples: S
     bar = progress_bar(progress and dc.main, tcfg.epochs * steps, state.epoch * steps + state.step)
     last = tcfg.epochs if stop_after is None else min(tcfg.epochs, state.epoch + stop_after)
     buffers = _bn_buffers(model)
+    if teacher is not None:
+        teacher.to(dc.device).eval()
+        for p in teacher.parameters():
+            p.requires_grad_(False)
     for epoch in range(state.epoch, last):
         ds.epoch = epoch
         schedule = step_schedule(len(ds), tcfg.seed, epoch, tcfg.batch_size, dc.world, tcfg.accumulate)[:steps]
@@ -349,7 +362,7 @@ def train(model: CenterPointNet, train_samples: Sequence[Sample], val_samples: S
         n = first
         micro = iter(loader)
         for step in range(first, len(mine)):
-            terms = _train_step(net, model, micro, tcfg, dc, buffers, autocast, scaler, epoch, step)
+            terms = _train_step(net, model, micro, tcfg, dc, buffers, autocast, scaler, epoch, step, teacher)
             if scaler is not None:
                 scaler.unscale_(opt)
             torch.nn.utils.clip_grad_norm_(model.parameters(), tcfg.grad_clip)
@@ -398,7 +411,8 @@ def train(model: CenterPointNet, train_samples: Sequence[Sample], val_samples: S
 
 
 def _train_step(net: nn.Module, model: CenterPointNet, micro: Iterator[Any], tcfg: TrainConfig, dc: Dist,
-                buffers: list[torch.Tensor], autocast: Any, scaler: Any, epoch: int, step: int) -> dict[str, float]:
+                buffers: list[torch.Tensor], autocast: Any, scaler: Any, epoch: int, step: int,
+                teacher: CenterPointNet | None = None) -> dict[str, float]:
     """Forward and backward of this process's micro-batches of one global batch (gradients left in ``.grad``);
     returns the global batch's loss terms (all-reduced)."""
     batches = [next(micro) for _ in range(tcfg.accumulate)]
@@ -422,6 +436,12 @@ def _train_step(net: nn.Module, model: CenterPointNet, micro: Iterator[Any], tcf
                 raw = net(points)
             terms = centerpoint_loss({k: v.float() for k, v in raw.items()}, batch, model.config,
                                      num_pos=float(norm[0]), num_obj=float(norm[1]))
+            if teacher is not None and tcfg.distill_channels:
+                with torch.no_grad(), autocast():
+                    held = teacher(points)["heatmap"]
+                terms["distill"] = tcfg.distill_weight * distillation_loss(
+                    raw["heatmap"].float(), held.float(), tcfg.distill_channels, float(norm[0]))
+                terms["loss"] = terms["loss"] + terms["distill"]
             loss = terms["loss"]
             if not torch.isfinite(loss):
                 raise FloatingPointError(f"non-finite loss at epoch {epoch} step {step}: "

@@ -9,6 +9,7 @@ Commands import their implementation when they run (start-up time: see :mod:`jit
 
 from __future__ import annotations
 
+import hashlib
 import itertools
 import json
 import logging
@@ -78,7 +79,6 @@ def synthetic_cache(root: Path, scenarios: list[str], seeds: list[int], frames: 
         recipe["effects_version"] = EFFECTS_VERSION
     if sweeps > 1:  # (keeps the name of single-sweep caches)
         recipe["sweeps"] = sweeps
-    import hashlib
 
     name = "cache-" + hashlib.sha1(json.dumps(recipe, sort_keys=True).encode()).hexdigest()[:10]
     path = root / name
@@ -341,6 +341,14 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                                                   " (nuScenes without --split).")] = 10,
         init: Annotated[str | None, typer.Option("--init", help="Start from these weights (fine-tuning); the"
                                                  " learning-rate schedule starts afresh.")] = None,
+        distill_from: Annotated[str | None, typer.Option("--distill-from", help="Teacher weights (e.g. the"
+                                                         " --init ones): the --distill-classes heatmaps are held to"
+                                                         " its by a KL term, so that a fine-tune keeps what it"
+                                                         " would forget of them.")] = None,
+        distill_classes: Annotated[str, typer.Option("--distill-classes", help="Classes held to --distill-from's"
+                                                     " heatmaps, comma-separated.")] = "pedestrian",
+        distill_weight: Annotated[float, typer.Option("--distill-weight", min=0.0, max=1000.0, help="Weight of"
+                                                      " that term against the heatmap loss.")] = 1.0,
         epochs: Annotated[int, typer.Option("--epochs", min=1, max=1000)] = 10,
         batch_size: Annotated[int, typer.Option("--batch-size", min=1, max=256, help="Per process and"
                                                 " micro-batch.")] = 4,
@@ -380,6 +388,11 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             fail(f"--init: file not found: {init}")
         if nuscenes is not None and not os.path.isdir(nuscenes):
             fail(f"--nuscenes: not a directory: {nuscenes}")
+        if distill_from is not None and not os.path.isfile(distill_from):
+            fail(f"--distill-from: file not found: {distill_from}")
+        distill_names = [c.strip() for c in distill_classes.split(",") if c.strip()]
+        if distill_from is not None and (not distill_names or set(distill_names) - set(CLASS_NAMES)):
+            fail(f"--distill-classes: expected some of {', '.join(CLASS_NAMES)}, got {distill_classes!r}")
         if (split or val_split) and nuscenes is None:
             fail("--split/--val-split: need --nuscenes")
         if val_split and not split:
@@ -442,6 +455,16 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             state = model.state_dict()
             model = CenterPointNet(model.config.model_copy(update={"use_intensity": intensity}))
             model.load_state_dict(state)
+        teacher, distill = None, {}
+        if distill_from is not None:
+            try:
+                teacher = load_weights(distill_from)[0]
+            except WeightsError as exc:
+                fail(f"--distill-from: {exc}")
+            if teacher.config.class_names != model.config.class_names:
+                fail("--distill-from: the teacher's classes differ from the network's")
+            distill = {"from": distill_from, "classes": distill_names, "weight": distill_weight,
+                       "sha256_16": hashlib.sha256(Path(distill_from).read_bytes()).hexdigest()[:16]}
         pcr = model.config.point_cloud_range
         recal_extra: list[Any] = []  # validation scans of the other --effects sets, for the recalibration
         if nuscenes is not None:
@@ -488,7 +511,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         train_v, val_v = _Prepared(train_s, pcr, level_scans), _Prepared(val_s, pcr, level_scans)
         tcfg = TrainConfig(epochs=epochs, batch_size=batch_size, lr=lr, seed=seed, num_workers=workers,
                            accumulate=accumulate, amp=amp, sync_bn=sync_bn, checkpoint_every=checkpoint_every,
-                           max_steps_per_epoch=max_steps)
+                           max_steps_per_epoch=max_steps,
+                           distill_channels=tuple(model.config.class_names.index(c) for c in distill.get("classes", ())),
+                           distill_weight=distill_weight)
 
         def evaluate(dets: Any, samples: Any) -> dict[str, Any]:
             return evaluation_report(dets, samples)["summary"]
@@ -510,9 +535,12 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         meta["augment"] = {"rotation_deg": rotation, "tilt_deg": tilt_aug}
         if level_scans:
             meta["level_scans"] = True
+        if distill:
+            meta["distilled"] = distill
         try:  # with --fit-recalibration weights.pt is written once, below, with the fitted scales
             state = train(model, train_v, val_v, tcfg, root, augment=augment, evaluate=evaluate, resume=resume,
-                          progress=progress, meta=meta, dist_ctx=dc, write_weights=not fit_recalibration)
+                          progress=progress, meta=meta, dist_ctx=dc, write_weights=not fit_recalibration,
+                          teacher=teacher)
         except CheckpointError as exc:
             fail(f"--resume: {exc}")
         if not dc.main:
@@ -601,7 +629,6 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
 
         passive_openmp()  # before torch is imported
         retain_heap()
-        import hashlib
 
         import torch
 
@@ -912,7 +939,6 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                                                       workers)
         except ValueError as exc:
             fail(f"--seeds: {exc}")
-        import hashlib
 
         root = Path(out)
         fit_on = fitted["fit_on"]
