@@ -31,6 +31,8 @@ def test_parse_seeds_ranges_and_lists() -> None:
     (["train", "--out", "OUT", "--init", "/nonexistent.pt"], "--init"),
     (["train", "--out", "OUT", "--distill-from", "/nonexistent.pt"], "--distill-from"),
     (["train", "--out", "OUT", "--distill-from", "SHIPPED", "--distill-classes", "moped"], "--distill-classes"),
+    (["train", "--out", "OUT", "--distill-weight", "2"], "--distill-classes/--distill-weight: only with"),
+    (["train", "--out", "OUT", "--distill-from", "SHIPPED", "--preset", "paper"], "--distill-from: the teacher's"),
     (["eval-detector", "--out", "OUT", "--weights", "/nonexistent.pt"], "--weights"),
     (["eval-detector", "--out", "OUT", "--seeds", "x"], "--seeds"),
     (["eval-detector", "--out", "OUT", "--effects", "fog"], "--effects"),

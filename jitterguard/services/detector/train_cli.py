@@ -345,10 +345,12 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                                                          " --init ones): the --distill-classes heatmaps are held to"
                                                          " its by a KL term, so that a fine-tune keeps what it"
                                                          " would forget of them.")] = None,
-        distill_classes: Annotated[str, typer.Option("--distill-classes", help="Classes held to --distill-from's"
-                                                     " heatmaps, comma-separated.")] = "pedestrian",
-        distill_weight: Annotated[float, typer.Option("--distill-weight", min=0.0, max=1000.0, help="Weight of"
-                                                      " that term against the heatmap loss.")] = 1.0,
+        distill_classes: Annotated[str | None, typer.Option("--distill-classes", help="Classes held to"
+                                                            " --distill-from's heatmaps, comma-separated (default:"
+                                                            " pedestrian).")] = None,
+        distill_weight: Annotated[float | None, typer.Option("--distill-weight", min=0.0, max=1000.0, help="Weight"
+                                                             " of that term against the heatmap loss (default:"
+                                                             " 1).")] = None,
         epochs: Annotated[int, typer.Option("--epochs", min=1, max=1000)] = 10,
         batch_size: Annotated[int, typer.Option("--batch-size", min=1, max=256, help="Per process and"
                                                 " micro-batch.")] = 4,
@@ -390,9 +392,12 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             fail(f"--nuscenes: not a directory: {nuscenes}")
         if distill_from is not None and not os.path.isfile(distill_from):
             fail(f"--distill-from: file not found: {distill_from}")
-        distill_names = [c.strip() for c in distill_classes.split(",") if c.strip()]
-        if distill_from is not None and (not distill_names or set(distill_names) - set(CLASS_NAMES)):
+        if distill_from is None and (distill_classes is not None or distill_weight is not None):
+            fail("--distill-classes/--distill-weight: only with --distill-from")
+        distill_names = [c.strip() for c in (distill_classes or "pedestrian").split(",") if c.strip()]
+        if not distill_names or set(distill_names) - set(CLASS_NAMES):
             fail(f"--distill-classes: expected some of {', '.join(CLASS_NAMES)}, got {distill_classes!r}")
+        distill_weight = 1.0 if distill_weight is None else distill_weight
         if (split or val_split) and nuscenes is None:
             fail("--split/--val-split: need --nuscenes")
         if val_split and not split:
@@ -461,8 +466,10 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                 teacher = load_weights(distill_from)[0]
             except WeightsError as exc:
                 fail(f"--distill-from: {exc}")
-            if teacher.config.class_names != model.config.class_names:
-                fail("--distill-from: the teacher's classes differ from the network's")
+            grid = ("class_names", "num_point_features", "point_cloud_range", "voxel_size", "out_size_factor")
+            if any(getattr(teacher.config, k) != getattr(model.config, k) for k in grid):
+                fail("--distill-from: the teacher's classes, input or output grid differ from the network's ("
+                     + ", ".join(grid) + ")")
             distill = {"from": distill_from, "classes": distill_names, "weight": distill_weight,
                        "sha256_16": hashlib.sha256(Path(distill_from).read_bytes()).hexdigest()[:16]}
         pcr = model.config.point_cloud_range
