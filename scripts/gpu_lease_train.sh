@@ -6,12 +6,16 @@
 # The epochs are sized from a short probe run so that both end inside BUDGET_S; the probe also checks the
 # CUDA path (torchrun + NCCL + bf16 autocast) and falls back to a plain process without AMP if that fails.
 #
-#   OUT=dir [BUDGET_S=520] [PY=python3] [SMOKE=1] [SCENARIOS=a,b,...] bash scripts/gpu_lease_train.sh
+#   OUT=dir [BUDGET_S=520] [PY=python3] [SMOKE=1] [SCENARIOS=a,b,...] [DISTILL=weight] bash scripts/gpu_lease_train.sh
 #
 # SCENARIOS: the training scenarios (train's --scenarios; unset: train's default, as on 28 Nov). The next lease's
 # run adds the screened lot, whose real rows the CPU fine-tunes could not learn without losing pedestrians:
 #   SCENARIOS=parking-street,diagonal-lot,intersection,mixed,screened-lot (docs/detector.md, "What stands in front
 #   of the real row").
+# DISTILL: run A (the fine-tune) holds its pedestrian heatmap to the shipped network's with this weight (train's
+#   --distill-from / --distill-weight; unset: no such term). On the CPU the screened lot cost real pedestrians in every
+#   fine-tune, and the term traded them back against cars along one line (weight 1: car AP 0.263, pedestrian 0.137;
+#   weight 5: 0.240, 0.153; docs/detector.md, "Keeping what a fine-tune would forget").
 #
 # Writes into OUT (at most 8 files): run.log, bench.json, probe.json, A.pt, B.pt (or A_ckpt.pt / B_ckpt.pt
 # when the budget ran out mid-schedule), A_hist.json, B_hist.json. SMOKE=1: a few scans and steps (CPU test).
@@ -72,7 +76,8 @@ echo "== training A and B, $E epochs each, $LEFT s left, launch: $LAUNCH $AMP"
 for r in A B; do mkdir -p "$W/$r"; for c in "$W"/probe/cache-*; do ln -s "$c" "$W/$r/"; done; done
 HALF=$(( NCPU / 2 - 1 )); [ $HALF -lt 1 ] && HALF=1
 timeout "$LEFT" $LAUNCH train --out "$W/A" $DATA --init $SHIPPED --lr 1e-3 --epochs "$E" --seed 4 \
-  --workers $HALF --checkpoint-every 100 $AMP > "$W/A.log" 2>&1 &
+  ${DISTILL:+--distill-from $SHIPPED --distill-weight $DISTILL} --workers $HALF --checkpoint-every 100 $AMP \
+  > "$W/A.log" 2>&1 &
 PA=$!
 timeout "$LEFT" $LAUNCH train --out "$W/B" $DATA --preset lite --lr 3e-3 --epochs "$E" --seed 5 \
   --workers $HALF --checkpoint-every 100 $AMP > "$W/B.log" 2>&1 &

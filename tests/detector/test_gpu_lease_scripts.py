@@ -29,7 +29,7 @@ def _run(script: str, out: Path, work: Path, **env: str) -> subprocess.Completed
 @pytest.mark.slow
 def test_the_first_lease_script_benches_probes_and_trains_two_detectors(tmp_path: Path) -> None:
     out = tmp_path / "out"
-    res = _run("gpu_lease_train.sh", out, tmp_path / "work", SCENARIOS="screened-lot")
+    res = _run("gpu_lease_train.sh", out, tmp_path / "work", SCENARIOS="screened-lot", DISTILL="2")
     assert res.returncode == 0, (res.stdout + res.stderr)[-3000:]
     benches = [json.loads(line) for line in (out / "bench.json").read_text().splitlines() if line.strip()]
     assert [sorted(b) for b in benches] == [["lite", "paper"], ["lite"]]
@@ -40,6 +40,7 @@ def test_the_first_lease_script_benches_probes_and_trains_two_detectors(tmp_path
         assert model.config.name == "lite"
         assert "--train-seeds 100-101" in meta["command"] and ("--init" in meta["command"]) == init
         assert meta["source"]["scenarios"] == ["screened-lot"]  # SCENARIOS reaches train
+        assert ("distilled" in meta) == init and (not init or meta["distilled"]["weight"] == 2.0)  # DISTILL: A only
         assert [r["epoch"] for r in json.loads((out / f"{run}_hist.json").read_text())] == [1, 2]
     assert "training A and B, 2 epochs each" in (out / "run.log").read_text()
 
