@@ -145,7 +145,7 @@ class LayoutBuilder:
         cls = CLASSES[cls_key]
         sz = cls.sample_size(self.rng) if size is None else np.asarray(size, dtype=np.float64)
         fp = np.array([x, y, sz[0] / 2 + clearance, sz[1] / 2 + clearance, yaw])
-        if self._overlaps(fp, STEP_UP_M if cls.category.startswith("human.") else 0.0):
+        if self._overlaps(fp, STEP_UP_M if family_of(int(cls.label)) == FAMILY_PEDESTRIAN else 0.0):
             return -1
         iid = self._new_id()
         self._static.append((iid, cls, sz, float(x), float(y), float(yaw), attribute))

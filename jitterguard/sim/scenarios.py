@@ -379,11 +379,11 @@ def diagonal_lot(rng: np.random.Generator, duration_s: float,
             x += rng.uniform(15.0, 30.0)
         b.clutter.box((x0 + x1) / 2, yi, x1 - x0, 0.5, 0.0, 0.15, reflectivity=0.3, tag=Tag.WALL)  # curb
         # near rows face the ego aisle (which runs +x); outer aisles are one-way, opposite senses
-        if screened:  # people standing on the verge (a person steps onto its slab: LayoutBuilder.add_static)
+        if screened:  # the verge, then people standing on it (they step onto its slab; its trunks refuse them)
+            _screen(b, x0, x1, side * road_half, side * (road_half + verge), side)
             for _ in range(rng.poisson((x1 - x0) / 40.0)):
                 b.add_static("pedestrian", rng.uniform(x0, x1), side * (road_half + rng.uniform(1.2, 1.8)),
                              rng.uniform(-3, 3), cat.PED_STANDING)
-            _screen(b, x0, x1, side * road_half, side * (road_half + verge), side)
         _diagonal_row(b, x0, x1, side * (aisle_half + shift), side, side * angle, pitch, rng.uniform(0.7, 0.92))
         y2 = side * aisle2
         d = -side

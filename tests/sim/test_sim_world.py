@@ -304,3 +304,23 @@ def test_people_stand_on_the_lots_islands(scenarios: dict[str, Scenario]) -> Non
         standing = np.array([a == "pedestrian.standing" for a in layout.static_attributes])
         assert standing.sum() >= 2, seed
         assert np.all(np.abs(layout.static_xy[standing, 1]) > 8.0), seed
+
+
+def test_no_one_stands_inside_a_trunk_wall_or_hedge() -> None:
+    """Every standing person of the lots stands clear of clutter taller than a kerb: the verge's people are placed
+    after its trees and screen, so those refuse them (placed before, 3 of 217 stood inside a trunk over seeds 0–9)."""
+    from jitterguard.sim.layout import STEP_UP_M
+
+    for name in ("screened-lot", "diagonal-lot"):
+        for seed in range(7):
+            layout = make_scenario(name, seed).layout
+            cl = layout.clutter
+            tall = (cl.z[:, 1] > STEP_UP_M) & (cl.z[:, 0] < 2.0)
+            others = np.column_stack([cl.center, cl.half, cl.yaw])[tall]
+            for i, attr in enumerate(layout.static_attributes):
+                if attr != "pedestrian.standing":
+                    continue
+                (x, y), size = layout.static_xy[i], layout.static_sizes[i]
+                fp = np.array([x, y, size[0] / 2, size[1] / 2, layout.static_yaw[i]])
+                near = others[np.hypot(others[:, 0] - x, others[:, 1] - y) < 20.0]
+                assert not any(rectangles_overlap(fp, o) for o in near), (name, seed, i)
