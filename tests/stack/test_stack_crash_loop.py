@@ -30,7 +30,9 @@ from helpers import wait_until
 
 pytestmark = pytest.mark.integration
 
-CRASHER = ("import sys, time; print('loading weights', flush=True); time.sleep(1.5); "
+# it writes nothing until it crashes: a run the monitor stops before then (supervisord restarts it at once, the monitor
+# may hold it back during that restart's first 1.5 s) adds no line, so its log always ends with the last crash
+CRASHER = ("import sys, time; time.sleep(1.5); print('loading weights', flush=True); "
            "sys.exit('RuntimeError: weights file truncated')")
 ENV = {"JG_CRASH_LOOP_EXITS": "2", "JG_CRASH_LOOP_WINDOW_S": "20", "JG_CRASH_LOOP_BACKOFF_S": "8",
        "JG_CRASH_LOOP_BACKOFF_MAX_S": "16"}
