@@ -28,7 +28,7 @@ from numpy.typing import NDArray
 
 from .catalog import VEHICLE_PARKED
 from .effects import (BRIGHT_SPOT_FRACTION, GRAZING_COS, MEASURED_INTENSITY, ScanEffects, kerbside_trees,
-                      street_clutter, vegetation_masses)
+                      street_clutter, street_objects, vegetation_masses)
 from .primitives import BOX, PrimitiveList, Primitives, Tag
 from .sensors import LidarSpec, azimuths, hdl32e
 from .shapes import crank_angle, gait_stride, object_primitives
@@ -451,7 +451,8 @@ def cast_frame(frame: GroundTruthFrame, sensor: LidarSpec | None = None, seed: i
                 u = _position_hash(back.center, effects.clutter_seed)
             drop = (prims.tag == int(Tag.BUILDING)) & (u < effects.building_drop)
             prims, owner = prims.subset(~drop), owner[~drop]
-        if effects.clutter_density > 0 or effects.vegetation_density > 0 or effects.kerb_trees > 0:
+        if (effects.clutter_density > 0 or effects.vegetation_density > 0 or effects.kerb_trees > 0
+                or effects.street_objects > 0):
             dx, dy = frame.centers[:, 0] - ax, frame.centers[:, 1] - ay
             keep_out = np.column_stack([ca * dx + sa * dy, -sa * dx + ca * dy, frame.sizes[:, 0] / 2,
                                         frame.sizes[:, 1] / 2, frame.yaws - ayaw])
@@ -460,7 +461,8 @@ def cast_frame(frame: GroundTruthFrame, sensor: LidarSpec | None = None, seed: i
             extra = Primitives.concat([street_clutter(effects, keep_out, spec.mount_height_m),
                                        vegetation_masses(effects, keep_out, spec.mount_height_m),
                                        kerbside_trees(effects, keep_out, parked, frame.sizes[:, 2],
-                                                      spec.mount_height_m)])
+                                                      spec.mount_height_m),
+                                       street_objects(effects, keep_out, parked, spec.mount_height_m)])
             if anchor is not None:
                 extra = to_sensor_frame(extra, px, py, turn, 0.0)
             prims = Primitives.concat([prims, extra])

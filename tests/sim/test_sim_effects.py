@@ -307,6 +307,47 @@ def test_kerb_trees_are_opt_in_and_stand_beside_the_parked_cars_with_their_crown
     assert (treed.owner == 0).sum() >= 0.8 * (bare.owner == 0).sum()
 
 
+def test_street_objects_are_opt_in_person_sized_off_the_road_users_and_half_beside_parked_cars() -> None:
+    """``street-objects`` changes no other draw; its cones, piles, bins and boards stand on the ground, 0.7–1.8 m
+    tall and at most 1.8 m across — a person's size — never on a road user or the ego car, about half of them within
+    2.5 m of a parked car's side; in the cast scan they return, as no road user."""
+    from jitterguard.sim.effects import parse_components, street_objects
+
+    assert "street-objects" not in parse_components("random")
+    for seed in range(10):
+        plain = draw_effects(np.random.default_rng(seed), parse_components("random,vegetation"))
+        more = draw_effects(np.random.default_rng(seed), parse_components("random,vegetation,street-objects"))
+        assert plain.street_objects == 0.0 and 0.1 <= more.street_objects <= 0.4
+        assert more == ScanEffects(**{**plain.__dict__, "street_objects": more.street_objects})
+    parked = np.array([[12.0, 6.0, 2.3, 0.95, 0.0], [-9.0, -6.0, 2.3, 0.95, 0.1], [4.0, -7.0, 2.3, 0.95, 1.5]])
+    near = total = 0
+    for seed in range(20):
+        prims = street_objects(ScanEffects(street_objects=0.4, clutter_seed=seed), parked, parked, 1.84)
+        assert not _crossing_the_ego(prims)
+        for i in range(len(prims)):
+            piece = np.array([*prims.center[i], *prims.half[i], prims.yaw[i]])
+            assert not any(rectangles_overlap(piece, car) for car in parked)
+        assert np.all(prims.z[:, 0] >= -1.84 - 1e-9) and np.all(prims.z[:, 1] <= -1.84 + 1.8 + 1e-9)
+        assert np.all(prims.half.max(1) <= 0.9 + 1e-9)
+        objects = {(round(x, 3), round(y, 3)) for x, y in prims.center[prims.z[:, 0] <= -1.84 + 1e-9]}
+        for x, y in objects:  # one per object: the pieces that stand on the ground (a pile's lumps may share one)
+            total += 1
+            near += bool(np.min(np.hypot(parked[:, 0] - x, parked[:, 1] - y)) < 2.3 + 2.5)
+    assert total > 100 and 0.3 < near / total < 0.8
+    assert not street_objects(ScanEffects(clutter_seed=3), parked, parked, 1.84).center.size  # density 0: nothing
+    f = cars_frame([(12.0, 6.0), (-9.0, -6.0)])
+    fx = ScanEffects(street_objects=0.4, clutter_seed=4)
+    bare, _ = cast_frame(f, seed=0, effects=ScanEffects(clutter_seed=4))
+    seen, _ = cast_frame(f, seed=0, effects=fx)
+    cars = np.column_stack([f.centers[:, :2], f.sizes[:, :2] / 2, f.yaws])  # both parked, the ego at the origin
+    prims = street_objects(fx, cars, cars, 1.84)  # what cast_frame placed
+    extra = seen.points[seen.owner < 0]
+    assert len(extra) > len(bare.points[bare.owner < 0]) + 20
+    hits = np.min(np.hypot(extra[:, None, 0] - prims.center[None, :, 0], extra[:, None, 1] - prims.center[None, :, 1]),
+                  axis=1) < 0.5
+    assert hits.sum() > 20 and np.all(extra[hits, 2] < -1.84 + 1.9)
+
+
 def test_incidence_loses_the_grazing_returns_of_road_users_only_and_is_opt_in() -> None:
     """With ``incidence`` a road user's return is lost where the ray grazes its surface: a car seen from its end keeps
     the returns of the end the sensor faces and loses those of its side along the line of sight (and of its roof),

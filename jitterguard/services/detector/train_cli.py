@@ -302,7 +302,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                                              " per scan: 'random' (all), 'none' (ideal scans), or a comma list of"
                                              " ground, glass, dropout, noise, roof, mixed, clutter, open, motion,"
                                              " intensity, and the opt-in no-intensity, vegetation, limbs, pedal,"
-                                             " clear-glass, kerb-trees and incidence (not in 'random':"
+                                             " clear-glass, kerb-trees, incidence and street-objects (not in 'random':"
                                              " random,vegetation,limbs,pedal); several sets joined by '+' (e.g."
                                              " none+random) train on the seeds cast once per set, validate on the"
                                              " first set.")] = "random",
