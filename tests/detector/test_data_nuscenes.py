@@ -104,6 +104,28 @@ def test_boxes_equal_devkit(real: list[Sample], devkit) -> None:
 
 
 @needs_scene
+def test_unscored_objects_are_devkits_other_boxes(real: list[Sample], devkit) -> None:
+    """Every annotation of no detector class (barriers, cones, debris) comes with its category and its centre in
+    the loader's frame, as nuscenes-devkit's ``get_sample_data`` puts it there; none of them is a target."""
+    from pyquaternion import Quaternion
+
+    kinds: set[str] = set()
+    for s in real:
+        lidar = devkit.get("sample", s.token.rsplit("/", 1)[1])["data"]["LIDAR_TOP"]
+        _, boxes, _ = devkit.get_sample_data(lidar)
+        mount = Quaternion(devkit.get("calibrated_sensor", devkit.get("sample_data", lidar)["calibrated_sensor_token"])
+                           ["rotation"])
+        ref = [b for b in boxes if nuscenes_class(b.name) < 0]
+        for b in ref:
+            b.rotate(mount)
+        assert [u[0] for u in s.unscored] == [b.name for b in ref]
+        if ref:
+            np.testing.assert_allclose([u[1:] for u in s.unscored], [b.center[:2] for b in ref], atol=2e-4)
+        kinds |= {b.name for b in ref}
+    assert {"movable_object.barrier", "movable_object.trafficcone", "movable_object.debris"} <= kinds
+
+
+@needs_scene
 def test_points_in_boxes_match_num_lidar_pts(real: list[Sample]) -> None:
     counted, stated = [], []
     for s in real[::5]:

@@ -366,3 +366,26 @@ def test_recall_by_returns_counts_a_box_found_only_by_a_prediction_above_the_wor
     assert [r["recall"] for r in rows] == [1.0, None, 1.0, None, 0.0]
     assert json.loads(json.dumps(evaluation_report([pred], [sample])))["detection"]["classes"]["car"][
         "recall_by_returns"][1]["recall"] is None
+
+
+def test_false_positives_are_told_what_they_stand_on() -> None:
+    """Car boxes over the working score that match no car are counted by the nearest labelled object within 1 m:
+    a second box on a car already taken is a duplicate, one on a truck a confusion, one on a labelled cone (an
+    unscored category) that cone, one on nothing labelled nothing; a true positive and a false box under the
+    working score are not counted; the resamples of the bootstrap do not explain."""
+    sample = Sample(np.zeros((0, 4), np.float32), boxes([(10.0, 0.0), (20.0, 5.0)]), np.array([CAR, TRUCK]),
+                    np.array([50, 50]), "s", unscored=(("movable_object.trafficcone", 30.0, -4.0),
+                                                      ("movable_object.debris", 12.0, 9.0)))
+    pred = det([(10.1, 0.0), (10.6, 0.3), (20.3, 5.2), (30.4, -4.2), (-25.0, 8.0), (12.0, 9.0), (12.2, 9.1)],
+               [0.9, 0.8, 0.7, 0.6, 0.5, 0.2, 0.35], [CAR] * 7)
+    res = detection_ap([pred], [sample])["classes"]
+    assert res["car"]["false_positives_on"] == {"duplicate": 1, "movable_object.debris": 1,
+                                                "movable_object.trafficcone": 1, "nothing labelled": 1, "truck": 1}
+    assert res["truck"]["false_positives_on"] == {}
+    # a pedestrian box on the car is a confusion with the car; 1 m away from everything it stands on nothing
+    ped = det([(10.5, 0.5), (13.0, 9.0)], [0.9, 0.9], [PED, PED])
+    assert detection_ap([ped], [sample])["classes"]["pedestrian"]["false_positives_on"] == {
+        "car": 1, "nothing labelled": 1}
+    assert detection_ap([pred], [sample], explain=False)["classes"]["car"]["false_positives_on"] is None
+    report = json.loads(json.dumps(evaluation_report([pred], [sample])))
+    assert report["detection"]["classes"]["car"]["false_positives_on"]["truck"] == 1

@@ -236,7 +236,10 @@ class Sample:
     indices (M,) in the same frame; ``num_points`` (M,) LiDAR returns inside each box (0 = not visible);
     ``token`` names the scan (scenario/seed/frame or a nuScenes sample token). ``pseudo``: the boxes are a
     model's own detections (self-training), which teach where objects are but not how precisely — their
-    regression targets are not trained on (:func:`~.targets.build_targets`)."""
+    regression targets are not trained on (:func:`~.targets.build_targets`). ``unscored``: labelled objects of no
+    detector class (nuScenes' barriers, traffic cones, debris…) as (category, x, y) in the same frame — never
+    trained on or scored, only what a false positive is told to stand on
+    (:func:`~.evaluate.false_positives_on`)."""
 
     points: F32
     boxes: F32
@@ -244,6 +247,7 @@ class Sample:
     num_points: I64
     token: str = ""
     pseudo: bool = False
+    unscored: tuple[tuple[str, float, float], ...] = ()
 
 
 class LazySamples(Sequence[Sample]):

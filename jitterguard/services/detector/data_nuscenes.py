@@ -55,7 +55,8 @@ NUSCENES_TO_CLASS: dict[str, int] = {
 }
 """nuScenes category → detector class (Autoware's CenterPoint folding: trailers and construction vehicles are
 trucks, motorcycles bicycles; emergency vehicles as the evaluator maps them). ``human.pedestrian.*`` →
-pedestrian; every other category (barriers, cones, debris, animals, bicycle racks) is dropped."""
+pedestrian; every other category (barriers, cones, debris, animals, bicycle racks) is no target: neither trained
+on nor scored, kept only as :attr:`~.config.Sample.unscored` to say what a false positive stands on."""
 
 
 def nuscenes_class(category: str) -> int:
@@ -154,6 +155,7 @@ class _Keyframe:
     num_points: NDArray[np.int64]
     sweeps: tuple[SweepRef, ...]
     mount_rotation: F64  # sensor axes → vehicle axes (its points are turned by it when read)
+    unscored: tuple[tuple[str, float, float], ...] = ()
 
 
 def _pose_matrix(rec: dict[str, Any]) -> tuple[F64, F64]:
@@ -221,9 +223,10 @@ class NuScenesKeyframes(LazySamples):
         inst_class = {i["token"]: nuscenes_class(cat_name[i["category_token"]]) for i in t["instance"]}
         anns = {a["token"]: a for a in t["sample_annotation"]}
         by_sample: dict[str, list[dict[str, Any]]] = {}
+        others: dict[str, list[dict[str, Any]]] = {}  # annotations of no detector class: told apart, never trained on
         for a in t["sample_annotation"]:
-            if inst_class[a["instance_token"]] >= 0:
-                by_sample.setdefault(a["sample_token"], []).append(a)
+            (by_sample if inst_class[a["instance_token"]] >= 0 else others).setdefault(a["sample_token"], []).append(a)
+        inst_cat = {i["token"]: cat_name[i["category_token"]] for i in t["instance"]}
         frames: list[_Keyframe] = []
         for sc in scenes:
             for smp in _scene_chain(sc, samples):
@@ -237,12 +240,17 @@ class NuScenesKeyframes(LazySamples):
                 boxes = annotations_to_sensor(rows, vel, ego[sd["ego_pose_token"]],
                                               _levelled(calib[sd["calibrated_sensor_token"]]))
                 boxes[:, 7:9] = np.where(np.isnan(boxes[:, 7:9]), nan_velocity, boxes[:, 7:9])
+                rest = others.get(smp["token"], [])
+                centres = annotations_to_sensor(rest, np.zeros((len(rest), 3)), ego[sd["ego_pose_token"]],
+                                                _levelled(calib[sd["calibrated_sensor_token"]]))[:, :2]
                 frames.append(_Keyframe(
                     token=f"nuscenes/{sc['name']}/{smp['token']}", path=root / sd["filename"],
                     boxes=boxes.astype(np.float32),
                     labels=np.array([inst_class[a["instance_token"]] for a in rows], np.int64),
                     num_points=np.array([int(a.get("num_lidar_pts", 0)) for a in rows], np.int64),
-                    sweeps=self._sweep_chain(sd, lidar, ego, calib, max_sweep_lag_s), mount_rotation=mount_rot))
+                    sweeps=self._sweep_chain(sd, lidar, ego, calib, max_sweep_lag_s), mount_rotation=mount_rot,
+                    unscored=tuple((inst_cat[a["instance_token"]], float(x), float(y))
+                                   for a, (x, y) in zip(rest, centres))))
         self._frames = frames
 
     def _sweep_chain(self, sd: dict[str, Any], lidar: dict[str, dict[str, Any]], ego: dict[str, Any],
@@ -301,7 +309,8 @@ class NuScenesKeyframes(LazySamples):
 
     def _sample(self, i: int) -> Sample:
         f = self._frames[i]
-        return Sample(points=self.points(i), boxes=f.boxes, labels=f.labels, num_points=f.num_points, token=f.token)
+        return Sample(points=self.points(i), boxes=f.boxes, labels=f.labels, num_points=f.num_points, token=f.token,
+                      unscored=f.unscored)
 
 
 def iter_nuscenes_samples(dataroot: str | Path, version: str | None = None,

@@ -225,13 +225,15 @@ def detection_ap(predictions: Sequence[Detections3D], ground_truth: Sequence[Sam
                  thresholds: Sequence[float] = DIST_THRESHOLDS_M,
                  class_range: Sequence[float] = CLASS_RANGE_M, min_points: int = 1,
                  class_names: Sequence[str] = CLASS_NAMES, count_threshold: float = COUNT_THRESHOLD_M,
-                 min_recall: float = MIN_RECALL, min_precision: float = MIN_PRECISION) -> dict[str, Any]:
+                 min_recall: float = MIN_RECALL, min_precision: float = MIN_PRECISION,
+                 explain: bool = True) -> dict[str, Any]:
     """nuScenes detection AP per class and threshold, per-class mean over thresholds, and mAP (module doc).
 
     Returns ``{"thresholds_m", "count_threshold_m", "recall" (the 101 points), "mAP", "classes": {name:
-    {"num_gt", "num_pred", "ap": {threshold_key: AP}, "mean_ap", "tp", "fp", "fn", "precision":
-    {threshold_key: 101 floats}}}}``. TP/FP/FN count every prediction that passes the range filter, at
-    ``count_threshold``. NaN marks an AP that is undefined because the class has no ground truth.
+    {"num_gt", "num_pred", "ap": {threshold_key: AP}, "mean_ap", "tp", "fp", "fn", "recall_by_returns",
+    "false_positives_on", "precision": {threshold_key: 101 floats}}}}``. TP/FP/FN count every prediction that passes
+    the range filter, at ``count_threshold``; ``false_positives_on`` explains those scoring ≥ :data:`RECALL_SCORE`
+    (None when not ``explain``: the bootstrap's resamples need only the APs). NaN marks an AP that is undefined because the class has no ground truth.
     """
     _check_pairs(predictions, ground_truth)
     ths = [float(t) for t in thresholds]
@@ -260,6 +262,9 @@ def detection_ap(predictions: Sequence[Detections3D], ground_truth: Sequence[Sam
             "ap": ap, "mean_ap": float(np.mean(list(ap.values()))) if npos else math.nan,
             "tp": n_tp, "fp": len(p.label) - n_tp, "fn": npos - n_tp,
             "recall_by_returns": recall_by_returns(rows[p.score >= RECALL_SCORE], g.returns),
+            "false_positives_on": false_positives_on(p.sample[(rows < 0) & (p.score >= RECALL_SCORE)],
+                                                     p.xy[(rows < 0) & (p.score >= RECALL_SCORE)], c,
+                                                     ground_truth, class_names) if explain else None,
             "precision": {k: v.tolist() for k, v in precision.items()},
         }
     means = [v["mean_ap"] for v in classes.values() if v["num_gt"]]
@@ -296,6 +301,36 @@ def recall_by_returns(matched_rows: I64, returns: I64 | None, edges: Sequence[in
         out.append({"returns": f"{lo}-{hi - 1}" if hi is not None else f"{lo}+", "num_gt": n,
                     "recall": float(found[m].mean()) if n else None})
     return out
+
+
+STANDS_ON_M = 1.0
+"""A false positive stands on a labelled object when their BEV centres are closer than this."""
+
+
+def false_positives_on(sample: I64, xy: F64, label: int, ground_truth: Sequence[Sample],
+                       class_names: Sequence[str] = CLASS_NAMES) -> dict[str, int]:
+    """What the false positives of class ``label`` (their scans ``sample`` and BEV centres ``xy``) stand on: the
+    nearest labelled object within :data:`STANDS_ON_M` — ``"duplicate"`` (an object of the same class, taken by a
+    better box or not scored: out of range, no returns), another class's name (a confusion), an unscored category (:attr:`~.config.Sample.unscored`:
+    nuScenes' barriers, cones, debris) — or ``"nothing labelled"`` (clutter, vegetation, walls; or an object too
+    far out of range to be scored). Counts, the commonest first.
+
+    Why: AP says how many boxes are wrong, not why; on nuScenes scene-0523 a fifth of the 100 highest-scored false
+    pedestrians stood on four piles of debris (docs/detector.md, "Things the size of a person")."""
+    counts: dict[str, int] = {}
+    for s, (x, y) in zip(sample.tolist(), np.asarray(xy, np.float64).reshape(-1, 2)):
+        gt = ground_truth[s]
+        names = [("duplicate" if int(k) == label else class_names[int(k)]) for k in gt.labels]
+        cx = np.concatenate([np.asarray(gt.boxes[:, 0], np.float64), [u[1] for u in gt.unscored]])
+        cy = np.concatenate([np.asarray(gt.boxes[:, 1], np.float64), [u[2] for u in gt.unscored]])
+        what = "nothing labelled"
+        if len(cx):
+            d = np.hypot(cx - x, cy - y)
+            j = int(np.argmin(d))
+            if d[j] < STANDS_ON_M:
+                what = names[j] if j < len(names) else gt.unscored[j - len(names)][0]
+        counts[what] = counts.get(what, 0) + 1
+    return dict(sorted(counts.items(), key=lambda kv: (-kv[1], kv[0])))
 
 
 def devkit_mean_ap(ap_result: dict[str, Any]) -> float:
@@ -625,7 +660,7 @@ def bootstrap_intervals(predictions: Sequence[Detections3D], ground_truth: Seque
         idx = rng.integers(0, n, n)
         p = [predictions[i] for i in idx]
         g = [ground_truth[i] for i in idx]
-        res = detection_ap(p, g, class_range=class_range, min_points=min_points)
+        res = detection_ap(p, g, class_range=class_range, min_points=min_points, explain=False)
         for c, d in res["classes"].items():
             aps[c].append(d["mean_ap"])
         if has_var:
