@@ -91,6 +91,7 @@ class Layout:
     static_yaw: F64
     static_attributes: tuple[str, ...]
     static_categories: tuple[str, ...]
+    static_base: F64  # how high each stands above the road: a person on a kerb, a lot island's curb, a verge
     dyn_ids: NDArray[np.int64]
     dyn_labels: NDArray[np.int64]
     dyn_sizes: F64
@@ -122,7 +123,7 @@ class LayoutBuilder:
         self.duration_s = duration_s
         self.clutter = PrimitiveList()
         self._next_id = 1
-        self._static: list[tuple[int, ObjectClass, F64, float, float, float, str]] = []
+        self._static: list[tuple[int, ObjectClass, F64, float, float, float, str, float]] = []
         self._lanes: list[_Lane] = []
         self._ego: tuple[_Lane, _LaneMember] | None = None
         self._footprints: list[F64] = []
@@ -140,28 +141,39 @@ class LayoutBuilder:
         Returns its instance id, or -1 (and adds nothing) if its footprint, grown by ``clearance``, would overlap
         an earlier static object or clutter: generators may scatter freely and rely on this to stay physical. A
         person steps onto clutter up to :data:`STEP_UP_M` high (a kerb, a lot island's curb, a raised verge), so that
-        is no obstacle to one; they stand on the road's level all the same (their box's lowest 0.1–0.3 m inside the
-        kerb — a simplification every scenario shares, the world has no ground heights for objects)."""
+        is no obstacle to one, and stands on the highest such step under their footprint (``Layout.static_base``:
+        their box and their body lifted by it)."""
         cls = CLASSES[cls_key]
         sz = cls.sample_size(self.rng) if size is None else np.asarray(size, dtype=np.float64)
         fp = np.array([x, y, sz[0] / 2 + clearance, sz[1] / 2 + clearance, yaw])
-        if self._overlaps(fp, STEP_UP_M if family_of(int(cls.label)) == FAMILY_PEDESTRIAN else 0.0):
+        step_up = STEP_UP_M if family_of(int(cls.label)) == FAMILY_PEDESTRIAN else 0.0
+        if self._overlaps(fp, step_up):
             return -1
         iid = self._new_id()
-        self._static.append((iid, cls, sz, float(x), float(y), float(yaw), attribute))
+        self._static.append((iid, cls, sz, float(x), float(y), float(yaw), attribute, self._step_under(fp, step_up)))
         self._footprints.append(fp)
         return iid
+
+    def _overlapping(self, fp: F64, others: list[F64]) -> list[int]:
+        """Indices of the footprints ``others`` (x, y, half_l, half_w, yaw) that ``fp`` overlaps."""
+        if not others:
+            return []
+        o = np.array(others).reshape(-1, 5)
+        reach = np.hypot(o[:, 2], o[:, 3]) + math.hypot(fp[2], fp[3])
+        near = np.flatnonzero(np.hypot(o[:, 0] - fp[0], o[:, 1] - fp[1]) < reach)
+        return [int(i) for i in near if rectangles_overlap(fp, o[i])]
 
     def _overlaps(self, fp: F64, step_up_m: float) -> bool:
         """Whether ``fp`` overlaps an earlier static object or clutter more than ``step_up_m`` high."""
         tops = self.clutter.footprint_tops()
         clutter = [f for f, top in zip(self.clutter.footprints(), tops) if top > step_up_m]
-        others = np.array(self._footprints + clutter).reshape(-1, 5)
-        if len(others) == 0:
-            return False
-        reach = np.hypot(others[:, 2], others[:, 3]) + math.hypot(fp[2], fp[3])
-        near = others[np.hypot(others[:, 0] - fp[0], others[:, 1] - fp[1]) < reach]
-        return any(rectangles_overlap(fp, o) for o in near)
+        return bool(self._overlapping(fp, self._footprints + clutter))
+
+    def _step_under(self, fp: F64, step_up_m: float) -> float:
+        """The top of the highest clutter no higher than ``step_up_m`` that ``fp`` overlaps (0: the road)."""
+        low = [(f, top) for f, top in zip(self.clutter.footprints(), self.clutter.footprint_tops()) if top <= step_up_m]
+        hit = self._overlapping(fp, [f for f, _ in low])
+        return max((low[i][1] for i in hit), default=0.0)
 
     # ------------------------------------------------------------------ lanes of moving agents
     def add_lane(self, path: Path, stop_lines: Sequence[StopLine] = (), speed_zones: Sequence[SpeedZone] = ()
@@ -233,6 +245,7 @@ class LayoutBuilder:
             static_yaw=np.array([r[5] for r in st], dtype=np.float64),
             static_attributes=tuple(r[6] for r in st),
             static_categories=tuple(r[1].category for r in st),
+            static_base=np.array([r[7] for r in st], dtype=np.float64),
             dyn_ids=np.array([d[0].instance_id for d in dyn], dtype=np.int64),
             dyn_labels=np.array([int(d[0].cls.label) for d in dyn], dtype=np.int64),
             dyn_sizes=np.array([d[0].size for d in dyn], dtype=np.float64).reshape(-1, 3),

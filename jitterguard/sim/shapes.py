@@ -264,7 +264,8 @@ def object_primitives(centers: F64, sizes: F64, yaws: F64, labels: NDArray[np.in
         L, W, H = (sizes[rows, i][:, None] for i in range(3))
         kind = np.broadcast_to(t[:, 0].astype(np.int8), (n, m))
         lx, ly = t[:, 1] * L, t[:, 2] * W
-        z0, z1 = t[:, 3] * H, t[:, 4] * H
+        base = centers[rows, 2][:, None] - H / 2  # what it stands on: the road, or a kerb a person stepped onto
+        z0, z1 = base + t[:, 3] * H, base + t[:, 4] * H
         if key in GAIT and stride is not None:
             lx = lx + GAIT[key][None, :] * stride[rows][:, None] * L
         if key in PEDAL and crank is not None:

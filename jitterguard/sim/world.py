@@ -141,7 +141,8 @@ class Scenario:
         sizes = np.concatenate([L.static_sizes, L.dyn_sizes])[rows]
         yaws = np.concatenate([L.static_yaw, np.angle(np.exp(1j * dyaw))])[rows]
         vel = np.concatenate([np.zeros((self._n_static, 2)), np.stack([dvx, dvy], axis=1)])[rows]
-        centers = np.column_stack([xy[keep], sizes[:, 2] / 2])
+        base = np.concatenate([L.static_base, np.zeros(len(L.dyn_ids))])[rows]
+        centers = np.column_stack([xy[keep], base + sizes[:, 2] / 2])
         speed = np.hypot(vel[:, 0], vel[:, 1])
         moving = speed > cat.MOVING_SPEED_MPS
         attrs: list[str] = [""] * len(rows)
@@ -190,7 +191,8 @@ class Scenario:
         oy = -s * (cl.center[:, 0] - ex) + c * (cl.center[:, 1] - ey)
         oyaw = np.where(cl.kind == CYLINDER, 0.0, cl.yaw - eyaw)
         return estimate_visibility(
-            rx, ry, sizes[:, 0] / 2, sizes[:, 1] / 2, yaws - eyaw, np.zeros(len(rx)), sizes[:, 2],
+            rx, ry, sizes[:, 0] / 2, sizes[:, 1] / 2, yaws - eyaw, centers[:, 2] - sizes[:, 2] / 2,
+            centers[:, 2] + sizes[:, 2] / 2,
             ox, oy, cl.half[:, 0], cl.half[:, 1], oyaw, cl.z[:, 0], cl.z[:, 1], SENSOR_HEIGHT_M,
         )
 

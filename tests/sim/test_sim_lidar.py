@@ -176,7 +176,7 @@ def test_walker_limbs_stay_inside_the_box_at_any_stride() -> None:
         assert len(coef) == len(TEMPLATES[key])
     for size in ([0.73, 0.67, 1.75], [0.5, 0.5, 1.2], [0.55, 0.8, 1.9]):  # adult, child, a wide one
         for stride in (-1.0, -0.4, 0.0, 1.0):
-            prims, _ = object_primitives(np.array([[3.0, -2.0, 0.9]]), np.array([size]), np.array([0.7]),
+            prims, _ = object_primitives(np.array([[3.0, -2.0, size[2] / 2]]), np.array([size]), np.array([0.7]),
                                          np.array([int(Label.PEDESTRIAN)]), ("pedestrian.moving",), np.array([1]),
                                          np.array([stride]))
             assert len(prims) == len(TEMPLATES["walker"])
@@ -233,7 +233,7 @@ def test_pedaller_stays_inside_the_box_and_its_feet_go_round_half_a_turn_apart()
     shins = []
     for size in ([1.7, 0.6, 1.7], [1.5, 0.5, 1.4], [2.0, 0.8, 1.9]):  # a usual bicycle, a small one, a large one
         for angle in np.linspace(0.0, 2 * np.pi, 13):
-            prims, _ = object_primitives(np.array([[3.0, -2.0, 0.9]]), np.array([size]), np.array([0.7]),
+            prims, _ = object_primitives(np.array([[3.0, -2.0, size[2] / 2]]), np.array([size]), np.array([0.7]),
                                          np.array([int(Label.BICYCLE)]), ("cycle.with_rider",), np.array([1]),
                                          crank=np.array([angle]))
             assert len(prims) == len(TEMPLATES["pedaller"])

@@ -294,6 +294,36 @@ def test_people_step_onto_kerbs_but_walls_and_other_objects_refuse_them() -> Non
     assert b.add_static("pedestrian", 2.0, 10.0, 0.0, "pedestrian.standing") == -1
     assert b.add_static("child", 2.0, 20.0, 0.0, "pedestrian.standing") == -1
     assert b.add_static("sitting", 2.1, 0.0, 0.0, "pedestrian.sitting_lying_down") == -1  # someone stands there
+    on_road = b.add_static("pedestrian", 2.0, 5.0, 0.0, "pedestrian.standing")
+    assert on_road > 0
+
+
+def test_a_person_on_a_kerb_stands_on_its_top() -> None:
+    """Who steps onto a kerb stands on it: the ground-truth box and the body's parts start at the kerb's top (the
+    highest step under the footprint), while a person beside it and a parked car stand on the road."""
+    from jitterguard.sim.layout import LayoutBuilder
+    from jitterguard.sim.lidar import scene_primitives
+    from jitterguard.sim.paths import straight
+    from jitterguard.sim.primitives import Tag
+    from jitterguard.sim.sensors import hdl32e
+
+    b = LayoutBuilder(np.random.default_rng(0), 10.0)
+    b.clutter.box(10.0, 0.0, 20.0, 0.5, 0.0, 0.15, tag=Tag.WALL)  # a kerb
+    b.clutter.box(10.0, 0.4, 20.0, 0.3, 0.0, 0.25, tag=Tag.WALL)  # a higher step beside it
+    ids = [b.add_static("pedestrian", 12.0, 0.0, 0.0, "pedestrian.standing"),  # on the kerb and the step
+           b.add_static("pedestrian", 12.0, -3.0, 0.0, "pedestrian.standing"),  # on the road
+           b.add_static("car", 10.0, 6.0, 0.0, "vehicle.parked")]
+    b.add_agent(b.add_lane(straight((-40.0, -10.0), (40.0, -10.0))), "car", 5.0, 0.0, is_ego=True)
+    layout = b.build()
+    np.testing.assert_allclose(layout.static_base, [0.25, 0.0, 0.0])
+    frame = Scenario("kerb", 0, layout, 10.0).frame(0)
+    rows = [int(np.flatnonzero(frame.instance_ids == i)[0]) for i in ids]
+    np.testing.assert_allclose(frame.centers[rows, 2] - frame.sizes[rows, 2] / 2, [0.25, 0.0, 0.0], atol=1e-12)
+    spec = hdl32e()
+    prims, owner = scene_primitives(frame, spec)
+    for r, base in zip(rows, (0.25, 0.0, 0.0)):
+        lowest = prims.z[owner == r].min() + spec.mount_height_m
+        assert lowest == pytest.approx(base, abs=0.02 + 1e-9)
 
 
 def test_people_stand_on_the_lots_islands(scenarios: dict[str, Scenario]) -> None:
