@@ -34,6 +34,13 @@ BASE_STAMP_NS = 1_700_000_000_000_000_000
 SCENARIO_NAMES: tuple[str, ...] = tuple(SCENARIOS)
 
 
+WORLD_VERSION = 1
+"""Bumped whenever what a seed casts changes — scenario generation, object shapes, the ray caster: caches of cast
+scans name it in their recipe (``train``'s and ``eval-detector``'s ``cache-*`` folders), so a folder reused after an
+upgrade casts its scans anew instead of scoring or training on the old world. (1: people stand on the kerbs they
+step onto, 6 Dec 2026.)"""
+
+
 @dataclass(frozen=True, eq=False)
 class GroundTruthFrame:
     """Ground truth of one frame. Arrays are aligned: row n describes object ``instance_ids[n]``.

@@ -322,3 +322,18 @@ def test_bootstrap_intervals_report_their_progress(capsys: pytest.CaptureFixture
     assert ticks == [1] * 7
     write_report(tmp_path, "x", dets, gt, bootstrap=7, progress=True)
     assert "bootstrap intervals" in capsys.readouterr().err
+
+
+def test_a_cache_of_another_worlds_scans_is_cast_anew(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A folder's cached scans are reused for the same recipe, but not once the world they were cast in has changed
+    (``WORLD_VERSION``): ``eval-detector --out`` reused after an upgrade must not score the old world's scans."""
+    import jitterguard.sim.world as world
+    from jitterguard.services.detector.train_cli import synthetic_cache
+
+    first = synthetic_cache(tmp_path, ["parking-street"], [7], 1, False)
+    again = synthetic_cache(tmp_path, ["parking-street"], [7], 1, False)
+    assert len(list(tmp_path.glob("cache-*"))) == 1 and len(first) == len(again) == 1
+    assert first.meta["recipe"]["world_version"] == world.WORLD_VERSION
+    monkeypatch.setattr(world, "WORLD_VERSION", world.WORLD_VERSION + 1)
+    newer = synthetic_cache(tmp_path, ["parking-street"], [7], 1, False)
+    assert len(list(tmp_path.glob("cache-*"))) == 2 and newer.meta["recipe"]["world_version"] == world.WORLD_VERSION

@@ -71,8 +71,10 @@ def synthetic_cache(root: Path, scenarios: list[str], seeds: list[int], frames: 
     from .data import CachedSamples, build_cache, synthetic_samples
 
     from ...sim.effects import EFFECTS_VERSION, parse_components
+    from ...sim.world import WORLD_VERSION
 
-    recipe: dict[str, Any] = {"scenarios": scenarios, "seeds": seeds, "frames_per_scenario": frames}
+    recipe: dict[str, Any] = {"scenarios": scenarios, "seeds": seeds, "frames_per_scenario": frames,
+                              "world_version": WORLD_VERSION}
     components = parse_components(effects)
     if components:  # (keeps the name of caches written before effects existed)
         recipe["effects"] = ",".join(components)
