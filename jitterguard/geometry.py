@@ -227,3 +227,22 @@ def rect_iou(a: tuple[ArrayLike, ...], b: tuple[ArrayLike, ...]) -> F64:
     area_b = np.asarray(b[2], dtype=np.float64) * np.asarray(b[3], dtype=np.float64)
     union = area_a + area_b - inter
     return np.where(union > 1e-12, np.clip(inter / np.where(union > 1e-12, union, 1.0), 0.0, 1.0), 0.0)
+
+
+STANDS_ON_M = 1.0
+"""A box stands on a labelled object when their bird's-eye centres are closer than this (what a false positive or a
+ghost track is told to stand on)."""
+
+
+def nearest_within(xy: ArrayLike, others: ArrayLike, radius: float = STANDS_ON_M) -> NDArray[np.int64]:
+    """For each of the (N, 2) points ``xy``, the index of the nearest of the (M, 2) points ``others`` closer than
+    ``radius``, −1 where none is."""
+    p = np.asarray(xy, np.float64).reshape(-1, 2)
+    o = np.asarray(others, np.float64).reshape(-1, 2)
+    out = np.full(len(p), -1, np.int64)
+    if len(p) and len(o):
+        d = np.hypot(p[:, None, 0] - o[None, :, 0], p[:, None, 1] - o[None, :, 1])
+        j = d.argmin(1)
+        near = d[np.arange(len(p)), j] < radius
+        out[near] = j[near]
+    return out

@@ -19,10 +19,11 @@ import json
 
 import numpy as np
 
+from jitterguard.geometry import STANDS_ON_M
 from jitterguard.services.detector.augment import filter_range
 from jitterguard.services.detector.config import CLASS_NAMES, SELF_CROP_M, Sample
 from jitterguard.services.detector.data import nuscenes_samples
-from jitterguard.services.detector.evaluate import STANDS_ON_M, detection_ap
+from jitterguard.services.detector.evaluate import detection_ap
 from jitterguard.services.detector.inference import Detector
 
 PEDESTRIAN = CLASS_NAMES.index("pedestrian")

@@ -198,9 +198,11 @@ def _frames(dataroot: Path, src: Any, t: dict[str, list[dict[str, Any]]]) -> tup
     frames: list[GroundTruthFrame] = []
     for seq, (sample, (stamp_ns, pose, _fn, _rot)) in enumerate(zip(chain, src.records)):
         rows = []
+        unscored: list[tuple[str, float, float]] = []
         for a in sorted(by_sample.get(sample["token"], []), key=lambda r: r["instance_token"]):
             label = nuscenes_label(inst_cat[a["instance_token"]])
             if label is None:
+                unscored.append((inst_cat[a["instance_token"]], float(a["translation"][0]), float(a["translation"][1])))
                 continue
             w, ln, h = a["size"]
             qw, qx, qy, qz = a["rotation"]
@@ -228,5 +230,6 @@ def _frames(dataroot: Path, src: Any, t: dict[str, list[dict[str, Any]]]) -> tup
             visibility=np.array([r[7] for r in rows], dtype=np.float64),
             num_points=np.array([r[8] or 0 for r in rows], dtype=np.int64),
             points_counted=all(r[8] is not None for r in rows),
+            unscored=tuple(unscored),
         ))
     return src.scene_name, frames

@@ -254,7 +254,9 @@ def group_metrics(rec: Records, group: str, boot: TrackBootstrap | None = None, 
 
 def ghost_metrics(rec: Records, group: str, boot: TrackBootstrap | None = None) -> dict[str, Any]:
     """Tracks matched to no object (``ghost_rows``), scored as static truth: a ghost with a velocity is what
-    makes a planner brake for nothing."""
+    makes a planner brake for nothing. ``on``: the same by what the ghosts stand on (``Records.ghost_on``: a
+    labelled object that is no road user — a ghost pedestrian on a nuScenes pile of debris is a real obstacle —
+    or nothing labelled), the commonest first."""
     m = ghost_rows(rec, group)
     out: dict[str, Any] = _clean({
         "n": int(m.sum()),
@@ -265,6 +267,11 @@ def ghost_metrics(rec: Records, group: str, boot: TrackBootstrap | None = None) 
     if boot is not None:
         out["ci90"] = {"false_dynamic_z": boot.rate(m, rec.state_z == DYNAMIC),
                        "false_dynamic_speed": boot.rate(m, rec.state_v == DYNAMIC)}
+    out["on"] = {what: _clean({"n": int((m & (rec.ghost_on == what)).sum()),
+                               "n_tracks": int(len(np.unique(rec.track_id[m & (rec.ghost_on == what)]))),
+                               "false_dynamic_z": rate(rec.state_z, m & (rec.ghost_on == what), DYNAMIC),
+                               "false_dynamic_speed": rate(rec.state_v, m & (rec.ghost_on == what), DYNAMIC)})
+                 for what in sorted(set(rec.ghost_on[m].tolist()), key=lambda w: -int((rec.ghost_on[m] == w).sum()))}
     return out
 
 

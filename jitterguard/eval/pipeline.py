@@ -25,6 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment  # type: ignore[import-untyped]
 
+from ..geometry import nearest_within
 from ..schemas import DetectedColumns, decode, encode, read_detected_objects, wire
 from ..schemas.models import ClassifierConfig, DetectedObjects, MotionState, TrackedObjects
 from ..services.bridge.joiner import FrameJoiner, JoinedFrame
@@ -71,6 +72,10 @@ def match_tracks(track_xy: NDArray[np.float64], gt_xy: NDArray[np.float64],
     return out
 
 
+NOTHING_LABELLED = "nothing labelled"
+"""What a ghost track stands on when no labelled object is near it (``Records.ghost_on``)."""
+
+
 @dataclass
 class Records:
     """One row per (frame, observed track): the tracker/classifier outputs and the matched ground truth.
@@ -82,7 +87,8 @@ class Records:
     reads, against its per-class ``speed_threshold``); ``state_z`` / ``state_v`` the two cores' decisions
     (0 undecided, 1 static, 2 dynamic). ``group`` is the matched object's evaluation group, '' for tracks
     matched to no ground truth (ghosts: scored as static truth in ``ghost.*`` by ``track_group``, the group
-    of the track's own label); ``gt_attribute`` / ``gt_speed`` the matched object's attribute and speed.
+    of the track's own label); ``gt_attribute`` / ``gt_speed`` the matched object's attribute and speed;
+    ``ghost_on`` what a ghost track stands on (:func:`ghost_footing`), '' for a matched one.
     """
 
     t_s: NDArray[np.float64]
@@ -107,6 +113,7 @@ class Records:
     window_size: int = 10
     window_stride: int = 1  # the window took every k-th frame (a stream faster than window_reference_hz)
     vetoed: NDArray[np.bool_] = field(default_factory=lambda: np.empty(0, dtype=bool))
+    ghost_on: NDArray[np.str_] = field(default_factory=lambda: np.empty(0, dtype="U40"))
 
     def __post_init__(self) -> None:
         """Tables built without the planner-view columns get neutral ones: no attribute, unknown speed, the
@@ -122,6 +129,8 @@ class Records:
             self.track_group = np.asarray(self.group, dtype="U12").copy()
         if len(self.vetoed) != n:
             self.vetoed = np.zeros(n, dtype=bool)
+        if len(self.ghost_on) != n:
+            self.ghost_on = np.where(self.gt_instance < 0, NOTHING_LABELLED, "").astype("U40")
 
     def __len__(self) -> int:
         return int(self.t_s.shape[0])
@@ -130,6 +139,20 @@ class Records:
         """The rows where ``mask`` holds (scalars kept)."""
         kw = {k: (v[mask] if isinstance(v, np.ndarray) else v) for k, v in self.__dict__.items()}
         return Records(**kw)  # type: ignore[arg-type]
+
+
+def ghost_footing(track_xy: NDArray[np.float64], matched: NDArray[np.int64], gt: GroundTruthFrame
+                  ) -> NDArray[np.str_]:
+    """What each track matched to no object stands on: the nearest labelled object that is no road user
+    (``gt.unscored``: nuScenes' barriers, cones, debris) within :data:`~jitterguard.geometry.STANDS_ON_M`, else
+    :data:`NOTHING_LABELLED`; '' for a matched track. A ghost pedestrian on a pile of debris is a real static
+    obstacle the detector named wrongly — calling it static is right — where one on nothing is a phantom."""
+    out = np.full(len(matched), "", dtype="U40")
+    ghost = matched < 0
+    names = [u[0] for u in gt.unscored]
+    near = nearest_within(track_xy[ghost], [u[1:] for u in gt.unscored])
+    out[ghost] = [names[j] if j >= 0 else NOTHING_LABELLED for j in near.tolist()]
+    return out
 
 
 def _id_factory() -> Callable[[], str]:
@@ -220,7 +243,8 @@ def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame | None, bytes]],
     joiner = FrameJoiner() if on_frame is not None else None
     cols: dict[str, list] = {k: [] for k in ("t_s", "seq", "track_id", "label", "z", "speed", "window", "state_z",
                                              "state_v", "gt_instance", "gt_dynamic", "group", "alpha",
-                                             "gt_attribute", "gt_speed", "speed_threshold", "track_group", "vetoed")}
+                                             "gt_attribute", "gt_speed", "speed_threshold", "track_group", "vetoed",
+                                             "ghost_on")}
     t0: int | None = None
     for gt, payload in inputs:
         det = scale_variances(read_detected_objects(payload, limits), at_detector)
@@ -270,6 +294,7 @@ def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame | None, bytes]],
         cols["gt_speed"].append(np.where(gi >= 0, gspeed[np.maximum(gi, 0)] if gt.num_objects else 0.0, np.nan))
         cols["speed_threshold"].append(dv.threshold.astype(np.float64))
         cols["track_group"].append(np.array([group_of(int(lb)) or "" for lb in obs.labels.tolist()], dtype="U12"))
+        cols["ghost_on"].append(ghost_footing(txy, gi, gt))
 
     if joiner is not None and on_frame is not None:
         for joined in joiner.flush():
@@ -287,6 +312,7 @@ def track_and_classify(inputs: Iterable[tuple[GroundTruthFrame | None, bytes]],
         min_window=int(base.min_window), gt_attribute=cat("gt_attribute", "U32"), gt_speed=cat("gt_speed", np.float64),
         speed_threshold=cat("speed_threshold", np.float64), track_group=cat("track_group", "U12"),
         window_size=adapter_z.core.window, window_stride=adapter_z.core.stride, vetoed=cat("vetoed", bool),
+        ghost_on=cat("ghost_on", "U40"),
     )
 
 

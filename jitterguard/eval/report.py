@@ -252,6 +252,10 @@ def planner_lines(metrics: dict[str, Any]) -> list[str]:
     for g, m in metrics.get("ghost", {}).items():
         lines.append(f"| {g} | {m['n']} | {m['n_tracks']} | {_ci(m, 'false_dynamic_z')} | "
                      f"{_ci(m, 'false_dynamic_speed')} |")
+        if set(m.get("on", {})) - {"nothing labelled"}:  # labelled objects that are no road user (nuScenes)
+            for what, w in m["on"].items():
+                lines.append(f"| {g} on {what} | {w['n']} | {w['n_tracks']} | {_fmt(w.get('false_dynamic_z'))} | "
+                             f"{_fmt(w.get('false_dynamic_speed'))} |")
     lines += ["", "## At equal false alarms", "",
               "Each rule's missed-dynamic rate at the other rule's false-dynamic rate (z / alpha and speed / class "
               "threshold each swept over one factor).", "",

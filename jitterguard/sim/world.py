@@ -50,6 +50,8 @@ class GroundTruthFrame:
     annotations count them (nuScenes' ``num_lidar_pts``) — and is 0 otherwise; ``visibility`` is the ray-cast
     fraction where a scan was cast, an analytic estimate (or the annotation's visibility level) otherwise.
     ``clutter`` is the static scenery (trees, poles, walls, buildings) the LiDAR also sees; it carries no labels.
+    ``unscored``: labelled objects that are no road user (nuScenes' barriers, traffic cones, debris) as (category,
+    x, y) in the world frame — never scored, only what a ghost track is told to stand on.
     """
 
     seq: int
@@ -70,6 +72,7 @@ class GroundTruthFrame:
     clutter: Primitives | None = field(default=None, repr=False)
     ego_speed: float = 0.0
     points_counted: bool = False
+    unscored: tuple[tuple[str, float, float], ...] = ()
 
     @property
     def num_objects(self) -> int:

@@ -52,6 +52,7 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
+from ...geometry import nearest_within
 from .config import CLASS_NAMES, CLASS_RANGE_M, Detections3D, Sample
 
 F64 = NDArray[np.float64]
@@ -303,33 +304,28 @@ def recall_by_returns(matched_rows: I64, returns: I64 | None, edges: Sequence[in
     return out
 
 
-STANDS_ON_M = 1.0
-"""A false positive stands on a labelled object when their BEV centres are closer than this."""
-
-
 def false_positives_on(sample: I64, xy: F64, label: int, ground_truth: Sequence[Sample],
                        class_names: Sequence[str] = CLASS_NAMES) -> dict[str, int]:
     """What the false positives of class ``label`` (their scans ``sample`` and BEV centres ``xy``) stand on: the
-    nearest labelled object within :data:`STANDS_ON_M` — ``"duplicate"`` (an object of the same class, taken by a
-    better box or not scored: out of range, no returns), another class's name (a confusion), an unscored category (:attr:`~.config.Sample.unscored`:
-    nuScenes' barriers, cones, debris) — or ``"nothing labelled"`` (clutter, vegetation, walls; or an object too
-    far out of range to be scored). Counts, the commonest first.
+    nearest labelled object within :data:`~jitterguard.geometry.STANDS_ON_M` — ``"duplicate"`` (an object of the
+    same class, taken by a better box or not scored: out of range, no returns), another class's name (a confusion),
+    an unscored category (:attr:`~.config.Sample.unscored`: nuScenes' barriers, cones, debris) — or ``"nothing
+    labelled"`` (clutter, vegetation, walls; or an object too far out of range to be scored). Counts, the commonest
+    first.
 
     Why: AP says how many boxes are wrong, not why; on nuScenes scene-0523 a fifth of the 100 highest-scored false
     pedestrians stood on four piles of debris (docs/detector.md, "Things the size of a person")."""
     counts: dict[str, int] = {}
-    for s, (x, y) in zip(sample.tolist(), np.asarray(xy, np.float64).reshape(-1, 2)):
+    xy = np.asarray(xy, np.float64).reshape(-1, 2)
+    for s in np.unique(sample).tolist():
         gt = ground_truth[s]
         names = [("duplicate" if int(k) == label else class_names[int(k)]) for k in gt.labels]
-        cx = np.concatenate([np.asarray(gt.boxes[:, 0], np.float64), [u[1] for u in gt.unscored]])
-        cy = np.concatenate([np.asarray(gt.boxes[:, 1], np.float64), [u[2] for u in gt.unscored]])
-        what = "nothing labelled"
-        if len(cx):
-            d = np.hypot(cx - x, cy - y)
-            j = int(np.argmin(d))
-            if d[j] < STANDS_ON_M:
-                what = names[j] if j < len(names) else gt.unscored[j - len(names)][0]
-        counts[what] = counts.get(what, 0) + 1
+        names += [u[0] for u in gt.unscored]
+        objects = np.concatenate([np.asarray(gt.boxes[:, :2], np.float64).reshape(-1, 2),
+                                  np.array([u[1:] for u in gt.unscored], np.float64).reshape(-1, 2)])
+        for j in nearest_within(xy[sample == s], objects).tolist():
+            what = names[j] if j >= 0 else "nothing labelled"
+            counts[what] = counts.get(what, 0) + 1
     return dict(sorted(counts.items(), key=lambda kv: (-kv[1], kv[0])))
 
 
