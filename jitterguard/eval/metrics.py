@@ -117,7 +117,8 @@ BOOTSTRAP_RESAMPLES = 400
 class TrackBootstrap:
     """90 % percentile intervals over tracks: resampling whole tracks (with replacement) keeps the rows of one
     track together, since they are strongly dependent (one parked car gives hundreds of near-identical rows). A
-    rate of exactly 0 or 1, which every resample repeats, gets the exact binomial interval over its tracks instead.
+    rate of exactly 0 or 1, which every resample repeats, gets the exact binomial interval over its tracks instead;
+    any other rate of a single track has none (None: resampling one track says nothing of how far its rate may be).
 
     ``weights[b, i]`` is how often row i's track is drawn in resample b; a rate is Σ w·num / Σ w·den, an AP is
     the weighted AP (:func:`weighted_average_precision`)."""
@@ -135,7 +136,7 @@ class TrackBootstrap:
         return self.track_weights[:, self.inverse[mask]]
 
     def rate(self, mask: NDArray[np.bool_], hit: NDArray[np.bool_]) -> list[float] | None:
-        """Interval of mean(hit[mask]); None where the mask is empty."""
+        """Interval of mean(hit[mask]); None where the mask is empty, or one track's rate is neither 0 nor 1."""
         if not mask.any():
             return None
         h = hit[mask]
@@ -145,6 +146,8 @@ class TrackBootstrap:
             # trials (conservative: the rows of one track move together)
             edge = round(0.05 ** (1.0 / len(np.unique(self.inverse[mask]))), 6)
             return [0.0, round(1.0 - edge, 6)] if not h.any() else [edge, 1.0]
+        if len(np.unique(self.inverse[mask])) < 2:
+            return None  # one track: every resample repeats its rate, and a point interval would claim certainty
         w = self.rows(mask)
         den = w.sum(axis=1)
         num = (w * hit[mask]).sum(axis=1)
@@ -267,11 +270,15 @@ def ghost_metrics(rec: Records, group: str, boot: TrackBootstrap | None = None) 
     if boot is not None:
         out["ci90"] = {"false_dynamic_z": boot.rate(m, rec.state_z == DYNAMIC),
                        "false_dynamic_speed": boot.rate(m, rec.state_v == DYNAMIC)}
-    out["on"] = {what: _clean({"n": int((m & (rec.ghost_on == what)).sum()),
-                               "n_tracks": int(len(np.unique(rec.track_id[m & (rec.ghost_on == what)]))),
-                               "false_dynamic_z": rate(rec.state_z, m & (rec.ghost_on == what), DYNAMIC),
-                               "false_dynamic_speed": rate(rec.state_v, m & (rec.ghost_on == what), DYNAMIC)})
-                 for what in sorted(set(rec.ghost_on[m].tolist()), key=lambda w: -int((rec.ghost_on[m] == w).sum()))}
+    out["on"] = {}
+    for what in sorted(set(rec.ghost_on[m].tolist()), key=lambda w: -int((rec.ghost_on[m] == w).sum())):
+        on = m & (rec.ghost_on == what)
+        out["on"][what] = _clean({"n": int(on.sum()), "n_tracks": int(len(np.unique(rec.track_id[on]))),
+                                  "false_dynamic_z": rate(rec.state_z, on, DYNAMIC),
+                                  "false_dynamic_speed": rate(rec.state_v, on, DYNAMIC)})
+        if boot is not None:  # a handful of tracks on a cone: the interval says how little that is
+            out["on"][what]["ci90"] = {"false_dynamic_z": boot.rate(on, rec.state_z == DYNAMIC),
+                                       "false_dynamic_speed": boot.rate(on, rec.state_v == DYNAMIC)}
     return out
 
 

@@ -254,8 +254,8 @@ def planner_lines(metrics: dict[str, Any]) -> list[str]:
                      f"{_ci(m, 'false_dynamic_speed')} |")
         if set(m.get("on", {})) - {"nothing labelled"}:  # labelled objects that are no road user (nuScenes)
             for what, w in m["on"].items():
-                lines.append(f"| {g} on {what} | {w['n']} | {w['n_tracks']} | {_fmt(w.get('false_dynamic_z'))} | "
-                             f"{_fmt(w.get('false_dynamic_speed'))} |")
+                lines.append(f"| {g} on {what} | {w['n']} | {w['n_tracks']} | {_ci(w, 'false_dynamic_z')} | "
+                             f"{_ci(w, 'false_dynamic_speed')} |")
     lines += ["", "## At equal false alarms", "",
               "Each rule's missed-dynamic rate at the other rule's false-dynamic rate (z / alpha and speed / class "
               "threshold each swept over one factor).", "",

@@ -533,3 +533,4 @@ def test_nuscenes_objects_that_are_no_road_user_are_kept_unscored_and_ghosts_rep
     rec = run_pipeline(frames, NOISE_PRESETS["jittery"](), 0, ClassifierConfig())
     for g, m in planner_metrics(rec)["ghost"].items():
         assert sum(w["n"] for w in m["on"].values()) == m["n"], g
+        assert all("ci90" in w for w in m["on"].values()), g  # few rows: each rate with its interval
