@@ -147,10 +147,12 @@ class LayoutBuilder:
         sz = cls.sample_size(self.rng) if size is None else np.asarray(size, dtype=np.float64)
         fp = np.array([x, y, sz[0] / 2 + clearance, sz[1] / 2 + clearance, yaw])
         step_up = STEP_UP_M if family_of(int(cls.label)) == FAMILY_PEDESTRIAN else 0.0
-        if self._overlaps(fp, step_up):
+        tops = self.clutter.footprint_tops()
+        under = [tops[i] for i in self._overlapping(fp, self.clutter.footprints())]  # the clutter it stands over
+        if any(top > step_up for top in under) or self._overlapping(fp, self._footprints):
             return -1
         iid = self._new_id()
-        self._static.append((iid, cls, sz, float(x), float(y), float(yaw), attribute, self._step_under(fp, step_up)))
+        self._static.append((iid, cls, sz, float(x), float(y), float(yaw), attribute, max(under, default=0.0)))
         self._footprints.append(fp)
         return iid
 
@@ -162,18 +164,6 @@ class LayoutBuilder:
         reach = np.hypot(o[:, 2], o[:, 3]) + math.hypot(fp[2], fp[3])
         near = np.flatnonzero(np.hypot(o[:, 0] - fp[0], o[:, 1] - fp[1]) < reach)
         return [int(i) for i in near if rectangles_overlap(fp, o[i])]
-
-    def _overlaps(self, fp: F64, step_up_m: float) -> bool:
-        """Whether ``fp`` overlaps an earlier static object or clutter more than ``step_up_m`` high."""
-        tops = self.clutter.footprint_tops()
-        clutter = [f for f, top in zip(self.clutter.footprints(), tops) if top > step_up_m]
-        return bool(self._overlapping(fp, self._footprints + clutter))
-
-    def _step_under(self, fp: F64, step_up_m: float) -> float:
-        """The top of the highest clutter no higher than ``step_up_m`` that ``fp`` overlaps (0: the road)."""
-        low = [(f, top) for f, top in zip(self.clutter.footprints(), self.clutter.footprint_tops()) if top <= step_up_m]
-        hit = self._overlapping(fp, [f for f, _ in low])
-        return max((low[i][1] for i in hit), default=0.0)
 
     # ------------------------------------------------------------------ lanes of moving agents
     def add_lane(self, path: Path, stop_lines: Sequence[StopLine] = (), speed_zones: Sequence[SpeedZone] = ()
