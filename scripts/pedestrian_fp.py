@@ -19,7 +19,7 @@ import json
 
 import numpy as np
 
-from jitterguard.geometry import STANDS_ON_M
+from jitterguard.geometry import nearest_within
 from jitterguard.services.detector.augment import filter_range
 from jitterguard.services.detector.config import CLASS_NAMES, SELF_CROP_M, Sample
 from jitterguard.services.detector.data import nuscenes_samples
@@ -45,25 +45,21 @@ def main() -> None:
     dets = [det.detect(s.points) for s in samples]
     labels = [labelled_objects(s) for s in samples]
     rows = []  # (score, what it stands on) of every pedestrian box within the class's 40 m
-    nearest = []  # per scan: (category, distance) of the nearest labelled object of each box
+    nearest = []  # per scan: what each box stands on (the nearest labelled object within STANDS_ON_M)
     for d, objs in zip(dets, labels):
-        xy = np.array([(x, y) for _, x, y in objs]).reshape(-1, 2)
-        dist = np.hypot(d.boxes[:, None, 0] - xy[None, :, 0], d.boxes[:, None, 1] - xy[None, :, 1]) if len(xy) else \
-            np.full((len(d), 1), np.inf)
-        j = dist.argmin(1)
-        near = [(objs[k][0] if dist[i, k] < STANDS_ON_M else "nothing", float(dist[i, k])) for i, k in enumerate(j)] \
-            if len(xy) else [("nothing", np.inf)] * len(d)
+        near = [objs[j][0] if j >= 0 else "nothing"
+                for j in nearest_within(d.boxes[:, :2], [o[1:] for o in objs]).tolist()]
         nearest.append(near)
         for i in np.flatnonzero(d.labels == PEDESTRIAN):
             if np.hypot(*d.boxes[i, :2]) <= 40.0:
-                rows.append((float(d.scores[i]), near[i][0]))
+                rows.append((float(d.scores[i]), near[i]))
     rows.sort(key=lambda r: -r[0])
     out: dict = {"weights": a.weights or "shipped lite"}
     for top in (50, 100, 200):
         out[f"top_{top}_pedestrian_boxes_on"] = dict(collections.Counter(w for _, w in rows[:top]).most_common())
     for kinds in ((), ("debris",), ("debris", "trafficcone"), ("debris", "trafficcone", "barrier")):
         left_out = tuple(f"movable_object.{k}" for k in kinds)
-        kept = [d.subset(~((d.labels == PEDESTRIAN) & np.array([w in left_out for w, _ in near], np.bool_)))
+        kept = [d.subset(~((d.labels == PEDESTRIAN) & np.array([w in left_out for w in near], np.bool_)))
                 if len(d) else d for d, near in zip(dets, nearest)]
         classes = detection_ap(kept, samples)["classes"]
         out["pedestrian_ap_without_boxes_on_" + ("+".join(kinds) or "nothing")] = round(

@@ -271,7 +271,8 @@ def ghost_metrics(rec: Records, group: str, boot: TrackBootstrap | None = None) 
         out["ci90"] = {"false_dynamic_z": boot.rate(m, rec.state_z == DYNAMIC),
                        "false_dynamic_speed": boot.rate(m, rec.state_v == DYNAMIC)}
     out["on"] = {}
-    for what in sorted(set(rec.ghost_on[m].tolist()), key=lambda w: -int((rec.ghost_on[m] == w).sum())):
+    kinds, counts = np.unique(rec.ghost_on[m], return_counts=True)  # by name, then the commonest first
+    for what in kinds[np.argsort(-counts, kind="stable")].tolist():
         on = m & (rec.ghost_on == what)
         out["on"][what] = _clean({"n": int(on.sum()), "n_tracks": int(len(np.unique(rec.track_id[on]))),
                                   "false_dynamic_z": rate(rec.state_z, on, DYNAMIC),

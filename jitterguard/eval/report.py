@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from .metrics import alpha_sweep, average_precision, ghost_rows, pr_curve, scored_rows
-from .pipeline import Records
+from .pipeline import NOTHING_LABELLED, Records
 
 PLOT_GROUPS = ("vehicle", "pedestrian", "bicycle")
 
@@ -252,7 +252,7 @@ def planner_lines(metrics: dict[str, Any]) -> list[str]:
     for g, m in metrics.get("ghost", {}).items():
         lines.append(f"| {g} | {m['n']} | {m['n_tracks']} | {_ci(m, 'false_dynamic_z')} | "
                      f"{_ci(m, 'false_dynamic_speed')} |")
-        if set(m.get("on", {})) - {"nothing labelled"}:  # labelled objects that are no road user (nuScenes)
+        if set(m.get("on", {})) - {NOTHING_LABELLED}:  # labelled objects that are no road user (nuScenes)
             for what, w in m["on"].items():
                 lines.append(f"| {g} on {what} | {w['n']} | {w['n_tracks']} | {_ci(w, 'false_dynamic_z')} | "
                              f"{_ci(w, 'false_dynamic_speed')} |")
