@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 import pytest
@@ -25,6 +26,20 @@ def cars_frame(xy: list[tuple[float, float]]) -> GroundTruthFrame:
         centers=np.array([(x, y, 0.85) for x, y in xy]).reshape(-1, 3), sizes=np.tile([4.6, 1.9, 1.7], (n, 1)),
         yaws=np.zeros(n), velocities=np.zeros((n, 2)), moving=np.zeros(n, bool),
         attributes=("vehicle.parked",) * n, visibility=np.ones(n), num_points=np.zeros(n, np.int64))
+
+
+def assert_opt_in(component: str, field: str, lo: float, hi: float, base: str = "random",
+                  seeds: Sequence[int] = range(10)) -> None:
+    """``random`` leaves ``component`` out; switched on (over ``base``) it draws ``field`` in [lo, hi], 0 when off,
+    and changes no other draw — so the scans of every recipe written before it are cast as they were."""
+    from jitterguard.sim.effects import parse_components
+
+    assert component not in parse_components("random")
+    for seed in seeds:
+        plain = draw_effects(np.random.default_rng(seed), parse_components(base))
+        on = draw_effects(np.random.default_rng(seed), parse_components(f"{base},{component}"))
+        assert getattr(plain, field) == 0.0 and lo <= getattr(on, field) <= hi
+        assert on == ScanEffects(**{**plain.__dict__, field: getattr(on, field)})
 
 
 def test_defaults_leave_the_ideal_scan_unchanged() -> None:
@@ -125,11 +140,8 @@ def test_vegetation_is_opt_in_keeps_the_other_draws_and_returns_from_several_dep
     changes no other draw; its masses keep off the road users and return from inside the mass, not one face."""
     from jitterguard.sim.effects import parse_components, vegetation_masses
 
-    assert "vegetation" not in parse_components("random") and "vegetation" in parse_components("random,vegetation")
-    plain = draw_effects(np.random.default_rng(4), parse_components("random"))
-    green = draw_effects(np.random.default_rng(4), parse_components("random,vegetation"))
-    assert plain.vegetation_density == 0.0 and 0.1 <= green.vegetation_density <= 0.5
-    assert green == ScanEffects(**{**plain.__dict__, "vegetation_density": green.vegetation_density})
+    assert "vegetation" in parse_components("random,vegetation")
+    assert_opt_in("vegetation", "vegetation_density", 0.1, 0.5, seeds=(4,))
     keep_out = np.array([[10.0, 5.0, 2.3, 1.0, 0.3], [-12.0, -6.0, 2.3, 1.0, -0.2]])
     for seed in range(5):
         prims = vegetation_masses(ScanEffects(vegetation_density=1.0, clutter_seed=seed), keep_out, 1.84)
@@ -263,15 +275,10 @@ def test_kerb_trees_are_opt_in_and_stand_beside_the_parked_cars_with_their_crown
     """``kerb-trees`` changes no other draw; each tree stands beside a long side of a parked car, off every road user
     and the ego, and what of its porous crown is over the car clears the car's roof; in the cast scan the crowns
     return around the car and the car keeps most of its returns."""
-    from jitterguard.sim.effects import kerbside_trees, parse_components
+    from jitterguard.sim.effects import kerbside_trees
     from jitterguard.sim.primitives import Tag
 
-    assert "kerb-trees" not in parse_components("random")
-    for seed in range(10):
-        plain = draw_effects(np.random.default_rng(seed), parse_components("random"))
-        trees = draw_effects(np.random.default_rng(seed), parse_components("random,kerb-trees"))
-        assert plain.kerb_trees == 0.0 and 0.2 <= trees.kerb_trees <= 0.7
-        assert trees == ScanEffects(**{**plain.__dict__, "kerb_trees": trees.kerb_trees})
+    assert_opt_in("kerb-trees", "kerb_trees", 0.2, 0.7)
     parked = np.array([[12.0, 6.0, 2.3, 0.95, 0.0], [-9.0, -6.0, 2.3, 0.95, 0.1], [4.0, -7.0, 2.3, 0.95, 1.5]])
     fx = ScanEffects(kerb_trees=1.0, clutter_seed=5)
     prims = kerbside_trees(fx, parked, parked, np.full(len(parked), 1.7), 1.84)
@@ -311,14 +318,9 @@ def test_street_objects_are_opt_in_person_sized_off_the_road_users_and_half_besi
     """``street-objects`` changes no other draw; its cones, piles, bins and boards stand on the ground, 0.7–1.8 m
     tall and at most 1.8 m across — a person's size — never on a road user or the ego car, about half of them within
     2.5 m of a parked car's side; in the cast scan they return, as no road user."""
-    from jitterguard.sim.effects import parse_components, street_objects
+    from jitterguard.sim.effects import street_objects
 
-    assert "street-objects" not in parse_components("random")
-    for seed in range(10):
-        plain = draw_effects(np.random.default_rng(seed), parse_components("random,vegetation"))
-        more = draw_effects(np.random.default_rng(seed), parse_components("random,vegetation,street-objects"))
-        assert plain.street_objects == 0.0 and 0.1 <= more.street_objects <= 0.4
-        assert more == ScanEffects(**{**plain.__dict__, "street_objects": more.street_objects})
+    assert_opt_in("street-objects", "street_objects", 0.1, 0.4, base="random,vegetation")
     parked = np.array([[12.0, 6.0, 2.3, 0.95, 0.0], [-9.0, -6.0, 2.3, 0.95, 0.1], [4.0, -7.0, 2.3, 0.95, 1.5]])
     near = total = 0
     for seed in range(20):
@@ -351,8 +353,7 @@ def test_street_objects_are_opt_in_person_sized_off_the_road_users_and_half_besi
 def test_incidence_loses_the_grazing_returns_of_road_users_only_and_is_opt_in() -> None:
     """With ``incidence`` a road user's return is lost where the ray grazes its surface: a car seen from its end keeps
     the returns of the end the sensor faces and loses those of its side along the line of sight (and of its roof),
-    a car beside the sensor keeps its side, the ground keeps every return; the draw is opt-in and the last one."""
-    from jitterguard.sim.effects import parse_components
+    a car beside the sensor keeps its side, the ground keeps every return; the draw is opt-in and changes no other."""
 
     f = cars_frame([(15.0, 2.0), (0.0, 8.0)])  # the first seen from behind, the second broadside
     ideal, _ = cast_frame(f, seed=4, effects=ScanEffects())
@@ -365,9 +366,4 @@ def test_incidence_loses_the_grazing_returns_of_road_users_only_and_is_opt_in() 
     assert int(graze.num_points[1]) >= 0.9 * int(ideal.num_points[1])
     ground = lambda r: int((r.owner == -2).sum())  # noqa: E731
     assert ground(graze) == ground(ideal)
-    assert "incidence" not in parse_components("random")
-    for seed in range(10):
-        plain = draw_effects(np.random.default_rng(seed), parse_components("random,vegetation"))
-        inc = draw_effects(np.random.default_rng(seed), parse_components("random,vegetation,incidence"))
-        assert 0.5 <= inc.incidence <= 1.0 and plain.incidence == 0.0
-        assert inc == ScanEffects(**{**plain.__dict__, "incidence": inc.incidence})
+    assert_opt_in("incidence", "incidence", 0.5, 1.0, base="random,vegetation")
