@@ -35,6 +35,7 @@ from ..schemas import keys
 from ..services.replay import cli as R  # the replay's own option declarations, shared with `up`
 from ..services.replay.options import absolute_source
 from ..services.replay.sources import SourceError, probe_source
+from ..services.classifier.config_writes import api_token_from_env
 from ..services.sidecar.core import bind_refusal
 from . import summary
 from .control import (StackUnavailable, Supervisor, orphans, read_pid, running_run_dirs, stop_lost, stop_orphans,
@@ -552,7 +553,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         progs = programs(spec)
         wanted = [(router_port, "127.0.0.1", "--router-port")]
         if any(p.name == "sidecar" for p in progs):
-            refusal = bind_refusal(host, os.environ.get("JG_API_TOKEN"))  # the sidecar's own check, done first
+            refusal = bind_refusal(host, api_token_from_env())  # the sidecar's own check, done first
             if refusal:
                 fail(f"--host: {refusal}")
             wanted.append((port, host, "--port"))

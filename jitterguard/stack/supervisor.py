@@ -11,12 +11,12 @@ and is written with ``%`` doubled, so supervisord reads back exactly the argumen
 from __future__ import annotations
 
 import importlib.util
-import os
 import shlex
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from ..services.classifier.config_writes import api_token_from_env
 from .validate import check_text, supervisor_escape
 
 
@@ -112,7 +112,7 @@ def programs(spec: StackSpec) -> list[Program]:
         Program("router", _cmd("router", "--listen", spec.endpoint), priority=10),
         # with no JG_API_TOKEN, writes over Zenoh are as open as the tokenless loopback sidecar (deployment.md)
         Program("classifier", _cmd("classifier", *common, *own("classifier"), *(
-            () if os.environ.get("JG_API_TOKEN") else ("--open-config-writes",))), priority=20),
+            () if api_token_from_env() else ("--open-config-writes",))), priority=20),
     ]
     have_tracker = has_area("jitterguard.services.tracker.service")
     have_detector = has_area("jitterguard.services.detector.service")

@@ -103,3 +103,13 @@ def test_a_restored_config_uses_its_own_calibration_file_and_survives_losing_it(
     b.unlink()
     with ClassifierService(opts, flags, config_store=store, calibration_model=read_calibration(a)) as svc:
         assert svc.core.config == flags and svc.core.noise_model().scale.max() == pytest.approx(2.0)
+
+
+@pytest.mark.parametrize(("value", "token"), [("", None), (" \t\n", None), (" s3cret\n", "s3cret"), ("s3cret", "s3cret")])
+def test_the_token_is_read_once_the_same_way_for_classifier_and_sidecar(monkeypatch, value, token) -> None:
+    """A blank JG_API_TOKEN had been a token (the sidecar then bound 0.0.0.0 behind a secret no request could
+    carry); the whitespace an env file leaves around one cannot travel in a bearer header either."""
+    from jitterguard.services.sidecar.app import SidecarSettings
+    monkeypatch.setenv("JG_API_TOKEN", value)
+    assert ConfigWritePolicy.from_env().token == token
+    assert SidecarSettings.token_from_env() == token

@@ -117,18 +117,71 @@ def test_readiness_reports_a_service_frozen_on_the_bus_or_a_stage_that_left_it()
             s.put(keys.heartbeat(stack.ns, "detector"), beat("detector"))
             body = wait_for(lambda: not_ready("detector"), "readyz to report the silent detector", timeout=20)
             assert "detector: no heartbeat for" in body["reason"] and "frozen" in body["reason"]
+            # its entry says so too: it had read "ok" (its last heartbeat's word) beside a reason blaming it
+            assert body["services"]["detector"]["health"] == "silent", body["services"]
+            assert "frozen" in body["services"]["detector"]["reason"]
+            assert body["services"]["classifier"]["health"] == "ok"
             replay.undeclare()
             token.undeclare()
             body = wait_for(lambda: not_ready("left the bus"), "readyz to report the detector gone", timeout=20)
             assert "detector: left the bus" in body["reason"] and "replay" not in body["reason"]
+            assert body["services"]["detector"]["health"] == "silent"
+            assert "left the bus" in body["services"]["detector"]["reason"]
             time.sleep(1.0)
             assert c.get("/readyz").status_code == 503  # it stays a problem: no frame reaches the classifier
             token = s.liveliness().declare_token(keys.alive(stack.ns, "detector"))  # restarted
             s.put(keys.heartbeat(stack.ns, "detector"), beat("detector"))
-            wait_for(lambda: c.get("/readyz").status_code == 200, "readyz once the detector is back")
+            body = wait_for(lambda: (r := c.get("/readyz")).status_code == 200 and r.json(),
+                            "readyz once the detector is back")
+            assert body["services"]["detector"]["health"] == "ok"
+
+            # a service outside the pipeline that leaves (a monitor frozen past its lease looks the same) stays
+            # a warning: it had dropped out of `warnings` once its token expired, ~10 s into the freeze
+            monitor = s.liveliness().declare_token(keys.alive(stack.ns, "monitor"))
+            s.put(keys.heartbeat(stack.ns, "monitor"), beat("monitor"))
+            wait_for(lambda: "monitor" in c.get("/readyz").json()["services"], "the monitor's heartbeat")
+            monitor.undeclare()
+
+            def warned() -> dict | None:
+                s.put(keys.heartbeat(stack.ns, "detector"), beat("detector"))  # keep the pipeline ready
+                r = c.get("/readyz")
+                body = r.json()
+                return body if any(w.startswith("monitor: left the bus") for w in body["warnings"]) else None
+
+            body = wait_for(warned, "readyz to warn of the monitor gone", timeout=20)
+            assert body["ready"] is True and body["services"]["monitor"]["health"] == "silent", body
             token.undeclare()
     finally:
         stack.close()
+
+
+def test_query_parameters_a_route_does_not_take_or_gives_twice_are_a_422_naming_them(stack: Stack) -> None:
+    """``/v1/state?sate=dynamic`` (a typo) had returned every track, and ``?state=static&state=dynamic`` the last
+    value's tracks, both 200."""
+    with stack.http(auth=False) as c:
+        for path, params, loc, kind in (("/v1/state", [("sate", "dynamic")], "sate", "extra_forbidden"),
+                                        ("/v1/state", [("state", "static"), ("state", "dynamic")], "state",
+                                         "duplicate_query"),
+                                        ("/v1/config", [("window_size", "12")], "window_size", "extra_forbidden"),
+                                        (f"/v1/state/{stack.tracks[0].track_id}", [("x", "1")], "x",
+                                         "extra_forbidden")):
+            r = c.get(path, params=params)
+            assert r.status_code == 422, (path, params, r.text)
+            assert [(d["loc"], d["type"]) for d in r.json()["detail"]] == [(["query", loc], kind)], r.text
+        assert c.get("/v1/state", params={"state": "dynamic", "class": "car"}).status_code == 200
+
+
+def test_a_preset_takes_no_body_and_applies_nothing_when_one_is_sent(stack: Stack) -> None:
+    """A preset POST had applied its preset whatever body came with it, malformed JSON included."""
+    with stack.http() as c:
+        before = c.get("/v1/config").json()
+        for content, status in ((b"garbage{", 422), (b'{"x": 1}', 422), (b"[]", 422), (b"\xff", 400)):
+            r = c.post("/v1/config/preset/authors", content=content, headers={"Content-Type": "application/json"})
+            assert r.status_code == status, (content, r.text)
+            assert c.get("/v1/config").json() == before, content
+        r = c.post("/v1/config/preset/authors", content=b"{}", headers={"Content-Type": "application/json"})
+        assert r.status_code == 200 and r.json()["alpha_per_class"] == AUTHORS_ALPHA
+        c.put("/v1/config", json=before)
 
 
 def test_state_appears_with_every_track(stack: Stack) -> None:
@@ -331,6 +384,10 @@ def test_bodies_that_are_no_readable_json_text_get_a_400_saying_why(stack: Stack
         r = c.patch("/v1/config", content=b'{"calibration_file": "\xe9t\xe9"}',
                     headers={"Content-Type": "application/json"})
         assert r.status_code == 400 and "not UTF-8" in r.json()["detail"], r.text
+        for codec in ("utf-16", "utf-32"):  # Python's parser guesses these; RFC 8259 asks for UTF-8 between systems
+            r = c.patch("/v1/config", content='{"alpha_default": 2.5}'.encode(codec),
+                        headers={"Content-Type": "application/json"})
+            assert r.status_code == 400 and "not UTF-8" in r.json()["detail"], (codec, r.text)
         r = c.patch("/v1/config", content=b"[" * 30000 + b"]" * 30000, headers={"Content-Type": "application/json"})
         assert r.status_code == 400 and "nested too deeply" in r.json()["detail"], r.text
         assert c.get("/v1/config").json() == DEFAULTS

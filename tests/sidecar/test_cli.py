@@ -46,6 +46,13 @@ def test_bad_input_is_one_line_and_exit_2(args: list[str], needle: str) -> None:
     assert len(lines) == 1 and lines[0].startswith("jitterguard: error: ") and needle in lines[0], out
 
 
+def test_a_blank_token_is_no_token() -> None:
+    """``JG_API_TOKEN=" "`` had passed the "no public bind without a token" check, though no request could ever
+    carry it; blank counts as unset, as empty did."""
+    code, out = _run(["sidecar", "--host", "0.0.0.0"], env={"JG_API_TOKEN": " \t\n"})
+    assert code == 2 and "refusing to bind 0.0.0.0 without JG_API_TOKEN" in out, out
+
+
 def test_port_in_use_is_refused_before_starting() -> None:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

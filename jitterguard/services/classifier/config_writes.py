@@ -17,6 +17,14 @@ from dataclasses import dataclass
 ENV_TOKEN = "JG_API_TOKEN"
 
 
+def api_token_from_env() -> str | None:
+    """``JG_API_TOKEN`` without surrounding whitespace; empty or blank counts as unset (a blank secret protects
+    nothing, and a bearer token cannot carry the spaces or newline an env file may leave around one). The one
+    reading of the variable, for the classifier and the sidecar alike: a blank token had passed the sidecar's
+    "no public bind without a token" check."""
+    return os.environ.get(ENV_TOKEN, "").strip() or None
+
+
 @dataclass(frozen=True)
 class ConfigWritePolicy:
     token: str | None = None
@@ -24,8 +32,8 @@ class ConfigWritePolicy:
 
     @classmethod
     def from_env(cls, open_writes: bool = False) -> "ConfigWritePolicy":
-        """``JG_API_TOKEN`` (empty counts as unset) and whether writes are open without one."""
-        return cls(token=os.environ.get(ENV_TOKEN) or None, open_writes=open_writes)
+        """``JG_API_TOKEN`` (:func:`api_token_from_env`) and whether writes are open without one."""
+        return cls(token=api_token_from_env(), open_writes=open_writes)
 
     @classmethod
     def open(cls) -> "ConfigWritePolicy":

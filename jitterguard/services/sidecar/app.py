@@ -9,7 +9,6 @@ every error into ``{"detail": ...}``.
 from __future__ import annotations
 
 import logging
-import os
 import threading
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
@@ -24,14 +23,13 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
 
 from ...runtime import ZenohOptions
+from ..classifier.config_writes import api_token_from_env
 from .client import ClassifierClient, ClassifierRejected, ClassifierUnavailable
 from .core import ConfigError, jsonable_errors
 from .events import MAX_STREAMS, EventBroker
 from .guard import MAX_BODY_BYTES, HostPolicy, RequestGuard
 from .metrics import SidecarMetrics
 from .routes import ROUTERS, SidecarContext
-
-ENV_TOKEN = "JG_API_TOKEN"
 
 
 @dataclass(frozen=True)
@@ -51,8 +49,8 @@ class SidecarSettings:
 
     @staticmethod
     def token_from_env() -> str | None:
-        """``JG_API_TOKEN``; empty counts as unset (an empty secret protects nothing)."""
-        return os.environ.get(ENV_TOKEN) or None
+        """``JG_API_TOKEN`` as the classifier reads it (blank counts as unset)."""
+        return api_token_from_env()
 
 
 def _version() -> str:

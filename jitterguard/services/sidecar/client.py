@@ -29,15 +29,11 @@ from ...runtime.service import counter_key
 from ...schemas import DecodeError, decode, decode_with_raw, encode, keys
 from ...schemas.models import ClassifierConfig, ClassifierStateSnapshot, ConfigReply, Heartbeat
 from ...schemas.wire import MAX_HEARTBEAT_BYTES
-from .core import (PIPELINE_STAGES, ConfigError, RenderedState, config_to_api, diff_states, is_pipeline, render_state,
-                   service_problems)
+from .core import (PIPELINE_STAGES, SOURCES, ConfigError, RenderedState, config_to_api, diff_states, is_pipeline,
+                   render_state, service_problems, silenced)
 from .metrics import SidecarMetrics
 
 CLASSIFIER = "classifier"
-SOURCES: frozenset[str] = frozenset({"replay", "feed-tracks", "ros2-in"})
-"""The services that feed the pipeline. One that leaves the bus is no readiness fault (a sensor may be off, a
-recording may end), but it is what an operator looking at a ready sidecar with no objects needs to know:
-``/readyz`` names it under ``warnings``."""
 NO_INPUT_S = 10.0
 """The classifier's frame count standing still this long, while it is alive, is named under ``warnings``."""
 MAX_SERVICES = 64
@@ -78,7 +74,7 @@ class ClassifierClient(Service):
         self._lock = threading.Lock()
         self._write_lock = threading.Lock()
         self._on_bus: set[str] = set()  # every service whose liveliness token is present (the classifier's: alive)
-        self._left: set[str] = set()  # pipeline stages whose token was withdrawn and has not come back
+        self._left: set[str] = set()  # pipeline stages, or services heard, whose token went and has not come back
         self._sources_left: dict[str, float] = {}  # a source whose token was withdrawn: since when (monotonic)
         self._frames_at: tuple[int, float] | None = None  # the classifier's last_seq and when it was first seen
         self._hb: Heartbeat | None = None
@@ -101,8 +97,10 @@ class ClassifierClient(Service):
         name, alive = keys.last_chunk(str(sample.key_expr)), sample.kind == zenoh.SampleKind.PUT
         with self._lock:
             (self._on_bus.add if alive else self._on_bus.discard)(name)
-            if name in PIPELINE_STAGES:  # the only names a withdrawal counts for: the set stays bounded
-                (self._left.discard if alive else self._left.add)(name)
+            if alive:
+                self._left.discard(name)
+            elif name in PIPELINE_STAGES or name in self._beats:  # names a withdrawal counts for: the set stays bounded
+                self._left.add(name)
             if name in SOURCES:
                 if alive:
                     self._sources_left.pop(name, None)
@@ -120,6 +118,8 @@ class ClassifierClient(Service):
                     self.counters.inc("heartbeats_dropped")
                     return
                 del self._beats[victim]
+                if victim not in PIPELINE_STAGES:
+                    self._left.discard(victim)
             self._beats[name] = (hb, now)
             if name == CLASSIFIER:
                 self._hb, self._hb_at = hb, now
@@ -161,6 +161,7 @@ class ClassifierClient(Service):
             sources_left, frames_at = dict(self._sources_left), self._frames_at
         age = now - hb_at if hb_at is not None else None
         found = service_problems(services, self.stale_after_s, on_bus, left)
+        services = silenced(services, self.stale_after_s, found)
         problems = [msg for name, msg in found if is_pipeline(name)]
         if not alive:
             reason = f"no classifier: liveliness token {self._alive_key} is absent"

@@ -101,8 +101,9 @@ class HealthView(BaseModel):
 class ServiceHealthView(BaseModel):
     """One service of the pipeline as its latest heartbeat describes it."""
 
-    health: Literal["ok", "failing", "stalled"] = Field(
-        description="ok, failing (frames keep failing) or stalled (input arrives, no output)")
+    health: Literal["ok", "failing", "stalled", "silent"] = Field(
+        description="ok, failing (frames keep failing), stalled (input arrives, no output) or silent (no recent "
+                    "heartbeat: frozen, stopped, or gone; what its last heartbeat said is then out of date)")
     reason: str = Field(description="why not ok ('' when ok)")
     heartbeat_age_s: float = Field(ge=0.0, description="seconds since this heartbeat arrived")
     last_seq: int = Field(description="the last frame seq the service reported")
@@ -130,6 +131,10 @@ class ReadyView(BaseModel):
 PIPELINE_STAGES: frozenset[str] = frozenset({"detector", "tracker"})
 """The services between the source and the classifier: while one of them is away, no frame reaches the classifier.
 A source (``replay``, ``feed-tracks``) leaves when its recording ends; bridges and recorders are not in the path."""
+SOURCES: frozenset[str] = frozenset({"replay", "feed-tracks", "ros2-in"})
+"""The services that feed the pipeline. One that leaves the bus is no readiness fault (a sensor may be off, a
+recording may end), but it is what an operator looking at a ready sidecar with no objects needs to know:
+``/readyz`` names it under ``warnings``."""
 
 
 def service_problems(services: Mapping[str, Mapping[str, Any]], stale_after_s: float,
@@ -140,8 +145,10 @@ def service_problems(services: Mapping[str, Mapping[str, Any]], stale_after_s: f
     present (``on_bus``): a process frozen (stopped, hung without the GIL), which no watchdog inside it can catch;
     and ``"tracker: left the bus ..."`` for a pipeline stage (:data:`PIPELINE_STAGES`) whose heartbeat is stale and
     whose token was withdrawn (``left``): crashed and not restarted, or frozen past its Zenoh lease (~10 s), when a
-    frozen process's token expires and it had looked like one that left. Any other service's stale heartbeat
-    without a token (a replay at the end of its recording) is not held against the pipeline.
+    frozen process's token expires and it had looked like one that left. A service outside the pipeline that left
+    the same way (the monitor, a bridge) gets the same line, a warning: a monitor frozen past its lease had
+    dropped out of ``warnings`` after ~10 s while it stayed frozen. A source (:data:`SOURCES`) that left is said
+    elsewhere (the end of a recording is no fault), and a stale heartbeat that never had a token, nothing.
 
     Only the pipeline's own (:func:`is_pipeline`) make ``/readyz`` fail; the rest are its ``warnings``: a monitor
     that cannot write its summary, a frozen Foxglove bridge or a failing source do not stop the classifier's
@@ -154,10 +161,22 @@ def service_problems(services: Mapping[str, Mapping[str, Any]], stale_after_s: f
         elif name in on_bus:
             out.append((name, f"{name}: no heartbeat for {v['heartbeat_age_s']:.1f} s while its liveliness token is "
                               "present (frozen?)"))
-        elif name in left and name in PIPELINE_STAGES:
+        elif name in left and name not in SOURCES and name != "classifier":
             out.append((name, f"{name}: left the bus (no heartbeat for {v['heartbeat_age_s']:.1f} s, liveliness "
-                              "token withdrawn): crashed, or frozen past its Zenoh lease"))
+                              "token withdrawn): " + ("crashed, or frozen past its Zenoh lease" if name in PIPELINE_STAGES
+                                                       else "stopped, crashed, or frozen past its Zenoh lease")))
     return out
+
+
+def silenced(services: Mapping[str, Mapping[str, Any]], stale_after_s: float,
+             problems: list[tuple[str, str]]) -> dict[str, dict[str, Any]]:
+    """``services`` with every entry whose heartbeat is stale marked ``silent``, its reason the problem found for
+    it (or how long it has been quiet): ``/readyz`` had listed a frozen tracker as ``"health": "ok"`` — its last
+    heartbeat's word — beside a reason that blamed it, and ``jitterguard_service_healthy`` 0."""
+    why = dict(problems)
+    return {name: (dict(v, health="silent", reason=why.get(name, f"no heartbeat for {v['heartbeat_age_s']:.1f} s"))
+                   if v["heartbeat_age_s"] > stale_after_s else dict(v))
+            for name, v in services.items()}
 
 
 def is_pipeline(name: str) -> bool:
@@ -398,11 +417,13 @@ def parse_json_body(body: bytes) -> Any:
       parser raises for over 4300 digits, which FastAPI answered with a 400 naming nothing);
     - a key given twice in one object is a 422 naming it: JSON leaves open which one counts (Python keeps the
       last, a proxy or a log reader may see the first), as the wire codec refuses a repeated msgpack key;
-    - text that is not UTF-8 (nor UTF-16/32, which JSON allows) and nesting beyond what the parser can recurse
-      into are a 400 saying so (they had been "There was an error parsing the body").
+    - text that is not UTF-8 and nesting beyond what the parser can recurse into are a 400 saying so (they had
+      been "There was an error parsing the body"). UTF-8 only, as RFC 8259 (§8.1) asks of JSON between systems:
+      Python's parser also guesses UTF-16 and UTF-32 from the bytes, and had applied such a body while a stray
+      byte got "not UTF-8 text".
     """
     try:
-        data = json.loads(body, parse_int=_parse_int, object_pairs_hook=_object)
+        data = json.loads(body.decode("utf-8"), parse_int=_parse_int, object_pairs_hook=_object)
     except UnicodeDecodeError as exc:
         raise BodyError(400, f"the body is not UTF-8 text ({exc.reason} at byte {exc.start})") from None
     except RecursionError:

@@ -10,12 +10,14 @@ No ``from __future__ import annotations`` here: FastAPI reads the routes' ``Anno
 """
 
 import hmac
+import json
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import HTMLResponse, JSONResponse, Response, StreamingResponse
 from fastapi.routing import APIRoute
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
@@ -96,6 +98,33 @@ def require_writer(ctx: Ctx, creds: Annotated[HTTPAuthorizationCredentials | Non
         raise HTTPException(401, "missing or wrong bearer token (JG_API_TOKEN)", headers={"WWW-Authenticate": "Bearer"})
 
 
+def only_query(*names: str) -> Any:
+    """A dependency that refuses (422, naming it) a query parameter the route does not take, or one given twice:
+    FastAPI ignores the first and keeps the last of the second, so ``/v1/state?sate=dynamic`` (a typo) had
+    returned every track and ``?state=static&state=dynamic`` only the dynamic ones, both with a 200."""
+    allowed = frozenset(names)
+
+    def check(request: Request) -> None:
+        seen: set[str] = set()
+        errors = []
+        for key, value in request.query_params.multi_items():
+            if key not in allowed:
+                taken = ", ".join(sorted(allowed)) or "none"
+                errors.append({"type": "extra_forbidden", "loc": ["query", key], "input": value[:40],
+                               "msg": f"Query parameter not taken here (this route takes: {taken})"})
+            elif key in seen:
+                errors.append({"type": "duplicate_query", "loc": ["query", key], "input": value[:40],
+                               "msg": "Query parameter given more than once"})
+            seen.add(key)
+        if errors:
+            raise RequestValidationError(errors)
+
+    return Depends(check)
+
+
+NO_QUERY = [only_query()]
+
+
 # ---------------------------------------------------------------------------------------------- health
 
 health_routes = APIRouter(tags=["health"])
@@ -157,7 +186,7 @@ def _live_state(c: ClassifierClient) -> tuple[RenderedState, dict[str, str]]:
            description=("Served from a cache refreshed every poll period. Headers: `X-Classifier-Seq` (the frame), "
                         "`X-Classifier-Ready` (false while the heartbeat is late: the state may be stale), "
                         "`X-State-Age-Ms` (since the sidecar fetched it). 503 once the classifier's liveliness "
-                        "token is gone."))
+                        "token is gone."), dependencies=[only_query("state", "class")])
 async def get_state(c: Client, state: StateFilter = None, cls: ClassFilter = None) -> Response:
     st, headers = _live_state(c)
     if state is None and cls is None:
@@ -171,7 +200,7 @@ async def get_state(c: Client, state: StateFilter = None, cls: ClassFilter = Non
 
 @state_routes.get("/v1/state/{track_id}", response_model=TrackView,
            responses={404: {"model": ErrorBody, "description": "No such track in the latest frame"}, 503: E503},
-           summary="One track by ID")
+           summary="One track by ID", dependencies=NO_QUERY)
 async def get_track(c: Client, track_id: Annotated[str, Path(pattern="^[0-9a-fA-F]{32}$",
                                                              description="32 hex digits")]) -> Response:
     st, headers = _live_state(c)
@@ -191,7 +220,7 @@ async def get_track(c: Client, track_id: Annotated[str, Path(pattern="^[0-9a-fA-
                                 "client fell behind and lost events.")},
                       503: {"model": ErrorBody, "description": "As many event streams are open as the sidecar "
                                                                "serves (64)"}},
-           summary="Server-sent events of state changes")
+           summary="Server-sent events of state changes", dependencies=NO_QUERY)
 async def events(request: Request, ctx: Ctx, c: Client) -> StreamingResponse:
     if ctx.broker.full():
         raise HTTPException(503, "too many open event streams; try again later", headers={"Retry-After": "5"})
@@ -232,8 +261,23 @@ class JSONBodyRoute(APIRoute):
         return with_json_body
 
 
-config_routes = APIRouter(tags=["config"], route_class=JSONBodyRoute)
+config_routes = APIRouter(tags=["config"], route_class=JSONBodyRoute, dependencies=NO_QUERY)
 Writer = [Depends(require_writer)]
+
+
+async def no_body(request: Request) -> None:
+    """A route that takes no body accepts none, or ``{}``; anything else is refused (422; 400 if unreadable) and
+    nothing is applied: a preset POST had applied its preset whatever came with it, malformed JSON included."""
+    if not (await request.body()).strip():
+        return
+    try:
+        value = await request.json()
+    except json.JSONDecodeError as exc:
+        raise RequestValidationError([{"type": "json_invalid", "loc": ["body", exc.pos], "input": None,
+                                       "msg": f"JSON decode error: {exc.msg}"}]) from None
+    if value != {}:
+        raise RequestValidationError([{"type": "no_body", "loc": ["body"], "input": None,
+                                       "msg": "This route takes no body (none, or {})"}])
 
 
 def _write(ctx: SidecarContext, do: Callable[[], ClassifierConfig]) -> dict[str, Any]:
@@ -278,7 +322,8 @@ async def list_presets() -> dict[str, dict[str, Any]]:
     return {name: dict(fields) for name, fields in PRESETS.items()}
 
 
-@config_routes.post("/v1/config/preset/{name}", response_model=ConfigModel, dependencies=Writer, responses=WRITE_ERRORS,
+@config_routes.post("/v1/config/preset/{name}", response_model=ConfigModel, dependencies=[*Writer, Depends(no_body)],
+                    responses=WRITE_ERRORS,
              summary="Apply a named preset; every field it does not name stays")
 def post_preset(ctx: Ctx, c: Client,
                 name: Annotated[PresetName, Path(description="preset name")]) -> dict[str, Any]:  # type: ignore[valid-type]
