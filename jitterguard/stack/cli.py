@@ -14,6 +14,7 @@ Commands import their implementation when they run (start-up time: see :mod:`jit
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import signal
@@ -128,6 +129,35 @@ class _ObjectsWatch:
                 self._session.close()
             except Exception:
                 pass
+
+
+def _quiet_once_stdout_closes() -> None:
+    """Keep a foreground ``up`` running its course once its standard output is gone (``up ... | head -1``): a
+    print into the closed pipe had raised ``BrokenPipeError`` out of the watch loop, and ``up`` exited 1 leaving
+    the whole stack running, ``--duration`` and all. From then on what it prints goes nowhere (standard error is
+    kept); it still stops the stack at Ctrl-C, ``--duration`` or a crash loop, and exits with its own status."""
+    class _Stdout(io.TextIOWrapper):
+        def write(self, text: str) -> int:
+            try:
+                return super().write(text)
+            except BrokenPipeError:
+                self._gone()
+                return len(text)
+
+        def flush(self) -> None:
+            try:
+                super().flush()
+            except BrokenPipeError:
+                self._gone()
+
+        def _gone(self) -> None:  # the descriptor onto /dev/null: what is still buffered, and exit, find no pipe
+            null = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(null, self.fileno())
+            os.close(null)
+
+    out = sys.stdout
+    if isinstance(out, io.TextIOWrapper) and not isinstance(out, _Stdout):
+        sys.stdout = _Stdout(out.detach(), encoding=out.encoding, errors=out.errors, line_buffering=out.line_buffering)
 
 
 def _exit_without_finalizing(code: int) -> NoReturn:
@@ -599,14 +629,24 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             raise SystemExit(_wait_started(sup, rd, label, names, spec, progs, wall0,
                                            _addresses(spec, progs, router_picked)))
 
+        _quiet_once_stdout_closes()
         proc = subprocess.Popen(cmd)
-        _wake(sup, proc)
-        stop = threading.Event()
-        stop_on_signals(stop.set)
-        print(f"jitterguard: starting {names} (stack {label}, logs in {rd / 'logs'})", flush=True)
-        watch = _ObjectsWatch(ns, spec.endpoint, t0)
-        code = _foreground(proc, sup, rd, stop, watch, duration, t0, wall0, spec, progs,
-                           _addresses(spec, progs, router_picked))
+        try:
+            _wake(sup, proc)
+            stop = threading.Event()
+            stop_on_signals(stop.set)
+            print(f"jitterguard: starting {names} (stack {label}, logs in {rd / 'logs'})", flush=True)
+            watch = _ObjectsWatch(ns, spec.endpoint, t0)
+            code = _foreground(proc, sup, rd, stop, watch, duration, t0, wall0, spec, progs,
+                               _addresses(spec, progs, router_picked))
+        except BaseException:  # whatever ends `up` unforeseen, it does not leave its stack running on its own
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGTERM)
+                try:
+                    proc.wait(timeout=STOP_WAIT_S)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+            raise
         watch.close()
         _exit_without_finalizing(code)
 

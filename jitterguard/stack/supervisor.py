@@ -100,6 +100,10 @@ def input_mode(spec: StackSpec, source_kind: str | None = None) -> str:
     return "detections" if (have_tracker and have_replay) else "tracks"
 
 
+CONSUMER_WAIT_S = 120.0
+"""How long the stack's replay waits for the pipeline's first stage to say it is ready before replaying anyway."""
+
+
 def programs(spec: StackSpec) -> list[Program]:
     """The programs of the stack, router first, consumers before producers."""
     common = ("--ns", spec.ns, "--connect", spec.endpoint)
@@ -144,6 +148,12 @@ def programs(spec: StackSpec) -> list[Program]:
         # the stack's replay stands in for a live sensor: wall-clock stamps, so that when supervisord restarts
         # it the tracker sees a restarted source going on in time, not a recording rewound (see stream_order);
         # each loop pass is such a restart too
+        # the pipeline's first stage, not any subscriber (a Foxglove bridge or recorder comes up first), before
+        # the first frame: the detector's start (torch, weights) takes seconds
+        consumer = {"points": "detector" if have_detector else None,
+                    "detections": "tracker" if have_tracker else None}.get(mode)
+        if consumer is not None:
+            args += ["--wait-for", consumer, "--wait-subscriber", f"{CONSUMER_WAIT_S:g}"]
         progs.append(Program("replay", _cmd("replay", source, *common, "--loop", "--stamps", "wall", *args),
                              priority=60, startsecs=2))
     # the run's bookkeeping: sums every service's heartbeat counters across restarts into summary.json; it stops

@@ -160,3 +160,13 @@ def test_a_bad_service_file_stops_up_before_anything_starts(tmp_path, flag, text
     lines = res.stderr.strip().splitlines()
     assert res.returncode == 2 and len(lines) == 1 and re.search(needle, lines[0]), res.stderr
     assert not (tmp_path / "run" / "supervisord.conf").exists()  # nothing was written, nothing started
+
+
+@pytest.mark.parametrize(("level", "consumer"), [("points", "detector"), ("detections", "tracker")])
+def test_the_replay_waits_for_the_pipelines_first_stage_not_any_subscriber(tmp_path, level, consumer):
+    """With --foxglove or --record-ros2 the bridge subscribed first and the replay started before the detector was
+    up: its first scans never reached it, and the summary said none was dropped."""
+    spec = StackSpec(ns="x", name="x", router_port=1234, input=level, foxglove=True, run_dir=str(tmp_path / "run"))
+    replay = parse(write(tmp_path, spec))["replay"]
+    assert replay[replay.index("--wait-for") + 1] == consumer
+    assert float(replay[replay.index("--wait-subscriber") + 1]) >= 60

@@ -8,9 +8,11 @@ operator (or a script: ``jitterguard up -d && curl …``) who followed it at onc
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 
 import httpx
 import pytest
@@ -66,3 +68,27 @@ def test_the_printed_sidecar_address_answers_at_once(tmp_path):
         assert httpx.get(url + "v1/config", timeout=5.0).json()["window_size"] == 7
     finally:
         subprocess.run(down, capture_output=True, env=env, timeout=120)  # whatever is left of either
+
+
+def test_a_foreground_up_whose_output_is_closed_still_stops_its_stack_at_its_duration():
+    """``up ... | head -1``: the first print into the closed pipe had raised out of the watch loop, ``up`` exited
+    1 and left every program running past --duration. It now goes on quietly, stops the stack when its duration
+    ends, and exits 0."""
+    xdg = tempfile.mkdtemp(prefix="jgh")  # short: supervisord's socket path must fit AF_UNIX's 108 bytes
+    env = {**os.environ, "XDG_RUNTIME_DIR": xdg}
+    name = "headless"
+    args = [*_up_args(name, free_tcp_port(), free_tcp_port()), "--duration", "12"]
+    try:
+        proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+        assert proc.stdout is not None and proc.stdout.readline().startswith("jitterguard: starting")
+        proc.stdout.close()  # what `head -1` does after its line
+        err = proc.communicate(timeout=120)[1]
+        assert proc.returncode == 0, err
+        assert "Traceback" not in err, err
+        status = subprocess.run([sys.executable, "-m", "jitterguard.cli", "status", "--name", name],
+                                capture_output=True, text=True, env=env, timeout=60)
+        assert "not running" in status.stdout + status.stderr, status.stdout + status.stderr
+    finally:
+        subprocess.run([sys.executable, "-m", "jitterguard.cli", "down", "--name", name], capture_output=True,
+                       env=env, timeout=120)
+        shutil.rmtree(xdg, ignore_errors=True)

@@ -11,6 +11,7 @@ Commands import their implementation when they run (start-up time: see :mod:`jit
 from __future__ import annotations
 
 import logging
+import re
 import sys
 from pathlib import Path
 from typing import Annotated, Any
@@ -35,6 +36,9 @@ Examples:\n
   jitterguard replay sequences/00/velodyne --poses poses/00.txt --start 100 --limit 50\n
   jitterguard replay run.mcap --topic /sensing/lidar/top/pointcloud --pose-topic /localization/kinematic_state
 """
+
+SERVICE_NAME = re.compile(r"[A-Za-z0-9_\-]+")
+"""A service's name is one key chunk (``jg/{ns}/heartbeat/{name}``)."""
 
 
 # The options that say what to replay, shared with `jitterguard up` (which passes them to its replay program).
@@ -111,6 +115,7 @@ def replay_command(
     topic: TopicOpt = None,
     pose_topic: PoseTopicOpt = None,
     wait_subscriber: Annotated[float, typer.Option("--wait-subscriber", help="Seconds to wait for a subscriber before the first frame (0: do not wait).")] = 5.0,
+    wait_for: Annotated[str | None, typer.Option("--wait-for", help="Before the first frame, wait (up to --wait-subscriber seconds) for this service's heartbeat saying it is ready — the pipeline's consumer: detector for scans, tracker for detections — not only for any subscriber (a viewer or recorder subscribed first had started the replay before the detector was up).")] = None,
     progress: ProgressOpt = None,
     ns: NsOpt = "default",
     zenoh_config: ZenohConfigOpt = None,
@@ -127,6 +132,8 @@ def replay_command(
                          pose_topic=pose_topic)
     if not wait_subscriber >= 0:  # nan had passed (every comparison with it is false) and waited for ever
         fail(f"--wait-subscriber must be a number of seconds >= 0, got {wait_subscriber}")
+    if wait_for is not None and not SERVICE_NAME.fullmatch(wait_for):
+        fail(f"--wait-for: a service name (letters, digits, '_' or '-'), got {wait_for!r}")
     try:
         src_opts = opts.check()
         plan = opts.plan(loop=loop, stamps=stamps)
@@ -158,7 +165,7 @@ def replay_command(
             svc = ReplayService(zopts, src.info.kind)
         except Exception as exc:
             fail(f"cannot open a Zenoh session: {exc}")
-        code = _run(svc, src, plan, wait_subscriber, progress)
+        code = _run(svc, src, plan, wait_subscriber, progress, wait_for)
     raise typer.Exit(code)
 
 
@@ -168,9 +175,12 @@ def short_name(source_name: str) -> str:
     return Path(source_name.split(" (")[0].rstrip(":")).name or source_name
 
 
-def _run(svc: Any, src: Any, plan: ReplayPlan, wait_s: float, progress: bool | None) -> int:
+def _run(svc: Any, src: Any, plan: ReplayPlan, wait_s: float, progress: bool | None,
+         wait_for: str | None = None) -> int:
     stop_on_signals(svc.stop)
     try:
+        if wait_for is not None and wait_s > 0 and not svc.wait_for_service(wait_for, wait_s):
+            log.warning("%s not ready after %.1f s; replaying anyway", wait_for, wait_s)
         if wait_s > 0 and not svc.wait_for_subscribers(wait_s):
             log.info("no subscriber on %s after %.1f s; replaying anyway", svc.key, wait_s)
         rate_txt = "max" if plan.rate is None else f"x{plan.rate:g}"

@@ -7,12 +7,15 @@ promptly when the service's stop event is set.
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Callable
 
 from ...runtime import Service, ZenohOptions
 from ...runtime.progress import FAILING, Health, ProgressPolicy
 from ...schemas import encode, keys
+from ...schemas.models import Heartbeat
+from ...schemas.wire import MAX_HEARTBEAT_BYTES
 from .adapter import message_for, truth_for
 from .frames import Frame, FrameError, ScanFrame
 from .pacing import Clock
@@ -41,6 +44,27 @@ class ReplayService(Service):
         deadline = time.monotonic() + timeout_s
         while not self.stop_event.is_set():
             if self.pub.matching_status.matching:
+                return True
+            if time.monotonic() >= deadline:
+                return False
+            self.stop_event.wait(0.02)
+        return False
+
+    def wait_for_service(self, name: str, timeout_s: float) -> bool:
+        """Wait until ``name``'s heartbeat says it is ready (health ``ok``): the pipeline's own consumer, not any
+        subscriber. A Foxglove bridge or a recorder that subscribes first had started the replay before the
+        detector was up, so its first scans went only to them (and the run's summary said nothing was dropped).
+        A service's first heartbeat comes a heartbeat period after its session opens, by when it has subscribed."""
+        ready = threading.Event()
+
+        def on_beat(hb: Heartbeat, _key: str) -> None:
+            if hb.health == "ok":
+                ready.set()
+
+        self.subscribe(keys.heartbeat(self.ns, name), Heartbeat, on_beat, max_bytes=MAX_HEARTBEAT_BYTES)
+        deadline = time.monotonic() + timeout_s
+        while not self.stop_event.is_set():
+            if ready.is_set():
                 return True
             if time.monotonic() >= deadline:
                 return False
