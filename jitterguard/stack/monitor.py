@@ -76,6 +76,7 @@ class StackMonitor(Service):
         self.supervisor_error: str | None = None  # why supervisord cannot be asked (its socket refuses us, …)
         self._beat_at: dict[int, tuple[str, float]] = {}  # pid -> (service, monotonic time of its last heartbeat)
         self._beat_lock = threading.Lock()
+        self._ledger_lock = threading.Lock()
         self._stopped_since: dict[int, float] = {}  # a router pid seen stopped (SIGSTOP), since when (monotonic)
         self.supervisor = Supervisor(run_dir, sock=supervisor_sock)
         # the run's own events: stack.json is written before supervisord starts (the log keeps milliseconds; a
@@ -106,12 +107,21 @@ class StackMonitor(Service):
             self.reject(exc, keys.heartbeat_all(self.ns), str(sample.key_expr))
             return
         self.counters.inc("received")
+        named = keys.last_chunk(str(sample.key_expr))
+        if hb.service != named:  # sums go by the key, as the sidecar reads it: a heartbeat put on another service's
+            # key had been summed as the service it names (counters of 10^15 into the classifier's totals)
+            self.reject(DecodeError("Heartbeat", "service", f"{hb.service!r} is not the service its key names "
+                                                            f"({named!r})"), keys.heartbeat_all(self.ns),
+                        str(sample.key_expr))
+            return
         with self._beat_lock:
             self._beat_at[hb.pid] = (hb.service, time.monotonic())
             if len(self._beat_at) > MAX_BEAT_PIDS:  # bounded: made-up pids (anyone may publish) push out the oldest
                 self._beat_at.pop(min(self._beat_at, key=lambda p: self._beat_at[p][1]))
         extra = {"last_seq": hb.last_seq, "uptime_s": round(hb.uptime_s, 1)}
-        if not self.ledger.observe(hb.service, hb.pid, hb.counters, hb.stamp, extra):
+        with self._ledger_lock:
+            kept = self.ledger.observe(hb.service, hb.pid, hb.counters, hb.stamp, extra)
+        if not kept:
             self.counters.inc("heartbeats_dropped")  # a service beyond the ledger's bound (summary.MAX_SERVICES)
             return
         self.dirty = True
@@ -125,8 +135,10 @@ class StackMonitor(Service):
                 "updated_at": _iso(now), "duration_s": round(now - self.run_started_at, 1)}
         with self._guard_lock:
             guard = self.guard.as_json()
-        return {**summary.build(self.ledger, events, meta=meta, backoff=guard), "started_at_s": self.run_started_at,
-                "ledger": self.ledger.as_json(), "crash_loop_guard": guard}
+        with self._ledger_lock:  # heartbeats change it on Zenoh's thread: the writer had died of "dictionary
+            # changed size during iteration" within seconds of a burst of new processes, summary.json frozen
+            return {**summary.build(self.ledger, events, meta=meta, backoff=guard),
+                    "started_at_s": self.run_started_at, "ledger": self.ledger.as_json(), "crash_loop_guard": guard}
 
     def write(self) -> None:
         """Write summary.json; a failure (a full disk, a run directory gone read-only) is logged once, counted,
@@ -299,7 +311,12 @@ class StackMonitor(Service):
     def _writer(self) -> None:
         while not self.stop_event.wait(WRITE_PERIOD_S):
             if self.dirty or self.write_error is not None:
-                self.write()
+                try:
+                    self.write()
+                except Exception as exc:  # the writer is the monitor's one job: it must not end, and it says why
+                    self.counters.inc("summary_write_errors")
+                    self.write_error = f"cannot build the summary: {type(exc).__name__}: {exc}"
+                    self.log.exception("summary not written")
 
     def on_close(self) -> None:
         time.sleep(0.3)  # the final heartbeats of the services stopped just before us may still be on the way

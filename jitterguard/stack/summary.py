@@ -48,6 +48,11 @@ made-up names (anyone on the host may publish) cannot grow the monitor or ``summ
 MAX_PROCESSES = 32
 """Processes kept one by one per service; the counters of older ones are folded into one record (:data:`RETIRED`),
 so a service restarted a thousand times still adds up exactly, in bounded memory."""
+MAX_COUNTER_NAMES = 512
+"""Counter names a service's :data:`RETIRED` record keeps (a service reports a few dozen): each process's own
+record is bounded by its heartbeat's size, but the retired one took every name any process had ever sent, and a
+made-up service whose every heartbeat came from a new pid with new names grew it by megabytes. Counts of names
+beyond the bound are added to ``counts_of_unkept_names``."""
 RETIRED = -1
 """The pseudo-pid under which a service's retired processes' running counters are summed (no real pid is < 0)."""
 
@@ -82,9 +87,13 @@ class Ledger:
         oldest = min((p for p in slot if p != RETIRED), key=lambda p: slot[p]["stamp_ns"])
         rec = slot.pop(oldest)
         ret = slot.setdefault(RETIRED, {"stamp_ns": 0, "counters": {}, "processes": 0})
+        kept = ret["counters"]
         for k, v in rec["counters"].items():
-            if not is_gauge(k):
-                ret["counters"][k] = ret["counters"].get(k, 0) + int(v)
+            if is_gauge(k):
+                continue
+            if k not in kept and len(kept) >= MAX_COUNTER_NAMES:
+                k = "counts_of_unkept_names"
+            kept[k] = kept.get(k, 0) + int(v)
         ret["processes"] = int(ret.get("processes", 0)) + int(rec.get("processes", 1))
 
     def totals(self, service: str) -> dict[str, int]:
