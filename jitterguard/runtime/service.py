@@ -45,6 +45,9 @@ log = logging.getLogger("jitterguard")
 
 HEARTBEAT_PERIOD_S = 1.0
 REJECT_LOG_QUIET_S = 5.0
+REJECT_LOG_SUMMARY_S = 60.0
+"""While a burst of one kind goes on, one line at least this often (with how many were not logged)."""
+MAX_LOG_KINDS = 64
 ENV_WATCHDOG = "JG_WATCHDOG_S"
 DEFAULT_WATCHDOG_S = 10.0
 EXIT_NO_PROGRESS = 70
@@ -85,23 +88,32 @@ class Counters:
 
 
 class _BurstLogger:
-    """Log the first of a burst of similar events, then stay quiet until the burst has passed."""
+    """Log the first of a burst of similar events, then stay quiet until the burst has passed — per kind of event,
+    and at least one line every :data:`REJECT_LOG_SUMMARY_S` while a burst goes on. One quiet period for every
+    event of a service, restarted by each one, had let a trickle of junk payloads (one a second) keep an
+    unauthorised config write, of another kind, out of the log altogether."""
 
-    def __init__(self, logger: logging.Logger, quiet_s: float = REJECT_LOG_QUIET_S) -> None:
+    def __init__(self, logger: logging.Logger, quiet_s: float = REJECT_LOG_QUIET_S,
+                 summary_s: float = REJECT_LOG_SUMMARY_S) -> None:
         self._log = logger
         self._quiet = quiet_s
+        self._summary = summary_s
         self._lock = threading.Lock()
-        self._last = -1e18
-        self._suppressed = 0
+        self._kinds: dict[str, list[float]] = {}  # kind -> [last event, last logged, suppressed since]
 
-    def warn(self, msg: str) -> None:
+    def warn(self, msg: str, kind: str = "") -> None:
         now = time.monotonic()
         with self._lock:
-            if now - self._last < self._quiet:
-                self._suppressed += 1
-                self._last = now
+            state = self._kinds.get(kind)
+            if state is None:
+                if len(self._kinds) >= MAX_LOG_KINDS:  # bounded: the kind seen longest ago makes room
+                    del self._kinds[min(self._kinds, key=lambda k: self._kinds[k][0])]
+                state = self._kinds[kind] = [-1e18, -1e18, 0]
+            if now - state[0] < self._quiet and now - state[1] < self._summary:
+                state[0], state[2] = now, state[2] + 1
                 return
-            suppressed, self._suppressed, self._last = self._suppressed, 0, now
+            suppressed = int(state[2])
+            state[0], state[1], state[2] = now, now, 0
         extra = f" ({suppressed} similar since the last message)" if suppressed else ""
         self._log.warning("%s%s", msg, extra)
 
@@ -174,7 +186,7 @@ class Service:
         self.counters.inc(f"rejected.{key}")
         if isinstance(exc, LimitExceeded):
             self.counters.inc(f"over_limit.{key}")
-        self._reject_log.warn(f"rejected payload on {sample_key or sub_key}: {exc}")
+        self._reject_log.warn(f"rejected payload on {sample_key or sub_key}: {exc}", kind=f"rejected {key}")
 
     def oversized(self, sample: zenoh.Sample, max_bytes: int | None, what: str, sub_key: str,
                   limit_name: str = "") -> bool:

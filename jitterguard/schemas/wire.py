@@ -200,7 +200,7 @@ def read_track_observations(payloads: Sequence[bytes], limits: Limits = LIMITS,
         (a, b), (c, d) = layout.spans["detection"], layout.spans["track"]
         det_bytes[take], track_bytes[take] = rows[:, a:b], rows[:, c:d]
         ok[take] = True
-    normalised = 0
+    normalised_at: list[int] = []
     for i in general:
         try:
             msg = decode(TrackObservation, payloads[i], max_bytes=limits.max_payload_bytes,
@@ -211,7 +211,8 @@ def read_track_observations(payloads: Sequence[bytes], limits: Limits = LIMITS,
         seq[i], stamp[i] = msg.header.seq, msg.header.stamp
         det_bytes[i] = records_of(DETECTED, [msg.detection]).view(np.uint8)
         track_bytes[i] = records_of(TRACK_STATE, [msg.track]).view(np.uint8)
-        ok[i], normalised = True, normalised + 1
+        ok[i] = True
+        normalised_at.append(i)
     beyond = _beyond(dets, limits, "detection.") + _beyond(tracks, limits, "track.", state=True)
     if np.logical_or.reduce([bad for bad, _ in beyond]).any():
         for bad, why in beyond:
@@ -224,6 +225,9 @@ def read_track_observations(payloads: Sequence[bytes], limits: Limits = LIMITS,
                 ok[i] = False
                 errors.append((i, DecodeError(TrackObservation.__name__, "track.object_id",
                                               f"not the track its key names ({key!r})")))
+    # counted once every refusal is in: a payload read in another form and then refused (beyond a limit, about
+    # another track than its key names) had been counted as normalised and rejected both
+    normalised = int(ok[normalised_at].sum()) if normalised_at else 0
     if ok.all():
         return ObservationColumns(np.arange(n), seq, stamp, dets, tracks, [], normalised)
     keep = np.flatnonzero(ok)

@@ -258,6 +258,7 @@ def test_a_config_write_is_bounded_before_it_is_built(zenoh_port, client_session
             answer = decode(ConfigReply, reply.err.payload.to_bytes())
             assert not answer.ok and why in answer.error, answer.error
         assert svc.core.config == before and svc.counters.get("rejected.classifier/config") == 2
+        assert svc.counters.get("over_limit.classifier/config") == 2  # had been counted `rejected` alone
         (ok,) = list(client_session.get(keys.classifier_config(NS), timeout=5,
                                         payload=encode(ClassifierConfig(alpha_default=2.5))))
         assert ok.ok is not None and svc.core.config.alpha_default == 2.5  # a real write still goes through

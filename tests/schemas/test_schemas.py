@@ -376,6 +376,15 @@ def test_observations_are_read_in_batches_and_a_bad_one_costs_only_itself():
     assert cols.tracks["object_id"].tolist() == [TID.encode()] * 3
 
 
+def test_an_observation_read_in_another_form_and_then_refused_is_not_counted_as_normalised():
+    """A payload the model read (another valid msgpack form) and then refused — about another track than its key
+    names — had been counted `normalised` as well as rejected."""
+    other = encode(_rich_observation())  # the model's own form, not the record shape
+    cols = wire.read_track_observations([other, other], key_ids=[TID, "f" * 32])
+    assert cols.index.tolist() == [0] and [i for i, _ in cols.errors] == [1]
+    assert cols.normalised == 1
+
+
 def test_a_key_that_is_not_utf8_is_a_decode_error():
     for read in (wire.read_detected_objects, wire.read_tracked_objects):
         with pytest.raises(DecodeError):

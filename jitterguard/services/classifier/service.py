@@ -209,7 +209,7 @@ class ClassifierService(Service):
             except Exception as exc:  # a bug must not silently stop the classifier: count, log, go on
                 self.counters.inc("handler_errors")
                 self.progress.failure(time.monotonic(), f"{type(exc).__name__}: {exc}"[:200])
-                self._reject_log.warn(f"classifier worker failed: {type(exc).__name__}: {exc}")
+                self._reject_log.warn(f"classifier worker failed: {type(exc).__name__}: {exc}", kind="worker")
                 self.log.debug("classifier worker failed", exc_info=True)
                 self.stop_event.wait(IDLE_POLL_S)  # a failure that repeats must not spin the CPU
         self._store_calibration(final=True)
@@ -252,7 +252,8 @@ class ClassifierService(Service):
                 self._cal_store.save(state)
             except OSError as exc:
                 self.counters.inc("calibration_store_errors")
-                self._reject_log.warn(f"cannot store the calibration in {self._cal_store.path}: {exc}")
+                self._reject_log.warn(f"cannot store the calibration in {self._cal_store.path}: {exc}",
+                                      kind="calibration store")
                 return
             self._cal_written = seq
             self.counters.inc("calibration_saves")
@@ -434,15 +435,16 @@ class ClassifierService(Service):
         refused = self.config_writes.refusal(query.attachment.to_bytes() if query.attachment is not None else None)
         if refused:
             self.counters.inc("config_writes_refused")
-            self._reject_log.warn(f"config write on {query.key_expr} refused: {refused}")
+            self._reject_log.warn(f"config write on {query.key_expr} refused: {refused}",
+                                  kind="config write refused")
             query.reply_err(encode(ConfigReply(ok=False, config=self.core.config, error=refused)))
             return
         try:  # bounded before it is built: a config is a few hundred bytes, its maps and lists a handful of entries
             cfg = decode(ClassifierConfig, payload, max_bytes=CONFIG_MAX_BYTES, max_array_len=MAX_MAP_ENTRIES,
                          max_map_len=MAX_MAP_ENTRIES)
-        except DecodeError as exc:
-            self.counters.inc("rejected")
-            self.counters.inc("rejected.classifier/config")
+        except DecodeError as exc:  # counted and logged as every refused payload is: an oversized write had been
+            # counted `rejected` but never `over_limit`, and no refused write was logged
+            self.reject(exc, keys.classifier_config(self.ns), str(query.key_expr))
             query.reply_err(encode(ConfigReply(ok=False, config=self.core.config, error=str(exc))))
             return
         model = None
@@ -450,8 +452,8 @@ class ClassifierService(Service):
             try:  # read here, off the worker: a slow disk must not stall frames
                 model = read_calibration(cfg.calibration_file)
             except CalibrationFileError as exc:
-                self.counters.inc("rejected")
-                self.counters.inc("rejected.classifier/config")
+                self.reject(DecodeError("ClassifierConfig", "calibration_file", str(exc)),
+                            keys.classifier_config(self.ns), str(query.key_expr))
                 query.reply_err(encode(ConfigReply(ok=False, config=self.core.config,
                                                    error=f"calibration_file: {exc}")))
                 return

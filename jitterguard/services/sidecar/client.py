@@ -295,7 +295,7 @@ class ClassifierClient(Service):
         self.counters.inc("rejected")
         self.counters.inc(f"rejected.{key}")
         self.metrics.rejected.labels(key).inc()
-        self._reject_log.warn(f"rejected payload on {key}: {exc}")
+        self._reject_log.warn(f"rejected payload on {key}: {exc}", kind=f"rejected {key}")
 
     # ------------------------------------------------------------------ config
 
