@@ -107,7 +107,8 @@ def eval_command(
     mcap: Annotated[bool, typer.Option("--mcap/--no-mcap", help="Also record every evaluated frame to "
                                        "OUT/run-SEED.mcap for Foxglove (detections, tracks by the z-test's "
                                        "decision, motion states, ground truth); pooled nuScenes scenes: "
-                                       "OUT/run-SCENE.mcap.")] = False,
+                                       "OUT/run-SCENE.mcap. An earlier run's run-*.mcap in OUT are removed, "
+                                       "with or without it: they would not match the new metrics.")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Also print metrics.json to stdout.")] = False,
 ) -> None:
     """Evaluate (detector →) tracker → motion classifier offline against ground truth."""
@@ -232,6 +233,9 @@ def eval_command(
             fail(f"--nuscenes: {exc}")
     # before the run: it must not compute for minutes and then fail to write (a str, not a Path: Path("") is ".")
     out = out_dir("--out", out)
+    for stale in sorted(Path(out).glob("run-*.mcap")):  # an earlier run's frames beside this run's metrics.json
+        # would look like its own (they had stayed, unannounced, matching nothing the new report scored)
+        stale.unlink()
     metrics = evaluate(out, scenario=scenario, seed=seed, noise=noise, nuscenes=nuscenes, scene=scene,
                        nuscenes_version=nuscenes_version,
                        sweeps=sweeps, duration=duration, rate=rate, classifier=cfg,

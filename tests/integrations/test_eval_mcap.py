@@ -17,6 +17,8 @@ from .test_foxglove_run import _meta, _read_mcap
 
 def test_eval_records_each_run_to_mcap_and_the_recording_matches_the_scores(tmp_path: Path) -> None:
     out = tmp_path / "ev"
+    out.mkdir()
+    (out / "run-2000.mcap").write_bytes(b"an earlier run's frames")  # would sit beside metrics it does not match
     res = subprocess.run([sys.executable, "-m", "jitterguard.cli", "eval", "--scenario", "parking-street",
                           "--seed", "3", "--runs", "2", "--duration", "3", "--out", str(out), "--mcap", "--json"],
                          capture_output=True, text=True, timeout=300)
@@ -51,6 +53,8 @@ def test_render_mcap_reads_a_recording_whose_writer_was_killed(tmp_path: Path) -
     from jitterguard.services.foxglove.render import read_frames
 
     out = tmp_path / "ev"
+    out.mkdir()
+    (out / "run-2000.mcap").write_bytes(b"an earlier run's frames")  # would sit beside metrics it does not match
     res = subprocess.run([sys.executable, "-m", "jitterguard.cli", "eval", "--scenario", "parking-street", "--seed", "3",
                           "--duration", "3", "--out", str(out), "--mcap"], capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr[-2000:]
@@ -92,3 +96,9 @@ def test_render_mcap_of_a_ros2_bag_is_one_line_not_a_traceback(tmp_path: Path) -
     assert "Traceback" not in res.stderr and res.stderr.count("jitterguard: error:") == 1, res.stderr
     assert f"no {TRACKS} messages" in res.stderr
     assert not (tmp_path / "x.png").exists()
+
+
+def test_render_mcap_of_a_folder_says_it_is_a_folder(tmp_path: Path) -> None:
+    res = subprocess.run([sys.executable, "-m", "jitterguard.cli", "render-mcap", str(tmp_path), "--out",
+                          str(tmp_path / "x.png")], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 2 and res.stderr.strip().endswith("a folder, not an MCAP file"), res.stderr

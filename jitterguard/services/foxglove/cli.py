@@ -97,6 +97,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
     ) -> None:
         """Draw one recorded frame bird's-eye (scan, ground truth, detection ellipses, tracks by motion state with
         velocity arrows) to a PNG."""
+        if Path(mcap).is_dir():
+            fail(f"{mcap}: a folder, not an MCAP file")
         if not Path(mcap).is_file():
             fail(f"{mcap}: no such file")
         if not out.lower().endswith(".png"):  # matplotlib would pick the format by the suffix, or add one
