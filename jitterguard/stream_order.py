@@ -34,7 +34,8 @@ from pydantic import BaseModel, ConfigDict, Field
 class StreamLimits(BaseModel):
     """How far a frame may step from the last one taken, and what confirms a discontinuity."""
 
-    model_config = ConfigDict(extra="forbid")
+    # strict: `true` or "5" is no count (a config file's `limits:` / `stream:` had read them as 1 and 5)
+    model_config = ConfigDict(extra="forbid", strict=True)
 
     max_stamp_step_s: float = Field(
         10.0, gt=0.0, le=86400.0, description="a stamp further ahead than this is a jump, taken only once confirmed")

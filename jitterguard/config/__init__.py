@@ -13,6 +13,7 @@ a misspelt gate that quietly keeps its default is the kind of bug that costs a d
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -42,13 +43,41 @@ def presets(service: str) -> list[str]:
     return sorted(p.name[len(service) + 1: -len(".param.yaml")] for p in CONFIG_DIR.glob(f"{service}.*.param.yaml"))
 
 
+class _StrictLoader(yaml.SafeLoader):
+    """YAML as a parameter file means it: a key given twice is an error (the loader kept the last, so a misspelt
+    second entry silently won), and scalars resolve as YAML 1.2 reads them — ``1e-4`` is a number (YAML 1.1 needs
+    ``1.0e-4``: the docs' own ``variance_floor: 1e-4`` had been refused as a string) and only ``true``/``false`` are
+    booleans (``calibration: off`` had become ``False``)."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        seen: set[Any] = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            if key in seen:
+                raise ConfigError(f"key {key!r} given twice (line {key_node.start_mark.line + 1})")
+            seen.add(key)
+        return super().construct_mapping(node, deep=deep)
+
+
+_StrictLoader.yaml_implicit_resolvers = {
+    first: [(tag, rx) for tag, rx in resolvers if tag != "tag:yaml.org,2002:bool"]
+    for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()}
+_StrictLoader.add_implicit_resolver("tag:yaml.org,2002:bool", re.compile(r"^(?:true|True|TRUE|false|False|FALSE)$"),
+                                    list("tTfF"))
+_StrictLoader.add_implicit_resolver("tag:yaml.org,2002:float",
+                                    re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+$"),
+                                    list("-+0123456789."))
+
+
 def read_params(path: str | Path) -> dict[str, Any]:
     """A parameter file's mapping: flat, or unwrapped from Autoware's ``<node or /**>: ros__parameters:``."""
     p = Path(path)
     if not p.is_file():
         raise ConfigError(f"config file not found: {path}" if not p.exists() else f"{path}: not a file")
     try:
-        doc = yaml.safe_load(p.read_text(encoding="utf-8"))
+        doc = yaml.load(p.read_text(encoding="utf-8"), Loader=_StrictLoader)  # noqa: S506 - a SafeLoader
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise ConfigError(f"{path}: cannot read ({type(exc).__name__})") from None
     except yaml.YAMLError as exc:

@@ -68,7 +68,8 @@ TRACK_STATE = RecordLayout.of(TrackState, TrackState(object_id="0" * 32, x=0.0, 
 class Limits(BaseModel):
     """Bounds on the work one message may cause; defaults no real sensor reaches (a service's ``limits:``)."""
 
-    model_config = ConfigDict(extra="forbid")
+    # strict: `true` or "5" is no count (a config file's `limits:` / `stream:` had read them as 1 and 5)
+    model_config = ConfigDict(extra="forbid", strict=True)
 
     max_payload_bytes: int = Field(8 << 20, ge=1024, description="larger payloads are refused unread")
     max_objects: int = Field(1000, ge=1, description="objects per message, read from the list's header")

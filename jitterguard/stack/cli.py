@@ -418,6 +418,12 @@ def _service_configs(given: dict[str, str | None], progs: list[Any]) -> dict[str
             if named and not Path(named).expanduser().is_absolute():
                 fail(f"{flag}: {key}: {named} is relative; under `up` the {service} runs in the stack's run"
                      " directory, so give an absolute path")
+        if service == "detector":  # what the detector itself refuses at start, refused before anything starts
+            from ..services.detector.config import params_refusal
+
+            refused = params_refusal(params)
+            if refused is not None:
+                fail(f"{flag}: {path}: {refused[0]}: {refused[1]}")
         if service == "classifier" and getattr(params, "calibration", None) == "file":
             from ..services.classifier.calibration_file import CalibrationFileError, read_calibration
 

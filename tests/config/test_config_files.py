@@ -81,6 +81,25 @@ def test_a_bad_file_names_the_file_and_the_key(tmp_path) -> None:
         load(DetectorParams, tmp_path)
 
 
+def test_a_file_is_read_strictly_keys_once_limits_typed_and_scalars_as_yaml_1_2(tmp_path) -> None:
+    """A key given twice had let the last one win; `limits:`/`stream:` took `true` as 1 and "5" as 5; the docs'
+    own `variance_floor: 1e-4` was refused as a string and `calibration: off` read as False."""
+    p = tmp_path / "c.yaml"
+    p.write_text("window_size: 20\nwindow_size: 30\n")
+    with pytest.raises(ConfigError, match=r"c.yaml: key 'window_size' given twice \(line 2\)"):
+        load(ClassifierParams, p)
+    for text, key in (("limits:\n  max_objects: true\n", "limits.max_objects"),
+                      ('limits:\n  max_objects: "5"\n', "limits.max_objects"),
+                      ("stream:\n  confirm_frames: true\n", "stream.confirm_frames"),
+                      ('stream:\n  max_stamp_step_s: "10"\n', "stream.max_stamp_step_s")):
+        p.write_text(text)
+        with pytest.raises(ConfigError, match=key):
+            load(TrackerConfig, p)
+    p.write_text("variance_floor: 1e-4\ncalibration: off\n")
+    cfg = load(ClassifierParams, p)
+    assert cfg.variance_floor == pytest.approx(1e-4) and cfg.calibration == "off"
+
+
 def test_a_rule_across_fields_is_told_in_its_own_words(tmp_path) -> None:
     """Broken by flags, the rule alone (it had read 'ClassifierParams: (top level): Value error, …'); broken by a
     file, the file first."""

@@ -142,6 +142,9 @@ def test_each_services_param_file_reaches_that_service_alone(tmp_path):
     ("--classifier-config", "calibration: file\ncalibration_file: /nonexistent/c.yaml\n", (),
      "--classifier-config: calibration_file: "),
     ("--detector-config", "threads: 2\n", ("--input", "detections"), "--detector-config: this stack runs no detector"),
+    # what the detector refuses at its own start had started the whole stack, then crashed the detector three times
+    ("--detector-config", "preset: bogus\n", (), "--detector-config: .*p.yaml: preset: expected one of"),
+    ("--detector-config", "weights: /nonexistent/w.pt\n", (), "--detector-config: .*p.yaml: weights: file not found"),
 ])
 def test_a_bad_service_file_stops_up_before_anything_starts(tmp_path, flag, text, extra, needle):
     import os

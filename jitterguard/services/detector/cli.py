@@ -13,7 +13,7 @@ import typer
 from ...cli_common import (ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ParamFileOpt, SensorHeightOpt, ZenohConfigOpt, fail,
                            SensorTiltOpt, sensor_height_option, sensor_tilt_option, zenoh_options)
 from ...config import ConfigError, load
-from .config import PRESETS, DetectorParams, declared_height, measures_tilt
+from .config import PRESETS, DetectorParams, declared_height, measures_tilt, params_refusal
 
 WeightsOpt = Annotated[
     str | None,
@@ -110,14 +110,11 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                 "sensor_height_m": sensor_height_option(sensor_height), "sensor_tilt": sensor_tilt_option(sensor_tilt)})
         except ConfigError as exc:
             fail(f"--config: {exc}" if config else str(exc))
-        if params.preset not in PRESETS:
-            fail(f"--preset: expected one of {', '.join(PRESETS)}, got {params.preset!r}")
-        if params.weights is not None and not os.path.isfile(params.weights):
-            fail(f"--weights: file not found: {params.weights}")
-        if params.onnx is not None and (params.backend != "onnxruntime" or params.weights is not None):
-            fail("--onnx: goes with --backend onnxruntime and replaces --weights")
-        if params.onnx is not None and not os.path.isdir(params.onnx):
-            fail(f"--onnx: folder not found: {params.onnx}")
+        refused = params_refusal(params)
+        if refused is not None:  # named as the user gave it: the flag, or the file's key
+            key, why = refused
+            flagged = {"preset": preset, "weights": weights, "onnx": onnx_dir}[key] is not None or config is None
+            fail(f"--{key}: {why}" if flagged else f"--config: {config}: {key}: {why}")
         opts = zenoh_options(ns, zenoh_config, connect, listen)
 
         from ...runtime import setup_logging

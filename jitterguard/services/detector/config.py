@@ -8,6 +8,7 @@ Kept free of torch so that data, evaluation and the service adapter import it ch
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import Annotated, Literal, overload
@@ -228,6 +229,22 @@ class DetectorParams(BaseModel):
     @classmethod
     def _box_has_extent(cls, box: tuple[float, float, float, float] | None) -> tuple[float, ...] | None:
         return check_crop_box(box)
+
+
+def params_refusal(params: DetectorParams) -> tuple[str, str] | None:
+    """``(key, why)`` if the detector cannot start with ``params`` — a preset it does not have, a weights file or an
+    ONNX folder that is not there, ONNX without its backend — else None: the one check of ``jitterguard detector``
+    and of ``up --detector-config``, which had started the whole stack on such a file and then watched the
+    detector crash three times."""
+    if params.preset not in PRESETS:
+        return "preset", f"expected one of {', '.join(PRESETS)}, got {params.preset!r}"
+    if params.weights is not None and not os.path.isfile(params.weights):
+        return "weights", f"file not found: {params.weights}"
+    if params.onnx is not None and (params.backend != "onnxruntime" or params.weights is not None):
+        return "onnx", "goes with backend onnxruntime and replaces weights"
+    if params.onnx is not None and not os.path.isdir(params.onnx):
+        return "onnx", f"folder not found: {params.onnx}"
+    return None
 
 
 @dataclass(frozen=True)
