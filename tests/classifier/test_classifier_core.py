@@ -369,6 +369,9 @@ def test_hold_preset_holds_every_class():
     assert ClassifierConfig().hold_for(int(Label.CAR)) == 0.0  # off by default: the paper decides at once
     with pytest.raises(ValueError, match="unknown class name"):
         ClassifierConfig(dynamic_hold_s_per_class={"lorry": 1.0})
+    with pytest.raises(ValueError) as err:  # a flood of made-up names is named in a line, not megabytes
+        ClassifierConfig(alpha_per_class={f"k{i:06d}": 1.0 for i in range(300_000)})
+    assert len(str(err.value)) < 2000 and "and 299995 more" in str(err.value)
 
 def test_world_frame_rotation_of_covariance_matters():
     """A car parked along the world x-axis seen by a sensor rotated 90°: the detector is precise along
