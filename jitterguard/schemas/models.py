@@ -14,7 +14,7 @@ length must match its field count.
 from __future__ import annotations
 
 from enum import IntEnum
-from typing import Annotated, ClassVar, Literal
+from typing import Annotated, Any, ClassVar, Literal
 
 from pydantic import (
     BaseModel,
@@ -383,6 +383,10 @@ def _default_bands() -> list[float]:
     return [20.0, 40.0]
 
 
+CLASS_KEYS: dict[str, Any] = {"propertyNames": {"enum": sorted(LABEL_BY_NAME)}}
+"""What the JSON schema says of a per-class map's keys (the model's validator checks them, the schema had not)."""
+
+
 def _check_class_names(v: dict[str, float]) -> dict[str, float]:
     unknown = sorted(set(v) - set(LABEL_BY_NAME))
     if unknown:  # the first few names, and how many: 300,000 made-up keys had made a 3 MB one-line error
@@ -403,6 +407,7 @@ class ClassifierConfig(Message):
     mode: TestMode = "z_test"
     alpha_default: Annotated[float, Field(gt=0.0, le=100.0)] = 1.96
     alpha_per_class: dict[str, Annotated[float, Field(gt=0.0, le=100.0)]] = Field(
+        json_schema_extra=CLASS_KEYS,
         default_factory=_default_alpha_per_class,
         description="per-class alpha overrides, keyed by lowercase Autoware class name (car, truck, ...); default: "
         "the authors' deployed values (vehicles 2.58, pedestrian 1.28, ...)",
@@ -442,19 +447,23 @@ class ClassifierConfig(Message):
         "are not motion (0: the paper's H0, v = 0)")
     velocity_threshold: Annotated[float, Field(ge=0.0, le=100.0)] = 1.0
     velocity_threshold_per_class: dict[str, Annotated[float, Field(ge=0.0, le=100.0)]] = Field(
+        json_schema_extra=CLASS_KEYS,
         default_factory=_default_speed_thresholds,
         description="per-class speed thresholds of the baseline, m/s (default: Autoware's 0.28 for vulnerable "
         "road users and unknown)")
     velocity_sustain_s_per_class: dict[str, Annotated[float, Field(ge=0.0, le=60.0)]] = Field(
+        json_schema_extra=CLASS_KEYS,
         default_factory=_default_sustain,
         description="per-class time the speed must stay above the threshold before the baseline says dynamic, s "
         "(Autoware's th_moving_time: the `autoware-sustain` preset)")
     dynamic_hold_s_per_class: dict[str, Annotated[float, Field(ge=0.0, le=60.0)]] = Field(
+        json_schema_extra=CLASS_KEYS,
         default_factory=dict,
         description="per-class time the test must keep rejecting H0 before the classifier says dynamic, s (none: at "
         "once, as the paper; a short hold in place of Autoware's th_moving_time: the `hold` preset)")
 
     view_slide_m_per_class: dict[str, Annotated[float, Field(ge=0.0, le=100.0)]] = Field(
+        json_schema_extra=CLASS_KEYS,
         default_factory=_default_view_slide,
         description="per-class slide of a detected box centre with the sensor's view of the object, m per unit "
         "turn of the line of sight: s² Δū Δūᵀ is added to the covariance of the half-mean contrast, Δū the same "

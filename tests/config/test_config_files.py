@@ -33,6 +33,22 @@ def test_each_default_file_is_its_model_defaults_and_validates_against_its_schem
     jsonschema.validate(values, json.loads(schema_file(service).read_text()))
 
 
+@pytest.mark.parametrize(("service", "bad"), [("classifier", {"alpha_per_class": {"cat": 1.0}}),
+                                              ("classifier", {"dynamic_hold_s_per_class": {"lorry": 1.0}}),
+                                              ("tracker", {"max_dist_matrix": [1.0, 2.0, 3.0]})])
+def test_the_schemas_refuse_what_the_models_refuse(service, bad) -> None:
+    """The schemas had taken a per-class map keyed by any name and a matrix of any length, which the models refuse:
+    an editor validating a file against them said it was fine."""
+    import jsonschema
+
+    schema = json.loads(schema_file(service).read_text())
+    with pytest.raises(jsonschema.ValidationError):
+        jsonschema.validate(bad, schema)
+    model = ClassifierParams if service == "classifier" else TrackerConfig
+    with pytest.raises(ValueError):
+        model(**bad)
+
+
 def test_shipped_presets_load_and_differ_where_they_should() -> None:
     assert presets("classifier") == ["authors", "autoware-sustain", "hold", "paper"]
     assert presets("detector") == ["lite", "paper"]

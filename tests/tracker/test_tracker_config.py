@@ -55,7 +55,7 @@ def test_partial_class_override_keeps_other_fields(tmp_path: Path) -> None:
 @pytest.mark.parametrize(
     ("text", "needle"),
     [
-        ("max_dist_matrix: [1, 2, 3]\n", "64 values"),
+        ("max_dist_matrix: [1, 2, 3]\n", "at least 64 items"),
         ("can_assign_matrix: [" + ", ".join(["2"] * 64) + "]\n", "0 or 1"),
         ("mahalanobis_gate: -1\n", "mahalanobis_gate"),
         ("measurement_covariance: magic\n", "measurement_covariance"),

@@ -151,17 +151,21 @@ class TrackerConfig(_Strict):
 
     # ---- association (Autoware's data_association_matrix.param.yaml; rows = track label, cols = measurement)
     can_assign_matrix: list[int] = Field(
-        default_factory=lambda: list(CAN_ASSIGN),
+        default_factory=lambda: list(CAN_ASSIGN), min_length=NUM_LABELS**2, max_length=NUM_LABELS**2,
         description="8x8, row-major: rows are the TRACK's label, columns the MEASUREMENT's, in Autoware's order"
         " UNKNOWN, CAR, TRUCK, BUS, TRAILER, MOTORBIKE, BICYCLE, PEDESTRIAN. A (track, detection) pair is a"
         " candidate only if can_assign is 1, the distance <= max_dist, min_area <= the detection's footprint area"
         " <= max_area, the heading difference (mod pi) <= max_rad and the Mahalanobis distance < mahalanobis_gate;"
         " its score is (max_dist - dist) / max_dist and the assignment maximises the total score")
-    max_dist_matrix: list[PosFloat] = Field(default_factory=lambda: list(MAX_DIST), description="metres")
-    max_area_matrix: list[NonNegFloat] = Field(default_factory=lambda: list(MAX_AREA), description="m^2")
-    min_area_matrix: list[NonNegFloat] = Field(default_factory=lambda: list(MIN_AREA), description="m^2")
+    max_dist_matrix: list[PosFloat] = Field(default_factory=lambda: list(MAX_DIST), description="metres",
+                                            min_length=NUM_LABELS**2, max_length=NUM_LABELS**2)
+    max_area_matrix: list[NonNegFloat] = Field(default_factory=lambda: list(MAX_AREA), description="m^2",
+                                               min_length=NUM_LABELS**2, max_length=NUM_LABELS**2)
+    min_area_matrix: list[NonNegFloat] = Field(default_factory=lambda: list(MIN_AREA), description="m^2",
+                                               min_length=NUM_LABELS**2, max_length=NUM_LABELS**2)
     max_rad_matrix: list[NonNegFloat] = Field(
-        default_factory=lambda: list(MAX_RAD), description="radians; above pi disables the heading gate")
+        default_factory=lambda: list(MAX_RAD), min_length=NUM_LABELS**2, max_length=NUM_LABELS**2,
+        description="radians; above pi disables the heading gate")
     min_iou_matrix: list[float] | None = Field(
         None, description="accepted from an Autoware file and not applied: for boxes that passed the distance and"
         " area gates Autoware's 2D-IoU gate rarely changes the outcome")
@@ -268,11 +272,7 @@ class TrackerConfig(_Strict):
 
     @model_validator(mode="after")
     def _check_matrices(self) -> "TrackerConfig":
-        n2 = NUM_LABELS * NUM_LABELS
-        for key in MATRIX_KEYS:
-            values = getattr(self, key)
-            if len(values) != n2:
-                raise ValueError(f"{key} must hold {n2} values (8x8, row-major), got {len(values)}")
+        # (each matrix's 64 entries are its field's own bound, which the JSON schema states too)
         if any(v not in (0, 1) for v in self.can_assign_matrix):
             raise ValueError("can_assign_matrix entries must be 0 or 1")
         mn = np.asarray(self.min_area_matrix)
