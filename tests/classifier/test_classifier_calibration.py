@@ -458,6 +458,11 @@ def test_calibration_file_round_trip_read_back_independently(tmp_path: Path) -> 
     (f"format: {FORMAT}\ngroups: {{vehicle: {{along: {{scales: {{0-20: 2}}}}}}}}\n", "groups.vehicle.along.scales"),
     (f"format: {FORMAT}\nrange_band_m: [10]\n", "range_band_m"),
     (f"format: {FORMAT}\ngroups: {{vehicle: {{along: {{blocks: 12}}}}}}\n", "groups.vehicle.along.blocks"),
+    # a file cut short leaves a key empty; a tampered window or variance factor had been taken without a look
+    (f"format: {FORMAT}\ngroups:\n  vehicle:\n    along:\n      blocks:\n", "groups.vehicle.along.blocks"),
+    (f"format: {FORMAT}\nwindow: '10'\n", "window"),
+    (f"format: {FORMAT}\nwindow: 100000\n", "window"),
+    (f"format: {FORMAT}\ngroups: {{vehicle: {{along: {{variance_factor: 0}}}}}}\n", "groups.vehicle.along.variance_factor"),
 ])
 def test_bad_calibration_files_name_the_entry(text: str, needle: str) -> None:
     with pytest.raises(CalibrationFileError, match=needle.replace(".", r"\.")):

@@ -248,17 +248,22 @@ class NoiseModel:
                     for bn, v in sc.items():
                         scale[gi, ai, names.index(bn), yi] = _checked(v, f"{where}.{key}.{bn}", *SCALE_BOUNDS)
                     bkey = _key("blocks", y)
-                    bl = entry.get(bkey) or {}
+                    bl = entry.get(bkey, {})  # a key left empty (`blocks:`, a file cut short) is no mapping
                     if not isinstance(bl, Mapping):
                         raise ValueError(f"{where}.{bkey}: expected a mapping over bands {names}")
                     for bn, v in bl.items():
                         if bn in names:
                             blocks[gi, ai, names.index(bn), yi] = _checked(v, f"{where}.{bkey}.{bn}", 0.0, 1e12)
+                if "variance_factor" in entry:  # derived on reading, but a number in the file all the same
+                    _checked(entry["variance_factor"], f"{where}.variance_factor", 1e-6, 1e6)
                 if "correlation" in entry:
                     corr[gi, ai] = _checked(entry["correlation"], f"{where}.correlation", 0.0, 1.0)
                 if "correlation_time_s" in entry:
                     tau[gi, ai] = _checked(entry["correlation_time_s"], f"{where}.correlation_time_s", 1e-3, 1e3)
         dt = _checked(data.get("frame_interval_s", CANONICAL_DT_S), "frame_interval_s", 1e-4, 1e3)
+        if "window" in data and (isinstance(data["window"], bool) or not isinstance(data["window"], int)
+                                 or not 2 <= data["window"] <= 10_000):  # the window the factors were written for
+            raise ValueError(f"window: expected a whole number of observations in [2, 10000], got {data['window']!r}")
         return NoiseModel(model.band_edges_m, scale, corr, tau, blocks, dt, track_dof)
 
 
