@@ -33,10 +33,10 @@ from ..cli_common import NsOpt, check_seed, fail, new_dir, out_file
 from ..runtime import ZenohOptions, build_config, free_tcp_port, open_session
 from ..runtime.signals import stop_on_signals
 from ..schemas import keys
+from ..services.classifier.config_writes import api_token_from_env
 from ..services.replay import cli as R  # the replay's own option declarations, shared with `up`
 from ..services.replay.options import absolute_source
 from ..services.replay.sources import SourceError, probe_source
-from ..services.classifier.config_writes import api_token_from_env
 from ..services.sidecar.core import bind_refusal
 from . import summary
 from .control import (StackUnavailable, Supervisor, orphans, read_pid, running_run_dirs, stop_lost, stop_orphans,
@@ -158,6 +158,20 @@ def _quiet_once_stdout_closes() -> None:
     out = sys.stdout
     if isinstance(out, io.TextIOWrapper) and not isinstance(out, _Stdout):
         sys.stdout = _Stdout(out.detach(), encoding=out.encoding, errors=out.errors, line_buffering=out.line_buffering)
+
+
+def _stop_supervisord(proc: subprocess.Popen) -> bool:
+    """SIGTERM a foreground stack's supervisord (which stops its programs) and wait; kill it after
+    ``STOP_WAIT_S``. True if it had to be killed."""
+    if proc.poll() is not None:
+        return False
+    proc.send_signal(signal.SIGTERM)
+    try:
+        proc.wait(timeout=STOP_WAIT_S)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        return True
+    return False
 
 
 def _exit_without_finalizing(code: int) -> NoReturn:
@@ -646,12 +660,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             code = _foreground(proc, sup, rd, stop, watch, duration, t0, wall0, spec, progs,
                                _addresses(spec, progs, router_picked))
         except BaseException:  # whatever ends `up` unforeseen, it does not leave its stack running on its own
-            if proc.poll() is None:
-                proc.send_signal(signal.SIGTERM)
-                try:
-                    proc.wait(timeout=STOP_WAIT_S)
-                except subprocess.TimeoutExpired:
-                    proc.kill()
+            _stop_supervisord(proc)
             raise
         watch.close()
         _exit_without_finalizing(code)
@@ -786,11 +795,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             stop.wait(0.1)
         if proc.poll() is None:
             print("jitterguard: stopping the stack", flush=True)
-            proc.send_signal(signal.SIGTERM)
-            try:
-                proc.wait(timeout=STOP_WAIT_S)
-            except subprocess.TimeoutExpired:
-                proc.kill()
+            if _stop_supervisord(proc):
                 print(f"jitterguard: error: supervisord did not stop within {STOP_WAIT_S:.0f} s; killed",
                       file=sys.stderr)
         if crashed is not None:

@@ -39,16 +39,20 @@ class ReplayService(Service):
         self._failed_in_row = 0  # frames that failed to read since the last one published
         self._last_error = ""
 
-    def wait_for_subscribers(self, timeout_s: float) -> bool:
-        """Wait until some subscriber matches our key (a replay into the void loses its first frames)."""
+    def _wait(self, done: Callable[[], bool], timeout_s: float) -> bool:
+        """Poll ``done`` until it holds (True), ``timeout_s`` passes or the service stops (False)."""
         deadline = time.monotonic() + timeout_s
         while not self.stop_event.is_set():
-            if self.pub.matching_status.matching:
+            if done():
                 return True
             if time.monotonic() >= deadline:
                 return False
             self.stop_event.wait(0.02)
         return False
+
+    def wait_for_subscribers(self, timeout_s: float) -> bool:
+        """Wait until some subscriber matches our key (a replay into the void loses its first frames)."""
+        return self._wait(lambda: self.pub.matching_status.matching, timeout_s)
 
     def wait_for_service(self, name: str, timeout_s: float) -> bool:
         """Wait until ``name``'s heartbeat says it is ready (health ``ok``): the pipeline's own consumer, not any
@@ -62,14 +66,7 @@ class ReplayService(Service):
                 ready.set()
 
         self.subscribe(keys.heartbeat(self.ns, name), Heartbeat, on_beat, max_bytes=MAX_HEARTBEAT_BYTES)
-        deadline = time.monotonic() + timeout_s
-        while not self.stop_event.is_set():
-            if ready.is_set():
-                return True
-            if time.monotonic() >= deadline:
-                return False
-            self.stop_event.wait(0.02)
-        return False
+        return self._wait(ready.is_set, timeout_s)
 
     def emit(self, frame: Frame, seq: int, stamp_ns: int) -> None:
         if (self.kind == "points") != isinstance(frame, ScanFrame):
