@@ -33,6 +33,7 @@ from jitterguard.services.classifier.calibration import (
 from jitterguard.services.classifier.calibration_file import (
     FORMAT,
     CalibrationFileError,
+    dump_calibration,
     parse_calibration,
     read_calibration,
     write_calibration,
@@ -445,6 +446,30 @@ def test_calibration_file_round_trip_read_back_independently(tmp_path: Path) -> 
     np.testing.assert_allclose(back.scale, model.scale, rtol=1e-5)
     np.testing.assert_allclose(back.correlation, model.correlation, rtol=1e-5)
     np.testing.assert_allclose(back.track_dof, model.track_dof, rtol=1e-3)
+
+
+def test_a_written_file_cut_short_or_edited_is_refused_by_its_digest(tmp_path: Path) -> None:
+    """Cut short at a whole entry a written file is still valid YAML whose missing groups keep the prior: it had
+    loaded without a word. Its digest catches that; a hand edit loads once the digest line is deleted."""
+    rng = np.random.default_rng(16)
+    cal = OnlineCalibration(prior_blocks=20.0, half_life_s=math.inf)
+    feed(cal, blocks(rng, 300, 2.0, 0.3, 0.4))
+    model = cal.refit()
+    text = dump_calibration(model, window=10, source={"recording": "synthetic"})
+    lines = text.splitlines(keepends=True)
+    assert lines[1].startswith("digest: sha256:")
+    np.testing.assert_allclose(parse_calibration(text).scale, model.scale, rtol=1e-5)
+    cut = "".join(lines[: next(i for i, ln in enumerate(lines) if ln.startswith("  pedestrian:"))])
+    assert yaml.safe_load(cut)["groups"]["vehicle"]  # valid YAML, a whole entry short
+    with pytest.raises(CalibrationFileError, match="digest does not match"):
+        parse_calibration(cut)
+    edited = text.replace("window: 10", "window: 12")
+    with pytest.raises(CalibrationFileError, match="digest does not match"):
+        parse_calibration(edited)
+    undigested = "".join(ln for ln in edited.splitlines(keepends=True) if not ln.startswith("digest:"))
+    assert parse_calibration(undigested).scale.shape == model.scale.shape
+    with pytest.raises(CalibrationFileError, match="digest does not match"):
+        parse_calibration(text.replace("digest: sha256:", "digest: 12"))
 
 
 @pytest.mark.parametrize(("text", "needle"), [

@@ -3,6 +3,7 @@
 YAML, so a perception engineer can read and diff it::
 
     format: jitterguard-calibration/1
+    digest: sha256:9f2c...                          # of every byte after this line
     range_bands_m: [20.0, 40.0]
     frame_interval_s: 0.1
     window: 10
@@ -16,11 +17,16 @@ YAML, so a perception engineer can read and diff it::
     source: {recording: ..., frames: ..., ...}     # free-form provenance, not read back
 
 The content is :meth:`~.calibration.NoiseModel.to_mapping`; reading validates every number (finite, in range)
-and names the first bad entry. The only I/O of the calibration; the core never reads files.
+and names the first bad entry. The digest is there because a file cut short at a whole entry is still valid YAML
+whose missing groups and axes keep the prior — a copy truncated on its way to the vehicle would load without a word.
+A file without a digest line (written by hand) is read as it stands; one whose digest does not match is refused,
+so a hand edit of a written file means deleting its digest line too. The only I/O of the calibration; the core
+never reads files.
 """
 
 from __future__ import annotations
 
+import hashlib
 import os
 import stat
 from pathlib import Path
@@ -42,10 +48,28 @@ class CalibrationFileError(ValueError):
 
 def dump_calibration(model: NoiseModel, *, window: int, source: dict[str, Any] | None = None) -> str:
     """The YAML text of a calibration file for ``model`` (``source``: provenance, written as given)."""
-    data = {"format": FORMAT, **model.to_mapping(window)}
+    data = model.to_mapping(window)
     if source:
         data["source"] = source
-    return yaml.safe_dump(data, sort_keys=False, default_flow_style=None, width=110)
+    body = yaml.safe_dump(data, sort_keys=False, default_flow_style=None, width=110)
+    return f"format: {FORMAT}\n{DIGEST_KEY}: {_digest(body)}\n{body}"
+
+
+DIGEST_KEY = "digest"
+
+
+def _digest(body: str) -> str:
+    """The digest line's value for the text after it."""
+    return "sha256:" + hashlib.sha256(body.encode("utf-8")).hexdigest()
+
+
+def _check_digest(text: str, claimed: object, where: str) -> None:
+    """Refuse a written file whose bytes after its digest line are not those it was written with."""
+    lines = text.splitlines(keepends=True)
+    at = next((i for i, line in enumerate(lines) if line.startswith(f"{DIGEST_KEY}:")), None)
+    if not isinstance(claimed, str) or at is None or _digest("".join(lines[at + 1:])) != claimed:
+        raise CalibrationFileError(f"{where}: its digest does not match its content (cut short or edited; to use a"
+                                   f" file edited by hand, delete its {DIGEST_KEY} line)")
 
 
 def write_calibration(path: Path, model: NoiseModel, *, window: int, source: dict[str, Any] | None = None) -> None:
@@ -67,6 +91,8 @@ def parse_calibration(text: str, where: str = "calibration") -> NoiseModel:
         raise CalibrationFileError(f"{where}: expected a mapping with format {FORMAT!r}")
     if data.get("format") != FORMAT:
         raise CalibrationFileError(f"{where}: format must be {FORMAT!r}, not a calibration file")
+    if DIGEST_KEY in data:
+        _check_digest(text, data.pop(DIGEST_KEY), where)
     try:
         return NoiseModel.from_mapping(data)
     except ValueError as exc:
