@@ -25,6 +25,8 @@ if TYPE_CHECKING:
     from ..services.detector.inference import Detector
 
 INPUTS = ("gt-noise", "detector")
+PARTIAL = ".partial"
+"""Suffix of a run's MCAP while the run is going (:func:`evaluate` names it ``run-….mcap`` once its metrics are out)."""
 
 
 def eval_command(
@@ -107,8 +109,9 @@ def eval_command(
     mcap: Annotated[bool, typer.Option("--mcap/--no-mcap", help="Also record every evaluated frame to "
                                        "OUT/run-SEED.mcap for Foxglove (detections, tracks by the z-test's "
                                        "decision, motion states, ground truth); pooled nuScenes scenes: "
-                                       "OUT/run-SCENE.mcap. An earlier run's run-*.mcap in OUT are removed, "
-                                       "with or without it: they would not match the new metrics.")] = False,
+                                       "OUT/run-SCENE.mcap, named so once metrics.json is written (an "
+                                       "interrupted run leaves none). An earlier run's run-*.mcap in OUT are "
+                                       "removed, with or without it: they would not match the new metrics.")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Also print metrics.json to stdout.")] = False,
 ) -> None:
     """Evaluate (detector →) tracker → motion classifier offline against ground truth."""
@@ -233,15 +236,21 @@ def eval_command(
             fail(f"--nuscenes: {exc}")
     # before the run: it must not compute for minutes and then fail to write (a str, not a Path: Path("") is ".")
     out = out_dir("--out", out)
-    for stale in sorted(Path(out).glob("run-*.mcap")):  # an earlier run's frames beside this run's metrics.json
-        # would look like its own (they had stayed, unannounced, matching nothing the new report scored)
+    for stale in sorted(Path(out).glob("run-*.mcap")) + sorted(Path(out).glob(f"run-*.mcap{PARTIAL}")):
+        # an earlier run's frames beside this run's metrics.json would look like its own (they had stayed,
+        # unannounced, matching nothing the new report scored); a killed run's unfinished ones go too
         stale.unlink()
-    metrics = evaluate(out, scenario=scenario, seed=seed, noise=noise, nuscenes=nuscenes, scene=scene,
-                       nuscenes_version=nuscenes_version,
-                       sweeps=sweeps, duration=duration, rate=rate, classifier=cfg,
-                       extra_seeds=tuple(range(seed + 1, seed + runs)), detector=detector,
-                       weights_desc=weights_desc, variance_scale=variance_scale, calibration_model=model,
-                       variance_scale_at=variance_scale_at, tracker=tracker, mcap=mcap)
+    try:
+        metrics = evaluate(out, scenario=scenario, seed=seed, noise=noise, nuscenes=nuscenes, scene=scene,
+                           nuscenes_version=nuscenes_version,
+                           sweeps=sweeps, duration=duration, rate=rate, classifier=cfg,
+                           extra_seeds=tuple(range(seed + 1, seed + runs)), detector=detector,
+                           weights_desc=weights_desc, variance_scale=variance_scale, calibration_model=model,
+                           variance_scale_at=variance_scale_at, tracker=tracker, mcap=mcap)
+    except BaseException:  # Ctrl-C, an error: the frames recorded so far are no run's (evaluate names them at its end)
+        for partial in Path(out).glob(f"run-*.mcap{PARTIAL}"):
+            partial.unlink(missing_ok=True)
+        raise
     if as_json:
         sys.stdout.write(json.dumps(metrics, indent=2, sort_keys=True) + "\n")
     else:
@@ -347,7 +356,10 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
     unused) and its AP / calibration over all pooled scans go into ``detection``; ``sweeps`` feeds it every
     nuScenes LiDAR sweep and scores the labelled key frames among them. ``mcap`` records each run's
     frames to ``out/run-SEED.mcap`` (pooled scenes: ``run-SCENE.mcap``) through the Foxglove bridge's own sink
-    (one file per run: each run's clock starts again)."""
+    (one file per run: each run's clock starts again), each written as ``….mcap.partial`` and named ``….mcap`` only
+    once metrics.json and report.md are: an interrupted run had closed its recording into a whole, valid MCAP of the
+    frames run so far, which sat beside the metrics of an earlier run in ``out`` and looked like theirs (``eval``
+    removes the ``.partial`` files of a run that raised or was interrupted; a killed run leaves them so named)."""
     from tqdm import tqdm  # type: ignore[import-untyped]
 
     from .groundtruth import NuScenesError, nuscenes_scenes
@@ -386,6 +398,7 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
         warn_seen(seen, nuscenes)
     predictions: list[Any] = []
     samples: list[Any] = []
+    recorded: list[tuple[Path, Path]] = []  # (written, final name) of each run's MCAP
     scans_fed = 0  # frames the tracker and classifier ran on (more than the scored ones with sweeps)
     drive = MotionClassifierCore.make_online(classifier)
 
@@ -409,11 +422,19 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
 
         out.mkdir(parents=True, exist_ok=True)
         stem = f"run-{s}" if scene_name is None or len(scenes) == 1 else f"run-{scene_name}"
-        sink = FoxgloveSink(port=None, mcap_path=out / f"{stem}.mcap", overwrite=True)
+        final = out / f"{stem}.mcap"
+        recorded.append((final.with_name(final.name + PARTIAL), final))
+        sink = FoxgloveSink(port=None, mcap_path=recorded[-1][0], overwrite=True)
         try:
             return one_run(fr, s, scene_name, cold, tag, sink.write)
         finally:
             sink.close()
+
+    def named(written: dict[str, Any]) -> dict[str, Any]:
+        """``written`` (metrics.json's content, written) passed on, each run's recording now under its name."""
+        for partial, final in recorded:
+            partial.replace(final)
+        return written
 
     def one_run(fr: Any, s: int, scene_name: str | None, cold: bool, tag: str, on_frame: Any) -> Records:
         nonlocal scans_fed
@@ -495,7 +516,7 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
     }
     metrics["alpha_from_labels_preset"] = labels_preset(metrics["alpha_from_labels"])
     if detector is None:
-        return write_outputs(out, rec, metrics)
+        return named(write_outputs(out, rec, metrics))
     from .detector_input import detection_metrics
     from .report import DETECTION_FIGURES
 
@@ -503,7 +524,7 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
     metrics["run"]["detector"] = detector_run_info(detector, weights_desc, seen)
     metrics["run"]["detector"]["figures"] = [f for f in DETECTION_FIGURES
                                              if f != DETECTION_FIGURES[0] or det_report["calibration"] is not None]
-    return write_outputs(out, rec, metrics, det_report)
+    return named(write_outputs(out, rec, metrics, det_report))
 
 
 def study_command(

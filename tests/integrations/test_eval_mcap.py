@@ -102,3 +102,36 @@ def test_render_mcap_of_a_folder_says_it_is_a_folder(tmp_path: Path) -> None:
     res = subprocess.run([sys.executable, "-m", "jitterguard.cli", "render-mcap", str(tmp_path), "--out",
                           str(tmp_path / "x.png")], capture_output=True, text=True, timeout=120)
     assert res.returncode == 2 and res.stderr.strip().endswith("a folder, not an MCAP file"), res.stderr
+
+
+def test_an_interrupted_eval_leaves_no_recording_beside_an_earlier_runs_metrics(tmp_path: Path) -> None:
+    """Ctrl-C in the middle of `eval --mcap` closed the recording into a whole, valid MCAP of the frames run so far
+    (a footer, a summary whose counts matched): it sat as run-SEED.mcap beside the metrics.json and report.md of the
+    earlier run in that folder, and looked like their frames. A run's recording is named only once its metrics are
+    written; an interrupted run leaves none."""
+    import signal
+    import time
+
+    out = tmp_path / "ev"
+    res = subprocess.run([sys.executable, "-m", "jitterguard.cli", "eval", "--scenario", "parking-street", "--seed", "3",
+                          "--duration", "2", "--out", str(out)], capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-2000:]
+    earlier = (out / "metrics.json").read_text()
+    proc = subprocess.Popen([sys.executable, "-m", "jitterguard.cli", "eval", "--scenario", "parking-street", "--seed",
+                             "3", "--duration", "600", "--out", str(out), "--mcap"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            # Ctrl-C as at a terminal (a background job's shell hands its children SIGINT ignored)
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+
+    def frames_written() -> bool:  # under whichever name the recording is being written
+        return any(p.stat().st_size > 200_000 for p in out.glob("run-3.mcap*"))
+
+    deadline = time.monotonic() + 240
+    while not frames_written():
+        assert proc.poll() is None and time.monotonic() < deadline, "the run wrote no frames"
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGINT)
+    proc.communicate(timeout=120)
+    assert proc.returncode != 0  # interrupted, not finished
+    assert (out / "metrics.json").read_text() == earlier
+    assert sorted(p.name for p in out.iterdir() if "mcap" in p.name) == []
