@@ -371,3 +371,36 @@ def test_a_dynamic_link_under_base_link_leaves_the_clouds_in_their_own_axes(tmp_
     np.testing.assert_array_equal(frames[1].points, pts)
     want = compose(EgoPose.from_yaw(1.0, 0.0, 0.1), EgoPose(1.0, 0.0, 2.0, *q))
     np.testing.assert_allclose(frames[1].pose.matrix(), want.matrix(), atol=1e-9)
+
+
+@pytest.mark.parametrize("pose_topic", [ODOM_TOPIC, "/tf"])
+def test_a_pose_sample_with_a_nan_position_is_skipped_and_the_scans_take_the_poses_around_it(
+        tmp_path: Path, pose_topic: str) -> None:
+    """An odometry (or /tf) sample whose position is NaN (a localiser not yet initialised, a filter that diverged)
+    was interpolated into the scans around it: the replay ended there with a validation error. It is skipped and
+    counted as tf2 skips a NaN transform; the scan at its stamp takes the poses around it, and nothing is lost."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    from jitterguard.services.replay.sources.ros_types import POINTCLOUD2, typestore
+
+    from .bagfixture import TF, T0, _cloud, _odom, _tf
+
+    ts = typestore()
+    path = tmp_path / "bag"
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        c_odom = w.add_connection(ODOM_TOPIC, "nav_msgs/msg/Odometry", typestore=ts)
+        c_tf = w.add_connection("/tf", TF, typestore=ts)
+        c_cloud = w.add_connection(CLOUD_TOPIC, POINTCLOUD2, typestore=ts)
+        for k in range(7):  # 20 Hz from 50 ms before the first scan; sample 3 is the second scan's own stamp
+            t, x = T0 - 50_000_000 + k * 50_000_000, float("nan") if k == 3 else float(k)
+            w.write(c_odom, t, ts.serialize_cdr(_odom(ts, t, x, 0.0, 0.0), "nav_msgs/msg/Odometry"))
+            w.write(c_tf, t, ts.serialize_cdr(_tf(ts, [(t, "map", "lidar_top", x, 0.0, 0.0, 0.0)]), TF))
+        for i in range(3):
+            t = T0 + i * 100_000_000
+            w.write(c_cloud, t, ts.serialize_cdr(_cloud(ts, t, np.ones((3, 4), np.float32)), POINTCLOUD2))
+    with open_source(str(path), SourceOptions(pose_topic=pose_topic)) as src:
+        said = src.info.notes + src.info.warnings
+        frames = list(src.frames())
+    assert all(isinstance(f, ScanFrame) for f in frames), frames
+    assert [f.pose.x for f in frames] == pytest.approx([1.0, 3.0, 5.0])  # scan 1 between samples 2 and 4
+    assert any("1 skipped" in n or "1 to 'lidar_top'" in n for n in said), said

@@ -43,6 +43,7 @@ CASES = [
     (["replay", "{k}", "--stamps", "now"], "--stamps must be"),
     (["replay", "{k}", "--topic", "/x"], "--topic does not apply"),
     (["replay", "{k}", "--hz", "0"], "--hz must be positive"),
+    (["replay", "{k}", "--hz", "1e-9", "--rate", "max"], "--hz must be positive, from 0.001"),  # stamps past int64
     (["replay", "{k}", "--ns", "a/b"], "--ns"),
     (["replay", "{k}", "--connect", "nonsense"], "must look like tcp/HOST:PORT"),
     (["replay", "{k}", "--start", "5"], "past the end"),

@@ -129,6 +129,24 @@ def test_bad_poses_file_is_a_source_error_naming_it(tmp_path: Path, content: str
     assert "p.txt" in str(exc.value)
 
 
+
+@pytest.mark.parametrize("rotation", [np.diag([1.0, 1.0, -1.0]), np.zeros((3, 3))], ids=["reflection", "zeros"])
+def test_a_pose_or_calib_line_that_is_no_rotation_is_a_source_error_naming_its_line(tmp_path: Path,
+                                                                                     rotation: np.ndarray) -> None:
+    """A poses line whose 3x3 part is a reflection had ended the replay with "matrix is a reflection, not a
+    rotation", naming neither the file nor the line; an all-zero placeholder line was silently replaced by whatever
+    rotation its re-orthonormalisation gave. Both are refused naming the file and line; so is such a Tr in calib.txt."""
+    _scans(tmp_path / "s", 2)
+    bad = np.eye(4)
+    bad[:3, :3] = rotation
+    (tmp_path / "p.txt").write_text(_pose_line(np.eye(4)) + "\n" + _pose_line(bad) + "\n")
+    with pytest.raises(SourceError, match=r"p\.txt:2: pose line's 3x3 part is no rotation"):
+        BinScanSource(tmp_path / "s", poses=tmp_path / "p.txt")
+    (tmp_path / "ok.txt").write_text(_pose_line(np.eye(4)) + "\n")
+    (tmp_path / "calib.txt").write_text("Tr: " + _pose_line(bad) + "\n")
+    with pytest.raises(SourceError, match=r"calib\.txt: no valid 'Tr:' line"):
+        BinScanSource(tmp_path / "s", poses=tmp_path / "ok.txt", calib=tmp_path / "calib.txt")
+
 def test_pcd_bin_suffix_means_five_nuscenes_columns(tmp_path: Path) -> None:
     want = _scans(tmp_path, 1, cols=5, suffix=".pcd.bin")
     [f] = list(BinScanSource(tmp_path).frames())

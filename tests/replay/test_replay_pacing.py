@@ -116,6 +116,16 @@ def test_restamper_forces_out_of_order_stamps_forward() -> None:
     assert out == [100, 300, 301, 302, 400]
 
 
+
+def test_a_recording_whose_clock_steps_back_goes_on_at_its_own_spacing_not_1_ns_apart() -> None:
+    """times.txt (or a bag) whose clock was reset an hour back after three frames: the frames after the step had
+    been stamped 1 ns apart — published in one burst, a tracker's velocities divided by a nanosecond. The step is a
+    discontinuity of the recording's clock: the timeline goes on one period later, the recorded spacing kept."""
+    hour = 3600 * 10**9
+    r = Restamper()
+    out = [r(s) for s in (hour, hour + 100 * MS, hour + 200 * MS, 300 * MS, 400 * MS, 500 * MS)]
+    assert out == [hour + k * 100 * MS for k in range(6)]
+
 @settings(max_examples=200, deadline=None)
 @given(
     passes=st.lists(st.lists(st.integers(min_value=0, max_value=10**12), min_size=1, max_size=20), min_size=1, max_size=5)

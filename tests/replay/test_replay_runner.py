@@ -3,14 +3,18 @@
 from __future__ import annotations
 
 import threading
+from dataclasses import replace
 
 import pytest
 
-from jitterguard.services.replay.frames import Frame, FrameError, SourceError
+from jitterguard.schemas import encode
+from jitterguard.services.replay.adapter import message_for
+from jitterguard.services.replay.frames import EgoPose, Frame, FrameError, SourceError
 from replay.helpers import FakeClock
 from jitterguard.services.replay.runner import ReplayPlan, run_replay
+from jitterguard.services.replay.sources.base import MemorySource
 
-from .helpers import MS, ExplodingSource, memory
+from .helpers import MS, ExplodingSource, memory, scan
 
 
 class Sink:
@@ -207,3 +211,27 @@ def test_a_stall_is_reported_as_it_happens() -> None:
     sink = StallingSink(clock)
     run_replay(memory(6), ReplayPlan(rate=1.0), sink, clock=clock, on_late=lambda: seen_at.append(len(sink.out)))
     assert seen_at == [3]  # during the run, at the frame after the stall
+
+
+@pytest.mark.parametrize("on_error", ["skip", "stop"])
+def test_a_frame_whose_ego_pose_no_reader_takes_is_an_unreadable_frame_not_the_end_of_the_replay(on_error) -> None:
+    """A NaN odometry sample (or a PCD's VIEWPOINT) in the middle of a recording had ended the whole replay at that
+    frame with a multi-line validation error, exit 1; a pose beyond the wire's limits went out for every consumer to
+    refuse. Each is an unreadable frame now, skipped and counted (or the stop of ``--on-error stop``)."""
+    bad_poses = [EgoPose(x=float("nan")), EgoPose(qw=float("inf")), EgoPose(y=1e30), EgoPose(qw=0.0)]
+    frames = [scan(0)] + [replace(scan(1 + k), pose=pose) for k, pose in enumerate(bad_poses)] + [scan(5)]
+    published: list[str] = []
+
+    def emit(frame: Frame, seq: int, stamp: int) -> None:  # what the publisher does before its put
+        encode(message_for(frame, seq, stamp))
+        published.append(frame.origin)
+
+    errors: list[FrameError] = []
+    stats = run_replay(MemorySource(frames), ReplayPlan(rate=None, on_error=on_error), emit, clock=FakeClock(),
+                       on_error=errors.append)
+    if on_error == "stop":
+        assert published == ["mem#0"] and stats.stopped_by is not None and stats.errors == 1
+        return
+    assert published == ["mem#0", "mem#5"]
+    assert stats.errors == 4 and [e.origin for e in errors] == ["mem#1", "mem#2", "mem#3", "mem#4"]
+    assert all("\n" not in str(e) and "ego" in str(e) for e in errors), errors

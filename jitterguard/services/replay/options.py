@@ -55,8 +55,10 @@ class ReplayOptions:
         """Validate the values (not the source itself) and build the readers' options; raises ``ValueError``
         with one line naming the flag."""
         parse_rate(self.rate)
-        if not (0 < self.hz < 1e6):
-            raise ValueError(f"--hz must be positive, got {self.hz}")
+        # from a frame every 1000 s: at --hz 1e-9 a tenth scan's stamp (row × 1e18 ns) outgrew the wire's int64
+        # nanoseconds, and the replay ended after its first frame with a multi-line validation error and exit 1
+        if not (1e-3 <= self.hz < 1e6):
+            raise ValueError(f"--hz must be positive, from 0.001 to below 1e6 frames per second, got {self.hz}")
         self.plan()
         for name in PATH_FIELDS:
             value = getattr(self, name)

@@ -102,7 +102,10 @@ class Restamper:
     Within a pass a stamp keeps its recorded value (shifted by the pass offset) unless it would not exceed the
     previous one (out-of-order bag stamps), in which case it becomes previous + 1 ns. A new pass starts one
     typical frame period (the median recorded spacing) after the last published stamp, so looping a 20 s
-    recording yields one uninterrupted, monotonic timeline.
+    recording yields one uninterrupted, monotonic timeline. A recorded stamp more than one such period behind the
+    previous one is the recording's clock stepping back (a times.txt or bag whose clock was reset), not a reordered
+    frame: the timeline goes on from there as a new pass does, the recording's spacing kept (the rest of the
+    recording had been stamped 1 ns apart, and so published in one burst).
 
     With ``origin`` (``--stamps wall``: ``time.time_ns``) the timeline starts at ``origin()``, read when the
     first frame is stamped, instead of at the recorded stamp; the recorded spacing is kept. Published in real
@@ -133,6 +136,8 @@ class Restamper:
             self._diffs.append(stamp_ns - self._last_in)
         if self._last_out is None and self._origin is not None:
             self._offset = int(self._origin()) - stamp_ns
+        if self._last_in is not None and self._last_in - stamp_ns > self.period_ns:  # the clock stepped back
+            self._new_pass = True
         if self._new_pass and self._last_out is not None:
             self._offset = self._last_out + self.period_ns - stamp_ns
             self._new_pass = False

@@ -155,8 +155,8 @@ class BagSource(Source):
                 notes.append(f"poses from the TF tree ({pose_topic}{' + ' + ', '.join(statics) if statics else ''})")
             elif ptype in POSE_TYPES:
                 self._read_pose_topic(pose_topic, by_topic[pose_topic])
-                skipped = (f"; {self.poser.poses_skipped} skipped: orientation not a unit quaternion"
-                           if self.poser.poses_skipped else "")
+                skipped = (f"; {self.poser.poses_skipped} skipped: orientation not a unit quaternion or position not"
+                           " finite" if self.poser.poses_skipped else "")
                 notes.append(f"poses from {pose_topic} ({len(self.poser.poses)} samples{skipped})")
             else:
                 raise SourceError(
@@ -164,7 +164,8 @@ class BagSource(Source):
                 )
         warnings = []
         if self.poser.tf_skipped:
-            warnings.append(f"{self.path}: TF transforms whose rotation is not a unit quaternion skipped (as tf2 does): "
+            warnings.append(f"{self.path}: TF transforms whose rotation is not a unit quaternion or that are not finite"
+                            " skipped (as tf2 does): "
                             + ", ".join(f"{n} to {f!r}" for f, n in sorted(self.poser.tf_skipped.items())))
         if pose_topic is None and count > 1:
             warnings.append(f"{self.path}: no --pose-topic: every {topic} message is published at the identity"
@@ -209,7 +210,8 @@ class BagSource(Source):
         if not self.poser.poses:
             no_heading = self.poser.poses_skipped
             raise SourceError(f"{self.path}: pose topic {topic} holds no message with a usable pose"
-                              + (f" ({no_heading} without a unit quaternion)" if no_heading else ""))
+                              + (f" ({no_heading} without a unit quaternion or a finite position)" if no_heading
+                                 else ""))
 
     def frames(self, start: int = 0) -> Iterator[Item]:
         index = -1

@@ -54,7 +54,10 @@ def read_bin(path: Path, num_fields: int) -> NDArray[np.float32]:
 
 
 def _read_matrix_lines(path: Path, what: str) -> list[NDArray[np.float64]]:
-    """Lines of 12 floats as 4x4 homogeneous matrices; errors name the file and line."""
+    """Lines of 12 floats as 4x4 homogeneous matrices; errors name the file and line. A rotation part whose
+    determinant is not positive (a reflection, or all zeros as a placeholder line) is refused: the first had ended
+    the replay with "matrix is a reflection" naming neither file nor line, the second was silently replaced by
+    whatever rotation its re-orthonormalisation gave."""
     out: list[NDArray[np.float64]] = []
     try:
         text = path.read_text()
@@ -71,6 +74,9 @@ def _read_matrix_lines(path: Path, what: str) -> list[NDArray[np.float64]]:
             raise SourceError(f"{path}:{lineno}: {what} line must hold 12 finite numbers, got {len(vals)}")
         m = np.eye(4)
         m[:3, :] = np.array(vals).reshape(3, 4)
+        if not np.linalg.det(m[:3, :3]) > 0:
+            raise SourceError(f"{path}:{lineno}: {what} line's 3x3 part is no rotation (determinant"
+                              f" {np.linalg.det(m[:3, :3]):.3g})")
         out.append(m)
     return out
 
@@ -99,9 +105,10 @@ def read_calib_tr(path: Path) -> NDArray[np.float64]:
             if arr.size == 12 and np.all(np.isfinite(arr)):
                 m = np.eye(4)
                 m[:3, :] = arr.reshape(3, 4)
-                return m
+                if np.linalg.det(m[:3, :3]) > 0:  # a rotation, not a reflection or zeros (_read_matrix_lines)
+                    return m
             break
-    raise SourceError(f"{path}: no valid 'Tr:' line (12 numbers) in calib file")
+    raise SourceError(f"{path}: no valid 'Tr:' line (12 numbers, its 3x3 part a rotation) in calib file")
 
 
 def read_times(path: Path) -> list[int]:

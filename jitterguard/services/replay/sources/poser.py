@@ -34,7 +34,10 @@ TF_BASE_FRAME = "base_link"
 
 
 def _unit(pose: EgoPose) -> bool:
-    return abs(math.hypot(pose.qx, pose.qy, pose.qz, pose.qw) - 1.0) <= LIMITS.max_quaternion_error
+    """A unit quaternion and a finite position: a pose that can be interpolated and composed (tf2 refuses a transform
+    holding NaN, TF_NAN_INPUT; a NaN odometry position had gone into every scan interpolated from it)."""
+    return (abs(math.hypot(pose.qx, pose.qy, pose.qz, pose.qw) - 1.0) <= LIMITS.max_quaternion_error
+            and math.isfinite(pose.x) and math.isfinite(pose.y) and math.isfinite(pose.z))
 
 
 class ScanPoser:
@@ -44,10 +47,10 @@ class ScanPoser:
         self.use_tf = use_tf
         self.turn_clouds = turn_clouds  # PointCloud2 scans are turned into the base frame's axes; boxes are not
         self.tf = TfTree()
-        self.tf_skipped: dict[str, int] = {}  # child frame → transforms skipped: rotation not a unit quaternion
+        self.tf_skipped: dict[str, int] = {}  # child frame → transforms skipped: no unit quaternion or not finite
         self.pose_times: list[int] = []
         self.poses: list[EgoPose] = []
-        self.poses_skipped = 0  # pose messages without a unit quaternion (a GNSS fix without heading)
+        self.poses_skipped = 0  # pose messages without a unit quaternion (a GNSS fix without heading) or finite x, y, z
         self.base_frame: str | None = None  # the pose topic's child_frame_id (e.g. base_link)
         self.notes: list[str] = []  # said once each: the turn of a mount, why a cloud keeps its own axes
         self._levels: dict[str, tuple[NDArray[np.float64], EgoPose] | None] = {}
@@ -57,9 +60,9 @@ class ScanPoser:
 
     def add_tf(self, msg: Any, fallback_ns: int, *, static: bool) -> None:
         """Every transform of a ``tf2_msgs/TFMessage`` (stamped by its header, ``fallback_ns`` where that is 0). A
-        rotation that is not a unit quaternion (an all-zero one from a hand-written static transform) is skipped
-        and counted, as tf2 ignores it: composed into a scan's pose it went out as an ego pose every consumer
-        refuses."""
+        rotation that is not a unit quaternion (an all-zero one from a hand-written static transform) or a translation
+        that is not finite is skipped and counted, as tf2 ignores it: composed into a scan's pose it went out as an
+        ego pose every consumer refuses (a NaN one ended the replay)."""
         for tr in msg.transforms:
             r, q = tr.transform.translation, tr.transform.rotation
             pose = EgoPose(float(r.x), float(r.y), float(r.z), float(q.x), float(q.y), float(q.z), float(q.w))
@@ -73,7 +76,7 @@ class ScanPoser:
 
     def add_pose(self, msg: Any, fallback_ns: int) -> bool:
         """One Odometry / PoseStamped / PoseWithCovarianceStamped sample (kept in stamp order); whether it was
-        usable (a unit quaternion)."""
+        usable (a unit quaternion, a finite position)."""
         pose = pose_of(msg)
         if not _unit(pose):
             self.poses_skipped += 1
@@ -143,7 +146,7 @@ class ScanPoser:
             try:
                 return self.tf.lookup(frame_id, t)
             except KeyError as exc:
-                skipped = "".join(f"; {n} transform(s) to {f!r} skipped: rotation not a unit quaternion"
+                skipped = "".join(f"; {n} transform(s) to {f!r} skipped: rotation not a unit quaternion or not finite"
                                   for f, n in sorted(self.tf_skipped.items()))
                 return f"no TF for the scan: {exc.args[0]}{skipped}"
         if not self.poses:
