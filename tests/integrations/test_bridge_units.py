@@ -65,6 +65,28 @@ def test_a_frame_goes_out_once_all_its_motion_arrived_with_everything_of_its_seq
     assert j.counters.get("motion_missing", 0) == 0
 
 
+def test_another_publishers_message_of_the_same_seq_is_not_joined_into_the_frame() -> None:
+    """A second publisher on the namespace (a test replay, a stray tool) puts a scan of the same seq under its own
+    stamp: it had been joined into the frame (a 2-point cloud in another sensor frame in a Foxglove recording), or
+    had replaced the frame's own scan when it came second. Seq and stamp together name a frame."""
+    j = FrameJoiner(motion_wait_s=1.0)
+    stray = PointCloud(header=Header(stamp=77, seq=3, frame_id="velodyne"), num_points=0, data=b"")
+    j.add_points(PointCloud(header=hdr(3, "lidar"), num_points=0, data=b""))
+    j.add_points(stray)  # after the frame's own scan
+    j.add_tracked(tracked(3, observed=()))
+    j.add_objects(objects(3), now=0.0)
+    (f3,) = j.poll(now=1.0)
+    assert f3.points is not None and f3.points.header.frame_id == "lidar"
+    assert j.counters["stamp_mismatch"] == 1
+    j.add_points(stray.model_copy(update={"header": Header(stamp=77, seq=4, frame_id="velodyne")}))  # before it
+    j.add_tracked(tracked(4, observed=()))
+    j.add_objects(objects(4), now=2.0)
+    assert j.poll(now=2.1) == []  # frame 3 had points: frame 4 waits for its own, not the stray's
+    j.add_points(PointCloud(header=hdr(4, "lidar"), num_points=0, data=b""))
+    (f4,) = j.poll(now=2.1)
+    assert f4.points is not None and f4.points.header.frame_id == "lidar" and j.counters["stamp_mismatch"] == 2
+
+
 def test_missing_motion_times_out_and_a_later_frame_overtakes_a_waiting_one() -> None:
     j = FrameJoiner(motion_wait_s=0.25)
     j.add_tracked(tracked(1))
@@ -135,8 +157,8 @@ def test_made_up_motion_ids_cannot_grow_a_frames_buffer() -> None:
     for i in range(MAX_MOTION_PER_FRAME + 500):
         j.add_motion(motion(5, f"{i:032x}"))
     j.add_motion(motion(5, f"{0:032x}", state="dynamic"))
-    assert len(j._motion.items[5]) == MAX_MOTION_PER_FRAME and j.counters["motion_dropped"] == 500
-    assert j._motion.items[5][f"{0:032x}"].state == "dynamic"
+    assert len(j._motion.items[(5, hdr(5).stamp)]) == MAX_MOTION_PER_FRAME and j.counters["motion_dropped"] == 500
+    assert j._motion.items[(5, hdr(5).stamp)][f"{0:032x}"].state == "dynamic"
 
 
 def test_a_track_without_a_decision_this_frame_keeps_its_latest_one() -> None:

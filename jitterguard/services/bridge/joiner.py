@@ -1,7 +1,10 @@
 """Join one frame's messages from every stage into one :class:`JoinedFrame` — the pure core of the bridges out of
 jitterguard (the Foxglove server and MCAP recorder, the ROS 2 bag recorder).
 
-A frame is the set of messages that share a ``header.seq``: the replay's ``points`` (or ``detections`` at detection
+A frame is the set of messages that share a ``header.seq`` and ``header.stamp`` (every stage passes both on
+unchanged; the stamp keeps a second publisher on the namespace — a test replay, a stray tool — from joining its
+scan of the same seq into the frame: kept apart, it is dropped with the frame's older inputs and counted
+``stamp_mismatch``): the replay's ``points`` (or ``detections`` at detection
 level) and optional ``groundtruth``, the detector's ``detections``, the tracker's ``tracked`` (whose
 ``observed_track_ids`` that are also among the classifier's ``objects`` say which ``motion/{id}`` messages the frame
 will have: tentative tracks may be observed but get none), the classifier's ``objects`` and
@@ -103,29 +106,36 @@ class JoinedFrame:
         return self.objects.header.frame_id or "map"
 
 
+Frame = tuple[int, int]
+"""A frame's (seq, stamp)."""
+
+
 class _BySeq(Generic[T]):
-    """A bounded seq → value map that forgets its oldest entries first."""
+    """A bounded (seq, stamp) → value map that forgets its oldest entries first."""
 
     def __init__(self, cap: int) -> None:
         self.cap = cap
-        self.items: OrderedDict[int, T] = OrderedDict()
+        self.items: OrderedDict[Frame, T] = OrderedDict()
 
-    def put(self, seq: int, value: T) -> int:
+    def put(self, frame: Frame, value: T) -> int:
         """Store; returns how many old entries were dropped to stay within ``cap``."""
-        self.items[seq] = value
-        self.items.move_to_end(seq)
+        self.items[frame] = value
+        self.items.move_to_end(frame)
         dropped = 0
         while len(self.items) > self.cap:
             self.items.popitem(last=False)
             dropped += 1
         return dropped
 
-    def pop(self, seq: int) -> T | None:
-        return self.items.pop(seq, None)
+    def pop(self, frame: Frame) -> T | None:
+        return self.items.pop(frame, None)
 
-    def drop_through(self, seq: int) -> None:
-        for s in [s for s in self.items if s <= seq]:
-            del self.items[s]
+    def drop_through(self, seq: int) -> int:
+        """Forget every entry up to ``seq``; returns how many of them had ``seq`` itself (under another stamp)."""
+        gone = [f for f in self.items if f[0] <= seq]
+        for f in gone:
+            del self.items[f]
+        return sum(1 for f in gone if f[0] == seq)
 
     def clear(self) -> None:
         self.items.clear()
@@ -180,7 +190,7 @@ class FrameJoiner:
 
     def _keep(self, buffer: _BySeq[Any], msg: Any) -> None:
         if self._restart_check(msg.header.seq, msg.header.stamp):
-            self._count("dropped_pending", buffer.put(msg.header.seq, msg))
+            self._count("dropped_pending", buffer.put((msg.header.seq, msg.header.stamp), msg))
 
     def add_points(self, msg: PointCloud) -> None:
         self._keep(self._points, msg)
@@ -198,10 +208,11 @@ class FrameJoiner:
         seq = msg.header.seq
         if not self._restart_check(seq, msg.header.stamp):
             return
-        per = self._motion.items.get(seq)
+        frame = (seq, msg.header.stamp)
+        per = self._motion.items.get(frame)
         if per is None:
             per = {}
-            self._count("dropped_pending", self._motion.put(seq, per))
+            self._count("dropped_pending", self._motion.put(frame, per))
         if len(per) >= MAX_MOTION_PER_FRAME and msg.track_id not in per:
             self._count("motion_dropped")
             return
@@ -216,13 +227,14 @@ class FrameJoiner:
     # ---------------------------------------------------------------------------------------- output
 
     def _complete(self, seq: int, objects: TrackedObjects) -> bool:
-        tracked = self._tracked.items.get(seq)
+        frame = (seq, objects.header.stamp)
+        tracked = self._tracked.items.get(frame)
         if tracked is None:
             return False
         expected = self._expected if self._expected is not None else (self._points, self._detections, self._truth)
-        if any(seq not in buffer.items for buffer in expected):
+        if any(frame not in buffer.items for buffer in expected):
             return False
-        got = self._motion.items.get(seq, {})
+        got = self._motion.items.get(frame, {})
         return all(t in got for t in motion_expected(tracked, objects))
 
     def poll(self, now: float) -> list[JoinedFrame]:
@@ -242,18 +254,21 @@ class FrameJoiner:
         return [self._take(seq, self._open.pop(seq)[0]) for seq in sorted(self._open)]
 
     def _take(self, seq: int, objects: TrackedObjects) -> JoinedFrame:
-        tracked = self._tracked.pop(seq)
-        motion = self._motion.pop(seq) or {}
+        key = (seq, objects.header.stamp)
+        tracked = self._tracked.pop(key)
+        motion = self._motion.pop(key) or {}
         if tracked is not None:
             self._count("motion_missing", sum(1 for t in motion_expected(tracked, objects) if t not in motion))
         ids = [o.object_id for o in objects.objects]
         last = {t: self._latest[t] for t in ids if t not in motion and t in self._latest}
         self._latest = {t: m for t in ids if (m := motion.get(t) or self._latest.get(t)) is not None}
-        frame = JoinedFrame(seq=seq, stamp_ns=objects.header.stamp, objects=objects, points=self._points.pop(seq),
-                            detections=self._detections.pop(seq), groundtruth=self._truth.pop(seq),
+        frame = JoinedFrame(seq=seq, stamp_ns=objects.header.stamp, objects=objects, points=self._points.pop(key),
+                            detections=self._detections.pop(key), groundtruth=self._truth.pop(key),
                             tracked=tracked, motion=motion, last_motion=last)
         for b in (self._points, self._detections, self._truth, self._tracked, self._motion):
-            b.drop_through(seq)  # older frames never got their objects: they will not be emitted
+            # older frames never got their objects: they will not be emitted; this seq under another stamp is
+            # another publisher's
+            self._count("stamp_mismatch", b.drop_through(seq))
         self._expected = [b for b, v in ((self._points, frame.points), (self._detections, frame.detections),
                                           (self._truth, frame.groundtruth)) if v is not None]
         self._last_emitted = max(self._last_emitted, seq)

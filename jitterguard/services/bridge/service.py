@@ -9,7 +9,7 @@ once per burst; the next frame is tried again.
 
 Counters (heartbeat): ``frames`` (written), ``write_ms_last`` (the sink's time on the latest frame), ``inbox_dropped``,
 ``sink_errors`` and the joiner's (``motion_missing``,
-``dropped_pending``, ``late_messages``, ``seq_restarts``), plus the runtime's ``received`` / ``rejected``.
+``dropped_pending``, ``late_messages``, ``seq_restarts``, ``stamp_mismatch``), plus the runtime's ``received`` / ``rejected``.
 """
 
 from __future__ import annotations
