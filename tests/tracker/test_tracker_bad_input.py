@@ -70,9 +70,11 @@ def test_broken_columns_of_a_detection_fall_back_and_the_object_is_tracked(cols:
 
 
 @pytest.mark.parametrize("cols", [dict(z=np.nan), dict(length=np.nan), dict(height=np.inf), dict(area=np.nan),
-                                  dict(width=1e30)], ids=lambda c: ",".join(c))
+                                  dict(width=1e30), dict(length=-4.5, width=-1.9, height=-1.6, area=8.55)],
+                         ids=lambda c: ",".join(c))
 def test_a_detection_without_a_finite_box_is_not_taken(cols: dict) -> None:
-    # a NaN height or size had stayed in its track's running estimate for good (and gone out as NaN)
+    # a NaN height or size had stayed in its track's running estimate for good (and gone out as NaN); a box all of
+    # whose sides were negative had a positive area and was tracked and published with its negative sizes
     good = dict(z=0.0, length=4.5, width=1.9, height=1.6, area=4.5 * 1.9)
     core, results = run(frame(s, [GOOD[0], 10.0], [GOOD[1], 5.0], **{k: [good[k], v] for k, v in cols.items()})
                         for s in range(8))

@@ -51,7 +51,8 @@ def _screened(f: DetectionFrame, max_abs_coordinate_m: float, max_dimension_m: f
 
     Unusable: a non-finite ego pose, centre, height, size or area, a world position beyond
     ``max_abs_coordinate_m`` or a length, width or height beyond ``max_dimension_m`` (what every reader of
-    ``tracked`` refuses; a box 1e30 m wide also made every pair of tracks a candidate overlap), or an exact
+    ``tracked`` refuses; a box 1e30 m wide also made every pair of tracks a candidate overlap) or below 0 (a box
+    all of whose sides were negative had a positive area: it was tracked and published so), or an exact
     repeat of an earlier detection of the frame (same centre and class). Taken, such a detection had started a
     NaN track, and NaN in the sweep of :func:`~.association.near_pairs` left every other detection of the frame
     without its track (each object got a new tentative one every frame); a NaN height or size stayed in its
@@ -88,8 +89,8 @@ def _screened(f: DetectionFrame, max_abs_coordinate_m: float, max_dimension_m: f
         )
     pose_ok = all(np.isfinite(v) for v in (f.ego_x, f.ego_y, f.ego_z, f.ego_yaw))
     usable = (np.isfinite(f.x) & np.isfinite(f.y) & np.isfinite(f.z) & np.isfinite(f.area)
-              & (np.abs(f.length) <= max_dimension_m) & (np.abs(f.width) <= max_dimension_m)
-              & (np.abs(f.height) <= max_dimension_m))  # NaN compares False
+              & (f.length >= 0.0) & (f.length <= max_dimension_m) & (f.width >= 0.0) & (f.width <= max_dimension_m)
+              & (f.height >= 0.0) & (f.height <= max_dimension_m))  # NaN compares False
     if not pose_ok:  # nothing can be placed in the world (and math.cos(inf) raises): the tracks coast
         usable[:] = False
         f = replace(f, ego_x=0.0, ego_y=0.0, ego_z=0.0, ego_yaw=0.0)
