@@ -306,6 +306,18 @@ def test_export_onnx_cli_writes_the_files_and_reports_its_check(tmp_path) -> Non
     assert read_manifest(tmp_path)["meta"]["preset"] == "lite"
 
 
+def test_an_export_that_fails_its_check_cannot_be_loaded(tmp_path) -> None:
+    """At a tolerance of 0 float32 noise fails the check: exit 1, and the manifest is gone, so no backend loads the
+    graphs (the export had stayed whole, its checksums matching, for `detector --backend onnxruntime` to deploy)."""
+    res = _cli(["export-onnx", "--out", str(tmp_path), "--check-scans", "1", "--threads", "1", "--tolerance", "0",
+                "--yaw-tolerance", "0"])
+    assert res.exit_code == 1, res.output
+    assert "detector.json removed, so the export cannot be loaded" in res.stderr
+    assert (tmp_path / "detector.onnx").is_file() and not (tmp_path / "detector.json").exists()
+    with pytest.raises(Exception, match="detector.json"):
+        load_onnx_detector(tmp_path, threads=1)
+
+
 @pytest.mark.slow
 def test_bench_detector_reports_torch_and_onnxruntime_side_by_side() -> None:
     res = _cli(["bench", "detector", "--json", "--presets", "lite", "--scans", "2", "--warmup", "1", "--threads", "1",

@@ -4,7 +4,7 @@ After writing, the export is checked: ONNX Runtime runs it on real HDL-32E scans
 raw head maps and the decoded boxes, scores and log-variances are compared with torch's; the maximum absolute
 differences are printed (and the command fails, exit 1, if the decoded detections differ beyond ``--tolerance`` —
 ``--yaw-tolerance`` for the yaw angle —, the raw maps beyond :data:`MAP_TOLERANCE`, or the detections differ in
-number or class). Bad input (a stacked-sweep model, a ``--preset`` other than the ``--weights``' architecture)
+number or class; ``detector.json`` is then removed, so no backend loads the failed export). Bad input (a stacked-sweep model, a ``--preset`` other than the ``--weights``' architecture)
 is exit 2 before any export. Randomly initialised weights (a preset without
 shipped weights) are checked on the raw head maps only: they score every cell about alike, and which of hundreds
 of near-ties make the top-K is float32 noise.
@@ -214,8 +214,11 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             report["check"] = check = check_export(det, onnx_det, bench_scans(check_scans), decoded=decoded)
             print(json.dumps(report))
             if not export_ok(check, tolerance, yaw_tolerance):
-                print(f"jitterguard: error: onnxruntime and torch disagree beyond --tolerance {tolerance:g} / --yaw-tolerance {yaw_tolerance:g}: {check.get('max_abs_error', check['head_maps'])}",
-                      file=sys.stderr)
+                # the manifest goes: without it no backend loads the graphs (left for a look), so an export that
+                # failed its check cannot be deployed by mistake (it had stayed whole, checksums matching)
+                res.manifest_path.unlink(missing_ok=True)
+                print(f"jitterguard: error: onnxruntime and torch disagree beyond --tolerance {tolerance:g} / --yaw-tolerance {yaw_tolerance:g}: {check.get('max_abs_error', check['head_maps'])};"
+                      f" {res.manifest_path.name} removed, so the export cannot be loaded", file=sys.stderr)
                 raise typer.Exit(1)
             return
         print(json.dumps(report))
