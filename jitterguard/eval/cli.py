@@ -270,8 +270,6 @@ def load_detector(weights: Path | None, threads: int | None, self_crop: bool = T
     service's default — and ``sensor_tilt`` — ``auto``, ``level`` or None — as the service's settings) and a
     description of the file (name and the first 12 hex digits of its SHA-256, so a metrics.json names the exact
     weights; None for random initialisation). A missing or unusable file fails with one line."""
-    import hashlib
-
     from ..services.detector.config import SELF_CROP_M, declared_height, measures_tilt
     from ..services.detector.inference import Detector, WeightsError, shipped_weights
 
@@ -288,8 +286,15 @@ def load_detector(weights: Path | None, threads: int | None, self_crop: bool = T
         fail(f"--detector-flips: {exc}")
     if det.meta.get("random_init"):
         return det, None
-    digest = hashlib.sha256(path.read_bytes()).hexdigest()[:12]
-    return det, f"{path if weights is not None else 'shipped ' + path.name} (sha256 {digest})"
+    return det, described_file(path, path if weights is not None else f"shipped {path.name}")
+
+
+def described_file(path: Path, name: str | Path | None = None) -> str:
+    """``name`` (default: the path) and the first 12 hex digits of the file's SHA-256: what a metrics.json says of
+    an input file, so the run names the exact bytes it used."""
+    import hashlib
+
+    return f"{name or path} (sha256 {hashlib.sha256(path.read_bytes()).hexdigest()[:12]})"
 
 
 def detector_run_info(detector: "Detector", weights_desc: str | None,
@@ -504,7 +509,10 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
                 "min_window": classifier.min_window, "window_size": rec.window_size,
                 "window_stride": rec.window_stride, "window_reference_hz": classifier.window_reference_hz,
                 "mode": scored_test(classifier),
-                "calibration": classifier.calibration, "effective_n": classifier.effective_n,
+                "calibration": classifier.calibration,
+                "calibration_file": described_file(Path(classifier.calibration_file))
+                if classifier.calibration == "file" and classifier.calibration_file else None,
+                "effective_n": classifier.effective_n,
                 "min_speed_mps": classifier.min_speed_mps, "variance_scale": variance_scale,
                 "variance_scale_at": variance_scale_at,
                 "tracker_measurement_scale": (tracker or default_tracker_config()).measurement_scale},

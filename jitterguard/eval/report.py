@@ -317,7 +317,8 @@ def write_outputs(out: Path, rec: Records, metrics: dict[str, Any],
         f"Input `{run['input']}`, {_input_desc(run)}, seed {run['seed']}, {run['frames']} frames, "
         f"{run['rows']} (frame, track) rows, {run['matched_rows']} matched to ground truth "
         f"(≤ {run['match_distance_m']} m). Operating points: {test} alpha {run['alpha']} "
-        f"(effective_n `{run.get('effective_n')}`, calibration `{run.get('calibration')}`, H0 speed ≤ "
+        f"(effective_n `{run.get('effective_n')}`, calibration `{run.get('calibration')}`"
+        + (f" from `{run['calibration_file']}`" if run.get("calibration_file") else "") + ", H0 speed ≤ "
         f"{run.get('min_speed_mps')} m/s"
         + (f", window {run['window_size']} observations" if run.get("window_size") else "")
         + (f", one every {run['window_stride']} frames" if (run.get("window_stride") or 1) > 1 else "")

@@ -120,3 +120,22 @@ def test_calibrate_says_why_it_got_no_frame(tmp_path: Path, capsys) -> None:
                              "--out", str(tmp_path / "c.yaml")], capsys)
     assert "--start 500 is past the end" in line, line
     assert not (tmp_path / "c.yaml").exists()
+
+
+def test_eval_names_the_calibration_file_it_used_by_its_bytes(tmp_path: Path) -> None:
+    """metrics.json named the detector's weights with a checksum but a calibration file only as `calibration:
+    file`: a run could not say which fitted scales it was scored with."""
+    import hashlib
+    import json
+
+    _calibrate(tmp_path, "cal", "--duration", "12")
+    cal = tmp_path / "cal.yaml"
+    with pytest.raises(SystemExit) as exc:
+        main(["eval", "--scenario", "mixed", "--seed", "3", "--duration", "4", "--input", "gt-noise",
+              "--calibration-file", str(cal), "--out", str(tmp_path / "o")])
+    assert exc.value.code in (0, None)
+    run = json.loads((tmp_path / "o" / "metrics.json").read_text())["run"]
+    assert run["calibration"] == "file"
+    named = f"{cal} (sha256 {hashlib.sha256(cal.read_bytes()).hexdigest()[:12]})"
+    assert run["calibration_file"] == named
+    assert f"calibration `file` from `{named}`" in (tmp_path / "o" / "report.md").read_text()
