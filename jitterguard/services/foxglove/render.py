@@ -87,7 +87,8 @@ def read_frames(path: str | Path) -> list[RecordedFrame]:
             raise RenderError(f"{path}: not a readable MCAP file ({type(exc).__name__}: {exc})") from None
     out = [frames[t] for t in sorted(frames) if TRACKS in frames[t].messages]
     if not out:
-        raise RenderError(f"{path}: no {TRACKS} messages (not a `jitterguard foxglove --record` file?)")
+        raise RenderError(f"{path}: no {TRACKS} messages (a recording of no classified frame, or none of"
+                          " jitterguard's: `foxglove --record`, `up --record-mcap`, `eval --mcap`)")
     return out
 
 
