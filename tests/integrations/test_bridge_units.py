@@ -187,6 +187,32 @@ def test_stragglers_are_dropped_and_an_upstream_restart_starts_over() -> None:
     assert [f.seq for f in j.poll(now=1.0)] == [0] and j.counters["seq_restarts"] == 1
 
 
+def test_a_second_publishers_old_seqs_do_not_start_the_joiner_over() -> None:
+    """A test replay on the namespace puts scans at seq 0, 1, … while the stack is at seq 40: each had been taken
+    for an upstream restart, clearing every frame in flight (their scans and detections lost) and counted
+    ``seq_restarts``. Only the frames' anchor, ``objects``, says the upstream restarted; then the inputs of the
+    restarted run that came first are still there for its frames."""
+    j = FrameJoiner(motion_wait_s=1.0)
+    for s in range(40, 43):
+        j.add_detections(DetectedObjects(header=hdr(s, "lidar")))
+        j.add_tracked(tracked(s, observed=()))
+        j.add_objects(objects(s), now=0.0)
+    assert [f.seq for f in j.poll(now=0.0)] == [40, 41, 42]
+    j.add_detections(DetectedObjects(header=hdr(43, "lidar")))
+    j.add_tracked(tracked(43, observed=()))
+    for s in (0, 1):  # the stray publisher's
+        j.add_points(PointCloud(header=Header(stamp=5 + s, seq=s, frame_id="velodyne"), num_points=0, data=b""))
+    j.add_objects(objects(43), now=0.5)
+    (f43,) = j.poll(now=0.5)
+    assert f43.detections is not None and f43.points is None and "seq_restarts" not in j.counters
+    # a real restart: the restarted run's detections and tracked of seq 0 arrive before its objects
+    j.add_detections(DetectedObjects(header=Header(stamp=9_000, seq=0, frame_id="lidar")))
+    j.add_tracked(TrackedObjects(header=Header(stamp=9_000, seq=0, frame_id="map"), observed_track_ids=[]))
+    j.add_objects(objects(0).model_copy(update={"header": Header(stamp=9_000, seq=0, frame_id="map")}), now=1.0)
+    (f0,) = j.poll(now=2.0)  # the first frame after a restart waits for every input stream, motion_wait_s at most
+    assert j.counters["seq_restarts"] == 1 and f0.detections is not None and f0.detections.header.stamp == 9_000
+
+
 def test_a_replay_that_starts_over_soon_is_followed_not_dropped() -> None:
     """A short ``--loop`` pass or an early supervisord restart sends seq 0 again a few frames in: under a new stamp
     (wall-clock loops) it is a restart at once; under its old stamp it is one once it lies more than RESTART_GAP

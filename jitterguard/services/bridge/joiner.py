@@ -24,7 +24,8 @@ the frame's ``motion/{id}``, so:
 - a seq lower than the last emitted one is a straggler of a frame already out (dropped, ``late_messages``) while it
   is at most ``RESTART_GAP`` frames back and carries the stamp that frame went out with; further back, or under
   another stamp (a replay looping on wall-clock stamps), the upstream restarted (a replay restarted by supervisord
-  starts again at seq 0): the buffers are cleared and counted ``seq_restarts``.
+  starts again at seq 0) once ``objects`` says so: the open frames and the emitted seqs are forgotten, counted
+  ``seq_restarts``; inputs that arrived first are kept for the restarted run's frames.
 
 No I/O, no clock: callers pass ``now`` (monotonic seconds).
 """
@@ -166,16 +167,18 @@ class FrameJoiner:
         if n:
             self.counters[name] = self.counters.get(name, 0) + n
 
-    def _restart_check(self, seq: int, stamp: int) -> bool:
-        """False if (``seq``, ``stamp``) belongs to a frame already emitted (a straggler); clears everything when
-        the seqs went back further than a straggler could, or an emitted seq comes back under another stamp (an
-        upstream restart)."""
+    def _restart_check(self, seq: int, stamp: int, *, anchor: bool = False) -> bool:
+        """False if (``seq``, ``stamp``) belongs to a frame already emitted (a straggler). When the seqs went back
+        further than a straggler could, or an emitted seq comes back under another stamp, the upstream restarted —
+        as the frames' anchor, ``objects``, says: it starts the joiner over. An input that says so is kept, keyed
+        by its seq and stamp, for the restarted run's objects to take: it may as well be a second publisher's on the
+        namespace (a test replay), and each of its messages had cleared every frame in flight."""
         if seq > self._last_emitted:
             return True
         out_as = self._emitted.get(seq)
         if self._last_emitted - seq > RESTART_GAP or (out_as is not None and out_as != stamp):
-            for b in (self._points, self._detections, self._truth, self._tracked, self._motion):
-                b.clear()
+            if not anchor:
+                return True
             self._open.clear()
             self._latest.clear()
             self._expected = None
@@ -220,7 +223,7 @@ class FrameJoiner:
 
     def add_objects(self, msg: TrackedObjects, now: float) -> None:
         seq = msg.header.seq
-        if self._restart_check(seq, msg.header.stamp):
+        if self._restart_check(seq, msg.header.stamp, anchor=True):
             self._open[seq] = (msg, now)
             self._open.move_to_end(seq)
 
