@@ -112,6 +112,7 @@ def test_help_shows_no_value_type_after_plain_flags():
     ("bench track-survival", "Scenario length [s]"),  # Rich had taken "[s]" for markup and printed "length ."
     ("eval-study", "Scenario length [s]"),
     ("eval", "Synthetic scenario length [s]"),
+    ("eval", "for every class [m/s] (default"),  # Rich had taken "[m/s]" for markup and dropped it
     ("eval-detector", "90 % intervals"),  # had printed "90 %%"
 ])
 def test_help_shows_units_and_percent_signs_as_written(command, text):
