@@ -224,6 +224,10 @@ def test_an_output_that_cannot_be_written_is_refused_before_any_work(args, needl
      "--objects-topic: 'objects' is not a ROS 2 topic name"),
     (["ros2-out", "--middleware", "rmw_zenoh", "--ros-distro", "Jazzy", "--connect", "tcp/127.0.0.1:9"],
      "--ros-distro: 'Jazzy' is not a ROS 2 distribution's name"),
+    # an empty parameter file path had been "jitterguard: error: : not a file", naming neither flag nor problem
+    (["classifier", "--config", "", "--connect", "tcp/127.0.0.1:9"], "--config: empty path; give a file"),
+    (["detector", "--config", "", "--connect", "tcp/127.0.0.1:9"], "--config: empty path; give a file"),
+    (["tracker", "--config", "", "--print-config"], "--config: empty path; give a file"),
 ])
 def test_bad_input_is_refused_in_one_line_before_any_work(args, needle, tmp_path):
     cwd = tmp_path / "cwd"  # an empty --out that regressed to "the current folder" writes here, not into the repo
