@@ -222,6 +222,8 @@ def test_an_output_that_cannot_be_written_is_refused_before_any_work(args, needl
      "--objects-topic takes the vehicle's detections in place of scans"),
     (["ros2-in", "--objects-topic", "objects", "--connect", "tcp/127.0.0.1:9"],
      "--objects-topic: 'objects' is not a ROS 2 topic name"),
+    (["ros2-in", "--points-topic", "", "--connect", "tcp/127.0.0.1:9"],  # had quietly read the default topic
+     "--points-topic: '' is not a ROS 2 topic name"),
     (["ros2-out", "--middleware", "rmw_zenoh", "--ros-distro", "Jazzy", "--connect", "tcp/127.0.0.1:9"],
      "--ros-distro: 'Jazzy' is not a ROS 2 distribution's name"),
     # an empty parameter file path had been "jitterguard: error: : not a file", naming neither flag nor problem
