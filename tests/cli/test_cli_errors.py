@@ -224,6 +224,13 @@ def test_an_output_that_cannot_be_written_is_refused_before_any_work(args, needl
      "--objects-topic: 'objects' is not a ROS 2 topic name"),
     (["ros2-in", "--points-topic", "", "--connect", "tcp/127.0.0.1:9"],  # had quietly read the default topic
      "--points-topic: '' is not a ROS 2 topic name"),
+    # an empty --run-dir had meant the default stack's (down stopped it) and the monitor's the current folder
+    (["down", "--run-dir", ""], "--run-dir: empty path; give a folder"),
+    (["status", "--run-dir", ""], "--run-dir: empty path; give a folder"),
+    (["summary", "--run-dir", ""], "--run-dir: empty path; give a folder"),
+    (["logs", "classifier", "--run-dir", ""], "--run-dir: empty path; give a folder"),
+    (["up", "--run-dir", "", "--duration", "1"], "--run-dir: empty path; give a folder"),
+    (["stack-monitor", "--run-dir", "", "--connect", "tcp/127.0.0.1:9"], "--run-dir: empty path; give a folder"),
     (["ros2-out", "--middleware", "rmw_zenoh", "--ros-distro", "Jazzy", "--connect", "tcp/127.0.0.1:9"],
      "--ros-distro: 'Jazzy' is not a ROS 2 distribution's name"),
     # an empty parameter file path had been "jitterguard: error: : not a file", naming neither flag nor problem
