@@ -396,6 +396,8 @@ def _recording_path(value: str | None, flag: str, folder: bool) -> str | None:
     where the recorder then crash-looped in a stack already started."""
     if value is None:
         return None
+    if not value.strip():  # Path("") is the current folder: "--record-mcap:  exists"
+        fail(f"{flag}: empty path; give a {'folder' if folder else 'file'}")
     p = Path(value).expanduser().resolve()
     if p.exists():
         fail(f"{flag}: {value} exists")

@@ -231,6 +231,12 @@ def test_an_output_that_cannot_be_written_is_refused_before_any_work(args, needl
     (["logs", "classifier", "--run-dir", ""], "--run-dir: empty path; give a folder"),
     (["up", "--run-dir", "", "--duration", "1"], "--run-dir: empty path; give a folder"),
     (["stack-monitor", "--run-dir", "", "--connect", "tcp/127.0.0.1:9"], "--run-dir: empty path; give a folder"),
+    # an empty recording path: "--ros2:  exists", "--record:  is a folder"; with --number-if-exists a traceback
+    (["record", "--ros2", "", "--connect", "tcp/127.0.0.1:9"], "--ros2: empty path; give a folder"),
+    (["record", "--ros2", "", "--number-if-exists", "--connect", "tcp/127.0.0.1:9"], "--ros2: empty path"),
+    (["foxglove", "--record", "", "--connect", "tcp/127.0.0.1:9"], "--record: empty path; give a file"),
+    (["up", "--record-mcap", "", "--run-dir", "{tmp}", "--duration", "1"], "--record-mcap: empty path; give a file"),
+    (["up", "--record-ros2", "", "--run-dir", "{tmp}", "--duration", "1"], "--record-ros2: empty path; give a folder"),
     (["ros2-out", "--middleware", "rmw_zenoh", "--ros-distro", "Jazzy", "--connect", "tcp/127.0.0.1:9"],
      "--ros-distro: 'Jazzy' is not a ROS 2 distribution's name"),
     # an empty parameter file path had been "jitterguard: error: : not a file", naming neither flag nor problem
