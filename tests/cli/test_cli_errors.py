@@ -237,6 +237,9 @@ def test_an_output_that_cannot_be_written_is_refused_before_any_work(args, needl
     (["foxglove", "--record", "", "--connect", "tcp/127.0.0.1:9"], "--record: empty path; give a file"),
     (["up", "--record-mcap", "", "--run-dir", "{tmp}", "--duration", "1"], "--record-mcap: empty path; give a file"),
     (["up", "--record-ros2", "", "--run-dir", "{tmp}", "--duration", "1"], "--record-ros2: empty path; give a folder"),
+    # an empty --zenoh-config had meant none: the router started on its default endpoint, a service as a client
+    (["router", "--zenoh-config", "", "--listen", "tcp/127.0.0.1:17461"], "--zenoh-config: empty path; give a file"),
+    (["classifier", "--zenoh-config", "", "--connect", "tcp/127.0.0.1:9"], "--zenoh-config: empty path; give a file"),
     (["ros2-out", "--middleware", "rmw_zenoh", "--ros-distro", "Jazzy", "--connect", "tcp/127.0.0.1:9"],
      "--ros-distro: 'Jazzy' is not a ROS 2 distribution's name"),
     # an empty parameter file path had been "jitterguard: error: : not a file", naming neither flag nor problem
