@@ -17,8 +17,19 @@ from .runtime import ZenohOptions, build_config
 from .runtime.zenoh_config import ENV_CONFIG, ENV_NS, tls_file_refusal
 
 NsOpt = Annotated[str, typer.Option("--ns", envvar=ENV_NS, help="Namespace: keys live under jg/{ns}/...")]
+
+
+def _zenoh_config_path(value: str | None) -> str | None:
+    """``--zenoh-config`` checked where it is parsed, for every command that takes it: an empty path had quietly
+    meant no file (the router started on its default endpoint). An empty ``JG_ZENOH_CONFIG`` stays unset."""
+    if value is not None and not value.strip():
+        fail("--zenoh-config: empty path; give a file")
+    return value
+
+
 ZenohConfigOpt = Annotated[
-    str | None, typer.Option("--zenoh-config", envvar=ENV_CONFIG, help="Zenoh json5 config file.")
+    str | None, typer.Option("--zenoh-config", envvar=ENV_CONFIG, help="Zenoh json5 config file.",
+                             callback=_zenoh_config_path)
 ]
 ConnectOpt = Annotated[
     list[str] | None, typer.Option("--connect", help="Zenoh endpoint to connect to (repeatable), e.g. tcp/127.0.0.1:7447.")

@@ -71,6 +71,8 @@ _StrictLoader.add_implicit_resolver("tag:yaml.org,2002:float",
 
 def read_params(path: str | Path) -> dict[str, Any]:
     """A parameter file's mapping: flat, or unwrapped from Autoware's ``<node or /**>: ros__parameters:``."""
+    if not str(path).strip():  # Path("") is the current folder: "<flag>: : not a file" had named nothing
+        raise ConfigError("empty path; give a file")
     p = Path(path)
     if not p.is_file():
         raise ConfigError(f"config file not found: {path}" if not p.exists() else f"{path}: not a file")

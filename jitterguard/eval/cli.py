@@ -65,7 +65,7 @@ def eval_command(
     preset: Annotated[str | None, typer.Option("--preset", help="Classifier preset: authors, autoware-sustain, hold, paper (jitterguard/config/classifier.<name>.param.yaml).")] = None,
     alpha: Annotated[float | None, typer.Option("--alpha", help="alpha_default of the z-test (no per-class overrides).")] = None,
     velocity_threshold: Annotated[float | None, typer.Option("--velocity-threshold", help="The baseline's speed"
-                                                             " cut-off for every class [m/s] (default: Autoware's"
+                                                             " cut-off for every class \\[m/s] (default: Autoware's"
                                                              " per class, 1.0 vehicles, 0.28 others).")] = None,
     runs: Annotated[int, typer.Option("--runs", help="Pool seeds seed … seed+runs-1 into one scored table (one "
                                       "drive: the online calibration carries over).")] = 1,

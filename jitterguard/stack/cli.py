@@ -70,7 +70,9 @@ def resolve(run_dir: str | None, name: str | None, ns: str) -> tuple[Path, str]:
     """(run directory, label for messages) from ``--run-dir`` / ``--name`` / ``--ns``; bad ones exit 2."""
     try:
         stack = check_name(name) if name is not None else check_name(ns)
-        rd = check_run_dir(Path(run_dir)) if run_dir else default_run_dir(stack)
+        if run_dir is not None and not run_dir.strip():  # had quietly meant the default stack (`down --run-dir ""`)
+            raise ArgumentError("--run-dir: empty path; give a folder")
+        rd = check_run_dir(Path(run_dir)) if run_dir is not None else default_run_dir(stack)
     except ArgumentError as exc:
         fail(str(exc))
     return rd, (f"{stack!r}" if not run_dir else f"in {rd}")
@@ -394,6 +396,8 @@ def _recording_path(value: str | None, flag: str, folder: bool) -> str | None:
     where the recorder then crash-looped in a stack already started."""
     if value is None:
         return None
+    if not value.strip():  # Path("") is the current folder: "--record-mcap:  exists"
+        fail(f"{flag}: empty path; give a {'folder' if folder else 'file'}")
     p = Path(value).expanduser().resolve()
     if p.exists():
         fail(f"{flag}: {value} exists")

@@ -324,8 +324,8 @@ class StackMonitor(Service):
 
 
 def monitor_command(
-    run_dir: Annotated[Path, typer.Option("--run-dir", help="The stack's run directory (summary.json goes there); "
-                                          "under your own supervisord, a folder the monitor may write.")],
+    run_dir: Annotated[str, typer.Option("--run-dir", help="The stack's run directory (summary.json goes there); "
+                                         "under your own supervisord, a folder the monitor may write.")],
     supervisor_url: Annotated[str | None, typer.Option(
         "--supervisor-url", envvar=SERVER_URL_ENV, show_envvar=False,
         help="supervisord's XML-RPC socket (unix:///…/supervisor.sock). supervisord gives every program its own in "
@@ -341,8 +341,11 @@ def monitor_command(
 ) -> None:
     """The stack's bookkeeping and healing program (started by `jitterguard up`, or a program of your own
     supervisord): heartbeats in, summary.json out; ends frozen programs and holds back crash loops."""
-    if not run_dir.is_dir():  # bad input first: a one-line error before anything is set up
-        fail(f"--run-dir: no such folder: {run_dir}")
+    if not run_dir.strip():  # Path("") is the current folder: summary.json had gone wherever it was started
+        fail("--run-dir: empty path; give a folder")
+    rd = Path(run_dir)
+    if not rd.is_dir():  # bad input first: a one-line error before anything is set up
+        fail(f"--run-dir: no such folder: {rd}")
     try:
         sock = socket_of(supervisor_url) if supervisor_url else None
     except ValueError as exc:
@@ -350,7 +353,7 @@ def monitor_command(
     if supervisord_log is not None and not supervisord_log.parent.is_dir():
         fail(f"--supervisord-log: no such folder: {supervisord_log.parent}")
     setup_logging(log_level)
-    StackMonitor(zenoh_options(ns, zenoh_config, connect, listen), run_dir, sock, supervisord_log).run_forever()
+    StackMonitor(zenoh_options(ns, zenoh_config, connect, listen), rd, sock, supervisord_log).run_forever()
 
 
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:

@@ -112,6 +112,7 @@ def test_help_shows_no_value_type_after_plain_flags():
     ("bench track-survival", "Scenario length [s]"),  # Rich had taken "[s]" for markup and printed "length ."
     ("eval-study", "Scenario length [s]"),
     ("eval", "Synthetic scenario length [s]"),
+    ("eval", "for every class [m/s] (default"),  # Rich had taken "[m/s]" for markup and dropped it
     ("eval-detector", "90 % intervals"),  # had printed "90 %%"
 ])
 def test_help_shows_units_and_percent_signs_as_written(command, text):
@@ -221,8 +222,30 @@ def test_an_output_that_cannot_be_written_is_refused_before_any_work(args, needl
      "--objects-topic takes the vehicle's detections in place of scans"),
     (["ros2-in", "--objects-topic", "objects", "--connect", "tcp/127.0.0.1:9"],
      "--objects-topic: 'objects' is not a ROS 2 topic name"),
+    (["ros2-in", "--points-topic", "", "--connect", "tcp/127.0.0.1:9"],  # had quietly read the default topic
+     "--points-topic: '' is not a ROS 2 topic name"),
+    # an empty --run-dir had meant the default stack's (down stopped it) and the monitor's the current folder
+    (["down", "--run-dir", ""], "--run-dir: empty path; give a folder"),
+    (["status", "--run-dir", ""], "--run-dir: empty path; give a folder"),
+    (["summary", "--run-dir", ""], "--run-dir: empty path; give a folder"),
+    (["logs", "classifier", "--run-dir", ""], "--run-dir: empty path; give a folder"),
+    (["up", "--run-dir", "", "--duration", "1"], "--run-dir: empty path; give a folder"),
+    (["stack-monitor", "--run-dir", "", "--connect", "tcp/127.0.0.1:9"], "--run-dir: empty path; give a folder"),
+    # an empty recording path: "--ros2:  exists", "--record:  is a folder"; with --number-if-exists a traceback
+    (["record", "--ros2", "", "--connect", "tcp/127.0.0.1:9"], "--ros2: empty path; give a folder"),
+    (["record", "--ros2", "", "--number-if-exists", "--connect", "tcp/127.0.0.1:9"], "--ros2: empty path"),
+    (["foxglove", "--record", "", "--connect", "tcp/127.0.0.1:9"], "--record: empty path; give a file"),
+    (["up", "--record-mcap", "", "--run-dir", "{tmp}", "--duration", "1"], "--record-mcap: empty path; give a file"),
+    (["up", "--record-ros2", "", "--run-dir", "{tmp}", "--duration", "1"], "--record-ros2: empty path; give a folder"),
+    # an empty --zenoh-config had meant none: the router started on its default endpoint, a service as a client
+    (["router", "--zenoh-config", "", "--listen", "tcp/127.0.0.1:17461"], "--zenoh-config: empty path; give a file"),
+    (["classifier", "--zenoh-config", "", "--connect", "tcp/127.0.0.1:9"], "--zenoh-config: empty path; give a file"),
     (["ros2-out", "--middleware", "rmw_zenoh", "--ros-distro", "Jazzy", "--connect", "tcp/127.0.0.1:9"],
      "--ros-distro: 'Jazzy' is not a ROS 2 distribution's name"),
+    # an empty parameter file path had been "jitterguard: error: : not a file", naming neither flag nor problem
+    (["classifier", "--config", "", "--connect", "tcp/127.0.0.1:9"], "--config: empty path; give a file"),
+    (["detector", "--config", "", "--connect", "tcp/127.0.0.1:9"], "--config: empty path; give a file"),
+    (["tracker", "--config", "", "--print-config"], "--config: empty path; give a file"),
 ])
 def test_bad_input_is_refused_in_one_line_before_any_work(args, needle, tmp_path):
     cwd = tmp_path / "cwd"  # an empty --out that regressed to "the current folder" writes here, not into the repo

@@ -31,7 +31,7 @@ def _load_config(path: str | None, preset: str | None, overrides: dict[str, obje
         return load(ClassifierParams, path, service="classifier", preset=preset, overrides=overrides,
                     flags={"alpha_default": "--alpha"})
     except ConfigError as exc:
-        fail(f"--config: {exc}" if path else str(exc))
+        fail(f"--config: {exc}" if path is not None else str(exc))
 
 
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:

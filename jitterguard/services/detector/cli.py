@@ -109,7 +109,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                 "twist": twist, "backend": backend, "onnx": onnx_dir, "flips": flips,
                 "sensor_height_m": sensor_height_option(sensor_height), "sensor_tilt": sensor_tilt_option(sensor_tilt)})
         except ConfigError as exc:
-            fail(f"--config: {exc}" if config else str(exc))
+            fail(f"--config: {exc}" if config is not None else str(exc))
         refused = params_refusal(params)
         if refused is not None:  # named as the user gave it: the flag, or the file's key
             key, why = refused

@@ -49,6 +49,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             fail(f"--host: {host!r} is not a loopback address; the Foxglove protocol has no authentication"
                  " (view remotely through an SSH tunnel)")
         if record is not None:
+            if not record.strip():  # Path("") is the current folder: "--record:  is a folder"
+                fail("--record: empty path; give a file")
             rp = Path(record)
             if rp.is_dir():
                 fail(f"--record: {record} is a folder")

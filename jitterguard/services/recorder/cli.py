@@ -34,6 +34,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
     ) -> None:
         from ..bridge.paths import next_free_path
 
+        if not ros2.strip():  # Path("") is the current folder: "--ros2:  exists", or a bag in ./.1
+            fail("--ros2: empty path; give a folder")
         path = Path(ros2)
         if path.exists():
             if not number_if_exists:

@@ -117,7 +117,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         if points_topic is not None and objects_topic is not None:
             fail("--objects-topic takes the vehicle's detections in place of scans: give it or --points-topic")
         topic = (topic_option("--objects-topic", objects_topic) if objects_topic is not None
-                 else topic_option("--points-topic", points_topic or DEFAULT_POINTS_TOPIC))
+                 else topic_option("--points-topic", DEFAULT_POINTS_TOPIC if points_topic is None else points_topic))
         pose_topic = topic_option("--pose-topic", pose_topic)
         wait = parse_float("--tf-wait-s", tf_wait_s, 0.0, 1.0)
         if no_pose:
