@@ -6,6 +6,7 @@ holds what they all reuse so the flags are spelled once.
 
 from __future__ import annotations
 
+import atexit
 import os
 import sys
 from pathlib import Path
@@ -166,13 +167,28 @@ def out_dir(flag: str, path: str | os.PathLike[str]) -> Path:
     if not os.fspath(path).strip():
         fail(f"{flag}: empty path; give a folder")
     p = Path(path)
+    created = [q for q in (p, *p.parents) if not q.exists()]
     try:
         p.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         fail(f"{flag}: cannot create the folder {p}: {exc.strerror or exc}")
+    if created:
+        atexit.register(_remove_if_empty, created)
     if not os.access(p, os.W_OK | os.X_OK):
         fail(f"{flag}: cannot write into {p}")
     return p
+
+
+def _remove_if_empty(created: list[Path]) -> None:
+    """At exit, the folders :func:`out_dir` created (deepest first) that are still empty: a run refused after its
+    folder was made (a dataroot that is none, a bad scans folder, Ctrl-C before the first result) had left an empty
+    ``--out`` behind, looking like a run that wrote nothing. Never a folder that was there before, nor one with
+    anything in it (rmdir refuses)."""
+    for q in created:
+        try:
+            q.rmdir()
+        except OSError:
+            return
 
 
 def out_file(flag: str, path: str | os.PathLike[str]) -> Path:

@@ -265,3 +265,22 @@ def test_bad_range_bands_name_their_flag_in_one_line(bands, needle, tmp_path):
                f"--range-bands={bands}"])
     assert res.returncode == 2 and res.stderr.strip() == f"jitterguard: error: --range-bands: {needle}", res.stderr
 
+
+
+@pytest.mark.parametrize("args", [
+    ["eval-detector", "--out", "{out}", "--nuscenes", "{tmp}/nodata"],
+    ["domain-gap", "--out", "{out}", "--nuscenes", "{tmp}/nodata"],
+    ["adapt", "--out", "{out}", "--scans", "{tmp}/nodata"],
+])
+def test_a_run_refused_after_its_folder_was_made_leaves_no_empty_folder(args, tmp_path):
+    """The folder is made before the slow checks (a run must not compute and then fail to write); refused after
+    it — a folder that is no dataroot, scans it cannot read — it had stayed behind empty, parents and all."""
+    (tmp_path / "nodata").mkdir()
+    (tmp_path / "nodata" / "junk.txt").write_text("not a scan\n")
+    kept = tmp_path / "kept"
+    kept.mkdir()
+    for out in (tmp_path / "new" / "deeper", kept):
+        res = run([a.replace("{tmp}", str(tmp_path)).replace("{out}", str(out)) for a in args])
+        assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
+    assert not (tmp_path / "new").exists()  # both the folder and the parent it made
+    assert kept.is_dir()  # a folder that was there before stays
