@@ -213,6 +213,11 @@ def test_an_output_that_cannot_be_written_is_refused_before_any_work(args, needl
      "--foxglove-port: only with --foxglove"),
     # the live ROS 2 side's flags, refused before a session would wait for a router
     (["ros2-in", "--middleware", "dds", "--connect", "tcp/127.0.0.1:9"], "--middleware: 'dds' is not one of"),
+    # --no-pose had ignored a pose topic or type given beside it without a word
+    (["ros2-in", "--no-pose", "--pose-topic", "/odom", "--connect", "tcp/127.0.0.1:9"],
+     "--no-pose publishes every scan at the identity pose: give it or --pose-topic, not both"),
+    (["ros2-in", "--no-pose", "--pose-type", "nav_msgs/msg/Odometry", "--connect", "tcp/127.0.0.1:9"],
+     "give it or --pose-type, not both"),
     (["ros2-in", "--middleware", "rmw_zenoh", "--domain-id", "233", "--connect", "tcp/127.0.0.1:9"],
      "--domain-id: 233 is outside 0-232"),
     (["ros2-in", "--middleware", "rmw_zenoh", "--key-prefix", "robot1", "--connect", "tcp/127.0.0.1:9"],

@@ -92,13 +92,15 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             "--objects-topic", help="Instead of scans: an autoware_perception_msgs/msg/DetectedObjects topic (the"
             " vehicle's own detector, e.g. /perception/object_recognition/detection/objects), published on"
             " `detections`.")] = None,
-        pose_topic: Annotated[str, typer.Option("--pose-topic", help="/tf (with /tf_static), or a nav_msgs/Odometry"
-                                                " or geometry_msgs Pose(WithCovariance)Stamped topic (with"
-                                                " /tf_static for the sensor's mount).")] = "/tf",
+        pose_topic: Annotated[str | None, typer.Option("--pose-topic", help="/tf (with /tf_static; the default),"
+                                                       " or a nav_msgs/Odometry or geometry_msgs"
+                                                       " Pose(WithCovariance)Stamped topic (with /tf_static for the"
+                                                       " sensor's mount).")] = None,
         pose_type: Annotated[str | None, typer.Option("--pose-type", help="The pose topic's type; default: "
                                                       f"{TF_TYPE} for a topic named tf, else {ODOMETRY_TYPE}.")] = None,
         no_pose: Annotated[bool, typer.Option("--no-pose", help="Publish every scan at the identity pose (a sensor"
-                                              " that does not move).")] = False,
+                                              " that does not move); refused with --pose-topic or --pose-type,"
+                                              " which it would ignore.")] = False,
         middleware: MiddlewareOpt = "bridge",
         domain_id: DomainIdOpt = "0",
         key_prefix: KeyPrefixOpt = "",
@@ -118,7 +120,10 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             fail("--objects-topic takes the vehicle's detections in place of scans: give it or --points-topic")
         topic = (topic_option("--objects-topic", objects_topic) if objects_topic is not None
                  else topic_option("--points-topic", DEFAULT_POINTS_TOPIC if points_topic is None else points_topic))
-        pose_topic = topic_option("--pose-topic", pose_topic)
+        if no_pose and (pose_topic is not None or pose_type is not None):  # it had ignored them without a word
+            fail(f"--no-pose publishes every scan at the identity pose: give it or"
+                 f" {'--pose-topic' if pose_topic is not None else '--pose-type'}, not both")
+        pose_topic = topic_option("--pose-topic", "/tf" if pose_topic is None else pose_topic)
         wait = parse_float("--tf-wait-s", tf_wait_s, 0.0, 1.0)
         if no_pose:
             kind = None
