@@ -228,3 +228,56 @@ def test_a_window_inside_the_speed_bound_has_z_zero_not_negative_zero() -> None:
 
     z = _saturate(t_to_z(np.array([0.0, -0.0, 1.5]), np.array([5.0, 5.0, 5.0])))
     assert not np.signbit(z).any() and z[0] == 0.0 and z[2] > 0
+
+
+def test_the_chi2_threshold_keeps_its_meaning_up_to_the_largest_alpha_the_config_takes():
+    """α may be up to 100; p = P(|Z| > α) underflows past α ≈ 37.5, and clipped to 1e-300 it had held the χ²₂
+    threshold at 1381.6 from there on (α 50 fired at a χ² of 1400, a z of 37). The threshold is bracketed by the
+    normal tail's Mills-ratio bounds φ(α)/α · (1 − 1/α²) < Φ(−α) < φ(α)/α, and it grows with α."""
+    alphas = np.array([20.0, 30.0, 37.0, 37.6, 38.0, 40.0, 50.0, 75.0, 100.0])
+    got = chi2_2_threshold(alphas)
+    log_phi = -0.5 * alphas**2 - 0.5 * np.log(2 * np.pi)
+    upper = -2.0 * (np.log(2.0) + log_phi - np.log(alphas) + np.log1p(-1.0 / alphas**2))  # p at its lower bound
+    lower = -2.0 * (np.log(2.0) + log_phi - np.log(alphas))
+    assert ((got > lower) & (got < upper)).all(), (got, lower, upper)
+    assert (np.diff(got) > 0).all()
+    # through the core: a window whose χ² is 2000 (an equivalent z of 44) is no motion at α 50
+    core = MotionClassifierCore(paper(mode="chi2", alpha_default=50.0, window_size=2))
+    d = float(np.sqrt(2000.0 * 2 * 0.01))  # cluster: χ² = d² / (σ₁² + σ₂²)
+    dec = feed(core, _ids(1), np.array([[0.0], [d]]), np.zeros((2, 1)), np.full((2, 1), 0.01), np.full((2, 1), 0.01))
+    assert dec.chi2[0] == pytest.approx(2000.0) and dec.state[0] == STATIC
+    assert dec.threshold[0] == pytest.approx(got[6])
+
+
+def test_t_to_z_keeps_its_meaning_where_the_tail_probability_underflows():
+    """The calibrated statistic's t becomes a z with the same tail probability. Where that probability underflows
+    (z beyond 37) the z had stuck at 37.04 and then jumped to |t| itself (ν 1000, t 100: z 100 where it is 49):
+    for an α the config allows (up to 100) a window was called moving or static against its own evidence. Checked
+    against the tail integrated numerically in the log domain and the normal tail inverted by root finding."""
+    from classifier.reference_statistics import normal_score_of_log_tail, t_log_tail
+
+    from jitterguard.services.classifier.statistics import t_to_z
+
+    for nu in (2.0, 5.0, 12.0, 50.0, 300.0, 1000.0):
+        ts = np.geomspace(5.0, 1e6, 60)
+        z = t_to_z(ts, np.full(ts.shape, nu))
+        assert (np.diff(z) > 0).all(), nu  # the evidence grows, the z with it: no plateau, no jump
+        for t, zi in zip(ts[::7], z[::7]):
+            assert zi == pytest.approx(normal_score_of_log_tail(t_log_tail(float(t), nu)), rel=1e-8), (nu, t)
+    assert float(t_to_z(np.array([100.0]), np.array([1000.0]))[0]) == pytest.approx(48.958, abs=1e-3)
+    assert float(t_to_z(np.array([np.inf]), np.array([12.0]))[0]) == np.inf
+
+
+def test_a_window_that_did_not_move_has_chi2_zero_however_small_the_variance_floor():
+    """variance_floor may be any positive number; below ~1e-154 the determinant of the half-means' covariance had
+    underflowed to 0, and a window of identical positions with reported variances of 0 got χ² = 0 / 0, saturated to
+    the largest float: called dynamic in the chi2 mode. A window that did move keeps z² = χ² on one axis."""
+    for independent in (False, True):
+        kw = dict(mode="chi2", variance_floor=1e-300, window_size=4, effective_n="independent" if independent
+                  else "cluster")
+        still = feed(MotionClassifierCore(paper(**kw)), _ids(1), np.full((4, 1), 3.0), np.zeros((4, 1)),
+                     np.zeros((4, 1)), np.zeros((4, 1)))
+        assert still.chi2[0] == 0.0 and still.state[0] == STATIC
+        moved = feed(MotionClassifierCore(paper(**kw)), _ids(1), np.array([[0.0], [0.0], [1e-3], [1e-3]]),
+                     np.zeros((4, 1)), np.zeros((4, 1)), np.zeros((4, 1)))
+        assert moved.chi2[0] == pytest.approx(moved.z_x[0] ** 2, rel=1e-12) and moved.state[0] == DYNAMIC

@@ -40,10 +40,15 @@ def two_sided_p(alpha: float | F64) -> F64:
 def chi2_2_threshold(alpha: float | F64) -> F64:
     """The χ²₂ quantile with the same false-alarm rate as a two-sided z-test at ``alpha``.
 
-    χ² with two degrees of freedom has survival function exp(-x/2), so the quantile is -2 ln p.
+    χ² with two degrees of freedom has survival function exp(-x/2), so the quantile is -2 ln p, with ln p taken
+    in the log domain (ln 2 + ln Φ(−α)): p itself underflows past α ≈ 37.5, and clipped to 1e-300 it had held
+    the threshold at 1381.6 for every α from there to the config's bound of 100 (α 50 fired at χ² 1400, a z of
+    37; exactly, 2508).
     """
-    p = np.clip(two_sided_p(alpha), 1e-300, 1.0)
-    return -2.0 * np.log(p)
+    from scipy.special import log_ndtr  # type: ignore[import-untyped]
+
+    a = np.asarray(alpha, dtype=np.float64)
+    return np.maximum(-2.0 * (math.log(2.0) + log_ndtr(-a)), 0.0)  # α ≤ 0: every window (0, as p = 1 gave)
 
 
 @dataclass(frozen=True)
@@ -102,7 +107,7 @@ def window_statistics(windows: F64, masks: HalfMasks, *, variance_floor: float, 
     statistic. The reported variances are taken as they are (``calibration: off``). A statistic that overflows
     saturates (:func:`_saturate`).
     """
-    with np.errstate(over="ignore", invalid="ignore"):
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
         return _window_statistics(windows[..., :5], masks, variance_floor=variance_floor, independent=independent)
 
 
@@ -131,8 +136,13 @@ def _window_statistics(windows: F64, masks: HalfMasks, *, variance_floor: float,
     a = a_old / k_old + a_new / k_new
     b = vxy_old / k_old + vxy_new / k_new
     c = c_old / k_old + c_new / k_new
-    det = a * c - b * b
-    chi2 = (c * dx * dx - 2.0 * b * dx * dy + a * dy * dy) / det
+    # Δμᵀ S⁻¹ Δμ with S divided by its trace first: the determinant of S itself underflows to 0 for variances below
+    # ~1e-154 (a variance_floor the config accepts, reported variances of 0), and 0 / 0 had saturated the χ² of a
+    # window that did not move to the largest float — "dynamic" in the chi2 mode
+    s = a + c  # > 0: both eigenvalues are floored
+    a, b, c = a / s, b / s, c / s
+    num = c * dx * dx - 2.0 * b * dx * dy + a * dy * dy
+    chi2 = np.where(num == 0.0, 0.0, num / ((a * c - b * b) * s))  # no displacement: no evidence of motion
 
     n_all = np.maximum(n_old + n_new, 1.0)
     return WindowStats(
@@ -263,11 +273,45 @@ def jump_ratio(windows: F64, count: I64, *, min_count: int = 6) -> F64:
 
 
 def t_to_z(t: F64, dof: F64) -> F64:
-    """The standard-normal score with the same two-sided p-value as |t| under Student's t with ``dof``."""
-    from scipy.special import ndtri, stdtr  # type: ignore[import-untyped]
+    """The standard-normal score with the same two-sided p-value as |t| under Student's t with ``dof``.
 
-    p_half = stdtr(dof, -np.abs(t))  # one tail
-    return np.where(p_half > 0, -ndtri(np.maximum(p_half, 1e-300)), np.abs(t))
+    Where the tail probability falls below :data:`_TINY_P` (a z beyond 37) it is taken in the log domain
+    (:func:`_t_log_tail`): as a probability it underflows, and the z had stuck at 37.04 (the clip) and then jumped
+    to |t| itself (ν 1000, t 100: z 100 where it is 49) — wrong decisions for an α the config allows (up to 100),
+    and a statistic that did not grow with the evidence."""
+    from scipy.special import ndtri, ndtri_exp, stdtr  # type: ignore[import-untyped]
+
+    t = np.abs(np.asarray(t, dtype=np.float64))
+    dof = np.broadcast_to(np.asarray(dof, dtype=np.float64), t.shape)
+    p_half = stdtr(dof, -t)  # one tail
+    z = np.array(-ndtri(np.maximum(p_half, _TINY_P)), dtype=np.float64)
+    far = ~(p_half > _TINY_P) & ~np.isnan(t) & ~np.isnan(dof)
+    if far.any():
+        z[far] = -ndtri_exp(np.minimum(_t_log_tail(t[far], dof[far]), math.log(_TINY_P)))
+    return np.where(np.isnan(t), t, z)
+
+
+_TINY_P = 1e-300
+"""Below this one-sided tail probability :func:`t_to_z` works in the log domain (z ≈ 37.04 here)."""
+
+
+def _t_log_tail(t: F64, dof: F64) -> F64:
+    """ln P(T > t) for Student's t with ``dof`` degrees of freedom and t > 0, without forming the probability:
+    P = ½ I_x(ν/2, ½), x = ν / (ν + t²), and I_x(a, b) = x^a (1 − x)^b ₂F₁(a + b, 1; a + 1; x) / (a B(a, b)) —
+    a series whose terms shrink at least as fast as x^n, and x is small wherever the tail is (< e^(−690/a)).
+    Infinite ``dof`` is the normal tail."""
+    from scipy.special import betaln, hyp2f1, log_ndtr  # type: ignore[import-untyped]
+
+    finite = np.isfinite(dof)
+    nu = np.where(finite, dof, 1.0)
+    a = nu / 2.0
+    with np.errstate(over="ignore", divide="ignore"):
+        r = t * t / nu
+        log_x = np.where(np.isfinite(r), -np.log1p(r), np.log(nu) - 2.0 * np.log(t))  # ln ν/(ν + t²), t² may overflow
+        x = np.exp(log_x)
+        out = (a * log_x + 0.5 * np.log1p(-x) - np.log(a) - betaln(a, 0.5) + np.log(hyp2f1(a + 0.5, 1.0, a + 1.0, x))
+               - math.log(2.0))
+    return np.where(finite, out, log_ndtr(-t))
 
 
 def t2_to_chi2(t2: F64, dof: F64) -> F64:
