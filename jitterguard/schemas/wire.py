@@ -95,6 +95,15 @@ MAX_HEARTBEAT_BYTES = 256 * 1024
 real one is a few KB (the classifier's, with its calibration gauges, ~5 KB); unbounded, a flood of 100 MB counter
 maps under made-up names had been read in full and kept."""
 
+MAX_HEARTBEAT_ENTRIES = 512
+"""Entries of any map (or list) of a heartbeat — its ``counters`` and its ``gauges`` — that every reader takes; a
+larger one is refused before it is built (:class:`LimitExceeded`), like one over :data:`MAX_HEARTBEAT_BYTES`. Real
+heartbeats hold a few dozen counters and at most 174 gauges (the classifier's calibration with 8 range bands). Within
+the byte bound a made-up one held 40,000 counters: the stack's monitor keeps the counters of 32 processes of each of
+64 services and rewrites them all into ``summary.json`` every second, and two made-up services of 32 pids each
+(11 MB put once) had grown it by 420 MB and left it writing a 41 MB ``summary.json`` every second for good; the
+sidecar exported every entry as a ``/metrics`` series."""
+
 MAX_MAP_ENTRIES = 64
 """Entries of any map of a hot message: their models have fixed fields (15 at most, ``MotionState``), so a larger map is
 invalid whatever it holds. Refused before it is built (:class:`LimitExceeded`): a ``detections`` or ``tracks/{id}``

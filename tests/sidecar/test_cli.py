@@ -17,6 +17,7 @@ from jitterguard.cli import app
 from jitterguard.runtime import free_tcp_port, loopback_options
 from jitterguard.services.classifier.config_writes import ConfigWritePolicy
 from jitterguard.services.classifier.service import ClassifierService
+from jitterguard.services.sidecar.cli import REQUEST_READ_TIMEOUT_S
 
 from .stack import wait_for
 
@@ -101,6 +102,73 @@ def test_real_process_serves_and_stops_on_sigterm() -> None:
         assert "sidecar stopped" in out, out  # the lifespan closed the Zenoh session (no hang at exit)
     finally:
         if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        classifier.close()
+
+
+@pytest.mark.integration
+def test_a_request_that_never_arrives_whole_is_cut_off() -> None:
+    """uvicorn had held a connection that sent nothing, or a header line every few seconds, or a body a byte at a
+    time, for ever: 20,000 of them (the process's file limit) left the sidecar unable to accept a connection, its
+    /healthz timing out. Each is now closed once REQUEST_READ_TIMEOUT_S has passed without the request arriving
+    whole, while they trickle on; a request sent whole is served meanwhile."""
+    zport, port = free_tcp_port(), free_tcp_port()
+    classifier = ClassifierService(loopback_options("sc-slow", zport, listen_self=True))
+    env = {k: v for k, v in os.environ.items() if k != "JG_API_TOKEN"}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "jitterguard.cli", "sidecar", "--ns", "sc-slow", "--port", str(port),
+         "--connect", f"tcp/127.0.0.1:{zport}"], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    socks: dict[str, socket.socket] = {}
+    try:
+        url = f"http://127.0.0.1:{port}"
+
+        def up() -> bool:
+            try:
+                return httpx.get(f"{url}/healthz", timeout=2).status_code == 200
+            except httpx.HTTPError:
+                assert proc.poll() is None, "the sidecar exited"
+                return False
+        wait_for(up, "the sidecar process to serve", timeout=60)
+        heads = {"idle": b"",
+                 "slow head": b"GET /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\n",
+                 "slow body": b"PUT /v1/config HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\n"
+                              b"Content-Length: 1000\r\n\r\n{"}
+        drip = {"idle": b"", "slow head": b"X-Drip: 1\r\n", "slow body": b" "}
+        for name, head in heads.items():
+            socks[name] = socket.create_connection(("127.0.0.1", port), timeout=5)
+            socks[name].sendall(head)
+        closed: set[str] = set()
+
+        def all_closed() -> bool:
+            for name, sock in socks.items():
+                if name in closed:
+                    continue
+                try:
+                    sock.sendall(drip[name])
+                    sock.setblocking(False)
+                    try:
+                        if sock.recv(4096) == b"":
+                            closed.add(name)
+                    except BlockingIOError:
+                        pass
+                    finally:
+                        sock.setblocking(True)
+                except OSError:  # reset by the server
+                    closed.add(name)
+            return len(closed) == len(socks)
+
+        assert httpx.get(f"{url}/healthz", timeout=5).status_code == 200  # served beside them
+        wait_for(all_closed, f"the server to close {sorted(set(socks) - closed)}",
+                 timeout=REQUEST_READ_TIMEOUT_S + 30, period=1.0)
+        assert httpx.get(f"{url}/healthz", timeout=5).status_code == 200
+    finally:
+        for sock in socks.values():
+            sock.close()
+        proc.terminate()
+        try:
+            proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait()
         classifier.close()

@@ -17,7 +17,7 @@ from jitterguard.runtime import build_config, loopback_options
 from jitterguard.schemas import encode, keys
 from jitterguard.schemas.models import Heartbeat
 from jitterguard.services.sidecar.app import SidecarSettings, create_app
-from jitterguard.schemas.wire import MAX_HEARTBEAT_BYTES
+from jitterguard.schemas.wire import MAX_HEARTBEAT_BYTES, MAX_HEARTBEAT_ENTRIES
 from jitterguard.services.sidecar.client import MAX_SERVICES
 
 from .stack import Stack, Uvicorn, start_stack, wait_for
@@ -86,6 +86,28 @@ def test_an_oversized_heartbeat_is_refused_unread(stack: Stack, bus: zenoh.Sessi
             wait_for(lambda: "bloated" in c.get("/readyz").json()["services"], "a normal heartbeat taken")
     finally:
         token.undeclare()
+
+
+def test_a_heartbeat_with_too_many_entries_is_refused_before_it_is_built(stack: Stack, bus: zenoh.Session) -> None:
+    """Within MAX_HEARTBEAT_BYTES a heartbeat held 40,000 counters, each exported as a /metrics series (64 made-up
+    names: millions of series per scrape). One map over MAX_HEARTBEAT_ENTRIES is refused, counted, and none of its
+    entries reaches /metrics; a heartbeat at the bound is taken."""
+    wide = {f"w{i:04x}": i for i in range(MAX_HEARTBEAT_ENTRIES + 1)}
+    for field in ("counters", "gauges"):
+        payload = _beat("wide", **{field: wide})
+        assert len(payload) < MAX_HEARTBEAT_BYTES // 10  # refused for its entries, not its size
+        with stack.http(auth=False) as c:
+            before = _metric(c.get("/metrics").text, "jitterguard_sidecar_rejected_messages_total",
+                             '{key="heartbeat/*"}') or 0.0
+            bus.put(keys.heartbeat(stack.ns, "wide"), payload)
+            wait_for(lambda: (_metric(c.get("/metrics").text, "jitterguard_sidecar_rejected_messages_total",
+                                      '{key="heartbeat/*"}') or 0.0) == before + 1, f"the wide {field} refused")
+            assert "wide" not in c.get("/readyz").json()["services"]
+            assert 'service="wide"' not in c.get("/metrics").text
+    at_bound = {f"w{i:04x}": i for i in range(MAX_HEARTBEAT_ENTRIES)}
+    bus.put(keys.heartbeat(stack.ns, "wide"), _beat("wide", counters=at_bound))
+    with stack.http(auth=False) as c:
+        wait_for(lambda: "wide" in c.get("/readyz").json()["services"], "a heartbeat at the bound taken")
 
 
 def test_a_flood_of_made_up_service_names_does_not_hide_a_frozen_stage(stack: Stack, bus: zenoh.Session) -> None:

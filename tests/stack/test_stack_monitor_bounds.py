@@ -20,7 +20,7 @@ import zenoh
 from jitterguard.runtime import ZenohOptions, build_config, free_tcp_port, open_session
 from jitterguard.schemas import encode, keys
 from jitterguard.schemas.models import Heartbeat
-from jitterguard.schemas.wire import MAX_HEARTBEAT_BYTES
+from jitterguard.schemas.wire import MAX_HEARTBEAT_BYTES, MAX_HEARTBEAT_ENTRIES
 from jitterguard.stack import summary
 
 from helpers import stop_process, wait_until
@@ -60,6 +60,11 @@ def test_the_monitor_is_bounded_and_folds_restarted_processes_exactly(tmp_path):
         bloat = {f"c{i:06d}": i for i in range(MAX_HEARTBEAT_BYTES // 8)}
         session.put(keys.heartbeat(ns, "bloat"), encode(Heartbeat(service="bloat", pid=7, stamp=t0, counters=bloat)),
                     congestion_control=block)
+        # one far under the byte bound but with more counters than any service reports (MAX_HEARTBEAT_ENTRIES): the
+        # ledger had kept 40,000 of them per process, 32 processes of each of 64 services, rewritten every second
+        wide = {f"w{i:04x}": 1 for i in range(MAX_HEARTBEAT_ENTRIES + 1)}
+        session.put(keys.heartbeat(ns, "wide"), encode(Heartbeat(service="wide", pid=8, stamp=t0, counters=wide)),
+                    congestion_control=block)
         for i in range(200):
             session.put(keys.heartbeat(ns, f"ghost{i}"), encode(Heartbeat(service=f"ghost{i}", pid=50000 + i,
                                                                           stamp=t0 + i, counters={"x_dropped": 1})),
@@ -75,15 +80,15 @@ def test_the_monitor_is_bounded_and_folds_restarted_processes_exactly(tmp_path):
             if data is None:
                 return None
             mon = data["services"].get("monitor", {}).get("counters", {})
-            rejected = mon.get("rejected", 0)  # the oversized one and the spoof
-            done = data["frames"]["tracked"] == restarts and mon.get("heartbeats_dropped", 0) > 0 and rejected >= 2
+            rejected = mon.get("rejected", 0)  # the oversized one, the wide one and the spoof
+            done = data["frames"]["tracked"] == restarts and mon.get("heartbeats_dropped", 0) > 0 and rejected >= 3
             return data if done else None
 
         assert wait_until(settled, timeout=30, period=0.5), summary.load(tmp_path)
         data = settled()
         assert data is not None
         assert len(data["services"]) <= 64  # a stack has about ten
-        assert "bloat" not in data["services"]
+        assert "bloat" not in data["services"] and "wide" not in data["services"]
         assert data["tracks"]["born"] == 2 * restarts  # every process counted once, the retired ones folded
         assert data["services"]["tracker"]["processes"] == restarts
         assert len(data["ledger"]["tracker"]) <= 33

@@ -94,6 +94,12 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
               host, port_n, log_level)
 
 GIL_SWITCH_INTERVAL_S = 0.001
+REQUEST_READ_TIMEOUT_S = 20.0
+"""A request must arrive whole — request line, headers and body — within this long of its first byte (of the
+connection, for its first request); else the connection is closed. uvicorn has no such deadline: a connection that
+sent nothing, or one header line a minute, or a body a byte at a time, was held for ever, and 20,000 of them (one
+process's file limit) left the sidecar unable to accept a connection — ``/healthz`` and ``/readyz`` timed out —
+for as long as the client kept them open. A real request takes milliseconds (its body is at most 64 KB)."""
 
 
 def serve(settings: SidecarSettings, host: str, port: int, log_level: str = "INFO") -> None:
@@ -114,8 +120,46 @@ def serve(settings: SidecarSettings, host: str, port: int, log_level: str = "INF
     stopping = threading.Event()  # a signal during startup ends the wait for the router (create_app)
     config = uvicorn.Config(create_app(settings, stopping=stopping), host=host, port=port,
                             log_level=log_level.lower(), access_log=log_level.upper() == "DEBUG",
-                            timeout_graceful_shutdown=2, lifespan="on")
+                            timeout_graceful_shutdown=2, lifespan="on", http=_read_deadline_protocol())
     _clean_exit_server_class()(config, stopping).run()
+
+
+def _read_deadline_protocol() -> type:
+    """uvicorn's h11 protocol with :data:`REQUEST_READ_TIMEOUT_S` on reading each request (its keep-alive timeout
+    only covers the wait between two requests, and the first byte of a request cancels it)."""
+    import h11
+    from uvicorn.protocols.http.h11_impl import H11Protocol
+
+    class ReadDeadlineH11(H11Protocol):
+        _deadline = None
+
+        def connection_made(self, transport) -> None:  # type: ignore[no-untyped-def]
+            super().connection_made(transport)
+            self._deadline = self.loop.call_later(REQUEST_READ_TIMEOUT_S, self._read_timed_out)
+
+        def data_received(self, data: bytes) -> None:
+            super().data_received(data)
+            reading = self.conn.their_state in (h11.IDLE, h11.SEND_BODY)  # a request begun and not yet whole
+            if reading and self._deadline is None:
+                self._deadline = self.loop.call_later(REQUEST_READ_TIMEOUT_S, self._read_timed_out)
+            elif not reading:
+                self._cancel_deadline()
+
+        def connection_lost(self, exc: Exception | None) -> None:
+            self._cancel_deadline()
+            super().connection_lost(exc)
+
+        def _cancel_deadline(self) -> None:
+            if self._deadline is not None:
+                self._deadline.cancel()
+                self._deadline = None
+
+        def _read_timed_out(self) -> None:
+            self._deadline = None
+            if not self.transport.is_closing():
+                self.transport.close()
+
+    return ReadDeadlineH11
 
 
 def _clean_exit_server_class() -> type:

@@ -28,7 +28,7 @@ from ...runtime import Service, ZenohOptions
 from ...runtime.service import counter_key
 from ...schemas import DecodeError, decode, decode_with_raw, encode, keys
 from ...schemas.models import ClassifierConfig, ClassifierStateSnapshot, ConfigReply, Heartbeat
-from ...schemas.wire import MAX_HEARTBEAT_BYTES
+from ...schemas.wire import MAX_HEARTBEAT_BYTES, MAX_HEARTBEAT_ENTRIES
 from .core import (PIPELINE_STAGES, SOURCES, ConfigError, RenderedState, config_to_api, diff_states, is_pipeline,
                    render_state, service_problems, silenced)
 from .metrics import SidecarMetrics
@@ -87,7 +87,8 @@ class ClassifierClient(Service):
         self._alive_key = keys.alive(self.ns, CLASSIFIER)
         self._declared.append(self.session.liveliness().declare_subscriber(
             keys.alive_all(self.ns), self._on_liveliness, history=True))
-        self.subscribe(keys.heartbeat_all(self.ns), Heartbeat, self._on_heartbeat, max_bytes=MAX_HEARTBEAT_BYTES)
+        self.subscribe(keys.heartbeat_all(self.ns), Heartbeat, self._on_heartbeat, max_bytes=MAX_HEARTBEAT_BYTES,
+                       max_array_len=MAX_HEARTBEAT_ENTRIES, max_map_len=MAX_HEARTBEAT_ENTRIES)
         self.metrics.attach(self)
         self.spawn(self._poll_loop, "poll")
 
