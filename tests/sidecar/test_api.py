@@ -78,6 +78,29 @@ def test_readiness_reports_a_service_of_the_pipeline_that_makes_no_progress(stac
         assert body["reason"] == "ok" and body["services"]["tracker"]["health"] == "ok"
 
 
+def test_classifier_up_is_the_classifier_not_another_stages_fault(stack: Stack) -> None:
+    """``jitterguard_classifier_up`` says whether the classifier itself is on the bus with a recent heartbeat. It
+    had followed the pipeline's readiness: a failing (or frozen) tracker set it to 0 beside a classifier that was up
+    and healthy, so an alert on it blamed the wrong process. The tracker's fault is told by ``/readyz`` and by
+    ``jitterguard_service_healthy{service="tracker"}``."""
+    beat = encode(Heartbeat(service="tracker", pid=1, stamp=time.time_ns(), last_seq=41, health="failing",
+                            health_reason="the last 7 frames failed (MemoryError)"))
+    with zenoh.open(build_config(loopback_options(stack.ns, stack.zport))) as s, stack.http(auth=False) as c:
+        def failing_tracker_scraped() -> str | None:
+            s.put(keys.heartbeat(stack.ns, "tracker"), beat)
+            if c.get("/readyz").status_code != 503:
+                return None
+            text = c.get("/metrics").text
+            return text if _metric(text, "jitterguard_service_healthy", '{service="tracker"}') == 0.0 else None
+
+        text = wait_for(failing_tracker_scraped, "readyz and /metrics to report the failing tracker")
+        assert _metric(text, "jitterguard_service_healthy", '{service="classifier"}') == 1.0
+        assert _metric(text, "jitterguard_classifier_up") == 1.0
+        s.put(keys.heartbeat(stack.ns, "tracker"), encode(Heartbeat(service="tracker", pid=1, stamp=time.time_ns(),
+                                                                    last_seq=42, health="ok")))
+        wait_for(lambda: c.get("/readyz").status_code == 200, "readyz once the tracker says ok again")
+
+
 def test_a_service_outside_the_pipeline_that_fails_is_a_warning_not_a_readiness_fault(stack: Stack) -> None:
     """The monitor on a full disk (its summary cannot be written) or a failing Foxglove bridge do not make the
     classifier's objects wrong: /readyz stays 200 and names them under ``warnings`` (a monitor that could not write

@@ -203,6 +203,16 @@ class ClassifierClient(Service):
     def readiness_flag(self) -> bool:
         return bool(self.readiness()["ready"])
 
+    def classifier_up(self) -> bool:
+        """The classifier's liveliness token is present and its heartbeat recent: the classifier itself, what
+        ``jitterguard_classifier_up`` says. Not :meth:`readiness_flag`, which also fails for a fault of another
+        stage: a frozen tracker had set ``jitterguard_classifier_up`` to 0 beside a classifier that was on the bus,
+        heartbeating and healthy (``jitterguard_service_healthy{service="classifier"}`` 1), pointing an alert at the
+        wrong process."""
+        now = time.monotonic()
+        with self._lock:
+            return CLASSIFIER in self._on_bus and self._hb_at is not None and now - self._hb_at <= self.stale_after_s
+
     def service_beats(self) -> list[tuple[str, Heartbeat, float, bool]]:
         """Every service heard: (name, its latest heartbeat, seconds since it came, liveliness token present), by
         name — what ``/metrics`` exports per service."""
