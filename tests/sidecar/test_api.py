@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import re
 import time
+from collections.abc import Callable
 
 import httpx
 import pytest
@@ -16,6 +17,7 @@ from jitterguard.schemas.models import ClassifierConfig, Heartbeat
 from jitterguard.services.classifier.config import PRESETS
 
 AUTHORS_ALPHA = PRESETS["authors"]["alpha_per_class"]
+from jitterguard.services.sidecar.client import ClassifierClient
 from jitterguard.services.sidecar.core import StateView, TrackView
 
 from .stack import PAPER_STATISTIC, Stack, start_stack, wait_for
@@ -76,6 +78,29 @@ def test_readiness_reports_a_service_of_the_pipeline_that_makes_no_progress(stac
         assert body["services"]["tracker"] == {**body["services"]["tracker"], "health": "failing", "last_seq": 41}
         body = wait_for(lambda: readyz_after(beat("ok", ""), 200), "readyz once the tracker recovers")
         assert body["reason"] == "ok" and body["services"]["tracker"]["health"] == "ok"
+
+
+def test_classifier_up_is_the_classifier_not_another_stages_fault(stack: Stack) -> None:
+    """``jitterguard_classifier_up`` says whether the classifier itself is on the bus with a recent heartbeat. It
+    had followed the pipeline's readiness: a failing (or frozen) tracker set it to 0 beside a classifier that was up
+    and healthy, so an alert on it blamed the wrong process. The tracker's fault is told by ``/readyz`` and by
+    ``jitterguard_service_healthy{service="tracker"}``."""
+    beat = encode(Heartbeat(service="tracker", pid=1, stamp=time.time_ns(), last_seq=41, health="failing",
+                            health_reason="the last 7 frames failed (MemoryError)"))
+    with zenoh.open(build_config(loopback_options(stack.ns, stack.zport))) as s, stack.http(auth=False) as c:
+        def failing_tracker_scraped() -> str | None:
+            s.put(keys.heartbeat(stack.ns, "tracker"), beat)
+            if c.get("/readyz").status_code != 503:
+                return None
+            text = c.get("/metrics").text
+            return text if _metric(text, "jitterguard_service_healthy", '{service="tracker"}') == 0.0 else None
+
+        text = wait_for(failing_tracker_scraped, "readyz and /metrics to report the failing tracker")
+        assert _metric(text, "jitterguard_service_healthy", '{service="classifier"}') == 1.0
+        assert _metric(text, "jitterguard_classifier_up") == 1.0
+        s.put(keys.heartbeat(stack.ns, "tracker"), encode(Heartbeat(service="tracker", pid=1, stamp=time.time_ns(),
+                                                                    last_seq=42, health="ok")))
+        wait_for(lambda: c.get("/readyz").status_code == 200, "readyz once the tracker says ok again")
 
 
 def test_a_service_outside_the_pipeline_that_fails_is_a_warning_not_a_readiness_fault(stack: Stack) -> None:
@@ -152,6 +177,50 @@ def test_readiness_reports_a_service_frozen_on_the_bus_or_a_stage_that_left_it()
             assert body["ready"] is True and body["services"]["monitor"]["health"] == "silent", body
             token.undeclare()
     finally:
+        stack.close()
+
+
+def test_frames_that_enter_and_never_come_out_are_a_readiness_fault() -> None:
+    """Readiness had held a stage that left the bus against the pipeline only if the sidecar had seen it leave: a
+    sidecar restarted after the tracker had stopped for good answered 200 "ok", the tracker unlisted, while the
+    replay published and no object came out (its one warning said "no input"). Frames entering — a source's
+    heartbeat seq moving — while the classifier processes none for the pipeline's stall limit is now a readiness
+    fault, whoever is missing; the classifier's frames moving, or no source feeding, is none."""
+    stack = start_stack("sc-stuck", window_ready=False)
+    client = ClassifierClient(loopback_options(stack.ns, stack.zport), pipeline_stall_s=3.0)  # a fresh sidecar
+    try:
+        with zenoh.open(build_config(loopback_options(stack.ns, stack.zport))) as s:
+            replay = s.liveliness().declare_token(keys.alive(stack.ns, "replay"))
+            seq = iter(range(10**6))
+
+            def replay_beats_until(cond: Callable[[dict], bool]) -> dict | None:
+                s.put(keys.heartbeat(stack.ns, "replay"), encode(Heartbeat(
+                    service="replay", pid=3, stamp=time.time_ns(), last_seq=next(seq), health="ok")))
+                body = client.readiness()
+                return body if cond(body) else None
+
+            # the replay publishes and the classifier's frames move: ready, past the stall limit
+            t0 = time.monotonic()
+            body = wait_for(lambda: replay_beats_until(lambda b: time.monotonic() - t0 > 5.0), "5 s of frames")
+            assert body["ready"] is True and body["reason"] == "ok", body
+            # nothing reaches the classifier any more (its tracker gone, which this sidecar never heard of)
+            stack.feeder.pause()
+            body = wait_for(lambda: replay_beats_until(lambda b: not b["ready"]), "readyz to report frames stuck",
+                            timeout=30)
+            assert "frames enter the pipeline (replay at seq" in body["reason"], body["reason"]
+            assert "a stage between them is missing, stuck or cut off" in body["reason"]
+            assert "tracker" not in body["services"] and body["services"]["classifier"]["health"] == "ok"
+            # the source stops too: no input is no fault, and the warning says so again
+            replay.undeclare()
+            wait_for(lambda: (b := client.readiness())["ready"] and any(
+                w.startswith("no input: the classifier has processed no frame") for w in b["warnings"]),
+                "ready, with a warning of no input, once nothing enters", timeout=30)
+            # frames come out again
+            stack.feeder.resume()
+            wait_for(lambda: not any("processed no frame" in w for w in client.readiness()["warnings"]),
+                     "no warning of standing frames once the classifier's frames move")
+    finally:
+        client.close()
         stack.close()
 
 

@@ -17,6 +17,7 @@ token and heartbeat like every process), and it
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from collections.abc import Callable
@@ -29,8 +30,8 @@ from ...runtime.service import counter_key
 from ...schemas import DecodeError, decode, decode_with_raw, encode, keys
 from ...schemas.models import ClassifierConfig, ClassifierStateSnapshot, ConfigReply, Heartbeat
 from ...schemas.wire import MAX_HEARTBEAT_BYTES, MAX_HEARTBEAT_ENTRIES
-from .core import (PIPELINE_STAGES, SOURCES, ConfigError, RenderedState, config_to_api, diff_states, is_pipeline,
-                   render_state, service_problems, silenced)
+from .core import (PIPELINE_STAGES, PIPELINE_STALL_S, SOURCES, ConfigError, RenderedState, config_to_api, diff_states,
+                   frames_standing, is_pipeline, render_state, service_problems, silenced)
 from .metrics import SidecarMetrics
 
 CLASSIFIER = "classifier"
@@ -61,15 +62,18 @@ class ClassifierClient(Service):
     def __init__(self, opts: ZenohOptions, *, poll_period_s: float = 0.05, query_timeout_s: float = 3.0,
                  state_timeout_s: float = 1.0, stale_after_s: float = 3.0,
                  metrics: SidecarMetrics | None = None, api_token: str | None = None,
-                 stop_event: threading.Event | None = None) -> None:
+                 stop_event: threading.Event | None = None, pipeline_stall_s: float = PIPELINE_STALL_S) -> None:
         """``api_token``: sent with every config write (the query's attachment); the classifier checks it
-        against its own ``JG_API_TOKEN``. ``stop_event``: ends the wait for the router (:class:`Service`)."""
+        against its own ``JG_API_TOKEN``. ``stop_event``: ends the wait for the router (:class:`Service`).
+        ``pipeline_stall_s``: frames entering this long with none classified is a readiness fault
+        (:func:`~.core.frames_standing`)."""
         super().__init__(opts, stop_event=stop_event)
         self._api_token = api_token
         self.poll_period_s = poll_period_s
         self.query_timeout_s = query_timeout_s
         self.state_timeout_s = state_timeout_s
         self.stale_after_s = stale_after_s
+        self.pipeline_stall_s = pipeline_stall_s
         self.metrics = metrics or SidecarMetrics()
         self._lock = threading.Lock()
         self._write_lock = threading.Lock()
@@ -77,6 +81,7 @@ class ClassifierClient(Service):
         self._left: set[str] = set()  # pipeline stages, or services heard, whose token went and has not come back
         self._sources_left: dict[str, float] = {}  # a source whose token was withdrawn: since when (monotonic)
         self._frames_at: tuple[int, float] | None = None  # the classifier's last_seq and when it was first seen
+        self._sources_moved: dict[str, tuple[int, float]] = {}  # a source's last_seq and when it last changed
         self._hb: Heartbeat | None = None
         self._hb_at: float | None = None  # monotonic receive time of the last classifier heartbeat
         self._beats: dict[str, tuple[Heartbeat, float]] = {}  # every service's latest heartbeat, receive time
@@ -126,6 +131,10 @@ class ClassifierClient(Service):
                 self._hb, self._hb_at = hb, now
                 if self._frames_at is None or self._frames_at[0] != hb.last_seq:
                     self._frames_at = (hb.last_seq, now)
+            elif name in SOURCES and hb.last_seq >= 0:  # a fixed set of names: bounded
+                moved = self._sources_moved.get(name)
+                if moved is None or moved[0] != hb.last_seq:  # the first one heard says nothing of moving yet
+                    self._sources_moved[name] = (hb.last_seq, now if moved is not None else -math.inf)
 
     def _evictable(self, newcomer: str) -> str | None:
         """Which heartbeat makes room for ``newcomer``'s once :data:`MAX_SERVICES` are kept (under ``_lock``): the
@@ -159,11 +168,18 @@ class ClassifierClient(Service):
                                "heartbeat_age_s": round(now - at, 3), "last_seq": b.last_seq}
                         for name, (b, at) in self._beats.items()}
             on_bus, left = set(self._on_bus), set(self._left)
-            sources_left, frames_at = dict(self._sources_left), self._frames_at
+            sources_left, frames_at, moved = dict(self._sources_left), self._frames_at, dict(self._sources_moved)
         age = now - hb_at if hb_at is not None else None
         found = service_problems(services, self.stale_after_s, on_bus, left)
         services = silenced(services, self.stale_after_s, found)
         problems = [msg for name, msg in found if is_pipeline(name)]
+        classifier_up = alive and age is not None and age <= self.stale_after_s
+        moved = {name: m for name, m in moved.items()  # a source heard now: one that left feeds nothing
+                 if name in services and services[name]["heartbeat_age_s"] <= self.stale_after_s}
+        standing = (frames_standing(frames_at, moved, now, warn_s=NO_INPUT_S, fault_s=self.pipeline_stall_s,
+                                    recent_s=NO_INPUT_S) if classifier_up else None)
+        if standing is not None and standing[1]:
+            problems.append(standing[0])
         if not alive:
             reason = f"no classifier: liveliness token {self._alive_key} is absent"
         elif age is None:
@@ -180,10 +196,10 @@ class ClassifierClient(Service):
                 "last_seq": hb.last_seq if hb is not None and hb_at is not None else None,
                 "state_seq": st.seq if st is not None else None, "services": services,
                 "warnings": [msg for name, msg in found if not is_pipeline(name)] + self._input_warnings(
-                    now, services, sources_left, frames_at, alive and age is not None and age <= self.stale_after_s)}
+                    now, services, sources_left, standing)}
 
     def _input_warnings(self, now: float, services: dict[str, dict[str, Any]], sources_left: dict[str, float],
-                        frames_at: tuple[int, float] | None, classifier_up: bool) -> list[str]:
+                        standing: tuple[str, bool] | None) -> list[str]:
         """What keeps objects from coming without being a readiness fault (DESIGN: no input at all is not a fault,
         a sensor may be off): a source that left the bus, and the classifier's frames standing still. Readiness
         stays as it was; these only say why a ready sidecar serves no new objects. A looping replay that
@@ -195,14 +211,22 @@ class ClassifierClient(Service):
                 continue  # its token went, its heartbeats did not: a new process of it is taking over
             out.append(f"{name} left the bus {now - since:.0f} s ago (liveliness token withdrawn, no heartbeat since):"
                        " no frames enter the pipeline; its recording ended, or it failed and was not restarted")
-        if classifier_up and frames_at is not None and now - frames_at[1] >= NO_INPUT_S:
-            seq, since = frames_at
-            out.append(f"no input: the classifier has processed no frame for {now - since:.0f} s"
-                       + (f" (last seq {seq})" if seq >= 0 else ""))
+        if standing is not None and not standing[1]:  # the classifier's frames standing still (a fault: in reason)
+            out.append(standing[0])
         return out
 
     def readiness_flag(self) -> bool:
         return bool(self.readiness()["ready"])
+
+    def classifier_up(self) -> bool:
+        """The classifier's liveliness token is present and its heartbeat recent: the classifier itself, what
+        ``jitterguard_classifier_up`` says. Not :meth:`readiness_flag`, which also fails for a fault of another
+        stage: a frozen tracker had set ``jitterguard_classifier_up`` to 0 beside a classifier that was on the bus,
+        heartbeating and healthy (``jitterguard_service_healthy{service="classifier"}`` 1), pointing an alert at the
+        wrong process."""
+        now = time.monotonic()
+        with self._lock:
+            return CLASSIFIER in self._on_bus and self._hb_at is not None and now - self._hb_at <= self.stale_after_s
 
     def service_beats(self) -> list[tuple[str, Heartbeat, float, bool]]:
         """Every service heard: (name, its latest heartbeat, seconds since it came, liveliness token present), by

@@ -112,7 +112,7 @@ class ServiceHealthView(BaseModel):
 class ReadyView(BaseModel):
     """Readiness: the classifier's liveliness token is present and its heartbeat is recent, and no service of the
     pipeline reports (in a recent heartbeat) that its frames fail or its output stalled, or is silent while its
-    liveliness token is present (frozen)."""
+    liveliness token is present (frozen), and frames that enter the pipeline come out (:func:`frames_standing`)."""
 
     ready: bool
     reason: str = Field(description="why not ready, or 'ok'")
@@ -177,6 +177,40 @@ def silenced(services: Mapping[str, Mapping[str, Any]], stale_after_s: float,
     return {name: (dict(v, health="silent", reason=why.get(name, f"no heartbeat for {v['heartbeat_age_s']:.1f} s"))
                    if v["heartbeat_age_s"] > stale_after_s else dict(v))
             for name, v in services.items()}
+
+
+PIPELINE_STALL_S = 30.0
+"""Frames entering the pipeline this long while not one comes out of the classifier is a readiness fault: as long
+as the slowest stage may hold a frame by its own account (the detector's stall limit: a CPU network under load)."""
+
+
+def frames_standing(frames_at: tuple[int, float] | None, sources_moved: Mapping[str, tuple[int, float]], now: float,
+                    *, warn_s: float, fault_s: float = PIPELINE_STALL_S, recent_s: float) -> tuple[str, bool] | None:
+    """Why the classifier's frames stand still, and whether that is a fault: ``(message, True)`` once a source's
+    heartbeat seq has moved in the last ``recent_s`` while the classifier has processed no frame for ``fault_s``
+    (frames enter the pipeline and none come out: a stage between them is missing, stuck or cut off);
+    ``(message, False)`` — a warning — once it has processed none for ``warn_s`` (no input is no fault: a sensor may
+    be off); None before. ``frames_at``: the classifier's last seq and when it was first seen; ``sources_moved``:
+    per source, its last seq and when it last changed (the caller's monotonic clock).
+
+    Readiness had held a stage that left the bus against the pipeline only if this sidecar had seen it leave: one
+    restarted after a tracker had stopped for good answered 200 "ok", the tracker unlisted, while the replay
+    published and no object came out — with a warning that said "no input"."""
+    if frames_at is None:
+        return None
+    seq, since = frames_at
+    still = now - since
+    last = f" (last seq {seq})" if seq >= 0 else ""
+    moving = sorted((name, s) for name, (s, at) in sources_moved.items() if now - at <= recent_s)
+    feeding = ", ".join(f"{name} at seq {s}" for name, s in moving)
+    if moving and still >= fault_s:
+        return (f"frames enter the pipeline ({feeding}) but the classifier has processed none for {still:.0f} s"
+                f"{last}: a stage between them is missing, stuck or cut off (jitterguard status)"), True
+    if still < warn_s:
+        return None
+    if not moving:
+        return f"no input: the classifier has processed no frame for {still:.0f} s{last}", False
+    return f"the classifier has processed no frame for {still:.0f} s{last} while frames enter ({feeding})", False
 
 
 def is_pipeline(name: str) -> bool:

@@ -54,7 +54,7 @@ class SidecarMetrics:
 
     def attach(self, client: "ClassifierClient") -> None:
         """Expose the classifier's figures through ``client``'s snapshot cache, and every service's heartbeat."""
-        self.registry.register(ClassifierCollector(client.rendered_state, client.readiness_flag))
+        self.registry.register(ClassifierCollector(client.rendered_state, client.classifier_up))
         self.registry.register(ServiceCollector(client.service_beats, client.stale_after_s))
 
 
@@ -103,9 +103,11 @@ class ServiceCollector(Collector):
 class ClassifierCollector(Collector):
     """Classifier metrics computed at scrape time from the cached snapshot."""
 
-    def __init__(self, rendered: Callable[[], object], ready: Callable[[], bool]) -> None:
+    def __init__(self, rendered: Callable[[], object], up: Callable[[], bool]) -> None:
+        """``up``: whether the classifier itself is on the bus with a recent heartbeat (not the pipeline's
+        readiness, which ``/readyz`` and ``jitterguard_service_healthy`` tell)."""
         self._rendered = rendered
-        self._ready = ready
+        self._up = up
 
     def describe(self) -> list:
         return []  # families vary with what the classifier exports; skip describe-time collection
@@ -113,7 +115,7 @@ class ClassifierCollector(Collector):
     def collect(self) -> Iterator:
         up = GaugeMetricFamily("jitterguard_classifier_up",
                                "1 if the classifier's liveliness token is present and its heartbeat is recent")
-        up.add_metric([], 1.0 if self._ready() else 0.0)
+        up.add_metric([], 1.0 if self._up() else 0.0)
         yield up
         st = self._rendered()
         if st is None:
