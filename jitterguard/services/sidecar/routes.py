@@ -184,7 +184,8 @@ def _live_state(c: ClassifierClient) -> tuple[RenderedState, dict[str, str]]:
 @state_routes.get("/v1/state", response_model=StateView, responses={503: E503},
            summary="Every track the classifier decided in its latest frame",
            description=("Served from a cache refreshed every poll period. Headers: `X-Classifier-Seq` (the frame), "
-                        "`X-Classifier-Ready` (false while the heartbeat is late: the state may be stale), "
+                        "`X-Classifier-Ready` (what `/readyz` says: false while the classifier's heartbeat is late — the "
+                        "state may be stale — or another stage fails or stalls), "
                         "`X-State-Age-Ms` (since the sidecar fetched it). 503 once the classifier's liveliness "
                         "token is gone."), dependencies=[only_query("state", "class")])
 async def get_state(c: Client, state: StateFilter = None, cls: ClassFilter = None) -> Response:
