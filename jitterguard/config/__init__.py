@@ -111,15 +111,16 @@ def load(model: type[M], path: str | Path | None = None, *, service: str | None 
     ``overrides`` that are not None (command-line flags: ``flags`` names each key's flag, ``--key-name`` if not);
     ConfigError names the flag, or the file and the field, that fails."""
     values: dict[str, Any] = dict(base or {})
+    maps = _map_defaults(model)
     origin = ""  # defaults and flags only: a rule across fields is told as it is
     if preset is not None:
-        _merge(values, preset_values(service or "", preset))
+        _merge(values, preset_values(service or "", preset), maps)
         origin = f"preset {preset}"
     if path is not None:
-        _merge(values, read_params(path))
+        _merge(values, read_params(path), maps)
         origin = str(path)
     given = {k: v for k, v in (overrides or {}).items() if v is not None}
-    _merge(values, given)
+    _merge(values, given, maps)
     try:
         return model.model_validate(values)
     except ValidationError as exc:
@@ -133,10 +134,27 @@ def load(model: type[M], path: str | Path | None = None, *, service: str | None 
         raise ConfigError(": ".join([*where, msg])) from None
 
 
-def _merge(into: dict[str, Any], new: dict[str, Any]) -> None:
-    """Nested mappings are merged key by key (a file may tune one limit), everything else replaced."""
+def _map_defaults(model: type[BaseModel]) -> dict[str, dict[str, Any]]:
+    """The model's fields whose values are maps (the classifier's per-class maps), with their defaults."""
+    out = {}
+    for name, field in model.model_fields.items():
+        default = field.get_default(call_default_factory=True)
+        if isinstance(default, dict):
+            out[name] = default
+    return out
+
+
+def _merge(into: dict[str, Any], new: dict[str, Any], maps: dict[str, dict[str, Any]] | None = None) -> None:
+    """Nested mappings are merged key by key (a file may tune one limit), everything else replaced. A map field
+    (``maps``: each with its default) given entries takes them over what the layers below it say — the model's
+    default when none does: a file holding ``alpha_per_class: {pedestrian: 1.5}`` had replaced the default map
+    without a preset, every vehicle falling from 2.58 to ``alpha_default``, and merged into it with one —; given
+    ``{}`` it is cleared (the paper preset's "no per-class values"; under a preset ``{}`` had been ignored)."""
     for k, v in new.items():
-        if isinstance(v, dict) and isinstance(into.get(k), dict):
+        if maps is not None and k in maps and isinstance(v, dict):
+            below = into.get(k, maps[k])
+            into[k] = {**below, **v} if v and isinstance(below, dict) else v
+        elif isinstance(v, dict) and isinstance(into.get(k), dict):
             into[k] = dict(into[k])
             _merge(into[k], v)
         else:

@@ -80,6 +80,23 @@ def test_config_takes_a_flat_file_or_the_ros_parameters_form(tmp_path, wrap) -> 
     assert cfg.limits.max_payload_bytes == TrackerConfig().limits.max_payload_bytes  # one key of a mapping tuned
 
 
+def test_a_per_class_map_in_a_file_tunes_its_classes_over_the_layer_below_and_empty_clears_it(tmp_path) -> None:
+    """Without a preset a file's ``alpha_per_class: {pedestrian: 1.5}`` had replaced the default map (every vehicle
+    fell from 2.58 to alpha_default without a word) while under a preset it merged; a file's ``{}`` under the hold
+    preset had been ignored. One rule now: entries over what is below, ``{}`` clears."""
+    one = tmp_path / "one.yaml"
+    one.write_text("alpha_per_class: {pedestrian: 1.5}\n")
+    for preset in (None, "authors"):
+        cfg = load(ClassifierParams, one, service="classifier", preset=preset)
+        assert cfg.alpha_per_class["pedestrian"] == 1.5 and cfg.alpha_per_class["car"] == 2.58, preset
+    cfg = load(ClassifierParams, one, service="classifier", preset="paper")  # the paper's map is empty
+    assert cfg.alpha_per_class == {"pedestrian": 1.5}
+    off = tmp_path / "off.yaml"
+    off.write_text("dynamic_hold_s_per_class: {}\nalpha_per_class: {}\n")
+    cfg = load(ClassifierParams, off, service="classifier", preset="hold")
+    assert cfg.dynamic_hold_s_per_class == {} and cfg.hold_for(1) == 0.0 and cfg.alpha_per_class == {}
+
+
 def test_a_bad_file_names_the_file_and_the_key(tmp_path) -> None:
     p = tmp_path / "c.yaml"
     p.write_text("windw_size: 5\n")
