@@ -66,7 +66,7 @@ def eval_command(
     alpha: Annotated[float | None, typer.Option("--alpha", help="alpha_default of the z-test (no per-class overrides).")] = None,
     velocity_threshold: Annotated[float | None, typer.Option("--velocity-threshold", help="The baseline's speed"
                                                              " cut-off for every class \\[m/s] (default: Autoware's"
-                                                             " per class, 1.0 vehicles, 0.28 others).")] = None,
+                                                             " per class, 1.0 vehicles and motorcycles, 0.28 others).")] = None,
     runs: Annotated[int, typer.Option("--runs", help="Pool seeds seed … seed+runs-1 into one scored table (one "
                                       "drive: the online calibration carries over).")] = 1,
     variance_scale: Annotated[float, typer.Option("--variance-scale", help="Multiply every reported position "

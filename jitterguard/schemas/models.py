@@ -356,9 +356,10 @@ def _default_alpha_per_class() -> dict[str, float]:
     return dict(AUTHORS_ALPHA)
 
 
-AUTOWARE_SPEED_THRESHOLDS = {"pedestrian": 0.28, "bicycle": 0.28, "motorcycle": 0.28, "unknown": 0.28}
-"""Autoware's static-obstacle-avoidance ``th_moving_speed`` for the classes below 1.0 m/s (vehicles: 1.0,
-``velocity_threshold``'s default)."""
+AUTOWARE_SPEED_THRESHOLDS = {"pedestrian": 0.28, "bicycle": 0.28, "unknown": 0.28}
+"""Autoware's static-obstacle-avoidance ``th_moving_speed`` for the classes below 1.0 m/s (car, truck, bus, trailer
+and motorcycle: 1.0, ``velocity_threshold``'s default). Until 6 Dec a motorcycle was held to 0.28 here, as issue 15
+listed it; Autoware's own ``static_obstacle_avoidance.param.yaml`` holds it to 1.0 (its ``th_moving_time`` 1.0 s)."""
 
 
 def _default_speed_thresholds() -> dict[str, float]:
@@ -449,8 +450,8 @@ class ClassifierConfig(Message):
     velocity_threshold_per_class: dict[str, Annotated[float, Field(ge=0.0, le=100.0)]] = Field(
         json_schema_extra=CLASS_KEYS,
         default_factory=_default_speed_thresholds,
-        description="per-class speed thresholds of the baseline, m/s (default: Autoware's 0.28 for vulnerable "
-        "road users and unknown)")
+        description="per-class speed thresholds of the baseline, m/s (default: Autoware's 0.28 for pedestrians, "
+        "bicycles and unknown; every other class velocity_threshold)")
     velocity_sustain_s_per_class: dict[str, Annotated[float, Field(ge=0.0, le=60.0)]] = Field(
         json_schema_extra=CLASS_KEYS,
         default_factory=_default_sustain,

@@ -28,7 +28,7 @@ def obs(ids, x, y=None, label=Label.CAR, var=0.01, speed=None, seq=0, stamp_ns=0
                                    np.full(n, var), np.zeros(n), np.full(n, var), speed, seq=seq, stamp_ns=stamp_ns)
 
 
-A, B, C = (f"{i:032x}" for i in (10, 11, 12))
+A, B, C, D = (f"{i:032x}" for i in (10, 11, 12, 13))
 PAPER = {"calibration": "off", "min_speed_mps": 0.0, "alpha_per_class": {}}
 
 
@@ -286,14 +286,15 @@ def test_velocity_threshold_baseline_uses_tracker_speed_only():
 
 
 def test_baseline_thresholds_are_autowares_per_class():
-    """Vehicles above 1.0 m/s, pedestrians (and bicycles, motorcycles, unknown) above 0.28 m/s."""
+    """Vehicles and motorcycles above 1.0 m/s, pedestrians (and bicycles, unknown) above 0.28 m/s, as Autoware's
+    static_obstacle_avoidance.param.yaml (a motorcycle had been held to 0.28 m/s)."""
     core = MotionClassifierCore(ClassifierConfig(mode="velocity_threshold"))
-    ids = [A, B, C]
-    dec = core.update(Observations.from_lists(ids, [int(Label.CAR), int(Label.PEDESTRIAN), int(Label.UNKNOWN)],
-                                              [0, 0, 0], [0, 0, 0], [0.01] * 3, [0] * 3, [0.01] * 3,
-                                              speed=[0.5, 0.5, 0.2]))
-    assert list(dec.state) == [STATIC, DYNAMIC, STATIC]
-    assert list(dec.threshold) == [1.0, 0.28, 0.28]
+    ids = [A, B, C, D]
+    labels = [int(Label.CAR), int(Label.PEDESTRIAN), int(Label.UNKNOWN), int(Label.MOTORCYCLE)]
+    dec = core.update(Observations.from_lists(ids, labels, [0] * 4, [0] * 4, [0.01] * 4, [0] * 4, [0.01] * 4,
+                                              speed=[0.5, 0.5, 0.2, 0.5]))
+    assert list(dec.state) == [STATIC, DYNAMIC, STATIC, STATIC]
+    assert list(dec.threshold) == [1.0, 0.28, 0.28, 1.0]
 
 
 def test_baseline_sustain_times_hold_the_speed_before_dynamic():

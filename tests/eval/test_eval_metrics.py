@@ -86,7 +86,7 @@ def test_attribute_mapping(attr: str, moving: bool, want: bool) -> None:
 
 
 def test_groups_and_nuscenes_labels() -> None:
-    # vehicles are the classes Autoware's threshold holds to 1.0 m/s; a motorcycle (5) is held to 0.28 m/s
+    # vehicles are issue 15's car, truck, bus, trailer; a motorcycle (5) is scored with the cycles
     assert [group_of(x) for x in (1, 2, 3, 4, 5, 6, 7, 0)] == [
         "vehicle"] * 4 + ["bicycle", "bicycle", "pedestrian", None]
     assert nuscenes_label("human.pedestrian.child") == 7

@@ -80,7 +80,7 @@ def test_merge_patch_semantics() -> None:
     assert merge_patch(cur, {"alpha_per_class": None}).alpha_per_class == ClassifierConfig().alpha_per_class
     # every per-class map merges key by key, a null value drops that class
     out = merge_patch(cur, {"velocity_threshold_per_class": {"pedestrian": None, "car": 2.0}})
-    assert out.velocity_threshold_per_class == {"bicycle": 0.28, "motorcycle": 0.28, "unknown": 0.28, "car": 2.0}
+    assert out.velocity_threshold_per_class == {"bicycle": 0.28, "unknown": 0.28, "car": 2.0}
     out = merge_patch(out, {"velocity_sustain_s_per_class": {"car": 2.0}})
     assert out.velocity_sustain_s_per_class == {"car": 2.0} and out.velocity_threshold_per_class["car"] == 2.0
     out = merge_patch(out, {"dynamic_hold_s_per_class": {"pedestrian": 0.3}})
