@@ -8,9 +8,13 @@ Pure numpy over the detector's two array bundles (:class:`~.config.Detections3D`
 ``calc_ap``), re-implemented so that training can score every epoch without a nuScenes dataroot:
 
 * ground truth is kept if its BEV distance from the sensor is ``< class_range[class]`` and it holds
-  ``≥ min_points`` LiDAR returns (nuScenes drops boxes with 0 LiDAR+radar points); predictions only pass the
-  range filter. nuScenes measures range from the ego-pose origin; in this project's exports the LiDAR sits
-  above that origin, so the two agree.
+  ``≥ min_points`` LiDAR returns; predictions only pass the range filter. Two departures from the devkit, both
+  kept on purpose (a LiDAR-only detector scored in its own frame) and both visible only on real nuScenes data:
+  the devkit drops a box only with 0 LiDAR *and* 0 radar points, and it measures range from the ego-pose origin
+  (the rear axle), which on nuScenes lies about 1 m behind LIDAR_TOP (scene-0523: 0.99 m), not under it as in
+  this project's synthetic exports. On scene-0523 with the shipped weights (docs/detector.md, "Evaluation") the
+  devkit's two rules give car AP 0.193 and pedestrian AP 0.172 against these 0.218 and 0.177 (the range origin
+  alone: 0.220, 0.175).
 * per class, all predictions of all samples are taken in descending score (ties: the later one in
   sample-then-box order first, exactly as the devkit's ``sorted(...)[::-1]``); each takes the nearest
   *untaken* ground-truth box of its class in its sample, and is a true positive iff that BEV centre
