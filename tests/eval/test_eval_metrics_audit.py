@@ -15,7 +15,7 @@ from jitterguard.schemas.models import ClassifierConfig
 from jitterguard.sim.world import make_scenario
 
 STATIC, DYNAMIC = 1, 2
-VEHICLE_LABELS, CYCLE_LABELS, PEDESTRIAN = {1, 2, 3, 4}, {5, 6}, 7
+VEHICLE_LABELS, CYCLE_LABELS, PEDESTRIAN, MOTORCYCLE = {1, 2, 3, 4}, {5, 6}, 7, 5
 
 
 def _frames(seed: int = 2000):
@@ -46,11 +46,12 @@ def _same(mine, theirs) -> bool:
 
 
 def test_the_rows_decide_as_documented(run) -> None:
-    """Baseline: dynamic iff speed > the class's threshold (1.0 m/s car/truck/bus/trailer, 0.28 the others; no
+    """Baseline: dynamic iff speed > the class's threshold (1.0 m/s car/truck/bus/trailer and motorcycle, as
+    Autoware's static_obstacle_avoidance.param.yaml; 0.28 the others; no
     sustain by default); z-test: dynamic iff max(z_x, z_y) > the class's α once the window can decide."""
     _, rows, _ = run
     for r in rows:
-        assert r["thr"] == (1.0 if r["label"] in VEHICLE_LABELS else 0.28)
+        assert r["thr"] == (1.0 if r["label"] in VEHICLE_LABELS | {MOTORCYCLE} else 0.28)
         assert (r["sv"] == DYNAMIC) == (r["speed"] > r["thr"])
         if r["win"] >= 2:
             assert (r["sz"] == DYNAMIC) == (r["z"] > r["alpha"])
