@@ -33,6 +33,8 @@ def test_parse_seeds_ranges_and_lists() -> None:
     (["train", "--out", "OUT", "--distill-from", "SHIPPED", "--distill-classes", "moped"], "--distill-classes"),
     (["train", "--out", "OUT", "--distill-weight", "2"], "--distill-classes/--distill-weight: only with"),
     (["train", "--out", "OUT", "--distill-from", "SHIPPED", "--preset", "paper"], "--distill-from: the teacher's"),
+    # --init fixes the network: a --preset of another architecture had been ignored without a word
+    (["train", "--out", "OUT", "--init", "SHIPPED", "--preset", "paper"], "--preset: 'paper' contradicts --init"),
     (["eval-detector", "--out", "OUT", "--weights", "/nonexistent.pt"], "--weights"),
     (["eval-detector", "--out", "OUT", "--seeds", "x"], "--seeds"),
     (["eval-detector", "--out", "OUT", "--effects", "fog"], "--effects"),

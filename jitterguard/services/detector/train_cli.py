@@ -294,7 +294,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
     @app.command("train")
     def train_cmd(
         out: Annotated[str, typer.Option("--out", help="Run folder: caches, checkpoint.pt, history.json, weights.pt.")],
-        preset: Annotated[str, typer.Option("--preset", help=f"Architecture: {', '.join(PRESETS)}.")] = "lite",
+        preset: Annotated[str | None, typer.Option("--preset", help=f"Architecture: {', '.join(PRESETS)} (default"
+                                                   " lite); with --init only the init weights' own.")] = None,
         vanilla: Annotated[bool, typer.Option("--vanilla", help="No variance heads (L1 instead of Gaussian NLL).")] = False,
         scenarios: Annotated[str, typer.Option("--scenarios", help="Synthetic scenarios to train on.")] = DEFAULT_SCENARIOS,
         train_seeds: Annotated[str, typer.Option("--train-seeds", help="Scenario seeds for training, e.g. 0-59.")] = "0-59",
@@ -383,7 +384,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
     ) -> None:
         """Train the detector on synthetic scans or a nuScenes dataroot; runs unchanged under ``torchrun``."""
         progress = progress_on(progress)
-        if preset not in PRESETS:
+        if preset is not None and preset not in PRESETS:
             fail(f"--preset: expected one of {', '.join(PRESETS)}, got {preset!r}")
         effect_sets = effects.split("+")
         for e in effect_sets:
@@ -445,6 +446,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                 model, _, init_meta = load_weights(init)
             except WeightsError as exc:
                 fail(f"--init: {exc}")
+            if preset is not None and preset != model.config.name:  # it had been ignored: the init network trained
+                fail(f"--preset: {preset!r} contradicts --init {init}, a {model.config.name!r} network; drop --preset"
+                     " (the --init weights fix the architecture) or drop --init (a fresh --preset network)")
             if vanilla == model.config.uncertainty:
                 fail("--init: weights are " + ("uncertainty-aware" if model.config.uncertainty else "vanilla")
                      + "; drop or add --vanilla to match")
@@ -456,7 +460,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                 model = with_time_lag(model)
         else:
             torch.manual_seed(seed)
-            model = CenterPointNet(PRESETS[preset].model_copy(update={"uncertainty": not vanilla,
+            model = CenterPointNet(PRESETS[preset or "lite"].model_copy(update={"uncertainty": not vanilla,
                                                                        "num_point_features": 5 if sweeps > 1 else 4}))
         if intensity is not None and intensity != model.config.use_intensity:  # same layers, what is fed changes
             state = model.state_dict()
