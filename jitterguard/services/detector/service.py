@@ -18,6 +18,7 @@ Counters (in the heartbeat): ``scans`` (processed), ``skipped_scans``, ``detecti
 ``nonfinite_points``, ``nonfinite_detections``, ``out_of_limit_detections`` (dropped: the tracker's reader would
 refuse the frame for them), ``detect_errors``, ``detect_ms_last`` (end-to-end time of the latest scan, rounded),
 ``stacked_sweeps_last`` (scans in the latest network input, for a model trained on stacked sweeps: :mod:`.sweeps`),
+``sweep_resets`` (times the held sweeps were dropped because a scan's stamp went back or its ego pose jumped),
 ``sensor_height_cm_last`` (the height above the road the latest scan's frame was taken to have, cm: the declared
 ``sensor_height_m`` or the scan's own estimate, :mod:`.ground` — an operator sees a wrong frame or mount at once),
 ``ground_slope_x_cdeg_last`` / ``ground_slope_y_cdeg_last`` (the road plane's slope along the scan frame's x / y
@@ -222,8 +223,9 @@ class DetectorService(Service):
             rotation, translation = scan_pose(scan)
             with self._sweeps_lock:
                 points = self._sweeps.stack(scan.header.stamp, rotation, translation, points)
-                stacked = self._sweeps.last_stacked
+                stacked, resets = self._sweeps.last_stacked, self._sweeps.resets
             self.counters.set("stacked_sweeps_last", stacked)
+            self.counters.set("sweep_resets", resets)
         det, dropped, beyond = publishable_detections(self.detector.detect, points,
                                                       uncertainty=self.detector.config.uncertainty)
         if dropped:
