@@ -191,6 +191,24 @@ def test_scans_without_a_road_plane_are_told_to_the_operator_once(harness, caplo
     assert svc.detector.plane_measured is None
 
 
+def test_scans_without_intensity_are_counted_and_told_once(harness, scans, caplog) -> None:
+    """A cloud of x, y, z only, given to weights trained with intensity: fed 0 as documented (the shipped network
+    then finds fewer objects), counted and said once — it had been silent."""
+    svc, client = harness
+    pts, pose = scans[0]
+    with caplog.at_level(logging.WARNING, logger="jitterguard.detector"):
+        for seq in (400, 401):
+            msg = PointCloud(header=Header(stamp=STAMP0 + seq * 50_000_000, frame_id="lidar", seq=seq), ego_pose=pose,
+                             fields=["x", "y", "z"], num_points=len(pts), data=pts[:, :3].astype("<f4").tobytes())
+            client.pub.put(encode(msg))
+            assert wait_until(lambda: seq in client.seqs(), TIMEOUT)
+        client.send(pts, pose, seq=402)  # with intensity: not counted
+        assert wait_until(lambda: 402 in client.seqs(), TIMEOUT)
+    told = [r.getMessage() for r in caplog.records if "no 'intensity' field" in r.getMessage()]
+    assert len(told) == 1 and "--no-intensity" in told[0], told
+    assert svc.counters.get("scans_without_intensity") == 2
+
+
 def test_steady_overload_is_summarised_and_a_new_burst_reported_at_once() -> None:
     rep = BehindReport(quiet_s=5.0, summary_s=30.0)
     assert rep.taken(0.0, seq=0, skipped=0, first=-1, last=-1, detect_ms=90) is None
