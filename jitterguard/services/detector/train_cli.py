@@ -271,7 +271,7 @@ def fit_synthetic_recalibration(det: Any, root: Path, scenarios: list[str], seed
     after. Raises ValueError when nothing matches."""
     from tqdm import tqdm
 
-    from .evaluate import apply_recalibration, fit_recalibration
+    from .evaluate import RECALIBRATION_MIN_PER_BIN, apply_recalibration, fit_recalibration, matched_residuals
 
     seeds = parse_seeds(seeds_text, "--seeds")
     items: list[Any] = []
@@ -281,12 +281,17 @@ def fit_synthetic_recalibration(det: Any, root: Path, scenarios: list[str], seed
         items += [view[i] for i in range(len(view))]
     dets = [det.detect(s.points) for s in tqdm(items, unit="scan", file=sys.stderr, disable=not progress)]
     rec = fit_recalibration(dets, items, bins=bins)
+    matches = len(matched_residuals(dets, items))
+    if len(rec.scales) < bins or matches < RECALIBRATION_MIN_PER_BIN:  # it had been said only by "bins" in the report
+        log.warning("the variance scales were fitted in %d score bin(s), %d asked, on %d matched boxes of %d scans"
+                    " (%d a bin wanted): more seeds or frames per scenario give a steadier fit", len(rec.scales),
+                    bins, matches, len(items), RECALIBRATION_MIN_PER_BIN)
     before = write_report(root, "before", dets, items)["summary"]
     after = write_report(root, "after", [apply_recalibration(d, rec) for d in dets], items)["summary"]
     keys = ("positional_ece", "coverage_1sigma", "nll")
     fit_on = {"scenarios": scenarios, "seeds": seeds_text, "frames_per_scenario": frames,
               "effects": "+".join(",".join(_effects(e)) or "none" for e in effect_sets), "scans": len(items),
-              "bins": len(rec.scales)}
+              "matches": matches, "bins": len(rec.scales)}
     return rec, {"fit_on": fit_on, "before": {k: before[k] for k in keys}, "after": {k: after[k] for k in keys}}
 
 
