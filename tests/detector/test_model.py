@@ -350,4 +350,14 @@ def test_weights_round_trip_and_reject_bad_files(tmp_path) -> None:
     torch.save(bad, str(tmp_path / "rec.pt"))
     with pytest.raises(WeightsError, match="recalibration"):
         load_weights(tmp_path / "rec.pt")
+    # a dict of the right format whose entries are not what they must be: WeightsError (one line in every CLI),
+    # not the KeyError / TypeError / ValueError traceback they had been
+    good = torch.load(str(path), weights_only=True)
+    for key, value in (("config", None), ("state_dict", 5), ("meta", "abc"), ("meta", [1, 2])):
+        broken = {**good, key: value} if value is not None else {k: v for k, v in good.items() if k != key}
+        torch.save(broken, str(tmp_path / "broken.pt"))
+        with pytest.raises(WeightsError, match=f"its '{key}' is"):
+            load_weights(tmp_path / "broken.pt")
+    torch.save({**good, "meta": None}, str(tmp_path / "nometa.pt"))
+    assert load_weights(tmp_path / "nometa.pt")[2] == {}
 

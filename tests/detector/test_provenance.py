@@ -60,3 +60,18 @@ def test_a_lineage_that_nests_without_end_is_read_to_a_bound() -> None:
     meta["init_provenance"] = meta  # a hand-edited or corrupt file
     assert len(list(lineage(meta))) == MAX_LINEAGE
     assert list(lineage({"init_provenance": "junk"})) == [{"init_provenance": "junk"}]
+
+
+def test_scans_read_from_inside_a_dataroot_count_as_adapted_on_it(tmp_path: Path) -> None:
+    """``adapt --scans DATAROOT/samples/LIDAR_TOP`` (or one of its files) reads the key frames ``eval-detector
+    --nuscenes DATAROOT`` scores; only the dataroot itself had been recognised, so such a score went unflagged."""
+    root = tmp_path / "nuscenes"
+    lidar = root / "samples" / "LIDAR_TOP"
+    lidar.mkdir(parents=True)
+    (tmp_path / "nuscenes-other").mkdir()
+    (tmp_path / "link").symlink_to(lidar)
+    for recording in (lidar, lidar / "n008__LIDAR_TOP__1.pcd.bin", tmp_path / "link", f"{root}#scene-0523"):
+        meta = {"unlabelled_scans": [{"recording": str(recording), "scans": 1}]}
+        assert adapted_on_scans(meta, root), recording
+        assert not adapted_on_scans(meta, tmp_path / "nuscenes-other"), recording  # a sibling, not a parent
+    assert not adapted_on_scans({"unlabelled_scans": [{"recording": str(tmp_path)}]}, root)  # the folder above

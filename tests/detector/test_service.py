@@ -57,9 +57,14 @@ class GatedDetector(Detector):
 @pytest.fixture(scope="module")
 def scans() -> list[tuple[np.ndarray, Pose]]:
     """Two real HDL-32E scans (x, y, z, intensity, ring) with their sensor poses."""
+    return _cast((0, 5))
+
+
+def _cast(frames: tuple[int, ...]) -> list[tuple[np.ndarray, Pose]]:
+    """Real HDL-32E scans of these frames of a 10 Hz scenario, with their sensor poses."""
     sc = make_scenario("parking-street", 0, duration_s=2.0, rate_hz=10.0)
     out = []
-    for i in (0, 5):
+    for i in frames:
         res, gt = cast_frame(sc.frame(i), seed=0)
         pts = np.column_stack([res.points, res.ring]).astype(np.float32)
         qx, qy, qz, qw = quaternion_from_yaw(float(gt.ego_yaw))
@@ -184,6 +189,24 @@ def test_scans_without_a_road_plane_are_told_to_the_operator_once(harness, caplo
     told = [r.getMessage() for r in caplog.records if "no road plane found" in r.getMessage()]
     assert len(told) == 1 and "x forward and z up" in told[0], told
     assert svc.detector.plane_measured is None
+
+
+def test_scans_without_intensity_are_counted_and_told_once(harness, scans, caplog) -> None:
+    """A cloud of x, y, z only, given to weights trained with intensity: fed 0 as documented (the shipped network
+    then finds fewer objects), counted and said once — it had been silent."""
+    svc, client = harness
+    pts, pose = scans[0]
+    with caplog.at_level(logging.WARNING, logger="jitterguard.detector"):
+        for seq in (400, 401):
+            msg = PointCloud(header=Header(stamp=STAMP0 + seq * 50_000_000, frame_id="lidar", seq=seq), ego_pose=pose,
+                             fields=["x", "y", "z"], num_points=len(pts), data=pts[:, :3].astype("<f4").tobytes())
+            client.pub.put(encode(msg))
+            assert wait_until(lambda: seq in client.seqs(), TIMEOUT)
+        client.send(pts, pose, seq=402)  # with intensity: not counted
+        assert wait_until(lambda: 402 in client.seqs(), TIMEOUT)
+    told = [r.getMessage() for r in caplog.records if "no 'intensity' field" in r.getMessage()]
+    assert len(told) == 1 and "--no-intensity" in told[0], told
+    assert svc.counters.get("scans_without_intensity") == 2
 
 
 def test_steady_overload_is_summarised_and_a_new_burst_reported_at_once() -> None:
@@ -317,10 +340,13 @@ class RecordingGatedDetector(GatedDetector):
 
 
 def test_a_sweep_model_gets_every_arrived_scan_stacked_even_those_the_worker_skipped(
-        zenoh_port: int, client_session: zenoh.Session, scans) -> None:
+        zenoh_port: int, client_session: zenoh.Session) -> None:
     """A model trained on stacked sweeps (five point fields): the service holds every scan that arrives and stacks
     the one the worker takes with the earlier ones — the scans it skipped while the network was busy included —
-    exactly as the offline evaluator's stacker does with the same scans."""
+    exactly as the offline evaluator's stacker does with the same scans. (Two frames 0.1 s apart sent 50 ms apart:
+    the ego at 23 m/s, where the module's frames 0.5 s apart would be a pose jumping at 114 m/s, which clears the
+    held sweeps.)"""
+    scans = _cast((0, 1))
     from jitterguard.services.detector.adapter import scan_pose
     from jitterguard.services.detector.config import PRESETS
     from jitterguard.services.detector.inference import crop_box
@@ -344,7 +370,14 @@ def test_a_sweep_model_gets_every_arrived_scan_stacked_even_those_the_worker_ski
         assert wait_until(lambda: client.seqs() == [0, 4], TIMEOUT)
         assert wait_until(lambda: svc.counters.get("scans") == 2, TIMEOUT)
         c = svc.counters.snapshot()
-        assert c["skipped_scans"] == 3 and c["stacked_sweeps_last"] == 4
+        assert c["skipped_scans"] == 3 and c["stacked_sweeps_last"] == 4 and c["sweep_resets"] == 0
+        # the ego pose jumps by 1 km: the held sweeps go, the heartbeat says so (they had been stacked a kilometre
+        # off, out of range, and counted as four sweeps of the input)
+        far = scans[1][1].model_copy(update={"position": Point(x=1000.0, y=0.0, z=1.84)})
+        client.send(scans[1][0], far, seq=5)
+        assert wait_until(lambda: svc.counters.get("scans") == 3, TIMEOUT)
+        c = svc.counters.snapshot()
+        assert c["stacked_sweeps_last"] == 1 and c["sweep_resets"] == 1
     finally:
         det.gate.set()
         svc.close()
@@ -356,7 +389,7 @@ def test_a_sweep_model_gets_every_arrived_scan_stacked_even_those_the_worker_ski
         r, t = scan_pose(msg)
         offline.add(msg.header.stamp, r, t, crop_box(pts, det.self_crop))  # each sweep's body cropped in its frame
         want.append(offline.stack(msg.header.stamp, r, t, pts))
-    assert len(det.inputs) == 2
+    assert len(det.inputs) == 3
     for got, exp in zip(det.inputs, (want[0], want[4])):
         np.testing.assert_array_equal(got, exp)
     lags = np.unique(det.inputs[1][:, 4])

@@ -79,6 +79,24 @@ def test_older_than_the_lag_is_left_out_and_a_rewind_clears_the_history() -> Non
     assert st.stack(60 * MS, eye, zero, pts)[:, 4].tolist() == pytest.approx([0.0, 0.01])
 
 
+@pytest.mark.parametrize("position, yaw", [((1000.0, 0.0, 0.0), 0.0), ((6.0, 0.0, 0.0), 0.0), ((0.5, 0.0, 0.0), 3.0)])
+def test_a_pose_that_jumps_clears_the_history(position: tuple, yaw: float) -> None:
+    """A relocalisation 50 ms after the last scan (1 km, 6 m: faster than a vehicle drives; a heading turned by
+    3 rad): the earlier sweep had been stacked across it — a kilometre off, out of range and yet counted as a sweep
+    of the input; metres off, a ghost copy of the scene."""
+    pts = np.array([[10.0, 0.0, 0.0, 1.0]], np.float32)
+    st = SweepStacker(sweeps=2)
+    st.add(0, *pose_matrices((0.0, 0.0, 0.0), quaternion_from_yaw(0.0)), pts)
+    r, t = pose_matrices(position, quaternion_from_yaw(yaw))
+    st.add(50 * MS, r, t, pts)
+    assert st.resets == 1 and len(st) == 1
+    assert st.stack(50 * MS, r, t, pts).shape == (1, 5) and st.last_stacked == 1
+    # driving on from there (20 m/s, turning at 0.5 rad/s) stacks again
+    r2, t2 = pose_matrices(np.add(position, (1.0, 0.0, 0.0)), quaternion_from_yaw(yaw + 0.025))
+    st.add(100 * MS, r2, t2, pts)
+    assert st.resets == 1 and st.stack(100 * MS, r2, t2, pts).shape == (2, 5) and st.last_stacked == 2
+
+
 def test_earlier_sweeps_lose_their_own_body_returns_the_newest_keeps_them() -> None:
     near = np.array([[0.5, 0.2, 0.0, 1.0], [8.0, 0.0, 0.0, 1.0]], np.float32)
     eye, zero = np.eye(3), np.zeros(3)

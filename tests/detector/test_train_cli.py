@@ -33,6 +33,8 @@ def test_parse_seeds_ranges_and_lists() -> None:
     (["train", "--out", "OUT", "--distill-from", "SHIPPED", "--distill-classes", "moped"], "--distill-classes"),
     (["train", "--out", "OUT", "--distill-weight", "2"], "--distill-classes/--distill-weight: only with"),
     (["train", "--out", "OUT", "--distill-from", "SHIPPED", "--preset", "paper"], "--distill-from: the teacher's"),
+    # --init fixes the network: a --preset of another architecture had been ignored without a word
+    (["train", "--out", "OUT", "--init", "SHIPPED", "--preset", "paper"], "--preset: 'paper' contradicts --init"),
     (["eval-detector", "--out", "OUT", "--weights", "/nonexistent.pt"], "--weights"),
     (["eval-detector", "--out", "OUT", "--seeds", "x"], "--seeds"),
     (["eval-detector", "--out", "OUT", "--effects", "fog"], "--effects"),
@@ -183,6 +185,20 @@ def test_recalibrate_detector_refits_only_the_variance_scales(tmp_path: Path) ->
     # fitted on these scans, the NLL there cannot get worse than with the raw variances
     assert report["after"]["nll"] <= report["before"]["nll"]
     assert (out / "recalibration.json").is_file() and (out / "after_calibration.png").is_file()
+
+
+def test_a_recalibration_fitted_on_too_few_matches_says_so(tmp_path: Path) -> None:
+    """One scan, five bins asked: the fit falls back to one global scale on a few dozen boxes — said in a warning
+    and in the file's ``recalibration_fit_on.matches``, where only ``bins: 1`` in the report had told it."""
+    from jitterguard.services.detector.inference import shipped_weights
+
+    res = _jg("recalibrate-detector", "--weights", str(shipped_weights("lite")), "--out", str(tmp_path / "rc"),
+              "--scenarios", "parking-street", "--seeds", "20", "--frames-per-scenario", "1", "--effects", "none",
+              "--bins", "5", "--threads", "1", "--no-progress")
+    assert res.returncode == 0, res.stderr[-2000:]
+    fit_on = load_weights(tmp_path / "rc" / "weights.pt")[2]["recalibration_fit_on"]
+    assert fit_on["scans"] == 1 and fit_on["bins"] == 1 and 0 < fit_on["matches"] < 200
+    assert f"1 score bin(s), 5 asked, on {fit_on['matches']} matched boxes of 1 scans" in res.stderr
 
 
 @pytest.mark.slow

@@ -104,6 +104,12 @@ def load_weights(path: str | Path) -> tuple[CenterPointNet, Recalibration | None
         raise WeightsError(f"{p}: not a jitterguard detector weights file ({load_refusal(exc)})") from None
     if not isinstance(payload, dict) or payload.get("format") != FORMAT or "state_dict" not in payload:
         raise WeightsError(f"{p}: not a jitterguard detector weights file (format {FORMAT})")
+    # each entry's type checked before it is used: a file without a config, or whose state dict or meta is no dict,
+    # had escaped as a KeyError or TypeError traceback (eval-detector blamed --flips for one)
+    for key, optional in (("config", False), ("state_dict", False), ("meta", True)):
+        if not isinstance(payload.get(key), dict) and not (optional and payload.get(key) is None):
+            raise WeightsError(f"{p}: not a jitterguard detector weights file (its {key!r} is"
+                               f" {type(payload.get(key)).__name__}, not a dict)")
     config = config_from_dict(payload["config"])
     model = CenterPointNet(config)
     try:

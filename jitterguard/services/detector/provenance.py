@@ -66,8 +66,18 @@ def seen_scenes(meta: dict[str, Any], dataroot: str | Path, scenes: Sequence[str
     return [s for s in scenes if s in seen]
 
 
+def _inside(a: Any, root: str | Path) -> bool:
+    """Whether the recorded path ``a`` (``#scene`` dropped) is ``root`` or lies under it, both resolved."""
+    if not a:
+        return False
+    path, top = Path(str(a).split("#", 1)[0]).resolve(), Path(root).resolve()
+    return path == top or top in path.parents
+
+
 def adapted_on_scans(meta: dict[str, Any], recording: str | Path) -> bool:
     """Whether the weights (or an ancestor) were adapted on scans of ``recording`` (a folder or file; for a nuScenes
-    dataroot any of its scenes): scoring them there is test-time adaptation, not a cross-scene test."""
-    return any(isinstance(rec, dict) and _same_path(rec.get("recording"), recording)
+    dataroot any of its scenes, or any folder or file inside it — ``adapt --scans DATAROOT/samples/LIDAR_TOP`` reads
+    the very key frames ``eval-detector --nuscenes DATAROOT`` scores): scoring them there is test-time adaptation,
+    not a cross-scene test."""
+    return any(isinstance(rec, dict) and _inside(rec.get("recording"), recording)
                for node in lineage(meta) for rec in (node.get("unlabelled_scans") or []))

@@ -18,6 +18,9 @@ Counters (in the heartbeat): ``scans`` (processed), ``skipped_scans``, ``detecti
 ``nonfinite_points``, ``nonfinite_detections``, ``out_of_limit_detections`` (dropped: the tracker's reader would
 refuse the frame for them), ``detect_errors``, ``detect_ms_last`` (end-to-end time of the latest scan, rounded),
 ``stacked_sweeps_last`` (scans in the latest network input, for a model trained on stacked sweeps: :mod:`.sweeps`),
+``sweep_resets`` (times the held sweeps were dropped because a scan's stamp went back or its ego pose jumped),
+``scans_without_intensity`` (scans with no ``intensity`` field given to a network trained with intensity: fed 0,
+which costs it objects — told once in the log),
 ``sensor_height_cm_last`` (the height above the road the latest scan's frame was taken to have, cm: the declared
 ``sensor_height_m`` or the scan's own estimate, :mod:`.ground` — an operator sees a wrong frame or mount at once),
 ``ground_slope_x_cdeg_last`` / ``ground_slope_y_cdeg_last`` (the road plane's slope along the scan frame's x / y
@@ -156,6 +159,7 @@ class DetectorService(Service):
         self._behind = BehindReport()
         self._error_log = _BurstLogger(self.log)
         self._ground_watch = GroundWatch()
+        self._told_no_intensity = False
         self._pub = self.publisher(keys.detections(self.ns))
         self.monitor_progress(ProgressPolicy(stall_s=STALL_S))  # points in -> detections out (runtime.progress)
         self.spawn(self._worker, "worker")
@@ -216,14 +220,22 @@ class DetectorService(Service):
         points, bad = scan_points(scan)
         if bad:
             self.counters.inc("nonfinite_points", bad)
+        if "intensity" not in scan.fields and self.detector.config.use_intensity:
+            self.counters.inc("scans_without_intensity")
+            if not self._told_no_intensity:  # fed 0 as documented, but not without a word: it costs detections
+                self._told_no_intensity = True
+                self.log.warning("scans carry no 'intensity' field (fields %s): the network was trained with"
+                                 " intensity and is fed 0 for every return, which costs it objects; for such a"
+                                 " sensor train weights with --no-intensity", list(scan.fields))
         if len(points) == 0:
             self.counters.inc("empty_scans")
         elif self._sweeps is not None:
             rotation, translation = scan_pose(scan)
             with self._sweeps_lock:
                 points = self._sweeps.stack(scan.header.stamp, rotation, translation, points)
-                stacked = self._sweeps.last_stacked
+                stacked, resets = self._sweeps.last_stacked, self._sweeps.resets
             self.counters.set("stacked_sweeps_last", stacked)
+            self.counters.set("sweep_resets", resets)
         det, dropped, beyond = publishable_detections(self.detector.detect, points,
                                                       uncertainty=self.detector.config.uncertainty)
         if dropped:

@@ -14,6 +14,7 @@ Pure: numpy in, numpy out, no I/O and no clock; :class:`SweepStacker` keeps the 
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -33,6 +34,12 @@ MAX_LAG_S = 0.55
 """Earlier sweeps more than this older than the newest are left out (CenterPoint: 0.5 s, plus a stamp's jitter)."""
 MIN_RANGE_M = 1.0
 """Returns of an earlier sweep this close to its sensor are dropped: the ego's own body, which moved since."""
+MAX_EGO_SPEED_MPS = 100.0
+"""Faster than this (360 km/h) between two scans, the sensor's pose jumped (a relocalisation, another map, a
+restarted localiser) rather than moved: its earlier sweeps would be stacked where they never were, or — a kilometre
+off — out of range and yet counted, so :class:`SweepStacker` clears its history as it does when time goes back."""
+MAX_EGO_TURN_RAD_S = math.pi
+"""The same for the heading: a turn faster than 180° a second between two scans is a jump, not a vehicle turning."""
 
 
 @dataclass(frozen=True)
@@ -83,6 +90,12 @@ def sweeps_of(num_point_features: int, meta: Mapping[str, Any] | None) -> int:
     return int(n) if isinstance(n, int) and n >= 1 else DEFAULT_SWEEPS
 
 
+def _jumped(r0: F64, t0: F64, r1: F64, t1: F64, dt: float) -> bool:
+    """Whether a sensor posed (r0, t0) and ``dt`` seconds later (r1, t1) moved faster than a vehicle can."""
+    turn = math.acos(min(1.0, max(-1.0, (float(np.trace(r0.T @ r1)) - 1.0) / 2.0)))
+    return bool(np.linalg.norm(t1 - t0) > MAX_EGO_SPEED_MPS * dt or turn > MAX_EGO_TURN_RAD_S * dt)
+
+
 @dataclass(frozen=True)
 class _Scan:
     stamp_ns: int
@@ -97,8 +110,9 @@ class SweepStacker:
     :meth:`add` every scan that arrives — also those a busy detector will skip, so a stack never lacks sweeps
     because the network was slow — and :meth:`stack` the one the network takes: it gets that scan plus the up to
     ``sweeps − 1`` newest earlier ones no more than ``max_lag_s`` older. A scan whose stamp is not after the newest
-    one held (a replay that rewound, a restarted source) clears the history first: sweeps of another time would
-    be stacked in the wrong place. Memory is bounded by ``sweeps`` scans.
+    one held (a replay that rewound, a restarted source), or whose pose jumped from the newest one's (faster than
+    :data:`MAX_EGO_SPEED_MPS` or :data:`MAX_EGO_TURN_RAD_S`: a relocalisation), clears the history first: sweeps of
+    another time or place would be stacked in the wrong place. Memory is bounded by ``sweeps`` scans.
     """
 
     def __init__(self, sweeps: int, max_lag_s: float = MAX_LAG_S, min_range_m: float = MIN_RANGE_M) -> None:
@@ -109,7 +123,7 @@ class SweepStacker:
         self.sweeps, self.max_lag_s, self.min_range_m = int(sweeps), float(max_lag_s), float(min_range_m)
         self._held: deque[_Scan] = deque(maxlen=self.sweeps)
         self.resets = 0
-        """How often the history was cleared because time went back."""
+        """How often the history was cleared because time went back or the pose jumped."""
         self.last_stacked = 0
         """Scans in the latest :meth:`stack` (the newest included)."""
 
@@ -120,13 +134,16 @@ class SweepStacker:
         """Hold one arriving scan (sensor-frame (P, ≥4) points; the sensor's pose in the world at ``stamp_ns``)."""
         if self.sweeps == 1:
             return
-        if self._held and stamp_ns <= self._held[-1].stamp_ns:
-            if stamp_ns == self._held[-1].stamp_ns:  # the same scan delivered twice: keep the first
+        rotation, translation = np.asarray(rotation, np.float64), np.asarray(translation, np.float64)
+        if self._held:
+            last = self._held[-1]
+            if stamp_ns == last.stamp_ns:  # the same scan delivered twice: keep the first
                 return
-            self._held.clear()
-            self.resets += 1
-        self._held.append(_Scan(int(stamp_ns), np.asarray(rotation, np.float64),
-                                np.asarray(translation, np.float64), points))
+            dt = (stamp_ns - last.stamp_ns) * 1e-9
+            if dt < 0.0 or _jumped(last.rotation, last.translation, rotation, translation, dt):
+                self._held.clear()
+                self.resets += 1
+        self._held.append(_Scan(int(stamp_ns), rotation, translation, points))
 
     def earlier(self, stamp_ns: int, rotation: F64, translation: F64) -> list[EarlierSweep]:
         """The held scans before ``stamp_ns`` and within the lag, newest first, at most ``sweeps − 1``, in the

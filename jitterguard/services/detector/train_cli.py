@@ -271,7 +271,7 @@ def fit_synthetic_recalibration(det: Any, root: Path, scenarios: list[str], seed
     after. Raises ValueError when nothing matches."""
     from tqdm import tqdm
 
-    from .evaluate import apply_recalibration, fit_recalibration
+    from .evaluate import RECALIBRATION_MIN_PER_BIN, apply_recalibration, fit_recalibration, matched_residuals
 
     seeds = parse_seeds(seeds_text, "--seeds")
     items: list[Any] = []
@@ -281,12 +281,17 @@ def fit_synthetic_recalibration(det: Any, root: Path, scenarios: list[str], seed
         items += [view[i] for i in range(len(view))]
     dets = [det.detect(s.points) for s in tqdm(items, unit="scan", file=sys.stderr, disable=not progress)]
     rec = fit_recalibration(dets, items, bins=bins)
+    matches = len(matched_residuals(dets, items))
+    if len(rec.scales) < bins or matches < RECALIBRATION_MIN_PER_BIN:  # it had been said only by "bins" in the report
+        log.warning("the variance scales were fitted in %d score bin(s), %d asked, on %d matched boxes of %d scans"
+                    " (%d a bin wanted): more seeds or frames per scenario give a steadier fit", len(rec.scales),
+                    bins, matches, len(items), RECALIBRATION_MIN_PER_BIN)
     before = write_report(root, "before", dets, items)["summary"]
     after = write_report(root, "after", [apply_recalibration(d, rec) for d in dets], items)["summary"]
     keys = ("positional_ece", "coverage_1sigma", "nll")
     fit_on = {"scenarios": scenarios, "seeds": seeds_text, "frames_per_scenario": frames,
               "effects": "+".join(",".join(_effects(e)) or "none" for e in effect_sets), "scans": len(items),
-              "bins": len(rec.scales)}
+              "matches": matches, "bins": len(rec.scales)}
     return rec, {"fit_on": fit_on, "before": {k: before[k] for k in keys}, "after": {k: after[k] for k in keys}}
 
 
@@ -294,7 +299,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
     @app.command("train")
     def train_cmd(
         out: Annotated[str, typer.Option("--out", help="Run folder: caches, checkpoint.pt, history.json, weights.pt.")],
-        preset: Annotated[str, typer.Option("--preset", help=f"Architecture: {', '.join(PRESETS)}.")] = "lite",
+        preset: Annotated[str | None, typer.Option("--preset", help=f"Architecture: {', '.join(PRESETS)} (default"
+                                                   " lite); with --init only the init weights' own.")] = None,
         vanilla: Annotated[bool, typer.Option("--vanilla", help="No variance heads (L1 instead of Gaussian NLL).")] = False,
         scenarios: Annotated[str, typer.Option("--scenarios", help="Synthetic scenarios to train on.")] = DEFAULT_SCENARIOS,
         train_seeds: Annotated[str, typer.Option("--train-seeds", help="Scenario seeds for training, e.g. 0-59.")] = "0-59",
@@ -383,7 +389,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
     ) -> None:
         """Train the detector on synthetic scans or a nuScenes dataroot; runs unchanged under ``torchrun``."""
         progress = progress_on(progress)
-        if preset not in PRESETS:
+        if preset is not None and preset not in PRESETS:
             fail(f"--preset: expected one of {', '.join(PRESETS)}, got {preset!r}")
         effect_sets = effects.split("+")
         for e in effect_sets:
@@ -445,6 +451,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                 model, _, init_meta = load_weights(init)
             except WeightsError as exc:
                 fail(f"--init: {exc}")
+            if preset is not None and preset != model.config.name:  # it had been ignored: the init network trained
+                fail(f"--preset: {preset!r} contradicts --init {init}, a {model.config.name!r} network; drop --preset"
+                     " (the --init weights fix the architecture) or drop --init (a fresh --preset network)")
             if vanilla == model.config.uncertainty:
                 fail("--init: weights are " + ("uncertainty-aware" if model.config.uncertainty else "vanilla")
                      + "; drop or add --vanilla to match")
@@ -456,7 +465,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                 model = with_time_lag(model)
         else:
             torch.manual_seed(seed)
-            model = CenterPointNet(PRESETS[preset].model_copy(update={"uncertainty": not vanilla,
+            model = CenterPointNet(PRESETS[preset or "lite"].model_copy(update={"uncertainty": not vanilla,
                                                                        "num_point_features": 5 if sweeps > 1 else 4}))
         if intensity is not None and intensity != model.config.use_intensity:  # same layers, what is fed changes
             state = model.state_dict()
