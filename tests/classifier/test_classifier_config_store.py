@@ -43,8 +43,32 @@ def test_changed_flags_win_over_the_stored_config(tmp_path: Path) -> None:
                                   json.dumps({"format": FORMAT, "started_with": {}, "config": {"window_size": 1}})])
 def test_unreadable_or_invalid_files_are_ignored_with_a_reason(tmp_path: Path, text: str) -> None:
     (tmp_path / "c.json").write_text(text)
-    config, why = ConfigStore(tmp_path / "c.json").load(ClassifierConfig())
-    assert config is None and "starting from the flags" in why
+    store = ConfigStore(tmp_path / "c.json")
+    config, why = store.load(ClassifierConfig())
+    assert config is None and "starting from the flags" in why and store.damaged
+
+
+@pytest.mark.integration
+def test_a_damaged_store_is_a_warning_and_counted_not_the_info_of_a_first_start(tmp_path, zenoh_port,
+                                                                                caplog) -> None:
+    """A store the classifier cannot read loses every write it held. That had been logged at INFO, as a first start
+    or changed flags are, and counted nowhere: the stack's status, /metrics and the run summary all looked fine while
+    the thresholds an operator had set were gone. Now a warning naming the file, and ``config_store_errors``."""
+    import logging
+
+    store = ConfigStore(tmp_path / "classifier-config.json")
+    store.save(FLAGS, SET)
+    store.path.write_text(store.path.read_text()[:60])  # cut short, as a full disk or a hand edit leaves it
+    opts = loopback_options("cs3", zenoh_port, listen_self=True)
+    with caplog.at_level(logging.INFO, logger="jitterguard"), ClassifierService(opts, FLAGS, config_store=store) as svc:
+        assert svc.core.config == FLAGS and svc.counters.get("config_store_errors") == 1
+    warned = [r for r in caplog.records if r.levelno == logging.WARNING and str(store.path) in r.getMessage()]
+    assert warned and "unreadable" in warned[0].getMessage()
+    store.path.unlink()  # no file: a first start, which is no error
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="jitterguard"), ClassifierService(opts, FLAGS, config_store=store) as svc:
+        assert svc.counters.get("config_store_errors") == 0
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING and str(store.path) in r.getMessage()]
 
 
 def _write(session, payload: bytes):
@@ -74,7 +98,8 @@ def test_a_write_survives_the_classifiers_restart_and_an_unstorable_write_is_ref
         assert err is not None
         refused = decode(ConfigReply, err.payload.to_bytes())
         assert not refused.ok and "not applied" in refused.error and "cannot store" in refused.error
-        assert svc.core.config == FLAGS and svc.counters.get("config_store_errors") == 1
+        # counted twice: the load at start (a path under a file cannot be read either) and the write
+        assert svc.core.config == FLAGS and svc.counters.get("config_store_errors") == 2
 
 
 @pytest.mark.integration

@@ -179,5 +179,30 @@ def test_change_alpha_from_the_page_flips_the_borderline_track(page_stack: Stack
             c.put("/v1/config", json=PAPER_STATISTIC)
 
 
+def test_the_form_shows_the_config_in_force_with_every_value_a_choice_can_take(page_stack: Stack,
+                                                                                  browser: Chromium) -> None:
+    """The form's choices offer every value the config takes: ``effective_n`` had offered ``cluster`` and
+    ``independent`` only, so under the default (``measured``) the page showed an empty choice, and once a user had
+    picked another the page could not set the default back."""
+    from typing import get_args
+
+    from jitterguard.schemas.models import MAX_WINDOW, ClassifierConfig
+
+    try:
+        with page_stack.http() as c:
+            assert c.patch("/v1/config", json={"effective_n": None}).json()["effective_n"] == "measured"
+        _open(browser, page_stack)
+        browser.wait_js("window.jg.config && window.jg.config.effective_n === 'measured'")
+        for name in ("effective_n", "mode"):
+            options = browser.eval(f"[...document.getElementById('f-{name}').options].map(o => o.value)")
+            assert sorted(options) == sorted(get_args(ClassifierConfig.model_fields[name].annotation)), name
+        assert browser.eval("document.getElementById('f-effective_n').value") == "measured"
+        for name in ("window_size", "min_window"):  # the model's bounds, not ten times them
+            assert browser.eval(f"document.getElementById('f-{name}').max") == str(MAX_WINDOW)
+    finally:
+        with page_stack.http() as c:
+            c.put("/v1/config", json=PAPER_STATISTIC)
+
+
 def test_chromium_is_found_when_installed() -> None:
     assert CHROMIUM == (shutil.which("chromium") or shutil.which("chromium-browser"))

@@ -169,6 +169,50 @@ def test_event_streams_are_bounded(stack: Stack) -> None:
         server.close()
 
 
+def test_a_slow_event_client_gets_resync_where_its_events_were_lost(stack: Stack) -> None:
+    """A client that reads ``/v1/events`` too slowly loses events (its queue is bounded, the drops are counted) and is
+    told so with ``resync``: refetch ``/v1/state``. The ``resync`` had been sent before the up to 256 older events
+    still waiting for that client, and the loss came after them unmarked: a client that refetched its state on
+    ``resync`` then applied those stale changes over it. Now every gap in the stream is where a ``resync`` stands,
+    and every event after one is newer than every event lost."""
+    import json
+    import threading
+
+    broker = stack.server.server.config.app.state.sidecar.broker  # the sidecar's own broker: real events, real HTTP
+    n_events, pad = 2000, "x" * 20_000  # 40 MB: more than the socket buffers and the stream's queue hold
+    with httpx.Client(base_url=stack.url, timeout=10.0) as c, c.stream("GET", "/v1/events") as r:
+        dropped_before = _metric(c.get("/metrics").text, "jitterguard_sidecar_sse_dropped_events_total", "") or 0.0
+        lines = r.iter_lines()
+        assert next(lines).startswith("id: ") and next(lines) == "event: hello"
+        for n in range(n_events):  # while this client reads nothing
+            broker.publish("probe", {"n": n, "pad": pad})
+        threading.Timer(2.0, broker.publish, ("probe", {"n": n_events, "pad": ""})).start()  # once it reads again
+        seen: list[int | str] = []
+        event = None
+        deadline = time.monotonic() + 60
+        for line in lines:
+            assert time.monotonic() < deadline, "the last event never came"
+            if line.startswith("event: "):
+                event = line[7:]
+                if event == "resync":
+                    seen.append("resync")
+            elif line.startswith("data: ") and event == "probe":
+                seen.append(json.loads(line[6:])["n"])
+                if seen[-1] == n_events:
+                    break
+        dropped = _metric(c.get("/metrics").text, "jitterguard_sidecar_sse_dropped_events_total", "") - dropped_before
+    numbers = [n for n in seen if n != "resync"]
+    lost = n_events + 1 - len(numbers)
+    assert "resync" in seen and lost > 0 and dropped >= lost and numbers == sorted(numbers)
+    for i, item in enumerate(seen[1:], 1):
+        before = next((n for n in reversed(seen[:i]) if n != "resync"), -1)
+        if item == "resync":  # ... stands where events were lost
+            after = next(n for n in seen[i:] if n != "resync")
+            assert after > before + 1, f"resync between {before} and {after}, where nothing was lost"
+        else:  # and no events were lost anywhere else
+            assert item == before + 1 or seen[i - 1] == "resync", f"{before} to {item} lost without a resync"
+
+
 def test_every_service_health_and_counters_are_in_metrics(stack: Stack, bus: zenoh.Session) -> None:
     """/metrics had the classifier's figures only: a stalled tracker or a frozen detector was visible to whoever
     asked /readyz, never to an alert rule. Each heard service now has up / healthy / heartbeat age / last seq and

@@ -26,12 +26,18 @@ FORMAT = "jitterguard.classifier-config/1"
 class ConfigStore:
     def __init__(self, path: str | os.PathLike[str]) -> None:
         self.path = Path(path)
+        self.damaged = False
+        """Whether the last :meth:`load` found a file it could not use (unreadable, not this format, invalid): the
+        writes it held are lost, which the classifier logs as a warning and counts (``config_store_errors``) — not
+        as the info of a first start or of changed flags."""
 
     def load(self, started_with: ClassifierConfig) -> tuple[ClassifierConfig | None, str]:
         """The stored config if it belongs to a classifier started as this one (else None), and why."""
+        self.damaged = True
         try:
             doc = json.loads(self.path.read_text(encoding="utf-8"))
         except FileNotFoundError:
+            self.damaged = False
             return None, f"no stored config at {self.path}"
         except (OSError, ValueError) as exc:
             return None, f"stored config {self.path} is unreadable ({exc}); starting from the flags"
@@ -42,6 +48,7 @@ class ConfigStore:
             config = ClassifierConfig.model_validate(doc.get("config"))
         except ValidationError as exc:
             return None, f"stored config {self.path} is invalid ({exc.errors()[0]['msg']}); starting from the flags"
+        self.damaged = False
         if base != started_with:
             return None, f"the flags changed since {self.path} was written; starting from the flags"
         return config, f"config restored from {self.path}"

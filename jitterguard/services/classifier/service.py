@@ -113,7 +113,11 @@ class ClassifierService(Service):
         restored = None
         if config_store is not None:
             restored, why = config_store.load(self._started_with)
-            self.log.info("%s", why)
+            if config_store.damaged:  # the operator's writes are lost: not the info of a first start
+                self.counters.inc("config_store_errors")
+                self.log.warning("%s", why)
+            else:
+                self.log.info("%s", why)
         config = restored or config or ClassifierConfig()
         if restored is not None and config.calibration == "file" and config.calibration_file:
             # the restored config names its own file: the model read from the flags' file (if any) is not it

@@ -393,7 +393,9 @@ class ClassifierClient(Service):
         return in_force
 
     def update_config(self, change: Callable[[ClassifierConfig], ClassifierConfig]) -> ClassifierConfig:
-        """Read-modify-write under one lock, so two concurrent PATCHes never lose each other's fields.
+        """Read-modify-write under one lock, so two concurrent PATCHes never lose each other's fields. Only this
+        sidecar's: the wire has no conditional write, so a write over Zenoh (or from another sidecar) that lands
+        between the read and the put is overwritten (docs/http-api.md: last-writer-wins).
 
         ``change`` may raise (e.g. a validation error): then nothing is sent to the classifier.
         """

@@ -3,7 +3,10 @@
 Events are produced on plain threads (the state poll, request handlers) and consumed by async generators on
 the server's event loop. Each stream gets a bounded queue fed with ``call_soon_threadsafe``; a client that
 reads too slowly loses events rather than growing memory, and is told so with a ``resync`` event (refetch
-``/v1/state``) — the producer never blocks on a consumer.
+``/v1/state``) — the producer never blocks on a consumer. The ``resync`` stands where the events were lost: the
+events still waiting for that client are dropped with the one that did not fit, so every event after a ``resync``
+is newer than every event lost (the ``resync`` had come first and the up to 256 older events that had waited behind
+it after, which a client that had refetched its state then applied over it).
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ streams had cost the sidecar 70 % of a core and made ``GET /v1/state`` take 0.7 
 who reaches the port could open them)."""
 KEEPALIVE_S = 15.0
 _CLOSE = b""  # sentinel: the server is shutting down
+_RESYNC = b"resync"  # sentinel: events were dropped here (never an event frame: those begin with "id: ")
 
 
 def format_event(event_id: int, kind: str, data: dict[str, Any]) -> bytes:
@@ -34,21 +38,32 @@ class _Stream:
     def __init__(self, loop: asyncio.AbstractEventLoop) -> None:
         self.loop = loop
         self.queue: asyncio.Queue[bytes] = asyncio.Queue(QUEUE_SIZE)
-        self.overflowed = False
 
-    def offer(self, frame: bytes, on_drop: Callable[[], None]) -> None:
-        """Runs on the event loop."""
+    def offer(self, frame: bytes, on_drop: Callable[[int], None]) -> None:
+        """Runs on the event loop. A full queue: the client fell behind, and what waits for it is of no use once it
+        has to refetch its state; it is dropped (counted), and ``resync`` and ``frame`` take its place."""
         try:
             self.queue.put_nowait(frame)
+            return
         except asyncio.QueueFull:
-            self.overflowed = True
-            on_drop()
+            pass
+        dropped = 0
+        while not self.queue.empty():
+            old = self.queue.get_nowait()
+            if old is _CLOSE:  # the server is stopping: the stream ends, nothing to resync
+                self.queue.put_nowait(_CLOSE)
+                return
+            dropped += old is not _RESYNC
+        on_drop(dropped)
+        self.queue.put_nowait(_RESYNC)
+        self.queue.put_nowait(frame)
 
 
 class EventBroker:
-    """Thread-safe publish; one bounded queue per subscriber; a close that ends every stream."""
+    """Thread-safe publish; one bounded queue per subscriber; a close that ends every stream. ``on_drop(n)``: ``n``
+    events were dropped for a slow client."""
 
-    def __init__(self, on_drop: Callable[[], None] = lambda: None,
+    def __init__(self, on_drop: Callable[[int], None] = lambda n: None,
                  on_count: Callable[[int], None] = lambda n: None, max_streams: int = MAX_STREAMS) -> None:
         self._max_streams = max_streams
         self._lock = threading.Lock()
@@ -113,10 +128,10 @@ class EventBroker:
                     continue
                 if frame is _CLOSE or frame == _CLOSE:
                     return
-                if s.overflowed:
-                    s.overflowed = False
+                if frame is _RESYNC:
                     yield format_event(next(self._ids), "resync",
                                        {"reason": "events were dropped for this slow client; refetch /v1/state"})
+                    continue
                 yield frame
         finally:
             self._remove(s)

@@ -217,8 +217,9 @@ async def get_track(c: Client, track_id: Annotated[str, Path(pattern="^[0-9a-fA-
                                 "Server-sent events. `hello` (counts, seq, ready) on connect; `changes` "
                                 "{seq, changes: [{id, class, from, to, statistic, threshold, x, y}]} when "
                                 "tracks appear (from null), vanish (to null) or change state; `config` "
-                                "(the config now in force); `ready` {ready, reason}; `resync` if this "
-                                "client fell behind and lost events.")},
+                                "(the config now in force); `ready` {ready, reason}; `resync` where this "
+                                "client fell behind and lost events (refetch /v1/state: every event after it is "
+                                "newer than those lost). `Last-Event-ID` is not read: no replay on reconnect.")},
                       503: {"model": ErrorBody, "description": "As many event streams are open as the sidecar "
                                                                "serves (64)"}},
            summary="Server-sent events of state changes", dependencies=NO_QUERY)
