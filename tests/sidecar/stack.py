@@ -91,7 +91,7 @@ def _circle(cx: float, cy: float, r: float, speed: float, phase: float) -> Calla
     def pos(seq: int) -> tuple[float, float, float, float, float]:
         a = phase + w * seq / RATE_HZ
         x, y = cx + r * math.cos(a), cy + r * math.sin(a)
-        yaw = a + math.pi / 2
+        yaw = math.remainder(a + math.pi / 2, 2 * math.pi)  # wrapped: past 4π the wire refuses a track's yaw
         return x, y, yaw, speed * math.cos(yaw), speed * math.sin(yaw)
 
     return pos
