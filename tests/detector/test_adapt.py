@@ -215,7 +215,9 @@ def test_adapt_cli_writes_weights_that_name_their_scans(tmp_path: Path) -> None:
     assert meta["labels_read"] is False and meta["unlabelled_scans"][0]["scans"] == 4
     assert meta["unlabelled_scans"][0]["recording"].startswith(str(root.resolve()))
     # eval-detector can tell that scoring these weights on this dataroot is test-time adaptation
-    assert adapted_on_scans(meta, root) and not adapted_on_scans(meta, tmp_path) and not adapted_on_scans({}, root)
+    # (a folder that holds the scans counts too — they are inside what it would score — a sibling does not)
+    assert adapted_on_scans(meta, root) and adapted_on_scans(meta, tmp_path) and not adapted_on_scans({}, root)
+    assert not adapted_on_scans(meta, tmp_path / "other")
     assert "adapt" in meta["command"] and meta["adapted_from"]["sha256_16"]
     assert meta["adapt"]["self_crop"] == list(SELF_CROP_M)  # the real scans were cropped as the service crops
     assert rec is not None and json.loads((out / "adapt.json").read_text())["labels_read"] is False
