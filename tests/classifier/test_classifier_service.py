@@ -218,6 +218,28 @@ def test_a_write_the_busy_worker_did_not_take_in_time_is_withdrawn(service, clie
     assert service.counters.get("config_changes") == 0
 
 
+def test_a_write_behind_a_full_worker_queue_is_told_not_applied(service, client_session):
+    """64 writes and calls wait behind a stuck worker: a further write's put found the queue full and raised in the
+    query handler — its writer got no reply at all (the sidecar then said "did not confirm")."""
+    import threading
+    from concurrent.futures import Future
+
+    _wait_connected(client_session)
+    busy = threading.Thread(target=service.run_on_worker, args=(lambda: time.sleep(3.0), 5.0))
+    busy.start()
+    time.sleep(0.2)
+    while not service._queue.full():
+        service._queue.put_nowait(("call", (lambda: None, Future()), None))
+    reply = _query(client_session, keys.classifier_config(NS),
+                   encode(ClassifierConfig().model_copy(update={"alpha_default": 3.3})))
+    assert reply.err is not None
+    err = decode(ConfigReply, reply.err.payload.to_bytes())
+    assert not err.ok and "not applied" in err.error and "queue stayed full" in err.error
+    busy.join()
+    time.sleep(0.5)
+    assert service.core.config.alpha_default == ClassifierConfig().alpha_default
+
+
 def test_malformed_payloads_on_every_key_are_counted_and_service_keeps_running(service, client_session):
     got = _collect(client_session)
     _wait_connected(client_session)

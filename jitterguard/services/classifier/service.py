@@ -462,7 +462,13 @@ class ClassifierService(Service):
                                                    error=f"calibration_file: {exc}")))
                 return
         fut: Future = Future()
-        self._queue.put(("config", (cfg, fut), model), timeout=CONFIG_APPLY_TIMEOUT_S)  # bounded, as above
+        try:
+            self._queue.put(("config", (cfg, fut), model), timeout=CONFIG_APPLY_TIMEOUT_S)  # bounded, as above
+        except queue.Full:  # 64 writes and calls wait behind a stuck worker: the writer had got no reply at all
+            query.reply_err(encode(ConfigReply(ok=False, config=self.core.config, error=(
+                f"not applied: the classifier's worker queue stayed full for {CONFIG_APPLY_TIMEOUT_S:g} s"
+                f" ({self._queue.maxsize} writes and calls waiting)"))))
+            return
         try:
             in_force = fut.result(timeout=CONFIG_APPLY_TIMEOUT_S)
         except ValueError as exc:  # refused by the core (check_config): nothing applied
