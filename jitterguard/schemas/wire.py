@@ -104,6 +104,11 @@ the byte bound a made-up one held 40,000 counters: the stack's monitor keeps the
 (11 MB put once) had grown it by 420 MB and left it writing a 41 MB ``summary.json`` every second for good; the
 sidecar exported every entry as a ``/metrics`` series."""
 
+HEARTBEAT_BOUNDS: dict[str, int] = {"max_bytes": MAX_HEARTBEAT_BYTES, "max_array_len": MAX_HEARTBEAT_ENTRIES,
+                                    "max_map_len": MAX_HEARTBEAT_ENTRIES}
+"""The bounds every heartbeat reader passes to ``decode`` or ``Service.subscribe`` (``**HEARTBEAT_BOUNDS``): one
+place, so no reader is left with the byte bound alone."""
+
 MAX_MAP_ENTRIES = 64
 """Entries of any map of a hot message: their models have fixed fields (15 at most, ``MotionState``), so a larger map is
 invalid whatever it holds. Refused before it is built (:class:`LimitExceeded`): a ``detections`` or ``tracks/{id}``

@@ -32,7 +32,7 @@ from ..runtime.progress import FAILING, Health
 from ..runtime.service import HANG_GRACE_S, HEARTBEAT_PERIOD_S
 from ..schemas import DecodeError, decode, keys
 from ..schemas.models import Heartbeat
-from ..schemas.wire import MAX_HEARTBEAT_BYTES, MAX_HEARTBEAT_ENTRIES
+from ..schemas.wire import HEARTBEAT_BOUNDS
 from . import summary
 from .backoff import Action, CrashLoopGuard, CrashLoopPolicy
 from .control import SERVER_URL_ENV, StackUnavailable, Supervisor, socket_of
@@ -102,8 +102,7 @@ class StackMonitor(Service):
 
     def _on_beat(self, sample: zenoh.Sample) -> None:
         try:
-            hb = decode(Heartbeat, sample.payload.to_bytes(), max_bytes=MAX_HEARTBEAT_BYTES,
-                        max_array_len=MAX_HEARTBEAT_ENTRIES, max_map_len=MAX_HEARTBEAT_ENTRIES)
+            hb = decode(Heartbeat, sample.payload.to_bytes(), **HEARTBEAT_BOUNDS)
         except DecodeError as exc:
             self.reject(exc, keys.heartbeat_all(self.ns), str(sample.key_expr))
             return

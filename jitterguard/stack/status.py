@@ -99,15 +99,14 @@ def probe_zenoh(ns: str, endpoint: str, listen_s: float = 1.5) -> tuple[set[str]
     from ..runtime import ZenohOptions, build_config
     from ..schemas import DecodeError, decode, keys
     from ..schemas.models import Heartbeat
-    from ..schemas.wire import MAX_HEARTBEAT_BYTES, MAX_HEARTBEAT_ENTRIES
+    from ..schemas.wire import HEARTBEAT_BOUNDS
 
     alive: set[str] = set()
     beats: dict[str, Heartbeat] = {}
 
     def on_beat(sample: Any) -> None:
         try:
-            hb = decode(Heartbeat, sample.payload.to_bytes(), max_bytes=MAX_HEARTBEAT_BYTES,
-                        max_array_len=MAX_HEARTBEAT_ENTRIES, max_map_len=MAX_HEARTBEAT_ENTRIES)
+            hb = decode(Heartbeat, sample.payload.to_bytes(), **HEARTBEAT_BOUNDS)
         except DecodeError:
             return
         beats[keys.last_chunk(str(sample.key_expr))] = hb

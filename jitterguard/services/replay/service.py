@@ -15,7 +15,7 @@ from ...runtime import Service, ZenohOptions
 from ...runtime.progress import FAILING, Health, ProgressPolicy
 from ...schemas import encode, keys
 from ...schemas.models import Heartbeat
-from ...schemas.wire import MAX_HEARTBEAT_BYTES, MAX_HEARTBEAT_ENTRIES
+from ...schemas.wire import HEARTBEAT_BOUNDS
 from .adapter import message_for, truth_for
 from .frames import Frame, FrameError, ScanFrame
 from .pacing import Clock
@@ -65,8 +65,7 @@ class ReplayService(Service):
             if hb.health == "ok":
                 ready.set()
 
-        self.subscribe(keys.heartbeat(self.ns, name), Heartbeat, on_beat, max_bytes=MAX_HEARTBEAT_BYTES,
-                       max_array_len=MAX_HEARTBEAT_ENTRIES, max_map_len=MAX_HEARTBEAT_ENTRIES)
+        self.subscribe(keys.heartbeat(self.ns, name), Heartbeat, on_beat, **HEARTBEAT_BOUNDS)
         return self._wait(ready.is_set, timeout_s)
 
     def emit(self, frame: Frame, seq: int, stamp_ns: int) -> None:

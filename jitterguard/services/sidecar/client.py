@@ -29,7 +29,7 @@ from ...runtime import Service, ZenohOptions
 from ...runtime.service import counter_key
 from ...schemas import DecodeError, decode, decode_with_raw, encode, keys
 from ...schemas.models import ClassifierConfig, ClassifierStateSnapshot, ConfigReply, Heartbeat
-from ...schemas.wire import MAX_HEARTBEAT_BYTES, MAX_HEARTBEAT_ENTRIES
+from ...schemas.wire import HEARTBEAT_BOUNDS
 from .core import (PIPELINE_STAGES, PIPELINE_STALL_S, SOURCES, ConfigError, RenderedState, config_to_api, diff_states,
                    frames_standing, is_pipeline, render_state, service_problems, silenced)
 from .metrics import SidecarMetrics
@@ -92,8 +92,7 @@ class ClassifierClient(Service):
         self._alive_key = keys.alive(self.ns, CLASSIFIER)
         self._declared.append(self.session.liveliness().declare_subscriber(
             keys.alive_all(self.ns), self._on_liveliness, history=True))
-        self.subscribe(keys.heartbeat_all(self.ns), Heartbeat, self._on_heartbeat, max_bytes=MAX_HEARTBEAT_BYTES,
-                       max_array_len=MAX_HEARTBEAT_ENTRIES, max_map_len=MAX_HEARTBEAT_ENTRIES)
+        self.subscribe(keys.heartbeat_all(self.ns), Heartbeat, self._on_heartbeat, **HEARTBEAT_BOUNDS)
         self.metrics.attach(self)
         self.spawn(self._poll_loop, "poll")
 
@@ -173,7 +172,7 @@ class ClassifierClient(Service):
         found = service_problems(services, self.stale_after_s, on_bus, left)
         services = silenced(services, self.stale_after_s, found)
         problems = [msg for name, msg in found if is_pipeline(name)]
-        classifier_up = alive and age is not None and age <= self.stale_after_s
+        classifier_up = self._up(alive, hb_at, now)
         moved = {name: m for name, m in moved.items()  # a source heard now: one that left feeds nothing
                  if name in services and services[name]["heartbeat_age_s"] <= self.stale_after_s}
         standing = (frames_standing(frames_at, moved, now, warn_s=NO_INPUT_S, fault_s=self.pipeline_stall_s,
@@ -226,7 +225,12 @@ class ClassifierClient(Service):
         wrong process."""
         now = time.monotonic()
         with self._lock:
-            return CLASSIFIER in self._on_bus and self._hb_at is not None and now - self._hb_at <= self.stale_after_s
+            return self._up(CLASSIFIER in self._on_bus, self._hb_at, now)
+
+    def _up(self, alive: bool, hb_at: float | None, now: float) -> bool:
+        """The classifier is up: its token present and its heartbeat no older than ``stale_after_s`` (what
+        :meth:`classifier_up` reports and :meth:`readiness` judges the pipeline's progress under)."""
+        return alive and hb_at is not None and now - hb_at <= self.stale_after_s
 
     def service_beats(self) -> list[tuple[str, Heartbeat, float, bool]]:
         """Every service heard: (name, its latest heartbeat, seconds since it came, liveliness token present), by
