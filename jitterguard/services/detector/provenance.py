@@ -39,8 +39,13 @@ def lineage(meta: dict[str, Any]) -> Iterator[dict[str, Any]]:
         node = node.get("init_provenance")
 
 
+def _recorded(a: Any) -> Path | None:
+    """A path as the metadata records it (``#scene`` dropped), resolved; None when none is recorded."""
+    return Path(str(a).split("#", 1)[0]).resolve() if a else None
+
+
 def _same_path(a: Any, b: str | Path) -> bool:
-    return bool(a) and Path(str(a).split("#", 1)[0]).resolve() == Path(b).resolve()
+    return _recorded(a) == Path(b).resolve()
 
 
 def seen_scenes(meta: dict[str, Any], dataroot: str | Path, scenes: Sequence[str]) -> list[str]:
@@ -68,10 +73,8 @@ def seen_scenes(meta: dict[str, Any], dataroot: str | Path, scenes: Sequence[str
 
 def _inside(a: Any, root: str | Path) -> bool:
     """Whether the recorded path ``a`` (``#scene`` dropped) is ``root`` or lies under it, both resolved."""
-    if not a:
-        return False
-    path, top = Path(str(a).split("#", 1)[0]).resolve(), Path(root).resolve()
-    return path == top or top in path.parents
+    path, top = _recorded(a), Path(root).resolve()
+    return path is not None and (path == top or top in path.parents)
 
 
 def adapted_on_scans(meta: dict[str, Any], recording: str | Path) -> bool:
