@@ -61,6 +61,11 @@ def classifier_config(ns: str = DEFAULT_NS) -> str:
     return f"{_base(ns)}/classifier/config"
 
 
+IF_MATCH = "if_match"
+"""The selector parameter of a conditional config write (``classifier/config?if_match=ETAG``): applied only while
+the config in force has that etag (:func:`~.models.config_etag`)."""
+
+
 def classifier_state(ns: str = DEFAULT_NS) -> str:
     return f"{_base(ns)}/classifier/state"
 

@@ -13,6 +13,8 @@ length must match its field count.
 
 from __future__ import annotations
 
+import hashlib
+import json
 from enum import IntEnum
 from typing import Annotated, Any, ClassVar, Literal
 
@@ -522,12 +524,37 @@ class ClassifierConfig(Message):
 
 
 
+ETAG_HEX = 16
+"""Hex digits of a config's etag (64 bits of its SHA-256): two configs that differ never share one in practice."""
+ETAG_PATTERN = rf"^[0-9a-f]{{{ETAG_HEX}}}$"
+
+
+def config_etag(config: ClassifierConfig) -> str:
+    """The version tag of a config: a digest of its canonical JSON, so equal configs have equal tags whoever wrote
+    them and a restart does not reset it (a counter would come round to a number a writer still holds). A
+    conditional write names the tag it read; the classifier applies it only while that config is still in force."""
+    text = json.dumps(config.model_dump(mode="json"), sort_keys=True, separators=(",", ":"), allow_nan=False)
+    return hashlib.sha256(text.encode()).hexdigest()[:ETAG_HEX]
+
+
 class ConfigReply(Message):
-    """The classifier's answer to a config get/set: what is in force now, or why the write was refused."""
+    """The classifier's answer to a config get/set: what is in force now, or why the write was refused.
+
+    ``etag`` is :func:`config_etag` of ``config``, so that a client can make a conditional write (the query
+    parameter ``if_match``) without computing a digest of JSON itself. ``conflict`` marks a conditional write
+    refused because another write had changed the config since the writer read it (nothing applied)."""
 
     ok: bool
     config: ClassifierConfig
     error: str | None = None
+    etag: Annotated[str, StringConstraints(pattern=ETAG_PATTERN)] | None = None
+    conflict: bool = False
+
+    @model_validator(mode="after")
+    def _etag_is_the_configs(self) -> "ConfigReply":
+        if self.etag is not None and self.etag != config_etag(self.config):
+            raise ValueError("etag is not the digest of config")
+        return self
 
 
 class TrackStateEntry(_Strict):

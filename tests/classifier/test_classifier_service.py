@@ -198,6 +198,41 @@ def test_invalid_config_write_is_refused_and_nothing_changes(service, client_ses
     assert service.core.config == ClassifierConfig()
 
 
+def test_a_conditional_write_applies_only_while_the_config_it_read_is_in_force(service, client_session):
+    """``classifier/config?if_match=ETAG``: a read-modify-write that another writer overtook is refused (conflict,
+    nothing applied) instead of overwriting that writer's change unseen. Every reply carries the etag of the config
+    it holds, so the loser can redo its change at once."""
+    from jitterguard.schemas.models import config_etag
+
+    _wait_connected(client_session)
+    key = keys.classifier_config(NS)
+    first = decode(ConfigReply, _query(client_session, key).ok.payload.to_bytes())
+    assert first.etag == config_etag(ClassifierConfig()) and not first.conflict
+    # writer A read `first`; writer B (unconditional) changes another field meanwhile
+    b = decode(ConfigReply, _query(client_session, key, encode(first.config.model_copy(
+        update={"min_window": 4}))).ok.payload.to_bytes())
+    assert b.etag != first.etag and b.etag == config_etag(service.core.config)
+    # A's put, conditional on what it read, would drop B's min_window: refused
+    a_cfg = first.config.model_copy(update={"alpha_default": 3.3})
+    reply = _query(client_session, f"{key}?{keys.IF_MATCH}={first.etag}", encode(a_cfg))
+    assert reply.err is not None
+    err = decode(ConfigReply, reply.err.payload.to_bytes())
+    assert err.conflict and not err.ok and err.error.startswith("conflict") and err.etag == b.etag
+    assert service.core.config.min_window == 4 and service.core.config.alpha_default == ClassifierConfig().alpha_default
+    assert service.counters.get("config_writes_conflicted") == 1
+    # redone on the config in force, with its etag: applied, both changes kept
+    redo = err.config.model_copy(update={"alpha_default": 3.3})
+    ok = decode(ConfigReply, _query(client_session, f"{key}?{keys.IF_MATCH}={err.etag}", encode(redo))
+                .ok.payload.to_bytes())
+    assert ok.ok and ok.config.min_window == 4 and ok.config.alpha_default == 3.3
+    assert ok.etag == config_etag(service.core.config)
+    # an if_match that is no etag is refused naming the parameter, nothing applied
+    bad = _query(client_session, f"{key}?{keys.IF_MATCH}=latest", encode(ClassifierConfig()))
+    assert bad.err is not None
+    assert decode(ConfigReply, bad.err.payload.to_bytes()).error.startswith("if_match: must be 16 lowercase hex")
+    assert service.core.config.alpha_default == 3.3 and service.counters.get("config_changes") == 2
+
+
 def test_a_write_the_busy_worker_did_not_take_in_time_is_withdrawn(service, client_session):
     """The worker is busy for 3 s (a long frame, a stall): the write times out after 2 s and its writer is told
     "not applied" — it had then been applied (and stored) a second later all the same."""

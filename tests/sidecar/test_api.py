@@ -365,6 +365,64 @@ def test_preset_and_put(stack: Stack) -> None:
         assert all(t["statistic"] == t["chi2"] for t in body["tracks"])
 
 
+def test_a_write_with_if_match_applies_only_to_the_version_it_names(stack: Stack) -> None:
+    """GET /v1/config gives the version in force as its ETag; a write with If-Match applies only while that version
+    is in force (412 naming the one that is, nothing applied), so two operators cannot undo each other unseen."""
+    with stack.http() as c:
+        got = c.get("/v1/config")
+        tag = got.headers["etag"]
+        assert re.fullmatch(r'"[0-9a-f]{16}"', tag)
+        r = c.patch("/v1/config", json={"alpha_default": 2.2}, headers={"If-Match": tag})
+        assert r.status_code == 200 and r.json()["alpha_default"] == 2.2
+        new_tag = r.headers["etag"]
+        assert new_tag != tag and c.get("/v1/config").headers["etag"] == new_tag
+        for method, path, body in (("PATCH", "/v1/config", {"min_window": 3}),
+                                   ("PUT", "/v1/config", {**DEFAULTS, "min_window": 3}),
+                                   ("POST", "/v1/config/preset/authors", None)):
+            stale = c.request(method, path, json=body, headers={"If-Match": tag})  # the version before the PATCH
+            assert stale.status_code == 412, (method, stale.text)
+            assert stale.headers["etag"] == new_tag and "nothing applied" in stale.json()["detail"]
+        assert stack.classifier.core.config.min_window == ClassifierConfig(**PAPER_STATISTIC).min_window
+        assert stack.classifier.core.config.alpha_per_class == ClassifierConfig(**PAPER_STATISTIC).alpha_per_class
+        r = c.put("/v1/config", json={**DEFAULTS, "min_window": 3}, headers={"If-Match": new_tag.strip('"')})
+        assert r.status_code == 200 and r.json()["min_window"] == 3  # a bare tag is taken too
+        assert c.post("/v1/config/preset/authors", headers={"If-Match": "*"}).status_code == 200
+        for bad in ('W/' + r.headers["etag"], f'{r.headers["etag"]}, "0123456789abcdef"', '"latest"'):
+            refused = c.patch("/v1/config", json={"alpha_default": 1.0}, headers={"If-Match": bad})
+            assert refused.status_code == 422 and refused.json()["detail"][0]["loc"] == ["header", "If-Match"]
+        assert stack.classifier.core.config.alpha_default != 1.0
+
+
+def test_a_patch_redoes_its_change_when_a_zenoh_writer_got_in_between(stack: Stack) -> None:
+    """A PATCH is a read-modify-write: a write over Zenoh that lands between its read and its put had been
+    overwritten without a word. The put is now conditional on what was read, so the PATCH is redone on the config
+    the Zenoh writer left, and both changes stay. The Zenoh write is made from inside the change itself, so it
+    lands in that window every time."""
+    from jitterguard.services.sidecar.core import merge_patch
+
+    zenoh_writer = zenoh.open(build_config(loopback_options(stack.ns, stack.zport)))
+    client = ClassifierClient(loopback_options(stack.ns, stack.zport), api_token=stack.token)
+    calls = []
+
+    def change(current: ClassifierConfig) -> ClassifierConfig:
+        calls.append(current.min_window)
+        if len(calls) == 1:  # another writer changes min_window after this read
+            replies = list(zenoh_writer.get(keys.classifier_config(stack.ns), timeout=5.0, payload=encode(
+                current.model_copy(update={"min_window": 3})), attachment=stack.token.encode() if stack.token else None))
+            assert replies and replies[0].ok is not None
+        return merge_patch(current, {"alpha_default": 2.2})
+
+    try:
+        wait_for(client.is_alive, "the classifier's liveliness token")
+        reply = client.update_config(change)
+    finally:
+        client.close()
+        zenoh_writer.close()
+    assert len(calls) == 2 and calls[1] == 3  # redone once, on the config the other writer left
+    assert reply.config.min_window == 3 and reply.config.alpha_default == 2.2
+    assert stack.classifier.core.config == reply.config
+
+
 @pytest.mark.parametrize(("method", "path"), [
     ("PATCH", "/v1/config"), ("PUT", "/v1/config"), ("POST", "/v1/config/preset/authors")])
 @pytest.mark.parametrize("auth", [None, "Bearer wrong-token", "Basic czNjcmV0LXRva2Vu", "Bearer s3cret-token-and-more"])

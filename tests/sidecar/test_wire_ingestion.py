@@ -247,3 +247,27 @@ def test_every_service_health_and_counters_are_in_metrics(stack: Stack, bus: zen
     finally:
         if token is not None:
             token.undeclare()
+
+
+def test_a_flood_of_liveliness_tokens_does_not_grow_the_sidecar(stack: Stack, bus: zenoh.Session) -> None:
+    """Every liveliness token on the bus was kept by name, so a node declaring made-up tokens grew the sidecar's set
+    (and each readiness check's copy of it) without bound. Past MAX_TOKENS names a new token is counted and not
+    kept; the classifier's own token and the pipeline's are always kept, and readiness holds."""
+    from jitterguard.services.sidecar.client import MAX_TOKENS, ClassifierClient
+
+    client = ClassifierClient(loopback_options(stack.ns, stack.zport))
+    tokens = []
+    try:
+        wait_for(client.is_alive, "the classifier's token seen")
+        n = MAX_TOKENS + 100
+        tokens = [bus.liveliness().declare_token(keys.alive(stack.ns, f"flood{i:04d}")) for i in range(n)]
+        wait_for(lambda: client.counters.get("liveliness_tokens_ignored") >= 1, "tokens past the bound counted")
+        tracker = bus.liveliness().declare_token(keys.alive(stack.ns, "tracker"))  # a stage comes after the flood
+        tokens.append(tracker)
+        wait_for(lambda: "tracker" in client._on_bus, "the tracker's token kept past the bound")
+        assert len(client._on_bus) <= MAX_TOKENS + 1
+        assert client.is_alive()
+    finally:
+        for t in tokens:
+            t.undeclare()
+        client.close()

@@ -35,7 +35,7 @@ import zenoh
 from ...runtime import Service, ZenohOptions
 from ...runtime.gc_policy import IdleCollector, manage_gc_for_latency
 from ...schemas import SCHEMA_VERSION, DecodeError, decode, encode, keys
-from ...schemas.models import ClassifierConfig, ConfigReply
+from ...schemas.models import ETAG_HEX, ClassifierConfig, ConfigReply, config_etag
 from ...schemas.wire import LIMITS, MAX_MAP_ENTRIES, Limits
 from ...stream_order import StreamLimits
 from .adapter import ClassifierAdapter, FrameOutput, Poses
@@ -77,6 +77,21 @@ class _Latest:
     config: ClassifierConfig
     window: int  # the window the frame was decided with (window_size, or fewer for a slow stream)
     encoded: bytes | None = None
+
+
+class ConfigConflict(ValueError):
+    """A conditional write (``if_match``) found another config in force: refused, nothing applied."""
+
+
+def _is_etag(text: str) -> bool:
+    return len(text) == ETAG_HEX and all(c in "0123456789abcdef" for c in text)
+
+
+def _config_reply(config: ClassifierConfig, error: str | None = None, *, conflict: bool = False) -> bytes:
+    """A ``ConfigReply`` carrying ``config`` and its etag: what is in force (``error`` None) or why a write was
+    refused — the config and etag then are the ones in force, so a writer can redo its change at once."""
+    return encode(ConfigReply(ok=error is None, config=config, error=error, etag=config_etag(config),
+                              conflict=conflict))
 
 
 def _window_words(window: int, stride: int) -> str:
@@ -338,6 +353,13 @@ class ClassifierService(Service):
         if not fut.set_running_or_notify_cancel():  # the caller gave up waiting and was told "not applied"
             return
         if kind == "config":
+            arg, if_match = arg
+            if if_match is not None and config_etag(self.core.config) != if_match:  # checked where it is applied:
+                # between frames, on the one thread that swaps configs, so no write can land in between
+                fut.set_exception(ConfigConflict(
+                    f"conflict: the config in force is {config_etag(self.core.config)}, not {if_match} (another "
+                    f"write changed it since it was read); nothing applied — read it again and redo the change"))
+                return
             try:
                 self.core.check_config(arg, model)  # before it is stored: a refused write is not restored
             except ValueError as exc:
@@ -434,14 +456,14 @@ class ClassifierService(Service):
     def _on_config_query(self, query: zenoh.Query) -> None:
         payload = query.payload.to_bytes() if query.payload is not None else b""
         if not payload:
-            query.reply(query.key_expr, encode(ConfigReply(ok=True, config=self.core.config)))
+            query.reply(query.key_expr, _config_reply(self.core.config))
             return
         refused = self.config_writes.refusal(query.attachment.to_bytes() if query.attachment is not None else None)
         if refused:
             self.counters.inc("config_writes_refused")
             self._reject_log.warn(f"config write on {query.key_expr} refused: {refused}",
                                   kind="config write refused")
-            query.reply_err(encode(ConfigReply(ok=False, config=self.core.config, error=refused)))
+            query.reply_err(_config_reply(self.core.config, refused))
             return
         try:  # bounded before it is built: a config is a few hundred bytes, its maps and lists a handful of entries
             cfg = decode(ClassifierConfig, payload, max_bytes=CONFIG_MAX_BYTES, max_array_len=MAX_MAP_ENTRIES,
@@ -449,7 +471,14 @@ class ClassifierService(Service):
         except DecodeError as exc:  # counted and logged as every refused payload is: an oversized write had been
             # counted `rejected` but never `over_limit`, and no refused write was logged
             self.reject(exc, keys.classifier_config(self.ns), str(query.key_expr))
-            query.reply_err(encode(ConfigReply(ok=False, config=self.core.config, error=str(exc))))
+            query.reply_err(_config_reply(self.core.config, str(exc)))
+            return
+        if_match = query.parameters.get(keys.IF_MATCH)
+        if if_match is not None and not _is_etag(if_match):
+            why = f"must be {ETAG_HEX} lowercase hex digits (the etag of a config reply)"
+            self.reject(DecodeError("ClassifierConfig", keys.IF_MATCH, why), keys.classifier_config(self.ns),
+                        str(query.key_expr))
+            query.reply_err(_config_reply(self.core.config, f"{keys.IF_MATCH}: {why}"))
             return
         model = None
         if cfg.calibration == "file" and cfg.calibration_file:
@@ -458,23 +487,26 @@ class ClassifierService(Service):
             except CalibrationFileError as exc:
                 self.reject(DecodeError("ClassifierConfig", "calibration_file", str(exc)),
                             keys.classifier_config(self.ns), str(query.key_expr))
-                query.reply_err(encode(ConfigReply(ok=False, config=self.core.config,
-                                                   error=f"calibration_file: {exc}")))
+                query.reply_err(_config_reply(self.core.config, f"calibration_file: {exc}"))
                 return
         fut: Future = Future()
         try:
-            self._queue.put(("config", (cfg, fut), model), timeout=CONFIG_APPLY_TIMEOUT_S)  # bounded, as above
+            self._queue.put(("config", ((cfg, if_match), fut), model), timeout=CONFIG_APPLY_TIMEOUT_S)  # bounded, as above
         except queue.Full:  # 64 writes and calls wait behind a stuck worker: the writer had got no reply at all
-            query.reply_err(encode(ConfigReply(ok=False, config=self.core.config, error=(
+            query.reply_err(_config_reply(self.core.config, (
                 f"not applied: the classifier's worker queue stayed full for {CONFIG_APPLY_TIMEOUT_S:g} s"
-                f" ({self._queue.maxsize} writes and calls waiting)"))))
+                f" ({self._queue.maxsize} writes and calls waiting)")))
             return
         try:
             in_force = fut.result(timeout=CONFIG_APPLY_TIMEOUT_S)
+        except ConfigConflict as exc:  # a conditional write whose config was changed by another: nothing applied
+            self.counters.inc("config_writes_conflicted")
+            query.reply_err(_config_reply(self.core.config, str(exc), conflict=True))
+            return
         except ValueError as exc:  # refused by the core (check_config): nothing applied
             self.counters.inc("rejected")
             self.counters.inc("rejected.classifier/config")
-            query.reply_err(encode(ConfigReply(ok=False, config=self.core.config, error=str(exc))))
+            query.reply_err(_config_reply(self.core.config, str(exc)))
             return
         except Exception:  # worker stuck or stopping: withdraw the write, so that "not applied" stays true
             if fut.cancel():
@@ -486,12 +518,12 @@ class ClassifierService(Service):
                     why = f"{type(late).__name__}: {late}"
                 else:
                     self.log.info("config applied: %s", in_force.model_dump(exclude={"schema_version"}))
-                    query.reply(query.key_expr, encode(ConfigReply(ok=True, config=in_force)))
+                    query.reply(query.key_expr, _config_reply(in_force))
                     return
-            query.reply_err(encode(ConfigReply(ok=False, config=self.core.config, error=f"not applied: {why}")))
+            query.reply_err(_config_reply(self.core.config, f"not applied: {why}"))
             return
         self.log.info("config applied: %s", in_force.model_dump(exclude={"schema_version"}))
-        query.reply(query.key_expr, encode(ConfigReply(ok=True, config=in_force)))
+        query.reply(query.key_expr, _config_reply(in_force))
 
     def state_map(self) -> dict:
         """The ``classifier/state`` payload as a plain map (a ``ClassifierStateSnapshot`` when validated).

@@ -24,7 +24,7 @@ from starlette.routing import Match
 
 from ...runtime import ZenohOptions
 from ..classifier.config_writes import api_token_from_env
-from .client import ClassifierClient, ClassifierRejected, ClassifierUnavailable
+from .client import ClassifierClient, ClassifierRejected, ClassifierUnavailable, ConfigConflict, ConfigContended
 from .core import ConfigError, jsonable_errors
 from .events import MAX_STREAMS, EventBroker
 from .guard import MAX_BODY_BYTES, HostPolicy, RequestGuard
@@ -168,5 +168,14 @@ async def _rejected(_r: Request, exc: ClassifierRejected) -> JSONResponse:
     return JSONResponse({"detail": str(exc)}, status_code=502)
 
 
+async def _conflict(_r: Request, exc: ConfigConflict) -> JSONResponse:
+    """412 for a write whose ``If-Match`` is not the version in force (its ``ETag`` names the one that is), 409 for
+    a read-modify-write that lost to other writers every time; nothing applied either way."""
+    status = 409 if isinstance(exc, ConfigContended) else 412
+    return JSONResponse({"detail": str(exc)}, status_code=status,
+                        headers={"ETag": f'"{exc.etag}"'} if exc.etag else None)
+
+
 _HANDLERS = {StarletteHTTPException: _http_error, RequestValidationError: _invalid_request,
-             ConfigError: _config_error, ClassifierUnavailable: _unavailable, ClassifierRejected: _rejected}
+             ConfigError: _config_error, ClassifierUnavailable: _unavailable, ClassifierRejected: _rejected,
+             ConfigConflict: _conflict}

@@ -39,6 +39,9 @@ NO_INPUT_S = 10.0
 """The classifier's frame count standing still this long, while it is alive, is named under ``warnings``."""
 MAX_SERVICES = 64
 """Heartbeats kept by service name (the namespace's services; a flood of made-up names cannot grow this)."""
+MAX_TOKENS = 4 * MAX_SERVICES
+"""Liveliness tokens kept by name: the pipeline's stages and sources always, others while fewer are held (a flood of
+made-up tokens had grown this set, and every readiness check's copy of it, without bound)."""
 Listener = Callable[[str, dict[str, Any]], None]
 
 
@@ -49,6 +52,22 @@ class ClassifierUnavailable(RuntimeError):
 class ClassifierRejected(RuntimeError):
     """The classifier answered with an error reply (HTTP 502: the sidecar validated, the classifier refused)."""
 
+
+class ConfigConflict(RuntimeError):
+    """A conditional write found another config in force, nothing applied (HTTP 412: the client named the version
+    it read with ``If-Match``). ``etag``: the version in force now, when known."""
+
+    def __init__(self, message: str, etag: str | None) -> None:
+        super().__init__(message)
+        self.etag = etag
+
+
+class ConfigContended(ConfigConflict):
+    """The sidecar's read-modify-write lost to other writers :data:`WRITE_ATTEMPTS` times in a row (HTTP 409)."""
+
+
+WRITE_ATTEMPTS = 5
+"""Tries of one read-modify-write (a PATCH, a preset) whose conditional put loses to another writer each time."""
 
 ZENOH_TIMEOUT = b"Timeout"
 """The payload of the error reply Zenoh makes up when a get times out."""
@@ -101,7 +120,12 @@ class ClassifierClient(Service):
     def _on_liveliness(self, sample: zenoh.Sample) -> None:
         name, alive = keys.last_chunk(str(sample.key_expr)), sample.kind == zenoh.SampleKind.PUT
         with self._lock:
-            (self._on_bus.add if alive else self._on_bus.discard)(name)
+            if not alive:
+                self._on_bus.discard(name)
+            elif len(self._on_bus) < MAX_TOKENS or name == CLASSIFIER or name in PIPELINE_STAGES or name in SOURCES:
+                self._on_bus.add(name)
+            else:
+                self.counters.inc("liveliness_tokens_ignored")
             if alive:
                 self._left.discard(name)
             elif name in PIPELINE_STAGES or name in self._beats:  # names a withdrawal counts for: the set stays bounded
@@ -360,6 +384,8 @@ class ClassifierClient(Service):
                 raise ClassifierRejected(f"the classifier's reply on {key} is invalid: {exc}") from None
             raise ClassifierRejected(f"the classifier refused: {data[:200].decode(errors='replace')}") from None
         if kind != "ok" or not reply.ok:
+            if reply.conflict:
+                raise ConfigConflict(reply.error or "the config changed since it was read", reply.etag)
             if (reply.error or "").startswith("not applied"):
                 raise ClassifierUnavailable(f"the classifier did not apply the write: {reply.error}")
             field, sep, why = (reply.error or "").partition(": ")
@@ -371,43 +397,59 @@ class ClassifierClient(Service):
             raise ClassifierRejected(f"the classifier refused the config: {reply.error}")
         return reply
 
-    def get_config(self, action: str = "cannot read the config") -> ClassifierConfig:
-        """The config the classifier has in force now (asked, not cached)."""
+    def get_config(self, action: str = "cannot read the config") -> ConfigReply:
+        """The config the classifier has in force now (asked, not cached), with its etag."""
         self._require_alive(action)
         key = keys.classifier_config(self.ns)
         try:
             kind, data = self._query(key, None, self.query_timeout_s)
         except ClassifierUnavailable as exc:
             raise ClassifierUnavailable(f"classifier unreachable: {exc}; {action}") from None
-        return self._config_reply(kind, data, key).config
+        return self._config_reply(kind, data, key)
 
-    def put_config(self, cfg: ClassifierConfig) -> ClassifierConfig:
-        """Put ``cfg`` in force; returns what the classifier says is in force after applying it."""
+    def put_config(self, cfg: ClassifierConfig, if_match: str | None = None) -> ConfigReply:
+        """Put ``cfg`` in force; returns what the classifier says is in force after applying it. With
+        ``if_match`` (an etag) the classifier applies it only while that config is in force
+        (:class:`ConfigConflict` otherwise)."""
         self._require_alive("nothing was applied")
         key = keys.classifier_config(self.ns)
+        selector = key if if_match is None else f"{key}?{keys.IF_MATCH}={if_match}"
         try:
-            kind, data = self._query(key, encode(cfg), self.query_timeout_s,
+            kind, data = self._query(selector, encode(cfg), self.query_timeout_s,
                                      attachment=self._api_token.encode() if self._api_token else None)
         except ClassifierUnavailable as exc:
             raise ClassifierUnavailable(
                 f"the classifier did not confirm the write ({exc}); a config is applied whole or not at all — "
                 f"GET /v1/config shows what is in force") from None
-        in_force = self._config_reply(kind, data, key, cfg).config
-        self._emit("config", config_to_api(in_force))
-        return in_force
+        reply = self._config_reply(kind, data, key, cfg)
+        self._emit("config", config_to_api(reply.config))
+        return reply
 
-    def update_config(self, change: Callable[[ClassifierConfig], ClassifierConfig]) -> ClassifierConfig:
-        """Read-modify-write under one lock, so two concurrent PATCHes never lose each other's fields. Only this
-        sidecar's: the wire has no conditional write, so a write over Zenoh (or from another sidecar) that lands
-        between the read and the put is overwritten (docs/http-api.md: last-writer-wins).
+    def update_config(self, change: Callable[[ClassifierConfig], ClassifierConfig],
+                      if_match: str | None = None) -> ConfigReply:
+        """Read, change, and put back only if no other write came in between (a conditional put on the etag
+        read), so a write over Zenoh or from another sidecar is never overwritten unseen: on a conflict the
+        change is redone on the new config, up to :data:`WRITE_ATTEMPTS` times. With ``if_match`` the client
+        named the version its change is meant for: a different one is a :class:`ConfigConflict` at once.
 
         ``change`` may raise (e.g. a validation error): then nothing is sent to the classifier.
         """
-        with self._write_lock:
-            current = self.get_config("nothing was applied")
-            return self.put_config(change(current))
+        with self._write_lock:  # this sidecar's own writes queue here rather than race each other
+            for _ in range(WRITE_ATTEMPTS):
+                current = self.get_config("nothing was applied")
+                if if_match is not None and current.etag != if_match:
+                    raise ConfigConflict(f"the config in force is {current.etag}, not {if_match} (If-Match); "
+                                         f"nothing applied", current.etag)
+                try:
+                    return self.put_config(change(current.config), if_match=current.etag)
+                except ConfigConflict:
+                    if if_match is not None:
+                        raise
+            raise ConfigContended(f"another writer changed the config between each of {WRITE_ATTEMPTS} reads and "
+                                  f"writes; nothing applied — try again", None)
 
-    def replace_config(self, cfg: ClassifierConfig) -> ClassifierConfig:
-        """Put a whole config in force (PUT), serialised with the read-modify-writes."""
+    def replace_config(self, cfg: ClassifierConfig, if_match: str | None = None) -> ConfigReply:
+        """Put a whole config in force (PUT), serialised with the read-modify-writes; conditional on
+        ``if_match`` when given."""
         with self._write_lock:
-            return self.put_config(cfg)
+            return self.put_config(cfg, if_match=if_match)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Annotated, Any, Literal
@@ -20,6 +21,7 @@ from ...runtime.bind_policy import is_loopback
 from ...schemas.models import (
     LABEL_NAMES,
     CalibrationState,
+    ETAG_HEX,
     ClassifierConfig,
     ClassifierStateSnapshot,
 )
@@ -316,6 +318,23 @@ class ConfigError(ValueError):
     def __init__(self, errors: list[dict[str, Any]]) -> None:
         self.errors = jsonable_errors(errors)  # the one place inputs are made safe for a strict-JSON, UTF-8 422
         super().__init__("; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in self.errors))
+
+
+IF_MATCH_PATTERN = rf'^(\*|"[0-9a-f]{{{ETAG_HEX}}}"|[0-9a-f]{{{ETAG_HEX}}})$'
+"""An ``If-Match`` the sidecar takes: ``*``, or one strong etag of ``GET /v1/config``, quoted as RFC 9110 writes it
+(bare too: curl users type it so). A weak tag (``W/…``, never equal under If-Match's strong comparison) or a list
+of several is refused (422 naming the header); the route's schema carries the same pattern."""
+
+
+def parse_if_match(value: str | None) -> str | None:
+    """The etag an ``If-Match`` header names, or None for none or ``*`` (whatever is in force: unconditional)."""
+    if value is None or value == "*":
+        return None
+    if re.fullmatch(IF_MATCH_PATTERN, value) is None:
+        raise ConfigError([{"type": "string_pattern_mismatch", "loc": ["header", "If-Match"], "input": value,
+                            "msg": f'must be "*" or one etag of GET /v1/config: {ETAG_HEX} lowercase hex digits '
+                                   f'in double quotes'}])
+    return value.strip('"')
 
 
 def config_to_api(cfg: ClassifierConfig) -> dict[str, Any]:

@@ -16,18 +16,19 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request
+from fastapi import APIRouter, Depends, Header, HTTPException, Path, Query, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import HTMLResponse, JSONResponse, Response, StreamingResponse
 from fastapi.routing import APIRoute
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
-from ...schemas.models import ClassifierConfig
+from ...schemas.models import ConfigReply
 from ..classifier.config import PRESETS
-from .client import ClassifierClient, ClassifierRejected, ClassifierUnavailable
+from .client import ClassifierClient, ClassifierRejected, ClassifierUnavailable, ConfigConflict
 from .core import (
     CLASS_NAMES,
+    IF_MATCH_PATTERN,
     BodyError,
     ConfigError,
     ConfigModel,
@@ -43,6 +44,7 @@ from .core import (
     config_to_api,
     dumps,
     merge_patch,
+    parse_if_match,
     parse_json_body,
     validate_config,
 )
@@ -61,6 +63,10 @@ WRITE_ERRORS: dict[int | str, dict[str, Any]] = {
     403: {"model": ErrorBody, "description": "A cross-site write (Origin not this sidecar's)"},
     413: {"model": ErrorBody, "description": "Body over 64 KB"},
     415: {"model": ErrorBody, "description": "A body or Content-Type other than application/json"},
+    412: {"model": ErrorBody, "description": "If-Match names another version than the one in force (its ETag header "
+                                             "names that one); nothing applied"},
+    409: {"model": ErrorBody, "description": "Other writers changed the config during each of 5 read-modify-writes; "
+                                             "nothing applied"},
 }
 
 
@@ -282,10 +288,30 @@ async def no_body(request: Request) -> None:
                                        "msg": "This route takes no body (none, or {})"}])
 
 
-def _write(ctx: SidecarContext, do: Callable[[], ClassifierConfig]) -> dict[str, Any]:
+def if_match(value: Annotated[str, Header(  # `str`, not `str | None`: a header is absent, never null, in the schema
+        alias="If-Match", pattern=IF_MATCH_PATTERN,
+        description='the ETag of GET /v1/config this write is meant for: applied only while that version is in '
+                    'force (412 otherwise); "*" or none: whatever is in force')] = None,  # type: ignore[assignment]
+             ) -> str | None:
+    return parse_if_match(value)
+
+
+IfMatch = Annotated[str | None, Depends(if_match)]
+
+
+def _tagged(reply: ConfigReply, response: Response) -> dict[str, Any]:
+    """The config of a reply, its etag in the ``ETag`` header (what a later ``If-Match`` names)."""
+    response.headers["ETag"] = f'"{reply.etag}"'
+    return config_to_api(reply.config)
+
+
+def _write(ctx: SidecarContext, response: Response, do: Callable[[], ConfigReply]) -> dict[str, Any]:
     """Run one write and count its outcome (``jitterguard_sidecar_config_writes{result}``)."""
     try:
-        cfg = do()
+        reply = do()
+    except ConfigConflict:
+        ctx.metrics.config_writes.labels("conflict").inc()
+        raise
     except ConfigError:
         ctx.metrics.config_writes.labels("invalid").inc()
         raise
@@ -296,27 +322,29 @@ def _write(ctx: SidecarContext, do: Callable[[], ClassifierConfig]) -> dict[str,
         ctx.metrics.config_writes.labels("rejected").inc()
         raise
     ctx.metrics.config_writes.labels("ok").inc()
-    return config_to_api(cfg)
+    return _tagged(reply, response)
 
 
 @config_routes.get("/v1/config", response_model=ConfigModel, responses={503: E503, 502: E502},
-            summary="The config in force now (asked from the classifier, not cached)")
-def get_config(c: Client) -> dict[str, Any]:
-    return config_to_api(c.get_config())
+            summary="The config in force now (asked from the classifier, not cached); ETag: its version")
+def get_config(c: Client, response: Response) -> dict[str, Any]:
+    return _tagged(c.get_config(), response)
 
 
 @config_routes.put("/v1/config", response_model=ConfigModel, dependencies=Writer, responses=WRITE_ERRORS,
             summary="Replace the whole config (omitted fields take their defaults)")
-def put_config(ctx: Ctx, c: Client, body: ConfigModel) -> dict[str, Any]:  # type: ignore[valid-type]
+def put_config(ctx: Ctx, c: Client, body: ConfigModel, tag: IfMatch,  # type: ignore[valid-type]
+               response: Response) -> dict[str, Any]:
     cfg = validate_config(body.model_dump(), touched=body.model_fields_set)  # type: ignore[attr-defined]
-    return _write(ctx, lambda: c.replace_config(cfg))
+    return _write(ctx, response, lambda: c.replace_config(cfg, if_match=tag))
 
 
 @config_routes.patch("/v1/config", response_model=ConfigModel, dependencies=Writer, responses=WRITE_ERRORS,
               summary="Change some fields (JSON merge patch: null resets a field, a null class alpha drops it)")
-def patch_config(ctx: Ctx, c: Client, body: ConfigPatchModel) -> dict[str, Any]:  # type: ignore[valid-type]
+def patch_config(ctx: Ctx, c: Client, body: ConfigPatchModel, tag: IfMatch,  # type: ignore[valid-type]
+                 response: Response) -> dict[str, Any]:
     patch = body.model_dump(exclude_unset=True)  # type: ignore[attr-defined]
-    return _write(ctx, lambda: c.update_config(lambda cur: merge_patch(cur, patch)))
+    return _write(ctx, response, lambda: c.update_config(lambda cur: merge_patch(cur, patch), if_match=tag))
 
 
 @config_routes.get("/v1/config/presets", summary="The named presets and the fields each one sets")
@@ -327,9 +355,9 @@ async def list_presets() -> dict[str, dict[str, Any]]:
 @config_routes.post("/v1/config/preset/{name}", response_model=ConfigModel, dependencies=[*Writer, Depends(no_body)],
                     responses=WRITE_ERRORS,
              summary="Apply a named preset; every field it does not name stays")
-def post_preset(ctx: Ctx, c: Client,
-                name: Annotated[PresetName, Path(description="preset name")]) -> dict[str, Any]:  # type: ignore[valid-type]
-    return _write(ctx, lambda: c.update_config(lambda cur: apply_preset(cur, name)))
+def post_preset(ctx: Ctx, c: Client, name: Annotated[PresetName, Path(description="preset name")],  # type: ignore[valid-type]
+                tag: IfMatch, response: Response) -> dict[str, Any]:
+    return _write(ctx, response, lambda: c.update_config(lambda cur: apply_preset(cur, name), if_match=tag))
 
 
 # ---------------------------------------------------------------------------------------------- metrics, page
