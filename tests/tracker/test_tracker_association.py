@@ -125,6 +125,21 @@ def test_overlapping_tracks_keep_the_one_with_more_hits() -> None:
     assert drop.tolist() == [True, False, False, False]
 
 
+def test_a_tentative_track_never_removes_a_confirmed_one() -> None:
+    """Of two overlapping tracks the one with fewer hits goes, unless it is confirmed and the other is not (a
+    recurring clutter return that stays tentative gathers hits); a confirmed one still removes a tentative one,
+    and two tentative ones still merge."""
+    pos = np.array([[0.0, 0.0], [0.5, 0.0], [10.0, 0.0], [10.5, 0.0], [20.0, 0.0], [20.5, 0.0]])
+    label = np.full(6, CAR)
+    width = np.full(6, 1.9)
+    hits = np.array([50, 10, 10, 50, 50, 10])
+    confirmed = np.array([False, True, True, False, False, False])
+    drop = overlapping(pos, label, width, hits, TABLES.can_assign, 0.75, confirmed=confirmed)
+    assert drop.tolist() == [False, False, False, False, False, True]
+    both = overlapping(pos, label, width, hits, TABLES.can_assign, 0.75, confirmed=np.ones(6, dtype=bool))
+    assert both.tolist() == [False, True, True, False, False, True]
+
+
 def test_overlap_needs_compatible_labels() -> None:
     pos = np.array([[0.0, 0.0], [0.2, 0.0]])
     drop = overlapping(pos, np.array([CAR, PED]), np.array([1.9, 0.6]), np.array([5, 1]), TABLES.can_assign, 0.75)

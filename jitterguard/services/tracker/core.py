@@ -231,7 +231,8 @@ class TrackerCore:
             o = slice(None) if sane.all() else np.flatnonzero(sane)
             keep[o] &= ~overlapping(tr.x[o, :2], tr.label[o], tr.dims[o, 1], tr.hits[o], tb.can_assign,
                                     cfg.overlap_factor, cfg.max_candidates, yaw=tr.x[o, 2], length=tr.dims[o, 0],
-                                    min_iou=cfg.overlap_min_iou, min_iou_unknown=cfg.overlap_min_iou_unknown)
+                                    min_iou=cfg.overlap_min_iou, min_iou_unknown=cfg.overlap_min_iou_unknown,
+                                    confirmed=tr.confirmed[o])
             keep_rows = np.flatnonzero(keep)
             if keep_rows.size < n:
                 if self.scale is not None:  # what the deleted tracks have not given yet, before their rows go
