@@ -49,7 +49,8 @@ def _screened(f: DetectionFrame, max_abs_coordinate_m: float, max_dimension_m: f
     """The frame with what a broken detector or pose source can put in it made harmless, and which of its
     detections the tracker may use at all (association and births).
 
-    Unusable: a non-finite ego pose, centre, height, size or area, a world position beyond
+    Unusable: a non-finite ego pose, centre, height, size or area, a world position (z too: the sensor's plus the
+    detection's, each within the wire's bound, had made every ``tracked`` frame one its readers refuse) beyond
     ``max_abs_coordinate_m`` or a length, width or height beyond ``max_dimension_m`` (what every reader of
     ``tracked`` refuses; a box 1e30 m wide also made every pair of tracks a candidate overlap) or below 0 (a box
     all of whose sides were negative had a positive area: it was tracked and published so), or an exact
@@ -97,7 +98,9 @@ def _screened(f: DetectionFrame, max_abs_coordinate_m: float, max_dimension_m: f
     elif usable.any():
         with np.errstate(invalid="ignore", over="ignore"):
             wx, wy = sensor_to_world_xy(f.x, f.y, f.ego_x, f.ego_y, f.ego_yaw)
-        usable &= (np.abs(wx) <= max_abs_coordinate_m) & (np.abs(wy) <= max_abs_coordinate_m)
+            wz = f.z + f.ego_z  # the wire bounds each z, not their sum
+        usable &= ((np.abs(wx) <= max_abs_coordinate_m) & (np.abs(wy) <= max_abs_coordinate_m)
+                   & (np.abs(wz) <= max_abs_coordinate_m))
     idx = np.flatnonzero(usable)
     if idx.size > 1:  # exact repeats: the first of each (x, y, label) stays (idx breaks ties: the sort is stable)
         order = idx[np.lexsort((idx, f.label[idx], f.y[idx], f.x[idx]))]
