@@ -147,3 +147,40 @@ def test_a_non_finite_filter_does_not_hide_the_overlaps_of_the_others() -> None:
     core.tracks.x[1, :2] = np.nan  # the other car's filter breaks
     res = core.step(frame(5, [GOOD[0], GOOD[0] + 0.5, 10.0], [GOOD[1], GOOD[1], 5.0]))
     assert twin in res.deleted  # NaN in the overlap sweep had hidden every overlap of the frame
+
+
+def test_a_height_the_readers_refuse_in_the_world_is_not_tracked() -> None:
+    """The wire bounds a detection's z and the ego pose's z each by ``max_abs_coordinate_m``, but the world z the
+    tracker publishes is their sum: a box at 0.6 of the bound under an ego pose at 0.6 of it had been tracked and
+    published, and the classifier refused every ``tracked`` frame it was in (its objects all went unclassified)
+    for as long as the track lived."""
+    from jitterguard.schemas import encode, read_detected_objects, read_tracked_objects
+    from jitterguard.schemas.models import (X_X, Y_Y, DetectedObject, DetectedObjectKinematics, DetectedObjects,
+                                            Header, ObjectClassification, Point, Pose, PoseWithCovariance,
+                                            Quaternion, Shape, Vector3)
+    from jitterguard.services.tracker.adapter import detection_frame, tracked_payload
+
+    core = TrackerCore()
+    high = 0.6 * core.config.limits.max_abs_coordinate_m
+    cov = [0.0] * 36
+    cov[X_X] = cov[Y_Y] = 0.04
+
+    def box(x: float, y: float, z: float) -> DetectedObject:
+        pose = Pose(position=Point(x=x, y=y, z=z), orientation=Quaternion(x=0.0, y=0.0, z=0.0, w=1.0))
+        return DetectedObject(classification=[ObjectClassification(label=1, probability=0.9)],
+                              kinematics=DetectedObjectKinematics(
+                                  pose_with_covariance=PoseWithCovariance(pose=pose, covariance=cov),
+                                  has_position_covariance=True),
+                              shape=Shape(type=0, dimensions=Vector3(x=4.5, y=1.9, z=1.6)))
+
+    for s in range(6):
+        msg = DetectedObjects(header=Header(stamp=T0 + s * 100_000_000, frame_id="lidar", seq=s),
+                              ego_pose=Pose(position=Point(x=0.0, y=0.0, z=high),
+                                            orientation=Quaternion(x=0.0, y=0.0, z=0.0, w=1.0)),
+                              objects=[box(GOOD[0], GOOD[1], 0.5 - high), box(10.0, 8.0, high)])
+        cols = read_detected_objects(encode(msg))  # the wire takes it: each z is within the bound
+        f = detection_frame(cols)
+        res = core.step(f)
+        tracked = read_tracked_objects(tracked_payload(cols, f, res))  # the classifier's reader
+    assert len(tracked.objects) == 1 and res.tracks.z[0] == pytest.approx(0.5)
+    assert len(core.tracks) == 1

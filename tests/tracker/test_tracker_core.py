@@ -317,6 +317,26 @@ def test_a_second_box_on_a_parked_car_never_becomes_a_track_of_its_own(min_iou: 
     assert abs(res.tracks.x[car] - 20.0) < 0.2
 
 
+def test_a_car_driving_past_recurring_clutter_keeps_its_id() -> None:
+    """A low-scored box recurs on one spot (a bush the detector calls a car, score 0.1): its track gathers hits but
+    stays tentative (``confirm_min_existence``). A confirmed car driving past it 1 m off overlaps it (IoU > 0.1)
+    with fewer hits; a track that is not confirmed must not delete it (Autoware: a track that is not confident
+    removes nothing). It had: the car's ID ended and the car went unpublished for 0.6 s."""
+    core = TrackerCore()
+    car_ids: list[str | None] = []
+    for k in range(80):
+        xy, ex = [[40.0, 1.0]], [0.1]
+        if k >= 20:
+            xy.append([10.0 * (k - 20) * DT, 0.0])
+            ex.append(0.9)
+        res = core.step(frame(k, xy, [CAR] * len(xy), existence=np.array(ex)))
+        if k >= 24:  # confirmed by then: which published track took the car's detection
+            took = [res.tracks.ids[t] for t, d in zip(res.obs_track, res.obs_det) if d == 1]
+            car_ids.append(took[0] if took else None)
+    assert None not in car_ids and len(set(car_ids)) == 1
+    assert not any(core.tracks.confirmed[i] for i, x in enumerate(core.tracks.x[:, 0]) if abs(x - 40.0) < 0.5)
+
+
 def test_never_more_confirmed_tracks_reported_than_max_objects_observed_ones_first() -> None:
     """A churning scene confirms more tracks than the downstream readers take (``limits.max_objects``): the
     frame still goes out, with every observed track and the most recently seen coasting ones, and says how

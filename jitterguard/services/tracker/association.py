@@ -308,6 +308,7 @@ def overlapping(
     length: F64 | None = None,
     min_iou: float = 0.0,
     min_iou_unknown: float = 0.0,
+    confirmed: NDArray[np.bool_] | None = None,
 ) -> NDArray[np.bool_]:
     """Rows to delete because another track describes the same object (Autoware's overlapped-tracker removal).
 
@@ -315,7 +316,10 @@ def overlapping(
     ``factor`` times the narrower box's width, or (b) their bird's-eye boxes (``yaw``, ``length``, ``width``)
     overlap with an IoU above ``min_iou`` — ``min_iou_unknown`` where either is UNKNOWN — whatever their labels,
     as Autoware's ``removeOverlappedTracker`` tests it. Of such a pair the UNKNOWN one goes if only one is, else
-    the one with fewer hits (the younger on a tie). Without (a) a detection that once missed its track's gate
+    the one with fewer hits (the younger on a tie) — but a tentative track (``confirmed`` false) never removes a
+    confirmed one, as in Autoware (a track that is not confident removes nothing): a low-scored clutter return
+    that recurs in one place stays tentative and gathers hits, and a confirmed car driving past it had been
+    deleted, its ID gone and the car unpublished until a new track of it was confirmed. Without (a) a detection that once missed its track's gate
     starts a twin that then steals every other detection, and both live on, alternating, as duplicate confirmed
     tracks; without (b) a second box the detector puts on one long or partly seen vehicle, a metre or two off
     its centre, becomes a confirmed track of its own that hops between such boxes — a ghost that appears to
@@ -357,5 +361,8 @@ def overlapping(
     # rows are in birth order, so j (> i) is the younger: it goes unless it has strictly more hits
     loser = np.where(hits[j] > hits[i], i, j)
     loser = np.where(unknown_i & ~unknown_j, i, np.where(unknown_j & ~unknown_i, j, loser))
+    if confirmed is not None:
+        winner = np.where(loser == i, j, i)
+        loser = loser[~(confirmed[loser] & ~confirmed[winner])]
     drop[loser] = True
     return drop

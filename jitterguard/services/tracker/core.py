@@ -49,7 +49,8 @@ def _screened(f: DetectionFrame, max_abs_coordinate_m: float, max_dimension_m: f
     """The frame with what a broken detector or pose source can put in it made harmless, and which of its
     detections the tracker may use at all (association and births).
 
-    Unusable: a non-finite ego pose, centre, height, size or area, a world position beyond
+    Unusable: a non-finite ego pose, centre, height, size or area, a world position (z too: the sensor's plus the
+    detection's, each within the wire's bound, had made every ``tracked`` frame one its readers refuse) beyond
     ``max_abs_coordinate_m`` or a length, width or height beyond ``max_dimension_m`` (what every reader of
     ``tracked`` refuses; a box 1e30 m wide also made every pair of tracks a candidate overlap) or below 0 (a box
     all of whose sides were negative had a positive area: it was tracked and published so), or an exact
@@ -97,7 +98,9 @@ def _screened(f: DetectionFrame, max_abs_coordinate_m: float, max_dimension_m: f
     elif usable.any():
         with np.errstate(invalid="ignore", over="ignore"):
             wx, wy = sensor_to_world_xy(f.x, f.y, f.ego_x, f.ego_y, f.ego_yaw)
-        usable &= (np.abs(wx) <= max_abs_coordinate_m) & (np.abs(wy) <= max_abs_coordinate_m)
+            wz = f.z + f.ego_z  # the wire bounds each z, not their sum
+        usable &= ((np.abs(wx) <= max_abs_coordinate_m) & (np.abs(wy) <= max_abs_coordinate_m)
+                   & (np.abs(wz) <= max_abs_coordinate_m))
     idx = np.flatnonzero(usable)
     if idx.size > 1:  # exact repeats: the first of each (x, y, label) stays (idx breaks ties: the sort is stable)
         order = idx[np.lexsort((idx, f.label[idx], f.y[idx], f.x[idx]))]
@@ -231,7 +234,8 @@ class TrackerCore:
             o = slice(None) if sane.all() else np.flatnonzero(sane)
             keep[o] &= ~overlapping(tr.x[o, :2], tr.label[o], tr.dims[o, 1], tr.hits[o], tb.can_assign,
                                     cfg.overlap_factor, cfg.max_candidates, yaw=tr.x[o, 2], length=tr.dims[o, 0],
-                                    min_iou=cfg.overlap_min_iou, min_iou_unknown=cfg.overlap_min_iou_unknown)
+                                    min_iou=cfg.overlap_min_iou, min_iou_unknown=cfg.overlap_min_iou_unknown,
+                                    confirmed=tr.confirmed[o])
             keep_rows = np.flatnonzero(keep)
             if keep_rows.size < n:
                 if self.scale is not None:  # what the deleted tracks have not given yet, before their rows go
