@@ -524,11 +524,19 @@ def _beyond(records: np.ndarray, limits: Limits, prefix: str = "", *, state: boo
         for c in cov:
             v = records[c]["v"]
             spread = np.sqrt(np.maximum(v[:, X_X], 0.0)) * np.sqrt(np.maximum(v[:, Y_Y], 0.0))
-            out.append((~(np.abs(v[:, X_Y]) <= limits.max_correlation * spread), prefix + c))
+            # plus a rounding allowance: a rank-1 covariance rotated onto an axis comes out as cxx 2, cyy 0,
+            # cxy 2.2e-16, which the relative bound alone had refused (the tracker published what this refused)
+            rounding = ROUNDING_ALLOWANCE * (np.abs(v[:, X_X]) + np.abs(v[:, Y_Y]))
+            out.append((~(np.abs(v[:, X_Y]) <= limits.max_correlation * spread + rounding), prefix + c))
     if not state:
         out.append((~(np.abs(_lengths(records) - 1.0) <= limits.max_quaternion_error),
                     f"{prefix}{_POSE}.pose.orientation"))
     return out
+
+
+ROUNDING_ALLOWANCE = 1e-12
+"""Of a covariance's trace, what its cross term may exceed the correlation bound by: floating-point rounding of
+R Σ Rᵀ (a few units in the last place), far below any real excess."""
 
 
 def within_limits(records: np.ndarray, limits: Limits = LIMITS) -> np.ndarray:

@@ -541,6 +541,22 @@ def test_a_singular_covariance_rotates_to_no_negative_variance():
     assert rotated[:, [0, 7]].min() == 0.0  # the clamp acted: without it the smallest is about -1e-8
 
 
+def test_a_rank_one_covariance_rotated_onto_an_axis_is_read():
+    """A covariance known along one axis only, rotated by the ego yaw onto a world axis, comes out of R Σ Rᵀ as
+    cxx 2, cyy 0 and a rounding residue cxy 2.2e-16: a covariance, but past the relative bound |cxy| ≤ sqrt(cxx·cyy)
+    = 0, so the classifier's reader refused the observations the tracker had published. A real excess is still
+    refused."""
+    for cxy, ok in ((2.2e-16, True), (-2.2e-16, True), (1e-6, False)):
+        cov = [2.0, cxy] + [0.0] * 4 + [cxy, 0.0] + [0.0] * 28
+        payload = _mutate(_rich_tracked(odd=False),
+                          ["objects", 1, "kinematics", "pose_with_covariance", "covariance"], cov)
+        if ok:
+            assert len(wire.read_tracked_objects(payload).objects) == len(_rich_tracked(odd=False).objects)
+        else:
+            with pytest.raises(wire.LimitExceeded, match="pose_with_covariance.covariance"):
+                wire.read_tracked_objects(payload)
+
+
 def test_a_stamp_beyond_int64_is_refused_on_receipt():
     for stamp in (2**63, 2**64 - 1):
         with pytest.raises(DecodeError, match="header.stamp"):
