@@ -40,6 +40,7 @@ from ..geometry import quaternion_from_yaw
 from ..runtime import ZenohOptions, build_config, free_tcp_port, open_session
 from ..schemas import DecodeError, decode, keys, peek_header
 from ..schemas.models import DetectedObjects, Heartbeat
+from ..schemas.wire import HEARTBEAT_BOUNDS
 
 CLASSES = {1: (4.5, 1.9, 1.6), 7: (0.6, 0.6, 1.7), 6: (1.8, 0.6, 1.6)}
 CELL_M = 8.0
@@ -177,6 +178,7 @@ def bench_pipeline(objects: int = 200, rate_hz: float = 20.0, duration_s: float 
              "tracker": ("tracker", *common, *config_flag(tracker_config))}
     gen = SceneGenerator(objects, rate_hz, seed, churn=churn)
     born: dict[str, int] = {}  # the tracker's latest tracks_born counter, from its heartbeat
+    health: dict[str, str] = {}  # each service's latest health from its heartbeat ("ok", or why not)
     sent: dict[int, float] = {}
     recv: dict[int, float] = {}
     tracked_at: dict[int, float] = {}  # where the time goes: detections put -> tracked seen -> objects seen
@@ -215,21 +217,32 @@ def bench_pipeline(objects: int = 200, rate_hz: float = 20.0, duration_s: float 
 
             def on_beat(sample: Any) -> None:
                 try:
-                    born["now"] = decode(Heartbeat, sample.payload.to_bytes()).counters.get("tracks_born", 0)
+                    hb = decode(Heartbeat, sample.payload.to_bytes(), **HEARTBEAT_BOUNDS)
                 except DecodeError:
-                    pass
+                    return
+                name = keys.last_chunk(str(sample.key_expr))
+                health[name] = "ok" if hb.health == "ok" else f"{hb.health}: {hb.health_reason}"
+                if name == "tracker":
+                    born["now"] = hb.counters.get("tracks_born", 0)
 
-            sub_beat = session.declare_subscriber(keys.heartbeat(ns, "tracker"), on_beat)
+            sub_beat = session.declare_subscriber(keys.heartbeat_all(ns), on_beat)
             pub = session.declare_publisher(keys.detections(ns), congestion_control=zenoh.CongestionControl.BLOCK)
             deadline = time.monotonic() + startup_timeout_s
+            # up: on the bus and saying so in a heartbeat (health ok, as the replay waits for its consumer). A token
+            # alone is not: the classifier declares its own before it loads its compiled loops, which after a change
+            # of their source compile for seconds (26 s on a loaded 2-core machine) while it subscribes to nothing —
+            # a short run had sent every frame into that and reported 400 in, 0 out, saying nothing of why
             while True:
                 alive = {keys.last_chunk(str(r.ok.key_expr)) for r in session.liveliness().get(keys.alive_all(ns))
                          if r.ok is not None}
-                if {"tracker", "classifier"} <= alive:
+                waiting = {n: health.get(n, "no heartbeat yet") for n in ("tracker", "classifier")
+                           if n not in alive or health.get(n) != "ok"}
+                if not waiting:
                     break
                 dead = [n for n, p in procs.items() if p.poll() is not None]
                 if dead or time.monotonic() > deadline:
-                    raise RuntimeError(f"pipeline did not come up ({dead or 'timeout'}); logs in {log_dir}")
+                    why = dead or "timeout: " + ", ".join(f"{n} {h}" for n, h in waiting.items())
+                    raise RuntimeError(f"pipeline did not come up ({why}); logs in {log_dir}")
                 time.sleep(0.2)
             time.sleep(1.0)  # let the children's subscriptions reach the router
             n_frames = int(round(duration_s * rate_hz))

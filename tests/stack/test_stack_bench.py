@@ -64,3 +64,22 @@ def test_bench_pipeline_runs_the_classifier_with_the_given_parameter_file(tmp_pa
     assert out["frames_out"] > 0
     log = (Path(out["logs"]) / "classifier.log").read_text()
     assert "calibration off" in log and "effective_n cluster" in log, log[-2000:]
+
+
+@pytest.mark.slow
+def test_bench_pipeline_waits_for_a_classifier_that_is_still_compiling(tmp_path):
+    """With numba's cache empty (the first run after the compiled loops' source changed) the classifier compiles
+    them for seconds after its liveliness token is out, subscribed to nothing yet. The bench waits until its
+    heartbeat says ready; it had started on the token and sent a short run's every frame into the compilation
+    (30 in, 0 out)."""
+    import os
+
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba-cache")}  # empty: every compiled loop compiles
+    res = subprocess.run([sys.executable, "-m", "jitterguard.cli", "bench", "pipeline", "--json", "--objects", "20",
+                          "--rate", "10", "--duration", "3", "--log-dir", str(tmp_path / "logs")],
+                         capture_output=True, text=True, timeout=240, env=env)
+    assert res.returncode == 0, res.stderr[-3000:]
+    out = json.loads(res.stdout)
+    log = (Path(out["logs"]) / "classifier.log").read_text()
+    assert "calibrated statistic ready in" in log
+    assert out["frames_in"] == 30 and out["frames_out"] >= 27, out
