@@ -143,7 +143,7 @@ def test_payloads_of_another_type_are_refused_and_a_frame_without_tf_is_an_error
         LiveScans("sensor_msgs/msg/Imu")
 
 
-def _detected_objects(t: int, frame: str, x: float, yaw: float) -> bytes:
+def _detected_objects(t: int, frame: str, x: float, yaw: float, labels: tuple[int, ...] = (1,)) -> bytes:
     """One car as Autoware's detector reports it: in the vehicle's frame, no position covariance (lidar_centerpoint
     leaves it out), moving along its own heading (Autoware's twist is in the object's frame)."""
     pose = {"position": {"x": x, "y": 2.0, "z": 0.8},
@@ -157,7 +157,8 @@ def _detected_objects(t: int, frame: str, x: float, yaw: float) -> bytes:
                           "has_twist": True, "has_twist_covariance": False},
            "shape": {"type": 0, "footprint": {"points": []}, "dimensions": {"x": 4.5, "y": 1.9, "z": 1.6}}}
     return _enc("autoware_perception_msgs/msg/DetectedObjects",
-                {"header": {"stamp": _stamp(t), "frame_id": frame}, "objects": [car]})
+                {"header": {"stamp": _stamp(t), "frame_id": frame},
+                 "objects": [{**car, "classification": [{"label": lab, "probability": 0.9}]} for lab in labels]})
 
 
 def test_the_vehicles_own_detected_objects_are_posed_as_a_bag_of_them_would_be():
@@ -186,3 +187,20 @@ def test_the_vehicles_own_detected_objects_are_posed_as_a_bag_of_them_would_be()
     assert isinstance(unposed, FrameError) and "no TF for the scan" in unposed.reason
     with pytest.raises(ValueError, match="carries sensor_msgs/msg/PointCloud2 or"):
         LiveScans(None, "sensor_msgs/msg/Imu")
+
+
+def test_current_autowares_newer_classes_are_read_as_unknown_not_refused():
+    """Current autoware_msgs has ANIMAL, HAZARD, OVER_DRIVABLE and UNDER_DRIVABLE (8-11) past the contract's
+    PEDESTRIAN: such a box is taken as UNKNOWN (said once), and the frame's other boxes go on; one of them had the whole
+    frame refused as invalid. A label that is no Autoware class still refuses it."""
+    core = LiveScans(None, "autoware_perception_msgs/msg/DetectedObjects")
+    msg, _ = core.stamp_of(_detected_objects(5_000_000_000, "base_link", 12.0, 0.0, labels=(1, 8, 9, 10, 11, 7)))
+    frame = core.scan(msg, "objects#1", 0)
+    assert isinstance(frame, DetectionFrame)
+    assert [o.classification[0].label for o in frame.objects] == [1, 0, 0, 0, 0, 7]
+    assert core.notes() == ["classes ANIMAL, HAZARD, OVER_DRIVABLE, UNDER_DRIVABLE (newer autoware_msgs labels) "
+                            "read as UNKNOWN"]
+    assert isinstance(core.scan(msg, "objects#2", 0), DetectionFrame) and core.notes() == []  # said once
+    bad, _ = core.stamp_of(_detected_objects(5_000_000_000, "base_link", 12.0, 0.0, labels=(1, 12)))
+    refused = core.scan(bad, "objects#3", 0)
+    assert isinstance(refused, FrameError) and "classification.0.label" in refused.reason

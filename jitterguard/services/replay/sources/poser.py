@@ -24,7 +24,7 @@ from ....geometry import rotation_from_quaternion
 from ....schemas.wire import LIMITS
 from ..frames import IDENTITY, DetectionFrame, EgoPose, FrameError, ScanFrame, compose, finite_rows
 from .nuscenes import FRAME_SUFFIX, turn_points
-from .ros_types import detected_object_from_ros, interpolate_pose, pointcloud2_to_array, pose_of, stamp_ns
+from .ros_types import NEWER_LABELS, detected_object_from_ros, interpolate_pose, pointcloud2_to_array, pose_of, stamp_ns
 from .tf import TfTree
 
 LEVEL_TOLERANCE = 1e-9
@@ -55,6 +55,7 @@ class ScanPoser:
         self.notes: list[str] = []  # said once each: the turn of a mount, why a cloud keeps its own axes
         self._levels: dict[str, tuple[NDArray[np.float64], EgoPose] | None] = {}
         self._warned_extrinsic = False
+        self._said: set[str] = set()  # notes about messages, said once each though the caller clears ``notes``
 
     # ------------------------------------------------------------------------------------------ pose messages
 
@@ -192,6 +193,13 @@ class ScanPoser:
         pose = self.pose(frame_id, stamp)
         if isinstance(pose, str):
             return FrameError(origin, pose)
+        newer = sorted({NEWER_LABELS[int(c.label)] for o in msg.objects for c in o.classification
+                        if int(c.label) in NEWER_LABELS})
+        if newer:
+            note = f"classes {', '.join(newer)} (newer autoware_msgs labels) read as UNKNOWN"
+            if note not in self._said:
+                self._said.add(note)
+                self.notes.append(note)
         try:
             objects = [detected_object_from_ros(o) for o in msg.objects]
         except ValidationError as exc:
