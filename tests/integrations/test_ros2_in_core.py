@@ -204,3 +204,15 @@ def test_current_autowares_newer_classes_are_read_as_unknown_not_refused():
     bad, _ = core.stamp_of(_detected_objects(5_000_000_000, "base_link", 12.0, 0.0, labels=(1, 12)))
     refused = core.scan(bad, "objects#3", 0)
     assert isinstance(refused, FrameError) and "classification.0.label" in refused.reason
+
+
+def test_a_cloud_in_the_odometrys_own_frame_is_posed_by_it_without_a_note():
+    """Autoware's concatenated cloud is in base_link, the odometry's child frame: its pose is the odometry's, and no
+    note claims that the vehicle pose stands in for a sensor's (it had, with no /tf_static on the bus)."""
+    core = LiveScans("nav_msgs/msg/Odometry")
+    core.pose(_odom(1_000_000_000, 5.0), 0)
+    frame = core.scan(core.stamp_of(_cloud(1_000_000_000, "base_link"))[0], "scan#1", 0)
+    assert isinstance(frame, ScanFrame) and frame.frame_id == "base_link" and frame.pose.x == 5.0
+    assert core.notes() == []
+    core.scan(core.stamp_of(_cloud(1_000_000_000, "lidar"))[0], "scan#2", 0)  # a sensor frame without its mount: said
+    assert [n for n in core.notes() if "stands in for the sensor's" in n]

@@ -153,6 +153,8 @@ class ScanPoser:
         if not self.poses:
             return IDENTITY
         base = interpolate_pose(self.pose_times, self.poses, t)
+        if self.base_frame and frame_id == self.base_frame.lstrip("/"):
+            return base  # a cloud in the pose topic's own frame (Autoware's concatenated cloud in base_link)
         if self.base_frame and frame_id in self.tf and self.base_frame in self.tf:
             try:
                 return compose(base, self.tf.lookup(frame_id, t, ancestor=self.base_frame))
