@@ -216,3 +216,31 @@ def test_a_cloud_in_the_odometrys_own_frame_is_posed_by_it_without_a_note():
     assert core.notes() == []
     core.scan(core.stamp_of(_cloud(1_000_000_000, "lidar"))[0], "scan#2", 0)  # a sensor frame without its mount: said
     assert [n for n in core.notes() if "stands in for the sensor's" in n]
+
+
+def test_a_scan_is_covered_only_once_the_tf_links_above_its_own_frame_reach_its_stamp():
+    """A /tf carrying other, faster links (a wheel's joint; NDT's map -> ndt_base_link stamped at its scan) says nothing
+    of the vehicle's pose: a scan waits until map -> base_link itself has a sample at or after its stamp. The newest of
+    any transform had counted, and such a scan was posed at once, clamped to the older vehicle pose."""
+    core = LiveScans("tf2_msgs/msg/TFMessage")
+    mount = {"header": {"stamp": _stamp(0), "frame_id": "base_link"}, "child_frame_id": "lidar",
+             "transform": {"translation": {"x": 1.0, "y": 0.0, "z": 2.0},
+                           "rotation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}}}
+    core.tf(_enc("tf2_msgs/msg/TFMessage", {"transforms": [mount]}), 0, static=True)
+
+    def link(parent: str, child: str, t: int, x: float) -> bytes:
+        return _enc("tf2_msgs/msg/TFMessage", {"transforms": [
+            {"header": {"stamp": _stamp(t), "frame_id": parent}, "child_frame_id": child,
+             "transform": {"translation": {"x": x, "y": 0.0, "z": 0.0},
+                           "rotation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}}}]})
+    t0 = 5_000_000_000
+    core.tf(link("map", "base_link", t0, 100.0), 0, static=False)
+    core.tf(link("base_link", "wheel", t0 + 50_000_000, 0.0), 0, static=False)  # newer, but another link
+    core.tf(link("map", "ndt_base_link", t0 + 60_000_000, 0.0), 0, static=False)
+    scan_t = t0 + 30_000_000
+    assert core.covered(t0, "lidar") and not core.covered(scan_t, "lidar") and not core.covered(scan_t, "/lidar")
+    assert not core.covered(scan_t, "radar")  # a frame not in the tree (yet)
+    core.tf(link("map", "base_link", t0 + 40_000_000, 104.0), 0, static=False)
+    assert core.covered(scan_t, "lidar")
+    frame = core.scan(core.stamp_of(_cloud(scan_t))[0], "scan#1", 0)
+    assert isinstance(frame, ScanFrame) and frame.pose.x == pytest.approx(104.0)  # 100 -> 104 over 40 ms, at 30 ms: 103 + 1

@@ -182,7 +182,7 @@ class Ros2InService(RosGraphService):
         deadline = time.monotonic() + self.tf_wait_s
         while True:  # the poses usually come a few ms after the scan they pose
             with self._lock:
-                covered = self.core.covered(stamp)
+                covered = self.core.covered(stamp, msg.header.frame_id)
             if covered or not stamp or time.monotonic() >= deadline or self.stop_event.is_set():
                 break
             time.sleep(0.005)
