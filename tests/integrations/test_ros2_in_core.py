@@ -243,4 +243,26 @@ def test_a_scan_is_covered_only_once_the_tf_links_above_its_own_frame_reach_its_
     core.tf(link("map", "base_link", t0 + 40_000_000, 104.0), 0, static=False)
     assert core.covered(scan_t, "lidar")
     frame = core.scan(core.stamp_of(_cloud(scan_t))[0], "scan#1", 0)
-    assert isinstance(frame, ScanFrame) and frame.pose.x == pytest.approx(104.0)  # 100 -> 104 over 40 ms, at 30 ms: 103 + 1
+    # base_link 100 -> 104 over 40 ms, at 30 ms 103; the LiDAR 1 m ahead of it
+    assert isinstance(frame, ScanFrame) and frame.pose.x == pytest.approx(104.0)
+
+
+def test_a_scan_is_refused_while_nothing_puts_the_vehicle_in_the_world():
+    """Before localization publishes map -> base_link (a live stack waiting for its initial pose), the TF tree's root is
+    the vehicle's own frame: such a scan is refused as one that cannot be posed. It had gone out with its mount in
+    base_link for its world pose, the vehicle standing at the world's origin until localization started."""
+    core = LiveScans("tf2_msgs/msg/TFMessage")
+    mount = {"header": {"stamp": _stamp(0), "frame_id": "base_link"}, "child_frame_id": "lidar",
+             "transform": {"translation": {"x": 1.0, "y": 0.0, "z": 2.0},
+                           "rotation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}}}
+    core.tf(_enc("tf2_msgs/msg/TFMessage", {"transforms": [mount]}), 0, static=True)
+    t = 5_000_000_000
+    for frame_id in ("lidar", "base_link"):
+        out = core.scan(core.stamp_of(_cloud(t, frame_id))[0], "scan#1", 0)
+        assert isinstance(out, FrameError) and "nothing puts the vehicle in the world" in out.reason
+    pose = {"header": {"stamp": _stamp(t), "frame_id": "map"}, "child_frame_id": "base_link",
+            "transform": {"translation": {"x": 100.0, "y": 50.0, "z": 0.0},
+                          "rotation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}}}
+    core.tf(_enc("tf2_msgs/msg/TFMessage", {"transforms": [pose]}), 0, static=False)
+    frame = core.scan(core.stamp_of(_cloud(t))[0], "scan#2", 0)
+    assert isinstance(frame, ScanFrame) and (frame.pose.x, frame.pose.z) == pytest.approx((101.0, 2.0))

@@ -80,9 +80,10 @@ class LiveScans:
         return msg, stamp_ns(msg.header)
 
     def covered(self, stamp: int, frame_id: str | None = None) -> bool:
-        """Whether the poses reach ``stamp`` (no pose source: always) — by TF, those of the chain from ``frame_id`` (the
-        message's, as :meth:`scan` reads it) to its root: every dynamic link on it (a ``/tf`` message's other links
-        say nothing of this one; a faster one had let a scan be posed at once, clamped to an older vehicle pose)."""
+        """Whether the poses reach ``stamp`` (no pose source: always) — by TF, those of the chain from ``frame_id``
+        (the message's, as :meth:`scan` reads it) to its root: every dynamic link on it (a ``/tf`` message's other
+        links say nothing of this one; a faster one had let a scan be posed at once, clamped to an older vehicle
+        pose)."""
         if self.pose_type is None:
             return True
         if self.pose_type == TF_MESSAGE and frame_id is not None:

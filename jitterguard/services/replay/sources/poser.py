@@ -145,7 +145,14 @@ class ScanPoser:
         """The pose of ``frame_id`` in the world at ``t``, or why there is none."""
         if self.use_tf:
             try:
+                if frame_id in self.tf and self.tf.root(frame_id) == TF_BASE_FRAME:
+                    # the vehicle's frame is never the world (REP-105): nothing above it yet, as while a live stack's
+                    # localization has no pose; posed in it, the scan had gone out with the mount for its world pose
+                    return (f"no TF above {TF_BASE_FRAME} for the scan: nothing puts the vehicle in the world yet"
+                            f" (localization's map -> {TF_BASE_FRAME})")
                 return self.tf.lookup(frame_id, t)
+            except ValueError as exc:  # a cycle above the frame
+                return f"no TF for the scan: {exc}"
             except KeyError as exc:
                 skipped = "".join(f"; {n} transform(s) to {f!r} skipped: rotation not a unit quaternion or not finite"
                                   for f, n in sorted(self.tf_skipped.items()))
