@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 
 from ....geometry import yaw_from_quaternion
 from ....ros2.autoware import twist_from_object_frame
-from ....ros2.types import DETECTED_OBJECTS, POINTCLOUD2, TF_MESSAGE, typestore  # noqa: F401  (re-exported)
+from ....ros2.types import DETECTED_OBJECTS, DETECTION_TYPES, POINTCLOUD2, TF_MESSAGE, typestore  # noqa: F401
 from ....schemas.models import DetectedObject, Label
 from ..frames import EgoPose
 POSE_TYPES = (
