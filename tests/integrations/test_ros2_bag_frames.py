@@ -106,3 +106,22 @@ def test_data_in_the_world_frame_gets_no_transform_to_itself(tmp_path) -> None:
     sink.write(_frame("map"))
     sink.close()
     assert TF_TOPIC not in sink.counts and sink.counts[POINTS_TOPIC] == 1
+
+
+def test_a_cloud_with_non_finite_values_is_not_written_dense(tmp_path) -> None:
+    """PointCloud2's is_dense says the cloud holds no invalid (NaN) points, and PCL readers trust it: the bag had said so
+    of every scan, though the wire does not promise it (jitterguard's replay drops such rows; another publisher may
+    not)."""
+    sink = Rosbag2Sink(tmp_path / "bag")
+    for k, row in enumerate(([1.0, 2.0, 0.5, 7.0], [np.nan, np.nan, np.nan, 0.0])):
+        f = _frame("lidar")
+        pts = np.array([[3.0, 4.0, 0.1, 9.0], row], dtype="<f4")
+        f.points = f.points.model_copy(update={"num_points": 2, "data": pts.tobytes(),
+                                               "header": Header(stamp=STAMP + k, seq=3 + k, frame_id="lidar")})
+        sink.write(f)
+    sink.close()
+    (mcap_file,) = (tmp_path / "bag").glob("*.mcap")
+    with open(mcap_file, "rb") as fh:
+        dense = [m.is_dense for _, ch, _, m in make_reader(fh, decoder_factories=[DecoderFactory()]).iter_decoded_messages()
+                 if ch.topic == POINTS_TOPIC]
+    assert dense == [True, False]

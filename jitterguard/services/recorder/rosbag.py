@@ -41,15 +41,18 @@ class RosbagError(RuntimeError):
 
 
 def pointcloud2(b: RosBuilder, pc: PointCloud) -> Any:
-    """The wire scan as a PointCloud2: one row, every column float32 at 4-byte offsets, the bytes as they came."""
+    """The wire scan as a PointCloud2: one row, every column float32 at 4-byte offsets, the bytes as they came;
+    ``is_dense`` only when every value is finite (the wire does not promise it: a publisher other than jitterguard's
+    replay may send NaN rows, and a PCL reader trusts ``is_dense`` and skips its NaN checks)."""
     g = b.t
     n_fields = len(pc.fields)
+    dense = bool(np.isfinite(np.frombuffer(pc.data, dtype="<f4")).all())
     fields = [g["sensor_msgs/msg/PointField"](name=name, offset=4 * j, datatype=FLOAT32, count=1)
               for j, name in enumerate(pc.fields)]
     return g[POINTCLOUD2](header=b.header(pc.header.stamp, pc.header.frame_id), height=1, width=pc.num_points,
                           fields=fields, is_bigendian=False, point_step=4 * n_fields,
                           row_step=4 * n_fields * pc.num_points, data=np.frombuffer(pc.data, dtype=np.uint8),
-                          is_dense=True)
+                          is_dense=dense)
 
 
 def tf_message(b: RosBuilder, stamp_ns: int, world: str, sensor_frame: str, pose: Pose) -> Any | None:
