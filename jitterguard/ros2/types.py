@@ -16,6 +16,10 @@ POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 DETECTED_OBJECTS = "autoware_perception_msgs/msg/DetectedObjects"
 TRACKED_OBJECTS = "autoware_perception_msgs/msg/TrackedObjects"
+DETECTED_OBJECTS_AUTO = "autoware_auto_perception_msgs/msg/DetectedObjects"
+"""The same message under Autoware's name before autoware_msgs 1.0 (2024): bags recorded then carry it. Read by its
+fields' names, from the definitions such a bag embeds."""
+DETECTION_TYPES = (DETECTED_OBJECTS, DETECTED_OBJECTS_AUTO)
 
 
 def shipped_definitions() -> dict[str, str]:

@@ -277,3 +277,31 @@ def test_ros2_nodes_on_rmw_zenoh_feed_ros2_in_through_their_own_router(tmp_path)
             s.close()
         for p in reversed(procs):
             stop_process(p)
+
+
+def test_refused_payloads_on_rmw_zenoh_are_counted_per_subscription_not_per_key_put():
+    """Under rmw_zenoh ros2-in subscribes the topic under any type and hash (``<domain>/<topic>/*/*``): a payload that
+    does not decode is counted under that subscription. Counted under each key it came on, 40 made-up type chunks
+    had made 40 counters (unbounded; a heartbeat beyond 512 entries is refused by every reader, so the service would
+    have vanished from the stack's view)."""
+    from jitterguard.runtime import loopback_options
+    from jitterguard.services.ros2live.in_service import Ros2InService
+    from jitterguard.services.ros2live.ros_keys import RosNaming
+
+    ns, port, domain = f"r2k{os.getpid()}", free_tcp_port(), 3
+    service = Ros2InService(loopback_options(ns, port, listen_self=True), topic="/" + CLOUD_KEY, pose_topic=None,
+                            pose_type=None, naming=RosNaming("rmw_zenoh", domain_id=domain))
+    client = open_session(build_config(loopback_options(ns, port)))
+    try:
+        time.sleep(0.5)
+        for i in range(40):
+            client.put(f"{domain}/{CLOUD_KEY}/made::msg::dds_::T{i}_/RIHS01_{i:064x}", b"\x00\x01\x00\x00garbage")
+            time.sleep(0.01)
+        sub = f"{domain}/{CLOUD_KEY}/*/*"
+        assert wait_until(lambda: service.counters.get("rejected") + service.counters.get(f"dropped_queue.{sub}")
+                          == 40, timeout=30, period=0.1), service.counters.snapshot()
+        per_key = {k: v for k, v in service.counters.snapshot().items() if k.startswith("rejected.")}
+        assert per_key == {f"rejected.{sub}": service.counters.get("rejected")} and per_key[f"rejected.{sub}"] > 0
+    finally:
+        client.close()
+        service.close()

@@ -143,7 +143,7 @@ def test_payloads_of_another_type_are_refused_and_a_frame_without_tf_is_an_error
         LiveScans("sensor_msgs/msg/Imu")
 
 
-def _detected_objects(t: int, frame: str, x: float, yaw: float) -> bytes:
+def _detected_objects(t: int, frame: str, x: float, yaw: float, labels: tuple[int, ...] = (1,)) -> bytes:
     """One car as Autoware's detector reports it: in the vehicle's frame, no position covariance (lidar_centerpoint
     leaves it out), moving along its own heading (Autoware's twist is in the object's frame)."""
     pose = {"position": {"x": x, "y": 2.0, "z": 0.8},
@@ -157,7 +157,8 @@ def _detected_objects(t: int, frame: str, x: float, yaw: float) -> bytes:
                           "has_twist": True, "has_twist_covariance": False},
            "shape": {"type": 0, "footprint": {"points": []}, "dimensions": {"x": 4.5, "y": 1.9, "z": 1.6}}}
     return _enc("autoware_perception_msgs/msg/DetectedObjects",
-                {"header": {"stamp": _stamp(t), "frame_id": frame}, "objects": [car]})
+                {"header": {"stamp": _stamp(t), "frame_id": frame},
+                 "objects": [{**car, "classification": [{"label": lab, "probability": 0.9}]} for lab in labels]})
 
 
 def test_the_vehicles_own_detected_objects_are_posed_as_a_bag_of_them_would_be():
@@ -186,3 +187,82 @@ def test_the_vehicles_own_detected_objects_are_posed_as_a_bag_of_them_would_be()
     assert isinstance(unposed, FrameError) and "no TF for the scan" in unposed.reason
     with pytest.raises(ValueError, match="carries sensor_msgs/msg/PointCloud2 or"):
         LiveScans(None, "sensor_msgs/msg/Imu")
+
+
+def test_current_autowares_newer_classes_are_read_as_unknown_not_refused():
+    """Current autoware_msgs has ANIMAL, HAZARD, OVER_DRIVABLE and UNDER_DRIVABLE (8-11) past the contract's
+    PEDESTRIAN: such a box is taken as UNKNOWN (said once), and the frame's other boxes go on; one of them had the whole
+    frame refused as invalid. A label that is no Autoware class still refuses it."""
+    core = LiveScans(None, "autoware_perception_msgs/msg/DetectedObjects")
+    msg, _ = core.stamp_of(_detected_objects(5_000_000_000, "base_link", 12.0, 0.0, labels=(1, 8, 9, 10, 11, 7)))
+    frame = core.scan(msg, "objects#1", 0)
+    assert isinstance(frame, DetectionFrame)
+    assert [o.classification[0].label for o in frame.objects] == [1, 0, 0, 0, 0, 7]
+    assert core.notes() == ["classes ANIMAL, HAZARD, OVER_DRIVABLE, UNDER_DRIVABLE (newer autoware_msgs labels) "
+                            "read as UNKNOWN"]
+    assert isinstance(core.scan(msg, "objects#2", 0), DetectionFrame) and core.notes() == []  # said once
+    bad, _ = core.stamp_of(_detected_objects(5_000_000_000, "base_link", 12.0, 0.0, labels=(1, 12)))
+    refused = core.scan(bad, "objects#3", 0)
+    assert isinstance(refused, FrameError) and "classification.0.label" in refused.reason
+
+
+def test_a_cloud_in_the_odometrys_own_frame_is_posed_by_it_without_a_note():
+    """Autoware's concatenated cloud is in base_link, the odometry's child frame: its pose is the odometry's, and no
+    note claims that the vehicle pose stands in for a sensor's (it had, with no /tf_static on the bus)."""
+    core = LiveScans("nav_msgs/msg/Odometry")
+    core.pose(_odom(1_000_000_000, 5.0), 0)
+    frame = core.scan(core.stamp_of(_cloud(1_000_000_000, "base_link"))[0], "scan#1", 0)
+    assert isinstance(frame, ScanFrame) and frame.frame_id == "base_link" and frame.pose.x == 5.0
+    assert core.notes() == []
+    core.scan(core.stamp_of(_cloud(1_000_000_000, "lidar"))[0], "scan#2", 0)  # a sensor frame without its mount: said
+    assert [n for n in core.notes() if "stands in for the sensor's" in n]
+
+
+def test_a_scan_is_covered_only_once_the_tf_links_above_its_own_frame_reach_its_stamp():
+    """A /tf carrying other, faster links (a wheel's joint; NDT's map -> ndt_base_link stamped at its scan) says nothing
+    of the vehicle's pose: a scan waits until map -> base_link itself has a sample at or after its stamp. The newest of
+    any transform had counted, and such a scan was posed at once, clamped to the older vehicle pose."""
+    core = LiveScans("tf2_msgs/msg/TFMessage")
+    mount = {"header": {"stamp": _stamp(0), "frame_id": "base_link"}, "child_frame_id": "lidar",
+             "transform": {"translation": {"x": 1.0, "y": 0.0, "z": 2.0},
+                           "rotation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}}}
+    core.tf(_enc("tf2_msgs/msg/TFMessage", {"transforms": [mount]}), 0, static=True)
+
+    def link(parent: str, child: str, t: int, x: float) -> bytes:
+        return _enc("tf2_msgs/msg/TFMessage", {"transforms": [
+            {"header": {"stamp": _stamp(t), "frame_id": parent}, "child_frame_id": child,
+             "transform": {"translation": {"x": x, "y": 0.0, "z": 0.0},
+                           "rotation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}}}]})
+    t0 = 5_000_000_000
+    core.tf(link("map", "base_link", t0, 100.0), 0, static=False)
+    core.tf(link("base_link", "wheel", t0 + 50_000_000, 0.0), 0, static=False)  # newer, but another link
+    core.tf(link("map", "ndt_base_link", t0 + 60_000_000, 0.0), 0, static=False)
+    scan_t = t0 + 30_000_000
+    assert core.covered(t0, "lidar") and not core.covered(scan_t, "lidar") and not core.covered(scan_t, "/lidar")
+    assert not core.covered(scan_t, "radar")  # a frame not in the tree (yet)
+    core.tf(link("map", "base_link", t0 + 40_000_000, 104.0), 0, static=False)
+    assert core.covered(scan_t, "lidar")
+    frame = core.scan(core.stamp_of(_cloud(scan_t))[0], "scan#1", 0)
+    # base_link 100 -> 104 over 40 ms, at 30 ms 103; the LiDAR 1 m ahead of it
+    assert isinstance(frame, ScanFrame) and frame.pose.x == pytest.approx(104.0)
+
+
+def test_a_scan_is_refused_while_nothing_puts_the_vehicle_in_the_world():
+    """Before localization publishes map -> base_link (a live stack waiting for its initial pose), the TF tree's root is
+    the vehicle's own frame: such a scan is refused as one that cannot be posed. It had gone out with its mount in
+    base_link for its world pose, the vehicle standing at the world's origin until localization started."""
+    core = LiveScans("tf2_msgs/msg/TFMessage")
+    mount = {"header": {"stamp": _stamp(0), "frame_id": "base_link"}, "child_frame_id": "lidar",
+             "transform": {"translation": {"x": 1.0, "y": 0.0, "z": 2.0},
+                           "rotation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}}}
+    core.tf(_enc("tf2_msgs/msg/TFMessage", {"transforms": [mount]}), 0, static=True)
+    t = 5_000_000_000
+    for frame_id in ("lidar", "base_link"):
+        out = core.scan(core.stamp_of(_cloud(t, frame_id))[0], "scan#1", 0)
+        assert isinstance(out, FrameError) and "nothing puts the vehicle in the world" in out.reason
+    pose = {"header": {"stamp": _stamp(t), "frame_id": "map"}, "child_frame_id": "base_link",
+            "transform": {"translation": {"x": 100.0, "y": 50.0, "z": 0.0},
+                          "rotation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}}}
+    core.tf(_enc("tf2_msgs/msg/TFMessage", {"transforms": [pose]}), 0, static=False)
+    frame = core.scan(core.stamp_of(_cloud(t))[0], "scan#2", 0)
+    assert isinstance(frame, ScanFrame) and (frame.pose.x, frame.pose.z) == pytest.approx((101.0, 2.0))

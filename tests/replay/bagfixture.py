@@ -188,7 +188,7 @@ def write_bag(
                 w.write(c_cloud, t + 1_000_000, raw)  # received 1 ms after the sensor stamp
             positions = [(10.0 + i, 2.0), (-5.0, 3.0 - i)]
             out.det_positions.append(positions)
-            label = 9 if i == bad_label_at else 1
+            label = 42 if i == bad_label_at else 1  # no Autoware class (9, HAZARD, is read as UNKNOWN)
             w.write(c_det, t + 30_000_000, ts.serialize_cdr(_detections(ts, t, positions, label=label), DETECTED_OBJECTS))
             if c_cloud2 is not None:
                 w.write(c_cloud2, t, ts.serialize_cdr(_cloud(ts, t, pts), POINTCLOUD2))

@@ -32,7 +32,7 @@ import numpy as np
 
 from ...geometry import yaw_from_quaternion
 from ...schemas.models import LABEL_NAMES, X_X, X_Y, Y_Y, DetectedObject, Pose, TrackedObject
-from ..bridge.frames import ground_split
+from ..bridge.frames import sensor_chain
 from ..bridge.joiner import JoinedFrame
 
 TF, POINTS, DETECTIONS, TRACKS, GROUNDTRUTH, MOTION = (
@@ -133,20 +133,20 @@ def ellipse_xy(cov_xx: float, cov_xy: float, cov_yy: float, sigma: float, segmen
 
 
 def frame_transforms(frame: JoinedFrame) -> fm.FrameTransforms | None:
-    """``map → ego → sensor`` at the frame's stamp (None without a pose: tracks-level input)."""
+    """``map → ego → sensor`` at the frame's stamp (:func:`..bridge.frames.sensor_chain`; None without a pose:
+    tracks-level input, or with data in the world frame)."""
     pose = frame.sensor_pose
     if pose is None:
         return None
-    g = ground_split(pose)
+    links = sensor_chain(pose, frame.world_frame, EGO_FRAME, frame.sensor_frame)
+    if not links:
+        return None
     ts = timestamp(frame.stamp_ns)
     return fm.FrameTransforms(transforms=[
-        fm.FrameTransform(timestamp=ts, parent_frame_id=frame.world_frame, child_frame_id=EGO_FRAME,
-                          translation=fm.Vector3(x=g.x, y=g.y, z=0.0),
-                          rotation=fm.Quaternion(x=0.0, y=0.0, z=math.sin(g.yaw / 2), w=math.cos(g.yaw / 2))),
-        fm.FrameTransform(timestamp=ts, parent_frame_id=EGO_FRAME, child_frame_id=frame.sensor_frame,
-                          translation=fm.Vector3(x=0.0, y=0.0, z=g.z),
-                          rotation=fm.Quaternion(x=g.rest[0], y=g.rest[1], z=g.rest[2], w=g.rest[3])),
-    ])
+        fm.FrameTransform(timestamp=ts, parent_frame_id=parent, child_frame_id=child,
+                          translation=fm.Vector3(x=xyz[0], y=xyz[1], z=xyz[2]),
+                          rotation=fm.Quaternion(x=q[0], y=q[1], z=q[2], w=q[3]))
+        for parent, child, xyz, q in links])
 
 
 def point_cloud(frame: JoinedFrame) -> fm.PointCloud | None:

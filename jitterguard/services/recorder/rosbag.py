@@ -6,7 +6,7 @@ Autoware's perception and prediction use:
 | ``/sensing/lidar/top/pointcloud`` | ``sensor_msgs/msg/PointCloud2`` | the scan (sensor frame, float32 columns as sent) |
 | ``/perception/object_recognition/detection/objects`` | ``autoware_perception_msgs/msg/DetectedObjects`` | the detector's output (sensor frame, with its variances) |
 | ``/perception/object_recognition/tracking/objects`` | ``autoware_perception_msgs/msg/TrackedObjects`` | the classifier's ``objects``: what Autoware's prediction subscribes to |
-| ``/tf`` | ``tf2_msgs/msg/TFMessage`` | ``map → base_link → <sensor frame>`` per frame (:mod:`..bridge.frames`) |
+| ``/tf`` | ``tf2_msgs/msg/TFMessage`` | ``map → base_link → <sensor frame>`` per frame (:mod:`..bridge.frames`; data in ``base_link`` itself: ``map → base_link``, the whole pose) |
 
 Each message is written at its header stamp (the sensor's time), so ``ros2 bag play`` replays sensor time. The
 object conversions are :mod:`jitterguard.ros2.autoware`'s (twists in the object frame, as Autoware states them);
@@ -25,7 +25,7 @@ import numpy as np
 from ...ros2.autoware import RosBuilder
 from ...ros2.types import DETECTED_OBJECTS, POINTCLOUD2, TF_MESSAGE, TRACKED_OBJECTS, typestore
 from ...schemas.models import PointCloud, Pose
-from ..bridge.frames import ground_split
+from ..bridge.frames import sensor_chain
 from ..bridge.joiner import JoinedFrame
 
 POINTS_TOPIC = "/sensing/lidar/top/pointcloud"
@@ -41,33 +41,34 @@ class RosbagError(RuntimeError):
 
 
 def pointcloud2(b: RosBuilder, pc: PointCloud) -> Any:
-    """The wire scan as a PointCloud2: one row, every column float32 at 4-byte offsets, the bytes as they came."""
+    """The wire scan as a PointCloud2: one row, every column float32 at 4-byte offsets, the bytes as they came;
+    ``is_dense`` only when every value is finite (the wire does not promise it: a publisher other than jitterguard's
+    replay may send NaN rows, and a PCL reader trusts ``is_dense`` and skips its NaN checks)."""
     g = b.t
     n_fields = len(pc.fields)
+    dense = bool(np.isfinite(np.frombuffer(pc.data, dtype="<f4")).all())
     fields = [g["sensor_msgs/msg/PointField"](name=name, offset=4 * j, datatype=FLOAT32, count=1)
               for j, name in enumerate(pc.fields)]
     return g[POINTCLOUD2](header=b.header(pc.header.stamp, pc.header.frame_id), height=1, width=pc.num_points,
                           fields=fields, is_bigendian=False, point_step=4 * n_fields,
                           row_step=4 * n_fields * pc.num_points, data=np.frombuffer(pc.data, dtype=np.uint8),
-                          is_dense=True)
+                          is_dense=dense)
 
 
-def tf_message(b: RosBuilder, stamp_ns: int, world: str, sensor_frame: str, pose: Pose) -> Any:
-    """``world → base_link`` (the sensor pose on the ground plane) and ``base_link → sensor`` (the rest)."""
+def tf_message(b: RosBuilder, stamp_ns: int, world: str, sensor_frame: str, pose: Pose) -> Any | None:
+    """``world → base_link`` (the sensor pose on the ground plane) and ``base_link → sensor`` (the rest); for data
+    in ``base_link`` itself ``world → base_link``, the whole pose (:func:`..bridge.frames.sensor_chain`); None for
+    data in the world frame."""
     g = b.t
-    s = ground_split(pose)
-    half = s.yaw / 2
-
-    def transform(parent: str, child: str, xyz: tuple[float, float, float], q: tuple[float, float, float, float]) -> Any:
-        return g["geometry_msgs/msg/TransformStamped"](
+    links = sensor_chain(pose, world, BASE_FRAME, sensor_frame)
+    if not links:
+        return None
+    return g[TF_MESSAGE](transforms=[
+        g["geometry_msgs/msg/TransformStamped"](
             header=b.header(stamp_ns, parent), child_frame_id=child,
             transform=g["geometry_msgs/msg/Transform"](translation=b.vector3(*xyz),
                                                        rotation=g["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3])))
-
-    return g[TF_MESSAGE](transforms=[
-        transform(world, BASE_FRAME, (s.x, s.y, 0.0), (0.0, 0.0, float(np.sin(half)), float(np.cos(half)))),
-        transform(BASE_FRAME, sensor_frame, (0.0, 0.0, s.z), s.rest),
-    ])
+        for parent, child, xyz, q in links])
 
 
 class Rosbag2Sink:
@@ -100,8 +101,9 @@ class Rosbag2Sink:
     def write(self, frame: JoinedFrame) -> None:
         b = self.builder
         pose = frame.sensor_pose
-        if pose is not None:
-            self._write(TF_TOPIC, frame.stamp_ns, tf_message(b, frame.stamp_ns, frame.world_frame, frame.sensor_frame, pose))
+        tf = None if pose is None else tf_message(b, frame.stamp_ns, frame.world_frame, frame.sensor_frame, pose)
+        if tf is not None:
+            self._write(TF_TOPIC, frame.stamp_ns, tf)
         if self.points and frame.points is not None:
             self._write(POINTS_TOPIC, frame.points.header.stamp, pointcloud2(b, frame.points))
         if frame.detections is not None:

@@ -117,9 +117,11 @@ class Ros2InService(RosGraphService):
         else:
             self._declared.append(self.ros.declare_subscriber(key, on_sample))
 
-    def _refuse(self, exc: Exception, key: str) -> None:
-        """Count (``rejected.<ROS key>``) and log a payload refused on a ROS topic's key."""
-        self.reject(exc if isinstance(exc, DecodeError) else DecodeError("CDR", "", str(exc)), key)
+    def _refuse(self, exc: Exception, key: str, sample_key: str | None = None) -> None:
+        """Count (``rejected.<ROS key>``, the subscription's: under rmw_zenoh its ``*/*`` matches any type chunk a
+        sample names, and one counter per key put had grown without bound) and log (with ``sample_key``) a payload
+        refused on a ROS topic's key."""
+        self.reject(exc if isinstance(exc, DecodeError) else DecodeError("CDR", "", str(exc)), key, sample_key)
 
     def _feed(self, payload: bytes, key: str, what: str) -> bool:
         """One pose message (``tf_static``, ``tf`` or ``poses``, the counter it goes to) into the core; False when
@@ -174,13 +176,13 @@ class Ros2InService(RosGraphService):
         try:
             msg, stamp = self.core.stamp_of(payload)
         except UndecodableMessage as exc:
-            self._refuse(exc, key)
+            self._refuse(exc, self.in_key, key)
             self.progress.failure(time.monotonic(), str(exc)[:200])
             return
         deadline = time.monotonic() + self.tf_wait_s
         while True:  # the poses usually come a few ms after the scan they pose
             with self._lock:
-                covered = self.core.covered(stamp)
+                covered = self.core.covered(stamp, msg.header.frame_id)
             if covered or not stamp or time.monotonic() >= deadline or self.stop_event.is_set():
                 break
             time.sleep(0.005)
@@ -200,7 +202,7 @@ class Ros2InService(RosGraphService):
         try:
             data = encode(message_for(frame, self._seq, frame.stamp_ns))
         except (LimitExceeded, ValueError) as exc:  # beyond the wire's limits: refused here, not downstream
-            self._refuse(exc, key)
+            self._refuse(exc, self.in_key, key)
             self.progress.failure(time.monotonic(), str(exc)[:200])
             return
         self._pub.put(data)

@@ -79,9 +79,20 @@ class LiveScans:
         msg = self._decode(payload, self.msgtype)
         return msg, stamp_ns(msg.header)
 
-    def covered(self, stamp: int) -> bool:
-        """Whether the poses reach ``stamp`` (no pose source: always)."""
-        return self.pose_type is None or (self.newest_pose_ns is not None and self.newest_pose_ns >= stamp)
+    def covered(self, stamp: int, frame_id: str | None = None) -> bool:
+        """Whether the poses reach ``stamp`` (no pose source: always) — by TF, those of the chain from ``frame_id``
+        (the message's, as :meth:`scan` reads it) to its root: every dynamic link on it (a ``/tf`` message's other
+        links say nothing of this one; a faster one had let a scan be posed at once, clamped to an older vehicle
+        pose)."""
+        if self.pose_type is None:
+            return True
+        if self.pose_type == TF_MESSAGE and frame_id is not None:
+            try:
+                newest = self.poser.tf.newest(frame_id.lstrip("/") or "lidar")
+            except KeyError:
+                return False  # not in the tree yet: its transforms may be on their way
+            return newest is None or newest >= stamp
+        return self.newest_pose_ns is not None and self.newest_pose_ns >= stamp
 
     def scan(self, msg: Any, origin: str, received_ns: int) -> ScanFrame | DetectionFrame | FrameError:
         """The posed scan of a decoded PointCloud2, or the posed frame of a decoded DetectedObjects (:meth:`stamp_of`),

@@ -1,14 +1,17 @@
 """ROS 2 bags (sqlite3 ``.db3`` or MCAP, a bag folder or a bare ``.mcap``) and ROS 1 ``.bag`` via rosbags.
 
 One topic is replayed: a ``sensor_msgs/PointCloud2`` topic (``points``) or an Autoware
-``autoware_perception_msgs/DetectedObjects`` topic (``detections``). With ``--topic`` unset, the bag's only
-topic of either type is picked (PointCloud2 first); several candidates are an error that lists them.
+``autoware_perception_msgs/DetectedObjects`` topic (``detections``; also under its name before autoware_msgs 1.0,
+``autoware_auto_perception_msgs``, read by its fields' names from the definitions the bag embeds). With ``--topic``
+unset, the bag's only topic of either type is picked (PointCloud2 first); several candidates are an error that lists
+them. A topic whose type the bag defines nowhere (and jitterguard ships no definition of) is refused at open.
 Stamps come from each message's header (the sensor's time), falling back to the bag's receive time when a
 driver left the header stamp at zero. The ego pose (the pose of the message's ``frame_id`` in the world)
 comes from ``--pose-topic``:
 
 - a ``tf2_msgs/TFMessage`` topic (``/tf``): the TF chain from the tree's root (``map``) down to the cloud's
-  frame, with ``/tf_static`` for the fixed links, each dynamic link interpolated at the scan's stamp;
+  frame, with ``/tf_static`` for the fixed links, each dynamic link interpolated at the scan's stamp (a tree whose
+  root is ``base_link`` puts nothing in the world: its frames are frame errors);
 - an Odometry / PoseStamped / PoseWithCovarianceStamped topic, interpolated to each stamp, then composed
   with the ``/tf_static`` chain from the odometry's ``child_frame_id`` (e.g. ``base_link``) to the cloud's
   frame when the bag has one (otherwise the vehicle's pose is taken for the sensor's, and a note says so).
@@ -45,6 +48,7 @@ from .base import Source
 from .poser import ScanPoser
 from .ros_types import (
     DETECTED_OBJECTS,
+    DETECTION_TYPES,
     TF_MESSAGE,
     POINTCLOUD2,
     POSE_TYPES,
@@ -111,21 +115,23 @@ class BagSource(Source):
             if topic not in by_topic:
                 raise SourceError(f"{self.path}: no topic {topic!r} (topics: {listing})")
             msgtype = by_topic[topic][0].msgtype
-            if msgtype not in (POINTCLOUD2, DETECTED_OBJECTS):
-                raise SourceError(f"{self.path}: topic {topic} is {msgtype}, not {POINTCLOUD2} or {DETECTED_OBJECTS}")
+            if msgtype not in (POINTCLOUD2, *DETECTION_TYPES):
+                raise SourceError(f"{self.path}: topic {topic} is {msgtype}, not {POINTCLOUD2} or {DETECTED_OBJECTS}"
+                                  f" (or its name before 2024, {DETECTION_TYPES[1]})")
             if sum(c.msgcount for c in by_topic[topic]) == 0:  # said as it is, not as "--start 0 is past the end"
                 with_msgs = ", ".join(t for t, cs in sorted(by_topic.items())
-                                      if cs[0].msgtype in (POINTCLOUD2, DETECTED_OBJECTS)
+                                      if cs[0].msgtype in (POINTCLOUD2, *DETECTION_TYPES)
                                       and sum(c.msgcount for c in cs) > 0) or "none"
                 raise SourceError(f"{self.path}: topic {topic} holds no messages (topics of scans or detections"
                                   f" with messages: {with_msgs})")
         else:  # the scans, else the detections — of the topics that hold messages (a recording of a stack fed
             # detections has an empty scan topic beside them)
-            for wanted in (POINTCLOUD2, DETECTED_OBJECTS):
+            for wanted in ((POINTCLOUD2,), DETECTION_TYPES):
                 cands = sorted(t for t, cs in by_topic.items()
-                               if cs[0].msgtype == wanted and sum(c.msgcount for c in cs) > 0)
+                               if cs[0].msgtype in wanted and sum(c.msgcount for c in cs) > 0)
                 if len(cands) > 1:
-                    raise SourceError(f"{self.path}: several {wanted} topics ({', '.join(cands)}); pick one with --topic")
+                    raise SourceError(f"{self.path}: several {wanted[0]} topics ({', '.join(cands)}); pick one with"
+                                      " --topic")
                 if cands:
                     topic = cands[0]
                     break
@@ -135,6 +141,9 @@ class BagSource(Source):
         assert topic is not None
         self.topic = topic
         self.msgtype = by_topic[topic][0].msgtype
+        if self.msgtype not in self.reader.typestore.types:  # said once, not as every message undecodable
+            raise SourceError(f"{self.path}: the bag carries no definition of {self.msgtype} (topic {topic}), and"
+                              " jitterguard ships none under that name")
         self.connections = by_topic[topic]
         kind = "points" if self.msgtype == POINTCLOUD2 else "detections"
         count = sum(c.msgcount for c in self.connections)

@@ -24,7 +24,7 @@ from ....geometry import rotation_from_quaternion
 from ....schemas.wire import LIMITS
 from ..frames import IDENTITY, DetectionFrame, EgoPose, FrameError, ScanFrame, compose, finite_rows
 from .nuscenes import FRAME_SUFFIX, turn_points
-from .ros_types import detected_object_from_ros, interpolate_pose, pointcloud2_to_array, pose_of, stamp_ns
+from .ros_types import NEWER_LABELS, detected_object_from_ros, interpolate_pose, pointcloud2_to_array, pose_of, stamp_ns
 from .tf import TfTree
 
 LEVEL_TOLERANCE = 1e-9
@@ -55,6 +55,7 @@ class ScanPoser:
         self.notes: list[str] = []  # said once each: the turn of a mount, why a cloud keeps its own axes
         self._levels: dict[str, tuple[NDArray[np.float64], EgoPose] | None] = {}
         self._warned_extrinsic = False
+        self._said: set[str] = set()  # notes about messages, said once each though the caller clears ``notes``
 
     # ------------------------------------------------------------------------------------------ pose messages
 
@@ -144,7 +145,14 @@ class ScanPoser:
         """The pose of ``frame_id`` in the world at ``t``, or why there is none."""
         if self.use_tf:
             try:
+                if frame_id in self.tf and self.tf.root(frame_id) == TF_BASE_FRAME:
+                    # the vehicle's frame is never the world (REP-105): nothing above it yet, as while a live stack's
+                    # localization has no pose; posed in it, the scan had gone out with the mount for its world pose
+                    return (f"no TF above {TF_BASE_FRAME} for the scan: nothing puts the vehicle in the world yet"
+                            f" (localization's map -> {TF_BASE_FRAME})")
                 return self.tf.lookup(frame_id, t)
+            except ValueError as exc:  # a cycle above the frame
+                return f"no TF for the scan: {exc}"
             except KeyError as exc:
                 skipped = "".join(f"; {n} transform(s) to {f!r} skipped: rotation not a unit quaternion or not finite"
                                   for f, n in sorted(self.tf_skipped.items()))
@@ -152,6 +160,8 @@ class ScanPoser:
         if not self.poses:
             return IDENTITY
         base = interpolate_pose(self.pose_times, self.poses, t)
+        if self.base_frame and frame_id == self.base_frame.lstrip("/"):
+            return base  # a cloud in the pose topic's own frame (Autoware's concatenated cloud in base_link)
         if self.base_frame and frame_id in self.tf and self.base_frame in self.tf:
             try:
                 return compose(base, self.tf.lookup(frame_id, t, ancestor=self.base_frame))
@@ -192,6 +202,13 @@ class ScanPoser:
         pose = self.pose(frame_id, stamp)
         if isinstance(pose, str):
             return FrameError(origin, pose)
+        newer = sorted({NEWER_LABELS[int(c.label)] for o in msg.objects for c in o.classification
+                        if int(c.label) in NEWER_LABELS})
+        if newer:
+            note = f"classes {', '.join(newer)} (newer autoware_msgs labels) read as UNKNOWN"
+            if note not in self._said:
+                self._said.add(note)
+                self.notes.append(note)
         try:
             objects = [detected_object_from_ros(o) for o in msg.objects]
         except ValidationError as exc:

@@ -19,8 +19,8 @@ from numpy.typing import NDArray
 
 from ....geometry import yaw_from_quaternion
 from ....ros2.autoware import twist_from_object_frame
-from ....ros2.types import DETECTED_OBJECTS, POINTCLOUD2, TF_MESSAGE, typestore  # noqa: F401  (re-exported)
-from ....schemas.models import DetectedObject
+from ....ros2.types import DETECTED_OBJECTS, DETECTION_TYPES, POINTCLOUD2, TF_MESSAGE, typestore  # noqa: F401
+from ....schemas.models import DetectedObject, Label
 from ..frames import EgoPose
 POSE_TYPES = (
     "nav_msgs/msg/Odometry",
@@ -150,12 +150,24 @@ def _prob(p: float) -> float:
     return min(max(p, 0.0), 1.0) if -1e-6 <= p <= 1.0 + 1e-6 else p
 
 
+NEWER_LABELS = {8: "ANIMAL", 9: "HAZARD", 10: "OVER_DRIVABLE", 11: "UNDER_DRIVABLE"}
+"""``ObjectClassification`` labels of current autoware_msgs past the contract's ``PEDESTRIAN`` (7)."""
+
+
+def wire_label(label: int) -> int:
+    """An Autoware label as the contract holds it: 0–7 as they are; :data:`NEWER_LABELS` become ``UNKNOWN``, as a node
+    that does not know a class takes it (one such box had the whole frame refused as invalid). Other values are kept
+    (and refused by validation: not Autoware's)."""
+    return int(Label.UNKNOWN) if label in NEWER_LABELS else label
+
+
 def detected_object_from_ros(obj: Any) -> DetectedObject:
     """An ``autoware_perception_msgs/DetectedObject`` as the wire model (validated: may raise ValidationError).
 
     Autoware states an object's twist in the object's own frame (x along its heading); the contract states it on the
     axes of the message's frame. The linear x/y and their covariance block are rotated by the object's yaw
-    (:func:`jitterguard.ros2.autoware.twist_from_object_frame`)."""
+    (:func:`jitterguard.ros2.autoware.twist_from_object_frame`). Labels past ``PEDESTRIAN`` become ``UNKNOWN``
+    (:func:`wire_label`)."""
     k = obj.kinematics
     o = k.pose_with_covariance.pose.orientation
     lin, tcov = twist_from_object_frame(k.twist_with_covariance.twist.linear, k.twist_with_covariance.covariance,
@@ -163,7 +175,8 @@ def detected_object_from_ros(obj: Any) -> DetectedObject:
     return DetectedObject.model_validate(
         {
             "existence_probability": _prob(obj.existence_probability),
-            "classification": [{"label": int(c.label), "probability": _prob(c.probability)} for c in obj.classification],
+            "classification": [{"label": wire_label(int(c.label)), "probability": _prob(c.probability)}
+                               for c in obj.classification],
             "kinematics": {
                 "pose_with_covariance": {
                     "pose": _pose_dict(k.pose_with_covariance.pose),

@@ -111,6 +111,15 @@ class TfTree:
             raise KeyError(f"frame {frame!r} is not in the TF tree")
         return self._compose(self._chain(frame, self._norm(ancestor) if ancestor else None), stamp_ns)
 
+    def newest(self, frame: str) -> int | None:
+        """The latest stamp ``frame`` can be looked up at without clamping: the oldest of the newest samples of the
+        dynamic links from it up to its root (None: every link static). Raises ``KeyError`` for an unknown frame."""
+        frame = self._norm(frame)
+        if frame not in self:
+            raise KeyError(f"frame {frame!r} is not in the TF tree")
+        newest = [max(self._times[c]) for c in self._chain(frame, None) if c not in self.static]
+        return min(newest) if newest else None
+
     def static_lookup(self, frame: str, ancestor: str) -> EgoPose:
         """Pose of ``frame`` in ``ancestor`` composed of static links alone (a sensor's mount).
 
