@@ -198,6 +198,87 @@ def test_autoware_encoder_takes_lidar_centerpoints_32_point_slots(torch_det, tmp
     assert np.array_equal(got_crowded, ref)
 
 
+@pytest.fixture(scope="module")
+def autoware_dir(torch_det: Detector, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("onnx_autoware")
+    export_onnx(torch_det.model, out, layout="autoware", recalibration=torch_det.recalibration)
+    return out
+
+
+def _far_and_body_scans() -> dict[str, np.ndarray]:
+    """Non-empty scans that leave the network no pillar: every return beyond the range, or on the ego's own body."""
+    rng = np.random.default_rng(0)
+
+    def cloud(x: tuple[float, float], y: tuple[float, float], n: int) -> np.ndarray:
+        return np.column_stack([rng.uniform(*x, n), rng.uniform(*y, n), rng.uniform(-2, 0, n),
+                                rng.uniform(0, 255, n)]).astype(np.float32)
+
+    return {"beyond the range": cloud((60, 90), (-5, 5), 1000), "on the ego's body": cloud((-1, 1), (-0.5, 0.5), 500)}
+
+
+@pytest.mark.parametrize("scan", ["beyond the range", "on the ego's body"])
+def test_a_scan_that_leaves_no_pillar_gives_no_detections_on_either_layout(torch_det, single_dir, autoware_dir,
+                                                                           scan: str) -> None:
+    """A scan whose every return lies out of range or inside the self-crop box reaches the network with no pillar.
+    torch and the single graph gave no detections; the autoware encoder had returned (0, 2) — ONNX Runtime cannot
+    infer a -1 reshape from zero elements — and the head refused that canvas, so the service counted a
+    detect_error and published nothing for the scan: the tracker never saw that frame."""
+    points = _far_and_body_scans()[scan]
+    assert len(torch_det.detect(points)) == 0
+    for d in (single_dir, autoware_dir):
+        assert len(load_onnx_detector(d, threads=1).detect(points)) == 0
+
+
+@pytest.mark.integration
+def test_the_service_on_the_autoware_layout_closes_the_frame_of_a_scan_without_pillars(autoware_dir) -> None:
+    """Over real Zenoh: the scan is published with no objects (the tracker sees the frame), not a detect_error."""
+    import threading
+
+    import zenoh
+
+    from jitterguard.runtime import build_config, free_tcp_port, loopback_options
+    from jitterguard.schemas import decode, encode, keys
+    from jitterguard.schemas.models import DetectedObjects, Header, PointCloud
+    from jitterguard.services.detector.service import DetectorService
+    from helpers import wait_until
+
+    ns, port = "onnx_aw_empty", free_tcp_port()
+    svc = DetectorService(loopback_options(ns, port, listen_self=True), load_onnx_detector(autoware_dir, threads=1))
+    client = zenoh.open(build_config(loopback_options(ns, port)))
+    got: list[DetectedObjects] = []
+    lock = threading.Lock()
+
+    def on(s: zenoh.Sample) -> None:
+        with lock:
+            got.append(decode(DetectedObjects, s.payload.to_bytes()))
+
+    sub = client.declare_subscriber(keys.detections(ns), on)
+    pub = client.declare_publisher(keys.points(ns), congestion_control=zenoh.CongestionControl.BLOCK)
+    try:
+        assert wait_until(lambda: pub.matching_status.matching, 10)
+        for seq, pts in enumerate(_far_and_body_scans().values(), start=1):
+            pub.put(encode(PointCloud(header=Header(stamp=seq * 100_000_000, frame_id="lidar", seq=seq),
+                                      num_points=len(pts), data=pts.astype("<f4").tobytes())))
+            assert wait_until(lambda: len(got) == seq or svc.counters.get("detect_errors"), 30)
+        counters = svc.counters.snapshot()
+    finally:
+        sub.undeclare()
+        client.close()
+        svc.close()
+    assert counters.get("detect_errors", 0) == 0, counters
+    assert [m.header.seq for m in got] == [1, 2] and all(m.objects == [] for m in got)
+
+
+def test_the_autoware_encoder_gives_its_channels_for_no_pillar(torch_det, autoware_dir) -> None:
+    """lidar_centerpoint or any other host may bind no voxel: the encoder still answers (0, C), not (0, 2)."""
+    import onnxruntime as ort
+
+    sess = ort.InferenceSession(str(autoware_dir / "pts_voxel_encoder.onnx"), providers=["CPUExecutionProvider"])
+    for m in (32, torch_det.config.max_points_per_pillar):
+        (got,) = sess.run(None, {"input_features": np.zeros((0, m, 9), np.float32)})
+        assert got.shape == (0, torch_det.config.pfn_channels)
+
+
 def test_padded_encoder_and_export_scatter_reproduce_the_point_major_torch_path(torch_det) -> None:
     net, cfg = torch_det.model, torch_det.config
     p = sample_pillars(cfg, n_points=5000, seed=3)

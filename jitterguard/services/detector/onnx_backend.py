@@ -107,8 +107,12 @@ class OnnxNetwork:
             outs = self._net.run(self._names, {"points": p.points.numpy(), "pillar": p.pillar.numpy(),
                                                "num_points": p.num_points.numpy(), "coords": p.coords.numpy()})
         else:
-            feats = padded_point_features(p, self._features, self.config.max_points_per_pillar)
-            (pillar_feats,) = self._encoder.run(["pillar_features"], {"input_features": feats.numpy()})
+            if len(p.num_points):
+                feats = padded_point_features(p, self._features, self.config.max_points_per_pillar)
+                (pillar_feats,) = self._encoder.run(["pillar_features"], {"input_features": feats.numpy()})
+            else:  # no pillar (every return out of range or cropped): an empty canvas, as the torch path scatters
+                # (an encoder exported before its channel count was spelt out gives (0, 2) for no pillar)
+                pillar_feats = np.zeros((0, self.config.pfn_channels), np.float32)
             canvas = bev_scatter(torch.from_numpy(pillar_feats), p.coords, self.config)
             outs = self._head.run(self._names, {"spatial_features": np.ascontiguousarray(canvas.numpy())})
         return {n: torch.from_numpy(o) for n, o in zip(self._names, outs, strict=True)}

@@ -154,7 +154,9 @@ class VoxelEncoderGraph(nn.Module):
             input_features = input_features[:, : self.max_points]
         v, m, f = input_features.shape
         mask = (input_features != 0).any(dim=2, keepdim=True).to(input_features.dtype)
-        x = torch.relu(self.norm(self.linear(input_features.reshape(v * m, f)))).reshape(v, m, -1)
+        # the channel count spelt out, not -1: with no pillar (a scan whose every return is out of range or cropped)
+        # ONNX Runtime cannot infer a -1 from zero elements and had returned (0, 2), which the head then refused
+        x = torch.relu(self.norm(self.linear(input_features.reshape(v * m, f)))).reshape(v, m, self.linear.out_features)
         return (x * mask).amax(dim=1)
 
 
