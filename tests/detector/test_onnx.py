@@ -279,6 +279,42 @@ def test_the_autoware_encoder_gives_its_channels_for_no_pillar(torch_det, autowa
         assert got.shape == (0, torch_det.config.pfn_channels)
 
 
+def _edited(src: Path, dst: Path, edit) -> Path:
+    shutil.copytree(src, dst)
+    doc = json.loads((dst / "detector.json").read_text())
+    edit(doc)
+    (dst / "detector.json").write_text(json.dumps(doc))
+    return dst
+
+
+@pytest.mark.parametrize(("edit", "needle"), [
+    (lambda d: d.update(layout="autoware"), "has the graphs voxel_encoder, backbone_neck_head"),
+    (lambda d: d.update(graphs={}), "has the graphs detector"),
+    (lambda d: d.update(graphs=["detector.onnx"]), "the manifest lists list"),
+    (lambda d: d["graphs"].update(detector="detector.onnx"), "must be an object"),
+    (lambda d: d.update(layout="tiled"), "unknown layout 'tiled'"),
+    (lambda d: d.update(config=[1]), "its config is list"),
+    (lambda d: d["config"].update(voxel_size=[0.2, 0.2, 6.0]), "output 'heatmap' is [1, 5, 64, 64]"),
+    (lambda d: d["config"].update(uncertainty=False), "gives heatmap, reg, height, dim, rot, vel, logvar"),
+    (lambda d: d["config"].update(num_point_features=5), "input 'points' is ['N', 4]"),
+], ids=["other-layout", "no-graphs", "graphs-list", "graph-not-object", "unknown-layout", "config-list",
+        "other-grid", "no-variance-heads", "five-fields"])
+def test_a_manifest_that_does_not_fit_its_graphs_is_refused_in_one_line(single_dir, tmp_path, edit, needle) -> None:
+    """detector.json is not among the checksummed files: graphs that do not fit the layout had escaped as a
+    KeyError / AttributeError traceback from `jitterguard detector --onnx`, and a config edited there (another grid,
+    no variance heads, five point fields) loaded and then failed scan by scan, or dropped the variances unsaid."""
+    with pytest.raises(WeightsError) as err:
+        load_onnx_detector(_edited(single_dir, tmp_path / "copy", edit))
+    assert needle in str(err.value) and "\n" not in str(err.value)
+
+
+def test_an_edited_autoware_manifest_is_refused_too(autoware_dir, tmp_path) -> None:
+    with pytest.raises(WeightsError, match=r"'pillar_features' is \['V', 32\]; its config wants \['\?', 64\]"):
+        load_onnx_detector(_edited(autoware_dir, tmp_path / "a", lambda d: d["config"].update(pfn_channels=64)))
+    with pytest.raises(WeightsError, match=r"'spatial_features' is \[1, 32, 256, 256\]; its config wants \[1, 32, 128"):
+        load_onnx_detector(_edited(autoware_dir, tmp_path / "b", lambda d: d["config"].update(voxel_size=[0.8, 0.8, 6.0])))
+
+
 def test_padded_encoder_and_export_scatter_reproduce_the_point_major_torch_path(torch_det) -> None:
     net, cfg = torch_det.model, torch_det.config
     p = sample_pillars(cfg, n_points=5000, seed=3)

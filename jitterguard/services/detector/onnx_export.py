@@ -271,7 +271,7 @@ def manifest_for(config: DetectorConfig, layout: str, opset: int, files: dict[st
                        "pillar": ["N", "int64", "pillar index of each point"],
                        "num_points": ["V", "int64", "points per pillar (<= max_points_per_pillar)"],
                        "coords": ["V", 3, "int64", "(0, iy, ix) of each pillar"]},
-            "outputs": {n: [1, w, fy, fx] for n, w in _widths(config).items()},
+            "outputs": {n: [1, w, fy, fx] for n, w in head_widths(config).items()},
         }}
     else:
         graphs = {
@@ -283,7 +283,7 @@ def manifest_for(config: DetectorConfig, layout: str, opset: int, files: dict[st
                               "outputs": {"pillar_features": ["V", c, "float32"]}},
             "backbone_neck_head": {"file": files["backbone_neck_head"].name, "sha256": _sha256(files["backbone_neck_head"]),
                                    "inputs": {"spatial_features": [1, c, ny, nx, "float32"]},
-                                   "outputs": {n: [1, w, fy, fx] for n, w in _widths(config).items()}},
+                                   "outputs": {n: [1, w, fy, fx] for n, w in head_widths(config).items()}},
         }
     return {
         "format": FORMAT,
@@ -338,7 +338,8 @@ def manifest_for(config: DetectorConfig, layout: str, opset: int, files: dict[st
     }
 
 
-def _widths(config: DetectorConfig) -> dict[str, int]:
+def head_widths(config: DetectorConfig) -> dict[str, int]:
+    """Channels of each head output, in graph order (:func:`output_names`)."""
     w = {"heatmap": config.num_classes, **HEAD_CHANNELS}
     if config.uncertainty:
         w["logvar"] = len(VAR_NAMES)
