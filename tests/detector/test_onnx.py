@@ -143,6 +143,28 @@ def test_a_model_without_intensity_tells_its_consumer_to_feed_zero(torch_det, tm
     assert config_from_dict(doc["config"]).use_intensity is False
 
 
+def test_the_manifest_tells_its_consumer_what_the_detector_does_before_the_network(single_dir) -> None:
+    """A C++ consumer builds its pre-processing from detector.json alone. The jitterguard detector drops the ego's
+    own body (the self-crop box) and brings a 0-1 reflectance to 0-255 before the 1/255 scale; the manifest had said
+    neither, so a consumer following it fed KITTI's reflectance near-black and kept the returns on the roof, where
+    the shipped weights report a car in every scene-0523 key frame."""
+    from jitterguard.services.detector.adapter import points_from_fields
+    from jitterguard.services.detector.config import DetectorParams
+
+    pre = read_manifest(single_dir)["preprocessing"]
+    assert pre["self_crop_m"] == list(DetectorParams().self_crop)  # the service's default box
+    assert "multiplied by 255" in pre["intensity_input"] and "clipped" in pre["intensity_input"]
+    reflectance = np.array([[10, 5, -1, 0.25], [11, 5, -1, 0.5]], np.float32)
+    assert points_from_fields(reflectance, ("x", "y", "z", "intensity"))[0][:, 3].tolist() == [63.75, 127.5]
+    assert "x_min <= x < x_max" in pre["in_range"]  # half-open, as voxelize keeps points
+    from jitterguard.services.detector.pillars import voxelize
+
+    cfg = config_from_dict(read_manifest(single_dir)["config"])
+    r = cfg.point_cloud_range
+    edge = torch.tensor([[r[0], 0.0, 0.0, 0.0], [r[3], 0.0, 0.0, 0.0]], dtype=torch.float32)
+    assert voxelize([edge], cfg).points[:, 0].tolist() == [pytest.approx(r[0])]  # x_max is out
+
+
 def test_one_export_runs_scans_of_very_different_sizes(torch_det, single_dir) -> None:
     net = OnnxNetwork(single_dir, threads=1)
     from jitterguard.services.detector.pillars import voxelize
