@@ -445,6 +445,24 @@ def test_export_onnx_cli_writes_the_files_and_reports_its_check(tmp_path) -> Non
     assert read_manifest(tmp_path)["meta"]["preset"] == "lite"
 
 
+def test_an_export_asked_to_be_checked_without_onnxruntime_is_refused_before_it_is_written(tmp_path, monkeypatch,
+                                                                                          capsys) -> None:
+    """onnx and onnxscript export without onnxruntime, but the check needs it: the check had died in a WeightsError
+    traceback after the export was written, detector.json included, unchecked."""
+    import sys
+
+    from jitterguard.cli import main
+
+    monkeypatch.setitem(sys.modules, "onnxruntime", None)  # not installed
+    with pytest.raises(SystemExit) as exc:
+        main(["export-onnx", "--out", str(tmp_path / "x"), "--check-scans", "1", "--threads", "1"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("jitterguard: error: --check-scans: checking the export needs the"
+                                               " onnxruntime package"), err
+    assert not (tmp_path / "x").exists()
+
+
 def test_an_export_that_fails_its_check_cannot_be_loaded(tmp_path) -> None:
     """At a tolerance of 0 float32 noise fails the check: exit 1, and the manifest is gone, so no backend loads the
     graphs (the export had stayed whole, its checksums matching, for `detector --backend onnxruntime` to deploy)."""
