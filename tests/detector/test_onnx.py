@@ -463,6 +463,32 @@ def test_an_export_asked_to_be_checked_without_onnxruntime_is_refused_before_it_
     assert not (tmp_path / "x").exists()
 
 
+@pytest.mark.parametrize(("missing", "args", "needle"), [
+    (("onnxruntime",), ["--backend", "onnxruntime"], "--backend: onnxruntime needs the onnxruntime package"),
+    (("onnxscript",), ["--backend", "onnxruntime"], "--backend: onnxruntime needs the onnxscript package"),
+    (("onnxruntime", "onnx"), ["--backend", "onnxruntime", "--onnx", "."], "--backend: onnxruntime needs the"
+                                                                          " onnxruntime package ("),
+])
+def test_the_onnxruntime_backend_without_its_packages_is_refused_before_it_starts(missing, args, needle, monkeypatch,
+                                                                                  capsys) -> None:
+    """The detector had exported the weights first and then failed on the missing package, blaming --weights; the
+    stack (``up --detector-config``, the same check) would have started and watched the detector crash."""
+    import sys
+
+    from jitterguard.cli import main
+    from jitterguard.services.detector.config import DetectorParams, params_refusal
+
+    for m in missing:
+        monkeypatch.setitem(sys.modules, m, None)  # not installed
+    with pytest.raises(SystemExit) as exc:
+        main(["detector", *args])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and needle in err[0], err
+    key, why = params_refusal(DetectorParams(backend="onnxruntime"))  # as a parameter file gives it
+    assert key == "backend" and "pip install 'jitterguard[onnx]'" in why
+
+
 def test_an_export_that_fails_its_check_cannot_be_loaded(tmp_path) -> None:
     """At a tolerance of 0 float32 noise fails the check: exit 1, and the manifest is gone, so no backend loads the
     graphs (the export had stayed whole, its checksums matching, for `detector --backend onnxruntime` to deploy)."""
