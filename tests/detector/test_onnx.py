@@ -143,6 +143,28 @@ def test_a_model_without_intensity_tells_its_consumer_to_feed_zero(torch_det, tm
     assert config_from_dict(doc["config"]).use_intensity is False
 
 
+def test_the_manifest_tells_its_consumer_what_the_detector_does_before_the_network(single_dir) -> None:
+    """A C++ consumer builds its pre-processing from detector.json alone. The jitterguard detector drops the ego's
+    own body (the self-crop box) and brings a 0-1 reflectance to 0-255 before the 1/255 scale; the manifest had said
+    neither, so a consumer following it fed KITTI's reflectance near-black and kept the returns on the roof, where
+    the shipped weights report a car in every scene-0523 key frame."""
+    from jitterguard.services.detector.adapter import points_from_fields
+    from jitterguard.services.detector.config import DetectorParams
+
+    pre = read_manifest(single_dir)["preprocessing"]
+    assert pre["self_crop_m"] == list(DetectorParams().self_crop)  # the service's default box
+    assert "multiplied by 255" in pre["intensity_input"] and "clipped" in pre["intensity_input"]
+    reflectance = np.array([[10, 5, -1, 0.25], [11, 5, -1, 0.5]], np.float32)
+    assert points_from_fields(reflectance, ("x", "y", "z", "intensity"))[0][:, 3].tolist() == [63.75, 127.5]
+    assert "x_min <= x < x_max" in pre["in_range"]  # half-open, as voxelize keeps points
+    from jitterguard.services.detector.pillars import voxelize
+
+    cfg = config_from_dict(read_manifest(single_dir)["config"])
+    r = cfg.point_cloud_range
+    edge = torch.tensor([[r[0], 0.0, 0.0, 0.0], [r[3], 0.0, 0.0, 0.0]], dtype=torch.float32)
+    assert voxelize([edge], cfg).points[:, 0].tolist() == [pytest.approx(r[0])]  # x_max is out
+
+
 def test_one_export_runs_scans_of_very_different_sizes(torch_det, single_dir) -> None:
     net = OnnxNetwork(single_dir, threads=1)
     from jitterguard.services.detector.pillars import voxelize
@@ -196,6 +218,123 @@ def test_autoware_encoder_takes_lidar_centerpoints_32_point_slots(torch_det, tmp
     crowded[:, m:] = np.random.default_rng(0).normal(size=crowded[:, m:].shape)
     (got_crowded,) = sess.run(None, {"input_features": crowded.astype(np.float32)})
     assert np.array_equal(got_crowded, ref)
+
+
+@pytest.fixture(scope="module")
+def autoware_dir(torch_det: Detector, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("onnx_autoware")
+    export_onnx(torch_det.model, out, layout="autoware", recalibration=torch_det.recalibration)
+    return out
+
+
+def _far_and_body_scans() -> dict[str, np.ndarray]:
+    """Non-empty scans that leave the network no pillar: every return beyond the range, or on the ego's own body."""
+    rng = np.random.default_rng(0)
+
+    def cloud(x: tuple[float, float], y: tuple[float, float], n: int) -> np.ndarray:
+        return np.column_stack([rng.uniform(*x, n), rng.uniform(*y, n), rng.uniform(-2, 0, n),
+                                rng.uniform(0, 255, n)]).astype(np.float32)
+
+    return {"beyond the range": cloud((60, 90), (-5, 5), 1000), "on the ego's body": cloud((-1, 1), (-0.5, 0.5), 500)}
+
+
+@pytest.mark.parametrize("scan", ["beyond the range", "on the ego's body"])
+def test_a_scan_that_leaves_no_pillar_gives_no_detections_on_either_layout(torch_det, single_dir, autoware_dir,
+                                                                           scan: str) -> None:
+    """A scan whose every return lies out of range or inside the self-crop box reaches the network with no pillar.
+    torch and the single graph gave no detections; the autoware encoder had returned (0, 2) — ONNX Runtime cannot
+    infer a -1 reshape from zero elements — and the head refused that canvas, so the service counted a
+    detect_error and published nothing for the scan: the tracker never saw that frame."""
+    points = _far_and_body_scans()[scan]
+    assert len(torch_det.detect(points)) == 0
+    for d in (single_dir, autoware_dir):
+        assert len(load_onnx_detector(d, threads=1).detect(points)) == 0
+
+
+@pytest.mark.integration
+def test_the_service_on_the_autoware_layout_closes_the_frame_of_a_scan_without_pillars(autoware_dir) -> None:
+    """Over real Zenoh: the scan is published with no objects (the tracker sees the frame), not a detect_error."""
+    import threading
+
+    import zenoh
+
+    from jitterguard.runtime import build_config, free_tcp_port, loopback_options
+    from jitterguard.schemas import decode, encode, keys
+    from jitterguard.schemas.models import DetectedObjects, Header, PointCloud
+    from jitterguard.services.detector.service import DetectorService
+    from helpers import wait_until
+
+    ns, port = "onnx_aw_empty", free_tcp_port()
+    svc = DetectorService(loopback_options(ns, port, listen_self=True), load_onnx_detector(autoware_dir, threads=1))
+    client = zenoh.open(build_config(loopback_options(ns, port)))
+    got: list[DetectedObjects] = []
+    lock = threading.Lock()
+
+    def on(s: zenoh.Sample) -> None:
+        with lock:
+            got.append(decode(DetectedObjects, s.payload.to_bytes()))
+
+    sub = client.declare_subscriber(keys.detections(ns), on)
+    pub = client.declare_publisher(keys.points(ns), congestion_control=zenoh.CongestionControl.BLOCK)
+    try:
+        assert wait_until(lambda: pub.matching_status.matching, 10)
+        for seq, pts in enumerate(_far_and_body_scans().values(), start=1):
+            pub.put(encode(PointCloud(header=Header(stamp=seq * 100_000_000, frame_id="lidar", seq=seq),
+                                      num_points=len(pts), data=pts.astype("<f4").tobytes())))
+            assert wait_until(lambda: len(got) == seq or svc.counters.get("detect_errors"), 30)
+        counters = svc.counters.snapshot()
+    finally:
+        sub.undeclare()
+        client.close()
+        svc.close()
+    assert counters.get("detect_errors", 0) == 0, counters
+    assert [m.header.seq for m in got] == [1, 2] and all(m.objects == [] for m in got)
+
+
+def test_the_autoware_encoder_gives_its_channels_for_no_pillar(torch_det, autoware_dir) -> None:
+    """lidar_centerpoint or any other host may bind no voxel: the encoder still answers (0, C), not (0, 2)."""
+    import onnxruntime as ort
+
+    sess = ort.InferenceSession(str(autoware_dir / "pts_voxel_encoder.onnx"), providers=["CPUExecutionProvider"])
+    for m in (32, torch_det.config.max_points_per_pillar):
+        (got,) = sess.run(None, {"input_features": np.zeros((0, m, 9), np.float32)})
+        assert got.shape == (0, torch_det.config.pfn_channels)
+
+
+def _edited(src: Path, dst: Path, edit) -> Path:
+    shutil.copytree(src, dst)
+    doc = json.loads((dst / "detector.json").read_text())
+    edit(doc)
+    (dst / "detector.json").write_text(json.dumps(doc))
+    return dst
+
+
+@pytest.mark.parametrize(("edit", "needle"), [
+    (lambda d: d.update(layout="autoware"), "has the graphs voxel_encoder, backbone_neck_head"),
+    (lambda d: d.update(graphs={}), "has the graphs detector"),
+    (lambda d: d.update(graphs=["detector.onnx"]), "the manifest lists list"),
+    (lambda d: d["graphs"].update(detector="detector.onnx"), "must be an object"),
+    (lambda d: d.update(layout="tiled"), "unknown layout 'tiled'"),
+    (lambda d: d.update(config=[1]), "its config is list"),
+    (lambda d: d["config"].update(voxel_size=[0.2, 0.2, 6.0]), "output 'heatmap' is [1, 5, 64, 64]"),
+    (lambda d: d["config"].update(uncertainty=False), "gives heatmap, reg, height, dim, rot, vel, logvar"),
+    (lambda d: d["config"].update(num_point_features=5), "input 'points' is ['N', 4]"),
+], ids=["other-layout", "no-graphs", "graphs-list", "graph-not-object", "unknown-layout", "config-list",
+        "other-grid", "no-variance-heads", "five-fields"])
+def test_a_manifest_that_does_not_fit_its_graphs_is_refused_in_one_line(single_dir, tmp_path, edit, needle) -> None:
+    """detector.json is not among the checksummed files: graphs that do not fit the layout had escaped as a
+    KeyError / AttributeError traceback from `jitterguard detector --onnx`, and a config edited there (another grid,
+    no variance heads, five point fields) loaded and then failed scan by scan, or dropped the variances unsaid."""
+    with pytest.raises(WeightsError) as err:
+        load_onnx_detector(_edited(single_dir, tmp_path / "copy", edit))
+    assert needle in str(err.value) and "\n" not in str(err.value)
+
+
+def test_an_edited_autoware_manifest_is_refused_too(autoware_dir, tmp_path) -> None:
+    with pytest.raises(WeightsError, match=r"'pillar_features' is \['V', 32\]; its config wants \['\?', 64\]"):
+        load_onnx_detector(_edited(autoware_dir, tmp_path / "a", lambda d: d["config"].update(pfn_channels=64)))
+    with pytest.raises(WeightsError, match=r"'spatial_features' is \[1, 32, 256, 256\]; its config wants \[1, 32, 128"):
+        load_onnx_detector(_edited(autoware_dir, tmp_path / "b", lambda d: d["config"].update(voxel_size=[0.8, 0.8, 6.0])))
 
 
 def test_padded_encoder_and_export_scatter_reproduce_the_point_major_torch_path(torch_det) -> None:
@@ -304,6 +443,50 @@ def test_export_onnx_cli_writes_the_files_and_reports_its_check(tmp_path) -> Non
     assert doc["files"] == ["detector.onnx", "detector.json"] and doc["weights"] == "lite.pt"
     assert doc["check"]["scans"] == 1 and all(v <= TOL for v in doc["check"]["max_abs_error"].values())
     assert read_manifest(tmp_path)["meta"]["preset"] == "lite"
+
+
+def test_an_export_asked_to_be_checked_without_onnxruntime_is_refused_before_it_is_written(tmp_path, monkeypatch,
+                                                                                          capsys) -> None:
+    """onnx and onnxscript export without onnxruntime, but the check needs it: the check had died in a WeightsError
+    traceback after the export was written, detector.json included, unchecked."""
+    import sys
+
+    from jitterguard.cli import main
+
+    monkeypatch.setitem(sys.modules, "onnxruntime", None)  # not installed
+    with pytest.raises(SystemExit) as exc:
+        main(["export-onnx", "--out", str(tmp_path / "x"), "--check-scans", "1", "--threads", "1"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("jitterguard: error: --check-scans: checking the export needs the"
+                                               " onnxruntime package"), err
+    assert not (tmp_path / "x").exists()
+
+
+@pytest.mark.parametrize(("missing", "args", "needle"), [
+    (("onnxruntime",), ["--backend", "onnxruntime"], "--backend: onnxruntime needs the onnxruntime package"),
+    (("onnxscript",), ["--backend", "onnxruntime"], "--backend: onnxruntime needs the onnxscript package"),
+    (("onnxruntime", "onnx"), ["--backend", "onnxruntime", "--onnx", "."], "--backend: onnxruntime needs the"
+                                                                          " onnxruntime package ("),
+])
+def test_the_onnxruntime_backend_without_its_packages_is_refused_before_it_starts(missing, args, needle, monkeypatch,
+                                                                                  capsys) -> None:
+    """The detector had exported the weights first and then failed on the missing package, blaming --weights; the
+    stack (``up --detector-config``, the same check) would have started and watched the detector crash."""
+    import sys
+
+    from jitterguard.cli import main
+    from jitterguard.services.detector.config import DetectorParams, params_refusal
+
+    for m in missing:
+        monkeypatch.setitem(sys.modules, m, None)  # not installed
+    with pytest.raises(SystemExit) as exc:
+        main(["detector", *args])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and needle in err[0], err
+    key, why = params_refusal(DetectorParams(backend="onnxruntime"))  # as a parameter file gives it
+    assert key == "backend" and "pip install 'jitterguard[onnx]'" in why
 
 
 def test_an_export_that_fails_its_check_cannot_be_loaded(tmp_path) -> None:

@@ -113,7 +113,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         refused = params_refusal(params)
         if refused is not None:  # named as the user gave it: the flag, or the file's key
             key, why = refused
-            flagged = {"preset": preset, "weights": weights, "onnx": onnx_dir}[key] is not None or config is None
+            flagged = {"preset": preset, "weights": weights, "onnx": onnx_dir, "backend": backend}[key] is not None or config is None
             fail(f"--{key}: {why}" if flagged else f"--config: {config}: {key}: {why}")
         opts = zenoh_options(ns, zenoh_config, connect, listen)
 

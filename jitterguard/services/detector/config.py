@@ -233,9 +233,9 @@ class DetectorParams(BaseModel):
 
 def params_refusal(params: DetectorParams) -> tuple[str, str] | None:
     """``(key, why)`` if the detector cannot start with ``params`` — a preset it does not have, a weights file or an
-    ONNX folder that is not there, ONNX without its backend — else None: the one check of ``jitterguard detector``
-    and of ``up --detector-config``, which had started the whole stack on such a file and then watched the
-    detector crash three times."""
+    ONNX folder that is not there, ONNX without its backend, the onnxruntime backend without its packages — else
+    None: the one check of ``jitterguard detector`` and of ``up --detector-config``, which had started the whole
+    stack on such a file and then watched the detector crash three times."""
     if params.preset not in PRESETS:
         return "preset", f"expected one of {', '.join(PRESETS)}, got {params.preset!r}"
     if params.weights is not None and not os.path.isfile(params.weights):
@@ -244,6 +244,14 @@ def params_refusal(params: DetectorParams) -> tuple[str, str] | None:
         return "onnx", "goes with backend onnxruntime and replaces weights"
     if params.onnx is not None and not os.path.isdir(params.onnx):
         return "onnx", f"folder not found: {params.onnx}"
+    if params.backend == "onnxruntime":  # without an export folder the weights are exported at start-up
+        import importlib.util
+
+        needed = ("onnxruntime",) if params.onnx is not None else ("onnxruntime", "onnx", "onnxscript")
+        missing = [m for m in needed if importlib.util.find_spec(m) is None]
+        if missing:  # had been found only after the start-up export, and reported against --weights
+            return "backend", (f"onnxruntime needs the {', '.join(missing)} package{'s' if len(missing) > 1 else ''}"
+                               " (pip install 'jitterguard[onnx]')")
     return None
 
 

@@ -24,10 +24,12 @@ from torch import Tensor
 from .config import SELF_CROP_M, DetectorConfig
 from .evaluate import Recalibration
 from .inference import Detector, WeightsError, config_from_dict
-from .onnx_export import FORMAT, FORMAT_VERSION, MANIFEST, bev_scatter, output_names, padded_point_features
-from .pillars import PillarFeatureNet, Pillars
+from .onnx_export import FORMAT, FORMAT_VERSION, MANIFEST, head_widths, bev_scatter, output_names, padded_point_features
+from .pillars import PillarFeatureNet, Pillars, pillar_features
 
 BACKENDS = ("torch", "onnxruntime")
+LAYOUT_GRAPHS: dict[str, tuple[str, ...]] = {"single": ("detector",), "autoware": ("voxel_encoder", "backbone_neck_head")}
+"""The graphs (the manifest's ``graphs`` keys) each layout runs."""
 
 
 def _session(path: Path, threads: int | None) -> Any:
@@ -60,7 +62,18 @@ def read_manifest(model_dir: str | Path) -> dict[str, Any]:
         raise WeightsError(f"{path}: not readable JSON ({exc})") from None
     if not isinstance(doc, dict) or doc.get("format") != FORMAT or doc.get("format_version") != FORMAT_VERSION:
         raise WeightsError(f"{path}: not a {FORMAT} v{FORMAT_VERSION} manifest")
-    for name, graph in doc.get("graphs", {}).items():
+    # the graphs the layout runs, each named with its file: a manifest whose graphs do not fit its layout (edited by
+    # hand, or another layout's) had escaped as a KeyError or AttributeError traceback from `jitterguard detector`
+    layout, graphs = doc.get("layout"), doc.get("graphs")
+    if layout not in LAYOUT_GRAPHS:
+        raise WeightsError(f"{path}: unknown layout {layout!r} (expected one of {', '.join(LAYOUT_GRAPHS)})")
+    want = LAYOUT_GRAPHS[layout]
+    if not isinstance(graphs, dict) or set(graphs) != set(want):
+        got = sorted(graphs) if isinstance(graphs, dict) else type(graphs).__name__
+        raise WeightsError(f"{path}: layout {layout!r} has the graphs {', '.join(want)}, the manifest lists {got}")
+    if not all(isinstance(g, dict) for g in graphs.values()):
+        raise WeightsError(f"{path}: every entry of 'graphs' must be an object with its file and sha256")
+    for name, graph in graphs.items():
         f = d / str(graph.get("file", ""))
         if not f.is_file():
             raise WeightsError(f"{path}: graph {name!r} file {f.name} is missing")
@@ -76,10 +89,13 @@ class OnnxNetwork:
     def __init__(self, model_dir: str | Path, *, threads: int | None = None) -> None:
         self.dir = Path(model_dir)
         self.manifest = read_manifest(self.dir)
+        if not isinstance(self.manifest.get("config"), dict):
+            raise WeightsError(f"{self.dir / MANIFEST}: its config is {type(self.manifest.get('config')).__name__},"
+                               " not an object")
         try:
             self.config: DetectorConfig = config_from_dict(self.manifest["config"])
-        except (TypeError, KeyError) as exc:
-            raise WeightsError(f"{self.dir / MANIFEST}: bad config ({exc})") from None
+        except WeightsError as exc:
+            raise WeightsError(f"{self.dir / MANIFEST}: {exc}") from None
         self.layout = str(self.manifest["layout"])
         graphs = self.manifest["graphs"]
         self._names = list(output_names(self.config))
@@ -91,10 +107,40 @@ class OnnxNetwork:
             self._features = PillarFeatureNet(self.config)  # its weightless point_features only
         else:
             raise WeightsError(f"{self.dir / MANIFEST}: unknown layout {self.layout!r}")
+        self._check_graphs()
         try:
             self.recalibration = Recalibration.of(self.manifest.get("recalibration") or None)
         except (ValueError, TypeError, KeyError) as exc:
             raise WeightsError(f"{self.dir / MANIFEST}: bad recalibration entry: {exc}") from None
+
+    def _check_graphs(self) -> None:
+        """The graphs take and give what the manifest's config says: the outputs the config names, the point
+        fields, the pillar channels and the grid. ``detector.json`` is not among the checksummed files, so a config
+        edited there (another grid, no variance heads, five point fields) had loaded and then failed scan by scan
+        in ONNX Runtime, or published detections without their variances."""
+        c = self.config
+        nx, ny = c.grid_size
+        fx, fy = c.feature_map_size
+        maps = {n: [1, w, fy, fx] for n, w in head_widths(c).items()}
+        if self.layout == "single":
+            expect = {"detector": (self._net, {"points": [None, c.num_point_features]}, maps)}
+        else:
+            expect = {"voxel_encoder": (self._encoder, {"input_features": [None, None, pillar_features(c)]},
+                                        {"pillar_features": [None, c.pfn_channels]}),
+                      "backbone_neck_head": (self._head, {"spatial_features": [1, c.pfn_channels, ny, nx]}, maps)}
+        for graph, (sess, inputs, outputs) in expect.items():
+            have_in = {i.name: i.shape for i in sess.get_inputs()}
+            have_out = {o.name: o.shape for o in sess.get_outputs()}
+            if list(have_out) != list(outputs):
+                raise WeightsError(f"{self.dir / MANIFEST}: graph {graph!r} gives {', '.join(have_out)}; its config"
+                                   f" wants {', '.join(outputs)}")
+            for kind, have, want in (("input", have_in, inputs), ("output", have_out, outputs)):
+                for name, shape in want.items():
+                    got = have.get(name)
+                    if got is None or len(got) != len(shape) or any(
+                            w is not None and isinstance(g, int) and g != w for g, w in zip(got, shape, strict=True)):
+                        raise WeightsError(f"{self.dir / MANIFEST}: graph {graph!r} {kind} {name!r} is {got}; its"
+                                           f" config wants {['?' if w is None else w for w in shape]}")
 
     def eval(self) -> "OnnxNetwork":
         return self
@@ -107,8 +153,12 @@ class OnnxNetwork:
             outs = self._net.run(self._names, {"points": p.points.numpy(), "pillar": p.pillar.numpy(),
                                                "num_points": p.num_points.numpy(), "coords": p.coords.numpy()})
         else:
-            feats = padded_point_features(p, self._features, self.config.max_points_per_pillar)
-            (pillar_feats,) = self._encoder.run(["pillar_features"], {"input_features": feats.numpy()})
+            if len(p.num_points):
+                feats = padded_point_features(p, self._features, self.config.max_points_per_pillar)
+                (pillar_feats,) = self._encoder.run(["pillar_features"], {"input_features": feats.numpy()})
+            else:  # no pillar (every return out of range or cropped): an empty canvas, as the torch path scatters
+                # (an encoder exported before its channel count was spelt out gives (0, 2) for no pillar)
+                pillar_feats = np.zeros((0, self.config.pfn_channels), np.float32)
             canvas = bev_scatter(torch.from_numpy(pillar_feats), p.coords, self.config)
             outs = self._head.run(self._names, {"spatial_features": np.ascontiguousarray(canvas.numpy())})
         return {n: torch.from_numpy(o) for n, o in zip(self._names, outs, strict=True)}

@@ -4,14 +4,15 @@ After writing, the export is checked: ONNX Runtime runs it on real HDL-32E scans
 raw head maps and the decoded boxes, scores and log-variances are compared with torch's; the maximum absolute
 differences are printed (and the command fails, exit 1, if the decoded detections differ beyond ``--tolerance`` —
 ``--yaw-tolerance`` for the yaw angle —, the raw maps beyond :data:`MAP_TOLERANCE`, or the detections differ in
-number or class; ``detector.json`` is then removed, so no backend loads the failed export). Bad input (a stacked-sweep model, a ``--preset`` other than the ``--weights``' architecture)
-is exit 2 before any export. Randomly initialised weights (a preset without
+number or class; ``detector.json`` is then removed, so no backend loads the failed export). Bad input (a stacked-sweep model, a ``--preset`` other than the ``--weights``' architecture, a check asked for
+without onnxruntime installed) is exit 2 before any export. Randomly initialised weights (a preset without
 shipped weights) are checked on the raw head maps only: they score every cell about alike, and which of hundreds
 of near-ties make the top-K is float32 noise.
 """
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import sys
@@ -178,6 +179,11 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             fail(f"--opset: {refused}")
         if weights is not None and not os.path.isfile(weights):
             fail(f"--weights: file not found: {weights}")
+        if check_scans and importlib.util.find_spec("onnxruntime") is None:
+            # refused before the export: the check had died in a WeightsError traceback after writing an unchecked
+            # export, detector.json included
+            fail("--check-scans: checking the export needs the onnxruntime package (pip install 'jitterguard[onnx]');"
+                 " --check-scans 0 exports without the check")
         passive_openmp()
         from .inference import Detector, WeightsError, shipped_weights
         from .onnx_backend import load_onnx_detector

@@ -40,7 +40,8 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from .config import CLASS_LABELS, VAR_NAMES, DetectorConfig
+from .adapter import INTENSITY_MAX
+from .config import CLASS_LABELS, SELF_CROP_M, VAR_NAMES, DetectorConfig
 from .evaluate import Recalibration
 from .ground import TRAINED_SENSOR_HEIGHT_M
 from .inference import config_to_dict
@@ -154,7 +155,9 @@ class VoxelEncoderGraph(nn.Module):
             input_features = input_features[:, : self.max_points]
         v, m, f = input_features.shape
         mask = (input_features != 0).any(dim=2, keepdim=True).to(input_features.dtype)
-        x = torch.relu(self.norm(self.linear(input_features.reshape(v * m, f)))).reshape(v, m, -1)
+        # the channel count spelt out, not -1: with no pillar (a scan whose every return is out of range or cropped)
+        # ONNX Runtime cannot infer a -1 from zero elements and had returned (0, 2), which the head then refused
+        x = torch.relu(self.norm(self.linear(input_features.reshape(v * m, f)))).reshape(v, m, self.linear.out_features)
         return (x * mask).amax(dim=1)
 
 
@@ -269,7 +272,7 @@ def manifest_for(config: DetectorConfig, layout: str, opset: int, files: dict[st
                        "pillar": ["N", "int64", "pillar index of each point"],
                        "num_points": ["V", "int64", "points per pillar (<= max_points_per_pillar)"],
                        "coords": ["V", 3, "int64", "(0, iy, ix) of each pillar"]},
-            "outputs": {n: [1, w, fy, fx] for n, w in _widths(config).items()},
+            "outputs": {n: [1, w, fy, fx] for n, w in head_widths(config).items()},
         }}
     else:
         graphs = {
@@ -281,7 +284,7 @@ def manifest_for(config: DetectorConfig, layout: str, opset: int, files: dict[st
                               "outputs": {"pillar_features": ["V", c, "float32"]}},
             "backbone_neck_head": {"file": files["backbone_neck_head"].name, "sha256": _sha256(files["backbone_neck_head"]),
                                    "inputs": {"spatial_features": [1, c, ny, nx, "float32"]},
-                                   "outputs": {n: [1, w, fy, fx] for n, w in _widths(config).items()}},
+                                   "outputs": {n: [1, w, fy, fx] for n, w in head_widths(config).items()}},
         }
     return {
         "format": FORMAT,
@@ -300,7 +303,14 @@ def manifest_for(config: DetectorConfig, layout: str, opset: int, files: dict[st
                      " trained_sensor_height_m at their centres (the jitterguard detector measures h, sx and sy"
                      " in every scan: sensor_height_m and sensor_tilt auto)",
             "trained_sensor_height_m": TRAINED_SENSOR_HEIGHT_M,
+            "self_crop_m": list(SELF_CROP_M),
+            "self_crop": "before anything else the jitterguard detector drops every return whose x and y lie strictly"
+                         " inside self_crop_m (x_min, y_min, x_max, y_max; the ego's own body; its self_crop parameter,"
+                         " this is the default): a runtime without a crop box filter of its own must do the same, or"
+                         " the body's returns come back as a car that moves with the ego",
             "point_cloud_range": list(config.point_cloud_range),
+            "in_range": "a point is kept when x_min <= x < x_max, y_min <= y < y_max and z_min <= z < z_max (after"
+                        " the frame's move) and its fields are finite",
             "voxel_size": list(config.voxel_size),
             "grid_size_xy": [nx, ny],
             "max_points_per_pillar": config.max_points_per_pillar,
@@ -308,6 +318,10 @@ def manifest_for(config: DetectorConfig, layout: str, opset: int, files: dict[st
             "pillar_selection": "points in range sorted by cell (iy * nx + ix), stable; a pillar keeps its first "
                                 "max_points_per_pillar points; over max_pillars, the most populated pillars are kept",
             "intensity_scale": 1.0 / 255.0 if config.use_intensity else 0.0,  # 0: a model without intensity
+            "intensity_input": f"the intensity_scale applies to intensities on 0-{INTENSITY_MAX:g}: a cloud whose every"
+                               f" intensity lies in [0, 1], some fractional (a reflectance, as KITTI's), is multiplied by"
+                               f" {INTENSITY_MAX:g} first; values outside 0-{INTENSITY_MAX:g} are clipped to it; a cloud"
+                               " without an intensity field is fed 0",
             "point_features": list(POINT_FEATURES) if config.use_intensity else
             [f if f != "intensity/255" else "0 (the model takes no intensity)" for f in POINT_FEATURES],
             "pillar_centre": "x = ix * vx + vx / 2 + x_min, y = iy * vy + vy / 2 + y_min",
@@ -324,6 +338,7 @@ def manifest_for(config: DetectorConfig, layout: str, opset: int, files: dict[st
                              " {scales: [[s2_x, s2_y], ...], score_edges: [...]} where a box scored s takes the row"
                              " numbered by the edges <= s",
             "score_threshold": config.score_threshold,
+            "score_rule": "a peak is kept when its score > score_threshold (strictly), before NMS",
             "max_objects": config.max_objects,
             "nms": "per class, greedy circle NMS on squared BEV centre distance",
             "nms_dist2_m2": dict(zip(config.class_names, config.nms_dist2, strict=True)),
@@ -336,7 +351,8 @@ def manifest_for(config: DetectorConfig, layout: str, opset: int, files: dict[st
     }
 
 
-def _widths(config: DetectorConfig) -> dict[str, int]:
+def head_widths(config: DetectorConfig) -> dict[str, int]:
+    """Channels of each head output, in graph order (:func:`output_names`)."""
     w = {"heatmap": config.num_classes, **HEAD_CHANNELS}
     if config.uncertainty:
         w["logvar"] = len(VAR_NAMES)
