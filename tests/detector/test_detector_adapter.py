@@ -169,6 +169,14 @@ def test_intensity_reaches_the_network_on_its_0_to_255_scale() -> None:
     np.testing.assert_allclose(nus[:, 3], [0.0, 1.0, 2.0, 255.0])
     dark, _ = scan_points(_cloud({**xyz, "intensity": np.array([0.0, 1.0, 1.0, 0.0])}))  # whole numbers: 0–255
     np.testing.assert_allclose(dark[:, 3], [0.0, 1.0, 1.0, 0.0])
+    # a reflectance scan with a stray return above 1 (one in 5,000) is still a reflectance: it was read as 0–255
+    rng = np.random.default_rng(3)
+    refl = rng.uniform(0.0, 1.0, 5000)
+    refl[17] = 1.2
+    n = len(refl)
+    stray, _ = scan_points(_cloud({"x": np.arange(n, dtype=float) * 1e-3 + 5.0, "y": np.zeros(n), "z": np.zeros(n),
+                                   "intensity": refl}))
+    np.testing.assert_allclose(stray[:, 3], np.minimum(refl * 255.0, 255.0), rtol=1e-6)
 
 
 def test_scan_without_intensity_reads_zero_intensity() -> None:

@@ -92,19 +92,24 @@ def points_from_fields(raw: NDArray[np.floating], fields: Sequence[str]) -> tupl
     return intensity_to_network_scale(pts), dropped
 
 
+REFLECTANCE_STRAYS = 1e-3
+"""Share of a reflectance scan's intensities that may lie outside [0, 1] (stray returns): one stray of 1.2 among
+35,000 values had made a KITTI-like scan read as 0–255, every return nearly black."""
+
+
 def intensity_to_network_scale(pts: F32) -> F32:
     """``pts`` (P, 4, owned by the caller) with column 3 on the network's 0–255 scale, in place: a scan whose
-    every intensity lies in [0, 1], some of them fractional, is a reflectance (KITTI's HDL-64E) and is
-    multiplied by 255 (a scan of whole-number intensities 0 and 1 is a dark 0–255 scan and stays); values
-    outside 0–255 (16-bit sensors, stray returns) are clipped to it. A sensor whose intensities mean something
+    intensities lie in [0, 1] but for at most 0.1 % strays, some of them fractional, is a reflectance (KITTI's
+    HDL-64E) and is multiplied by 255 (a scan of whole-number intensities 0 and 1 is a dark 0–255 scan and stays);
+    values then outside 0–255 (16-bit sensors, stray returns) are clipped to it. A sensor whose intensities mean something
     else is the case for a model trained without intensity (``train --no-intensity``)."""
     if not len(pts):
         return pts
     col = pts[:, 3]
-    if float(col.max()) <= 1.0 and float(col.min()) >= 0.0 and bool(np.any(col != np.round(col))):
+    strays = np.count_nonzero((col > 1.0) | (col < 0.0))
+    if strays <= REFLECTANCE_STRAYS * len(col) and bool(np.any(col != np.round(col))):
         col *= INTENSITY_MAX
-    else:
-        np.clip(col, 0.0, INTENSITY_MAX, out=col)
+    np.clip(col, 0.0, INTENSITY_MAX, out=col)
     return pts
 
 

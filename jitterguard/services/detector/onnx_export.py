@@ -319,7 +319,8 @@ def manifest_for(config: DetectorConfig, layout: str, opset: int, files: dict[st
                                 "max_points_per_pillar points; over max_pillars, the most populated pillars are kept",
             "intensity_scale": 1.0 / 255.0 if config.use_intensity else 0.0,  # 0: a model without intensity
             "intensity_input": f"the intensity_scale applies to intensities on 0-{INTENSITY_MAX:g}: a cloud whose every"
-                               f" intensity lies in [0, 1], some fractional (a reflectance, as KITTI's), is multiplied by"
+                               f" intensity but at most 0.1 % lies in [0, 1], some fractional (a reflectance, as KITTI's), is"
+                               f" multiplied by"
                                f" {INTENSITY_MAX:g} first; values outside 0-{INTENSITY_MAX:g} are clipped to it; a cloud"
                                " without an intensity field is fed 0",
             "point_features": list(POINT_FEATURES) if config.use_intensity else
