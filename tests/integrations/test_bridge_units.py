@@ -16,6 +16,7 @@ from jitterguard.schemas.models import (
     MotionState,
     PointCloud,
     Pose,
+    Shape,
     TrackedObjects,
     Vector3,
 )
@@ -446,3 +447,29 @@ def test_a_negative_zero_z_is_shown_as_zero() -> None:
     assert meta["z_x"] == "0" and meta["z_y"] == "0", meta
     [row] = motion_statistics(f)["tracks"]
     assert all(math.copysign(1.0, row[k]) > 0 for k in ("z_x", "z_y", "z")), row
+
+
+def test_a_polygon_shape_is_drawn_as_its_footprint_not_a_flat_cube() -> None:
+    """Autoware's UNKNOWN clusters come as POLYGON shapes: a footprint, length and width 0. Foxglove got a 0 × 0 cube
+    for each (nothing to see); it now gets the footprint's outline at the bottom and top of the object's height, in
+    the object's frame, decoded back from the protobuf the panel reads. Boxes stay cubes."""
+    from google.protobuf.json_format import MessageToDict
+
+    from jitterguard.services.foxglove.scene import frame_messages
+
+    from .decoding import protobuf_class
+
+    objs = objects(5, ids=(A, B))
+    square = [{"x": 1.0, "y": 1.0, "z": 0.0}, {"x": -1.0, "y": 1.0, "z": 0.0}, {"x": -1.0, "y": -1.0, "z": 0.0},
+              {"x": 1.0, "y": -1.0, "z": 0.0}]
+    objs.objects[1].shape = Shape.model_validate({"type": Shape.POLYGON, "footprint": square,
+                                                  "dimensions": {"x": 0.0, "y": 0.0, "z": 1.2}})
+    upd = frame_messages(JoinedFrame(seq=5, stamp_ns=1_005, objects=objs))["/jitterguard/tracks"]
+    schema = upd.get_schema()
+    ents = {e["id"]: e for e in MessageToDict(protobuf_class(schema.name, schema.data).FromString(upd.encode()))["entities"]}
+    assert len(ents[A]["cubes"]) == 1 and "lines" not in ents[A]
+    assert "cubes" not in ents[B] and len(ents[B]["lines"]) == 2
+    for line, z in zip(ents[B]["lines"], (-0.6, 0.6)):
+        assert line["type"] == "LINE_LOOP"
+        assert [(p.get("x", 0.0), p.get("y", 0.0), p.get("z", 0.0)) for p in line["points"]] == \
+            [(q["x"], q["y"], z) for q in square]

@@ -31,7 +31,7 @@ import foxglove.messages as fm
 import numpy as np
 
 from ...geometry import yaw_from_quaternion
-from ...schemas.models import LABEL_NAMES, X_X, X_Y, Y_Y, DetectedObject, Pose, TrackedObject
+from ...schemas.models import LABEL_NAMES, X_X, X_Y, Y_Y, DetectedObject, Pose, Shape, TrackedObject
 from ..bridge.frames import sensor_chain
 from ..bridge.joiner import JoinedFrame
 
@@ -98,6 +98,22 @@ def _wire_pose(p: Pose) -> fm.Pose:
     q = p.orientation
     return fm.Pose(position=fm.Vector3(x=p.position.x, y=p.position.y, z=p.position.z),
                    orientation=fm.Quaternion(x=q.x, y=q.y, z=q.z, w=q.w))
+
+
+def _shape_primitives(shape: Shape, pose: Pose, rgba: tuple[float, float, float, float]
+                      ) -> tuple[list[fm.CubePrimitive], list[fm.LinePrimitive]]:
+    """A box as a cube; a POLYGON (Autoware's UNKNOWN clusters: a footprint, length and width 0) as its footprint's
+    outline at the bottom and the top of its height, in the object's frame — its cube had been drawn 0 × 0."""
+    pts = shape.footprint
+    if shape.type != Shape.POLYGON or len(pts) < 3:
+        d = shape.dimensions
+        return [fm.CubePrimitive(pose=_wire_pose(pose), size=fm.Vector3(x=d.x, y=d.y, z=d.z), color=_color(rgba))], []
+    h = shape.dimensions.z
+    loops = [fm.LinePrimitive(type=fm.LinePrimitiveLineType.LineLoop, pose=_wire_pose(pose), thickness=0.06,
+                              scale_invariant=False, color=_color(rgba[:3] + (1.0,)),
+                              points=[fm.Point3(x=q.x, y=q.y, z=z) for q in pts])
+             for z in (-h / 2, h / 2)]
+    return [], loops
 
 
 def _kv(**items: Any) -> list[fm.KeyValuePair]:
@@ -171,8 +187,7 @@ def _detection_entity(i: int, d: DetectedObject, frame_id: str, stamp: fm.Timest
     k = d.kinematics
     p = k.pose_with_covariance.pose
     dims = d.shape.dimensions
-    cubes = [fm.CubePrimitive(pose=_wire_pose(p), size=fm.Vector3(x=dims.x, y=dims.y, z=dims.z),
-                              color=_color(DETECTION_COLOR))]
+    cubes, lines = _shape_primitives(d.shape, p, DETECTION_COLOR)
     cylinders = []
     meta: dict[str, Any] = {"class": _class_name(d.classification), "score": float(d.existence_probability)}
     if k.has_position_covariance:
@@ -183,8 +198,8 @@ def _detection_entity(i: int, d: DetectedObject, frame_id: str, stamp: fm.Timest
         for sigma, rgba in zip(ELLIPSE_SIGMAS, ELLIPSE_COLORS, strict=True):
             cylinders.append(fm.CylinderPrimitive(pose=at, size=fm.Vector3(x=2 * sigma * a, y=2 * sigma * b, z=0.04),
                                                   bottom_scale=1.0, top_scale=1.0, color=_color(rgba)))
-    return fm.SceneEntity(timestamp=stamp, frame_id=frame_id, id=f"det-{i}", cubes=cubes, cylinders=cylinders,
-                          metadata=_kv(**meta))
+    return fm.SceneEntity(timestamp=stamp, frame_id=frame_id, id=f"det-{i}", cubes=cubes, lines=lines,
+                          cylinders=cylinders, metadata=_kv(**meta))
 
 
 def detections_scene(frame: JoinedFrame) -> fm.SceneUpdate | None:
@@ -241,15 +256,14 @@ def _track_entity(frame: JoinedFrame, obj: TrackedObject, stamp: fm.Timestamp) -
         text = f"{cls} {state}"
     texts = [fm.TextPrimitive(pose=_pose(p.position.x, p.position.y, top + 0.6, yaw), billboard=True, font_size=14.0,
                               scale_invariant=True, color=_color((1.0, 1.0, 1.0, 1.0)), text=text)]
-    cubes = [fm.CubePrimitive(pose=_wire_pose(p), size=fm.Vector3(x=dims.x, y=dims.y, z=dims.z),
-                              color=_color(STATE_COLORS[state]))]
+    cubes, lines = _shape_primitives(obj.shape, p, STATE_COLORS[state])
     meta: dict[str, Any] = {"class": cls, "state": state, "vx": float(v.x), "vy": float(v.y),
                             "is_stationary": str(k.is_stationary).lower()}
     if m is not None:
         meta.update(z_x=_unsigned_zero(m.z_x), z_y=_unsigned_zero(m.z_y), alpha=float(m.alpha), window_length=m.window_length,
                     decided_seq=m.header.seq)
-    return fm.SceneEntity(timestamp=stamp, frame_id=frame.world_frame, id=obj.object_id, cubes=cubes, arrows=arrows,
-                          texts=texts, metadata=_kv(**meta))
+    return fm.SceneEntity(timestamp=stamp, frame_id=frame.world_frame, id=obj.object_id, cubes=cubes, lines=lines,
+                          arrows=arrows, texts=texts, metadata=_kv(**meta))
 
 
 def _unsigned_zero(v: float) -> float:
