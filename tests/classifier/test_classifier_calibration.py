@@ -474,6 +474,24 @@ def test_calibration_file_round_trip_read_back_independently(tmp_path: Path) -> 
     np.testing.assert_allclose(back.track_dof, model.track_dof, rtol=1e-3)
 
 
+def test_range_bands_that_print_alike_keep_names_of_their_own(tmp_path: Path) -> None:
+    """Edges 20, 20.000001 and 20.000002 m had named two bands "20-20": the state, the heartbeat and the file held
+    one of their scales, and the file read back gave the other band the prior's 1."""
+    edges = [20.0, 20.000001, 20.000002]
+    cfg = ClassifierConfig(calibration_range_bands_m=edges)
+    state = MotionClassifierCore(cfg).calibration_state()
+    assert len(state["groups"]["vehicle"]["along"]["scale"]) == 4
+    assert len([k for k in calibration_gauges(state) if k.startswith("calibration.vehicle.along.scale.")]) == 4
+    prior = NoiseModel.prior(edges)
+    scale = prior.scale.copy()
+    scale[:, :, :, 0] = np.array([0.5, 2.0, 3.0, 4.0])  # a scale of its own per band
+    model = NoiseModel(prior.band_edges_m, scale, prior.correlation, prior.tau_s, prior.blocks)
+    write_calibration(tmp_path / "c.yaml", model, window=10)
+    np.testing.assert_array_equal(read_calibration(tmp_path / "c.yaml").scale, scale)
+    assert MotionClassifierCore(ClassifierConfig()).calibration_state()["range_bands_m"] == [20.0, 40.0]
+    assert list(NoiseModel.prior().to_mapping()["groups"]["vehicle"]["along"]["scale"]) == ["0-20", "20-40", "40-inf"]
+
+
 def test_a_written_file_cut_short_or_edited_is_refused_by_its_digest(tmp_path: Path) -> None:
     """Cut short at a whole entry a written file is still valid YAML whose missing groups keep the prior: it had
     loaded without a word. Its digest catches that; a hand edit loads once the digest line is deleted."""
