@@ -9,6 +9,7 @@ from __future__ import annotations
 import atexit
 import os
 import sys
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Annotated, NoReturn
 
@@ -206,6 +207,8 @@ def out_file(flag: str, path: str | os.PathLike[str]) -> Path:
 def try_write(flag: str, p: Path) -> None:
     """``p`` opened for appending and closed again (one line naming ``flag`` and exit 2 if that fails); a file the
     trial created is removed. A folder root may "write" into can still refuse a file (``/proc``)."""
+    if p.is_dir():
+        fail(f"{flag}: {p} is a folder where a file is to be written; remove or rename it")
     existed = p.exists()
     try:
         with open(p, "ab"):
@@ -214,6 +217,13 @@ def try_write(flag: str, p: Path) -> None:
         fail(f"{flag}: cannot write {p}: {exc.strerror or exc}")
     if not existed:
         p.unlink(missing_ok=True)
+
+
+def out_files(flag: str, folder: Path, names: Iterable[str]) -> None:
+    """Each of ``names`` in ``folder`` (an :func:`out_dir`) writable as a file (:func:`try_write`), before any work:
+    a folder of that name (``report.md/``) had failed the run with a traceback after it had computed everything."""
+    for name in names:
+        try_write(flag, folder / name)
 
 
 def new_dir(flag: str, path: str | os.PathLike[str]) -> Path:

@@ -197,6 +197,12 @@ def calibrate_command(
         cal, seen = calibrate_detections(msgs, cfg)
     if seen["frames"] == 0 and errors:
         fail(f"{recording}: none of its {len(errors)} frame(s) read; first: {errors[0]}")
+    if seen["blocks"] == 0 and seen["blocks_fast"]:  # "use a longer recording" would not help
+        from ..services.classifier.calibration import MAX_BLOCK_SPEED
+
+        fail(f"{recording}: every one of its {seen['blocks_fast']} track windows was of an object moving faster than"
+             f" {MAX_BLOCK_SPEED:g} m/s; the calibration learns from objects standing or creeping (parked cars,"
+             " standing people): use a recording that has some")
     if seen["blocks"] == 0:
         fail(f"{recording}: no track stood still long enough to calibrate on ({seen['frames']} frames, "
              f"{seen['observations']} observations); use a longer recording")

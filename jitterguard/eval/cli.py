@@ -18,8 +18,8 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
-from ..cli_common import (SensorHeightOpt, SensorTiltOpt, check_seed, fail, out_dir, parse_seeds, progress_on,
-                          sensor_height_option, sensor_tilt_option)
+from ..cli_common import (SensorHeightOpt, SensorTiltOpt, check_seed, fail, out_dir, out_files, parse_seeds,
+                          progress_on, sensor_height_option, sensor_tilt_option)
 
 if TYPE_CHECKING:
     from ..services.detector.inference import Detector
@@ -236,9 +236,14 @@ def eval_command(
             fail(f"--nuscenes: {exc}")
     # before the run: it must not compute for minutes and then fail to write (a str, not a Path: Path("") is ".")
     out = out_dir("--out", out)
+    from .report import FIGURES, OUTPUTS
+
+    out_files("--out", out, (*OUTPUTS, *FIGURES))
     for stale in sorted(Path(out).glob("run-*.mcap")) + sorted(Path(out).glob(f"run-*.mcap{PARTIAL}")):
         # an earlier run's frames beside this run's metrics.json would look like its own (they had stayed,
         # unannounced, matching nothing the new report scored); a killed run's unfinished ones go too
+        if stale.is_dir():  # no run's frames: not ours to delete, and unlink would raise
+            fail(f"--out: {stale} is a folder where a run's frames go; remove or rename it")
         stale.unlink()
     try:
         metrics = evaluate(out, scenario=scenario, seed=seed, noise=noise, nuscenes=nuscenes, scene=scene,
@@ -254,8 +259,6 @@ def eval_command(
     if as_json:
         sys.stdout.write(json.dumps(metrics, indent=2, sort_keys=True) + "\n")
     else:
-        from .report import FIGURES
-
         figures = sum((out / name).is_file() for name in FIGURES)  # this run's, not any PNG the folder holds
         print(f"wrote {out / 'report.md'}, metrics.json and {figures} figures"
               + (" and the frames as MCAP (run-*.mcap)" if mcap else ""))
@@ -550,6 +553,12 @@ def study_command(
         fail("--duration must be in (0, 600]")
     seed_list = tuple(parse_seeds(seeds, "--seeds"))  # as every other command's --seeds: 2000-2009, 1,2,5-7
     out = out_dir("--out", out)  # a str, not a Path: Path("") is "." and the study went into the current folder
+    from .report import FIGURES, OUTPUTS
+
+    out_files("--out", out, ("study.json", "study.md"))
+    for scenario, noise in STUDY_RUNS:  # each run's folder and files, before the first run
+        run_dir = out_dir("--out", out / f"{scenario}-{noise}")
+        out_files("--out", run_dir, (*OUTPUTS, *FIGURES))
     seed = seed_list[0]
     results = {}
     for scenario, noise in STUDY_RUNS:

@@ -187,6 +187,8 @@ def _fmt(v: Any) -> str:
 DETECTION_FIGURES = ("detection_calibration.png", "detection_pr.png")
 FIGURES = ("speed_vs_z.png", "pr_curves.png", "alpha_sweep.png", "calibration.png", *DETECTION_FIGURES)
 """Every figure ``write_outputs`` may draw into its folder."""
+OUTPUTS = ("metrics.json", "report.md")
+"""The files ``write_outputs`` writes into its folder besides the figures."""
 
 
 def plot_detection(report: dict[str, Any], out: Path) -> list[str]:

@@ -417,6 +417,32 @@ def test_file_mode_needs_scales_and_uses_them() -> None:
     assert calibration_gauges(cold.calibration_state())["calibration.scale_dof"] == 2.0
 
 
+def test_the_evidence_shown_is_that_behind_the_scales_in_force() -> None:
+    """A classifier that learnt online and was then switched to a file's scales, or off, had gone on showing the
+    idle estimator's effective blocks in /v1/state and the heartbeat, as if the scales in force rested on them."""
+    rng = np.random.default_rng(41)
+    ids = [f"{i + 1:032x}" for i in range(30)]
+    base = rng.uniform(-30, 30, (30, 2))
+    core = MotionClassifierCore(ClassifierConfig(window_size=10))
+    for f in range(120):
+        p = base + rng.normal(0, 0.1, (30, 2))
+        core.update(_obs(ids, p[:, 0], p[:, 1], f * 0.1))
+        core.learn()
+    learnt = core.online_calibration.effective_blocks
+    assert learnt > 100 and core.calibration_state()["effective_blocks"] == pytest.approx(learnt, abs=1e-3)
+    model = _model(9.0, 0.0, 0.5)
+    model.blocks[:] = 0.0
+    model.blocks[0, :, 1, 0] = 7.0  # the file's evidence: 7 blocks of vehicles at 20-40 m, both axes
+    core.configure(ClassifierConfig(window_size=10, calibration="file", calibration_file="x.yaml"),
+                   calibration_model=model)
+    state = core.calibration_state()
+    assert state["effective_blocks"] == 7.0 and calibration_gauges(state)["calibration.effective_blocks"] == 7.0
+    core.configure(ClassifierConfig(window_size=10, calibration="off"))
+    assert core.calibration_state()["effective_blocks"] == 0.0
+    core.configure(ClassifierConfig(window_size=10))  # online again: what it had learnt
+    assert core.calibration_state()["effective_blocks"] == pytest.approx(learnt, abs=1e-3)
+
+
 def test_calibration_config_validates() -> None:
     with pytest.raises(ValueError, match="calibration_file"):
         ClassifierConfig(calibration="file")
@@ -446,6 +472,24 @@ def test_calibration_file_round_trip_read_back_independently(tmp_path: Path) -> 
     np.testing.assert_allclose(back.scale, model.scale, rtol=1e-5)
     np.testing.assert_allclose(back.correlation, model.correlation, rtol=1e-5)
     np.testing.assert_allclose(back.track_dof, model.track_dof, rtol=1e-3)
+
+
+def test_range_bands_that_print_alike_keep_names_of_their_own(tmp_path: Path) -> None:
+    """Edges 20, 20.000001 and 20.000002 m had named two bands "20-20": the state, the heartbeat and the file held
+    one of their scales, and the file read back gave the other band the prior's 1."""
+    edges = [20.0, 20.000001, 20.000002]
+    cfg = ClassifierConfig(calibration_range_bands_m=edges)
+    state = MotionClassifierCore(cfg).calibration_state()
+    assert len(state["groups"]["vehicle"]["along"]["scale"]) == 4
+    assert len([k for k in calibration_gauges(state) if k.startswith("calibration.vehicle.along.scale.")]) == 4
+    prior = NoiseModel.prior(edges)
+    scale = prior.scale.copy()
+    scale[:, :, :, 0] = np.array([0.5, 2.0, 3.0, 4.0])  # a scale of its own per band
+    model = NoiseModel(prior.band_edges_m, scale, prior.correlation, prior.tau_s, prior.blocks)
+    write_calibration(tmp_path / "c.yaml", model, window=10)
+    np.testing.assert_array_equal(read_calibration(tmp_path / "c.yaml").scale, scale)
+    assert MotionClassifierCore(ClassifierConfig()).calibration_state()["range_bands_m"] == [20.0, 40.0]
+    assert list(NoiseModel.prior().to_mapping()["groups"]["vehicle"]["along"]["scale"]) == ["0-20", "20-40", "40-inf"]
 
 
 def test_a_written_file_cut_short_or_edited_is_refused_by_its_digest(tmp_path: Path) -> None:

@@ -148,6 +148,28 @@ def test_an_output_that_cannot_be_written_is_refused_before_any_work(args, needl
     assert res.returncode == 2 and res.stderr.strip() == f"jitterguard: error: {needle}{reason}", res.stderr
 
 
+@pytest.mark.parametrize(("args", "blocked"), [
+    (["eval", "--scenario", "mixed", "--duration", "2", "--input", "gt-noise"], "report.md"),
+    (["eval", "--scenario", "mixed", "--duration", "2", "--input", "gt-noise"], "metrics.json"),
+    (["eval", "--scenario", "mixed", "--duration", "2", "--input", "gt-noise"], "speed_vs_z.png"),
+    (["eval", "--scenario", "mixed", "--duration", "2", "--input", "gt-noise"], "run-0.mcap"),
+    (["eval-study", "--seeds", "0", "--duration", "2"], "study.md"),
+    (["eval-study", "--seeds", "0", "--duration", "2"], "diagonal-lot-clean/pr_curves.png"),
+])
+def test_a_folder_where_an_output_file_goes_is_refused_before_any_work(args, blocked, tmp_path):
+    """`eval --out X` with a folder X/report.md had run the whole evaluation, written metrics.json and the figures,
+    then died on report.md with an IsADirectoryError traceback; a folder named like a stale run-*.mcap had died
+    the same way at its unlink. Both are one line before the run now, and nothing is written."""
+    out = tmp_path / "out"
+    (out / blocked).mkdir(parents=True)
+    (out / blocked / "keep.txt").write_text("mine\n")
+    res = run([*args, "--out", str(out)])
+    assert res.returncode == 2 and res.stderr.count("\n") == 1 and "Traceback" not in res.stderr, res.stderr
+    assert f"--out: {out / blocked} is a folder" in res.stderr, res.stderr
+    assert (out / blocked / "keep.txt").read_text() == "mine\n"
+    assert not (out / "metrics.json").is_file() and not (out / "study.json").exists()
+
+
 @pytest.mark.parametrize(("args", "needle"), [
     # negative seeds had been numpy tracebacks (SeedSequence), an empty list a ZeroDivisionError
     (["bench", "detector", "--seed", "-1"], "--seed: -1 is negative"),

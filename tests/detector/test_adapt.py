@@ -321,6 +321,12 @@ def test_adapted_weights_keep_what_the_source_was_trained_on(tmp_path: Path) -> 
     _, _, adapted = load_weights(out / "weights.pt")
     assert adapted["source"] == source and adapted["augment"] == meta["augment"]
     assert adapted["train_config"] == {"epochs": 3} and adapted["adapted_from"]["source"] == source
+    # they say they are adapted, not the source's recipe as their own (the shipped note: "synthetic scans only")
+    assert adapted["recipe_note"].startswith("adapted by `jitterguard adapt` from src.pt (sha256 ")
+    assert "to 4 unlabelled real scans (labels never read): 0 self-training round(s)" in adapted["recipe_note"]
+    assert "variance scales kept from the source weights" in adapted["recipe_note"]
+    assert adapted["recipe_note"].endswith(f"The source weights' recipe: {meta['recipe_note']}")
+    assert adapted["recipe"] == [*meta["recipe"], adapted["command"]]
     link = tmp_path / "link"
     link.symlink_to(root)
     ev_cmd = [*cli, "eval-detector", "--out", str(tmp_path / "ev"), "--weights", str(out / "weights.pt"),

@@ -122,6 +122,26 @@ def test_calibrate_says_why_it_got_no_frame(tmp_path: Path, capsys) -> None:
     assert not (tmp_path / "c.yaml").exists()
 
 
+def test_a_recording_of_moving_objects_only_is_refused_for_what_it_lacks(tmp_path: Path, capsys) -> None:
+    """Two objects driving at 3 m/s for 8 s: every window the tracks fill is too fast to pool. The refusal had said
+    "no track stood still long enough ... use a longer recording", which no length of such a recording helps."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    from replay.bagfixture import DET_TOPIC, DETECTED_OBJECTS, T0, _detections, typestore
+
+    ts, bag = typestore(), tmp_path / "moving"
+    with Writer(bag, version=9, storage_plugin=StoragePlugin.SQLITE3) as w:
+        conn = w.add_connection(DET_TOPIC, DETECTED_OBJECTS, typestore=ts)
+        for i in range(80):
+            t = T0 + i * 100_000_000
+            msg = _detections(ts, t, [(10.0 + 0.3 * i, 2.0), (-5.0, 3.0 - 0.3 * i)])
+            w.write(conn, t, ts.serialize_cdr(msg, DETECTED_OBJECTS))
+    line = _calibrate_fails([str(bag), "--topic", DET_TOPIC, "--out", str(tmp_path / "c.yaml")], capsys)
+    assert "track windows was of an object moving faster than 1 m/s" in line, line
+    assert "use a recording that has some" in line and "longer recording" not in line, line
+    assert not (tmp_path / "c.yaml").exists()
+
+
 def test_eval_names_the_calibration_file_it_used_by_its_bytes(tmp_path: Path) -> None:
     """metrics.json named the detector's weights with a checksum but a calibration file only as `calibration:
     file`: a run could not say which fitted scales it was scored with."""

@@ -116,10 +116,16 @@ def vehicle_class_names() -> list[str]:
 
 
 def band_names(edges_m: Sequence[float]) -> list[str]:
-    """``["0-20", "20-40", "40-inf"]`` for edges (20, 40)."""
+    """``["0-20", "20-40", "40-inf"]`` for edges (20, 40): each edge with 6 significant digits, or as many more as
+    the names need to differ (edges 20, 20.000001 and 20.000002 m had named two bands "20-20": one band's scale
+    lost from /v1/state, the heartbeat and the calibration file, and a duplicate sample in /metrics)."""
     lo = [0.0, *edges_m]
     hi = [*edges_m, math.inf]
-    return [f"{a:g}-{'inf' if math.isinf(b) else f'{b:g}'}" for a, b in zip(lo, hi)]
+    for digits in (6, 9, 12, 17):
+        names = [f"{a:.{digits}g}-{'inf' if math.isinf(b) else f'{b:.{digits}g}'}" for a, b in zip(lo, hi)]
+        if len(set(names)) == len(names):
+            break
+    return names
 
 
 # ---------------------------------------------------------------------------------------------- the model

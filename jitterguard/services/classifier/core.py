@@ -448,9 +448,13 @@ class MotionClassifierCore:
         key = (id(model), self._config.calibration, self._config.effective_n, self.window,
                self._online.counts["blocks"])
         if self._state_cache is None or self._state_cache[0] != key:
+            # the evidence behind the scales in force: the online estimator's only while it supplies them (a file's
+            # are the file's blocks, the prior's none; the idle estimator's had been shown beside a file's scales)
+            evidence = (self._online.effective_blocks if self._config.calibration == "online"
+                        else float(model.blocks.sum()) / 2)
             state = {"mode": self._config.calibration, "effective_n": self._config.effective_n,
                      **model.to_mapping(self.window), "counts": dict(self._online.counts),
-                     "effective_blocks": round(self._online.effective_blocks, 3),
+                     "effective_blocks": round(evidence, 3),
                      "scale_dof": round(model.scale_dof, 3) if math.isfinite(model.scale_dof) else None}
             self._state_cache = (key, state)
         return self._state_cache[1]

@@ -244,6 +244,17 @@ TRAINING_META = ("source", "augment", "init", "epochs", "recipe", "recipe_note",
                  "gt_sample", "launcher", "init_provenance")
 """Metadata of how a network was trained that ``adapt`` carries from the source weights into the adapted ones."""
 
+def adapted_note(source_note: Any, weights: str, sha: str, scans: int, rounds: int, recalibration: str) -> str:
+    """The ``recipe_note`` of adapted weights: that they were adapted, from what and how, then the source's own note
+    (which describes the source weights, not these)."""
+    scales = {"synthetic": "refitted per score bin on labelled synthetic scans after adapting",
+              "tracked": "fitted from tracked residuals of the real scans",
+              "keep": "kept from the source weights"}.get(recalibration, recalibration)
+    note = (f"adapted by `jitterguard adapt` from {os.path.basename(weights)} (sha256 {sha[:12]}) to {scans} unlabelled"
+            f" real scans (labels never read): {rounds} self-training round(s), variance scales {scales}")
+    return f"{note}. The source weights' recipe: {source_note}" if isinstance(source_note, str) and source_note else note
+
+
 RECALIBRATION_MODES = ("synthetic", "tracked", "keep")
 """Where ``adapt`` takes the adapted weights' variance scales from: refitted per score bin on labelled synthetic
 scans (the default: the recalibration that holds on real scans, docs/detector.md), fitted from tracked
@@ -714,7 +725,14 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         # what the network was trained on stays true of the adapted one: eval-detector reads "source" to hold out
         # the frames it trained on, and a second adapt its "augment"
         trained = {k: source_meta[k] for k in TRAINING_META if k in source_meta}
-        meta = {**trained, "command": " ".join(["jitterguard", *sys.argv[1:]]),
+        command = " ".join(["jitterguard", *sys.argv[1:]])
+        if isinstance(trained.get("recipe"), list):  # the commands that made these weights: this one last
+            trained["recipe"] = [*trained["recipe"], command]
+        # the source's note describes the source (the shipped one: "synthetic scans only ... refits the variances
+        # on synthetic seeds"); kept as it was, the adapted weights had claimed that recipe as their own
+        trained["recipe_note"] = adapted_note(source_meta.get("recipe_note"), weights, sha, len(real), rounds,
+                                              recalibration)
+        meta = {**trained, "command": command,
                 "adapted_from": {"path": os.path.abspath(weights), "sha256_16": sha, "source": source_meta.get("source")},
                 # adapting adapted weights: they have seen the earlier adaptation's scans too
                 "unlabelled_scans": [*(source_meta.get("unlabelled_scans") or []), *describe(real)],
