@@ -8,6 +8,8 @@ from pathlib import Path
 
 import pytest
 
+SHIPPED_WEIGHTS = Path(__file__).resolve().parents[2] / "jitterguard" / "services" / "detector" / "weights" / "lite.pt"
+
 BLOCKED = f"{__file__}/sub"  # under a regular file: no folder can be made there
 """An ``--out`` that cannot be created must be refused before the work, not after it."""
 
@@ -155,6 +157,10 @@ def test_an_output_that_cannot_be_written_is_refused_before_any_work(args, needl
     (["eval", "--scenario", "mixed", "--duration", "2", "--input", "gt-noise"], "run-0.mcap"),
     (["eval-study", "--seeds", "0", "--duration", "2"], "study.md"),
     (["eval-study", "--seeds", "0", "--duration", "2"], "diagonal-lot-clean/pr_curves.png"),
+    # the detector's tools wrote their reports after the work too
+    (["eval-detector", "--seeds", "1000"], "holdout_pr.png"),
+    (["train", "--train-seeds", "0", "--val-seeds", "900", "--epochs", "1"], "history.json"),
+    (["recalibrate-detector", "--weights", str(SHIPPED_WEIGHTS), "--seeds", "20"], "recalibration.json"),
 ])
 def test_a_folder_where_an_output_file_goes_is_refused_before_any_work(args, blocked, tmp_path):
     """`eval --out X` with a folder X/report.md had run the whole evaluation, written metrics.json and the figures,

@@ -20,8 +20,8 @@ from typing import Annotated, Any
 
 import typer
 
-from ...cli_common import (ProgressOpt, SensorHeightOpt, SensorTiltOpt, fail, out_dir, parse_seeds, progress_on,
-                           sensor_height_option, sensor_tilt_option)
+from ...cli_common import (ProgressOpt, SensorHeightOpt, SensorTiltOpt, fail, out_dir, out_files, parse_seeds,
+                           progress_on, sensor_height_option, sensor_tilt_option)
 from .augment import CENTERPOINT_SAMPLE_COUNTS
 from .config import CLASS_NAMES, PRESETS
 from .provenance import init_provenance
@@ -437,7 +437,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             check_not_overwritten("--init", init, out)
         # after the flags are checked (bad input must not leave an empty run folder behind), before any work (a
         # run must not fail to write its result at the end)
-        out_dir("--out", out)
+        out_files("--out", out_dir("--out", out), ("weights.pt", "history.json", "checkpoint.pt"))
         logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
         from .cli import passive_openmp, retain_heap
 
@@ -685,7 +685,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         for recording in scans:  # what a path holds is read later; one that names nothing is refused now
             if not os.path.exists(recording):
                 fail(f"--scans: {recording}: no such file or folder")
-        out_dir("--out", out)  # after the flags and weights are checked, before the scans are read
+        out_files("--out", out_dir("--out", out), ("weights.pt", "adapt.json"))  # after the flags and weights are checked, before the scans are read
         from .train import progress_bar
 
         bar = progress_bar(progress, max_scans, unit="scan", desc="reading scans")
@@ -765,7 +765,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             fail(f"--nuscenes: not a directory: {nuscenes}")
         # before any work (a run must not fail to write its result at the end), after the flags (a refused run
         # had left the folder behind)
-        out_dir("--out", out)
+        out_files("--out", out_dir("--out", out), ("domain_gap.json", "domain_gap.png"))
         from ..replay.frames import SourceError
         from .data import nuscenes_samples, synthetic_samples
         from .domain_gap import comparison_plot, scan_statistics
@@ -864,7 +864,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             det.sweeps = sweeps
         # after the flags and weights are checked (bad input must not leave an empty folder behind), before any
         # work (a run must not fail to write its result at the end)
-        out_dir("--out", out)
+        out_files("--out", out_dir("--out", out), (f"{name}.json", f"{name}_pr.png", f"{name}_calibration.png"))
         scored_on: dict[str, Any] = {}
         if nuscenes is not None:
             from ..replay.frames import SourceError
@@ -969,7 +969,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             fail(f"--weights: {exc}")
         if not det.config.uncertainty:
             fail("--weights: a vanilla model predicts no variances to recalibrate")
-        out_dir("--out", out)  # after the flags and weights are checked, before any work
+        out_files("--out", out_dir("--out", out), ("weights.pt", "recalibration.json"))  # after the flags and weights are checked, before any work
         try:
             rec, fitted = fit_synthetic_recalibration(det, Path(out), scen, seeds, frames, effect_sets, bins, progress,
                                                       workers)
