@@ -19,6 +19,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from jitterguard.runtime import free_tcp_port
@@ -221,6 +222,36 @@ def test_sources_that_cannot_be_replayed_are_refused_before_anything_starts(tmp_
         assert reason in one_line(res), (args, res.stderr)
         times[" ".join(args)] = round(elapsed, 2)
     print(f"\nrefusal times (s): {json.dumps(times)}")
+
+
+def _pcd_scans(folder: Path, viewpoints: list[str]) -> Path:
+    """A folder of small ASCII PCD scans, one per VIEWPOINT (tx ty tz qw qx qy qz) given."""
+    folder.mkdir()
+    rows = "".join(f"{x:.2f} {y:.2f} 0.5\n" for x, y in np.random.default_rng(0).uniform(-20, 20, (64, 2)))
+    for i, vp in enumerate(viewpoints):
+        (folder / f"{i:04d}.pcd").write_text(f"VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\n"
+                                             f"WIDTH 64\nHEIGHT 1\nVIEWPOINT {vp}\nPOINTS 64\nDATA ascii\n{rows}")
+    return folder
+
+
+def test_a_recording_whose_every_ego_pose_the_replay_refuses_is_refused_before_anything_starts(tmp_path):
+    """The probe took the first frame that read, though the replay then refuses its ego pose (not finite, beyond
+    max_abs_coordinate_m): `up` wrote the run directory, started the whole stack, and stopped it 20 s later on the
+    replay's crash loop ("no frame could be read"), exit 1. The replay's own pose rule now goes into the probe."""
+    _pcd_scans(tmp_path / "nan_poses", ["nan 0 0 1 0 0 0"] * 3)
+    _pcd_scans(tmp_path / "far_poses", ["1e9 0 0 1 0 0 0"] * 3)
+    for src, reason in (("nan_poses", "0000.pcd: ego pose is not finite"),
+                        ("far_poses", "0000.pcd: ego_pose.position: beyond max_abs_coordinate_m")):
+        res, _ = _refused(tmp_path, src)
+        assert reason in one_line(res), res.stderr
+
+
+def test_the_probe_skips_frames_with_refused_poses_as_the_replay_does(tmp_path):
+    """One bad pose among good ones is a skipped frame in the replay, so the probe takes the recording."""
+    from jitterguard.services.replay.sources import probe_source
+
+    folder = _pcd_scans(tmp_path / "mixed", ["nan 0 0 1 0 0 0", "0 0 0 1 0 0 0", "0 0 0 1 0 0 0"])
+    assert probe_source(str(folder)).num_frames == 3
 
 
 @pytest.mark.parametrize("bad", ["synthetic:mixed\n[program:evil]\ncommand=/bin/touch {flag}", "x\x1b[31m"])
