@@ -43,7 +43,8 @@ from .control import (StackUnavailable, Supervisor, orphans, read_pid, running_r
                       tail)
 from .status import collect, load_spec, render_table, save_spec
 from .supervisor import DEFAULT_SCENARIO_S, DEFAULT_SOURCE, StackSpec, has_area, input_mode, programs, render_config
-from .validate import ArgumentError, check_name, check_run_dir, check_text, port_in_use
+from .validate import (RUN_DIR_MODE, ArgumentError, check_name, check_private_dir, check_run_dir, check_text,
+                       port_in_use)
 
 RunDirOpt = Annotated[str | None, typer.Option("--run-dir", envvar="JG_RUN_DIR", help="Where config, socket, logs and summary live (default: a folder named after the stack).")]
 NameOpt = Annotated[str | None, typer.Option("--name", envvar="JG_STACK", help="The stack's name (default: its --ns); each named stack has its own run directory.")]
@@ -627,7 +628,12 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         except ValueError as exc:
             fail(str(exc))
         try:
-            (rd / "logs").mkdir(parents=True, exist_ok=True)
+            check_private_dir(rd)
+            rd.mkdir(mode=RUN_DIR_MODE, parents=True, exist_ok=True)
+            (rd / "logs").mkdir(mode=RUN_DIR_MODE, exist_ok=True)
+            check_private_dir(rd / "logs")
+        except ArgumentError as exc:
+            fail(str(exc))
         except OSError as exc:
             fail(f"--run-dir: cannot create {rd / 'logs'}: {exc.strerror or exc}")
         _lock_run_dir(rd, label)

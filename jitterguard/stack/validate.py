@@ -11,8 +11,10 @@ because supervisord runs every program from the run directory.
 from __future__ import annotations
 
 import errno
+import os
 import re
 import socket
+import stat
 from pathlib import Path
 
 from .control import MAX_SOCKET_PATH, SOCKET
@@ -73,3 +75,29 @@ def check_run_dir(run_dir: Path) -> Path:
         raise ArgumentError(f"--run-dir: {rd} is too long for supervisord's unix socket (at most"
                             f" {MAX_SOCKET_PATH - len(SOCKET) - 1} characters)")
     return rd
+
+
+RUN_DIR_MODE = 0o700
+"""The mode ``up`` creates a run directory and its ``logs`` folder with: only the stack's user may write there."""
+
+
+def check_private_dir(path: Path, what: str = "--run-dir") -> None:
+    """:class:`ArgumentError` when the folder ``path`` (if it exists) is not this user's alone to write: another
+    user who owns it, or may write in it, could replace ``supervisord.conf`` between its write and supervisord's
+    read, or put a link where a log goes, so that supervisord — root, if ``up`` is — appends to any file
+    (sshd's StrictModes rule). A link to such a folder counts as that folder."""
+    try:
+        st = path.stat()
+    except FileNotFoundError:
+        return
+    except OSError as exc:
+        raise ArgumentError(f"{what}: cannot read {path}: {exc.strerror or exc}") from None
+    if not stat.S_ISDIR(st.st_mode):
+        raise ArgumentError(f"{what}: {path} is not a folder")
+    uid = os.geteuid()
+    if st.st_uid != uid:
+        raise ArgumentError(f"{what}: {path} belongs to uid {st.st_uid}, not to you (uid {uid}): another user could"
+                            " change the stack's files there; give a folder of your own")
+    if st.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
+        raise ArgumentError(f"{what}: {path} is writable by other users (mode {stat.S_IMODE(st.st_mode):04o}): they"
+                            f" could change the stack's files there; `chmod go-w {path}` or give another folder")

@@ -268,6 +268,41 @@ def test_a_replay_option_with_a_control_character_is_refused_naming_its_flag(tmp
     assert f"{flag}: control character" in one_line(res)
 
 
+def test_a_run_dir_is_made_for_its_user_alone(stacks):
+    """Mode 0700, the run directory and its logs: it had been made with the umask's 0755."""
+    for name in ("a", "b"):
+        for d in (stacks["run"][name], stacks["run"][name] / "logs"):
+            assert d.stat().st_mode & 0o777 == 0o700, (d, oct(d.stat().st_mode))
+
+
+def test_a_run_dir_another_user_may_write_in_is_refused_before_anything_is_written(tmp_path):
+    """`up --run-dir /tmp/shared` into a folder other users may write in (or own) had written supervisord.conf
+    there and started supervisord on it: another user could replace the file before supervisord read it, or link
+    a log file to any file for supervisord (root, if `up` is) to append to."""
+    env = {**os.environ, "XDG_RUNTIME_DIR": str(tmp_path / "xdg")}
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    shared.chmod(0o777)
+    cases = [(shared, "is writable by other users (mode 0777)"), (shared / "logs", "is writable by other users")]
+    if os.geteuid() == 0:
+        theirs = tmp_path / "theirs"
+        theirs.mkdir(mode=0o755)
+        os.chown(theirs, 65534, 65534)
+        cases.append((theirs, "belongs to uid 65534, not to you"))
+    for rd, reason in cases:
+        if rd.name == "logs":  # a run dir of one's own whose logs folder others may write in
+            rd.parent.chmod(0o755)
+            rd.mkdir(mode=0o777)
+            rd.chmod(0o777)
+        target = rd.parent if rd.name == "logs" else rd
+        res = jg("up", "--run-dir", str(target), "--router-port", str(free_tcp_port()), "--no-sidecar", "-d",
+                 env=env, timeout=60)
+        if res.returncode == 0:  # it started one: stop it before failing
+            jg("down", "--run-dir", str(target), env=env)
+        assert res.returncode == 2 and reason in one_line(res), res.stdout + res.stderr
+        assert not (target / "supervisord.conf").exists()
+
+
 def test_a_sidecar_off_loopback_without_a_token_is_refused_before_anything_starts(tmp_path):
     """The sidecar would refuse to bind and crash-loop; `up` says why first, with the sidecar's own reason."""
     env = {k: v for k, v in os.environ.items() if k != "JG_API_TOKEN"}
