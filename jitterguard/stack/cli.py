@@ -79,20 +79,32 @@ def resolve(run_dir: str | None, name: str | None, ns: str) -> tuple[Path, str]:
     return rd, (f"{stack!r}" if not run_dir else f"in {rd}")
 
 
+def _ports_of(spec: StackSpec) -> set[int]:
+    """The ports a stack listens on: its router's, and its sidecar's and Foxglove server's where it runs them
+    (stack.json keeps the defaults of those it leaves out)."""
+    return {spec.router_port} | ({spec.sidecar_port} if spec.sidecar else set()) | (
+        {spec.foxglove_port} if spec.foxglove else set())
+
+
 def _port_owner(port: int, run_dir: Path) -> tuple[str, str] | None:
     """(who, how to stop it) of another running stack that uses ``port`` — under :func:`base_dir` or in a run
-    directory of its own (``--run-dir``) — if any."""
+    directory of its own (``--run-dir``) — if any, whether or not its program listens yet: a stack's router binds
+    its port seconds after supervisord starts it (14 s on a loaded machine), and a second ``up`` on that port in
+    between had found it free and started a stack whose services ran through the first stack's router while its
+    own waited for the port."""
     try:
         named = [p for p in base_dir().iterdir() if p.is_dir()]
     except OSError:
         named = []
+    live = running_run_dirs()  # every supervisord running on this host, by its command line
+    alive = {p.resolve() for p in live}
     seen = {run_dir.resolve()}  # this stack's own, and each other one once
-    for other in named + running_run_dirs():
+    for other in named + live:
         if other.resolve() in seen:
             continue
         seen.add(other.resolve())
         spec = load_spec(other)
-        if spec and port in (spec.router_port, spec.sidecar_port, spec.foxglove_port) and Supervisor(other).running():
+        if spec and port in _ports_of(spec) and (other.resolve() in alive or Supervisor(other).running()):
             if other.parent.resolve() == base_dir().resolve():
                 return f"the stack {spec.name!r}", f"jitterguard down --name {spec.name}"
             return f"the stack in {other}", f"jitterguard down --run-dir {other}"
@@ -619,8 +631,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                 if p == q:
                     fail(f"{flag} {p} is also the {other}; give each its own port")
         for p, h, flag in wanted:
-            if port_in_use(h, p):
-                owner = _port_owner(p, rd)
+            owner = _port_owner(p, rd)  # a running stack's port, even while its program does not listen yet
+            if owner is not None or port_in_use(h, p):
                 fail(f"port {p} on {h} is in use by {owner[0] if owner else 'another program'}; give this stack"
                      f" another {flag}" + (f" (or `{owner[1]}`)" if owner else ""))
         try:
@@ -687,12 +699,13 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
 
     def _wait_started(sup: Supervisor, rd: Path, label: str, names: str, spec: StackSpec,
                       progs: list[Any], wall0: float, addresses: list[str]) -> int:
-        """``up -d``: wait until every program has run for ``DETACH_SETTLE_S`` without a crash and the sidecar
-        answers (0), or one keeps crashing (stop the stack, 1). Every program RUNNING is not enough: supervisord calls a program RUNNING
+        """``up -d``: wait until every program has run for ``DETACH_SETTLE_S`` without a crash and the router and
+        the sidecar answer (0), or one keeps crashing (stop the stack, 1). Every program RUNNING is not enough: supervisord calls a program RUNNING
         once it has lived ``startsecs``, and one that died a second later, again and again, had let ``up -d``
         return 0 before its crashes added up to a loop."""
         deadline = time.monotonic() + DETACH_WAIT_S
         sidecar = _sidecar_address(spec, progs)
+        router = ("127.0.0.1", spec.router_port)  # RUNNING is not listening: a router binds seconds after its start
         states: dict[str, str] = {}
         steady_since: float | None = None
         deferred = {p.name for p in progs if p.deferred}
@@ -721,8 +734,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                 steady_since = time.time()
                 continue
             if time.time() - steady_since >= DETACH_SETTLE_S:
-                if not _answers(sidecar):  # RUNNING is not listening: the address printed below must answer
-                    continue
+                if not (_answers(router) and _answers(sidecar)):  # RUNNING is not listening: `status` right after
+                    continue  # must reach the stack, and the sidecar's address printed below must answer
                 print(f"jitterguard: started {names} (stack {label}, run dir {rd})")
                 for line in addresses:
                     print(line)
@@ -730,6 +743,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         crashed = sorted(n for n, ev in events.items() if ev.crashes)
         waiting = (", ".join(f"{n} {s}" for n, s in sorted(states.items()) if s != "RUNNING")
                    or (f"{', '.join(crashed)} crashed and restarted" if crashed else "")
+                   or (f"the router does not listen on {spec.endpoint} yet" if states and not _answers(router)
+                       else "")
                    or (f"the sidecar does not answer on {sidecar[0]}:{sidecar[1]}"
                        if states and sidecar is not None and not _answers(sidecar) else "supervisord"))
         print(f"jitterguard: error: not every program runs after {DETACH_WAIT_S:.0f} s ({waiting}); the stack is"

@@ -115,6 +115,24 @@ def test_a_second_stack_on_a_port_in_use_or_under_a_running_name_is_refused(stac
     assert res.returncode == 2 and "already running" in one_line(res)
 
 
+def test_a_router_port_of_a_running_stack_is_refused_while_its_router_does_not_listen(stacks):
+    """A stack's router port is its own while its router does not listen: just started (it binds seconds after
+    supervisord starts it: 14 s on a loaded machine) or being restarted after a crash. A second `up` on that port
+    in between had found it free and started a stack whose services ran through the other stack's router, while
+    that stack's router (and later its own) waited for the port for ever."""
+    sup = Supervisor(stacks["run"]["b"])
+    sup.call("stopProcess", "router")  # as in a router's restart: its supervisord runs, nothing listens
+    try:
+        res = jg("up", "-d", "--name", "c2", "--ns", "upc2", "--router-port", str(stacks["ports"]["b"]),
+                 "--no-sidecar", "--input", "detections", env=stacks["env"])
+        if res.returncode == 0:
+            jg("down", "--name", "c2", env=stacks["env"])
+        assert res.returncode == 2 and "in use by the stack 'b'" in one_line(res), res.stdout + res.stderr
+        assert not (stacks["run"]["a"].parent / "c2").exists()  # nothing written
+    finally:
+        sup.call("startProcess", "router")
+
+
 def test_summary_adds_up_the_run(stacks):
     assert wait_until(lambda: jg("summary", "--name", "a", "--json", env=stacks["env"]).returncode == 0, timeout=30)
     data = json.loads(jg("summary", "--name", "a", "--json", env=stacks["env"]).stdout)
