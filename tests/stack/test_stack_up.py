@@ -133,6 +133,33 @@ def test_a_router_port_of_a_running_stack_is_refused_while_its_router_does_not_l
         sup.call("startProcess", "router")
 
 
+def test_a_stale_run_dir_whose_pid_names_another_stacks_supervisord_is_stale_not_that_stack(stacks):
+    """After a reboot or a container restart the pids come again in the same order: a run dir left by a killed
+    stack (its socket file and pid file still there) names a pid that is now another stack's supervisord. It had
+    been taken for this stack "starting or stopping": `up` refused to start over it, and `down` exited 1 telling
+    the operator to `kill` the other stack's supervisord."""
+    import socket as so
+
+    from jitterguard.stack.control import read_pid
+
+    rd = stacks["run"]["a"].parent / "killed"
+    rd.mkdir(mode=0o700)
+    (rd / "logs").mkdir(mode=0o700)
+    shutil.copy(stacks["run"]["a"] / "supervisord.conf", rd / "supervisord.conf")  # as its own `up` wrote it
+    with so.socket(so.AF_UNIX, so.SOCK_STREAM) as sock:  # a socket file nothing listens on, as a SIGKILL leaves it
+        sock.bind(str(rd / "supervisor.sock"))
+    other = read_pid(stacks["run"]["b"])
+    (rd / "supervisord.pid").write_text(f"{other}\n")
+    try:
+        res = jg("status", "--name", "killed", "--json", env=stacks["env"])
+        assert res.returncode == 3 and json.loads(res.stdout)["state"] == "stale", res.stdout
+        res = jg("down", "--name", "killed", env=stacks["env"])
+        assert res.returncode == 0 and "died without cleaning up" in one_line(res), res.stdout + res.stderr
+        assert Supervisor(stacks["run"]["b"]).running() and read_pid(stacks["run"]["b"]) == other
+    finally:
+        shutil.rmtree(rd)
+
+
 def test_summary_adds_up_the_run(stacks):
     assert wait_until(lambda: jg("summary", "--name", "a", "--json", env=stacks["env"]).returncode == 0, timeout=30)
     data = json.loads(jg("summary", "--name", "a", "--json", env=stacks["env"]).stdout)
