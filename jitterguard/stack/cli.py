@@ -175,6 +175,33 @@ def _quiet_once_stdout_closes() -> None:
         sys.stdout = _Stdout(out.detach(), encoding=out.encoding, errors=out.errors, line_buffering=out.line_buffering)
 
 
+FOREGROUND_STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+"""What stops a foreground stack. SIGHUP too: an SSH session that drops hangs up the terminal, whose SIGHUP had
+ended ``up`` at once (Python's default) and reached supervisord, in the same process group, as its "reload"
+request: every program restarted and the stack ran on, unwatched, past ``--duration``."""
+
+
+def _end_with_parent() -> Any:
+    """A ``preexec_fn`` that has the kernel send the child SIGTERM when ``up`` dies (Linux's
+    ``PR_SET_PDEATHSIG``), or None where that cannot be set. supervisord runs in a session of its own (the
+    terminal's Ctrl-C and hangup reach ``up`` alone, which stops it), so a ``kill -9`` of a foreground ``up`` had
+    left the stack running for good: now supervisord stops its programs as on ``down``."""
+    if not sys.platform.startswith("linux"):
+        return None
+    import ctypes
+
+    try:
+        prctl = ctypes.CDLL(None, use_errno=True).prctl
+    except (OSError, AttributeError):
+        return None
+    pr_set_pdeathsig = 1
+
+    def preexec() -> None:
+        prctl(pr_set_pdeathsig, int(signal.SIGTERM), 0, 0, 0)
+
+    return preexec
+
+
 def _stop_supervisord(proc: subprocess.Popen) -> bool:
     """SIGTERM a foreground stack's supervisord (which stops its programs) and wait; kill it after
     ``STOP_WAIT_S``. True if it had to be killed."""
@@ -672,11 +699,11 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                                            _addresses(spec, progs, router_picked)))
 
         _quiet_once_stdout_closes()
-        proc = subprocess.Popen(cmd)
+        proc = subprocess.Popen(cmd, start_new_session=True, preexec_fn=_end_with_parent())
         try:
             _wake(sup, proc)
             stop = threading.Event()
-            stop_on_signals(stop.set)
+            stop_on_signals(stop.set, FOREGROUND_STOP_SIGNALS)
             print(f"jitterguard: starting {names} (stack {label}, logs in {rd / 'logs'})", flush=True)
             watch = _ObjectsWatch(ns, spec.endpoint, t0)
             code = _foreground(proc, sup, rd, stop, watch, duration, t0, wall0, spec, progs,

@@ -414,6 +414,43 @@ def test_a_foreground_stack_whose_replay_crash_loops_stops_with_its_last_log_lin
     assert not Supervisor(tmp_path / "xdg" / "jitterguard" / "fg").running()
 
 
+@pytest.mark.parametrize("how", ["hangup", "sigkill"])
+def test_a_foreground_stack_ends_with_its_up_when_the_terminal_hangs_up_or_up_is_killed(tmp_path, how):
+    """An SSH session that drops sends SIGHUP to the terminal's process group: it had ended `up` at once and
+    reached its supervisord as a "reload" — every program restarted, and the stack ran on unwatched past
+    --duration. A `kill -9` of `up` had left the stack running for good. Now `up` stops the stack on a hangup as
+    on Ctrl-C, and supervisord, in a session of its own, is sent SIGTERM by the kernel when `up` dies."""
+    from jitterguard.stack.control import pid_alive, read_pid
+
+    write_bag(tmp_path / "bag", n=20)
+    env = {**os.environ, "XDG_RUNTIME_DIR": str(tmp_path / "xdg")}
+    rd = tmp_path / "xdg" / "jitterguard" / "hup"
+    proc = subprocess.Popen([sys.executable, "-m", "jitterguard.cli", "up", "bag", "--name", "hup", "--ns",
+                             f"hup{os.getpid()}", "--router-port", str(free_tcp_port()), "--no-sidecar",
+                             "--topic", DET_TOPIC, "--duration", "240"], cwd=tmp_path, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
+                            start_new_session=True)  # a terminal's job: its own process group
+    try:
+        assert "starting" in proc.stdout.readline()
+        assert "first classified objects" in proc.stdout.readline()
+        sup_pid = read_pid(rd)
+        programs = [p.pid for p in Supervisor(rd).processes() if p.pid]
+        assert sup_pid and programs
+        if how == "hangup":
+            os.killpg(proc.pid, signal.SIGHUP)  # what the terminal's hangup sends its foreground job
+        else:
+            proc.kill()
+        proc.wait(timeout=120)
+        assert wait_until(lambda: not pid_alive(sup_pid) and not any(pid_alive(p) for p in programs),
+                          timeout=120, period=0.5), "the stack ran on after its `up` was gone"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        if Supervisor(rd).running():
+            jg("down", "--name", "hup", env=env)
+    assert not Supervisor(rd).running()
+
+
 def test_a_detached_stack_whose_tracker_dies_after_starting_is_not_called_started(tmp_path):
     """A program that dies a second after supervisord calls it RUNNING, again and again: `up -d` had returned 0
     as soon as every program ran once; now it waits for every program to run crash-free for a while, sees the
