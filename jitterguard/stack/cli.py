@@ -43,8 +43,8 @@ from .control import (StackUnavailable, Supervisor, orphans, read_pid, running_r
                       tail)
 from .status import collect, load_spec, render_table, save_spec
 from .supervisor import DEFAULT_SCENARIO_S, DEFAULT_SOURCE, StackSpec, has_area, input_mode, programs, render_config
-from .validate import (RUN_DIR_MODE, ArgumentError, check_name, check_private_dir, check_run_dir, check_text,
-                       port_in_use)
+from .validate import (RUN_DIR_MODE, ArgumentError, bind_problem, check_name, check_private_dir, check_run_dir,
+                       check_text, port_in_use)
 
 RunDirOpt = Annotated[str | None, typer.Option("--run-dir", envvar="JG_RUN_DIR", help="Where config, socket, logs and summary live (default: a folder named after the stack).")]
 NameOpt = Annotated[str | None, typer.Option("--name", envvar="JG_STACK", help="The stack's name (default: its --ns); each named stack has its own run directory.")]
@@ -662,6 +662,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             if owner is not None or port_in_use(h, p):
                 fail(f"port {p} on {h} is in use by {owner[0] if owner else 'another program'}; give this stack"
                      f" another {flag}" + (f" (or `{owner[1]}`)" if owner else ""))
+            refused = bind_problem(h, p, flag)  # an address not this host's had started the stack to crash-loop
+            if refused:
+                fail(refused)
         try:
             conf_text = render_config(spec, rd, progs, nodaemon=not detach)
         except ValueError as exc:

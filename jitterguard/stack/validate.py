@@ -52,18 +52,37 @@ def supervisor_escape(value: str) -> str:
     return value.replace("%", "%%")
 
 
-def port_in_use(host: str, port: int) -> bool:
-    """Whether binding ``host:port`` fails because something already listens there. With SO_REUSEADDR, as the
-    router and the sidecar bind: connections of a stack just stopped, left in TIME_WAIT, do not count (without
-    it, `up` right after `down` or a finished run was refused)."""
+def bind_error(host: str, port: int) -> OSError | None:
+    """Why binding ``host:port`` fails (None if it does not). With SO_REUSEADDR, as the router and the sidecar
+    bind: connections of a stack just stopped, left in TIME_WAIT, do not count (without it, `up` right after
+    `down` or a finished run was refused)."""
     family = socket.AF_INET6 if ":" in host else socket.AF_INET
-    with socket.socket(family, socket.SOCK_STREAM) as s:
-        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        try:
+    try:
+        with socket.socket(family, socket.SOCK_STREAM) as s:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
             s.bind((host, port))
-        except OSError as exc:
-            return exc.errno == errno.EADDRINUSE
-    return False
+    except OSError as exc:  # a name that does not resolve too (socket.gaierror)
+        return exc
+    return None
+
+
+def port_in_use(host: str, port: int) -> bool:
+    """Whether binding ``host:port`` fails because something already listens there."""
+    exc = bind_error(host, port)
+    return exc is not None and exc.errno == errno.EADDRINUSE
+
+
+def bind_problem(host: str, port: int, port_flag: str, host_flag: str = "--host") -> str | None:
+    """One line naming the flag to change when ``host:port`` cannot be bound for another reason than a listener
+    there (see :func:`port_in_use`): an address that is not this host's or a name that does not resolve (the
+    host's flag), a port this user may not bind (the port's flag); else None. ``up`` had started the whole stack
+    on a sidecar ``--host`` that is not this host's address, and stopped it on the sidecar's crash loop."""
+    exc = bind_error(host, port)
+    if exc is None or exc.errno == errno.EADDRINUSE:
+        return None
+    host_side = isinstance(exc, socket.gaierror) or exc.errno == errno.EADDRNOTAVAIL
+    return (f"{host_flag if host_side else port_flag}: cannot bind {host}:{port}: {exc.strerror or exc}"
+            + (" (not an address of this host)" if exc.errno == errno.EADDRNOTAVAIL else ""))
 
 
 def check_run_dir(run_dir: Path) -> Path:

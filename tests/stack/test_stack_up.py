@@ -358,6 +358,20 @@ def test_a_sidecar_off_loopback_without_a_token_is_refused_before_anything_start
     assert not (tmp_path / "xdg").exists()
 
 
+@pytest.mark.parametrize("host, reason", [("192.0.2.1", "Cannot assign requested address (not an address of this host)"),
+                                          ("nonexistent.invalid", "cannot bind nonexistent.invalid")])
+def test_a_sidecar_host_that_cannot_be_bound_is_refused_before_anything_starts(tmp_path, host, reason):
+    """An address that is not this host's (a typo, an interface not up) or a name that does not resolve: `up` had
+    started the whole stack, the sidecar crash-looped on "cannot bind", and the stack was stopped, exit 1."""
+    env = {**os.environ, "JG_API_TOKEN": "t" * 32, "XDG_RUNTIME_DIR": str(tmp_path / "xdg")}
+    res = jg("up", "--name", "nohost", "--input", "detections", "--host", host, "--router-port",
+             str(free_tcp_port()), "--port", str(free_tcp_port()), "-d", env=env, cwd=tmp_path, timeout=120)
+    if res.returncode == 0:
+        jg("down", "--name", "nohost", env=env)
+    assert res.returncode == 2 and "--host: cannot bind" in one_line(res) and reason in res.stderr, res.stderr
+    assert not (tmp_path / "xdg").exists()
+
+
 @pytest.mark.parametrize("port", ["8000", "0", "9123"])  # the default and "a free one" given too: any --port
 def test_a_sidecar_port_without_a_sidecar_is_refused_before_anything_starts(tmp_path, port):
     """`--no-sidecar --port N` had started the stack and ignored N without a word."""
