@@ -415,6 +415,27 @@ def _check_source(source: str | None, input_level: str, ropts: "R.ReplayOptions"
     return src, mode, ropts, list(info.warnings)
 
 
+def _check_environment() -> None:
+    """The variables every program of the stack reads at start, read by the programs' own parsers now (one line,
+    exit 2): ``JG_WATCHDOG_S``, ``JG_CRASH_LOOP_*`` and a ``JG_ZENOH_CONFIG`` file. A malformed one had let ``up -d``
+    say "started" — the monitor fails only after its imports, seconds after supervisord calls it RUNNING — while
+    the monitor, or every service, then crash-looped on it."""
+    from ..runtime import ENV_CONFIG
+    from ..runtime.service import watchdog_period
+    from .backoff import CrashLoopPolicy
+
+    try:
+        watchdog_period()
+        CrashLoopPolicy.from_env()
+    except ValueError as exc:
+        fail(str(exc))
+    if os.environ.get(ENV_CONFIG):
+        try:
+            build_config(ZenohOptions(connect=("tcp/127.0.0.1:7447",)))
+        except ValueError as exc:
+            fail(f"{ENV_CONFIG}: {exc}")
+
+
 def _ros2_args(middleware: str, connect: str | None, ns: str) -> tuple[str, ...]:
     """``up --ros2``'s middleware flags as ros2-in / ros2-out take them (checked by their own rules: one line, exit 2);
     under rmw_zenoh the domain ID and the distribution from ``$ROS_DOMAIN_ID`` and ``$ROS_DISTRO`` now, written into
@@ -579,6 +600,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             ZenohOptions(ns=ns)
         except ValueError as exc:
             fail(f"--ns: {exc}")
+        _check_environment()
         rd, label = resolve(run_dir, name, ns)
         stack = name or ns
         if ros2 is not None:  # the scans come from the vehicle: no replay, nothing of it to set

@@ -358,6 +358,23 @@ def test_a_sidecar_off_loopback_without_a_token_is_refused_before_anything_start
     assert not (tmp_path / "xdg").exists()
 
 
+@pytest.mark.parametrize("var, value, reason", [
+    ("JG_CRASH_LOOP_EXITS", "abc", "JG_CRASH_LOOP_EXITS='abc' is not a number"),
+    ("JG_CRASH_LOOP_BACKOFF_S", "-1", "JG_CRASH_LOOP_BACKOFF_S='-1': expected a number from 0.1"),
+    ("JG_WATCHDOG_S", "inf", "JG_WATCHDOG_S='inf': expected at most"),
+    ("JG_ZENOH_CONFIG", "/nope/zenoh.json5", "JG_ZENOH_CONFIG: zenoh config file not found: /nope/zenoh.json5")])
+def test_a_malformed_variable_the_programs_read_is_refused_before_anything_starts(tmp_path, var, value, reason):
+    """Each program refuses it at its start, after its imports: the monitor's had let `up -d` say "started" (it
+    failed seconds after supervisord called it RUNNING) and then crash-looped beside the stack."""
+    env = {**os.environ, var: value, "XDG_RUNTIME_DIR": str(tmp_path / "xdg")}
+    res = jg("up", "--name", "env", "--input", "detections", "--no-sidecar", "--router-port", str(free_tcp_port()),
+             "-d", env=env, cwd=tmp_path, timeout=120)
+    if res.returncode == 0:
+        jg("down", "--name", "env", env=env)
+    assert res.returncode == 2 and reason in one_line(res), res.stdout + res.stderr
+    assert not (tmp_path / "xdg").exists()
+
+
 @pytest.mark.parametrize("host, reason", [("192.0.2.1", "Cannot assign requested address (not an address of this host)"),
                                           ("nonexistent.invalid", "cannot bind nonexistent.invalid")])
 def test_a_sidecar_host_that_cannot_be_bound_is_refused_before_anything_starts(tmp_path, host, reason):
