@@ -692,8 +692,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         except ValueError as exc:
             fail(str(exc))
         try:
-            check_private_dir(rd)
+            check_private_dir(rd)  # before anything is written into it, and again once it is there (made meanwhile)
             rd.mkdir(mode=RUN_DIR_MODE, parents=True, exist_ok=True)
+            check_private_dir(rd)
             (rd / "logs").mkdir(mode=RUN_DIR_MODE, exist_ok=True)
             check_private_dir(rd / "logs")
         except ArgumentError as exc:
