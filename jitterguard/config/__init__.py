@@ -45,14 +45,18 @@ def presets(service: str) -> list[str]:
 
 class _StrictLoader(yaml.SafeLoader):
     """YAML as a parameter file means it: a key given twice is an error (the loader kept the last, so a misspelt
-    second entry silently won), and scalars resolve as YAML 1.2 reads them — ``1e-4`` is a number (YAML 1.1 needs
-    ``1.0e-4``: the docs' own ``variance_floor: 1e-4`` had been refused as a string) and only ``true``/``false`` are
-    booleans (``calibration: off`` had become ``False``)."""
+    second entry silently won), so is a key that is a list or a mapping, and scalars resolve as YAML 1.2 reads
+    them — ``1e-4`` is a number (YAML 1.1 needs ``1.0e-4``: the docs' own ``variance_floor: 1e-4`` had been
+    refused as a string) and only ``true``/``false`` are booleans (``calibration: off`` had become ``False``)."""
 
     def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
         seen: set[Any] = set()
         for key_node, _ in node.value:
             key = self.construct_object(key_node, deep=deep)
+            if not isinstance(key, (str, int, float, bool)) and key is not None:  # `? [a, b]`, `? {a: 1}`: their
+                # TypeError (unhashable) out of `key in seen` had ended every --config in a traceback
+                raise ConfigError(f"a key must be a name, got a {type(key).__name__}"
+                                  f" (line {key_node.start_mark.line + 1})")
             if key in seen:
                 raise ConfigError(f"key {key!r} given twice (line {key_node.start_mark.line + 1})")
             seen.add(key)

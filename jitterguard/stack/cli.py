@@ -43,7 +43,8 @@ from .control import (StackUnavailable, Supervisor, orphans, read_pid, running_r
                       tail)
 from .status import collect, load_spec, render_table, save_spec
 from .supervisor import DEFAULT_SCENARIO_S, DEFAULT_SOURCE, StackSpec, has_area, input_mode, programs, render_config
-from .validate import ArgumentError, check_name, check_run_dir, check_text, port_in_use
+from .validate import (RUN_DIR_MODE, ArgumentError, bind_problem, check_name, check_private_dir, check_run_dir,
+                       check_text, port_in_use)
 
 RunDirOpt = Annotated[str | None, typer.Option("--run-dir", envvar="JG_RUN_DIR", help="Where config, socket, logs and summary live (default: a folder named after the stack).")]
 NameOpt = Annotated[str | None, typer.Option("--name", envvar="JG_STACK", help="The stack's name (default: its --ns); each named stack has its own run directory.")]
@@ -78,20 +79,32 @@ def resolve(run_dir: str | None, name: str | None, ns: str) -> tuple[Path, str]:
     return rd, (f"{stack!r}" if not run_dir else f"in {rd}")
 
 
+def _ports_of(spec: StackSpec) -> set[int]:
+    """The ports a stack listens on: its router's, and its sidecar's and Foxglove server's where it runs them
+    (stack.json keeps the defaults of those it leaves out)."""
+    return {spec.router_port} | ({spec.sidecar_port} if spec.sidecar else set()) | (
+        {spec.foxglove_port} if spec.foxglove else set())
+
+
 def _port_owner(port: int, run_dir: Path) -> tuple[str, str] | None:
     """(who, how to stop it) of another running stack that uses ``port`` — under :func:`base_dir` or in a run
-    directory of its own (``--run-dir``) — if any."""
+    directory of its own (``--run-dir``) — if any, whether or not its program listens yet: a stack's router binds
+    its port seconds after supervisord starts it (14 s on a loaded machine), and a second ``up`` on that port in
+    between had found it free and started a stack whose services ran through the first stack's router while its
+    own waited for the port."""
     try:
         named = [p for p in base_dir().iterdir() if p.is_dir()]
     except OSError:
         named = []
+    live = running_run_dirs()  # every supervisord running on this host, by its command line
+    alive = {p.resolve() for p in live}
     seen = {run_dir.resolve()}  # this stack's own, and each other one once
-    for other in named + running_run_dirs():
+    for other in named + live:
         if other.resolve() in seen:
             continue
         seen.add(other.resolve())
         spec = load_spec(other)
-        if spec and port in (spec.router_port, spec.sidecar_port, spec.foxglove_port) and Supervisor(other).running():
+        if spec and port in _ports_of(spec) and (other.resolve() in alive or Supervisor(other).running()):
             if other.parent.resolve() == base_dir().resolve():
                 return f"the stack {spec.name!r}", f"jitterguard down --name {spec.name}"
             return f"the stack in {other}", f"jitterguard down --run-dir {other}"
@@ -160,6 +173,33 @@ def _quiet_once_stdout_closes() -> None:
     out = sys.stdout
     if isinstance(out, io.TextIOWrapper) and not isinstance(out, _Stdout):
         sys.stdout = _Stdout(out.detach(), encoding=out.encoding, errors=out.errors, line_buffering=out.line_buffering)
+
+
+FOREGROUND_STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+"""What stops a foreground stack. SIGHUP too: an SSH session that drops hangs up the terminal, whose SIGHUP had
+ended ``up`` at once (Python's default) and reached supervisord, in the same process group, as its "reload"
+request: every program restarted and the stack ran on, unwatched, past ``--duration``."""
+
+
+def _end_with_parent() -> Any:
+    """A ``preexec_fn`` that has the kernel send the child SIGTERM when ``up`` dies (Linux's
+    ``PR_SET_PDEATHSIG``), or None where that cannot be set. supervisord runs in a session of its own (the
+    terminal's Ctrl-C and hangup reach ``up`` alone, which stops it), so a ``kill -9`` of a foreground ``up`` had
+    left the stack running for good: now supervisord stops its programs as on ``down``."""
+    if not sys.platform.startswith("linux"):
+        return None
+    import ctypes
+
+    try:
+        prctl = ctypes.CDLL(None, use_errno=True).prctl
+    except (OSError, AttributeError):
+        return None
+    pr_set_pdeathsig = 1
+
+    def preexec() -> None:
+        prctl(pr_set_pdeathsig, int(signal.SIGTERM), 0, 0, 0)
+
+    return preexec
 
 
 def _stop_supervisord(proc: subprocess.Popen) -> bool:
@@ -375,6 +415,27 @@ def _check_source(source: str | None, input_level: str, ropts: "R.ReplayOptions"
     return src, mode, ropts, list(info.warnings)
 
 
+def _check_environment() -> None:
+    """The variables every program of the stack reads at start, read by the programs' own parsers now (one line,
+    exit 2): ``JG_WATCHDOG_S``, ``JG_CRASH_LOOP_*`` and a ``JG_ZENOH_CONFIG`` file. A malformed one had let ``up -d``
+    say "started" — the monitor fails only after its imports, seconds after supervisord calls it RUNNING — while
+    the monitor, or every service, then crash-looped on it."""
+    from ..runtime import ENV_CONFIG
+    from ..runtime.service import watchdog_period
+    from .backoff import CrashLoopPolicy
+
+    try:
+        watchdog_period()
+        CrashLoopPolicy.from_env()
+    except ValueError as exc:
+        fail(str(exc))
+    if os.environ.get(ENV_CONFIG):
+        try:
+            build_config(ZenohOptions(connect=("tcp/127.0.0.1:7447",)))
+        except ValueError as exc:
+            fail(f"{ENV_CONFIG}: {exc}")
+
+
 def _ros2_args(middleware: str, connect: str | None, ns: str) -> tuple[str, ...]:
     """``up --ros2``'s middleware flags as ros2-in / ros2-out take them (checked by their own rules: one line, exit 2);
     under rmw_zenoh the domain ID and the distribution from ``$ROS_DOMAIN_ID`` and ``$ROS_DISTRO`` now, written into
@@ -539,6 +600,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             ZenohOptions(ns=ns)
         except ValueError as exc:
             fail(f"--ns: {exc}")
+        _check_environment()
         rd, label = resolve(run_dir, name, ns)
         stack = name or ns
         if ros2 is not None:  # the scans come from the vehicle: no replay, nothing of it to set
@@ -618,16 +680,25 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                 if p == q:
                     fail(f"{flag} {p} is also the {other}; give each its own port")
         for p, h, flag in wanted:
-            if port_in_use(h, p):
-                owner = _port_owner(p, rd)
+            owner = _port_owner(p, rd)  # a running stack's port, even while its program does not listen yet
+            if owner is not None or port_in_use(h, p):
                 fail(f"port {p} on {h} is in use by {owner[0] if owner else 'another program'}; give this stack"
                      f" another {flag}" + (f" (or `{owner[1]}`)" if owner else ""))
+            refused = bind_problem(h, p, flag)  # an address not this host's had started the stack to crash-loop
+            if refused:
+                fail(refused)
         try:
             conf_text = render_config(spec, rd, progs, nodaemon=not detach)
         except ValueError as exc:
             fail(str(exc))
         try:
-            (rd / "logs").mkdir(parents=True, exist_ok=True)
+            check_private_dir(rd)  # before anything is written into it, and again once it is there (made meanwhile)
+            rd.mkdir(mode=RUN_DIR_MODE, parents=True, exist_ok=True)
+            check_private_dir(rd)
+            (rd / "logs").mkdir(mode=RUN_DIR_MODE, exist_ok=True)
+            check_private_dir(rd / "logs")
+        except ArgumentError as exc:
+            fail(str(exc))
         except OSError as exc:
             fail(f"--run-dir: cannot create {rd / 'logs'}: {exc.strerror or exc}")
         _lock_run_dir(rd, label)
@@ -654,11 +725,11 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                                            _addresses(spec, progs, router_picked)))
 
         _quiet_once_stdout_closes()
-        proc = subprocess.Popen(cmd)
+        proc = subprocess.Popen(cmd, start_new_session=True, preexec_fn=_end_with_parent())
         try:
             _wake(sup, proc)
             stop = threading.Event()
-            stop_on_signals(stop.set)
+            stop_on_signals(stop.set, FOREGROUND_STOP_SIGNALS)
             print(f"jitterguard: starting {names} (stack {label}, logs in {rd / 'logs'})", flush=True)
             watch = _ObjectsWatch(ns, spec.endpoint, t0)
             code = _foreground(proc, sup, rd, stop, watch, duration, t0, wall0, spec, progs,
@@ -681,12 +752,13 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
 
     def _wait_started(sup: Supervisor, rd: Path, label: str, names: str, spec: StackSpec,
                       progs: list[Any], wall0: float, addresses: list[str]) -> int:
-        """``up -d``: wait until every program has run for ``DETACH_SETTLE_S`` without a crash and the sidecar
-        answers (0), or one keeps crashing (stop the stack, 1). Every program RUNNING is not enough: supervisord calls a program RUNNING
+        """``up -d``: wait until every program has run for ``DETACH_SETTLE_S`` without a crash and the router and
+        the sidecar answer (0), or one keeps crashing (stop the stack, 1). Every program RUNNING is not enough: supervisord calls a program RUNNING
         once it has lived ``startsecs``, and one that died a second later, again and again, had let ``up -d``
         return 0 before its crashes added up to a loop."""
         deadline = time.monotonic() + DETACH_WAIT_S
         sidecar = _sidecar_address(spec, progs)
+        router = ("127.0.0.1", spec.router_port)  # RUNNING is not listening: a router binds seconds after its start
         states: dict[str, str] = {}
         steady_since: float | None = None
         deferred = {p.name for p in progs if p.deferred}
@@ -715,8 +787,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                 steady_since = time.time()
                 continue
             if time.time() - steady_since >= DETACH_SETTLE_S:
-                if not _answers(sidecar):  # RUNNING is not listening: the address printed below must answer
-                    continue
+                if not (_answers(router) and _answers(sidecar)):  # RUNNING is not listening: `status` right after
+                    continue  # must reach the stack, and the sidecar's address printed below must answer
                 print(f"jitterguard: started {names} (stack {label}, run dir {rd})")
                 for line in addresses:
                     print(line)
@@ -724,6 +796,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         crashed = sorted(n for n, ev in events.items() if ev.crashes)
         waiting = (", ".join(f"{n} {s}" for n, s in sorted(states.items()) if s != "RUNNING")
                    or (f"{', '.join(crashed)} crashed and restarted" if crashed else "")
+                   or (f"the router does not listen on {spec.endpoint} yet" if states and not _answers(router)
+                       else "")
                    or (f"the sidecar does not answer on {sidecar[0]}:{sidecar[1]}"
                        if states and sidecar is not None and not _answers(sidecar) else "supervisord"))
         print(f"jitterguard: error: not every program runs after {DETACH_WAIT_S:.0f} s ({waiting}); the stack is"

@@ -157,7 +157,7 @@ class Supervisor:
 
     def _unavailable(self) -> StackUnavailable:
         pid = read_pid(self.run_dir)
-        if pid is not None and pid_alive(pid) and _is_supervisord(pid):
+        if pid is not None and pid_alive(pid) and _is_supervisord(pid, self.run_dir):
             if process_stopped(pid):
                 return StackUnavailable("frozen", f"the stack {self.label} does not answer: its supervisord (pid"
                                         f" {pid}) is stopped (SIGSTOP, a debugger); `kill -CONT {pid}` resumes it")
@@ -230,13 +230,29 @@ def tail(path: Path | str, lines: int) -> list[str]:
     return data.decode(errors="replace").splitlines()[-lines:]
 
 
-def _is_supervisord(pid: int) -> bool:
-    """Whether ``pid`` runs supervisord (after a reboot or a SIGKILL, supervisord.pid may name a recycled pid)."""
+def _is_supervisord(pid: int, run_dir: Path) -> bool:
+    """Whether ``pid`` runs the supervisord of ``run_dir`` (after a reboot or a SIGKILL, supervisord.pid may name a
+    recycled pid). One that runs another config than the run dir's own ``supervisord.conf`` (``up`` writes one into
+    each run dir and starts supervisord on it by its absolute path) is another stack's: a container restarted, or a
+    host rebooted, hands the same pids out in the same order, and the stale run dir's pid had been taken for a stack
+    "starting or stopping" — ``up`` refused to start, and ``down`` told the operator to ``kill`` the other stack's
+    supervisord. A config given by a relative path, or a run dir without its own file (a hand-run supervisord's,
+    ``deploy/supervisord.conf``), cannot be told apart: the pid file is trusted."""
     try:
-        cmdline = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        args = [os.fsdecode(a) for a in Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")]
     except OSError:
         return True  # cannot tell (no /proc): trust the pid file, as before
-    return "supervisord" in cmdline
+    if not any("supervisord" in a for a in args[:3]):
+        return False
+    own = run_dir / CONFIG
+    confs = [b for a, b in zip(args, args[1:]) if a in ("-c", "--configuration")]
+    confs += [a.split("=", 1)[1] for a in args if a.startswith("--configuration=")]
+    if not confs or not own.is_file() or not os.path.isabs(confs[-1]):
+        return True
+    try:
+        return os.path.samefile(confs[-1], own)
+    except OSError:  # its config is gone: not the run dir's, which is there
+        return False
 
 
 def live_supervisords() -> dict[int, list[bytes]]:

@@ -37,6 +37,8 @@ def load_spec(run_dir: Path) -> StackSpec | None:
         data = json.loads(path.read_text())
     except (OSError, ValueError):
         return None
+    if not isinstance(data, dict):  # a stack.json that is not an object: `status` had ended in a traceback
+        return None
     known = {f.name for f in dataclasses.fields(StackSpec)}
     values = {k: v for k, v in data.items() if k in known}
     for name in ("replay_args", "ros2_args"):  # JSON has lists where the spec holds tuples

@@ -297,31 +297,38 @@ def render(summary: dict[str, Any]) -> str:
     def kv(d: dict[str, Any]) -> str:
         return ", ".join(f"{k} {n(v)}" for k, v in d.items()) or "none"
 
-    fr, tr, ob, rs = summary["frames"], summary["tracks"], summary["objects"], summary["restarts"]
+    def section(name: str, within: dict[str, Any] = summary) -> dict[str, Any]:
+        """One part; missing or not a mapping (another version's file, one edited by hand) it shows as "-"s: a
+        KeyError or TypeError had ended `summary`, `down` and a foreground `up` in a traceback."""
+        value = within.get(name)
+        return value if isinstance(value, dict) else {}
+
+    fr, tr, ob, rs = section("frames"), section("tracks"), section("objects"), section("restarts")
+    exits = section("unexpected_exits", rs)
     dur = summary.get("duration_s")
+    dur = dur if isinstance(dur, (int, float)) else None
     head = f"run summary of stack {summary.get('stack', '?')!r}" + (f" ({dur:.1f} s)" if dur is not None else "")
     lines = [
         head,
-        f"  frames    {'from ROS 2' if fr.get('source') == 'ros2-in' else 'replayed'} {n(fr['replayed'])},"
-        f" detected {n(fr['detected'])}, tracked {n(fr['tracked'])},"
-        f" classified {n(fr['classified'])}",
-        f"  tracks    born {n(tr['born'])} ({n(tr.get('confirmed'))} confirmed), ended {n(tr['ended'])}"
+        f"  frames    {'from ROS 2' if fr.get('source') == 'ros2-in' else 'replayed'} {n(fr.get('replayed'))},"
+        f" detected {n(fr.get('detected'))}, tracked {n(fr.get('tracked'))},"
+        f" classified {n(fr.get('classified'))}",
+        f"  tracks    born {n(tr.get('born'))} ({n(tr.get('confirmed'))} confirmed), ended {n(tr.get('ended'))}"
         f" ({n(tr.get('confirmed_ended'))} confirmed)",
-        f"  objects   static {n(ob['static'])} (jump veto {n(ob.get('vetoed'))}), dynamic {n(ob['dynamic'])},"
-        f" undecided {n(ob['undecided'])} (object-frames)"
-        + (f"; last frame: {n(ob['static_now'])} static, {n(ob['dynamic_now'])} dynamic"
+        f"  objects   static {n(ob.get('static'))} (jump veto {n(ob.get('vetoed'))}), dynamic {n(ob.get('dynamic'))},"
+        f" undecided {n(ob.get('undecided'))} (object-frames)"
+        + (f"; last frame: {n(ob.get('static_now'))} static, {n(ob.get('dynamic_now'))} dynamic"
            if ob.get("static_now") is not None else ""),
-        f"  rejected  {kv(summary['rejected'])}",
-        f"  dropped   {kv(summary['dropped'])}",
-        f"  restarts  {kv(rs['programs'])}" + (f"; unexpected exits: {kv(rs['unexpected_exits'])}"
-                                               if rs["unexpected_exits"] else "")
+        f"  rejected  {kv(section('rejected'))}",
+        f"  dropped   {kv(section('dropped'))}",
+        f"  restarts  {kv(section('programs', rs))}" + (f"; unexpected exits: {kv(exits)}" if exits else "")
         + (f"; supervisord gave up on: {', '.join(rs['gave_up'])}" if rs.get("gave_up") else "")
         + (f"; held back after crash loops: {kv(rs['backed_off'])}" if rs.get("backed_off") else "")
         + (f" (now: {', '.join(rs['held_back'])})" if rs.get("held_back") else "")
-        + f"; source restarts {n(rs['source_restarts'])}, tracker resets {n(rs['tracker_resets'])}",
+        + f"; source restarts {n(rs.get('source_restarts'))}, tracker resets {n(rs.get('tracker_resets'))}",
     ]
-    if summary["errors"]:
-        lines.append(f"  errors    {kv(summary['errors'])}")
+    if section("errors"):
+        lines.append(f"  errors    {kv(section('errors'))}")
     return "\n".join(lines)
 
 
@@ -332,7 +339,10 @@ def save(run_dir: Path, data: dict[str, Any]) -> None:
 
 
 def load(run_dir: Path) -> dict[str, Any] | None:
+    """``summary.json`` of ``run_dir``; None if there is none, or it is not a JSON object (`status` and `summary`
+    had ended in a traceback on one)."""
     try:
-        return json.loads((run_dir / SUMMARY_FILE).read_text())
+        data = json.loads((run_dir / SUMMARY_FILE).read_text())
     except (OSError, ValueError):
         return None
+    return data if isinstance(data, dict) else None

@@ -11,8 +11,10 @@ because supervisord runs every program from the run directory.
 from __future__ import annotations
 
 import errno
+import os
 import re
 import socket
+import stat
 from pathlib import Path
 
 from .control import MAX_SOCKET_PATH, SOCKET
@@ -50,18 +52,37 @@ def supervisor_escape(value: str) -> str:
     return value.replace("%", "%%")
 
 
-def port_in_use(host: str, port: int) -> bool:
-    """Whether binding ``host:port`` fails because something already listens there. With SO_REUSEADDR, as the
-    router and the sidecar bind: connections of a stack just stopped, left in TIME_WAIT, do not count (without
-    it, `up` right after `down` or a finished run was refused)."""
+def bind_error(host: str, port: int) -> OSError | None:
+    """Why binding ``host:port`` fails (None if it does not). With SO_REUSEADDR, as the router and the sidecar
+    bind: connections of a stack just stopped, left in TIME_WAIT, do not count (without it, `up` right after
+    `down` or a finished run was refused)."""
     family = socket.AF_INET6 if ":" in host else socket.AF_INET
-    with socket.socket(family, socket.SOCK_STREAM) as s:
-        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        try:
+    try:
+        with socket.socket(family, socket.SOCK_STREAM) as s:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
             s.bind((host, port))
-        except OSError as exc:
-            return exc.errno == errno.EADDRINUSE
-    return False
+    except OSError as exc:  # a name that does not resolve too (socket.gaierror)
+        return exc
+    return None
+
+
+def port_in_use(host: str, port: int) -> bool:
+    """Whether binding ``host:port`` fails because something already listens there."""
+    exc = bind_error(host, port)
+    return exc is not None and exc.errno == errno.EADDRINUSE
+
+
+def bind_problem(host: str, port: int, port_flag: str, host_flag: str = "--host") -> str | None:
+    """One line naming the flag to change when ``host:port`` cannot be bound for another reason than a listener
+    there (see :func:`port_in_use`): an address that is not this host's or a name that does not resolve (the
+    host's flag), a port this user may not bind (the port's flag); else None. ``up`` had started the whole stack
+    on a sidecar ``--host`` that is not this host's address, and stopped it on the sidecar's crash loop."""
+    exc = bind_error(host, port)
+    if exc is None or exc.errno == errno.EADDRINUSE:
+        return None
+    host_side = isinstance(exc, socket.gaierror) or exc.errno == errno.EADDRNOTAVAIL
+    return (f"{host_flag if host_side else port_flag}: cannot bind {host}:{port}: {exc.strerror or exc}"
+            + (" (not an address of this host)" if exc.errno == errno.EADDRNOTAVAIL else ""))
 
 
 def check_run_dir(run_dir: Path) -> Path:
@@ -73,3 +94,29 @@ def check_run_dir(run_dir: Path) -> Path:
         raise ArgumentError(f"--run-dir: {rd} is too long for supervisord's unix socket (at most"
                             f" {MAX_SOCKET_PATH - len(SOCKET) - 1} characters)")
     return rd
+
+
+RUN_DIR_MODE = 0o700
+"""The mode ``up`` creates a run directory and its ``logs`` folder with: only the stack's user may write there."""
+
+
+def check_private_dir(path: Path, what: str = "--run-dir") -> None:
+    """:class:`ArgumentError` when the folder ``path`` (if it exists) is not this user's alone to write: another
+    user who owns it, or may write in it, could replace ``supervisord.conf`` between its write and supervisord's
+    read, or put a link where a log goes, so that supervisord — root, if ``up`` is — appends to any file
+    (sshd's StrictModes rule). A link to such a folder counts as that folder."""
+    try:
+        st = path.stat()
+    except FileNotFoundError:
+        return
+    except OSError as exc:
+        raise ArgumentError(f"{what}: cannot read {path}: {exc.strerror or exc}") from None
+    if not stat.S_ISDIR(st.st_mode):
+        raise ArgumentError(f"{what}: {path} is not a folder")
+    uid = os.geteuid()
+    if st.st_uid != uid:
+        raise ArgumentError(f"{what}: {path} belongs to uid {st.st_uid}, not to you (uid {uid}): another user could"
+                            " change the stack's files there; give a folder of your own")
+    if st.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
+        raise ArgumentError(f"{what}: {path} is writable by other users (mode {stat.S_IMODE(st.st_mode):04o}): they"
+                            f" could change the stack's files there; `chmod go-w {path}` or give another folder")

@@ -121,6 +121,10 @@ def test_a_file_is_read_strictly_keys_once_limits_typed_and_scalars_as_yaml_1_2(
     p.write_text("window_size: 20\nwindow_size: 30\n")
     with pytest.raises(ConfigError, match=r"c.yaml: key 'window_size' given twice \(line 2\)"):
         load(ClassifierParams, p)
+    for text, kind in (("? [a, b]\n: 1\n", "list"), ("limits:\n  ? {a: 1}\n  : 2\n", "dict")):
+        p.write_text(text)  # a TypeError (unhashable key) had escaped as a traceback from every --config
+        with pytest.raises(ConfigError, match=rf"c.yaml: a key must be a name, got a {kind} \(line \d\)"):
+            load(ClassifierParams, p)
     for text, key in (("limits:\n  max_objects: true\n", "limits.max_objects"),
                       ('limits:\n  max_objects: "5"\n', "limits.max_objects"),
                       ("stream:\n  confirm_frames: true\n", "stream.confirm_frames"),

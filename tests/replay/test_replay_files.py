@@ -120,7 +120,9 @@ def test_kitti_missing_pose_row_is_a_frame_error(tmp_path: Path) -> None:
     assert isinstance(items[0], ScanFrame) and isinstance(items[1], FrameError) and "no pose" in items[1].reason
 
 
-@pytest.mark.parametrize("content,match", [("1 2 3\n", "12 finite numbers"), ("a b c\n", "not 12 numbers"), ("", "no pose")])
+@pytest.mark.parametrize("content,match", [("1 2 3\n", "12 finite numbers, got 3"), ("a b c\n", "not 12 numbers"),
+                                           ("", "no pose"),
+                                           ("1 0 0 nan 0 1 0 0 0 0 1 0\n", r"got a non-finite one \(nan\)")])  # had: got 12
 def test_bad_poses_file_is_a_source_error_naming_it(tmp_path: Path, content: str, match: str) -> None:
     _scans(tmp_path / "s", 1)
     (tmp_path / "p.txt").write_text(content)

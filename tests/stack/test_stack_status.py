@@ -104,3 +104,23 @@ def test_the_summary_counts_what_feed_tracks_published_as_replayed():
     built = summary.build(ros, {}, meta={"stack": "car"})
     assert built["frames"]["replayed"] == 412 and built["frames"]["source"] == "ros2-in"
     assert "frames    from ROS 2 412, detected" in summary.render(built)
+
+
+def test_a_run_dir_whose_files_are_not_what_this_version_wrote_is_read_in_one_line(tmp_path):
+    """A stack.json or summary.json that is not a JSON object, or a summary from another version (a part missing):
+    `status`, `summary`, `down` and a foreground `up` had ended in a traceback (AttributeError, KeyError)."""
+    from jitterguard.stack import summary
+
+    rd = tmp_path / "g"
+    rd.mkdir()
+    (rd / "stack.json").write_text("[1, 2]\n")
+    (rd / "summary.json").write_text("[1]\n")
+    assert load_spec(rd) is None and summary.load(rd) is None
+    env = {**os.environ, "XDG_RUNTIME_DIR": str(tmp_path)}
+    run = [sys.executable, "-m", "jitterguard.cli"]
+    res = subprocess.run([*run, "status", "--run-dir", str(rd)], capture_output=True, text=True, env=env, timeout=60)
+    assert res.returncode == 3 and "Traceback" not in res.stderr and len(res.stdout.splitlines()) == 1, res.stderr
+    (rd / "summary.json").write_text('{"stack": "g", "frames": {"replayed": 7}, "restarts": 3}\n')
+    res = subprocess.run([*run, "summary", "--run-dir", str(rd)], capture_output=True, text=True, env=env, timeout=60)
+    assert res.returncode == 0 and "Traceback" not in res.stderr, res.stderr
+    assert "replayed 7, detected -" in res.stdout and "restarts  none" in res.stdout

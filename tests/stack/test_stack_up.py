@@ -19,6 +19,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from jitterguard.runtime import free_tcp_port
@@ -112,6 +113,51 @@ def test_a_second_stack_on_a_port_in_use_or_under_a_running_name_is_refused(stac
     res = jg("up", "-d", "--name", "a", "--router-port", str(free_tcp_port()), "--no-sidecar", "--input",
              "detections", env=stacks["env"])
     assert res.returncode == 2 and "already running" in one_line(res)
+
+
+def test_a_router_port_of_a_running_stack_is_refused_while_its_router_does_not_listen(stacks):
+    """A stack's router port is its own while its router does not listen: just started (it binds seconds after
+    supervisord starts it: 14 s on a loaded machine) or being restarted after a crash. A second `up` on that port
+    in between had found it free and started a stack whose services ran through the other stack's router, while
+    that stack's router (and later its own) waited for the port for ever."""
+    sup = Supervisor(stacks["run"]["b"])
+    sup.call("stopProcess", "router")  # as in a router's restart: its supervisord runs, nothing listens
+    try:
+        res = jg("up", "-d", "--name", "c2", "--ns", "upc2", "--router-port", str(stacks["ports"]["b"]),
+                 "--no-sidecar", "--input", "detections", env=stacks["env"])
+        if res.returncode == 0:
+            jg("down", "--name", "c2", env=stacks["env"])
+        assert res.returncode == 2 and "in use by the stack 'b'" in one_line(res), res.stdout + res.stderr
+        assert not (stacks["run"]["a"].parent / "c2").exists()  # nothing written
+    finally:
+        sup.call("startProcess", "router")
+
+
+def test_a_stale_run_dir_whose_pid_names_another_stacks_supervisord_is_stale_not_that_stack(stacks):
+    """After a reboot or a container restart the pids come again in the same order: a run dir left by a killed
+    stack (its socket file and pid file still there) names a pid that is now another stack's supervisord. It had
+    been taken for this stack "starting or stopping": `up` refused to start over it, and `down` exited 1 telling
+    the operator to `kill` the other stack's supervisord."""
+    import socket as so
+
+    from jitterguard.stack.control import read_pid
+
+    rd = stacks["run"]["a"].parent / "killed"
+    rd.mkdir(mode=0o700)
+    (rd / "logs").mkdir(mode=0o700)
+    shutil.copy(stacks["run"]["a"] / "supervisord.conf", rd / "supervisord.conf")  # as its own `up` wrote it
+    with so.socket(so.AF_UNIX, so.SOCK_STREAM) as sock:  # a socket file nothing listens on, as a SIGKILL leaves it
+        sock.bind(str(rd / "supervisor.sock"))
+    other = read_pid(stacks["run"]["b"])
+    (rd / "supervisord.pid").write_text(f"{other}\n")
+    try:
+        res = jg("status", "--name", "killed", "--json", env=stacks["env"])
+        assert res.returncode == 3 and json.loads(res.stdout)["state"] == "stale", res.stdout
+        res = jg("down", "--name", "killed", env=stacks["env"])
+        assert res.returncode == 0 and "died without cleaning up" in one_line(res), res.stdout + res.stderr
+        assert Supervisor(stacks["run"]["b"]).running() and read_pid(stacks["run"]["b"]) == other
+    finally:
+        shutil.rmtree(rd)
 
 
 def test_summary_adds_up_the_run(stacks):
@@ -223,6 +269,36 @@ def test_sources_that_cannot_be_replayed_are_refused_before_anything_starts(tmp_
     print(f"\nrefusal times (s): {json.dumps(times)}")
 
 
+def _pcd_scans(folder: Path, viewpoints: list[str]) -> Path:
+    """A folder of small ASCII PCD scans, one per VIEWPOINT (tx ty tz qw qx qy qz) given."""
+    folder.mkdir()
+    rows = "".join(f"{x:.2f} {y:.2f} 0.5\n" for x, y in np.random.default_rng(0).uniform(-20, 20, (64, 2)))
+    for i, vp in enumerate(viewpoints):
+        (folder / f"{i:04d}.pcd").write_text(f"VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\n"
+                                             f"WIDTH 64\nHEIGHT 1\nVIEWPOINT {vp}\nPOINTS 64\nDATA ascii\n{rows}")
+    return folder
+
+
+def test_a_recording_whose_every_ego_pose_the_replay_refuses_is_refused_before_anything_starts(tmp_path):
+    """The probe took the first frame that read, though the replay then refuses its ego pose (not finite, beyond
+    max_abs_coordinate_m): `up` wrote the run directory, started the whole stack, and stopped it 20 s later on the
+    replay's crash loop ("no frame could be read"), exit 1. The replay's own pose rule now goes into the probe."""
+    _pcd_scans(tmp_path / "nan_poses", ["nan 0 0 1 0 0 0"] * 3)
+    _pcd_scans(tmp_path / "far_poses", ["1e9 0 0 1 0 0 0"] * 3)
+    for src, reason in (("nan_poses", "0000.pcd: ego pose is not finite"),
+                        ("far_poses", "0000.pcd: ego_pose.position: beyond max_abs_coordinate_m")):
+        res, _ = _refused(tmp_path, src)
+        assert reason in one_line(res), res.stderr
+
+
+def test_the_probe_skips_frames_with_refused_poses_as_the_replay_does(tmp_path):
+    """One bad pose among good ones is a skipped frame in the replay, so the probe takes the recording."""
+    from jitterguard.services.replay.sources import probe_source
+
+    folder = _pcd_scans(tmp_path / "mixed", ["nan 0 0 1 0 0 0", "0 0 0 1 0 0 0", "0 0 0 1 0 0 0"])
+    assert probe_source(str(folder)).num_frames == 3
+
+
 @pytest.mark.parametrize("bad", ["synthetic:mixed\n[program:evil]\ncommand=/bin/touch {flag}", "x\x1b[31m"])
 def test_a_source_with_control_characters_starts_nothing(tmp_path, bad):
     flag = tmp_path / "pwned"
@@ -237,6 +313,41 @@ def test_a_replay_option_with_a_control_character_is_refused_naming_its_flag(tmp
     assert f"{flag}: control character" in one_line(res)
 
 
+def test_a_run_dir_is_made_for_its_user_alone(stacks):
+    """Mode 0700, the run directory and its logs: it had been made with the umask's 0755."""
+    for name in ("a", "b"):
+        for d in (stacks["run"][name], stacks["run"][name] / "logs"):
+            assert d.stat().st_mode & 0o777 == 0o700, (d, oct(d.stat().st_mode))
+
+
+def test_a_run_dir_another_user_may_write_in_is_refused_before_anything_is_written(tmp_path):
+    """`up --run-dir /tmp/shared` into a folder other users may write in (or own) had written supervisord.conf
+    there and started supervisord on it: another user could replace the file before supervisord read it, or link
+    a log file to any file for supervisord (root, if `up` is) to append to."""
+    env = {**os.environ, "XDG_RUNTIME_DIR": str(tmp_path / "xdg")}
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    shared.chmod(0o777)
+    cases = [(shared, "is writable by other users (mode 0777)"), (shared / "logs", "is writable by other users")]
+    if os.geteuid() == 0:
+        theirs = tmp_path / "theirs"
+        theirs.mkdir(mode=0o755)
+        os.chown(theirs, 65534, 65534)
+        cases.append((theirs, "belongs to uid 65534, not to you"))
+    for rd, reason in cases:
+        if rd.name == "logs":  # a run dir of one's own whose logs folder others may write in
+            rd.parent.chmod(0o755)
+            rd.mkdir(mode=0o777)
+            rd.chmod(0o777)
+        target = rd.parent if rd.name == "logs" else rd
+        res = jg("up", "--run-dir", str(target), "--router-port", str(free_tcp_port()), "--no-sidecar", "-d",
+                 env=env, timeout=60)
+        if res.returncode == 0:  # it started one: stop it before failing
+            jg("down", "--run-dir", str(target), env=env)
+        assert res.returncode == 2 and reason in one_line(res), res.stdout + res.stderr
+        assert not (target / "supervisord.conf").exists()
+
+
 def test_a_sidecar_off_loopback_without_a_token_is_refused_before_anything_starts(tmp_path):
     """The sidecar would refuse to bind and crash-loop; `up` says why first, with the sidecar's own reason."""
     env = {k: v for k, v in os.environ.items() if k != "JG_API_TOKEN"}
@@ -244,6 +355,37 @@ def test_a_sidecar_off_loopback_without_a_token_is_refused_before_anything_start
     res = jg("up", "--name", "open", "--host", "0.0.0.0", "--router-port", str(free_tcp_port()), "--port",
              str(free_tcp_port()), env=env, cwd=tmp_path, timeout=60)
     assert res.returncode == 2 and "--host: refusing to bind 0.0.0.0 without JG_API_TOKEN" in one_line(res)
+    assert not (tmp_path / "xdg").exists()
+
+
+@pytest.mark.parametrize("var, value, reason", [
+    ("JG_CRASH_LOOP_EXITS", "abc", "JG_CRASH_LOOP_EXITS='abc' is not a number"),
+    ("JG_CRASH_LOOP_BACKOFF_S", "-1", "JG_CRASH_LOOP_BACKOFF_S='-1': expected a number from 0.1"),
+    ("JG_WATCHDOG_S", "inf", "JG_WATCHDOG_S='inf': expected at most"),
+    ("JG_ZENOH_CONFIG", "/nope/zenoh.json5", "JG_ZENOH_CONFIG: zenoh config file not found: /nope/zenoh.json5")])
+def test_a_malformed_variable_the_programs_read_is_refused_before_anything_starts(tmp_path, var, value, reason):
+    """Each program refuses it at its start, after its imports: the monitor's had let `up -d` say "started" (it
+    failed seconds after supervisord called it RUNNING) and then crash-looped beside the stack."""
+    env = {**os.environ, var: value, "XDG_RUNTIME_DIR": str(tmp_path / "xdg")}
+    res = jg("up", "--name", "env", "--input", "detections", "--no-sidecar", "--router-port", str(free_tcp_port()),
+             "-d", env=env, cwd=tmp_path, timeout=120)
+    if res.returncode == 0:
+        jg("down", "--name", "env", env=env)
+    assert res.returncode == 2 and reason in one_line(res), res.stdout + res.stderr
+    assert not (tmp_path / "xdg").exists()
+
+
+@pytest.mark.parametrize("host, reason", [("192.0.2.1", "Cannot assign requested address (not an address of this host)"),
+                                          ("nonexistent.invalid", "cannot bind nonexistent.invalid")])
+def test_a_sidecar_host_that_cannot_be_bound_is_refused_before_anything_starts(tmp_path, host, reason):
+    """An address that is not this host's (a typo, an interface not up) or a name that does not resolve: `up` had
+    started the whole stack, the sidecar crash-looped on "cannot bind", and the stack was stopped, exit 1."""
+    env = {**os.environ, "JG_API_TOKEN": "t" * 32, "XDG_RUNTIME_DIR": str(tmp_path / "xdg")}
+    res = jg("up", "--name", "nohost", "--input", "detections", "--host", host, "--router-port",
+             str(free_tcp_port()), "--port", str(free_tcp_port()), "-d", env=env, cwd=tmp_path, timeout=120)
+    if res.returncode == 0:
+        jg("down", "--name", "nohost", env=env)
+    assert res.returncode == 2 and "--host: cannot bind" in one_line(res) and reason in res.stderr, res.stderr
     assert not (tmp_path / "xdg").exists()
 
 
@@ -301,6 +443,43 @@ def test_a_foreground_stack_whose_replay_crash_loops_stops_with_its_last_log_lin
     assert "replay keeps failing" in err and "last lines of" in err and "no such file or folder" in err
     assert "run summary of stack 'fg'" in out and "unexpected exits: replay" in out
     assert not Supervisor(tmp_path / "xdg" / "jitterguard" / "fg").running()
+
+
+@pytest.mark.parametrize("how", ["hangup", "sigkill"])
+def test_a_foreground_stack_ends_with_its_up_when_the_terminal_hangs_up_or_up_is_killed(tmp_path, how):
+    """An SSH session that drops sends SIGHUP to the terminal's process group: it had ended `up` at once and
+    reached its supervisord as a "reload" — every program restarted, and the stack ran on unwatched past
+    --duration. A `kill -9` of `up` had left the stack running for good. Now `up` stops the stack on a hangup as
+    on Ctrl-C, and supervisord, in a session of its own, is sent SIGTERM by the kernel when `up` dies."""
+    from jitterguard.stack.control import pid_alive, read_pid
+
+    write_bag(tmp_path / "bag", n=20)
+    env = {**os.environ, "XDG_RUNTIME_DIR": str(tmp_path / "xdg")}
+    rd = tmp_path / "xdg" / "jitterguard" / "hup"
+    proc = subprocess.Popen([sys.executable, "-m", "jitterguard.cli", "up", "bag", "--name", "hup", "--ns",
+                             f"hup{os.getpid()}", "--router-port", str(free_tcp_port()), "--no-sidecar",
+                             "--topic", DET_TOPIC, "--duration", "240"], cwd=tmp_path, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
+                            start_new_session=True)  # a terminal's job: its own process group
+    try:
+        assert "starting" in proc.stdout.readline()
+        assert "first classified objects" in proc.stdout.readline()
+        sup_pid = read_pid(rd)
+        programs = [p.pid for p in Supervisor(rd).processes() if p.pid]
+        assert sup_pid and programs
+        if how == "hangup":
+            os.killpg(proc.pid, signal.SIGHUP)  # what the terminal's hangup sends its foreground job
+        else:
+            proc.kill()
+        proc.wait(timeout=120)
+        assert wait_until(lambda: not pid_alive(sup_pid) and not any(pid_alive(p) for p in programs),
+                          timeout=120, period=0.5), "the stack ran on after its `up` was gone"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        if Supervisor(rd).running():
+            jg("down", "--name", "hup", env=env)
+    assert not Supervisor(rd).running()
 
 
 def test_a_detached_stack_whose_tracker_dies_after_starting_is_not_called_started(tmp_path):

@@ -22,7 +22,9 @@ from ...geometry import (
     rotation_from_quaternion,
     yaw_from_quaternion,
 )
+from ...schemas.codec import LimitExceeded
 from ...schemas.models import DetectedObject, GroundTruthObjects, Point, Pose, Quaternion
+from ...schemas.wire import check_pose
 
 DEFAULT_PERIOD_NS = 100_000_000
 """10 Hz: the stamp spacing used for recordings that carry no time (KITTI without times.txt, loose PCDs)."""
@@ -124,6 +126,25 @@ class FrameError:
 
 Frame = Union[ScanFrame, DetectionFrame]
 Item = Union[ScanFrame, DetectionFrame, FrameError]
+
+
+def pose_refusal(frame: Frame) -> FrameError | None:
+    """``frame`` as an unreadable frame when its ego pose is one that cannot go out or that no reader takes (not
+    finite; beyond ``max_abs_coordinate_m`` or no unit quaternion: :func:`~jitterguard.schemas.wire.check_pose`, the
+    detector's and the tracker's rule), else None. Such a pose comes from the recording (a NaN odometry or TF
+    sample, a PCD's VIEWPOINT): one had ended the whole replay with a multi-line validation error and exit 1, the
+    frames after it never published; one beyond the limits went out for every consumer to refuse, uncounted.
+    The replay loop and :func:`~.sources.probe_source` (``jitterguard up``'s check) apply this one rule: the probe
+    had taken a frame that read but whose pose the replay then refused, and ``up`` started a stack whose replay
+    crash-looped on "no frame could be read"."""
+    p = frame.pose
+    if not all(math.isfinite(v) for v in (p.x, p.y, p.z, p.qx, p.qy, p.qz, p.qw)):
+        return FrameError(frame.origin, "ego pose is not finite")
+    try:
+        check_pose(type(frame).__name__, "ego_pose", p.to_schema())
+    except LimitExceeded as exc:
+        return FrameError(frame.origin, f"{exc.field}: {exc.reason}")
+    return None
 
 
 @dataclass

@@ -7,16 +7,13 @@ is tested with a fake clock and a list as the sink.
 
 from __future__ import annotations
 
-import math
 import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Literal
 
-from ...schemas import LimitExceeded
-from ...schemas.wire import check_pose
-from .frames import Frame, FrameError, Item
+from .frames import Frame, FrameError, Item, pose_refusal
 from .pacing import Clock, Pacer, RealClock, Restamper
 from .sources.base import Source, past_end
 
@@ -111,22 +108,6 @@ def _window(source: Source, start: int, limit: int | None) -> Iterator[Item]:
         yield item
 
 
-def _pose_refused(frame: Frame) -> FrameError | None:
-    """``frame`` as an unreadable frame when its ego pose is one that cannot go out or that no reader takes (not
-    finite; beyond ``max_abs_coordinate_m`` or no unit quaternion: :func:`~jitterguard.schemas.wire.check_pose`, the
-    detector's and the tracker's rule), else None. Such a pose comes from the recording (a NaN odometry or TF
-    sample, a PCD's VIEWPOINT): one had ended the whole replay with a multi-line validation error and exit 1, the
-    frames after it never published; one beyond the limits went out for every consumer to refuse, uncounted here."""
-    p = frame.pose
-    if not all(math.isfinite(v) for v in (p.x, p.y, p.z, p.qx, p.qy, p.qz, p.qw)):
-        return FrameError(frame.origin, "ego pose is not finite")
-    try:
-        check_pose(type(frame).__name__, "ego_pose", p.to_schema())
-    except LimitExceeded as exc:
-        return FrameError(frame.origin, f"{exc.field}: {exc.reason}")
-    return None
-
-
 def run_replay(
     source: Source,
     plan: ReplayPlan,
@@ -163,7 +144,7 @@ def run_replay(
                 stats.interrupted = True
                 break
             if not isinstance(item, FrameError):
-                item = _pose_refused(item) or item
+                item = pose_refusal(item) or item
             if isinstance(item, FrameError):
                 stats.errors += 1
                 if len(stats.error_origins) < 100:

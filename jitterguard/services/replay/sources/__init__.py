@@ -17,7 +17,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..frames import DEFAULT_PERIOD_NS, FrameError, SourceError, SourceInfo
+from ..frames import DEFAULT_PERIOD_NS, FrameError, SourceError, SourceInfo, pose_refusal
 from .base import MemorySource, Source, check_start, past_end
 
 __all__ = ["Source", "MemorySource", "SourceOptions", "SourceError", "open_source", "probe_source",
@@ -156,8 +156,8 @@ def probe_source(spec: str, opts: SourceOptions | None = None, *, start: int = 0
 
     A synthetic scenario is checked by name and parameters only (generating it takes seconds, and the replay
     process does that). Anything else is opened with its reader, which checks the kind, tables, topics and
-    poses, and read from frame ``start`` (the replay's ``--start``) until a frame reads (at most
-    :data:`PROBE_FRAMES`). Raises :class:`SourceError` with the reader's own one-line message, or the replay's
+    poses, and read from frame ``start`` (the replay's ``--start``) until a frame reads with an ego pose the replay
+    publishes (:func:`~..frames.pose_refusal`; at most :data:`PROBE_FRAMES`). Raises :class:`SourceError` with the reader's own one-line message, or the replay's
     when ``start`` lies past the end; ``duration_flag`` names the option that set a scenario's length.
     """
     opts = opts or SourceOptions()
@@ -181,6 +181,8 @@ def probe_source(spec: str, opts: SourceOptions | None = None, *, start: int = 0
         errors: list[str] = []
         try:
             for item in src.frames(start):
+                if not isinstance(item, FrameError):
+                    item = pose_refusal(item) or item  # the replay's own rule: a frame it would skip is no frame
                 if not isinstance(item, FrameError):
                     return src.info
                 errors.append(str(item))

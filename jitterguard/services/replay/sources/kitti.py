@@ -70,8 +70,10 @@ def _read_matrix_lines(path: Path, what: str) -> list[NDArray[np.float64]]:
             vals = [float(v) for v in line.split()]
         except ValueError:
             raise SourceError(f"{path}:{lineno}: {what} line is not 12 numbers") from None
-        if len(vals) != 12 or not np.all(np.isfinite(vals)):
-            raise SourceError(f"{path}:{lineno}: {what} line must hold 12 finite numbers, got {len(vals)}")
+        if len(vals) != 12 or not np.all(np.isfinite(vals)):  # "got 12" had been the answer to 12 with a nan
+            bad = next((v for v in vals if not np.isfinite(v)), None)
+            got = f"a non-finite one ({bad})" if len(vals) == 12 else str(len(vals))
+            raise SourceError(f"{path}:{lineno}: {what} line must hold 12 finite numbers, got {got}")
         m = np.eye(4)
         m[:3, :] = np.array(vals).reshape(3, 4)
         if not np.linalg.det(m[:3, :3]) > 0:
