@@ -117,6 +117,8 @@ def check_private_dir(path: Path, what: str = "--run-dir") -> None:
     if st.st_uid != uid:
         raise ArgumentError(f"{what}: {path} belongs to uid {st.st_uid}, not to you (uid {uid}): another user could"
                             " change the stack's files there; give a folder of your own")
-    if st.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
+    # a folder writable by its group counts as another user's unless that group is the user's own primary one (the
+    # user-private group of a umask 002: Ubuntu's default, where every folder the user made is 0775)
+    if st.st_mode & stat.S_IWOTH or (st.st_mode & stat.S_IWGRP and st.st_gid != os.getegid()):
         raise ArgumentError(f"{what}: {path} is writable by other users (mode {stat.S_IMODE(st.st_mode):04o}): they"
                             f" could change the stack's files there; `chmod go-w {path}` or give another folder")

@@ -596,3 +596,25 @@ def test_a_stack_whose_supervisord_died_is_reported_and_down_stops_what_it_left(
                 os.kill(pid, signal.SIGKILL)
             except ProcessLookupError:
                 pass
+
+
+def test_a_run_dir_writable_by_the_users_own_group_is_taken(tmp_path):
+    """Under a umask of 002 (Ubuntu's user-private groups) every folder a user makes is 0775 in their own group: such
+    a run dir is the user's alone and is taken; group-writable in another group, or world-writable, it is refused."""
+    from jitterguard.stack.validate import ArgumentError, check_private_dir
+
+    own = tmp_path / "own"
+    own.mkdir()
+    own.chmod(0o775)
+    os.chown(own, -1, os.getegid())
+    check_private_dir(own)  # no error
+    if os.geteuid() == 0:
+        other = tmp_path / "other"
+        other.mkdir()
+        other.chmod(0o775)
+        os.chown(other, -1, 65534)
+        with pytest.raises(ArgumentError, match="writable by other users"):
+            check_private_dir(other)
+    own.chmod(0o777)
+    with pytest.raises(ArgumentError, match="writable by other users"):
+        check_private_dir(own)
