@@ -8,7 +8,10 @@ import json
 import logging
 import math
 import shutil
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -251,21 +254,22 @@ def test_a_scan_that_leaves_no_pillar_gives_no_detections_on_either_layout(torch
         assert len(load_onnx_detector(d, threads=1).detect(points)) == 0
 
 
-@pytest.mark.integration
-def test_the_service_on_the_autoware_layout_closes_the_frame_of_a_scan_without_pillars(autoware_dir) -> None:
-    """Over real Zenoh: the scan is published with no objects (the tracker sees the frame), not a detect_error."""
+@contextmanager
+def _detector_on_the_bus(ns: str, det: Detector) -> Iterator[tuple[Any, list, Any]]:
+    """A real ``DetectorService`` running ``det`` on a loopback router, and a client session: yields the points
+    publisher (once the service's subscriber is matched), the ``DetectedObjects`` received, and the service."""
     import threading
 
     import zenoh
 
     from jitterguard.runtime import build_config, free_tcp_port, loopback_options
-    from jitterguard.schemas import decode, encode, keys
-    from jitterguard.schemas.models import DetectedObjects, Header, PointCloud
+    from jitterguard.schemas import decode, keys
+    from jitterguard.schemas.models import DetectedObjects
     from jitterguard.services.detector.service import DetectorService
     from helpers import wait_until
 
-    ns, port = "onnx_aw_empty", free_tcp_port()
-    svc = DetectorService(loopback_options(ns, port, listen_self=True), load_onnx_detector(autoware_dir, threads=1))
+    port = free_tcp_port()
+    svc = DetectorService(loopback_options(ns, port, listen_self=True), det)
     client = zenoh.open(build_config(loopback_options(ns, port)))
     got: list[DetectedObjects] = []
     lock = threading.Lock()
@@ -278,15 +282,26 @@ def test_the_service_on_the_autoware_layout_closes_the_frame_of_a_scan_without_p
     pub = client.declare_publisher(keys.points(ns), congestion_control=zenoh.CongestionControl.BLOCK)
     try:
         assert wait_until(lambda: pub.matching_status.matching, 10)
+        yield pub, got, svc
+    finally:
+        sub.undeclare()
+        client.close()
+        svc.close()
+
+
+@pytest.mark.integration
+def test_the_service_on_the_autoware_layout_closes_the_frame_of_a_scan_without_pillars(autoware_dir) -> None:
+    """Over real Zenoh: the scan is published with no objects (the tracker sees the frame), not a detect_error."""
+    from jitterguard.schemas import encode
+    from jitterguard.schemas.models import Header, PointCloud
+    from helpers import wait_until
+
+    with _detector_on_the_bus("onnx_aw_empty", load_onnx_detector(autoware_dir, threads=1)) as (pub, got, svc):
         for seq, pts in enumerate(_far_and_body_scans().values(), start=1):
             pub.put(encode(PointCloud(header=Header(stamp=seq * 100_000_000, frame_id="lidar", seq=seq),
                                       num_points=len(pts), data=pts.astype("<f4").tobytes())))
             assert wait_until(lambda: len(got) == seq or svc.counters.get("detect_errors"), 30)
         counters = svc.counters.snapshot()
-    finally:
-        sub.undeclare()
-        client.close()
-        svc.close()
     assert counters.get("detect_errors", 0) == 0, counters
     assert [m.header.seq for m in got] == [1, 2] and all(m.objects == [] for m in got)
 
@@ -519,42 +534,18 @@ def test_bench_detector_reports_torch_and_onnxruntime_side_by_side() -> None:
 def test_the_detector_service_on_onnxruntime_publishes_what_torch_would(torch_det, synthetic_scans) -> None:
     """``jitterguard detector --backend onnxruntime`` without ``--onnx``: the weights are exported at start-up and the
     very service publishes the ONNX Runtime network's detections over Zenoh."""
-    import threading
-
-    import zenoh
-
-    from jitterguard.runtime import build_config, free_tcp_port, loopback_options
-    from jitterguard.schemas import decode, encode, keys
-    from jitterguard.schemas.models import X_X, DetectedObjects, Header, PointCloud
+    from jitterguard.schemas import encode
+    from jitterguard.schemas.models import X_X, Header, PointCloud
     from jitterguard.services.detector.onnx_backend import open_onnx_detector
-    from jitterguard.services.detector.service import DetectorService
+    from helpers import wait_until
 
     det = open_onnx_detector(None, None, "lite", threads=2)
     assert isinstance(det.model, OnnxNetwork) and det.meta["backend"] == "onnxruntime"
-    ns, port = "onnx_svc", free_tcp_port()
-    svc = DetectorService(loopback_options(ns, port, listen_self=True), det)
-    client = zenoh.open(build_config(loopback_options(ns, port)))
-    got: list[DetectedObjects] = []
-    lock = threading.Lock()
-
-    def on(s: zenoh.Sample) -> None:
-        with lock:
-            got.append(decode(DetectedObjects, s.payload.to_bytes()))
-
-    sub = client.declare_subscriber(keys.detections(ns), on)
-    pub = client.declare_publisher(keys.points(ns), congestion_control=zenoh.CongestionControl.BLOCK)
-    try:
-        from helpers import wait_until
-
-        assert wait_until(lambda: pub.matching_status.matching, 10)
+    with _detector_on_the_bus("onnx_svc", det) as (pub, got, _svc):
         pts = synthetic_scans[0]
         pub.put(encode(PointCloud(header=Header(stamp=1, frame_id="lidar", seq=3), fields=["x", "y", "z", "intensity"],
                                   num_points=len(pts), data=np.ascontiguousarray(pts[:, :4], dtype="<f4").tobytes())))
         assert wait_until(lambda: len(got) == 1, 30)
-    finally:
-        sub.undeclare()
-        client.close()
-        svc.close()
     want = torch_det.detect(np.ascontiguousarray(pts[:, :4]))
     msg = got[0]
     assert msg.header.seq == 3 and len(msg.objects) == len(want) > 5
