@@ -57,6 +57,18 @@ RETIRED = -1
 """The pseudo-pid under which a service's retired processes' running counters are summed (no real pid is < 0)."""
 
 
+RESTART_UPTIME_SLACK_S = 1.0
+"""A heartbeat of a known pid whose uptime is this much below the last one's is a new process's (uptimes are kept
+to 0.1 s)."""
+
+
+def _restarted(last_uptime: Any, uptime: Any) -> bool:
+    try:
+        return float(uptime) + RESTART_UPTIME_SLACK_S < float(last_uptime)
+    except (TypeError, ValueError):
+        return False
+
+
 @dataclass
 class Ledger:
     """Per service and process: the last heartbeat counters seen (and when); bounded (:data:`MAX_SERVICES`,
@@ -67,7 +79,11 @@ class Ledger:
     def observe(self, service: str, pid: int, counters: dict[str, int], stamp_ns: int,
                 extra: dict[str, Any] | None = None) -> bool:
         """Record one heartbeat; an older one than the last seen for that process is ignored. False when it is
-        refused: a new service beyond :data:`MAX_SERVICES`."""
+        refused: a new service beyond :data:`MAX_SERVICES`. A newer heartbeat of the same pid whose ``uptime_s``
+        (in ``extra``) is smaller than the last one's comes from a new process that was given the old one's pid (a
+        container's service runs as pid 1 every time; a pid space that wrapped): the old process is retired, its
+        counts kept, before the new one is recorded. It had replaced the old record, every count before the
+        restart lost from the run's totals."""
         slot = self.procs.get(service)
         if slot is None:
             if len(self.procs) >= MAX_SERVICES:
@@ -76,16 +92,19 @@ class Ledger:
         last = slot.get(pid)
         if last is not None and last["stamp_ns"] > stamp_ns:
             return True
+        if last is not None and _restarted(last.get("uptime_s"), (extra or {}).get("uptime_s")):
+            self._retire(slot, pid)
+            last = None
         if last is None and sum(1 for p in slot if p != RETIRED) >= MAX_PROCESSES:
-            self._retire_oldest(slot)
+            self._retire(slot, min((p for p in slot if p != RETIRED), key=lambda p: slot[p]["stamp_ns"]))
         slot[pid] = {"stamp_ns": int(stamp_ns), "counters": dict(counters), **(extra or {})}
         return True
 
     @staticmethod
-    def _retire_oldest(slot: dict[int, dict[str, Any]]) -> None:
-        """Fold the process heard from longest ago (a restarted one) into the service's :data:`RETIRED` record."""
-        oldest = min((p for p in slot if p != RETIRED), key=lambda p: slot[p]["stamp_ns"])
-        rec = slot.pop(oldest)
+    def _retire(slot: dict[int, dict[str, Any]], pid: int) -> None:
+        """Fold a process that has ended (the one heard from longest ago, or one whose pid a new process now has)
+        into the service's :data:`RETIRED` record."""
+        rec = slot.pop(pid)
         ret = slot.setdefault(RETIRED, {"stamp_ns": 0, "counters": {}, "processes": 0})
         kept = ret["counters"]
         for k, v in rec["counters"].items():

@@ -110,3 +110,24 @@ def test_a_services_retired_record_keeps_a_bounded_set_of_counter_names() -> Non
     retired = led.procs["made-up"][summary.RETIRED]["counters"]
     assert len(retired) <= summary.MAX_COUNTER_NAMES + 1
     assert sum(led.totals("made-up").values()) == 1000 * 100  # nothing lost from the sums
+
+
+def test_a_new_process_given_the_old_ones_pid_adds_to_the_totals() -> None:
+    """A service restarted with the pid its last process had (a container's service is pid 1 every time; a pid
+    space that wrapped) starts its counters at 0 again under that pid: its first heartbeat had replaced the old
+    process's record, every frame before the restart lost from the run's totals. Told from its uptime going back."""
+    led = summary.Ledger()
+    for i in range(1, 11):  # the first process: 10 frames over 10 s
+        assert led.observe("tracker", 1, {"frames": i, "now.tracks": 5}, stamp_ns=i, extra={"uptime_s": float(i)})
+    for i in range(1, 4):  # the second, with the same pid: 3 frames
+        assert led.observe("tracker", 1, {"frames": i, "now.tracks": 2}, stamp_ns=100 + i,
+                           extra={"uptime_s": 0.5 + i})
+    assert led.totals("tracker") == {"frames": 13, "now.tracks": 2}
+    assert led.processes("tracker") == 2
+    # the same process, its heartbeats only later: nothing retired, nothing counted twice
+    assert led.observe("tracker", 1, {"frames": 4, "now.tracks": 2}, stamp_ns=104, extra={"uptime_s": 4.5})
+    assert led.totals("tracker") == {"frames": 14, "now.tracks": 2} and led.processes("tracker") == 2
+    # a ledger read back from summary.json (a restarted monitor) tells it the same way
+    back = summary.Ledger.from_json(json.loads(json.dumps(led.as_json())))
+    assert back.observe("tracker", 1, {"frames": 1}, stamp_ns=200, extra={"uptime_s": 1.0})
+    assert back.totals("tracker")["frames"] == 15 and back.processes("tracker") == 3
