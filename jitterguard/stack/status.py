@@ -253,10 +253,9 @@ def collect(procs: list[ProcessInfo], spec: StackSpec | None, listen_s: float = 
 
 
 def _fmt_uptime(s: float | None) -> str:
-    if s is None:
-        return "-"
-    s = int(s)
-    return f"{s // 3600}:{s % 3600 // 60:02d}:{s % 60:02d}"
+    from .summary import hms
+
+    return "-" if s is None else hms(s)
 
 
 def render_table(rows: list[ServiceStatus], spec: StackSpec | None, run_dir: Path) -> None:

@@ -307,6 +307,13 @@ def build(ledger: Ledger, events: dict[str, ProgramEvents], *, meta: dict[str, A
     }
 
 
+def hms(s: float) -> str:
+    """A duration as hours, minutes and seconds (``2:03:07``): `status`'s uptimes, a summary's run of a minute or
+    more."""
+    t = int(s)
+    return f"{t // 3600}:{t % 3600 // 60:02d}:{t % 60:02d}"
+
+
 def render(summary: dict[str, Any]) -> str:
     """The summary as a few lines for a terminal or a log."""
 
@@ -326,7 +333,8 @@ def render(summary: dict[str, Any]) -> str:
     exits = section("unexpected_exits", rs)
     dur = summary.get("duration_s")
     dur = dur if isinstance(dur, (int, float)) else None
-    head = f"run summary of stack {summary.get('stack', '?')!r}" + (f" ({dur:.1f} s)" if dur is not None else "")
+    head = f"run summary of stack {summary.get('stack', '?')!r}" + (f" ({dur:.1f} s)" if dur is not None and dur < 59.95
+                                                                     else f" ({hms(dur)})" if dur is not None else "")
     lines = [
         head,
         f"  frames    {'from ROS 2' if fr.get('source') == 'ros2-in' else 'replayed'} {n(fr.get('replayed'))},"
