@@ -122,7 +122,7 @@ class StackMonitor(Service):
         with self._ledger_lock:
             kept = self.ledger.observe(hb.service, hb.pid, hb.counters, hb.stamp, extra)
         if not kept:
-            self.counters.inc("heartbeats_dropped")  # a service beyond the ledger's bound (summary.MAX_SERVICES)
+            self.counters.inc("heartbeats_dropped")  # past the ledger's bounds (MAX_SERVICES, MAX_LEDGER_BYTES)
             return
         self.dirty = True
 
