@@ -301,6 +301,24 @@ def _print_summary(rd: Path, *, as_json: bool = False) -> bool:
     return True
 
 
+STALE_SUMMARY_S = 10.0
+"""A running stack's summary.json older than this is not being kept (the monitor writes it every second)."""
+
+
+def _warn_if_stale(rd: Path, sup: Supervisor) -> None:
+    """Say on stderr when a running stack's summary.json has not been rewritten for :data:`STALE_SUMMARY_S`: its
+    monitor is stopped, frozen or cannot write, and the counts printed are those of then. `summary` had printed
+    a frozen monitor's totals of minutes ago as the run so far, with nothing to tell them apart."""
+    try:
+        age = time.time() - (rd / summary.SUMMARY_FILE).stat().st_mtime
+    except OSError:
+        return
+    if age > STALE_SUMMARY_S and sup.running():
+        print(f"jitterguard: warning: {rd / summary.SUMMARY_FILE} was last written {age:.0f} s ago while the stack "
+              "runs: its monitor is not keeping it (`jitterguard status`, `jitterguard logs monitor`); these are the"
+              " counts of then", file=sys.stderr)
+
+
 def _refuse_if_running(sup: Supervisor, rd: Path, label: str, down_hint: str) -> None:
     """Exit 2 unless no stack runs in ``rd``: one that answers, one whose supervisord runs but does not answer
     (starting, shutting down, frozen: a second supervisord would then fight it over the socket and the run
@@ -985,7 +1003,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
     ) -> None:
         """The run so far (or the last run): frames, tracks born/ended, static/dynamic, rejections, drops, restarts."""
         rd, label = resolve(run_dir, name, ns)
-        if not _print_summary(rd, as_json=as_json):
+        if _print_summary(rd, as_json=as_json):
+            _warn_if_stale(rd, Supervisor(rd, label))
+        else:
             running = Supervisor(rd, label).running()
             print(f"jitterguard: no summary for the stack {label} "
                   + ("yet (its monitor writes one every second)" if running

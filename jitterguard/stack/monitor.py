@@ -77,7 +77,7 @@ class StackMonitor(Service):
         self._beat_at: dict[int, tuple[str, float]] = {}  # pid -> (service, monotonic time of its last heartbeat)
         self._beat_lock = threading.Lock()
         self._ledger_lock = threading.Lock()
-        self._stopped_since: dict[int, float] = {}  # a router pid seen stopped (SIGSTOP), since when (monotonic)
+        self._stopped_since: dict[int, float] = {}  # a router or unheard pid seen stopped (SIGSTOP), since when
         self.supervisor = Supervisor(run_dir, sock=supervisor_sock)
         # the run's own events: stack.json is written before supervisord starts (the log keeps milliseconds; a
         # look-back of seconds counted the previous run's last crashes in a run dir used again at once)
@@ -122,7 +122,7 @@ class StackMonitor(Service):
         with self._ledger_lock:
             kept = self.ledger.observe(hb.service, hb.pid, hb.counters, hb.stamp, extra)
         if not kept:
-            self.counters.inc("heartbeats_dropped")  # a service beyond the ledger's bound (summary.MAX_SERVICES)
+            self.counters.inc("heartbeats_dropped")  # past the ledger's bounds (MAX_SERVICES, MAX_LEDGER_BYTES)
             return
         self.dirty = True
 
@@ -226,12 +226,13 @@ class StackMonitor(Service):
         judged, only while other services are heard (a router down or restarting silences everyone: not a
         freeze), and never after the monitor itself stood still (it would then judge its own pause). It is ended
         with SIGKILL, which a stopped process cannot hold off, for supervisord to start it again. The router, which
-        sends no heartbeat, is judged by whether the kernel says it is stopped (:meth:`_end_stopped_router`)."""
+        sends no heartbeat, is judged by whether the kernel says it is stopped (:meth:`_end_stopped_unheard`), as is
+        a program this monitor never heard from (stopped before this monitor started, or before its first beat)."""
         from .status import SERVICE_NAMES
 
-        self._end_stopped_router(procs, now, limit)
         with self._beat_lock:
             beats = dict(self._beat_at)
+        self._end_stopped_unheard(procs, beats, now, limit)
         own = os.getpid()
         recent = {svc for pid, (svc, t) in beats.items() if now - t <= 3 * HEARTBEAT_PERIOD_S and pid != own}
         if len(recent) < 2:  # the bus is not carrying heartbeats now (the router is away): judge nothing
@@ -250,25 +251,36 @@ class StackMonitor(Service):
             with self._beat_lock:
                 self._beat_at.pop(proc.pid, None)
 
-    def _end_stopped_router(self, procs: list[Any], now: float, limit: float) -> None:
+    def _end_stopped_unheard(self, procs: list[Any], beats: dict[int, tuple[str, float]], now: float,
+                             limit: float) -> None:
         """The router sends no heartbeat, and while it stands still nobody is heard: judged by the kernel instead
         (``/proc``: stopped by a signal) for as long as the others are by their silence. A router stopped had left
-        the whole stack silent for good, every program RUNNING."""
+        the whole stack silent for good, every program RUNNING. So is a program whose current pid this monitor has
+        never heard from: one stopped before this monitor started (a monitor restarted mid-run, or started after
+        the pipeline) or before its first heartbeat, which silence cannot judge — a tracker stopped just before the
+        monitor was restarted had stayed frozen for good, `status` saying "no heartbeat heard"."""
         from .control import process_stopped
+        from .status import SERVICE_NAMES
 
+        own = os.getpid()
         seen = set()
         for proc in procs:
-            if proc.name != "router" or proc.state != "RUNNING" or proc.pid is None:
+            if proc.state != "RUNNING" or proc.pid is None or proc.pid == own:
                 continue
+            heard = beats.get(proc.pid)
+            if proc.name != "router" and heard is not None and heard[0] in SERVICE_NAMES.get(proc.name, (proc.name,)):
+                continue  # judged by its silence (_end_frozen)
             if not process_stopped(proc.pid):
                 continue
             seen.add(proc.pid)
             since = self._stopped_since.setdefault(proc.pid, now)
             if now - since >= limit:
-                self.log.error("router (pid %d) has been stopped for %.0f s (SIGSTOP?): no service can be heard "
-                               "through it; killing it for supervisord to restart it", proc.pid, now - since)
+                what = ("no service can be heard through it" if proc.name == "router"
+                        else "this monitor never heard it, and nothing inside it runs")
+                self.log.error("%s (pid %d) has been stopped for %.0f s (SIGSTOP?): %s; killing it for supervisord "
+                               "to restart it", proc.name, proc.pid, now - since, what)
                 if self.supervisor.kill(proc.pid):
-                    self.counters.inc("frozen_restarts.router")
+                    self.counters.inc(f"frozen_restarts.{proc.name}")
                 seen.discard(proc.pid)
         self._stopped_since = {pid: t for pid, t in self._stopped_since.items() if pid in seen}
 

@@ -67,6 +67,8 @@ class ServiceStatus:
     heartbeat_expected: bool = False  # `status` listened long enough to hear one (not the router, which sends none)
     problem: str = ""  # why a program is not up, in words: not running (and its log's last line), unreachable
     held_back_s: float | None = None  # held back by the monitor after a crash loop: seconds to its next start
+    recent_exits: int = 0  # unexpected exits within the last RECENT_EXITS_S (supervisord's log): restarted, not steady
+    last_exit: str = ""  # the last of them: "exit status 1, 12 s ago"
 
     def as_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -185,9 +187,38 @@ def held_back(run_dir: Path | str | None, now: float | None = None) -> dict[str,
         return {}
 
 
+RECENT_EXITS_S = 600.0
+"""How far back ``status`` counts a program's unexpected exits (supervisord's log): one that keeps crashing more slowly
+than the monitor's crash-loop guard acts on (5 within 60 s) reads RUNNING and ok between its crashes."""
+
+
+def recent_exits(run_dir: Path | str | None, now: float | None = None) -> dict[str, tuple[int, str]]:
+    """Program → (its unexpected exits in the last :data:`RECENT_EXITS_S` of this run, the last one as "exit status
+    1, 12 s ago"), from the run directory's ``logs/supervisord.log`` ({} without one)."""
+    if not run_dir:
+        return {}
+    from .summary import supervisor_events
+
+    now = time.time() if now is None else now
+    try:
+        started = (Path(run_dir) / SPEC_FILE).stat().st_mtime  # the run's own events, not a previous run's
+    except OSError:
+        return {}
+    out: dict[str, tuple[int, str]] = {}
+    for name, ev in supervisor_events(Path(run_dir) / "logs" / "supervisord.log", since=started - 0.01).items():
+        recent = [(t, why) for t, why in ev.crashes if now - t <= RECENT_EXITS_S]
+        if recent:
+            t, why = recent[-1]
+            out[name] = (len(recent), f"{why}, {max(0.0, now - t):.0f} s ago")
+    return out
+
+
 def collect(procs: list[ProcessInfo], spec: StackSpec | None, listen_s: float = 1.5) -> list[ServiceStatus]:
     rows = rows_from_processes(procs)
     held = held_back(spec.run_dir if spec else None)
+    exits = recent_exits(spec.run_dir if spec else None)
+    for row in rows:
+        row.recent_exits, row.last_exit = exits.get(row.name, (0, ""))
     for row, proc in zip(rows, procs):
         if proc.state in ("STOPPED", "STOPPING") and proc.name in held:
             row.held_back_s = round(held[proc.name], 1)
@@ -222,10 +253,9 @@ def collect(procs: list[ProcessInfo], spec: StackSpec | None, listen_s: float = 
 
 
 def _fmt_uptime(s: float | None) -> str:
-    if s is None:
-        return "-"
-    s = int(s)
-    return f"{s // 3600}:{s % 3600 // 60:02d}:{s % 60:02d}"
+    from .summary import hms
+
+    return "-" if s is None else hms(s)
 
 
 def render_table(rows: list[ServiceStatus], spec: StackSpec | None, run_dir: Path) -> None:
@@ -252,6 +282,10 @@ def render_table(rows: list[ServiceStatus], spec: StackSpec | None, run_dir: Pat
         progress = (f"[red]{escape(r.problem)}[/]" if r.problem and (r.state != "RUNNING" or r.health is None) else
                     ("-" if r.heard else "[red]no heartbeat heard[/]") if r.health is None else
                     ("[green]ok[/]" if r.health == "ok" else f"[red]{r.health}[/]: {escape(r.health_reason)}"))
+        if r.recent_exits:  # restarted: said beside its progress, not only in the summary
+            progress += (f"; [yellow]restarted after {r.recent_exits} unexpected exit"
+                         f"{'s' if r.recent_exits > 1 else ''} in {RECENT_EXITS_S / 60:.0f} min "
+                         f"(last: {escape(r.last_exit)})[/]")
         table.add_row(r.name, f"[{color}]{r.state}[/]", str(r.pid or "-"), _fmt_uptime(r.uptime_s), alive, seq,
                       progress)
     console.print(table)

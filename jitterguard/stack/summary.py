@@ -55,6 +55,32 @@ made-up service whose every heartbeat came from a new pid with new names grew it
 beyond the bound are added to ``counts_of_unkept_names``."""
 RETIRED = -1
 """The pseudo-pid under which a service's retired processes' running counters are summed (no real pid is < 0)."""
+MAX_LEDGER_BYTES = 2 * 2**20
+"""About the most the ledger's counters may take in ``summary.json`` (names and values, every process's record and
+every retired one; a real stack's take a few KB, ~300 KB with every service restarted 32 times). Beyond it a
+heartbeat that would add a process, or grow one's record by more than :data:`GROWTH_SLACK_BYTES`, is refused. The
+bounds on services, processes and heartbeat entries alone had let 64 made-up services of 32 pids each, 512 counters
+of 490-character names apiece, make a 530 MB ``summary.json``, rewritten every second."""
+GROWTH_SLACK_BYTES = 1024
+"""How much a process's record may still grow past :data:`MAX_LEDGER_BYTES` (a real service's new counter names)."""
+_ENTRY_BYTES = 24  # a counter's value and JSON punctuation, beside its name
+_RECORD_BYTES = 96  # a record's stamp, last seq, uptime and JSON punctuation
+
+
+def _cost(rec: dict[str, Any]) -> int:
+    return _RECORD_BYTES + sum(len(k) + _ENTRY_BYTES for k in rec.get("counters", {}))
+
+
+RESTART_UPTIME_SLACK_S = 1.0
+"""A heartbeat of a known pid whose uptime is this much below the last one's is a new process's (uptimes are kept
+to 0.1 s)."""
+
+
+def _restarted(last_uptime: Any, uptime: Any) -> bool:
+    try:
+        return float(uptime) + RESTART_UPTIME_SLACK_S < float(last_uptime)
+    except (TypeError, ValueError):
+        return False
 
 
 @dataclass
@@ -63,30 +89,44 @@ class Ledger:
     :data:`MAX_PROCESSES`)."""
 
     procs: dict[str, dict[int, dict[str, Any]]] = field(default_factory=dict)
+    size: int = 0  # what its records take (:func:`_cost`), kept against MAX_LEDGER_BYTES
 
     def observe(self, service: str, pid: int, counters: dict[str, int], stamp_ns: int,
                 extra: dict[str, Any] | None = None) -> bool:
         """Record one heartbeat; an older one than the last seen for that process is ignored. False when it is
-        refused: a new service beyond :data:`MAX_SERVICES`."""
+        refused: a new service beyond :data:`MAX_SERVICES`. A newer heartbeat of the same pid whose ``uptime_s``
+        (in ``extra``) is smaller than the last one's comes from a new process that was given the old one's pid (a
+        container's service runs as pid 1 every time; a pid space that wrapped): the old process is retired, its
+        counts kept, before the new one is recorded. It had replaced the old record, every count before the
+        restart lost from the run's totals."""
         slot = self.procs.get(service)
-        if slot is None:
-            if len(self.procs) >= MAX_SERVICES:
-                return False
-            slot = self.procs[service] = {}
-        last = slot.get(pid)
+        if slot is None and len(self.procs) >= MAX_SERVICES:
+            return False
+        last = slot.get(pid) if slot is not None else None
         if last is not None and last["stamp_ns"] > stamp_ns:
             return True
+        restarted = last is not None and _restarted(last.get("uptime_s"), (extra or {}).get("uptime_s"))
+        rec = {"stamp_ns": int(stamp_ns), "counters": dict(counters), **(extra or {})}
+        added = _cost(rec) - (_cost(last) if last is not None and not restarted else 0)
+        if self.size + added > MAX_LEDGER_BYTES and (last is None or restarted or added > GROWTH_SLACK_BYTES):
+            return False
+        if slot is None:
+            slot = self.procs[service] = {}
+        if restarted:
+            self._retire(slot, pid)
+            last = None
         if last is None and sum(1 for p in slot if p != RETIRED) >= MAX_PROCESSES:
-            self._retire_oldest(slot)
-        slot[pid] = {"stamp_ns": int(stamp_ns), "counters": dict(counters), **(extra or {})}
+            self._retire(slot, min((p for p in slot if p != RETIRED), key=lambda p: slot[p]["stamp_ns"]))
+        self.size += _cost(rec) - (_cost(last) if last is not None else 0)
+        slot[pid] = rec
         return True
 
-    @staticmethod
-    def _retire_oldest(slot: dict[int, dict[str, Any]]) -> None:
-        """Fold the process heard from longest ago (a restarted one) into the service's :data:`RETIRED` record."""
-        oldest = min((p for p in slot if p != RETIRED), key=lambda p: slot[p]["stamp_ns"])
-        rec = slot.pop(oldest)
+    def _retire(self, slot: dict[int, dict[str, Any]], pid: int) -> None:
+        """Fold a process that has ended (the one heard from longest ago, or one whose pid a new process now has)
+        into the service's :data:`RETIRED` record (which never takes more than the record folded into it did)."""
+        rec = slot.pop(pid)
         ret = slot.setdefault(RETIRED, {"stamp_ns": 0, "counters": {}, "processes": 0})
+        self.size -= _cost(rec) + _cost(ret)
         kept = ret["counters"]
         for k, v in rec["counters"].items():
             if is_gauge(k):
@@ -95,6 +135,7 @@ class Ledger:
                 k = "counts_of_unkept_names"
             kept[k] = kept.get(k, 0) + int(v)
         ret["processes"] = int(ret.get("processes", 0)) + int(rec.get("processes", 1))
+        self.size += _cost(ret)
 
     def totals(self, service: str) -> dict[str, int]:
         """Running counters summed over the service's processes; gauges from its newest process."""
@@ -120,6 +161,7 @@ class Ledger:
         led = cls()
         for svc, slot in data.items():
             led.procs[svc] = {int(pid): dict(rec) for pid, rec in slot.items()}
+            led.size += sum(_cost(rec) for rec in led.procs[svc].values())
         return led
 
 
@@ -288,6 +330,13 @@ def build(ledger: Ledger, events: dict[str, ProgramEvents], *, meta: dict[str, A
     }
 
 
+def hms(s: float) -> str:
+    """A duration as hours, minutes and seconds (``2:03:07``): `status`'s uptimes, a summary's run of a minute or
+    more."""
+    t = int(s)
+    return f"{t // 3600}:{t % 3600 // 60:02d}:{t % 60:02d}"
+
+
 def render(summary: dict[str, Any]) -> str:
     """The summary as a few lines for a terminal or a log."""
 
@@ -307,7 +356,8 @@ def render(summary: dict[str, Any]) -> str:
     exits = section("unexpected_exits", rs)
     dur = summary.get("duration_s")
     dur = dur if isinstance(dur, (int, float)) else None
-    head = f"run summary of stack {summary.get('stack', '?')!r}" + (f" ({dur:.1f} s)" if dur is not None else "")
+    head = f"run summary of stack {summary.get('stack', '?')!r}" + (f" ({dur:.1f} s)" if dur is not None and dur < 59.95
+                                                                     else f" ({hms(dur)})" if dur is not None else "")
     lines = [
         head,
         f"  frames    {'from ROS 2' if fr.get('source') == 'ros2-in' else 'replayed'} {n(fr.get('replayed'))},"

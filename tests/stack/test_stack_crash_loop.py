@@ -134,3 +134,49 @@ def test_a_program_crashing_after_it_started_is_held_back_and_the_rest_keeps_run
     # (from a spawn to the next: the hold counts from the monitor's decision, which may come just before
     # supervisord's last restart of it, stopped on the next look)
     assert len(holds) == 2 and holds[0] >= 7.0 and holds[1] >= 15.0 and holds[1] > 1.6 * holds[0], gaps
+
+
+SLOW_CRASHER = "import sys, time; time.sleep(4); sys.exit('RuntimeError: weights file truncated')"
+
+
+def test_status_names_a_program_that_keeps_crashing_more_slowly_than_the_guard_acts(tmp_path):
+    """A program that dies every few seconds after it was called RUNNING, more slowly than the crash-loop guard acts
+    on (here turned off, as JG_CRASH_LOOP_EXITS=0 does; by default a crash every 15 s is never held back): `status`
+    had read RUNNING, its uptime and nothing else between two crashes, the restarts only in `summary`. Its row says
+    how often it exited unexpectedly of late, and the last exit."""
+    rd = tmp_path / "run"
+    (rd / "logs").mkdir(parents=True)
+    spec = StackSpec(ns=f"slowcrash{os.getpid()}", name="slowcrash", router_port=free_tcp_port(), input="detections",
+                     run_dir=str(rd), sidecar=False)
+    progs = [Program("router", _cmd("router", "--listen", spec.endpoint), priority=10),
+             Program("detector", (sys.executable, "-c", SLOW_CRASHER), priority=35)]
+    conf = rd / "supervisord.conf"
+    conf.write_text(render_config(spec, rd, progs, nodaemon=False))
+    save_spec(rd, spec)
+    res = subprocess.run([sys.executable, "-m", "supervisor.supervisord", "-c", str(conf)], capture_output=True,
+                         text=True, timeout=60)
+    assert res.returncode == 0, res.stdout + res.stderr
+    sup = Supervisor(rd)
+    try:
+        def exits() -> int:
+            events = summary.supervisor_events(rd / "logs" / "supervisord.log")
+            return len(events["detector"].crashes) if "detector" in events else 0
+
+        assert wait_until(lambda: exits() >= 2, timeout=60, period=0.3)
+        out = subprocess.run([*_cmd("status", "--run-dir", str(rd), "--json", "--listen-s", "0.3")],
+                             capture_output=True, text=True, timeout=60)
+        det = next(r for r in json.loads(out.stdout)["services"] if r["name"] == "detector")
+        assert det["recent_exits"] >= 2 and det["last_exit"].startswith("exit status 1, "), det
+        table = subprocess.run([*_cmd("status", "--run-dir", str(rd), "--listen-s", "0.3")], capture_output=True,
+                               text=True, timeout=60).stdout
+        line = next(ln for ln in table.splitlines() if ln.startswith("detector"))
+        assert re.search(r"restarted after \d+ unexpected exits in 10 min \(last: exit status 1, \d+ s ago\)", line), \
+            table
+        router = next(ln for ln in table.splitlines() if ln.startswith("router"))
+        assert "restarted" not in router, table
+    finally:
+        try:
+            sup.shutdown()
+        except StackUnavailable:
+            pass
+        sup.wait_gone(60)

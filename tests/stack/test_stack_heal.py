@@ -97,6 +97,53 @@ def test_a_frozen_service_is_ended_and_restarted(stack):
     assert wait_until(lambda: _classified(stack) > before + 10, timeout=HEAL_TIMEOUT_S, period=1.0)
 
 
+def test_a_service_stopped_before_the_monitor_restarted_is_still_ended(stack):
+    """A restarted monitor has heard nothing yet: a tracker stopped (SIGSTOP) just before it had never been judged by
+    its silence, and stayed frozen for good — every program RUNNING, `status` saying "no heartbeat heard". A program
+    this monitor never heard from is judged by the kernel, as the router is: stopped in /proc, ended, restarted."""
+    rd = stack["run_dir"]
+    tracker, monitor = pid_of(rd, "tracker"), pid_of(rd, "monitor")
+    assert tracker and monitor
+    os.kill(tracker, signal.SIGSTOP)
+    try:
+        os.kill(monitor, signal.SIGKILL)  # supervisord starts another, which never heard this tracker
+        assert wait_until(lambda: pid_of(rd, "tracker") not in (None, tracker), timeout=HEAL_TIMEOUT_S, period=0.5), \
+            (rd / "logs" / "monitor.log").read_text()[-2000:]
+    finally:
+        if pid_alive(tracker):
+            os.kill(tracker, signal.SIGCONT)
+    assert pid_of(rd, "monitor") not in (None, monitor)
+    log = (rd / "logs" / "monitor.log").read_text()
+    assert f"tracker (pid {tracker}) has been stopped for" in log and "never heard it" in log, log[-2000:]
+    before = _classified(stack)
+    assert wait_until(lambda: _classified(stack) > before + 10, timeout=HEAL_TIMEOUT_S, period=1.0)
+
+
+def test_summary_says_when_a_running_stacks_summary_is_not_being_kept(stack):
+    """A monitor stopped (SIGSTOP: nothing ends it, it is the one that ends frozen programs) keeps no summary: `summary`
+    had printed its totals of minutes ago as the run so far. It still prints them, and says on stderr how old they
+    are; once the monitor writes again it says nothing."""
+    import time
+
+    from jitterguard.stack.cli import STALE_SUMMARY_S
+
+    rd, env = stack["run_dir"], stack["env"]
+    monitor = pid_of(rd, "monitor")
+    assert monitor
+    path = rd / "summary.json"
+    os.kill(monitor, signal.SIGSTOP)
+    try:
+        assert wait_until(lambda: time.time() - path.stat().st_mtime > STALE_SUMMARY_S + 1, timeout=60, period=0.5)
+        res = jg("summary", "--run-dir", str(rd), env=env)
+        assert res.returncode == 0 and "run summary of stack" in res.stdout, res.stdout + res.stderr
+        assert "was last written" in res.stderr and "its monitor is not keeping it" in res.stderr, res.stderr
+    finally:
+        os.kill(monitor, signal.SIGCONT)
+    assert wait_until(lambda: time.time() - path.stat().st_mtime < 3, timeout=60, period=0.5)
+    res = jg("summary", "--run-dir", str(rd), env=env)
+    assert res.returncode == 0 and "last written" not in res.stderr, res.stderr
+
+
 def test_a_source_gone_for_good_keeps_readyz_ready_but_named(stack):
     """No input is not a fault (a sensor may be off): `/readyz` stays 200. But a ready sidecar serving no new
     objects now says why under `warnings` (the source left the bus; the classifier's frames stand still), and

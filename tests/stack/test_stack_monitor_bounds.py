@@ -110,3 +110,58 @@ def test_a_services_retired_record_keeps_a_bounded_set_of_counter_names() -> Non
     retired = led.procs["made-up"][summary.RETIRED]["counters"]
     assert len(retired) <= summary.MAX_COUNTER_NAMES + 1
     assert sum(led.totals("made-up").values()) == 1000 * 100  # nothing lost from the sums
+
+
+def test_a_new_process_given_the_old_ones_pid_adds_to_the_totals() -> None:
+    """A service restarted with the pid its last process had (a container's service is pid 1 every time; a pid
+    space that wrapped) starts its counters at 0 again under that pid: its first heartbeat had replaced the old
+    process's record, every frame before the restart lost from the run's totals. Told from its uptime going back."""
+    led = summary.Ledger()
+    for i in range(1, 11):  # the first process: 10 frames over 10 s
+        assert led.observe("tracker", 1, {"frames": i, "now.tracks": 5}, stamp_ns=i, extra={"uptime_s": float(i)})
+    for i in range(1, 4):  # the second, with the same pid: 3 frames
+        assert led.observe("tracker", 1, {"frames": i, "now.tracks": 2}, stamp_ns=100 + i,
+                           extra={"uptime_s": 0.5 + i})
+    assert led.totals("tracker") == {"frames": 13, "now.tracks": 2}
+    assert led.processes("tracker") == 2
+    # the same process, its heartbeats only later: nothing retired, nothing counted twice
+    assert led.observe("tracker", 1, {"frames": 4, "now.tracks": 2}, stamp_ns=104, extra={"uptime_s": 4.5})
+    assert led.totals("tracker") == {"frames": 14, "now.tracks": 2} and led.processes("tracker") == 2
+    # a ledger read back from summary.json (a restarted monitor) tells it the same way
+    back = summary.Ledger.from_json(json.loads(json.dumps(led.as_json())))
+    assert back.observe("tracker", 1, {"frames": 1}, stamp_ns=200, extra={"uptime_s": 1.0})
+    assert back.totals("tracker")["frames"] == 15 and back.processes("tracker") == 3
+
+
+def test_the_ledger_is_bounded_in_bytes_whatever_the_counter_names() -> None:
+    """Within every other bound (64 services, 32 processes each, 512 counters a heartbeat, 256 KiB), made-up
+    heartbeats of 490-character counter names had made a 530 MB summary.json, rewritten every second. The ledger now
+    refuses a new process, or a record's growth, past MAX_LEDGER_BYTES; what it already keeps goes on adding up."""
+    led = summary.Ledger()
+    for i in range(1, 4):  # a real tracker, heard before the flood
+        assert led.observe("tracker", 10, {"frames": i}, stamp_ns=i, extra={"uptime_s": float(i)})
+    names = {f"n{j:03d}" + "x" * 490: 1 for j in range(500)}
+    refused = 0
+    for s in range(64):
+        for pid in range(32):
+            refused += not led.observe(f"made-up{s}", 1000 + pid, names, stamp_ns=pid)
+    size = sum(len(json.dumps(rec)) for slot in led.procs.values() for rec in slot.values())
+    assert size < summary.MAX_LEDGER_BYTES + 300_000, size  # the last record taken, and the estimate's slack
+    assert refused > 0
+    # a kept process's heartbeats still count, and a record cannot grow past the bound
+    assert led.observe("tracker", 10, {"frames": 4}, stamp_ns=4, extra={"uptime_s": 4.0})
+    assert led.totals("tracker") == {"frames": 4}
+    assert not led.observe("tracker", 10, {"frames": 5, **names}, stamp_ns=5, extra={"uptime_s": 5.0})
+    # the size kept is the size a restarted monitor reads back
+    assert summary.Ledger.from_json(json.loads(json.dumps(led.as_json()))).size == led.size
+
+
+def test_a_real_stacks_ledger_is_far_below_the_byte_bound() -> None:
+    """Ten services of 25 counters, each restarted 100 times: every heartbeat taken, the totals exact."""
+    led = summary.Ledger()
+    counters = {f"counter_{j}.frames_dropped": 3 for j in range(25)}
+    for svc in range(10):
+        for pid in range(100):
+            assert led.observe(f"service{svc}", pid, counters, stamp_ns=pid, extra={"uptime_s": 1.0})
+    assert all(led.totals(f"service{s}")[f"counter_{j}.frames_dropped"] == 300 for s in range(10) for j in range(25))
+    assert led.size < summary.MAX_LEDGER_BYTES // 4

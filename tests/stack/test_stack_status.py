@@ -124,3 +124,15 @@ def test_a_run_dir_whose_files_are_not_what_this_version_wrote_is_read_in_one_li
     res = subprocess.run([*run, "summary", "--run-dir", str(rd)], capture_output=True, text=True, env=env, timeout=60)
     assert res.returncode == 0 and "Traceback" not in res.stderr, res.stderr
     assert "replayed 7, detected -" in res.stdout and "restarts  none" in res.stdout
+
+
+def test_the_summary_gives_a_long_run_in_hours_minutes_and_seconds():
+    """A day's run had read "(86412.3 s)": from a minute on the length reads as `status`'s uptimes do."""
+    from jitterguard.stack import summary
+
+    def head(duration: float) -> str:
+        return summary.render({"stack": "s", "duration_s": duration}).splitlines()[0]
+
+    assert head(40.1) == "run summary of stack 's' (40.1 s)"
+    assert head(86412.3) == "run summary of stack 's' (24:00:12)"
+    assert head(3725.2) == "run summary of stack 's' (1:02:05)"
