@@ -251,10 +251,13 @@ class BinScanSource(Source):
 
     def _stamp(self, i: int) -> int | str:
         """The scan's stamp, or why it has none: a scan past the end of times.txt had taken ``row × period`` after
-        the file's last time — back in time, which the replay then stamped 1 ns apart."""
-        row = self.rows[i]
+        the file's last time — back in time, which the replay then stamped 1 ns apart. Without times the scans are
+        ``period`` apart in the folder's order, as .pcd files are: the file number had been taken for the row of
+        time too, so scans named by their own timestamp (``1733450000123456.bin``, µs) were stamped 10⁵ periods
+        apart (hours at ``--rate 1``) or past the wire's int64 nanoseconds (a multi-line error, nothing replayed)."""
         if self.times is None:
-            return row * self.period_ns
+            return i * self.period_ns
+        row = self.rows[i]
         if row >= len(self.times):
             return f"no time for scan row {row} (times file has {len(self.times)} lines)"
         return self.times[row]
