@@ -190,6 +190,10 @@ class BinScanSource(Source):
         self.file_fields = [tuple(fields) if fields else fields_for(f) for f in files]
         if fields and tuple(fields[:3]) != ("x", "y", "z"):  # the file-name layouts all start x, y, z
             raise SourceError(f"--bin-fields must start with x,y,z, got {','.join(fields)}")
+        if fields and (not all(fields) or len(set(fields)) != len(fields)):  # as the wire's PointCloud wants them:
+            # "x,y,z,x" had ended the replay at its first scan with a multi-line validation error and exit 1, and
+            # "x,y,z,,i" had published a column without a name
+            raise SourceError(f"--bin-fields: each column needs a name of its own, got {','.join(fields)}")
         self.period_ns = period_ns
         nusc = [f.name.lower().endswith(".pcd.bin") for f in files]
         self.file_frame_ids = [frame_id or ("LIDAR_TOP" if n else "velodyne") for n in nusc]
