@@ -243,7 +243,8 @@ class BinScanSource(Source):
         if self.poses is None and len(files) > 1:
             warnings.append(f"{path}: {len(files)} scans and no --poses: every scan is published at the identity"
                             " pose, so if the sensor moved, static objects will look dynamic")
-        self.info = SourceInfo(name=str(path), kind="points", num_frames=len(files), notes=notes, warnings=warnings)
+        self.info = SourceInfo(name=str(path), kind="points", num_frames=len(files), notes=notes, warnings=warnings,
+                               period_ns=period_ns if self.times is None else None)
 
     def _pose(self, i: int) -> EgoPose | str:
         if self.poses is None:

@@ -209,7 +209,7 @@ class PcdSource(Source):
         self.files = files
         self.period_ns = period_ns
         self.frame_id = frame_id
-        self.info = SourceInfo(name=str(path), kind="points", num_frames=len(files))
+        self.info = SourceInfo(name=str(path), kind="points", num_frames=len(files), period_ns=period_ns)
 
     def frames(self, start: int = 0) -> Iterator[Item]:
         for i in range(start, len(self.files)):
