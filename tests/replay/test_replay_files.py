@@ -447,3 +447,45 @@ def test_kitti_scans_past_the_end_of_times_txt_are_skipped_not_stamped_back_in_t
     items = list(src.frames())
     assert [f.stamp_ns for f in items[:3]] == [0, 10**9, 2 * 10**9]
     assert all(isinstance(i, FrameError) and "no time for scan row" in i.reason for i in items[3:]) and len(items) == 5
+
+
+def _lzf_bytewise(data: bytes) -> bytes:
+    """liblzf's decoder as its C source reads, one byte at a time: the reference for the copies by repeat."""
+    out, ip = bytearray(), 0
+    while ip < len(data):
+        ctrl = data[ip]
+        ip += 1
+        if ctrl < 32:
+            out += data[ip : ip + ctrl + 1]
+            ip += ctrl + 1
+            continue
+        length = ctrl >> 5
+        if length == 7:
+            length += data[ip]
+            ip += 1
+        ref = len(out) - ((ctrl & 0x1F) << 8) - 1 - data[ip]
+        ip += 1
+        for k in range(length + 2):
+            out.append(out[ref + k])
+    return bytes(out)
+
+
+def test_lzf_overlapping_back_references_repeat_their_pattern() -> None:
+    """Back references that overlap what they write (distance < length: an organised cloud's empty returns) give
+    the bytes a byte-by-byte copy gives, for every distance and length, on seeded random streams."""
+    rng = np.random.default_rng(7)
+    for _ in range(200):
+        stream = bytearray([31]) + rng.integers(0, 256, 32, dtype=np.uint8).tobytes()
+        size = 32
+        for _ in range(int(rng.integers(1, 12))):
+            dist = int(rng.integers(1, min(size, 40) + 1))
+            length = int(rng.integers(3, 265))
+            field = min(length - 2, 7)
+            stream.append((field << 5) | ((dist - 1) >> 8))
+            if field == 7:
+                stream.append(length - 9)
+            stream.append((dist - 1) & 0xFF)
+            size += length
+        want = _lzf_bytewise(bytes(stream))
+        assert len(want) == size
+        assert lzf_decompress(bytes(stream), size) == want

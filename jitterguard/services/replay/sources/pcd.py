@@ -122,9 +122,10 @@ def lzf_decompress(data: bytes, out_len: int) -> bytes:
                 raise ValueError("compressed data corrupt (reference before start)")
             if ref + length <= len(out):
                 out += out[ref : ref + length]
-            else:  # overlapping copy repeats a pattern
-                for k in range(length):
-                    out.append(out[ref + k])
+            else:  # an overlapping copy repeats the last (len - ref) bytes: copied as whole repeats, not byte by
+                # byte (an organised cloud's empty returns, runs at distance 1, had cost 0.3 s per 6 MB scan)
+                pattern = out[ref:]
+                out += (pattern * (length // len(pattern) + 1))[:length]
         if len(out) > out_len:
             raise ValueError("compressed data expands past its declared size")
     if len(out) != out_len:
