@@ -96,6 +96,24 @@ def test_bag_garbage_message_is_a_frame_error_naming_bag_topic_and_index(tmp_pat
     src.close()
 
 
+@pytest.mark.parametrize("pose_topic", [ODOM_TOPIC, "/tf"])
+def test_a_torn_pose_or_tf_message_is_skipped_not_the_whole_bag(tmp_path: Path, pose_topic: str) -> None:
+    """One odometry or /tf message that does not decode (a recorder killed mid-write): skipped and counted as a
+    non-finite sample is, the scans posed by the samples around it. It had refused the whole bag at open."""
+    whole = write_bag(tmp_path / "whole", with_tf=True)
+    torn = write_bag(tmp_path / "torn", with_tf=True, torn_pose_at=3)  # between the 2nd and 3rd scans
+    opts = SourceOptions(pose_topic=pose_topic)
+    with open_source(str(whole.path), opts) as src:
+        want = list(src.frames())
+    with open_source(str(torn.path), opts) as src:
+        warnings = src.info.warnings
+        got = list(src.frames())
+    assert any(f"1 undecodable message(s) on {pose_topic} skipped" in w for w in warnings), warnings
+    assert all(isinstance(f, ScanFrame) for f in got) and len(got) == len(want) == 4
+    for g, w in zip(got, want):  # positions are linear in time: interpolating over the gap gives the same
+        assert (g.pose.x, g.pose.y, g.pose.z) == pytest.approx((w.pose.x, w.pose.y, w.pose.z), abs=1e-9)
+
+
 def test_bag_detection_that_fails_validation_is_a_frame_error(tmp_path: Path) -> None:
     bag = write_bag(tmp_path / "bag", bad_label_at=1)
     src = open_source(str(bag.path), SourceOptions(topic=DET_TOPIC))
