@@ -58,6 +58,10 @@ from .ros_types import (
 log = logging.getLogger("jitterguard.replay")
 
 BAG_SUFFIXES = (".mcap", ".db3", ".bag")
+MAX_CLAMP_NS = 500_000_000
+"""A scan stamped further than this before the first pose sample (or after the last) is an unreadable frame, not
+posed at that sample: a LiDAR stamp a sweep or an odometry period off is clamped, seconds before localization
+began are not."""
 
 
 def is_bag(path: Path) -> bool:
@@ -151,7 +155,7 @@ class BagSource(Source):
         self.undecodable: dict[str, int] = {}  # pose and TF topics: messages skipped as undecodable
         self.poser = ScanPoser(use_tf=pose_topic is not None and pose_topic in by_topic
                                and by_topic[pose_topic][0].msgtype == TF_MESSAGE,
-                               turn_clouds=self.msgtype == POINTCLOUD2)
+                               turn_clouds=self.msgtype == POINTCLOUD2, max_clamp_ns=MAX_CLAMP_NS)
         notes = [f"topic {topic} ({self.msgtype}), {count} messages"]
         statics = [t for t, cs in by_topic.items() if cs[0].msgtype == TF_MESSAGE and t.rstrip("/").endswith("tf_static")]
         for t in statics:
