@@ -489,3 +489,13 @@ def test_lzf_overlapping_back_references_repeat_their_pattern() -> None:
         want = _lzf_bytewise(bytes(stream))
         assert len(want) == size
         assert lzf_decompress(bytes(stream), size) == want
+
+
+def test_a_name_with_a_superscript_digit_sorts_and_does_not_refuse_the_folder(tmp_path: Path) -> None:
+    """``scan_1²2.bin``: the superscript is no decimal digit, but ``str.isdigit`` had said it was, and ``int('²')``
+    refused the whole folder ("cannot open: ValueError")."""
+    write_bin(tmp_path / "scan_2.bin", np.full((2, 4), 2, dtype=np.float32))
+    write_bin(tmp_path / "scan_1²2.bin", np.full((2, 4), 1, dtype=np.float32))
+    write_bin(tmp_path / "scan_10.bin", np.full((2, 4), 10, dtype=np.float32))
+    frames = list(open_source(str(tmp_path)).frames())
+    assert [f.points[0, 0] for f in frames] == [1, 2, 10]
