@@ -110,3 +110,15 @@ def test_a_malformed_annotation_costs_the_ground_truth_not_the_scans(tmp_path: P
         stats = run_replay(src, ReplayPlan(rate=None), lambda f, seq, _stamp: got.append((seq, f.truth)))
     assert stats.errors == 0 and stats.published == 40
     assert [seq for seq, _ in got] == list(range(40)) and all(truth is None for _, truth in got)
+
+
+@needs_nusc
+@pytest.mark.parametrize("inner", ["v1.0-mini", "samples"])
+def test_a_folder_inside_a_nuscenes_dataroot_is_refused_naming_the_dataroot(inner: str) -> None:
+    """Its table folder had been refused as holding "no nuScenes tables" — the very tables it holds."""
+    import re
+
+    from jitterguard.services.replay.frames import SourceError
+
+    with pytest.raises(SourceError, match=re.escape(f"inside the nuScenes dataroot {NUSC}: give the dataroot as SOURCE")):
+        open_source(str(NUSC / inner))
