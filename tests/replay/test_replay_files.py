@@ -499,3 +499,28 @@ def test_a_name_with_a_superscript_digit_sorts_and_does_not_refuse_the_folder(tm
     write_bin(tmp_path / "scan_10.bin", np.full((2, 4), 10, dtype=np.float32))
     frames = list(open_source(str(tmp_path)).frames())
     assert [f.points[0, 0] for f in frames] == [1, 2, 10]
+
+
+def test_a_large_ascii_pcd_is_parsed_without_a_python_string_per_value(tmp_path: Path, monkeypatch) -> None:
+    """An ascii PCD's values had been split into one Python string each, all at once: 2 GB for a 5-million-point
+    (160 MB) file. Parsed in whole-line chunks, the peak is a few times the file, and every value is read."""
+    import tracemalloc
+
+    from jitterguard.services.replay.sources import pcd
+
+    monkeypatch.setattr(pcd, "ASCII_CHUNK_BYTES", 64 << 10, raising=False)
+    pts = np.random.default_rng(3).normal(scale=20.0, size=(100_000, 4)).astype(np.float32)
+    path = tmp_path / "big.pcd"
+    with path.open("w") as fh:
+        fh.write("FIELDS x y z intensity\nSIZE 4 4 4 4\nTYPE F F F F\nWIDTH 100000\nHEIGHT 1\nDATA ascii\n")
+        np.savetxt(fh, pts, fmt="%.4f")
+    size = path.stat().st_size
+    tracemalloc.start()
+    try:
+        got, names, _ = read_pcd(path)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert names == ("x", "y", "z", "intensity") and got.shape == (100_000, 4)
+    assert np.allclose(got, pts, atol=1e-4)
+    assert peak < 6 * size, (peak, size)  # about 4x; 12x before

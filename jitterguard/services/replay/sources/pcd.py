@@ -142,6 +142,30 @@ def _columns(h: PcdHeader, structured: NDArray[np.void]) -> tuple[NDArray[np.flo
     return cols, names
 
 
+ASCII_CHUNK_BYTES = 4 << 20
+"""ASCII data is parsed this many bytes (whole lines) at a time: one ``split`` of a whole 5-million-point file had
+held 20 million Python strings at once (2 GB for a 160 MB file)."""
+
+
+def _ascii_values(body: bytes) -> NDArray[np.float64]:
+    """Every number of an ascii PCD's data, in order; ``ValueError`` on bytes that are not text or a token that is no
+    number. Parsed in whole-line chunks of :data:`ASCII_CHUNK_BYTES`, so memory grows with the values, not with a
+    Python string per value."""
+    parts: list[NDArray[np.float64]] = []
+    pos = 0
+    while pos < len(body):
+        end = body.find(b"\n", pos + ASCII_CHUNK_BYTES)
+        end = len(body) if end < 0 else end + 1
+        try:
+            parts.append(np.array(body[pos:end].decode("ascii").split(), dtype=np.float64))
+        except UnicodeDecodeError:
+            raise ValueError("ascii data holds non-text bytes") from None
+        except ValueError:
+            raise ValueError("ascii data holds a value that is not a number") from None
+        pos = end
+    return np.concatenate(parts) if parts else np.empty(0, dtype=np.float64)
+
+
 def read_pcd(path: Path) -> tuple[NDArray[np.float32], tuple[str, ...], EgoPose]:
     """Read a PCD file: (points (P, F) float32 with x, y, z first, field names, viewpoint pose)."""
     raw = Path(path).read_bytes()
@@ -171,15 +195,8 @@ def read_pcd(path: Path) -> tuple[NDArray[np.float32], tuple[str, ...], EgoPose]
             arr[name] = np.frombuffer(flat[off : off + n], dtype=sub.base).reshape((h.points, *sub.shape))
             off += n
     else:
-        try:
-            text = body.decode("ascii")
-        except UnicodeDecodeError:
-            raise ValueError("ascii data holds non-text bytes") from None
         total = sum(h.counts)
-        try:
-            vals = np.array(text.split(), dtype=np.float64)
-        except ValueError:
-            raise ValueError("ascii data holds a value that is not a number") from None
+        vals = _ascii_values(body)
         if vals.size < h.points * total:
             raise ValueError(f"ascii data holds {vals.size} values, {h.points} points need {h.points * total}: truncated")
         flat = vals[: h.points * total].reshape(h.points, total)
