@@ -140,12 +140,16 @@ def write_bag(
     empty_cloud_topic: bool = False,
     mount_rpy: tuple[float, float, float] | None = None,
     ground: bool = False,
+    torn_pose_at: int | None = None,
+    poses_from_ns: int = 0,
 ) -> BagContents:
     """Write the bag at ``path`` (a folder that must not exist) and return what it holds. ``empty_cloud_topic``:
     the cloud topic is declared but holds no message (a stack fed detections records one so). ``mount_rpy``: the
     LiDAR's rotation in base_link (roll, pitch, yaw) instead of :data:`LIDAR_MOUNT`'s yaw, at its translation.
     ``ground``: each cloud is ``points`` returns of the ground z = 0 around the (level) vehicle, in the LiDAR's
-    frame; else random points."""
+    frame; else random points. ``torn_pose_at``: that odometry (and /tf) message is bytes that do not decode, as a
+    recorder killed mid-write leaves. ``poses_from_ns``: no odometry or /tf sample before ``T0 + poses_from_ns`` (the
+    localization started late)."""
     from rosbags.rosbag2 import StoragePlugin, Writer
 
     ts = typestore()
@@ -171,10 +175,14 @@ def write_bag(
             t = T0 - 50_000_000 + k * 50_000_000
             x, y, yaw = 1.0 * k, 0.5 * k, 0.05 * k
             out.odom.append((t, x, y, yaw))
-            w.write(c_odom, t, ts.serialize_cdr(_odom(ts, t, x, y, None if k in headless_odom else yaw),
-                                                "nav_msgs/msg/Odometry"))
+            if t < T0 + poses_from_ns:
+                continue
+            torn = k == torn_pose_at
+            w.write(c_odom, t, b"\x00\x01 torn" if torn else ts.serialize_cdr(
+                _odom(ts, t, x, y, None if k in headless_odom else yaw), "nav_msgs/msg/Odometry"))
             if with_tf:
-                w.write(c_tf, t, ts.serialize_cdr(_tf(ts, [(t, "map", "base_link", x, y, 0.0, yaw)]), TF))
+                w.write(c_tf, t, b"\x00\x01 torn" if torn else ts.serialize_cdr(
+                    _tf(ts, [(t, "map", "base_link", x, y, 0.0, yaw)]), TF))
         for i in range(n):
             t = T0 + i * 100_000_000
             pts = rng.normal(size=(points, 4)).astype(np.float32)

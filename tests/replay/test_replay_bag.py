@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +16,7 @@ from jitterguard.services.replay.frames import compose  # noqa: E402
 from jitterguard.services.replay.sources import SourceOptions, open_source  # noqa: E402
 from jitterguard.services.replay.sources.nuscenes import FRAME_SUFFIX  # noqa: E402
 
-from .bagfixture import CLOUD_TOPIC, DET_TOPIC, LIDAR_MOUNT, ODOM_TOPIC, write_bag  # noqa: E402
+from .bagfixture import CLOUD_TOPIC, DET_TOPIC, LIDAR_MOUNT, ODOM_TOPIC, T0, write_bag  # noqa: E402
 
 
 @pytest.mark.parametrize("storage", ["sqlite3", "mcap"])
@@ -94,6 +95,38 @@ def test_bag_garbage_message_is_a_frame_error_naming_bag_topic_and_index(tmp_pat
     err = items[2]
     assert isinstance(err, FrameError) and err.origin == f"{bag.path}:{CLOUD_TOPIC}#2"
     src.close()
+
+
+@pytest.mark.parametrize("pose_topic", [ODOM_TOPIC, "/tf"])
+def test_a_torn_pose_or_tf_message_is_skipped_not_the_whole_bag(tmp_path: Path, pose_topic: str) -> None:
+    """One odometry or /tf message that does not decode (a recorder killed mid-write): skipped and counted as a
+    non-finite sample is, the scans posed by the samples around it. It had refused the whole bag at open."""
+    whole = write_bag(tmp_path / "whole", with_tf=True)
+    torn = write_bag(tmp_path / "torn", with_tf=True, torn_pose_at=3)  # between the 2nd and 3rd scans
+    opts = SourceOptions(pose_topic=pose_topic)
+    with open_source(str(whole.path), opts) as src:
+        want = list(src.frames())
+    with open_source(str(torn.path), opts) as src:
+        warnings = src.info.warnings
+        got = list(src.frames())
+    assert any(f"1 undecodable message(s) on {pose_topic} skipped" in w for w in warnings), warnings
+    assert all(isinstance(f, ScanFrame) for f in got) and len(got) == len(want) == 4
+    for g, w in zip(got, want):  # positions are linear in time: interpolating over the gap gives the same
+        assert (g.pose.x, g.pose.y, g.pose.z) == pytest.approx((w.pose.x, w.pose.y, w.pose.z), abs=1e-9)
+
+
+@pytest.mark.parametrize("pose_topic", [ODOM_TOPIC, "/tf"])
+def test_scans_long_before_the_first_pose_are_unreadable_not_posed_at_it(tmp_path: Path, pose_topic: str) -> None:
+    """Localization began 0.75 s after the LiDAR: the scans more than 0.5 s before its first sample have no pose
+    (unreadable frames naming why); they had all gone out at that first pose, a moving vehicle standing still. A
+    scan within 0.5 s of it is clamped to it, as before."""
+    bag = write_bag(tmp_path / "bag", n=10, with_tf=True, poses_from_ns=750_000_000)
+    with open_source(str(bag.path), SourceOptions(pose_topic=pose_topic)) as src:
+        items = list(src.frames())
+    assert [type(i).__name__ for i in items] == ["FrameError"] * 3 + ["ScanFrame"] * 7
+    assert "no pose yet: the scan is 0.75 s before" in items[0].reason, items[0]
+    first = next(o for o in bag.odom if o[0] >= T0 + 750_000_000)
+    assert items[3].pose.x == pytest.approx(first[1] + LIDAR_MOUNT[0] * math.cos(first[3]), abs=1e-6)
 
 
 def test_bag_detection_that_fails_validation_is_a_frame_error(tmp_path: Path) -> None:

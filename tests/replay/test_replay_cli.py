@@ -43,6 +43,8 @@ CASES = [
     (["replay", "{k}", "--stamps", "now"], "--stamps must be"),
     (["replay", "{k}", "--topic", "/x"], "--topic does not apply"),
     (["replay", "{k}", "--hz", "0"], "--hz must be positive"),
+    (["replay", "{k}", "--bin-fields", "x,y,z,x", "--rate", "max"], "--bin-fields: each column needs a name"),
+    (["replay", "{k}", "--bin-fields", "x,y,z,,i", "--rate", "max"], "--bin-fields: each column needs a name"),
     (["replay", "{k}", "--hz", "1e-9", "--rate", "max"], "--hz must be positive, from 0.001"),  # stamps past int64
     (["replay", "{k}", "--ns", "a/b"], "--ns"),
     (["replay", "{k}", "--connect", "nonsense"], "must look like tcp/HOST:PORT"),
@@ -54,7 +56,7 @@ CASES = [
 @pytest.mark.parametrize("argv,message", CASES)
 def test_bad_input_is_one_line_and_exit_2(app: typer.Typer, kitti: Path, argv: list[str], message: str) -> None:
     argv = [a.format(k=kitti) for a in argv]
-    if "--start" in argv and "5" in argv:
+    if ("--start" in argv and "5" in argv) or "--bin-fields" in argv:  # refused after a session opens: on loopback
         argv += ["--listen", "tcp/127.0.0.1:0", "--wait-subscriber", "0", "--no-progress"]
     result = CliRunner().invoke(app, argv)
     assert result.exit_code == 2, result.output
@@ -91,6 +93,24 @@ def test_one_unreadable_frame_among_good_ones_is_no_error(app: typer.Typer, tmp_
     err = result.stderr if hasattr(result, "stderr") and result.stderr else result.output
     assert result.exit_code == 0, err
     assert "replayed 1 frame(s)" in err and "1 unreadable" in err, err
+
+
+def test_scans_named_by_their_timestamp_replay_a_period_apart(app: typer.Typer, tmp_path: Path) -> None:
+    """Scans named by their µs timestamp (no times.txt): the file number had been taken for the row of time, so
+    they were stamped 10⁵ periods apart and past the wire's int64 nanoseconds — a multi-line validation error,
+    exit 1, nothing replayed. They go out ``--hz`` apart in the folder's order, as .pcd files do."""
+    from jitterguard.services.replay.sources.kitti import BinScanSource
+
+    folder = tmp_path / "stamped"
+    for k in range(3):
+        write_bin(folder / f"{1733450000123456 + k * 100_000}.bin", np.zeros((2, 4)))
+    assert [f.stamp_ns for f in BinScanSource(folder).frames()] == [0, 100_000_000, 200_000_000]
+    argv = ["replay", str(folder), "--rate", "max", "--listen", "tcp/127.0.0.1:0", "--wait-subscriber", "0",
+            "--no-progress"]
+    result = CliRunner().invoke(app, argv)
+    err = result.stderr if hasattr(result, "stderr") and result.stderr else result.output
+    assert result.exit_code == 0, err
+    assert "replayed 3 frame(s)" in err and "0 unreadable" in err, err
 
 
 @pytest.mark.parametrize("name,short", [

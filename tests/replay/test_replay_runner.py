@@ -235,3 +235,25 @@ def test_a_frame_whose_ego_pose_no_reader_takes_is_an_unreadable_frame_not_the_e
     assert published == ["mem#0", "mem#5"]
     assert stats.errors == 4 and [e.origin for e in errors] == ["mem#1", "mem#2", "mem#3", "mem#4"]
     assert all("\n" not in str(e) and "ego" in str(e) for e in errors), errors
+
+
+@pytest.mark.parametrize("suffix", [".bin", ".pcd"])
+def test_one_scan_looped_goes_out_at_its_hz_not_at_10_hz(tmp_path, suffix: str) -> None:
+    """``jitterguard replay one.bin --loop --hz 2``: a pass of one frame has no spacing of its own to measure, and
+    the re-stamper had fallen back on 10 Hz whatever ``--hz`` said (stamps and sleeps 0.1 s apart)."""
+    import numpy as np
+
+    from jitterguard.services.replay.sources import SourceOptions, open_source
+
+    path = tmp_path / f"one{suffix}"
+    if suffix == ".bin":
+        np.zeros((4, 4), dtype="<f4").tofile(path)
+    else:
+        path.write_text("FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nWIDTH 1\nHEIGHT 1\nDATA ascii\n1 2 3\n")
+    clock = FakeClock()
+    sink = Sink()
+    with open_source(str(path), SourceOptions(rate_hz=2.0, period_ns=500 * MS)) as src:
+        run_replay(src, ReplayPlan(rate=1.0, loop=True, passes=4), sink, clock=clock)
+    assert [stamp for _, _, stamp in sink.out] == [0, 500 * MS, 1000 * MS, 1500 * MS]
+    assert [seq for _, seq, _ in sink.out] == [0, 1, 2, 3]
+    assert clock.sleeps == pytest.approx([0.5, 0.5, 0.5])

@@ -87,3 +87,38 @@ def test_single_frames_pick_their_column_count_from_the_name() -> None:
     [fk] = list(open_source(str(kitti)).frames())
     assert fn.points.shape[1] == 5 and fk.points.shape[1] == 4
     assert fn.points.shape[0] * 20 == Path(nusc).stat().st_size
+
+
+@needs_nusc
+def test_a_malformed_annotation_costs_the_ground_truth_not_the_scans(tmp_path: Path) -> None:
+    """One annotation row with a null translation: the labels cannot be built, but the scans read fine. Its
+    TypeError had left the first pass ("reading failed after frame 0"), so not one scan was published."""
+    import json
+    import shutil
+
+    from jitterguard.services.replay.runner import ReplayPlan, run_replay
+
+    root = tmp_path / "nusc"
+    shutil.copytree(NUSC / "v1.0-mini", root / "v1.0-mini")
+    (root / "samples").symlink_to((NUSC / "samples").resolve())
+    table = root / "v1.0-mini" / "sample_annotation.json"
+    rows = json.loads(table.read_text())
+    rows[0]["translation"] = None
+    table.write_text(json.dumps(rows))
+    with open_source(str(root)) as src:
+        got: list[tuple[int, object]] = []
+        stats = run_replay(src, ReplayPlan(rate=None), lambda f, seq, _stamp: got.append((seq, f.truth)))
+    assert stats.errors == 0 and stats.published == 40
+    assert [seq for seq, _ in got] == list(range(40)) and all(truth is None for _, truth in got)
+
+
+@needs_nusc
+@pytest.mark.parametrize("inner", ["v1.0-mini", "samples"])
+def test_a_folder_inside_a_nuscenes_dataroot_is_refused_naming_the_dataroot(inner: str) -> None:
+    """Its table folder had been refused as holding "no nuScenes tables" — the very tables it holds."""
+    import re
+
+    from jitterguard.services.replay.frames import SourceError
+
+    with pytest.raises(SourceError, match=re.escape(f"inside the nuScenes dataroot {NUSC}: give the dataroot as SOURCE")):
+        open_source(str(NUSC / inner))

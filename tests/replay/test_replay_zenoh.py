@@ -286,3 +286,21 @@ def test_a_replay_told_to_wait_for_a_service_waits_for_its_ready_heartbeat_not_a
             assert 0.2 <= time.monotonic() - t0 < 5.0
     finally:
         col.close()
+
+
+def test_a_stop_during_the_waits_is_not_reported_as_their_timeout(ns: str, caplog: pytest.LogCaptureFixture) -> None:
+    """Stopped (Ctrl-C, SIGTERM) while it waited for the detector and a subscriber, the replay had logged "detector
+    not ready after 30.0 s; replaying anyway" and "no subscriber … after 30.0 s" of waits that lasted a moment."""
+    import logging
+
+    from jitterguard.services.replay.cli import _run
+
+    with ReplayService(loopback_options(ns, free_tcp_port(), listen_self=True)) as svc:
+        timer = threading.Timer(0.3, svc.stop)
+        timer.start()
+        with caplog.at_level(logging.INFO, logger="jitterguard.replay"):
+            code = _run(svc, memory(3), ReplayPlan(rate=None), 30.0, False, "detector")
+        timer.join()
+    assert code == 0
+    said = " ".join(r.getMessage() for r in caplog.records)
+    assert "not ready after" not in said and "no subscriber" not in said, said

@@ -179,9 +179,12 @@ def _run(svc: Any, src: Any, plan: ReplayPlan, wait_s: float, progress: bool | N
          wait_for: str | None = None) -> int:
     stop_on_signals(svc.stop)
     try:
-        if wait_for is not None and wait_s > 0 and not svc.wait_for_service(wait_for, wait_s):
+        # a wait that a stop (Ctrl-C, supervisord's SIGTERM) ended is no timeout: it had said "not ready after
+        # 120.0 s; replaying anyway" of a replay stopped after 3 s that replayed nothing
+        if (wait_for is not None and wait_s > 0 and not svc.wait_for_service(wait_for, wait_s)
+                and not svc.stop_event.is_set()):
             log.warning("%s not ready after %.1f s; replaying anyway", wait_for, wait_s)
-        if wait_s > 0 and not svc.wait_for_subscribers(wait_s):
+        if wait_s > 0 and not svc.wait_for_subscribers(wait_s) and not svc.stop_event.is_set():
             log.info("no subscriber on %s after %.1f s; replaying anyway", svc.key, wait_s)
         rate_txt = "max" if plan.rate is None else f"x{plan.rate:g}"
         log.info("replaying %s on %s at rate %s%s", src.info.name, svc.key, rate_txt, " (looping)" if plan.loop else "")

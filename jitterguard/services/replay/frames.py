@@ -157,6 +157,9 @@ class SourceInfo:
     notes: list[str] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
     """What will likely make the result wrong though the source replays (a moving sensor without poses)."""
+    period_ns: int | None = None
+    """The spacing of its frames when the source sets it (``--hz``: synthetic sources, scans without time): what a
+    pass of one frame (one scan, ``--limit 1``) is paced by when looping, as its spacing cannot be measured."""
 
 
 # ----------------------------------------------------------------------------------------- point helpers

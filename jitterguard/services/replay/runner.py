@@ -13,7 +13,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Literal
 
-from .frames import Frame, FrameError, Item, pose_refusal
+from .frames import DEFAULT_PERIOD_NS, Frame, FrameError, Item, pose_refusal
 from .pacing import Clock, Pacer, RealClock, Restamper
 from .sources.base import Source, past_end
 
@@ -130,7 +130,8 @@ def run_replay(
     stop = stop or threading.Event()
     clock = clock or RealClock(stop)
     pacer = Pacer(plan.rate, clock, plan.max_lag_s)
-    restamp = Restamper(origin=wall_ns if plan.stamps == "wall" else None)
+    # a pass of one frame has no spacing to measure: the source's own (--hz) paces it, not 10 Hz whatever --hz said
+    restamp = Restamper(source.info.period_ns or DEFAULT_PERIOD_NS, origin=wall_ns if plan.stamps == "wall" else None)
     stats = ReplayStats()
     seq = plan.seq_start
     good = 0

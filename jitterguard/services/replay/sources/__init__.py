@@ -138,6 +138,9 @@ def open_source(spec: str, opts: SourceOptions | None = None) -> Source:
             raise SourceError(f"{path}: no metadata.yaml, but it holds {', '.join(bag_files[:3])}"
                               f"{' …' if len(bag_files) > 3 else ''}: give that file as SOURCE (an MCAP cut short has"
                               " no footer either: `mcap recover` rewrites it whole)")
+        above = next((up for up in (path.parent, path.parent.parent) if is_nuscenes_root(up)), None)
+        if above is not None:  # its table folder (v1.0-mini) or samples/: "no nuScenes tables" had been the answer
+            raise SourceError(f"{path}: a folder inside the nuScenes dataroot {above}: give the dataroot as SOURCE")
         raise SourceError(
             f"{path}: cannot tell what this folder is (no nuScenes tables, bag metadata.yaml, .bin or .pcd files)"
         )

@@ -58,6 +58,10 @@ from .ros_types import (
 log = logging.getLogger("jitterguard.replay")
 
 BAG_SUFFIXES = (".mcap", ".db3", ".bag")
+MAX_CLAMP_NS = 500_000_000
+"""A scan stamped further than this before the first pose sample (or after the last) is an unreadable frame, not
+posed at that sample: a LiDAR stamp a sweep or an odometry period off is clamped, seconds before localization
+began are not."""
 
 
 def is_bag(path: Path) -> bool:
@@ -148,9 +152,10 @@ class BagSource(Source):
         kind = "points" if self.msgtype == POINTCLOUD2 else "detections"
         count = sum(c.msgcount for c in self.connections)
 
+        self.undecodable: dict[str, int] = {}  # pose and TF topics: messages skipped as undecodable
         self.poser = ScanPoser(use_tf=pose_topic is not None and pose_topic in by_topic
                                and by_topic[pose_topic][0].msgtype == TF_MESSAGE,
-                               turn_clouds=self.msgtype == POINTCLOUD2)
+                               turn_clouds=self.msgtype == POINTCLOUD2, max_clamp_ns=MAX_CLAMP_NS)
         notes = [f"topic {topic} ({self.msgtype}), {count} messages"]
         statics = [t for t, cs in by_topic.items() if cs[0].msgtype == TF_MESSAGE and t.rstrip("/").endswith("tf_static")]
         for t in statics:
@@ -171,7 +176,8 @@ class BagSource(Source):
                 raise SourceError(
                     f"{self.path}: pose topic {pose_topic} is {ptype}, not {TF_MESSAGE} or one of {', '.join(POSE_TYPES)}"
                 )
-        warnings = []
+        warnings = [f"{self.path}: {n} undecodable message(s) on {t} skipped; the scans take the poses around them"
+                    for t, n in sorted(self.undecodable.items())]
         if self.poser.tf_skipped:
             warnings.append(f"{self.path}: TF transforms whose rotation is not a unit quaternion or that are not finite"
                             " skipped (as tf2 does): "
@@ -202,19 +208,23 @@ class BagSource(Source):
             messages.close()
         return None
 
-    def _messages(self, conns: list[Any], what: str) -> Iterator[tuple[int, Any]]:
+    def _messages(self, conns: list[Any]) -> Iterator[tuple[int, Any]]:
+        """The decoded messages of a pose or TF topic; one that does not decode (torn by a recorder killed mid-write)
+        is skipped and counted in ``undecodable`` as a non-finite sample is: it had refused the whole bag."""
         for conn, t_bag, raw in self.reader.messages(connections=conns):
             try:
-                yield int(t_bag), self.reader.deserialize(raw, conn.msgtype)
-            except Exception as exc:
-                raise SourceError(f"{self.path}: {what} {conn.topic}: undecodable message: {exc}") from None
+                msg = self.reader.deserialize(raw, conn.msgtype)
+            except Exception:
+                self.undecodable[conn.topic] = self.undecodable.get(conn.topic, 0) + 1
+                continue
+            yield int(t_bag), msg
 
     def _read_tf(self, conns: list[Any], *, static: bool) -> None:
-        for t_bag, msg in self._messages(conns, "TF topic"):
+        for t_bag, msg in self._messages(conns):
             self.poser.add_tf(msg, t_bag, static=static)
 
     def _read_pose_topic(self, topic: str, conns: list[Any]) -> None:
-        for t_bag, msg in self._messages(conns, "pose topic"):
+        for t_bag, msg in self._messages(conns):
             self.poser.add_pose(msg, t_bag)
         if not self.poser.poses:
             no_heading = self.poser.poses_skipped

@@ -48,8 +48,10 @@ class MemorySource(Source):
 
 def natural_key(path: Path) -> list[int | str]:
     """Sort key that orders numbered files by number (``2.bin`` before ``10.bin``, ``frame_9`` before
-    ``frame_10``); zero-padded names (KITTI's ``000010.bin``) sort as they do by name."""
-    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", path.name)]
+    ``frame_10``); zero-padded names (KITTI's ``000010.bin``) sort as they do by name. The numbers are the runs of
+    decimal digits the split found (odd places): ``str.isdigit`` had taken a superscript (``scan_1²2.bin``) for one,
+    and its ``int`` failure refused the whole folder."""
+    return [int(t) if i % 2 else t for i, t in enumerate(re.split(r"(\d+)", path.name))]
 
 
 def listed_scans(folder: Path, is_scan: Callable[[str], bool]) -> list[Path]:

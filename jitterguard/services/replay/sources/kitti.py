@@ -190,6 +190,10 @@ class BinScanSource(Source):
         self.file_fields = [tuple(fields) if fields else fields_for(f) for f in files]
         if fields and tuple(fields[:3]) != ("x", "y", "z"):  # the file-name layouts all start x, y, z
             raise SourceError(f"--bin-fields must start with x,y,z, got {','.join(fields)}")
+        if fields and (not all(fields) or len(set(fields)) != len(fields)):  # as the wire's PointCloud wants them:
+            # "x,y,z,x" had ended the replay at its first scan with a multi-line validation error and exit 1, and
+            # "x,y,z,,i" had published a column without a name
+            raise SourceError(f"--bin-fields: each column needs a name of its own, got {','.join(fields)}")
         self.period_ns = period_ns
         nusc = [f.name.lower().endswith(".pcd.bin") for f in files]
         self.file_frame_ids = [frame_id or ("LIDAR_TOP" if n else "velodyne") for n in nusc]
@@ -239,7 +243,8 @@ class BinScanSource(Source):
         if self.poses is None and len(files) > 1:
             warnings.append(f"{path}: {len(files)} scans and no --poses: every scan is published at the identity"
                             " pose, so if the sensor moved, static objects will look dynamic")
-        self.info = SourceInfo(name=str(path), kind="points", num_frames=len(files), notes=notes, warnings=warnings)
+        self.info = SourceInfo(name=str(path), kind="points", num_frames=len(files), notes=notes, warnings=warnings,
+                               period_ns=period_ns if self.times is None else None)
 
     def _pose(self, i: int) -> EgoPose | str:
         if self.poses is None:
@@ -251,10 +256,13 @@ class BinScanSource(Source):
 
     def _stamp(self, i: int) -> int | str:
         """The scan's stamp, or why it has none: a scan past the end of times.txt had taken ``row × period`` after
-        the file's last time — back in time, which the replay then stamped 1 ns apart."""
-        row = self.rows[i]
+        the file's last time — back in time, which the replay then stamped 1 ns apart. Without times the scans are
+        ``period`` apart in the folder's order, as .pcd files are: the file number had been taken for the row of
+        time too, so scans named by their own timestamp (``1733450000123456.bin``, µs) were stamped 10⁵ periods
+        apart (hours at ``--rate 1``) or past the wire's int64 nanoseconds (a multi-line error, nothing replayed)."""
         if self.times is None:
-            return row * self.period_ns
+            return i * self.period_ns
+        row = self.rows[i]
         if row >= len(self.times):
             return f"no time for scan row {row} (times file has {len(self.times)} lines)"
         return self.times[row]

@@ -216,8 +216,10 @@ class NuScenesSource(Source):
             try:
                 _, gts = load_nuscenes_frames(self.dataroot, scene=self.scene_token, version=self.version)
                 self._truth = {int(g.stamp_ns): truth_message(g) for g in gts}
-            except (NuScenesError, OSError, KeyError, ValueError) as exc:
-                log.info("%s: no ground truth published: %s", self.dataroot, exc)
+            except (NuScenesError, OSError, KeyError, ValueError, TypeError, IndexError) as exc:
+                # a malformed annotation row (a null translation) had raised TypeError out of the first pass: the
+                # scans, which read fine, all went unpublished ("no frame could be read", exit 2)
+                log.info("%s: no ground truth published: %s: %s", self.dataroot, type(exc).__name__, exc)
                 self._truth = {}
         return self._truth
 

@@ -43,8 +43,12 @@ def _unit(pose: EgoPose) -> bool:
 class ScanPoser:
     """Poses from TF (``use_tf``) or from a pose topic's samples, or none (the identity)."""
 
-    def __init__(self, *, use_tf: bool = False, turn_clouds: bool = True) -> None:
+    def __init__(self, *, use_tf: bool = False, turn_clouds: bool = True, max_clamp_ns: int | None = None) -> None:
+        """``max_clamp_ns``: a scan stamped further than this outside the poses' span has no pose (a bag's scans
+        before its localization started); None: posed at the nearest sample however far (live, where the newest
+        scan is always past the newest pose and the service waits for it first)."""
         self.use_tf = use_tf
+        self.max_clamp_ns = max_clamp_ns
         self.turn_clouds = turn_clouds  # PointCloud2 scans are turned into the base frame's axes; boxes are not
         self.tf = TfTree()
         self.tf_skipped: dict[str, int] = {}  # child frame → transforms skipped: no unit quaternion or not finite
@@ -150,7 +154,7 @@ class ScanPoser:
                     # localization has no pose; posed in it, the scan had gone out with the mount for its world pose
                     return (f"no TF above {TF_BASE_FRAME} for the scan: nothing puts the vehicle in the world yet"
                             f" (localization's map -> {TF_BASE_FRAME})")
-                return self.tf.lookup(frame_id, t)
+                return self._outside(self.tf.span(frame_id), t, "the TF tree's") or self.tf.lookup(frame_id, t)
             except ValueError as exc:  # a cycle above the frame
                 return f"no TF for the scan: {exc}"
             except KeyError as exc:
@@ -159,6 +163,9 @@ class ScanPoser:
                 return f"no TF for the scan: {exc.args[0]}{skipped}"
         if not self.poses:
             return IDENTITY
+        outside = self._outside((self.pose_times[0], self.pose_times[-1]), t, "the pose topic's")
+        if outside:
+            return outside
         base = interpolate_pose(self.pose_times, self.poses, t)
         if self.base_frame and frame_id == self.base_frame.lstrip("/"):
             return base  # a cloud in the pose topic's own frame (Autoware's concatenated cloud in base_link)
@@ -172,6 +179,19 @@ class ScanPoser:
             self.notes.append(f"no /tf_static path from {self.base_frame or 'the pose topic frame'} to {frame_id}: "
                               "the vehicle pose stands in for the sensor's")
         return base
+
+    def _outside(self, span: tuple[int, int] | None, t: int, whose: str) -> str | None:
+        """Why a scan at ``t`` has no pose when it lies more than ``max_clamp_ns`` outside ``span`` (else None): it
+        had been posed at the first (last) sample, however long before localization began, so a vehicle driving
+        all that while stood still and every static object around it moved."""
+        if self.max_clamp_ns is None or span is None:
+            return None
+        first, last = span
+        if t < first - self.max_clamp_ns:
+            return f"no pose yet: the scan is {(first - t) / 1e9:.2f} s before {whose} first sample"
+        if t > last + self.max_clamp_ns:
+            return f"no pose any more: the scan is {(t - last) / 1e9:.2f} s after {whose} last sample"
+        return None
 
     def scan(self, msg: Any, origin: str, fallback_ns: int) -> ScanFrame | FrameError:
         """A ``sensor_msgs/PointCloud2`` as a posed scan (finite rows, turned into the base frame's axes where its

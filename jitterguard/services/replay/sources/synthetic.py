@@ -100,6 +100,7 @@ class SyntheticSource(Source):
             kind=level,
             num_frames=int(self.scenario.num_frames),
             notes=[f"{self.scenario.num_frames} frames at {rate_hz:g} Hz" + (f", {lidar}" if level == "points" else "")],
+            period_ns=int(round(1e9 / rate_hz)),
         )
 
     def frames(self, start: int = 0) -> Iterator[Item]:

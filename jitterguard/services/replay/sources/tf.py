@@ -114,11 +114,20 @@ class TfTree:
     def newest(self, frame: str) -> int | None:
         """The latest stamp ``frame`` can be looked up at without clamping: the oldest of the newest samples of the
         dynamic links from it up to its root (None: every link static). Raises ``KeyError`` for an unknown frame."""
+        span = self.span(frame)
+        return None if span is None else span[1]
+
+    def span(self, frame: str) -> tuple[int, int] | None:
+        """The stamps ``frame`` can be looked up at without clamping, first and last: from the newest of the first
+        samples of the dynamic links from it up to its root to the oldest of their last ones (None: every link
+        static). Raises ``KeyError`` for an unknown frame."""
         frame = self._norm(frame)
         if frame not in self:
             raise KeyError(f"frame {frame!r} is not in the TF tree")
-        newest = [max(self._times[c]) for c in self._chain(frame, None) if c not in self.static]
-        return min(newest) if newest else None
+        dynamic = [self._times[c] for c in self._chain(frame, None) if c not in self.static]
+        if not dynamic:
+            return None
+        return max(min(t) for t in dynamic), min(max(t) for t in dynamic)
 
     def static_lookup(self, frame: str, ancestor: str) -> EgoPose:
         """Pose of ``frame`` in ``ancestor`` composed of static links alone (a sensor's mount).
