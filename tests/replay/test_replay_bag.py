@@ -129,6 +129,19 @@ def test_scans_long_before_the_first_pose_are_unreadable_not_posed_at_it(tmp_pat
     assert items[3].pose.x == pytest.approx(first[1] + LIDAR_MOUNT[0] * math.cos(first[3]), abs=1e-6)
 
 
+def test_up_reads_past_the_scans_before_localization_began(tmp_path: Path) -> None:
+    """`up`'s pre-start check had refused a bag whose localization began more than ~1 s after the LiDAR ("none of
+    the first 10 frame(s) reads; … no pose yet"), though the replay skips those scans and goes on: it now reads past
+    them. A bag whose pose topic holds no pose is still refused, saying why."""
+    from jitterguard.services.replay.sources import probe_source
+
+    late = write_bag(tmp_path / "late", n=25, with_tf=True, poses_from_ns=2_000_000_000)  # 15 scans without a pose
+    assert probe_source(str(late.path), SourceOptions(pose_topic=ODOM_TOPIC)).kind
+    never = write_bag(tmp_path / "never", n=5, with_tf=True, poses_from_ns=10_000_000_000)
+    with pytest.raises(SourceError, match="holds no message with a usable pose"):
+        probe_source(str(never.path), SourceOptions(pose_topic=ODOM_TOPIC))
+
+
 def test_bag_detection_that_fails_validation_is_a_frame_error(tmp_path: Path) -> None:
     bag = write_bag(tmp_path / "bag", bad_label_at=1)
     src = open_source(str(bag.path), SourceOptions(topic=DET_TOPIC))

@@ -113,6 +113,11 @@ class DetectionFrame:
     truth: GroundTruthObjects | None = field(default=None, repr=False, compare=False)
 
 
+NO_POSE_YET = "no pose yet"
+"""How a scan recorded before localization's first pose is refused: the replay skips it, and ``up``'s pre-start check
+reads past such scans rather than refusing the recording (see ``probe_source``)."""
+
+
 @dataclass(frozen=True)
 class FrameError:
     """A frame that could not be read; ``origin`` names the file (and record), ``reason`` says why."""

@@ -17,7 +17,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..frames import DEFAULT_PERIOD_NS, FrameError, SourceError, SourceInfo, pose_refusal
+from ..frames import DEFAULT_PERIOD_NS, NO_POSE_YET, FrameError, SourceError, SourceInfo, pose_refusal
 from .base import MemorySource, Source, check_start, past_end
 
 __all__ = ["Source", "MemorySource", "SourceOptions", "SourceError", "open_source", "probe_source",
@@ -26,6 +26,9 @@ __all__ = ["Source", "MemorySource", "SourceOptions", "SourceError", "open_sourc
 PROBE_FRAMES = 10
 """``probe_source`` reads up to this many frames looking for one that reads: one bad frame is skipped in a
 replay, a recording none of whose first frames reads is refused."""
+PROBE_BEFORE_POSES = 1200
+"""Scans recorded before the first pose (localization started late: 2 min at 10 Hz) that the check reads past, not
+counting them as unreadable: the replay skips them and goes on."""
 
 SYNTHETIC_PREFIX = "synthetic:"
 BAG_FILE_SUFFIXES = (".mcap", ".db3", ".bag")
@@ -182,12 +185,17 @@ def probe_source(spec: str, opts: SourceOptions | None = None, *, start: int = 0
         raise SourceError(f"{spec}: cannot open: {type(exc).__name__}: {exc}") from None
     with src:
         errors: list[str] = []
+        waited = 0
         try:
             for item in src.frames(start):
                 if not isinstance(item, FrameError):
                     item = pose_refusal(item) or item  # the replay's own rule: a frame it would skip is no frame
                 if not isinstance(item, FrameError):
                     return src.info
+                if item.reason.startswith(NO_POSE_YET):  # localization starts late: the replay skips these too
+                    waited += 1
+                    if waited < PROBE_BEFORE_POSES:
+                        continue
                 errors.append(str(item))
                 if len(errors) >= PROBE_FRAMES:
                     break

@@ -22,7 +22,7 @@ from pydantic import ValidationError
 
 from ....geometry import rotation_from_quaternion
 from ....schemas.wire import LIMITS
-from ..frames import IDENTITY, DetectionFrame, EgoPose, FrameError, ScanFrame, compose, finite_rows
+from ..frames import IDENTITY, NO_POSE_YET, DetectionFrame, EgoPose, FrameError, ScanFrame, compose, finite_rows
 from .nuscenes import FRAME_SUFFIX, turn_points
 from .ros_types import NEWER_LABELS, detected_object_from_ros, interpolate_pose, pointcloud2_to_array, pose_of, stamp_ns
 from .tf import TfTree
@@ -188,7 +188,7 @@ class ScanPoser:
             return None
         first, last = span
         if t < first - self.max_clamp_ns:
-            return f"no pose yet: the scan is {(first - t) / 1e9:.2f} s before {whose} first sample"
+            return f"{NO_POSE_YET}: the scan is {(first - t) / 1e9:.2f} s before {whose} first sample"
         if t > last + self.max_clamp_ns:
             return f"no pose any more: the scan is {(t - last) / 1e9:.2f} s after {whose} last sample"
         return None
