@@ -206,6 +206,10 @@ def calibrate_command(
     if seen["blocks"] == 0:
         fail(f"{recording}: no track stood still long enough to calibrate on ({seen['frames']} frames, "
              f"{seen['observations']} observations); use a longer recording")
+    if seen["blocks"] < cfg.calibration_prior_blocks:  # a file is applied in full: no prior tempers it there
+        print(f"jitterguard: warning: {recording}: only {seen['blocks']} blocks (fewer than the prior's"
+              f" {cfg.calibration_prior_blocks:g}); the classifier applies a file's scales in full, so scales fitted on"
+              " this little evidence can be far off: use a longer recording", file=sys.stderr)
     source = {"recording": recording, "frames": seen["frames"], "observations": seen["observations"],
               "blocks": seen["blocks"], "blocks_fast": seen["blocks_fast"], "unreadable_frames": len(errors)}
     write_calibration(out, cal.model(), window=cal.window, source=source)  # a slow recording's shorter window

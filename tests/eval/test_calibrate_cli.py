@@ -159,3 +159,32 @@ def test_eval_names_the_calibration_file_it_used_by_its_bytes(tmp_path: Path) ->
     named = f"{cal} (sha256 {hashlib.sha256(cal.read_bytes()).hexdigest()[:12]})"
     assert run["calibration_file"] == named
     assert f"calibration `file` from `{named}`" in (tmp_path / "o" / "report.md").read_text()
+
+
+def test_a_file_fitted_on_few_blocks_is_written_with_a_warning(tmp_path: Path, capsys) -> None:
+    """The classifier applies a file's scales in full (no prior tempers them there), and a file fitted from a
+    handful of blocks had been written without a word: now a warning says how few and what to do. Two parked cars
+    for 8 s give a few windows; the synthetic street's 40-odd tracks give enough and no warning."""
+    import numpy as np
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    from replay.bagfixture import DET_TOPIC, DETECTED_OBJECTS, T0, _detections, typestore
+
+    rng = np.random.default_rng(5)
+    ts, bag = typestore(), tmp_path / "two-cars"
+    with Writer(bag, version=9, storage_plugin=StoragePlugin.SQLITE3) as w:
+        conn = w.add_connection(DET_TOPIC, DETECTED_OBJECTS, typestore=ts)
+        for i in range(80):
+            t = T0 + i * 100_000_000
+            jx, jy = rng.normal(0.0, 0.05, 2)
+            msg = _detections(ts, t, [(10.0 + jx, 2.0 + jy), (-5.0 - jy, 3.0 + jx)])
+            w.write(conn, t, ts.serialize_cdr(msg, DETECTED_OBJECTS))
+    out = tmp_path / "c.yaml"
+    with pytest.raises(SystemExit) as exc:
+        main(["calibrate", str(bag), "--topic", DET_TOPIC, "--out", str(out)])
+    err = capsys.readouterr().err
+    blocks = yaml.safe_load(out.read_text())["source"]["blocks"]
+    assert exc.value.code == 0 and 0 < blocks < 20, (blocks, err)
+    assert f"only {blocks} blocks (fewer than the prior's 20)" in err, err
+    enough = _calibrate(tmp_path, "street", "--duration", "3")
+    assert enough["source"]["blocks"] >= 20 and "blocks (fewer than" not in capsys.readouterr().err
