@@ -3,14 +3,27 @@ is enough to run the same evaluation again, and a run that could score nothing i
 
 from __future__ import annotations
 
+import hashlib
 import json
 import re
 from pathlib import Path
 
 import pytest
+import torch
 
 from jitterguard.cli import main
+from jitterguard.eval.cli import evaluate
+from jitterguard.schemas.models import ClassifierConfig
+from jitterguard.services.detector.config import LITE
+from jitterguard.services.detector.inference import save_weights
+from jitterguard.services.detector.network import CenterPointNet
+from jitterguard.services.tracker.config import TrackerConfig, load_config
 
+TINY = LITE.model_copy(update=dict(  # test_eval_detector's network: cheap enough for a few scans
+    name="tiny", point_cloud_range=(-12.8, -12.8, -3.0, 12.8, 12.8, 3.0), voxel_size=(0.2, 0.2, 6.0),
+    pfn_channels=8, backbone_layers=(1, 1, 1), backbone_channels=(8, 16, 16), neck_channels=(8, 8, 8),
+    head_channels=8, max_pillars=4000,
+))
 LATENCIES = (("time_to_first_correct_s_median_z", "never_correct_fraction_z"),
              ("time_to_first_correct_s_median_speed", "never_correct_fraction_speed"),
              ("time_to_dynamic_s_median_z", "never_dynamic_fraction_z"),
@@ -48,4 +61,48 @@ def test_report_latencies_show_the_pairs_that_never_got_there(tmp_path: Path, ca
                 assert "never" not in cell, (g, never_key, cell)
     assert seen_never  # the run has pairs that never got there (pedestrians: most of them)
     assert m["motion"]["pedestrian"]["never_dynamic_fraction_z"] > 0.5
+
+
+def test_the_run_block_reruns_the_same_evaluation(tmp_path: Path, capsys) -> None:
+    """metrics.json's ``run`` names the seeds, scenario, length and rate as fields, the preset, the tracker file
+    (path and hash), the whole classifier and tracker configs and the software; evaluating again from those
+    fields alone gives the same motion figures. (The tracker file had been recorded only as its measurement
+    scale, the preset not at all, the length and rate only inside a sentence.)"""
+    cfg = tmp_path / "tracker.yaml"
+    cfg.write_text("measurement_scale: online\nconfirm_hits: 3\n")
+    m = _eval(["--scenario", "mixed", "--seed", "4", "--runs", "2", "--duration", "3", "--preset", "hold",
+               "--tracker-config", str(cfg), "--out", str(tmp_path / "a")], capsys)
+    run = m["run"]
+    assert run["seeds"] == [4, 5] and run["scenario"] == "mixed"
+    assert run["duration_s"] == 3.0 and run["rate_hz"] == 10.0 and run["preset"] == "hold"
+    assert hashlib.sha256(cfg.read_bytes()).hexdigest()[:12] in run["tracker_config"]
+    assert str(cfg) in run["tracker_config"]
+    assert run["tracker"] == load_config(cfg).model_dump(mode="json")
+    assert run["tracker"]["confirm_hits"] == 3
+    assert run["classifier"]["dynamic_hold_s_per_class"]  # the preset's hold, in the config recorded
+    sw = run["software"]
+    assert sw["jitterguard"] and sw["python"] and sw["numpy"] and {"git_commit", "git_dirty"} <= set(sw)
+    again = evaluate(tmp_path / "b", scenario=run["scenario"], seed=run["seeds"][0], noise=run["noise"],
+                     nuscenes=None, scene=None, duration=run["duration_s"], rate=run["rate_hz"],
+                     classifier=ClassifierConfig.model_validate(run["classifier"]),
+                     extra_seeds=tuple(run["seeds"][1:]), tracker=TrackerConfig.model_validate(run["tracker"]))
+    assert again["motion"] == m["motion"] and again["ghost"] == m["ghost"]
+    shipped = _eval(["--scenario", "mixed", "--seed", "4", "--duration", "3", "--out", str(tmp_path / "c")],
+                    capsys)["run"]
+    assert shipped["tracker_config"] is None and shipped["preset"] is None
+    assert shipped["tracker"] == load_config(None).model_dump(mode="json")
+
+
+def test_the_run_block_records_the_detectors_threads(tmp_path: Path, capsys) -> None:
+    """The synthetic runs are deterministic given seeds *and thread count* (results.md): the count is recorded."""
+    torch.manual_seed(0)
+    weights = tmp_path / "tiny.pt"
+    save_weights(weights, CenterPointNet(TINY))
+    try:
+        m = _eval(["--scenario", "parking-street", "--duration", "0.3", "--input", "detector", "--weights",
+                   str(weights), "--threads", "2", "--out", str(tmp_path / "d")], capsys)
+    finally:
+        torch.set_num_threads(1)
+    assert m["run"]["detector"]["threads"] == 2
+    assert "torch" in m["run"]["software"]
 
