@@ -153,6 +153,8 @@ def eval_command(
     rate = 10.0 if rate is None else rate
     if not 0 < duration <= 600 or not 0 < rate <= 100:
         fail("--duration must be in (0, 600] and --rate in (0, 100]")
+    if nuscenes is None:
+        check_whole_frame(duration, rate)
     if not 1 <= runs <= 50:
         fail("--runs must be in [1, 50]")
     if not (1e-3 <= variance_scale <= 1e3 or variance_scale == 0.0):
@@ -264,6 +266,15 @@ def eval_command(
         figures = sum((out / name).is_file() for name in FIGURES)  # this run's, not any PNG the folder holds
         print(f"wrote {out / 'report.md'}, metrics.json and {figures} figures"
               + (" and the frames as MCAP (run-*.mcap)" if mcap else ""))
+
+
+def check_whole_frame(duration: float, rate: float, at: str = "--rate") -> None:
+    """Refuse (exit 2) a synthetic run of no whole frame, counted as the world counts them, as ``sim generate``
+    refuses one: it had run, scored nothing and written a report of 0 frames with exit 0."""
+    from ..sim.world import frame_count
+
+    if frame_count(duration, rate) < 1:
+        fail(f"--duration {duration:g} s at {at} {rate:g} Hz holds no whole frame; make duration × rate at least 1")
 
 
 def load_detector(weights: Path | None, threads: int | None, self_crop: bool = True,
@@ -595,6 +606,7 @@ def study_command(
 
     if not 0 < duration <= 600:
         fail("--duration must be in (0, 600]")
+    check_whole_frame(duration, 10.0, at="the study's")
     seed_list = tuple(parse_seeds(seeds, "--seeds"))  # as every other command's --seeds: 2000-2009, 1,2,5-7
     out = out_dir("--out", out)  # a str, not a Path: Path("") is "." and the study went into the current folder
     from .report import FIGURES, OUTPUTS

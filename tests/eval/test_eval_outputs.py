@@ -106,3 +106,18 @@ def test_the_run_block_records_the_detectors_threads(tmp_path: Path, capsys) -> 
     assert m["run"]["detector"]["threads"] == 2
     assert "torch" in m["run"]["software"]
 
+
+@pytest.mark.parametrize("argv", [
+    ["eval", "--duration", "0.05"],
+    ["eval", "--duration", "0.5", "--rate", "1"],
+    ["eval-study", "--duration", "0.05"],
+])
+def test_a_run_of_no_whole_frame_is_refused_before_its_folder(tmp_path: Path, capsys, argv: list[str]) -> None:
+    """It had run, scored nothing and written a report of 0 frames, exit 0."""
+    out = tmp_path / "x"
+    with pytest.raises(SystemExit) as exc:
+        main([*argv, "--out", str(out)])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "holds no whole frame" in err[0]
+    assert not out.exists()
