@@ -45,9 +45,16 @@ def _panels(rec: Records, height: float, *, with_ghosts: bool = False) -> tuple[
     return plt, fig, list(zip(axes[0], groups))
 
 
-def plot_speed_vs_z(rec: Records, path: Path) -> None:
+SCORE_AXIS = {"z_test": "z = max(z_x, z_y)", "chi2": "z of the χ² test (normal score of its p)"}
+"""What the records' ``z`` is, per scored test (``run.mode``): in chi2 mode it is the χ² statistic's p-value as a
+two-sided normal score (:func:`~.pipeline.chi2_as_z`), not the max of the axes' z."""
+TEST_NAME = {"z_test": "z-test", "chi2": "χ² test"}
+
+
+def plot_speed_vs_z(rec: Records, path: Path, mode: str = "z_test") -> None:
     """Per group: tracker speed against z (log), static and dynamic GT and ghost tracks in three colours, both
-    cut-offs drawn (the median over the group's classes where they differ)."""
+    cut-offs drawn (the median over the group's classes where they differ); ``mode`` (``run.mode``) names the
+    score on the axis."""
     plt, fig, panels = _panels(rec, 4.5, with_ghosts=True)
     for ax, g in panels:
         m = scored_rows(rec, g)
@@ -65,7 +72,7 @@ def plot_speed_vs_z(rec: Records, path: Path) -> None:
         ax.axhline(thr, ls=":", c="k", lw=1, label=f"{thr:g} m/s")
         ax.set_xscale("log")
         ax.set_xlim(1e-2, 1e3)  # one z range in every panel, so groups and runs compare at a glance
-        ax.set_xlabel("z = max(z_x, z_y)")
+        ax.set_xlabel(SCORE_AXIS[mode])
         ax.set_ylabel("tracker speed [m/s]")
         ax.set_title(g)
         ax.legend(fontsize=7, loc="upper left")
@@ -74,13 +81,13 @@ def plot_speed_vs_z(rec: Records, path: Path) -> None:
     plt.close(fig)
 
 
-def plot_pr(rec: Records, path: Path) -> None:
+def plot_pr(rec: Records, path: Path, mode: str = "z_test") -> None:
     """Precision–recall of "dynamic" per group, z and speed as scores.
 
     The z-test is drawn thick and solid, the speed rule thin and dashed on top of it, each with its AP in the
     legend: where the curves coincide (both perfect on an easy scene) the dashes show over the solid line."""
     plt, fig, panels = _panels(rec, 4.2)
-    styles = (("z-test", rec.z, dict(lw=3.0, ls="-", c="tab:blue", zorder=2)),
+    styles = ((TEST_NAME[mode], rec.z, dict(lw=3.0, ls="-", c="tab:blue", zorder=2)),
               ("speed", rec.speed, dict(lw=1.4, ls=(0, (4, 3)), c="tab:orange", zorder=3)))
     for ax, g in panels:
         m = scored_rows(rec, g)
@@ -306,8 +313,9 @@ def write_outputs(out: Path, rec: Records, metrics: dict[str, Any],
     """Write figures, metrics.json (with the alpha sweep added) and report.md into ``out``; with the detector
     in the loop (``detection_report``, whose summary is already ``metrics["detection"]``) its figures too."""
     out.mkdir(parents=True, exist_ok=True)
-    plot_speed_vs_z(rec, out / "speed_vs_z.png")
-    plot_pr(rec, out / "pr_curves.png")
+    mode = metrics["run"].get("mode") or "z_test"  # the figures name the test that decided, as the text does
+    plot_speed_vs_z(rec, out / "speed_vs_z.png", mode)
+    plot_pr(rec, out / "pr_curves.png", mode)
     metrics["alpha_sweep"] = plot_alpha_sweep(rec, out / "alpha_sweep.png")
     has_cal = plot_calibration(metrics.get("calibration"), out / "calibration.png")
     det_figures = plot_detection(detection_report, out) if detection_report is not None else []

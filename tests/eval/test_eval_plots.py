@@ -39,3 +39,18 @@ def test_coinciding_pr_curves_both_stay_visible(tmp_path):
 
     assert has((31, 119, 180))  # tab:blue, the z-test line
     assert has((255, 127, 14))  # tab:orange, the speed line (dashed, on top)
+
+
+def test_the_figures_name_the_test_that_scored(tmp_path):
+    """In chi2 mode the records' z is the χ² test's p as a normal score: the axis and the PR legend say so (they
+    had read ``z = max(z_x, z_y)`` and ``z-test`` whatever the mode). Drawn as SVG, whose text comments name every
+    label."""
+    rec = records(["vehicle"])
+    for mode, want, never in (("z_test", ("z = max(z_x, z_y)", "z-test (AP"), "χ²"),
+                              ("chi2", ("z of the χ² test", "χ² test (AP"), "max(z_x, z_y)")):
+        plot_speed_vs_z(rec, tmp_path / f"{mode}-z.svg", mode)
+        plot_pr(rec, tmp_path / f"{mode}-pr.svg", mode)
+        text = (tmp_path / f"{mode}-z.svg").read_text() + (tmp_path / f"{mode}-pr.svg").read_text()
+        for w in want:
+            assert w in text, (mode, w)
+        assert never not in text, mode
