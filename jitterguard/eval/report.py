@@ -138,8 +138,8 @@ def plot_alpha_sweep(rec: Records, path: Path) -> dict[str, Any]:
 
 def plot_calibration(cal: dict[str, Any] | None, path: Path) -> bool:
     """The variance scales the online calibration ended with (log scale; 1 = the detector's variances as they
-    are), per group and line-of-sight axis, one bar per range band, established and young tracks side by side,
-    with the blocks behind each. Returns False (nothing written) without a calibration."""
+    are), per group and line-of-sight axis (along / across), one bar per range band in metres, established and
+    young tracks side by side, with the blocks behind each. Returns False (nothing written) without a calibration."""
     if not cal:
         return False
     plt = _plt()
@@ -152,7 +152,7 @@ def plot_calibration(cal: dict[str, Any] | None, path: Path) -> bool:
             a = entry[axis]
             for key, shade in (("scale", 1.0), ("scale_young", 0.45)):
                 for band, v in a[key].items():
-                    labels.append(f"{axis[:2]} {band}{' y' if key == 'scale_young' else ''}")
+                    labels.append(f"{axis} {band} m{' young' if key == 'scale_young' else ''}")
                     vals.append(v)
                     colours.append((*plt.matplotlib.colors.to_rgb(colour), shade))
                     blocks.append(a["blocks" if key == "scale" else "blocks_young"][band])
@@ -166,6 +166,11 @@ def plot_calibration(cal: dict[str, Any] | None, path: Path) -> bool:
         ax.set_xticklabels(labels, rotation=90, fontsize=6)
         ax.set_title(f"{g}: m {entry['along']['correlation']:.2f}/{entry['across']['correlation']:.2f}, "
                      f"ν₀ {entry['track_dof']:.0f}", fontsize=8)
+    every = [v for g in groups for axis in ("along", "across") for key in ("scale", "scale_young")
+             for v in cal["groups"][g][axis][key].values()]
+    # room above the tallest bar for its block count and below the shortest, 1 always in view: with every scale
+    # at 1 (a run too short to learn any) the axis had collapsed onto 1 and the counts ran into the titles
+    np.atleast_1d(axes)[0].set_ylim(min(*every, 1.0) / 1.6, max(*every, 1.0) * 1.6)
     np.atleast_1d(axes)[0].set_ylabel("true / reported variance (blocks on top)")
     fig.tight_layout()
     fig.savefig(path, dpi=90)

@@ -54,3 +54,28 @@ def test_the_figures_name_the_test_that_scored(tmp_path):
         for w in want:
             assert w in text, (mode, w)
         assert never not in text, mode
+
+
+def _calibration(scale: float, blocks: float) -> dict:
+    bands = {"0-20": scale, "20-40": scale, "40-inf": scale}
+    axis = {"scale": bands, "scale_young": bands, "blocks": dict.fromkeys(bands, blocks),
+            "blocks_young": dict.fromkeys(bands, blocks), "correlation": 0.5}
+    return {"groups": {"vehicle": {"along": axis, "across": axis, "track_dof": 10.0}}}
+
+
+def test_the_calibration_figure_names_its_bars_and_keeps_them_in_view(tmp_path):
+    """The bars are named by axis, range band in metres and track age in words (they had read ``al 0-20 y``), and
+    a run too short to learn any scale (every one 1, no blocks) keeps its bars below the top of the axes, their
+    block counts clear of the title (the log axis had collapsed onto 1, every bar reaching the top)."""
+    from jitterguard.eval.report import plot_calibration
+
+    assert plot_calibration(_calibration(1.0, 0.0), tmp_path / "cal.svg")
+    text = (tmp_path / "cal.svg").read_text()
+    for label in ("along 0-20 m", "across 40-inf m young"):
+        assert label in text, label
+    assert plot_calibration(_calibration(1.0, 0.0), tmp_path / "cal.png")
+    img = np.asarray(Image.open(tmp_path / "cal.png").convert("RGB")).astype(int)
+    orange = (np.abs(img - np.array([255, 127, 14])).sum(axis=2) < 40).any(axis=1)
+    frame = ((img.sum(axis=2) < 150).sum(axis=1) > img.shape[1] * 0.3)  # the axes' top and bottom edges
+    top_edge = int(np.flatnonzero(frame)[0])
+    assert int(np.flatnonzero(orange)[0]) > top_edge + 20  # the bars end well below the axes' top
