@@ -153,6 +153,8 @@ def eval_command(
     rate = 10.0 if rate is None else rate
     if not 0 < duration <= 600 or not 0 < rate <= 100:
         fail("--duration must be in (0, 600] and --rate in (0, 100]")
+    if nuscenes is None:
+        check_whole_frame(duration, rate)
     if not 1 <= runs <= 50:
         fail("--runs must be in [1, 50]")
     if not (1e-3 <= variance_scale <= 1e3 or variance_scale == 0.0):
@@ -251,7 +253,9 @@ def eval_command(
                            sweeps=sweeps, duration=duration, rate=rate, classifier=cfg,
                            extra_seeds=tuple(range(seed + 1, seed + runs)), detector=detector,
                            weights_desc=weights_desc, variance_scale=variance_scale, calibration_model=model,
-                           variance_scale_at=variance_scale_at, tracker=tracker, mcap=mcap)
+                           variance_scale_at=variance_scale_at, tracker=tracker, mcap=mcap,
+                           run_info={"preset": preset, "tracker_config": None if tracker_config is None
+                                     else described_file(tracker_config)})
     except BaseException:  # Ctrl-C, an error: the frames recorded so far are no run's (evaluate names them at its end)
         for partial in Path(out).glob(f"run-*.mcap{PARTIAL}"):
             partial.unlink(missing_ok=True)
@@ -262,6 +266,15 @@ def eval_command(
         figures = sum((out / name).is_file() for name in FIGURES)  # this run's, not any PNG the folder holds
         print(f"wrote {out / 'report.md'}, metrics.json and {figures} figures"
               + (" and the frames as MCAP (run-*.mcap)" if mcap else ""))
+
+
+def check_whole_frame(duration: float, rate: float, at: str = "--rate") -> None:
+    """Refuse (exit 2) a synthetic run of no whole frame, counted as the world counts them, as ``sim generate``
+    refuses one: it had run, scored nothing and written a report of 0 frames with exit 0."""
+    from ..sim.world import frame_count
+
+    if frame_count(duration, rate) < 1:
+        fail(f"--duration {duration:g} s at {at} {rate:g} Hz holds no whole frame; make duration × rate at least 1")
 
 
 def load_detector(weights: Path | None, threads: int | None, self_crop: bool = True,
@@ -305,7 +318,10 @@ def detector_run_info(detector: "Detector", weights_desc: str | None,
     """metrics.json's ``run.detector``: which network produced the detections (scalar training meta) and what the
     weights have seen of the scored data (``seen``: :func:`weights_saw_scored_data`)."""
     meta = {k: v for k, v in detector.meta.items() if isinstance(v, (str, int, float, bool)) and k != "random_init"}
+    import torch
+
     return {"weights": weights_desc, "preset": detector.config.name, "random_init": weights_desc is None,
+            "threads": torch.get_num_threads(),  # the run's detections, hence its figures, depend on it
             "uncertainty": detector.config.uncertainty,
             "self_crop": list(detector.self_crop) if detector.self_crop is not None else None,
             "flips": detector.flips,
@@ -313,6 +329,37 @@ def detector_run_info(detector: "Detector", weights_desc: str | None,
             "sensor_tilt": "auto" if detector.sensor_tilt else "level",
             "score_threshold": detector.score_threshold if detector.score_threshold is not None
             else detector.config.score_threshold, "meta": meta, **(seen or weights_saw_scored_data(detector.meta, None))}
+
+
+def software_versions(with_torch: bool = False) -> dict[str, Any]:
+    """metrics.json's ``run.software``: what computed the run — jitterguard's version and, where it runs from a git
+    checkout, the commit and whether tracked files differ from it (the version alone names every commit alike),
+    Python's, numpy's and, with the detector, torch's."""
+    import platform
+    import subprocess
+
+    import numpy as np
+
+    from .. import __version__
+
+    out: dict[str, Any] = {"jitterguard": __version__, "git_commit": None, "git_dirty": None,
+                           "python": platform.python_version(), "numpy": np.__version__}
+    if with_torch:
+        import torch
+
+        out["torch"] = torch.__version__
+    src = Path(__file__).resolve().parents[1]
+    try:
+        head = subprocess.run(["git", "-C", str(src), "rev-parse", "HEAD"], capture_output=True, text=True,
+                              timeout=10)
+        if head.returncode == 0:
+            out["git_commit"] = head.stdout.strip()
+            dirty = subprocess.run(["git", "-C", str(src), "status", "--porcelain", "--untracked-files=no", "."],
+                                   capture_output=True, text=True, timeout=30)
+            out["git_dirty"] = bool(dirty.stdout.strip()) if dirty.returncode == 0 else None
+    except (OSError, subprocess.SubprocessError):  # no git on the machine, or an installed copy: the version stands
+        pass
+    return out
 
 
 def weights_saw_scored_data(meta: dict[str, Any], nuscenes: Path | None,
@@ -351,7 +398,7 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
              weights_desc: str | None = None, variance_scale: float = 1.0,
              calibration_model: Any = None, variance_scale_at: str = "detector",
              tracker: Any = None, mcap: bool = False, sweeps: bool = False,
-             nuscenes_version: str | None = None) -> dict[str, Any]:
+             nuscenes_version: str | None = None, run_info: dict[str, Any] | None = None) -> dict[str, Any]:
     """Load the frames, run the pipeline, score, write the outputs; returns metrics.json's content.
 
     ``extra_seeds`` pools more runs (a fresh scenario and noise draw per seed; for nuScenes only the noise
@@ -367,7 +414,8 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
     (one file per run: each run's clock starts again), each written as ``….mcap.partial`` and named ``….mcap`` only
     once metrics.json and report.md are: an interrupted run had closed its recording into a whole, valid MCAP of the
     frames run so far, which sat beside the metrics of an earlier run in ``out`` and looked like theirs (``eval``
-    removes the ``.partial`` files of a run that raised or was interrupted; a killed run leaves them so named)."""
+    removes the ``.partial`` files of a run that raised or was interrupted; a killed run leaves them so named).
+    ``run_info`` adds to metrics.json's ``run`` what only the command knows (the preset's name, the tracker file)."""
     from tqdm import tqdm  # type: ignore[import-untyped]
 
     from .groundtruth import NuScenesError, nuscenes_scenes
@@ -518,7 +566,14 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
                 "effective_n": classifier.effective_n,
                 "min_speed_mps": classifier.min_speed_mps, "variance_scale": variance_scale,
                 "variance_scale_at": variance_scale_at,
-                "tracker_measurement_scale": (tracker or default_tracker_config()).measurement_scale},
+                "tracker_measurement_scale": (tracker or default_tracker_config()).measurement_scale,
+                "seeds": [seed, *extra_seeds], "scenario": None if nuscenes is not None else scenario,
+                "duration_s": None if nuscenes is not None else duration,
+                "rate_hz": None if nuscenes is not None else rate,
+                "classifier": classifier.model_dump(mode="json"),
+                "tracker": (tracker or default_tracker_config()).model_dump(mode="json"),
+                "tracker_config": None, "preset": None, "software": software_versions(detector is not None),
+                **(run_info or {})},
         "motion": compute_metrics(rec),
         **planner_metrics(rec),
         "by_run": run_metrics(rec, run_tags) if run_tags else None,
@@ -551,6 +606,7 @@ def study_command(
 
     if not 0 < duration <= 600:
         fail("--duration must be in (0, 600]")
+    check_whole_frame(duration, 10.0, at="the study's")
     seed_list = tuple(parse_seeds(seeds, "--seeds"))  # as every other command's --seeds: 2000-2009, 1,2,5-7
     out = out_dir("--out", out)  # a str, not a Path: Path("") is "." and the study went into the current folder
     from .report import FIGURES, OUTPUTS

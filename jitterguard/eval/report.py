@@ -45,9 +45,16 @@ def _panels(rec: Records, height: float, *, with_ghosts: bool = False) -> tuple[
     return plt, fig, list(zip(axes[0], groups))
 
 
-def plot_speed_vs_z(rec: Records, path: Path) -> None:
+SCORE_AXIS = {"z_test": "z = max(z_x, z_y)", "chi2": "z of the χ² test (normal score of its p)"}
+"""What the records' ``z`` is, per scored test (``run.mode``): in chi2 mode it is the χ² statistic's p-value as a
+two-sided normal score (:func:`~.pipeline.chi2_as_z`), not the max of the axes' z."""
+TEST_NAME = {"z_test": "z-test", "chi2": "χ² test"}
+
+
+def plot_speed_vs_z(rec: Records, path: Path, mode: str = "z_test") -> None:
     """Per group: tracker speed against z (log), static and dynamic GT and ghost tracks in three colours, both
-    cut-offs drawn (the median over the group's classes where they differ)."""
+    cut-offs drawn (the median over the group's classes where they differ); ``mode`` (``run.mode``) names the
+    score on the axis."""
     plt, fig, panels = _panels(rec, 4.5, with_ghosts=True)
     for ax, g in panels:
         m = scored_rows(rec, g)
@@ -65,7 +72,7 @@ def plot_speed_vs_z(rec: Records, path: Path) -> None:
         ax.axhline(thr, ls=":", c="k", lw=1, label=f"{thr:g} m/s")
         ax.set_xscale("log")
         ax.set_xlim(1e-2, 1e3)  # one z range in every panel, so groups and runs compare at a glance
-        ax.set_xlabel("z = max(z_x, z_y)")
+        ax.set_xlabel(SCORE_AXIS[mode])
         ax.set_ylabel("tracker speed [m/s]")
         ax.set_title(g)
         ax.legend(fontsize=7, loc="upper left")
@@ -74,13 +81,13 @@ def plot_speed_vs_z(rec: Records, path: Path) -> None:
     plt.close(fig)
 
 
-def plot_pr(rec: Records, path: Path) -> None:
+def plot_pr(rec: Records, path: Path, mode: str = "z_test") -> None:
     """Precision–recall of "dynamic" per group, z and speed as scores.
 
     The z-test is drawn thick and solid, the speed rule thin and dashed on top of it, each with its AP in the
     legend: where the curves coincide (both perfect on an easy scene) the dashes show over the solid line."""
     plt, fig, panels = _panels(rec, 4.2)
-    styles = (("z-test", rec.z, dict(lw=3.0, ls="-", c="tab:blue", zorder=2)),
+    styles = ((TEST_NAME[mode], rec.z, dict(lw=3.0, ls="-", c="tab:blue", zorder=2)),
               ("speed", rec.speed, dict(lw=1.4, ls=(0, (4, 3)), c="tab:orange", zorder=3)))
     for ax, g in panels:
         m = scored_rows(rec, g)
@@ -131,8 +138,8 @@ def plot_alpha_sweep(rec: Records, path: Path) -> dict[str, Any]:
 
 def plot_calibration(cal: dict[str, Any] | None, path: Path) -> bool:
     """The variance scales the online calibration ended with (log scale; 1 = the detector's variances as they
-    are), per group and line-of-sight axis, one bar per range band, established and young tracks side by side,
-    with the blocks behind each. Returns False (nothing written) without a calibration."""
+    are), per group and line-of-sight axis (along / across), one bar per range band in metres, established and
+    young tracks side by side, with the blocks behind each. Returns False (nothing written) without a calibration."""
     if not cal:
         return False
     plt = _plt()
@@ -145,7 +152,7 @@ def plot_calibration(cal: dict[str, Any] | None, path: Path) -> bool:
             a = entry[axis]
             for key, shade in (("scale", 1.0), ("scale_young", 0.45)):
                 for band, v in a[key].items():
-                    labels.append(f"{axis[:2]} {band}{' y' if key == 'scale_young' else ''}")
+                    labels.append(f"{axis} {band} m{' young' if key == 'scale_young' else ''}")
                     vals.append(v)
                     colours.append((*plt.matplotlib.colors.to_rgb(colour), shade))
                     blocks.append(a["blocks" if key == "scale" else "blocks_young"][band])
@@ -159,6 +166,11 @@ def plot_calibration(cal: dict[str, Any] | None, path: Path) -> bool:
         ax.set_xticklabels(labels, rotation=90, fontsize=6)
         ax.set_title(f"{g}: m {entry['along']['correlation']:.2f}/{entry['across']['correlation']:.2f}, "
                      f"ν₀ {entry['track_dof']:.0f}", fontsize=8)
+    every = [v for g in groups for axis in ("along", "across") for key in ("scale", "scale_young")
+             for v in cal["groups"][g][axis][key].values()]
+    # room above the tallest bar for its block count and below the shortest, 1 always in view: with every scale
+    # at 1 (a run too short to learn any) the axis had collapsed onto 1 and the counts ran into the titles
+    np.atleast_1d(axes)[0].set_ylim(min(*every, 1.0) / 1.6, max(*every, 1.0) * 1.6)
     np.atleast_1d(axes)[0].set_ylabel("true / reported variance (blocks on top)")
     fig.tight_layout()
     fig.savefig(path, dpi=90)
@@ -221,6 +233,14 @@ def detection_lines(det: dict[str, Any], figures: list[str]) -> list[str]:
     for f in figures:
         lines += ["", f"![{f[:-4].replace('_', ' ')}]({f})"]
     return lines
+
+
+def _latency(m: dict[str, Any], time: str, never: str, rule: str) -> str:
+    """A median time to a decision and, beside it, the share of pairs that never reached one (``never_*``): the
+    median is over the pairs that did, so alone it read 0.2 s where 4 of 5 moving pedestrians were never called
+    dynamic."""
+    t, n = m.get(f"time_to_{time}_s_median_{rule}"), m.get(f"never_{never}_fraction_{rule}")
+    return _fmt(t) + (f" ({100 * n:.0f} % never)" if n and 100 * n >= 0.5 else " (< 1 % never)" if n else "")
 
 
 def _vetoed_desc(vetoed: dict[str, dict[str, int]]) -> str:
@@ -298,8 +318,9 @@ def write_outputs(out: Path, rec: Records, metrics: dict[str, Any],
     """Write figures, metrics.json (with the alpha sweep added) and report.md into ``out``; with the detector
     in the loop (``detection_report``, whose summary is already ``metrics["detection"]``) its figures too."""
     out.mkdir(parents=True, exist_ok=True)
-    plot_speed_vs_z(rec, out / "speed_vs_z.png")
-    plot_pr(rec, out / "pr_curves.png")
+    mode = metrics["run"].get("mode") or "z_test"  # the figures name the test that decided, as the text does
+    plot_speed_vs_z(rec, out / "speed_vs_z.png", mode)
+    plot_pr(rec, out / "pr_curves.png", mode)
     metrics["alpha_sweep"] = plot_alpha_sweep(rec, out / "alpha_sweep.png")
     has_cal = plot_calibration(metrics.get("calibration"), out / "calibration.png")
     det_figures = plot_detection(detection_report, out) if detection_report is not None else []
@@ -334,7 +355,8 @@ def write_outputs(out: Path, rec: Records, metrics: dict[str, Any],
         + (f", sustain {run['velocity_sustain_s_per_class']} s" if run.get("velocity_sustain_s_per_class") else "")
         + ("; no position covariance reported" if run.get("variance_scale", 1.0) == 0.0
            else f"; every reported variance ×{run['variance_scale']:g}" if run.get("variance_scale", 1.0) != 1.0 else "")
-        + f". Scored rows: matched, z-test window ≥ {run['min_window']}. Brackets: 90 % intervals over tracks.",
+        + f". Scored rows: matched, z-test window ≥ {run['min_window']}. Brackets: 90 % intervals over tracks. "
+        "Times: the median over the (track, object) pairs that ever got it right, with the share that never did.",
         "",
         "| group | n static | n dynamic | AP z | AP speed | false dyn z | false dyn speed | missed dyn z "
         "| missed dyn speed | first correct z [s] | first correct speed [s] | moving → dynamic z [s] "
@@ -345,9 +367,9 @@ def write_outputs(out: Path, rec: Records, metrics: dict[str, Any],
         lines.append(
             f"| {g} | {m['n_static']} | {m['n_dynamic']} | {_ci(m, 'ap_z')} | {_ci(m, 'ap_speed')} | "
             f"{_ci(m, 'false_dynamic_z')} | {_ci(m, 'false_dynamic_speed')} | {_ci(m, 'missed_dynamic_z')} | "
-            f"{_ci(m, 'missed_dynamic_speed')} | {_fmt(m['time_to_first_correct_s_median_z'])} | "
-            f"{_fmt(m['time_to_first_correct_s_median_speed'])} | {_fmt(m['time_to_dynamic_s_median_z'])} | "
-            f"{_fmt(m['time_to_dynamic_s_median_speed'])} |")
+            f"{_ci(m, 'missed_dynamic_speed')} | {_latency(m, 'first_correct', 'correct', 'z')} | "
+            f"{_latency(m, 'first_correct', 'correct', 'speed')} | {_latency(m, 'dynamic', 'dynamic', 'z')} | "
+            f"{_latency(m, 'dynamic', 'dynamic', 'speed')} |")
     lines += planner_lines(metrics)
     if metrics.get("alpha_from_labels"):
         lines += ["", "Alpha from labels (missed dynamic ≤ 5 %; a diagnostic, never used at run time): "

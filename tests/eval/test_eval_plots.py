@@ -39,3 +39,43 @@ def test_coinciding_pr_curves_both_stay_visible(tmp_path):
 
     assert has((31, 119, 180))  # tab:blue, the z-test line
     assert has((255, 127, 14))  # tab:orange, the speed line (dashed, on top)
+
+
+def test_the_figures_name_the_test_that_scored(tmp_path):
+    """In chi2 mode the records' z is the χ² test's p as a normal score: the axis and the PR legend say so (they
+    had read ``z = max(z_x, z_y)`` and ``z-test`` whatever the mode). Drawn as SVG, whose text comments name every
+    label."""
+    rec = records(["vehicle"])
+    for mode, want, never in (("z_test", ("z = max(z_x, z_y)", "z-test (AP"), "χ²"),
+                              ("chi2", ("z of the χ² test", "χ² test (AP"), "max(z_x, z_y)")):
+        plot_speed_vs_z(rec, tmp_path / f"{mode}-z.svg", mode)
+        plot_pr(rec, tmp_path / f"{mode}-pr.svg", mode)
+        text = (tmp_path / f"{mode}-z.svg").read_text() + (tmp_path / f"{mode}-pr.svg").read_text()
+        for w in want:
+            assert w in text, (mode, w)
+        assert never not in text, mode
+
+
+def _calibration(scale: float, blocks: float) -> dict:
+    bands = {"0-20": scale, "20-40": scale, "40-inf": scale}
+    axis = {"scale": bands, "scale_young": bands, "blocks": dict.fromkeys(bands, blocks),
+            "blocks_young": dict.fromkeys(bands, blocks), "correlation": 0.5}
+    return {"groups": {"vehicle": {"along": axis, "across": axis, "track_dof": 10.0}}}
+
+
+def test_the_calibration_figure_names_its_bars_and_keeps_them_in_view(tmp_path):
+    """The bars are named by axis, range band in metres and track age in words (they had read ``al 0-20 y``), and
+    a run too short to learn any scale (every one 1, no blocks) keeps its bars below the top of the axes, their
+    block counts clear of the title (the log axis had collapsed onto 1, every bar reaching the top)."""
+    from jitterguard.eval.report import plot_calibration
+
+    assert plot_calibration(_calibration(1.0, 0.0), tmp_path / "cal.svg")
+    text = (tmp_path / "cal.svg").read_text()
+    for label in ("along 0-20 m", "across 40-inf m young"):
+        assert label in text, label
+    assert plot_calibration(_calibration(1.0, 0.0), tmp_path / "cal.png")
+    img = np.asarray(Image.open(tmp_path / "cal.png").convert("RGB")).astype(int)
+    orange = (np.abs(img - np.array([255, 127, 14])).sum(axis=2) < 40).any(axis=1)
+    frame = ((img.sum(axis=2) < 150).sum(axis=1) > img.shape[1] * 0.3)  # the axes' top and bottom edges
+    top_edge = int(np.flatnonzero(frame)[0])
+    assert int(np.flatnonzero(orange)[0]) > top_edge + 20  # the bars end well below the axes' top

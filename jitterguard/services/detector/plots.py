@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any
 
@@ -66,20 +67,28 @@ def pr_plot(ap_result: dict[str, Any], path: str | Path, *, threshold: float = C
     :func:`.evaluate.detection_ap`'s dict (with its curves)."""
     plt = _plt()
     key = threshold_key(threshold)
+    # the curves are one threshold's, the mean APs (mAP, each class's AP in the JSON and report.md) every
+    # threshold's: both are named (the legend had given the 2 m AP under a title with the mean mAP, and report.md's
+    # AP column another number for the same class)
+    thresholds = "/".join(threshold_key(t) for t in ap_result.get("thresholds_m", ())) + " m"
     recall = np.asarray(ap_result["recall"], dtype=float)
     fig, ax = plt.subplots(figsize=(6.4, 4.8))
     for name, c in ap_result["classes"].items():
         if not c["num_gt"]:
             continue
-        ax.plot(recall, c["precision"][key], label=f"{name}: AP {c['ap'][key]:.3f} (n={c['num_gt']})")
+        mean = c.get("mean_ap")  # the AP the JSON and report.md give: the mean over the distance thresholds
+        ax.plot(recall, c["precision"][key], label=f"{name}: AP {c['ap'][key]:.3f} at {key} m"
+                + (f", {mean:.3f} over {thresholds}" if isinstance(mean, float) and math.isfinite(mean) else "")
+                + f" (n={c['num_gt']})")
     ax.axvline(MIN_RECALL, ls=":", c="0.5", lw=1)
     ax.axhline(MIN_PRECISION, ls=":", c="0.5", lw=1)
     ax.set_xlim(0, 1.01)
     ax.set_ylim(0, 1.01)
     ax.set_xlabel("recall")
     ax.set_ylabel("precision")
-    ax.set_title(f"precision–recall at {key} m (mAP {ap_result['mAP']:.3f})"
-                 if isinstance(ap_result.get("mAP"), float) else f"precision–recall at {key} m")
+    ax.set_title(f"precision–recall at {key} m (mAP {ap_result['mAP']:.3f} over {thresholds})"
+                 if isinstance(ap_result.get("mAP"), float) and math.isfinite(ap_result["mAP"])
+                 else f"precision–recall at {key} m")
     ax.legend(fontsize=8, loc="lower left")
     fig.tight_layout()
     fig.savefig(path, dpi=90)
