@@ -548,6 +548,7 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
     metrics: dict[str, Any] = {
         "run": {"source": source, "input": "gt-noise" if detector is None else "detector",
                 "scenes": [name for name, _ in scenes] or None, "sweeps": sweeps, "scans": scans_fed,
+                "nuscenes_version": nuscenes_version,
                 "noise": noise if detector is None else None, "seed": seed, "frames": total,
                 "rows": len(rec), "matched_rows": int((rec.gt_instance >= 0).sum()),
                 "match_distance_m": MATCH_DISTANCE_M, "alpha": alpha_desc,

@@ -97,8 +97,11 @@ def test_pooled_scenes_read_each_table_once(two_scenes: Path, monkeypatch: pytes
 
 
 def test_several_scenes_pool_as_one_drive(two_scenes: Path, pooled: dict, pooled_out: Path, tmp_path: Path) -> None:
-    alone = [_eval(two_scenes, tmp_path / name, "--scene", name) for name in SCENES]
+    alone = [_eval(two_scenes, tmp_path / name, "--scene", name, *(["--nuscenes-version", "v1.0-mini"] if i else []))
+             for i, name in enumerate(SCENES)]
     assert [m["run"]["scenes"] for m in alone] == [[SCENES[0]], [SCENES[1]]]
+    # the table folder is part of what reproduces the run: recorded when given
+    assert [m["run"]["nuscenes_version"] for m in alone] == [None, "v1.0-mini"]
     assert pooled["run"]["scenes"] == list(SCENES)
     assert all(name in pooled["run"]["source"] for name in SCENES)
     assert pooled["run"]["frames"] == sum(m["run"]["frames"] for m in alone) == 60
