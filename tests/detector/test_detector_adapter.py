@@ -155,6 +155,12 @@ def test_scan_points_picks_columns_by_name_and_drops_non_finite_rows() -> None:
     assert bad == 1 and pts.dtype == np.float32 and pts.shape == (7, 4)
     keep = np.arange(8) != 3
     np.testing.assert_allclose(pts, np.column_stack([x, y, z, i])[keep].astype(np.float32))
+    # a NaN intensity alone keeps the return, dark; an infinite one is clipped to the scale's ends
+    i2 = i.copy()
+    i2[[1, 5, 6]] = [np.nan, np.inf, -np.inf]
+    pts, bad = scan_points(_cloud({"x": x, "y": y, "z": z, "intensity": i2}))
+    assert bad == 1 and pts.shape == (7, 4)
+    np.testing.assert_allclose(pts[:, 3], np.array([i[0], 0.0, i[2], i[4], 255.0, 0.0, i[7]], np.float32))
 
 
 def test_intensity_reaches_the_network_on_its_0_to_255_scale() -> None:

@@ -74,7 +74,8 @@ def scan_pose(msg: PointCloud) -> tuple[NDArray[np.float64], NDArray[np.float64]
 
 def points_from_fields(raw: NDArray[np.floating], fields: Sequence[str]) -> tuple[F32, int]:
     """(P, F) columns named ``fields`` → the network's (P, 4) float32 x, y, z, intensity (zeros where there is
-    no intensity field), non-finite rows dropped; returns the points and how many rows were dropped.
+    no intensity field), rows with a non-finite x, y or z dropped (a NaN intensity is read as 0, a dark return: it
+    had dropped the whole point); returns the points and how many rows were dropped.
 
     Intensity is brought to the network's 0–255 (:func:`intensity_to_network_scale`) here, the one reader of
     the live service, the offline evaluator and ``adapt``: a KITTI scan's 0–1 reflectance had been fed as is
@@ -85,10 +86,11 @@ def points_from_fields(raw: NDArray[np.floating], fields: Sequence[str]) -> tupl
     for j, c in enumerate(cols):
         if c >= 0:
             pts[:, j] = raw[:, c]
-    finite = np.isfinite(pts).all(axis=1)
+    finite = np.isfinite(pts[:, :3]).all(axis=1)  # a return is where it is: a NaN intensity alone costs it nothing
     dropped = int(finite.size - np.count_nonzero(finite))
     if dropped:
         pts = pts[finite]
+    np.nan_to_num(pts[:, 3], copy=False, nan=0.0, posinf=np.inf, neginf=0.0)  # ±inf: clipped to the scale's ends
     return intensity_to_network_scale(pts), dropped
 
 
