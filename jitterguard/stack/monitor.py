@@ -364,8 +364,31 @@ def monitor_command(
         fail(f"--supervisor-url: {exc}")
     if supervisord_log is not None and not supervisord_log.parent.is_dir():
         fail(f"--supervisord-log: no such folder: {supervisord_log.parent}")
+    _hold_monitor_lock(rd)
     setup_logging(log_level)
     StackMonitor(zenoh_options(ns, zenoh_config, connect, listen), rd, sock, supervisord_log).run_forever()
+
+
+MONITOR_LOCK = "monitor.lock"
+_held: list[Any] = []
+
+
+def _hold_monitor_lock(rd: Path) -> None:
+    """Take the run directory's monitor lock for this process's life (released by the kernel when it dies, however),
+    or one line and exit 2: a second monitor on one run directory ended frozen programs and held back crash loops
+    on its own as well, so one freeze was counted twice in ``frozen_restarts``."""
+    import fcntl
+
+    try:
+        fh = open(rd / MONITOR_LOCK, "a")
+    except OSError as exc:
+        fail(f"--run-dir: cannot write into {rd}: {exc.strerror or exc}")
+    try:
+        fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        fh.close()
+        fail(f"another stack monitor keeps {rd} (it holds {rd / MONITOR_LOCK}); one monitor a run directory")
+    _held.append(fh)
 
 
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:

@@ -165,3 +165,23 @@ def test_a_real_stacks_ledger_is_far_below_the_byte_bound() -> None:
             assert led.observe(f"service{svc}", pid, counters, stamp_ns=pid, extra={"uptime_s": 1.0})
     assert all(led.totals(f"service{s}")[f"counter_{j}.frames_dropped"] == 300 for s in range(10) for j in range(25))
     assert led.size < summary.MAX_LEDGER_BYTES // 4
+
+
+def test_a_second_monitor_on_one_run_dir_is_refused(tmp_path) -> None:
+    """Two monitors on one run directory each ended frozen programs and held back crash loops, so one freeze was
+    counted twice. The second is now refused in one line, exit 2, before it opens a session; the lock goes with the
+    process that holds it, so a restarted monitor takes it again."""
+    import fcntl
+
+    from jitterguard.stack.monitor import MONITOR_LOCK
+
+    def monitor() -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "jitterguard.cli", "stack-monitor", "--run-dir", str(tmp_path),
+                               "--connect", f"tcp/127.0.0.1:{free_tcp_port()}"], capture_output=True, text=True,
+                              timeout=60)
+
+    with open(tmp_path / MONITOR_LOCK, "a") as held:  # a monitor that runs
+        fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        res = monitor()
+    assert res.returncode == 2 and res.stderr.strip().count("\n") == 0, res.stderr
+    assert "another stack monitor keeps" in res.stderr and not (tmp_path / summary.SUMMARY_FILE).exists()
