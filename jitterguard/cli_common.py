@@ -11,7 +11,7 @@ import os
 import sys
 from collections.abc import Iterable
 from pathlib import Path
-from typing import Annotated, NoReturn
+from typing import Annotated, Any, NoReturn
 
 import typer
 
@@ -217,6 +217,27 @@ def try_write(flag: str, p: Path) -> None:
         fail(f"{flag}: cannot write {p}: {exc.strerror or exc}")
     if not existed:
         p.unlink(missing_ok=True)
+
+
+_held_locks: list[Any] = []
+"""The open lock files of this process (kept open, so locked, until it exits)."""
+
+
+def hold_lock(path: Path, busy: str) -> None:
+    """An exclusive ``flock`` on ``path`` (made if missing) for the rest of this process's life — the kernel lets go
+    of it when the process dies, however — or one line and exit 2: ``busy`` when another process holds it."""
+    import fcntl
+
+    try:
+        fh = open(path, "a")
+    except OSError as exc:
+        fail(f"--run-dir: cannot write into {path.parent}: {exc.strerror or exc}")
+    try:
+        fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        fh.close()
+        fail(busy)
+    _held_locks.append(fh)
 
 
 def out_files(flag: str, folder: Path, names: Iterable[str]) -> None:

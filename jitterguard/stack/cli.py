@@ -29,7 +29,7 @@ from typing import Annotated, Any, NoReturn
 
 import typer
 
-from ..cli_common import NsOpt, check_seed, fail, new_dir, out_file
+from ..cli_common import NsOpt, check_seed, fail, hold_lock, new_dir, out_file
 from ..runtime import ZenohOptions, build_config, free_tcp_port, open_session
 from ..runtime.signals import stop_on_signals
 from ..schemas import keys
@@ -337,27 +337,12 @@ def _refuse_if_running(sup: Supervisor, rd: Path, label: str, down_hint: str) ->
 
 
 UP_LOCK = "up.lock"
-_held_locks: list[Any] = []
-"""The open lock files of this process (kept open, so locked, until it exits)."""
-
-
 def _lock_run_dir(rd: Path, label: str) -> None:
     """Take the run directory's ``up`` lock for the rest of this process's life, or exit 2 if another ``up`` holds
     it. Two ``up`` started together on one run directory both found it free, both wrote supervisord.conf and
     stack.json, and one's supervisord ran the other's file: the first said "supervisord did not start" about the
     stack that ran, the second waited 30 s for a sidecar on a port nobody listened on."""
-    import fcntl
-
-    try:
-        fh = open(rd / UP_LOCK, "a")
-    except OSError as exc:
-        fail(f"--run-dir: cannot write into {rd}: {exc.strerror or exc}")
-    try:
-        fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
-        fh.close()
-        fail(f"another `jitterguard up` is starting the stack {label} right now (run dir {rd})")
-    _held_locks.append(fh)
+    hold_lock(rd / UP_LOCK, f"another `jitterguard up` is starting the stack {label} right now (run dir {rd})")
 
 
 LOW_SPACE_BYTES = 64 * 2**20

@@ -26,7 +26,7 @@ from typing import Annotated, Any
 import typer
 import zenoh
 
-from ..cli_common import ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ZenohConfigOpt, fail, zenoh_options
+from ..cli_common import ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ZenohConfigOpt, fail, hold_lock, zenoh_options
 from ..runtime import Service, ZenohOptions, setup_logging
 from ..runtime.progress import FAILING, Health
 from ..runtime.service import HANG_GRACE_S, HEARTBEAT_PERIOD_S
@@ -370,25 +370,14 @@ def monitor_command(
 
 
 MONITOR_LOCK = "monitor.lock"
-_held: list[Any] = []
 
 
 def _hold_monitor_lock(rd: Path) -> None:
-    """Take the run directory's monitor lock for this process's life (released by the kernel when it dies, however),
-    or one line and exit 2: a second monitor on one run directory ended frozen programs and held back crash loops
-    on its own as well, so one freeze was counted twice in ``frozen_restarts``."""
-    import fcntl
-
-    try:
-        fh = open(rd / MONITOR_LOCK, "a")
-    except OSError as exc:
-        fail(f"--run-dir: cannot write into {rd}: {exc.strerror or exc}")
-    try:
-        fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
-        fh.close()
-        fail(f"another stack monitor keeps {rd} (it holds {rd / MONITOR_LOCK}); one monitor a run directory")
-    _held.append(fh)
+    """Take the run directory's monitor lock for this process's life, or one line and exit 2: a second monitor on one
+    run directory ended frozen programs and held back crash loops on its own as well, so one freeze was counted
+    twice in ``frozen_restarts``."""
+    hold_lock(rd / MONITOR_LOCK, f"another stack monitor keeps {rd} (it holds {rd / MONITOR_LOCK}); one monitor a "
+                                 "run directory")
 
 
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:

@@ -16,6 +16,8 @@ import statistics
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
@@ -58,16 +60,23 @@ def stack(tmp_path):
              Program("classifier", _cmd("classifier", *common, "--open-config-writes"), priority=20),
              Program("detector", (sys.executable, "-c", CRASHER), priority=35),
              Program("monitor", _cmd("stack-monitor", *common, "--run-dir", str(rd)), priority=5)]
+    t0 = time.time()
+    with _supervised(rd, spec, progs) as sup:
+        yield {"run_dir": rd, "sup": sup, "t0": t0}
+
+
+@contextmanager
+def _supervised(rd: Path, spec: StackSpec, progs: list[Program]) -> Iterator[Supervisor]:
+    """``progs`` running under a real supervisord in ``rd`` (daemonised), shut down and gone at the end."""
     conf = rd / "supervisord.conf"
     conf.write_text(render_config(spec, rd, progs, nodaemon=False))
     save_spec(rd, spec)
-    t0 = time.time()
     res = subprocess.run([sys.executable, "-m", "supervisor.supervisord", "-c", str(conf)], capture_output=True,
                          text=True, timeout=60)
     assert res.returncode == 0, res.stdout + res.stderr
     sup = Supervisor(rd)
     try:
-        yield {"run_dir": rd, "sup": sup, "t0": t0}
+        yield sup
     finally:
         try:
             sup.shutdown()
@@ -150,14 +159,7 @@ def test_status_names_a_program_that_keeps_crashing_more_slowly_than_the_guard_a
                      run_dir=str(rd), sidecar=False)
     progs = [Program("router", _cmd("router", "--listen", spec.endpoint), priority=10),
              Program("detector", (sys.executable, "-c", SLOW_CRASHER), priority=35)]
-    conf = rd / "supervisord.conf"
-    conf.write_text(render_config(spec, rd, progs, nodaemon=False))
-    save_spec(rd, spec)
-    res = subprocess.run([sys.executable, "-m", "supervisor.supervisord", "-c", str(conf)], capture_output=True,
-                         text=True, timeout=60)
-    assert res.returncode == 0, res.stdout + res.stderr
-    sup = Supervisor(rd)
-    try:
+    with _supervised(rd, spec, progs):
         def exits() -> int:
             events = summary.supervisor_events(rd / "logs" / "supervisord.log")
             return len(events["detector"].crashes) if "detector" in events else 0
@@ -174,9 +176,3 @@ def test_status_names_a_program_that_keeps_crashing_more_slowly_than_the_guard_a
             table
         router = next(ln for ln in table.splitlines() if ln.startswith("router"))
         assert "restarted" not in router, table
-    finally:
-        try:
-            sup.shutdown()
-        except StackUnavailable:
-            pass
-        sup.wait_gone(60)

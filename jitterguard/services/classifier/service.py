@@ -354,11 +354,12 @@ class ClassifierService(Service):
             return
         if kind == "config":
             arg, if_match = arg
-            if if_match is not None and config_etag(self.core.config) != if_match:  # checked where it is applied:
-                # between frames, on the one thread that swaps configs, so no write can land in between
+            in_force = None if if_match is None else config_etag(self.core.config)
+            if in_force != if_match:  # checked where it is applied: between frames, on the one thread that swaps
+                # configs, so no write can land in between
                 fut.set_exception(ConfigConflict(
-                    f"conflict: the config in force is {config_etag(self.core.config)}, not {if_match} (another "
-                    f"write changed it since it was read); nothing applied — read it again and redo the change"))
+                    f"conflict: the config in force is {in_force}, not {if_match} (another write changed it since it"
+                    f" was read); nothing applied — read it again and redo the change"))
                 return
             try:
                 self.core.check_config(arg, model)  # before it is stored: a refused write is not restored
