@@ -245,7 +245,7 @@ def reference_block_moments(t: F64, pos: F64, cov: F64, sensor: F64, variance_fl
     stt = np.maximum((tc * tc).sum(axis=1), 1e-12)
     M = np.eye(n)[None] - 1.0 / n - tc[:, :, None] * tc[:, None, :] / stt[:, None, None]
     E = M @ pos
-    u, v, _ = line_of_sight(pos, sensor)
+    u, v, _ = line_of_sight(pos - E, sensor)  # to the fitted line
     var_u, var_v, _ = project_covariance(u, v, cov)
     sig = np.sqrt(np.maximum(np.stack([var_u, var_v], axis=1), variance_floor))
     r = np.stack([(E * u).sum(-1), (E * v).sum(-1)], axis=1) / sig

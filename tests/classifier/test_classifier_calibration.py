@@ -123,6 +123,22 @@ def test_residuals_do_not_see_constant_velocity() -> None:
     np.testing.assert_allclose(moving.Y, still.Y, rtol=1e-2, atol=5e-3)
 
 
+def test_an_object_at_the_sensor_is_calibrated_along_the_line_not_along_its_own_noise() -> None:
+    """Isotropic errors of exactly the reported variance, on an object 5 cm from the sensor, give equal scales
+    along and across the line of sight. The axes had been taken to each observed position, so at the sensor they
+    turned with the error itself and put it all along the line (parked objects at 0 m pulled the near vehicle
+    band across the line of sight to 0.66); they are now taken to the fitted line's position."""
+    rng = np.random.default_rng(7)
+    t, pos, cov, sensor = blocks(rng, 3000, 1.0, 0.0, 0.5)
+    near = pos - pos.mean(axis=1, keepdims=True) + np.array([0.05, 0.0])  # the same errors, 5 cm from the sensor
+    mom = block_moments(t, near, cov, sensor)
+    along, across = (np.einsum("nii->n", mom.Y[:, a]).mean() / np.einsum("nii->n", mom.Ew[:, a]).mean()
+                     for a in range(2))
+    assert along == pytest.approx(1.0, abs=0.06) and across == pytest.approx(1.0, abs=0.06)
+    ref = reference_block_moments(t, near, cov, sensor)[0]
+    np.testing.assert_allclose(mom.Y, ref, rtol=1e-9, atol=1e-12)
+
+
 def test_white_noise_expectation_is_exact() -> None:
     """Σ over blocks of ε̃ε̃ᵀ approaches k·G Gᵀ: the trace of one block's residual sum is k (n − 2) on average."""
     rng = np.random.default_rng(1)

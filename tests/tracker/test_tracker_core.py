@@ -363,7 +363,7 @@ def test_never_more_confirmed_tracks_reported_than_max_objects_observed_ones_fir
     assert min(last_seen[t] for t in coasting) >= max(last_seen[t] for t in withheld)  # the longest unseen go
 
 
-@pytest.mark.parametrize(("rate_hz", "speed"), [(10.0, 30.0), (2.0, 14.0), (2.0, 5.0)])
+@pytest.mark.parametrize(("rate_hz", "speed"), [(10.0, 30.0), (10.0, 42.0), (2.0, 14.0), (2.0, 5.0)])
 def test_a_car_first_seen_fast_is_tracked_with_one_id(rate_hz: float, speed: float) -> None:
     """A newborn is predicted where it was born, and the main gate reaches 2 m: a car first seen at over 20 m/s at
     10 Hz (4 m/s on nuScenes' 2 Hz key frames) got a new tentative track every frame and was never published.

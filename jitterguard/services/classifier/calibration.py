@@ -388,7 +388,8 @@ def block_moments(t: F64, pos: F64, cov: F64, sensor: F64, *, variance_floor: fl
     ``t`` (N, n) seconds (spread: a block whose times are all equal has no line to fit — the caller drops
     it), ``pos`` (N, n, 2) world positions, ``cov`` (N, n, 3) reported world covariances (xx, xy, yy),
     ``sensor`` (N, n, 2) the sensor's position at each observation. The line-of-sight axes are taken per
-    observation; the residuals are those of the world-frame line fit projected on them."""
+    observation, to the fitted line's position at that time (not the observed one); the residuals are those of the
+    world-frame line fit projected on them."""
     with np.errstate(over="ignore", invalid="ignore"):  # non-finite blocks are dropped by the pooling
         t = np.ascontiguousarray(t, dtype=np.float64)
         n = t.shape[1]
@@ -396,7 +397,9 @@ def block_moments(t: F64, pos: F64, cov: F64, sensor: F64, *, variance_floor: fl
         stt = np.maximum((tc * tc).sum(axis=1), 1e-12)
         vel = (tc[:, :, None] * pos).sum(axis=1) / stt[:, None]
         E = pos - pos.mean(axis=1, keepdims=True) - tc[:, :, None] * vel[:, None, :]  # residuals about the line
-        u, v, rng = line_of_sight(pos, sensor)
+        # the axes point at the fitted line, not at each observation: at the sensor the observed direction turns
+        # with the error itself and would put all of it along the line of sight
+        u, v, rng = line_of_sight(pos - E, sensor)
         var_u, var_v, _ = project_covariance(u, v, cov)
         sig = np.sqrt(np.maximum(np.stack([var_u, var_v], axis=1), variance_floor))  # (N, 2, n)
         r = np.stack([(E * u).sum(-1), (E * v).sum(-1)], axis=1) / sig  # (N, 2, n)
