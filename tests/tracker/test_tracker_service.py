@@ -254,3 +254,29 @@ def test_the_measurement_scale_it_learns_is_in_the_heartbeat(harness_factory) ->
         return None
 
     assert wait_for(lambda: beat() is not None, 5.0)
+
+
+def test_detections_below_the_confirmation_existence_are_counted_and_a_zero_existence_detector_is_warned_of(
+        harness_factory, caplog) -> None:
+    """A detector that leaves ``existence_probability`` at 0 never gets a track published (confirmation needs a
+    running existence of ``confirm_min_existence``), and nothing had said why: the tracker's decisions stay as they
+    are, but its heartbeat counts the detections below that gate and its log says once what a zero means."""
+    import logging
+
+    h = harness_factory("trk_existence")
+    seq = make_sequence(8, n_frames=12)
+    base = h.next_seq + 10
+    sent = 0
+    with caplog.at_level(logging.WARNING):
+        for k, sf in enumerate(seq.frames):
+            msg = to_message(sf)
+            msg = msg.model_copy(update={"objects": [o.model_copy(update={"existence_probability": 0.0})
+                                                     for o in msg.objects]})
+            sent += len(msg.objects)
+            h.send(_shifted(msg, base + k, h.stamp0 + 10**9 + k * 100_000_000))
+        last = h.wait_seq(base + len(seq.frames) - 1)
+    assert last.objects == []  # unchanged decisions: no track confirms on existence 0
+    assert h.service.counters.get("detections_below_min_existence") == sent > 0
+    warned = [r for r in caplog.records if "existence_probability" in r.getMessage()]
+    assert len(warned) == 1, [r.getMessage() for r in warned]  # once a run, not once a frame
+    assert "confirm_min_existence" in warned[0].getMessage()

@@ -18,7 +18,9 @@ included), ``tracks_confirmed`` (of those, the ones that reached the output), ``
 back in time, confirmed: tracks dropped), ``source_restarts`` (its seq began again while time went on, confirmed:
 tracks kept), ``jumps`` (it jumped ahead, confirmed), ``normalised.detections``, ``dropped_queue.detections``,
 ``static_hints_received`` / ``_applied`` / ``_implausible`` / ``_unknown`` / ``_dropped`` (beyond twice
-``limits.max_objects`` tracks waiting for the next frame) and the runtime's ``received`` / ``rejected`` (and
+``limits.max_objects`` tracks waiting for the next frame), ``detections_below_min_existence`` (detections whose
+``existence_probability`` is below ``confirm_min_existence``: a track fed only by such stays tentative and is never
+published; a detector that leaves the field at 0 is also warned of once in the log) and the runtime's ``received`` / ``rejected`` (and
 ``over_limit``) / ``published``. How a frame is told apart from a late one is :mod:`jitterguard.stream_order`.
 """
 
@@ -28,6 +30,8 @@ import queue
 import threading
 import time
 from collections.abc import Callable
+
+import numpy as np
 
 from ...runtime import Service, ZenohOptions
 from ...runtime.gc_policy import IdleCollector, manage_gc_for_latency
@@ -75,6 +79,7 @@ class TrackerService(Service):
         self._idle_gc = IdleCollector()
         self._gauges: dict[str, float] = {}
         self._gauges_of: int | None = None  # id of the measurement-scale model the gauges show
+        self._warned_zero_existence = False
         if manage_gc:
             manage_gc_for_latency()
         super().__init__(opts)
@@ -192,6 +197,7 @@ class TrackerService(Service):
         self._publish(observation_payloads(cols, frame, result))
         self._tracked_pub.put(tracked_payload(cols, frame, result))  # built after the observations went out
         self.counters.inc("frames")
+        self._count_low_existence(frame.existence, frame.seq)
         self.counters.inc("tracks_born", len(result.born))
         self.counters.inc("tracks_deleted", len(result.deleted))
         self.counters.inc("tracks_confirmed", result.confirmed)
@@ -202,6 +208,27 @@ class TrackerService(Service):
         if self.core.scale is not None and id(self.core.scale.model) != self._gauges_of:
             self._gauges_of = id(self.core.scale.model)
             self._gauges = self.core.scale.gauges()
+
+    def _count_low_existence(self, existence: np.ndarray, seq: int) -> None:
+        """Count the frame's detections below ``confirm_min_existence`` and, the first time every detection of a frame
+        reports 0, say why nothing will come out. Confirmation needs a running existence probability of that much (the
+        lifecycle's gate, unchanged here), so a detector that leaves ``existence_probability`` at 0 — the field's
+        value when a driver does not fill it — gets every track held tentative and nothing published, which had been
+        seen only as an empty ``tracked``. A non-finite existence counts as 0, as the core takes it."""
+        gate = self.core.config.confirm_min_existence
+        if gate <= 0.0 or existence.size == 0:
+            return
+        ex = np.where(np.isfinite(existence), existence, 0.0)
+        below = int(np.count_nonzero(ex < gate))
+        if below:
+            self.counters.inc("detections_below_min_existence", below)
+        if not self._warned_zero_existence and not ex.any():
+            self._warned_zero_existence = True
+            self.log.warning("every detection of frame %d reports existence_probability 0: a track is confirmed (and"
+                             " published) only once its running existence reaches confirm_min_existence %g, so"
+                             " tracks fed by such detections never are; have the detector fill the field (its score),"
+                             " or set confirm_min_existence: 0 (counted in the heartbeat's"
+                             " detections_below_min_existence)", seq, gate)
 
     def gauges(self) -> dict[str, float]:
         """The heartbeat's gauges: with ``measurement_scale: online``, what the tracker has learnt of the detector's
