@@ -621,3 +621,28 @@ def test_an_export_asked_for_opset_17_keeps_18_without_a_traceback(torch_det, tm
     assert doc["opset"] == 18 and doc.get("opset_requested", 17) == 17
     noisy = [r for r in caplog.records if r.name.startswith("onnxscript") and r.levelno >= logging.WARNING]
     assert not noisy, [r.getMessage()[:120] for r in noisy]
+
+
+def test_a_param_files_preset_that_contradicts_the_onnx_folder_is_refused_naming_both(single_dir: Path, tmp_path,
+                                                                                      capsys) -> None:
+    """``preset: paper`` in a parameter file beside ``onnx:`` a lite export: the folder fixes the network, so the
+    preset was silently ignored (only a ``--preset`` flag was compared, after loading) and the detector ran lite while
+    the file said paper. Refused at start, one line naming the file's preset and the folder's network; ``up
+    --detector-config`` takes the same check (``params_refusal``)."""
+    from jitterguard.cli import main
+    from jitterguard.config import load
+    from jitterguard.services.detector.config import DetectorParams, params_refusal
+
+    conf = tmp_path / "det.param.yaml"
+    conf.write_text(f"/**:\n  ros__parameters:\n    preset: paper\n    backend: onnxruntime\n    onnx: {single_dir}\n")
+    refused = params_refusal(load(DetectorParams, str(conf)))
+    assert refused is not None and refused[0] == "preset", refused
+    assert "'paper'" in refused[1] and str(single_dir) in refused[1] and "'lite'" in refused[1]
+    with pytest.raises(SystemExit) as exc:
+        main(["detector", "--config", str(conf)])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"--config: {conf}: preset:" in err[0] and str(single_dir) in err[0], err
+    # the same file saying what the folder holds, or saying nothing of the preset, is no contradiction
+    assert params_refusal(DetectorParams(preset="lite", backend="onnxruntime", onnx=str(single_dir))) is None
+    assert params_refusal(DetectorParams(backend="onnxruntime", onnx=str(single_dir))) is None

@@ -231,9 +231,26 @@ class DetectorParams(BaseModel):
         return check_crop_box(box)
 
 
+def onnx_network(folder: str) -> str | None:
+    """The architecture an ONNX export folder holds (its ``detector.json``'s ``config.name``), or None where the
+    manifest cannot tell (missing or malformed: the backend's loader says why, naming the file). Read as plain JSON,
+    the graphs not hashed: a start-up check, not the load."""
+    import json
+
+    try:
+        with open(os.path.join(folder, "detector.json"), encoding="utf-8") as f:
+            doc = json.load(f)
+    except (OSError, ValueError):
+        return None
+    name = doc.get("config", {}).get("name") if isinstance(doc, dict) and isinstance(doc.get("config"), dict) else None
+    return name if isinstance(name, str) else None
+
+
 def params_refusal(params: DetectorParams) -> tuple[str, str] | None:
     """``(key, why)`` if the detector cannot start with ``params`` — a preset it does not have, a weights file or an
-    ONNX folder that is not there, ONNX without its backend, the onnxruntime backend without its packages — else
+    ONNX folder that is not there, ONNX without its backend, a preset given (file or flag) that contradicts the
+    network the ONNX folder holds (it had been ignored without a word: the file said paper, the detector ran the
+    export's lite), the onnxruntime backend without its packages — else
     None: the one check of ``jitterguard detector`` and of ``up --detector-config``, which had started the whole
     stack on such a file and then watched the detector crash three times."""
     if params.preset not in PRESETS:
@@ -244,6 +261,12 @@ def params_refusal(params: DetectorParams) -> tuple[str, str] | None:
         return "onnx", "goes with backend onnxruntime and replaces weights"
     if params.onnx is not None and not os.path.isdir(params.onnx):
         return "onnx", f"folder not found: {params.onnx}"
+    if params.onnx is not None and "preset" in params.model_fields_set:
+        held = onnx_network(params.onnx)
+        if held is not None and held != params.preset:
+            return "preset", (f"{params.preset!r} contradicts onnx {params.onnx}, a {held!r} network (its"
+                              " detector.json); drop preset (the export fixes the network) or point onnx at a"
+                              f" {params.preset!r} export")
     if params.backend == "onnxruntime":  # without an export folder the weights are exported at start-up
         import importlib.util
 
