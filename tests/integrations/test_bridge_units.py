@@ -473,3 +473,35 @@ def test_a_polygon_shape_is_drawn_as_its_footprint_not_a_flat_cube() -> None:
         assert line["type"] == "LINE_LOOP"
         assert [(p.get("x", 0.0), p.get("y", 0.0), p.get("z", 0.0)) for p in line["points"]] == \
             [(q["x"], q["y"], z) for q in square]
+
+
+@pytest.mark.parametrize(("mode", "want", "not_in", "statistic"), [
+    ("chi2", "χ²=12.50 thr=5.99", "z=", 12.5),
+    ("velocity_threshold", "v=2.40 m/s thr=1.00", "z=", 2.4),
+    ("z_test", "z=3.00 α=1.96", "χ²", 3.0),
+])
+def test_a_tracks_label_shows_the_statistic_that_decided_it(mode: str, want: str, not_in: str,
+                                                             statistic: float) -> None:
+    """In χ² mode (``eval --mode chi2`` and its MCAP, or a live classifier so set) every label read max(z_x, z_y), a
+    wire field the decision never compared with anything: a track called dynamic on χ² = 12.5 > 5.99 showed "z=3.00
+    α=1.96", and one called static could show a z above its α. The label, the entity's metadata and the motion row
+    now carry the statistic of the message's own mode and the threshold it was held to."""
+    from google.protobuf.json_format import MessageToDict
+
+    from jitterguard.services.foxglove.scene import frame_messages, motion_statistics
+
+    from .decoding import protobuf_class
+
+    thr = {"chi2": 5.99, "velocity_threshold": 1.0, "z_test": 1.96}[mode]
+    m = MotionState(header=hdr(5), track_id=A, state="dynamic", mode=mode, z_x=3.0, z_y=1.5, chi2=12.5,
+                    threshold=thr, alpha=1.96, window_length=5, speed=2.4)
+    f = JoinedFrame(seq=5, stamp_ns=1_005, objects=objects(5, ids=(A,)), motion={A: m})
+    upd = frame_messages(f)["/jitterguard/tracks"]
+    schema = upd.get_schema()
+    [ent] = MessageToDict(protobuf_class(schema.name, schema.data).FromString(upd.encode()))["entities"]
+    text = ent["texts"][0]["text"]
+    assert want in text and not_in not in text, text
+    meta = {kv["key"]: kv["value"] for kv in ent["metadata"]}
+    assert meta["mode"] == mode and float(meta["statistic"]) == pytest.approx(statistic), meta
+    [row] = motion_statistics(f)["tracks"]
+    assert row["mode"] == mode and row["statistic"] == pytest.approx(statistic) and row["chi2"] == 12.5, row

@@ -13,7 +13,9 @@ Topics (one message per frame on each that applies; ``TOPICS`` names them):
   motion state (static blue, dynamic orange, undecided grey, never decided white; a track not observed this frame
   shows its latest decision, its label naming the frame it is from), a velocity arrow for
   every object with a non-zero twist (static objects leave the classifier with zero twist: no arrow), a label
-  ``class state z=… α=…``, and metadata (state, vx, vy, z_x, z_y, alpha, is_stationary) on each entity.
+  ``class state`` and the statistic that decided (``z=… α=…``; ``χ²=… thr=…`` in χ² mode, ``v=… m/s thr=…`` for the
+  speed threshold), and metadata (state, vx, vy, z_x, z_y, chi2, mode, statistic, threshold, alpha, is_stationary) on
+  each entity.
 - ``/jitterguard/groundtruth`` (``foxglove.SceneUpdate``, world frame): labelled boxes when the source has them
   (green moving, grey not moving; translucent, outlined by the panel), each with its attribute.
 - ``/jitterguard/motion`` (JSON, :data:`MOTION_SCHEMA`): the classifier's per-track statistics of the frame, for the
@@ -31,7 +33,7 @@ import foxglove.messages as fm
 import numpy as np
 
 from ...geometry import yaw_from_quaternion
-from ...schemas.models import LABEL_NAMES, X_X, X_Y, Y_Y, DetectedObject, Pose, Shape, TrackedObject
+from ...schemas.models import LABEL_NAMES, X_X, X_Y, Y_Y, DetectedObject, MotionState, Pose, Shape, TrackedObject
 from ..bridge.frames import sensor_chain
 from ..bridge.joiner import JoinedFrame
 
@@ -70,6 +72,10 @@ MOTION_SCHEMA: dict[str, Any] = {
         "tracks": {"type": "array", "items": {"type": "object", "properties": {
             "id": {"type": "string"}, "class": {"type": "string"}, "state": {"type": "string"},
             "z_x": {"type": "number"}, "z_y": {"type": "number"}, "z": {"type": "number"},
+            "mode": {"type": "string", "description": "the test that decided: z_test, chi2 or velocity_threshold"},
+            "chi2": {"type": "number"},
+            "statistic": {"type": "number", "description": "what the mode compared with threshold: max(z_x, z_y),"
+                          " chi2 or speed"},
             "alpha": {"type": "number"}, "threshold": {"type": "number"}, "window_length": {"type": "integer"},
             "speed": {"type": "number"}, "x": {"type": "number"}, "y": {"type": "number"},
             "decided_seq": {"type": "integer", "description": "seq of the frame the statistics are from"},
@@ -251,7 +257,7 @@ def _track_entity(frame: JoinedFrame, obj: TrackedObject, stamp: fm.Timestamp) -
                                         shaft_length=max(speed * ARROW_SECONDS - head, 0.0), shaft_diameter=0.12,
                                         head_length=head, head_diameter=0.35, color=_color(STATE_COLORS[state][:3] + (1.0,))))
     if m is not None:
-        text = f"{cls} {state} z={_unsigned_zero(max(m.z_x, m.z_y)):.2f} α={m.alpha:.2f}" + ("" if current else f" (seq {m.header.seq})")
+        text = f"{cls} {state} {_decided_text(m)}" + ("" if current else f" (seq {m.header.seq})")
     else:
         text = f"{cls} {state}"
     texts = [fm.TextPrimitive(pose=_pose(p.position.x, p.position.y, top + 0.6, yaw), billboard=True, font_size=14.0,
@@ -261,9 +267,31 @@ def _track_entity(frame: JoinedFrame, obj: TrackedObject, stamp: fm.Timestamp) -
                             "is_stationary": str(k.is_stationary).lower()}
     if m is not None:
         meta.update(z_x=_unsigned_zero(m.z_x), z_y=_unsigned_zero(m.z_y), alpha=float(m.alpha), window_length=m.window_length,
-                    decided_seq=m.header.seq)
+                    decided_seq=m.header.seq, mode=m.mode, statistic=decided_statistic(m), chi2=_unsigned_zero(m.chi2),
+                    threshold=float(m.threshold))
     return fm.SceneEntity(timestamp=stamp, frame_id=frame.world_frame, id=obj.object_id, cubes=cubes, lines=lines,
                           arrows=arrows, texts=texts, metadata=_kv(**meta))
+
+
+def decided_statistic(m: MotionState) -> float:
+    """The value the classifier compared with ``m.threshold`` in ``m.mode``: max(z_x, z_y) for the z-test, the χ²
+    statistic for ``chi2``, the speed for ``velocity_threshold``. In χ² mode the label had shown max(z_x, z_y), a wire
+    field the decision never used (a track called dynamic on χ² 12.5 read "z=3.00 α=1.96")."""
+    if m.mode == "chi2":
+        return _unsigned_zero(m.chi2)
+    if m.mode == "velocity_threshold":
+        return _unsigned_zero(m.speed)
+    return _unsigned_zero(max(m.z_x, m.z_y))
+
+
+def _decided_text(m: MotionState) -> str:
+    """A label's statistic, as its mode decided: ``z=… α=…``, ``χ²=… thr=…`` (the χ²₂ quantile) or ``v=… m/s
+    thr=…``."""
+    if m.mode == "chi2":
+        return f"χ²={decided_statistic(m):.2f} thr={m.threshold:.2f}"
+    if m.mode == "velocity_threshold":
+        return f"v={decided_statistic(m):.2f} m/s thr={m.threshold:.2f}"
+    return f"z={decided_statistic(m):.2f} α={m.alpha:.2f}"
 
 
 def _unsigned_zero(v: float) -> float:
@@ -309,6 +337,7 @@ def motion_statistics(frame: JoinedFrame) -> dict[str, Any]:
                                "x": p.x, "y": p.y, "vx": v.x, "vy": v.y, "is_stationary": obj.kinematics.is_stationary}
         if m is not None:
             row.update(z_x=_unsigned_zero(m.z_x), z_y=_unsigned_zero(m.z_y), z=_unsigned_zero(max(m.z_x, m.z_y)),
+                       mode=m.mode, chi2=_unsigned_zero(m.chi2), statistic=decided_statistic(m),
                        alpha=m.alpha, threshold=m.threshold,
                        window_length=m.window_length, speed=m.speed, decided_seq=m.header.seq)
         rows.append(row)
