@@ -582,6 +582,7 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
         "alpha_from_labels": {g: alpha_from_labels(rec, g) for g in REPORT_GROUPS},
     }
     metrics["alpha_from_labels_preset"] = labels_preset(metrics["alpha_from_labels"])
+    metrics["run"]["no_decision"] = no_decision(len(rec), total, classifier, tracker)
     if detector is None:
         return named(write_outputs(out, rec, metrics))
     from .detector_input import detection_metrics
@@ -631,6 +632,19 @@ def study_command(
         sys.stdout.write(json.dumps(summary, indent=2, sort_keys=True) + "\n")
     else:
         sys.stdout.write(study_markdown(summary["runs"]))
+
+
+def no_decision(rows: int, frames: int, classifier: Any, tracker: Any) -> str | None:
+    """Why the run scored nothing, when it did not (no (frame, track) row: no track was confirmed and decided),
+    else None: metrics.json and report.md say so, where their empty tables had read like any run's. A track is
+    decided once confirmed (``confirm_hits`` detections) and observed ``min_window`` times."""
+    if rows:
+        return None
+    from ..services.tracker.config import default_config as default_tracker_config
+
+    hits = (tracker or default_tracker_config()).confirm_hits
+    return (f"no track was decided in {frames} frame(s): a track is decided once confirmed ({hits} detections) and"
+            f" observed min_window {classifier.min_window} times; run longer (--duration) or on more frames")
 
 
 LABEL_CLASSES = {"vehicle": ("car", "truck", "bus", "trailer"), "pedestrian": ("pedestrian",),

@@ -337,6 +337,8 @@ def write_outputs(out: Path, rec: Records, metrics: dict[str, Any],
     lines = [
         f"# jitterguard eval — {run['source']}",
         "",
+        *([f"**No decision was made**: {run['no_decision']}. Every table below is empty.", ""]
+          if run.get("no_decision") else []),
         f"Input `{run['input']}`, {_input_desc(run)}, seed {run['seed']}, {run['frames']} frames, "
         f"{run['rows']} (frame, track) rows, {run['matched_rows']} matched to ground truth "
         f"(≤ {run['match_distance_m']} m). Operating points: {test} alpha {run['alpha']} "

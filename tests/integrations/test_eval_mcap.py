@@ -135,3 +135,30 @@ def test_an_interrupted_eval_leaves_no_recording_beside_an_earlier_runs_metrics(
     assert proc.returncode != 0  # interrupted, not finished
     assert (out / "metrics.json").read_text() == earlier
     assert sorted(p.name for p in out.iterdir() if "mcap" in p.name) == []
+
+
+def test_a_run_too_short_to_decide_anything_records_its_channels_and_says_nothing_was_decided(tmp_path: Path
+                                                                                             ) -> None:
+    """Two frames are too few for any track to be confirmed and decided: the recording had no channel and no
+    schema at all (Foxglove opened an empty file, its layout's panels bound to nothing), and report.md and
+    metrics.json read like any run's. The file now holds the channels every frame has, with their schemas, read back
+    by the independent ``mcap`` reader; metrics.json and report.md say that no decision was made."""
+    from mcap.reader import make_reader
+
+    out = tmp_path / "ev"
+    res = subprocess.run([sys.executable, "-m", "jitterguard.cli", "eval", "--scenario", "parking-street", "--seed", "3",
+                          "--duration", "0.2", "--out", str(out), "--mcap", "--json"],
+                         capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-2000:]
+    metrics = json.loads(res.stdout)
+    assert metrics["run"]["rows"] == 0
+    assert metrics["run"]["no_decision"] and "no track was decided" in metrics["run"]["no_decision"]
+    assert "No decision was made" in (out / "report.md").read_text()
+    with open(out / "run-3.mcap", "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    topics = {c.topic: summary.schemas[c.schema_id] for c in summary.channels.values()}
+    assert {TF, TRACKS, MOTION} <= set(topics), topics
+    assert topics[TRACKS].name == "foxglove.SceneUpdate" and topics[TRACKS].encoding == "protobuf"
+    assert topics[MOTION].encoding == "jsonschema" and topics[TF].name == "foxglove.FrameTransforms"
+    assert summary.statistics.message_count == 0  # channels to bind to, no made-up frames

@@ -50,6 +50,7 @@ class FoxgloveSink:
         self.server: Any = None
         self.mcap: Any = None
         self.mcap_path = Path(mcap_path) if mcap_path is not None else None
+        self._logged = False  # a message went to the MCAP: else its channels are written on close (_channels_only)
         if self.mcap_path is not None:
             self.mcap = foxglove.open_mcap(str(self.mcap_path), allow_overwrite=overwrite, context=self.context)
         if port is not None:
@@ -78,11 +79,30 @@ class FoxgloveSink:
     def write(self, frame: JoinedFrame) -> None:
         for topic, msg in frame_messages(frame).items():
             self._channel(topic).log(msg, log_time=frame.stamp_ns)
+            self._logged = True
 
     def _close_mcap(self) -> None:
         if self.mcap is not None:
             self.mcap.close()
             self.mcap = None
+            if not self._logged and self.mcap_path is not None:
+                self._channels_only(self.mcap_path)
+
+    def _channels_only(self, path: Path) -> None:
+        """Rewrite the MCAP at ``path`` as the channels created so far with their schemas and no message. The SDK
+        writes a channel with its first message, so a recording without a frame (``eval --mcap`` of a run too short to
+        decide anything, a stack stopped before its first frame) had held no channel and no schema: Foxglove opened an
+        empty file, the layout's panels bound to nothing. Written with the ``mcap`` package the SDK's extra brings."""
+        from mcap.writer import Writer
+
+        with path.open("wb") as f:
+            w = Writer(f)
+            w.start(profile="", library="jitterguard")
+            for topic, ch in self._channels.items():
+                schema = ch.schema()
+                sid = w.register_schema(schema.name, schema.encoding, bytes(schema.data)) if schema is not None else 0
+                w.register_channel(topic, ch.message_encoding, sid, dict(ch.metadata() or {}))
+            w.finish()
 
     def close(self) -> None:
         self._close_mcap()
