@@ -112,7 +112,7 @@ def test_calibrate_says_why_it_got_no_frame(tmp_path: Path, capsys) -> None:
     long enough ... use a longer recording"."""
     bad = tmp_path / "bad scans"
     bad.mkdir()
-    (bad / "000000.bin").write_bytes(b"")
+    (bad / "000000.bin").write_bytes(b"\x00" * 3)  # cut short (0 bytes is an empty scan)
     (bad / "000001.bin").write_bytes(b"\x00" * 7)
     line = _calibrate_fails([str(bad), "--out", str(tmp_path / "c.yaml")], capsys)
     assert "none of its 2 frame(s) read" in line and "000000.bin" in line, line

@@ -72,7 +72,7 @@ def test_a_recording_none_of_whose_frames_reads_is_an_error(app: typer.Typer, tm
     "replayed 0 frame(s)"). Each bad file still gets its own line, then one error line and exit 2."""
     folder = tmp_path / "bad scans"
     folder.mkdir()
-    (folder / "000000.bin").write_bytes(b"")
+    (folder / "000000.bin").write_bytes(b"\x00" * 3)  # cut short (0 bytes is an empty scan)
     (folder / "000001.bin").write_bytes(b"\x00" * 7)
     argv = ["replay", str(folder), "--listen", "tcp/127.0.0.1:0", "--wait-subscriber", "0", "--no-progress"]
     result = CliRunner().invoke(app, argv)

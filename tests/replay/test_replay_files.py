@@ -62,10 +62,37 @@ def test_kitti_truncated_file_is_an_error_naming_it_and_the_rest_still_reads(tmp
     assert isinstance(items[0], ScanFrame) and isinstance(items[2], ScanFrame)
 
 
-def test_empty_bin_is_an_error(tmp_path: Path) -> None:
+def test_an_empty_bin_is_an_empty_scan_as_a_pcd_of_0_points_is(tmp_path: Path) -> None:
+    """A raw scan has no header: 0 bytes is exactly how it writes 0 points (a LiDAR blocked or covered returns
+    nothing), as a PCD says ``POINTS 0``. The .bin had been an unreadable frame (skipped, so the tracker saw a gap)
+    while the PCD went out as an empty scan (the detector counts it ``empty_scans``): both are empty scans now."""
     (tmp_path / "000000.bin").write_bytes(b"")
     [item] = list(BinScanSource(tmp_path).frames())
-    assert isinstance(item, FrameError) and "empty" in item.reason
+    assert isinstance(item, ScanFrame) and item.points.shape == (0, 4), item
+    pcd = tmp_path / "p"
+    pcd.mkdir()
+    (pcd / "0.pcd").write_text("VERSION .7\nFIELDS x y z intensity\nSIZE 4 4 4 4\nTYPE F F F F\nCOUNT 1 1 1 1\n"
+                               "WIDTH 0\nHEIGHT 1\nPOINTS 0\nDATA binary\n")
+    [p] = list(PcdSource(pcd).frames())
+    assert isinstance(p, ScanFrame) and p.points.shape == (0, 4) and p.fields == item.fields
+
+
+def test_a_bin_larger_than_a_scan_may_be_is_refused_from_its_size_unread(tmp_path: Path) -> None:
+    """A .bin is read whole: a mistaken or huge file (a 4 GB disk image named .bin) had been read into memory, and one
+    over the detector's 64 MiB max_scan_bytes published for the detector to refuse. Its size from the file's stat is
+    held to that cap before a byte is read: one unreadable frame naming the file, the rest of the folder reads."""
+    from jitterguard.services.detector.config import DetectorParams
+    from jitterguard.services.replay.frames import MAX_SCAN_BYTES
+
+    assert MAX_SCAN_BYTES == DetectorParams.model_fields["max_scan_bytes"].default  # the detector's own default
+    _scans(tmp_path, 2)
+    big = tmp_path / "000002.bin"
+    with big.open("wb") as f:  # sparse: no disk, and no memory unless read
+        f.truncate(MAX_SCAN_BYTES + 16)
+    items = list(BinScanSource(tmp_path).frames())
+    assert isinstance(items[0], ScanFrame) and isinstance(items[1], ScanFrame)
+    assert isinstance(items[2], FrameError) and items[2].origin == str(big)
+    assert "over the 64 MiB" in items[2].reason and "max_scan_bytes" in items[2].reason and "\n" not in str(items[2])
 
 
 def test_start_skips_without_reading(tmp_path: Path) -> None:

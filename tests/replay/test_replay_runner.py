@@ -257,3 +257,25 @@ def test_one_scan_looped_goes_out_at_its_hz_not_at_10_hz(tmp_path, suffix: str) 
     assert [stamp for _, _, stamp in sink.out] == [0, 500 * MS, 1000 * MS, 1500 * MS]
     assert [seq for _, seq, _ in sink.out] == [0, 1, 2, 3]
     assert clock.sleeps == pytest.approx([0.5, 0.5, 0.5])
+
+
+def test_a_scan_over_the_detectors_cap_is_refused_and_counted_as_the_unreadable_ones_are() -> None:
+    """A scan whose ``points`` payload is over the detector's ``max_scan_bytes`` (64 MiB; from a bag or PCD of a
+    dense sensor) had been published without a word, and the detector refused every one of them, unread. The replay
+    holds each scan to that cap before it goes out: one line naming the scan and its size, skipped and counted like
+    an unreadable frame (a recording none of whose frames fits is refused, as one none of whose frames reads)."""
+    import numpy as np
+
+    from jitterguard.services.replay.frames import scan_refusal
+
+    big = replace(scan(1), points=np.zeros((300, 4), np.float32))  # 4,800 bytes of points
+    frames = [scan(0), big, scan(2)]
+    payload = len(encode(message_for(big, 0, big.stamp_ns)))
+    assert scan_refusal(big, payload) is None and scan_refusal(big, payload - 1) is not None  # the payload, exact
+    sink = Sink()
+    errors: list[FrameError] = []
+    stats = run_replay(MemorySource(frames), ReplayPlan(rate=None, max_scan_bytes=4096), sink, clock=FakeClock(),
+                       on_error=errors.append)
+    assert [o for o, _, _ in sink.out] == ["mem#0", "mem#2"] and stats.errors == 1
+    [err] = errors
+    assert err.origin == "mem#1" and "over" in err.reason and "max_scan_bytes" in err.reason, err

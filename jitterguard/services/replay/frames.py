@@ -26,6 +26,11 @@ from ...schemas.codec import LimitExceeded
 from ...schemas.models import DetectedObject, GroundTruthObjects, Point, Pose, Quaternion
 from ...schemas.wire import check_pose
 
+MAX_SCAN_BYTES = 64 << 20
+"""The largest ``points`` payload the replay publishes, and the largest raw ``.bin`` it reads: the detector's default
+``max_scan_bytes`` (the bridges' and ``ros2-in``'s too), beyond which every consumer refuses a scan unread. Kept equal
+to it by a test rather than imported: the detector's configuration is not the replay's to load."""
+
 DEFAULT_PERIOD_NS = 100_000_000
 """10 Hz: the stamp spacing used for recordings that carry no time (KITTI without times.txt, loose PCDs)."""
 
@@ -150,6 +155,45 @@ def pose_refusal(frame: Frame) -> FrameError | None:
     except LimitExceeded as exc:
         return FrameError(frame.origin, f"{exc.field}: {exc.reason}")
     return None
+
+
+def mib(n: int) -> str:
+    """A byte count as people read it in a refusal: ``64 MiB``, ``80.5 MiB``."""
+    return f"{n / (1 << 20):.4g} MiB"
+
+
+SHELL_BOUND = 1024
+"""More than a ``points`` message holds besides its points and names (keys, header, pose: about 300 bytes)."""
+
+
+def _msgpack_bin_header(n: int) -> int:
+    return 2 if n < 1 << 8 else 3 if n < 1 << 16 else 5
+
+
+def scan_refusal(frame: Frame, max_bytes: int = MAX_SCAN_BYTES) -> FrameError | None:
+    """``frame`` as an unreadable frame when its ``points`` payload would be larger than ``max_bytes``, else None.
+    Such a scan (a dense sensor's bag or PCD) had gone out without a word for the detector to refuse every one of them
+    unread (``rejected.points``). The size is the payload's own, computed without copying the points: the message
+    around no data, plus the points' bytes (the header's seq and stamp as the recording gives them, a few bytes from
+    what the replay writes). The replay loop and ``up``'s pre-start check (:func:`~.sources.probe_source`) apply it, as
+    they apply :func:`pose_refusal`."""
+    if not isinstance(frame, ScanFrame):
+        return None
+    data = frame.points.shape[0] * frame.points.shape[1] * 4
+    names = sum(len(f.encode()) + 5 for f in frame.fields) + len(frame.frame_id.encode())
+    if data + names + SHELL_BOUND <= max_bytes:  # the common case, far below: no message built
+        return None
+    from ...schemas import PointCloud, encode
+    from ...schemas.models import Header
+
+    empty = PointCloud.model_construct(header=Header(stamp=frame.stamp_ns, frame_id=frame.frame_id, seq=0),
+                                       ego_pose=frame.pose.to_schema(), fields=list(frame.fields),
+                                       num_points=int(frame.points.shape[0]), data=b"")
+    size = len(encode(empty)) - _msgpack_bin_header(0) + _msgpack_bin_header(data) + data
+    if size <= max_bytes:
+        return None
+    return FrameError(frame.origin, f"scan of {size} bytes ({mib(size)}, {frame.points.shape[0]} points) is over the"
+                                    f" {mib(max_bytes)} the detector takes (its max_scan_bytes): not published")
 
 
 @dataclass

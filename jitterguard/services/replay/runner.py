@@ -13,7 +13,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Literal
 
-from .frames import DEFAULT_PERIOD_NS, Frame, FrameError, Item, pose_refusal
+from .frames import DEFAULT_PERIOD_NS, MAX_SCAN_BYTES, Frame, FrameError, Item, pose_refusal, scan_refusal
 from .pacing import Clock, Pacer, RealClock, Restamper
 from .sources.base import Source, past_end
 
@@ -37,6 +37,9 @@ class ReplayPlan:
     seq_start: int = 0
     max_lag_s: float = 0.5
     stamps: Stamps = "recorded"
+    max_scan_bytes: int = MAX_SCAN_BYTES
+    """A scan whose ``points`` payload is larger is an unreadable frame (:func:`~.frames.scan_refusal`): the
+    detector refuses it unread."""
     """``recorded``: the recording's stamps (shifted forward across loop passes); ``wall``: the first frame is
     stamped with the wall clock and the rest keep the recorded spacing after it (see :class:`Restamper`).
 
@@ -145,7 +148,7 @@ def run_replay(
                 stats.interrupted = True
                 break
             if not isinstance(item, FrameError):
-                item = pose_refusal(item) or item
+                item = pose_refusal(item) or scan_refusal(item, plan.max_scan_bytes) or item
             if isinstance(item, FrameError):
                 stats.errors += 1
                 if len(stats.error_origins) < 100:

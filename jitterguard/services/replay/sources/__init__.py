@@ -17,7 +17,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..frames import DEFAULT_PERIOD_NS, NO_POSE_YET, FrameError, SourceError, SourceInfo, pose_refusal
+from ..frames import (DEFAULT_PERIOD_NS, NO_POSE_YET, FrameError, SourceError, SourceInfo, pose_refusal,
+                      scan_refusal)
 from .base import MemorySource, Source, check_start, past_end
 
 __all__ = ["Source", "MemorySource", "SourceOptions", "SourceError", "open_source", "probe_source",
@@ -189,7 +190,8 @@ def probe_source(spec: str, opts: SourceOptions | None = None, *, start: int = 0
         try:
             for item in src.frames(start):
                 if not isinstance(item, FrameError):
-                    item = pose_refusal(item) or item  # the replay's own rule: a frame it would skip is no frame
+                    # the replay's own rules: a frame it would skip is no frame
+                    item = pose_refusal(item) or scan_refusal(item) or item
                 if not isinstance(item, FrameError):
                     return src.info
                 if item.reason.startswith(NO_POSE_YET):  # localization starts late: the replay skips these too

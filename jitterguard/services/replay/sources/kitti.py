@@ -12,6 +12,7 @@ nominal axis permutation (camera x = −velo y, y = −velo z, z = velo x) stand
 from __future__ import annotations
 
 import logging
+import os
 import re
 from collections.abc import Iterator
 from pathlib import Path
@@ -19,7 +20,8 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from ..frames import DEFAULT_PERIOD_NS, IDENTITY, EgoPose, FrameError, Item, ScanFrame, SourceError, SourceInfo, finite_rows
+from ..frames import (DEFAULT_PERIOD_NS, IDENTITY, MAX_SCAN_BYTES, EgoPose, FrameError, Item, ScanFrame, SourceError,
+                      SourceInfo, finite_rows, mib)
 from .base import Source, listed_scans
 
 log = logging.getLogger("jitterguard.replay")
@@ -38,14 +40,20 @@ def fields_for(path: Path) -> tuple[str, ...]:
     return NUSCENES_FIELDS if path.name.lower().endswith(".pcd.bin") else KITTI_FIELDS
 
 
-def read_bin(path: Path, num_fields: int) -> NDArray[np.float32]:
-    """Read one raw float32 scan as (P, num_fields), read-only. Raises ``ValueError`` on a size that is not
-    whole rows. One ``read`` and no ``stat``: on network file systems the extra ``stat`` per scan cost more
-    than the read itself."""
-    raw = Path(path).read_bytes()
+def read_bin(path: Path, num_fields: int, max_bytes: int = MAX_SCAN_BYTES) -> NDArray[np.float32]:
+    """Read one raw float32 scan as (P, num_fields), read-only. Raises ``ValueError`` on a size that is not whole
+    rows, or over ``max_bytes`` (the detector's ``max_scan_bytes``: such a scan is refused unread downstream) — told
+    from the open file's ``fstat`` before a byte is read: a mistaken multi-gigabyte file named ``.bin`` had been read
+    whole into memory. The open file's ``fstat``, not a ``stat`` of the path: no second lookup on a network file
+    system, where a stat per scan had cost more than the read. 0 bytes is a scan of 0 points, as a PCD's ``POINTS
+    0`` is: a raw scan has no header, and nothing is how it writes a LiDAR that returned nothing."""
     row = 4 * num_fields
-    if not raw:
-        raise ValueError("empty file (0 points)")
+    with open(path, "rb") as f:
+        size = os.fstat(f.fileno()).st_size
+        if size > max_bytes:
+            raise ValueError(f"{size} bytes ({mib(size)}) is over the {mib(max_bytes)} a scan may be (the detector's"
+                             " max_scan_bytes): not read")
+        raw = f.read(size)  # the size it had when checked, should the file grow meanwhile
     if len(raw) % row:
         raise ValueError(
             f"{len(raw)} bytes is not a whole number of {num_fields}-float32 points ({row} bytes each): truncated or not a scan"
