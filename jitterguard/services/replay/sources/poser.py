@@ -206,7 +206,7 @@ class ScanPoser:
         try:
             pts, names = pointcloud2_to_array(msg)
         except ValueError as exc:
-            return FrameError(origin, f"bad PointCloud2: {exc}")
+            return FrameError(origin, f"bad PointCloud2: {exc}", invalid=True)
         pts, _ = finite_rows(pts)
         level = self.levelling(frame_id)
         if level is not None:  # into the base frame's axes at the sensor
@@ -234,7 +234,7 @@ class ScanPoser:
         except ValidationError as exc:
             err = exc.errors(include_url=False)[0]
             loc = ".".join(str(p) for p in err.get("loc", ()))
-            return FrameError(origin, f"invalid DetectedObject ({loc}: {err.get('msg')})")
+            return FrameError(origin, f"invalid DetectedObject ({loc}: {err.get('msg')})", invalid=True)
         except (AttributeError, TypeError, ValueError) as exc:
-            return FrameError(origin, f"unexpected DetectedObjects layout: {exc}")
+            return FrameError(origin, f"unexpected DetectedObjects layout: {exc}", invalid=True)
         return DetectionFrame(stamp, pose, objects, origin, frame_id)
