@@ -268,6 +268,8 @@ def test_a_folder_where_an_output_file_goes_is_refused_before_any_work(args, blo
     (["record", "--ros2", "", "--connect", "tcp/127.0.0.1:9"], "--ros2: empty path; give a folder"),
     (["record", "--ros2", "", "--number-if-exists", "--connect", "tcp/127.0.0.1:9"], "--ros2: empty path"),
     (["foxglove", "--record", "", "--connect", "tcp/127.0.0.1:9"], "--record: empty path; give a file"),
+    (["record", "--ros2", "{tmp}/bag", "--points-layout", "xyzi", "--connect", "tcp/127.0.0.1:9"],
+     "--points-layout: 'xyzi' is not one of xyzirc, float32"),
     (["up", "--record-mcap", "", "--run-dir", "{tmp}", "--duration", "1"], "--record-mcap: empty path; give a file"),
     (["up", "--record-ros2", "", "--run-dir", "{tmp}", "--duration", "1"], "--record-ros2: empty path; give a folder"),
     # an empty --zenoh-config had meant none: the router started on its default endpoint, a service as a client

@@ -131,8 +131,16 @@ def test_detections_points_and_tf_match_what_was_published(pipeline_run, bag_mes
             assert got.kinematics.has_position_covariance == want.kinematics.has_position_covariance is True
     for log_time, _, msg in bag_messages[POINTS_TOPIC]:
         ref = pipeline_run.points[log_time]
-        assert [f.name for f in msg.fields] == ref.fields and all(f.datatype == 7 for f in msg.fields)
-        assert msg.width == ref.num_points and bytes(msg.data) == ref.data
+        # Autoware's PointXYZIRC (float32 x, y, z; uint8 intensity, return_type; uint16 channel: the ring)
+        assert [(f.name, f.offset, f.datatype, f.count) for f in msg.fields] == [
+            ("x", 0, 7, 1), ("y", 4, 7, 1), ("z", 8, 7, 1), ("intensity", 12, 2, 1), ("return_type", 13, 2, 1),
+            ("channel", 14, 4, 1)]
+        assert msg.width == ref.num_points and msg.point_step == 16 and len(msg.data) == 16 * ref.num_points
+        got = np.frombuffer(bytes(msg.data), dtype=[("xyz", "<f4", 3), ("i", "u1"), ("r", "u1"), ("c", "<u2")])
+        want = np.frombuffer(ref.data, dtype="<f4").reshape(ref.num_points, len(ref.fields))
+        assert ref.fields == ["x", "y", "z", "intensity", "ring"]
+        np.testing.assert_array_equal(got["xyz"], want[:, :3])
+        assert (got["i"] == want[:, 3]).all() and (got["c"] == want[:, 4]).all() and not got["r"].any()
     for log_time, _, msg in bag_messages[TF_TOPIC]:
         a, b = msg.transforms
         assert (a.header.frame_id, a.child_frame_id, b.header.frame_id, b.child_frame_id) == (

@@ -305,3 +305,65 @@ def test_refused_payloads_on_rmw_zenoh_are_counted_per_subscription_not_per_key_
     finally:
         client.close()
         service.close()
+
+
+def _objects(t_ns: int, existence: float) -> dict:
+    """One car as Autoware's detector reports it, in base_link; ``existence`` beyond [0, 1] breaks the contract."""
+    zero = {"x": 0.0, "y": 0.0, "z": 0.0}
+    car = {"existence_probability": existence, "classification": [{"label": 1, "probability": 0.9}],
+           "kinematics": {"pose_with_covariance": {"pose": {"position": {"x": 12.0, "y": 2.0, "z": 0.8},
+                                                            "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}},
+                                                   "covariance": [0.0] * 36},
+                          "has_position_covariance": False, "orientation_availability": 1,
+                          "twist_with_covariance": {"twist": {"linear": zero, "angular": zero},
+                                                    "covariance": [0.0] * 36},
+                          "has_twist": False, "has_twist_covariance": False},
+           "shape": {"type": 0, "footprint": {"points": []}, "dimensions": {"x": 4.5, "y": 1.9, "z": 1.6}}}
+    return {"header": {"stamp": _stamp(t_ns), "frame_id": "base_link"}, "objects": [car]}
+
+
+@pytest.mark.parametrize("msgtype", ["sensor_msgs/msg/PointCloud2", "autoware_perception_msgs/msg/DetectedObjects"])
+def test_a_message_that_fails_validation_is_counted_invalid_not_unposed_and_the_service_goes_on(msgtype):
+    """A message that decodes but breaks the contract (a cloud without z; a box whose existence probability is 5) is
+    the sender's fault, not the poses': it is counted ``invalid`` in the heartbeat (it had been counted ``unposed``,
+    which sends an operator looking at TF), and it is dealt with, not a failure of progress — a run of them left the
+    service ``failing`` and its watchdog restarted it, which no restart can mend. The next valid message goes out."""
+    from jitterguard.runtime import loopback_options
+    from jitterguard.services.ros2live.in_service import Ros2InService
+
+    ns, port = f"r2v{os.getpid()}{msgtype[0]}", free_tcp_port()
+    topic = "/" + CLOUD_KEY if msgtype.startswith("sensor") else "/perception/object_recognition/detection/objects"
+    service = Ros2InService(loopback_options(ns, port, listen_self=True), topic=topic, pose_topic=None, pose_type=None,
+                            msgtype=msgtype)
+    client = open_session(build_config(loopback_options(ns, port)))
+    enc = _encoder(msgtype)
+    out_key = keys.points(ns) if msgtype.startswith("sensor") else keys.detections(ns)
+    got: list[bytes] = []
+    beats: list[Heartbeat] = []
+    try:
+        client.declare_subscriber(out_key, lambda s: got.append(s.payload.to_bytes()))
+        client.declare_subscriber(keys.heartbeat(ns, "ros2-in"),
+                                  lambda s: beats.append(decode(Heartbeat, s.payload.to_bytes())))
+        time.sleep(0.5)
+        t0 = 1_700_000_000_000_000_000
+        for k in range(6):  # more than the five in a row that make a service failing
+            if msgtype.startswith("sensor"):
+                bad = {**_cloud(t0 + k), "fields": [{"name": n, "offset": 4 * i, "datatype": 7, "count": 1}
+                                                    for i, n in enumerate(("x", "y"))]}
+            else:
+                bad = _objects(t0 + k, 5.0)
+            client.put(topic[1:], bytes(enc(bad)))
+            time.sleep(0.05)
+        assert wait_until(lambda: service.counters.get("invalid") == 6, timeout=30, period=0.05), \
+            service.counters.snapshot()
+        assert service.counters.get("unposed") == 0 and not got
+        assert service.health().ok, service.health()
+        good = _cloud(t0 + 10) if msgtype.startswith("sensor") else _objects(t0 + 10, 0.7)
+        client.put(topic[1:], bytes(enc(good)))
+        assert wait_until(lambda: len(got) == 1, timeout=30, period=0.05), service.counters.snapshot()
+        assert wait_until(lambda: bool(beats) and beats[-1].counters.get("invalid") == 6
+                          and beats[-1].counters.get("published") == 1, timeout=30, period=0.1)
+        assert beats[-1].health == "ok"
+    finally:
+        client.close()
+        service.close()

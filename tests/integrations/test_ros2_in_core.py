@@ -266,3 +266,25 @@ def test_a_scan_is_refused_while_nothing_puts_the_vehicle_in_the_world():
     core.tf(_enc("tf2_msgs/msg/TFMessage", {"transforms": [pose]}), 0, static=False)
     frame = core.scan(core.stamp_of(_cloud(t))[0], "scan#2", 0)
     assert isinstance(frame, ScanFrame) and (frame.pose.x, frame.pose.z) == pytest.approx((101.0, 2.0))
+
+
+def test_a_live_scan_whose_sensor_kit_is_not_linked_to_base_link_is_refused_naming_the_link():
+    """The live twin of the bag's check: localization has map -> base_link, the sensor kit's mount is on /tf_static,
+    but the link base_link -> sensor_kit_base_link is not (a vehicle description not loaded). The scan had gone out
+    posed at its mount near the world's origin; it is refused, one line naming the missing link, until it comes."""
+    core = LiveScans("tf2_msgs/msg/TFMessage")
+
+    def link(parent: str, child: str, t: int, x: float) -> bytes:
+        return _enc("tf2_msgs/msg/TFMessage", {"transforms": [
+            {"header": {"stamp": _stamp(t), "frame_id": parent}, "child_frame_id": child,
+             "transform": {"translation": {"x": x, "y": 0.0, "z": 0.0},
+                           "rotation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}}}]})
+    t = 5_000_000_000
+    core.tf(link("sensor_kit_base_link", "lidar", 0, 0.5), 0, static=True)
+    core.tf(link("map", "base_link", t, 100.0), 0, static=False)
+    out = core.scan(core.stamp_of(_cloud(t))[0], "scan#1", 0)
+    assert isinstance(out, FrameError) and not out.invalid and "\n" not in out.reason
+    assert "the link from 'base_link' (or a frame under it) to 'sensor_kit_base_link' is missing" in out.reason
+    core.tf(link("base_link", "sensor_kit_base_link", 0, 1.0), 0, static=True)
+    frame = core.scan(core.stamp_of(_cloud(t))[0], "scan#2", 0)
+    assert isinstance(frame, ScanFrame) and frame.pose.x == pytest.approx(101.5)

@@ -521,3 +521,65 @@ def test_a_bag_without_the_definition_of_its_topics_type_is_one_source_error(tmp
         con.execute("DELETE FROM message_definitions")
     with pytest.raises(SourceError, match=f"no definition of {AUTO_DETECTED}"):
         open_source(str(bag))
+
+
+def _bag_with_tf(path: Path, static: list[tuple[str, str]], dynamic: list[tuple[str, str]]) -> None:
+    """Two clouds in lidar_top, with the /tf_static links ``static`` and the /tf links ``dynamic`` (parent, child)
+    at each cloud's stamp (identity rotations, 1 m apart along x)."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    from jitterguard.services.replay.sources.ros_types import POINTCLOUD2, typestore
+
+    from .bagfixture import TF, _cloud, _tf
+
+    ts = typestore()
+    with Writer(path, version=8, storage_plugin=StoragePlugin.MCAP) as w:
+        c_static = w.add_connection("/tf_static", TF, typestore=ts)
+        w.write(c_static, T0, ts.serialize_cdr(_tf(ts, [(T0, p, c, 1.0, 0.0, 0.5, 0.0) for p, c in static]), TF))
+        c_tf = w.add_connection("/tf", TF, typestore=ts)
+        c_cloud = w.add_connection(CLOUD_TOPIC, POINTCLOUD2, typestore=ts)
+        for i in range(2):
+            t = T0 + i * 100_000_000
+            if dynamic:
+                w.write(c_tf, t, ts.serialize_cdr(_tf(ts, [(t, p, c, 10.0 + i, 0.0, 0.0, 0.0) for p, c in dynamic]), TF))
+            w.write(c_cloud, t, ts.serialize_cdr(_cloud(ts, t, np.zeros((3, 4), np.float32)), POINTCLOUD2))
+
+
+@pytest.mark.parametrize(("static", "dynamic", "missing"), [
+    # the sensor kit's link to the vehicle missing: lidar_top -> sensor_kit_base_link hangs apart from map -> base_link
+    ([("sensor_kit_base_link", "lidar_top")], [("map", "base_link")],
+     "the link from 'base_link' (or a frame under it) to 'sensor_kit_base_link' is missing"),
+    # two links up the chain, and the vehicle itself not placed yet either: the link nearest the sensor is named
+    ([("sensor_kit_base_link", "lidar_top"), ("sensor_mount", "sensor_kit_base_link")], [],
+     "the link from the world to 'sensor_mount' is missing"),
+    # the vehicle's frame reached, nothing above it (localization has no pose yet): as before
+    ([("sensor_kit_base_link", "lidar_top"), ("base_link", "sensor_kit_base_link")], [], "map -> base_link"),
+])
+def test_up_refuses_a_tf_tree_whose_chain_from_the_sensor_to_the_world_is_broken_anywhere(
+        tmp_path: Path, static, dynamic, missing) -> None:
+    """`up`'s pre-start check (and each scan) refused a TF tree only when its root was base_link: a chain broken
+    below it (the sensor kit's link to base_link missing) went unnoticed, its top frame was taken for the world and
+    every scan went out posed at its mount near the world's origin. Every link from the cloud's frame up to the world
+    is now needed; the refusal is one line naming the missing link."""
+    from jitterguard.services.replay.sources import probe_source
+
+    path = tmp_path / "bag"
+    _bag_with_tf(path, static, dynamic)
+    with pytest.raises(SourceError) as err:
+        probe_source(str(path), SourceOptions(pose_topic="/tf"))
+    msg = str(err.value)
+    assert "\n" not in msg and missing in msg, msg
+
+
+def test_a_sensor_under_the_world_frame_directly_or_through_base_link_is_posed(tmp_path: Path) -> None:
+    """What the check must let through: lidar_top -> sensor_kit_base_link -> base_link -> map, and a sensor posed in
+    the world directly (map -> lidar_top) beside a vehicle whose frame hangs elsewhere."""
+    from jitterguard.services.replay.sources import probe_source
+
+    _bag_with_tf(tmp_path / "a", [("sensor_kit_base_link", "lidar_top"), ("base_link", "sensor_kit_base_link")],
+                 [("map", "base_link")])
+    with open_source(str(tmp_path / "a"), SourceOptions(pose_topic="/tf")) as src:
+        frames = list(src.frames())
+    assert all(isinstance(f, ScanFrame) for f in frames) and frames[1].pose.x == pytest.approx(13.0)
+    _bag_with_tf(tmp_path / "b", [("base_link", "imu")], [("map", "lidar_top")])
+    assert probe_source(str(tmp_path / "b"), SourceOptions(pose_topic="/tf")).kind == "points"

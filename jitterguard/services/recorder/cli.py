@@ -29,6 +29,10 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         connect: ConnectOpt = None,
         listen: ListenOpt = None,
         points: Annotated[bool, typer.Option("--points/--no-points", help="Record the scans as PointCloud2.")] = True,
+        points_layout: Annotated[str, typer.Option("--points-layout", help="The scans' PointCloud2 layout: 'xyzirc',"
+                                                   " Autoware's PointXYZIRC (float32 x, y, z; uint8 intensity, uint8"
+                                                   " return_type, uint16 channel: what its LiDAR pipeline takes), or"
+                                                   " 'float32', every wire column float32 as sent.")] = "xyzirc",
         number_if_exists: Annotated[bool, typer.Option("--number-if-exists", help="If the folder exists, write FOLDER.1, FOLDER.2, ... instead of failing (for supervised restarts).")] = False,
         log_level: LogLevelOpt = "INFO",
     ) -> None:
@@ -41,6 +45,10 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             if not number_if_exists:
                 fail(f"--ros2: {ros2} exists (rosbag2 writes a new folder)")
             path = next_free_path(path)
+        from ...ros2.points import LAYOUTS
+
+        if points_layout not in LAYOUTS:
+            fail(f"--points-layout: {points_layout!r} is not one of {', '.join(LAYOUTS)}")
         new_dir("--ros2", path)  # made and removed: a folder test passes /proc, where rosbags' mkdir then failed
         opts = zenoh_options(ns, zenoh_config, connect, listen)
 
@@ -50,7 +58,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
 
         setup_logging(log_level)
         try:
-            sink = Rosbag2Sink(path, points=points)
+            sink = Rosbag2Sink(path, points=points, points_layout=points_layout)
         except RosbagError as exc:
             fail(f"--ros2: {exc}")
         try:

@@ -3,7 +3,7 @@ Autoware's perception and prediction use:
 
 | topic | type | what |
 |---|---|---|
-| ``/sensing/lidar/top/pointcloud`` | ``sensor_msgs/msg/PointCloud2`` | the scan (sensor frame, float32 columns as sent) |
+| ``/sensing/lidar/top/pointcloud`` | ``sensor_msgs/msg/PointCloud2`` | the scan (sensor frame; Autoware's ``PointXYZIRC`` layout, or float32 columns as sent: :mod:`jitterguard.ros2.points`) |
 | ``/perception/object_recognition/detection/objects`` | ``autoware_perception_msgs/msg/DetectedObjects`` | the detector's output (sensor frame, with its variances) |
 | ``/perception/object_recognition/tracking/objects`` | ``autoware_perception_msgs/msg/TrackedObjects`` | the classifier's ``objects``: what Autoware's prediction subscribes to |
 | ``/tf`` | ``tf2_msgs/msg/TFMessage`` | ``map → base_link → <sensor frame>`` per frame (:mod:`..bridge.frames`; data in ``base_link`` itself: ``map → base_link``, the whole pose) |
@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from ...ros2.autoware import RosBuilder
+from ...ros2.points import DEFAULT_LAYOUT, LAYOUTS, cloud_layout
 from ...ros2.types import DETECTED_OBJECTS, POINTCLOUD2, TF_MESSAGE, TRACKED_OBJECTS, typestore
 from ...schemas.models import PointCloud, Pose
 from ..bridge.frames import sensor_chain
@@ -33,26 +34,24 @@ DETECTIONS_TOPIC = "/perception/object_recognition/detection/objects"
 TRACKING_TOPIC = "/perception/object_recognition/tracking/objects"
 TF_TOPIC = "/tf"
 BASE_FRAME = "base_link"
-FLOAT32 = 7  # sensor_msgs/PointField.FLOAT32
 
 
 class RosbagError(RuntimeError):
     """The bag cannot be written (the folder exists, rosbags missing, a write failed)."""
 
 
-def pointcloud2(b: RosBuilder, pc: PointCloud) -> Any:
-    """The wire scan as a PointCloud2: one row, every column float32 at 4-byte offsets, the bytes as they came;
-    ``is_dense`` only when every value is finite (the wire does not promise it: a publisher other than jitterguard's
-    replay may send NaN rows, and a PCL reader trusts ``is_dense`` and skips its NaN checks)."""
+def pointcloud2(b: RosBuilder, pc: PointCloud, layout: str = DEFAULT_LAYOUT) -> Any:
+    """The wire scan as a PointCloud2, one row, in ``layout`` (:mod:`jitterguard.ros2.points`): Autoware's
+    ``PointXYZIRC`` by default (its LiDAR pipeline refuses any other layout), or every column float32 as the wire
+    sent it. ``is_dense`` only when every point is finite (the wire does not promise it: a publisher other than
+    jitterguard's replay may send NaN rows, and a PCL reader trusts ``is_dense`` and skips its NaN checks)."""
     g = b.t
-    n_fields = len(pc.fields)
-    dense = bool(np.isfinite(np.frombuffer(pc.data, dtype="<f4")).all())
-    fields = [g["sensor_msgs/msg/PointField"](name=name, offset=4 * j, datatype=FLOAT32, count=1)
-              for j, name in enumerate(pc.fields)]
+    fields, step, data, dense = cloud_layout(pc.fields, pc.data, layout)
     return g[POINTCLOUD2](header=b.header(pc.header.stamp, pc.header.frame_id), height=1, width=pc.num_points,
-                          fields=fields, is_bigendian=False, point_step=4 * n_fields,
-                          row_step=4 * n_fields * pc.num_points, data=np.frombuffer(pc.data, dtype=np.uint8),
-                          is_dense=dense)
+                          fields=[g["sensor_msgs/msg/PointField"](name=name, offset=offset, datatype=datatype, count=1)
+                                  for name, offset, datatype in fields],
+                          is_bigendian=False, point_step=step, row_step=step * pc.num_points,
+                          data=np.frombuffer(data, dtype=np.uint8), is_dense=dense)
 
 
 def tf_message(b: RosBuilder, stamp_ns: int, world: str, sensor_frame: str, pose: Pose) -> Any | None:
@@ -74,7 +73,10 @@ def tf_message(b: RosBuilder, stamp_ns: int, world: str, sensor_frame: str, pose
 class Rosbag2Sink:
     """Writes joined frames into a new rosbag2 folder ``path`` (MCAP storage)."""
 
-    def __init__(self, path: str | Path, *, points: bool = True) -> None:
+    def __init__(self, path: str | Path, *, points: bool = True, points_layout: str = DEFAULT_LAYOUT) -> None:
+        if points_layout not in LAYOUTS:
+            raise RosbagError(f"points layout {points_layout!r}: use one of {', '.join(LAYOUTS)}")
+        self.points_layout = points_layout
         try:
             from rosbags.rosbag2 import StoragePlugin, Writer
         except ImportError:
@@ -105,7 +107,7 @@ class Rosbag2Sink:
         if tf is not None:
             self._write(TF_TOPIC, frame.stamp_ns, tf)
         if self.points and frame.points is not None:
-            self._write(POINTS_TOPIC, frame.points.header.stamp, pointcloud2(b, frame.points))
+            self._write(POINTS_TOPIC, frame.points.header.stamp, pointcloud2(b, frame.points, self.points_layout))
         if frame.detections is not None:
             self._write(DETECTIONS_TOPIC, frame.detections.header.stamp, b.detected_objects(frame.detections))
         self._write(TRACKING_TOPIC, frame.objects.header.stamp, b.tracked_objects(frame.objects))

@@ -129,6 +129,9 @@ class FrameError:
 
     origin: str
     reason: str
+    invalid: bool = False
+    """The message itself breaks the contract (a cloud without z, a box with an impossible probability): the sender's
+    fault, which ``ros2-in`` counts ``invalid``, apart from a scan it could not pose (``unposed``)."""
 
     def __str__(self) -> str:
         return f"{self.origin}: {self.reason}"

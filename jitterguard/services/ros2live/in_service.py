@@ -7,8 +7,10 @@ kept; a worker that falls behind skips, counted ``dropped_queue.*``), the pose k
 pose topic) are small and fed to the core in their callbacks. The worker decodes a scan, waits up to ``tf_wait_s``
 for the poses to reach its stamp (TF usually comes a few ms after the cloud it poses), poses it and puts it on
 ``points`` with a seq of its own and the scan's sensor stamp. A payload that is not a CDR message of its topic's
-type is rejected, counted per key, and the service goes on; a scan that cannot be posed (no TF path to its frame)
-is a failure of progress (``failing`` after five in a row, with the reason).
+type is rejected, counted per key, and the service goes on; one that decodes but breaks the contract (a cloud
+without z, a box with an impossible probability) is counted ``invalid``, logged, and dealt with; a scan that cannot
+be posed (no TF path to its frame) is counted ``unposed`` and is a failure of progress (``failing`` after five in a
+row, with the reason).
 
 ``/tf_static`` is latched in ROS 2 (transient local), and a bridge or node started before us has published it once.
 Each keeps that history its own way (read in their sources): zenoh-bridge-ros2dds since 1.1 and rmw_zenoh in a
@@ -194,6 +196,14 @@ class Ros2InService(RosGraphService):
             notes = self.core.notes()
         for note in notes:
             self.log.info("%s", note)
+        if isinstance(frame, FrameError) and frame.invalid:
+            # the sender's message breaks the contract: counted apart from a scan without a pose, and dealt with, not
+            # a failure of progress (a restart cannot mend the sender's messages; a run of them had the watchdog
+            # restart the service over and over)
+            self.counters.inc("invalid")
+            self._reject_log.warn(f"{frame.origin}: {frame.reason}", kind="invalid")
+            self.progress.output(time.monotonic())
+            return
         if isinstance(frame, FrameError):
             self.counters.inc("unposed")
             self.progress.failure(time.monotonic(), frame.reason[:200])

@@ -11,7 +11,8 @@ comes from ``--pose-topic``:
 
 - a ``tf2_msgs/TFMessage`` topic (``/tf``): the TF chain from the tree's root (``map``) down to the cloud's
   frame, with ``/tf_static`` for the fixed links, each dynamic link interpolated at the scan's stamp (a tree whose
-  root is ``base_link`` puts nothing in the world: its frames are frame errors);
+  root is ``base_link`` puts nothing in the world, nor does a chain broken below it — its top no REP-105 fixed frame
+  and ``base_link`` in another tree, or static links only: its frames are frame errors naming the missing link);
 - an Odometry / PoseStamped / PoseWithCovarianceStamped topic, interpolated to each stamp, then composed
   with the ``/tf_static`` chain from the odometry's ``child_frame_id`` (e.g. ``base_link``) to the cloud's
   frame when the bag has one (otherwise the vehicle's pose is taken for the sensor's, and a note says so).

@@ -31,6 +31,8 @@ LEVEL_TOLERANCE = 1e-9
 """A mount whose rotation matrix is the identity within this (each entry) is level and x-forward: not turned."""
 TF_BASE_FRAME = "base_link"
 """The vehicle's frame in a TF tree (REP-105): clouds under it are turned into its axes."""
+WORLD_FRAMES = frozenset({"map", "odom", "world", "earth"})
+"""REP-105's fixed frames: a TF tree rooted in one of them puts what hangs under it in the world."""
 
 
 def _unit(pose: EgoPose) -> bool:
@@ -154,13 +156,14 @@ class ScanPoser:
                     # localization has no pose; posed in it, the scan had gone out with the mount for its world pose
                     return (f"no TF above {TF_BASE_FRAME} for the scan: nothing puts the vehicle in the world yet"
                             f" (localization's map -> {TF_BASE_FRAME})")
+                broken = self._broken_chain(frame_id)
+                if broken:
+                    return broken
                 return self._outside(self.tf.span(frame_id), t, "the TF tree's") or self.tf.lookup(frame_id, t)
             except ValueError as exc:  # a cycle above the frame
                 return f"no TF for the scan: {exc}"
             except KeyError as exc:
-                skipped = "".join(f"; {n} transform(s) to {f!r} skipped: rotation not a unit quaternion or not finite"
-                                  for f, n in sorted(self.tf_skipped.items()))
-                return f"no TF for the scan: {exc.args[0]}{skipped}"
+                return f"no TF for the scan: {exc.args[0]}{self._skipped()}"
         if not self.poses:
             return IDENTITY
         outside = self._outside((self.pose_times[0], self.pose_times[-1]), t, "the pose topic's")
@@ -179,6 +182,35 @@ class ScanPoser:
             self.notes.append(f"no /tf_static path from {self.base_frame or 'the pose topic frame'} to {frame_id}: "
                               "the vehicle pose stands in for the sensor's")
         return base
+
+    def _broken_chain(self, frame_id: str) -> str | None:
+        """Why the TF chain from ``frame_id`` does not reach the world, naming the missing link, or None. Its top frame
+        (the root it stops at) is taken for the world unless it is plainly not one: it is no REP-105 fixed frame and
+        either ``base_link`` hangs in another tree (the chain never reaches the vehicle: a sensor kit's link to it
+        missing) or every link on the way is static (nothing moves the sensor: a mount alone). Such a scan had gone
+        out posed at its mount near the world's origin, since only a root of ``base_link`` itself was refused."""
+        if frame_id not in self.tf:
+            return None  # the lookup says so, naming the frame
+        top = self.tf.root(frame_id)
+        if top in WORLD_FRAMES:
+            return None
+        chain = self.tf.chain(frame_id)
+        apart = TF_BASE_FRAME in self.tf and self.tf.root(TF_BASE_FRAME) != top
+        if not apart and any(c not in self.tf.static for c in chain):
+            return None  # a moving chain to a root of another name (a SLAM's own fixed frame): taken as the world
+        path = " -> ".join([*chain, top])
+        if apart:
+            base_root = self.tf.root(TF_BASE_FRAME)
+            tree = f"{TF_BASE_FRAME!r}" + (f" (under {base_root!r})" if base_root != TF_BASE_FRAME else "")
+            return (f"no TF for the scan: the link from {TF_BASE_FRAME!r} (or a frame under it) to {top!r} is missing:"
+                    f" the chain {path} stops at {top!r}, apart from {tree}{self._skipped()}")
+        return (f"no TF for the scan: the link from the world to {top!r} is missing: the chain {path} stops at {top!r}"
+                f" by static links only, so nothing puts the sensor in the world{self._skipped()}")
+
+    def _skipped(self) -> str:
+        """The transforms skipped as unusable, for a refusal's reason (one may be the missing link)."""
+        return "".join(f"; {n} transform(s) to {f!r} skipped: rotation not a unit quaternion or not finite"
+                       for f, n in sorted(self.tf_skipped.items()))
 
     def _outside(self, span: tuple[int, int] | None, t: int, whose: str) -> str | None:
         """Why a scan at ``t`` has no pose when it lies more than ``max_clamp_ns`` outside ``span`` (else None): it
@@ -206,7 +238,7 @@ class ScanPoser:
         try:
             pts, names = pointcloud2_to_array(msg)
         except ValueError as exc:
-            return FrameError(origin, f"bad PointCloud2: {exc}")
+            return FrameError(origin, f"bad PointCloud2: {exc}", invalid=True)
         pts, _ = finite_rows(pts)
         level = self.levelling(frame_id)
         if level is not None:  # into the base frame's axes at the sensor
@@ -234,7 +266,7 @@ class ScanPoser:
         except ValidationError as exc:
             err = exc.errors(include_url=False)[0]
             loc = ".".join(str(p) for p in err.get("loc", ()))
-            return FrameError(origin, f"invalid DetectedObject ({loc}: {err.get('msg')})")
+            return FrameError(origin, f"invalid DetectedObject ({loc}: {err.get('msg')})", invalid=True)
         except (AttributeError, TypeError, ValueError) as exc:
-            return FrameError(origin, f"unexpected DetectedObjects layout: {exc}")
+            return FrameError(origin, f"unexpected DetectedObjects layout: {exc}", invalid=True)
         return DetectionFrame(stamp, pose, objects, origin, frame_id)

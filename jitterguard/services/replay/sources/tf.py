@@ -96,6 +96,10 @@ class TfTree:
             raise KeyError(f"frame {target!r} is not above {frame!r} in the TF tree")
         return chain
 
+    def chain(self, frame: str) -> list[str]:
+        """The frames from ``frame`` up to its root (excluded), ``frame`` first: each one's link to its parent."""
+        return self._chain(self._norm(frame), None)
+
     def _compose(self, chain: list[str], stamp_ns: int) -> EgoPose:
         pose = IDENTITY
         for child in reversed(chain):
