@@ -4,7 +4,8 @@
   preprocessor, CenterPoint, BEVFusion) takes: float32 x, y, z; uint8 intensity; uint8 return_type; uint16 channel,
   in that order at offsets 0, 4, 8, 12, 13, 14, 16-byte points. Autoware checks each of the first six fields' name,
   offset, datatype and count (``is_data_layout_compatible_with_point_xyzirc``) and refuses a cloud that differs.
-  The intensity goes on its drivers' 0–255 scale (the wire's already; rounded, clamped, a non-finite one 0); the
+  The intensity goes on its drivers' 0–255 scale (a 0–1 reflectance such as KITTI's is scaled by the rule the
+  detector reads scans with; rounded, clamped, a non-finite one 0); the
   channel is the wire's ``channel`` or ``ring`` column (the laser's index), return_type its ``return_type``, each 0
   where the scan has none (unknown), clamped to the type's range.
 - ``float32`` — every wire column as it came, float32 at 4-byte offsets (the bytes the wire sent; lossless for
@@ -18,6 +19,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
+
+from ..services.detector.adapter import intensity_to_network_scale
 
 FLOAT32, UINT8, UINT16 = 7, 2, 4
 """``sensor_msgs/msg/PointField`` datatypes."""
@@ -53,8 +56,10 @@ def cloud_layout(fields: Sequence[str], data: bytes, layout: str = DEFAULT_LAYOU
     out = np.zeros(cols.shape[0], dtype=XYZIRC_DTYPE)
     for axis in ("x", "y", "z"):
         out[axis] = cols[:, index[axis]]
-    if "intensity" in index:
-        out["intensity"] = _clamped(cols[:, index["intensity"]], 255, "u1")
+    if "intensity" in index:  # a 0–1 reflectance (KITTI) to 0–255 by the detector's own rule, then rounded
+        pts = np.zeros((cols.shape[0], 4), dtype=np.float32)
+        pts[:, 3] = np.nan_to_num(cols[:, index["intensity"]], nan=0.0)
+        out["intensity"] = _clamped(intensity_to_network_scale(pts)[:, 3], 255, "u1")
     if "return_type" in index:
         out["return_type"] = _clamped(cols[:, index["return_type"]], 255, "u1")
     channel = index.get("channel", index.get("ring"))

@@ -77,6 +77,15 @@ def test_the_bags_scans_are_autowares_point_xyzirc(tmp_path) -> None:
     assert cloud.is_dense is True  # every x, y, z finite; the NaN intensity went out as 0
 
 
+def test_a_reflectance_scan_goes_out_on_the_drivers_0_to_255_scale(tmp_path) -> None:
+    """A KITTI scan's intensity is a 0–1 reflectance; rounded into uint8 as is, every return had gone out 0 or 1 —
+    black to Autoware. It is brought to 0–255 by the rule the detector reads scans with."""
+    rows = np.array([[1.0, 2.0, 0.5, 0.0, 0.0], [3.0, 4.0, 0.5, 0.5, 0.0], [5.0, 6.0, 0.5, 0.99, 0.0]], dtype=np.float32)
+    rec = np.frombuffer(bytes(_written_cloud(tmp_path, _frame(rows)).data), dtype=np.dtype(
+        [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "u1"), ("return_type", "u1"), ("channel", "<u2")]))
+    assert rec["intensity"].tolist() == [0, 128, 252]
+
+
 def test_a_scan_without_intensity_or_ring_gets_zeros_and_a_non_finite_point_is_not_dense(tmp_path) -> None:
     rows = np.array([[1.0, 2.0, 3.0], [np.nan, 0.0, 0.0]], dtype="<f4")
     cloud = _written_cloud(tmp_path, _frame(rows, ("x", "y", "z")))
