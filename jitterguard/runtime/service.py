@@ -52,6 +52,11 @@ ENV_WATCHDOG = "JG_WATCHDOG_S"
 DEFAULT_WATCHDOG_S = 10.0
 EXIT_NO_PROGRESS = 70
 """Exit status of a service the watchdog stopped (EX_SOFTWARE): the supervisor restarts it."""
+EXIT_BAD_INPUT = 65
+"""Exit status of a program told to stop on bad input (EX_DATAERR: ``replay --on-error stop`` at an unreadable
+frame): a deliberate stop that a supervisor must not restart — the same input would stop it again. The stack's
+replay program lists it in supervisord's ``exitcodes`` (``autorestart=unexpected``); the systemd unit in
+``RestartPreventExitStatus``."""
 HANG_GRACE_S = 5.0
 """The heartbeat thread silent this much longer than the watchdog period: a hard hang (faulthandler exits)."""
 SHUTDOWN_LIMIT_S = 20.0

@@ -31,6 +31,7 @@ import typer
 
 from ..cli_common import NsOpt, check_seed, fail, hold_lock, new_dir, out_file
 from ..runtime import ZenohOptions, build_config, free_tcp_port, open_session
+from ..runtime.service import EXIT_BAD_INPUT
 from ..runtime.signals import stop_on_signals
 from ..schemas import keys
 from ..services.classifier.config_writes import api_token_from_env
@@ -43,16 +44,19 @@ from .control import (StackUnavailable, Supervisor, orphans, read_pid, running_r
                       tail)
 from .status import collect, load_spec, render_table, save_spec
 from .supervisor import DEFAULT_SCENARIO_S, DEFAULT_SOURCE, StackSpec, has_area, input_mode, programs, render_config
-from .validate import (RUN_DIR_MODE, ArgumentError, bind_problem, check_name, check_private_dir, check_run_dir,
-                       check_text, port_in_use)
+from .validate import (RUN_DIR_MODE, ArgumentError, bind_problem, binds_overlap, check_name, check_private_dir,
+                       check_run_dir, check_text, port_in_use)
 
 RunDirOpt = Annotated[str | None, typer.Option("--run-dir", envvar="JG_RUN_DIR", help="Where config, socket, logs and summary live (default: a folder named after the stack).")]
 NameOpt = Annotated[str | None, typer.Option("--name", envvar="JG_STACK", help="The stack's name (default: its --ns); each named stack has its own run directory.")]
 
 FIRST_OBJECTS_WARN_S = 60.0
-DETACH_WAIT_S = 30.0
-DETACH_SETTLE_S = 3.0
-"""How long every program must have run without a crash before ``up -d`` calls the stack started."""
+DETACH_WAIT_S = 60.0
+"""How long ``up -d`` waits for the stack to start (:func:`_settled`) before it gives up, leaving it running."""
+DETACH_SETTLE_S = 5.0
+"""How long, after the stack made progress (the first classified objects; every service heard), every program
+must have run without a crash before ``up -d`` calls the stack started; a program that crashed meanwhile must
+also outlive its longest earlier life by this much."""
 STOP_WAIT_S = 90.0
 CRASH_TAIL_LINES = 12
 
@@ -79,19 +83,21 @@ def resolve(run_dir: str | None, name: str | None, ns: str) -> tuple[Path, str]:
     return rd, (f"{stack!r}" if not run_dir else f"in {rd}")
 
 
-def _ports_of(spec: StackSpec) -> set[int]:
-    """The ports a stack listens on: its router's, and its sidecar's and Foxglove server's where it runs them
-    (stack.json keeps the defaults of those it leaves out)."""
-    return {spec.router_port} | ({spec.sidecar_port} if spec.sidecar else set()) | (
-        {spec.foxglove_port} if spec.foxglove else set())
+def _binds_of(spec: StackSpec) -> set[tuple[str, int]]:
+    """The (host, port) binds a stack listens on: its router's (loopback), and its sidecar's (its ``--host``) and
+    Foxglove server's (loopback) where it runs them (stack.json keeps the defaults of those it leaves out)."""
+    return {("127.0.0.1", spec.router_port)} | ({(spec.sidecar_host, spec.sidecar_port)} if spec.sidecar else set()) | (
+        {("127.0.0.1", spec.foxglove_port)} if spec.foxglove else set())
 
 
-def _port_owner(port: int, run_dir: Path) -> tuple[str, str] | None:
-    """(who, how to stop it) of another running stack that uses ``port`` — under :func:`base_dir` or in a run
-    directory of its own (``--run-dir``) — if any, whether or not its program listens yet: a stack's router binds
-    its port seconds after supervisord starts it (14 s on a loaded machine), and a second ``up`` on that port in
-    between had found it free and started a stack whose services ran through the first stack's router while its
-    own waited for the port."""
+def _port_owner(host: str, port: int, run_dir: Path) -> tuple[str, str] | None:
+    """(who, how to stop it) of another running stack that binds ``port`` on an address a bind on ``host`` clashes
+    with (:func:`.validate.binds_overlap`) — under :func:`base_dir` or in a run directory of its own
+    (``--run-dir``) — if any, whether or not its program listens yet: a stack's router binds its port seconds after
+    supervisord starts it (14 s on a loaded machine), and a second ``up`` on that port in between had found it free
+    and started a stack whose services ran through the first stack's router while its own waited for the port. The
+    port alone had been compared: a sidecar on 127.0.0.1:8000 was refused beside another stack's on 127.0.0.2:8000,
+    which the kernel lets both bind."""
     try:
         named = [p for p in base_dir().iterdir() if p.is_dir()]
     except OSError:
@@ -104,7 +110,8 @@ def _port_owner(port: int, run_dir: Path) -> tuple[str, str] | None:
             continue
         seen.add(other.resolve())
         spec = load_spec(other)
-        if spec and port in _ports_of(spec) and (other.resolve() in alive or Supervisor(other).running()):
+        if spec and any(p == port and binds_overlap(h, host) for h, p in _binds_of(spec)) and (
+                other.resolve() in alive or Supervisor(other).running()):
             if other.parent.resolve() == base_dir().resolve():
                 return f"the stack {spec.name!r}", f"jitterguard down --name {spec.name}"
             return f"the stack in {other}", f"jitterguard down --run-dir {other}"
@@ -112,12 +119,14 @@ def _port_owner(port: int, run_dir: Path) -> tuple[str, str] | None:
 
 
 class _ObjectsWatch:
-    """Notes when the first classified ``objects`` arrives (seconds since ``t0``), from a Zenoh session opened in
-    the background: the router is only now being started, and a client-mode open fails until it listens."""
+    """Notes when the first classified ``objects`` arrives (seconds since ``t0``), and which process of each
+    service was heard on its heartbeat (service → pids), from a Zenoh session opened in the background: the router
+    is only now being started, and a client-mode open fails until it listens."""
 
     def __init__(self, ns: str, endpoint: str, t0: float) -> None:
         self.ns, self.endpoint, self.t0 = ns, endpoint, t0
         self.first: float | None = None
+        self.heard: dict[str, set[int]] = {}
         self._stop = threading.Event()
         self._session: Any = None
         self._thread = threading.Thread(target=self._open, name="objects-watch", daemon=True)
@@ -130,11 +139,34 @@ class _ObjectsWatch:
         except Exception:  # stopped before the router came up
             return
         session.declare_subscriber(keys.objects(self.ns), self._on)
+        session.declare_subscriber(keys.heartbeat_all(self.ns), self._on_beat)
         self._session = session
 
     def _on(self, _sample: Any) -> None:
         if self.first is None:
             self.first = time.monotonic() - self.t0
+
+    def _on_beat(self, sample: Any) -> None:
+        from ..schemas import DecodeError, decode
+        from ..schemas.models import Heartbeat
+        from ..schemas.wire import HEARTBEAT_BOUNDS
+
+        try:
+            hb = decode(Heartbeat, sample.payload.to_bytes(), **HEARTBEAT_BOUNDS)
+        except DecodeError:
+            return
+        pids = self.heard.setdefault(keys.last_chunk(str(sample.key_expr)), set())
+        if len(pids) < 64:  # bounded: anyone on the host may publish
+            pids.add(hb.pid)
+
+    def heard_from(self, name: str, pid: int | None) -> bool:
+        """Whether the program ``name``'s current process (``pid``) has sent a heartbeat: it got through its
+        imports, opened its session and runs its loop (the router sends none: always True)."""
+        from .status import SERVICE_NAMES
+
+        if name == "router":
+            return True
+        return pid is not None and any(pid in self.heard.get(n, ()) for n in SERVICE_NAMES.get(name, (name,)))
 
     def close(self) -> None:
         self._stop.set()
@@ -290,6 +322,48 @@ def _crash_report(rd: Path, name: str, events: dict[str, summary.ProgramEvents])
     return "\n".join(lines)
 
 
+def _bad_input_report(rd: Path, name: str) -> str:
+    """What ``up`` says of a program that stopped on bad input (``--on-error stop``): deliberately, not restarted
+    (its ``exitcodes``), with the tail of its log, which names the frame. It had been restarted on exit status 1,
+    met the same frame again, and been reported as a program that "keeps failing"."""
+    log = rd / "logs" / f"{name}.log"
+    lines = [f"jitterguard: error: {name} stopped on bad input (--on-error stop, exit status {EXIT_BAD_INPUT}) and"
+             " is not restarted; the stack is stopped.", f"last lines of {log}:"]
+    lines += [f"  {ln}" for ln in tail(log, CRASH_TAIL_LINES)] or ["  (empty)"]
+    return "\n".join(lines)
+
+
+def _not_progressing(procs: list[Any], watch: _ObjectsWatch, *, objects: bool) -> str:
+    """Why the stack has not made progress yet, in words ("" once it has): a program not RUNNING, a service whose
+    current process was not heard on its heartbeat, or (``objects``: a stack fed by its own replay) no classified
+    objects yet. Every program RUNNING is supervisord's view (a process that lived ``startsecs``), not the
+    program's: one that died after its imports, or at its first frame, seconds later, had been called started."""
+    down = [f"{p.name} {p.state}" for p in procs if p.state != "RUNNING"]
+    if down:
+        return ", ".join(sorted(down))
+    unheard = sorted(p.name for p in procs if not watch.heard_from(p.name, p.pid))
+    if unheard:
+        return f"no heartbeat yet from {', '.join(unheard)}"
+    if objects and watch.first is None:
+        return "no classified objects yet"
+    return ""
+
+
+def _settled(events: dict[str, summary.ProgramEvents], progress_since: float, now: float) -> str:
+    """Why the stack, which has made progress since ``progress_since`` (epoch s), is not yet called started ("" when
+    it is): it must then run :data:`DETACH_SETTLE_S` without an unexpected exit, and a program that exited
+    unexpectedly while ``up -d`` waited must also have run its longest earlier life here plus that much (one that
+    dies 4 s after each start had been called started in the 3 s after each restart)."""
+    last_crash = max((t for ev in events.values() for t, _ in ev.crashes), default=0.0)
+    if now - max(progress_since, last_crash) < DETACH_SETTLE_S:
+        return "settling"
+    for name, ev in sorted(events.items()):
+        lives = [t - max((s for s in ev.spawns if s <= t), default=t) for t, _ in ev.crashes]
+        if lives and ev.spawns and now - ev.spawns[-1] < max(lives) + DETACH_SETTLE_S:
+            return f"{name} crashed after {max(lives):.0f} s and was restarted: waiting for it to outlive that"
+    return ""
+
+
 def _print_summary(rd: Path, *, as_json: bool = False) -> bool:
     data = summary.load(rd)
     if data is None:
@@ -382,6 +456,17 @@ def _pick_ports(wanted: list[tuple[int, str, bool]]) -> list[int]:
             taken.add(port)
         out.append(port)
     return out
+
+
+def _own_clash(wanted: list[tuple[int, str, str]]) -> str | None:
+    """One line when two of this stack's own (port, host, flag) binds clash (:func:`.validate.binds_overlap`): the
+    same port on overlapping addresses. The port alone had been compared, refusing a sidecar on 127.0.0.2 beside
+    the router on 127.0.0.1 at one port number."""
+    for i, (p, h, flag) in enumerate(wanted):
+        for q, g, other in wanted[:i]:
+            if p == q and binds_overlap(h, g):
+                return f"{flag} {p} is also the {other}; give each its own port"
+    return None
 
 
 SCENARIO_DURATION = "--scenario-duration"
@@ -538,7 +623,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         source: Annotated[str | None, typer.Argument(help="Replay source, as `jitterguard replay` takes it (default: the built-in synthetic scenario, 60 s of synthetic:mixed).")] = None,
         name: NameOpt = None,
         ns: NsOpt = "default",
-        detach: Annotated[bool, typer.Option("-d", "--detach", help="Start in the background and return once every program has run 3 s without a crash.")] = False,
+        detach: Annotated[bool, typer.Option("-d", "--detach", help="Start in the background and return once the stack makes progress (classified objects, every service heard) and has run 5 s more without a crash.")] = False,
         input_level: Annotated[str, typer.Option("--input", help="auto, points, detections or tracks. 'detections' runs sources with ground-truth boxes (synthetic, nuScenes) through the detection-level noise model.")] = "auto",
         router_port: Annotated[int, typer.Option("--router-port", min=0, max=65535, help="The router's port on loopback (0: a free one, printed).")] = 7447,
         host: Annotated[str, typer.Option("--host", help="Sidecar bind address.")] = "127.0.0.1",
@@ -678,12 +763,11 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             wanted.append((port, host, "--port"))
         if foxglove:
             wanted.append((foxglove_port, "127.0.0.1", "--foxglove-port"))
-        for i, (p, _h, flag) in enumerate(wanted):
-            for q, _, other in wanted[:i]:
-                if p == q:
-                    fail(f"{flag} {p} is also the {other}; give each its own port")
+        clash = _own_clash(wanted)
+        if clash:
+            fail(clash)
         for p, h, flag in wanted:
-            owner = _port_owner(p, rd)  # a running stack's port, even while its program does not listen yet
+            owner = _port_owner(h, p, rd)  # a running stack's port, even while its program does not listen yet
             if owner is not None or port_in_use(h, p):
                 fail(f"port {p} on {h} is in use by {owner[0] if owner else 'another program'}; give this stack"
                      f" another {flag}" + (f" (or `{owner[1]}`)" if owner else ""))
@@ -724,8 +808,13 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                 print(f"jitterguard: error: supervisord did not start: {(res.stderr or res.stdout).strip()}",
                       file=sys.stderr)
                 raise SystemExit(1)
-            raise SystemExit(_wait_started(sup, rd, label, names, spec, progs, wall0,
-                                           _addresses(spec, progs, router_picked)))
+            watch = _ObjectsWatch(ns, spec.endpoint, t0)
+            try:
+                code = _wait_started(sup, rd, label, names, spec, progs, wall0,
+                                     _addresses(spec, progs, router_picked), watch)
+            finally:
+                watch.close()
+            _exit_without_finalizing(code)
 
         _quiet_once_stdout_closes()
         proc = subprocess.Popen(cmd, start_new_session=True, preexec_fn=_end_with_parent())
@@ -754,57 +843,62 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             time.sleep(0.02)
 
     def _wait_started(sup: Supervisor, rd: Path, label: str, names: str, spec: StackSpec,
-                      progs: list[Any], wall0: float, addresses: list[str]) -> int:
-        """``up -d``: wait until every program has run for ``DETACH_SETTLE_S`` without a crash and the router and
-        the sidecar answer (0), or one keeps crashing (stop the stack, 1). Every program RUNNING is not enough: supervisord calls a program RUNNING
-        once it has lived ``startsecs``, and one that died a second later, again and again, had let ``up -d``
-        return 0 before its crashes added up to a loop."""
+                      progs: list[Any], wall0: float, addresses: list[str], watch: _ObjectsWatch) -> int:
+        """``up -d``: wait until the stack has started (:func:`_settled`) and the router and the sidecar answer
+        (0), or a program keeps crashing or stopped on bad input (stop the stack, 1); after ``DETACH_WAIT_S`` say
+        what is missing and leave the stack running (1)."""
         deadline = time.monotonic() + DETACH_WAIT_S
         sidecar = _sidecar_address(spec, progs)
         router = ("127.0.0.1", spec.router_port)  # RUNNING is not listening: a router binds seconds after its start
-        states: dict[str, str] = {}
-        steady_since: float | None = None
+        procs: list[Any] = []
+        events: dict[str, summary.ProgramEvents] = {}
+        progress_since: float | None = None
         deferred = {p.name for p in progs if p.deferred}
         started_deferred = False
+        waiting = "supervisord"
         while time.monotonic() < deadline:
             time.sleep(0.3)
             events = summary.supervisor_events(rd / "logs" / "supervisord.log", since=wall0 - 1)
-            bad = summary.crash_loop(events, time.time())
+            now = time.time()
+            bad = summary.crash_loop(events, now)
             if bad is not None:
                 print(_crash_report(rd, bad, events), file=sys.stderr)
                 _shutdown(sup)
                 return 1
+            for name in summary.stopped_on_bad_input(events):
+                print(_bad_input_report(rd, name), file=sys.stderr)
+                _shutdown(sup)
+                return 1
             try:
-                states = {p.name: p.state for p in sup.processes()}
+                procs = sup.processes()
             except StackUnavailable:
                 continue
-            if not started_deferred and states and all(s == "RUNNING" for n, s in states.items() if n not in deferred):
+            if not started_deferred and procs and all(p.state == "RUNNING" for p in procs if p.name not in deferred):
                 _start_deferred(sup, progs)
                 started_deferred = True
                 continue
-            if not (started_deferred and states and all(s == "RUNNING" for s in states.values())):
-                steady_since = None
+            waiting = _not_progressing([p for p in procs if started_deferred or p.name not in deferred], watch,
+                                       objects=spec.ros2_points is None)
+            if waiting:
+                progress_since = None
                 continue
-            last_crash = max((t for ev in events.values() for t, _ in ev.crashes), default=0.0)
-            if steady_since is None or last_crash > steady_since:
-                steady_since = time.time()
+            if progress_since is None:
+                progress_since = now
+            waiting = _settled(events, progress_since, now)
+            if waiting:
                 continue
-            if time.time() - steady_since >= DETACH_SETTLE_S:
-                if not (_answers(router) and _answers(sidecar)):  # RUNNING is not listening: `status` right after
-                    continue  # must reach the stack, and the sidecar's address printed below must answer
-                print(f"jitterguard: started {names} (stack {label}, run dir {rd})")
-                for line in addresses:
-                    print(line)
-                return 0
-        crashed = sorted(n for n, ev in events.items() if ev.crashes)
-        waiting = (", ".join(f"{n} {s}" for n, s in sorted(states.items()) if s != "RUNNING")
-                   or (f"{', '.join(crashed)} crashed and restarted" if crashed else "")
-                   or (f"the router does not listen on {spec.endpoint} yet" if states and not _answers(router)
-                       else "")
-                   or (f"the sidecar does not answer on {sidecar[0]}:{sidecar[1]}"
-                       if states and sidecar is not None and not _answers(sidecar) else "supervisord"))
-        print(f"jitterguard: error: not every program runs after {DETACH_WAIT_S:.0f} s ({waiting}); the stack is"
-              " left running: see `jitterguard status` and `jitterguard logs NAME`", file=sys.stderr)
+            if not (_answers(router) and _answers(sidecar)):  # `status` right after must reach the stack, and the
+                waiting = (f"the router does not listen on {spec.endpoint} yet" if not _answers(router) else
+                           f"the sidecar does not answer on {sidecar[0]}:{sidecar[1]}" if sidecar else "")
+                continue  # sidecar's address printed below must answer
+            progress = (f"; first classified objects after {watch.first:.1f} s" if watch.first is not None
+                        else "; every service heard")
+            print(f"jitterguard: started {names} (stack {label}, run dir {rd}){progress}")
+            for line in addresses:
+                print(line)
+            return 0
+        print(f"jitterguard: error: the stack has not started after {DETACH_WAIT_S:.0f} s ({waiting}); it is left"
+              " running: see `jitterguard status` and `jitterguard logs NAME`", file=sys.stderr)
         return 1
 
     def _shutdown_when_it_answers(sup: Supervisor, wait_s: float = 30.0) -> None:
@@ -838,6 +932,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         announced = addressed = warned = deferred_started = False
         announced_at = 0.0
         crashed: str | None = None
+        bad_input: list[str] = []  # programs that stopped on bad input (--on-error stop): not restarted
         events: dict[str, summary.ProgramEvents] = {}
         next_check = 0.0
         while not stop.is_set() and proc.poll() is None:
@@ -871,7 +966,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                 next_check = now + 0.5
                 events = summary.supervisor_events(rd / "logs" / "supervisord.log", since=wall0 - 1)
                 crashed = summary.crash_loop(events, time.time())
-                if crashed is not None:
+                bad_input = summary.stopped_on_bad_input(events)
+                if crashed is not None or bad_input:
                     break
             stop.wait(0.1)
         if proc.poll() is None:
@@ -881,12 +977,14 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                       file=sys.stderr)
         if crashed is not None:
             print(_crash_report(rd, crashed, events), file=sys.stderr)
+        for name in bad_input:
+            print(_bad_input_report(rd, name), file=sys.stderr)
         if not _print_summary(rd):
             print(f"jitterguard: no summary was written (see {rd / 'logs' / 'monitor.log'})", file=sys.stderr)
-        if crashed is None and watch.first is None:  # exit 1 says why: no classified object ever came
+        if crashed is None and not bad_input and watch.first is None:  # exit 1 says why: no classified object came
             print("jitterguard: error: no classified objects came before the stack stopped; see `jitterguard logs "
                   "NAME` for the programs' logs", file=sys.stderr)
-        if crashed is not None or watch.first is None:
+        if crashed is not None or bad_input or watch.first is None:
             return 1
         return 0
 

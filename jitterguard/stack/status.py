@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from ..runtime.service import EXIT_BAD_INPUT
 from .control import ProcessInfo
 from .supervisor import StackSpec
 
@@ -157,7 +158,9 @@ def _not_running(proc: ProcessInfo, held_in_s: float | None = None) -> str:
         what = {"FATAL": "supervisord gave up restarting it", "BACKOFF": "restarting after it exited too quickly",
                 "STARTING": "starting", "STOPPED": "stopped", "STOPPING": "stopping",
                 "EXITED": "exited"}.get(proc.state, proc.state.lower())
-        if proc.state == "EXITED" and proc.exitstatus is not None:
+        if proc.state == "EXITED" and proc.exitstatus == EXIT_BAD_INPUT:
+            what = f"stopped on bad input (exit status {EXIT_BAD_INPUT}, --on-error stop): not restarted"
+        elif proc.state == "EXITED" and proc.exitstatus is not None:
             what += f" (status {proc.exitstatus})"
     last = next((ln.strip() for ln in reversed(tail(proc.logfile, 5)) if ln.strip()), "") if proc.logfile else ""
     if last:

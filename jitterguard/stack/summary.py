@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from ..files import write_atomically
+from ..runtime.service import EXIT_BAD_INPUT
 
 SUMMARY_FILE = "summary.json"
 GAUGE_PREFIXES = ("now.",)
@@ -168,6 +169,7 @@ class Ledger:
 _LOG_TIME = re.compile(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d),(\d{3}) ")
 SPAWNED = re.compile(r"spawned: '([^']+)' with pid (\d+)")
 _EXITED = re.compile(r"exited: (\S+) \((.*); not expected\)")
+_EXITED_EXPECTED = re.compile(r"exited: (\S+) \((.*); expected\)")
 _FATAL = re.compile(r"gave up: (\S+) entered FATAL state")
 _RUNNING = re.compile(r"success: (\S+) entered RUNNING state")
 
@@ -184,6 +186,9 @@ class ProgramEvents:
     supervisord's own back-off does not cover (it restarts such a program at once, for ever); the stack's monitor
     holds a program back when they come too often (:mod:`.backoff`)."""
     running: bool = False  # its current process has reached RUNNING (what the log said last)
+    exited_as_expected: str | None = None
+    """Its current process exited with a status its ``exitcodes`` list ("exit status 65"), and it has not been
+    spawned since: with ``autorestart=unexpected`` it stays down (the stack's replay stopped on bad input)."""
 
     @property
     def restarts(self) -> int:
@@ -215,6 +220,7 @@ def supervisor_events(log_path: Path, since: float = 0.0) -> dict[str, ProgramEv
                 ev.spawns.append(t)
                 ev.fatal = False  # started again since supervisord gave up on it (`supervisorctl start`)
                 ev.running = False
+                ev.exited_as_expected = None
             elif (r := _RUNNING.search(line)) is not None:
                 out.setdefault(r.group(1), ProgramEvents()).running = True
             elif (e := _EXITED.search(line)) is not None:
@@ -222,6 +228,10 @@ def supervisor_events(log_path: Path, since: float = 0.0) -> dict[str, ProgramEv
                 ev.crashes.append((t, e.group(2)))
                 if ev.running:
                     ev.running_crashes.append(t)
+                ev.running = False
+            elif (x := _EXITED_EXPECTED.search(line)) is not None:
+                ev = out.setdefault(x.group(1), ProgramEvents())
+                ev.exited_as_expected = x.group(2)
                 ev.running = False
             elif (f := _FATAL.search(line)) is not None:
                 out.setdefault(f.group(1), ProgramEvents()).fatal = True
@@ -271,6 +281,15 @@ def crash_loop(events: dict[str, ProgramEvents], now: float, *, crashes: int = 3
     return None
 
 
+BAD_INPUT_EXIT = f"exit status {EXIT_BAD_INPUT}"
+
+
+def stopped_on_bad_input(events: dict[str, ProgramEvents]) -> list[str]:
+    """The programs that stopped on bad input (exit status :data:`~jitterguard.runtime.service.EXIT_BAD_INPUT`,
+    ``replay --on-error stop``) and were not started since: down for good, deliberately, not crashed."""
+    return sorted(name for name, ev in events.items() if ev.exited_as_expected == BAD_INPUT_EXIT)
+
+
 def _pick(totals: dict[str, int] | None, name: str) -> int | None:
     """A service's counter; 0 if the service reported but never counted it, None if it never reported."""
     return None if totals is None else int(totals.get(name, 0))
@@ -317,6 +336,8 @@ def build(ledger: Ledger, events: dict[str, ProgramEvents], *, meta: dict[str, A
             # programs supervisord gave up on and that have not been started since: dead for the rest of the run
             # (the counts above had said "replay 21" for a source that had stopped for good)
             "gave_up": sorted(name for name, ev in events.items() if ev.fatal),
+            # programs that stopped on bad input (replay --on-error stop) and are deliberately not restarted
+            "stopped_on_bad_input": stopped_on_bad_input(events),
             # the monitor's crash-loop guard: how often each program was held back after crashing again and again
             # once RUNNING, which are held back now and when each is started again (epoch s)
             "backed_off": dict(backoff.get("backed_off") or {}),
@@ -373,6 +394,8 @@ def render(summary: dict[str, Any]) -> str:
         f"  dropped   {kv(section('dropped'))}",
         f"  restarts  {kv(section('programs', rs))}" + (f"; unexpected exits: {kv(exits)}" if exits else "")
         + (f"; supervisord gave up on: {', '.join(rs['gave_up'])}" if rs.get("gave_up") else "")
+        + (f"; stopped on bad input (not restarted): {', '.join(rs['stopped_on_bad_input'])}"
+           if rs.get("stopped_on_bad_input") else "")
         + (f"; held back after crash loops: {kv(rs['backed_off'])}" if rs.get("backed_off") else "")
         + (f" (now: {', '.join(rs['held_back'])})" if rs.get("held_back") else "")
         + f"; source restarts {n(rs.get('source_restarts'))}, tracker resets {n(rs.get('tracker_resets'))}",

@@ -16,6 +16,7 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from ..runtime.service import EXIT_BAD_INPUT
 from ..services.classifier.config_writes import api_token_from_env
 from .validate import check_text, supervisor_escape
 
@@ -34,6 +35,8 @@ class Program:
     priority: int = 50
     startsecs: int = 1
     deferred: bool = False
+    autorestart: str = "true"  # supervisord's: true, or unexpected (an exit with one of ``exitcodes`` stays down)
+    exitcodes: tuple[int, ...] = (0,)
 
 
 @dataclass(frozen=True)
@@ -154,8 +157,10 @@ def programs(spec: StackSpec) -> list[Program]:
                     "detections": "tracker" if have_tracker else None}.get(mode)
         if consumer is not None:
             args += ["--wait-for", consumer, "--wait-subscriber", f"{CONSUMER_WAIT_S:g}"]
+        # a stop on bad input (--on-error stop: exit 65) is deliberate: not restarted, or it meets the same frame
+        # again and again; any other exit (0 too: a looping replay does not end by itself) is restarted as before
         progs.append(Program("replay", _cmd("replay", source, *common, "--loop", "--stamps", "wall", *args),
-                             priority=60, startsecs=2))
+                             priority=60, startsecs=2, autorestart="unexpected", exitcodes=(EXIT_BAD_INPUT,)))
     # the run's bookkeeping: sums every service's heartbeat counters across restarts into summary.json; it stops
     # last (supervisord stops in reverse priority), so it hears the final heartbeats; started once the pipeline
     # runs (a process's counters are cumulative, so its first heartbeat heard carries everything before it)
@@ -182,7 +187,8 @@ def bridge_programs(spec: StackSpec, common: tuple[str, ...]) -> list[Program]:
 
 
 def render_config(spec: StackSpec, run_dir: Path, progs: list[Program], *, nodaemon: bool) -> str:
-    """supervisord.conf for ``progs``: autorestart, start retries, process-group stops, rotated logs.
+    """supervisord.conf for ``progs``: autorestart (a program's own, with its ``exitcodes``), start retries,
+    process-group stops, rotated logs.
 
     Raises ``ValueError`` if a value could change the file's structure (:func:`.validate.check_text`; ``up``
     checks its arguments earlier, with friendlier messages); every ``%`` is doubled for supervisord.
@@ -227,7 +233,8 @@ def render_config(spec: StackSpec, run_dir: Path, progs: list[Program], *, nodae
             f"command={v(shlex.join(p.args), p.name + ' command')}",
             f"priority={p.priority}",
             f"autostart={'false' if p.deferred else 'true'}",
-            "autorestart=true",
+            f"autorestart={p.autorestart}",
+            f"exitcodes={','.join(str(c) for c in p.exitcodes)}",
             f"startsecs={p.startsecs}",
             "startretries=10",
             "stopsignal=TERM",

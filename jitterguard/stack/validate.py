@@ -11,6 +11,7 @@ because supervisord runs every program from the run directory.
 from __future__ import annotations
 
 import errno
+import ipaddress
 import os
 import re
 import socket
@@ -64,6 +65,42 @@ def bind_error(host: str, port: int) -> OSError | None:
     except OSError as exc:  # a name that does not resolve too (socket.gaierror)
         return exc
     return None
+
+
+def _bind_address(host: str) -> ipaddress.IPv4Address | ipaddress.IPv6Address | None:
+    """The address a bind on ``host`` takes, as the router and the sidecar bind it (IPv6 when the host holds a
+    ``:``, else IPv4; a name resolved in that family; no host: the IPv4 wildcard); an IPv4-mapped IPv6 address
+    as its IPv4 one. None for a name that does not resolve."""
+    if not host:
+        return ipaddress.IPv4Address("0.0.0.0")
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    try:
+        addr = ipaddress.ip_address(host.split("%")[0])
+    except ValueError:
+        try:
+            addr = ipaddress.ip_address(socket.getaddrinfo(host, None, family, socket.SOCK_STREAM)[0][4][0]
+                                        .split("%")[0])
+        except (OSError, IndexError, ValueError):
+            return None
+    if isinstance(addr, ipaddress.IPv6Address) and addr.ipv4_mapped is not None:
+        return addr.ipv4_mapped
+    return addr
+
+
+def binds_overlap(a: str, b: str) -> bool:
+    """Whether binds on hosts ``a`` and ``b`` on one port clash, as the kernel judges it: the same address, or
+    either one a wildcard that covers the other — ``0.0.0.0`` every IPv4 address, ``::`` every address of either
+    family (a dual-stack socket, Linux's default) — but not two different specific addresses (127.0.0.1 and
+    127.0.0.2, or 127.0.0.1 and ::1). A host that cannot be resolved clashes with everything (it cannot be told
+    apart; ``up`` refuses it anyway, :func:`bind_problem`)."""
+    x, y = _bind_address(a), _bind_address(b)
+    if x is None or y is None or x == y:
+        return True
+    if any(isinstance(z, ipaddress.IPv6Address) and z.is_unspecified for z in (x, y)):
+        return True  # :: takes the port on every address, IPv4 too
+    if x.version != y.version:
+        return False
+    return x.is_unspecified or y.is_unspecified
 
 
 def port_in_use(host: str, port: int) -> bool:

@@ -156,15 +156,40 @@ def test_cli_replays_a_kitti_folder_skipping_and_naming_the_corrupt_scan(ns: str
     assert [m.header.stamp for m in got] == [0, 100 * MS, 300 * MS, 400 * MS]
 
 
-def test_cli_on_error_stop_exits_1_naming_the_file(ns: str, tmp_path: Path) -> None:
+def test_cli_on_error_stop_exits_65_naming_the_file(ns: str, tmp_path: Path) -> None:
+    """A deliberate stop on bad input is status 65 (EX_DATAERR), not 1: supervisord (the stack's ``exitcodes``) and
+    systemd (``RestartPreventExitStatus``) leave it stopped. Exit 1 had been restarted, the same bad frame read
+    again, for ever."""
+    from jitterguard.runtime.service import EXIT_BAD_INPUT
+
     write_bin(tmp_path / "000000.bin", np.zeros((3, 4)))
     (tmp_path / "000001.bin").write_bytes(b"\x01\x02")
     proc = _cli("replay", str(tmp_path), "--rate", "max", "--on-error", "stop", "--ns", ns,
                 "--listen", f"tcp/127.0.0.1:{free_tcp_port()}", "--no-progress", "--wait-subscriber", "0")
-    assert proc.returncode == 1
+    assert EXIT_BAD_INPUT == 65
+    assert proc.returncode == EXIT_BAD_INPUT, proc.stderr
     assert "Traceback" not in proc.stderr
     assert any("stopped at unreadable frame" in ln and "000001.bin" in ln for ln in proc.stderr.splitlines())
     assert "skipped" not in proc.stderr  # the frame's own line had said "skipped" before the replay stopped on it
+
+
+def test_a_stop_on_bad_input_under_supervisord_outlives_its_startsecs(ns: str, tmp_path: Path) -> None:
+    """supervisord counts any exit before a program's ``startsecs`` as a failed start and starts it again (up to
+    ``startretries``, then FATAL) whatever its status: a replay that stopped on its first bad frame within a second
+    would be restarted after all. Under supervisord (``SUPERVISOR_ENABLED``) it exits only once it has run
+    :data:`~jitterguard.services.replay.cli.SUPERVISED_STOP_AFTER_S`."""
+    from jitterguard.services.replay.cli import SUPERVISED_STOP_AFTER_S
+
+    (tmp_path / "000000.bin").write_bytes(b"\x01\x02")
+    write_bin(tmp_path / "000001.bin", np.zeros((3, 4)))
+    args = [sys.executable, "-m", "jitterguard.cli", "replay", str(tmp_path), "--rate", "max", "--on-error", "stop",
+            "--ns", ns, "--listen", f"tcp/127.0.0.1:{free_tcp_port()}", "--no-progress", "--wait-subscriber", "0"]
+    t0 = time.monotonic()
+    proc = subprocess.run(args, cwd=REPO, capture_output=True, text=True, timeout=60,
+                          env={**os.environ, "SUPERVISOR_ENABLED": "1"})
+    took = time.monotonic() - t0
+    assert proc.returncode == 65, proc.stderr
+    assert took >= SUPERVISED_STOP_AFTER_S > 2, took  # the stack's replay has startsecs=2
 
 
 def test_cli_sigint_stops_a_looping_replay_cleanly(ns: str, tmp_path: Path) -> None:

@@ -80,7 +80,9 @@ def _status(info, name: str, *extra: str) -> subprocess.CompletedProcess:
 
 
 def test_a_relative_source_with_replay_options_runs(stacks):
-    assert "started" in stacks["up_a"].stdout
+    # started means progress: classified objects came, not only every program RUNNING
+    assert re.search(r"jitterguard: started .*; first classified objects after \d+\.\d s", stacks["up_a"].stdout), \
+        stacks["up_a"].stdout
     rows: dict = {}
 
     def classified() -> bool:
@@ -514,6 +516,44 @@ def test_a_detached_stack_whose_tracker_dies_after_starting_is_not_called_starte
     assert proc.returncode == 1, out + err
     assert "tracker keeps failing" in err and "unexpected exits" in err
     assert "started" not in out
+    assert not Supervisor(rd).running()
+
+
+def test_a_detached_stack_whose_tracker_dies_seconds_after_running_is_not_called_started(tmp_path):
+    """A tracker that dies 4 s after supervisord calls it RUNNING, each time it is started: `up -d` had waited for
+    3 s of every program RUNNING (supervisord's view, not the program's progress) and said "started" in between.
+    Now a program that crashed while `up -d` waits must outlive its earlier life by the settle time, so the loop
+    shows: the tracker is named, with the tail of its log, and the stack is stopped."""
+    write_bag(tmp_path / "bag", n=20)
+    env = {**os.environ, "XDG_RUNTIME_DIR": str(tmp_path / "xdg")}
+    rd = tmp_path / "xdg" / "jitterguard" / "late"
+    proc = subprocess.Popen([sys.executable, "-m", "jitterguard.cli", "up", "bag", "-d", "--name", "late", "--ns",
+                             f"late{os.getpid()}", "--router-port", str(free_tcp_port()), "--no-sidecar",
+                             "--topic", DET_TOPIC], cwd=tmp_path, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    running_since: dict[int, float] = {}
+    killed: set[int] = set()
+    try:
+        deadline = time.monotonic() + 150
+        while proc.poll() is None and time.monotonic() < deadline and len(killed) < 5:
+            try:
+                tracker = next((p for p in Supervisor(rd).processes() if p.name == "tracker"), None)
+            except Exception:  # supervisord not answering yet
+                tracker = None
+            if tracker is not None and tracker.state == "RUNNING" and tracker.pid not in killed:
+                since = running_since.setdefault(tracker.pid, time.monotonic())
+                if time.monotonic() - since >= 4.0:
+                    os.kill(tracker.pid, signal.SIGKILL)
+                    killed.add(tracker.pid)
+            time.sleep(0.05)
+        out, err = proc.communicate(timeout=90)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        jg("down", "--name", "late", env=env, cwd=tmp_path)
+    assert proc.returncode == 1, out + err
+    assert "jitterguard: started" not in out, out + err
+    assert "tracker keeps failing" in err and f"last lines of {rd / 'logs' / 'tracker.log'}" in err, err
     assert not Supervisor(rd).running()
 
 

@@ -2,7 +2,8 @@
 
 Bad input (unknown source, bad ``--rate``, missing file) is one line on stderr and exit 2. A frame that
 cannot be read is one line naming the file; with ``--on-error skip`` (default) replay goes on and the final
-summary counts it, with ``--on-error stop`` replay ends there with exit 1. A recording none of whose frames reads
+summary counts it, with ``--on-error stop`` replay ends there with exit 65 (:data:`~jitterguard.runtime.service.EXIT_BAD_INPUT`: bad
+input, which a supervisor does not restart). A recording none of whose frames reads
 replays nothing: one line and exit 2.
 
 Commands import their implementation when they run (start-up time: see :mod:`jitterguard.cli`).
@@ -11,8 +12,10 @@ Commands import their implementation when they run (start-up time: see :mod:`jit
 from __future__ import annotations
 
 import logging
+import os
 import re
 import sys
+import time
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -21,12 +24,20 @@ import typer
 from ...cli_common import (ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ProgressOpt, ZenohConfigOpt, check_seed, fail,
                            progress_on, zenoh_options)
 from ...runtime import setup_logging
+from ...runtime.service import EXIT_BAD_INPUT
 from ...runtime.signals import stop_on_signals
 from .frames import Frame, FrameError, SourceError
 from .options import ReplayOptions
 from .runner import ReplayPlan
 
 log = logging.getLogger("jitterguard.replay")
+_LOADED_AT = time.monotonic()  # about when this process started (its interpreter, the CLI's imports before this)
+SUPERVISED_STOP_AFTER_S = 3.0
+"""Under supervisord (``SUPERVISOR_ENABLED``), a stop on bad input exits no sooner than this after the process
+started. supervisord takes any exit before a program's ``startsecs`` for a failed start and starts it again (then
+gives up: FATAL), whatever its status: a replay that met its bad frame within a second would be restarted, its
+deliberate stop read as a crash. The stack's replay has ``startsecs=2``; a hand-written program needs less than
+this."""
 
 EXAMPLES = """
 Examples:\n
@@ -46,7 +57,7 @@ SourceArg = Annotated[str, typer.Argument(help="synthetic:SCENARIO, a nuScenes d
 RateOpt = Annotated[str, typer.Option("--rate", help="Factor on the recorded rate (1 = real time, 2 = twice as fast), or 'max'.")]
 StartOpt = Annotated[int, typer.Option("--start", help="First recorded frame to replay (0-based).")]
 LimitOpt = Annotated[int | None, typer.Option("--limit", help="Replay at most this many frames (per pass when looping).")]
-OnErrorOpt = Annotated[str, typer.Option("--on-error", help="A frame that cannot be read: 'skip' (count it, go on) or 'stop' (exit 1).")]
+OnErrorOpt = Annotated[str, typer.Option("--on-error", help="A frame that cannot be read: 'skip' (count it, go on) or 'stop' (exit 65, which supervisord and systemd do not restart).")]
 SeedOpt = Annotated[int, typer.Option("--seed", help="Synthetic sources and --level detections: scenario and noise seed.")]
 LidarOpt = Annotated[str, typer.Option("--lidar", help="Synthetic scans: sensor model (hdl32e, vlp16, os1-64).")]
 SceneOpt = Annotated[str | None, typer.Option("--scene", help="nuScenes: scene name or token (needed when the dataroot holds several).")]
@@ -166,7 +177,20 @@ def replay_command(
         except Exception as exc:
             fail(f"cannot open a Zenoh session: {exc}")
         code = _run(svc, src, plan, wait_subscriber, progress, wait_for)
+    if code == EXIT_BAD_INPUT and os.environ.get("SUPERVISOR_ENABLED"):
+        _outlive_startsecs()
     raise typer.Exit(code)
+
+
+def _outlive_startsecs() -> None:
+    """Wait until the process has run :data:`SUPERVISED_STOP_AFTER_S`, or until it is told to stop (SIGTERM)."""
+    import threading
+
+    left = SUPERVISED_STOP_AFTER_S - (time.monotonic() - _LOADED_AT)
+    if left > 0:
+        stopped = threading.Event()
+        stop_on_signals(stopped.set)
+        stopped.wait(left)
 
 
 def short_name(source_name: str) -> str:
@@ -215,8 +239,9 @@ def _run(svc: Any, src: Any, plan: ReplayPlan, wait_s: float, progress: bool | N
     )
     print(f"jitterguard: {summary}", file=sys.stderr)
     if stats.stopped_by is not None:
-        print(f"jitterguard: error: stopped at unreadable frame {stats.stopped_by}", file=sys.stderr)
-        return 1
+        print(f"jitterguard: error: stopped at unreadable frame {stats.stopped_by} (--on-error stop; exit status"
+              f" {EXIT_BAD_INPUT}, not restarted)", file=sys.stderr)
+        return EXIT_BAD_INPUT
     if stats.published == 0 and stats.errors and not stats.interrupted:
         # every frame unreadable: nothing was replayed, which is no success (`jitterguard up` refuses such a
         # recording before it starts, with the same exit status)
