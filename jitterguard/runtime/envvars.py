@@ -11,6 +11,13 @@ import math
 import os
 from collections.abc import Mapping
 
+ENV_WATCHDOG = "JG_WATCHDOG_S"
+DEFAULT_WATCHDOG_S = 10.0
+HANG_GRACE_S = 5.0
+"""The heartbeat thread silent this much longer than the watchdog period: a hard hang (faulthandler exits)."""
+MAX_WATCHDOG_S = 1e9
+"""The longest watchdog period: ``faulthandler``'s timer overflows a platform time_t beyond ~1e10 s."""
+
 
 def env_number(name: str, default: float, lo: float, hi: float, *, env: Mapping[str, str] | None = None,
                unit: str = "", hint: str = "") -> float:
@@ -29,6 +36,16 @@ def env_number(name: str, default: float, lo: float, hi: float, *, env: Mapping[
         span = f"at most {_g(hi)}{u}" if lo == -math.inf else f"a number from {_g(lo)} to {_g(hi)}{u}"
         raise ValueError(f"{name}={raw!r}: expected {span}" + (f" ({hint})" if hint else ""))
     return value
+
+
+def watchdog_period() -> float | None:
+    """``JG_WATCHDOG_S`` (default 10 s; 0 or negative: no watchdog). A malformed value is a startup error, and so
+    is one no timer can wait (inf, NaN, above ~10⁹ s: ``faulthandler`` had raised OverflowError on arming it, in
+    the main and the heartbeat thread, and the process hung past SIGTERM). Here, beside the parser, not in
+    :mod:`.service`: the stack's monitor-watch (:mod:`jitterguard.stack.watch`) reads it without importing Zenoh."""
+    value = env_number(ENV_WATCHDOG, DEFAULT_WATCHDOG_S, -math.inf, MAX_WATCHDOG_S - HANG_GRACE_S,
+                       unit="seconds", hint="0 turns the watchdog off")
+    return value if value > 0 else None
 
 
 def _g(x: float) -> str:

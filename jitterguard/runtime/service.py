@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import faulthandler
 import logging
-import math
 import os
 import queue
 import threading
@@ -33,7 +32,7 @@ from pydantic import BaseModel
 from ..schemas import DecodeError, LimitExceeded, decode, encode, keys
 from ..schemas.models import Heartbeat
 from . import memtrace
-from .envvars import env_number
+from .envvars import HANG_GRACE_S, watchdog_period  # there, not here: the stack's Zenoh-free monitor-watch reads it too
 from .keyed_publishers import KeyedPublishers
 from .progress import STALLED, Health, ProgressMonitor, ProgressPolicy
 from .sd_notify import Notifier
@@ -48,8 +47,6 @@ REJECT_LOG_QUIET_S = 5.0
 REJECT_LOG_SUMMARY_S = 60.0
 """While a burst of one kind goes on, one line at least this often (with how many were not logged)."""
 MAX_LOG_KINDS = 64
-ENV_WATCHDOG = "JG_WATCHDOG_S"
-DEFAULT_WATCHDOG_S = 10.0
 EXIT_NO_PROGRESS = 70
 """Exit status of a service the watchdog stopped (EX_SOFTWARE): the supervisor restarts it."""
 EXIT_BAD_INPUT = 65
@@ -57,15 +54,11 @@ EXIT_BAD_INPUT = 65
 frame): a deliberate stop that a supervisor must not restart — the same input would stop it again. The stack's
 replay program lists it in supervisord's ``exitcodes`` (``autorestart=unexpected``); the systemd unit in
 ``RestartPreventExitStatus``."""
-HANG_GRACE_S = 5.0
-"""The heartbeat thread silent this much longer than the watchdog period: a hard hang (faulthandler exits)."""
 SHUTDOWN_LIMIT_S = 20.0
 """A watched service's shutdown taking longer than this is hung: faulthandler dumps the stacks and exits."""
 DRAIN_S = 0.2
 """How long a closing service leaves its last puts to leave its session (``Service._drain``): two 64 KB batches
 take ~0.1 s at 10 Mbit/s."""
-MAX_WATCHDOG_S = 1e9
-"""The longest watchdog period: ``faulthandler``'s timer overflows a platform time_t beyond ~1e10 s."""
 
 
 class Counters:
@@ -488,15 +481,6 @@ def counter_key(key: str) -> str:
     """The part of a key a per-key counter is named by: ``jg/{ns}/`` left out (``rejected.tracked``), a key outside
     jitterguard's namespace whole (a ROS 2 topic's, ``rejected.sensing/lidar/top/pointcloud``)."""
     return key.split("/", 2)[-1] if key.startswith("jg/") else key
-
-
-def watchdog_period() -> float | None:
-    """``JG_WATCHDOG_S`` (default 10 s; 0 or negative: no watchdog). A malformed value is a startup error, and so
-    is one no timer can wait (inf, NaN, above ~10⁹ s: ``faulthandler`` had raised OverflowError on arming it, in
-    the main and the heartbeat thread, and the process hung past SIGTERM)."""
-    value = env_number(ENV_WATCHDOG, DEFAULT_WATCHDOG_S, -math.inf, MAX_WATCHDOG_S - HANG_GRACE_S,
-                       unit="seconds", hint="0 turns the watchdog off")
-    return value if value > 0 else None
 
 
 QUIET_LIBRARIES = ("onnxscript", "onnx_ir", "torch.onnx")

@@ -46,6 +46,7 @@ from .status import collect, load_spec, render_table, save_spec
 from .supervisor import DEFAULT_SCENARIO_S, DEFAULT_SOURCE, StackSpec, has_area, input_mode, programs, render_config
 from .validate import (RUN_DIR_MODE, ArgumentError, bind_problem, binds_overlap, check_name, check_private_dir,
                        check_run_dir, check_text, port_in_use)
+from .watch import WATCH_FILE
 
 RunDirOpt = Annotated[str | None, typer.Option("--run-dir", envvar="JG_RUN_DIR", help="Where config, socket, logs and summary live (default: a folder named after the stack).")]
 NameOpt = Annotated[str | None, typer.Option("--name", envvar="JG_STACK", help="The stack's name (default: its --ns); each named stack has its own run directory.")]
@@ -161,10 +162,10 @@ class _ObjectsWatch:
 
     def heard_from(self, name: str, pid: int | None) -> bool:
         """Whether the program ``name``'s current process (``pid``) has sent a heartbeat: it got through its
-        imports, opened its session and runs its loop (the router sends none: always True)."""
-        from .status import SERVICE_NAMES
+        imports, opened its session and runs its loop (the router and the monitor-watch send none: always True)."""
+        from .status import OFF_BUS, SERVICE_NAMES
 
-        if name == "router":
+        if name == "router" or name in OFF_BUS:
             return True
         return pid is not None and any(pid in self.heard.get(n, ()) for n in SERVICE_NAMES.get(name, (name,)))
 
@@ -509,7 +510,7 @@ def _check_environment() -> None:
     say "started" — the monitor fails only after its imports, seconds after supervisord calls it RUNNING — while
     the monitor, or every service, then crash-looped on it."""
     from ..runtime import ENV_CONFIG
-    from ..runtime.service import watchdog_period
+    from ..runtime.envvars import watchdog_period
     from .backoff import CrashLoopPolicy
 
     try:
@@ -659,7 +660,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         tracker_config: Annotated[str | None, typer.Option("--tracker-config", help="The tracker's param.yaml (as `jitterguard tracker --config`).")] = None,
         detector_config: Annotated[str | None, typer.Option("--detector-config", help="The detector's param.yaml (as `jitterguard detector --config`; paths in it absolute).")] = None,
     ) -> None:
-        """Start router, replay, (detector,) tracker, classifier, sidecar and monitor under supervisord."""
+        """Start router, replay, (detector,) tracker, classifier, sidecar, monitor and monitor-watch under supervisord."""
         t0 = time.monotonic()
         if input_level not in ("auto", "points", "detections", "tracks"):
             fail(f"--input: expected auto, points, detections or tracks, got {input_level!r}")
@@ -793,7 +794,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         _warn_low_space(rd)
         conf = rd / "supervisord.conf"
         try:
-            for stale in (summary.SUMMARY_FILE, "supervisord.pid"):
+            for stale in (summary.SUMMARY_FILE, WATCH_FILE, "supervisord.pid"):
                 (rd / stale).unlink(missing_ok=True)
             conf.write_text(conf_text)
             save_spec(rd, spec)
@@ -1099,7 +1100,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
 
     @app.command("logs")
     def logs_cmd(
-        service: Annotated[str, typer.Argument(help="router, replay, detector, tracker, classifier, sidecar, monitor or supervisord.")],
+        service: Annotated[str, typer.Argument(help="router, replay, detector, tracker, classifier, sidecar, monitor, monitor-watch or supervisord.")],
         name: NameOpt = None,
         ns: NsOpt = "default",
         run_dir: RunDirOpt = None,

@@ -60,7 +60,8 @@ class ProcessInfo:
         return cls(name=str(d.get("name")), state=str(d.get("statename")), pid=int(d["pid"]) if d.get("pid") else None,
                    uptime_s=float(d["now"] - d["start"]) if running and d.get("start") else None,
                    exitstatus=d.get("exitstatus"), description=str(d.get("description", "")),
-                   logfile=str(d.get("stdout_logfile", "")))
+                   # an event listener (the monitor-watch) logs only its stderr: its stdout is supervisord's protocol
+                   logfile=str(d.get("stdout_logfile") or d.get("stderr_logfile") or ""))
 
 
 def pid_alive(pid: int) -> bool:

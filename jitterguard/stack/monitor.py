@@ -10,7 +10,8 @@ closes, so the file ends with the final counts. If the monitor itself is restart
 It also polls supervisord (XML-RPC, every :data:`FREEZE_CHECK_S`) for what supervisord cannot see or does not do by
 itself: a program frozen while RUNNING (:meth:`StackMonitor._end_frozen`) and a program that crashes again and
 again after it was called RUNNING, which supervisord restarts at once for ever: it is held back, stopped, and
-started again after a doubling back-off (:mod:`.backoff`, ``JG_CRASH_LOOP_*``).
+started again after a doubling back-off (:mod:`.backoff`, ``JG_CRASH_LOOP_*``). The monitor itself, stopped, is
+ended by the stack's ``monitor-watch`` (:mod:`.watch`), whose count it adds to the summary.
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ import zenoh
 from ..cli_common import ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ZenohConfigOpt, fail, hold_lock, zenoh_options
 from ..runtime import Service, ZenohOptions, setup_logging
 from ..runtime.progress import FAILING, Health
-from ..runtime.service import HANG_GRACE_S, HEARTBEAT_PERIOD_S
+from ..runtime.service import HEARTBEAT_PERIOD_S
 from ..schemas import DecodeError, decode, keys
 from ..schemas.models import Heartbeat
 from ..schemas.wire import HEARTBEAT_BOUNDS
@@ -37,13 +38,11 @@ from . import summary
 from .backoff import Action, CrashLoopGuard, CrashLoopPolicy
 from .control import SERVER_URL_ENV, StackUnavailable, Supervisor, socket_of
 from .status import SPEC_FILE, load_spec
+from .watch import freeze_limit, load_counts
 
 WRITE_PERIOD_S = 1.0
 FREEZE_CHECK_S = 2.0
 """How often the monitor asks supervisord about its programs (frozen ones, crash loops)."""
-FREEZE_MARGIN_S = 5.0
-"""A program silent this much longer than its own last resort (``JG_WATCHDOG_S`` + the hang grace, when
-faulthandler ends a process hung with its heartbeat thread) is one that no watchdog inside it can end."""
 MAX_BEAT_PIDS = 256
 
 
@@ -135,9 +134,10 @@ class StackMonitor(Service):
                 "updated_at": _iso(now), "duration_s": round(now - self.run_started_at, 1)}
         with self._guard_lock:
             guard = self.guard.as_json()
+        watched = load_counts(self.run_dir)  # the monitor-watch's: how often this monitor was ended stopped
         with self._ledger_lock:  # heartbeats change it on Zenoh's thread: the writer had died of "dictionary
             # changed size during iteration" within seconds of a burst of new processes, summary.json frozen
-            return {**summary.build(self.ledger, events, meta=meta, backoff=guard),
+            return {**summary.build(self.ledger, events, meta=meta, backoff=guard, watched=watched),
                     "started_at_s": self.run_started_at, "ledger": self.ledger.as_json(), "crash_loop_guard": guard}
 
     def write(self) -> None:
@@ -172,7 +172,7 @@ class StackMonitor(Service):
         """Every :data:`FREEZE_CHECK_S`: ask supervisord for its programs, once, then end the frozen ones
         (:meth:`_end_frozen`, unless ``JG_WATCHDOG_S=0``) and hold back those in a crash loop
         (:meth:`_hold_crash_loops`, unless ``JG_CRASH_LOOP_EXITS=0``)."""
-        limit = None if self._watchdog_env is None else self._watchdog_env + HANG_GRACE_S + FREEZE_MARGIN_S
+        limit = freeze_limit(self._watchdog_env)  # the rule the monitor-watch holds the monitor itself to
         last_tick = time.monotonic()
         while not self.stop_event.wait(FREEZE_CHECK_S):
             now = time.monotonic()
@@ -218,7 +218,7 @@ class StackMonitor(Service):
 
     def _end_frozen(self, procs: list[Any], now: float, limit: float) -> None:
         """End a program that supervisord says is RUNNING but that has sent no heartbeat for
-        ``JG_WATCHDOG_S`` + :data:`HANG_GRACE_S` + :data:`FREEZE_MARGIN_S` (20 s by default).
+        ``JG_WATCHDOG_S`` + 10 s (:func:`.watch.freeze_limit`: 20 s by default).
 
         A stopped process (SIGSTOP, a cgroup freezer, a debugger that left it stopped) runs no thread at all: its
         own watchdog and faulthandler's timer wait with it, supervisord sees a live pid, and the stack had stood

@@ -70,6 +70,7 @@ class ServiceStatus:
     held_back_s: float | None = None  # held back by the monitor after a crash loop: seconds to its next start
     recent_exits: int = 0  # unexpected exits within the last RECENT_EXITS_S (supervisord's log): restarted, not steady
     last_exit: str = ""  # the last of them: "exit status 1, 12 s ago"
+    frozen_restarts: int = 0  # ended frozen this run (by the monitor; the monitor itself by the monitor-watch)
 
     def as_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -89,6 +90,9 @@ class ServiceStatus:
 
 SERVICE_NAMES = {"replay": ("replay", "feed-tracks")}
 """The service names a supervisord program may announce itself under on Zenoh (its token, its heartbeat)."""
+OFF_BUS = frozenset({"monitor-watch"})
+"""Programs that are no Zenoh participant (no token, no heartbeat): up when RUNNING. The router is one too, but is
+judged by whether anything answers through it."""
 
 
 def rows_from_processes(procs: list[ProcessInfo]) -> list[ServiceStatus]:
@@ -216,12 +220,32 @@ def recent_exits(run_dir: Path | str | None, now: float | None = None) -> dict[s
     return out
 
 
+def frozen_counts(run_dir: Path | str | None) -> dict[str, int]:
+    """Program → how often it was ended frozen this run: ``summary.json``'s ``restarts.frozen_restarts``, with the
+    monitor's own count read from the monitor-watch's file (the summary has it only once a new monitor writes)."""
+    if not run_dir:
+        return {}
+    from .summary import load
+    from .watch import load_counts
+
+    restarts = (load(Path(run_dir)) or {}).get("restarts")
+    counts = restarts.get("frozen_restarts") if isinstance(restarts, dict) else None
+    try:
+        out = {str(k): int(v) for k, v in counts.items()} if isinstance(counts, dict) else {}
+    except (TypeError, ValueError):
+        out = {}
+    out.update(load_counts(Path(run_dir)))
+    return out
+
+
 def collect(procs: list[ProcessInfo], spec: StackSpec | None, listen_s: float = 1.5) -> list[ServiceStatus]:
     rows = rows_from_processes(procs)
     held = held_back(spec.run_dir if spec else None)
     exits = recent_exits(spec.run_dir if spec else None)
+    frozen = frozen_counts(spec.run_dir if spec else None)
     for row in rows:
         row.recent_exits, row.last_exit = exits.get(row.name, (0, ""))
+        row.frozen_restarts = frozen.get(row.name, 0)
     for row, proc in zip(rows, procs):
         if proc.state in ("STOPPED", "STOPPING") and proc.name in held:
             row.held_back_s = round(held[proc.name], 1)
@@ -239,6 +263,8 @@ def collect(procs: list[ProcessInfo], spec: StackSpec | None, listen_s: float = 
             row.alive = bool(alive or beats)
             if unreachable is not None and not row.problem:
                 row.problem = f"not answering on {spec.endpoint}: no Zenoh session through it ({unreachable})"
+            continue
+        if row.name in OFF_BUS:
             continue
         # a service cannot be heard through a router that cannot be reached: that says nothing of the service
         # itself (every one had read "no heartbeat heard", as if frozen, while the router was the one stopped)
@@ -289,6 +315,9 @@ def render_table(rows: list[ServiceStatus], spec: StackSpec | None, run_dir: Pat
             progress += (f"; [yellow]restarted after {r.recent_exits} unexpected exit"
                          f"{'s' if r.recent_exits > 1 else ''} in {RECENT_EXITS_S / 60:.0f} min "
                          f"(last: {escape(r.last_exit)})[/]")
+        if r.frozen_restarts:
+            progress += (f"; [yellow]ended frozen {r.frozen_restarts} time{'s' if r.frozen_restarts > 1 else ''} "
+                         "this run[/]")
         table.add_row(r.name, f"[{color}]{r.state}[/]", str(r.pid or "-"), _fmt_uptime(r.uptime_s), alive, seq,
                       progress)
     console.print(table)

@@ -295,10 +295,23 @@ def _pick(totals: dict[str, int] | None, name: str) -> int | None:
     return None if totals is None else int(totals.get(name, 0))
 
 
+def frozen_restarts(monitor_counters: dict[str, int] | None, watched: dict[str, int] | None) -> dict[str, int]:
+    """Program → how often it was ended frozen this run: the monitor's ``frozen_restarts.<program>`` counters (every
+    monitor process of the run, summed by the ledger) and the monitor-watch's count of monitors ended stopped
+    (:func:`.watch.load_counts`). One place to read both: the monitor's own had been only among its raw counters."""
+    out = {k.split(".", 1)[1]: int(v) for k, v in (monitor_counters or {}).items()
+           if k.startswith("frozen_restarts.") and v}
+    for name, n in (watched or {}).items():
+        if n:
+            out[name] = out.get(name, 0) + int(n)
+    return dict(sorted(out.items()))
+
+
 def build(ledger: Ledger, events: dict[str, ProgramEvents], *, meta: dict[str, Any],
-          backoff: dict[str, Any] | None = None) -> dict[str, Any]:
+          backoff: dict[str, Any] | None = None, watched: dict[str, int] | None = None) -> dict[str, Any]:
     """The summary as a JSON-able dict (``meta``: stack name, ns, source, start and end times…; ``backoff``: the
-    monitor's crash-loop guard, :meth:`.backoff.CrashLoopGuard.as_json`)."""
+    monitor's crash-loop guard, :meth:`.backoff.CrashLoopGuard.as_json`; ``watched``: the monitor-watch's counts,
+    :func:`.watch.load_counts`)."""
     backoff = backoff or {}
     held = dict(backoff.get("held_back_until_s") or {})
     t = {svc: ledger.totals(svc) for svc in ledger.procs}
@@ -343,6 +356,8 @@ def build(ledger: Ledger, events: dict[str, ProgramEvents], *, meta: dict[str, A
             "backed_off": dict(backoff.get("backed_off") or {}),
             "held_back": sorted(held),
             "held_back_until_s": held,
+            # programs ended frozen (SIGSTOP, a freezer): by the monitor, and the monitor by the monitor-watch
+            "frozen_restarts": frozen_restarts(t.get("monitor"), watched),
             "source_restarts": _pick(trk, "source_restarts"),
             "tracker_resets": _pick(trk, "resets"),
             "classifier_upstream_restarts": _pick(cls, "frames.upstream_restarts"),
@@ -398,6 +413,8 @@ def render(summary: dict[str, Any]) -> str:
            if rs.get("stopped_on_bad_input") else "")
         + (f"; held back after crash loops: {kv(rs['backed_off'])}" if rs.get("backed_off") else "")
         + (f" (now: {', '.join(rs['held_back'])})" if rs.get("held_back") else "")
+        + (f"; ended frozen: {kv(rs['frozen_restarts'])}" if isinstance(rs.get("frozen_restarts"), dict)
+           and rs["frozen_restarts"] else "")
         + f"; source restarts {n(rs.get('source_restarts'))}, tracker resets {n(rs.get('tracker_resets'))}",
     ]
     if section("errors"):

@@ -37,6 +37,9 @@ class Program:
     deferred: bool = False
     autorestart: str = "true"  # supervisord's: true, or unexpected (an exit with one of ``exitcodes`` stays down)
     exitcodes: tuple[int, ...] = (0,)
+    events: str | None = None
+    """A supervisord event listener subscribed to these events (``[eventlistener:NAME]``): its stdout is supervisord's
+    protocol, so only its stderr is logged."""
 
 
 @dataclass(frozen=True)
@@ -166,6 +169,10 @@ def programs(spec: StackSpec) -> list[Program]:
     # runs (a process's counters are cumulative, so its first heartbeat heard carries everything before it)
     progs.append(Program("monitor", _cmd("stack-monitor", *common, "--run-dir", spec.run_dir),
                          priority=5, deferred=True))
+    # who ends the monitor when it is the one stopped (SIGSTOP): a light event listener, no Zenoh; the monitor in
+    # turn ends it stopped, as any program it never hears from
+    progs.append(Program("monitor-watch", (sys.executable, "-m", "jitterguard.stack.watch", "--run-dir", spec.run_dir),
+                         priority=1, events="TICK_5"))
     return progs
 
 
@@ -228,8 +235,9 @@ def render_config(spec: StackSpec, run_dir: Path, progs: list[Program], *, nodae
         "",
     ]
     for p in progs:
+        section = "eventlistener" if p.events else "program"
         lines += [
-            f"[program:{v(p.name, 'program name')}]",
+            f"[{section}:{v(p.name, 'program name')}]",
             f"command={v(shlex.join(p.args), p.name + ' command')}",
             f"priority={p.priority}",
             f"autostart={'false' if p.deferred else 'true'}",
@@ -241,10 +249,11 @@ def render_config(spec: StackSpec, run_dir: Path, progs: list[Program], *, nodae
             "stopwaitsecs=10",
             "stopasgroup=true",
             "killasgroup=true",
-            "redirect_stderr=true",
-            f"stdout_logfile={v(logs / (p.name + '.log'), 'run dir')}",
-            "stdout_logfile_maxbytes=10MB",
-            "stdout_logfile_backups=3",
+            *((f"events={v(p.events, 'events')}", "stdout_logfile=NONE",
+               f"stderr_logfile={v(logs / (p.name + '.log'), 'run dir')}", "stderr_logfile_maxbytes=10MB",
+               "stderr_logfile_backups=3") if p.events else
+              ("redirect_stderr=true", f"stdout_logfile={v(logs / (p.name + '.log'), 'run dir')}",
+               "stdout_logfile_maxbytes=10MB", "stdout_logfile_backups=3")),
             "",
         ]
     return "\n".join(lines)

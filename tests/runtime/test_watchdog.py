@@ -78,7 +78,7 @@ def test_a_hung_process_is_ended_by_the_timer_that_needs_no_gil(tmp_path):
 def test_a_watchdog_period_no_timer_can_wait_is_a_startup_error(monkeypatch, raw):
     """`JG_WATCHDOG_S=inf` had crashed the heartbeat and main threads with OverflowError while arming faulthandler's
     timer, and the process then hung past SIGTERM: now it is refused at start, like a value that is no number."""
-    from jitterguard.runtime.service import watchdog_period
+    from jitterguard.runtime.envvars import watchdog_period
 
     monkeypatch.setenv("JG_WATCHDOG_S", raw)
     with pytest.raises(ValueError, match="JG_WATCHDOG_S"):

@@ -181,7 +181,7 @@ def test_the_policy_reads_its_environment():
 def test_the_environment_numbers_say_one_line_each_what_is_wrong(monkeypatch):
     """JG_CRASH_LOOP_* and JG_WATCHDOG_S go through one parser (runtime.envvars.env_number): the variable, its
     value and the range it must be in."""
-    from jitterguard.runtime.service import watchdog_period
+    from jitterguard.runtime.envvars import watchdog_period
 
     with pytest.raises(ValueError) as err:
         CrashLoopPolicy.from_env({"JG_CRASH_LOOP_WINDOW_S": "0.5"})

@@ -37,8 +37,9 @@ def test_a_percent_and_spaces_in_source_and_options_reach_the_replay_as_given(tm
     replay = argv["replay"]
     assert replay[3:5] == ["replay", src]
     assert replay[replay.index("--topic") + 1] == "/a%b" and "--pose-topic" in replay
-    assert set(argv) == {"router", "classifier", "tracker", "sidecar", "replay", "monitor"}
-    assert argv["monitor"][argv["monitor"].index("--run-dir") + 1] == str(tmp_path / "run")
+    assert set(argv) == {"router", "classifier", "tracker", "sidecar", "replay", "monitor", "monitor-watch"}
+    for name in ("monitor", "monitor-watch"):  # the watch's count lies beside the monitor's summary
+        assert argv[name][argv[name].index("--run-dir") + 1] == str(tmp_path / "run")
 
 
 @pytest.mark.parametrize("bad", ["a\nb", "x\r[program:evil]", "tab\tx", "nul\x00", "del\x7f"])

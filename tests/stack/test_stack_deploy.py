@@ -16,7 +16,7 @@ from jitterguard.runtime import ZenohOptions, free_tcp_port
 from jitterguard.schemas import decode, encode, keys
 from jitterguard.schemas.models import ClassifierConfig, ConfigReply
 from jitterguard.services.classifier.config_writes import ConfigWritePolicy
-from jitterguard.runtime.service import DEFAULT_WATCHDOG_S, HANG_GRACE_S
+from jitterguard.runtime.envvars import DEFAULT_WATCHDOG_S, HANG_GRACE_S
 from jitterguard.services.classifier.service import ClassifierService
 
 from helpers import wait_until

@@ -34,7 +34,7 @@ from helpers import freeze_until_replaced, stop_process, wait_until
 pytestmark = pytest.mark.integration
 
 SHIPPED = Path(__file__).resolve().parents[2] / "deploy" / "supervisord.conf"
-PROGRAMS = {"monitor", "router", "classifier", "tracker", "detector", "sidecar"}
+PROGRAMS = {"monitor", "monitor-watch", "router", "classifier", "tracker", "detector", "sidecar"}
 TIMEOUT_S = 120.0
 
 
@@ -148,6 +148,24 @@ def test_a_frozen_service_is_ended_and_restarted_under_plain_supervisord(deploye
                       timeout=TIMEOUT_S, period=1.0)
     freeze_until_replaced(lambda: _pid(sup, "tracker"), root / "log" / "monitor.log", TIMEOUT_S)
     assert wait_until(lambda: _ready(deployed["url"]), timeout=TIMEOUT_S, period=1.0)
+
+
+def test_a_stopped_monitor_is_ended_by_the_shipped_monitor_watch(deployed):
+    """The monitor stopped itself (SIGSTOP) had been ended by nothing under this file: the monitor-watch event
+    listener sees it stopped in /proc, kills it for supervisord to restart it, and counts it beside the summary."""
+    sup, root = deployed["sup"], deployed["root"]
+    _wait_all_running(sup)
+    monitor = _pid(sup, "monitor")
+    assert monitor
+    os.kill(monitor, signal.SIGSTOP)
+    try:
+        assert wait_until(lambda: _pid(sup, "monitor") not in (None, monitor), timeout=TIMEOUT_S, period=0.5), \
+            (root / "log" / "monitor-watch.log").read_text()[-2000:]
+    finally:
+        if _pid(sup, "monitor") == monitor:
+            os.kill(monitor, signal.SIGCONT)
+    assert f"monitor (pid {monitor}) has been stopped for" in (root / "log" / "monitor-watch.log").read_text()
+    assert json.loads((root / "lib" / "monitor-watch.json").read_text())["frozen_restarts"] == {"monitor": 1}
 
 
 def test_the_monitor_takes_for_a_program_only_what_its_supervisord_started(tmp_path):

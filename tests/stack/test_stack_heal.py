@@ -138,10 +138,62 @@ def test_summary_says_when_a_running_stacks_summary_is_not_being_kept(stack):
         assert res.returncode == 0 and "run summary of stack" in res.stdout, res.stdout + res.stderr
         assert "was last written" in res.stderr and "its monitor is not keeping it" in res.stderr, res.stderr
     finally:
-        os.kill(monitor, signal.SIGCONT)
+        if pid_alive(monitor):  # on a slow host the monitor-watch may have ended it meanwhile: a new one writes
+            os.kill(monitor, signal.SIGCONT)
     assert wait_until(lambda: time.time() - path.stat().st_mtime < 3, timeout=60, period=0.5)
     res = jg("summary", "--run-dir", str(rd), env=env)
     assert res.returncode == 0 and "last written" not in res.stderr, res.stderr
+
+
+def test_a_stopped_monitor_is_ended_by_the_monitor_watch_and_counted(stack):
+    """The monitor ends every other frozen program, but a monitor stopped itself (SIGSTOP) had been ended by nothing:
+    healing stopped for good while supervisord said RUNNING. The monitor-watch, a light supervisord event listener,
+    sees it stopped in /proc and kills it for supervisord to restart it; the count reaches `summary` and `status`."""
+    rd, env = stack["run_dir"], stack["env"]
+    monitor = pid_of(rd, "monitor")
+    assert monitor and pid_of(rd, "monitor-watch")
+    before = json.loads((rd / "monitor-watch.json").read_text())["frozen_restarts"]["monitor"] \
+        if (rd / "monitor-watch.json").exists() else 0  # a slow host's earlier SIGSTOP of the monitor may count
+    os.kill(monitor, signal.SIGSTOP)
+    try:
+        assert wait_until(lambda: pid_of(rd, "monitor") not in (None, monitor), timeout=HEAL_TIMEOUT_S, period=0.5), \
+            (rd / "logs" / "monitor-watch.log").read_text()[-2000:]
+    finally:
+        if pid_alive(monitor):
+            os.kill(monitor, signal.SIGCONT)
+    log = (rd / "logs" / "monitor-watch.log").read_text()
+    assert f"monitor (pid {monitor}) has been stopped for" in log, log[-2000:]
+    assert json.loads((rd / "monitor-watch.json").read_text())["frozen_restarts"] == {"monitor": before + 1}
+
+    def summarised() -> dict:
+        res = jg("summary", "--run-dir", str(rd), "--json", env=env)
+        return json.loads(res.stdout) if res.returncode == 0 else {}
+
+    assert wait_until(lambda: summarised().get("restarts", {}).get("frozen_restarts", {}).get("monitor") == before + 1,
+                      timeout=HEAL_TIMEOUT_S, period=1.0), summarised().get("restarts")
+    assert f"ended frozen: monitor {before + 1}" in jg("summary", "--run-dir", str(rd), env=env).stdout
+    rows = rows_of(rd, env)
+    assert rows["monitor"]["frozen_restarts"] == before + 1 and rows["monitor"]["state"] == "RUNNING", rows["monitor"]
+    # the watch is no Zenoh participant: RUNNING is up (not "no heartbeat heard"), and the stack reads up again
+    assert rows["monitor-watch"]["state"] == "RUNNING" and not rows["monitor-watch"]["heartbeat_expected"]
+    assert wait_until(lambda: status_json(rd, env)[0] == 0, timeout=HEAL_TIMEOUT_S, period=1.0), status_json(rd, env)
+
+
+def test_a_stopped_monitor_watch_is_ended_by_the_monitor(stack):
+    """Who watches the watch: it sends no heartbeat, so the monitor judges it by /proc, as any program it never
+    heard from, and ends it stopped for supervisord to restart it."""
+    rd = stack["run_dir"]
+    watch = pid_of(rd, "monitor-watch")
+    assert watch
+    os.kill(watch, signal.SIGSTOP)
+    try:
+        assert wait_until(lambda: pid_of(rd, "monitor-watch") not in (None, watch), timeout=HEAL_TIMEOUT_S,
+                          period=0.5), (rd / "logs" / "monitor.log").read_text()[-2000:]
+    finally:
+        if pid_alive(watch):
+            os.kill(watch, signal.SIGCONT)
+    log = (rd / "logs" / "monitor.log").read_text()
+    assert f"monitor-watch (pid {watch}) has been stopped for" in log, log[-2000:]
 
 
 def test_a_source_gone_for_good_keeps_readyz_ready_but_named(stack):

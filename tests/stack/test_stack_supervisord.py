@@ -26,15 +26,17 @@ def test_rendered_config_starts_router_first_and_restarts_everything(tmp_path):
     spec = StackSpec(ns="x", router_port=1234, input="tracks")
     progs = programs(spec)
     prio = {p.name: p.priority for p in progs}
-    # the router before every service; the monitor (bookkeeping) first of all, so it is also stopped last
-    assert all(prio["router"] < v for k, v in prio.items() if k not in ("router", "monitor"))
-    assert prio["monitor"] < prio["router"]
+    # the router before every service; the monitor (bookkeeping) first of all, so it is also stopped last, and its
+    # watch (no Zenoh: it needs no router) before and after it
+    assert all(prio["router"] < v for k, v in prio.items() if k not in ("router", "monitor", "monitor-watch"))
+    assert prio["monitor-watch"] < prio["monitor"] < prio["router"]
     conf = render_config(spec, tmp_path, progs, nodaemon=True)
     for p in progs:
-        section = conf.split(f"[program:{p.name}]")[1].split("[program:")[0]
+        kind = "eventlistener" if p.events else "program"  # the monitor-watch: its stdout is supervisord's protocol
+        section = conf.split(f"[{kind}:{p.name}]")[1].split("\n[")[0]
         for line in ("autorestart=true", "startretries=10", "stopasgroup=true", "killasgroup=true"):
             assert line in section
-        assert f"{p.name}.log" in section and "stdout_logfile_backups=3" in section
+        assert f"{p.name}.log" in section and f"{'stderr' if p.events else 'stdout'}_logfile_backups=3" in section
     assert "--connect tcp/127.0.0.1:1234" in conf
 
 

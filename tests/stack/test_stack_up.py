@@ -91,7 +91,7 @@ def test_a_relative_source_with_replay_options_runs(stacks):
         return res.returncode == 0 and rows["classifier"]["counters"].get("frames_processed", 0) > 0
 
     assert wait_until(classified, timeout=60, period=1.0), rows
-    assert set(rows) == {"router", "tracker", "classifier", "replay", "monitor"}  # detections: no detector
+    assert set(rows) == {"router", "tracker", "classifier", "replay", "monitor", "monitor-watch"}  # no detector
     conf = (stacks["run"]["a"] / "supervisord.conf").read_text()
     assert str(stacks["bag_a"]) in conf and f"--topic {DET_TOPIC}" in conf  # made absolute, passed through
 
