@@ -186,6 +186,15 @@ class Service:
             self.counters.inc(f"over_limit.{key}")
         self._reject_log.warn(f"rejected payload on {sample_key or sub_key}: {exc}", kind=f"rejected {key}")
 
+    def foreign_track(self, model: str, track_id: str, key: str, sub_key: str) -> bool:
+        """Whether a per-track message (``tracks/{id}``, ``motion/{id}``) names another track than its key does; if
+        so it is refused and counted as :meth:`reject` counts (``rejected.<sub_key>``). Why: Zenoh's ACL grants keys,
+        so a publisher allowed one track's key must not be able to speak for another track."""
+        if track_id == keys.last_chunk(key):
+            return False
+        self.reject(DecodeError(model, "track_id", "not the track its key names"), sub_key, key)
+        return True
+
     def oversized(self, sample: zenoh.Sample, max_bytes: int | None, what: str, sub_key: str,
                   limit_name: str = "") -> bool:
         """Whether ``sample`` is over ``max_bytes``; if so it is refused from its size, as :meth:`reject` counts a

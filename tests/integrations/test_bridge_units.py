@@ -505,3 +505,49 @@ def test_a_tracks_label_shows_the_statistic_that_decided_it(mode: str, want: str
     assert meta["mode"] == mode and float(meta["statistic"]) == pytest.approx(statistic), meta
     [row] = motion_statistics(f)["tracks"]
     assert row["mode"] == mode and row["statistic"] == pytest.approx(statistic) and row["chi2"] == 12.5, row
+
+
+@pytest.mark.integration
+def test_a_motion_state_on_another_tracks_key_is_refused_and_the_frame_keeps_the_real_one() -> None:
+    """A motion state naming track B put on track A's key (a publisher the ACL allows only ``motion/A``) had been
+    taken as B's: the bridge keyed it by the payload's ID, so B was recorded and shown dynamic while the classifier had
+    called it static. The tracker's static hints refuse such a message already; a bridge now does too (counted
+    ``rejected.motion/*``), and B's own state stands."""
+    import zenoh
+
+    from jitterguard.runtime import build_config, free_tcp_port, loopback_options
+    from jitterguard.schemas import encode, keys
+    from jitterguard.services.bridge.service import BridgeService
+
+    from helpers import wait_until
+
+    class ListSink:
+        def __init__(self) -> None:
+            self.frames: list[JoinedFrame] = []
+
+        def write(self, frame: JoinedFrame) -> None:
+            self.frames.append(frame)
+
+        def close(self) -> None:
+            pass
+
+    ns, port = "bridge_forged", free_tcp_port()
+    sink = ListSink()
+    svc = BridgeService(loopback_options(ns, port, listen_self=True), sink, points=False, motion_wait_s=0.5)
+    client = zenoh.open(build_config(loopback_options(ns, port)))
+    try:
+        pub = client.declare_publisher(keys.objects(ns))
+        assert wait_until(lambda: pub.matching_status.matching, 10)
+        client.put(keys.tracked(ns), encode(tracked(4, observed=(A, B))))
+        client.put(keys.motion(ns, B), encode(motion(4, B, "static", 0.5)))
+        client.put(keys.motion(ns, A), encode(motion(4, A, "static", 0.5)))
+        client.put(keys.motion(ns, A), encode(motion(4, B, "dynamic", 9.0)))  # B's ID on A's key
+        assert wait_until(lambda: svc.counters.get("received") == 4, 10)
+        client.put(keys.objects(ns), encode(objects(4, ids=(A, B))))
+        assert wait_until(lambda: len(sink.frames) == 1, 10)
+        frame = sink.frames[0]
+        assert frame.motion[B].state == "static" and frame.motion[A].state == "static", frame.motion
+        assert svc.counters.get("rejected.motion/*") == 1
+    finally:
+        client.close()
+        svc.close()

@@ -81,7 +81,10 @@ class BridgeService(Service):
                            max_bytes=MAX_SCAN_BYTES if kind == "points" else LIMITS.max_payload_bytes)
 
     def _enqueue(self, kind: str) -> Any:
-        def handler(msg: Any, _key: str) -> None:
+        def handler(msg: Any, key: str) -> None:
+            if kind == "motion" and self.foreign_track(MotionState.__name__, msg.track_id, key,
+                                                       keys.motion_all(self.ns)):
+                return  # keyed by the payload's ID in the joiner: B's state on A's key had replaced B's own
             try:
                 self._inbox.put_nowait((kind, msg, time.monotonic()))
             except queue.Full:

@@ -98,9 +98,7 @@ class TrackerService(Service):
         static: a dynamic decision newer than a static one cancels it — a tracker behind by a frame had applied the
         older static one, zeroing a car's velocity the classifier had since called moving); a hint whose mean lies
         beyond ``limits.max_abs_coordinate_m`` is refused and counted, as a detection there would be."""
-        if msg.track_id != keys.last_chunk(key):  # a publisher allowed one track's key cannot steer another
-            self.reject(DecodeError(MotionState.__name__, "track_id", "not the track its key names"),
-                        keys.motion_all(self.ns), key)
+        if self.foreign_track(MotionState.__name__, msg.track_id, key, keys.motion_all(self.ns)):
             return
         bound = self.core.config.limits.max_abs_coordinate_m
         if not (abs(msg.mean_x) <= bound and abs(msg.mean_y) <= bound):
