@@ -113,7 +113,17 @@ class _BurstLogger:
             suppressed = int(state[2])
             state[0], state[1], state[2] = now, now, 0
         extra = f" ({suppressed} similar since the last message)" if suppressed else ""
-        self._log.warning("%s%s", msg, extra)
+        self._log.warning("%s%s", one_line(msg), extra)
+
+
+def one_line(text: str) -> str:
+    """``text`` with every character that is not printable (newline, CR, escape sequences, NUL) written as its
+    Python escape. Why: what these messages quote comes from the wire — Zenoh keys may hold a newline, and an error
+    names a payload's unknown field — and verbatim a put on ``tracks/x\\n<date> ERROR ...`` forged a line in the
+    service's log."""
+    if text.isprintable():
+        return text
+    return "".join(c if c.isprintable() else c.encode("unicode_escape").decode("ascii") for c in text)
 
 
 class Service:

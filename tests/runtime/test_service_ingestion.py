@@ -5,6 +5,7 @@ stay bounded (what is refused is counted per key), and the service goes on with 
 
 from __future__ import annotations
 
+import logging
 import random
 
 import msgpack
@@ -307,3 +308,28 @@ def test_per_key_counters_name_jitterguard_keys_without_their_namespace_and_othe
     assert counter_key("jg/run7/tracks/*") == "tracks/*"
     assert counter_key("sensing/lidar/top/pointcloud") == "sensing/lidar/top/pointcloud"
     assert counter_key("tf") == "tf"
+
+
+def test_wire_text_in_a_rejection_cannot_forge_log_lines(zenoh_port, client_session, caplog) -> None:
+    """Zenoh keys may hold a newline or an escape sequence, and a payload's unknown field name is named in its
+    error: both went into the warning verbatim, so a put on ``tracks/x\\n<date> ERROR ...`` wrote a forged ERROR
+    line into the classifier's log (what supervisord keeps and log shippers alert on). The line now shows them
+    escaped, and the rejections are counted as before."""
+    forged = "2099-01-01 00:00:00,000 ERROR jitterguard.classifier: FORGED"
+    svc = ClassifierService(loopback_options(NS, zenoh_port, listen_self=True), config_writes=ConfigWritePolicy.open())
+    try:
+        assert wait_until(lambda: any(True for _ in client_session.liveliness().get(
+            keys.alive(NS, "classifier"), timeout=0.5)), 10)
+        with caplog.at_level(logging.WARNING, logger="jitterguard.classifier"):
+            client_session.put(f"jg/{NS}/tracks/x\n{forged}\x1b[2K", b"\x00", congestion_control=BLOCK)
+            assert wait_until(lambda: svc.counters.get("rejected.tracks/*") == 1, 10)
+            junk = msgpack.packb({"schema_version": 1, f"x\n{forged}": 1})
+            reply = next(iter(client_session.get(keys.classifier_config(NS), payload=junk, timeout=5.0)))
+            assert reply.err is not None
+            assert wait_until(lambda: svc.counters.get("rejected.classifier/config") == 1, 10)
+        lines = [r.getMessage() for r in caplog.records if "rejected payload" in r.getMessage()]
+        assert len(lines) == 2, lines
+        assert all(line.isprintable() and "\\n2099-01-01" in line for line in lines), lines
+        assert "\\x1b[2K" in lines[0]
+    finally:
+        svc.close()
