@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import tempfile
 from pathlib import Path
+from typing import Any
 
 
 def write_atomically(path: str | os.PathLike[str], data: bytes, *, durable: bool = True) -> None:
@@ -35,3 +36,14 @@ def write_atomically(path: str | os.PathLike[str], data: bytes, *, durable: bool
             os.fsync(dir_fd)
         finally:
             os.close(dir_fd)
+
+
+def save_figure(fig: Any, path: str | os.PathLike[str], **savefig_kwargs: Any) -> None:
+    """Save a matplotlib figure through :func:`write_atomically` (the format from the suffix, PNG without one):
+    ``savefig`` onto the path itself truncates an earlier picture first, so a run stopped or failing mid-write
+    (Ctrl-C, a full disk) had left a broken PNG where a good one was. Raises ``OSError``."""
+    import io
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format=Path(path).suffix[1:].lower() or "png", **savefig_kwargs)
+    write_atomically(path, buf.getvalue(), durable=False)

@@ -44,6 +44,29 @@ def result_threads(result: dict) -> str:
     return ",".join(sorted({str(r["threads"]) for r in result.values()}))
 
 
+MAX_BENCH_S = 3600.0
+"""The longest timed run a benchmark takes, s: without a bound ``--duration inf`` had reached ``int(inf)`` (a
+traceback) only after the services were started."""
+
+MAX_REPLAY_POINTS = 4_000_000
+"""Points per in-memory scan of ``bench replay``: the detector's default ``max_scan_bytes`` (64 MiB, four float32
+fields). Unbounded, 10 billion had been a numpy MemoryError traceback while the clouds were made."""
+
+MAX_REPLAY_FRAMES = 10_000_000
+"""Scans per ``bench replay`` run: every one is listed in memory before the clock starts."""
+
+
+def check_tracks_fit(tracks: int) -> None:
+    """``bench classifier --tracks`` within what the classifier reads in one frame, or one line and exit 2: more
+    than its ``limits.max_objects`` had been a LimitExceeded traceback from the frame-cost bench, after the core's
+    seconds of timing."""
+    from ..schemas.wire import LIMITS
+
+    if tracks > LIMITS.max_objects:
+        fail(f"--tracks {tracks} exceeds the classifier's limits.max_objects {LIMITS.max_objects}: every frame"
+             " would be refused")
+
+
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 - only bench commands here
     """Add every benchmark to ``jitterguard bench``."""
     bench_app.command("track-survival")(survival_command)
@@ -51,13 +74,16 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
     @bench_app.command("classifier")
     def bench_classifier_cmd(
         as_json: Annotated[bool, typer.Option("--json", help="Print JSON (the only format).")] = True,
-        duration: Annotated[float, typer.Option("--duration", min=1.0, help="Service run, seconds.")] = 60.0,
-        tracks: Annotated[int, typer.Option("--tracks", min=1)] = 200,
-        rate: Annotated[float, typer.Option("--rate", min=1.0)] = 20.0,
+        duration: Annotated[float, typer.Option("--duration", min=1.0, max=MAX_BENCH_S,
+                                                help="Service run, seconds.")] = 60.0,
+        tracks: Annotated[int, typer.Option("--tracks", min=1, help="Tracks in every frame (at most the"
+                                            " classifier's limits.max_objects, 1000).")] = 200,
+        rate: Annotated[float, typer.Option("--rate", min=1.0, max=1000.0, help="Frames per second.")] = 20.0,
         skip_service: Annotated[bool, typer.Option("--core-only", help="Skip the 60 s service run.")] = False,
     ) -> None:
         """Time the core (10/100/1000 tracks), the per-frame work in-process and the live service over Zenoh;
         prints JSON."""
+        check_tracks_fit(tracks)
         from .classifier import bench_core, bench_frame_cost, bench_service
 
         result: dict[str, object] = {"core": bench_core(), "frame_cost": bench_frame_cost(tracks=tracks)}
@@ -243,7 +269,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         objects: Annotated[int, typer.Option("--objects", min=1, help="Detections per frame (at most the services'"
                                              " limits.max_objects, 1000 by default).")] = 200,
         rate: Annotated[float, typer.Option("--rate", min=0.1, max=1000.0, help="Frames per second.")] = 20.0,
-        duration: Annotated[float, typer.Option("--duration", min=1.0, help="Seconds of load.")] = 60.0,
+        duration: Annotated[float, typer.Option("--duration", min=1.0, max=MAX_BENCH_S,
+                                                help="Seconds of load.")] = 60.0,
         seed: Annotated[int, typer.Option("--seed")] = 0,
         churn: Annotated[int, typer.Option("--churn", min=0, help="Objects moved to a new place each frame, so N "
                                                                   "new track IDs a frame (default 0).")] = 0,
@@ -317,6 +344,10 @@ def bench_replay_cmd(
     """Replay --rate max into an in-process subscriber: scans/s and dropped count, as JSON."""
     if frames < 1 or points < 1 or repeat < 1:
         fail("--frames, --points and --repeat must be >= 1")
+    if frames > MAX_REPLAY_FRAMES:
+        fail(f"--frames: {frames} is more than {MAX_REPLAY_FRAMES:,} scans")
+    if points > MAX_REPLAY_POINTS:
+        fail(f"--points: {points} is more than {MAX_REPLAY_POINTS:,}, the detector's largest scan (max_scan_bytes)")
     from .replay import bench_replay_repeated
 
     try:

@@ -12,6 +12,7 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
+from ..files import save_figure
 from .world import SENSOR_HEIGHT_M, GroundTruthFrame
 
 MOVING = "#d62728"
@@ -76,5 +77,7 @@ def render_bev(frame: GroundTruthFrame, points: NDArray[np.float32], path: str, 
     ax.legend(handles=handles, loc="upper right", fontsize=8, facecolor="#222222", labelcolor="white")
     ax.set_title(title or f"frame {frame.seq}: {len(points)} points, {frame.num_objects} objects")
     fig.tight_layout()
-    fig.savefig(path, dpi=dpi)
-    plt.close(fig)
+    try:
+        save_figure(fig, path, dpi=dpi)
+    finally:
+        plt.close(fig)

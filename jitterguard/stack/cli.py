@@ -376,6 +376,20 @@ def _print_summary(rd: Path, *, as_json: bool = False) -> bool:
     return True
 
 
+def _why_no_summary(rd: Path) -> str:
+    """Why ``rd`` gives no summary, told apart: a corrupt or foreign summary.json, or a ``--run-dir`` that is a
+    file, had been reported as "its monitor never wrote one" and "does not exist", sending the reader to the
+    monitor's log for a file that was there all along."""
+    path = rd / summary.SUMMARY_FILE
+    if rd.exists() and not rd.is_dir():
+        return f"{rd} is a file, not a run directory"
+    if not rd.exists():
+        return f"{rd} does not exist"
+    if path.exists():
+        return f"{path} is not a run summary (not a JSON object: cut short, or written by something else)"
+    return f"no {summary.SUMMARY_FILE} in {rd}: its monitor never wrote one; `jitterguard logs monitor`"
+
+
 STALE_SUMMARY_S = 10.0
 """A running stack's summary.json older than this is not being kept (the monitor writes it every second)."""
 
@@ -1092,9 +1106,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         else:
             running = Supervisor(rd, label).running()
             print(f"jitterguard: no summary for the stack {label} "
-                  + ("yet (its monitor writes one every second)" if running
-                     else f"(no {summary.SUMMARY_FILE} in {rd}: its monitor never wrote one; `jitterguard logs monitor`)"
-                     if rd.is_dir() else f"({rd} does not exist)"),
+                  + ("yet (its monitor writes one every second)" if running else f"({_why_no_summary(rd)})"),
                   file=sys.stderr)
             raise SystemExit(1)
 

@@ -190,6 +190,13 @@ def test_a_folder_where_an_output_file_goes_is_refused_before_any_work(args, blo
     (["replay", "synthetic:mixed", "--seed", "-1"], "--seed: -1 is negative"),
     (["calibrate", "synthetic:mixed", "--seed", "-1", "--out", "{tmp}/c.yaml"], "--seed: -1 is negative"),
     (["bench", "track-survival", "--scenario", "nosuch", "--duration", "1"], "unknown scenario 'nosuch' (have: "),
+    # no upper bound: tracebacks (LimitExceeded, int(inf), numpy's MemoryError) after seconds of work
+    (["bench", "classifier", "--tracks", "1500", "--duration", "1"], "--tracks 1500 exceeds the classifier's"),
+    (["bench", "classifier", "--rate", "inf", "--duration", "1"], "'--rate': Input should be less than or equal"),
+    (["bench", "classifier", "--duration", "inf"], "'--duration': Input should be less than or equal to 3600"),
+    (["bench", "pipeline", "--duration", "inf"], "'--duration': Input should be less than or equal to 3600"),
+    (["bench", "replay", "--points", "10000000000", "--repeat", "1"], "--points: 10000000000 is more than"),
+    (["bench", "replay", "--frames", "99999999999", "--repeat", "1"], "--frames: 99999999999 is more than"),
     # folders and files made only when the work was done (or by a program of a stack already started)
     (["bench", "pipeline", "--log-dir", "/proc/x", "--duration", "1"], "--log-dir: cannot create the folder /proc/x"),
     (["bench", "pipeline", "--log-dir", __file__, "--duration", "1"], "--log-dir: cannot create the folder"),

@@ -162,3 +162,34 @@ def test_a_run_too_short_to_decide_anything_records_its_channels_and_says_nothin
     assert topics[TRACKS].name == "foxglove.SceneUpdate" and topics[TRACKS].encoding == "protobuf"
     assert topics[MOTION].encoding == "jsonschema" and topics[TF].name == "foxglove.FrameTransforms"
     assert summary.statistics.message_count == 0  # channels to bind to, no made-up frames
+
+
+def _fsize_capped(limit: int):
+    """A child whose files cannot grow past ``limit`` bytes (RLIMIT_FSIZE; Python ignores SIGXFSZ, so a write past
+    it fails with EFBIG): a disk that fills while a picture is written."""
+    import resource
+
+    return lambda: resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+
+
+def test_a_picture_that_fails_mid_write_leaves_the_earlier_one_whole(tmp_path: Path) -> None:
+    """`render-mcap` and `sim bev` saved onto their --out itself: a write that failed part way (a full disk, a
+    Ctrl-C) had left a truncated PNG where the earlier good one was, and render-mcap a traceback."""
+    out = tmp_path / "ev"
+    res = subprocess.run([sys.executable, "-m", "jitterguard.cli", "eval", "--scenario", "parking-street", "--seed", "3",
+                          "--duration", "3", "--out", str(out), "--mcap"], capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-2000:]
+    for args in (["render-mcap", str(out / "run-3.mcap")], ["sim", "bev", "mixed", "--seed", "1", "--frame", "5"]):
+        png = tmp_path / "pictures ü" / "frame.png"
+        png.parent.mkdir(exist_ok=True)
+        ok = subprocess.run([sys.executable, "-m", "jitterguard.cli", *args, "--out", str(png)], capture_output=True,
+                            text=True, timeout=300)
+        assert ok.returncode == 0, ok.stderr[-2000:]
+        earlier = png.read_bytes()
+        assert earlier.startswith(b"\x89PNG") and len(earlier) > 40_000
+        res = subprocess.run([sys.executable, "-m", "jitterguard.cli", *args, "--out", str(png)], capture_output=True,
+                             text=True, timeout=300, preexec_fn=_fsize_capped(20_000))
+        assert res.returncode == 2 and res.stderr.strip() == f"jitterguard: error: --out: cannot write {png}: File too"\
+            " large", res.stderr[-2000:]
+        assert png.read_bytes() == earlier
+        assert sorted(p.name for p in png.parent.iterdir()) == ["frame.png"]  # no temporary file left either

@@ -136,3 +136,27 @@ def test_the_summary_gives_a_long_run_in_hours_minutes_and_seconds():
     assert head(40.1) == "run summary of stack 's' (40.1 s)"
     assert head(86412.3) == "run summary of stack 's' (24:00:12)"
     assert head(3725.2) == "run summary of stack 's' (1:02:05)"
+
+
+def test_summary_tells_a_corrupt_summary_and_a_file_run_dir_from_a_missing_one(tmp_path):
+    """A summary.json cut short had been reported as "its monitor never wrote one" (sending the reader to the
+    monitor's log), and a --run-dir that is a file as "does not exist"."""
+
+    def summary_line(run_dir: Path) -> str:
+        res = subprocess.run([sys.executable, "-m", "jitterguard.cli", "summary", "--run-dir", str(run_dir)],
+                             capture_output=True, text=True, timeout=60)
+        assert res.returncode == 1 and res.stderr.count("\n") == 1, res.stderr
+        return res.stderr
+
+    cut = tmp_path / "cut short"
+    cut.mkdir()
+    (cut / "summary.json").write_text('{"stack": "s", "frames": {"repl')
+    line = summary_line(cut)
+    assert f"{cut / 'summary.json'} is not a run summary" in line and "never wrote" not in line, line
+    a_file = tmp_path / "ü.png"
+    a_file.write_bytes(b"\x89PNG\r\n\x1a\n")
+    assert f"{a_file} is a file, not a run directory" in summary_line(a_file)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert "its monitor never wrote one" in summary_line(empty)
+    assert f"{tmp_path / 'none'} does not exist" in summary_line(tmp_path / "none")

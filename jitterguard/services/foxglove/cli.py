@@ -112,5 +112,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             frame = pick_frame(read_frames(mcap), index)
         except RenderError as exc:
             fail(str(exc))
-        print(render(frame, out, span_m=span))
+        try:
+            print(render(frame, out, span_m=span))
+        except OSError as exc:  # a full disk: one line, and the earlier PNG there is left whole
+            fail(f"--out: cannot write {out}: {exc.strerror or exc}")
 

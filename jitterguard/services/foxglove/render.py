@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from ...files import save_figure
 from .scene import DETECTIONS, GROUNDTRUTH, MOTION, POINTS, STATE_COLORS, TF, TRACKS
 
 TOPICS = (TF, POINTS, DETECTIONS, TRACKS, GROUNDTRUTH, MOTION)
@@ -240,9 +241,10 @@ def render(frame: RecordedFrame, out: str | Path, *, span_m: float = 50.0, title
     ax.legend(handles=handles, loc="upper right", fontsize=8, framealpha=0.8)
     fig.tight_layout()
     out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out)
-    plt.close(fig)
+    try:
+        save_figure(fig, out)
+    finally:
+        plt.close(fig)
     return out
 
 
