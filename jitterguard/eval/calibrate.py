@@ -160,8 +160,10 @@ def calibrate_command(
         err = exc.errors(include_url=False)[0]
         flag = "--range-bands" if err["loc"] and err["loc"][0] == "calibration_range_bands_m" else "--window-size"
         fail(f"{flag}: {err['msg']}")
-    if not 0 < hz < 1e6 or not 0 < duration <= 3600:
-        fail("--hz must be positive and --duration in (0, 3600]")
+    if not 0 < hz < 1e6:
+        fail(f"--hz: {hz} is out of range: it must be positive and below 1e6")
+    if not 0 < duration <= 3600:
+        fail(f"--duration: {duration} s is out of range: it must be in (0, 3600]")
     check_seed("--seed", seed)
     opts = SourceOptions(level=level, seed=seed, duration_s=duration, rate_hz=hz, scene=scene, topic=topic,
                          pose_topic=pose_topic, period_ns=int(round(1e9 / hz)))

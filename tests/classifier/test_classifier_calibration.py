@@ -535,6 +535,7 @@ def test_a_written_file_cut_short_or_edited_is_refused_by_its_digest(tmp_path: P
 @pytest.mark.parametrize(("text", "needle"), [
     ("not: [yaml", "not YAML"),
     ("format: other/1\n", "format"),
+    ("format: jitterguard-calibration/2\n", "of another version"),
     (f"format: {FORMAT}\ngroups: {{vehicle: {{along: {{scale: {{0-20: -1}}}}}}}}\n", "groups.vehicle.along.scale.0-20"),
     (f"format: {FORMAT}\ngroups: {{lorry: {{}}}}\n", "groups.lorry"),
     (f"format: {FORMAT}\ngroups: {{vehicle: {{along: {{correlation: .nan}}}}}}\n", "correlation"),

@@ -47,6 +47,18 @@ def test_calibrate_bad_window_is_one_line_exit_2(tmp_path: Path, capsys) -> None
     assert "--window-size" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize(("flag", "value"), [("--hz", "0"), ("--hz", "inf"), ("--duration", "0"), ("--duration", "4000")])
+def test_calibrate_names_the_one_flag_out_of_range(tmp_path: Path, capsys, flag: str, value: str) -> None:
+    """One message had named both --hz and --duration, whichever was wrong."""
+    with pytest.raises(SystemExit) as exc:
+        main(["calibrate", "synthetic:mixed", "--level", "detections", "--out", str(tmp_path / "c.yaml"), flag, value])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    other = "--duration" if flag == "--hz" else "--hz"
+    assert flag in err and other not in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "c.yaml").exists()
+
+
 @pytest.mark.parametrize("gap_s", [30.0, -30.0])
 def test_a_recording_that_pauses_or_rewinds_is_calibrated_across_it(gap_s: float) -> None:
     """A bag with a 30 s pause, or two recordings joined with time going back: the tracker follows once a run of

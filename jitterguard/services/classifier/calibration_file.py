@@ -77,6 +77,13 @@ def write_calibration(path: Path, model: NoiseModel, *, window: int, source: dic
     write_atomically(path, dump_calibration(model, window=window, source=source).encode("utf-8"))
 
 
+def _other_version(fmt: object) -> bool:
+    """Whether a file's ``format`` names this file type at another version (``jitterguard-calibration/N``): short,
+    printable and ours, so quoting it back reveals nothing of a file that is not a calibration."""
+    family = FORMAT.rsplit("/", 1)[0] + "/"
+    return isinstance(fmt, str) and fmt.startswith(family) and len(fmt) <= len(family) + 8 and fmt.isprintable()
+
+
 def parse_calibration(text: str, where: str = "calibration") -> NoiseModel:
     """A :class:`NoiseModel` from the text of a calibration file; :class:`CalibrationFileError` otherwise."""
     # Until the file says it is a calibration file, no error quotes it: a config write may name any path on the
@@ -89,7 +96,11 @@ def parse_calibration(text: str, where: str = "calibration") -> NoiseModel:
         raise CalibrationFileError(f"{where}: not YAML ({getattr(exc, 'problem', None) or 'unreadable'}{at})") from None
     if not isinstance(data, dict):
         raise CalibrationFileError(f"{where}: expected a mapping with format {FORMAT!r}")
-    if data.get("format") != FORMAT:
+    fmt = data.get("format")
+    if fmt != FORMAT:
+        if _other_version(fmt):  # ours, of another release: say so, not "no calibration file"
+            raise CalibrationFileError(f"{where}: a calibration file of another version ({fmt!r}); this release reads"
+                                       f" {FORMAT!r}: fit it again with `jitterguard calibrate`")
         raise CalibrationFileError(f"{where}: format must be {FORMAT!r}, not a calibration file")
     if DIGEST_KEY in data:
         _check_digest(text, data.pop(DIGEST_KEY), where)
