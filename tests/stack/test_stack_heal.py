@@ -128,18 +128,21 @@ def test_summary_says_when_a_running_stacks_summary_is_not_being_kept(stack):
     from jitterguard.stack.cli import STALE_SUMMARY_S
 
     rd, env = stack["run_dir"], stack["env"]
-    monitor = pid_of(rd, "monitor")
-    assert monitor
+    assert wait_until(lambda: pid_of(rd, "monitor") and pid_of(rd, "monitor-watch"), timeout=HEAL_TIMEOUT_S, period=0.5)
+    monitor, watch = pid_of(rd, "monitor"), pid_of(rd, "monitor-watch")
     path = rd / "summary.json"
+    # the monitor-watch stopped too, or it ends the stopped monitor after 20 s — a race with the staleness asked of
+    # `summary` (what this test is about: a summary nobody keeps, whatever stopped its keeper)
+    os.kill(watch, signal.SIGSTOP)
     os.kill(monitor, signal.SIGSTOP)
     try:
         assert wait_until(lambda: time.time() - path.stat().st_mtime > STALE_SUMMARY_S + 1, timeout=60, period=0.5)
         res = jg("summary", "--run-dir", str(rd), env=env)
         assert res.returncode == 0 and "run summary of stack" in res.stdout, res.stdout + res.stderr
         assert "was last written" in res.stderr and "its monitor is not keeping it" in res.stderr, res.stderr
-    finally:
-        if pid_alive(monitor):  # on a slow host the monitor-watch may have ended it meanwhile: a new one writes
-            os.kill(monitor, signal.SIGCONT)
+    finally:  # the watch first: the monitor, resumed, would end a watch it finds stopped
+        os.kill(watch, signal.SIGCONT)
+        os.kill(monitor, signal.SIGCONT)
     assert wait_until(lambda: time.time() - path.stat().st_mtime < 3, timeout=60, period=0.5)
     res = jg("summary", "--run-dir", str(rd), env=env)
     assert res.returncode == 0 and "last written" not in res.stderr, res.stderr
@@ -150,8 +153,9 @@ def test_a_stopped_monitor_is_ended_by_the_monitor_watch_and_counted(stack):
     healing stopped for good while supervisord said RUNNING. The monitor-watch, a light supervisord event listener,
     sees it stopped in /proc and kills it for supervisord to restart it; the count reaches `summary` and `status`."""
     rd, env = stack["run_dir"], stack["env"]
+    # both RUNNING first: an earlier test's heal may still be restarting one of them (STARTING: no pid yet)
+    assert wait_until(lambda: pid_of(rd, "monitor") and pid_of(rd, "monitor-watch"), timeout=HEAL_TIMEOUT_S, period=0.5)
     monitor = pid_of(rd, "monitor")
-    assert monitor and pid_of(rd, "monitor-watch")
     before = json.loads((rd / "monitor-watch.json").read_text())["frozen_restarts"]["monitor"] \
         if (rd / "monitor-watch.json").exists() else 0  # a slow host's earlier SIGSTOP of the monitor may count
     os.kill(monitor, signal.SIGSTOP)
@@ -183,8 +187,8 @@ def test_a_stopped_monitor_watch_is_ended_by_the_monitor(stack):
     """Who watches the watch: it sends no heartbeat, so the monitor judges it by /proc, as any program it never
     heard from, and ends it stopped for supervisord to restart it."""
     rd = stack["run_dir"]
+    assert wait_until(lambda: pid_of(rd, "monitor") and pid_of(rd, "monitor-watch"), timeout=HEAL_TIMEOUT_S, period=0.5)
     watch = pid_of(rd, "monitor-watch")
-    assert watch
     os.kill(watch, signal.SIGSTOP)
     try:
         assert wait_until(lambda: pid_of(rd, "monitor-watch") not in (None, watch), timeout=HEAL_TIMEOUT_S,
