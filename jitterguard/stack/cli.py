@@ -902,10 +902,11 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             waiting = _settled(events, progress_since, now)
             if waiting:
                 continue
-            if not (_answers(router) and _answers(sidecar)):  # `status` right after must reach the stack, and the
-                waiting = (f"the router does not listen on {spec.endpoint} yet" if not _answers(router) else
+            router_answers = _answers(router)  # `status` right after must reach the stack, and the sidecar's
+            if not (router_answers and _answers(sidecar)):  # address printed below must answer
+                waiting = (f"the router does not listen on {spec.endpoint} yet" if not router_answers else
                            f"the sidecar does not answer on {sidecar[0]}:{sidecar[1]}" if sidecar else "")
-                continue  # sidecar's address printed below must answer
+                continue
             progress = (f"; first classified objects after {watch.first:.1f} s" if watch.first is not None
                         else "; every service heard")
             print(f"jitterguard: started {names} (stack {label}, run dir {rd}){progress}")

@@ -35,6 +35,14 @@ def _odom(t: int, x: float) -> bytes:
                                           "twist": {"twist": twist, "covariance": [0.0] * 36}})
 
 
+def _link(parent: str, child: str, t: int, x: float) -> bytes:
+    """A TF message of one transform ``parent`` -> ``child`` at ``t`` (ns): ``x`` m along x, no rotation."""
+    return _enc("tf2_msgs/msg/TFMessage", {"transforms": [
+        {"header": {"stamp": _stamp(t), "frame_id": parent}, "child_frame_id": child,
+         "transform": {"translation": {"x": x, "y": 0.0, "z": 0.0},
+                       "rotation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}}}]})
+
+
 def _cloud(t: int, frame: str = "lidar") -> bytes:
     pts = np.array([[1.0, 2.0, 3.0]], dtype="<f4")
     return _enc("sensor_msgs/msg/PointCloud2", {
@@ -228,19 +236,14 @@ def test_a_scan_is_covered_only_once_the_tf_links_above_its_own_frame_reach_its_
                            "rotation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}}}
     core.tf(_enc("tf2_msgs/msg/TFMessage", {"transforms": [mount]}), 0, static=True)
 
-    def link(parent: str, child: str, t: int, x: float) -> bytes:
-        return _enc("tf2_msgs/msg/TFMessage", {"transforms": [
-            {"header": {"stamp": _stamp(t), "frame_id": parent}, "child_frame_id": child,
-             "transform": {"translation": {"x": x, "y": 0.0, "z": 0.0},
-                           "rotation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}}}]})
     t0 = 5_000_000_000
-    core.tf(link("map", "base_link", t0, 100.0), 0, static=False)
-    core.tf(link("base_link", "wheel", t0 + 50_000_000, 0.0), 0, static=False)  # newer, but another link
-    core.tf(link("map", "ndt_base_link", t0 + 60_000_000, 0.0), 0, static=False)
+    core.tf(_link("map", "base_link", t0, 100.0), 0, static=False)
+    core.tf(_link("base_link", "wheel", t0 + 50_000_000, 0.0), 0, static=False)  # newer, but another link
+    core.tf(_link("map", "ndt_base_link", t0 + 60_000_000, 0.0), 0, static=False)
     scan_t = t0 + 30_000_000
     assert core.covered(t0, "lidar") and not core.covered(scan_t, "lidar") and not core.covered(scan_t, "/lidar")
     assert not core.covered(scan_t, "radar")  # a frame not in the tree (yet)
-    core.tf(link("map", "base_link", t0 + 40_000_000, 104.0), 0, static=False)
+    core.tf(_link("map", "base_link", t0 + 40_000_000, 104.0), 0, static=False)
     assert core.covered(scan_t, "lidar")
     frame = core.scan(core.stamp_of(_cloud(scan_t))[0], "scan#1", 0)
     # base_link 100 -> 104 over 40 ms, at 30 ms 103; the LiDAR 1 m ahead of it
@@ -274,17 +277,12 @@ def test_a_live_scan_whose_sensor_kit_is_not_linked_to_base_link_is_refused_nami
     posed at its mount near the world's origin; it is refused, one line naming the missing link, until it comes."""
     core = LiveScans("tf2_msgs/msg/TFMessage")
 
-    def link(parent: str, child: str, t: int, x: float) -> bytes:
-        return _enc("tf2_msgs/msg/TFMessage", {"transforms": [
-            {"header": {"stamp": _stamp(t), "frame_id": parent}, "child_frame_id": child,
-             "transform": {"translation": {"x": x, "y": 0.0, "z": 0.0},
-                           "rotation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}}}]})
     t = 5_000_000_000
-    core.tf(link("sensor_kit_base_link", "lidar", 0, 0.5), 0, static=True)
-    core.tf(link("map", "base_link", t, 100.0), 0, static=False)
+    core.tf(_link("sensor_kit_base_link", "lidar", 0, 0.5), 0, static=True)
+    core.tf(_link("map", "base_link", t, 100.0), 0, static=False)
     out = core.scan(core.stamp_of(_cloud(t))[0], "scan#1", 0)
     assert isinstance(out, FrameError) and not out.invalid and "\n" not in out.reason
     assert "the link from 'base_link' (or a frame under it) to 'sensor_kit_base_link' is missing" in out.reason
-    core.tf(link("base_link", "sensor_kit_base_link", 0, 1.0), 0, static=True)
+    core.tf(_link("base_link", "sensor_kit_base_link", 0, 1.0), 0, static=True)
     frame = core.scan(core.stamp_of(_cloud(t))[0], "scan#2", 0)
     assert isinstance(frame, ScanFrame) and frame.pose.x == pytest.approx(101.5)

@@ -484,36 +484,48 @@ def test_a_foreground_stack_ends_with_its_up_when_the_terminal_hangs_up_or_up_is
     assert not Supervisor(rd).running()
 
 
-def test_a_detached_stack_whose_tracker_dies_after_starting_is_not_called_started(tmp_path):
-    """A program that dies a second after supervisord calls it RUNNING, again and again: `up -d` had returned 0
-    as soon as every program ran once; now it waits for every program to run crash-free for a while, sees the
-    loop and stops the stack."""
+def _up_detached_killing_the_tracker(tmp_path: Path, name: str, *, after_s: float, kills: int, deadline_s: float,
+                                     wait_s: float) -> tuple[int, str, str, Path]:
+    """``up -d`` of a 20-frame bag whose tracker is SIGKILLed each time it has been RUNNING ``after_s`` (at most
+    ``kills`` times, for at most ``deadline_s``); the stack is stopped after. Returns (exit status, stdout, stderr,
+    run dir)."""
     write_bag(tmp_path / "bag", n=20)
     env = {**os.environ, "XDG_RUNTIME_DIR": str(tmp_path / "xdg")}
-    rd = tmp_path / "xdg" / "jitterguard" / "slow"
-    proc = subprocess.Popen([sys.executable, "-m", "jitterguard.cli", "up", "bag", "-d", "--name", "slow", "--ns",
-                             f"slow{os.getpid()}", "--router-port", str(free_tcp_port()), "--no-sidecar",
+    rd = tmp_path / "xdg" / "jitterguard" / name
+    proc = subprocess.Popen([sys.executable, "-m", "jitterguard.cli", "up", "bag", "-d", "--name", name, "--ns",
+                             f"{name}{os.getpid()}", "--router-port", str(free_tcp_port()), "--no-sidecar",
                              "--topic", DET_TOPIC], cwd=tmp_path, env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
+    running_since: dict[int, float] = {}
     killed: set[int] = set()
     try:
-        deadline = time.monotonic() + 60
-        while proc.poll() is None and time.monotonic() < deadline and len(killed) < 4:
+        deadline = time.monotonic() + deadline_s
+        while proc.poll() is None and time.monotonic() < deadline and len(killed) < kills:
             try:
                 tracker = next((p for p in Supervisor(rd).processes() if p.name == "tracker"), None)
             except Exception:  # supervisord not answering yet
                 tracker = None
             if tracker is not None and tracker.state == "RUNNING" and tracker.pid not in killed:
-                time.sleep(1.0)  # alive past its startsecs: RUNNING long enough for every program to be seen so
-                os.kill(tracker.pid, signal.SIGKILL)
-                killed.add(tracker.pid)
+                since = running_since.setdefault(tracker.pid, time.monotonic())
+                if time.monotonic() - since >= after_s:
+                    os.kill(tracker.pid, signal.SIGKILL)
+                    killed.add(tracker.pid)
             time.sleep(0.05)
-        out, err = proc.communicate(timeout=60)
+        out, err = proc.communicate(timeout=wait_s)
     finally:
         if proc.poll() is None:
             proc.kill()
-        jg("down", "--name", "slow", env=env, cwd=tmp_path)
-    assert proc.returncode == 1, out + err
+        jg("down", "--name", name, env=env, cwd=tmp_path)
+    return proc.returncode, out, err, rd
+
+
+def test_a_detached_stack_whose_tracker_dies_after_starting_is_not_called_started(tmp_path):
+    """A program that dies a second after supervisord calls it RUNNING, again and again: `up -d` had returned 0
+    as soon as every program ran once; now it waits for every program to run crash-free for a while, sees the
+    loop and stops the stack."""
+    code, out, err, rd = _up_detached_killing_the_tracker(tmp_path, "slow", after_s=1.0, kills=4, deadline_s=60,
+                                                          wait_s=60)
+    assert code == 1, out + err
     assert "tracker keeps failing" in err and "unexpected exits" in err
     assert "started" not in out
     assert not Supervisor(rd).running()
@@ -524,34 +536,9 @@ def test_a_detached_stack_whose_tracker_dies_seconds_after_running_is_not_called
     3 s of every program RUNNING (supervisord's view, not the program's progress) and said "started" in between.
     Now a program that crashed while `up -d` waits must outlive its earlier life by the settle time, so the loop
     shows: the tracker is named, with the tail of its log, and the stack is stopped."""
-    write_bag(tmp_path / "bag", n=20)
-    env = {**os.environ, "XDG_RUNTIME_DIR": str(tmp_path / "xdg")}
-    rd = tmp_path / "xdg" / "jitterguard" / "late"
-    proc = subprocess.Popen([sys.executable, "-m", "jitterguard.cli", "up", "bag", "-d", "--name", "late", "--ns",
-                             f"late{os.getpid()}", "--router-port", str(free_tcp_port()), "--no-sidecar",
-                             "--topic", DET_TOPIC], cwd=tmp_path, env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
-    running_since: dict[int, float] = {}
-    killed: set[int] = set()
-    try:
-        deadline = time.monotonic() + 150
-        while proc.poll() is None and time.monotonic() < deadline and len(killed) < 5:
-            try:
-                tracker = next((p for p in Supervisor(rd).processes() if p.name == "tracker"), None)
-            except Exception:  # supervisord not answering yet
-                tracker = None
-            if tracker is not None and tracker.state == "RUNNING" and tracker.pid not in killed:
-                since = running_since.setdefault(tracker.pid, time.monotonic())
-                if time.monotonic() - since >= 4.0:
-                    os.kill(tracker.pid, signal.SIGKILL)
-                    killed.add(tracker.pid)
-            time.sleep(0.05)
-        out, err = proc.communicate(timeout=90)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-        jg("down", "--name", "late", env=env, cwd=tmp_path)
-    assert proc.returncode == 1, out + err
+    code, out, err, rd = _up_detached_killing_the_tracker(tmp_path, "late", after_s=4.0, kills=5, deadline_s=150,
+                                                          wait_s=90)
+    assert code == 1, out + err
     assert "jitterguard: started" not in out, out + err
     assert "tracker keeps failing" in err and f"last lines of {rd / 'logs' / 'tracker.log'}" in err, err
     assert not Supervisor(rd).running()

@@ -37,9 +37,6 @@ class ReplayPlan:
     seq_start: int = 0
     max_lag_s: float = 0.5
     stamps: Stamps = "recorded"
-    max_scan_bytes: int = MAX_SCAN_BYTES
-    """A scan whose ``points`` payload is larger is an unreadable frame (:func:`~.frames.scan_refusal`): the
-    detector refuses it unread."""
     """``recorded``: the recording's stamps (shifted forward across loop passes); ``wall``: the first frame is
     stamped with the wall clock and the rest keep the recorded spacing after it (see :class:`Restamper`).
 
@@ -50,6 +47,9 @@ class ReplayPlan:
     Dec 2026 a wall-stamped pass began seq again as a restarted source; a pass shorter than the confirmation of
     a restart — 3 frames and 0.3 s at the consumer — was then dropped by the tracker and the classifier, pass after
     pass, forever.)"""
+    max_scan_bytes: int = MAX_SCAN_BYTES
+    """A scan whose ``points`` payload is larger is an unreadable frame (:func:`~.frames.scan_refusal`): the
+    detector refuses it unread."""
 
     def __post_init__(self) -> None:
         if self.start < 0:
