@@ -116,6 +116,15 @@ payload of one 500 000-key map within ``max_payload_bytes`` had cost the tracker
 2 s each, listing every unknown key as an error."""
 
 
+MAX_CONFIG_BYTES = 64 * 1024
+"""A config write larger than this is refused unread by the classifier (the sidecar's HTTP bodies are capped at 64 KB
+too): a write of one 8 MB per-class map had been built and validated key by key, on the query's thread."""
+
+CONFIG_REPLY_BOUNDS: dict[str, int] = {"max_bytes": 4 * MAX_CONFIG_BYTES, "max_array_len": MAX_MAP_ENTRIES,
+                                       "max_map_len": MAX_MAP_ENTRIES}
+"""What the sidecar reads of a ``ConfigReply``: a config, its etag and a reason (a few hundred bytes as the
+classifier writes one). Unbounded, any node answering on the key could have had it decode megabytes per query."""
+
 # -------------------------------------------------------------------------------------------- columns
 
 

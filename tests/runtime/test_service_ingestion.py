@@ -26,10 +26,10 @@ from jitterguard.schemas.models import (
     TrackObservation,
     TrackState,
 )
-from jitterguard.schemas.wire import Limits
+from jitterguard.schemas.wire import MAX_CONFIG_BYTES, Limits
 from jitterguard.services.bridge.service import BridgeService
 from jitterguard.services.classifier.config_writes import ConfigWritePolicy
-from jitterguard.services.classifier.service import CONFIG_MAX_BYTES, ClassifierService
+from jitterguard.services.classifier.service import ClassifierService
 from jitterguard.services.classifier.synthetic_tracks import TrackScenario, generate
 from jitterguard.services.detector.inference import Detector
 from jitterguard.services.detector.service import DetectorService
@@ -243,7 +243,7 @@ def test_the_detector_refuses_a_scan_whose_lists_no_scan_has_before_building_the
 
 def test_a_config_write_is_bounded_before_it_is_built(zenoh_port, client_session) -> None:
     """A config write over Zenoh (with the token, or under ``--open-config-writes``) was decoded whole: one 8 MB
-    per-class map was built and validated key by key on the query's thread. A write over CONFIG_MAX_BYTES, or with
+    per-class map was built and validated key by key on the query's thread. A write over MAX_CONFIG_BYTES, or with
     a map or list longer than any config has, is refused from its size or its header now; nothing is applied and
     the refusal is counted per key."""
     svc = ClassifierService(loopback_options(NS, zenoh_port, listen_self=True), config_writes=ConfigWritePolicy.open())
@@ -252,7 +252,7 @@ def test_a_config_write_is_bounded_before_it_is_built(zenoh_port, client_session
             keys.alive(NS, "classifier"), timeout=0.5)), 10)
         before = svc.core.config
         wide = {"schema_version": 1, "alpha_per_class": {f"k{i}": 1.0 for i in range(100)}}
-        big = {"schema_version": 1, "calibration_file": "x" * (CONFIG_MAX_BYTES + 1)}
+        big = {"schema_version": 1, "calibration_file": "x" * (MAX_CONFIG_BYTES + 1)}
         for payload, why in ((wide, "map holds more than"), (big, "bytes exceed")):
             (reply,) = list(client_session.get(keys.classifier_config(NS), payload=msgpack.packb(payload), timeout=5))
             assert reply.err is not None

@@ -3,21 +3,24 @@
 from __future__ import annotations
 
 import json
+import os
 import re
 import time
 from collections.abc import Callable
 
 import httpx
+import msgpack
 import pytest
 import zenoh
 
 from jitterguard.runtime import build_config, loopback_options
 from jitterguard.schemas import encode, keys
-from jitterguard.schemas.models import ClassifierConfig, Heartbeat
+from jitterguard.schemas.config_auth import NONCE_BYTES, write_attachment
+from jitterguard.schemas.models import ClassifierConfig, ConfigReply, Heartbeat, config_etag
 from jitterguard.services.classifier.config import PRESETS
 
 AUTHORS_ALPHA = PRESETS["authors"]["alpha_per_class"]
-from jitterguard.services.sidecar.client import ClassifierClient
+from jitterguard.services.sidecar.client import ClassifierClient, ClassifierRejected
 from jitterguard.services.sidecar.core import StateView, TrackView
 
 from .stack import PAPER_STATISTIC, Stack, start_stack, wait_for
@@ -407,8 +410,10 @@ def test_a_patch_redoes_its_change_when_a_zenoh_writer_got_in_between(stack: Sta
     def change(current: ClassifierConfig) -> ClassifierConfig:
         calls.append(current.min_window)
         if len(calls) == 1:  # another writer changes min_window after this read
-            replies = list(zenoh_writer.get(keys.classifier_config(stack.ns), timeout=5.0, payload=encode(
-                current.model_copy(update={"min_window": 3})), attachment=stack.token.encode() if stack.token else None))
+            key, payload = keys.classifier_config(stack.ns), encode(current.model_copy(update={"min_window": 3}))
+            signed = write_attachment(stack.token, key, None, payload, time.time_ns(), os.urandom(NONCE_BYTES)) \
+                if stack.token else None
+            replies = list(zenoh_writer.get(key, timeout=5.0, payload=payload, attachment=signed))
             assert replies and replies[0].ok is not None
         return merge_patch(current, {"alpha_default": 2.2})
 
@@ -421,6 +426,125 @@ def test_a_patch_redoes_its_change_when_a_zenoh_writer_got_in_between(stack: Sta
     assert len(calls) == 2 and calls[1] == 3  # redone once, on the config the other writer left
     assert reply.config.min_window == 3 and reply.config.alpha_default == 2.2
     assert stack.classifier.core.config == reply.config
+
+
+def test_a_rogue_replier_learns_no_token_is_not_believed_and_cannot_replay_a_write(stack: Stack) -> None:
+    """Any node may declare a queryable on ``jg/**`` and so receives every config write. The sidecar had sent its
+    JG_API_TOKEN itself as the write's attachment, and took the first reply for the classifier's. Now a write is
+    signed (the token never travels), the classifier signs its replies, the sidecar takes only a signed reply, and
+    the classifier refuses a captured write sent again or altered."""
+    fake = ClassifierConfig(alpha_default=9.9)
+    forged = encode(ConfigReply(ok=True, config=fake, etag=config_etag(fake), error=None, conflict=False))
+    seen: list[tuple[str, str, bytes | None, bytes | None]] = []
+
+    def answer(query: zenoh.Query) -> None:
+        with query:
+            seen.append((str(query.key_expr), str(query.parameters),
+                         query.payload.to_bytes() if query.payload is not None else None,
+                         query.attachment.to_bytes() if query.attachment is not None else None))
+            query.reply(query.key_expr, forged)
+
+    rogue = zenoh.open(build_config(loopback_options(stack.ns, stack.zport)))
+    rogue_q = rogue.declare_queryable("jg/**", answer, complete=True)
+    key = keys.classifier_config(stack.ns)
+    try:
+        with stack.http() as c:
+            assert c.get("/v1/config").json() == DEFAULTS  # the forged config (alpha 9.9) was not taken
+            r = c.patch("/v1/config", json={"alpha_default": 0.3})
+            assert r.status_code == 200 and r.json()["alpha_default"] == 0.3, r.text
+            writes = [w for w in seen if w[0] == key and w[2]]
+            assert writes, "the rogue queryable received no write: the test shows nothing"
+            assert all(stack.token.encode() not in (a or b"") for *_, a in seen)  # type: ignore[union-attr]
+            assert c.patch("/v1/config", json={"alpha_default": 0.4}).status_code == 200
+            _, params, payload, attachment = writes[-1]  # the write of 0.3, captured
+            selector = f"{key}?{params}" if params else key
+            again = list(rogue.get(selector, payload=payload, attachment=attachment, timeout=5.0))
+            errs = [x.err.payload.to_bytes() for x in again if x.err is not None]
+            assert any(b"replay" in e for e in errs), errs
+            altered = encode(ClassifierConfig(**{**PAPER_STATISTIC, "alpha_default": 0.5}))
+            assert len(altered) == len(payload)  # type: ignore[arg-type]
+            again = list(rogue.get(key, payload=altered, attachment=attachment, timeout=5.0))
+            errs = [x.err.payload.to_bytes() for x in again if x.err is not None]
+            assert any(b"signature does not match" in e for e in errs), errs
+            assert stack.classifier.core.config.alpha_default == 0.4  # neither the replay nor the alteration landed
+    finally:
+        rogue_q.undeclare()
+        rogue.close()
+        with stack.http() as c:
+            assert c.put("/v1/config", json=DEFAULTS).status_code == 200
+
+
+def test_a_rogue_alone_on_the_bus_is_not_taken_for_the_classifier(stack: Stack) -> None:
+    """In a namespace where only a rogue announces itself as the classifier and answers every query, a client
+    holding the token believes none of its replies (each counted), and the rogue learns no token."""
+    ns = "sc-rogue"
+    fake = ClassifierConfig(alpha_default=9.9)
+    forged = encode(ConfigReply(ok=True, config=fake, etag=config_etag(fake), error=None, conflict=False))
+    attachments: list[bytes | None] = []
+
+    def answer(query: zenoh.Query) -> None:
+        with query:
+            attachments.append(query.attachment.to_bytes() if query.attachment is not None else None)
+            query.reply(query.key_expr, forged)
+
+    rogue = zenoh.open(build_config(loopback_options(ns, stack.zport)))
+    alive = rogue.liveliness().declare_token(keys.alive(ns, "classifier"))
+    rogue_q = rogue.declare_queryable("jg/**", answer, complete=True)
+    client = ClassifierClient(loopback_options(ns, stack.zport), api_token=stack.token)
+    try:
+        wait_for(client.is_alive, "the rogue's liveliness token")
+        with pytest.raises(ClassifierRejected, match="or another node answers on this key"):
+            client.get_config()
+        with pytest.raises(ClassifierRejected, match="or another node answers on this key"):
+            client.put_config(ClassifierConfig(**{**PAPER_STATISTIC, "alpha_default": 0.5}))
+        assert client.poll_once() is None  # its state is no state
+        assert client.counters.snapshot()["rejected.classifier/config"] == 2
+        assert client.counters.snapshot()["rejected.classifier/state"] >= 1  # (its own poll may have asked too)
+    finally:
+        client.close()
+        rogue_q.undeclare()
+        alive.undeclare()
+        rogue.close()
+    assert len(attachments) >= 3 and all(stack.token.encode() not in (a or b"") for a in attachments)  # type: ignore[union-attr]
+
+
+def test_a_config_reply_is_read_only_within_its_bound(stack: Stack) -> None:
+    """Without a token the first reply is taken, whoever sent it; it is now refused unread past a few hundred KB
+    (a config reply is a few hundred bytes) rather than decoded whole."""
+    ns = "sc-bigreply"
+    huge = msgpack.packb({"ok": True, "error": "x" * (1 << 20)})
+
+    def answer(query: zenoh.Query) -> None:
+        with query:
+            query.reply(query.key_expr, huge)
+
+    rogue = zenoh.open(build_config(loopback_options(ns, stack.zport)))
+    alive = rogue.liveliness().declare_token(keys.alive(ns, "classifier"))
+    rogue_q = rogue.declare_queryable(keys.classifier_config(ns), answer)
+    client = ClassifierClient(loopback_options(ns, stack.zport))
+    try:
+        wait_for(client.is_alive, "the rogue's liveliness token")
+        with pytest.raises(ClassifierRejected, match=r"invalid: ConfigReply: 1048592 bytes exceed 262144"):
+            client.get_config()
+        assert client.counters.snapshot()["rejected.classifier/config"] == 1
+    finally:
+        client.close()
+        rogue_q.undeclare()
+        alive.undeclare()
+        rogue.close()
+
+
+def test_a_sidecar_with_another_token_believes_no_reply_and_applies_nothing(stack: Stack) -> None:
+    client = ClassifierClient(loopback_options(stack.ns, stack.zport), api_token="not-the-token")
+    try:
+        wait_for(client.is_alive, "the classifier's liveliness token")
+        with pytest.raises(ClassifierRejected, match="JG_API_TOKEN differs from the sidecar's"):
+            client.get_config()
+        with pytest.raises(ClassifierRejected, match="signature does not match"):
+            client.put_config(ClassifierConfig(**{**PAPER_STATISTIC, "alpha_default": 0.5}))
+    finally:
+        client.close()
+    assert stack.classifier.core.config == ClassifierConfig(**PAPER_STATISTIC)
 
 
 @pytest.mark.parametrize(("method", "path"), [

@@ -1,18 +1,22 @@
 """Who may change the classifier's config over Zenoh: the same token as the sidecar's HTTP API, or nobody.
 
 A ``get`` on ``classifier/config`` with a payload is a write. Anyone who can reach the router can send one, so
-the classifier checks it itself, whatever the transport does: with ``JG_API_TOKEN`` set, a write must carry
-that token as the query's attachment (the sidecar sends its own ``JG_API_TOKEN``); without a token, writes are
-refused unless the classifier was started with ``--open-config-writes`` (what ``jitterguard up`` does on one
-host, where the router listens on loopback and the tokenless sidecar is loopback-only too). Reads (a ``get``
-with no payload) stay open, like ``GET /v1/config``.
+the classifier checks it itself, whatever the transport does: with ``JG_API_TOKEN`` set, a write must be signed
+with that token (:mod:`jitterguard.schemas.config_auth`: a MAC over the key, ``if_match``, the payload, a time and
+a nonce; the token itself never travels), and the classifier signs its replies to the holder of the token;
+without a token, writes are refused unless the classifier was started with ``--open-config-writes`` (what
+``jitterguard up`` does on one host, where the router listens on loopback and the tokenless sidecar is
+loopback-only too) — and even then a *signed* write is refused, since its writer expects a classifier that holds
+its token and would take no unsigned reply for the classifier's. Reads (a ``get`` with no payload) stay open,
+like ``GET /v1/config``.
 """
 
 from __future__ import annotations
 
-import hmac
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+
+from ...schemas.config_auth import WriteVerifier, is_write_attachment, nonce_of, reply_attachment
 
 ENV_TOKEN = "JG_API_TOKEN"
 
@@ -29,6 +33,11 @@ def api_token_from_env() -> str | None:
 class ConfigWritePolicy:
     token: str | None = None
     open_writes: bool = False
+    _verifier: WriteVerifier | None = field(default=None, init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        if self.token:  # the nonces this classifier accepted: one verifier for its life
+            object.__setattr__(self, "_verifier", WriteVerifier(self.token))
 
     @classmethod
     def from_env(cls, open_writes: bool = False) -> "ConfigWritePolicy":
@@ -42,17 +51,28 @@ class ConfigWritePolicy:
 
     def describe(self) -> str:
         if self.token:
-            return "config writes over Zenoh need JG_API_TOKEN"
+            return "config writes over Zenoh need a write signed with JG_API_TOKEN"
         return "config writes over Zenoh are open (no token)" if self.open_writes else \
             "config writes over Zenoh are off (no JG_API_TOKEN, no --open-config-writes)"
 
-    def refusal(self, attachment: bytes | None) -> str | None:
-        """Why a write carrying ``attachment`` is refused (None if it may go ahead)."""
-        if self.token:
-            if attachment is not None and hmac.compare_digest(attachment, self.token.encode()):
-                return None
-            return "unauthorised: a config write needs the classifier's JG_API_TOKEN as the query attachment"
+    def refusal(self, attachment: bytes | None, key: str, if_match: str | None, payload: bytes,
+                now_ns: int) -> str | None:
+        """Why a write of ``payload`` to ``key`` (the namespace's config key) carrying ``attachment`` is refused
+        (None if it may go ahead). ``now_ns``: the classifier's clock (Unix time), for the write's time check."""
+        if self._verifier is not None:
+            return self._verifier.refusal(attachment, key, if_match, payload, now_ns)
+        if is_write_attachment(attachment):
+            return ("unauthorised: the write is signed with a JG_API_TOKEN and this classifier has none; set the "
+                    "same JG_API_TOKEN for the classifier and the sidecar (nothing applied)")
         if self.open_writes:
             return None
         return ("config writes over Zenoh are off: set the same JG_API_TOKEN for the classifier and the sidecar, "
                 "or start the classifier with --open-config-writes")
+
+    def reply_attachment(self, attachment: bytes | None, key: str, payload: bytes) -> bytes | None:
+        """What to attach to a reply ``payload`` to a query that carried ``attachment``: the reply's MAC when this
+        classifier has a token and the query a nonce (a signed write, or a read's challenge); None otherwise."""
+        nonce = nonce_of(attachment)
+        if self.token is None or nonce is None:
+            return None
+        return reply_attachment(self.token, key, nonce, payload)

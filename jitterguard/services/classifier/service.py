@@ -36,7 +36,7 @@ from ...runtime import Service, ZenohOptions
 from ...runtime.gc_policy import IdleCollector, manage_gc_for_latency
 from ...schemas import SCHEMA_VERSION, DecodeError, decode, encode, keys
 from ...schemas.models import ETAG_HEX, ClassifierConfig, ConfigReply, config_etag
-from ...schemas.wire import LIMITS, MAX_MAP_ENTRIES, Limits
+from ...schemas.wire import LIMITS, MAX_CONFIG_BYTES, MAX_MAP_ENTRIES, Limits
 from ...stream_order import StreamLimits
 from .adapter import ClassifierAdapter, FrameOutput, Poses
 from .assembly import FrameAssembler
@@ -50,9 +50,6 @@ from . import window_kernel
 from .statistics import warm_up
 
 CONFIG_APPLY_TIMEOUT_S = 2.0
-CONFIG_MAX_BYTES = 64 * 1024
-"""A config write larger than this is refused unread (the sidecar's HTTP bodies are capped at 64 KB too): a write of
-one 8 MB per-class map had been built and validated key by key, on the query's thread."""
 LATENCY_WINDOW = 4096
 LATENCY_BUCKETS_MS = (0.5, 1, 2, 5, 10, 20, 50, 100, 200, 500, 1000)
 """Frame-latency histogram buckets; exported as counters so the sidecar's /metrics can rebuild it."""
@@ -454,12 +451,20 @@ class ClassifierService(Service):
         self._queue.put(("call", (fn, fut), None), timeout=timeout)  # bounded: queue.Full when the worker is stuck
         return fut.result(timeout=timeout)
 
+    def _reply(self, query: zenoh.Query, key: str, attachment: bytes | None, payload: bytes) -> None:
+        """A success reply, signed for a holder of the token who asked with a nonce (``config_auth``)."""
+        query.reply(query.key_expr, payload,
+                    attachment=self.config_writes.reply_attachment(attachment, key, payload))
+
     def _on_config_query(self, query: zenoh.Query) -> None:
         payload = query.payload.to_bytes() if query.payload is not None else b""
+        attachment = query.attachment.to_bytes() if query.attachment is not None else None
+        key = keys.classifier_config(self.ns)
         if not payload:
-            query.reply(query.key_expr, _config_reply(self.core.config))
+            self._reply(query, key, attachment, _config_reply(self.core.config))
             return
-        refused = self.config_writes.refusal(query.attachment.to_bytes() if query.attachment is not None else None)
+        if_match = query.parameters.get(keys.IF_MATCH)
+        refused = self.config_writes.refusal(attachment, key, if_match, payload, time.time_ns())
         if refused:
             self.counters.inc("config_writes_refused")
             self._reject_log.warn(f"config write on {query.key_expr} refused: {refused}",
@@ -467,17 +472,16 @@ class ClassifierService(Service):
             query.reply_err(_config_reply(self.core.config, refused))
             return
         try:  # bounded before it is built: a config is a few hundred bytes, its maps and lists a handful of entries
-            cfg = decode(ClassifierConfig, payload, max_bytes=CONFIG_MAX_BYTES, max_array_len=MAX_MAP_ENTRIES,
+            cfg = decode(ClassifierConfig, payload, max_bytes=MAX_CONFIG_BYTES, max_array_len=MAX_MAP_ENTRIES,
                          max_map_len=MAX_MAP_ENTRIES)
         except DecodeError as exc:  # counted and logged as every refused payload is: an oversized write had been
             # counted `rejected` but never `over_limit`, and no refused write was logged
-            self.reject(exc, keys.classifier_config(self.ns), str(query.key_expr))
+            self.reject(exc, key, str(query.key_expr))
             query.reply_err(_config_reply(self.core.config, str(exc)))
             return
-        if_match = query.parameters.get(keys.IF_MATCH)
         if if_match is not None and not _is_etag(if_match):
             why = f"must be {ETAG_HEX} lowercase hex digits (the etag of a config reply)"
-            self.reject(DecodeError("ClassifierConfig", keys.IF_MATCH, why), keys.classifier_config(self.ns),
+            self.reject(DecodeError("ClassifierConfig", keys.IF_MATCH, why), key,
                         str(query.key_expr))
             query.reply_err(_config_reply(self.core.config, f"{keys.IF_MATCH}: {why}"))
             return
@@ -487,7 +491,7 @@ class ClassifierService(Service):
                 model = read_calibration(cfg.calibration_file)
             except CalibrationFileError as exc:
                 self.reject(DecodeError("ClassifierConfig", "calibration_file", str(exc)),
-                            keys.classifier_config(self.ns), str(query.key_expr))
+                            key, str(query.key_expr))
                 query.reply_err(_config_reply(self.core.config, f"calibration_file: {exc}"))
                 return
         fut: Future = Future()
@@ -519,12 +523,12 @@ class ClassifierService(Service):
                     why = f"{type(late).__name__}: {late}"
                 else:
                     self.log.info("config applied: %s", in_force.model_dump(exclude={"schema_version"}))
-                    query.reply(query.key_expr, _config_reply(in_force))
+                    self._reply(query, key, attachment, _config_reply(in_force))
                     return
             query.reply_err(_config_reply(self.core.config, f"not applied: {why}"))
             return
         self.log.info("config applied: %s", in_force.model_dump(exclude={"schema_version"}))
-        query.reply(query.key_expr, _config_reply(in_force))
+        self._reply(query, key, attachment, _config_reply(in_force))
 
     def state_map(self) -> dict:
         """The ``classifier/state`` payload as a plain map (a ``ClassifierStateSnapshot`` when validated).
@@ -568,11 +572,13 @@ class ClassifierService(Service):
     def _on_state_query(self, query: zenoh.Query) -> None:
         with self._latest_lock:
             latest = self._latest
+        attachment = query.attachment.to_bytes() if query.attachment is not None else None
+        key = keys.classifier_state(self.ns)
         if latest is not None and latest.encoded is not None:
-            query.reply(query.key_expr, latest.encoded)
+            self._reply(query, key, attachment, latest.encoded)
             return
         data = encode(self.state_map())
         if latest is not None:
             latest.encoded = data  # same frame, same answer: encode once per frame
-        query.reply(query.key_expr, data)
+        self._reply(query, key, attachment, data)
 

@@ -18,6 +18,7 @@ token and heartbeat like every process), and it
 from __future__ import annotations
 
 import math
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -28,8 +29,9 @@ import zenoh
 from ...runtime import Service, ZenohOptions
 from ...runtime.service import counter_key
 from ...schemas import DecodeError, decode, decode_with_raw, encode, keys
+from ...schemas.config_auth import NONCE_BYTES, challenge_attachment, reply_is_authentic, write_attachment
 from ...schemas.models import ClassifierConfig, ClassifierStateSnapshot, ConfigReply, Heartbeat
-from ...schemas.wire import HEARTBEAT_BOUNDS
+from ...schemas.wire import CONFIG_REPLY_BOUNDS, HEARTBEAT_BOUNDS
 from .core import (PIPELINE_STAGES, PIPELINE_STALL_S, SOURCES, ConfigError, RenderedState, config_to_api, diff_states,
                    frames_standing, is_pipeline, render_state, service_problems, silenced)
 from .metrics import SidecarMetrics
@@ -82,8 +84,9 @@ class ClassifierClient(Service):
                  state_timeout_s: float = 1.0, stale_after_s: float = 3.0,
                  metrics: SidecarMetrics | None = None, api_token: str | None = None,
                  stop_event: threading.Event | None = None, pipeline_stall_s: float = PIPELINE_STALL_S) -> None:
-        """``api_token``: sent with every config write (the query's attachment); the classifier checks it
-        against its own ``JG_API_TOKEN``. ``stop_event``: ends the wait for the router (:class:`Service`).
+        """``api_token``: the key that signs every config write and checks every reply of the classifier's
+        (:mod:`~jitterguard.schemas.config_auth`; the classifier holds the same ``JG_API_TOKEN``, and the token
+        itself is never sent). ``stop_event``: ends the wait for the router (:class:`Service`).
         ``pipeline_stall_s``: frames entering this long with none classified is a readiness fault
         (:func:`~.core.frames_standing`)."""
         super().__init__(opts, stop_event=stop_event)
@@ -315,7 +318,7 @@ class ClassifierClient(Service):
         t0 = time.perf_counter()
         try:
             kind, data = self._query(keys.classifier_state(self.ns), None, self.state_timeout_s)
-        except ClassifierUnavailable:
+        except (ClassifierUnavailable, ClassifierRejected):  # rejected: no reply signed with the token (counted)
             self.metrics.poll_failures.inc()
             return self._rendered
         self.metrics.poll_seconds.observe(time.perf_counter() - t0)
@@ -353,21 +356,57 @@ class ClassifierClient(Service):
     # ------------------------------------------------------------------ config
 
     def _query(self, key: str, payload: bytes | None, timeout: float,
-               attachment: bytes | None = None) -> tuple[str, bytes]:
-        """One get; ``("ok"|"err", payload)`` of the first reply, or :class:`ClassifierUnavailable`."""
-        try:
-            replies = list(self.session.get(key, payload=payload, timeout=timeout, attachment=attachment))
+               if_match: str | None = None) -> tuple[str, bytes]:
+        """One get on ``key`` (a write when ``payload`` is given, conditional on ``if_match``); ``("ok"|"err",
+        payload)`` of the reply taken, or :class:`ClassifierUnavailable`.
+
+        Every queryable on the key is asked. Without a token: the first reply, as it comes. With one: the query
+        is signed (a write) or carries a challenge (a read), and the first success reply signed back with the
+        token is taken for the classifier's; any other success reply is counted ``rejected.{key}`` and skipped.
+        Zenoh's error replies cannot be signed: one is taken only when no signed success came by the end of the
+        query (all repliers done, or ``timeout``)."""
+        selector = key if if_match is None else f"{key}?{keys.IF_MATCH}={if_match}"
+        nonce = attachment = None
+        if self._api_token:
+            nonce = os.urandom(NONCE_BYTES)
+            attachment = challenge_attachment(nonce) if payload is None else \
+                write_attachment(self._api_token, key, if_match, payload, time.time_ns(), nonce)
+        try:  # every queryable on the key, each reply as it comes: a node that declared a "complete" queryable on
+            # jg/** had been the only one asked (the default target), and the first reply was taken whoever sent it
+            replies = self.session.get(selector, payload=payload, timeout=timeout, attachment=attachment,
+                                       target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE)
         except Exception as exc:  # session closing, or a zenoh error
             raise ClassifierUnavailable(f"query on {key} failed: {exc}") from None
+        refusal, unsigned = None, 0
         for reply in replies:
             if reply.ok is not None:
-                return "ok", reply.ok.payload.to_bytes()
-            if reply.err is not None:
+                data = reply.ok.payload.to_bytes()
+                if nonce is None:
+                    return "ok", data
+                signed = reply.ok.attachment
+                if reply_is_authentic(self._api_token or "", key, nonce, data,
+                                      signed.to_bytes() if signed is not None else None):
+                    return "ok", data
+                unsigned += 1
+                continue
+            if reply.err is not None and refusal is None:
                 data = reply.err.payload.to_bytes()
                 # Zenoh's own "Timeout" (from no replier, or from a node on the way) is not a refusal: the write may
                 # still be applied. The classifier's refusals are ConfigReply maps, never these bare bytes.
                 if reply.replier_id is not None and data != ZENOH_TIMEOUT:
-                    return "err", data
+                    if nonce is None:
+                        return "err", data
+                    refusal = data
+        if unsigned:
+            self._reject(f"classifier/{keys.last_chunk(key)}",
+                         ValueError(f"{unsigned} reply(ies) not signed with the sidecar's JG_API_TOKEN"))
+        if refusal is not None:
+            return "err", refusal
+        if unsigned:
+            raise ClassifierRejected(
+                f"no reply on {key} was signed with the sidecar's JG_API_TOKEN ({unsigned} unsigned or wrongly "
+                f"signed): the classifier's JG_API_TOKEN differs from the sidecar's, or another node answers "
+                f"on this key")
         raise ClassifierUnavailable(f"no reply on {key} within {timeout:g} s")
 
     def _require_alive(self, action: str) -> None:
@@ -377,7 +416,7 @@ class ClassifierClient(Service):
 
     def _config_reply(self, kind: str, data: bytes, key: str, sent: ClassifierConfig | None = None) -> ConfigReply:
         try:
-            reply = decode(ConfigReply, data)
+            reply = decode(ConfigReply, data, **CONFIG_REPLY_BOUNDS)
         except DecodeError as exc:
             self._reject("classifier/config", exc)
             if kind == "ok":
@@ -413,10 +452,8 @@ class ClassifierClient(Service):
         (:class:`ConfigConflict` otherwise)."""
         self._require_alive("nothing was applied")
         key = keys.classifier_config(self.ns)
-        selector = key if if_match is None else f"{key}?{keys.IF_MATCH}={if_match}"
         try:
-            kind, data = self._query(selector, encode(cfg), self.query_timeout_s,
-                                     attachment=self._api_token.encode() if self._api_token else None)
+            kind, data = self._query(key, encode(cfg), self.query_timeout_s, if_match)
         except ClassifierUnavailable as exc:
             raise ClassifierUnavailable(
                 f"the classifier did not confirm the write ({exc}); a config is applied whole or not at all — "
