@@ -251,6 +251,31 @@ def test_pcd_garbage_is_a_frame_error(tmp_path: Path, blob: bytes) -> None:
     assert isinstance(item, FrameError) and "not a valid PCD" in item.reason
 
 
+def test_a_pcd_claiming_more_points_than_a_scan_may_hold_is_refused_before_it_is_decoded(tmp_path: Path) -> None:
+    """A few KB of ``binary_compressed`` data whose header claims 3 million points (each 2-byte back reference of
+    LZF expands to 264 bytes): it had been expanded, its buffer allocated, before the claim was checked."""
+    n = 3_000_000
+    itemsize = _pcd_points(1).dtype.itemsize
+    head = PCD_HEADER.format(n=n, data="binary_compressed", qw=1.0, qz=0.0).encode()
+    comp = bytes([0]) + b"\x00" + bytes([(7 << 5), 255, 0]) * 1000
+    (tmp_path / "bomb.pcd").write_bytes(head + struct.pack("<II", len(comp), n * itemsize) + comp)
+    [item] = list(PcdSource(tmp_path / "bomb.pcd").frames())
+    assert isinstance(item, FrameError) and item.reason == (
+        f"not a valid PCD file: its {n} points of {itemsize} bytes ({n * itemsize / (1 << 20):.4g} MiB) are over the "
+        f"64 MiB a scan may be (the detector's max_scan_bytes): not decoded")
+
+
+def test_a_pcd_file_over_its_bound_is_refused_unread(tmp_path: Path) -> None:
+    """Its size is taken from ``fstat``: a sparse 4 GiB file named ``.pcd`` is refused without a byte read."""
+    path = tmp_path / "huge.pcd"
+    with open(path, "wb") as f:
+        f.truncate(4 << 30)
+    [item] = list(PcdSource(path).frames())
+    assert isinstance(item, FrameError) and item.reason == (
+        "not a valid PCD file: 4294967296 bytes (4096 MiB) is over the 256 MiB a PCD file of a scan may be "
+        "(4 × the detector's max_scan_bytes): not read")
+
+
 def test_lzf_back_references_including_overlapping_runs() -> None:
     # literal "abc", then copy 6 bytes from 3 back (overlapping): "abcabcabc"; then a long ref (len 9+) of "abcabcabc"
     data = bytes([2]) + b"abc" + bytes([(4 << 5) | 0, 2]) + bytes([(7 << 5) | 0, 9 - 7 - 2 + 0, 8])

@@ -8,6 +8,7 @@ organised clouds mark missing returns) are dropped.
 
 from __future__ import annotations
 
+import os
 import struct
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -16,7 +17,8 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from ..frames import DEFAULT_PERIOD_NS, EgoPose, FrameError, Item, ScanFrame, SourceError, SourceInfo, finite_rows
+from ..frames import (DEFAULT_PERIOD_NS, MAX_SCAN_BYTES, EgoPose, FrameError, Item, ScanFrame, SourceError, SourceInfo,
+                      finite_rows, mib)
 from .base import Source, listed_scans
 
 _TYPES = {("F", 4): "<f4", ("F", 8): "<f8", ("I", 1): "i1", ("I", 2): "<i2", ("I", 4): "<i4", ("I", 8): "<i8",
@@ -166,11 +168,29 @@ def _ascii_values(body: bytes) -> NDArray[np.float64]:
     return np.concatenate(parts) if parts else np.empty(0, dtype=np.float64)
 
 
-def read_pcd(path: Path) -> tuple[NDArray[np.float32], tuple[str, ...], EgoPose]:
-    """Read a PCD file: (points (P, F) float32 with x, y, z first, field names, viewpoint pose)."""
-    raw = Path(path).read_bytes()
+TEXT_FACTOR = 4
+"""How much larger than a scan its PCD file may be: an ``ascii`` value takes up to about four times the bytes of
+its float32 ("-123.456789 "); a binary file is the scan plus its header."""
+
+
+def read_pcd(path: Path, max_bytes: int = MAX_SCAN_BYTES) -> tuple[NDArray[np.float32], tuple[str, ...], EgoPose]:
+    """Read a PCD file: (points (P, F) float32 with x, y, z first, field names, viewpoint pose).
+
+    Bounded before the work, as :func:`~.kitti.read_bin` is: a file over :data:`TEXT_FACTOR` × ``max_bytes`` (the
+    detector's ``max_scan_bytes``) is refused from its ``fstat`` unread, and a header whose ``POINTS`` × point size
+    is over ``max_bytes`` before its data is decoded — a few MB of ``binary_compressed`` data whose header claimed
+    a billion points had been expanded (and its buffer allocated) in full, and any file had been read whole."""
+    with open(path, "rb") as f:
+        size = os.fstat(f.fileno()).st_size
+        if size > TEXT_FACTOR * max_bytes:
+            raise ValueError(f"{size} bytes ({mib(size)}) is over the {mib(TEXT_FACTOR * max_bytes)} a PCD file of a "
+                             f"scan may be ({TEXT_FACTOR} × the detector's max_scan_bytes): not read")
+        raw = f.read(size)
     h = parse_header(raw)
     dt = h.dtype()
+    if h.points * dt.itemsize > max_bytes:
+        raise ValueError(f"its {h.points} points of {dt.itemsize} bytes ({mib(h.points * dt.itemsize)}) are over the "
+                         f"{mib(max_bytes)} a scan may be (the detector's max_scan_bytes): not decoded")
     body = raw[h.data_offset :]
     if h.data == "binary":
         need = h.points * dt.itemsize
