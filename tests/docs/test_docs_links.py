@@ -128,6 +128,38 @@ def test_every_docs_page_is_linked_from_the_readme_and_has_a_title_and_intro() -
         assert lines[1] == "" and lines[2].strip() and not lines[2].startswith("#"), f"{rel}: an intro paragraph"
 
 
+_DELIMITER_ROW = re.compile(r"^\|?\s*:?-{3,}:?\s*(\|\s*:?-{3,}:?\s*)*\|?\s*$")
+
+
+def unended_tables(path: Path) -> list[str]:
+    """Each table in ``path`` whose rows run on into a line that is not a row: GitHub's Markdown reads such a line
+    (a cell's text wrapped onto the next line, a paragraph without the blank line before it) as one more row, so
+    the table shows a broken row and the rest of that cell as a stray one."""
+    bad: list[str] = []
+    lines = _prose_lines(path.read_text(encoding="utf-8"))
+    in_table = False
+    for prev, line in zip(lines, lines[1:]):
+        if _DELIMITER_ROW.match(line) and prev.lstrip().startswith("|"):
+            in_table = True
+        elif in_table and not line.lstrip().startswith("|"):
+            if line.strip():
+                bad.append(f"{_shown(path)}: a table runs on into {line.strip()[:60]!r}")
+            in_table = False
+    return bad
+
+
+def test_the_table_checker_finds_a_row_wrapped_onto_the_next_line(tmp_path: Path) -> None:
+    page = tmp_path / "t.md"
+    page.write_text("# T\n\n| a | b |\n|---|---|\n| 1 | two\nlines |\n\n| c |\n|---|\n| 3 |\n\ntext\n"
+                    "```\n| x |\n|---|\nnot a table\n```\n", encoding="utf-8")
+    assert unended_tables(page) == [f"{page}: a table runs on into 'lines |'"]
+
+
+@pytest.mark.parametrize("path", MARKDOWN, ids=lambda p: str(p.relative_to(ROOT)))
+def test_every_table_ends_with_a_blank_line(path: Path) -> None:
+    assert unended_tables(path) == []
+
+
 def test_readme_is_short_and_names_the_commands_ci_runs() -> None:
     readme = (ROOT / "README.md").read_text(encoding="utf-8")
     assert len(readme.splitlines()) <= 250
