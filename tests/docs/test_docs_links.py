@@ -15,6 +15,7 @@ import pytest
 import typer
 
 from jitterguard.cli import app
+from jitterguard.stack.supervisor import StackSpec, programs
 
 ROOT = Path(__file__).resolve().parents[2]
 DOCS = ROOT / "docs"
@@ -158,6 +159,23 @@ def test_the_table_checker_finds_a_row_wrapped_onto_the_next_line(tmp_path: Path
 @pytest.mark.parametrize("path", MARKDOWN, ids=lambda p: str(p.relative_to(ROOT)))
 def test_every_table_ends_with_a_blank_line(path: Path) -> None:
     assert unended_tables(path) == []
+
+
+def test_logs_names_every_program_up_can_run() -> None:
+    """`jitterguard logs SERVICE` reads any program's log; its help (and so docs/cli.md's table, and the list in
+    docs/operations.md) had left out the ones `up` runs only on request (foxglove, record, ros2-in, ros2-out)."""
+    specs = [StackSpec(run_dir="/r", input="points", foxglove=True, record_ros2="/r/bag"),
+             StackSpec(run_dir="/r", input="tracks"),
+             StackSpec(run_dir="/r", input="points", ros2_points="/sensing/lidar/top/pointcloud")]
+    names = {p.name for spec in specs for p in programs(spec)} | {"supervisord"}
+    assert {"router", "classifier", "replay", "monitor-watch", "foxglove", "record", "ros2-in"} <= names
+    logs = typer.main.get_command(app).commands["logs"]  # type: ignore[attr-defined]
+    help_text = next(p.help for p in logs.params if p.name == "service")
+    assert sorted(n for n in names if not re.search(rf"(?<![\w-]){re.escape(n)}(?![\w-])", help_text)) == []
+    ops = (DOCS / "operations.md").read_text(encoding="utf-8")
+    listed = re.search(r"`jitterguard logs SERVICE \[-n 50\]` prints the end of one program's log \(([^)]*)\)", ops)
+    assert listed, "operations.md lists the programs `logs` reads"
+    assert sorted(n for n in names if f"`{n}`" not in listed.group(1)) == []
 
 
 def test_readme_is_short_and_names_the_commands_ci_runs() -> None:
