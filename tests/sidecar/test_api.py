@@ -670,6 +670,23 @@ def _metric(text: str, name: str, labels: str = "") -> float:
     return float(m.group(1))
 
 
+def test_a_config_the_classifier_model_refuses_counts_invalid_by_put_as_by_patch(stack: Stack) -> None:
+    """``jitterguard_sidecar_config_writes_total{result="invalid"}`` counts a config refused as merged: a PATCH's
+    was counted, the same config PUT was not (it was validated before the write was counted)."""
+    def invalid(c: httpx.Client) -> float:
+        text = c.get("/metrics").text
+        return _metric(text, "jitterguard_sidecar_config_writes_total", '{result="invalid"}') \
+            if 'result="invalid"' in text else 0.0
+
+    with stack.http() as c:
+        before = invalid(c)
+        for method in ("PATCH", "PUT"):
+            r = c.request(method, "/v1/config", json={**PAPER_STATISTIC, "window_size": 4, "min_window": 5})
+            assert r.status_code == 422 and r.json()["detail"][0]["loc"][0] == "body", (method, r.text)
+        assert invalid(c) == before + 2
+        assert c.get("/v1/config").json() == DEFAULTS  # nothing applied
+
+
 def test_metrics(stack: Stack) -> None:
     def same_frame() -> tuple[str, dict] | None:  # /metrics and /v1/state from one snapshot
         with stack.http(auth=False) as c:

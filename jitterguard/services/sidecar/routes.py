@@ -341,8 +341,11 @@ def get_config(c: Client, response: Response) -> dict[str, Any]:
             summary="Replace the whole config (omitted fields take their defaults)")
 def put_config(ctx: Ctx, c: Client, body: ConfigModel, tag: IfMatch,  # type: ignore[valid-type]
                response: Response) -> dict[str, Any]:
-    cfg = validate_config(body.model_dump(), touched=body.model_fields_set)  # type: ignore[attr-defined]
-    return _write(ctx, response, lambda: c.replace_config(cfg, if_match=tag))
+    def put() -> ConfigReply:  # validated inside the counted write: a refusal counts `invalid`, as a PATCH's does
+        cfg = validate_config(body.model_dump(), touched=body.model_fields_set)  # type: ignore[attr-defined]
+        return c.replace_config(cfg, if_match=tag)
+
+    return _write(ctx, response, put)
 
 
 @config_routes.patch("/v1/config", response_model=ConfigModel, dependencies=Writer, responses=WRITE_ERRORS,
