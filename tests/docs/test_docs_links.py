@@ -161,6 +161,24 @@ def test_every_table_ends_with_a_blank_line(path: Path) -> None:
     assert unended_tables(path) == []
 
 
+def test_cli_page_names_every_environment_variable_a_flag_reads() -> None:
+    """An option that falls back on an environment variable (``--ns``: ``JG_NS``) is a setting a deployment may make
+    without any flag: docs/cli.md names each one (it had not named ``JG_NS``)."""
+    page = (DOCS / "cli.md").read_text(encoding="utf-8")
+    envs: set[str] = set()
+
+    def walk(cmd) -> None:
+        for sub in getattr(cmd, "commands", {}).values():
+            walk(sub)
+        for param in getattr(cmd, "params", []):
+            env = getattr(param, "envvar", None)
+            envs.update([env] if isinstance(env, str) else (env or []))
+
+    walk(typer.main.get_command(app))
+    assert {"JG_NS", "JG_STACK"} <= envs
+    assert sorted(e for e in envs if f"`{e}`" not in page and f"`${e}`" not in page) == []
+
+
 def test_logs_names_every_program_up_can_run() -> None:
     """`jitterguard logs SERVICE` reads any program's log; its help (and so docs/cli.md's table, and the list in
     docs/operations.md) had left out the ones `up` runs only on request (foxglove, record, ros2-in, ros2-out)."""
