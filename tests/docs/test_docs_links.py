@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
+from typing import Annotated
 
 import pytest
 import typer
@@ -222,3 +223,84 @@ def test_cli_page_lists_every_command_and_flag() -> None:
 
     walk(typer.main.get_command(app), "jitterguard")
     assert missing == []
+
+
+def cli_tables(page: str) -> dict[str, dict[str, tuple[str, str]]]:
+    """docs/cli.md's option tables: per ``### `command` `` section, each name in a row's first cell (``--flag``,
+    ``-d``, ``SOURCE``) → (default cell, meaning cell)."""
+    tables: dict[str, dict[str, tuple[str, str]]] = {}
+    section: dict[str, tuple[str, str]] | None = None
+    for line in _prose_lines(page):
+        heading = re.match(r"^### `([^`]+)`", line)
+        if heading:
+            section = tables.setdefault(heading.group(1), {})
+            continue
+        cells = [c.strip() for c in line.strip().strip("|").split("|")] if line.startswith("| `") else []
+        if section is not None and len(cells) >= 3:
+            for name in re.findall(r"`([^`]+)`", cells[0]):
+                section[name] = (cells[1], cells[2])
+    return tables
+
+
+def default_disagreements(root, page: str, path: str = "jitterguard") -> list[str]:
+    """Each option of ``root`` (a click command tree) whose default in docs/cli.md's table is not the one the
+    command has: a required option must read ``required``; a flag ``on``/``off`` or the spelling in force
+    (``--no-twist``); any other default its value. A default of None is resolved at run time (from a parameter
+    file, the weights, the environment) and its row says how in words, which this cannot check."""
+    bad: list[str] = []
+    table = cli_tables(page)
+
+    def walk(cmd, where: str) -> None:
+        for name, sub in getattr(cmd, "commands", {}).items():
+            walk(sub, f"{where} {name}")
+        rows = table.get(where, {})
+        for param in getattr(cmd, "params", []):
+            names = [param.name.upper()] if not param.opts[0].startswith("-") else [*param.opts, *param.secondary_opts]
+            row = next((rows[n] for n in names if n in rows), None)
+            if row is None or "--help" in names:
+                continue
+            cell, default = row[0], param.default
+            if param.required:
+                ok = cell == "required"
+            elif callable(default) or default is None or default == "" or cell == "required":
+                ok = cell != "required"
+            elif getattr(param, "is_flag", False) and isinstance(default, bool):
+                spelled = param.opts[0] if default or not param.secondary_opts else param.secondary_opts[0]
+                ok = cell in ("on" if default else "off", f"`{spelled}`")
+            else:
+                ok = re.search(rf"(?<![\w.]){re.escape(str(default))}(?![\w.])", cell) is not None
+            if not ok:
+                bad.append(f"{where} {names[0]}: --help's default {default!r}, docs/cli.md's {cell!r}")
+
+    walk(root, path)
+    return bad
+
+
+def test_the_default_checker_finds_a_default_the_page_misstates() -> None:
+    demo = typer.Typer()
+
+    @demo.command("run")
+    def run(out: Annotated[str, typer.Option("--out")],
+            rate: Annotated[float, typer.Option("--rate")] = 10.0,
+            twist: Annotated[bool, typer.Option("--twist/--no-twist")] = True,
+            flips: Annotated[bool, typer.Option("--flips/--no-flips")] = False,
+            seed: Annotated[int, typer.Option("--seed")] = 0) -> None:
+        """A command of a demo app."""
+
+    @demo.command("other")
+    def other() -> None:
+        """Another, so that `run` is a sub-command."""
+
+    page = ("### `demo run`\n\n| argument / option | default | meaning |\n|---|---|---|\n"
+            "| `--out` |  | x |\n| `--rate` | `1.0` | x |\n| `--twist` / `--no-twist` | `--twist` | x |\n"
+            "| `--flips` / `--no-flips` | on | x |\n| `--seed` | `0` | x |\n")
+    assert default_disagreements(typer.main.get_command(demo), page, "demo") == [
+        "demo run --out: --help's default None, docs/cli.md's ''",
+        "demo run --rate: --help's default 10.0, docs/cli.md's '`1.0`'",
+        "demo run --flips: --help's default False, docs/cli.md's 'on'",
+    ]
+
+
+def test_cli_page_states_every_default_as_help_has_it() -> None:
+    page = (DOCS / "cli.md").read_text(encoding="utf-8")
+    assert default_disagreements(typer.main.get_command(app), page) == []
