@@ -304,3 +304,19 @@ def test_the_default_checker_finds_a_default_the_page_misstates() -> None:
 def test_cli_page_states_every_default_as_help_has_it() -> None:
     page = (DOCS / "cli.md").read_text(encoding="utf-8")
     assert default_disagreements(typer.main.get_command(app), page) == []
+
+
+def test_http_api_page_lists_every_route_and_no_other() -> None:
+    """docs/http-api.md's endpoint table names every route the sidecar serves (``METHOD path``; HEAD, which only
+    answers a GET's status, on that GET's row) and no route it does not serve."""
+    from jitterguard.services.sidecar.routes import ROUTERS
+
+    page = (DOCS / "http-api.md").read_text(encoding="utf-8")
+    rows = {m.group(1): line for line in page.splitlines() if line.startswith("| `")
+            for m in re.finditer(r"`((?:GET|HEAD|PUT|PATCH|POST|DELETE) /[^`?]*)", line)}
+    served = {f"{method} {route.path}" for router in ROUTERS for route in router.routes
+              for method in getattr(route, "methods", None) or ()}
+    missing = sorted(s for s in served if s not in rows and not (
+        s.startswith("HEAD ") and "`HEAD`" in rows.get(s.replace("HEAD", "GET", 1), "")))
+    assert "GET /v1/state/{track_id}" in served and missing == []
+    assert sorted(set(rows) - served) == []
