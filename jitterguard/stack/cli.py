@@ -1113,7 +1113,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
 
     @app.command("logs")
     def logs_cmd(
-        service: Annotated[str, typer.Argument(help="router, replay, detector, tracker, classifier, sidecar, monitor, monitor-watch or supervisord.")],
+        service: Annotated[str, typer.Argument(help="router, replay, detector, tracker, classifier, sidecar, monitor, monitor-watch or supervisord; foxglove, record, ros2-in and ros2-out when up runs them.")],
         name: NameOpt = None,
         ns: NsOpt = "default",
         run_dir: RunDirOpt = None,

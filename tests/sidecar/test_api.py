@@ -20,10 +20,11 @@ from jitterguard.schemas.models import ClassifierConfig, ConfigReply, Heartbeat,
 from jitterguard.services.classifier.config import PRESETS
 
 AUTHORS_ALPHA = PRESETS["authors"]["alpha_per_class"]
+from jitterguard.services.sidecar.app import SidecarSettings, create_app
 from jitterguard.services.sidecar.client import ClassifierClient, ClassifierRejected
 from jitterguard.services.sidecar.core import StateView, TrackView
 
-from .stack import PAPER_STATISTIC, Stack, start_stack, wait_for
+from .stack import PAPER_STATISTIC, Stack, Uvicorn, start_stack, wait_for
 
 pytestmark = pytest.mark.integration
 
@@ -547,6 +548,25 @@ def test_a_sidecar_with_another_token_believes_no_reply_and_applies_nothing(stac
     assert stack.classifier.core.config == ClassifierConfig(**PAPER_STATISTIC)
 
 
+def test_a_sidecar_with_another_token_answers_state_reads_502_naming_the_token(stack: Stack) -> None:
+    """docs/http-api.md: a sidecar whose token differs from the classifier's answers 502 to reads as well as writes.
+    ``GET /v1/state`` had answered 503 "no state from the classifier yet" for ever, while every poll was refused as
+    unsigned: the operator was sent to wait for a classifier that was there all along."""
+    server = Uvicorn(create_app(SidecarSettings(zenoh=loopback_options(stack.ns, stack.zport),
+                                                api_token="not-the-token")))
+    try:
+        with httpx.Client(base_url=server.url, timeout=10.0) as c:
+            r = wait_for(lambda: (lambda r: r if r.status_code != 503 else None)(c.get("/v1/state")),
+                         "the sidecar's first state poll to be refused")
+            assert r.status_code == 502 and "JG_API_TOKEN differs from the sidecar's" in r.json()["detail"], r.text
+            track = c.get(f"/v1/state/{stack.track('parked').track_id}")
+            assert track.status_code == 502 and "JG_API_TOKEN" in track.json()["detail"], track.text
+    finally:
+        server.close()
+    with stack.http() as c:  # the stack's own sidecar, with the classifier's token, serves the state
+        assert c.get("/v1/state").status_code == 200
+
+
 @pytest.mark.parametrize(("method", "path"), [
     ("PATCH", "/v1/config"), ("PUT", "/v1/config"), ("POST", "/v1/config/preset/authors")])
 @pytest.mark.parametrize("auth", [None, "Bearer wrong-token", "Basic czNjcmV0LXRva2Vu", "Bearer s3cret-token-and-more"])
@@ -648,6 +668,23 @@ def _metric(text: str, name: str, labels: str = "") -> float:
     m = re.search(rf"^{re.escape(name)}{re.escape(labels)} (\S+)$", text, re.M)
     assert m, f"{name}{labels} not in /metrics"
     return float(m.group(1))
+
+
+def test_a_config_the_classifier_model_refuses_counts_invalid_by_put_as_by_patch(stack: Stack) -> None:
+    """``jitterguard_sidecar_config_writes_total{result="invalid"}`` counts a config refused as merged: a PATCH's
+    was counted, the same config PUT was not (it was validated before the write was counted)."""
+    def invalid(c: httpx.Client) -> float:
+        text = c.get("/metrics").text
+        return _metric(text, "jitterguard_sidecar_config_writes_total", '{result="invalid"}') \
+            if 'result="invalid"' in text else 0.0
+
+    with stack.http() as c:
+        before = invalid(c)
+        for method in ("PATCH", "PUT"):
+            r = c.request(method, "/v1/config", json={**PAPER_STATISTIC, "window_size": 4, "min_window": 5})
+            assert r.status_code == 422 and r.json()["detail"][0]["loc"][0] == "body", (method, r.text)
+        assert invalid(c) == before + 2
+        assert c.get("/v1/config").json() == DEFAULTS  # nothing applied
 
 
 def test_metrics(stack: Stack) -> None:

@@ -109,6 +109,7 @@ class ClassifierClient(Service):
         self._beats: dict[str, tuple[Heartbeat, float]] = {}  # every service's latest heartbeat, receive time
         self._rendered: RenderedState | None = None
         self._last_payload: bytes | None = None
+        self._poll_refusal: str | None = None  # why the last state poll's replies were all refused (unsigned)
         self._listeners: list[Listener] = []
         self._last_config_event: dict[str, Any] | None = None
         self._alive_key = keys.alive(self.ns, CLASSIFIER)
@@ -276,6 +277,12 @@ class ClassifierClient(Service):
         """The latest rendered snapshot (an immutable object; replaced, never mutated)."""
         return self._rendered
 
+    def poll_refusal(self) -> str | None:
+        """Why the last state poll took no reply although the classifier answered (no reply signed with this
+        sidecar's token: the tokens differ), or None. A state read with no state yet names it (502) instead of
+        "no state yet" (503), which had sent the operator to wait for a classifier that was there all along."""
+        return self._poll_refusal
+
     def add_listener(self, fn: Listener) -> None:
         """``fn(kind, data)`` for every change event; called on the poll or request thread, keep it short."""
         self._listeners.append(fn)
@@ -318,9 +325,14 @@ class ClassifierClient(Service):
         t0 = time.perf_counter()
         try:
             kind, data = self._query(keys.classifier_state(self.ns), None, self.state_timeout_s)
-        except (ClassifierUnavailable, ClassifierRejected):  # rejected: no reply signed with the token (counted)
+        except ClassifierUnavailable:
             self.metrics.poll_failures.inc()
             return self._rendered
+        except ClassifierRejected as exc:  # no reply signed with the token (counted rejected.classifier/state)
+            self.metrics.poll_failures.inc()
+            self._poll_refusal = str(exc)
+            return self._rendered
+        self._poll_refusal = None
         self.metrics.poll_seconds.observe(time.perf_counter() - t0)
         if kind != "ok":
             self.metrics.poll_failures.inc()

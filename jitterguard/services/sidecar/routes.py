@@ -56,6 +56,8 @@ CSP = ("default-src 'self'; script-src 'self' 'unsafe-inline'; style-src 'self' 
 
 E503 = {"model": ErrorBody, "description": "The classifier is unreachable or did not confirm; nothing applied"}
 E502 = {"model": ErrorBody, "description": "The classifier refused the config"}
+E502_STATE = {"model": ErrorBody, "description": "No state yet, and the classifier's replies are not signed with "
+                                                  "the sidecar's JG_API_TOKEN (the tokens differ)"}
 WRITE_ERRORS: dict[int | str, dict[str, Any]] = {
     503: E503, 502: E502,
     400: {"model": ErrorBody, "description": "The body is not readable text, or the Host header is foreign"},
@@ -181,13 +183,16 @@ def _live_state(c: ClassifierClient) -> tuple[RenderedState, dict[str, str]]:
         raise ClassifierUnavailable(f"classifier not ready: {c.readiness()['reason']}")
     st = c.rendered_state()
     if st is None:
+        refusal = c.poll_refusal()
+        if refusal is not None:
+            raise ClassifierRejected(f"no state from the classifier: {refusal}")
         raise ClassifierUnavailable("no state from the classifier yet")
     age_ms = max(0.0, (time.time_ns() - st.polled_at_ns) / 1e6)
     return st, {"X-Classifier-Seq": str(st.seq), "X-Classifier-Ready": str(c.readiness_flag()).lower(),
                 "X-State-Age-Ms": f"{age_ms:.1f}"}
 
 
-@state_routes.get("/v1/state", response_model=StateView, responses={503: E503},
+@state_routes.get("/v1/state", response_model=StateView, responses={503: E503, 502: E502_STATE},
            summary="Every track the classifier decided in its latest frame",
            description=("Served from a cache refreshed every poll period. Headers: `X-Classifier-Seq` (the frame), "
                         "`X-Classifier-Ready` (what `/readyz` says: false while the classifier's heartbeat is late — the "
@@ -206,7 +211,8 @@ async def get_state(c: Client, state: StateFilter = None, cls: ClassFilter = Non
 
 
 @state_routes.get("/v1/state/{track_id}", response_model=TrackView,
-           responses={404: {"model": ErrorBody, "description": "No such track in the latest frame"}, 503: E503},
+           responses={404: {"model": ErrorBody, "description": "No such track in the latest frame"}, 503: E503,
+                      502: E502_STATE},
            summary="One track by ID", dependencies=NO_QUERY)
 async def get_track(c: Client, track_id: Annotated[str, Path(pattern="^[0-9a-fA-F]{32}$",
                                                              description="32 hex digits")]) -> Response:
@@ -335,8 +341,11 @@ def get_config(c: Client, response: Response) -> dict[str, Any]:
             summary="Replace the whole config (omitted fields take their defaults)")
 def put_config(ctx: Ctx, c: Client, body: ConfigModel, tag: IfMatch,  # type: ignore[valid-type]
                response: Response) -> dict[str, Any]:
-    cfg = validate_config(body.model_dump(), touched=body.model_fields_set)  # type: ignore[attr-defined]
-    return _write(ctx, response, lambda: c.replace_config(cfg, if_match=tag))
+    def put() -> ConfigReply:  # validated inside the counted write: a refusal counts `invalid`, as a PATCH's does
+        cfg = validate_config(body.model_dump(), touched=body.model_fields_set)  # type: ignore[attr-defined]
+        return c.replace_config(cfg, if_match=tag)
+
+    return _write(ctx, response, put)
 
 
 @config_routes.patch("/v1/config", response_model=ConfigModel, dependencies=Writer, responses=WRITE_ERRORS,
