@@ -416,6 +416,16 @@ def _cli(args: list[str]):
         # beyond the installed onnx's newest: a traceback, then opset 18 written and exit 0
         (["export-onnx", "--out", "/tmp/x", "--opset", "99", "--check-scans", "0"], "--opset: must be >= 17 and <= "),
         (["export-onnx", "--out", "/tmp/x", "--preset", "huge"], "--preset"),
+        # a tolerance of inf had accepted every difference (the check could not fail), nan had been called "less
+        # than 0"; each refused at parsing, before the weights are read (those are missing here)
+        (["export-onnx", "--out", "/tmp/x", "--weights", "/nonexistent", "--tolerance", "inf"],
+         "--tolerance: 'inf' is not a finite number"),
+        (["export-onnx", "--out", "/tmp/x", "--weights", "/nonexistent", "--tolerance", "nan"],
+         "--tolerance: 'nan' is not a number"),
+        (["export-onnx", "--out", "/tmp/x", "--weights", "/nonexistent", "--tolerance", "-1e-4"],
+         "--tolerance: -0.0001 is below the minimum 0"),
+        (["export-onnx", "--out", "/tmp/x", "--weights", "/nonexistent", "--yaw-tolerance", "inf"],
+         "--yaw-tolerance: 'inf' is not a finite number"),
         (["detector", "--backend", "tensorrt"], "--backend"),
         (["detector", "--backend", "onnxruntime", "--onnx", "/nonexistent/dir"], "--onnx"),
         (["detector", "--onnx", "/tmp"], "--onnx"),

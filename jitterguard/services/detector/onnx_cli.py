@@ -21,7 +21,7 @@ from typing import Annotated, Any
 
 import typer
 
-from ...cli_common import fail, out_dir
+from ...cli_common import fail, float_option, out_dir
 from .cli import ThreadsOpt, WeightsOpt, _one_line, passive_openmp
 from .config import PRESETS
 
@@ -177,9 +177,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         opset: Annotated[int, typer.Option("--opset", help="ONNX opset: 17 up to the newest the installed onnx"
                                            " package defines (onnx.defs.onnx_opset_version()).")] = 18,
         check_scans: Annotated[int, typer.Option("--check-scans", min=0, max=100, help="Synthetic scans to compare ONNX Runtime with torch on (0: skip).")] = 3,
-        tolerance: Annotated[float, typer.Option("--tolerance", min=0.0, help="Largest accepted |onnxruntime - torch| on the decoded boxes (but yaw), scores and log-variances (the raw head maps are held to a fixed"
+        tolerance: Annotated[float, float_option("--tolerance", min=0.0, help="Largest accepted |onnxruntime - torch| on the decoded boxes (but yaw), scores and log-variances (the raw head maps are held to a fixed"
                                                  f" {MAP_TOLERANCE:g}).")] = 1e-4,
-        yaw_tolerance: Annotated[float, typer.Option("--yaw-tolerance", min=0.0, help="Largest accepted yaw difference, rad (atan2 of the rot head amplifies float32 noise where |(sin, cos)| is small).")] = 1e-3,
+        yaw_tolerance: Annotated[float, float_option("--yaw-tolerance", min=0.0, help="Largest accepted yaw difference, rad (atan2 of the rot head amplifies float32 noise where |(sin, cos)| is small).")] = 1e-3,
         threads: ThreadsOpt = None,
     ) -> None:
         """Export the detector with its variance heads to ONNX (dynamic number of pillars) plus detector.json."""
