@@ -14,7 +14,7 @@ from typing import Annotated
 
 import typer
 
-from ..cli_common import ProgressOpt, check_seed, fail, out_dir, parse_float, parse_int, parse_seeds, progress_on
+from ..cli_common import ProgressOpt, check_seed, fail, float_option, out_dir, parse_float, parse_int, parse_seeds, progress_on
 from ..services.detector.cli import ThreadsOpt, _one_line, passive_openmp
 from ..services.detector.config import PRESETS
 from ..services.replay.frames import SourceError
@@ -74,11 +74,11 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
     @bench_app.command("classifier")
     def bench_classifier_cmd(
         as_json: Annotated[bool, typer.Option("--json", help="Print JSON (the only format).")] = True,
-        duration: Annotated[float, typer.Option("--duration", min=1.0, max=MAX_BENCH_S,
+        duration: Annotated[float, float_option("--duration", min=1.0, max=MAX_BENCH_S,
                                                 help="Service run, seconds.")] = 60.0,
         tracks: Annotated[int, typer.Option("--tracks", min=1, help="Tracks in every frame (at most the"
                                             " classifier's limits.max_objects, 1000).")] = 200,
-        rate: Annotated[float, typer.Option("--rate", min=1.0, max=1000.0, help="Frames per second.")] = 20.0,
+        rate: Annotated[float, float_option("--rate", min=1.0, max=1000.0, help="Frames per second.")] = 20.0,
         skip_service: Annotated[bool, typer.Option("--core-only", help="Skip the 60 s service run.")] = False,
     ) -> None:
         """Time the core (10/100/1000 tracks), the per-frame work in-process and the live service over Zenoh;
@@ -268,8 +268,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
     def pipeline_cmd(
         objects: Annotated[int, typer.Option("--objects", min=1, help="Detections per frame (at most the services'"
                                              " limits.max_objects, 1000 by default).")] = 200,
-        rate: Annotated[float, typer.Option("--rate", min=0.1, max=1000.0, help="Frames per second.")] = 20.0,
-        duration: Annotated[float, typer.Option("--duration", min=1.0, max=MAX_BENCH_S,
+        rate: Annotated[float, float_option("--rate", min=0.1, max=1000.0, help="Frames per second.")] = 20.0,
+        duration: Annotated[float, float_option("--duration", min=1.0, max=MAX_BENCH_S,
                                                 help="Seconds of load.")] = 60.0,
         seed: Annotated[int, typer.Option("--seed")] = 0,
         churn: Annotated[int, typer.Option("--churn", min=0, help="Objects moved to a new place each frame, so N "

@@ -49,7 +49,7 @@ def calibrate_detections(payloads: Iterable[bytes], config: "ClassifierConfig",
                             cfg.window_size)
     trk = TrackerCore(default_config(), _id_factory())
     adapter = ClassifierAdapter(cfg, limits=trk.config.limits, calibration=cal)
-    frames = observations = 0
+    frames = detections = observations = 0
     for payload in payloads:
         det = read_detected_objects(payload, trk.config.limits)
         frame = detection_frame(det)
@@ -58,12 +58,13 @@ def calibrate_detections(payloads: Iterable[bytes], config: "ClassifierConfig",
         except FrameRejected:
             continue
         frames += 1
+        detections += len(frame.x)
         obs = [p for _, p in observation_payloads(det, frame, result)]
         observations += len(obs)
         _classify(adapter, obs, tracked_payload(det, frame, result), frame.stamp_ns * 1e-9)
     adapter.core.reset()
     cal.refit()
-    return cal, {"frames": frames, "observations": observations, **cal.counts}
+    return cal, {"frames": frames, "detections": detections, "observations": observations, **cal.counts}
 
 
 def recording_detections(source: Any, detector: Any, start: int, limit: int | None,
@@ -199,6 +200,13 @@ def calibrate_command(
         cal, seen = calibrate_detections(msgs, cfg)
     if seen["frames"] == 0 and errors:
         fail(f"{recording}: none of its {len(errors)} frame(s) read; first: {errors[0]}")
+    # nothing to track: the advice below ("use a longer recording") would not help either
+    if seen["frames"] and seen["detections"] == 0:
+        fail(f"{recording}: no detections in any of its {seen['frames']} frames (empty scans, or nothing the"
+             " detector finds in them): no tracks to calibrate from")
+    if seen["detections"] and seen["observations"] == 0:
+        fail(f"{recording}: its {seen['detections']} detections in {seen['frames']} frames formed no track (a track"
+             " takes an object seen in several frames): no tracks to calibrate from; use a longer recording")
     if seen["blocks"] == 0 and seen["blocks_fast"]:  # "use a longer recording" would not help
         from ..services.classifier.calibration import MAX_BLOCK_SPEED
 

@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from ..files import save_figure
 from .metrics import alpha_sweep, average_precision, ghost_rows, pr_curve, scored_rows
 from .pipeline import NOTHING_LABELLED, Records
 
@@ -77,7 +78,7 @@ def plot_speed_vs_z(rec: Records, path: Path, mode: str = "z_test") -> None:
         ax.set_title(g)
         ax.legend(fontsize=7, loc="upper left")
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
+    save_figure(fig, path, dpi=90)
     plt.close(fig)
 
 
@@ -107,7 +108,7 @@ def plot_pr(rec: Records, path: Path, mode: str = "z_test") -> None:
         ax.set_ylabel("precision")
         ax.set_title(g)
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
+    save_figure(fig, path, dpi=90)
     plt.close(fig)
 
 
@@ -131,7 +132,7 @@ def plot_alpha_sweep(rec: Records, path: Path) -> dict[str, Any]:
         ax.set_title(g)
         ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
+    save_figure(fig, path, dpi=90)
     plt.close(fig)
     return sweeps
 
@@ -173,7 +174,7 @@ def plot_calibration(cal: dict[str, Any] | None, path: Path) -> bool:
     np.atleast_1d(axes)[0].set_ylim(min(*every, 1.0) / 1.6, max(*every, 1.0) * 1.6)
     np.atleast_1d(axes)[0].set_ylabel("true / reported variance (blocks on top)")
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
+    save_figure(fig, path, dpi=90)
     plt.close(fig)
     return True
 

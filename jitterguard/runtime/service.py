@@ -33,6 +33,7 @@ from ..schemas import DecodeError, LimitExceeded, decode, encode, keys
 from ..schemas.models import Heartbeat
 from . import memtrace
 from .envvars import HANG_GRACE_S, watchdog_period  # there, not here: the stack's Zenoh-free monitor-watch reads it too
+from .exit_codes import EXIT_BAD_INPUT, EXIT_NO_PROGRESS  # noqa: F401  (EXIT_BAD_INPUT re-exported; there for the stack)
 from .keyed_publishers import KeyedPublishers
 from .progress import STALLED, Health, ProgressMonitor, ProgressPolicy
 from .sd_notify import Notifier
@@ -47,13 +48,6 @@ REJECT_LOG_QUIET_S = 5.0
 REJECT_LOG_SUMMARY_S = 60.0
 """While a burst of one kind goes on, one line at least this often (with how many were not logged)."""
 MAX_LOG_KINDS = 64
-EXIT_NO_PROGRESS = 70
-"""Exit status of a service the watchdog stopped (EX_SOFTWARE): the supervisor restarts it."""
-EXIT_BAD_INPUT = 65
-"""Exit status of a program told to stop on bad input (EX_DATAERR: ``replay --on-error stop`` at an unreadable
-frame): a deliberate stop that a supervisor must not restart — the same input would stop it again. The stack's
-replay program lists it in supervisord's ``exitcodes`` (``autorestart=unexpected``); the systemd unit in
-``RestartPreventExitStatus``."""
 SHUTDOWN_LIMIT_S = 20.0
 """A watched service's shutdown taking longer than this is hung: faulthandler dumps the stacks and exits."""
 DRAIN_S = 0.2

@@ -29,7 +29,7 @@ from typing import Annotated, Any, NoReturn
 
 import typer
 
-from ..cli_common import NsOpt, check_seed, fail, hold_lock, new_dir, out_file
+from ..cli_common import NsOpt, check_seed, fail, float_option, hold_lock, new_dir, out_file
 from ..runtime import ZenohOptions, build_config, free_tcp_port, open_session
 from ..runtime.service import EXIT_BAD_INPUT
 from ..runtime.signals import stop_on_signals
@@ -645,7 +645,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         port: Annotated[int | None, typer.Option("--port", min=0, max=65535, help=f"Sidecar port (default {StackSpec.sidecar_port}; 0: a free one, printed; not with --no-sidecar).")] = None,
         run_dir: RunDirOpt = None,
         no_sidecar: Annotated[bool, typer.Option("--no-sidecar", help="Leave the HTTP sidecar out.")] = False,
-        duration: Annotated[float | None, typer.Option("--duration", min=1.0, help="Stop after this many seconds (foreground).")] = None,
+        duration: Annotated[float | None, float_option("--duration", min=1.0, help="Stop after this many seconds (foreground).")] = None,
         foxglove: Annotated[bool, typer.Option("--foxglove", help="Serve the pipeline to Foxglove (ws://127.0.0.1:PORT).")] = False,
         foxglove_port: Annotated[int, typer.Option("--foxglove-port", min=0, max=65535, help="The Foxglove WebSocket port (0: a free one, printed).")] = StackSpec.foxglove_port,
         record_mcap: Annotated[str | None, typer.Option("--record-mcap", help="Record the Foxglove channels to this MCAP file.")] = None,
@@ -1062,7 +1062,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         ns: NsOpt = "default",
         run_dir: RunDirOpt = None,
         as_json: Annotated[bool, typer.Option("--json", help="Machine-readable output.")] = False,
-        listen: Annotated[float, typer.Option("--listen-s", min=0.1, help="Seconds to listen for heartbeats.")] = 1.5,
+        listen: Annotated[float, float_option("--listen-s", min=0.1, help="Seconds to listen for heartbeats.")] = 1.5,
     ) -> None:
         """Per service: supervisor state, pid, uptime, liveliness on Zenoh, last frame seq (and health).
 

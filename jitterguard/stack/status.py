@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from ..runtime.service import EXIT_BAD_INPUT
+from ..runtime.exit_codes import EXIT_BAD_INPUT
 from .control import ProcessInfo
 from .supervisor import StackSpec
 

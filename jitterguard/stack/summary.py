@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from ..files import write_atomically
-from ..runtime.service import EXIT_BAD_INPUT
+from ..runtime.exit_codes import EXIT_BAD_INPUT
 
 SUMMARY_FILE = "summary.json"
 GAUGE_PREFIXES = ("now.",)

@@ -16,7 +16,7 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..runtime.service import EXIT_BAD_INPUT
+from ..runtime.exit_codes import EXIT_BAD_INPUT
 from ..services.classifier.config_writes import api_token_from_env
 from .validate import check_text, supervisor_escape
 

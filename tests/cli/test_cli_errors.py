@@ -192,9 +192,11 @@ def test_a_folder_where_an_output_file_goes_is_refused_before_any_work(args, blo
     (["bench", "track-survival", "--scenario", "nosuch", "--duration", "1"], "unknown scenario 'nosuch' (have: "),
     # no upper bound: tracebacks (LimitExceeded, int(inf), numpy's MemoryError) after seconds of work
     (["bench", "classifier", "--tracks", "1500", "--duration", "1"], "--tracks 1500 exceeds the classifier's"),
-    (["bench", "classifier", "--rate", "inf", "--duration", "1"], "'--rate': Input should be less than or equal"),
-    (["bench", "classifier", "--duration", "inf"], "'--duration': Input should be less than or equal to 3600"),
-    (["bench", "pipeline", "--duration", "inf"], "'--duration': Input should be less than or equal to 3600"),
+    (["bench", "classifier", "--rate", "inf", "--duration", "1"], "--rate: 'inf' is not a finite number"),
+    (["bench", "classifier", "--duration", "inf"], "--duration: 'inf' is not a finite number"),
+    (["bench", "pipeline", "--duration", "inf"], "--duration: 'inf' is not a finite number"),
+    (["bench", "classifier", "--duration", "3601"], "--duration: 3601 is outside 1-3600"),
+    (["status", "--listen-s", "0.01"], "--listen-s: 0.01 is below the minimum 0.1"),
     (["bench", "replay", "--points", "10000000000", "--repeat", "1"], "--points: 10000000000 is more than"),
     (["bench", "replay", "--frames", "99999999999", "--repeat", "1"], "--frames: 99999999999 is more than"),
     # folders and files made only when the work was done (or by a program of a stack already started)
@@ -326,3 +328,45 @@ def test_a_run_refused_after_its_folder_was_made_leaves_no_empty_folder(args, tm
         assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
     assert not (tmp_path / "new").exists()  # both the folder and the parent it made
     assert kept.is_dir()  # a folder that was there before stays
+
+
+def _ranged_float_flags() -> list[tuple[list[str], str]]:
+    """(command path, flag) of every float flag of the app declared with a minimum or a maximum."""
+    import typer
+
+    from jitterguard.cli import app
+
+    found: list[tuple[list[str], str]] = []
+
+    def walk(cmd, path: list[str]) -> None:
+        if hasattr(cmd, "commands"):
+            for name, sub in cmd.commands.items():
+                walk(sub, [*path, name])
+            return
+        for param in cmd.params:
+            desc = getattr(param, "type_descriptor", None)
+            if desc is not None and desc.is_ranged and desc.ranged_type_name == "float":
+                found.append((path, param.opts[0]))
+
+    walk(typer.main.get_command(app), [])
+    return found
+
+
+def test_nan_in_a_ranged_float_flag_is_called_not_a_number(capsys):
+    """``--rate nan`` had been refused as breaking the other bound ("Input should be less than or equal to 1000"),
+    and ``--tolerance inf`` (no maximum) accepted: every ranged float flag, found in the app, names itself and says
+    what is wrong, one line, exit 2, before any work."""
+    from jitterguard.cli import main
+
+    flags = _ranged_float_flags()
+    assert {("bench classifier", "--rate"), ("up", "--duration"), ("export-onnx", "--tolerance")} <= {
+        (" ".join(path), flag) for path, flag in flags}, flags
+    wrong = []
+    for path, flag in flags:
+        for value, why in (("nan", "is not a number"), ("-inf", "is not a finite number")):
+            with pytest.raises(SystemExit) as exc:
+                main([*path, flag, value])
+            err = capsys.readouterr().err
+            if exc.value.code != 2 or err != f"jitterguard: error: {flag}: {value!r} {why}\n":
+                wrong.append((path, flag, exc.value.code, err))
+    assert not wrong, wrong

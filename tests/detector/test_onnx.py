@@ -416,6 +416,16 @@ def _cli(args: list[str]):
         # beyond the installed onnx's newest: a traceback, then opset 18 written and exit 0
         (["export-onnx", "--out", "/tmp/x", "--opset", "99", "--check-scans", "0"], "--opset: must be >= 17 and <= "),
         (["export-onnx", "--out", "/tmp/x", "--preset", "huge"], "--preset"),
+        # a tolerance of inf had accepted every difference (the check could not fail), nan had been called "less
+        # than 0"; each refused at parsing, before the weights are read (those are missing here)
+        (["export-onnx", "--out", "/tmp/x", "--weights", "/nonexistent", "--tolerance", "inf"],
+         "--tolerance: 'inf' is not a finite number"),
+        (["export-onnx", "--out", "/tmp/x", "--weights", "/nonexistent", "--tolerance", "nan"],
+         "--tolerance: 'nan' is not a number"),
+        (["export-onnx", "--out", "/tmp/x", "--weights", "/nonexistent", "--tolerance", "-1e-4"],
+         "--tolerance: -0.0001 is below the minimum 0"),
+        (["export-onnx", "--out", "/tmp/x", "--weights", "/nonexistent", "--yaw-tolerance", "inf"],
+         "--yaw-tolerance: 'inf' is not a finite number"),
         (["detector", "--backend", "tensorrt"], "--backend"),
         (["detector", "--backend", "onnxruntime", "--onnx", "/nonexistent/dir"], "--onnx"),
         (["detector", "--onnx", "/tmp"], "--onnx"),
@@ -502,6 +512,71 @@ def test_the_onnxruntime_backend_without_its_packages_is_refused_before_it_start
     assert len(err) == 1 and needle in err[0], err
     key, why = params_refusal(DetectorParams(backend="onnxruntime"))  # as a parameter file gives it
     assert key == "backend" and "pip install 'jitterguard[onnx]'" in why
+
+
+_EXPORT_WRITES_1MB_AT_MOST = """
+import resource, signal, sys
+import onnx, onnxscript, torch  # noqa: F401  (imported, caches written, before the limit)
+from jitterguard.cli import main
+
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit fails (EFBIG) instead of killing us
+resource.setrlimit(resource.RLIMIT_FSIZE, (1 << 20, resource.getrlimit(resource.RLIMIT_FSIZE)[1]))
+main(["export-onnx", "--out", sys.argv[1], "--layout", "autoware", "--check-scans", "0", "--threads", "1"])
+"""
+
+
+def _tree(folder: Path) -> dict[str, str]:
+    """Every file of ``folder`` by name, as its SHA-256."""
+    import hashlib
+
+    return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.iterdir())}
+
+
+def test_an_export_failing_midway_leaves_the_earlier_export_as_it_was(single_dir, tmp_path) -> None:
+    """An autoware export over an earlier single-file export, the disk refusing writes past 1 MiB (a file-size
+    limit: a full disk, real even for root) once the small encoder graph is written and the 2.4 MB head graph is
+    half-way: exit 1 in one line, the earlier export byte for byte and alone in its folder, no half-written folder
+    beside it. The export had been written into the folder itself, leaving the new encoder and a truncated head graph
+    next to the old graph and detector.json. A whole export then replaces the folder, keeping its mode."""
+    import os
+    import subprocess
+    import sys
+
+    out = tmp_path / "onnx"
+    shutil.copytree(single_dir, out)
+    out.chmod(0o750)
+    before = _tree(out)
+    done = subprocess.run([sys.executable, "-c", _EXPORT_WRITES_1MB_AT_MOST, str(out)], capture_output=True,
+                          text=True, timeout=300)
+    err = done.stderr.strip().splitlines()
+    assert done.returncode == 1, done.stderr
+    assert err[-1].startswith("jitterguard: error: ") and "File too large" in err[-1], err
+    assert _tree(out) == before
+    assert os.listdir(tmp_path) == ["onnx"]
+    assert load_onnx_detector(out, threads=1).config.name == "lite"  # still a loadable export
+
+    torch_det = Detector.load(None, "lite", threads=1)
+    res = export_onnx(torch_det.model, out, layout="autoware", recalibration=torch_det.recalibration)
+    assert sorted(os.listdir(out)) == ["detector.json", "pts_backbone_neck_head.onnx", "pts_voxel_encoder.onnx"]
+    assert res.out_dir == out and all(p.parent == out for p in (*res.files, res.manifest_path))
+    assert out.stat().st_mode & 0o777 == 0o750 and os.listdir(tmp_path) == ["onnx"]
+    assert read_manifest(out)["layout"] == "autoware"
+
+
+def test_an_export_into_a_folder_holding_more_than_an_export_is_refused(tmp_path, capsys) -> None:
+    """The export replaces the whole --out folder: one holding anything else (``--out .``) is refused before the
+    export, exit 2 in one line, and left as it was."""
+    from jitterguard.cli import main
+
+    (tmp_path / "notes.txt").write_text("keep me")
+    (tmp_path / "detector.json").write_text("{}")
+    with pytest.raises(SystemExit) as exc:
+        main(["export-onnx", "--out", str(tmp_path), "--check-scans", "0", "--threads", "1"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"jitterguard: error: --out: {tmp_path} holds more than an earlier"
+                                               " export (notes.txt)"), err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["detector.json", "notes.txt"]
 
 
 def test_an_export_that_fails_its_check_cannot_be_loaded(tmp_path) -> None:

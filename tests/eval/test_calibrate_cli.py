@@ -134,6 +134,23 @@ def test_calibrate_says_why_it_got_no_frame(tmp_path: Path, capsys) -> None:
     assert not (tmp_path / "c.yaml").exists()
 
 
+def test_a_recording_with_nothing_to_track_says_so(tmp_path: Path, capsys) -> None:
+    """A folder of empty scans (0-byte .bin files) gives the detector nothing, one frame of detections no track: the
+    refusal had been "no track stood still long enough ... use a longer recording" for both, as if tracks had been
+    there and moving. Now it says what was missing (a longer recording of empty scans would not help)."""
+    empty = tmp_path / "empty scans"
+    empty.mkdir()
+    for i in range(5):
+        (empty / f"{i:06d}.bin").write_bytes(b"")
+    line = _calibrate_fails([str(empty), "--out", str(tmp_path / "c.yaml"), "--threads", "1"], capsys)
+    assert line.startswith(f"jitterguard: error: {empty}: no detections in any of its 5 frames"), line
+    assert "no tracks to calibrate from" in line and "longer recording" not in line, line
+    line = _calibrate_fails(["synthetic:mixed", "--level", "detections", "--duration", "0.1",
+                             "--out", str(tmp_path / "c.yaml")], capsys)
+    assert "detections in 1 frames formed no track" in line and "no tracks to calibrate from" in line, line
+    assert not (tmp_path / "c.yaml").exists()
+
+
 def test_a_recording_of_moving_objects_only_is_refused_for_what_it_lacks(tmp_path: Path, capsys) -> None:
     """Two objects driving at 3 m/s for 8 s: every window the tracks fill is too fast to pool. The refusal had said
     "no track stood still long enough ... use a longer recording", which no length of such a recording helps."""

@@ -79,3 +79,58 @@ def test_the_calibration_figure_names_its_bars_and_keeps_them_in_view(tmp_path):
     frame = ((img.sum(axis=2) < 150).sum(axis=1) > img.shape[1] * 0.3)  # the axes' top and bottom edges
     top_edge = int(np.flatnonzero(frame)[0])
     assert int(np.flatnonzero(orange)[0]) > top_edge + 20  # the bars end well below the axes' top
+
+
+_WRITE_FAILS_MIDWAY = """
+import resource, signal, sys
+sys.path.insert(0, sys.argv[2])
+from test_eval_plots import records
+from jitterguard.eval.report import plot_pr
+
+plot_pr(records(["vehicle"]), sys.argv[1] + ".warm.png")  # imports, fonts and caches before the limit
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit fails (EFBIG) instead of killing us
+resource.setrlimit(resource.RLIMIT_FSIZE, (4096, resource.getrlimit(resource.RLIMIT_FSIZE)[1]))
+try:
+    plot_pr(records(["vehicle", "pedestrian"]), sys.argv[1])
+except OSError:
+    sys.exit(3)
+"""
+
+
+def test_a_figure_whose_write_fails_midway_leaves_the_earlier_picture_whole(tmp_path):
+    """A figure written over an earlier one, the disk refusing the write after 4 KiB (a file-size limit: as good
+    as a full disk, and real even for root): the write fails and the earlier PNG is there byte for byte, with no
+    temporary file beside it. ``savefig`` onto the path had truncated the old picture first and left 4 KiB of
+    the new one."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    out = tmp_path / "pr.png"
+    plot_pr(records(["vehicle"]), out)
+    before = out.read_bytes()
+    assert len(before) > 4096
+    done = subprocess.run([sys.executable, "-c", _WRITE_FAILS_MIDWAY, str(out), str(Path(__file__).parent)],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 3, done.stderr  # the write did fail (OSError), and said so
+    assert out.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["pr.png", "pr.png.warm.png"]
+
+
+def test_every_figure_of_the_package_is_saved_through_save_figure():
+    """No module of the package calls ``.savefig(`` but :mod:`jitterguard.files` (whose ``save_figure`` renders
+    into memory and renames a whole file into place): an AST walk, so a comment or docstring naming it is no hit."""
+    import ast
+    from pathlib import Path
+
+    import jitterguard
+
+    root = Path(jitterguard.__file__).parent
+    direct = []
+    for py in sorted(root.rglob("*.py")):
+        if py == root / "files.py":
+            continue
+        for node in ast.walk(ast.parse(py.read_text(), filename=str(py))):
+            if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "savefig":
+                direct.append(f"{py.relative_to(root)}:{node.lineno}")
+    assert not direct, direct

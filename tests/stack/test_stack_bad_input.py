@@ -114,3 +114,17 @@ def test_up_with_on_error_stop_and_an_early_bad_frame_says_so_and_restarts_nothi
         if Supervisor(rd).running():
             jg("down", "--name", "bad", cwd=tmp_path, env=env)
     assert not Supervisor(rd).running()
+
+
+@pytest.mark.parametrize("module", ["jitterguard.stack.summary", "jitterguard.stack.status",
+                                    "jitterguard.stack.supervisor"])
+def test_the_stacks_readers_of_the_exit_status_import_no_zenoh(module: str):
+    """summary, status and supervisor need the number 65, not the service runtime: taken from
+    :mod:`jitterguard.runtime.service` it had brought Zenoh and pydantic along. The runtime still offers the name,
+    the same number."""
+    from jitterguard.runtime import exit_codes
+
+    code = f"import sys, {module}; print('zenoh' in sys.modules, 'pydantic' in sys.modules)"
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert res.stdout.split() == ["False", "False"], res.stdout + res.stderr
+    assert EXIT_BAD_INPUT == exit_codes.EXIT_BAD_INPUT == 65

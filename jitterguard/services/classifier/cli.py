@@ -19,6 +19,7 @@ from ...cli_common import (
     ZenohConfigOpt,
     check_endpoints,
     fail,
+    float_option,
     try_write,
     zenoh_options,
 )
@@ -118,7 +119,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         connect: ConnectOpt = None,
         listen: ListenOpt = None,
         frames: Annotated[int, typer.Option("--frames", min=1, help="Frames per loop.")] = 200,
-        rate: Annotated[float, typer.Option("--rate", min=0.1, max=1000.0, help="Frames per second.")] = 10.0,
+        rate: Annotated[float, float_option("--rate", min=0.1, max=1000.0, help="Frames per second.")] = 10.0,
         loop: Annotated[bool, typer.Option("--loop/--no-loop", help="Start over (new track IDs) at the end.")] = False,
         seed: Annotated[int, typer.Option("--seed")] = 0,
         log_level: LogLevelOpt = "INFO",

@@ -11,7 +11,7 @@ from typing import Annotated
 import typer
 
 from ...cli_common import (ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ParamFileOpt, SensorHeightOpt, ZenohConfigOpt, fail,
-                           SensorTiltOpt, sensor_height_option, sensor_tilt_option, zenoh_options)
+                           SensorTiltOpt, float_option, sensor_height_option, sensor_tilt_option, zenoh_options)
 from ...config import ConfigError, load
 from .config import PRESETS, DetectorParams, declared_height, measures_tilt, params_refusal
 
@@ -87,7 +87,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         threads: ThreadsOpt = None,
         score_threshold: Annotated[
             float | None,
-            typer.Option("--score-threshold", min=0.0, max=1.0,
+            float_option("--score-threshold", min=0.0, max=1.0,
                          help="Keep detections scoring above this (default: the weights' config)."),
         ] = None,
         twist: Annotated[

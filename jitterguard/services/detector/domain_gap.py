@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from ...files import save_figure
 from .augment import points_in_boxes
 from .config import CLASS_NAMES, Sample
 
@@ -141,5 +142,5 @@ def comparison_plot(stats: dict[str, dict[str, Any]], path: str) -> None:
         a.grid(alpha=0.3)
         a.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
+    save_figure(fig, path, dpi=90)
     plt.close(fig)

@@ -21,7 +21,7 @@ from typing import Annotated, Any
 
 import typer
 
-from ...cli_common import fail, out_dir
+from ...cli_common import fail, float_option, out_dir
 from .cli import ThreadsOpt, WeightsOpt, _one_line, passive_openmp
 from .config import PRESETS
 
@@ -148,11 +148,27 @@ def export_ok(check: dict[str, Any], tolerance: float, yaw_tolerance: float) -> 
             and max(check["head_maps"].values()) <= MAP_TOLERANCE and err["yaw"] <= yaw_tolerance)
 
 
+def _replaceable(flag: str, out: str) -> None:
+    """``out`` can be replaced by a new export (exit 2 naming ``flag`` if not): the export is written into a new
+    folder beside it and swapped in whole, so ``out`` must hold nothing but an earlier export (the swap would delete
+    the rest) and its parent must be writable."""
+    from .onnx_export import foreign_entries
+
+    foreign = foreign_entries(out)
+    if foreign:
+        fail(f"{flag}: {out} holds more than an earlier export ({', '.join(foreign[:5])}"
+             f"{', ...' if len(foreign) > 5 else ''}), and an export replaces the whole folder: give a new or empty one")
+    parent = Path(os.path.realpath(out)).parent
+    if not os.access(parent, os.W_OK | os.X_OK):
+        fail(f"{flag}: cannot write into {parent}, where the export is written before it replaces {out}")
+
+
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:
     @app.command("export-onnx")
     def export_onnx_cmd(
-        out: Annotated[str, typer.Option("--out", help="Folder to write the ONNX file(s) and detector.json into (an earlier"
-                                         " export there is replaced, the other layout's graphs removed).")],
+        out: Annotated[str, typer.Option("--out", help="Folder to write the ONNX file(s) and detector.json into: new, empty"
+                                         " or an earlier export's, replaced whole once the new export is written (a"
+                                         " failed or stopped export leaves the earlier one as it was).")],
         preset: Annotated[str | None, typer.Option("--preset", help=f"Architecture preset: {', '.join(PRESETS)}"
                                                    " (default lite): its shipped weights; with --weights only the"
                                                    " weights' own architecture.")] = None,
@@ -161,9 +177,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         opset: Annotated[int, typer.Option("--opset", help="ONNX opset: 17 up to the newest the installed onnx"
                                            " package defines (onnx.defs.onnx_opset_version()).")] = 18,
         check_scans: Annotated[int, typer.Option("--check-scans", min=0, max=100, help="Synthetic scans to compare ONNX Runtime with torch on (0: skip).")] = 3,
-        tolerance: Annotated[float, typer.Option("--tolerance", min=0.0, help="Largest accepted |onnxruntime - torch| on the decoded boxes (but yaw), scores and log-variances (the raw head maps are held to a fixed"
+        tolerance: Annotated[float, float_option("--tolerance", min=0.0, help="Largest accepted |onnxruntime - torch| on the decoded boxes (but yaw), scores and log-variances (the raw head maps are held to a fixed"
                                                  f" {MAP_TOLERANCE:g}).")] = 1e-4,
-        yaw_tolerance: Annotated[float, typer.Option("--yaw-tolerance", min=0.0, help="Largest accepted yaw difference, rad (atan2 of the rot head amplifies float32 noise where |(sin, cos)| is small).")] = 1e-3,
+        yaw_tolerance: Annotated[float, float_option("--yaw-tolerance", min=0.0, help="Largest accepted yaw difference, rad (atan2 of the rot head amplifies float32 noise where |(sin, cos)| is small).")] = 1e-3,
         threads: ThreadsOpt = None,
     ) -> None:
         """Export the detector with its variance heads to ONNX (dynamic number of pillars) plus detector.json."""
@@ -199,11 +215,12 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             fail(f"--weights: the model takes stacked sweeps ({det.config.num_point_features} point fields), which"
                  " is not exported to ONNX yet: export the single-sweep weights (x, y, z, intensity)")
         out_dir("--out", out)  # after the flags and weights are checked, before the export
+        _replaceable("--out", out)
         source = weights or (str(shipped_weights(preset)) if shipped_weights(preset).is_file() else "random-init")
         meta = {**det.meta, "preset": det.config.name, "weights": Path(source).name if source != "random-init" else source}
         try:
             res = export_onnx(det.model, out, layout=layout, opset=opset, recalibration=det.recalibration, meta=meta)
-        except ExportError as exc:
+        except (ExportError, OSError) as exc:  # OSError: the new folder not written or not swapped in
             print(f"jitterguard: error: {_one_line(exc, 600)}", file=sys.stderr)
             raise typer.Exit(1) from None
         report: dict[str, Any] = {"out": str(res.out_dir), "files": [p.name for p in (*res.files, res.manifest_path)],

@@ -27,10 +27,15 @@ runs, so the detector's other commands work without them.
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import io
 import json
 import logging
+import os
+import secrets
+import shutil
+import stat
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -55,6 +60,8 @@ SINGLE_FILE = "detector.onnx"
 ENCODER_FILE = "pts_voxel_encoder.onnx"
 HEAD_FILE = "pts_backbone_neck_head.onnx"
 LAYOUTS = ("single", "autoware")
+EXPORT_FILES = (SINGLE_FILE, ENCODER_FILE, HEAD_FILE, MANIFEST)
+"""Every name an export writes: a folder holding only these (or nothing) is an earlier export, replaced whole."""
 DEFAULT_OPSET = 18
 MIN_OPSET = 17
 SINGLE_INPUTS = ("points", "pillar", "num_points", "coords")
@@ -363,7 +370,10 @@ def head_widths(config: DetectorConfig) -> dict[str, int]:
 def export_onnx(net: CenterPointNet, out_dir: str | Path, *, layout: str = "single", opset: int = DEFAULT_OPSET,
                 recalibration: Recalibration | tuple[float, float] | None = None,
                 meta: dict[str, Any] | None = None) -> ExportResult:
-    """Write ``net`` in ``layout`` plus ``detector.json`` into ``out_dir`` (created). Raises :class:`ExportError`."""
+    """Write ``net`` in ``layout`` plus ``detector.json`` into ``out_dir`` (created): into a new folder beside it,
+    which replaces ``out_dir`` whole once written, so an earlier export there (the other layout's graphs included)
+    stays as it was until then and, the export failing or stopped, untouched. Raises :class:`ExportError` (also for
+    an ``out_dir`` holding anything but an earlier export, see :func:`foreign_entries`) and ``OSError``."""
     if layout not in LAYOUTS:
         raise ExportError(f"layout must be one of {', '.join(LAYOUTS)}, got {layout!r}")
     refused = opset_refusal(opset)
@@ -373,7 +383,72 @@ def export_onnx(net: CenterPointNet, out_dir: str | Path, *, layout: str = "sing
         raise ExportError(f"weights trained on stacked sweeps ({net.config.num_point_features} point features) are "
                           "not exported to ONNX yet: export the single-sweep model (x, y, z, intensity)")
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    foreign = foreign_entries(out)
+    if foreign:
+        raise ExportError(f"{out} holds more than an earlier export ({', '.join(foreign[:5])}"
+                          f"{', ...' if len(foreign) > 5 else ''}): an export replaces the whole folder")
+    place = Path(os.path.realpath(out))  # through a symlink the folder it names is replaced, the link kept
+    place.parent.mkdir(parents=True, exist_ok=True)
+    tmp = _fresh_sibling(place, "export")
+    try:
+        if place.is_dir():  # the new folder is readable by whoever read the old one (not mkdtemp's 0700)
+            os.chmod(tmp, stat.S_IMODE(place.stat().st_mode))
+        files, manifest = _write_export(net, tmp, layout, opset, recalibration, meta)
+        _swap_in(tmp, place)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return ExportResult(out, tuple(out / p.name for p in files.values()), out / MANIFEST, manifest)
+
+
+def foreign_entries(out_dir: str | Path) -> list[str]:
+    """What ``out_dir`` holds besides an export's own files (nothing when it does not exist). An export replaces
+    the whole folder, so one holding anything else (``--out .``, a deployment folder with notes in it) is not
+    exported into: that would delete the rest."""
+    try:
+        return sorted(set(os.listdir(out_dir)) - set(EXPORT_FILES))
+    except (FileNotFoundError, NotADirectoryError):
+        return []
+
+
+def _fresh_sibling(place: Path, tag: str) -> Path:
+    """A new empty folder beside ``place``, hidden and named after it: on the same file system, so renaming it to
+    ``place`` is atomic. Made with the umask's mode, not mkdtemp's 0700."""
+    while True:
+        p = place.with_name(f".{place.name}.{tag}-{secrets.token_hex(4)}")
+        try:
+            p.mkdir()
+            return p
+        except FileExistsError:
+            continue
+
+
+def _swap_in(new: Path, place: Path) -> None:
+    """Rename the folder ``new`` to ``place``: one rename where ``place`` is missing or empty; else the earlier
+    export is renamed aside first (and put back if the second rename fails) and removed once ``new`` is in place.
+    At every moment ``place`` is the old export whole or the new one whole (absent for the instant between the two
+    renames): an export written into the folder itself had, stopped or failing midway, left a mix of both."""
+    try:
+        os.rename(new, place)
+        return
+    except OSError as exc:
+        if exc.errno not in (errno.ENOTEMPTY, errno.EEXIST):
+            raise
+    old = _fresh_sibling(place, "old")
+    os.rename(place, old)
+    try:
+        os.rename(new, place)
+    except BaseException:
+        os.rename(old, place)
+        raise
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def _write_export(net: CenterPointNet, out: Path, layout: str, opset: int,
+                  recalibration: Recalibration | tuple[float, float] | None,
+                  meta: dict[str, Any] | None) -> tuple[dict[str, Path], dict[str, Any]]:
+    """The graphs of ``layout`` and ``detector.json`` written into the empty folder ``out``: the files by graph
+    name, and the manifest."""
     net = net.eval()
     config = net.config
     sample = sample_pillars(config)
@@ -404,10 +479,5 @@ def export_onnx(net: CenterPointNet, out_dir: str | Path, *, layout: str = "sing
     manifest["opset_requested"] = opset
     for name, v in actual.items():
         manifest["graphs"][name]["opset"] = v
-    path = out / MANIFEST
-    path.write_text(json.dumps(manifest, indent=2) + "\n")
-    # an earlier export of the other layout into this folder: its graphs no longer belong to detector.json (they had
-    # stayed beside it, stale, for whoever deploys the folder to pick up)
-    for stale in {SINGLE_FILE, ENCODER_FILE, HEAD_FILE} - {p.name for p in files.values()}:
-        (out / stale).unlink(missing_ok=True)
-    return ExportResult(out, tuple(files.values()), path, manifest)
+    (out / MANIFEST).write_text(json.dumps(manifest, indent=2) + "\n")
+    return files, manifest

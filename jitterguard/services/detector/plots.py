@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 
+from ...files import save_figure
 from .evaluate import AXES, COUNT_THRESHOLD_M, MIN_PRECISION, MIN_RECALL, threshold_key
 
 
@@ -57,7 +58,7 @@ def calibration_plot(result: dict[str, Any], path: str | Path, *, title: str = "
         f", positional ECE {ece_all:.3f} m" if isinstance(ece_all, float) else "")
     fig.suptitle(title or default)
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
+    save_figure(fig, path, dpi=90)
     plt.close(fig)
 
 
@@ -91,5 +92,5 @@ def pr_plot(ap_result: dict[str, Any], path: str | Path, *, threshold: float = C
                  else f"precision–recall at {key} m")
     ax.legend(fontsize=8, loc="lower left")
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
+    save_figure(fig, path, dpi=90)
     plt.close(fig)

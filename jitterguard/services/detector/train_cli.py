@@ -20,8 +20,8 @@ from typing import Annotated, Any
 
 import typer
 
-from ...cli_common import (ProgressOpt, SensorHeightOpt, SensorTiltOpt, fail, out_dir, out_files, parse_seeds,
-                           progress_on, sensor_height_option, sensor_tilt_option)
+from ...cli_common import (ProgressOpt, SensorHeightOpt, SensorTiltOpt, fail, float_option, out_dir, out_files,
+                           parse_seeds, progress_on, sensor_height_option, sensor_tilt_option)
 from .augment import CENTERPOINT_SAMPLE_COUNTS
 from .config import CLASS_NAMES, PRESETS
 from .provenance import init_provenance
@@ -325,13 +325,13 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                                              " random,vegetation,limbs,pedal); several sets joined by '+' (e.g."
                                              " none+random) train on the seeds cast once per set, validate on the"
                                              " first set.")] = "random",
-        rotation: Annotated[float, typer.Option("--rotation", min=0.0, max=180.0, help="Global rotation"
+        rotation: Annotated[float, float_option("--rotation", min=0.0, max=180.0, help="Global rotation"
                                                 " augmentation: uniform in ± this many degrees.")] = 45.0,
         intensity: Annotated[bool | None, typer.Option("--intensity/--no-intensity", help="Feed the points'"
                                                        " intensity to the network (--no-intensity: 0 in training"
                                                        " and inference, stored in the weights); default: as"
                                                        " --init's weights, else fed.")] = None,
-        tilt_aug: Annotated[float, typer.Option("--tilt-aug", min=0.0, max=10.0, help="Pitch/roll augmentation SD"
+        tilt_aug: Annotated[float, float_option("--tilt-aug", min=0.0, max=10.0, help="Pitch/roll augmentation SD"
                                                 " in degrees (and 0.05 m per degree of height).")] = 0.0,
         level_scans: Annotated[bool, typer.Option("--level-scans/--no-level-scans", help="Move every training and"
                                                   " validation scan, labels and all, to the level frame and height"
@@ -367,7 +367,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         distill_classes: Annotated[str | None, typer.Option("--distill-classes", help="Classes held to"
                                                             " --distill-from's heatmaps, comma-separated (default:"
                                                             " pedestrian).")] = None,
-        distill_weight: Annotated[float | None, typer.Option("--distill-weight", min=0.0, max=1000.0, help="Weight"
+        distill_weight: Annotated[float | None, float_option("--distill-weight", min=0.0, max=1000.0, help="Weight"
                                                              " of that term against the heatmap loss (default:"
                                                              " 1).")] = None,
         epochs: Annotated[int, typer.Option("--epochs", min=1, max=1000)] = 10,
@@ -375,7 +375,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                                                 " micro-batch.")] = 4,
         accumulate: Annotated[int, typer.Option("--accumulate", min=1, max=256, help="Micro-batches per optimiser"
                                                 " step (gradient accumulation).")] = 1,
-        lr: Annotated[float, typer.Option("--lr", min=1e-7, max=1.0)] = 2e-3,
+        lr: Annotated[float, float_option("--lr", min=1e-7, max=1.0)] = 2e-3,
         seed: Annotated[int, typer.Option("--seed", min=0)] = 0,
         threads: Annotated[int | None, typer.Option("--threads", min=1, max=1024)] = None,
         workers: Annotated[int, typer.Option("--workers", min=0, max=64, help="Data-loader processes; they also ray-cast the synthetic caches.")] = 0,
@@ -602,7 +602,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                                             " normalisation statistics and recalibration).")] = 2,
         epochs: Annotated[int, typer.Option("--epochs", min=1, max=100, help="Epochs per round.")] = 2,
         batch_size: Annotated[int, typer.Option("--batch-size", min=1, max=64)] = 2,
-        lr: Annotated[float, typer.Option("--lr", min=1e-7, max=1.0)] = 5e-4,
+        lr: Annotated[float, float_option("--lr", min=1e-7, max=1.0)] = 5e-4,
         scenarios: Annotated[str, typer.Option("--scenarios", help="Synthetic scenarios mixed in.")] = DEFAULT_SCENARIOS,
         synthetic_seeds: Annotated[str, typer.Option("--synthetic-seeds", help="Labelled synthetic scans mixed into"
                                                      " self-training (seeds).")] = "0-9",

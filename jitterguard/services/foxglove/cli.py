@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from ...cli_common import ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ZenohConfigOpt, fail, out_file, zenoh_options
+from ...cli_common import ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ZenohConfigOpt, fail, float_option, out_file, zenoh_options
 
 EXAMPLES = """
 Examples:\n
@@ -34,7 +34,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing --record file.")] = False,
         number_if_exists: Annotated[bool, typer.Option("--number-if-exists", help="If the --record file exists, write NAME.1.mcap, NAME.2.mcap, ... instead (for supervised restarts).")] = False,
         points: Annotated[bool, typer.Option("--points/--no-points", help="Subscribe to and forward the scans (the heaviest channel).")] = True,
-        motion_wait: Annotated[float, typer.Option("--motion-wait", min=0.0, max=5.0, help="Seconds a frame waits for its motion/{id} messages after objects.")] = 0.25,
+        motion_wait: Annotated[float, float_option("--motion-wait", min=0.0, max=5.0, help="Seconds a frame waits for its motion/{id} messages after objects.")] = 0.25,
         log_level: LogLevelOpt = "INFO",
     ) -> None:
         from ..sidecar.core import is_loopback
@@ -95,7 +95,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         mcap: Annotated[str, typer.Argument(help="A recording of `jitterguard foxglove --record`.")],
         out: Annotated[str, typer.Option("--out", help="PNG to write.")],
         index: Annotated[int | None, typer.Option("--index", help="Frame to draw (negative: from the end). Default: the one with the most static and dynamic tracks.")] = None,
-        span: Annotated[float, typer.Option("--span", min=5.0, max=500.0, help="Half-width of the view around the ego, m.")] = 50.0,
+        span: Annotated[float, float_option("--span", min=5.0, max=500.0, help="Half-width of the view around the ego, m.")] = 50.0,
     ) -> None:
         """Draw one recorded frame bird's-eye (scan, ground truth, detection ellipses, tracks by motion state with
         velocity arrows) to a PNG."""
