@@ -15,7 +15,7 @@ import zenoh
 
 from jitterguard.runtime import build_config, loopback_options
 from jitterguard.schemas import encode, keys
-from jitterguard.schemas.config_auth import NONCE_BYTES, write_attachment
+from jitterguard.runtime.config_auth import NONCE_BYTES, write_attachment
 from jitterguard.schemas.models import ClassifierConfig, ConfigReply, Heartbeat, config_etag
 from jitterguard.services.classifier.config import PRESETS
 

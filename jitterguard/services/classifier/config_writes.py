@@ -2,7 +2,7 @@
 
 A ``get`` on ``classifier/config`` with a payload is a write. Anyone who can reach the router can send one, so
 the classifier checks it itself, whatever the transport does: with ``JG_API_TOKEN`` set, a write must be signed
-with that token (:mod:`jitterguard.schemas.config_auth`: a MAC over the key, ``if_match``, the payload, a time and
+with that token (:mod:`jitterguard.runtime.config_auth`: a MAC over the key, ``if_match``, the payload, a time and
 a nonce; the token itself never travels), and the classifier signs its replies to the holder of the token;
 without a token, writes are refused unless the classifier was started with ``--open-config-writes`` (what
 ``jitterguard up`` does on one host, where the router listens on loopback and the tokenless sidecar is
@@ -16,7 +16,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 
-from ...schemas.config_auth import WriteVerifier, is_write_attachment, nonce_of, reply_attachment
+from ...runtime.config_auth import WriteVerifier, is_write_attachment, nonce_of, reply_attachment
 
 ENV_TOKEN = "JG_API_TOKEN"
 

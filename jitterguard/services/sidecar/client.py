@@ -29,7 +29,7 @@ import zenoh
 from ...runtime import Service, ZenohOptions
 from ...runtime.service import counter_key
 from ...schemas import DecodeError, decode, decode_with_raw, encode, keys
-from ...schemas.config_auth import NONCE_BYTES, challenge_attachment, reply_is_authentic, write_attachment
+from ...runtime.config_auth import NONCE_BYTES, challenge_attachment, reply_is_authentic, write_attachment
 from ...schemas.models import ClassifierConfig, ClassifierStateSnapshot, ConfigReply, Heartbeat
 from ...schemas.wire import CONFIG_REPLY_BOUNDS, HEARTBEAT_BOUNDS
 from .core import (PIPELINE_STAGES, PIPELINE_STALL_S, SOURCES, ConfigError, RenderedState, config_to_api, diff_states,
@@ -85,7 +85,7 @@ class ClassifierClient(Service):
                  metrics: SidecarMetrics | None = None, api_token: str | None = None,
                  stop_event: threading.Event | None = None, pipeline_stall_s: float = PIPELINE_STALL_S) -> None:
         """``api_token``: the key that signs every config write and checks every reply of the classifier's
-        (:mod:`~jitterguard.schemas.config_auth`; the classifier holds the same ``JG_API_TOKEN``, and the token
+        (:mod:`~jitterguard.runtime.config_auth`; the classifier holds the same ``JG_API_TOKEN``, and the token
         itself is never sent). ``stop_event``: ends the wait for the router (:class:`Service`).
         ``pipeline_stall_s``: frames entering this long with none classified is a readiness fault
         (:func:`~.core.frames_standing`)."""

@@ -1,10 +1,10 @@
-"""Signed config writes and signed replies (``jitterguard.schemas.config_auth``): the rules on their own."""
+"""Signed config writes and signed replies (``jitterguard.runtime.config_auth``): the rules on their own."""
 
 from __future__ import annotations
 
 import pytest
 
-from jitterguard.schemas.config_auth import (MAX_SKEW_S, NONCE_BYTES, WriteVerifier, challenge_attachment, nonce_of,
+from jitterguard.runtime.config_auth import (MAX_SKEW_S, NONCE_BYTES, WriteVerifier, challenge_attachment, nonce_of,
                                              reply_attachment, reply_is_authentic, write_attachment)
 from jitterguard.services.classifier.config_writes import ConfigWritePolicy
 
