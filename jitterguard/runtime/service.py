@@ -33,6 +33,7 @@ from ..schemas import DecodeError, LimitExceeded, decode, encode, keys
 from ..schemas.models import Heartbeat
 from . import memtrace
 from .envvars import HANG_GRACE_S, watchdog_period  # there, not here: the stack's Zenoh-free monitor-watch reads it too
+from .ingest_queue import IngestQueue
 from .keyed_publishers import KeyedPublishers
 from .progress import STALLED, Health, ProgressMonitor, ProgressPolicy
 from .sd_notify import Notifier
@@ -291,18 +292,29 @@ class Service:
         self._declared.append((session or self.session).declare_subscriber(key, on_sample))
         return inbox
 
-    def subscribe_channel(self, key: str, capacity: int = 16384) -> zenoh.Subscriber:
-        """Subscribe ``key`` into a bounded ring channel that a worker drains with ``try_recv()``.
+    def subscribe_channel(self, key: str, capacity: int = 16384, *, max_bytes: int | None = None,
+                          what: str = "payload", limit_name: str = "") -> IngestQueue:
+        """Subscribe ``key`` into a bounded :class:`~.ingest_queue.IngestQueue` of ``(payload, key)`` that one
+        worker drains in batches with ``take(limit)``.
 
-        No Python callback thread: samples wait in Zenoh's own (Rust) queue until the worker pulls them. At
-        thousands of samples per second, per-sample callbacks spend more time handing the GIL around than
-        decoding; one worker that pulls and decodes in order does the same work without the contention. When the
-        ring is full Zenoh drops its oldest sample (bounded memory, no blocked receive path); the caller counts
-        what is lost where it notices it (the classifier: ``frames.missing_observations``).
+        For thousands of small messages a second (``tracks/*``): the callback only copies the payload and appends
+        it; the worker pulls and decodes them in order, in batches. When ``capacity`` payloads wait the oldest goes,
+        counted ``dropped_queue.<key>`` (Zenoh's ``RingChannel``, used here before, dropped its oldest uncounted).
+        ``max_bytes``: a larger payload is refused in the callback, from its size, before it is copied or queued
+        (counted as :meth:`reject` counts, ``what`` and ``limit_name`` naming it, and ``received``).
         """
-        sub = self.session.declare_subscriber(key, zenoh.handlers.RingChannel(capacity))
-        self._declared.append(sub)
-        return sub
+        inbox = IngestQueue(capacity)
+        counter = f"dropped_queue.{counter_key(key)}"
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            if self.oversized(sample, max_bytes, what, key, limit_name):
+                self.counters.inc("received")
+                return
+            if inbox.push(sample.payload.to_bytes(), str(sample.key_expr)):
+                self.counters.inc(counter)
+
+        self._declared.append(self.session.declare_subscriber(key, on_sample))
+        return inbox
 
     def publisher(self, key: str, *, block: bool = True, session: zenoh.Session | None = None) -> zenoh.Publisher:
         """A declared publisher; BLOCK congestion control by default (losing a frame is wrong); on ``session``

@@ -1,0 +1,55 @@
+"""The bounded ingest queue behind ``Service.subscribe_channel``: what it drops when full, and that the count of
+drops stays exact while Zenoh's callbacks push and the worker takes at the same time."""
+
+from __future__ import annotations
+
+import threading
+
+import pytest
+
+from jitterguard.runtime.ingest_queue import IngestQueue
+
+
+def test_a_full_queue_drops_its_oldest_and_says_how_many() -> None:
+    q = IngestQueue(3)
+    assert [q.push(bytes([i]), f"k/{i}") for i in range(5)] == [0, 0, 0, 1, 1]
+    assert q.take(2) == [(b"\x02", "k/2"), (b"\x03", "k/3")]
+    assert q.take(10) == [(b"\x04", "k/4")]
+    assert q.take(10) == [] and len(q) == 0
+
+
+def test_drops_are_counted_exactly_while_producers_push_and_a_worker_takes() -> None:
+    """Two callback threads and one worker at once: every push is either taken or counted dropped, none twice
+    (a check of the length before the append, without the lock, can count a drop the worker's take made room
+    for), and each producer's payloads come out in the order pushed."""
+    q, per_producer = IngestQueue(50), 40_000
+    dropped = [0, 0]
+    taken: list[tuple[bytes, str]] = []
+    done = threading.Event()
+
+    def produce(n: int) -> None:
+        for i in range(per_producer):
+            dropped[n] += q.push(i.to_bytes(4, "big"), str(n))
+
+    def consume() -> None:
+        while not done.is_set() or len(q):
+            taken.extend(q.take(7))
+
+    producers = [threading.Thread(target=produce, args=(n,)) for n in range(2)]
+    worker = threading.Thread(target=consume)
+    worker.start()
+    for t in producers:
+        t.start()
+    for t in producers:
+        t.join()
+    done.set()
+    worker.join()
+    assert len(taken) + sum(dropped) == 2 * per_producer
+    for n in ("0", "1"):
+        seq = [int.from_bytes(d, "big") for d, k in taken if k == n]
+        assert seq == sorted(seq) and len(set(seq)) == len(seq)
+
+
+def test_a_queue_holds_at_least_one() -> None:
+    with pytest.raises(ValueError):
+        IngestQueue(0)
