@@ -11,12 +11,12 @@ write is applied between two frames and the reply reports what is in force from 
 
 Overload degrades instead of backing up, and every queue is bounded: ``tracked`` waits in a queue of
 :data:`CLOSE_QUEUE` (the oldest goes, counted ``dropped_queue.tracked``), observations in a queue of
-:data:`OBS_QUEUE` (the oldest goes, counted ``dropped_queue.tracks/*``; what a frame then lacks is counted
-``frames.missing_observations`` too), config writes in a queue of 64; a
-``tracked`` that is a duplicate, late or a jump is dropped from its header, unread. A straggler of a frame already decided is dropped (counted
-``frames.late_observations``), a frame is not given up on for stragglers while the worker is still behind on
-what arrived, and when the next frame's ``tracked`` is already waiting the ``motion/{id}`` messages of the
-current frame are skipped (counted ``motion_frames_shed``; the next frame's supersede them).
+:data:`OBS_QUEUE` payloads and :data:`OBS_QUEUE_BYTES` (the oldest goes, counted ``dropped_queue.tracks/*``; what a
+frame then lacks is counted ``frames.missing_observations`` too), config writes in a queue of 64; a ``tracked``
+that is a duplicate, late or a jump is dropped from its header, unread. A straggler of a frame already decided is
+dropped (counted ``frames.late_observations``), a frame is not given up on for stragglers while the worker is still
+behind on what arrived, and when the next frame's ``tracked`` is already waiting the ``motion/{id}`` messages of
+the current frame are skipped (counted ``motion_frames_shed``; the next frame's supersede them).
 """
 
 from __future__ import annotations
@@ -61,6 +61,9 @@ CLOSE_QUEUE = 64
 """``tracked`` messages waiting for the worker (3.2 s at 20 Hz, as the tracker's inbox); beyond that the oldest goes."""
 OBS_QUEUE = 16384
 """Observations waiting for the worker (4 s of 200 tracks at 20 Hz); beyond that the oldest goes."""
+OBS_QUEUE_BYTES = 64 << 20
+"""... and at most this many bytes of them (16,384 of 4 kB; an observation is ~1.4 kB): a flood of large payloads
+(up to ``max_payload_bytes``, 8 MiB, each) would otherwise be bounded only at 128 GiB."""
 OBS_CHUNK = 64
 """Observations validated per pass before the worker looks for a newly arrived ``tracked`` again."""
 IDLE_POLL_S = 0.0005
@@ -188,7 +191,7 @@ class ClassifierService(Service):
         self._motion_pubs = self.keyed_publishers(lambda tid: keys.motion(self.ns, tid),
                                                   priority=zenoh.Priority.DATA_LOW)
         self.monitor_progress()  # tracked in -> objects out (runtime.progress)
-        self._obs_in = self.subscribe_channel(self._obs_key, OBS_QUEUE,
+        self._obs_in = self.subscribe_channel(self._obs_key, OBS_QUEUE, max_queued_bytes=OBS_QUEUE_BYTES,
                                               max_bytes=self.pipeline.limits.max_payload_bytes,
                                               what="TrackObservation", limit_name="max_payload_bytes")
         self._declared.append(self.session.declare_subscriber(self._tracked_key, self._on_tracked))
