@@ -16,7 +16,7 @@ each put) or ``same`` (one ID). Per variant:
   observations per second its worker takes off the ingest queue and reads (the consumer's path alone).
 * ``ingest_per_s``: ``--burst`` puts with the worker running: observations per second from the first put until
   all are counted in (the receive path's per-sample cost included, both processes on the same cores).
-* ``frames``: ``--tracks`` tracks at 20 Hz for ``--frame-s`` seconds, each frame's observations then its
+* ``frames``: ``--tracks`` tracks at ``--rate`` Hz (20) for ``--frame-s`` seconds, each frame's observations then its
   ``tracked``: the frame latency (p50 / p99, ms) as the service counts it, and the classifier process's CPU time
   per frame (every thread: Zenoh's, the callbacks', the worker's, the heartbeat's; less sensitive to the
   machine's other load than the latency).
@@ -283,8 +283,7 @@ def _ingest_rate(child: _Child, session: zenoh.Session, payloads: list) -> float
     return (_processed(after) - before) / (time.perf_counter() - t0)
 
 
-def _frames(child: _Child, session: zenoh.Session, tracks: int, seconds: float, seed: int) -> dict:
-    rate = 20.0
+def _frames(child: _Child, session: zenoh.Session, tracks: int, seconds: float, seed: int, rate: float) -> dict:
     sc = TrackScenario(n_static=tracks // 2, n_moving=tracks - tracks // 2 - 1, n_starting=1, seed=seed, rate_hz=rate)
     pool = [FrameRecords.of(f) for f in generate(sc, 40)]
     n = int(seconds * rate)
@@ -294,7 +293,8 @@ def _frames(child: _Child, session: zenoh.Session, tracks: int, seconds: float, 
                                                            frame_id="map", seq=i))
         frames.append(([(keys.track(NS, tid), p) for tid, p in obs], tracked))
     child.ask("latencies")  # forget what came before
-    cpu0 = child.stats()["cpu_s"]
+    before = child.stats()
+    cpu0 = before["cpu_s"]
     t_next = time.monotonic()
     for obs, tracked in frames:
         _put_all(session, obs)
@@ -302,12 +302,17 @@ def _frames(child: _Child, session: zenoh.Session, tracks: int, seconds: float, 
         t_next += 1.0 / rate
         time.sleep(max(0.0, t_next - time.monotonic()))
     time.sleep(1.0)
-    cpu_ms = (child.stats()["cpu_s"] - cpu0) * 1e3 / n
+    after = child.stats()
+    cpu_ms = (after["cpu_s"] - cpu0) * 1e3 / n
+    counts = {k: v - before["counters"].get(k, 0) for k, v in after["counters"].items()
+              if k.startswith(("frames.", "dropped_queue")) and v != before["counters"].get(k, 0)}
     lat = np.asarray(child.ask("latencies"))
     warm = len(lat) // 5
     lat = lat[warm:]
     return {"frames_sent": n, "frames_timed": int(lat.size), "p50_ms": float(np.percentile(lat, 50)),
-            "p99_ms": float(np.percentile(lat, 99)), "cpu_ms_per_frame": cpu_ms}
+            "p99_ms": float(np.percentile(lat, 99)), "cpu_ms_per_frame": cpu_ms,
+            "processed": after["counters"].get("frames_processed", 0) - before["counters"].get("frames_processed", 0),
+            "counters": counts}
 
 
 def run_variant(variant: str, args: argparse.Namespace) -> dict:
@@ -317,7 +322,7 @@ def run_variant(variant: str, args: argparse.Namespace) -> dict:
         time.sleep(1.0)  # the mesh settles
         burst = _flood_payloads(args.burst, distinct=True, seed=1)
         res: dict[str, Any] = {"variant": variant}
-        res["frames"] = _frames(child, session, args.tracks, args.frame_s, seed=0)
+        res["frames"] = _frames(child, session, args.tracks, args.frame_s, seed=0, rate=args.rate)
         res["drain_per_s"] = round(_drain_rate(child, session, burst))
         res["ingest_per_s"] = round(_ingest_rate(child, session, burst))
         if args.rounds:
@@ -355,6 +360,7 @@ def main() -> None:
     p.add_argument("--keys", choices=("distinct", "same"), default="distinct")
     p.add_argument("--burst", type=int, default=8000, help="puts of the drain and ingest rates (fits every queue)")
     p.add_argument("--tracks", type=int, default=200)
+    p.add_argument("--rate", type=float, default=20.0, help="frames per second of the normal path")
     p.add_argument("--frame-s", type=float, default=10.0)
     p.add_argument("--tracemalloc", action="store_true", help="trace the child's Python heap (slows it)")
     p.add_argument("--express", action="store_true", help="flood puts unbatched (see EXPRESS)")

@@ -7,7 +7,11 @@ stamps its arrival and wakes the worker: the frame latency counts from that stam
 this process's subscriber, queueing included. The worker owns the pipeline: it validates, assembles frames,
 decides, and publishes ``objects`` first (what the predictor waits for, and where the frame latency ends) and then
 the ``motion/{id}`` messages; the contract does not order the two. Config writes go through the same worker, so a
-write is applied between two frames and the reply reports what is in force from the next frame on.
+write is applied between two frames and the reply reports what is in force from the next frame on. Observations
+and closes come through two callback threads, so a close may reach the worker before observations put ahead of it
+(the ring channel, filled on Zenoh's receiving thread, had kept their order): the frame waits for the tracks it
+lists, as for any straggler, and a second observation of a track read after its frame was decided is counted
+``frames.late_observations`` rather than ``frames.duplicate_observations`` (dropped either way).
 
 Overload degrades instead of backing up, and every queue is bounded: ``tracked`` waits in a queue of
 :data:`CLOSE_QUEUE` (the oldest goes, counted ``dropped_queue.tracked``), observations in a queue of
