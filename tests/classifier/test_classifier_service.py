@@ -598,5 +598,10 @@ def test_an_observation_on_another_tracks_key_is_refused_and_the_window_keeps_th
         assert wait_until(lambda: len(got["objects"]) == n + 1, timeout=30)
     assert wait_until(lambda: service.counters.get("rejected") == len(frames))
     assert service.counters.get("rejected.tracks/*") == len(frames)
-    assert service.assembler.counts.get("duplicate_observations") == len(frames)
+    # observations and closes reach the worker through two callback threads, so a close may overtake the second A
+    # put before it: read after its frame was decided, that one is dropped as late instead (counted as such)
+    counts = service.assembler.counts
+    assert wait_until(lambda: counts.get("duplicate_observations", 0) + counts.get("late_observations", 0)
+                      == len(frames)), counts
+    assert counts.get("missing_observations", 0) == 0
     assert got["motion"][a].state == "static" and got["motion"][b].state == "static", got["motion"]

@@ -1,21 +1,26 @@
 """The classifier as a Zenoh service: transport and threads around :class:`~.adapter.ClassifierAdapter`.
 
-Threads. Observations (``tracks/*``, thousands per second) wait in a Zenoh ring channel that one worker
-thread drains and reads in batches as they arrive, so no Python callback runs per sample. The frame-closing
-``tracked`` (once per frame) comes through a callback that only stamps its arrival and wakes the worker:
-the frame latency counts from that stamp, i.e. from the sample reaching this process's subscriber, queueing
-included. The worker owns the pipeline: it validates, assembles frames, decides, and publishes ``objects``
-first (what the predictor waits for, and where the frame latency ends) and then the ``motion/{id}``
-messages; the contract does not order the two. Config writes go through the same worker, so a write is
-applied between two frames and the reply reports what is in force from the next frame on.
+Threads. Observations (``tracks/*``, thousands per second) wait in a bounded ingest queue that their callback
+only copies them into (refusing an oversized one from its size first) and that one worker thread drains and reads
+in batches as they arrive. The frame-closing ``tracked`` (once per frame) comes through a callback that only
+stamps its arrival and wakes the worker: the frame latency counts from that stamp, i.e. from the sample reaching
+this process's subscriber, queueing included. The worker owns the pipeline: it validates, assembles frames,
+decides, and publishes ``objects`` first (what the predictor waits for, and where the frame latency ends) and then
+the ``motion/{id}`` messages; the contract does not order the two. Config writes go through the same worker, so a
+write is applied between two frames and the reply reports what is in force from the next frame on. Observations
+and closes come through two callback threads, so a close may reach the worker before observations put ahead of it
+(the ring channel, filled on Zenoh's receiving thread, had kept their order): the frame waits for the tracks it
+lists, as for any straggler, and a second observation of a track read after its frame was decided is counted
+``frames.late_observations`` rather than ``frames.duplicate_observations`` (dropped either way).
 
 Overload degrades instead of backing up, and every queue is bounded: ``tracked`` waits in a queue of
-:data:`CLOSE_QUEUE` (the oldest goes, counted ``dropped_queue.tracked``), observations in Zenoh's ring channel (the
-oldest goes; what a frame then lacks is counted ``frames.missing_observations``), config writes in a queue of 64; a
-``tracked`` that is a duplicate, late or a jump is dropped from its header, unread. A straggler of a frame already decided is dropped (counted
-``frames.late_observations``), a frame is not given up on for stragglers while the worker is still behind on
-what arrived, and when the next frame's ``tracked`` is already waiting the ``motion/{id}`` messages of the
-current frame are skipped (counted ``motion_frames_shed``; the next frame's supersede them).
+:data:`CLOSE_QUEUE` (the oldest goes, counted ``dropped_queue.tracked``), observations in a queue of
+:data:`OBS_QUEUE` payloads and :data:`OBS_QUEUE_BYTES` (the oldest goes, counted ``dropped_queue.tracks/*``; what a
+frame then lacks is counted ``frames.missing_observations`` too), config writes in a queue of 64; a ``tracked``
+that is a duplicate, late or a jump is dropped from its header, unread. A straggler of a frame already decided is
+dropped (counted ``frames.late_observations``), a frame is not given up on for stragglers while the worker is still
+behind on what arrived, and when the next frame's ``tracked`` is already waiting the ``motion/{id}`` messages of
+the current frame are skipped (counted ``motion_frames_shed``; the next frame's supersede them).
 """
 
 from __future__ import annotations
@@ -55,6 +60,11 @@ LATENCY_BUCKETS_MS = (0.5, 1, 2, 5, 10, 20, 50, 100, 200, 500, 1000)
 """Frame-latency histogram buckets; exported as counters so the sidecar's /metrics can rebuild it."""
 CLOSE_QUEUE = 64
 """``tracked`` messages waiting for the worker (3.2 s at 20 Hz, as the tracker's inbox); beyond that the oldest goes."""
+OBS_QUEUE = 16384
+"""Observations waiting for the worker (4 s of 200 tracks at 20 Hz); beyond that the oldest goes."""
+OBS_QUEUE_BYTES = 64 << 20
+"""... and at most this many bytes of them (16,384 of 4 kB; an observation is ~1.4 kB): a flood of large payloads
+(up to ``max_payload_bytes``, 8 MiB, each) would otherwise be bounded only at 128 GiB."""
 OBS_CHUNK = 64
 """Observations validated per pass before the worker looks for a newly arrived ``tracked`` again."""
 IDLE_POLL_S = 0.0005
@@ -182,7 +192,9 @@ class ClassifierService(Service):
         self._motion_pubs = self.keyed_publishers(lambda tid: keys.motion(self.ns, tid),
                                                   priority=zenoh.Priority.DATA_LOW)
         self.monitor_progress()  # tracked in -> objects out (runtime.progress)
-        self._obs_sub = self.subscribe_channel(self._obs_key)
+        self._obs_in = self.subscribe_channel(self._obs_key, OBS_QUEUE, max_queued_bytes=OBS_QUEUE_BYTES,
+                                              max_bytes=self.pipeline.limits.max_payload_bytes,
+                                              what="TrackObservation", limit_name="max_payload_bytes")
         self._declared.append(self.session.declare_subscriber(self._tracked_key, self._on_tracked))
         self.queryable(keys.classifier_config(self.ns), self._on_config_query)
         self.queryable(keys.classifier_state(self.ns), self._on_state_query)
@@ -321,29 +333,17 @@ class ClassifierService(Service):
         return took
 
     def _take_observations(self, limit: int) -> int:
-        """Read up to ``limit`` observations from the channel, as one batch; returns how many were taken."""
-        samples = []
-        while len(samples) < limit:
-            sample = self._obs_sub.try_recv()
-            if sample is None:
-                break
-            samples.append(sample)
-        if not samples:
+        """Read up to ``limit`` observations from the ingest queue, as one batch; returns how many were taken."""
+        items = self._obs_in.take(limit)
+        if not items:
             return 0
-        taken = len(samples)
-        self.counters.inc("received", taken)
-        limit = self.pipeline.limits.max_payload_bytes  # refused from the size, not copied first
-        samples = [s for s in samples
-                   if not self.oversized(s, limit, "TrackObservation", self._obs_key, "max_payload_bytes")]
-        if not samples:
-            return taken
-        cols = self.pipeline.observations([s.payload.to_bytes() for s in samples],
-                                          [keys.last_chunk(str(s.key_expr)) for s in samples])
+        self.counters.inc("received", len(items))
+        cols = self.pipeline.observations([data for data, _ in items], [keys.last_chunk(key) for _, key in items])
         for i, exc in cols.errors:
-            self.reject(exc, self._obs_key, str(samples[i].key_expr))
+            self.reject(exc, self._obs_key, items[i][1])
         if cols.normalised:
             self.counters.inc("normalised.tracks", cols.normalised)
-        return taken
+        return len(items)
 
     def _run_control(self, item: tuple[str, tuple, None]) -> None:
         kind, (arg, fut), model = item
