@@ -561,6 +561,11 @@ def test_a_sidecar_with_another_token_answers_state_reads_502_naming_the_token(s
             assert r.status_code == 502 and "JG_API_TOKEN differs from the sidecar's" in r.json()["detail"], r.text
             track = c.get(f"/v1/state/{stack.track('parked').track_id}")
             assert track.status_code == 502 and "JG_API_TOKEN" in track.json()["detail"], track.text
+            # not ready (once the classifier's first heartbeat is in): it answers, but to no token of this sidecar's
+            ready = wait_for(lambda: (lambda r: r if "no heartbeat yet" not in r.text else None)(c.get("/readyz")),
+                             "the classifier's first heartbeat at the sidecar")
+            assert ready.status_code == 503 and "state cannot be read" in ready.json()["reason"], ready.text
+            assert "JG_API_TOKEN differs from the sidecar's" in ready.json()["reason"]
     finally:
         server.close()
     with stack.http() as c:  # the stack's own sidecar, with the classifier's token, serves the state

@@ -52,7 +52,8 @@ def test_write_rules_in_order() -> None:
     assert refusal("PATCH", {**base, "origin": "http://127.0.0.1:8000"}, LOOPBACK) is None  # the sidecar's page
     assert refusal("PATCH", {**base, "origin": "https://evil.example"}, LOOPBACK)[0] == 403
     assert refusal("PATCH", {**base, "origin": "null"}, LOOPBACK)[0] == 403  # sandboxed frames, file:// pages
-    assert refusal("PATCH", {**base, "sec-fetch-site": "cross-site"}, LOOPBACK)[0] == 403
+    status, why = refusal("PATCH", {**base, "sec-fetch-site": "cross-site"}, LOOPBACK)
+    assert status == 403 and "(Sec-Fetch-Site: cross-site)" in why and "None" not in why  # had said "(Origin None)"
     assert refusal("PATCH", {**base, "content-type": "text/plain"}, LOOPBACK)[0] == 415
     assert refusal("POST", _h(host="127.0.0.1:8000"), LOOPBACK) is None  # bodyless, no Origin: not a browser
     assert refusal("POST", _h(host="127.0.0.1:8000", content_type="text/plain"), LOOPBACK)[0] == 415

@@ -213,6 +213,8 @@ class ClassifierClient(Service):
             reason = f"no heartbeat yet on {keys.heartbeat(self.ns, CLASSIFIER)}"
         elif age > self.stale_after_s:
             reason = f"classifier heartbeat is {age:.1f} s old (stale after {self.stale_after_s:g} s)"
+        elif self._poll_refusal is not None:  # answering, but not to this sidecar's token: its state cannot be read
+            reason = f"the classifier's state cannot be read: {self._poll_refusal}"
         elif problems:
             reason = "; ".join(problems)
         else:

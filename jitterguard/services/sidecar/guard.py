@@ -109,8 +109,10 @@ def refusal(method: str, headers: dict[str, str], policy: HostPolicy, max_body: 
     origin = headers.get("origin")
     if headers.get("sec-fetch-site") == "cross-site" or (origin is not None and not _origin_allowed(
             origin, host_header, policy)):
-        return 403, f"cross-site write refused (Origin {origin!r}); writes come from this sidecar's own page or " \
-                    f"a client without an Origin (or an origin given with --cors-origin)"
+        told = f"Origin {origin!r}" if origin is not None else "Sec-Fetch-Site: cross-site"
+        return 403, f"cross-site write refused ({told}); writes come from this sidecar's own page or a client " \
+                    f"that sends neither a foreign Origin nor Sec-Fetch-Site: cross-site (or an origin given " \
+                    f"with --cors-origin)"
     content_type = headers.get("content-type")
     has_body = (length is not None and length.strip() != "0") or "transfer-encoding" in headers
     if (content_type is not None or has_body) and not is_json_type(content_type):
