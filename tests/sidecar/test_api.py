@@ -6,7 +6,8 @@ import json
 import os
 import re
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 
 import httpx
 import msgpack
@@ -14,8 +15,8 @@ import pytest
 import zenoh
 
 from jitterguard.runtime import build_config, loopback_options
-from jitterguard.schemas import encode, keys
 from jitterguard.runtime.config_auth import NONCE_BYTES, write_attachment
+from jitterguard.schemas import encode, keys
 from jitterguard.schemas.models import ClassifierConfig, ConfigReply, Heartbeat, config_etag
 from jitterguard.services.classifier.config import PRESETS
 
@@ -475,6 +476,26 @@ def test_a_rogue_replier_learns_no_token_is_not_believed_and_cannot_replay_a_wri
             assert c.put("/v1/config", json=DEFAULTS).status_code == 200
 
 
+@contextmanager
+def _rogue_classifier(stack: Stack, ns: str, key: str, answer: Callable[[zenoh.Query], None],
+                      api_token: str | None = None) -> Iterator[ClassifierClient]:
+    """A node alone in namespace ``ns`` that announces itself as the classifier (its liveliness token) and answers
+    queries on ``key`` with ``answer`` (a complete queryable where ``key`` is a wildcard), and a sidecar's client
+    of that namespace that has seen the token; all closed after."""
+    rogue = zenoh.open(build_config(loopback_options(ns, stack.zport)))
+    alive = rogue.liveliness().declare_token(keys.alive(ns, "classifier"))
+    rogue_q = rogue.declare_queryable(key, answer, complete="*" in key)
+    client = ClassifierClient(loopback_options(ns, stack.zport), api_token=api_token)
+    try:
+        wait_for(client.is_alive, "the rogue's liveliness token")
+        yield client
+    finally:
+        client.close()
+        rogue_q.undeclare()
+        alive.undeclare()
+        rogue.close()
+
+
 def test_a_rogue_alone_on_the_bus_is_not_taken_for_the_classifier(stack: Stack) -> None:
     """In a namespace where only a rogue announces itself as the classifier and answers every query, a client
     holding the token believes none of its replies (each counted), and the rogue learns no token."""
@@ -488,12 +509,7 @@ def test_a_rogue_alone_on_the_bus_is_not_taken_for_the_classifier(stack: Stack) 
             attachments.append(query.attachment.to_bytes() if query.attachment is not None else None)
             query.reply(query.key_expr, forged)
 
-    rogue = zenoh.open(build_config(loopback_options(ns, stack.zport)))
-    alive = rogue.liveliness().declare_token(keys.alive(ns, "classifier"))
-    rogue_q = rogue.declare_queryable("jg/**", answer, complete=True)
-    client = ClassifierClient(loopback_options(ns, stack.zport), api_token=stack.token)
-    try:
-        wait_for(client.is_alive, "the rogue's liveliness token")
+    with _rogue_classifier(stack, ns, "jg/**", answer, api_token=stack.token) as client:
         with pytest.raises(ClassifierRejected, match="or another node answers on this key"):
             client.get_config()
         with pytest.raises(ClassifierRejected, match="or another node answers on this key"):
@@ -501,11 +517,6 @@ def test_a_rogue_alone_on_the_bus_is_not_taken_for_the_classifier(stack: Stack) 
         assert client.poll_once() is None  # its state is no state
         assert client.counters.snapshot()["rejected.classifier/config"] == 2
         assert client.counters.snapshot()["rejected.classifier/state"] >= 1  # (its own poll may have asked too)
-    finally:
-        client.close()
-        rogue_q.undeclare()
-        alive.undeclare()
-        rogue.close()
     assert len(attachments) >= 3 and all(stack.token.encode() not in (a or b"") for a in attachments)  # type: ignore[union-attr]
 
 
@@ -519,20 +530,10 @@ def test_a_config_reply_is_read_only_within_its_bound(stack: Stack) -> None:
         with query:
             query.reply(query.key_expr, huge)
 
-    rogue = zenoh.open(build_config(loopback_options(ns, stack.zport)))
-    alive = rogue.liveliness().declare_token(keys.alive(ns, "classifier"))
-    rogue_q = rogue.declare_queryable(keys.classifier_config(ns), answer)
-    client = ClassifierClient(loopback_options(ns, stack.zport))
-    try:
-        wait_for(client.is_alive, "the rogue's liveliness token")
+    with _rogue_classifier(stack, ns, keys.classifier_config(ns), answer) as client:
         with pytest.raises(ClassifierRejected, match=r"invalid: ConfigReply: 1048592 bytes exceed 262144"):
             client.get_config()
         assert client.counters.snapshot()["rejected.classifier/config"] == 1
-    finally:
-        client.close()
-        rogue_q.undeclare()
-        alive.undeclare()
-        rogue.close()
 
 
 def test_a_sidecar_with_another_token_believes_no_reply_and_applies_nothing(stack: Stack) -> None:
