@@ -93,27 +93,31 @@ class _RingInbox:
 class _RingClassifier(ClassifierService):
     """The ingest as it was: a Zenoh ring channel that drops its oldest sample uncounted when full."""
 
-    def subscribe_channel(self, key: str, capacity: int = 16384, *, max_queued_bytes: int | None = None,
-                          max_bytes: int | None = None, what: str = "payload", limit_name: str = "") -> Any:
-        return _RingInbox(self, key, capacity, max_bytes, what, limit_name)
+    def subscribe_queue(self, key: str, capacity: int, **kw: Any) -> Any:
+        if key != keys.tracks_all(NS):  # the closes as the service has them
+            return super().subscribe_queue(key, capacity, **kw)
+        return _RingInbox(self, key, capacity, kw.get("max_bytes"), kw.get("what", "payload"),
+                          kw.get("limit_name", ""))
 
 
 class _DirectClassifier(ClassifierService):
     """The ingest queue filled by a callback that Zenoh runs on its own receiving thread (``indirect=False``),
     not handed to a Python thread of its own first."""
 
-    def subscribe_channel(self, key: str, capacity: int = 16384, *, max_queued_bytes: int | None = None,
-                          max_bytes: int | None = None, what: str = "payload", limit_name: str = "") -> IngestQueue:
-        inbox = IngestQueue(capacity, max_queued_bytes)
+    def subscribe_queue(self, key: str, capacity: int, **kw: Any) -> IngestQueue:
+        if key != keys.tracks_all(NS):  # the closes as the service has them
+            return super().subscribe_queue(key, capacity, **kw)
+        max_bytes, what, limit_name = kw.get("max_bytes"), kw.get("what", "payload"), kw.get("limit_name", "")
+        inbox = IngestQueue(capacity, kw.get("max_queued_bytes"))
         counter = f"dropped_queue.{counter_key(key)}"
 
-        def on_sample(sample: zenoh.Sample) -> None:  # as Service.subscribe_channel's
+        def on_sample(sample: zenoh.Sample) -> None:  # as Service.subscribe_queue's
             payload = sample.payload
             if max_bytes is not None and len(payload) > max_bytes:
                 self.oversized(sample, max_bytes, what, key, limit_name)
                 self.counters.inc("received")
                 return
-            dropped = inbox.push(payload.to_bytes(), str(sample.key_expr))
+            dropped = inbox.push(payload.to_bytes(), str(sample.key_expr), time.monotonic())
             if dropped:
                 self.counters.inc(counter, dropped)
 

@@ -20,7 +20,6 @@ from __future__ import annotations
 import faulthandler
 import logging
 import os
-import queue
 import threading
 import time
 from collections.abc import Callable
@@ -54,6 +53,9 @@ SHUTDOWN_LIMIT_S = 20.0
 DRAIN_S = 0.2
 """How long a closing service leaves its last puts to leave its session (``Service._drain``): two 64 KB batches
 take ~0.1 s at 10 Mbit/s."""
+QUEUE_BYTES = 64 << 20
+"""The bytes a subscription's queue holds at most by default (:meth:`Service.subscribe_queue`): 8 of the largest
+payload a service lets in by default (``max_payload_bytes``, 8 MiB), 40,000 of a ~1.5 kB observation."""
 
 
 class Counters:
@@ -234,7 +236,7 @@ class Service:
 
     def monitor_progress(self, policy: ProgressPolicy | None = None) -> ProgressMonitor:
         """Report health as progress (:mod:`.progress`): the subclass calls ``input`` / ``output`` / ``failure``
-        on the returned monitor (``subscribe_inbox(..., progress=True)`` records arrivals itself)."""
+        on the returned monitor (``subscribe_queue(..., progress=True)`` records arrivals itself)."""
         self.progress = ProgressMonitor(policy)
         return self.progress
 
@@ -245,65 +247,33 @@ class Service:
             return Health(STALLED, f"starting: {self.starting}")
         return self.progress.assess(time.monotonic()) if self.progress is not None else Health("ok")
 
-    def subscribe_inbox(self, key: str, capacity: int = 64, *, progress: bool = False,
-                        max_bytes: int | None = None,
-                        session: zenoh.Session | None = None) -> queue.Queue[tuple[bytes, str, float]]:
-        """Subscribe ``key`` into a bounded queue of ``(payload, key, arrival time)`` that a worker blocks on with
-        ``get(timeout=...)``.
+    def subscribe_queue(self, key: str, capacity: int, *, max_queued_bytes: int = QUEUE_BYTES,
+                        max_bytes: int | None = None, what: str = "payload", limit_name: str = "",
+                        progress: bool = False, wake: threading.Event | None = None,
+                        session: zenoh.Session | None = None) -> IngestQueue:
+        """Subscribe ``key`` into a bounded :class:`~.ingest_queue.IngestQueue` of ``(payload, key, arrival time)``
+        (``time.monotonic()``) for a worker of the service's own: ``take(limit)`` drains a batch (thousands of small
+        ``tracks/*`` messages a second), ``get(timeout)`` wakes the moment one arrives (a few large messages a second:
+        a frame's ``detections``).
 
-        For a few large messages a second (a frame's ``detections``): the worker wakes the moment one arrives
-        instead of polling a channel, and the one callback per message only copies the payload. A full queue drops
-        its oldest item (counted ``dropped_queue.<key>``): a worker that fell behind catches up on the newest
-        frames, and a flood costs a bounded amount of memory, never Zenoh's receive path. ``progress``: each
-        arrival is an input of :attr:`progress` (a worker stuck on one message then shows as stalled while more
-        arrive). ``max_bytes``: a larger payload is refused here, from its size, before it is copied or queued
-        (counted as :meth:`reject` does, and ``received``): the queue holds ``capacity`` payloads of whatever size
-        Zenoh carries (up to 1 GiB), and a flood of 50 MB ones had been copied and queued for the worker to refuse.
+        The callback only checks the size, copies the payload and appends it. When ``capacity`` payloads (or
+        ``max_queued_bytes`` of them) wait, the oldest go, counted ``dropped_queue.<key>``: a worker that fell behind
+        catches up on the newest, and a flood costs a bounded amount of memory, never Zenoh's receive path. Zenoh's
+        ``RingChannel``, used for ``tracks/*`` before, dropped its oldest uncounted, and each Sample it held kept
+        Zenoh's receive buffer alive (~85 kB for a 1.4 kB payload that came in a batch of its own): a flood of
+        unbatched puts had grown the classifier by 1.1–1.5 GB. ``max_bytes``: a larger payload is refused here, from
+        its size, before it is copied or queued (counted as :meth:`reject` counts, ``what`` and ``limit_name``
+        naming it, and ``received``; a flood of 50 MB ones had been queued for the worker to refuse).
+        ``progress``: each arrival is an input of :attr:`progress` (a worker stuck on one message then shows as
+        stalled while more arrive). ``wake``: set after each push, for a worker that waits on more than this queue.
         ``session``: another session of the service's (a ROS 2 system's router) instead of its own.
-        """
-        inbox: queue.Queue[tuple[bytes, str, float]] = queue.Queue(maxsize=capacity)
-        counter = f"dropped_queue.{counter_key(key)}"
-
-        def on_sample(sample: zenoh.Sample) -> None:
-            if self.oversized(sample, max_bytes, "payload", key):
-                self.counters.inc("received")
-                return
-            now = time.monotonic()
-            if progress and self.progress is not None:
-                self.progress.input(now)
-            item = (sample.payload.to_bytes(), str(sample.key_expr), now)
-            while not self.stop_event.is_set():
-                try:
-                    inbox.put_nowait(item)
-                    return
-                except queue.Full:
-                    try:
-                        inbox.get_nowait()
-                        self.counters.inc(counter)
-                    except queue.Empty:
-                        pass
-
-        self._declared.append((session or self.session).declare_subscriber(key, on_sample))
-        return inbox
-
-    def subscribe_channel(self, key: str, capacity: int = 16384, *, max_queued_bytes: int | None = None,
-                          max_bytes: int | None = None, what: str = "payload",
-                          limit_name: str = "") -> IngestQueue:
-        """Subscribe ``key`` into a bounded :class:`~.ingest_queue.IngestQueue` of ``(payload, key)`` that one
-        worker drains in batches with ``take(limit)``.
-
-        For thousands of small messages a second (``tracks/*``): the callback only copies the payload and appends
-        it; the worker pulls and decodes them in order, in batches. When ``capacity`` payloads (or
-        ``max_queued_bytes`` of them) wait, the oldest go, counted ``dropped_queue.<key>``. Zenoh's ``RingChannel``,
-        used here before, dropped its oldest uncounted, and each Sample it held kept Zenoh's receive buffer alive
-        (~85 kB for a 1.4 kB payload that came in a batch of its own): a flood of unbatched puts had grown the
-        classifier by 1.1–1.5 GB, freed but kept by the allocator once drained. Copied, the buffer goes back at once.
-        ``max_bytes``: a larger payload is refused in the callback, from its size, before it is copied or queued
-        (counted as :meth:`reject` counts, ``what`` and ``limit_name`` naming it, and ``received``).
         """
         inbox = IngestQueue(capacity, max_queued_bytes)
         counter = f"dropped_queue.{counter_key(key)}"
-        push = inbox.push
+        push, monotonic = inbox.push, time.monotonic
+        monitor = self.progress if progress else None
+        if progress and monitor is None:
+            raise RuntimeError("subscribe_queue(progress=True) needs monitor_progress() first")
 
         def on_sample(sample: zenoh.Sample) -> None:
             # thousands a second: the size checked here, 1.6 µs a sample (2.9 µs calling self.oversized for each)
@@ -312,11 +282,16 @@ class Service:
                 self.oversized(sample, max_bytes, what, key, limit_name)  # counts and logs it
                 self.counters.inc("received")
                 return
-            dropped = push(payload.to_bytes(), str(sample.key_expr))
+            now = monotonic()
+            if monitor is not None:
+                monitor.input(now)
+            dropped = push(payload.to_bytes(), str(sample.key_expr), now)
             if dropped:
                 self.counters.inc(counter, dropped)
+            if wake is not None:
+                wake.set()
 
-        self._declared.append(self.session.declare_subscriber(key, on_sample))
+        self._declared.append((session or self.session).declare_subscriber(key, on_sample))
         return inbox
 
     def publisher(self, key: str, *, block: bool = True, session: zenoh.Session | None = None) -> zenoh.Publisher:

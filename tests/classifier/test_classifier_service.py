@@ -478,6 +478,44 @@ def test_a_frame_already_behind_sheds_its_motion_messages_but_not_its_objects(se
     assert wait_until(lambda: all(m.header.seq == 2 for m in got["motion"].values()))
 
 
+def test_closes_behind_a_held_worker_are_bounded_in_bytes_and_the_oldest_counted(service, client_session):
+    """``tracked`` had waited in a queue bounded by count alone: 64 closes of up to ``max_payload_bytes`` (8 MiB)
+    each, 512 MiB. It holds 64 MiB at most now; beyond that the oldest go, counted ``dropped_queue.tracked``, and
+    the classifier goes on deciding frames once its worker is free."""
+    import threading
+
+    import zenoh
+
+    got = _collect(client_session)
+    _wait_connected(client_session)
+    frames = list(generate(TrackScenario(n_static=2, n_moving=1, n_starting=0, seed=9), 2))
+    _send_paced(client_session, frames[:1], got)
+    entered, release = threading.Event(), threading.Event()
+
+    def hold() -> None:
+        entered.set()
+        release.wait(30)
+
+    blocked = threading.Thread(target=service.run_on_worker, args=(hold,), kwargs={"timeout": 35})
+    blocked.start()
+    assert entered.wait(10)
+    h = frames[0].tracked.header  # a repeat of the decided frame's header: dropped unread once the worker is back
+    big = msgpack.packb({"schema_version": 1, "header": {"stamp": h.stamp, "frame_id": h.frame_id, "seq": h.seq},
+                         "pad": b"\0" * (7 << 20)})  # under the 8 MiB limit: queued, not refused
+    try:
+        for _ in range(12):  # 84 MiB
+            client_session.put(keys.tracked(NS), big, congestion_control=zenoh.CongestionControl.BLOCK)
+        assert wait_until(lambda: service.counters.get("dropped_queue.tracked") == 3, timeout=30), \
+            service.counters.snapshot()
+        assert len(service._closes) == 9 and service._closes.queued_bytes <= 64 << 20
+    finally:
+        release.set()
+        blocked.join()
+    assert wait_until(lambda: len(service._closes) == 0, timeout=10)
+    _send_paced(client_session, frames[1:], got)  # its state kept: the next frame is decided
+    assert [o.header.seq for o in got["objects"]] == [0, 1]
+
+
 def _frames_with_a_track_at_1e300():
     frames = list(generate(TrackScenario(n_static=2, n_moving=0, n_starting=0, seed=5), 12))
     tid = frames[0].observations[0].track.object_id

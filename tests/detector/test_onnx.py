@@ -563,6 +563,46 @@ def test_an_export_failing_midway_leaves_the_earlier_export_as_it_was(single_dir
     assert read_manifest(out)["layout"] == "autoware"
 
 
+def test_an_export_removes_what_a_killed_export_left_beside_it_and_nothing_else(torch_det, single_dir,
+                                                                                tmp_path) -> None:
+    """An export killed midway (SIGKILL, a power cut) leaves its hidden folder beside ``--out``
+    (``.onnx.export-PID-…``, or ``.onnx.old-PID-…`` between the two renames where the file system cannot exchange
+    two folders): it had stayed there for good, a whole export's size each time. The next export removes those of
+    a process that is gone; one of a live process (an export running now) and anything else are left alone."""
+    import os
+    import subprocess
+
+    out = tmp_path / "onnx"
+    shutil.copytree(single_dir, out)
+    gone = subprocess.Popen(["true"])
+    gone.wait()  # a pid no process holds now
+    left = [tmp_path / f".onnx.export-{gone.pid}-0a1b2c3d", tmp_path / f".onnx.old-{gone.pid}-4e5f6a7b"]
+    kept = [tmp_path / f".onnx.export-{os.getpid()}-8c9d0e1f", tmp_path / ".onnx.exports", tmp_path / "onnx2"]
+    for p in (*left, *kept):
+        p.mkdir()
+        (p / "pts_voxel_encoder.onnx").write_bytes(b"\0" * 1024)
+    export_onnx(torch_det.model, out, recalibration=torch_det.recalibration)
+    assert sorted(os.listdir(tmp_path)) == sorted(["onnx", *(p.name for p in kept)])
+    assert read_manifest(out)["layout"] == "single"
+
+
+def test_an_export_over_an_earlier_one_swaps_the_two_folders_in_one_step(tmp_path) -> None:
+    """Over an earlier export the new folder and the old are exchanged in one ``renameat2(RENAME_EXCHANGE)``:
+    ``--out`` is never missing, not even for the instant between two renames (a detector loading it then had found
+    no folder). Where the file system cannot exchange, two renames do it, as before."""
+    from jitterguard.services.detector.onnx_export import _exchange, _swap_in
+
+    a, b = tmp_path / "a", tmp_path / "b"
+    for d, name in ((a, "new"), (b, "old")):
+        d.mkdir()
+        (d / name).write_text(name)
+    if not _exchange(a, b):
+        pytest.skip("this file system cannot exchange two folders")
+    assert [p.name for p in a.iterdir()] == ["old"] and [p.name for p in b.iterdir()] == ["new"]
+    _swap_in(b, a)  # back: the new one in place, the old one gone, nothing left beside
+    assert [p.name for p in a.iterdir()] == ["new"] and sorted(p.name for p in tmp_path.iterdir()) == ["a"]
+
+
 def test_an_export_into_a_folder_holding_more_than_an_export_is_refused(tmp_path, capsys) -> None:
     """The export replaces the whole --out folder: one holding anything else (``--out .``) is refused before the
     export, exit 2 in one line, and left as it was."""

@@ -10,7 +10,6 @@ watchdog, faulthandler.
 
 from __future__ import annotations
 
-import queue
 import re
 import sys
 import time
@@ -26,14 +25,12 @@ class Poisoned(Service):
         super().__init__(loopback_options(ns, port, listen_self=True))
         self.mode = mode
         self.monitor_progress(ProgressPolicy(stall_s=1.0, failing_frames=3))
-        self.inbox = self.subscribe_inbox(f"jg/{ns}/input", progress=True)
+        self.inbox = self.subscribe_queue(f"jg/{ns}/input", 64, progress=True)
         self.spawn(self._worker, "worker")
 
     def _worker(self) -> None:
         while not self.stop_event.is_set():
-            try:
-                self.inbox.get(timeout=0.1)
-            except queue.Empty:
+            if self.inbox.get(0.1) is None:
                 continue
             try:
                 self.handle()

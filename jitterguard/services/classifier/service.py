@@ -14,7 +14,7 @@ lists, as for any straggler, and a second observation of a track read after its 
 ``frames.late_observations`` rather than ``frames.duplicate_observations`` (dropped either way).
 
 Overload degrades instead of backing up, and every queue is bounded: ``tracked`` waits in a queue of
-:data:`CLOSE_QUEUE` (the oldest goes, counted ``dropped_queue.tracked``), observations in a queue of
+:data:`CLOSE_QUEUE` payloads and 64 MiB (the oldest goes, counted ``dropped_queue.tracked``), observations in a queue of
 :data:`OBS_QUEUE` payloads and :data:`OBS_QUEUE_BYTES` (the oldest goes, counted ``dropped_queue.tracks/*``; what a
 frame then lacks is counted ``frames.missing_observations`` too), config writes in a queue of 64; a ``tracked``
 that is a duplicate, late or a jump is dropped from its header, unread. A straggler of a frame already decided is
@@ -181,8 +181,7 @@ class ClassifierService(Service):
         self._gauges = calibration_gauges(self._calibration)  # ... flattened for the heartbeat
         self.latencies_ms: deque[float] = deque(maxlen=LATENCY_WINDOW)
         self._queue: queue.Queue = queue.Queue(maxsize=64)  # config writes and calls, run between frames
-        self._closes: deque[tuple[bytes, zenoh.KeyExpr, float]] = deque(maxlen=CLOSE_QUEUE)
-        self._wake = threading.Event()
+        self._wake = threading.Event()  # a close or a control call came
         self._latest: _Latest | None = None
         self._window = (self.core.window, self.core.stride)  # the last frame's window, stride (a change is logged)
         self._latest_lock = threading.Lock()
@@ -192,10 +191,14 @@ class ClassifierService(Service):
         self._motion_pubs = self.keyed_publishers(lambda tid: keys.motion(self.ns, tid),
                                                   priority=zenoh.Priority.DATA_LOW)
         self.monitor_progress()  # tracked in -> objects out (runtime.progress)
-        self._obs_in = self.subscribe_channel(self._obs_key, OBS_QUEUE, max_queued_bytes=OBS_QUEUE_BYTES,
-                                              max_bytes=self.pipeline.limits.max_payload_bytes,
-                                              what="TrackObservation", limit_name="max_payload_bytes")
-        self._declared.append(self.session.declare_subscriber(self._tracked_key, self._on_tracked))
+        max_payload = self.pipeline.limits.max_payload_bytes
+        self._obs_in = self.subscribe_queue(self._obs_key, OBS_QUEUE, max_queued_bytes=OBS_QUEUE_BYTES,
+                                            max_bytes=max_payload, what="TrackObservation",
+                                            limit_name="max_payload_bytes")
+        # a close is stamped on arrival (the frame latency counts from there, queueing included) and wakes the worker
+        self._closes = self.subscribe_queue(self._tracked_key, CLOSE_QUEUE, max_bytes=max_payload,
+                                            what="TrackedObjects", limit_name="max_payload_bytes", progress=True,
+                                            wake=self._wake)
         self.queryable(keys.classifier_config(self.ns), self._on_config_query)
         self.queryable(keys.classifier_state(self.ns), self._on_state_query)
         self.spawn(self._worker, "worker")
@@ -212,22 +215,6 @@ class ClassifierService(Service):
         return self.pipeline.assembler
 
     # ---------------------------------------------------------------- the worker
-
-    def _on_tracked(self, sample: zenoh.Sample) -> None:
-        """Zenoh's callback thread: stamp the arrival, hand the bytes to the worker, wake it. Nothing else. The
-        queue is bounded: a worker that fell behind loses the oldest close (counted ``dropped_queue.tracked``). A
-        payload over ``limits.max_payload_bytes`` is refused here from its size, neither copied nor queued (the
-        queue had held up to 64 of whatever size Zenoh carries, up to 1 GiB each, for the worker to refuse)."""
-        if self.oversized(sample, self.pipeline.limits.max_payload_bytes, "TrackedObjects", self._tracked_key,
-                          "max_payload_bytes"):
-            self.counters.inc("received")
-            return
-        t0 = time.perf_counter()
-        self.progress.input(time.monotonic())
-        if len(self._closes) == CLOSE_QUEUE:
-            self.counters.inc("dropped_queue.tracked")
-        self._closes.append((sample.payload.to_bytes(), sample.key_expr, t0))
-        self._wake.set()
 
     def _worker(self) -> None:
         collect_when_idle = False
@@ -299,7 +286,7 @@ class ClassifierService(Service):
         busy = busy or taken > 0
         # A close is stamped when it arrives, so its straggler timeout runs while this worker may still
         # be behind on observations that did arrive: give up on missing ones only once the channel is empty.
-        frames = self.pipeline.ready(time.perf_counter(), give_up=taken < OBS_CHUNK)
+        frames = self.pipeline.ready(time.monotonic(), give_up=taken < OBS_CHUNK)
         for i, frame in enumerate(frames):
             self._publish(self.pipeline.finish(frame), behind=i + 1 < len(frames))
             collect_when_idle = self._manage_gc
@@ -319,8 +306,7 @@ class ClassifierService(Service):
 
     def _take_closes(self) -> bool:
         took = False
-        while self._closes:
-            data, key, t0 = self._closes.popleft()
+        for data, key, t0 in self._closes.take(CLOSE_QUEUE):
             took = True
             self.counters.inc("received")
             try:
@@ -338,7 +324,7 @@ class ClassifierService(Service):
         if not items:
             return 0
         self.counters.inc("received", len(items))
-        cols = self.pipeline.observations([data for data, _ in items], [keys.last_chunk(key) for _, key in items])
+        cols = self.pipeline.observations([item[0] for item in items], [keys.last_chunk(item[1]) for item in items])
         for i, exc in cols.errors:
             self.reject(exc, self._obs_key, items[i][1])
         if cols.normalised:
@@ -388,7 +374,7 @@ class ClassifierService(Service):
             self.progress.failure(time.monotonic(), f"no tracks/* observation of the {out.missing} the frame listed")
         else:
             self.progress.output(time.monotonic())
-        self._record_latency((time.perf_counter() - out.received_at) * 1e3)
+        self._record_latency((time.monotonic() - out.received_at) * 1e3)
         self.counters.inc("published")
         self.counters.inc("frames_processed")
         self._count_states(out.decisions.state, out.decisions.vetoed)

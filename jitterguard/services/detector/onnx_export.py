@@ -27,7 +27,9 @@ runs, so the detector's other commands work without them.
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import errno
+import glob
 import hashlib
 import io
 import json
@@ -52,6 +54,8 @@ from .ground import TRAINED_SENSOR_HEIGHT_M
 from .inference import config_to_dict
 from .network import HEAD_CHANNELS, CenterPointNet
 from .pillars import NUM_PILLAR_FEATURES, PillarFeatureNet, Pillars, voxelize
+
+log = logging.getLogger(__name__)
 
 FORMAT = "jitterguard-detector-onnx"
 FORMAT_VERSION = 1
@@ -389,6 +393,8 @@ def export_onnx(net: CenterPointNet, out_dir: str | Path, *, layout: str = "sing
                           f"{', ...' if len(foreign) > 5 else ''}): an export replaces the whole folder")
     place = Path(os.path.realpath(out))  # through a symlink the folder it names is replaced, the link kept
     place.parent.mkdir(parents=True, exist_ok=True)
+    for p in _remove_abandoned(place):
+        log.info("removed %s, left by an export that was killed midway", p)
     tmp = _fresh_sibling(place, "export")
     try:
         if place.is_dir():  # the new folder is readable by whoever read the old one (not mkdtemp's 0700)
@@ -412,10 +418,12 @@ def foreign_entries(out_dir: str | Path) -> list[str]:
 
 
 def _fresh_sibling(place: Path, tag: str) -> Path:
-    """A new empty folder beside ``place``, hidden and named after it: on the same file system, so renaming it to
-    ``place`` is atomic. Made with the umask's mode, not mkdtemp's 0700."""
+    """A new empty folder beside ``place``, hidden and named after it and this process
+    (``.NAME.TAG-PID-RANDOM``): on the same file system, so renaming it to ``place`` is atomic, and a later export
+    can tell one left by a killed export (:func:`_remove_abandoned`). Made with the umask's mode, not mkdtemp's
+    0700."""
     while True:
-        p = place.with_name(f".{place.name}.{tag}-{secrets.token_hex(4)}")
+        p = place.with_name(f".{place.name}.{tag}-{os.getpid()}-{secrets.token_hex(4)}")
         try:
             p.mkdir()
             return p
@@ -423,17 +431,67 @@ def _fresh_sibling(place: Path, tag: str) -> Path:
             continue
 
 
+def _remove_abandoned(place: Path) -> list[Path]:
+    """Remove the hidden folders beside ``place`` that an export killed midway (SIGKILL, a power cut) left: those
+    of :func:`_fresh_sibling` whose process is gone. One whose process lives (an export running now, or a pid
+    reused since) is left alone. Returns what was removed."""
+    removed = []
+    for tag in ("export", "old"):
+        for p in place.parent.glob(f".{glob.escape(place.name)}.{tag}-*-*"):
+            pid = p.name[len(place.name) + len(tag) + 3:].split("-", 1)[0]
+            if not pid.isdigit() or _alive(int(pid)):
+                continue
+            shutil.rmtree(p, ignore_errors=True)
+            removed.append(p)
+    return removed
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except (ProcessLookupError, OverflowError):  # gone, or a number no kernel hands out
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
+
+
+_RENAME_EXCHANGE = 2
+"""``renameat2``'s flag: swap two paths in one step (Linux 3.15; ext4, xfs, btrfs, tmpfs, overlayfs)."""
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap the folders ``a`` and ``b`` in one atomic step; ``False`` where the kernel, the C library or the file
+    system cannot (the caller then renames twice)."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        renameat2 = libc.renameat2
+    except (OSError, AttributeError):
+        return False
+    at_fdcwd = -100
+    if renameat2(at_fdcwd, os.fsencode(a), at_fdcwd, os.fsencode(b), _RENAME_EXCHANGE) == 0:
+        return True
+    err = ctypes.get_errno()
+    if err in (errno.EINVAL, errno.ENOSYS, errno.EOPNOTSUPP):
+        return False
+    raise OSError(err, os.strerror(err), str(a), None, str(b))
+
+
 def _swap_in(new: Path, place: Path) -> None:
-    """Rename the folder ``new`` to ``place``: one rename where ``place`` is missing or empty; else the earlier
-    export is renamed aside first (and put back if the second rename fails) and removed once ``new`` is in place.
-    At every moment ``place`` is the old export whole or the new one whole (absent for the instant between the two
-    renames): an export written into the folder itself had, stopped or failing midway, left a mix of both."""
+    """Put the folder ``new`` at ``place``: one rename where ``place`` is missing or empty; else one atomic exchange
+    of the two, after which the earlier export (now at ``new``) is removed. At every moment ``place`` is the old
+    export whole or the new one whole: an export written into the folder itself had, stopped or failing midway, left
+    a mix of both. Where the file system cannot exchange, the earlier export is renamed aside first (and put back if
+    the second rename fails): ``place`` is then absent for the instant between the two renames."""
     try:
         os.rename(new, place)
         return
     except OSError as exc:
         if exc.errno not in (errno.ENOTEMPTY, errno.EEXIST):
             raise
+    if _exchange(new, place):
+        shutil.rmtree(new, ignore_errors=True)
+        return
     old = _fresh_sibling(place, "old")
     os.rename(place, old)
     try:

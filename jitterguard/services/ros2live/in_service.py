@@ -49,6 +49,8 @@ INBOX = 4
 """Scans held for the worker: the newest ones (a LiDAR at 10–20 Hz; a worker behind skips, never lags)."""
 MAX_CLOUD_BYTES = 64 * 1024 * 1024
 """A PointCloud2 larger than this is refused from its size (a 128-beam scan with 12 fields is ~20 MB)."""
+INBOX_BYTES = 2 * MAX_CLOUD_BYTES
+"""... and the scans held at most this many bytes (four of 20 MB, two of the largest)."""
 MAX_POSE_BYTES = 1024 * 1024
 STATIC_QUERY_S = 5.0
 PUB_CACHE_PREFIXES = {"bridge": ("@/*/@ros2_pub_cache", "@ros2_pub_cache/*"), "rmw_zenoh": ("*",)}
@@ -83,8 +85,8 @@ class Ros2InService(RosGraphService):
         self.naming = naming
         self.ros = self.another_session(ros_opts) if ros_opts is not None else self.session
         self.in_key = naming.subscription(topic)
-        self._inbox = self.subscribe_inbox(self.in_key, INBOX, progress=True, max_bytes=MAX_CLOUD_BYTES,
-                                           session=self.ros)
+        self._inbox = self.subscribe_queue(self.in_key, INBOX, max_queued_bytes=INBOX_BYTES, progress=True,
+                                           max_bytes=MAX_CLOUD_BYTES, session=self.ros)
         self.static_key = naming.subscription("/tf_static")
         self._static_seen = threading.Event()
         self._sub(self.static_key, self._on_static, history=True)
@@ -167,11 +169,9 @@ class Ros2InService(RosGraphService):
 
     def _worker(self) -> None:
         while not self.stop_event.is_set():
-            try:
-                payload, key, _ = self._inbox.get(timeout=0.25)
-            except Exception:  # queue.Empty
-                continue
-            self._handle(payload, key)
+            item = self._inbox.get(0.25)
+            if item is not None:
+                self._handle(item[0], item[1])
 
     def _handle(self, payload: bytes, key: str) -> None:
         received = time.time_ns()

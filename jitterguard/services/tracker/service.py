@@ -1,15 +1,15 @@
 """The tracker as a Zenoh service: ``detections`` in; ``tracks/{id}`` per observed track, then ``tracked``.
 
 Threading: a detections frame arrives through one callback that only copies the payload into an inbox queue
-(:meth:`~jitterguard.runtime.Service.subscribe_inbox`); one worker thread, blocked on that queue, wakes at once,
+(:meth:`~jitterguard.runtime.Service.subscribe_queue`); one worker thread, blocked on that queue, wakes at once,
 judges the frame's header (:mod:`jitterguard.stream_order`), reads it (:func:`~jitterguard.schemas.read_detected_objects`:
 a malformed or oversized payload is counted ``rejected`` and skipped, one the model read in another shape
 ``normalised``), owns the :class:`TrackerCore` — nothing else touches it — and, through the adapter
 (:mod:`.adapter`), per frame publishes every ``tracks/{id}`` first (plain puts per key,
 :class:`~jitterguard.runtime.keyed_publishers.KeyedPublishers`) and the closing ``tracked`` last (the classifier
 waits for the IDs that ``tracked.observed_track_ids`` names). All puts use BLOCK congestion control: a lost
-observation would silently shorten a classifier window. The inbox is bounded: when the worker falls behind, the
-oldest frame goes (counted ``dropped_queue.detections``).
+observation would silently shorten a classifier window. The inbox is bounded (64 frames, 64 MiB): when the worker
+falls behind, the oldest frame goes (counted ``dropped_queue.detections``).
 
 Counters (in the heartbeat): ``frames``, ``dropped_duplicate``, ``dropped_out_of_order``, ``dropped_jump`` (held,
 judged from the header before the payload is read), ``tracks_born`` (tentative tracks started, clutter's
@@ -26,7 +26,6 @@ published; a detector that leaves the field at 0 is also warned of once in the l
 
 from __future__ import annotations
 
-import queue
 import threading
 import time
 from collections.abc import Callable
@@ -86,8 +85,9 @@ class TrackerService(Service):
         self._det_key = keys.detections(self.ns)
         self._tracked_pub = self.publisher(keys.tracked(self.ns))
         self.monitor_progress()  # detections in -> tracked out (runtime.progress)
-        self._det_inbox = self.subscribe_inbox(self._det_key, capacity=FRAME_CHANNEL, progress=True,
-                                               max_bytes=self.core.config.limits.max_payload_bytes)
+        self._det_inbox = self.subscribe_queue(self._det_key, FRAME_CHANNEL, progress=True,
+                                               max_bytes=self.core.config.limits.max_payload_bytes,
+                                               what="DetectedObjects", limit_name="max_payload_bytes")
         self._track_pubs = self.keyed_publishers(lambda tid: keys.track(self.ns, tid))
         if static_hints:
             self.subscribe(keys.motion_all(self.ns), MotionState, self._on_motion, max_bytes=MOTION_MAX_BYTES)
@@ -123,13 +123,13 @@ class TrackerService(Service):
     def _worker(self) -> None:
         collect = False  # a frame was processed since the last idle collection
         while not self.stop_event.is_set():
-            if collect and self._det_inbox.empty():  # between frames: the collector's turn (gc_policy)
+            if collect and not self._det_inbox:  # between frames: the collector's turn (gc_policy)
                 self._idle_gc.collect()
                 collect = False
-            try:
-                payload, _key, arrived = self._det_inbox.get(timeout=IDLE_WAIT_S)
-            except queue.Empty:
+            item = self._det_inbox.get(IDLE_WAIT_S)
+            if item is None:
                 continue
+            payload, _key, arrived = item
             self.counters.inc("received")
             head = peek_header(payload)
             verdict = None
