@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
 import time
+from contextlib import contextmanager
 
 import msgpack
 import numpy as np
@@ -236,7 +238,6 @@ def test_a_conditional_write_applies_only_while_the_config_it_read_is_in_force(s
 def test_a_write_the_busy_worker_did_not_take_in_time_is_withdrawn(service, client_session):
     """The worker is busy for 3 s (a long frame, a stall): the write times out after 2 s and its writer is told
     "not applied" — it had then been applied (and stored) a second later all the same."""
-    import threading
 
     _wait_connected(client_session)
     busy = threading.Thread(target=service.run_on_worker, args=(lambda: time.sleep(3.0), 5.0))
@@ -256,7 +257,6 @@ def test_a_write_the_busy_worker_did_not_take_in_time_is_withdrawn(service, clie
 def test_a_write_behind_a_full_worker_queue_is_told_not_applied(service, client_session):
     """64 writes and calls wait behind a stuck worker: a further write's put found the queue full and raised in the
     query handler — its writer got no reply at all (the sidecar then said "did not confirm")."""
-    import threading
     from concurrent.futures import Future
 
     _wait_connected(client_session)
@@ -451,27 +451,34 @@ def test_adapter_rejects_bad_payloads_and_counts_stragglers():
     assert pipe.assembler.counts["late_observations"] == 1
 
 
-def test_a_frame_already_behind_sheds_its_motion_messages_but_not_its_objects(service, client_session):
-    import threading
-
-    got = _collect(client_session)
-    _wait_connected(client_session)
-    frames = list(generate(TrackScenario(n_static=2, n_moving=1, n_starting=0, seed=9), 3))
-    _send_paced(client_session, frames[:1], got)
+@contextmanager
+def _held_worker(service, hold_s: float = 30.0):
+    """The classifier's worker busy (a call on it that waits) until the block ends: what arrives queues up."""
     entered, release = threading.Event(), threading.Event()
 
     def hold() -> None:
         entered.set()
-        release.wait(10)
+        release.wait(hold_s)
 
-    blocked = threading.Thread(target=service.run_on_worker, args=(hold,), kwargs={"timeout": 15})
-    blocked.start()  # the worker is busy: the next two frames queue up behind it
-    assert entered.wait(10)
-    for f in frames[1:]:
-        _send(client_session, f)
-    assert wait_until(lambda: len(service._closes) == 2)
-    release.set()
-    blocked.join()
+    blocked = threading.Thread(target=service.run_on_worker, args=(hold,), kwargs={"timeout": hold_s + 5})
+    blocked.start()
+    try:
+        assert entered.wait(10)
+        yield
+    finally:
+        release.set()
+        blocked.join()
+
+
+def test_a_frame_already_behind_sheds_its_motion_messages_but_not_its_objects(service, client_session):
+    got = _collect(client_session)
+    _wait_connected(client_session)
+    frames = list(generate(TrackScenario(n_static=2, n_moving=1, n_starting=0, seed=9), 3))
+    _send_paced(client_session, frames[:1], got)
+    with _held_worker(service):  # the worker is busy: the next two frames queue up behind it
+        for f in frames[1:]:
+            _send(client_session, f)
+        assert wait_until(lambda: len(service._closes) == 2)
     assert wait_until(lambda: len(got["objects"]) == 3)
     assert [o.header.seq for o in got["objects"]] == [0, 1, 2]
     assert service.counters.get("motion_frames_shed") == 1  # frame 1: frame 2 was already waiting
@@ -482,35 +489,21 @@ def test_closes_behind_a_held_worker_are_bounded_in_bytes_and_the_oldest_counted
     """``tracked`` had waited in a queue bounded by count alone: 64 closes of up to ``max_payload_bytes`` (8 MiB)
     each, 512 MiB. It holds 64 MiB at most now; beyond that the oldest go, counted ``dropped_queue.tracked``, and
     the classifier goes on deciding frames once its worker is free."""
-    import threading
-
     import zenoh
 
     got = _collect(client_session)
     _wait_connected(client_session)
     frames = list(generate(TrackScenario(n_static=2, n_moving=1, n_starting=0, seed=9), 2))
     _send_paced(client_session, frames[:1], got)
-    entered, release = threading.Event(), threading.Event()
-
-    def hold() -> None:
-        entered.set()
-        release.wait(30)
-
-    blocked = threading.Thread(target=service.run_on_worker, args=(hold,), kwargs={"timeout": 35})
-    blocked.start()
-    assert entered.wait(10)
     h = frames[0].tracked.header  # a repeat of the decided frame's header: dropped unread once the worker is back
     big = msgpack.packb({"schema_version": 1, "header": {"stamp": h.stamp, "frame_id": h.frame_id, "seq": h.seq},
                          "pad": b"\0" * (7 << 20)})  # under the 8 MiB limit: queued, not refused
-    try:
+    with _held_worker(service):
         for _ in range(12):  # 84 MiB
             client_session.put(keys.tracked(NS), big, congestion_control=zenoh.CongestionControl.BLOCK)
         assert wait_until(lambda: service.counters.get("dropped_queue.tracked") == 3, timeout=30), \
             service.counters.snapshot()
         assert len(service._closes) == 9 and service._closes.queued_bytes <= 64 << 20
-    finally:
-        release.set()
-        blocked.join()
     assert wait_until(lambda: len(service._closes) == 0, timeout=10)
     _send_paced(client_session, frames[1:], got)  # its state kept: the next frame is decided
     assert [o.header.seq for o in got["objects"]] == [0, 1]
@@ -571,7 +564,6 @@ def test_a_track_at_1e300_keeps_every_output_valid(zenoh_port, client_session):
 def test_heartbeats_go_out_while_the_statistic_warms_up(zenoh_port, client_session, monkeypatch) -> None:
     """The heartbeat starts with the session, before the compiled statistic has warmed up (seconds on a first run):
     it read gauges set only after the warm-up, and every heartbeat of that time failed (AttributeError)."""
-    import threading
 
     from jitterguard.schemas.models import Heartbeat
     from jitterguard.services.classifier import service as service_module
