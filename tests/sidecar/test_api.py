@@ -220,6 +220,22 @@ def test_frames_that_enter_and_never_come_out_are_a_readiness_fault() -> None:
             wait_for(lambda: (b := client.readiness())["ready"] and any(
                 w.startswith("no input: the classifier has processed no frame") for w in b["warnings"]),
                 "ready, with a warning of no input, once nothing enters", timeout=30)
+            # a ROS 2 bridge fed only scans that break their contract publishes nothing and stays ok (a restart
+            # cannot mend them): the warning names it and what it refused, not just "no input"
+            bridge = s.liveliness().declare_token(keys.alive(stack.ns, "ros2-in"))
+            refused = iter(range(0, 10**6, 20))
+
+            def bridge_refuses() -> dict | None:
+                s.put(keys.heartbeat(stack.ns, "ros2-in"), encode(Heartbeat(
+                    service="ros2-in", pid=4, stamp=time.time_ns(), health="ok",
+                    counters={"invalid": next(refused), "published": 0})))
+                body = client.readiness()
+                return body if any(w.startswith("ros2-in refused") for w in body["warnings"]) else None
+
+            body = wait_for(bridge_refuses, "readyz to warn of the bridge's refusals", timeout=20)
+            (warning,) = [w for w in body["warnings"] if w.startswith("ros2-in refused")]
+            assert "messages in the last 10 s (invalid +" in warning and body["ready"] is True, body
+            bridge.undeclare()
             # frames come out again
             stack.feeder.resume()
             wait_for(lambda: not any("processed no frame" in w for w in client.readiness()["warnings"]),

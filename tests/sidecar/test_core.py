@@ -34,6 +34,9 @@ from jitterguard.services.sidecar.core import (
     is_loopback,
     latency_histogram,
     merge_patch,
+    refusal_counts,
+    refusal_warning,
+    refusals_since,
     render_state,
     validate_config,
 )
@@ -285,3 +288,28 @@ def test_http_models_take_only_the_json_types_they_document(body: dict) -> None:
 
 def test_json_integers_may_be_written_as_integral_floats() -> None:
     assert ConfigModel.model_validate({"window_size": 12.0, "alpha_default": 2}).window_size == 12
+
+
+def test_refusals_since_counts_what_rose_over_the_window_from_the_beat_at_its_start() -> None:
+    """Heartbeats at 1 Hz: the base is the newest beat at least the window old, so what rose before it is not
+    counted; a counter that fell (the service restarted) counts from 0; one that did not rise is left out."""
+    beats = [(t, {"invalid": v, "rejected.points": 7}) for t, v in ((0.0, 3), (5.0, 10), (12.0, 14), (20.0, 25))]
+    assert refusals_since(beats, now=20.0, window_s=10.0) == {"invalid": 15}  # 25 - 10 (the beat at 5 s)
+    assert refusals_since(beats[:2], now=5.0, window_s=10.0) == {"invalid": 7}  # young: from the oldest kept
+    assert refusals_since(beats[:1], now=0.0, window_s=10.0) == {}
+    restarted = [(0.0, {"rejected.detections": 900}), (1.0, {"rejected.detections": 4, "invalid": 0})]
+    assert refusals_since(restarted, now=1.0, window_s=10.0) == {"rejected.detections": 4}
+
+
+def test_refusal_counts_keep_only_refusals_and_at_most_sixteen_of_them() -> None:
+    counters = {"published": 9, "invalid": 2, "rejected": 5, "over_limit.points": 1,
+                **{f"rejected.k{i:02d}": i for i in range(40)}}
+    kept = refusal_counts(counters)
+    assert "published" not in kept and "rejected" not in kept and "over_limit.points" not in kept
+    assert len(kept) == 16 and kept["invalid"] == 2 and kept["rejected.k00"] == 0
+
+
+def test_a_refusal_warning_names_the_service_the_total_and_the_counters() -> None:
+    msg = refusal_warning("ros2-in", {"invalid": 40, "rejected.sensing/lidar": 2}, 10.0)
+    assert msg.startswith("ros2-in refused 42 messages in the last 10 s (invalid +40, rejected.sensing/lidar +2)")
+    assert "jitterguard logs ros2-in" in msg

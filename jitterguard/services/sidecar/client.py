@@ -21,6 +21,7 @@ import math
 import os
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from typing import Any
 
@@ -33,12 +34,16 @@ from ...runtime.config_auth import NONCE_BYTES, challenge_attachment, reply_is_a
 from ...schemas.models import ClassifierConfig, ClassifierStateSnapshot, ConfigReply, Heartbeat
 from ...schemas.wire import CONFIG_REPLY_BOUNDS, HEARTBEAT_BOUNDS
 from .core import (PIPELINE_STAGES, PIPELINE_STALL_S, SOURCES, ConfigError, RenderedState, config_to_api, diff_states,
-                   frames_standing, is_pipeline, render_state, service_problems, silenced)
+                   frames_standing, is_pipeline, refusal_counts, refusal_warning, refusals_since, render_state,
+                   service_problems, silenced)
 from .metrics import SidecarMetrics
 
 CLASSIFIER = "classifier"
 NO_INPUT_S = 10.0
 """The classifier's frame count standing still this long, while it is alive, is named under ``warnings``."""
+REFUSAL_BEATS = 32
+"""Heartbeats of a service kept to tell what it refused over the last :data:`NO_INPUT_S` (one a second; more only
+from a service that beats faster, which then reaches back less far)."""
 MAX_SERVICES = 64
 """Heartbeats kept by service name (the namespace's services; a flood of made-up names cannot grow this)."""
 MAX_TOKENS = 4 * MAX_SERVICES
@@ -107,6 +112,8 @@ class ClassifierClient(Service):
         self._hb: Heartbeat | None = None
         self._hb_at: float | None = None  # monotonic receive time of the last classifier heartbeat
         self._beats: dict[str, tuple[Heartbeat, float]] = {}  # every service's latest heartbeat, receive time
+        # per service in _beats: its refusal counters over the last NO_INPUT_S, (receive time, counts), bounded
+        self._refused: dict[str, deque[tuple[float, dict[str, int]]]] = {}
         self._rendered: RenderedState | None = None
         self._last_payload: bytes | None = None
         self._poll_refusal: str | None = None  # why the last state poll's replies were all refused (unsigned)
@@ -151,9 +158,14 @@ class ClassifierClient(Service):
                     self.counters.inc("heartbeats_dropped")
                     return
                 del self._beats[victim]
+                self._refused.pop(victim, None)
                 if victim not in PIPELINE_STAGES:
                     self._left.discard(victim)
             self._beats[name] = (hb, now)
+            refused = self._refused.setdefault(name, deque(maxlen=REFUSAL_BEATS))
+            while len(refused) > 1 and now - refused[1][0] >= NO_INPUT_S:  # one at least NO_INPUT_S old is the base
+                refused.popleft()
+            refused.append((now, refusal_counts(hb.counters)))
             if name == CLASSIFIER:
                 self._hb, self._hb_at = hb, now
                 if self._frames_at is None or self._frames_at[0] != hb.last_seq:
@@ -196,6 +208,7 @@ class ClassifierClient(Service):
                         for name, (b, at) in self._beats.items()}
             on_bus, left = set(self._on_bus), set(self._left)
             sources_left, frames_at, moved = dict(self._sources_left), self._frames_at, dict(self._sources_moved)
+            refused = {name: refusals_since(h, now, NO_INPUT_S) for name, h in self._refused.items()}
         age = now - hb_at if hb_at is not None else None
         found = service_problems(services, self.stale_after_s, on_bus, left)
         services = silenced(services, self.stale_after_s, found)
@@ -225,14 +238,17 @@ class ClassifierClient(Service):
                 "last_seq": hb.last_seq if hb is not None and hb_at is not None else None,
                 "state_seq": st.seq if st is not None else None, "services": services,
                 "warnings": [msg for name, msg in found if not is_pipeline(name)] + self._input_warnings(
-                    now, services, sources_left, standing)}
+                    now, services, sources_left, standing, refused)}
 
     def _input_warnings(self, now: float, services: dict[str, dict[str, Any]], sources_left: dict[str, float],
-                        standing: tuple[str, bool] | None) -> list[str]:
+                        standing: tuple[str, bool] | None, refused: dict[str, dict[str, int]]) -> list[str]:
         """What keeps objects from coming without being a readiness fault (DESIGN: no input at all is not a fault,
-        a sensor may be off): a source that left the bus, and the classifier's frames standing still. Readiness
-        stays as it was; these only say why a ready sidecar serves no new objects. A looping replay that
-        supervisord had given up on (FATAL) had left ``/readyz`` at 200 "ok" with nothing to say it."""
+        a sensor may be off): a source that left the bus, the classifier's frames standing still, and — while they
+        stand — each service that refused messages in that time. Readiness stays as it was; these only say why a
+        ready sidecar serves no new objects. A looping replay that supervisord had given up on (FATAL) had left
+        ``/readyz`` at 200 "ok" with nothing to say it, and a ROS 2 bridge fed only scans that break their contract
+        (each refused, counted ``invalid``; ``ok``, as a restart cannot mend them) had left a warning of "no input"
+        alone."""
         out = []
         for name, since in sorted(sources_left.items()):
             beat = services.get(name)
@@ -242,6 +258,8 @@ class ClassifierClient(Service):
                        " no frames enter the pipeline; its recording ended, or it failed and was not restarted")
         if standing is not None and not standing[1]:  # the classifier's frames standing still (a fault: in reason)
             out.append(standing[0])
+        if standing is not None:
+            out.extend(refusal_warning(name, rose, NO_INPUT_S) for name, rose in sorted(refused.items()) if rose)
         return out
 
     def readiness_flag(self) -> bool:

@@ -215,6 +215,44 @@ def frames_standing(frames_at: tuple[int, float] | None, sources_moved: Mapping[
     return f"the classifier has processed no frame for {still:.0f} s{last} while frames enter ({feeding})", False
 
 
+MAX_REFUSAL_COUNTERS = 16
+"""Refusal counters kept per heartbeat (a real service has a few; a crafted heartbeat may carry 512)."""
+
+
+def refusal_counts(counters: Mapping[str, int]) -> dict[str, int]:
+    """The counters of a heartbeat that count messages a service refused: ``rejected.<key>`` (malformed, over a
+    limit, of another track) and ``invalid`` (a ROS 2 bridge's messages that break the sender's contract); the
+    first :data:`MAX_REFUSAL_COUNTERS` by name."""
+    names = sorted(k for k in counters if k.startswith("rejected.") or k == "invalid")[:MAX_REFUSAL_COUNTERS]
+    return {k: counters[k] for k in names}
+
+
+def refusals_since(history: Iterable[tuple[float, Mapping[str, int]]], now: float, window_s: float) -> dict[str, int]:
+    """How far each refusal counter rose over the last ``window_s``, from a service's heartbeats in order
+    (``(receive time, refusal_counts)``): its newest value less its value in the newest heartbeat at least
+    ``window_s`` old (or the oldest kept), counters that did not rise left out. A counter that fell (the service
+    restarted) counts from 0."""
+    beats = list(history)
+    if len(beats) < 2:
+        return {}
+    base = beats[0][1]
+    for at, counts in beats:
+        if now - at >= window_s:
+            base = counts
+    newest = beats[-1][1]
+    rose = {k: v - base.get(k, 0) if v >= base.get(k, 0) else v for k, v in newest.items()}
+    return {k: n for k, n in sorted(rose.items()) if n > 0}
+
+
+def refusal_warning(name: str, rose: Mapping[str, int], window_s: float) -> str:
+    """The warning that a service refused messages while the classifier's frames stand still: why no object comes
+    although something is sent (a bridge fed messages that break their contract stays ``ok``: a restart cannot mend
+    the sender's messages)."""
+    parts = ", ".join(f"{k} +{n}" for k, n in list(rose.items())[:4]) + (", ..." if len(rose) > 4 else "")
+    return (f"{name} refused {sum(rose.values())} messages in the last {window_s:.0f} s ({parts}): what it was sent"
+            f" went no further (jitterguard logs {name})")
+
+
 def is_pipeline(name: str) -> bool:
     """The services between the sensor's frames and the classifier's objects, the classifier included: a fault of
     one of them is a readiness fault."""
