@@ -46,9 +46,11 @@ def decode(cls: type[M], data: bytes | bytearray | memoryview, *, max_bytes: int
                                     max_map_len=max_map_len))
 
 
-def decode_with_raw(cls: type[M], data: bytes | bytearray | memoryview) -> tuple[M, dict]:
-    """Like :func:`decode`, also returning the validated msgpack map (for a caller that renders from the map)."""
-    raw = unpack_map(cls, data)
+def decode_with_raw(cls: type[M], data: bytes | bytearray | memoryview, *, max_bytes: int | None = None,
+                    max_array_len: int | None = None, max_map_len: int | None = None) -> tuple[M, dict]:
+    """Like :func:`decode` (with the same bounds), also returning the validated msgpack map (for a caller that
+    renders from the map)."""
+    raw = unpack_map(cls, data, max_bytes=max_bytes, max_array_len=max_array_len, max_map_len=max_map_len)
     return validate(cls, raw), raw
 
 

@@ -125,6 +125,17 @@ CONFIG_REPLY_BOUNDS: dict[str, int] = {"max_bytes": 4 * MAX_CONFIG_BYTES, "max_a
 """What the sidecar reads of a ``ConfigReply``: a config, its etag and a reason (a few hundred bytes as the
 classifier writes one). Unbounded, any node answering on the key could have had it decode megabytes per query."""
 
+MAX_STATE_BYTES = 64 << 20
+"""A ``classifier/state`` reply larger than this is refused unread by the sidecar. A real one is ~0.35 kB a track
+(1,000 tracks: ~0.4 MB), so 64 MiB holds ~190,000 — more than a frame within ``max_payload_bytes`` (8 MiB) can list."""
+
+STATE_REPLY_BOUNDS: dict[str, int] = {"max_bytes": MAX_STATE_BYTES, "max_array_len": 1 << 18,
+                                      "max_map_len": MAX_HEARTBEAT_ENTRIES}
+"""What the sidecar reads of a ``ClassifierStateSnapshot``: its tracks (a list of up to 262,144; the bytes bind
+first), maps of at most as many entries as a heartbeat's (its counters are a heartbeat's counters). Unbounded, any
+node answering on the key without a token (on one host) had the sidecar decode whatever it sent, 20 times a
+second."""
+
 # -------------------------------------------------------------------------------------------- columns
 
 

@@ -646,3 +646,23 @@ def test_a_heading_is_read_right_off_a_quaternion_the_wire_accepts_as_near_unit(
     arr = yaws_from_quaternions(*qs.T)
     assert arr.tolist() == [yaw_from_quaternion(*q) for q in qs.tolist()]
     assert arr[1] == pytest.approx(math.pi / 2, abs=1e-12)  # 1.0099 × a unit 90° quaternion
+
+
+def test_a_state_reply_is_refused_past_its_bounds_before_it_is_built() -> None:
+    """The sidecar reads ``classifier/state`` within ``wire.STATE_REPLY_BOUNDS``: a reply over 64 MiB is refused from
+    its size, a list longer than any frame can hold before it is built; a real state of 1,000 tracks passes."""
+    from jitterguard.schemas.codec import decode_with_raw
+    from jitterguard.schemas.models import ClassifierConfig, ClassifierStateSnapshot, Header, TrackStateEntry
+
+    with pytest.raises(wire.LimitExceeded, match="bytes exceed 67108864"):
+        decode_with_raw(ClassifierStateSnapshot, b"\x80" + bytes(64 << 20), **wire.STATE_REPLY_BOUNDS)
+    long_list = msgpack.packb({"schema_version": 1, "tracks": [0] * ((1 << 18) + 1)})
+    with pytest.raises(wire.LimitExceeded, match="a list holds more than 262144 items"):
+        decode_with_raw(ClassifierStateSnapshot, long_list, **wire.STATE_REPLY_BOUNDS)
+    entry = dict(label=1, state="static", z_x=0.1, z_y=0.2, chi2=0.3, alpha=2.58, threshold=2.58, window_length=20,
+                 window_size=20, speed=0.1, x=10.0, y=5.0, last_update_ns=1, last_seq=1)
+    snap = ClassifierStateSnapshot(header=Header(stamp=1, seq=1), config=ClassifierConfig(), counters={"frames": 1},
+                                   tracks=[TrackStateEntry(track_id=f"{i:032x}", **entry) for i in range(1000)])
+    data = encode(snap)
+    back, _ = decode_with_raw(ClassifierStateSnapshot, data, **wire.STATE_REPLY_BOUNDS)
+    assert back == snap and len(data) < 1 << 20

@@ -552,6 +552,22 @@ def test_a_config_reply_is_read_only_within_its_bound(stack: Stack) -> None:
         assert client.counters.snapshot()["rejected.classifier/config"] == 1
 
 
+def test_a_state_reply_is_read_only_within_its_bound(stack: Stack) -> None:
+    """Without a token the sidecar takes the first state reply, whoever sent it, and had decoded it whole, 20 times
+    a second: a list longer than any frame holds is now refused before it is built (counted
+    ``rejected.classifier/state``), and no state is served from it."""
+    ns = "sc-bigstate"
+    huge = msgpack.packb({"schema_version": 1, "tracks": [0] * ((1 << 18) + 1)})
+
+    def answer(query: zenoh.Query) -> None:
+        with query:
+            query.reply(query.key_expr, huge)
+
+    with _rogue_classifier(stack, ns, keys.classifier_state(ns), answer) as client:
+        assert client.poll_once() is None
+        assert client.counters.snapshot()["rejected.classifier/state"] >= 1
+
+
 def test_a_sidecar_with_another_token_believes_no_reply_and_applies_nothing(stack: Stack) -> None:
     client = ClassifierClient(loopback_options(stack.ns, stack.zport), api_token="not-the-token")
     try:

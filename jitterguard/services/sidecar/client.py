@@ -32,7 +32,7 @@ from ...runtime.service import counter_key
 from ...schemas import DecodeError, decode, decode_with_raw, encode, keys
 from ...runtime.config_auth import NONCE_BYTES, challenge_attachment, reply_is_authentic, write_attachment
 from ...schemas.models import ClassifierConfig, ClassifierStateSnapshot, ConfigReply, Heartbeat
-from ...schemas.wire import CONFIG_REPLY_BOUNDS, HEARTBEAT_BOUNDS
+from ...schemas.wire import CONFIG_REPLY_BOUNDS, HEARTBEAT_BOUNDS, STATE_REPLY_BOUNDS
 from .core import (PIPELINE_STAGES, PIPELINE_STALL_S, SOURCES, ConfigError, RenderedState, config_to_api, diff_states,
                    frames_standing, is_pipeline, refusal_counts, refusal_warning, refusals_since, render_state,
                    service_problems, silenced)
@@ -360,7 +360,7 @@ class ClassifierClient(Service):
         if data == self._last_payload:
             return self._rendered
         try:
-            snap, raw = decode_with_raw(ClassifierStateSnapshot, data)
+            snap, raw = decode_with_raw(ClassifierStateSnapshot, data, **STATE_REPLY_BOUNDS)
         except DecodeError as exc:
             self._reject("classifier/state", exc)
             return self._rendered
