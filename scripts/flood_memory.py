@@ -90,28 +90,38 @@ class _RingInbox:
                 if not self._svc.oversized(s, self._max, self._what, self._key, self._limit_name)]
 
 
-class _RingClassifier(ClassifierService):
+class _ObservationsApart(ClassifierService):
+    """The service with its observations taken in by :meth:`observations_inbox` instead of its ``tracks/*`` route
+    (the closes subscribed on their own key, as before 7 Dec)."""
+
+    def subscribe_queues(self, key_expr: str, routes: Any, route_of: Any, **kw: Any) -> list[Any]:
+        if len(routes) != 2:
+            return super().subscribe_queues(key_expr, routes, route_of, **kw)
+        obs, close = routes
+        (closes,) = super().subscribe_queues(close.key, (close,), lambda _key: 0, **kw)
+        return [self.observations_inbox(obs, kw.get("max_bytes"), kw.get("limit_name", "")), closes]
+
+    def observations_inbox(self, route: Any, max_bytes: int | None, limit_name: str) -> Any:
+        raise NotImplementedError
+
+
+class _RingClassifier(_ObservationsApart):
     """The ingest as it was: a Zenoh ring channel that drops its oldest sample uncounted when full."""
 
-    def subscribe_queue(self, key: str, capacity: int, **kw: Any) -> Any:
-        if key != keys.tracks_all(NS):  # the closes as the service has them
-            return super().subscribe_queue(key, capacity, **kw)
-        return _RingInbox(self, key, capacity, kw.get("max_bytes"), kw.get("what", "payload"),
-                          kw.get("limit_name", ""))
+    def observations_inbox(self, route: Any, max_bytes: int | None, limit_name: str) -> Any:
+        return _RingInbox(self, route.key, route.capacity, max_bytes, route.what, limit_name)
 
 
-class _DirectClassifier(ClassifierService):
+class _DirectClassifier(_ObservationsApart):
     """The ingest queue filled by a callback that Zenoh runs on its own receiving thread (``indirect=False``),
     not handed to a Python thread of its own first."""
 
-    def subscribe_queue(self, key: str, capacity: int, **kw: Any) -> IngestQueue:
-        if key != keys.tracks_all(NS):  # the closes as the service has them
-            return super().subscribe_queue(key, capacity, **kw)
-        max_bytes, what, limit_name = kw.get("max_bytes"), kw.get("what", "payload"), kw.get("limit_name", "")
-        inbox = IngestQueue(capacity, kw.get("max_queued_bytes"))
+    def observations_inbox(self, route: Any, max_bytes: int | None, limit_name: str) -> IngestQueue:
+        key, what = route.key, route.what
+        inbox = IngestQueue(route.capacity, route.max_queued_bytes)
         counter = f"dropped_queue.{counter_key(key)}"
 
-        def on_sample(sample: zenoh.Sample) -> None:  # as Service.subscribe_queue's
+        def on_sample(sample: zenoh.Sample) -> None:  # as Service.subscribe_queues'
             payload = sample.payload
             if max_bytes is not None and len(payload) > max_bytes:
                 self.oversized(sample, max_bytes, what, key, limit_name)

@@ -22,7 +22,8 @@ import logging
 import os
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import Any, TypeVar
 
 import zenoh
@@ -254,45 +255,63 @@ class Service:
         """Subscribe ``key`` into a bounded :class:`~.ingest_queue.IngestQueue` of ``(payload, key, arrival time)``
         (``time.monotonic()``) for a worker of the service's own: ``take(limit)`` drains a batch (thousands of small
         ``tracks/*`` messages a second), ``get(timeout)`` wakes the moment one arrives (a few large messages a second:
-        a frame's ``detections``).
+        a frame's ``detections``). One route of :meth:`subscribe_queues`, which says what the options do."""
+        route = QueueRoute(key, capacity, max_queued_bytes, what, progress, wake)
+        return self.subscribe_queues(key, (route,), _only_route, max_bytes=max_bytes, limit_name=limit_name,
+                                     session=session)[0]
 
-        The callback only checks the size, copies the payload and appends it. When ``capacity`` payloads (or
-        ``max_queued_bytes`` of them) wait, the oldest go, counted ``dropped_queue.<key>``: a worker that fell behind
-        catches up on the newest, and a flood costs a bounded amount of memory, never Zenoh's receive path. Zenoh's
-        ``RingChannel``, used for ``tracks/*`` before, dropped its oldest uncounted, and each Sample it held kept
-        Zenoh's receive buffer alive (~85 kB for a 1.4 kB payload that came in a batch of its own): a flood of
-        unbatched puts had grown the classifier by 1.1–1.5 GB. ``max_bytes``: a larger payload is refused here, from
-        its size, before it is copied or queued (counted as :meth:`reject` counts, ``what`` and ``limit_name``
-        naming it, and ``received``; a flood of 50 MB ones had been queued for the worker to refuse).
-        ``progress``: each arrival is an input of :attr:`progress` (a worker stuck on one message then shows as
-        stalled while more arrive). ``wake``: set after each push, for a worker that waits on more than this queue.
-        ``session``: another session of the service's (a ROS 2 system's router) instead of its own.
+    def subscribe_queues(self, key_expr: str, routes: Sequence[QueueRoute], route_of: Callable[[str], int | None], *,
+                         max_bytes: int | None = None, limit_name: str = "",
+                         session: zenoh.Session | None = None) -> list[IngestQueue]:
+        """Subscribe ``key_expr`` once and put each sample into the queue of ``routes[route_of(its key)]`` (a key
+        routed to ``None`` is left alone, as a narrower subscription would never have seen it).
+
+        One subscription has one callback thread, so the samples of all its keys reach the queues in the order they
+        arrived: the classifier's observations (``tracks/{id}``) are queued before the ``tracked`` put after them
+        (two subscriptions have a thread each, and a close had been able to overtake its frame's observations).
+        The callback only checks the size, copies the payload and appends it. When a route's ``capacity`` payloads
+        (or ``max_queued_bytes`` of them) wait, its oldest go, counted ``dropped_queue.<route key>``: a worker that
+        fell behind catches up on the newest, and a flood costs a bounded amount of memory, never Zenoh's receive
+        path. Zenoh's ``RingChannel``, used for ``tracks/*`` before, dropped its oldest uncounted, and each Sample it
+        held kept Zenoh's receive buffer alive (~85 kB for a 1.4 kB payload that came in a batch of its own): a flood
+        of unbatched puts had grown the classifier by 1.1–1.5 GB. ``max_bytes``: a larger payload is refused here,
+        from its size, before it is copied or queued (counted as :meth:`reject` counts under the route's key, the
+        route's ``what`` and ``limit_name`` naming it, and ``received``; a flood of 50 MB ones had been queued for
+        the worker to refuse). A route's ``progress``: each arrival is an input of :attr:`progress` (a worker stuck
+        on one message then shows as stalled while more arrive); its ``wake``: set after each push, for a worker
+        that waits on more than its queue. ``session``: another session of the service's (a ROS 2 system's router)
+        instead of its own.
         """
-        inbox = IngestQueue(capacity, max_queued_bytes)
-        counter = f"dropped_queue.{counter_key(key)}"
-        push, monotonic = inbox.push, time.monotonic
-        monitor = self.progress if progress else None
-        if progress and monitor is None:
-            raise RuntimeError("subscribe_queue(progress=True) needs monitor_progress() first")
+        if any(r.progress for r in routes) and self.progress is None:
+            raise RuntimeError("a queue route with progress=True needs monitor_progress() first")
+        queues = [IngestQueue(r.capacity, r.max_queued_bytes) for r in routes]
+        plans = [(q.push, f"dropped_queue.{counter_key(r.key)}", self.progress if r.progress else None, r.wake, r)
+                 for q, r in zip(queues, routes)]
+        monotonic = time.monotonic
 
         def on_sample(sample: zenoh.Sample) -> None:
             # thousands a second: the size checked here, 1.6 µs a sample (2.9 µs calling self.oversized for each)
+            key = str(sample.key_expr)
+            i = route_of(key)
+            if i is None:
+                return
+            push, counter, monitor, wake, route = plans[i]
             payload = sample.payload
             if max_bytes is not None and len(payload) > max_bytes:
-                self.oversized(sample, max_bytes, what, key, limit_name)  # counts and logs it
+                self.oversized(sample, max_bytes, route.what, route.key, limit_name)  # counts and logs it
                 self.counters.inc("received")
                 return
             now = monotonic()
             if monitor is not None:
                 monitor.input(now)
-            dropped = push(payload.to_bytes(), str(sample.key_expr), now)
+            dropped = push(payload.to_bytes(), key, now)
             if dropped:
                 self.counters.inc(counter, dropped)
             if wake is not None:
                 wake.set()
 
-        self._declared.append((session or self.session).declare_subscriber(key, on_sample))
-        return inbox
+        self._declared.append((session or self.session).declare_subscriber(key_expr, on_sample))
+        return queues
 
     def publisher(self, key: str, *, block: bool = True, session: zenoh.Session | None = None) -> zenoh.Publisher:
         """A declared publisher; BLOCK congestion control by default (losing a frame is wrong); on ``session``
@@ -484,6 +503,24 @@ class _ClosedWithService:
 
     def undeclare(self) -> None:
         self.session.close()
+
+
+@dataclass(frozen=True)
+class QueueRoute:
+    """One queue of :meth:`Service.subscribe_queues`: the samples routed to it and how it reports them."""
+
+    key: str
+    """What its counters are named by (``dropped_queue.<key>``, ``rejected.<key>``): the key its samples come on."""
+    capacity: int
+    max_queued_bytes: int = QUEUE_BYTES
+    what: str = "payload"
+    """The message's name in a refusal from its size."""
+    progress: bool = False
+    wake: threading.Event | None = None
+
+
+def _only_route(_key: str) -> int:
+    return 0
 
 
 def counter_key(key: str) -> str:

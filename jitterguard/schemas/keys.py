@@ -45,6 +45,12 @@ def tracked(ns: str = DEFAULT_NS) -> str:
     return f"{_base(ns)}/tracked"
 
 
+def tracks_and_tracked(ns: str = DEFAULT_NS) -> str:
+    """``tracks/{id}`` and ``tracked`` in one key expression (``track$*``: a chunk that starts with "track"), for a
+    subscriber that must see a frame's observations and its close in the order they were put."""
+    return f"{_base(ns)}/track$*/**"
+
+
 def motion(ns: str, track_id: str) -> str:
     return f"{_base(ns)}/motion/{track_id}"
 

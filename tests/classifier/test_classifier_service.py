@@ -509,6 +509,64 @@ def test_closes_behind_a_held_worker_are_bounded_in_bytes_and_the_oldest_counted
     assert [o.header.seq for o in got["objects"]] == [0, 1]
 
 
+def test_the_subscription_routes_observations_and_closes_and_nothing_else() -> None:
+    from jitterguard.services.classifier.service import route_by_key
+
+    route = route_by_key(keys.tracks_all(NS)[:-1], keys.tracked(NS))
+    assert route(keys.track(NS, "a1b2")) == 0 and route(keys.tracked(NS)) == 1
+    for other in (f"jg/{NS}/tracks/a/b", f"jg/{NS}/tracks/", f"jg/{NS}/tracks", f"jg/{NS}/trackers/x",
+                  f"jg/{NS}/trackedX", "jg/other/tracked"):
+        assert route(other) is None, other
+
+
+def test_a_frames_observations_are_queued_before_its_close_in_a_burst(zenoh_port, client_session, monkeypatch):
+    """Observations and closes come through one subscription, one callback thread: every observation of a frame is
+    queued before the frame's close, as the tracker put them. With a subscription each (two threads) a close had
+    been able to overtake its observations and the frame to wait for them as stragglers, or go without them."""
+    import zenoh
+
+    from jitterguard.runtime.ingest_queue import IngestQueue
+
+    BLOCK = zenoh.CongestionControl.BLOCK
+    order: list[tuple[str, int]] = []  # (key, header seq) of every payload queued, in the order queued
+    push = IngestQueue.push
+
+    def recording_push(self, data, key, arrived=0.0):
+        order.append((key, msgpack.unpackb(data)["header"]["seq"]))
+        return push(self, data, key, arrived)
+
+    monkeypatch.setattr(IngestQueue, "push", recording_push)
+    svc = ClassifierService(loopback_options(NS, zenoh_port, listen_self=True), straggler_timeout_s=0.5,
+                            config_writes=ConfigWritePolicy.open())
+    try:
+        got = _collect(client_session)
+        _wait_connected(client_session)
+        frames = list(generate(TrackScenario(n_static=30, n_moving=10, n_starting=0, seed=11), 16))
+
+        def routed() -> bool:  # the first frame again until it comes back: the subscription has reached the client
+            _send(client_session, frames[0])
+            return wait_until(lambda: len(got["objects"]) == 1, timeout=1.0)
+
+        assert wait_until(routed, timeout=20)
+        for f in frames[1:]:  # a burst: no pacing, nothing dropped on the way (BLOCK)
+            for o in f.observations:
+                client_session.put(keys.track(NS, o.track.object_id), encode(o), congestion_control=BLOCK)
+            client_session.put(keys.tracked(NS), encode(f.tracked), congestion_control=BLOCK)
+        assert wait_until(lambda: len(got["objects"]) == len(frames), timeout=30), (
+            [o.header.seq for o in got["objects"]], {k: v for k, v in svc.counters.snapshot().items()
+                                                     if not k.startswith("frame_latency")}, len(order))
+        for f in frames[1:]:
+            seq = f.tracked.header.seq
+            (close_at,) = [i for i, (k, q) in enumerate(order) if k == keys.tracked(NS) and q == seq]
+            queued = [(k, q) for k, q in order if q == seq and k != keys.tracked(NS)]
+            assert order[close_at - len(queued):close_at] == queued  # every one of them before the close
+            assert {k for k, _ in queued} == {keys.track(NS, o.track.object_id) for o in f.observations}
+        counts = svc.pipeline.assembler.counts
+        assert counts.get("late_observations", 0) == 0 and counts.get("missing_observations", 0) == 0, counts
+    finally:
+        svc.close()
+
+
 def _frames_with_a_track_at_1e300():
     frames = list(generate(TrackScenario(n_static=2, n_moving=0, n_starting=0, seed=5), 12))
     tid = frames[0].observations[0].track.object_id

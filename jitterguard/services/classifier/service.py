@@ -1,17 +1,17 @@
 """The classifier as a Zenoh service: transport and threads around :class:`~.adapter.ClassifierAdapter`.
 
-Threads. Observations (``tracks/*``, thousands per second) wait in a bounded ingest queue that their callback
-only copies them into (refusing an oversized one from its size first) and that one worker thread drains and reads
-in batches as they arrive. The frame-closing ``tracked`` (once per frame) comes through a callback that only
-stamps its arrival and wakes the worker: the frame latency counts from that stamp, i.e. from the sample reaching
-this process's subscriber, queueing included. The worker owns the pipeline: it validates, assembles frames,
+Threads. Observations (``tracks/*``, thousands per second) and the frame-closing ``tracked`` (once per frame) come
+through one subscription (``track$*/**``), whose callback only copies each payload into the bounded queue of its key
+(refusing an oversized one from its size first); one worker thread drains and reads the observations in batches as
+they arrive. A close is stamped on arrival and wakes the worker: the frame latency counts from that stamp, i.e.
+from the sample reaching this process's subscriber, queueing included. The worker owns the pipeline: it validates, assembles frames,
 decides, and publishes ``objects`` first (what the predictor waits for, and where the frame latency ends) and then
 the ``motion/{id}`` messages; the contract does not order the two. Config writes go through the same worker, so a
-write is applied between two frames and the reply reports what is in force from the next frame on. Observations
-and closes come through two callback threads, so a close may reach the worker before observations put ahead of it
-(the ring channel, filled on Zenoh's receiving thread, had kept their order): the frame waits for the tracks it
-lists, as for any straggler, and a second observation of a track read after its frame was decided is counted
-``frames.late_observations`` rather than ``frames.duplicate_observations`` (dropped either way).
+write is applied between two frames and the reply reports what is in force from the next frame on. One
+subscription has one callback thread, so a frame's observations are queued before its close, in the order the
+tracker put them, and the worker does not give a frame up for stragglers while observations still wait: no
+observation received before its close is missed (with two subscriptions, a thread each, a close had been able to
+overtake them).
 
 Overload degrades instead of backing up, and every queue is bounded: ``tracked`` waits in a queue of
 :data:`CLOSE_QUEUE` payloads and 64 MiB (the oldest goes, counted ``dropped_queue.tracked``), observations in a queue of
@@ -30,6 +30,7 @@ import queue
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import Any
@@ -38,6 +39,7 @@ import numpy as np
 import zenoh
 
 from ...runtime import Service, ZenohOptions
+from ...runtime.service import QueueRoute
 from ...runtime.gc_policy import IdleCollector, manage_gc_for_latency
 from ...schemas import SCHEMA_VERSION, DecodeError, decode, encode, keys
 from ...schemas.models import ETAG_HEX, ClassifierConfig, ConfigReply, config_etag
@@ -69,6 +71,20 @@ OBS_CHUNK = 64
 """Observations validated per pass before the worker looks for a newly arrived ``tracked`` again."""
 IDLE_POLL_S = 0.0005
 """How long the idle worker waits for a ``tracked`` wake-up before polling the observation channel again."""
+
+
+def route_by_key(track_prefix: str, tracked_key: str) -> Callable[[str], int | None]:
+    """The route of a sample of ``tracks_and_tracked``: 0 for an observation (``{track_prefix}{id}``, one chunk),
+    1 for the close (``tracked_key``), ``None`` for any other key ``track$*/**`` matches (``tracks/a/b``,
+    ``trackers``), which the subscriptions on the two keys had never seen either."""
+    n = len(track_prefix)
+
+    def route(key: str) -> int | None:
+        if key.startswith(track_prefix):
+            return 0 if len(key) > n and key.find("/", n) < 0 else None
+        return 1 if key == tracked_key else None
+
+    return route
 
 
 @dataclass
@@ -191,14 +207,14 @@ class ClassifierService(Service):
         self._motion_pubs = self.keyed_publishers(lambda tid: keys.motion(self.ns, tid),
                                                   priority=zenoh.Priority.DATA_LOW)
         self.monitor_progress()  # tracked in -> objects out (runtime.progress)
-        max_payload = self.pipeline.limits.max_payload_bytes
-        self._obs_in = self.subscribe_queue(self._obs_key, OBS_QUEUE, max_queued_bytes=OBS_QUEUE_BYTES,
-                                            max_bytes=max_payload, what="TrackObservation",
-                                            limit_name="max_payload_bytes")
-        # a close is stamped on arrival (the frame latency counts from there, queueing included) and wakes the worker
-        self._closes = self.subscribe_queue(self._tracked_key, CLOSE_QUEUE, max_bytes=max_payload,
-                                            what="TrackedObjects", limit_name="max_payload_bytes", progress=True,
-                                            wake=self._wake)
+        # one subscription for both, so a frame's observations are queued before its close (in the order put); a
+        # close is stamped on arrival (the frame latency counts from there, queueing included) and wakes the worker
+        self._obs_in, self._closes = self.subscribe_queues(
+            keys.tracks_and_tracked(self.ns),
+            (QueueRoute(self._obs_key, OBS_QUEUE, OBS_QUEUE_BYTES, "TrackObservation"),
+             QueueRoute(self._tracked_key, CLOSE_QUEUE, what="TrackedObjects", progress=True, wake=self._wake)),
+            route_by_key(self._obs_key[:-1], self._tracked_key),
+            max_bytes=self.pipeline.limits.max_payload_bytes, limit_name="max_payload_bytes")
         self.queryable(keys.classifier_config(self.ns), self._on_config_query)
         self.queryable(keys.classifier_state(self.ns), self._on_state_query)
         self.spawn(self._worker, "worker")
