@@ -110,14 +110,9 @@ def fail(message: str) -> NoReturn:
 
 
 def parse_float(flag: str, text: str, lo: float, hi: float) -> float:
-    """``text`` as a number in [lo, hi], or a one-line error naming ``flag`` (exit 2)."""
-    try:
-        value = float(text)
-    except ValueError:
-        fail(f"{flag}: {text!r} is not a number")
-    if not lo <= value <= hi:
-        fail(f"{flag}: {value:g} is outside {lo:g}-{hi:g}")
-    return value
+    """``text`` as a finite number in [lo, hi], or a one-line error naming ``flag`` (exit 2): the check of
+    :func:`float_option`, for a value read from text of the command's own (a list, a range)."""
+    return _finite_float(flag, lo, hi)(text)
 
 
 def float_option(flag: str, *, min: float | None = None, max: float | None = None, **option: Any) -> Any:

@@ -196,6 +196,9 @@ def test_a_folder_where_an_output_file_goes_is_refused_before_any_work(args, blo
     (["bench", "classifier", "--duration", "inf"], "--duration: 'inf' is not a finite number"),
     (["bench", "pipeline", "--duration", "inf"], "--duration: 'inf' is not a finite number"),
     (["bench", "classifier", "--duration", "3601"], "--duration: 3601 is outside 1-3600"),
+    # a flag kept as text (parse_float) is checked as float_option's are: nan had been "nan is outside 0.5-100"
+    (["bench", "sidecar", "--rate", "nan"], "--rate: 'nan' is not a number"),
+    (["bench", "sidecar", "--duration", "inf"], "--duration: 'inf' is not a finite number"),
     (["status", "--listen-s", "0.01"], "--listen-s: 0.01 is below the minimum 0.1"),
     (["bench", "replay", "--points", "10000000000", "--repeat", "1"], "--points: 10000000000 is more than"),
     (["bench", "replay", "--frames", "99999999999", "--repeat", "1"], "--frames: 99999999999 is more than"),
