@@ -52,18 +52,23 @@ def test_lossy_duplicating_relay(tmp_path):
             pub_det = s.declare_publisher(keys.detections("up"), congestion_control=zenoh.CongestionControl.BLOCK)
             pub_tracked = s.declare_publisher(keys.tracked("down"), congestion_control=zenoh.CongestionControl.BLOCK)
 
-            def on_det(sample) -> None:
-                data = sample.payload.to_bytes()
-                pub_det.put(data)
-                with lock:
-                    r = rng.random()
-                    if r < 0.05:
-                        stats["det_dup"] += 1
-                        pub_det.put(data)
-                    elif r < 0.10 and len(old_det) > 3:
-                        stats["det_old"] += 1
-                        pub_det.put(old_det[0])
-                    old_det.append(data)
+            def forward_with_repeats(pub, old: deque[bytes], name: str):
+                """Forward each frame; 5 % of them twice, and 5 % followed by one of ten frames back."""
+                def forward(sample) -> None:
+                    data = sample.payload.to_bytes()
+                    pub.put(data)
+                    with lock:
+                        r = rng.random()
+                        if r < 0.05:
+                            stats[f"{name}_dup"] += 1
+                            pub.put(data)
+                        elif r < 0.10 and len(old) > 3:
+                            stats[f"{name}_old"] += 1
+                            pub.put(old[0])
+                        old.append(data)
+                return forward
+
+            on_det = forward_with_repeats(pub_det, old_det, "det")
 
             def on_track(sample) -> None:
                 with lock:
@@ -72,18 +77,7 @@ def test_lossy_duplicating_relay(tmp_path):
                 if not drop:
                     s.put(str(sample.key_expr).replace("jg/up/", "jg/down/", 1), sample.payload.to_bytes())
 
-            def on_tracked(sample) -> None:
-                data = sample.payload.to_bytes()
-                pub_tracked.put(data)
-                with lock:
-                    r = rng.random()
-                    if r < 0.05:
-                        stats["tracked_dup"] += 1
-                        pub_tracked.put(data)
-                    elif r < 0.10 and len(old_tracked) > 3:
-                        stats["tracked_old"] += 1
-                        pub_tracked.put(old_tracked[0])
-                    old_tracked.append(data)
+            on_tracked = forward_with_repeats(pub_tracked, old_tracked, "tracked")
 
             def on_beat(sample) -> None:
                 hb = decode(Heartbeat, sample.payload.to_bytes())
