@@ -69,7 +69,7 @@ def pid_alive(pid: int) -> bool:
     supervisord that is init, which may take its time or, in some containers, never come) counts as dead."""
     try:
         os.kill(pid, 0)
-    except ProcessLookupError:
+    except (ProcessLookupError, OverflowError):  # gone, or a number no kernel hands out
         return False
     except PermissionError:
         pass

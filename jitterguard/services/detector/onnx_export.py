@@ -47,6 +47,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from ...stack.control import pid_alive
 from .adapter import INTENSITY_MAX
 from .config import CLASS_LABELS, SELF_CROP_M, VAR_NAMES, DetectorConfig
 from .evaluate import Recalibration
@@ -439,21 +440,11 @@ def _remove_abandoned(place: Path) -> list[Path]:
     for tag in ("export", "old"):
         for p in place.parent.glob(f".{glob.escape(place.name)}.{tag}-*-*"):
             pid = p.name[len(place.name) + len(tag) + 3:].split("-", 1)[0]
-            if not pid.isdigit() or _alive(int(pid)):
+            if not pid.isdigit() or pid_alive(int(pid)):
                 continue
             shutil.rmtree(p, ignore_errors=True)
             removed.append(p)
     return removed
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except (ProcessLookupError, OverflowError):  # gone, or a number no kernel hands out
-        return False
-    except PermissionError:  # another user's process
-        return True
-    return True
 
 
 _RENAME_EXCHANGE = 2
