@@ -208,7 +208,7 @@ class ClassifierClient(Service):
                         for name, (b, at) in self._beats.items()}
             on_bus, left = set(self._on_bus), set(self._left)
             sources_left, frames_at, moved = dict(self._sources_left), self._frames_at, dict(self._sources_moved)
-            refused = {name: refusals_since(h, now, NO_INPUT_S) for name, h in self._refused.items()}
+            refused = {name: list(h) for name, h in self._refused.items()}  # reckoned only if frames stand
         age = now - hb_at if hb_at is not None else None
         found = service_problems(services, self.stale_after_s, on_bus, left)
         services = silenced(services, self.stale_after_s, found)
@@ -241,7 +241,8 @@ class ClassifierClient(Service):
                     now, services, sources_left, standing, refused)}
 
     def _input_warnings(self, now: float, services: dict[str, dict[str, Any]], sources_left: dict[str, float],
-                        standing: tuple[str, bool] | None, refused: dict[str, dict[str, int]]) -> list[str]:
+                        standing: tuple[str, bool] | None,
+                        refused: dict[str, list[tuple[float, dict[str, int]]]]) -> list[str]:
         """What keeps objects from coming without being a readiness fault (DESIGN: no input at all is not a fault,
         a sensor may be off): a source that left the bus, the classifier's frames standing still, and — while they
         stand — each service that refused messages in that time. Readiness stays as it was; these only say why a
@@ -259,7 +260,10 @@ class ClassifierClient(Service):
         if standing is not None and not standing[1]:  # the classifier's frames standing still (a fault: in reason)
             out.append(standing[0])
         if standing is not None:
-            out.extend(refusal_warning(name, rose, NO_INPUT_S) for name, rose in sorted(refused.items()) if rose)
+            for name, history in sorted(refused.items()):
+                rose = refusals_since(history, now, NO_INPUT_S)
+                if rose:
+                    out.append(refusal_warning(name, rose, NO_INPUT_S))
         return out
 
     def readiness_flag(self) -> bool:
