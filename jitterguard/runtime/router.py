@@ -10,6 +10,7 @@ import json
 import logging
 import os
 import threading
+from pathlib import Path
 
 import zenoh
 
@@ -19,6 +20,16 @@ from .zenoh_config import (DEFAULT_ROUTER, ENV_CONFIG, UnusableConfig, ZenohOpti
                            open_session)
 
 log = logging.getLogger("jitterguard.router")
+
+BLOCK_WAIT_KEY = "transport/link/tx/queue/congestion_control/block/wait_before_close"
+BLOCK_WAIT_US = 1_000_000
+"""How long the router holds a message sent with BLOCK (every frame message) for a peer whose queue toward it is
+full, before it closes that peer's transport: 1 s, where Zenoh's default is 5 s. While it holds one, the router
+reads nothing more from the sender, so one stopped subscriber (a SIGSTOPped classifier) held every heartbeat and
+frame on the bus up for 5–10 s (6 Dec); with 1 s, 1–2.6 s. A peer that leaves its queue full for a second after
+its socket's buffer has filled is stopped, not slow: every service drains its socket in a thread of its own into
+a bounded queue (:class:`~.ingest_queue.IngestQueue`). A Zenoh config file that names ``wait_before_close`` keeps
+its own value."""
 
 
 def _file_listen(config_file: str | None) -> tuple[str, ...]:
@@ -43,13 +54,26 @@ def _may_wait(error: str) -> bool:
                                     "os error 99"))
 
 
+def _file_names(config_file: str | None, word: str) -> bool:
+    """Whether the Zenoh config file in use (``config_file``, else ``$JG_ZENOH_CONFIG``) names ``word`` — a
+    setting its author chose, which the router keeps (Zenoh reports a default and a chosen value alike)."""
+    path = config_file or os.environ.get(ENV_CONFIG)
+    try:
+        return bool(path) and word in Path(path).read_text(errors="replace")
+    except OSError:
+        return False
+
+
 def router_config(listen: list[str], config_file: str | None = None) -> zenoh.Config:
     """Router mode, listening on ``listen``; with none, on the config file's endpoints, else on
-    ``tcp/127.0.0.1:7447``. Multicast scouting off (services connect explicitly). Raises ``ValueError`` for
-    a listener off loopback without mutual TLS, or a bad config file."""
+    ``tcp/127.0.0.1:7447``. Multicast scouting off (services connect explicitly); a stopped peer's transport
+    closed after :data:`BLOCK_WAIT_US`. Raises ``ValueError`` for a listener off loopback without mutual TLS, or
+    a bad config file."""
     endpoints = tuple(listen) or _file_listen(config_file) or (DEFAULT_ROUTER,)
     cfg = build_config(ZenohOptions(config_file=config_file, listen=endpoints, mode="router"))
     cfg.insert_json5("scouting/multicast/enabled", json.dumps(False))
+    if not _file_names(config_file, BLOCK_WAIT_KEY.rsplit("/", 1)[-1]):
+        cfg.insert_json5(BLOCK_WAIT_KEY, json.dumps(BLOCK_WAIT_US))
     return cfg
 
 

@@ -1,5 +1,5 @@
-"""`jitterguard router` on a config Zenoh refuses: one line and exit 2, not a wait for ever; and a router waiting
-for its port stops cleanly on SIGTERM."""
+"""`jitterguard router` on a config Zenoh refuses: one line and exit 2, not a wait for ever; a router waiting
+for its port stops cleanly on SIGTERM; and a stopped subscriber holds the others up for about a second."""
 
 from __future__ import annotations
 
@@ -8,12 +8,15 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
 import zenoh
 
 from jitterguard.runtime import free_tcp_port
+
+from helpers import wait_until
 
 ENV = {k: v for k, v in os.environ.items() if k not in ("JG_ZENOH_CONFIG", "JG_API_TOKEN")}
 
@@ -89,3 +92,77 @@ def test_a_router_waits_for_a_busy_port_and_stops_cleanly_on_sigterm() -> None:
         proc.send_signal(signal.SIGTERM)
         rc, rest = _finish(proc)
     assert rc == 0 and "Traceback" not in rest, err + rest
+
+
+_STOPPABLE_SUBSCRIBER = """
+import json, sys, time, zenoh
+cfg = zenoh.Config()
+cfg.insert_json5("mode", '"client"')
+cfg.insert_json5("connect/endpoints", json.dumps([sys.argv[1]]))
+cfg.insert_json5("connect/timeout_ms", "30000")
+cfg.insert_json5("scouting/multicast/enabled", "false")
+with zenoh.open(cfg) as s:
+    sub = s.declare_subscriber(sys.argv[2], lambda sample: None)
+    print("ready", flush=True)
+    time.sleep(600)
+"""
+
+
+def _longest_pause_beside_a_stopped_subscriber(*router_args: str) -> tuple[float, int]:
+    """A router, one subscriber of ``jgr/a`` stopped with SIGSTOP, and a publisher putting 64 KB on ``jgr/a`` and
+    ``jgr/b`` in turn with BLOCK (as every frame message is sent): the longest pause (s) in what a second, live
+    subscriber of ``jgr/b`` receives over the 12 s after the stop, and how many it received then."""
+    port = free_tcp_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    router = _router("--listen", endpoint, *router_args)
+    stopped = subprocess.Popen([sys.executable, "-c", _STOPPABLE_SUBSCRIBER, endpoint, "jgr/a"],
+                               stdout=subprocess.PIPE, text=True, env=ENV)
+    cfg = zenoh.Config()
+    cfg.insert_json5("mode", json.dumps("client"))
+    cfg.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    cfg.insert_json5("connect/timeout_ms", "30000")
+    cfg.insert_json5("scouting/multicast/enabled", "false")
+    arrivals: list[float] = []
+    halt = threading.Event()
+    try:
+        assert stopped.stdout is not None and stopped.stdout.readline().strip() == "ready"
+        with zenoh.open(cfg) as session:
+            session.declare_subscriber("jgr/b", lambda sample: arrivals.append(time.monotonic()))
+            payload = b"x" * 65536
+
+            def publish() -> None:
+                while not halt.is_set():
+                    for key in ("jgr/a", "jgr/b"):
+                        session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
+                    time.sleep(0.005)
+
+            writer = threading.Thread(target=publish, daemon=True)
+            writer.start()
+            assert wait_until(lambda: len(arrivals) >= 20, timeout=30, period=0.05)
+            os.kill(stopped.pid, signal.SIGSTOP)
+            t0 = time.monotonic()
+            time.sleep(12)
+            halt.set()
+            writer.join(timeout=30)
+        seen = [t0] + [t for t in arrivals if t >= t0] + [t0 + 12]
+        return max(b - a for a, b in zip(seen, seen[1:])), len(seen) - 2
+    finally:
+        halt.set()
+        stopped.kill()
+        stopped.wait()
+        router.send_signal(signal.SIGTERM)
+        _finish(router)
+
+
+def test_a_stopped_subscriber_holds_the_bus_up_about_a_second_not_five(tmp_path: Path) -> None:
+    """The router holds a BLOCK message for a peer whose queue is full, reading nothing more from the sender, until
+    ``wait_before_close`` has passed and it closes that peer's transport. With Zenoh's 5 s a SIGSTOPped classifier
+    had stalled every heartbeat and frame of the stack for 5–10 s (docs/operations.md); the router's own 1 s
+    bounds the pause. A config file that names the setting keeps its value: there the pause is Zenoh's 5 s."""
+    pause, n = _longest_pause_beside_a_stopped_subscriber()
+    assert pause < 2.5 and n > 100, (pause, n)
+    cfg = tmp_path / "router.json5"
+    cfg.write_text(json.dumps({"transport": {"link": {"tx": {"queue": {"congestion_control": {
+        "block": {"wait_before_close": 5_000_000}}}}}}}))
+    pause, n = _longest_pause_beside_a_stopped_subscriber("--zenoh-config", str(cfg))
+    assert pause >= 3.5, (pause, n)
