@@ -126,6 +126,27 @@ def test_a_service_outside_the_pipeline_that_fails_is_a_warning_not_a_readiness_
         assert "monitor failing: cannot write /run/x/summary.json: No space left on device" in body["warnings"]
 
 
+def test_readyz_names_a_service_that_refuses_messages_while_frames_flow(stack: Stack) -> None:
+    """A recorder whose ``rejected.<key>`` counter rises (a publisher on the bus sends it messages that break the
+    contract) stays ``ok`` and the pipeline ready: ``GET /readyz`` names it under ``warnings`` with what it refused
+    in the last 10 s — it had done so only while the classifier's frames stood still."""
+    refused = iter(range(0, 10**6, 7))
+    with zenoh.open(build_config(loopback_options(stack.ns, stack.zport))) as s, stack.http(auth=False) as c:
+        def warned() -> dict | None:
+            s.put(keys.heartbeat(stack.ns, "record"), encode(Heartbeat(
+                service="record", pid=6, stamp=time.time_ns(), health="ok",
+                counters={"rejected.motion/*": next(refused), "written": 10})))
+            r = c.get("/readyz")
+            body = r.json()
+            return body if r.status_code == 200 and any(w.startswith("record refused") for w in body["warnings"]) \
+                else None
+
+        body = wait_for(warned, "readyz to warn of the recorder's refusals")
+        (warning,) = [w for w in body["warnings"] if w.startswith("record refused")]
+        assert "(rejected.motion/* +" in warning and "jitterguard logs record" in warning, warning
+        assert body["ready"] is True and body["services"]["record"]["health"] == "ok"
+
+
 def test_readiness_reports_a_service_frozen_on_the_bus_or_a_stage_that_left_it() -> None:
     """A service whose liveliness token is present but whose heartbeats stopped (a SIGSTOPped process: the
     watchdog inside it cannot run) made no difference to /readyz, which stayed 200 while nothing moved. Once its
@@ -190,7 +211,8 @@ def test_frames_that_enter_and_never_come_out_are_a_readiness_fault() -> None:
     sidecar restarted after the tracker had stopped for good answered 200 "ok", the tracker unlisted, while the
     replay published and no object came out (its one warning said "no input"). Frames entering — a source's
     heartbeat seq moving — while the classifier processes none for the pipeline's stall limit is now a readiness
-    fault, whoever is missing; the classifier's frames moving, or no source feeding, is none."""
+    fault, whoever is missing; the classifier's frames moving, or no source feeding, is none. A service's refusals
+    are warned of whether frames flow or stand."""
     stack = start_stack("sc-stuck", window_ready=False)
     client = ClassifierClient(loopback_options(stack.ns, stack.zport), pipeline_stall_s=3.0)  # a fresh sidecar
     try:
@@ -208,6 +230,22 @@ def test_frames_that_enter_and_never_come_out_are_a_readiness_fault() -> None:
             t0 = time.monotonic()
             body = wait_for(lambda: replay_beats_until(lambda b: time.monotonic() - t0 > 5.0), "5 s of frames")
             assert body["ready"] is True and body["reason"] == "ok", body
+            # while frames flow, a service that refuses part of what it is sent is named too (it had shown only in
+            # its counters); the state poll's readiness checks leave that reckoning out
+            rogue = iter(range(0, 10**6, 3))
+
+            def foxglove_refuses() -> dict | None:
+                replay_beats_until(lambda b: True)
+                s.put(keys.heartbeat(stack.ns, "foxglove"), encode(Heartbeat(
+                    service="foxglove", pid=5, stamp=time.time_ns(), health="ok",
+                    counters={"rejected.motion/x": next(rogue)})))
+                body = client.readiness(refusals=True)
+                return body if any(w.startswith("foxglove refused") for w in body["warnings"]) else None
+
+            body = wait_for(foxglove_refuses, "readyz to warn of refusals while frames flow", timeout=20)
+            assert body["ready"] is True and not any("processed no frame" in w for w in body["warnings"]), body
+            assert "(rejected.motion/x +" in next(w for w in body["warnings"] if w.startswith("foxglove refused"))
+            assert not any("refused" in w for w in client.readiness()["warnings"])
             # nothing reaches the classifier any more (its tracker gone, which this sidecar never heard of)
             stack.feeder.pause()
             body = wait_for(lambda: replay_beats_until(lambda b: not b["ready"]), "readyz to report frames stuck",
@@ -229,7 +267,7 @@ def test_frames_that_enter_and_never_come_out_are_a_readiness_fault() -> None:
                 s.put(keys.heartbeat(stack.ns, "ros2-in"), encode(Heartbeat(
                     service="ros2-in", pid=4, stamp=time.time_ns(), health="ok",
                     counters={"invalid": next(refused), "published": 0})))
-                body = client.readiness()
+                body = client.readiness(refusals=True)
                 return body if any(w.startswith("ros2-in refused") for w in body["warnings"]) else None
 
             body = wait_for(bridge_refuses, "readyz to warn of the bridge's refusals", timeout=20)

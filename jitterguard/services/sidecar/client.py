@@ -198,8 +198,10 @@ class ClassifierClient(Service):
         super().reject(exc, sub_key, sample_key)
         self.metrics.rejected.labels(counter_key(sub_key)).inc()
 
-    def readiness(self) -> dict[str, Any]:
-        """Whether the classifier is usable now and the pipeline makes progress, and why not (``/readyz``)."""
+    def readiness(self, refusals: bool = False) -> dict[str, Any]:
+        """Whether the classifier is usable now and the pipeline makes progress, and why not (``/readyz``).
+        ``refusals``: also warn of each service that refused messages in the last 10 s — worked out only for the
+        ``/readyz`` body, not for the 20 readiness checks a second of the state poll and ``X-Classifier-Ready``."""
         now = time.monotonic()
         with self._lock:
             alive, hb, hb_at = CLASSIFIER in self._on_bus, self._hb, self._hb_at
@@ -208,7 +210,7 @@ class ClassifierClient(Service):
                         for name, (b, at) in self._beats.items()}
             on_bus, left = set(self._on_bus), set(self._left)
             sources_left, frames_at, moved = dict(self._sources_left), self._frames_at, dict(self._sources_moved)
-            refused = {name: list(h) for name, h in self._refused.items()}  # reckoned only if frames stand
+            refused = {name: list(h) for name, h in self._refused.items()} if refusals else {}
         age = now - hb_at if hb_at is not None else None
         found = service_problems(services, self.stale_after_s, on_bus, left)
         services = silenced(services, self.stale_after_s, found)
@@ -244,12 +246,12 @@ class ClassifierClient(Service):
                         standing: tuple[str, bool] | None,
                         refused: dict[str, list[tuple[float, dict[str, int]]]]) -> list[str]:
         """What keeps objects from coming without being a readiness fault (DESIGN: no input at all is not a fault,
-        a sensor may be off): a source that left the bus, the classifier's frames standing still, and — while they
-        stand — each service that refused messages in that time. Readiness stays as it was; these only say why a
-        ready sidecar serves no new objects. A looping replay that supervisord had given up on (FATAL) had left
-        ``/readyz`` at 200 "ok" with nothing to say it, and a ROS 2 bridge fed only scans that break their contract
+        a sensor may be off): a source that left the bus, the classifier's frames standing still, and each service
+        (of ``refused``) that refused messages in the last 10 s. Readiness stays as it was; these only say why a
+        ready sidecar serves no new objects, or fewer. A looping replay that supervisord had given up on (FATAL) had
+        left ``/readyz`` at 200 "ok" with nothing to say it; a ROS 2 bridge fed only scans that break their contract
         (each refused, counted ``invalid``; ``ok``, as a restart cannot mend them) had left a warning of "no input"
-        alone."""
+        alone; and one that refused part of what it was sent while frames flowed had shown only in its counters."""
         out = []
         for name, since in sorted(sources_left.items()):
             beat = services.get(name)
@@ -259,11 +261,10 @@ class ClassifierClient(Service):
                        " no frames enter the pipeline; its recording ended, or it failed and was not restarted")
         if standing is not None and not standing[1]:  # the classifier's frames standing still (a fault: in reason)
             out.append(standing[0])
-        if standing is not None:
-            for name, history in sorted(refused.items()):
-                rose = refusals_since(history, now, NO_INPUT_S)
-                if rose:
-                    out.append(refusal_warning(name, rose, NO_INPUT_S))
+        for name, history in sorted(refused.items()):
+            rose = refusals_since(history, now, NO_INPUT_S)
+            if rose:
+                out.append(refusal_warning(name, rose, NO_INPUT_S))
         return out
 
     def readiness_flag(self) -> bool:

@@ -245,9 +245,8 @@ def refusals_since(history: Iterable[tuple[float, Mapping[str, int]]], now: floa
 
 
 def refusal_warning(name: str, rose: Mapping[str, int], window_s: float) -> str:
-    """The warning that a service refused messages while the classifier's frames stand still: why no object comes
-    although something is sent (a bridge fed messages that break their contract stays ``ok``: a restart cannot mend
-    the sender's messages)."""
+    """The warning that a service refused messages: why no object, or fewer, comes although something is sent (a
+    bridge fed messages that break their contract stays ``ok``: a restart cannot mend the sender's messages)."""
     parts = ", ".join(f"{k} +{n}" for k, n in list(rose.items())[:4]) + (", ..." if len(rose) > 4 else "")
     return (f"{name} refused {sum(rose.values())} messages in the last {window_s:.0f} s ({parts}): what it was sent"
             f" went no further (jitterguard logs {name})")

@@ -155,7 +155,7 @@ async def healthz_head() -> Response:
             summary="The classifier is reachable (liveliness and a recent heartbeat) and no service of the pipeline "
                     "reports failing or stalled frames")
 async def readyz(c: Client) -> JSONResponse:
-    ready = c.readiness()
+    ready = c.readiness(refusals=True)
     return JSONResponse(ready, status_code=200 if ready["ready"] else 503)
 
 
