@@ -56,8 +56,8 @@ CSP = ("default-src 'self'; script-src 'self' 'unsafe-inline'; style-src 'self' 
 
 E503 = {"model": ErrorBody, "description": "The classifier is unreachable or did not confirm; nothing applied"}
 E502 = {"model": ErrorBody, "description": "The classifier refused the config"}
-E502_STATE = {"model": ErrorBody, "description": "No state yet, and the classifier's replies are not signed with "
-                                                  "the sidecar's JG_API_TOKEN (the tokens differ)"}
+E502_STATE = {"model": ErrorBody, "description": "The classifier's latest replies are not signed with the sidecar's "
+                                                  "JG_API_TOKEN (the tokens differ): no state can be read"}
 WRITE_ERRORS: dict[int | str, dict[str, Any]] = {
     503: E503, 502: E502,
     400: {"model": ErrorBody, "description": "The body is not readable text, or the Host header is foreign"},
@@ -174,18 +174,21 @@ ClassFilter = Annotated[str | None, Query(alias="class", pattern="^(" + "|".join
 
 
 def _live_state(c: ClassifierClient) -> tuple[RenderedState, dict[str, str]]:
-    """The cached snapshot while the classifier is alive, with freshness headers; 503 once it is gone.
+    """The cached snapshot while the classifier is alive, with freshness headers; 503 once it is gone, 502 while
+    the classifier refuses this sidecar's polls.
 
     A late heartbeat alone does not hide the state: an overloaded classifier is exactly when an operator
-    needs to see it. ``X-Classifier-Ready`` and ``X-State-Age-Ms`` say how far to trust it.
+    needs to see it. ``X-Classifier-Ready`` and ``X-State-Age-Ms`` say how far to trust it. A refused poll does:
+    a classifier restarted with another ``JG_API_TOKEN`` answers no poll of this sidecar's again, and the state
+    read before it had been served as 200 for ever, only its age header growing.
     """
     if not c.is_alive():
         raise ClassifierUnavailable(f"classifier not ready: {c.readiness()['reason']}")
+    refusal = c.poll_refusal()
+    if refusal is not None:
+        raise ClassifierRejected(f"no state from the classifier: {refusal}")
     st = c.rendered_state()
     if st is None:
-        refusal = c.poll_refusal()
-        if refusal is not None:
-            raise ClassifierRejected(f"no state from the classifier: {refusal}")
         raise ClassifierUnavailable("no state from the classifier yet")
     age_ms = max(0.0, (time.time_ns() - st.polled_at_ns) / 1e6)
     return st, {"X-Classifier-Seq": str(st.seq), "X-Classifier-Ready": str(c.readiness_flag()).lower(),
@@ -198,7 +201,7 @@ def _live_state(c: ClassifierClient) -> tuple[RenderedState, dict[str, str]]:
                         "`X-Classifier-Ready` (what `/readyz` says: false while the classifier's heartbeat is late — the "
                         "state may be stale — or another stage fails or stalls), "
                         "`X-State-Age-Ms` (since the sidecar fetched it). 503 once the classifier's liveliness "
-                        "token is gone."), dependencies=[only_query("state", "class")])
+                        "token is gone; 502 while the classifier refuses this sidecar's polls (another token)."), dependencies=[only_query("state", "class")])
 async def get_state(c: Client, state: StateFilter = None, cls: ClassFilter = None) -> Response:
     st, headers = _live_state(c)
     if state is None and cls is None:
