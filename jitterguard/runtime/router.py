@@ -32,10 +32,9 @@ a bounded queue (:class:`~.ingest_queue.IngestQueue`). A Zenoh config file that 
 its own value."""
 
 
-def _file_listen(config_file: str | None) -> tuple[str, ...]:
-    """The router endpoints a Zenoh config file names (none if it names none or cannot be read: then
+def _file_listen(path: str | None) -> tuple[str, ...]:
+    """The router endpoints the Zenoh config file at ``path`` names (none if it names none or cannot be read: then
     :func:`build_config` reports the file's problem)."""
-    path = config_file or os.environ.get(ENV_CONFIG)
     if not path:
         return ()
     try:
@@ -54,10 +53,9 @@ def _may_wait(error: str) -> bool:
                                     "os error 99"))
 
 
-def _file_names(config_file: str | None, word: str) -> bool:
-    """Whether the Zenoh config file in use (``config_file``, else ``$JG_ZENOH_CONFIG``) names ``word`` — a
-    setting its author chose, which the router keeps (Zenoh reports a default and a chosen value alike)."""
-    path = config_file or os.environ.get(ENV_CONFIG)
+def _file_names(path: str | None, word: str) -> bool:
+    """Whether the Zenoh config file at ``path`` names ``word`` — a setting its author chose, which the router
+    keeps (Zenoh reports a default and a chosen value alike)."""
     try:
         return bool(path) and word in Path(path).read_text(errors="replace")
     except OSError:
@@ -69,10 +67,11 @@ def router_config(listen: list[str], config_file: str | None = None) -> zenoh.Co
     ``tcp/127.0.0.1:7447``. Multicast scouting off (services connect explicitly); a stopped peer's transport
     closed after :data:`BLOCK_WAIT_US`. Raises ``ValueError`` for a listener off loopback without mutual TLS, or
     a bad config file."""
-    endpoints = tuple(listen) or _file_listen(config_file) or (DEFAULT_ROUTER,)
+    path = config_file or os.environ.get(ENV_CONFIG)  # the file build_config reads too
+    endpoints = tuple(listen) or _file_listen(path) or (DEFAULT_ROUTER,)
     cfg = build_config(ZenohOptions(config_file=config_file, listen=endpoints, mode="router"))
     cfg.insert_json5("scouting/multicast/enabled", json.dumps(False))
-    if not _file_names(config_file, BLOCK_WAIT_KEY.rsplit("/", 1)[-1]):
+    if not _file_names(path, BLOCK_WAIT_KEY.rsplit("/", 1)[-1]):
         cfg.insert_json5(BLOCK_WAIT_KEY, json.dumps(BLOCK_WAIT_US))
     return cfg
 

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import zenoh
 
-from jitterguard.runtime import free_tcp_port
+from jitterguard.runtime import ZenohOptions, build_config, free_tcp_port
 
 from helpers import wait_until
 
@@ -95,12 +95,9 @@ def test_a_router_waits_for_a_busy_port_and_stops_cleanly_on_sigterm() -> None:
 
 
 _STOPPABLE_SUBSCRIBER = """
-import json, sys, time, zenoh
-cfg = zenoh.Config()
-cfg.insert_json5("mode", '"client"')
-cfg.insert_json5("connect/endpoints", json.dumps([sys.argv[1]]))
-cfg.insert_json5("connect/timeout_ms", "30000")
-cfg.insert_json5("scouting/multicast/enabled", "false")
+import sys, time, zenoh
+from jitterguard.runtime import ZenohOptions, build_config
+cfg = build_config(ZenohOptions(connect=(sys.argv[1],), mode="client", extra={"connect/timeout_ms": 30000}))
 with zenoh.open(cfg) as s:
     sub = s.declare_subscriber(sys.argv[2], lambda sample: None)
     print("ready", flush=True)
@@ -117,11 +114,7 @@ def _longest_pause_beside_a_stopped_subscriber(*router_args: str) -> tuple[float
     router = _router("--listen", endpoint, *router_args)
     stopped = subprocess.Popen([sys.executable, "-c", _STOPPABLE_SUBSCRIBER, endpoint, "jgr/a"],
                                stdout=subprocess.PIPE, text=True, env=ENV)
-    cfg = zenoh.Config()
-    cfg.insert_json5("mode", json.dumps("client"))
-    cfg.insert_json5("connect/endpoints", json.dumps([endpoint]))
-    cfg.insert_json5("connect/timeout_ms", "30000")
-    cfg.insert_json5("scouting/multicast/enabled", "false")
+    cfg = build_config(ZenohOptions(connect=(endpoint,), mode="client", extra={"connect/timeout_ms": 30000}))
     arrivals: list[float] = []
     halt = threading.Event()
     try:
