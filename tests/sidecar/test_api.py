@@ -646,20 +646,27 @@ def test_a_sidecar_with_another_token_answers_state_reads_502_naming_the_token(s
 def test_a_sidecar_whose_polls_come_to_be_refused_stops_serving_the_state_it_read_before() -> None:
     """A classifier restarted with another ``JG_API_TOKEN`` refuses every later poll of a sidecar that had read its
     state: ``GET /v1/state`` had gone on answering 200 with that old state, only ``X-State-Age-Ms`` growing. It now
-    answers 502 naming the token, as a sidecar that never read a state does, and 200 again once polls are answered.
-    (The sidecar's key is swapped here instead of the classifier's: the classifier sees the same mismatch.)"""
+    answers 502 naming the token, as a sidecar that never read a state does, and 200 again once polls are answered;
+    ``/metrics`` likewise leaves out the track gauges it can no longer read (they had stayed at their last values)
+    while ``jitterguard_classifier_up`` stays 1: the classifier itself is there. (The sidecar's key is swapped here
+    instead of the classifier's: the classifier sees the same mismatch.)"""
     stack = start_stack("sc-rotated", token="first-token", window_ready=False)
     try:
         client = stack.server.server.config.app.state.sidecar.client
         with stack.http() as c:
             assert c.get("/v1/state").status_code == 200
+            assert "jitterguard_classifier_tracks " in c.get("/metrics").text
             client._api_token = "rotated-token"
             r = wait_for(lambda: (lambda r: r if r.status_code != 200 else None)(c.get("/v1/state")),
                          "the refused polls to end the old state's service")
             assert r.status_code == 502 and "JG_API_TOKEN differs from the sidecar's" in r.json()["detail"], r.text
             assert c.get(f"/v1/state/{stack.track('parked').track_id}").status_code == 502
+            scraped = c.get("/metrics").text
+            assert "jitterguard_classifier_up 1.0" in scraped
+            assert "jitterguard_classifier_tracks " not in scraped and "jitterguard_classifier_tracks_by_state" not in scraped
             client._api_token = "first-token"
             wait_for(lambda: c.get("/v1/state").status_code == 200, "the state served again once polls are answered")
+            assert "jitterguard_classifier_tracks " in c.get("/metrics").text
     finally:
         stack.close()
 

@@ -302,6 +302,15 @@ class ClassifierClient(Service):
         """The latest rendered snapshot (an immutable object; replaced, never mutated)."""
         return self._rendered
 
+    def served_state(self) -> RenderedState | None:
+        """The latest snapshot while it is still what the classifier says: the classifier on the bus and its latest
+        poll answered; None otherwise. What ``/metrics`` exports its track gauges from: a snapshot kept after the
+        classifier left or began refusing this sidecar's polls (another ``JG_API_TOKEN``) had gone on being scraped
+        as the current count of moving tracks, with nothing in it to say it was old."""
+        with self._lock:
+            alive = CLASSIFIER in self._on_bus
+        return self._rendered if alive and self._poll_refusal is None else None
+
     def poll_refusal(self) -> str | None:
         """Why the last state poll took no reply although the classifier answered (no reply signed with this
         sidecar's token: the tokens differ), or None. A state read with no state yet names it (502) instead of

@@ -54,7 +54,7 @@ class SidecarMetrics:
 
     def attach(self, client: "ClassifierClient") -> None:
         """Expose the classifier's figures through ``client``'s snapshot cache, and every service's heartbeat."""
-        self.registry.register(ClassifierCollector(client.rendered_state, client.classifier_up))
+        self.registry.register(ClassifierCollector(client.served_state, client.classifier_up))
         self.registry.register(ServiceCollector(client.service_beats, client.stale_after_s))
 
 
@@ -101,7 +101,9 @@ class ServiceCollector(Collector):
 
 
 class ClassifierCollector(Collector):
-    """Classifier metrics computed at scrape time from the cached snapshot."""
+    """Classifier metrics computed at scrape time from the cached snapshot, exported only while that snapshot is
+    current (``rendered`` returns None otherwise): absent series go stale in Prometheus, where a frozen value would
+    read as a live count."""
 
     def __init__(self, rendered: Callable[[], object], up: Callable[[], bool]) -> None:
         """``up``: whether the classifier itself is on the bus with a recent heartbeat (not the pipeline's

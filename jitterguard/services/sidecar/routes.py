@@ -241,7 +241,7 @@ async def get_track(c: Client, track_id: Annotated[str, Path(pattern="^[0-9a-fA-
 async def events(request: Request, ctx: Ctx, c: Client) -> StreamingResponse:
     if ctx.broker.full():
         raise HTTPException(503, "too many open event streams; try again later", headers={"Retry-After": "5"})
-    st = c.rendered_state()
+    st = c.served_state()
     ready = c.readiness()
     hello = {"ready": ready["ready"], "reason": ready["reason"], "seq": st.seq if st else None,
              "counts": st.counts if st else None}
