@@ -22,6 +22,7 @@ import threading
 import time
 from datetime import datetime, timezone
 from pathlib import Path
+from collections.abc import Iterable
 from typing import Annotated, Any
 
 import typer
@@ -37,7 +38,8 @@ from ..schemas.wire import HEARTBEAT_BOUNDS
 from . import summary
 from .backoff import Action, CrashLoopGuard, CrashLoopPolicy
 from .control import SERVER_URL_ENV, StackUnavailable, Supervisor, socket_of
-from .status import SPEC_FILE, load_spec
+from .status import SERVICE_NAMES, SPEC_FILE, load_spec
+from .supervisor import programs
 from .watch import freeze_limit, load_counts
 
 WRITE_PERIOD_S = 1.0
@@ -56,6 +58,11 @@ def _spec_written_at(run_dir: Path) -> float | None:
         return (run_dir / SPEC_FILE).stat().st_mtime
     except OSError:
         return None
+
+
+def stack_services(program_names: Iterable[str]) -> frozenset[str]:
+    """The service names the stack's programs announce themselves under (:data:`.status.SERVICE_NAMES`)."""
+    return frozenset(n for p in program_names for n in SERVICE_NAMES.get(p, (p,)))
 
 
 class StackMonitor(Service):
@@ -78,6 +85,10 @@ class StackMonitor(Service):
         self._ledger_lock = threading.Lock()
         self._stopped_since: dict[int, float] = {}  # a router or unheard pid seen stopped (SIGSTOP), since when
         self.supervisor = Supervisor(run_dir, sock=supervisor_sock)
+        spec = load_spec(run_dir)
+        # the services the stack runs, whose heartbeats a flood of made-up names may not crowd out of the ledger:
+        # from the spec `up` wrote, then from supervisord's programs (an operator's own supervisord.conf)
+        self._own_services = stack_services(p.name for p in programs(spec)) if spec is not None else frozenset()
         # the run's own events: stack.json is written before supervisord starts (the log keeps milliseconds; a
         # look-back of seconds counted the previous run's last crashes in a run dir used again at once)
         self.supervisord_log = summary.SupervisorLog(supervisord_log or run_dir / "logs" / "supervisord.log",
@@ -119,7 +130,12 @@ class StackMonitor(Service):
                 self._beat_at.pop(min(self._beat_at, key=lambda p: self._beat_at[p][1]))
         extra = {"last_seq": hb.last_seq, "uptime_s": round(hb.uptime_s, 1)}
         with self._ledger_lock:
-            kept = self.ledger.observe(hb.service, hb.pid, hb.counters, hb.stamp, extra)
+            evicted = self.ledger.evicted
+            kept = self.ledger.observe(hb.service, hb.pid, hb.counters, hb.stamp, extra,
+                                       own=hb.service in self._own_services)
+            evicted = self.ledger.evicted - evicted
+        if evicted:  # made-up services dropped to keep the stack's own
+            self.counters.inc("ledger_services_evicted", evicted)
         if not kept:
             self.counters.inc("heartbeats_dropped")  # past the ledger's bounds (MAX_SERVICES, MAX_LEDGER_BYTES)
             return
@@ -189,6 +205,7 @@ class StackMonitor(Service):
             except Exception:  # never let the watch die; say why
                 self.log.exception("cannot ask supervisord about its programs")
                 continue
+            self._own_services = self._own_services | stack_services(p.name for p in procs)
             if self.supervisor_error is not None:
                 self.log.info("supervisord answers again: frozen programs and crash loops are watched again")
                 self.supervisor_error = None

@@ -91,17 +91,27 @@ class Ledger:
 
     procs: dict[str, dict[int, dict[str, Any]]] = field(default_factory=dict)
     size: int = 0  # what its records take (:func:`_cost`), kept against MAX_LEDGER_BYTES
+    own: set[str] = field(default_factory=set)  # services heard with ``own=True``: never evicted
+    evicted: int = 0  # services evicted to make room for the stack's own (:meth:`observe`)
 
     def observe(self, service: str, pid: int, counters: dict[str, int], stamp_ns: int,
-                extra: dict[str, Any] | None = None) -> bool:
+                extra: dict[str, Any] | None = None, own: bool = False) -> bool:
         """Record one heartbeat; an older one than the last seen for that process is ignored. False when it is
-        refused: a new service beyond :data:`MAX_SERVICES`. A newer heartbeat of the same pid whose ``uptime_s``
-        (in ``extra``) is smaller than the last one's comes from a new process that was given the old one's pid (a
-        container's service runs as pid 1 every time; a pid space that wrapped): the old process is retired, its
-        counts kept, before the new one is recorded. It had replaced the old record, every count before the
-        restart lost from the run's totals."""
+        refused: a new service beyond :data:`MAX_SERVICES`, or a record past :data:`MAX_LEDGER_BYTES`. A newer
+        heartbeat of the same pid whose ``uptime_s`` (in ``extra``) is smaller than the last one's comes from a new
+        process that was given the old one's pid (a container's service runs as pid 1 every time; a pid space that
+        wrapped): the old process is retired, its counts kept, before the new one is recorded. It had replaced the
+        old record, every count before the restart lost from the run's totals.
+
+        ``own``: the service is one of the stack's programs. Where a bound would refuse its heartbeat, the services
+        not heard as the stack's own are evicted, first heard first, until it fits (counted in :attr:`evicted`). A
+        flood of made-up names (anyone on the host may publish a heartbeat) had filled both bounds, and every
+        process of a real service started after it — a restarted classifier — was refused: its counts, and the
+        restart, missing from the run's summary."""
+        if own:
+            self.own.add(service)
         slot = self.procs.get(service)
-        if slot is None and len(self.procs) >= MAX_SERVICES:
+        if slot is None and len(self.procs) >= MAX_SERVICES and not (own and self._evict_one()):
             return False
         last = slot.get(pid) if slot is not None else None
         if last is not None and last["stamp_ns"] > stamp_ns:
@@ -109,8 +119,9 @@ class Ledger:
         restarted = last is not None and _restarted(last.get("uptime_s"), (extra or {}).get("uptime_s"))
         rec = {"stamp_ns": int(stamp_ns), "counters": dict(counters), **(extra or {})}
         added = _cost(rec) - (_cost(last) if last is not None and not restarted else 0)
-        if self.size + added > MAX_LEDGER_BYTES and (last is None or restarted or added > GROWTH_SLACK_BYTES):
-            return False
+        while self.size + added > MAX_LEDGER_BYTES and (last is None or restarted or added > GROWTH_SLACK_BYTES):
+            if not (own and self._evict_one()):
+                return False
         if slot is None:
             slot = self.procs[service] = {}
         if restarted:
@@ -120,6 +131,16 @@ class Ledger:
             self._retire(slot, min((p for p in slot if p != RETIRED), key=lambda p: slot[p]["stamp_ns"]))
         self.size += _cost(rec) - (_cost(last) if last is not None else 0)
         slot[pid] = rec
+        return True
+
+    def _evict_one(self) -> bool:
+        """Drop the service first heard of those not the stack's own (:meth:`observe`), with every record it has;
+        False when there is none."""
+        victim = next((svc for svc in self.procs if svc not in self.own), None)
+        if victim is None:
+            return False
+        self.size -= sum(_cost(rec) for rec in self.procs.pop(victim).values())
+        self.evicted += 1
         return True
 
     def _retire(self, slot: dict[int, dict[str, Any]], pid: int) -> None:

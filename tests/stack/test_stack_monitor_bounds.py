@@ -8,11 +8,13 @@ written into ``summary.json`` every second and listed on the summary's ``dropped
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 
 import pytest
 import zenoh
@@ -33,11 +35,12 @@ def _cli(*args: str) -> subprocess.Popen:
                             stderr=subprocess.DEVNULL)
 
 
-def test_the_monitor_is_bounded_and_folds_restarted_processes_exactly(tmp_path):
-    ns, port = f"mon{os.getpid()}", free_tcp_port()
-    endpoint = f"tcp/127.0.0.1:{port}"
+@contextlib.contextmanager
+def _monitor(run_dir, ns: str) -> Iterator[zenoh.Session]:
+    """A real router and a real `stack-monitor` on ``run_dir``; yields a client session once the monitor is heard."""
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
     procs = [_cli("router", "--listen", endpoint)]
-    procs.append(_cli("stack-monitor", "--ns", ns, "--connect", endpoint, "--run-dir", str(tmp_path)))
+    procs.append(_cli("stack-monitor", "--ns", ns, "--connect", endpoint, "--run-dir", str(run_dir)))
     session = None
     try:
         # retried until the router is up; a router that never comes up fails here, not at pytest's timeout
@@ -45,7 +48,17 @@ def test_the_monitor_is_bounded_and_folds_restarted_processes_exactly(tmp_path):
         heard: list[str] = []
         session.declare_subscriber(keys.heartbeat(ns, "monitor"), lambda s: heard.append("monitor"))
         assert wait_until(lambda: bool(heard), timeout=60, period=0.2), "the monitor never sent a heartbeat"
+        yield session
+    finally:
+        if session is not None:
+            session.close()
+        for p in reversed(procs):
+            stop_process(p)
 
+
+def test_the_monitor_is_bounded_and_folds_restarted_processes_exactly(tmp_path):
+    ns = f"mon{os.getpid()}"
+    with _monitor(tmp_path, ns) as session:
         restarts = 40  # more processes of one service than the ledger keeps one by one (32)
         t0 = time.time_ns()
         # BLOCK, not Zenoh's default DROP: the test counts every tracker heartbeat and needs the oversized one to
@@ -94,11 +107,6 @@ def test_the_monitor_is_bounded_and_folds_restarted_processes_exactly(tmp_path):
         assert len(data["ledger"]["tracker"]) <= 33
         assert len(json.dumps(data["dropped"])) < 4000
         assert "spoof" not in data["services"] and "99" not in data["ledger"]["tracker"]
-    finally:
-        if session is not None:
-            session.close()
-        for p in reversed(procs):
-            stop_process(p)
 
 
 def test_a_services_retired_record_keeps_a_bounded_set_of_counter_names() -> None:
@@ -185,3 +193,80 @@ def test_a_second_monitor_on_one_run_dir_is_refused(tmp_path) -> None:
         res = monitor()
     assert res.returncode == 2 and res.stderr.strip().count("\n") == 0, res.stderr
     assert "another stack monitor keeps" in res.stderr and not (tmp_path / summary.SUMMARY_FILE).exists()
+
+
+def test_made_up_services_are_evicted_to_keep_the_stacks_own() -> None:
+    """A flood of made-up service names filled both bounds (64 services, MAX_LEDGER_BYTES), and every process of a
+    real service started after it was refused: a restarted tracker's counts, and its restart, missing from the
+    summary. A service of the stack (``own``) now evicts made-up ones, first heard first; a made-up one never
+    evicts anything, and the stack's own are never evicted."""
+    led = summary.Ledger()
+    assert led.observe("tracker", 10, {"frames": 5}, stamp_ns=1, extra={"uptime_s": 5.0}, own=True)
+    for s in range(summary.MAX_SERVICES - 1):
+        assert led.observe(f"made-up{s}", 1000 + s, {"x_dropped": 1}, stamp_ns=s)
+    assert not led.observe("made-up-late", 1, {"x_dropped": 1}, stamp_ns=1)  # bound reached: refused, as before
+    # the classifier, first heard now, and a new tracker process: kept, the first-heard made-up names evicted
+    assert led.observe("classifier", 20, {"frames": 7}, stamp_ns=2, extra={"uptime_s": 1.0}, own=True)
+    assert led.observe("tracker", 11, {"frames": 3}, stamp_ns=3, extra={"uptime_s": 1.0}, own=True)
+    assert "made-up0" not in led.procs and "made-up1" in led.procs and led.evicted == 1
+    assert led.totals("tracker")["frames"] == 8 and led.processes("tracker") == 2
+    assert len(led.procs) == summary.MAX_SERVICES
+
+    # the byte bound: made-up services of long counter names fill it, then a tracker restarted takes its room
+    led = summary.Ledger()
+    assert led.observe("tracker", 10, {"frames": 5}, stamp_ns=1, extra={"uptime_s": 5.0}, own=True)
+    names = {f"n{j:03d}" + "x" * 490: 1 for j in range(500)}
+    for s in range(8):
+        for pid in range(32):
+            led.observe(f"made-up{s}", 1000 + pid, names, stamp_ns=pid)
+    for s, width in enumerate((20_000, 2_000, 200)):  # then smaller records, until less than 200 bytes are left
+        pid = 0
+        while pid < 32 and led.observe(f"filler{s}", pid, {"y" * width: 1}, stamp_ns=pid):
+            pid += 1
+    assert summary.MAX_LEDGER_BYTES - led.size < 1_000
+    assert not led.observe("made-up-late", 1, {"x_dropped": 1}, stamp_ns=1)
+    assert led.observe("tracker", 11, {"frames": 3, **{f"c{j}": 1 for j in range(40)}}, stamp_ns=2,
+                       extra={"uptime_s": 1.0}, own=True)
+    assert led.totals("tracker")["frames"] == 8 and led.evicted == 1 and "made-up0" not in led.procs
+    assert led.size <= summary.MAX_LEDGER_BYTES
+    assert summary.Ledger.from_json(json.loads(json.dumps(led.as_json()))).size == led.size
+
+    # the stack's own services are never evicted, whatever comes: a bound they fill alone still refuses
+    led = summary.Ledger()
+    for s in range(summary.MAX_SERVICES):
+        assert led.observe(f"own{s}", s, {"frames": 1}, stamp_ns=s, own=True)
+    assert not led.observe("own-late", 1, {"frames": 1}, stamp_ns=1, own=True)
+    assert not led.observe("made-up", 1, {"frames": 1}, stamp_ns=1)
+    assert led.evicted == 0 and all(f"own{s}" in led.procs for s in range(summary.MAX_SERVICES))
+
+
+def test_a_monitor_keeps_a_restarted_stage_after_a_flood_of_made_up_names(tmp_path):
+    """A real router and monitor of a stack whose spec (``stack.json``) runs a tracker: 200 made-up services fill the
+    ledger, then the tracker's new process heartbeats. Its counts reach the summary (they had been refused as one
+    service too many), and the monitor counts the made-up services it evicted."""
+    from jitterguard.stack.status import SPEC_FILE
+
+    ns = f"mon{os.getpid()}o"
+    (tmp_path / SPEC_FILE).write_text(json.dumps({"ns": ns, "input": "detections", "run_dir": str(tmp_path)}))
+    with _monitor(tmp_path, ns) as session:
+        block = zenoh.CongestionControl.BLOCK
+        t0 = time.time_ns()
+        for i in range(200):
+            session.put(keys.heartbeat(ns, f"ghost{i}"), encode(Heartbeat(service=f"ghost{i}", pid=50000 + i,
+                                                                          stamp=t0 + i, counters={"x_dropped": 1})),
+                        congestion_control=block)
+            time.sleep(0.005)
+        session.put(keys.heartbeat(ns, "tracker"), encode(Heartbeat(service="tracker", pid=4242, stamp=t0 + 500,
+                                                                    counters={"frames": 17, "tracks_born": 3})),
+                    congestion_control=block)
+
+        def settled() -> dict | None:
+            data = summary.load(tmp_path)
+            return data if data is not None and data["frames"].get("tracked") == 17 else None
+
+        assert wait_until(settled, timeout=30, period=0.5), summary.load(tmp_path)
+        data = settled()
+        assert data is not None and data["tracks"]["born"] == 3
+        mon = data["services"]["monitor"]["counters"]
+        assert mon.get("ledger_services_evicted", 0) >= 1 and mon.get("heartbeats_dropped", 0) > 0
+        assert len(data["services"]) <= summary.MAX_SERVICES
