@@ -495,6 +495,19 @@ class ClassifierConfig(Message):
         """Band edges are a set of distances: kept sorted and without repeats (any order is accepted)."""
         return sorted(set(v))
 
+    @field_validator("*", mode="after")
+    @classmethod
+    def _no_negative_zero(cls, v: Any) -> Any:
+        """-0.0 kept as 0.0: the two are the same value, and a config holding -0.0 had a version tag
+        (:func:`config_etag`) of its own, so a conditional write naming the tag of the equal config was refused."""
+        if isinstance(v, float):
+            return v + 0.0  # -0.0 + 0.0 is 0.0; every other float unchanged
+        if isinstance(v, dict):
+            return {k: x + 0.0 if isinstance(x, float) else x for k, x in v.items()}
+        if isinstance(v, list):
+            return [x + 0.0 if isinstance(x, float) else x for x in v]
+        return v
+
     @model_validator(mode="after")
     def _window_order(self) -> "ClassifierConfig":
         if self.min_window > self.window_size:

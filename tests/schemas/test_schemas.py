@@ -127,6 +127,18 @@ def test_classifier_config_rules():
     assert cfg.alpha_for(Label.CAR) == 1.5
 
 
+def test_a_config_holding_negative_zero_is_the_config_holding_zero():
+    """-0.0 == 0.0, but a config holding -0.0 had its own version tag: a conditional write naming the tag read for
+    the equal config was refused with 412. Every float field, map value and list entry is kept as 0.0."""
+    from jitterguard.schemas.models import config_etag
+
+    neg = ClassifierConfig(min_speed_mps=-0.0, view_slide_m_per_class={"car": -0.0}, alpha_default=1.5)
+    pos = ClassifierConfig(min_speed_mps=0.0, view_slide_m_per_class={"car": 0.0}, alpha_default=1.5)
+    assert config_etag(neg) == config_etag(pos)
+    assert math.copysign(1.0, neg.min_speed_mps) == 1.0 and math.copysign(1.0, neg.view_slide_m_per_class["car"]) == 1.0
+    assert config_etag(ClassifierConfig(min_speed_mps=0.1)) != config_etag(pos)  # other values are untouched
+
+
 def test_keys():
     assert keys.track("ns1", TID) == f"jg/ns1/tracks/{TID}"
     assert keys.tracks_all() == "jg/default/tracks/*"

@@ -292,11 +292,15 @@ def test_query_parameters_a_route_does_not_take_or_gives_twice_are_a_422_naming_
                                          "duplicate_query"),
                                         ("/v1/config", [("window_size", "12")], "window_size", "extra_forbidden"),
                                         (f"/v1/state/{stack.tracks[0].track_id}", [("x", "1")], "x",
-                                         "extra_forbidden")):
+                                         "extra_forbidden"),
+                                        # the health routes, /metrics and the page too (they had answered 200)
+                                        *((p, [("x", "1")], "x", "extra_forbidden")
+                                          for p in ("/healthz", "/readyz", "/metrics", "/"))):
             r = c.get(path, params=params)
             assert r.status_code == 422, (path, params, r.text)
             assert [(d["loc"], d["type"]) for d in r.json()["detail"]] == [(["query", loc], kind)], r.text
         assert c.get("/v1/state", params={"state": "dynamic", "class": "car"}).status_code == 200
+        assert c.get("/", params={"view": "-40,-40,40,40", "refresh": "100", "track": "ab" * 16}).status_code == 200
 
 
 def test_a_preset_takes_no_body_and_applies_nothing_when_one_is_sent(stack: Stack) -> None:

@@ -151,3 +151,55 @@ def test_foreign_host_is_400_dns_rebinding(open_stack: Stack) -> None:
         assert c.get("/healthz", headers={"Host": f"localhost:{port}"}).status_code == 200
     with httpx.Client(base_url=f"http://localhost:{port}", timeout=10) as c:  # by name, on loopback: fine
         assert c.get("/healthz").status_code == 200
+
+
+def _raw(port: int, request: bytes) -> str:
+    """One request as raw bytes on a fresh connection; the whole reply (the guard closes the connection)."""
+    with socket.create_connection(("127.0.0.1", port), timeout=10) as sock:
+        sock.sendall(request)
+        reply = b""
+        while chunk := sock.recv(4096):
+            reply += chunk
+        return reply.decode(errors="replace")
+
+
+@pytest.mark.integration
+def test_a_small_content_length_beside_a_chunked_body_is_refused(open_stack: Stack) -> None:
+    """``Content-Length: 2`` with ``Transfer-Encoding: chunked``: the server frames the body by the chunks, and the
+    guard, trusting the small length, had let 32 MB of them be read and parsed (and applied) — no token needed.
+    Both headers together are now a 400, and nothing is applied."""
+    before = _config(open_stack)
+    port = int(open_stack.url.rsplit(":", 1)[1])
+    body = b'{"alpha_default": 0.5}'
+    reply = _raw(port, f"PATCH /v1/config HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nContent-Type: application/json\r\n"
+                       f"Content-Length: 2\r\nTransfer-Encoding: chunked\r\n\r\n{len(body):x}\r\n".encode()
+                 + body + b"\r\n0\r\n\r\n")
+    assert reply.startswith("HTTP/1.1 400") and "Transfer-Encoding" in reply, reply
+    assert _config(open_stack) == before
+
+
+@pytest.mark.integration
+@pytest.mark.parametrize("first, second", [("text/plain", "application/json"), ("application/json", "text/plain")])
+def test_a_header_given_twice_is_refused_whichever_value_comes_first(open_stack: Stack, first: str,
+                                                                     second: str) -> None:
+    """The guard read the last ``Content-Type`` and FastAPI the first: ``text/plain`` then ``application/json``
+    passed the 415 and met the app as text. A header read as one value, given twice, is a 400 naming it."""
+    before = _config(open_stack)
+    port = int(open_stack.url.rsplit(":", 1)[1])
+    body = b'{"alpha_default": 0.5}'
+    reply = _raw(port, f"PATCH /v1/config HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nContent-Type: {first}\r\n"
+                       f"Content-Type: {second}\r\nContent-Length: {len(body)}\r\n\r\n".encode() + body)
+    assert reply.startswith("HTTP/1.1 400") and "Content-Type given more than once" in reply, reply
+    assert _config(open_stack) == before
+
+
+@pytest.mark.integration
+def test_if_match_given_twice_is_a_422_naming_it(open_stack: Stack) -> None:
+    """``If-Match: *`` then a stale tag: FastAPI read the first, and the write was applied unconditionally. Two
+    headers are a list, refused as the one-line list is."""
+    before = _config(open_stack)
+    with open_stack.http() as c:
+        r = c.patch("/v1/config", json={"alpha_default": 0.5},
+                    headers=[("If-Match", "*"), ("If-Match", '"0000000000000000"')])
+        assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["header", "If-Match"], r.text
+    assert _config(open_stack) == before

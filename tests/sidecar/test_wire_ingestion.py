@@ -169,6 +169,38 @@ def test_event_streams_are_bounded(stack: Stack) -> None:
         server.close()
 
 
+def test_a_burst_of_event_streams_past_the_bound_is_answered_503_never_busy_inside_a_200(stack: Stack) -> None:
+    """Requests that passed the route's "full?" check together were admitted, then told ``busy`` inside a 200 (8 of
+    a burst of 100 at the bound of 64). The route now reserves each stream's place before it answers: every stream
+    past the bound is a 503 with Retry-After."""
+    import asyncio
+
+    app = create_app(SidecarSettings(zenoh=loopback_options(stack.ns, stack.zport), max_event_streams=4))
+    server = Uvicorn(app)
+
+    async def burst() -> list[tuple[int, str]]:
+        async with httpx.AsyncClient(base_url=server.url, timeout=10.0,
+                                     limits=httpx.Limits(max_connections=40)) as c:
+            async def one() -> tuple[int, str]:
+                async with c.stream("GET", "/v1/events") as r:
+                    if r.status_code != 200:
+                        return r.status_code, r.headers.get("Retry-After", "")
+                    first = await anext(r.aiter_text())
+                    await asyncio.sleep(1.0)  # held open while the rest of the burst arrives
+                    return 200, first
+            return await asyncio.gather(*(one() for _ in range(24)))
+
+    try:
+        with httpx.Client(base_url=server.url, timeout=10.0) as c:
+            wait_for(lambda: c.get("/readyz").status_code == 200, "the second sidecar ready")
+        got = asyncio.run(burst())
+        ok = [text for code, text in got if code == 200]
+        assert len(ok) == 4 and all("event: hello" in t for t in ok), got
+        assert all(code == 503 and retry for code, retry in got if code != 200), got
+    finally:
+        server.close()
+
+
 def test_a_slow_event_client_gets_resync_where_its_events_were_lost(stack: Stack) -> None:
     """A client that reads ``/v1/events`` too slowly loses events (its queue is bounded, the drops are counted) and is
     told so with ``resync``: refetch ``/v1/state``. The ``resync`` had been sent before the up to 256 older events

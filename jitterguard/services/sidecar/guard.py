@@ -90,8 +90,13 @@ def refusal(method: str, headers: dict[str, str], policy: HostPolicy, max_body: 
             is_write_route: bool = True) -> tuple[int, str] | None:
     """``(status, detail)`` if the request must be refused from its headers alone, else None.
 
-    ``headers`` are lowercase names to values (the last of repeated headers). ``is_write_route``: whether a
-    route serves this method on this path (if not, the app's own 404/405 is the better answer)."""
+    ``headers`` are lowercase names to values (the last of repeated headers: :data:`SINGLE_HEADERS` given twice are
+    refused before this). ``is_write_route``: whether a route serves this method on this path (if not, the app's
+    own 404/405 is the better answer)."""
+    if "content-length" in headers and "transfer-encoding" in headers:
+        # the server frames the body by Transfer-Encoding (RFC 9112 §6.3) while a small Content-Length had let a
+        # write's body past the size check unbuffered: 32 MB read and parsed, without a token, before the 401
+        return 400, "Content-Length and Transfer-Encoding given together; send one of them"
     host_header = headers.get("host")
     if host_header is not None and not policy.host_allowed(split_host(host_header)):
         return 400, (f"Host {host_header!r} is not this sidecar's (DNS rebinding?); use its address, or start "
@@ -129,8 +134,28 @@ def _origin_allowed(origin: str, host_header: str | None, policy: HostPolicy) ->
     return parts.scheme in ("http", "https") and parts.netloc.lower() == host_header.strip().lower()
 
 
+SINGLE_HEADERS = ("host", "content-length", "transfer-encoding", "content-type", "origin", "sec-fetch-site",
+                  "authorization")
+"""Headers the guard or a route reads one value of. Given twice, the guard (reading the last) and FastAPI (reading
+the first) had judged different values: a write sent with ``Content-Type: text/plain`` then ``application/json``
+passed the guard's 415 and met the app as text."""
+
+
+def repeated_header(raw: Iterable[tuple[bytes, bytes]]) -> str | None:
+    """The first of :data:`SINGLE_HEADERS` that ``raw`` (an ASGI scope's headers) holds more than once, or None."""
+    seen: set[str] = set()
+    for k, _ in raw:
+        name = k.decode("latin-1").lower()
+        if name in SINGLE_HEADERS:
+            if name in seen:
+                return name
+            seen.add(name)
+    return None
+
+
 class RequestGuard:
-    """ASGI middleware applying :func:`refusal`, and cutting off a chunked body at ``max_body`` bytes."""
+    """ASGI middleware applying :func:`refusal`, and reading every write's body itself, cut off at ``max_body``
+    bytes (whatever its Content-Length said)."""
 
     def __init__(self, app: Callable[[Scope, Receive, Send], Awaitable[None]], policy: HostPolicy, *,
                  is_route: Callable[[Scope], bool] = lambda _scope: True, max_body: int = MAX_BODY_BYTES,
@@ -142,11 +167,13 @@ class RequestGuard:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope.get("headers", ())}
+        raw = scope.get("headers", ())
+        headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in raw}
         write = scope["method"].upper() in WRITE_METHODS
-        refused = refusal(scope["method"], headers, self.policy, self.max_body,
-                          is_write_route=write and self.is_route(scope))
-        if refused is None and write and "content-length" not in headers:
+        twice = repeated_header(raw)
+        refused = (400, f"{twice.title()} given more than once") if twice is not None else refusal(
+            scope["method"], headers, self.policy, self.max_body, is_write_route=write and self.is_route(scope))
+        if refused is None and write:  # every write's body read here, up to the cap, whatever its headers said
             receive, refused = await self._buffer(receive)
         if refused is not None:
             if self.on_refuse is not None:

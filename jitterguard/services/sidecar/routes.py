@@ -135,7 +135,7 @@ NO_QUERY = [only_query()]
 
 # ---------------------------------------------------------------------------------------------- health
 
-health_routes = APIRouter(tags=["health"])
+health_routes = APIRouter(tags=["health"], dependencies=NO_QUERY)
 
 
 @health_routes.get("/healthz", response_model=HealthView, summary="The sidecar process is up (says nothing about the classifier)")
@@ -239,13 +239,14 @@ async def get_track(c: Client, track_id: Annotated[str, Path(pattern="^[0-9a-fA-
                                                                "serves (64)"}},
            summary="Server-sent events of state changes", dependencies=NO_QUERY)
 async def events(request: Request, ctx: Ctx, c: Client) -> StreamingResponse:
-    if ctx.broker.full():
+    place = ctx.broker.reserve()
+    if place is None:
         raise HTTPException(503, "too many open event streams; try again later", headers={"Retry-After": "5"})
     st = c.served_state()
     ready = c.readiness()
     hello = {"ready": ready["ready"], "reason": ready["reason"], "seq": st.seq if st else None,
              "counts": st.counts if st else None}
-    return StreamingResponse(ctx.broker.stream(hello, request.is_disconnected), media_type="text/event-stream",
+    return StreamingResponse(ctx.broker.stream(place, hello, request.is_disconnected), media_type="text/event-stream",
                              headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
 
 
@@ -297,11 +298,16 @@ async def no_body(request: Request) -> None:
                                        "msg": "This route takes no body (none, or {})"}])
 
 
-def if_match(value: Annotated[str, Header(  # `str`, not `str | None`: a header is absent, never null, in the schema
+def if_match(request: Request, value: Annotated[str, Header(  # `str`, not `str | None`: absent, never null
         alias="If-Match", pattern=IF_MATCH_PATTERN,
         description='the ETag of GET /v1/config this write is meant for: applied only while that version is in '
                     'force (412 otherwise); "*" or none: whatever is in force')] = None,  # type: ignore[assignment]
              ) -> str | None:
+    """The version a write is meant for. A header given twice is a list (RFC 9110 §5.3), refused as a list on one
+    line is: FastAPI reads the first, so ``If-Match: *`` before a stale tag had applied the write unconditionally."""
+    if len(request.headers.getlist("if-match")) > 1:
+        raise RequestValidationError([{"type": "duplicate_header", "loc": ["header", "If-Match"], "input": None,
+                                       "msg": "If-Match given more than once: name one version"}])
     return parse_if_match(value)
 
 
@@ -375,9 +381,12 @@ def post_preset(ctx: Ctx, c: Client, name: Annotated[PresetName, Path(descriptio
 # ---------------------------------------------------------------------------------------------- metrics, page
 
 misc_routes = APIRouter()
+PAGE_QUERY = ("view", "refresh", "track")
+"""What the page reads from its own address (in the browser): a fixed view ``x0,y0,x1,y1`` [m], the refresh period
+[ms], the track selected."""
 
 
-@misc_routes.get("/metrics", tags=["metrics"], response_class=Response,
+@misc_routes.get("/metrics", tags=["metrics"], response_class=Response, dependencies=NO_QUERY,
           responses={200: {"content": {CONTENT_TYPE_LATEST.split(";")[0]: {"schema": {"type": "string"}}},
                            "description": "Prometheus text exposition"}},
           summary="Prometheus metrics: frames, tracks, static/dynamic by class, rejects, frame latency")
@@ -385,7 +394,8 @@ def get_metrics(ctx: Ctx) -> Response:
     return Response(generate_latest(ctx.metrics.registry), media_type=CONTENT_TYPE_LATEST)
 
 
-@misc_routes.get("/", response_class=HTMLResponse, tags=["page"], summary="Live bird's-eye view of the tracks")
+@misc_routes.get("/", response_class=HTMLResponse, tags=["page"], summary="Live bird's-eye view of the tracks",
+                 dependencies=[only_query(*PAGE_QUERY)])
 async def index(ctx: Ctx) -> HTMLResponse:
     return HTMLResponse(ctx.page, headers={"Content-Security-Policy": CSP, "Cache-Control": "no-cache"})
 
