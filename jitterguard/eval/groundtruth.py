@@ -106,13 +106,15 @@ def nuscenes_scene_names(dataroot: Path, scene: str | None, version: str | None 
     :func:`~..services.replay.sources.nuscenes.select_scenes`): ``None`` the only one, ``all`` every scene in
     the table's order, else comma-separated names or tokens in the order given. ``tables``: see :data:`TableCache`."""
     from ..services.replay.frames import SourceError
-    from ..services.replay.sources.nuscenes import find_version, select_scenes
+    from ..services.replay.sources.nuscenes import consistent_tables, find_version, select_scenes
 
     if not Path(dataroot).is_dir():
         raise NuScenesError(f"{dataroot}: no such folder")
     try:
-        table = _table(Path(dataroot) / find_version(Path(dataroot), version), "scene", tables)
-        return [s["name"] for s in select_scenes(table, scene, dataroot, several=True)]
+        folder = Path(dataroot) / find_version(Path(dataroot), version)
+        table = _table(folder, "scene", tables)
+        with consistent_tables(folder):
+            return [s["name"] for s in select_scenes(table, scene, dataroot, several=True)]
     except SourceError as exc:
         raise NuScenesError(str(exc).replace("\n", " ")) from None
 
@@ -139,7 +141,7 @@ def load_nuscenes_frames(dataroot: Path, scene: str | None = None, version: str 
     """
     # only for nuScenes ground truth: its table readers are part of the replay's optional nuScenes support
     from ..services.replay.frames import SourceError
-    from ..services.replay.sources.nuscenes import NuScenesSource
+    from ..services.replay.sources.nuscenes import NuScenesSource, consistent_tables
 
     try:
         src = NuScenesSource(Path(dataroot), scene=scene, version=version)
@@ -152,9 +154,10 @@ def load_nuscenes_frames(dataroot: Path, scene: str | None = None, version: str 
     except SourceError as exc:
         raise NuScenesError(str(exc).replace("\n", " ")) from None
     try:
-        return _frames(dataroot, src, t)
-    except KeyError as exc:  # a token one table names and another does not hold
-        raise NuScenesError(f"{dataroot}: the tables refer to a token they do not hold: {exc}") from None
+        with consistent_tables(folder):  # a token one table names and another does not hold, a field missing…
+            return _frames(dataroot, src, t)
+    except SourceError as exc:
+        raise NuScenesError(str(exc).replace("\n", " ")) from None
 
 
 def _frames(dataroot: Path, src: Any, t: dict[str, list[dict[str, Any]]]) -> tuple[str, list[GroundTruthFrame]]:

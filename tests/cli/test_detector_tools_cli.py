@@ -214,3 +214,29 @@ def test_export_onnx_into_an_earlier_export_leaves_no_stale_graph(tmp_path):
 ])
 def test_classifier_flags_are_refused_naming_the_flag(args, needle):
     one_line_exit_2(run(["classifier", "--connect", "tcp/127.0.0.1:9", *args], timeout=60), needle)
+
+
+NUSCENES_TABLES = ("attribute", "calibrated_sensor", "category", "ego_pose", "instance", "log", "map", "sample",
+                   "sample_annotation", "sample_data", "scene", "sensor", "visibility")
+
+
+@pytest.mark.parametrize(("scene_table", "needle"), [
+    ('[{"token": "s1", "name": "scene-1"}]', "inconsistent nuScenes tables (KeyError: 'first_sample_token')"),
+    ("[1, 2]", "scene.json: nuScenes table must be a JSON list of objects"),
+])
+def test_a_damaged_nuscenes_dataroot_is_one_line_for_every_command_that_reads_one(scene_table, needle, tmp_path):
+    """A scene row without ``first_sample_token``, or a table of numbers: ``calibrate`` and ``replay`` had said so in
+    one line, while ``train``, ``eval-detector``, ``domain-gap``, ``adapt`` and ``eval`` ended in a traceback
+    (exit 1). Every reader of the tables now goes through one check."""
+    root = tmp_path / "root"
+    (root / "v1.0-mini").mkdir(parents=True)
+    for name in NUSCENES_TABLES:
+        (root / "v1.0-mini" / f"{name}.json").write_text(scene_table if name == "scene" else "[]")
+    out = tmp_path / "out"
+    for args in (["train", "--out", str(out), "--nuscenes", str(root)],
+                 ["eval-detector", "--out", str(out), "--nuscenes", str(root)],
+                 ["domain-gap", "--out", str(out), "--nuscenes", str(root)],
+                 ["adapt", "--weights", str(LITE), "--out", str(out), "--scans", str(root)],
+                 ["eval", "--out", str(out), "--nuscenes", str(root)],
+                 ["calibrate", str(root), "--out", str(tmp_path / "c.yaml")]):
+        one_line_exit_2(run(args), needle)

@@ -84,7 +84,7 @@ def read_unlabelled(specs: Sequence[str], *, max_scans: int | None = None,
     # the replay's readers (and through them rosbags, PCD) load only when scans are read, not when the CLI starts
     from ..replay.frames import IDENTITY, ScanFrame, SourceError
     from ..replay.sources import SourceOptions, open_source
-    from ..replay.sources.nuscenes import _load_table, find_version, is_nuscenes_root
+    from ..replay.sources.nuscenes import _load_table, consistent_tables, find_version, is_nuscenes_root
     from .adapter import points_from_fields
 
     out: list[UnlabelledScan] = []
@@ -94,7 +94,9 @@ def read_unlabelled(specs: Sequence[str], *, max_scans: int | None = None,
         name = str(path.resolve()) if path.exists() else spec
         scenes: list[str | None] = [None]
         if path.exists() and is_nuscenes_root(path):
-            scenes = [s["name"] for s in _load_table(path / find_version(path, None), "scene")]
+            folder = path / find_version(path, None)
+            with consistent_tables(folder):
+                scenes = [s["name"] for s in _load_table(folder, "scene")]
         for scene in scenes:
             src = open_source(spec, SourceOptions(scene=scene))
             n_before = len(out)

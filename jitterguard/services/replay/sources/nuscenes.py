@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 import logging
+from contextlib import contextmanager
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -92,9 +93,26 @@ def _load_table(folder: Path, name: str) -> list[dict[str, Any]]:
         raise SourceError(f"{path}: nuScenes table missing") from None
     except (OSError, ValueError) as exc:
         raise SourceError(f"{path}: unreadable nuScenes table: {exc}") from None
-    if not isinstance(table, list):
-        raise SourceError(f"{path}: nuScenes table must be a JSON list")
+    if not isinstance(table, list) or not all(isinstance(row, dict) for row in table):
+        raise SourceError(f"{path}: nuScenes table must be a JSON list of objects")
     return table
+
+
+TABLE_FAULTS = (KeyError, TypeError, ValueError, IndexError, AttributeError)
+"""What reading rows that lack a field, hold the wrong type or name a token no table holds raises."""
+
+
+@contextmanager
+def consistent_tables(where: object) -> Iterator[None]:
+    """Run a reading of nuScenes tables, its :data:`TABLE_FAULTS` said as one :class:`SourceError` naming
+    ``where``: every reader of the tables (replay, ground truth, training, adaptation) refuses a damaged dataroot
+    alike, in one line (a scene row without ``first_sample_token`` had ended ``train`` in a traceback)."""
+    try:
+        yield
+    except SourceError:
+        raise
+    except TABLE_FAULTS as exc:
+        raise SourceError(f"{where}: inconsistent nuScenes tables ({type(exc).__name__}: {exc})") from None
 
 
 def pose_from_record(rec: dict[str, Any]) -> EgoPose:
@@ -139,10 +157,8 @@ class NuScenesSource(Source):
         self.version = find_version(dataroot, version)
         folder = dataroot / self.version
         t = {name: _load_table(folder, name) for name in TABLES}
-        try:
+        with consistent_tables(folder):
             self._index(t, scene, channel, sweeps)
-        except (KeyError, TypeError, ValueError, IndexError) as exc:
-            raise SourceError(f"{folder}: inconsistent nuScenes tables ({type(exc).__name__}: {exc})") from None
         self.channel = channel
         self.frame_id = f"{channel}{FRAME_SUFFIX}"
         self._truth: dict[int, Any] | None = None  # key-frame stamp → GroundTruthObjects, built on the first pass
