@@ -243,7 +243,7 @@ def test_a_folder_where_an_output_file_goes_is_refused_before_any_work(args, blo
     (["replay", "synthetic:mixed", "--start", "100000", "--connect", "tcp/127.0.0.1:9"],
      "--start 100000 is past the end of synthetic:mixed"),
     (["replay", "synthetic:mixed", "--wait-subscriber", "nan", "--connect", "tcp/127.0.0.1:9"],
-     "--wait-subscriber must be a number of seconds >= 0"),  # had waited for ever
+     "--wait-subscriber must be a number of seconds from 0 to 86400"),  # had waited for ever
     # flags that had been ignored without a word
     (["foxglove", "--overwrite", "--connect", "tcp/127.0.0.1:9"], "--overwrite: only with --record"),
     (["foxglove", "--number-if-exists", "--connect", "tcp/127.0.0.1:9"], "--number-if-exists: only with --record"),
@@ -269,6 +269,14 @@ def test_a_folder_where_an_output_file_goes_is_refused_before_any_work(args, blo
      "--objects-topic: 'objects' is not a ROS 2 topic name"),
     (["ros2-in", "--points-topic", "", "--connect", "tcp/127.0.0.1:9"],  # had quietly read the default topic
      "--points-topic: '' is not a ROS 2 topic name"),
+    # an empty chunk had passed the checks and ended in a traceback as a Zenoh key (--pose-topic: and then hung)
+    (["ros2-in", "--pose-topic", "/a//b", "--connect", "tcp/127.0.0.1:9"], "--pose-topic: '/a//b' is not a ROS 2"),
+    (["ros2-out", "--key-prefix", "a//b", "--connect", "tcp/127.0.0.1:9"], "--key-prefix: 'a//b' is not a Zenoh key"),
+    (["ros2-out", "--key-prefix", "a/*", "--connect", "tcp/127.0.0.1:9"], "--key-prefix: 'a/*' is not a Zenoh key"),
+    # with no SOURCE at all it had printed its help on stdout, exit 0, where one missing argument is exit 2
+    (["replay"], "Missing argument 'source'"),
+    (["replay", "synthetic:mixed", "--wait-subscriber", "inf", "--connect", "tcp/127.0.0.1:9"],  # waited for ever
+     "--wait-subscriber must be a number of seconds from 0 to 86400"),
     # an empty --run-dir had meant the default stack's (down stopped it) and the monitor's the current folder
     (["down", "--run-dir", ""], "--run-dir: empty path; give a folder"),
     (["status", "--run-dir", ""], "--run-dir: empty path; give a folder"),

@@ -11,7 +11,7 @@ import xxhash
 
 from jitterguard.services.replay.frames import DetectionFrame, FrameError, ScanFrame
 from jitterguard.services.replay.sources.ros_types import typestore
-from jitterguard.services.ros2live.ros_keys import (RosEndpoint, RosNaming, RosQos, check_topic, dds_type_name,
+from jitterguard.services.ros2live.ros_keys import (RosEndpoint, RosNaming, RosQos, check_key_prefix, check_topic, dds_type_name,
                                                    entity_gid, rmw_attachment, ros_key, ros_node)
 from jitterguard.services.ros2live.scans_in import LiveScans, UndecodableMessage
 
@@ -55,9 +55,17 @@ def test_keys_and_topic_names():
     assert ros_key("", "/sensing/lidar/top/pointcloud") == "sensing/lidar/top/pointcloud"
     assert ros_key("/robot1/", "/tf") == "robot1/tf"
     assert check_topic("--points-topic", " /points ") == "/points"
-    for bad in ("points", "/", "/a/*", "/a b", "/@ros2_lv"):
+    assert check_topic("--points-topic", "/sensing/lidar/top/pointcloud_raw_ex") == "/sensing/lidar/top/pointcloud_raw_ex"
+    # an empty token, a trailing '/' and a token that starts with a digit break rcl's rules; '/a//b' had passed and
+    # failed later as a Zenoh key, in a traceback (and ros2-in --pose-topic /a//b had hung after it)
+    for bad in ("points", "/", "/a/*", "/a b", "/@ros2_lv", "/a//b", "/a/", "/9lidar", "/a-b"):
         with pytest.raises(ValueError, match="--points-topic"):
             check_topic("--points-topic", bad)
+    assert check_key_prefix("--key-prefix", "/robot1/") == "robot1" and check_key_prefix("--key-prefix", "") == ""
+    assert check_key_prefix("--key-prefix", "fleet/car-2.a") == "fleet/car-2.a"
+    for bad in ("a//b", "a/*", "**", "a/$*b", "a b"):  # an empty chunk, wildcards: they had been published on
+        with pytest.raises(ValueError, match="--key-prefix"):
+            check_key_prefix("--key-prefix", bad)
 
 
 def test_rmw_zenoh_keys_and_attachments_are_the_middlewares_own():

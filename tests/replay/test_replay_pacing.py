@@ -12,12 +12,15 @@ from replay.helpers import FakeClock
 MS = 1_000_000
 
 
-@pytest.mark.parametrize("text,expected", [("1", 1.0), ("0.5", 0.5), ("2x", 2.0), ("MAX", None), (" max ", None)])
+@pytest.mark.parametrize("text,expected", [("1", 1.0), ("0.5", 0.5), ("2x", 2.0), ("MAX", None), (" max ", None),
+                                           ("0.001", 0.001)])
 def test_parse_rate_accepts_factors_and_max(text: str, expected: float | None) -> None:
     assert parse_rate(text) == expected
 
 
-@pytest.mark.parametrize("text", ["0", "-1", "fast", "nan", "inf1", "", "1e999"])
+@pytest.mark.parametrize("text", ["0", "-1", "fast", "nan", "inf1", "", "1e999",
+                                  "2xx",  # had been read as 2
+                                  "1e-300", "0.0009"])  # taken, and the second frame never came
 def test_parse_rate_rejects_nonsense_with_the_flag_name(text: str) -> None:
     with pytest.raises(ValueError, match="--rate"):
         parse_rate(text)

@@ -54,7 +54,7 @@ SERVICE_NAME = re.compile(r"[A-Za-z0-9_\-]+")
 
 # The options that say what to replay, shared with `jitterguard up` (which passes them to its replay program).
 SourceArg = Annotated[str, typer.Argument(help="synthetic:SCENARIO, a nuScenes dataroot, a bag (.mcap/.db3/folder), a folder of .bin or .pcd scans, or one such file.")]
-RateOpt = Annotated[str, typer.Option("--rate", help="Factor on the recorded rate (1 = real time, 2 = twice as fast), or 'max'.")]
+RateOpt = Annotated[str, typer.Option("--rate", help="Factor on the recorded rate (1 = real time, 2 or 2x = twice as fast; at least 0.001), or 'max'.")]
 StartOpt = Annotated[int, typer.Option("--start", help="First recorded frame to replay (0-based).")]
 LimitOpt = Annotated[int | None, typer.Option("--limit", help="Replay at most this many frames (per pass when looping).")]
 OnErrorOpt = Annotated[str, typer.Option("--on-error", help="A frame that cannot be read: 'skip' (count it, go on) or 'stop' (exit 65, which supervisord and systemd do not restart).")]
@@ -103,6 +103,10 @@ class _Progress:
             self.bar.close()
 
 
+MAX_WAIT_S = 86400.0
+"""The longest ``--wait-subscriber``: a day (a replay that must wait longer is started later)."""
+
+
 def replay_command(
     source: SourceArg,
     rate: RateOpt = "1",
@@ -125,7 +129,7 @@ def replay_command(
     hz: HzOpt = 10.0,
     topic: TopicOpt = None,
     pose_topic: PoseTopicOpt = None,
-    wait_subscriber: Annotated[float, typer.Option("--wait-subscriber", help="Seconds to wait for a subscriber before the first frame (0: do not wait).")] = 5.0,
+    wait_subscriber: Annotated[float, typer.Option("--wait-subscriber", help="Seconds to wait for a subscriber before the first frame (0: do not wait; at most 86400).")] = 5.0,
     wait_for: Annotated[str | None, typer.Option("--wait-for", help="Before the first frame, wait (up to --wait-subscriber seconds) for this service's heartbeat saying it is ready — the pipeline's consumer: detector for scans, tracker for detections — not only for any subscriber (a viewer or recorder subscribed first had started the replay before the detector was up).")] = None,
     progress: ProgressOpt = None,
     ns: NsOpt = "default",
@@ -141,8 +145,8 @@ def replay_command(
                          duration=duration, lidar=lidar, hz=hz, scene=scene, nuscenes_version=nuscenes_version,
                          sweeps=sweeps, poses=poses, calib=calib, times=times, bin_fields=bin_fields, topic=topic,
                          pose_topic=pose_topic)
-    if not wait_subscriber >= 0:  # nan had passed (every comparison with it is false) and waited for ever
-        fail(f"--wait-subscriber must be a number of seconds >= 0, got {wait_subscriber}")
+    if not 0 <= wait_subscriber <= MAX_WAIT_S:  # nan (every comparison with it is false) and inf had waited for ever
+        fail(f"--wait-subscriber must be a number of seconds from 0 to {MAX_WAIT_S:g}, got {wait_subscriber}")
     if wait_for is not None and not SERVICE_NAME.fullmatch(wait_for):
         fail(f"--wait-for: a service name (letters, digits, '_' or '-'), got {wait_for!r}")
     try:
@@ -253,4 +257,4 @@ def _run(svc: Any, src: Any, plan: ReplayPlan, wait_s: float, progress: bool | N
 
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:
     """Add ``replay`` to the main app (its benchmark is ``jitterguard bench replay``, :mod:`jitterguard.bench`)."""
-    app.command("replay", help=(replay_command.__doc__ or "") + "\n\n" + EXAMPLES, no_args_is_help=True)(replay_command)
+    app.command("replay", help=(replay_command.__doc__ or "") + "\n\n" + EXAMPLES)(replay_command)

@@ -21,17 +21,23 @@ from typing import Protocol
 from .frames import DEFAULT_PERIOD_NS
 
 
+MIN_RATE = 1e-3
+"""The slowest ``--rate``: a thousandth of real time (a 10 Hz recording at a frame every 100 s). 1e-300 had been
+taken and never sent a second frame."""
+
+
 def parse_rate(text: str) -> float | None:
-    """``--rate``: a positive finite factor on the recorded rate, or ``max`` (returned as ``None``)."""
+    """``--rate``: a finite factor on the recorded rate of at least :data:`MIN_RATE`, written ``2`` or ``2x``, or
+    ``max`` (returned as ``None``)."""
     t = text.strip().lower()
     if t in ("max", "inf", "unlimited"):
         return None
     try:
-        value = float(t.rstrip("x"))
+        value = float(t[:-1] if t.endswith("x") else t)  # one x: "2xx" had been read as 2
     except ValueError:
         raise ValueError(f"--rate must be a positive number (e.g. 1, 0.5, 2x) or 'max', got {text!r}") from None
-    if not math.isfinite(value) or value <= 0.0:
-        raise ValueError(f"--rate must be a positive number or 'max', got {text!r}")
+    if not math.isfinite(value) or value < MIN_RATE:
+        raise ValueError(f"--rate must be a number >= {MIN_RATE:g} (e.g. 1, 0.5, 2x) or 'max', got {text!r}")
     return value
 
 

@@ -50,11 +50,15 @@ def ros_side(middleware: str, domain_id: str, key_prefix: str, ros_connect: list
     """The ROS 2 flags as the keys' naming and the ROS side's session options (None: the service's own session),
     or a one-line refusal naming the flag (exit 2; ``names``: how the caller's user gave the middleware, the
     domain ID and the distribution)."""
-    from .ros_keys import DISTROS_WITHOUT_TYPE_HASHES, MAX_DOMAIN_ID, MIDDLEWARES, RosNaming
+    from .ros_keys import DISTROS_WITHOUT_TYPE_HASHES, MAX_DOMAIN_ID, MIDDLEWARES, RosNaming, check_key_prefix
 
     if middleware not in MIDDLEWARES:
         fail(f"{names[0]}: {middleware!r} is not one of {', '.join(MIDDLEWARES)}")
     domain = parse_int(names[1], domain_id, 0, MAX_DOMAIN_ID)
+    try:
+        check_key_prefix("--key-prefix", key_prefix)
+    except ValueError as exc:
+        fail(str(exc))
     if middleware == "rmw_zenoh" and key_prefix.strip("/"):
         fail("--key-prefix: a bridge's namespace; rmw_zenoh keys have none (they start with the domain ID)")
     if not distro.isalpha() or not distro.islower():

@@ -22,6 +22,7 @@ them to learn a topic's type. Behind a bridge the bridge announces DDS endpoints
 
 from __future__ import annotations
 
+import re
 import struct
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -44,11 +45,29 @@ def ros_key(prefix: str, topic: str) -> str:
     return prefix.strip("/") + "/" + topic.strip("/") if prefix.strip("/") else topic.strip("/")
 
 
+TOPIC_NAME = re.compile(r"(/[A-Za-z_][A-Za-z0-9_]*)+")
+"""A fully qualified ROS 2 topic name (rcl's rules): ``/``-separated tokens, none empty, of letters, digits and
+underscores, none starting with a digit."""
+KEY_PREFIX = re.compile(r"[A-Za-z0-9_\-.]+(/[A-Za-z0-9_\-.]+)*")
+"""A bridge's namespace as a Zenoh key prefix: chunks that are neither empty nor wildcards."""
+
+
 def check_topic(flag: str, topic: str) -> str:
-    """A ROS 2 topic name as a flag gives it (``/sensing/lidar/top/pointcloud``); ValueError naming ``flag``."""
+    """A ROS 2 topic name as a flag gives it (``/sensing/lidar/top/pointcloud``); ValueError naming ``flag``. An
+    empty token (``/a//b``) had passed and failed later as a Zenoh key, in a traceback."""
     name = topic.strip()
-    if not name.startswith("/") or len(name) < 2 or any(c in name for c in "*?#$ @"):
+    if not TOPIC_NAME.fullmatch(name):
         raise ValueError(f"{flag}: {topic!r} is not a ROS 2 topic name (e.g. /sensing/lidar/top/pointcloud)")
+    return name
+
+
+def check_key_prefix(flag: str, prefix: str) -> str:
+    """A bridge namespace (``--key-prefix``; ``''`` for none), its ``/`` at either end dropped; ValueError naming
+    ``flag`` for an empty chunk (``a//b``) or a wildcard (``a/*``, ``**``), which had been taken and published on."""
+    name = prefix.strip().strip("/")
+    if name and not KEY_PREFIX.fullmatch(name):
+        raise ValueError(f"{flag}: {prefix!r} is not a Zenoh key prefix (chunks of letters, digits, '_', '-', '.', "
+                         f"split by single '/'; no wildcards)")
     return name
 
 
