@@ -104,8 +104,10 @@ def progress_on(flag: bool | None) -> bool:
 
 
 def fail(message: str) -> NoReturn:
-    """Print a one-line error to stderr and exit with status 2 (bad input)."""
-    print(f"jitterguard: error: {message}", file=sys.stderr)
+    """Print a one-line error to stderr and exit with status 2 (bad input). A message that holds line breaks — a
+    library's own, such as a YAML parser's caret display of where a bag's ``metadata.yaml`` breaks — is joined into
+    that one line."""
+    print(f"jitterguard: error: {' '.join(message.split())}", file=sys.stderr)
     raise SystemExit(2)
 
 

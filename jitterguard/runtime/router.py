@@ -34,8 +34,10 @@ its own value."""
 
 def _file_listen(path: str | None) -> tuple[str, ...]:
     """The router endpoints the Zenoh config file at ``path`` names (none if it names none or cannot be read: then
-    :func:`build_config` reports the file's problem)."""
-    if not path:
+    :func:`build_config` reports the file's problem). A file that does not name ``listen`` names none: Zenoh fills in
+    its own default, ``tcp/[::]:7447``, which had been taken as the file's choice and refused as off loopback where
+    the router's own default, ``tcp/127.0.0.1:7447``, was meant."""
+    if not path or not _file_names(path, "listen"):
         return ()
     try:
         eps = json.loads(zenoh.Config.from_file(path).get_json("listen/endpoints"))

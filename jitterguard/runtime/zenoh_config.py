@@ -83,7 +83,17 @@ def _load(opts: ZenohOptions) -> tuple[zenoh.Config, bool]:
     try:
         return zenoh.Config.from_file(str(p)), True
     except Exception as exc:  # zenoh raises ZError with the parser's message
-        raise ValueError(f"zenoh config {path}: {exc}") from None
+        raise ValueError(f"zenoh config {path}: {parser_message(str(exc))}") from None
+
+
+def parser_message(text: str) -> str:
+    """Zenoh's config parser's error in one line: ``line L, column C: what`` from its multi-line caret display, without
+    the Rust source path it ends with (``… at /root/.cargo/…/lib.rs:1486.``)."""
+    where = re.search(r"-->\s*(\d+):(\d+)", text)
+    said = [line.strip()[1:].strip() for line in text.splitlines() if line.strip().startswith("= ")]
+    what = said[-1] if said else " ".join(text.split())
+    what = re.sub(r"\s+at\s+\S+\.rs:\d+\.?$", "", what)
+    return f"line {where[1]}, column {where[2]}: {what}" if where else what
 
 
 def build_config(opts: ZenohOptions) -> zenoh.Config:

@@ -311,6 +311,17 @@ def test_bad_input_is_refused_in_one_line_before_any_work(args, needle, tmp_path
     assert not any(cwd.iterdir())
 
 
+def test_a_library_message_of_several_lines_is_joined_into_one(tmp_path):
+    """A bag whose ``metadata.yaml`` is cut short: the YAML parser's message, with its caret display, had been
+    printed as five lines."""
+    bag = tmp_path / "bag"
+    bag.mkdir()
+    (bag / "metadata.yaml").write_text("foo: [")
+    res = run(["calibrate", str(bag), "--out", str(tmp_path / "c.yaml")])
+    assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
+    assert f"{bag}: cannot open bag: Could not load YAML" in res.stderr and "line 1, column 7" in res.stderr
+
+
 @pytest.mark.parametrize(("bands", "needle"), [("-5", "Input should be greater than 0"),
                                                ("nan", "Input should be a finite number"),
                                                ("a,b", "'a,b' is not a comma-separated list of distances in metres")])

@@ -145,3 +145,26 @@ def test_a_service_on_the_service_host_template_says_it_waits_for_the_router(tmp
         proc.wait(timeout=30)
     assert "cannot open the Zenoh session (Unable to connect" in line and endpoint in line, line
     assert ".rs:" not in line  # zenoh's Rust source location is dropped
+
+
+def test_a_config_file_zenoh_cannot_parse_is_refused_in_one_line_naming_where(tmp_path: Path) -> None:
+    """Zenoh's parser says where with a six-line caret display ending in a Rust source path; that had been the
+    service's "one line" refusal."""
+    with pytest.raises(ValueError) as err:
+        build_config(ZenohOptions(config_file=_file(tmp_path, '{"a": [1, 2')))
+    said = str(err.value)
+    assert "\n" not in said and ".rs:" not in said, said
+    assert said.startswith("zenoh config ") and "line 1, column 11: expected" in said, said
+
+
+def test_a_router_file_that_names_no_listener_listens_on_loopback(tmp_path: Path) -> None:
+    """A router config file without ``listen`` (``{}``, or one with only ``connect``): Zenoh fills in its own
+    default, ``tcp/[::]:7447``, which had been taken as the file's choice and refused as off loopback. The router's
+    default, ``tcp/127.0.0.1:7447``, holds as ``--help`` says; a file that names a listener keeps it."""
+    from jitterguard.runtime.router import router_config
+
+    for text in ("{}", '{mode: "router", connect: {endpoints: ["tcp/127.0.0.1:7000"]}}'):
+        cfg = router_config([], _file(tmp_path, text))
+        assert json.loads(cfg.get_json("listen/endpoints")) == ["tcp/127.0.0.1:7447"], text
+    named = _file(tmp_path, '{listen: {endpoints: ["tcp/127.0.0.1:17996"]}}')
+    assert json.loads(router_config([], named).get_json("listen/endpoints")) == ["tcp/127.0.0.1:17996"]
