@@ -1062,7 +1062,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         ns: NsOpt = "default",
         run_dir: RunDirOpt = None,
         as_json: Annotated[bool, typer.Option("--json", help="Machine-readable output.")] = False,
-        listen: Annotated[float, float_option("--listen-s", min=0.1, help="Seconds to listen for heartbeats.")] = 1.5,
+        listen: Annotated[float, float_option("--listen-s", min=0.1, max=60.0, help="Seconds to listen for heartbeats (at most 60).")] = 1.5,
     ) -> None:
         """Per service: supervisor state, pid, uptime, liveliness on Zenoh, last frame seq (and health).
 

@@ -275,6 +275,7 @@ def test_a_folder_where_an_output_file_goes_is_refused_before_any_work(args, blo
     (["ros2-out", "--key-prefix", "a/*", "--connect", "tcp/127.0.0.1:9"], "--key-prefix: 'a/*' is not a Zenoh key"),
     # with no SOURCE at all it had printed its help on stdout, exit 0, where one missing argument is exit 2
     (["replay"], "Missing argument 'source'"),
+    (["status", "--listen-s", "1e9"], "--listen-s: 1e+09 is outside 0.1-60"),  # had listened for 31 years
     (["replay", "synthetic:mixed", "--wait-subscriber", "inf", "--connect", "tcp/127.0.0.1:9"],  # waited for ever
      "--wait-subscriber must be a number of seconds from 0 to 86400"),
     # an empty --run-dir had meant the default stack's (down stopped it) and the monitor's the current folder
