@@ -18,6 +18,7 @@ behind a bounded FIFO, so a slow handler stalls the receive path.
 from __future__ import annotations
 
 import faulthandler
+import functools
 import logging
 import os
 import threading
@@ -128,6 +129,44 @@ class Service:
     """Base class of every jitterguard process: owns one Zenoh session and its lifecycle."""
 
     name = "service"
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        """A subclass's constructor that fails after the session opened (a key Zenoh refuses, a second session that
+        cannot open) undeclares what it declared and closes its sessions before the error goes on: Zenoh runs each
+        Python callback on a thread the interpreter waits for at exit, and ``ros2-in`` given a topic Zenoh refused
+        had printed its traceback and then never exited — under supervisord a program RUNNING that does nothing."""
+        super().__init_subclass__(**kwargs)
+        init = cls.__dict__.get("__init__")
+        if init is None:
+            return
+
+        @functools.wraps(init)
+        def init_or_close(self: "Service", *args: Any, **kw: Any) -> None:
+            try:
+                init(self, *args, **kw)
+            except BaseException:
+                self._close_opened()
+                raise
+
+        cls.__init__ = init_or_close  # type: ignore[method-assign]
+
+    def _close_opened(self) -> None:
+        """Undeclare everything and close the sessions of a service whose construction failed (once; nothing waited
+        for: its workers are daemon threads)."""
+        if "session" not in self.__dict__ or self.__dict__.get("_closed_opened"):
+            return
+        self._closed_opened = True
+        self.stop_event.set()
+        for entity in [*reversed(self._declared), getattr(self, "_hb_pub", None), self.session]:
+            try:
+                if entity is self.session:
+                    entity.close()
+                elif entity is not None:
+                    entity.undeclare()
+            except Exception:
+                pass
+        self._declared.clear()
+        self._notifier.close()
 
     def __init__(self, opts: ZenohOptions, *, stop_event: threading.Event | None = None) -> None:
         """Opens the session, waiting for the router while it is not up; ``stop_event`` (default: a new one)

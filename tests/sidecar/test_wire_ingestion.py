@@ -178,17 +178,26 @@ def test_a_burst_of_event_streams_past_the_bound_is_answered_503_never_busy_insi
     app = create_app(SidecarSettings(zenoh=loopback_options(stack.ns, stack.zport), max_event_streams=4))
     server = Uvicorn(app)
 
-    async def burst() -> list[tuple[int, str]]:
-        async with httpx.AsyncClient(base_url=server.url, timeout=10.0,
+    async def burst(n: int = 24) -> list[tuple[int, str]]:
+        answered, everyone = [0], asyncio.Event()
+
+        def tally() -> None:
+            answered[0] += 1
+            if answered[0] == n:
+                everyone.set()
+
+        async with httpx.AsyncClient(base_url=server.url, timeout=30.0,
                                      limits=httpx.Limits(max_connections=40)) as c:
             async def one() -> tuple[int, str]:
                 async with c.stream("GET", "/v1/events") as r:
+                    tally()
                     if r.status_code != 200:
                         return r.status_code, r.headers.get("Retry-After", "")
                     first = await anext(r.aiter_text())
-                    await asyncio.sleep(1.0)  # held open while the rest of the burst arrives
+                    # held open until every request of the burst has its answer: no place frees up meanwhile
+                    await asyncio.wait_for(everyone.wait(), 30)
                     return 200, first
-            return await asyncio.gather(*(one() for _ in range(24)))
+            return await asyncio.gather(*(one() for _ in range(n)))
 
     try:
         with httpx.Client(base_url=server.url, timeout=10.0) as c:
