@@ -17,7 +17,7 @@ from typing import Annotated, Any, NoReturn
 import typer
 
 from .runtime import ZenohOptions, build_config
-from .runtime.zenoh_config import ENV_CONFIG, ENV_NS, tls_file_refusal
+from .runtime.zenoh_config import ENV_CONFIG, ENV_NS, config_endpoints, tls_file_refusal
 
 NsOpt = Annotated[str, typer.Option("--ns", envvar=ENV_NS, help="Namespace: keys live under jg/{ns}/...")]
 
@@ -292,16 +292,17 @@ def new_dir(flag: str, path: str | os.PathLike[str]) -> Path:
     return p
 
 
-def check_endpoints(endpoints: list[str]) -> None:
+def check_endpoints(endpoints: list[str], where: str = "") -> None:
     """Each Zenoh endpoint shaped PROTO/HOST:PORT with a port in 0-65535, or one line and exit 2: Zenoh refuses a
-    bad one only when the session opens, and a service retries that for ever (it waits for a router)."""
+    bad one only when the session opens, and a service retries that for ever (it waits for a router). ``where``
+    prefixes the message (``"--zenoh-config FILE: "`` for the endpoints a config file names)."""
     for ep in endpoints:
         if "/" not in ep:
-            fail(f"endpoint {ep!r} must look like tcp/HOST:PORT")
+            fail(f"{where}endpoint {ep!r} must look like tcp/HOST:PORT")
         proto, _, address = ep.partition("/")
         port = address.split("#", 1)[0].split("?", 1)[0].rpartition(":")[2]
         if proto in ("tcp", "udp", "tls", "quic", "ws") and not (port.isdigit() and int(port) <= 65535):
-            fail(f"endpoint {ep!r}: port {port!r} is not a number in 0-65535")
+            fail(f"{where}endpoint {ep!r}: port {port!r} is not a number in 0-65535")
 
 
 def zenoh_options(ns: str, zenoh_config: str | None, connect: list[str] | None, listen: list[str] | None) -> ZenohOptions:
@@ -317,6 +318,8 @@ def zenoh_options(ns: str, zenoh_config: str | None, connect: list[str] | None, 
         cfg = build_config(opts)  # before anything starts (the sidecar's open runs inside uvicorn's startup)
     except ValueError as exc:
         fail(str(exc))
+    # the file's own endpoints too: a port of 99999 there had been retried for ever, where the flag is refused
+    check_endpoints(config_endpoints(cfg), f"--zenoh-config {zenoh_config}: " if zenoh_config else "")
     reason = tls_file_refusal(cfg)
     if reason:
         fail(f"cannot open the Zenoh session: {reason}")

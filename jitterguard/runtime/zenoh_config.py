@@ -143,6 +143,13 @@ def listen_endpoints(cfg: zenoh.Config, mode: str | None = None) -> list[str]:
     return ["tcp/[::]:7447"] if mode == "router" else ["tcp/[::]:0"]
 
 
+def config_endpoints(cfg: zenoh.Config) -> list[str]:
+    """Every endpoint a session opened with ``cfg`` connects to or listens on, in its mode."""
+    mode = str(_get(cfg, "mode") or "peer")
+    endpoints = [str(e) for e in (_for_mode(_get(cfg, "connect/endpoints"), mode) or [])]  # type: ignore[union-attr]
+    return endpoints + listen_endpoints(cfg, mode)
+
+
 class UnusableConfig(ValueError):
     """The session cannot open whatever the wait: its config names a file that is not there or not usable (a TLS
     key or certificate). Waiting for a router would hide it for ever."""
@@ -163,9 +170,7 @@ def tls_file_refusal(cfg: zenoh.Config) -> str | None:
     Checked before the open because a *client* need not report them: with ``connect/timeout_ms: -1`` (as the
     service hosts' template once set) its open retries the TLS link for ever without a word, and otherwise its
     failure reads as a router that is not up yet. Only a config with a ``tls/`` or ``quic/`` endpoint is checked (the others never read them)."""
-    mode = str(_get(cfg, "mode") or "peer")
-    endpoints = [str(e) for e in (_for_mode(_get(cfg, "connect/endpoints"), mode) or [])]  # type: ignore[union-attr]
-    endpoints += listen_endpoints(cfg, mode)
+    endpoints = config_endpoints(cfg)
     if not any(e.startswith(("tls/", "quic/")) for e in endpoints):
         return None
     for key in TLS_FILE_KEYS:

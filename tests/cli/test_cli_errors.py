@@ -312,6 +312,19 @@ def test_bad_input_is_refused_in_one_line_before_any_work(args, needle, tmp_path
     assert not any(cwd.iterdir())
 
 
+@pytest.mark.parametrize("args", [["tracker"], ["router"]])
+def test_a_config_files_endpoint_port_out_of_range_is_refused_as_the_flags_is(args, tmp_path):
+    """``--connect tcp/127.0.0.1:99999`` is refused in one line; the same port in a ``--zenoh-config`` file had been
+    retried for ever by a service, and printed by the router as a log line."""
+    cfg = tmp_path / "z.json5"
+    mode = "router" if args == ["router"] else "client"
+    where = "listen" if mode == "router" else "connect"
+    cfg.write_text(f'{{mode: "{mode}", {where}: {{endpoints: ["tcp/127.0.0.1:99999"]}}}}')
+    res = run([*args, "--zenoh-config", str(cfg)])
+    assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
+    assert f"--zenoh-config {cfg}: endpoint 'tcp/127.0.0.1:99999': port '99999'" in res.stderr, res.stderr
+
+
 def test_a_library_message_of_several_lines_is_joined_into_one(tmp_path):
     """A bag whose ``metadata.yaml`` is cut short: the YAML parser's message, with its caret display, had been
     printed as five lines."""

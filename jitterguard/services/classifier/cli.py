@@ -144,12 +144,15 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         """Run a Zenoh router in this Python process (no separate zenohd binary needed)."""
         from ...runtime import setup_logging
         from ...runtime.router import router_config, run_router
+        from ...runtime.zenoh_config import config_endpoints
 
         check_endpoints(list(listen or ()))
         try:
-            router_config(list(listen or ()), zenoh_config)
+            cfg = router_config(list(listen or ()), zenoh_config)
         except ValueError as exc:
             fail(str(exc))
+        # the file's endpoints too (a port of 99999 had come out as a log line, "invalid port value")
+        check_endpoints(config_endpoints(cfg), f"--zenoh-config {zenoh_config}: " if zenoh_config else "")
         setup_logging(log_level)
         run_router(list(listen or ()), zenoh_config)
 
