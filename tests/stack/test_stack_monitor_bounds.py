@@ -56,6 +56,15 @@ def _monitor(run_dir, ns: str) -> Iterator[zenoh.Session]:
             stop_process(p)
 
 
+def _flood_of_made_up_names(session: zenoh.Session, ns: str, t0: int, n: int = 200) -> None:
+    """Heartbeats of ``n`` services nobody runs, each on its own key, as any process on the host may put them."""
+    for i in range(n):
+        session.put(keys.heartbeat(ns, f"ghost{i}"), encode(Heartbeat(service=f"ghost{i}", pid=50000 + i,
+                                                                      stamp=t0 + i, counters={"x_dropped": 1})),
+                    congestion_control=zenoh.CongestionControl.BLOCK)
+        time.sleep(0.005)
+
+
 def test_the_monitor_is_bounded_and_folds_restarted_processes_exactly(tmp_path):
     ns = f"mon{os.getpid()}"
     with _monitor(tmp_path, ns) as session:
@@ -78,11 +87,7 @@ def test_the_monitor_is_bounded_and_folds_restarted_processes_exactly(tmp_path):
         wide = {f"w{i:04x}": 1 for i in range(MAX_HEARTBEAT_ENTRIES + 1)}
         session.put(keys.heartbeat(ns, "wide"), encode(Heartbeat(service="wide", pid=8, stamp=t0, counters=wide)),
                     congestion_control=block)
-        for i in range(200):
-            session.put(keys.heartbeat(ns, f"ghost{i}"), encode(Heartbeat(service=f"ghost{i}", pid=50000 + i,
-                                                                          stamp=t0 + i, counters={"x_dropped": 1})),
-                        congestion_control=block)
-            time.sleep(0.005)
+        _flood_of_made_up_names(session, ns, t0)
         # a heartbeat on one key that names another service is refused, not summed as the one it names
         session.put(keys.heartbeat(ns, "spoof"), encode(Heartbeat(service="tracker", pid=99, stamp=t0 + 1000,
                                                                   counters={"frames": 10**15})),
@@ -251,11 +256,7 @@ def test_a_monitor_keeps_a_restarted_stage_after_a_flood_of_made_up_names(tmp_pa
     with _monitor(tmp_path, ns) as session:
         block = zenoh.CongestionControl.BLOCK
         t0 = time.time_ns()
-        for i in range(200):
-            session.put(keys.heartbeat(ns, f"ghost{i}"), encode(Heartbeat(service=f"ghost{i}", pid=50000 + i,
-                                                                          stamp=t0 + i, counters={"x_dropped": 1})),
-                        congestion_control=block)
-            time.sleep(0.005)
+        _flood_of_made_up_names(session, ns, t0)
         session.put(keys.heartbeat(ns, "tracker"), encode(Heartbeat(service="tracker", pid=4242, stamp=t0 + 500,
                                                                     counters={"frames": 17, "tracks_born": 3})),
                     congestion_control=block)
