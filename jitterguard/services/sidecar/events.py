@@ -15,14 +15,12 @@ import asyncio
 import itertools
 import json
 import threading
-import time
+import weakref
 from collections.abc import AsyncIterator, Callable
 from typing import Any
 
 QUEUE_SIZE = 256
 MAX_STREAMS = 64
-RESERVE_S = 5.0
-"""How long a place :meth:`EventBroker.reserve` gave waits for its stream to begin."""
 """Open ``/v1/events`` streams at most (more get a 503). Each has its own queue and gets every event: 1000 idle
 streams had cost the sidecar 70 % of a core and made ``GET /v1/state`` take 0.7 s (reads need no token, so anyone
 who reaches the port could open them)."""
@@ -74,7 +72,7 @@ class EventBroker:
         self._ids = itertools.count(1)
         self._on_drop = on_drop
         self._on_count = on_count
-        self._held: dict[object, float] = {}  # places reserved for streams about to begin, and since when
+        self._held: set[object] = set()  # places taken by streams whose body has not begun
         self._closed = False
 
     def publish(self, kind: str, data: dict[str, Any]) -> None:
@@ -97,40 +95,37 @@ class EventBroker:
             n = len(self._streams)
         self._on_count(n)
 
-    def reserve(self) -> object | None:
-        """A place for one stream, held for :data:`RESERVE_S` until :meth:`stream` takes it, or None when
-        ``max_streams`` are open or held. The route asks before it answers, so a refusal is a 503 with
-        ``Retry-After``: requests that had passed a bare "full?" check together were admitted, then told ``busy``
-        inside a 200 (8 of a burst of 100). A place never taken (the client left before its stream began) lapses."""
-        now = time.monotonic()
-        with self._lock:
-            self._held = {t: at for t, at in self._held.items() if now - at < RESERVE_S}
-            if len(self._streams) + len(self._held) >= self._max_streams:
-                return None
-            place = object()
-            self._held[place] = now
-            return place
-
     def close(self) -> None:
         """End every open stream (server shutdown) and refuse new ones."""
         self._closed = True
         self._deliver(_CLOSE)
 
-    async def stream(self, place: object, hello: dict[str, Any],
-                     is_disconnected: Callable[[], Any]) -> AsyncIterator[bytes]:
-        """The body of one ``/v1/events`` response in the ``place`` :meth:`reserve` gave: ``hello`` first, then
-        events until disconnect/close."""
+    def open(self, hello: dict[str, Any], is_disconnected: Callable[[], Any]) -> AsyncIterator[bytes] | None:
+        """The body of one ``/v1/events`` response — ``hello`` first, then events until disconnect/close — in a
+        place taken now, or None when ``max_streams`` are open or about to be. The route asks before it answers, so
+        a refusal is a 503 with ``Retry-After``: requests that had passed a bare "full?" check together were
+        admitted, then told ``busy`` inside a 200 (8 of a burst of 100). The place is the body's until it ends, or
+        until the body is dropped unstarted (the client left first): then it is freed with it."""
+        with self._lock:
+            if len(self._streams) + len(self._held) >= self._max_streams:
+                return None
+            place = object()
+            self._held.add(place)
+        body = self._stream(place, hello, is_disconnected)
+        weakref.finalize(body, self._release, place).atexit = False  # nothing to free at exit
+        return body
+
+    def _release(self, place: object) -> None:
+        with self._lock:
+            self._held.discard(place)
+
+    async def _stream(self, place: object, hello: dict[str, Any],
+                      is_disconnected: Callable[[], Any]) -> AsyncIterator[bytes]:
         s = _Stream(asyncio.get_running_loop())
-        with self._lock:  # a place that lapsed is still taken while there is room
-            self._held.pop(place, None)
-            admitted = len(self._streams) + len(self._held) < self._max_streams
-            if admitted:
-                self._streams.add(s)
+        with self._lock:  # the place taken in open() becomes this stream's
+            self._held.discard(place)
+            self._streams.add(s)
             n = len(self._streams)
-        if not admitted:
-            yield format_event(next(self._ids), "busy", {"reason": f"{n} event streams are open, the most this "
-                                                                  "sidecar serves; try again later"})
-            return
         self._on_count(n)
         try:
             yield format_event(next(self._ids), "hello", hello)

@@ -239,14 +239,14 @@ async def get_track(c: Client, track_id: Annotated[str, Path(pattern="^[0-9a-fA-
                                                                "serves (64)"}},
            summary="Server-sent events of state changes", dependencies=NO_QUERY)
 async def events(request: Request, ctx: Ctx, c: Client) -> StreamingResponse:
-    place = ctx.broker.reserve()
-    if place is None:
-        raise HTTPException(503, "too many open event streams; try again later", headers={"Retry-After": "5"})
     st = c.served_state()
     ready = c.readiness()
     hello = {"ready": ready["ready"], "reason": ready["reason"], "seq": st.seq if st else None,
              "counts": st.counts if st else None}
-    return StreamingResponse(ctx.broker.stream(place, hello, request.is_disconnected), media_type="text/event-stream",
+    body = ctx.broker.open(hello, request.is_disconnected)
+    if body is None:
+        raise HTTPException(503, "too many open event streams; try again later", headers={"Retry-After": "5"})
+    return StreamingResponse(body, media_type="text/event-stream",
                              headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
 
 
