@@ -199,60 +199,65 @@ class NuScenesKeyframes(LazySamples):
         t = {n: _load_table(folder, n) for n in ("scene", "sample", "sample_data", "ego_pose", "calibrated_sensor",
                                                  "sensor", "sample_annotation", "instance", "category")}
         with consistent_tables(folder):  # a damaged table: one line, not a traceback
-            scenes = t["scene"]
-            if scene_names is not None:
-                by_name = {s["name"]: s for s in scenes}
-                missing = [n for n in scene_names if n not in by_name]
-                if missing:
-                    shown = ", ".join(sorted(by_name)[:20]) + (" …" if len(by_name) > 20 else "")
-                    raise SourceError(f"{root}: no scene {', '.join(missing[:5])} (have: {shown})")
-                scenes = [by_name[n] for n in scene_names]
-            samples = {s["token"]: s for s in t["sample"]}
-            sample_ts = {k: int(s["timestamp"]) for k, s in samples.items()}
-            ego = {e["token"]: e for e in t["ego_pose"]}
-            calib = {c["token"]: c for c in t["calibrated_sensor"]}
-            channel_of = {s["token"]: s["channel"] for s in t["sensor"]}
-            lidar: dict[str, dict[str, Any]] = {}
-            key_sd: dict[str, dict[str, Any]] = {}
-            for rec in t["sample_data"]:
-                if channel_of[calib[rec["calibrated_sensor_token"]]["sensor_token"]] != CHANNEL:
+            self._frames = self._index(t, root, scene_names, max_time_diff, nan_velocity, max_sweep_lag_s)
+
+    def _index(self, t: dict[str, list[dict[str, Any]]], root: Path, scene_names: Sequence[str] | None,
+               max_time_diff: float, nan_velocity: float, max_sweep_lag_s: float) -> list[_Keyframe]:
+        """The key frames of the scenes ``scene_names`` names (every scene for None), from the tables ``t``."""
+        scenes = t["scene"]
+        if scene_names is not None:
+            by_name = {s["name"]: s for s in scenes}
+            missing = [n for n in scene_names if n not in by_name]
+            if missing:
+                shown = ", ".join(sorted(by_name)[:20]) + (" …" if len(by_name) > 20 else "")
+                raise SourceError(f"{root}: no scene {', '.join(missing[:5])} (have: {shown})")
+            scenes = [by_name[n] for n in scene_names]
+        samples = {s["token"]: s for s in t["sample"]}
+        sample_ts = {k: int(s["timestamp"]) for k, s in samples.items()}
+        ego = {e["token"]: e for e in t["ego_pose"]}
+        calib = {c["token"]: c for c in t["calibrated_sensor"]}
+        channel_of = {s["token"]: s["channel"] for s in t["sensor"]}
+        lidar: dict[str, dict[str, Any]] = {}
+        key_sd: dict[str, dict[str, Any]] = {}
+        for rec in t["sample_data"]:
+            if channel_of[calib[rec["calibrated_sensor_token"]]["sensor_token"]] != CHANNEL:
+                continue
+            lidar[rec["token"]] = rec
+            if rec.get("is_key_frame"):
+                key_sd[rec["sample_token"]] = rec
+        cat_name = {c["token"]: c["name"] for c in t["category"]}
+        inst_class = {i["token"]: nuscenes_class(cat_name[i["category_token"]]) for i in t["instance"]}
+        anns = {a["token"]: a for a in t["sample_annotation"]}
+        by_sample: dict[str, list[dict[str, Any]]] = {}
+        others: dict[str, list[dict[str, Any]]] = {}  # annotations of no detector class: told apart, never trained on
+        for a in t["sample_annotation"]:
+            (by_sample if inst_class[a["instance_token"]] >= 0 else others).setdefault(a["sample_token"], []).append(a)
+        inst_cat = {i["token"]: cat_name[i["category_token"]] for i in t["instance"]}
+        frames: list[_Keyframe] = []
+        for sc in scenes:
+            for smp in _scene_chain(sc, samples):
+                sd = key_sd.get(smp["token"])
+                if sd is None:
                     continue
-                lidar[rec["token"]] = rec
-                if rec.get("is_key_frame"):
-                    key_sd[rec["sample_token"]] = rec
-            cat_name = {c["token"]: c["name"] for c in t["category"]}
-            inst_class = {i["token"]: nuscenes_class(cat_name[i["category_token"]]) for i in t["instance"]}
-            anns = {a["token"]: a for a in t["sample_annotation"]}
-            by_sample: dict[str, list[dict[str, Any]]] = {}
-            others: dict[str, list[dict[str, Any]]] = {}  # annotations of no detector class: told apart, never trained on
-            for a in t["sample_annotation"]:
-                (by_sample if inst_class[a["instance_token"]] >= 0 else others).setdefault(a["sample_token"], []).append(a)
-            inst_cat = {i["token"]: cat_name[i["category_token"]] for i in t["instance"]}
-            frames: list[_Keyframe] = []
-            for sc in scenes:
-                for smp in _scene_chain(sc, samples):
-                    sd = key_sd.get(smp["token"])
-                    if sd is None:
-                        continue
-                    rows = by_sample.get(smp["token"], [])
-                    vel = np.array([box_velocity(a, anns, sample_ts, max_time_diff) for a in rows],
-                                   np.float64).reshape(-1, 3)
-                    mount_rot, _ = vehicle_axes(calib[sd["calibrated_sensor_token"]])
-                    boxes = annotations_to_sensor(rows, vel, ego[sd["ego_pose_token"]],
-                                                  _levelled(calib[sd["calibrated_sensor_token"]]))
-                    boxes[:, 7:9] = np.where(np.isnan(boxes[:, 7:9]), nan_velocity, boxes[:, 7:9])
-                    rest = others.get(smp["token"], [])
-                    centres = annotations_to_sensor(rest, np.zeros((len(rest), 3)), ego[sd["ego_pose_token"]],
-                                                    _levelled(calib[sd["calibrated_sensor_token"]]))[:, :2]
-                    frames.append(_Keyframe(
-                        token=f"nuscenes/{sc['name']}/{smp['token']}", path=root / sd["filename"],
-                        boxes=boxes.astype(np.float32),
-                        labels=np.array([inst_class[a["instance_token"]] for a in rows], np.int64),
-                        num_points=np.array([int(a.get("num_lidar_pts", 0)) for a in rows], np.int64),
-                        sweeps=self._sweep_chain(sd, lidar, ego, calib, max_sweep_lag_s), mount_rotation=mount_rot,
-                        unscored=tuple((inst_cat[a["instance_token"]], float(x), float(y))
-                                       for a, (x, y) in zip(rest, centres))))
-            self._frames = frames
+                rows = by_sample.get(smp["token"], [])
+                vel = np.array([box_velocity(a, anns, sample_ts, max_time_diff) for a in rows],
+                               np.float64).reshape(-1, 3)
+                mount_rot, _ = vehicle_axes(calib[sd["calibrated_sensor_token"]])
+                boxes = annotations_to_sensor(rows, vel, ego[sd["ego_pose_token"]],
+                                              _levelled(calib[sd["calibrated_sensor_token"]]))
+                boxes[:, 7:9] = np.where(np.isnan(boxes[:, 7:9]), nan_velocity, boxes[:, 7:9])
+                rest = others.get(smp["token"], [])
+                centres = annotations_to_sensor(rest, np.zeros((len(rest), 3)), ego[sd["ego_pose_token"]],
+                                                _levelled(calib[sd["calibrated_sensor_token"]]))[:, :2]
+                frames.append(_Keyframe(
+                    token=f"nuscenes/{sc['name']}/{smp['token']}", path=root / sd["filename"],
+                    boxes=boxes.astype(np.float32),
+                    labels=np.array([inst_class[a["instance_token"]] for a in rows], np.int64),
+                    num_points=np.array([int(a.get("num_lidar_pts", 0)) for a in rows], np.int64),
+                    sweeps=self._sweep_chain(sd, lidar, ego, calib, max_sweep_lag_s), mount_rotation=mount_rot,
+                    unscored=tuple((inst_cat[a["instance_token"]], float(x), float(y))
+                                   for a, (x, y) in zip(rest, centres))))
+        return frames
 
     def _sweep_chain(self, sd: dict[str, Any], lidar: dict[str, dict[str, Any]], ego: dict[str, Any],
                      calib: dict[str, Any], max_lag: float) -> tuple[SweepRef, ...]:

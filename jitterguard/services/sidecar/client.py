@@ -307,9 +307,7 @@ class ClassifierClient(Service):
         poll answered; None otherwise. What ``/metrics`` exports its track gauges from: a snapshot kept after the
         classifier left or began refusing this sidecar's polls (another ``JG_API_TOKEN``) had gone on being scraped
         as the current count of moving tracks, with nothing in it to say it was old."""
-        with self._lock:
-            alive = CLASSIFIER in self._on_bus
-        return self._rendered if alive and self._poll_refusal is None else None
+        return self._rendered if self.is_alive() and self._poll_refusal is None else None
 
     def poll_refusal(self) -> str | None:
         """Why the last state poll took no reply although the classifier answered (no reply signed with this

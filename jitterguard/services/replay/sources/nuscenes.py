@@ -109,8 +109,6 @@ def consistent_tables(where: object) -> Iterator[None]:
     alike, in one line (a scene row without ``first_sample_token`` had ended ``train`` in a traceback)."""
     try:
         yield
-    except SourceError:
-        raise
     except TABLE_FAULTS as exc:
         raise SourceError(f"{where}: inconsistent nuScenes tables ({type(exc).__name__}: {exc})") from None
 
