@@ -157,16 +157,26 @@ class Service:
             return
         self._closed_opened = True
         self.stop_event.set()
-        for entity in [*reversed(self._declared), getattr(self, "_hb_pub", None), self.session]:
+        self._release_session()
+        self._notifier.close()
+
+    def _release_session(self) -> None:
+        """Undeclare everything declared (newest first), then the heartbeat publisher, and close the session: the
+        end of :meth:`close`, and all of a failed construction's (:meth:`_close_opened`)."""
+        for entity in reversed(self._declared):
             try:
-                if entity is self.session:
-                    entity.close()
-                elif entity is not None:
-                    entity.undeclare()
+                entity.undeclare()
             except Exception:
                 pass
         self._declared.clear()
-        self._notifier.close()
+        try:
+            self._hb_pub.undeclare()
+        except Exception:  # also: a construction that failed before declaring it
+            pass
+        try:
+            self.session.close()
+        except Exception:
+            pass
 
     def __init__(self, opts: ZenohOptions, *, stop_event: threading.Event | None = None) -> None:
         """Opens the session, waiting for the router while it is not up; ``stop_event`` (default: a new one)
@@ -498,20 +508,7 @@ class Service:
         except Exception:
             pass
         self._drain()
-        for entity in reversed(self._declared):
-            try:
-                entity.undeclare()
-            except Exception:
-                pass
-        self._declared.clear()
-        try:
-            self._hb_pub.undeclare()
-        except Exception:
-            pass
-        try:
-            self.session.close()
-        except Exception:
-            pass
+        self._release_session()
         self._notifier.close()
         self.log.info("%s stopped: %s", self.name, self.counters.snapshot())
 
