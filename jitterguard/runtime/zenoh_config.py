@@ -22,6 +22,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import random
 import re
 import socket
 import threading
@@ -216,7 +217,7 @@ def open_session(cfg: zenoh.Config, *, stop: threading.Event | None = None, time
             if stop.is_set() or (deadline is not None and now >= deadline):
                 raise
             if log is not None and (last_log is None or now - last_log >= OPEN_LOG_EVERY_S):
-                what = waiting_for or f"the router at {_get(cfg, 'connect/endpoints')} is up"
+                what = waiting_for or _awaited(cfg)
                 log.warning("cannot open the Zenoh session (%s); retrying until %s", line or type(exc).__name__, what)
                 last_log = now
             if on_retry is not None:
@@ -224,13 +225,59 @@ def open_session(cfg: zenoh.Config, *, stop: threading.Event | None = None, time
             stop.wait(OPEN_RETRY_S if deadline is None else max(0.0, min(OPEN_RETRY_S, deadline - now)))
 
 
+def _awaited(cfg: zenoh.Config) -> str:
+    """What a failing open waits for, in the log's words: the router it connects to, or (a session that only
+    listens) its own listen endpoint, held by a process still ending."""
+    connect = _get(cfg, "connect/endpoints")
+    if connect:
+        return f"the router at {connect} is up"
+    return f"it can listen on {', '.join(_get(cfg, 'listen/endpoints') or [])}"
+
+
+EPHEMERAL_RANGE_FILE = Path("/proc/sys/net/ipv4/ip_local_port_range")
+"""Linux's range of ports the kernel hands out by itself (to ``bind(port 0)`` and to every outgoing connect)."""
+
+LOWEST_CHOSEN_PORT = 20000
+"""The lowest port :func:`free_tcp_port` picks: above the registered ports services usually take (5432, 7447, 8080)."""
+
+FREE_PORT_TRIES = 64
+
+
 def free_tcp_port(host: str = "127.0.0.1") -> int:
     """A TCP port that was free on ``host`` (an IPv4 or IPv6 literal, or a name) a moment ago (for tests and local
-    stacks: ``up --port 0``)."""
+    stacks: ``up --port 0``).
+
+    Picked *outside* the kernel's ephemeral range where it is known (Linux), at random among the ports that bind.
+    A port from that range is handed out again by the kernel itself between this check and its use: to a peer's
+    ``listen tcp/127.0.0.1:0``, or as the local end of any connect, including one to that very port while nothing
+    listens there yet (TCP self-connect). Either way the session meant to listen there waited for the port for
+    ever (CI, 7 Dec: a test's own client session held it). Outside the range only another explicit choice can take
+    it. The pick is deliberately unseeded: processes choosing side by side (the two halves of the test run) must
+    not draw the same sequence."""
     family, _, _, _, addr = socket.getaddrinfo(host, 0, type=socket.SOCK_STREAM)[0]
-    with socket.socket(family, socket.SOCK_STREAM) as s:
+    pool = _ports_outside_ephemeral_range()
+    rng = random.SystemRandom()
+    for _ in range(FREE_PORT_TRIES if pool else 0):
+        port = rng.choice(pool)
+        with socket.socket(family, socket.SOCK_STREAM) as s:
+            try:
+                s.bind((addr[0], port, *addr[2:]))
+            except OSError:
+                continue
+            return port
+    with socket.socket(family, socket.SOCK_STREAM) as s:  # no known range, or every try was taken
         s.bind(addr)
         return int(s.getsockname()[1])
+
+
+def _ports_outside_ephemeral_range() -> list[int]:
+    """The ports from :data:`LOWEST_CHOSEN_PORT` up that the kernel never hands out by itself (empty where the
+    ephemeral range is not known)."""
+    try:
+        low, high = (int(v) for v in EPHEMERAL_RANGE_FILE.read_text().split())
+    except (OSError, ValueError):
+        return []
+    return [p for p in range(LOWEST_CHOSEN_PORT, 65536) if not low <= p <= high]
 
 
 def loopback_options(ns: str, port: int, *, listen_self: bool = False, mode: str = "peer") -> ZenohOptions:

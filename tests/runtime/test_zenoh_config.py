@@ -168,3 +168,46 @@ def test_a_router_file_that_names_no_listener_listens_on_loopback(tmp_path: Path
         assert json.loads(cfg.get_json("listen/endpoints")) == ["tcp/127.0.0.1:7447"], text
     named = _file(tmp_path, '{listen: {endpoints: ["tcp/127.0.0.1:17996"]}}')
     assert json.loads(router_config([], named).get_json("listen/endpoints")) == ["tcp/127.0.0.1:17996"]
+
+
+def test_a_chosen_free_port_is_one_the_kernel_never_hands_out_by_itself():
+    """A port from the kernel's ephemeral range can be taken between the check and its use by any session's
+    ``listen :0`` or outgoing connect: CI (7 Dec) saw a test's own client session hold the port its service was to
+    listen on, and the service wait for it for 300 s. Chosen ports lie outside that range, and bind."""
+    import socket
+
+    from jitterguard.runtime import free_tcp_port
+
+    low, high = (int(v) for v in Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split())
+    ports = [free_tcp_port() for _ in range(50)] + [free_tcp_port("::1") for _ in range(5)]
+    assert all(not low <= p <= high for p in ports), (low, high, ports)
+    assert len(set(ports)) > 10  # drawn, not one fixed port
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", ports[0]))
+
+
+def test_a_session_that_only_listens_says_it_waits_for_its_port_not_for_a_router():
+    """A peer whose listen port is held (by a process still ending) waits for the port; the log had said it waited
+    for "the router at [] is up"."""
+    import logging
+    import socket
+    import threading
+
+    from jitterguard.runtime import free_tcp_port, loopback_options, open_session
+
+    port = free_tcp_port()
+    records: list[str] = []
+
+    class Keep(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            records.append(record.getMessage())
+
+    log = logging.getLogger("test.listen_wait")
+    log.addHandler(Keep())
+    with socket.socket() as held:
+        held.bind(("127.0.0.1", port))
+        held.listen()
+        with pytest.raises(Exception, match="Address already in use"):
+            open_session(build_config(loopback_options("t", port, listen_self=True)), timeout_s=0.3, log=log,
+                         stop=threading.Event())
+    assert records and f"retrying until it can listen on tcp/127.0.0.1:{port}" in records[0], records
