@@ -49,6 +49,7 @@ CASES = [
     (["replay", "{k}", "--ns", "a/b"], "--ns"),
     (["replay", "{k}", "--connect", "nonsense"], "must look like tcp/HOST:PORT"),
     (["replay", "{k}", "--start", "5"], "past the end"),
+    (["replay", "{k}", "--wait-for", "detecter"], "--wait-for must be detector or tracker"),  # had waited for nobody
     (["bench", "replay", "--frames", "0"], "--frames"),
 ]
 

@@ -55,6 +55,13 @@ def test_health_and_readiness(stack: Stack) -> None:
         for path in ("/healthz", "/readyz"):  # probes that ask with HEAD (HAProxy's default) get the status alone
             head = c.head(path)
             assert head.status_code == 200 and head.content == b"", (path, head.status_code)
+        # every other GET route answers HEAD with the GET's headers (had been 405): a cache asks /v1/config's ETag
+        for path in ("/v1/config", "/v1/state", "/metrics", "/", f"/v1/state/{stack.tracks[0].track_id}"):
+            get, head = c.get(path), c.head(path)
+            assert head.status_code == get.status_code == 200 and head.content == b"", (path, head.status_code)
+            assert head.headers["content-type"] == get.headers["content-type"], path
+        assert c.head("/v1/config").headers["etag"] == c.get("/v1/config").headers["etag"]
+        assert c.head("/v1/state?state=nonsense").status_code == 422  # the GET's checks hold
         r = c.get("/readyz")
         assert r.status_code == 200
         body = r.json()
@@ -351,10 +358,11 @@ def test_state_filters(stack: Stack) -> None:
 def test_a_method_a_path_does_not_serve_is_a_405_naming_those_it_does(stack: Stack) -> None:
     """``Allow`` lists every method of the path (FastAPI has one route per method, in included routers)."""
     with stack.http(auth=False) as c:
-        for method, path, allow in (("DELETE", "/v1/config", "GET, PATCH, PUT"),
+        for method, path, allow in (("DELETE", "/v1/config", "GET, HEAD, PATCH, PUT"),
                                     ("GET", "/v1/config/preset/paper", "POST"),
                                     ("POST", "/healthz", "GET, HEAD"),
-                                    ("DELETE", f"/v1/state/{stack.tracks[0].track_id}", "GET")):
+                                    ("HEAD", "/v1/events", "GET"),  # a HEAD would hold a stream's place
+                                    ("DELETE", f"/v1/state/{stack.tracks[0].track_id}", "GET, HEAD")):
             r = c.request(method, path)
             assert r.status_code == 405 and r.headers["allow"] == allow, (method, path, r.headers.get("allow"))
 

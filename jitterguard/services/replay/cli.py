@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import logging
 import os
-import re
 import sys
 import time
 from pathlib import Path
@@ -48,8 +47,9 @@ Examples:\n
   jitterguard replay run.mcap --topic /sensing/lidar/top/pointcloud --pose-topic /localization/kinematic_state
 """
 
-SERVICE_NAME = re.compile(r"[A-Za-z0-9_\-]+")
-"""A service's name is one key chunk (``jg/{ns}/heartbeat/{name}``)."""
+CONSUMERS = ("detector", "tracker")
+"""What ``--wait-for`` may name: the services that consume what a replay publishes (scans, detections). Any name
+that fits a key chunk had been taken, so a typo (``detecter``) waited the whole ``--wait-subscriber`` for nobody."""
 
 
 # The options that say what to replay, shared with `jitterguard up` (which passes them to its replay program).
@@ -147,8 +147,8 @@ def replay_command(
                          pose_topic=pose_topic)
     if not 0 <= wait_subscriber <= MAX_WAIT_S:  # nan (every comparison with it is false) and inf had waited for ever
         fail(f"--wait-subscriber must be a number of seconds from 0 to {MAX_WAIT_S:g}, got {wait_subscriber}")
-    if wait_for is not None and not SERVICE_NAME.fullmatch(wait_for):
-        fail(f"--wait-for: a service name (letters, digits, '_' or '-'), got {wait_for!r}")
+    if wait_for is not None and wait_for not in CONSUMERS:
+        fail(f"--wait-for must be {' or '.join(CONSUMERS)} (the consumer of scans, of detections), got {wait_for!r}")
     try:
         src_opts = opts.check()
         plan = opts.plan(loop=loop, stamps=stamps)

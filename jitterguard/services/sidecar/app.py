@@ -127,7 +127,8 @@ def create_app(settings: SidecarSettings, *, stopping: threading.Event | None = 
     def is_route(scope: dict) -> bool:  # a route serves this method here (else the app answers 404/405)
         return any(route.matches(scope)[0] == Match.FULL for route in app.router.routes)
 
-    app.add_middleware(RequestGuard, policy=policy, is_route=is_route, max_body=settings.max_body_bytes,
+    app.add_middleware(RequestGuard, policy=policy, is_route=is_route, head_as_get=lambda scope: serves_head(app, scope),
+                       max_body=settings.max_body_bytes,
                        on_refuse=lambda status: metrics.refused_requests.labels(str(status)).inc())
     return app
 
@@ -137,6 +138,21 @@ def create_app(settings: SidecarSettings, *, stopping: threading.Event | None = 
 
 HTTP_METHODS = ("GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS")
 
+STREAM_PATHS = frozenset({"/v1/events"})
+"""GET routes that answer with an endless stream: a HEAD there would hold a stream's place for nothing (405)."""
+
+
+def _full_match(app: FastAPI, scope: dict, method: str) -> bool:
+    return any(route.matches({**scope, "method": method})[0] == Match.FULL for route in app.router.routes)
+
+
+def serves_head(app: FastAPI, scope: dict) -> bool:
+    """Whether a HEAD here is answered as the path's GET (RFC 9110 §9.3.2: every general-purpose server supports
+    HEAD where it supports GET). FastAPI registers GET alone, so a HEAD had been a 405 on every route but the two
+    health routes that declared it. The guard serves it as the GET; uvicorn, whose own scope still says HEAD,
+    sends the headers (``ETag``, ``Content-Length``) and drops the body. Not on :data:`STREAM_PATHS`."""
+    return scope.get("path") not in STREAM_PATHS and _full_match(app, scope, "GET")
+
 
 async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
     # Starlette's 405 lists only the first matching route's methods; FastAPI has one route per method,
@@ -145,8 +161,9 @@ async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResp
     # one entry that has no ``methods`` of its own.
     headers = dict(exc.headers or {})
     if exc.status_code == 405:
-        allowed = {m for m in HTTP_METHODS if any(route.matches({**request.scope, "method": m})[0] == Match.FULL
-                                                  for route in request.app.router.routes)}
+        allowed = {m for m in HTTP_METHODS if _full_match(request.app, request.scope, m)}
+        if serves_head(request.app, request.scope):
+            allowed.add("HEAD")
         headers["Allow"] = ", ".join(sorted(allowed))
     return JSONResponse({"detail": exc.detail}, status_code=exc.status_code, headers=headers)
 

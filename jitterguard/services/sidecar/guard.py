@@ -155,12 +155,13 @@ def repeated_header(raw: Iterable[tuple[bytes, bytes]]) -> str | None:
 
 class RequestGuard:
     """ASGI middleware applying :func:`refusal`, and reading every write's body itself, cut off at ``max_body``
-    bytes (whatever its Content-Length said)."""
+    bytes (whatever its Content-Length said). A HEAD for which ``head_as_get`` holds goes on as a GET."""
 
     def __init__(self, app: Callable[[Scope, Receive, Send], Awaitable[None]], policy: HostPolicy, *,
-                 is_route: Callable[[Scope], bool] = lambda _scope: True, max_body: int = MAX_BODY_BYTES,
+                 is_route: Callable[[Scope], bool] = lambda _scope: True,
+                 head_as_get: Callable[[Scope], bool] = lambda _scope: False, max_body: int = MAX_BODY_BYTES,
                  on_refuse: Callable[[int], None] | None = None) -> None:
-        self.app, self.policy, self.is_route = app, policy, is_route
+        self.app, self.policy, self.is_route, self.head_as_get = app, policy, is_route, head_as_get
         self.max_body, self.on_refuse = max_body, on_refuse
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
@@ -180,6 +181,8 @@ class RequestGuard:
                 self.on_refuse(refused[0])
             await _respond(send, *refused)
             return
+        if scope["method"] == "HEAD" and self.head_as_get(scope):  # the server's own scope stays HEAD: no body sent
+            scope = {**scope, "method": "GET"}
         await self.app(scope, receive, send)
 
     async def _buffer(self, receive: Receive) -> tuple[Receive, tuple[int, str] | None]:

@@ -143,12 +143,6 @@ async def healthz() -> dict[str, str]:
     return {"status": "ok"}
 
 
-@health_routes.head("/healthz", include_in_schema=False)
-async def healthz_head() -> Response:
-    """Load balancers' probes that ask with HEAD (HAProxy's default) had been answered 405."""
-    return Response(status_code=200)
-
-
 @health_routes.get("/readyz", response_model=ReadyView,
             responses={503: {"model": ReadyView, "description": "The classifier is not reachable, or a service of "
                                                                 "the pipeline reports no progress"}},
@@ -157,12 +151,6 @@ async def healthz_head() -> Response:
 async def readyz(c: Client) -> JSONResponse:
     ready = c.readiness(refusals=True)
     return JSONResponse(ready, status_code=200 if ready["ready"] else 503)
-
-
-@health_routes.head("/readyz", include_in_schema=False)
-async def readyz_head(c: Client) -> Response:
-    """``/readyz``'s status code without its body, for probes that ask with HEAD."""
-    return Response(status_code=200 if c.readiness()["ready"] else 503)
 
 
 # ---------------------------------------------------------------------------------------------- state
