@@ -236,6 +236,50 @@ def test_a_detection_without_covariance_is_observed_with_the_filters_measurement
     assert (kept[X_X], kept[X_Y], kept[Y_Y]) == pytest.approx((rxx, rxy, ryy))
 
 
+def test_a_covariance_or_twist_that_rotation_takes_past_the_limits_is_not_published_so() -> None:
+    """A variance of 1e6 on both sensor axes with a covariance of −0.99e6 (each within the wire's bound) is 1.99e6 on
+    one world axis at 45°, and (999, −999) m/s is 1413 m/s: the tracker took them and republished them rotated, and
+    the classifier refused every such observation and went ``failing``. They are now published as a detection
+    without them (the class's covariance, no twist), which the classifier's reader takes; a detection whose twist is
+    flagged absent is read so (msgpack's false byte had been read as true)."""
+    from jitterguard.schemas.wire import read_track_observations
+
+    qx, qy, qz, qw = quaternion_from_yaw(math.pi / 4)
+    huge = [0.0] * 36
+    huge[X_X], huge[Y_Y], huge[X_Y], huge[Y_X] = 1e6, 1e6, -0.99e6, -0.99e6
+
+    def car(x: float, cov: list[float], v: tuple[float, float], has_twist: bool = True) -> DetectedObject:
+        return DetectedObject(
+            classification=[ObjectClassification(label=1, probability=0.9)],
+            kinematics=DetectedObjectKinematics(
+                pose_with_covariance=PoseWithCovariance(pose=Pose(position=Point(x=x, y=2.0, z=0.7)), covariance=cov),
+                has_position_covariance=True,
+                twist_with_covariance=TwistWithCovariance(twist=Twist(linear=Vector3(x=v[0], y=v[1]))),
+                has_twist=has_twist),
+            shape=Shape(type=0, dimensions=Vector3(x=4.5, y=1.9, z=1.5)))
+    small = [0.0] * 36
+    small[X_X], small[Y_Y] = 0.04, 0.09
+    msg = DetectedObjects(header=Header(stamp=10**9, frame_id="lidar", seq=1),
+                          ego_pose=Pose(position=Point(x=100.0, y=50.0, z=1.8),
+                                        orientation=Quaternion(x=qx, y=qy, z=qz, w=qw)),
+                          objects=[car(10.0, huge, (3.0, 0.0)), car(30.0, small, (999.0, -999.0)),
+                                   car(50.0, small, (0.0, 0.0), has_twist=False)])
+    cols = read_detected_objects(encode(msg))
+    frame = detection_frame(cols)
+    assert frame.has_twist.tolist() == [True, True, False]
+    res = TrackerCore(default_config(confirm_hits=1)).step(frame)
+    obs = observation_payloads(cols, frame, res)
+    read = read_track_observations([p for _, p in obs])  # the classifier's reader: had refused two of the three
+    assert not read.errors and len(read.index) == 3, read.errors
+    dets = sorted((decode(TrackObservation, p).detection for _, p in obs),
+                  key=lambda d: d.kinematics.pose_with_covariance.pose.position.x)
+    wc = dets[0].kinematics.pose_with_covariance.covariance
+    assert max(abs(v) for v in wc) < 10.0 and dets[0].kinematics.has_position_covariance  # the class's
+    fast = dets[1].kinematics
+    assert not fast.has_twist and (fast.twist_with_covariance.twist.linear.x, fast.twist_with_covariance.twist.linear.y) == (0.0, 0.0)
+    assert dets[0].kinematics.has_twist and dets[0].kinematics.twist_with_covariance.twist.linear.x == pytest.approx(3 / math.sqrt(2))
+
+
 def test_tracked_object_carries_filter_state_and_world_twist() -> None:
     seq = make_sequence(6, n_frames=30)
     *_, (sf, msg, frame, res, (obs, closing)) = _run(seq.frames)

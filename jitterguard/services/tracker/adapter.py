@@ -30,7 +30,8 @@ from ...schemas.models import (
     Header,
     Shape,
 )
-from ...schemas.wire import DetectedColumns, TrackedColumns, write_track_observations, write_tracked_objects
+from ...schemas.wire import (LIMITS, DetectedColumns, Limits, TrackedColumns, write_track_observations,
+                             write_tracked_objects)
 from .arrays import DetectionFrame, FrameResult
 
 WORLD_FRAME = "map"
@@ -64,16 +65,24 @@ def detection_frame(cols: DetectedColumns) -> DetectionFrame:
         label_prob=np.maximum(f64(wire.LABEL_PROB), 1e-3), existence=f64(wire.EXISTENCE),
         label=r[wire.LABEL].astype(np.int8), has_cov=r[wire.HAS_POSITION_COV] == 0xC3,
         orientation=r[wire.ORIENTATION].astype(np.int8), area=cols.area,
-        vx=f64(wire.VX), vy=f64(wire.VY), has_twist=r["kinematics.has_twist"].astype(bool),
+        vx=f64(wire.VX), vy=f64(wire.VY), has_twist=r["kinematics.has_twist"] == 0xC3,  # msgpack's true byte:
+        # read with astype(bool), false (0xC2) had been true too, and a detection without a twist its velocity 0
     )
 
 
-def world_detections(cols: DetectedColumns, frame: DetectionFrame, result: FrameResult) -> np.ndarray:
+def world_detections(cols: DetectedColumns, frame: DetectionFrame, result: FrameResult,
+                     limits: Limits = LIMITS) -> np.ndarray:
     """The observed detections (``result.obs_det``, then ``result.tentative_det``) as records moved into the world
     frame (copies). A detection that came without a position covariance of its own (Autoware's lidar_centerpoint
     reports none) carries the one the filter measured it with — the class's, along and across its heading — and
     says so (``has_position_covariance``): the classifier's test needs a variance to calibrate, and a zero one
-    floored at 1 cm had made it call most parked cars moving."""
+    floored at 1 cm had made it call most parked cars moving.
+
+    Turned into the world, a covariance or twist within ``limits`` in the sensor's axes can leave them (a variance
+    of 1e6 on both axes with a covariance of −0.99e6 is 1.99e6 on one axis at 45°; (999, −999) m/s is 1413 m/s on
+    one): every observation of it had been refused by the classifier, which then went ``failing`` for want of
+    them. Such a covariance is replaced by the class's, as one not given (the filter did not use it either:
+    :func:`~.core._screened`), and such a twist published as none."""
     rows = np.concatenate([result.obs_det, result.tentative_det])
     out = wire.DETECTED.select(cols.objects, rows)
     if not len(out):
@@ -84,7 +93,7 @@ def world_detections(cols: DetectedColumns, frame: DetectionFrame, result: Frame
     out[wire.QX], out[wire.QY], out[wire.QZ], out[wire.QW] = quaternions_about_z(q, yaw).T
     out[wire.POSE_COV]["v"] = rotate_cov6(out[wire.POSE_COV]["v"], yaw)
     pcov = out[wire.POSE_COV]["v"]
-    none = ~frame.own_covariance()[rows]
+    none = ~frame.own_covariance()[rows] | (np.abs(pcov) > limits.max_variance).any(axis=1)
     if none.any():
         R = det.R[rows[none]]
         pcov[none] = 0.0
@@ -96,6 +105,13 @@ def world_detections(cols: DetectedColumns, frame: DetectionFrame, result: Frame
     moving = np.flatnonzero(tcov.any(axis=1))  # a zero covariance (no twist reported) rotates to itself
     if moving.size:
         out[wire.TWIST_COV]["v"][moving] = rotate_cov6(tcov[moving], yaw)
+    beyond = ((np.abs(out[wire.VX]) > limits.max_abs_speed_mps) | (np.abs(out[wire.VY]) > limits.max_abs_speed_mps)
+              | (np.abs(out[wire.TWIST_COV]["v"]) > limits.max_variance).any(axis=1))
+    if beyond.any():
+        out[wire.VX][beyond] = out[wire.VY][beyond] = 0.0
+        out[wire.TWIST_COV]["v"][beyond] = 0.0
+        out["kinematics.has_twist"][beyond] = 0xC2
+        out["kinematics.has_twist_covariance"][beyond] = 0xC2
     return out
 
 
@@ -141,10 +157,10 @@ def track_state_records(result: FrameResult) -> np.ndarray:
     })
 
 
-def observation_payloads(cols: DetectedColumns, frame: DetectionFrame, result: FrameResult
-                         ) -> list[tuple[str, bytes]]:
+def observation_payloads(cols: DetectedColumns, frame: DetectionFrame, result: FrameResult,
+                         limits: Limits = LIMITS) -> list[tuple[str, bytes]]:
     """The frame's ``tracks/{id}`` payloads as ``(track_id, TrackObservation payload)``, in track order."""
-    payloads = write_track_observations(_header(frame), world_detections(cols, frame, result),
+    payloads = write_track_observations(_header(frame), world_detections(cols, frame, result, limits),
                                         track_state_records(result))
     return list(zip(result.observed_ids, payloads))
 

@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ...geometry import rotate_cov2, sensor_to_world_xy
+from ...schemas.wire import Limits
 from ...stream_order import StreamGuard, Verdict
 from . import kalman
 from .association import assign, gate, gate_newborn, near_pairs, overlapping
@@ -44,8 +45,7 @@ MIN_LABEL_PROB = 1e-3
 and their argmax, UNKNOWN, then replaced the detected class."""
 
 
-def _screened(f: DetectionFrame, max_abs_coordinate_m: float, max_dimension_m: float
-              ) -> tuple[DetectionFrame, NDArray[np.bool_]]:
+def _screened(f: DetectionFrame, limits: Limits) -> tuple[DetectionFrame, NDArray[np.bool_]]:
     """The frame with what a broken detector or pose source can put in it made harmless, and which of its
     detections the tracker may use at all (association and births).
 
@@ -61,17 +61,24 @@ def _screened(f: DetectionFrame, max_abs_coordinate_m: float, max_dimension_m: f
     tracks of one object, and a thousand new IDs a frame. Repaired, the detection still counts: a class the
     tracker does not know (label outside 0–7) is UNKNOWN (it had raised IndexError, and −1 had read as a
     pedestrian); a non-finite heading is unavailable (orientation 0); a position covariance with a non-finite
-    entry or a negative variance is not used (the class default is, as for a detection without one), nor a
-    non-finite or negative heading variance; a non-finite twist is no twist; a non-finite existence counts as 0
+    entry, a negative variance or an x-y block whose larger eigenvalue exceeds ``max_variance`` (turned into the
+    world it would leave the wire's bounds: :func:`~.adapter.world_detections`) is not used (the class default is,
+    as for a detection without one), nor a non-finite or negative heading variance; a non-finite twist, or one
+    faster than ``max_abs_speed_mps`` on the ground (1000 m/s on each sensor axis is 1414 m/s on one world axis),
+    is no twist; a non-finite existence counts as 0
     and a class probability below :data:`MIN_LABEL_PROB` (or non-finite) as that floor. On well-formed input
     this changes nothing.
     """
     lbl = f.label.astype(np.int64)
     label = np.where((lbl >= 0) & (lbl < NUM_LABELS), lbl, 0).astype(np.int8)
     yaw_ok = np.isfinite(f.yaw)
-    cov_ok = (np.isfinite(f.cov_xx) & np.isfinite(f.cov_xy) & np.isfinite(f.cov_yy)
-              & (f.cov_xx >= 0.0) & (f.cov_yy >= 0.0))
-    twist_ok = np.isfinite(f.vx) & np.isfinite(f.vy)
+    max_abs_coordinate_m, max_dimension_m = limits.max_abs_coordinate_m, limits.max_dimension_m
+    with np.errstate(invalid="ignore", over="ignore"):  # non-finite rows are refused by the finiteness terms
+        half_gap = np.hypot(0.5 * (f.cov_xx - f.cov_yy), f.cov_xy)
+        cov_ok = (np.isfinite(f.cov_xx) & np.isfinite(f.cov_xy) & np.isfinite(f.cov_yy)
+                  & (f.cov_xx >= 0.0) & (f.cov_yy >= 0.0)
+                  & (0.5 * (f.cov_xx + f.cov_yy) + half_gap <= limits.max_variance))
+        twist_ok = np.isfinite(f.vx) & np.isfinite(f.vy) & (np.hypot(f.vx, f.vy) <= limits.max_abs_speed_mps)
     yaw_var_ok = np.isfinite(f.var_yaw) & (f.var_yaw >= 0.0)
     prob = np.where(np.isfinite(f.label_prob), f.label_prob, 0.0)
     existence = np.where(np.isfinite(f.existence), f.existence, 0.0)
@@ -176,7 +183,7 @@ class TrackerCore:
 
         cfg, tb, tr = self.config, self.tables, self.tracks
         stamp = frame.stamp_ns
-        frame, usable = _screened(frame, cfg.limits.max_abs_coordinate_m, cfg.limits.max_dimension_m)
+        frame, usable = _screened(frame, cfg.limits)
         with np.errstate(invalid="ignore", over="ignore"):  # unusable rows may hold inf; none of them is read
             det = self._to_world(frame)
         m = len(frame)

@@ -192,7 +192,7 @@ class TrackerService(Service):
         elif result.jumped:
             self.counters.inc("jumps")
             self.log.warning("detections jumped ahead to seq %d (confirmed): tracks kept", frame.seq)
-        self._publish(observation_payloads(cols, frame, result))
+        self._publish(observation_payloads(cols, frame, result, self.core.config.limits))
         self._tracked_pub.put(tracked_payload(cols, frame, result))  # built after the observations went out
         self.counters.inc("frames")
         self._count_low_existence(frame.existence, frame.seq)
