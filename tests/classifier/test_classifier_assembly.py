@@ -149,3 +149,35 @@ def test_observations_come_out_in_the_closes_order_whatever_order_they_arrived_i
     (frame,) = fa.pop_ready(0.0)
     assert [o.track.object_id for o in frame.observations] == ids
 
+
+
+def test_a_flood_of_made_up_seqs_from_one_track_does_not_evict_the_frames_being_closed():
+    """A publisher allowed one track's key (IDS[2]) puts an observation under each of 65 made-up future seqs per
+    frame. The first-begun frame had been evicted — the real one — so every frame was decided without its
+    observations and none counted missing. The frames next to the last close stay; the made-up far ones go."""
+    fa = _Assembler(max_pending_frames=8, straggler_timeout_s=0.05)
+    fa.add_close(close(0, []), now=0.0)
+    fa.pop_ready(0.0)
+    made_up = 1000
+    for s in range(1, 11):
+        fa.add_observation(ob(s, IDS[0]))  # the real frame's first observation
+        for _ in range(65):
+            made_up += 1
+            fa.add_observation(ob(made_up, IDS[2]))
+        fa.add_observation(ob(s, IDS[1]))  # the rest of the real frame's observations, then its close
+        assert fa.add_close(close(s, IDS[:2]), now=float(s))
+        (frame,) = fa.pop_ready(float(s))
+        assert frame.seq == s and len(frame.observations) == 2 and frame.missing == 0, s
+    assert fa.counts["orphaned_observations"] >= 10 * 65 - 8
+
+
+def test_a_closed_frame_keeps_its_observations_whatever_else_is_opened():
+    """A frame whose close has come waits for its stragglers; what it has must not be evicted meanwhile (it had
+    been, and the frame was then decided with none of them and nothing counted missing)."""
+    fa = _Assembler(max_pending_frames=2, straggler_timeout_s=1.0)
+    fa.add_observation(ob(0, IDS[0]))
+    fa.add_close(close(0), now=0.0)  # waits for IDS[1], IDS[2]
+    for s in range(1, 6):
+        fa.add_observation(ob(s, IDS[2]))
+    (frame,) = fa.pop_ready(2.0)
+    assert len(frame.observations) == 1 and frame.missing == 2
