@@ -33,6 +33,39 @@ class LimitExceeded(DecodeError):
     instead of) being read in full."""
 
 
+BYTES_PER_CONTAINER = 16
+"""At most one map or list built per this many bytes of a payload (beyond :data:`CONTAINER_FLOOR`). The bounds on
+each list and map leave their number open: nested lists of 1024 empty maps each (one byte apiece) had made a 6 MiB
+``tracks/{id}`` payload 7 million dicts — 0.5 GB and seconds of a worker — before it was refused. Real messages
+spend far more per map or list (a footprint point as a map of three floats: 34 bytes; an object: hundreds)."""
+
+CONTAINER_FLOOR = 4096
+
+
+class ContainerBudget:
+    """The ``object_hook`` and ``list_hook`` of an unpack that counts the maps and lists it builds and stops it
+    (:class:`OverBudget`) past ``CONTAINER_FLOOR + len(data) // BYTES_PER_CONTAINER`` of them: the work of an unpack
+    in proportion to its payload's size, whatever the payload holds."""
+
+    __slots__ = ("left", "limit")
+
+    def __init__(self, size: int) -> None:
+        self.limit = self.left = CONTAINER_FLOOR + size // BYTES_PER_CONTAINER
+
+    def __call__(self, built: object) -> object:
+        self.left -= 1
+        if self.left < 0:
+            raise OverBudget(self.limit)
+        return built
+
+    def hooks(self) -> dict[str, "ContainerBudget"]:
+        return {"object_hook": self, "list_hook": self}
+
+
+class OverBudget(Exception):
+    """Raised inside msgpack's unpack by :class:`ContainerBudget` (turned into :class:`LimitExceeded` by its user)."""
+
+
 def encode(model: BaseModel | dict) -> bytes:
     """Serialise a model (all fields, defaults included) — or a map from :func:`decode_with_raw` — to msgpack."""
     return msgpack.packb(model if isinstance(model, dict) else model.model_dump(mode="python"), use_bin_type=True)
@@ -82,13 +115,17 @@ def unpack_map(cls: type[BaseModel], data: bytes | bytearray | memoryview, *, ma
     built (the hot messages' readers pass their bounds, so a payload of millions of one-byte maps costs no more
     than its size says); ``max_map_len`` refuses any larger map, the top-level one included, before it is built
     (a model with a fixed set of fields takes no map of thousands of keys, and pydantic lists every unknown key of
-    one as an error of its own: 4 MB of one map had cost 2 s): all :class:`LimitExceeded`."""
+    one as an error of its own: 4 MB of one map had cost 2 s); and the maps and lists built in all are bounded by the
+    payload's size (:class:`ContainerBudget`): all :class:`LimitExceeded`."""
     if max_bytes is not None and len(data) > max_bytes:
         raise LimitExceeded(cls.__name__, "", f"{len(data)} bytes exceed {max_bytes}")
     data = bytes(data)
     bound = {k: v for k, v in (("max_array_len", max_array_len), ("max_map_len", max_map_len)) if v is not None}
+    budget = ContainerBudget(len(data))
     try:
-        raw = msgpack.unpackb(data, raw=False, strict_map_key=True, use_list=True, **bound)
+        raw = msgpack.unpackb(data, raw=False, strict_map_key=True, use_list=True, **bound, **budget.hooks())
+    except OverBudget:
+        raise LimitExceeded(cls.__name__, "", f"more than {budget.limit} maps and lists in {len(data)} bytes") from None
     except Exception as exc:  # msgpack raises several unrelated types (ExtraData, ValueError, ...)
         if max_array_len is not None and "max_array_len" in str(exc):
             raise LimitExceeded(cls.__name__, "", f"a list holds more than {max_array_len} items") from None

@@ -25,7 +25,7 @@ import msgpack
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from .codec import M, DecodeError, LimitExceeded, decode, unpack_map, validate
+from .codec import M, ContainerBudget, DecodeError, LimitExceeded, OverBudget, decode, unpack_map, validate
 from .models import (
     INT64_MAX,
     SCHEMA_VERSION,
@@ -403,8 +403,11 @@ def _read_listed(model: type[M], data: bytes, layout: RecordLayout, limits: Limi
 
 def _view_listed(model: type[M], data: bytes, layout: RecordLayout, limits: Limits) -> tuple[M, np.ndarray] | None:
     """The envelope and a view of the objects when the payload is a map in the record shape; None otherwise."""
-    up = msgpack.Unpacker(raw=False, strict_map_key=True, max_buffer_size=max(len(data), 1),
-                          max_map_len=MAX_MAP_ENTRIES)
+    # the envelope's lists bounded as the model's reading bounds them (``observed_track_ids`` of 200 000 IDs had
+    # passed here, refused in the other form), and its maps and lists in all by the payload's size
+    bounds = {"max_array_len": max(limits.max_objects, limits.max_list_items), "max_map_len": MAX_MAP_ENTRIES,
+              **ContainerBudget(len(data)).hooks()}
+    up = msgpack.Unpacker(raw=False, strict_map_key=True, max_buffer_size=max(len(data), 1), **bounds)
     env: dict[str, Any] = {}
     try:
         up.feed(data)
@@ -425,8 +428,7 @@ def _view_listed(model: type[M], data: bytes, layout: RecordLayout, limits: Limi
             records = layout.view(memoryview(data)[start:end], n)
             if records is None:
                 return None
-            rest = msgpack.Unpacker(raw=False, strict_map_key=True, max_buffer_size=max(len(data), 1),
-                                    max_map_len=MAX_MAP_ENTRIES)
+            rest = msgpack.Unpacker(raw=False, strict_map_key=True, max_buffer_size=max(len(data), 1), **bounds)
             rest.feed(memoryview(data)[end:])
             for _ in range(keys - k - 1):
                 key = rest.unpack()
@@ -438,6 +440,8 @@ def _view_listed(model: type[M], data: bytes, layout: RecordLayout, limits: Limi
             return validate(model, {**env, "objects": []}), records
     except LimitExceeded:
         raise
+    except OverBudget as exc:
+        raise LimitExceeded(model.__name__, "", f"more than {exc.args[0]} maps and lists in {len(data)} bytes") from None
     except Exception:  # malformed msgpack, or an envelope the model refuses: the model says what is wrong
         return None
     return None
