@@ -4,6 +4,7 @@ run summary)."""
 from __future__ import annotations
 
 import os
+import stat
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -13,11 +14,14 @@ def write_atomically(path: str | os.PathLike[str], data: bytes, *, durable: bool
     """Replace ``path`` with ``data`` so that a reader, or the file after a crash, is the old content or the new,
     never part of either: a temporary file in the same directory, renamed over the old one. ``durable`` also
     fsyncs the file before the rename and the directory after it (the new content survives a power loss).
-    Creates the directory; raises ``OSError``."""
+    The file keeps the mode of the one it replaces, or a new one gets the umask's (``mkstemp``'s 0600 had made a
+    calibration file unreadable to the ``jitterguard`` user the deployment runs the classifier as, and an eval's
+    plots unlike its metrics beside them). Creates the directory; raises ``OSError``."""
     target = Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
     try:
+        os.chmod(tmp, _mode_for(target))
         with os.fdopen(fd, "wb") as f:
             f.write(data)
             if durable:
@@ -47,3 +51,25 @@ def save_figure(fig: Any, path: str | os.PathLike[str], **savefig_kwargs: Any) -
     buf = io.BytesIO()
     fig.savefig(buf, format=Path(path).suffix[1:].lower() or "png", **savefig_kwargs)
     write_atomically(path, buf.getvalue(), durable=False)
+
+
+def _mode_for(target: Path) -> int:
+    """The permission bits a file written at ``target`` gets: the replaced file's, else 0666 less the umask."""
+    try:
+        return stat.S_IMODE(target.stat().st_mode)
+    except OSError:
+        return 0o666 & ~_umask()
+
+
+def _umask() -> int:
+    """The process's umask, read without changing it where Linux tells it (``os.umask`` can only set it: reading
+    it that way would change it for a moment for every thread)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask

@@ -20,6 +20,7 @@ import typer
 
 from ..cli_common import (SensorHeightOpt, SensorTiltOpt, check_seed, fail, out_dir, out_files, parse_seeds,
                           progress_on, sensor_height_option, sensor_tilt_option)
+from ..files import write_atomically
 
 if TYPE_CHECKING:
     from ..services.detector.inference import Detector
@@ -178,6 +179,8 @@ def eval_command(
         calibration = "file"
     if calibration_file is not None and calibration != "file":
         fail(f"--calibration-file is read with --calibration file, not {calibration}")
+    if calibration == "file" and calibration_file is None:  # as the classifier's CLI says it (had named no flag)
+        fail("--calibration file: needs --calibration-file FILE (a YAML from `jitterguard calibrate`)")
     for key, flag, value in (("calibration", "--calibration", calibration),
                              ("effective_n", "--effective-n", effective_n),
                              ("min_speed_mps", "--min-speed", min_speed), ("window_size", "--window-size", window_size),
@@ -625,9 +628,9 @@ def study_command(
                                 nuscenes=None, scene=None, duration=duration, rate=10.0,
                                 classifier=ClassifierConfig(), extra_seeds=seed_list[1:])
     summary: dict[str, Any] = {"seeds": list(seed_list), "duration_s": duration, "runs": summarize(results)}
-    (out / "study.json").write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
-    (out / "study.md").write_text(f"# Jitter-band study (seeds {seeds}, pooled, {duration:g} s each, vehicles)\n\n"
-                                  + study_markdown(summary["runs"]))
+    write_atomically(out / "study.json", (json.dumps(summary, indent=2, sort_keys=True) + "\n").encode())
+    write_atomically(out / "study.md", (f"# Jitter-band study (seeds {seeds}, pooled, {duration:g} s each, vehicles)"
+                                        f"\n\n" + study_markdown(summary["runs"])).encode())
     if as_json:
         sys.stdout.write(json.dumps(summary, indent=2, sort_keys=True) + "\n")
     else:

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from ..files import save_figure
+from ..files import save_figure, write_atomically
 from .metrics import alpha_sweep, average_precision, ghost_rows, pr_curve, scored_rows
 from .pipeline import NOTHING_LABELLED, Records
 
@@ -332,7 +332,8 @@ def write_outputs(out: Path, rec: Records, metrics: dict[str, Any],
         if not ok:
             (out / name).unlink(missing_ok=True)
     metrics = finite_json(metrics)
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=2, sort_keys=True, allow_nan=False) + "\n")
+    # whole or not at all, as the figures: on a full disk a report.md cut at 4 KB had read as a complete report
+    write_atomically(out / "metrics.json", (json.dumps(metrics, indent=2, sort_keys=True, allow_nan=False) + "\n").encode())
     run = metrics["run"]
     test = "χ² test (mode chi2: the `_z` columns are its decisions)" if run.get("mode") == "chi2" else "z-test"
     lines = [
@@ -383,5 +384,5 @@ def write_outputs(out: Path, rec: Records, metrics: dict[str, Any],
         lines += ["![variance calibration](calibration.png)", ""]
     if metrics.get("detection") is not None:
         lines += detection_lines(metrics["detection"], det_figures) + [""]
-    (out / "report.md").write_text("\n".join(lines))
+    write_atomically(out / "report.md", "\n".join(lines).encode())
     return metrics

@@ -821,3 +821,16 @@ def test_windows_too_short_to_pool_keep_the_prior(window: int) -> None:
     model = cal.refit()
     np.testing.assert_allclose(model.scale, 1.0)
     np.testing.assert_allclose(model.correlation, NoiseModel.prior().correlation)
+
+
+@pytest.mark.parametrize("text,needle", [
+    ("format: jitterguard-calibration/1\nframe_interval_s: " + "9" * 400 + "\n", "a number too large for a float"),
+    ("format: jitterguard-calibration/1\ngroups: {vehicle: {track_dof: " + "9" * 5000 + "}}\n", "a number too long"),
+    ("[" * 20000 + "]" * 20000 + "\n", "nested too deep"),
+])
+def test_well_formed_but_hostile_yaml_is_refused_in_one_line(text: str, needle: str) -> None:
+    """A 400-digit number, one past Python's 4300-digit conversion limit and 20 000 nested lists had escaped as
+    OverflowError, ValueError and RecursionError: tracebacks from `classifier --calibration-file` and `eval`, and a
+    502 "internal error" from a config write naming the file (a 422 is promised)."""
+    with pytest.raises(CalibrationFileError, match=needle):
+        parse_calibration(text)

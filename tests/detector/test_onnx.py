@@ -334,8 +334,10 @@ def _edited(src: Path, dst: Path, edit) -> Path:
     (lambda d: d["config"].update(voxel_size=[0.2, 0.2, 6.0]), "output 'heatmap' is [1, 5, 64, 64]"),
     (lambda d: d["config"].update(uncertainty=False), "gives heatmap, reg, height, dim, rot, vel, logvar"),
     (lambda d: d["config"].update(num_point_features=5), "input 'points' is ['N', 4]"),
+    (lambda d: d.update(meta=[1, 2]), "'meta' must be an object"),  # had been a TypeError traceback
+    (lambda d: d.update(recalibration=[10 ** 400, 1]), "bad recalibration entry"),  # had been an OverflowError
 ], ids=["other-layout", "no-graphs", "graphs-list", "graph-not-object", "unknown-layout", "config-list",
-        "other-grid", "no-variance-heads", "five-fields"])
+        "other-grid", "no-variance-heads", "five-fields", "meta-list", "recalibration-huge"])
 def test_a_manifest_that_does_not_fit_its_graphs_is_refused_in_one_line(single_dir, tmp_path, edit, needle) -> None:
     """detector.json is not among the checksummed files: graphs that do not fit the layout had escaped as a
     KeyError / AttributeError traceback from `jitterguard detector --onnx`, and a config edited there (another grid,
@@ -619,16 +621,25 @@ def test_an_export_into_a_folder_holding_more_than_an_export_is_refused(tmp_path
     assert sorted(p.name for p in tmp_path.iterdir()) == ["detector.json", "notes.txt"]
 
 
-def test_an_export_that_fails_its_check_cannot_be_loaded(tmp_path) -> None:
-    """At a tolerance of 0 float32 noise fails the check: exit 1, and the manifest is gone, so no backend loads the
-    graphs (the export had stayed whole, its checksums matching, for `detector --backend onnxruntime` to deploy)."""
-    res = _cli(["export-onnx", "--out", str(tmp_path), "--check-scans", "1", "--threads", "1", "--tolerance", "0",
+def test_an_export_that_fails_its_check_leaves_the_earlier_one_whole_and_loadable(tmp_path) -> None:
+    """At a tolerance of 0 float32 noise fails the check: exit 1, and nothing of the failing export is in ``--out``
+    — the earlier export there is kept, whole and loadable. The failing one had been swapped in before the check and
+    then disabled (its manifest removed), so the good export before it was gone."""
+    out = tmp_path / "onnx"
+    first = _cli(["export-onnx", "--out", str(out), "--check-scans", "0", "--threads", "1"])
+    assert first.exit_code == 0, first.output
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    res = _cli(["export-onnx", "--out", str(out), "--check-scans", "1", "--threads", "1", "--tolerance", "0",
                 "--yaw-tolerance", "0"])
     assert res.exit_code == 1, res.output
-    assert "detector.json removed, so the export cannot be loaded" in res.stderr
-    assert (tmp_path / "detector.onnx").is_file() and not (tmp_path / "detector.json").exists()
-    with pytest.raises(Exception, match="detector.json"):
-        load_onnx_detector(tmp_path, threads=1)
+    assert "nothing written to" in res.stderr and "an earlier export there, if any, is kept" in res.stderr, res.stderr
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    assert load_onnx_detector(out, threads=1) is not None
+    assert [p.name for p in tmp_path.iterdir()] == ["onnx"]  # the refused export's folder is gone too
+    fresh = tmp_path / "fresh"
+    res = _cli(["export-onnx", "--out", str(fresh), "--check-scans", "1", "--threads", "1", "--tolerance", "0",
+                "--yaw-tolerance", "0"])
+    assert res.exit_code == 1 and not any(fresh.iterdir()), res.output  # made by the --out check, left empty
 
 
 @pytest.mark.slow

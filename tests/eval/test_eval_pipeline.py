@@ -223,6 +223,7 @@ def test_cli_real_key_frames_get_the_window_of_their_span(tmp_path: Path, capsys
     ["--nuscenes", "/nonexistent/dataroot"],
     ["--variance-scale", "-1"],
     ["--calibration", "sometimes"],
+    ["--calibration", "file"],
     ["--calibration-file", "/nonexistent/cal.yaml"],
     ["--effective-n", "many"],
     ["--tracker-config", "/nonexistent/tracker.yaml"],
@@ -236,6 +237,8 @@ def test_cli_bad_input_is_one_line_exit_2(tmp_path: Path, capsys, argv: list[str
     assert len(err.splitlines()) == 1
     if "detector" in argv:
         assert "--noise applies to --input gt-noise" in err
+    if argv == ["--calibration", "file"]:  # had said "classifier config: Value error, …", naming no flag
+        assert err.startswith("jitterguard: error: --calibration file: needs --calibration-file"), err
 
 
 @pytest.mark.skipif(not NUSC.is_dir(), reason="../shared/data/nuscenes-scene-0523 absent")

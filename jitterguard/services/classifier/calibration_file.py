@@ -94,6 +94,10 @@ def parse_calibration(text: str, where: str = "calibration") -> NoiseModel:
         mark = getattr(exc, "problem_mark", None)
         at = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
         raise CalibrationFileError(f"{where}: not YAML ({getattr(exc, 'problem', None) or 'unreadable'}{at})") from None
+    except RecursionError:  # [[[…]]] 20 000 deep: the parser's own recursion (it had been a traceback, exit 1)
+        raise CalibrationFileError(f"{where}: not a calibration file (nested too deep to read)") from None
+    except ValueError:  # an integer of more than 4300 digits: Python will not convert it
+        raise CalibrationFileError(f"{where}: not a calibration file (a number too long to read)") from None
     if not isinstance(data, dict):
         raise CalibrationFileError(f"{where}: expected a mapping with format {FORMAT!r}")
     fmt = data.get("format")
@@ -108,6 +112,10 @@ def parse_calibration(text: str, where: str = "calibration") -> NoiseModel:
         return NoiseModel.from_mapping(data)
     except ValueError as exc:
         raise CalibrationFileError(f"{where}: {exc}") from None
+    except OverflowError:  # a 400-digit integer where a number is expected: no float holds it
+        raise CalibrationFileError(f"{where}: a number too large for a float") from None
+    except RecursionError:
+        raise CalibrationFileError(f"{where}: a value nested too deep") from None
 
 
 KERNEL_FILES = ("/proc/", "/sys/")

@@ -73,6 +73,8 @@ def read_manifest(model_dir: str | Path) -> dict[str, Any]:
         raise WeightsError(f"{path}: layout {layout!r} has the graphs {', '.join(want)}, the manifest lists {got}")
     if not all(isinstance(g, dict) for g in graphs.values()):
         raise WeightsError(f"{path}: every entry of 'graphs' must be an object with its file and sha256")
+    if not isinstance(doc.get("meta") or {}, dict):  # a list there had ended `detector` in a TypeError traceback
+        raise WeightsError(f"{path}: 'meta' must be an object")
     for name, graph in graphs.items():
         f = d / str(graph.get("file", ""))
         if not f.is_file():
@@ -110,7 +112,7 @@ class OnnxNetwork:
         self._check_graphs()
         try:
             self.recalibration = Recalibration.of(self.manifest.get("recalibration") or None)
-        except (ValueError, TypeError, KeyError) as exc:
+        except (ValueError, TypeError, KeyError, OverflowError) as exc:  # OverflowError: a 400-digit integer
             raise WeightsError(f"{self.dir / MANIFEST}: bad recalibration entry: {exc}") from None
 
     def _check_graphs(self) -> None:

@@ -203,7 +203,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         passive_openmp()
         from .inference import Detector, WeightsError, shipped_weights
         from .onnx_backend import load_onnx_detector
-        from .onnx_export import ExportError, export_onnx
+        from .onnx_export import ExportError, ExportRefused, export_onnx
 
         preset_given, preset = preset, preset or "lite"
         try:
@@ -218,8 +218,32 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         _replaceable("--out", out)
         source = weights or (str(shipped_weights(preset)) if shipped_weights(preset).is_file() else "random-init")
         meta = {**det.meta, "preset": det.config.name, "weights": Path(source).name if source != "random-init" else source}
+        checked: dict[str, Any] = {}
+
+        def agrees(folder: Path) -> bool:
+            """The written export (not yet in ``--out``) against torch on ``check_scans`` scans."""
+            from ...bench.detector import bench_scans
+
+            onnx_det = load_onnx_detector(folder, threads=threads)
+            # randomly initialised weights score every cell about alike: which of hundreds of near-ties make the
+            # top-K is float32 noise, so only the raw head maps are a meaningful comparison there
+            decoded = not det.meta.get("random_init")
+            checked["check"] = check_export(det, onnx_det, bench_scans(check_scans), decoded=decoded)
+            return export_ok(checked["check"], tolerance, yaw_tolerance)
+
         try:
-            res = export_onnx(det.model, out, layout=layout, opset=opset, recalibration=det.recalibration, meta=meta)
+            res = export_onnx(det.model, out, layout=layout, opset=opset, recalibration=det.recalibration, meta=meta,
+                              accept=agrees if check_scans else None)
+        except ExportRefused:
+            # checked before it replaced anything: an earlier export in --out stays whole and loadable (it had been
+            # replaced by the failing one, then disabled)
+            check = checked["check"]
+            print(json.dumps({"out": str(out), "layout": layout, "preset": det.config.name,
+                              "weights": meta["weights"], "check": check}))
+            print(f"jitterguard: error: onnxruntime and torch disagree beyond --tolerance {tolerance:g} / --yaw-tolerance"
+                  f" {yaw_tolerance:g}: {check.get('max_abs_error', check['head_maps'])}; nothing written to {out}"
+                  f" (an earlier export there, if any, is kept)", file=sys.stderr)
+            raise typer.Exit(1) from None
         except (ExportError, OSError) as exc:  # OSError: the new folder not written or not swapped in
             print(f"jitterguard: error: {_one_line(exc, 600)}", file=sys.stderr)
             raise typer.Exit(1) from None
@@ -228,20 +252,5 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                                   "graph_opsets": {k: g["opset"] for k, g in res.manifest["graphs"].items()},
                                   "preset": det.config.name, "weights": meta["weights"]}
         if check_scans:
-            from ...bench.detector import bench_scans
-
-            onnx_det = load_onnx_detector(res.out_dir, threads=threads)
-            # randomly initialised weights score every cell about alike: which of hundreds of near-ties make the
-            # top-K is float32 noise, so only the raw head maps are a meaningful comparison there
-            decoded = not det.meta.get("random_init")
-            report["check"] = check = check_export(det, onnx_det, bench_scans(check_scans), decoded=decoded)
-            print(json.dumps(report))
-            if not export_ok(check, tolerance, yaw_tolerance):
-                # the manifest goes: without it no backend loads the graphs (left for a look), so an export that
-                # failed its check cannot be deployed by mistake (it had stayed whole, checksums matching)
-                res.manifest_path.unlink(missing_ok=True)
-                print(f"jitterguard: error: onnxruntime and torch disagree beyond --tolerance {tolerance:g} / --yaw-tolerance {yaw_tolerance:g}: {check.get('max_abs_error', check['head_maps'])};"
-                      f" {res.manifest_path.name} removed, so the export cannot be loaded", file=sys.stderr)
-                raise typer.Exit(1)
-            return
+            report["check"] = checked["check"]
         print(json.dumps(report))

@@ -41,6 +41,7 @@ import stat
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -104,6 +105,11 @@ def opset_refusal(opset: int) -> str | None:
 
 class ExportError(RuntimeError):
     """An export that could not be written or did not reproduce the torch model (the message says which)."""
+
+
+class ExportRefused(ExportError):
+    """The ``accept`` check of :func:`export_onnx` refused the written export: it was removed, and an earlier export
+    at ``out_dir`` is as it was."""
 
 
 def output_names(config: DetectorConfig) -> tuple[str, ...]:
@@ -374,10 +380,13 @@ def head_widths(config: DetectorConfig) -> dict[str, int]:
 
 def export_onnx(net: CenterPointNet, out_dir: str | Path, *, layout: str = "single", opset: int = DEFAULT_OPSET,
                 recalibration: Recalibration | tuple[float, float] | None = None,
-                meta: dict[str, Any] | None = None) -> ExportResult:
+                meta: dict[str, Any] | None = None, accept: Callable[[Path], bool] | None = None) -> ExportResult:
     """Write ``net`` in ``layout`` plus ``detector.json`` into ``out_dir`` (created): into a new folder beside it,
     which replaces ``out_dir`` whole once written, so an earlier export there (the other layout's graphs included)
-    stays as it was until then and, the export failing or stopped, untouched. Raises :class:`ExportError` (also for
+    stays as it was until then and, the export failing or stopped, untouched. ``accept``, given the new folder
+    before it replaces anything, may refuse it (:class:`ExportRefused`): ``export-onnx --check-scans`` runs its
+    torch/onnxruntime comparison there, so an export that fails it leaves the earlier one in place (it had been
+    swapped in first, then disabled, and the earlier good export was gone). Raises :class:`ExportError` (also for
     an ``out_dir`` holding anything but an earlier export, see :func:`foreign_entries`) and ``OSError``."""
     if layout not in LAYOUTS:
         raise ExportError(f"layout must be one of {', '.join(LAYOUTS)}, got {layout!r}")
@@ -401,6 +410,8 @@ def export_onnx(net: CenterPointNet, out_dir: str | Path, *, layout: str = "sing
         if place.is_dir():  # the new folder is readable by whoever read the old one (not mkdtemp's 0700)
             os.chmod(tmp, stat.S_IMODE(place.stat().st_mode))
         files, manifest = _write_export(net, tmp, layout, opset, recalibration, meta)
+        if accept is not None and not accept(tmp):
+            raise ExportRefused(f"the export was refused by its check and not written to {out}")
         _swap_in(tmp, place)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
