@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -834,3 +835,16 @@ def test_well_formed_but_hostile_yaml_is_refused_in_one_line(text: str, needle: 
     502 "internal error" from a config write naming the file (a 422 is promised)."""
     with pytest.raises(CalibrationFileError, match=needle):
         parse_calibration(text)
+
+
+@pytest.mark.parametrize("edit,needle", [
+    (lambda m: m.update(range_bands_m=[True]), "range_bands_m"),  # had read as a 1 m band
+    (lambda m: m.update(range_bands_m=[float(i) for i in range(1, 10)]), "at most 8"),  # the config's own bound
+    (lambda m: m.update(range_bands_m=[20.0, 5000.0]), "(0, 1000]"),
+    (lambda m: m["groups"]["vehicle"]["along"]["blocks"].update({"0-2O": 3.0}), "blocks: expected a mapping over"),
+], ids=["bool-edge", "nine-edges", "far-edge", "misspelt-band-under-blocks"])
+def test_a_calibration_mapping_outside_the_configs_bounds_is_refused(edit, needle: str) -> None:
+    data = NoiseModel.prior([20.0, 40.0]).to_mapping()
+    edit(data)
+    with pytest.raises(ValueError, match=re.escape(needle)):
+        NoiseModel.from_mapping(data)

@@ -221,9 +221,12 @@ class NoiseModel:
             raise ValueError("calibration: expected a mapping")
         _known_keys(data, TOP_KEYS, "")  # a misspelt key had left its scales at the prior of 1, silently
         edges = data.get("range_bands_m", [20.0, 40.0])
-        if (not isinstance(edges, list) or not all(isinstance(e, (int, float)) and math.isfinite(e) and e > 0
-                                                   for e in edges) or list(edges) != sorted(set(edges))):
-            raise ValueError("range_bands_m: expected increasing positive numbers")
+        # the classifier config's own bounds (at most 8 edges of at most 1000 m); `true` is no distance (it had
+        # read as a 1 m band)
+        if (not isinstance(edges, list) or len(edges) > 8
+                or not all(isinstance(e, (int, float)) and not isinstance(e, bool) and math.isfinite(e)
+                           and 0 < e <= 1000 for e in edges) or list(edges) != sorted(set(edges))):
+            raise ValueError("range_bands_m: expected at most 8 increasing distances in (0, 1000] m")
         model = NoiseModel.prior(edges)
         scale, corr, tau, blocks = model.scale.copy(), model.correlation.copy(), model.tau_s.copy(), model.blocks.copy()
         track_dof = np.full(len(GROUPS), PRIOR_TRACK_DOF)
@@ -257,9 +260,10 @@ class NoiseModel:
                     bl = entry.get(bkey, {})  # a key left empty (`blocks:`, a file cut short) is no mapping
                     if not isinstance(bl, Mapping):
                         raise ValueError(f"{where}.{bkey}: expected a mapping over bands {names}")
+                    if set(bl) - set(names):  # a misspelt band had been skipped unsaid (under scale: refused)
+                        raise ValueError(f"{where}.{bkey}: expected a mapping over bands {names}")
                     for bn, v in bl.items():
-                        if bn in names:
-                            blocks[gi, ai, names.index(bn), yi] = _checked(v, f"{where}.{bkey}.{bn}", 0.0, 1e12)
+                        blocks[gi, ai, names.index(bn), yi] = _checked(v, f"{where}.{bkey}.{bn}", 0.0, 1e12)
                 if "variance_factor" in entry:  # derived on reading, but a number in the file all the same
                     _checked(entry["variance_factor"], f"{where}.variance_factor", 1e-6, 1e6)
                 if "correlation" in entry:
