@@ -252,6 +252,7 @@ def test_a_write_the_busy_worker_did_not_take_in_time_is_withdrawn(service, clie
     time.sleep(0.5)  # the worker is free again: the withdrawn write must stay withdrawn
     assert service.core.config.alpha_default == ClassifierConfig().alpha_default
     assert service.counters.get("config_changes") == 0
+    assert service.counters.get("config_writes_unapplied") == 1  # counted (it had been in no counter)
 
 
 def test_a_write_behind_a_full_worker_queue_is_told_not_applied(service, client_session):
@@ -270,6 +271,7 @@ def test_a_write_behind_a_full_worker_queue_is_told_not_applied(service, client_
     assert reply.err is not None
     err = decode(ConfigReply, reply.err.payload.to_bytes())
     assert not err.ok and "not applied" in err.error and "queue stayed full" in err.error
+    assert service.counters.get("config_writes_unapplied") == 1
     busy.join()
     time.sleep(0.5)
     assert service.core.config.alpha_default == ClassifierConfig().alpha_default

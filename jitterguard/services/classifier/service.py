@@ -500,6 +500,7 @@ class ClassifierService(Service):
         try:
             self._queue.put(("config", ((cfg, if_match), fut), model), timeout=CONFIG_APPLY_TIMEOUT_S)  # bounded, as above
         except queue.Full:  # 64 writes and calls wait behind a stuck worker: the writer had got no reply at all
+            self.counters.inc("config_writes_unapplied")  # counted: an operator sees writes lost to a stuck worker
             query.reply_err(_config_reply(self.core.config, (
                 f"not applied: the classifier's worker queue stayed full for {CONFIG_APPLY_TIMEOUT_S:g} s"
                 f" ({self._queue.maxsize} writes and calls waiting)")))
@@ -527,6 +528,7 @@ class ClassifierService(Service):
                     self.log.info("config applied: %s", in_force.model_dump(exclude={"schema_version"}))
                     self._reply(query, key, attachment, _config_reply(in_force))
                     return
+            self.counters.inc("config_writes_unapplied")
             query.reply_err(_config_reply(self.core.config, f"not applied: {why}"))
             return
         self.log.info("config applied: %s", in_force.model_dump(exclude={"schema_version"}))
