@@ -14,14 +14,16 @@ def write_atomically(path: str | os.PathLike[str], data: bytes, *, durable: bool
     """Replace ``path`` with ``data`` so that a reader, or the file after a crash, is the old content or the new,
     never part of either: a temporary file in the same directory, renamed over the old one. ``durable`` also
     fsyncs the file before the rename and the directory after it (the new content survives a power loss).
-    The file keeps the mode of the one it replaces, or a new one gets the umask's (``mkstemp``'s 0600 had made a
+    The file keeps the mode, and where this process may give them the owner and group, of the one it replaces
+    (``root:jitterguard 0640`` stays so), or a new one gets the umask's mode (``mkstemp``'s 0600 had made a
     calibration file unreadable to the ``jitterguard`` user the deployment runs the classifier as, and an eval's
-    plots unlike its metrics beside them). Creates the directory; raises ``OSError``."""
-    target = Path(path)
+    plots unlike its metrics beside them). A symlink stays one: the file it names is replaced. Creates the
+    directory; raises ``OSError``."""
+    target = Path(os.path.realpath(path))  # through a symlink the file it names is replaced, the link kept
     target.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
     try:
-        os.chmod(tmp, _mode_for(target))
+        _take_over_permissions(tmp, target)
         with os.fdopen(fd, "wb") as f:
             f.write(data)
             if durable:
@@ -53,12 +55,21 @@ def save_figure(fig: Any, path: str | os.PathLike[str], **savefig_kwargs: Any) -
     write_atomically(path, buf.getvalue(), durable=False)
 
 
-def _mode_for(target: Path) -> int:
-    """The permission bits a file written at ``target`` gets: the replaced file's, else 0666 less the umask."""
+def _take_over_permissions(tmp: str, target: Path) -> None:
+    """Give ``tmp`` the permission bits, owner and group of ``target`` (as far as this process may: the group
+    alone, or neither), or — no ``target`` yet — 0666 less the umask."""
     try:
-        return stat.S_IMODE(target.stat().st_mode)
+        st = target.stat()
     except OSError:
-        return 0o666 & ~_umask()
+        os.chmod(tmp, 0o666 & ~_umask())
+        return
+    for uid in (st.st_uid, -1):  # the owner needs root; a member may still give the file its group
+        try:
+            os.chown(tmp, uid, st.st_gid)
+            break
+        except OSError:
+            continue
+    os.chmod(tmp, stat.S_IMODE(st.st_mode))  # after chown, which may clear set-id bits
 
 
 def _umask() -> int:

@@ -151,6 +151,14 @@ def scale_beam_covariance(x: ArrayLike, y: ArrayLike, cxx: ArrayLike, cxy: Array
             s * s * bll + 2 * c * s * blt + c * c * btt)
 
 
+def cov2_largest_variance(cxx: ArrayLike, cxy: ArrayLike, cyy: ArrayLike) -> F64:
+    """The larger eigenvalue of each 2×2 covariance: the largest variance it gives along any axis, so the bound on
+    every entry after any rotation about z (rotated variances and |covariance| never exceed it)."""
+    cxx, cxy, cyy = (np.asarray(v, dtype=np.float64) for v in (cxx, cxy, cyy))
+    with np.errstate(invalid="ignore", over="ignore"):
+        return 0.5 * (cxx + cyy) + np.hypot(0.5 * (cxx - cyy), cxy)
+
+
 def rotate_cov6(cov: F64, yaw: float) -> F64:
     """6x6 covariances ``(M, 36)`` (Autoware's layout) with x and y turned by ``yaw`` about +z: the x/y block by
     :func:`rotate_cov2` and the x/y rows and columns against z, roll, pitch, yaw with it (R Σ Rᵀ, R = Rz ⊕ I4)."""

@@ -228,10 +228,12 @@ def open_session(cfg: zenoh.Config, *, stop: threading.Event | None = None, time
 def _awaited(cfg: zenoh.Config) -> str:
     """What a failing open waits for, in the log's words: the router it connects to, or (a session that only
     listens) its own listen endpoint, held by a process still ending."""
-    connect = _get(cfg, "connect/endpoints")
+    mode = _get(cfg, "mode") or "peer"
+    connect = _for_mode(_get(cfg, "connect/endpoints"), str(mode))
     if connect:
         return f"the router at {connect} is up"
-    return f"it can listen on {', '.join(_get(cfg, 'listen/endpoints') or [])}"
+    listen = listen_endpoints(cfg, str(mode))
+    return f"it can listen on {', '.join(listen)}" if listen else "it can open (no endpoint to connect to)"
 
 
 EPHEMERAL_RANGE_FILE = Path("/proc/sys/net/ipv4/ip_local_port_range")

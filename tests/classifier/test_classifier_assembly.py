@@ -181,3 +181,16 @@ def test_a_closed_frame_keeps_its_observations_whatever_else_is_opened():
         fa.add_observation(ob(s, IDS[2]))
     (frame,) = fa.pop_ready(2.0)
     assert len(frame.observations) == 1 and frame.missing == 2
+
+
+def test_when_every_open_frame_is_closed_the_evicted_ones_observations_count_missing():
+    """A worker far behind holds more closed frames than the bound: one must go, and its observations are then
+    counted missing when it is decided (they had been counted nowhere)."""
+    fa = _Assembler(max_pending_frames=2, straggler_timeout_s=1.0)
+    for s in (0, 1, 2):
+        fa.add_close(close(s), now=0.0)
+        fa.add_observation(ob(s, IDS[0]))  # the third frame's opens a third bucket: every one is closed
+    frames = fa.pop_ready(2.0)
+    assert [f.seq for f in frames] == [0, 1, 2]
+    assert [len(f.observations) for f in frames] == [0, 1, 1]
+    assert [f.missing for f in frames] == [3, 2, 2] and fa.counts["orphaned_observations"] == 1

@@ -828,6 +828,7 @@ def test_windows_too_short_to_pool_keep_the_prior(window: int) -> None:
     ("format: jitterguard-calibration/1\nframe_interval_s: " + "9" * 400 + "\n", "a number too large for a float"),
     ("format: jitterguard-calibration/1\ngroups: {vehicle: {track_dof: " + "9" * 5000 + "}}\n", "a number too long"),
     ("[" * 20000 + "]" * 20000 + "\n", "nested too deep"),
+    ("format: jitterguard-calibration/1\nwhen: 2024-02-30\n", "a value YAML cannot convert"),  # not "too long"
 ])
 def test_well_formed_but_hostile_yaml_is_refused_in_one_line(text: str, needle: str) -> None:
     """A 400-digit number, one past Python's 4300-digit conversion limit and 20 000 nested lists had escaped as

@@ -25,3 +25,20 @@ def test_a_new_file_gets_the_umasks_mode_and_a_replaced_one_keeps_its_own(tmp_pa
     finally:
         os.umask(old)
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary file left
+
+
+def test_a_replaced_file_keeps_its_group_and_a_symlink_stays_one(tmp_path: Path) -> None:
+    """``root:jitterguard 0640`` (docs/deployment.md's shared files) had become ``root:root``, unreadable to the
+    deployment's user; a symlink had been replaced by a regular file, its target left stale."""
+    real = tmp_path / "real.yaml"
+    real.write_bytes(b"old")
+    os.chown(real, 0, 4242) if os.geteuid() == 0 else None
+    real.chmod(0o640)
+    link = tmp_path / "link.yaml"
+    link.symlink_to(real)
+    write_atomically(link, b"new")
+    assert link.is_symlink() and real.read_bytes() == b"new"
+    st = real.stat()
+    assert stat.S_IMODE(st.st_mode) == 0o640
+    if os.geteuid() == 0:
+        assert st.st_gid == 4242

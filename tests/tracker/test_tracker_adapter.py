@@ -259,18 +259,21 @@ def test_a_covariance_or_twist_that_rotation_takes_past_the_limits_is_not_publis
             shape=Shape(type=0, dimensions=Vector3(x=4.5, y=1.9, z=1.5)))
     small = [0.0] * 36
     small[X_X], small[Y_Y] = 0.04, 0.09
+    tilted = list(small)  # x and y against z: (0.9e6, 0.9e6) rotates to (0, 1.27e6), so both go unknown (zero)
+    tilted[2] = tilted[12] = tilted[8] = tilted[13] = 0.9e6
+    tilted[14] = 1e6  # var(z), which rotation about z leaves alone
     msg = DetectedObjects(header=Header(stamp=10**9, frame_id="lidar", seq=1),
                           ego_pose=Pose(position=Point(x=100.0, y=50.0, z=1.8),
                                         orientation=Quaternion(x=qx, y=qy, z=qz, w=qw)),
                           objects=[car(10.0, huge, (3.0, 0.0)), car(30.0, small, (999.0, -999.0)),
-                                   car(50.0, small, (0.0, 0.0), has_twist=False)])
+                                   car(50.0, small, (0.0, 0.0), has_twist=False), car(70.0, tilted, (1.0, 0.0))])
     cols = read_detected_objects(encode(msg))
     frame = detection_frame(cols)
-    assert frame.has_twist.tolist() == [True, True, False]
+    assert frame.has_twist.tolist() == [True, True, False, True]
     res = TrackerCore(default_config(confirm_hits=1)).step(frame)
     obs = observation_payloads(cols, frame, res)
     read = read_track_observations([p for _, p in obs])  # the classifier's reader: had refused two of the three
-    assert not read.errors and len(read.index) == 3, read.errors
+    assert not read.errors and len(read.index) == 4, read.errors
     dets = sorted((decode(TrackObservation, p).detection for _, p in obs),
                   key=lambda d: d.kinematics.pose_with_covariance.pose.position.x)
     wc = dets[0].kinematics.pose_with_covariance.covariance
@@ -278,6 +281,9 @@ def test_a_covariance_or_twist_that_rotation_takes_past_the_limits_is_not_publis
     fast = dets[1].kinematics
     assert not fast.has_twist and (fast.twist_with_covariance.twist.linear.x, fast.twist_with_covariance.twist.linear.y) == (0.0, 0.0)
     assert dets[0].kinematics.has_twist and dets[0].kinematics.twist_with_covariance.twist.linear.x == pytest.approx(3 / math.sqrt(2))
+    tc = dets[3].kinematics.pose_with_covariance.covariance  # its own x-y block kept (the filter used it), rotated
+    assert (tc[2], tc[8], tc[12], tc[13], tc[14]) == (0.0, 0.0, 0.0, 0.0, 1e6)
+    assert (tc[X_X], tc[Y_Y]) == pytest.approx(rotate_cov2(0.04, 0.0, 0.09, math.pi / 4)[::2])
 
 
 def test_tracked_object_carries_filter_state_and_world_twist() -> None:

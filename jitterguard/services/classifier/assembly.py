@@ -86,12 +86,16 @@ class FrameAssembler(Generic[O, C]):
             waiting.discard(track_id)
         if len(self._obs) > self.max_pending_frames:  # closes that never come must not grow memory
             victim = self._eviction_victim()
-            self.count("orphaned_observations", len(self._obs.pop(victim)))
+            lost = self._obs.pop(victim)
+            self.count("orphaned_observations", len(lost))
+            if victim in self._closes:  # only when every open frame is closed: counted missing when it is decided
+                self._waiting[victim].update(set(lost) & set(self._closes[victim][2]))
 
     def _eviction_victim(self) -> int:
-        """The frame whose observations go when too many frames are open: never one whose close has come (its
-        observations would be lost without being counted missing), else the seq farthest from the last close taken
-        (ties: the later), else — no close yet — the first begun.
+        """The frame whose observations go when too many frames are open: one whose close has not come, the seq
+        farthest from the last close taken (ties: the later; no close yet: the first begun). Only when every open
+        frame is closed (a worker far behind) does the first begun go, its observations then counted missing when
+        it is decided (a closed frame's lost observations had been counted nowhere).
 
         A publisher allowed one track's key can open a frame per seq it makes up, one observation each. The first
         begun had gone: 65 made-up future seqs a frame evicted every real frame's observations before its close,

@@ -96,8 +96,10 @@ def parse_calibration(text: str, where: str = "calibration") -> NoiseModel:
         raise CalibrationFileError(f"{where}: not YAML ({getattr(exc, 'problem', None) or 'unreadable'}{at})") from None
     except RecursionError:  # [[[…]]] 20 000 deep: the parser's own recursion (it had been a traceback, exit 1)
         raise CalibrationFileError(f"{where}: not a calibration file (nested too deep to read)") from None
-    except ValueError:  # an integer of more than 4300 digits: Python will not convert it
-        raise CalibrationFileError(f"{where}: not a calibration file (a number too long to read)") from None
+    except ValueError as exc:  # YAML's own conversions: more than 4300 digits, a date like 2024-02-30
+        what = "a number too long to read" if "integer string conversion" in str(exc) else \
+            "a value YAML cannot convert"
+        raise CalibrationFileError(f"{where}: not a calibration file ({what})") from None
     if not isinstance(data, dict):
         raise CalibrationFileError(f"{where}: expected a mapping with format {FORMAT!r}")
     fmt = data.get("format")

@@ -518,18 +518,26 @@ class ClassifierService(Service):
             return
         except Exception:  # worker stuck or stopping: withdraw the write, so that "not applied" stays true
             if fut.cancel():
-                why = f"the classifier's worker did not take it within {CONFIG_APPLY_TIMEOUT_S:g} s"
-            else:  # taken meanwhile: what came of it
-                try:
-                    in_force = fut.result(timeout=CONFIG_APPLY_TIMEOUT_S)
-                except Exception as late:  # noqa: BLE001
-                    why = f"{type(late).__name__}: {late}"
-                else:
-                    self.log.info("config applied: %s", in_force.model_dump(exclude={"schema_version"}))
-                    self._reply(query, key, attachment, _config_reply(in_force))
-                    return
-            self.counters.inc("config_writes_unapplied")
-            query.reply_err(_config_reply(self.core.config, f"not applied: {why}"))
+                self.counters.inc("config_writes_unapplied")  # withdrawn: never applied (counted only then)
+                query.reply_err(_config_reply(self.core.config, (
+                    f"not applied: the classifier's worker did not take it within {CONFIG_APPLY_TIMEOUT_S:g} s")))
+                return
+            try:  # taken meanwhile: what came of it
+                in_force = fut.result(timeout=CONFIG_APPLY_TIMEOUT_S)
+            except ConfigConflict as exc:
+                self.counters.inc("config_writes_conflicted")
+                query.reply_err(_config_reply(self.core.config, str(exc), conflict=True))
+            except ValueError as exc:
+                self.counters.inc("rejected")
+                self.counters.inc("rejected.classifier/config")
+                query.reply_err(_config_reply(self.core.config, str(exc)))
+            except Exception as late:  # noqa: BLE001  still being applied (a slow config store), or failed
+                query.reply_err(_config_reply(self.core.config, (
+                    f"not confirmed: the worker took it late and has not finished ({type(late).__name__}); it may "
+                    f"still come into force: read the config")))
+            else:
+                self.log.info("config applied: %s", in_force.model_dump(exclude={"schema_version"}))
+                self._reply(query, key, attachment, _config_reply(in_force))
             return
         self.log.info("config applied: %s", in_force.model_dump(exclude={"schema_version"}))
         self._reply(query, key, attachment, _config_reply(in_force))

@@ -118,7 +118,7 @@ def create_app(settings: SidecarSettings, *, stopping: threading.Event | None = 
         app.add_exception_handler(exc_type, handler)
     if settings.cors_origins:
         app.add_middleware(CORSMiddleware, allow_origins=list(settings.cors_origins),
-                           allow_methods=["GET", "PUT", "PATCH", "POST"],
+                           allow_methods=["GET", "HEAD", "PUT", "PATCH", "POST"],
                            allow_headers=["Authorization", "Content-Type"])
     policy = HostPolicy(settings.bind_host, frozenset(h.lower() for h in settings.allowed_hosts),
                         frozenset(settings.cors_origins))

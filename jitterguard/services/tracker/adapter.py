@@ -15,7 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ...geometry import quaternions_about_z, rotate_cov6, rotate_xy, yaw_from_quaternion, yaws_from_quaternions
+from ...geometry import (cov2_largest_variance, quaternions_about_z, rotate_cov6, rotate_xy, yaw_from_quaternion,
+                         yaws_from_quaternions)
 from ...schemas import wire
 from ...schemas.models import (
     COVARIANCE_SIZE,
@@ -81,8 +82,11 @@ def world_detections(cols: DetectedColumns, frame: DetectionFrame, result: Frame
     Turned into the world, a covariance or twist within ``limits`` in the sensor's axes can leave them (a variance
     of 1e6 on both axes with a covariance of −0.99e6 is 1.99e6 on one axis at 45°; (999, −999) m/s is 1413 m/s on
     one): every observation of it had been refused by the classifier, which then went ``failing`` for want of
-    them. Such a covariance is replaced by the class's, as one not given (the filter did not use it either:
-    :func:`~.core._screened`), and such a twist published as none."""
+    them. By the filter's own rules (:func:`~.core._screened`, whatever the ego's heading): a position covariance
+    whose x-y block can give a variance over ``max_variance`` along some axis is replaced by the class's, as one not
+    given, and a twist faster than ``max_abs_speed_mps`` over the ground is published as none. The filter reads
+    neither the x/y covariances against z, roll, pitch and yaw nor the twist's covariance: those that rotation takes
+    past the bound are published as unknown (zero; the twist's covariance not given), the rest kept."""
     rows = np.concatenate([result.obs_det, result.tentative_det])
     out = wire.DETECTED.select(cols.objects, rows)
     if not len(out):
@@ -93,7 +97,9 @@ def world_detections(cols: DetectedColumns, frame: DetectionFrame, result: Frame
     out[wire.QX], out[wire.QY], out[wire.QZ], out[wire.QW] = quaternions_about_z(q, yaw).T
     out[wire.POSE_COV]["v"] = rotate_cov6(out[wire.POSE_COV]["v"], yaw)
     pcov = out[wire.POSE_COV]["v"]
-    none = ~frame.own_covariance()[rows] | (np.abs(pcov) > limits.max_variance).any(axis=1)
+    none = ~frame.own_covariance()[rows] | ~(cov2_largest_variance(pcov[:, X_X], pcov[:, X_Y], pcov[:, Y_Y])
+                                             <= limits.max_variance)  # rotation keeps the eigenvalues: as _screened
+    _unknown_beyond(pcov, limits.max_variance)
     if none.any():
         R = det.R[rows[none]]
         pcov[none] = 0.0
@@ -105,14 +111,32 @@ def world_detections(cols: DetectedColumns, frame: DetectionFrame, result: Frame
     moving = np.flatnonzero(tcov.any(axis=1))  # a zero covariance (no twist reported) rotates to itself
     if moving.size:
         out[wire.TWIST_COV]["v"][moving] = rotate_cov6(tcov[moving], yaw)
-    beyond = ((np.abs(out[wire.VX]) > limits.max_abs_speed_mps) | (np.abs(out[wire.VY]) > limits.max_abs_speed_mps)
-              | (np.abs(out[wire.TWIST_COV]["v"]) > limits.max_variance).any(axis=1))
-    if beyond.any():
-        out[wire.VX][beyond] = out[wire.VY][beyond] = 0.0
-        out[wire.TWIST_COV]["v"][beyond] = 0.0
-        out["kinematics.has_twist"][beyond] = 0xC2
-        out["kinematics.has_twist_covariance"][beyond] = 0xC2
+    with np.errstate(invalid="ignore", over="ignore"):
+        fast = ~(np.hypot(out[wire.VX], out[wire.VY]) <= limits.max_abs_speed_mps)  # as _screened
+    tcov = out[wire.TWIST_COV]["v"]
+    unknown = fast | ~(cov2_largest_variance(tcov[:, X_X], tcov[:, X_Y], tcov[:, Y_Y]) <= limits.max_variance)
+    if fast.any():
+        out[wire.VX][fast] = out[wire.VY][fast] = 0.0
+        out["kinematics.has_twist"][fast] = 0xC2
+    if unknown.any():
+        tcov[unknown] = 0.0
+        out["kinematics.has_twist_covariance"][unknown] = 0xC2
+    _unknown_beyond(tcov, limits.max_variance)
     return out
+
+
+_XY_AGAINST_REST = np.array([i for k in range(2, 6) for i in (k, 6 + k, 6 * k, 6 * k + 1)])
+"""The entries of a 6×6 covariance (Autoware's layout) that pair x or y with z, roll, pitch or yaw."""
+
+
+def _unknown_beyond(cov: np.ndarray, bound: float) -> None:
+    """Zero, in place, the x/y-against-the-rest covariances of each row where one exceeds ``bound`` (a rotation
+    about z mixes each pair of them: each within the bound, their rotation can reach √2 times it)."""
+    cross = cov[:, _XY_AGAINST_REST]
+    over = (np.abs(cross) > bound).any(axis=1)
+    if over.any():
+        cross[over] = 0.0
+        cov[:, _XY_AGAINST_REST] = cross
 
 
 def tracked_records(result: FrameResult) -> np.ndarray:

@@ -23,7 +23,7 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import NDArray
 
-from ...geometry import rotate_cov2, sensor_to_world_xy
+from ...geometry import cov2_largest_variance, rotate_cov2, sensor_to_world_xy
 from ...schemas.wire import Limits
 from ...stream_order import StreamGuard, Verdict
 from . import kalman
@@ -74,10 +74,9 @@ def _screened(f: DetectionFrame, limits: Limits) -> tuple[DetectionFrame, NDArra
     yaw_ok = np.isfinite(f.yaw)
     max_abs_coordinate_m, max_dimension_m = limits.max_abs_coordinate_m, limits.max_dimension_m
     with np.errstate(invalid="ignore", over="ignore"):  # non-finite rows are refused by the finiteness terms
-        half_gap = np.hypot(0.5 * (f.cov_xx - f.cov_yy), f.cov_xy)
         cov_ok = (np.isfinite(f.cov_xx) & np.isfinite(f.cov_xy) & np.isfinite(f.cov_yy)
                   & (f.cov_xx >= 0.0) & (f.cov_yy >= 0.0)
-                  & (0.5 * (f.cov_xx + f.cov_yy) + half_gap <= limits.max_variance))
+                  & (cov2_largest_variance(f.cov_xx, f.cov_xy, f.cov_yy) <= limits.max_variance))
         twist_ok = np.isfinite(f.vx) & np.isfinite(f.vy) & (np.hypot(f.vx, f.vy) <= limits.max_abs_speed_mps)
     yaw_var_ok = np.isfinite(f.var_yaw) & (f.var_yaw >= 0.0)
     prob = np.where(np.isfinite(f.label_prob), f.label_prob, 0.0)
