@@ -45,12 +45,15 @@ CONTAINER_FLOOR = 4096
 class ContainerBudget:
     """The ``object_hook`` and ``list_hook`` of an unpack that counts the maps and lists it builds and stops it
     (:class:`OverBudget`) past ``CONTAINER_FLOOR + len(data) // BYTES_PER_CONTAINER`` of them: the work of an unpack
-    in proportion to its payload's size, whatever the payload holds."""
+    in proportion to its payload's size, whatever the payload holds. ``cap``: a model whose bulk is one byte string
+    (``PointCloud.MAX_CONTAINERS``) holds a few maps whatever its size, so its bound need not grow with it (a
+    hostile 64 MiB scan would otherwise still build 4 million)."""
 
     __slots__ = ("left", "limit")
 
-    def __init__(self, size: int) -> None:
-        self.limit = self.left = CONTAINER_FLOOR + size // BYTES_PER_CONTAINER
+    def __init__(self, size: int, cap: int | None = None) -> None:
+        limit = CONTAINER_FLOOR + size // BYTES_PER_CONTAINER
+        self.limit = self.left = limit if cap is None else min(limit, cap)
 
     def __call__(self, built: object) -> object:
         self.left -= 1
@@ -121,7 +124,7 @@ def unpack_map(cls: type[BaseModel], data: bytes | bytearray | memoryview, *, ma
         raise LimitExceeded(cls.__name__, "", f"{len(data)} bytes exceed {max_bytes}")
     data = bytes(data)
     bound = {k: v for k, v in (("max_array_len", max_array_len), ("max_map_len", max_map_len)) if v is not None}
-    budget = ContainerBudget(len(data))
+    budget = ContainerBudget(len(data), getattr(cls, "MAX_CONTAINERS", None))  # a model may hold fewer in any size
     try:
         raw = msgpack.unpackb(data, raw=False, strict_map_key=True, use_list=True, **bound, **budget.hooks())
     except OverBudget:

@@ -212,6 +212,10 @@ class PointCloud(Message):
     ``ego_pose`` is the sensor's pose in the world frame at ``header.stamp`` (points are in the sensor frame).
     """
 
+    MAX_CONTAINERS: ClassVar[int] = 64
+    """Maps and lists a scan may hold (its header and pose: a handful; the points are one byte string): a hostile
+    payload is refused at the 65th whatever its size (:class:`~.codec.ContainerBudget`)."""
+
     header: Header
     ego_pose: Pose = Field(default_factory=Pose)
     fields: list[str] = Field(default_factory=lambda: ["x", "y", "z", "intensity"], min_length=3)

@@ -66,3 +66,20 @@ def _containers(value: object):
         yield value
         for v in value.values() if isinstance(value, dict) else value:
             yield from _containers(v)
+
+
+def test_a_scan_is_held_to_a_few_maps_whatever_its_size() -> None:
+    """A scan's bulk is one byte string: nested empty maps in a 2 MiB payload are refused after 64 maps and lists,
+    not after the hundred thousand its size would allow; a real scan (any size) is read."""
+    import numpy as np
+
+    from jitterguard.schemas.models import PointCloud
+
+    real = PointCloud(header=Header(stamp=1, seq=1), num_points=200_000,
+                      data=np.zeros((200_000, 4), np.float32).tobytes())
+    assert decode(PointCloud, encode(real), max_array_len=1024, max_map_len=64) == real
+    header = msgpack.packb({"stamp": 1, "frame_id": "lidar", "seq": 1})
+    hostile = (b"\x83" + msgpack.packb("schema_version") + msgpack.packb(1) + msgpack.packb("header") + header
+               + msgpack.packb("junk") + _array(1024) + (_array(1024) + b"\x80" * 1024) * 2)
+    with pytest.raises(LimitExceeded, match="more than 64 maps and lists"):
+        decode(PointCloud, hostile, max_array_len=1024, max_map_len=64)
