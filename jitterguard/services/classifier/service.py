@@ -531,10 +531,12 @@ class ClassifierService(Service):
                 self.counters.inc("rejected")
                 self.counters.inc("rejected.classifier/config")
                 query.reply_err(_config_reply(self.core.config, str(exc)))
-            except Exception as late:  # noqa: BLE001  still being applied (a slow config store), or failed
+            except TimeoutError:  # still being applied (a slow config store): it may yet come into force
                 query.reply_err(_config_reply(self.core.config, (
-                    f"not confirmed: the worker took it late and has not finished ({type(late).__name__}); it may "
-                    f"still come into force: read the config")))
+                    "not confirmed: the worker took it late and has not finished; it may still come into force: "
+                    "read the config")))
+            except Exception as late:  # noqa: BLE001  the worker failed it (the config store not written): not applied
+                query.reply_err(_config_reply(self.core.config, f"not applied: {type(late).__name__}: {late}"))
             else:
                 self.log.info("config applied: %s", in_force.model_dump(exclude={"schema_version"}))
                 self._reply(query, key, attachment, _config_reply(in_force))

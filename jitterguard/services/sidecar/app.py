@@ -1,8 +1,9 @@
 """The FastAPI app: settings, lifespan, error bodies and the request guard around the routers of ``routes``.
 
 Layers of a request, outermost first: :class:`~.guard.RequestGuard` (foreign Host, cross-site or non-JSON
-writes, bodies over 64 KB: refused before anything reads the body), CORS when ``--cors-origin`` is given, the
-routes (bearer token on writes when ``JG_API_TOKEN`` is set), and the exception handlers below, which turn
+writes, bodies over 64 KB, writes without the bearer token when ``JG_API_TOKEN`` is set: refused before anything
+reads the body), CORS when ``--cors-origin`` is given, the routes (the token checked again, and declared in the
+schema), and the exception handlers below, which turn
 every error into ``{"detail": ...}``.
 """
 
@@ -128,7 +129,7 @@ def create_app(settings: SidecarSettings, *, stopping: threading.Event | None = 
         return any(route.matches(scope)[0] == Match.FULL for route in app.router.routes)
 
     app.add_middleware(RequestGuard, policy=policy, is_route=is_route, head_as_get=lambda scope: serves_head(app, scope),
-                       max_body=settings.max_body_bytes,
+                       max_body=settings.max_body_bytes, token=settings.api_token,
                        on_refuse=lambda status: metrics.refused_requests.labels(str(status)).inc())
     return app
 

@@ -23,6 +23,7 @@ that applies them (outermost, so nothing else reads a refused body).
 
 from __future__ import annotations
 
+import hmac
 import ipaddress
 import json
 from collections.abc import Awaitable, Callable, Iterable, MutableMapping
@@ -153,15 +154,30 @@ def repeated_header(raw: Iterable[tuple[bytes, bytes]]) -> str | None:
     return None
 
 
+TOKEN_REFUSAL = "missing or wrong bearer token (JG_API_TOKEN)"
+
+
+def bearer_matches(authorization: str | None, token: str | None) -> bool:
+    """Whether an ``Authorization`` header carries ``token`` as a bearer credential (always, with no token): the
+    one test of a write's token, made by the guard before the body is read and by the routes' ``require_writer``."""
+    if token is None:
+        return True
+    scheme, _, credentials = (authorization or "").partition(" ")
+    return scheme.lower() == "bearer" and hmac.compare_digest(credentials.encode(), token.encode())
+
+
 class RequestGuard:
-    """ASGI middleware applying :func:`refusal`, and reading every write's body itself, cut off at ``max_body``
-    bytes (whatever its Content-Length said). A HEAD for which ``head_as_get`` holds goes on as a GET."""
+    """ASGI middleware applying :func:`refusal`, then — with a ``token`` — :func:`bearer_matches` to every write
+    (401 before its body is read: a write without the token had been read and parsed, up to 64 KB, before the
+    route refused it), and reading every write's body itself, cut off at ``max_body`` bytes (whatever its
+    Content-Length said). A HEAD for which ``head_as_get`` holds goes on as a GET."""
 
     def __init__(self, app: Callable[[Scope, Receive, Send], Awaitable[None]], policy: HostPolicy, *,
                  is_route: Callable[[Scope], bool] = lambda _scope: True,
                  head_as_get: Callable[[Scope], bool] = lambda _scope: False, max_body: int = MAX_BODY_BYTES,
-                 on_refuse: Callable[[int], None] | None = None) -> None:
+                 token: str | None = None, on_refuse: Callable[[int], None] | None = None) -> None:
         self.app, self.policy, self.is_route, self.head_as_get = app, policy, is_route, head_as_get
+        self.token = token
         self.max_body, self.on_refuse = max_body, on_refuse
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
@@ -171,9 +187,12 @@ class RequestGuard:
         raw = scope.get("headers", ())
         headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in raw}
         write = scope["method"].upper() in WRITE_METHODS
+        write_route = write and self.is_route(scope)
         twice = repeated_header(raw)
         refused = (400, f"{twice.title()} given more than once") if twice is not None else refusal(
-            scope["method"], headers, self.policy, self.max_body, is_write_route=write and self.is_route(scope))
+            scope["method"], headers, self.policy, self.max_body, is_write_route=write_route)
+        if refused is None and write_route and not bearer_matches(headers.get("authorization"), self.token):
+            refused = (401, TOKEN_REFUSAL)
         if refused is None and write:  # every write's body read here, up to the cap, whatever its headers said
             receive, refused = await self._buffer(receive)
         if refused is not None:
@@ -216,7 +235,8 @@ def _replay(messages: Iterable[Message], then: Receive) -> Receive:
 
 async def _respond(send: Send, status: int, detail: str) -> None:
     body = json.dumps({"detail": detail}).encode()
+    challenge = [(b"www-authenticate", b"Bearer")] if status == 401 else []
     await send({"type": "http.response.start", "status": status,
                 "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
-                            (b"connection", b"close")]})
+                            (b"connection", b"close"), *challenge]})
     await send({"type": "http.response.body", "body": body})

@@ -46,7 +46,7 @@ class SidecarMetrics:
             ["result"], registry=r)
         self.refused_requests = Counter(
             "jitterguard_sidecar_refused_requests", "HTTP requests refused before routing (foreign Host, "
-            "cross-site or non-JSON write, body too large), by status", ["status"], registry=r)
+            "cross-site or non-JSON write, write without the token, body too large), by status", ["status"], registry=r)
         self.sse_clients = Gauge("jitterguard_sidecar_sse_clients", "Open /v1/events streams", registry=r)
         self.sse_dropped = Counter(
             "jitterguard_sidecar_sse_dropped_events", "Events dropped for SSE clients that read too slowly",

@@ -9,7 +9,6 @@ run in the server's thread pool and never stall the event loop.
 No ``from __future__ import annotations`` here: FastAPI reads the routes' ``Annotated`` parameters at import.
 """
 
-import hmac
 import json
 import time
 from collections.abc import Callable
@@ -49,6 +48,7 @@ from .core import (
     validate_config,
 )
 from .events import EventBroker
+from .guard import TOKEN_REFUSAL, bearer_matches
 from .metrics import SidecarMetrics
 
 CSP = ("default-src 'self'; script-src 'self' 'unsafe-inline'; style-src 'self' 'unsafe-inline'; "
@@ -102,8 +102,8 @@ def require_writer(ctx: Ctx, creds: Annotated[HTTPAuthorizationCredentials | Non
     """Writes need ``Authorization: Bearer <JG_API_TOKEN>`` when the sidecar has a token."""
     if ctx.api_token is None:
         return
-    if creds is None or not hmac.compare_digest(creds.credentials.encode(), ctx.api_token.encode()):
-        raise HTTPException(401, "missing or wrong bearer token (JG_API_TOKEN)", headers={"WWW-Authenticate": "Bearer"})
+    if creds is None or not bearer_matches(f"Bearer {creds.credentials}", ctx.api_token):  # the guard's own test
+        raise HTTPException(401, TOKEN_REFUSAL, headers={"WWW-Authenticate": "Bearer"})
 
 
 def only_query(*names: str) -> Any:
