@@ -43,30 +43,29 @@ CONTAINER_FLOOR = 4096
 
 
 class ContainerBudget:
-    """The ``object_hook`` and ``list_hook`` of an unpack that counts the maps and lists it builds and stops it
-    (:class:`OverBudget`) past ``CONTAINER_FLOOR + len(data) // BYTES_PER_CONTAINER`` of them: the work of an unpack
-    in proportion to its payload's size, whatever the payload holds. ``cap``: a model whose bulk is one byte string
-    (``PointCloud.MAX_CONTAINERS``) holds a few maps whatever its size, so its bound need not grow with it (a
-    hostile 64 MiB scan would otherwise still build 4 million)."""
+    """The ``object_hook`` and ``list_hook`` of an unpack of a ``model`` payload of ``size`` bytes: it counts the maps
+    and lists the unpack builds and stops it with :class:`LimitExceeded` past ``CONTAINER_FLOOR + size //
+    BYTES_PER_CONTAINER`` of them, the work of an unpack in proportion to its payload's size, whatever the payload
+    holds. A model whose bulk is one byte string says how few it holds whatever its size (``MAX_CONTAINERS``:
+    ``PointCloud``'s 64), so its bound need not grow with it (a hostile 64 MiB scan would otherwise still build 4
+    million). Every reader of a payload builds its budget here, so each refuses it in the same words."""
 
-    __slots__ = ("left", "limit")
+    __slots__ = ("left", "limit", "model", "size")
 
-    def __init__(self, size: int, cap: int | None = None) -> None:
+    def __init__(self, model: type[BaseModel], size: int) -> None:
         limit = CONTAINER_FLOOR + size // BYTES_PER_CONTAINER
+        cap = getattr(model, "MAX_CONTAINERS", None)
         self.limit = self.left = limit if cap is None else min(limit, cap)
+        self.model, self.size = model, size
 
     def __call__(self, built: object) -> object:
         self.left -= 1
         if self.left < 0:
-            raise OverBudget(self.limit)
+            raise LimitExceeded(self.model.__name__, "", f"more than {self.limit} maps and lists in {self.size} bytes")
         return built
 
     def hooks(self) -> dict[str, "ContainerBudget"]:
         return {"object_hook": self, "list_hook": self}
-
-
-class OverBudget(Exception):
-    """Raised inside msgpack's unpack by :class:`ContainerBudget` (turned into :class:`LimitExceeded` by its user)."""
 
 
 def encode(model: BaseModel | dict) -> bytes:
@@ -124,11 +123,11 @@ def unpack_map(cls: type[BaseModel], data: bytes | bytearray | memoryview, *, ma
         raise LimitExceeded(cls.__name__, "", f"{len(data)} bytes exceed {max_bytes}")
     data = bytes(data)
     bound = {k: v for k, v in (("max_array_len", max_array_len), ("max_map_len", max_map_len)) if v is not None}
-    budget = ContainerBudget(len(data), getattr(cls, "MAX_CONTAINERS", None))  # a model may hold fewer in any size
     try:
-        raw = msgpack.unpackb(data, raw=False, strict_map_key=True, use_list=True, **bound, **budget.hooks())
-    except OverBudget:
-        raise LimitExceeded(cls.__name__, "", f"more than {budget.limit} maps and lists in {len(data)} bytes") from None
+        raw = msgpack.unpackb(data, raw=False, strict_map_key=True, use_list=True, **bound,
+                              **ContainerBudget(cls, len(data)).hooks())
+    except LimitExceeded:  # the budget's, raised from its hook
+        raise
     except Exception as exc:  # msgpack raises several unrelated types (ExtraData, ValueError, ...)
         if max_array_len is not None and "max_array_len" in str(exc):
             raise LimitExceeded(cls.__name__, "", f"a list holds more than {max_array_len} items") from None

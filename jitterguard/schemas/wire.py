@@ -25,7 +25,7 @@ import msgpack
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from .codec import M, ContainerBudget, DecodeError, LimitExceeded, OverBudget, decode, unpack_map, validate
+from .codec import M, ContainerBudget, DecodeError, LimitExceeded, decode, unpack_map, validate
 from .models import (
     INT64_MAX,
     SCHEMA_VERSION,
@@ -406,7 +406,7 @@ def _view_listed(model: type[M], data: bytes, layout: RecordLayout, limits: Limi
     # the envelope's lists bounded as the model's reading bounds them (``observed_track_ids`` of 200 000 IDs had
     # passed here, refused in the other form), and its maps and lists in all by the payload's size
     bounds = {"max_array_len": max(limits.max_objects, limits.max_list_items), "max_map_len": MAX_MAP_ENTRIES,
-              **ContainerBudget(len(data)).hooks()}
+              **ContainerBudget(model, len(data)).hooks()}
     up = msgpack.Unpacker(raw=False, strict_map_key=True, max_buffer_size=max(len(data), 1), **bounds)
     env: dict[str, Any] = {}
     try:
@@ -440,8 +440,6 @@ def _view_listed(model: type[M], data: bytes, layout: RecordLayout, limits: Limi
             return validate(model, {**env, "objects": []}), records
     except LimitExceeded:
         raise
-    except OverBudget as exc:
-        raise LimitExceeded(model.__name__, "", f"more than {exc.args[0]} maps and lists in {len(data)} bytes") from None
     except Exception:  # malformed msgpack, or an envelope the model refuses: the model says what is wrong
         return None
     return None

@@ -113,7 +113,6 @@ def world_detections(cols: DetectedColumns, frame: DetectionFrame, result: Frame
         out[wire.TWIST_COV]["v"][moving] = rotate_cov6(tcov[moving], yaw)
     with np.errstate(invalid="ignore", over="ignore"):
         fast = ~(np.hypot(out[wire.VX], out[wire.VY]) <= limits.max_abs_speed_mps)  # as _screened
-    tcov = out[wire.TWIST_COV]["v"]
     unknown = fast | ~(cov2_largest_variance(tcov[:, X_X], tcov[:, X_Y], tcov[:, Y_Y]) <= limits.max_variance)
     if fast.any():
         out[wire.VX][fast] = out[wire.VY][fast] = 0.0
