@@ -20,6 +20,7 @@ as reported, clusters, H0 v = 0, α 1.96 for every class, window 10); the calibr
 from __future__ import annotations
 
 import math
+import socket
 import threading
 import time
 import uuid
@@ -245,6 +246,16 @@ class Stack:
     def http(self, auth: bool = True) -> httpx.Client:
         headers = {"Authorization": f"Bearer {self.token}"} if (auth and self.token) else {}
         return httpx.Client(base_url=self.url, headers=headers, timeout=10.0)
+
+    def raw(self, request: bytes) -> str:
+        """One request as raw bytes on a fresh connection, for what an HTTP client will not send (headers given
+        twice, a body shorter than announced); the whole reply, read until the server closes the connection."""
+        with socket.create_connection(("127.0.0.1", self.server.port), timeout=10) as sock:
+            sock.sendall(request)
+            reply = b""
+            while chunk := sock.recv(4096):
+                reply += chunk
+            return reply.decode(errors="replace")
 
     def track(self, kind: str) -> Track:
         return next(t for t in self.tracks if t.kind == kind)

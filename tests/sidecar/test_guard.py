@@ -4,7 +4,6 @@ over real HTTP — the case a cross-site page could exploit — against a real c
 
 from __future__ import annotations
 
-import socket
 from collections.abc import Iterator
 
 import httpx
@@ -133,10 +132,8 @@ def test_oversized_body_is_refused_before_it_is_sent(open_stack: Stack) -> None:
     """33 MB announced, none of it sent: the answer comes from the headers alone (a 33 MB body used to be read
     into memory, 4.5 GB of it, blocking /healthz for 35 s)."""
     port = int(open_stack.url.rsplit(":", 1)[1])
-    with socket.create_connection(("127.0.0.1", port), timeout=10) as sock:
-        sock.sendall(f"PATCH /v1/config HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nContent-Type: application/json\r\n"
-                     f"Content-Length: {33 * 1024 * 1024}\r\n\r\n".encode())
-        reply = sock.recv(4096).decode(errors="replace")
+    reply = open_stack.raw(f"PATCH /v1/config HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nContent-Type: application/json\r\n"
+                           f"Content-Length: {33 * 1024 * 1024}\r\n\r\n".encode())
     assert reply.startswith("HTTP/1.1 413"), reply
 
 
@@ -153,16 +150,6 @@ def test_foreign_host_is_400_dns_rebinding(open_stack: Stack) -> None:
         assert c.get("/healthz").status_code == 200
 
 
-def _raw(port: int, request: bytes) -> str:
-    """One request as raw bytes on a fresh connection; the whole reply (the guard closes the connection)."""
-    with socket.create_connection(("127.0.0.1", port), timeout=10) as sock:
-        sock.sendall(request)
-        reply = b""
-        while chunk := sock.recv(4096):
-            reply += chunk
-        return reply.decode(errors="replace")
-
-
 @pytest.mark.integration
 def test_a_small_content_length_beside_a_chunked_body_is_refused(open_stack: Stack) -> None:
     """``Content-Length: 2`` with ``Transfer-Encoding: chunked``: the server frames the body by the chunks, and the
@@ -171,7 +158,7 @@ def test_a_small_content_length_beside_a_chunked_body_is_refused(open_stack: Sta
     before = _config(open_stack)
     port = int(open_stack.url.rsplit(":", 1)[1])
     body = b'{"alpha_default": 0.5}'
-    reply = _raw(port, f"PATCH /v1/config HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nContent-Type: application/json\r\n"
+    reply = open_stack.raw(f"PATCH /v1/config HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nContent-Type: application/json\r\n"
                        f"Content-Length: 2\r\nTransfer-Encoding: chunked\r\n\r\n{len(body):x}\r\n".encode()
                  + body + b"\r\n0\r\n\r\n")
     assert reply.startswith("HTTP/1.1 400") and "Transfer-Encoding" in reply, reply
@@ -187,7 +174,7 @@ def test_a_header_given_twice_is_refused_whichever_value_comes_first(open_stack:
     before = _config(open_stack)
     port = int(open_stack.url.rsplit(":", 1)[1])
     body = b'{"alpha_default": 0.5}'
-    reply = _raw(port, f"PATCH /v1/config HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nContent-Type: {first}\r\n"
+    reply = open_stack.raw(f"PATCH /v1/config HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nContent-Type: {first}\r\n"
                        f"Content-Type: {second}\r\nContent-Length: {len(body)}\r\n\r\n".encode() + body)
     assert reply.startswith("HTTP/1.1 400") and "Content-Type given more than once" in reply, reply
     assert _config(open_stack) == before
