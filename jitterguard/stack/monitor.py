@@ -40,7 +40,7 @@ from .backoff import Action, CrashLoopGuard, CrashLoopPolicy
 from .control import SERVER_URL_ENV, StackUnavailable, Supervisor, socket_of
 from .status import SERVICE_NAMES, SPEC_FILE, load_spec
 from .supervisor import programs
-from .watch import freeze_limit, load_counts
+from .watch import BusSilence, freeze_limit, load_counts
 
 WRITE_PERIOD_S = 1.0
 FREEZE_CHECK_S = 2.0
@@ -84,6 +84,7 @@ class StackMonitor(Service):
         self._beat_lock = threading.Lock()
         self._ledger_lock = threading.Lock()
         self._stopped_since: dict[int, float] = {}  # a router or unheard pid seen stopped (SIGSTOP), since when
+        self._bus = BusSilence()  # silence counts only while the bus carries the others' heartbeats
         self.supervisor = Supervisor(run_dir, sock=supervisor_sock)
         spec = load_spec(run_dir)
         # the services the stack runs, whose heartbeats a flood of made-up names may not crowd out of the ledger:
@@ -241,7 +242,8 @@ class StackMonitor(Service):
         own watchdog and faulthandler's timer wait with it, supervisord sees a live pid, and the stack had stood
         still for good with every program RUNNING. Only a process heard from before (with its current pid) is
         judged, only while other services are heard (a router down or restarting silences everyone: not a
-        freeze), and never after the monitor itself stood still (it would then judge its own pause). It is ended
+        freeze), its silence counted from no earlier than when they were heard again (:class:`.watch.BusSilence`:
+        services reconnect one by one after a router's restart), and never after the monitor itself stood still (it would then judge its own pause). It is ended
         with SIGKILL, which a stopped process cannot hold off, for supervisord to start it again. The router, which
         sends no heartbeat, is judged by whether the kernel says it is stopped (:meth:`_end_stopped_unheard`), as is
         a program this monitor never heard from (stopped before this monitor started, or before its first beat)."""
@@ -252,17 +254,20 @@ class StackMonitor(Service):
         self._end_stopped_unheard(procs, beats, now, limit)
         own = os.getpid()
         recent = {svc for pid, (svc, t) in beats.items() if now - t <= 3 * HEARTBEAT_PERIOD_S and pid != own}
-        if len(recent) < 2:  # the bus is not carrying heartbeats now (the router is away): judge nothing
+        if not self._bus.carrying(len(recent), now):  # not carrying heartbeats now (the router is away): judge nothing
             return
         for proc in procs:
             if proc.state != "RUNNING" or proc.pid is None or proc.pid == own:
                 continue
             seen = beats.get(proc.pid)
-            if seen is None or seen[0] not in SERVICE_NAMES.get(proc.name, (proc.name,)) or now - seen[1] < limit:
+            if seen is None or seen[0] not in SERVICE_NAMES.get(proc.name, (proc.name,)):
+                continue
+            silent = self._bus.silent_for(seen[1], now)
+            if silent < limit:
                 continue
             self.log.error("%s (pid %d) has sent no heartbeat for %.0f s while supervisord says RUNNING and the "
                            "other services are heard: frozen (stopped, or hung where no watchdog inside it runs);"
-                           " killing it for supervisord to restart it", proc.name, proc.pid, now - seen[1])
+                           " killing it for supervisord to restart it", proc.name, proc.pid, silent)
             if self.supervisor.kill(proc.pid):
                 self.counters.inc(f"frozen_restarts.{proc.name}")
             with self._beat_lock:

@@ -75,6 +75,35 @@ class StoppedJudge:
         return now - since >= self.limit_s
 
 
+@dataclass
+class BusSilence:
+    """Pure: how long a program has been silent on the heartbeat bus, counted only while the bus carries the
+    others' heartbeats. A router stopped or restarting silences every service at once; when it is back, the
+    services reconnect one by one, and silence counted from each one's last beat had judged a service that had
+    not yet reconnected frozen (the monitor killed a classifier and a sidecar that were never stopped, seconds
+    after the router was replaced). Silence is therefore counted from the later of its last beat and the moment
+    the bus was last heard to carry beats again."""
+
+    back_at: float | None = None  # since when the bus has carried heartbeats (None: not now)
+
+    def carrying(self, heard: int, now: float) -> bool:
+        """Record, at ``now``, whether the bus carries heartbeats: ``heard`` services (the judge's own aside) were
+        heard within the last few periods, at least two of them. False: judge nothing."""
+        if heard < 2:
+            self.back_at = None
+            return False
+        if self.back_at is None:
+            self.back_at = now
+        return True
+
+    def silent_for(self, last_beat: float, now: float) -> float:
+        """Seconds a program whose last heartbeat came at ``last_beat`` has been silent while the bus carried
+        others' (0 while it carries none)."""
+        if self.back_at is None:
+            return 0.0
+        return now - max(last_beat, self.back_at)
+
+
 def load_counts(run_dir: Path) -> dict[str, int]:
     """Program → how often this listener ended it stopped, from :data:`WATCH_FILE` ({} without a readable one)."""
     try:

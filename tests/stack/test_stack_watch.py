@@ -11,7 +11,7 @@ import sys
 from pathlib import Path
 
 from jitterguard.stack.supervisor import StackSpec, programs, render_config
-from jitterguard.stack.watch import WATCH_FILE, StoppedJudge, freeze_limit, load_counts, save_counts, serve
+from jitterguard.stack.watch import WATCH_FILE, BusSilence, StoppedJudge, freeze_limit, load_counts, save_counts, serve
 
 
 def test_a_program_is_ended_only_once_stopped_for_the_limit():
@@ -33,6 +33,21 @@ def test_a_listener_that_stood_still_itself_does_not_judge_its_own_pause():
     judge.step(100, True, 0.0)
     assert not judge.step(100, True, 60.0)  # 60 s between ticks: the listener was paused, not the monitor watched
     assert [judge.step(100, True, t) for t in (65.0, 70.0, 75.0, 80.0)] == [False] * 3 + [True]
+
+
+def test_silence_counts_only_while_the_bus_carries_the_others_heartbeats():
+    """A router stopped for 25 s silences everyone; once it is back, a service whose last beat is 30 s old but
+    that has not reconnected yet is silent only since the bus was heard again, not frozen (the monitor had
+    killed a classifier 4 s after the router was replaced)."""
+    bus = BusSilence()
+    assert bus.carrying(3, 0.0)  # first heard at 0
+    assert bus.silent_for(-25.0, 0.0) == 0.0  # a beat older than that: counted from then
+    assert bus.carrying(3, 30.0) and bus.silent_for(0.0, 30.0) == 30.0  # silent while others were heard
+    assert not bus.carrying(1, 32.0)  # the router is away: judge nothing
+    assert bus.silent_for(0.0, 57.0) == 0.0
+    assert bus.carrying(2, 57.0)  # back: two services heard again
+    assert bus.silent_for(0.0, 59.0) == 2.0  # a third, not yet reconnected, silent for 2 s, not 59 s
+    assert bus.silent_for(0.0, 77.0) == 20.0  # still silent 20 s after the others came back: frozen at a 20 s limit
 
 
 def test_the_limit_is_the_monitors_own_rule():
