@@ -120,14 +120,23 @@ def test_a_restored_config_uses_its_own_calibration_file_and_survives_losing_it(
     a, b = file_with_scale("a.yaml", 2.0), file_with_scale("b.yaml", 5.0)
     flags = ClassifierConfig(calibration="file", calibration_file=str(a))
     store = ConfigStore(tmp_path / "run" / "classifier-config.json")
-    store.save(flags, flags.model_copy(update={"calibration_file": str(b)}))
+    store.save(flags, flags.model_copy(update={"calibration_file": str(b), "alpha_default": 3.33}))
     opts = loopback_options("cs2", zenoh_port, listen_self=True)
     with ClassifierService(opts, flags, config_store=store, calibration_model=read_calibration(a)) as svc:
         assert svc.core.config.calibration_file == str(b)
         assert svc.core.noise_model().scale.max() == pytest.approx(5.0)
-    b.unlink()
+    b.rename(tmp_path / "b.moved")
+    # the file is gone: the flags' calibration source, every other write kept (the threshold had been dropped with
+    # it, and nothing counted), and the store holds what is in force ...
+    in_force = flags.model_copy(update={"alpha_default": 3.33})
     with ClassifierService(opts, flags, config_store=store, calibration_model=read_calibration(a)) as svc:
-        assert svc.core.config == flags and svc.core.noise_model().scale.max() == pytest.approx(2.0)
+        assert svc.core.config == in_force and svc.core.noise_model().scale.max() == pytest.approx(2.0)
+        assert svc.counters.get("config_store_errors") == 1
+    assert ConfigStore(store.path).load(flags)[0] == in_force
+    # ... so the file coming back does not bring back at the next restart a config that was not in force
+    (tmp_path / "b.moved").rename(b)
+    with ClassifierService(opts, flags, config_store=store, calibration_model=read_calibration(a)) as svc:
+        assert svc.core.config == in_force and svc.counters.get("config_store_errors") == 0
 
 
 @pytest.mark.parametrize(("value", "token"), [("", None), (" \t\n", None), (" s3cret\n", "s3cret"), ("s3cret", "s3cret")])

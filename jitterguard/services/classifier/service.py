@@ -161,10 +161,8 @@ class ClassifierService(Service):
             # the restored config names its own file: the model read from the flags' file (if any) is not it
             try:
                 calibration_model = read_calibration(config.calibration_file)
-            except CalibrationFileError as exc:  # gone or damaged since the write: the flags' config, not a crash
-                self.log.warning("the stored config's calibration file is unusable (%s); using the config the"
-                                 " classifier was started with", exc)
-                config = self._started_with
+            except CalibrationFileError as exc:  # gone or damaged since the write: not a crash
+                config = self._calibration_from_flags(config_store, config, exc)
         if calibration_model is None and config.calibration == "file" and config.calibration_file:
             calibration_model = read_calibration(config.calibration_file)
         self.log.info("%s", self.config_writes.describe())
@@ -221,6 +219,27 @@ class ClassifierService(Service):
         if calibration_store is not None:
             self.spawn(self._calibration_writer, "calibration-store")
         self.starting = None
+
+    def _calibration_from_flags(self, store: ConfigStore, restored: ClassifierConfig,
+                                exc: CalibrationFileError) -> ClassifierConfig:
+        """The restored config with the flags' calibration source in place of a file that is gone or damaged
+        since the write, stored so that what is in force and what the next restart restores stay one config.
+        Every other write it held stays (the whole stored config had been dropped for the file, the thresholds
+        too, with an info-level warning and nothing counted; and the store, unchanged, brought the file back at
+        the restart after). A lost write is counted (``config_store_errors``) as a damaged store is."""
+        started = self._started_with
+        config = ClassifierConfig.model_validate({**restored.model_dump(), "calibration": started.calibration,
+                                                  "calibration_file": started.calibration_file})
+        self.counters.inc("config_store_errors")
+        self.log.warning("the stored config's calibration file is unusable (%s): calibration %s%s as the flags say,"
+                         " the stored config's other settings kept", exc, config.calibration,
+                         f" from {config.calibration_file}" if config.calibration == "file" else "")
+        try:
+            store.save(started, config)
+        except OSError as err:
+            self.log.warning("cannot store the config now in force at %s (%s): a restart may restore the old one",
+                             store.path, err)
+        return config
 
     @property
     def core(self) -> MotionClassifierCore:
