@@ -655,6 +655,34 @@ def test_a_sidecar_with_another_token_answers_state_reads_502_naming_the_token(s
         assert c.get("/v1/state").status_code == 200
 
 
+def test_a_classifier_that_goes_silent_on_the_bus_has_its_counts_left_out_of_metrics(stack: Stack) -> None:
+    """A classifier stopped (SIGSTOP) keeps its liveliness token for seconds, until the router drops it; it sends no
+    heartbeat. ``/metrics`` said ``jitterguard_classifier_up 0`` beside its last frame and track counts, exported
+    as current. Its heartbeats are cut off here at its publisher (a stopped process cannot be had in this one); the
+    counts leave ``/metrics`` with ``up``, and come back with its heartbeats."""
+    publisher = stack.classifier._hb_pub
+
+    class Silent:
+        def put(self, _payload: bytes) -> None:
+            pass
+
+        def undeclare(self) -> None:
+            publisher.undeclare()
+
+    with stack.http(auth=False) as c:
+        assert "jitterguard_classifier_frames_total " in c.get("/metrics").text
+        stack.classifier._hb_pub = Silent()
+        try:
+            scraped = wait_for(lambda: (lambda t: t if "jitterguard_classifier_up 0.0" in t else None)(
+                c.get("/metrics").text), "the classifier's heartbeat to go stale")
+            assert "jitterguard_classifier_frames_total " not in scraped
+            assert "jitterguard_classifier_tracks " not in scraped and "jitterguard_classifier_last_seq " not in scraped
+        finally:
+            stack.classifier._hb_pub = publisher
+        wait_for(lambda: "jitterguard_classifier_frames_total " in c.get("/metrics").text,
+                 "the counts back with the heartbeats")
+
+
 def test_a_sidecar_whose_polls_come_to_be_refused_stops_serving_the_state_it_read_before() -> None:
     """A classifier restarted with another ``JG_API_TOKEN`` refuses every later poll of a sidecar that had read its
     state: ``GET /v1/state`` had gone on answering 200 with that old state, only ``X-State-Age-Ms`` growing. It now

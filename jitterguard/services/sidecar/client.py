@@ -303,11 +303,17 @@ class ClassifierClient(Service):
         return self._rendered
 
     def served_state(self) -> RenderedState | None:
-        """The latest snapshot while it is still what the classifier says: the classifier on the bus and its latest
-        poll answered; None otherwise. What ``/metrics`` exports its track gauges from: a snapshot kept after the
+        """The latest snapshot while it is still what the classifier says: the classifier up (on the bus, its
+        heartbeat recent), its latest poll answered, and the snapshot fetched no more than ``stale_after_s`` ago;
+        None otherwise. What ``/metrics`` exports its track gauges and counters from: a snapshot kept after the
         classifier left or began refusing this sidecar's polls (another ``JG_API_TOKEN``) had gone on being scraped
-        as the current count of moving tracks, with nothing in it to say it was old."""
-        return self._rendered if self.is_alive() and self._poll_refusal is None else None
+        as the current count of moving tracks, with nothing in it to say it was old — and so had one of a
+        classifier stopped (SIGSTOP: its token stays until the router drops it), ``jitterguard_classifier_up`` 0
+        beside a frame count standing still, or of the process before a restart until the new one answered."""
+        st = self._rendered
+        if st is None or not self.classifier_up() or self._poll_refusal is not None:
+            return None
+        return st if time.time_ns() - st.polled_at_ns <= self.stale_after_s * 1e9 else None
 
     def poll_refusal(self) -> str | None:
         """Why the last state poll took no reply although the classifier answered (no reply signed with this
