@@ -14,6 +14,7 @@ would measure the generator, not the sidecar).
 
 from __future__ import annotations
 
+import math
 import multiprocessing as mp
 import os
 import platform
@@ -246,7 +247,8 @@ def run_bench(params: BenchParams) -> dict[str, Any]:
                     r = c.get("/v1/state")
                     if r.status_code == 200:
                         tracks_seen = r.json()["counts"]["total"]
-                        if tracks_seen >= params.tracks:
+                        # ... and the classifier up for /metrics (its heartbeat heard), which counts the frames
+                        if tracks_seen >= params.tracks and not math.isnan(_frames_total(c)):
                             break
                 except httpx.HTTPError:
                     pass

@@ -13,7 +13,7 @@ import signal
 import socket
 import sys
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING, Annotated
 
 import typer
@@ -118,10 +118,11 @@ def serve(settings: SidecarSettings, host: str, port: int, log_level: str = "INF
     sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
 
     stopping = threading.Event()  # a signal during startup ends the wait for the router (create_app)
-    config = uvicorn.Config(create_app(settings, stopping=stopping), host=host, port=port,
+    app = create_app(settings, stopping=stopping)
+    config = uvicorn.Config(app, host=host, port=port,
                             log_level=log_level.lower(), access_log=log_level.upper() == "DEBUG",
                             timeout_graceful_shutdown=2, lifespan="on", http=_read_deadline_protocol())
-    _clean_exit_server_class()(config, stopping).run()
+    _clean_exit_server_class()(config, stopping, app.state.sidecar.broker.close).run()
 
 
 def _read_deadline_protocol() -> type:
@@ -173,9 +174,19 @@ def _clean_exit_server_class() -> type:
         and supervisord logs every ordinary stop as a warning; the shutdown itself was clean.
         """
 
-        def __init__(self, config: uvicorn.Config, stopping: threading.Event) -> None:
+        def __init__(self, config: uvicorn.Config, stopping: threading.Event,
+                     end_streams: Callable[[], None]) -> None:
             super().__init__(config)
             self.stopping = stopping
+            self.end_streams = end_streams
+
+        async def shutdown(self, sockets: list[socket.socket] | None = None) -> None:
+            """End the open event streams first, then uvicorn's shutdown: it waits (2 s) for every response to
+            finish, and an event stream finishes only when told to. The streams had been told in the lifespan's
+            shutdown, which comes after that wait: each was cancelled mid-response instead (its client got a
+            body cut short, the log a CancelledError traceback), and every stop took the full 2 s."""
+            self.end_streams()
+            await super().shutdown(sockets)
 
         def handle_exit(self, sig: int, frame: object) -> None:
             self.stopping.set()

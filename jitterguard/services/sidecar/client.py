@@ -117,6 +117,7 @@ class ClassifierClient(Service):
         self._rendered: RenderedState | None = None
         self._last_payload: bytes | None = None
         self._poll_refusal: str | None = None  # why the last state poll's replies were all refused (unsigned)
+        self._answered_at: float | None = None  # monotonic time of the last state poll the classifier answered
         self._listeners: list[Listener] = []
         self._last_config_event: dict[str, Any] | None = None
         self._alive_key = keys.alive(self.ns, CLASSIFIER)
@@ -304,16 +305,16 @@ class ClassifierClient(Service):
 
     def served_state(self) -> RenderedState | None:
         """The latest snapshot while it is still what the classifier says: the classifier up (on the bus, its
-        heartbeat recent), its latest poll answered, and the snapshot fetched no more than ``stale_after_s`` ago;
+        heartbeat recent), its latest poll answered, and a poll answered no more than ``stale_after_s`` ago;
         None otherwise. What ``/metrics`` exports its track gauges and counters from: a snapshot kept after the
         classifier left or began refusing this sidecar's polls (another ``JG_API_TOKEN``) had gone on being scraped
         as the current count of moving tracks, with nothing in it to say it was old — and so had one of a
         classifier stopped (SIGSTOP: its token stays until the router drops it), ``jitterguard_classifier_up`` 0
         beside a frame count standing still, or of the process before a restart until the new one answered."""
-        st = self._rendered
-        if st is None or not self.classifier_up() or self._poll_refusal is not None:
+        st, answered_at = self._rendered, self._answered_at
+        if st is None or answered_at is None or not self.classifier_up() or self._poll_refusal is not None:
             return None
-        return st if time.time_ns() - st.polled_at_ns <= self.stale_after_s * 1e9 else None
+        return st if time.monotonic() - answered_at <= self.stale_after_s else None
 
     def poll_refusal(self) -> str | None:
         """Why the last state poll took no reply although the classifier answered (no reply signed with this
@@ -375,6 +376,7 @@ class ClassifierClient(Service):
         if kind != "ok":
             self.metrics.poll_failures.inc()
             return self._rendered
+        self._answered_at = time.monotonic()  # the cached state is the classifier's now, changed or not
         if data == self._last_payload:
             return self._rendered
         try:
