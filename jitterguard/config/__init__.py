@@ -88,6 +88,11 @@ def read_params(path: str | Path) -> dict[str, Any]:
         raise ConfigError(f"{path}: cannot read ({type(exc).__name__})") from None
     except yaml.YAMLError as exc:
         raise ConfigError(f"{path}: not valid YAML ({type(exc).__name__})") from None
+    except RecursionError:  # a value nested thousands deep: the parser's own recursion
+        raise ConfigError(f"{path}: nested too deeply to read") from None
+    except (ValueError, OverflowError) as exc:  # a scalar YAML resolves but Python cannot hold: had been a traceback
+        # (an integer of over 4300 digits, a date such as 2024-02-30, an explicit tag like !!int 1.5)
+        raise ConfigError(f"{path}: a value cannot be read ({str(exc).splitlines()[0][:120]})") from None
     if doc is None:
         return {}
     if not isinstance(doc, dict):

@@ -114,6 +114,20 @@ def test_a_bad_file_names_the_file_and_the_key(tmp_path) -> None:
         load(DetectorParams, tmp_path)
 
 
+@pytest.mark.parametrize(("text", "says"), [
+    ("max_candidates: " + "9" * 5000, "a value cannot be read"),  # Python reads no int of > 4300 digits
+    ("confirm_hits: 2024-02-30", "day is out of range"),  # a date YAML resolves, no calendar holds
+    ("max_candidates: !!int 1.5", "a value cannot be read"),  # an explicit tag it cannot convert
+    ("max_candidates: " + "[" * 30000 + "]" * 30000, "nested too deeply"),
+])
+def test_a_value_yaml_parses_but_python_cannot_hold_is_a_config_error(tmp_path, text, says) -> None:
+    """Each had escaped as a ValueError or RecursionError: a traceback and exit 1 from every --config option."""
+    p = tmp_path / "t.yaml"
+    p.write_text(text + "\n")
+    with pytest.raises(ConfigError, match=f"t.yaml: .*{says}"):
+        read_params(p)
+
+
 def test_a_file_is_read_strictly_keys_once_limits_typed_and_scalars_as_yaml_1_2(tmp_path) -> None:
     """A key given twice had let the last one win; `limits:`/`stream:` took `true` as 1 and "5" as 5; the docs'
     own `variance_floor: 1e-4` was refused as a string and `calibration: off` read as False."""
