@@ -75,7 +75,7 @@ def default_run_dir(name: str) -> Path:
 def resolve(run_dir: str | None, name: str | None, ns: str) -> tuple[Path, str]:
     """(run directory, label for messages) from ``--run-dir`` / ``--name`` / ``--ns``; bad ones exit 2."""
     try:
-        stack = check_name(name) if name is not None else check_name(ns)
+        stack = check_name(name) if name is not None else check_name(ns, "--ns")
         if run_dir is not None and not run_dir.strip():  # had quietly meant the default stack (`down --run-dir ""`)
             raise ArgumentError("--run-dir: empty path; give a folder")
         rd = check_run_dir(Path(run_dir)) if run_dir is not None else default_run_dir(stack)

@@ -40,10 +40,11 @@ def check_text(value: str, what: str) -> str:
     return value
 
 
-def check_name(name: str) -> str:
-    """A stack name: letters, digits, ``_``, ``.``, ``-``; it names the run directory."""
+def check_name(name: str, flag: str = "--name") -> str:
+    """A stack name: letters, digits, ``_``, ``.``, ``-``; it names the run directory. ``flag``: the option it came
+    from (``--ns`` names the stack when ``--name`` is not given: a bad one had been blamed on ``--name``)."""
     if not _NAME.match(name):
-        raise ArgumentError(f"--name: {name!r} is not a stack name (1-64 letters, digits, '_', '.', '-', starting"
+        raise ArgumentError(f"{flag}: {name!r} is not a stack name (1-64 letters, digits, '_', '.', '-', starting"
                             " with a letter or digit)")
     return name
 

@@ -212,6 +212,9 @@ def test_a_folder_where_an_output_file_goes_is_refused_before_any_work(args, blo
     (["foxglove", "--record", "/proc/x.mcap", "--connect", "tcp/127.0.0.1:9"], "--record: cannot write /proc/x.mcap"),
     (["up", "--record-mcap", "/proc/x.mcap", "--run-dir", "{tmp}", "--duration", "1"],
      "--record-mcap: cannot write /proc/x.mcap"),
+    # --ns names the stack where --name is not given: a bad one had been blamed on --name
+    (["status", "--ns", "a/b", "--run-dir", "{tmp}/none"], "--ns: 'a/b' is not a stack name"),
+    (["summary", "--ns", "a/b"], "--ns: 'a/b' is not a stack name"),
     (["eval-detector", "--out", "{tmp}/ev", "--name", "a/b"], "--name: expected a file-name stem"),
     (["eval-detector", "--out", "{tmp}/ev", "--name", ""], "--name: expected a file-name stem"),
     (["eval-detector", "--out", ""], "--out: empty path"),  # had written into the current folder
