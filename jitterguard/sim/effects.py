@@ -191,8 +191,11 @@ OPT_IN_COMPONENTS: tuple[str, ...] = ("no-intensity", "vegetation", "limbs", "pe
 def parse_components(spec: str) -> tuple[str, ...]:
     """``"random"`` (every component), ``"none"`` (the ideal scan) or a comma list of :data:`COMPONENTS`, plus
     ``no-intensity`` (intensities all 0; ``random-no-intensity`` is every component with it). Returns the
-    canonical sorted tuple (``()`` for none); ValueError names an unknown token."""
-    tokens = [t.strip() for t in spec.split(",") if t.strip()]
+    canonical sorted tuple (``()`` for none); ValueError names an unknown or empty token (``""``, ``"a,"``, and the
+    empty set of ``"random+"`` had been taken as ``none``: ideal scans no one asked for)."""
+    tokens = [t.strip() for t in spec.split(",")]
+    if not all(tokens):
+        raise ValueError(f"empty effect in {spec!r}; expected random, none or a comma list of effects")
     out: set[str] = set()
     for t in tokens:
         if t == "none":

@@ -212,6 +212,10 @@ def test_a_folder_where_an_output_file_goes_is_refused_before_any_work(args, blo
     (["foxglove", "--record", "/proc/x.mcap", "--connect", "tcp/127.0.0.1:9"], "--record: cannot write /proc/x.mcap"),
     (["up", "--record-mcap", "/proc/x.mcap", "--run-dir", "{tmp}", "--duration", "1"],
      "--record-mcap: cannot write /proc/x.mcap"),
+    # an empty effect set had been taken as none: ideal scans added to (or making up) the training set
+    (["train", "--out", "{tmp}/tr", "--effects", "random+"], "--effects: empty effect in ''"),
+    (["train", "--out", "{tmp}/tr", "--effects", "ground,"], "--effects: empty effect in 'ground,'"),
+    (["eval-detector", "--out", "{tmp}/ev", "--effects", ""], "--effects: empty effect"),
     # --ns names the stack where --name is not given: a bad one had been blamed on --name
     (["status", "--ns", "a/b", "--run-dir", "{tmp}/none"], "--ns: 'a/b' is not a stack name"),
     (["summary", "--ns", "a/b"], "--ns: 'a/b' is not a stack name"),
