@@ -140,6 +140,14 @@ def test_kitti_times_file_gives_stamps_and_numbered_files_index_rows(tmp_path: P
     assert stamps == [int(round(0.1037 * 5 * 1e9)), int(round(0.1037 * 7 * 1e9))]
 
 
+def test_kitti_times_past_an_int64_stamp_are_a_source_error_naming_the_line(tmp_path: Path) -> None:
+    """9.3e9 s is 9.3e18 ns, past int64: it had reached the replay's Header and failed there with a traceback."""
+    write_bin(tmp_path / "000000.bin", np.zeros((2, 4)))
+    (tmp_path / "times.txt").write_text("0.0\n9.3e9\n")
+    with pytest.raises(SourceError, match=r"times.txt:2: time 9.3e\+09 s is past what an int64 stamp"):
+        BinScanSource(tmp_path)
+
+
 def test_kitti_missing_pose_row_is_a_frame_error(tmp_path: Path) -> None:
     _scans(tmp_path / "s", 2)
     (tmp_path / "poses.txt").write_text(_pose_line(np.eye(4)) + "\n")

@@ -22,6 +22,7 @@ from numpy.typing import NDArray
 
 from ..frames import (DEFAULT_PERIOD_NS, IDENTITY, MAX_SCAN_BYTES, EgoPose, FrameError, Item, ScanFrame, SourceError,
                       SourceInfo, finite_rows, mib)
+from ....schemas.models import INT64_MAX
 from .base import Source, listed_scans
 
 log = logging.getLogger("jitterguard.replay")
@@ -137,6 +138,8 @@ def read_times(path: Path) -> list[int]:
             raise SourceError(f"{path}:{lineno}: not a time in seconds") from None
         if not np.isfinite(t) or t < 0:
             raise SourceError(f"{path}:{lineno}: time must be finite and >= 0")
+        if t * 1e9 >= INT64_MAX:  # a header stamp is int64 ns: had been a ValidationError traceback at the replay
+            raise SourceError(f"{path}:{lineno}: time {t:g} s is past what an int64 stamp in ns holds (~9.2e9 s)")
         out.append(int(round(t * 1e9)))
     return out
 
