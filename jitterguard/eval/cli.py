@@ -244,12 +244,9 @@ def eval_command(
     from .report import FIGURES, OUTPUTS
 
     out_files("--out", out, (*OUTPUTS, *FIGURES))
-    for stale in sorted(Path(out).glob("run-*.mcap")) + sorted(Path(out).glob(f"run-*.mcap{PARTIAL}")):
-        # an earlier run's frames beside this run's metrics.json would look like its own (they had stayed,
-        # unannounced, matching nothing the new report scored); a killed run's unfinished ones go too
+    for stale in _stale_frames(Path(out)):
         if stale.is_dir():  # no run's frames: not ours to delete, and unlink would raise
             fail(f"--out: {stale} is a folder where a run's frames go; remove or rename it")
-        stale.unlink()
     try:
         metrics = evaluate(out, scenario=scenario, seed=seed, noise=noise, nuscenes=nuscenes, scene=scene,
                            nuscenes_version=nuscenes_version,
@@ -269,6 +266,14 @@ def eval_command(
         figures = sum((out / name).is_file() for name in FIGURES)  # this run's, not any PNG the folder holds
         print(f"wrote {out / 'report.md'}, metrics.json and {figures} figures"
               + (" and the frames as MCAP (run-*.mcap)" if mcap else ""))
+
+
+def _stale_frames(out: Path) -> list[Path]:
+    """An earlier run's recorded frames in ``out`` (and a killed run's unfinished ones): beside this run's
+    metrics.json they would look like its own (they had stayed, unannounced, matching nothing the new report
+    scored), so :func:`evaluate` removes them — once its input is loaded and checked, not before: a run refused
+    for its input (``--runs`` with several scenes, a broken annotation table) had deleted them and written nothing."""
+    return sorted(out.glob("run-*.mcap")) + sorted(out.glob(f"run-*.mcap{PARTIAL}"))
 
 
 def check_whole_frame(duration: float, rate: float, at: str = "--rate") -> None:
@@ -452,6 +457,9 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
         source = f"scenario {scenario} seed {seed} ({duration:g} s @ {rate:g} Hz)"
         total = len(sc)
 
+    for stale in _stale_frames(Path(out)):  # the input is good: this run's report and frames replace the last's
+        if not stale.is_dir():
+            stale.unlink()
     seen = weights_saw_scored_data(detector.meta, nuscenes, [n for n, _ in scenes]) if detector is not None else None
     if seen is not None:  # before the run: said where it is seen, not only in metrics.json
         warn_seen(seen, nuscenes)

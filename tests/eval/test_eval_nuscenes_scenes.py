@@ -134,11 +134,15 @@ def test_several_scenes_pool_as_one_drive(two_scenes: Path, pooled: dict, pooled
 ])
 def test_what_cannot_be_run_is_one_line_exit_2(two_scenes: Path, tmp_path: Path, capsys: pytest.CaptureFixture,
                                                argv: list[str], says: str) -> None:
+    earlier = tmp_path / "x" / "run-1.mcap"  # an earlier run's frames: a refused run writes nothing, so keeps them
+    earlier.parent.mkdir()
+    earlier.write_bytes(b"an earlier run's frames")
     with pytest.raises(SystemExit) as exc:
         main(["eval", "--nuscenes", str(two_scenes), "--input", "gt-noise", "--out", str(tmp_path / "x"), *argv])
     assert exc.value.code == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and says in err, err
+    assert earlier.read_bytes() == b"an earlier run's frames"  # --runs with several scenes had deleted them
     if not argv:
         assert all(name in err for name in SCENES)  # the message lists what there is to pick
 
