@@ -332,6 +332,24 @@ def test_a_config_files_endpoint_port_out_of_range_is_refused_as_the_flags_is(ar
     assert f"--zenoh-config {cfg}: endpoint 'tcp/127.0.0.1:99999': port '99999'" in res.stderr, res.stderr
 
 
+def test_a_foxglove_port_in_use_is_named_and_no_recording_is_made_or_overwritten(tmp_path):
+    """The MCAP had been opened before the port was bound: a port in use left an empty recording (which the next
+    run refused as existing) or, with --overwrite, replaced an old one with nothing; and the message named no flag."""
+    import socket
+
+    from jitterguard.runtime import free_tcp_port
+
+    port = free_tcp_port()
+    old = tmp_path / "old.mcap"
+    old.write_bytes(b"an earlier recording")
+    with socket.create_server(("127.0.0.1", port)):
+        for record, extra in ((tmp_path / "new.mcap", []), (old, ["--overwrite"])):
+            res = run(["foxglove", "--port", str(port), "--record", str(record), "--connect", "tcp/127.0.0.1:9", *extra])
+            assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
+            assert f"--port: cannot serve on 127.0.0.1:{port}" in res.stderr, res.stderr
+    assert not (tmp_path / "new.mcap").exists() and old.read_bytes() == b"an earlier recording"
+
+
 def test_a_library_message_of_several_lines_is_joined_into_one(tmp_path):
     """A bag whose ``metadata.yaml`` is cut short: the YAML parser's message, with its caret display, had been
     printed as five lines."""

@@ -69,15 +69,15 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         from ...runtime import setup_logging
 
         try:
-            from .service import FoxgloveService, FoxgloveSink
+            from .service import FoxgloveService, FoxgloveSink, SinkStartError
         except ModuleNotFoundError as exc:
             fail(f"jitterguard foxglove needs the foxglove-sdk package (pip install 'jitterguard[foxglove]'): {exc}")
 
         setup_logging(log_level)
         try:
             sink = FoxgloveSink(host=host, port=port if server else None, mcap_path=record, overwrite=overwrite)
-        except Exception as exc:  # noqa: BLE001 - the SDK raises its own error types (port in use, file exists)
-            fail(f"cannot start: {type(exc).__name__}: {exc}")
+        except SinkStartError as exc:  # the SDK's own errors (port in use, file exists), named by their flag
+            fail(f"{'--port' if exc.part == 'server' else '--record'}: {exc}")
         try:
             service = FoxgloveService(opts, sink, points=points, motion_wait_s=motion_wait)
         except ValueError as exc:

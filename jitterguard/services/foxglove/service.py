@@ -38,6 +38,15 @@ _CHANNEL_TYPES: dict[str, Any] = {
 }
 
 
+class SinkStartError(Exception):
+    """The sink could not start its ``part`` (``"server"`` or ``"recording"``); nothing of it is left open or
+    written: the server is started first, so a port in use neither leaves an empty MCAP nor overwrites one."""
+
+    def __init__(self, part: str, message: str) -> None:
+        super().__init__(message)
+        self.part = part
+
+
 class FoxgloveSink:
     """Writes joined frames to a Foxglove WebSocket server (``port`` not None) and/or an MCAP file."""
 
@@ -51,14 +60,18 @@ class FoxgloveSink:
         self.mcap: Any = None
         self.mcap_path = Path(mcap_path) if mcap_path is not None else None
         self._logged = False  # a message went to the MCAP: else its channels are written on close (_channels_only)
-        if self.mcap_path is not None:
-            self.mcap = foxglove.open_mcap(str(self.mcap_path), allow_overwrite=overwrite, context=self.context)
-        if port is not None:
+        if port is not None:  # first: a port in use had left a new, empty MCAP behind, or overwritten an old one
             try:
                 self.server = foxglove.start_server(name="jitterguard", host=host, port=port, context=self.context)
-            except Exception:
-                self._close_mcap()
-                raise
+            except Exception as exc:  # noqa: BLE001 - the SDK raises its own error types
+                raise SinkStartError("server", f"cannot serve on {host}:{port}: {exc}") from exc
+        if self.mcap_path is not None:
+            try:
+                self.mcap = foxglove.open_mcap(str(self.mcap_path), allow_overwrite=overwrite, context=self.context)
+            except Exception as exc:  # noqa: BLE001
+                if self.server is not None:
+                    self.server.stop()
+                raise SinkStartError("recording", f"cannot record to {self.mcap_path}: {exc}") from exc
         for topic in EAGER_TOPICS:  # every frame has these: a viewer can subscribe before the first frame
             self._channel(topic)
 
