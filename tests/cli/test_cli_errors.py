@@ -350,6 +350,31 @@ def test_a_foxglove_port_in_use_is_named_and_no_recording_is_made_or_overwritten
     assert not (tmp_path / "new.mcap").exists() and old.read_bytes() == b"an earlier recording"
 
 
+def test_a_recorder_stopped_while_it_waits_for_its_router_leaves_no_bag(tmp_path):
+    """The bag had been made before the Zenoh session: stopped during the wait for a router, the folder held a 0-byte
+    MCAP and no ``metadata.yaml`` — no bag any reader opens — and the next run refused it as existing."""
+    import signal
+    import time
+
+    from jitterguard.runtime import free_tcp_port
+
+    proc = subprocess.Popen([sys.executable, "-m", "jitterguard.cli", "record", "--ros2", str(tmp_path / "bag"),
+                             "--connect", f"tcp/127.0.0.1:{free_tcp_port()}"], stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        waiting = ""
+        while "retrying until the router" not in waiting and time.monotonic() < deadline:
+            waiting += proc.stderr.readline()
+        assert "retrying until the router" in waiting, waiting
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert not (tmp_path / "bag").exists()
+
+
 def test_a_library_message_of_several_lines_is_joined_into_one(tmp_path):
     """A bag whose ``metadata.yaml`` is cut short: the YAML parser's message, with its caret display, had been
     printed as five lines."""

@@ -63,8 +63,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             fail(f"--ros2: {exc}")
         try:
             service = RecorderService(opts, sink, points=points)
-        except ValueError as exc:
-            sink.close()
+        except ValueError as exc:  # the bag is made with its first frame: there is none to close or remove
             fail(str(exc))
         service.log.info("recording a ROS 2 bag into %s", path)
         service.run_forever()

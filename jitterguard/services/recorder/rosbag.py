@@ -87,15 +87,27 @@ class Rosbag2Sink:
         self.store = typestore()
         self.builder = RosBuilder(self.store)
         self.points = points
-        self.writer = Writer(self.path, version=8, storage_plugin=StoragePlugin.MCAP)
-        self.writer.open()
+        self._new_writer = lambda: Writer(self.path, version=8, storage_plugin=StoragePlugin.MCAP)
+        self.writer: Any = None
+        self._closed = False
         self._conns: dict[str, Any] = {}
         self.counts: dict[str, int] = {}
+
+    def _open(self) -> None:
+        """The bag's folder is made with its first frame (or an empty bag at :meth:`close`), not at construction:
+        a recorder stopped while it waited for its router had left a folder holding a 0-byte MCAP and no
+        ``metadata.yaml`` — no bag any reader opens, and one the next run refused as existing."""
+        if self.writer is not None:
+            return
+        writer = self._new_writer()
+        writer.open()
         for topic, msgtype in ((TRACKING_TOPIC, TRACKED_OBJECTS), (DETECTIONS_TOPIC, DETECTED_OBJECTS),
-                               (TF_TOPIC, TF_MESSAGE), *(((POINTS_TOPIC, POINTCLOUD2),) if points else ())):
-            self._conns[topic] = self.writer.add_connection(topic, msgtype, typestore=self.store)
+                               (TF_TOPIC, TF_MESSAGE), *(((POINTS_TOPIC, POINTCLOUD2),) if self.points else ())):
+            self._conns[topic] = writer.add_connection(topic, msgtype, typestore=self.store)
+        self.writer = writer
 
     def _write(self, topic: str, stamp_ns: int, msg: Any) -> None:
+        self._open()
         conn = self._conns[topic]
         self.writer.write(conn, stamp_ns, bytes(self.store.serialize_cdr(msg, conn.msgtype)))
         self.counts[topic] = self.counts.get(topic, 0) + 1
@@ -113,6 +125,10 @@ class Rosbag2Sink:
         self._write(TRACKING_TOPIC, frame.objects.header.stamp, b.tracked_objects(frame.objects))
 
     def close(self) -> None:
-        if self.writer is not None:
-            self.writer.close()  # writes metadata.yaml
-            self.writer = None
+        """Close the bag (its ``metadata.yaml`` written); a run that wrote no frame leaves a valid empty bag."""
+        if self._closed:
+            return
+        self._closed = True
+        self._open()
+        self.writer.close()  # writes metadata.yaml
+        self.writer = None
