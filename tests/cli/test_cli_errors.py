@@ -375,6 +375,16 @@ def test_a_recorder_stopped_while_it_waits_for_its_router_leaves_no_bag(tmp_path
     assert not (tmp_path / "bag").exists()
 
 
+def test_a_checkpoint_that_is_none_is_refused_before_the_data_are_prepared(tmp_path):
+    """``train --resume`` over a damaged ``checkpoint.pt`` had cast every scan (minutes, cache folders in --out)
+    before it said so."""
+    (tmp_path / "checkpoint.pt").write_text("garbage")
+    res = run(["train", "--out", str(tmp_path), "--resume", "--scenarios", "parking-street", "--train-seeds", "0",
+               "--val-seeds", "1", "--frames-per-scenario", "1", "--batch-size", "1", "--epochs", "1", "--no-progress"])
+    assert res.returncode == 2 and "--resume: " in res.stderr and "not a loadable checkpoint" in res.stderr, res.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["checkpoint.pt"]
+
+
 def test_a_library_message_of_several_lines_is_joined_into_one(tmp_path):
     """A bag whose ``metadata.yaml`` is cut short: the YAML parser's message, with its caret display, had been
     printed as five lines."""

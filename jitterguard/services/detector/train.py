@@ -244,18 +244,26 @@ def _differences(name: str, saved: Any, now: Any) -> list[str]:
     return [] if saved == now else [f"{name}: checkpoint {saved!r}, this run {now!r}"]
 
 
-def _load_checkpoint(path: Path, model: nn.Module, opt: torch.optim.Optimizer, sched: Any, scaler: Any,
-                     tcfg: TrainConfig, world: int, meta: dict[str, Any] | None, device: torch.device) -> TrainState:
-    """Restore a checkpoint into ``model``/``opt``/``sched``/``scaler`` after checking that it belongs to this run:
-    the same model config, :data:`SCHEDULE_FIELDS`, number of processes and data/augmentation metadata.
-    Raises :class:`CheckpointError` (one line) before anything is loaded otherwise: a different schedule crashes
-    steps later (OneCycleLR's fixed length) or silently trains, and records, something neither run asked for."""
+def read_checkpoint(path: Path, device: torch.device | str = "cpu") -> dict[str, Any]:
+    """A training checkpoint's content, or :class:`CheckpointError` (one line) for a file that is none: what
+    ``train --resume`` checks before it prepares any data (a damaged ``checkpoint.pt`` had been refused only after
+    minutes of casting scans), and again, against the run's settings, when it resumes."""
     try:
         c = torch.load(str(path), map_location=device, weights_only=True)
     except Exception as exc:  # noqa: BLE001 - torch raises many types for a damaged file
         raise CheckpointError(f"{path}: not a loadable checkpoint ({load_refusal(exc)})") from None
     if not isinstance(c, dict) or c.get("format") not in (2, CHECKPOINT_FORMAT):
         raise CheckpointError(f"{path}: not a jitterguard training checkpoint (format {CHECKPOINT_FORMAT})")
+    return c
+
+
+def _load_checkpoint(path: Path, model: nn.Module, opt: torch.optim.Optimizer, sched: Any, scaler: Any,
+                     tcfg: TrainConfig, world: int, meta: dict[str, Any] | None, device: torch.device) -> TrainState:
+    """Restore a checkpoint into ``model``/``opt``/``sched``/``scaler`` after checking that it belongs to this run:
+    the same model config, :data:`SCHEDULE_FIELDS`, number of processes and data/augmentation metadata.
+    Raises :class:`CheckpointError` (one line) before anything is loaded otherwise: a different schedule crashes
+    steps later (OneCycleLR's fixed length) or silently trains, and records, something neither run asked for."""
+    c = read_checkpoint(path, device)
     diffs = _differences("config", c.get("config"), config_to_dict(model.config))  # type: ignore[arg-type]
     saved_tc = c.get("train_config") or {}
     diffs += [d for f in SCHEDULE_FIELDS for d in _differences(f"train_config.{f}", saved_tc.get(f), getattr(tcfg, f))]

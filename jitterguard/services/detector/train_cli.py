@@ -435,6 +435,13 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                                   lambda v: 0 <= v <= 100, "N", " and 0 ≤ N ≤ 100")
         if not resume:  # a resumed run reads its checkpoint, not --init, and writes the same weights.pt again
             check_not_overwritten("--init", init, out)
+        elif os.path.isfile(os.path.join(out, "checkpoint.pt")):  # before the data are prepared: minutes of work
+            from .train import CheckpointError, read_checkpoint
+
+            try:
+                read_checkpoint(Path(out) / "checkpoint.pt")
+            except CheckpointError as exc:
+                fail(f"--resume: {exc}")
         # after the flags are checked (bad input must not leave an empty run folder behind), before any work (a
         # run must not fail to write its result at the end)
         out_files("--out", out_dir("--out", out), ("weights.pt", "history.json", "checkpoint.pt"))
