@@ -112,6 +112,19 @@ def _plain_flags(command: object) -> None:
         _plain_flags(sub)
 
 
+def _command_path(command: Any, args: list[str]) -> str:
+    """``jitterguard bench classifier`` for the (sub)command words that lead ``args``: click gives a missing option
+    value's error no context to name its command by."""
+    words = ["jitterguard"]
+    for a in args:
+        sub = (getattr(command, "commands", None) or {}).get(a)
+        if sub is None:
+            break
+        words.append(a)
+        command = sub
+    return " ".join(words)
+
+
 def main(argv: list[str] | None = None) -> None:
     """Console entry point. Bad input (usage errors, bad values) exits 2 with one line on stderr."""
     try:  # typer >= 0.20 vendors click as typer._click; older typer uses click itself
@@ -130,9 +143,11 @@ def main(argv: list[str] | None = None) -> None:
         print(exc.ctx.get_help())
         sys.exit(0)
     except click_exc.UsageError as exc:
-        where = exc.ctx.command_path if exc.ctx is not None else "jitterguard"
-        msg = exc.format_message().replace("\n", " ")
-        print(f"{where}: error: {msg} (see --help)", file=sys.stderr)
+        # the prefix of every refusal (fail()'s), the command in the hint: click's own had been prefixed with the
+        # command path ("jitterguard eval: error:"), or not (a missing option value), beside fail()'s plain one
+        where = exc.ctx.command_path if exc.ctx is not None else _command_path(command, args)
+        msg = " ".join(exc.format_message().split())
+        print(f"jitterguard: error: {msg} (see {where} --help)", file=sys.stderr)
         sys.exit(2)
     except (KeyboardInterrupt, getattr(click_exc, "Abort", KeyboardInterrupt)):
         sys.exit(130)

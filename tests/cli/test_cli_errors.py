@@ -385,6 +385,20 @@ def test_a_checkpoint_that_is_none_is_refused_before_the_data_are_prepared(tmp_p
     assert sorted(p.name for p in tmp_path.iterdir()) == ["checkpoint.pt"]
 
 
+@pytest.mark.parametrize(("args", "line"), [
+    (["eval", "--bogus"], "jitterguard: error: No such option: --bogus"),
+    (["bench", "classifier", "--rate"], "jitterguard: error: Option '--rate' requires an argument."
+                                        " (see jitterguard bench classifier --help)"),
+    (["sim", "generate", "nosuch", "--out"], "jitterguard: error: Option '--out' requires an argument."
+                                             " (see jitterguard sim generate --help)"),
+])
+def test_the_parsers_own_refusals_have_the_prefix_of_every_other(args, line):
+    """click's errors had been prefixed with the command path (``jitterguard eval: error:``) — or not, for a
+    missing option value — while every refusal of jitterguard's own reads ``jitterguard: error:``."""
+    res = run(args)
+    assert res.returncode == 2 and res.stderr.count("\n") == 1 and res.stderr.startswith(line), res.stderr
+
+
 def test_a_library_message_of_several_lines_is_joined_into_one(tmp_path):
     """A bag whose ``metadata.yaml`` is cut short: the YAML parser's message, with its caret display, had been
     printed as five lines."""
