@@ -16,6 +16,7 @@ from typing import Annotated, Any, NoReturn
 
 import typer
 
+from .files import not_a_file
 from .runtime import ZenohOptions, build_config
 from .runtime.zenoh_config import ENV_CONFIG, ENV_NS, config_endpoints, tls_file_refusal
 
@@ -226,6 +227,8 @@ def out_file(flag: str, path: str | os.PathLike[str]) -> Path:
     """``path``'s folder created, ``path`` not a folder and a file there writable — tried by opening it, since a
     folder root may "write" into can still refuse a file (``/proc``) — before any work (one line and exit 2
     otherwise). A file the trial created is removed again."""
+    if not str(path).strip():  # Path("") is the current folder: ". is a folder" had named nothing given
+        fail(f"{flag}: empty path; give a file name")
     p = Path(path)
     if p.is_dir():
         fail(f"{flag}: {p} is a folder; give a file name")
@@ -311,8 +314,8 @@ def zenoh_options(ns: str, zenoh_config: str | None, connect: list[str] | None, 
         opts = ZenohOptions(ns=ns, config_file=zenoh_config, connect=tuple(connect or ()), listen=tuple(listen or ()))
     except ValueError as exc:
         fail(f"--ns: {exc}")
-    if zenoh_config and not os.path.isfile(zenoh_config):
-        fail(f"--zenoh-config: file not found: {zenoh_config}")
+    if zenoh_config and not_a_file(zenoh_config):
+        fail(f"--zenoh-config: {not_a_file(zenoh_config)}")
     check_endpoints([*opts.connect, *opts.listen])
     try:  # the whole config, now: a bad file, an exposed listener or a missing TLS file is a one-line error
         cfg = build_config(opts)  # before anything starts (the sidecar's open runs inside uvicorn's startup)

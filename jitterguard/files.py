@@ -10,6 +10,23 @@ from pathlib import Path
 from typing import Any
 
 
+def not_a_file(path: str | os.PathLike[str]) -> str | None:
+    """Why ``path`` is no file to read (``"file not found: P"``, ``"P is a folder, not a file"``), or None: a folder
+    given for a file had been told "file not found", which sends the user looking for a file that is not missing."""
+    p = Path(path)
+    if p.is_file():
+        return None
+    return f"{p} is a folder, not a file" if p.is_dir() else f"file not found: {p}"
+
+
+def not_a_folder(path: str | os.PathLike[str]) -> str | None:
+    """Why ``path`` is no folder to read (``"no such folder: P"``, ``"P is a file, not a folder"``), or None."""
+    p = Path(path)
+    if p.is_dir():
+        return None
+    return f"{p} is a file, not a folder" if p.exists() else f"no such folder: {p}"
+
+
 def write_atomically(path: str | os.PathLike[str], data: bytes, *, durable: bool = True) -> None:
     """Replace ``path`` with ``data`` so that a reader, or the file after a crash, is the old content or the new,
     never part of either: a temporary file in the same directory, renamed over the old one. ``durable`` also

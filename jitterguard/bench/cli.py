@@ -372,7 +372,7 @@ def bench_sim_cmd(
     """Ray-casting throughput (full scans/s on one core) and replay at --rate max of 35k-point scans, as JSON:
     ``{"raycast": {"sensor", "rays", "objects", "scans_per_s", ...}, "replay": {"points_per_scan",
     "scans_per_s", "dropped", ...}}``."""
-    check_scenario_options(scenario, 10.0, 10.0, lidar)
+    check_scenario_options(scenario, 10.0, 10.0, lidar, flag="--scenario")
     if scans < 1 or objects < 0 or repeat < 1 or replay_scans < 0:
         fail("--scans and --repeat must be >= 1, --objects and --replay-scans >= 0")
     from .sim import bench_raycast

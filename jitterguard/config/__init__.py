@@ -107,9 +107,9 @@ def read_params(path: str | Path) -> dict[str, Any]:
 
 
 def preset_values(service: str, name: str) -> dict[str, Any]:
-    """The keys a shipped preset sets (ConfigError naming the choices if there is no such preset)."""
+    """The keys a shipped preset sets (ConfigError naming the flag and the choices if there is no such preset)."""
     if name not in presets(service):
-        raise ConfigError(f"unknown {service} preset {name!r}; expected one of {', '.join(presets(service))}")
+        raise ConfigError(f"--preset: unknown {service} preset {name!r}; expected one of {', '.join(presets(service))}")
     return read_params(param_file(service, name))
 
 
@@ -139,8 +139,14 @@ def load(model: type[M], path: str | Path | None = None, *, service: str | None 
         if loc and loc[0] in given:  # a flag's value: name the flag
             flag = (flags or {}).get(str(loc[0]), "--" + str(loc[0]).replace("_", "-"))
             raise ConfigError(f"{flag}: {msg}") from None
-        where = [w for w in (origin, ".".join(str(p) for p in loc)) if w]  # a rule across fields has no loc
+        # a rule across fields has no loc; pydantic's own steps (constrained-float, function-after[…]) are no field
+        where = [w for w in (origin, ".".join(str(p) for p in loc if not _SCHEMA_STEP.match(str(p)))) if w]
         raise ConfigError(": ".join([*where, msg])) from None
+
+
+_SCHEMA_STEP = re.compile(r"^(constrained-\w+|[\w-]+\[.*\])$")
+"""A ``loc`` element that names a step of pydantic's validator (``constrained-float`` of an optional bounded float,
+``function-after[…]``), not a field: it had been shown as part of the key (``sensor_height_m.constrained-float``)."""
 
 
 def _map_defaults(model: type[BaseModel]) -> dict[str, dict[str, Any]]:

@@ -116,7 +116,7 @@ def refuse_foreign_file(out: Path) -> None:
 def calibrate_command(
     recording: Annotated[str, typer.Argument(help="Any replay source: synthetic:SCENARIO, a nuScenes dataroot, a "
                                              "bag, a folder of .bin or .pcd scans.")],
-    out: Annotated[Path, typer.Option("--out", help="The calibration file to write (YAML).")],
+    out: Annotated[str, typer.Option("--out", help="The calibration file to write (YAML).")],
     weights: Annotated[Path | None, typer.Option("--weights", help="Detector weights for scan sources (default: the "
                                                  "shipped lite weights).")] = None,
     threads: Annotated[int | None, typer.Option("--threads", min=1, max=1024, help="torch CPU threads of the "
@@ -144,8 +144,10 @@ def calibrate_command(
                                                   "stderr is a terminal).")] = None,
 ) -> None:
     """Fit the classifier's variance calibration from a recording (no labels); write it for calibration: file."""
-    out_file("--out", out)  # before the pass over the recording, not after it
-    refuse_foreign_file(out)
+    if not recording.strip():  # Path("") is the current folder: ".: cannot tell what this folder is" named nothing
+        fail("RECORDING: empty path; give a recording")
+    out_path = out_file("--out", out)  # before the pass over the recording, not after it (a str: Path("") is ".")
+    refuse_foreign_file(out_path)
     from ..services.classifier.calibration_file import write_calibration
     from ..services.replay.frames import SourceError
     from ..services.replay.sources import SourceOptions, open_source
@@ -222,8 +224,8 @@ def calibrate_command(
               " this little evidence can be far off: use a longer recording", file=sys.stderr)
     source = {"recording": recording, "frames": seen["frames"], "observations": seen["observations"],
               "blocks": seen["blocks"], "blocks_fast": seen["blocks_fast"], "unreadable_frames": len(errors)}
-    write_calibration(out, cal.model(), window=cal.window, source=source)  # a slow recording's shorter window
-    print(f"wrote {out}: {seen['blocks']} blocks from {seen['frames']} frames"
+    write_calibration(out_path, cal.model(), window=cal.window, source=source)  # a slow recording's shorter window
+    print(f"wrote {out_path}: {seen['blocks']} blocks from {seen['frames']} frames"
           + (f" ({len(errors)} unreadable frames skipped)" if errors else ""))
 
 

@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from ..files import not_a_folder
 from ..geometry import yaw_from_quaternion
 from ..schemas.models import Label
 from ..sim.world import GroundTruthFrame
@@ -108,8 +109,8 @@ def nuscenes_scene_names(dataroot: Path, scene: str | None, version: str | None 
     from ..services.replay.frames import SourceError
     from ..services.replay.sources.nuscenes import consistent_tables, find_version, select_scenes
 
-    if not Path(dataroot).is_dir():
-        raise NuScenesError(f"{dataroot}: no such folder")
+    if not_a_folder(dataroot):
+        raise NuScenesError(str(not_a_folder(dataroot)))
     try:
         folder = Path(dataroot) / find_version(Path(dataroot), version)
         table = _table(folder, "scene", tables)

@@ -80,11 +80,27 @@ def _load(opts: ZenohOptions) -> tuple[zenoh.Config, bool]:
         return zenoh.Config(), False
     p = Path(path)
     if not p.is_file():
-        raise ValueError(f"zenoh config file not found: {path}")
+        raise ValueError(f"zenoh config file not found: {path}" if not p.is_dir() else f"zenoh config {path} is a"
+                         " folder, not a file")
+    if _first_token(p) not in ("{", None):  # zenoh reads a list's first item as the config's id: "expected An hex…"
+        raise ValueError(f"zenoh config {path}: expected an object {{…}} at the top level")
     try:
         return zenoh.Config.from_file(str(p)), True
     except Exception as exc:  # zenoh raises ZError with the parser's message
         raise ValueError(f"zenoh config {path}: {parser_message(str(exc))}") from None
+
+
+def _first_token(path: Path) -> str | None:
+    """The first character of a JSON5 / JSON / YAML file's content past comments and blanks (None: unreadable or
+    none): ``{`` for a config object. YAML files (``.yaml``/``.yml``) are not judged by it."""
+    if path.suffix in (".yaml", ".yml"):
+        return None
+    try:
+        text = path.read_text(encoding="utf-8", errors="replace")
+    except OSError:
+        return None
+    text = re.sub(r"/\*.*?\*/|//[^\n]*", "", text, flags=re.S).lstrip()
+    return text[0] if text else None
 
 
 def parser_message(text: str) -> str:

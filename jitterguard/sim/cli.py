@@ -29,13 +29,16 @@ DurationOpt = Annotated[float, typer.Option("--duration", help="Seconds (10–60
 LidarOpt = Annotated[str, typer.Option("--lidar", help="hdl32e, vlp16 or os1-64.")]
 
 
-def check_scenario_options(scenario: str, duration: float, rate: float, lidar: str | None = None, seed: int = 0) -> None:
+def check_scenario_options(scenario: str, duration: float, rate: float, lidar: str | None = None, seed: int = 0,
+                           flag: str = "SCENARIO") -> None:
+    """Refuse (one line, exit 2) a scenario, duration, rate, LiDAR or seed the world cannot make; ``flag``: what the
+    scenario came as (the argument, or ``--scenario`` of the benches, which it had not named)."""
     from .sensors import SENSORS
     from .world import SCENARIO_NAMES
 
     check_seed("--seed", seed)
     if scenario not in SCENARIO_NAMES:
-        fail(f"unknown scenario {scenario!r} (have: {', '.join(SCENARIO_NAMES)})")
+        fail(f"{flag}: unknown scenario {scenario!r} (have: {', '.join(SCENARIO_NAMES)})")
     if not 0 < duration <= 600:
         fail("--duration must be in (0, 600] seconds")
     if not 0 < rate <= 100:

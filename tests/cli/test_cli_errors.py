@@ -309,11 +309,22 @@ def test_a_folder_where_an_output_file_goes_is_refused_before_any_work(args, blo
     (["classifier", "--config", "", "--connect", "tcp/127.0.0.1:9"], "--config: empty path; give a file"),
     (["detector", "--config", "", "--connect", "tcp/127.0.0.1:9"], "--config: empty path; give a file"),
     (["tracker", "--config", "", "--print-config"], "--config: empty path; give a file"),
+    # what is there, not what is missing: a folder for a file had been "file not found", a file for a folder "no such
+    # folder"; an empty path "." (the current folder); a bad value its flag's, not another's (probe, 7 Dec)
+    (["detector", "--weights", "{tmp}", "--connect", "tcp/127.0.0.1:9"], "--weights: {tmp} is a folder, not a file"),
+    (["tracker", "--zenoh-config", "{tmp}"], "--zenoh-config: {tmp} is a folder, not a file"),
+    (["eval", "--out", "{tmp}/ev", "--nuscenes", __file__], f"--nuscenes: {__file__} is a file, not a folder"),
+    (["calibrate", "synthetic:parking-street", "--out", ""], "--out: empty path; give a file name"),
+    (["calibrate", "", "--out", "{tmp}/c.yaml"], "RECORDING: empty path"),
+    (["sidecar", "--host", ""], "--host: empty; give an address"),
+    (["bench", "sim", "--scenario", "nosuch"], "--scenario: unknown scenario 'nosuch'"),
+    (["classifier", "--preset", "nosuch"], "--preset: unknown classifier preset 'nosuch'"),
 ])
 def test_bad_input_is_refused_in_one_line_before_any_work(args, needle, tmp_path):
     cwd = tmp_path / "cwd"  # an empty --out that regressed to "the current folder" writes here, not into the repo
     cwd.mkdir()
     res = run([a.replace("{tmp}", str(tmp_path)) for a in args], cwd=cwd)
+    needle = needle.replace("{tmp}", str(tmp_path))
     assert res.returncode == 2 and res.stderr.count("\n") == 1 and needle in res.stderr, res.stderr
     assert not (tmp_path / "ev").exists() and not (tmp_path / "supervisord.conf").exists()
     assert not any(cwd.iterdir())

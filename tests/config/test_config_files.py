@@ -128,6 +128,14 @@ def test_a_value_yaml_parses_but_python_cannot_hold_is_a_config_error(tmp_path, 
         read_params(p)
 
 
+def test_a_bad_value_of_an_optional_bounded_field_is_named_by_its_key_alone(tmp_path) -> None:
+    """pydantic's step of an optional bounded float had been shown as part of the key (sensor_height_m.constrained-float)."""
+    p = tmp_path / "d.yaml"
+    p.write_text("sensor_height_m: .nan\n")
+    with pytest.raises(ConfigError, match=r"d.yaml: sensor_height_m: Input should be a finite number$"):
+        load(DetectorParams, p)
+
+
 def test_a_file_is_read_strictly_keys_once_limits_typed_and_scalars_as_yaml_1_2(tmp_path) -> None:
     """A key given twice had let the last one win; `limits:`/`stream:` took `true` as 1 and "5" as 5; the docs'
     own `variance_floor: 1e-4` was refused as a string and `calibration: off` read as False."""

@@ -157,6 +157,14 @@ def test_a_config_file_zenoh_cannot_parse_is_refused_in_one_line_naming_where(tm
     assert said.startswith("zenoh config ") and "line 1, column 11: expected" in said, said
 
 
+@pytest.mark.parametrize("text", ["[1, 2]", "// a comment\n/* and another */ [\"peer\"]", "\"router\""])
+def test_a_config_file_that_is_no_object_is_refused_as_such(tmp_path: Path, text: str) -> None:
+    """A list at the top level had been read as the config's id: "expected An hex string of 1-16 bytes"."""
+    with pytest.raises(ValueError, match=r"expected an object \{…\} at the top level"):
+        build_config(ZenohOptions(config_file=_file(tmp_path, text)))
+    build_config(ZenohOptions(config_file=_file(tmp_path, "// fine\n{mode: 'client'}")))  # JSON5 with a comment
+
+
 def test_a_router_file_that_names_no_listener_listens_on_loopback(tmp_path: Path) -> None:
     """A router config file without ``listen`` (``{}``, or one with only ``connect``): Zenoh fills in its own
     default, ``tcp/[::]:7447``, which had been taken as the file's choice and refused as off loopback. The router's

@@ -31,8 +31,8 @@ def _load_config(path: str | None, preset: str | None, overrides: dict[str, obje
     try:
         return load(ClassifierParams, path, service="classifier", preset=preset, overrides=overrides,
                     flags={"alpha_default": "--alpha"})
-    except ConfigError as exc:
-        fail(f"--config: {exc}" if path is not None else str(exc))
+    except ConfigError as exc:  # the file's, or the preset's (its message names --preset)
+        fail(f"--config: {exc}" if path is not None and not str(exc).startswith("--preset:") else str(exc))
 
 
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:

@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from ...files import not_a_folder
 from ..replay.frames import SourceError
 from ..replay.sources.kitti import read_bin
 from ..replay.sources.nuscenes import _load_table, consistent_tables, find_version, turn_points, vehicle_axes
@@ -192,8 +193,8 @@ class NuScenesKeyframes(LazySamples):
         self.root = Path(dataroot)
         self.sweeps, self.min_sweep_range_m = int(sweeps), float(min_sweep_range_m)
         root = self.root
-        if not root.is_dir():
-            raise SourceError(f"{root}: no such folder")
+        if not_a_folder(root):
+            raise SourceError(str(not_a_folder(root)))
         self.version = find_version(root, version)
         folder = root / self.version
         t = {n: _load_table(folder, n) for n in ("scene", "sample", "sample_data", "ego_pose", "calibrated_sensor",

@@ -78,6 +78,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         port_n = _parse_port(port)
         poll_s = parse_float("--poll-ms", poll_ms, 5.0, 10_000.0) / 1e3
         token = SidecarSettings.token_from_env()
+        if not host.strip():  # had been refused as a bind to every address without JG_API_TOKEN
+            fail("--host: empty; give an address to bind (127.0.0.1: loopback only)")
         reason = bind_refusal(host, token)
         if reason:
             fail(reason)

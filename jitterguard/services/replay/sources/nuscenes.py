@@ -28,6 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ....geometry import rotation_from_quaternion
+from ....files import not_a_folder
 from ..frames import EgoPose, FrameError, Item, ScanFrame, SourceError, SourceInfo, compose, finite_rows
 from .base import Source
 from .kitti import NUSCENES_FIELDS, read_bin
@@ -149,8 +150,8 @@ class NuScenesSource(Source):
         sweeps: bool = False,
     ) -> None:
         dataroot = Path(dataroot)
-        if not dataroot.is_dir():
-            raise SourceError(f"{dataroot}: no such folder")
+        if not_a_folder(dataroot):
+            raise SourceError(str(not_a_folder(dataroot)))
         self.dataroot = dataroot
         self.version = find_version(dataroot, version)
         folder = dataroot / self.version
