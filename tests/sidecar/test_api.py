@@ -302,12 +302,30 @@ def test_query_parameters_a_route_does_not_take_or_gives_twice_are_a_422_naming_
                                          "extra_forbidden"),
                                         # the health routes, /metrics and the page too (they had answered 200)
                                         *((p, [("x", "1")], "x", "extra_forbidden")
-                                          for p in ("/healthz", "/readyz", "/metrics", "/"))):
+                                          for p in ("/healthz", "/readyz", "/metrics", "/", "/openapi.json"))):
             r = c.get(path, params=params)
             assert r.status_code == 422, (path, params, r.text)
             assert [(d["loc"], d["type"]) for d in r.json()["detail"]] == [(["query", loc], kind)], r.text
         assert c.get("/v1/state", params={"state": "dynamic", "class": "car"}).status_code == 200
         assert c.get("/", params={"view": "-40,-40,40,40", "refresh": "100", "track": "ab" * 16}).status_code == 200
+
+
+def test_a_path_with_a_trailing_slash_is_no_route_and_an_encoded_write_is_refused(stack: Stack) -> None:
+    """``/v1/state/`` had been a 307 to ``/v1/state`` — a write too (``POST /v1/config/preset/paper/``), which a
+    client following it re-sends elsewhere; and a body sent with ``Content-Encoding: gzip`` had been read as plain
+    JSON and applied. Now a 404, and a 415 that applies nothing."""
+    with stack.http() as c:
+        before = c.get("/v1/config").json()
+        for method, path in (("GET", "/v1/state/"), ("GET", "/v1/config/"), ("POST", "/v1/config/preset/paper/")):
+            r = c.request(method, path)
+            assert r.status_code == 404 and "location" not in r.headers, (method, path, r.status_code)
+        r = c.patch("/v1/config", content=b'{"alpha_default": 0.5}',
+                    headers={"Content-Type": "application/json", "Content-Encoding": "gzip"})
+        assert r.status_code == 415 and "Content-Encoding" in r.json()["detail"], r.text
+        r = c.patch("/v1/config", content=b'{"alpha_default": 0.5}',
+                    headers={"Content-Type": "application/json", "Content-Encoding": "identity"})
+        assert r.status_code == 200
+        assert c.put("/v1/config", json=before).status_code == 200
 
 
 def test_a_preset_takes_no_body_and_applies_nothing_when_one_is_sent(stack: Stack) -> None:
@@ -756,6 +774,10 @@ def test_a_write_without_the_token_is_refused_before_its_body_is_read(stack: Sta
     ("PATCH", {"calibration": "file", "calibration_file": "/nonexistent/calibration.yaml"}, "calibration_file"),
     # a path no file system can hold (schemathesis found it: a NUL byte, a lone surrogate): the same 422
     ("PATCH", {"calibration": "file", "calibration_file": "cal\u0000\udbf1.yaml"}, "calibration_file"),
+    # a key that is no Unicode text: named by its escape (pydantic had named only "body")
+    ("PATCH", {"\ud800": 1}, "\\ud800"),
+    ("PUT", {"alpha_default": 2.0, "\udbff": 1}, "\\udbff"),
+    ("PATCH", {"alpha_per_class": {"\ud800": 2.0}}, "alpha_per_class"),
     ("PUT", {"window_size": 4, "min_window": 5}, "min_window"),
     ("PUT", {"variance_floor": 0}, "variance_floor"),
 ])

@@ -30,7 +30,7 @@ from .core import ConfigError, jsonable_errors
 from .events import MAX_STREAMS, EventBroker
 from .guard import MAX_BODY_BYTES, HostPolicy, RequestGuard
 from .metrics import SidecarMetrics
-from .routes import ROUTERS, SidecarContext
+from .routes import NO_QUERY, ROUTERS, SidecarContext
 
 
 @dataclass(frozen=True)
@@ -111,10 +111,19 @@ def create_app(settings: SidecarSettings, *, stopping: threading.Event | None = 
         # (vehicle networks are often offline). The schema itself stays at /openapi.json.
         docs_url=None,
         redoc_url=None,
+        openapi_url=None,  # served below as every route is: a query parameter it does not take is a 422
+        # /v1/state/ is no route: a 404, not a 307 to /v1/state (a client that follows it re-sends a write to
+        # another path; one that does not gets nothing it asked for)
+        redirect_slashes=False,
     )
     app.state.sidecar = ctx
     for router in ROUTERS:
         app.include_router(router)
+
+    @app.get("/openapi.json", include_in_schema=False, dependencies=NO_QUERY)
+    async def openapi_schema() -> JSONResponse:
+        return JSONResponse(app.openapi())
+
     for exc_type, handler in _HANDLERS.items():
         app.add_exception_handler(exc_type, handler)
     if settings.cors_origins:

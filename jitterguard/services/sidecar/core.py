@@ -505,6 +505,8 @@ def parse_json_body(body: bytes) -> Any:
 
     - an integer literal longer than :data:`MAX_JSON_INT_DIGITS` digits is a 422 naming its field (Python's own
       parser raises for over 4300 digits, which FastAPI answered with a 400 naming nothing);
+    - a key that is no Unicode text (a lone surrogate escape, ``{"\\ud800": 1}``) is a 422 naming it by its escape
+      (pydantic had named only ``body``, or shown the key as three U+FFFD inside a per-class map);
     - a key given twice in one object is a 422 naming it: JSON leaves open which one counts (Python keeps the
       last, a proxy or a log reader may see the first), as the wire codec refuses a repeated msgpack key;
     - text that is not UTF-8 and nesting beyond what the parser can recurse into are a 400 saying so (they had
@@ -531,6 +533,10 @@ def parse_json_body(body: bytes) -> Any:
             errors.append({"type": "duplicate_key", "loc": ["body", *loc],
                            "msg": "Key given more than once in one JSON object", "input": None})
         elif isinstance(value, dict):
+            for k in value:
+                if isinstance(k, str) and _utf8(k) != k:  # a lone surrogate: pydantic had named only ["body"]
+                    errors.append({"type": "string_unicode", "loc": ["body", *loc, _utf8(k)],
+                                   "msg": "Key is not valid Unicode (a lone surrogate escape)", "input": _utf8(k)})
             stack.extend(((*loc, k), v) for k, v in reversed(value.items()))
         elif isinstance(value, list):
             stack.extend(((*loc, i), v) for i, v in reversed(list(enumerate(value))))

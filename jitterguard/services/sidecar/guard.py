@@ -14,6 +14,8 @@ Why each rule (all reproduced against an unguarded sidecar, issue 18):
   ``+json`` type such as ``application/merge-patch+json``); browsers cannot send that cross-site without a CORS
   preflight, which the sidecar does not grant unless told to. A bodyless write (``POST .../preset/NAME``) may
   omit the header: a browser always sends ``Origin`` with it, so the Origin rule covers it.
+- Encoded writes (415): a ``Content-Encoding`` other than ``identity`` is refused; the body had been read as if
+  it were not encoded.
 - Bodies over 64 KB (413): refused from ``Content-Length`` before reading a byte, and a chunked body is cut off
   at the cap (a 33 MB body used to take 4.5 GB and block ``/healthz`` for 35 s).
 
@@ -123,6 +125,9 @@ def refusal(method: str, headers: dict[str, str], policy: HostPolicy, max_body: 
     has_body = (length is not None and length.strip() != "0") or "transfer-encoding" in headers
     if (content_type is not None or has_body) and not is_json_type(content_type):
         return 415, "writes must be sent with Content-Type: application/json"
+    encoding = headers.get("content-encoding", "identity").strip().lower()
+    if encoding not in ("", "identity"):  # a gzip body had been read as plain JSON (applied if it happened to parse)
+        return 415, f"Content-Encoding {encoding!r} is not taken; send the JSON body as it is"
     return None
 
 
@@ -136,7 +141,7 @@ def _origin_allowed(origin: str, host_header: str | None, policy: HostPolicy) ->
 
 
 SINGLE_HEADERS = ("host", "content-length", "transfer-encoding", "content-type", "origin", "sec-fetch-site",
-                  "authorization")
+                  "authorization", "content-encoding")
 """Headers the guard or a route reads one value of. Given twice, the guard (reading the last) and FastAPI (reading
 the first) had judged different values: a write sent with ``Content-Type: text/plain`` then ``application/json``
 passed the guard's 415 and met the app as text."""
