@@ -116,6 +116,62 @@ def test_real_process_serves_and_stops_on_sigterm() -> None:
 
 
 @pytest.mark.integration
+def test_a_sidecar_paused_itself_does_not_blame_the_classifier() -> None:
+    """SIGSTOP of the sidecar alone for 6 s: on resume its event stream had said ``ready: false`` — "classifier
+    heartbeat is 6.1 s old" — then true again, blaming a classifier that had beaten every second. The pause is the
+    sidecar's own (a turn of its poll loop took seconds too long); the ages it judges by move on with it."""
+    import threading
+    import time
+
+    from jitterguard.services.sidecar.client import own_pause
+
+    assert own_pause(0.0, 1.5, 1.05) == 0.0 and own_pause(0.0, 7.05, 1.05) == pytest.approx(6.0)
+    zport = free_tcp_port()
+    classifier = ClassifierService(loopback_options("sc-pause", zport, listen_self=True),
+                                   config_writes=ConfigWritePolicy.open())
+    port = free_tcp_port()
+    env = {k: v for k, v in os.environ.items() if k != "JG_API_TOKEN"}
+    proc = subprocess.Popen([sys.executable, "-m", "jitterguard.cli", "sidecar", "--ns", "sc-pause", "--port",
+                             str(port), "--connect", f"tcp/127.0.0.1:{zport}"], env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    url = f"http://127.0.0.1:{port}"
+    readiness: list[dict] = []
+    try:
+        def ready() -> bool:
+            try:
+                return httpx.get(f"{url}/readyz", timeout=2).status_code == 200
+            except httpx.HTTPError:
+                return False
+        wait_for(ready, "the sidecar process to see the classifier", timeout=60)
+        with httpx.Client(timeout=30) as sse, sse.stream("GET", f"{url}/v1/events") as events:
+            def read() -> None:
+                kind = None
+                try:
+                    for line in events.iter_lines():
+                        if line.startswith("event: "):
+                            kind = line[7:]
+                        elif line.startswith("data: ") and kind == "ready":
+                            readiness.append(json.loads(line[6:]))
+                except httpx.HTTPError:
+                    pass
+            reader = threading.Thread(target=read, daemon=True)
+            reader.start()
+            time.sleep(1.0)
+            proc.send_signal(signal.SIGSTOP)
+            time.sleep(6.0)
+            proc.send_signal(signal.SIGCONT)
+            time.sleep(4.0)
+            assert ready()
+        assert not [r for r in readiness if not r["ready"]], readiness
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGCONT)
+            proc.kill()
+            proc.wait()
+        classifier.close()
+
+
+@pytest.mark.integration
 def test_a_request_that_never_arrives_whole_is_cut_off() -> None:
     """uvicorn had held a connection that sent nothing, or a header line every few seconds, or a body a byte at a
     time, for ever: 20,000 of them (the process's file limit) left the sidecar unable to accept a connection, its

@@ -50,6 +50,16 @@ MAX_TOKENS = 4 * MAX_SERVICES
 """Liveliness tokens kept by name: the pipeline's stages and sources always, others while fewer are held (a flood of
 made-up tokens had grown this set, and every readiness check's copy of it, without bound)."""
 Listener = Callable[[str, dict[str, Any]], None]
+PAUSE_MARGIN_S = 1.0
+"""How much longer than a poll turn (its period plus a state query's timeout) the gap between two turns must be to
+count as this process's own pause."""
+
+
+def own_pause(last_top: float, top: float, turn_s: float) -> float:
+    """Seconds this process stood still between two turns of a loop that takes at most ``turn_s`` (0 if none): far
+    longer than a turn, it was stopped (SIGSTOP, a debugger, a host that slept), not slow."""
+    gap = top - last_top - turn_s
+    return gap if gap > PAUSE_MARGIN_S else 0.0
 
 
 class ClassifierUnavailable(RuntimeError):
@@ -339,9 +349,14 @@ class ClassifierClient(Service):
                 self.log.exception("event listener failed")
 
     def _poll_loop(self) -> None:
-        next_t = time.monotonic()
+        next_t = last_top = time.monotonic()
         was_ready: bool | None = None
         while not self.stop_event.is_set():
+            top = time.monotonic()
+            paused = own_pause(last_top, top, self.poll_period_s + self.state_timeout_s)
+            if paused > 0:
+                self._shift_clocks(paused, top)
+            last_top = top
             ready = self.readiness()
             if ready["ready"] != was_ready:
                 was_ready = ready["ready"]
@@ -358,6 +373,30 @@ class ClassifierClient(Service):
             if delay < 0:  # fell behind (a slow reply): start afresh rather than burst
                 next_t, delay = time.monotonic(), 0.0
             self.stop_event.wait(delay)
+
+    def _shift_clocks(self, by: float, now: float) -> None:
+        """Move every time this client judges ages by ``by`` seconds later (never past ``now``): this process was
+        paused that long, and the heartbeats, frames and polls it could not take meanwhile are not the others'
+        silence. After an 8 s SIGSTOP of the sidecar alone, its event streams had said ``ready: false`` —
+        "classifier heartbeat is 8.1 s old" — blaming the classifier (the stack's monitor does the same for its own
+        pauses). A time taken after the pause (a heartbeat heard on resume) stays at most ``now``."""
+        def later(t: float) -> float:
+            return max(t, min(t + by, now))
+
+        with self._lock:
+            if self._hb_at is not None:
+                self._hb_at = later(self._hb_at)
+            if self._answered_at is not None:
+                self._answered_at = later(self._answered_at)
+            if self._frames_at is not None:
+                self._frames_at = (self._frames_at[0], later(self._frames_at[1]))
+            self._beats = {n: (hb, later(at)) for n, (hb, at) in self._beats.items()}
+            self._sources_left = {n: later(t) for n, t in self._sources_left.items()}
+            self._sources_moved = {n: (seq, later(t)) for n, (seq, t) in self._sources_moved.items()}
+            for history in self._refused.values():
+                shifted = [(later(t), counts) for t, counts in history]
+                history.clear()
+                history.extend(shifted)
 
     def poll_once(self) -> RenderedState | None:
         """Fetch ``classifier/state`` once; render and publish it if it changed. Returns what is cached."""
