@@ -271,8 +271,9 @@ def eval_command(
 def _stale_frames(out: Path) -> list[Path]:
     """An earlier run's recorded frames in ``out`` (and a killed run's unfinished ones): beside this run's
     metrics.json they would look like its own (they had stayed, unannounced, matching nothing the new report
-    scored), so :func:`evaluate` removes them — once its input is loaded and checked, not before: a run refused
-    for its input (``--runs`` with several scenes, a broken annotation table) had deleted them and written nothing."""
+    scored), so :func:`evaluate` removes them — once its own report is written, not before: a run refused for its
+    input (``--runs`` with several scenes, a broken annotation table, a scan missing from the dataroot) had deleted
+    them and written nothing."""
     return sorted(out.glob("run-*.mcap")) + sorted(out.glob(f"run-*.mcap{PARTIAL}"))
 
 
@@ -457,9 +458,6 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
         source = f"scenario {scenario} seed {seed} ({duration:g} s @ {rate:g} Hz)"
         total = len(sc)
 
-    for stale in _stale_frames(Path(out)):  # the input is good: this run's report and frames replace the last's
-        if not stale.is_dir():
-            stale.unlink()
     seen = weights_saw_scored_data(detector.meta, nuscenes, [n for n, _ in scenes]) if detector is not None else None
     if seen is not None:  # before the run: said where it is seen, not only in metrics.json
         warn_seen(seen, nuscenes)
@@ -498,7 +496,12 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
             sink.close()
 
     def named(written: dict[str, Any]) -> dict[str, Any]:
-        """``written`` (metrics.json's content, written) passed on, each run's recording now under its name."""
+        """``written`` (metrics.json's content, written) passed on, each run's recording now under its name and
+        an earlier run's gone (:func:`_stale_frames`)."""
+        ours = {p for pair in recorded for p in pair}
+        for stale in _stale_frames(Path(out)):
+            if stale not in ours and not stale.is_dir():
+                stale.unlink()
         for partial, final in recorded:
             partial.replace(final)
         return written
