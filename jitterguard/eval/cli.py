@@ -596,7 +596,9 @@ def evaluate(out: Path, *, scenario: str | None, seed: int, noise: str | None, n
         "alpha_from_labels": {g: alpha_from_labels(rec, g) for g in REPORT_GROUPS},
     }
     metrics["alpha_from_labels_preset"] = labels_preset(metrics["alpha_from_labels"])
-    metrics["run"]["no_decision"] = no_decision(len(rec), total, classifier, tracker)
+    # decided rows: a run whose every row was still undecided (windows shorter than min_window) decided nothing
+    metrics["run"]["no_decision"] = no_decision(int((rec.window >= rec.min_window).sum()), total,
+                                                classifier, tracker)
     if detector is None:
         return named(write_outputs(out, rec, metrics))
     from .detector_input import detection_metrics

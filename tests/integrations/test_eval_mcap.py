@@ -164,6 +164,23 @@ def test_a_run_too_short_to_decide_anything_records_its_channels_and_says_nothin
     assert summary.statistics.message_count == 0  # channels to bind to, no made-up frames
 
 
+def test_a_run_whose_rows_are_all_undecided_says_nothing_was_decided_and_reports_no_latency(tmp_path: Path) -> None:
+    """Three frames: tracks confirmed and observed, none for min_window frames, so every row is undecided. The run
+    had not said it decided nothing (``no_decision`` null: rows existed), and every group read "never correct" by
+    the z-test (1.0) and 0 s by the speed rule, from rows no rate scores."""
+    out = tmp_path / "ev"
+    res = subprocess.run([sys.executable, "-m", "jitterguard.cli", "eval", "--duration", "0.3", "--out", str(out),
+                          "--json"], capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-2000:]
+    metrics = json.loads(res.stdout)
+    assert metrics["run"]["rows"] > 0  # the case: rows, none of them decided
+    assert "no track was decided" in (metrics["run"]["no_decision"] or "")
+    assert "No decision was made" in (out / "report.md").read_text()
+    for group in ("vehicle", "pedestrian"):
+        m = metrics["motion"][group]
+        assert m["never_correct_fraction_z"] is None and m["time_to_first_correct_s_median_speed"] is None, m
+
+
 def _fsize_capped(limit: int):
     """A child whose files cannot grow past ``limit`` bytes (RLIMIT_FSIZE; Python ignores SIGXFSZ, so a write past
     it fails with EFBIG): a disk that fills while a picture is written."""
