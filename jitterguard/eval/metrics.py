@@ -155,14 +155,21 @@ class TrackBootstrap:
         return _interval(r)
 
     def ap(self, mask: NDArray[np.bool_], score: NDArray[np.float64], positive: NDArray[np.bool_]) -> list[float] | None:
-        """Interval of the AP of ``score`` for ``positive`` on the rows in ``mask`` (None if undefined)."""
+        """Interval of the AP of ``score`` for ``positive`` on the rows in ``mask`` (None if undefined). Where every
+        resample gives the same AP (a few tracks, perfectly ranked), the bootstrap says nothing of how far it may be:
+        an AP of 1 gets the exact lower bound with the tracks as trials, as a rate of 1 does (``[1, 1]`` from 3
+        tracks had claimed certainty), any other such AP none."""
         if not mask.any() or positive[mask].all() or not positive[mask].any():
             return None
         w = self.rows(mask)
         s, p = score[mask], positive[mask]
-        vals = [weighted_average_precision(s, p, wb) for wb in w]
-        vals = [v for v in vals if not math.isnan(v)]
-        return _interval(np.asarray(vals)) if vals else None
+        vals = np.asarray([v for v in (weighted_average_precision(s, p, wb) for wb in w) if not math.isnan(v)])
+        if len(vals) == 0:
+            return None
+        if vals.min() == vals.max():
+            tracks = len(np.unique(self.inverse[mask]))
+            return [round(0.05 ** (1.0 / tracks), 6), 1.0] if vals[0] == 1.0 else None
+        return _interval(vals)
 
 
 def _interval(values: NDArray[np.float64]) -> list[float] | None:

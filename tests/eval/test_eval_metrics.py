@@ -260,7 +260,18 @@ def test_a_bootstrap_resample_without_a_static_row_has_no_ap() -> None:
     assert math.isnan(weighted_average_precision(z, dyn, np.r_[np.zeros(5), np.ones(5)]))
     m = group_metrics(_records(z=z, gt_dynamic=dyn, track_id=np.array(["s"] * 5 + ["d"] * 5)), "vehicle",
                       TrackBootstrap(np.array(["s"] * 5 + ["d"] * 5)))
-    assert m["ap_z"] == pytest.approx(0.5) and m["ci90"]["ap_z"] == [0.5, 0.5]
+    # every resample with an AP gives 0.5: no interval (a point [0.5, 0.5] had claimed a certainty two tracks lack)
+    assert m["ap_z"] == pytest.approx(0.5) and m["ci90"]["ap_z"] is None
+
+
+def test_a_perfect_ap_from_a_few_tracks_gets_the_exact_lower_bound_not_a_point() -> None:
+    """Three tracks ranked perfectly: every resample's AP is 1, and [1.0, 1.0] had claimed certainty; the bound
+    with the tracks as trials (as for a rate of 1) is 0.05^(1/3) ≈ 0.368."""
+    z = np.array([0.0] * 5 + [5.0] * 5 + [6.0] * 5)
+    dyn = np.array([False] * 5 + [True] * 10)
+    ids = np.array(["s"] * 5 + ["d1"] * 5 + ["d2"] * 5)
+    m = group_metrics(_records(z=z, gt_dynamic=dyn, track_id=ids), "vehicle", TrackBootstrap(ids))
+    assert m["ap_z"] == pytest.approx(1.0) and m["ci90"]["ap_z"] == [round(0.05 ** (1 / 3), 6), 1.0]
 
 
 def test_latency_is_timed_from_the_pairs_first_row_after_an_id_switch() -> None:
