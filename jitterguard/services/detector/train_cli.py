@@ -796,7 +796,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
 
     @app.command("eval-detector")
     def eval_detector_cmd(
-        out: Annotated[str, typer.Option("--out", help="Folder for the JSON report and the PR/calibration PNGs.")],
+        out: Annotated[str, typer.Option("--out", help="Folder for the JSON report and the PR/calibration PNGs;"
+                                         " synthetic scans are cast into a cache-HASH folder there (about 0.5 MB a"
+                                         " scan), which a rerun with the same scans reuses.")],
         weights: Annotated[str | None, typer.Option("--weights", help="Weights file (default: the shipped weights"
                                                      " of --preset).")] = None,
         preset: Annotated[str | None, typer.Option("--preset", help="Shipped weights to score (default lite); with"
