@@ -986,11 +986,22 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                 if crashed is not None or bad_input:
                     break
             stop.wait(0.1)
+        died = None  # supervisord ended under this run, not by its stop: killed, or stopped from another shell
         if proc.poll() is None:
             print("jitterguard: stopping the stack", flush=True)
             if _stop_supervisord(proc):
                 print(f"jitterguard: error: supervisord did not stop within {STOP_WAIT_S:.0f} s; killed",
                       file=sys.stderr)
+        elif not stop.is_set() and (duration is None or time.monotonic() - t0 < duration):
+            died = proc.returncode
+            if died == 0:  # it shut down cleanly: asked to (`jitterguard down`), its programs stopped with it
+                print(f"jitterguard: the stack was stopped from outside this command (`jitterguard down`?) after"
+                      f" {time.monotonic() - t0:.0f} s", file=sys.stderr, flush=True)
+            else:  # it died: its programs run on without it (a foreground run had printed a summary and exited 0)
+                left = stop_orphans(rd)
+                print(f"jitterguard: error: supervisord ended with status {died} after {time.monotonic() - t0:.0f} s"
+                      + (f"; stopped the programs it left running: {', '.join(left)}" if left else ""),
+                      file=sys.stderr, flush=True)
         if crashed is not None:
             print(_crash_report(rd, crashed, events), file=sys.stderr)
         for name in bad_input:
@@ -1000,7 +1011,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         if crashed is None and not bad_input and watch.first is None:  # exit 1 says why: no classified object came
             print("jitterguard: error: no classified objects came before the stack stopped; see `jitterguard logs "
                   "NAME` for the programs' logs", file=sys.stderr)
-        if crashed is not None or bad_input or watch.first is None:
+        if crashed is not None or bad_input or watch.first is None or died not in (None, 0):
             return 1
         return 0
 

@@ -484,6 +484,37 @@ def test_a_foreground_stack_ends_with_its_up_when_the_terminal_hangs_up_or_up_is
     assert not Supervisor(rd).running()
 
 
+def test_a_foreground_up_whose_supervisord_dies_stops_what_it_left_and_says_so(tmp_path):
+    """supervisord SIGKILLed under a foreground `up`: `up` had printed a run summary and exited 0 as if the run had
+    finished, its programs running on unsupervised. It now stops them, says supervisord ended, and exits 1."""
+    from jitterguard.stack.control import pid_alive, read_pid
+
+    write_bag(tmp_path / "bag", n=20)
+    env = {**os.environ, "XDG_RUNTIME_DIR": str(tmp_path / "xdg")}
+    rd = tmp_path / "xdg" / "jitterguard" / "sdied"
+    proc = subprocess.Popen([sys.executable, "-m", "jitterguard.cli", "up", "bag", "--name", "sdied", "--ns",
+                             f"sdied{os.getpid()}", "--router-port", str(free_tcp_port()), "--no-sidecar",
+                             "--topic", DET_TOPIC, "--duration", "240"], cwd=tmp_path, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert "starting" in proc.stdout.readline()
+        assert "first classified objects" in proc.stdout.readline()
+        sup_pid = read_pid(rd)
+        programs = [p.pid for p in Supervisor(rd).processes() if p.pid]
+        assert sup_pid and programs
+        os.kill(sup_pid, signal.SIGKILL)
+        _out, err = proc.communicate(timeout=120)
+        assert proc.returncode == 1, err
+        assert "supervisord ended with status -9" in err and "stopped the programs it left running" in err, err
+        assert wait_until(lambda: not any(pid_alive(p) for p in programs), timeout=60, period=0.5), \
+            "programs ran on after their supervisord died"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        if Supervisor(rd).running():
+            jg("down", "--name", "sdied", env=env)
+
+
 def _up_detached_killing_the_tracker(tmp_path: Path, name: str, *, after_s: float, kills: int, deadline_s: float,
                                      wait_s: float) -> tuple[int, str, str, Path]:
     """``up -d`` of a 20-frame bag whose tracker is SIGKILLed each time it has been RUNNING ``after_s`` (at most
