@@ -824,10 +824,25 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                       file=sys.stderr)
                 raise SystemExit(1)
             watch = _ObjectsWatch(ns, spec.endpoint, t0)
+            interrupts = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+            previous = {s: signal.signal(s, _interrupted) for s in interrupts}
             try:
                 code = _wait_started(sup, rd, label, names, spec, progs, wall0,
                                      _addresses(spec, progs, router_picked), watch)
+            except _Interrupted as stopped:
+                # a half-started stack had been left behind, silently: the pipeline running without its monitor
+                # and sidecar (started only once the rest runs), no summary, no freeze or crash-loop watch
+                print(f"jitterguard: interrupted ({signal.Signals(stopped.signum).name}) while the stack {label} was"
+                      " starting; stopping it", file=sys.stderr, flush=True)
+                try:
+                    _shutdown_when_it_answers(sup)
+                    sup.wait_gone(STOP_WAIT_S)
+                except StackUnavailable:
+                    pass
+                code = 128 + stopped.signum
             finally:
+                for s, handler in previous.items():
+                    signal.signal(s, handler)
                 watch.close()
             _exit_without_finalizing(code)
 
@@ -856,6 +871,14 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             if sup.running():
                 return
             time.sleep(0.02)
+
+    class _Interrupted(Exception):
+        def __init__(self, signum: int) -> None:
+            super().__init__(signum)
+            self.signum = signum
+
+    def _interrupted(signum: int, _frame: Any) -> None:
+        raise _Interrupted(signum)
 
     def _wait_started(sup: Supervisor, rd: Path, label: str, names: str, spec: StackSpec,
                       progs: list[Any], wall0: float, addresses: list[str], watch: _ObjectsWatch) -> int:
@@ -886,7 +909,11 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                 return 1
             try:
                 procs = sup.processes()
-            except StackUnavailable:
+            except StackUnavailable as exc:
+                if exc.state in ("stopped", "stale", "absent", "shutting_down"):  # `down` from another shell
+                    print(f"jitterguard: error: the stack was stopped while it started ({exc.state}: `jitterguard"
+                          " down`?); see `jitterguard summary`", file=sys.stderr)
+                    return 1  # it had waited its 60 s, then said the stack "is left running"
                 continue
             if not started_deferred and procs and all(p.state == "RUNNING" for p in procs if p.name not in deferred):
                 _start_deferred(sup, progs)

@@ -515,6 +515,39 @@ def test_a_foreground_up_whose_supervisord_dies_stops_what_it_left_and_says_so(t
             jg("down", "--name", "sdied", env=env)
 
 
+@pytest.mark.parametrize("how", ["interrupt", "down"])
+def test_an_up_d_interrupted_or_stopped_while_it_starts_leaves_no_half_started_stack(tmp_path, how):
+    """Ctrl-C to `up -d` while it waited had left the pipeline running without its monitor and sidecar (started
+    only once the rest runs): no summary, no freeze watch, exit 130 in silence. It now stops what it started and
+    says so. A `down` from another shell meanwhile had been waited out for 60 s, then called "left running"."""
+    from jitterguard.stack.control import orphans
+
+    write_bag(tmp_path / "bag", n=20)
+    env = {**os.environ, "XDG_RUNTIME_DIR": str(tmp_path / "xdg")}
+    rd = tmp_path / "xdg" / "jitterguard" / "half"
+    proc = subprocess.Popen([sys.executable, "-m", "jitterguard.cli", "up", "bag", "-d", "--name", "half", "--ns",
+                             f"half{os.getpid()}", "--router-port", str(free_tcp_port()), "--no-sidecar",
+                             "--topic", DET_TOPIC], cwd=tmp_path, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        assert wait_until(lambda: Supervisor(rd).running(), timeout=60, period=0.2)
+        if how == "interrupt":
+            proc.send_signal(signal.SIGINT)
+        else:
+            assert jg("down", "--name", "half", env=env).returncode == 0
+        _out, err = proc.communicate(timeout=60)  # at once, not after the 60 s wait for a start
+        if how == "interrupt":
+            assert proc.returncode == 130 and "interrupted (SIGINT) while the stack" in err, err
+        else:
+            assert proc.returncode == 1 and "the stack was stopped while it started" in err, err
+        assert wait_until(lambda: not Supervisor(rd).running() and not orphans(rd), timeout=60, period=0.5)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        if Supervisor(rd).running():
+            jg("down", "--name", "half", env=env)
+
+
 def _up_detached_killing_the_tracker(tmp_path: Path, name: str, *, after_s: float, kills: int, deadline_s: float,
                                      wait_s: float) -> tuple[int, str, str, Path]:
     """``up -d`` of a 20-frame bag whose tracker is SIGKILLed each time it has been RUNNING ``after_s`` (at most
