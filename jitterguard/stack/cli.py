@@ -746,6 +746,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         _refuse_if_running(sup, rd, label, down_hint)
         mcap_path, bag_path = (_recording_path(record_mcap, "--record-mcap", folder=False),
                               _recording_path(record_ros2, "--record-ros2", folder=True))
+        if mcap_path is not None and bag_path is not None and Path(mcap_path).resolve() == Path(bag_path).resolve():
+            # each alone refuses an existing path, not one the other is about to make: the recorders had raced
+            fail(f"--record-ros2: {bag_path} is where --record-mcap writes; give the two recordings two paths")
         try:
             for what, value in (("--record-mcap", mcap_path), ("--record-ros2", bag_path)):
                 if value is not None:

@@ -212,6 +212,9 @@ def test_a_folder_where_an_output_file_goes_is_refused_before_any_work(args, blo
     (["foxglove", "--record", "/proc/x.mcap", "--connect", "tcp/127.0.0.1:9"], "--record: cannot write /proc/x.mcap"),
     (["up", "--record-mcap", "/proc/x.mcap", "--run-dir", "{tmp}", "--duration", "1"],
      "--record-mcap: cannot write /proc/x.mcap"),
+    # each alone refuses an existing path, not the one the other makes: the two recorders had raced for it
+    (["up", "--record-mcap", "{tmp}/rec", "--record-ros2", "{tmp}/rec", "--run-dir", "{tmp}/run", "--duration", "1"],
+     "--record-ros2: {tmp}/rec is where --record-mcap writes"),
     # an empty effect set had been taken as none: ideal scans added to (or making up) the training set
     (["train", "--out", "{tmp}/tr", "--effects", "random+"], "--effects: empty effect in ''"),
     (["train", "--out", "{tmp}/tr", "--effects", "ground,"], "--effects: empty effect in 'ground,'"),
