@@ -18,6 +18,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -447,6 +448,20 @@ def test_a_foreground_stack_whose_replay_crash_loops_stops_with_its_last_log_lin
     assert not Supervisor(tmp_path / "xdg" / "jitterguard" / "fg").running()
 
 
+def _foreground_up(tmp_path: Path, name: str, **popen: Any) -> tuple[subprocess.Popen, Path, dict[str, str]]:
+    """A foreground ``up`` of a 20-frame bag (no sidecar, 240 s), once it has printed the first classified objects;
+    (its process, run dir, environment)."""
+    write_bag(tmp_path / "bag", n=20)
+    env = {**os.environ, "XDG_RUNTIME_DIR": str(tmp_path / "xdg")}
+    proc = subprocess.Popen([sys.executable, "-m", "jitterguard.cli", "up", "bag", "--name", name, "--ns",
+                             f"{name}{os.getpid()}", "--router-port", str(free_tcp_port()), "--no-sidecar",
+                             "--topic", DET_TOPIC, "--duration", "240"], cwd=tmp_path, env=env,
+                            stdout=subprocess.PIPE, text=True, **popen)
+    assert "starting" in proc.stdout.readline()
+    assert "first classified objects" in proc.stdout.readline()
+    return proc, tmp_path / "xdg" / "jitterguard" / name, env
+
+
 @pytest.mark.parametrize("how", ["hangup", "sigkill"])
 def test_a_foreground_stack_ends_with_its_up_when_the_terminal_hangs_up_or_up_is_killed(tmp_path, how):
     """An SSH session that drops sends SIGHUP to the terminal's process group: it had ended `up` at once and
@@ -455,17 +470,9 @@ def test_a_foreground_stack_ends_with_its_up_when_the_terminal_hangs_up_or_up_is
     on Ctrl-C, and supervisord, in a session of its own, is sent SIGTERM by the kernel when `up` dies."""
     from jitterguard.stack.control import pid_alive, read_pid
 
-    write_bag(tmp_path / "bag", n=20)
-    env = {**os.environ, "XDG_RUNTIME_DIR": str(tmp_path / "xdg")}
-    rd = tmp_path / "xdg" / "jitterguard" / "hup"
-    proc = subprocess.Popen([sys.executable, "-m", "jitterguard.cli", "up", "bag", "--name", "hup", "--ns",
-                             f"hup{os.getpid()}", "--router-port", str(free_tcp_port()), "--no-sidecar",
-                             "--topic", DET_TOPIC, "--duration", "240"], cwd=tmp_path, env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
-                            start_new_session=True)  # a terminal's job: its own process group
+    # a terminal's job: its own process group
+    proc, rd, env = _foreground_up(tmp_path, "hup", stderr=subprocess.DEVNULL, start_new_session=True)
     try:
-        assert "starting" in proc.stdout.readline()
-        assert "first classified objects" in proc.stdout.readline()
         sup_pid = read_pid(rd)
         programs = [p.pid for p in Supervisor(rd).processes() if p.pid]
         assert sup_pid and programs
@@ -489,16 +496,8 @@ def test_a_foreground_up_whose_supervisord_dies_stops_what_it_left_and_says_so(t
     finished, its programs running on unsupervised. It now stops them, says supervisord ended, and exits 1."""
     from jitterguard.stack.control import pid_alive, read_pid
 
-    write_bag(tmp_path / "bag", n=20)
-    env = {**os.environ, "XDG_RUNTIME_DIR": str(tmp_path / "xdg")}
-    rd = tmp_path / "xdg" / "jitterguard" / "sdied"
-    proc = subprocess.Popen([sys.executable, "-m", "jitterguard.cli", "up", "bag", "--name", "sdied", "--ns",
-                             f"sdied{os.getpid()}", "--router-port", str(free_tcp_port()), "--no-sidecar",
-                             "--topic", DET_TOPIC, "--duration", "240"], cwd=tmp_path, env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc, rd, env = _foreground_up(tmp_path, "sdied", stderr=subprocess.PIPE)
     try:
-        assert "starting" in proc.stdout.readline()
-        assert "first classified objects" in proc.stdout.readline()
         sup_pid = read_pid(rd)
         programs = [p.pid for p in Supervisor(rd).processes() if p.pid]
         assert sup_pid and programs
