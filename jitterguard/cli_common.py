@@ -314,8 +314,8 @@ def zenoh_options(ns: str, zenoh_config: str | None, connect: list[str] | None, 
         opts = ZenohOptions(ns=ns, config_file=zenoh_config, connect=tuple(connect or ()), listen=tuple(listen or ()))
     except ValueError as exc:
         fail(f"--ns: {exc}")
-    if zenoh_config and not_a_file(zenoh_config):
-        fail(f"--zenoh-config: {not_a_file(zenoh_config)}")
+    if zenoh_config and (why := not_a_file(zenoh_config)):
+        fail(f"--zenoh-config: {why}")
     check_endpoints([*opts.connect, *opts.listen])
     try:  # the whole config, now: a bad file, an exposed listener or a missing TLS file is a one-line error
         cfg = build_config(opts)  # before anything starts (the sidecar's open runs inside uvicorn's startup)

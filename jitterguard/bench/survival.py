@@ -59,7 +59,8 @@ def survival_command(
     seed_list = parse_seeds(seeds, "--seeds")
     if not 0 < duration <= 600 or not 0 < rate <= 100 or not horizon > 0 or min_points < 0:
         fail("--duration must be in (0, 600], --rate in (0, 100], --horizon > 0 and --min-points >= 0")
-    check_scenario_options(scenario, duration, rate, flag="--scenario")  # an unknown scenario had been a ValueError from make_scenario
+    # an unknown scenario had been a ValueError from make_scenario
+    check_scenario_options(scenario, duration, rate, flag="--scenario")
     if horizon >= duration:  # no track could be followed that long: every figure had come out null, exit 0
         fail(f"--horizon {horizon:g} s must be shorter than --duration {duration:g} s")
     from ..config import ConfigError

@@ -109,8 +109,8 @@ def nuscenes_scene_names(dataroot: Path, scene: str | None, version: str | None 
     from ..services.replay.frames import SourceError
     from ..services.replay.sources.nuscenes import consistent_tables, find_version, select_scenes
 
-    if not_a_folder(dataroot):
-        raise NuScenesError(str(not_a_folder(dataroot)))
+    if why := not_a_folder(dataroot):
+        raise NuScenesError(why)
     try:
         folder = Path(dataroot) / find_version(Path(dataroot), version)
         table = _table(folder, "scene", tables)

@@ -204,13 +204,6 @@ def _defined(x: float, ok: bool) -> float:
     return x if ok else math.nan
 
 
-LATENCY_KEYS = ("time_to_first_correct_s_median_z", "time_to_first_correct_s_median_speed", "never_correct_fraction_z",
-                "never_correct_fraction_speed", "time_to_dynamic_s_median_z", "time_to_dynamic_s_median_speed",
-                "never_dynamic_fraction_z", "never_dynamic_fraction_speed")
-"""A group's decision latencies (null where none of its rows was decided: a run too short had reported every track
-"never correct" by the z-test and 0 s by the speed rule)."""
-
-
 def group_metrics(rec: Records, group: str, boot: TrackBootstrap | None = None, *,
                   full_window: bool = False) -> dict[str, Any]:
     """One group's AP (z and speed as scores), operating-point error rates, counts, decision latency and (with
@@ -244,10 +237,8 @@ def group_metrics(rec: Records, group: str, boot: TrackBootstrap | None = None, 
         "missed_dynamic_z": rate(sz, dyn, STATIC),
         "missed_dynamic_speed": rate(sv, dyn, STATIC),
     }
-    if not full_window and not m.any():  # nothing of the group decided: its latencies are no figure, not 1.0 / 0
-        out.update(dict.fromkeys(LATENCY_KEYS, math.nan))
-    elif not full_window:
-        out.update({
+    if not full_window:
+        latency = {
             "time_to_first_correct_s_median_z": med(ttz),
             "time_to_first_correct_s_median_speed": med(ttv),
             "never_correct_fraction_z": float(np.mean(~np.isfinite(ttz))) if len(ttz) else math.nan,
@@ -256,7 +247,10 @@ def group_metrics(rec: Records, group: str, boot: TrackBootstrap | None = None, 
             "time_to_dynamic_s_median_speed": med(tdv),
             "never_dynamic_fraction_z": float(np.mean(~np.isfinite(tdz))) if len(tdz) else math.nan,
             "never_dynamic_fraction_speed": float(np.mean(~np.isfinite(tdv))) if len(tdv) else math.nan,
-        })
+        }
+        # none of the group's rows decided: no latency to report (a run too short had read "never correct" 1.0 for
+        # the z-test and 0 s for the speed rule, from rows no rate scores)
+        out.update(latency if m.any() else dict.fromkeys(latency, math.nan))
     out = _clean(out)
     if boot is not None:
         static_m, dyn_m = m & ~rec.gt_dynamic, m & rec.gt_dynamic

@@ -33,6 +33,7 @@ from pathlib import Path
 
 import zenoh
 
+from ..files import not_a_file
 from ..schemas import keys
 from .bind_policy import listen_refusal
 
@@ -79,9 +80,8 @@ def _load(opts: ZenohOptions) -> tuple[zenoh.Config, bool]:
     if not path:
         return zenoh.Config(), False
     p = Path(path)
-    if not p.is_file():
-        raise ValueError(f"zenoh config file not found: {path}" if not p.is_dir() else f"zenoh config {path} is a"
-                         " folder, not a file")
+    if why := not_a_file(p):
+        raise ValueError(f"zenoh config {why}")
     if _first_token(p) not in ("{", None):  # zenoh reads a list's first item as the config's id: "expected An hex…"
         raise ValueError(f"zenoh config {path}: expected an object {{…}} at the top level")
     try:

@@ -746,7 +746,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         _refuse_if_running(sup, rd, label, down_hint)
         mcap_path, bag_path = (_recording_path(record_mcap, "--record-mcap", folder=False),
                               _recording_path(record_ros2, "--record-ros2", folder=True))
-        if mcap_path is not None and bag_path is not None and Path(mcap_path).resolve() == Path(bag_path).resolve():
+        if mcap_path is not None and mcap_path == bag_path:  # both resolved by _recording_path
             # each alone refuses an existing path, not one the other is about to make: the recorders had raced
             fail(f"--record-ros2: {bag_path} is where --record-mcap writes; give the two recordings two paths")
         try:
@@ -827,8 +827,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
                       file=sys.stderr)
                 raise SystemExit(1)
             watch = _ObjectsWatch(ns, spec.endpoint, t0)
-            interrupts = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
-            previous = {s: signal.signal(s, _interrupted) for s in interrupts}
+            previous = {s: signal.signal(s, _interrupted) for s in FOREGROUND_STOP_SIGNALS}  # a foreground run's too
             try:
                 code = _wait_started(sup, rd, label, names, spec, progs, wall0,
                                      _addresses(spec, progs, router_picked), watch)

@@ -243,10 +243,11 @@ class StackMonitor(Service):
         still for good with every program RUNNING. Only a process heard from before (with its current pid) is
         judged, only while other services are heard (a router down or restarting silences everyone: not a
         freeze), its silence counted from no earlier than when they were heard again (:class:`.watch.BusSilence`:
-        services reconnect one by one after a router's restart), and never after the monitor itself stood still (it would then judge its own pause). It is ended
-        with SIGKILL, which a stopped process cannot hold off, for supervisord to start it again. The router, which
-        sends no heartbeat, is judged by whether the kernel says it is stopped (:meth:`_end_stopped_unheard`), as is
-        a program this monitor never heard from (stopped before this monitor started, or before its first beat)."""
+        services reconnect one by one after a router's restart), and never after the monitor itself stood still
+        (it would then judge its own pause). It is ended with SIGKILL, which a stopped process cannot hold off, for
+        supervisord to start it again. The router, which sends no heartbeat, is judged by whether the kernel says
+        it is stopped (:meth:`_end_stopped_unheard`), as is a program this monitor never heard from (stopped before
+        this monitor started, or before its first beat)."""
         from .status import SERVICE_NAMES
 
         with self._beat_lock:

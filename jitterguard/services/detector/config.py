@@ -256,8 +256,8 @@ def params_refusal(params: DetectorParams) -> tuple[str, str] | None:
     stack on such a file and then watched the detector crash three times."""
     if params.preset not in PRESETS:
         return "preset", f"expected one of {', '.join(PRESETS)}, got {params.preset!r}"
-    if params.weights is not None and not_a_file(params.weights):
-        return "weights", str(not_a_file(params.weights))
+    if params.weights is not None and (why := not_a_file(params.weights)):
+        return "weights", why
     if params.onnx is not None and (params.backend != "onnxruntime" or params.weights is not None):
         return "onnx", "goes with backend onnxruntime and replaces weights"
     if params.onnx is not None and not os.path.isdir(params.onnx):

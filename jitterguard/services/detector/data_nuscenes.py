@@ -193,8 +193,8 @@ class NuScenesKeyframes(LazySamples):
         self.root = Path(dataroot)
         self.sweeps, self.min_sweep_range_m = int(sweeps), float(min_sweep_range_m)
         root = self.root
-        if not_a_folder(root):
-            raise SourceError(str(not_a_folder(root)))
+        if why := not_a_folder(root):
+            raise SourceError(why)
         self.version = find_version(root, version)
         folder = root / self.version
         t = {n: _load_table(folder, n) for n in ("scene", "sample", "sample_data", "ego_pose", "calibrated_sensor",

@@ -21,8 +21,8 @@ from typing import Annotated, Any
 
 import typer
 
-from ...files import not_a_file
 from ...cli_common import fail, float_option, out_dir
+from ...files import not_a_file
 from .cli import ThreadsOpt, WeightsOpt, _one_line, passive_openmp
 from .config import PRESETS
 
@@ -194,8 +194,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         refused = opset_refusal(opset)  # without onnx only the minimum: the export names the missing packages
         if refused:
             fail(f"--opset: {refused}")
-        if weights is not None and not_a_file(weights):
-            fail(f"--weights: {not_a_file(weights)}")
+        if weights is not None and (why := not_a_file(weights)):
+            fail(f"--weights: {why}")
         if check_scans and importlib.util.find_spec("onnxruntime") is None:
             # refused before the export: the check had died in a WeightsError traceback after writing an unchecked
             # export, detector.json included

@@ -20,9 +20,9 @@ from typing import Annotated, Any
 
 import typer
 
-from ...files import not_a_file, not_a_folder
 from ...cli_common import (ProgressOpt, SensorHeightOpt, SensorTiltOpt, fail, float_option, out_dir, out_files,
                            parse_seeds, progress_on, sensor_height_option, sensor_tilt_option)
+from ...files import not_a_file, not_a_folder
 from .augment import CENTERPOINT_SAMPLE_COUNTS
 from .config import CLASS_NAMES, PRESETS
 from .provenance import init_provenance
@@ -406,12 +406,12 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         effect_sets = effects.split("+")
         for e in effect_sets:
             _effects(e)
-        if init is not None and not_a_file(init):
-            fail(f"--init: {not_a_file(init)}")
-        if nuscenes is not None and not_a_folder(nuscenes):
-            fail(f"--nuscenes: {not_a_folder(nuscenes)}")
-        if distill_from is not None and not_a_file(distill_from):
-            fail(f"--distill-from: {not_a_file(distill_from)}")
+        if init is not None and (why := not_a_file(init)):
+            fail(f"--init: {why}")
+        if nuscenes is not None and (why := not_a_folder(nuscenes)):
+            fail(f"--nuscenes: {why}")
+        if distill_from is not None and (why := not_a_file(distill_from)):
+            fail(f"--distill-from: {why}")
         if distill_from is None and (distill_classes is not None or distill_weight is not None):
             fail("--distill-classes/--distill-weight: only with --distill-from")
         distill_names = [c.strip() for c in (distill_classes or "pedestrian").split(",") if c.strip()]
@@ -650,8 +650,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         from .adapt import DEFAULT_PSEUDO_THRESHOLDS
         from .config import SELF_CROP_M, declared_height, measures_tilt
 
-        if not_a_file(weights):
-            fail(f"--weights: {not_a_file(weights)}")
+        if why := not_a_file(weights):
+            fail(f"--weights: {why}")
         _effects(effects)
         if recalibration not in RECALIBRATION_MODES:
             fail(f"--recalibration: expected one of {', '.join(RECALIBRATION_MODES)}, got {recalibration!r}")
@@ -841,15 +841,15 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         progress = progress_on(progress)
         if preset is not None and preset not in PRESETS:
             fail(f"--preset: expected one of {', '.join(PRESETS)}, got {preset!r}")
-        if weights is not None and not_a_file(weights):
-            fail(f"--weights: {not_a_file(weights)}")
+        if weights is not None and (why := not_a_file(weights)):
+            fail(f"--weights: {why}")
         scen = _scenarios(scenarios)
         sd = parse_seeds(seeds, "--seeds")
         if "+" in effects:
             fail(f"--effects: one set of effects to score on, got {effects!r}")
         _effects(effects)
-        if nuscenes is not None and not_a_folder(nuscenes):
-            fail(f"--nuscenes: {not_a_folder(nuscenes)}")
+        if nuscenes is not None and (why := not_a_folder(nuscenes)):
+            fail(f"--nuscenes: {why}")
         if holdout_last is not None and nuscenes is None:  # it had been ignored without a word
             fail("--holdout-last: only with --nuscenes (synthetic hold-out seeds are scored whole)")
         height, tilt = sensor_height_option(sensor_height), sensor_tilt_option(sensor_tilt)
@@ -959,8 +959,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
     ) -> None:
         """Refit a weights file's per-axis variance scales, per detection-score bin, on labelled synthetic scans."""
         progress = progress_on(progress)
-        if not_a_file(weights):
-            fail(f"--weights: {not_a_file(weights)}")
+        if why := not_a_file(weights):
+            fail(f"--weights: {why}")
         scen = _scenarios(scenarios)
         fit_seeds(seeds, "--seeds")
         effect_sets = effects.split("+")

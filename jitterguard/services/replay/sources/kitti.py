@@ -20,9 +20,9 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from ....schemas.models import INT64_MAX
 from ..frames import (DEFAULT_PERIOD_NS, IDENTITY, MAX_SCAN_BYTES, EgoPose, FrameError, Item, ScanFrame, SourceError,
                       SourceInfo, finite_rows, mib)
-from ....schemas.models import INT64_MAX
 from .base import Source, listed_scans
 
 log = logging.getLogger("jitterguard.replay")

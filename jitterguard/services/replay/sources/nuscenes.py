@@ -27,8 +27,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ....geometry import rotation_from_quaternion
 from ....files import not_a_folder
+from ....geometry import rotation_from_quaternion
 from ..frames import EgoPose, FrameError, Item, ScanFrame, SourceError, SourceInfo, compose, finite_rows
 from .base import Source
 from .kitti import NUSCENES_FIELDS, read_bin
@@ -150,8 +150,8 @@ class NuScenesSource(Source):
         sweeps: bool = False,
     ) -> None:
         dataroot = Path(dataroot)
-        if not_a_folder(dataroot):
-            raise SourceError(str(not_a_folder(dataroot)))
+        if why := not_a_folder(dataroot):
+            raise SourceError(why)
         self.dataroot = dataroot
         self.version = find_version(dataroot, version)
         folder = dataroot / self.version
