@@ -158,6 +158,9 @@ def test_bag_detection_that_fails_validation_is_a_frame_error(tmp_path: Path) ->
         (SourceOptions(topic=ODOM_TOPIC), "not sensor_msgs/msg/PointCloud2"),
         (SourceOptions(pose_topic=CLOUD_TOPIC), "pose topic"),
         (SourceOptions(poses=Path("x")), "--poses does not apply"),
+        # a bag's stamps are its own: --hz, a scenario's --duration and its --seed had been ignored in silence
+        (SourceOptions(rate_hz=5.0), "--hz does not apply to a bag source"),
+        (SourceOptions(duration_s=5.0, seed=2), "--duration, --seed do not apply to a bag source"),
     ],
 )
 def test_bag_bad_topic_choices_are_one_line_source_errors(tmp_path: Path, opts: SourceOptions, match: str) -> None:

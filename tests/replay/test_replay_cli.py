@@ -42,6 +42,9 @@ CASES = [
     (["replay", "{k}", "--on-error", "explode"], "--on-error"),
     (["replay", "{k}", "--stamps", "now"], "--stamps must be"),
     (["replay", "{k}", "--topic", "/x"], "--topic does not apply"),
+    # a scenario's length and seed: scans on disk have neither (the replay had read them all in silence)
+    (["replay", "{k}", "--duration", "5"], "--duration does not apply to a KITTI .bin source"),
+    (["replay", "{k}", "--seed", "3"], "--seed does not apply to a KITTI .bin source"),
     (["replay", "{k}", "--hz", "0"], "--hz must be positive"),
     (["replay", "{k}", "--bin-fields", "x,y,z,x", "--rate", "max"], "--bin-fields: each column needs a name"),
     (["replay", "{k}", "--bin-fields", "x,y,z,,i", "--rate", "max"], "--bin-fields: each column needs a name"),

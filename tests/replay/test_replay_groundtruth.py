@@ -48,3 +48,13 @@ def test_level_detections_needs_boxes(dataroot, tmp_path):
         open_source(str(tmp_path / "scans"), SourceOptions(level="detections"))
     with pytest.raises(SourceError, match="--sweeps"):
         open_source(str(dataroot), SourceOptions(level="detections", sweeps=True))
+
+
+def test_a_nuscenes_scene_takes_a_seed_only_for_its_noise_model(dataroot):
+    """The seed draws the detection model's noise about the boxes; the scans themselves have none to draw, nor a
+    scenario's --duration or --hz (its stamps are recorded): each had been taken and ignored."""
+    assert open_source(str(dataroot), SourceOptions(level="detections", seed=2)).info.kind == "detections"
+    for opts, flag in ((SourceOptions(seed=2), "--seed"), (SourceOptions(level="detections", duration_s=3.0), "--duration"),
+                       (SourceOptions(rate_hz=20.0), "--hz")):
+        with pytest.raises(SourceError, match=f"{flag} does not apply to a nuScenes source"):
+            open_source(str(dataroot), opts)

@@ -257,6 +257,7 @@ def test_sources_that_cannot_be_replayed_are_refused_before_anything_starts(tmp_
         (("scans",), "not a whole number"),
         (("scans", "--poses", "missing.txt"), "--poses: file not found"),
         (("scans", "--topic", "/x"), "--topic does not apply"),
+        (("bag", "--scenario-duration", "30"), "--scenario-duration does not apply to a bag source"),
         (("synthetic:nope",), "unknown scenario"),
         (("bag", "--input", "points", "--topic", DET_TOPIC), "--input points needs scans"),
         # --start past the end: the replay would refuse it three times and the stack would be stopped

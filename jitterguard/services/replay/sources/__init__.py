@@ -57,9 +57,20 @@ class SourceOptions:
     lidar: str = "hdl32e"
 
 
-def _only_for(opts: SourceOptions, kind: str, allowed: set[str]) -> None:
-    """Refuse flags that the chosen reader would silently ignore: a typo'd source must not look like success."""
+_DEFAULTS = SourceOptions()
+PACED_BY_HZ = {"--hz"}
+"""Readers of recordings without their own clock (KITTI without times.txt, .pcd): ``--hz`` spaces their stamps."""
+
+
+def _only_for(opts: SourceOptions, kind: str, allowed: set[str], *, duration_flag: str = "--duration") -> None:
+    """Refuse flags that the chosen reader would silently ignore: a typo'd source must not look like success.
+
+    ``--seed``, ``--duration`` and ``--hz`` count as given when they differ from their defaults (the options
+    carry values, not where they came from): ``--duration 30`` on a bag had replayed the whole bag in silence."""
     given = {
+        "--seed": opts.seed != _DEFAULTS.seed,
+        duration_flag: opts.duration_s != _DEFAULTS.duration_s,
+        "--hz": opts.rate_hz != _DEFAULTS.rate_hz,
         "--scene": opts.scene is not None,
         "--nuscenes-version": opts.nuscenes_version is not None,
         "--sweeps": opts.sweeps,
@@ -80,13 +91,18 @@ def _only_for(opts: SourceOptions, kind: str, allowed: set[str]) -> None:
                           f" them, a {kind} source has not (a bag's topic type decides its level)")
 
 
-def open_source(spec: str, opts: SourceOptions | None = None) -> Source:
-    """Open SOURCE (see the module docstring). Raises :class:`SourceError` with one line naming the problem."""
+SYNTHETIC_FLAGS = {"--lidar", "--seed", "--hz"}
+"""What a synthetic scenario takes besides its length (named by the caller's ``duration_flag``)."""
+
+
+def open_source(spec: str, opts: SourceOptions | None = None, *, duration_flag: str = "--duration") -> Source:
+    """Open SOURCE (see the module docstring). Raises :class:`SourceError` with one line naming the problem;
+    ``duration_flag`` is the caller's name for a scenario's length (``up`` calls it ``--scenario-duration``)."""
     opts = opts or SourceOptions()
     if opts.level not in ("points", "detections"):
         raise SourceError(f"--level must be 'points' or 'detections', got {opts.level!r}")
     if spec.startswith(SYNTHETIC_PREFIX):
-        _only_for(opts, "synthetic", {"--lidar"})
+        _only_for(opts, "synthetic", SYNTHETIC_FLAGS | {duration_flag}, duration_flag=duration_flag)
         from .synthetic import SyntheticSource  # each reader only when its format is asked for
 
         return SyntheticSource(
@@ -108,7 +124,9 @@ def open_source(spec: str, opts: SourceOptions | None = None) -> Source:
     from .pcd import PcdSource
 
     if is_nuscenes_root(path):
-        _only_for(opts, "nuScenes", {"--scene", "--nuscenes-version", "--sweeps"})
+        # the seed draws the detection model's noise about the annotated boxes; scans have none to draw
+        seeded = {"--seed"} if opts.level == "detections" else set()
+        _only_for(opts, "nuScenes", {"--scene", "--nuscenes-version", "--sweeps"} | seeded, duration_flag=duration_flag)
         if opts.level == "detections":
             if opts.sweeps:
                 raise SourceError("--level detections replays a scene's annotated key frames: --sweeps does not"
@@ -118,7 +136,7 @@ def open_source(spec: str, opts: SourceOptions | None = None) -> Source:
             return NuScenesBoxes(path, scene=opts.scene, seed=opts.seed, version=opts.nuscenes_version)
         return NuScenesSource(path, scene=opts.scene, version=opts.nuscenes_version, channel=opts.channel, sweeps=opts.sweeps)
     if is_bag(path):
-        _only_for(opts, "bag", {"--topic", "--pose-topic"})
+        _only_for(opts, "bag", {"--topic", "--pose-topic"}, duration_flag=duration_flag)
         return BagSource(path, topic=opts.topic, pose_topic=opts.pose_topic)
     if path.is_dir():
         try:
@@ -130,10 +148,11 @@ def open_source(spec: str, opts: SourceOptions | None = None) -> Source:
         if has_bin and has_pcd:
             raise SourceError(f"{path}: holds both .bin and .pcd files; point SOURCE at one kind")
         if has_pcd:
-            _only_for(opts, "PCD", set())
+            _only_for(opts, "PCD", PACED_BY_HZ, duration_flag=duration_flag)
             return PcdSource(path, period_ns=opts.period_ns)
         if has_bin:
-            _only_for(opts, "KITTI .bin", {"--poses", "--calib", "--times", "--bin-fields"})
+            _only_for(opts, "KITTI .bin", {"--poses", "--calib", "--times", "--bin-fields"} | PACED_BY_HZ,
+                      duration_flag=duration_flag)
             return BinScanSource(
                 path, poses=opts.poses, calib=opts.calib, times=opts.times, fields=opts.bin_fields, period_ns=opts.period_ns
             )
@@ -149,10 +168,11 @@ def open_source(spec: str, opts: SourceOptions | None = None) -> Source:
             f"{path}: cannot tell what this folder is (no nuScenes tables, bag metadata.yaml, .bin or .pcd files)"
         )
     if path.name.lower().endswith(".bin"):  # cameras and Windows tools write .BIN as well
-        _only_for(opts, "KITTI .bin", {"--poses", "--calib", "--times", "--bin-fields"})
+        _only_for(opts, "KITTI .bin", {"--poses", "--calib", "--times", "--bin-fields"} | PACED_BY_HZ,
+                      duration_flag=duration_flag)
         return BinScanSource(path, poses=opts.poses, calib=opts.calib, times=opts.times, fields=opts.bin_fields, period_ns=opts.period_ns)
     if path.suffix.lower() == ".pcd":
-        _only_for(opts, "PCD", set())
+        _only_for(opts, "PCD", PACED_BY_HZ, duration_flag=duration_flag)
         return PcdSource(path, period_ns=opts.period_ns)
     raise SourceError(f"{path}: unknown recording type (expected .bin, .pcd, .mcap, .db3, .bag or a folder)")
 
@@ -171,7 +191,7 @@ def probe_source(spec: str, opts: SourceOptions | None = None, *, start: int = 0
     if spec.startswith(SYNTHETIC_PREFIX):
         if opts.level not in ("points", "detections"):
             raise SourceError(f"--level must be 'points' or 'detections', got {opts.level!r}")
-        _only_for(opts, "synthetic", {"--lidar"})
+        _only_for(opts, "synthetic", SYNTHETIC_FLAGS | {duration_flag}, duration_flag=duration_flag)
         from .synthetic import check_synthetic
 
         info = check_synthetic(spec[len(SYNTHETIC_PREFIX) :], duration_s=opts.duration_s, rate_hz=opts.rate_hz,
@@ -179,7 +199,7 @@ def probe_source(spec: str, opts: SourceOptions | None = None, *, start: int = 0
         check_start(start, info)
         return info
     try:
-        src = open_source(spec, opts)
+        src = open_source(spec, opts, duration_flag=duration_flag)
     except SourceError:
         raise
     except Exception as exc:  # a reader that failed in a way it did not foresee: still one line
