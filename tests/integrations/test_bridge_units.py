@@ -551,3 +551,55 @@ def test_a_motion_state_on_another_tracks_key_is_refused_and_the_frame_keeps_the
     finally:
         client.close()
         svc.close()
+
+
+@pytest.mark.integration
+def test_a_sink_that_fails_frame_after_frame_makes_the_bridge_failing_and_one_that_recovers_ok() -> None:
+    """A recording that wrote nothing (a full disk: every write raising) had left the bridge's health ``ok``, so
+    ``status`` and ``/readyz`` said all was well and the watchdog never restarted it. Five failures in a row are
+    ``failing``, with the sink's error as the reason; the next frame written makes it ``ok`` again."""
+    import zenoh
+
+    from jitterguard.runtime import build_config, free_tcp_port, loopback_options
+    from jitterguard.schemas import encode, keys
+    from jitterguard.services.bridge.service import BridgeService
+
+    from helpers import wait_until
+
+    class FullDisk:
+        def __init__(self) -> None:
+            self.full = True
+            self.frames: list[JoinedFrame] = []
+
+        def write(self, frame: JoinedFrame) -> None:
+            if self.full:
+                raise OSError(28, "No space left on device")
+            self.frames.append(frame)
+
+        def close(self) -> None:
+            pass
+
+    ns, port = "bridge_full", free_tcp_port()
+    sink = FullDisk()
+    svc = BridgeService(loopback_options(ns, port, listen_self=True), sink, points=False, motion_wait_s=0.2)
+    client = zenoh.open(build_config(loopback_options(ns, port)))
+    try:
+        pub = client.declare_publisher(keys.objects(ns))
+        assert wait_until(lambda: pub.matching_status.matching, 10)
+        assert svc.health().ok  # nothing to write yet: idle, not stalled
+        for seq in range(1, 6):
+            client.put(keys.tracked(ns), encode(tracked(seq, observed=(A,))))
+            client.put(keys.motion(ns, A), encode(motion(seq, A)))
+            client.put(keys.objects(ns), encode(objects(seq, ids=(A,))))
+            assert wait_until(lambda s=seq: svc.counters.get("sink_errors") == s, 10)
+        health = svc.health()
+        assert health.state == "failing" and "No space left on device" in health.reason, health
+        sink.full = False
+        client.put(keys.tracked(ns), encode(tracked(6, observed=(A,))))
+        client.put(keys.motion(ns, A), encode(motion(6, A)))
+        client.put(keys.objects(ns), encode(objects(6, ids=(A,))))
+        assert wait_until(lambda: len(sink.frames) == 1, 10)
+        assert svc.health().ok
+    finally:
+        client.close()
+        svc.close()

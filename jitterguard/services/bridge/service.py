@@ -5,7 +5,10 @@ A bridge is a viewer and recorder beside the pipeline, never in its path: callba
 counts and logs malformed payloads per key) and enqueue; one worker thread joins and writes. When the worker falls
 behind, the bounded inbox drops the newest message and counts it (``inbox_dropped``) rather than slowing Zenoh's
 delivery to the pipeline's own subscribers. A sink that fails on a frame is counted (``sink_errors``) and logged
-once per burst; the next frame is tried again.
+once per burst; the next frame is tried again. Its health is the sink's progress: a recording that fails frame after
+frame (a full disk) is ``failing`` with the sink's error in its heartbeat, ``status`` and ``/readyz``, and the
+runtime's watchdog restarts it (supervised restarts write a numbered file); before, it had stayed ``ok`` while it
+wrote nothing.
 
 Counters (heartbeat): ``frames`` (written), ``write_ms_last`` (the sink's time on the latest frame), ``inbox_dropped``,
 ``sink_errors`` and the joiner's (``motion_missing``,
@@ -65,6 +68,7 @@ class BridgeService(Service):
         self._sink_closed = False
         super().__init__(opts)
         self._sink_log = _BurstLogger(self.log)
+        self._sink_progress = self.monitor_progress()  # no input() calls: a bridge with nothing to write is idle, not stalled
         self.spawn(self._worker, "worker")
         ns = self.ns
         subs: list[tuple[str, type, str]] = [
@@ -113,8 +117,11 @@ class BridgeService(Service):
                 self.sink.write(f)
             except Exception as exc:  # noqa: BLE001 - a sink failure loses one frame, never the bridge
                 self.counters.inc("sink_errors")
-                self._sink_log.warn(f"writing frame seq {f.seq} failed: {type(exc).__name__}: {exc}")
+                error = f"writing frame seq {f.seq} failed: {type(exc).__name__}: {exc}"
+                self._sink_log.warn(error)
+                self._sink_progress.failure(time.monotonic(), error[:200])
                 continue
+            self._sink_progress.output(time.monotonic())
             self.counters.inc("frames")
             self.counters.set("write_ms_last", round((time.perf_counter() - t0) * 1e3))
             self.last_seq = f.seq
