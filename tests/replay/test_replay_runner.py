@@ -279,3 +279,24 @@ def test_a_scan_over_the_detectors_cap_is_refused_and_counted_as_the_unreadable_
     assert [o for o, _, _ in sink.out] == ["mem#0", "mem#2"] and stats.errors == 1
     [err] = errors
     assert err.origin == "mem#1" and "over" in err.reason and "max_scan_bytes" in err.reason, err
+
+
+class StopsAfterSleeps(FakeClock):
+    """A fake clock whose ``n``-th sleep is cut short by a stop (as Ctrl-C ends a real clock's wait)."""
+
+    def __init__(self, n: int) -> None:
+        super().__init__()
+        self.n = n
+
+    def sleep(self, seconds: float) -> bool:
+        super().sleep(seconds)
+        return len(self.sleeps) < self.n
+
+
+@pytest.mark.parametrize("frames,sleeps,want", [(1, 1, (1, 1)), (1, 3, (3, 3)), (3, 4, (4, 2))])
+def test_a_looping_replay_stopped_counts_only_the_passes_that_published(frames: int, sleeps: int,
+                                                                        want: tuple[int, int]) -> None:
+    """A pass stopped while it waited for its first frame published nothing: a looped one-frame recording stopped
+    after one frame had reported "1 frame(s) in 2 pass(es)". A pass stopped midway still counts (it published)."""
+    stats = run_replay(memory(frames), ReplayPlan(rate=1.0, loop=True), Sink(), clock=StopsAfterSleeps(sleeps))
+    assert stats.interrupted and (stats.published, stats.passes) == want

@@ -182,7 +182,8 @@ def run_replay(
             if on_published:
                 on_published(item, seq)
             seq += 1
-        stats.passes += 1
+        if not (stats.interrupted and good == 0):  # a pass stopped before its first frame was none: a looped
+            stats.passes += 1                     # one-frame recording had said "1 frame(s) in 2 pass(es)"
         if stats.interrupted:
             break
         if positions == 0 and stats.passes == 1:
