@@ -127,3 +127,19 @@ def test_the_progress_label_is_the_sources_last_path_part(name: str, short: str)
     from jitterguard.services.replay.cli import short_name
 
     assert short_name(name) == short
+
+
+def test_stamps_the_replay_had_to_rewrite_are_named_in_its_summary(app: typer.Typer, tmp_path: Path) -> None:
+    """A times.txt going back a little (reordered frames) and then an hour (a clock reset): the replay keeps its
+    timeline increasing, and now says what it rewrote instead of publishing other stamps than recorded in silence."""
+    folder = tmp_path / "scans"
+    for k in range(5):
+        write_bin(folder / f"{k:06d}.bin", np.zeros((2, 4)))
+    (folder / "times.txt").write_text("3600.0\n3600.1\n3600.05\n3600.2\n1.0\n")
+    argv = ["replay", str(folder), "--rate", "max", "--listen", "tcp/127.0.0.1:0", "--wait-subscriber", "0",
+            "--no-progress"]
+    result = CliRunner().invoke(app, argv)
+    err = result.stderr if hasattr(result, "stderr") and result.stderr else result.output
+    assert result.exit_code == 0, err
+    assert "replayed 5 frame(s)" in err and "1 stamp(s) not after the previous one" in err, err
+    assert "clock stepped back 1 time(s)" in err, err

@@ -117,6 +117,7 @@ def test_restamper_forces_out_of_order_stamps_forward() -> None:
     r = Restamper()
     out = [r(s) for s in (100, 300, 200, 200, 400)]
     assert out == [100, 300, 301, 302, 400]
+    assert (r.reordered, r.stepped_back) == (2, 0)  # counted: they had been moved without a word
 
 
 
@@ -128,6 +129,10 @@ def test_a_recording_whose_clock_steps_back_goes_on_at_its_own_spacing_not_1_ns_
     r = Restamper()
     out = [r(s) for s in (hour, hour + 100 * MS, hour + 200 * MS, 300 * MS, 400 * MS, 500 * MS)]
     assert out == [hour + k * 100 * MS for k in range(6)]
+    assert (r.reordered, r.stepped_back) == (0, 1)
+    r.begin_pass()  # a loop's new pass is no step of the recording's clock
+    r(hour)
+    assert r.stepped_back == 1
 
 @settings(max_examples=200, deadline=None)
 @given(

@@ -300,3 +300,13 @@ def test_a_looping_replay_stopped_counts_only_the_passes_that_published(frames: 
     after one frame had reported "1 frame(s) in 2 pass(es)". A pass stopped midway still counts (it published)."""
     stats = run_replay(memory(frames), ReplayPlan(rate=1.0, loop=True), Sink(), clock=StopsAfterSleeps(sleeps))
     assert stats.interrupted and (stats.published, stats.passes) == want
+
+
+def test_stamps_the_timeline_could_not_keep_are_counted_as_they_happen_and_in_the_stats() -> None:
+    """Out-of-order stamps (published 1 ns after the previous) and a clock stepping back had been fixed up in
+    silence: a bag replayed with its stamps rewritten gave no sign of it."""
+    frames = [scan(i, stamp_ns=stamp) for i, stamp in enumerate((0, 100 * MS, 50 * MS, 200 * MS, 10 * MS, 110 * MS))]
+    seen: list[str] = []
+    stats = run_replay(MemorySource(frames), ReplayPlan(rate=None), Sink(), clock=FakeClock(), on_restamped=seen.append)
+    assert seen == ["stamps_reordered", "stamps_stepped_back"]
+    assert (stats.reordered, stats.stepped_back) == (1, 1) and stats.as_dict()["reordered"] == 1

@@ -239,6 +239,10 @@ def _run(svc: Any, src: Any, plan: ReplayPlan, wait_s: float, progress: bool | N
     summary = (
         f"replayed {stats.published} frame(s) on {svc.key} in {stats.passes} pass(es)"
         f"; {stats.errors} unreadable" + (f"; {stats.late} late re-anchor(s)" if stats.late else "")
+        + (f"; {stats.reordered} stamp(s) not after the previous one, published 1 ns after it" if stats.reordered
+           else "")
+        + (f"; the recording's clock stepped back {stats.stepped_back} time(s), its timeline went on"
+           if stats.stepped_back else "")
         + (" (interrupted)" if stats.interrupted else "")
     )
     print(f"jitterguard: {summary}", file=sys.stderr)

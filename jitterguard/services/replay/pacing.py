@@ -127,6 +127,10 @@ class Restamper:
         self._diffs: list[int] = []
         self._new_pass = False
         self._default_period = default_period_ns
+        self.reordered = 0
+        """Stamps not after the previous one (out-of-order bag stamps), published 1 ns after it instead."""
+        self.stepped_back = 0
+        """Times the recording's clock stepped back by more than a period: the timeline went on as a new pass."""
 
     @property
     def period_ns(self) -> int:
@@ -144,12 +148,14 @@ class Restamper:
             self._offset = int(self._origin()) - stamp_ns
         if self._last_in is not None and self._last_in - stamp_ns > self.period_ns:  # the clock stepped back
             self._new_pass = True
+            self.stepped_back += 1
         if self._new_pass and self._last_out is not None:
             self._offset = self._last_out + self.period_ns - stamp_ns
             self._new_pass = False
         out = stamp_ns + self._offset
         if self._last_out is not None and out <= self._last_out:
             out = self._last_out + 1
+            self.reordered += 1
         out = max(out, 0)
         self._last_in = stamp_ns
         self._last_out = out

@@ -72,6 +72,10 @@ class ReplayStats:
     errors: int = 0
     passes: int = 0
     late: int = 0
+    reordered: int = 0
+    """Recorded stamps not after the previous one, published 1 ns after it."""
+    stepped_back: int = 0
+    """Times the recording's clock stepped back more than a frame period (the timeline went on as a new pass)."""
     last_seq: int = -1
     first_stamp_ns: int | None = None
     last_stamp_ns: int | None = None
@@ -85,6 +89,8 @@ class ReplayStats:
             "errors": self.errors,
             "passes": self.passes,
             "late": self.late,
+            "reordered": self.reordered,
+            "stepped_back": self.stepped_back,
             "last_seq": self.last_seq,
             "interrupted": self.interrupted,
             "stopped_by": str(self.stopped_by) if self.stopped_by else None,
@@ -122,12 +128,14 @@ def run_replay(
     on_published: Callable[[Frame, int], None] | None = None,
     wall_ns: Callable[[], int] = time.time_ns,
     on_late: Callable[[], None] | None = None,
+    on_restamped: Callable[[str], None] | None = None,
 ) -> ReplayStats:
     """Replay ``source`` through ``emit`` according to ``plan`` and return what happened.
 
     ``wall_ns`` is the wall clock that ``plan.stamps == 'wall'`` starts the timeline at (injectable for tests);
     ``on_late`` is called at each stall the pacer gave up catching up on (as it happens: a looping replay never
-    returns its stats).
+    returns its stats); ``on_restamped`` with ``stamps_reordered`` or ``stamps_stepped_back`` at each recorded stamp
+    the timeline could not keep (:class:`~.pacing.Restamper`), which had been fixed up without a word.
     Raises :class:`SourceError` if ``--start`` lies past the end of the recording (nothing to replay).
     """
     stop = stop or threading.Event()
@@ -159,9 +167,13 @@ def run_replay(
                     stats.stopped_by = item
                     stats.passes += 1
                     stats.late = pacer.late
+                    stats.reordered, stats.stepped_back = restamp.reordered, restamp.stepped_back
                     return stats
                 continue
+            fixes = (restamp.reordered, restamp.stepped_back)
             stamp = restamp(item.stamp_ns)
+            if on_restamped is not None and (restamp.reordered, restamp.stepped_back) != fixes:
+                on_restamped("stamps_reordered" if restamp.reordered != fixes[0] else "stamps_stepped_back")
             late_before = pacer.late
             if not pacer.wait(stamp):
                 stats.interrupted = True
@@ -195,4 +207,5 @@ def run_replay(
     else:
         stats.interrupted = True
     stats.late = pacer.late
+    stats.reordered, stats.stepped_back = restamp.reordered, restamp.stepped_back
     return stats

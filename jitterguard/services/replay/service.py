@@ -111,5 +111,6 @@ class ReplayService(Service):
 
         # "late" counted as it happens: a looping replay (the stack's) never returns its stats
         return run_replay(source, plan, self.emit, clock=clock, stop=self.stop_event, on_error=count_error,
-                          on_published=on_published, on_late=lambda: self.counters.inc("late"))
+                          on_published=on_published, on_late=lambda: self.counters.inc("late"),
+                          on_restamped=self.counters.inc)
 
