@@ -79,7 +79,8 @@ def router_config(listen: list[str], config_file: str | None = None) -> zenoh.Co
 
 
 def run_router(listen: list[str], config_file: str | None = None, stop: threading.Event | None = None) -> None:
-    """Serve until SIGINT/SIGTERM (or ``stop`` is set)."""
+    """Serve until SIGINT/SIGTERM (or ``stop`` is set). Raises :class:`UnusableConfig` when no wait would let it
+    listen (a TLS file zenoh rejects, an access-control policy it cannot read)."""
     stop = stop or threading.Event()
     stop_on_signals(stop.set)
     cfg = router_config(listen, config_file)
@@ -91,9 +92,8 @@ def run_router(listen: list[str], config_file: str | None = None, stop: threadin
         session = open_session(cfg, stop=stop, log=log, retry_if=_may_wait,
                                waiting_for=f"it can listen on {', '.join(listen_endpoints(cfg, 'router'))}",
                                on_retry=lambda: notifier.send("WATCHDOG=1"))
-    except UnusableConfig as exc:  # one line and exit 2, not a retry for ever
-        log.error("%s", exc)
-        raise SystemExit(2) from None
+    except UnusableConfig:  # the caller's one line and exit 2, not a retry for ever
+        raise
     except Exception:
         if stop.is_set():  # stopped while waiting for the port: a clean stop, not a traceback
             log.info("router stopped before it could listen")

@@ -172,7 +172,7 @@ class UnusableConfig(ValueError):
     key or certificate). Waiting for a router would hide it for ever."""
 
 
-UNUSABLE_MARKERS = ("No such file or directory", "Permission denied", "Invalid TLS")
+UNUSABLE_MARKERS = ("No such file or directory", "Permission denied", "Invalid TLS", "Missing TLS")
 """Words of zenoh's open error that no wait will cure (the router's TLS files are missing or unreadable)."""
 
 
@@ -190,6 +190,12 @@ def tls_file_refusal(cfg: zenoh.Config) -> str | None:
     endpoints = config_endpoints(cfg)
     if not any(e.startswith(("tls/", "quic/")) for e in endpoints):
         return None
+    tls_listen = [e for e in listen_endpoints(cfg) if e.startswith(("tls/", "quic/"))]
+    for key in ("listen_certificate", "listen_private_key"):  # zenoh's own "Missing TLS private key" came as a
+        if tls_listen and not _get(cfg, f"transport/link/tls/{key}") \
+                and not _get(cfg, f"transport/link/tls/{key}_base64"):  # log line after the session was tried
+            return (f"the listener {tls_listen[0]} needs transport/link/tls/{key} (its file) in the --zenoh-config"
+                    " file (see docs/deployment.md)")
     for key in TLS_FILE_KEYS:
         path = _get(cfg, f"transport/link/tls/{key}")
         if not isinstance(path, str) or not path:
