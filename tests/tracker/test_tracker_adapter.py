@@ -308,3 +308,24 @@ def test_tracked_object_carries_filter_state_and_world_twist() -> None:
         q = k.pose_with_covariance.pose.orientation
         assert math.cos(yaw_from_quaternion(q.x, q.y, q.z, q.w) - res.tracks.yaw[i]) == pytest.approx(1.0)
         assert o.shape.dimensions.x == pytest.approx(res.tracks.dims[i, 0])
+
+
+@pytest.mark.parametrize("var_yaw", [1e-300, 1e-20])
+def test_a_tiny_heading_variance_never_makes_a_tracked_frame_the_classifier_refuses(var_yaw: float) -> None:
+    """A detector's heading variance of 1e-20 is valid on the wire; taken as it was, the update rounded tracks'
+    heading variances below zero, and the classifier's reader refused each ``tracked`` frame carrying one (whole
+    frames lost, counted only downstream as ``rejected.tracked``). Floored, every frame reads."""
+    from jitterguard.schemas.wire import read_tracked_objects
+
+    frames = make_sequence(5, n_frames=80).frames
+    for sf in frames:
+        sf.detections.var_yaw[:] = var_yaw
+    core = TrackerCore()
+    published = 0
+    for sf in frames:
+        cols = read_detected_objects(encode(to_message(sf)))
+        frame = detection_frame(cols)
+        res = core.step(frame)
+        published += len(read_tracked_objects(tracked_payload(cols, frame, res)).objects)  # raises if refused
+        assert (np.diagonal(core.tracks.P, axis1=1, axis2=2) >= 0.0).all()
+    assert published > 100

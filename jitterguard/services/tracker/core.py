@@ -38,6 +38,10 @@ F64 = NDArray[np.float64]
 
 UNMEASURED_YAW_VAR = 1e6
 """Heading variance given to a detection without a usable heading: the update then leaves the heading alone."""
+MIN_MEASURED_YAW_VAR = 1e-6
+"""Floor on a detector's heading variance (rad², a σ of 1 mrad, finer than any detector's heading): a variance of
+1e-20 is valid on the wire, but the update's ``P − K H P`` then rounded a track's heading variance below zero, and
+the classifier's reader refused every ``tracked`` frame that carried it (9 of 60 frames lost, counted only there)."""
 
 
 MIN_LABEL_PROB = 1e-3
@@ -349,7 +353,8 @@ class TrackerCore:
                 R[use, 1, 1] = np.clip(ryy[use], floor, cap)
                 lim = 0.999 * np.sqrt(R[use, 0, 0] * R[use, 1, 1])  # keep it positive definite
                 R[use, 0, 1] = R[use, 1, 0] = np.clip(rxy[use], -lim, lim)
-                yaw_var = np.where(use & (f.var_yaw > 0.0), np.minimum(f.var_yaw, UNMEASURED_YAW_VAR), yaw_var)
+                yaw_var = np.where(use & (f.var_yaw > 0.0),
+                                   np.clip(f.var_yaw, MIN_MEASURED_YAW_VAR, UNMEASURED_YAW_VAR), yaw_var)
         R[:, 2, 2] = np.where(no_yaw, UNMEASURED_YAW_VAR, yaw_var)
         c, s = np.cos(f.ego_yaw), np.sin(f.ego_yaw)
         return WorldDetections(x=x, y=y, z=f.z + f.ego_z, yaw=yaw, cov_xx=cxx, cov_xy=cxy, cov_yy=cyy, R=R,
