@@ -393,3 +393,36 @@ def test_wire_text_in_a_rejection_cannot_forge_log_lines(zenoh_port, client_sess
         assert "\\x1b[2K" in lines[0]
     finally:
         svc.close()
+
+
+def test_a_zenoh_delete_is_counted_as_one_and_not_as_a_corrupt_payload(zenoh_port, client_session, caplog) -> None:
+    """``session.delete`` on an input key (a storage's or an admin tool's) had been counted ``rejected`` and logged
+    "not valid msgpack", as if a writer were broken; it is counted ``deletes.<key>`` — on a plain subscription (the
+    bridge's) and on a queued one (the tracker's) — and the next frame still goes through."""
+    tracker = TrackerService(loopback_options(NS, zenoh_port, listen_self=True))
+    sink = _Sink()
+    bridge = BridgeService(loopback_options(NS, zenoh_port), sink, points=False)
+    try:
+        tracked: list[bytes] = []
+        client_session.declare_subscriber(keys.tracked(NS), lambda s: tracked.append(s.payload.to_bytes()))
+        header = {"stamp": 1_700_000_000_000_000_000, "frame_id": "lidar", "seq": 0}
+
+        def frame() -> bool:
+            header["seq"] += 1
+            header["stamp"] += 100_000_000
+            before = len(tracked)
+            client_session.put(keys.detections(NS), encode(DetectedObjects(header=Header(**header))),
+                               congestion_control=BLOCK)
+            return wait_until(lambda: len(tracked) > before and bridge.counters.get("received") > 1, timeout=0.5)
+        assert wait_until(frame, timeout=15)
+        with caplog.at_level(logging.WARNING):
+            client_session.delete(keys.detections(NS))
+            assert wait_until(lambda: tracker.counters.get("deletes.detections") == 1
+                              and bridge.counters.get("deletes.detections") == 1, timeout=10), \
+                (tracker.counters.snapshot(), bridge.counters.snapshot())
+        assert tracker.counters.get("rejected") == 0 and bridge.counters.get("rejected") == 0
+        assert "msgpack" not in caplog.text
+        assert frame()  # the next frame goes through
+    finally:
+        bridge.close()
+        tracker.close()
