@@ -259,11 +259,11 @@ def read_track_observations(payloads: Sequence[bytes], limits: Limits = LIMITS,
         ok[i] = True
         normalised_at.append(i)
     beyond = _beyond(dets, limits, "detection.") + _beyond(tracks, limits, "track.", state=True)
-    if np.logical_or.reduce([bad for bad, _ in beyond]).any():
-        for bad, why in beyond:
+    if np.logical_or.reduce([bad for bad, _, _ in beyond]).any():
+        for bad, field, bound in beyond:
             for i in np.flatnonzero(bad & ok).tolist():
                 ok[i] = False
-                errors.append((i, LimitExceeded(TrackObservation.__name__, why, "beyond the configured limit")))
+                errors.append((i, LimitExceeded(TrackObservation.__name__, field, bound)))
     if key_ids is not None:
         for i, (key, tid) in enumerate(zip(key_ids, tracks["object_id"].tolist(), strict=True)):
             if ok[i] and key.encode() != tid:
@@ -538,20 +538,27 @@ def _box_area(r: np.ndarray) -> np.ndarray:
 
 
 def _beyond(records: np.ndarray, limits: Limits, prefix: str = "", *, state: bool = False
-            ) -> list[tuple[np.ndarray, str]]:
-    """Per bounded column, which records break its limit, and the field to name."""
+            ) -> list[tuple[np.ndarray, str, str]]:
+    """Per bounded column, which records break its limit, the field to name and the bound it breaks (a refusal
+    that said only "beyond the configured limit" had sent operators to ``max_variance`` for a covariance that broke
+    the correlation bound)."""
     if not len(records):
         return []
     if state:  # a TrackState: planar position, velocity and heading only
         pos, vel, cov, dims = ("x", "y"), ("vx", "vy"), (), ()
     else:
         pos, vel, cov, dims = (X, Y, Z), (VX, VY, VZ), (POSE_COV, TWIST_COV), (LENGTH, WIDTH, HEIGHT)
-    out = [(~(np.abs(records[c]) <= limits.max_abs_coordinate_m), prefix + c) for c in pos]
-    out += [(~(np.abs(records[c]) <= limits.max_dimension_m), prefix + c) for c in dims]
+    out = [(~(np.abs(records[c]) <= limits.max_abs_coordinate_m), prefix + c,
+            f"beyond max_abs_coordinate_m {limits.max_abs_coordinate_m:g}") for c in pos]
+    out += [(~(np.abs(records[c]) <= limits.max_dimension_m), prefix + c,
+             f"beyond max_dimension_m {limits.max_dimension_m:g}") for c in dims]
     if state:
-        out.append((~(np.abs(records["yaw"]) <= limits.max_abs_yaw_rad), prefix + "yaw"))
-    out += [(~(np.abs(records[c]) <= limits.max_abs_speed_mps), prefix + c) for c in vel]
-    out += [(~(np.abs(records[c]["v"]) <= limits.max_variance).all(axis=1), prefix + c) for c in cov]
+        out.append((~(np.abs(records["yaw"]) <= limits.max_abs_yaw_rad), prefix + "yaw",
+                    f"beyond max_abs_yaw_rad {limits.max_abs_yaw_rad:g}"))
+    out += [(~(np.abs(records[c]) <= limits.max_abs_speed_mps), prefix + c,
+             f"beyond max_abs_speed_mps {limits.max_abs_speed_mps:g}") for c in vel]
+    out += [(~(np.abs(records[c]["v"]) <= limits.max_variance).all(axis=1), prefix + c,
+             f"an entry beyond max_variance {limits.max_variance:g}") for c in cov]
     if math.isfinite(limits.max_correlation):
         for c in cov:
             v = records[c]["v"]
@@ -559,10 +566,12 @@ def _beyond(records: np.ndarray, limits: Limits, prefix: str = "", *, state: boo
             # plus a rounding allowance: a rank-1 covariance rotated onto an axis comes out as cxx 2, cyy 0,
             # cxy 2.2e-16, which the relative bound alone had refused (the tracker published what this refused)
             rounding = ROUNDING_ALLOWANCE * (np.abs(v[:, X_X]) + np.abs(v[:, Y_Y]))
-            out.append((~(np.abs(v[:, X_Y]) <= limits.max_correlation * spread + rounding), prefix + c))
+            out.append((~(np.abs(v[:, X_Y]) <= limits.max_correlation * spread + rounding), prefix + c,
+                        f"x-y covariance beyond max_correlation {limits.max_correlation:g} of sqrt(var_x var_y)"))
     if not state:
         out.append((~(np.abs(_lengths(records) - 1.0) <= limits.max_quaternion_error),
-                    f"{prefix}{_POSE}.pose.orientation"))
+                    f"{prefix}{_POSE}.pose.orientation",
+                    f"not a unit quaternion (max_quaternion_error {limits.max_quaternion_error:g})"))
     return out
 
 
@@ -576,7 +585,7 @@ def within_limits(records: np.ndarray, limits: Limits = LIMITS) -> np.ndarray:
     whole frame for one that does not): the writer's side of the same rule, e.g. the detector dropping a box a
     stray return drove beyond ``max_variance`` rather than losing the frame."""
     beyond = _beyond(records, limits)
-    return ~np.logical_or.reduce([bad for bad, _ in beyond]) if beyond else np.ones(len(records), dtype=bool)
+    return ~np.logical_or.reduce([bad for bad, _, _ in beyond]) if beyond else np.ones(len(records), dtype=bool)
 
 
 def _lengths(records: np.ndarray) -> np.ndarray:
@@ -599,7 +608,7 @@ def check_pose(name: str, field: str, pose: Pose, limits: Limits = LIMITS) -> No
 
 def _check_objects(name: str, objects: np.ndarray, limits: Limits, ego_pose: Pose) -> None:
     check_pose(name, "ego_pose", ego_pose, limits)
-    for bad, field in _beyond(objects, limits):
+    for bad, field, bound in _beyond(objects, limits):
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
-            raise LimitExceeded(name, f"objects.{i}.{field}", "beyond the configured limit (see Limits)")
+            raise LimitExceeded(name, f"objects.{i}.{field}", bound)

@@ -439,19 +439,26 @@ def test_oversized_payloads_are_refused_from_their_headers():
         wire.read_detected_objects(huge)
 
 
-@pytest.mark.parametrize(("path", "value", "field"), [
-    (["objects", 0, "kinematics", "pose_with_covariance", "pose", "position", "x"], 1e300, "position.x"),
-    (["objects", 1, "kinematics", "pose_with_covariance", "covariance"], [0.0] * 7 + [1e9] + [0.0] * 28, "covariance"),
-    (["objects", 0, "kinematics", "twist_with_covariance", "twist", "linear", "y"], -5e3, "linear.y"),
-    (["ego_pose", "position", "y"], 2e7, "ego_pose.position"),
-    (["objects", 1, "shape", "dimensions", "x"], 1e300, "shape.dimensions.x"),  # had overflowed areas and IoUs
-    (["objects", 0, "shape", "dimensions", "z"], -2e3, "shape.dimensions.z"),
+@pytest.mark.parametrize(("path", "value", "field", "bound"), [
+    (["objects", 0, "kinematics", "pose_with_covariance", "pose", "position", "x"], 1e300, "position.x",
+     "max_abs_coordinate_m"),
+    (["objects", 1, "kinematics", "pose_with_covariance", "covariance"], [0.0] * 7 + [1e9] + [0.0] * 28, "covariance",
+     "an entry beyond max_variance"),
+    # a correlation past 1 with small variances: the message had named no bound, and sent operators to max_variance
+    (["objects", 1, "kinematics", "pose_with_covariance", "covariance"], [1.0, 50.0] + [0.0] * 4 + [50.0, 1.0]
+     + [0.0] * 28, "covariance", "x-y covariance beyond max_correlation"),
+    (["objects", 0, "kinematics", "twist_with_covariance", "twist", "linear", "y"], -5e3, "linear.y",
+     "max_abs_speed_mps"),
+    (["ego_pose", "position", "y"], 2e7, "ego_pose.position", "max_abs_coordinate_m"),
+    (["objects", 1, "shape", "dimensions", "x"], 1e300, "shape.dimensions.x", "max_dimension_m"),  # had overflowed
+    (["objects", 0, "shape", "dimensions", "z"], -2e3, "shape.dimensions.z", "max_dimension_m"),  # areas and IoUs
 ])
-def test_coordinates_variances_and_speeds_beyond_the_limits_are_refused(path, value, field):
+def test_coordinates_variances_and_speeds_beyond_the_limits_are_refused_naming_the_bound(path, value, field, bound):
     payload = _mutate(_rich_tracked(odd=False), path, value)
     decode(TrackedObjects, payload)  # valid for the model...
-    with pytest.raises(wire.LimitExceeded, match=field):  # ...but beyond what any real sensor reports
+    with pytest.raises(wire.LimitExceeded, match=field) as err:  # ...but beyond what any real sensor reports
         wire.read_tracked_objects(payload)
+    assert bound in str(err.value)
 
 
 def test_a_track_state_heading_beyond_the_limit_and_a_repeated_track_are_refused():
