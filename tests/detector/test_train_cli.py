@@ -74,9 +74,12 @@ def test_tiny_training_run_writes_weights_history_and_report(tmp_path: Path) -> 
     out = tmp_path / "run"
     res = _jg("train", "--out", str(out), "--scenarios", "parking-street", "--train-seeds", "0",
               "--val-seeds", "1", "--frames-per-scenario", "2", "--epochs", "1", "--batch-size", "2",
-              "--threads", "1", "--no-progress")
+              "--threads", "1", "--progress")
     assert res.returncode == 0, res.stderr[-2000:]
-    summary = json.loads(res.stdout.strip().splitlines()[-1])
+    # with the bar drawn (as on a terminal) its epoch line goes beside it to stderr: stdout had begun with
+    # "epoch 1/1: loss …" before the JSON, so `train … > result.json` wrote a file no JSON reader opened
+    summary = json.loads(res.stdout)
+    assert "epoch 1/1:" in res.stderr
     assert summary["epochs"] == 1 and Path(summary["weights"]).is_file()
     history = json.loads((out / "history.json").read_text())
     assert len(history) == 1 and history[0]["loss"] > 0 and "mAP" in history[0]["eval"]

@@ -406,7 +406,7 @@ def train(model: CenterPointNet, train_samples: Sequence[Sample], val_samples: S
         dc.barrier()
         log.info("epoch %d: %s", epoch + 1, _summary(record))
         if bar is not None:
-            bar.write(f"epoch {epoch + 1}/{tcfg.epochs}: {_summary(record)}")
+            bar.write(f"epoch {epoch + 1}/{tcfg.epochs}: {_summary(record)}", file=sys.stderr)  # stdout: the JSON
     if bar is not None:
         bar.close()
     if state.epoch < tcfg.epochs:
