@@ -64,7 +64,7 @@ def check_tracks_fit(tracks: int) -> None:
 
     if tracks > LIMITS.max_objects:
         fail(f"--tracks {tracks} exceeds the classifier's limits.max_objects {LIMITS.max_objects}: every frame"
-             " would be refused")
+             " would be refused")  # bench sidecar: --state-source synthetic serves more, without a classifier
 
 
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 - only bench commands here
@@ -231,7 +231,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
     @bench_app.command("sidecar")
     def bench_sidecar(
         as_json: Annotated[bool, typer.Option("--json", help="Print the result as JSON only.")] = False,
-        tracks: Annotated[str, typer.Option("--tracks", help="Live tracks in every frame.")] = "500",
+        tracks: Annotated[str, typer.Option("--tracks", help="Live tracks in every frame (with the pipeline at most the classifier's limits.max_objects, 1000; up to 20000 with --state-source synthetic).")] = "500",
         rate: Annotated[str, typer.Option("--rate", help="Pipeline frame rate, Hz.")] = "20",
         duration: Annotated[str, typer.Option("--duration", help="Measured seconds.")] = "15",
         warmup: Annotated[str, typer.Option("--warmup", help="Seconds of load before measuring.")] = "3",
@@ -254,7 +254,13 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             warmup_s=parse_float("--warmup", warmup, 0.0, 600.0),
             request_rate_hz=parse_float("--request-rate", request_rate, 0.0, 10_000.0),
             seed=check_seed("--seed", parse_int("--seed", seed, -(2**31), 2**31 - 1)), state_source=state_source)
-        result = run_bench(params)
+        if state_source == "pipeline":  # the classifier refuses a frame of more (`--state-source synthetic` has none)
+            check_tracks_fit(params.tracks)  # it had waited 120 s for tracks that never came, then a traceback
+        try:
+            result = run_bench(params)
+        except RuntimeError as exc:
+            print(f"jitterguard: error: bench failed: {exc}", file=sys.stderr)
+            raise typer.Exit(1) from None
         if as_json:
             print(json.dumps(result, indent=2))
         else:

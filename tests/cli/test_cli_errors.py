@@ -199,6 +199,7 @@ def test_a_folder_where_an_output_file_goes_is_refused_before_any_work(args, blo
     # a flag kept as text (parse_float) is checked as float_option's are: nan had been "nan is outside 0.5-100"
     (["bench", "sidecar", "--rate", "nan"], "--rate: 'nan' is not a number"),
     (["bench", "sidecar", "--duration", "inf"], "--duration: 'inf' is not a finite number"),
+    (["bench", "sidecar", "--tracks", "1500"], "--tracks 1500 exceeds the classifier's limits.max_objects 1000"),  # had waited 120 s
     (["status", "--listen-s", "0.01"], "--listen-s: 0.01 is outside 0.1-60"),
     (["bench", "replay", "--points", "10000000000", "--repeat", "1"], "--points: 10000000000 is more than"),
     (["bench", "replay", "--frames", "99999999999", "--repeat", "1"], "--frames: 99999999999 is more than"),
