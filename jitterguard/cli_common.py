@@ -112,6 +112,18 @@ def fail(message: str) -> NoReturn:
     raise SystemExit(2)
 
 
+def refuse_given(ctx: typer.Context, params: Iterable[str], why: str) -> None:
+    """One line and exit 2 if any of ``params`` (the command's parameter names) was given on the command line or
+    through its environment variable, not left at its default: a flag the chosen mode does not read (``train
+    --nuscenes … --train-seeds 5``) had been ignored without a word. ``why`` ends the line ("… does not apply WHY")."""
+    flags = {p.name: (p.opts[0] if p.opts else p.name) for p in ctx.command.params}
+    # by name: typer carries its own copy of click, whose ParameterSource is not click's
+    given = [flags.get(name, name) for name in params
+             if getattr(ctx.get_parameter_source(name), "name", None) in ("COMMANDLINE", "ENVIRONMENT")]
+    if given:
+        fail(f"{', '.join(given)} {'does' if len(given) == 1 else 'do'} not apply {why}")
+
+
 def parse_float(flag: str, text: str, lo: float, hi: float) -> float:
     """``text`` as a finite number in [lo, hi], or a one-line error naming ``flag`` (exit 2): the check of
     :func:`float_option`, for a value read from text of the command's own (a list, a range)."""

@@ -14,7 +14,8 @@ from typing import Annotated
 
 import typer
 
-from ..cli_common import ProgressOpt, check_seed, fail, float_option, out_dir, parse_float, parse_int, parse_seeds, progress_on
+from ..cli_common import (ProgressOpt, check_seed, fail, float_option, out_dir, parse_float, parse_int, parse_seeds,
+                          progress_on, refuse_given)
 from ..services.detector.cli import ThreadsOpt, _one_line, passive_openmp
 from ..services.detector.config import PRESETS
 from ..services.replay.frames import SourceError
@@ -340,6 +341,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
 
 
 def bench_replay_cmd(
+    ctx: typer.Context,
     json_out: Annotated[bool, typer.Option("--json", help="Print the figures as one JSON object (the default output).")] = True,
     frames: Annotated[int, typer.Option("--frames", help="Scans to publish.")] = 600,
     points: Annotated[int, typer.Option("--points", help="Points per in-memory scan.")] = 35_000,
@@ -354,6 +356,8 @@ def bench_replay_cmd(
         fail(f"--frames: {frames} is more than {MAX_REPLAY_FRAMES:,} scans")
     if points > MAX_REPLAY_POINTS:
         fail(f"--points: {points} is more than {MAX_REPLAY_POINTS:,}, the detector's largest scan (max_scan_bytes)")
+    if source is not None:  # a recording's scans have their own points: it had been ignored without a word
+        refuse_given(ctx, ("points",), "to --source (the recording's scans are replayed as recorded)")
     from .replay import bench_replay_repeated
 
     try:

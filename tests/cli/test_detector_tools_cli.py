@@ -64,6 +64,16 @@ def test_a_failed_sim_export_leaves_no_half_written_dataroot(tmp_path):
     (["eval-detector", "--out", "{out}", "--weights", str(LITE), "--preset", "paper"], "--preset: 'paper' contradicts"),
     # the synthetic hold-out is scored whole: the flag had been ignored without a word
     (["eval-detector", "--out", "{out}", "--holdout-last", "3"], "--holdout-last: only with --nuscenes"),
+    # flags of the other data source, each ignored without a word before (the probe's runs exited 0)
+    (["eval-detector", "--out", "{out}", "--nuscenes", "{tmp}", "--seeds", "1001", "--effects", "random"],
+     "--seeds, --effects do not apply to --nuscenes"),
+    (["train", "--out", "{out}", "--nuscenes", "{tmp}", "--train-seeds", "5", "--frames-per-scenario", "3"],
+     "--train-seeds, --frames-per-scenario do not apply to a --nuscenes run"),
+    (["train", "--out", "{out}", "--holdout-last", "3"], "--holdout-last does not apply without --nuscenes"),
+    (["train", "--out", "{out}", "--nuscenes-version", "v1.0-mini"], "--nuscenes-version does not apply without"),
+    (["train", "--out", "{out}", "--recalibration-bins", "3"], "--recalibration-bins does not apply without"
+     " --fit-recalibration"),
+    (["bench", "replay", "--source", "{tmp}", "--points", "50"], "--points does not apply to --source"),
     (["recalibrate-detector", "--weights", str(LITE), "--out", "{out}", "--effects", "bogus"], "--effects: unknown"),
     (["adapt", "--weights", str(LITE), "--out", "{out}", "--scans", "/nonexistent", "--recalibration", "x"],
      "--recalibration: expected one of"),
@@ -71,7 +81,7 @@ def test_a_failed_sim_export_leaves_no_half_written_dataroot(tmp_path):
 ])
 def test_bad_input_leaves_no_output_folder_behind(args, needle, tmp_path):
     out = tmp_path / "out"
-    res = run([a.replace("{out}", str(out)) for a in args])
+    res = run([a.replace("{out}", str(out)).replace("{tmp}", str(tmp_path)) for a in args])
     one_line_exit_2(res, needle)
     assert not out.exists()
 

@@ -21,7 +21,7 @@ from typing import Annotated, Any
 import typer
 
 from ...cli_common import (ProgressOpt, SensorHeightOpt, SensorTiltOpt, fail, float_option, out_dir, out_files,
-                           parse_seeds, progress_on, sensor_height_option, sensor_tilt_option)
+                           parse_seeds, progress_on, refuse_given, sensor_height_option, sensor_tilt_option)
 from ...files import not_a_file, not_a_folder
 from .augment import CENTERPOINT_SAMPLE_COUNTS
 from .config import CLASS_NAMES, PRESETS
@@ -310,6 +310,7 @@ def fit_synthetic_recalibration(det: Any, root: Path, scenarios: list[str], seed
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 - no benchmark here
     @app.command("train")
     def train_cmd(
+        ctx: typer.Context,
         out: Annotated[str, typer.Option("--out", help="Run folder: caches, checkpoint.pt, history.json, weights.pt.")],
         preset: Annotated[str | None, typer.Option("--preset", help=f"Architecture: {', '.join(PRESETS)} (default"
                                                    " lite); with --init only the init weights' own.")] = None,
@@ -420,6 +421,16 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         distill_weight = 1.0 if distill_weight is None else distill_weight
         if (split or val_split) and nuscenes is None:
             fail("--split/--val-split: need --nuscenes")
+        # flags of the other data source: each had been ignored without a word
+        if nuscenes is not None:
+            refuse_given(ctx, ("scenarios", "train_seeds", "val_seeds", "frames", "effects"),
+                         "to a --nuscenes run (its scenes are the data; these choose synthetic scans)")
+        else:
+            refuse_given(ctx, ("nuscenes_version", "holdout_last"), "without --nuscenes")
+        if split:
+            refuse_given(ctx, ("holdout_last",), "with --split (the official split says what is held out)")
+        if not fit_recalibration:
+            refuse_given(ctx, ("recalibration_bins",), "without --fit-recalibration")
         if val_split and not split:
             fail("--val-split: needs --split")
         split_scenes = _split_scenes(split, "--split") if split else None
@@ -796,6 +807,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
 
     @app.command("eval-detector")
     def eval_detector_cmd(
+        ctx: typer.Context,
         out: Annotated[str, typer.Option("--out", help="Folder for the JSON report and the PR/calibration PNGs;"
                                          " synthetic scans are cast into a cache-HASH folder there (about 0.5 MB a"
                                          " scan), which a rerun with the same scans reuses.")],
@@ -852,6 +864,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             fail(f"--nuscenes: {why}")
         if holdout_last is not None and nuscenes is None:  # it had been ignored without a word
             fail("--holdout-last: only with --nuscenes (synthetic hold-out seeds are scored whole)")
+        if nuscenes is not None:  # the synthetic hold-out's flags: ignored without a word too
+            refuse_given(ctx, ("scenarios", "seeds", "frames", "effects"),
+                         "to --nuscenes (its key frames are scored; these choose synthetic hold-out scans)")
         height, tilt = sensor_height_option(sensor_height), sensor_tilt_option(sensor_tilt)
         from .cli import passive_openmp
 
