@@ -56,6 +56,7 @@ if ! $LAUNCH train --out "$W/probe" $DATA --init $SHIPPED --lr 1e-3 --epochs 1 -
      --workers "$NCPU" $AMP; then
   echo "!! torchrun + AMP probe failed at $(el)s: falling back to one plain process without AMP"
   LAUNCH=$JG; AMP=--no-amp
+  rm -f "$W/probe/checkpoint.pt"  # the failed probe's (train refuses to start afresh over a run); its caches stay
   $LAUNCH train --out "$W/probe" $DATA --init $SHIPPED --lr 1e-3 --epochs 1 --max-steps-per-epoch $PSTEPS \
      --workers "$NCPU" $AMP || { echo "!! probe failed twice"; exit 1; }
 fi

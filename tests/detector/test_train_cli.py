@@ -356,3 +356,16 @@ def test_a_cache_of_another_worlds_scans_is_cast_anew(tmp_path: Path, monkeypatc
     monkeypatch.setattr(world, "WORLD_VERSION", world.WORLD_VERSION + 1)
     newer = synthetic_cache(tmp_path, ["parking-street"], [7], 1, False)
     assert len(list(tmp_path.glob("cache-*"))) == 2 and newer.meta["recipe"]["world_version"] == world.WORLD_VERSION
+
+
+def test_a_run_folder_holding_a_checkpoint_is_not_started_over_without_resume(tmp_path: Path) -> None:
+    """Forgetting --resume had replaced an interrupted run's checkpoint, history and weights without a word."""
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "checkpoint.pt").write_bytes(b"an earlier run's")
+    res = _jg("train", "--out", str(out), "--scenarios", "parking-street", "--train-seeds", "0", "--val-seeds", "1",
+              "--frames-per-scenario", "1", "--epochs", "1", "--threads", "1", "--no-progress")
+    lines = res.stderr.strip().splitlines()
+    assert res.returncode == 2 and len(lines) == 1 and "--resume continues it" in lines[0], res.stderr
+    assert (out / "checkpoint.pt").read_bytes() == b"an earlier run's" and sorted(p.name for p in out.iterdir()) == [
+        "checkpoint.pt"]

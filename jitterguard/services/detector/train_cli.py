@@ -447,6 +447,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                                   lambda v: 0 <= v <= 100, "N", " and 0 ≤ N ≤ 100")
         if not resume:  # a resumed run reads its checkpoint, not --init, and writes the same weights.pt again
             check_not_overwritten("--init", init, out)
+            if os.path.isfile(os.path.join(out, "checkpoint.pt")):  # an interrupted run's, had been replaced unasked
+                fail(f"--out: {out} holds a training run (checkpoint.pt): --resume continues it; to start afresh,"
+                     " give another --out or remove that folder")
         elif os.path.isfile(os.path.join(out, "checkpoint.pt")):  # before the data are prepared: minutes of work
             from .train import CheckpointError, read_checkpoint
 
