@@ -112,6 +112,31 @@ def fail(message: str) -> NoReturn:
     raise SystemExit(2)
 
 
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+"""The first eight bytes of every PNG: what a command writing pictures replaces without asking."""
+
+
+def refuse_foreign_file(flag: str, out: str | os.PathLike[str], is_ours: Callable[[bytes], bool], what: str) -> None:
+    """One line and exit 2 when ``out`` is a file that holds something else than this command's kind of output
+    (``is_ours`` judges its first 4 KB): re-running a command replaces its earlier output, but a typo'd ``--out``
+    must not overwrite a user's notes or config (``sim generate --out notes.txt`` had). An empty file, a device
+    (``/dev/stdout``) or a file that cannot be read is not judged."""
+    path = Path(out)
+    try:
+        if not path.is_file() or path.stat().st_size == 0:
+            return
+        with open(path, "rb") as f:
+            head = f.read(4096)
+    except OSError:
+        return  # what cannot be read is not ours to judge: writing it says what is wrong
+    if not is_ours(head):
+        fail(f"{flag}: {out} exists and is not {what}; give a new name or remove it first")
+
+
+def is_png(head: bytes) -> bool:
+    return head.startswith(PNG_SIGNATURE)
+
+
 def refuse_given(ctx: typer.Context, params: Iterable[str], why: str) -> None:
     """One line and exit 2 if any of ``params`` (the command's parameter names) was given on the command line or
     through its environment variable, not left at its default: a flag the chosen mode does not read (``train

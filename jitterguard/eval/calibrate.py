@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 import typer
 from pydantic import ValidationError
 
-from ..cli_common import check_seed, fail, out_file, progress_on
+from ..cli_common import check_seed, fail, out_file, progress_on, refuse_foreign_file
 from ..schemas.models import ClassifierConfig
 
 if TYPE_CHECKING:
@@ -98,19 +98,9 @@ def recording_detections(source: Any, detector: Any, start: int, limit: int | No
 CALIBRATION_FORMAT_LINE = b"format: jitterguard-calibration/"
 
 
-def refuse_foreign_file(out: Path) -> None:
-    """One line and exit 2 when ``out`` exists and holds something else than a calibration file: re-running
-    ``calibrate`` replaces its earlier output, but a typo'd ``--out`` must not overwrite a user's config or notes
-    (an empty file holds nothing to lose)."""
-    try:
-        if not out.is_file() or out.stat().st_size == 0:
-            return
-        with open(out, "rb") as f:
-            head = f.read(4096)
-    except OSError:
-        return  # out_file has checked that it can be written; what cannot be read is not ours to judge
-    if not any(line.strip().startswith(CALIBRATION_FORMAT_LINE) for line in head.splitlines()):
-        fail(f"--out: {out} exists and is not a calibration file; give a new name or remove it first")
+def is_calibration_file(head: bytes) -> bool:
+    """Whether a file's first bytes are a calibration file's (re-running ``calibrate`` replaces its own output)."""
+    return any(line.strip().startswith(CALIBRATION_FORMAT_LINE) for line in head.splitlines())
 
 
 def calibrate_command(
@@ -147,7 +137,7 @@ def calibrate_command(
     if not recording.strip():  # Path("") is the current folder: ".: cannot tell what this folder is" named nothing
         fail("RECORDING: empty path; give a recording")
     out_path = out_file("--out", out)  # before the pass over the recording, not after it (a str: Path("") is ".")
-    refuse_foreign_file(out_path)
+    refuse_foreign_file("--out", out_path, is_calibration_file, "a calibration file")
     from ..services.classifier.calibration_file import write_calibration
     from ..services.replay.frames import SourceError
     from ..services.replay.sources import SourceOptions, open_source

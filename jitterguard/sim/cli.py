@@ -17,7 +17,7 @@ from typing import Annotated, Any, TextIO
 
 import typer
 
-from ..cli_common import ProgressOpt, check_seed, fail, out_file, progress_on
+from ..cli_common import ProgressOpt, check_seed, fail, is_png, out_file, progress_on, refuse_foreign_file
 
 sim_app = typer.Typer(help="Synthetic world: scenarios with ground truth, ray-cast LiDAR, nuScenes export.",
                       no_args_is_help=True)
@@ -118,6 +118,9 @@ def generate_command(
     spec = SENSORS[lidar]() if lidar else None
     attrs: Counter[str] = Counter()
     ids: set[int] = set()
+    if out:  # its own JSON lines are replaced; a user's notes are not
+        refuse_foreign_file("--out", out, lambda head: head.startswith(b'{"seq": '), "ground truth written by"
+                            " `sim generate`")
     fh, part = _open_out(out) if out else (None, None)
     try:
         frames = _bar(iter(sc), sc.num_frames, scenario, progress_on(progress))
@@ -226,6 +229,7 @@ def bev_command(
         fail("--extent must be in [5, 200] metres")
     if not out.lower().endswith(".png"):
         fail("--out must name a .png file")
+    refuse_foreign_file("--out", out, is_png, "a PNG")
     out_file("--out", out)  # before the ray-cast: it had failed only when the PNG was saved
     from .bev import render_bev
     from .lidar import cast_frame

@@ -97,7 +97,8 @@ def test_a_write_failing_halfway_leaves_the_old_file_and_no_partial_one(tmp_path
     from jitterguard.sim import cli as sim_cli
 
     path = tmp_path / "gt.jsonl"
-    path.write_text("previous run\n")
+    previous = '{"seq": 0, "stamp_ns": 0, "objects": []}\n'  # an earlier run's ground truth
+    path.write_text(previous)
 
     class FillsUp:
         """A file whose third write finds the disk full."""
@@ -120,7 +121,7 @@ def test_a_write_failing_halfway_leaves_the_old_file_and_no_partial_one(tmp_path
     assert r.exit_code == 2, r.output
     lines = [ln for ln in r.output.splitlines() if ln.strip()]
     assert len(lines) == 1 and "cannot write" in lines[0] and "No space left" in lines[0]
-    assert path.read_text() == "previous run\n"
+    assert path.read_text() == previous
     assert sorted(p.name for p in tmp_path.iterdir()) == ["gt.jsonl"]
     monkeypatch.delattr(sim_cli, "open")
     r = run("sim", "generate", "mixed", "--seed", "1", "--duration", "1", "--rate", "5", "--out", str(path),
@@ -128,3 +129,23 @@ def test_a_write_failing_halfway_leaves_the_old_file_and_no_partial_one(tmp_path
     assert r.exit_code == 0, r.output
     assert len(path.read_text().splitlines()) == 5
     assert sorted(p.name for p in tmp_path.iterdir()) == ["gt.jsonl"]
+
+
+def test_an_out_file_of_another_kind_is_refused_and_the_commands_own_is_replaced(tmp_path) -> None:
+    """`sim generate --out notes.txt` and `sim bev --out mine.png` had overwritten whatever was there; a file holding
+    something else than the command's kind of output is refused now, its own earlier output still replaced."""
+    notes = tmp_path / "notes.txt"
+    notes.write_text("my notes\n")
+    r = run("sim", "generate", "mixed", "--duration", "0.5", "--out", str(notes), "--no-progress")
+    assert r.exit_code == 2 and "exists and is not ground truth written by `sim generate`" in r.output, r.output
+    assert notes.read_text() == "my notes\n"
+    gt = tmp_path / "gt.jsonl"
+    for seed in ("1", "2"):  # the second run replaces the first's lines
+        r = run("sim", "generate", "mixed", "--seed", seed, "--duration", "0.5", "--out", str(gt), "--no-progress")
+        assert r.exit_code == 0, r.output
+    assert len(gt.read_text().splitlines()) == 5
+    picture = tmp_path / "mine.png"
+    picture.write_text("not a picture\n")
+    r = run("sim", "bev", "mixed", "--duration", "0.5", "--out", str(picture))
+    assert r.exit_code == 2 and "exists and is not a PNG" in r.output, r.output
+    assert picture.read_text() == "not a picture\n"

@@ -7,7 +7,8 @@ from typing import Annotated
 
 import typer
 
-from ...cli_common import ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ZenohConfigOpt, fail, float_option, out_file, zenoh_options
+from ...cli_common import (ConnectOpt, ListenOpt, LogLevelOpt, NsOpt, ZenohConfigOpt, fail, float_option, is_png, out_file,
+                          refuse_foreign_file, zenoh_options)
 
 EXAMPLES = """
 Examples:\n
@@ -105,6 +106,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             fail(f"{mcap}: no such file")
         if not out.lower().endswith(".png"):  # matplotlib would pick the format by the suffix, or add one
             fail("--out must name a .png file")
+        refuse_foreign_file("--out", out, is_png, "a PNG")
         out_file("--out", out)
         from .render import RenderError, pick_frame, read_frames, render
 
