@@ -206,20 +206,26 @@ def check_seed(flag: str, value: int) -> int:
     return value
 
 
-def parse_seeds(text: str, flag: str) -> list[int]:
-    """``"0-49"``, ``"3,5,9"`` or a mix (``"0-9,100"``) → sorted unique ints; exit 2 naming ``flag`` otherwise
-    (numpy's SeedSequence takes no negative seed, and an empty list would score nothing)."""
+def seed_range(text: str) -> set[int]:
+    """``"0-49"``, ``"3,5,9"`` or a mix (``"0-9,100"``) → the seeds; ``ValueError`` for anything else."""
     seeds: set[int] = set()
+    for part in (p.strip() for p in text.split(",") if p.strip()):
+        lo, sep, hi = part.partition("-")
+        if sep:
+            a, b = int(lo), int(hi)
+            if b < a or b - a > 100_000:
+                raise ValueError(text)
+            seeds.update(range(a, b + 1))
+        else:
+            seeds.add(int(part))
+    return seeds
+
+
+def parse_seeds(text: str, flag: str) -> list[int]:
+    """:func:`seed_range` as sorted unique ints; exit 2 naming ``flag`` otherwise (numpy's SeedSequence takes no
+    negative seed, and an empty list would score nothing)."""
     try:
-        for part in (p.strip() for p in text.split(",") if p.strip()):
-            lo, sep, hi = part.partition("-")
-            if sep:
-                a, b = int(lo), int(hi)
-                if b < a or b - a > 100_000:
-                    raise ValueError
-                seeds.update(range(a, b + 1))
-            else:
-                seeds.add(int(part))
+        seeds = seed_range(text)
     except ValueError:
         fail(f"{flag}: expected seeds like 0-49 or 1,2,3 (non-negative), got {text!r}")
     if not seeds:

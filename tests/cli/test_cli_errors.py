@@ -160,7 +160,7 @@ def test_an_output_that_cannot_be_written_is_refused_before_any_work(args, needl
     # the detector's tools wrote their reports after the work too
     (["eval-detector", "--seeds", "1000"], "holdout_pr.png"),
     (["train", "--train-seeds", "0", "--val-seeds", "900", "--epochs", "1"], "history.json"),
-    (["recalibrate-detector", "--weights", str(SHIPPED_WEIGHTS), "--seeds", "20"], "recalibration.json"),
+    (["recalibrate-detector", "--weights", str(SHIPPED_WEIGHTS), "--seeds", "60"], "recalibration.json"),
 ])
 def test_a_folder_where_an_output_file_goes_is_refused_before_any_work(args, blocked, tmp_path):
     """`eval --out X` with a folder X/report.md had run the whole evaluation, written metrics.json and the figures,

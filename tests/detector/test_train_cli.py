@@ -174,7 +174,7 @@ def test_recalibrate_detector_refits_only_the_variance_scales(tmp_path: Path) ->
     src = shipped_weights("lite")
     out = tmp_path / "rc"
     res = _jg("recalibrate-detector", "--weights", str(src), "--out", str(out), "--scenarios", "parking-street",
-              "--seeds", "40-41", "--frames-per-scenario", "4", "--effects", "none+random", "--bins", "2",
+              "--seeds", "60-61", "--frames-per-scenario", "4", "--effects", "none+random", "--bins", "2",
               "--threads", "1", "--workers", "2", "--no-progress")  # the scans ray-cast in two processes
     assert res.returncode == 0, res.stderr[-2000:]
     report = json.loads(res.stdout.strip().splitlines()[-1])
@@ -183,7 +183,7 @@ def test_recalibrate_detector_refits_only_the_variance_scales(tmp_path: Path) ->
         assert (a == b).all(), name
     rec = after[1]
     assert rec is not None and rec.to_payload() == report["recalibration"]
-    assert after[2]["recalibration_fit_on"]["scans"] == 16 and after[2]["recalibration_fit_on"]["seeds"] == "40-41"
+    assert after[2]["recalibration_fit_on"]["scans"] == 16 and after[2]["recalibration_fit_on"]["seeds"] == "60-61"
     assert after[2]["recalibrated_from"]["path"] == str(src)
     # fitted on these scans, the NLL there cannot get worse than with the raw variances
     assert report["after"]["nll"] <= report["before"]["nll"]
@@ -196,7 +196,7 @@ def test_a_recalibration_fitted_on_too_few_matches_says_so(tmp_path: Path) -> No
     from jitterguard.services.detector.inference import shipped_weights
 
     res = _jg("recalibrate-detector", "--weights", str(shipped_weights("lite")), "--out", str(tmp_path / "rc"),
-              "--scenarios", "parking-street", "--seeds", "20", "--frames-per-scenario", "1", "--effects", "none",
+              "--scenarios", "parking-street", "--seeds", "60", "--frames-per-scenario", "1", "--effects", "none",
               "--bins", "5", "--threads", "1", "--no-progress")
     assert res.returncode == 0, res.stderr[-2000:]
     fit_on = load_weights(tmp_path / "rc" / "weights.pt")[2]["recalibration_fit_on"]
@@ -369,3 +369,14 @@ def test_a_run_folder_holding_a_checkpoint_is_not_started_over_without_resume(tm
     assert res.returncode == 2 and len(lines) == 1 and "--resume continues it" in lines[0], res.stderr
     assert (out / "checkpoint.pt").read_bytes() == b"an earlier run's" and sorted(p.name for p in out.iterdir()) == [
         "checkpoint.pt"]
+
+
+def test_the_seeds_a_weights_file_learnt_are_read_along_its_lineage_and_recipe() -> None:
+    from jitterguard.services.detector.inference import shipped_weights
+    from jitterguard.services.detector.provenance import trained_seeds
+
+    assert trained_seeds(load_weights(shipped_weights("lite"))[2]) == set(range(60))  # 0-49, 0-19, 20-39, 40-59
+    meta = {"source": {"train_seeds": "5-6"}, "command": "jitterguard train --train-seeds 8",
+            "init_provenance": {"source": {"train_seeds": "1,3"}}}
+    assert trained_seeds(meta) == {1, 3, 5, 6, 8}
+    assert trained_seeds({"source": {"train_seeds": "garbled"}}) == set()

@@ -12,6 +12,7 @@ Pure: metadata and scene names in, an answer out; the devkit's split tables are 
 
 from __future__ import annotations
 
+import re
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
@@ -84,3 +85,39 @@ def adapted_on_scans(meta: dict[str, Any], recording: str | Path) -> bool:
     not a cross-scene test."""
     return any(isinstance(rec, dict) and _inside(rec.get("recording"), recording)
                for node in lineage(meta) for rec in (node.get("unlabelled_scans") or []))
+
+
+TRAIN_SEEDS_FLAG = re.compile(r"--train-seeds[ =](\S+)")
+
+
+def trained_seeds(meta: dict[str, Any]) -> set[int]:
+    """The synthetic seeds whose labelled scans trained a weights file: its ``source.train_seeds`` along its lineage,
+    and every ``--train-seeds`` of the recipe or command it records (the shipped files were fine-tuned in several
+    steps, each on other seeds). A recalibration or a hold-out score on any of them would grade the network on
+    scans it learnt: ``recalibrate-detector`` and ``eval-detector`` refuse them."""
+    from ...cli_common import seed_range  # the CLI's own reading of "0-49,60"
+
+    texts: list[str] = []
+    for node in lineage(meta):
+        source = node.get("source")
+        if isinstance(source, dict) and isinstance(source.get("train_seeds"), str):
+            texts.append(source["train_seeds"])
+        for key in ("recipe", "command"):
+            texts += TRAIN_SEEDS_FLAG.findall(str(node.get(key, "")))
+    seeds: set[int] = set()
+    for text in texts:
+        try:
+            seeds |= seed_range(text.strip("'\",]"))
+        except ValueError:  # a hand-edited record: what cannot be read cannot be checked
+            continue
+    return seeds
+
+
+def seeds_refusal(flag: str, asked: Sequence[int], meta: dict[str, Any]) -> str | None:
+    """The one-line refusal of ``asked`` seeds that trained the weights (:func:`trained_seeds`), or None."""
+    taken = sorted(set(asked) & trained_seeds(meta))
+    if not taken:
+        return None
+    shown = ", ".join(map(str, taken[:5])) + (" …" if len(taken) > 5 else "")
+    return (f"{flag}: seed(s) {shown} trained these weights (their recorded --train-seeds); give seeds the network"
+            " never learnt from")

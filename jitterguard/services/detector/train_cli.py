@@ -641,8 +641,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                                                    " scans, recordings with poses) or keep (the source"
                                                    " weights').")] = "synthetic",
         recalibration_seeds: Annotated[str, typer.Option("--recalibration-seeds", help="Synthetic seeds of"
-                                                         " --recalibration synthetic (ideal and effect scans).")
-                                       ] = "20-39",
+                                                         " --recalibration synthetic (ideal and effect scans; not"
+                                                         " the weights' training seeds).")
+                                       ] = "60-79",
         self_crop: Annotated[bool, typer.Option("--self-crop/--no-self-crop", help="Drop the returns of the"
                                                 " vehicle's own body from the real scans first (the service's"
                                                 " default self_crop).")] = True,
@@ -694,6 +695,12 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             model, source_rec, source_meta = load_weights(weights)
         except WeightsError as exc:
             fail(f"--weights: {exc}")
+        if recalibration == "synthetic":  # scales fitted on scans the network learnt come out too small
+            from .provenance import seeds_refusal
+
+            if why := seeds_refusal("--recalibration-seeds", parse_seeds(recalibration_seeds, "--recalibration-seeds"),
+                                    source_meta):
+                fail(why)
         if flips:
             from .flips import check_symmetric
 
@@ -886,6 +893,11 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         except ValueError as exc:  # flips on a grid that is not symmetric about the sensor
             fail(f"--flips: {exc}")
         check_preset(preset, weights, det.config.name)
+        if nuscenes is None:  # a hold-out score on scans the network learnt is no hold-out score
+            from .provenance import seeds_refusal
+
+            if why := seeds_refusal("--seeds", sd, det.meta):
+                fail(why)
         if sweeps is not None:
             if sweeps > 1 and det.config.num_point_features < 5:
                 fail(f"--sweeps: these weights take one sweep (4 point fields), got {sweeps}")
@@ -964,7 +976,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
                                          " cache and the calibration PNGs.")],
         scenarios: Annotated[str, typer.Option("--scenarios")] = DEFAULT_SCENARIOS,
         seeds: Annotated[str, typer.Option("--seeds", help="Synthetic seeds to fit on: neither the weights'"
-                                           " training seeds nor the hold-out seeds 1000+.")] = "20-39",
+                                           " training seeds (refused) nor the hold-out seeds 1000+.")] = "60-79",
         frames: Annotated[int, typer.Option("--frames-per-scenario", min=1, max=600)] = 10,
         effects: Annotated[str, typer.Option("--effects", help="Scan recipes, '+'-joined (as train's --effects):"
                                              " fit on scans like the training mix.")] = "none+random",
@@ -997,6 +1009,10 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             fail(f"--weights: {exc}")
         if not det.config.uncertainty:
             fail("--weights: a vanilla model predicts no variances to recalibrate")
+        from .provenance import seeds_refusal
+
+        if why := seeds_refusal("--seeds", parse_seeds(seeds, "--seeds"), det.meta):  # scales fitted on scans
+            fail(why)  # the network learnt would be too small for the scans it has not
         out_files("--out", out_dir("--out", out), ("weights.pt", "recalibration.json"))  # after the flags and weights are checked, before any work
         try:
             rec, fitted = fit_synthetic_recalibration(det, Path(out), scen, seeds, frames, effect_sets, bins, progress,
