@@ -1017,8 +1017,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         try:
             rec, fitted = fit_synthetic_recalibration(det, Path(out), scen, seeds, frames, effect_sets, bins, progress,
                                                       workers)
-        except ValueError as exc:
-            fail(f"--seeds: {exc}")
+        except ValueError as exc:  # no true positives: the weights' doing as much as the seeds' (the scans stay cached)
+            fail(f"--weights {weights} on --seeds {seeds}: {exc}")
 
         root = Path(out)
         fit_on = fitted["fit_on"]
