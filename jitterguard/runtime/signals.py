@@ -10,9 +10,10 @@ main thread has let go of them.
 
 from __future__ import annotations
 
+import contextlib
 import signal
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 STOP_SIGNALS: tuple[signal.Signals, ...] = (signal.SIGINT, signal.SIGTERM)
 
@@ -29,3 +30,23 @@ def stop_on_signals(stop: Callable[[], object], signals: tuple[signal.Signals, .
     for sig in signals:
         signal.signal(sig, handler)
     return True
+
+
+@contextlib.contextmanager
+def sigterm_as_exit() -> Iterator[None]:
+    """Within the block, SIGTERM raises ``SystemExit(143)`` in the main thread, so the command's ``finally`` and
+    ``except`` clauses remove what it had half written, as they do for Ctrl-C (Python's default SIGTERM ends the
+    process at once: `sim generate` had left its ``.NAME.PID.part`` file). For one-shot commands, not services: a
+    service's stop goes through :func:`stop_on_signals`. Off the main thread it changes nothing."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum: int, _frame: object) -> None:
+        raise SystemExit(128 + signum)
+
+    old = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)

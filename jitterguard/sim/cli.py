@@ -18,6 +18,7 @@ from typing import Annotated, Any, TextIO
 import typer
 
 from ..cli_common import ProgressOpt, check_seed, fail, is_png, out_file, progress_on, refuse_foreign_file
+from ..runtime.signals import sigterm_as_exit
 
 sim_app = typer.Typer(help="Synthetic world: scenarios with ground truth, ray-cast LiDAR, nuScenes export.",
                       no_args_is_help=True)
@@ -122,37 +123,38 @@ def generate_command(
         refuse_foreign_file("--out", out, lambda head: head.startswith(b'{"seq": '), "ground truth written by"
                             " `sim generate`")
     fh, part = _open_out(out) if out else (None, None)
-    try:
-        frames = _bar(iter(sc), sc.num_frames, scenario, progress_on(progress))
-        first = last = None
-        for frame in frames:
-            if spec is not None:
-                _, frame = cast_frame(frame, spec, seed)
-            attrs.update(frame.attributes)
-            ids.update(frame.instance_ids.tolist())
-            first = first or frame
-            last = frame
+    with sigterm_as_exit():  # a SIGTERM removes the part file as Ctrl-C does
+        try:
+            frames = _bar(iter(sc), sc.num_frames, scenario, progress_on(progress))
+            first = last = None
+            for frame in frames:
+                if spec is not None:
+                    _, frame = cast_frame(frame, spec, seed)
+                attrs.update(frame.attributes)
+                ids.update(frame.instance_ids.tolist())
+                first = first or frame
+                last = frame
+                if fh is not None:
+                    line = json.dumps(_frame_json(frame, sc.categories)) + "\n"
+                    try:
+                        fh.write(line)
+                    except OSError as exc:
+                        fail(f"--out: cannot write {out}: {exc.strerror or exc}")
             if fh is not None:
-                line = json.dumps(_frame_json(frame, sc.categories)) + "\n"
                 try:
-                    fh.write(line)
+                    fh.close()  # a full disk may only show here, when the buffer is flushed
+                    if part is not None:
+                        os.replace(part, out)
                 except OSError as exc:
                     fail(f"--out: cannot write {out}: {exc.strerror or exc}")
-        if fh is not None:
-            try:
-                fh.close()  # a full disk may only show here, when the buffer is flushed
-                if part is not None:
-                    os.replace(part, out)
-            except OSError as exc:
-                fail(f"--out: cannot write {out}: {exc.strerror or exc}")
-            part = None
-    finally:
-        if fh is not None and not fh.closed:
-            with contextlib.suppress(OSError):  # already failing: the first error is the one reported
-                fh.close()
-        if part is not None:
-            with contextlib.suppress(OSError):
-                os.unlink(part)
+                part = None
+        finally:
+            if fh is not None and not fh.closed:
+                with contextlib.suppress(OSError):  # already failing: the first error is the one reported
+                    fh.close()
+            if part is not None:
+                with contextlib.suppress(OSError):
+                    os.unlink(part)
     summary = {
         "scenario": scenario, "seed": seed, "frames": sc.num_frames, "rate_hz": rate,
         "instances_seen": len(ids), "annotations": sum(attrs.values()), "attributes": dict(sorted(attrs.items())),
@@ -185,6 +187,10 @@ def export_command(
         fail(f"{dataroot}: exists and is not a folder")
     if (root / "v1.0-mini").exists():
         fail(f"{dataroot}: already holds a v1.0-mini dataroot; choose an empty folder")
+    from .export import export_scenario
+    from .sensors import SENSORS
+    from .world import make_scenario
+
     # the folder made and tried before the scans are cast (a minute for 60 s): it had failed only after them
     created = not root.exists()
     try:
@@ -194,19 +200,18 @@ def export_command(
         probe.unlink()
     except OSError as exc:
         fail(f"{dataroot}: cannot write: {exc.strerror or exc}")
-    from .export import export_scenario
-    from .sensors import SENSORS
-    from .world import make_scenario
-
-    sc = make_scenario(scenario, seed, duration_s=duration, rate_hz=rate)
     show = progress_on(progress)
     try:
-        sizes = export_scenario(sc, str(root), SENSORS[lidar](), seed, min_points=min_points,
-                                progress=lambda it: _bar(it, sc.num_frames, f"export {scenario}", show))
-    except OSError as exc:  # export_scenario removed what it wrote: no half-written dataroot is left
-        if created:
+        with sigterm_as_exit():  # from here on a stop removes the folder it made (the scenario takes seconds too)
+            sc = make_scenario(scenario, seed, duration_s=duration, rate_hz=rate)
+            sizes = export_scenario(sc, str(root), SENSORS[lidar](), seed, min_points=min_points,
+                                    progress=lambda it: _bar(it, sc.num_frames, f"export {scenario}", show))
+    except BaseException as exc:  # export_scenario removed what it wrote: no half-written dataroot is left
+        if created:  # nor the folder it was made for (Ctrl-C or SIGTERM had left it, empty)
             with contextlib.suppress(OSError):
                 root.rmdir()
+        if not isinstance(exc, OSError):
+            raise
         where = f" {exc.filename}" if exc.filename and os.fspath(exc.filename) != str(root) else ""
         fail(f"{dataroot}: cannot write{where}: {exc.strerror or exc}")
     print(json.dumps({"dataroot": str(root), "version": "v1.0-mini", "scenario": scenario, "seed": seed,

@@ -37,7 +37,7 @@ from ..schemas import keys
 from ..services.classifier.config_writes import api_token_from_env
 from ..services.replay import cli as R  # the replay's own option declarations, shared with `up`
 from ..services.replay.options import absolute_source
-from ..services.replay.sources import SourceError, probe_source
+from ..services.replay.sources import SourceError, SourceOptions, probe_source
 from ..services.sidecar.core import bind_refusal
 from . import summary
 from .control import (StackUnavailable, Supervisor, orphans, read_pid, running_run_dirs, stop_lost, stop_orphans,
@@ -502,7 +502,10 @@ def _check_source(source: str | None, input_level: str, ropts: "R.ReplayOptions"
     ropts = ropts.absolute()
     try:
         src_opts = ropts.check()
-        info = probe_source(src or DEFAULT_SOURCE, src_opts, start=ropts.start, duration_flag=SCENARIO_DURATION)
+        # the source's kind first, its seed left out: a nuScenes scene takes --seed only at the level the stack
+        # replays it at (detections, for --input detections), judged by the probe below
+        kind_opts = replace(src_opts, seed=SourceOptions().seed)
+        info = probe_source(src or DEFAULT_SOURCE, kind_opts, start=ropts.start, duration_flag=SCENARIO_DURATION)
         if info.kind == "detections":  # a bag of DetectedObjects: its own level
             if input_level == "points":
                 fail(f"{source}: holds detections ({info.name}); --input points needs scans")
@@ -511,6 +514,7 @@ def _check_source(source: str | None, input_level: str, ropts: "R.ReplayOptions"
             mode = input_mode(StackSpec(input=input_level))
         if mode == "detections" and info.kind == "points":
             ropts = replace(ropts, level="detections")
+        if ropts.level != src_opts.level or kind_opts != src_opts:
             info = probe_source(src or DEFAULT_SOURCE, ropts.check(), start=ropts.start,
                                 duration_flag=SCENARIO_DURATION)
     except (ValueError, SourceError) as exc:

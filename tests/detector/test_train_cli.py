@@ -288,6 +288,8 @@ def test_fit_recalibration_weights_keep_the_training_metadata(tmp_path: Path) ->
     assert res.returncode == 0, res.stderr[-2000:]
     _, rec, meta = load_weights(out / "weights.pt")
     assert rec is not None  # the weights.pt written after the fit (it used to drop what train() recorded)
+    # two scans' boxes: a thin fit, said as recalibrate-detector says it (train had said nothing)
+    assert "asked, on" in res.stderr and "give a steadier fit" in res.stderr, res.stderr[-2000:]
     assert meta["train_config"]["batch_size"] == 1 and meta["world_size"] == 1 and meta["epochs"] == 1
     assert meta["augment"]["rotation_deg"] == 45.0 and meta["source"]["train_seeds"] == "0-1"
 

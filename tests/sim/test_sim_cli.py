@@ -149,3 +149,27 @@ def test_an_out_file_of_another_kind_is_refused_and_the_commands_own_is_replaced
     r = run("sim", "bev", "mixed", "--duration", "0.5", "--out", str(picture))
     assert r.exit_code == 2 and "exists and is not a PNG" in r.output, r.output
     assert picture.read_text() == "not a picture\n"
+
+
+@pytest.mark.parametrize("command", ["generate", "export"])
+def test_a_sigterm_mid_run_leaves_nothing_half_written(tmp_path, command) -> None:
+    """SIGTERM had ended `sim generate` at once, leaving its `.NAME.PID.part` file, and Ctrl-C or SIGTERM left
+    `sim export`'s dataroot folder behind, empty. Both now clean up as for a failed write, exit 143."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    target = tmp_path / ("gt.jsonl" if command == "generate" else "root")
+    args = (["generate", "mixed", "--lidar", "hdl32e", "--out", str(target)] if command == "generate"
+            else ["export", "mixed", str(target)])
+    proc = subprocess.Popen([sys.executable, "-m", "jitterguard.cli", "sim", *args, "--duration", "60",
+                             "--no-progress"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and not any(tmp_path.iterdir()):  # the part file or the folder is made
+        time.sleep(0.05)
+    time.sleep(1.0)  # and the scans are being cast
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 143, err[-2000:]
+    assert list(tmp_path.iterdir()) == [], list(tmp_path.iterdir())

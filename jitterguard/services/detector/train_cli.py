@@ -272,6 +272,19 @@ def fit_seeds(text: str, flag: str) -> list[int]:
     return seeds
 
 
+def warn_thin_fit(rec: Any, bins: int, dets: list[Any], items: list[Any]) -> int:
+    """Warn when a recalibration came out in fewer score bins than asked, or on few matched boxes (it had been said
+    only by "bins" in the report; `train --fit-recalibration` had said nothing at all); returns the matches."""
+    from .evaluate import RECALIBRATION_MIN_PER_BIN, matched_residuals
+
+    matches = len(matched_residuals(dets, items))
+    if len(rec.scales) < bins or matches < RECALIBRATION_MIN_PER_BIN:
+        log.warning("the variance scales were fitted in %d score bin(s), %d asked, on %d matched boxes of %d scans"
+                    " (%d a bin wanted): more seeds or frames per scenario give a steadier fit", len(rec.scales),
+                    bins, matches, len(items), RECALIBRATION_MIN_PER_BIN)
+    return matches
+
+
 def fit_synthetic_recalibration(det: Any, root: Path, scenarios: list[str], seeds_text: str, frames: int,
                                 effect_sets: list[str], bins: int, progress: bool,
                                 workers: int = 0) -> tuple[Any, dict[str, Any]]:
@@ -283,7 +296,7 @@ def fit_synthetic_recalibration(det: Any, root: Path, scenarios: list[str], seed
     after. Raises ValueError when nothing matches."""
     from tqdm import tqdm
 
-    from .evaluate import RECALIBRATION_MIN_PER_BIN, apply_recalibration, fit_recalibration, matched_residuals
+    from .evaluate import apply_recalibration, fit_recalibration
 
     seeds = parse_seeds(seeds_text, "--seeds")
     items: list[Any] = []
@@ -293,11 +306,7 @@ def fit_synthetic_recalibration(det: Any, root: Path, scenarios: list[str], seed
         items += [view[i] for i in range(len(view))]
     dets = [det.detect(s.points) for s in tqdm(items, unit="scan", file=sys.stderr, disable=not progress)]
     rec = fit_recalibration(dets, items, bins=bins)
-    matches = len(matched_residuals(dets, items))
-    if len(rec.scales) < bins or matches < RECALIBRATION_MIN_PER_BIN:  # it had been said only by "bins" in the report
-        log.warning("the variance scales were fitted in %d score bin(s), %d asked, on %d matched boxes of %d scans"
-                    " (%d a bin wanted): more seeds or frames per scenario give a steadier fit", len(rec.scales),
-                    bins, matches, len(items), RECALIBRATION_MIN_PER_BIN)
+    matches = warn_thin_fit(rec, bins, dets, items)
     before = write_report(root, "before", dets, items)["summary"]
     after = write_report(root, "after", [apply_recalibration(d, rec) for d in dets], items)["summary"]
     keys = ("positional_ece", "coverage_1sigma", "nll")
@@ -603,7 +612,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         if fit_recalibration and model.config.uncertainty:
             fit_list = val_list + [_Prepared(part, pcr, level_scans)[i] for part in recal_extra for i in range(len(part))]
             try:
-                rec = fit_scales(dets + predict(model, fit_list[len(val_list):]), fit_list, bins=recalibration_bins)
+                fit_dets = dets + predict(model, fit_list[len(val_list):])
+                rec = fit_scales(fit_dets, fit_list, bins=recalibration_bins)
+                warn_thin_fit(rec, recalibration_bins, fit_dets, fit_list)
             except ValueError as exc:  # no true positives yet (a tiny run): keep the raw variances
                 log.warning("no recalibration fitted: %s", exc)
         if fit_recalibration:  # train() left weights.pt to us: its metadata (train_config, world_size) plus the fit
