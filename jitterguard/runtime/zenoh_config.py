@@ -190,12 +190,14 @@ def tls_file_refusal(cfg: zenoh.Config) -> str | None:
     endpoints = config_endpoints(cfg)
     if not any(e.startswith(("tls/", "quic/")) for e in endpoints):
         return None
+    # a TLS listener needs its certificate and key: zenoh's own "Missing TLS private key" came only once the
+    # session was tried, as a log line
     tls_listen = [e for e in listen_endpoints(cfg) if e.startswith(("tls/", "quic/"))]
-    for key in ("listen_certificate", "listen_private_key"):  # zenoh's own "Missing TLS private key" came as a
-        if tls_listen and not _get(cfg, f"transport/link/tls/{key}") \
-                and not _get(cfg, f"transport/link/tls/{key}_base64"):  # log line after the session was tried
-            return (f"the listener {tls_listen[0]} needs transport/link/tls/{key} (its file) in the --zenoh-config"
-                    " file (see docs/deployment.md)")
+    missing = [key for key in ("listen_certificate", "listen_private_key")
+               if not _get(cfg, f"transport/link/tls/{key}") and not _get(cfg, f"transport/link/tls/{key}_base64")]
+    if tls_listen and missing:
+        return (f"the listener {tls_listen[0]} needs transport/link/tls/{missing[0]} (its file) in the --zenoh-config"
+                " file (see docs/deployment.md)")
     for key in TLS_FILE_KEYS:
         path = _get(cfg, f"transport/link/tls/{key}")
         if not isinstance(path, str) or not path:

@@ -144,7 +144,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
         """Run a Zenoh router in this Python process (no separate zenohd binary needed)."""
         from ...runtime import setup_logging
         from ...runtime.router import router_config, run_router
-        from ...runtime.zenoh_config import UnusableConfig, config_endpoints, tls_file_refusal
+        from ...runtime.zenoh_config import UnusableConfig, config_endpoints
 
         check_endpoints(list(listen or ()))
         try:
@@ -153,11 +153,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
             fail(str(exc))
         # the file's endpoints too (a port of 99999 had come out as a log line, "invalid port value")
         check_endpoints(config_endpoints(cfg), f"--zenoh-config {zenoh_config}: " if zenoh_config else "")
-        if reason := tls_file_refusal(cfg):  # before the logging: one `jitterguard: error:` line, as every service
-            fail(f"cannot open the Zenoh session: {reason}")
         setup_logging(log_level)
         try:
             run_router(list(listen or ()), zenoh_config)
-        except UnusableConfig as exc:  # zenoh's own refusal (a certificate not PEM): the same one line
+        except UnusableConfig as exc:  # a TLS file or setting missing, or zenoh's own refusal: one line, exit 2
             fail(str(exc))
 

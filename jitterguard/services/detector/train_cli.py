@@ -25,7 +25,7 @@ from ...cli_common import (ProgressOpt, SensorHeightOpt, SensorTiltOpt, fail, fl
 from ...files import not_a_file, not_a_folder
 from .augment import CENTERPOINT_SAMPLE_COUNTS
 from .config import CLASS_NAMES, PRESETS
-from .provenance import init_provenance
+from .provenance import init_provenance, seeds_refusal
 
 log = logging.getLogger(__name__)
 
@@ -681,7 +681,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         _effects(effects)
         if recalibration not in RECALIBRATION_MODES:
             fail(f"--recalibration: expected one of {', '.join(RECALIBRATION_MODES)}, got {recalibration!r}")
-        fit_seeds(recalibration_seeds, "--recalibration-seeds")
+        recal_seeds = fit_seeds(recalibration_seeds, "--recalibration-seeds")
         thr = _class_values(threshold, "--threshold", DEFAULT_PSEUDO_THRESHOLDS, float, lambda v: 0.0 < v < 1.0,
                             "SCORE", " and 0 < SCORE < 1")
         scen = _scenarios(scenarios)
@@ -706,12 +706,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             model, source_rec, source_meta = load_weights(weights)
         except WeightsError as exc:
             fail(f"--weights: {exc}")
-        if recalibration == "synthetic":  # scales fitted on scans the network learnt come out too small
-            from .provenance import seeds_refusal
-
-            if why := seeds_refusal("--recalibration-seeds", parse_seeds(recalibration_seeds, "--recalibration-seeds"),
-                                    source_meta):
-                fail(why)
+        # scales fitted on scans the network learnt come out too small for the scans it has not
+        if recalibration == "synthetic" and (why := seeds_refusal("--recalibration-seeds", recal_seeds, source_meta)):
+            fail(why)
         if flips:
             from .flips import check_symmetric
 
@@ -904,11 +901,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         except ValueError as exc:  # flips on a grid that is not symmetric about the sensor
             fail(f"--flips: {exc}")
         check_preset(preset, weights, det.config.name)
-        if nuscenes is None:  # a hold-out score on scans the network learnt is no hold-out score
-            from .provenance import seeds_refusal
-
-            if why := seeds_refusal("--seeds", sd, det.meta):
-                fail(why)
+        # a hold-out score on scans the network learnt is no hold-out score
+        if nuscenes is None and (why := seeds_refusal("--seeds", sd, det.meta)):
+            fail(why)
         if sweeps is not None:
             if sweeps > 1 and det.config.num_point_features < 5:
                 fail(f"--sweeps: these weights take one sweep (4 point fields), got {sweeps}")
@@ -1003,7 +998,7 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
         if why := not_a_file(weights):
             fail(f"--weights: {why}")
         scen = _scenarios(scenarios)
-        fit_seeds(seeds, "--seeds")
+        fit_on_seeds = fit_seeds(seeds, "--seeds")
         effect_sets = effects.split("+")
         for e in effect_sets:
             _effects(e)
@@ -1020,10 +1015,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:  # noqa: ARG001 
             fail(f"--weights: {exc}")
         if not det.config.uncertainty:
             fail("--weights: a vanilla model predicts no variances to recalibrate")
-        from .provenance import seeds_refusal
-
-        if why := seeds_refusal("--seeds", parse_seeds(seeds, "--seeds"), det.meta):  # scales fitted on scans
-            fail(why)  # the network learnt would be too small for the scans it has not
+        if why := seeds_refusal("--seeds", fit_on_seeds, det.meta):  # scales fitted on scans the network learnt
+            fail(why)  # come out too small for the scans it has not
         out_files("--out", out_dir("--out", out), ("weights.pt", "recalibration.json"))  # after the flags and weights are checked, before any work
         try:
             rec, fitted = fit_synthetic_recalibration(det, Path(out), scen, seeds, frames, effect_sets, bins, progress,

@@ -60,6 +60,8 @@ class SourceOptions:
 _DEFAULTS = SourceOptions()
 PACED_BY_HZ = {"--hz"}
 """Readers of recordings without their own clock (KITTI without times.txt, .pcd): ``--hz`` spaces their stamps."""
+KITTI_FLAGS = {"--poses", "--calib", "--times", "--bin-fields"} | PACED_BY_HZ
+"""What a folder of (or one) KITTI ``.bin`` scan takes."""
 
 
 def _only_for(opts: SourceOptions, kind: str, allowed: set[str], *, duration_flag: str = "--duration") -> None:
@@ -151,8 +153,7 @@ def open_source(spec: str, opts: SourceOptions | None = None, *, duration_flag: 
             _only_for(opts, "PCD", PACED_BY_HZ, duration_flag=duration_flag)
             return PcdSource(path, period_ns=opts.period_ns)
         if has_bin:
-            _only_for(opts, "KITTI .bin", {"--poses", "--calib", "--times", "--bin-fields"} | PACED_BY_HZ,
-                      duration_flag=duration_flag)
+            _only_for(opts, "KITTI .bin", KITTI_FLAGS, duration_flag=duration_flag)
             return BinScanSource(
                 path, poses=opts.poses, calib=opts.calib, times=opts.times, fields=opts.bin_fields, period_ns=opts.period_ns
             )
@@ -168,8 +169,7 @@ def open_source(spec: str, opts: SourceOptions | None = None, *, duration_flag: 
             f"{path}: cannot tell what this folder is (no nuScenes tables, bag metadata.yaml, .bin or .pcd files)"
         )
     if path.name.lower().endswith(".bin"):  # cameras and Windows tools write .BIN as well
-        _only_for(opts, "KITTI .bin", {"--poses", "--calib", "--times", "--bin-fields"} | PACED_BY_HZ,
-                      duration_flag=duration_flag)
+        _only_for(opts, "KITTI .bin", KITTI_FLAGS, duration_flag=duration_flag)
         return BinScanSource(path, poses=opts.poses, calib=opts.calib, times=opts.times, fields=opts.bin_fields, period_ns=opts.period_ns)
     if path.suffix.lower() == ".pcd":
         _only_for(opts, "PCD", PACED_BY_HZ, duration_flag=duration_flag)
